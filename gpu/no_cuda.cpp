@@ -1,0 +1,18 @@
+// The GPU layer in a build without CUDA: every entry point says so, callers fall back to the CPU.
+#include "pbig.h"
+
+namespace zone::gpu {
+
+bool built_with_cuda() { return false; }
+
+bool device_available(device_info* /*info*/, std::string* why) {
+  if (why) *why = "this build has no GPU backend (configured without CUDA)";
+  return false;
+}
+
+std::unique_ptr<interest::pair_finder> make_pbig_finder(const pbig_options& /*options*/, std::string* why) {
+  device_available(nullptr, why);
+  return nullptr;
+}
+
+}  // namespace zone::gpu

@@ -1,0 +1,2 @@
+// Box files: written by the box-file work (see interest.h for the API).
+#include "interest.h"

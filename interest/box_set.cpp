@@ -1,0 +1,150 @@
+#include <algorithm>
+#include <cmath>
+#include <sstream>
+
+#include "interest.h"
+
+namespace zone::interest {
+
+void box_set::clear() { resize(0); }
+
+void box_set::reserve(std::size_t n) {
+  for (auto* v : {&lo_x, &lo_y, &lo_z, &hi_x, &hi_y, &hi_z}) v->reserve(n);
+  category.reserve(n);
+  mask.reserve(n);
+}
+
+void box_set::resize(std::size_t n) {
+  for (auto* v : {&lo_x, &lo_y, &lo_z, &hi_x, &hi_y, &hi_z}) v->resize(n, 0.0f);
+  category.resize(n, 1u);
+  mask.resize(n, 1u);
+}
+
+void box_set::push_back(const box& b) {
+  lo_x.push_back(b.lo[0]);
+  lo_y.push_back(b.lo[1]);
+  lo_z.push_back(b.lo[2]);
+  hi_x.push_back(b.hi[0]);
+  hi_y.push_back(b.hi[1]);
+  hi_z.push_back(b.hi[2]);
+  category.push_back(b.category);
+  mask.push_back(b.mask);
+}
+
+void box_set::set(std::size_t i, const box& b) {
+  lo_x[i] = b.lo[0];
+  lo_y[i] = b.lo[1];
+  lo_z[i] = b.lo[2];
+  hi_x[i] = b.hi[0];
+  hi_y[i] = b.hi[1];
+  hi_z[i] = b.hi[2];
+  category[i] = b.category;
+  mask[i] = b.mask;
+}
+
+box box_set::get(std::size_t i) const {
+  box b;
+  b.lo[0] = lo_x[i];
+  b.lo[1] = lo_y[i];
+  b.lo[2] = lo_z[i];
+  b.hi[0] = hi_x[i];
+  b.hi[1] = hi_y[i];
+  b.hi[2] = hi_z[i];
+  b.category = category[i];
+  b.mask = mask[i];
+  return b;
+}
+
+std::optional<box_error> validate_box(const box& b, std::size_t index) {
+  static constexpr char axis_name[3] = {'x', 'y', 'z'};
+  for (int d = 0; d < 3; ++d) {
+    for (const auto& [value, which] : {std::pair{b.lo[d], "lo"}, std::pair{b.hi[d], "hi"}}) {
+      if (!std::isfinite(value)) {
+        std::ostringstream msg;
+        msg << "box " << index << ": " << which << '.' << axis_name[d] << " is " << (std::isnan(value) ? "NaN" : "infinite");
+        return box_error{index, msg.str()};
+      }
+    }
+    if (b.lo[d] > b.hi[d]) {
+      std::ostringstream msg;
+      msg << "box " << index << ": lo." << axis_name[d] << " = " << b.lo[d] << " > hi." << axis_name[d] << " = " << b.hi[d];
+      return box_error{index, msg.str()};
+    }
+  }
+  return std::nullopt;
+}
+
+std::optional<box_error> validate(const box_set& boxes) {
+  const std::size_t n = boxes.size();
+  // Fast vectorisable scan first; only on a failure find and describe the first bad box.
+  bool ok = true;
+  for (std::size_t i = 0; i < n; ++i) {
+    // (lo <= hi) is false for NaN; the finite test catches infinities.
+    const bool good = boxes.lo_x[i] <= boxes.hi_x[i] && boxes.lo_y[i] <= boxes.hi_y[i] && boxes.lo_z[i] <= boxes.hi_z[i] &&
+                      std::isfinite(boxes.lo_x[i]) && std::isfinite(boxes.hi_x[i]) && std::isfinite(boxes.lo_y[i]) &&
+                      std::isfinite(boxes.hi_y[i]) && std::isfinite(boxes.lo_z[i]) && std::isfinite(boxes.hi_z[i]);
+    ok &= good;
+  }
+  if (ok) return std::nullopt;
+  for (std::size_t i = 0; i < n; ++i) {
+    if (auto err = validate_box(boxes.get(i), i)) return err;
+  }
+  return std::nullopt;
+}
+
+std::optional<box_error> pair_finder::find(const box_set& boxes, pair_list& out) {
+  out.clear();
+  if (auto err = validate(boxes)) return err;
+  stats_ = {};
+  find_valid(boxes, out);
+  return std::nullopt;
+}
+
+void sort_canonical(pair_list& pairs, std::size_t box_count) {
+  for (auto& p : pairs) {
+    if (p.a > p.b) std::swap(p.a, p.b);
+  }
+  if (pairs.size() < 2) return;
+  if (box_count == 0 || pairs.size() < box_count / 8) {
+    std::sort(pairs.begin(), pairs.end());
+    return;
+  }
+  // Bucket by first id (counting sort), then sort each bucket by second id.
+  std::vector<std::uint64_t> start(box_count + 1, 0);
+  for (const auto& p : pairs) ++start[p.a + 1];
+  for (std::size_t i = 0; i < box_count; ++i) start[i + 1] += start[i];
+  std::vector<box_id> second(pairs.size());
+  {
+    std::vector<std::uint64_t> cursor(start.begin(), start.end() - 1);
+    for (const auto& p : pairs) second[cursor[p.a]++] = p.b;
+  }
+  std::size_t k = 0;
+  for (std::size_t a = 0; a < box_count; ++a) {
+    auto first = second.begin() + start[a];
+    auto last = second.begin() + start[a + 1];
+    std::sort(first, last);
+    for (auto it = first; it != last; ++it) pairs[k++] = id_pair{static_cast<box_id>(a), *it};
+  }
+}
+
+adjacency to_adjacency(const pair_list& pairs, std::size_t box_count) {
+  adjacency adj;
+  adj.offsets.assign(box_count + 1, 0);
+  for (const auto& p : pairs) {
+    ++adj.offsets[p.a + 1];
+    ++adj.offsets[p.b + 1];
+  }
+  for (std::size_t i = 0; i < box_count; ++i) adj.offsets[i + 1] += adj.offsets[i];
+  adj.neighbors.resize(adj.offsets[box_count]);
+  std::vector<std::uint32_t> cursor(adj.offsets.begin(), adj.offsets.end() - 1);
+  for (const auto& p : pairs) {
+    adj.neighbors[cursor[p.a]++] = p.b;
+    adj.neighbors[cursor[p.b]++] = p.a;
+  }
+  for (std::size_t i = 0; i < box_count; ++i) {
+    std::sort(adj.neighbors.begin() + adj.offsets[i], adj.neighbors.begin() + adj.offsets[i + 1]);
+  }
+  return adj;
+}
+
+}  // namespace zone::interest

@@ -1,0 +1,430 @@
+// The fast CPU finder: the PBIG algorithm's grid ideas, run on CPU threads.
+//
+// Why a uniform grid and not CGAL's streaming segment tree or a sweep: the boxes of a zone are
+// many, small and evenly sized, so with the cell edge chosen by Eq. 6 a cell holds a handful of
+// boxes, every step is a linear pass (count, scan, map) or a tiny all-pairs test, the work splits
+// over threads without locks, and the output-cell rule makes each pair appear once without a
+// de-duplication pass. docs/benchmarks.md has the measurements against CGAL.
+//
+// Steps of one call:
+//  1. bounds: the scene's bounding box (the grid's origin and extent);
+//  2. plan (plan_grid): the cubic cell edge by Eq. 6, W = options.min_boxes_per_cell;
+//  3. classify: a box that would occupy far more cells than the average is "large" and kept out
+//     of the grid (memory stays linear however big a few boxes are);
+//  4. count, scan, map: (cell, box) entries of the other boxes, cell-sorted; each cell's list is
+//     sorted by box id so the output order does not depend on thread timing;
+//  5. check: per cell, every pair once; reported only in the cell holding the max corner of the
+//     pair's intersection, i.e. the cell whose coordinate on each axis is min(hi-cell of a,
+//     hi-cell of b): both boxes occupy that cell (monotone cell mapping), so exactly one cell
+//     reports each intersecting pair;
+//  6. large boxes: each walks the grid cells it covers (same output-cell rule against the grid's
+//     boxes), and the large boxes are tested among themselves directly.
+// Cells are split into a fixed number of chunks (independent of the thread count) and the chunks'
+// outputs are concatenated in order: the same input gives the same output with any thread count.
+#include <algorithm>
+#include <atomic>
+#include <cmath>
+#include <cstring>
+#include <utility>
+#include <limits>
+#include <random>
+
+#include "interest.h"
+
+namespace zone::interest {
+namespace {
+
+/// One box as the check loop reads it: bounds, filter bits and the cell of its max corner.
+struct packed_box {
+  float lo[3];
+  float hi[3];
+  std::uint32_t category;
+  std::uint32_t mask;
+  std::int32_t hi_cell[3];
+  std::int32_t lo_cell[3];
+};
+
+/// Cell coordinate of x on one axis: floor((x - origin) / edge), clamped to the grid. The same
+/// function maps lo and hi corners everywhere, so it is monotone and consistent.
+struct cell_mapper {
+  double origin[3];
+  double inv_edge[3];
+  std::int32_t last[3];  // dims - 1
+  [[nodiscard]] std::int32_t operator()(float x, int d) const {
+    const double c = std::floor((static_cast<double>(x) - origin[d]) * inv_edge[d]);
+    if (c <= 0.0) return 0;
+    if (c >= static_cast<double>(last[d])) return last[d];
+    return static_cast<std::int32_t>(c);
+  }
+};
+
+cell_mapper make_mapper(const grid_plan& p) {
+  cell_mapper m{};
+  for (int d = 0; d < 3; ++d) {
+    m.origin[d] = p.origin[d];
+    m.inv_edge[d] = 1.0 / p.cell_edge;
+    m.last[d] = static_cast<std::int32_t>(p.dims[d]) - 1;
+  }
+  return m;
+}
+
+struct bounds {
+  float lo[3]{std::numeric_limits<float>::max(), std::numeric_limits<float>::max(), std::numeric_limits<float>::max()};
+  float hi[3]{std::numeric_limits<float>::lowest(), std::numeric_limits<float>::lowest(), std::numeric_limits<float>::lowest()};
+};
+
+bounds scene_bounds(const box_set& s, thread_pool* pool) {
+  const std::size_t n = s.size();
+  const std::size_t chunks = std::clamp<std::size_t>(n / 65536, 1, 64);
+  std::vector<bounds> part(chunks);
+  const float* lo[3] = {s.lo_x.data(), s.lo_y.data(), s.lo_z.data()};
+  const float* hi[3] = {s.hi_x.data(), s.hi_y.data(), s.hi_z.data()};
+  run_tasks(pool, chunks, [&](std::size_t c) {
+    const std::size_t b = n * c / chunks, e = n * (c + 1) / chunks;
+    for (int d = 0; d < 3; ++d) {
+      float mn = part[c].lo[d], mx = part[c].hi[d];
+      for (std::size_t i = b; i < e; ++i) {
+        mn = std::min(mn, lo[d][i]);
+        mx = std::max(mx, hi[d][i]);
+      }
+      part[c].lo[d] = mn;
+      part[c].hi[d] = mx;
+    }
+  });
+  bounds all;
+  for (const auto& p : part) {
+    for (int d = 0; d < 3; ++d) {
+      all.lo[d] = std::min(all.lo[d], p.lo[d]);
+      all.hi[d] = std::max(all.hi[d], p.hi[d]);
+    }
+  }
+  return all;
+}
+
+/// Grid dimensions for edge l over the given extents: floor(extent / l) + 1 cells per axis.
+void dims_for(const double extent[3], double l, double dims[3]) {
+  for (int d = 0; d < 3; ++d) dims[d] = std::floor(extent[d] / l) + 1.0;
+}
+
+grid_plan plan_from_bounds(const box_set& s, const bounds& b, const grid_finder_options& opt) {
+  grid_plan plan;
+  const std::size_t n = s.size();
+  double extent[3];
+  for (int d = 0; d < 3; ++d) {
+    plan.origin[d] = b.lo[d];
+    extent[d] = std::max(0.0, static_cast<double>(b.hi[d]) - static_cast<double>(b.lo[d]));
+  }
+  const double max_extent = std::max({extent[0], extent[1], extent[2]});
+  // Cells are capped so the counter array stays linear in N, and the cell id fits 32 bits.
+  const double max_cells = std::min(2.0 * static_cast<double>(n) + 64.0, 2147483647.0);
+
+  // The planning sample: a fixed-seed simple random sample (with replacement) of box indices.
+  std::vector<std::size_t> sample;
+  if (n > 0) {
+    const std::size_t k = std::min(n, std::max<std::size_t>(1, opt.alpha_samples));
+    sample.resize(k);
+    if (k == n) {
+      for (std::size_t i = 0; i < k; ++i) sample[i] = i;
+    } else {
+      std::mt19937_64 rng(opt.sample_seed);
+      for (auto& i : sample) i = static_cast<std::size_t>(rng() % n);
+    }
+  }
+
+  // alpha(l): the average number of cells a sampled box occupies, counted exactly with the
+  // candidate grid's cell mapping (the quantity Eq. 4-5 estimate from box and cell lengths).
+  auto alpha_for = [&](double l, const double dims[3]) {
+    if (sample.empty()) return 1.0;
+    double total = 0;
+    const float* lo[3] = {s.lo_x.data(), s.lo_y.data(), s.lo_z.data()};
+    const float* hi[3] = {s.hi_x.data(), s.hi_y.data(), s.hi_z.data()};
+    for (const std::size_t i : sample) {
+      double cells = 1;
+      for (int d = 0; d < 3; ++d) {
+        const double last = dims[d] - 1;
+        const double a = std::clamp(std::floor((lo[d][i] - static_cast<double>(b.lo[d])) / l), 0.0, last);
+        const double z = std::clamp(std::floor((hi[d][i] - static_cast<double>(b.lo[d])) / l), 0.0, last);
+        cells *= z - a + 1;
+      }
+      total += cells;
+    }
+    return total / static_cast<double>(sample.size());
+  };
+
+  auto finish = [&](double l) {
+    double dims[3];
+    dims_for(extent, l, dims);
+    plan.cell_edge = l;
+    for (int d = 0; d < 3; ++d) plan.dims[d] = static_cast<std::uint32_t>(dims[d]);
+    plan.alpha = alpha_for(l, dims);
+    return plan;
+  };
+
+  if (max_extent <= 0.0 || n < 2) return finish(std::max(1.0, max_extent));
+  if (opt.fixed_cell_edge > 0) {
+    // A fixed edge (the cell-size sweep) still respects the cell cap.
+    double l = opt.fixed_cell_edge;
+    double dims[3];
+    for (;;) {
+      dims_for(extent, l, dims);
+      if (dims[0] * dims[1] * dims[2] <= max_cells) break;
+      l *= 1.25;
+    }
+    return finish(l);
+  }
+
+  // Eq. 6: minimise f = N alpha / M subject to f >= W. f grows with l, so the answer is the
+  // smallest l with f(l) >= W (and within the cell cap): binary search on l.
+  const double w = std::max(1.0, opt.min_boxes_per_cell);
+  auto f_of = [&](double l) {  // f(l), or +inf past the cell cap
+    double dims[3];
+    dims_for(extent, l, dims);
+    const double m = dims[0] * dims[1] * dims[2];
+    if (m > max_cells) return std::numeric_limits<double>::infinity();
+    return static_cast<double>(n) * alpha_for(l, dims) / m;
+  };
+  // Smallest l in (lo, hi] with pred(l), assuming pred is false at lo and true at hi.
+  auto bisect = [](double lo_l, double hi_l, auto&& pred) {
+    for (int it = 0; it < 48 && hi_l - lo_l > hi_l * 1e-4; ++it) {
+      const double mid = 0.5 * (lo_l + hi_l);
+      (pred(mid) ? hi_l : lo_l) = mid;
+    }
+    return hi_l;
+  };
+  const double one_cell = max_extent * (1.0 + 1e-6) + 1e-6;  // one cell: f = N
+  auto feasible = [&](double l) { const double f = f_of(l); return std::isfinite(f) && f >= w; };
+  if (!feasible(one_cell)) return finish(one_cell);  // N < W: one cell is the best we can do
+  double lo_l = one_cell;
+  for (int k = 0; k < 200 && feasible(lo_l); ++k) lo_l /= 2;  // bracket from below
+  const double best = bisect(lo_l, one_cell, feasible);
+  // Ties: where f is flat (boxes that all cover each other, so alpha grows as fast as M), every
+  // edge is a minimiser of Eq. 6; take the largest edge whose f is within 5% of the minimum, which
+  // has the fewest redundant checks. Where f rises with l (the usual case) this moves l by ~1%.
+  const double f_best = f_of(best);
+  if (f_of(one_cell) <= f_best * 1.05) return finish(one_cell);
+  const double tie = bisect(best, one_cell, [&](double l) { return f_of(l) > f_best * 1.05; });
+  return finish(tie * (1.0 - 1e-4) > best ? tie * (1.0 - 1e-4) : best);
+}
+
+constexpr std::size_t check_chunk_limit = 512;  // fixed: output order must not depend on threads
+constexpr std::size_t large_chunk_limit = 64;
+
+inline bool boxes_qualify(const packed_box& a, const packed_box& b) {
+  return a.lo[0] <= b.hi[0] && b.lo[0] <= a.hi[0] && a.lo[1] <= b.hi[1] && b.lo[1] <= a.hi[1] && a.lo[2] <= b.hi[2] &&
+         b.lo[2] <= a.hi[2] && ((a.category & b.mask) | (b.category & a.mask)) != 0;
+}
+
+/// The output-cell rule: is (cx, cy, cz) the cell of the max corner of a and b's intersection?
+inline bool is_output_cell(const packed_box& a, const packed_box& b, std::int32_t cx, std::int32_t cy, std::int32_t cz) {
+  return std::min(a.hi_cell[0], b.hi_cell[0]) == cx && std::min(a.hi_cell[1], b.hi_cell[1]) == cy &&
+         std::min(a.hi_cell[2], b.hi_cell[2]) == cz;
+}
+
+}  // namespace
+
+grid_plan plan_grid(const box_set& boxes, const grid_finder_options& opt) {
+  return plan_from_bounds(boxes, scene_bounds(boxes, nullptr), opt);
+}
+
+struct grid_finder::scratch {
+  std::vector<packed_box> packed;          // per box
+  std::vector<std::uint8_t> is_large;      // per box
+  std::vector<std::uint32_t> cell_start;   // per cell + 1: offsets into entries (after the scan)
+  std::vector<std::uint32_t> cell_cursor;  // per cell: counts, then map cursors
+  std::vector<box_id> entries;             // cell-sorted box ids
+  std::vector<box_id> large;               // ids of large boxes, ascending
+  std::vector<pair_list> chunk_pairs;      // per check chunk
+  std::vector<pair_list> large_pairs;      // per large-box chunk
+  std::vector<std::uint64_t> chunk_checks;
+  std::vector<std::uint64_t> large_checks;
+};
+
+grid_finder::grid_finder(thread_pool* pool, grid_finder_options opt)
+    : pool_(pool), opt_(opt), scratch_(std::make_unique<scratch>()) {}
+
+grid_finder::~grid_finder() = default;
+
+void grid_finder::find_valid(const box_set& boxes, pair_list& out) {
+  out.clear();
+  const std::size_t n = boxes.size();
+  if (n < 2) return;
+  if (n > std::numeric_limits<box_id>::max()) throw std::length_error("grid_finder: more boxes than 32-bit ids");
+  auto& sc = *scratch_;
+
+  // 1-2. Bounds and plan.
+  plan_ = plan_from_bounds(boxes, scene_bounds(boxes, pool_), opt_);
+  const cell_mapper cell = make_mapper(plan_);
+  const std::uint32_t dx = plan_.dims[0], dy = plan_.dims[1];
+  const std::size_t cells = plan_.cell_count();
+  const double large_cells =
+      std::max(static_cast<double>(opt_.large_box_min_cells), opt_.large_box_alpha_factor * plan_.alpha);
+
+  // 3. Pack boxes (AoS for the check loop), find their cell ranges, classify large ones.
+  sc.packed.resize(n);
+  sc.is_large.resize(n);
+  const std::size_t box_chunks = std::clamp<std::size_t>(n / 16384, 1, 256);
+  run_tasks(pool_, box_chunks, [&](std::size_t c) {
+    const std::size_t b = n * c / box_chunks, e = n * (c + 1) / box_chunks;
+    for (std::size_t i = b; i < e; ++i) {
+      packed_box& p = sc.packed[i];
+      p.lo[0] = boxes.lo_x[i];
+      p.lo[1] = boxes.lo_y[i];
+      p.lo[2] = boxes.lo_z[i];
+      p.hi[0] = boxes.hi_x[i];
+      p.hi[1] = boxes.hi_y[i];
+      p.hi[2] = boxes.hi_z[i];
+      p.category = boxes.category[i];
+      p.mask = boxes.mask[i];
+      double occupied = 1;
+      for (int d = 0; d < 3; ++d) {
+        p.lo_cell[d] = cell(p.lo[d], d);
+        p.hi_cell[d] = cell(p.hi[d], d);
+        occupied *= static_cast<double>(p.hi_cell[d] - p.lo_cell[d] + 1);
+      }
+      sc.is_large[i] = occupied > large_cells ? 1 : 0;
+    }
+  });
+  sc.large.clear();
+  for (std::size_t i = 0; i < n; ++i) {
+    if (sc.is_large[i]) sc.large.push_back(static_cast<box_id>(i));
+  }
+
+  // 4. Count (atomics), scan, map, then sort each cell's list by id (determinism).
+  sc.cell_cursor.assign(cells, 0);
+  auto for_each_cell_of = [&](const packed_box& p, auto&& fn) {
+    for (std::int32_t z = p.lo_cell[2]; z <= p.hi_cell[2]; ++z) {
+      for (std::int32_t y = p.lo_cell[1]; y <= p.hi_cell[1]; ++y) {
+        const std::size_t row = (static_cast<std::size_t>(z) * dy + static_cast<std::size_t>(y)) * dx;
+        for (std::int32_t x = p.lo_cell[0]; x <= p.hi_cell[0]; ++x) fn(row + static_cast<std::size_t>(x));
+      }
+    }
+  };
+  run_tasks(pool_, box_chunks, [&](std::size_t c) {
+    const std::size_t b = n * c / box_chunks, e = n * (c + 1) / box_chunks;
+    for (std::size_t i = b; i < e; ++i) {
+      if (sc.is_large[i]) continue;
+      for_each_cell_of(sc.packed[i], [&](std::size_t id) {
+        std::atomic_ref<std::uint32_t>(sc.cell_cursor[id]).fetch_add(1, std::memory_order_relaxed);
+      });
+    }
+  });
+  sc.cell_start.resize(cells + 1);
+  {
+    std::uint64_t running = 0;
+    for (std::size_t c = 0; c < cells; ++c) {
+      sc.cell_start[c] = static_cast<std::uint32_t>(running);
+      running += sc.cell_cursor[c];
+      sc.cell_cursor[c] = sc.cell_start[c];
+    }
+    if (running > std::numeric_limits<std::uint32_t>::max()) {
+      throw std::length_error("grid_finder: more than 2^32 cell entries");
+    }
+    sc.cell_start[cells] = static_cast<std::uint32_t>(running);
+    sc.entries.resize(running);
+  }
+  run_tasks(pool_, box_chunks, [&](std::size_t c) {
+    const std::size_t b = n * c / box_chunks, e = n * (c + 1) / box_chunks;
+    for (std::size_t i = b; i < e; ++i) {
+      if (sc.is_large[i]) continue;
+      for_each_cell_of(sc.packed[i], [&](std::size_t id) {
+        const std::uint32_t slot =
+            std::atomic_ref<std::uint32_t>(sc.cell_cursor[id]).fetch_add(1, std::memory_order_relaxed);
+        sc.entries[slot] = static_cast<box_id>(i);
+      });
+    }
+  });
+
+  // 5. Check, in fixed chunks of cells.
+  const std::size_t chunks = std::min(cells, check_chunk_limit);
+  sc.chunk_pairs.resize(chunks);
+  sc.chunk_checks.assign(chunks, 0);
+  run_tasks(pool_, chunks, [&](std::size_t k) {
+    const std::size_t cb = cells * k / chunks, ce = cells * (k + 1) / chunks;
+    pair_list& found = sc.chunk_pairs[k];
+    found.clear();
+    std::uint64_t checks = 0;
+    for (std::size_t c = cb; c < ce; ++c) {
+      const std::uint32_t begin = sc.cell_start[c], end = sc.cell_start[c + 1];
+      if (end - begin < 2) continue;
+      box_id* list = sc.entries.data() + begin;
+      std::sort(list, list + (end - begin));
+      const auto cx = static_cast<std::int32_t>(c % dx);
+      const auto cy = static_cast<std::int32_t>((c / dx) % dy);
+      const auto cz = static_cast<std::int32_t>(c / (static_cast<std::size_t>(dx) * dy));
+      const std::uint32_t len = end - begin;
+      checks += static_cast<std::uint64_t>(len) * (len - 1) / 2;
+      for (std::uint32_t i = 0; i + 1 < len; ++i) {
+        const packed_box& a = sc.packed[list[i]];
+        for (std::uint32_t j = i + 1; j < len; ++j) {
+          const packed_box& b = sc.packed[list[j]];
+          if (boxes_qualify(a, b) && is_output_cell(a, b, cx, cy, cz)) found.push_back(id_pair{list[i], list[j]});
+        }
+      }
+    }
+    sc.chunk_checks[k] = checks;
+  });
+
+  // 6. Large boxes: against the grid's boxes through the cells they cover, then among themselves.
+  const std::size_t large_count = sc.large.size();
+  const std::size_t large_chunks = std::min(large_count, large_chunk_limit);
+  sc.large_pairs.resize(large_chunks);
+  sc.large_checks.assign(large_chunks, 0);
+  run_tasks(pool_, large_chunks, [&](std::size_t k) {
+    const std::size_t lb = large_count * k / large_chunks, le = large_count * (k + 1) / large_chunks;
+    pair_list& found = sc.large_pairs[k];
+    found.clear();
+    std::uint64_t checks = 0;
+    for (std::size_t li = lb; li < le; ++li) {
+      const box_id big_id = sc.large[li];
+      const packed_box& big = sc.packed[big_id];
+      for_each_cell_of(big, [&](std::size_t c) {
+        const std::uint32_t begin = sc.cell_start[c], end = sc.cell_start[c + 1];
+        checks += end - begin;
+        if (begin == end) return;
+        const auto cx = static_cast<std::int32_t>(c % dx);
+        const auto cy = static_cast<std::int32_t>((c / dx) % dy);
+        const auto cz = static_cast<std::int32_t>(c / (static_cast<std::size_t>(dx) * dy));
+        for (std::uint32_t e = begin; e < end; ++e) {
+          const box_id other = sc.entries[e];
+          const packed_box& b = sc.packed[other];
+          if (boxes_qualify(big, b) && is_output_cell(big, b, cx, cy, cz)) {
+            found.push_back(big_id < other ? id_pair{big_id, other} : id_pair{other, big_id});
+          }
+        }
+      });
+      for (std::size_t lj = li + 1; lj < large_count; ++lj) {
+        const box_id other = sc.large[lj];
+        ++checks;
+        if (boxes_qualify(big, sc.packed[other])) found.push_back(id_pair{big_id, other});
+      }
+    }
+    sc.large_checks[k] = checks;
+  });
+
+  // Gather the chunks' output in chunk order.
+  std::size_t total = 0;
+  for (const auto& f : sc.chunk_pairs) total += f.size();
+  for (const auto& f : sc.large_pairs) total += f.size();
+  out.resize(total);
+  {
+    std::vector<std::size_t> at;
+    at.reserve(sc.chunk_pairs.size() + sc.large_pairs.size());
+    std::size_t pos = 0;
+    for (const auto& f : sc.chunk_pairs) at.push_back(std::exchange(pos, pos + f.size()));
+    for (const auto& f : sc.large_pairs) at.push_back(std::exchange(pos, pos + f.size()));
+    const std::size_t parts = at.size();
+    run_tasks(pool_, parts, [&](std::size_t k) {
+      const pair_list& f = k < sc.chunk_pairs.size() ? sc.chunk_pairs[k] : sc.large_pairs[k - sc.chunk_pairs.size()];
+      std::copy(f.begin(), f.end(), out.begin() + static_cast<std::ptrdiff_t>(at[k]));
+    });
+  }
+
+  stats_.cells = cells;
+  stats_.cell_entries = sc.entries.size();
+  stats_.cell_edge = plan_.cell_edge;
+  stats_.large_boxes = large_count;
+  for (const auto c : sc.chunk_checks) stats_.checks += c;
+  for (const auto c : sc.large_checks) stats_.checks += c;
+}
+
+}  // namespace zone::interest

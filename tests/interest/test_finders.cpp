@@ -1,0 +1,372 @@
+// The fast CPU finder against the brute-force reference, and the reference against the definition.
+#include <doctest/doctest.h>
+
+#include <algorithm>
+#include <cmath>
+#include <random>
+#include <set>
+
+#include "interest.h"
+
+using namespace zone::interest;
+
+namespace {
+
+/// A fresh seed per run (printed on failure), so every run tests new random inputs.
+std::uint64_t fresh_seed() {
+  static const std::uint64_t base = std::random_device{}();
+  static std::uint64_t k = 0;
+  return base + 0x9e3779b97f4a7c15ull * ++k;
+}
+
+/// The definition, written as plainly as possible: every i < j, the contract's test.
+pair_list definition_pairs(const box_set& s) {
+  pair_list out;
+  for (std::size_t i = 0; i < s.size(); ++i) {
+    for (std::size_t j = i + 1; j < s.size(); ++j) {
+      const box a = s.get(i), b = s.get(j);
+      bool hit = true;
+      for (int d = 0; d < 3; ++d) hit = hit && a.lo[d] <= b.hi[d] && b.lo[d] <= a.hi[d];
+      if (hit && ((a.category & b.mask) != 0 || (b.category & a.mask) != 0)) {
+        out.push_back({static_cast<box_id>(i), static_cast<box_id>(j)});
+      }
+    }
+  }
+  return out;
+}
+
+pair_list run(pair_finder& f, const box_set& s) {
+  pair_list out;
+  const auto err = f.find(s, out);
+  REQUIRE_FALSE(err.has_value());
+  // Each pair once, a < b.
+  REQUIRE(std::all_of(out.begin(), out.end(), [](const id_pair& p) { return p.a < p.b; }));
+  sort_canonical(out, s.size());
+  REQUIRE(std::adjacent_find(out.begin(), out.end()) == out.end());
+  return out;
+}
+
+struct rng_box_maker {
+  std::mt19937_64 rng;
+  explicit rng_box_maker(std::uint64_t seed) : rng(seed) {}
+  float uni(float lo, float hi) { return std::uniform_real_distribution<float>(lo, hi)(rng); }
+  std::uint32_t bits(std::uint32_t m) { return static_cast<std::uint32_t>(rng()) & m; }
+  box make(float centre_range, float max_edge, float offset = 0) {
+    box b;
+    for (int d = 0; d < 3; ++d) {
+      const float c = offset + uni(0, centre_range);
+      const float e = uni(0, max_edge);
+      b.lo[d] = c - e / 2;
+      b.hi[d] = b.lo[d] + e;
+    }
+    return b;
+  }
+};
+
+/// Box-set families, each a stress for a different part of the grid finder.
+enum class family {
+  uniform,
+  touching,
+  zero_size,
+  identical,
+  huge_over_tiny,
+  long_thin,
+  negative_large,
+  mask_mix,
+  integer_grid,
+  flat_world
+};
+constexpr family all_families[] = {family::uniform,      family::touching,       family::zero_size, family::identical,
+                                   family::huge_over_tiny, family::long_thin,     family::negative_large,
+                                   family::mask_mix,     family::integer_grid,   family::flat_world};
+
+std::string family_name(family f) {
+  switch (f) {
+    case family::uniform: return "uniform";
+    case family::touching: return "touching";
+    case family::zero_size: return "zero_size";
+    case family::identical: return "identical";
+    case family::huge_over_tiny: return "huge_over_tiny";
+    case family::long_thin: return "long_thin";
+    case family::negative_large: return "negative_large";
+    case family::mask_mix: return "mask_mix";
+    case family::integer_grid: return "integer_grid";
+    case family::flat_world: return "flat_world";
+  }
+  return "?";
+}
+
+box_set make_family(family f, std::size_t n, std::uint64_t seed) {
+  rng_box_maker r(seed);
+  box_set s;
+  for (std::size_t i = 0; i < n; ++i) {
+    box b;
+    switch (f) {
+      case family::uniform: b = r.make(100, 12); break;
+      case family::touching: {
+        // Unit cubes on an integer lattice: neighbours share faces, edges and corners exactly.
+        for (int d = 0; d < 3; ++d) {
+          b.lo[d] = static_cast<float>(r.rng() % 6);
+          b.hi[d] = b.lo[d] + 1.0f;
+        }
+        break;
+      }
+      case family::zero_size: {
+        // Points and flat boxes on a coarse lattice, so many coincide or touch.
+        for (int d = 0; d < 3; ++d) {
+          b.lo[d] = static_cast<float>(r.rng() % 5);
+          b.hi[d] = b.lo[d] + ((r.rng() % 3 == 0) ? 1.0f : 0.0f);
+        }
+        break;
+      }
+      case family::identical:
+        for (int d = 0; d < 3; ++d) {
+          b.lo[d] = 3.5f;
+          b.hi[d] = 7.25f;
+        }
+        break;
+      case family::huge_over_tiny:
+        b = (i % 97 == 3) ? r.make(10, 400, -100) : r.make(200, 2);
+        break;
+      case family::long_thin: {
+        b = r.make(100, 1);
+        const int axis = static_cast<int>(r.rng() % 3);
+        b.lo[axis] = r.uni(-50, 50);
+        b.hi[axis] = b.lo[axis] + r.uni(50, 250);
+        break;
+      }
+      case family::negative_large:
+        b = r.make(2e6f, 5e4f, -1e6f);
+        break;
+      case family::mask_mix:
+        b = r.make(60, 15);
+        b.category = r.bits(0xF);
+        b.mask = r.bits(0xF);
+        break;
+      case family::integer_grid: {
+        // Integer-aligned boxes of integer size: many bounds fall exactly on cell faces.
+        for (int d = 0; d < 3; ++d) {
+          b.lo[d] = static_cast<float>(r.rng() % 40);
+          b.hi[d] = b.lo[d] + static_cast<float>(r.rng() % 8);
+        }
+        break;
+      }
+      case family::flat_world: {
+        b = r.make(500, 30);
+        b.lo[2] = 0;
+        b.hi[2] = (r.rng() % 2) ? 0.0f : 2.0f;
+        b.category = (i % 2) ? category_bits::aoi : category_bits::normal;
+        b.mask = (i % 2) ? category_bits::normal : category_bits::aoi;
+        break;
+      }
+    }
+    s.push_back(b);
+  }
+  return s;
+}
+
+}  // namespace
+
+TEST_SUITE("interest.finders") {
+  TEST_CASE("brute force equals the plain definition (odd and even N, all families)") {
+    thread_pool pool(3);
+    brute_force_finder brute(&pool);
+    for (const family f : all_families) {
+      for (const std::size_t n : {0, 1, 2, 3, 4, 5, 10, 11, 64, 101, 256}) {
+        const auto seed = fresh_seed();
+        CAPTURE(family_name(f));
+        CAPTURE(n);
+        CAPTURE(seed);
+        const box_set s = make_family(f, n, seed);
+        CHECK(run(brute, s) == definition_pairs(s));
+      }
+    }
+  }
+
+  TEST_CASE("grid finder equals brute force on every family and many sizes") {
+    thread_pool pool(4);
+    brute_force_finder brute(&pool);
+    grid_finder grid(&pool);
+    for (const family f : all_families) {
+      for (const std::size_t n : {0, 1, 2, 3, 7, 8, 33, 100, 513, 2000, 4001}) {
+        const auto seed = fresh_seed();
+        CAPTURE(family_name(f));
+        CAPTURE(n);
+        CAPTURE(seed);
+        const box_set s = make_family(f, n, seed);
+        const pair_list expected = run(brute, s);
+        CHECK(run(grid, s) == expected);
+        if (n >= 2) CHECK(grid.stats().cells >= 1);
+      }
+    }
+  }
+
+  TEST_CASE("grid finder is exact whatever the cell size") {
+    thread_pool pool(2);
+    brute_force_finder brute(&pool);
+    for (const family f : {family::uniform, family::integer_grid, family::huge_over_tiny, family::touching}) {
+      const auto seed = fresh_seed();
+      CAPTURE(family_name(f));
+      CAPTURE(seed);
+      const box_set s = make_family(f, 1500, seed);
+      const pair_list expected = run(brute, s);
+      for (const double edge : {0.25, 1.0, 3.0, 7.5, 50.0, 1e4}) {
+        CAPTURE(edge);
+        grid_finder_options opt;
+        opt.fixed_cell_edge = edge;
+        grid_finder grid(&pool, opt);
+        CHECK(run(grid, s) == expected);
+      }
+      for (const double w : {1.0, 2.0, 32.0, 1000.0}) {
+        CAPTURE(w);
+        grid_finder_options opt;
+        opt.min_boxes_per_cell = w;
+        grid_finder grid(&pool, opt);
+        CHECK(run(grid, s) == expected);
+      }
+    }
+  }
+
+  TEST_CASE("large boxes are handled apart and stay exact") {
+    thread_pool pool(2);
+    brute_force_finder brute(&pool);
+    grid_finder_options opt;
+    opt.large_box_min_cells = 2;  // force many boxes onto the large-box path
+    opt.large_box_alpha_factor = 1.0;
+    grid_finder grid(&pool, opt);
+    for (const family f : {family::huge_over_tiny, family::long_thin, family::uniform, family::mask_mix}) {
+      const auto seed = fresh_seed();
+      CAPTURE(family_name(f));
+      CAPTURE(seed);
+      const box_set s = make_family(f, 1200, seed);
+      CHECK(run(grid, s) == run(brute, s));
+      CHECK(grid.stats().large_boxes > 0);
+    }
+  }
+
+  TEST_CASE("a few world-spanning boxes over many small ones") {
+    thread_pool pool(2);
+    const auto seed = fresh_seed();
+    CAPTURE(seed);
+    box_set s = generate_uniform(20000, seed, 0.3);
+    for (int k = 0; k < 3; ++k) s.push_back(box{{-1, -1, -1}, {1e4f + 1, 1e4f + 1, 1e4f + 1}, 1, 1});
+    grid_finder grid(&pool);
+    const pair_list got = run(grid, s);
+    CHECK(grid.stats().large_boxes == 3);
+    // Every small box pairs with each of the 3 spanning boxes; those 3 pair among themselves.
+    brute_force_finder brute(&pool);
+    CHECK(got == run(brute, s));
+    CHECK(got.size() >= 3 * 20000 + 3);
+  }
+
+  TEST_CASE("same output for 1, 2 and many threads, and across repeated calls") {
+    const auto seed = fresh_seed();
+    CAPTURE(seed);
+    const box_set s = generate_gaussian(30000, seed);
+    pair_list single;
+    grid_finder g1(nullptr);
+    REQUIRE_FALSE(g1.find(s, single).has_value());
+    for (const unsigned threads : {1u, 2u, 7u}) {
+      thread_pool pool(threads);
+      grid_finder g(&pool);
+      pair_list out;
+      REQUIRE_FALSE(g.find(s, out).has_value());
+      CHECK(out == single);  // identical order, not only the same set
+      REQUIRE_FALSE(g.find(s, out).has_value());
+      CHECK(out == single);
+    }
+  }
+
+  TEST_CASE("the generators give the paper's pair counts") {
+    thread_pool pool(2);
+    grid_finder grid(&pool);
+    pair_list out;
+    // Uniform 1e5: about 5.2e3 pairs (N^2/2 * (101/1e4)^3 minus edge effects).
+    REQUIRE_FALSE(grid.find(generate_uniform(100000, 1), out).has_value());
+    CHECK(out.size() > 4500);
+    CHECK(out.size() < 5800);
+    // DoC 1 at 1e5: the sum of volumes equals the domain volume.
+    const double k = edge_scale_for_doc(100000, 1.0);
+    CHECK(100000 * std::pow(50.5 * k, 3) == doctest::Approx(1e12).epsilon(1e-9));
+  }
+
+  TEST_CASE("MMO-like set: only AOI-vs-presence pairs count") {
+    thread_pool pool(2);
+    const box_set s = generate_mmo(6000, fresh_seed());
+    REQUIRE(s.size() == 6000);
+    grid_finder grid(&pool);
+    brute_force_finder brute(&pool);
+    const pair_list got = run(grid, s);
+    CHECK(got == run(brute, s));
+    CHECK(!got.empty());
+    CHECK(std::all_of(got.begin(), got.end(), [&](const id_pair& p) {
+      return (s.category[p.a] == category_bits::aoi) != (s.category[p.b] == category_bits::aoi);
+    }));
+  }
+
+  TEST_CASE("invalid boxes are rejected with the box named") {
+    grid_finder grid(nullptr);
+    brute_force_finder brute(nullptr);
+    for (pair_finder* f : {static_cast<pair_finder*>(&grid), static_cast<pair_finder*>(&brute)}) {
+      box_set s = generate_uniform(10, 3);
+      pair_list out{{0, 1}};
+      s.lo_y[4] = std::nanf("");
+      auto err = f->find(s, out);
+      REQUIRE(err.has_value());
+      CHECK(err->index == 4);
+      CHECK(err->message.find("box 4") != std::string::npos);
+      CHECK(err->message.find("NaN") != std::string::npos);
+      CHECK(out.empty());
+
+      s = generate_uniform(10, 3);
+      s.hi_z[7] = std::numeric_limits<float>::infinity();
+      err = f->find(s, out);
+      REQUIRE(err.has_value());
+      CHECK(err->index == 7);
+      CHECK(err->message.find("infinite") != std::string::npos);
+
+      s = generate_uniform(10, 3);
+      s.lo_x[2] = s.hi_x[2] + 1;
+      err = f->find(s, out);
+      REQUIRE(err.has_value());
+      CHECK(err->index == 2);
+      CHECK(err->message.find("lo.x") != std::string::npos);
+    }
+  }
+
+  TEST_CASE("sort_canonical and to_adjacency") {
+    pair_list p{{3, 1}, {0, 2}, {1, 2}, {0, 1}};
+    sort_canonical(p, 4);
+    CHECK(p == pair_list{{0, 1}, {0, 2}, {1, 2}, {1, 3}});
+    const adjacency adj = to_adjacency(p, 5);
+    REQUIRE(adj.box_count() == 5);
+    CHECK(adj.offsets == std::vector<std::uint32_t>{0, 2, 5, 7, 8, 8});
+    CHECK(adj.neighbors == std::vector<box_id>{1, 2, 0, 2, 3, 0, 1, 1});
+    // Large random lists: the bucket path and std::sort agree.
+    std::mt19937_64 rng(fresh_seed());
+    pair_list big;
+    for (int i = 0; i < 50000; ++i) {
+      const auto a = static_cast<box_id>(rng() % 1000), b = static_cast<box_id>(rng() % 1000);
+      if (a != b) big.push_back({a, b});
+    }
+    pair_list expect = big;
+    for (auto& q : expect) {
+      if (q.a > q.b) std::swap(q.a, q.b);
+    }
+    std::sort(expect.begin(), expect.end());
+    sort_canonical(big, 1000);
+    CHECK(big == expect);
+  }
+
+  TEST_CASE("plan follows Eq. 6: f >= W at the planned edge, f < W just below it") {
+    const box_set s = generate_uniform(50000, fresh_seed());
+    grid_finder_options opt;
+    opt.min_boxes_per_cell = 32;
+    const grid_plan plan = plan_grid(s, opt);
+    const double f = 50000.0 * plan.alpha / static_cast<double>(plan.cell_count());
+    CHECK(f >= 32.0);
+    opt.fixed_cell_edge = plan.cell_edge * 0.9;
+    const grid_plan smaller = plan_grid(s, opt);
+    CHECK(50000.0 * smaller.alpha / static_cast<double>(smaller.cell_count()) < 32.0);
+  }
+}
