@@ -3,6 +3,7 @@
 // library's distributions are not specified bit-for-bit), so a seed gives the same set everywhere.
 #include <cmath>
 #include <charconv>
+#include <algorithm>
 #include <numbers>
 
 #include "interest.h"
@@ -76,24 +77,26 @@ box_set generate_mmo(std::size_t n, std::uint64_t seed) {
   box_set s;
   s.reserve(entities * 2);
 
-  // A flat world: 1e4 x 1e4 on the ground, 0..200 in height.
-  constexpr double ground = world_edge;
+  // A flat world whose area grows with the population (about 1,600 m^2 per entity, so density
+  // stays that of a busy zone at any size): side 40 * sqrt(entities) m, 0..200 m in height.
+  const double ground = std::max(1000.0, 40.0 * std::sqrt(static_cast<double>(entities)));
   constexpr double height = 200.0;
-  constexpr int town_count = 12;
-  double town_x[town_count], town_y[town_count], town_sd[town_count];
+  // Towns: one per ~4,000 entities, each a Gaussian crowd of sd 80..250 m.
+  const int town_count = static_cast<int>(std::clamp<std::size_t>(entities / 4000, 1, 4096));
+  std::vector<double> town_x(town_count), town_y(town_count), town_sd(town_count);
   for (int t = 0; t < town_count; ++t) {
-    town_x[t] = uniform(rng, 1000.0, ground - 1000.0);
-    town_y[t] = uniform(rng, 1000.0, ground - 1000.0);
-    town_sd[t] = uniform(rng, 80.0, 400.0);
+    town_x[t] = uniform(rng, 0.1 * ground, 0.9 * ground);
+    town_y[t] = uniform(rng, 0.1 * ground, 0.9 * ground);
+    town_sd[t] = uniform(rng, 80.0, 250.0);
   }
   // AOI half-extent tiers (tiny .. gigantic) and how common each is.
-  constexpr double tier_half[5] = {8.0, 25.0, 60.0, 150.0, 500.0};
+  constexpr double tier_half[5] = {10.0, 30.0, 60.0, 150.0, 400.0};
   constexpr double tier_cdf[5] = {0.30, 0.70, 0.92, 0.995, 1.0};
 
   for (std::size_t k = 0; k < entities; ++k) {
     double x, y;
-    if (unit(rng) < 0.7) {
-      const int t = static_cast<int>(rng() % town_count);
+    if (unit(rng) < 0.6) {
+      const int t = static_cast<int>(rng() % static_cast<std::uint64_t>(town_count));
       x = town_x[t] + town_sd[t] * normal(rng);
       y = town_y[t] + town_sd[t] * normal(rng);
     } else {

@@ -23,6 +23,7 @@
 // outputs are concatenated in order: the same input gives the same output with any thread count.
 #include <algorithm>
 #include <atomic>
+#include <chrono>
 #include <cmath>
 #include <cstring>
 #include <utility>
@@ -35,14 +36,51 @@ namespace zone::interest {
 namespace {
 
 /// One box as the check loop reads it: bounds, filter bits and the cell of its max corner.
-struct packed_box {
+struct alignas(64) packed_box {
   float lo[3];
   float hi[3];
   std::uint32_t category;
   std::uint32_t mask;
   std::int32_t hi_cell[3];
   std::int32_t lo_cell[3];
+  box_id id;  // the box's id in the caller's set
 };
+
+/// Stable LSD radix sort of 64-bit items by bits [32, 32 + key_bits) (the key; the low 32 bits
+/// are the payload). Chunks count digits in parallel; stability makes the result unique.
+void radix_sort_by_key(std::vector<std::uint64_t>& items, std::vector<std::uint64_t>& tmp, int key_bits,
+                       thread_pool* pool) {
+  constexpr int digit_bits = 11;
+  constexpr std::size_t buckets = std::size_t{1} << digit_bits;
+  const std::size_t n = items.size();
+  tmp.resize(n);
+  const std::size_t chunks = std::clamp<std::size_t>(n / 65536, 1, 32);
+  std::vector<std::size_t> offsets(chunks * buckets);
+  for (int shift = 32; shift < 32 + key_bits; shift += digit_bits) {
+    std::fill(offsets.begin(), offsets.end(), 0);
+    run_tasks(pool, chunks, [&](std::size_t c) {
+      std::size_t* count = offsets.data() + c * buckets;
+      for (std::size_t i = n * c / chunks, e = n * (c + 1) / chunks; i < e; ++i) ++count[(items[i] >> shift) & (buckets - 1)];
+    });
+    std::size_t running = 0;
+    for (std::size_t d = 0; d < buckets; ++d) {
+      for (std::size_t c = 0; c < chunks; ++c) running += std::exchange(offsets[c * buckets + d], running);
+    }
+    run_tasks(pool, chunks, [&](std::size_t c) {
+      std::size_t* at = offsets.data() + c * buckets;
+      for (std::size_t i = n * c / chunks, e = n * (c + 1) / chunks; i < e; ++i) {
+        tmp[at[(items[i] >> shift) & (buckets - 1)]++] = items[i];
+      }
+    });
+    items.swap(tmp);
+  }
+}
+
+int bits_for(std::uint64_t values) {
+  int bits = 1;
+  while (bits < 63 && (std::uint64_t{1} << bits) < values) ++bits;
+  return bits;
+}
 
 /// Cell coordinate of x on one axis: floor((x - origin) / edge), clamped to the grid. The same
 /// function maps lo and hi corners everywhere, so it is monotone and consistent.
@@ -227,12 +265,13 @@ grid_plan plan_grid(const box_set& boxes, const grid_finder_options& opt) {
 }
 
 struct grid_finder::scratch {
-  std::vector<packed_box> packed;          // per box
-  std::vector<std::uint8_t> is_large;      // per box
-  std::vector<std::uint32_t> cell_start;   // per cell + 1: offsets into entries (after the scan)
-  std::vector<std::uint32_t> cell_cursor;  // per cell: counts, then map cursors
-  std::vector<box_id> entries;             // cell-sorted box ids
-  std::vector<box_id> large;               // ids of large boxes, ascending
+  std::vector<std::uint64_t> keyed, keyed_tmp;  // (cell << 32 | payload) items being radix-sorted
+  std::vector<packed_box> unsorted;             // boxes in input order
+  std::vector<packed_box> packed;               // boxes in spatial order
+  std::vector<std::uint64_t> entry_offset;      // per packed box + 1: its first grid entry
+  std::vector<std::uint32_t> cell_start;        // per cell + 1: offsets into entries
+  std::vector<box_id> entries;                  // cell-sorted positions in `packed`
+  std::vector<box_id> large;                    // positions in `packed` of large boxes, ascending
   std::vector<pair_list> chunk_pairs;      // per check chunk
   std::vector<pair_list> large_pairs;      // per large-box chunk
   std::vector<std::uint64_t> chunk_checks;
@@ -250,6 +289,13 @@ void grid_finder::find_valid(const box_set& boxes, pair_list& out) {
   if (n < 2) return;
   if (n > std::numeric_limits<box_id>::max()) throw std::length_error("grid_finder: more boxes than 32-bit ids");
   auto& sc = *scratch_;
+  using clock = std::chrono::steady_clock;
+  auto lap = [last = clock::now()]() mutable {
+    const auto now = clock::now();
+    const double ms = std::chrono::duration<double, std::milli>(now - last).count();
+    last = now;
+    return ms;
+  };
 
   // 1-2. Bounds and plan.
   plan_ = plan_from_bounds(boxes, scene_bounds(boxes, pool_), opt_);
@@ -259,14 +305,17 @@ void grid_finder::find_valid(const box_set& boxes, pair_list& out) {
   const double large_cells =
       std::max(static_cast<double>(opt_.large_box_min_cells), opt_.large_box_alpha_factor * plan_.alpha);
 
-  // 3. Pack boxes (AoS for the check loop), find their cell ranges, classify large ones.
-  sc.packed.resize(n);
-  sc.is_large.resize(n);
+  // 3. Spatial order: sort the boxes by the cell of their min corner, so that every later pass
+  //    (entries, checks) touches memory in nearly sequential order. Then pack them (one cache line
+  //    each), find their cell ranges and classify the large ones.
   const std::size_t box_chunks = std::clamp<std::size_t>(n / 16384, 1, 256);
+  // Pack in input order (sequential reads of the columns), then permute whole cache lines into
+  // spatial order: one random read per box instead of one per column.
+  sc.unsorted.resize(n);
+  sc.keyed.resize(n);
   run_tasks(pool_, box_chunks, [&](std::size_t c) {
-    const std::size_t b = n * c / box_chunks, e = n * (c + 1) / box_chunks;
-    for (std::size_t i = b; i < e; ++i) {
-      packed_box& p = sc.packed[i];
+    for (std::size_t i = n * c / box_chunks, e = n * (c + 1) / box_chunks; i < e; ++i) {
+      packed_box& p = sc.unsorted[i];
       p.lo[0] = boxes.lo_x[i];
       p.lo[1] = boxes.lo_y[i];
       p.lo[2] = boxes.lo_z[i];
@@ -275,22 +324,47 @@ void grid_finder::find_valid(const box_set& boxes, pair_list& out) {
       p.hi[2] = boxes.hi_z[i];
       p.category = boxes.category[i];
       p.mask = boxes.mask[i];
-      double occupied = 1;
+      p.id = static_cast<box_id>(i);
       for (int d = 0; d < 3; ++d) {
         p.lo_cell[d] = cell(p.lo[d], d);
         p.hi_cell[d] = cell(p.hi[d], d);
-        occupied *= static_cast<double>(p.hi_cell[d] - p.lo_cell[d] + 1);
       }
-      sc.is_large[i] = occupied > large_cells ? 1 : 0;
+      const std::uint64_t lo_cell = (static_cast<std::uint64_t>(p.lo_cell[2]) * dy + static_cast<std::uint64_t>(p.lo_cell[1])) * dx +
+                                    static_cast<std::uint64_t>(p.lo_cell[0]);
+      sc.keyed[i] = lo_cell << 32 | i;
+    }
+  });
+  const int cell_bits = bits_for(cells);
+  radix_sort_by_key(sc.keyed, sc.keyed_tmp, cell_bits, pool_);
+
+  sc.packed.resize(n);
+  sc.entry_offset.resize(n + 1);
+  run_tasks(pool_, box_chunks, [&](std::size_t c) {
+    for (std::size_t k = n * c / box_chunks, e = n * (c + 1) / box_chunks; k < e; ++k) {
+      const packed_box& p = sc.packed[k] = sc.unsorted[sc.keyed[k] & 0xffffffffu];
+      double occupied = 1;
+      for (int d = 0; d < 3; ++d) occupied *= static_cast<double>(p.hi_cell[d] - p.lo_cell[d] + 1);
+      // Entries this box adds to the grid (0 for a large box, handled apart).
+      sc.entry_offset[k + 1] = occupied > large_cells ? 0 : static_cast<std::uint64_t>(occupied);
     }
   });
   sc.large.clear();
-  for (std::size_t i = 0; i < n; ++i) {
-    if (sc.is_large[i]) sc.large.push_back(static_cast<box_id>(i));
+  sc.entry_offset[0] = 0;
+  for (std::size_t k = 0; k < n; ++k) {
+    if (sc.entry_offset[k + 1] == 0) sc.large.push_back(static_cast<box_id>(k));
+    sc.entry_offset[k + 1] += sc.entry_offset[k];
+  }
+  const std::uint64_t entry_count = sc.entry_offset[n];
+  if (entry_count > std::numeric_limits<std::uint32_t>::max()) {
+    throw std::length_error("grid_finder: more than 2^32 cell entries");
   }
 
-  // 4. Count (atomics), scan, map, then sort each cell's list by id (determinism).
-  sc.cell_cursor.assign(cells, 0);
+  stats_.plan_ms = lap();
+
+  // 4. Map: every grid box writes its (cell, position) entries at its own offset (no atomics),
+  //    then a stable radix sort by cell gives each cell's boxes in spatial-order position, the
+  //    same on every run. (PBIG's GPU count/scan/map with atomics costs a full memory latency
+  //    per entry on a CPU; this sort streams instead.)
   auto for_each_cell_of = [&](const packed_box& p, auto&& fn) {
     for (std::int32_t z = p.lo_cell[2]; z <= p.hi_cell[2]; ++z) {
       for (std::int32_t y = p.lo_cell[1]; y <= p.hi_cell[1]; ++y) {
@@ -299,40 +373,29 @@ void grid_finder::find_valid(const box_set& boxes, pair_list& out) {
       }
     }
   };
+  sc.keyed.resize(entry_count);
   run_tasks(pool_, box_chunks, [&](std::size_t c) {
-    const std::size_t b = n * c / box_chunks, e = n * (c + 1) / box_chunks;
-    for (std::size_t i = b; i < e; ++i) {
-      if (sc.is_large[i]) continue;
-      for_each_cell_of(sc.packed[i], [&](std::size_t id) {
-        std::atomic_ref<std::uint32_t>(sc.cell_cursor[id]).fetch_add(1, std::memory_order_relaxed);
-      });
+    for (std::size_t k = n * c / box_chunks, e = n * (c + 1) / box_chunks; k < e; ++k) {
+      std::uint64_t at = sc.entry_offset[k];
+      if (sc.entry_offset[k + 1] == at) continue;  // large box
+      for_each_cell_of(sc.packed[k], [&](std::size_t id) { sc.keyed[at++] = static_cast<std::uint64_t>(id) << 32 | k; });
     }
   });
+  radix_sort_by_key(sc.keyed, sc.keyed_tmp, cell_bits, pool_);
+  sc.entries.resize(entry_count);
   sc.cell_start.resize(cells + 1);
   {
-    std::uint64_t running = 0;
-    for (std::size_t c = 0; c < cells; ++c) {
-      sc.cell_start[c] = static_cast<std::uint32_t>(running);
-      running += sc.cell_cursor[c];
-      sc.cell_cursor[c] = sc.cell_start[c];
+    // Cell starts from the sorted keys: cells before an entry's cell start at that entry.
+    std::size_t next_cell = 0;
+    for (std::size_t e = 0; e < entry_count; ++e) {
+      const std::size_t c = sc.keyed[e] >> 32;
+      while (next_cell <= c) sc.cell_start[next_cell++] = static_cast<std::uint32_t>(e);
+      sc.entries[e] = static_cast<box_id>(sc.keyed[e] & 0xffffffffu);
     }
-    if (running > std::numeric_limits<std::uint32_t>::max()) {
-      throw std::length_error("grid_finder: more than 2^32 cell entries");
-    }
-    sc.cell_start[cells] = static_cast<std::uint32_t>(running);
-    sc.entries.resize(running);
+    while (next_cell <= cells) sc.cell_start[next_cell++] = static_cast<std::uint32_t>(entry_count);
   }
-  run_tasks(pool_, box_chunks, [&](std::size_t c) {
-    const std::size_t b = n * c / box_chunks, e = n * (c + 1) / box_chunks;
-    for (std::size_t i = b; i < e; ++i) {
-      if (sc.is_large[i]) continue;
-      for_each_cell_of(sc.packed[i], [&](std::size_t id) {
-        const std::uint32_t slot =
-            std::atomic_ref<std::uint32_t>(sc.cell_cursor[id]).fetch_add(1, std::memory_order_relaxed);
-        sc.entries[slot] = static_cast<box_id>(i);
-      });
-    }
-  });
+
+  stats_.map_ms = lap();
 
   // 5. Check, in fixed chunks of cells.
   const std::size_t chunks = std::min(cells, check_chunk_limit);
@@ -346,8 +409,7 @@ void grid_finder::find_valid(const box_set& boxes, pair_list& out) {
     for (std::size_t c = cb; c < ce; ++c) {
       const std::uint32_t begin = sc.cell_start[c], end = sc.cell_start[c + 1];
       if (end - begin < 2) continue;
-      box_id* list = sc.entries.data() + begin;
-      std::sort(list, list + (end - begin));
+      const box_id* list = sc.entries.data() + begin;
       const auto cx = static_cast<std::int32_t>(c % dx);
       const auto cy = static_cast<std::int32_t>((c / dx) % dy);
       const auto cz = static_cast<std::int32_t>(c / (static_cast<std::size_t>(dx) * dy));
@@ -357,7 +419,9 @@ void grid_finder::find_valid(const box_set& boxes, pair_list& out) {
         const packed_box& a = sc.packed[list[i]];
         for (std::uint32_t j = i + 1; j < len; ++j) {
           const packed_box& b = sc.packed[list[j]];
-          if (boxes_qualify(a, b) && is_output_cell(a, b, cx, cy, cz)) found.push_back(id_pair{list[i], list[j]});
+          if (boxes_qualify(a, b) && is_output_cell(a, b, cx, cy, cz)) {
+            found.push_back(a.id < b.id ? id_pair{a.id, b.id} : id_pair{b.id, a.id});
+          }
         }
       }
     }
@@ -375,8 +439,8 @@ void grid_finder::find_valid(const box_set& boxes, pair_list& out) {
     found.clear();
     std::uint64_t checks = 0;
     for (std::size_t li = lb; li < le; ++li) {
-      const box_id big_id = sc.large[li];
-      const packed_box& big = sc.packed[big_id];
+      const packed_box& big = sc.packed[sc.large[li]];
+      const box_id big_id = big.id;
       for_each_cell_of(big, [&](std::size_t c) {
         const std::uint32_t begin = sc.cell_start[c], end = sc.cell_start[c + 1];
         checks += end - begin;
@@ -385,21 +449,23 @@ void grid_finder::find_valid(const box_set& boxes, pair_list& out) {
         const auto cy = static_cast<std::int32_t>((c / dx) % dy);
         const auto cz = static_cast<std::int32_t>(c / (static_cast<std::size_t>(dx) * dy));
         for (std::uint32_t e = begin; e < end; ++e) {
-          const box_id other = sc.entries[e];
-          const packed_box& b = sc.packed[other];
+          const packed_box& b = sc.packed[sc.entries[e]];
+          const box_id other = b.id;
           if (boxes_qualify(big, b) && is_output_cell(big, b, cx, cy, cz)) {
             found.push_back(big_id < other ? id_pair{big_id, other} : id_pair{other, big_id});
           }
         }
       });
       for (std::size_t lj = li + 1; lj < large_count; ++lj) {
-        const box_id other = sc.large[lj];
+        const packed_box& b = sc.packed[sc.large[lj]];
         ++checks;
-        if (boxes_qualify(big, sc.packed[other])) found.push_back(id_pair{big_id, other});
+        if (boxes_qualify(big, b)) found.push_back(big_id < b.id ? id_pair{big_id, b.id} : id_pair{b.id, big_id});
       }
     }
     sc.large_checks[k] = checks;
   });
+
+  stats_.check_ms = lap();
 
   // Gather the chunks' output in chunk order.
   std::size_t total = 0;
@@ -419,6 +485,7 @@ void grid_finder::find_valid(const box_set& boxes, pair_list& out) {
     });
   }
 
+  stats_.output_ms = lap();
   stats_.cells = cells;
   stats_.cell_entries = sc.entries.size();
   stats_.cell_edge = plan_.cell_edge;

@@ -136,6 +136,11 @@ struct finder_stats {
   std::uint64_t cell_entries = 0;  ///< (cell, box) entries after mapping
   double cell_edge = 0;            ///< planned cell edge (grid finders)
   std::uint64_t large_boxes = 0;   ///< boxes handled apart from the grid
+  // Wall time of the phases of the last call, in milliseconds (grid finders).
+  double plan_ms = 0;    ///< bounds, planning, packing, classification
+  double map_ms = 0;     ///< count, scan, map
+  double check_ms = 0;   ///< per-cell checking, large boxes included
+  double output_ms = 0;  ///< gathering the output list
 };
 
 /// Finds every qualifying pair of a box set exactly once (see the semantics above).
@@ -254,11 +259,12 @@ inline constexpr std::uint32_t team_red = 1u << 3;
 inline constexpr std::uint32_t team_blue = 1u << 4;
 }  // namespace category_bits
 
-/// An MMO-like zone: n boxes = n/2 entities (n rounded down to even) on a flat 1e4 x 1e4 world,
-/// about 70% of them clustered in towns (Gaussian around a few town centres), the rest spread
-/// uniformly. Entity k owns box 2k (its AOI box: half-extent from tiers tiny..gigantic, category
-/// AOI, mask = the classes it sees) and box 2k+1 (its presence box: a small body, category = its
-/// visibility class, mask AOI). Only AOI-vs-presence pairs qualify.
+/// An MMO-like zone: n boxes = n/2 entities (n rounded down to even) on a flat world whose side
+/// grows as 40 * sqrt(entities) m (a busy zone's density at any size), about 60% of entities
+/// clustered in towns (Gaussian crowds, one town per ~4,000 entities), the rest spread uniformly.
+/// Entity k owns box 2k (its AOI box: half-extent from tiers tiny..gigantic, category AOI,
+/// mask = the classes it sees) and box 2k+1 (its presence box: a small body, or a boss-sized one,
+/// category = its visibility class, mask AOI). Only AOI-vs-presence pairs qualify.
 [[nodiscard]] box_set generate_mmo(std::size_t n, std::uint64_t seed);
 
 /// Names accepted by generate_named: "uniform", "gaussian", "mmo", "doc:<value>".
