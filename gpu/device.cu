@@ -1,4 +1,4 @@
-// Device discovery for the GPU layer.
+// Device discovery for the GPU layer (the finder itself: pbig_finder.cpp).
 #include <cuda_runtime.h>
 
 #include "pbig.h"
@@ -30,13 +30,6 @@ bool device_available(device_info* info, std::string* why) {
     }
   }
   return true;
-}
-
-std::unique_ptr<interest::pair_finder> make_pbig_finder(const pbig_options& /*options*/, std::string* why) {
-  // The PBIG kernels arrive with the GPU issue; until then the GPU backend finds no pairs.
-  if (!device_available(nullptr, why)) return nullptr;
-  if (why) *why = "the GPU PBIG finder is not built yet";
-  return nullptr;
 }
 
 }  // namespace zone::gpu

@@ -15,4 +15,6 @@ std::unique_ptr<interest::pair_finder> make_pbig_finder(const pbig_options& /*op
   return nullptr;
 }
 
+const pbig_report* last_pbig_report(const interest::pair_finder& /*finder*/) { return nullptr; }
+
 }  // namespace zone::gpu

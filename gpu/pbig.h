@@ -4,6 +4,7 @@
 #pragma once
 
 #include <cstddef>
+#include <cstdint>
 #include <memory>
 #include <string>
 
@@ -35,7 +36,36 @@ struct pbig_options {
   double fixed_cell_edge = 0;  ///< 0 = plan by Eq. 6
   std::size_t initial_output_pairs = 0;  ///< initial output buffer capacity (0 = default); tiny values force the overflow path
   interest::thread_pool* decode_pool = nullptr;  ///< threads that decode the output (null = own pool)
+  bool reuse_plan = true;  ///< keep the previous cell edge while the box statistics barely move
+  double min_boxes_per_cell = 32.0;  ///< Eq. 6's W (the warp width)
 };
+
+/// Where the time of the last call went (the paper's Table V/VI tasks) and what it moved.
+/// Device phases are timed with CUDA events on the GPU timeline; REPORT is host time. With
+/// pipelining, CHECK, DataOut and REPORT overlap: pipeline_ms is their wall time together.
+struct pbig_report {
+  double data_in_ms = 0;   ///< DataIn: pack into pinned memory + host-to-device copy of the boxes
+  double plan_ms = 0;      ///< PLAN: bounds and Eq. 6 planning kernels, plan read back
+  double map_ms = 0;       ///< MAP: count, scan, map, per-cell sort by id, gather
+  double sched_ms = 0;     ///< SCHED: work items (cell, segment) for the checking blocks
+  double check_ms = 0;     ///< CHECK: checking kernels (sum over batches, re-runs included)
+  double data_out_ms = 0;  ///< DataOut: device-to-host copies (sum of copy times)
+  double report_ms = 0;    ///< REPORT: CPU decode into the pair list (sum over batches)
+  double large_ms = 0;     ///< boxes handled apart from the grid (host wall time)
+  double pipeline_ms = 0;  ///< wall time of CHECK + DataOut + REPORT together
+  double total_ms = 0;     ///< wall time of the whole call (after validation)
+  std::uint64_t bytes_in = 0;   ///< host-to-device bytes
+  std::uint64_t bytes_out = 0;  ///< device-to-host bytes (pairs output, tile index, box array)
+  std::uint64_t pairs = 0;
+  std::uint32_t batches = 0;
+  std::uint32_t reruns = 0;     ///< batches re-run after an output buffer overflow
+  bool plan_reused = false;
+  double alpha = 0;
+};
+
+/// The report of the last successful call of a finder made by make_pbig_finder; null for any
+/// other finder.
+[[nodiscard]] const pbig_report* last_pbig_report(const interest::pair_finder& finder);
 
 /// Creates the GPU PBIG finder, or returns null with the reason in `why` when no device can be used.
 [[nodiscard]] std::unique_ptr<interest::pair_finder> make_pbig_finder(const pbig_options& options = {},

@@ -1,0 +1,17 @@
+#include "cuda_check.h"
+
+#include <spdlog/spdlog.h>
+
+#include <stdexcept>
+#include <string>
+
+namespace zone::gpu::detail {
+
+void cuda_fail(cudaError_t err, const char* call, const char* file, int line) {
+  const std::string msg = std::string("CUDA error ") + cudaGetErrorName(err) + " (" + cudaGetErrorString(err) +
+                          ") in " + call + " at " + file + ":" + std::to_string(line);
+  spdlog::error("{}", msg);
+  throw std::runtime_error(msg);
+}
+
+}  // namespace zone::gpu::detail

@@ -1,0 +1,20 @@
+// CUDA_CHECK: every CUDA runtime call of the GPU layer goes through it. A failure is logged with
+// the call's text, file and line through spdlog and thrown as std::runtime_error.
+#pragma once
+
+#include <cuda_runtime.h>
+
+namespace zone::gpu::detail {
+
+/// Logs (spdlog, error level) and throws std::runtime_error naming the call, file and line.
+[[noreturn]] void cuda_fail(cudaError_t err, const char* call, const char* file, int line);
+
+}  // namespace zone::gpu::detail
+
+#define CUDA_CHECK(call)                                                                          \
+  do {                                                                                            \
+    const cudaError_t zone_cuda_err_ = (call);                                                    \
+    if (zone_cuda_err_ != cudaSuccess) {                                                          \
+      ::zone::gpu::detail::cuda_fail(zone_cuda_err_, #call, __FILE__, __LINE__);                  \
+    }                                                                                             \
+  } while (0)

@@ -1,0 +1,540 @@
+// Dispatch of the GPU PBIG finder (see pbig_dispatch.h and docs/gpu.md).
+//
+// One call, on the main stream unless said otherwise:
+//  1. DataIn: the box arrays are packed into pinned staging memory by the thread pool in parts,
+//     each part's host-to-device copy overlapping the packing of the next.
+//  2. PLAN: bounds kernel, then the one-block planning kernel (Eq. 6 on a GPU-side sample);
+//     the plan is read back (synchronisation 1 of the call).
+//  3. MAP: count kernel (atomics; large boxes flagged), CUB select of the large boxes, CUB scan of
+//     the per-cell (entries, work items, tiles), CUB reduce of the totals, batch planning; the
+//     totals are read back (synchronisation 2); map kernel (atomics), CUB segmented sort of each
+//     cell's list by box id (determinism), gather of the packed box array.
+//  4. SCHED: one work item per (cell, row segment).
+//  5. CHECK / DataOut / REPORT: batches of cells through the 3-stage pipeline of Fig. 7 on two
+//     streams with double-buffered device and pinned host output buffers.
+//  6. Boxes handled apart (large): two passes (count, scan, write), so their order is fixed.
+#include <algorithm>
+#include <atomic>
+#include <chrono>
+#include <cstring>
+#include <limits>
+#include <stdexcept>
+#include <string>
+
+#include "cuda_check.h"
+#include "pbig_dispatch.h"
+#include "pbig_launch.h"
+#include "pbig_tuning.h"
+
+namespace zone::gpu::detail {
+
+// ---- buffers ----------------------------------------------------------------------------------
+
+template <class T>
+device_buffer<T>::~device_buffer() {
+  if (ptr_ != nullptr) cudaFree(ptr_);
+}
+template <class T>
+void device_buffer<T>::reserve(std::size_t n) {
+  if (n <= cap_ && ptr_ != nullptr) return;
+  const std::size_t want = std::max<std::size_t>({n, cap_ + cap_ / 2, 1});
+  if (ptr_ != nullptr) CUDA_CHECK(cudaFree(ptr_));
+  ptr_ = nullptr;
+  cap_ = 0;
+  CUDA_CHECK(cudaMalloc(reinterpret_cast<void**>(&ptr_), want * sizeof(T)));
+  cap_ = want;
+}
+template <class T>
+pinned_buffer<T>::~pinned_buffer() {
+  if (ptr_ != nullptr) cudaFreeHost(ptr_);
+}
+template <class T>
+void pinned_buffer<T>::reserve(std::size_t n) {
+  if (n <= cap_ && ptr_ != nullptr) return;
+  const std::size_t want = std::max<std::size_t>({n, cap_ + cap_ / 2, 1});
+  if (ptr_ != nullptr) CUDA_CHECK(cudaFreeHost(ptr_));
+  ptr_ = nullptr;
+  cap_ = 0;
+  CUDA_CHECK(cudaHostAlloc(reinterpret_cast<void**>(&ptr_), want * sizeof(T), cudaHostAllocDefault));
+  cap_ = want;
+}
+
+namespace {
+
+using clock_type = std::chrono::steady_clock;
+double ms_since(clock_type::time_point t) {
+  return std::chrono::duration<double, std::milli>(clock_type::now() - t).count();
+}
+
+std::uint32_t blocks_for(std::uint64_t n, std::uint32_t block) {
+  return static_cast<std::uint32_t>(std::max<std::uint64_t>(1, (n + block - 1) / block));
+}
+
+}  // namespace
+
+// ---- engine -----------------------------------------------------------------------------------
+
+pbig_engine::pbig_engine(const pbig_options& options) : opt_(options) {
+  CUDA_CHECK(cudaSetDevice(0));
+  if (opt_.decode_pool != nullptr) {
+    pool_ = opt_.decode_pool;
+  } else {
+    own_pool_ = std::make_unique<interest::thread_pool>(0);
+    pool_ = own_pool_.get();
+  }
+  for (auto& s : slot_) {
+    CUDA_CHECK(cudaStreamCreateWithFlags(&s.stream, cudaStreamNonBlocking));
+    for (cudaEvent_t* e : {&s.kernel_begin, &s.kernel_end, &s.copy_begin, &s.copy_end}) CUDA_CHECK(cudaEventCreate(e));
+    s.d_cursor.reserve(1);
+    s.h_cursor.reserve(1);
+    const std::size_t pairs = opt_.initial_output_pairs > 0 ? opt_.initial_output_pairs : tuning::default_output_pairs;
+    s.capacity = std::max<std::uint64_t>(64, pairs * (opt_.compression ? 2 : 8));
+    s.d_out.reserve(s.capacity);
+    s.h_out.reserve(s.capacity);
+  }
+  main_ = slot_[0].stream;
+  for (cudaEvent_t* e : {&ev_start_, &ev_in_, &ev_plan_, &ev_map_, &ev_sched_, &ev_entries_begin_, &ev_entries_}) {
+    CUDA_CHECK(cudaEventCreate(e));
+  }
+  d_bounds_.reserve(1);
+  d_state_.reserve(1);
+  CUDA_CHECK(cudaMemset(d_state_.get(), 0, sizeof(plan_state)));
+  d_plan_.reserve(1);
+  h_plan_.reserve(1);
+  d_readback_.reserve(1);
+  h_readback_.reserve(1);
+  h_large_total_.reserve(1);
+}
+
+pbig_engine::~pbig_engine() {
+  // No throwing here: errors at teardown are logged and ignored.
+  for (auto& s : slot_) {
+    if (s.stream != nullptr) cudaStreamSynchronize(s.stream);
+    for (cudaEvent_t e : {s.kernel_begin, s.kernel_end, s.copy_begin, s.copy_end}) {
+      if (e != nullptr) cudaEventDestroy(e);
+    }
+    if (s.stream != nullptr) cudaStreamDestroy(s.stream);
+  }
+  for (cudaEvent_t e : {ev_start_, ev_in_, ev_plan_, ev_map_, ev_sched_, ev_entries_begin_, ev_entries_}) {
+    if (e != nullptr) cudaEventDestroy(e);
+  }
+}
+
+float pbig_engine::elapsed(cudaEvent_t a, cudaEvent_t b) const {
+  float ms = 0;
+  CUDA_CHECK(cudaEventElapsedTime(&ms, a, b));
+  return ms;
+}
+
+void pbig_engine::grow_temp(std::size_t bytes) { d_temp_.reserve(std::max<std::size_t>(bytes, 256)); }
+
+void pbig_engine::run(const interest::box_set& boxes, interest::pair_list& out, interest::finder_stats& stats) {
+  const auto t0 = clock_type::now();
+  const std::size_t count = boxes.size();
+  if (count > std::numeric_limits<std::uint32_t>::max() / 2) throw std::length_error("pbig: too many boxes");
+  const auto n = static_cast<std::uint32_t>(count);
+  report_ = {};
+  entries_ready_ = false;
+
+  CUDA_CHECK(cudaEventRecord(ev_start_, main_));
+  upload(boxes);
+  plan(n);
+  map_boxes(n);
+
+  const auto t_pipe = clock_type::now();
+  check_batches(out);
+  report_.pipeline_ms = ms_since(t_pipe);
+
+  const auto t_large = clock_type::now();
+  const std::uint64_t grid_pairs = out.size();
+  const std::uint64_t large = large_pairs(n, out, grid_pairs);
+  report_.large_ms = ms_since(t_large);
+  CUDA_CHECK(cudaStreamSynchronize(slot_[1].stream));
+  CUDA_CHECK(cudaStreamSynchronize(main_));
+
+  report_.data_in_ms = elapsed(ev_start_, ev_in_);
+  report_.plan_ms = elapsed(ev_in_, ev_plan_);
+  report_.map_ms = elapsed(ev_plan_, ev_map_);
+  report_.sched_ms = elapsed(ev_map_, ev_sched_);
+  if (opt_.compression) report_.data_out_ms += elapsed(ev_entries_begin_, ev_entries_);
+  report_.pairs = grid_pairs + large;
+  report_.plan_reused = plan_.reused != 0;
+  report_.alpha = plan_.alpha;
+  report_.total_ms = ms_since(t0);
+
+  stats.cells = plan_.cells;
+  stats.cell_entries = rb_.total.entry;
+  stats.cell_edge = plan_.edge;
+  stats.large_boxes = rb_.large_count;
+  stats.checks = rb_.totals.checks + static_cast<std::uint64_t>(rb_.large_count) * n;
+}
+
+void pbig_engine::upload(const interest::box_set& boxes) {
+  const std::size_t n = boxes.size();
+  d_coord_.reserve(6 * n);
+  d_bits_.reserve(2 * n);
+  h_stage_.reserve(32 * n);
+  const void* src[8] = {boxes.lo_x.data(), boxes.lo_y.data(), boxes.lo_z.data(), boxes.hi_x.data(),
+                        boxes.hi_y.data(), boxes.hi_z.data(), boxes.category.data(), boxes.mask.data()};
+  void* dst[8];
+  for (int a = 0; a < 6; ++a) dst[a] = d_coord_.get() + a * n;
+  for (int a = 0; a < 2; ++a) dst[6 + a] = d_bits_.get() + a * n;
+  unsigned char* stage = h_stage_.get();
+  const std::size_t parts = std::clamp<std::size_t>((n + tuning::upload_part_boxes - 1) / tuning::upload_part_boxes, 1,
+                                                    tuning::max_upload_parts);
+  const std::size_t sub = std::max<std::size_t>(1, (pool_->size() + 7) / 8);
+  for (std::size_t p = 0; p < parts; ++p) {
+    const std::size_t b = n * p / parts, e = n * (p + 1) / parts;
+    const std::size_t len = e - b;
+    interest::run_tasks(pool_, 8 * sub, [&](std::size_t t) {
+      const std::size_t a = t % 8, k = t / 8;
+      const std::size_t sb = b + len * k / sub, se = b + len * (k + 1) / sub;
+      if (se > sb) {
+        std::memcpy(stage + (a * n + sb) * 4, static_cast<const unsigned char*>(src[a]) + sb * 4, (se - sb) * 4);
+      }
+    });
+    for (int a = 0; a < 8; ++a) {
+      CUDA_CHECK(cudaMemcpyAsync(static_cast<unsigned char*>(dst[a]) + b * 4, stage + (a * n + b) * 4, len * 4,
+                                 cudaMemcpyHostToDevice, main_));
+    }
+  }
+  CUDA_CHECK(cudaEventRecord(ev_in_, main_));
+  report_.bytes_in += 32 * n;
+}
+
+namespace {
+box_arrays arrays_of(const float* coord, const std::uint32_t* bits, std::size_t n) {
+  box_arrays b{};
+  for (int d = 0; d < 3; ++d) {
+    b.lo[d] = coord + d * n;
+    b.hi[d] = coord + (3 + d) * n;
+  }
+  b.category = bits;
+  b.mask = bits + n;
+  return b;
+}
+}  // namespace
+
+void pbig_engine::plan(std::uint32_t n) {
+  const box_arrays boxes = arrays_of(d_coord_.get(), d_bits_.get(), n);
+  plan_params prm{};
+  prm.n = n;
+  prm.samples = tuning::plan_samples;
+  prm.seed = 0x5eed;
+  prm.min_boxes_per_cell = opt_.min_boxes_per_cell;
+  prm.fixed_edge = opt_.fixed_cell_edge;
+  prm.allow_reuse = opt_.reuse_plan ? 1 : 0;
+  CUDA_CHECK(launch_plan(boxes, d_bounds_.get(), prm, d_state_.get(), d_plan_.get(), main_));
+  CUDA_CHECK(cudaMemcpyAsync(h_plan_.get(), d_plan_.get(), sizeof(grid_plan_dev), cudaMemcpyDeviceToHost, main_));
+  CUDA_CHECK(cudaEventRecord(ev_plan_, main_));
+  CUDA_CHECK(cudaStreamSynchronize(main_));
+  plan_ = *h_plan_.get();
+  if (plan_.cells == 0 || plan_.cells > 2147483647ull) throw std::runtime_error("pbig: planning produced an invalid grid");
+}
+
+void pbig_engine::map_boxes(std::uint32_t n) {
+  const box_arrays boxes = arrays_of(d_coord_.get(), d_bits_.get(), n);
+  const auto cells = static_cast<std::uint32_t>(plan_.cells);
+  d_counts_.reserve(cells + 1);
+  d_cursor_.reserve(cells);
+  d_prefix_.reserve(cells + 1);
+  d_is_large_.reserve(n);
+  d_large_.reserve(n);
+  CUDA_CHECK(cudaMemsetAsync(d_counts_.get(), 0, (cells + 1) * sizeof(std::uint32_t), main_));
+  CUDA_CHECK(cudaMemsetAsync(d_cursor_.get(), 0, cells * sizeof(std::uint32_t), main_));
+  CUDA_CHECK(launch_count(boxes, n, plan_, d_counts_.get(), d_is_large_.get(), main_));
+
+  map_readback* rb = d_readback_.get();
+  std::size_t select_bytes = 0, scan_bytes = 0, reduce_bytes = 0;
+  CUDA_CHECK(select_large(nullptr, select_bytes, d_is_large_.get(), d_large_.get(), &rb->large_count, n, main_));
+  CUDA_CHECK(scan_cells(nullptr, scan_bytes, d_counts_.get(), d_prefix_.get(), cells, main_));
+  CUDA_CHECK(reduce_cells(nullptr, reduce_bytes, d_counts_.get(), &rb->totals, cells, main_));
+  grow_temp(std::max({select_bytes, scan_bytes, reduce_bytes}));
+  CUDA_CHECK(select_large(d_temp_.get(), select_bytes, d_is_large_.get(), d_large_.get(), &rb->large_count, n, main_));
+  CUDA_CHECK(scan_cells(d_temp_.get(), scan_bytes, d_counts_.get(), d_prefix_.get(), cells, main_));
+  CUDA_CHECK(reduce_cells(d_temp_.get(), reduce_bytes, d_counts_.get(), &rb->totals, cells, main_));
+  CUDA_CHECK(launch_batch_plan(d_prefix_.get(), cells, rb, tuning::min_tiles_per_batch, tuning::max_batches, main_));
+  CUDA_CHECK(cudaMemcpyAsync(h_readback_.get(), rb, sizeof(map_readback), cudaMemcpyDeviceToHost, main_));
+  CUDA_CHECK(cudaStreamSynchronize(main_));
+  rb_ = *h_readback_.get();
+
+  // 32-bit limits of the cell lists (prefixes wrap silently past them: refuse instead).
+  if (rb_.totals.entries != rb_.total.entry || rb_.totals.tiles != rb_.total.tile ||
+      rb_.totals.entries > std::numeric_limits<std::uint32_t>::max() / 2) {
+    throw std::length_error("pbig: more than 2^31 (cell, box) entries or tiles");
+  }
+  if (rb_.totals.max_count > 65535ull * tuning::segment) {
+    throw std::length_error("pbig: a cell holds more than 65535 segments of boxes");
+  }
+
+  const std::uint32_t entries = rb_.total.entry, items = rb_.total.item;
+  d_entries_unsorted_.reserve(entries);
+  d_entries_.reserve(entries);
+  d_packed_lo_.reserve(entries);
+  d_packed_hi_.reserve(entries);
+  d_items_.reserve(items);
+  if (entries > 0) {
+    CUDA_CHECK(launch_map(boxes, n, plan_, d_is_large_.get(), d_prefix_.get(), d_cursor_.get(),
+                          d_entries_unsorted_.get(), main_));
+    // Sort each cell's list by box id: the mapping's atomics give a timing-dependent order.
+    std::size_t sort_bytes = 0;
+    CUDA_CHECK(sort_cells(nullptr, sort_bytes, d_entries_unsorted_.get(), d_entries_.get(), entries, cells,
+                          d_prefix_.get(), main_));
+    grow_temp(sort_bytes);
+    CUDA_CHECK(sort_cells(d_temp_.get(), sort_bytes, d_entries_unsorted_.get(), d_entries_.get(), entries, cells,
+                          d_prefix_.get(), main_));
+    CUDA_CHECK(launch_gather(boxes, d_entries_.get(), entries, d_packed_lo_.get(), d_packed_hi_.get(), main_));
+  }
+  CUDA_CHECK(cudaEventRecord(ev_map_, main_));
+  if (items > 0) {
+    CUDA_CHECK(launch_expand(d_prefix_.get(), cells, d_items_.get(), main_));
+  }
+  CUDA_CHECK(cudaEventRecord(ev_sched_, main_));
+
+  // The decoder needs the box array (cell-sorted ids): copy it on the second stream, overlapping
+  // the first checking kernels.
+  cudaStream_t side = slot_[1].stream;
+  CUDA_CHECK(cudaStreamWaitEvent(side, ev_sched_, 0));
+  CUDA_CHECK(cudaEventRecord(ev_entries_begin_, side));
+  if (opt_.compression && entries > 0) {
+    h_entries_.reserve(entries);
+    CUDA_CHECK(cudaMemcpyAsync(h_entries_.get(), d_entries_.get(), entries * sizeof(std::uint32_t),
+                               cudaMemcpyDeviceToHost, side));
+    report_.bytes_out += entries * sizeof(std::uint32_t);
+  }
+  CUDA_CHECK(cudaEventRecord(ev_entries_, side));
+}
+
+void pbig_engine::launch(const batch& b, pipeline_slot& s) {
+  const std::uint32_t tiles = b.tile_last - b.tile_first;
+  s.d_tile_off.reserve(tiles);
+  s.d_tile_pairs.reserve(tiles);
+  CUDA_CHECK(cudaMemsetAsync(s.d_cursor.get(), 0, sizeof(unsigned long long), s.stream));
+  check_args a{};
+  a.plan = plan_;
+  a.packed_lo = d_packed_lo_.get();
+  a.packed_hi = d_packed_hi_.get();
+  a.entries = d_entries_.get();
+  a.prefix = d_prefix_.get();
+  a.items = d_items_.get();
+  a.item_first = b.item_first;
+  a.item_last = b.item_last;
+  a.tile_off = s.d_tile_off.get();
+  a.tile_pairs = s.d_tile_pairs.get();
+  a.tile_first = b.tile_first;
+  a.out = s.d_out.get();
+  a.capacity = s.capacity;
+  a.cursor = s.d_cursor.get();
+  CUDA_CHECK(cudaEventRecord(s.kernel_begin, s.stream));
+  CUDA_CHECK(launch_check(a, opt_.load_balancing, opt_.compression, s.stream));
+  CUDA_CHECK(cudaEventRecord(s.kernel_end, s.stream));
+  CUDA_CHECK(cudaMemcpyAsync(s.h_cursor.get(), s.d_cursor.get(), sizeof(unsigned long long), cudaMemcpyDeviceToHost,
+                             s.stream));
+}
+
+void pbig_engine::prefetch(const batch& b, pipeline_slot& s, std::uint64_t bytes) {
+  const std::uint32_t tiles = b.tile_last - b.tile_first;
+  s.h_tile_off.reserve(tiles);
+  s.h_tile_pairs.reserve(tiles);
+  CUDA_CHECK(cudaEventRecord(s.copy_begin, s.stream));
+  CUDA_CHECK(cudaMemcpyAsync(s.h_tile_off.get(), s.d_tile_off.get(), tiles * sizeof(std::uint64_t),
+                             cudaMemcpyDeviceToHost, s.stream));
+  CUDA_CHECK(cudaMemcpyAsync(s.h_tile_pairs.get(), s.d_tile_pairs.get(), tiles * sizeof(std::uint32_t),
+                             cudaMemcpyDeviceToHost, s.stream));
+  s.prefetched = std::min<std::uint64_t>(bytes, s.capacity);
+  if (s.prefetched > 0) {
+    CUDA_CHECK(cudaMemcpyAsync(s.h_out.get(), s.d_out.get(), s.prefetched, cudaMemcpyDeviceToHost, s.stream));
+  }
+  CUDA_CHECK(cudaEventRecord(s.copy_end, s.stream));
+  report_.bytes_out += tiles * 12ull + s.prefetched;
+}
+
+void pbig_engine::finish(const batch& b, pipeline_slot& s) {
+  // Synchronisation 1: the batch's kernel and its prefetched copy are done.
+  CUDA_CHECK(cudaEventSynchronize(s.copy_end));
+  report_.check_ms += elapsed(s.kernel_begin, s.kernel_end);
+  report_.data_out_ms += elapsed(s.copy_begin, s.copy_end);
+  std::uint64_t used = *s.h_cursor.get();
+  if (used > s.capacity) {
+    // Overflow: nothing past the capacity was written. Grow both buffers and re-run the batch.
+    ++report_.reruns;
+    s.capacity = used + used / 4;
+    s.d_out.reserve(s.capacity);
+    s.h_out.reserve(s.capacity);
+    launch(b, s);
+    prefetch(b, s, used);
+    CUDA_CHECK(cudaEventSynchronize(s.copy_end));
+    report_.check_ms += elapsed(s.kernel_begin, s.kernel_end);
+    report_.data_out_ms += elapsed(s.copy_begin, s.copy_end);
+    const std::uint64_t again = *s.h_cursor.get();
+    if (again != used) throw std::runtime_error("pbig: a re-run batch produced a different output size");
+    s.remainder_pending = false;
+    return;
+  }
+  s.remainder_pending = used > s.prefetched;
+  if (s.remainder_pending) {
+    CUDA_CHECK(cudaEventRecord(s.copy_begin, s.stream));
+    CUDA_CHECK(cudaMemcpyAsync(s.h_out.get() + s.prefetched, s.d_out.get() + s.prefetched, used - s.prefetched,
+                               cudaMemcpyDeviceToHost, s.stream));
+    CUDA_CHECK(cudaEventRecord(s.copy_end, s.stream));
+    report_.bytes_out += used - s.prefetched;
+  }
+  s.prefetched = used;
+}
+
+std::uint64_t pbig_engine::decode(const batch& b, pipeline_slot& s, interest::pair_list& out, std::uint64_t base) {
+  // Synchronisation 2: the batch's output is in host memory.
+  CUDA_CHECK(cudaEventSynchronize(s.copy_end));
+  if (s.remainder_pending) {
+    report_.data_out_ms += elapsed(s.copy_begin, s.copy_end);
+    s.remainder_pending = false;
+  }
+  if (opt_.compression && !entries_ready_) {
+    CUDA_CHECK(cudaEventSynchronize(ev_entries_));
+    entries_ready_ = true;
+  }
+  const auto t0 = clock_type::now();
+  const std::uint32_t tiles = b.tile_last - b.tile_first;
+  const std::uint32_t* tile_pairs = s.h_tile_pairs.get();
+  const std::uint64_t* tile_off = s.h_tile_off.get();
+  tile_pos_.resize(tiles + 1);
+  tile_pos_[0] = 0;
+  for (std::uint32_t t = 0; t < tiles; ++t) tile_pos_[t + 1] = tile_pos_[t] + tile_pairs[t];
+  const std::uint64_t total = tile_pos_[tiles];
+  if (total == 0) {
+    report_.report_ms += ms_since(t0);
+    return 0;
+  }
+  if (out.size() < base + total) out.resize(base + total);
+  interest::id_pair* dst = out.data() + base;
+  const unsigned char* buf = s.h_out.get();
+  const std::uint32_t* entries = h_entries_.get();
+  const std::uint64_t used = s.prefetched;
+
+  // Tasks of about equal pair counts; each decodes whole tiles into their final positions.
+  const std::size_t tasks = std::min<std::size_t>(tiles, std::max<std::size_t>(1, pool_->size() * 4));
+  task_tiles_.resize(tasks + 1);
+  for (std::size_t q = 0; q <= tasks; ++q) {
+    const std::uint64_t target = total * q / tasks;
+    task_tiles_[q] = static_cast<std::uint32_t>(std::lower_bound(tile_pos_.begin(), tile_pos_.end(), target) -
+                                                tile_pos_.begin());
+  }
+  task_tiles_[tasks] = tiles;
+  std::atomic<bool> corrupt{false};
+  const bool compressed = opt_.compression;
+  interest::run_tasks(pool_, tasks, [&](std::size_t q) {
+    for (std::uint32_t t = task_tiles_[q]; t < task_tiles_[q + 1]; ++t) {
+      const std::uint32_t pairs = tile_pairs[t];
+      if (pairs == 0) continue;
+      if (tile_off[t] + sizeof(chunk_header) > used) {
+        corrupt = true;
+        return;
+      }
+      chunk_header h;
+      std::memcpy(&h, buf + tile_off[t], sizeof h);
+      const unsigned char* body = buf + tile_off[t] + sizeof h;
+      interest::id_pair* o = dst + tile_pos_[t];
+      if (h.pairs != pairs || tile_off[t] + sizeof h + h.body_bytes > used) {
+        corrupt = true;
+        return;
+      }
+      if (compressed) {
+        // Eq. 8: (cell, segment, local id) -> box id through the cell-sorted box array.
+        const std::uint32_t* rows = entries + h.cell_begin + std::uint64_t{h.seg_v} * tuning::segment;
+        const std::uint32_t* cols = entries + h.cell_begin + std::uint64_t{h.seg_h} * tuning::segment;
+        std::uint32_t q2 = 0, written = 0;
+        while (q2 < h.body_bytes) {
+          const std::uint32_t a = rows[body[q2]];
+          const std::uint32_t c = body[q2 + 1] + 1u;
+          for (std::uint32_t k = 0; k < c; ++k) {
+            const std::uint32_t other = cols[body[q2 + 2 + k]];
+            o[written++] = a < other ? interest::id_pair{a, other} : interest::id_pair{other, a};
+          }
+          q2 += 2 + c;
+        }
+        if (written != pairs) corrupt = true;
+      } else {
+        std::memcpy(static_cast<void*>(o), body, std::size_t{pairs} * sizeof(interest::id_pair));
+      }
+    }
+  });
+  if (corrupt) throw std::runtime_error("pbig: malformed output chunk (internal error)");
+  report_.report_ms += ms_since(t0);
+  return total;
+}
+
+void pbig_engine::check_batches(interest::pair_list& out) {
+  std::vector<batch> batches;
+  const batch_plan& bp = rb_.batches;
+  for (std::uint32_t k = 0; k < bp.count; ++k) {
+    const batch b{bp.item[k], bp.item[k + 1], bp.tile[k], bp.tile[k + 1]};
+    if (b.item_last > b.item_first) batches.push_back(b);
+  }
+  report_.batches = static_cast<std::uint32_t>(batches.size());
+  // Slot 1's stream must see the mapped boxes.
+  CUDA_CHECK(cudaStreamWaitEvent(slot_[1].stream, ev_sched_, 0));
+  std::uint64_t base = 0;
+  const std::size_t count = batches.size();
+  if (!opt_.pipelining) {
+    for (std::size_t k = 0; k < count; ++k) {
+      pipeline_slot& s = slot_[k % 2];
+      launch(batches[k], s);
+      prefetch(batches[k], s, 0);
+      finish(batches[k], s);
+      base += decode(batches[k], s, out, base);
+    }
+  } else {
+    // Fig. 7: in step k, kernel k runs while batch k-1's output is copied and batch k-2's is
+    // decoded. Batch k's prefetched copy (sized by the last known batch output) is queued behind
+    // its kernel once the CPU is done with that host buffer (batch k-2). Synchronisation 3 (a
+    // device buffer is copied out before the next kernel reuses it) is the slot's stream order.
+    std::uint64_t last_bytes = 0;
+    for (std::size_t k = 0; k < count + 2; ++k) {
+      if (k < count) launch(batches[k], slot_[k % 2]);
+      if (k >= 2) base += decode(batches[k - 2], slot_[k % 2], out, base);
+      if (k < count) prefetch(batches[k], slot_[k % 2], last_bytes);
+      if (k >= 1 && k - 1 < count) {
+        pipeline_slot& s = slot_[(k - 1) % 2];
+        finish(batches[k - 1], s);
+        last_bytes = s.prefetched;
+      }
+    }
+  }
+  out.resize(base);
+}
+
+std::uint64_t pbig_engine::large_pairs(std::uint32_t n, interest::pair_list& out, std::uint64_t base) {
+  const std::uint32_t large = rb_.large_count;
+  if (large == 0) return 0;
+  const box_arrays boxes = arrays_of(d_coord_.get(), d_bits_.get(), n);
+  const std::uint32_t chunks = blocks_for(n, tuning::block);
+  const std::uint64_t blocks = static_cast<std::uint64_t>(chunks) * large;
+  if (blocks >= (1ull << 31)) throw std::length_error("pbig: too many large boxes for the large-box pass");
+  d_large_counts_.reserve(blocks + 1);
+  d_large_offsets_.reserve(blocks + 1);
+  CUDA_CHECK(cudaMemsetAsync(d_large_counts_.get(), 0, (blocks + 1) * sizeof(std::uint32_t), main_));
+  CUDA_CHECK(launch_large_count(boxes, n, d_large_.get(), large, d_is_large_.get(), chunks, d_large_counts_.get(),
+                                main_));
+  std::size_t scan_bytes = 0;
+  CUDA_CHECK(scan_u32(nullptr, scan_bytes, d_large_counts_.get(), d_large_offsets_.get(), blocks + 1, main_));
+  grow_temp(scan_bytes);
+  CUDA_CHECK(scan_u32(d_temp_.get(), scan_bytes, d_large_counts_.get(), d_large_offsets_.get(), blocks + 1, main_));
+  CUDA_CHECK(cudaMemcpyAsync(h_large_total_.get(), d_large_offsets_.get() + blocks, sizeof(std::uint32_t),
+                             cudaMemcpyDeviceToHost, main_));
+  CUDA_CHECK(cudaStreamSynchronize(main_));
+  const std::uint64_t total = *h_large_total_.get();
+  if (total == 0) return 0;
+  d_large_pairs_.reserve(2 * total);
+  h_large_pairs_.reserve(2 * total);
+  CUDA_CHECK(launch_large_write(boxes, n, d_large_.get(), large, d_is_large_.get(), chunks, d_large_offsets_.get(),
+                                d_large_pairs_.get(), main_));
+  CUDA_CHECK(cudaMemcpyAsync(h_large_pairs_.get(), d_large_pairs_.get(), 2 * total * sizeof(std::uint32_t),
+                             cudaMemcpyDeviceToHost, main_));
+  CUDA_CHECK(cudaStreamSynchronize(main_));
+  report_.bytes_out += 8 * total;
+  out.resize(base + total);
+  std::memcpy(static_cast<void*>(out.data() + base), h_large_pairs_.get(), total * sizeof(interest::id_pair));
+  return total;
+}
+
+}  // namespace zone::gpu::detail

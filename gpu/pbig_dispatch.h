@@ -1,0 +1,144 @@
+// Dispatch of the GPU PBIG finder: owns the streams, events and the device and pinned buffers
+// (sized once, grown only when a call needs more), plans, maps, schedules and runs the checking
+// pipeline. Host-side only; the kernels live in pbig_kernels.cuh. Not thread-safe: one call at a time.
+#pragma once
+
+#include <cuda_runtime.h>
+
+#include <cstddef>
+#include <cstdint>
+#include <memory>
+#include <vector>
+
+#include "interest.h"
+#include "pbig.h"
+#include "pbig_shared.h"
+
+namespace zone::gpu::detail {
+
+/// Device memory that only grows (by at least 1.5x), freed on destruction.
+template <class T>
+class device_buffer {
+ public:
+  device_buffer() = default;
+  device_buffer(const device_buffer&) = delete;
+  device_buffer& operator=(const device_buffer&) = delete;
+  ~device_buffer();
+  /// Ensures room for n elements; contents are not preserved when it grows.
+  void reserve(std::size_t n);
+  [[nodiscard]] T* get() const { return ptr_; }
+  [[nodiscard]] std::size_t capacity() const { return cap_; }
+  [[nodiscard]] std::size_t bytes() const { return cap_ * sizeof(T); }
+
+ private:
+  T* ptr_ = nullptr;
+  std::size_t cap_ = 0;
+};
+
+/// Page-locked host memory that only grows (by at least 1.5x), freed on destruction.
+template <class T>
+class pinned_buffer {
+ public:
+  pinned_buffer() = default;
+  pinned_buffer(const pinned_buffer&) = delete;
+  pinned_buffer& operator=(const pinned_buffer&) = delete;
+  ~pinned_buffer();
+  void reserve(std::size_t n);
+  [[nodiscard]] T* get() const { return ptr_; }
+  [[nodiscard]] std::size_t capacity() const { return cap_; }
+
+ private:
+  T* ptr_ = nullptr;
+  std::size_t cap_ = 0;
+};
+
+/// One slot of the double-buffered pipeline: a device and a pinned host output buffer, the
+/// batch's per-tile index (device and host), the batch's byte cursor, its stream and events.
+struct pipeline_slot {
+  cudaStream_t stream = nullptr;
+  device_buffer<unsigned char> d_out;
+  pinned_buffer<unsigned char> h_out;
+  device_buffer<std::uint64_t> d_tile_off;
+  device_buffer<std::uint32_t> d_tile_pairs;
+  pinned_buffer<std::uint64_t> h_tile_off;
+  pinned_buffer<std::uint32_t> h_tile_pairs;
+  device_buffer<unsigned long long> d_cursor;
+  pinned_buffer<unsigned long long> h_cursor;
+  cudaEvent_t kernel_begin = nullptr, kernel_end = nullptr, copy_begin = nullptr, copy_end = nullptr;
+  std::uint64_t capacity = 0;    // usable bytes of d_out / h_out
+  std::uint64_t prefetched = 0;  // bytes of the current batch already copied
+  bool remainder_pending = false;
+};
+
+/// The engine behind the pbig finder.
+class pbig_engine {
+ public:
+  explicit pbig_engine(const pbig_options& options);
+  ~pbig_engine();
+  pbig_engine(const pbig_engine&) = delete;
+  pbig_engine& operator=(const pbig_engine&) = delete;
+
+  /// Finds every qualifying pair of a validated set with at least 2 boxes; appends to `out`
+  /// (expected empty). Throws std::runtime_error on a CUDA error, std::length_error past the
+  /// 32-bit limits of the cell lists.
+  void run(const interest::box_set& boxes, interest::pair_list& out, interest::finder_stats& stats);
+
+  [[nodiscard]] const pbig_report& report() const { return report_; }
+
+ private:
+  struct batch {
+    std::uint32_t item_first, item_last, tile_first, tile_last;
+  };
+  void upload(const interest::box_set& boxes);
+  void plan(std::uint32_t n);
+  void map_boxes(std::uint32_t n);
+  void check_batches(interest::pair_list& out);
+  void launch(const batch& b, pipeline_slot& s);
+  void prefetch(const batch& b, pipeline_slot& s, std::uint64_t bytes);
+  void finish(const batch& b, pipeline_slot& s);
+  std::uint64_t decode(const batch& b, pipeline_slot& s, interest::pair_list& out, std::uint64_t base);
+  std::uint64_t large_pairs(std::uint32_t n, interest::pair_list& out, std::uint64_t base);
+  void grow_temp(std::size_t bytes);
+  float elapsed(cudaEvent_t a, cudaEvent_t b) const;
+
+  pbig_options opt_;
+  std::unique_ptr<interest::thread_pool> own_pool_;
+  interest::thread_pool* pool_ = nullptr;
+  cudaStream_t main_ = nullptr;  // = slot_[0].stream
+  pipeline_slot slot_[2];
+  cudaEvent_t ev_start_ = nullptr, ev_in_ = nullptr, ev_plan_ = nullptr, ev_map_ = nullptr, ev_sched_ = nullptr,
+              ev_entries_begin_ = nullptr, ev_entries_ = nullptr;
+
+  // input and planning
+  device_buffer<float> d_coord_;        // lo_x, lo_y, lo_z, hi_x, hi_y, hi_z (stride n)
+  device_buffer<std::uint32_t> d_bits_;  // category, mask (stride n)
+  pinned_buffer<unsigned char> h_stage_;
+  device_buffer<bounds_dev> d_bounds_;
+  device_buffer<plan_state> d_state_;
+  device_buffer<grid_plan_dev> d_plan_;
+  pinned_buffer<grid_plan_dev> h_plan_;
+  grid_plan_dev plan_{};
+  // mapping
+  device_buffer<std::uint32_t> d_counts_, d_cursor_;
+  device_buffer<cell_prefix> d_prefix_;
+  device_buffer<std::uint8_t> d_is_large_;
+  device_buffer<std::uint32_t> d_large_;
+  device_buffer<map_readback> d_readback_;
+  pinned_buffer<map_readback> h_readback_;
+  map_readback rb_{};
+  device_buffer<std::uint32_t> d_entries_unsorted_, d_entries_, d_items_;
+  device_buffer<float4> d_packed_lo_, d_packed_hi_;
+  pinned_buffer<std::uint32_t> h_entries_;
+  device_buffer<unsigned char> d_temp_;
+  // large boxes
+  device_buffer<std::uint32_t> d_large_counts_, d_large_offsets_, d_large_pairs_;
+  pinned_buffer<std::uint32_t> h_large_pairs_, h_large_total_;
+  // decode scratch
+  std::vector<std::uint64_t> tile_pos_;
+  std::vector<std::uint32_t> task_tiles_;
+  bool entries_ready_ = false;
+
+  pbig_report report_{};
+};
+
+}  // namespace zone::gpu::detail

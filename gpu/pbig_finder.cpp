@@ -1,0 +1,54 @@
+// Host API of the GPU PBIG finder: the pair_finder behind make_pbig_finder.
+#include <spdlog/spdlog.h>
+
+#include <stdexcept>
+
+#include "pbig.h"
+#include "pbig_dispatch.h"
+
+namespace zone::gpu {
+namespace {
+
+/// The GPU PBIG finder. Output order: the grid's pairs batch by batch (batches in cell order),
+/// within a batch tile by tile in (cell, row segment, column segment) order, within a tile by
+/// row then column in the cell's box order (box ids ascending); then the pairs of the boxes
+/// handled apart, by (large box, other box id). All of it depends only on the input.
+class pbig_finder final : public interest::pair_finder {
+ public:
+  explicit pbig_finder(const pbig_options& options) : engine_(options) {}
+  [[nodiscard]] std::string_view name() const override { return "gpu"; }
+  [[nodiscard]] const pbig_report& report() const { return engine_.report(); }
+
+ protected:
+  void find_valid(const interest::box_set& boxes, interest::pair_list& out) override {
+    out.clear();
+    if (boxes.size() < 2) return;
+    engine_.run(boxes, out, stats_);
+  }
+
+ private:
+  detail::pbig_engine engine_;
+};
+
+}  // namespace
+
+std::unique_ptr<interest::pair_finder> make_pbig_finder(const pbig_options& options, std::string* why) {
+  device_info info;
+  if (!device_available(&info, why)) return nullptr;
+  try {
+    auto finder = std::make_unique<pbig_finder>(options);
+    spdlog::debug("pbig: GPU finder on {} (sm_{}{}, {} SMs)", info.name, info.compute_major, info.compute_minor,
+                  info.multiprocessors);
+    return finder;
+  } catch (const std::exception& e) {
+    if (why) *why = std::string("cannot start the GPU finder: ") + e.what();
+    return nullptr;
+  }
+}
+
+const pbig_report* last_pbig_report(const interest::pair_finder& finder) {
+  const auto* f = dynamic_cast<const pbig_finder*>(&finder);
+  return f != nullptr ? &f->report() : nullptr;
+}
+
+}  // namespace zone::gpu

@@ -1,0 +1,163 @@
+// The PBIG kernels' launchers and the CUB steps (declared in pbig_launch.h).
+#include <cub/device/device_reduce.cuh>
+#include <cub/device/device_scan.cuh>
+#include <cub/device/device_segmented_sort.cuh>
+#include <cub/device/device_select.cuh>
+#include <thrust/iterator/counting_iterator.h>
+#include <thrust/iterator/transform_iterator.h>
+
+#include <algorithm>
+
+#include "pbig_kernels.cuh"
+#include "pbig_launch.h"
+
+namespace zone::gpu::detail {
+namespace {
+
+std::uint32_t blocks_for(std::uint64_t n, std::uint32_t block) {
+  return static_cast<std::uint32_t>(std::max<std::uint64_t>(1, (n + block - 1) / block));
+}
+
+/// Per-cell values scanned into cell_prefix: entries, work items (segments), tiles.
+struct to_prefix {
+  __host__ __device__ cell_prefix operator()(std::uint32_t count) const {
+    const std::uint32_t segs = (count + tuning::segment - 1) / tuning::segment;
+    return {count, segs, segs * (segs + 1) / 2};
+  }
+};
+struct add_prefix {
+  __host__ __device__ cell_prefix operator()(const cell_prefix& a, const cell_prefix& b) const {
+    return {a.entry + b.entry, a.item + b.item, a.tile + b.tile};
+  }
+};
+struct to_totals {
+  __host__ __device__ cell_totals operator()(std::uint32_t count) const {
+    const std::uint64_t c = count;
+    const std::uint64_t segs = (c + tuning::segment - 1) / tuning::segment;
+    return {c, segs * (segs + 1) / 2, c * (c - (c > 0 ? 1 : 0)) / 2, c};
+  }
+};
+struct add_totals {
+  __host__ __device__ cell_totals operator()(const cell_totals& a, const cell_totals& b) const {
+    return {a.entries + b.entries, a.tiles + b.tiles, a.checks + b.checks,
+            a.max_count > b.max_count ? a.max_count : b.max_count};
+  }
+};
+struct entry_at {
+  const cell_prefix* prefix;
+  __host__ __device__ std::uint32_t operator()(std::uint32_t c) const { return prefix[c].entry; }
+};
+
+}  // namespace
+
+cudaError_t launch_plan(const box_arrays& boxes, bounds_dev* bounds, const plan_params& prm, plan_state* state,
+                        grid_plan_dev* plan, cudaStream_t stream) {
+  init_bounds_kernel<<<1, 32, 0, stream>>>(bounds);
+  bounds_kernel<<<std::min<std::uint32_t>(blocks_for(prm.n, tuning::block), 1024), tuning::block, 0, stream>>>(
+      boxes, prm.n, bounds);
+  plan_kernel<<<1, tuning::plan_threads, 0, stream>>>(boxes, bounds, prm, state, plan);
+  return cudaGetLastError();
+}
+
+cudaError_t launch_count(const box_arrays& boxes, std::uint32_t n, const grid_plan_dev& plan, std::uint32_t* counts,
+                         std::uint8_t* is_large, cudaStream_t stream) {
+  count_kernel<<<blocks_for(n, tuning::block), tuning::block, 0, stream>>>(boxes, n, plan, counts, is_large);
+  return cudaGetLastError();
+}
+
+cudaError_t select_large(void* temp, std::size_t& temp_bytes, const std::uint8_t* is_large, std::uint32_t* large,
+                         std::uint32_t* large_count, std::uint32_t n, cudaStream_t stream) {
+  const thrust::counting_iterator<std::uint32_t> ids(0);
+  return cub::DeviceSelect::Flagged(temp, temp_bytes, ids, is_large, large, large_count, n, stream);
+}
+
+cudaError_t scan_cells(void* temp, std::size_t& temp_bytes, const std::uint32_t* counts, cell_prefix* prefix,
+                       std::uint32_t cells, cudaStream_t stream) {
+  const auto in = thrust::make_transform_iterator(counts, to_prefix{});
+  return cub::DeviceScan::ExclusiveScan(temp, temp_bytes, in, prefix, add_prefix{}, cell_prefix{0, 0, 0},
+                                        static_cast<std::int64_t>(cells) + 1, stream);
+}
+
+cudaError_t reduce_cells(void* temp, std::size_t& temp_bytes, const std::uint32_t* counts, cell_totals* totals,
+                         std::uint32_t cells, cudaStream_t stream) {
+  const auto in = thrust::make_transform_iterator(counts, to_totals{});
+  return cub::DeviceReduce::Reduce(temp, temp_bytes, in, totals, static_cast<std::int64_t>(cells), add_totals{},
+                                   cell_totals{0, 0, 0, 0}, stream);
+}
+
+cudaError_t launch_batch_plan(const cell_prefix* prefix, std::uint32_t cells, map_readback* rb, std::uint32_t min_tiles,
+                              std::uint32_t max_batches, cudaStream_t stream) {
+  batch_plan_kernel<<<1, 32, 0, stream>>>(prefix, cells, rb, min_tiles, max_batches);
+  return cudaGetLastError();
+}
+
+cudaError_t launch_map(const box_arrays& boxes, std::uint32_t n, const grid_plan_dev& plan, const std::uint8_t* is_large,
+                       const cell_prefix* prefix, std::uint32_t* cursor, std::uint32_t* entries, cudaStream_t stream) {
+  map_kernel<<<blocks_for(n, tuning::block), tuning::block, 0, stream>>>(boxes, n, plan, is_large, prefix, cursor,
+                                                                         entries);
+  return cudaGetLastError();
+}
+
+cudaError_t sort_cells(void* temp, std::size_t& temp_bytes, const std::uint32_t* in, std::uint32_t* out,
+                       std::uint32_t entries, std::uint32_t cells, const cell_prefix* prefix, cudaStream_t stream) {
+  const auto begin = thrust::make_transform_iterator(thrust::counting_iterator<std::uint32_t>(0), entry_at{prefix});
+  const auto end = thrust::make_transform_iterator(thrust::counting_iterator<std::uint32_t>(1), entry_at{prefix});
+  return cub::DeviceSegmentedSort::SortKeys(temp, temp_bytes, in, out, static_cast<std::int64_t>(entries),
+                                            static_cast<std::int64_t>(cells), begin, end, stream);
+}
+
+cudaError_t launch_gather(const box_arrays& boxes, const std::uint32_t* entries, std::uint32_t count, float4* packed_lo,
+                          float4* packed_hi, cudaStream_t stream) {
+  gather_kernel<<<blocks_for(count, tuning::block), tuning::block, 0, stream>>>(boxes, entries, count, packed_lo,
+                                                                                packed_hi);
+  return cudaGetLastError();
+}
+
+cudaError_t launch_expand(const cell_prefix* prefix, std::uint32_t cells, std::uint32_t* items, cudaStream_t stream) {
+  expand_items_kernel<<<blocks_for(cells, tuning::block), tuning::block, 0, stream>>>(prefix, cells, items);
+  return cudaGetLastError();
+}
+
+cudaError_t launch_check(const check_args& a, bool balanced, bool compressed, cudaStream_t stream) {
+  const std::uint32_t grid = a.item_last - a.item_first;
+  if (grid == 0) return cudaSuccess;
+  if (balanced) {
+    if (compressed) {
+      check_kernel<true, true><<<grid, tuning::segment, 0, stream>>>(a);
+    } else {
+      check_kernel<true, false><<<grid, tuning::segment, 0, stream>>>(a);
+    }
+  } else {
+    if (compressed) {
+      check_kernel<false, true><<<grid, tuning::segment, 0, stream>>>(a);
+    } else {
+      check_kernel<false, false><<<grid, tuning::segment, 0, stream>>>(a);
+    }
+  }
+  return cudaGetLastError();
+}
+
+cudaError_t launch_large_count(const box_arrays& boxes, std::uint32_t n, const std::uint32_t* large,
+                               std::uint32_t large_count, const std::uint8_t* is_large, std::uint32_t chunks,
+                               std::uint32_t* counts, cudaStream_t stream) {
+  const std::uint64_t blocks = static_cast<std::uint64_t>(chunks) * large_count;
+  large_count_kernel<<<static_cast<std::uint32_t>(blocks), tuning::block, 0, stream>>>(boxes, n, large, large_count,
+                                                                                        is_large, chunks, counts);
+  return cudaGetLastError();
+}
+
+cudaError_t scan_u32(void* temp, std::size_t& temp_bytes, const std::uint32_t* in, std::uint32_t* out,
+                     std::uint64_t n, cudaStream_t stream) {
+  return cub::DeviceScan::ExclusiveSum(temp, temp_bytes, in, out, static_cast<std::int64_t>(n), stream);
+}
+
+cudaError_t launch_large_write(const box_arrays& boxes, std::uint32_t n, const std::uint32_t* large,
+                               std::uint32_t large_count, const std::uint8_t* is_large, std::uint32_t chunks,
+                               const std::uint32_t* offsets, std::uint32_t* pairs, cudaStream_t stream) {
+  const std::uint64_t blocks = static_cast<std::uint64_t>(chunks) * large_count;
+  large_write_kernel<<<static_cast<std::uint32_t>(blocks), tuning::block, 0, stream>>>(
+      boxes, n, large, large_count, is_large, chunks, offsets, pairs);
+  return cudaGetLastError();
+}
+
+}  // namespace zone::gpu::detail

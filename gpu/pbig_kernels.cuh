@@ -1,0 +1,525 @@
+// Kernels of the GPU PBIG finder: small and single-purpose, each starting with a bounds guard.
+// Included only by pbig_dispatch.cu, which plans, sizes scratch memory and launches them.
+#pragma once
+
+#include <cub/block/block_reduce.cuh>
+#include <cub/block/block_scan.cuh>
+#include <cuda_runtime.h>
+
+#include <cfloat>
+#include <cstdint>
+
+#include "pbig_shared.h"
+#include "pbig_tuning.h"
+
+namespace zone::gpu::detail {
+
+
+/// Order-preserving map between floats and signed ints (for atomicMin/atomicMax on floats).
+__device__ __forceinline__ std::int32_t float_to_ordered(float f) {
+  const std::int32_t i = __float_as_int(f);
+  return i >= 0 ? i : i ^ 0x7FFFFFFF;
+}
+__host__ __device__ inline float ordered_to_float(std::int32_t i) {
+  const std::int32_t b = i >= 0 ? i : i ^ 0x7FFFFFFF;
+  float f;
+  memcpy(&f, &b, sizeof f);
+  return f;
+}
+
+/// The one cell mapping used by every kernel: monotone in x, so the output-cell rule holds.
+__device__ __forceinline__ std::uint32_t cell_of(float x, int d, const grid_plan_dev& p) {
+  const double c = floor((static_cast<double>(x) - p.origin[d]) * p.inv_edge);
+  if (c <= 0.0) return 0;
+  const double last = static_cast<double>(p.dims[d] - 1);
+  if (c >= last) return p.dims[d] - 1;
+  return static_cast<std::uint32_t>(c);
+}
+
+// ---- planning ---------------------------------------------------------------------------------
+
+__global__ void init_bounds_kernel(bounds_dev* b) {
+  if (threadIdx.x >= 3) return;
+  b->lo[threadIdx.x] = float_to_ordered(FLT_MAX);
+  b->hi[threadIdx.x] = float_to_ordered(-FLT_MAX);
+}
+
+/// Scene bounds: min of lo and max of hi per axis (block reduction, then one atomic per block).
+__global__ void bounds_kernel(box_arrays boxes, std::uint32_t n, bounds_dev* out) {
+  using reduce = cub::BlockReduce<float, tuning::block>;
+  __shared__ typename reduce::TempStorage temp;
+  float lo[3] = {FLT_MAX, FLT_MAX, FLT_MAX}, hi[3] = {-FLT_MAX, -FLT_MAX, -FLT_MAX};
+  for (std::uint32_t i = blockIdx.x * blockDim.x + threadIdx.x; i < n; i += gridDim.x * blockDim.x) {
+    for (int d = 0; d < 3; ++d) {
+      lo[d] = fminf(lo[d], boxes.lo[d][i]);
+      hi[d] = fmaxf(hi[d], boxes.hi[d][i]);
+    }
+  }
+  for (int d = 0; d < 3; ++d) {
+    const float mn = reduce(temp).Reduce(lo[d], [](float a, float b) { return fminf(a, b); });
+    __syncthreads();
+    const float mx = reduce(temp).Reduce(hi[d], [](float a, float b) { return fmaxf(a, b); });
+    __syncthreads();
+    if (threadIdx.x == 0) {
+      atomicMin(&out->lo[d], float_to_ordered(mn));
+      atomicMax(&out->hi[d], float_to_ordered(mx));
+    }
+  }
+}
+
+
+__device__ __forceinline__ std::uint64_t splitmix64(std::uint64_t x) {
+  x += 0x9e3779b97f4a7c15ull;
+  x = (x ^ (x >> 30)) * 0xbf58476d1ce4e5b9ull;
+  x = (x ^ (x >> 27)) * 0x94d049bb133111ebull;
+  return x ^ (x >> 31);
+}
+
+/// Planning (Eq. 6) in one block: each thread holds one box of a simple random sample; alpha(l)
+/// is a block sum; a binary search on the cubic edge l finds the smallest l with f(l) >= W,
+/// then, where f is flat (boxes covering each other), the largest edge whose f stays within 5%
+/// of that minimum (the CPU planner's tie rule). Reuses the previous edge when the statistics
+/// (N, scene extent, mean sampled box size) moved less than the tolerances.
+__global__ void __launch_bounds__(tuning::plan_threads) plan_kernel(box_arrays boxes, const bounds_dev* bounds,
+                                                                  plan_params prm, plan_state* state,
+                                                                  grid_plan_dev* plan_out) {
+  using reduce = cub::BlockReduce<double, tuning::plan_threads>;
+  __shared__ typename reduce::TempStorage temp;
+  __shared__ double bcast;
+  if (blockDim.x != tuning::plan_threads) return;  // guard: launched with exactly one full block
+  const std::uint32_t t = threadIdx.x;
+  const std::uint32_t n = prm.n;
+
+  double origin[3], extent[3];
+  for (int d = 0; d < 3; ++d) {
+    const float lo = ordered_to_float(bounds->lo[d]);
+    const float hi = ordered_to_float(bounds->hi[d]);
+    origin[d] = lo;
+    extent[d] = fmax(0.0, static_cast<double>(hi) - static_cast<double>(lo));
+  }
+  const double max_extent = fmax(extent[0], fmax(extent[1], extent[2]));
+  const double max_cells = fmin(2.0 * n + 64.0, 2147483647.0);
+
+  const std::uint32_t k = min(n, min(prm.samples, tuning::plan_threads));
+  double blo[3] = {0, 0, 0}, bhi[3] = {0, 0, 0};
+  const bool has = t < k;
+  if (has) {
+    const std::uint32_t idx = (k == n) ? t : static_cast<std::uint32_t>(splitmix64(prm.seed + t) % n);
+    for (int d = 0; d < 3; ++d) {
+      blo[d] = boxes.lo[d][idx];
+      bhi[d] = boxes.hi[d][idx];
+    }
+  }
+  auto block_sum = [&](double v) {
+    const double s = reduce(temp).Sum(v);
+    if (t == 0) bcast = s;
+    __syncthreads();
+    const double r = bcast;
+    __syncthreads();
+    return r;
+  };
+  auto dims_for = [&](double l, double dims[3]) {
+    for (int d = 0; d < 3; ++d) dims[d] = floor(extent[d] / l) + 1.0;
+  };
+  auto alpha_for = [&](double l, const double dims[3]) {
+    double cells = 0;
+    if (has) {
+      cells = 1;
+      for (int d = 0; d < 3; ++d) {
+        const double last = dims[d] - 1;
+        const double a = fmin(fmax(floor((blo[d] - origin[d]) / l), 0.0), last);
+        const double z = fmin(fmax(floor((bhi[d] - origin[d]) / l), 0.0), last);
+        cells *= z - a + 1;
+      }
+    }
+    return k == 0 ? 1.0 : block_sum(cells) / k;
+  };
+  auto f_of = [&](double l) {
+    double dims[3];
+    dims_for(l, dims);
+    const double m = dims[0] * dims[1] * dims[2];
+    const double alpha = alpha_for(l, dims);  // every thread takes part in the block sum
+    if (m > max_cells) return static_cast<double>(INFINITY);
+    return static_cast<double>(n) * alpha / m;
+  };
+  auto bisect = [](double lo_l, double hi_l, auto&& pred) {
+    for (int it = 0; it < 48 && hi_l - lo_l > hi_l * 1e-4; ++it) {
+      const double mid = 0.5 * (lo_l + hi_l);
+      (pred(mid) ? hi_l : lo_l) = mid;
+    }
+    return hi_l;
+  };
+  double mean_size[3];
+  for (int d = 0; d < 3; ++d) mean_size[d] = k == 0 ? 0.0 : block_sum(has ? bhi[d] - blo[d] : 0.0) / k;
+
+  std::uint32_t reused = 0;
+  double edge;
+  auto close = [](double a, double b, double tol) { return fabs(a - b) <= tol * fabs(b) + 1e-9; };
+  if (max_extent <= 0.0 || n < 2) {
+    edge = fmax(1.0, max_extent);
+  } else if (prm.fixed_edge > 0) {
+    edge = prm.fixed_edge;
+    for (;;) {
+      double dims[3];
+      dims_for(edge, dims);
+      if (dims[0] * dims[1] * dims[2] <= max_cells) break;
+      edge *= 1.25;
+    }
+  } else {
+    bool reuse = prm.allow_reuse && state->valid && close(n, state->count, tuning::reuse_count_tolerance);
+    for (int d = 0; d < 3; ++d) {
+      reuse = reuse && close(extent[d], state->extent[d], tuning::reuse_size_tolerance) &&
+              close(mean_size[d], state->mean_size[d], tuning::reuse_size_tolerance);
+    }
+    if (reuse) {
+      double dims[3];
+      dims_for(state->edge, dims);
+      reuse = dims[0] * dims[1] * dims[2] <= max_cells;
+    }
+    if (reuse) {
+      edge = state->edge;
+      reused = 1;
+    } else {
+      const double w = fmax(1.0, prm.min_boxes_per_cell);
+      const double one_cell = max_extent * (1.0 + 1e-6) + 1e-6;
+      auto feasible = [&](double l) {
+        const double f = f_of(l);
+        return isfinite(f) && f >= w;
+      };
+      if (!feasible(one_cell)) {
+        edge = one_cell;  // N < W: one cell is the best we can do
+      } else {
+        double lo_l = one_cell;
+        for (int it = 0; it < 200 && feasible(lo_l); ++it) lo_l /= 2;
+        const double best = bisect(lo_l, one_cell, feasible);
+        const double f_best = f_of(best);
+        if (f_of(one_cell) <= f_best * 1.05) {
+          edge = one_cell;
+        } else {
+          const double tie = bisect(best, one_cell, [&](double l) { return f_of(l) > f_best * 1.05; });
+          edge = tie * (1.0 - 1e-4) > best ? tie * (1.0 - 1e-4) : best;
+        }
+      }
+    }
+  }
+  double dims[3];
+  dims_for(edge, dims);
+  const double alpha = alpha_for(edge, dims);
+  if (t == 0) {
+    grid_plan_dev p{};
+    for (int d = 0; d < 3; ++d) {
+      p.origin[d] = origin[d];
+      p.dims[d] = static_cast<std::uint32_t>(dims[d]);
+    }
+    p.edge = edge;
+    p.inv_edge = 1.0 / edge;
+    p.alpha = alpha;
+    p.large_cells = fmax(tuning::large_box_min_cells, tuning::large_box_alpha_factor * alpha);
+    p.reused = reused;
+    p.cells = static_cast<std::uint64_t>(p.dims[0]) * p.dims[1] * p.dims[2];
+    *plan_out = p;
+    if (!reused && prm.fixed_edge <= 0 && n >= 2 && max_extent > 0.0) {
+      state->edge = edge;
+      state->count = n;
+      for (int d = 0; d < 3; ++d) {
+        state->extent[d] = extent[d];
+        state->mean_size[d] = mean_size[d];
+      }
+      state->valid = 1;
+    }
+  }
+}
+
+// ---- mapping ----------------------------------------------------------------------------------
+
+struct cell_range {
+  std::uint32_t lo[3];
+  std::uint32_t hi[3];
+};
+
+__device__ __forceinline__ cell_range cells_of(const box_arrays& b, std::uint32_t i, const grid_plan_dev& p) {
+  cell_range r;
+  for (int d = 0; d < 3; ++d) {
+    r.lo[d] = cell_of(b.lo[d][i], d, p);
+    r.hi[d] = cell_of(b.hi[d][i], d, p);
+  }
+  return r;
+}
+
+/// Box counting kernel: one thread per box; +1 (atomic) on every cell the box occupies. A box
+/// that would occupy more than plan.large_cells cells is flagged large and kept out of the grid.
+__global__ void count_kernel(box_arrays boxes, std::uint32_t n, grid_plan_dev p, std::uint32_t* counts,
+                             std::uint8_t* is_large) {
+  const std::uint32_t i = blockIdx.x * blockDim.x + threadIdx.x;
+  if (i >= n) return;
+  const cell_range r = cells_of(boxes, i, p);
+  const double occupied = static_cast<double>(r.hi[0] - r.lo[0] + 1) * (r.hi[1] - r.lo[1] + 1) * (r.hi[2] - r.lo[2] + 1);
+  const bool large = occupied > p.large_cells;
+  is_large[i] = large ? 1 : 0;
+  if (large) return;
+  for (std::uint32_t z = r.lo[2]; z <= r.hi[2]; ++z) {
+    for (std::uint32_t y = r.lo[1]; y <= r.hi[1]; ++y) {
+      const std::uint64_t row = (static_cast<std::uint64_t>(z) * p.dims[1] + y) * p.dims[0];
+      for (std::uint32_t x = r.lo[0]; x <= r.hi[0]; ++x) atomicAdd(&counts[row + x], 1u);
+    }
+  }
+}
+
+/// Box mapping kernel: one thread per box; its slot in each cell's list is the cell's offset
+/// plus an atomic ticket. (The lists are sorted by id afterwards, for a deterministic order.)
+__global__ void map_kernel(box_arrays boxes, std::uint32_t n, grid_plan_dev p, const std::uint8_t* is_large,
+                           const cell_prefix* prefix, std::uint32_t* cursor, std::uint32_t* entries) {
+  const std::uint32_t i = blockIdx.x * blockDim.x + threadIdx.x;
+  if (i >= n) return;
+  if (is_large[i]) return;
+  const cell_range r = cells_of(boxes, i, p);
+  for (std::uint32_t z = r.lo[2]; z <= r.hi[2]; ++z) {
+    for (std::uint32_t y = r.lo[1]; y <= r.hi[1]; ++y) {
+      const std::uint64_t row = (static_cast<std::uint64_t>(z) * p.dims[1] + y) * p.dims[0];
+      for (std::uint32_t x = r.lo[0]; x <= r.hi[0]; ++x) {
+        const std::uint64_t c = row + x;
+        entries[prefix[c].entry + atomicAdd(&cursor[c], 1u)] = i;
+      }
+    }
+  }
+}
+
+/// The box array of the paper: each entry's box, packed for the checking kernel
+/// (lo.xyz + category bits, hi.xyz + mask bits), in cell order.
+__global__ void gather_kernel(box_arrays boxes, const std::uint32_t* entries, std::uint32_t count, float4* packed_lo,
+                              float4* packed_hi) {
+  const std::uint32_t e = blockIdx.x * blockDim.x + threadIdx.x;
+  if (e >= count) return;
+  const std::uint32_t i = entries[e];
+  packed_lo[e] = make_float4(boxes.lo[0][i], boxes.lo[1][i], boxes.lo[2][i], __uint_as_float(boxes.category[i]));
+  packed_hi[e] = make_float4(boxes.hi[0][i], boxes.hi[1][i], boxes.hi[2][i], __uint_as_float(boxes.mask[i]));
+}
+
+// ---- scheduling -------------------------------------------------------------------------------
+
+/// Thread-block scheduling: one work item per (cell, row segment); items[k] = its cell.
+__global__ void expand_items_kernel(const cell_prefix* prefix, std::uint32_t cells, std::uint32_t* items) {
+  const std::uint32_t c = blockIdx.x * blockDim.x + threadIdx.x;
+  if (c >= cells) return;
+  for (std::uint32_t k = prefix[c].item; k < prefix[c + 1].item; ++k) items[k] = c;
+}
+
+/// Fills the read-back block: totals at cell M and the batch boundaries (cells cut so that each
+/// batch holds about the same number of tiles).
+__global__ void batch_plan_kernel(const cell_prefix* prefix, std::uint32_t cells, map_readback* rb,
+                                  std::uint32_t min_tiles, std::uint32_t max_batches) {
+  if (threadIdx.x >= 32) return;
+  const std::uint32_t tiles = prefix[cells].tile;
+  std::uint32_t count = tiles == 0 ? 0 : (tiles + min_tiles - 1) / min_tiles;
+  count = min(count, max_batches);
+  if (threadIdx.x == 0) {
+    rb->total = prefix[cells];
+    rb->batches.count = count;
+  }
+  for (std::uint32_t b = threadIdx.x; b <= count && b < static_cast<std::uint32_t>(max_batch_slots); b += 32) {
+    const std::uint64_t target = count == 0 ? 0 : static_cast<std::uint64_t>(tiles) * b / count;
+    std::uint32_t lo = 0, hi = cells;  // first c in [0, cells] with prefix[c].tile >= target
+    while (lo < hi) {
+      const std::uint32_t mid = lo + (hi - lo) / 2;
+      if (prefix[mid].tile >= target) hi = mid; else lo = mid + 1;
+    }
+    if (b == count) lo = cells;
+    rb->batches.cell[b] = lo;
+    rb->batches.item[b] = prefix[lo].item;
+    rb->batches.tile[b] = prefix[lo].tile;
+  }
+}
+
+// ---- checking ---------------------------------------------------------------------------------
+
+
+/// Flags of a box in cell (cx, cy, cz): bit d set when the box's hi corner lies in the cell's slab
+/// on axis d. Both boxes of a pair occupy the cell, so min(hi-cell a, hi-cell b) == cell on axis d
+/// iff either has bit d: the pair's output cell is this cell iff (flags_a | flags_b) == 7.
+__device__ __forceinline__ std::uint32_t hi_flags(const float4& hi, const grid_plan_dev& p, const std::uint32_t c[3]) {
+  return (cell_of(hi.x, 0, p) == c[0] ? 1u : 0u) | (cell_of(hi.y, 1, p) == c[1] ? 2u : 0u) |
+         (cell_of(hi.z, 2, p) == c[2] ? 4u : 0u);
+}
+
+/// Algorithm 2: one block of T threads per work item (cell c, row segment v). Thread i holds box
+/// i of segment v and compares it with each column segment h >= v loaded into shared memory:
+/// for h == v the triangle, with Eq. 7's balanced circular assignment when Balanced (thread i
+/// checks the x(i) elements from the diagonal on, wrapping), else row i checks columns i+1..m-1;
+/// for h > v the whole rectangle. A pair is kept when the boxes intersect, the category/mask rule
+/// holds, and this cell holds the max corner of their intersection. Each tile's pairs become one
+/// chunk: a 12-byte header then the 3-level encoded rows (Compressed) or plain id pairs, placed
+/// by a block prefix sum plus one atomic per chunk. Chunks past the capacity are counted, not
+/// written: the host sees cursor > capacity and re-runs the batch with room.
+template <bool Balanced, bool Compressed>
+__global__ void __launch_bounds__(tuning::segment) check_kernel(check_args a) {
+  constexpr std::uint32_t T = tuning::segment;
+  using scan = cub::BlockScan<std::uint32_t, T>;
+  __shared__ typename scan::TempStorage scan_temp;
+  __shared__ float4 col_lo[T];
+  __shared__ float4 col_hi[T];
+  __shared__ std::uint32_t col_id[T];
+  __shared__ std::uint8_t col_flags[T];
+  __shared__ std::uint64_t chunk_base;
+
+  const std::uint32_t item = a.item_first + blockIdx.x;
+  if (item >= a.item_last || blockDim.x != T) return;  // guard (uniform over the block)
+  const std::uint32_t tid = threadIdx.x;
+  const std::uint32_t cell = a.items[item];
+  const cell_prefix p0 = a.prefix[cell], p1 = a.prefix[cell + 1];
+  const std::uint32_t segs = p1.item - p0.item;
+  const std::uint32_t v = item - p0.item;
+  const std::uint32_t count = p1.entry - p0.entry;
+  const std::uint32_t tile0 = p0.tile + v * segs - v * (v - 1) / 2 - a.tile_first;
+  const std::uint32_t cc[3] = {cell % a.plan.dims[0], (cell / a.plan.dims[0]) % a.plan.dims[1],
+                               cell / (a.plan.dims[0] * a.plan.dims[1])};
+
+  const std::uint32_t m = min(T, count - v * T);
+  float4 row_lo = make_float4(0, 0, 0, 0), row_hi = make_float4(0, 0, 0, 0);
+  std::uint32_t row_flags = 0, row_id = 0;
+  if (tid < m) {
+    const std::uint32_t e = p0.entry + v * T + tid;
+    row_lo = a.packed_lo[e];
+    row_hi = a.packed_hi[e];
+    row_flags = hi_flags(row_hi, a.plan, cc);
+    if (!Compressed) row_id = a.entries[e];
+  }
+  const std::uint32_t row_cat = __float_as_uint(row_lo.w), row_mask = __float_as_uint(row_hi.w);
+
+  for (std::uint32_t h = v; h < segs; ++h) {
+    const std::uint32_t n = min(T, count - h * T);
+    __syncthreads();  // the previous tile's readers are done with shared memory
+    if (tid < n) {
+      const std::uint32_t e = p0.entry + h * T + tid;
+      col_lo[tid] = a.packed_lo[e];
+      col_hi[tid] = a.packed_hi[e];
+      col_flags[tid] = static_cast<std::uint8_t>(hi_flags(col_hi[tid], a.plan, cc));
+      if (!Compressed) col_id[tid] = a.entries[e];
+    }
+    __syncthreads();
+
+    std::uint64_t hits = 0;
+    auto test = [&](std::uint32_t j) {
+      const float4 lo = col_lo[j], hi = col_hi[j];
+      const bool hit = row_lo.x <= hi.x && lo.x <= row_hi.x && row_lo.y <= hi.y && lo.y <= row_hi.y &&
+                       row_lo.z <= hi.z && lo.z <= row_hi.z &&
+                       ((row_cat & __float_as_uint(hi.w)) | (__float_as_uint(lo.w) & row_mask)) != 0 &&
+                       (row_flags | col_flags[j]) == 7u;
+      if (hit) hits |= std::uint64_t{1} << j;
+    };
+    if (tid < m) {
+      if (h == v) {
+        if (Balanced) {
+          // Eq. 7 with n = m: x = ceil((m+1)/2) for the first ceil(m/2) rows, else floor((m+1)/2);
+          // the first of the x elements is the diagonal (a box with itself), skipped.
+          const std::uint32_t x = tid < (m + 1) / 2 ? (m + 2) / 2 : (m + 1) / 2;
+          std::uint32_t j = tid;
+          for (std::uint32_t k = 1; k < x; ++k) {
+            if (++j == m) j = 0;
+            test(j);
+          }
+        } else {
+          for (std::uint32_t j = tid + 1; j < m; ++j) test(j);
+        }
+      } else {
+        for (std::uint32_t j = 0; j < n; ++j) test(j);
+      }
+    }
+
+    const std::uint32_t pairs = static_cast<std::uint32_t>(__popcll(hits));
+    const std::uint32_t bytes = Compressed ? (pairs ? 2 + pairs : 0) : 8 * pairs;
+    std::uint32_t offset, total;
+    scan(scan_temp).ExclusiveSum((pairs << 16) | bytes, offset, total);
+    const std::uint32_t total_pairs = total >> 16, body = total & 0xFFFF;
+    const std::uint32_t tile = tile0 + (h - v);
+    if (total_pairs == 0) {
+      if (tid == 0) a.tile_pairs[tile] = 0;
+      continue;
+    }
+    const std::uint64_t chunk = sizeof(chunk_header) + ((body + 3u) & ~3u);
+    if (tid == 0) {
+      const std::uint64_t base = atomicAdd(a.cursor, static_cast<unsigned long long>(chunk));
+      chunk_base = base;
+      a.tile_off[tile] = base;
+      a.tile_pairs[tile] = total_pairs;
+      if (base + chunk <= a.capacity) {
+        auto* w = reinterpret_cast<std::uint32_t*>(a.out + base);
+        w[0] = p0.entry;
+        w[1] = v | (h << 16);
+        w[2] = body | (total_pairs << 16);
+      }
+    }
+    __syncthreads();
+    const std::uint64_t base = chunk_base;
+    if (pairs == 0 || base + chunk > a.capacity) continue;
+    unsigned char* dst = a.out + base + sizeof(chunk_header) + (offset & 0xFFFF);
+    if (Compressed) {
+      dst[0] = static_cast<unsigned char>(tid);
+      dst[1] = static_cast<unsigned char>(pairs - 1);
+      std::uint32_t q = 2;
+      while (hits) {
+        dst[q++] = static_cast<unsigned char>(__ffsll(static_cast<long long>(hits)) - 1);
+        hits &= hits - 1;
+      }
+    } else {
+      auto* w = reinterpret_cast<std::uint32_t*>(dst);
+      std::uint32_t q = 0;
+      while (hits) {
+        const std::uint32_t j = __ffsll(static_cast<long long>(hits)) - 1;
+        hits &= hits - 1;
+        const std::uint32_t other = col_id[j];
+        w[q++] = min(row_id, other);
+        w[q++] = max(row_id, other);
+      }
+    }
+  }
+}
+
+// ---- large boxes ------------------------------------------------------------------------------
+
+/// Does large box l pair with box j on the large-box path? Each pair once: a large box meets every
+/// grid box here, and another large box only when its id is higher.
+__device__ __forceinline__ bool large_pair(const box_arrays& b, std::uint32_t l, std::uint32_t j,
+                                           const std::uint8_t* is_large) {
+  if (j == l || (is_large[j] && j < l)) return false;
+  for (int d = 0; d < 3; ++d) {
+    if (!(b.lo[d][l] <= b.hi[d][j] && b.lo[d][j] <= b.hi[d][l])) return false;
+  }
+  return ((b.category[l] & b.mask[j]) | (b.category[j] & b.mask[l])) != 0;
+}
+
+/// Large boxes, pass 1: pairs per (large box, block of boxes).
+__global__ void large_count_kernel(box_arrays boxes, std::uint32_t n, const std::uint32_t* large,
+                                   std::uint32_t large_count, const std::uint8_t* is_large, std::uint32_t chunks,
+                                   std::uint32_t* counts) {
+  using reduce = cub::BlockReduce<std::uint32_t, tuning::block>;
+  __shared__ typename reduce::TempStorage temp;
+  const std::uint64_t block = blockIdx.x;
+  if (block >= static_cast<std::uint64_t>(chunks) * large_count) return;
+  const std::uint32_t l = large[block / chunks];
+  const std::uint32_t j = static_cast<std::uint32_t>(block % chunks) * blockDim.x + threadIdx.x;
+  const std::uint32_t hit = (j < n && large_pair(boxes, l, j, is_large)) ? 1u : 0u;
+  const std::uint32_t sum = reduce(temp).Sum(hit);
+  if (threadIdx.x == 0) counts[block] = sum;
+}
+
+/// Large boxes, pass 2: writes the pairs at the scanned offsets (deterministic order).
+__global__ void large_write_kernel(box_arrays boxes, std::uint32_t n, const std::uint32_t* large,
+                                   std::uint32_t large_count, const std::uint8_t* is_large, std::uint32_t chunks,
+                                   const std::uint32_t* offsets, std::uint32_t* pairs_out) {
+  using scan = cub::BlockScan<std::uint32_t, tuning::block>;
+  __shared__ typename scan::TempStorage temp;
+  const std::uint64_t block = blockIdx.x;
+  if (block >= static_cast<std::uint64_t>(chunks) * large_count) return;
+  const std::uint32_t l = large[block / chunks];
+  const std::uint32_t j = static_cast<std::uint32_t>(block % chunks) * blockDim.x + threadIdx.x;
+  const std::uint32_t hit = (j < n && large_pair(boxes, l, j, is_large)) ? 1u : 0u;
+  std::uint32_t pos;
+  scan(temp).ExclusiveSum(hit, pos);
+  if (hit) {
+    const std::uint64_t at = 2ull * (static_cast<std::uint64_t>(offsets[block]) + pos);
+    pairs_out[at] = min(l, j);
+    pairs_out[at + 1] = max(l, j);
+  }
+}
+
+}  // namespace zone::gpu::detail

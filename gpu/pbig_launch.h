@@ -1,0 +1,45 @@
+// Host-callable launchers of the PBIG kernels and the CUB steps, one per kernel or library call.
+// Kept free of host-library headers so that nvcc compiles only pbig_kernels.cu; the dispatch
+// (pbig_dispatch.cpp, plain C++) calls these. Each returns the launch's cudaError_t. The CUB
+// wrappers follow CUB's convention: with temp == nullptr they only set temp_bytes.
+#pragma once
+
+#include <cuda_runtime.h>
+
+#include <cstddef>
+#include <cstdint>
+
+#include "pbig_shared.h"
+
+namespace zone::gpu::detail {
+
+cudaError_t launch_plan(const box_arrays& boxes, bounds_dev* bounds, const plan_params& prm, plan_state* state,
+                        grid_plan_dev* plan, cudaStream_t stream);
+cudaError_t launch_count(const box_arrays& boxes, std::uint32_t n, const grid_plan_dev& plan, std::uint32_t* counts,
+                         std::uint8_t* is_large, cudaStream_t stream);
+cudaError_t select_large(void* temp, std::size_t& temp_bytes, const std::uint8_t* is_large, std::uint32_t* large,
+                         std::uint32_t* large_count, std::uint32_t n, cudaStream_t stream);
+cudaError_t scan_cells(void* temp, std::size_t& temp_bytes, const std::uint32_t* counts, cell_prefix* prefix,
+                       std::uint32_t cells, cudaStream_t stream);  // scans cells + 1 values (counts[cells] == 0)
+cudaError_t reduce_cells(void* temp, std::size_t& temp_bytes, const std::uint32_t* counts, cell_totals* totals,
+                         std::uint32_t cells, cudaStream_t stream);
+cudaError_t launch_batch_plan(const cell_prefix* prefix, std::uint32_t cells, map_readback* rb, std::uint32_t min_tiles,
+                              std::uint32_t max_batches, cudaStream_t stream);
+cudaError_t launch_map(const box_arrays& boxes, std::uint32_t n, const grid_plan_dev& plan, const std::uint8_t* is_large,
+                       const cell_prefix* prefix, std::uint32_t* cursor, std::uint32_t* entries, cudaStream_t stream);
+cudaError_t sort_cells(void* temp, std::size_t& temp_bytes, const std::uint32_t* in, std::uint32_t* out,
+                       std::uint32_t entries, std::uint32_t cells, const cell_prefix* prefix, cudaStream_t stream);
+cudaError_t launch_gather(const box_arrays& boxes, const std::uint32_t* entries, std::uint32_t count, float4* packed_lo,
+                          float4* packed_hi, cudaStream_t stream);
+cudaError_t launch_expand(const cell_prefix* prefix, std::uint32_t cells, std::uint32_t* items, cudaStream_t stream);
+cudaError_t launch_check(const check_args& args, bool balanced, bool compressed, cudaStream_t stream);
+cudaError_t launch_large_count(const box_arrays& boxes, std::uint32_t n, const std::uint32_t* large,
+                               std::uint32_t large_count, const std::uint8_t* is_large, std::uint32_t chunks,
+                               std::uint32_t* counts, cudaStream_t stream);
+cudaError_t scan_u32(void* temp, std::size_t& temp_bytes, const std::uint32_t* in, std::uint32_t* out,
+                     std::uint64_t n, cudaStream_t stream);
+cudaError_t launch_large_write(const box_arrays& boxes, std::uint32_t n, const std::uint32_t* large,
+                               std::uint32_t large_count, const std::uint8_t* is_large, std::uint32_t chunks,
+                               const std::uint32_t* offsets, std::uint32_t* pairs, cudaStream_t stream);
+
+}  // namespace zone::gpu::detail

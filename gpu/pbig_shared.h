@@ -1,0 +1,120 @@
+// Structs read by both the host dispatch and the kernels of the GPU PBIG finder.
+#pragma once
+
+#include <vector_types.h>  // float4 (plain C struct from the CUDA toolkit)
+
+#include <cstdint>
+
+namespace zone::gpu::detail {
+
+/// The grid plan, written by the planning kernel in device memory and copied back to the host.
+/// The cell of coordinate x on axis d is clamp(floor((x - origin[d]) * inv_edge), 0, dims[d]-1),
+/// computed in double precision by one function (cell_of) everywhere, so it is monotone in x.
+struct grid_plan_dev {
+  double origin[3];
+  double edge;
+  double inv_edge;
+  double alpha;          ///< estimated average number of cells a box occupies
+  double large_cells;    ///< boxes occupying more cells than this are handled apart
+  std::uint32_t dims[3];
+  std::uint32_t reused;  ///< 1 when the previous call's edge was kept (statistics unchanged)
+  std::uint64_t cells;   ///< dims[0] * dims[1] * dims[2]
+};
+
+/// Box statistics the planner compares to decide whether the previous edge still fits.
+struct plan_state {
+  double edge;
+  double count;
+  double extent[3];
+  double mean_size[3];
+  std::uint32_t valid;
+};
+
+/// Scene bounds as order-preserving integers (float bit patterns mapped to signed ints).
+struct bounds_dev {
+  std::int32_t lo[3];
+  std::int32_t hi[3];
+};
+
+/// Per-cell exclusive prefixes: first entry (box slot), first work item, first tile.
+struct cell_prefix {
+  std::uint32_t entry;
+  std::uint32_t item;
+  std::uint32_t tile;
+};
+
+/// Whole-grid totals (64-bit, to detect 32-bit overflow of the prefixes).
+struct cell_totals {
+  std::uint64_t entries;
+  std::uint64_t tiles;
+  std::uint64_t checks;
+  std::uint64_t max_count;
+};
+
+/// Batch boundaries, written by the batch-planning kernel: batch b covers cells
+/// [cell[b], cell[b+1]), work items [item[b], item[b+1]) and tiles [tile[b], tile[b+1]).
+inline constexpr int max_batch_slots = 17;  // tuning::max_batches + 1
+struct batch_plan {
+  std::uint32_t count;
+  std::uint32_t cell[max_batch_slots];
+  std::uint32_t item[max_batch_slots];
+  std::uint32_t tile[max_batch_slots];
+};
+
+/// What one call reads back at its first synchronisation after mapping.
+struct map_readback {
+  cell_prefix total;  ///< prefix at cell M: totals of entries, items, tiles (32-bit)
+  cell_totals totals;
+  std::uint32_t large_count;
+  batch_plan batches;
+};
+
+/// Header of one output chunk (one tile with at least one pair), 12 bytes, 4-byte aligned.
+/// Compressed body: per row with matches, [local_v:u8][count-1:u8][local_h:u8 x count];
+/// plain body: count x {a:u32, b:u32} with a < b, the final box ids.
+struct chunk_header {
+  std::uint32_t cell_begin;  ///< first entry of the cell (the cell's level of Eq. 8)
+  std::uint16_t seg_v;       ///< segment of the rows
+  std::uint16_t seg_h;       ///< segment of the columns
+  std::uint16_t body_bytes;
+  std::uint16_t pairs;
+};
+static_assert(sizeof(chunk_header) == 12);
+
+/// The input boxes on the device, structure of arrays (ids are indices).
+struct box_arrays {
+  const float* lo[3];
+  const float* hi[3];
+  const std::uint32_t* category;
+  const std::uint32_t* mask;
+};
+
+/// Parameters of the planning kernel.
+struct plan_params {
+  std::uint32_t n;
+  std::uint32_t samples;
+  std::uint64_t seed;
+  double min_boxes_per_cell;  // W
+  double fixed_edge;          // > 0: use it (grown only to respect the cell cap)
+  std::uint32_t allow_reuse;
+};
+
+/// Arguments of one checking-kernel launch (one batch).
+struct check_args {
+  grid_plan_dev plan;
+  const float4* packed_lo;
+  const float4* packed_hi;
+  const std::uint32_t* entries;  // cell-sorted box ids (plain mode writes final ids)
+  const cell_prefix* prefix;
+  const std::uint32_t* items;
+  std::uint32_t item_first;
+  std::uint32_t item_last;
+  std::uint64_t* tile_off;  // per tile: byte offset of its chunk in the batch's output buffer
+  std::uint32_t* tile_pairs;
+  std::uint32_t tile_first;  // first tile of the batch (tile arrays are batch-relative)
+  unsigned char* out;
+  std::uint64_t capacity;
+  unsigned long long* cursor;  // bytes claimed in `out` (may pass capacity: overflow)
+};
+
+}  // namespace zone::gpu::detail
