@@ -1,0 +1,427 @@
+// The framing codec, message conversion and quantization of net/protocol.h.
+#include "protocol.h"
+
+#include <algorithm>
+#include <cmath>
+#include <cstring>
+#include <limits>
+#include <type_traits>
+
+namespace zone::net {
+
+namespace w = wire;
+
+namespace {
+
+// Smallest FlatBuffer with a file identifier: root offset + identifier.
+constexpr std::size_t min_body_bytes = 2 * sizeof(flatbuffers::uoffset_t);
+
+w::vec3 to_wire(const vec3f& v) { return w::vec3(v.x, v.y, v.z); }
+vec3f from_wire(const w::vec3* v) { return v ? vec3f{v->x(), v->y(), v->z()} : vec3f{}; }
+
+std::string from_wire(const flatbuffers::String* s) { return s ? s->str() : std::string(); }
+
+w::entity_update to_wire(const entity_update& u) {
+  return w::entity_update(u.id, w::qpos3(u.position[0], u.position[1], u.position[2]),
+                          w::qvel3(u.velocity[0], u.velocity[1], u.velocity[2]));
+}
+
+flatbuffers::Offset<w::entity_state> build_entity_state(flatbuffers::FlatBufferBuilder& fbb, const entity_state& s) {
+  const auto name = fbb.CreateString(s.name);
+  const w::vec3 pos = to_wire(s.position), vel = to_wire(s.velocity), half = to_wire(s.presence_half_extent);
+  return w::Createentity_state(fbb, s.id, s.kind, s.visibility_class, &pos, &vel, &half, name);
+}
+
+flatbuffers::Offset<void> build_body(flatbuffers::FlatBufferBuilder& fbb, const message& m) {
+  return std::visit(
+      [&](const auto& msg) -> flatbuffers::Offset<void> {
+        using T = std::decay_t<decltype(msg)>;
+        if constexpr (std::is_same_v<T, hello_msg>) {
+          const auto name = fbb.CreateString(msg.name);
+          const auto token = fbb.CreateString(msg.token);
+          return w::Createhello(fbb, name, token, msg.protocol_version).Union();
+        } else if constexpr (std::is_same_v<T, input_msg>) {
+          const w::vec3 move = to_wire(msg.move);
+          return w::Createinput(fbb, msg.sequence, &move).Union();
+        } else if constexpr (std::is_same_v<T, ping_msg>) {
+          return w::Createping(fbb, msg.client_time_us).Union();
+        } else if constexpr (std::is_same_v<T, welcome_msg>) {
+          const w::bounds3 world(to_wire(msg.world.lo), to_wire(msg.world.hi));
+          return w::Createwelcome(fbb, msg.entity_id, &world, msg.tick_rate_hz, msg.server_tick, msg.protocol_version)
+              .Union();
+        } else if constexpr (std::is_same_v<T, tick_update_msg>) {
+          std::vector<flatbuffers::Offset<w::entity_state>> enters;
+          enters.reserve(msg.enters.size());
+          for (const auto& s : msg.enters) enters.push_back(build_entity_state(fbb, s));
+          std::vector<w::entity_update> updates;
+          updates.reserve(msg.updates.size());
+          for (const auto& u : msg.updates) updates.push_back(to_wire(u));
+          const auto enters_v = fbb.CreateVector(enters);
+          const auto leaves_v = fbb.CreateVector(msg.leaves);
+          const auto updates_v = fbb.CreateVectorOfStructs(updates);
+          std::optional<w::verify_digest> digest;
+          if (msg.digest) digest.emplace(msg.digest->tick, msg.digest->hash, msg.digest->count);
+          return w::Createtick_update(fbb, msg.server_tick, msg.server_time_us, msg.last_input_sequence, enters_v,
+                                      leaves_v, updates_v, digest ? &*digest : nullptr)
+              .Union();
+        } else if constexpr (std::is_same_v<T, pong_msg>) {
+          return w::Createpong(fbb, msg.client_time_us, msg.server_time_us).Union();
+        } else {
+          static_assert(std::is_same_v<T, error_msg>);
+          const auto reason = fbb.CreateString(msg.reason);
+          return w::Createerror(fbb, msg.code, reason).Union();
+        }
+      },
+      m);
+}
+
+std::span<const std::uint8_t> finish_frame(flatbuffers::FlatBufferBuilder& fbb, w::message type,
+                                           flatbuffers::Offset<void> body) {
+  const auto env = w::Createenvelope(fbb, type, body);
+  w::FinishSizePrefixedenvelopeBuffer(fbb, env);
+  return {fbb.GetBufferPointer(), fbb.GetSize()};
+}
+
+bool known_type(w::message t) {
+  return t != w::message::NONE && static_cast<std::uint8_t>(t) <= static_cast<std::uint8_t>(w::message::MAX);
+}
+
+/// Verifies one whole frame (prefix included) that starts 8-byte aligned and whose prefix says
+/// `frame_len - 4`. Returns the envelope or the error.
+std::variant<const w::envelope*, decode_error> verify_frame(const std::uint8_t* frame, std::size_t frame_len,
+                                                            const decoder_options& opt) {
+  if (frame_len < frame_header_bytes + min_body_bytes) return decode_error::verification_failed;
+  flatbuffers::Verifier::Options vopt;
+  vopt.max_depth = opt.max_depth;
+  vopt.max_tables = opt.max_tables;
+  vopt.check_alignment = true;
+  flatbuffers::Verifier verifier(frame, frame_len, vopt);
+  if (!w::VerifySizePrefixedenvelopeBuffer(verifier)) return decode_error::verification_failed;
+  const w::envelope* env = w::GetSizePrefixedenvelope(frame);
+  if (!known_type(env->message_type())) return decode_error::unknown_type;
+  // A known type whose body is absent verifies (a null table is valid FlatBuffers) but is not a message.
+  if (env->message() == nullptr) return decode_error::verification_failed;
+  return env;
+}
+
+std::size_t read_prefix(const std::uint8_t* p) {
+  return std::size_t{p[0]} | std::size_t{p[1]} << 8 | std::size_t{p[2]} << 16 | std::size_t{p[3]} << 24;
+}
+
+bool aligned8(const void* p) { return reinterpret_cast<std::uintptr_t>(p) % alignof(std::uint64_t) == 0; }
+
+}  // namespace
+
+// ---------------------------------------------------------------------------------------------
+
+w::message type_of(const message& m) { return static_cast<w::message>(m.index() + 1); }
+
+std::string_view type_name(w::message t) {
+  if (!known_type(t)) return "unknown";
+  return w::EnumNamemessage(t);
+}
+
+std::string_view to_string(decode_error e) {
+  switch (e) {
+    case decode_error::oversize: return "oversize frame";
+    case decode_error::verification_failed: return "frame failed verification";
+    case decode_error::unknown_type: return "unknown message type";
+    case decode_error::truncated_at_close: return "stream closed inside a frame";
+  }
+  return "unknown decode error";
+}
+
+error_code to_error_code(decode_error e) {
+  switch (e) {
+    case decode_error::oversize: return error_code::oversize;
+    case decode_error::verification_failed: return error_code::verification_failed;
+    case decode_error::unknown_type: return error_code::unknown_type;
+    case decode_error::truncated_at_close: return error_code::bad_frame;
+  }
+  return error_code::unspecified;
+}
+
+// ---- encoder --------------------------------------------------------------------------------
+
+encoder::encoder(std::size_t initial_bytes) : fbb_(initial_bytes) {}
+
+std::span<const std::uint8_t> encoder::encode(const message& m) {
+  fbb_.Clear();
+  const auto body = build_body(fbb_, m);
+  return finish_frame(fbb_, type_of(m), body);
+}
+
+std::span<const std::uint8_t> encoder::finish(w::message type, flatbuffers::Offset<void> body) {
+  return finish_frame(fbb_, type, body);
+}
+
+std::vector<std::uint8_t> encode_frame(const message& m) {
+  encoder e(256);
+  const auto frame = e.encode(m);
+  return {frame.begin(), frame.end()};
+}
+
+tick_update_writer::tick_update_writer(std::size_t initial_bytes) : fbb_(initial_bytes) {}
+
+void tick_update_writer::begin(std::uint64_t server_tick, std::uint64_t server_time_us,
+                               std::uint32_t last_input_sequence) {
+  fbb_.Clear();
+  enters_.clear();
+  leaves_.clear();
+  updates_.clear();
+  digest_.reset();
+  tick_ = server_tick;
+  time_us_ = server_time_us;
+  last_input_ = last_input_sequence;
+}
+
+void tick_update_writer::add_enter(const entity_state& s) { enters_.push_back(build_entity_state(fbb_, s)); }
+void tick_update_writer::add_leave(std::uint32_t id) { leaves_.push_back(id); }
+void tick_update_writer::add_update(const entity_update& u) { updates_.push_back(to_wire(u)); }
+
+std::size_t tick_update_writer::size_estimate() const {
+  // Built part + the vectors still to be written (each: length word + elements + padding)
+  // + the tick_update and envelope tables, their vtables, digest, identifier and prefix.
+  return fbb_.GetSize() + enters_.size() * sizeof(flatbuffers::uoffset_t) + leaves_.size() * sizeof(std::uint32_t) +
+         updates_.size() * sizeof(w::entity_update) + 3 * (sizeof(flatbuffers::uoffset_t) + 8) + 160;
+}
+
+std::span<const std::uint8_t> tick_update_writer::finish() {
+  const auto enters_v = fbb_.CreateVector(enters_);
+  const auto leaves_v = fbb_.CreateVector(leaves_);
+  const auto updates_v = fbb_.CreateVectorOfStructs(updates_);
+  std::optional<w::verify_digest> digest;
+  if (digest_) digest.emplace(digest_->tick, digest_->hash, digest_->count);
+  const auto body =
+      w::Createtick_update(fbb_, tick_, time_us_, last_input_, enters_v, leaves_v, updates_v, digest ? &*digest : nullptr);
+  return finish_frame(fbb_, w::message::tick_update, body.Union());
+}
+
+// ---- conversion -----------------------------------------------------------------------------
+
+std::optional<message> to_message(const w::envelope& env) {
+  switch (env.message_type()) {
+    case w::message::hello: {
+      const auto* m = env.message_as_hello();
+      if (!m) return std::nullopt;
+      return hello_msg{from_wire(m->name()), from_wire(m->token()), m->protocol_version()};
+    }
+    case w::message::input: {
+      const auto* m = env.message_as_input();
+      if (!m) return std::nullopt;
+      return input_msg{m->sequence(), from_wire(m->move())};
+    }
+    case w::message::ping: {
+      const auto* m = env.message_as_ping();
+      if (!m) return std::nullopt;
+      return ping_msg{m->client_time_us()};
+    }
+    case w::message::welcome: {
+      const auto* m = env.message_as_welcome();
+      if (!m) return std::nullopt;
+      welcome_msg out;
+      out.entity_id = m->entity_id();
+      if (const auto* b = m->world()) out.world = {from_wire(&b->lo()), from_wire(&b->hi())};
+      out.tick_rate_hz = m->tick_rate_hz();
+      out.server_tick = m->server_tick();
+      out.protocol_version = m->protocol_version();
+      return out;
+    }
+    case w::message::tick_update: {
+      const auto* m = env.message_as_tick_update();
+      if (!m) return std::nullopt;
+      tick_update_msg out;
+      out.server_tick = m->server_tick();
+      out.server_time_us = m->server_time_us();
+      out.last_input_sequence = m->last_input_sequence();
+      if (const auto* v = m->enters()) {
+        out.enters.reserve(v->size());
+        for (const auto* s : *v) {
+          if (!s) continue;
+          out.enters.push_back({s->id(), s->kind(), s->visibility_class(), from_wire(s->position()),
+                                from_wire(s->velocity()), from_wire(s->presence_half_extent()), from_wire(s->name())});
+        }
+      }
+      if (const auto* v = m->leaves()) out.leaves.assign(v->begin(), v->end());
+      if (const auto* v = m->updates()) {
+        out.updates.reserve(v->size());
+        for (const auto* u : *v) {
+          out.updates.push_back({u->id(),
+                                 {u->position().x(), u->position().y(), u->position().z()},
+                                 {u->velocity().x(), u->velocity().y(), u->velocity().z()}});
+        }
+      }
+      if (const auto* d = m->digest()) out.digest = verify_digest{d->tick(), d->hash(), d->count()};
+      return out;
+    }
+    case w::message::pong: {
+      const auto* m = env.message_as_pong();
+      if (!m) return std::nullopt;
+      return pong_msg{m->client_time_us(), m->server_time_us()};
+    }
+    case w::message::error: {
+      const auto* m = env.message_as_error();
+      if (!m) return std::nullopt;
+      return error_msg{m->code(), from_wire(m->reason())};
+    }
+    default: return std::nullopt;
+  }
+}
+
+decoded_message decode_frame(std::span<const std::uint8_t> frame, const decoder_options& opt) {
+  if (frame.size() < frame_header_bytes) return {std::nullopt, decode_error::truncated_at_close};
+  const std::size_t len = read_prefix(frame.data());
+  if (len > opt.max_frame_bytes) return {std::nullopt, decode_error::oversize};
+  if (frame.size() - frame_header_bytes < len) return {std::nullopt, decode_error::truncated_at_close};
+  if (frame.size() - frame_header_bytes > len) return {std::nullopt, decode_error::verification_failed};
+  std::vector<std::uint64_t> aligned;
+  const std::uint8_t* p = frame.data();
+  if (!aligned8(p)) {
+    aligned.resize((frame.size() + 7) / 8);
+    std::memcpy(aligned.data(), frame.data(), frame.size());
+    p = reinterpret_cast<const std::uint8_t*>(aligned.data());
+  }
+  const auto verified = verify_frame(p, frame.size(), opt);
+  if (const auto* e = std::get_if<decode_error>(&verified)) return {std::nullopt, *e};
+  auto m = to_message(*std::get<const w::envelope*>(verified));
+  if (!m) return {std::nullopt, decode_error::unknown_type};
+  return {std::move(m), std::nullopt};
+}
+
+// ---- decoder --------------------------------------------------------------------------------
+
+namespace {
+// Pending bytes are kept from this offset of the inbox (whose memory is 16-byte aligned), so that
+// a frame, prefix included, starts 8-byte aligned as FlatBuffers expects of a size-prefixed
+// buffer; frames whose size is a multiple of 8 (all that FlatBufferBuilder makes with 8-byte
+// fields) keep the next frame aligned too. Others are copied to aligned memory before verifying.
+constexpr std::size_t inbox_headroom = 0;
+}  // namespace
+
+frame_decoder::frame_decoder(decoder_options opt) : opt_(opt), begin_(inbox_headroom), end_(inbox_headroom) {}
+
+void frame_decoder::compact() {
+  if (begin_ == inbox_headroom) return;
+  const std::size_t pending = end_ - begin_;
+  if (pending > 0) std::memmove(inbox_.data() + inbox_headroom, inbox_.data() + begin_, pending);
+  begin_ = inbox_headroom;
+  end_ = inbox_headroom + pending;
+}
+
+void frame_decoder::feed(std::span<const std::uint8_t> bytes) {
+  if (bytes.empty()) return;
+  const auto dst = prepare(bytes.size());
+  std::memcpy(dst.data(), bytes.data(), bytes.size());
+  commit(bytes.size());
+}
+
+std::span<std::uint8_t> frame_decoder::prepare(std::size_t max_bytes) {
+  compact();
+  if (inbox_.size() < end_ + max_bytes) inbox_.resize(end_ + max_bytes);
+  return {inbox_.data() + end_, max_bytes};
+}
+
+void frame_decoder::commit(std::size_t received) { end_ = std::min(end_ + received, inbox_.size()); }
+
+decode_step frame_decoder::fail(decode_error e) {
+  failed_ = e;
+  decode_step s;
+  s.state = decode_step::status::error;
+  s.error = e;
+  return s;
+}
+
+decode_step frame_decoder::next() {
+  if (failed_) return fail(*failed_);
+  const std::size_t avail = end_ - begin_;
+  if (avail < frame_header_bytes) return {};
+  const std::uint8_t* frame = inbox_.data() + begin_;
+  const std::size_t len = read_prefix(frame);
+  // Rejected from the prefix alone: an oversize frame is never buffered.
+  if (len > opt_.max_frame_bytes) return fail(decode_error::oversize);
+  if (avail - frame_header_bytes < len) return {};
+
+  const std::size_t frame_len = frame_header_bytes + len;
+  begin_ += frame_len;
+  if (!aligned8(frame)) {
+    if (aligned_.size() * 8 < frame_len) aligned_.resize((frame_len + 7) / 8);
+    std::memcpy(aligned_.data(), frame, frame_len);
+    frame = reinterpret_cast<const std::uint8_t*>(aligned_.data());
+  }
+  const auto verified = verify_frame(frame, frame_len, opt_);
+  if (const auto* e = std::get_if<decode_error>(&verified)) return fail(*e);
+  decode_step s;
+  s.state = decode_step::status::frame;
+  s.frame.envelope = std::get<const w::envelope*>(verified);
+  s.frame.type = s.frame.envelope->message_type();
+  s.frame.bytes = {frame, frame_len};
+  return s;
+}
+
+std::optional<decode_error> frame_decoder::close() {
+  if (failed_) return failed_;
+  if (end_ != begin_) {
+    failed_ = decode_error::truncated_at_close;
+    return failed_;
+  }
+  return std::nullopt;
+}
+
+// ---- quantization ---------------------------------------------------------------------------
+
+position_quantizer::position_quantizer(const world_bounds& world) : world_(world) {
+  const float lo[3] = {world.lo.x, world.lo.y, world.lo.z};
+  const float hi[3] = {world.hi.x, world.hi.y, world.hi.z};
+  for (int d = 0; d < 3; ++d) {
+    const double extent = static_cast<double>(hi[d]) - static_cast<double>(lo[d]);
+    step_[d] = std::isfinite(extent) && extent > 0 ? extent / 65535.0 : 0.0;
+  }
+}
+
+std::array<std::uint16_t, 3> position_quantizer::quantize(const vec3f& p) const {
+  const float v[3] = {p.x, p.y, p.z};
+  const float lo[3] = {world_.lo.x, world_.lo.y, world_.lo.z};
+  std::array<std::uint16_t, 3> q{};
+  for (int d = 0; d < 3; ++d) {
+    if (step_[d] <= 0) continue;
+    const double t = (static_cast<double>(v[d]) - static_cast<double>(lo[d])) / step_[d];
+    // NaN and below-range clamp to 0, above-range to 65535.
+    q[d] = !(t > 0) ? 0 : t >= 65535.0 ? 65535 : static_cast<std::uint16_t>(std::lround(t));
+  }
+  return q;
+}
+
+vec3f position_quantizer::dequantize(const std::array<std::uint16_t, 3>& q) const {
+  return {static_cast<float>(world_.lo.x + q[0] * step_[0]), static_cast<float>(world_.lo.y + q[1] * step_[1]),
+          static_cast<float>(world_.lo.z + q[2] * step_[2])};
+}
+
+vec3f position_quantizer::max_error() const {
+  // Half a step, plus one float ulp of the largest coordinate for the final rounding to float.
+  const auto axis = [&](int d, float lo, float hi) {
+    const float mag = std::max(std::fabs(lo), std::fabs(hi));
+    return static_cast<float>(step_[d] / 2 + std::nextafter(mag, std::numeric_limits<float>::infinity()) - mag);
+  };
+  return {axis(0, world_.lo.x, world_.hi.x), axis(1, world_.lo.y, world_.hi.y), axis(2, world_.lo.z, world_.hi.z)};
+}
+
+std::array<std::int16_t, 3> quantize_velocity(const vec3f& v) {
+  const auto axis = [](float x) -> std::int16_t {
+    const double t = static_cast<double>(x) * 100.0;
+    if (!(t == t)) return 0;  // NaN
+    return static_cast<std::int16_t>(std::lround(std::clamp(t, -32767.0, 32767.0)));
+  };
+  return {axis(v.x), axis(v.y), axis(v.z)};
+}
+
+vec3f dequantize_velocity(const std::array<std::int16_t, 3>& q) {
+  return {static_cast<float>(q[0] / 100.0), static_cast<float>(q[1] / 100.0), static_cast<float>(q[2] / 100.0)};
+}
+
+verify_digest visible_digest(std::uint64_t tick, std::span<const std::uint32_t> ids) {
+  std::uint64_t hash = 0;
+  for (const std::uint32_t id : ids) hash = digest_add(hash, id);
+  return {tick, hash, static_cast<std::uint32_t>(ids.size())};
+}
+
+}  // namespace zone::net

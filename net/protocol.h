@@ -1,0 +1,326 @@
+// Public API of the net layer's wire protocol: message types, the framing codec (pure: bytes in,
+// messages or a typed error out; no sockets), position/velocity quantization and the visible-set
+// digest that clients use to verify their view. See docs/protocol.md.
+//
+// The schema is net/protocol.fbs; flatc generates protocol_generated.h into the build tree at build
+// time. Code that wants zero-copy access to a received frame uses the generated accessors
+// (namespace zone::net::wire) on frame_view::envelope; everything else can use the plain value
+// types below (`message`), which the encoder and `to_message` convert from and to.
+#pragma once
+
+#include <array>
+#include <cstddef>
+#include <cstdint>
+#include <optional>
+#include <span>
+#include <string>
+#include <string_view>
+#include <variant>
+#include <vector>
+
+#include "protocol_generated.h"
+
+namespace zone::net {
+
+/// Protocol version carried in hello and welcome; bumped on incompatible schema changes.
+inline constexpr std::uint32_t protocol_version = 1;
+
+/// Size of the little-endian length prefix of every frame (FlatBuffers' size-prefixed convention).
+inline constexpr std::size_t frame_header_bytes = 4;
+
+// ---------------------------------------------------------------------------------------------
+// Plain value types, one per message of the schema.
+
+struct vec3f {
+  float x = 0, y = 0, z = 0;
+  friend bool operator==(const vec3f&, const vec3f&) = default;
+};
+
+struct world_bounds {
+  vec3f lo{};
+  vec3f hi{};
+  friend bool operator==(const world_bounds&, const world_bounds&) = default;
+};
+
+using error_code = wire::error_code;
+using entity_kind = wire::entity_kind;
+
+// client -> server
+struct hello_msg {
+  std::string name;
+  std::string token;
+  std::uint32_t protocol_version = net::protocol_version;
+  friend bool operator==(const hello_msg&, const hello_msg&) = default;
+};
+struct input_msg {
+  std::uint32_t sequence = 0;
+  vec3f move{};  ///< movement intent; the server clamps its length to 1
+  friend bool operator==(const input_msg&, const input_msg&) = default;
+};
+struct ping_msg {
+  std::uint64_t client_time_us = 0;
+  friend bool operator==(const ping_msg&, const ping_msg&) = default;
+};
+
+// server -> client
+struct welcome_msg {
+  std::uint32_t entity_id = 0;
+  world_bounds world{};
+  std::uint16_t tick_rate_hz = 30;
+  std::uint64_t server_tick = 0;
+  std::uint32_t protocol_version = net::protocol_version;
+  friend bool operator==(const welcome_msg&, const welcome_msg&) = default;
+};
+/// Full state of an entity entering a view.
+struct entity_state {
+  std::uint32_t id = 0;
+  entity_kind kind = entity_kind::player;
+  std::uint32_t visibility_class = 0;
+  vec3f position{};
+  vec3f velocity{};
+  vec3f presence_half_extent{};
+  std::string name;
+  friend bool operator==(const entity_state&, const entity_state&) = default;
+};
+/// Quantized update of a visible entity (see position_quantizer, quantize_velocity).
+struct entity_update {
+  std::uint32_t id = 0;
+  std::array<std::uint16_t, 3> position{};
+  std::array<std::int16_t, 3> velocity{};
+  friend bool operator==(const entity_update&, const entity_update&) = default;
+};
+/// Digest of an observer's visible set after `tick` (see visible_digest).
+struct verify_digest {
+  std::uint64_t tick = 0;
+  std::uint64_t hash = 0;
+  std::uint32_t count = 0;
+  friend bool operator==(const verify_digest&, const verify_digest&) = default;
+};
+struct tick_update_msg {
+  std::uint64_t server_tick = 0;
+  std::uint64_t server_time_us = 0;
+  std::uint32_t last_input_sequence = 0;
+  std::vector<entity_state> enters;
+  std::vector<std::uint32_t> leaves;
+  std::vector<entity_update> updates;
+  std::optional<verify_digest> digest;
+  friend bool operator==(const tick_update_msg&, const tick_update_msg&) = default;
+};
+struct pong_msg {
+  std::uint64_t client_time_us = 0;
+  std::uint64_t server_time_us = 0;
+  friend bool operator==(const pong_msg&, const pong_msg&) = default;
+};
+struct error_msg {
+  error_code code = error_code::unspecified;
+  std::string reason;
+  friend bool operator==(const error_msg&, const error_msg&) = default;
+};
+
+/// Any message; the alternatives are in the order of the schema's union (index + 1 = wire type).
+using message = std::variant<hello_msg, input_msg, ping_msg, welcome_msg, tick_update_msg, pong_msg, error_msg>;
+
+/// The wire type of a message value.
+[[nodiscard]] wire::message type_of(const message& m);
+
+/// Readable name of a wire type ("hello", "tick_update", ...; "unknown" otherwise).
+[[nodiscard]] std::string_view type_name(wire::message t);
+
+// ---------------------------------------------------------------------------------------------
+// Encoding.
+
+/// Builds frames: each a 4-byte little-endian length then one FlatBuffer (root `envelope`,
+/// identifier "ZSV1"). The builder's memory is reused between frames; a returned span stays valid
+/// until the next call on the same encoder. Not thread-safe: one encoder per thread.
+class encoder {
+ public:
+  explicit encoder(std::size_t initial_bytes = 1024);
+
+  /// Encodes one message as a complete frame (length prefix included).
+  [[nodiscard]] std::span<const std::uint8_t> encode(const message& m);
+
+  /// Low level, for callers that build a message body with the generated Create* functions:
+  /// clear() resets the builder, then build the body on builder(), then finish(type, body).
+  void clear() { fbb_.Clear(); }
+  [[nodiscard]] flatbuffers::FlatBufferBuilder& builder() { return fbb_; }
+  [[nodiscard]] std::span<const std::uint8_t> finish(wire::message type, flatbuffers::Offset<void> body);
+
+ private:
+  flatbuffers::FlatBufferBuilder fbb_;
+};
+
+/// Streams one tick_update into a frame without building a tick_update_msg first: the replication
+/// step adds enters, leaves and updates as it decides them and can ask for the frame size so far
+/// (for a per-client byte budget). Memory is reused between frames. Usage per frame:
+/// begin(); add_*()...; finish(). A returned span is valid until the next begin().
+class tick_update_writer {
+ public:
+  explicit tick_update_writer(std::size_t initial_bytes = 4096);
+
+  void begin(std::uint64_t server_tick, std::uint64_t server_time_us, std::uint32_t last_input_sequence = 0);
+  void add_enter(const entity_state& s);
+  void add_leave(std::uint32_t id);
+  void add_update(const entity_update& u);
+  void set_digest(const verify_digest& d) { digest_ = d; }
+  /// Upper bound on the bytes of the frame if finish() were called now (prefix included).
+  [[nodiscard]] std::size_t size_estimate() const;
+  [[nodiscard]] std::size_t enter_count() const { return enters_.size(); }
+  [[nodiscard]] std::size_t leave_count() const { return leaves_.size(); }
+  [[nodiscard]] std::size_t update_count() const { return updates_.size(); }
+  [[nodiscard]] std::span<const std::uint8_t> finish();
+
+ private:
+  flatbuffers::FlatBufferBuilder fbb_;
+  std::uint64_t tick_ = 0, time_us_ = 0;
+  std::uint32_t last_input_ = 0;
+  std::vector<flatbuffers::Offset<wire::entity_state>> enters_;
+  std::vector<std::uint32_t> leaves_;
+  std::vector<wire::entity_update> updates_;
+  std::optional<verify_digest> digest_;
+};
+
+/// Convenience: one message as a new frame (allocates; use encoder in hot paths).
+[[nodiscard]] std::vector<std::uint8_t> encode_frame(const message& m);
+
+// ---------------------------------------------------------------------------------------------
+// Decoding.
+
+/// Why a stream was rejected. After an error the stream cannot be resynchronised: the decoder
+/// stays failed (every later next() returns the same error) and the connection should be closed.
+enum class decode_error : std::uint8_t {
+  oversize,             ///< the length prefix exceeds max_frame_bytes (detected from the prefix alone)
+  verification_failed,  ///< the FlatBuffers verifier rejected the frame (or its identifier/length)
+  unknown_type,         ///< verified, but the envelope's message type is NONE or unknown to us
+  truncated_at_close,   ///< the stream closed in the middle of a frame
+};
+
+[[nodiscard]] std::string_view to_string(decode_error e);
+
+/// The wire error code a server sends for a decode error.
+[[nodiscard]] error_code to_error_code(decode_error e);
+
+struct decoder_options {
+  /// Largest accepted frame body (excluding the 4-byte prefix). Inbound client messages are tiny;
+  /// a client-side decoder for tick updates wants a larger limit.
+  std::size_t max_frame_bytes = 16 * 1024;
+  /// FlatBuffers verifier limits.
+  std::uint32_t max_depth = 16;
+  std::uint32_t max_tables = 100000;
+};
+
+/// One verified frame. The pointers and spans point into the decoder's memory and stay valid
+/// until the next call of feed(), prepare(), commit() or next() on that decoder.
+struct frame_view {
+  wire::message type = wire::message::NONE;
+  /// The whole frame, length prefix included, 8-byte aligned (FlatBuffers aligns a size-prefixed
+  /// buffer from its prefix, so the prefix is verified with the body). Can be forwarded as is.
+  std::span<const std::uint8_t> bytes;
+  const wire::envelope* envelope = nullptr;  ///< verified root
+};
+
+/// Result of decoder::next().
+struct decode_step {
+  enum class status : std::uint8_t { frame, need_more, error };
+  status state = status::need_more;
+  frame_view frame{};        ///< when state == frame
+  decode_error error{};      ///< when state == error
+  [[nodiscard]] bool is_frame() const { return state == status::frame; }
+  [[nodiscard]] bool is_error() const { return state == status::error; }
+  [[nodiscard]] bool needs_more() const { return state == status::need_more; }
+};
+
+/// Streaming frame decoder: bytes arrive in arbitrary chunks (a frame may be split anywhere, a
+/// chunk may hold many frames); next() returns complete, verified frames in order. Never reads
+/// past the bytes it was given; the memory it holds is bounded by max_frame_bytes plus the bytes
+/// fed but not yet consumed by next(). Not thread-safe: one decoder per connection.
+class frame_decoder {
+ public:
+  explicit frame_decoder(decoder_options opt = {});
+
+  /// Appends received bytes (copied).
+  void feed(std::span<const std::uint8_t> bytes);
+  /// Zero-copy receive: a writable span of `max_bytes` to read into, then commit(received).
+  [[nodiscard]] std::span<std::uint8_t> prepare(std::size_t max_bytes);
+  void commit(std::size_t received);
+
+  /// The next complete frame, or need_more, or the stream's error. Call until need_more after each feed.
+  [[nodiscard]] decode_step next();
+
+  /// The stream closed: returns truncated_at_close when part of a frame is pending (or the
+  /// earlier error when the decoder already failed), nothing on a clean close.
+  [[nodiscard]] std::optional<decode_error> close();
+
+  [[nodiscard]] bool failed() const { return failed_.has_value(); }
+  /// Bytes received but not yet returned as frames.
+  [[nodiscard]] std::size_t pending_bytes() const { return end_ - begin_; }
+  [[nodiscard]] const decoder_options& options() const { return opt_; }
+
+ private:
+  decode_step fail(decode_error e);
+  void compact();
+  decoder_options opt_;
+  std::vector<std::uint8_t> inbox_;   // received bytes; [begin_, end_) not yet consumed
+  std::size_t begin_ = 0, end_ = 0;
+  std::vector<std::uint64_t> aligned_;  // 8-byte aligned copy of a frame that sits misaligned in the inbox
+  std::optional<decode_error> failed_;
+};
+
+/// Converts a verified envelope to its value type (copies strings and vectors).
+/// Returns nothing when the envelope's type is NONE or unknown.
+[[nodiscard]] std::optional<message> to_message(const wire::envelope& env);
+
+/// Verifies and converts exactly one complete frame (length prefix included): the one-shot path.
+/// A prefix that disagrees with the span's size is verification_failed (truncated_at_close when
+/// the span is shorter than the prefix says).
+struct decoded_message {
+  std::optional<message> value;
+  std::optional<decode_error> error;
+};
+[[nodiscard]] decoded_message decode_frame(std::span<const std::uint8_t> frame, const decoder_options& opt = {});
+
+// ---------------------------------------------------------------------------------------------
+// Quantization.
+
+/// Positions as 16 bits per axis relative to the world bounds: q = round((p - lo) / step) with
+/// step = (hi - lo) / 65535, clamped to [0, 65535] (positions outside the bounds clamp to them).
+/// Round-trip error per axis for a position inside the bounds: at most max_error() = step / 2
+/// plus float rounding (a few ulps of the coordinate). A zero-width axis always decodes to lo.
+class position_quantizer {
+ public:
+  explicit position_quantizer(const world_bounds& world);
+  [[nodiscard]] std::array<std::uint16_t, 3> quantize(const vec3f& p) const;
+  [[nodiscard]] vec3f dequantize(const std::array<std::uint16_t, 3>& q) const;
+  /// Guaranteed bound on |dequantize(quantize(p)) - p| per axis for p inside the bounds.
+  [[nodiscard]] vec3f max_error() const;
+  [[nodiscard]] const world_bounds& world() const { return world_; }
+
+ private:
+  world_bounds world_;
+  double step_[3];
+};
+
+/// Velocity in centimetres per second per axis, clamped to [-32767, 32767] (+-327.67 m/s).
+/// Round-trip error within the range: at most velocity_max_error = 0.005 m/s (plus float rounding).
+inline constexpr float velocity_max_error = 0.005f;
+inline constexpr float velocity_limit = 327.67f;
+[[nodiscard]] std::array<std::int16_t, 3> quantize_velocity(const vec3f& v);
+[[nodiscard]] vec3f dequantize_velocity(const std::array<std::int16_t, 3>& q);
+
+// ---------------------------------------------------------------------------------------------
+// Visible-set digest.
+
+/// Order-independent hash of a set of entity ids: the sum (mod 2^64) of a 64-bit mix of each id.
+/// A client keeps it incrementally (add on enter, remove on leave) and compares it with the
+/// server's verify_digest; the server computes it from the sorted visible set.
+[[nodiscard]] constexpr std::uint64_t digest_mix(std::uint32_t id) {
+  std::uint64_t z = std::uint64_t{id} + 0x9e3779b97f4a7c15ull;  // splitmix64 finaliser
+  z = (z ^ (z >> 30)) * 0xbf58476d1ce4e5b9ull;
+  z = (z ^ (z >> 27)) * 0x94d049bb133111ebull;
+  return z ^ (z >> 31);
+}
+[[nodiscard]] constexpr std::uint64_t digest_add(std::uint64_t hash, std::uint32_t id) { return hash + digest_mix(id); }
+[[nodiscard]] constexpr std::uint64_t digest_remove(std::uint64_t hash, std::uint32_t id) { return hash - digest_mix(id); }
+/// The digest of a whole set (any order; ids assumed distinct).
+[[nodiscard]] verify_digest visible_digest(std::uint64_t tick, std::span<const std::uint32_t> ids);
+
+}  // namespace zone::net

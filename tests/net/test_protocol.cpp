@@ -1,0 +1,525 @@
+// The framing codec without sockets: round trips, split streams, malformed frames, random bytes,
+// quantization bounds and the visible-set digest.
+#include <doctest/doctest.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstring>
+#include <random>
+#include <set>
+
+#include "protocol.h"
+
+using namespace zone::net;
+using bytes = std::vector<std::uint8_t>;
+
+namespace {
+
+/// A fresh seed per run (CAPTUREd by each test), so every run tests new random inputs.
+std::uint64_t fresh_seed() {
+  static const std::uint64_t base = std::random_device{}() ^ (std::uint64_t{std::random_device{}()} << 32);
+  static std::uint64_t k = 0;
+  return base + 0x9e3779b97f4a7c15ull * ++k;
+}
+
+struct gen {
+  std::mt19937_64 rng;
+  explicit gen(std::uint64_t seed) : rng(seed) {}
+  std::uint64_t u64() { return rng(); }
+  std::uint32_t u32() { return static_cast<std::uint32_t>(rng()); }
+  std::size_t below(std::size_t n) { return n == 0 ? 0 : static_cast<std::size_t>(rng() % n); }
+  float f(float lo = -1e4f, float hi = 1e4f) { return std::uniform_real_distribution<float>(lo, hi)(rng); }
+  vec3f v() { return {f(), f(), f()}; }
+  std::string str(std::size_t max_len = 40) {
+    std::string s(below(max_len + 1), ' ');
+    for (auto& c : s) c = static_cast<char>(rng() % 256);  // any bytes, NULs included
+    return s;
+  }
+  entity_state state() {
+    return {u32(), static_cast<entity_kind>(below(3)), u32(), v(), v(), v(), str(12)};
+  }
+  entity_update update() {
+    return {u32(),
+            {static_cast<std::uint16_t>(rng()), static_cast<std::uint16_t>(rng()), static_cast<std::uint16_t>(rng())},
+            {static_cast<std::int16_t>(rng()), static_cast<std::int16_t>(rng()), static_cast<std::int16_t>(rng())}};
+  }
+  /// A random message of kind `kind` (index of the variant).
+  message make(std::size_t kind) {
+    switch (kind) {
+      case 0: return hello_msg{str(), str(64), u32()};
+      case 1: return input_msg{u32(), v()};
+      case 2: return ping_msg{u64()};
+      case 3: return welcome_msg{u32(), {v(), v()}, static_cast<std::uint16_t>(rng()), u64(), u32()};
+      case 4: {
+        tick_update_msg t{u64(), u64(), u32(), {}, {}, {}, std::nullopt};
+        for (std::size_t i = below(20); i-- > 0;) t.enters.push_back(state());
+        for (std::size_t i = below(50); i-- > 0;) t.leaves.push_back(u32());
+        for (std::size_t i = below(200); i-- > 0;) t.updates.push_back(update());
+        if (rng() % 2) t.digest = verify_digest{u64(), u64(), u32()};
+        return t;
+      }
+      case 5: return pong_msg{u64(), u64()};
+      default: return error_msg{static_cast<error_code>(below(12)), str()};
+    }
+  }
+  message any() { return make(below(std::variant_size_v<message>)); }
+};
+
+/// Feeds a stream in the given chunk sizes and collects messages and the final error, if any.
+struct drain_result {
+  std::vector<message> messages;
+  std::optional<decode_error> error;
+};
+drain_result drain(frame_decoder& d, const bytes& stream, const std::vector<std::size_t>& chunks, bool close) {
+  drain_result r;
+  std::size_t at = 0;
+  auto pump = [&] {
+    while (!r.error) {
+      const auto step = d.next();
+      if (step.needs_more()) break;
+      if (step.is_error()) {
+        r.error = step.error;
+        break;
+      }
+      REQUIRE(step.frame.envelope != nullptr);
+      auto m = to_message(*step.frame.envelope);
+      REQUIRE(m.has_value());
+      CHECK(type_of(*m) == step.frame.type);
+      r.messages.push_back(std::move(*m));
+    }
+  };
+  for (const std::size_t c : chunks) {
+    const std::size_t n = std::min(c, stream.size() - at);
+    d.feed({stream.data() + at, n});
+    at += n;
+    pump();
+  }
+  if (at < stream.size()) {
+    d.feed({stream.data() + at, stream.size() - at});
+    pump();
+  }
+  if (close && !r.error) r.error = d.close();
+  return r;
+}
+
+std::vector<std::size_t> random_chunks(gen& g, std::size_t total, std::size_t max_chunk) {
+  std::vector<std::size_t> c;
+  for (std::size_t at = 0; at < total;) {
+    const std::size_t n = 1 + g.below(max_chunk);
+    c.push_back(n);
+    at += n;
+  }
+  return c;
+}
+
+bytes frame_of(const message& m) { return encode_frame(m); }
+
+std::uint32_t read_le32(const std::uint8_t* p) {
+  return std::uint32_t{p[0]} | std::uint32_t{p[1]} << 8 | std::uint32_t{p[2]} << 16 | std::uint32_t{p[3]} << 24;
+}
+
+void write_le32(std::uint8_t* p, std::uint32_t v) {
+  for (int i = 0; i < 4; ++i) p[i] = static_cast<std::uint8_t>(v >> (8 * i));
+}
+
+/// A frame whose envelope carries union type `type` (possibly unknown) with a ping body.
+bytes frame_with_type(std::uint8_t type, bool with_body = true) {
+  flatbuffers::FlatBufferBuilder fbb;
+  flatbuffers::Offset<void> body = with_body ? zone::net::wire::Createping(fbb, 42).Union() : flatbuffers::Offset<void>();
+  const auto env = zone::net::wire::Createenvelope(fbb, static_cast<zone::net::wire::message>(type), body);
+  zone::net::wire::FinishSizePrefixedenvelopeBuffer(fbb, env);
+  return {fbb.GetBufferPointer(), fbb.GetBufferPointer() + fbb.GetSize()};
+}
+
+decoder_options big_frames() {
+  decoder_options o;
+  o.max_frame_bytes = 1 << 20;
+  return o;
+}
+
+}  // namespace
+
+TEST_SUITE("net.protocol") {
+  TEST_CASE("every message type round-trips through encoder and decoder") {
+    const std::uint64_t seed = fresh_seed();
+    CAPTURE(seed);
+    gen g(seed);
+    encoder enc;
+    for (int rep = 0; rep < 50; ++rep) {
+      for (std::size_t kind = 0; kind < std::variant_size_v<message>; ++kind) {
+        CAPTURE(kind);
+        const message m = g.make(kind);
+        const auto frame = enc.encode(m);
+        REQUIRE(frame.size() >= frame_header_bytes);
+        CHECK(read_le32(frame.data()) == frame.size() - frame_header_bytes);
+        frame_decoder d(big_frames());
+        d.feed(frame);
+        const auto step = d.next();
+        REQUIRE(step.is_frame());
+        CHECK(step.frame.type == type_of(m));
+        CHECK(type_name(step.frame.type) != "unknown");
+        const auto back = to_message(*step.frame.envelope);
+        REQUIRE(back.has_value());
+        CHECK(*back == m);
+        CHECK(d.next().needs_more());
+        CHECK_FALSE(d.close().has_value());
+        // The one-shot path agrees.
+        const auto one = decode_frame(frame, big_frames());
+        REQUIRE(one.value.has_value());
+        CHECK(*one.value == m);
+      }
+    }
+  }
+
+  TEST_CASE("tick_update_writer frames equal encoded tick_update_msg values, size estimate is an upper bound") {
+    const std::uint64_t seed = fresh_seed();
+    CAPTURE(seed);
+    gen g(seed);
+    tick_update_writer w;
+    for (int rep = 0; rep < 100; ++rep) {
+      auto t = std::get<tick_update_msg>(g.make(4));
+      w.begin(t.server_tick, t.server_time_us, t.last_input_sequence);
+      for (const auto& s : t.enters) w.add_enter(s);
+      for (const auto id : t.leaves) w.add_leave(id);
+      for (const auto& u : t.updates) w.add_update(u);
+      if (t.digest) w.set_digest(*t.digest);
+      CHECK(w.enter_count() == t.enters.size());
+      CHECK(w.leave_count() == t.leaves.size());
+      CHECK(w.update_count() == t.updates.size());
+      const std::size_t estimate = w.size_estimate();
+      const auto frame = w.finish();
+      CHECK(frame.size() <= estimate);
+      const auto back = decode_frame(frame, big_frames());
+      REQUIRE(back.value.has_value());
+      CHECK(std::get<tick_update_msg>(*back.value) == t);
+    }
+  }
+
+  TEST_CASE("a stream split byte by byte and in random chunks decodes to the same messages") {
+    const std::uint64_t seed = fresh_seed();
+    CAPTURE(seed);
+    gen g(seed);
+    std::vector<message> sent;
+    bytes stream;
+    for (int i = 0; i < 60; ++i) {
+      sent.push_back(g.any());
+      const auto f = frame_of(sent.back());
+      stream.insert(stream.end(), f.begin(), f.end());
+    }
+    {
+      frame_decoder d(big_frames());
+      const auto r = drain(d, stream, std::vector<std::size_t>(stream.size(), 1), true);
+      CHECK_FALSE(r.error.has_value());
+      CHECK(r.messages == sent);
+    }
+    for (int rep = 0; rep < 30; ++rep) {
+      const std::size_t max_chunk = 1 + g.below(rep % 2 ? 16 : 4096);
+      CAPTURE(max_chunk);
+      frame_decoder d(big_frames());
+      const auto r = drain(d, stream, random_chunks(g, stream.size(), max_chunk), true);
+      CHECK_FALSE(r.error.has_value());
+      CHECK(r.messages == sent);
+    }
+    {  // Zero-copy receive path: prepare/commit with short reads.
+      frame_decoder d(big_frames());
+      std::vector<message> got;
+      for (std::size_t at = 0; at < stream.size();) {
+        const auto buf = d.prepare(1 + g.below(300));
+        const std::size_t n = std::min({buf.size(), stream.size() - at, 1 + g.below(buf.size())});
+        std::memcpy(buf.data(), stream.data() + at, n);
+        d.commit(n);
+        at += n;
+        for (auto s = d.next(); s.is_frame(); s = d.next()) got.push_back(*to_message(*s.frame.envelope));
+      }
+      CHECK(got == sent);
+      CHECK(d.pending_bytes() == 0);
+    }
+  }
+
+  TEST_CASE("misaligned frames (sizes not a multiple of 8) still decode") {
+    const std::uint64_t seed = fresh_seed();
+    CAPTURE(seed);
+    gen g(seed);
+    // Rebuild frames with 4 trailing pad bytes inside the length (valid FlatBuffers: trailing
+    // bytes are ignored), which shifts every later body off 8-byte alignment.
+    bytes stream;
+    std::vector<message> sent;
+    for (int i = 0; i < 40; ++i) {
+      sent.push_back(g.any());
+      auto f = frame_of(sent.back());
+      const std::uint32_t pad = static_cast<std::uint32_t>(g.below(8));
+      write_le32(f.data(), read_le32(f.data()) + pad);
+      f.insert(f.end(), pad, 0xAB);
+      stream.insert(stream.end(), f.begin(), f.end());
+    }
+    frame_decoder d(big_frames());
+    const auto r = drain(d, stream, random_chunks(g, stream.size(), 64), true);
+    CHECK_FALSE(r.error.has_value());
+    CHECK(r.messages == sent);
+  }
+
+  TEST_CASE("oversize frames are rejected from the prefix alone") {
+    decoder_options o;
+    o.max_frame_bytes = 256;
+    frame_decoder d(o);
+    const bytes ok = frame_of(ping_msg{7});
+    d.feed(ok);
+    REQUIRE(d.next().is_frame());
+    bytes prefix(4);
+    write_le32(prefix.data(), 257);
+    d.feed(prefix);  // only the prefix: the body never has to arrive
+    const auto s = d.next();
+    REQUIRE(s.is_error());
+    CHECK(s.error == decode_error::oversize);
+    CHECK(d.failed());
+    // The decoder stays failed, whatever comes next.
+    d.feed(ok);
+    CHECK(d.next().error == decode_error::oversize);
+    CHECK(d.close() == decode_error::oversize);
+    CHECK(to_error_code(decode_error::oversize) == error_code::oversize);
+
+    // A real message larger than the limit, and the one-shot path.
+    tick_update_msg big;
+    big.leaves.assign(200, 1);
+    const auto f = frame_of(big);
+    frame_decoder d2(o);
+    d2.feed(f);
+    CHECK(d2.next().error == decode_error::oversize);
+    CHECK(decode_frame(f, o).error == decode_error::oversize);
+    // Exactly at the limit is accepted.
+    decoder_options exact;
+    exact.max_frame_bytes = f.size() - 4;
+    frame_decoder d3(exact);
+    d3.feed(f);
+    CHECK(d3.next().is_frame());
+  }
+
+  TEST_CASE("truncated streams are reported at close") {
+    const std::uint64_t seed = fresh_seed();
+    CAPTURE(seed);
+    gen g(seed);
+    for (int rep = 0; rep < 200; ++rep) {
+      const auto f = frame_of(g.any());
+      const std::size_t cut = 1 + g.below(f.size() - 1);  // 1 .. size-1 bytes arrive
+      CAPTURE(cut);
+      frame_decoder d(big_frames());
+      d.feed({f.data(), cut});
+      CHECK(d.next().needs_more());
+      CHECK(d.close() == decode_error::truncated_at_close);
+      CHECK(d.next().error == decode_error::truncated_at_close);
+    }
+    frame_decoder clean;
+    CHECK_FALSE(clean.close().has_value());
+  }
+
+  TEST_CASE("unknown and missing message types are rejected") {
+    for (const std::uint8_t type : {std::uint8_t{0}, std::uint8_t{8}, std::uint8_t{77}, std::uint8_t{255}}) {
+      CAPTURE(int(type));
+      frame_decoder d;
+      d.feed(frame_with_type(type));
+      const auto s = d.next();
+      REQUIRE(s.is_error());
+      CHECK(s.error == decode_error::unknown_type);
+      CHECK(to_error_code(s.error) == error_code::unknown_type);
+    }
+    // A known type without its body is not a message.
+    frame_decoder d;
+    d.feed(frame_with_type(static_cast<std::uint8_t>(zone::net::wire::message::ping), false));
+    CHECK(d.next().error == decode_error::verification_failed);
+    // Positive control: the helper builds valid frames when the type is right.
+    frame_decoder ok;
+    ok.feed(frame_with_type(static_cast<std::uint8_t>(zone::net::wire::message::ping)));
+    CHECK(ok.next().is_frame());
+  }
+
+  TEST_CASE("frames that fail verification are rejected") {
+    const std::uint64_t seed = fresh_seed();
+    CAPTURE(seed);
+    gen g(seed);
+    const auto expect_verification_failure = [](const bytes& frame) {
+      frame_decoder d(big_frames());
+      d.feed(frame);
+      const auto s = d.next();
+      REQUIRE(s.is_error());
+      CHECK(s.error == decode_error::verification_failed);
+    };
+    const bytes good = frame_of(hello_msg{"alice", "secret", protocol_version});
+    {  // Wrong file identifier.
+      bytes f = good;
+      f[4 + 4] ^= 0x20;
+      expect_verification_failure(f);
+    }
+    {  // Root offset pointing past the end.
+      bytes f = good;
+      write_le32(f.data() + 4, static_cast<std::uint32_t>(f.size() * 4));
+      expect_verification_failure(f);
+    }
+    {  // Root offset misaligned / into the identifier.
+      bytes f = good;
+      write_le32(f.data() + 4, 5);
+      expect_verification_failure(f);
+    }
+    {  // Too short to be a FlatBuffer at all, and an empty frame.
+      expect_verification_failure(bytes{4, 0, 0, 0, 1, 2, 3, 4});
+      expect_verification_failure(bytes{0, 0, 0, 0});
+    }
+    {  // String length pointing past the end of the buffer: found by scanning for the name's length word.
+      bytes f = good;
+      bool patched = false;
+      for (std::size_t i = 4; i + 8 <= f.size(); i += 4) {
+        if (read_le32(f.data() + i) == 5 && std::memcmp(f.data() + i + 4, "alice", 5) == 0) {
+          write_le32(f.data() + i, 100000);
+          patched = true;
+        }
+      }
+      REQUIRE(patched);
+      expect_verification_failure(f);
+    }
+    {  // Garbage bodies under a valid prefix.
+      for (int rep = 0; rep < 500; ++rep) {
+        bytes f(4 + 8 + g.below(200));
+        for (std::size_t i = 4; i < f.size(); ++i) f[i] = static_cast<std::uint8_t>(g.u32());
+        // A root offset past the buffer end guarantees rejection; the rest is arbitrary.
+        write_le32(f.data() + 4, static_cast<std::uint32_t>(f.size() + g.below(1u << 30)));
+        write_le32(f.data(), static_cast<std::uint32_t>(f.size() - 4));
+        expect_verification_failure(f);
+      }
+    }
+  }
+
+  TEST_CASE("random bytes and mutated frames never crash or over-read") {
+    const std::uint64_t seed = fresh_seed();
+    CAPTURE(seed);
+    gen g(seed);
+    decoder_options o;
+    o.max_frame_bytes = 4096;
+    std::size_t frames = 0, errors = 0;
+    for (int rep = 0; rep < 20000; ++rep) {
+      bytes stream;
+      if (rep % 2 == 0) {
+        // Pure noise, with small length prefixes often enough that bodies reach the verifier.
+        stream.resize(g.below(300));
+        for (auto& b : stream) b = static_cast<std::uint8_t>(g.u32());
+        if (stream.size() >= 4 && g.below(2)) write_le32(stream.data(), static_cast<std::uint32_t>(g.below(stream.size())));
+      } else {
+        // Valid frames with a few random byte flips.
+        for (std::size_t i = 1 + g.below(3); i-- > 0;) {
+          const auto f = frame_of(g.any());
+          stream.insert(stream.end(), f.begin(), f.end());
+        }
+        for (std::size_t i = 1 + g.below(4); i-- > 0;) stream[g.below(stream.size())] ^= static_cast<std::uint8_t>(1 + g.below(255));
+      }
+      frame_decoder d(o);
+      // Feed an exact-size heap copy per chunk so that ASan sees any read past the input.
+      for (std::size_t at = 0; at < stream.size();) {
+        const std::size_t n = std::min<std::size_t>(1 + g.below(64), stream.size() - at);
+        const std::unique_ptr<std::uint8_t[]> chunk(new std::uint8_t[n]);
+        std::memcpy(chunk.get(), stream.data() + at, n);
+        d.feed({chunk.get(), n});
+        at += n;
+        for (auto s = d.next(); !s.needs_more(); s = d.next()) {
+          if (s.is_error()) {
+            ++errors;
+            break;
+          }
+          ++frames;
+          // A frame that passed verification must convert without trouble.
+          const auto m = to_message(*s.frame.envelope);
+          REQUIRE(m.has_value());
+          CHECK(type_of(*m) == s.frame.type);
+        }
+        if (d.failed()) break;
+      }
+      (void)d.close();
+      // The one-shot path on an exact-size copy of the stream.
+      if (!stream.empty()) {
+        const std::size_t n = stream.size();
+        const std::unique_ptr<std::uint8_t[]> copy(new std::uint8_t[n]);
+        std::memcpy(copy.get(), stream.data(), n);
+        const auto r = decode_frame({copy.get(), n}, o);
+        CHECK(r.value.has_value() != r.error.has_value());
+      }
+    }
+    MESSAGE("fuzz: " << frames << " frames accepted, " << errors << " streams rejected");
+    CHECK(errors > 0);
+    CHECK(frames > 0);
+  }
+
+  TEST_CASE("position quantization round trip stays within max_error") {
+    const std::uint64_t seed = fresh_seed();
+    CAPTURE(seed);
+    gen g(seed);
+    for (int world_rep = 0; world_rep < 50; ++world_rep) {
+      world_bounds w;
+      w.lo = {g.f(-5e4f, 5e4f), g.f(-5e4f, 5e4f), g.f(-1e3f, 1e3f)};
+      w.hi = {w.lo.x + g.f(1.f, 2e4f), w.lo.y + g.f(1.f, 2e4f), w.lo.z + g.f(0.5f, 500.f)};
+      CAPTURE(w.lo.x);
+      CAPTURE(w.hi.x);
+      const position_quantizer q(w);
+      const vec3f e = q.max_error();
+      // The bound is half a step plus float rounding of the coordinate, not more.
+      const double half_step = (double(w.hi.x) - double(w.lo.x)) / 65535.0 / 2;
+      const double ulp = std::max(std::fabs(w.lo.x), std::fabs(w.hi.x)) * std::ldexp(1.0, -23);
+      CHECK(e.x >= half_step);
+      CHECK(e.x <= half_step + 2 * ulp);
+      for (int rep = 0; rep < 2000; ++rep) {
+        const vec3f p{g.f(w.lo.x, w.hi.x), g.f(w.lo.y, w.hi.y), g.f(w.lo.z, w.hi.z)};
+        const vec3f back = q.dequantize(q.quantize(p));
+        CHECK(std::fabs(back.x - p.x) <= e.x);
+        CHECK(std::fabs(back.y - p.y) <= e.y);
+        CHECK(std::fabs(back.z - p.z) <= e.z);
+      }
+      // The corners are exact; outside clamps to the bounds; NaN goes to lo.
+      CHECK(q.dequantize(q.quantize(w.lo)) == w.lo);
+      CHECK(q.quantize(w.hi) == std::array<std::uint16_t, 3>{65535, 65535, 65535});
+      CHECK(q.quantize({w.lo.x - 100, w.hi.y + 100, w.lo.z}) == std::array<std::uint16_t, 3>{0, 65535, 0});
+      CHECK(q.quantize({std::nanf(""), w.lo.y, w.lo.z})[0] == 0);
+    }
+    // A flat world: the zero-width axis decodes to lo.
+    const position_quantizer flat({{0, 0, 5}, {100, 100, 5}});
+    CHECK(flat.dequantize(flat.quantize({50, 50, 5})).z == 5.f);
+  }
+
+  TEST_CASE("velocity quantization round trip and clamping") {
+    const std::uint64_t seed = fresh_seed();
+    CAPTURE(seed);
+    gen g(seed);
+    for (int rep = 0; rep < 20000; ++rep) {
+      const vec3f v{g.f(-velocity_limit, velocity_limit), g.f(-50, 50), g.f(-1, 1)};
+      const vec3f back = dequantize_velocity(quantize_velocity(v));
+      const float tol = velocity_max_error + 1e-4f;
+      CHECK(std::fabs(back.x - v.x) <= tol);
+      CHECK(std::fabs(back.y - v.y) <= tol);
+      CHECK(std::fabs(back.z - v.z) <= tol);
+    }
+    CHECK(quantize_velocity({1e6f, -1e6f, std::nanf("")}) == std::array<std::int16_t, 3>{32767, -32767, 0});
+  }
+
+  TEST_CASE("visible digest: incremental equals direct, order independent") {
+    const std::uint64_t seed = fresh_seed();
+    CAPTURE(seed);
+    gen g(seed);
+    std::set<std::uint32_t> view;
+    std::uint64_t hash = 0;
+    for (int rep = 0; rep < 5000; ++rep) {
+      const std::uint32_t id = 1 + static_cast<std::uint32_t>(g.below(300));
+      if (view.insert(id).second) {
+        hash = digest_add(hash, id);
+      } else {
+        view.erase(id);
+        hash = digest_remove(hash, id);
+      }
+    }
+    std::vector<std::uint32_t> ids(view.begin(), view.end());
+    std::shuffle(ids.begin(), ids.end(), g.rng);
+    const auto d = visible_digest(99, ids);
+    CHECK(d.hash == hash);
+    CHECK(d.count == view.size());
+    CHECK(d.tick == 99);
+    // Sensitive to membership.
+    if (!ids.empty()) {
+      ids.pop_back();
+      CHECK(visible_digest(99, ids).hash != hash);
+    }
+  }
+}
