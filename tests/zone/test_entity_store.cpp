@@ -1,0 +1,171 @@
+// Entity storage against a plain std::map model under random operation sequences.
+#include <doctest/doctest.h>
+
+#include <cmath>
+#include <map>
+#include <random>
+#include <set>
+
+#include "zone.h"
+
+using namespace zone;
+namespace cb = zone::interest::category_bits;
+
+namespace {
+
+std::uint64_t fresh_seed() {
+  static const std::uint64_t base = std::random_device{}() ^ (std::uint64_t{std::random_device{}()} << 32);
+  static std::uint64_t k = 0;
+  return base + 0x9e3779b97f4a7c15ull * ++k;
+}
+
+entity_desc random_desc(std::mt19937_64& rng) {
+  std::uniform_real_distribution<float> u(-1000, 1000), e(0, 50);
+  entity_desc d;
+  d.position = {u(rng), u(rng), u(rng)};
+  d.velocity = {u(rng) / 100, u(rng) / 100, 0};
+  constexpr std::uint32_t classes[] = {cb::normal, cb::stealth, cb::team_red, cb::team_blue};
+  d.visibility_class = classes[rng() % 4];
+  d.sees = static_cast<std::uint32_t>(rng()) & (cb::normal | cb::stealth | cb::team_red | cb::team_blue);
+  d.aoi_half_extent = {e(rng), e(rng), e(rng)};
+  d.presence_half_extent = {e(rng) / 10, e(rng) / 10, e(rng) / 10};
+  d.kind = static_cast<entity_kind>(rng() % 3);
+  return d;
+}
+
+}  // namespace
+
+TEST_SUITE("zone.entity_store") {
+  TEST_CASE("random create/destroy/set sequences match a map model") {
+    const std::uint64_t seed = fresh_seed();
+    CAPTURE(seed);
+    std::mt19937_64 rng(seed);
+    entity_store store(400);
+    std::map<entity_id, entity_desc> model;
+    std::vector<entity_id> dead;
+    for (int op = 0; op < 20000; ++op) {
+      CAPTURE(op);
+      const int what = static_cast<int>(rng() % 10);
+      if (what < 4) {
+        const entity_desc d = random_desc(rng);
+        std::string error;
+        const entity_id id = store.create(d, &error);
+        if (model.size() >= 400) {
+          CHECK(id == null_entity);
+          CHECK(error.find("full") != std::string::npos);
+        } else {
+          REQUIRE(id != null_entity);
+          CHECK(error.empty());
+          CHECK(model.count(id) == 0);
+          model[id] = d;
+        }
+      } else if (what < 7 && !model.empty()) {
+        auto it = model.begin();
+        std::advance(it, static_cast<long>(rng() % model.size()));
+        CHECK(store.destroy(it->first));
+        dead.push_back(it->first);
+        model.erase(it);
+      } else if (what == 7 && !dead.empty()) {
+        // Stale handles: destroy, set and get all refuse them, even after slot reuse.
+        const entity_id stale = dead[rng() % dead.size()];
+        if (model.count(stale) == 0) {
+          CHECK_FALSE(store.alive(stale));
+          CHECK_FALSE(store.destroy(stale));
+          CHECK_FALSE(store.set_position(stale, {1, 2, 3}));
+          CHECK_FALSE(store.get(stale).has_value());
+        }
+      } else if (!model.empty()) {
+        auto it = model.begin();
+        std::advance(it, static_cast<long>(rng() % model.size()));
+        const entity_desc d = random_desc(rng);
+        CHECK(store.set_position(it->first, d.position));
+        CHECK(store.set_velocity(it->first, d.velocity));
+        CHECK(store.set_aoi_half_extent(it->first, d.aoi_half_extent));
+        CHECK(store.set_presence_half_extent(it->first, d.presence_half_extent));
+        CHECK(store.set_visibility(it->first, d.visibility_class, d.sees));
+        it->second.position = d.position;
+        it->second.velocity = d.velocity;
+        it->second.aoi_half_extent = d.aoi_half_extent;
+        it->second.presence_half_extent = d.presence_half_extent;
+        it->second.visibility_class = d.visibility_class;
+        it->second.sees = d.sees;
+        // Invalid values are refused and change nothing.
+        CHECK_FALSE(store.set_position(it->first, {std::nanf(""), 0, 0}));
+        CHECK_FALSE(store.set_aoi_half_extent(it->first, {-1, 0, 0}));
+        CHECK_FALSE(store.set_visibility(it->first, cb::normal | cb::stealth, 0));
+        CHECK_FALSE(store.set_visibility(it->first, cb::aoi, 0));
+        CHECK_FALSE(store.set_visibility(it->first, cb::normal, cb::aoi));
+      }
+      if (op % 97 == 0 || op > 19900) {
+        REQUIRE(store.size() == model.size());
+        std::set<entity_id> seen;
+        for (std::size_t i = 0; i < store.size(); ++i) {
+          const entity_id id = store.ids()[i];
+          CHECK(id != null_entity);
+          CHECK(seen.insert(id).second);
+          CHECK(store.index_of(id) == i);
+        }
+        for (const auto& [id, d] : model) {
+          REQUIRE(store.alive(id));
+          const auto got = store.get(id);
+          REQUIRE(got.has_value());
+          CHECK(*got == d);
+          const std::size_t i = store.index_of(id);
+          CHECK(store.positions()[i] == d.position);
+          CHECK(store.aoi_half_extents()[i] == d.aoi_half_extent);
+          CHECK(store.visibility_classes()[i] == d.visibility_class);
+          CHECK(store.kinds()[i] == d.kind);
+        }
+      }
+    }
+    CHECK_FALSE(store.alive(null_entity));
+    CHECK(store.index_of(null_entity) == entity_store::npos);
+  }
+
+  TEST_CASE("invalid descriptions are rejected with a reason") {
+    entity_store store;
+    entity_desc d;
+    std::string error;
+    d.position.y = std::numeric_limits<float>::infinity();
+    CHECK(store.create(d, &error) == null_entity);
+    CHECK(error.find("position") != std::string::npos);
+    d = {};
+    d.presence_half_extent.z = -0.1f;
+    CHECK(store.create(d, &error) == null_entity);
+    CHECK(error.find("presence") != std::string::npos);
+    d = {};
+    d.visibility_class = 0;
+    CHECK(store.create(d, &error) == null_entity);
+    d.visibility_class = cb::aoi;
+    CHECK(store.create(d, &error) == null_entity);
+    d = {};
+    d.sees |= cb::aoi;
+    CHECK(store.create(d, &error) == null_entity);
+    CHECK(store.empty());
+    CHECK(store.create(entity_desc{}) != null_entity);
+  }
+
+  TEST_CASE("a reused slot gets a new generation; handles are never null") {
+    entity_store store;
+    const entity_id keep = store.create({});
+    std::set<entity_id> handles;
+    entity_id prev = null_entity;
+    for (int i = 0; i < 4095; ++i) {
+      const entity_id id = store.create({});
+      REQUIRE(id != null_entity);
+      CHECK(slot_of(id) == 1);  // the same slot every time
+      CHECK(handles.insert(id).second);
+      if (prev != null_entity) CHECK_FALSE(store.alive(prev));
+      CHECK(store.destroy(id));
+      prev = id;
+    }
+    // After 4,095 reuses the generation wraps (documented), skipping 0.
+    const entity_id wrapped = store.create({});
+    CHECK(generation_of(wrapped) == 1);
+    CHECK(store.alive(keep));
+    store.clear();
+    CHECK_FALSE(store.alive(keep));
+    CHECK_FALSE(store.alive(wrapped));
+    CHECK(store.empty());
+  }
+}

@@ -1,0 +1,295 @@
+// The interest tracker (zone.h; algorithm in docs/zone.md).
+//
+// One finder call per tick with every AOI box grown by the hysteresis margin h yields, per
+// observer, every target that could be visible under either rule: inside the grown box (the
+// "stay" rule for targets already visible) is exactly what the finder reports, and inside the
+// exact box (the "enter" rule) is a subset of it, because float rounding is monotone:
+// p - (a + h) <= p - a and p + a <= p + (a + h). Each candidate is then classified with the exact
+// test: a target already visible stays; a new one enters only when its presence box meets the
+// exact AOI box. Targets of the previous set that are not candidates leave.
+#include <algorithm>
+#include <atomic>
+#include <bit>
+#include <chrono>
+#include <cmath>
+
+#include "zone.h"
+
+namespace zone {
+
+namespace {
+
+using clock_type = std::chrono::steady_clock;
+double ms_since(clock_type::time_point t0) {
+  return std::chrono::duration<double, std::milli>(clock_type::now() - t0).count();
+}
+
+constexpr std::uint32_t no_row = 0xffffffffu;
+
+/// Squared distance of two points, as an order-preserving unsigned key (non-negative floats order
+/// like their bit patterns).
+std::uint32_t distance_key(const vec3& a, const vec3& b) {
+  const float dx = a.x - b.x, dy = a.y - b.y, dz = a.z - b.z;
+  return std::bit_cast<std::uint32_t>(dx * dx + dy * dy + dz * dz);
+}
+
+std::uint64_t mix(std::uint64_t h, std::uint64_t v) {
+  h ^= v + 0x9e3779b97f4a7c15ull + (h << 6) + (h >> 2);
+  return h * 0xff51afd7ed558ccdull;
+}
+
+}  // namespace
+
+interest_tracker::interest_tracker(interest::pair_finder& finder, interest::thread_pool* pool, interest_options opt)
+    : finder_(&finder), pool_(pool), opt_(opt) {}
+
+std::size_t interest_tracker::row_of(entity_id id) const {
+  const std::uint32_t slot = slot_of(id);
+  if (id == null_entity || slot >= row_of_slot_.size()) return entity_store::npos;
+  const std::uint32_t row = row_of_slot_[slot];
+  if (row >= ids_.size() || ids_[row] != id) return entity_store::npos;
+  return row;
+}
+
+void interest_tracker::build_boxes(const entity_store& store, interest::box_set& out) const {
+  namespace cb = interest::category_bits;
+  const std::size_t n = store.size();
+  out.resize(2 * n);
+  const auto pos = store.positions();
+  const auto aoi = store.aoi_half_extents();
+  const auto body = store.presence_half_extents();
+  const auto cls = store.visibility_classes();
+  const auto sees = store.sees();
+  const float h = opt_.hysteresis;
+  for (std::size_t k = 0; k < n; ++k) {
+    const vec3 p = pos[k];
+    // AOI box grown by the margin: the finder reports every target inside it.
+    const vec3 g{aoi[k].x + h, aoi[k].y + h, aoi[k].z + h};
+    out.lo_x[2 * k] = p.x - g.x;
+    out.lo_y[2 * k] = p.y - g.y;
+    out.lo_z[2 * k] = p.z - g.z;
+    out.hi_x[2 * k] = p.x + g.x;
+    out.hi_y[2 * k] = p.y + g.y;
+    out.hi_z[2 * k] = p.z + g.z;
+    out.category[2 * k] = cb::aoi;
+    out.mask[2 * k] = sees[k];
+    // Presence box. Its mask is 0 (not aoi): with the contract's symmetric rule
+    // (cat_a & mask_b) | (cat_b & mask_a), a presence mask of aoi would let every AOI/presence
+    // pair through whatever the classes; with 0 only (class & sees of the observer) counts.
+    const vec3 b = body[k];
+    out.lo_x[2 * k + 1] = p.x - b.x;
+    out.lo_y[2 * k + 1] = p.y - b.y;
+    out.lo_z[2 * k + 1] = p.z - b.z;
+    out.hi_x[2 * k + 1] = p.x + b.x;
+    out.hi_y[2 * k + 1] = p.y + b.y;
+    out.hi_z[2 * k + 1] = p.z + b.z;
+    out.category[2 * k + 1] = cls[k];
+    out.mask[2 * k + 1] = 0;
+  }
+}
+
+std::optional<interest::box_error> interest_tracker::update(const entity_store& store) {
+  auto t0 = clock_type::now();
+  build_boxes(store, boxes_);
+  const double boxes_ms = ms_since(t0);
+  t0 = clock_type::now();
+  if (auto err = finder_->find(boxes_, pairs_)) {
+    const std::size_t k = err->index / 2;
+    err->message = "entity " + std::to_string(store.ids()[k]) + (err->index % 2 ? " (presence box): " : " (AOI box): ") +
+                   err->message;
+    return err;
+  }
+  const double find_ms = ms_since(t0);
+  apply_pairs(store, boxes_, pairs_);
+  stats_.boxes_ms = boxes_ms;
+  stats_.find_ms = find_ms;
+  return std::nullopt;
+}
+
+void interest_tracker::apply_pairs(const entity_store& store, const interest::box_set& boxes,
+                                   const interest::pair_list& pairs) {
+  const auto t0 = clock_type::now();
+  // The last tick's output becomes the previous state.
+  std::swap(ids_, prev_ids_);
+  std::swap(vis_off_, prev_off_);
+  std::swap(vis_len_, prev_len_);
+  std::swap(vis_, prev_vis_);
+  const std::size_t prev_rows = prev_ids_.size();
+
+  const std::size_t n = store.size();
+  const auto ids = store.ids();
+  const auto cls = store.visibility_classes();
+  const auto sees = store.sees();
+  ids_.assign(ids.begin(), ids.end());
+
+  // Candidates by observer row: count, scan, fill (serial: the order is the pairs' order, and the
+  // rows are sorted afterwards, so the result does not depend on it).
+  vis_off_.assign(n + 1, 0);
+  std::uint64_t candidates = 0;
+  const auto split = [](const interest::id_pair& p, std::uint32_t& observer, std::uint32_t& target) {
+    // Box 2k is entity k's AOI box, 2k+1 its presence box; only mixed pairs mean "k sees j".
+    if ((p.a & 1u) == (p.b & 1u)) return false;
+    const std::uint32_t aoi_box = (p.a & 1u) ? p.b : p.a;
+    const std::uint32_t presence_box = (p.a & 1u) ? p.a : p.b;
+    observer = aoi_box / 2;
+    target = presence_box / 2;
+    return observer != target;
+  };
+  for (const auto& p : pairs) {
+    std::uint32_t o, t;
+    if (split(p, o, t) && (cls[t] & sees[o]) != 0) ++vis_off_[o + 1];
+  }
+  for (std::size_t i = 0; i < n; ++i) vis_off_[i + 1] += vis_off_[i];
+  candidates = vis_off_[n];
+  cand_.resize(candidates);
+  vis_.resize(candidates);
+  enter_.resize(candidates);
+  kept_dense_.resize(candidates);
+  {
+    // Fill cursor per row: reuse vis_len_ as the cursor, reset below.
+    vis_len_.assign(n, 0);
+    for (const auto& p : pairs) {
+      std::uint32_t o, t;
+      if (split(p, o, t) && (cls[t] & sees[o]) != 0) {
+        cand_[vis_off_[o] + vis_len_[o]++] = (std::uint64_t{ids[t]} << 32) | t;
+      }
+    }
+  }
+
+  // Previous row of each observer, and leave capacity = its previous set's size.
+  prev_row_.resize(n);
+  leave_off_.resize(n + 1);
+  leave_off_[0] = 0;
+  for (std::size_t i = 0; i < n; ++i) {
+    const std::uint32_t slot = slot_of(ids[i]);
+    std::uint32_t r = slot < row_of_slot_.size() ? row_of_slot_[slot] : no_row;
+    if (r >= prev_rows || prev_ids_[r] != ids[i]) r = no_row;
+    prev_row_[i] = r;
+    leave_off_[i + 1] = leave_off_[i] + (r == no_row ? 0 : prev_len_[r]);
+  }
+  leave_.resize(leave_off_[n]);
+  vis_len_.assign(n, 0);
+  enter_len_.assign(n, 0);
+  leave_len_.assign(n, 0);
+
+  // Per observer, in fixed chunks of rows (the output never depends on the thread count).
+  const std::size_t chunk = std::max<std::uint32_t>(1, opt_.rows_per_task);
+  const std::size_t tasks = (n + chunk - 1) / chunk;
+  capped_pending_ = 0;
+  interest::run_tasks(pool_, tasks, [&](std::size_t task) {
+    process_rows(store, boxes, task * chunk, std::min(n, (task + 1) * chunk));
+  });
+
+  // Slot -> row for the next tick's lookups and row_of().
+  if (row_of_slot_.size() < store.slot_count()) row_of_slot_.resize(store.slot_count(), no_row);
+  for (std::size_t i = 0; i < n; ++i) row_of_slot_[slot_of(ids[i])] = static_cast<std::uint32_t>(i);
+
+  stats_ = {};
+  stats_.pairs = pairs.size();
+  stats_.candidates = candidates;
+  stats_.capped = capped_pending_;
+  for (std::size_t i = 0; i < n; ++i) {
+    stats_.visible += vis_len_[i];
+    stats_.enters += enter_len_[i];
+    stats_.leaves += leave_len_[i];
+  }
+  stats_.diff_ms = ms_since(t0);
+}
+
+void interest_tracker::process_rows(const entity_store& store, const interest::box_set& boxes, std::size_t first,
+                                    std::size_t last) {
+  const auto pos = store.positions();
+  const auto aoi = store.aoi_half_extents();
+  const std::uint32_t cap = opt_.max_visible;
+  std::uint64_t capped = 0;
+
+  for (std::size_t i = first; i < last; ++i) {
+    const std::uint32_t off = vis_off_[i];
+    std::uint64_t* cand = cand_.data() + off;
+    const std::uint32_t cand_n = vis_off_[i + 1] - off;
+    std::sort(cand, cand + cand_n);  // by target handle (then dense index: unique anyway)
+
+    const entity_id* old = nullptr;
+    std::uint32_t old_n = 0;
+    if (prev_row_[i] != no_row) {
+      old = prev_vis_.data() + prev_off_[prev_row_[i]];
+      old_n = prev_len_[prev_row_[i]];
+    }
+
+    // The observer's exact AOI box (the same float expressions as the grown one, minus h).
+    const vec3 p = pos[i], a = aoi[i];
+    const float lo_x = p.x - a.x, lo_y = p.y - a.y, lo_z = p.z - a.z;
+    const float hi_x = p.x + a.x, hi_y = p.y + a.y, hi_z = p.z + a.z;
+
+    // Hysteresis: a candidate stays if it was visible, enters if it meets the exact box.
+    entity_id* kept = vis_.data() + off;
+    std::uint32_t* kept_dense = kept_dense_.data() + off;
+    std::uint32_t kept_n = 0;
+    std::uint32_t j = 0;
+    for (std::uint32_t c = 0; c < cand_n; ++c) {
+      const entity_id target = static_cast<entity_id>(cand[c] >> 32);
+      const std::uint32_t t = static_cast<std::uint32_t>(cand[c]);
+      while (j < old_n && old[j] < target) ++j;
+      const bool was_visible = j < old_n && old[j] == target;
+      const std::size_t b = 2 * std::size_t{t} + 1;
+      const bool inside = boxes.lo_x[b] <= hi_x && lo_x <= boxes.hi_x[b] && boxes.lo_y[b] <= hi_y &&
+                          lo_y <= boxes.hi_y[b] && boxes.lo_z[b] <= hi_z && lo_z <= boxes.hi_z[b];
+      if (was_visible || inside) {
+        kept[kept_n] = target;
+        kept_dense[kept_n] = t;
+        ++kept_n;
+      }
+    }
+
+    // Cap: keep the `cap` closest (ties by handle), then back to handle order.
+    if (cap != 0 && kept_n > cap) {
+      std::uint64_t* keys = cand;  // the candidates are consumed: reuse their storage
+      for (std::uint32_t k = 0; k < kept_n; ++k) {
+        keys[k] = (std::uint64_t{distance_key(p, pos[kept_dense[k]])} << 32) | kept[k];
+      }
+      std::nth_element(keys, keys + cap, keys + kept_n);
+      for (std::uint32_t k = 0; k < cap; ++k) kept[k] = static_cast<entity_id>(keys[k]);
+      std::sort(kept, kept + cap);
+      capped += kept_n - cap;
+      kept_n = cap;
+    }
+    vis_len_[i] = kept_n;
+
+    // Diff of two sorted lists: enters = kept \ old, leaves = old \ kept.
+    entity_id* enter = enter_.data() + off;
+    entity_id* leave = leave_.data() + leave_off_[i];
+    std::uint32_t en = 0, ln = 0, k = 0;
+    j = 0;
+    while (k < kept_n || j < old_n) {
+      if (j == old_n || (k < kept_n && kept[k] < old[j])) {
+        enter[en++] = kept[k++];
+      } else if (k == kept_n || old[j] < kept[k]) {
+        leave[ln++] = old[j++];
+      } else {
+        ++k;
+        ++j;
+      }
+    }
+    enter_len_[i] = en;
+    leave_len_[i] = ln;
+  }
+  if (capped != 0) {
+    std::atomic_ref<std::uint64_t>(capped_pending_).fetch_add(capped, std::memory_order_relaxed);
+  }
+}
+
+std::uint64_t interest_tracker::digest() const {
+  std::uint64_t h = 0x5a4f4e45ull;  // "ZONE"
+  for (std::size_t i = 0; i < ids_.size(); ++i) {
+    h = mix(h, ids_[i]);
+    for (const auto id : visible(i)) h = mix(h, id);
+    h = mix(h, 0xfffffffd);
+    for (const auto id : enters(i)) h = mix(h, id);
+    h = mix(h, 0xfffffffe);
+    for (const auto id : leaves(i)) h = mix(h, id);
+    h = mix(h, 0xffffffff);
+  }
+  return h;
+}
+
+}  // namespace zone

@@ -1,0 +1,230 @@
+// Public API of the zone layer: entity storage and the interest tracker (pairs -> per-observer
+// visible sets -> enter/leave events with hysteresis). See docs/zone.md.
+//
+// Later parts of the zone server (configuration, NPC behaviours, the tick loop, replication) build
+// on these: the tick loop owns one entity_store and one interest_tracker and calls
+// interest_tracker::update once per tick after moving entities.
+#pragma once
+
+#include <cstddef>
+#include <cstdint>
+#include <optional>
+#include <span>
+#include <string>
+#include <vector>
+
+#include "interest.h"
+
+namespace zone {
+
+// ---------------------------------------------------------------------------------------------
+// Entity storage.
+
+/// A generation-checked entity handle: (generation << entity_index_bits) | slot. Generations run
+/// 1 .. 2^(32 - entity_index_bits) - 1 and wrap back to 1, so a handle is never 0 (null_entity).
+/// A stale handle (its entity destroyed, even if the slot was reused) is rejected by every lookup
+/// until the slot's generation wraps around (4,095 reuses of that one slot).
+using entity_id = std::uint32_t;
+inline constexpr entity_id null_entity = 0;
+inline constexpr unsigned entity_index_bits = 20;
+inline constexpr std::uint32_t entity_index_mask = (1u << entity_index_bits) - 1;
+/// Most entities alive at once in one store.
+inline constexpr std::size_t max_entities = std::size_t{1} << entity_index_bits;
+
+[[nodiscard]] constexpr std::uint32_t slot_of(entity_id id) { return id & entity_index_mask; }
+[[nodiscard]] constexpr std::uint32_t generation_of(entity_id id) { return id >> entity_index_bits; }
+
+struct vec3 {
+  float x = 0, y = 0, z = 0;
+  friend bool operator==(const vec3&, const vec3&) = default;
+};
+
+enum class entity_kind : std::uint8_t { player, npc, boss };
+
+/// Everything needed to create an entity. Visibility: `visibility_class` is the one category bit
+/// of its presence box (category_bits::normal, stealth, team_red, ...; never category_bits::aoi);
+/// `sees` is the set of classes its AOI box sees (its mask; never containing the aoi bit).
+struct entity_desc {
+  vec3 position{};
+  vec3 velocity{};
+  std::uint32_t visibility_class = interest::category_bits::normal;
+  std::uint32_t sees = interest::category_bits::normal | interest::category_bits::team_red |
+                       interest::category_bits::team_blue;
+  vec3 aoi_half_extent{50, 50, 50};          ///< the AOI box is position +- this (metres)
+  vec3 presence_half_extent{0.5f, 0.5f, 1};  ///< the presence box (body / footprint) is position +- this
+  entity_kind kind = entity_kind::npc;
+  friend bool operator==(const entity_desc&, const entity_desc&) = default;
+};
+
+/// Why a description is unacceptable (nothing when it is fine): non-finite numbers, negative
+/// extents, a class that is not exactly one non-aoi bit, or `sees` containing the aoi bit.
+[[nodiscard]] std::optional<std::string> validate(const entity_desc& d);
+
+/// Dense structure-of-arrays entity storage with generation-checked handles (the sparse-set
+/// layout: slot -> dense index, dense index -> handle). Live entities occupy dense indices
+/// [0, size()); destroy() moves the last entity into the hole, so dense indices are not stable
+/// across destroys, handles are. Not thread-safe for mutation; concurrent reads are fine.
+class entity_store {
+ public:
+  /// `capacity`: most entities alive at once (at most max_entities).
+  explicit entity_store(std::size_t capacity = max_entities);
+
+  /// Creates an entity. Returns null_entity, with the reason in `*error` when given, if the
+  /// description is invalid or the store is full.
+  [[nodiscard]] entity_id create(const entity_desc& d, std::string* error = nullptr);
+  /// Destroys a live entity; false (and nothing changes) for a null, stale or unknown handle.
+  bool destroy(entity_id id);
+  [[nodiscard]] bool alive(entity_id id) const { return index_of(id) != npos; }
+  /// Dense index of a live entity, npos otherwise.
+  [[nodiscard]] std::size_t index_of(entity_id id) const;
+  static constexpr std::size_t npos = static_cast<std::size_t>(-1);
+
+  [[nodiscard]] std::size_t size() const { return ids_.size(); }
+  [[nodiscard]] bool empty() const { return ids_.empty(); }
+  [[nodiscard]] std::size_t capacity() const { return capacity_; }
+  void clear();
+  void reserve(std::size_t n);
+
+  /// The description of a live entity.
+  [[nodiscard]] std::optional<entity_desc> get(entity_id id) const;
+
+  // Checked setters (false for a dead handle or an invalid value; nothing changes then).
+  bool set_position(entity_id id, const vec3& p);
+  bool set_velocity(entity_id id, const vec3& v);
+  bool set_aoi_half_extent(entity_id id, const vec3& h);
+  bool set_presence_half_extent(entity_id id, const vec3& h);
+  bool set_visibility(entity_id id, std::uint32_t visibility_class, std::uint32_t sees);
+
+  // Dense columns, index = dense index. Positions and velocities are writable in bulk (the
+  // movement systems); the interest tracker rejects non-finite values naming the entity.
+  [[nodiscard]] std::span<const entity_id> ids() const { return ids_; }
+  [[nodiscard]] std::span<vec3> positions() { return position_; }
+  [[nodiscard]] std::span<const vec3> positions() const { return position_; }
+  [[nodiscard]] std::span<vec3> velocities() { return velocity_; }
+  [[nodiscard]] std::span<const vec3> velocities() const { return velocity_; }
+  [[nodiscard]] std::span<const std::uint32_t> visibility_classes() const { return visibility_class_; }
+  [[nodiscard]] std::span<const std::uint32_t> sees() const { return sees_; }
+  [[nodiscard]] std::span<const vec3> aoi_half_extents() const { return aoi_half_; }
+  [[nodiscard]] std::span<const vec3> presence_half_extents() const { return presence_half_; }
+  [[nodiscard]] std::span<const entity_kind> kinds() const { return kind_; }
+
+  /// One past the highest slot index ever used (sizes per-slot side tables of other systems).
+  [[nodiscard]] std::size_t slot_count() const { return slot_generation_.size(); }
+
+ private:
+  std::size_t capacity_;
+  // Sparse side, by slot.
+  std::vector<std::uint32_t> slot_dense_;       // dense index of the slot's entity, or invalid_dense
+  std::vector<std::uint16_t> slot_generation_;  // generation of the slot's current (or next) entity
+  std::vector<std::uint32_t> free_slots_;       // LIFO
+  // Dense side.
+  std::vector<entity_id> ids_;
+  std::vector<vec3> position_, velocity_, aoi_half_, presence_half_;
+  std::vector<std::uint32_t> visibility_class_, sees_;
+  std::vector<entity_kind> kind_;
+};
+
+// ---------------------------------------------------------------------------------------------
+// Interest tracking.
+
+struct interest_options {
+  /// Hysteresis margin h (metres, >= 0): an entity enters A's view when its presence box meets
+  /// A's AOI box, and leaves only when it no longer meets A's AOI box grown by h on every side.
+  float hysteresis = 4.0f;
+  /// Keep at most this many entities per observer, the closest (0 = no cap). See docs/zone.md.
+  std::uint32_t max_visible = 0;
+  /// Observers per parallel task (fixed, so output never depends on the thread count).
+  std::uint32_t rows_per_task = 256;
+};
+
+/// Counters and phase times of the last update.
+struct interest_stats {
+  std::uint64_t pairs = 0;       ///< pairs found with the grown AOI boxes
+  std::uint64_t candidates = 0;  ///< (observer, target) candidates after the self/visibility filter
+  std::uint64_t visible = 0;     ///< sum of visible-set sizes
+  std::uint64_t enters = 0;
+  std::uint64_t leaves = 0;
+  std::uint64_t capped = 0;  ///< entities dropped by the max_visible cap
+  double boxes_ms = 0, find_ms = 0, diff_ms = 0;
+};
+
+/// Per-observer visible sets with enter/leave events and hysteresis, on top of any pair_finder.
+///
+/// Every entity is an observer (players and NPCs alike: NPC perception uses the same sets).
+/// After update(), row r (= the entity's dense index in the store at that moment) holds the
+/// observer's visible set and this tick's enter and leave events, each sorted ascending by handle.
+/// A visible set never contains the observer itself. Output is deterministic: it depends only on
+/// the store's contents and the previous tick, not on the finder's pair order or the thread count.
+/// Memory is reused between ticks: no allocation in steady state beyond growth.
+class interest_tracker {
+ public:
+  /// `finder` and `pool` must outlive the tracker; `pool` may be null (single-threaded).
+  interest_tracker(interest::pair_finder& finder, interest::thread_pool* pool = nullptr, interest_options opt = {});
+
+  /// One tick: builds the boxes, finds the pairs, updates visible sets and events. On error (a
+  /// non-finite position or extent) nothing changes and the error names the entity.
+  [[nodiscard]] std::optional<interest::box_error> update(const entity_store& store);
+
+  /// The two halves of update(), for callers that find pairs themselves (e.g. a GPU pipeline):
+  /// build_boxes writes entity k's AOI box grown by the hysteresis margin as box 2k (category
+  /// aoi, mask = sees) and its presence box as box 2k+1 (category = class, mask 0);
+  /// apply_pairs takes every qualifying pair of exactly those boxes (any order, each once).
+  void build_boxes(const entity_store& store, interest::box_set& out) const;
+  void apply_pairs(const entity_store& store, const interest::box_set& boxes, const interest::pair_list& pairs);
+
+  /// Rows of the last update (= the store's size then).
+  [[nodiscard]] std::size_t observer_count() const { return ids_.size(); }
+  [[nodiscard]] entity_id observer(std::size_t row) const { return ids_[row]; }
+  /// Row of an observer in the last update, or entity_store::npos.
+  [[nodiscard]] std::size_t row_of(entity_id id) const;
+
+  [[nodiscard]] std::span<const entity_id> visible(std::size_t row) const {
+    return {vis_.data() + vis_off_[row], vis_len_[row]};
+  }
+  [[nodiscard]] std::span<const entity_id> enters(std::size_t row) const {
+    return {enter_.data() + vis_off_[row], enter_len_[row]};
+  }
+  [[nodiscard]] std::span<const entity_id> leaves(std::size_t row) const {
+    return {leave_.data() + leave_off_[row], leave_len_[row]};
+  }
+
+  /// 64-bit hash of the last update's output (observers, visible sets, enters, leaves, in row
+  /// order): equal across runs, finders and thread counts for equal inputs.
+  [[nodiscard]] std::uint64_t digest() const;
+
+  [[nodiscard]] const interest_stats& stats() const { return stats_; }
+  [[nodiscard]] const interest_options& options() const { return opt_; }
+  /// Takes effect at the next update (the margin applies to the sets kept from this tick).
+  void set_options(const interest_options& opt) { opt_ = opt; }
+  /// The boxes of the last update (build_boxes' layout).
+  [[nodiscard]] const interest::box_set& boxes() const { return boxes_; }
+
+ private:
+  void process_rows(const entity_store& store, const interest::box_set& boxes, std::size_t first, std::size_t last);
+
+  interest::pair_finder* finder_;
+  interest::thread_pool* pool_;
+  interest_options opt_;
+  interest_stats stats_;
+  interest::box_set boxes_;
+  interest::pair_list pairs_;
+
+  // This tick, by row. Visible sets and enters share the candidate offsets (capacity per row =
+  // candidate count); leaves are laid out by the previous set's size.
+  std::vector<entity_id> ids_;
+  std::vector<std::uint32_t> vis_off_;  // size rows + 1
+  std::vector<std::uint32_t> vis_len_, enter_len_, leave_off_, leave_len_;
+  std::vector<entity_id> vis_, enter_, leave_;
+  std::vector<std::uint64_t> cand_;        // (target handle << 32) | target dense index, by row
+  std::vector<std::uint32_t> kept_dense_;  // dense index of each kept target (for the cap)
+  std::vector<std::uint32_t> prev_row_;    // previous row of each row's observer, or none
+
+  // The previous tick.
+  std::vector<entity_id> prev_ids_;
+  std::vector<std::uint32_t> prev_off_, prev_len_;
+  std::vector<entity_id> prev_vis_;
+  std::vector<std::uint32_t> row_of_slot_;  // slot -> row in the last update (checked against ids)
+  std::uint64_t capped_pending_ = 0;        // summed by the row tasks (atomic_ref)
+};
+
+}  // namespace zone
