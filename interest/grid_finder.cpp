@@ -264,7 +264,21 @@ grid_plan plan_grid(const box_set& boxes, const grid_finder_options& opt) {
   return plan_from_bounds(boxes, scene_bounds(boxes, nullptr), opt);
 }
 
+/// One cell's boxes as columns, for the branch-free check loop; one per check chunk, reused.
+struct cell_columns {
+  std::vector<float> lx, ly, lz, hx, hy, hz;
+  std::vector<std::uint32_t> cat, msk, flag;
+  std::vector<box_id> id;
+  void resize(std::size_t n) {
+    if (lx.size() >= n) return;
+    for (auto* v : {&lx, &ly, &lz, &hx, &hy, &hz}) v->resize(n);
+    for (auto* v : {&cat, &msk, &flag, &id}) v->resize(n);
+  }
+};
+
 struct grid_finder::scratch {
+  std::vector<cell_columns> columns;            // per check chunk
+
   std::vector<std::uint64_t> keyed, keyed_tmp;  // (cell << 32 | payload) items being radix-sorted
   std::vector<packed_box> unsorted;             // boxes in input order
   std::vector<packed_box> packed;               // boxes in spatial order
@@ -401,6 +415,7 @@ void grid_finder::find_valid(const box_set& boxes, pair_list& out) {
   const std::size_t chunks = std::min(cells, check_chunk_limit);
   sc.chunk_pairs.resize(chunks);
   sc.chunk_checks.assign(chunks, 0);
+  if (sc.columns.size() < chunks) sc.columns.resize(chunks);
   run_tasks(pool_, chunks, [&](std::size_t k) {
     const std::size_t cb = cells * k / chunks, ce = cells * (k + 1) / chunks;
     pair_list& found = sc.chunk_pairs[k];
@@ -415,12 +430,45 @@ void grid_finder::find_valid(const box_set& boxes, pair_list& out) {
       const auto cz = static_cast<std::int32_t>(c / (static_cast<std::size_t>(dx) * dy));
       const std::uint32_t len = end - begin;
       checks += static_cast<std::uint64_t>(len) * (len - 1) / 2;
+      // Load the cell's boxes into small columns, with one 3-bit flag per box: bit d set when
+      // the box's max corner lies in this cell's slab on axis d. Both boxes of a pair occupy
+      // this cell, so min(hi-cell a, hi-cell b) == c on axis d iff either box has bit d: the
+      // output-cell rule is (flag_a | flag_b) == 7, and every test below is branch-free.
+      cell_columns& col = sc.columns[k];
+      col.resize(len);
+      for (std::uint32_t i = 0; i < len; ++i) {
+        const packed_box& p = sc.packed[list[i]];
+        col.lx[i] = p.lo[0];
+        col.ly[i] = p.lo[1];
+        col.lz[i] = p.lo[2];
+        col.hx[i] = p.hi[0];
+        col.hy[i] = p.hi[1];
+        col.hz[i] = p.hi[2];
+        col.cat[i] = p.category;
+        col.msk[i] = p.mask;
+        col.flag[i] = static_cast<std::uint32_t>(p.hi_cell[0] == cx) | static_cast<std::uint32_t>(p.hi_cell[1] == cy) << 1 |
+                      static_cast<std::uint32_t>(p.hi_cell[2] == cz) << 2;
+        col.id[i] = p.id;
+      }
+      const float *lx = col.lx.data(), *ly = col.ly.data(), *lz = col.lz.data();
+      const float *hx = col.hx.data(), *hy = col.hy.data(), *hz = col.hz.data();
+      const std::uint32_t *cat = col.cat.data(), *msk = col.msk.data(), *flag = col.flag.data();
       for (std::uint32_t i = 0; i + 1 < len; ++i) {
-        const packed_box& a = sc.packed[list[i]];
-        for (std::uint32_t j = i + 1; j < len; ++j) {
-          const packed_box& b = sc.packed[list[j]];
-          if (boxes_qualify(a, b) && is_output_cell(a, b, cx, cy, cz)) {
-            found.push_back(a.id < b.id ? id_pair{a.id, b.id} : id_pair{b.id, a.id});
+        const float ax0 = lx[i], ay0 = ly[i], az0 = lz[i], ax1 = hx[i], ay1 = hy[i], az1 = hz[i];
+        const std::uint32_t ac = cat[i], am = msk[i], af = flag[i];
+        for (std::uint32_t block = i + 1; block < len; block += 64) {
+          const std::uint32_t blen = std::min<std::uint32_t>(len - block, 64);
+          alignas(64) std::uint8_t hit[64];
+          for (std::uint32_t t = 0; t < blen; ++t) {
+            const std::uint32_t j = block + t;
+            hit[t] = static_cast<std::uint8_t>((ax0 <= hx[j]) & (lx[j] <= ax1) & (ay0 <= hy[j]) & (ly[j] <= ay1) &
+                                               (az0 <= hz[j]) & (lz[j] <= az1) &
+                                               (((ac & msk[j]) | (cat[j] & am)) != 0) & ((af | flag[j]) == 7));
+          }
+          for (std::uint32_t t = 0; t < blen; ++t) {
+            if (hit[t] == 0) continue;
+            const box_id a = col.id[i], b = col.id[block + t];
+            found.push_back(a < b ? id_pair{a, b} : id_pair{b, a});
           }
         }
       }
