@@ -1,5 +1,7 @@
 #include <algorithm>
 #include <cmath>
+#include <charconv>
+#include <limits>
 #include <sstream>
 
 #include "interest.h"
@@ -55,6 +57,15 @@ box box_set::get(std::size_t i) const {
   return b;
 }
 
+namespace {
+/// Shortest text that reads back as exactly this float (so "1.0000001 > 1" is not shown as "1 > 1").
+std::string exact(float v) {
+  char buf[32];
+  const auto res = std::to_chars(buf, buf + sizeof buf, v);
+  return std::string(buf, res.ptr);
+}
+}  // namespace
+
 std::optional<box_error> validate_box(const box& b, std::size_t index) {
   static constexpr char axis_name[3] = {'x', 'y', 'z'};
   for (int d = 0; d < 3; ++d) {
@@ -67,7 +78,8 @@ std::optional<box_error> validate_box(const box& b, std::size_t index) {
     }
     if (b.lo[d] > b.hi[d]) {
       std::ostringstream msg;
-      msg << "box " << index << ": lo." << axis_name[d] << " = " << b.lo[d] << " > hi." << axis_name[d] << " = " << b.hi[d];
+      msg << "box " << index << ": lo." << axis_name[d] << " = " << exact(b.lo[d]) << " > hi." << axis_name[d] << " = "
+          << exact(b.hi[d]);
       return box_error{index, msg.str()};
     }
   }
@@ -94,13 +106,17 @@ std::optional<box_error> validate(const box_set& boxes) {
 
 std::optional<box_error> pair_finder::find(const box_set& boxes, pair_list& out) {
   out.clear();
+  if (boxes.size() > std::numeric_limits<box_id>::max()) {
+    return box_error{boxes.size() - 1, "the set has " + std::to_string(boxes.size()) +
+                                           " boxes; ids are 32-bit, so at most 4294967295 boxes are supported"};
+  }
   if (auto err = validate(boxes)) return err;
   stats_ = {};
   find_valid(boxes, out);
   return std::nullopt;
 }
 
-void sort_canonical(pair_list& pairs, std::size_t box_count) {
+void sort_canonical(pair_list& pairs, std::size_t box_count, thread_pool* pool) {
   for (auto& p : pairs) {
     if (p.a > p.b) std::swap(p.a, p.b);
   }
@@ -109,7 +125,7 @@ void sort_canonical(pair_list& pairs, std::size_t box_count) {
     std::sort(pairs.begin(), pairs.end());
     return;
   }
-  // Bucket by first id (counting sort), then sort each bucket by second id.
+  // Bucket by first id (counting sort), then sort each bucket by second id, buckets in parallel.
   std::vector<std::uint64_t> start(box_count + 1, 0);
   for (const auto& p : pairs) ++start[p.a + 1];
   for (std::size_t i = 0; i < box_count; ++i) start[i + 1] += start[i];
@@ -118,13 +134,15 @@ void sort_canonical(pair_list& pairs, std::size_t box_count) {
     std::vector<std::uint64_t> cursor(start.begin(), start.end() - 1);
     for (const auto& p : pairs) second[cursor[p.a]++] = p.b;
   }
-  std::size_t k = 0;
-  for (std::size_t a = 0; a < box_count; ++a) {
-    auto first = second.begin() + start[a];
-    auto last = second.begin() + start[a + 1];
-    std::sort(first, last);
-    for (auto it = first; it != last; ++it) pairs[k++] = id_pair{static_cast<box_id>(a), *it};
-  }
+  const std::size_t chunks = std::clamp<std::size_t>(box_count / 4096, 1, 256);
+  run_tasks(pool, chunks, [&](std::size_t c) {
+    for (std::size_t a = box_count * c / chunks, e = box_count * (c + 1) / chunks; a < e; ++a) {
+      auto first = second.begin() + static_cast<std::ptrdiff_t>(start[a]);
+      auto last = second.begin() + static_cast<std::ptrdiff_t>(start[a + 1]);
+      std::sort(first, last);
+      for (auto k = start[a]; k < start[a + 1]; ++k) pairs[k] = id_pair{static_cast<box_id>(a), second[k]};
+    }
+  });
 }
 
 adjacency to_adjacency(const pair_list& pairs, std::size_t box_count) {
@@ -136,13 +154,14 @@ adjacency to_adjacency(const pair_list& pairs, std::size_t box_count) {
   }
   for (std::size_t i = 0; i < box_count; ++i) adj.offsets[i + 1] += adj.offsets[i];
   adj.neighbors.resize(adj.offsets[box_count]);
-  std::vector<std::uint32_t> cursor(adj.offsets.begin(), adj.offsets.end() - 1);
+  std::vector<std::uint64_t> cursor(adj.offsets.begin(), adj.offsets.end() - 1);
   for (const auto& p : pairs) {
     adj.neighbors[cursor[p.a]++] = p.b;
     adj.neighbors[cursor[p.b]++] = p.a;
   }
   for (std::size_t i = 0; i < box_count; ++i) {
-    std::sort(adj.neighbors.begin() + adj.offsets[i], adj.neighbors.begin() + adj.offsets[i + 1]);
+    std::sort(adj.neighbors.begin() + static_cast<std::ptrdiff_t>(adj.offsets[i]),
+              adj.neighbors.begin() + static_cast<std::ptrdiff_t>(adj.offsets[i + 1]));
   }
   return adj;
 }

@@ -115,13 +115,14 @@ struct id_pair {
 using pair_list = std::vector<id_pair>;
 
 /// Canonical order for comparison and output: every pair as (min id, max id), sorted ascending
-/// by (a, b). Linear-time bucket pass by first id, then a small sort per bucket; deterministic.
-void sort_canonical(pair_list& pairs, std::size_t box_count);
+/// by (a, b). Linear-time bucket pass by first id, then a small sort per bucket (spread over
+/// `pool`'s threads when given); deterministic.
+void sort_canonical(pair_list& pairs, std::size_t box_count, thread_pool* pool = nullptr);
 
 /// Per-box adjacency in compressed sparse rows: the neighbours of box i are
 /// neighbors[offsets[i] .. offsets[i+1]), ascending. Each pair appears in both rows.
 struct adjacency {
-  std::vector<std::uint32_t> offsets;  ///< size box_count + 1
+  std::vector<std::uint64_t> offsets;  ///< size box_count + 1
   std::vector<box_id> neighbors;       ///< size 2 * pair count
   [[nodiscard]] std::size_t box_count() const { return offsets.empty() ? 0 : offsets.size() - 1; }
 };
@@ -154,6 +155,7 @@ class pair_finder {
   virtual ~pair_finder() = default;
   [[nodiscard]] virtual std::string_view name() const = 0;
 
+  /// Sets larger than 2^32 - 1 boxes (32-bit ids) are rejected too.
   [[nodiscard]] std::optional<box_error> find(const box_set& boxes, pair_list& out);
 
   /// Statistics of the last successful call.

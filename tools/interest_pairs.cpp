@@ -322,7 +322,7 @@ int run_pairs(int argc, char** argv) {
   const double find_ms = ms_since(t0);
   // Every finder reports each pair once, so the count needs no canonical order.
   t0 = std::chrono::steady_clock::now();
-  if (!count_only) zi::sort_canonical(pairs, boxes.size());
+  if (!count_only) zi::sort_canonical(pairs, boxes.size(), &pool);
   const double sort_ms = ms_since(t0);
 
   t0 = std::chrono::steady_clock::now();

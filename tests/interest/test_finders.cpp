@@ -331,6 +331,14 @@ TEST_SUITE("interest.finders") {
       REQUIRE(err.has_value());
       CHECK(err->index == 2);
       CHECK(err->message.find("lo.x") != std::string::npos);
+
+      // Values that differ only past the 6th digit are shown exactly.
+      s = generate_uniform(10, 3);
+      s.lo_z[5] = 1.0000001f;
+      s.hi_z[5] = 1.0f;
+      err = f->find(s, out);
+      REQUIRE(err.has_value());
+      CHECK(err->message.find("1.0000001 > hi.z = 1") != std::string::npos);
     }
   }
 
@@ -340,7 +348,7 @@ TEST_SUITE("interest.finders") {
     CHECK(p == pair_list{{0, 1}, {0, 2}, {1, 2}, {1, 3}});
     const adjacency adj = to_adjacency(p, 5);
     REQUIRE(adj.box_count() == 5);
-    CHECK(adj.offsets == std::vector<std::uint32_t>{0, 2, 5, 7, 8, 8});
+    CHECK(adj.offsets == std::vector<std::uint64_t>{0, 2, 5, 7, 8, 8});
     CHECK(adj.neighbors == std::vector<box_id>{1, 2, 0, 2, 3, 0, 1, 1});
     // Large random lists: the bucket path and std::sort agree.
     std::mt19937_64 rng(fresh_seed());
@@ -354,8 +362,12 @@ TEST_SUITE("interest.finders") {
       if (q.a > q.b) std::swap(q.a, q.b);
     }
     std::sort(expect.begin(), expect.end());
+    pair_list big_parallel = big;
     sort_canonical(big, 1000);
     CHECK(big == expect);
+    thread_pool pool(3);
+    sort_canonical(big_parallel, 1000, &pool);
+    CHECK(big_parallel == expect);
   }
 
   TEST_CASE("plan follows Eq. 6: f >= W at the planned edge, f < W just below it") {
