@@ -122,8 +122,9 @@ void interest_tracker::apply_pairs(const entity_store& store, const interest::bo
   const auto sees = store.sees();
   ids_.assign(ids.begin(), ids.end());
 
-  // Candidates by observer row: count, scan, fill (serial: the order is the pairs' order, and the
-  // rows are sorted afterwards, so the result does not depend on it).
+  // Candidates by observer row: count, scan, fill. Count and fill run in parallel over fixed
+  // chunks of pairs with atomic per-row counters; the fill order within a row then depends on
+  // timing, but every row is sorted by its (unique) keys before use, so the result does not.
   vis_off_.assign(n + 1, 0);
   std::uint64_t candidates = 0;
   const auto split = [](const interest::id_pair& p, std::uint32_t& observer, std::uint32_t& target) {
@@ -135,25 +136,41 @@ void interest_tracker::apply_pairs(const entity_store& store, const interest::bo
     target = presence_box / 2;
     return observer != target;
   };
-  for (const auto& p : pairs) {
-    std::uint32_t o, t;
-    if (split(p, o, t) && (cls[t] & sees[o]) != 0) ++vis_off_[o + 1];
-  }
+  constexpr std::size_t pairs_per_task = 1 << 16;
+  const std::size_t pair_tasks = (pairs.size() + pairs_per_task - 1) / pairs_per_task;
+  interest::run_tasks(pool_, pair_tasks, [&](std::size_t task) {
+    const std::size_t end = std::min(pairs.size(), (task + 1) * pairs_per_task);
+    for (std::size_t k = task * pairs_per_task; k < end; ++k) {
+      std::uint32_t o, t;
+      if (split(pairs[k], o, t) && (cls[t] & sees[o]) != 0) {
+        std::atomic_ref<std::uint32_t>(vis_off_[o + 1]).fetch_add(1, std::memory_order_relaxed);
+      }
+    }
+  });
   for (std::size_t i = 0; i < n; ++i) vis_off_[i + 1] += vis_off_[i];
   candidates = vis_off_[n];
   cand_.resize(candidates);
   vis_.resize(candidates);
   enter_.resize(candidates);
   kept_dense_.resize(candidates);
-  {
-    // Fill cursor per row: reuse vis_len_ as the cursor, reset below.
-    vis_len_.assign(n, 0);
-    for (const auto& p : pairs) {
+  vis_len_.assign(n, 0);  // the fill cursor per row; reset below
+  interest::run_tasks(pool_, pair_tasks, [&](std::size_t task) {
+    const std::size_t end = std::min(pairs.size(), (task + 1) * pairs_per_task);
+    for (std::size_t k = task * pairs_per_task; k < end; ++k) {
       std::uint32_t o, t;
-      if (split(p, o, t) && (cls[t] & sees[o]) != 0) {
-        cand_[vis_off_[o] + vis_len_[o]++] = (std::uint64_t{ids[t]} << 32) | t;
+      if (split(pairs[k], o, t) && (cls[t] & sees[o]) != 0) {
+        const std::uint32_t at = std::atomic_ref<std::uint32_t>(vis_len_[o]).fetch_add(1, std::memory_order_relaxed);
+        cand_[vis_off_[o] + at] = (std::uint64_t{ids[t]} << 32) | t;
       }
     }
+  });
+
+  // Presence boxes as one record each: the exact test reads a target's box with one cache miss
+  // instead of six (one per column).
+  presence_.resize(n);
+  for (std::size_t k = 0; k < n; ++k) {
+    const std::size_t b = 2 * k + 1;
+    presence_[k] = {boxes.lo_x[b], boxes.lo_y[b], boxes.lo_z[b], boxes.hi_x[b], boxes.hi_y[b], boxes.hi_z[b]};
   }
 
   // Previous row of each observer, and leave capacity = its previous set's size.
@@ -177,7 +194,7 @@ void interest_tracker::apply_pairs(const entity_store& store, const interest::bo
   const std::size_t tasks = (n + chunk - 1) / chunk;
   capped_pending_ = 0;
   interest::run_tasks(pool_, tasks, [&](std::size_t task) {
-    process_rows(store, boxes, task * chunk, std::min(n, (task + 1) * chunk));
+    process_rows(store, task * chunk, std::min(n, (task + 1) * chunk));
   });
 
   // Slot -> row for the next tick's lookups and row_of().
@@ -196,7 +213,7 @@ void interest_tracker::apply_pairs(const entity_store& store, const interest::bo
   stats_.diff_ms = ms_since(t0);
 }
 
-void interest_tracker::process_rows(const entity_store& store, const interest::box_set& boxes, std::size_t first,
+void interest_tracker::process_rows(const entity_store& store, std::size_t first,
                                     std::size_t last) {
   const auto pos = store.positions();
   const auto aoi = store.aoi_half_extents();
@@ -207,7 +224,17 @@ void interest_tracker::process_rows(const entity_store& store, const interest::b
     const std::uint32_t off = vis_off_[i];
     std::uint64_t* cand = cand_.data() + off;
     const std::uint32_t cand_n = vis_off_[i + 1] - off;
-    std::sort(cand, cand + cand_n);  // by target handle (then dense index: unique anyway)
+    // By target handle (keys are unique). Rows are short: insertion sort below 32.
+    if (cand_n < 32) {
+      for (std::uint32_t c = 1; c < cand_n; ++c) {
+        const std::uint64_t key = cand[c];
+        std::uint32_t k = c;
+        for (; k > 0 && cand[k - 1] > key; --k) cand[k] = cand[k - 1];
+        cand[k] = key;
+      }
+    } else {
+      std::sort(cand, cand + cand_n);
+    }
 
     const entity_id* old = nullptr;
     std::uint32_t old_n = 0;
@@ -231,9 +258,9 @@ void interest_tracker::process_rows(const entity_store& store, const interest::b
       const std::uint32_t t = static_cast<std::uint32_t>(cand[c]);
       while (j < old_n && old[j] < target) ++j;
       const bool was_visible = j < old_n && old[j] == target;
-      const std::size_t b = 2 * std::size_t{t} + 1;
-      const bool inside = boxes.lo_x[b] <= hi_x && lo_x <= boxes.hi_x[b] && boxes.lo_y[b] <= hi_y &&
-                          lo_y <= boxes.hi_y[b] && boxes.lo_z[b] <= hi_z && lo_z <= boxes.hi_z[b];
+      const presence_box& b = presence_[t];
+      const bool inside = b.lo_x <= hi_x && lo_x <= b.hi_x && b.lo_y <= hi_y && lo_y <= b.hi_y && b.lo_z <= hi_z &&
+                          lo_z <= b.hi_z;
       if (was_visible || inside) {
         kept[kept_n] = target;
         kept_dense[kept_n] = t;

@@ -200,7 +200,10 @@ class interest_tracker {
   [[nodiscard]] const interest::box_set& boxes() const { return boxes_; }
 
  private:
-  void process_rows(const entity_store& store, const interest::box_set& boxes, std::size_t first, std::size_t last);
+  void process_rows(const entity_store& store, std::size_t first, std::size_t last);
+  struct presence_box {
+    float lo_x, lo_y, lo_z, hi_x, hi_y, hi_z;
+  };
 
   interest::pair_finder* finder_;
   interest::thread_pool* pool_;
@@ -218,6 +221,7 @@ class interest_tracker {
   std::vector<std::uint64_t> cand_;        // (target handle << 32) | target dense index, by row
   std::vector<std::uint32_t> kept_dense_;  // dense index of each kept target (for the cap)
   std::vector<std::uint32_t> prev_row_;    // previous row of each row's observer, or none
+  std::vector<presence_box> presence_;     // presence box by dense index (from the box set)
 
   // The previous tick.
   std::vector<entity_id> prev_ids_;
