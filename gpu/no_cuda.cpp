@@ -1,4 +1,6 @@
 // The GPU layer in a build without CUDA: every entry point says so, callers fall back to the CPU.
+#include <stdexcept>
+
 #include "pbig.h"
 
 namespace zone::gpu {
@@ -13,6 +15,12 @@ bool device_available(device_info* /*info*/, std::string* why) {
 std::unique_ptr<interest::pair_finder> make_pbig_finder(const pbig_options& /*options*/, std::string* why) {
   device_available(nullptr, why);
   return nullptr;
+}
+
+std::optional<interest::box_error> find_pairs_view(interest::pair_finder& /*finder*/,
+                                                   const interest::box_set& /*boxes*/,
+                                                   std::span<const interest::id_pair>& /*view*/) {
+  throw std::invalid_argument("find_pairs_view: this build has no GPU backend");
 }
 
 const pbig_report* last_pbig_report(const interest::pair_finder& /*finder*/) { return nullptr; }

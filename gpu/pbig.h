@@ -6,6 +6,8 @@
 #include <cstddef>
 #include <cstdint>
 #include <memory>
+#include <optional>
+#include <span>
 #include <string>
 
 #include "interest.h"
@@ -47,6 +49,10 @@ struct pbig_report {
   double data_in_ms = 0;   ///< DataIn: pack into pinned memory + host-to-device copy of the boxes
   double plan_ms = 0;      ///< PLAN: bounds and Eq. 6 planning kernels, plan read back
   double map_ms = 0;       ///< MAP: count, scan, map, per-cell sort by id, gather
+  double map_count_ms = 0;    ///<   of which: count kernel, select, scans, totals (up to the read-back)
+  double map_scatter_ms = 0;  ///<   of which: totals read back, map kernel
+  double map_sort_ms = 0;     ///<   of which: per-cell sort by box id (CUB segmented sort)
+  double map_gather_ms = 0;   ///<   of which: gather of the packed box array
   double sched_ms = 0;     ///< SCHED: work items (cell, segment) for the checking blocks
   double check_ms = 0;     ///< CHECK: checking kernels (sum over batches, re-runs included)
   double data_out_ms = 0;  ///< DataOut: device-to-host copies (sum of copy times)
@@ -66,6 +72,17 @@ struct pbig_report {
 /// The report of the last successful call of a finder made by make_pbig_finder; null for any
 /// other finder.
 [[nodiscard]] const pbig_report* last_pbig_report(const interest::pair_finder& finder);
+
+/// Zero-copy variant of `finder.find` for a finder made by make_pbig_finder: validates the boxes
+/// (in parallel on the finder's decode threads; same rule and same first-error report as
+/// interest::validate), then finds the same pairs in the same order as `find` would, decoded into
+/// a buffer the finder owns and reuses across calls (grown only when a call needs more), so
+/// neither a single-threaded validation pass nor the value-initialisation of a std::vector that
+/// grows from empty is paid per call. `view` stays valid until the finder's next call or its
+/// destruction. Throws std::invalid_argument for any other finder.
+[[nodiscard]] std::optional<interest::box_error> find_pairs_view(interest::pair_finder& finder,
+                                                                 const interest::box_set& boxes,
+                                                                 std::span<const interest::id_pair>& view);
 
 /// Creates the GPU PBIG finder, or returns null with the reason in `why` when no device can be used.
 [[nodiscard]] std::unique_ptr<interest::pair_finder> make_pbig_finder(const pbig_options& options = {},

@@ -14,8 +14,12 @@
 //     streams with double-buffered device and pinned host output buffers.
 //  6. Boxes handled apart (large): two passes (count, scan, write), so their order is fixed.
 #include <algorithm>
+#if defined(__SSE2__)
+#include <immintrin.h>
+#endif
 #include <atomic>
 #include <chrono>
+#include <cmath>
 #include <cstring>
 #include <limits>
 #include <stdexcept>
@@ -66,6 +70,18 @@ double ms_since(clock_type::time_point t) {
   return std::chrono::duration<double, std::milli>(clock_type::now() - t).count();
 }
 
+/// Writes one decoded pair. Streaming (non-temporal) stores where available: the pair list is
+/// written once and not read back by the decoder, so skipping the read-for-ownership of each
+/// cache line saves up to half the memory traffic of the REPORT stage.
+inline void store_pair(interest::id_pair* dst, std::uint32_t a, std::uint32_t b) {
+#if defined(__SSE2__) && defined(__x86_64__)
+  _mm_stream_si64(reinterpret_cast<long long*>(dst),
+                  static_cast<long long>((static_cast<std::uint64_t>(b) << 32) | a));
+#else
+  *dst = interest::id_pair{a, b};
+#endif
+}
+
 std::uint32_t blocks_for(std::uint64_t n, std::uint32_t block) {
   return static_cast<std::uint32_t>(std::max<std::uint64_t>(1, (n + block - 1) / block));
 }
@@ -93,7 +109,8 @@ pbig_engine::pbig_engine(const pbig_options& options) : opt_(options) {
     s.h_out.reserve(s.capacity);
   }
   main_ = slot_[0].stream;
-  for (cudaEvent_t* e : {&ev_start_, &ev_in_, &ev_plan_, &ev_map_, &ev_sched_, &ev_entries_begin_, &ev_entries_}) {
+  for (cudaEvent_t* e : {&ev_start_, &ev_in_, &ev_plan_, &ev_counted_, &ev_scattered_, &ev_sorted_, &ev_map_, &ev_sched_,
+                         &ev_entries_begin_, &ev_entries_}) {
     CUDA_CHECK(cudaEventCreate(e));
   }
   d_bounds_.reserve(1);
@@ -115,7 +132,8 @@ pbig_engine::~pbig_engine() {
     }
     if (s.stream != nullptr) cudaStreamDestroy(s.stream);
   }
-  for (cudaEvent_t e : {ev_start_, ev_in_, ev_plan_, ev_map_, ev_sched_, ev_entries_begin_, ev_entries_}) {
+  for (cudaEvent_t e : {ev_start_, ev_in_, ev_plan_, ev_counted_, ev_scattered_, ev_sorted_, ev_map_, ev_sched_,
+                        ev_entries_begin_, ev_entries_}) {
     if (e != nullptr) cudaEventDestroy(e);
   }
 }
@@ -128,7 +146,8 @@ float pbig_engine::elapsed(cudaEvent_t a, cudaEvent_t b) const {
 
 void pbig_engine::grow_temp(std::size_t bytes) { d_temp_.reserve(std::max<std::size_t>(bytes, 256)); }
 
-void pbig_engine::run(const interest::box_set& boxes, interest::pair_list& out, interest::finder_stats& stats) {
+std::optional<std::uint64_t> pbig_engine::run(const interest::box_set& boxes, interest::pair_list& out,
+                                               interest::finder_stats& stats, bool keep_size, bool validate) {
   const auto t0 = clock_type::now();
   const std::size_t count = boxes.size();
   if (count > std::numeric_limits<std::uint32_t>::max() / 2) throw std::length_error("pbig: too many boxes");
@@ -137,16 +156,15 @@ void pbig_engine::run(const interest::box_set& boxes, interest::pair_list& out, 
   entries_ready_ = false;
 
   CUDA_CHECK(cudaEventRecord(ev_start_, main_));
-  upload(boxes);
+  if (!upload(boxes, validate)) return std::nullopt;
   plan(n);
   map_boxes(n);
 
   const auto t_pipe = clock_type::now();
-  check_batches(out);
+  const std::uint64_t grid_pairs = check_batches(out);
   report_.pipeline_ms = ms_since(t_pipe);
 
   const auto t_large = clock_type::now();
-  const std::uint64_t grid_pairs = out.size();
   const std::uint64_t large = large_pairs(n, out, grid_pairs);
   report_.large_ms = ms_since(t_large);
   CUDA_CHECK(cudaStreamSynchronize(slot_[1].stream));
@@ -156,6 +174,10 @@ void pbig_engine::run(const interest::box_set& boxes, interest::pair_list& out, 
   report_.plan_ms = elapsed(ev_in_, ev_plan_);
   report_.map_ms = elapsed(ev_plan_, ev_map_);
   report_.sched_ms = elapsed(ev_map_, ev_sched_);
+  report_.map_count_ms = elapsed(ev_plan_, ev_counted_);
+  report_.map_scatter_ms = elapsed(ev_counted_, ev_scattered_);
+  report_.map_sort_ms = elapsed(ev_scattered_, ev_sorted_);
+  report_.map_gather_ms = elapsed(ev_sorted_, ev_map_);
   if (opt_.compression) report_.data_out_ms += elapsed(ev_entries_begin_, ev_entries_);
   report_.pairs = grid_pairs + large;
   report_.plan_reused = plan_.reused != 0;
@@ -167,39 +189,59 @@ void pbig_engine::run(const interest::box_set& boxes, interest::pair_list& out, 
   stats.cell_edge = plan_.edge;
   stats.large_boxes = rb_.large_count;
   stats.checks = rb_.totals.checks + static_cast<std::uint64_t>(rb_.large_count) * n;
+  if (!keep_size) out.resize(report_.pairs);
+  return report_.pairs;
 }
 
-void pbig_engine::upload(const interest::box_set& boxes) {
+bool pbig_engine::upload(const interest::box_set& boxes, bool check) {
   const std::size_t n = boxes.size();
   d_coord_.reserve(6 * n);
   d_bits_.reserve(2 * n);
   h_stage_.reserve(32 * n);
-  const void* src[8] = {boxes.lo_x.data(), boxes.lo_y.data(), boxes.lo_z.data(), boxes.hi_x.data(),
-                        boxes.hi_y.data(), boxes.hi_z.data(), boxes.category.data(), boxes.mask.data()};
-  void* dst[8];
-  for (int a = 0; a < 6; ++a) dst[a] = d_coord_.get() + a * n;
-  for (int a = 0; a < 2; ++a) dst[6 + a] = d_bits_.get() + a * n;
-  unsigned char* stage = h_stage_.get();
+  const float* lo[3] = {boxes.lo_x.data(), boxes.lo_y.data(), boxes.lo_z.data()};
+  const float* hi[3] = {boxes.hi_x.data(), boxes.hi_y.data(), boxes.hi_z.data()};
+  const std::uint32_t* bits[2] = {boxes.category.data(), boxes.mask.data()};
+  float* stage_f = reinterpret_cast<float*>(h_stage_.get());               // 6 arrays of n floats
+  std::uint32_t* stage_u = reinterpret_cast<std::uint32_t*>(stage_f + 6 * n);  // then 2 of n bits
   const std::size_t parts = std::clamp<std::size_t>((n + tuning::upload_part_boxes - 1) / tuning::upload_part_boxes, 1,
                                                     tuning::max_upload_parts);
-  const std::size_t sub = std::max<std::size_t>(1, (pool_->size() + 7) / 8);
+  const std::size_t sub = std::max<std::size_t>(1, (pool_->size() + 3) / 4);
+  std::atomic<bool> ok{true};
   for (std::size_t p = 0; p < parts; ++p) {
     const std::size_t b = n * p / parts, e = n * (p + 1) / parts;
     const std::size_t len = e - b;
-    interest::run_tasks(pool_, 8 * sub, [&](std::size_t t) {
-      const std::size_t a = t % 8, k = t / 8;
+    // Tasks: (axis d: copy lo_d and hi_d, checking them when asked) or (category and mask).
+    interest::run_tasks(len * 32 >= (std::size_t{1} << 20) ? pool_ : nullptr, 4 * sub, [&](std::size_t t) {
+      const std::size_t a = t % 4, k = t / 4;
       const std::size_t sb = b + len * k / sub, se = b + len * (k + 1) / sub;
-      if (se > sb) {
-        std::memcpy(stage + (a * n + sb) * 4, static_cast<const unsigned char*>(src[a]) + sb * 4, (se - sb) * 4);
+      if (se <= sb) return;
+      if (a == 3) {
+        for (int q = 0; q < 2; ++q) std::memcpy(stage_u + q * n + sb, bits[q] + sb, (se - sb) * 4);
+        return;
+      }
+      std::memcpy(stage_f + a * n + sb, lo[a] + sb, (se - sb) * 4);
+      std::memcpy(stage_f + (3 + a) * n + sb, hi[a] + sb, (se - sb) * 4);
+      if (check) {
+        // interest::validate's rule on this axis: lo <= hi (false for NaN), both finite.
+        bool good = true;
+        for (std::size_t i = sb; i < se; ++i) {
+          good &= lo[a][i] <= hi[a][i] && std::isfinite(lo[a][i]) && std::isfinite(hi[a][i]);
+        }
+        if (!good) ok = false;
       }
     });
-    for (int a = 0; a < 8; ++a) {
-      CUDA_CHECK(cudaMemcpyAsync(static_cast<unsigned char*>(dst[a]) + b * 4, stage + (a * n + b) * 4, len * 4,
-                                 cudaMemcpyHostToDevice, main_));
+    if (!ok) break;
+    for (int a = 0; a < 6; ++a) {
+      CUDA_CHECK(cudaMemcpyAsync(d_coord_.get() + a * n + b, stage_f + a * n + b, len * 4, cudaMemcpyHostToDevice, main_));
+    }
+    for (int q = 0; q < 2; ++q) {
+      CUDA_CHECK(cudaMemcpyAsync(d_bits_.get() + q * n + b, stage_u + q * n + b, len * 4, cudaMemcpyHostToDevice, main_));
     }
   }
   CUDA_CHECK(cudaEventRecord(ev_in_, main_));
   report_.bytes_in += 32 * n;
+  if (!ok) CUDA_CHECK(cudaStreamSynchronize(main_));  // the staging buffer is free again
+  return ok;
 }
 
 namespace {
@@ -243,6 +285,9 @@ void pbig_engine::map_boxes(std::uint32_t n) {
   CUDA_CHECK(cudaMemsetAsync(d_counts_.get(), 0, (cells + 1) * sizeof(std::uint32_t), main_));
   CUDA_CHECK(cudaMemsetAsync(d_cursor_.get(), 0, cells * sizeof(std::uint32_t), main_));
   CUDA_CHECK(launch_count(boxes, n, plan_, d_counts_.get(), d_is_large_.get(), main_));
+  d_box_lo_.reserve(n);
+  d_box_hi_.reserve(n);
+  CUDA_CHECK(launch_pack_boxes(boxes, n, d_box_lo_.get(), d_box_hi_.get(), main_));
 
   map_readback* rb = d_readback_.get();
   std::size_t select_bytes = 0, scan_bytes = 0, reduce_bytes = 0;
@@ -254,6 +299,7 @@ void pbig_engine::map_boxes(std::uint32_t n) {
   CUDA_CHECK(scan_cells(d_temp_.get(), scan_bytes, d_counts_.get(), d_prefix_.get(), cells, main_));
   CUDA_CHECK(reduce_cells(d_temp_.get(), reduce_bytes, d_counts_.get(), &rb->totals, cells, main_));
   CUDA_CHECK(launch_batch_plan(d_prefix_.get(), cells, rb, tuning::min_tiles_per_batch, tuning::max_batches, main_));
+  CUDA_CHECK(cudaEventRecord(ev_counted_, main_));
   CUDA_CHECK(cudaMemcpyAsync(h_readback_.get(), rb, sizeof(map_readback), cudaMemcpyDeviceToHost, main_));
   CUDA_CHECK(cudaStreamSynchronize(main_));
   rb_ = *h_readback_.get();
@@ -273,9 +319,13 @@ void pbig_engine::map_boxes(std::uint32_t n) {
   d_packed_lo_.reserve(entries);
   d_packed_hi_.reserve(entries);
   d_items_.reserve(items);
-  if (entries > 0) {
+  if (entries == 0) {
+    CUDA_CHECK(cudaEventRecord(ev_scattered_, main_));
+    CUDA_CHECK(cudaEventRecord(ev_sorted_, main_));
+  } else {
     CUDA_CHECK(launch_map(boxes, n, plan_, d_is_large_.get(), d_prefix_.get(), d_cursor_.get(),
                           d_entries_unsorted_.get(), main_));
+    CUDA_CHECK(cudaEventRecord(ev_scattered_, main_));
     // Sort each cell's list by box id: the mapping's atomics give a timing-dependent order.
     std::size_t sort_bytes = 0;
     CUDA_CHECK(sort_cells(nullptr, sort_bytes, d_entries_unsorted_.get(), d_entries_.get(), entries, cells,
@@ -283,7 +333,9 @@ void pbig_engine::map_boxes(std::uint32_t n) {
     grow_temp(sort_bytes);
     CUDA_CHECK(sort_cells(d_temp_.get(), sort_bytes, d_entries_unsorted_.get(), d_entries_.get(), entries, cells,
                           d_prefix_.get(), main_));
-    CUDA_CHECK(launch_gather(boxes, d_entries_.get(), entries, d_packed_lo_.get(), d_packed_hi_.get(), main_));
+    CUDA_CHECK(cudaEventRecord(ev_sorted_, main_));
+    CUDA_CHECK(launch_gather(d_box_lo_.get(), d_box_hi_.get(), d_entries_.get(), entries, d_packed_lo_.get(),
+                             d_packed_hi_.get(), main_));
   }
   CUDA_CHECK(cudaEventRecord(ev_map_, main_));
   if (items > 0) {
@@ -412,7 +464,8 @@ std::uint64_t pbig_engine::decode(const batch& b, pipeline_slot& s, interest::pa
   const std::uint64_t used = s.prefetched;
 
   // Tasks of about equal pair counts; each decodes whole tiles into their final positions.
-  const std::size_t tasks = std::min<std::size_t>(tiles, std::max<std::size_t>(1, pool_->size() * 4));
+  const std::size_t tasks =
+      total < tuning::parallel_decode_pairs ? 1 : std::min<std::size_t>(tiles, std::max<std::size_t>(1, pool_->size() * 4));
   task_tiles_.resize(tasks + 1);
   for (std::size_t q = 0; q <= tasks; ++q) {
     const std::uint64_t target = total * q / tasks;
@@ -422,7 +475,7 @@ std::uint64_t pbig_engine::decode(const batch& b, pipeline_slot& s, interest::pa
   task_tiles_[tasks] = tiles;
   std::atomic<bool> corrupt{false};
   const bool compressed = opt_.compression;
-  interest::run_tasks(pool_, tasks, [&](std::size_t q) {
+  interest::run_tasks(tasks > 1 ? pool_ : nullptr, tasks, [&](std::size_t q) {
     for (std::uint32_t t = task_tiles_[q]; t < task_tiles_[q + 1]; ++t) {
       const std::uint32_t pairs = tile_pairs[t];
       if (pairs == 0) continue;
@@ -448,22 +501,26 @@ std::uint64_t pbig_engine::decode(const batch& b, pipeline_slot& s, interest::pa
           const std::uint32_t c = body[q2 + 1] + 1u;
           for (std::uint32_t k = 0; k < c; ++k) {
             const std::uint32_t other = cols[body[q2 + 2 + k]];
-            o[written++] = a < other ? interest::id_pair{a, other} : interest::id_pair{other, a};
+            store_pair(o + written++, a < other ? a : other, a < other ? other : a);
           }
           q2 += 2 + c;
         }
         if (written != pairs) corrupt = true;
       } else {
-        std::memcpy(static_cast<void*>(o), body, std::size_t{pairs} * sizeof(interest::id_pair));
+        const auto* src = reinterpret_cast<const std::uint32_t*>(body);
+        for (std::uint32_t k = 0; k < pairs; ++k) store_pair(o + k, src[2 * k], src[2 * k + 1]);
       }
     }
+#if defined(__SSE2__)
+    _mm_sfence();  // order the streaming stores before the pool's completion signal
+#endif
   });
   if (corrupt) throw std::runtime_error("pbig: malformed output chunk (internal error)");
   report_.report_ms += ms_since(t0);
   return total;
 }
 
-void pbig_engine::check_batches(interest::pair_list& out) {
+std::uint64_t pbig_engine::check_batches(interest::pair_list& out) {
   std::vector<batch> batches;
   const batch_plan& bp = rb_.batches;
   for (std::uint32_t k = 0; k < bp.count; ++k) {
@@ -500,7 +557,7 @@ void pbig_engine::check_batches(interest::pair_list& out) {
       }
     }
   }
-  out.resize(base);
+  return base;
 }
 
 std::uint64_t pbig_engine::large_pairs(std::uint32_t n, interest::pair_list& out, std::uint64_t base) {
@@ -532,7 +589,7 @@ std::uint64_t pbig_engine::large_pairs(std::uint32_t n, interest::pair_list& out
                              cudaMemcpyDeviceToHost, main_));
   CUDA_CHECK(cudaStreamSynchronize(main_));
   report_.bytes_out += 8 * total;
-  out.resize(base + total);
+  if (out.size() < base + total) out.resize(base + total);
   std::memcpy(static_cast<void*>(out.data() + base), h_large_pairs_.get(), total * sizeof(interest::id_pair));
   return total;
 }

@@ -8,6 +8,7 @@
 #include <cstddef>
 #include <cstdint>
 #include <memory>
+#include <optional>
 #include <vector>
 
 #include "interest.h"
@@ -78,21 +79,28 @@ class pbig_engine {
   pbig_engine(const pbig_engine&) = delete;
   pbig_engine& operator=(const pbig_engine&) = delete;
 
-  /// Finds every qualifying pair of a validated set with at least 2 boxes; appends to `out`
-  /// (expected empty). Throws std::runtime_error on a CUDA error, std::length_error past the
-  /// 32-bit limits of the cell lists.
-  void run(const interest::box_set& boxes, interest::pair_list& out, interest::finder_stats& stats);
+  /// Finds every qualifying pair of a validated set with at least 2 boxes into out[0, count) and
+  /// returns count. `out`'s previous contents are overwritten; it only grows (value-initialising
+  /// the new part). With keep_size it is not shrunk to count afterwards (a reused buffer then
+  /// never pays the value-initialisation again). Throws std::runtime_error on a CUDA error,
+  /// std::length_error past the 32-bit limits of the cell lists.
+  /// With `validate`, the boxes are checked (interest::validate's rule) while they are packed for
+  /// the upload; an invalid set returns nothing, with no pair found.
+  std::optional<std::uint64_t> run(const interest::box_set& boxes, interest::pair_list& out,
+                                   interest::finder_stats& stats, bool keep_size, bool validate);
 
   [[nodiscard]] const pbig_report& report() const { return report_; }
+  /// The threads that pack the upload and decode the output.
+  [[nodiscard]] interest::thread_pool* pool() const { return pool_; }
 
  private:
   struct batch {
     std::uint32_t item_first, item_last, tile_first, tile_last;
   };
-  void upload(const interest::box_set& boxes);
+  bool upload(const interest::box_set& boxes, bool check);
   void plan(std::uint32_t n);
   void map_boxes(std::uint32_t n);
-  void check_batches(interest::pair_list& out);
+  std::uint64_t check_batches(interest::pair_list& out);
   void launch(const batch& b, pipeline_slot& s);
   void prefetch(const batch& b, pipeline_slot& s, std::uint64_t bytes);
   void finish(const batch& b, pipeline_slot& s);
@@ -106,7 +114,8 @@ class pbig_engine {
   interest::thread_pool* pool_ = nullptr;
   cudaStream_t main_ = nullptr;  // = slot_[0].stream
   pipeline_slot slot_[2];
-  cudaEvent_t ev_start_ = nullptr, ev_in_ = nullptr, ev_plan_ = nullptr, ev_map_ = nullptr, ev_sched_ = nullptr,
+  cudaEvent_t ev_start_ = nullptr, ev_in_ = nullptr, ev_plan_ = nullptr, ev_counted_ = nullptr, ev_scattered_ = nullptr,
+              ev_sorted_ = nullptr, ev_map_ = nullptr, ev_sched_ = nullptr,
               ev_entries_begin_ = nullptr, ev_entries_ = nullptr;
 
   // input and planning
@@ -127,7 +136,8 @@ class pbig_engine {
   pinned_buffer<map_readback> h_readback_;
   map_readback rb_{};
   device_buffer<std::uint32_t> d_entries_unsorted_, d_entries_, d_items_;
-  device_buffer<float4> d_packed_lo_, d_packed_hi_;
+  device_buffer<float4> d_box_lo_, d_box_hi_;        // boxes in id order, 2 x 16 bytes
+  device_buffer<float4> d_packed_lo_, d_packed_hi_;  // the box array: boxes in cell order
   pinned_buffer<std::uint32_t> h_entries_;
   device_buffer<unsigned char> d_temp_;
   // large boxes

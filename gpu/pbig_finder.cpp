@@ -1,10 +1,13 @@
 // Host API of the GPU PBIG finder: the pair_finder behind make_pbig_finder.
 #include <spdlog/spdlog.h>
 
+#include <atomic>
+#include <cmath>
 #include <stdexcept>
 
 #include "pbig.h"
 #include "pbig_dispatch.h"
+#include "pbig_tuning.h"
 
 namespace zone::gpu {
 namespace {
@@ -19,15 +22,37 @@ class pbig_finder final : public interest::pair_finder {
   [[nodiscard]] std::string_view name() const override { return "gpu"; }
   [[nodiscard]] const pbig_report& report() const { return engine_.report(); }
 
+  std::optional<interest::box_error> find_view(const interest::box_set& boxes,
+                                               std::span<const interest::id_pair>& view) {
+    view = {};
+    std::uint64_t count = 0;
+    if (boxes.size() < 2) {
+      if (auto err = interest::validate(boxes)) return err;
+    } else {
+      // Validation rides on the upload's packing pass (one read of the boxes, on the pool).
+      interest::finder_stats found_stats;
+      const auto found = engine_.run(boxes, pairs_, found_stats, /*keep_size=*/true, /*validate=*/true);
+      if (!found) {
+        if (auto err = interest::validate(boxes)) return err;
+        throw std::logic_error("find_pairs_view: packing check and interest::validate disagree");
+      }
+      count = *found;
+      stats_ = found_stats;
+    }
+    view = std::span<const interest::id_pair>(pairs_.data(), count);
+    return std::nullopt;
+  }
+
  protected:
   void find_valid(const interest::box_set& boxes, interest::pair_list& out) override {
     out.clear();
     if (boxes.size() < 2) return;
-    engine_.run(boxes, out, stats_);
+    (void)engine_.run(boxes, out, stats_, /*keep_size=*/false, /*validate=*/false);
   }
 
  private:
   detail::pbig_engine engine_;
+  interest::pair_list pairs_;  // find_pairs_view's buffer: kept at its largest size
 };
 
 }  // namespace
@@ -44,6 +69,13 @@ std::unique_ptr<interest::pair_finder> make_pbig_finder(const pbig_options& opti
     if (why) *why = std::string("cannot start the GPU finder: ") + e.what();
     return nullptr;
   }
+}
+
+std::optional<interest::box_error> find_pairs_view(interest::pair_finder& finder, const interest::box_set& boxes,
+                                                   std::span<const interest::id_pair>& view) {
+  auto* f = dynamic_cast<pbig_finder*>(&finder);
+  if (f == nullptr) throw std::invalid_argument("find_pairs_view: not a finder made by make_pbig_finder");
+  return f->find_view(boxes, view);
 }
 
 const pbig_report* last_pbig_report(const interest::pair_finder& finder) {

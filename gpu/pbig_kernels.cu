@@ -106,10 +106,16 @@ cudaError_t sort_cells(void* temp, std::size_t& temp_bytes, const std::uint32_t*
                                             static_cast<std::int64_t>(cells), begin, end, stream);
 }
 
-cudaError_t launch_gather(const box_arrays& boxes, const std::uint32_t* entries, std::uint32_t count, float4* packed_lo,
-                          float4* packed_hi, cudaStream_t stream) {
-  gather_kernel<<<blocks_for(count, tuning::block), tuning::block, 0, stream>>>(boxes, entries, count, packed_lo,
-                                                                                packed_hi);
+cudaError_t launch_pack_boxes(const box_arrays& boxes, std::uint32_t n, float4* box_lo, float4* box_hi,
+                              cudaStream_t stream) {
+  pack_boxes_kernel<<<blocks_for(n, tuning::block), tuning::block, 0, stream>>>(boxes, n, box_lo, box_hi);
+  return cudaGetLastError();
+}
+
+cudaError_t launch_gather(const float4* box_lo, const float4* box_hi, const std::uint32_t* entries, std::uint32_t count,
+                          float4* packed_lo, float4* packed_hi, cudaStream_t stream) {
+  gather_kernel<<<blocks_for(count, tuning::block), tuning::block, 0, stream>>>(box_lo, box_hi, entries, count,
+                                                                                packed_lo, packed_hi);
   return cudaGetLastError();
 }
 

@@ -284,15 +284,23 @@ __global__ void map_kernel(box_arrays boxes, std::uint32_t n, grid_plan_dev p, c
   }
 }
 
-/// The box array of the paper: each entry's box, packed for the checking kernel
-/// (lo.xyz + category bits, hi.xyz + mask bits), in cell order.
-__global__ void gather_kernel(box_arrays boxes, const std::uint32_t* entries, std::uint32_t count, float4* packed_lo,
-                              float4* packed_hi) {
+/// Boxes in id order as two 16-byte records (lo.xyz + category bits, hi.xyz + mask bits), so that
+/// the gather below reads 2 sectors per entry instead of 8 scattered 4-byte values.
+__global__ void pack_boxes_kernel(box_arrays boxes, std::uint32_t n, float4* box_lo, float4* box_hi) {
+  const std::uint32_t i = blockIdx.x * blockDim.x + threadIdx.x;
+  if (i >= n) return;
+  box_lo[i] = make_float4(boxes.lo[0][i], boxes.lo[1][i], boxes.lo[2][i], __uint_as_float(boxes.category[i]));
+  box_hi[i] = make_float4(boxes.hi[0][i], boxes.hi[1][i], boxes.hi[2][i], __uint_as_float(boxes.mask[i]));
+}
+
+/// The box array of the paper: each entry's box, packed for the checking kernel, in cell order.
+__global__ void gather_kernel(const float4* box_lo, const float4* box_hi, const std::uint32_t* entries,
+                              std::uint32_t count, float4* packed_lo, float4* packed_hi) {
   const std::uint32_t e = blockIdx.x * blockDim.x + threadIdx.x;
   if (e >= count) return;
   const std::uint32_t i = entries[e];
-  packed_lo[e] = make_float4(boxes.lo[0][i], boxes.lo[1][i], boxes.lo[2][i], __uint_as_float(boxes.category[i]));
-  packed_hi[e] = make_float4(boxes.hi[0][i], boxes.hi[1][i], boxes.hi[2][i], __uint_as_float(boxes.mask[i]));
+  packed_lo[e] = box_lo[i];
+  packed_hi[e] = box_hi[i];
 }
 
 // ---- scheduling -------------------------------------------------------------------------------

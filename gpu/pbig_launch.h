@@ -29,8 +29,10 @@ cudaError_t launch_map(const box_arrays& boxes, std::uint32_t n, const grid_plan
                        const cell_prefix* prefix, std::uint32_t* cursor, std::uint32_t* entries, cudaStream_t stream);
 cudaError_t sort_cells(void* temp, std::size_t& temp_bytes, const std::uint32_t* in, std::uint32_t* out,
                        std::uint32_t entries, std::uint32_t cells, const cell_prefix* prefix, cudaStream_t stream);
-cudaError_t launch_gather(const box_arrays& boxes, const std::uint32_t* entries, std::uint32_t count, float4* packed_lo,
-                          float4* packed_hi, cudaStream_t stream);
+cudaError_t launch_pack_boxes(const box_arrays& boxes, std::uint32_t n, float4* box_lo, float4* box_hi,
+                              cudaStream_t stream);
+cudaError_t launch_gather(const float4* box_lo, const float4* box_hi, const std::uint32_t* entries, std::uint32_t count,
+                          float4* packed_lo, float4* packed_hi, cudaStream_t stream);
 cudaError_t launch_expand(const cell_prefix* prefix, std::uint32_t cells, std::uint32_t* items, cudaStream_t stream);
 cudaError_t launch_check(const check_args& args, bool balanced, bool compressed, cudaStream_t stream);
 cudaError_t launch_large_count(const box_arrays& boxes, std::uint32_t n, const std::uint32_t* large,

@@ -27,6 +27,10 @@ inline constexpr std::uint32_t min_tiles_per_batch = 16384;
 inline constexpr std::uint32_t max_batches = 16;
 /// Default output capacity per buffer, in pairs, when pbig_options::initial_output_pairs is 0.
 inline constexpr std::size_t default_output_pairs = std::size_t{1} << 22;
+/// Batches with fewer pairs are decoded on the calling thread (waking the pool costs more).
+inline constexpr std::uint64_t parallel_decode_pairs = 32768;
+/// Validation in find_pairs_view: boxes per parallel chunk.
+inline constexpr std::size_t validate_chunk = 65536;
 /// Block size of the element-wise kernels (bounds, count, map, gather, large boxes).
 inline constexpr std::uint32_t block = 256;
 /// Box upload: the pinned staging copy is cut into parts so that packing part k+1 on the CPU

@@ -9,6 +9,8 @@
 #include <cstdio>
 #include <cstdlib>
 #include <random>
+#include <span>
+#include <stdexcept>
 #include <string>
 
 #include "interest.h"
@@ -385,8 +387,7 @@ TEST_SUITE("gpu.pbig") {
     grid_finder grid(&pool);
     auto finder = make_gpu(gpu::pbig_options{.decode_pool = &pool});
     {
-      // 2e5 rods in the paper's world: thin (1..4) on two axes, 500..3000 long on the third, so
-      // many occupy far more cells than the average and take the large-box path.
+      // 2e5 rods in the paper's world: thin (0..4) on two axes, 500..3000 long on the third.
       const auto seed = fresh_seed();
       CAPTURE(seed);
       rng_box_maker r(seed);
@@ -398,9 +399,32 @@ TEST_SUITE("gpu.pbig") {
         b.hi[axis] = b.lo[axis] + r.uni(500, 3000);
         s.push_back(b);
       }
+      CHECK(run(*finder, s) == run(grid, s));
+    }
+    {
+      // A flat world of 2e5 boxes: 95% small squares, 5% rods 2000..9000 long. With small cells
+      // (edge 20, grown to respect the 2N+64 cell cap) the longer rods occupy more than
+      // max(64, 16 alpha) cells and take the large-box path.
+      const auto seed = fresh_seed();
+      CAPTURE(seed);
+      rng_box_maker r(seed);
+      box_set s;
+      for (int i = 0; i < 200000; ++i) {
+        box b = r.make(1e4f, 20);
+        b.lo[2] = r.uni(0, 1);
+        b.hi[2] = b.lo[2] + 1;
+        if (i % 20 == 0) {
+          const int axis = static_cast<int>(r.rng() % 2);
+          b.lo[axis] = r.uni(-500, 1e4f);
+          b.hi[axis] = b.lo[axis] + r.uni(2000, 9000);
+        }
+        s.push_back(b);
+      }
+      auto small_cells = make_gpu(gpu::pbig_options{.fixed_cell_edge = 20, .decode_pool = &pool});
       const pair_list expected = run(grid, s);
+      CHECK(run(*small_cells, s) == expected);
+      CHECK(small_cells->stats().large_boxes > 0);
       CHECK(run(*finder, s) == expected);
-      CHECK(finder->stats().large_boxes > 0);
     }
     for (const family f : all_families) {
       const auto seed = fresh_seed();
@@ -416,6 +440,31 @@ TEST_SUITE("gpu.pbig") {
       const box_set s = *generate_named(kind, 1000000, seed);
       CHECK(run(*finder, s) == run(grid, s));
     }
+  }
+
+  TEST_CASE("find_pairs_view: same pairs in the same order as find, buffer reused") {
+    thread_pool pool(4);
+    auto finder = make_gpu(gpu::pbig_options{.decode_pool = &pool});
+    for (const char* kind : {"gaussian", "uniform", "mmo"}) {
+      const auto seed = fresh_seed();
+      CAPTURE(kind);
+      CAPTURE(seed);
+      const box_set s = *generate_named(kind, 300000, seed);
+      pair_list out;
+      REQUIRE_FALSE(finder->find(s, out).has_value());
+      std::span<const id_pair> view;
+      REQUIRE_FALSE(gpu::find_pairs_view(*finder, s, view).has_value());
+      CHECK(pair_list(view.begin(), view.end()) == out);
+    }
+    box_set bad = generate_uniform(200000, 1);
+    bad.hi_x[150001] = bad.lo_x[150001] - 1;
+    std::span<const id_pair> view;
+    const auto err = gpu::find_pairs_view(*finder, bad, view);
+    REQUIRE(err.has_value());
+    CHECK(err->index == 150001);
+    CHECK(view.empty());
+    grid_finder grid(&pool);
+    CHECK_THROWS_AS((void)gpu::find_pairs_view(grid, bad, view), std::invalid_argument);
   }
 
   TEST_CASE("invalid boxes are rejected with the box named") {
