@@ -100,15 +100,27 @@ std::optional<interest::box_error> interest_tracker::update(const entity_store& 
     return err;
   }
   const double find_ms = ms_since(t0);
-  apply_pairs(store, boxes_, pairs_);
+  if (auto err = apply_pairs(store, boxes_, pairs_)) return err;
   stats_.boxes_ms = boxes_ms;
   stats_.find_ms = find_ms;
   return std::nullopt;
 }
 
-void interest_tracker::apply_pairs(const entity_store& store, const interest::box_set& boxes,
-                                   const interest::pair_list& pairs) {
+std::optional<interest::box_error> interest_tracker::apply_pairs(const entity_store& store,
+                                                                const interest::box_set& boxes,
+                                                                const interest::pair_list& pairs) {
   const auto t0 = clock_type::now();
+  // Preconditions, checked before any state changes.
+  if (boxes.size() != 2 * store.size()) {
+    return interest::box_error{boxes.size(), "box set has " + std::to_string(boxes.size()) + " boxes, expected 2 x " +
+                                                 std::to_string(store.size()) + " entities"};
+  }
+  for (const auto& p : pairs) {
+    if (std::max(p.a, p.b) >= boxes.size()) {
+      return interest::box_error{std::max(p.a, p.b), "pair (" + std::to_string(p.a) + ", " + std::to_string(p.b) +
+                                                        ") refers to a box beyond the set"};
+    }
+  }
   // The last tick's output becomes the previous state.
   std::swap(ids_, prev_ids_);
   std::swap(vis_off_, prev_off_);
@@ -211,6 +223,7 @@ void interest_tracker::apply_pairs(const entity_store& store, const interest::bo
     stats_.leaves += leave_len_[i];
   }
   stats_.diff_ms = ms_since(t0);
+  return std::nullopt;
 }
 
 void interest_tracker::process_rows(const entity_store& store, std::size_t first,

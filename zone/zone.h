@@ -168,9 +168,12 @@ class interest_tracker {
   /// The two halves of update(), for callers that find pairs themselves (e.g. a GPU pipeline):
   /// build_boxes writes entity k's AOI box grown by the hysteresis margin as box 2k (category
   /// aoi, mask = sees) and its presence box as box 2k+1 (category = class, mask 0);
-  /// apply_pairs takes every qualifying pair of exactly those boxes (any order, each once).
+  /// apply_pairs takes every qualifying pair of exactly those boxes (any order, each once). It
+  /// refuses (error, nothing changes) a box set whose size is not 2 * store.size() or a pair with
+  /// an id beyond it.
   void build_boxes(const entity_store& store, interest::box_set& out) const;
-  void apply_pairs(const entity_store& store, const interest::box_set& boxes, const interest::pair_list& pairs);
+  [[nodiscard]] std::optional<interest::box_error> apply_pairs(const entity_store& store, const interest::box_set& boxes,
+                                                               const interest::pair_list& pairs);
 
   /// Rows of the last update (= the store's size then).
   [[nodiscard]] std::size_t observer_count() const { return ids_.size(); }

@@ -424,6 +424,34 @@ TEST_SUITE("zone.interest_tracker") {
     CHECK(f.tracker.digest() == before);
   }
 
+  TEST_CASE("apply_pairs: external pairs give the same result; mismatched input is refused") {
+    const std::uint64_t seed = fresh_seed();
+    CAPTURE(seed);
+    world w(seed, 150, false);
+    interest::grid_finder finder;
+    interest::brute_force_finder brute;
+    interest_tracker a(finder), b(finder);
+    interest::box_set boxes;
+    interest::pair_list pairs;
+    for (int tick = 0; tick < 20; ++tick) {
+      REQUIRE_FALSE(a.update(w.store).has_value());
+      b.build_boxes(w.store, boxes);
+      REQUIRE_FALSE(brute.find(boxes, pairs).has_value());
+      std::shuffle(pairs.begin(), pairs.end(), std::mt19937_64(seed + tick));  // any order
+      REQUIRE_FALSE(b.apply_pairs(w.store, boxes, pairs).has_value());
+      CHECK(a.digest() == b.digest());
+      w.step();
+    }
+    const std::uint64_t before = b.digest();
+    b.build_boxes(w.store, boxes);
+    boxes.resize(boxes.size() - 2);
+    CHECK(b.apply_pairs(w.store, boxes, pairs).has_value());
+    b.build_boxes(w.store, boxes);
+    pairs.push_back({0, static_cast<interest::box_id>(boxes.size())});
+    CHECK(b.apply_pairs(w.store, boxes, pairs).has_value());
+    CHECK(b.digest() == before);
+  }
+
   TEST_CASE("determinism: same seed, same per-tick hashes with 1 and several threads and any finder") {
     const std::uint64_t seed = fresh_seed();
     CAPTURE(seed);
