@@ -1,0 +1,482 @@
+// Boost.Asio implementation of net/server.h: an acceptor, one session per socket (each on its own
+// strand), one write in flight per session, a bounded outbound queue that drops the oldest state
+// frame for a slow client, per-session input rate limits and idle timeouts, and a mutex-guarded
+// event list that the game thread drains with poll().
+#include <utility>  // before Asio: GCC 12 in C++20 mode needs it first
+
+#include <atomic>
+#include <boost/asio.hpp>
+#include <deque>
+#include <mutex>
+#include <spdlog/spdlog.h>
+#include <thread>
+#include <unordered_map>
+
+#include "server.h"
+
+namespace zone::net {
+
+namespace asio = boost::asio;
+using tcp = asio::ip::tcp;
+using steady = std::chrono::steady_clock;
+
+shared_frame make_shared_frame(std::span<const std::uint8_t> frame) {
+  return std::make_shared<const std::vector<std::uint8_t>>(frame.begin(), frame.end());
+}
+
+namespace {
+
+struct atomic_counters {
+  std::atomic<std::uint64_t> connections_accepted{0}, connections_refused{0}, sessions_open{0}, frames_in{0},
+      frames_out{0}, bytes_in{0}, bytes_out{0}, frames_dropped{0}, frames_rejected{0}, inputs_dropped{0},
+      pings_answered{0};
+};
+
+constexpr std::size_t read_chunk_bytes = 4096;
+/// How long a closing session may take to flush its final error frame before it is cut.
+constexpr std::chrono::milliseconds close_grace{1000};
+
+}  // namespace
+
+class session;
+
+struct server::impl {
+  explicit impl(server_options o) : opt(std::move(o)), acceptor(asio::make_strand(ctx)), start_time(steady::now()) {}
+
+  server_options opt;
+  asio::io_context ctx;
+  tcp::acceptor acceptor;
+  std::optional<asio::executor_work_guard<asio::io_context::executor_type>> work;
+  std::vector<std::thread> threads;
+  bool running = false;
+  std::uint16_t bound_port = 0;
+
+  std::mutex sessions_mutex;
+  std::unordered_map<session_id, std::shared_ptr<session>> sessions;
+  std::atomic<session_id> next_id{1};
+
+  std::mutex events_mutex;
+  std::vector<inbound_event> events;
+
+  atomic_counters counters;
+  steady::time_point start_time;
+
+  std::uint64_t now_us() const {
+    return static_cast<std::uint64_t>(
+        std::chrono::duration_cast<std::chrono::microseconds>(steady::now() - start_time).count());
+  }
+  void report(inbound_event e) {
+    const std::lock_guard lock(events_mutex);
+    events.push_back(std::move(e));
+  }
+  void do_accept();
+  void remove(session_id id);
+};
+
+class session : public std::enable_shared_from_this<session> {
+ public:
+  session(server::impl& srv, tcp::socket socket, session_id id, bool announced)
+      : srv_(srv),
+        socket_(std::move(socket)),
+        idle_(socket_.get_executor()),
+        id_(id),
+        announced_(announced),
+        decoder_(srv.opt.inbound),
+        tokens_(srv.opt.input_burst),
+        last_refill_(steady::now()) {}
+
+  [[nodiscard]] session_id id() const { return id_; }
+
+  /// Starts reading and the idle timer (on the session's strand).
+  void start() {
+    asio::post(socket_.get_executor(), [self = shared_from_this()] {
+      self->arm_idle(self->srv_.opt.idle_timeout);
+      self->do_read();
+    });
+  }
+
+  /// Any thread.
+  void enqueue(shared_frame frame, delivery d) {
+    asio::post(socket_.get_executor(),
+               [self = shared_from_this(), frame = std::move(frame), d]() mutable { self->push(std::move(frame), d); });
+  }
+
+  /// Any thread: error frame, then close.
+  void fail(error_code code, std::string reason) {
+    asio::post(socket_.get_executor(), [self = shared_from_this(), code, reason = std::move(reason)]() mutable {
+      self->fail_now(code, std::move(reason));
+    });
+  }
+
+  /// Any thread: close at once (server stop).
+  void close(std::string reason) {
+    asio::post(socket_.get_executor(),
+               [self = shared_from_this(), reason = std::move(reason)]() mutable { self->close_now(std::move(reason)); });
+  }
+
+ private:
+  struct out_frame {
+    shared_frame frame;
+    delivery kind;
+  };
+
+  void arm_idle(std::chrono::milliseconds after) {
+    idle_.expires_after(after);
+    idle_.async_wait([self = shared_from_this()](const boost::system::error_code& ec) {
+      if (ec == asio::error::operation_aborted || self->closed_) return;
+      if (self->closing_) {
+        self->close_now("closing: the final frame was not taken in time");
+      } else {
+        self->fail_now(error_code::timeout, "idle for too long");
+      }
+    });
+  }
+
+  void do_read() {
+    if (closing_ || closed_) return;
+    const auto buf = decoder_.prepare(read_chunk_bytes);
+    socket_.async_read_some(asio::buffer(buf.data(), buf.size()),
+                            [self = shared_from_this()](const boost::system::error_code& ec, std::size_t n) {
+                              self->on_read(ec, n);
+                            });
+  }
+
+  void on_read(const boost::system::error_code& ec, std::size_t n) {
+    if (closed_) return;
+    if (ec) {
+      // While closing, the write path (or the grace timer) closes: the error frame goes out first.
+      if (ec == asio::error::operation_aborted || closing_) return;
+      if (ec == asio::error::eof) {
+        const auto tail = decoder_.close();
+        close_now(tail ? "client closed inside a frame" : "client closed");
+      } else {
+        close_now("read failed: " + ec.message());
+      }
+      return;
+    }
+    decoder_.commit(n);
+    srv_.counters.bytes_in += n;
+    if (closing_) return;  // only the final frame matters now
+    for (;;) {
+      const decode_step step = decoder_.next();
+      if (step.needs_more()) break;
+      if (step.is_error()) {
+        ++srv_.counters.frames_rejected;
+        spdlog::warn("session {}: {}", id_, to_string(step.error));
+        fail_now(to_error_code(step.error), std::string(to_string(step.error)));
+        return;
+      }
+      ++srv_.counters.frames_in;
+      handle(step.frame);
+      if (closing_ || closed_) return;
+    }
+    arm_idle(srv_.opt.idle_timeout);
+    do_read();
+  }
+
+  void handle(const frame_view& f) {
+    switch (f.type) {
+      case wire::message::hello:
+        if (hello_seen_) return fail_now(error_code::unexpected_message, "second hello");
+        hello_seen_ = true;
+        return forward(f);
+      case wire::message::input: {
+        if (!hello_seen_) return fail_now(error_code::unexpected_message, "input before hello");
+        // Token bucket.
+        const auto now = steady::now();
+        tokens_ = std::min(srv_.opt.input_burst,
+                           tokens_ + std::chrono::duration<double>(now - last_refill_).count() * srv_.opt.inputs_per_second);
+        last_refill_ = now;
+        if (tokens_ >= 1.0) {
+          tokens_ -= 1.0;
+          consecutive_drops_ = 0;
+          return forward(f);
+        }
+        ++srv_.counters.inputs_dropped;
+        if (++consecutive_drops_ > srv_.opt.flood_limit) fail_now(error_code::rate_limited, "input flood");
+        return;
+      }
+      case wire::message::ping: {
+        const auto* p = f.envelope->message_as_ping();
+        ++srv_.counters.pings_answered;
+        push(make_shared_frame(pong_encoder_.encode(pong_msg{p->client_time_us(), srv_.now_us()})), delivery::control);
+        return;
+      }
+      default:
+        return fail_now(error_code::unexpected_message,
+                        "a client may not send " + std::string(type_name(f.type)));
+    }
+  }
+
+  void forward(const frame_view& f) {
+    inbound_event e;
+    e.type = inbound_event::kind::message;
+    e.session = id_;
+    e.msg = to_message(*f.envelope);
+    srv_.report(std::move(e));
+  }
+
+  void push(shared_frame frame, delivery d) {
+    if (closing_ || closed_ || !frame) return;
+    const std::size_t bound = std::max<std::size_t>(1, srv_.opt.max_queued_frames);
+    if (queue_.size() >= bound) {
+      if (d == delivery::state) {
+        // Drop the oldest queued state frame that is not being written; else this one.
+        auto it = queue_.begin() + (writing_ ? 1 : 0);
+        while (it != queue_.end() && it->kind != delivery::state) ++it;
+        ++srv_.counters.frames_dropped;
+        inbound_event e;
+        e.type = inbound_event::kind::frames_dropped;
+        e.session = id_;
+        e.dropped = 1;
+        srv_.report(std::move(e));
+        if (it == queue_.end()) return;
+        queue_.erase(it);
+      } else if (queue_.size() >= 2 * bound) {
+        close_now("outbound queue overflow with control frames");
+        return;
+      }
+    }
+    queue_.push_back({std::move(frame), d});
+    do_write();
+  }
+
+  void do_write() {
+    if (writing_ || queue_.empty() || closed_) return;
+    writing_ = true;
+    const auto& f = *queue_.front().frame;
+    asio::async_write(socket_, asio::buffer(f.data(), f.size()),
+                      [self = shared_from_this()](const boost::system::error_code& ec, std::size_t n) {
+                        self->on_write(ec, n);
+                      });
+  }
+
+  void on_write(const boost::system::error_code& ec, std::size_t n) {
+    writing_ = false;
+    if (closed_) return;
+    if (ec) {
+      if (ec != asio::error::operation_aborted) close_now("write failed: " + ec.message());
+      return;
+    }
+    ++srv_.counters.frames_out;
+    srv_.counters.bytes_out += n;
+    queue_.pop_front();
+    if (!queue_.empty()) {
+      do_write();
+    } else if (closing_) {
+      close_now(close_reason_);
+    }
+  }
+
+  void fail_now(error_code code, std::string reason) {
+    if (closing_ || closed_) return;
+    spdlog::info("session {}: closing with error {}: {}", id_, wire::EnumNameerror_code(code), reason);
+    // Keep only the frame being written; the error is the last frame this client gets.
+    if (!queue_.empty()) queue_.erase(queue_.begin() + (writing_ ? 1 : 0), queue_.end());
+    queue_.push_back({make_shared_frame(pong_encoder_.encode(error_msg{code, reason})), delivery::control});
+    closing_ = true;
+    close_reason_ = std::move(reason);
+    boost::system::error_code ignored;
+    socket_.shutdown(tcp::socket::shutdown_receive, ignored);
+    arm_idle(close_grace);
+    do_write();
+  }
+
+  void close_now(std::string reason) {
+    if (closed_) return;
+    closed_ = true;
+    if (closing_) reason = close_reason_;  // the error that started the close is the reason
+    boost::system::error_code ignored;
+    socket_.shutdown(tcp::socket::shutdown_both, ignored);
+    socket_.close(ignored);
+    idle_.cancel();
+    queue_.clear();
+    if (announced_) {
+      spdlog::info("session {}: disconnected ({})", id_, reason);
+      inbound_event e;
+      e.type = inbound_event::kind::disconnected;
+      e.session = id_;
+      e.reason = std::move(reason);
+      srv_.report(std::move(e));
+      --srv_.counters.sessions_open;
+    }
+    srv_.remove(id_);
+  }
+
+  server::impl& srv_;
+  tcp::socket socket_;  // its executor is the session's strand: every handler runs there
+  asio::steady_timer idle_;
+  const session_id id_;
+  const bool announced_;  // false for a refused connection: the game never hears of it
+  frame_decoder decoder_;
+  encoder pong_encoder_{256};
+  std::deque<out_frame> queue_;  // front is in flight while writing_
+  bool writing_ = false;
+  bool closing_ = false;  // an error frame is queued; close once it is written
+  bool closed_ = false;
+  bool hello_seen_ = false;
+  std::string close_reason_;
+  double tokens_;
+  steady::time_point last_refill_;
+  std::uint32_t consecutive_drops_ = 0;
+};
+
+void server::impl::remove(session_id id) {
+  const std::lock_guard lock(sessions_mutex);
+  sessions.erase(id);
+}
+
+void server::impl::do_accept() {
+  acceptor.async_accept(asio::make_strand(ctx), [this](const boost::system::error_code& ec, tcp::socket socket) {
+    if (ec) {
+      if (ec == asio::error::operation_aborted || !acceptor.is_open()) return;
+      spdlog::warn("accept failed: {}", ec.message());
+      do_accept();
+      return;
+    }
+    boost::system::error_code ignored;
+    socket.set_option(tcp::no_delay(true), ignored);
+    const session_id id = next_id++;
+    std::size_t open;
+    {
+      const std::lock_guard lock(sessions_mutex);
+      open = sessions.size();
+    }
+    if (open >= opt.max_connections) {
+      ++counters.connections_refused;
+      auto s = std::make_shared<session>(*this, std::move(socket), id, false);
+      s->fail(error_code::server_full, "connection limit reached");
+    } else {
+      ++counters.connections_accepted;
+      ++counters.sessions_open;
+      auto s = std::make_shared<session>(*this, std::move(socket), id, true);
+      {
+        const std::lock_guard lock(sessions_mutex);
+        sessions.emplace(id, s);
+      }
+      inbound_event e;
+      e.type = inbound_event::kind::connected;
+      e.session = id;
+      report(std::move(e));
+      s->start();
+    }
+    do_accept();
+  });
+}
+
+// ---------------------------------------------------------------------------------------------
+
+server::server(server_options opt) : impl_(std::make_unique<impl>(std::move(opt))) {}
+
+server::~server() { stop(); }
+
+const server_options& server::options() const { return impl_->opt; }
+
+std::uint64_t server::now_us() const { return impl_->now_us(); }
+
+std::optional<std::string> server::start() {
+  auto& m = *impl_;
+  if (m.running) return "server already started";
+  boost::system::error_code ec;
+  const auto address = asio::ip::make_address(m.opt.address, ec);
+  if (ec) return "bad listen address '" + m.opt.address + "': " + ec.message();
+  const tcp::endpoint endpoint(address, m.opt.port);
+  m.acceptor.open(endpoint.protocol(), ec);
+  if (!ec) m.acceptor.set_option(tcp::acceptor::reuse_address(true), ec);
+  if (!ec) m.acceptor.bind(endpoint, ec);
+  if (!ec) m.acceptor.listen(asio::socket_base::max_listen_connections, ec);
+  if (ec) {
+    boost::system::error_code ignored;
+    m.acceptor.close(ignored);
+    return "cannot listen on " + m.opt.address + ":" + std::to_string(m.opt.port) + ": " + ec.message();
+  }
+  m.bound_port = m.acceptor.local_endpoint(ec).port();
+  m.work.emplace(m.ctx.get_executor());
+  m.do_accept();
+  const unsigned n = std::max(1u, m.opt.io_threads);
+  for (unsigned i = 0; i < n; ++i) m.threads.emplace_back([&m] { m.ctx.run(); });
+  m.running = true;
+  spdlog::info("zone server listening on {}:{} ({} I/O threads)", m.opt.address, port(), n);
+  return std::nullopt;
+}
+
+std::uint16_t server::port() const { return impl_->bound_port; }
+
+void server::stop() {
+  auto& m = *impl_;
+  if (!m.running) return;
+  m.running = false;
+  asio::post(m.acceptor.get_executor(), [&m] {  // on the acceptor's strand, like its handlers
+    boost::system::error_code ignored;
+    m.acceptor.close(ignored);
+  });
+  std::vector<std::shared_ptr<session>> open;
+  {
+    const std::lock_guard lock(m.sessions_mutex);
+    for (auto& [id, s] : m.sessions) open.push_back(s);
+  }
+  for (auto& s : open) s->close("server stopping");
+  open.clear();
+  m.work.reset();
+  // Sessions close on their strands; give them a moment, then stop whatever is left.
+  const auto deadline = steady::now() + std::chrono::seconds(2);
+  for (;;) {
+    {
+      const std::lock_guard lock(m.sessions_mutex);
+      if (m.sessions.empty()) break;
+    }
+    if (steady::now() > deadline) break;
+    std::this_thread::sleep_for(std::chrono::milliseconds(2));
+  }
+  m.ctx.stop();
+  for (auto& t : m.threads) t.join();
+  m.threads.clear();
+  {
+    const std::lock_guard lock(m.sessions_mutex);
+    m.sessions.clear();
+  }
+  spdlog::info("zone server stopped");
+}
+
+void server::poll(std::vector<inbound_event>& out) {
+  auto& m = *impl_;
+  const std::lock_guard lock(m.events_mutex);
+  if (out.empty()) {
+    out.swap(m.events);
+  } else {
+    std::move(m.events.begin(), m.events.end(), std::back_inserter(out));
+    m.events.clear();
+  }
+}
+
+bool server::send(session_id s, shared_frame frame, delivery d) {
+  std::shared_ptr<session> target;
+  {
+    const std::lock_guard lock(impl_->sessions_mutex);
+    const auto it = impl_->sessions.find(s);
+    if (it == impl_->sessions.end()) return false;
+    target = it->second;
+  }
+  target->enqueue(std::move(frame), d);
+  return true;
+}
+
+void server::disconnect(session_id s, error_code code, std::string reason) {
+  std::shared_ptr<session> target;
+  {
+    const std::lock_guard lock(impl_->sessions_mutex);
+    const auto it = impl_->sessions.find(s);
+    if (it == impl_->sessions.end()) return;
+    target = it->second;
+  }
+  target->fail(code, std::move(reason));
+}
+
+server_stats server::stats() const {
+  const auto& c = impl_->counters;
+  return {c.connections_accepted.load(), c.connections_refused.load(), c.sessions_open.load(), c.frames_in.load(),
+          c.frames_out.load(),           c.bytes_in.load(),            c.bytes_out.load(),     c.frames_dropped.load(),
+          c.frames_rejected.load(),      c.inputs_dropped.load(),      c.pings_answered.load()};
+}
+
+}  // namespace zone::net

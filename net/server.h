@@ -1,0 +1,118 @@
+// The zone server's network side: a Boost.Asio TCP server with one session per connection.
+// Server-only public header of net/ (bots include net/protocol.h and, later, the client
+// connector; they never pull this in). No Asio types appear here: the implementation is private.
+//
+// Threading: the server runs its own I/O threads. The game (tick) thread talks to it through
+// three calls only: poll() drains what the clients sent, send() queues a frame for a session,
+// disconnect() sends an error and closes. None of them blocks on the network: the tick never waits.
+#pragma once
+
+#include <chrono>
+#include <cstddef>
+#include <cstdint>
+#include <memory>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "protocol.h"
+
+namespace zone::net {
+
+struct server_options {
+  std::string address = "127.0.0.1";
+  std::uint16_t port = 0;       ///< 0 = an ephemeral port (see server::port())
+  unsigned io_threads = 1;
+  std::size_t max_connections = 1000;
+  decoder_options inbound{};    ///< max inbound frame size and verifier limits
+  /// Outbound queue bound per session, in frames. When a state frame (delivery::state) arrives at
+  /// a full queue, the oldest queued state frame is dropped (counted; the session is told through
+  /// an inbound_event::frames_dropped so replication can resynchronise it). Control frames
+  /// (delivery::control) are never dropped; a session whose control frames alone exceed the bound
+  /// is disconnected (that is a stuck client, not a slow one).
+  std::size_t max_queued_frames = 8;
+  /// Inputs per second a client may send (token bucket of `input_burst`); inputs over the rate
+  /// are dropped and counted; a client that keeps flooding (more than `flood_limit` drops in
+  /// a row) gets error rate_limited and is disconnected.
+  double inputs_per_second = 60;
+  double input_burst = 30;
+  std::uint32_t flood_limit = 200;
+  /// A session that sends nothing for this long gets error timeout and is closed (clients ping).
+  std::chrono::milliseconds idle_timeout{10000};
+};
+
+using session_id = std::uint64_t;
+
+/// What the network threads report to the game thread (in arrival order per session).
+struct inbound_event {
+  enum class kind : std::uint8_t {
+    connected,       ///< a new session (no message yet)
+    message,         ///< a client message (hello, input; pings are answered by the server itself)
+    frames_dropped,  ///< state frames were dropped for this slow session since the last report
+    disconnected,    ///< the session is gone (reason says why); no events follow for it
+  };
+  kind type = kind::message;
+  session_id session = 0;
+  std::optional<message> msg;   ///< for kind::message
+  std::uint64_t dropped = 0;    ///< for kind::frames_dropped
+  std::string reason;           ///< for kind::disconnected
+};
+
+/// Shared immutable frame: a message sent to many sessions is serialized once.
+using shared_frame = std::shared_ptr<const std::vector<std::uint8_t>>;
+[[nodiscard]] shared_frame make_shared_frame(std::span<const std::uint8_t> frame);
+
+enum class delivery : std::uint8_t {
+  state,    ///< superseded by newer state: may be dropped for a slow client
+  control,  ///< welcome, pong, errors: never dropped
+};
+
+/// Counters (monotonic, thread-safe snapshot).
+struct server_stats {
+  std::uint64_t connections_accepted = 0;
+  std::uint64_t connections_refused = 0;  ///< over max_connections
+  std::uint64_t sessions_open = 0;
+  std::uint64_t frames_in = 0;
+  std::uint64_t frames_out = 0;
+  std::uint64_t bytes_in = 0;
+  std::uint64_t bytes_out = 0;
+  std::uint64_t frames_dropped = 0;    ///< state frames dropped for slow clients
+  std::uint64_t frames_rejected = 0;   ///< inbound frames that failed decoding (session closed)
+  std::uint64_t inputs_dropped = 0;    ///< over the input rate
+  std::uint64_t pings_answered = 0;
+};
+
+class server {
+ public:
+  explicit server(server_options opt = {});
+  ~server();  ///< stops
+  server(const server&) = delete;
+  server& operator=(const server&) = delete;
+
+  /// Binds, listens and starts the I/O threads. Returns a readable error on failure.
+  [[nodiscard]] std::optional<std::string> start();
+  /// The bound port (after start).
+  [[nodiscard]] std::uint16_t port() const;
+  /// Closes every session and joins the I/O threads. Idempotent.
+  void stop();
+
+  /// Moves every event reported since the last call into `out` (appended). Game thread.
+  void poll(std::vector<inbound_event>& out);
+  /// Queues a frame for a session; false when the session is gone. Never blocks.
+  bool send(session_id s, shared_frame frame, delivery d = delivery::state);
+  /// Sends error(code, reason) to the session, then closes it. Never blocks.
+  void disconnect(session_id s, error_code code, std::string reason);
+
+  [[nodiscard]] server_stats stats() const;
+  [[nodiscard]] const server_options& options() const;
+
+  /// Microseconds on the server's steady clock (what pong and tick updates carry).
+  [[nodiscard]] std::uint64_t now_us() const;
+
+  struct impl;  ///< the Asio implementation (server.cpp); opaque to users
+
+ private:
+  std::unique_ptr<impl> impl_;
+};
+
+}  // namespace zone::net

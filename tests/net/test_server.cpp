@@ -1,0 +1,431 @@
+// The Asio server over loopback with real sockets: handshake and broadcast, pings, game-initiated
+// disconnects, hostile clients (garbage, oversize, unknown type, wrong direction, input before
+// hello, input flood) cut off while a good client keeps receiving every update, a slow client
+// whose bounded queue keeps the newest state, the connection limit and the idle timeout.
+#include <doctest/doctest.h>
+
+#include <arpa/inet.h>
+#include <netinet/in.h>
+#include <netinet/tcp.h>
+#include <poll.h>
+#include <sys/socket.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <atomic>
+#include <cerrno>
+#include <cstring>
+#include <deque>
+#include <map>
+#include <random>
+#include <set>
+#include <thread>
+
+#include "server.h"
+
+using namespace zone::net;
+using namespace std::chrono_literals;
+
+namespace {
+
+std::uint64_t fresh_seed() {
+  static const std::uint64_t base = std::random_device{}() ^ (std::uint64_t{std::random_device{}()} << 32);
+  static std::uint64_t k = 0;
+  return base + 0x9e3779b97f4a7c15ull * ++k;
+}
+
+/// A blocking loopback client on plain POSIX sockets, using the codec under test to read.
+class test_client {
+ public:
+  explicit test_client(std::uint16_t port, int rcvbuf = 0) {
+    fd_ = ::socket(AF_INET, SOCK_STREAM, 0);
+    REQUIRE(fd_ >= 0);
+    if (rcvbuf > 0) ::setsockopt(fd_, SOL_SOCKET, SO_RCVBUF, &rcvbuf, sizeof rcvbuf);
+    int one = 1;
+    ::setsockopt(fd_, IPPROTO_TCP, TCP_NODELAY, &one, sizeof one);
+    sockaddr_in addr{};
+    addr.sin_family = AF_INET;
+    addr.sin_port = htons(port);
+    addr.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+    REQUIRE(::connect(fd_, reinterpret_cast<sockaddr*>(&addr), sizeof addr) == 0);
+  }
+  ~test_client() {
+    if (fd_ >= 0) ::close(fd_);
+  }
+  test_client(const test_client&) = delete;
+  test_client& operator=(const test_client&) = delete;
+
+  bool send_bytes(std::span<const std::uint8_t> bytes) {
+    std::size_t at = 0;
+    while (at < bytes.size()) {
+      const ssize_t n = ::send(fd_, bytes.data() + at, bytes.size() - at, MSG_NOSIGNAL);
+      if (n <= 0) return false;
+      at += static_cast<std::size_t>(n);
+    }
+    return true;
+  }
+  bool send(const message& m) { return send_bytes(encode_frame(m)); }
+
+  /// The next message, or nothing after `timeout` or when the connection is closed.
+  std::optional<message> read(std::chrono::milliseconds timeout = 3000ms) {
+    const auto deadline = std::chrono::steady_clock::now() + timeout;
+    while (pending_.empty() && !closed_) {
+      const auto left = std::chrono::duration_cast<std::chrono::milliseconds>(deadline - std::chrono::steady_clock::now());
+      if (left.count() <= 0) break;
+      pollfd p{fd_, POLLIN, 0};
+      if (::poll(&p, 1, static_cast<int>(left.count())) <= 0) continue;
+      std::uint8_t buf[65536];
+      const ssize_t n = ::recv(fd_, buf, sizeof buf, 0);
+      if (n <= 0) {
+        closed_ = true;
+        reset_ = n < 0 && errno == ECONNRESET;
+        break;
+      }
+      decoder_.feed({buf, static_cast<std::size_t>(n)});
+      for (auto s = decoder_.next(); s.is_frame(); s = decoder_.next()) pending_.push_back(*to_message(*s.frame.envelope));
+      REQUIRE_FALSE(decoder_.failed());
+    }
+    if (pending_.empty()) return std::nullopt;
+    message m = std::move(pending_.front());
+    pending_.pop_front();
+    return m;
+  }
+
+  /// Reads until the server closes the connection (true) or `timeout` passes (false); the
+  /// messages seen meanwhile are appended to `seen`.
+  bool wait_closed(std::chrono::milliseconds timeout, std::vector<message>* seen = nullptr) {
+    const auto deadline = std::chrono::steady_clock::now() + timeout;
+    while (std::chrono::steady_clock::now() < deadline) {
+      auto m = read(std::chrono::duration_cast<std::chrono::milliseconds>(deadline - std::chrono::steady_clock::now()));
+      if (m && seen) seen->push_back(std::move(*m));
+      if (!m && closed_ && pending_.empty()) return true;
+    }
+    return false;
+  }
+  [[nodiscard]] bool closed() const { return closed_; }
+  [[nodiscard]] bool reset() const { return reset_; }
+
+ private:
+  int fd_ = -1;
+  frame_decoder decoder_{[] {
+    decoder_options o;
+    o.max_frame_bytes = 1 << 22;
+    return o;
+  }()};
+  std::deque<message> pending_;
+  bool closed_ = false, reset_ = false;
+};
+
+/// The game side: polls the server's events.
+struct game {
+  server& srv;
+  std::vector<inbound_event> events;
+
+  /// Polls until pred() holds or the timeout passes.
+  template <class Pred>
+  bool wait_for(Pred pred, std::chrono::milliseconds timeout = 3000ms) {
+    const auto deadline = std::chrono::steady_clock::now() + timeout;
+    for (;;) {
+      srv.poll(events);
+      if (pred()) return true;
+      if (std::chrono::steady_clock::now() > deadline) return false;
+      std::this_thread::sleep_for(1ms);
+    }
+  }
+  std::size_t count(inbound_event::kind k) const {
+    return static_cast<std::size_t>(std::count_if(events.begin(), events.end(), [&](const auto& e) { return e.type == k; }));
+  }
+  /// Session of the hello with this name, or 0.
+  session_id hello_session(const std::string& name) const {
+    for (const auto& e : events) {
+      if (e.type == inbound_event::kind::message && e.msg && std::holds_alternative<hello_msg>(*e.msg) &&
+          std::get<hello_msg>(*e.msg).name == name) {
+        return e.session;
+      }
+    }
+    return 0;
+  }
+  std::vector<std::string> disconnect_reasons() const {
+    std::vector<std::string> r;
+    for (const auto& e : events) {
+      if (e.type == inbound_event::kind::disconnected) r.push_back(e.reason);
+    }
+    return r;
+  }
+};
+
+shared_frame frame(const message& m) { return make_shared_frame(encode_frame(m)); }
+
+tick_update_msg tick(std::uint64_t t, std::size_t leaves = 0) {
+  tick_update_msg u;
+  u.server_tick = t;
+  u.leaves.assign(leaves, static_cast<std::uint32_t>(t));
+  return u;
+}
+
+bool is_error(const std::optional<message>& m, error_code code) {
+  return m && std::holds_alternative<error_msg>(*m) && std::get<error_msg>(*m).code == code;
+}
+
+}  // namespace
+
+TEST_SUITE("net.server") {
+  TEST_CASE("handshake, control and state frames, ping, game-side disconnect") {
+    server srv;
+    REQUIRE_FALSE(srv.start().has_value());
+    REQUIRE(srv.port() != 0);
+    game g{srv, {}};
+    test_client a(srv.port()), b(srv.port());
+    REQUIRE(a.send(hello_msg{"alpha", "token-a", protocol_version}));
+    REQUIRE(b.send(hello_msg{"beta", "token-b", protocol_version}));
+    REQUIRE(g.wait_for([&] { return g.hello_session("alpha") && g.hello_session("beta"); }));
+    CHECK(g.count(inbound_event::kind::connected) == 2);
+    const session_id sa = g.hello_session("alpha"), sb = g.hello_session("beta");
+    CHECK(sa != sb);
+
+    const welcome_msg w{7, {{0, 0, 0}, {100, 100, 10}}, 30, 0, protocol_version};
+    REQUIRE(srv.send(sa, frame(w), delivery::control));
+    const auto got_w = a.read();
+    REQUIRE(got_w.has_value());
+    CHECK(std::get<welcome_msg>(*got_w) == w);
+
+    // One frame, serialized once, to both sessions.
+    const auto shared = frame(tick(5, 3));
+    REQUIRE(srv.send(sa, shared));
+    REQUIRE(srv.send(sb, shared));
+    const auto ta = a.read(), tb = b.read();
+    REQUIRE(ta.has_value());
+    REQUIRE(tb.has_value());
+    CHECK(std::get<tick_update_msg>(*ta) == tick(5, 3));
+    CHECK(*ta == *tb);
+
+    // Ping is answered by the server itself.
+    REQUIRE(a.send(ping_msg{123456}));
+    const auto pong = a.read();
+    REQUIRE(pong.has_value());
+    CHECK(std::get<pong_msg>(*pong).client_time_us == 123456);
+    CHECK(std::get<pong_msg>(*pong).server_time_us <= srv.now_us());
+
+    // Inputs reach the game, tagged with the session.
+    REQUIRE(a.send(input_msg{1, {1, 0, 0}}));
+    REQUIRE(g.wait_for([&] {
+      return std::any_of(g.events.begin(), g.events.end(), [&](const inbound_event& e) {
+        return e.session == sa && e.msg && std::holds_alternative<input_msg>(*e.msg) &&
+               std::get<input_msg>(*e.msg) == input_msg{1, {1, 0, 0}};
+      });
+    }));
+
+    // The game disconnects b: error first, then the close, then the event.
+    srv.disconnect(sb, error_code::auth_failed, "bad token");
+    std::vector<message> seen;
+    CHECK(b.wait_closed(3000ms, &seen));
+    REQUIRE(seen.size() == 1);
+    CHECK(std::get<error_msg>(seen[0]) == error_msg{error_code::auth_failed, "bad token"});
+    REQUIRE(g.wait_for([&] { return g.count(inbound_event::kind::disconnected) == 1; }));
+    CHECK_FALSE(srv.send(sb, shared));  // gone
+
+    const auto st = srv.stats();
+    CHECK(st.connections_accepted == 2);
+    CHECK(st.pings_answered == 1);
+    CHECK(st.frames_in >= 4);
+    srv.stop();
+    srv.stop();  // idempotent
+  }
+
+  TEST_CASE("hostile clients are cut off with the right error; a good client misses nothing") {
+    const std::uint64_t seed = fresh_seed();
+    CAPTURE(seed);
+    std::mt19937_64 rng(seed);
+    server_options opt;
+    opt.io_threads = 2;
+    opt.inbound.max_frame_bytes = 1024;
+    opt.inputs_per_second = 30;
+    opt.input_burst = 10;
+    opt.flood_limit = 50;
+    opt.max_queued_frames = 64;
+    server srv(opt);
+    REQUIRE_FALSE(srv.start().has_value());
+    game g{srv, {}};
+
+    test_client good(srv.port());
+    REQUIRE(good.send(hello_msg{"good", "", protocol_version}));
+    REQUIRE(g.wait_for([&] { return g.hello_session("good") != 0; }));
+    const session_id sg = g.hello_session("good");
+
+    // The game broadcasts a tick update every 2 ms to every session it knows, while hostiles act.
+    std::atomic<bool> ticking{true};
+    std::atomic<std::uint64_t> ticks_sent{0};
+    std::thread ticker([&] {
+      std::set<session_id> known{sg};
+      for (std::uint64_t t = 0; ticking; ++t) {
+        const auto f = frame(tick(t, 2));
+        for (const auto s : known) srv.send(s, f);
+        ticks_sent = t + 1;
+        std::this_thread::sleep_for(2ms);
+      }
+    });
+
+    struct hostile {
+      std::string what;
+      std::vector<std::uint8_t> bytes;
+      error_code expected;
+      bool may_reset;  // still sending when cut off: the close may arrive as a reset
+    };
+    std::vector<hostile> hostiles;
+    {  // Garbage under a small prefix: a root offset beyond the frame.
+      std::vector<std::uint8_t> f(4 + 64);
+      for (auto& x : f) x = static_cast<std::uint8_t>(rng());
+      const std::uint32_t len = 64, root = 1u << 20;
+      std::memcpy(f.data(), &len, 4);
+      std::memcpy(f.data() + 4, &root, 4);
+      auto hello = encode_frame(hello_msg{"garbage", "", protocol_version});
+      hello.insert(hello.end(), f.begin(), f.end());
+      hostiles.push_back({"garbage", hello, error_code::verification_failed, false});
+    }
+    {  // Oversize prefix.
+      std::vector<std::uint8_t> f{0x00, 0x00, 0x10, 0x00};  // 1 MiB
+      hostiles.push_back({"oversize", f, error_code::oversize, false});
+    }
+    {  // Unknown message type.
+      flatbuffers::FlatBufferBuilder fbb;
+      const auto body = zone::net::wire::Createping(fbb, 1).Union();
+      const auto env = zone::net::wire::Createenvelope(fbb, static_cast<zone::net::wire::message>(99), body);
+      zone::net::wire::FinishSizePrefixedenvelopeBuffer(fbb, env);
+      hostiles.push_back({"unknown", {fbb.GetBufferPointer(), fbb.GetBufferPointer() + fbb.GetSize()},
+                          error_code::unknown_type, false});
+    }
+    // A server-to-client message, and input before hello.
+    hostiles.push_back({"wrong direction", encode_frame(tick(1)), error_code::unexpected_message, false});
+    hostiles.push_back({"input first", encode_frame(input_msg{1, {}}), error_code::unexpected_message, false});
+    {  // Input flood after a hello.
+      auto f = encode_frame(hello_msg{"flood", "", protocol_version});
+      for (std::uint32_t i = 0; i < 3000; ++i) {
+        const auto in = encode_frame(input_msg{i, {0, 1, 0}});
+        f.insert(f.end(), in.begin(), in.end());
+      }
+      hostiles.push_back({"flood", f, error_code::rate_limited, true});
+    }
+
+    std::vector<std::unique_ptr<test_client>> clients;
+    for (const auto& h : hostiles) {
+      clients.push_back(std::make_unique<test_client>(srv.port()));
+      clients.back()->send_bytes(h.bytes);
+    }
+    for (std::size_t i = 0; i < hostiles.size(); ++i) {
+      CAPTURE(hostiles[i].what);
+      std::vector<message> seen;
+      CHECK(clients[i]->wait_closed(5000ms, &seen));
+      const bool got_error = std::any_of(seen.begin(), seen.end(), [&](const message& m) {
+        return std::holds_alternative<error_msg>(m) && std::get<error_msg>(m).code == hostiles[i].expected;
+      });
+      if (hostiles[i].may_reset && clients[i]->reset()) {
+        MESSAGE(hostiles[i].what << ": connection reset before the error frame was read");
+      } else {
+        CHECK(got_error);
+      }
+    }
+    // The good client is still served: it keeps receiving in order, with nothing missing.
+    std::this_thread::sleep_for(50ms);
+    REQUIRE(good.send(input_msg{1, {1, 0, 0}}));
+    ticking = false;
+    ticker.join();
+    const std::uint64_t sent = ticks_sent;
+    std::uint64_t expect = 0;
+    while (expect < sent) {
+      const auto m = good.read(2000ms);
+      REQUIRE(m.has_value());
+      REQUIRE(std::holds_alternative<tick_update_msg>(*m));
+      CHECK(std::get<tick_update_msg>(*m).server_tick == expect);
+      ++expect;
+    }
+    CHECK_FALSE(good.closed());
+    CHECK(sent > 10);
+
+    // Every hostile left with its reason; the rejected frames and dropped inputs are counted.
+    REQUIRE(g.wait_for([&] { return g.count(inbound_event::kind::disconnected) == hostiles.size(); }));
+    const auto reasons = g.disconnect_reasons();
+    for (const char* r : {"frame failed verification", "oversize frame", "unknown message type",
+                          "a client may not send tick_update", "input before hello", "input flood"}) {
+      CAPTURE(r);
+      CHECK(std::find(reasons.begin(), reasons.end(), r) != reasons.end());
+    }
+    const auto st = srv.stats();
+    CHECK(st.frames_rejected == 3);
+    CHECK(st.inputs_dropped > 0);
+    CHECK(st.frames_dropped == 0);
+  }
+
+  TEST_CASE("a slow client: bounded queue, newest state kept, not disconnected") {
+    server_options opt;
+    opt.max_queued_frames = 4;
+    server srv(opt);
+    REQUIRE_FALSE(srv.start().has_value());
+    game g{srv, {}};
+    test_client slow(srv.port(), 4096);
+    REQUIRE(slow.send(hello_msg{"slow", "", protocol_version}));
+    REQUIRE(g.wait_for([&] { return g.hello_session("slow") != 0; }));
+    const session_id s = g.hello_session("slow");
+
+    // ~48 MB of state while the client reads nothing: far beyond socket buffers.
+    constexpr std::uint64_t frames = 3000;
+    for (std::uint64_t t = 0; t < frames; ++t) REQUIRE(srv.send(s, frame(tick(t, 4000))));
+    REQUIRE(g.wait_for([&] { return srv.stats().frames_dropped > 0; }));
+    CHECK(g.wait_for([&] { return g.count(inbound_event::kind::frames_dropped) > 0; }));
+
+    // Now it reads: strictly increasing ticks, ending with the newest.
+    std::uint64_t received = 0, last = 0;
+    bool first = true, increasing = true;
+    while (auto m = slow.read(1000ms)) {
+      const auto t = std::get<tick_update_msg>(*m).server_tick;
+      if (!first && t <= last) increasing = false;
+      first = false;
+      last = t;
+      ++received;
+    }
+    CHECK(increasing);
+    CHECK(last == frames - 1);
+    CHECK(received < frames);
+    CHECK(received + srv.stats().frames_dropped == frames);
+    CHECK_FALSE(slow.closed());
+    CHECK(srv.send(s, frame(tick(frames))));
+    CHECK(slow.read().has_value());
+  }
+
+  TEST_CASE("connection limit") {
+    server_options opt;
+    opt.max_connections = 2;
+    server srv(opt);
+    REQUIRE_FALSE(srv.start().has_value());
+    game g{srv, {}};
+    test_client a(srv.port()), b(srv.port());
+    REQUIRE(g.wait_for([&] { return g.count(inbound_event::kind::connected) == 2; }));
+    test_client c(srv.port());
+    std::vector<message> seen;
+    CHECK(c.wait_closed(3000ms, &seen));
+    REQUIRE(seen.size() == 1);
+    CHECK(std::get<error_msg>(seen[0]).code == error_code::server_full);
+    CHECK(srv.stats().connections_refused == 1);
+    CHECK(g.count(inbound_event::kind::connected) == 2);  // the game never hears of it
+    CHECK(srv.stats().sessions_open == 2);
+  }
+
+  TEST_CASE("idle clients time out; pinging clients stay") {
+    server_options opt;
+    opt.idle_timeout = 300ms;
+    server srv(opt);
+    REQUIRE_FALSE(srv.start().has_value());
+    test_client idle(srv.port()), busy(srv.port());
+    for (int i = 0; i < 12; ++i) {
+      REQUIRE(busy.send(ping_msg{static_cast<std::uint64_t>(i)}));
+      const auto p = busy.read();
+      REQUIRE(p.has_value());
+      CHECK(std::get<pong_msg>(*p).client_time_us == static_cast<std::uint64_t>(i));
+      std::this_thread::sleep_for(100ms);
+    }
+    std::vector<message> seen;
+    CHECK(idle.wait_closed(2000ms, &seen));
+    REQUIRE(seen.size() == 1);
+    CHECK(is_error(seen[0], error_code::timeout));
+    CHECK_FALSE(busy.closed());
+  }
+}
