@@ -252,12 +252,6 @@ inline bool boxes_qualify(const packed_box& a, const packed_box& b) {
          b.lo[2] <= a.hi[2] && ((a.category & b.mask) | (b.category & a.mask)) != 0;
 }
 
-/// The output-cell rule: is (cx, cy, cz) the cell of the max corner of a and b's intersection?
-inline bool is_output_cell(const packed_box& a, const packed_box& b, std::int32_t cx, std::int32_t cy, std::int32_t cz) {
-  return std::min(a.hi_cell[0], b.hi_cell[0]) == cx && std::min(a.hi_cell[1], b.hi_cell[1]) == cy &&
-         std::min(a.hi_cell[2], b.hi_cell[2]) == cz;
-}
-
 }  // namespace
 
 grid_plan plan_grid(const box_set& boxes, const grid_finder_options& opt) {
@@ -496,12 +490,16 @@ void grid_finder::find_valid(const box_set& boxes, pair_list& out) {
         const auto cx = static_cast<std::int32_t>(c % dx);
         const auto cy = static_cast<std::int32_t>((c / dx) % dy);
         const auto cz = static_cast<std::int32_t>(c / (static_cast<std::size_t>(dx) * dy));
+        // Output cell: min(hi-cell) == c per axis; for an axis where the big box's max corner
+        // is in this cell that holds for every box here, elsewhere the other box's must be.
+        const bool big_x = big.hi_cell[0] == cx, big_y = big.hi_cell[1] == cy, big_z = big.hi_cell[2] == cz;
         for (std::uint32_t e = begin; e < end; ++e) {
           const packed_box& b = sc.packed[sc.entries[e]];
-          const box_id other = b.id;
-          if (boxes_qualify(big, b) && is_output_cell(big, b, cx, cy, cz)) {
-            found.push_back(big_id < other ? id_pair{big_id, other} : id_pair{other, big_id});
-          }
+          const bool hit = (big.lo[0] <= b.hi[0]) & (b.lo[0] <= big.hi[0]) & (big.lo[1] <= b.hi[1]) &
+                           (b.lo[1] <= big.hi[1]) & (big.lo[2] <= b.hi[2]) & (b.lo[2] <= big.hi[2]) &
+                           (((big.category & b.mask) | (b.category & big.mask)) != 0) & (big_x | (b.hi_cell[0] == cx)) &
+                           (big_y | (b.hi_cell[1] == cy)) & (big_z | (b.hi_cell[2] == cz));
+          if (hit) found.push_back(big_id < b.id ? id_pair{big_id, b.id} : id_pair{b.id, big_id});
         }
       });
       for (std::size_t lj = li + 1; lj < large_count; ++lj) {
