@@ -62,7 +62,7 @@ flatbuffers::Offset<void> build_body(flatbuffers::FlatBufferBuilder& fbb, const 
           std::optional<w::verify_digest> digest;
           if (msg.digest) digest.emplace(msg.digest->tick, msg.digest->hash, msg.digest->count);
           return w::Createtick_update(fbb, msg.server_tick, msg.server_time_us, msg.last_input_sequence, enters_v,
-                                      leaves_v, updates_v, digest ? &*digest : nullptr)
+                                      leaves_v, updates_v, digest ? &*digest : nullptr, msg.reset)
               .Union();
         } else if constexpr (std::is_same_v<T, pong_msg>) {
           return w::Createpong(fbb, msg.client_time_us, msg.server_time_us).Union();
@@ -170,6 +170,7 @@ void tick_update_writer::begin(std::uint64_t server_tick, std::uint64_t server_t
   leaves_.clear();
   updates_.clear();
   digest_.reset();
+  reset_ = false;
   tick_ = server_tick;
   time_us_ = server_time_us;
   last_input_ = last_input_sequence;
@@ -193,7 +194,8 @@ std::span<const std::uint8_t> tick_update_writer::finish() {
   std::optional<w::verify_digest> digest;
   if (digest_) digest.emplace(digest_->tick, digest_->hash, digest_->count);
   const auto body =
-      w::Createtick_update(fbb_, tick_, time_us_, last_input_, enters_v, leaves_v, updates_v, digest ? &*digest : nullptr);
+      w::Createtick_update(fbb_, tick_, time_us_, last_input_, enters_v, leaves_v, updates_v, digest ? &*digest : nullptr,
+                           reset_);
   return finish_frame(fbb_, w::message::tick_update, body.Union());
 }
 
@@ -252,6 +254,7 @@ std::optional<message> to_message(const w::envelope& env) {
         }
       }
       if (const auto* d = m->digest()) out.digest = verify_digest{d->tick(), d->hash(), d->count()};
+      out.reset = m->reset();
       return out;
     }
     case w::message::pong: {

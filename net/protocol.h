@@ -104,6 +104,7 @@ struct tick_update_msg {
   std::vector<std::uint32_t> leaves;
   std::vector<entity_update> updates;
   std::optional<verify_digest> digest;
+  bool reset = false;  ///< drop the whole view before applying (a resync after lost frames)
   friend bool operator==(const tick_update_msg&, const tick_update_msg&) = default;
 };
 struct pong_msg {
@@ -162,6 +163,7 @@ class tick_update_writer {
   void add_leave(std::uint32_t id);
   void add_update(const entity_update& u);
   void set_digest(const verify_digest& d) { digest_ = d; }
+  void set_reset(bool reset) { reset_ = reset; }
   /// Upper bound on the bytes of the frame if finish() were called now (prefix included).
   [[nodiscard]] std::size_t size_estimate() const;
   [[nodiscard]] std::size_t enter_count() const { return enters_.size(); }
@@ -177,6 +179,7 @@ class tick_update_writer {
   std::vector<std::uint32_t> leaves_;
   std::vector<wire::entity_update> updates_;
   std::optional<verify_digest> digest_;
+  bool reset_ = false;
 };
 
 /// Convenience: one message as a new frame (allocates; use encoder in hot paths).

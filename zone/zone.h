@@ -1,5 +1,6 @@
-// Public API of the zone layer: entity storage and the interest tracker (pairs -> per-observer
-// visible sets -> enter/leave events with hysteresis). See docs/zone.md.
+// Public API of the zone layer: entity storage, the interest tracker (pairs -> per-observer
+// visible sets -> enter/leave events with hysteresis) and replication (what each client is sent).
+// See docs/zone.md.
 //
 // Later parts of the zone server (configuration, NPC behaviours, the tick loop, replication) build
 // on these: the tick loop owns one entity_store and one interest_tracker and calls
@@ -14,6 +15,7 @@
 #include <vector>
 
 #include "interest.h"
+#include "protocol.h"
 
 namespace zone {
 
@@ -232,6 +234,94 @@ class interest_tracker {
   std::vector<entity_id> prev_vis_;
   std::vector<std::uint32_t> row_of_slot_;  // slot -> row in the last update (checked against ids)
   std::uint64_t capped_pending_ = 0;        // summed by the row tasks (atomic_ref)
+};
+
+// ---------------------------------------------------------------------------------------------
+// Replication: one tick_update per client per tick.
+
+struct replication_options {
+  /// World bounds for position quantization (sent to clients in welcome).
+  net::world_bounds world{{0, 0, 0}, {4096, 4096, 256}};
+  /// Most bytes of one client's frame per tick, prefix included (leave >= 256 for the header).
+  std::size_t byte_budget = 8 * 1024;
+  /// Update rate tiers by distance from the observer: every tick within near_distance, every
+  /// mid_period ticks within mid_distance, every far_period ticks beyond.
+  float near_distance = 60;
+  float mid_distance = 200;
+  std::uint32_t mid_period = 2;
+  std::uint32_t far_period = 4;
+  bool send_digest = true;
+};
+
+/// What one build() did.
+struct replication_stats {
+  std::uint32_t enters = 0, leaves = 0, updates = 0;
+  std::uint32_t deferred_enters = 0, deferred_leaves = 0, deferred_updates = 0;  ///< carried over
+  std::size_t bytes = 0;
+  bool reset = false;
+};
+
+using client_id = std::uint32_t;
+
+/// Per-client replication state and the per-tick message builder.
+///
+/// The server keeps, per client, the view the client has been sent (sorted entity ids, with the
+/// tick each was last sent). Each tick, build() moves that view toward the observer's visible set
+/// (from the interest tracker): leaves first, then enters with full state (closest first), then
+/// quantized updates of entities in the view that are due by their distance tier (highest
+/// staleness / distance first), all within the byte budget; whatever does not fit stays pending
+/// and is sent on a later tick (carry-over needs no queue: it is the difference between the view
+/// and the visible set, recomputed each tick). The frame carries the digest of the view after it.
+/// A client that lost frames is resync()ed: its next frame says reset and rebuilds the view.
+///
+/// Call build() after interest_tracker::update with the store unchanged in between. build() for
+/// different clients may run concurrently, each with its own writer; the other calls may not.
+class replicator {
+ public:
+  explicit replicator(replication_options opt = {});
+
+  /// A client that sees through `observer` (its entity). Ids are reused after remove_client.
+  [[nodiscard]] client_id add_client(entity_id observer);
+  void remove_client(client_id c);
+  /// The client's entity changed (respawn); its view is kept and converges as usual.
+  void set_observer(client_id c, entity_id observer);
+  /// The client lost frames: the next frame resets its view and starts it again.
+  void resync(client_id c);
+
+  /// Builds this tick's frame for client c into `writer`; the span is valid until the writer's
+  /// next begin(). `stats`, when given, receives what was sent and deferred.
+  [[nodiscard]] std::span<const std::uint8_t> build(client_id c, const entity_store& store,
+                                                    const interest_tracker& tracker, std::uint64_t tick,
+                                                    std::uint64_t server_time_us, std::uint32_t last_input_sequence,
+                                                    net::tick_update_writer& writer, replication_stats* stats = nullptr);
+
+  /// The client's view as sent so far (sorted ids) and its digest hash.
+  [[nodiscard]] std::span<const entity_id> view(client_id c) const { return clients_[c].view; }
+  [[nodiscard]] std::uint64_t view_hash(client_id c) const { return clients_[c].hash; }
+  [[nodiscard]] entity_id observer(client_id c) const { return clients_[c].observer; }
+  [[nodiscard]] const net::position_quantizer& quantizer() const { return quantizer_; }
+  [[nodiscard]] const replication_options& options() const { return opt_; }
+
+ private:
+  struct pending {
+    float priority;       // smaller first
+    std::uint32_t index;  // into the view (updates) or the store (enters)
+    entity_id id;
+  };
+  struct client_state {
+    entity_id observer = null_entity;
+    bool active = false;
+    bool reset_pending = true;
+    std::vector<entity_id> view, next_view;
+    std::vector<std::uint64_t> last_sent, next_last_sent;  // parallel to view
+    std::vector<std::uint8_t> keep;                        // per view entry: stays after this tick
+    std::vector<pending> enters, updates;
+    std::uint64_t hash = 0;
+  };
+  replication_options opt_;
+  net::position_quantizer quantizer_;
+  std::vector<client_state> clients_;
+  std::vector<client_id> free_clients_;
 };
 
 }  // namespace zone

@@ -56,6 +56,7 @@ struct gen {
         for (std::size_t i = below(50); i-- > 0;) t.leaves.push_back(u32());
         for (std::size_t i = below(200); i-- > 0;) t.updates.push_back(update());
         if (rng() % 2) t.digest = verify_digest{u64(), u64(), u32()};
+        t.reset = rng() % 4 == 0;
         return t;
       }
       case 5: return pong_msg{u64(), u64()};
@@ -183,6 +184,7 @@ TEST_SUITE("net.protocol") {
       for (const auto id : t.leaves) w.add_leave(id);
       for (const auto& u : t.updates) w.add_update(u);
       if (t.digest) w.set_digest(*t.digest);
+      w.set_reset(t.reset);
       CHECK(w.enter_count() == t.enters.size());
       CHECK(w.leave_count() == t.leaves.size());
       CHECK(w.update_count() == t.updates.size());

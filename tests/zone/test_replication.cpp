@@ -1,0 +1,264 @@
+// Replication end to end without sockets: frames are decoded by a simulated client that applies
+// them to its own view; the client's view and digest must always equal the server's idea of it,
+// frames stay within the budget, the view converges to the visible set, updates respect their
+// tiers, and a resync after lost frames rebuilds the view.
+#include <doctest/doctest.h>
+
+#include <algorithm>
+#include <cmath>
+#include <map>
+#include <random>
+
+#include "zone.h"
+
+using namespace zone;
+namespace cb = zone::interest::category_bits;
+
+namespace {
+
+std::uint64_t fresh_seed() {
+  static const std::uint64_t base = std::random_device{}() ^ (std::uint64_t{std::random_device{}()} << 32);
+  static std::uint64_t k = 0;
+  return base + 0x9e3779b97f4a7c15ull * ++k;
+}
+
+/// What a client knows: entity -> last position it was told; the incremental digest.
+struct sim_client {
+  std::map<entity_id, net::vec3f> view;
+  std::map<entity_id, std::uint64_t> last_heard;  // tick of the last enter or update
+  std::uint64_t hash = 0;
+  net::position_quantizer quantizer;
+  explicit sim_client(const net::world_bounds& w) : quantizer(w) {}
+
+  /// Applies a frame; fails the test on anything a correct server would never send.
+  net::tick_update_msg apply(std::span<const std::uint8_t> frame, std::size_t max_bytes) {
+    net::decoder_options o;
+    o.max_frame_bytes = max_bytes;
+    const auto d = net::decode_frame(frame, o);
+    REQUIRE(d.value.has_value());
+    auto msg = std::get<net::tick_update_msg>(*d.value);
+    if (msg.reset) {
+      view.clear();
+      last_heard.clear();
+      hash = 0;
+    }
+    for (const auto id : msg.leaves) {
+      REQUIRE(view.erase(id) == 1);  // only what it knows leaves
+      last_heard.erase(id);
+      hash = net::digest_remove(hash, id);
+    }
+    for (const auto& e : msg.enters) {
+      REQUIRE(view.count(e.id) == 0);  // enters are new
+      view[e.id] = e.position;
+      last_heard[e.id] = msg.server_tick;
+      hash = net::digest_add(hash, e.id);
+    }
+    for (const auto& u : msg.updates) {
+      REQUIRE(view.count(u.id) == 1);  // updates only for known entities
+      view[u.id] = quantizer.dequantize(u.position);
+      last_heard[u.id] = msg.server_tick;
+    }
+    REQUIRE(msg.digest.has_value());
+    CHECK(msg.digest->tick == msg.server_tick);
+    CHECK(msg.digest->hash == hash);
+    CHECK(msg.digest->count == view.size());
+    return msg;
+  }
+  std::vector<entity_id> ids() const {
+    std::vector<entity_id> out;
+    for (const auto& [id, p] : view) out.push_back(id);
+    return out;
+  }
+};
+
+/// A small moving world.
+struct small_world {
+  std::mt19937_64 rng;
+  entity_store store;
+  float side = 300;
+  explicit small_world(std::uint64_t seed, std::size_t n) : rng(seed) {
+    for (std::size_t k = 0; k < n; ++k) (void)store.create(random_desc());
+  }
+  float uni(float lo, float hi) { return std::uniform_real_distribution<float>(lo, hi)(rng); }
+  entity_desc random_desc() {
+    entity_desc d;
+    d.position = {uni(0, side), uni(0, side), uni(0, 10)};
+    d.velocity = {uni(-2, 2), uni(-2, 2), 0};
+    const float aoi = uni(20, 120);
+    d.aoi_half_extent = {aoi, aoi, 50};
+    d.presence_half_extent = {1, 1, 2};
+    d.visibility_class = rng() % 10 == 0 ? cb::stealth : cb::normal;
+    d.kind = static_cast<entity_kind>(rng() % 3);
+    return d;
+  }
+  void step(bool churn) {
+    auto pos = store.positions();
+    auto vel = store.velocities();
+    for (std::size_t i = 0; i < store.size(); ++i) {
+      pos[i].x = std::clamp(pos[i].x + vel[i].x, 0.f, side);
+      pos[i].y = std::clamp(pos[i].y + vel[i].y, 0.f, side);
+      if (pos[i].x <= 0 || pos[i].x >= side) vel[i].x = -vel[i].x;
+      if (pos[i].y <= 0 || pos[i].y >= side) vel[i].y = -vel[i].y;
+    }
+    if (!churn) return;
+    // Keep the first 4 entities (the clients' observers) alive; churn the rest.
+    for (int k = 0; k < 2 && store.size() > 10; ++k) {
+      const std::size_t victim = 4 + rng() % (store.size() - 4);
+      if (victim < store.size()) store.destroy(store.ids()[victim]);
+    }
+    for (int k = 0; k < 2; ++k) (void)store.create(random_desc());
+    if (rng() % 5 == 0) {  // a teleport
+      const std::size_t t = rng() % store.size();
+      pos[t] = {uni(0, side), uni(0, side), pos[t].z};
+    }
+  }
+};
+
+const net::world_bounds test_world{{0, 0, 0}, {300, 300, 10}};
+
+}  // namespace
+
+TEST_SUITE("zone.replication") {
+  TEST_CASE("client views and digests track the server; ample budget: view = visible set, tiers respected") {
+    const std::uint64_t seed = fresh_seed();
+    CAPTURE(seed);
+    small_world w(seed, 300);
+    interest::grid_finder finder;
+    interest_tracker tracker(finder, nullptr, {3.0f, 0, 64});
+    replication_options opt;
+    opt.world = test_world;
+    opt.byte_budget = 1 << 20;
+    opt.near_distance = 30;
+    opt.mid_distance = 70;
+    opt.mid_period = 2;
+    opt.far_period = 5;
+    replicator rep(opt);
+    net::tick_update_writer writer;
+    std::vector<entity_id> observers(w.store.ids().begin(), w.store.ids().begin() + 4);
+    std::vector<client_id> clients;
+    std::vector<sim_client> sims;
+    for (const auto o : observers) {
+      clients.push_back(rep.add_client(o));
+      sims.emplace_back(test_world);
+    }
+    const auto err = rep.quantizer().max_error();
+    std::uint64_t enters = 0, leaves = 0, updates = 0;
+    for (std::uint64_t tick = 1; tick <= 80; ++tick) {
+      CAPTURE(tick);
+      REQUIRE_FALSE(tracker.update(w.store).has_value());
+      for (std::size_t c = 0; c < clients.size(); ++c) {
+        CAPTURE(c);
+        replication_stats st;
+        const auto frame = rep.build(clients[c], w.store, tracker, tick, tick * 33333, 0, writer, &st);
+        const auto msg = sims[c].apply(frame, opt.byte_budget);
+        CHECK(msg.reset == (tick == 1));  // a new client starts with a reset
+        CHECK(st.deferred_enters + st.deferred_leaves + st.deferred_updates == 0);
+        enters += st.enters;
+        leaves += st.leaves;
+        updates += st.updates;
+        // The client's view = the server's record of it = the observer's visible set.
+        const auto row = tracker.row_of(observers[c]);
+        REQUIRE(row != entity_store::npos);
+        const auto vis = tracker.visible(row);
+        CHECK(sims[c].ids() == std::vector<entity_id>(vis.begin(), vis.end()));
+        CHECK(sims[c].ids() == std::vector<entity_id>(rep.view(clients[c]).begin(), rep.view(clients[c]).end()));
+        // Positions: exact on enter, within quantization on update; staleness within the tier.
+        const vec3 eye = w.store.positions()[w.store.index_of(observers[c])];
+        for (const auto& [id, p] : sims[c].view) {
+          const vec3 truth = w.store.positions()[w.store.index_of(id)];
+          const std::uint64_t heard = sims[c].last_heard[id];
+          if (heard == tick) {
+            CHECK(std::fabs(p.x - truth.x) <= err.x);
+            CHECK(std::fabs(p.y - truth.y) <= err.y);
+            CHECK(std::fabs(p.z - truth.z) <= err.z);
+          }
+          const float d = std::hypot(eye.x - truth.x, eye.y - truth.y, eye.z - truth.z);
+          const std::uint64_t period = d < opt.near_distance ? 1 : d < opt.mid_distance ? opt.mid_period : opt.far_period;
+          CHECK(tick - heard < period);
+        }
+      }
+      w.step(true);
+    }
+    CHECK(enters > 0);
+    CHECK(leaves > 0);
+    CHECK(updates > 0);
+  }
+
+  TEST_CASE("tight budget: frames stay within it, nothing is lost, the view converges") {
+    const std::uint64_t seed = fresh_seed();
+    CAPTURE(seed);
+    small_world w(seed, 400);
+    interest::grid_finder finder;
+    interest_tracker tracker(finder, nullptr, {3.0f, 0, 64});
+    replication_options opt;
+    opt.world = test_world;
+    opt.byte_budget = 700;
+    replicator rep(opt);
+    net::tick_update_writer writer;
+    const entity_id observer = w.store.ids()[0];
+    REQUIRE(w.store.set_aoi_half_extent(observer, {150, 150, 50}));  // sees most of the world
+    const client_id c = rep.add_client(observer);
+    sim_client sim(test_world);
+    std::uint64_t deferred = 0;
+    std::uint64_t tick = 1;
+    for (; tick <= 60; ++tick) {
+      CAPTURE(tick);
+      REQUIRE_FALSE(tracker.update(w.store).has_value());
+      replication_stats st;
+      const auto frame = rep.build(c, w.store, tracker, tick, 0, 0, writer, &st);
+      CHECK(frame.size() <= opt.byte_budget);
+      CHECK(st.bytes == frame.size());
+      sim.apply(frame, opt.byte_budget);
+      CHECK(sim.ids() == std::vector<entity_id>(rep.view(c).begin(), rep.view(c).end()));
+      deferred += st.deferred_enters + st.deferred_updates + st.deferred_leaves;
+      w.step(true);
+    }
+    CHECK(deferred > 0);  // the budget did bind
+    // The world freezes: carry-over drains and the view reaches the visible set.
+    for (auto& v : w.store.velocities()) v = {};
+    bool converged = false;
+    for (int k = 0; k < 200 && !converged; ++k, ++tick) {
+      REQUIRE_FALSE(tracker.update(w.store).has_value());
+      const auto frame = rep.build(c, w.store, tracker, tick, 0, 0, writer);
+      CHECK(frame.size() <= opt.byte_budget);
+      sim.apply(frame, opt.byte_budget);
+      const auto vis = tracker.visible(tracker.row_of(observer));
+      converged = sim.ids() == std::vector<entity_id>(vis.begin(), vis.end());
+    }
+    CHECK(converged);
+  }
+
+  TEST_CASE("resync after lost frames rebuilds the client's view") {
+    const std::uint64_t seed = fresh_seed();
+    CAPTURE(seed);
+    small_world w(seed, 200);
+    interest::grid_finder finder;
+    interest_tracker tracker(finder);
+    replication_options opt;
+    opt.world = test_world;
+    opt.byte_budget = 1 << 20;
+    replicator rep(opt);
+    net::tick_update_writer writer;
+    const entity_id observer = w.store.ids()[0];
+    const client_id c = rep.add_client(observer);
+    sim_client sim(test_world);
+    for (std::uint64_t tick = 1; tick <= 40; ++tick) {
+      CAPTURE(tick);
+      REQUIRE_FALSE(tracker.update(w.store).has_value());
+      const auto frame = rep.build(c, w.store, tracker, tick, 0, 0, writer);
+      const bool lost = tick >= 10 && tick < 15;  // the network dropped these
+      if (!lost) {
+        const auto msg = sim.apply(frame, opt.byte_budget);
+        CHECK(msg.reset == (tick == 1 || tick == 15));
+        CHECK(sim.ids() == std::vector<entity_id>(rep.view(c).begin(), rep.view(c).end()));
+      }
+      if (tick == 14) rep.resync(c);  // the server learnt of the drops
+      w.step(true);
+    }
+    // A removed client's id is reused with a fresh state.
+    rep.remove_client(c);
+    const client_id again = rep.add_client(observer);
+    CHECK(again == c);
+    CHECK(rep.view(again).empty());
+  }
+}
