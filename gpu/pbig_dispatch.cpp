@@ -161,12 +161,30 @@ std::optional<std::uint64_t> pbig_engine::run(const interest::box_set& boxes, in
   map_boxes(n);
 
   const auto t_pipe = clock_type::now();
-  const std::uint64_t grid_pairs = check_batches(out);
-  report_.pipeline_ms = ms_since(t_pipe);
-
-  const auto t_large = clock_type::now();
-  const std::uint64_t large = large_pairs(n, out, grid_pairs);
-  report_.large_ms = ms_since(t_large);
+  std::uint64_t grid_pairs = 0, large = 0;
+  if (opt_.direct_output) {
+    grid_pairs = check_direct(n);  // large-box pairs included
+    report_.pipeline_ms = ms_since(t_pipe);
+    if (!keep_size) {
+      // Through pair_finder::find: copy the pinned result into the caller's list.
+      const auto t_copy = clock_type::now();
+      out.resize(grid_pairs);
+      const interest::id_pair* src = h_result_.get();
+      interest::id_pair* dst = out.data();
+      const std::size_t parts = grid_pairs < tuning::parallel_decode_pairs ? 1 : pool_->size() * 4;
+      interest::run_tasks(parts > 1 ? pool_ : nullptr, parts, [&](std::size_t p) {
+        const std::size_t b = grid_pairs * p / parts, e = grid_pairs * (p + 1) / parts;
+        std::memcpy(static_cast<void*>(dst + b), src + b, (e - b) * sizeof(interest::id_pair));
+      });
+      report_.report_ms = ms_since(t_copy);
+    }
+  } else {
+    grid_pairs = check_batches(out);
+    report_.pipeline_ms = ms_since(t_pipe);
+    const auto t_large = clock_type::now();
+    large = large_pairs(n, out, grid_pairs);
+    report_.large_ms = ms_since(t_large);
+  }
   CUDA_CHECK(cudaStreamSynchronize(slot_[1].stream));
   CUDA_CHECK(cudaStreamSynchronize(main_));
 
@@ -178,7 +196,7 @@ std::optional<std::uint64_t> pbig_engine::run(const interest::box_set& boxes, in
   report_.map_scatter_ms = elapsed(ev_counted_, ev_scattered_);
   report_.map_sort_ms = elapsed(ev_scattered_, ev_sorted_);
   report_.map_gather_ms = elapsed(ev_sorted_, ev_map_);
-  if (opt_.compression) report_.data_out_ms += elapsed(ev_entries_begin_, ev_entries_);
+  if (opt_.compression && !opt_.direct_output) report_.data_out_ms += elapsed(ev_entries_begin_, ev_entries_);
   report_.pairs = grid_pairs + large;
   report_.plan_reused = plan_.reused != 0;
   report_.alpha = plan_.alpha;
@@ -189,7 +207,7 @@ std::optional<std::uint64_t> pbig_engine::run(const interest::box_set& boxes, in
   stats.cell_edge = plan_.edge;
   stats.large_boxes = rb_.large_count;
   stats.checks = rb_.totals.checks + static_cast<std::uint64_t>(rb_.large_count) * n;
-  if (!keep_size) out.resize(report_.pairs);
+  if (!keep_size && !opt_.direct_output) out.resize(report_.pairs);
   return report_.pairs;
 }
 
@@ -348,7 +366,7 @@ void pbig_engine::map_boxes(std::uint32_t n) {
   cudaStream_t side = slot_[1].stream;
   CUDA_CHECK(cudaStreamWaitEvent(side, ev_sched_, 0));
   CUDA_CHECK(cudaEventRecord(ev_entries_begin_, side));
-  if (opt_.compression && entries > 0) {
+  if (opt_.compression && !opt_.direct_output && entries > 0) {
     h_entries_.reserve(entries);
     CUDA_CHECK(cudaMemcpyAsync(h_entries_.get(), d_entries_.get(), entries * sizeof(std::uint32_t),
                                cudaMemcpyDeviceToHost, side));
@@ -560,9 +578,10 @@ std::uint64_t pbig_engine::check_batches(interest::pair_list& out) {
   return base;
 }
 
-std::uint64_t pbig_engine::large_pairs(std::uint32_t n, interest::pair_list& out, std::uint64_t base) {
+void pbig_engine::large_count_pass(std::uint32_t n) {
+  *h_large_total_.get() = 0;
   const std::uint32_t large = rb_.large_count;
-  if (large == 0) return 0;
+  if (large == 0) return;
   const box_arrays boxes = arrays_of(d_coord_.get(), d_bits_.get(), n);
   const std::uint32_t chunks = blocks_for(n, tuning::block);
   const std::uint64_t blocks = static_cast<std::uint64_t>(chunks) * large;
@@ -578,20 +597,122 @@ std::uint64_t pbig_engine::large_pairs(std::uint32_t n, interest::pair_list& out
   CUDA_CHECK(scan_u32(d_temp_.get(), scan_bytes, d_large_counts_.get(), d_large_offsets_.get(), blocks + 1, main_));
   CUDA_CHECK(cudaMemcpyAsync(h_large_total_.get(), d_large_offsets_.get() + blocks, sizeof(std::uint32_t),
                              cudaMemcpyDeviceToHost, main_));
+}
+
+void pbig_engine::large_write_pass(std::uint32_t n, std::uint64_t total, void* host_dst) {
+  if (total == 0) return;
+  const box_arrays boxes = arrays_of(d_coord_.get(), d_bits_.get(), n);
+  const std::uint32_t chunks = blocks_for(n, tuning::block);
+  d_large_pairs_.reserve(2 * total);
+  CUDA_CHECK(launch_large_write(boxes, n, d_large_.get(), rb_.large_count, d_is_large_.get(), chunks,
+                                d_large_offsets_.get(), d_large_pairs_.get(), main_));
+  CUDA_CHECK(cudaMemcpyAsync(host_dst, d_large_pairs_.get(), 2 * total * sizeof(std::uint32_t), cudaMemcpyDeviceToHost,
+                             main_));
+  CUDA_CHECK(cudaStreamSynchronize(main_));
+  report_.bytes_out += 8 * total;
+}
+
+std::uint64_t pbig_engine::large_pairs(std::uint32_t n, interest::pair_list& out, std::uint64_t base) {
+  if (rb_.large_count == 0) return 0;
+  large_count_pass(n);
   CUDA_CHECK(cudaStreamSynchronize(main_));
   const std::uint64_t total = *h_large_total_.get();
   if (total == 0) return 0;
-  d_large_pairs_.reserve(2 * total);
   h_large_pairs_.reserve(2 * total);
-  CUDA_CHECK(launch_large_write(boxes, n, d_large_.get(), large, d_is_large_.get(), chunks, d_large_offsets_.get(),
-                                d_large_pairs_.get(), main_));
-  CUDA_CHECK(cudaMemcpyAsync(h_large_pairs_.get(), d_large_pairs_.get(), 2 * total * sizeof(std::uint32_t),
-                             cudaMemcpyDeviceToHost, main_));
-  CUDA_CHECK(cudaStreamSynchronize(main_));
-  report_.bytes_out += 8 * total;
+  large_write_pass(n, total, h_large_pairs_.get());
   if (out.size() < base + total) out.resize(base + total);
   std::memcpy(static_cast<void*>(out.data() + base), h_large_pairs_.get(), total * sizeof(interest::id_pair));
   return total;
+}
+
+std::uint64_t pbig_engine::check_direct(std::uint32_t n) {
+  const std::uint32_t tiles = rb_.total.tile;
+  d_tile_pairs_all_.reserve(tiles + 1);
+  d_tile_pos_.reserve(tiles + 1);
+  CUDA_CHECK(cudaMemsetAsync(d_tile_pairs_all_.get() + tiles, 0, sizeof(std::uint32_t), main_));
+  check_args a{};
+  a.plan = plan_;
+  a.packed_lo = d_packed_lo_.get();
+  a.packed_hi = d_packed_hi_.get();
+  a.entries = d_entries_.get();
+  a.prefix = d_prefix_.get();
+  a.items = d_items_.get();
+  a.item_first = 0;
+  a.item_last = rb_.total.item;
+  a.tile_pairs = d_tile_pairs_all_.get();
+  a.tile_first = 0;
+  a.tile_pos = d_tile_pos_.get();
+  // Pass 1: pairs per tile, over all cells at once; then their positions (64-bit scan).
+  pipeline_slot& s0 = slot_[0];
+  CUDA_CHECK(cudaEventRecord(s0.kernel_begin, main_));
+  CUDA_CHECK(launch_check_direct(a, opt_.load_balancing, /*count_only=*/true, main_));
+  CUDA_CHECK(cudaEventRecord(s0.kernel_end, main_));
+  std::size_t scan_bytes = 0;
+  CUDA_CHECK(scan_tiles(nullptr, scan_bytes, d_tile_pairs_all_.get(), d_tile_pos_.get(), tiles + 1ull, main_));
+  grow_temp(scan_bytes);
+  CUDA_CHECK(scan_tiles(d_temp_.get(), scan_bytes, d_tile_pairs_all_.get(), d_tile_pos_.get(), tiles + 1ull, main_));
+  std::vector<batch> batches;
+  const batch_plan& bp = rb_.batches;
+  for (std::uint32_t k = 0; k < bp.count; ++k) {
+    const batch b{bp.item[k], bp.item[k + 1], bp.tile[k], bp.tile[k + 1]};
+    if (b.item_last > b.item_first) batches.push_back(b);
+  }
+  const std::size_t count = batches.size();
+  h_batch_pos_.reserve(2 * count + 2);
+  std::uint64_t* pos = h_batch_pos_.get();
+  for (std::size_t k = 0; k < count; ++k) {
+    CUDA_CHECK(cudaMemcpyAsync(pos + 2 * k, d_tile_pos_.get() + batches[k].tile_first, sizeof(std::uint64_t),
+                               cudaMemcpyDeviceToHost, main_));
+    CUDA_CHECK(cudaMemcpyAsync(pos + 2 * k + 1, d_tile_pos_.get() + batches[k].tile_last, sizeof(std::uint64_t),
+                               cudaMemcpyDeviceToHost, main_));
+  }
+  CUDA_CHECK(cudaMemcpyAsync(pos + 2 * count, d_tile_pos_.get() + tiles, sizeof(std::uint64_t), cudaMemcpyDeviceToHost,
+                             main_));
+  large_count_pass(n);
+  CUDA_CHECK(cudaStreamSynchronize(main_));
+  report_.check_ms += elapsed(s0.kernel_begin, s0.kernel_end);
+  const std::uint64_t grid_total = pos[2 * count];
+  const std::uint64_t large_total = *h_large_total_.get();
+  h_result_.reserve(std::max<std::uint64_t>(1, grid_total + large_total));
+  std::uint64_t most = 0;
+  for (std::size_t k = 0; k < count; ++k) most = std::max(most, pos[2 * k + 1] - pos[2 * k]);
+  for (auto& s : slot_) s.d_direct.reserve(std::max<std::uint64_t>(2, 2 * most));
+  report_.batches = static_cast<std::uint32_t>(count);
+
+  // Pass 2, batch by batch on the two slots: kernel k writes final pairs into slot k%2's device
+  // buffer while batch k-1's buffer is copied into the result (stream order protects reuse).
+  CUDA_CHECK(cudaStreamWaitEvent(slot_[1].stream, ev_sched_, 0));
+  CUDA_CHECK(cudaStreamWaitEvent(slot_[1].stream, s0.kernel_end, 0));
+  auto account = [&](pipeline_slot& s) {
+    CUDA_CHECK(cudaEventSynchronize(s.copy_end));
+    report_.check_ms += elapsed(s.kernel_begin, s.kernel_end);
+    report_.data_out_ms += elapsed(s.copy_begin, s.copy_end);
+  };
+  for (std::size_t k = 0; k < count; ++k) {
+    pipeline_slot& s = slot_[k % 2];
+    if (k >= 2) account(s);
+    const std::uint64_t first = pos[2 * k], last = pos[2 * k + 1];
+    a.item_first = batches[k].item_first;
+    a.item_last = batches[k].item_last;
+    a.pair_base = first;
+    a.out_pairs = s.d_direct.get();
+    CUDA_CHECK(cudaEventRecord(s.kernel_begin, s.stream));
+    CUDA_CHECK(launch_check_direct(a, opt_.load_balancing, /*count_only=*/false, s.stream));
+    CUDA_CHECK(cudaEventRecord(s.kernel_end, s.stream));
+    CUDA_CHECK(cudaEventRecord(s.copy_begin, s.stream));
+    if (last > first) {
+      CUDA_CHECK(cudaMemcpyAsync(h_result_.get() + first, s.d_direct.get(), (last - first) * sizeof(interest::id_pair),
+                                 cudaMemcpyDeviceToHost, s.stream));
+    }
+    CUDA_CHECK(cudaEventRecord(s.copy_end, s.stream));
+    report_.bytes_out += (last - first) * sizeof(interest::id_pair);
+    if (!opt_.pipelining) account(s);
+  }
+  if (opt_.pipelining) {
+    for (std::size_t k = count >= 2 ? count - 2 : 0; k < count; ++k) account(slot_[k % 2]);
+  }
+  large_write_pass(n, large_total, h_result_.get() + grid_total);
+  return grid_total + large_total;
 }
 
 }  // namespace zone::gpu::detail

@@ -64,6 +64,7 @@ struct pipeline_slot {
   pinned_buffer<std::uint64_t> h_tile_off;
   pinned_buffer<std::uint32_t> h_tile_pairs;
   device_buffer<unsigned long long> d_cursor;
+  device_buffer<std::uint32_t> d_direct;  // direct output: the batch's final pairs
   pinned_buffer<unsigned long long> h_cursor;
   cudaEvent_t kernel_begin = nullptr, kernel_end = nullptr, copy_begin = nullptr, copy_end = nullptr;
   std::uint64_t capacity = 0;    // usable bytes of d_out / h_out
@@ -92,6 +93,8 @@ class pbig_engine {
   [[nodiscard]] const pbig_report& report() const { return report_; }
   /// The threads that pack the upload and decode the output.
   [[nodiscard]] interest::thread_pool* pool() const { return pool_; }
+  /// With pbig_options::direct_output: the pairs of the last call, in pinned host memory.
+  [[nodiscard]] const interest::id_pair* direct_data() const { return h_result_.get(); }
 
  private:
   struct batch {
@@ -106,6 +109,9 @@ class pbig_engine {
   void finish(const batch& b, pipeline_slot& s);
   std::uint64_t decode(const batch& b, pipeline_slot& s, interest::pair_list& out, std::uint64_t base);
   std::uint64_t large_pairs(std::uint32_t n, interest::pair_list& out, std::uint64_t base);
+  void large_count_pass(std::uint32_t n);  // queues the count; total in *h_large_total_ after a sync
+  void large_write_pass(std::uint32_t n, std::uint64_t total, void* host_dst);
+  std::uint64_t check_direct(std::uint32_t n);
   void grow_temp(std::size_t bytes);
   float elapsed(cudaEvent_t a, cudaEvent_t b) const;
 
@@ -143,6 +149,11 @@ class pbig_engine {
   // large boxes
   device_buffer<std::uint32_t> d_large_counts_, d_large_offsets_, d_large_pairs_;
   pinned_buffer<std::uint32_t> h_large_pairs_, h_large_total_;
+  // direct output
+  device_buffer<std::uint32_t> d_tile_pairs_all_;
+  device_buffer<std::uint64_t> d_tile_pos_;
+  pinned_buffer<std::uint64_t> h_batch_pos_;
+  pinned_buffer<interest::id_pair> h_result_;
   // decode scratch
   std::vector<std::uint64_t> tile_pos_;
   std::vector<std::uint32_t> task_tiles_;

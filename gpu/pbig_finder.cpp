@@ -18,7 +18,7 @@ namespace {
 /// handled apart, by (large box, other box id). All of it depends only on the input.
 class pbig_finder final : public interest::pair_finder {
  public:
-  explicit pbig_finder(const pbig_options& options) : engine_(options) {}
+  explicit pbig_finder(const pbig_options& options) : engine_(options), direct_(options.direct_output) {}
   [[nodiscard]] std::string_view name() const override { return "gpu"; }
   [[nodiscard]] const pbig_report& report() const { return engine_.report(); }
 
@@ -39,7 +39,7 @@ class pbig_finder final : public interest::pair_finder {
       count = *found;
       stats_ = found_stats;
     }
-    view = std::span<const interest::id_pair>(pairs_.data(), count);
+    view = std::span<const interest::id_pair>(direct_ ? engine_.direct_data() : pairs_.data(), count);
     return std::nullopt;
   }
 
@@ -53,6 +53,7 @@ class pbig_finder final : public interest::pair_finder {
  private:
   detail::pbig_engine engine_;
   interest::pair_list pairs_;  // find_pairs_view's buffer: kept at its largest size
+  bool direct_;
 };
 
 }  // namespace

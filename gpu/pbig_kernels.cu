@@ -124,6 +124,37 @@ cudaError_t launch_expand(const cell_prefix* prefix, std::uint32_t cells, std::u
   return cudaGetLastError();
 }
 
+cudaError_t launch_check_direct(const check_args& a, bool balanced, bool count_only, cudaStream_t stream) {
+  const std::uint32_t grid = a.item_last - a.item_first;
+  if (grid == 0) return cudaSuccess;
+  if (count_only) {
+    if (balanced) {
+      check_kernel<true, true, check_mode::count><<<grid, tuning::segment, 0, stream>>>(a);
+    } else {
+      check_kernel<false, true, check_mode::count><<<grid, tuning::segment, 0, stream>>>(a);
+    }
+  } else {
+    if (balanced) {
+      check_kernel<true, false, check_mode::direct><<<grid, tuning::segment, 0, stream>>>(a);
+    } else {
+      check_kernel<false, false, check_mode::direct><<<grid, tuning::segment, 0, stream>>>(a);
+    }
+  }
+  return cudaGetLastError();
+}
+
+namespace {
+struct widen {
+  __host__ __device__ std::uint64_t operator()(std::uint32_t x) const { return x; }
+};
+}  // namespace
+
+cudaError_t scan_tiles(void* temp, std::size_t& temp_bytes, const std::uint32_t* tile_pairs, std::uint64_t* tile_pos,
+                       std::uint64_t count, cudaStream_t stream) {
+  const auto in = thrust::make_transform_iterator(tile_pairs, widen{});
+  return cub::DeviceScan::ExclusiveSum(temp, temp_bytes, in, tile_pos, static_cast<std::int64_t>(count), stream);
+}
+
 cudaError_t launch_check(const check_args& a, bool balanced, bool compressed, cudaStream_t stream) {
   const std::uint32_t grid = a.item_last - a.item_first;
   if (grid == 0) return cudaSuccess;

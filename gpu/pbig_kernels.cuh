@@ -358,7 +358,12 @@ __device__ __forceinline__ std::uint32_t hi_flags(const float4& hi, const grid_p
 /// chunk: a 12-byte header then the 3-level encoded rows (Compressed) or plain id pairs, placed
 /// by a block prefix sum plus one atomic per chunk. Chunks past the capacity are counted, not
 /// written: the host sees cursor > capacity and re-runs the batch with room.
-template <bool Balanced, bool Compressed>
+/// Output modes of check_kernel: chunks (the paper's output, compressed or plain), per-tile pair
+/// counts only (pass 1 of the direct output), or final id pairs at the scanned per-tile positions
+/// (pass 2 of the direct output).
+enum class check_mode : int { chunks = 0, count = 1, direct = 2 };
+
+template <bool Balanced, bool Compressed, check_mode Mode = check_mode::chunks>
 __global__ void __launch_bounds__(tuning::segment) check_kernel(check_args a) {
   constexpr std::uint32_t T = tuning::segment;
   using scan = cub::BlockScan<std::uint32_t, T>;
@@ -434,6 +439,27 @@ __global__ void __launch_bounds__(tuning::segment) check_kernel(check_args a) {
     }
 
     const std::uint32_t pairs = static_cast<std::uint32_t>(__popcll(hits));
+    if constexpr (Mode != check_mode::chunks) {
+      std::uint32_t before, tile_total;
+      scan(scan_temp).ExclusiveSum(pairs, before, tile_total);
+      const std::uint32_t tile = tile0 + (h - v);
+      if constexpr (Mode == check_mode::count) {
+        if (tid == 0) a.tile_pairs[tile] = tile_total;
+      } else {
+        if (pairs > 0) {
+          std::uint32_t* w = a.out_pairs + 2 * (a.tile_pos[tile] - a.pair_base + before);
+          std::uint32_t q = 0;
+          while (hits) {
+            const std::uint32_t j = __ffsll(static_cast<long long>(hits)) - 1;
+            hits &= hits - 1;
+            const std::uint32_t other = col_id[j];
+            w[q++] = min(row_id, other);
+            w[q++] = max(row_id, other);
+          }
+        }
+      }
+      continue;
+    }
     const std::uint32_t bytes = Compressed ? (pairs ? 2 + pairs : 0) : 8 * pairs;
     std::uint32_t offset, total;
     scan(scan_temp).ExclusiveSum((pairs << 16) | bytes, offset, total);

@@ -35,6 +35,13 @@ cudaError_t launch_gather(const float4* box_lo, const float4* box_hi, const std:
                           float4* packed_lo, float4* packed_hi, cudaStream_t stream);
 cudaError_t launch_expand(const cell_prefix* prefix, std::uint32_t cells, std::uint32_t* items, cudaStream_t stream);
 cudaError_t launch_check(const check_args& args, bool balanced, bool compressed, cudaStream_t stream);
+/// Direct output: pass 1 (count_only: per-tile pair counts into args.tile_pairs, global tile
+/// index) or pass 2 (final id pairs at args.tile_pos[tile] - args.pair_base).
+cudaError_t launch_check_direct(const check_args& args, bool balanced, bool count_only, cudaStream_t stream);
+/// Exclusive scan of per-tile pair counts into 64-bit positions (count values; pass count + 1
+/// with a zero last count to get the total at position count).
+cudaError_t scan_tiles(void* temp, std::size_t& temp_bytes, const std::uint32_t* tile_pairs, std::uint64_t* tile_pos,
+                       std::uint64_t count, cudaStream_t stream);
 cudaError_t launch_large_count(const box_arrays& boxes, std::uint32_t n, const std::uint32_t* large,
                                std::uint32_t large_count, const std::uint8_t* is_large, std::uint32_t chunks,
                                std::uint32_t* counts, cudaStream_t stream);

@@ -111,7 +111,8 @@ struct bench {
 
   zi::pair_finder& gpu(const zg::pbig_options& o) {
     std::ostringstream key;
-    key << o.load_balancing << o.compression << o.pipelining << '/' << o.fixed_cell_edge << '/' << o.reuse_plan;
+    key << o.load_balancing << o.compression << o.pipelining << o.direct_output << '/' << o.fixed_cell_edge << '/'
+        << o.reuse_plan;
     auto& f = gpu_finders[key.str()];
     if (!f) {
       std::string why;
@@ -221,6 +222,7 @@ struct bench {
 
 std::string opts_name(const zg::pbig_options& o) {
   std::string s;
+  if (o.direct_output) s += "D";
   if (o.compression) s += "C";
   if (o.pipelining) s += "P";
   if (o.load_balancing) s += "B";
@@ -355,16 +357,22 @@ int main(int argc, char** argv) {
                            target{"doc:10", 1000000, 8}, target{"gaussian", 10000000, 250}}) {
       if (t.n > b.max_n) continue;
       const zi::box_set s = *zi::generate_named(t.kind, t.n, seed);
-      const gpu_result g = b.run_gpu(s, all, t.n >= 10000000 ? 5 : 21);
-      const cpu_result c = b.run_cpu(s, static_cast<double>(g.report.pairs));
+      const gpu_result g0 = b.run_gpu(s, all, t.n >= 10000000 ? 5 : 21);
+      const cpu_result c = b.run_cpu(s, static_cast<double>(g0.report.pairs));
       char param[32];
       std::snprintf(param, sizeof param, "<=%g", t.target_ms);
-      print_row(b, t.kind, t.n, param, g, c);
-      std::printf("   target %s: e2e %.3f ms vs %.3f ms (min %.3f ms; through pair_finder::find %.3f ms; map: count %.3f "
-                  "scatter %.3f sort %.3f gather %.3f)\n",
-                  g.e2e_ms <= t.target_ms ? "MET" : "missed", g.e2e_ms, t.target_ms, g.e2e_min_ms, g.find_ms,
-                  g.report.map_count_ms, g.report.map_scatter_ms, g.report.map_sort_ms, g.report.map_gather_ms);
-      b.row("targets", t.kind, t.n, param, opts_name(all), g, c);
+      for (const bool direct : {false, true}) {
+        zg::pbig_options o = all;
+        o.direct_output = direct;
+        const gpu_result g = direct ? b.run_gpu(s, o, t.n >= 10000000 ? 5 : 21) : g0;
+        print_row(b, t.kind, t.n, param, g, c);
+        std::printf("   %s target %s: e2e %.3f ms vs %.3f ms (min %.3f ms; through pair_finder::find %.3f ms; map: count "
+                    "%.3f scatter %.3f sort %.3f gather %.3f)\n",
+                    opts_name(o).c_str(), g.e2e_ms <= t.target_ms ? "MET" : "missed", g.e2e_ms, t.target_ms,
+                    g.e2e_min_ms, g.find_ms, g.report.map_count_ms, g.report.map_scatter_ms, g.report.map_sort_ms,
+                    g.report.map_gather_ms);
+        b.row("targets", t.kind, t.n, param, opts_name(o), g, c);
+      }
     }
   }
   if (want("nsweep")) {
@@ -373,8 +381,13 @@ int main(int argc, char** argv) {
       const zi::box_set s = zi::generate_uniform(n, seed);
       const gpu_result g = b.run_gpu(s, all);
       const cpu_result c = b.run_cpu(s, static_cast<double>(g.report.pairs));
-      print_row(b, "uniform", n, "-", g, c);
-      b.row("nsweep", "uniform", n, "-", opts_name(all), g, c);
+      print_row(b, "uniform", n, "CPB", g, c);
+      b.row("nsweep", "uniform", n, "CPB", opts_name(all), g, c);
+      zg::pbig_options d = all;
+      d.direct_output = true;
+      const gpu_result gd = b.run_gpu(s, d);
+      print_row(b, "uniform", n, "DPB", gd, c);
+      b.row("nsweep", "uniform", n, "DPB", opts_name(d), gd, c);
     }
   }
   if (want("cells")) {
@@ -415,8 +428,13 @@ int main(int argc, char** argv) {
       const zi::box_set s = zi::generate_gaussian(n, seed);
       const gpu_result g = b.run_gpu(s, all, n >= 10000000 ? 3 : 0);
       const cpu_result c = b.run_cpu(s, static_cast<double>(g.report.pairs));
-      print_row(b, "gaussian", n, "-", g, c);
-      b.row("gauss", "gaussian", n, "-", opts_name(all), g, c);
+      print_row(b, "gaussian", n, "CPB", g, c);
+      b.row("gauss", "gaussian", n, "CPB", opts_name(all), g, c);
+      zg::pbig_options d = all;
+      d.direct_output = true;
+      const gpu_result gd = b.run_gpu(s, d, n >= 10000000 ? 3 : 0);
+      print_row(b, "gaussian", n, "DPB", gd, c);
+      b.row("gauss", "gaussian", n, "DPB", opts_name(d), gd, c);
     }
   }
   if (want("ablation")) {
@@ -435,6 +453,16 @@ int main(int argc, char** argv) {
         base_ms = g.e2e_ms;
         ref = g.dig;
       }
+      const std::string name = opts_name(o);
+      print_row(b, "gaussian", n, name, g, cpu_result{});
+      std::printf("   speedup over base: %.2fx%s\n", base_ms / g.e2e_ms, g.dig == ref ? "" : "  PAIR SET DIFFERS");
+      b.row("ablation", "gaussian", n, name, name, g, cpu_result{});
+    }
+    for (const bool pipe : {false, true}) {  // beyond the paper: direct output (D)
+      zg::pbig_options o;
+      o.direct_output = true;
+      o.pipelining = pipe;
+      const gpu_result g = b.run_gpu(s, o, 3);
       const std::string name = opts_name(o);
       print_row(b, "gaussian", n, name, g, cpu_result{});
       std::printf("   speedup over base: %.2fx%s\n", base_ms / g.e2e_ms, g.dig == ref ? "" : "  PAIR SET DIFFERS");

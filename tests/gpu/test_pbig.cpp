@@ -177,14 +177,20 @@ std::unique_ptr<pair_finder> make_gpu(const gpu::pbig_options& opt = {}) {
   return f;
 }
 
-/// The 8 combinations of (load balancing, compression, pipelining).
-std::vector<gpu::pbig_options> all_combinations(thread_pool* pool, std::size_t initial_pairs = 0) {
+/// The 8 combinations of (load balancing, compression, pipelining); with `direct`, also the 4 of
+/// (load balancing, pipelining) with direct output.
+std::vector<gpu::pbig_options> all_combinations(thread_pool* pool, std::size_t initial_pairs = 0, bool direct = false) {
   std::vector<gpu::pbig_options> v;
-  for (int mask = 0; mask < 8; ++mask) {
+  for (int mask = 0; mask < (direct ? 12 : 8); ++mask) {
     gpu::pbig_options o;
     o.load_balancing = (mask & 1) != 0;
     o.compression = (mask & 2) != 0;
     o.pipelining = (mask & 4) != 0;
+    if (mask >= 8) {
+      o.direct_output = true;
+      o.compression = false;
+      o.pipelining = (mask & 2) != 0;
+    }
     o.initial_output_pairs = initial_pairs;
     o.decode_pool = pool;
     v.push_back(o);
@@ -194,7 +200,7 @@ std::vector<gpu::pbig_options> all_combinations(thread_pool* pool, std::size_t i
 
 std::string describe(const gpu::pbig_options& o) {
   return std::string("lb=") + (o.load_balancing ? "1" : "0") + " comp=" + (o.compression ? "1" : "0") +
-         " pipe=" + (o.pipelining ? "1" : "0") + " init_pairs=" + std::to_string(o.initial_output_pairs);
+         " pipe=" + (o.pipelining ? "1" : "0") + " direct=" + (o.direct_output ? "1" : "0") + " init_pairs=" + std::to_string(o.initial_output_pairs);
 }
 
 }  // namespace
@@ -205,7 +211,7 @@ TEST_SUITE("gpu.pbig") {
     brute_force_finder brute(&pool);
     grid_finder grid(&pool);
     std::vector<std::unique_ptr<pair_finder>> finders;
-    const auto combos = all_combinations(&pool);
+    const auto combos = all_combinations(&pool, 0, /*direct=*/true);
     for (const auto& o : combos) finders.push_back(make_gpu(o));
     for (const family f : all_families) {
       for (const std::size_t n : {0, 1, 2, 3, 7, 8, 33, 100, 513, 2000, 4001}) {
@@ -285,11 +291,12 @@ TEST_SUITE("gpu.pbig") {
     for (const bool lb : {false, true}) {
       CAPTURE(lb);
       pair_list first;
-      for (const bool comp : {false, true}) {
+      for (const int mode : {0, 1, 2}) {  // plain, compressed, direct
         for (const bool pipe : {false, true}) {
           gpu::pbig_options o;
           o.load_balancing = lb;
-          o.compression = comp;
+          o.compression = mode == 1;
+          o.direct_output = mode == 2;
           o.pipelining = pipe;
           o.decode_pool = &pool;
           o.initial_output_pairs = 50000;  // several batches overflow: re-runs must not change the order
@@ -343,7 +350,7 @@ TEST_SUITE("gpu.pbig") {
     thread_pool pool(4);
     box_set s;
     for (int i = 0; i < 10000; ++i) s.push_back(box{{3.5f, 3.5f, 3.5f}, {7.25f, 7.25f, 7.25f}, 1, 1});
-    for (const auto& o : all_combinations(&pool)) {
+    for (const auto& o : all_combinations(&pool, 0, /*direct=*/true)) {
       CAPTURE(describe(o));
       auto finder = make_gpu(o);
       pair_list out = run(*finder, s);
@@ -371,9 +378,10 @@ TEST_SUITE("gpu.pbig") {
     for (int k = 0; k < 3; ++k) s.push_back(box{{-1, -1, -1}, {1e4f + 1, 1e4f + 1, 1e4f + 1}, 1, 1});
     grid_finder grid(&pool);
     const pair_list expected = run(grid, s);
-    for (const bool comp : {false, true}) {
+    for (const int mode : {0, 1, 2}) {
       gpu::pbig_options o;
-      o.compression = comp;
+      o.compression = mode == 1;
+      o.direct_output = mode == 2;
       o.decode_pool = &pool;
       auto finder = make_gpu(o);
       CHECK(run(*finder, s) == expected);
@@ -445,6 +453,7 @@ TEST_SUITE("gpu.pbig") {
   TEST_CASE("find_pairs_view: same pairs in the same order as find, buffer reused") {
     thread_pool pool(4);
     auto finder = make_gpu(gpu::pbig_options{.decode_pool = &pool});
+    auto direct = make_gpu(gpu::pbig_options{.decode_pool = &pool, .direct_output = true});
     for (const char* kind : {"gaussian", "uniform", "mmo"}) {
       const auto seed = fresh_seed();
       CAPTURE(kind);
@@ -455,6 +464,11 @@ TEST_SUITE("gpu.pbig") {
       std::span<const id_pair> view;
       REQUIRE_FALSE(gpu::find_pairs_view(*finder, s, view).has_value());
       CHECK(pair_list(view.begin(), view.end()) == out);
+      REQUIRE_FALSE(gpu::find_pairs_view(*direct, s, view).has_value());
+      CHECK(pair_list(view.begin(), view.end()) == out);
+      pair_list direct_out;
+      REQUIRE_FALSE(direct->find(s, direct_out).has_value());
+      CHECK(direct_out == out);
     }
     box_set bad = generate_uniform(200000, 1);
     bad.hi_x[150001] = bad.lo_x[150001] - 1;
