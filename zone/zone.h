@@ -324,4 +324,137 @@ class replicator {
   std::vector<client_id> free_clients_;
 };
 
+// ---------------------------------------------------------------------------------------------
+// Configuration.
+
+/// NPC behaviours (players have none: they move by their inputs).
+enum class behaviour : std::uint8_t { player, wander, patrol, town, chase, boss };
+
+/// Everything the zone server needs, with defaults that run without any file.
+struct zone_config {
+  // World and tick.
+  net::world_bounds world{{0, 0, 0}, {4096, 4096, 256}};
+  double tick_rate_hz = 30;
+  std::uint64_t seed = 1;
+  unsigned worker_threads = 0;  ///< interest and tick work; 0 = hardware concurrency
+  // Interest.
+  float hysteresis = 4;
+  std::uint32_t max_visible = 0;  ///< per observer, 0 = no cap
+  /// AOI half-extents of the tiers tiny .. gigantic (metres).
+  float aoi_tier[5] = {10, 30, 60, 150, 400};
+  float player_aoi = 60;
+  // Population and movement.
+  std::size_t npc_count = 2000;
+  /// Shares of wander, patrol, town, chase among NPCs (normalised); plus boss_count bosses.
+  float share_wander = 0.45f, share_patrol = 0.2f, share_town = 0.3f, share_chase = 0.05f;
+  std::size_t boss_count = 1;
+  std::size_t town_count = 4;
+  float npc_speed = 2.0f;     ///< m/s
+  float player_speed = 6.0f;  ///< m/s, the most a client's input can move its entity
+  float boss_footprint = 40;  ///< presence half-extent of a boss (seen from far away)
+  // Network and limits.
+  std::string listen_address = "0.0.0.0";
+  std::uint16_t port = 7777;
+  unsigned io_threads = 2;
+  std::size_t max_clients = 1000;
+  std::size_t max_frame_bytes = 16 * 1024;
+  double inputs_per_second = 60;
+  std::size_t client_byte_budget = 8 * 1024;
+  std::uint16_t metrics_port = 9100;  ///< 0 = no metrics endpoint
+  std::string log_level = "info";
+};
+
+/// Result of parse_config: a config, or a message (the help text, or a readable error).
+struct config_result {
+  std::optional<zone_config> config;
+  std::string message;
+  bool help = false;  ///< --help was given: print message, exit 0
+};
+
+/// Parses the command line; `--config FILE` reads an INI-style file of the same option names
+/// (the command line wins). Unknown options and bad values are errors naming the option.
+[[nodiscard]] config_result parse_config(int argc, const char* const* argv);
+/// Checks a config's values (positive rates and sizes, ordered bounds, ...).
+[[nodiscard]] std::optional<std::string> validate(const zone_config& c);
+
+// ---------------------------------------------------------------------------------------------
+// The simulated world: NPC behaviours, movement and interest, one deterministic step per tick.
+
+/// Latency histogram with 4 logarithmic buckets per octave from about 1 microsecond to 16 s.
+/// percentile() answers with the upper edge of the bucket holding that quantile (at most 19% above
+/// the true value), never above the maximum recorded. Not thread-safe.
+class latency_histogram {
+ public:
+  void record(double ms);
+  [[nodiscard]] double percentile(double q) const;
+  [[nodiscard]] double max() const { return max_; }
+  [[nodiscard]] std::uint64_t count() const { return count_; }
+  void clear();
+  static constexpr int bucket_count = 96;
+  [[nodiscard]] static double bucket_upper_ms(int b);  ///< upper edge of bucket b
+  [[nodiscard]] std::uint64_t bucket(int b) const { return counts_[static_cast<std::size_t>(b)]; }
+
+ private:
+  std::uint64_t counts_[bucket_count]{};
+  std::uint64_t count_ = 0;
+  double max_ = 0;
+};
+
+/// Phase timings of zone_world::step (milliseconds).
+struct tick_phases {
+  latency_histogram behaviours, integrate, interest, total;
+};
+
+/// Entities, NPC behaviours and interest of one zone. step() is deterministic: the same config,
+/// seed and calls give the same positions and visible sets whatever the thread count.
+class zone_world {
+ public:
+  /// `finder` and `pool` must outlive the world; `pool` may be null.
+  zone_world(const zone_config& cfg, interest::pair_finder& finder, interest::thread_pool* pool);
+
+  /// Creates the NPCs and bosses of the config (deterministic in cfg.seed).
+  void populate();
+  /// A player entity at `at` (clamped into the world); null_entity when the zone is full.
+  [[nodiscard]] entity_id spawn_player(const vec3& at);
+  bool despawn(entity_id id);
+  /// A player's movement intent: its length is clamped to 1 and scaled by player_speed, so a
+  /// client can never move faster than allowed. false (ignored) for a non-player or dead handle.
+  bool set_intent(entity_id player, const vec3& intent);
+
+  /// One tick: behaviours decide velocities (from the previous tick's positions and visible sets),
+  /// positions integrate inside the world bounds, interest updates.
+  [[nodiscard]] std::optional<interest::box_error> step();
+
+  [[nodiscard]] std::uint64_t tick() const { return tick_; }
+  [[nodiscard]] entity_store& store() { return store_; }
+  [[nodiscard]] const entity_store& store() const { return store_; }
+  [[nodiscard]] const interest_tracker& tracker() const { return tracker_; }
+  [[nodiscard]] behaviour behaviour_of(entity_id id) const;
+  [[nodiscard]] const tick_phases& phases() const { return phases_; }
+  [[nodiscard]] const zone_config& config() const { return cfg_; }
+  [[nodiscard]] vec3 town(std::size_t t) const { return towns_[t]; }
+  /// Hash of every position and of the tracker's output after the last step.
+  [[nodiscard]] std::uint64_t digest() const;
+
+ private:
+  struct npc_state {
+    behaviour kind = behaviour::player;
+    vec3 home{};                // town centre, patrol origin or boss lair
+    std::uint32_t waypoint = 0;  // patrol
+    vec3 intent{};              // players: clamped input
+  };
+  void decide(std::size_t first, std::size_t last);
+  [[nodiscard]] std::uint64_t noise(entity_id id, std::uint64_t salt) const;
+  [[nodiscard]] vec3 clamp_to_world(const vec3& p) const;
+
+  zone_config cfg_;
+  interest::thread_pool* pool_;
+  entity_store store_;
+  interest_tracker tracker_;
+  std::vector<npc_state> by_slot_;  // indexed by slot_of(id)
+  std::vector<vec3> towns_;
+  std::uint64_t tick_ = 0;
+  tick_phases phases_;
+};
+
 }  // namespace zone

@@ -1,0 +1,193 @@
+// Configuration parsing and the world step: determinism across thread counts and finders, bounds,
+// the player speed limit, chasing, phase histograms.
+#include <doctest/doctest.h>
+
+#include <cmath>
+#include <cstdio>
+#include <fstream>
+#include <random>
+
+#include "zone.h"
+
+using namespace zone;
+
+namespace {
+
+std::uint64_t fresh_seed() {
+  static const std::uint64_t base = std::random_device{}() ^ (std::uint64_t{std::random_device{}()} << 32);
+  static std::uint64_t k = 0;
+  return base + 0x9e3779b97f4a7c15ull * ++k;
+}
+
+config_result parse(std::vector<std::string> args) {
+  args.insert(args.begin(), "zone-server");
+  std::vector<const char*> argv;
+  for (const auto& a : args) argv.push_back(a.c_str());
+  return parse_config(static_cast<int>(argv.size()), argv.data());
+}
+
+zone_config small_config(std::uint64_t seed) {
+  zone_config c;
+  c.world = {{0, 0, 0}, {800, 800, 50}};
+  c.seed = seed;
+  c.npc_count = 600;
+  c.boss_count = 2;
+  c.town_count = 3;
+  c.npc_speed = 30;  // fast, so a short run moves things across AOI edges
+  c.player_speed = 40;
+  c.tick_rate_hz = 10;
+  return c;
+}
+
+/// Per-tick digests of a run with some players steered by a seeded script.
+std::vector<std::uint64_t> run_digests(const zone_config& cfg, interest::pair_finder& finder, interest::thread_pool* pool,
+                                       int ticks) {
+  zone_world w(cfg, finder, pool);
+  w.populate();
+  std::mt19937_64 script(cfg.seed + 7);
+  std::vector<entity_id> players;
+  for (int p = 0; p < 8; ++p) players.push_back(w.spawn_player({100.f * p, 400, 0}));
+  std::vector<std::uint64_t> out;
+  for (int t = 0; t < ticks; ++t) {
+    for (const auto p : players) {
+      std::uniform_real_distribution<float> u(-2, 2);
+      w.set_intent(p, {u(script), u(script), 0});
+    }
+    REQUIRE_FALSE(w.step().has_value());
+    out.push_back(w.digest());
+  }
+  return out;
+}
+
+}  // namespace
+
+TEST_SUITE("zone.config") {
+  TEST_CASE("defaults need no file; --help; errors name the option; file values, command line wins") {
+    const auto d = parse({});
+    REQUIRE(d.config.has_value());
+    CHECK(d.config->tick_rate_hz == 30);
+    CHECK_FALSE(validate(*d.config).has_value());
+
+    const auto h = parse({"--help"});
+    CHECK(h.help);
+    CHECK_FALSE(h.config.has_value());
+    CHECK(h.message.find("--tick-rate") != std::string::npos);
+    CHECK(h.message.find("--hysteresis") != std::string::npos);
+
+    const auto bad = parse({"--tick-rate", "fast"});
+    CHECK_FALSE(bad.config.has_value());
+    CHECK(bad.message.find("tick-rate") != std::string::npos);
+    CHECK_FALSE(parse({"--no-such-option"}).config.has_value());
+    const auto neg = parse({"--tick-rate", "-5"});
+    CHECK_FALSE(neg.config.has_value());
+    CHECK(neg.message.find("tick-rate") != std::string::npos);
+    CHECK_FALSE(parse({"--port", "70000"}).config.has_value());
+
+    const std::string path = "zone_config_test_" + std::to_string(fresh_seed()) + ".ini";
+    {
+      std::ofstream f(path);
+      f << "# a zone\nnpcs = 123\nhysteresis = 7.5\nworld-x = 2000\nport = 4000\n";
+    }
+    const auto fromfile = parse({"--config", path, "--port", "5000"});
+    std::remove(path.c_str());
+    REQUIRE(fromfile.config.has_value());
+    CHECK(fromfile.config->npc_count == 123);
+    CHECK(fromfile.config->hysteresis == 7.5f);
+    CHECK(fromfile.config->world.hi.x == 2000.f);
+    CHECK(fromfile.config->port == 5000);
+    CHECK_FALSE(parse({"--config", "/nonexistent/zone.ini"}).config.has_value());
+  }
+}
+
+TEST_SUITE("zone.world") {
+  TEST_CASE("determinism: same seed and inputs, same per-tick hash with 1 and several threads and any finder") {
+    const std::uint64_t seed = fresh_seed();
+    CAPTURE(seed);
+    const zone_config cfg = small_config(seed);
+    interest::thread_pool one(1), three(3);
+    interest::grid_finder grid_one(&one), grid_three(&three);
+    interest::brute_force_finder brute(&three);
+    const auto reference = run_digests(cfg, grid_one, &one, 40);
+    CHECK(run_digests(cfg, grid_three, &three, 40) == reference);
+    CHECK(run_digests(cfg, brute, &three, 40) == reference);
+    CHECK(run_digests(cfg, grid_one, nullptr, 40) == reference);
+    zone_config other = cfg;
+    other.seed = seed + 1;
+    CHECK(run_digests(other, grid_one, &one, 40) != reference);
+  }
+
+  TEST_CASE("everything stays inside the world; players never exceed their speed; NPCs chase players") {
+    const std::uint64_t seed = fresh_seed();
+    CAPTURE(seed);
+    zone_config cfg = small_config(seed);
+    cfg.share_wander = cfg.share_patrol = cfg.share_town = 1;
+    cfg.share_chase = 1;
+    interest::thread_pool pool(2);
+    interest::grid_finder finder(&pool);
+    zone_world w(cfg, finder, &pool);
+    w.populate();
+    CHECK(w.store().size() == cfg.npc_count + cfg.boss_count);
+    const entity_id player = w.spawn_player({400, 400, 0});
+    REQUIRE(player != null_entity);
+    CHECK(w.behaviour_of(player) == behaviour::player);
+    // A chaser next to the player.
+    entity_id chaser = null_entity;
+    for (const auto id : w.store().ids()) {
+      if (w.behaviour_of(id) == behaviour::chase) {
+        chaser = id;
+        break;
+      }
+    }
+    REQUIRE(chaser != null_entity);
+    CHECK_FALSE(w.set_intent(chaser, {1, 0, 0}));  // a client can only steer a player
+    REQUIRE(w.store().set_position(chaser, {450, 400, 0}));
+    REQUIRE(w.set_intent(player, {100, 0, 0}));  // clamped to length 1
+    const float max_step = cfg.player_speed / static_cast<float>(cfg.tick_rate_hz);
+    float chaser_distance_start = 0, chaser_distance_end = 0;
+    for (int t = 0; t < 30; ++t) {
+      const vec3 before = w.store().get(player)->position;
+      if (t == 5) REQUIRE(w.set_intent(player, {0, 0, 0}));  // the player stops; the chaser comes
+      REQUIRE_FALSE(w.step().has_value());
+      const vec3 after = w.store().get(player)->position;
+      const float moved = std::hypot(after.x - before.x, after.y - before.y, after.z - before.z);
+      CHECK(moved <= max_step * 1.0001f);
+      const vec3 c = w.store().get(chaser)->position;
+      const float d = std::hypot(c.x - after.x, c.y - after.y);
+      if (t == 0) chaser_distance_start = d;
+      chaser_distance_end = d;
+      const auto& wb = cfg.world;
+      for (const auto& p : w.store().positions()) {
+        CHECK((p.x >= wb.lo.x && p.x <= wb.hi.x && p.y >= wb.lo.y && p.y <= wb.hi.y && p.z >= wb.lo.z && p.z <= wb.hi.z));
+      }
+    }
+    CHECK(chaser_distance_start > 10);
+    CHECK(chaser_distance_end < 1);  // caught up and stays with the (now still) player
+    // Phase histograms saw every tick.
+    CHECK(w.phases().total.count() == 30);
+    CHECK(w.phases().interest.count() == 30);
+    CHECK(w.phases().total.percentile(0.99) <= w.phases().total.max());
+    CHECK(w.phases().total.percentile(0.5) > 0);
+  }
+
+  TEST_CASE("latency histogram percentiles are within a bucket of the truth") {
+    const std::uint64_t seed = fresh_seed();
+    CAPTURE(seed);
+    std::mt19937_64 rng(seed);
+    latency_histogram h;
+    std::vector<double> v;
+    std::lognormal_distribution<double> dist(0.0, 1.5);
+    for (int i = 0; i < 10000; ++i) {
+      v.push_back(dist(rng));
+      h.record(v.back());
+    }
+    std::sort(v.begin(), v.end());
+    for (const double q : {0.5, 0.9, 0.99}) {
+      CAPTURE(q);
+      const double truth = v[static_cast<std::size_t>(std::ceil(q * v.size())) - 1];
+      CHECK(h.percentile(q) >= truth);
+      CHECK(h.percentile(q) <= truth * std::exp2(0.25) * 1.0001);
+    }
+    CHECK(h.max() == v.back());
+    CHECK(h.count() == 10000);
+  }
+}

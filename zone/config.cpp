@@ -1,0 +1,144 @@
+// zone_config from the command line and an optional config file (Boost.Program_options).
+#include <boost/program_options.hpp>
+#include <cmath>
+#include <fstream>
+#include <sstream>
+
+#include "zone.h"
+
+namespace zone {
+
+namespace po = boost::program_options;
+
+std::optional<std::string> validate(const zone_config& c) {
+  const auto bad = [](const std::string& what) { return std::optional<std::string>(what); };
+  const float lo[3] = {c.world.lo.x, c.world.lo.y, c.world.lo.z};
+  const float hi[3] = {c.world.hi.x, c.world.hi.y, c.world.hi.z};
+  for (int d = 0; d < 3; ++d) {
+    if (!std::isfinite(lo[d]) || !std::isfinite(hi[d]) || !(hi[d] > lo[d])) return bad("world bounds must be finite with hi > lo");
+  }
+  if (!(c.tick_rate_hz > 0 && c.tick_rate_hz <= 1000)) return bad("tick-rate must be in (0, 1000]");
+  if (!(c.hysteresis >= 0 && std::isfinite(c.hysteresis))) return bad("hysteresis must be >= 0");
+  for (const float a : c.aoi_tier) {
+    if (!(a >= 0 && std::isfinite(a))) return bad("AOI tiers must be >= 0");
+  }
+  if (!(c.player_aoi >= 0 && std::isfinite(c.player_aoi))) return bad("player-aoi must be >= 0");
+  const float shares[4] = {c.share_wander, c.share_patrol, c.share_town, c.share_chase};
+  float sum = 0;
+  for (const float s : shares) {
+    if (!(s >= 0 && std::isfinite(s))) return bad("behaviour shares must be >= 0");
+    sum += s;
+  }
+  if (c.npc_count > 0 && !(sum > 0)) return bad("behaviour shares must not all be 0 when there are NPCs");
+  if (c.npc_count + c.boss_count >= max_entities) return bad("too many NPCs for one zone");
+  if (c.town_count == 0) return bad("towns must be >= 1");
+  if (!(c.npc_speed >= 0 && c.player_speed >= 0 && std::isfinite(c.npc_speed) && std::isfinite(c.player_speed))) {
+    return bad("speeds must be >= 0");
+  }
+  if (!(c.boss_footprint >= 0 && std::isfinite(c.boss_footprint))) return bad("boss-footprint must be >= 0");
+  if (c.io_threads == 0) return bad("io-threads must be >= 1");
+  if (c.max_frame_bytes < 64) return bad("max-frame-bytes must be >= 64");
+  if (c.client_byte_budget < 256) return bad("client-byte-budget must be >= 256");
+  if (!(c.inputs_per_second > 0)) return bad("inputs-per-second must be > 0");
+  static const char* levels[] = {"trace", "debug", "info", "warn", "error", "critical", "off"};
+  if (std::find(std::begin(levels), std::end(levels), c.log_level) == std::end(levels)) {
+    return bad("log-level must be one of trace, debug, info, warn, error, critical, off");
+  }
+  return std::nullopt;
+}
+
+config_result parse_config(int argc, const char* const* argv) {
+  zone_config c;
+  float world_x = c.world.hi.x, world_y = c.world.hi.y, world_z = c.world.hi.z;
+  std::string config_file;
+  unsigned port = c.port, metrics_port = c.metrics_port;
+
+  po::options_description general("General");
+  general.add_options()                                                                   //
+      ("help,h", "print this help and exit")                                              //
+      ("config", po::value(&config_file), "read options from an INI-style file (name = value)")  //
+      ("log-level", po::value(&c.log_level)->default_value(c.log_level), "trace, debug, info, warn, error, critical, off");
+  po::options_description world("World and tick");
+  world.add_options()                                                                                  //
+      ("world-x", po::value(&world_x)->default_value(world_x), "world size along x (m), from 0")        //
+      ("world-y", po::value(&world_y)->default_value(world_y), "world size along y (m), from 0")        //
+      ("world-z", po::value(&world_z)->default_value(world_z), "world height (m), from 0")              //
+      ("tick-rate", po::value(&c.tick_rate_hz)->default_value(c.tick_rate_hz), "ticks per second")      //
+      ("seed", po::value(&c.seed)->default_value(c.seed), "seed of the NPC population and behaviours")  //
+      ("threads", po::value(&c.worker_threads)->default_value(c.worker_threads), "worker threads (0 = all cores)");
+  po::options_description interest("Interest");
+  interest.add_options()                                                                                     //
+      ("hysteresis", po::value(&c.hysteresis)->default_value(c.hysteresis), "leave margin beyond the AOI (m)")  //
+      ("max-visible", po::value(&c.max_visible)->default_value(c.max_visible), "cap per observer (0 = none)")   //
+      ("aoi-tiny", po::value(&c.aoi_tier[0])->default_value(c.aoi_tier[0]), "AOI half-extent of tier tiny (m)")  //
+      ("aoi-small", po::value(&c.aoi_tier[1])->default_value(c.aoi_tier[1]), "AOI half-extent of tier small (m)")  //
+      ("aoi-medium", po::value(&c.aoi_tier[2])->default_value(c.aoi_tier[2]), "AOI half-extent of tier medium (m)")  //
+      ("aoi-large", po::value(&c.aoi_tier[3])->default_value(c.aoi_tier[3]), "AOI half-extent of tier large (m)")  //
+      ("aoi-gigantic", po::value(&c.aoi_tier[4])->default_value(c.aoi_tier[4]), "AOI half-extent of tier gigantic (m)")  //
+      ("player-aoi", po::value(&c.player_aoi)->default_value(c.player_aoi), "AOI half-extent of players (m)");
+  po::options_description npcs("NPCs");
+  npcs.add_options()                                                                                        //
+      ("npcs", po::value(&c.npc_count)->default_value(c.npc_count), "number of NPCs")                       //
+      ("share-wander", po::value(&c.share_wander)->default_value(c.share_wander), "share of wandering NPCs")  //
+      ("share-patrol", po::value(&c.share_patrol)->default_value(c.share_patrol), "share of patrolling NPCs")  //
+      ("share-town", po::value(&c.share_town)->default_value(c.share_town), "share of NPCs gathering in towns")  //
+      ("share-chase", po::value(&c.share_chase)->default_value(c.share_chase), "share of NPCs chasing players")  //
+      ("bosses", po::value(&c.boss_count)->default_value(c.boss_count), "number of world bosses")            //
+      ("towns", po::value(&c.town_count)->default_value(c.town_count), "number of towns (hotspots)")         //
+      ("npc-speed", po::value(&c.npc_speed)->default_value(c.npc_speed), "NPC speed (m/s)")                  //
+      ("player-speed", po::value(&c.player_speed)->default_value(c.player_speed), "fastest a player moves (m/s)")  //
+      ("boss-footprint", po::value(&c.boss_footprint)->default_value(c.boss_footprint), "boss presence half-extent (m)");
+  po::options_description net("Network and limits");
+  net.add_options()                                                                                           //
+      ("listen", po::value(&c.listen_address)->default_value(c.listen_address), "listen address")             //
+      ("port", po::value(&port)->default_value(port), "TCP port for clients")                                 //
+      ("io-threads", po::value(&c.io_threads)->default_value(c.io_threads), "network I/O threads")            //
+      ("max-clients", po::value(&c.max_clients)->default_value(c.max_clients), "connections in total")        //
+      ("max-frame-bytes", po::value(&c.max_frame_bytes)->default_value(c.max_frame_bytes), "largest inbound frame")  //
+      ("inputs-per-second", po::value(&c.inputs_per_second)->default_value(c.inputs_per_second), "input rate limit per client")  //
+      ("client-byte-budget", po::value(&c.client_byte_budget)->default_value(c.client_byte_budget), "bytes per client per tick")  //
+      ("metrics-port", po::value(&metrics_port)->default_value(metrics_port), "Prometheus /metrics port (0 = off)");
+  po::options_description all("zone-server options");
+  all.add(general).add(world).add(interest).add(npcs).add(net);
+
+  config_result r;
+  try {
+    po::variables_map vm;
+    po::store(po::parse_command_line(argc, argv, all), vm);
+    if (vm.count("help")) {
+      std::ostringstream out;
+      out << "Usage: zone-server [options]\n" << all;
+      r.message = out.str();
+      r.help = true;
+      return r;
+    }
+    if (vm.count("config")) {
+      const std::string path = vm["config"].as<std::string>();
+      std::ifstream in(path);
+      if (!in) {
+        r.message = "cannot read config file '" + path + "'";
+        return r;
+      }
+      po::store(po::parse_config_file(in, all), vm);  // the command line, stored first, wins
+    }
+    po::notify(vm);
+  } catch (const po::error& e) {
+    r.message = e.what();
+    return r;
+  }
+  if (port > 65535 || metrics_port > 65535) {
+    r.message = "ports must be <= 65535";
+    return r;
+  }
+  c.port = static_cast<std::uint16_t>(port);
+  c.metrics_port = static_cast<std::uint16_t>(metrics_port);
+  c.world = {{0, 0, 0}, {world_x, world_y, world_z}};
+  if (auto err = validate(c)) {
+    r.message = *err;
+    return r;
+  }
+  r.config = c;
+  return r;
+}
+
+}  // namespace zone

@@ -1,0 +1,290 @@
+// zone_world (NPC behaviours, movement, interest per tick) and latency_histogram (zone.h).
+#include <algorithm>
+#include <bit>
+#include <chrono>
+#include <limits>
+#include <cmath>
+#include <random>
+
+#include "zone.h"
+
+namespace zone {
+
+namespace cb = interest::category_bits;
+
+namespace {
+
+using clock_type = std::chrono::steady_clock;
+double ms_since(clock_type::time_point t0) {
+  return std::chrono::duration<double, std::milli>(clock_type::now() - t0).count();
+}
+
+std::uint64_t splitmix(std::uint64_t z) {
+  z += 0x9e3779b97f4a7c15ull;
+  z = (z ^ (z >> 30)) * 0xbf58476d1ce4e5b9ull;
+  z = (z ^ (z >> 27)) * 0x94d049bb133111ebull;
+  return z ^ (z >> 31);
+}
+
+/// Uniform in [0, 1) from 53 random bits.
+double unit_of(std::uint64_t bits) { return static_cast<double>(bits >> 11) * 0x1.0p-53; }
+
+vec3 scaled(const vec3& v, float s) { return {v.x * s, v.y * s, v.z * s}; }
+float length(const vec3& v) { return std::sqrt(v.x * v.x + v.y * v.y + v.z * v.z); }
+vec3 toward(const vec3& from, const vec3& to, float speed) {
+  const vec3 d{to.x - from.x, to.y - from.y, to.z - from.z};
+  const float len = length(d);
+  return len > 1e-6f ? scaled(d, speed / len) : vec3{};
+}
+
+constexpr std::uint64_t wander_period_ticks = 90;  // a wanderer picks a new heading this often
+constexpr float patrol_side = 40;                  // patrol: a square of this side around home
+constexpr float town_radius = 60;                  // town NPCs mill about within this of the centre
+
+}  // namespace
+
+// ---- latency_histogram ------------------------------------------------------------------------
+
+double latency_histogram::bucket_upper_ms(int b) { return std::exp2((b + 1) / 4.0 - 10.0); }
+
+void latency_histogram::record(double ms) {
+  if (!(ms >= 0)) ms = 0;
+  const int b = ms <= 0 ? 0 : std::clamp(static_cast<int>(std::floor((std::log2(ms) + 10.0) * 4.0)), 0, bucket_count - 1);
+  ++counts_[b];
+  ++count_;
+  max_ = std::max(max_, ms);
+}
+
+double latency_histogram::percentile(double q) const {
+  if (count_ == 0) return 0;
+  const auto rank = static_cast<std::uint64_t>(std::ceil(std::clamp(q, 0.0, 1.0) * static_cast<double>(count_)));
+  std::uint64_t seen = 0;
+  for (int b = 0; b < bucket_count; ++b) {
+    seen += counts_[b];
+    if (seen >= std::max<std::uint64_t>(rank, 1)) return std::min(bucket_upper_ms(b), max_);
+  }
+  return max_;
+}
+
+void latency_histogram::clear() { *this = latency_histogram{}; }
+
+// ---- zone_world --------------------------------------------------------------------------------
+
+zone_world::zone_world(const zone_config& cfg, interest::pair_finder& finder, interest::thread_pool* pool)
+    : cfg_(cfg), pool_(pool), tracker_(finder, pool, interest_options{cfg.hysteresis, cfg.max_visible, 256}) {
+  std::mt19937_64 rng(cfg_.seed ^ 0x70776e73ull);
+  const auto& w = cfg_.world;
+  for (std::size_t t = 0; t < std::max<std::size_t>(1, cfg_.town_count); ++t) {
+    const auto at = [&](float lo, float hi) {
+      return lo + (hi - lo) * static_cast<float>(0.15 + 0.7 * unit_of(rng()));
+    };
+    towns_.push_back({at(w.lo.x, w.hi.x), at(w.lo.y, w.hi.y), w.lo.z});
+  }
+}
+
+std::uint64_t zone_world::noise(entity_id id, std::uint64_t salt) const {
+  return splitmix(cfg_.seed ^ splitmix(std::uint64_t{id} ^ splitmix(salt)));
+}
+
+vec3 zone_world::clamp_to_world(const vec3& p) const {
+  const auto& w = cfg_.world;
+  return {std::clamp(p.x, w.lo.x, w.hi.x), std::clamp(p.y, w.lo.y, w.hi.y), std::clamp(p.z, w.lo.z, w.hi.z)};
+}
+
+behaviour zone_world::behaviour_of(entity_id id) const {
+  if (!store_.alive(id)) return behaviour::player;
+  return by_slot_[slot_of(id)].kind;
+}
+
+void zone_world::populate() {
+  std::mt19937_64 rng(cfg_.seed);
+  const auto u = [&] { return unit_of(rng()); };
+  const auto& w = cfg_.world;
+  const float shares[4] = {cfg_.share_wander, cfg_.share_patrol, cfg_.share_town, cfg_.share_chase};
+  const float total = shares[0] + shares[1] + shares[2] + shares[3];
+  const std::size_t n = cfg_.npc_count + cfg_.boss_count;
+  store_.reserve(store_.size() + n);
+  for (std::size_t k = 0; k < n; ++k) {
+    entity_desc d;
+    npc_state st;
+    if (k < cfg_.boss_count) {
+      st.kind = behaviour::boss;
+    } else {
+      const double r = u() * total;
+      st.kind = r < shares[0]                           ? behaviour::wander
+                : r < shares[0] + shares[1]             ? behaviour::patrol
+                : r < shares[0] + shares[1] + shares[2] ? behaviour::town
+                                                        : behaviour::chase;
+    }
+    const vec3 town = towns_[static_cast<std::size_t>(rng() % towns_.size())];
+    if (st.kind == behaviour::town) {
+      // A Gaussian crowd around the town.
+      std::normal_distribution<float> spread(0, town_radius);
+      d.position = clamp_to_world({town.x + spread(rng), town.y + spread(rng), w.lo.z});
+    } else {
+      d.position = {static_cast<float>(w.lo.x + (w.hi.x - w.lo.x) * u()), static_cast<float>(w.lo.y + (w.hi.y - w.lo.y) * u()),
+                    w.lo.z};
+    }
+    st.home = st.kind == behaviour::town ? town : d.position;
+    // AOI tier by behaviour: small folk see tiny .. medium; chasers medium; bosses gigantic.
+    const int tier = st.kind == behaviour::boss ? 4 : st.kind == behaviour::chase ? 2 : static_cast<int>(rng() % 3);
+    const float aoi = cfg_.aoi_tier[tier];
+    d.aoi_half_extent = {aoi, aoi, std::min(aoi, (w.hi.z - w.lo.z) / 2)};
+    d.presence_half_extent = st.kind == behaviour::boss ? vec3{cfg_.boss_footprint, cfg_.boss_footprint, cfg_.boss_footprint}
+                                                        : vec3{0.5f, 0.5f, 1.0f};
+    d.kind = st.kind == behaviour::boss ? entity_kind::boss : entity_kind::npc;
+    const double v = u();
+    d.visibility_class = st.kind == behaviour::boss ? cb::normal
+                         : v < 0.9                  ? cb::normal
+                         : v < 0.95                 ? cb::stealth
+                         : v < 0.975                ? cb::team_red
+                                                    : cb::team_blue;
+    d.sees = cb::normal | cb::team_red | cb::team_blue | (d.visibility_class == cb::stealth ? cb::stealth : 0u);
+    const entity_id id = store_.create(d);
+    if (id == null_entity) break;
+    if (by_slot_.size() <= slot_of(id)) by_slot_.resize(slot_of(id) + 1);
+    by_slot_[slot_of(id)] = st;
+  }
+}
+
+entity_id zone_world::spawn_player(const vec3& at) {
+  entity_desc d;
+  d.position = clamp_to_world(at);
+  d.aoi_half_extent = {cfg_.player_aoi, cfg_.player_aoi, cfg_.player_aoi};
+  d.presence_half_extent = {0.5f, 0.5f, 1.0f};
+  d.kind = entity_kind::player;
+  const entity_id id = store_.create(d);
+  if (id == null_entity) return id;
+  if (by_slot_.size() <= slot_of(id)) by_slot_.resize(slot_of(id) + 1);
+  by_slot_[slot_of(id)] = npc_state{behaviour::player, d.position, 0, {}};
+  return id;
+}
+
+bool zone_world::despawn(entity_id id) { return store_.destroy(id); }
+
+bool zone_world::set_intent(entity_id player, const vec3& intent) {
+  if (!store_.alive(player) || by_slot_[slot_of(player)].kind != behaviour::player) return false;
+  if (!std::isfinite(intent.x) || !std::isfinite(intent.y) || !std::isfinite(intent.z)) return false;
+  const float len = length(intent);
+  by_slot_[slot_of(player)].intent = len > 1 ? scaled(intent, 1 / len) : intent;
+  return true;
+}
+
+void zone_world::decide(std::size_t first, std::size_t last) {
+  const auto ids = store_.ids();
+  const auto pos = store_.positions();
+  auto vel = store_.velocities();
+  for (std::size_t i = first; i < last; ++i) {
+    const entity_id id = ids[i];
+    npc_state& st = by_slot_[slot_of(id)];
+    const vec3 p = pos[i];
+    const auto heading = [&](float speed) {
+      const double a = unit_of(noise(id, tick_ / wander_period_ticks)) * 6.283185307179586;
+      return vec3{speed * static_cast<float>(std::cos(a)), speed * static_cast<float>(std::sin(a)), 0};
+    };
+    switch (st.kind) {
+      case behaviour::player:
+        vel[i] = scaled(st.intent, cfg_.player_speed);
+        break;
+      case behaviour::wander:
+        vel[i] = heading(cfg_.npc_speed);
+        break;
+      case behaviour::patrol: {
+        const float h = patrol_side / 2;
+        const vec3 corner[4] = {{st.home.x - h, st.home.y - h, p.z}, {st.home.x + h, st.home.y - h, p.z},
+                                {st.home.x + h, st.home.y + h, p.z}, {st.home.x - h, st.home.y + h, p.z}};
+        const vec3 target = clamp_to_world(corner[st.waypoint % 4]);
+        const vec3 d{target.x - p.x, target.y - p.y, 0};
+        if (length(d) <= cfg_.npc_speed / static_cast<float>(cfg_.tick_rate_hz) + 1e-3f) st.waypoint = (st.waypoint + 1) % 4;
+        vel[i] = toward(p, clamp_to_world(corner[st.waypoint % 4]), cfg_.npc_speed);
+        break;
+      }
+      case behaviour::town: {
+        const vec3 d{st.home.x - p.x, st.home.y - p.y, 0};
+        vel[i] = length(d) > town_radius ? toward(p, {st.home.x, st.home.y, p.z}, cfg_.npc_speed) : heading(cfg_.npc_speed / 2);
+        break;
+      }
+      case behaviour::chase: {
+        // The nearest player this NPC saw last tick (the same interest results as everyone).
+        const std::size_t row = tracker_.row_of(id);
+        float best = std::numeric_limits<float>::infinity();
+        entity_id prey = null_entity;
+        if (row != entity_store::npos) {
+          for (const entity_id seen : tracker_.visible(row)) {
+            const std::size_t k = store_.index_of(seen);
+            if (k == entity_store::npos || by_slot_[slot_of(seen)].kind != behaviour::player) continue;
+            const vec3 d{pos[k].x - p.x, pos[k].y - p.y, pos[k].z - p.z};
+            const float dist = length(d);
+            if (dist < best || (dist == best && seen < prey)) {
+              best = dist;
+              prey = seen;
+            }
+          }
+        }
+        if (prey != null_entity) {
+          // Run at 1.5 x speed, but stop at the prey instead of overshooting it.
+          const float speed = std::min(cfg_.npc_speed * 1.5f, best * static_cast<float>(cfg_.tick_rate_hz));
+          vel[i] = toward(p, pos[store_.index_of(prey)], speed);
+        } else {
+          vel[i] = heading(cfg_.npc_speed);
+        }
+        break;
+      }
+      case behaviour::boss: {
+        const vec3 d{st.home.x - p.x, st.home.y - p.y, 0};
+        vel[i] = length(d) > 100 ? toward(p, {st.home.x, st.home.y, p.z}, cfg_.npc_speed / 2) : heading(cfg_.npc_speed / 2);
+        break;
+      }
+    }
+  }
+}
+
+std::optional<interest::box_error> zone_world::step() {
+  const auto t_start = clock_type::now();
+  ++tick_;
+  const std::size_t n = store_.size();
+  constexpr std::size_t chunk = 1024;
+  const std::size_t tasks = (n + chunk - 1) / chunk;
+
+  // 1. Behaviours: velocities from the previous tick's positions and visible sets.
+  auto t0 = clock_type::now();
+  interest::run_tasks(pool_, tasks, [&](std::size_t t) { decide(t * chunk, std::min(n, (t + 1) * chunk)); });
+  phases_.behaviours.record(ms_since(t0));
+
+  // 2. Integrate inside the world bounds (bounce off the edges).
+  t0 = clock_type::now();
+  const float dt = static_cast<float>(1.0 / cfg_.tick_rate_hz);
+  const auto& w = cfg_.world;
+  interest::run_tasks(pool_, tasks, [&](std::size_t t) {
+    auto pos = store_.positions();
+    auto vel = store_.velocities();
+    for (std::size_t i = t * chunk; i < std::min(n, (t + 1) * chunk); ++i) {
+      vec3 p{pos[i].x + vel[i].x * dt, pos[i].y + vel[i].y * dt, pos[i].z + vel[i].z * dt};
+      if (p.x < w.lo.x || p.x > w.hi.x) vel[i].x = -vel[i].x;
+      if (p.y < w.lo.y || p.y > w.hi.y) vel[i].y = -vel[i].y;
+      if (p.z < w.lo.z || p.z > w.hi.z) vel[i].z = -vel[i].z;
+      pos[i] = clamp_to_world(p);
+    }
+  });
+  phases_.integrate.record(ms_since(t0));
+
+  // 3. Interest.
+  t0 = clock_type::now();
+  auto err = tracker_.update(store_);
+  phases_.interest.record(ms_since(t0));
+  phases_.total.record(ms_since(t_start));
+  return err;
+}
+
+std::uint64_t zone_world::digest() const {
+  std::uint64_t h = tracker_.digest() ^ splitmix(tick_);
+  for (std::size_t i = 0; i < store_.size(); ++i) {
+    const vec3 p = store_.positions()[i];
+    h = splitmix(h ^ store_.ids()[i]);
+    h = splitmix(h ^ std::bit_cast<std::uint32_t>(p.x) ^ (std::uint64_t{std::bit_cast<std::uint32_t>(p.y)} << 32));
+    h = splitmix(h ^ std::bit_cast<std::uint32_t>(p.z));
+  }
+  return h;
+}
+
+}  // namespace zone
