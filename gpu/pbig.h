@@ -38,10 +38,12 @@ struct pbig_options {
   double fixed_cell_edge = 0;  ///< 0 = plan by Eq. 6
   std::size_t initial_output_pairs = 0;  ///< initial output buffer capacity (0 = default); tiny values force the overflow path
   interest::thread_pool* decode_pool = nullptr;  ///< threads that decode the output (null = own pool)
-  /// Beyond the paper: the GPU writes final id pairs at deterministic positions (a counting pass
-  /// per tile, a scan, a writing pass) and each batch is copied straight into a pinned result
-  /// buffer: no CPU decode. `compression` is then unused. See docs/gpu.md.
-  bool direct_output = false;
+  /// Beyond the paper (default: the fastest measured on the H100, docs/gpu-benchmarks.md): the GPU
+  /// writes final id pairs at deterministic positions (a counting pass per tile, a scan, a writing
+  /// pass) and each batch is copied straight into a pinned result buffer: no CPU decode, and
+  /// `compression` is unused. false = the paper's output: chunks (3-level encoded when
+  /// `compression`, else plain), copied through the Fig. 7 pipeline and decoded on the CPU.
+  bool direct_output = true;
   bool reuse_plan = true;  ///< keep the previous cell edge while the box statistics barely move
   double min_boxes_per_cell = 32.0;  ///< Eq. 6's W (the warp width)
 };

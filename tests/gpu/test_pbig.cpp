@@ -186,6 +186,7 @@ std::vector<gpu::pbig_options> all_combinations(thread_pool* pool, std::size_t i
     o.load_balancing = (mask & 1) != 0;
     o.compression = (mask & 2) != 0;
     o.pipelining = (mask & 4) != 0;
+    o.direct_output = false;  // the paper's output path
     if (mask >= 8) {
       o.direct_output = true;
       o.compression = false;
@@ -265,12 +266,16 @@ TEST_SUITE("gpu.pbig") {
       const box_set s = make_family(f, 1500, seed);
       const pair_list expected = run(brute, s);
       for (const double edge : {0.25, 1.0, 3.0, 7.5, 50.0, 1e4}) {
-        CAPTURE(edge);
-        gpu::pbig_options o;
-        o.fixed_cell_edge = edge;
-        o.decode_pool = &pool;
-        auto finder = make_gpu(o);
-        CHECK(run(*finder, s) == expected);
+        for (const bool direct : {false, true}) {
+          CAPTURE(edge);
+          CAPTURE(direct);
+          gpu::pbig_options o;
+          o.fixed_cell_edge = edge;
+          o.decode_pool = &pool;
+          o.direct_output = direct;
+          auto finder = make_gpu(o);
+          CHECK(run(*finder, s) == expected);
+        }
       }
       for (const double w : {1.0, 2.0, 1000.0}) {
         CAPTURE(w);
@@ -393,7 +398,8 @@ TEST_SUITE("gpu.pbig") {
   TEST_CASE("degenerate: long thin boxes at full size, and large sets, against the CPU grid finder") {
     thread_pool pool(0);
     grid_finder grid(&pool);
-    auto finder = make_gpu(gpu::pbig_options{.decode_pool = &pool});
+    auto finder = make_gpu(gpu::pbig_options{.decode_pool = &pool});  // default: direct output
+    auto encoded = make_gpu(gpu::pbig_options{.decode_pool = &pool, .direct_output = false});
     {
       // 2e5 rods in the paper's world: thin (0..4) on two axes, 500..3000 long on the third.
       const auto seed = fresh_seed();
@@ -446,13 +452,15 @@ TEST_SUITE("gpu.pbig") {
       CAPTURE(kind);
       CAPTURE(seed);
       const box_set s = *generate_named(kind, 1000000, seed);
-      CHECK(run(*finder, s) == run(grid, s));
+      const pair_list expected = run(grid, s);
+      CHECK(run(*finder, s) == expected);
+      CHECK(run(*encoded, s) == expected);
     }
   }
 
   TEST_CASE("find_pairs_view: same pairs in the same order as find, buffer reused") {
     thread_pool pool(4);
-    auto finder = make_gpu(gpu::pbig_options{.decode_pool = &pool});
+    auto finder = make_gpu(gpu::pbig_options{.decode_pool = &pool, .direct_output = false});
     auto direct = make_gpu(gpu::pbig_options{.decode_pool = &pool, .direct_output = true});
     for (const char* kind : {"gaussian", "uniform", "mmo"}) {
       const auto seed = fresh_seed();
