@@ -46,11 +46,11 @@ common = [
 print("## floors\n", floors, "\n")
 print("## targets\n")
 targets = [d for d in data if d['experiment'] == 'targets']
-print(table([("set", lambda d: d['set']), ("target ms", lambda d: d['param'].lstrip('<='))] + common +
+print(table([("set", lambda d: d['set']), ("target ms", lambda d: d['param'].lstrip('<=')), ("mode", lambda d: d['options'])] + common +
             [("met", lambda d: "yes" if float(d['e2e_ms']) <= float(d['param'].lstrip('<=')) else "no")], targets))
 for exp, title in [('nsweep', 'Fig. 8 uniform'), ('gauss', 'Fig. 11 Gaussian')]:
     print(f"\n## {title}\n")
-    print(table(common, [d for d in data if d['experiment'] == exp]))
+    print(table([("mode", lambda d: d['param'])] + common, [d for d in data if d['experiment'] == exp]))
 print("\n## Fig. 9 cells\n")
 print(table([("edge", lambda d: d['param'])] + common[:3] + [("MAP", lambda d: f(d['map_ms'])), ("CHECK", lambda d: f(d['check_ms'])),
              ("REPORT", lambda d: f(d['report_ms'])), ("checks", lambda d: f"{float(d['checks']):.3g}"),
@@ -79,9 +79,11 @@ def dump(name, sel, cols):
         for d in sel:
             g.write(" ".join(str(c(d)) for c in cols) + "\n")
 num = lambda k: (lambda d: d[k])
-dump('nsweep.dat', [d for d in data if d['experiment'] == 'nsweep'], [num('n'), num('e2e_ms'), num('find_ms'), lambda d: d['cpu_ms'] if float(d['cpu_ms']) > 0 else 'NaN'])
-dump('gauss.dat', [d for d in data if d['experiment'] == 'gauss'], [num('n'), num('e2e_ms'), num('find_ms'), lambda d: d['cpu_ms'] if float(d['cpu_ms']) > 0 else 'NaN'])
-dump('doc.dat', [d for d in data if d['experiment'] == 'doc'], [lambda d: d['param'].split('=')[1], num('e2e_ms'), num('find_ms'), lambda d: d['cpu_ms'] if float(d['cpu_ms']) > 0 else 'NaN'])
-for n in ('100000', '1000000', '10000000'):
+for exp in ('nsweep', 'gauss'):
+    for mode in ('CPB', 'DPB'):
+        dump(f'{exp}_{mode}.dat', [d for d in data if d['experiment'] == exp and d['param'] in (mode, '-')],
+             [num('n'), num('e2e_ms'), num('find_ms'), lambda d: d['cpu_ms'] if float(d['cpu_ms']) > 0 else 'NaN'])
+if any(d['experiment'] == 'doc' for d in data): dump('doc.dat', [d for d in data if d['experiment'] == 'doc'], [lambda d: d['param'].split('=')[1], num('e2e_ms'), num('find_ms'), lambda d: d['cpu_ms'] if float(d['cpu_ms']) > 0 else 'NaN'])
+for n in ('100000', '1000000', '10000000') if any(d['experiment'] == 'cells' for d in data) else ():
     dump(f'cells_{n}.dat', [d for d in data if d['experiment'] == 'cells' and d['n'] == n], [num('cell_edge'), num('e2e_ms')])
-dump('ablation.dat', abl, [num('param'), num('data_in_ms'), num('plan_ms'), num('map_ms'), num('sched_ms'), num('pipeline_ms')])
+dump('ablation.dat', abl if abl else [], [num('param'), num('data_in_ms'), num('plan_ms'), num('map_ms'), num('sched_ms'), num('pipeline_ms')])
