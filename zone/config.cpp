@@ -31,7 +31,6 @@ std::optional<std::string> validate(const zone_config& c) {
   }
   if (c.npc_count > 0 && !(sum > 0)) return bad("behaviour shares must not all be 0 when there are NPCs");
   if (c.npc_count + c.boss_count >= max_entities) return bad("too many NPCs for one zone");
-  if (c.town_count == 0) return bad("towns must be >= 1");
   if (!(c.npc_speed >= 0 && c.player_speed >= 0 && std::isfinite(c.npc_speed) && std::isfinite(c.player_speed))) {
     return bad("speeds must be >= 0");
   }
@@ -84,7 +83,7 @@ config_result parse_config(int argc, const char* const* argv) {
       ("share-town", po::value(&c.share_town)->default_value(c.share_town), "share of NPCs gathering in towns")  //
       ("share-chase", po::value(&c.share_chase)->default_value(c.share_chase), "share of NPCs chasing players")  //
       ("bosses", po::value(&c.boss_count)->default_value(c.boss_count), "number of world bosses")            //
-      ("towns", po::value(&c.town_count)->default_value(c.town_count), "number of towns (hotspots)")         //
+      ("towns", po::value(&c.town_count)->default_value(c.town_count), "number of towns (hotspots; 0 = one per 2,000 NPCs)")         //
       ("npc-speed", po::value(&c.npc_speed)->default_value(c.npc_speed), "NPC speed (m/s)")                  //
       ("player-speed", po::value(&c.player_speed)->default_value(c.player_speed), "fastest a player moves (m/s)")  //
       ("boss-footprint", po::value(&c.boss_footprint)->default_value(c.boss_footprint), "boss presence half-extent (m)");

@@ -39,7 +39,8 @@ vec3 toward(const vec3& from, const vec3& to, float speed) {
 
 constexpr std::uint64_t wander_period_ticks = 90;  // a wanderer picks a new heading this often
 constexpr float patrol_side = 40;                  // patrol: a square of this side around home
-constexpr float town_radius = 60;                  // town NPCs mill about within this of the centre
+constexpr float town_spread = 150;                 // town crowds: Gaussian of this sd around the centre
+constexpr float town_radius = 250;                 // town NPCs walk back when farther than this
 
 }  // namespace
 
@@ -74,7 +75,8 @@ zone_world::zone_world(const zone_config& cfg, interest::pair_finder& finder, in
     : cfg_(cfg), pool_(pool), tracker_(finder, pool, interest_options{cfg.hysteresis, cfg.max_visible, 256}) {
   std::mt19937_64 rng(cfg_.seed ^ 0x70776e73ull);
   const auto& w = cfg_.world;
-  for (std::size_t t = 0; t < std::max<std::size_t>(1, cfg_.town_count); ++t) {
+  const std::size_t towns = cfg_.town_count != 0 ? cfg_.town_count : std::max<std::size_t>(1, cfg_.npc_count / 2000);
+  for (std::size_t t = 0; t < towns; ++t) {
     const auto at = [&](float lo, float hi) {
       return lo + (hi - lo) * static_cast<float>(0.15 + 0.7 * unit_of(rng()));
     };
@@ -119,7 +121,7 @@ void zone_world::populate() {
     const vec3 town = towns_[static_cast<std::size_t>(rng() % towns_.size())];
     if (st.kind == behaviour::town) {
       // A Gaussian crowd around the town.
-      std::normal_distribution<float> spread(0, town_radius);
+      std::normal_distribution<float> spread(0, town_spread);
       d.position = clamp_to_world({town.x + spread(rng), town.y + spread(rng), w.lo.z});
     } else {
       d.position = {static_cast<float>(w.lo.x + (w.hi.x - w.lo.x) * u()), static_cast<float>(w.lo.y + (w.hi.y - w.lo.y) * u()),

@@ -348,7 +348,7 @@ struct zone_config {
   /// Shares of wander, patrol, town, chase among NPCs (normalised); plus boss_count bosses.
   float share_wander = 0.45f, share_patrol = 0.2f, share_town = 0.3f, share_chase = 0.05f;
   std::size_t boss_count = 1;
-  std::size_t town_count = 4;
+  std::size_t town_count = 0;  ///< 0 = one town per 2,000 NPCs (at least one)
   float npc_speed = 2.0f;     ///< m/s
   float player_speed = 6.0f;  ///< m/s, the most a client's input can move its entity
   float boss_footprint = 40;  ///< presence half-extent of a boss (seen from far away)
@@ -433,6 +433,7 @@ class zone_world {
   [[nodiscard]] const tick_phases& phases() const { return phases_; }
   [[nodiscard]] const zone_config& config() const { return cfg_; }
   [[nodiscard]] vec3 town(std::size_t t) const { return towns_[t]; }
+  [[nodiscard]] std::size_t town_count() const { return towns_.size(); }
   /// Hash of every position and of the tracker's output after the last step.
   [[nodiscard]] std::uint64_t digest() const;
 

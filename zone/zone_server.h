@@ -1,0 +1,71 @@
+// The zone server's composition root: the network server, the world and replication, driven by a
+// fixed-rate tick loop. The `zone-server` executable is a thin main() around this class; tests run
+// it in-process on an ephemeral port.
+#pragma once
+
+#include <atomic>
+#include <memory>
+#include <optional>
+#include <string>
+#include <unordered_map>
+#include <vector>
+
+#include "server.h"
+#include "zone.h"
+
+namespace zone {
+
+/// Counters and phase timings of the tick loop (game thread).
+struct loop_stats {
+  std::uint64_t ticks = 0;
+  std::uint64_t overruns = 0;          ///< ticks that ended after the next tick was due
+  std::uint64_t skipped_ticks = 0;     ///< ticks dropped to catch up after an overrun
+  std::uint64_t clients = 0;           ///< clients with an entity
+  std::uint64_t frames_sent = 0;       ///< tick updates handed to the network
+  std::uint64_t bytes_sent = 0;
+  latency_histogram inputs_ms, replicate_ms, tick_ms;  ///< plus zone_world::phases()
+};
+
+class zone_server {
+ public:
+  explicit zone_server(const zone_config& cfg);
+  ~zone_server();
+
+  /// Populates the world and starts listening. A readable error on failure.
+  [[nodiscard]] std::optional<std::string> start();
+  /// Runs ticks at the configured rate until stop() (from any thread or a signal handler's flag).
+  /// An overrun is logged and the loop catches up by skipping the missed ticks (no spiral).
+  void run();
+  /// One tick now, without waiting: drain inputs, step the world, replicate. (run() calls this.)
+  void tick_once();
+  void stop() { stop_requested_ = true; }
+
+  [[nodiscard]] std::uint16_t port() const { return net_.port(); }
+  [[nodiscard]] const zone_world& world() const { return *world_; }
+  [[nodiscard]] const loop_stats& stats() const { return stats_; }
+  [[nodiscard]] net::server_stats net_stats() const { return net_.stats(); }
+
+ private:
+  struct client {
+    entity_id entity = null_entity;
+    client_id replica = 0;
+    std::uint32_t last_input = 0;
+  };
+  void drain_inputs();
+  void replicate();
+
+  zone_config cfg_;
+  std::unique_ptr<interest::thread_pool> pool_;
+  std::unique_ptr<interest::grid_finder> finder_;
+  std::unique_ptr<zone_world> world_;
+  replicator replicator_;
+  net::server net_;
+  net::tick_update_writer writer_;
+  net::encoder encoder_;
+  std::vector<net::inbound_event> events_;
+  std::unordered_map<net::session_id, client> clients_;
+  loop_stats stats_;
+  std::atomic<bool> stop_requested_{false};
+};
+
+}  // namespace zone
