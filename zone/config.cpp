@@ -96,7 +96,8 @@ config_result parse_config(int argc, const char* const* argv) {
       ("max-frame-bytes", po::value(&c.max_frame_bytes)->default_value(c.max_frame_bytes), "largest inbound frame")  //
       ("inputs-per-second", po::value(&c.inputs_per_second)->default_value(c.inputs_per_second), "input rate limit per client")  //
       ("client-byte-budget", po::value(&c.client_byte_budget)->default_value(c.client_byte_budget), "bytes per client per tick")  //
-      ("metrics-port", po::value(&metrics_port)->default_value(metrics_port), "Prometheus /metrics port (0 = off)");
+      ("metrics", po::value(&c.metrics_enabled)->default_value(c.metrics_enabled), "serve Prometheus text at /metrics (0 or 1)")  //
+      ("metrics-port", po::value(&metrics_port)->default_value(metrics_port), "port of /metrics (0 = ephemeral)");
   po::options_description all("zone-server options");
   all.add(general).add(world).add(interest).add(npcs).add(net);
 

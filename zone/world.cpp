@@ -54,6 +54,7 @@ void latency_histogram::record(double ms) {
   ++counts_[b];
   ++count_;
   max_ = std::max(max_, ms);
+  sum_ += ms;
 }
 
 double latency_histogram::percentile(double q) const {

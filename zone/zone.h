@@ -360,7 +360,8 @@ struct zone_config {
   std::size_t max_frame_bytes = 16 * 1024;
   double inputs_per_second = 60;
   std::size_t client_byte_budget = 8 * 1024;
-  std::uint16_t metrics_port = 9100;  ///< 0 = no metrics endpoint
+  bool metrics_enabled = true;        ///< serve Prometheus text at http://listen:metrics_port/metrics
+  std::uint16_t metrics_port = 9100;  ///< 0 = an ephemeral port
   std::string log_level = "info";
 };
 
@@ -388,6 +389,7 @@ class latency_histogram {
   void record(double ms);
   [[nodiscard]] double percentile(double q) const;
   [[nodiscard]] double max() const { return max_; }
+  [[nodiscard]] double sum() const { return sum_; }
   [[nodiscard]] std::uint64_t count() const { return count_; }
   void clear();
   static constexpr int bucket_count = 96;
@@ -398,6 +400,7 @@ class latency_histogram {
   std::uint64_t counts_[bucket_count]{};
   std::uint64_t count_ = 0;
   double max_ = 0;
+  double sum_ = 0;
 };
 
 /// Phase timings of zone_world::step (milliseconds).

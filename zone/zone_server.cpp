@@ -44,14 +44,70 @@ zone_server::zone_server(const zone_config& cfg)
       replicator_(replica_options(cfg)),
       net_(net_options(cfg)) {}
 
-zone_server::~zone_server() { net_.stop(); }
+zone_server::~zone_server() {
+  net_.stop();
+  if (metrics_) metrics_->stop();
+}
+
+std::string zone_server::metrics_text() const {
+  net::prometheus_text t;
+  const auto ns = net_.stats();
+  const auto& ts = world_->tracker().stats();
+  t.counter("zone_ticks_total", "Ticks run.", static_cast<double>(stats_.ticks));
+  t.counter("zone_tick_overruns_total", "Ticks that ended after the next was due.", static_cast<double>(stats_.overruns));
+  t.counter("zone_ticks_skipped_total", "Ticks skipped to catch up after overruns.", static_cast<double>(stats_.skipped_ticks));
+  t.gauge("zone_entities", "Live entities.", static_cast<double>(world_->store().size()));
+  t.gauge("zone_clients", "Clients with an entity.", static_cast<double>(stats_.clients));
+  t.gauge("zone_interest_pairs", "Pairs found by the last interest step.", static_cast<double>(ts.pairs));
+  t.gauge("zone_visible_total", "Sum of visible-set sizes after the last tick.", static_cast<double>(ts.visible));
+  t.counter("zone_replication_frames_total", "Tick updates handed to the network.", static_cast<double>(stats_.frames_sent));
+  t.counter("zone_replication_bytes_total", "Bytes of tick updates handed to the network.", static_cast<double>(stats_.bytes_sent));
+  t.counter("zone_net_connections_accepted_total", "Connections accepted.", static_cast<double>(ns.connections_accepted));
+  t.counter("zone_net_connections_refused_total", "Connections refused (limit).", static_cast<double>(ns.connections_refused));
+  t.gauge("zone_net_sessions_open", "Open sessions.", static_cast<double>(ns.sessions_open));
+  t.counter("zone_net_frames_in_total", "Frames received.", static_cast<double>(ns.frames_in));
+  t.counter("zone_net_frames_out_total", "Frames written.", static_cast<double>(ns.frames_out));
+  t.counter("zone_net_bytes_in_total", "Bytes received.", static_cast<double>(ns.bytes_in));
+  t.counter("zone_net_bytes_out_total", "Bytes written.", static_cast<double>(ns.bytes_out));
+  t.counter("zone_net_frames_dropped_total", "State frames dropped for slow clients.", static_cast<double>(ns.frames_dropped));
+  t.counter("zone_net_frames_rejected_total", "Inbound frames rejected (client disconnected).", static_cast<double>(ns.frames_rejected));
+  t.counter("zone_net_inputs_dropped_total", "Inputs over the rate limit.", static_cast<double>(ns.inputs_dropped));
+  // Phase histograms in seconds, one bucket per octave.
+  const auto phase = [&](const char* name, const latency_histogram& h) {
+    std::vector<double> bounds;
+    std::vector<std::uint64_t> cumulative;
+    std::uint64_t seen = 0;
+    for (int b = 0; b < latency_histogram::bucket_count; ++b) {
+      seen += h.bucket(b);
+      if (b % 4 == 3) {
+        bounds.push_back(latency_histogram::bucket_upper_ms(b) / 1000.0);
+        cumulative.push_back(seen);
+      }
+    }
+    t.histogram("zone_tick_phase_seconds", "Wall time of the tick and its phases.", bounds, cumulative, h.sum() / 1000.0,
+                h.count(), std::string("phase=\"") + name + "\"");
+  };
+  phase("tick", stats_.tick_ms);
+  phase("inputs", stats_.inputs_ms);
+  phase("behaviours", world_->phases().behaviours);
+  phase("integrate", world_->phases().integrate);
+  phase("interest", world_->phases().interest);
+  phase("replicate", stats_.replicate_ms);
+  return t.str();
+}
 
 std::optional<std::string> zone_server::start() {
   if (auto err = validate(cfg_)) return err;
   world_->populate();
   spdlog::info("zone: {} NPCs, world {}x{}x{} m, {} Hz, {} worker threads", world_->store().size(), cfg_.world.hi.x,
                cfg_.world.hi.y, cfg_.world.hi.z, cfg_.tick_rate_hz, pool_->size());
-  return net_.start();
+  if (auto err = net_.start()) return err;
+  if (cfg_.metrics_enabled) {
+    metrics_ = std::make_unique<net::metrics_server>(cfg_.listen_address, cfg_.metrics_port);
+    if (auto err = metrics_->start()) return err;
+    metrics_->publish(metrics_text());
+  }
+  return std::nullopt;
 }
 
 void zone_server::drain_inputs() {
@@ -131,6 +187,9 @@ void zone_server::tick_once() {
   stats_.replicate_ms.record(ms_since(t1));
   stats_.tick_ms.record(ms_since(t0));
   ++stats_.ticks;
+  // Refresh the metrics snapshot about once a second (the scrape never touches game state).
+  const auto every = static_cast<std::uint64_t>(std::max(1.0, cfg_.tick_rate_hz));
+  if (metrics_ && stats_.ticks % every == 1) metrics_->publish(metrics_text());
 }
 
 void zone_server::run() {

@@ -10,6 +10,7 @@
 #include <unordered_map>
 #include <vector>
 
+#include "metrics.h"
 #include "server.h"
 #include "zone.h"
 
@@ -41,6 +42,10 @@ class zone_server {
   void stop() { stop_requested_ = true; }
 
   [[nodiscard]] std::uint16_t port() const { return net_.port(); }
+  /// Port of /metrics (0 when disabled).
+  [[nodiscard]] std::uint16_t metrics_port() const { return metrics_ ? metrics_->port() : 0; }
+  /// The Prometheus text of the current state (what /metrics serves, refreshed once a second).
+  [[nodiscard]] std::string metrics_text() const;
   [[nodiscard]] const zone_world& world() const { return *world_; }
   [[nodiscard]] const loop_stats& stats() const { return stats_; }
   [[nodiscard]] net::server_stats net_stats() const { return net_.stats(); }
@@ -60,6 +65,7 @@ class zone_server {
   std::unique_ptr<zone_world> world_;
   replicator replicator_;
   net::server net_;
+  std::unique_ptr<net::metrics_server> metrics_;
   net::tick_update_writer writer_;
   net::encoder encoder_;
   std::vector<net::inbound_event> events_;

@@ -65,6 +65,8 @@ zone_config test_config() {
   c.player_aoi = 120;
   c.client_byte_budget = 64 * 1024;
   c.log_level = "warn";
+  c.metrics_enabled = true;
+  c.metrics_port = 0;  // ephemeral
   return c;
 }
 
@@ -130,6 +132,43 @@ TEST_SUITE("zone.server") {
     const std::uint64_t before = views[0].frames;
     play(20, seq);
     CHECK(views[0].frames == before + 20);
+
+    // /metrics answers with the zone's counters and phase histograms.
+    REQUIRE(server.metrics_port() != 0);
+    const auto scrape_once = [&] {
+      std::string out;
+      const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
+      REQUIRE(fd >= 0);
+      sockaddr_in addr{};
+      addr.sin_family = AF_INET;
+      addr.sin_port = htons(server.metrics_port());
+      addr.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+      REQUIRE(::connect(fd, reinterpret_cast<sockaddr*>(&addr), sizeof addr) == 0);
+      const std::string req = "GET /metrics HTTP/1.1\r\nHost: localhost\r\n\r\n";
+      REQUIRE(::send(fd, req.data(), req.size(), MSG_NOSIGNAL) == static_cast<ssize_t>(req.size()));
+      char buf[4096];
+      for (;;) {
+        pollfd p{fd, POLLIN, 0};
+        if (::poll(&p, 1, 3000) <= 0) break;
+        const ssize_t n = ::recv(fd, buf, sizeof buf, 0);
+        if (n <= 0) break;
+        out.append(buf, static_cast<std::size_t>(n));
+      }
+      ::close(fd);
+      return out;
+    };
+    // The snapshot is refreshed about once a second: scrape until it shows the hostile's rejection.
+    std::string scrape;
+    for (int attempt = 0; attempt < 40; ++attempt) {
+      scrape = scrape_once();
+      if (scrape.find("zone_net_frames_rejected_total 1\n") != std::string::npos) break;
+      std::this_thread::sleep_for(100ms);
+    }
+    CHECK(scrape.starts_with("HTTP/1.1 200"));
+    CHECK(scrape.find("\nzone_entities ") != std::string::npos);
+    CHECK(scrape.find("\nzone_clients 3\n") != std::string::npos);
+    CHECK(scrape.find("zone_tick_phase_seconds_bucket{phase=\"interest\",le=") != std::string::npos);
+    CHECK(scrape.find("zone_net_frames_rejected_total 1\n") != std::string::npos);
 
     server.stop();
     loop.join();
