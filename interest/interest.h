@@ -186,11 +186,11 @@ class brute_force_finder final : public pair_finder {
 /// Tuning of the uniform-grid CPU finder.
 struct grid_finder_options {
   /// Eq. 6's lower bound W on f = N*alpha/M (average boxes per cell). On the GPU W is the warp
-  /// width (32). On a CPU core, measured on this project's 2-core machine (single thread, 1e6
-  /// boxes; docs/benchmarks.md): W = 16 was fastest on the uniform, DoC 1 and MMO-like sets
-  /// (W = 4 makes cells smaller than the boxes, so alpha and the mapping cost grow), while the
-  /// Gaussian set, dense in its centre, preferred W = 4.
-  double min_boxes_per_cell = 16.0;
+  /// width (32). On a CPU core the best W depends on the data (docs/bench/sweep_w.txt, 1e6 boxes on
+  /// the 2-core machine): uniform is flat from 3 to 32, the MMO-like set wants 12-16 (smaller cells
+  /// cut its large view boxes into many pieces), the Gaussian set, dense in its centre, wants 2-6.
+  /// W = 12 has the best geometric mean over the three (1.15x the per-set best).
+  double min_boxes_per_cell = 12.0;
   /// Boxes sampled to estimate alpha (the paper uses 1000).
   std::size_t alpha_samples = 1000;
   /// A box that would occupy more than max(large_box_min_cells, large_box_alpha_factor * alpha)
