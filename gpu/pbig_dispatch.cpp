@@ -237,16 +237,25 @@ bool pbig_engine::upload(const interest::box_set& boxes, bool check) {
         for (int q = 0; q < 2; ++q) std::memcpy(stage_u + q * n + sb, bits[q] + sb, (se - sb) * 4);
         return;
       }
-      std::memcpy(stage_f + a * n + sb, lo[a] + sb, (se - sb) * 4);
-      std::memcpy(stage_f + (3 + a) * n + sb, hi[a] + sb, (se - sb) * 4);
-      if (check) {
-        // interest::validate's rule on this axis: lo <= hi (false for NaN), both finite.
-        bool good = true;
-        for (std::size_t i = sb; i < se; ++i) {
-          good &= lo[a][i] <= hi[a][i] && std::isfinite(lo[a][i]) && std::isfinite(hi[a][i]);
-        }
-        if (!good) ok = false;
+      float* dst_lo = stage_f + a * n;
+      float* dst_hi = stage_f + (3 + a) * n;
+      if (!check) {
+        std::memcpy(dst_lo + sb, lo[a] + sb, (se - sb) * 4);
+        std::memcpy(dst_hi + sb, hi[a] + sb, (se - sb) * 4);
+        return;
       }
+      // Copy and check in one pass: interest::validate's rule on this axis (lo <= hi, which is
+      // false for NaN, and both finite).
+      const float* src_lo = lo[a];
+      const float* src_hi = hi[a];
+      bool good = true;
+      for (std::size_t i = sb; i < se; ++i) {
+        const float l = src_lo[i], h = src_hi[i];
+        dst_lo[i] = l;
+        dst_hi[i] = h;
+        good &= (l <= h) & std::isfinite(l) & std::isfinite(h);
+      }
+      if (!good) ok = false;
     });
     if (!ok) break;
     for (int a = 0; a < 6; ++a) {
