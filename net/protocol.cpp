@@ -427,4 +427,84 @@ verify_digest visible_digest(std::uint64_t tick, std::span<const std::uint32_t> 
   return {tick, hash, static_cast<std::uint32_t>(ids.size())};
 }
 
+// ---- client_view ----------------------------------------------------------------------------
+
+client_view::status client_view::finish(std::uint64_t tick, const std::optional<verify_digest>& digest, bool consistent) {
+  consistent = consistent && (!any_ || tick > last_tick_);
+  any_ = true;
+  last_tick_ = tick;
+  ++applied_;
+  status s = consistent ? status::ok : status::inconsistent;
+  if (digest) {
+    ++digests_checked_;
+    if (s == status::ok && (digest->hash != hash_ || digest->count != entities_.size() || digest->tick != tick)) {
+      s = status::digest_mismatch;
+    }
+  }
+  if (s != status::ok) ++problems_;
+  return s;
+}
+
+client_view::status client_view::apply(const tick_update_msg& m) {
+  bool consistent = true;
+  if (m.reset) {
+    entities_.clear();
+    hash_ = 0;
+  }
+  for (const auto id : m.leaves) {
+    if (entities_.erase(id) == 1) {
+      hash_ = digest_remove(hash_, id);
+    } else {
+      consistent = false;
+    }
+  }
+  for (const auto& e : m.enters) {
+    const auto [it, fresh] = entities_.try_emplace(e.id);
+    if (fresh) {
+      hash_ = digest_add(hash_, e.id);
+    } else {
+      consistent = false;
+    }
+    it->second = {e, m.server_tick};
+  }
+  for (const auto& u : m.updates) {
+    const auto it = entities_.find(u.id);
+    if (it == entities_.end()) {
+      consistent = false;
+      continue;
+    }
+    it->second.state.position = quantizer_.dequantize(u.position);
+    it->second.state.velocity = dequantize_velocity(u.velocity);
+    it->second.last_tick = m.server_tick;
+  }
+  return finish(m.server_tick, m.digest, consistent);
+}
+
+client_view::status client_view::apply(const w::tick_update& u) {
+  // One path for both forms: convert, then apply.
+  tick_update_msg m;
+  m.server_tick = u.server_tick();
+  m.server_time_us = u.server_time_us();
+  m.last_input_sequence = u.last_input_sequence();
+  m.reset = u.reset();
+  if (const auto* v = u.enters()) {
+    for (const auto* s : *v) {
+      if (s) {
+        m.enters.push_back({s->id(), s->kind(), s->visibility_class(), from_wire(s->position()), from_wire(s->velocity()),
+                            from_wire(s->presence_half_extent()), from_wire(s->name())});
+      }
+    }
+  }
+  if (const auto* v = u.leaves()) m.leaves.assign(v->begin(), v->end());
+  if (const auto* v = u.updates()) {
+    for (const auto* x : *v) {
+      m.updates.push_back({x->id(),
+                           {x->position().x(), x->position().y(), x->position().z()},
+                           {x->velocity().x(), x->velocity().y(), x->velocity().z()}});
+    }
+  }
+  if (const auto* d = u.digest()) m.digest = verify_digest{d->tick(), d->hash(), d->count()};
+  return apply(m);
+}
+
 }  // namespace zone::net

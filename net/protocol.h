@@ -15,6 +15,7 @@
 #include <span>
 #include <string>
 #include <string_view>
+#include <unordered_map>
 #include <variant>
 #include <vector>
 
@@ -325,5 +326,51 @@ inline constexpr float velocity_limit = 327.67f;
 [[nodiscard]] constexpr std::uint64_t digest_remove(std::uint64_t hash, std::uint32_t id) { return hash - digest_mix(id); }
 /// The digest of a whole set (any order; ids assumed distinct).
 [[nodiscard]] verify_digest visible_digest(std::uint64_t tick, std::span<const std::uint32_t> ids);
+
+// ---------------------------------------------------------------------------------------------
+// The client side of replication.
+
+/// A client's picture of the zone, built only from the tick updates it receives: reset clears it,
+/// leaves remove, enters add (full state), updates refresh quantized position and velocity. Each
+/// update is checked: leaves and updates must name known entities, enters new ones, ticks must
+/// increase, and the verify digest (when present) must equal the view's own. Used by bots and
+/// tests to prove that what the server sent adds up. Not thread-safe.
+class client_view {
+ public:
+  explicit client_view(const world_bounds& world) : quantizer_(world) {}
+
+  enum class status : std::uint8_t {
+    ok,
+    inconsistent,     ///< leave/update of an unknown id, enter of a known id, or a tick not after the last
+    digest_mismatch,  ///< the view does not hash to the server's digest
+  };
+  struct entity {
+    entity_state state;          ///< as entered; position and velocity refreshed by updates
+    std::uint64_t last_tick = 0;  ///< tick of the last enter or update
+  };
+
+  /// Applies one update (the whole update is applied even when a check fails).
+  status apply(const tick_update_msg& m);
+  /// The same on a verified frame's tick_update (converted first).
+  status apply(const wire::tick_update& u);
+
+  [[nodiscard]] const std::unordered_map<std::uint32_t, entity>& entities() const { return entities_; }
+  [[nodiscard]] std::size_t size() const { return entities_.size(); }
+  [[nodiscard]] std::uint64_t hash() const { return hash_; }
+  [[nodiscard]] std::uint64_t last_tick() const { return last_tick_; }
+  [[nodiscard]] std::uint64_t updates_applied() const { return applied_; }
+  [[nodiscard]] std::uint64_t digests_checked() const { return digests_checked_; }
+  [[nodiscard]] std::uint64_t problems() const { return problems_; }
+  [[nodiscard]] const position_quantizer& quantizer() const { return quantizer_; }
+
+ private:
+  status finish(std::uint64_t tick, const std::optional<verify_digest>& digest, bool consistent);
+  position_quantizer quantizer_;
+  std::unordered_map<std::uint32_t, entity> entities_;
+  std::uint64_t hash_ = 0;
+  std::uint64_t last_tick_ = 0;
+  bool any_ = false;
+  std::uint64_t applied_ = 0, digests_checked_ = 0, problems_ = 0;
+};
 
 }  // namespace zone::net

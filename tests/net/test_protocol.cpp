@@ -524,4 +524,80 @@ TEST_SUITE("net.protocol") {
       CHECK(visible_digest(99, ids).hash != hash);
     }
   }
+  TEST_CASE("client_view applies updates, checks consistency and digests") {
+    const std::uint64_t seed = fresh_seed();
+    CAPTURE(seed);
+    gen g(seed);
+    const world_bounds world{{0, 0, 0}, {1000, 1000, 100}};
+    const position_quantizer q(world);
+    client_view view(world);
+    // A server-side model: the set it believes the client holds.
+    std::set<std::uint32_t> model;
+    std::uint64_t tick = 0;
+    for (int rep = 0; rep < 300; ++rep) {
+      tick_update_msg m;
+      m.server_tick = ++tick;
+      m.reset = rep == 150;
+      if (m.reset) model.clear();
+      for (auto it = model.begin(); it != model.end();) {
+        if (g.below(10) == 0) {
+          m.leaves.push_back(*it);
+          it = model.erase(it);
+        } else {
+          ++it;
+        }
+      }
+      for (std::size_t k = g.below(5); k-- > 0;) {
+        const std::uint32_t id = 1 + static_cast<std::uint32_t>(g.below(1000));
+        if (model.insert(id).second) {
+          entity_state s = g.state();
+          s.id = id;
+          s.position = {g.f(0, 1000), g.f(0, 1000), g.f(0, 100)};
+          m.enters.push_back(s);
+        }
+      }
+      for (const auto id : model) {
+        if (g.below(2) && std::none_of(m.enters.begin(), m.enters.end(), [&](const entity_state& s) { return s.id == id; })) {
+          const vec3f p{g.f(0, 1000), g.f(0, 1000), g.f(0, 100)};
+          m.updates.push_back({id, q.quantize(p), quantize_velocity({1, 2, 3})});
+        }
+      }
+      const std::vector<std::uint32_t> ids(model.begin(), model.end());
+      m.digest = visible_digest(tick, ids);
+      // Half the time through the wire form.
+      const auto status = g.below(2) ? view.apply(m) : [&] {
+        const auto frame = encode_frame(m);
+        frame_decoder d(big_frames());
+        d.feed(frame);
+        const auto s = d.next();
+        REQUIRE(s.is_frame());
+        return view.apply(*s.frame.envelope->message_as_tick_update());
+      }();
+      REQUIRE(status == client_view::status::ok);
+      CHECK(view.size() == model.size());
+    }
+    CHECK(view.problems() == 0);
+    CHECK(view.digests_checked() == 300);
+    // Failures are detected: an unknown leave, a duplicate enter, a stale tick, a wrong digest.
+    tick_update_msg bad;
+    bad.server_tick = ++tick;
+    bad.leaves.push_back(5000);
+    CHECK(view.apply(bad) == client_view::status::inconsistent);
+    tick_update_msg stale;
+    stale.server_tick = 1;
+    CHECK(view.apply(stale) == client_view::status::inconsistent);
+    tick_update_msg wrong;
+    wrong.server_tick = ++tick;
+    wrong.digest = verify_digest{tick, view.hash() + 1, static_cast<std::uint32_t>(view.size())};
+    CHECK(view.apply(wrong) == client_view::status::digest_mismatch);
+    if (!model.empty()) {
+      tick_update_msg dup;
+      dup.server_tick = ++tick;
+      entity_state s;
+      s.id = *model.begin();
+      dup.enters.push_back(s);
+      CHECK(view.apply(dup) == client_view::status::inconsistent);
+    }
+    CHECK(view.problems() >= 3);
+  }
 }

@@ -83,6 +83,7 @@ TEST_SUITE("zone.server") {
     std::vector<entity_id> me(good_count);
     std::vector<view_state> views(good_count);
     std::optional<net::position_quantizer> quantizer;
+    std::vector<net::client_view> checked;  // the net layer's client view, applied alongside
     for (int i = 0; i < good_count; ++i) {
       good.push_back(std::make_unique<test_client>(server.port()));
       REQUIRE(good.back()->send(net::hello_msg{"player" + std::to_string(i), "", net::protocol_version}));
@@ -96,6 +97,7 @@ TEST_SUITE("zone.server") {
       CHECK(me[i] != null_entity);
       CHECK(welcome.tick_rate_hz == 30);
       quantizer.emplace(welcome.world);
+      checked.emplace_back(welcome.world);
     }
     CHECK(me[0] != me[1]);
 
@@ -109,6 +111,7 @@ TEST_SUITE("zone.server") {
           REQUIRE(m.has_value());
           REQUIRE(std::holds_alternative<net::tick_update_msg>(*m));
           views[i].apply(std::get<net::tick_update_msg>(*m), *quantizer);
+          CHECK(checked[i].apply(std::get<net::tick_update_msg>(*m)) == net::client_view::status::ok);
         }
       }
     };
