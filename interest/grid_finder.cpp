@@ -246,6 +246,7 @@ grid_plan plan_from_bounds(const box_set& s, const bounds& b, const grid_finder_
 
 constexpr std::size_t check_chunk_limit = 512;  // fixed: output order must not depend on threads
 constexpr std::size_t large_chunk_limit = 64;
+constexpr std::uint32_t max_groups = 8;  // (category, mask) signatures grouped per cell
 
 inline bool boxes_qualify(const packed_box& a, const packed_box& b) {
   return a.lo[0] <= b.hi[0] && b.lo[0] <= a.hi[0] && a.lo[1] <= b.hi[1] && b.lo[1] <= a.hi[1] && a.lo[2] <= b.hi[2] &&
@@ -263,10 +264,12 @@ struct cell_columns {
   std::vector<float> lx, ly, lz, hx, hy, hz;
   std::vector<std::uint32_t> cat, msk, flag;
   std::vector<box_id> id;
+  std::vector<std::uint8_t> group;  // signature group of the i-th box of the cell's list
   void resize(std::size_t n) {
     if (lx.size() >= n) return;
     for (auto* v : {&lx, &ly, &lz, &hx, &hy, &hz}) v->resize(n);
     for (auto* v : {&cat, &msk, &flag, &id}) v->resize(n);
+    group.resize(n);
   }
 };
 
@@ -423,35 +426,69 @@ void grid_finder::find_valid(const box_set& boxes, pair_list& out) {
       const auto cy = static_cast<std::int32_t>((c / dx) % dy);
       const auto cz = static_cast<std::int32_t>(c / (static_cast<std::size_t>(dx) * dy));
       const std::uint32_t len = end - begin;
-      checks += static_cast<std::uint64_t>(len) * (len - 1) / 2;
-      // Load the cell's boxes into small columns, with one 3-bit flag per box: bit d set when
-      // the box's max corner lies in this cell's slab on axis d. Both boxes of a pair occupy
-      // this cell, so min(hi-cell a, hi-cell b) == c on axis d iff either box has bit d: the
-      // output-cell rule is (flag_a | flag_b) == 7, and every test below is branch-free.
+      // Group the cell's boxes by their (category, mask) signature (up to max_groups distinct
+      // ones; more fall back to one mixed group). Pairs of groups that can never qualify, such
+      // as AOI-vs-AOI or presence-vs-presence in a zone, are then skipped without a test.
       cell_columns& col = sc.columns[k];
       col.resize(len);
+      std::uint32_t groups = 0;
+      std::uint32_t group_cat[max_groups], group_mask[max_groups], group_size[max_groups + 1];
+      for (std::uint32_t i = 0; i < len && groups <= max_groups; ++i) {
+        const packed_box& p = sc.packed[list[i]];
+        std::uint32_t g = 0;
+        while (g < groups && !(group_cat[g] == p.category && group_mask[g] == p.mask)) ++g;
+        if (g == groups) {
+          if (groups == max_groups) {
+            groups = max_groups + 1;  // too many signatures: one mixed group
+            break;
+          }
+          group_cat[g] = p.category;
+          group_mask[g] = p.mask;
+          group_size[g] = 0;
+          ++groups;
+        }
+        ++group_size[g];
+        col.group[i] = static_cast<std::uint8_t>(g);
+      }
+      const bool mixed = groups > max_groups;
+      if (mixed) {
+        groups = 1;
+        group_size[0] = len;
+      }
+      std::uint32_t group_start[max_groups + 1];
+      group_start[0] = 0;
+      for (std::uint32_t g = 0; g < groups; ++g) group_start[g + 1] = group_start[g] + group_size[g];
+      // Load the boxes into small columns in group order, with one 3-bit flag per box: bit d set
+      // when the box's max corner lies in this cell's slab on axis d. Both boxes of a pair occupy
+      // this cell, so min(hi-cell a, hi-cell b) == c on axis d iff either box has bit d: the
+      // output-cell rule is (flag_a | flag_b) == 7, and every test below is branch-free.
+      std::uint32_t cursor[max_groups];
+      for (std::uint32_t g = 0; g < groups; ++g) cursor[g] = group_start[g];
       for (std::uint32_t i = 0; i < len; ++i) {
         const packed_box& p = sc.packed[list[i]];
-        col.lx[i] = p.lo[0];
-        col.ly[i] = p.lo[1];
-        col.lz[i] = p.lo[2];
-        col.hx[i] = p.hi[0];
-        col.hy[i] = p.hi[1];
-        col.hz[i] = p.hi[2];
-        col.cat[i] = p.category;
-        col.msk[i] = p.mask;
-        col.flag[i] = static_cast<std::uint32_t>(p.hi_cell[0] == cx) | static_cast<std::uint32_t>(p.hi_cell[1] == cy) << 1 |
-                      static_cast<std::uint32_t>(p.hi_cell[2] == cz) << 2;
-        col.id[i] = p.id;
+        const std::uint32_t at = cursor[mixed ? 0 : col.group[i]]++;
+        col.lx[at] = p.lo[0];
+        col.ly[at] = p.lo[1];
+        col.lz[at] = p.lo[2];
+        col.hx[at] = p.hi[0];
+        col.hy[at] = p.hi[1];
+        col.hz[at] = p.hi[2];
+        col.cat[at] = p.category;
+        col.msk[at] = p.mask;
+        col.flag[at] = static_cast<std::uint32_t>(p.hi_cell[0] == cx) | static_cast<std::uint32_t>(p.hi_cell[1] == cy) << 1 |
+                       static_cast<std::uint32_t>(p.hi_cell[2] == cz) << 2;
+        col.id[at] = p.id;
       }
       const float *lx = col.lx.data(), *ly = col.ly.data(), *lz = col.lz.data();
       const float *hx = col.hx.data(), *hy = col.hy.data(), *hz = col.hz.data();
       const std::uint32_t *cat = col.cat.data(), *msk = col.msk.data(), *flag = col.flag.data();
-      for (std::uint32_t i = 0; i + 1 < len; ++i) {
+      // Box i against boxes [first, last) of the columns.
+      auto test_range = [&](std::uint32_t i, std::uint32_t first, std::uint32_t last) {
         const float ax0 = lx[i], ay0 = ly[i], az0 = lz[i], ax1 = hx[i], ay1 = hy[i], az1 = hz[i];
         const std::uint32_t ac = cat[i], am = msk[i], af = flag[i];
-        for (std::uint32_t block = i + 1; block < len; block += 64) {
-          const std::uint32_t blen = std::min<std::uint32_t>(len - block, 64);
+        checks += last - first;
+        for (std::uint32_t block = first; block < last; block += 64) {
+          const std::uint32_t blen = std::min<std::uint32_t>(last - block, 64);
           alignas(64) std::uint8_t hit[64];
           for (std::uint32_t t = 0; t < blen; ++t) {
             const std::uint32_t j = block + t;
@@ -463,6 +500,14 @@ void grid_finder::find_valid(const box_set& boxes, pair_list& out) {
             if (hit[t] == 0) continue;
             const box_id a = col.id[i], b = col.id[block + t];
             found.push_back(a < b ? id_pair{a, b} : id_pair{b, a});
+          }
+        }
+      };
+      for (std::uint32_t ga = 0; ga < groups; ++ga) {
+        for (std::uint32_t gb = ga; gb < groups; ++gb) {
+          if (!mixed && ((group_cat[ga] & group_mask[gb]) | (group_cat[gb] & group_mask[ga])) == 0) continue;
+          for (std::uint32_t i = group_start[ga]; i < group_start[ga + 1]; ++i) {
+            test_range(i, ga == gb ? i + 1 : group_start[gb], group_start[gb + 1]);
           }
         }
       }

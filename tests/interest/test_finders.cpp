@@ -74,11 +74,13 @@ enum class family {
   negative_large,
   mask_mix,
   integer_grid,
-  flat_world
+  flat_world,
+  few_classes
 };
 constexpr family all_families[] = {family::uniform,      family::touching,       family::zero_size, family::identical,
                                    family::huge_over_tiny, family::long_thin,     family::negative_large,
-                                   family::mask_mix,     family::integer_grid,   family::flat_world};
+                                   family::mask_mix,     family::integer_grid,   family::flat_world,
+                                   family::few_classes};
 
 std::string family_name(family f) {
   switch (f) {
@@ -92,6 +94,7 @@ std::string family_name(family f) {
     case family::mask_mix: return "mask_mix";
     case family::integer_grid: return "integer_grid";
     case family::flat_world: return "flat_world";
+    case family::few_classes: return "few_classes";
   }
   return "?";
 }
@@ -149,6 +152,17 @@ box_set make_family(family f, std::size_t n, std::uint64_t seed) {
           b.lo[d] = static_cast<float>(r.rng() % 40);
           b.hi[d] = b.lo[d] + static_cast<float>(r.rng() % 8);
         }
+        break;
+      }
+      case family::few_classes: {
+        // A handful of (category, mask) signatures, some never compatible with each other:
+        // exercises the per-cell grouping that skips incompatible signature pairs.
+        static constexpr std::uint32_t cats[] = {1, 2, 4, 1, 8};
+        static constexpr std::uint32_t masks[] = {2, 1, 4, 1, 0};
+        b = r.make(80, 14);
+        const auto k = r.rng() % 5;
+        b.category = cats[k];
+        b.mask = masks[k];
         break;
       }
       case family::flat_world: {
