@@ -256,6 +256,35 @@ TEST_SUITE("gpu.pbig") {
     }
   }
 
+  TEST_CASE("many batches with overflowing buffers: pipeline re-runs keep every pair and the order") {
+    thread_pool pool(8);
+    const auto seed = fresh_seed();
+    CAPTURE(seed);
+    const box_set s = generate_gaussian(1000000, seed);  // ~1.2e7 pairs, 11 batches
+    pair_list reference[2];
+    for (const bool lb : {false, true}) {
+      auto direct = make_gpu(gpu::pbig_options{.load_balancing = lb, .decode_pool = &pool});
+      REQUIRE_FALSE(direct->find(s, reference[lb]).has_value());
+      REQUIRE(gpu::last_pbig_report(*direct)->batches > 4);
+    }
+    for (const auto& o : all_combinations(&pool, 20000)) {
+      CAPTURE(describe(o));
+      auto finder = make_gpu(o);
+      pair_list out;
+      REQUIRE_FALSE(finder->find(s, out).has_value());
+      const auto* report = gpu::last_pbig_report(*finder);
+      CHECK(report->batches > 4);
+      CHECK(report->reruns >= 1);
+      CHECK(out == reference[o.load_balancing]);  // same pairs, same order as the direct output
+    }
+    pair_list cpu;
+    grid_finder grid(&pool);
+    REQUIRE_FALSE(grid.find(s, cpu).has_value());
+    sort_canonical(cpu, s.size());
+    sort_canonical(reference[1], s.size());
+    CHECK(reference[1] == cpu);
+  }
+
   TEST_CASE("exact whatever the cell size") {
     thread_pool pool(2);
     brute_force_finder brute(&pool);
