@@ -44,6 +44,7 @@ class pbig_finder final : public interest::pair_finder {
   }
 
  protected:
+  [[nodiscard]] interest::thread_pool* worker_pool() const override { return engine_.pool(); }
   void find_valid(const interest::box_set& boxes, interest::pair_list& out) override {
     out.clear();
     if (boxes.size() < 2) return;

@@ -86,20 +86,29 @@ std::optional<box_error> validate_box(const box& b, std::size_t index) {
   return std::nullopt;
 }
 
-std::optional<box_error> validate(const box_set& boxes) {
+std::optional<box_error> validate(const box_set& boxes, thread_pool* pool) {
   const std::size_t n = boxes.size();
-  // Fast vectorisable scan first; only on a failure find and describe the first bad box.
-  bool ok = true;
-  for (std::size_t i = 0; i < n; ++i) {
-    // (lo <= hi) is false for NaN; the finite test catches infinities.
-    const bool good = boxes.lo_x[i] <= boxes.hi_x[i] && boxes.lo_y[i] <= boxes.hi_y[i] && boxes.lo_z[i] <= boxes.hi_z[i] &&
-                      std::isfinite(boxes.lo_x[i]) && std::isfinite(boxes.hi_x[i]) && std::isfinite(boxes.lo_y[i]) &&
-                      std::isfinite(boxes.hi_y[i]) && std::isfinite(boxes.lo_z[i]) && std::isfinite(boxes.hi_z[i]);
-    ok &= good;
-  }
-  if (ok) return std::nullopt;
-  for (std::size_t i = 0; i < n; ++i) {
-    if (auto err = validate_box(boxes.get(i), i)) return err;
+  // Fast vectorisable scan of fixed chunks first; only a failing chunk is searched for the
+  // first bad box and described, and the lowest failing chunk wins.
+  const std::size_t chunks = std::clamp<std::size_t>(n / 65536, 1, 64);
+  std::vector<std::uint8_t> chunk_ok(chunks, 1);
+  run_tasks(n >= 65536 ? pool : nullptr, chunks, [&](std::size_t c) {
+    bool ok = true;
+    for (std::size_t i = n * c / chunks, e = n * (c + 1) / chunks; i < e; ++i) {
+      // (lo <= hi) is false for NaN; the finite tests catch infinities.
+      const bool good = boxes.lo_x[i] <= boxes.hi_x[i] && boxes.lo_y[i] <= boxes.hi_y[i] &&
+                        boxes.lo_z[i] <= boxes.hi_z[i] && std::isfinite(boxes.lo_x[i]) && std::isfinite(boxes.hi_x[i]) &&
+                        std::isfinite(boxes.lo_y[i]) && std::isfinite(boxes.hi_y[i]) && std::isfinite(boxes.lo_z[i]) &&
+                        std::isfinite(boxes.hi_z[i]);
+      ok &= good;
+    }
+    chunk_ok[c] = ok ? 1 : 0;
+  });
+  for (std::size_t c = 0; c < chunks; ++c) {
+    if (chunk_ok[c]) continue;
+    for (std::size_t i = n * c / chunks, e = n * (c + 1) / chunks; i < e; ++i) {
+      if (auto err = validate_box(boxes.get(i), i)) return err;
+    }
   }
   return std::nullopt;
 }
@@ -110,7 +119,7 @@ std::optional<box_error> pair_finder::find(const box_set& boxes, pair_list& out)
     return box_error{boxes.size() - 1, "the set has " + std::to_string(boxes.size()) +
                                            " boxes; ids are 32-bit, so at most 4294967295 boxes are supported"};
   }
-  if (auto err = validate(boxes)) return err;
+  if (auto err = validate(boxes, worker_pool())) return err;
   stats_ = {};
   find_valid(boxes, out);
   return std::nullopt;

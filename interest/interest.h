@@ -13,6 +13,8 @@
 #include <memory>
 #include <mutex>
 #include <thread>
+#include <type_traits>
+#include <utility>
 #include <optional>
 #include <random>
 #include <string>
@@ -90,8 +92,9 @@ struct box_error {
 };
 
 /// Checks every box: no NaN or infinite coordinate, lo <= hi on every axis.
-/// Returns the first invalid box (lowest index), or nothing when the set is valid.
-[[nodiscard]] std::optional<box_error> validate(const box_set& boxes);
+/// Returns the first invalid box (lowest index), or nothing when the set is valid. With a pool,
+/// the scan is split over its threads (the answer is the same).
+[[nodiscard]] std::optional<box_error> validate(const box_set& boxes, thread_pool* pool = nullptr);
 
 /// Validates one box; `index` is only used in the message.
 [[nodiscard]] std::optional<box_error> validate_box(const box& b, std::size_t index);
@@ -104,15 +107,35 @@ struct box_error {
          ((s.category[a] & s.mask[b]) | (s.category[b] & s.mask[a])) != 0;
 }
 
-/// An unordered pair of box ids, stored with a < b.
+/// An unordered pair of box ids, stored with a < b. (No default member values: a pair_list that
+/// grows to hold a finder's output is not zero-filled first; id_pair{} is still {0, 0}.)
 struct id_pair {
-  box_id a = 0;
-  box_id b = 0;
+  box_id a;
+  box_id b;
   friend bool operator==(const id_pair&, const id_pair&) = default;
   friend auto operator<=>(const id_pair&, const id_pair&) = default;
 };
 
-using pair_list = std::vector<id_pair>;
+/// An allocator whose resize() leaves new trivially-constructible elements uninitialised, so
+/// finders that size their output and then fill it do not pay for a zero-fill pass.
+template <class T>
+struct default_init_allocator : std::allocator<T> {
+  template <class U>
+  struct rebind {
+    using other = default_init_allocator<U>;
+  };
+  using std::allocator<T>::allocator;
+  template <class U>
+  void construct(U* p) noexcept(std::is_nothrow_default_constructible_v<U>) {
+    ::new (static_cast<void*>(p)) U;
+  }
+  template <class U, class... Args>
+  void construct(U* p, Args&&... args) {
+    ::new (static_cast<void*>(p)) U(std::forward<Args>(args)...);
+  }
+};
+
+using pair_list = std::vector<id_pair, default_init_allocator<id_pair>>;
 
 /// Canonical order for comparison and output: every pair as (min id, max id), sorted ascending
 /// by (a, b). Linear-time bucket pass by first id, then a small sort per bucket (spread over
@@ -162,6 +185,8 @@ class pair_finder {
   [[nodiscard]] const finder_stats& stats() const { return stats_; }
 
  protected:
+  /// Threads `find` may use to validate the input (null: the calling thread).
+  [[nodiscard]] virtual thread_pool* worker_pool() const { return nullptr; }
   /// Called with a validated set; must clear `out` and fill it.
   virtual void find_valid(const box_set& boxes, pair_list& out) = 0;
   finder_stats stats_;
@@ -178,6 +203,7 @@ class brute_force_finder final : public pair_finder {
 
  protected:
   void find_valid(const box_set& boxes, pair_list& out) override;
+  [[nodiscard]] thread_pool* worker_pool() const override { return pool_; }
 
  private:
   thread_pool* pool_;
@@ -232,6 +258,7 @@ class grid_finder final : public pair_finder {
 
  protected:
   void find_valid(const box_set& boxes, pair_list& out) override;
+  [[nodiscard]] thread_pool* worker_pool() const override { return pool_; }
 
  private:
   struct scratch;

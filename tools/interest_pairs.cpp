@@ -315,7 +315,17 @@ int run_pairs(int argc, char** argv) {
 
   t0 = std::chrono::steady_clock::now();
   zi::pair_list pairs;
-  if (const auto err = finder->find(boxes, pairs)) {
+  std::optional<zi::box_error> err;
+  try {
+    err = finder->find(boxes, pairs);
+  } catch (const std::exception& e) {
+    // A device error mid-call: `auto` falls back to the CPU finder; `gpu` reports it.
+    if (backend != "auto") throw;
+    spdlog::warn("auto: the GPU finder failed ({}); falling back to the CPU grid finder", e.what());
+    finder = std::make_unique<zi::grid_finder>(&pool);
+    err = finder->find(boxes, pairs);
+  }
+  if (err) {
     spdlog::error("{}: {}", input, err->message);
     return exit_bad_input;
   }
