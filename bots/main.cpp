@@ -1,0 +1,298 @@
+// bot-swarm: many scripted bots against a zone server, with measurements and verification
+// (docs/bots.md). `bot-swarm --help` lists the options.
+#include <boost/program_options.hpp>
+
+#include <algorithm>
+#include <cstdio>
+#include <fstream>
+#include <iostream>
+#include <sstream>
+
+#include "swarm.h"
+
+namespace {
+
+namespace po = boost::program_options;
+using zone::bots::swarm_options;
+using zone::bots::swarm_result;
+using zone::bots::latency_histogram_us;
+
+/// "walk=0.6,patrol=0.2,follow=0.1,crowd=0.1" -> shares; an error text on a bad entry.
+std::string parse_mix(const std::string& text, std::array<double, 4>& mix) {
+  mix = {0, 0, 0, 0};
+  std::stringstream in(text);
+  std::string item;
+  while (std::getline(in, item, ',')) {
+    const auto eq = item.find('=');
+    if (eq == std::string::npos) return "mix entry '" + item + "' is not name=share";
+    const std::string name = item.substr(0, eq);
+    double share = 0;
+    try {
+      share = std::stod(item.substr(eq + 1));
+    } catch (...) {
+      return "mix entry '" + item + "' has no number";
+    }
+    if (!(share >= 0)) return "mix share of '" + name + "' must be >= 0";
+    bool found = false;
+    for (std::size_t k = 0; k < zone::bots::behaviour_names.size(); ++k) {
+      if (name == zone::bots::behaviour_names[k]) mix[k] += share, found = true;
+    }
+    if (!found) return "unknown behaviour '" + name + "' (walk, patrol, follow, crowd)";
+  }
+  if (mix[0] + mix[1] + mix[2] + mix[3] <= 0) return "the mix must have a positive share";
+  return {};
+}
+
+void print_progress(const zone::bots::second_sample& s, const zone::bots::swarm_counters& c, const swarm_options& o) {
+  std::fprintf(stderr,
+               "[%5.1fs] bots %llu/%u  fail %llu  drop %llu | %6llu msg/s %8.1f KB/s | latency p50 %6.2f p99 %6.2f ms | "
+               "enters %llu leaves %llu | mismatches %llu\n",
+               s.t, static_cast<unsigned long long>(s.connected), o.bots,
+               static_cast<unsigned long long>(c.connect_failures.load()),
+               static_cast<unsigned long long>(c.unexpected_disconnects.load()), static_cast<unsigned long long>(s.frames),
+               static_cast<double>(s.bytes) / 1024.0, s.p50_ms, s.p99_ms, static_cast<unsigned long long>(s.enters),
+               static_cast<unsigned long long>(s.leaves), static_cast<unsigned long long>(s.mismatches));
+}
+
+double quantile(std::vector<double> v, double q) {
+  if (v.empty()) return 0;
+  std::sort(v.begin(), v.end());
+  const auto i = static_cast<std::size_t>(std::clamp(q * static_cast<double>(v.size() - 1), 0.0, static_cast<double>(v.size() - 1)));
+  return v[i];
+}
+
+struct summary {
+  double p50 = 0, p95 = 0, p99 = 0, max = 0;
+  std::uint64_t samples = 0;
+  double kbps_median = 0, kbps_p95 = 0, msgs_median = 0;
+  double total_kbps = 0;
+};
+
+summary summarize(const swarm_result& r) {
+  summary s;
+  s.p50 = latency_histogram_us::percentile_ms(r.latency, 0.5);
+  s.p95 = latency_histogram_us::percentile_ms(r.latency, 0.95);
+  s.p99 = latency_histogram_us::percentile_ms(r.latency, 0.99);
+  s.max = r.latency_max_ms;
+  s.samples = latency_histogram_us::total(r.latency);
+  std::vector<double> kbps, msgs;
+  for (const auto& slot : r.slots) {
+    if (slot.connected_s < 1.0) continue;
+    kbps.push_back(static_cast<double>(slot.bytes_in) / 1024.0 / slot.connected_s);
+    msgs.push_back(static_cast<double>(slot.frames_in) / slot.connected_s);
+  }
+  s.kbps_median = quantile(kbps, 0.5);
+  s.kbps_p95 = quantile(kbps, 0.95);
+  s.msgs_median = quantile(msgs, 0.5);
+  s.total_kbps = r.elapsed_s > 0 ? static_cast<double>(r.bytes_in) / 1024.0 / r.elapsed_s : 0;
+  return s;
+}
+
+void print_table(const swarm_result& r, const summary& s) {
+  const auto row = [](const char* name, const std::string& value) { std::printf("  %-34s %s\n", name, value.c_str()); };
+  const auto num = [](auto v) { return std::to_string(v); };
+  const auto ms = [](double v) {
+    char b[32];
+    std::snprintf(b, sizeof b, "%.2f ms", v);
+    return std::string(b);
+  };
+  const auto fmt = [](double v, const char* unit) {
+    char b[48];
+    std::snprintf(b, sizeof b, "%.1f %s", v, unit);
+    return std::string(b);
+  };
+  std::printf("bot-swarm report (%u bots, %.1f s, %s:%u)\n", r.options.bots, r.elapsed_s, r.options.host.c_str(),
+              r.options.port);
+  row("bots connected (ever) / asked", num(r.bots_connected) + " / " + num(r.options.bots));
+  row("connection attempts", num(r.connect_attempts));
+  row("connection failures", num(r.connect_failures));
+  row("unexpected disconnects", num(r.unexpected_disconnects));
+  row("server errors received", num(r.server_errors));
+  row("churn logouts", num(r.logouts));
+  row("update latency p50", ms(s.p50));
+  row("update latency p95", ms(s.p95));
+  row("update latency p99", ms(s.p99));
+  row("update latency max", ms(s.max));
+  row("latency samples (unsynced)", num(s.samples) + " (" + num(r.latency_unsynced) + ")");
+  row("clock sync: fastest ping RTT", ms(r.min_rtt_ms));
+  row("downstream per bot, median", fmt(s.kbps_median, "KB/s"));
+  row("downstream per bot, p95", fmt(s.kbps_p95, "KB/s"));
+  row("messages per bot per s, median", fmt(s.msgs_median, "msg/s"));
+  row("downstream, all bots", fmt(s.total_kbps, "KB/s"));
+  row("tick updates", num(r.tick_updates));
+  row("enters / leaves / updates", num(r.enters) + " / " + num(r.leaves) + " / " + num(r.updates));
+  row("resyncs (reset after the first)", num(r.resets));
+  row("inputs sent", num(r.inputs_sent));
+  row("digests checked", num(r.digests_checked) + (r.options.verify ? "" : " (not compared: no --verify)"));
+  row("digest mismatches", num(r.digest_mismatches));
+  row("inconsistent updates", num(r.inconsistent));
+  row("AOI checks / unchecked / violations", num(r.aoi_checked) + " / " + num(r.aoi_unchecked) + " / " + num(r.aoi_violations));
+  row("MISMATCHES", num(r.mismatches()));
+  if (!r.problems.empty()) {
+    std::printf("problems (%llu; first %zu):\n", static_cast<unsigned long long>(r.problems_total), std::min<std::size_t>(r.problems.size(), 20));
+    for (std::size_t i = 0; i < r.problems.size() && i < 20; ++i) std::printf("  %s\n", r.problems[i].c_str());
+  }
+}
+
+std::string json_escape(const std::string& s) {
+  std::string o;
+  for (const char c : s) {
+    if (c == '"' || c == '\\') o += '\\', o += c;
+    else if (static_cast<unsigned char>(c) < 0x20) o += ' ';
+    else o += c;
+  }
+  return o;
+}
+
+bool write_json(const std::string& path, const swarm_result& r, const summary& s) {
+  std::ofstream o(path);
+  if (!o) return false;
+  o << "{\n";
+  o << "  \"bots\": " << r.options.bots << ",\n  \"duration_s\": " << r.elapsed_s << ",\n";
+  o << "  \"input_hz\": " << r.options.input_hz << ",\n  \"churn_per_s\": " << r.options.churn << ",\n";
+  o << "  \"verify\": " << (r.options.verify ? "true" : "false") << ",\n";
+  o << "  \"bots_connected\": " << r.bots_connected << ",\n  \"connect_attempts\": " << r.connect_attempts << ",\n";
+  o << "  \"connect_failures\": " << r.connect_failures << ",\n  \"unexpected_disconnects\": " << r.unexpected_disconnects << ",\n";
+  o << "  \"server_errors\": " << r.server_errors << ",\n  \"logouts\": " << r.logouts << ",\n";
+  o << "  \"latency_ms\": {\"p50\": " << s.p50 << ", \"p95\": " << s.p95 << ", \"p99\": " << s.p99 << ", \"max\": " << s.max
+    << ", \"samples\": " << s.samples << ", \"unsynced\": " << r.latency_unsynced << ", \"min_rtt\": " << r.min_rtt_ms << "},\n";
+  o << "  \"per_bot\": {\"kbps_median\": " << s.kbps_median << ", \"kbps_p95\": " << s.kbps_p95
+    << ", \"msgs_per_s_median\": " << s.msgs_median << "},\n";
+  o << "  \"downstream_kbps_total\": " << s.total_kbps << ",\n";
+  o << "  \"frames\": " << r.frames_in << ",\n  \"bytes\": " << r.bytes_in << ",\n  \"tick_updates\": " << r.tick_updates << ",\n";
+  o << "  \"enters\": " << r.enters << ",\n  \"leaves\": " << r.leaves << ",\n  \"updates\": " << r.updates << ",\n";
+  o << "  \"resets\": " << r.resets << ",\n  \"inputs_sent\": " << r.inputs_sent << ",\n";
+  o << "  \"digests_checked\": " << r.digests_checked << ",\n  \"digest_mismatches\": " << r.digest_mismatches << ",\n";
+  o << "  \"inconsistent\": " << r.inconsistent << ",\n  \"aoi_checked\": " << r.aoi_checked << ",\n";
+  o << "  \"aoi_unchecked\": " << r.aoi_unchecked << ",\n  \"aoi_violations\": " << r.aoi_violations << ",\n";
+  o << "  \"mismatches\": " << r.mismatches() << ",\n";
+  o << "  \"problems_total\": " << r.problems_total << ",\n  \"problems\": [";
+  for (std::size_t i = 0; i < r.problems.size(); ++i) o << (i ? ", " : "") << '"' << json_escape(r.problems[i]) << '"';
+  o << "],\n  \"series\": [\n";
+  for (std::size_t i = 0; i < r.series.size(); ++i) {
+    const auto& x = r.series[i];
+    o << "    {\"t\": " << x.t << ", \"connected\": " << x.connected << ", \"frames\": " << x.frames << ", \"bytes\": " << x.bytes
+      << ", \"p50_ms\": " << x.p50_ms << ", \"p99_ms\": " << x.p99_ms << ", \"mismatches\": " << x.mismatches << "}"
+      << (i + 1 < r.series.size() ? ",\n" : "\n");
+  }
+  o << "  ]\n}\n";
+  return static_cast<bool>(o);
+}
+
+bool write_csv(const std::string& path, const swarm_result& r) {
+  std::ofstream o(path);
+  if (!o) return false;
+  o << "t_s,connected,frames_per_s,kbytes_per_s,enters,leaves,updates,latency_p50_ms,latency_p99_ms,latency_max_ms,mismatches\n";
+  for (const auto& x : r.series) {
+    o << x.t << ',' << x.connected << ',' << x.frames << ',' << static_cast<double>(x.bytes) / 1024.0 << ',' << x.enters << ','
+      << x.leaves << ',' << x.updates << ',' << x.p50_ms << ',' << x.p99_ms << ',' << x.max_window_ms << ',' << x.mismatches
+      << '\n';
+  }
+  return static_cast<bool>(o);
+}
+
+/// A PNG of latency p50/p99 per second through gnuplot, when it is installed; false otherwise.
+bool write_plot(const std::string& png, const swarm_result& r) {
+  if (std::system("command -v gnuplot >/dev/null 2>&1") != 0) return false;
+  const std::string data = png + ".dat";
+  {
+    std::ofstream d(data);
+    for (const auto& x : r.series) d << x.t << ' ' << x.p50_ms << ' ' << x.p99_ms << ' ' << x.connected << '\n';
+  }
+  FILE* g = popen("gnuplot", "w");
+  if (!g) return false;
+  std::fprintf(g,
+               "set terminal png size 900,500\nset output '%s'\nset title 'bot-swarm: update latency (%u bots)'\n"
+               "set xlabel 'time (s)'\nset ylabel 'latency (ms)'\nset y2label 'bots connected'\nset y2tics\nset ytics nomirror\n"
+               "set grid\nplot '%s' using 1:2 with lines title 'p50', '' using 1:3 with lines title 'p99', "
+               "'' using 1:4 axes x1y2 with lines title 'bots'\n",
+               png.c_str(), r.options.bots, data.c_str());
+  const int rc = pclose(g);
+  std::remove(data.c_str());
+  return rc == 0;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  swarm_options o;
+  std::string mix = "walk=1", json, csv, plot, hotspot;
+  unsigned port = o.port;
+  po::options_description desc("bot-swarm options");
+  desc.add_options()                                                                                   //
+      ("help,h", "print this help and exit")                                                           //
+      ("host", po::value(&o.host)->default_value(o.host), "zone server host")                          //
+      ("port", po::value(&port)->default_value(port), "zone server port")                              //
+      ("bots", po::value(&o.bots)->default_value(o.bots), "number of bots")                            //
+      ("duration", po::value(&o.duration_s)->default_value(o.duration_s), "run time in seconds (ramp-up included)")  //
+      ("ramp", po::value(&o.ramp)->default_value(o.ramp), "new bots per second during ramp-up")        //
+      ("input-hz", po::value(&o.input_hz)->default_value(o.input_hz), "inputs per second per bot")     //
+      ("ping-hz", po::value(&o.ping_hz)->default_value(o.ping_hz), "pings per second per bot")         //
+      ("mix", po::value(&mix)->default_value(mix), "behaviour shares, e.g. walk=0.6,patrol=0.2,follow=0.1,crowd=0.1")  //
+      ("hotspot", po::value(&hotspot), "flash-crowd target x,y,z (default: where the leader bot first is)")  //
+      ("churn", po::value(&o.churn)->default_value(o.churn), "logouts per second (each bot logs in again)")  //
+      ("relogin-delay", po::value(&o.relogin_delay_s)->default_value(o.relogin_delay_s), "seconds before a churned bot logs in again")  //
+      ("verify", po::bool_switch(&o.verify), "compare the server's visible-set digests with each bot's tracked view")  //
+      ("threads", po::value(&o.threads)->default_value(o.threads), "I/O threads")                      //
+      ("aoi", po::value(&o.aoi)->default_value(o.aoi), "players' AOI half-extent on the server (its --player-aoi), for the AOI check")  //
+      ("hysteresis", po::value(&o.hysteresis)->default_value(o.hysteresis), "the server's --hysteresis (m)")  //
+      ("max-speed", po::value(&o.max_speed)->default_value(o.max_speed), "fastest entity speed on the server (m/s)")  //
+      ("connect-timeout", po::value(&o.connect_timeout_s)->default_value(o.connect_timeout_s), "seconds to connect and get a welcome")  //
+      ("report-json", po::value(&json), "write the report as JSON to this file")                      //
+      ("report-csv", po::value(&csv), "write the per-second series as CSV to this file")             //
+      ("plot", po::value(&plot), "write a PNG latency plot (needs gnuplot)")                          //
+      ("quiet", "no progress line");
+  po::variables_map vm;
+  try {
+    po::store(po::parse_command_line(argc, argv, desc), vm);
+    po::notify(vm);
+  } catch (const po::error& e) {
+    std::fprintf(stderr, "bot-swarm: %s (try --help)\n", e.what());
+    return 64;
+  }
+  if (vm.count("help")) {
+    std::cout << "Usage: bot-swarm [options]\n"
+              << desc
+              << "\nExit status: 0 all bots connected and no mismatch; 1 mismatches; 2 connection failures, "
+                 "unexpected disconnects or bots that never connected; 64 bad options.\n";
+    return 0;
+  }
+  if (port == 0 || port > 65535) {
+    std::fprintf(stderr, "bot-swarm: --port must be in 1..65535\n");
+    return 64;
+  }
+  o.port = static_cast<std::uint16_t>(port);
+  if (const auto err = parse_mix(mix, o.mix); !err.empty()) {
+    std::fprintf(stderr, "bot-swarm: %s\n", err.c_str());
+    return 64;
+  }
+  if (!hotspot.empty()) {
+    float x = 0, y = 0, z = 0;
+    if (std::sscanf(hotspot.c_str(), "%f,%f,%f", &x, &y, &z) < 2) {
+      std::fprintf(stderr, "bot-swarm: --hotspot wants x,y[,z]\n");
+      return 64;
+    }
+    o.hotspot = {x, y, z};
+    o.hotspot_set = true;
+  }
+  if (o.bots == 0 || !(o.duration_s > 0) || !(o.ramp > 0) || !(o.input_hz > 0) || o.threads == 0) {
+    std::fprintf(stderr, "bot-swarm: --bots, --duration, --ramp, --input-hz and --threads must be > 0\n");
+    return 64;
+  }
+
+  const auto outcome = zone::bots::run_swarm(o, vm.count("quiet") ? nullptr : print_progress);
+  if (!outcome.error.empty()) {
+    std::fprintf(stderr, "bot-swarm: %s\n", outcome.error.c_str());
+    return 2;
+  }
+  const auto& r = outcome.result;
+  const auto s = summarize(r);
+  print_table(r, s);
+  if (!json.empty() && !write_json(json, r, s)) std::fprintf(stderr, "bot-swarm: cannot write %s\n", json.c_str());
+  if (!csv.empty() && !write_csv(csv, r)) std::fprintf(stderr, "bot-swarm: cannot write %s\n", csv.c_str());
+  if (!plot.empty() && !write_plot(plot, r)) std::fprintf(stderr, "bot-swarm: no plot (gnuplot missing or failed)\n");
+  std::fflush(stdout);
+  if (r.mismatches() > 0) return 1;
+  if (r.bots_connected < r.options.bots || r.connect_failures > 0 || r.unexpected_disconnects > 0) return 2;
+  return 0;
+}

@@ -1,0 +1,796 @@
+// The bot swarm (swarm.h): one Boost.Asio io_context on several threads, one strand per bot.
+#include <utility>
+
+#include <boost/asio.hpp>
+
+#include "swarm.h"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <deque>
+#include <memory>
+#include <random>
+#include <thread>
+#include <unordered_set>
+
+namespace zone::bots {
+
+namespace asio = boost::asio;
+using tcp = asio::ip::tcp;
+using steady = std::chrono::steady_clock;
+
+// ---------------------------------------------------------------------------------------------
+// latency_histogram_us
+
+namespace {
+int bucket_of(std::uint64_t us) {
+  const double b = std::log2(static_cast<double>(us) + 1.0) * 16.0;
+  return std::clamp(static_cast<int>(b), 0, latency_histogram_us::buckets - 1);
+}
+double bucket_mid_us(int b) { return std::exp2((b + 0.5) / 16.0) - 1.0; }
+}  // namespace
+
+void latency_histogram_us::record(std::uint64_t us) {
+  count_[static_cast<std::size_t>(bucket_of(us))].fetch_add(1, std::memory_order_relaxed);
+  std::uint64_t m = max_.load(std::memory_order_relaxed);
+  while (us > m && !max_.compare_exchange_weak(m, us, std::memory_order_relaxed)) {
+  }
+}
+
+latency_histogram_us::counts latency_histogram_us::snapshot() const {
+  counts c{};
+  for (int b = 0; b < buckets; ++b) c[static_cast<std::size_t>(b)] = count_[static_cast<std::size_t>(b)].load(std::memory_order_relaxed);
+  return c;
+}
+
+std::uint64_t latency_histogram_us::total(const counts& c) {
+  std::uint64_t n = 0;
+  for (const auto v : c) n += v;
+  return n;
+}
+
+double latency_histogram_us::percentile_ms(const counts& c, double q) {
+  const std::uint64_t n = total(c);
+  if (n == 0) return 0;
+  const auto rank = static_cast<std::uint64_t>(std::ceil(q * static_cast<double>(n)));
+  std::uint64_t seen = 0;
+  for (int b = 0; b < buckets; ++b) {
+    seen += c[static_cast<std::size_t>(b)];
+    if (seen >= std::max<std::uint64_t>(rank, 1)) return bucket_mid_us(b) / 1000.0;
+  }
+  return bucket_mid_us(buckets - 1) / 1000.0;
+}
+
+// ---------------------------------------------------------------------------------------------
+// The swarm
+
+namespace {
+
+std::uint64_t local_us(steady::time_point epoch) {
+  return static_cast<std::uint64_t>(std::chrono::duration_cast<std::chrono::microseconds>(steady::now() - epoch).count());
+}
+
+/// Latest known position of each bot's own entity, written by whichever bot sees it (the server
+/// never tells an observer its own position). Indexed by slot of the entity handle; striped locks.
+class position_board {
+ public:
+  struct fix {
+    std::uint64_t tick = 0;
+    net::vec3f pos{};
+    bool known = false;
+  };
+  position_board() : entries_(std::size_t{1} << 20) {}
+  void claim(std::uint32_t id) {
+    auto& e = entries_[id & mask];
+    std::lock_guard lock(stripe(id));
+    e.id.store(id, std::memory_order_relaxed);
+    e.value = {};
+  }
+  void release(std::uint32_t id) {
+    auto& e = entries_[id & mask];
+    std::lock_guard lock(stripe(id));
+    if (e.id.load(std::memory_order_relaxed) == id) e.id.store(0, std::memory_order_relaxed);
+  }
+  /// Records a position of `id` at `tick` if `id` is a bot's entity and the fix is newer.
+  void report(std::uint32_t id, std::uint64_t tick, const net::vec3f& p) {
+    auto& e = entries_[id & mask];
+    if (e.id.load(std::memory_order_relaxed) != id) return;
+    std::lock_guard lock(stripe(id));
+    if (e.id.load(std::memory_order_relaxed) == id && (!e.value.known || tick >= e.value.tick)) e.value = {tick, p, true};
+  }
+  [[nodiscard]] fix get(std::uint32_t id) {
+    auto& e = entries_[id & mask];
+    if (e.id.load(std::memory_order_relaxed) != id) return {};
+    std::lock_guard lock(stripe(id));
+    return e.id.load(std::memory_order_relaxed) == id ? e.value : fix{};
+  }
+
+ private:
+  static constexpr std::uint32_t mask = (1u << 20) - 1;
+  struct entry {
+    std::atomic<std::uint32_t> id{0};
+    fix value;
+  };
+  std::mutex& stripe(std::uint32_t id) { return stripes_[(id & mask) % stripes_.size()]; }
+  std::vector<entry> entries_;
+  std::array<std::mutex, 64> stripes_;
+};
+
+class swarm;
+
+/// One session of one bot slot: connect, hello, play, close. Churn ends a session and starts a new
+/// one for the same slot. All handlers run on the session's strand.
+class bot_session : public std::enable_shared_from_this<bot_session> {
+ public:
+  bot_session(swarm& s, std::size_t slot, behaviour kind, std::uint64_t seed);
+  void start();
+  void logout();  ///< graceful, intended close (churn, end of run)
+  std::size_t slot() const { return slot_; }
+  bool playing() const { return playing_.load(std::memory_order_relaxed); }
+
+ private:
+  void on_connect(const boost::system::error_code& ec);
+  void read();
+  void on_frame(const net::frame_view& f);
+  void on_welcome(const net::wire::welcome& w);
+  void on_tick_update(const net::wire::tick_update& u);
+  void check_aoi(std::uint64_t tick, std::uint32_t id, const net::vec3f& p, const net::vec3f& half, float extra);
+  void send(const net::message& m);
+  void write_next();
+  void schedule_input();
+  void schedule_ping();
+  void send_input();
+  net::vec3f steer();
+  void fail(const std::string& why, bool connection_failure);
+  void close();
+
+  swarm& s_;
+  std::size_t slot_;
+  behaviour kind_;
+  std::mt19937_64 rng_;
+  asio::strand<asio::io_context::executor_type> strand_;
+  tcp::socket socket_;
+  asio::steady_timer input_timer_, ping_timer_, welcome_timer_;
+  net::frame_decoder decoder_;
+  net::encoder encoder_;
+  std::deque<std::vector<std::uint8_t>> outbox_;
+  bool writing_ = false, closed_ = false, intended_ = false, got_error_ = false;
+  std::atomic<bool> playing_{false};
+  std::uint32_t entity_ = 0;
+  std::optional<net::client_view> view_;
+  net::vec3f q_err_{};
+  double tick_rate_ = 30;
+  steady::time_point welcomed_at_{};
+  std::uint32_t sequence_ = 0;
+  std::uint64_t inputs_ = 0;
+  net::vec3f heading_{1, 0, 0};
+};
+
+class swarm {
+ public:
+  explicit swarm(const swarm_options& opt)
+      : opt_(opt), io_(static_cast<int>(std::max(1u, opt.threads))), slots_(opt.bots), sessions_(opt.bots) {
+    double total = 0;
+    for (const double m : opt_.mix) total += std::max(0.0, m);
+    if (total <= 0) opt_.mix = {1, 0, 0, 0}, total = 1;
+    // Deterministic, proportional assignment of behaviours to slots (largest remainder by prefix).
+    for (std::size_t i = 0; i < opt.bots; ++i) {
+      double acc = 0;
+      const double x = (static_cast<double>(i) + 0.5) / static_cast<double>(opt.bots) * total;
+      std::size_t k = 0;
+      for (; k < 4; ++k) {
+        acc += std::max(0.0, opt_.mix[k]);
+        if (x < acc) break;
+      }
+      slots_[i].kind = static_cast<behaviour>(std::min<std::size_t>(k, 3));
+    }
+  }
+
+  run_outcome run(progress_fn progress) {
+    run_outcome out;
+    try {
+      tcp::resolver resolver(io_);
+      auto results = resolver.resolve(opt_.host, std::to_string(opt_.port));
+      if (results.empty()) throw std::runtime_error("no address");
+      endpoint_ = results.begin()->endpoint();
+    } catch (const std::exception& e) {
+      out.error = "cannot resolve " + opt_.host + ": " + e.what();
+      return out;
+    }
+    epoch_ = steady::now();
+    auto guard = asio::make_work_guard(io_);
+    std::vector<std::thread> threads;
+    for (unsigned t = 0; t < std::max(1u, opt_.threads); ++t) threads.emplace_back([this] { io_.run(); });
+
+    // Ramp-up: launch bots at opt.ramp per second, in 10 ms steps; then churn.
+    const auto start = steady::now();
+    const auto end = start + std::chrono::duration_cast<steady::duration>(std::chrono::duration<double>(opt_.duration_s));
+    std::size_t launched = 0;
+    auto next_second = start + std::chrono::seconds(1);
+    auto prev_lat = latency_.snapshot();
+    second_sample prev{};
+    double churn_debt = 0;
+    std::mt19937_64 churn_rng(12345);
+    auto last_step = start;
+    while (steady::now() < end) {
+      const auto now = steady::now();
+      const double since = std::chrono::duration<double>(now - start).count();
+      const auto due = std::min<std::size_t>(opt_.bots, static_cast<std::size_t>(opt_.ramp * since) + 1);
+      for (; launched < due; ++launched) launch(launched);
+      if (opt_.churn > 0 && launched == opt_.bots) {
+        churn_debt += opt_.churn * std::chrono::duration<double>(now - last_step).count();
+        for (; churn_debt >= 1; churn_debt -= 1) churn_one(churn_rng);
+      }
+      last_step = now;
+      if (now >= next_second) {
+        next_second += std::chrono::seconds(1);
+        second_sample s;
+        s.t = since;
+        s.connected = c_.connected_now.load();
+        s.frames = c_.frames_in.load();
+        s.bytes = c_.bytes_in.load();
+        s.enters = c_.enters.load();
+        s.leaves = c_.leaves.load();
+        s.updates = c_.updates.load();
+        s.mismatches = c_.mismatches();
+        const auto lat = latency_.snapshot();
+        latency_histogram_us::counts window{};
+        for (int b = 0; b < latency_histogram_us::buckets; ++b) {
+          window[static_cast<std::size_t>(b)] = lat[static_cast<std::size_t>(b)] - prev_lat[static_cast<std::size_t>(b)];
+        }
+        s.p50_ms = latency_histogram_us::percentile_ms(window, 0.5);
+        s.p99_ms = latency_histogram_us::percentile_ms(window, 0.99);
+        s.max_window_ms = latency_histogram_us::percentile_ms(window, 1.0);
+        prev_lat = lat;
+        // The series holds per-second deltas of the counters.
+        second_sample d = s;
+        d.frames -= prev.frames, d.bytes -= prev.bytes, d.enters -= prev.enters, d.leaves -= prev.leaves,
+            d.updates -= prev.updates;
+        prev = s;
+        series_.push_back(d);
+        if (progress) progress(d, c_, opt_);
+      }
+      std::this_thread::sleep_for(std::chrono::milliseconds(10));
+    }
+    // End of run: log every bot out, let the strands finish, stop.
+    stopping_.store(true);
+    for (std::size_t i = 0; i < sessions_.size(); ++i) {
+      std::shared_ptr<bot_session> b;
+      {
+        std::lock_guard lock(sessions_mutex_);
+        b = sessions_[i];
+      }
+      if (b) b->logout();
+    }
+    guard.reset();
+    const auto drain_deadline = steady::now() + std::chrono::seconds(3);
+    while (!io_.stopped() && steady::now() < drain_deadline) std::this_thread::sleep_for(std::chrono::milliseconds(10));
+    io_.stop();
+    for (auto& t : threads) t.join();
+    {
+      std::lock_guard lock(sessions_mutex_);
+      for (auto& s : sessions_) s.reset();
+    }
+
+    swarm_result& r = out.result;
+    r.options = opt_;
+    r.elapsed_s = std::chrono::duration<double>(steady::now() - start).count();
+    r.slots = slots_;
+    r.series = series_;
+    r.latency = latency_.snapshot();
+    r.latency_max_ms = latency_.max_ms();
+    {
+      std::lock_guard lock(problems_mutex_);
+      r.problems = problems_;
+      r.problems_total = problems_total_;
+    }
+    r.connect_attempts = c_.connect_attempts, r.welcomes = c_.welcomes, r.connect_failures = c_.connect_failures;
+    r.unexpected_disconnects = c_.unexpected_disconnects, r.server_errors = c_.server_errors, r.logouts = c_.logouts;
+    r.frames_in = c_.frames_in, r.bytes_in = c_.bytes_in, r.tick_updates = c_.tick_updates, r.enters = c_.enters;
+    r.leaves = c_.leaves, r.updates = c_.updates, r.resets = c_.resets, r.inputs_sent = c_.inputs_sent;
+    r.pongs = c_.pongs, r.digests_checked = c_.digests_checked, r.digest_mismatches = c_.digest_mismatches;
+    r.inconsistent = c_.inconsistent, r.aoi_checked = c_.aoi_checked, r.aoi_unchecked = c_.aoi_unchecked;
+    r.aoi_violations = c_.aoi_violations, r.latency_unsynced = c_.latency_unsynced;
+    for (const auto& s : slots_) r.bots_connected += s.ever_connected ? 1 : 0;
+    r.min_rtt_ms = best_rtt_us_.load() == UINT64_MAX ? 0 : static_cast<double>(best_rtt_us_.load()) / 1000.0;
+    return out;
+  }
+
+  void launch(std::size_t slot) {
+    auto b = std::make_shared<bot_session>(*this, slot, slots_[slot].kind, 0x9e3779b9ull * (slot + 1) + (seed_++));
+    {
+      std::lock_guard lock(sessions_mutex_);
+      sessions_[slot] = b;
+    }
+    b->start();
+  }
+
+  void churn_one(std::mt19937_64& rng) {
+    // A random playing bot logs out; its slot logs in again after relogin_delay_s.
+    for (int tries = 0; tries < 8; ++tries) {
+      const std::size_t slot = rng() % sessions_.size();
+      std::shared_ptr<bot_session> b;
+      {
+        std::lock_guard lock(sessions_mutex_);
+        b = sessions_[slot];
+      }
+      if (!b || !b->playing()) continue;
+      c_.logouts.fetch_add(1, std::memory_order_relaxed);
+      b->logout();
+      auto timer = std::make_shared<asio::steady_timer>(io_);
+      timer->expires_after(std::chrono::duration_cast<steady::duration>(std::chrono::duration<double>(opt_.relogin_delay_s)));
+      timer->async_wait([this, timer, slot](const boost::system::error_code& ec) {
+        if (!ec && !stopping_.load()) launch(slot);
+      });
+      return;
+    }
+  }
+
+  void problem(std::string what) {
+    std::lock_guard lock(problems_mutex_);
+    ++problems_total_;
+    if (problems_.size() < 200) problems_.push_back(std::move(what));
+  }
+
+  void on_pong(std::uint64_t client_us, std::uint64_t server_us, std::uint64_t now_us) {
+    c_.pongs.fetch_add(1, std::memory_order_relaxed);
+    if (now_us < client_us) return;
+    const std::uint64_t rtt = now_us - client_us;
+    // server clock - local clock, estimated at the midpoint; the estimate from the fastest round
+    // trip is kept (error <= rtt / 2).
+    const auto offset = static_cast<std::int64_t>(server_us) - static_cast<std::int64_t>(client_us + rtt / 2);
+    std::lock_guard lock(offset_mutex_);
+    if (rtt < best_rtt_us_.load()) {
+      best_rtt_us_.store(rtt);
+      offset_us_.store(offset);
+      offset_known_.store(true);
+    }
+  }
+
+  const swarm_options& opt_ref() const { return opt_; }
+  asio::io_context& io() { return io_; }
+  const tcp::endpoint& endpoint() const { return endpoint_; }
+  steady::time_point epoch() const { return epoch_; }
+  swarm_counters& counters() { return c_; }
+  slot_stats& slot(std::size_t i) { return slots_[i]; }
+  latency_histogram_us& latency() { return latency_; }
+  position_board& board() { return board_; }
+  bool stopping() const { return stopping_.load(); }
+  bool offset_known() const { return offset_known_.load(std::memory_order_relaxed); }
+  std::int64_t offset_us() const { return offset_us_.load(std::memory_order_relaxed); }
+  std::atomic<std::uint32_t> leader{0};
+  std::mutex hotspot_mutex;
+  bool hotspot_known = false;
+  net::vec3f hotspot{};
+
+ private:
+  swarm_options opt_;
+  asio::io_context io_;
+  tcp::endpoint endpoint_;
+  steady::time_point epoch_;
+  std::vector<slot_stats> slots_;  // each written by its slot's session (one at a time)
+  std::mutex sessions_mutex_;
+  std::vector<std::shared_ptr<bot_session>> sessions_;
+  std::uint64_t seed_ = 1;
+  swarm_counters c_;
+  latency_histogram_us latency_;
+  position_board board_;
+  std::vector<second_sample> series_;
+  std::mutex problems_mutex_;
+  std::vector<std::string> problems_;
+  std::uint64_t problems_total_ = 0;
+  std::mutex offset_mutex_;
+  std::atomic<std::uint64_t> best_rtt_us_{UINT64_MAX};
+  std::atomic<std::int64_t> offset_us_{0};
+  std::atomic<bool> offset_known_{false};
+  std::atomic<bool> stopping_{false};
+};
+
+// ---------------------------------------------------------------------------------------------
+// bot_session
+
+net::decoder_options client_decoder(std::size_t max_frame) {
+  net::decoder_options o;
+  o.max_frame_bytes = max_frame;
+  o.max_tables = 1u << 22;
+  return o;
+}
+
+net::vec3f to_vec(const net::wire::vec3& v) { return {v.x(), v.y(), v.z()}; }
+
+bot_session::bot_session(swarm& s, std::size_t slot, behaviour kind, std::uint64_t seed)
+    : s_(s),
+      slot_(slot),
+      kind_(kind),
+      rng_(seed),
+      strand_(asio::make_strand(s.io())),
+      socket_(strand_),
+      input_timer_(strand_),
+      ping_timer_(strand_),
+      welcome_timer_(strand_),
+      decoder_(client_decoder(s.opt_ref().max_frame_bytes)) {
+  std::uniform_real_distribution<float> angle(0, 6.2831853f);
+  const float a = angle(rng_);
+  heading_ = {std::cos(a), std::sin(a), 0};
+}
+
+void bot_session::start() {
+  auto self = shared_from_this();
+  asio::dispatch(strand_, [this, self] {
+    s_.counters().connect_attempts.fetch_add(1, std::memory_order_relaxed);
+    welcome_timer_.expires_after(std::chrono::duration_cast<steady::duration>(std::chrono::duration<double>(s_.opt_ref().connect_timeout_s)));
+    welcome_timer_.async_wait([this, self](const boost::system::error_code& ec) {
+      if (!ec && !closed_ && !playing_) fail("no welcome within the connect timeout", true);
+    });
+    socket_.async_connect(s_.endpoint(), [this, self](const boost::system::error_code& ec) { on_connect(ec); });
+  });
+}
+
+void bot_session::logout() {
+  auto self = shared_from_this();
+  asio::dispatch(strand_, [this, self] {
+    intended_ = true;
+    close();
+  });
+}
+
+void bot_session::on_connect(const boost::system::error_code& ec) {
+  if (closed_) return;
+  if (ec) return fail("connect: " + ec.message(), true);
+  boost::system::error_code ignored;
+  socket_.set_option(tcp::no_delay(true), ignored);
+  send(net::hello_msg{"bot-" + std::to_string(slot_), "", net::protocol_version});
+  send(net::ping_msg{local_us(s_.epoch())});
+  s_.counters().pings_sent.fetch_add(1, std::memory_order_relaxed);
+  read();
+}
+
+void bot_session::read() {
+  auto self = shared_from_this();
+  const auto buf = decoder_.prepare(64 * 1024);
+  socket_.async_read_some(asio::buffer(buf.data(), buf.size()), [this, self](const boost::system::error_code& ec, std::size_t n) {
+    if (closed_) return;
+    if (ec) {
+      if (intended_ || s_.stopping()) return close();
+      return fail(got_error_ ? "closed by the server after an error" : "connection lost: " + ec.message(), !playing_);
+    }
+    decoder_.commit(n);
+    auto& st = s_.slot(slot_);
+    st.bytes_in += n;
+    s_.counters().bytes_in.fetch_add(n, std::memory_order_relaxed);
+    for (auto step = decoder_.next(); !closed_; step = decoder_.next()) {
+      if (step.needs_more()) break;
+      if (step.is_error()) return fail(std::string("bad frame from the server: ") + std::string(net::to_string(step.error)), false);
+      ++st.frames_in;
+      s_.counters().frames_in.fetch_add(1, std::memory_order_relaxed);
+      on_frame(step.frame);
+    }
+    if (!closed_) read();
+  });
+}
+
+void bot_session::on_frame(const net::frame_view& f) {
+  const auto& env = *f.envelope;
+  switch (f.type) {
+    case net::wire::message::welcome:
+      if (const auto* w = env.message_as_welcome()) on_welcome(*w);
+      break;
+    case net::wire::message::tick_update:
+      if (const auto* u = env.message_as_tick_update()) on_tick_update(*u);
+      break;
+    case net::wire::message::pong:
+      if (const auto* p = env.message_as_pong()) s_.on_pong(p->client_time_us(), p->server_time_us(), local_us(s_.epoch()));
+      break;
+    case net::wire::message::error: {
+      const auto* e = env.message_as_error();
+      got_error_ = true;
+      s_.counters().server_errors.fetch_add(1, std::memory_order_relaxed);
+      s_.problem("bot " + std::to_string(slot_) + ": server error " +
+                 (e ? std::string(net::wire::EnumNameerror_code(e->code())) + ": " + (e->reason() ? e->reason()->str() : "")
+                    : std::string("?")));
+      break;
+    }
+    default:
+      break;
+  }
+}
+
+void bot_session::on_welcome(const net::wire::welcome& w) {
+  if (playing_) return;
+  welcome_timer_.cancel();
+  entity_ = w.entity_id();
+  net::world_bounds world{};
+  if (w.world()) world = {to_vec(w.world()->lo()), to_vec(w.world()->hi())};
+  view_.emplace(world);
+  q_err_ = view_->quantizer().max_error();
+  tick_rate_ = std::max<double>(1, w.tick_rate_hz());
+  welcomed_at_ = steady::now();
+  playing_ = true;
+  auto& st = s_.slot(slot_);
+  st.ever_connected = true;
+  s_.counters().welcomes.fetch_add(1, std::memory_order_relaxed);
+  s_.counters().connected_now.fetch_add(1, std::memory_order_relaxed);
+  s_.board().claim(entity_);
+  std::uint32_t none = 0;
+  if (kind_ == behaviour::walk) s_.leader.compare_exchange_strong(none, entity_);
+  schedule_input();
+  schedule_ping();
+}
+
+void bot_session::check_aoi(std::uint64_t tick, std::uint32_t id, const net::vec3f& p, const net::vec3f& half, float extra) {
+  // The entity must lie inside this bot's AOI grown by the hysteresis band (boxes meet), allowing
+  // the staleness of the bot's own position fix, quantization and float slack.
+  const auto own = s_.board().get(entity_);
+  auto& c = s_.counters();
+  if (!own.known) {
+    c.aoi_unchecked.fetch_add(1, std::memory_order_relaxed);
+    return;
+  }
+  const auto& o = s_.opt_ref();
+  const double stale_ticks = std::fabs(static_cast<double>(tick) - static_cast<double>(own.tick));
+  const double slack = o.max_speed * stale_ticks / tick_rate_ + 0.01;
+  const float qs[3] = {q_err_.x, q_err_.y, q_err_.z};
+  const float d[3] = {p.x - own.pos.x, p.y - own.pos.y, p.z - own.pos.z};
+  const float h[3] = {half.x, half.y, half.z};
+  for (int a = 0; a < 3; ++a) {
+    const double bound = o.aoi + o.hysteresis + h[a] + 2 * qs[a] + extra + slack;
+    if (std::fabs(d[a]) > bound) {
+      c.aoi_violations.fetch_add(1, std::memory_order_relaxed);
+      s_.problem("bot " + std::to_string(slot_) + " (entity " + std::to_string(entity_) + ") tick " + std::to_string(tick) +
+                 ": entity " + std::to_string(id) + " is " + std::to_string(std::fabs(d[a])) + " m away on axis " +
+                 "xyz"[a] + ", beyond the AOI bound " + std::to_string(bound) + " m (own fix from tick " +
+                 std::to_string(own.tick) + ")");
+      return;
+    }
+  }
+  c.aoi_checked.fetch_add(1, std::memory_order_relaxed);
+}
+
+void bot_session::on_tick_update(const net::wire::tick_update& u) {
+  if (!view_) {
+    s_.problem("bot " + std::to_string(slot_) + ": tick update before welcome");
+    s_.counters().inconsistent.fetch_add(1, std::memory_order_relaxed);
+    return;
+  }
+  auto& c = s_.counters();
+  const std::uint64_t now = local_us(s_.epoch());
+  c.tick_updates.fetch_add(1, std::memory_order_relaxed);
+  if (s_.offset_known()) {
+    const auto sent_local = static_cast<std::int64_t>(u.server_time_us()) - s_.offset_us();
+    const auto lat = static_cast<std::int64_t>(now) - sent_local;
+    s_.latency().record(static_cast<std::uint64_t>(std::max<std::int64_t>(0, lat)));
+  } else {
+    c.latency_unsynced.fetch_add(1, std::memory_order_relaxed);
+  }
+  const std::uint64_t tick = u.server_tick();
+  const auto* enters = u.enters();
+  const auto* leaves = u.leaves();
+  const auto* updates = u.updates();
+  c.enters.fetch_add(enters ? enters->size() : 0, std::memory_order_relaxed);
+  c.leaves.fetch_add(leaves ? leaves->size() : 0, std::memory_order_relaxed);
+  c.updates.fetch_add(updates ? updates->size() : 0, std::memory_order_relaxed);
+  if (u.reset() && view_->updates_applied() > 0) c.resets.fetch_add(1, std::memory_order_relaxed);
+
+  // Name the ids a consistency failure would be about, before the view changes.
+  std::vector<std::uint32_t> bad_ids;
+  {
+    const auto& known = view_->entities();
+    std::unordered_set<std::uint32_t> left, entered;
+    if (!u.reset()) {
+      if (leaves) {
+        for (const auto id : *leaves) {
+          if (!known.count(id)) bad_ids.push_back(id);
+          left.insert(id);
+        }
+      }
+    }
+    if (enters) {
+      for (const auto* e : *enters) {
+        if (!u.reset() && known.count(e->id()) && !left.count(e->id())) bad_ids.push_back(e->id());
+        if (!entered.insert(e->id()).second) bad_ids.push_back(e->id());
+      }
+    }
+    if (updates) {
+      for (const auto* e : *updates) {
+        const bool in_view = !u.reset() && known.count(e->id()) && !left.count(e->id());
+        if (!in_view && !entered.count(e->id())) bad_ids.push_back(e->id());
+      }
+    }
+  }
+  const std::uint64_t last = view_->last_tick();
+  const auto status = view_->apply(u);
+  if (status == net::client_view::status::inconsistent) {
+    c.inconsistent.fetch_add(1, std::memory_order_relaxed);
+    std::string ids;
+    for (std::size_t i = 0; i < bad_ids.size() && i < 16; ++i) ids += (i ? "," : "") + std::to_string(bad_ids[i]);
+    s_.problem("bot " + std::to_string(slot_) + " (entity " + std::to_string(entity_) + ") tick " + std::to_string(tick) +
+               ": inconsistent update (previous tick " + std::to_string(last) + "; ids " + (ids.empty() ? "-" : ids) + ")");
+  }
+  if (const auto* d = u.digest()) {
+    c.digests_checked.fetch_add(1, std::memory_order_relaxed);
+    if (s_.opt_ref().verify && (d->hash() != view_->hash() || d->count() != view_->size())) {
+      c.digest_mismatches.fetch_add(1, std::memory_order_relaxed);
+      s_.problem("bot " + std::to_string(slot_) + " (entity " + std::to_string(entity_) + ") tick " + std::to_string(tick) +
+                 ": digest mismatch: server has " + std::to_string(d->count()) + " entities (digest tick " +
+                 std::to_string(d->tick()) + "), the bot tracked " + std::to_string(view_->size()));
+    }
+  }
+
+  // Positions told this tick: other bots' own-position fixes, and the AOI check.
+  auto& board = s_.board();
+  if (enters) {
+    for (const auto* e : *enters) {
+      if (!e->position()) continue;
+      const auto p = to_vec(*e->position());
+      board.report(e->id(), tick, p);
+      const net::vec3f half = e->presence_half_extent() ? to_vec(*e->presence_half_extent()) : net::vec3f{};
+      check_aoi(tick, e->id(), p, half, 0);
+    }
+  }
+  if (updates) {
+    const auto& known = view_->entities();
+    for (const auto* e : *updates) {
+      const auto& q = e->position();
+      const auto p = view_->quantizer().dequantize({q.x(), q.y(), q.z()});
+      board.report(e->id(), tick, p);
+      const auto it = known.find(e->id());
+      const net::vec3f half = it != known.end() ? it->second.state.presence_half_extent : net::vec3f{};
+      check_aoi(tick, e->id(), p, half, 0);
+    }
+  }
+}
+
+void bot_session::schedule_input() {
+  auto self = shared_from_this();
+  const double period = 1.0 / std::max(0.1, s_.opt_ref().input_hz);
+  input_timer_.expires_after(std::chrono::duration_cast<steady::duration>(std::chrono::duration<double>(period)));
+  input_timer_.async_wait([this, self](const boost::system::error_code& ec) {
+    if (ec || closed_) return;
+    send_input();
+    schedule_input();
+  });
+}
+
+void bot_session::schedule_ping() {
+  auto self = shared_from_this();
+  const double period = 1.0 / std::max(0.05, s_.opt_ref().ping_hz);
+  ping_timer_.expires_after(std::chrono::duration_cast<steady::duration>(std::chrono::duration<double>(period)));
+  ping_timer_.async_wait([this, self](const boost::system::error_code& ec) {
+    if (ec || closed_) return;
+    send(net::ping_msg{local_us(s_.epoch())});
+    s_.counters().pings_sent.fetch_add(1, std::memory_order_relaxed);
+    schedule_ping();
+  });
+}
+
+net::vec3f bot_session::steer() {
+  const double t = std::chrono::duration<double>(steady::now() - welcomed_at_).count();
+  const auto toward = [&](const net::vec3f& target, float stop_at) -> std::optional<net::vec3f> {
+    const auto own = s_.board().get(entity_);
+    if (!own.known) return std::nullopt;
+    const float dx = target.x - own.pos.x, dy = target.y - own.pos.y;
+    const float len = std::sqrt(dx * dx + dy * dy);
+    if (len < stop_at) return net::vec3f{0, 0, 0};
+    return net::vec3f{dx / len, dy / len, 0};
+  };
+  switch (kind_) {
+    case behaviour::walk:
+      // A new random heading every ~3 s (per bot, seeded).
+      if (inputs_ % static_cast<std::uint64_t>(std::max(1.0, 3 * s_.opt_ref().input_hz)) == 0) {
+        std::uniform_real_distribution<float> angle(0, 6.2831853f);
+        const float a = angle(rng_);
+        heading_ = {std::cos(a), std::sin(a), 0};
+      }
+      return heading_;
+    case behaviour::patrol: {
+      // A square: four legs of 4 s each.
+      static constexpr net::vec3f legs[4] = {{1, 0, 0}, {0, 1, 0}, {-1, 0, 0}, {0, -1, 0}};
+      return legs[static_cast<std::size_t>(t / 4.0) % 4];
+    }
+    case behaviour::follow: {
+      const std::uint32_t lead = s_.leader.load(std::memory_order_relaxed);
+      if (lead != 0 && lead != entity_) {
+        const auto& known = view_->entities();
+        const auto it = known.find(lead);
+        const auto fix = s_.board().get(lead);
+        if (it != known.end()) {
+          if (auto v = toward(it->second.state.position, 3)) return *v;
+        } else if (fix.known) {
+          if (auto v = toward(fix.pos, 3)) return *v;
+        }
+      }
+      return heading_;  // no leader in sight: keep walking
+    }
+    case behaviour::crowd: {
+      net::vec3f target{};
+      {
+        std::lock_guard lock(s_.hotspot_mutex);
+        if (!s_.hotspot_known) {
+          if (s_.opt_ref().hotspot_set) {
+            s_.hotspot = s_.opt_ref().hotspot, s_.hotspot_known = true;
+          } else if (const auto fix = s_.board().get(s_.leader.load()); fix.known) {
+            s_.hotspot = fix.pos, s_.hotspot_known = true;
+          }
+        }
+        if (!s_.hotspot_known) return heading_;
+        target = s_.hotspot;
+      }
+      if (auto v = toward(target, 2)) return *v;
+      return heading_;
+    }
+  }
+  return heading_;
+}
+
+void bot_session::send_input() {
+  const auto move = steer();
+  ++inputs_;
+  send(net::input_msg{++sequence_, move});
+  s_.counters().inputs_sent.fetch_add(1, std::memory_order_relaxed);
+}
+
+void bot_session::send(const net::message& m) {
+  if (closed_) return;
+  const auto frame = encoder_.encode(m);
+  outbox_.emplace_back(frame.begin(), frame.end());
+  if (!writing_) write_next();
+}
+
+void bot_session::write_next() {
+  if (outbox_.empty() || closed_) {
+    writing_ = false;
+    return;
+  }
+  writing_ = true;
+  auto self = shared_from_this();
+  asio::async_write(socket_, asio::buffer(outbox_.front()), [this, self](const boost::system::error_code& ec, std::size_t) {
+    if (closed_) return;
+    if (ec) {
+      if (intended_ || s_.stopping()) return close();
+      return fail("write: " + ec.message(), !playing_);
+    }
+    outbox_.pop_front();
+    write_next();
+  });
+}
+
+void bot_session::fail(const std::string& why, bool connection_failure) {
+  if (closed_) return;
+  auto& c = s_.counters();
+  if (connection_failure) {
+    c.connect_failures.fetch_add(1, std::memory_order_relaxed);
+  } else {
+    c.unexpected_disconnects.fetch_add(1, std::memory_order_relaxed);
+  }
+  s_.problem("bot " + std::to_string(slot_) + (entity_ ? " (entity " + std::to_string(entity_) + ")" : std::string()) + ": " + why);
+  close();
+}
+
+void bot_session::close() {
+  if (closed_) return;
+  closed_ = true;
+  boost::system::error_code ignored;
+  input_timer_.cancel();
+  ping_timer_.cancel();
+  welcome_timer_.cancel();
+  socket_.shutdown(tcp::socket::shutdown_both, ignored);
+  socket_.close(ignored);
+  if (playing_) {
+    playing_ = false;
+    s_.counters().connected_now.fetch_sub(1, std::memory_order_relaxed);
+    s_.slot(slot_).connected_s += std::chrono::duration<double>(steady::now() - welcomed_at_).count();
+    s_.board().release(entity_);
+    std::uint32_t me = entity_;
+    s_.leader.compare_exchange_strong(me, 0);
+  }
+}
+
+}  // namespace
+
+run_outcome run_swarm(const swarm_options& opt, progress_fn progress) {
+  auto s = std::make_unique<swarm>(opt);
+  return s->run(progress);
+}
+
+}  // namespace zone::bots

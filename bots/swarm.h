@@ -1,0 +1,121 @@
+// The bot swarm: many real TCP clients of the zone server in one process (docs/bots.md).
+// Each bot speaks the FlatBuffers protocol through net/'s codec, moves by a scripted behaviour,
+// measures update latency and checks what the server tells it (client_view, digests, AOI bounds).
+#pragma once
+
+#include <array>
+#include <atomic>
+#include <cstdint>
+#include <mutex>
+#include <string>
+#include <vector>
+
+#include "protocol.h"
+
+namespace zone::bots {
+
+/// Scripted behaviours, mixable per swarm (shares need not sum to 1; they are normalised).
+enum class behaviour : std::uint8_t { walk, patrol, follow, crowd };
+inline constexpr std::array<const char*, 4> behaviour_names = {"walk", "patrol", "follow", "crowd"};
+
+struct swarm_options {
+  std::string host = "127.0.0.1";
+  std::uint16_t port = 7777;
+  unsigned bots = 100;
+  double duration_s = 30;    ///< from the first connection attempt to the end (ramp included)
+  double ramp = 200;         ///< new bots per second during ramp-up
+  double input_hz = 10;      ///< inputs per second per bot
+  double ping_hz = 1;        ///< pings per second per bot (clock offset, RTT, keep-alive)
+  std::array<double, 4> mix{1, 0, 0, 0};  ///< shares by behaviour
+  double churn = 0;          ///< logouts per second across the swarm (each logged-out bot logs in again)
+  double relogin_delay_s = 0.2;
+  bool verify = false;       ///< compare the server's visible-set digests with the tracked view
+  unsigned threads = 2;      ///< I/O threads
+  // What the bot assumes of the server, for the AOI check (zone-server's defaults).
+  float aoi = 60;            ///< the players' AOI half-extent (--player-aoi)
+  float hysteresis = 4;      ///< leave margin (--hysteresis)
+  float max_speed = 6;       ///< fastest any entity moves (m/s; max of --player-speed, --npc-speed)
+  bool hotspot_set = false;
+  net::vec3f hotspot{};      ///< the flash crowd's target; default: where the leader first is
+  double connect_timeout_s = 10;  ///< connect + welcome
+  std::size_t max_frame_bytes = 1 << 22;
+};
+
+/// Log-bucketed latency histogram in microseconds (16 buckets per octave, ~4% resolution),
+/// lock-free for concurrent recording.
+class latency_histogram_us {
+ public:
+  static constexpr int buckets = 16 * 40;
+  void record(std::uint64_t us);
+  using counts = std::array<std::uint64_t, buckets>;
+  [[nodiscard]] counts snapshot() const;
+  /// Percentile (0..1) of a snapshot or of the difference of two, in milliseconds.
+  [[nodiscard]] static double percentile_ms(const counts& c, double q);
+  [[nodiscard]] static std::uint64_t total(const counts& c);
+  [[nodiscard]] double max_ms() const { return static_cast<double>(max_.load()) / 1000.0; }
+
+ private:
+  std::array<std::atomic<std::uint64_t>, buckets> count_{};
+  std::atomic<std::uint64_t> max_{0};
+};
+
+/// Counters of the whole swarm (relaxed atomics; read by the progress line while bots run).
+struct swarm_counters {
+  std::atomic<std::uint64_t> connect_attempts{0}, connected_now{0}, welcomes{0}, connect_failures{0},
+      unexpected_disconnects{0}, server_errors{0}, logouts{0};
+  std::atomic<std::uint64_t> frames_in{0}, bytes_in{0}, tick_updates{0}, enters{0}, leaves{0}, updates{0}, resets{0};
+  std::atomic<std::uint64_t> inputs_sent{0}, pings_sent{0}, pongs{0};
+  std::atomic<std::uint64_t> digests_checked{0}, digest_mismatches{0}, inconsistent{0};
+  std::atomic<std::uint64_t> aoi_checked{0}, aoi_unchecked{0}, aoi_violations{0};
+  std::atomic<std::uint64_t> latency_unsynced{0};
+  [[nodiscard]] std::uint64_t mismatches() const {
+    return digest_mismatches.load() + inconsistent.load() + aoi_violations.load();
+  }
+};
+
+/// Per bot slot (a slot is one bot; churn logs it out and in again), written by its own strand.
+struct slot_stats {
+  std::uint64_t bytes_in = 0, frames_in = 0;
+  double connected_s = 0;  ///< total time with a welcome, over all its sessions
+  bool ever_connected = false;
+  behaviour kind = behaviour::walk;
+};
+
+/// One line per second of the run (for the CSV, the JSON and the plot).
+struct second_sample {
+  double t = 0;
+  std::uint64_t connected = 0, frames = 0, bytes = 0, enters = 0, leaves = 0, updates = 0, mismatches = 0;
+  double p50_ms = 0, p99_ms = 0, max_window_ms = 0;
+};
+
+/// Everything the run produced.
+struct swarm_result {
+  swarm_options options;
+  double elapsed_s = 0;
+  std::vector<slot_stats> slots;
+  std::vector<second_sample> series;
+  latency_histogram_us::counts latency{};
+  double latency_max_ms = 0;
+  std::vector<std::string> problems;  ///< first mismatches and failures, readable (tick and ids)
+  std::uint64_t problems_total = 0;
+  // Copies of the counters at the end.
+  std::uint64_t connect_attempts = 0, welcomes = 0, connect_failures = 0, unexpected_disconnects = 0,
+                server_errors = 0, logouts = 0, frames_in = 0, bytes_in = 0, tick_updates = 0, enters = 0,
+                leaves = 0, updates = 0, resets = 0, inputs_sent = 0, pongs = 0, digests_checked = 0,
+                digest_mismatches = 0, inconsistent = 0, aoi_checked = 0, aoi_unchecked = 0,
+                aoi_violations = 0, latency_unsynced = 0;
+  std::uint64_t bots_connected = 0;  ///< slots that got a welcome at least once
+  double min_rtt_ms = 0;
+  [[nodiscard]] std::uint64_t mismatches() const { return digest_mismatches + inconsistent + aoi_violations; }
+};
+
+/// Runs the swarm for options.duration_s; calls `progress` once a second (from the calling thread)
+/// with the latest sample. Returns an error text instead when the host cannot be resolved.
+struct run_outcome {
+  swarm_result result;
+  std::string error;
+};
+using progress_fn = void (*)(const second_sample&, const swarm_counters&, const swarm_options&);
+[[nodiscard]] run_outcome run_swarm(const swarm_options& opt, progress_fn progress);
+
+}  // namespace zone::bots
