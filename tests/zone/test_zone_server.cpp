@@ -4,10 +4,12 @@
 #include <doctest/doctest.h>
 
 #include <map>
+#include <set>
 #include <random>
 #include <thread>
 
 #include "../net/loopback_client.h"
+#include "client.h"
 #include "zone_server.h"
 
 using namespace zone;
@@ -192,5 +194,50 @@ TEST_SUITE("zone.server") {
     CHECK(ns.frames_rejected == 1);
     CHECK(server.stats().ticks > 0);
     CHECK(server.stats().frames_sent > 0);
+  }
+  TEST_CASE("a swarm of connector bots: every update consistent, every digest right") {
+    zone_config cfg = test_config();
+    cfg.metrics_enabled = false;
+    zone_server server(cfg);
+    REQUIRE_FALSE(server.start().has_value());
+    std::thread loop([&] { server.run(); });
+    {
+      net::client_pool pool(2);
+      std::vector<std::unique_ptr<net::client_connection>> bots;
+      for (int i = 0; i < 12; ++i) {
+        net::client_options opt;
+        opt.port = server.port();
+        opt.name = "bot" + std::to_string(i);
+        bots.push_back(std::make_unique<net::client_connection>(pool, opt));
+        bots.back()->connect();
+      }
+      std::mt19937_64 rng(std::random_device{}());
+      std::uniform_real_distribution<float> u(-1, 1);
+      for (int step = 0; step < 45; ++step) {  // about 1.5 s of play
+        for (auto& b : bots) b->send_input({u(rng), u(rng), 0});
+        if (step % 10 == 0) {
+          for (auto& b : bots) b->send_ping();
+        }
+        std::this_thread::sleep_for(33ms);
+      }
+      std::this_thread::sleep_for(200ms);
+      std::set<entity_id> entities;
+      for (std::size_t i = 0; i < bots.size(); ++i) {
+        CAPTURE(i);
+        const auto snap = bots[i]->snapshot();
+        CHECK(snap.phase == net::client_snapshot::state::welcomed);
+        CHECK(snap.updates > 10);
+        CHECK(snap.problems == 0);
+        CHECK(snap.digests_checked == snap.updates);
+        CHECK(snap.last_input_echo > 0);
+        CHECK(snap.pongs > 0);
+        entities.insert(snap.entity_id);
+      }
+      CHECK(entities.size() == bots.size());
+      for (auto& b : bots) b->close();
+      bots.clear();
+    }
+    server.stop();
+    loop.join();
   }
 }
