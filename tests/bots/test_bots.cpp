@@ -1,0 +1,252 @@
+// End-to-end tests of the zone server with the bot swarm: both real executables on loopback
+// (ephemeral ports read back from the server's log), every child killed on any exit path.
+// Bounds and scenarios are documented in docs/bots.md.
+#include <doctest/doctest.h>
+
+#include <netinet/tcp.h>
+#include <poll.h>
+
+#include <atomic>
+#include <cerrno>
+#include <cstring>
+#include <random>
+
+#include "process.h"
+#include "protocol.h"
+#include "swarm.h"
+
+using namespace zone::bots::testing;
+
+namespace {
+
+// The server every test runs: CPU grid finder, 2,000 NPCs, 20 Hz (a tick period of 50 ms).
+const std::vector<std::string> server_args = {"--npcs", "2000", "--threads", "2", "--tick-rate", "20", "--io-threads", "2"};
+// Documented bound on the server's p99 tick for these tests (docs/bots.md): one tick period.
+constexpr double p99_tick_bound_ms = 50;
+
+std::vector<std::string> swarm_args(std::uint16_t port, const std::string& dir, std::vector<std::string> extra) {
+  std::vector<std::string> a{BOT_SWARM_EXE, "--port", std::to_string(port), "--threads", "2", "--report-json", dir + "/report.json"};
+  a.insert(a.end(), extra.begin(), extra.end());
+  return a;
+}
+
+/// A raw loopback client for hostile behaviour (plain POSIX sockets).
+struct raw_client {
+  int fd = -1;
+  explicit raw_client(std::uint16_t port, int rcvbuf = 0) {
+    fd = ::socket(AF_INET, SOCK_STREAM, 0);
+    if (rcvbuf > 0) ::setsockopt(fd, SOL_SOCKET, SO_RCVBUF, &rcvbuf, sizeof rcvbuf);
+    sockaddr_in addr{};
+    addr.sin_family = AF_INET;
+    addr.sin_port = htons(port);
+    addr.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+    if (::connect(fd, reinterpret_cast<sockaddr*>(&addr), sizeof addr) != 0) {
+      ::close(fd);
+      fd = -1;
+    }
+  }
+  ~raw_client() {
+    if (fd >= 0) ::close(fd);
+  }
+  bool send_bytes(const std::vector<std::uint8_t>& b) {
+    std::size_t at = 0;
+    while (at < b.size()) {
+      const ssize_t n = ::send(fd, b.data() + at, b.size() - at, MSG_NOSIGNAL | MSG_DONTWAIT);
+      if (n < 0 && (errno == EAGAIN || errno == EWOULDBLOCK)) {
+        pollfd p{fd, POLLOUT, 0};
+        ::poll(&p, 1, 100);
+        continue;
+      }
+      if (n <= 0) return false;
+      at += static_cast<std::size_t>(n);
+    }
+    return true;
+  }
+  /// Reads (and discards) what is there for up to `ms`; false once the server closed the connection.
+  bool drain(int ms, std::size_t* bytes = nullptr) {
+    const auto deadline = std::chrono::steady_clock::now() + std::chrono::milliseconds(ms);
+    while (std::chrono::steady_clock::now() < deadline) {
+      pollfd p{fd, POLLIN, 0};
+      if (::poll(&p, 1, 20) <= 0) continue;
+      char buf[65536];
+      const ssize_t n = ::recv(fd, buf, sizeof buf, 0);
+      if (n <= 0) return false;
+      if (bytes) *bytes += static_cast<std::size_t>(n);
+    }
+    return true;
+  }
+  /// True when the server closes the connection within `ms` (reading everything meanwhile).
+  bool closed_within(int ms) { return !drain(ms); }
+};
+
+}  // namespace
+
+TEST_SUITE("bots") {
+
+TEST_CASE("latency histogram percentiles") {
+  zone::bots::latency_histogram_us h;
+  for (int i = 1; i <= 1000; ++i) h.record(static_cast<std::uint64_t>(i) * 10);  // 10 us .. 10 ms
+  const auto c = h.snapshot();
+  CHECK(zone::bots::latency_histogram_us::total(c) == 1000);
+  CHECK(zone::bots::latency_histogram_us::percentile_ms(c, 0.5) == doctest::Approx(5.0).epsilon(0.05));
+  CHECK(zone::bots::latency_histogram_us::percentile_ms(c, 0.99) == doctest::Approx(9.9).epsilon(0.05));
+  CHECK(h.max_ms() == doctest::Approx(10.0));
+}
+
+TEST_CASE("end to end: 200 bots in verify mode, zero mismatches, p99 tick bounded") {
+  const std::string dir = temp_dir();
+  zone_server_process server(ZONE_SERVER_EXE, dir, server_args);
+  REQUIRE_MESSAGE(server.port != 0, server.proc.log());
+  child_process swarm(swarm_args(server.port, dir,
+                                 {"--bots", "200", "--duration", "15", "--ramp", "100", "--input-hz", "10", "--verify",
+                                  "--mix", "walk=0.4,patrol=0.2,follow=0.2,crowd=0.2", "--report-csv", dir + "/report.csv"}),
+                      dir + "/bot-swarm.log");
+  const auto rc = swarm.wait(60000ms);
+  const std::string report = read_file(dir + "/report.json");
+  INFO("bot-swarm output:\n" << swarm.log());
+  REQUIRE(rc.has_value());
+  CHECK(*rc == 0);
+  CHECK(json_number(report, "bots_connected").value_or(-1) == 200);
+  CHECK(json_number(report, "connect_failures").value_or(-1) == 0);
+  CHECK(json_number(report, "unexpected_disconnects").value_or(-1) == 0);
+  CHECK(json_number(report, "mismatches").value_or(-1) == 0);
+  CHECK(json_number(report, "digests_checked").value_or(0) > 200 * 20 * 5);
+  CHECK(json_number(report, "aoi_checked").value_or(0) > 0);
+  CHECK(json_number(report, "samples").value_or(0) > 0);
+  CHECK(server.proc.alive());
+  REQUIRE(server.proc.terminate().value_or(-1) == 0);
+  const auto p99 = server.p99_tick_ms();
+  INFO("zone-server log tail:\n" << server.proc.log().substr(server.proc.log().size() > 2000 ? server.proc.log().size() - 2000 : 0));
+  REQUIRE(p99.has_value());
+  MESSAGE("server p99 tick " << *p99 << " ms; bot latency p99 " << json_number(report, "p99").value_or(-1) << " ms");
+  CHECK(*p99 <= p99_tick_bound_ms);
+}
+
+TEST_CASE("churn: bots log out and in continuously; no crash, no leaked sessions") {
+  const std::string dir = temp_dir();
+  zone_server_process server(ZONE_SERVER_EXE, dir, server_args);
+  REQUIRE_MESSAGE(server.port != 0, server.proc.log());
+  REQUIRE(server.metrics_port != 0);
+  const auto baseline = metric(http_get_metrics(server.metrics_port), "zone_entities");
+  REQUIRE(baseline.has_value());
+  constexpr int bots = 80;
+  child_process swarm(swarm_args(server.port, dir,
+                                 {"--bots", std::to_string(bots), "--duration", "25", "--ramp", "200", "--churn", "20",
+                                  "--relogin-delay", "0.1", "--verify"}),
+                      dir + "/bot-swarm.log");
+  // While it runs, the server never holds more sessions than bots (plus a few closing).
+  double most_sessions = 0;
+  while (swarm.alive()) {
+    const auto text = http_get_metrics(server.metrics_port);
+    most_sessions = std::max(most_sessions, metric(text, "zone_net_sessions_open").value_or(0));
+    std::this_thread::sleep_for(500ms);
+    REQUIRE(server.proc.alive());
+  }
+  const auto rc = swarm.wait(1000ms);
+  const std::string report = read_file(dir + "/report.json");
+  INFO("bot-swarm output:\n" << swarm.log());
+  CHECK(rc.value_or(-1) == 0);
+  CHECK(json_number(report, "logouts").value_or(0) >= 300);
+  CHECK(json_number(report, "mismatches").value_or(-1) == 0);
+  CHECK(most_sessions <= bots + 10);
+  // Every bot is gone: the server's sessions, clients and entities return to the live count.
+  std::optional<double> sessions, clients, entities;
+  for (int i = 0; i < 40; ++i) {
+    const auto text = http_get_metrics(server.metrics_port);
+    sessions = metric(text, "zone_net_sessions_open");
+    clients = metric(text, "zone_clients");
+    entities = metric(text, "zone_entities");
+    if (sessions == 0.0 && clients == 0.0 && entities == baseline) break;
+    std::this_thread::sleep_for(250ms);
+  }
+  CHECK(sessions.value_or(-1) == 0);
+  CHECK(clients.value_or(-1) == 0);
+  CHECK(entities.value_or(-1) == *baseline);
+  CHECK(server.proc.terminate().value_or(-1) == 0);
+}
+
+TEST_CASE("hostile clients beside 100 good bots") {
+  const std::string dir = temp_dir();
+  zone_server_process server(ZONE_SERVER_EXE, dir, server_args);
+  REQUIRE_MESSAGE(server.port != 0, server.proc.log());
+  child_process swarm(swarm_args(server.port, dir, {"--bots", "100", "--duration", "22", "--ramp", "100", "--verify"}),
+                      dir + "/bot-swarm.log");
+  std::this_thread::sleep_for(3000ms);
+  const long rss_before = server.proc.rss_kib();
+  const std::uint16_t port = server.port;
+  using zone::net::encode_frame;
+
+  // Garbage bytes: a plausible length, then junk: the verifier rejects it and the server closes.
+  std::atomic<int> closed_garbage{0}, closed_oversize{0}, closed_flood{0}, stalled_ok{0};
+  std::thread garbage([&] {
+    std::mt19937 rng(7);
+    for (int i = 0; i < 20; ++i) {
+      raw_client c(port);
+      std::vector<std::uint8_t> junk(4 + 64);
+      junk[0] = 64;
+      for (std::size_t k = 4; k < junk.size(); ++k) junk[k] = static_cast<std::uint8_t>(rng());
+      c.send_bytes(junk);
+      if (c.closed_within(3000)) ++closed_garbage;
+    }
+  });
+  // Oversize: a 1 MiB length prefix (the inbound limit is 16 KiB): closed from the prefix alone.
+  std::thread oversize([&] {
+    for (int i = 0; i < 10; ++i) {
+      raw_client c(port);
+      std::vector<std::uint8_t> frame(4 + 4096, 0xAB);
+      frame[0] = 0, frame[1] = 0, frame[2] = 0x10, frame[3] = 0;
+      c.send_bytes(frame);
+      if (c.closed_within(3000)) ++closed_oversize;
+    }
+  });
+  // Input flood: hello, then inputs as fast as the socket takes them: rate-limited and closed.
+  std::thread flood([&] {
+    for (int i = 0; i < 3; ++i) {
+      raw_client c(port);
+      c.send_bytes(encode_frame(zone::net::hello_msg{"flood", "", zone::net::protocol_version}));
+      const auto deadline = std::chrono::steady_clock::now() + 8000ms;
+      bool closed = false;
+      for (std::uint32_t seq = 1; std::chrono::steady_clock::now() < deadline && !closed; ++seq) {
+        if (!c.send_bytes(encode_frame(zone::net::input_msg{seq, {1, 0, 0}}))) closed = true;
+        if (seq % 100 == 0 && !c.drain(1)) closed = true;
+      }
+      if (closed || c.closed_within(2000)) ++closed_flood;
+    }
+  });
+  // A reader that stops reading for 10 s (pinging so as not to be idle), then reads again.
+  std::thread stalled([&] {
+    raw_client c(port, 4096);
+    c.send_bytes(encode_frame(zone::net::hello_msg{"stalled", "", zone::net::protocol_version}));
+    for (int s = 0; s < 10; ++s) {
+      std::this_thread::sleep_for(1000ms);
+      c.send_bytes(encode_frame(zone::net::ping_msg{static_cast<std::uint64_t>(s)}));
+    }
+    std::size_t got = 0;
+    const bool open = c.drain(2000, &got);
+    // Either it is served again (bytes arrive) or it was cut as a stuck client: both bounded.
+    if (got > 0 || !open) ++stalled_ok;
+  });
+  garbage.join();
+  oversize.join();
+  flood.join();
+  stalled.join();
+  const long rss_after = server.proc.rss_kib();
+
+  const auto rc = swarm.wait(60000ms);
+  const std::string report = read_file(dir + "/report.json");
+  INFO("bot-swarm output:\n" << swarm.log());
+  CHECK(rc.value_or(-1) == 0);
+  CHECK(json_number(report, "bots_connected").value_or(-1) == 100);
+  CHECK(json_number(report, "mismatches").value_or(-1) == 0);
+  CHECK(json_number(report, "unexpected_disconnects").value_or(-1) == 0);
+  CHECK(closed_garbage == 20);
+  CHECK(closed_oversize == 10);
+  CHECK(closed_flood == 3);
+  CHECK(stalled_ok == 1);
+  MESSAGE("server RSS " << rss_before << " KiB -> " << rss_after << " KiB during the hostile clients");
+  CHECK(rss_after - rss_before < 64 * 1024);  // bounded: under 64 MiB of growth
+  CHECK(server.proc.alive());
+  CHECK(server.proc.terminate().value_or(-1) == 0);
+}
+
+}  // TEST_SUITE
