@@ -6,18 +6,13 @@
 #include <random>
 #include <set>
 
+#include "../common/box_families.h"
 #include "interest.h"
 
 using namespace zone::interest;
+using namespace zone::test;
 
 namespace {
-
-/// A fresh seed per run (printed on failure), so every run tests new random inputs.
-std::uint64_t fresh_seed() {
-  static const std::uint64_t base = std::random_device{}();
-  static std::uint64_t k = 0;
-  return base + 0x9e3779b97f4a7c15ull * ++k;
-}
 
 /// The definition, written as plainly as possible: every i < j, the contract's test.
 pair_list definition_pairs(const box_set& s) {
@@ -33,150 +28,6 @@ pair_list definition_pairs(const box_set& s) {
     }
   }
   return out;
-}
-
-pair_list run(pair_finder& f, const box_set& s) {
-  pair_list out;
-  const auto err = f.find(s, out);
-  REQUIRE_FALSE(err.has_value());
-  // Each pair once, a < b.
-  REQUIRE(std::all_of(out.begin(), out.end(), [](const id_pair& p) { return p.a < p.b; }));
-  sort_canonical(out, s.size());
-  REQUIRE(std::adjacent_find(out.begin(), out.end()) == out.end());
-  return out;
-}
-
-struct rng_box_maker {
-  std::mt19937_64 rng;
-  explicit rng_box_maker(std::uint64_t seed) : rng(seed) {}
-  float uni(float lo, float hi) { return std::uniform_real_distribution<float>(lo, hi)(rng); }
-  std::uint32_t bits(std::uint32_t m) { return static_cast<std::uint32_t>(rng()) & m; }
-  box make(float centre_range, float max_edge, float offset = 0) {
-    box b;
-    for (int d = 0; d < 3; ++d) {
-      const float c = offset + uni(0, centre_range);
-      const float e = uni(0, max_edge);
-      b.lo[d] = c - e / 2;
-      b.hi[d] = b.lo[d] + e;
-    }
-    return b;
-  }
-};
-
-/// Box-set families, each a stress for a different part of the grid finder.
-enum class family {
-  uniform,
-  touching,
-  zero_size,
-  identical,
-  huge_over_tiny,
-  long_thin,
-  negative_large,
-  mask_mix,
-  integer_grid,
-  flat_world,
-  few_classes
-};
-constexpr family all_families[] = {family::uniform,      family::touching,       family::zero_size, family::identical,
-                                   family::huge_over_tiny, family::long_thin,     family::negative_large,
-                                   family::mask_mix,     family::integer_grid,   family::flat_world,
-                                   family::few_classes};
-
-std::string family_name(family f) {
-  switch (f) {
-    case family::uniform: return "uniform";
-    case family::touching: return "touching";
-    case family::zero_size: return "zero_size";
-    case family::identical: return "identical";
-    case family::huge_over_tiny: return "huge_over_tiny";
-    case family::long_thin: return "long_thin";
-    case family::negative_large: return "negative_large";
-    case family::mask_mix: return "mask_mix";
-    case family::integer_grid: return "integer_grid";
-    case family::flat_world: return "flat_world";
-    case family::few_classes: return "few_classes";
-  }
-  return "?";
-}
-
-box_set make_family(family f, std::size_t n, std::uint64_t seed) {
-  rng_box_maker r(seed);
-  box_set s;
-  for (std::size_t i = 0; i < n; ++i) {
-    box b;
-    switch (f) {
-      case family::uniform: b = r.make(100, 12); break;
-      case family::touching: {
-        // Unit cubes on an integer lattice: neighbours share faces, edges and corners exactly.
-        for (int d = 0; d < 3; ++d) {
-          b.lo[d] = static_cast<float>(r.rng() % 6);
-          b.hi[d] = b.lo[d] + 1.0f;
-        }
-        break;
-      }
-      case family::zero_size: {
-        // Points and flat boxes on a coarse lattice, so many coincide or touch.
-        for (int d = 0; d < 3; ++d) {
-          b.lo[d] = static_cast<float>(r.rng() % 5);
-          b.hi[d] = b.lo[d] + ((r.rng() % 3 == 0) ? 1.0f : 0.0f);
-        }
-        break;
-      }
-      case family::identical:
-        for (int d = 0; d < 3; ++d) {
-          b.lo[d] = 3.5f;
-          b.hi[d] = 7.25f;
-        }
-        break;
-      case family::huge_over_tiny:
-        b = (i % 97 == 3) ? r.make(10, 400, -100) : r.make(200, 2);
-        break;
-      case family::long_thin: {
-        b = r.make(100, 1);
-        const int axis = static_cast<int>(r.rng() % 3);
-        b.lo[axis] = r.uni(-50, 50);
-        b.hi[axis] = b.lo[axis] + r.uni(50, 250);
-        break;
-      }
-      case family::negative_large:
-        b = r.make(2e6f, 5e4f, -1e6f);
-        break;
-      case family::mask_mix:
-        b = r.make(60, 15);
-        b.category = r.bits(0xF);
-        b.mask = r.bits(0xF);
-        break;
-      case family::integer_grid: {
-        // Integer-aligned boxes of integer size: many bounds fall exactly on cell faces.
-        for (int d = 0; d < 3; ++d) {
-          b.lo[d] = static_cast<float>(r.rng() % 40);
-          b.hi[d] = b.lo[d] + static_cast<float>(r.rng() % 8);
-        }
-        break;
-      }
-      case family::few_classes: {
-        // A handful of (category, mask) signatures, some never compatible with each other:
-        // exercises the per-cell grouping that skips incompatible signature pairs.
-        static constexpr std::uint32_t cats[] = {1, 2, 4, 1, 8};
-        static constexpr std::uint32_t masks[] = {2, 1, 4, 1, 0};
-        b = r.make(80, 14);
-        const auto k = r.rng() % 5;
-        b.category = cats[k];
-        b.mask = masks[k];
-        break;
-      }
-      case family::flat_world: {
-        b = r.make(500, 30);
-        b.lo[2] = 0;
-        b.hi[2] = (r.rng() % 2) ? 0.0f : 2.0f;
-        b.category = (i % 2) ? category_bits::aoi : category_bits::normal;
-        b.mask = (i % 2) ? category_bits::normal : category_bits::aoi;
-        break;
-      }
-    }
-    s.push_back(b);
-  }
-  return s;
 }
 
 }  // namespace
