@@ -128,6 +128,7 @@ void print_table(const swarm_result& r, const summary& s) {
   row("inconsistent updates", num(r.inconsistent));
   row("AOI checks / unchecked / violations", num(r.aoi_checked) + " / " + num(r.aoi_unchecked) + " / " + num(r.aoi_violations));
   row("MISMATCHES", num(r.mismatches()));
+  row("bot-swarm CPU time (user + system)", fmt(r.cpu_s, "s"));
   if (!r.problems.empty()) {
     std::printf("problems (%llu; first %zu):\n", static_cast<unsigned long long>(r.problems_total), std::min<std::size_t>(r.problems.size(), 20));
     for (std::size_t i = 0; i < r.problems.size() && i < 20; ++i) std::printf("  %s\n", r.problems[i].c_str());
@@ -166,6 +167,7 @@ bool write_json(const std::string& path, const swarm_result& r, const summary& s
   o << "  \"inconsistent\": " << r.inconsistent << ",\n  \"aoi_checked\": " << r.aoi_checked << ",\n";
   o << "  \"aoi_unchecked\": " << r.aoi_unchecked << ",\n  \"aoi_violations\": " << r.aoi_violations << ",\n";
   o << "  \"mismatches\": " << r.mismatches() << ",\n";
+  o << "  \"swarm_cpu_s\": " << r.cpu_s << ",\n";
   o << "  \"problems_total\": " << r.problems_total << ",\n  \"problems\": [";
   for (std::size_t i = 0; i < r.problems.size(); ++i) o << (i ? ", " : "") << '"' << json_escape(r.problems[i]) << '"';
   o << "],\n  \"series\": [\n";

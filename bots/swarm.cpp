@@ -14,6 +14,8 @@
 #include <thread>
 #include <unordered_set>
 
+#include <sys/resource.h>
+
 namespace zone::bots {
 
 namespace asio = boost::asio;
@@ -135,7 +137,9 @@ class bot_session : public std::enable_shared_from_this<bot_session> {
   void on_frame(const net::frame_view& f);
   void on_welcome(const net::wire::welcome& w);
   void on_tick_update(const net::wire::tick_update& u);
-  void check_aoi(std::uint64_t tick, std::uint32_t id, const net::vec3f& p, const net::vec3f& half, float extra);
+  /// 0: unchecked (own position unknown), 1: inside, 2: violation (reported).
+  int check_aoi(const position_board::fix& own, std::uint64_t tick, std::uint32_t id, const net::vec3f& p,
+                 const net::vec3f& half);
   void send(const net::message& m);
   void write_next();
   void schedule_input();
@@ -294,6 +298,11 @@ class swarm {
     r.aoi_violations = c_.aoi_violations, r.latency_unsynced = c_.latency_unsynced;
     for (const auto& s : slots_) r.bots_connected += s.ever_connected ? 1 : 0;
     r.min_rtt_ms = best_rtt_us_.load() == UINT64_MAX ? 0 : static_cast<double>(best_rtt_us_.load()) / 1000.0;
+    rusage ru{};
+    if (::getrusage(RUSAGE_SELF, &ru) == 0) {
+      r.cpu_s = static_cast<double>(ru.ru_utime.tv_sec + ru.ru_stime.tv_sec) +
+                static_cast<double>(ru.ru_utime.tv_usec + ru.ru_stime.tv_usec) / 1e6;
+    }
     return out;
   }
 
@@ -518,15 +527,11 @@ void bot_session::on_welcome(const net::wire::welcome& w) {
   schedule_ping();
 }
 
-void bot_session::check_aoi(std::uint64_t tick, std::uint32_t id, const net::vec3f& p, const net::vec3f& half, float extra) {
+int bot_session::check_aoi(const position_board::fix& own, std::uint64_t tick, std::uint32_t id, const net::vec3f& p,
+                            const net::vec3f& half) {
   // The entity must lie inside this bot's AOI grown by the hysteresis band (boxes meet), allowing
   // the staleness of the bot's own position fix, quantization and float slack.
-  const auto own = s_.board().get(entity_);
-  auto& c = s_.counters();
-  if (!own.known) {
-    c.aoi_unchecked.fetch_add(1, std::memory_order_relaxed);
-    return;
-  }
+  if (!own.known) return 0;
   const auto& o = s_.opt_ref();
   const double stale_ticks = std::fabs(static_cast<double>(tick) - static_cast<double>(own.tick));
   const double slack = o.max_speed * stale_ticks / tick_rate_ + 0.01;
@@ -534,17 +539,16 @@ void bot_session::check_aoi(std::uint64_t tick, std::uint32_t id, const net::vec
   const float d[3] = {p.x - own.pos.x, p.y - own.pos.y, p.z - own.pos.z};
   const float h[3] = {half.x, half.y, half.z};
   for (int a = 0; a < 3; ++a) {
-    const double bound = o.aoi + o.hysteresis + h[a] + 2 * qs[a] + extra + slack;
+    const double bound = o.aoi + o.hysteresis + h[a] + 2 * qs[a] + slack;
     if (std::fabs(d[a]) > bound) {
-      c.aoi_violations.fetch_add(1, std::memory_order_relaxed);
       s_.problem("bot " + std::to_string(slot_) + " (entity " + std::to_string(entity_) + ") tick " + std::to_string(tick) +
                  ": entity " + std::to_string(id) + " is " + std::to_string(std::fabs(d[a])) + " m away on axis " +
                  "xyz"[a] + ", beyond the AOI bound " + std::to_string(bound) + " m (own fix from tick " +
                  std::to_string(own.tick) + ")");
-      return;
+      return 2;
     }
   }
-  c.aoi_checked.fetch_add(1, std::memory_order_relaxed);
+  return 1;
 }
 
 void bot_session::on_tick_update(const net::wire::tick_update& u) {
@@ -619,13 +623,15 @@ void bot_session::on_tick_update(const net::wire::tick_update& u) {
 
   // Positions told this tick: other bots' own-position fixes, and the AOI check.
   auto& board = s_.board();
+  const auto own = board.get(entity_);  // this bot's own position, as another bot last saw it
+  std::uint64_t aoi[3] = {0, 0, 0};      // unchecked, inside, violations (counted once per frame)
   if (enters) {
     for (const auto* e : *enters) {
       if (!e->position()) continue;
       const auto p = to_vec(*e->position());
       board.report(e->id(), tick, p);
       const net::vec3f half = e->presence_half_extent() ? to_vec(*e->presence_half_extent()) : net::vec3f{};
-      check_aoi(tick, e->id(), p, half, 0);
+      ++aoi[check_aoi(own, tick, e->id(), p, half)];
     }
   }
   if (updates) {
@@ -636,9 +642,12 @@ void bot_session::on_tick_update(const net::wire::tick_update& u) {
       board.report(e->id(), tick, p);
       const auto it = known.find(e->id());
       const net::vec3f half = it != known.end() ? it->second.state.presence_half_extent : net::vec3f{};
-      check_aoi(tick, e->id(), p, half, 0);
+      ++aoi[check_aoi(own, tick, e->id(), p, half)];
     }
   }
+  c.aoi_unchecked.fetch_add(aoi[0], std::memory_order_relaxed);
+  c.aoi_checked.fetch_add(aoi[1], std::memory_order_relaxed);
+  c.aoi_violations.fetch_add(aoi[2], std::memory_order_relaxed);
 }
 
 void bot_session::schedule_input() {

@@ -106,6 +106,7 @@ struct swarm_result {
                 aoi_violations = 0, latency_unsynced = 0;
   std::uint64_t bots_connected = 0;  ///< slots that got a welcome at least once
   double min_rtt_ms = 0;
+  double cpu_s = 0;  ///< CPU time of the bot-swarm process (user + system), to judge a shared machine
   [[nodiscard]] std::uint64_t mismatches() const { return digest_mismatches + inconsistent + aoi_violations; }
 };
 
