@@ -1,6 +1,8 @@
 // bot-swarm: many scripted bots against a zone server, with measurements and verification
 // (docs/bots.md). `bot-swarm --help` lists the options.
 #include <boost/program_options.hpp>
+#include <boost/property_tree/json_parser.hpp>
+#include <boost/property_tree/ptree.hpp>
 
 #include <algorithm>
 #include <cstdio>
@@ -214,6 +216,34 @@ bool write_plot(const std::string& png, const swarm_result& r) {
   return rc == 0;
 }
 
+/// A scenario file (JSON, read with Boost.PropertyTree) as command-line arguments: each top-level
+/// key is an option name with its value ("bots": 1000, "verify": true), and "mix" may be an object
+/// of shares ({"walk": 0.6, "crowd": 0.4}). An error text on failure.
+std::string scenario_args(const std::string& path, std::vector<std::string>& args) {
+  namespace pt = boost::property_tree;
+  pt::ptree tree;
+  try {
+    pt::read_json(path, tree);
+  } catch (const pt::json_parser_error& e) {
+    return "scenario " + path + ": " + e.what();
+  }
+  args.push_back("bot-swarm");
+  for (const auto& [key, value] : tree) {
+    if (key == "scenario") return "scenario " + path + ": a scenario cannot name another";
+    if (!value.empty()) {  // an object: only "mix" has one
+      if (key != "mix") return "scenario " + path + ": '" + key + "' must be a plain value";
+      std::string mix;
+      for (const auto& [name, share] : value) mix += (mix.empty() ? "" : ",") + name + "=" + share.data();
+      args.push_back("--mix=" + mix);
+    } else if (value.data() == "true") {
+      args.push_back("--" + key);
+    } else if (value.data() != "false") {
+      args.push_back("--" + key + "=" + value.data());
+    }
+  }
+  return {};
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -243,10 +273,21 @@ int main(int argc, char** argv) {
       ("report-json", po::value(&json), "write the report as JSON to this file")                      //
       ("report-csv", po::value(&csv), "write the per-second series as CSV to this file")             //
       ("plot", po::value(&plot), "write a PNG latency plot (needs gnuplot)")                          //
+      ("scenario", po::value<std::string>(), "JSON file of options (keys as above, \"mix\" may be an object); the command line wins")  //
       ("quiet", "no progress line");
   po::variables_map vm;
   try {
     po::store(po::parse_command_line(argc, argv, desc), vm);
+    if (vm.count("scenario")) {
+      std::vector<std::string> args;
+      if (const auto err = scenario_args(vm["scenario"].as<std::string>(), args); !err.empty()) {
+        std::fprintf(stderr, "bot-swarm: %s\n", err.c_str());
+        return 64;
+      }
+      std::vector<const char*> argp;
+      for (const auto& a : args) argp.push_back(a.c_str());
+      po::store(po::parse_command_line(static_cast<int>(argp.size()), argp.data(), desc), vm);  // the command line, stored first, wins
+    }
     po::notify(vm);
   } catch (const po::error& e) {
     std::fprintf(stderr, "bot-swarm: %s (try --help)\n", e.what());

@@ -130,9 +130,13 @@ TEST_CASE("churn: bots log out and in continuously; no crash, no leaked sessions
   const auto baseline = metric(http_get_metrics(server.metrics_port), "zone_entities");
   REQUIRE(baseline.has_value());
   constexpr int bots = 80;
-  child_process swarm(swarm_args(server.port, dir,
-                                 {"--bots", std::to_string(bots), "--duration", "25", "--ramp", "200", "--churn", "20",
-                                  "--relogin-delay", "0.1", "--verify"}),
+  // The churn settings come from a scenario file (also covering --scenario); the command line adds to it.
+  {
+    std::ofstream scenario(dir + "/churn.json");
+    scenario << R"({"duration": 25, "ramp": 200, "churn": 20, "relogin-delay": 0.1, "verify": true,)"
+             << R"( "mix": {"walk": 0.5, "patrol": 0.5}})";
+  }
+  child_process swarm(swarm_args(server.port, dir, {"--bots", std::to_string(bots), "--scenario", dir + "/churn.json"}),
                       dir + "/bot-swarm.log");
   // While it runs, the server never holds more sessions than bots (plus a few closing).
   double most_sessions = 0;
@@ -147,6 +151,7 @@ TEST_CASE("churn: bots log out and in continuously; no crash, no leaked sessions
   INFO("bot-swarm output:\n" << swarm.log());
   CHECK(rc.value_or(-1) == 0);
   CHECK(json_number(report, "logouts").value_or(0) >= 300);
+  CHECK(report.find("\"verify\": true") != std::string::npos);
   CHECK(json_number(report, "mismatches").value_or(-1) == 0);
   CHECK(most_sessions <= bots + 10);
   // Every bot is gone: the server's sessions, clients and entities return to the live count.
