@@ -124,7 +124,10 @@ box_set generate_mmo(std::size_t n, std::uint64_t seed) {
     const double body = vis == cb::normal && unit(rng) < 0.002 ? uniform(rng, 20.0, 60.0)  // a boss-sized body
                                                                : uniform(rng, 0.5, 2.0);
     const double body_edge[3] = {body, body, body * 2};
-    s.push_back(centred_box(centre, body_edge, vis, cb::aoi));
+    // Mask 0: the pair rule is symmetric ((cat_a & mask_b) | (cat_b & mask_a)), so a presence box
+    // with mask AOI would be seen by every AOI box whatever it may see; with 0, only the AOI
+    // box's mask (the classes it sees) decides.
+    s.push_back(centred_box(centre, body_edge, vis, 0));
   }
   return s;
 }

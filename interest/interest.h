@@ -296,7 +296,9 @@ inline constexpr std::uint32_t team_blue = 1u << 4;
 /// clustered in towns (Gaussian crowds, one town per ~4,000 entities), the rest spread uniformly.
 /// Entity k owns box 2k (its AOI box: half-extent from tiers tiny..gigantic, category AOI,
 /// mask = the classes it sees) and box 2k+1 (its presence box: a small body, or a boss-sized one,
-/// category = its visibility class, mask AOI). Only AOI-vs-presence pairs qualify.
+/// category = its visibility class, mask 0). Only AOI-vs-presence pairs qualify, and only where
+/// the AOI's mask holds the presence's class (a presence mask of AOI would, by the symmetric
+/// rule, make every AOI see it: stealth would not hide).
 [[nodiscard]] box_set generate_mmo(std::size_t n, std::uint64_t seed);
 
 /// Names accepted by generate_named: "uniform", "gaussian", "mmo", "doc:<value>".

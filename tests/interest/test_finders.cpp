@@ -167,6 +167,21 @@ TEST_SUITE("interest.finders") {
     CHECK(std::all_of(got.begin(), got.end(), [&](const id_pair& p) {
       return (s.category[p.a] == category_bits::aoi) != (s.category[p.b] == category_bits::aoi);
     }));
+    // Visibility: an AOI box pairs only with presence boxes of a class its mask holds (stealth
+    // hides from all but detectors), and some stealthy presences exist and are hidden somewhere.
+    std::size_t stealth_seen = 0;
+    CHECK(std::all_of(got.begin(), got.end(), [&](const id_pair& p) {
+      const box_id aoi = s.category[p.a] == category_bits::aoi ? p.a : p.b;
+      const box_id presence = aoi == p.a ? p.b : p.a;
+      stealth_seen += s.category[presence] == category_bits::stealth ? 1 : 0;
+      return (s.mask[aoi] & s.category[presence]) != 0;
+    }));
+    box_set all_see = s;
+    for (std::size_t i = 0; i < all_see.size(); i += 2) all_see.mask[i] |= category_bits::stealth;
+    pair_list with_detectors;
+    REQUIRE_FALSE(grid.find(all_see, with_detectors).has_value());
+    CHECK(with_detectors.size() > got.size());  // stealthy presences were hidden from some AOIs
+    CHECK(stealth_seen > 0);                    // and seen by the detectors
   }
 
   TEST_CASE("invalid boxes are rejected with the box named") {
