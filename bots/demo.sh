@@ -1,0 +1,64 @@
+#!/usr/bin/env bash
+# The zone server + bot swarm demo (docs/bots.md): starts zone-server on a free loopback port,
+# runs bot-swarm against it with a live progress line, prints the swarm's report and the server's
+# tick report, and shuts both down cleanly (also on Ctrl-C or an error).
+#
+#   bash bots/demo.sh [BUILD_DIR]        # default build dir: build
+#
+# Environment: DEMO_BOTS, DEMO_NPCS, DEMO_SECONDS, DEMO_TICK_HZ, DEMO_OUT (report folder).
+# Defaults: 1,000 bots + 10,000 NPCs at 20 Hz for 30 s; 2,000 bots + 20,000 NPCs with a CUDA device.
+set -euo pipefail
+
+BUILD=${1:-build}
+SERVER_EXE=$BUILD/zone/zone-server
+SWARM_EXE=$BUILD/bots/bot-swarm
+for exe in "$SERVER_EXE" "$SWARM_EXE"; do
+  [[ -x $exe ]] || { echo "demo: $exe is missing (build first)" >&2; exit 2; }
+done
+
+if command -v nvidia-smi >/dev/null 2>&1 && nvidia-smi -L >/dev/null 2>&1; then
+  BOTS=${DEMO_BOTS:-2000} NPCS=${DEMO_NPCS:-20000}
+else
+  BOTS=${DEMO_BOTS:-1000} NPCS=${DEMO_NPCS:-10000}
+fi
+SECONDS_=${DEMO_SECONDS:-30}
+HZ=${DEMO_TICK_HZ:-20}
+OUT=${DEMO_OUT:-$(mktemp -d /tmp/zone-demo-XXXXXX)}
+mkdir -p "$OUT"
+ulimit -n $((BOTS * 2 + 1024)) 2>/dev/null || echo "demo: could not raise the open-file limit (ulimit -n)" >&2
+
+"$SERVER_EXE" --listen 127.0.0.1 --port 0 --metrics-port 0 --npcs "$NPCS" --tick-rate "$HZ" \
+  --max-clients $((BOTS + 100)) > "$OUT/zone-server.log" 2>&1 &
+SERVER=$!
+stop_server() {
+  if kill -0 "$SERVER" 2>/dev/null; then
+    kill -TERM "$SERVER" 2>/dev/null || true
+    for _ in $(seq 100); do kill -0 "$SERVER" 2>/dev/null || break; sleep 0.1; done
+    kill -KILL "$SERVER" 2>/dev/null || true
+  fi
+  wait "$SERVER" 2>/dev/null || true
+}
+trap stop_server EXIT INT TERM
+
+PORT=
+for _ in $(seq 300); do
+  PORT=$(grep -o 'listening on [0-9.]*:[0-9]*' "$OUT/zone-server.log" | sed 's/.*://' || true)
+  [[ -n $PORT ]] && break
+  kill -0 "$SERVER" 2>/dev/null || { cat "$OUT/zone-server.log" >&2; exit 1; }
+  sleep 0.1
+done
+[[ -n $PORT ]] || { echo "demo: zone-server did not start" >&2; exit 1; }
+echo "demo: zone-server on 127.0.0.1:$PORT ($NPCS NPCs, $HZ Hz); $BOTS bots for $SECONDS_ s; reports in $OUT"
+
+set +e
+"$SWARM_EXE" --port "$PORT" --bots "$BOTS" --duration "$SECONDS_" --ramp 200 --verify \
+  --mix walk=0.6,patrol=0.2,follow=0.1,crowd=0.1 \
+  --report-json "$OUT/report.json" --report-csv "$OUT/report.csv" --plot "$OUT/latency.png"
+RC=$?
+set -e
+
+stop_server
+trap - EXIT INT TERM
+echo "zone-server:"
+grep -A6 'stopped after' "$OUT/zone-server.log" | sed 's/^\[[^]]*\] \[[a-z]*\] /  /'
+exit $RC
