@@ -262,6 +262,7 @@ int main(int argc, char** argv) {
       ("ping-hz", po::value(&o.ping_hz)->default_value(o.ping_hz), "pings per second per bot")         //
       ("mix", po::value(&mix)->default_value(mix), "behaviour shares, e.g. walk=0.6,patrol=0.2,follow=0.1,crowd=0.1")  //
       ("hotspot", po::value(&hotspot), "flash-crowd target x,y,z (default: where the leader bot first is)")  //
+      ("crowd-at", po::value(&o.crowd_at_s)->default_value(o.crowd_at_s), "seconds into the run when the crowd bots start converging")  //
       ("churn", po::value(&o.churn)->default_value(o.churn), "logouts per second (each bot logs in again)")  //
       ("relogin-delay", po::value(&o.relogin_delay_s)->default_value(o.relogin_delay_s), "seconds before a churned bot logs in again")  //
       ("verify", po::bool_switch(&o.verify), "compare the server's visible-set digests with each bot's tracked view")  //

@@ -712,6 +712,8 @@ net::vec3f bot_session::steer() {
       return heading_;  // no leader in sight: keep walking
     }
     case behaviour::crowd: {
+      // The flash crowd forms at crowd_at_s into the run: until then, walk.
+      if (std::chrono::duration<double>(steady::now() - s_.epoch()).count() < s_.opt_ref().crowd_at_s) return heading_;
       net::vec3f target{};
       {
         std::lock_guard lock(s_.hotspot_mutex);

@@ -37,6 +37,7 @@ struct swarm_options {
   float max_speed = 6;       ///< fastest any entity moves (m/s; max of --player-speed, --npc-speed)
   bool hotspot_set = false;
   net::vec3f hotspot{};      ///< the flash crowd's target; default: where the leader first is
+  double crowd_at_s = 0;     ///< crowd bots walk until this many seconds into the run, then converge
   double connect_timeout_s = 10;  ///< connect + welcome
   std::size_t max_frame_bytes = 1 << 22;
 };
