@@ -10,18 +10,12 @@
 #include <string>
 
 #include "interest.h"
+#include "seeds.h"
 
 namespace zone::test {
 
 using namespace zone::interest;
 
-
-/// A fresh seed per run (printed on failure), so every run tests new random inputs.
-inline std::uint64_t fresh_seed() {
-  static const std::uint64_t base = std::random_device{}();
-  static std::uint64_t k = 0;
-  return base + 0x9e3779b97f4a7c15ull * ++k;
-}
 
 
 /// Runs a finder on a valid set: asserts success, a < b in every pair and no duplicate; returns

@@ -8,37 +8,8 @@
 #include "metrics.h"
 
 using namespace zone::net;
-
-namespace {
-
-/// One HTTP/1.1 request over a raw socket; returns the whole response (until the server closes).
-std::string http_request(std::uint16_t port, const std::string& request) {
-  const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
-  REQUIRE(fd >= 0);
-  sockaddr_in addr{};
-  addr.sin_family = AF_INET;
-  addr.sin_port = htons(port);
-  addr.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
-  REQUIRE(::connect(fd, reinterpret_cast<sockaddr*>(&addr), sizeof addr) == 0);
-  REQUIRE(::send(fd, request.data(), request.size(), MSG_NOSIGNAL) == static_cast<ssize_t>(request.size()));
-  std::string response;
-  char buf[4096];
-  for (;;) {
-    pollfd p{fd, POLLIN, 0};
-    if (::poll(&p, 1, 3000) <= 0) break;
-    const ssize_t n = ::recv(fd, buf, sizeof buf, 0);
-    if (n <= 0) break;
-    response.append(buf, static_cast<std::size_t>(n));
-  }
-  ::close(fd);
-  return response;
-}
-
-std::string get(std::uint16_t port, const std::string& path) {
-  return http_request(port, "GET " + path + " HTTP/1.1\r\nHost: localhost\r\n\r\n");
-}
-
-}  // namespace
+using zone::net::testing::http_get;
+using zone::net::testing::http_request;
 
 TEST_SUITE("net.metrics") {
   TEST_CASE("prometheus text: counters, gauges, labelled histograms") {
@@ -67,18 +38,18 @@ TEST_SUITE("net.metrics") {
     REQUIRE(m.port() != 0);
     const std::string first = "zone_entities 1\n";
     m.publish(first);
-    auto r = get(m.port(), "/metrics");
+    auto r = http_get(m.port(), "/metrics");
     CHECK(r.starts_with("HTTP/1.1 200"));
     CHECK(r.find("text/plain; version=0.0.4") != std::string::npos);
     CHECK(r.ends_with("\r\n\r\n" + first));
     const std::string second = "zone_entities " + std::to_string(std::random_device{}()) + "\n";
     m.publish(second);
-    CHECK(get(m.port(), "/metrics").ends_with(second));
-    CHECK(get(m.port(), "/nope").starts_with("HTTP/1.1 404"));
+    CHECK(http_get(m.port(), "/metrics").ends_with(second));
+    CHECK(http_get(m.port(), "/nope").starts_with("HTTP/1.1 404"));
     CHECK(http_request(m.port(), "POST /metrics HTTP/1.1\r\nHost: x\r\nContent-Length: 0\r\n\r\n").starts_with("HTTP/1.1 405"));
     // Garbage does not take the server down.
     (void)http_request(m.port(), "\x01\x02 garbage\r\n\r\n");
-    CHECK(get(m.port(), "/metrics").ends_with(second));
+    CHECK(http_get(m.port(), "/metrics").ends_with(second));
     CHECK(m.requests() >= 5);
     m.stop();
     m.stop();

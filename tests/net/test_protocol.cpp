@@ -2,6 +2,8 @@
 // quantization bounds and the visible-set digest.
 #include <doctest/doctest.h>
 
+#include "../common/seeds.h"
+
 #include <algorithm>
 #include <cmath>
 #include <cstring>
@@ -15,12 +17,7 @@ using bytes = std::vector<std::uint8_t>;
 
 namespace {
 
-/// A fresh seed per run (CAPTUREd by each test), so every run tests new random inputs.
-std::uint64_t fresh_seed() {
-  static const std::uint64_t base = std::random_device{}() ^ (std::uint64_t{std::random_device{}()} << 32);
-  static std::uint64_t k = 0;
-  return base + 0x9e3779b97f4a7c15ull * ++k;
-}
+using zone::test::fresh_seed;
 
 struct gen {
   std::mt19937_64 rng;

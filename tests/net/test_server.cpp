@@ -4,6 +4,8 @@
 // whose bounded queue keeps the newest state, the connection limit and the idle timeout.
 #include <doctest/doctest.h>
 
+#include "../common/seeds.h"
+
 #include <algorithm>
 #include <atomic>
 #include <cerrno>
@@ -23,11 +25,7 @@ using zone::net::testing::test_client;
 
 namespace {
 
-std::uint64_t fresh_seed() {
-  static const std::uint64_t base = std::random_device{}() ^ (std::uint64_t{std::random_device{}()} << 32);
-  static std::uint64_t k = 0;
-  return base + 0x9e3779b97f4a7c15ull * ++k;
-}
+using zone::test::fresh_seed;
 
 /// The game side: polls the server's events.
 struct game {

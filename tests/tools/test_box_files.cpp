@@ -2,6 +2,8 @@
 // format's byte layout and its rejection of damaged files (docs/formats.md).
 #include <doctest/doctest.h>
 
+#include "../common/seeds.h"
+
 #include <bit>
 #include <cmath>
 #include <cstdio>
@@ -21,12 +23,7 @@ namespace fs = std::filesystem;
 
 namespace {
 
-/// A fresh seed per run (printed on failure with CAPTURE), so every run tests new random inputs.
-std::uint64_t fresh_seed() {
-  static const std::uint64_t base = (std::uint64_t{std::random_device{}()} << 32) | std::random_device{}();
-  static std::uint64_t k = 0;
-  return base + 0x9e3779b97f4a7c15ull * ++k;
-}
+using zone::test::fresh_seed;
 
 /// A scratch folder, removed at the end of the test.
 struct temp_dir {

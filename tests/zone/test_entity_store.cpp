@@ -1,6 +1,8 @@
 // Entity storage against a plain std::map model under random operation sequences.
 #include <doctest/doctest.h>
 
+#include "../common/seeds.h"
+
 #include <cmath>
 #include <map>
 #include <random>
@@ -13,11 +15,7 @@ namespace cb = zone::interest::category_bits;
 
 namespace {
 
-std::uint64_t fresh_seed() {
-  static const std::uint64_t base = std::random_device{}() ^ (std::uint64_t{std::random_device{}()} << 32);
-  static std::uint64_t k = 0;
-  return base + 0x9e3779b97f4a7c15ull * ++k;
-}
+using zone::test::fresh_seed;
 
 entity_desc random_desc(std::mt19937_64& rng) {
   std::uniform_real_distribution<float> u(-1000, 1000), e(0, 50);

@@ -4,6 +4,8 @@
 // finders and thread counts.
 #include <doctest/doctest.h>
 
+#include "../common/seeds.h"
+
 #include <algorithm>
 #include <bit>
 #include <cmath>
@@ -18,11 +20,7 @@ using id_list = std::vector<entity_id>;
 
 namespace {
 
-std::uint64_t fresh_seed() {
-  static const std::uint64_t base = std::random_device{}() ^ (std::uint64_t{std::random_device{}()} << 32);
-  static std::uint64_t k = 0;
-  return base + 0x9e3779b97f4a7c15ull * ++k;
-}
+using zone::test::fresh_seed;
 
 // ---- the oracle ------------------------------------------------------------------------------
 

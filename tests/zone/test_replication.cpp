@@ -4,6 +4,8 @@
 // tiers, and a resync after lost frames rebuilds the view.
 #include <doctest/doctest.h>
 
+#include "../common/seeds.h"
+
 #include <algorithm>
 #include <cmath>
 #include <map>
@@ -16,11 +18,7 @@ namespace cb = zone::interest::category_bits;
 
 namespace {
 
-std::uint64_t fresh_seed() {
-  static const std::uint64_t base = std::random_device{}() ^ (std::uint64_t{std::random_device{}()} << 32);
-  static std::uint64_t k = 0;
-  return base + 0x9e3779b97f4a7c15ull * ++k;
-}
+using zone::test::fresh_seed;
 
 /// What a client knows: entity -> last position it was told; the incremental digest.
 struct sim_client {

@@ -2,6 +2,8 @@
 // the player speed limit, chasing, phase histograms.
 #include <doctest/doctest.h>
 
+#include "../common/seeds.h"
+
 #include <cmath>
 #include <cstdio>
 #include <fstream>
@@ -13,11 +15,7 @@ using namespace zone;
 
 namespace {
 
-std::uint64_t fresh_seed() {
-  static const std::uint64_t base = std::random_device{}() ^ (std::uint64_t{std::random_device{}()} << 32);
-  static std::uint64_t k = 0;
-  return base + 0x9e3779b97f4a7c15ull * ++k;
-}
+using zone::test::fresh_seed;
 
 config_result parse(std::vector<std::string> args) {
   args.insert(args.begin(), "zone-server");

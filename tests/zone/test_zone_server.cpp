@@ -140,28 +140,7 @@ TEST_SUITE("zone.server") {
 
     // /metrics answers with the zone's counters and phase histograms.
     REQUIRE(server.metrics_port() != 0);
-    const auto scrape_once = [&] {
-      std::string out;
-      const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
-      REQUIRE(fd >= 0);
-      sockaddr_in addr{};
-      addr.sin_family = AF_INET;
-      addr.sin_port = htons(server.metrics_port());
-      addr.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
-      REQUIRE(::connect(fd, reinterpret_cast<sockaddr*>(&addr), sizeof addr) == 0);
-      const std::string req = "GET /metrics HTTP/1.1\r\nHost: localhost\r\n\r\n";
-      REQUIRE(::send(fd, req.data(), req.size(), MSG_NOSIGNAL) == static_cast<ssize_t>(req.size()));
-      char buf[4096];
-      for (;;) {
-        pollfd p{fd, POLLIN, 0};
-        if (::poll(&p, 1, 3000) <= 0) break;
-        const ssize_t n = ::recv(fd, buf, sizeof buf, 0);
-        if (n <= 0) break;
-        out.append(buf, static_cast<std::size_t>(n));
-      }
-      ::close(fd);
-      return out;
-    };
+    const auto scrape_once = [&] { return zone::net::testing::http_get(server.metrics_port(), "/metrics"); };
     // The snapshot is refreshed about once a second: scrape until it shows the hostile's rejection.
     std::string scrape;
     for (int attempt = 0; attempt < 40; ++attempt) {
