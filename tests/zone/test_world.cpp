@@ -9,6 +9,7 @@
 #include <fstream>
 #include <random>
 
+#include "world_script.h"
 #include "zone.h"
 
 using namespace zone;
@@ -16,45 +17,14 @@ using namespace zone;
 namespace {
 
 using zone::test::fresh_seed;
+using zone::test::run_digests;
+using zone::test::small_config;
 
 config_result parse(std::vector<std::string> args) {
   args.insert(args.begin(), "zone-server");
   std::vector<const char*> argv;
   for (const auto& a : args) argv.push_back(a.c_str());
   return parse_config(static_cast<int>(argv.size()), argv.data());
-}
-
-zone_config small_config(std::uint64_t seed) {
-  zone_config c;
-  c.world = {{0, 0, 0}, {800, 800, 50}};
-  c.seed = seed;
-  c.npc_count = 600;
-  c.boss_count = 2;
-  c.town_count = 3;
-  c.npc_speed = 30;  // fast, so a short run moves things across AOI edges
-  c.player_speed = 40;
-  c.tick_rate_hz = 10;
-  return c;
-}
-
-/// Per-tick digests of a run with some players steered by a seeded script.
-std::vector<std::uint64_t> run_digests(const zone_config& cfg, interest::pair_finder& finder, interest::thread_pool* pool,
-                                       int ticks) {
-  zone_world w(cfg, finder, pool);
-  w.populate();
-  std::mt19937_64 script(cfg.seed + 7);
-  std::vector<entity_id> players;
-  for (int p = 0; p < 8; ++p) players.push_back(w.spawn_player({100.f * p, 400, 0}));
-  std::vector<std::uint64_t> out;
-  for (int t = 0; t < ticks; ++t) {
-    for (const auto p : players) {
-      std::uniform_real_distribution<float> u(-2, 2);
-      w.set_intent(p, {u(script), u(script), 0});
-    }
-    REQUIRE_FALSE(w.step().has_value());
-    out.push_back(w.digest());
-  }
-  return out;
 }
 
 }  // namespace
