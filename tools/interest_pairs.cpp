@@ -17,7 +17,7 @@
 #include <string_view>
 #include <vector>
 
-#include "gpu/pbig.h"
+#include "gpu/finders.h"
 #include "interest.h"
 
 namespace {
@@ -29,7 +29,7 @@ constexpr int exit_failure = 1;
 constexpr int exit_bad_input = 2;
 
 constexpr const char* usage_line =
-    "usage: interest-pairs [--backend brute|cpu|gpu|auto] [--count-only] [--output FILE] [--threads N] [--quiet] INPUT\n"
+    "usage: interest-pairs [--backend brute|cpu|gpu|pbig|lbvh|auto] [--count-only] [--output FILE] [--threads N] [--quiet] INPUT\n"
     "       interest-pairs gen --set uniform|gaussian|mmo|doc:<value> --count N [--seed S] [--format csv|binary] "
     "--output FILE\n";
 
@@ -38,8 +38,9 @@ constexpr const char* help_text =
     "Finds every pair of boxes in INPUT (CSV or binary .boxes, see docs/formats.md) that intersect and\n"
     "pass the category/mask filter; writes one line `i j` per pair (i < j, sorted by i then j).\n"
     "\n"
-    "  --backend B     brute (O(N^2) reference), cpu (grid finder), gpu (PBIG on CUDA),\n"
-    "                  auto (gpu when a device is usable, else cpu; the default)\n"
+    "  --backend B     brute (O(N^2) reference), cpu (grid finder), gpu or pbig (PBIG on CUDA),\n"
+    "                  lbvh (Karras's LBVH on CUDA), auto (per call: a GPU finder chosen from the\n"
+    "                  set's statistics when a device is usable, else cpu; the default)\n"
     "  --count-only    print only the number of pairs\n"
     "  --output FILE   write to FILE instead of stdout (created only once the pairs are found)\n"
     "  --threads N     threads for the brute and cpu finders and the GPU decode (0 = all cores; default 0)\n"
@@ -53,7 +54,7 @@ constexpr const char* help_text =
     "  --format F      csv or binary (default: binary when FILE ends in .boxes, else csv)\n"
     "  --output FILE   the file to write\n"
     "\n"
-    "Exit status: 0 success, 1 failure (no GPU for --backend gpu, write error),\n"
+    "Exit status: 0 success, 1 failure (no GPU for --backend gpu/pbig/lbvh, write error),\n"
     "2 bad input or usage (the message names the offending line or box).\n";
 
 int usage_error(const std::string& message) {
@@ -273,9 +274,8 @@ int run_pairs(int argc, char** argv) {
     args.skip();
   }
   if (!have_input) return usage_error("missing INPUT");
-  if (backend != "brute" && backend != "cpu" && backend != "gpu" && backend != "auto") {
-    return usage_error("unknown backend '" + backend + "' (expected brute, cpu, gpu or auto)");
-  }
+  const auto chosen = zone::gpu::parse_backend(backend);
+  if (!chosen) return usage_error("unknown backend '" + backend + "' (expected brute, cpu, gpu, pbig, lbvh or auto)");
   unsigned threads = 0;
   if (!parse_uint(threads_text, threads)) return usage_error("--threads '" + threads_text + "' is not a non-negative integer");
   if (output == "-") output.clear();
@@ -283,26 +283,12 @@ int run_pairs(int argc, char** argv) {
   zi::thread_pool pool(threads);
 
   // The finder first: a missing GPU is reported before a long read.
-  std::unique_ptr<zi::pair_finder> finder;
-  if (backend == "brute") {
-    finder = std::make_unique<zi::brute_force_finder>(&pool);
-  } else if (backend == "cpu") {
-    finder = std::make_unique<zi::grid_finder>(&pool);
-  } else {
-    zone::gpu::pbig_options opt;
-    opt.decode_pool = &pool;
-    std::string why;
-    finder = zone::gpu::make_pbig_finder(opt, &why);
-    if (!finder && backend == "gpu") {
-      spdlog::error("--backend gpu: no usable GPU: {}", why);
-      return exit_failure;
-    }
-    if (!finder) {
-      spdlog::info("auto: using the CPU grid finder (no GPU: {})", why);
-      finder = std::make_unique<zi::grid_finder>(&pool);
-    } else if (backend == "auto") {
-      spdlog::info("auto: using the GPU finder ({})", finder->name());
-    }
+  // `auto` decides per call (and falls back to the CPU finder if a GPU finder fails mid-call).
+  std::string why;
+  std::unique_ptr<zi::pair_finder> finder = zone::gpu::make_finder(*chosen, &pool, &why);
+  if (!finder) {
+    spdlog::error("--backend {}: no usable GPU: {}", backend, why);
+    return exit_failure;
   }
 
   auto t0 = std::chrono::steady_clock::now();
@@ -315,16 +301,7 @@ int run_pairs(int argc, char** argv) {
 
   t0 = std::chrono::steady_clock::now();
   zi::pair_list pairs;
-  std::optional<zi::box_error> err;
-  try {
-    err = finder->find(boxes, pairs);
-  } catch (const std::exception& e) {
-    // A device error mid-call: `auto` falls back to the CPU finder; `gpu` reports it.
-    if (backend != "auto") throw;
-    spdlog::warn("auto: the GPU finder failed ({}); falling back to the CPU grid finder", e.what());
-    finder = std::make_unique<zi::grid_finder>(&pool);
-    err = finder->find(boxes, pairs);
-  }
+  const std::optional<zi::box_error> err = finder->find(boxes, pairs);
   if (err) {
     spdlog::error("{}: {}", input, err->message);
     return exit_bad_input;
@@ -337,8 +314,10 @@ int run_pairs(int argc, char** argv) {
 
   t0 = std::chrono::steady_clock::now();
   const int status = write_result(output, pairs, count_only);
+  const auto ran = zone::gpu::last_auto_choice(*finder);
   spdlog::info("{} boxes, {} pairs, backend {} ({} threads): read {:.1f} ms, find {:.1f} ms, sort {:.1f} ms, write {:.1f} ms",
-               boxes.size(), pairs.size(), finder->name(), pool.size(), read_ms, find_ms, sort_ms, ms_since(t0));
+               boxes.size(), pairs.size(),
+               ran ? "auto: " + std::string(zone::gpu::backend_name(*ran)) : std::string(finder->name()), pool.size(), read_ms, find_ms, sort_ms, ms_since(t0));
   return status;
 }
 

@@ -1,0 +1,345 @@
+// Finder factory and the `auto` finder (finders.h). Plain C++, built with and without CUDA: the
+// GPU factories (make_pbig_finder, make_lbvh_finder) return null where no device can be used.
+#include "finders.h"
+
+#include <spdlog/spdlog.h>
+
+#include <algorithm>
+#include <array>
+#include <cmath>
+#include <cstring>
+#include <exception>
+#include <stdexcept>
+#include <vector>
+
+#include "lbvh.h"
+#include "pbig.h"
+
+namespace zone::gpu {
+
+std::optional<finder_backend> parse_backend(std::string_view name) {
+  if (name == "brute") return finder_backend::brute;
+  if (name == "cpu") return finder_backend::cpu;
+  if (name == "gpu" || name == "pbig") return finder_backend::pbig;
+  if (name == "lbvh") return finder_backend::lbvh;
+  if (name == "auto") return finder_backend::auto_select;
+  return std::nullopt;
+}
+
+std::string_view backend_name(finder_backend backend) {
+  switch (backend) {
+    case finder_backend::brute: return "brute";
+    case finder_backend::cpu: return "cpu";
+    case finder_backend::pbig: return "pbig";
+    case finder_backend::lbvh: return "lbvh";
+    case finder_backend::auto_select: return "auto";
+  }
+  return "?";
+}
+
+// ---- statistics and the rule ------------------------------------------------------------------
+
+box_set_summary summarize(const interest::box_set& boxes) {
+  box_set_summary s;
+  s.n = boxes.size();
+  if (s.n == 0) return s;
+  const std::size_t k = std::min(s.n, auto_sample_boxes);
+  s.sampled = k;
+  // A fixed strided sample: box floor(i * n / k) for i < k.
+  double lo[3] = {INFINITY, INFINITY, INFINITY}, hi[3] = {-INFINITY, -INFINITY, -INFINITY};
+  std::array<float, 3 * auto_sample_boxes> edge;
+  std::array<float, auto_sample_boxes> largest;
+  const float* blo[3] = {boxes.lo_x.data(), boxes.lo_y.data(), boxes.lo_z.data()};
+  const float* bhi[3] = {boxes.hi_x.data(), boxes.hi_y.data(), boxes.hi_z.data()};
+  double sum_largest = 0;
+  for (std::size_t i = 0; i < k; ++i) {
+    const std::size_t b = static_cast<std::size_t>(std::uint64_t{i} * s.n / k);  // i * n < 2^9 * 2^32
+    float big = 0;
+    for (int d = 0; d < 3; ++d) {
+      const double l = blo[d][b], h = bhi[d][b];
+      lo[d] = std::min(lo[d], l);
+      hi[d] = std::max(hi[d], h);
+      const float e = static_cast<float>(std::max(0.0, h - l));
+      edge[3 * i + d] = e;
+      big = std::max(big, e);
+    }
+    largest[i] = big;
+    sum_largest += big;
+  }
+  for (int d = 0; d < 3; ++d) s.scene_extent[d] = std::isfinite(hi[d] - lo[d]) ? std::max(0.0, hi[d] - lo[d]) : 0.0;
+  s.mean_size = sum_largest / static_cast<double>(k);
+  std::array<float, auto_sample_boxes> sorted = largest;
+  std::nth_element(sorted.begin(), sorted.begin() + k / 2, sorted.begin() + k);
+  const double median = sorted[k / 2];
+  const double maxv = *std::max_element(largest.begin(), largest.begin() + k);
+  s.size_spread = median > 0 ? maxv / median : (maxv > 0 ? INFINITY : 1.0);
+
+  // Eq. 6 estimated on the sample: the smallest cubic edge l with f(l) = N * alpha(l) / M(l) >= 32,
+  // alpha(l) = mean of prod_d (e_d / l + 1) (expected cells of a randomly placed box), M(l) =
+  // prod_d (extent_d / l + 1) capped at 2N + 64 like the planners. f grows with l: bisection in log l.
+  const double n = static_cast<double>(s.n);
+  const double max_extent = std::max({s.scene_extent[0], s.scene_extent[1], s.scene_extent[2]});
+  auto cells_of = [](const float* e, double l) {
+    return (e[0] / l + 1.0) * (e[1] / l + 1.0) * (e[2] / l + 1.0);
+  };
+  auto m_of = [&](double l) {
+    double m = 1;
+    for (int d = 0; d < 3; ++d) m *= s.scene_extent[d] / l + 1.0;
+    return m;
+  };
+  // alpha(l) = mean prod_d (e_d / l + 1) = s3 / l^3 + s2 / l^2 + s1 / l + 1 with the sample means
+  // of the elementary symmetric polynomials of the edges: O(1) per candidate edge.
+  double s1 = 0, s2 = 0, s3 = 0;
+  for (std::size_t i = 0; i < k; ++i) {
+    const double e0 = edge[3 * i], e1 = edge[3 * i + 1], e2 = edge[3 * i + 2];
+    s1 += e0 + e1 + e2;
+    s2 += e0 * e1 + e0 * e2 + e1 * e2;
+    s3 += e0 * e1 * e2;
+  }
+  s1 /= static_cast<double>(k);
+  s2 /= static_cast<double>(k);
+  s3 /= static_cast<double>(k);
+  auto f_of = [&](double l, double* alpha_out) {
+    const double alpha = ((s3 / l + s2) / l + s1) / l + 1.0;
+    if (alpha_out) *alpha_out = alpha;
+    return n * alpha / m_of(l);
+  };
+  if (max_extent <= 0) {
+    s.cell_edge = 1;
+    s.mean_cells = 1;
+    s.largest_cells = 1;
+    return s;
+  }
+  // Uncapped, f grows with l; the cap then grows l until M(l) <= 2N + 64 (M falls with l).
+  auto bisect = [&](auto&& good) {
+    double a = max_extent * 1e-7, b = max_extent * 2;
+    if (good(a)) return a;
+    for (int it = 0; it < 40 && b / a > 1.01; ++it) {
+      const double mid = std::sqrt(a * b);
+      if (good(mid)) b = mid; else a = mid;
+    }
+    return b;
+  };
+  const double eq6 = bisect([&](double l) { return f_of(l, nullptr) >= 32; });
+  const double cap = bisect([&](double l) { return m_of(l) <= 2.0 * n + 64.0; });
+  const double b = std::max(eq6, cap);
+  s.cell_edge = b;
+  (void)f_of(b, &s.mean_cells);
+  double most = 0;
+  for (std::size_t i = 0; i < k; ++i) most = std::max(most, cells_of(&edge[3 * i], b));
+  s.largest_cells = most;
+  return s;
+}
+
+finder_backend choose_backend(const box_set_summary& summary, bool pbig_usable, bool lbvh_usable,
+                              std::string* reason) {
+  auto say = [&](const std::string& text) {
+    if (reason) *reason = text;
+  };
+  if (!pbig_usable && !lbvh_usable) {
+    say("no GPU finder can run");
+    return finder_backend::cpu;
+  }
+  if (!pbig_usable) {
+    say("PBIG cannot run, LBVH can");
+    return finder_backend::lbvh;
+  }
+  if (!lbvh_usable) {
+    say("LBVH cannot run, PBIG can");
+    return finder_backend::pbig;
+  }
+  (void)summary;
+  say("a device is usable: PBIG");
+  return finder_backend::pbig;
+}
+
+// ---- the auto finder --------------------------------------------------------------------------
+
+namespace {
+
+/// Copies `src` into `out` (resized to fit), split over the pool for large lists.
+void copy_pairs(std::span<const interest::id_pair> src, interest::pair_list& out, interest::thread_pool* pool) {
+  out.resize(src.size());
+  const std::size_t parts = src.size() < 65536 || pool == nullptr ? 1 : pool->size() * 4;
+  interest::run_tasks(parts > 1 ? pool : nullptr, parts, [&](std::size_t p) {
+    const std::size_t b = src.size() * p / parts, e = src.size() * (p + 1) / parts;
+    if (e > b) std::memcpy(static_cast<void*>(out.data() + b), src.data() + b, (e - b) * sizeof(interest::id_pair));
+  });
+}
+
+bool is_pbig(const interest::pair_finder& f) { return last_pbig_report(f) != nullptr; }
+bool is_lbvh(const interest::pair_finder& f) { return last_lbvh_report(f) != nullptr; }
+
+class auto_finder final : public interest::pair_finder {
+ public:
+  auto_finder(std::unique_ptr<interest::pair_finder> cpu, std::unique_ptr<interest::pair_finder> pbig,
+              std::unique_ptr<interest::pair_finder> lbvh, interest::thread_pool* pool, std::string no_gpu_why)
+      : cpu_(std::move(cpu)), pbig_(std::move(pbig)), lbvh_(std::move(lbvh)), pool_(pool),
+        no_gpu_why_(std::move(no_gpu_why)) {
+    if (!cpu_) throw std::invalid_argument("make_auto_finder: the CPU finder must not be null");
+  }
+  [[nodiscard]] std::string_view name() const override { return "auto"; }
+  [[nodiscard]] std::optional<finder_backend> last_choice() const { return last_; }
+
+  /// find_view for the auto finder: validation in the chosen GPU finder's packing pass.
+  std::optional<interest::box_error> view(const interest::box_set& boxes, std::span<const interest::id_pair>& out) {
+    out = {};
+    const finder_backend b = decide(boxes);
+    if (b != finder_backend::cpu) {
+      try {
+        interest::pair_finder& f = *(b == finder_backend::pbig ? pbig_ : lbvh_);
+        std::optional<interest::box_error> err;
+        if (is_pbig(f)) {
+          err = find_pairs_view(f, boxes, out);
+        } else if (is_lbvh(f)) {
+          err = find_lbvh_view(f, boxes, out);
+        } else {  // an injected finder (tests)
+          err = f.find(boxes, buffer_);
+          if (!err) out = buffer_;
+        }
+        if (!err) stats_ = f.stats();
+        return err;
+      } catch (const std::exception& e) {
+        fail(b, e);
+      }
+    }
+    const auto err = cpu_->find(boxes, buffer_);
+    if (!err) {
+      stats_ = cpu_->stats();
+      out = buffer_;
+    }
+    return err;
+  }
+
+ protected:
+  [[nodiscard]] interest::thread_pool* worker_pool() const override { return pool_; }
+  void find_valid(const interest::box_set& boxes, interest::pair_list& out) override {
+    const finder_backend b = decide(boxes);
+    if (b != finder_backend::cpu) {
+      std::optional<interest::box_error> err;
+      bool ran = false;
+      try {
+        interest::pair_finder& f = *(b == finder_backend::pbig ? pbig_ : lbvh_);
+        if (is_pbig(f) || is_lbvh(f)) {
+          // The GPU finders validate while packing the upload: cheaper than a second full pass.
+          std::span<const interest::id_pair> v;
+          err = is_pbig(f) ? find_pairs_view(f, boxes, v) : find_lbvh_view(f, boxes, v);
+          if (!err) copy_pairs(v, out, pool_);
+        } else {
+          err = f.find(boxes, out);
+        }
+        stats_ = f.stats();
+        ran = true;
+      } catch (const std::exception& e) {
+        fail(b, e);
+      }
+      if (ran) {
+        if (err) throw std::logic_error("auto: a validated set was rejected: " + err->message);
+        return;
+      }
+    }
+    if (const auto err = cpu_->find(boxes, out)) throw std::logic_error("auto: a validated set was rejected: " + err->message);
+    stats_ = cpu_->stats();
+  }
+
+ private:
+  finder_backend decide(const interest::box_set& boxes) {
+    std::string reason;
+    const bool pbig_ok = pbig_ != nullptr && !gpu_failed_;
+    const bool lbvh_ok = lbvh_ != nullptr && !gpu_failed_;
+    finder_backend b = finder_backend::cpu;
+    if (pbig_ok || lbvh_ok) {
+      b = choose_backend(summarize(boxes), pbig_ok, lbvh_ok, &reason);
+    } else {
+      reason = gpu_failed_ ? "a GPU finder failed earlier" : "no GPU: " + no_gpu_why_;
+    }
+    if (!last_ || *last_ != b || reason_ != reason) {
+      // Logged when the choice or its reason changes, not every call.
+      if (b == finder_backend::cpu) {
+        spdlog::info("auto: using the CPU grid finder ({})", reason);
+      } else {
+        spdlog::info("auto: using the GPU {} finder ({})", backend_name(b), reason);
+      }
+      reason_ = reason;
+    }
+    last_ = b;
+    return b;
+  }
+
+  void fail(finder_backend b, const std::exception& e) {
+    spdlog::warn("auto: the GPU {} finder failed ({}); falling back to the CPU grid finder for this call and after",
+                 backend_name(b), e.what());
+    gpu_failed_ = true;
+    last_ = finder_backend::cpu;
+    reason_ = "a GPU finder failed earlier";
+  }
+
+  std::unique_ptr<interest::pair_finder> cpu_, pbig_, lbvh_;
+  interest::thread_pool* pool_;
+  std::string no_gpu_why_;
+  std::optional<finder_backend> last_;
+  std::string reason_;
+  bool gpu_failed_ = false;
+  interest::pair_list buffer_;  // view's list when the CPU finder (or an injected finder) runs
+};
+
+}  // namespace
+
+std::unique_ptr<interest::pair_finder> make_auto_finder(std::unique_ptr<interest::pair_finder> cpu,
+                                                        std::unique_ptr<interest::pair_finder> pbig,
+                                                        std::unique_ptr<interest::pair_finder> lbvh,
+                                                        interest::thread_pool* pool) {
+  return std::make_unique<auto_finder>(std::move(cpu), std::move(pbig), std::move(lbvh), pool,
+                                       "none was given");
+}
+
+std::unique_ptr<interest::pair_finder> make_finder(finder_backend backend, interest::thread_pool* pool,
+                                                   std::string* why) {
+  switch (backend) {
+    case finder_backend::brute: return std::make_unique<interest::brute_force_finder>(pool);
+    case finder_backend::cpu: return std::make_unique<interest::grid_finder>(pool);
+    case finder_backend::pbig: {
+      pbig_options o;
+      o.decode_pool = pool;
+      return make_pbig_finder(o, why);
+    }
+    case finder_backend::lbvh: {
+      lbvh_options o;
+      o.pool = pool;
+      return make_lbvh_finder(o, why);
+    }
+    case finder_backend::auto_select: {
+      std::string no_gpu;
+      pbig_options po;
+      po.decode_pool = pool;
+      auto pbig = make_pbig_finder(po, &no_gpu);
+      std::unique_ptr<interest::pair_finder> lbvh;
+      if (pbig) {
+        lbvh_options lo;
+        lo.pool = pool;
+        std::string lbvh_why;
+        lbvh = make_lbvh_finder(lo, &lbvh_why);
+        if (!lbvh) spdlog::debug("auto: no LBVH finder: {}", lbvh_why);
+      }
+      return std::make_unique<auto_finder>(std::make_unique<interest::grid_finder>(pool), std::move(pbig),
+                                           std::move(lbvh), pool, no_gpu);
+    }
+  }
+  if (why) *why = "unknown backend";
+  return nullptr;
+}
+
+std::optional<finder_backend> last_auto_choice(const interest::pair_finder& finder) {
+  const auto* f = dynamic_cast<const auto_finder*>(&finder);
+  return f != nullptr ? f->last_choice() : std::nullopt;
+}
+
+std::optional<interest::box_error> find_view(interest::pair_finder& finder, const interest::box_set& boxes,
+                                             std::span<const interest::id_pair>& view) {
+  if (auto* f = dynamic_cast<auto_finder*>(&finder)) return f->view(boxes, view);
+  if (is_pbig(finder)) return find_pairs_view(finder, boxes, view);
+  if (is_lbvh(finder)) return find_lbvh_view(finder, boxes, view);
+  throw std::invalid_argument("find_view: not a GPU finder or an auto finder");
+}
+
+}  // namespace zone::gpu

@@ -1,0 +1,79 @@
+// Choosing a pair finder by name: the brute-force reference, the CPU grid finder, the GPU PBIG
+// finder, the GPU LBVH finder, or `auto`, a finder that picks one of them per call. Plain C++:
+// works in builds without CUDA (then only the CPU finders exist and `auto` is the CPU finder).
+#pragma once
+
+#include <cstddef>
+#include <cstdint>
+#include <memory>
+#include <optional>
+#include <span>
+#include <string>
+#include <string_view>
+
+#include "interest.h"
+
+namespace zone::gpu {
+
+/// The finders make_finder can build. `auto_select` decides per call (see make_auto_finder).
+enum class finder_backend { brute, cpu, pbig, lbvh, auto_select };
+
+/// "brute", "cpu", "gpu" (= pbig), "pbig", "lbvh", "auto"; anything else: nothing.
+[[nodiscard]] std::optional<finder_backend> parse_backend(std::string_view name);
+
+/// The canonical name of a backend ("brute", "cpu", "pbig", "lbvh", "auto").
+[[nodiscard]] std::string_view backend_name(finder_backend backend);
+
+/// Builds a finder. `pool` (may be null: the calling thread only) runs the CPU finders and the GPU
+/// finders' host-side packing and copies; it must outlive the finder. Returns null with the reason
+/// in `why` when the backend cannot run here (a GPU backend without a usable device or in a build
+/// without CUDA). brute, cpu and auto never fail.
+[[nodiscard]] std::unique_ptr<interest::pair_finder> make_finder(finder_backend backend, interest::thread_pool* pool,
+                                                                 std::string* why = nullptr);
+
+/// Cheap statistics of a box set that the auto finder decides on: read from a fixed sample of at
+/// most `auto_sample_boxes` boxes (the same boxes every call for a given N), so computing them
+/// costs microseconds whatever N is.
+struct box_set_summary {
+  std::size_t n = 0;
+  std::size_t sampled = 0;
+  double scene_extent[3]{0, 0, 0};  ///< extent of the sample's boxes per axis
+  double mean_size = 0;             ///< mean over the sample of a box's largest edge
+  double size_spread = 0;           ///< largest sampled edge / median sampled edge (1 = all alike)
+  double cell_edge = 0;             ///< the cubic cell edge a grid planned by Eq. 6 (W = 32) would get, estimated
+  double largest_cells = 0;         ///< cells of that grid the largest sampled box would occupy
+  double mean_cells = 0;            ///< cells the average sampled box would occupy (the paper's alpha)
+};
+inline constexpr std::size_t auto_sample_boxes = 512;
+
+[[nodiscard]] box_set_summary summarize(const interest::box_set& boxes);
+
+/// The auto rule: which finder a set with this summary goes to, given which GPU finders can run;
+/// the reason in words in `reason`. See docs/lbvh.md for the rule and the measurements behind it.
+[[nodiscard]] finder_backend choose_backend(const box_set_summary& summary, bool pbig_usable, bool lbvh_usable,
+                                            std::string* reason = nullptr);
+
+/// The auto finder with explicit candidates (tests inject failing or counting finders here; null
+/// GPU candidates mean "not available"). Per call: summarize, choose_backend, run the choice; the
+/// choice and its reason are logged (spdlog info) when they change, not every call. A GPU finder
+/// that throws (a CUDA error) is logged as a warning and never used again by this finder; that
+/// call and all later ones run on `cpu`. `cpu` must not be null.
+[[nodiscard]] std::unique_ptr<interest::pair_finder> make_auto_finder(std::unique_ptr<interest::pair_finder> cpu,
+                                                                      std::unique_ptr<interest::pair_finder> pbig,
+                                                                      std::unique_ptr<interest::pair_finder> lbvh,
+                                                                      interest::thread_pool* pool);
+
+/// For a finder made by make_auto_finder / make_finder(auto_select): the backend of its last call
+/// (nothing before the first call); null `finder` or another finder: nothing.
+[[nodiscard]] std::optional<finder_backend> last_auto_choice(const interest::pair_finder& finder);
+
+/// Zero-copy find for the GPU finders and the auto finder: validates, finds the same pairs as
+/// `finder.find` into a buffer the finder owns and reuses, and points `view` at them (valid until
+/// the finder's next call). When auto runs the CPU finder, the pairs are found into a list the auto
+/// finder owns. Throws std::invalid_argument for any other finder (brute, cpu). See
+/// gpu::find_pairs_view for the PBIG details.
+[[nodiscard]] std::optional<interest::box_error> find_view(interest::pair_finder& finder,
+                                                           const interest::box_set& boxes,
+                                                           std::span<const interest::id_pair>& view);
+
+}  // namespace zone::gpu

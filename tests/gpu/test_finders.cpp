@@ -1,0 +1,245 @@
+// The finder factory (gpu/finders.h) and the auto finder. Runs with and without a CUDA device:
+// without one the GPU backends must be refused with a reason and `auto` must run the CPU finder;
+// with one they must exist and `auto` must pick a GPU finder. The fallback on a GPU failure is
+// tested with injected finders, so it runs everywhere.
+#include <doctest/doctest.h>
+
+#include <cmath>
+#include <span>
+#include <stdexcept>
+#include <string>
+
+#include "../common/box_families.h"
+#include "finders.h"
+#include "interest.h"
+#include "lbvh.h"
+#include "pbig.h"
+
+using namespace zone::interest;
+using namespace zone::test;
+namespace gpu = zone::gpu;
+
+namespace {
+
+/// A stand-in for a GPU finder that fails mid-call (a CUDA error), counting its calls.
+class throwing_finder final : public pair_finder {
+ public:
+  int calls = 0;
+  [[nodiscard]] std::string_view name() const override { return "throwing"; }
+
+ protected:
+  void find_valid(const box_set& /*boxes*/, pair_list& out) override {
+    ++calls;
+    out.push_back({0, 1});  // a partial result that must not leak out
+    throw std::runtime_error("injected device failure");
+  }
+};
+
+/// A stand-in for a working GPU finder: the brute-force reference, counting its calls.
+class counting_finder final : public pair_finder {
+ public:
+  int calls = 0;
+  [[nodiscard]] std::string_view name() const override { return "counting"; }
+
+ protected:
+  void find_valid(const box_set& boxes, pair_list& out) override {
+    ++calls;
+    brute_force_finder b;
+    (void)b.find(boxes, out);
+  }
+};
+
+}  // namespace
+
+TEST_SUITE("gpu.finders") {
+  TEST_CASE("parse_backend accepts the documented names and nothing else") {
+    CHECK(gpu::parse_backend("brute") == gpu::finder_backend::brute);
+    CHECK(gpu::parse_backend("cpu") == gpu::finder_backend::cpu);
+    CHECK(gpu::parse_backend("gpu") == gpu::finder_backend::pbig);
+    CHECK(gpu::parse_backend("pbig") == gpu::finder_backend::pbig);
+    CHECK(gpu::parse_backend("lbvh") == gpu::finder_backend::lbvh);
+    CHECK(gpu::parse_backend("auto") == gpu::finder_backend::auto_select);
+    for (const char* bad : {"", "GPU", "Auto", "bvh", "pbig ", "cpu1"}) {
+      CAPTURE(bad);
+      CHECK_FALSE(gpu::parse_backend(bad).has_value());
+    }
+    for (const auto b : {gpu::finder_backend::brute, gpu::finder_backend::cpu, gpu::finder_backend::pbig,
+                         gpu::finder_backend::lbvh, gpu::finder_backend::auto_select}) {
+      CHECK(gpu::parse_backend(gpu::backend_name(b)) == b);
+    }
+  }
+
+  TEST_CASE("make_finder: CPU backends and auto always exist; GPU backends exactly when a device is usable") {
+    thread_pool pool(2);
+    std::string why;
+    const bool device = gpu::device_available(nullptr, &why);
+    for (const auto b : {gpu::finder_backend::brute, gpu::finder_backend::cpu, gpu::finder_backend::auto_select}) {
+      CAPTURE(gpu::backend_name(b));
+      CHECK(gpu::make_finder(b, &pool) != nullptr);
+      CHECK(gpu::make_finder(b, nullptr) != nullptr);
+    }
+    for (const auto b : {gpu::finder_backend::pbig, gpu::finder_backend::lbvh}) {
+      CAPTURE(gpu::backend_name(b));
+      std::string reason;
+      auto f = gpu::make_finder(b, &pool, &reason);
+      if (device) {
+        CHECK(f != nullptr);
+      } else {
+        CHECK(f == nullptr);
+        CHECK_FALSE(reason.empty());
+      }
+    }
+  }
+
+  TEST_CASE("every finder make_finder builds equals brute force on every family") {
+    thread_pool pool(3);
+    brute_force_finder brute(&pool);
+    std::vector<std::unique_ptr<pair_finder>> finders;
+    for (const auto b : {gpu::finder_backend::cpu, gpu::finder_backend::pbig, gpu::finder_backend::lbvh,
+                         gpu::finder_backend::auto_select}) {
+      if (auto f = gpu::make_finder(b, &pool)) finders.push_back(std::move(f));
+    }
+    REQUIRE(finders.size() >= 2);
+    for (const family f : all_families) {
+      for (const std::size_t n : {0, 1, 2, 5, 64, 700}) {
+        const auto seed = fresh_seed();
+        CAPTURE(family_name(f));
+        CAPTURE(n);
+        CAPTURE(seed);
+        const box_set s = make_family(f, n, seed);
+        const pair_list expected = run(brute, s);
+        for (auto& finder : finders) {
+          CAPTURE(finder->name());
+          CHECK(run(*finder, s) == expected);
+        }
+      }
+    }
+  }
+
+  TEST_CASE("auto: runs the CPU finder without a device and a GPU finder with one") {
+    thread_pool pool(2);
+    auto f = gpu::make_finder(gpu::finder_backend::auto_select, &pool);
+    REQUIRE(f);
+    CHECK_FALSE(gpu::last_auto_choice(*f).has_value());
+    const box_set s = generate_uniform(5000, fresh_seed());
+    pair_list out;
+    REQUIRE_FALSE(f->find(s, out).has_value());
+    REQUIRE(gpu::last_auto_choice(*f).has_value());
+    if (gpu::device_available()) {
+      CHECK(*gpu::last_auto_choice(*f) != gpu::finder_backend::cpu);
+    } else {
+      CHECK(*gpu::last_auto_choice(*f) == gpu::finder_backend::cpu);
+    }
+    grid_finder grid(&pool);
+    CHECK(run(*f, s) == run(grid, s));
+    // The zero-copy entry gives the same pairs.
+    std::span<const id_pair> view;
+    REQUIRE_FALSE(gpu::find_view(*f, s, view).has_value());
+    pair_list copy(view.begin(), view.end());
+    sort_canonical(copy, s.size());
+    CHECK(copy == run(grid, s));
+    CHECK_THROWS_AS((void)gpu::find_view(grid, s, view), std::invalid_argument);
+  }
+
+  TEST_CASE("auto: a GPU finder that throws mid-call is logged, and that call and all later ones run on the CPU") {
+    thread_pool pool(2);
+    brute_force_finder brute(&pool);
+    auto failing = std::make_unique<throwing_finder>();
+    throwing_finder* failing_ptr = failing.get();
+    auto f = gpu::make_auto_finder(std::make_unique<grid_finder>(&pool), std::move(failing), nullptr, &pool);
+    for (int call = 0; call < 3; ++call) {
+      const auto seed = fresh_seed();
+      CAPTURE(seed);
+      CAPTURE(call);
+      const box_set s = make_family(family::uniform, 400, seed);
+      CHECK(run(*f, s) == run(brute, s));
+      CHECK(gpu::last_auto_choice(*f) == gpu::finder_backend::cpu);
+      std::span<const id_pair> view;
+      REQUIRE_FALSE(gpu::find_view(*f, s, view).has_value());
+      pair_list copy(view.begin(), view.end());
+      sort_canonical(copy, s.size());
+      CHECK(copy == run(brute, s));
+    }
+    CHECK(failing_ptr->calls == 1);  // never asked again after its failure
+
+    // The same through the zero-copy entry first.
+    auto failing2 = std::make_unique<throwing_finder>();
+    throwing_finder* failing2_ptr = failing2.get();
+    auto g = gpu::make_auto_finder(std::make_unique<grid_finder>(&pool), nullptr, std::move(failing2), &pool);
+    const box_set s = make_family(family::mask_mix, 500, fresh_seed());
+    std::span<const id_pair> view;
+    REQUIRE_FALSE(gpu::find_view(*g, s, view).has_value());
+    pair_list copy(view.begin(), view.end());
+    sort_canonical(copy, s.size());
+    CHECK(copy == run(brute, s));
+    CHECK(failing2_ptr->calls == 1);
+    CHECK(run(*g, s) == run(brute, s));
+    CHECK(failing2_ptr->calls == 1);
+  }
+
+  TEST_CASE("auto: a working GPU candidate is used and its pairs are returned") {
+    thread_pool pool(2);
+    brute_force_finder brute(&pool);
+    auto stand_in = std::make_unique<counting_finder>();
+    counting_finder* ptr = stand_in.get();
+    auto f = gpu::make_auto_finder(std::make_unique<grid_finder>(&pool), std::move(stand_in), nullptr, &pool);
+    const box_set s = make_family(family::few_classes, 600, fresh_seed());
+    CHECK(run(*f, s) == run(brute, s));
+    CHECK(gpu::last_auto_choice(*f) == gpu::finder_backend::pbig);
+    CHECK(ptr->calls == 1);
+    CHECK_THROWS_AS((void)gpu::make_auto_finder(nullptr, nullptr, nullptr, &pool), std::invalid_argument);
+  }
+
+  TEST_CASE("auto: invalid boxes are rejected with the box named, whatever runs") {
+    thread_pool pool(2);
+    auto f = gpu::make_finder(gpu::finder_backend::auto_select, &pool);
+    box_set s = generate_uniform(100, fresh_seed());
+    s.hi_z[37] = s.lo_z[37] - 1;
+    pair_list out{{0, 1}};
+    const auto err = f->find(s, out);
+    REQUIRE(err.has_value());
+    CHECK(err->index == 37);
+    CHECK(out.empty());
+    std::span<const id_pair> view;
+    const auto err2 = gpu::find_view(*f, s, view);
+    REQUIRE(err2.has_value());
+    CHECK(err2->index == 37);
+  }
+
+  TEST_CASE("summarize: sample statistics follow the set") {
+    CHECK(gpu::summarize(box_set{}).n == 0);
+    const box_set same = make_family(family::identical, 5000, 1);
+    const auto a = gpu::summarize(same);
+    CHECK(a.n == 5000);
+    CHECK(a.sampled == gpu::auto_sample_boxes);
+    CHECK(a.size_spread == doctest::Approx(1.0));
+    CHECK(a.largest_cells == doctest::Approx(a.mean_cells));
+    const box_set u = generate_uniform(100000, fresh_seed());
+    const auto b = gpu::summarize(u);
+    CHECK(b.sampled == gpu::auto_sample_boxes);
+    CHECK(b.size_spread > 1.0);
+    CHECK(b.size_spread < 3.0);  // edges U[1, 100]: max / median about 2
+    CHECK(b.cell_edge > 0);
+    CHECK(b.scene_extent[0] > 9000);
+    // Eq. 6's f at the estimated edge is about W = 32: N * alpha / M.
+    double m = 1;
+    for (double e : b.scene_extent) m *= e / b.cell_edge + 1;
+    CHECK(100000.0 * b.mean_cells / m == doctest::Approx(32.0).epsilon(0.05));
+    // A few huge boxes among small ones: a wide spread, the largest occupying many cells.
+    box_set h = generate_uniform(100000, fresh_seed(), 0.3);
+    for (std::size_t i = 0; i < h.size(); i += 97) h.set(i, box{{0, 0, 0}, {1e4f, 1e4f, 1e4f}, 1, 1});
+    const auto c = gpu::summarize(h);
+    CHECK(c.size_spread > 100);
+    CHECK(c.largest_cells > 20 * c.mean_cells);
+  }
+
+  TEST_CASE("choose_backend: CPU without a GPU finder; a usable GPU finder otherwise") {
+    const auto s = gpu::summarize(generate_uniform(10000, 3));
+    std::string reason;
+    CHECK(gpu::choose_backend(s, false, false, &reason) == gpu::finder_backend::cpu);
+    CHECK_FALSE(reason.empty());
+    CHECK(gpu::choose_backend(s, true, false) == gpu::finder_backend::pbig);
+    CHECK(gpu::choose_backend(s, false, true) == gpu::finder_backend::lbvh);
+    CHECK(gpu::choose_backend(s, true, true) != gpu::finder_backend::cpu);
+  }
+}
