@@ -1,4 +1,5 @@
 // zone_config from the command line and an optional config file (Boost.Program_options).
+#include <algorithm>
 #include <boost/program_options.hpp>
 #include <cmath>
 #include <fstream>
@@ -39,6 +40,10 @@ std::optional<std::string> validate(const zone_config& c) {
   if (c.max_frame_bytes < 64) return bad("max-frame-bytes must be >= 64");
   if (c.client_byte_budget < 256) return bad("client-byte-budget must be >= 256");
   if (!(c.inputs_per_second > 0)) return bad("inputs-per-second must be > 0");
+  static const char* finders[] = {"auto", "cpu", "gpu", "pbig", "lbvh", "brute"};
+  if (std::find(std::begin(finders), std::end(finders), c.finder) == std::end(finders)) {
+    return bad("finder must be auto, cpu, gpu (= pbig), pbig, lbvh or brute");
+  }
   static const char* levels[] = {"trace", "debug", "info", "warn", "error", "critical", "off"};
   if (std::find(std::begin(levels), std::end(levels), c.log_level) == std::end(levels)) {
     return bad("log-level must be one of trace, debug, info, warn, error, critical, off");
@@ -67,6 +72,7 @@ config_result parse_config(int argc, const char* const* argv) {
       ("threads", po::value(&c.worker_threads)->default_value(c.worker_threads), "worker threads (0 = all cores)");
   po::options_description interest("Interest");
   interest.add_options()                                                                                     //
+      ("finder", po::value(&c.finder)->default_value(c.finder), "pair finder: auto (chosen per tick from the box statistics: GPU when usable, else CPU), cpu, gpu (= pbig), pbig, lbvh, brute")  //
       ("hysteresis", po::value(&c.hysteresis)->default_value(c.hysteresis), "leave margin beyond the AOI (m)")  //
       ("max-visible", po::value(&c.max_visible)->default_value(c.max_visible), "cap per observer (0 = none)")   //
       ("aoi-tiny", po::value(&c.aoi_tier[0])->default_value(c.aoi_tier[0]), "AOI half-extent of tier tiny (m)")  //

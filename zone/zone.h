@@ -338,6 +338,9 @@ struct zone_config {
   std::uint64_t seed = 1;
   unsigned worker_threads = 0;  ///< interest and tick work; 0 = hardware concurrency
   // Interest.
+  /// Pair finder (gpu/finders.h): "auto" (chosen per tick: a GPU finder when a device is usable,
+  /// else the CPU grid finder), "cpu", "gpu" (= "pbig"), "pbig", "lbvh", "brute".
+  std::string finder = "auto";
   float hysteresis = 4;
   std::uint32_t max_visible = 0;  ///< per observer, 0 = no cap
   /// AOI half-extents of the tiers tiny .. gigantic (metres).

@@ -1,6 +1,8 @@
 // The tick loop (zone_server.h): drain client inputs, step the world, replicate, at a fixed rate.
 #include "zone_server.h"
 
+#include "finders.h"
+
 #include <spdlog/spdlog.h>
 
 #include <chrono>
@@ -34,12 +36,27 @@ replication_options replica_options(const zone_config& c) {
   return o;
 }
 
+/// The configured pair finder (gpu/finders.h). A GPU finder that cannot run here leaves the CPU
+/// grid finder in place and the reason in `error` (start() refuses to run then).
+std::unique_ptr<interest::pair_finder> make_zone_finder(const zone_config& c, interest::thread_pool* pool,
+                                                        std::string& error) {
+  const auto backend = gpu::parse_backend(c.finder);
+  if (!backend) {
+    error = "unknown finder '" + c.finder + "'";
+    return std::make_unique<interest::grid_finder>(pool);
+  }
+  std::string why;
+  if (auto f = gpu::make_finder(*backend, pool, &why)) return f;
+  error = "finder '" + c.finder + "' cannot run here: " + why + " (use --finder auto or cpu)";
+  return std::make_unique<interest::grid_finder>(pool);
+}
+
 }  // namespace
 
 zone_server::zone_server(const zone_config& cfg)
     : cfg_(cfg),
       pool_(std::make_unique<interest::thread_pool>(cfg.worker_threads)),
-      finder_(std::make_unique<interest::grid_finder>(pool_.get())),
+      finder_(make_zone_finder(cfg, pool_.get(), finder_error_)),
       world_(std::make_unique<zone_world>(cfg, *finder_, pool_.get())),
       replicator_(replica_options(cfg)),
       net_(net_options(cfg)) {}
@@ -98,9 +115,10 @@ std::string zone_server::metrics_text() const {
 
 std::optional<std::string> zone_server::start() {
   if (auto err = validate(cfg_)) return err;
+  if (!finder_error_.empty()) return finder_error_;
   world_->populate();
-  spdlog::info("zone: {} NPCs, world {}x{}x{} m, {} Hz, {} worker threads", world_->store().size(), cfg_.world.hi.x,
-               cfg_.world.hi.y, cfg_.world.hi.z, cfg_.tick_rate_hz, pool_->size());
+  spdlog::info("zone: {} NPCs, world {}x{}x{} m, {} Hz, {} worker threads, finder {}", world_->store().size(),
+               cfg_.world.hi.x, cfg_.world.hi.y, cfg_.world.hi.z, cfg_.tick_rate_hz, pool_->size(), finder_->name());
   if (auto err = net_.start()) return err;
   if (cfg_.metrics_enabled) {
     metrics_ = std::make_unique<net::metrics_server>(cfg_.listen_address, cfg_.metrics_port);

@@ -47,6 +47,8 @@ class zone_server {
   /// The Prometheus text of the current state (what /metrics serves, refreshed once a second).
   [[nodiscard]] std::string metrics_text() const;
   [[nodiscard]] const zone_world& world() const { return *world_; }
+  /// The pair finder's name ("auto", "cpu grid", ...).
+  [[nodiscard]] std::string finder_name() const { return std::string(finder_->name()); }
   [[nodiscard]] const loop_stats& stats() const { return stats_; }
   [[nodiscard]] net::server_stats net_stats() const { return net_.stats(); }
 
@@ -61,7 +63,8 @@ class zone_server {
 
   zone_config cfg_;
   std::unique_ptr<interest::thread_pool> pool_;
-  std::unique_ptr<interest::grid_finder> finder_;
+  std::string finder_error_;  ///< why the configured finder cannot run here (start() reports it); before finder_
+  std::unique_ptr<interest::pair_finder> finder_;
   std::unique_ptr<zone_world> world_;
   replicator replicator_;
   net::server net_;

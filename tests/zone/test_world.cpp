@@ -50,6 +50,15 @@ TEST_SUITE("zone.config") {
     CHECK_FALSE(neg.config.has_value());
     CHECK(neg.message.find("tick-rate") != std::string::npos);
     CHECK_FALSE(parse({"--port", "70000"}).config.has_value());
+    CHECK(d.config->finder == "auto");
+    for (const char* f : {"auto", "cpu", "gpu", "pbig", "lbvh", "brute"}) {
+      const auto r = parse({"--finder", f});
+      REQUIRE(r.config.has_value());
+      CHECK(r.config->finder == f);
+    }
+    const auto bad_finder = parse({"--finder", "quantum"});
+    CHECK_FALSE(bad_finder.config.has_value());
+    CHECK(bad_finder.message.find("finder") != std::string::npos);
 
     const std::string path = "zone_config_test_" + std::to_string(fresh_seed()) + ".ini";
     {

@@ -10,6 +10,7 @@
 
 #include "../net/loopback_client.h"
 #include "client.h"
+#include "pbig.h"
 #include "zone_server.h"
 
 using namespace zone;
@@ -218,5 +219,31 @@ TEST_SUITE("zone.server") {
     }
     server.stop();
     loop.join();
+  }
+
+  TEST_CASE("the finder choice: auto and cpu always start; gpu without a usable device refuses, naming why") {
+    for (const char* name : {"auto", "cpu"}) {
+      zone_config cfg = test_config();
+      cfg.finder = name;
+      cfg.metrics_enabled = false;
+      zone_server server(cfg);
+      REQUIRE_FALSE(server.start().has_value());
+      server.tick_once();
+      CHECK(server.world().tick() == 1);
+      CHECK(server.world().tracker().stats().pairs > 0);
+    }
+    zone_config cfg = test_config();
+    cfg.finder = "gpu";
+    cfg.metrics_enabled = false;
+    zone_server server(cfg);
+    const auto err = server.start();
+    if (gpu::device_available()) {
+      CHECK_FALSE(err.has_value());
+      CHECK(server.finder_name() == "gpu");
+    } else {
+      REQUIRE(err.has_value());
+      CHECK(err->find("gpu") != std::string::npos);
+      CHECK(err->find("cannot run here") != std::string::npos);
+    }
   }
 }
