@@ -47,7 +47,10 @@ flatbuffers::Offset<void> build_body(flatbuffers::FlatBufferBuilder& fbb, const 
           return w::Createping(fbb, msg.client_time_us).Union();
         } else if constexpr (std::is_same_v<T, welcome_msg>) {
           const w::bounds3 world(to_wire(msg.world.lo), to_wire(msg.world.hi));
-          return w::Createwelcome(fbb, msg.entity_id, &world, msg.tick_rate_hz, msg.server_tick, msg.protocol_version)
+          std::optional<w::vec3> spawn;
+          if (msg.spawn_position) spawn = to_wire(*msg.spawn_position);
+          return w::Createwelcome(fbb, msg.entity_id, &world, msg.tick_rate_hz, msg.server_tick, msg.protocol_version,
+                                  spawn ? &*spawn : nullptr, msg.host_clock)
               .Union();
         } else if constexpr (std::is_same_v<T, tick_update_msg>) {
           std::vector<flatbuffers::Offset<w::entity_state>> enters;
@@ -61,15 +64,20 @@ flatbuffers::Offset<void> build_body(flatbuffers::FlatBufferBuilder& fbb, const 
           const auto updates_v = fbb.CreateVectorOfStructs(updates);
           std::optional<w::verify_digest> digest;
           if (msg.digest) digest.emplace(msg.digest->tick, msg.digest->hash, msg.digest->count);
+          std::optional<w::vec3> self;
+          if (msg.self_position) self = to_wire(*msg.self_position);
           return w::Createtick_update(fbb, msg.server_tick, msg.server_time_us, msg.last_input_sequence, enters_v,
-                                      leaves_v, updates_v, digest ? &*digest : nullptr, msg.reset)
+                                      leaves_v, updates_v, digest ? &*digest : nullptr, msg.reset, self ? &*self : nullptr)
               .Union();
         } else if constexpr (std::is_same_v<T, pong_msg>) {
           return w::Createpong(fbb, msg.client_time_us, msg.server_time_us).Union();
-        } else {
-          static_assert(std::is_same_v<T, error_msg>);
+        } else if constexpr (std::is_same_v<T, error_msg>) {
           const auto reason = fbb.CreateString(msg.reason);
           return w::Createerror(fbb, msg.code, reason).Union();
+        } else {
+          static_assert(std::is_same_v<T, teleport_msg>);
+          const w::vec3 position = to_wire(msg.position);
+          return w::Createteleport(fbb, msg.sequence, &position, msg.entity_id).Union();
         }
       },
       m);
@@ -170,6 +178,7 @@ void tick_update_writer::begin(std::uint64_t server_tick, std::uint64_t server_t
   leaves_.clear();
   updates_.clear();
   digest_.reset();
+  self_position_.reset();
   reset_ = false;
   tick_ = server_tick;
   time_us_ = server_time_us;
@@ -184,7 +193,8 @@ std::size_t tick_update_writer::size_estimate() const {
   // Built part + the vectors still to be written (each: length word + elements + padding)
   // + the tick_update and envelope tables, their vtables, digest, identifier and prefix.
   return fbb_.GetSize() + enters_.size() * sizeof(flatbuffers::uoffset_t) + leaves_.size() * sizeof(std::uint32_t) +
-         updates_.size() * sizeof(w::entity_update) + 3 * (sizeof(flatbuffers::uoffset_t) + 8) + 160;
+         updates_.size() * sizeof(w::entity_update) + 3 * (sizeof(flatbuffers::uoffset_t) + 8) + 160 +
+         (self_position_ ? sizeof(w::vec3) + 4 : 0);
 }
 
 std::span<const std::uint8_t> tick_update_writer::finish() {
@@ -193,9 +203,10 @@ std::span<const std::uint8_t> tick_update_writer::finish() {
   const auto updates_v = fbb_.CreateVectorOfStructs(updates_);
   std::optional<w::verify_digest> digest;
   if (digest_) digest.emplace(digest_->tick, digest_->hash, digest_->count);
-  const auto body =
-      w::Createtick_update(fbb_, tick_, time_us_, last_input_, enters_v, leaves_v, updates_v, digest ? &*digest : nullptr,
-                           reset_);
+  std::optional<w::vec3> self;
+  if (self_position_) self = to_wire(*self_position_);
+  const auto body = w::Createtick_update(fbb_, tick_, time_us_, last_input_, enters_v, leaves_v, updates_v,
+                                         digest ? &*digest : nullptr, reset_, self ? &*self : nullptr);
   return finish_frame(fbb_, w::message::tick_update, body.Union());
 }
 
@@ -227,6 +238,8 @@ std::optional<message> to_message(const w::envelope& env) {
       out.tick_rate_hz = m->tick_rate_hz();
       out.server_tick = m->server_tick();
       out.protocol_version = m->protocol_version();
+      if (const auto* p = m->spawn_position()) out.spawn_position = from_wire(p);
+      out.host_clock = m->host_clock();
       return out;
     }
     case w::message::tick_update: {
@@ -255,6 +268,7 @@ std::optional<message> to_message(const w::envelope& env) {
       }
       if (const auto* d = m->digest()) out.digest = verify_digest{d->tick(), d->hash(), d->count()};
       out.reset = m->reset();
+      if (const auto* p = m->self_position()) out.self_position = from_wire(p);
       return out;
     }
     case w::message::pong: {
@@ -266,6 +280,13 @@ std::optional<message> to_message(const w::envelope& env) {
       const auto* m = env.message_as_error();
       if (!m) return std::nullopt;
       return error_msg{m->code(), from_wire(m->reason())};
+    }
+    case w::message::teleport: {
+      const auto* m = env.message_as_teleport();
+      if (!m) return std::nullopt;
+      // An absent position converts to NaN, so the server refuses it rather than jumping to 0,0,0.
+      const float nan = std::numeric_limits<float>::quiet_NaN();
+      return teleport_msg{m->sequence(), m->position() ? from_wire(m->position()) : vec3f{nan, nan, nan}, m->entity_id()};
     }
     default: return std::nullopt;
   }
@@ -451,6 +472,10 @@ client_view::status client_view::apply(const tick_update_msg& m) {
     entities_.clear();
     hash_ = 0;
   }
+  if (m.self_position) {
+    self_position_ = m.self_position;
+    self_tick_ = m.server_tick;
+  }
   for (const auto id : m.leaves) {
     if (entities_.erase(id) == 1) {
       hash_ = digest_remove(hash_, id);
@@ -504,6 +529,7 @@ client_view::status client_view::apply(const w::tick_update& u) {
     }
   }
   if (const auto* d = u.digest()) m.digest = verify_digest{d->tick(), d->hash(), d->count()};
+  if (const auto* p = u.self_position()) m.self_position = from_wire(p);
   return apply(m);
 }
 

@@ -62,6 +62,13 @@ struct ping_msg {
   std::uint64_t client_time_us = 0;
   friend bool operator==(const ping_msg&, const ping_msg&) = default;
 };
+/// A teleport jump of the sender's own entity (entity_id 0 = own; any other id is refused).
+struct teleport_msg {
+  std::uint32_t sequence = 0;  ///< shares the input counter
+  vec3f position{};            ///< target; the server clamps it into the world
+  std::uint32_t entity_id = 0;
+  friend bool operator==(const teleport_msg&, const teleport_msg&) = default;
+};
 
 // server -> client
 struct welcome_msg {
@@ -70,6 +77,8 @@ struct welcome_msg {
   std::uint16_t tick_rate_hz = 30;
   std::uint64_t server_tick = 0;
   std::uint32_t protocol_version = net::protocol_version;
+  std::optional<vec3f> spawn_position;  ///< where the client's entity starts
+  bool host_clock = false;              ///< server_time_us is the host's CLOCK_MONOTONIC in microseconds
   friend bool operator==(const welcome_msg&, const welcome_msg&) = default;
 };
 /// Full state of an entity entering a view.
@@ -106,6 +115,7 @@ struct tick_update_msg {
   std::vector<entity_update> updates;
   std::optional<verify_digest> digest;
   bool reset = false;  ///< drop the whole view before applying (a resync after lost frames)
+  std::optional<vec3f> self_position;  ///< the observer's own position at server_tick (exact)
   friend bool operator==(const tick_update_msg&, const tick_update_msg&) = default;
 };
 struct pong_msg {
@@ -120,7 +130,8 @@ struct error_msg {
 };
 
 /// Any message; the alternatives are in the order of the schema's union (index + 1 = wire type).
-using message = std::variant<hello_msg, input_msg, ping_msg, welcome_msg, tick_update_msg, pong_msg, error_msg>;
+using message =
+    std::variant<hello_msg, input_msg, ping_msg, welcome_msg, tick_update_msg, pong_msg, error_msg, teleport_msg>;
 
 /// The wire type of a message value.
 [[nodiscard]] wire::message type_of(const message& m);
@@ -165,6 +176,8 @@ class tick_update_writer {
   void add_update(const entity_update& u);
   void set_digest(const verify_digest& d) { digest_ = d; }
   void set_reset(bool reset) { reset_ = reset; }
+  /// The observer's own position at this tick (12 bytes; lets a client check its view exactly).
+  void set_self_position(const vec3f& p) { self_position_ = p; }
   /// Upper bound on the bytes of the frame if finish() were called now (prefix included).
   [[nodiscard]] std::size_t size_estimate() const;
   [[nodiscard]] std::size_t enter_count() const { return enters_.size(); }
@@ -180,6 +193,7 @@ class tick_update_writer {
   std::vector<std::uint32_t> leaves_;
   std::vector<wire::entity_update> updates_;
   std::optional<verify_digest> digest_;
+  std::optional<vec3f> self_position_;
   bool reset_ = false;
 };
 
@@ -358,6 +372,9 @@ class client_view {
   [[nodiscard]] std::size_t size() const { return entities_.size(); }
   [[nodiscard]] std::uint64_t hash() const { return hash_; }
   [[nodiscard]] std::uint64_t last_tick() const { return last_tick_; }
+  /// The observer's own position from the last update that carried one, and that update's tick.
+  [[nodiscard]] const std::optional<vec3f>& self_position() const { return self_position_; }
+  [[nodiscard]] std::uint64_t self_position_tick() const { return self_tick_; }
   [[nodiscard]] std::uint64_t updates_applied() const { return applied_; }
   [[nodiscard]] std::uint64_t digests_checked() const { return digests_checked_; }
   [[nodiscard]] std::uint64_t problems() const { return problems_; }
@@ -369,6 +386,8 @@ class client_view {
   std::unordered_map<std::uint32_t, entity> entities_;
   std::uint64_t hash_ = 0;
   std::uint64_t last_tick_ = 0;
+  std::optional<vec3f> self_position_;
+  std::uint64_t self_tick_ = 0;
   bool any_ = false;
   std::uint64_t applied_ = 0, digests_checked_ = 0, problems_ = 0;
 };

@@ -12,6 +12,7 @@
 #include <thread>
 #include <unordered_map>
 
+#include "os_limits.h"
 #include "server.h"
 
 namespace zone::net {
@@ -41,11 +42,14 @@ constexpr std::chrono::milliseconds close_grace{1000};
 class session;
 
 struct server::impl {
-  explicit impl(server_options o) : opt(std::move(o)), acceptor(asio::make_strand(ctx)), start_time(steady::now()) {}
+  explicit impl(server_options o) : opt(std::move(o)), acceptor(asio::make_strand(ctx)), accept_retry(acceptor.get_executor()) {}
 
   server_options opt;
   asio::io_context ctx;
   tcp::acceptor acceptor;
+  asio::steady_timer accept_retry;  // on the acceptor's strand: a pause after an accept error
+  std::uint64_t file_limit = 0;     // the open-file limit after start() raised it
+  steady::time_point last_accept_warning{};
   std::optional<asio::executor_work_guard<asio::io_context::executor_type>> work;
   std::vector<std::thread> threads;
   bool running = false;
@@ -59,11 +63,12 @@ struct server::impl {
   std::vector<inbound_event> events;
 
   atomic_counters counters;
-  steady::time_point start_time;
 
-  std::uint64_t now_us() const {
+  /// The host's CLOCK_MONOTONIC (steady_clock on Linux) in microseconds: a client on the same
+  /// host reads the same clock, so its update latency needs no clock sync.
+  static std::uint64_t now_us() {
     return static_cast<std::uint64_t>(
-        std::chrono::duration_cast<std::chrono::microseconds>(steady::now() - start_time).count());
+        std::chrono::duration_cast<std::chrono::microseconds>(steady::now().time_since_epoch()).count());
   }
   void report(inbound_event e) {
     const std::lock_guard lock(events_mutex);
@@ -180,8 +185,10 @@ class session : public std::enable_shared_from_this<session> {
         if (hello_seen_) return fail_now(error_code::unexpected_message, "second hello");
         hello_seen_ = true;
         return forward(f);
-      case wire::message::input: {
-        if (!hello_seen_) return fail_now(error_code::unexpected_message, "input before hello");
+      case wire::message::input:
+      case wire::message::teleport: {
+        // Teleports count against the same input rate as inputs (the game adds its own cooldown).
+        if (!hello_seen_) return fail_now(error_code::unexpected_message, std::string(type_name(f.type)) + " before hello");
         // Token bucket.
         const auto now = steady::now();
         tokens_ = std::min(srv_.opt.input_burst,
@@ -330,8 +337,24 @@ void server::impl::do_accept() {
   acceptor.async_accept(asio::make_strand(ctx), [this](const boost::system::error_code& ec, tcp::socket socket) {
     if (ec) {
       if (ec == asio::error::operation_aborted || !acceptor.is_open()) return;
-      spdlog::warn("accept failed: {}", ec.message());
-      do_accept();
+      // Out of file descriptors (or memory): the pending connection stays in the backlog; say
+      // why (at most once a second) and try again shortly instead of spinning on the error.
+      const bool out_of_files = ec == asio::error::no_descriptors || ec.value() == ENFILE;
+      const auto now = steady::now();
+      if (now - last_accept_warning > std::chrono::seconds(1)) {
+        last_accept_warning = now;
+        if (out_of_files) {
+          spdlog::error("accept failed: {} ({} sessions open, open-file limit {}): raise the hard limit "
+                        "(ulimit -Hn, or LimitNOFILE= under systemd) or lower --max-clients",
+                        ec.message(), counters.sessions_open.load(), file_limit);
+        } else {
+          spdlog::warn("accept failed: {}", ec.message());
+        }
+      }
+      accept_retry.expires_after(std::chrono::milliseconds(out_of_files ? 50 : 1));
+      accept_retry.async_wait([this](const boost::system::error_code& e) {
+        if (!e && acceptor.is_open()) do_accept();
+      });
       return;
     }
     boost::system::error_code ignored;
@@ -377,6 +400,18 @@ std::uint64_t server::now_us() const { return impl_->now_us(); }
 std::optional<std::string> server::start() {
   auto& m = *impl_;
   if (m.running) return "server already started";
+  // Every session is a file descriptor: raise the soft limit to the hard one and say whether
+  // max_connections fits.
+  const auto files = raise_open_file_limit();
+  m.file_limit = files.soft;
+  if (!files.error.empty()) spdlog::warn("{}", files.error);
+  spdlog::info("open-file limit {} (was {}, hard {})", files.soft, files.before, files.hard);
+  if (files.soft != 0 && m.opt.max_connections + reserved_file_descriptors > files.soft) {
+    spdlog::warn("max-clients {} exceeds what the open-file limit {} allows (about {} connections): raise the hard "
+                 "limit (ulimit -Hn) or connections beyond it are refused by the system",
+                 m.opt.max_connections, files.soft,
+                 files.soft > reserved_file_descriptors ? files.soft - reserved_file_descriptors : 0);
+  }
   boost::system::error_code ec;
   const auto address = asio::ip::make_address(m.opt.address, ec);
   if (ec) return "bad listen address '" + m.opt.address + "': " + ec.message();
@@ -409,6 +444,7 @@ void server::stop() {
   asio::post(m.acceptor.get_executor(), [&m] {  // on the acceptor's strand, like its handlers
     boost::system::error_code ignored;
     m.acceptor.close(ignored);
+    m.accept_retry.cancel();
   });
   std::vector<std::shared_ptr<session>> open;
   {

@@ -89,7 +89,10 @@ class server {
   server(const server&) = delete;
   server& operator=(const server&) = delete;
 
-  /// Binds, listens and starts the I/O threads. Returns a readable error on failure.
+  /// Raises the process's soft open-file limit to the hard limit (logged, with a warning when
+  /// max_connections does not fit), binds, listens and starts the I/O threads. Returns a readable
+  /// error on failure. When the process runs out of file descriptors later, accepting pauses
+  /// (50 ms at a time) with an error log naming the limit, and resumes when sessions close.
   [[nodiscard]] std::optional<std::string> start();
   /// The bound port (after start).
   [[nodiscard]] std::uint16_t port() const;
@@ -106,7 +109,8 @@ class server {
   [[nodiscard]] server_stats stats() const;
   [[nodiscard]] const server_options& options() const;
 
-  /// Microseconds on the server's steady clock (what pong and tick updates carry).
+  /// Microseconds on the host's CLOCK_MONOTONIC (steady_clock): what pong and tick updates carry,
+  /// so a client on the same host can time updates without clock sync.
   [[nodiscard]] std::uint64_t now_us() const;
 
   struct impl;  ///< the Asio implementation (server.cpp); opaque to users

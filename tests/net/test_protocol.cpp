@@ -7,6 +7,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstring>
+#include <limits>
 #include <random>
 #include <set>
 
@@ -46,7 +47,12 @@ struct gen {
       case 0: return hello_msg{str(), str(64), u32()};
       case 1: return input_msg{u32(), v()};
       case 2: return ping_msg{u64()};
-      case 3: return welcome_msg{u32(), {v(), v()}, static_cast<std::uint16_t>(rng()), u64(), u32()};
+      case 3: {
+        welcome_msg w{u32(), {v(), v()}, static_cast<std::uint16_t>(rng()), u64(), u32()};
+        if (rng() % 2) w.spawn_position = v();
+        w.host_clock = rng() % 2 == 0;
+        return w;
+      }
       case 4: {
         tick_update_msg t{u64(), u64(), u32(), {}, {}, {}, std::nullopt};
         for (std::size_t i = below(20); i-- > 0;) t.enters.push_back(state());
@@ -54,10 +60,12 @@ struct gen {
         for (std::size_t i = below(200); i-- > 0;) t.updates.push_back(update());
         if (rng() % 2) t.digest = verify_digest{u64(), u64(), u32()};
         t.reset = rng() % 4 == 0;
+        if (rng() % 2) t.self_position = v();
         return t;
       }
       case 5: return pong_msg{u64(), u64()};
-      default: return error_msg{static_cast<error_code>(below(12)), str()};
+      case 6: return error_msg{static_cast<error_code>(below(12)), str()};
+      default: return teleport_msg{u32(), v(), rng() % 2 ? 0u : u32()};
     }
   }
   message any() { return make(below(std::variant_size_v<message>)); }
@@ -182,6 +190,7 @@ TEST_SUITE("net.protocol") {
       for (const auto& u : t.updates) w.add_update(u);
       if (t.digest) w.set_digest(*t.digest);
       w.set_reset(t.reset);
+      if (t.self_position) w.set_self_position(*t.self_position);
       CHECK(w.enter_count() == t.enters.size());
       CHECK(w.leave_count() == t.leaves.size());
       CHECK(w.update_count() == t.updates.size());
@@ -312,7 +321,8 @@ TEST_SUITE("net.protocol") {
   }
 
   TEST_CASE("unknown and missing message types are rejected") {
-    for (const std::uint8_t type : {std::uint8_t{0}, std::uint8_t{8}, std::uint8_t{77}, std::uint8_t{255}}) {
+    const auto first_unknown = static_cast<std::uint8_t>(static_cast<std::uint8_t>(zone::net::wire::message::MAX) + 1);
+    for (const std::uint8_t type : {std::uint8_t{0}, first_unknown, std::uint8_t{77}, std::uint8_t{255}}) {
       CAPTURE(int(type));
       frame_decoder d;
       d.feed(frame_with_type(type));
@@ -329,6 +339,60 @@ TEST_SUITE("net.protocol") {
     frame_decoder ok;
     ok.feed(frame_with_type(static_cast<std::uint8_t>(zone::net::wire::message::ping)));
     CHECK(ok.next().is_frame());
+  }
+
+  TEST_CASE("schema evolution: teleport is appended; frames without the new fields decode as before") {
+    namespace w = zone::net::wire;
+    // Appended, never inserted: the wire numbers of the old messages are unchanged.
+    CHECK(static_cast<int>(w::message::error) == 7);
+    CHECK(static_cast<int>(w::message::teleport) == 8);
+    CHECK(static_cast<int>(type_of(teleport_msg{})) == 8);
+    const auto body_frame = [](auto build) {
+      flatbuffers::FlatBufferBuilder fbb;
+      const auto body = build(fbb);
+      w::FinishSizePrefixedenvelopeBuffer(fbb, w::Createenvelope(fbb, body.first, body.second));
+      return bytes(fbb.GetBufferPointer(), fbb.GetBufferPointer() + fbb.GetSize());
+    };
+    // A welcome and a tick update as an older server builds them (no spawn, clock or self fields).
+    const w::bounds3 world(w::vec3(0, 0, 0), w::vec3(100, 100, 10));
+    const auto welcome = decode_frame(body_frame([&](flatbuffers::FlatBufferBuilder& fbb) {
+      return std::pair{w::message::welcome, w::Createwelcome(fbb, 5, &world, 30, 9, 1).Union()};
+    }));
+    REQUIRE(welcome.value.has_value());
+    const auto& wm = std::get<welcome_msg>(*welcome.value);
+    CHECK(wm.entity_id == 5);
+    CHECK_FALSE(wm.spawn_position.has_value());
+    CHECK_FALSE(wm.host_clock);
+    const auto tick = decode_frame(body_frame([&](flatbuffers::FlatBufferBuilder& fbb) {
+      return std::pair{w::message::tick_update, w::Createtick_update(fbb, 3, 4, 5).Union()};
+    }));
+    REQUIRE(tick.value.has_value());
+    CHECK_FALSE(std::get<tick_update_msg>(*tick.value).self_position.has_value());
+    // A teleport without a position decodes to a non-finite target (the server refuses it),
+    // never to the origin.
+    const auto empty = decode_frame(body_frame([&](flatbuffers::FlatBufferBuilder& fbb) {
+      return std::pair{w::message::teleport, w::Createteleport(fbb, 7).Union()};
+    }));
+    REQUIRE(empty.value.has_value());
+    const auto& t = std::get<teleport_msg>(*empty.value);
+    CHECK(t.sequence == 7);
+    CHECK(t.entity_id == 0);
+    CHECK(std::isnan(t.position.x));
+    // Non-finite and huge coordinates travel as they are: refusing or clamping them is the game's job.
+    const float inf = std::numeric_limits<float>::infinity();
+    const auto hostile = decode_frame(encode_frame(teleport_msg{1, {inf, -1e30f, 0}, 12345}));
+    REQUIRE(hostile.value.has_value());
+    CHECK(std::get<teleport_msg>(*hostile.value).position.x == inf);
+    CHECK(std::get<teleport_msg>(*hostile.value).entity_id == 12345);
+    // The client view records the observer's own position with its tick.
+    client_view view({{0, 0, 0}, {100, 100, 10}});
+    tick_update_msg u;
+    u.server_tick = 10;
+    u.self_position = vec3f{1, 2, 3};
+    CHECK(view.apply(u) == client_view::status::ok);
+    REQUIRE(view.self_position().has_value());
+    CHECK(*view.self_position() == vec3f{1, 2, 3});
+    CHECK(view.self_position_tick() == 10);
   }
 
   TEST_CASE("frames that fail verification are rejected") {

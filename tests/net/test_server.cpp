@@ -216,6 +216,16 @@ TEST_SUITE("net.server") {
       }
       hostiles.push_back({"flood", f, error_code::rate_limited, true});
     }
+    // Teleport before hello, and a teleport flood (teleports count against the input rate).
+    hostiles.push_back({"teleport first", encode_frame(teleport_msg{1, {1, 2, 3}, 0}), error_code::unexpected_message, false});
+    {
+      auto f = encode_frame(hello_msg{"teleport flood", "", protocol_version});
+      for (std::uint32_t i = 0; i < 3000; ++i) {
+        const auto in = encode_frame(teleport_msg{i, {static_cast<float>(i), 0, 0}, 0});
+        f.insert(f.end(), in.begin(), in.end());
+      }
+      hostiles.push_back({"teleport flood", f, error_code::rate_limited, true});
+    }
 
     std::vector<std::unique_ptr<test_client>> clients;
     for (const auto& h : hostiles) {
@@ -256,7 +266,8 @@ TEST_SUITE("net.server") {
     REQUIRE(g.wait_for([&] { return g.count(inbound_event::kind::disconnected) == hostiles.size(); }));
     const auto reasons = g.disconnect_reasons();
     for (const char* r : {"frame failed verification", "oversize frame", "unknown message type",
-                          "a client may not send tick_update", "input before hello", "input flood"}) {
+                          "a client may not send tick_update", "input before hello", "teleport before hello",
+                          "input flood"}) {
       CAPTURE(r);
       CHECK(std::find(reasons.begin(), reasons.end(), r) != reasons.end());
     }
@@ -264,6 +275,14 @@ TEST_SUITE("net.server") {
     CHECK(st.frames_rejected == 3);
     CHECK(st.inputs_dropped > 0);
     CHECK(st.frames_dropped == 0);
+    // Of the teleport flood, the game saw at most the burst plus what the rate refilled: the
+    // rest was dropped in the network layer and never reached the game thread.
+    std::size_t teleports_forwarded = 0;
+    for (const auto& e : g.events) {
+      if (e.type == inbound_event::kind::message && e.msg && std::holds_alternative<teleport_msg>(*e.msg)) ++teleports_forwarded;
+    }
+    CHECK(teleports_forwarded >= 1);
+    CHECK(teleports_forwarded < 200);
   }
 
   TEST_CASE("a slow client: bounded queue, newest state kept, not disconnected") {
