@@ -40,6 +40,7 @@ std::optional<std::string> validate(const zone_config& c) {
   if (c.max_frame_bytes < 64) return bad("max-frame-bytes must be >= 64");
   if (c.client_byte_budget < 256) return bad("client-byte-budget must be >= 256");
   if (!(c.inputs_per_second > 0)) return bad("inputs-per-second must be > 0");
+  if (!(c.teleport_cooldown_s >= 0 && std::isfinite(c.teleport_cooldown_s))) return bad("teleport-cooldown must be >= 0");
   static const char* finders[] = {"auto", "cpu", "gpu", "pbig", "lbvh", "brute"};
   if (std::find(std::begin(finders), std::end(finders), c.finder) == std::end(finders)) {
     return bad("finder must be auto, cpu, gpu (= pbig), pbig, lbvh or brute");
@@ -102,6 +103,8 @@ config_result parse_config(int argc, const char* const* argv) {
       ("max-frame-bytes", po::value(&c.max_frame_bytes)->default_value(c.max_frame_bytes), "largest inbound frame")  //
       ("inputs-per-second", po::value(&c.inputs_per_second)->default_value(c.inputs_per_second), "input rate limit per client")  //
       ("client-byte-budget", po::value(&c.client_byte_budget)->default_value(c.client_byte_budget), "bytes per client per tick")  //
+      ("teleport", po::value(&c.teleport_enabled)->default_value(c.teleport_enabled), "players may teleport themselves (0 or 1)")  //
+      ("teleport-cooldown", po::value(&c.teleport_cooldown_s)->default_value(c.teleport_cooldown_s), "least seconds between two teleports of one player")  //
       ("metrics", po::value(&c.metrics_enabled)->default_value(c.metrics_enabled), "serve Prometheus text at /metrics (0 or 1)")  //
       ("metrics-port", po::value(&metrics_port)->default_value(metrics_port), "port of /metrics (0 = ephemeral)");
   po::options_description all("zone-server options");

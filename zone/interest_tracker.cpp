@@ -12,6 +12,7 @@
 #include <bit>
 #include <chrono>
 #include <cmath>
+#include <utility>
 
 #include "zone.h"
 
@@ -25,6 +26,7 @@ double ms_since(clock_type::time_point t0) {
 }
 
 constexpr std::uint32_t no_row = 0xffffffffu;
+constexpr std::size_t no_pair = static_cast<std::size_t>(-1);
 
 /// Squared distance of two points, as an order-preserving unsigned key (non-negative floats order
 /// like their bit patterns).
@@ -110,88 +112,86 @@ std::optional<interest::box_error> interest_tracker::apply_pairs(const entity_st
                                                                 const interest::box_set& boxes,
                                                                 const interest::pair_list& pairs) {
   const auto t0 = clock_type::now();
-  // Preconditions, checked before any state changes.
   if (boxes.size() != 2 * store.size()) {
     return interest::box_error{boxes.size(), "box set has " + std::to_string(boxes.size()) + " boxes, expected 2 x " +
                                                  std::to_string(store.size()) + " entities"};
   }
-  for (const auto& p : pairs) {
-    if (std::max(p.a, p.b) >= boxes.size()) {
-      return interest::box_error{std::max(p.a, p.b), "pair (" + std::to_string(p.a) + ", " + std::to_string(p.b) +
-                                                        ") refers to a box beyond the set"};
+  const std::size_t n = store.size();
+  const auto ids = store.ids();
+  const auto cls = store.visibility_classes();
+  const auto sees = store.sees();
+
+  // Box 2k is entity k's AOI box, 2k+1 its presence box; only mixed pairs mean "k sees j", and
+  // only when k sees j's class (re-checked: apply_pairs accepts pairs from any finder).
+  const auto split = [&](const interest::id_pair& p, std::uint32_t& observer, std::uint32_t& target) {
+    if ((p.a & 1u) == (p.b & 1u)) return false;
+    const std::uint32_t aoi_box = (p.a & 1u) ? p.b : p.a;
+    const std::uint32_t presence_box = (p.a & 1u) ? p.a : p.b;
+    observer = aoi_box / 2;
+    target = presence_box / 2;
+    return observer != target && (cls[target] & sees[observer]) != 0;
+  };
+
+  // 1. Count candidates per (task, observer row) over fixed slices of the pair list, checking
+  //    the pair ids on the way. Private counters per task: no atomics, and the fill below writes
+  //    each task's candidates at offsets of its own. Only scratch memory is written before the
+  //    checks pass, so a refused input changes nothing.
+  const std::size_t threads = pool_ != nullptr ? pool_->size() : 1;
+  const std::size_t pair_tasks =
+      threads == 1 ? 1 : std::clamp<std::size_t>(pairs.size() / 32768, 1, 4 * threads);
+  const auto pair_begin = [&](std::size_t t) { return pairs.size() * t / pair_tasks; };
+  task_cursor_.assign(pair_tasks * n, 0);
+  task_bad_.assign(pair_tasks, no_pair);
+  const std::size_t box_count = boxes.size();
+  interest::run_tasks(pair_tasks > 1 ? pool_ : nullptr, pair_tasks, [&](std::size_t task) {
+    std::uint32_t* count = task_cursor_.data() + task * n;
+    for (std::size_t k = pair_begin(task), e = pair_begin(task + 1); k < e; ++k) {
+      const auto& p = pairs[k];
+      if (std::max(p.a, p.b) >= box_count) {
+        task_bad_[task] = std::min(task_bad_[task], k);
+        continue;
+      }
+      std::uint32_t o, t;
+      if (split(p, o, t)) ++count[o];
     }
+  });
+  for (const std::size_t k : task_bad_) {
+    if (k == no_pair) continue;
+    const auto& p = pairs[k];
+    return interest::box_error{std::max(p.a, p.b), "pair (" + std::to_string(p.a) + ", " + std::to_string(p.b) +
+                                                      ") refers to a box beyond the set"};
   }
+
   // The last tick's output becomes the previous state.
   std::swap(ids_, prev_ids_);
   std::swap(vis_off_, prev_off_);
   std::swap(vis_len_, prev_len_);
   std::swap(vis_, prev_vis_);
   const std::size_t prev_rows = prev_ids_.size();
-
-  const std::size_t n = store.size();
-  const auto ids = store.ids();
-  const auto cls = store.visibility_classes();
-  const auto sees = store.sees();
   ids_.assign(ids.begin(), ids.end());
 
-  // Candidates by observer row: count, scan, fill. Count and fill run in parallel over fixed
-  // chunks of pairs with atomic per-row counters; the fill order within a row then depends on
-  // timing, but every row is sorted by its (unique) keys before use, so the result does not.
-  vis_off_.assign(n + 1, 0);
-  std::uint64_t candidates = 0;
-  const auto split = [](const interest::id_pair& p, std::uint32_t& observer, std::uint32_t& target) {
-    // Box 2k is entity k's AOI box, 2k+1 its presence box; only mixed pairs mean "k sees j".
-    if ((p.a & 1u) == (p.b & 1u)) return false;
-    const std::uint32_t aoi_box = (p.a & 1u) ? p.b : p.a;
-    const std::uint32_t presence_box = (p.a & 1u) ? p.a : p.b;
-    observer = aoi_box / 2;
-    target = presence_box / 2;
-    return observer != target;
-  };
-  constexpr std::size_t pairs_per_task = 1 << 16;
-  const std::size_t pair_tasks = (pairs.size() + pairs_per_task - 1) / pairs_per_task;
-  // One thread: plain increments (a locked add costs about 20 cycles per pair).
-  const bool serial = pool_ == nullptr || pool_->size() == 1 || pair_tasks <= 1;
-  if (serial) {
-    for (const auto& p : pairs) {
-      std::uint32_t o, t;
-      if (split(p, o, t) && (cls[t] & sees[o]) != 0) ++vis_off_[o + 1];
-    }
-  } else {
-    interest::run_tasks(pool_, pair_tasks, [&](std::size_t task) {
-      const std::size_t end = std::min(pairs.size(), (task + 1) * pairs_per_task);
-      for (std::size_t k = task * pairs_per_task; k < end; ++k) {
-        std::uint32_t o, t;
-        if (split(pairs[k], o, t) && (cls[t] & sees[o]) != 0) {
-          std::atomic_ref<std::uint32_t>(vis_off_[o + 1]).fetch_add(1, std::memory_order_relaxed);
-        }
-      }
-    });
+  // 2. Row offsets, and each (task, row)'s first slot: counts become cursors.
+  vis_off_.resize(n + 1);
+  std::uint32_t running = 0;
+  for (std::size_t i = 0; i < n; ++i) {
+    vis_off_[i] = running;
+    for (std::size_t t = 0; t < pair_tasks; ++t) running += std::exchange(task_cursor_[t * n + i], running);
   }
-  for (std::size_t i = 0; i < n; ++i) vis_off_[i + 1] += vis_off_[i];
-  candidates = vis_off_[n];
+  vis_off_[n] = running;
+  const std::uint64_t candidates = running;
+
+  // 3. Fill: target handles by observer row (the order within a row is sorted later).
   cand_.resize(candidates);
   vis_.resize(candidates);
   enter_.resize(candidates);
-  kept_dense_.resize(candidates);
-  vis_len_.assign(n, 0);  // the fill cursor per row; reset below
-  if (serial) {
-    for (const auto& p : pairs) {
+  if (opt_.max_visible != 0) cap_keys_.resize(candidates);
+  interest::run_tasks(pair_tasks > 1 ? pool_ : nullptr, pair_tasks, [&](std::size_t task) {
+    std::uint32_t* cursor = task_cursor_.data() + task * n;
+    for (std::size_t k = pair_begin(task), e = pair_begin(task + 1); k < e; ++k) {
       std::uint32_t o, t;
-      if (split(p, o, t) && (cls[t] & sees[o]) != 0) cand_[vis_off_[o] + vis_len_[o]++] = (std::uint64_t{ids[t]} << 32) | t;
+      if (split(pairs[k], o, t)) cand_[cursor[o]++] = ids[t];
     }
-  } else {
-    interest::run_tasks(pool_, pair_tasks, [&](std::size_t task) {
-      const std::size_t end = std::min(pairs.size(), (task + 1) * pairs_per_task);
-      for (std::size_t k = task * pairs_per_task; k < end; ++k) {
-        std::uint32_t o, t;
-        if (split(pairs[k], o, t) && (cls[t] & sees[o]) != 0) {
-          const std::uint32_t at = std::atomic_ref<std::uint32_t>(vis_len_[o]).fetch_add(1, std::memory_order_relaxed);
-          cand_[vis_off_[o] + at] = (std::uint64_t{ids[t]} << 32) | t;
-        }
-      }
-    });
-  }
+  });
 
   // Presence boxes as one record each: the exact test reads a target's box with one cache miss
   // instead of six (one per column).
@@ -213,11 +213,11 @@ std::optional<interest::box_error> interest_tracker::apply_pairs(const entity_st
     leave_off_[i + 1] = leave_off_[i] + (r == no_row ? 0 : prev_len_[r]);
   }
   leave_.resize(leave_off_[n]);
-  vis_len_.assign(n, 0);
-  enter_len_.assign(n, 0);
-  leave_len_.assign(n, 0);
+  vis_len_.resize(n);
+  enter_len_.resize(n);
+  leave_len_.resize(n);
 
-  // Per observer, in fixed chunks of rows (the output never depends on the thread count).
+  // 4. Per observer, in fixed chunks of rows (the output never depends on the thread count).
   const std::size_t chunk = std::max<std::uint32_t>(1, opt_.rows_per_task);
   const std::size_t tasks = (n + chunk - 1) / chunk;
   capped_pending_ = 0;
@@ -251,12 +251,12 @@ void interest_tracker::process_rows(const entity_store& store, std::size_t first
 
   for (std::size_t i = first; i < last; ++i) {
     const std::uint32_t off = vis_off_[i];
-    std::uint64_t* cand = cand_.data() + off;
+    entity_id* cand = cand_.data() + off;
     const std::uint32_t cand_n = vis_off_[i + 1] - off;
-    // By target handle (keys are unique). Rows are short: insertion sort below 32.
+    // By target handle (unique within a row). Rows are short: insertion sort below 32.
     if (cand_n < 32) {
       for (std::uint32_t c = 1; c < cand_n; ++c) {
-        const std::uint64_t key = cand[c];
+        const entity_id key = cand[c];
         std::uint32_t k = c;
         for (; k > 0 && cand[k - 1] > key; --k) cand[k] = cand[k - 1];
         cand[k] = key;
@@ -277,55 +277,55 @@ void interest_tracker::process_rows(const entity_store& store, std::size_t first
     const float lo_x = p.x - a.x, lo_y = p.y - a.y, lo_z = p.z - a.z;
     const float hi_x = p.x + a.x, hi_y = p.y + a.y, hi_z = p.z + a.z;
 
-    // Hysteresis: a candidate stays if it was visible, enters if it meets the exact box.
+    // One merge of the sorted candidates with the previous set: a candidate stays if it was
+    // visible, enters if its presence box meets the exact AOI box (looked up only then); a
+    // previous entry that is no candidate leaves.
     entity_id* kept = vis_.data() + off;
-    std::uint32_t* kept_dense = kept_dense_.data() + off;
-    std::uint32_t kept_n = 0;
-    std::uint32_t j = 0;
+    entity_id* enter = enter_.data() + off;
+    entity_id* leave = leave_.data() + leave_off_[i];
+    std::uint32_t kept_n = 0, en = 0, ln = 0, j = 0;
     for (std::uint32_t c = 0; c < cand_n; ++c) {
-      const entity_id target = static_cast<entity_id>(cand[c] >> 32);
-      const std::uint32_t t = static_cast<std::uint32_t>(cand[c]);
-      while (j < old_n && old[j] < target) ++j;
-      const bool was_visible = j < old_n && old[j] == target;
-      const presence_box& b = presence_[t];
-      const bool inside = b.lo_x <= hi_x && lo_x <= b.hi_x && b.lo_y <= hi_y && lo_y <= b.hi_y && b.lo_z <= hi_z &&
-                          lo_z <= b.hi_z;
-      if (was_visible || inside) {
-        kept[kept_n] = target;
-        kept_dense[kept_n] = t;
-        ++kept_n;
+      const entity_id target = cand[c];
+      while (j < old_n && old[j] < target) leave[ln++] = old[j++];
+      if (j < old_n && old[j] == target) {
+        ++j;
+        kept[kept_n++] = target;
+        continue;
+      }
+      const presence_box& b = presence_[store.index_of(target)];
+      if (b.lo_x <= hi_x && lo_x <= b.hi_x && b.lo_y <= hi_y && lo_y <= b.hi_y && b.lo_z <= hi_z && lo_z <= b.hi_z) {
+        kept[kept_n++] = target;
+        enter[en++] = target;
       }
     }
+    while (j < old_n) leave[ln++] = old[j++];
 
-    // Cap: keep the `cap` closest (ties by handle), then back to handle order.
+    // Cap: keep the `cap` closest (ties by handle), back to handle order, and redo the diff.
     if (cap != 0 && kept_n > cap) {
-      std::uint64_t* keys = cand;  // the candidates are consumed: reuse their storage
+      std::uint64_t* keys = cap_keys_.data() + off;
       for (std::uint32_t k = 0; k < kept_n; ++k) {
-        keys[k] = (std::uint64_t{distance_key(p, pos[kept_dense[k]])} << 32) | kept[k];
+        keys[k] = (std::uint64_t{distance_key(p, pos[store.index_of(kept[k])])} << 32) | kept[k];
       }
       std::nth_element(keys, keys + cap, keys + kept_n);
       for (std::uint32_t k = 0; k < cap; ++k) kept[k] = static_cast<entity_id>(keys[k]);
       std::sort(kept, kept + cap);
       capped += kept_n - cap;
       kept_n = cap;
-    }
-    vis_len_[i] = kept_n;
-
-    // Diff of two sorted lists: enters = kept \ old, leaves = old \ kept.
-    entity_id* enter = enter_.data() + off;
-    entity_id* leave = leave_.data() + leave_off_[i];
-    std::uint32_t en = 0, ln = 0, k = 0;
-    j = 0;
-    while (k < kept_n || j < old_n) {
-      if (j == old_n || (k < kept_n && kept[k] < old[j])) {
-        enter[en++] = kept[k++];
-      } else if (k == kept_n || old[j] < kept[k]) {
-        leave[ln++] = old[j++];
-      } else {
-        ++k;
-        ++j;
+      // Diff of two sorted lists: enters = kept \ old, leaves = old \ kept.
+      std::uint32_t k = 0;
+      en = ln = j = 0;
+      while (k < kept_n || j < old_n) {
+        if (j == old_n || (k < kept_n && kept[k] < old[j])) {
+          enter[en++] = kept[k++];
+        } else if (k == kept_n || old[j] < kept[k]) {
+          leave[ln++] = old[j++];
+        } else {
+          ++k;
+          ++j;
+        }
       }
     }
+    vis_len_[i] = kept_n;
     enter_len_[i] = en;
     leave_len_[i] = ln;
   }

@@ -190,4 +190,23 @@ std::span<const std::uint8_t> replicator::build(client_id c, const entity_store&
   return frame;
 }
 
+void replicator::build_many(std::span<const replication_request> requests, const entity_store& store,
+                            const interest_tracker& tracker, std::uint64_t tick, std::uint64_t server_time_us,
+                            interest::thread_pool* pool, const frame_sink& sink) {
+  const std::size_t chunk = std::max<std::uint32_t>(1, opt_.clients_per_task);
+  const std::size_t tasks = (requests.size() + chunk - 1) / chunk;
+  while (writers_.size() < tasks) writers_.push_back(std::make_unique<net::tick_update_writer>());
+  // Each task owns one writer and distinct clients; build() reads only shared, unchanging state.
+  interest::run_tasks(pool, tasks, [&](std::size_t task) {
+    net::tick_update_writer& writer = *writers_[task];
+    const std::size_t end = std::min(requests.size(), (task + 1) * chunk);
+    for (std::size_t k = task * chunk; k < end; ++k) {
+      replication_stats st;
+      const auto frame =
+          build(requests[k].client, store, tracker, tick, server_time_us, requests[k].last_input_sequence, writer, &st);
+      sink(k, frame, st);
+    }
+  });
+}
+
 }  // namespace zone

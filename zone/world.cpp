@@ -173,6 +173,14 @@ bool zone_world::set_intent(entity_id player, const vec3& intent) {
   return true;
 }
 
+bool zone_world::teleport(entity_id player, const vec3& to, bool* clamped) {
+  if (!store_.alive(player) || by_slot_[slot_of(player)].kind != behaviour::player) return false;
+  if (!std::isfinite(to.x) || !std::isfinite(to.y) || !std::isfinite(to.z)) return false;
+  const vec3 at = clamp_to_world(to);
+  if (clamped) *clamped = !(at == to);
+  return store_.set_position(player, at);
+}
+
 void zone_world::decide(std::size_t first, std::size_t last) {
   const auto ids = store_.ids();
   const auto pos = store_.positions();

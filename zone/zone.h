@@ -9,6 +9,8 @@
 
 #include <cstddef>
 #include <cstdint>
+#include <functional>
+#include <memory>
 #include <optional>
 #include <span>
 #include <string>
@@ -223,8 +225,10 @@ class interest_tracker {
   std::vector<std::uint32_t> vis_off_;  // size rows + 1
   std::vector<std::uint32_t> vis_len_, enter_len_, leave_off_, leave_len_;
   std::vector<entity_id> vis_, enter_, leave_;
-  std::vector<std::uint64_t> cand_;        // (target handle << 32) | target dense index, by row
-  std::vector<std::uint32_t> kept_dense_;  // dense index of each kept target (for the cap)
+  std::vector<entity_id> cand_;              // candidate target handles, by row
+  std::vector<std::uint32_t> task_cursor_;   // per (pair task, row): candidate count, then fill cursor
+  std::vector<std::size_t> task_bad_;        // per pair task: first pair with an id beyond the set
+  std::vector<std::uint64_t> cap_keys_;      // (distance key << 32) | handle, for the cap
   std::vector<std::uint32_t> prev_row_;    // previous row of each row's observer, or none
   std::vector<presence_box> presence_;     // presence box by dense index (from the box set)
 
@@ -251,6 +255,8 @@ struct replication_options {
   std::uint32_t mid_period = 2;
   std::uint32_t far_period = 4;
   bool send_digest = true;
+  /// Clients per parallel task of build_many (fixed: the frames never depend on the thread count).
+  std::uint32_t clients_per_task = 16;
 };
 
 /// What one build() did.
@@ -262,6 +268,12 @@ struct replication_stats {
 };
 
 using client_id = std::uint32_t;
+
+/// One client's frame to build in replicator::build_many.
+struct replication_request {
+  client_id client = 0;
+  std::uint32_t last_input_sequence = 0;
+};
 
 /// Per-client replication state and the per-tick message builder.
 ///
@@ -295,6 +307,18 @@ class replicator {
                                                     std::uint64_t server_time_us, std::uint32_t last_input_sequence,
                                                     net::tick_update_writer& writer, replication_stats* stats = nullptr);
 
+  /// Called by build_many once per request k with its frame (valid only during the call) and
+  /// what was sent; calls for different k may run concurrently on different threads.
+  using frame_sink = std::function<void(std::size_t k, std::span<const std::uint8_t> frame, const replication_stats& stats)>;
+
+  /// build() for every request (distinct clients), spread over `pool` (null: this thread) in
+  /// fixed chunks of options().clients_per_task requests, each chunk with its own writer owned by
+  /// the replicator (reused: no allocation in steady state). Every frame and every client's state
+  /// afterwards are exactly what calling build() for the requests one by one would give.
+  void build_many(std::span<const replication_request> requests, const entity_store& store,
+                  const interest_tracker& tracker, std::uint64_t tick, std::uint64_t server_time_us,
+                  interest::thread_pool* pool, const frame_sink& sink);
+
   /// The client's view as sent so far (sorted ids) and its digest hash.
   [[nodiscard]] std::span<const entity_id> view(client_id c) const { return clients_[c].view; }
   [[nodiscard]] std::uint64_t view_hash(client_id c) const { return clients_[c].hash; }
@@ -322,6 +346,7 @@ class replicator {
   net::position_quantizer quantizer_;
   std::vector<client_state> clients_;
   std::vector<client_id> free_clients_;
+  std::vector<std::unique_ptr<net::tick_update_writer>> writers_;  // one per build_many chunk
 };
 
 // ---------------------------------------------------------------------------------------------

@@ -186,12 +186,24 @@ void zone_server::drain_inputs() {
 
 void zone_server::replicate() {
   const std::uint64_t now = net_.now_us();
+  // Every client's frame is built on the worker pool (replicator::build_many: fixed chunks of
+  // clients, one writer each; the frames are those of building them one by one), then handed to
+  // the network on this thread.
+  requests_.clear();
+  request_sessions_.clear();
   for (const auto& [session, c] : clients_) {
-    const auto frame = replicator_.build(c.replica, world_->store(), world_->tracker(), world_->tick(), now, c.last_input,
-                                         writer_);
-    net_.send(session, net::make_shared_frame(frame), net::delivery::state);
+    requests_.push_back({c.replica, c.last_input});
+    request_sessions_.push_back(session);
+  }
+  frames_.resize(requests_.size());
+  replicator_.build_many(requests_, world_->store(), world_->tracker(), world_->tick(), now, pool_.get(),
+                         [&](std::size_t k, std::span<const std::uint8_t> frame, const replication_stats&) {
+                           frames_[k] = net::make_shared_frame(frame);
+                         });
+  for (std::size_t k = 0; k < requests_.size(); ++k) {
+    stats_.bytes_sent += frames_[k]->size();
     ++stats_.frames_sent;
-    stats_.bytes_sent += frame.size();
+    net_.send(request_sessions_[k], std::move(frames_[k]), net::delivery::state);
   }
 }
 

@@ -69,7 +69,10 @@ class zone_server {
   replicator replicator_;
   net::server net_;
   std::unique_ptr<net::metrics_server> metrics_;
-  net::tick_update_writer writer_;
+  // Replication scratch, reused every tick: one request per client, its session and its frame.
+  std::vector<replication_request> requests_;
+  std::vector<net::session_id> request_sessions_;
+  std::vector<net::shared_frame> frames_;
   net::encoder encoder_;
   std::vector<net::inbound_event> events_;
   std::unordered_map<net::session_id, client> clients_;

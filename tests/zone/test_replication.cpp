@@ -259,4 +259,70 @@ TEST_SUITE("zone.replication") {
     CHECK(again == c);
     CHECK(rep.view(again).empty());
   }
+
+  TEST_CASE("build_many on a pool gives the frames and views of building the clients one by one") {
+    const std::uint64_t seed = fresh_seed();
+    CAPTURE(seed);
+    small_world w(seed, 300);
+    interest::thread_pool pool(3);
+    interest::grid_finder finder(&pool);
+    interest_tracker tracker(finder, &pool, {3.0f, 0, 64});
+    for (const std::size_t budget : {std::size_t{1} << 20, std::size_t{600}}) {
+      CAPTURE(budget);
+      replication_options opt;
+      opt.world = test_world;
+      opt.byte_budget = budget;
+      opt.clients_per_task = 3;  // several chunks, so the pool's threads share the clients
+      replicator serial(opt), parallel(opt);
+      net::tick_update_writer writer;
+      // Clients for the first 20 entities (the first 4 survive the churn; the others may die,
+      // then their clients see nothing and shed their views).
+      std::vector<replication_request> requests;
+      for (std::size_t k = 0; k < 20; ++k) {
+        const entity_id o = w.store.ids()[k];
+        const client_id a = serial.add_client(o);
+        const client_id b = parallel.add_client(o);
+        REQUIRE(a == b);
+        requests.push_back({a, static_cast<std::uint32_t>(k * 7)});
+      }
+      std::reverse(requests.begin(), requests.end());  // any order of clients
+      std::vector<std::vector<std::uint8_t>> frames(requests.size());
+      std::vector<replication_stats> stats(requests.size());
+      std::size_t nonempty = 0;
+      for (std::uint64_t tick = 1; tick <= 40; ++tick) {
+        CAPTURE(tick);
+        REQUIRE_FALSE(tracker.update(w.store).has_value());
+        if (tick == 20) {
+          serial.resync(requests[5].client);
+          parallel.resync(requests[5].client);
+        }
+        std::vector<int> calls(requests.size(), 0);
+        parallel.build_many(requests, w.store, tracker, tick, tick * 1000, &pool,
+                            [&](std::size_t k, std::span<const std::uint8_t> frame, const replication_stats& st) {
+                              ++calls[k];
+                              frames[k].assign(frame.begin(), frame.end());
+                              stats[k] = st;
+                            });
+        for (std::size_t k = 0; k < requests.size(); ++k) {
+          CAPTURE(k);
+          CHECK(calls[k] == 1);
+          replication_stats st;
+          const auto frame = serial.build(requests[k].client, w.store, tracker, tick, tick * 1000,
+                                          requests[k].last_input_sequence, writer, &st);
+          CHECK(std::vector<std::uint8_t>(frame.begin(), frame.end()) == frames[k]);
+          CHECK(st.bytes == stats[k].bytes);
+          CHECK(st.enters == stats[k].enters);
+          CHECK(st.updates == stats[k].updates);
+          CHECK(st.deferred_updates == stats[k].deferred_updates);
+          const client_id c = requests[k].client;
+          CHECK(serial.view_hash(c) == parallel.view_hash(c));
+          CHECK(std::vector<entity_id>(serial.view(c).begin(), serial.view(c).end()) ==
+                std::vector<entity_id>(parallel.view(c).begin(), parallel.view(c).end()));
+          nonempty += serial.view(c).empty() ? 0 : 1;
+        }
+        w.step(true);
+      }
+      CHECK(nonempty > 0);  // the clients did see something
+    }
+  }
 }

@@ -1,0 +1,505 @@
+// bench-zone: the zone server's tick without sockets (docs/zone-benchmarks.md).
+//
+// Builds a zone_world with the default NPC mix (zone_config defaults; --entities NPCs), optionally
+// K player entities with scripted movement and one replication client each (--clients), warms up,
+// then runs --ticks ticks and prints per-phase p50/p99/max/mean (behaviours, integrate, interest
+// and its parts: boxes, find, diff; the finder's own phases; replication; the total), the pair and
+// visible counts, and the machine's load average before and after (/proc/loadavg: the machine is
+// shared, so every figure is recorded with it).
+//
+// Ticks run back to back (as fast as possible; dt = 1 / --rate all the same) unless --paced, which
+// sleeps until each tick is due at --rate like the server's loop (an overrun starts the next tick
+// at once). Percentiles here are exact (sorted per-tick samples), not histogram bucket edges.
+//
+// The finder is a parameter (--finder; make_finder below is the one place that maps a name to a
+// pair_finder), so other backends slot in without touching the rest of the tool.
+//
+// Modes: the default tick table; --clients K adds replication (build() for K clients per tick,
+// serial with one writer or build_many on the pool: --replicate serial|parallel|both, the frames'
+// bytes hashed so the two can be compared); --sweep-w LIST reruns the finder on the world's own
+// boxes for each W (grid_finder_options::min_boxes_per_cell).
+#include <algorithm>
+#include <charconv>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <fstream>
+#include <functional>
+#include <iostream>
+#include <map>
+#include <memory>
+#include <optional>
+#include <random>
+#include <sstream>
+#include <string>
+#include <string_view>
+#include <thread>
+#include <vector>
+
+#include "interest.h"
+#include "protocol.h"
+#include "zone.h"
+
+namespace {
+
+using namespace zone;
+using clock_type = std::chrono::steady_clock;
+
+double ms_since(clock_type::time_point t0) {
+  return std::chrono::duration<double, std::milli>(clock_type::now() - t0).count();
+}
+
+std::string load_average() {
+  std::ifstream f("/proc/loadavg");
+  std::string a, b, c;
+  if (!(f >> a >> b >> c)) return "unknown";
+  return a + " " + b + " " + c;
+}
+
+// ---- Options --------------------------------------------------------------------------------
+
+enum class replicate_mode { serial, parallel, both };
+
+struct options {
+  std::size_t entities = 20000;
+  std::size_t clients = 0;
+  std::size_t ticks = 300;
+  std::size_t warmup = 30;
+  double rate = 30;
+  bool paced = false;
+  unsigned threads = 0;
+  std::uint64_t seed = 1;
+  std::string finder = "cpu";
+  double w = 0;  // 0 = the finder's default
+  std::string csv;
+  replicate_mode replicate = replicate_mode::parallel;
+  std::size_t budget = 8 * 1024;
+  std::uint32_t clients_per_task = 16;
+  float hysteresis = 4;
+  std::uint32_t max_visible = 0;
+  std::vector<double> sweep_w;
+};
+
+constexpr const char* usage = R"(bench-zone: the zone server's tick (world step + replication) without sockets
+
+Usage: bench-zone [options]
+  --entities N       NPCs (default 20000; plus the config's one boss), default behaviour mix
+  --clients K        player entities with scripted movement, one replication client each
+                     (default 0: no replication); spawned at the towns like the server does
+  --ticks N          measured ticks (default 300)
+  --warmup N         ticks before measuring (default 30)
+  --rate HZ          tick rate: dt of the simulation and, with --paced, the loop rate (default 30)
+  --paced            sleep until each tick is due (like zone-server); default: back to back
+  --threads N        worker threads, the calling thread included (default 0 = all cores)
+  --seed S           world seed (default 1)
+  --finder NAME      pair finder: cpu (grid finder on the pool) | cpu-1t | brute (default cpu)
+  --w W              grid finder's W (min_boxes_per_cell; default: the finder's default)
+  --replicate MODE   serial (one writer, this thread) | parallel (build_many on the pool) | both
+                     (both each tick, frames compared byte for byte) (default parallel)
+  --budget BYTES     per-client byte budget (default 8192)
+  --clients-per-task N  replication chunk size (default 16)
+  --hysteresis M     (default 4)   --max-visible N (default 0 = no cap)
+  --csv FILE         per-tick samples (ms and counts) as CSV
+  --sweep-w LIST     after the run, time the finder on the last tick's boxes for each W
+                     (comma-separated; 5 calls each, median)
+  --help             this text
+)";
+
+template <class T>
+std::optional<T> number(std::string_view s) {
+  T v{};
+  const auto r = std::from_chars(s.data(), s.data() + s.size(), v);
+  if (r.ec != std::errc{} || r.ptr != s.data() + s.size()) return std::nullopt;
+  return v;
+}
+
+std::optional<double> real(std::string_view s) {
+  try {
+    std::size_t used = 0;
+    const double v = std::stod(std::string(s), &used);
+    if (used != s.size() || !std::isfinite(v)) return std::nullopt;
+    return v;
+  } catch (...) {
+    return std::nullopt;
+  }
+}
+
+std::optional<std::string> parse_args(int argc, char** argv, options& o, bool& help) {
+  for (int i = 1; i < argc; ++i) {
+    const std::string_view a = argv[i];
+    std::string_view v;
+    const auto value = [&]() -> bool {
+      if (i + 1 >= argc) return false;
+      v = argv[++i];
+      return true;
+    };
+    const auto need = [&](const char* what) { return std::string(a) + ": expected " + what; };
+    if (a == "--help" || a == "-h") {
+      help = true;
+      return std::nullopt;
+    } else if (a == "--paced") {
+      o.paced = true;
+    } else if (a == "--entities" || a == "--clients" || a == "--ticks" || a == "--warmup" || a == "--budget") {
+      if (!value()) return need("a count");
+      const auto n = number<std::size_t>(v);
+      if (!n) return need("a count");
+      (a == "--entities" ? o.entities : a == "--clients" ? o.clients : a == "--ticks" ? o.ticks : a == "--warmup" ? o.warmup : o.budget) = *n;
+    } else if (a == "--threads") {
+      if (!value()) return need("a thread count");
+      const auto n = number<unsigned>(v);
+      if (!n || *n > 1024) return need("0..1024");
+      o.threads = *n;
+    } else if (a == "--seed") {
+      if (!value()) return need("a seed");
+      const auto n = number<std::uint64_t>(v);
+      if (!n) return need("an unsigned integer");
+      o.seed = *n;
+    } else if (a == "--rate") {
+      if (!value()) return need("Hz");
+      const auto r = real(v);
+      if (!r || *r <= 0 || *r > 1000) return need("a rate in (0, 1000]");
+      o.rate = *r;
+    } else if (a == "--w") {
+      if (!value()) return need("W");
+      const auto r = real(v);
+      if (!r || *r < 1) return need("W >= 1");
+      o.w = *r;
+    } else if (a == "--finder") {
+      if (!value()) return need("a finder name");
+      o.finder = std::string(v);
+    } else if (a == "--replicate") {
+      if (!value()) return need("serial|parallel|both");
+      if (v == "serial") o.replicate = replicate_mode::serial;
+      else if (v == "parallel") o.replicate = replicate_mode::parallel;
+      else if (v == "both") o.replicate = replicate_mode::both;
+      else return need("serial|parallel|both");
+    } else if (a == "--clients-per-task") {
+      if (!value()) return need("a count");
+      const auto n = number<std::uint32_t>(v);
+      if (!n || *n == 0) return need("a positive count");
+      o.clients_per_task = *n;
+    } else if (a == "--hysteresis") {
+      if (!value()) return need("metres");
+      const auto r = real(v);
+      if (!r || *r < 0) return need("metres >= 0");
+      o.hysteresis = static_cast<float>(*r);
+    } else if (a == "--max-visible") {
+      if (!value()) return need("a count");
+      const auto n = number<std::uint32_t>(v);
+      if (!n) return need("a count");
+      o.max_visible = *n;
+    } else if (a == "--csv") {
+      if (!value()) return need("a file name");
+      o.csv = std::string(v);
+    } else if (a == "--sweep-w") {
+      if (!value()) return need("a list of W values");
+      std::stringstream ss{std::string(v)};
+      std::string item;
+      while (std::getline(ss, item, ',')) {
+        const auto r = real(item);
+        if (!r || *r < 1) return need("W values >= 1");
+        o.sweep_w.push_back(*r);
+      }
+    } else {
+      return "unknown option " + std::string(a) + " (see --help)";
+    }
+  }
+  if (o.ticks == 0) return std::string("--ticks must be >= 1");
+  return std::nullopt;
+}
+
+// ---- The finder factory (the one place that maps a name to a backend) -----------------------
+
+/// A pair finder by name, on `pool` where it takes one; nullptr (and `*error`) for an unknown name.
+std::unique_ptr<interest::pair_finder> make_finder(const std::string& name, interest::thread_pool* pool, double w,
+                                                   std::string* error) {
+  interest::grid_finder_options g;
+  if (w > 0) g.min_boxes_per_cell = w;
+  if (name == "cpu") return std::make_unique<interest::grid_finder>(pool, g);
+  if (name == "cpu-1t") return std::make_unique<interest::grid_finder>(nullptr, g);
+  if (name == "brute") return std::make_unique<interest::brute_force_finder>(pool);
+  *error = "unknown finder '" + name + "' (cpu, cpu-1t, brute)";
+  return nullptr;
+}
+
+// ---- Samples and the table ------------------------------------------------------------------
+
+struct series {
+  explicit series(std::string n) : name(std::move(n)) {}
+  std::string name;
+  std::vector<double> v;
+};
+
+double quantile(std::vector<double> v, double q) {
+  if (v.empty()) return 0;
+  std::sort(v.begin(), v.end());
+  const auto rank = static_cast<std::size_t>(std::ceil(q * static_cast<double>(v.size())));
+  return v[std::clamp<std::size_t>(rank, 1, v.size()) - 1];
+}
+
+double mean_of(const std::vector<double>& v) {
+  double s = 0;
+  for (const double x : v) s += x;
+  return v.empty() ? 0 : s / static_cast<double>(v.size());
+}
+
+std::uint64_t fnv(std::uint64_t h, std::span<const std::uint8_t> bytes) {
+  for (const auto b : bytes) h = (h ^ b) * 0x100000001b3ull;
+  return h;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  options opt;
+  bool help = false;
+  if (auto err = parse_args(argc, argv, opt, help)) {
+    std::cerr << "bench-zone: " << *err << "\n";
+    return 64;
+  }
+  if (help) {
+    std::cout << usage;
+    return 0;
+  }
+
+  interest::thread_pool pool(opt.threads);
+  std::string error;
+  auto finder = make_finder(opt.finder, &pool, opt.w, &error);
+  if (!finder) {
+    std::cerr << "bench-zone: " << error << "\n";
+    return 64;
+  }
+
+  zone_config cfg;
+  cfg.npc_count = opt.entities;
+  cfg.tick_rate_hz = opt.rate;
+  cfg.seed = opt.seed;
+  cfg.worker_threads = pool.size();
+  cfg.hysteresis = opt.hysteresis;
+  cfg.max_visible = opt.max_visible;
+  cfg.client_byte_budget = opt.budget;
+  if (auto err = validate(cfg)) {
+    std::cerr << "bench-zone: " << *err << "\n";
+    return 64;
+  }
+  zone_world world(cfg, *finder, &pool);
+  const auto setup0 = clock_type::now();
+  world.populate();
+
+  // Players and their replication clients (as zone-server: spawned at town(i % towns)).
+  replication_options ro;
+  ro.world = cfg.world;
+  ro.byte_budget = cfg.client_byte_budget;
+  ro.clients_per_task = opt.clients_per_task;
+  replicator repl(ro), repl_serial(ro);  // repl_serial: the serial reference in --replicate both
+  std::vector<entity_id> players;
+  std::vector<replication_request> requests;
+  for (std::size_t k = 0; k < opt.clients; ++k) {
+    const entity_id id = world.spawn_player(world.town(k % world.town_count()));
+    if (id == null_entity) break;
+    players.push_back(id);
+    requests.push_back({repl.add_client(id), 0});
+    (void)repl_serial.add_client(id);
+  }
+  std::mt19937_64 script(opt.seed * 7 + 1);
+  std::vector<std::size_t> frame_bytes(requests.size());
+  std::vector<std::uint64_t> frame_hash(requests.size());
+  std::vector<replication_stats> frame_stats(requests.size());
+  net::tick_update_writer serial_writer;
+
+  const std::string load_before = load_average();
+  std::cout << "bench-zone: " << world.store().size() << " entities (" << opt.entities << " NPCs + bosses, "
+            << players.size() << " players/clients), " << world.town_count() << " towns, finder " << finder->name()
+            << ", " << pool.size() << " threads, " << opt.rate << " Hz " << (opt.paced ? "paced" : "back to back")
+            << ", " << opt.warmup << " warm-up + " << opt.ticks << " ticks, seed " << opt.seed << "\n";
+  std::cout << "load average before: " << load_before << "  (setup " << ms_since(setup0) << " ms)\n";
+
+  series s_beh{"behaviours"}, s_int{"integrate"}, s_boxes{"  boxes"}, s_find{"  find"}, s_diff{"  diff"},
+      s_interest{"interest"}, s_f_plan{"    plan"}, s_f_map{"    map"}, s_f_check{"    check"},
+      s_f_out{"    output"}, s_rep{"replicate"}, s_rep_serial{"replicate 1t"}, s_total{"tick"};
+  std::vector<double> pairs, candidates, visible, enters, leaves, bytes_per_frame, checks;
+  std::uint64_t frames_digest = 0xcbf29ce484222325ull, frames_mismatch = 0;
+  std::uint64_t sent_enters = 0, sent_updates = 0, sent_leaves = 0, deferred = 0;
+
+  const auto period =
+      std::chrono::duration_cast<clock_type::duration>(std::chrono::duration<double>(1.0 / opt.rate));
+  auto next = clock_type::now();
+  const std::size_t total_ticks = opt.warmup + opt.ticks;
+  for (std::size_t t = 0; t < total_ticks; ++t) {
+    if (opt.paced) {
+      const auto now = clock_type::now();
+      if (now < next) std::this_thread::sleep_until(next);
+      next = std::max(next + period, clock_type::now() - period);
+    }
+    const bool measured = t >= opt.warmup;
+    // Player inputs (a seeded random walk, changed every 30 ticks).
+    for (std::size_t p = 0; p < players.size(); ++p) {
+      if ((t + p) % 30 == 0) {
+        std::uniform_real_distribution<float> u(-1, 1);
+        (void)world.set_intent(players[p], {u(script), u(script), 0});
+      }
+    }
+    const auto& ph = world.phases();
+    const double beh0 = ph.behaviours.sum(), int0 = ph.integrate.sum(), interest0 = ph.interest.sum();
+    const auto t0 = clock_type::now();
+    if (auto err = world.step()) {
+      std::cerr << "bench-zone: tick " << world.tick() << ": " << err->message << "\n";
+      return 1;
+    }
+    double rep_ms = 0, rep_serial_ms = 0;
+    if (!requests.empty()) {
+      const std::uint64_t tick = world.tick();
+      const std::uint64_t now_us = tick * 1000;  // deterministic, so frames compare across runs
+      if (opt.replicate != replicate_mode::serial) {
+        const auto r0 = clock_type::now();
+        repl.build_many(requests, world.store(), world.tracker(), tick, now_us, &pool,
+                        [&](std::size_t k, std::span<const std::uint8_t> frame, const replication_stats& st) {
+                          frame_bytes[k] = frame.size();
+                          frame_hash[k] = fnv(0xcbf29ce484222325ull, frame);
+                          frame_stats[k] = st;
+                        });
+        rep_ms = ms_since(r0);
+      }
+      if (opt.replicate != replicate_mode::parallel) {
+        replicator& r = opt.replicate == replicate_mode::both ? repl_serial : repl;
+        const auto r0 = clock_type::now();
+        for (std::size_t k = 0; k < requests.size(); ++k) {
+          replication_stats st;
+          const auto frame = r.build(requests[k].client, world.store(), world.tracker(), tick, now_us, 0, serial_writer, &st);
+          const std::uint64_t h = fnv(0xcbf29ce484222325ull, frame);
+          if (opt.replicate == replicate_mode::both) {
+            if (h != frame_hash[k] || frame.size() != frame_bytes[k]) ++frames_mismatch;
+          } else {
+            frame_bytes[k] = frame.size();
+            frame_hash[k] = h;
+            frame_stats[k] = st;
+          }
+        }
+        (opt.replicate == replicate_mode::both ? rep_serial_ms : rep_ms) = ms_since(r0);
+      }
+      for (std::size_t k = 0; k < requests.size(); ++k) {
+        frames_digest = (frames_digest ^ frame_hash[k]) * 0x100000001b3ull;
+        if (measured) {
+          bytes_per_frame.push_back(static_cast<double>(frame_bytes[k]));
+          sent_enters += frame_stats[k].enters;
+          sent_updates += frame_stats[k].updates;
+          sent_leaves += frame_stats[k].leaves;
+          deferred += frame_stats[k].deferred_enters + frame_stats[k].deferred_leaves + frame_stats[k].deferred_updates;
+        }
+      }
+    }
+    const double total_ms = ms_since(t0) - rep_serial_ms;
+    if (!measured) continue;
+    const auto& ts = world.tracker().stats();
+    const auto& fs = finder->stats();
+    s_beh.v.push_back(ph.behaviours.sum() - beh0);
+    s_int.v.push_back(ph.integrate.sum() - int0);
+    s_interest.v.push_back(ph.interest.sum() - interest0);
+    s_boxes.v.push_back(ts.boxes_ms);
+    s_find.v.push_back(ts.find_ms);
+    s_diff.v.push_back(ts.diff_ms);
+    s_f_plan.v.push_back(fs.plan_ms);
+    s_f_map.v.push_back(fs.map_ms);
+    s_f_check.v.push_back(fs.check_ms);
+    s_f_out.v.push_back(fs.output_ms);
+    s_rep.v.push_back(rep_ms);
+    s_rep_serial.v.push_back(rep_serial_ms);
+    s_total.v.push_back(total_ms);
+    pairs.push_back(static_cast<double>(ts.pairs));
+    candidates.push_back(static_cast<double>(ts.candidates));
+    visible.push_back(static_cast<double>(ts.visible));
+    enters.push_back(static_cast<double>(ts.enters));
+    leaves.push_back(static_cast<double>(ts.leaves));
+    checks.push_back(static_cast<double>(fs.checks));
+  }
+  const std::string load_after = load_average();
+
+  // ---- Report ----
+  std::vector<const series*> rows = {&s_beh, &s_int, &s_interest, &s_boxes, &s_find};
+  const bool grid = opt.finder == "cpu" || opt.finder == "cpu-1t";
+  if (grid) {
+    for (const series* s : {&s_f_plan, &s_f_map, &s_f_check, &s_f_out}) rows.push_back(s);
+  }
+  rows.push_back(&s_diff);
+  if (!requests.empty()) {
+    rows.push_back(&s_rep);
+    if (opt.replicate == replicate_mode::both) rows.push_back(&s_rep_serial);
+  }
+  rows.push_back(&s_total);
+  std::printf("\n| phase | p50 ms | p99 ms | max ms | mean ms |\n|---|---|---|---|---|\n");
+  for (const series* s : rows) {
+    std::printf("| %s | %.2f | %.2f | %.2f | %.2f |\n", s->name.c_str(), quantile(s->v, 0.5), quantile(s->v, 0.99),
+                *std::max_element(s->v.begin(), s->v.end()), mean_of(s->v));
+  }
+  const double budget_ms = 1000.0 / opt.rate;
+  const auto over = std::count_if(s_total.v.begin(), s_total.v.end(), [&](double x) { return x > budget_ms; });
+  std::printf("\nticks over the %.1f ms budget: %lld of %zu\n", budget_ms, static_cast<long long>(over), s_total.v.size());
+  std::printf("per tick (mean): pairs %.0f, candidates %.0f, visible %.0f, enters %.0f, leaves %.0f", mean_of(pairs),
+              mean_of(candidates), mean_of(visible), mean_of(enters), mean_of(leaves));
+  if (grid) {
+    std::printf(", finder checks %.0f, cell edge %.1f m, cells %llu, entries %llu, large boxes %llu",
+                mean_of(checks), finder->stats().cell_edge, static_cast<unsigned long long>(finder->stats().cells),
+                static_cast<unsigned long long>(finder->stats().cell_entries),
+                static_cast<unsigned long long>(finder->stats().large_boxes));
+  }
+  std::printf("\n");
+  if (!requests.empty()) {
+    const double frames = static_cast<double>(bytes_per_frame.size());
+    std::printf("replication: %zu clients, %.1f us per client (p50 tick), frame bytes p50 %.0f p99 %.0f, per frame: enters %.2f, "
+                "updates %.1f, leaves %.2f, deferred %.2f; frames digest %016llx",
+                requests.size(), quantile(s_rep.v, 0.5) * 1000.0 / static_cast<double>(requests.size()),
+                quantile(bytes_per_frame, 0.5), quantile(bytes_per_frame, 0.99), static_cast<double>(sent_enters) / frames,
+                static_cast<double>(sent_updates) / frames, static_cast<double>(sent_leaves) / frames,
+                static_cast<double>(deferred) / frames, static_cast<unsigned long long>(frames_digest));
+    if (opt.replicate == replicate_mode::both) {
+      std::printf("; serial vs parallel frames differing: %llu", static_cast<unsigned long long>(frames_mismatch));
+    }
+    std::printf("\n");
+  }
+  std::printf("world digest after the run: %016llx\n", static_cast<unsigned long long>(world.digest()));
+  std::printf("load average before: %s, after: %s\n", load_before.c_str(), load_after.c_str());
+
+  if (!opt.csv.empty()) {
+    std::ofstream f(opt.csv);
+    if (!f) {
+      std::cerr << "bench-zone: cannot write " << opt.csv << "\n";
+      return 1;
+    }
+    f << "tick,behaviours_ms,integrate_ms,interest_ms,boxes_ms,find_ms,diff_ms,find_plan_ms,find_map_ms,find_check_ms,"
+         "find_output_ms,replicate_ms,tick_ms,pairs,candidates,visible,enters,leaves\n";
+    for (std::size_t i = 0; i < s_total.v.size(); ++i) {
+      f << (opt.warmup + i + 1) << ',' << s_beh.v[i] << ',' << s_int.v[i] << ',' << s_interest.v[i] << ','
+        << s_boxes.v[i] << ',' << s_find.v[i] << ',' << s_diff.v[i] << ',' << s_f_plan.v[i] << ',' << s_f_map.v[i]
+        << ',' << s_f_check.v[i] << ',' << s_f_out.v[i] << ',' << s_rep.v[i] << ',' << s_total.v[i] << ','
+        << pairs[i] << ',' << candidates[i] << ',' << visible[i] << ',' << enters[i] << ',' << leaves[i] << '\n';
+    }
+  }
+
+  if (!opt.sweep_w.empty()) {
+    // The finder alone on the last tick's boxes (the zone's real distribution), per W.
+    const interest::box_set& boxes = world.tracker().boxes();
+    std::printf("\nW sweep on the last tick's %zu boxes (grid finder, %u threads, median of 5 calls)\n", boxes.size(),
+                pool.size());
+    std::printf("| W | median ms | min ms | pairs | checks | cell edge m | cells | entries | large |\n"
+                "|---|---|---|---|---|---|---|---|---|\n");
+    interest::pair_list out;
+    for (const double w : opt.sweep_w) {
+      interest::grid_finder_options g;
+      g.min_boxes_per_cell = w;
+      interest::grid_finder f(&pool, g);
+      std::vector<double> ms;
+      for (int r = 0; r < 6; ++r) {
+        const auto t0 = clock_type::now();
+        if (f.find(boxes, out)) return 1;
+        if (r > 0) ms.push_back(ms_since(t0));  // the first call sizes the scratch memory
+      }
+      const auto& fs = f.stats();
+      std::printf("| %.0f | %.2f | %.2f | %zu | %llu | %.1f | %llu | %llu | %llu |\n", w, quantile(ms, 0.5),
+                  *std::min_element(ms.begin(), ms.end()), out.size(), static_cast<unsigned long long>(fs.checks),
+                  fs.cell_edge, static_cast<unsigned long long>(fs.cells),
+                  static_cast<unsigned long long>(fs.cell_entries), static_cast<unsigned long long>(fs.large_boxes));
+    }
+    std::printf("load average after the sweep: %s\n", load_average().c_str());
+  }
+  return 0;
+}
