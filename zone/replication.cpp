@@ -83,6 +83,7 @@ std::span<const std::uint8_t> replicator::build(client_id c, const entity_store&
   if (row != entity_store::npos) visible = tracker.visible(row);
   const std::size_t self = store.index_of(s.observer);
   const vec3 eye = self != entity_store::npos ? store.positions()[self] : vec3{};
+  if (self != entity_store::npos) writer.set_self_position(to_net(eye));  // lets the client check its view exactly
   const auto pos = store.positions();
 
   // Merge the visible set with the view (both sorted): leaves are written at once (they come

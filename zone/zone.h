@@ -388,6 +388,8 @@ struct zone_config {
   std::size_t max_frame_bytes = 16 * 1024;
   double inputs_per_second = 60;
   std::size_t client_byte_budget = 8 * 1024;
+  bool teleport_enabled = true;      ///< players may teleport themselves (the teleport message)
+  double teleport_cooldown_s = 0.5;  ///< least time between two jumps of one player (0 = none)
   bool metrics_enabled = true;        ///< serve Prometheus text at http://listen:metrics_port/metrics
   std::uint16_t metrics_port = 9100;  ///< 0 = an ephemeral port
   std::string log_level = "info";
@@ -451,6 +453,10 @@ class zone_world {
   /// A player's movement intent: its length is clamped to 1 and scaled by player_speed, so a
   /// client can never move faster than allowed. false (ignored) for a non-player or dead handle.
   bool set_intent(entity_id player, const vec3& intent);
+  /// A player's teleport jump to `to`, clamped into the world (`*clamped` says whether it was);
+  /// the next step() integrates and finds interest from there, so the jump's enters and leaves
+  /// come in that tick. false (nothing moves) for a non-player, a dead handle or a non-finite `to`.
+  bool teleport(entity_id player, const vec3& to, bool* clamped = nullptr);
 
   /// One tick: behaviours decide velocities (from the previous tick's positions and visible sets),
   /// positions integrate inside the world bounds, interest updates.

@@ -6,6 +6,7 @@
 #include <spdlog/spdlog.h>
 
 #include <chrono>
+#include <cmath>
 #include <thread>
 
 namespace zone {
@@ -79,6 +80,10 @@ std::string zone_server::metrics_text() const {
   t.gauge("zone_visible_total", "Sum of visible-set sizes after the last tick.", static_cast<double>(ts.visible));
   t.counter("zone_replication_frames_total", "Tick updates handed to the network.", static_cast<double>(stats_.frames_sent));
   t.counter("zone_replication_bytes_total", "Bytes of tick updates handed to the network.", static_cast<double>(stats_.bytes_sent));
+  t.counter("zone_teleports_total", "Teleport requests applied.", static_cast<double>(stats_.teleports));
+  t.counter("zone_teleports_clamped_total", "Applied teleports clamped into the world.", static_cast<double>(stats_.teleports_clamped));
+  t.counter("zone_teleports_refused_total", "Teleport requests refused (off, cooldown, another's entity, not finite).",
+            static_cast<double>(stats_.teleports_refused));
   t.counter("zone_net_connections_accepted_total", "Connections accepted.", static_cast<double>(ns.connections_accepted));
   t.counter("zone_net_connections_refused_total", "Connections refused (limit).", static_cast<double>(ns.connections_refused));
   t.gauge("zone_net_sessions_open", "Open sessions.", static_cast<double>(ns.sessions_open));
@@ -155,6 +160,8 @@ void zone_server::drain_inputs() {
           c.replica = replicator_.add_client(id);
           net::welcome_msg w{id, cfg_.world, static_cast<std::uint16_t>(cfg_.tick_rate_hz), world_->tick(),
                              net::protocol_version};
+          if (const auto at = world_->store().get(id)) w.spawn_position = net::vec3f{at->position.x, at->position.y, at->position.z};
+          w.host_clock = true;  // net::server::now_us() is CLOCK_MONOTONIC
           net_.send(e.session, net::make_shared_frame(encoder_.encode(w)), net::delivery::control);
           spdlog::info("session {}: '{}' joined as entity {}", e.session, hello->name, id);
         } else if (const auto* in = std::get_if<net::input_msg>(&*e.msg)) {
@@ -163,6 +170,9 @@ void zone_server::drain_inputs() {
           // A client steers only its own entity; the world clamps the speed.
           world_->set_intent(it->second.entity, {in->move.x, in->move.y, in->move.z});
           it->second.last_input = std::max(it->second.last_input, in->sequence);
+        } else if (const auto* tp = std::get_if<net::teleport_msg>(&*e.msg)) {
+          const auto it = clients_.find(e.session);
+          if (it != clients_.end()) teleport(e.session, it->second, *tp);
         }
         break;
       }
@@ -182,6 +192,26 @@ void zone_server::drain_inputs() {
     }
   }
   stats_.clients = clients_.size();
+}
+
+void zone_server::teleport(net::session_id session, client& c, const net::teleport_msg& t) {
+  c.last_input = std::max(c.last_input, t.sequence);
+  const auto refuse = [&](const char* why) {
+    ++stats_.teleports_refused;
+    spdlog::debug("session {}: teleport refused: {}", session, why);
+  };
+  if (!cfg_.teleport_enabled) return refuse("teleports are off");
+  // A client moves only its own entity: 0 names it, any other id (another player, an NPC) is refused.
+  if (t.entity_id != 0 && t.entity_id != c.entity) return refuse("not the client's entity");
+  // The cooldown in ticks (world time, not wall time: the same on a loaded server).
+  const auto cooldown = static_cast<std::uint64_t>(std::ceil(cfg_.teleport_cooldown_s * cfg_.tick_rate_hz));
+  if (c.teleported && world_->tick() < c.last_teleport_tick + cooldown) return refuse("cooldown");
+  bool clamped = false;
+  if (!world_->teleport(c.entity, {t.position.x, t.position.y, t.position.z}, &clamped)) return refuse("not a finite position");
+  c.teleported = true;
+  c.last_teleport_tick = world_->tick();
+  ++stats_.teleports;
+  if (clamped) ++stats_.teleports_clamped;
 }
 
 void zone_server::replicate() {

@@ -24,6 +24,9 @@ struct loop_stats {
   std::uint64_t clients = 0;           ///< clients with an entity
   std::uint64_t frames_sent = 0;       ///< tick updates handed to the network
   std::uint64_t bytes_sent = 0;
+  std::uint64_t teleports = 0;          ///< teleport requests applied
+  std::uint64_t teleports_clamped = 0;  ///< of which clamped into the world
+  std::uint64_t teleports_refused = 0;  ///< refused: off, cooldown, another's entity, not finite
   latency_histogram inputs_ms, replicate_ms, tick_ms;  ///< plus zone_world::phases()
 };
 
@@ -57,8 +60,13 @@ class zone_server {
     entity_id entity = null_entity;
     client_id replica = 0;
     std::uint32_t last_input = 0;
+    std::uint64_t last_teleport_tick = 0;  ///< world tick of the last applied teleport
+    bool teleported = false;
   };
   void drain_inputs();
+  /// Validates and applies one client's teleport request (permission, own entity, cooldown,
+  /// finite target clamped into the world).
+  void teleport(net::session_id session, client& c, const net::teleport_msg& t);
   void replicate();
 
   zone_config cfg_;
