@@ -36,6 +36,7 @@
 #include <thread>
 #include <vector>
 
+#include "finders.h"
 #include "interest.h"
 #include "protocol.h"
 #include "zone.h"
@@ -92,7 +93,8 @@ Usage: bench-zone [options]
   --paced            sleep until each tick is due (like zone-server); default: back to back
   --threads N        worker threads, the calling thread included (default 0 = all cores)
   --seed S           world seed (default 1)
-  --finder NAME      pair finder: cpu (grid finder on the pool) | cpu-1t | brute (default cpu)
+  --finder NAME      pair finder: cpu (grid finder on the pool) | cpu-1t | brute | gpu (= pbig) |
+                     pbig | lbvh | auto (gpu/finders.h) (default cpu)
   --w W              grid finder's W (min_boxes_per_cell; default: the finder's default)
   --replicate MODE   serial (one writer, this thread) | parallel (build_many on the pool) | both
                      (both each tick, frames compared byte for byte) (default parallel)
@@ -218,8 +220,16 @@ std::unique_ptr<interest::pair_finder> make_finder(const std::string& name, inte
   if (name == "cpu") return std::make_unique<interest::grid_finder>(pool, g);
   if (name == "cpu-1t") return std::make_unique<interest::grid_finder>(nullptr, g);
   if (name == "brute") return std::make_unique<interest::brute_force_finder>(pool);
-  *error = "unknown finder '" + name + "' (cpu, cpu-1t, brute)";
-  return nullptr;
+  // The GPU finders and `auto` (gpu/finders.h: auto picks per call from the box statistics).
+  const auto backend = gpu::parse_backend(name);
+  if (!backend) {
+    *error = "unknown finder '" + name + "' (cpu, cpu-1t, brute, gpu, pbig, lbvh, auto)";
+    return nullptr;
+  }
+  std::string why;
+  auto f = gpu::make_finder(*backend, pool, &why);
+  if (!f) *error = "finder '" + name + "' cannot run here: " + why;
+  return f;
 }
 
 // ---- Samples and the table ------------------------------------------------------------------

@@ -1,0 +1,73 @@
+#!/usr/bin/env bash
+# The zone benchmarks of issues 4 and 5 on the device machine (docs/zone-benchmarks.md), from
+# binaries packed here by scripts/pack_device.sh into $DEVICE_DIR (default .device):
+#   cmake --build build --target test_zone_gpu bench-zone zone-server bot-swarm
+#   DEVICE_DIR=.device-zone bash scripts/pack_device.sh build build/tests/zone/test_zone_gpu \
+#     build/tools/bench-zone build/zone/zone-server build/bots/bot-swarm
+# then, on the device (tool `run`, carry .device-zone):
+#   DEVICE_DIR=.device-zone bash scripts/device_zone.sh [test] [bench] [swarm]
+# Steps:
+#   test   test_zone_gpu: CPU-vs-GPU tick determinism
+#   bench  bench-zone: 100,000 entities at 30 Hz with the GPU finder, and with the CPU finder
+#   swarm  zone-server (80,000 NPCs, 30 Hz, finder auto) + bot-swarm (20,000 bots, verify) on loopback
+# Environment: SWARM_BOTS (20000), SWARM_NPCS (80000), SWARM_SECONDS (60, after the ramp-up),
+# SWARM_RAMP (bots per second, 2000), BENCH_ENTITIES (100000), BENCH_TICKS (600).
+# Logs, CSV and JSON go to $OUT (or ./out).
+set -uo pipefail
+dir=${DEVICE_DIR:-.device}
+out=${OUT:-out}
+mkdir -p "$out"
+export LD_LIBRARY_PATH=$PWD/$dir${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}
+{ date -u; nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv; echo "cores: $(nproc)"; free -g; } \
+  > "$out/device.txt" 2>&1
+cat "$out/device.txt"
+ulimit -n "$(ulimit -Hn)" 2>/dev/null
+echo "open-file limit: $(ulimit -n)"
+
+for step in "$@"; do
+  case "$step" in
+    test)
+      echo "== test_zone_gpu $(date -u +%FT%TZ)"
+      "$dir/test_zone_gpu" 2>&1 | tail -4 | tee "$out/test_zone_gpu.log"
+      ;;
+    bench)
+      n=${BENCH_ENTITIES:-100000}
+      ticks=${BENCH_TICKS:-600}
+      for finder in gpu cpu; do
+        echo "== bench-zone --finder $finder --entities $n $(date -u +%FT%TZ)"
+        "$dir/bench-zone" --finder "$finder" --entities "$n" --ticks "$ticks" --rate 30 \
+          --csv "$out/bench-zone-$finder.csv" 2>&1 | tee "$out/bench-zone-$finder.log"
+      done
+      ;;
+    swarm)
+      bots=${SWARM_BOTS:-20000}
+      npcs=${SWARM_NPCS:-80000}
+      secs=${SWARM_SECONDS:-60}
+      ramp=${SWARM_RAMP:-2000}
+      duration=$((secs + bots / ramp + 1))
+      echo "== zone-server + bot-swarm: $bots bots, $npcs NPCs, 30 Hz, ${duration} s $(date -u +%FT%TZ)"
+      "$dir/zone-server" --listen 127.0.0.1 --port 0 --metrics-port 0 --npcs "$npcs" --tick-rate 30 \
+        --max-clients $((bots + 100)) --io-threads 4 --finder auto > "$out/zone-server.log" 2>&1 &
+      server=$!
+      port=
+      for _ in $(seq 600); do
+        port=$(grep -o 'listening on [0-9.]*:[0-9]*' "$out/zone-server.log" | sed 's/.*://')
+        [ -n "$port" ] && break
+        sleep 0.1
+      done
+      if [ -z "$port" ]; then
+        echo "zone-server did not start"; cat "$out/zone-server.log"; kill "$server"; continue
+      fi
+      "$dir/bot-swarm" --port "$port" --bots "$bots" --duration "$duration" --ramp "$ramp" --threads 6 --verify \
+        --mix walk=0.6,patrol=0.2,follow=0.1,crowd=0.1 --quiet \
+        --report-json "$out/swarm-report.json" --report-csv "$out/swarm-series.csv" > "$out/swarm.log" 2>&1
+      echo "bot-swarm exit code: $?"
+      tail -40 "$out/swarm.log"
+      kill -TERM "$server"
+      wait "$server"
+      grep -A8 'stopped after' "$out/zone-server.log"
+      grep -E 'finder|auto' "$out/zone-server.log" | head -5
+      ;;
+    *) echo "unknown step $step"; exit 2 ;;
+  esac
+done
