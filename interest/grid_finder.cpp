@@ -8,7 +8,9 @@
 //
 // Steps of one call:
 //  1. bounds: the scene's bounding box (the grid's origin and extent);
-//  2. plan (plan_grid): the cubic cell edge by Eq. 6, W = options.min_boxes_per_cell;
+//  2. plan (plan_grid): the cubic cell edge by Eq. 6, W = options.min_boxes_per_cell; an axis
+//     on which nearly every box spans one common plane (a zone's ground) is left as one slab
+//     and the other two are planned with 2W (flat_axis below);
 //  3. classify: a box that would occupy far more cells than the average is "large" and kept out
 //     of the grid (memory stays linear however big a few boxes are);
 //  4. count, scan, map: (cell, box) entries of the other boxes, cell-sorted; each cell's list is
@@ -139,12 +141,13 @@ bounds scene_bounds(const box_set& s, thread_pool* pool) {
   return all;
 }
 
-/// Grid dimensions for edge l over the given extents: floor(extent / l) + 1 cells per axis.
-void dims_for(const double extent[3], double l, double dims[3]) {
-  for (int d = 0; d < 3; ++d) dims[d] = std::floor(extent[d] / l) + 1.0;
+/// Grid dimensions for edge l over the given extents: floor(extent / l) + 1 cells per axis, and
+/// one cell on the `flat` axis (-1: none).
+void dims_for(const double extent[3], double l, double dims[3], int flat) {
+  for (int d = 0; d < 3; ++d) dims[d] = d == flat ? 1.0 : std::floor(extent[d] / l) + 1.0;
 }
 
-grid_plan plan_from_bounds(const box_set& s, const bounds& b, const grid_finder_options& opt) {
+grid_plan plan_with(const box_set& s, const bounds& b, const grid_finder_options& opt, int flat) {
   grid_plan plan;
   const std::size_t n = s.size();
   double extent[3];
@@ -191,7 +194,7 @@ grid_plan plan_from_bounds(const box_set& s, const bounds& b, const grid_finder_
 
   auto finish = [&](double l) {
     double dims[3];
-    dims_for(extent, l, dims);
+    dims_for(extent, l, dims, flat);
     plan.cell_edge = l;
     for (int d = 0; d < 3; ++d) plan.dims[d] = static_cast<std::uint32_t>(dims[d]);
     plan.alpha = alpha_for(l, dims);
@@ -204,7 +207,7 @@ grid_plan plan_from_bounds(const box_set& s, const bounds& b, const grid_finder_
     double l = opt.fixed_cell_edge;
     double dims[3];
     for (;;) {
-      dims_for(extent, l, dims);
+      dims_for(extent, l, dims, flat);
       if (dims[0] * dims[1] * dims[2] <= max_cells) break;
       l *= 1.25;
     }
@@ -216,7 +219,7 @@ grid_plan plan_from_bounds(const box_set& s, const bounds& b, const grid_finder_
   const double w = std::max(1.0, opt.min_boxes_per_cell);
   auto f_of = [&](double l) {  // f(l), or +inf past the cell cap
     double dims[3];
-    dims_for(extent, l, dims);
+    dims_for(extent, l, dims, flat);
     const double m = dims[0] * dims[1] * dims[2];
     if (m > max_cells) return std::numeric_limits<double>::infinity();
     return static_cast<double>(n) * alpha_for(l, dims) / m;
@@ -242,6 +245,43 @@ grid_plan plan_from_bounds(const box_set& s, const bounds& b, const grid_finder_
   if (f_of(one_cell) <= f_best * 1.05) return finish(one_cell);
   const double tie = bisect(best, one_cell, [&](double l) { return f_of(l) > f_best * 1.05; });
   return finish(tie * (1.0 - 1e-4) > best ? tie * (1.0 - 1e-4) : best);
+}
+
+/// The axis to leave unsplit, or -1. On an axis where (nearly) every box contains one common
+/// plane, as the ground of a zone where every AOI box and every body spans z = 0, cutting the
+/// axis into cells separates no boxes and only multiplies the (cell, box) entries. Tested on the
+/// planning sample: the plane is the median of the sampled centres on the axis of least scene
+/// extent, and the axis is flat when at least 90% of the sampled boxes contain it.
+int flat_axis(const box_set& s, const bounds& b, const grid_finder_options& opt) {
+  const std::size_t n = s.size();
+  if (n < 2) return -1;
+  int d = 0;
+  for (int k = 1; k < 3; ++k) {
+    if (static_cast<double>(b.hi[k]) - b.lo[k] < static_cast<double>(b.hi[d]) - b.lo[d]) d = k;
+  }
+  const float* lo = d == 0 ? s.lo_x.data() : d == 1 ? s.lo_y.data() : s.lo_z.data();
+  const float* hi = d == 0 ? s.hi_x.data() : d == 1 ? s.hi_y.data() : s.hi_z.data();
+  const std::size_t k = std::min(n, std::max<std::size_t>(1, opt.alpha_samples));
+  std::vector<std::size_t> sample(k);
+  std::mt19937_64 rng(opt.sample_seed ^ 0x666c6174ull);
+  for (std::size_t i = 0; i < k; ++i) sample[i] = k == n ? i : static_cast<std::size_t>(rng() % n);
+  std::vector<double> centre(k);
+  for (std::size_t i = 0; i < k; ++i) centre[i] = 0.5 * (static_cast<double>(lo[sample[i]]) + hi[sample[i]]);
+  std::nth_element(centre.begin(), centre.begin() + static_cast<std::ptrdiff_t>(k / 2), centre.end());
+  const double plane = centre[k / 2];
+  std::size_t containing = 0;
+  for (const std::size_t i : sample) containing += (lo[i] <= plane && plane <= hi[i]) ? 1 : 0;
+  return static_cast<double>(containing) >= 0.9 * static_cast<double>(k) ? d : -1;
+}
+
+grid_plan plan_from_bounds(const box_set& s, const bounds& b, const grid_finder_options& opt) {
+  const int flat = flat_axis(s, b, opt);
+  if (flat < 0) return plan_with(s, b, opt, -1);
+  // A cell of a flat grid is a column holding every box over its footprint; on the zone's boxes
+  // the best W for it is about twice the 3D one (bench-zone --sweep-w, docs/zone-benchmarks.md).
+  grid_finder_options flat_opt = opt;
+  flat_opt.min_boxes_per_cell = 2.0 * opt.min_boxes_per_cell;
+  return plan_with(s, b, flat_opt, flat);
 }
 
 constexpr std::size_t check_chunk_limit = 512;  // fixed: output order must not depend on threads
@@ -416,7 +456,11 @@ void grid_finder::find_valid(const box_set& boxes, pair_list& out) {
   run_tasks(pool_, chunks, [&](std::size_t k) {
     const std::size_t cb = cells * k / chunks, ce = cells * (k + 1) / chunks;
     pair_list& found = sc.chunk_pairs[k];
-    found.clear();
+    // Output with a cursor of our own: a block of up to 64 candidates is written unconditionally
+    // and the cursor advances by each hit bit (no branch on the hit, which is unpredictable where
+    // a third of the tests hit, as in a zone). `found` always has room for one more block.
+    std::size_t found_n = 0;
+    if (found.size() < 64) found.resize(1024);
     std::uint64_t checks = 0;
     for (std::size_t c = cb; c < ce; ++c) {
       const std::uint32_t begin = sc.cell_start[c], end = sc.cell_start[c + 1];
@@ -455,15 +499,32 @@ void grid_finder::find_valid(const box_set& boxes, pair_list& out) {
         groups = 1;
         group_size[0] = len;
       }
-      std::uint32_t group_start[max_groups + 1];
+      // Lay the groups out in (mask, category) order: in a zone the presence groups (mask 0)
+      // come first and the AOI groups after them, adjacent, so each presence box meets all the
+      // AOI boxes it can qualify with in one contiguous range (see the loop at the end).
+      std::uint32_t order[max_groups], position[max_groups];  // order[pos] = group
+      for (std::uint32_t g = 0; g < groups; ++g) {
+        std::uint32_t pos = g;
+        for (; pos > 0; --pos) {
+          const std::uint32_t h = order[pos - 1];
+          if (group_mask[h] < group_mask[g] || (group_mask[h] == group_mask[g] && group_cat[h] < group_cat[g])) break;
+          order[pos] = h;
+        }
+        order[pos] = g;
+      }
+      if (mixed) order[0] = 0;
+      std::uint32_t group_start[max_groups + 1];  // by position
       group_start[0] = 0;
-      for (std::uint32_t g = 0; g < groups; ++g) group_start[g + 1] = group_start[g] + group_size[g];
+      for (std::uint32_t pos = 0; pos < groups; ++pos) {
+        position[order[pos]] = pos;
+        group_start[pos + 1] = group_start[pos] + group_size[order[pos]];
+      }
       // Load the boxes into small columns in group order, with one 3-bit flag per box: bit d set
       // when the box's max corner lies in this cell's slab on axis d. Both boxes of a pair occupy
       // this cell, so min(hi-cell a, hi-cell b) == c on axis d iff either box has bit d: the
       // output-cell rule is (flag_a | flag_b) == 7, and every test below is branch-free.
       std::uint32_t cursor[max_groups];
-      for (std::uint32_t g = 0; g < groups; ++g) cursor[g] = group_start[g];
+      for (std::uint32_t g = 0; g < groups; ++g) cursor[g] = group_start[position[g]];
       for (std::uint32_t i = 0; i < len; ++i) {
         const packed_box& p = sc.packed[list[i]];
         const std::uint32_t at = cursor[mixed ? 0 : col.group[i]]++;
@@ -496,22 +557,45 @@ void grid_finder::find_valid(const box_set& boxes, pair_list& out) {
                                                (az0 <= hz[j]) & (lz[j] <= az1) &
                                                (((ac & msk[j]) | (cat[j] & am)) != 0) & ((af | flag[j]) == 7));
           }
+          if (found.size() - found_n < 64) found.resize(2 * found.size());
+          id_pair* out = found.data() + found_n;
+          const box_id a = col.id[i];
+          std::size_t hits = 0;
           for (std::uint32_t t = 0; t < blen; ++t) {
-            if (hit[t] == 0) continue;
-            const box_id a = col.id[i], b = col.id[block + t];
-            found.push_back(a < b ? id_pair{a, b} : id_pair{b, a});
+            const box_id b = col.id[block + t];
+            out[hits] = id_pair{std::min(a, b), std::max(a, b)};
+            hits += hit[t];
           }
+          found_n += hits;
         }
       };
-      for (std::uint32_t ga = 0; ga < groups; ++ga) {
-        for (std::uint32_t gb = ga; gb < groups; ++gb) {
-          if (!mixed && ((group_cat[ga] & group_mask[gb]) | (group_cat[gb] & group_mask[ga])) == 0) continue;
-          for (std::uint32_t i = group_start[ga]; i < group_start[ga + 1]; ++i) {
-            test_range(i, ga == gb ? i + 1 : group_start[gb], group_start[gb + 1]);
+      // Every pair of groups (positions pa <= pb) whose signatures can qualify, once: per group
+      // pa, the qualifying groups from pa on are merged into runs of adjacent positions, and each
+      // box i of pa is tested against each run (from i + 1 where the run starts with pa itself).
+      const auto pair_can_qualify = [&](std::uint32_t pa, std::uint32_t pb) {
+        if (mixed) return true;
+        const std::uint32_t ga = order[pa], gb = order[pb];
+        return ((group_cat[ga] & group_mask[gb]) | (group_cat[gb] & group_mask[ga])) != 0;
+      };
+      for (std::uint32_t pa = 0; pa < groups; ++pa) {
+        std::uint32_t run_first[max_groups], run_last[max_groups], runs = 0;  // positions [first, last]
+        for (std::uint32_t pb = pa; pb < groups; ++pb) {
+          if (!pair_can_qualify(pa, pb)) continue;
+          if (runs > 0 && run_last[runs - 1] + 1 == pb) {
+            run_last[runs - 1] = pb;
+          } else {
+            run_first[runs] = run_last[runs] = pb;
+            ++runs;
+          }
+        }
+        for (std::uint32_t i = group_start[pa]; i < group_start[pa + 1]; ++i) {
+          for (std::uint32_t r = 0; r < runs; ++r) {
+            test_range(i, run_first[r] == pa ? i + 1 : group_start[run_first[r]], group_start[run_last[r] + 1]);
           }
         }
       }
     }
+    found.resize(found_n);
     sc.chunk_checks[k] = checks;
   });
 
