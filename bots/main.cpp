@@ -10,6 +10,7 @@
 #include <iostream>
 #include <sstream>
 
+#include "os_limits.h"
 #include "swarm.h"
 
 namespace {
@@ -20,8 +21,8 @@ using zone::bots::swarm_result;
 using zone::bots::latency_histogram_us;
 
 /// "walk=0.6,patrol=0.2,follow=0.1,crowd=0.1" -> shares; an error text on a bad entry.
-std::string parse_mix(const std::string& text, std::array<double, 4>& mix) {
-  mix = {0, 0, 0, 0};
+std::string parse_mix(const std::string& text, std::array<double, zone::bots::behaviour_count>& mix) {
+  mix = {};
   std::stringstream in(text);
   std::string item;
   while (std::getline(in, item, ',')) {
@@ -39,9 +40,11 @@ std::string parse_mix(const std::string& text, std::array<double, 4>& mix) {
     for (std::size_t k = 0; k < zone::bots::behaviour_names.size(); ++k) {
       if (name == zone::bots::behaviour_names[k]) mix[k] += share, found = true;
     }
-    if (!found) return "unknown behaviour '" + name + "' (walk, patrol, follow, crowd)";
+    if (!found) return "unknown behaviour '" + name + "' (walk, patrol, follow, crowd, teleport)";
   }
-  if (mix[0] + mix[1] + mix[2] + mix[3] <= 0) return "the mix must have a positive share";
+  double total = 0;
+  for (const double m : mix) total += m;
+  if (total <= 0) return "the mix must have a positive share";
   return {};
 }
 
@@ -111,12 +114,13 @@ void print_table(const swarm_result& r, const summary& s) {
   row("unexpected disconnects", num(r.unexpected_disconnects));
   row("server errors received", num(r.server_errors));
   row("churn logouts", num(r.logouts));
+  row("teleports sent", num(r.teleports_sent));
   row("update latency p50", ms(s.p50));
   row("update latency p95", ms(s.p95));
   row("update latency p99", ms(s.p99));
   row("update latency max", ms(s.max));
   row("latency samples (unsynced)", num(s.samples) + " (" + num(r.latency_unsynced) + ")");
-  row("clock sync: fastest ping RTT", ms(r.min_rtt_ms));
+  row("clock", r.host_clock ? std::string("host clock (same host: exact)") : "ping sync, fastest RTT " + ms(r.min_rtt_ms));
   row("downstream per bot, median", fmt(s.kbps_median, "KB/s"));
   row("downstream per bot, p95", fmt(s.kbps_p95, "KB/s"));
   row("messages per bot per s, median", fmt(s.msgs_median, "msg/s"));
@@ -128,6 +132,7 @@ void print_table(const swarm_result& r, const summary& s) {
   row("digests checked", num(r.digests_checked) + (r.options.verify ? "" : " (not compared: no --verify)"));
   row("digest mismatches", num(r.digest_mismatches));
   row("inconsistent updates", num(r.inconsistent));
+  row("frames with the bot's own position", num(r.self_positions));
   row("AOI checks / unchecked / violations", num(r.aoi_checked) + " / " + num(r.aoi_unchecked) + " / " + num(r.aoi_violations));
   row("MISMATCHES", num(r.mismatches()));
   row("bot-swarm CPU time (user + system)", fmt(r.cpu_s, "s"));
@@ -157,6 +162,8 @@ bool write_json(const std::string& path, const swarm_result& r, const summary& s
   o << "  \"bots_connected\": " << r.bots_connected << ",\n  \"connect_attempts\": " << r.connect_attempts << ",\n";
   o << "  \"connect_failures\": " << r.connect_failures << ",\n  \"unexpected_disconnects\": " << r.unexpected_disconnects << ",\n";
   o << "  \"server_errors\": " << r.server_errors << ",\n  \"logouts\": " << r.logouts << ",\n";
+  o << "  \"threads\": " << r.options.threads << ",\n  \"teleports_sent\": " << r.teleports_sent << ",\n";
+  o << "  \"self_positions\": " << r.self_positions << ",\n  \"host_clock\": " << (r.host_clock ? "true" : "false") << ",\n";
   o << "  \"latency_ms\": {\"p50\": " << s.p50 << ", \"p95\": " << s.p95 << ", \"p99\": " << s.p99 << ", \"max\": " << s.max
     << ", \"samples\": " << s.samples << ", \"unsynced\": " << r.latency_unsynced << ", \"min_rtt\": " << r.min_rtt_ms << "},\n";
   o << "  \"per_bot\": {\"kbps_median\": " << s.kbps_median << ", \"kbps_p95\": " << s.kbps_p95
@@ -260,13 +267,15 @@ int main(int argc, char** argv) {
       ("ramp", po::value(&o.ramp)->default_value(o.ramp), "new bots per second during ramp-up")        //
       ("input-hz", po::value(&o.input_hz)->default_value(o.input_hz), "inputs per second per bot")     //
       ("ping-hz", po::value(&o.ping_hz)->default_value(o.ping_hz), "pings per second per bot")         //
-      ("mix", po::value(&mix)->default_value(mix), "behaviour shares, e.g. walk=0.6,patrol=0.2,follow=0.1,crowd=0.1")  //
+      ("mix", po::value(&mix)->default_value(mix), "behaviour shares, e.g. walk=0.5,patrol=0.2,follow=0.1,crowd=0.1,teleport=0.1")  //
+      ("teleport-hz", po::value(&o.teleport_hz)->default_value(o.teleport_hz), "teleport bots: jumps per second per bot (random times and targets)")  //
       ("hotspot", po::value(&hotspot), "flash-crowd target x,y,z (default: where the leader bot first is)")  //
       ("crowd-at", po::value(&o.crowd_at_s)->default_value(o.crowd_at_s), "seconds into the run when the crowd bots start converging")  //
       ("churn", po::value(&o.churn)->default_value(o.churn), "logouts per second (each bot logs in again)")  //
       ("relogin-delay", po::value(&o.relogin_delay_s)->default_value(o.relogin_delay_s), "seconds before a churned bot logs in again")  //
+      ("churn-for", po::value(&o.churn_for_s)->default_value(o.churn_for_s), "seconds into the run when churn stops (0 = until the end)")  //
       ("verify", po::bool_switch(&o.verify), "compare the server's visible-set digests with each bot's tracked view")  //
-      ("threads", po::value(&o.threads)->default_value(o.threads), "I/O threads")                      //
+      ("threads", po::value(&o.threads)->default_value(o.threads), "I/O threads (0 = one per 2,500 bots, 2 .. half the cores)")  //
       ("aoi", po::value(&o.aoi)->default_value(o.aoi), "players' AOI half-extent on the server (its --player-aoi), for the AOI check")  //
       ("hysteresis", po::value(&o.hysteresis)->default_value(o.hysteresis), "the server's --hysteresis (m)")  //
       ("max-speed", po::value(&o.max_speed)->default_value(o.max_speed), "fastest entity speed on the server (m/s)")  //
@@ -319,9 +328,29 @@ int main(int argc, char** argv) {
     o.hotspot = {x, y, z};
     o.hotspot_set = true;
   }
-  if (o.bots == 0 || !(o.duration_s > 0) || !(o.ramp > 0) || !(o.input_hz > 0) || o.threads == 0) {
-    std::fprintf(stderr, "bot-swarm: --bots, --duration, --ramp, --input-hz and --threads must be > 0\n");
+  if (o.bots == 0 || !(o.duration_s > 0) || !(o.ramp > 0) || !(o.input_hz > 0)) {
+    std::fprintf(stderr, "bot-swarm: --bots, --duration, --ramp and --input-hz must be > 0\n");
     return 64;
+  }
+  if (!(o.teleport_hz >= 0) || !(o.churn_for_s >= 0)) {
+    std::fprintf(stderr, "bot-swarm: --teleport-hz and --churn-for must be >= 0\n");
+    return 64;
+  }
+  // Every bot is a socket: raise the open-file limit to the hard limit, and refuse a swarm that
+  // cannot fit rather than counting thousands of "Too many open files" connection failures.
+  const auto files = zone::net::raise_open_file_limit();
+  if (!files.error.empty()) std::fprintf(stderr, "bot-swarm: %s\n", files.error.c_str());
+  if (files.soft != 0 && o.bots + zone::net::reserved_file_descriptors > files.soft) {
+    std::fprintf(stderr,
+                 "bot-swarm: %u bots need about %llu file descriptors, but the open-file limit is %llu (hard limit %llu): "
+                 "raise the hard limit (ulimit -Hn as root, or LimitNOFILE=) or run fewer bots per process\n",
+                 o.bots, static_cast<unsigned long long>(o.bots + zone::net::reserved_file_descriptors),
+                 static_cast<unsigned long long>(files.soft), static_cast<unsigned long long>(files.hard));
+    return 64;
+  }
+  if (!vm.count("quiet")) {
+    std::fprintf(stderr, "bot-swarm: open-file limit %llu (was %llu, hard %llu)\n", static_cast<unsigned long long>(files.soft),
+                 static_cast<unsigned long long>(files.before), static_cast<unsigned long long>(files.hard));
   }
 
   const auto outcome = zone::bots::run_swarm(o, vm.count("quiet") ? nullptr : print_progress);

@@ -144,6 +144,7 @@ class bot_session : public std::enable_shared_from_this<bot_session> {
   void write_next();
   void schedule_input();
   void schedule_ping();
+  void schedule_teleport();
   void send_input();
   net::vec3f steer();
   void fail(const std::string& why, bool connection_failure);
@@ -155,7 +156,7 @@ class bot_session : public std::enable_shared_from_this<bot_session> {
   std::mt19937_64 rng_;
   asio::strand<asio::io_context::executor_type> strand_;
   tcp::socket socket_;
-  asio::steady_timer input_timer_, ping_timer_, welcome_timer_;
+  asio::steady_timer input_timer_, ping_timer_, welcome_timer_, teleport_timer_;
   net::frame_decoder decoder_;
   net::encoder encoder_;
   std::deque<std::vector<std::uint8_t>> outbox_;
@@ -169,6 +170,8 @@ class bot_session : public std::enable_shared_from_this<bot_session> {
   std::uint32_t sequence_ = 0;
   std::uint64_t inputs_ = 0;
   net::vec3f heading_{1, 0, 0};
+  net::world_bounds world_{};
+  bool jumped_ = false;  ///< this session teleported (a board fix from before may be far off)
 };
 
 class swarm {
@@ -177,17 +180,17 @@ class swarm {
       : opt_(opt), io_(static_cast<int>(std::max(1u, opt.threads))), slots_(opt.bots), sessions_(opt.bots) {
     double total = 0;
     for (const double m : opt_.mix) total += std::max(0.0, m);
-    if (total <= 0) opt_.mix = {1, 0, 0, 0}, total = 1;
+    if (total <= 0) opt_.mix = {1, 0, 0, 0, 0}, total = 1;
     // Deterministic, proportional assignment of behaviours to slots (largest remainder by prefix).
     for (std::size_t i = 0; i < opt.bots; ++i) {
       double acc = 0;
       const double x = (static_cast<double>(i) + 0.5) / static_cast<double>(opt.bots) * total;
       std::size_t k = 0;
-      for (; k < 4; ++k) {
+      for (; k < behaviour_count; ++k) {
         acc += std::max(0.0, opt_.mix[k]);
         if (x < acc) break;
       }
-      slots_[i].kind = static_cast<behaviour>(std::min<std::size_t>(k, 3));
+      slots_[i].kind = static_cast<behaviour>(std::min<std::size_t>(k, behaviour_count - 1));
     }
   }
 
@@ -198,6 +201,7 @@ class swarm {
       auto results = resolver.resolve(opt_.host, std::to_string(opt_.port));
       if (results.empty()) throw std::runtime_error("no address");
       endpoint_ = results.begin()->endpoint();
+      loopback_ = endpoint_.address().is_loopback();
     } catch (const std::exception& e) {
       out.error = "cannot resolve " + opt_.host + ": " + e.what();
       return out;
@@ -222,7 +226,7 @@ class swarm {
       const double since = std::chrono::duration<double>(now - start).count();
       const auto due = std::min<std::size_t>(opt_.bots, static_cast<std::size_t>(opt_.ramp * since) + 1);
       for (; launched < due; ++launched) launch(launched);
-      if (opt_.churn > 0 && launched == opt_.bots) {
+      if (opt_.churn > 0 && launched == opt_.bots && (opt_.churn_for_s <= 0 || since < opt_.churn_for_s)) {
         churn_debt += opt_.churn * std::chrono::duration<double>(now - last_step).count();
         for (; churn_debt >= 1; churn_debt -= 1) churn_one(churn_rng);
       }
@@ -296,6 +300,8 @@ class swarm {
     r.pongs = c_.pongs, r.digests_checked = c_.digests_checked, r.digest_mismatches = c_.digest_mismatches;
     r.inconsistent = c_.inconsistent, r.aoi_checked = c_.aoi_checked, r.aoi_unchecked = c_.aoi_unchecked;
     r.aoi_violations = c_.aoi_violations, r.latency_unsynced = c_.latency_unsynced;
+    r.teleports_sent = c_.teleports_sent, r.self_positions = c_.self_positions;
+    r.host_clock = host_clock_.load();
     for (const auto& s : slots_) r.bots_connected += s.ever_connected ? 1 : 0;
     r.min_rtt_ms = best_rtt_us_.load() == UINT64_MAX ? 0 : static_cast<double>(best_rtt_us_.load()) / 1000.0;
     rusage ru{};
@@ -352,9 +358,22 @@ class swarm {
     std::lock_guard lock(offset_mutex_);
     if (rtt < best_rtt_us_.load()) {
       best_rtt_us_.store(rtt);
-      offset_us_.store(offset);
-      offset_known_.store(true);
+      if (!host_clock_.load()) {
+        offset_us_.store(offset);
+        offset_known_.store(true);
+      }
     }
+  }
+
+  /// A welcome said the server stamps CLOCK_MONOTONIC: on loopback (one host, one clock) the
+  /// offset is exactly the swarm epoch's place on that clock; no ping estimate is needed.
+  void on_host_clock() {
+    if (!loopback_ || host_clock_.load()) return;
+    std::lock_guard lock(offset_mutex_);
+    offset_us_.store(static_cast<std::int64_t>(
+        std::chrono::duration_cast<std::chrono::microseconds>(epoch_.time_since_epoch()).count()));
+    host_clock_.store(true);
+    offset_known_.store(true);
   }
 
   const swarm_options& opt_ref() const { return opt_; }
@@ -393,11 +412,17 @@ class swarm {
   std::atomic<std::uint64_t> best_rtt_us_{UINT64_MAX};
   std::atomic<std::int64_t> offset_us_{0};
   std::atomic<bool> offset_known_{false};
+  std::atomic<bool> host_clock_{false};
+  bool loopback_ = false;
   std::atomic<bool> stopping_{false};
 };
 
 // ---------------------------------------------------------------------------------------------
 // bot_session
+
+/// Bytes asked of the socket per read: a frame under the server's default budget (8 KiB) fits in
+/// one read, and 20,000 bots keep ~0.4 GB of receive buffers, not 1.3 GB.
+constexpr std::size_t read_chunk_bytes = 16 * 1024;
 
 net::decoder_options client_decoder(std::size_t max_frame) {
   net::decoder_options o;
@@ -418,6 +443,7 @@ bot_session::bot_session(swarm& s, std::size_t slot, behaviour kind, std::uint64
       input_timer_(strand_),
       ping_timer_(strand_),
       welcome_timer_(strand_),
+      teleport_timer_(strand_),
       decoder_(client_decoder(s.opt_ref().max_frame_bytes)) {
   std::uniform_real_distribution<float> angle(0, 6.2831853f);
   const float a = angle(rng_);
@@ -457,7 +483,7 @@ void bot_session::on_connect(const boost::system::error_code& ec) {
 
 void bot_session::read() {
   auto self = shared_from_this();
-  const auto buf = decoder_.prepare(64 * 1024);
+  const auto buf = decoder_.prepare(read_chunk_bytes);
   socket_.async_read_some(asio::buffer(buf.data(), buf.size()), [this, self](const boost::system::error_code& ec, std::size_t n) {
     if (closed_) return;
     if (ec) {
@@ -511,6 +537,8 @@ void bot_session::on_welcome(const net::wire::welcome& w) {
   entity_ = w.entity_id();
   net::world_bounds world{};
   if (w.world()) world = {to_vec(w.world()->lo()), to_vec(w.world()->hi())};
+  world_ = world;
+  if (w.host_clock()) s_.on_host_clock();
   view_.emplace(world);
   q_err_ = view_->quantizer().max_error();
   tick_rate_ = std::max<double>(1, w.tick_rate_hz());
@@ -521,10 +549,12 @@ void bot_session::on_welcome(const net::wire::welcome& w) {
   s_.counters().welcomes.fetch_add(1, std::memory_order_relaxed);
   s_.counters().connected_now.fetch_add(1, std::memory_order_relaxed);
   s_.board().claim(entity_);
+  if (const auto* spawn = w.spawn_position()) s_.board().report(entity_, w.server_tick(), to_vec(*spawn));
   std::uint32_t none = 0;
   if (kind_ == behaviour::walk) s_.leader.compare_exchange_strong(none, entity_);
   schedule_input();
   schedule_ping();
+  if (kind_ == behaviour::teleport) schedule_teleport();
 }
 
 int bot_session::check_aoi(const position_board::fix& own, std::uint64_t tick, std::uint32_t id, const net::vec3f& p,
@@ -621,15 +651,26 @@ void bot_session::on_tick_update(const net::wire::tick_update& u) {
     }
   }
 
-  // Positions told this tick: other bots' own-position fixes, and the AOI check.
+  // This bot's own position at this tick: exact when the server sends it (self_position), else
+  // as another bot last saw it on the board (stale by a few ticks; useless after a teleport).
   auto& board = s_.board();
-  const auto own = board.get(entity_);  // this bot's own position, as another bot last saw it
+  position_board::fix own;
+  const auto* self = u.self_position();
+  if (self) {
+    own = {tick, to_vec(*self), true};
+    board.report(entity_, tick, own.pos);  // followers and the flash crowd read it
+    c.self_positions.fetch_add(1, std::memory_order_relaxed);
+  } else if (!jumped_) {
+    own = board.get(entity_);
+  }
+  // Without self positions, every bot relays the positions it is told of other bots' entities.
+  const bool relay = self == nullptr;
   std::uint64_t aoi[3] = {0, 0, 0};      // unchecked, inside, violations (counted once per frame)
   if (enters) {
     for (const auto* e : *enters) {
       if (!e->position()) continue;
       const auto p = to_vec(*e->position());
-      board.report(e->id(), tick, p);
+      if (relay) board.report(e->id(), tick, p);
       const net::vec3f half = e->presence_half_extent() ? to_vec(*e->presence_half_extent()) : net::vec3f{};
       ++aoi[check_aoi(own, tick, e->id(), p, half)];
     }
@@ -639,7 +680,7 @@ void bot_session::on_tick_update(const net::wire::tick_update& u) {
     for (const auto* e : *updates) {
       const auto& q = e->position();
       const auto p = view_->quantizer().dequantize({q.x(), q.y(), q.z()});
-      board.report(e->id(), tick, p);
+      if (relay) board.report(e->id(), tick, p);
       const auto it = known.find(e->id());
       const net::vec3f half = it != known.end() ? it->second.state.presence_half_extent : net::vec3f{};
       ++aoi[check_aoi(own, tick, e->id(), p, half)];
@@ -658,6 +699,26 @@ void bot_session::schedule_input() {
     if (ec || closed_) return;
     send_input();
     schedule_input();
+  });
+}
+
+void bot_session::schedule_teleport() {
+  const double hz = s_.opt_ref().teleport_hz;
+  if (!(hz > 0)) return;
+  // Jumps at random times (exponential gaps: a Poisson process of the given rate) to random
+  // places in the world; the server applies them subject to its cooldown.
+  std::exponential_distribution<double> gap(hz);
+  auto self = shared_from_this();
+  teleport_timer_.expires_after(std::chrono::duration_cast<steady::duration>(std::chrono::duration<double>(gap(rng_))));
+  teleport_timer_.async_wait([this, self](const boost::system::error_code& ec) {
+    if (ec || closed_) return;
+    std::uniform_real_distribution<float> u(0, 1);
+    const net::vec3f to{world_.lo.x + (world_.hi.x - world_.lo.x) * u(rng_),
+                        world_.lo.y + (world_.hi.y - world_.lo.y) * u(rng_), world_.lo.z};
+    send(net::teleport_msg{++sequence_, to, 0});
+    jumped_ = true;
+    s_.counters().teleports_sent.fetch_add(1, std::memory_order_relaxed);
+    schedule_teleport();
   });
 }
 
@@ -685,6 +746,7 @@ net::vec3f bot_session::steer() {
   };
   switch (kind_) {
     case behaviour::walk:
+    case behaviour::teleport:  // walks between jumps
       // A new random heading every ~3 s (per bot, seeded).
       if (inputs_ % static_cast<std::uint64_t>(std::max(1.0, 3 * s_.opt_ref().input_hz)) == 0) {
         std::uniform_real_distribution<float> angle(0, 6.2831853f);
@@ -785,6 +847,7 @@ void bot_session::close() {
   input_timer_.cancel();
   ping_timer_.cancel();
   welcome_timer_.cancel();
+  teleport_timer_.cancel();
   socket_.shutdown(tcp::socket::shutdown_both, ignored);
   socket_.close(ignored);
   if (playing_) {
@@ -800,7 +863,13 @@ void bot_session::close() {
 }  // namespace
 
 run_outcome run_swarm(const swarm_options& opt, progress_fn progress) {
-  auto s = std::make_unique<swarm>(opt);
+  swarm_options o = opt;
+  if (o.threads == 0) {
+    // One I/O thread per 2,500 bots, at least 2, at most half the cores (the server is often on the same host).
+    const unsigned cores = std::max(2u, std::thread::hardware_concurrency());
+    o.threads = std::clamp((o.bots + 2499) / 2500, 2u, std::max(2u, cores / 2));
+  }
+  auto s = std::make_unique<swarm>(o);
   return s->run(progress);
 }
 

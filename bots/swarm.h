@@ -15,8 +15,9 @@
 namespace zone::bots {
 
 /// Scripted behaviours, mixable per swarm (shares need not sum to 1; they are normalised).
-enum class behaviour : std::uint8_t { walk, patrol, follow, crowd };
-inline constexpr std::array<const char*, 4> behaviour_names = {"walk", "patrol", "follow", "crowd"};
+enum class behaviour : std::uint8_t { walk, patrol, follow, crowd, teleport };
+inline constexpr std::size_t behaviour_count = 5;
+inline constexpr std::array<const char*, behaviour_count> behaviour_names = {"walk", "patrol", "follow", "crowd", "teleport"};
 
 struct swarm_options {
   std::string host = "127.0.0.1";
@@ -26,11 +27,13 @@ struct swarm_options {
   double ramp = 200;         ///< new bots per second during ramp-up
   double input_hz = 10;      ///< inputs per second per bot
   double ping_hz = 1;        ///< pings per second per bot (clock offset, RTT, keep-alive)
-  std::array<double, 4> mix{1, 0, 0, 0};  ///< shares by behaviour
+  std::array<double, behaviour_count> mix{1, 0, 0, 0, 0};  ///< shares by behaviour
+  double teleport_hz = 0.2;  ///< teleport bots: jumps per second per bot (random times, random targets in the world)
   double churn = 0;          ///< logouts per second across the swarm (each logged-out bot logs in again)
+  double churn_for_s = 0;    ///< churn stops this many seconds into the run (0 = until the end)
   double relogin_delay_s = 0.2;
   bool verify = false;       ///< compare the server's visible-set digests with the tracked view
-  unsigned threads = 2;      ///< I/O threads
+  unsigned threads = 0;      ///< I/O threads (0 = auto: one per 2,500 bots, at least 2, at most half the cores)
   // What the bot assumes of the server, for the AOI check (zone-server's defaults).
   float aoi = 60;            ///< the players' AOI half-extent (--player-aoi)
   float hysteresis = 4;      ///< leave margin (--hysteresis)
@@ -63,12 +66,13 @@ class latency_histogram_us {
 /// Counters of the whole swarm (relaxed atomics; read by the progress line while bots run).
 struct swarm_counters {
   std::atomic<std::uint64_t> connect_attempts{0}, connected_now{0}, welcomes{0}, connect_failures{0},
-      unexpected_disconnects{0}, server_errors{0}, logouts{0};
+      unexpected_disconnects{0}, server_errors{0}, logouts{0}, teleports_sent{0};
   std::atomic<std::uint64_t> frames_in{0}, bytes_in{0}, tick_updates{0}, enters{0}, leaves{0}, updates{0}, resets{0};
   std::atomic<std::uint64_t> inputs_sent{0}, pings_sent{0}, pongs{0};
   std::atomic<std::uint64_t> digests_checked{0}, digest_mismatches{0}, inconsistent{0};
   std::atomic<std::uint64_t> aoi_checked{0}, aoi_unchecked{0}, aoi_violations{0};
   std::atomic<std::uint64_t> latency_unsynced{0};
+  std::atomic<std::uint64_t> self_positions{0};  ///< frames that carried the bot's own position
   [[nodiscard]] std::uint64_t mismatches() const {
     return digest_mismatches.load() + inconsistent.load() + aoi_violations.load();
   }
@@ -104,7 +108,8 @@ struct swarm_result {
                 server_errors = 0, logouts = 0, frames_in = 0, bytes_in = 0, tick_updates = 0, enters = 0,
                 leaves = 0, updates = 0, resets = 0, inputs_sent = 0, pongs = 0, digests_checked = 0,
                 digest_mismatches = 0, inconsistent = 0, aoi_checked = 0, aoi_unchecked = 0,
-                aoi_violations = 0, latency_unsynced = 0;
+                aoi_violations = 0, latency_unsynced = 0, teleports_sent = 0, self_positions = 0;
+  bool host_clock = false;  ///< latency timed on the host's clock (same host), not by ping sync
   std::uint64_t bots_connected = 0;  ///< slots that got a welcome at least once
   double min_rtt_ms = 0;
   double cpu_s = 0;  ///< CPU time of the bot-swarm process (user + system), to judge a shared machine

@@ -124,7 +124,44 @@ TEST_CASE("end to end: 200 bots in verify mode, zero mismatches, p99 tick bounde
   CHECK(*p99 <= p99_tick_bound_ms);
 }
 
-TEST_CASE("churn: bots log out and in continuously; no crash, no leaked sessions") {
+TEST_CASE("teleport: bots jump at random across the world; views and AOI checks stay exact") {
+  const std::string dir = temp_dir();
+  std::vector<std::string> args = server_args;
+  args.insert(args.end(), {"--teleport-cooldown", "0.2"});
+  zone_server_process server(ZONE_SERVER_EXE, dir, args);
+  REQUIRE_MESSAGE(server.port != 0, server.proc.log());
+  child_process swarm(swarm_args(server.port, dir,
+                                 {"--bots", "100", "--duration", "15", "--ramp", "100", "--verify", "--mix",
+                                  "walk=0.3,teleport=0.5,follow=0.1,crowd=0.1", "--teleport-hz", "1"}),
+                      dir + "/bot-swarm.log");
+  const auto rc = swarm.wait(60000ms);
+  const std::string report = read_file(dir + "/report.json");
+  INFO("bot-swarm output:\n" << swarm.log());
+  REQUIRE(rc.has_value());
+  CHECK(*rc == 0);
+  CHECK(json_number(report, "bots_connected").value_or(-1) == 100);
+  CHECK(json_number(report, "mismatches").value_or(-1) == 0);
+  CHECK(json_number(report, "digests_checked").value_or(0) > 100 * 20 * 5);
+  // 50 teleport bots at 1 jump/s for ~14 s: ~700 jumps.
+  const double sent = json_number(report, "teleports_sent").value_or(0);
+  CHECK(sent > 300);
+  // Every frame carried the bot's own position, so every AOI check used the position of that very
+  // tick (none skipped for want of it, none stale across a jump).
+  CHECK(json_number(report, "self_positions").value_or(0) > 0);
+  CHECK(json_number(report, "aoi_checked").value_or(0) > 0);
+  CHECK(json_number(report, "aoi_unchecked").value_or(-1) == 0);
+  // The server applied them (the cooldown, 0.2 s, refuses only jumps that come too close together).
+  std::optional<double> applied;
+  for (int i = 0; i < 20 && applied.value_or(0) < sent / 2; ++i) {
+    applied = metric(http_get_metrics(server.metrics_port), "zone_teleports_total");
+    std::this_thread::sleep_for(250ms);
+  }
+  MESSAGE("teleports sent " << sent << ", applied by the server " << applied.value_or(-1));
+  CHECK(applied.value_or(0) > sent / 2);
+  CHECK(server.proc.terminate().value_or(-1) == 0);
+}
+
+TEST_CASE("churn: bots log out and in continuously for a minute; no crash, no leaked sessions") {
   const std::string dir = temp_dir();
   zone_server_process server(ZONE_SERVER_EXE, dir, server_args);
   REQUIRE_MESSAGE(server.port != 0, server.proc.log());
@@ -133,29 +170,49 @@ TEST_CASE("churn: bots log out and in continuously; no crash, no leaked sessions
   REQUIRE(baseline.has_value());
   constexpr int bots = 80;
   // The churn settings come from a scenario file (also covering --scenario); the command line adds to it.
+  // 60 s of churn (it starts once all 80 bots are launched, 0.4 s in), then 8 s without, in which
+  // every bot is logged in again and the server's counts must equal the live count.
+  constexpr double churn_s = 60.5, duration_s = 68.5;
   {
     std::ofstream scenario(dir + "/churn.json");
-    scenario << R"({"duration": 25, "ramp": 200, "churn": 20, "relogin-delay": 0.1, "verify": true,)"
-             << R"( "mix": {"walk": 0.5, "patrol": 0.5}})";
+    scenario << R"({"duration": )" << duration_s << R"(, "ramp": 200, "churn": 20, "churn-for": )" << churn_s
+             << R"(, "relogin-delay": 0.1, "verify": true, "mix": {"walk": 0.4, "patrol": 0.4, "teleport": 0.2}})";
   }
   child_process swarm(swarm_args(server.port, dir, {"--bots", std::to_string(bots), "--scenario", dir + "/churn.json"}),
                       dir + "/bot-swarm.log");
-  // While it runs, the server never holds more sessions than bots (plus a few closing).
+  const auto started = std::chrono::steady_clock::now();
+  // While it runs, the server never holds more sessions than bots (plus a few closing). Once the
+  // churn has stopped, the sessions, clients and entities settle on the live count: every bot
+  // logged in, nothing left over from the ~1,200 sessions that came and went.
   double most_sessions = 0;
+  bool settled = false;
+  std::optional<double> live_sessions, live_clients, live_entities;
   while (swarm.alive()) {
     const auto text = http_get_metrics(server.metrics_port);
     most_sessions = std::max(most_sessions, metric(text, "zone_net_sessions_open").value_or(0));
-    std::this_thread::sleep_for(500ms);
+    if (std::chrono::steady_clock::now() - started > std::chrono::duration<double>(churn_s + 1.5) && !settled) {
+      live_sessions = metric(text, "zone_net_sessions_open");
+      live_clients = metric(text, "zone_clients");
+      live_entities = metric(text, "zone_entities");
+      settled = live_sessions == double{bots} && live_clients == double{bots} && live_entities == *baseline + bots;
+    }
+    std::this_thread::sleep_for(250ms);
     REQUIRE(server.proc.alive());
   }
   const auto rc = swarm.wait(1000ms);
   const std::string report = read_file(dir + "/report.json");
   INFO("bot-swarm output:\n" << swarm.log());
   CHECK(rc.value_or(-1) == 0);
-  CHECK(json_number(report, "logouts").value_or(0) >= 300);
+  // 20 logouts a second for 60 s is 1,200; a loaded machine may fall somewhat behind.
+  CHECK(json_number(report, "logouts").value_or(0) >= 800);
   CHECK(report.find("\"verify\": true") != std::string::npos);
   CHECK(json_number(report, "mismatches").value_or(-1) == 0);
+  CHECK(json_number(report, "teleports_sent").value_or(0) > 0);
   CHECK(most_sessions <= bots + 10);
+  CHECK_MESSAGE(settled, "after the churn: sessions " << live_sessions.value_or(-1) << ", clients "
+                                                      << live_clients.value_or(-1) << ", entities "
+                                                      << live_entities.value_or(-1) << " (live: " << bots << " bots, "
+                                                      << *baseline + bots << " entities)");
   // Every bot is gone: the server's sessions, clients and entities return to the live count.
   std::optional<double> sessions, clients, entities;
   for (int i = 0; i < 40; ++i) {
