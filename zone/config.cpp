@@ -41,6 +41,11 @@ std::optional<std::string> validate(const zone_config& c) {
   if (c.client_byte_budget < 256) return bad("client-byte-budget must be >= 256");
   if (!(c.inputs_per_second > 0)) return bad("inputs-per-second must be > 0");
   if (!(c.teleport_cooldown_s >= 0 && std::isfinite(c.teleport_cooldown_s))) return bad("teleport-cooldown must be >= 0");
+  if (!(c.spawn_radius >= 0 && std::isfinite(c.spawn_radius))) return bad("spawn-radius must be >= 0");
+  if (!(c.update_near >= 0 && c.update_mid >= c.update_near && std::isfinite(c.update_mid))) {
+    return bad("update-near and update-mid must be >= 0 with update-mid >= update-near");
+  }
+  if (c.update_mid_period == 0 || c.update_far_period == 0) return bad("update periods must be >= 1");
   static const char* finders[] = {"auto", "cpu", "gpu", "pbig", "lbvh", "brute"};
   if (std::find(std::begin(finders), std::end(finders), c.finder) == std::end(finders)) {
     return bad("finder must be auto, cpu, gpu (= pbig), pbig, lbvh or brute");
@@ -105,6 +110,12 @@ config_result parse_config(int argc, const char* const* argv) {
       ("client-byte-budget", po::value(&c.client_byte_budget)->default_value(c.client_byte_budget), "bytes per client per tick")  //
       ("teleport", po::value(&c.teleport_enabled)->default_value(c.teleport_enabled), "players may teleport themselves (0 or 1)")  //
       ("teleport-cooldown", po::value(&c.teleport_cooldown_s)->default_value(c.teleport_cooldown_s), "least seconds between two teleports of one player")  //
+      ("spawn-radius", po::value(&c.spawn_radius)->default_value(c.spawn_radius), "players spawn within this distance of a town (m)")  //
+      ("update-near", po::value(&c.update_near)->default_value(c.update_near), "updates every tick within this distance (m)")  //
+      ("update-mid", po::value(&c.update_mid)->default_value(c.update_mid), "updates every update-mid-period ticks within this distance (m)")  //
+      ("update-mid-period", po::value(&c.update_mid_period)->default_value(c.update_mid_period), "ticks between updates of mid-distance entities")  //
+      ("update-far-period", po::value(&c.update_far_period)->default_value(c.update_far_period), "ticks between updates of entities beyond update-mid")  //
+      ("digest-every", po::value(&c.digest_every)->default_value(c.digest_every), "a visible-set digest every K ticks (0 = none)")  //
       ("metrics", po::value(&c.metrics_enabled)->default_value(c.metrics_enabled), "serve Prometheus text at /metrics (0 or 1)")  //
       ("metrics-port", po::value(&metrics_port)->default_value(metrics_port), "port of /metrics (0 = ephemeral)");
   po::options_description all("zone-server options");

@@ -184,7 +184,9 @@ std::span<const std::uint8_t> replicator::build(client_id c, const entity_store&
   std::swap(s.view, s.next_view);
   std::swap(s.last_sent, s.next_last_sent);
 
-  if (opt_.send_digest) writer.set_digest({tick, s.hash, static_cast<std::uint32_t>(s.view.size())});
+  if (opt_.send_digest && (st.reset || opt_.digest_period <= 1 || tick % opt_.digest_period == 0)) {
+    writer.set_digest({tick, s.hash, static_cast<std::uint32_t>(s.view.size())});
+  }
   const auto frame = writer.finish();
   st.bytes = frame.size();
   if (stats) *stats = st;

@@ -255,6 +255,8 @@ struct replication_options {
   std::uint32_t mid_period = 2;
   std::uint32_t far_period = 4;
   bool send_digest = true;
+  /// With send_digest: a digest in the frames of every digest_period-th tick (and in every reset frame).
+  std::uint32_t digest_period = 1;
   /// Clients per parallel task of build_many (fixed: the frames never depend on the thread count).
   std::uint32_t clients_per_task = 16;
 };
@@ -389,6 +391,12 @@ struct zone_config {
   double inputs_per_second = 60;
   std::size_t client_byte_budget = 8 * 1024;
   bool teleport_enabled = true;      ///< players may teleport themselves (the teleport message)
+  float spawn_radius = 200;          ///< players spawn uniformly within this distance of a town centre (m)
+  /// Replication's update-rate tiers (docs/zone.md): every tick within update_near metres, every
+  /// update_mid_period ticks within update_mid, every update_far_period ticks beyond.
+  float update_near = 12, update_mid = 30;
+  std::uint32_t update_mid_period = 3, update_far_period = 8;
+  std::uint32_t digest_every = 1;    ///< a visible-set digest every K ticks (0 = none)
   double teleport_cooldown_s = 0.5;  ///< least time between two jumps of one player (0 = none)
   bool metrics_enabled = true;        ///< serve Prometheus text at http://listen:metrics_port/metrics
   std::uint16_t metrics_port = 9100;  ///< 0 = an ephemeral port

@@ -30,10 +30,24 @@ net::server_options net_options(const zone_config& c) {
   return o;
 }
 
+/// A 64-bit mix of a session id (splitmix64), for where the session's player spawns.
+std::uint64_t spawn_hash(std::uint64_t z) {
+  z += 0x9e3779b97f4a7c15ull;
+  z = (z ^ (z >> 30)) * 0xbf58476d1ce4e5b9ull;
+  z = (z ^ (z >> 27)) * 0x94d049bb133111ebull;
+  return z ^ (z >> 31);
+}
+
 replication_options replica_options(const zone_config& c) {
   replication_options o;
   o.world = c.world;
   o.byte_budget = c.client_byte_budget;
+  o.near_distance = c.update_near;
+  o.mid_distance = c.update_mid;
+  o.mid_period = c.update_mid_period;
+  o.far_period = c.update_far_period;
+  o.send_digest = c.digest_every > 0;
+  o.digest_period = std::max<std::uint32_t>(1, c.digest_every);
   return o;
 }
 
@@ -148,9 +162,13 @@ void zone_server::drain_inputs() {
                             "server speaks protocol " + std::to_string(net::protocol_version));
             break;
           }
-          // Spawn at a town (deterministic in the session id).
+          // Spawn uniformly within spawn_radius of a town (deterministic in the session id).
           const vec3 town = world_->town(e.session % world_->town_count());
-          const entity_id id = world_->spawn_player(town);
+          const std::uint64_t h = spawn_hash(e.session);
+          const double r = cfg_.spawn_radius * std::sqrt(static_cast<double>(h >> 40) / 16777216.0);
+          const double a = static_cast<double>(h & 0xffffff) / 16777216.0 * 6.283185307179586;
+          const entity_id id = world_->spawn_player(
+              {town.x + static_cast<float>(r * std::cos(a)), town.y + static_cast<float>(r * std::sin(a)), town.z});
           if (id == null_entity) {
             net_.disconnect(e.session, net::error_code::server_full, "the zone is full");
             break;
