@@ -315,6 +315,7 @@ int main(int argc, char** argv) {
   std::vector<std::size_t> frame_bytes(requests.size());
   std::vector<std::uint64_t> frame_hash(requests.size());
   std::vector<replication_stats> frame_stats(requests.size());
+  std::vector<std::vector<std::uint8_t>> frame_copy(requests.size()), serial_copy(requests.size());
   net::tick_update_writer serial_writer;
 
   const std::string load_before = load_average();
@@ -364,11 +365,14 @@ int main(int argc, char** argv) {
         const auto r0 = clock_type::now();
         repl.build_many(requests, world.store(), world.tracker(), tick, now_us, &pool,
                         [&](std::size_t k, std::span<const std::uint8_t> frame, const replication_stats& st) {
-                          frame_bytes[k] = frame.size();
-                          frame_hash[k] = fnv(0xcbf29ce484222325ull, frame);
+                          frame_copy[k].assign(frame.begin(), frame.end());  // as zone-server's make_shared_frame
                           frame_stats[k] = st;
                         });
         rep_ms = ms_since(r0);
+        for (std::size_t k = 0; k < requests.size(); ++k) {
+          frame_bytes[k] = frame_copy[k].size();
+          frame_hash[k] = fnv(0xcbf29ce484222325ull, frame_copy[k]);
+        }
       }
       if (opt.replicate != replicate_mode::parallel) {
         replicator& r = opt.replicate == replicate_mode::both ? repl_serial : repl;
@@ -376,16 +380,19 @@ int main(int argc, char** argv) {
         for (std::size_t k = 0; k < requests.size(); ++k) {
           replication_stats st;
           const auto frame = r.build(requests[k].client, world.store(), world.tracker(), tick, now_us, 0, serial_writer, &st);
-          const std::uint64_t h = fnv(0xcbf29ce484222325ull, frame);
-          if (opt.replicate == replicate_mode::both) {
-            if (h != frame_hash[k] || frame.size() != frame_bytes[k]) ++frames_mismatch;
-          } else {
-            frame_bytes[k] = frame.size();
-            frame_hash[k] = h;
-            frame_stats[k] = st;
-          }
+          serial_copy[k].assign(frame.begin(), frame.end());
+          if (opt.replicate != replicate_mode::both) frame_stats[k] = st;
         }
         (opt.replicate == replicate_mode::both ? rep_serial_ms : rep_ms) = ms_since(r0);
+        for (std::size_t k = 0; k < requests.size(); ++k) {
+          const std::uint64_t h = fnv(0xcbf29ce484222325ull, serial_copy[k]);
+          if (opt.replicate == replicate_mode::both) {
+            if (h != frame_hash[k] || serial_copy[k].size() != frame_bytes[k]) ++frames_mismatch;
+          } else {
+            frame_bytes[k] = serial_copy[k].size();
+            frame_hash[k] = h;
+          }
+        }
       }
       for (std::size_t k = 0; k < requests.size(); ++k) {
         frames_digest = (frames_digest ^ frame_hash[k]) * 0x100000001b3ull;

@@ -106,7 +106,7 @@ std::span<const std::uint8_t> replicator::build(client_id c, const entity_store&
     } else if (j == s.view.size() || visible[i] < s.view[j]) {
       const std::size_t k = store.index_of(visible[i]);
       if (k != entity_store::npos) {
-        s.enters.push_back({distance(eye, pos[k]), static_cast<std::uint32_t>(k), visible[i]});
+        s.enters.push_back({distance(eye, pos[k]), static_cast<std::uint32_t>(k), visible[i], static_cast<std::uint32_t>(k)});
       }
       ++i;
     } else {
@@ -119,7 +119,7 @@ std::span<const std::uint8_t> replicator::build(client_id c, const entity_store&
         const std::uint64_t staleness = tick - s.last_sent[j];
         if (staleness >= period) {
           s.updates.push_back({-static_cast<float>(staleness) / std::max(d, 1.0f), static_cast<std::uint32_t>(j),
-                               visible[i]});
+                               visible[i], static_cast<std::uint32_t>(k)});
         }
       }
       ++i;
@@ -147,14 +147,23 @@ std::span<const std::uint8_t> replicator::build(client_id c, const entity_store&
   }
   st.enters = static_cast<std::uint32_t>(entered);
 
-  // Updates of the view, most stale per metre first.
-  std::sort(s.updates.begin(), s.updates.end(), by_priority);
+  // Updates of the view, most stale per metre first. Each costs exactly update_cost in the
+  // writer's estimate, so the ones that fit are the first `room` by priority: when the budget
+  // binds they are selected (nth_element) and sent in priority order; when everything fits the
+  // order changes nothing that is sent, and the sort is skipped (view order).
+  const std::size_t used = writer.size_estimate();
+  const std::size_t room = used >= opt_.byte_budget ? 0 : (opt_.byte_budget - used) / update_cost;
+  if (room < s.updates.size()) {
+    const auto cut = s.updates.begin() + static_cast<std::ptrdiff_t>(room);
+    std::nth_element(s.updates.begin(), cut, s.updates.end(), by_priority);
+    std::sort(s.updates.begin(), cut, by_priority);
+  }
   for (const pending& u : s.updates) {
     if (!fits(update_cost)) {
       ++st.deferred_updates;
       continue;
     }
-    const std::size_t k = store.index_of(u.id);
+    const std::size_t k = u.dense;
     writer.add_update({u.id, quantizer_.quantize(to_net(pos[k])), net::quantize_velocity(to_net(store.velocities()[k]))});
     s.last_sent[u.index] = tick;
     ++st.updates;

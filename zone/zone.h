@@ -333,6 +333,7 @@ class replicator {
     float priority;       // smaller first
     std::uint32_t index;  // into the view (updates) or the store (enters)
     entity_id id;
+    std::uint32_t dense;  // the entity's dense index in the store
   };
   struct client_state {
     entity_id observer = null_entity;
