@@ -296,16 +296,28 @@ int main(int argc, char** argv) {
   const auto setup0 = clock_type::now();
   world.populate();
 
-  // Players and their replication clients (as zone-server: spawned at town(i % towns)).
+  // Players and their replication clients, as zone-server makes them: spawned uniformly within
+  // spawn_radius of town(i % towns); replication options from the config (zone_server.cpp).
   replication_options ro;
   ro.world = cfg.world;
   ro.byte_budget = cfg.client_byte_budget;
+  ro.near_distance = cfg.update_near;
+  ro.mid_distance = cfg.update_mid;
+  ro.mid_period = cfg.update_mid_period;
+  ro.far_period = cfg.update_far_period;
+  ro.send_digest = cfg.digest_every > 0;
+  ro.digest_period = std::max<std::uint32_t>(1, cfg.digest_every);
   ro.clients_per_task = opt.clients_per_task;
   replicator repl(ro), repl_serial(ro);  // repl_serial: the serial reference in --replicate both
   std::vector<entity_id> players;
   std::vector<replication_request> requests;
+  std::mt19937_64 spawn_rng(opt.seed ^ 0x7370776eull);
   for (std::size_t k = 0; k < opt.clients; ++k) {
-    const entity_id id = world.spawn_player(world.town(k % world.town_count()));
+    const vec3 town = world.town(k % world.town_count());
+    const double r = cfg.spawn_radius * std::sqrt(std::uniform_real_distribution<double>(0, 1)(spawn_rng));
+    const double a = std::uniform_real_distribution<double>(0, 6.283185307179586)(spawn_rng);
+    const entity_id id = world.spawn_player(
+        {town.x + static_cast<float>(r * std::cos(a)), town.y + static_cast<float>(r * std::sin(a)), town.z});
     if (id == null_entity) break;
     players.push_back(id);
     requests.push_back({repl.add_client(id), 0});
