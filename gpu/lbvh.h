@@ -28,6 +28,8 @@ struct lbvh_options {
   /// uniform-density estimate) are kept out of the tree and tested against every box by a
   /// separate pass (the serial tail of one thread per leaf otherwise). false: every box in the tree.
   bool separate_large = true;
+  /// Measure the depth of the deepest leaf each call (lbvh_report::max_depth; one extra kernel).
+  bool measure_depth = false;
   /// Threads that pack the upload (null = own pool with one thread per core).
   interest::thread_pool* pool = nullptr;
 };
@@ -47,7 +49,7 @@ struct lbvh_report {
   std::uint32_t large_boxes = 0;     ///< boxes handled apart
   std::uint32_t stack_overflows = 0; ///< queries redone by the overflow pass
   std::uint32_t batches = 0;
-  std::uint32_t max_depth = 0;       ///< depth of the deepest leaf (root = 0)
+  std::uint32_t max_depth = 0;       ///< depth of the deepest leaf (root = 0; with measure_depth)
 };
 
 /// Creates the GPU LBVH finder, or returns null with the reason in `why` when no device can be used.
