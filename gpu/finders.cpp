@@ -45,15 +45,22 @@ box_set_summary summarize(const interest::box_set& boxes) {
   if (s.n == 0) return s;
   const std::size_t k = std::min(s.n, auto_sample_boxes);
   s.sampled = k;
-  // A fixed strided sample: box floor(i * n / k) for i < k.
+  // A fixed stratified sample: stratum i = [i n / k, (i + 1) n / k), one box of it picked by a
+  // hash of i (no aliasing with periodic layouts such as the MMO set's AOI/presence pairs).
   double lo[3] = {INFINITY, INFINITY, INFINITY}, hi[3] = {-INFINITY, -INFINITY, -INFINITY};
-  std::array<float, 3 * auto_sample_boxes> edge;
-  std::array<float, auto_sample_boxes> largest;
+  thread_local std::vector<float> edge, largest, sorted;
+  thread_local std::vector<double> lo_of[3];
+  edge.resize(3 * k);
+  largest.resize(k);
+  for (auto& v : lo_of) v.resize(k);
   const float* blo[3] = {boxes.lo_x.data(), boxes.lo_y.data(), boxes.lo_z.data()};
   const float* bhi[3] = {boxes.hi_x.data(), boxes.hi_y.data(), boxes.hi_z.data()};
   double sum_largest = 0;
   for (std::size_t i = 0; i < k; ++i) {
-    const std::size_t b = static_cast<std::size_t>(std::uint64_t{i} * s.n / k);  // i * n < 2^9 * 2^32
+    const std::uint64_t first = std::uint64_t{i} * s.n / k, next = std::uint64_t{i + 1} * s.n / k;  // < 2^13 * 2^32
+    std::uint64_t h = (i + 1) * 0x9e3779b97f4a7c15ull;
+    h = (h ^ (h >> 31)) * 0xbf58476d1ce4e5b9ull;
+    const std::size_t b = static_cast<std::size_t>(first + (h >> 32) % std::max<std::uint64_t>(1, next - first));
     float big = 0;
     for (int d = 0; d < 3; ++d) {
       const double l = blo[d][b], h = bhi[d][b];
@@ -61,6 +68,7 @@ box_set_summary summarize(const interest::box_set& boxes) {
       hi[d] = std::max(hi[d], h);
       const float e = static_cast<float>(std::max(0.0, h - l));
       edge[3 * i + d] = e;
+      lo_of[d][i] = l;
       big = std::max(big, e);
     }
     largest[i] = big;
@@ -68,7 +76,7 @@ box_set_summary summarize(const interest::box_set& boxes) {
   }
   for (int d = 0; d < 3; ++d) s.scene_extent[d] = std::isfinite(hi[d] - lo[d]) ? std::max(0.0, hi[d] - lo[d]) : 0.0;
   s.mean_size = sum_largest / static_cast<double>(k);
-  std::array<float, auto_sample_boxes> sorted = largest;
+  sorted = largest;
   std::nth_element(sorted.begin(), sorted.begin() + k / 2, sorted.begin() + k);
   const double median = sorted[k / 2];
   const double maxv = *std::max_element(largest.begin(), largest.begin() + k);
@@ -125,9 +133,49 @@ box_set_summary summarize(const interest::box_set& boxes) {
   const double b = std::max(eq6, cap);
   s.cell_edge = b;
   (void)f_of(b, &s.mean_cells);
+  // The grid finders' large-box rule at that edge: more than max(64, 16 alpha) cells.
+  const double large_cells = std::max(64.0, 16.0 * s.mean_cells);
   double most = 0;
-  for (std::size_t i = 0; i < k; ++i) most = std::max(most, cells_of(&edge[3 * i], b));
+  std::size_t large = 0;
+  for (std::size_t i = 0; i < k; ++i) {
+    const double c = cells_of(&edge[3 * i], b);
+    most = std::max(most, c);
+    large += c > large_cells ? 1 : 0;
+  }
   s.largest_cells = most;
+  s.large_fraction = static_cast<double>(large) / static_cast<double>(k);
+  s.large_estimate = s.large_fraction * n;
+
+  // Crowding: sampled boxes whose centres share a cell of that grid, against the 1 / M an even
+  // spread would give. Cells keyed by their coordinates (21 bits per axis), sorted, runs counted.
+  thread_local std::vector<std::uint64_t> cell;
+  cell.resize(k);
+  double cells_total = 1;
+  std::uint64_t dims[3];
+  for (int d = 0; d < 3; ++d) {
+    dims[d] = static_cast<std::uint64_t>(std::min(2097151.0, std::floor(s.scene_extent[d] / b) + 1));
+    cells_total *= static_cast<double>(dims[d]);
+  }
+  for (std::size_t i = 0; i < k; ++i) {
+    std::uint64_t key = 0;
+    for (int d = 0; d < 3; ++d) {
+      const double centre = lo_of[d][i] + 0.5 * edge[3 * i + d];
+      const double c = std::clamp(std::floor((centre - lo[d]) / b), 0.0, static_cast<double>(dims[d] - 1));
+      key = (key << 21) | static_cast<std::uint64_t>(c);
+    }
+    cell[i] = key;
+  }
+  std::sort(cell.begin(), cell.end());
+  double same = 0;
+  for (std::size_t i = 0; i < k;) {
+    std::size_t j = i;
+    while (j < k && cell[j] == cell[i]) ++j;
+    const double g = static_cast<double>(j - i);
+    same += g * (g - 1) / 2;
+    i = j;
+  }
+  const double sample_pairs = static_cast<double>(k) * static_cast<double>(k - 1) / 2;
+  s.crowding = k > 1 ? same / sample_pairs * cells_total : 1.0;
   return s;
 }
 
@@ -148,8 +196,35 @@ finder_backend choose_backend(const box_set_summary& summary, bool pbig_usable, 
     say("LBVH cannot run, PBIG can");
     return finder_backend::pbig;
   }
-  (void)summary;
-  say("a device is usable: PBIG");
+  const double n = static_cast<double>(summary.n);
+  if (summary.n < auto_small_n) {
+    say(fmt::format("N = {} < {}: LBVH, less fixed cost per call", summary.n, auto_small_n));
+    return finder_backend::lbvh;
+  }
+  const double large_tests = summary.large_estimate * n;
+  if (large_tests > auto_large_pass_tests) {
+    say(fmt::format("N = {}, about {:.0f} boxes ({:.2f}% of the sample) would occupy more than max(64, 16 alpha) "
+                    "cells of the planned grid (edge {:.3g}; largest sampled box {:.0f} cells): PBIG's large-box pass "
+                    "would test about {:.2g} pairs; LBVH",
+                    summary.n, summary.large_estimate, 100 * summary.large_fraction, summary.cell_edge,
+                    summary.largest_cells, large_tests));
+    return finder_backend::lbvh;
+  }
+  if (summary.crowding > auto_crowding && summary.size_spread < auto_even_spread) {
+    say(fmt::format("N = {}, boxes of like size (spread {:.3g}x) crowded {:.3g}x into the planned grid's cells "
+                    "(edge {:.3g}): LBVH",
+                    summary.n, summary.size_spread, summary.crowding, summary.cell_edge));
+    return finder_backend::lbvh;
+  }
+  if (summary.mean_cells > auto_many_cells) {
+    say(fmt::format("N = {}, a box covers {:.3g} cells of the planned grid (edge {:.3g}) on average: LBVH", summary.n,
+                    summary.mean_cells, summary.cell_edge));
+    return finder_backend::lbvh;
+  }
+  say(fmt::format("N = {}, box sizes spread {:.3g}x, crowding {:.3g}x, {:.3g} cells per box, largest sampled box "
+                  "{:.0f} cells of the planned grid (edge {:.3g}), about {:.0f} boxes apart from it: PBIG",
+                  summary.n, summary.size_spread, summary.crowding, summary.mean_cells, summary.largest_cells,
+                  summary.cell_edge, summary.large_estimate));
   return finder_backend::pbig;
 }
 
@@ -249,7 +324,17 @@ class auto_finder final : public interest::pair_finder {
     const bool lbvh_ok = lbvh_ != nullptr && !gpu_failed_;
     finder_backend b = finder_backend::cpu;
     if (pbig_ok || lbvh_ok) {
+      // Re-decide when due: first call, N moved by more than 10%, or every auto_redecide_calls calls.
+      const double n = static_cast<double>(boxes.size());
+      const bool due = !last_ || *last_ == finder_backend::cpu || calls_since_decision_ >= auto_redecide_calls ||
+                       std::abs(n - decided_n_) > auto_redecide_n_change * std::max(decided_n_, 1.0);
+      if (!due) {
+        ++calls_since_decision_;
+        return *last_;
+      }
       b = choose_backend(summarize(boxes), pbig_ok, lbvh_ok, &reason);
+      decided_n_ = n;
+      calls_since_decision_ = 1;
     } else {
       reason = gpu_failed_ ? "a GPU finder failed earlier" : "no GPU: " + no_gpu_why_;
     }
@@ -280,6 +365,8 @@ class auto_finder final : public interest::pair_finder {
   std::optional<finder_backend> last_;
   std::string reason_;
   bool gpu_failed_ = false;
+  double decided_n_ = 0;
+  int calls_since_decision_ = 0;
   interest::pair_list buffer_;  // view's list when the CPU finder (or an injected finder) runs
 };
 

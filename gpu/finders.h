@@ -31,9 +31,10 @@ enum class finder_backend { brute, cpu, pbig, lbvh, auto_select };
 [[nodiscard]] std::unique_ptr<interest::pair_finder> make_finder(finder_backend backend, interest::thread_pool* pool,
                                                                  std::string* why = nullptr);
 
-/// Cheap statistics of a box set that the auto finder decides on: read from a fixed sample of at
-/// most `auto_sample_boxes` boxes (the same boxes every call for a given N), so computing them
-/// costs microseconds whatever N is.
+/// Cheap statistics of a box set that the auto finder decides on: read from a fixed stratified
+/// sample of at most `auto_sample_boxes` boxes (the same boxes every call for a given N), so the
+/// cost does not grow with N (0.1-1.5 ms on the 2-core build machine; the auto finder amortises it, see
+/// auto_redecide_calls).
 struct box_set_summary {
   std::size_t n = 0;
   std::size_t sampled = 0;
@@ -43,8 +44,18 @@ struct box_set_summary {
   double cell_edge = 0;             ///< the cubic cell edge a grid planned by Eq. 6 (W = 32) would get, estimated
   double largest_cells = 0;         ///< cells of that grid the largest sampled box would occupy
   double mean_cells = 0;            ///< cells the average sampled box would occupy (the paper's alpha)
+  /// Fraction of sampled boxes that the grid finders would handle apart (more than
+  /// max(64, 16 mean_cells) cells), and that fraction times N: PBIG tests each such box against
+  /// all N boxes, so large_estimate * N estimates its large-box pass's tests.
+  double large_fraction = 0;
+  double large_estimate = 0;
+  /// How crowded the planned grid's cells are compared with boxes spread evenly over the scene:
+  /// M * sum over cells of p_c^2 (p_c: share of the boxes whose centre lies in cell c), estimated
+  /// from pairs of sampled boxes that share a cell. About 1 for uniform sets, about 20 for the
+  /// paper's Gaussian set (dense in its centre).
+  double crowding = 0;
 };
-inline constexpr std::size_t auto_sample_boxes = 512;
+inline constexpr std::size_t auto_sample_boxes = 8192;
 
 [[nodiscard]] box_set_summary summarize(const interest::box_set& boxes);
 
@@ -53,9 +64,22 @@ inline constexpr std::size_t auto_sample_boxes = 512;
 [[nodiscard]] finder_backend choose_backend(const box_set_summary& summary, bool pbig_usable, bool lbvh_usable,
                                             std::string* reason = nullptr);
 
+/// The auto rule's constants (docs/lbvh.md has the measurements behind them).
+inline constexpr std::size_t auto_small_n = 20000;          ///< below: LBVH (less fixed cost per call)
+inline constexpr double auto_large_pass_tests = 4e9;        ///< above (large_estimate * N): LBVH
+inline constexpr double auto_crowding = 4.0;                ///< above, with size spread below auto_even_spread: LBVH
+inline constexpr double auto_even_spread = 4.0;
+inline constexpr double auto_many_cells = 10.0;             ///< mean cells per box above: LBVH
+/// The auto finder re-summarizes when N moved by more than this fraction since its last decision,
+/// or after auto_redecide_calls calls; in between it keeps its choice (the statistics of a zone
+/// move slowly; a decision costs a sample of auto_sample_boxes boxes).
+inline constexpr double auto_redecide_n_change = 0.10;
+inline constexpr int auto_redecide_calls = 64;
+
 /// The auto finder with explicit candidates (tests inject failing or counting finders here; null
-/// GPU candidates mean "not available"). Per call: summarize, choose_backend, run the choice; the
-/// choice and its reason are logged (spdlog info) when they change, not every call. A GPU finder
+/// GPU candidates mean "not available"). Per call: summarize and choose_backend (when due, see
+/// above), run the choice; the choice and its reason are logged (spdlog info) when they change,
+/// not every call. A GPU finder
 /// that throws (a CUDA error) is logged as a warning and never used again by this finder; that
 /// call and all later ones run on `cpu`. `cpu` must not be null.
 [[nodiscard]] std::unique_ptr<interest::pair_finder> make_auto_finder(std::unique_ptr<interest::pair_finder> cpu,

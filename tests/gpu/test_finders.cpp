@@ -211,7 +211,7 @@ TEST_SUITE("gpu.finders") {
     const box_set same = make_family(family::identical, 5000, 1);
     const auto a = gpu::summarize(same);
     CHECK(a.n == 5000);
-    CHECK(a.sampled == gpu::auto_sample_boxes);
+    CHECK(a.sampled == std::min<std::size_t>(5000, gpu::auto_sample_boxes));
     CHECK(a.size_spread == doctest::Approx(1.0));
     CHECK(a.largest_cells == doctest::Approx(a.mean_cells));
     const box_set u = generate_uniform(100000, fresh_seed());
@@ -233,13 +233,65 @@ TEST_SUITE("gpu.finders") {
     CHECK(c.largest_cells > 20 * c.mean_cells);
   }
 
-  TEST_CASE("choose_backend: CPU without a GPU finder; a usable GPU finder otherwise") {
-    const auto s = gpu::summarize(generate_uniform(10000, 3));
+  TEST_CASE("choose_backend: CPU without a GPU finder; the rule between PBIG and LBVH") {
+    const auto s = gpu::summarize(generate_uniform(100000, fresh_seed()));
     std::string reason;
     CHECK(gpu::choose_backend(s, false, false, &reason) == gpu::finder_backend::cpu);
     CHECK_FALSE(reason.empty());
     CHECK(gpu::choose_backend(s, true, false) == gpu::finder_backend::pbig);
     CHECK(gpu::choose_backend(s, false, true) == gpu::finder_backend::lbvh);
-    CHECK(gpu::choose_backend(s, true, true) != gpu::finder_backend::cpu);
+    // Uniform boxes at 1e5: no box apart from the grid, PBIG.
+    CHECK(s.large_estimate == 0);
+    CHECK(gpu::choose_backend(s, true, true, &reason) == gpu::finder_backend::pbig);
+    CHECK(reason.find("PBIG") != std::string::npos);
+    // Small sets: LBVH.
+    const auto small = gpu::summarize(generate_uniform(gpu::auto_small_n - 1, fresh_seed()));
+    CHECK(gpu::choose_backend(small, true, true) == gpu::finder_backend::lbvh);
+    // The large-box pass estimate decides at the threshold.
+    gpu::box_set_summary m = s;
+    m.n = 1000000;
+    m.large_estimate = gpu::auto_large_pass_tests / 1e6 * 1.01;
+    CHECK(gpu::choose_backend(m, true, true, &reason) == gpu::finder_backend::lbvh);
+    CHECK(reason.find("large-box pass") != std::string::npos);
+    m.large_estimate = gpu::auto_large_pass_tests / 1e6 * 0.99;
+    CHECK(gpu::choose_backend(m, true, true) == gpu::finder_backend::pbig);
+    // Crowded cells of like-sized boxes (the Gaussian set): LBVH; evenly spread boxes: about 1.
+    const auto gauss = gpu::summarize(generate_gaussian(300000, fresh_seed()));
+    CHECK(gauss.crowding > 2 * gpu::auto_crowding);
+    CHECK(gauss.size_spread < gpu::auto_even_spread);
+    CHECK(gpu::choose_backend(gauss, true, true, &reason) == gpu::finder_backend::lbvh);
+    CHECK(reason.find("crowded") != std::string::npos);
+    CHECK(s.crowding == doctest::Approx(1.0).epsilon(0.25));
+    // Boxes covering many cells each (degree of coverage 10): LBVH.
+    const auto dense = gpu::summarize(*generate_named("doc:10", 300000, fresh_seed()));
+    CHECK(dense.mean_cells > gpu::auto_many_cells);
+    CHECK(gpu::choose_backend(dense, true, true) == gpu::finder_backend::lbvh);
+    // The MMO-like set: its gigantic view boxes leave the grid; few at 1e5 (PBIG), many at 3e6 (LBVH).
+    const auto mmo_small = gpu::summarize(generate_mmo(100000, fresh_seed()));
+    CHECK(mmo_small.size_spread > 10);
+    CHECK(gpu::choose_backend(mmo_small, true, true) == gpu::finder_backend::pbig);
+    const auto mmo_big = gpu::summarize(generate_mmo(3000000, fresh_seed()));
+    CHECK(mmo_big.large_estimate * 3e6 > gpu::auto_large_pass_tests);  // about 1.6e10, 3 sd above 4e9
+    CHECK(gpu::choose_backend(mmo_big, true, true) == gpu::finder_backend::lbvh);
+  }
+
+  TEST_CASE("auto: keeps its choice between decisions, re-decides when N moves by more than 10%") {
+    thread_pool pool(2);
+    brute_force_finder brute(&pool);
+    auto pbig_stand_in = std::make_unique<counting_finder>();
+    auto lbvh_stand_in = std::make_unique<counting_finder>();
+    counting_finder* p = pbig_stand_in.get();
+    counting_finder* l = lbvh_stand_in.get();
+    auto f = gpu::make_auto_finder(std::make_unique<grid_finder>(&pool), std::move(pbig_stand_in),
+                                   std::move(lbvh_stand_in), &pool);
+    const box_set small = make_family(family::uniform, 500, fresh_seed());  // N < auto_small_n: LBVH
+    CHECK(run(*f, small) == run(brute, small));
+    CHECK(gpu::last_auto_choice(*f) == gpu::finder_backend::lbvh);
+    CHECK(l->calls == 1);
+    const box_set larger = generate_uniform(gpu::auto_small_n * 2, fresh_seed());  // N moved: PBIG
+    CHECK(run(*f, larger) == run(brute, larger));
+    CHECK(gpu::last_auto_choice(*f) == gpu::finder_backend::pbig);
+    CHECK(p->calls == 1);
+    CHECK(l->calls == 1);
   }
 }
