@@ -1,8 +1,14 @@
 // bench_gpu: the PBIG paper's experiments for the GPU finder, with the fast CPU finder (grid_finder
 // on every core) side by side where it finishes within a minute. Prints tables and writes CSV.
 //
-//   bench_gpu [--csv FILE] [--only LIST] [--max-n N] [--reps R]
-//     LIST: comma-separated of floors,targets,nsweep,cells,doc,gauss,ablation (default: all)
+//   bench_gpu [--csv FILE] [--csv-lbvh FILE] [--only LIST] [--max-n N] [--reps R] [--cgal-max-n N]
+//     LIST: comma-separated of floors,targets,nsweep,cells,doc,gauss,ablation,lbvh (default: all)
+//
+// lbvh: PBIG, LBVH, the auto finder, the CPU grid finder and CGAL (box_self_intersection_d,
+// sequential; when its headers are found, up to --cgal-max-n boxes) side by side on the paper's
+// sets (uniform N sweep, DoC, Gaussian), the MMO-like set and the stadium set (3 world-spanning
+// boxes over small ones); table on stdout, rows in --csv-lbvh (default bench_lbvh.csv). GPU
+// finders are timed through zone::gpu::find_view (zero-copy, validation included).
 //
 // End to end = boxes in host memory -> every pair decoded in host memory. e2e_ms: the wall time of
 // zone::gpu::find_pairs_view (validation included; pairs decoded into the finder's reused buffer).
@@ -28,8 +34,17 @@
 #include <string>
 #include <vector>
 
+#include "finders.h"
 #include "interest.h"
+#include "lbvh.h"
 #include "pbig.h"
+
+#if __has_include(<CGAL/box_intersection_d.h>)
+#include <CGAL/box_intersection_d.h>
+#define ZONE_BENCH_CGAL 1
+#else
+#define ZONE_BENCH_CGAL 0
+#endif
 
 namespace zi = zone::interest;
 namespace zg = zone::gpu;
@@ -313,12 +328,188 @@ std::vector<std::size_t> sizes(std::size_t max_n) {
   return v;
 }
 
+// ---- lbvh: the finders side by side ------------------------------------------------------------
+
+/// The stadium set: n small boxes (the uniform set with edges U[0.3, 30]) under `big` boxes that
+/// span the whole world.
+zi::box_set stadium(std::size_t n, std::uint64_t seed, int big = 3) {
+  zi::box_set s = zi::generate_uniform(n, seed, 0.3);
+  for (int k = 0; k < big; ++k) s.push_back(zi::box{{-1, -1, -1}, {1e4f + 1, 1e4f + 1, 1e4f + 1}, 1, 1});
+  return s;
+}
+
+struct view_result {
+  double ms = 0, min_ms = 0;
+  pair_digest dig;
+};
+
+/// Median wall times of gpu::find_view for several finders on one set: one warm-up each, then
+/// `reps` rounds, each timing every finder once (the order rotating from round to round, so
+/// drifts of the host or the device hit all finders alike); digest of each finder's last view.
+std::vector<view_result> time_views(const std::vector<zi::pair_finder*>& finders, const zi::box_set& s, int reps,
+                                    zi::thread_pool& pool) {
+  const std::size_t f = finders.size();
+  std::vector<std::vector<double>> t(f);
+  std::span<const zi::id_pair> view;
+  for (auto* finder : finders) {
+    if (zg::find_view(*finder, s, view)) {
+      std::fprintf(stderr, "invalid input\n");
+      std::exit(2);
+    }
+  }
+  for (int k = 0; k < reps; ++k) {
+    for (std::size_t q = 0; q < f; ++q) {
+      const std::size_t i = (q + static_cast<std::size_t>(k)) % f;
+      const auto t0 = clock_type::now();
+      (void)zg::find_view(*finders[i], s, view);
+      t[i].push_back(ms_since(t0));
+    }
+  }
+  std::vector<view_result> r(f);
+  for (std::size_t i = 0; i < f; ++i) {
+    (void)zg::find_view(*finders[i], s, view);
+    r[i].ms = median(t[i]);
+    r[i].min_ms = *std::min_element(t[i].begin(), t[i].end());
+    const zi::pair_list copy(view.begin(), view.end());
+    r[i].dig = digest(copy, pool);
+  }
+  return r;
+}
+
+#if ZONE_BENCH_CGAL
+/// CGAL's streaming segment tree (sequential, closed boxes), the contract's filter in the callback;
+/// building CGAL's box vector is part of the time.
+double run_cgal(const zi::box_set& boxes, pair_digest& dig, zi::thread_pool& pool) {
+  using cgal_box =
+      CGAL::Box_intersection_d::Box_with_info_d<float, 3, std::uint32_t, CGAL::Box_intersection_d::ID_EXPLICIT>;
+  const auto t0 = clock_type::now();
+  std::vector<cgal_box> cb;
+  cb.reserve(boxes.size());
+  for (std::size_t i = 0; i < boxes.size(); ++i) {
+    float lo[3] = {boxes.lo_x[i], boxes.lo_y[i], boxes.lo_z[i]};
+    float hi[3] = {boxes.hi_x[i], boxes.hi_y[i], boxes.hi_z[i]};
+    cb.emplace_back(lo, hi, static_cast<std::uint32_t>(i));
+  }
+  zi::pair_list out;
+  const std::uint32_t* category = boxes.category.data();
+  const std::uint32_t* mask = boxes.mask.data();
+  auto report = [&](const cgal_box& p, const cgal_box& q) {
+    const std::uint32_t a = p.info(), b = q.info();
+    if (((category[a] & mask[b]) | (category[b] & mask[a])) != 0) out.push_back(a < b ? zi::id_pair{a, b} : zi::id_pair{b, a});
+  };
+  CGAL::box_self_intersection_d<CGAL::Sequential_tag>(cb.begin(), cb.end(), report, std::ptrdiff_t{10},
+                                                      CGAL::Box_intersection_d::CLOSED);
+  const double ms = ms_since(t0);
+  dig = digest(out, pool);
+  return ms;
+}
+#endif
+
+void lbvh_section(bench& b, const std::string& csv_path, std::size_t cgal_max_n) {
+  std::ofstream csv(csv_path);
+  csv << "set,n,pairs,pbig_ms,lbvh_ms,auto_ms,auto_choice,auto_vs_best,cpu_ms,cgal_ms,pbig_min_ms,lbvh_min_ms,auto_min_ms,"
+         "lbvh_in_ms,lbvh_build_ms,lbvh_sort_ms,lbvh_count_ms,lbvh_fill_ms,lbvh_out_ms,lbvh_gpu_total_ms,large_boxes,"
+         "stack_overflows,batches,summary_spread,summary_largest_cells,summary_mean_cells,summary_large_estimate,pbig_large_boxes,"
+         "verified\n";
+  auto pbig = zg::make_finder(zg::finder_backend::pbig, &b.pool);
+  auto lbvh = zg::make_finder(zg::finder_backend::lbvh, &b.pool);
+  if (!pbig || !lbvh) {
+    std::fprintf(stderr, "bench_gpu: no GPU finder\n");
+    std::exit(2);
+  }
+  std::printf("\n== LBVH beside PBIG, auto, the CPU grid finder and CGAL (e2e ms: boxes in host memory -> every pair "
+              "in host memory; median of R runs)\n");
+  std::printf("%-9s %9s %11s %9s %9s %9s %-5s %7s %9s %9s | %7s %7s %7s %7s %7s %7s %5s %4s | %6s %7s %s\n", "set", "N",
+              "pairs", "pbig", "lbvh", "auto", "auto", "/best", "cpu", "cgal", "in", "build", "sort", "count", "fill", "out",
+              "large", "ovf", "P.lrg", "est.lrg", "verified");
+  struct spec {
+    std::string set;
+    std::size_t n;
+  };
+  std::vector<spec> specs;
+  for (std::size_t n = 1000; n <= b.max_n; n *= 10) specs.push_back({"uniform", n});
+  for (const char* doc : {"doc:0.1", "doc:1", "doc:10"}) specs.push_back({doc, std::min<std::size_t>(1000000, b.max_n)});
+  for (std::size_t n = 10000; n <= std::min<std::size_t>(1000000, b.max_n); n *= 10) specs.push_back({"gaussian", n});
+  for (const std::size_t n : {std::size_t{100000}, std::size_t{1000000}, std::size_t{2000000}, std::size_t{3000000},
+                              std::size_t{10000000}}) {
+    if (n <= b.max_n) specs.push_back({"mmo", n});
+  }
+  for (std::size_t n = 100000; n <= std::min<std::size_t>(1000000, b.max_n); n *= 10) specs.push_back({"stadium", n});
+  const std::uint64_t seed = 42;
+  struct target {
+    std::size_t n;
+    double ms;
+  };
+  std::vector<std::string> verdicts;
+  bool auto_ok = true;
+  for (const spec& sp : specs) {
+    const zi::box_set s = sp.set == "stadium" ? stadium(sp.n, seed) : *zi::generate_named(sp.set, sp.n, seed);
+    const int reps = s.size() >= 5000000 ? 5 : (s.size() >= 1000000 ? 11 : 31);
+    // A fresh auto finder per set: its choice and the reason are logged once.
+    auto automatic = zg::make_finder(zg::finder_backend::auto_select, &b.pool);
+    const auto timed = time_views({pbig.get(), lbvh.get(), automatic.get()}, s, reps, b.pool);
+    const view_result& p = timed[0];
+    const view_result& l = timed[1];
+    const view_result& a = timed[2];
+    const zg::lbvh_report lr = *zg::last_lbvh_report(*lbvh);
+    const std::uint64_t pbig_large = pbig->stats().large_boxes;
+    const auto choice = zg::last_auto_choice(*automatic);
+    const cpu_result c = b.run_cpu(s, static_cast<double>(p.dig.count));
+    double cgal_ms = -1;
+    pair_digest cgal_dig;
+#if ZONE_BENCH_CGAL
+    if (s.size() <= cgal_max_n) cgal_ms = run_cgal(s, cgal_dig, b.pool);
+#else
+    (void)cgal_max_n;
+#endif
+    const bool same = p.dig == l.dig && p.dig == a.dig && (!c.ran || c.dig == p.dig) && (cgal_ms < 0 || cgal_dig == p.dig);
+    const double best = std::min(p.ms, l.ms);
+    const double ratio = a.ms / best;
+    if (ratio > 1.10) auto_ok = false;
+    const auto sum = zg::summarize(s);
+    std::string verified = same ? "yes" : "MISMATCH";
+    if (!c.ran) verified.append(" (cpu skipped)");
+    char cpu[32], cg[32];
+    std::snprintf(cpu, sizeof cpu, c.ran ? "%.2f" : "-", c.ms);
+    std::snprintf(cg, sizeof cg, cgal_ms >= 0 ? "%.1f" : "-", cgal_ms);
+    const std::string choice_name = choice ? std::string(zg::backend_name(*choice)) : "?";
+    std::printf("%-9s %9zu %11llu %9.3f %9.3f %9.3f %-5s %7.2f %9s %9s | %7.3f %7.3f %7.3f %7.3f %7.3f %7.3f %5u %4u | %6llu %7.0f %s\n",
+                sp.set.c_str(), s.size(), static_cast<unsigned long long>(p.dig.count), p.ms, l.ms, a.ms,
+                choice_name.c_str(), ratio, cpu, cg, lr.data_in_ms, lr.build_ms, lr.sort_ms, lr.count_ms, lr.fill_ms,
+                lr.data_out_ms, lr.large_boxes, lr.stack_overflows, static_cast<unsigned long long>(pbig_large),
+                sum.large_estimate, verified.c_str());
+    std::fflush(stdout);
+    csv << sp.set << ',' << s.size() << ',' << p.dig.count << ',' << p.ms << ',' << l.ms << ',' << a.ms << ','
+        << choice_name << ',' << ratio << ',' << (c.ran ? c.ms : -1) << ',' << cgal_ms << ',' << p.min_ms << ','
+        << l.min_ms << ',' << a.min_ms << ',' << lr.data_in_ms << ',' << lr.build_ms << ',' << lr.sort_ms << ','
+        << lr.count_ms << ',' << lr.fill_ms << ',' << lr.data_out_ms << ',' << lr.total_ms << ',' << lr.large_boxes
+        << ',' << lr.stack_overflows << ',' << lr.batches << ',' << sum.size_spread << ',' << sum.largest_cells << ','
+        << sum.mean_cells << ',' << sum.large_estimate << ',' << pbig_large << ',' << (same ? "yes" : "MISMATCH") << '\n';
+    csv.flush();
+    if (sp.set == "uniform") {
+      for (const target t : {target{100000, 1.37}, target{1000000, 4.6}, target{10000000, 103}}) {
+        if (t.n != sp.n) continue;
+        char line[160];
+        std::snprintf(line, sizeof line, "LBVH uniform %zu: %.3f ms vs <= %.2f ms (1.2x cuBQL): %s", t.n, l.ms, t.ms,
+                      l.ms <= t.ms ? "MET" : "missed");
+        verdicts.push_back(line);
+      }
+    }
+  }
+  std::printf("\nTargets:\n");
+  for (const auto& v : verdicts) std::printf("  %s\n", v.c_str());
+  std::printf("  auto within 1.10x of the better of PBIG and LBVH on every set: %s\n", auto_ok ? "MET" : "missed");
+  std::printf("CSV: %s\n", csv_path.c_str());
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
   bench b;
-  std::string only = "floors,targets,nsweep,cells,doc,gauss,ablation";
+  std::string only = "floors,targets,nsweep,cells,doc,gauss,ablation,lbvh";
   std::string csv_path = "bench_gpu.csv";
+  std::string csv_lbvh = "bench_lbvh.csv";
+  std::size_t cgal_max_n = 1000000;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
     auto next = [&]() -> std::string {
@@ -332,8 +523,10 @@ int main(int argc, char** argv) {
     else if (a == "--only") only = next();
     else if (a == "--max-n") b.max_n = std::stoull(next());
     else if (a == "--reps") b.reps = std::stoi(next());
+    else if (a == "--csv-lbvh") csv_lbvh = next();
+    else if (a == "--cgal-max-n") cgal_max_n = std::stoull(next());
     else {
-      std::fprintf(stderr, "usage: bench_gpu [--csv FILE] [--only LIST] [--max-n N] [--reps R]\n");
+      std::fprintf(stderr, "usage: bench_gpu [--csv FILE] [--csv-lbvh FILE] [--only LIST] [--max-n N] [--reps R] [--cgal-max-n N]\n");
       return 2;
     }
   }
@@ -476,6 +669,7 @@ int main(int argc, char** argv) {
       b.row("ablation", "gaussian", n, name, name, g, cpu_result{});
     }
   }
+  if (want("lbvh")) lbvh_section(b, csv_lbvh, cgal_max_n);
   std::printf("\nCSV: %s\n", csv_path.c_str());
   return 0;
 }
