@@ -12,7 +12,6 @@
 #include <memory>
 #include <random>
 #include <thread>
-#include <unordered_set>
 
 #include <sys/resource.h>
 
@@ -149,6 +148,7 @@ class bot_session : public std::enable_shared_from_this<bot_session> {
   net::vec3f steer();
   void fail(const std::string& why, bool connection_failure);
   void close();
+  void flush_counts();
 
   swarm& s_;
   std::size_t slot_;
@@ -172,7 +172,24 @@ class bot_session : public std::enable_shared_from_this<bot_session> {
   net::vec3f heading_{1, 0, 0};
   net::world_bounds world_{};
   bool jumped_ = false;  ///< this session teleported (a board fix from before may be far off)
+  /// Counts not yet added to the swarm's shared counters (flush_counts, every few frames and at close).
+  struct {
+    std::uint64_t tick_updates = 0, enters = 0, leaves = 0, updates = 0, resets = 0, digests_checked = 0,
+                  aoi_checked = 0, aoi_unchecked = 0, self_positions = 0, latency_unsynced = 0, frames_in = 0,
+                  bytes_in = 0;
+  } local_;
+  std::uint64_t frames_seen_ = 0;
+  /// The frame being applied, for the position visitor's AOI check.
+  struct {
+    position_board::fix own{};
+    std::uint64_t tick = 0;
+    bool relay = false;
+    std::array<std::uint64_t, 3> counts{};  // unchecked, inside, violations
+  } frame_check_;
 };
+
+/// Frames between two flushes of a bot's counts into the swarm's counters.
+constexpr std::uint64_t flush_every_frames = 8;
 
 class swarm {
  public:
@@ -493,12 +510,12 @@ void bot_session::read() {
     decoder_.commit(n);
     auto& st = s_.slot(slot_);
     st.bytes_in += n;
-    s_.counters().bytes_in.fetch_add(n, std::memory_order_relaxed);
+    local_.bytes_in += n;
     for (auto step = decoder_.next(); !closed_; step = decoder_.next()) {
       if (step.needs_more()) break;
       if (step.is_error()) return fail(std::string("bad frame from the server: ") + std::string(net::to_string(step.error)), false);
       ++st.frames_in;
-      s_.counters().frames_in.fetch_add(1, std::memory_order_relaxed);
+      ++local_.frames_in;
       on_frame(step.frame);
     }
     if (!closed_) read();
@@ -587,108 +604,95 @@ void bot_session::on_tick_update(const net::wire::tick_update& u) {
     s_.counters().inconsistent.fetch_add(1, std::memory_order_relaxed);
     return;
   }
-  auto& c = s_.counters();
   const std::uint64_t now = local_us(s_.epoch());
-  c.tick_updates.fetch_add(1, std::memory_order_relaxed);
+  ++local_.tick_updates;
   if (s_.offset_known()) {
     const auto sent_local = static_cast<std::int64_t>(u.server_time_us()) - s_.offset_us();
     const auto lat = static_cast<std::int64_t>(now) - sent_local;
     s_.latency().record(static_cast<std::uint64_t>(std::max<std::int64_t>(0, lat)));
   } else {
-    c.latency_unsynced.fetch_add(1, std::memory_order_relaxed);
+    ++local_.latency_unsynced;
   }
   const std::uint64_t tick = u.server_tick();
   const auto* enters = u.enters();
   const auto* leaves = u.leaves();
   const auto* updates = u.updates();
-  c.enters.fetch_add(enters ? enters->size() : 0, std::memory_order_relaxed);
-  c.leaves.fetch_add(leaves ? leaves->size() : 0, std::memory_order_relaxed);
-  c.updates.fetch_add(updates ? updates->size() : 0, std::memory_order_relaxed);
-  if (u.reset() && view_->updates_applied() > 0) c.resets.fetch_add(1, std::memory_order_relaxed);
+  local_.enters += enters ? enters->size() : 0;
+  local_.leaves += leaves ? leaves->size() : 0;
+  local_.updates += updates ? updates->size() : 0;
+  if (u.reset() && view_->updates_applied() > 0) ++local_.resets;
 
-  // Name the ids a consistency failure would be about, before the view changes.
-  std::vector<std::uint32_t> bad_ids;
-  {
-    const auto& known = view_->entities();
-    std::unordered_set<std::uint32_t> left, entered;
-    if (!u.reset()) {
-      if (leaves) {
-        for (const auto id : *leaves) {
-          if (!known.count(id)) bad_ids.push_back(id);
-          left.insert(id);
-        }
-      }
-    }
-    if (enters) {
-      for (const auto* e : *enters) {
-        if (!u.reset() && known.count(e->id()) && !left.count(e->id())) bad_ids.push_back(e->id());
-        if (!entered.insert(e->id()).second) bad_ids.push_back(e->id());
-      }
-    }
-    if (updates) {
-      for (const auto* e : *updates) {
-        const bool in_view = !u.reset() && known.count(e->id()) && !left.count(e->id());
-        if (!in_view && !entered.count(e->id())) bad_ids.push_back(e->id());
-      }
-    }
+  // This bot's own position at this tick: exact when the server sends it (self_position), else
+  // as another bot last saw it on the board (stale by a few ticks; useless after a teleport).
+  auto& board = s_.board();
+  frame_check_.own = {};
+  const auto* self = u.self_position();
+  if (self) {
+    frame_check_.own = {tick, to_vec(*self), true};
+    board.report(entity_, tick, frame_check_.own.pos);  // followers and the flash crowd read it
+    ++local_.self_positions;
+  } else if (!jumped_) {
+    frame_check_.own = board.get(entity_);
   }
+  // Without self positions, every bot relays the positions it is told of other bots' entities.
+  frame_check_.relay = self == nullptr;
+  frame_check_.tick = tick;
+  frame_check_.counts = {0, 0, 0};
+
+  // Apply, checking consistency and the digest; every position told is AOI-checked on the way
+  // (one lookup per entity for the view and the check).
   const std::uint64_t last = view_->last_tick();
-  const auto status = view_->apply(u);
+  const auto status = view_->apply(
+      u,
+      [](void* ctx, std::uint32_t id, const net::vec3f& p, const net::vec3f& half) {
+        auto& b = *static_cast<bot_session*>(ctx);
+        if (b.frame_check_.relay) b.s_.board().report(id, b.frame_check_.tick, p);
+        ++b.frame_check_.counts[static_cast<std::size_t>(b.check_aoi(b.frame_check_.own, b.frame_check_.tick, id, p, half))];
+      },
+      this);
   if (status == net::client_view::status::inconsistent) {
-    c.inconsistent.fetch_add(1, std::memory_order_relaxed);
+    s_.counters().inconsistent.fetch_add(1, std::memory_order_relaxed);
+    const auto& bad = view_->last_bad_ids();
     std::string ids;
-    for (std::size_t i = 0; i < bad_ids.size() && i < 16; ++i) ids += (i ? "," : "") + std::to_string(bad_ids[i]);
+    for (std::size_t i = 0; i < bad.size(); ++i) ids += (i ? "," : "") + std::to_string(bad[i]);
     s_.problem("bot " + std::to_string(slot_) + " (entity " + std::to_string(entity_) + ") tick " + std::to_string(tick) +
                ": inconsistent update (previous tick " + std::to_string(last) + "; ids " + (ids.empty() ? "-" : ids) + ")");
   }
   if (const auto* d = u.digest()) {
-    c.digests_checked.fetch_add(1, std::memory_order_relaxed);
+    ++local_.digests_checked;
     if (s_.opt_ref().verify && (d->hash() != view_->hash() || d->count() != view_->size())) {
-      c.digest_mismatches.fetch_add(1, std::memory_order_relaxed);
+      s_.counters().digest_mismatches.fetch_add(1, std::memory_order_relaxed);
       s_.problem("bot " + std::to_string(slot_) + " (entity " + std::to_string(entity_) + ") tick " + std::to_string(tick) +
                  ": digest mismatch: server has " + std::to_string(d->count()) + " entities (digest tick " +
                  std::to_string(d->tick()) + "), the bot tracked " + std::to_string(view_->size()));
     }
   }
+  local_.aoi_unchecked += frame_check_.counts[0];
+  local_.aoi_checked += frame_check_.counts[1];
+  if (frame_check_.counts[2] != 0) s_.counters().aoi_violations.fetch_add(frame_check_.counts[2], std::memory_order_relaxed);
+  if (++frames_seen_ % flush_every_frames == 0) flush_counts();
+}
 
-  // This bot's own position at this tick: exact when the server sends it (self_position), else
-  // as another bot last saw it on the board (stale by a few ticks; useless after a teleport).
-  auto& board = s_.board();
-  position_board::fix own;
-  const auto* self = u.self_position();
-  if (self) {
-    own = {tick, to_vec(*self), true};
-    board.report(entity_, tick, own.pos);  // followers and the flash crowd read it
-    c.self_positions.fetch_add(1, std::memory_order_relaxed);
-  } else if (!jumped_) {
-    own = board.get(entity_);
-  }
-  // Without self positions, every bot relays the positions it is told of other bots' entities.
-  const bool relay = self == nullptr;
-  std::uint64_t aoi[3] = {0, 0, 0};      // unchecked, inside, violations (counted once per frame)
-  if (enters) {
-    for (const auto* e : *enters) {
-      if (!e->position()) continue;
-      const auto p = to_vec(*e->position());
-      if (relay) board.report(e->id(), tick, p);
-      const net::vec3f half = e->presence_half_extent() ? to_vec(*e->presence_half_extent()) : net::vec3f{};
-      ++aoi[check_aoi(own, tick, e->id(), p, half)];
-    }
-  }
-  if (updates) {
-    const auto& known = view_->entities();
-    for (const auto* e : *updates) {
-      const auto& q = e->position();
-      const auto p = view_->quantizer().dequantize({q.x(), q.y(), q.z()});
-      if (relay) board.report(e->id(), tick, p);
-      const auto it = known.find(e->id());
-      const net::vec3f half = it != known.end() ? it->second.state.presence_half_extent : net::vec3f{};
-      ++aoi[check_aoi(own, tick, e->id(), p, half)];
-    }
-  }
-  c.aoi_unchecked.fetch_add(aoi[0], std::memory_order_relaxed);
-  c.aoi_checked.fetch_add(aoi[1], std::memory_order_relaxed);
-  c.aoi_violations.fetch_add(aoi[2], std::memory_order_relaxed);
+void bot_session::flush_counts() {
+  // The swarm's shared counters are bumped once per few frames, not once per frame, so that
+  // thousands of bots on several threads do not fight over their cache lines.
+  auto& c = s_.counters();
+  const auto add = [](std::atomic<std::uint64_t>& to, std::uint64_t& from) {
+    if (from != 0) to.fetch_add(from, std::memory_order_relaxed);
+    from = 0;
+  };
+  add(c.tick_updates, local_.tick_updates);
+  add(c.enters, local_.enters);
+  add(c.leaves, local_.leaves);
+  add(c.updates, local_.updates);
+  add(c.resets, local_.resets);
+  add(c.digests_checked, local_.digests_checked);
+  add(c.aoi_checked, local_.aoi_checked);
+  add(c.aoi_unchecked, local_.aoi_unchecked);
+  add(c.self_positions, local_.self_positions);
+  add(c.latency_unsynced, local_.latency_unsynced);
+  add(c.frames_in, local_.frames_in);
+  add(c.bytes_in, local_.bytes_in);
 }
 
 void bot_session::schedule_input() {
@@ -843,6 +847,7 @@ void bot_session::fail(const std::string& why, bool connection_failure) {
 void bot_session::close() {
   if (closed_) return;
   closed_ = true;
+  flush_counts();
   boost::system::error_code ignored;
   input_timer_.cancel();
   ping_timer_.cancel();

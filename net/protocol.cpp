@@ -466,8 +466,17 @@ client_view::status client_view::finish(std::uint64_t tick, const std::optional<
   return s;
 }
 
+namespace {
+constexpr std::size_t max_bad_ids = 16;
+}
+
 client_view::status client_view::apply(const tick_update_msg& m) {
+  bad_ids_.clear();
   bool consistent = true;
+  const auto bad = [&](std::uint32_t id) {
+    consistent = false;
+    if (bad_ids_.size() < max_bad_ids) bad_ids_.push_back(id);
+  };
   if (m.reset) {
     entities_.clear();
     hash_ = 0;
@@ -480,7 +489,7 @@ client_view::status client_view::apply(const tick_update_msg& m) {
     if (entities_.erase(id) == 1) {
       hash_ = digest_remove(hash_, id);
     } else {
-      consistent = false;
+      bad(id);
     }
   }
   for (const auto& e : m.enters) {
@@ -488,14 +497,14 @@ client_view::status client_view::apply(const tick_update_msg& m) {
     if (fresh) {
       hash_ = digest_add(hash_, e.id);
     } else {
-      consistent = false;
+      bad(e.id);
     }
     it->second = {e, m.server_tick};
   }
   for (const auto& u : m.updates) {
     const auto it = entities_.find(u.id);
     if (it == entities_.end()) {
-      consistent = false;
+      bad(u.id);
       continue;
     }
     it->second.state.position = quantizer_.dequantize(u.position);
@@ -505,32 +514,65 @@ client_view::status client_view::apply(const tick_update_msg& m) {
   return finish(m.server_tick, m.digest, consistent);
 }
 
-client_view::status client_view::apply(const w::tick_update& u) {
-  // One path for both forms: convert, then apply.
-  tick_update_msg m;
-  m.server_tick = u.server_tick();
-  m.server_time_us = u.server_time_us();
-  m.last_input_sequence = u.last_input_sequence();
-  m.reset = u.reset();
-  if (const auto* v = u.enters()) {
-    for (const auto* s : *v) {
-      if (s) {
-        m.enters.push_back({s->id(), s->kind(), s->visibility_class(), from_wire(s->position()), from_wire(s->velocity()),
-                            from_wire(s->presence_half_extent()), from_wire(s->name())});
+client_view::status client_view::apply(const w::tick_update& u, position_visitor visit, void* ctx) {
+  // The same steps as apply(const tick_update_msg&), reading the frame in place.
+  bad_ids_.clear();
+  bool consistent = true;
+  const auto bad = [&](std::uint32_t id) {
+    consistent = false;
+    if (bad_ids_.size() < max_bad_ids) bad_ids_.push_back(id);
+  };
+  const std::uint64_t tick = u.server_tick();
+  if (u.reset()) {
+    entities_.clear();
+    hash_ = 0;
+  }
+  if (const auto* p = u.self_position()) {
+    self_position_ = from_wire(p);
+    self_tick_ = tick;
+  }
+  if (const auto* v = u.leaves()) {
+    for (const auto id : *v) {
+      if (entities_.erase(id) == 1) {
+        hash_ = digest_remove(hash_, id);
+      } else {
+        bad(id);
       }
     }
   }
-  if (const auto* v = u.leaves()) m.leaves.assign(v->begin(), v->end());
-  if (const auto* v = u.updates()) {
-    for (const auto* x : *v) {
-      m.updates.push_back({x->id(),
-                           {x->position().x(), x->position().y(), x->position().z()},
-                           {x->velocity().x(), x->velocity().y(), x->velocity().z()}});
+  if (const auto* v = u.enters()) {
+    for (const auto* e : *v) {
+      if (!e) continue;
+      const auto [it, fresh] = entities_.try_emplace(e->id());
+      if (fresh) {
+        hash_ = digest_add(hash_, e->id());
+      } else {
+        bad(e->id());
+      }
+      it->second = {{e->id(), e->kind(), e->visibility_class(), from_wire(e->position()), from_wire(e->velocity()),
+                     from_wire(e->presence_half_extent()), from_wire(e->name())},
+                    tick};
+      if (visit && e->position()) visit(ctx, e->id(), it->second.state.position, it->second.state.presence_half_extent);
     }
   }
-  if (const auto* d = u.digest()) m.digest = verify_digest{d->tick(), d->hash(), d->count()};
-  if (const auto* p = u.self_position()) m.self_position = from_wire(p);
-  return apply(m);
+  if (const auto* v = u.updates()) {
+    for (const auto* x : *v) {
+      const auto it = entities_.find(x->id());
+      if (it == entities_.end()) {
+        bad(x->id());
+        continue;
+      }
+      const auto& q = x->position();
+      const auto& qv = x->velocity();
+      it->second.state.position = quantizer_.dequantize({q.x(), q.y(), q.z()});
+      it->second.state.velocity = dequantize_velocity({qv.x(), qv.y(), qv.z()});
+      it->second.last_tick = tick;
+      if (visit) visit(ctx, x->id(), it->second.state.position, it->second.state.presence_half_extent);
+    }
+  }
+  std::optional<verify_digest> digest;
+  if (const auto* d = u.digest()) digest = verify_digest{d->tick(), d->hash(), d->count()};
+  return finish(tick, digest, consistent);
 }
 
 }  // namespace zone::net

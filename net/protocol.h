@@ -363,10 +363,18 @@ class client_view {
     std::uint64_t last_tick = 0;  ///< tick of the last enter or update
   };
 
+  /// Called for each position an update tells, after the view holds it: enters with their exact
+  /// position, updates dequantized; with the entity's presence half-extent. `ctx` is the caller's.
+  using position_visitor = void (*)(void* ctx, std::uint32_t id, const vec3f& position, const vec3f& presence_half_extent);
+
   /// Applies one update (the whole update is applied even when a check fails).
   status apply(const tick_update_msg& m);
-  /// The same on a verified frame's tick_update (converted first).
-  status apply(const wire::tick_update& u);
+  /// The same on a verified frame's tick_update, read in place (no copy of the frame), calling
+  /// `visit` (when given) for every position told: one lookup per entity for view and caller.
+  status apply(const wire::tick_update& u, position_visitor visit = nullptr, void* ctx = nullptr);
+  /// The ids that made the last apply() inconsistent (unknown leaves and updates, known or
+  /// repeated enters; at most 16), empty after a consistent one.
+  [[nodiscard]] const std::vector<std::uint32_t>& last_bad_ids() const { return bad_ids_; }
 
   [[nodiscard]] const std::unordered_map<std::uint32_t, entity>& entities() const { return entities_; }
   [[nodiscard]] std::size_t size() const { return entities_.size(); }
@@ -388,6 +396,7 @@ class client_view {
   std::uint64_t last_tick_ = 0;
   std::optional<vec3f> self_position_;
   std::uint64_t self_tick_ = 0;
+  std::vector<std::uint32_t> bad_ids_;
   bool any_ = false;
   std::uint64_t applied_ = 0, digests_checked_ = 0, problems_ = 0;
 };

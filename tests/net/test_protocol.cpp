@@ -625,16 +625,41 @@ TEST_SUITE("net.protocol") {
       }
       const std::vector<std::uint32_t> ids(model.begin(), model.end());
       m.digest = visible_digest(tick, ids);
-      // Half the time through the wire form.
+      // Half the time through the wire form, with a visitor that sees every position told.
+      struct told {
+        std::vector<std::pair<std::uint32_t, vec3f>> positions;
+        const client_view* view = nullptr;
+        bool in_view = true;
+      } seen;
+      seen.view = &view;
       const auto status = g.below(2) ? view.apply(m) : [&] {
         const auto frame = encode_frame(m);
         frame_decoder d(big_frames());
         d.feed(frame);
         const auto s = d.next();
         REQUIRE(s.is_frame());
-        return view.apply(*s.frame.envelope->message_as_tick_update());
+        const auto st = view.apply(
+            *s.frame.envelope->message_as_tick_update(),
+            [](void* ctx, std::uint32_t id, const vec3f& p, const vec3f&) {
+              auto& t = *static_cast<told*>(ctx);
+              t.positions.emplace_back(id, p);
+              t.in_view = t.in_view && t.view->entities().count(id) == 1;  // called after the view holds it
+            },
+            &seen);
+        REQUIRE(seen.positions.size() == m.enters.size() + m.updates.size());
+        for (std::size_t k = 0; k < m.enters.size(); ++k) {
+          CHECK(seen.positions[k].first == m.enters[k].id);
+          CHECK(seen.positions[k].second == m.enters[k].position);
+        }
+        for (std::size_t k = 0; k < m.updates.size(); ++k) {
+          CHECK(seen.positions[m.enters.size() + k].first == m.updates[k].id);
+          CHECK(seen.positions[m.enters.size() + k].second == q.dequantize(m.updates[k].position));
+        }
+        CHECK(seen.in_view);
+        return st;
       }();
       REQUIRE(status == client_view::status::ok);
+      CHECK(view.last_bad_ids().empty());
       CHECK(view.size() == model.size());
     }
     CHECK(view.problems() == 0);
@@ -643,7 +668,9 @@ TEST_SUITE("net.protocol") {
     tick_update_msg bad;
     bad.server_tick = ++tick;
     bad.leaves.push_back(5000);
+    bad.updates.push_back({5001, {}, {}});
     CHECK(view.apply(bad) == client_view::status::inconsistent);
+    CHECK(view.last_bad_ids() == std::vector<std::uint32_t>{5000, 5001});
     tick_update_msg stale;
     stale.server_tick = 1;
     CHECK(view.apply(stale) == client_view::status::inconsistent);
@@ -658,6 +685,16 @@ TEST_SUITE("net.protocol") {
       s.id = *model.begin();
       dup.enters.push_back(s);
       CHECK(view.apply(dup) == client_view::status::inconsistent);
+      CHECK(view.last_bad_ids() == std::vector<std::uint32_t>{s.id});
+      // The same through the wire form.
+      dup.server_tick = ++tick;
+      const auto frame = encode_frame(dup);
+      frame_decoder d(big_frames());
+      d.feed(frame);
+      const auto step = d.next();
+      REQUIRE(step.is_frame());
+      CHECK(view.apply(*step.frame.envelope->message_as_tick_update()) == client_view::status::inconsistent);
+      CHECK(view.last_bad_ids() == std::vector<std::uint32_t>{s.id});
     }
     CHECK(view.problems() >= 3);
   }
