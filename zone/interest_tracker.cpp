@@ -8,6 +8,7 @@
 // test: a target already visible stays; a new one enters only when its presence box meets the
 // exact AOI box. Targets of the previous set that are not candidates leave.
 #include <algorithm>
+#include <functional>
 #include <atomic>
 #include <bit>
 #include <chrono>
@@ -19,6 +20,22 @@
 namespace zone {
 
 namespace {
+
+/// interest::run_tasks without a heap allocation per call: std::function keeps a
+/// reference_wrapper in place, where a lambda capturing several references would be copied to
+/// the heap (the tick allocates nothing in steady state).
+/// resize() with 25% spare capacity when it must grow, so that counts creeping up from tick to
+/// tick do not reallocate every time.
+template <class V>
+void resize_with_headroom(V& v, std::size_t n) {
+  if (v.capacity() < n) v.reserve(n + n / 4 + 64);
+  v.resize(n);
+}
+
+template <class F>
+void run_each(interest::thread_pool* pool, std::size_t n, F&& task) {
+  interest::run_tasks(pool, n, std::ref(task));
+}
 
 using clock_type = std::chrono::steady_clock;
 double ms_since(clock_type::time_point t0) {
@@ -136,15 +153,26 @@ std::optional<interest::box_error> interest_tracker::apply_pairs(const entity_st
   //    the pair ids on the way. Private counters per task: no atomics, and the fill below writes
   //    each task's candidates at offsets of its own. Only scratch memory is written before the
   //    checks pass, so a refused input changes nothing.
+  //    The counters are laid out by row, then task ([row][task]: a row's counters share a cache
+  //    line), so the offsets pass below reads them in order; the number of pair tasks is at most
+  //    the thread count, which bounds that matrix at threads x rows.
   const std::size_t threads = pool_ != nullptr ? pool_->size() : 1;
-  const std::size_t pair_tasks =
-      threads == 1 ? 1 : std::clamp<std::size_t>(pairs.size() / 32768, 1, 4 * threads);
+  const std::size_t pair_tasks = threads == 1 ? 1 : std::clamp<std::size_t>(pairs.size() / 32768, 1, threads);
   const auto pair_begin = [&](std::size_t t) { return pairs.size() * t / pair_tasks; };
-  task_cursor_.assign(pair_tasks * n, 0);
+  // Fixed chunks of rows for the parallel passes over rows (the output never depends on them).
+  const std::size_t row_chunk = 4096;
+  const std::size_t row_chunks = (n + row_chunk - 1) / row_chunk;
+  const auto chunk_rows = [&](std::size_t c) { return std::pair{c * row_chunk, std::min(n, (c + 1) * row_chunk)}; };
+  task_cursor_.resize(pair_tasks * n);
+  run_each(row_chunks > 1 ? pool_ : nullptr, row_chunks, [&](std::size_t c) {
+    const auto [b, e] = chunk_rows(c);
+    std::fill(task_cursor_.begin() + static_cast<std::ptrdiff_t>(b * pair_tasks),
+              task_cursor_.begin() + static_cast<std::ptrdiff_t>(e * pair_tasks), 0u);
+  });
   task_bad_.assign(pair_tasks, no_pair);
   const std::size_t box_count = boxes.size();
-  interest::run_tasks(pair_tasks > 1 ? pool_ : nullptr, pair_tasks, [&](std::size_t task) {
-    std::uint32_t* count = task_cursor_.data() + task * n;
+  run_each(pair_tasks > 1 ? pool_ : nullptr, pair_tasks, [&](std::size_t task) {
+    std::uint32_t* count = task_cursor_.data() + task;
     for (std::size_t k = pair_begin(task), e = pair_begin(task + 1); k < e; ++k) {
       const auto& p = pairs[k];
       if (std::max(p.a, p.b) >= box_count) {
@@ -152,7 +180,7 @@ std::optional<interest::box_error> interest_tracker::apply_pairs(const entity_st
         continue;
       }
       std::uint32_t o, t;
-      if (split(p, o, t)) ++count[o];
+      if (split(p, o, t)) ++count[o * pair_tasks];
     }
   });
   for (const std::size_t k : task_bad_) {
@@ -160,6 +188,22 @@ std::optional<interest::box_error> interest_tracker::apply_pairs(const entity_st
     const auto& p = pairs[k];
     return interest::box_error{std::max(p.a, p.b), "pair (" + std::to_string(p.a) + ", " + std::to_string(p.b) +
                                                       ") refers to a box beyond the set"};
+  }
+
+  // 2. Row offsets, and each (row, task)'s first slot: counts become cursors. Two passes over
+  //    fixed chunks of rows: chunk totals, then (after a scan of those) offsets within chunks.
+  chunk_base_.resize(row_chunks + 1);
+  run_each(row_chunks > 1 ? pool_ : nullptr, row_chunks, [&](std::size_t c) {
+    const auto [b, e] = chunk_rows(c);
+    std::uint64_t sum = 0;
+    for (std::size_t k = b * pair_tasks; k < e * pair_tasks; ++k) sum += task_cursor_[k];
+    chunk_base_[c + 1] = sum;
+  });
+  chunk_base_[0] = 0;
+  for (std::size_t c = 0; c < row_chunks; ++c) chunk_base_[c + 1] += chunk_base_[c];
+  const std::uint64_t candidates = chunk_base_[row_chunks];
+  if (candidates > 0xffffffffu) {
+    return interest::box_error{0, "too many visibility candidates in one tick (" + std::to_string(candidates) + ")"};
   }
 
   // The last tick's output becomes the previous state.
@@ -170,26 +214,28 @@ std::optional<interest::box_error> interest_tracker::apply_pairs(const entity_st
   const std::size_t prev_rows = prev_ids_.size();
   ids_.assign(ids.begin(), ids.end());
 
-  // 2. Row offsets, and each (task, row)'s first slot: counts become cursors.
   vis_off_.resize(n + 1);
-  std::uint32_t running = 0;
-  for (std::size_t i = 0; i < n; ++i) {
-    vis_off_[i] = running;
-    for (std::size_t t = 0; t < pair_tasks; ++t) running += std::exchange(task_cursor_[t * n + i], running);
-  }
-  vis_off_[n] = running;
-  const std::uint64_t candidates = running;
+  run_each(row_chunks > 1 ? pool_ : nullptr, row_chunks, [&](std::size_t c) {
+    const auto [b, e] = chunk_rows(c);
+    auto running = static_cast<std::uint32_t>(chunk_base_[c]);
+    for (std::size_t i = b; i < e; ++i) {
+      vis_off_[i] = running;
+      std::uint32_t* row = task_cursor_.data() + i * pair_tasks;
+      for (std::size_t t = 0; t < pair_tasks; ++t) running += std::exchange(row[t], running);
+    }
+  });
+  vis_off_[n] = static_cast<std::uint32_t>(candidates);
 
   // 3. Fill: target handles by observer row (the order within a row is sorted later).
-  cand_.resize(candidates);
-  vis_.resize(candidates);
-  enter_.resize(candidates);
-  if (opt_.max_visible != 0) cap_keys_.resize(candidates);
-  interest::run_tasks(pair_tasks > 1 ? pool_ : nullptr, pair_tasks, [&](std::size_t task) {
-    std::uint32_t* cursor = task_cursor_.data() + task * n;
+  resize_with_headroom(cand_, candidates);
+  resize_with_headroom(vis_, candidates);
+  resize_with_headroom(enter_, candidates);
+  if (opt_.max_visible != 0) resize_with_headroom(cap_keys_, candidates);
+  run_each(pair_tasks > 1 ? pool_ : nullptr, pair_tasks, [&](std::size_t task) {
+    std::uint32_t* cursor = task_cursor_.data() + task;
     for (std::size_t k = pair_begin(task), e = pair_begin(task + 1); k < e; ++k) {
       std::uint32_t o, t;
-      if (split(pairs[k], o, t)) cand_[cursor[o]++] = ids[t];
+      if (split(pairs[k], o, t)) cand_[cursor[o * pair_tasks]++] = ids[t];
     }
   });
 
@@ -212,7 +258,7 @@ std::optional<interest::box_error> interest_tracker::apply_pairs(const entity_st
     prev_row_[i] = r;
     leave_off_[i + 1] = leave_off_[i] + (r == no_row ? 0 : prev_len_[r]);
   }
-  leave_.resize(leave_off_[n]);
+  resize_with_headroom(leave_, leave_off_[n]);
   vis_len_.resize(n);
   enter_len_.resize(n);
   leave_len_.resize(n);
@@ -221,7 +267,7 @@ std::optional<interest::box_error> interest_tracker::apply_pairs(const entity_st
   const std::size_t chunk = std::max<std::uint32_t>(1, opt_.rows_per_task);
   const std::size_t tasks = (n + chunk - 1) / chunk;
   capped_pending_ = 0;
-  interest::run_tasks(pool_, tasks, [&](std::size_t task) {
+  run_each(pool_, tasks, [&](std::size_t task) {
     process_rows(store, task * chunk, std::min(n, (task + 1) * chunk));
   });
 
