@@ -37,6 +37,13 @@
 namespace zone::interest {
 namespace {
 
+/// run_tasks without a heap allocation per call: std::function keeps a reference_wrapper in
+/// place, where a lambda capturing several references would be copied to the heap.
+template <class F>
+void run_each(thread_pool* pool, std::size_t n, F&& task) {
+  run_tasks(pool, n, std::ref(task));
+}
+
 /// One box as the check loop reads it: bounds, filter bits and the cell of its max corner.
 struct alignas(64) packed_box {
   float lo[3];
@@ -51,16 +58,16 @@ struct alignas(64) packed_box {
 /// Stable LSD radix sort of 64-bit items by bits [32, 32 + key_bits) (the key; the low 32 bits
 /// are the payload). Chunks count digits in parallel; stability makes the result unique.
 void radix_sort_by_key(std::vector<std::uint64_t>& items, std::vector<std::uint64_t>& tmp, int key_bits,
-                       thread_pool* pool) {
+                       thread_pool* pool, std::vector<std::size_t>& offsets) {
   constexpr int digit_bits = 11;
   constexpr std::size_t buckets = std::size_t{1} << digit_bits;
   const std::size_t n = items.size();
   tmp.resize(n);
   const std::size_t chunks = std::clamp<std::size_t>(n / 65536, 1, 32);
-  std::vector<std::size_t> offsets(chunks * buckets);
+  offsets.resize(chunks * buckets);
   for (int shift = 32; shift < 32 + key_bits; shift += digit_bits) {
     std::fill(offsets.begin(), offsets.end(), 0);
-    run_tasks(pool, chunks, [&](std::size_t c) {
+    run_each(pool, chunks, [&](std::size_t c) {
       std::size_t* count = offsets.data() + c * buckets;
       for (std::size_t i = n * c / chunks, e = n * (c + 1) / chunks; i < e; ++i) ++count[(items[i] >> shift) & (buckets - 1)];
     });
@@ -68,7 +75,7 @@ void radix_sort_by_key(std::vector<std::uint64_t>& items, std::vector<std::uint6
     for (std::size_t d = 0; d < buckets; ++d) {
       for (std::size_t c = 0; c < chunks; ++c) running += std::exchange(offsets[c * buckets + d], running);
     }
-    run_tasks(pool, chunks, [&](std::size_t c) {
+    run_each(pool, chunks, [&](std::size_t c) {
       std::size_t* at = offsets.data() + c * buckets;
       for (std::size_t i = n * c / chunks, e = n * (c + 1) / chunks; i < e; ++i) {
         tmp[at[(items[i] >> shift) & (buckets - 1)]++] = items[i];
@@ -113,13 +120,21 @@ struct bounds {
   float hi[3]{std::numeric_limits<float>::lowest(), std::numeric_limits<float>::lowest(), std::numeric_limits<float>::lowest()};
 };
 
-bounds scene_bounds(const box_set& s, thread_pool* pool) {
+/// Scratch memory of planning, reused across calls.
+struct plan_scratch {
+  std::vector<bounds> part;         // per chunk of scene_bounds
+  std::vector<std::size_t> sample;  // box indices of the planning sample
+  std::vector<double> centre;       // flat_axis: sampled centres
+};
+
+bounds scene_bounds(const box_set& s, thread_pool* pool, plan_scratch& ps) {
   const std::size_t n = s.size();
   const std::size_t chunks = std::clamp<std::size_t>(n / 65536, 1, 64);
-  std::vector<bounds> part(chunks);
+  auto& part = ps.part;
+  part.assign(chunks, bounds{});
   const float* lo[3] = {s.lo_x.data(), s.lo_y.data(), s.lo_z.data()};
   const float* hi[3] = {s.hi_x.data(), s.hi_y.data(), s.hi_z.data()};
-  run_tasks(pool, chunks, [&](std::size_t c) {
+  run_each(pool, chunks, [&](std::size_t c) {
     const std::size_t b = n * c / chunks, e = n * (c + 1) / chunks;
     for (int d = 0; d < 3; ++d) {
       float mn = part[c].lo[d], mx = part[c].hi[d];
@@ -147,7 +162,7 @@ void dims_for(const double extent[3], double l, double dims[3], int flat) {
   for (int d = 0; d < 3; ++d) dims[d] = d == flat ? 1.0 : std::floor(extent[d] / l) + 1.0;
 }
 
-grid_plan plan_with(const box_set& s, const bounds& b, const grid_finder_options& opt, int flat) {
+grid_plan plan_with(const box_set& s, const bounds& b, const grid_finder_options& opt, int flat, plan_scratch& ps) {
   grid_plan plan;
   const std::size_t n = s.size();
   double extent[3];
@@ -160,7 +175,8 @@ grid_plan plan_with(const box_set& s, const bounds& b, const grid_finder_options
   const double max_cells = std::min(2.0 * static_cast<double>(n) + 64.0, 2147483647.0);
 
   // The planning sample: a fixed-seed simple random sample (with replacement) of box indices.
-  std::vector<std::size_t> sample;
+  auto& sample = ps.sample;
+  sample.clear();
   if (n > 0) {
     const std::size_t k = std::min(n, std::max<std::size_t>(1, opt.alpha_samples));
     sample.resize(k);
@@ -252,7 +268,7 @@ grid_plan plan_with(const box_set& s, const bounds& b, const grid_finder_options
 /// axis into cells separates no boxes and only multiplies the (cell, box) entries. Tested on the
 /// planning sample: the plane is the median of the sampled centres on the axis of least scene
 /// extent, and the axis is flat when at least 90% of the sampled boxes contain it.
-int flat_axis(const box_set& s, const bounds& b, const grid_finder_options& opt) {
+int flat_axis(const box_set& s, const bounds& b, const grid_finder_options& opt, plan_scratch& ps) {
   const std::size_t n = s.size();
   if (n < 2) return -1;
   int d = 0;
@@ -262,10 +278,12 @@ int flat_axis(const box_set& s, const bounds& b, const grid_finder_options& opt)
   const float* lo = d == 0 ? s.lo_x.data() : d == 1 ? s.lo_y.data() : s.lo_z.data();
   const float* hi = d == 0 ? s.hi_x.data() : d == 1 ? s.hi_y.data() : s.hi_z.data();
   const std::size_t k = std::min(n, std::max<std::size_t>(1, opt.alpha_samples));
-  std::vector<std::size_t> sample(k);
+  auto& sample = ps.sample;
+  sample.resize(k);
   std::mt19937_64 rng(opt.sample_seed ^ 0x666c6174ull);
   for (std::size_t i = 0; i < k; ++i) sample[i] = k == n ? i : static_cast<std::size_t>(rng() % n);
-  std::vector<double> centre(k);
+  auto& centre = ps.centre;
+  centre.resize(k);
   for (std::size_t i = 0; i < k; ++i) centre[i] = 0.5 * (static_cast<double>(lo[sample[i]]) + hi[sample[i]]);
   std::nth_element(centre.begin(), centre.begin() + static_cast<std::ptrdiff_t>(k / 2), centre.end());
   const double plane = centre[k / 2];
@@ -274,14 +292,14 @@ int flat_axis(const box_set& s, const bounds& b, const grid_finder_options& opt)
   return static_cast<double>(containing) >= 0.9 * static_cast<double>(k) ? d : -1;
 }
 
-grid_plan plan_from_bounds(const box_set& s, const bounds& b, const grid_finder_options& opt) {
-  const int flat = flat_axis(s, b, opt);
-  if (flat < 0) return plan_with(s, b, opt, -1);
+grid_plan plan_from_bounds(const box_set& s, const bounds& b, const grid_finder_options& opt, plan_scratch& ps) {
+  const int flat = flat_axis(s, b, opt, ps);
+  if (flat < 0) return plan_with(s, b, opt, -1, ps);
   // A cell of a flat grid is a column holding every box over its footprint; on the zone's boxes
   // the best W for it is about twice the 3D one (bench-zone --sweep-w, docs/zone-benchmarks.md).
   grid_finder_options flat_opt = opt;
   flat_opt.min_boxes_per_cell = 2.0 * opt.min_boxes_per_cell;
-  return plan_with(s, b, flat_opt, flat);
+  return plan_with(s, b, flat_opt, flat, ps);
 }
 
 constexpr std::size_t check_chunk_limit = 512;  // fixed: output order must not depend on threads
@@ -296,7 +314,8 @@ inline bool boxes_qualify(const packed_box& a, const packed_box& b) {
 }  // namespace
 
 grid_plan plan_grid(const box_set& boxes, const grid_finder_options& opt) {
-  return plan_from_bounds(boxes, scene_bounds(boxes, nullptr), opt);
+  plan_scratch ps;
+  return plan_from_bounds(boxes, scene_bounds(boxes, nullptr, ps), opt, ps);
 }
 
 /// One cell's boxes as columns, for the branch-free check loop; one per check chunk, reused.
@@ -307,6 +326,9 @@ struct cell_columns {
   std::vector<std::uint8_t> group;  // signature group of the i-th box of the cell's list
   void resize(std::size_t n) {
     if (lx.size() >= n) return;
+    // Geometric growth from 256: a chunk's largest cell creeps up over ticks, and each step
+    // would otherwise reallocate eleven arrays in the tick.
+    n = std::max({n, 2 * lx.size(), std::size_t{256}});
     for (auto* v : {&lx, &ly, &lz, &hx, &hy, &hz}) v->resize(n);
     for (auto* v : {&cat, &msk, &flag, &id}) v->resize(n);
     group.resize(n);
@@ -315,6 +337,9 @@ struct cell_columns {
 
 struct grid_finder::scratch {
   std::vector<cell_columns> columns;            // per check chunk
+  plan_scratch plan;
+  std::vector<std::size_t> radix_offsets;       // per (chunk, digit) of radix_sort_by_key
+  std::vector<std::size_t> gather_at;           // output offset per chunk's pair list
 
   std::vector<std::uint64_t> keyed, keyed_tmp;  // (cell << 32 | payload) items being radix-sorted
   std::vector<packed_box> unsorted;             // boxes in input order
@@ -349,7 +374,7 @@ void grid_finder::find_valid(const box_set& boxes, pair_list& out) {
   };
 
   // 1-2. Bounds and plan.
-  plan_ = plan_from_bounds(boxes, scene_bounds(boxes, pool_), opt_);
+  plan_ = plan_from_bounds(boxes, scene_bounds(boxes, pool_, sc.plan), opt_, sc.plan);
   const cell_mapper cell = make_mapper(plan_);
   const std::uint32_t dx = plan_.dims[0], dy = plan_.dims[1];
   const std::size_t cells = plan_.cell_count();
@@ -364,7 +389,7 @@ void grid_finder::find_valid(const box_set& boxes, pair_list& out) {
   // spatial order: one random read per box instead of one per column.
   sc.unsorted.resize(n);
   sc.keyed.resize(n);
-  run_tasks(pool_, box_chunks, [&](std::size_t c) {
+  run_each(pool_, box_chunks, [&](std::size_t c) {
     for (std::size_t i = n * c / box_chunks, e = n * (c + 1) / box_chunks; i < e; ++i) {
       packed_box& p = sc.unsorted[i];
       p.lo[0] = boxes.lo_x[i];
@@ -386,11 +411,11 @@ void grid_finder::find_valid(const box_set& boxes, pair_list& out) {
     }
   });
   const int cell_bits = bits_for(cells);
-  radix_sort_by_key(sc.keyed, sc.keyed_tmp, cell_bits, pool_);
+  radix_sort_by_key(sc.keyed, sc.keyed_tmp, cell_bits, pool_, sc.radix_offsets);
 
   sc.packed.resize(n);
   sc.entry_offset.resize(n + 1);
-  run_tasks(pool_, box_chunks, [&](std::size_t c) {
+  run_each(pool_, box_chunks, [&](std::size_t c) {
     for (std::size_t k = n * c / box_chunks, e = n * (c + 1) / box_chunks; k < e; ++k) {
       const packed_box& p = sc.packed[k] = sc.unsorted[sc.keyed[k] & 0xffffffffu];
       double occupied = 1;
@@ -425,14 +450,14 @@ void grid_finder::find_valid(const box_set& boxes, pair_list& out) {
     }
   };
   sc.keyed.resize(entry_count);
-  run_tasks(pool_, box_chunks, [&](std::size_t c) {
+  run_each(pool_, box_chunks, [&](std::size_t c) {
     for (std::size_t k = n * c / box_chunks, e = n * (c + 1) / box_chunks; k < e; ++k) {
       std::uint64_t at = sc.entry_offset[k];
       if (sc.entry_offset[k + 1] == at) continue;  // large box
       for_each_cell_of(sc.packed[k], [&](std::size_t id) { sc.keyed[at++] = static_cast<std::uint64_t>(id) << 32 | k; });
     }
   });
-  radix_sort_by_key(sc.keyed, sc.keyed_tmp, cell_bits, pool_);
+  radix_sort_by_key(sc.keyed, sc.keyed_tmp, cell_bits, pool_, sc.radix_offsets);
   sc.entries.resize(entry_count);
   sc.cell_start.resize(cells + 1);
   {
@@ -453,14 +478,14 @@ void grid_finder::find_valid(const box_set& boxes, pair_list& out) {
   sc.chunk_pairs.resize(chunks);
   sc.chunk_checks.assign(chunks, 0);
   if (sc.columns.size() < chunks) sc.columns.resize(chunks);
-  run_tasks(pool_, chunks, [&](std::size_t k) {
+  run_each(pool_, chunks, [&](std::size_t k) {
     const std::size_t cb = cells * k / chunks, ce = cells * (k + 1) / chunks;
     pair_list& found = sc.chunk_pairs[k];
     // Output with a cursor of our own: a block of up to 64 candidates is written unconditionally
     // and the cursor advances by each hit bit (no branch on the hit, which is unpredictable where
     // a third of the tests hit, as in a zone). `found` always has room for one more block.
     std::size_t found_n = 0;
-    if (found.size() < 64) found.resize(1024);
+    found.resize(std::max<std::size_t>(found.capacity(), 1024));  // all of it: no element is initialised
     std::uint64_t checks = 0;
     for (std::size_t c = cb; c < ce; ++c) {
       const std::uint32_t begin = sc.cell_start[c], end = sc.cell_start[c + 1];
@@ -604,7 +629,7 @@ void grid_finder::find_valid(const box_set& boxes, pair_list& out) {
   const std::size_t large_chunks = std::min(large_count, large_chunk_limit);
   sc.large_pairs.resize(large_chunks);
   sc.large_checks.assign(large_chunks, 0);
-  run_tasks(pool_, large_chunks, [&](std::size_t k) {
+  run_each(pool_, large_chunks, [&](std::size_t k) {
     const std::size_t lb = large_count * k / large_chunks, le = large_count * (k + 1) / large_chunks;
     pair_list& found = sc.large_pairs[k];
     found.clear();
@@ -648,13 +673,13 @@ void grid_finder::find_valid(const box_set& boxes, pair_list& out) {
   for (const auto& f : sc.large_pairs) total += f.size();
   out.resize(total);
   {
-    std::vector<std::size_t> at;
-    at.reserve(sc.chunk_pairs.size() + sc.large_pairs.size());
+    auto& at = sc.gather_at;
+    at.clear();
     std::size_t pos = 0;
     for (const auto& f : sc.chunk_pairs) at.push_back(std::exchange(pos, pos + f.size()));
     for (const auto& f : sc.large_pairs) at.push_back(std::exchange(pos, pos + f.size()));
     const std::size_t parts = at.size();
-    run_tasks(pool_, parts, [&](std::size_t k) {
+    run_each(pool_, parts, [&](std::size_t k) {
       const pair_list& f = k < sc.chunk_pairs.size() ? sc.chunk_pairs[k] : sc.large_pairs[k - sc.chunk_pairs.size()];
       std::copy(f.begin(), f.end(), out.begin() + static_cast<std::ptrdiff_t>(at[k]));
     });

@@ -19,6 +19,9 @@
 // bytes hashed so the two can be compared); --sweep-w LIST reruns the finder on the world's own
 // boxes for each W (grid_finder_options::min_boxes_per_cell).
 #include <algorithm>
+#include <atomic>
+#include <cstdlib>
+#include <new>
 #include <charconv>
 #include <chrono>
 #include <cmath>
@@ -40,6 +43,25 @@
 #include "interest.h"
 #include "protocol.h"
 #include "zone.h"
+
+// Every heap allocation of the process is counted (operator new below), so the table can say
+// how many a steady-state tick makes (the tick loop should make none).
+std::atomic<std::uint64_t> g_allocations{0};
+
+// GCC pairs this malloc with the free below across the replaced operators and warns; they match.
+#pragma GCC diagnostic push
+#pragma GCC diagnostic ignored "-Wmismatched-new-delete"
+void* operator new(std::size_t n) {
+  g_allocations.fetch_add(1, std::memory_order_relaxed);
+  if (void* p = std::malloc(n == 0 ? 1 : n)) return p;
+  throw std::bad_alloc();
+}
+void* operator new[](std::size_t n) { return operator new(n); }
+void operator delete(void* p) noexcept { std::free(p); }
+void operator delete[](void* p) noexcept { operator delete(p); }
+void operator delete(void* p, std::size_t) noexcept { operator delete(p); }
+void operator delete[](void* p, std::size_t) noexcept { operator delete(p); }
+#pragma GCC diagnostic pop
 
 namespace {
 
@@ -328,6 +350,8 @@ int main(int argc, char** argv) {
   std::vector<std::uint64_t> frame_hash(requests.size());
   std::vector<replication_stats> frame_stats(requests.size());
   std::vector<std::vector<std::uint8_t>> frame_copy(requests.size()), serial_copy(requests.size());
+  for (auto& f : frame_copy) f.reserve(opt.budget + 4096);  // frames stay within the budget
+  for (auto& f : serial_copy) f.reserve(opt.budget + 4096);
   net::tick_update_writer serial_writer;
 
   const std::string load_before = load_average();
@@ -340,6 +364,7 @@ int main(int argc, char** argv) {
   series s_beh{"behaviours"}, s_int{"integrate"}, s_boxes{"  boxes"}, s_find{"  find"}, s_diff{"  diff"},
       s_interest{"interest"}, s_f_plan{"    plan"}, s_f_map{"    map"}, s_f_check{"    check"},
       s_f_out{"    output"}, s_rep{"replicate"}, s_rep_serial{"replicate 1t"}, s_total{"tick"};
+  std::vector<double> step_allocs, rep_allocs;  // heap allocations per tick (world step; replication)
   std::vector<double> pairs, candidates, visible, enters, leaves, bytes_per_frame, checks;
   std::uint64_t frames_digest = 0xcbf29ce484222325ull, frames_mismatch = 0;
   std::uint64_t sent_enters = 0, sent_updates = 0, sent_leaves = 0, deferred = 0;
@@ -364,11 +389,13 @@ int main(int argc, char** argv) {
     }
     const auto& ph = world.phases();
     const double beh0 = ph.behaviours.sum(), int0 = ph.integrate.sum(), interest0 = ph.interest.sum();
+    const std::uint64_t alloc0 = g_allocations.load();
     const auto t0 = clock_type::now();
     if (auto err = world.step()) {
       std::cerr << "bench-zone: tick " << world.tick() << ": " << err->message << "\n";
       return 1;
     }
+    const std::uint64_t alloc1 = g_allocations.load();
     double rep_ms = 0, rep_serial_ms = 0;
     if (!requests.empty()) {
       const std::uint64_t tick = world.tick();
@@ -418,7 +445,10 @@ int main(int argc, char** argv) {
       }
     }
     const double total_ms = ms_since(t0) - rep_serial_ms;
+    const std::uint64_t alloc2 = g_allocations.load();
     if (!measured) continue;
+    step_allocs.push_back(static_cast<double>(alloc1 - alloc0));
+    rep_allocs.push_back(static_cast<double>(alloc2 - alloc1));
     const auto& ts = world.tracker().stats();
     const auto& fs = finder->stats();
     s_beh.v.push_back(ph.behaviours.sum() - beh0);
@@ -485,6 +515,14 @@ int main(int argc, char** argv) {
     }
     std::printf("\n");
   }
+  std::printf("heap allocations per measured tick: world step mean %.1f max %.0f", mean_of(step_allocs),
+              *std::max_element(step_allocs.begin(), step_allocs.end()));
+  if (!requests.empty()) {
+    std::printf(", replication (%s) mean %.1f max %.0f",
+                opt.replicate == replicate_mode::both ? "both modes" : "the frames' copies included", mean_of(rep_allocs),
+                *std::max_element(rep_allocs.begin(), rep_allocs.end()));
+  }
+  std::printf("\n");
   std::printf("world digest after the run: %016llx\n", static_cast<unsigned long long>(world.digest()));
   std::printf("load average before: %s, after: %s\n", load_before.c_str(), load_after.c_str());
 

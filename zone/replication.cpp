@@ -1,6 +1,7 @@
 // Replication (zone.h): per client, one tick_update moving the client's view toward the
 // observer's visible set within a byte budget. Algorithm in docs/zone.md.
 #include <algorithm>
+#include <functional>
 #include <cmath>
 
 #include "zone.h"
@@ -8,6 +9,21 @@
 namespace zone {
 
 namespace {
+
+/// reserve() with 50% spare when it must grow, so sizes creeping up tick by tick do not
+/// reallocate every time.
+template <class T>
+void reserve_with_headroom(std::vector<T>& v, std::size_t n) {
+  if (v.capacity() < n) v.reserve(n + n / 2 + 16);
+}
+
+/// interest::run_tasks without a heap allocation per call: std::function keeps a
+/// reference_wrapper in place, where a lambda capturing several references would be copied to
+/// the heap (the tick allocates nothing in steady state).
+template <class F>
+void run_each(interest::thread_pool* pool, std::size_t n, F&& task) {
+  interest::run_tasks(pool, n, std::ref(task));
+}
 
 /// Upper bound on the bytes one entered entity adds to a frame: the entity_state table (vtable,
 /// fields, padding), its name string and its offset in the enters vector.
@@ -88,6 +104,13 @@ std::span<const std::uint8_t> replicator::build(client_id c, const entity_store&
 
   // Merge the visible set with the view (both sorted): leaves are written at once (they come
   // first), enters and due updates are collected with their priorities.
+  // Room for the most this tick can need, with headroom, so that sizes creeping up from tick to
+  // tick do not reallocate every time (the tick allocates nothing in steady state).
+  reserve_with_headroom(s.keep, s.view.size());
+  reserve_with_headroom(s.enters, visible.size());
+  reserve_with_headroom(s.updates, std::min(visible.size(), s.view.size()));
+  reserve_with_headroom(s.next_view, s.view.size() + visible.size());
+  reserve_with_headroom(s.next_last_sent, s.view.size() + visible.size());
   s.keep.assign(s.view.size(), 1);
   s.enters.clear();
   s.updates.clear();
@@ -209,7 +232,7 @@ void replicator::build_many(std::span<const replication_request> requests, const
   const std::size_t tasks = (requests.size() + chunk - 1) / chunk;
   while (writers_.size() < tasks) writers_.push_back(std::make_unique<net::tick_update_writer>());
   // Each task owns one writer and distinct clients; build() reads only shared, unchanging state.
-  interest::run_tasks(pool, tasks, [&](std::size_t task) {
+  run_each(pool, tasks, [&](std::size_t task) {
     net::tick_update_writer& writer = *writers_[task];
     const std::size_t end = std::min(requests.size(), (task + 1) * chunk);
     for (std::size_t k = task * chunk; k < end; ++k) {

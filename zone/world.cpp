@@ -1,5 +1,6 @@
 // zone_world (NPC behaviours, movement, interest per tick) and latency_histogram (zone.h).
 #include <algorithm>
+#include <functional>
 #include <bit>
 #include <chrono>
 #include <limits>
@@ -13,6 +14,14 @@ namespace zone {
 namespace cb = interest::category_bits;
 
 namespace {
+
+/// interest::run_tasks without a heap allocation per call: std::function keeps a
+/// reference_wrapper in place, where a lambda capturing several references would be copied to
+/// the heap (the tick allocates nothing in steady state).
+template <class F>
+void run_each(interest::thread_pool* pool, std::size_t n, F&& task) {
+  interest::run_tasks(pool, n, std::ref(task));
+}
 
 using clock_type = std::chrono::steady_clock;
 double ms_since(clock_type::time_point t0) {
@@ -259,14 +268,14 @@ std::optional<interest::box_error> zone_world::step() {
 
   // 1. Behaviours: velocities from the previous tick's positions and visible sets.
   auto t0 = clock_type::now();
-  interest::run_tasks(pool_, tasks, [&](std::size_t t) { decide(t * chunk, std::min(n, (t + 1) * chunk)); });
+  run_each(pool_, tasks, [&](std::size_t t) { decide(t * chunk, std::min(n, (t + 1) * chunk)); });
   phases_.behaviours.record(ms_since(t0));
 
   // 2. Integrate inside the world bounds (bounce off the edges).
   t0 = clock_type::now();
   const float dt = static_cast<float>(1.0 / cfg_.tick_rate_hz);
   const auto& w = cfg_.world;
-  interest::run_tasks(pool_, tasks, [&](std::size_t t) {
+  run_each(pool_, tasks, [&](std::size_t t) {
     auto pos = store_.positions();
     auto vel = store_.velocities();
     for (std::size_t i = t * chunk; i < std::min(n, (t + 1) * chunk); ++i) {
