@@ -80,31 +80,35 @@ void interest_tracker::build_boxes(const entity_store& store, interest::box_set&
   const auto cls = store.visibility_classes();
   const auto sees = store.sees();
   const float h = opt_.hysteresis;
-  for (std::size_t k = 0; k < n; ++k) {
-    const vec3 p = pos[k];
-    // AOI box grown by the margin: the finder reports every target inside it.
-    const vec3 g{aoi[k].x + h, aoi[k].y + h, aoi[k].z + h};
-    out.lo_x[2 * k] = p.x - g.x;
-    out.lo_y[2 * k] = p.y - g.y;
-    out.lo_z[2 * k] = p.z - g.z;
-    out.hi_x[2 * k] = p.x + g.x;
-    out.hi_y[2 * k] = p.y + g.y;
-    out.hi_z[2 * k] = p.z + g.z;
-    out.category[2 * k] = cb::aoi;
-    out.mask[2 * k] = sees[k];
-    // Presence box. Its mask is 0 (not aoi): with the contract's symmetric rule
-    // (cat_a & mask_b) | (cat_b & mask_a), a presence mask of aoi would let every AOI/presence
-    // pair through whatever the classes; with 0 only (class & sees of the observer) counts.
-    const vec3 b = body[k];
-    out.lo_x[2 * k + 1] = p.x - b.x;
-    out.lo_y[2 * k + 1] = p.y - b.y;
-    out.lo_z[2 * k + 1] = p.z - b.z;
-    out.hi_x[2 * k + 1] = p.x + b.x;
-    out.hi_y[2 * k + 1] = p.y + b.y;
-    out.hi_z[2 * k + 1] = p.z + b.z;
-    out.category[2 * k + 1] = cls[k];
-    out.mask[2 * k + 1] = 0;
-  }
+  // In fixed chunks on the pool (each box is written by exactly one task).
+  const std::size_t chunk = 8192;
+  run_each(n > chunk ? pool_ : nullptr, (n + chunk - 1) / chunk, [&](std::size_t c) {
+    for (std::size_t k = c * chunk, end = std::min(n, (c + 1) * chunk); k < end; ++k) {
+      const vec3 p = pos[k];
+      // AOI box grown by the margin: the finder reports every target inside it.
+      const vec3 g{aoi[k].x + h, aoi[k].y + h, aoi[k].z + h};
+      out.lo_x[2 * k] = p.x - g.x;
+      out.lo_y[2 * k] = p.y - g.y;
+      out.lo_z[2 * k] = p.z - g.z;
+      out.hi_x[2 * k] = p.x + g.x;
+      out.hi_y[2 * k] = p.y + g.y;
+      out.hi_z[2 * k] = p.z + g.z;
+      out.category[2 * k] = cb::aoi;
+      out.mask[2 * k] = sees[k];
+      // Presence box. Its mask is 0 (not aoi): with the contract's symmetric rule
+      // (cat_a & mask_b) | (cat_b & mask_a), a presence mask of aoi would let every AOI/presence
+      // pair through whatever the classes; with 0 only (class & sees of the observer) counts.
+      const vec3 b = body[k];
+      out.lo_x[2 * k + 1] = p.x - b.x;
+      out.lo_y[2 * k + 1] = p.y - b.y;
+      out.lo_z[2 * k + 1] = p.z - b.z;
+      out.hi_x[2 * k + 1] = p.x + b.x;
+      out.hi_y[2 * k + 1] = p.y + b.y;
+      out.hi_z[2 * k + 1] = p.z + b.z;
+      out.category[2 * k + 1] = cls[k];
+      out.mask[2 * k + 1] = 0;
+    }
+  });
 }
 
 std::optional<interest::box_error> interest_tracker::update(const entity_store& store) {
@@ -242,10 +246,13 @@ std::optional<interest::box_error> interest_tracker::apply_pairs(const entity_st
   // Presence boxes as one record each: the exact test reads a target's box with one cache miss
   // instead of six (one per column).
   presence_.resize(n);
-  for (std::size_t k = 0; k < n; ++k) {
-    const std::size_t b = 2 * k + 1;
-    presence_[k] = {boxes.lo_x[b], boxes.lo_y[b], boxes.lo_z[b], boxes.hi_x[b], boxes.hi_y[b], boxes.hi_z[b]};
-  }
+  run_each(row_chunks > 1 ? pool_ : nullptr, row_chunks, [&](std::size_t c) {
+    const auto [first, end] = chunk_rows(c);
+    for (std::size_t k = first; k < end; ++k) {
+      const std::size_t b = 2 * k + 1;
+      presence_[k] = {boxes.lo_x[b], boxes.lo_y[b], boxes.lo_z[b], boxes.hi_x[b], boxes.hi_y[b], boxes.hi_z[b]};
+    }
+  });
 
   // Previous row of each observer, and leave capacity = its previous set's size.
   prev_row_.resize(n);
