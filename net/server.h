@@ -101,7 +101,8 @@ class server {
 
   /// Moves every event reported since the last call into `out` (appended). Game thread.
   void poll(std::vector<inbound_event>& out);
-  /// Queues a frame for a session; false when the session is gone. Never blocks.
+  /// Queues a frame for a session; false when the session is gone. Never blocks on the network;
+  /// safe from any thread (the zone server sends each frame from the worker that built it).
   bool send(session_id s, shared_frame frame, delivery d = delivery::state);
   /// Sends error(code, reason) to the session, then closes it. Never blocks.
   void disconnect(session_id s, error_code code, std::string reason);

@@ -80,7 +80,7 @@ class zone_server {
   // Replication scratch, reused every tick: one request per client, its session and its frame.
   std::vector<replication_request> requests_;
   std::vector<net::session_id> request_sessions_;
-  std::vector<net::shared_frame> frames_;
+  std::vector<std::size_t> frame_bytes_;  // by request: the frame's size
   net::encoder encoder_;
   std::vector<net::inbound_event> events_;
   std::unordered_map<net::session_id, client> clients_;
