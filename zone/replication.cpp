@@ -33,9 +33,20 @@ constexpr std::size_t update_cost = sizeof(net::wire::entity_update);
 
 net::vec3f to_net(const vec3& v) { return {v.x, v.y, v.z}; }
 
-float distance(const vec3& a, const vec3& b) {
+float distance_sq(const vec3& a, const vec3& b) {
   const float dx = a.x - b.x, dy = a.y - b.y, dz = a.z - b.z;
-  return std::sqrt(dx * dx + dy * dy + dz * dz);
+  return dx * dx + dy * dy + dz * dz;
+}
+
+float distance(const vec3& a, const vec3& b) { return std::sqrt(distance_sq(a, b)); }
+
+/// Exactly `std::sqrt(d2) < limit` (limit >= 0), without the square root unless d2 lies within
+/// a relative 1e-4 of limit^2, where rounding could decide it.
+bool sqrt_below(float d2, float limit) {
+  const float l2 = limit * limit;
+  if (d2 < l2 * 0.9999f) return true;
+  if (d2 > l2 * 1.0001f) return false;
+  return std::sqrt(d2) < limit;
 }
 
 }  // namespace
@@ -135,12 +146,14 @@ std::span<const std::uint8_t> replicator::build(client_id c, const entity_store&
     } else {
       const std::size_t k = store.index_of(visible[i]);
       if (k != entity_store::npos) {
-        const float d = distance(eye, pos[k]);
-        const std::uint64_t period = d < opt_.near_distance  ? 1
-                                     : d < opt_.mid_distance ? std::max<std::uint32_t>(1, opt_.mid_period)
-                                                             : std::max<std::uint32_t>(1, opt_.far_period);
+        // The tier from the squared distance; the square root only for what is due (its priority).
+        const float d2 = distance_sq(eye, pos[k]);
+        const std::uint64_t period = sqrt_below(d2, opt_.near_distance)  ? 1
+                                     : sqrt_below(d2, opt_.mid_distance) ? std::max<std::uint32_t>(1, opt_.mid_period)
+                                                                         : std::max<std::uint32_t>(1, opt_.far_period);
         const std::uint64_t staleness = tick - s.last_sent[j];
         if (staleness >= period) {
+          const float d = std::sqrt(d2);
           s.updates.push_back({-static_cast<float>(staleness) / std::max(d, 1.0f), static_cast<std::uint32_t>(j),
                                visible[i], static_cast<std::uint32_t>(k)});
         }
