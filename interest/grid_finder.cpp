@@ -125,6 +125,8 @@ struct plan_scratch {
   std::vector<bounds> part;         // per chunk of scene_bounds
   std::vector<std::size_t> sample;  // box indices of the planning sample
   std::vector<double> centre;       // flat_axis: sampled centres
+  std::vector<double> rel;          // sampled corners relative to the origin, by axis and side
+  std::vector<double> cells;        // cells per sampled box
 };
 
 bounds scene_bounds(const box_set& s, thread_pool* pool, plan_scratch& ps) {
@@ -190,21 +192,39 @@ grid_plan plan_with(const box_set& s, const bounds& b, const grid_finder_options
 
   // alpha(l): the average number of cells a sampled box occupies, counted exactly with the
   // candidate grid's cell mapping (the quantity Eq. 4-5 estimate from box and cell lengths).
-  auto alpha_for = [&](double l, const double dims[3]) {
-    if (sample.empty()) return 1.0;
-    double total = 0;
+  // The sampled boxes' corners relative to the origin, gathered once (the search below calls
+  // alpha_for a few dozen times).
+  const std::size_t k_sample = sample.size();
+  auto& rel = ps.rel;
+  rel.resize(6 * k_sample);
+  {
     const float* lo[3] = {s.lo_x.data(), s.lo_y.data(), s.lo_z.data()};
     const float* hi[3] = {s.hi_x.data(), s.hi_y.data(), s.hi_z.data()};
-    for (const std::size_t i : sample) {
-      double cells = 1;
-      for (int d = 0; d < 3; ++d) {
-        const double last = dims[d] - 1;
-        const double a = std::clamp(std::floor((lo[d][i] - static_cast<double>(b.lo[d])) / l), 0.0, last);
-        const double z = std::clamp(std::floor((hi[d][i] - static_cast<double>(b.lo[d])) / l), 0.0, last);
-        cells *= z - a + 1;
+    for (int d = 0; d < 3; ++d) {
+      for (std::size_t j = 0; j < k_sample; ++j) {
+        rel[(2 * d) * k_sample + j] = lo[d][sample[j]] - static_cast<double>(b.lo[d]);
+        rel[(2 * d + 1) * k_sample + j] = hi[d][sample[j]] - static_cast<double>(b.lo[d]);
       }
-      total += cells;
     }
+  }
+  auto alpha_for = [&](double l, const double dims[3]) {
+    if (sample.empty()) return 1.0;
+    // Cells per sampled box, axis by axis (an axis of one cell contributes a factor of 1).
+    auto& cells = ps.cells;
+    cells.assign(k_sample, 1.0);
+    for (int d = 0; d < 3; ++d) {
+      if (dims[d] <= 1) continue;
+      const double last = dims[d] - 1;
+      const double* rlo = rel.data() + (2 * d) * k_sample;
+      const double* rhi = rel.data() + (2 * d + 1) * k_sample;
+      for (std::size_t j = 0; j < k_sample; ++j) {
+        const double a = std::clamp(std::floor(rlo[j] / l), 0.0, last);
+        const double z = std::clamp(std::floor(rhi[j] / l), 0.0, last);
+        cells[j] *= z - a + 1;
+      }
+    }
+    double total = 0;
+    for (const double c : cells) total += c;
     return total / static_cast<double>(sample.size());
   };
 
