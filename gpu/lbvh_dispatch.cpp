@@ -4,11 +4,14 @@
 //  1. DataIn: the box arrays are packed into pinned staging memory by the thread pool in parts,
 //     each part's host-to-device copy overlapping the packing of the next (validated on the way
 //     when asked).
-//  2. Scene bounds and mean edges (block reductions); per box a 30-bit Morton code of its centroid,
-//     or, for a box expected to overlap very many others, a key after every code ("large": kept
-//     out of the tree); CUB radix sort of (key, id) pairs (stable: equal codes stay in id order).
+//  2. Scene bounds, mean edges and the OR/AND of the filter bits (block reductions); per box a
+//     30-bit Morton code of its centroid, bit 30 set for boxes of mask 0 (pure targets get their
+//     own subtree), or, for a box expected to overlap very many others, a key after every other
+//     ("large": kept out of the tree); CUB radix sort of (key, id) pairs (stable: equal keys stay
+//     in id order).
 //  3. Hierarchy: one thread per internal node (determineRange / findSplit with __clz, equal codes
-//     told apart by their sorted position), then bottom-up boxes with one atomic flag per node.
+//     told apart by their sorted position), then bottom-up boxes and OR-ed filter bits with one
+//     atomic flag per node.
 //  4. Counting traversal: one thread per leaf in leaf order, an explicit stack, subtrees whose
 //     rightmost leaf is not after the query skipped; pairs per leaf, overflow flags; CUB scan of
 //     the counts, CUB select of the overflowed queries; one read-back (synchronisation 1).
@@ -226,12 +229,13 @@ std::optional<std::uint64_t> lbvh_engine::run(const interest::box_set& boxes, in
   d_leaf_lo_.reserve(n);
   d_leaf_hi_.reserve(n);
   d_nodes_.reserve(n);
+  d_node_bits_.reserve(n);
   d_parent_.reserve(2 * std::size_t{n});
   d_flags_.reserve(n);
   CUDA_CHECK(launch_build(arrays, n, sc, d_keys_sorted_.get(), d_ids_sorted_.get(), d_leaf_lo_.get(), d_leaf_hi_.get(),
                           d_nodes_.get(), d_parent_.get(), d_flags_.get(), main_));
-  CUDA_CHECK(launch_refit(d_leaf_lo_.get(), d_leaf_hi_.get(), n, sc, d_parent_.get(), d_nodes_.get(), d_flags_.get(),
-                          opt_.measure_depth, sc, main_));
+  CUDA_CHECK(launch_refit(d_leaf_lo_.get(), d_leaf_hi_.get(), n, sc, d_parent_.get(), d_nodes_.get(),
+                          d_node_bits_.get(), d_flags_.get(), opt_.measure_depth, sc, main_));
   CUDA_CHECK(cudaEventRecord(ev_built_, main_));
 
   // Counting traversal, scan, overflowed queries, read-back.
@@ -241,6 +245,7 @@ std::optional<std::uint64_t> lbvh_engine::run(const interest::box_set& boxes, in
   d_ov_list_.reserve(n);
   traverse_args ta{};
   ta.nodes = d_nodes_.get();
+  ta.node_bits = d_node_bits_.get();
   ta.leaf_lo = d_leaf_lo_.get();
   ta.leaf_hi = d_leaf_hi_.get();
   ta.ids = d_ids_sorted_.get();

@@ -92,6 +92,7 @@ class lbvh_engine {
   device_array<std::uint32_t> d_keys_, d_keys_sorted_, d_ids_, d_ids_sorted_;
   device_array<float4> d_leaf_lo_, d_leaf_hi_;
   device_array<node> d_nodes_;
+  device_array<uint4> d_node_bits_;
   device_array<std::uint32_t> d_parent_, d_flags_;
   device_array<std::uint32_t> d_counts_;
   device_array<std::uint8_t> d_overflowed_;

@@ -39,7 +39,7 @@ cudaError_t launch_morton(const box_arrays& boxes, std::uint32_t n, scene* sc, d
 
 cudaError_t sort_keys(void* temp, std::size_t& temp_bytes, const std::uint32_t* keys_in, std::uint32_t* keys_out,
                       const std::uint32_t* ids_in, std::uint32_t* ids_out, std::uint32_t n, cudaStream_t stream) {
-  return cub::DeviceRadixSort::SortPairs(temp, temp_bytes, keys_in, keys_out, ids_in, ids_out, n, 0, 31, stream);
+  return cub::DeviceRadixSort::SortPairs(temp, temp_bytes, keys_in, keys_out, ids_in, ids_out, n, 0, 32, stream);
 }
 
 cudaError_t launch_build(const box_arrays& boxes, std::uint32_t n, const scene* sc, const std::uint32_t* keys,
@@ -52,10 +52,10 @@ cudaError_t launch_build(const box_arrays& boxes, std::uint32_t n, const scene* 
 }
 
 cudaError_t launch_refit(const float4* leaf_lo, const float4* leaf_hi, std::uint32_t n, const scene* sc,
-                         const std::uint32_t* parent, node* nodes, std::uint32_t* flags, bool measure_depth,
-                         scene* sc_out, cudaStream_t stream) {
+                         const std::uint32_t* parent, node* nodes, uint4* bits, std::uint32_t* flags,
+                         bool measure_depth, scene* sc_out, cudaStream_t stream) {
   refit_kernel<<<blocks_for(n, lbvh_tuning::block), lbvh_tuning::block, 0, stream>>>(leaf_lo, leaf_hi, n, sc, parent,
-                                                                                      nodes, flags);
+                                                                                      nodes, bits, flags);
   if (measure_depth) {
     depth_kernel<<<blocks_for(n, lbvh_tuning::block), lbvh_tuning::block, 0, stream>>>(n, parent, sc_out);
   }

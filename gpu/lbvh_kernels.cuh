@@ -33,6 +33,10 @@ __global__ void init_scene_kernel(scene* sc) {
     sc->hi[d] = to_ordered(-FLT_MAX);
     sc->edge_sum[d] = 0.0;
   }
+  sc->category_or = 0;
+  sc->category_and = ~0u;
+  sc->mask_or = 0;
+  sc->mask_and = ~0u;
   sc->large_count = 0;
   sc->max_depth = 0;
 }
@@ -47,6 +51,7 @@ __global__ void scene_kernel(box_arrays boxes, std::uint32_t n, scene* sc) {
   } temp;
   float lo[3] = {FLT_MAX, FLT_MAX, FLT_MAX}, hi[3] = {-FLT_MAX, -FLT_MAX, -FLT_MAX};
   double sum[3] = {0, 0, 0};
+  std::uint32_t cat_or = 0, cat_and = ~0u, mask_or = 0, mask_and = ~0u;
   for (std::uint32_t i = blockIdx.x * blockDim.x + threadIdx.x; i < n; i += gridDim.x * blockDim.x) {
     for (int d = 0; d < 3; ++d) {
       const float l = boxes.lo[d][i], h = boxes.hi[d][i];
@@ -54,6 +59,22 @@ __global__ void scene_kernel(box_arrays boxes, std::uint32_t n, scene* sc) {
       hi[d] = fmaxf(hi[d], h);
       sum[d] += static_cast<double>(h) - static_cast<double>(l);
     }
+    const std::uint32_t c = boxes.category[i], m = boxes.mask[i];
+    cat_or |= c;
+    cat_and &= c;
+    mask_or |= m;
+    mask_and &= m;
+  }
+  // Filter bits: warp reductions, one atomic per warp.
+  cat_or = __reduce_or_sync(0xFFFFFFFFu, cat_or);
+  cat_and = __reduce_and_sync(0xFFFFFFFFu, cat_and);
+  mask_or = __reduce_or_sync(0xFFFFFFFFu, mask_or);
+  mask_and = __reduce_and_sync(0xFFFFFFFFu, mask_and);
+  if ((threadIdx.x & 31u) == 0) {
+    atomicOr(&sc->category_or, cat_or);
+    atomicAnd(&sc->category_and, cat_and);
+    atomicOr(&sc->mask_or, mask_or);
+    atomicAnd(&sc->mask_and, mask_and);
   }
   for (int d = 0; d < 3; ++d) {
     const float mn = reduce_f(temp.f).Reduce(lo[d], [](float a, float b) { return fminf(a, b); });
@@ -79,10 +100,14 @@ __device__ __forceinline__ std::uint32_t expand_bits(std::uint32_t v) {
   return v;
 }
 
-/// Key of each box: the 30-bit Morton code of its centroid relative to the scene bounds, or
-/// large_key for a box whose estimated overlap count (uniform density: N times the product over
-/// axes of min(1, (edge + mean edge) / scene extent)) exceeds large_threshold.
-inline constexpr std::uint32_t large_key = 1u << 30;
+/// Key of each box: the 30-bit Morton code of its centroid relative to the scene bounds, with bit
+/// 30 set for a box of mask 0 (a pure target, e.g. an MMO presence box: it pairs only with boxes
+/// whose mask holds its category, so targets form their own subtree, which the filter bits of
+/// the nodes let every other target skip whole); or large_key for a box whose estimated overlap
+/// count (uniform density: N times the product over axes of min(1, (edge + mean edge) / scene
+/// extent)) exceeds large_threshold.
+inline constexpr std::uint32_t target_bit = 1u << 30;
+inline constexpr std::uint32_t large_key = 1u << 31;
 __global__ void morton_kernel(box_arrays boxes, std::uint32_t n, scene* sc, double large_threshold,
                               std::uint32_t* keys, std::uint32_t* ids) {
   const std::uint32_t i = blockIdx.x * blockDim.x + threadIdx.x;
@@ -103,6 +128,7 @@ __global__ void morton_kernel(box_arrays boxes, std::uint32_t n, scene* sc, doub
     }
   }
   std::uint32_t key = expand_bits(q[0]) * 4 + expand_bits(q[1]) * 2 + expand_bits(q[2]);
+  if (boxes.mask[i] == 0) key |= target_bit;
   if (est > large_threshold) {
     key = large_key;
     atomicAdd(&sc->large_count, 1u);
@@ -174,8 +200,9 @@ __global__ void build_kernel(const std::uint32_t* keys, std::uint32_t n, const s
   flags[i] = 0;
 }
 
-/// Writes a child's box into its slot of the parent node (the w fields are the build's).
-__device__ __forceinline__ void store_child(node* nodes, std::uint32_t link, float4 lo, float4 hi) {
+/// Writes a child's box (the w fields are the build's) and filter bits into its slot of the parent.
+__device__ __forceinline__ void store_child(node* nodes, uint4* bits, std::uint32_t link, float4 lo, float4 hi,
+                                            std::uint32_t category, std::uint32_t mask) {
   node& p = nodes[link >> 1];
   const std::uint32_t c = link & 1u;
   p.lo[c].x = lo.x;
@@ -184,19 +211,23 @@ __device__ __forceinline__ void store_child(node* nodes, std::uint32_t link, flo
   p.hi[c].x = hi.x;
   p.hi[c].y = hi.y;
   p.hi[c].z = hi.z;
+  std::uint32_t* b = reinterpret_cast<std::uint32_t*>(&bits[link >> 1]) + 2 * c;
+  b[0] = category;
+  b[1] = mask;
 }
 
 /// Bottom-up boxes: one thread per leaf walks towards the root; at each node the first thread to
 /// arrive stops (atomic flag), the second unites both children's boxes and goes on.
 __global__ void refit_kernel(const float4* leaf_lo, const float4* leaf_hi, std::uint32_t n, const scene* sc,
-                             const std::uint32_t* parent, node* nodes, std::uint32_t* flags) {
+                             const std::uint32_t* parent, node* nodes, uint4* bits, std::uint32_t* flags) {
   const std::uint32_t leaves = tree_leaves(sc, n);
   const std::uint32_t leaf = blockIdx.x * blockDim.x + threadIdx.x;
   if (leaves < 2 || leaf >= leaves) return;
   float4 lo = leaf_lo[leaf], hi = leaf_hi[leaf];
+  std::uint32_t category = __float_as_uint(lo.w), mask = __float_as_uint(hi.w);
   std::uint32_t link = parent[leaves - 1 + leaf];
   while (true) {
-    store_child(nodes, link, lo, hi);
+    store_child(nodes, bits, link, lo, hi, category, mask);
     __threadfence();
     const std::uint32_t p = link >> 1;
     if (atomicAdd(&flags[p], 1u) == 0) return;  // the sibling is not done yet: it goes on
@@ -206,6 +237,9 @@ __global__ void refit_kernel(const float4* leaf_lo, const float4* leaf_hi, std::
     const volatile node& v = nodes[p];
     lo = make_float4(fminf(v.lo[0].x, v.lo[1].x), fminf(v.lo[0].y, v.lo[1].y), fminf(v.lo[0].z, v.lo[1].z), 0.f);
     hi = make_float4(fmaxf(v.hi[0].x, v.hi[1].x), fmaxf(v.hi[0].y, v.hi[1].y), fmaxf(v.hi[0].z, v.hi[1].z), 0.f);
+    const volatile uint4& vb = bits[p];
+    category = vb.x | vb.z;
+    mask = vb.y | vb.w;
     link = parent[p];
   }
 }
@@ -240,6 +274,10 @@ __device__ __forceinline__ bool compatible(float4 alo, float4 ahi, float4 blo, f
 template <class Emit>
 __device__ __forceinline__ bool traverse_leaf(const traverse_args& a, std::uint32_t q, Emit&& emit) {
   const float4 qlo = a.leaf_lo[q], qhi = a.leaf_hi[q];
+  const std::uint32_t qcat = __float_as_uint(qlo.w), qmask = __float_as_uint(qhi.w);
+  // With more than one (category, mask) signature, subtrees whose OR-ed bits cannot pass the
+  // filter with the query are skipped whole (the same for every thread: no divergence).
+  const bool filter = a.sc->category_or != a.sc->category_and || a.sc->mask_or != a.sc->mask_and;
   std::int32_t stack[lbvh_tuning::max_stack];
   std::uint32_t sp = 0;
   std::int32_t current = 0;  // the root
@@ -248,12 +286,18 @@ __device__ __forceinline__ bool traverse_leaf(const traverse_args& a, std::uint3
     const node* nd = a.nodes + current;
     std::int32_t next[2];
     bool go[2];
+    bool pass[2] = {true, true};
+    if (filter) {
+      const uint4 b = __ldg(&a.node_bits[current]);
+      pass[0] = ((qcat & b.y) | (b.x & qmask)) != 0;
+      pass[1] = ((qcat & b.w) | (b.z & qmask)) != 0;
+    }
 #pragma unroll
     for (int c = 0; c < 2; ++c) {
       const float4 lo = __ldg(&nd->lo[c]), hi = __ldg(&nd->hi[c]);
       const std::int32_t rightmost = __float_as_int(lo.w);
       const std::int32_t ref = __float_as_int(hi.w);
-      const bool hit = rightmost > query && overlap(qlo, qhi, lo, hi);
+      const bool hit = pass[c] && rightmost > query && overlap(qlo, qhi, lo, hi);
       next[c] = ref;
       go[c] = false;
       if (hit) {

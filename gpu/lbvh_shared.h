@@ -1,7 +1,7 @@
 // Structs read by both the host dispatch and the kernels of the GPU LBVH finder.
 #pragma once
 
-#include <vector_types.h>  // float4 (plain C struct from the CUDA toolkit)
+#include <vector_types.h>  // float4, uint4 (plain C structs from the CUDA toolkit)
 
 #include <cstdint>
 
@@ -17,12 +17,14 @@ struct alignas(64) node {
 };
 static_assert(sizeof(node) == 64);
 
-/// Scene statistics: bounds as order-preserving ints, the sum of box edges per axis, and the
-/// device-side counters of one call.
+/// Scene statistics: bounds as order-preserving ints, the sum of box edges per axis, the OR and
+/// AND of every category and mask (all equal: the filter bits cannot prune), and the device-side
+/// counters of one call.
 struct scene {
   std::int32_t lo[3];
   std::int32_t hi[3];
   double edge_sum[3];
+  std::uint32_t category_or, category_and, mask_or, mask_and;
   std::uint32_t large_count;  ///< boxes kept out of the tree (sorted to the end)
   std::uint32_t max_depth;    ///< deepest leaf (when measured)
 };
@@ -48,6 +50,7 @@ struct box_arrays {
 /// Arguments of the traversal kernels (counting and writing passes).
 struct traverse_args {
   const node* nodes;
+  const uint4* node_bits;  ///< per internal node: OR of categories and of masks under child 0, child 1
   const float4* leaf_lo;  ///< sorted boxes: lo.xyz, category bits in w
   const float4* leaf_hi;  ///< hi.xyz, mask bits in w
   const std::uint32_t* ids;  ///< sorted position -> box id

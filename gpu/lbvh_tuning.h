@@ -9,9 +9,11 @@ namespace zone::gpu::lbvh_tuning {
 /// Block size of the element-wise kernels and the traversal.
 inline constexpr std::uint32_t block = 256;
 /// Entries of a traversal thread's stack. The tree's depth bound: along any root-to-leaf path the
-/// common-prefix length delta of the internal nodes strictly grows, and delta takes at most 62
-/// values (30 Morton bits + up to 32 index bits for equal codes), so no path has more than 62
-/// internal nodes and a stack of 64 never overflows (a query pushes at most one entry per level).
+/// common-prefix length delta of the internal nodes strictly grows. Tree keys are below 2^31 (30
+/// Morton bits and the target bit), so delta is in [1, 31] between different keys and in
+/// 32 + [2, 31] between equal ones (sorted positions < 2^30 are appended): at most 61 values, so
+/// no path has more than 61 internal nodes and a query, which pushes at most one entry per level,
+/// never needs more than 61 entries.
 inline constexpr std::uint32_t max_stack = 64;
 /// A box is "large" (kept out of the tree, tested against every box by the brute pass) when a
 /// uniform-density estimate of its overlaps exceeds max(large_min_overlaps, N / large_n_divisor).
