@@ -12,8 +12,8 @@
 namespace zone::gpu {
 namespace {
 
-/// The GPU LBVH finder. Output order: the tree's pairs by query leaf (Morton order of the boxes,
-/// equal codes by id), within a leaf in traversal order (left child first); then the brute pass's
+/// The GPU LBVH finder. Output order: the tree's pairs by query leaf (key order: mask-0 boxes after
+/// the others, each part in Morton order, equal keys by id), within a leaf in traversal order (left child first); then the brute pass's
 /// pairs (overflowed queries in leaf order, then the large boxes in id order; each by chunk and
 /// thread). All of it depends only on the input.
 class lbvh_finder final : public interest::pair_finder {
