@@ -363,7 +363,8 @@ int main(int argc, char** argv) {
 
   series s_beh{"behaviours"}, s_int{"integrate"}, s_boxes{"  boxes"}, s_find{"  find"}, s_diff{"  diff"},
       s_interest{"interest"}, s_f_plan{"    plan"}, s_f_map{"    map"}, s_f_check{"    check"},
-      s_f_out{"    output"}, s_rep{"replicate"}, s_rep_serial{"replicate 1t"}, s_total{"tick"};
+      s_f_out{"    output"}, s_d_count{"    count"}, s_d_offsets{"    offsets"}, s_d_fill{"    fill"},
+      s_d_rows{"    rows"}, s_rep{"replicate"}, s_rep_serial{"replicate 1t"}, s_total{"tick"};
   std::vector<double> step_allocs, rep_allocs;  // heap allocations per tick (world step; replication)
   std::vector<double> pairs, candidates, visible, enters, leaves, bytes_per_frame, checks;
   std::uint64_t frames_digest = 0xcbf29ce484222325ull, frames_mismatch = 0;
@@ -457,6 +458,10 @@ int main(int argc, char** argv) {
     s_boxes.v.push_back(ts.boxes_ms);
     s_find.v.push_back(ts.find_ms);
     s_diff.v.push_back(ts.diff_ms);
+    s_d_count.v.push_back(ts.count_ms);
+    s_d_offsets.v.push_back(ts.offsets_ms);
+    s_d_fill.v.push_back(ts.fill_ms);
+    s_d_rows.v.push_back(ts.rows_ms);
     s_f_plan.v.push_back(fs.plan_ms);
     s_f_map.v.push_back(fs.map_ms);
     s_f_check.v.push_back(fs.check_ms);
@@ -480,6 +485,7 @@ int main(int argc, char** argv) {
     for (const series* s : {&s_f_plan, &s_f_map, &s_f_check, &s_f_out}) rows.push_back(s);
   }
   rows.push_back(&s_diff);
+  for (const series* s : {&s_d_count, &s_d_offsets, &s_d_fill, &s_d_rows}) rows.push_back(s);
   if (!requests.empty()) {
     rows.push_back(&s_rep);
     if (opt.replicate == replicate_mode::both) rows.push_back(&s_rep_serial);

@@ -175,6 +175,7 @@ std::optional<interest::box_error> interest_tracker::apply_pairs(const entity_st
   });
   task_bad_.assign(pair_tasks, no_pair);
   const std::size_t box_count = boxes.size();
+  auto t_part = clock_type::now();
   run_each(pair_tasks > 1 ? pool_ : nullptr, pair_tasks, [&](std::size_t task) {
     std::uint32_t* count = task_cursor_.data() + task;
     for (std::size_t k = pair_begin(task), e = pair_begin(task + 1); k < e; ++k) {
@@ -193,6 +194,9 @@ std::optional<interest::box_error> interest_tracker::apply_pairs(const entity_st
     return interest::box_error{std::max(p.a, p.b), "pair (" + std::to_string(p.a) + ", " + std::to_string(p.b) +
                                                       ") refers to a box beyond the set"};
   }
+
+  const double count_ms = ms_since(t_part);
+  t_part = clock_type::now();
 
   // 2. Row offsets, and each (row, task)'s first slot: counts become cursors. Two passes over
   //    fixed chunks of rows: chunk totals, then (after a scan of those) offsets within chunks.
@@ -230,6 +234,9 @@ std::optional<interest::box_error> interest_tracker::apply_pairs(const entity_st
   });
   vis_off_[n] = static_cast<std::uint32_t>(candidates);
 
+  const double offsets_ms = ms_since(t_part);
+  t_part = clock_type::now();
+
   // 3. Fill: target handles by observer row (the order within a row is sorted later).
   resize_with_headroom(cand_, candidates);
   resize_with_headroom(vis_, candidates);
@@ -239,9 +246,11 @@ std::optional<interest::box_error> interest_tracker::apply_pairs(const entity_st
     std::uint32_t* cursor = task_cursor_.data() + task;
     for (std::size_t k = pair_begin(task), e = pair_begin(task + 1); k < e; ++k) {
       std::uint32_t o, t;
-      if (split(pairs[k], o, t)) cand_[cursor[o * pair_tasks]++] = ids[t];
+      if (split(pairs[k], o, t)) cand_[cursor[o * pair_tasks]++] = (std::uint64_t{ids[t]} << 32) | t;
     }
   });
+
+  const double fill_ms = ms_since(t_part);
 
   // Presence boxes as one record each: the exact test reads a target's box with one cache miss
   // instead of six (one per column).
@@ -274,9 +283,11 @@ std::optional<interest::box_error> interest_tracker::apply_pairs(const entity_st
   const std::size_t chunk = std::max<std::uint32_t>(1, opt_.rows_per_task);
   const std::size_t tasks = (n + chunk - 1) / chunk;
   capped_pending_ = 0;
+  t_part = clock_type::now();
   run_each(pool_, tasks, [&](std::size_t task) {
     process_rows(store, task * chunk, std::min(n, (task + 1) * chunk));
   });
+  const double rows_ms = ms_since(t_part);
 
   // Slot -> row for the next tick's lookups and row_of().
   if (row_of_slot_.size() < store.slot_count()) row_of_slot_.resize(store.slot_count(), no_row);
@@ -292,6 +303,10 @@ std::optional<interest::box_error> interest_tracker::apply_pairs(const entity_st
     stats_.leaves += leave_len_[i];
   }
   stats_.diff_ms = ms_since(t0);
+  stats_.count_ms = count_ms;
+  stats_.offsets_ms = offsets_ms;
+  stats_.fill_ms = fill_ms;
+  stats_.rows_ms = rows_ms;
   return std::nullopt;
 }
 
@@ -304,12 +319,15 @@ void interest_tracker::process_rows(const entity_store& store, std::size_t first
 
   for (std::size_t i = first; i < last; ++i) {
     const std::uint32_t off = vis_off_[i];
-    entity_id* cand = cand_.data() + off;
+    // (handle << 32) | dense index: sorted by handle, and a target that may enter has its
+    // presence box looked up by dense index directly (the handle's lookup through the store's
+    // slots cost two more cache misses for each target in the hysteresis band, every tick).
+    std::uint64_t* cand = cand_.data() + off;
     const std::uint32_t cand_n = vis_off_[i + 1] - off;
     // By target handle (unique within a row). Rows are short: insertion sort below 32.
     if (cand_n < 32) {
       for (std::uint32_t c = 1; c < cand_n; ++c) {
-        const entity_id key = cand[c];
+        const std::uint64_t key = cand[c];
         std::uint32_t k = c;
         for (; k > 0 && cand[k - 1] > key; --k) cand[k] = cand[k - 1];
         cand[k] = key;
@@ -338,14 +356,14 @@ void interest_tracker::process_rows(const entity_store& store, std::size_t first
     entity_id* leave = leave_.data() + leave_off_[i];
     std::uint32_t kept_n = 0, en = 0, ln = 0, j = 0;
     for (std::uint32_t c = 0; c < cand_n; ++c) {
-      const entity_id target = cand[c];
+      const auto target = static_cast<entity_id>(cand[c] >> 32);
       while (j < old_n && old[j] < target) leave[ln++] = old[j++];
       if (j < old_n && old[j] == target) {
         ++j;
         kept[kept_n++] = target;
         continue;
       }
-      const presence_box& b = presence_[store.index_of(target)];
+      const presence_box& b = presence_[static_cast<std::uint32_t>(cand[c])];
       if (b.lo_x <= hi_x && lo_x <= b.hi_x && b.lo_y <= hi_y && lo_y <= b.hi_y && b.lo_z <= hi_z && lo_z <= b.hi_z) {
         kept[kept_n++] = target;
         enter[en++] = target;

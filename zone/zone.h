@@ -150,6 +150,9 @@ struct interest_stats {
   std::uint64_t leaves = 0;
   std::uint64_t capped = 0;  ///< entities dropped by the max_visible cap
   double boxes_ms = 0, find_ms = 0, diff_ms = 0;
+  /// Parts of diff_ms: counting candidates per row, row offsets, filling the rows, the per-row
+  /// sort-and-merge with the previous sets (the rest: presence records, previous rows, stats).
+  double count_ms = 0, offsets_ms = 0, fill_ms = 0, rows_ms = 0;
 };
 
 /// Per-observer visible sets with enter/leave events and hysteresis, on top of any pair_finder.
@@ -225,7 +228,7 @@ class interest_tracker {
   std::vector<std::uint32_t> vis_off_;  // size rows + 1
   std::vector<std::uint32_t> vis_len_, enter_len_, leave_off_, leave_len_;
   std::vector<entity_id> vis_, enter_, leave_;
-  std::vector<entity_id> cand_;              // candidate target handles, by row
+  std::vector<std::uint64_t> cand_;         // candidates by row: (target handle << 32) | target dense index
   std::vector<std::uint32_t> task_cursor_;   // per (row, pair task): candidate count, then fill cursor
   std::vector<std::uint64_t> chunk_base_;    // per chunk of rows: its first candidate (a scan)
   std::vector<std::size_t> task_bad_;        // per pair task: first pair with an id beyond the set
