@@ -157,9 +157,10 @@ std::optional<interest::box_error> interest_tracker::apply_pairs(const entity_st
   //    the pair ids on the way. Private counters per task: no atomics, and the fill below writes
   //    each task's candidates at offsets of its own. Only scratch memory is written before the
   //    checks pass, so a refused input changes nothing.
-  //    The counters are laid out by row, then task ([row][task]: a row's counters share a cache
-  //    line), so the offsets pass below reads them in order; the number of pair tasks is at most
-  //    the thread count, which bounds that matrix at threads x rows.
+  //    Each task's counters are a row-indexed array of their own ([task][row]: laid out by row
+  //    instead, 16 threads incrementing counters of one cache line thrashed it between cores);
+  //    at most one pair task per thread bounds that matrix at threads x rows, and the offsets
+  //    pass below runs over fixed chunks of rows in parallel.
   const std::size_t threads = pool_ != nullptr ? pool_->size() : 1;
   const std::size_t pair_tasks = threads == 1 ? 1 : std::clamp<std::size_t>(pairs.size() / 32768, 1, threads);
   const auto pair_begin = [&](std::size_t t) { return pairs.size() * t / pair_tasks; };
@@ -168,16 +169,12 @@ std::optional<interest::box_error> interest_tracker::apply_pairs(const entity_st
   const std::size_t row_chunks = (n + row_chunk - 1) / row_chunk;
   const auto chunk_rows = [&](std::size_t c) { return std::pair{c * row_chunk, std::min(n, (c + 1) * row_chunk)}; };
   task_cursor_.resize(pair_tasks * n);
-  run_each(row_chunks > 1 ? pool_ : nullptr, row_chunks, [&](std::size_t c) {
-    const auto [b, e] = chunk_rows(c);
-    std::fill(task_cursor_.begin() + static_cast<std::ptrdiff_t>(b * pair_tasks),
-              task_cursor_.begin() + static_cast<std::ptrdiff_t>(e * pair_tasks), 0u);
-  });
   task_bad_.assign(pair_tasks, no_pair);
   const std::size_t box_count = boxes.size();
   auto t_part = clock_type::now();
   run_each(pair_tasks > 1 ? pool_ : nullptr, pair_tasks, [&](std::size_t task) {
-    std::uint32_t* count = task_cursor_.data() + task;
+    std::uint32_t* count = task_cursor_.data() + task * n;
+    std::fill(count, count + n, 0u);
     for (std::size_t k = pair_begin(task), e = pair_begin(task + 1); k < e; ++k) {
       const auto& p = pairs[k];
       if (std::max(p.a, p.b) >= box_count) {
@@ -185,7 +182,7 @@ std::optional<interest::box_error> interest_tracker::apply_pairs(const entity_st
         continue;
       }
       std::uint32_t o, t;
-      if (split(p, o, t)) ++count[o * pair_tasks];
+      if (split(p, o, t)) ++count[o];
     }
   });
   for (const std::size_t k : task_bad_) {
@@ -204,7 +201,10 @@ std::optional<interest::box_error> interest_tracker::apply_pairs(const entity_st
   run_each(row_chunks > 1 ? pool_ : nullptr, row_chunks, [&](std::size_t c) {
     const auto [b, e] = chunk_rows(c);
     std::uint64_t sum = 0;
-    for (std::size_t k = b * pair_tasks; k < e * pair_tasks; ++k) sum += task_cursor_[k];
+    for (std::size_t t = 0; t < pair_tasks; ++t) {
+      const std::uint32_t* count = task_cursor_.data() + t * n;
+      for (std::size_t i = b; i < e; ++i) sum += count[i];
+    }
     chunk_base_[c + 1] = sum;
   });
   chunk_base_[0] = 0;
@@ -228,8 +228,7 @@ std::optional<interest::box_error> interest_tracker::apply_pairs(const entity_st
     auto running = static_cast<std::uint32_t>(chunk_base_[c]);
     for (std::size_t i = b; i < e; ++i) {
       vis_off_[i] = running;
-      std::uint32_t* row = task_cursor_.data() + i * pair_tasks;
-      for (std::size_t t = 0; t < pair_tasks; ++t) running += std::exchange(row[t], running);
+      for (std::size_t t = 0; t < pair_tasks; ++t) running += std::exchange(task_cursor_[t * n + i], running);
     }
   });
   vis_off_[n] = static_cast<std::uint32_t>(candidates);
@@ -243,10 +242,10 @@ std::optional<interest::box_error> interest_tracker::apply_pairs(const entity_st
   resize_with_headroom(enter_, candidates);
   if (opt_.max_visible != 0) resize_with_headroom(cap_keys_, candidates);
   run_each(pair_tasks > 1 ? pool_ : nullptr, pair_tasks, [&](std::size_t task) {
-    std::uint32_t* cursor = task_cursor_.data() + task;
+    std::uint32_t* cursor = task_cursor_.data() + task * n;
     for (std::size_t k = pair_begin(task), e = pair_begin(task + 1); k < e; ++k) {
       std::uint32_t o, t;
-      if (split(pairs[k], o, t)) cand_[cursor[o * pair_tasks]++] = (std::uint64_t{ids[t]} << 32) | t;
+      if (split(pairs[k], o, t)) cand_[cursor[o]++] = (std::uint64_t{ids[t]} << 32) | t;
     }
   });
 

@@ -229,7 +229,7 @@ class interest_tracker {
   std::vector<std::uint32_t> vis_len_, enter_len_, leave_off_, leave_len_;
   std::vector<entity_id> vis_, enter_, leave_;
   std::vector<std::uint64_t> cand_;         // candidates by row: (target handle << 32) | target dense index
-  std::vector<std::uint32_t> task_cursor_;   // per (row, pair task): candidate count, then fill cursor
+  std::vector<std::uint32_t> task_cursor_;   // per (pair task, row): candidate count, then fill cursor
   std::vector<std::uint64_t> chunk_base_;    // per chunk of rows: its first candidate (a scan)
   std::vector<std::size_t> task_bad_;        // per pair task: first pair with an id beyond the set
   std::vector<std::uint64_t> cap_keys_;      // (distance key << 32) | handle, for the cap
