@@ -8,6 +8,7 @@
 #include <boost/asio.hpp>
 #include <deque>
 #include <mutex>
+#include <shared_mutex>
 #include <spdlog/spdlog.h>
 #include <thread>
 #include <unordered_map>
@@ -55,7 +56,7 @@ struct server::impl {
   bool running = false;
   std::uint16_t bound_port = 0;
 
-  std::mutex sessions_mutex;
+  std::shared_mutex sessions_mutex;  // shared: lookups (send, disconnect, the count); unique: insert, erase
   std::unordered_map<session_id, std::shared_ptr<session>> sessions;
   std::atomic<session_id> next_id{1};
 
@@ -362,7 +363,7 @@ void server::impl::do_accept() {
     const session_id id = next_id++;
     std::size_t open;
     {
-      const std::lock_guard lock(sessions_mutex);
+      const std::shared_lock lock(sessions_mutex);
       open = sessions.size();
     }
     if (open >= opt.max_connections) {
@@ -448,7 +449,7 @@ void server::stop() {
   });
   std::vector<std::shared_ptr<session>> open;
   {
-    const std::lock_guard lock(m.sessions_mutex);
+    const std::shared_lock lock(m.sessions_mutex);
     for (auto& [id, s] : m.sessions) open.push_back(s);
   }
   for (auto& s : open) s->close("server stopping");
@@ -458,7 +459,7 @@ void server::stop() {
   const auto deadline = steady::now() + std::chrono::seconds(2);
   for (;;) {
     {
-      const std::lock_guard lock(m.sessions_mutex);
+      const std::shared_lock lock(m.sessions_mutex);
       if (m.sessions.empty()) break;
     }
     if (steady::now() > deadline) break;
@@ -488,7 +489,7 @@ void server::poll(std::vector<inbound_event>& out) {
 bool server::send(session_id s, shared_frame frame, delivery d) {
   std::shared_ptr<session> target;
   {
-    const std::lock_guard lock(impl_->sessions_mutex);
+    const std::shared_lock lock(impl_->sessions_mutex);
     const auto it = impl_->sessions.find(s);
     if (it == impl_->sessions.end()) return false;
     target = it->second;
@@ -500,7 +501,7 @@ bool server::send(session_id s, shared_frame frame, delivery d) {
 void server::disconnect(session_id s, error_code code, std::string reason) {
   std::shared_ptr<session> target;
   {
-    const std::lock_guard lock(impl_->sessions_mutex);
+    const std::shared_lock lock(impl_->sessions_mutex);
     const auto it = impl_->sessions.find(s);
     if (it == impl_->sessions.end()) return;
     target = it->second;
