@@ -9,9 +9,11 @@
 # Steps:
 #   test   test_zone_gpu: CPU-vs-GPU tick determinism
 #   bench  bench-zone: 100,000 entities at 30 Hz with the GPU finder, and with the CPU finder
+#   clients  bench-zone: 80,000 NPCs + 20,000 replicated clients (the swarm's load, no sockets)
 #   swarm  zone-server (80,000 NPCs, 30 Hz, finder auto) + bot-swarm (20,000 bots, verify) on loopback
 # Environment: SWARM_BOTS (20000), SWARM_NPCS (80000), SWARM_SECONDS (60, after the ramp-up),
-# SWARM_RAMP (bots per second, 2000), BENCH_ENTITIES (100000), BENCH_TICKS (600).
+# SWARM_RAMP (bots per second, 2000), SWARM_THREADS (bot-swarm I/O threads, 6), SERVER_THREADS (8),
+# SERVER_IO_THREADS (4), BENCH_ENTITIES (100000), BENCH_TICKS (600), BENCH_FINDERS ("gpu cpu").
 # Logs, CSV and JSON go to $OUT (or ./out).
 set -uo pipefail
 dir=${DEVICE_DIR:-.device}
@@ -21,8 +23,10 @@ export LD_LIBRARY_PATH=$PWD/$dir${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}
 { date -u; nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv; echo "cores: $(nproc)"; free -g; } \
   > "$out/device.txt" 2>&1
 cat "$out/device.txt"
+# Each of zone-server and bot-swarm holds one descriptor per bot: raise the limit as far as allowed.
+ulimit -Hn 1048576 2>/dev/null || ulimit -Hn 200000 2>/dev/null || true
 ulimit -n "$(ulimit -Hn)" 2>/dev/null
-echo "open-file limit: $(ulimit -n)"
+echo "open-file limit: $(ulimit -n) (hard $(ulimit -Hn))"
 
 for step in "$@"; do
   case "$step" in
@@ -33,21 +37,33 @@ for step in "$@"; do
     bench)
       n=${BENCH_ENTITIES:-100000}
       ticks=${BENCH_TICKS:-600}
-      for finder in gpu cpu; do
+      for finder in ${BENCH_FINDERS:-gpu cpu}; do
         echo "== bench-zone --finder $finder --entities $n $(date -u +%FT%TZ)"
         "$dir/bench-zone" --finder "$finder" --entities "$n" --ticks "$ticks" --rate 30 \
           --csv "$out/bench-zone-$finder.csv" 2>&1 | tee "$out/bench-zone-$finder.log"
       done
       ;;
+    clients)
+      # The swarm's server load without sockets: 80,000 NPCs + 20,000 player clients replicated.
+      echo "== bench-zone --finder gpu --entities ${SWARM_NPCS:-80000} --clients ${SWARM_BOTS:-20000} $(date -u +%FT%TZ)"
+      "$dir/bench-zone" --finder gpu --entities "${SWARM_NPCS:-80000}" --clients "${SWARM_BOTS:-20000}" \
+        --ticks "${BENCH_TICKS:-300}" --rate 30 --csv "$out/bench-zone-clients.csv" 2>&1 | tee "$out/bench-zone-clients.log"
+      ;;
     swarm)
       bots=${SWARM_BOTS:-20000}
+      limit=$(ulimit -n)
+      if [ "$limit" != unlimited ] && [ $((bots + 1000)) -gt "$limit" ]; then
+        echo "WARNING: open-file limit $limit is too low for $bots bots; running $((limit - 1000))"
+        bots=$((limit - 1000))
+      fi
       npcs=${SWARM_NPCS:-80000}
       secs=${SWARM_SECONDS:-60}
       ramp=${SWARM_RAMP:-2000}
       duration=$((secs + bots / ramp + 1))
       echo "== zone-server + bot-swarm: $bots bots, $npcs NPCs, 30 Hz, ${duration} s $(date -u +%FT%TZ)"
       "$dir/zone-server" --listen 127.0.0.1 --port 0 --metrics-port 0 --npcs "$npcs" --tick-rate 30 \
-        --max-clients $((bots + 100)) --io-threads 4 --finder auto > "$out/zone-server.log" 2>&1 &
+        --max-clients $((bots + 100)) --threads "${SERVER_THREADS:-8}" --io-threads "${SERVER_IO_THREADS:-4}" \
+        --finder auto > "$out/zone-server.log" 2>&1 &
       server=$!
       port=
       for _ in $(seq 600); do
@@ -58,7 +74,7 @@ for step in "$@"; do
       if [ -z "$port" ]; then
         echo "zone-server did not start"; cat "$out/zone-server.log"; kill "$server"; continue
       fi
-      "$dir/bot-swarm" --port "$port" --bots "$bots" --duration "$duration" --ramp "$ramp" --threads 6 --verify \
+      "$dir/bot-swarm" --port "$port" --bots "$bots" --duration "$duration" --ramp "$ramp" --threads "${SWARM_THREADS:-6}" --verify \
         --mix walk=0.6,patrol=0.2,follow=0.1,crowd=0.1 --quiet \
         --report-json "$out/swarm-report.json" --report-csv "$out/swarm-series.csv" > "$out/swarm.log" 2>&1
       echo "bot-swarm exit code: $?"

@@ -95,6 +95,7 @@ struct options {
   std::string finder = "cpu";
   double w = 0;  // 0 = the finder's default
   std::string csv;
+  bool view = true;  // GPU finders / auto: the tracker reads the finder's buffer (gpu::find_view)
   replicate_mode replicate = replicate_mode::parallel;
   std::size_t budget = 8 * 1024;
   std::uint32_t clients_per_task = 16;
@@ -123,6 +124,8 @@ Usage: bench-zone [options]
   --budget BYTES     per-client byte budget (default 8192)
   --clients-per-task N  replication chunk size (default 16)
   --hysteresis M     (default 4)   --max-visible N (default 0 = no cap)
+  --find-into-list   GPU finders / auto: find() into the tracker's own pair list instead of
+                     reading the finder's result buffer (gpu::find_view, zone-server's way)
   --csv FILE         per-tick samples (ms and counts) as CSV
   --sweep-w LIST     after the run, time the finder on the last tick's boxes for each W
                      (comma-separated; 5 calls each, median)
@@ -212,6 +215,8 @@ std::optional<std::string> parse_args(int argc, char** argv, options& o, bool& h
       const auto n = number<std::uint32_t>(v);
       if (!n) return need("a count");
       o.max_visible = *n;
+    } else if (a == "--find-into-list") {
+      o.view = false;
     } else if (a == "--csv") {
       if (!value()) return need("a file name");
       o.csv = std::string(v);
@@ -315,6 +320,13 @@ int main(int argc, char** argv) {
     return 64;
   }
   zone_world world(cfg, *finder, &pool);
+  // As zone-server does: the GPU finders and auto hand their result buffer to the tracker.
+  const bool gpu_side = opt.finder != "cpu" && opt.finder != "cpu-1t" && opt.finder != "brute";
+  if (gpu_side && opt.view) {
+    world.set_pair_view_source([f = finder.get()](const interest::box_set& boxes, std::span<const interest::id_pair>& view) {
+      return gpu::find_view(*f, boxes, view);
+    });
+  }
   const auto setup0 = clock_type::now();
   world.populate();
 

@@ -116,14 +116,17 @@ std::optional<interest::box_error> interest_tracker::update(const entity_store& 
   build_boxes(store, boxes_);
   const double boxes_ms = ms_since(t0);
   t0 = clock_type::now();
-  if (auto err = finder_->find(boxes_, pairs_)) {
+  std::span<const interest::id_pair> pairs;
+  auto err = view_source_ ? view_source_(boxes_, pairs) : finder_->find(boxes_, pairs_);
+  if (err) {
     const std::size_t k = err->index / 2;
     err->message = "entity " + std::to_string(store.ids()[k]) + (err->index % 2 ? " (presence box): " : " (AOI box): ") +
                    err->message;
     return err;
   }
+  if (!view_source_) pairs = pairs_;
   const double find_ms = ms_since(t0);
-  if (auto err = apply_pairs(store, boxes_, pairs_)) return err;
+  if (auto apply_err = apply_pairs(store, boxes_, pairs)) return apply_err;
   stats_.boxes_ms = boxes_ms;
   stats_.find_ms = find_ms;
   return std::nullopt;
@@ -131,7 +134,7 @@ std::optional<interest::box_error> interest_tracker::update(const entity_store& 
 
 std::optional<interest::box_error> interest_tracker::apply_pairs(const entity_store& store,
                                                                 const interest::box_set& boxes,
-                                                                const interest::pair_list& pairs) {
+                                                                std::span<const interest::id_pair> pairs) {
   const auto t0 = clock_type::now();
   if (boxes.size() != 2 * store.size()) {
     return interest::box_error{boxes.size(), "box set has " + std::to_string(boxes.size()) + " boxes, expected 2 x " +

@@ -180,7 +180,15 @@ class interest_tracker {
   /// an id beyond it.
   void build_boxes(const entity_store& store, interest::box_set& out) const;
   [[nodiscard]] std::optional<interest::box_error> apply_pairs(const entity_store& store, const interest::box_set& boxes,
-                                                               const interest::pair_list& pairs);
+                                                               std::span<const interest::id_pair> pairs);
+
+  /// Finds the pairs of a box set into a view the callee owns (valid until its next call).
+  using pair_view_source = std::function<std::optional<interest::box_error>(const interest::box_set&,
+                                                                            std::span<const interest::id_pair>&)>;
+  /// When set, update() finds the pairs through `source` instead of finder.find into a list of
+  /// its own: for the GPU finders, gpu::find_view hands over the finder's pinned result buffer
+  /// and saves copying every pair once more (docs/zone.md). Empty: back to finder.find.
+  void set_pair_view_source(pair_view_source source) { view_source_ = std::move(source); }
 
   /// Rows of the last update (= the store's size then).
   [[nodiscard]] std::size_t observer_count() const { return ids_.size(); }
@@ -216,6 +224,7 @@ class interest_tracker {
   };
 
   interest::pair_finder* finder_;
+  pair_view_source view_source_;
   interest::thread_pool* pool_;
   interest_options opt_;
   interest_stats stats_;
@@ -479,6 +488,10 @@ class zone_world {
   [[nodiscard]] entity_store& store() { return store_; }
   [[nodiscard]] const entity_store& store() const { return store_; }
   [[nodiscard]] const interest_tracker& tracker() const { return tracker_; }
+  /// See interest_tracker::set_pair_view_source.
+  void set_pair_view_source(interest_tracker::pair_view_source source) {
+    tracker_.set_pair_view_source(std::move(source));
+  }
   [[nodiscard]] behaviour behaviour_of(entity_id id) const;
   [[nodiscard]] const tick_phases& phases() const { return phases_; }
   [[nodiscard]] const zone_config& config() const { return cfg_; }

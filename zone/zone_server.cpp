@@ -74,7 +74,15 @@ zone_server::zone_server(const zone_config& cfg)
       finder_(make_zone_finder(cfg, pool_.get(), finder_error_)),
       world_(std::make_unique<zone_world>(cfg, *finder_, pool_.get())),
       replicator_(replica_options(cfg)),
-      net_(net_options(cfg)) {}
+      net_(net_options(cfg)) {
+  // The GPU finders and auto hand over their own result buffer (no copy of every pair per tick).
+  const auto backend = gpu::parse_backend(cfg.finder);
+  if (finder_error_.empty() && backend && *backend != gpu::finder_backend::cpu && *backend != gpu::finder_backend::brute) {
+    world_->set_pair_view_source([f = finder_.get()](const interest::box_set& boxes, std::span<const interest::id_pair>& view) {
+      return gpu::find_view(*f, boxes, view);
+    });
+  }
+}
 
 zone_server::~zone_server() {
   net_.stop();

@@ -1,7 +1,8 @@
 // Tick determinism with the GPU finder: the same seed and inputs give the same per-tick world
 // digest (positions and the interest tracker's visible sets, enters and leaves) with the CPU grid
-// finder and with the GPU PBIG finder, in both its output modes, with 1 and several threads, and
-// with an output buffer forced tiny (the overflow path runs inside the tick loop). Without a CUDA
+// finder and with the GPU finders (PBIG in both its output modes, LBVH, auto), with 1 and several
+// threads, with the tracker reading the finder's own buffer (gpu::find_view, zone-server's way),
+// and with an output buffer forced tiny (the overflow path runs inside the tick loop). Without a CUDA
 // device the executable prints why and exits with 77 before any test case (CTest: Skipped).
 #include <doctest/doctest.h>
 
@@ -10,6 +11,7 @@
 #include <string>
 
 #include "../common/seeds.h"
+#include "finders.h"
 #include "pbig.h"
 #include "world_script.h"
 #include "zone.h"
@@ -38,6 +40,13 @@ std::unique_ptr<interest::pair_finder> make_gpu(const gpu::pbig_options& opt) {
   return f;
 }
 
+/// The tracker's pair source as zone-server sets it for GPU finders and auto.
+interest_tracker::pair_view_source view_of(interest::pair_finder& f) {
+  return [&f](const interest::box_set& boxes, std::span<const interest::id_pair>& view) {
+    return gpu::find_view(f, boxes, view);
+  };
+}
+
 }  // namespace
 
 TEST_SUITE("zone.gpu") {
@@ -55,6 +64,8 @@ TEST_SUITE("zone.gpu") {
     auto gpu_direct = make_gpu(direct);
     CHECK(run_digests(cfg, *gpu_direct, &four, 60) == reference);
     CHECK(run_digests(cfg, *gpu_direct, nullptr, 60) == reference);  // the same finder again: plan reuse
+    // zone-server's way: the tracker reads the finder's own result buffer (gpu::find_view).
+    CHECK(run_digests(cfg, *gpu_direct, &four, 60, 8, view_of(*gpu_direct)) == reference);
 
     gpu::pbig_options paper = direct;
     paper.direct_output = false;
@@ -75,6 +86,15 @@ TEST_SUITE("zone.gpu") {
     gpu::pbig_options opt;
     opt.decode_pool = &pool;
     auto gpu_finder = make_gpu(opt);
-    CHECK(run_digests(cfg, *gpu_finder, &pool, 20, 32) == run_digests(cfg, cpu, &pool, 20, 32));
+    const auto reference = run_digests(cfg, cpu, &pool, 20, 32);
+    CHECK(run_digests(cfg, *gpu_finder, &pool, 20, 32) == reference);
+    CHECK(run_digests(cfg, *gpu_finder, &pool, 20, 32, view_of(*gpu_finder)) == reference);
+    for (const char* name : {"lbvh", "auto"}) {
+      CAPTURE(name);
+      std::string why;
+      auto f = gpu::make_finder(*gpu::parse_backend(name), &pool, &why);
+      REQUIRE_MESSAGE(f != nullptr, why);
+      CHECK(run_digests(cfg, *f, &pool, 20, 32, view_of(*f)) == reference);
+    }
   }
 }

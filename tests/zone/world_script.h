@@ -27,8 +27,10 @@ inline zone_config small_config(std::uint64_t seed) {
 
 /// Per-tick digests of a run with some players steered by a seeded script.
 inline std::vector<std::uint64_t> run_digests(const zone_config& cfg, interest::pair_finder& finder,
-                                              interest::thread_pool* pool, int ticks, int players = 8) {
+                                              interest::thread_pool* pool, int ticks, int players = 8,
+                                              interest_tracker::pair_view_source source = {}) {
   zone_world w(cfg, finder, pool);
+  if (source) w.set_pair_view_source(std::move(source));
   w.populate();
   std::mt19937_64 script(cfg.seed + 7);
   std::vector<entity_id> ids;
