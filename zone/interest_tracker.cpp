@@ -319,24 +319,23 @@ void interest_tracker::process_rows(const entity_store& store, std::size_t first
   const std::uint32_t cap = opt_.max_visible;
   std::uint64_t capped = 0;
 
+  // Membership in the previous set without sorting the candidates: a per-thread array by slot
+  // holds (stamp << 32) | handle for the previous set's entries of the row being processed
+  // (stamps never repeat until the 32-bit counter wraps, which clears the array), so a
+  // candidate's "was it visible" is one lookup, and a previous entry still marked afterwards was
+  // no candidate: it leaves. Slots are stable for an entity's life and the full handle is
+  // compared, so a slot reused by a new entity is never mistaken for the old one.
+  thread_local std::vector<std::uint64_t> mark;
+  thread_local std::uint32_t stamp = 0;
+  if (mark.size() < store.slot_count()) mark.resize(store.slot_count(), 0);
+
   for (std::size_t i = first; i < last; ++i) {
     const std::uint32_t off = vis_off_[i];
-    // (handle << 32) | dense index: sorted by handle, and a target that may enter has its
-    // presence box looked up by dense index directly (the handle's lookup through the store's
-    // slots cost two more cache misses for each target in the hysteresis band, every tick).
-    std::uint64_t* cand = cand_.data() + off;
+    // (handle << 32) | dense index: a target that may enter has its presence box looked up by
+    // dense index directly (through the handle's slot it cost two more cache misses for each
+    // target in the hysteresis band, every tick).
+    const std::uint64_t* cand = cand_.data() + off;
     const std::uint32_t cand_n = vis_off_[i + 1] - off;
-    // By target handle (unique within a row). Rows are short: insertion sort below 32.
-    if (cand_n < 32) {
-      for (std::uint32_t c = 1; c < cand_n; ++c) {
-        const std::uint64_t key = cand[c];
-        std::uint32_t k = c;
-        for (; k > 0 && cand[k - 1] > key; --k) cand[k] = cand[k - 1];
-        cand[k] = key;
-      }
-    } else {
-      std::sort(cand, cand + cand_n);
-    }
 
     const entity_id* old = nullptr;
     std::uint32_t old_n = 0;
@@ -344,34 +343,60 @@ void interest_tracker::process_rows(const entity_store& store, std::size_t first
       old = prev_vis_.data() + prev_off_[prev_row_[i]];
       old_n = prev_len_[prev_row_[i]];
     }
+    if (++stamp == 0) {
+      std::fill(mark.begin(), mark.end(), 0);
+      stamp = 1;
+    }
+    const std::uint64_t tag = std::uint64_t{stamp} << 32;
+    for (std::uint32_t j = 0; j < old_n; ++j) mark[slot_of(old[j])] = tag | old[j];
 
     // The observer's exact AOI box (the same float expressions as the grown one, minus h).
     const vec3 p = pos[i], a = aoi[i];
     const float lo_x = p.x - a.x, lo_y = p.y - a.y, lo_z = p.z - a.z;
     const float hi_x = p.x + a.x, hi_y = p.y + a.y, hi_z = p.z + a.z;
 
-    // One merge of the sorted candidates with the previous set: a candidate stays if it was
-    // visible, enters if its presence box meets the exact AOI box (looked up only then); a
-    // previous entry that is no candidate leaves.
+    // A candidate that was visible stays (its mark is cleared: seen); another enters if its
+    // presence box meets the exact AOI box. Previous entries still marked were no candidates:
+    // they leave; the others stay, in the previous (handle) order.
     entity_id* kept = vis_.data() + off;
     entity_id* enter = enter_.data() + off;
     entity_id* leave = leave_.data() + leave_off_[i];
-    std::uint32_t kept_n = 0, en = 0, ln = 0, j = 0;
+    std::uint32_t kept_n = 0, en = 0, ln = 0;
     for (std::uint32_t c = 0; c < cand_n; ++c) {
       const auto target = static_cast<entity_id>(cand[c] >> 32);
-      while (j < old_n && old[j] < target) leave[ln++] = old[j++];
-      if (j < old_n && old[j] == target) {
-        ++j;
-        kept[kept_n++] = target;
+      std::uint64_t& m = mark[slot_of(target)];
+      if (m == (tag | target)) {
+        m = 0;
         continue;
       }
       const presence_box& b = presence_[static_cast<std::uint32_t>(cand[c])];
       if (b.lo_x <= hi_x && lo_x <= b.hi_x && b.lo_y <= hi_y && lo_y <= b.hi_y && b.lo_z <= hi_z && lo_z <= b.hi_z) {
-        kept[kept_n++] = target;
         enter[en++] = target;
       }
     }
-    while (j < old_n) leave[ln++] = old[j++];
+    for (std::uint32_t j = 0; j < old_n; ++j) {
+      if (mark[slot_of(old[j])] == (tag | old[j])) {
+        leave[ln++] = old[j];
+      } else {
+        kept[kept_n++] = old[j];
+      }
+    }
+    // Enters by handle (usually a handful), merged into the kept entries from the back (the
+    // row's room holds every candidate, so both fit).
+    if (en < 32) {
+      for (std::uint32_t c = 1; c < en; ++c) {
+        const entity_id key = enter[c];
+        std::uint32_t k = c;
+        for (; k > 0 && enter[k - 1] > key; --k) enter[k] = enter[k - 1];
+        enter[k] = key;
+      }
+    } else {
+      std::sort(enter, enter + en);
+    }
+    for (std::uint32_t w = kept_n + en, k = kept_n, e = en; e > 0;) {
+      kept[--w] = (k > 0 && kept[k - 1] > enter[e - 1]) ? kept[--k] : enter[--e];
+    }
+    kept_n += en;
 
     // Cap: keep the `cap` closest (ties by handle), back to handle order, and redo the diff.
     if (cap != 0 && kept_n > cap) {
@@ -385,8 +410,8 @@ void interest_tracker::process_rows(const entity_store& store, std::size_t first
       capped += kept_n - cap;
       kept_n = cap;
       // Diff of two sorted lists: enters = kept \ old, leaves = old \ kept.
-      std::uint32_t k = 0;
-      en = ln = j = 0;
+      std::uint32_t k = 0, j = 0;
+      en = ln = 0;
       while (k < kept_n || j < old_n) {
         if (j == old_n || (k < kept_n && kept[k] < old[j])) {
           enter[en++] = kept[k++];
