@@ -197,8 +197,9 @@ finder_backend choose_backend(const box_set_summary& summary, bool pbig_usable, 
     return finder_backend::pbig;
   }
   const double n = static_cast<double>(summary.n);
-  if (summary.n < auto_small_n) {
-    say(fmt::format("N = {} < {}: LBVH, less fixed cost per call", summary.n, auto_small_n));
+  if (summary.n < auto_small_n && summary.size_spread < auto_even_spread) {
+    say(fmt::format("N = {} < {} and box sizes alike (spread {:.3g}x): LBVH, less fixed cost per call", summary.n,
+                    auto_small_n, summary.size_spread));
     return finder_backend::lbvh;
   }
   const double large_tests = summary.large_estimate * n;

@@ -65,7 +65,7 @@ inline constexpr std::size_t auto_sample_boxes = 8192;
                                             std::string* reason = nullptr);
 
 /// The auto rule's constants (docs/lbvh.md has the measurements behind them).
-inline constexpr std::size_t auto_small_n = 20000;          ///< below: LBVH (less fixed cost per call)
+inline constexpr std::size_t auto_small_n = 20000;          ///< below, with size spread below auto_even_spread: LBVH
 inline constexpr double auto_large_pass_tests = 4e9;        ///< above (large_estimate * N): LBVH
 inline constexpr double auto_crowding = 4.0;                ///< above, with size spread below auto_even_spread: LBVH
 inline constexpr double auto_even_spread = 4.0;

@@ -430,8 +430,8 @@ void lbvh_section(bench& b, const std::string& csv_path, std::size_t cgal_max_n)
   for (std::size_t n = 1000; n <= b.max_n; n *= 10) specs.push_back({"uniform", n});
   for (const char* doc : {"doc:0.1", "doc:1", "doc:10"}) specs.push_back({doc, std::min<std::size_t>(1000000, b.max_n)});
   for (std::size_t n = 10000; n <= std::min<std::size_t>(1000000, b.max_n); n *= 10) specs.push_back({"gaussian", n});
-  for (const std::size_t n : {std::size_t{100000}, std::size_t{1000000}, std::size_t{2000000}, std::size_t{3000000},
-                              std::size_t{10000000}}) {
+  for (const std::size_t n : {std::size_t{10000}, std::size_t{30000}, std::size_t{100000}, std::size_t{1000000},
+                              std::size_t{2000000}, std::size_t{3000000}, std::size_t{10000000}}) {
     if (n <= b.max_n) specs.push_back({"mmo", n});
   }
   for (std::size_t n = 100000; n <= std::min<std::size_t>(1000000, b.max_n); n *= 10) specs.push_back({"stadium", n});

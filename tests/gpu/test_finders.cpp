@@ -244,9 +244,12 @@ TEST_SUITE("gpu.finders") {
     CHECK(s.large_estimate == 0);
     CHECK(gpu::choose_backend(s, true, true, &reason) == gpu::finder_backend::pbig);
     CHECK(reason.find("PBIG") != std::string::npos);
-    // Small sets: LBVH.
+    // Small sets of like-sized boxes: LBVH; small MMO-like sets (sizes spread ~58x): PBIG.
     const auto small = gpu::summarize(generate_uniform(gpu::auto_small_n - 1, fresh_seed()));
     CHECK(gpu::choose_backend(small, true, true) == gpu::finder_backend::lbvh);
+    const auto small_mmo = gpu::summarize(generate_mmo(gpu::auto_small_n - 2, fresh_seed()));
+    CHECK(small_mmo.size_spread > gpu::auto_even_spread);
+    CHECK(gpu::choose_backend(small_mmo, true, true) == gpu::finder_backend::pbig);
     // The large-box pass estimate decides at the threshold.
     gpu::box_set_summary m = s;
     m.n = 1000000;
