@@ -142,18 +142,19 @@ std::optional<interest::box_error> interest_tracker::apply_pairs(const entity_st
   }
   const std::size_t n = store.size();
   const auto ids = store.ids();
-  const auto cls = store.visibility_classes();
-  const auto sees = store.sees();
 
-  // Box 2k is entity k's AOI box, 2k+1 its presence box; only mixed pairs mean "k sees j", and
-  // only when k sees j's class (re-checked: apply_pairs accepts pairs from any finder).
-  const auto split = [&](const interest::id_pair& p, std::uint32_t& observer, std::uint32_t& target) {
+  // Box 2k is entity k's AOI box, 2k+1 its presence box; only mixed pairs mean "k sees j" (an
+  // entity's own AOI and presence boxes aside). The visibility rule needs no re-check here: a
+  // mixed pair qualifies (the contract: every pair given qualifies) exactly when
+  // (aoi & 0) | (class & sees) != 0, i.e. when k sees j's class, and reading the two columns
+  // for every pair cost two cache misses each in both passes below.
+  const auto split = [](const interest::id_pair& p, std::uint32_t& observer, std::uint32_t& target) {
     if ((p.a & 1u) == (p.b & 1u)) return false;
     const std::uint32_t aoi_box = (p.a & 1u) ? p.b : p.a;
     const std::uint32_t presence_box = (p.a & 1u) ? p.a : p.b;
     observer = aoi_box / 2;
     target = presence_box / 2;
-    return observer != target && (cls[target] & sees[observer]) != 0;
+    return observer != target;
   };
 
   // 1. Count candidates per (task, observer row) over fixed slices of the pair list, checking
