@@ -268,11 +268,11 @@ int main(int argc, char** argv) {
       ("input-hz", po::value(&o.input_hz)->default_value(o.input_hz), "inputs per second per bot")     //
       ("ping-hz", po::value(&o.ping_hz)->default_value(o.ping_hz), "pings per second per bot")         //
       ("mix", po::value(&mix)->default_value(mix), "behaviour shares, e.g. walk=0.5,patrol=0.2,follow=0.1,crowd=0.1,teleport=0.1")  //
-      ("teleport-hz", po::value(&o.teleport_hz)->default_value(o.teleport_hz), "teleport bots: jumps per second per bot (random times and targets)")  //
+      ("teleport-hz", po::value(&o.teleport_hz)->default_value(o.teleport_hz, "0.2"), "teleport bots: jumps per second per bot (random times and targets)")  //
       ("hotspot", po::value(&hotspot), "flash-crowd target x,y,z (default: where the leader bot first is)")  //
       ("crowd-at", po::value(&o.crowd_at_s)->default_value(o.crowd_at_s), "seconds into the run when the crowd bots start converging")  //
       ("churn", po::value(&o.churn)->default_value(o.churn), "logouts per second (each bot logs in again)")  //
-      ("relogin-delay", po::value(&o.relogin_delay_s)->default_value(o.relogin_delay_s), "seconds before a churned bot logs in again")  //
+      ("relogin-delay", po::value(&o.relogin_delay_s)->default_value(o.relogin_delay_s, "0.2"), "seconds before a churned bot logs in again")  //
       ("churn-for", po::value(&o.churn_for_s)->default_value(o.churn_for_s), "seconds into the run when churn stops (0 = until the end)")  //
       ("verify", po::bool_switch(&o.verify), "compare the server's visible-set digests with each bot's tracked view")  //
       ("threads", po::value(&o.threads)->default_value(o.threads), "I/O threads (0 = one per 2,500 bots, 2 .. half the cores)")  //
