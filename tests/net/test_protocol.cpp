@@ -10,6 +10,7 @@
 #include <limits>
 #include <random>
 #include <set>
+#include <unordered_map>
 
 #include "protocol.h"
 
@@ -585,6 +586,58 @@ TEST_SUITE("net.protocol") {
       CHECK(visible_digest(99, ids).hash != hash);
     }
   }
+  TEST_CASE("id_map matches a std::unordered_map model under random inserts, erases and lookups") {
+    const std::uint64_t seed = fresh_seed();
+    CAPTURE(seed);
+    gen g(seed);
+    id_map<std::string> m;
+    std::unordered_map<std::uint32_t, std::string> model;
+    for (int op = 0; op < 20000; ++op) {
+      // Small id ranges make probe runs collide and wrap; 0 and the largest id are keys too.
+      const std::uint32_t range = op % 3 == 0 ? 64 : op % 3 == 1 ? 5000 : 0xffffffffu;
+      std::uint32_t id = g.u32() % range;
+      if (g.below(50) == 0) id = g.below(2) ? 0u : 0xffffffffu;
+      switch (g.below(4)) {
+        case 0:
+        case 1: {
+          const auto [it, fresh] = m.try_emplace(id);
+          const auto [mit, mfresh] = model.try_emplace(id);
+          REQUIRE(fresh == mfresh);
+          CHECK(it->first == id);
+          if (fresh) {
+            it->second = std::to_string(id);
+            mit->second = it->second;
+          }
+          break;
+        }
+        case 2: CHECK(m.erase(id) == model.erase(id)); break;
+        default: {
+          const auto it = m.find(id);
+          const auto mit = model.find(id);
+          REQUIRE((it == m.end()) == (mit == model.end()));
+          if (mit != model.end()) CHECK(it->second == mit->second);
+          CHECK(m.count(id) == model.count(id));
+        }
+      }
+      REQUIRE(m.size() == model.size());
+      if (op % 2000 == 0) {
+        std::size_t seen = 0;
+        for (const auto& [k, v] : m) {
+          ++seen;
+          CHECK(model.count(k) == 1);
+          CHECK(model.at(k) == v);
+        }
+        CHECK(seen == model.size());
+      }
+      if (op == 15000) {
+        m.clear();
+        model.clear();
+        CHECK(m.empty());
+        CHECK(m.find(7) == m.end());
+      }
+    }
+  }
+
   TEST_CASE("client_view applies updates, checks consistency and digests") {
     const std::uint64_t seed = fresh_seed();
     CAPTURE(seed);
