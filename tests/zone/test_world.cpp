@@ -85,6 +85,10 @@ TEST_SUITE("zone.world") {
     interest::grid_finder grid_one(&one), grid_three(&three);
     interest::brute_force_finder brute(&three);
     const auto reference = run_digests(cfg, grid_one, &one, 40);
+    // Everything stands on the ground, so the grid finder leaves z unsplit (its flat-grid plan):
+    // that is the plan compared with brute force here.
+    CHECK(grid_one.last_plan().dims[2] == 1);
+    CHECK(grid_one.last_plan().dims[0] > 1);
     CHECK(run_digests(cfg, grid_three, &three, 40) == reference);
     CHECK(run_digests(cfg, brute, &three, 40) == reference);
     CHECK(run_digests(cfg, grid_one, nullptr, 40) == reference);
