@@ -1,8 +1,40 @@
+#include <chrono>
+#include <limits>
+#if defined(__x86_64__) || defined(__i386__)
+#include <immintrin.h>
+#endif
+
 #include "interest.h"
 
 namespace zone::interest {
 
-thread_pool::thread_pool(unsigned threads) {
+namespace {
+
+using clock_type = std::chrono::steady_clock;
+
+inline void cpu_relax() {
+#if defined(__x86_64__) || defined(__i386__)
+  _mm_pause();
+#else
+  std::this_thread::yield();
+#endif
+}
+
+/// Spins until `ready()` or `spin_us` have passed; true when ready.
+template <class Ready>
+bool spin_until(unsigned spin_us, Ready ready) {
+  if (spin_us == 0) return ready();
+  const auto until = clock_type::now() + std::chrono::microseconds(spin_us);
+  for (unsigned k = 0;; ++k) {
+    if (ready()) return true;
+    cpu_relax();
+    if ((k & 63) == 63 && clock_type::now() >= until) return ready();
+  }
+}
+
+}  // namespace
+
+thread_pool::thread_pool(unsigned threads, unsigned spin_us) : spin_us_(spin_us) {
   if (threads == 0) threads = std::max(1u, std::thread::hardware_concurrency());
   workers_.reserve(threads - 1);
   for (unsigned i = 1; i < threads; ++i) workers_.emplace_back([this] { worker_loop(); });
@@ -17,37 +49,39 @@ thread_pool::~thread_pool() {
   for (auto& w : workers_) w.join();
 }
 
-void thread_pool::drain() {
-  // Called with mutex_ unlocked; takes indices one at a time until none are left.
+void thread_pool::drain(std::uint32_t generation) {
+  std::uint64_t w = job_.load(std::memory_order_acquire);
   for (;;) {
-    std::size_t i;
-    const std::function<void(std::size_t)>* task;
-    {
+    if (static_cast<std::uint32_t>(w >> 32) != generation) return;  // a later run (or none)
+    const auto i = static_cast<std::uint32_t>(w);
+    const std::uint32_t count = task_count_.load(std::memory_order_relaxed);
+    if (i >= count) return;
+    if (!job_.compare_exchange_weak(w, w + 1, std::memory_order_acq_rel, std::memory_order_acquire)) continue;
+    // Index i of this run is ours: the run's task and count were published before job_.
+    (*task_.load(std::memory_order_relaxed))(i);
+    if (finished_.fetch_add(1) + 1 == count && caller_waiting_.load()) {  // seq_cst: see run()
       std::lock_guard lock(mutex_);
-      if (task_ == nullptr || next_ >= task_count_) return;
-      i = next_++;
-      task = task_;
+      done_.notify_all();
     }
-    (*task)(i);
-    bool last;
-    {
-      std::lock_guard lock(mutex_);
-      last = ++finished_ == task_count_;
-    }
-    if (last) done_.notify_all();
+    w = job_.load(std::memory_order_acquire);
   }
 }
 
 void thread_pool::worker_loop() {
-  std::uint64_t seen = 0;
+  std::uint32_t seen = 0;
   for (;;) {
-    {
+    std::uint32_t g = seen;
+    spin_until(spin_us_, [&] { return stop_.load(std::memory_order_relaxed) || (g = generation_.load()) != seen; });
+    if (g == seen && !stop_) {
       std::unique_lock lock(mutex_);
-      wake_.wait(lock, [&] { return stop_ || generation_ != seen; });
-      if (stop_) return;
-      seen = generation_;
+      ++sleepers_;
+      wake_.wait(lock, [&] { return stop_.load() || generation_.load() != seen; });
+      --sleepers_;
+      g = generation_.load();
     }
-    drain();
+    if (stop_) return;
+    seen = g;
+    drain(g);
   }
 }
 
@@ -57,19 +91,34 @@ void thread_pool::run(std::size_t n, const std::function<void(std::size_t)>& tas
     for (std::size_t i = 0; i < n; ++i) task(i);
     return;
   }
-  {
-    std::lock_guard lock(mutex_);
-    task_ = &task;
-    task_count_ = n;
-    next_ = 0;
-    finished_ = 0;
-    ++generation_;
+  // Indices are 32-bit: a larger run goes in rounds.
+  constexpr std::size_t most = std::numeric_limits<std::uint32_t>::max() / 2;
+  if (n > most) {
+    for (std::size_t base = 0; base < n; base += most) {
+      const std::size_t len = std::min(most, n - base);
+      const std::function<void(std::size_t)> shifted = [&](std::size_t i) { task(base + i); };
+      run(len, shifted);
+    }
+    return;
   }
-  wake_.notify_all();
-  drain();
-  std::unique_lock lock(mutex_);
-  done_.wait(lock, [&] { return finished_ == task_count_; });
-  task_ = nullptr;
+  const auto count = static_cast<std::uint32_t>(n);
+  const std::uint32_t generation = generation_.load(std::memory_order_relaxed) + 1;
+  task_.store(&task, std::memory_order_relaxed);
+  task_count_.store(count, std::memory_order_relaxed);
+  finished_.store(0, std::memory_order_relaxed);
+  job_.store(static_cast<std::uint64_t>(generation) << 32, std::memory_order_release);
+  generation_.store(generation);  // seq_cst: ordered against sleepers_ below
+  if (sleepers_.load() > 0) {
+    std::lock_guard lock(mutex_);
+    wake_.notify_all();
+  }
+  drain(generation);
+  if (!spin_until(spin_us_, [&] { return finished_.load(std::memory_order_acquire) == count; })) {
+    std::unique_lock lock(mutex_);
+    caller_waiting_ = true;
+    done_.wait(lock, [&] { return finished_.load() == count; });
+    caller_waiting_ = false;
+  }
 }
 
 void run_tasks(thread_pool* pool, std::size_t n, const std::function<void(std::size_t)>& task) {

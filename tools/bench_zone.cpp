@@ -40,6 +40,7 @@
 #include <vector>
 
 #include "finders.h"
+#include "visibility.h"
 #include "interest.h"
 #include "protocol.h"
 #include "zone.h"
@@ -91,11 +92,13 @@ struct options {
   double rate = 30;
   bool paced = false;
   unsigned threads = 0;
+  int spin_us = -1;  // zone_config::worker_spin_us
   std::uint64_t seed = 1;
   std::string finder = "cpu";
   double w = 0;  // 0 = the finder's default
   std::string csv;
   bool view = true;  // GPU finders / auto: the tracker reads the finder's buffer (gpu::find_view)
+  std::string interest = "auto";  // auto | gpu | host (zone_config::interest)
   replicate_mode replicate = replicate_mode::parallel;
   std::size_t budget = 8 * 1024;
   std::uint32_t clients_per_task = 16;
@@ -115,6 +118,9 @@ Usage: bench-zone [options]
   --rate HZ          tick rate: dt of the simulation and, with --paced, the loop rate (default 30)
   --paced            sleep until each tick is due (like zone-server); default: back to back
   --threads N        worker threads, the calling thread included (default 0 = all cores)
+  --spin-us N        microseconds an idle worker spins before it sleeps, and (--paced) how early
+                     the workers are woken before a tick, as zone-server's --worker-spin-us
+                     (default -1 = auto: 1000 with 8 or more hardware threads, else 0)
   --seed S           world seed (default 1)
   --finder NAME      pair finder: cpu (grid finder on the pool) | cpu-1t | brute | gpu (= pbig) |
                      pbig | lbvh | auto (gpu/finders.h) (default cpu)
@@ -124,6 +130,9 @@ Usage: bench-zone [options]
   --budget BYTES     per-client byte budget (default 8192)
   --clients-per-task N  replication chunk size (default 16)
   --hysteresis M     (default 4)   --max-visible N (default 0 = no cap)
+  --interest WHERE   auto (the GPU visibility engine when a device is usable and --max-visible is
+                     0, else host) | gpu (the engine, or exit 64) | host (the finder and the host
+                     diff), as zone-server's --interest (default auto)
   --find-into-list   GPU finders / auto: find() into the tracker's own pair list instead of
                      reading the finder's result buffer (gpu::find_view, zone-server's way)
   --csv FILE         per-tick samples (ms and counts) as CSV
@@ -176,6 +185,11 @@ std::optional<std::string> parse_args(int argc, char** argv, options& o, bool& h
       const auto n = number<unsigned>(v);
       if (!n || *n > 1024) return need("0..1024");
       o.threads = *n;
+    } else if (a == "--spin-us") {
+      if (!value()) return need("microseconds");
+      const auto n = number<long long>(v);
+      if (!n || *n < -1 || *n > 1000000) return need("-1 .. 1000000");
+      o.spin_us = static_cast<int>(*n);
     } else if (a == "--seed") {
       if (!value()) return need("a seed");
       const auto n = number<std::uint64_t>(v);
@@ -215,6 +229,10 @@ std::optional<std::string> parse_args(int argc, char** argv, options& o, bool& h
       const auto n = number<std::uint32_t>(v);
       if (!n) return need("a count");
       o.max_visible = *n;
+    } else if (a == "--interest") {
+      if (!value()) return need("auto, gpu or host");
+      o.interest = std::string(v);
+      if (o.interest != "auto" && o.interest != "gpu" && o.interest != "host") return need("auto, gpu or host");
     } else if (a == "--find-into-list") {
       o.view = false;
     } else if (a == "--csv") {
@@ -299,7 +317,9 @@ int main(int argc, char** argv) {
     return 0;
   }
 
-  interest::thread_pool pool(opt.threads);
+  zone_config spin_cfg;
+  spin_cfg.worker_spin_us = opt.spin_us;
+  interest::thread_pool pool(opt.threads, worker_spin(spin_cfg));
   std::string error;
   auto finder = make_finder(opt.finder, &pool, opt.w, &error);
   if (!finder) {
@@ -326,6 +346,18 @@ int main(int argc, char** argv) {
     world.set_pair_view_source([f = finder.get()](const interest::box_set& boxes, std::span<const interest::id_pair>& view) {
       return gpu::find_view(*f, boxes, view);
     });
+  }
+  // As zone-server does: the whole interest step on the GPU engine when asked and possible.
+  std::unique_ptr<interest::visibility_engine> engine;
+  if (opt.interest == "gpu" || (opt.interest == "auto" && opt.max_visible == 0)) {
+    std::string why;
+    engine = gpu::make_visibility_engine(&pool, &why);
+    if (engine) {
+      world.set_visibility_engine(engine.get());
+    } else if (opt.interest == "gpu") {
+      std::cerr << "bench-zone: interest 'gpu' cannot run here: " << why << "\n";
+      return 64;
+    }
   }
   const auto setup0 = clock_type::now();
   world.populate();
@@ -368,16 +400,21 @@ int main(int argc, char** argv) {
 
   const std::string load_before = load_average();
   std::cout << "bench-zone: " << world.store().size() << " entities (" << opt.entities << " NPCs + bosses, "
-            << players.size() << " players/clients), " << world.town_count() << " towns, finder " << finder->name()
-            << ", " << pool.size() << " threads, " << opt.rate << " Hz " << (opt.paced ? "paced" : "back to back")
+            << players.size() << " players/clients), " << world.town_count() << " towns, interest on "
+            << (engine ? std::string(engine->name()) + " engine" : "host, finder " + std::string(finder->name()))
+            << ", " << pool.size() << " threads (spin " << pool.spin_us() << " us), " << opt.rate << " Hz " << (opt.paced ? "paced" : "back to back")
             << ", " << opt.warmup << " warm-up + " << opt.ticks << " ticks, seed " << opt.seed << "\n";
   std::cout << "load average before: " << load_before << "  (setup " << ms_since(setup0) << " ms)\n";
 
   series s_beh{"behaviours"}, s_int{"integrate"}, s_boxes{"  boxes"}, s_find{"  find"}, s_diff{"  diff"},
       s_interest{"interest"}, s_f_plan{"    plan"}, s_f_map{"    map"}, s_f_check{"    check"},
       s_f_out{"    output"}, s_d_count{"    count"}, s_d_offsets{"    offsets"}, s_d_fill{"    fill"},
-      s_d_rows{"    rows"}, s_rep{"replicate"}, s_rep_serial{"replicate 1t"}, s_total{"tick"};
+      s_d_rows{"    rows"}, s_e_pack{"  engine pack"}, s_e_up{"  engine upload"}, s_e_dev{"  engine device"},
+      s_e_down{"  engine download"}, s_e_grid{"    grid"}, s_e_query{"    candidates"}, s_e_class{"    classify"},
+      s_e_write{"    write"}, s_e_host{"  host work (overlapped)"}, s_rep{"replicate"}, s_rep_serial{"replicate 1t"},
+      s_total{"tick"};
   std::vector<double> step_allocs, rep_allocs;  // heap allocations per tick (world step; replication)
+  std::size_t on_engine_ticks = 0;  // measured ticks whose interest step ran on the engine
   std::vector<double> pairs, candidates, visible, enters, leaves, bytes_per_frame, checks;
   std::uint64_t frames_digest = 0xcbf29ce484222325ull, frames_mismatch = 0;
   std::uint64_t sent_enters = 0, sent_updates = 0, sent_leaves = 0, deferred = 0;
@@ -389,7 +426,13 @@ int main(int argc, char** argv) {
   for (std::size_t t = 0; t < total_ticks; ++t) {
     if (opt.paced) {
       const auto now = clock_type::now();
-      if (now < next) std::this_thread::sleep_until(next);
+      // As zone-server's loop: the workers are woken spin_us before the tick.
+      const auto spin = std::chrono::microseconds(pool.spin_us());
+      if (spin.count() > 0 && next - now > spin) {
+        std::this_thread::sleep_until(next - spin);
+        pool.run(pool.size(), [](std::size_t) {});
+      }
+      if (clock_type::now() < next) std::this_thread::sleep_until(next);
       next = std::max(next + period, clock_type::now() - period);
     }
     const bool measured = t >= opt.warmup;
@@ -474,6 +517,16 @@ int main(int argc, char** argv) {
     s_d_offsets.v.push_back(ts.offsets_ms);
     s_d_fill.v.push_back(ts.fill_ms);
     s_d_rows.v.push_back(ts.rows_ms);
+    s_e_pack.v.push_back(ts.engine_timing.pack_ms);
+    s_e_up.v.push_back(ts.engine_timing.upload_ms);
+    s_e_dev.v.push_back(ts.engine_timing.device_ms);
+    s_e_down.v.push_back(ts.engine_timing.download_ms);
+    s_e_grid.v.push_back(ts.engine_timing.grid_ms);
+    s_e_query.v.push_back(ts.engine_timing.query_ms);
+    s_e_class.v.push_back(ts.engine_timing.classify_ms);
+    s_e_write.v.push_back(ts.engine_timing.write_ms);
+    s_e_host.v.push_back(ts.on_engine ? ts.diff_ms : 0.0);
+    on_engine_ticks += ts.on_engine ? 1 : 0;
     s_f_plan.v.push_back(fs.plan_ms);
     s_f_map.v.push_back(fs.map_ms);
     s_f_check.v.push_back(fs.check_ms);
@@ -491,13 +544,24 @@ int main(int argc, char** argv) {
   const std::string load_after = load_average();
 
   // ---- Report ----
-  std::vector<const series*> rows = {&s_beh, &s_int, &s_interest, &s_boxes, &s_find};
-  const bool grid = opt.finder == "cpu" || opt.finder == "cpu-1t";
-  if (grid) {
-    for (const series* s : {&s_f_plan, &s_f_map, &s_f_check, &s_f_out}) rows.push_back(s);
+  std::vector<const series*> rows = {&s_beh, &s_int, &s_interest};
+  const bool grid = (opt.finder == "cpu" || opt.finder == "cpu-1t") && on_engine_ticks == 0;
+  if (on_engine_ticks > 0) {
+    // The engine's call (find_ms) and its parts, then the host's bookkeeping around it.
+    s_find.name = "  engine call";
+    for (const series* s : {&s_find, &s_e_pack, &s_e_up, &s_e_dev, &s_e_grid, &s_e_query, &s_e_class, &s_e_write, &s_e_down,
+                            &s_e_host}) {
+      rows.push_back(s);
+    }
+  } else {
+    rows.push_back(&s_boxes);
+    rows.push_back(&s_find);
+    if (grid) {
+      for (const series* s : {&s_f_plan, &s_f_map, &s_f_check, &s_f_out}) rows.push_back(s);
+    }
+    rows.push_back(&s_diff);
+    for (const series* s : {&s_d_count, &s_d_offsets, &s_d_fill, &s_d_rows}) rows.push_back(s);
   }
-  rows.push_back(&s_diff);
-  for (const series* s : {&s_d_count, &s_d_offsets, &s_d_fill, &s_d_rows}) rows.push_back(s);
   if (!requests.empty()) {
     rows.push_back(&s_rep);
     if (opt.replicate == replicate_mode::both) rows.push_back(&s_rep_serial);
@@ -562,7 +626,8 @@ int main(int argc, char** argv) {
 
   if (!opt.sweep_w.empty()) {
     // The finder alone on the last tick's boxes (the zone's real distribution), per W.
-    const interest::box_set& boxes = world.tracker().boxes();
+    interest::box_set boxes;
+    world.tracker().build_boxes(world.store(), boxes);  // also when the engine ran the ticks
     std::printf("\nW sweep on the last tick's %zu boxes (grid finder, %u threads, median of 5 calls)\n", boxes.size(),
                 pool.size());
     std::printf("| W | median ms | min ms | pairs | checks | cell edge m | cells | entries | large |\n"

@@ -1,5 +1,6 @@
 // zone_config from the command line and an optional config file (Boost.Program_options).
 #include <algorithm>
+#include <thread>
 #include <boost/program_options.hpp>
 #include <cmath>
 #include <fstream>
@@ -50,11 +51,22 @@ std::optional<std::string> validate(const zone_config& c) {
   if (std::find(std::begin(finders), std::end(finders), c.finder) == std::end(finders)) {
     return bad("finder must be auto, cpu, gpu (= pbig), pbig, lbvh or brute");
   }
+  if (c.worker_spin_us < -1 || c.worker_spin_us > 1000000) return bad("worker-spin-us must be -1 (auto) or 0 .. 1000000");
+  static const char* interests[] = {"auto", "gpu", "host"};
+  if (std::find(std::begin(interests), std::end(interests), c.interest) == std::end(interests)) {
+    return bad("interest must be auto, gpu or host");
+  }
+  if (c.interest == "gpu" && c.max_visible != 0) return bad("interest gpu does not support max-visible (use auto or host)");
   static const char* levels[] = {"trace", "debug", "info", "warn", "error", "critical", "off"};
   if (std::find(std::begin(levels), std::end(levels), c.log_level) == std::end(levels)) {
     return bad("log-level must be one of trace, debug, info, warn, error, critical, off");
   }
   return std::nullopt;
+}
+
+unsigned worker_spin(const zone_config& c) {
+  if (c.worker_spin_us >= 0) return static_cast<unsigned>(c.worker_spin_us);
+  return std::thread::hardware_concurrency() >= 8 ? 1000u : 0u;
 }
 
 config_result parse_config(int argc, const char* const* argv) {
@@ -75,10 +87,12 @@ config_result parse_config(int argc, const char* const* argv) {
       ("world-z", po::value(&world_z)->default_value(world_z), "world height (m), from 0")              //
       ("tick-rate", po::value(&c.tick_rate_hz)->default_value(c.tick_rate_hz), "ticks per second")      //
       ("seed", po::value(&c.seed)->default_value(c.seed), "seed of the NPC population and behaviours")  //
-      ("threads", po::value(&c.worker_threads)->default_value(c.worker_threads), "worker threads (0 = all cores)");
+      ("threads", po::value(&c.worker_threads)->default_value(c.worker_threads), "worker threads (0 = all cores)")  //
+      ("worker-spin-us", po::value(&c.worker_spin_us)->default_value(c.worker_spin_us), "microseconds an idle worker spins before it sleeps, and how early the loop wakes the workers before a tick (-1 = auto: 1000 with 8 or more hardware threads, else 0)");
   po::options_description interest("Interest");
   interest.add_options()                                                                                     //
       ("finder", po::value(&c.finder)->default_value(c.finder), "pair finder: auto (chosen per tick from the box statistics: GPU when usable, else CPU), cpu, gpu (= pbig), pbig, lbvh, brute")  //
+      ("interest", po::value(&c.interest)->default_value(c.interest), "where the interest step runs: auto (the GPU visibility engine when a device is usable and max-visible is 0, else host), gpu, host (the pair finder and the host diff)")  //
       ("hysteresis", po::value(&c.hysteresis)->default_value(c.hysteresis), "leave margin beyond the AOI (m)")  //
       ("max-visible", po::value(&c.max_visible)->default_value(c.max_visible), "cap per observer (0 = none)")   //
       ("aoi-tiny", po::value(&c.aoi_tier[0])->default_value(c.aoi_tier[0]), "AOI half-extent of tier tiny (m)")  //

@@ -112,23 +112,226 @@ void interest_tracker::build_boxes(const entity_store& store, interest::box_set&
 }
 
 std::optional<interest::box_error> interest_tracker::update(const entity_store& store) {
+  if (engine_ != nullptr && engine_error_.empty() && opt_.max_visible == 0) {
+    try {
+      return update_on_engine(store);
+    } catch (const std::exception& e) {
+      // A device error: the host path takes over from the last update's sets, which are intact
+      // (update_on_engine changes the tracker only after the engine's call succeeded).
+      engine_error_ = e.what();
+      engine_synced_ = false;
+    }
+  }
+  return update_on_host(store);
+}
+
+std::optional<interest::box_error> interest_tracker::name_box_error(const entity_store& store,
+                                                                   std::optional<interest::box_error> err) const {
+  if (!err) return err;
+  const std::size_t k = err->index / 2;
+  err->message = "entity " + std::to_string(store.ids()[k]) + (err->index % 2 ? " (presence box): " : " (AOI box): ") +
+                 err->message;
+  return err;
+}
+
+std::optional<interest::box_error> interest_tracker::update_on_host(const entity_store& store) {
   auto t0 = clock_type::now();
   build_boxes(store, boxes_);
   const double boxes_ms = ms_since(t0);
   t0 = clock_type::now();
   std::span<const interest::id_pair> pairs;
   auto err = view_source_ ? view_source_(boxes_, pairs) : finder_->find(boxes_, pairs_);
-  if (err) {
-    const std::size_t k = err->index / 2;
-    err->message = "entity " + std::to_string(store.ids()[k]) + (err->index % 2 ? " (presence box): " : " (AOI box): ") +
-                   err->message;
-    return err;
-  }
+  if (err) return name_box_error(store, std::move(err));
   if (!view_source_) pairs = pairs_;
   const double find_ms = ms_since(t0);
   if (auto apply_err = apply_pairs(store, boxes_, pairs)) return apply_err;
   stats_.boxes_ms = boxes_ms;
   stats_.find_ms = find_ms;
+  return std::nullopt;
+}
+
+void interest_tracker::set_engine(interest::visibility_engine* engine) {
+  adopt_engine_output();  // an earlier engine's output stays readable through the host arrays
+  engine_ = engine;
+  engine_synced_ = false;
+  engine_error_.clear();
+}
+
+void interest_tracker::map_rows(const entity_store& store) { map_rows_into(store, ids_, row_of_slot_); }
+
+void interest_tracker::map_rows_into(const entity_store& store, const std::vector<entity_id>& ids,
+                                     std::vector<std::uint32_t>& row_of_slot) const {
+  // Entries of slots not in `ids` may be stale; row_of() checks the handle.
+  const std::size_t n = ids.size();
+  if (row_of_slot.size() < store.slot_count()) row_of_slot.resize(store.slot_count(), no_row);
+  const std::size_t chunk = 16384;
+  run_each(n > chunk ? pool_ : nullptr, (n + chunk - 1) / chunk, [&](std::size_t c) {
+    for (std::size_t i = c * chunk, e = std::min(n, (c + 1) * chunk); i < e; ++i) {
+      row_of_slot[slot_of(ids[i])] = static_cast<std::uint32_t>(i);
+    }
+  });
+}
+
+std::span<const entity_id> interest_tracker::fetched_row(std::size_t row) const {
+  if (!fetched_.load(std::memory_order_acquire)) {
+    const std::lock_guard lock(fetch_mutex_);
+    if (!fetched_.load(std::memory_order_relaxed)) {
+      const interest::visibility_lists all = engine_->fetch_all_visible();
+      full_list_ = {all.data, all.off, nullptr};
+      fetched_.store(true, std::memory_order_release);
+    }
+  }
+  return full_list_.row(row);
+}
+
+void interest_tracker::point_lists_at_host() {
+  vis_list_ = {vis_.data(), vis_off_.data(), vis_len_.data()};
+  partial_ = false;
+  enter_list_ = {enter_.data(), vis_off_.data(), enter_len_.data()};
+  leave_list_ = {leave_.data(), leave_off_.data(), leave_len_.data()};
+}
+
+void interest_tracker::adopt_engine_output() {
+  if (!last_by_engine_) return;
+  // The engine's compact lists into the host path's layout: visible sets and enters share the
+  // visible offsets (enters are a subset of the visible set), leaves have their own.
+  const std::size_t n = ids_.size();
+  const interest::visibility_output& o = engine_out_;
+  // Every row's visible set: the engine may have kept some rows' sets on the device. If the device
+  // is gone (an engine failure), those rows start again from empty sets (their targets enter anew;
+  // nothing on the host read them).
+  bool device_lost = false;
+  if (partial_ && n > 0) {
+    try {
+      (void)fetched_row(0);
+    } catch (const std::exception&) {
+      device_lost = true;
+    }
+  }
+  const auto row_of_output = [&](std::size_t r) -> std::span<const entity_id> {
+    if (!partial_ || demand_rows_[r] != 0) return vis_list_.row(r);
+    if (device_lost) return {};
+    return full_list_.row(r);
+  };
+  std::vector<std::uint32_t> len(n);
+  vis_off_.resize(n + 1);
+  vis_off_[0] = 0;
+  for (std::size_t r = 0; r < n; ++r) {
+    len[r] = static_cast<std::uint32_t>(row_of_output(r).size());
+    vis_off_[r + 1] = vis_off_[r] + len[r];
+  }
+  vis_.resize(vis_off_[n]);
+  enter_.resize(vis_off_[n]);
+  vis_len_.resize(n);
+  enter_len_.resize(n);
+  for (std::size_t r = 0; r < n; ++r) {
+    const auto row = row_of_output(r);
+    std::copy(row.begin(), row.end(), vis_.begin() + vis_off_[r]);
+    vis_len_[r] = len[r];
+    const std::uint32_t en = o.enter_off[r + 1] - o.enter_off[r];
+    enter_len_[r] = en <= len[r] ? en : 0u;  // 0 only for a row lost with the device
+    std::copy(o.enters + o.enter_off[r], o.enters + o.enter_off[r] + enter_len_[r], enter_.begin() + vis_off_[r]);
+  }
+  leave_.assign(o.leaves, o.leaves + o.leave_off[n]);
+  leave_off_.assign(o.leave_off, o.leave_off + n + 1);
+  leave_len_.resize(n);
+  for (std::size_t r = 0; r < n; ++r) leave_len_[r] = o.leave_off[r + 1] - o.leave_off[r];
+  point_lists_at_host();
+  last_by_engine_ = false;
+}
+
+std::optional<interest::box_error> interest_tracker::update_on_engine(const entity_store& store) {
+  const auto t0 = clock_type::now();
+  const std::size_t n = store.size();
+  const auto ids = store.ids();
+  if (!engine_synced_) {
+    // The engine does not hold the last update's sets (first use, or the host path made them):
+    // hand them over in compact form.
+    const std::size_t prev_rows = ids_.size();
+    std::vector<std::uint32_t> off, vis;
+    if (prev_rows > 0) {
+      off.resize(prev_rows + 1);
+      off[0] = 0;
+      for (std::size_t r = 0; r < prev_rows; ++r) off[r + 1] = off[r] + static_cast<std::uint32_t>(visible(r).size());
+      vis.reserve(off[prev_rows]);
+      for (std::size_t r = 0; r < prev_rows; ++r) {
+        const auto row = visible(r);
+        vis.insert(vis.end(), row.begin(), row.end());
+      }
+    }
+    engine_->load_previous(ids_, entity_index_bits, off, vis);
+    engine_synced_ = true;
+  }
+  static_assert(sizeof(vec3) == 3 * sizeof(float), "vec3 must be three packed floats");
+  interest::visibility_input in;
+  in.n = n;
+  in.ids = ids.data();
+  in.slot_bits = entity_index_bits;
+  in.position = reinterpret_cast<const float*>(store.positions().data());
+  in.aoi_half = reinterpret_cast<const float*>(store.aoi_half_extents().data());
+  in.body_half = reinterpret_cast<const float*>(store.presence_half_extents().data());
+  in.visibility = store.visibility_classes().data();
+  in.sees = store.sees().data();
+  in.hysteresis = opt_.hysteresis;
+  if (view_demand_ != nullptr) {
+    // Per row: is its visible set read on the host (by slot, from the caller).
+    next_demand_rows_.resize(n);
+    const std::vector<std::uint8_t>& by_slot = *view_demand_;
+    const std::size_t chunk = 16384;
+    run_each(n > chunk ? pool_ : nullptr, (n + chunk - 1) / chunk, [&](std::size_t c) {
+      for (std::size_t i = c * chunk, e = std::min(n, (c + 1) * chunk); i < e; ++i) {
+        const std::uint32_t slot = slot_of(ids[i]);
+        next_demand_rows_[i] = slot < by_slot.size() ? by_slot[slot] : std::uint8_t{0};
+      }
+    });
+    in.wanted = next_demand_rows_.data();
+  }
+  // While the device works: this update's rows and slot map, into spare buffers (swapped in only
+  // if the update succeeds, so that a refused one changes nothing here either).
+  double host_ms = 0;
+  bool host_done = false;
+  in.while_waiting = [&] {
+    host_done = true;
+    const auto th = clock_type::now();
+    next_ids_.assign(ids.begin(), ids.end());
+    map_rows_into(store, next_ids_, spare_row_of_slot_);
+    host_ms = ms_since(th);
+  };
+  const auto t_engine = clock_type::now();
+  const auto bad = engine_->update(in, engine_out_);
+  const double engine_ms = ms_since(t_engine);
+  if (bad) {
+    // Nothing changed, on the engine or here. The host's validation names the box exactly as the
+    // host path would.
+    build_boxes(store, boxes_);
+    auto err = interest::validate(boxes_, pool_);
+    if (!err) err = interest::box_error{*bad, "box " + std::to_string(*bad) + " is invalid"};
+    return name_box_error(store, std::move(err));
+  }
+  if (!host_done) {
+    next_ids_.assign(ids.begin(), ids.end());
+    map_rows_into(store, next_ids_, spare_row_of_slot_);
+  }
+  std::swap(ids_, next_ids_);
+  std::swap(row_of_slot_, spare_row_of_slot_);
+  std::swap(demand_rows_, next_demand_rows_);
+  partial_ = !engine_out_.visible_complete;
+  fetched_.store(false, std::memory_order_relaxed);
+  vis_list_ = {engine_out_.visible, engine_out_.visible_off, nullptr};
+  enter_list_ = {engine_out_.enters, engine_out_.enter_off, nullptr};
+  leave_list_ = {engine_out_.leaves, engine_out_.leave_off, nullptr};
+  last_by_engine_ = true;
+
+  stats_ = {};
+  stats_.pairs = engine_out_.pairs;
+  stats_.candidates = engine_out_.candidates;
+  stats_.visible = engine_out_.visible_off[n];
+  stats_.enters = engine_out_.enter_off[n];
+  stats_.leaves = engine_out_.leave_off[n];
+  stats_.find_ms = engine_ms;
+  stats_.diff_ms = ms_since(t0) - engine_ms + host_ms;  // the host's own work, overlapped or not
+  stats_.on_engine = true;
+  stats_.engine_timing = engine_out_.timing;
   return std::nullopt;
 }
 
@@ -140,6 +343,7 @@ std::optional<interest::box_error> interest_tracker::apply_pairs(const entity_st
     return interest::box_error{boxes.size(), "box set has " + std::to_string(boxes.size()) + " boxes, expected 2 x " +
                                                  std::to_string(store.size()) + " entities"};
   }
+  adopt_engine_output();  // the previous sets in this path's arrays
   const std::size_t n = store.size();
   const auto ids = store.ids();
 
@@ -293,8 +497,9 @@ std::optional<interest::box_error> interest_tracker::apply_pairs(const entity_st
   const double rows_ms = ms_since(t_part);
 
   // Slot -> row for the next tick's lookups and row_of().
-  if (row_of_slot_.size() < store.slot_count()) row_of_slot_.resize(store.slot_count(), no_row);
-  for (std::size_t i = 0; i < n; ++i) row_of_slot_[slot_of(ids[i])] = static_cast<std::uint32_t>(i);
+  map_rows(store);
+  point_lists_at_host();
+  engine_synced_ = false;
 
   stats_ = {};
   stats_.pairs = pairs.size();

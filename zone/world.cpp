@@ -92,6 +92,15 @@ zone_world::zone_world(const zone_config& cfg, interest::pair_finder& finder, in
     };
     towns_.push_back({at(w.lo.x, w.hi.x), at(w.lo.y, w.hi.y), w.lo.z});
   }
+  // Only players (replication) and chasers (their behaviour) read visible sets right after the
+  // interest step; a GPU engine copies back only theirs (interest_tracker::set_view_demand).
+  tracker_.set_view_demand(&reads_view_);
+}
+
+void zone_world::set_reads_view(entity_id id, bool reads) {
+  const std::uint32_t slot = slot_of(id);
+  if (reads_view_.size() <= slot) reads_view_.resize(slot + 1, 0);
+  reads_view_[slot] = reads ? 1 : 0;
 }
 
 std::uint64_t zone_world::noise(entity_id id, std::uint64_t salt) const {
@@ -156,6 +165,7 @@ void zone_world::populate() {
     if (id == null_entity) break;
     if (by_slot_.size() <= slot_of(id)) by_slot_.resize(slot_of(id) + 1);
     by_slot_[slot_of(id)] = st;
+    set_reads_view(id, st.kind == behaviour::chase);
   }
 }
 
@@ -169,10 +179,15 @@ entity_id zone_world::spawn_player(const vec3& at) {
   if (id == null_entity) return id;
   if (by_slot_.size() <= slot_of(id)) by_slot_.resize(slot_of(id) + 1);
   by_slot_[slot_of(id)] = npc_state{behaviour::player, d.position, 0, {}};
+  set_reads_view(id, true);
   return id;
 }
 
-bool zone_world::despawn(entity_id id) { return store_.destroy(id); }
+bool zone_world::despawn(entity_id id) {
+  if (!store_.destroy(id)) return false;
+  set_reads_view(id, false);
+  return true;
+}
 
 bool zone_world::set_intent(entity_id player, const vec3& intent) {
   if (!store_.alive(player) || by_slot_[slot_of(player)].kind != behaviour::player) return false;

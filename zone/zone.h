@@ -10,7 +10,9 @@
 #include <cstddef>
 #include <cstdint>
 #include <functional>
+#include <atomic>
 #include <memory>
+#include <mutex>
 #include <optional>
 #include <span>
 #include <string>
@@ -18,6 +20,7 @@
 
 #include "interest.h"
 #include "protocol.h"
+#include "visibility_engine.h"
 
 namespace zone {
 
@@ -153,6 +156,11 @@ struct interest_stats {
   /// Parts of diff_ms: counting candidates per row, row offsets, filling the rows, the per-row
   /// sort-and-merge with the previous sets (the rest: presence records, previous rows, stats).
   double count_ms = 0, offsets_ms = 0, fill_ms = 0, rows_ms = 0;
+  /// The update ran on the visibility engine (set_engine): then find_ms is the engine's whole
+  /// call, boxes_ms and the parts above are 0, diff_ms is the host's bookkeeping (previous rows,
+  /// row map), and `engine_timing` says where the engine's time went.
+  bool on_engine = false;
+  interest::visibility_timing engine_timing;
 };
 
 /// Per-observer visible sets with enter/leave events and hysteresis, on top of any pair_finder.
@@ -190,21 +198,35 @@ class interest_tracker {
   /// and saves copying every pair once more (docs/zone.md). Empty: back to finder.find.
   void set_pair_view_source(pair_view_source source) { view_source_ = std::move(source); }
 
+  /// When set (non-null; it must outlive the tracker or be unset first), update() runs the whole
+  /// interest step on the engine (the GPU: gpu/visibility.h) instead of the finder and the host
+  /// diff, with the same result. Not used while max_visible != 0 (the cap is host-only), and not
+  /// after the engine failed once (engine_error() says why; the host path takes over).
+  void set_engine(interest::visibility_engine* engine);
+  /// Which observers' visible sets are read on the host right after an update (by slot: non-zero
+  /// = read; slots beyond the vector: not read), so that an engine copies only those back; any
+  /// other row's set is fetched from the engine on first access (visible() stays exact for every
+  /// row). Null (the default): every row's. The vector must outlive the tracker or be unset.
+  void set_view_demand(const std::vector<std::uint8_t>* by_slot) { view_demand_ = by_slot; }
+  /// Why the engine was given up (empty while it works or when none is set).
+  [[nodiscard]] const std::string& engine_error() const { return engine_error_; }
+  /// True when the last update ran on the engine.
+  [[nodiscard]] bool last_update_on_engine() const { return last_by_engine_; }
+
   /// Rows of the last update (= the store's size then).
   [[nodiscard]] std::size_t observer_count() const { return ids_.size(); }
   [[nodiscard]] entity_id observer(std::size_t row) const { return ids_[row]; }
   /// Row of an observer in the last update, or entity_store::npos.
   [[nodiscard]] std::size_t row_of(entity_id id) const;
 
+  /// Safe to call from several threads at once (the first access to a row whose set the engine
+  /// kept on the device fetches them all, once).
   [[nodiscard]] std::span<const entity_id> visible(std::size_t row) const {
-    return {vis_.data() + vis_off_[row], vis_len_[row]};
+    if (partial_ && demand_rows_[row] == 0) return fetched_row(row);
+    return vis_list_.row(row);
   }
-  [[nodiscard]] std::span<const entity_id> enters(std::size_t row) const {
-    return {enter_.data() + vis_off_[row], enter_len_[row]};
-  }
-  [[nodiscard]] std::span<const entity_id> leaves(std::size_t row) const {
-    return {leave_.data() + leave_off_[row], leave_len_[row]};
-  }
+  [[nodiscard]] std::span<const entity_id> enters(std::size_t row) const { return enter_list_.row(row); }
+  [[nodiscard]] std::span<const entity_id> leaves(std::size_t row) const { return leave_list_.row(row); }
 
   /// 64-bit hash of the last update's output (observers, visible sets, enters, leaves, in row
   /// order): equal across runs, finders and thread counts for equal inputs.
@@ -219,6 +241,25 @@ class interest_tracker {
 
  private:
   void process_rows(const entity_store& store, std::size_t first, std::size_t last);
+  [[nodiscard]] std::optional<interest::box_error> update_on_engine(const entity_store& store);
+  [[nodiscard]] std::optional<interest::box_error> update_on_host(const entity_store& store);
+  [[nodiscard]] std::optional<interest::box_error> name_box_error(const entity_store& store,
+                                                                  std::optional<interest::box_error> err) const;
+  void adopt_engine_output();  // the engine's last output into the host path's arrays
+  [[nodiscard]] std::span<const entity_id> fetched_row(std::size_t row) const;
+  void point_lists_at_host();
+  void map_rows(const entity_store& store);  // row_of_slot_ for the rows of this update
+  void map_rows_into(const entity_store& store, const std::vector<entity_id>& ids,
+                     std::vector<std::uint32_t>& row_of_slot) const;
+  /// One kind of per-row list: row r is data[off[r], off[r] + len[r]) (len null: off[r + 1]).
+  struct row_lists {
+    const entity_id* data = nullptr;
+    const std::uint32_t* off = nullptr;
+    const std::uint32_t* len = nullptr;
+    [[nodiscard]] std::span<const entity_id> row(std::size_t r) const {
+      return {data + off[r], len != nullptr ? len[r] : off[r + 1] - off[r]};
+    }
+  };
   struct presence_box {
     float lo_x, lo_y, lo_z, hi_x, hi_y, hi_z;
   };
@@ -251,6 +292,22 @@ class interest_tracker {
   std::vector<entity_id> prev_vis_;
   std::vector<std::uint32_t> row_of_slot_;  // slot -> row in the last update (checked against ids)
   std::uint64_t capped_pending_ = 0;        // summed by the row tasks (atomic_ref)
+
+  // What the accessors read: the host path's arrays, or the engine's output.
+  row_lists vis_list_, enter_list_, leave_list_;
+  interest::visibility_engine* engine_ = nullptr;
+  interest::visibility_output engine_out_;
+  bool engine_synced_ = false;  // the engine holds the last update's sets
+  std::vector<entity_id> next_ids_;                 // engine path: this update's rows, swapped in on success
+  std::vector<std::uint32_t> spare_row_of_slot_;    // engine path: this update's slot map, likewise
+  const std::vector<std::uint8_t>* view_demand_ = nullptr;
+  std::vector<std::uint8_t> demand_rows_, next_demand_rows_;  // per row of the last / next update
+  bool partial_ = false;  // vis_list_ holds the demanded rows only; the rest via fetched_row
+  mutable std::mutex fetch_mutex_;
+  mutable std::atomic<bool> fetched_{false};
+  mutable row_lists full_list_;
+  bool last_by_engine_ = false;
+  std::string engine_error_;
 };
 
 // ---------------------------------------------------------------------------------------------
@@ -378,10 +435,18 @@ struct zone_config {
   double tick_rate_hz = 30;
   std::uint64_t seed = 1;
   unsigned worker_threads = 0;  ///< interest and tick work; 0 = hardware concurrency
+  /// Microseconds an idle worker spins before it sleeps (interest::thread_pool), and the tick
+  /// loop wakes the workers this long before a tick is due; -1 = auto: 1000 on hosts with at
+  /// least 8 hardware threads, else 0 (a small machine's cores are better left to others).
+  int worker_spin_us = -1;
   // Interest.
   /// Pair finder (gpu/finders.h): "auto" (chosen per tick: a GPU finder when a device is usable,
   /// else the CPU grid finder), "cpu", "gpu" (= "pbig"), "pbig", "lbvh", "brute".
   std::string finder = "auto";
+  /// Where the interest step runs: "auto" (the GPU visibility engine, gpu/visibility.h, when a
+  /// device is usable and max_visible is 0; else the host path), "gpu" (the engine, or refuse to
+  /// start), "host" (the pair finder above and the host diff).
+  std::string interest = "auto";
   float hysteresis = 4;
   std::uint32_t max_visible = 0;  ///< per observer, 0 = no cap
   /// AOI half-extents of the tiers tiny .. gigantic (metres).
@@ -423,6 +488,9 @@ struct config_result {
   std::string message;
   bool help = false;  ///< --help was given: print message, exit 0
 };
+
+/// zone_config::worker_spin_us resolved (-1 = auto: 1000 us with >= 8 hardware threads, else 0).
+[[nodiscard]] unsigned worker_spin(const zone_config& c);
 
 /// Parses the command line; `--config FILE` reads an INI-style file of the same option names
 /// (the command line wins). Unknown options and bad values are errors naming the option.
@@ -492,6 +560,8 @@ class zone_world {
   void set_pair_view_source(interest_tracker::pair_view_source source) {
     tracker_.set_pair_view_source(std::move(source));
   }
+  /// See interest_tracker::set_engine.
+  void set_visibility_engine(interest::visibility_engine* engine) { tracker_.set_engine(engine); }
   [[nodiscard]] behaviour behaviour_of(entity_id id) const;
   [[nodiscard]] const tick_phases& phases() const { return phases_; }
   [[nodiscard]] const zone_config& config() const { return cfg_; }
@@ -516,6 +586,8 @@ class zone_world {
   entity_store store_;
   interest_tracker tracker_;
   std::vector<npc_state> by_slot_;  // indexed by slot_of(id)
+  std::vector<std::uint8_t> reads_view_;  // by slot: the entity's visible set is read each tick
+  void set_reads_view(entity_id id, bool reads);
   std::vector<vec3> towns_;
   std::uint64_t tick_ = 0;
   tick_phases phases_;

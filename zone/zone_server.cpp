@@ -2,6 +2,7 @@
 #include "zone_server.h"
 
 #include "finders.h"
+#include "visibility.h"
 
 #include <spdlog/spdlog.h>
 
@@ -70,7 +71,7 @@ std::unique_ptr<interest::pair_finder> make_zone_finder(const zone_config& c, in
 
 zone_server::zone_server(const zone_config& cfg)
     : cfg_(cfg),
-      pool_(std::make_unique<interest::thread_pool>(cfg.worker_threads)),
+      pool_(std::make_unique<interest::thread_pool>(cfg.worker_threads, worker_spin(cfg))),
       finder_(make_zone_finder(cfg, pool_.get(), finder_error_)),
       world_(std::make_unique<zone_world>(cfg, *finder_, pool_.get())),
       replicator_(replica_options(cfg)),
@@ -82,6 +83,25 @@ zone_server::zone_server(const zone_config& cfg)
       return gpu::find_view(*f, boxes, view);
     });
   }
+  // The interest step on the GPU (the whole of it: candidates, classification, events).
+  if (cfg.interest == "gpu" || (cfg.interest == "auto" && cfg.max_visible == 0)) {
+    std::string why;
+    engine_ = gpu::make_visibility_engine(pool_.get(), &why);
+    if (engine_) {
+      world_->set_visibility_engine(engine_.get());
+    } else if (cfg.interest == "gpu") {
+      engine_error_ = "interest 'gpu' cannot run here: " + why + " (use --interest auto or host)";
+    } else {
+      engine_note_ = why;
+    }
+  } else if (cfg.interest == "auto") {
+    engine_note_ = "max-visible is set (the cap runs on the host)";
+  }
+}
+
+std::string zone_server::interest_name() const {
+  if (engine_ && world_->tracker().engine_error().empty()) return std::string(engine_->name()) + " engine";
+  return "host (finder " + std::string(finder_->name()) + ")";
 }
 
 zone_server::~zone_server() {
@@ -143,9 +163,11 @@ std::string zone_server::metrics_text() const {
 std::optional<std::string> zone_server::start() {
   if (auto err = validate(cfg_)) return err;
   if (!finder_error_.empty()) return finder_error_;
+  if (!engine_error_.empty()) return engine_error_;
   world_->populate();
-  spdlog::info("zone: {} NPCs, world {}x{}x{} m, {} Hz, {} worker threads, finder {}", world_->store().size(),
-               cfg_.world.hi.x, cfg_.world.hi.y, cfg_.world.hi.z, cfg_.tick_rate_hz, pool_->size(), finder_->name());
+  spdlog::info("zone: {} NPCs, world {}x{}x{} m, {} Hz, {} worker threads, interest on {}", world_->store().size(),
+               cfg_.world.hi.x, cfg_.world.hi.y, cfg_.world.hi.z, cfg_.tick_rate_hz, pool_->size(), interest_name());
+  if (!engine_note_.empty()) spdlog::info("zone: interest runs on the host: {}", engine_note_);
   if (auto err = net_.start()) return err;
   if (cfg_.metrics_enabled) {
     metrics_ = std::make_unique<net::metrics_server>(cfg_.listen_address, cfg_.metrics_port);
@@ -268,6 +290,11 @@ void zone_server::tick_once() {
   drain_inputs();
   stats_.inputs_ms.record(ms_since(t0));
   if (auto err = world_->step()) spdlog::error("tick {}: {}", world_->tick(), err->message);
+  if (!engine_failure_logged_ && !world_->tracker().engine_error().empty()) {
+    engine_failure_logged_ = true;
+    spdlog::warn("zone: the GPU interest engine failed ({}); interest runs on the host from now on, finder {}",
+                 world_->tracker().engine_error(), finder_->name());
+  }
   const auto t1 = clock_type::now();
   replicate();
   stats_.replicate_ms.record(ms_since(t1));
@@ -297,6 +324,13 @@ void zone_server::run() {
                      std::chrono::duration<double, std::milli>(late).count(), stats_.overruns);
       }
     } else {
+      // Wake the workers a little before the tick (they spin until it starts): a sleeping
+      // thread's wake-up would otherwise land in the tick's first parallel phase.
+      const auto spin = std::chrono::microseconds(pool_->spin_us());
+      if (spin.count() > 0 && next - now > spin) {
+        std::this_thread::sleep_until(next - spin);
+        pool_->run(pool_->size(), [](std::size_t) {});
+      }
       std::this_thread::sleep_until(next);
     }
   }

@@ -52,6 +52,8 @@ class zone_server {
   [[nodiscard]] const zone_world& world() const { return *world_; }
   /// The pair finder's name ("auto", "cpu grid", ...).
   [[nodiscard]] std::string finder_name() const { return std::string(finder_->name()); }
+  /// Where the interest step runs: "gpu engine" or "host (finder <name>)".
+  [[nodiscard]] std::string interest_name() const;
   [[nodiscard]] const loop_stats& stats() const { return stats_; }
   [[nodiscard]] net::server_stats net_stats() const { return net_.stats(); }
 
@@ -74,6 +76,10 @@ class zone_server {
   std::string finder_error_;  ///< why the configured finder cannot run here (start() reports it); before finder_
   std::unique_ptr<interest::pair_finder> finder_;
   std::unique_ptr<zone_world> world_;
+  std::string engine_error_;  ///< why interest = gpu cannot run here (start() reports it)
+  std::string engine_note_;   ///< why auto chose the host path
+  std::unique_ptr<interest::visibility_engine> engine_;
+  bool engine_failure_logged_ = false;
   replicator replicator_;
   net::server net_;
   std::unique_ptr<net::metrics_server> metrics_;

@@ -2,8 +2,11 @@
 // digest (positions and the interest tracker's visible sets, enters and leaves) with the CPU grid
 // finder and with the GPU finders (PBIG in both its output modes, LBVH, auto), with 1 and several
 // threads, with the tracker reading the finder's own buffer (gpu::find_view, zone-server's way),
-// and with an output buffer forced tiny (the overflow path runs inside the tick loop). Without a CUDA
-// device the executable prints why and exits with 77 before any test case (CTest: Skipped).
+// and with an output buffer forced tiny (the overflow path runs inside the tick loop). The GPU
+// visibility engine (the whole interest step on the device) against the brute-force oracle of
+// tracker_harness.h, the hand-made scenarios, the host path's digests on zone worlds and on
+// degenerate sets, and switching between the engine and the host path. Without a CUDA device the
+// executable prints why and exits with 77 before any test case (CTest: Skipped).
 #include <doctest/doctest.h>
 
 #include <cstdio>
@@ -13,6 +16,8 @@
 #include "../common/seeds.h"
 #include "finders.h"
 #include "pbig.h"
+#include "tracker_harness.h"
+#include "visibility.h"
 #include "world_script.h"
 #include "zone.h"
 
@@ -20,6 +25,7 @@ using namespace zone;
 using zone::test::fresh_seed;
 using zone::test::run_digests;
 using zone::test::small_config;
+using namespace zone::test;
 
 namespace {
 
@@ -47,9 +53,190 @@ interest_tracker::pair_view_source view_of(interest::pair_finder& f) {
   };
 }
 
+std::unique_ptr<interest::visibility_engine> make_engine(interest::thread_pool* pool) {
+  std::string why;
+  auto e = gpu::make_visibility_engine(pool, &why);
+  if (!e) FAIL("make_visibility_engine failed: " << why);
+  return e;
+}
+
+/// Runs `ticks` ticks of the same store with the host path (grid finder) and with the engine,
+/// moving entities between ticks with `move`, and checks that every tick's output is the same.
+/// With `demand` (by slot), the engine copies back only those rows' visible sets: they are
+/// compared first, then every row (the others fetched from the device on first access).
+template <class Move>
+void same_as_host(entity_store& store, interest::visibility_engine& engine, int ticks, float h, Move move,
+                  const std::vector<std::uint8_t>* demand = nullptr) {
+  interest::thread_pool pool(3);
+  interest::grid_finder grid(&pool);
+  interest_tracker host(grid, &pool, interest_options{h, 0, 64});
+  interest_tracker dev(grid, &pool, interest_options{h, 0, 64});
+  dev.set_engine(&engine);
+  dev.set_view_demand(demand);
+  for (int t = 0; t < ticks; ++t) {
+    CAPTURE(t);
+    REQUIRE_FALSE(host.update(store).has_value());
+    REQUIRE_FALSE(dev.update(store).has_value());
+    REQUIRE(dev.last_update_on_engine());
+    if (demand != nullptr) {
+      for (std::size_t r = 0; r < store.size(); ++r) {
+        const std::uint32_t slot = slot_of(store.ids()[r]);
+        if (slot < demand->size() && (*demand)[slot] != 0) {
+          const auto a = host.visible(r), b = dev.visible(r);
+          REQUIRE(id_list(a.begin(), a.end()) == id_list(b.begin(), b.end()));
+        }
+      }
+    }
+    CHECK(dev.stats().visible == host.stats().visible);
+    CHECK(dev.stats().enters == host.stats().enters);
+    CHECK(dev.stats().leaves == host.stats().leaves);
+    CHECK(dev.stats().candidates == host.stats().candidates);
+    CHECK(dev.digest() == host.digest());
+    move(store, t);
+  }
+}
+
 }  // namespace
 
 TEST_SUITE("zone.gpu") {
+  TEST_CASE("GPU interest engine: events match the brute-force oracle over many ticks") {
+    interest::thread_pool pool(4);
+    auto engine = make_engine(&pool);
+    const run_config configs[] = {
+        {250, 4.0f, 0, false, 1},  {250, 4.0f, 0, true, 2}, {300, 0.0f, 0, false, 3}, {200, 10.0f, 0, true, 1},
+        {1500, 4.0f, 0, false, 4},
+        {250, 3.0f, 6, false, 2},  // a cap: the tracker runs these ticks on the host path
+    };
+    for (const auto& c : configs) run_against_oracle(fresh_seed(), c, 120, engine.get());
+  }
+
+  TEST_CASE("GPU interest engine: hysteresis, teleports, AOI and visibility changes, invalid input") {
+    interest::thread_pool pool(2);
+    auto engine = make_engine(&pool);
+    scenario_hysteresis(engine.get());
+    scenario_teleports(engine.get());
+    scenario_visibility(engine.get());
+    scenario_non_finite(engine.get());
+  }
+
+  TEST_CASE("GPU interest engine: switching to and from the host path keeps the sets") {
+    const std::uint64_t seed = fresh_seed();
+    CAPTURE(seed);
+    interest::thread_pool pool(3);
+    interest::grid_finder grid(&pool);
+    auto engine = make_engine(&pool);
+    world a(seed, 400, false), b(seed, 400, false);
+    interest_tracker host(grid, &pool, interest_options{3.0f, 0, 64});
+    interest_tracker mixed(grid, &pool, interest_options{3.0f, 0, 64});
+    std::vector<std::uint8_t> demand(4096, 0);  // half the slots: the others stay on the device
+    for (std::size_t k = 0; k < demand.size(); k += 2) demand[k] = 1;
+    mixed.set_view_demand(&demand);
+    for (int tick = 0; tick < 60; ++tick) {
+      CAPTURE(tick);
+      // Engine for 7 ticks, host path for 5, and so on.
+      mixed.set_engine(tick % 12 < 7 ? engine.get() : nullptr);
+      REQUIRE_FALSE(host.update(a.store).has_value());
+      REQUIRE_FALSE(mixed.update(b.store).has_value());
+      CHECK(mixed.last_update_on_engine() == (tick % 12 < 7));
+      CHECK(mixed.digest() == host.digest());
+      a.step();
+      b.step();
+    }
+  }
+
+  TEST_CASE("GPU interest engine: degenerate sets equal the host path") {
+    interest::thread_pool pool(4);
+    auto engine = make_engine(&pool);
+    entity_desc d;
+    d.aoi_half_extent = {30, 30, 30};
+    d.presence_half_extent = {1, 1, 1};
+    d.sees = cb::normal;
+    SUBCASE("no entities, then one") {
+      entity_store s;
+      same_as_host(s, *engine, 3, 4.0f, [&](entity_store& st, int t) {
+        if (t == 0) (void)st.create(d);
+      });
+    }
+    SUBCASE("2,000 entities on one point (every pair; the buffers overflow and grow)") {
+      entity_store s;
+      for (int k = 0; k < 2000; ++k) (void)s.create(d);
+      same_as_host(s, *engine, 4, 4.0f, [&](entity_store& st, int t) {
+        auto pos = st.positions();
+        for (std::size_t i = 0; i < st.size(); i += 3) pos[i].x += 20.0f * static_cast<float>(t + 1);
+      });
+    }
+    SUBCASE("big bodies (kept out of the grid) among small ones, a world-wide AOI, blind observers") {
+      std::mt19937_64 rng(fresh_seed());
+      std::uniform_real_distribution<float> u(0, 2000);
+      entity_store s;
+      for (int k = 0; k < 3000; ++k) {
+        entity_desc e = d;
+        e.position = {u(rng), u(rng), 0};
+        if (k % 100 == 0) e.presence_half_extent = {300, 250, 5};  // covers far more than 64 cells
+        if (k % 500 == 1) e.aoi_half_extent = {2000, 2000, 10};    // sees the whole world
+        if (k % 7 == 2) e.sees = 0;                                 // sees nothing
+        if (k % 11 == 3) e.visibility_class = cb::stealth;
+        (void)s.create(e);
+      }
+      same_as_host(s, *engine, 6, 4.0f, [&](entity_store& st, int) {
+        auto pos = st.positions();
+        std::uniform_real_distribution<float> step(-15, 15);
+        for (std::size_t i = 0; i < st.size(); ++i) pos[i] = {pos[i].x + step(rng), pos[i].y + step(rng), 0};
+      });
+    }
+    SUBCASE("only some rows' sets copied back (view demand); the rest fetched on access") {
+      std::mt19937_64 rng(fresh_seed());
+      std::uniform_real_distribution<float> u(0, 600);
+      entity_store s;
+      for (int k = 0; k < 4000; ++k) {
+        entity_desc e = d;
+        e.position = {u(rng), u(rng), 0};
+        (void)s.create(e);
+      }
+      std::vector<std::uint8_t> demand(s.slot_count(), 0);
+      for (std::size_t k = 0; k < demand.size(); k += 3) demand[k] = 1;
+      same_as_host(
+          s, *engine, 6, 4.0f,
+          [&](entity_store& st, int) {
+            auto pos = st.positions();
+            std::uniform_real_distribution<float> step(-6, 6);
+            for (std::size_t i = 0; i < st.size(); ++i) pos[i] = {pos[i].x + step(rng), pos[i].y + step(rng), 0};
+          },
+          &demand);
+    }
+    SUBCASE("entities spread in z, touching boxes on a lattice") {
+      entity_store s;
+      for (int x = 0; x < 30; ++x) {
+        for (int y = 0; y < 30; ++y) {
+          entity_desc e = d;
+          e.position = {static_cast<float>(x) * 10.0f, static_cast<float>(y) * 10.0f, static_cast<float>((x + y) % 5) * 8.0f};
+          e.aoi_half_extent = {9, 9, 4};
+          e.presence_half_extent = {1, 1, 4};  // AOI + body = 10: neighbours touch exactly
+          (void)s.create(e);
+        }
+      }
+      same_as_host(s, *engine, 4, 0.0f, [&](entity_store& st, int t) {
+        auto pos = st.positions();
+        for (std::size_t i = t % 2; i < st.size(); i += 2) pos[i].x += 0.5f;
+      });
+    }
+  }
+
+  TEST_CASE("GPU interest engine: zone worlds give the host path's per-tick digests") {
+    const std::uint64_t seed = fresh_seed();
+    CAPTURE(seed);
+    interest::thread_pool pool(4);
+    interest::grid_finder cpu(&pool);
+    auto engine = make_engine(&pool);
+    const zone_config small = small_config(seed);
+    CHECK(run_digests(small, cpu, &pool, 60, 8, {}, engine.get()) == run_digests(small, cpu, &pool, 60));
+    zone_config cfg;  // the default world and NPC mix
+    cfg.seed = seed;
+    cfg.npc_count = 20000;
+    cfg.npc_speed = 20;
+    CHECK(run_digests(cfg, cpu, &pool, 20, 32, {}, engine.get()) == run_digests(cfg, cpu, &pool, 20, 32));
+  }
+
   TEST_CASE("small fast zone: CPU and GPU finders give the same per-tick digests") {
     REQUIRE(device_present);
     const std::uint64_t seed = fresh_seed();

@@ -28,9 +28,11 @@ inline zone_config small_config(std::uint64_t seed) {
 /// Per-tick digests of a run with some players steered by a seeded script.
 inline std::vector<std::uint64_t> run_digests(const zone_config& cfg, interest::pair_finder& finder,
                                               interest::thread_pool* pool, int ticks, int players = 8,
-                                              interest_tracker::pair_view_source source = {}) {
+                                              interest_tracker::pair_view_source source = {},
+                                              interest::visibility_engine* engine = nullptr) {
   zone_world w(cfg, finder, pool);
   if (source) w.set_pair_view_source(std::move(source));
+  if (engine != nullptr) w.set_visibility_engine(engine);
   w.populate();
   std::mt19937_64 script(cfg.seed + 7);
   std::vector<entity_id> ids;
@@ -44,6 +46,7 @@ inline std::vector<std::uint64_t> run_digests(const zone_config& cfg, interest::
       w.set_intent(p, {u(script), u(script), 0});
     }
     REQUIRE_FALSE(w.step().has_value());
+    if (engine != nullptr) REQUIRE(w.tracker().last_update_on_engine());
     out.push_back(w.digest());
   }
   return out;

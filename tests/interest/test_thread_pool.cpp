@@ -1,0 +1,66 @@
+// The thread pool: every index of every run exactly once, with and without spinning, runs back to
+// back and after the workers went to sleep, nested data written by tasks visible to the caller.
+#include <doctest/doctest.h>
+
+#include <atomic>
+#include <chrono>
+#include <thread>
+#include <vector>
+
+#include "interest.h"
+
+using zone::interest::thread_pool;
+
+namespace {
+
+/// Runs `rounds` runs of varying sizes; each task adds its index to its own slot.
+void check_runs(thread_pool& pool, int rounds, bool pause_between) {
+  std::vector<std::uint64_t> hits;
+  for (int r = 0; r < rounds; ++r) {
+    const std::size_t n = static_cast<std::size_t>((r * 37) % 300) + 1;
+    hits.assign(n, 0);
+    std::atomic<std::size_t> calls{0};
+    pool.run(n, [&](std::size_t i) {
+      hits[i] += i + 1;  // a plain write: the caller must see it after run() returns
+      calls.fetch_add(1, std::memory_order_relaxed);
+    });
+    REQUIRE(calls.load() == n);
+    for (std::size_t i = 0; i < n; ++i) REQUIRE(hits[i] == i + 1);
+    if (pause_between && r % 50 == 0) std::this_thread::sleep_for(std::chrono::milliseconds(3));
+  }
+}
+
+}  // namespace
+
+TEST_SUITE("interest.thread_pool") {
+  TEST_CASE("every index exactly once: blocking pool, spinning pool, one thread") {
+    for (const unsigned threads : {1u, 2u, 5u}) {
+      for (const unsigned spin : {0u, 200u, 5000u}) {
+        CAPTURE(threads);
+        CAPTURE(spin);
+        thread_pool pool(threads, spin);
+        CHECK(pool.size() == threads);
+        CHECK(pool.spin_us() == spin);
+        check_runs(pool, 400, false);  // back to back: workers still spinning or still draining
+        check_runs(pool, 200, true);   // with pauses longer than the spin: workers asleep
+      }
+    }
+  }
+
+  TEST_CASE("uneven tasks: the caller waits for the slowest") {
+    thread_pool pool(4, 100);
+    std::vector<int> done(16, 0);
+    pool.run(done.size(), [&](std::size_t i) {
+      if (i % 5 == 0) std::this_thread::sleep_for(std::chrono::milliseconds(2));
+      done[i] = 1;
+    });
+    for (const int d : done) CHECK(d == 1);
+  }
+
+  TEST_CASE("destruction while workers sleep or spin") {
+    for (const unsigned spin : {0u, 100000u}) {
+      thread_pool pool(3, spin);
+      pool.run(10, [](std::size_t) {});
+    }  // the destructor must not hang, whichever state the workers are in
+  }
+}
