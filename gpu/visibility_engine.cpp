@@ -6,9 +6,10 @@
 //  2. Boxes, validation, presence bounds and mean sizes, each observer's previous row from the
 //     device's slot map (one kernel); the grid plan (one thread).
 //  3. The grid over the presence boxes: counts per cell, scan, scatter (entries carry their box).
-//  4. Candidates: a counting and a writing pass over the grid, one warp per observer; scan between.
-//  5. Classification against the previous sets (device-resident), scans of the three list sizes,
-//     and the writing of the sorted enters, the leaves and the merged visible sets.
+//  4. Candidates, one warp per observer over the grid, each classified as it is found against
+//     the previous sets (device-resident): a stay flags its previous entry, an enter is appended.
+//  5. Scans of the three list sizes, the enters placed in their rows, and the writing of the
+//     sorted enters, the leaves and the merged visible sets.
 //  6. This update's rows become the previous rows on the device (slot map; only if the update is
 //     valid); copy back the state, the offsets and the lists (sized by the last update's totals);
 //     run the caller's while_waiting work; wait.
@@ -78,6 +79,8 @@ class engine final : public interest::visibility_engine {
 
   [[nodiscard]] const char* name() const override { return "gpu"; }
 
+  void prepare() noexcept override { (void)launch_touch(stream_); }
+
   interest::visibility_lists fetch_all_visible() override {
     // The last committed sets are the device's previous ones now.
     if (!full_fetched_) {
@@ -140,18 +143,31 @@ class engine final : public interest::visibility_engine {
     }
     const auto n = static_cast<std::uint32_t>(in.n);
     use_slot_bits(in.slot_bits);
-    pack(in);
+    // The columns other than positions are kept from the last upload when the caller says they
+    // did not change (same version, same rows).
+    bool keep_static = in.static_version != 0 && in.static_version == uploaded_version_ && in.n == uploaded_n_;
+    uploaded_version_ = 0;
+    keep_static = pack(in, keep_static);
     out.timing.pack_ms = ms_since(t0);
 
     wanted_ = in.wanted != nullptr;
     CUDA_CHECK(cudaEventRecord(ev_begin_, stream_));
-    if (n > 0) {
+    if (n > 0 && keep_static) {
+      CUDA_CHECK(cudaMemcpyAsync(d_in_.get(), h_in_.get(), 12ull * n, cudaMemcpyHostToDevice, stream_));
+      if (wanted_) {
+        CUDA_CHECK(cudaMemcpyAsync(d_in_.get() + 48ull * n, h_in_.get() + 48ull * n, wanted_bytes(n),
+                                   cudaMemcpyHostToDevice, stream_));
+      }
+    } else if (n > 0) {
       CUDA_CHECK(cudaMemcpyAsync(d_in_.get(), h_in_.get(), upload_bytes(n), cudaMemcpyHostToDevice, stream_));
     }
+    uploaded_version_ = in.static_version;
+    uploaded_n_ = in.n;
     CUDA_CHECK(cudaEventRecord(ev_up_, stream_));
     size_rows(n);
     entry_cap_ = std::max<std::uint64_t>(entry_cap_, 2ull * n + 1024);
-    cand_cap_ = std::max<std::uint64_t>(cand_cap_, 16ull * n + 4096);
+    vis_cap_ = std::max<std::uint64_t>(vis_cap_, 16ull * n + 4096);
+    enter_cap_ = std::max<std::uint64_t>(enter_cap_, n / 4 + 4096);
 
     tick_state st{};
     std::uint64_t got_vis = 0, got_enter = 0, got_leave = 0;
@@ -159,8 +175,8 @@ class engine final : public interest::visibility_engine {
       if (attempt == 8) throw std::runtime_error("gpu visibility engine: buffers kept overflowing");
       run_device(n, in.hysteresis);
       // What the last update's totals suggest, capped by what the device can hold.
-      got_vis = std::min<std::uint64_t>((wanted_ ? last_dl_ : last_vis_) * 9 / 8 + 1024, cand_cap_);
-      got_enter = std::min<std::uint64_t>(last_enter_ + last_enter_ / 2 + 1024, cand_cap_);
+      got_vis = std::min<std::uint64_t>((wanted_ ? last_dl_ : last_vis_) * 9 / 8 + 1024, vis_cap_);
+      got_enter = std::min<std::uint64_t>(last_enter_ + last_enter_ / 2 + 1024, enter_cap_);
       got_leave = std::min<std::uint64_t>(last_leave_ + last_leave_ / 2 + 1024, prev_total_ + 1);
       download(n, got_vis, got_enter, got_leave);
       if (attempt == 0 && in.while_waiting) in.while_waiting();
@@ -170,22 +186,22 @@ class engine final : public interest::visibility_engine {
       ++out.timing.reruns;
       if ((st.overflow & 1u) != 0) entry_cap_ = std::max<std::uint64_t>(entry_cap_ * 2, st.entries + st.entries / 4 + 1024);
       if ((st.overflow & 2u) != 0) {
-        cand_cap_ = std::max<std::uint64_t>(cand_cap_ * 2, st.candidates + st.candidates / 4 + 4096);
+        enter_cap_ = std::max<std::uint64_t>(enter_cap_ * 2, st.enter_count + st.enter_count / 4 + 4096);
+      }
+      if ((st.overflow & 4u) != 0) {
+        vis_cap_ = std::max<std::uint64_t>(vis_cap_ * 2, std::uint64_t{st.visible_total} + st.visible_total / 4 + 4096);
       }
     }
     out.timing.upload_ms = elapsed(ev_begin_, ev_up_);
     out.timing.device_ms = elapsed(ev_up_, ev_kernels_);
     out.timing.grid_ms = elapsed(ev_up_, ev_grid_);
     out.timing.query_ms = elapsed(ev_grid_, ev_query_);
-    out.timing.classify_ms = elapsed(ev_query_, ev_classify_);
+    out.timing.place_ms = elapsed(ev_query_, ev_classify_);
     out.timing.write_ms = elapsed(ev_classify_, ev_kernels_);
     out.timing.download_ms = elapsed(ev_kernels_, ev_down_);
     if (st.bad_box != no_box) {
       out.timing.total_ms = ms_since(t0);
       return st.bad_box;  // nothing committed: the previous sets stay
-    }
-    if (st.candidates > std::numeric_limits<std::uint32_t>::max()) {
-      throw std::length_error("gpu visibility engine: more than 2^32 - 1 candidates in one update");
     }
     // Lists longer than prefetched: the rest now (a pinned buffer that must grow is refilled whole).
     host_lists& h = host_[1 - cur_];
@@ -215,6 +231,7 @@ class engine final : public interest::visibility_engine {
     out.leaves = h.leave.get();
     out.leave_off = h.off.get() + 2 * (n + 1);
     out.visible_complete = !wanted_;
+    out.visible_total = st.visible_total;
     out.candidates = st.candidates;
     out.pairs = st.candidates + st.self_pairs;
     out.timing.total_ms = ms_since(t0);
@@ -247,10 +264,14 @@ class engine final : public interest::visibility_engine {
   /// Rows' inputs into pinned staging, laid out as the device expects them (input_arrays):
   /// position, aoi, body (12 bytes a row each), then class, sees, id (4 bytes each), the wanted
   /// flags (1 byte each, padded to 4); the device adds the previous row (4 bytes) behind them.
-  void pack(const interest::visibility_input& in) {
+  /// Returns whether the static columns were kept (false when the device block had to grow).
+  bool pack(const interest::visibility_input& in, bool keep_static) {
     const std::size_t n = in.n;
     h_in_.reserve(48 * n + wanted_bytes(n));
-    d_in_.reserve(52 * n + wanted_bytes(n));
+    if (d_in_.capacity() < 52 * n + wanted_bytes(n)) {
+      d_in_.reserve(52 * n + wanted_bytes(n));
+      keep_static = false;  // contents lost
+    }
     if (d_prev_ids_.capacity() < n) {
       // The previous rows' handles must survive the growth (the prep kernel reads them).
       device_array<std::uint32_t> bigger;
@@ -261,7 +282,7 @@ class engine final : public interest::visibility_engine {
       }
       d_prev_ids_.swap(bigger);
     }
-    if (n == 0) return;
+    if (n == 0) return keep_static;
     unsigned char* base = h_in_.get();
     const int arrays = in.wanted != nullptr ? 7 : 6;
     const void* src[7] = {in.position, in.aoi_half, in.body_half, in.visibility, in.sees, in.ids, in.wanted};
@@ -276,17 +297,18 @@ class engine final : public interest::visibility_engine {
     const std::size_t chunks = (n + pack_chunk - 1) / pack_chunk;
     interest::run_tasks(chunks > 1 ? pool_ : nullptr, arrays * chunks, [&](std::size_t t) {
       const std::size_t k = t % arrays, c = t / arrays;
+      if (keep_static && k >= 1 && k <= 5) return;  // aoi, body, class, sees, id
       const std::size_t b = c * pack_chunk, e = std::min(n, b + pack_chunk);
       std::memcpy(base + offset[k] + b * width[k], static_cast<const unsigned char*>(src[k]) + b * width[k],
                   (e - b) * width[k]);
     });
+    return keep_static;
   }
 
   void size_rows(std::uint32_t n) {
     for (auto* a : {&d_glo_, &d_ghi_, &d_plo_, &d_phi_}) a->reserve(n);
     d_large_.reserve(n);
-    d_cand_count_.reserve(n + 1);
-    d_cand_off_.reserve(n + 1);
+    d_enter_cursor_.reserve(n);
     for (auto* a : {&d_vis_len_, &d_enter_len_, &d_leave_len_, &d_vis_off_, &d_enter_off_, &d_leave_off_, &d_dl_len_,
                     &d_dl_off_}) {
       a->reserve(n + 1);
@@ -310,10 +332,10 @@ class engine final : public interest::visibility_engine {
     a.box = {d_glo_.get(), d_ghi_.get(), d_plo_.get(), d_phi_.get()};
     a.grid = {d_start_.get(), d_elo_.get(), d_ehi_.get(), d_ecx_.get(), entry_cap_, d_large_.get()};
     a.st = d_st_.get();
-    a.cand_count = d_cand_count_.get();
-    a.cand_off = d_cand_off_.get();
-    a.cand = d_cand_.get();
-    a.cand_capacity = cand_cap_;
+    a.enter_pairs = d_enter_pairs_.get();
+    a.enter_capacity = enter_cap_;
+    a.enter_cursor = d_enter_cursor_.get();
+    a.vis_capacity = vis_cap_;
     a.prev_vis = d_prev_vis_.get();
     a.prev_off = d_prev_off_.get();
     a.prev_rows = prev_rows_;
@@ -342,14 +364,18 @@ class engine final : public interest::visibility_engine {
     d_elo_.reserve(entry_cap_);
     d_ehi_.reserve(entry_cap_);
     d_ecx_.reserve(entry_cap_);
-    for (auto* a : {&d_cand_, &d_enter_tmp_, &d_vis_out_, &d_enter_out_}) a->reserve(cand_cap_);
-    if (wanted_) d_dl_out_.reserve(cand_cap_);
+    d_enter_pairs_.reserve(enter_cap_);
+    d_enter_tmp_.reserve(enter_cap_);
+    d_enter_out_.reserve(enter_cap_);
+    d_vis_out_.reserve(vis_cap_);
+    if (wanted_) d_dl_out_.reserve(vis_cap_);
     d_leave_out_.reserve(prev_total_ + 1);
     d_flag_.reserve(prev_total_ + 1);
     d_kept_prefix_.reserve(prev_total_ + 1);
     // Capacities as allocated (at least what was asked for).
     entry_cap_ = std::min({d_elo_.capacity(), d_ehi_.capacity(), d_ecx_.capacity()});
-    cand_cap_ = std::min({d_cand_.capacity(), d_enter_tmp_.capacity(), d_vis_out_.capacity(), d_enter_out_.capacity()});
+    enter_cap_ = std::min({d_enter_pairs_.capacity(), d_enter_tmp_.capacity(), d_enter_out_.capacity()});
+    vis_cap_ = wanted_ ? std::min(d_vis_out_.capacity(), d_dl_out_.capacity()) : d_vis_out_.capacity();
     const pass_args a = args(n);
 
     CUDA_CHECK(launch_init(a.st, stream_));
@@ -358,29 +384,26 @@ class engine final : public interest::visibility_engine {
     CUDA_CHECK(cudaMemsetAsync(d_counts_.get(), 0, (max_cells + 1) * sizeof(std::uint32_t), stream_));
     CUDA_CHECK(cudaMemsetAsync(d_cursor_.get(), 0, max_cells * sizeof(std::uint32_t), stream_));
     CUDA_CHECK(launch_count(a, d_counts_.get(), stream_));
-    std::size_t bytes_cells = 0, bytes_cand = 0, bytes_u32 = 0;
+    std::size_t bytes_cells = 0, bytes_u32 = 0;
     CUDA_CHECK(scan_cells(nullptr, bytes_cells, d_counts_.get(), d_start_.get(), max_cells + 1, stream_));
-    CUDA_CHECK(scan_candidates(nullptr, bytes_cand, d_cand_count_.get(), d_cand_off_.get(), n + 1, stream_));
     CUDA_CHECK(scan_u32(nullptr, bytes_u32, d_vis_len_.get(), d_vis_off_.get(), n + 1, stream_));
-    grow_temp(std::max({bytes_cells, bytes_cand, bytes_u32}));
+    grow_temp(std::max(bytes_cells, bytes_u32));
     CUDA_CHECK(scan_cells(d_temp_.get(), bytes_cells, d_counts_.get(), d_start_.get(), max_cells + 1, stream_));
     CUDA_CHECK(launch_scatter(a, d_cursor_.get(), stream_));
     CUDA_CHECK(cudaEventRecord(ev_grid_, stream_));
 
-    CUDA_CHECK(cudaMemsetAsync(d_cand_count_.get() + n, 0, sizeof(std::uint32_t), stream_));
-    CUDA_CHECK(launch_query(a, /*write=*/false, stream_));
-    CUDA_CHECK(scan_candidates(d_temp_.get(), bytes_cand, d_cand_count_.get(), d_cand_off_.get(), n + 1, stream_));
-    CUDA_CHECK(launch_query(a, /*write=*/true, stream_));
-    CUDA_CHECK(cudaEventRecord(ev_query_, stream_));
-
     for (auto* len : {&d_vis_len_, &d_enter_len_, &d_leave_len_}) {
       CUDA_CHECK(cudaMemsetAsync(len->get() + n, 0, sizeof(std::uint32_t), stream_));
     }
-    CUDA_CHECK(launch_classify(a, stream_));
-    CUDA_CHECK(cudaEventRecord(ev_classify_, stream_));
+    CUDA_CHECK(cudaMemsetAsync(d_enter_cursor_.get(), 0, std::size_t{n} * sizeof(std::uint32_t), stream_));
+    CUDA_CHECK(launch_query(a, stream_));
+    CUDA_CHECK(cudaEventRecord(ev_query_, stream_));
     CUDA_CHECK(scan_u32(d_temp_.get(), bytes_u32, d_vis_len_.get(), d_vis_off_.get(), n + 1, stream_));
     CUDA_CHECK(scan_u32(d_temp_.get(), bytes_u32, d_enter_len_.get(), d_enter_off_.get(), n + 1, stream_));
     CUDA_CHECK(scan_u32(d_temp_.get(), bytes_u32, d_leave_len_.get(), d_leave_off_.get(), n + 1, stream_));
+    CUDA_CHECK(launch_capacity(a, stream_));
+    CUDA_CHECK(launch_place_enters(a, stream_));
+    CUDA_CHECK(cudaEventRecord(ev_classify_, stream_));
     if (wanted_) {
       CUDA_CHECK(launch_wanted_sizes(a, stream_));
       CUDA_CHECK(scan_u32(d_temp_.get(), bytes_u32, d_dl_len_.get(), d_dl_off_.get(), n + 1, stream_));
@@ -445,12 +468,13 @@ class engine final : public interest::visibility_engine {
   device_array<std::uint32_t> d_counts_, d_cursor_, d_start_;
   device_array<float4> d_elo_, d_ehi_;
   device_array<std::uint32_t> d_ecx_, d_large_;
-  device_array<std::uint32_t> d_cand_count_;
-  device_array<std::uint64_t> d_cand_off_;
-  device_array<std::uint32_t> d_cand_;
+  device_array<unsigned long long> d_enter_pairs_;
+  device_array<std::uint32_t> d_enter_cursor_;
   device_array<std::uint32_t> d_prev_vis_, d_prev_off_;
   device_array<std::uint32_t> d_prev_ids_, d_row_of_slot_;  // previous rows' handles; slot -> row
   std::uint32_t slot_bits_ = 0;
+  std::uint64_t uploaded_version_ = 0;  // static_version of the columns on the device (0: none)
+  std::size_t uploaded_n_ = 0;
   device_array<std::uint8_t> d_flag_;
   device_array<std::uint32_t> d_kept_prefix_, d_enter_tmp_;
   device_array<std::uint32_t> d_vis_len_, d_enter_len_, d_leave_len_, d_vis_off_, d_enter_off_, d_leave_off_;
@@ -469,7 +493,7 @@ class engine final : public interest::visibility_engine {
 
   std::uint32_t prev_rows_ = 0;
   std::uint64_t prev_total_ = 0;
-  std::uint64_t entry_cap_ = 0, cand_cap_ = 0;
+  std::uint64_t entry_cap_ = 0, vis_cap_ = 0, enter_cap_ = 0;
   std::uint64_t last_vis_ = 0, last_enter_ = 0, last_leave_ = 0;
   grid_params grid_{};
   std::uint32_t large_ = 0;

@@ -5,7 +5,6 @@
 // process_rows): additions and subtractions only, so no contraction into FMAs can change them and
 // the results equal the host path's bit for bit.
 #include <cub/device/device_scan.cuh>
-#include <thrust/iterator/transform_iterator.h>
 
 #include <algorithm>
 #include <climits>
@@ -21,6 +20,9 @@ constexpr std::uint32_t warps_per_block = block / 32;
 /// A presence box covering more cells than this is kept out of the grid and tested by every
 /// observer (a world boss's footprint; see docs/zone.md).
 constexpr std::uint32_t large_cells = 64;
+/// Previous-set entries a warp keeps in shared memory for its binary searches (longer rows are
+/// searched in global memory).
+constexpr std::uint32_t prev_cache = 128;
 
 std::uint32_t blocks_for(std::uint64_t n, std::uint32_t per_block) {
   return static_cast<std::uint32_t>(std::max<std::uint64_t>(1, (n + per_block - 1) / per_block));
@@ -96,7 +98,7 @@ __global__ void init_kernel(tick_state* st) {
   st->bad_box = no_box;
   st->large_count = 0;
   st->overflow = 0;
-  st->entries = st->candidates = 0;
+  st->entries = st->candidates = st->enter_count = 0;
   st->visible_total = st->enter_total = st->leave_total = st->download_total = 0;
 }
 
@@ -257,40 +259,77 @@ __global__ void scatter_kernel(pass_args a, std::uint32_t* cursor) {
   }
 }
 
-/// One warp per observer: every presence box in the cells its grown AOI box covers (each cell row
-/// is one contiguous range of entries), then the large ones. A presence box listed in several cells
-/// is counted only in the cell holding the lower corner of the two boxes' intersection (the
-/// output-cell rule of PBIG, on the lower corner): cell_of is monotone, so that cell is
-/// (max(x0, cell(P.lo.x)), max(y0, cell(P.lo.y))).
-template <bool Write>
+/// Previous row of observer i: [first, first + len) of prev_vis.
+struct prev_span {
+  std::uint32_t first, len;
+};
+__device__ __forceinline__ prev_span previous_of(const pass_args& a, std::uint32_t i) {
+  const std::uint32_t r = a.in.prev_row[i];
+  if (r == no_row || r >= a.prev_rows) return {0, 0};
+  const std::uint32_t b = a.prev_off[r];
+  return {b, a.prev_off[r + 1] - b};
+}
+
+/// One warp per observer. Candidates: every presence box in the cells its grown AOI box covers
+/// (each cell row is one contiguous range of entries), then the large ones. A presence box listed
+/// in several cells counts only in the cell holding the lower corner of the two boxes'
+/// intersection (PBIG's output-cell rule, on the lower corner): cell_of is monotone, so that cell
+/// is (max(x0, cell(P.lo.x)), max(y0, cell(P.lo.y))). Each candidate is classified at once: found
+/// in the previous set (binary search: it is sorted), it flags that entry (it stays); otherwise
+/// it enters if its presence box meets the exact AOI box (appended to enter_pairs).
 __global__ void __launch_bounds__(block) query_kernel(pass_args a) {
   const std::uint32_t i = (blockIdx.x * blockDim.x + threadIdx.x) >> 5;
   const unsigned lane = threadIdx.x & 31u;
   // The whole warp leaves together; after an overflow the host grows the buffers and runs again.
-  if (i >= a.n || a.st->overflow != 0) return;
+  if (i >= a.n || (__shfl_sync(full_mask, a.st->overflow, 0) & 1u) != 0) return;
+  const prev_span ps = previous_of(a, i);
+  __shared__ std::uint32_t cache[warps_per_block][prev_cache];
+  const std::uint32_t* prev = a.prev_vis + ps.first;
+  const bool cached = ps.len <= prev_cache;
+  for (std::uint32_t q = lane; q < ps.len; q += 32) {
+    a.flag[ps.first + q] = 0;
+    if (cached) cache[threadIdx.x >> 5][q] = prev[q];
+  }
+  if (cached) prev = cache[threadIdx.x >> 5];
+  __syncwarp();
   const std::uint32_t sees = a.in.sees[i];
-  std::uint32_t hits = 0;      // count pass: this lane's
-  std::uint64_t written = 0;   // write pass: the warp's
-  const std::uint64_t base = Write ? a.cand_off[i] : 0;
-  const auto emit = [&](bool hit, std::uint32_t j) {
-    if constexpr (Write) {
-      const unsigned m = __ballot_sync(full_mask, hit);
+  std::uint32_t found = 0;    // this lane's candidates
+  std::uint32_t entered = 0;  // the warp's enters
+  if (sees != 0) {
+    // The exact AOI box (process_rows' expressions) and the grown one.
+    const float3 p = a.in.pos[i], ae = a.in.aoi[i];
+    const float4 alo = make_float4(p.x - ae.x, p.y - ae.y, p.z - ae.z, 0.0f);
+    const float4 ahi = make_float4(p.x + ae.x, p.y + ae.y, p.z + ae.z, 0.0f);
+    const float4 lo = a.box.g_lo[i], hi = a.box.g_hi[i];
+    const auto visit = [&](bool hit, std::uint32_t j) {
+      bool enter = false;
+      std::uint32_t t = 0;
       if (hit) {
-        const std::uint64_t pos = base + written + __popc(m & lanes_below(lane));
-        if (pos < a.cand_capacity) {
-          a.cand[pos] = j;
+        ++found;
+        t = a.in.ids[j];
+        const std::uint32_t q = lower_bound(prev, ps.len, t);
+        if (q < ps.len && prev[q] == t) {
+          a.flag[ps.first + q] = 1;
+        } else {
+          enter = meets(alo, ahi, a.box.p_lo[j], a.box.p_hi[j]);
+        }
+      }
+      const unsigned m = __ballot_sync(full_mask, enter);
+      if (m == 0) return;
+      unsigned long long base = 0;
+      if (lane == 0) base = atomicAdd(&a.st->enter_count, static_cast<unsigned long long>(__popc(m)));
+      base = __shfl_sync(full_mask, base, 0);
+      if (enter) {
+        const unsigned long long pos = base + __popc(m & lanes_below(lane));
+        if (pos < a.enter_capacity) {
+          a.enter_pairs[pos] = (static_cast<unsigned long long>(i) << 32) | t;
         } else {
           atomicOr(&a.st->overflow, 2u);
         }
       }
-      written += __popc(m);
-    } else {
-      hits += hit ? 1u : 0u;
-    }
-  };
-  if (sees != 0) {
+      entered += __popc(m);
+    };
     const grid_params g = a.st->grid;
-    const float4 lo = a.box.g_lo[i], hi = a.box.g_hi[i];
     const cell_range r = cells_of(lo, hi, g);
     for (std::uint32_t y = r.y0; y <= r.y1; ++y) {
       const std::uint32_t row = y * g.nx;
@@ -306,7 +345,7 @@ __global__ void __launch_bounds__(block) query_kernel(pass_args a) {
                 a.grid.e_cx[k] == max(r.x0, cell_of(plo.x, g.ox, g.inv_edge, g.nx)) &&
                 y == max(r.y0, cell_of(plo.y, g.oy, g.inv_edge, g.ny));
         }
-        emit(hit, j);
+        visit(hit, j);
       }
     }
     const std::uint32_t large = min(a.st->large_count, a.n);
@@ -318,59 +357,8 @@ __global__ void __launch_bounds__(block) query_kernel(pass_args a) {
         j = a.grid.large[k];
         hit = (a.in.cls[j] & sees) != 0 && j != i && meets(lo, hi, a.box.p_lo[j], a.box.p_hi[j]);
       }
-      emit(hit, j);
+      visit(hit, j);
     }
-  }
-  if constexpr (!Write) {
-    hits = warp_sum(hits);
-    if (lane == 0) a.cand_count[i] = hits;
-  }
-}
-
-/// Previous row of observer i: [first, first + len) of prev_vis.
-struct prev_span {
-  std::uint32_t first, len;
-};
-__device__ __forceinline__ prev_span previous_of(const pass_args& a, std::uint32_t i) {
-  const std::uint32_t r = a.in.prev_row[i];
-  if (r == no_row || r >= a.prev_rows) return {0, 0};
-  const std::uint32_t b = a.prev_off[r];
-  return {b, a.prev_off[r + 1] - b};
-}
-
-/// One warp per observer: a candidate found in the previous set (binary search: it is sorted)
-/// flags that entry (it stays); any other enters if its presence box meets the exact AOI box.
-__global__ void __launch_bounds__(block) classify_kernel(pass_args a) {
-  const std::uint32_t i = (blockIdx.x * blockDim.x + threadIdx.x) >> 5;
-  const unsigned lane = threadIdx.x & 31u;
-  if (i >= a.n || a.st->overflow != 0) return;
-  const prev_span ps = previous_of(a, i);
-  const std::uint32_t* prev = a.prev_vis + ps.first;
-  for (std::uint32_t q = lane; q < ps.len; q += 32) a.flag[ps.first + q] = 0;
-  __syncwarp();
-  // The exact AOI box (process_rows' expressions).
-  const float3 p = a.in.pos[i], ae = a.in.aoi[i];
-  const float4 alo = make_float4(p.x - ae.x, p.y - ae.y, p.z - ae.z, 0.0f);
-  const float4 ahi = make_float4(p.x + ae.x, p.y + ae.y, p.z + ae.z, 0.0f);
-  const std::uint64_t cb = a.cand_off[i], ce = a.cand_off[i + 1];
-  std::uint32_t entered = 0;
-  for (std::uint64_t c0 = cb; c0 < ce; c0 += 32) {
-    const std::uint64_t c = c0 + lane;
-    bool enter = false;
-    std::uint32_t t = 0;
-    if (c < ce) {
-      const std::uint32_t j = a.cand[c];
-      t = a.in.ids[j];
-      const std::uint32_t q = lower_bound(prev, ps.len, t);
-      if (q < ps.len && prev[q] == t) {
-        a.flag[ps.first + q] = 1;
-      } else {
-        enter = meets(alo, ahi, a.box.p_lo[j], a.box.p_hi[j]);
-      }
-    }
-    const unsigned m = __ballot_sync(full_mask, enter);
-    if (enter) a.enter_tmp[cb + entered + __popc(m & lanes_below(lane))] = t;
-    entered += __popc(m);
   }
   __syncwarp();
   std::uint32_t kept = 0;
@@ -378,10 +366,31 @@ __global__ void __launch_bounds__(block) classify_kernel(pass_args a) {
     const std::uint32_t q = q0 + lane;
     kept += __popc(__ballot_sync(full_mask, q < ps.len && a.flag[ps.first + q] != 0));
   }
+  found = warp_sum(found);
   if (lane == 0) {
     a.vis_len[i] = kept + entered;
     a.enter_len[i] = entered;
     a.leave_len[i] = ps.len - kept;
+    if (found != 0) atomicAdd(&a.st->candidates, static_cast<unsigned long long>(found));
+  }
+}
+
+__global__ void touch_kernel() {}
+
+__global__ void capacity_kernel(pass_args a) {
+  if (threadIdx.x != 0 || blockIdx.x != 0) return;
+  if (a.vis_off[a.n] > a.vis_capacity) atomicOr(&a.st->overflow, 4u);
+  if (a.st->enter_count > a.enter_capacity) atomicOr(&a.st->overflow, 2u);
+}
+
+__global__ void place_enters_kernel(pass_args a) {
+  if (a.st->overflow != 0) return;
+  const unsigned long long total = a.st->enter_count;
+  for (unsigned long long k = blockIdx.x * static_cast<unsigned long long>(blockDim.x) + threadIdx.x; k < total;
+       k += static_cast<unsigned long long>(gridDim.x) * blockDim.x) {
+    const unsigned long long e = a.enter_pairs[k];
+    const auto row = static_cast<std::uint32_t>(e >> 32);
+    a.enter_tmp[a.enter_off[row] + atomicAdd(&a.enter_cursor[row], 1u)] = static_cast<std::uint32_t>(e);
   }
 }
 
@@ -392,7 +401,7 @@ __global__ void __launch_bounds__(block) write_kernel(pass_args a) {
   const unsigned lane = threadIdx.x & 31u;
   if (i >= a.n || a.st->overflow != 0) return;
   const std::uint32_t en = a.enter_len[i];
-  const std::uint32_t* unsorted = a.enter_tmp + a.cand_off[i];
+  const std::uint32_t* unsorted = a.enter_tmp + a.enter_off[i];
   std::uint32_t* enters = a.enter_out + a.enter_off[i];
   if (en <= 32) {
     const std::uint32_t x = lane < en ? unsorted[lane] : 0xffffffffu;
@@ -455,7 +464,6 @@ __global__ void __launch_bounds__(block) gather_kernel(pass_args a) {
 __global__ void totals_kernel(pass_args a, std::uint32_t max_cells) {
   if (threadIdx.x != 0 || blockIdx.x != 0) return;
   a.st->entries = a.grid.start[max_cells];
-  a.st->candidates = a.cand_off[a.n];
   a.st->visible_total = a.vis_off[a.n];
   a.st->enter_total = a.enter_off[a.n];
   a.st->leave_total = a.leave_off[a.n];
@@ -475,10 +483,6 @@ __global__ void map_slots_kernel(const std::uint32_t* ids, std::uint32_t rows, s
   const std::uint32_t i = blockIdx.x * blockDim.x + threadIdx.x;
   if (i < rows) row_of_slot[ids[i] & mask] = i;
 }
-
-struct widen {
-  __host__ __device__ std::uint64_t operator()(std::uint32_t v) const { return v; }
-};
 
 }  // namespace
 
@@ -516,25 +520,24 @@ cudaError_t launch_scatter(const pass_args& a, std::uint32_t* cursor, cudaStream
   return cudaGetLastError();
 }
 
-cudaError_t launch_query(const pass_args& a, bool write, cudaStream_t stream) {
+cudaError_t launch_query(const pass_args& a, cudaStream_t stream) {
   if (a.n == 0) return cudaSuccess;
-  if (write) {
-    query_kernel<true><<<blocks_for(a.n, warps_per_block), block, 0, stream>>>(a);
-  } else {
-    query_kernel<false><<<blocks_for(a.n, warps_per_block), block, 0, stream>>>(a);
-  }
+  query_kernel<<<blocks_for(a.n, warps_per_block), block, 0, stream>>>(a);
   return cudaGetLastError();
 }
 
-cudaError_t scan_candidates(void* temp, std::size_t& temp_bytes, const std::uint32_t* counts, std::uint64_t* off,
-                            std::uint32_t items, cudaStream_t stream) {
-  const auto wide = thrust::make_transform_iterator(counts, widen{});
-  return cub::DeviceScan::ExclusiveSum(temp, temp_bytes, wide, off, items, stream);
+cudaError_t launch_touch(cudaStream_t stream) {
+  touch_kernel<<<1, 32, 0, stream>>>();
+  return cudaGetLastError();
 }
 
-cudaError_t launch_classify(const pass_args& a, cudaStream_t stream) {
-  if (a.n == 0) return cudaSuccess;
-  classify_kernel<<<blocks_for(a.n, warps_per_block), block, 0, stream>>>(a);
+cudaError_t launch_capacity(const pass_args& a, cudaStream_t stream) {
+  capacity_kernel<<<1, 32, 0, stream>>>(a);
+  return cudaGetLastError();
+}
+
+cudaError_t launch_place_enters(const pass_args& a, cudaStream_t stream) {
+  place_enters_kernel<<<264, block, 0, stream>>>(a);
   return cudaGetLastError();
 }
 

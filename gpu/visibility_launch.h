@@ -26,16 +26,18 @@ cudaError_t scan_cells(void* temp, std::size_t& temp_bytes, const std::uint32_t*
                        std::uint32_t items, cudaStream_t stream);
 /// Entries into their cells (cursor: max_cells zeroed counters).
 cudaError_t launch_scatter(const pass_args& a, std::uint32_t* cursor, cudaStream_t stream);
-/// Candidates per observer (count pass) or into cand at cand_off (write pass); one warp per observer.
-cudaError_t launch_query(const pass_args& a, bool write, cudaStream_t stream);
-/// Exclusive scan of n + 1 u32 counts into 64-bit offsets.
-cudaError_t scan_candidates(void* temp, std::size_t& temp_bytes, const std::uint32_t* counts, std::uint64_t* off,
-                            std::uint32_t items, cudaStream_t stream);
-/// Per observer: stays (flags on the previous entries), enters (exact test), counts.
-cudaError_t launch_classify(const pass_args& a, cudaStream_t stream);
+/// One warp per observer: its candidates from the grid, each classified at once (a stay flags
+/// its previous entry; an enter is appended to enter_pairs), and the row's list sizes.
+cudaError_t launch_query(const pass_args& a, cudaStream_t stream);
 /// Exclusive scan of n + 1 u32 counts into u32 offsets.
 cudaError_t scan_u32(void* temp, std::size_t& temp_bytes, const std::uint32_t* counts, std::uint32_t* off,
                      std::uint32_t items, cudaStream_t stream);
+/// An empty kernel (wakes an idle device before an update).
+cudaError_t launch_touch(cudaStream_t stream);
+/// Flags a visible-list total beyond vis_capacity (after the scans).
+cudaError_t launch_capacity(const pass_args& a, cudaStream_t stream);
+/// The appended enters into their rows (enter_tmp at enter_off; unsorted within a row).
+cudaError_t launch_place_enters(const pass_args& a, cudaStream_t stream);
 /// Per observer: sorted enters, leaves in order, the merged visible set.
 cudaError_t launch_write(const pass_args& a, cudaStream_t stream);
 /// Visible-set sizes of the wanted rows (0 for the others).

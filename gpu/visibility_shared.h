@@ -32,10 +32,11 @@ struct tick_state {
   std::uint32_t self_pairs;            ///< rows whose AOI sees their own class
   std::uint32_t bad_box;               ///< first invalid box (2i AOI, 2i + 1 presence) or no_box
   std::uint32_t large_count;           ///< presence boxes kept out of the grid
-  std::uint32_t overflow;              ///< bit 0: cell entries, bit 1: candidates
+  std::uint32_t overflow;              ///< bit 0: cell entries, bit 1: enters, bit 2: visible entries
   grid_params grid;
   unsigned long long entries;          ///< (cell, presence) entries of the grid
-  unsigned long long candidates;
+  unsigned long long candidates;       ///< summed by the query kernel
+  unsigned long long enter_count;      ///< enters appended by the query kernel
   std::uint32_t visible_total, enter_total, leave_total;
   std::uint32_t download_total;        ///< visible entries of the wanted rows
 };
@@ -88,11 +89,11 @@ struct pass_args {
   grid_arrays grid;
   tick_state* st;
   previous_rows prev;
-  // candidates
-  std::uint32_t* cand_count;     ///< n + 1
-  std::uint64_t* cand_off;       ///< n + 1
-  std::uint32_t* cand;           ///< target rows, by observer
-  std::uint64_t cand_capacity;   ///< of cand, enter_tmp, vis_out, enter_out
+  // enters as the query finds them: (row << 32) | handle, in no order
+  unsigned long long* enter_pairs;
+  std::uint64_t enter_capacity;  ///< of enter_pairs, enter_tmp, enter_out
+  std::uint32_t* enter_cursor;   ///< n: per row, enters placed so far
+  std::uint64_t vis_capacity;    ///< of vis_out, dl_out
   // previous update
   const std::uint32_t* prev_vis;
   const std::uint32_t* prev_off;  ///< prev_rows + 1
@@ -100,7 +101,7 @@ struct pass_args {
   std::uint8_t* flag;             ///< per previous entry: still a candidate
   std::uint32_t* kept_prefix;     ///< per previous entry: kept entries before it in its row
   // this update
-  std::uint32_t* enter_tmp;       ///< enters by row, unsorted, at the row's candidate offset
+  std::uint32_t* enter_tmp;       ///< enters by row, unsorted, at the row's enter offset
   std::uint32_t* vis_len;         ///< n + 1
   std::uint32_t* enter_len;       ///< n + 1
   std::uint32_t* leave_len;       ///< n + 1

@@ -32,6 +32,10 @@ struct visibility_input {
   /// every row. Enters and leaves always come back whole.
   const std::uint8_t* wanted = nullptr;
   float hysteresis = 0;  ///< margin h >= 0
+  /// Identifies ids, aoi_half, body_half, visibility and sees (0: unknown). When it equals the
+  /// previous call's (and n too), the engine may keep those columns from that call and take only
+  /// the positions (and wanted): the caller promises they did not change.
+  std::uint64_t static_version = 0;
   /// Called once the device work is under way, before the engine waits for it: host work that
   /// needs none of the result runs in the device's shadow. May be empty.
   std::function<void()> while_waiting;
@@ -44,9 +48,9 @@ struct visibility_timing {
   double upload_ms = 0;    ///< host-to-device copy
   double device_ms = 0;    ///< grid, candidates, classification (device time), of which:
   double grid_ms = 0;      ///<   boxes, plan, the grid over the presence boxes
-  double query_ms = 0;     ///<   candidates: counting pass, scan, writing pass
-  double classify_ms = 0;  ///<   stays and enters against the previous sets
-  double write_ms = 0;     ///<   scans of the list sizes, sorted lists written
+  double query_ms = 0;     ///<   candidates, each classified (stay or enter) as it is found
+  double place_ms = 0;     ///<   scans of the list sizes, enters placed in their rows
+  double write_ms = 0;     ///<   sorted lists written (and the rows copied back gathered)
   double download_ms = 0;  ///< device-to-host copy of the sets and events
   double total_ms = 0;     ///< wall time of the whole update
   std::uint32_t reruns = 0;  ///< device passes redone after a buffer grew
@@ -71,6 +75,7 @@ struct visibility_output {
   const std::uint32_t* leaves = nullptr;
   const std::uint32_t* leave_off = nullptr;
   bool visible_complete = true;
+  std::uint64_t visible_total = 0;  ///< entries of every row's visible set (also when not complete)
   std::uint64_t pairs = 0;       ///< qualifying (AOI grown by h, presence) pairs, self pairs included
   std::uint64_t candidates = 0;  ///< the same without self pairs
   visibility_timing timing;
@@ -105,6 +110,10 @@ class visibility_engine {
   /// previous update.
   virtual void load_previous(std::span<const std::uint32_t> ids, std::uint32_t slot_bits,
                              std::span<const std::uint32_t> offsets, std::span<const std::uint32_t> visible) = 0;
+
+  /// A hint that an update follows soon (e.g. a millisecond before a tick): a device idle since
+  /// the last one is woken now rather than inside the update. Never throws; may do nothing.
+  virtual void prepare() noexcept {}
 
   /// Every row's visible set of the last successful update (after an update with `wanted`),
   /// valid until the next update or load_previous. Waits for the copy.

@@ -410,7 +410,7 @@ int main(int argc, char** argv) {
       s_interest{"interest"}, s_f_plan{"    plan"}, s_f_map{"    map"}, s_f_check{"    check"},
       s_f_out{"    output"}, s_d_count{"    count"}, s_d_offsets{"    offsets"}, s_d_fill{"    fill"},
       s_d_rows{"    rows"}, s_e_pack{"  engine pack"}, s_e_up{"  engine upload"}, s_e_dev{"  engine device"},
-      s_e_down{"  engine download"}, s_e_grid{"    grid"}, s_e_query{"    candidates"}, s_e_class{"    classify"},
+      s_e_down{"  engine download"}, s_e_grid{"    grid"}, s_e_query{"    candidates, classified"}, s_e_class{"    scans, enters placed"},
       s_e_write{"    write"}, s_e_host{"  host work (overlapped)"}, s_rep{"replicate"}, s_rep_serial{"replicate 1t"},
       s_total{"tick"};
   std::vector<double> step_allocs, rep_allocs;  // heap allocations per tick (world step; replication)
@@ -431,6 +431,7 @@ int main(int argc, char** argv) {
       if (spin.count() > 0 && next - now > spin) {
         std::this_thread::sleep_until(next - spin);
         pool.run(pool.size(), [](std::size_t) {});
+        world.prepare();
       }
       if (clock_type::now() < next) std::this_thread::sleep_until(next);
       next = std::max(next + period, clock_type::now() - period);
@@ -523,7 +524,7 @@ int main(int argc, char** argv) {
     s_e_down.v.push_back(ts.engine_timing.download_ms);
     s_e_grid.v.push_back(ts.engine_timing.grid_ms);
     s_e_query.v.push_back(ts.engine_timing.query_ms);
-    s_e_class.v.push_back(ts.engine_timing.classify_ms);
+    s_e_class.v.push_back(ts.engine_timing.place_ms);
     s_e_write.v.push_back(ts.engine_timing.write_ms);
     s_e_host.v.push_back(ts.on_engine ? ts.diff_ms : 0.0);
     on_engine_ticks += ts.on_engine ? 1 : 0;

@@ -3,6 +3,8 @@
 #include <bit>
 #include <cmath>
 
+#include <atomic>
+
 #include "zone.h"
 
 namespace zone {
@@ -33,7 +35,13 @@ std::optional<std::string> validate(const entity_desc& d) {
   return check_visibility(d.visibility_class, d.sees);
 }
 
-entity_store::entity_store(std::size_t capacity) : capacity_(std::min(capacity, max_entities)) {}
+entity_store::entity_store(std::size_t capacity) : capacity_(std::min(capacity, max_entities)) { bump_layout(); }
+
+void entity_store::bump_layout() {
+  // One counter for every store of the process: no two stores (or states) share a version.
+  static std::atomic<std::uint64_t> next{1};
+  layout_version_ = next.fetch_add(1, std::memory_order_relaxed);
+}
 
 void entity_store::reserve(std::size_t n) {
   n = std::min(n, capacity_);
@@ -50,6 +58,7 @@ void entity_store::reserve(std::size_t n) {
 }
 
 void entity_store::clear() {
+  bump_layout();
   // Every live slot gets a new generation, so no old handle is accepted again.
   for (const entity_id id : ids_) {
     const std::uint32_t slot = slot_of(id);
@@ -94,6 +103,7 @@ entity_id entity_store::create(const entity_desc& d, std::string* error) {
     slot_generation_.push_back(1);
   }
   const entity_id id = (std::uint32_t{slot_generation_[slot]} << entity_index_bits) | slot;
+  bump_layout();
   slot_dense_[slot] = static_cast<std::uint32_t>(ids_.size());
   ids_.push_back(id);
   position_.push_back(d.position);
@@ -109,6 +119,7 @@ entity_id entity_store::create(const entity_desc& d, std::string* error) {
 bool entity_store::destroy(entity_id id) {
   const std::size_t dense = index_of(id);
   if (dense == npos) return false;
+  bump_layout();
   const std::size_t last = ids_.size() - 1;
   // Swap-remove: the last entity moves into the hole.
   if (dense != last) {
@@ -163,6 +174,7 @@ bool entity_store::set_aoi_half_extent(entity_id id, const vec3& h) {
   const std::size_t i = index_of(id);
   if (i == npos || !extent_ok(h)) return false;
   aoi_half_[i] = h;
+  bump_layout();
   return true;
 }
 
@@ -170,6 +182,7 @@ bool entity_store::set_presence_half_extent(entity_id id, const vec3& h) {
   const std::size_t i = index_of(id);
   if (i == npos || !extent_ok(h)) return false;
   presence_half_[i] = h;
+  bump_layout();
   return true;
 }
 
@@ -178,6 +191,7 @@ bool entity_store::set_visibility(entity_id id, std::uint32_t visibility_class, 
   if (i == npos || check_visibility(visibility_class, sees)) return false;
   visibility_class_[i] = visibility_class;
   sees_[i] = sees;
+  bump_layout();
   return true;
 }
 

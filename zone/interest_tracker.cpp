@@ -273,6 +273,7 @@ std::optional<interest::box_error> interest_tracker::update_on_engine(const enti
   in.visibility = store.visibility_classes().data();
   in.sees = store.sees().data();
   in.hysteresis = opt_.hysteresis;
+  in.static_version = store.layout_version();
   if (view_demand_ != nullptr) {
     // Per row: is its visible set read on the host (by slot, from the caller).
     next_demand_rows_.resize(n);
@@ -325,7 +326,7 @@ std::optional<interest::box_error> interest_tracker::update_on_engine(const enti
   stats_ = {};
   stats_.pairs = engine_out_.pairs;
   stats_.candidates = engine_out_.candidates;
-  stats_.visible = engine_out_.visible_off[n];
+  stats_.visible = engine_out_.visible_total;
   stats_.enters = engine_out_.enter_off[n];
   stats_.leaves = engine_out_.leave_off[n];
   stats_.find_ms = engine_ms;

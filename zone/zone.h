@@ -118,8 +118,16 @@ class entity_store {
   /// One past the highest slot index ever used (sizes per-slot side tables of other systems).
   [[nodiscard]] std::size_t slot_count() const { return slot_generation_.size(); }
 
+  /// Changes whenever anything but positions and velocities may have changed (an entity created
+  /// or destroyed, an extent, class or sees set), to a value no other store ever had: equal
+  /// versions mean equal ids, extents, classes and sees. (A GPU interest engine skips uploading
+  /// them then.)
+  [[nodiscard]] std::uint64_t layout_version() const { return layout_version_; }
+
  private:
+  void bump_layout();
   std::size_t capacity_;
+  std::uint64_t layout_version_ = 0;
   // Sparse side, by slot.
   std::vector<std::uint32_t> slot_dense_;       // dense index of the slot's entity, or invalid_dense
   std::vector<std::uint16_t> slot_generation_;  // generation of the slot's current (or next) entity
@@ -210,6 +218,10 @@ class interest_tracker {
   void set_view_demand(const std::vector<std::uint8_t>* by_slot) { view_demand_ = by_slot; }
   /// Why the engine was given up (empty while it works or when none is set).
   [[nodiscard]] const std::string& engine_error() const { return engine_error_; }
+  /// Tells the engine (if any) that an update follows soon (see visibility_engine::prepare).
+  void prepare() noexcept {
+    if (engine_ != nullptr && engine_error_.empty()) engine_->prepare();
+  }
   /// True when the last update ran on the engine.
   [[nodiscard]] bool last_update_on_engine() const { return last_by_engine_; }
 
@@ -560,6 +572,8 @@ class zone_world {
   void set_pair_view_source(interest_tracker::pair_view_source source) {
     tracker_.set_pair_view_source(std::move(source));
   }
+  /// A tick follows soon: see interest_tracker::prepare.
+  void prepare() noexcept { tracker_.prepare(); }
   /// See interest_tracker::set_engine.
   void set_visibility_engine(interest::visibility_engine* engine) { tracker_.set_engine(engine); }
   [[nodiscard]] behaviour behaviour_of(entity_id id) const;

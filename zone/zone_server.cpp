@@ -330,6 +330,7 @@ void zone_server::run() {
       if (spin.count() > 0 && next - now > spin) {
         std::this_thread::sleep_until(next - spin);
         pool_->run(pool_->size(), [](std::size_t) {});
+        world_->prepare();  // and the GPU, if the interest step runs there
       }
       std::this_thread::sleep_until(next);
     }

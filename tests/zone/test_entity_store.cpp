@@ -166,4 +166,36 @@ TEST_SUITE("zone.entity_store") {
     CHECK_FALSE(store.alive(wrapped));
     CHECK(store.empty());
   }
+
+  TEST_CASE("layout_version: changes with everything but positions and velocities, never repeats") {
+    entity_store a, b;
+    CHECK(a.layout_version() != b.layout_version());
+    entity_desc d;
+    d.sees = interest::category_bits::normal;
+    std::uint64_t v = a.layout_version();
+    const auto changed = [&] {
+      const bool c = a.layout_version() != v;
+      v = a.layout_version();
+      return c;
+    };
+    const entity_id x = a.create(d);
+    CHECK(changed());
+    a.positions()[0] = {1, 2, 3};
+    a.velocities()[0] = {1, 0, 0};
+    CHECK(a.set_position(x, {4, 5, 6}));
+    CHECK(a.set_velocity(x, {0, 1, 0}));
+    CHECK_FALSE(changed());
+    CHECK(a.set_aoi_half_extent(x, {5, 5, 5}));
+    CHECK(changed());
+    CHECK(a.set_presence_half_extent(x, {1, 1, 1}));
+    CHECK(changed());
+    CHECK(a.set_visibility(x, interest::category_bits::stealth, interest::category_bits::normal));
+    CHECK(changed());
+    CHECK_FALSE(a.set_aoi_half_extent(x, {-1, 0, 0}));  // refused: nothing changed
+    CHECK_FALSE(changed());
+    CHECK(a.destroy(x));
+    CHECK(changed());
+    (void)b.create(d);
+    CHECK(b.layout_version() != a.layout_version());
+  }
 }
