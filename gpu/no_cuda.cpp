@@ -25,4 +25,8 @@ std::optional<interest::box_error> find_pairs_view(interest::pair_finder& /*find
 
 const pbig_report* last_pbig_report(const interest::pair_finder& /*finder*/) { return nullptr; }
 
+pinned_boxes::pinned_boxes(const interest::box_set& /*boxes*/) {}
+pinned_boxes::~pinned_boxes() = default;
+bool boxes_pinned(const interest::box_set& /*boxes*/) { return false; }
+
 }  // namespace zone::gpu

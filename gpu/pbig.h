@@ -90,6 +90,32 @@ struct pbig_report {
                                                                  const interest::box_set& boxes,
                                                                  std::span<const interest::id_pair>& view);
 
+/// Page-locks the eight arrays of a box set while it lives (cudaHostRegister), so that the GPU
+/// finders copy them to the device by DMA straight from the caller's memory, without a staging
+/// copy on the host, and validate them on the device instead (same rule, same first-error
+/// report). For a caller that keeps its box arrays from call to call (a server's per-tick box
+/// buffer; a benchmark's data set): registration costs about as much as one staging copy, so it
+/// pays from the second call on. The set must not be resized or reallocated while pinned. Without
+/// a usable device, for a set under 64 KiB an array, when another live guard holds the same
+/// pages, or when the driver refuses, it pins nothing (active() is false) and the finders take the
+/// staging path as before. (Whole pages are registered; arrays sharing a page share a range.)
+class pinned_boxes {
+ public:
+  explicit pinned_boxes(const interest::box_set& boxes);
+  ~pinned_boxes();
+  pinned_boxes(const pinned_boxes&) = delete;
+  pinned_boxes& operator=(const pinned_boxes&) = delete;
+  [[nodiscard]] bool active() const { return count_ > 0; }
+
+ private:
+  const void* ptr_[8]{};  // registered page ranges (at most one per array)
+  int count_ = 0;
+};
+
+/// True when every array of `boxes` (all of its n elements) lies in memory pinned by a live
+/// pinned_boxes.
+[[nodiscard]] bool boxes_pinned(const interest::box_set& boxes);
+
 /// Creates the GPU PBIG finder, or returns null with the reason in `why` when no device can be used.
 [[nodiscard]] std::unique_ptr<interest::pair_finder> make_pbig_finder(const pbig_options& options = {},
                                                                       std::string* why = nullptr);

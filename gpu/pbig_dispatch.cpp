@@ -118,6 +118,7 @@ pbig_engine::pbig_engine(const pbig_options& options) : opt_(options) {
   CUDA_CHECK(cudaMemset(d_state_.get(), 0, sizeof(plan_state)));
   d_plan_.reserve(1);
   h_plan_.reserve(1);
+  h_bounds_.reserve(1);
   d_readback_.reserve(1);
   h_readback_.reserve(1);
   h_large_total_.reserve(1);
@@ -157,7 +158,7 @@ std::optional<std::uint64_t> pbig_engine::run(const interest::box_set& boxes, in
 
   CUDA_CHECK(cudaEventRecord(ev_start_, main_));
   if (!upload(boxes, validate)) return std::nullopt;
-  plan(n);
+  if (!plan(n)) return std::nullopt;
   map_boxes(n);
 
   const auto t_pipe = clock_type::now();
@@ -215,6 +216,22 @@ bool pbig_engine::upload(const interest::box_set& boxes, bool check) {
   const std::size_t n = boxes.size();
   d_coord_.reserve(6 * n);
   d_bits_.reserve(2 * n);
+  validate_on_device_ = false;
+  if (boxes_pinned(boxes)) {
+    // The caller's arrays are page-locked (pinned_boxes): DMA straight from them, no staging
+    // copy; validation moves to the bounds kernel (read back with the plan).
+    const float* src_f[6] = {boxes.lo_x.data(), boxes.lo_y.data(), boxes.lo_z.data(),
+                             boxes.hi_x.data(), boxes.hi_y.data(), boxes.hi_z.data()};
+    for (int a = 0; a < 6; ++a) {
+      CUDA_CHECK(cudaMemcpyAsync(d_coord_.get() + a * n, src_f[a], n * 4, cudaMemcpyHostToDevice, main_));
+    }
+    CUDA_CHECK(cudaMemcpyAsync(d_bits_.get(), boxes.category.data(), n * 4, cudaMemcpyHostToDevice, main_));
+    CUDA_CHECK(cudaMemcpyAsync(d_bits_.get() + n, boxes.mask.data(), n * 4, cudaMemcpyHostToDevice, main_));
+    CUDA_CHECK(cudaEventRecord(ev_in_, main_));
+    report_.bytes_in += 32 * n;
+    validate_on_device_ = check;
+    return true;
+  }
   h_stage_.reserve(32 * n);
   const float* lo[3] = {boxes.lo_x.data(), boxes.lo_y.data(), boxes.lo_z.data()};
   const float* hi[3] = {boxes.hi_x.data(), boxes.hi_y.data(), boxes.hi_z.data()};
@@ -284,7 +301,7 @@ box_arrays arrays_of(const float* coord, const std::uint32_t* bits, std::size_t 
 }
 }  // namespace
 
-void pbig_engine::plan(std::uint32_t n) {
+bool pbig_engine::plan(std::uint32_t n) {
   const box_arrays boxes = arrays_of(d_coord_.get(), d_bits_.get(), n);
   plan_params prm{};
   prm.n = n;
@@ -293,12 +310,18 @@ void pbig_engine::plan(std::uint32_t n) {
   prm.min_boxes_per_cell = opt_.min_boxes_per_cell;
   prm.fixed_edge = opt_.fixed_cell_edge;
   prm.allow_reuse = opt_.reuse_plan ? 1 : 0;
+  prm.validate = validate_on_device_ ? 1 : 0;
   CUDA_CHECK(launch_plan(boxes, d_bounds_.get(), prm, d_state_.get(), d_plan_.get(), main_));
   CUDA_CHECK(cudaMemcpyAsync(h_plan_.get(), d_plan_.get(), sizeof(grid_plan_dev), cudaMemcpyDeviceToHost, main_));
+  if (validate_on_device_) {
+    CUDA_CHECK(cudaMemcpyAsync(h_bounds_.get(), d_bounds_.get(), sizeof(bounds_dev), cudaMemcpyDeviceToHost, main_));
+  }
   CUDA_CHECK(cudaEventRecord(ev_plan_, main_));
   CUDA_CHECK(cudaStreamSynchronize(main_));
+  if (validate_on_device_ && h_bounds_.get()->bad != 0xffffffffu) return false;  // an invalid box
   plan_ = *h_plan_.get();
   if (plan_.cells == 0 || plan_.cells > 2147483647ull) throw std::runtime_error("pbig: planning produced an invalid grid");
+  return true;
 }
 
 void pbig_engine::map_boxes(std::uint32_t n) {

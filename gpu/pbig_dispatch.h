@@ -101,7 +101,8 @@ class pbig_engine {
     std::uint32_t item_first, item_last, tile_first, tile_last;
   };
   bool upload(const interest::box_set& boxes, bool check);
-  void plan(std::uint32_t n);
+  /// False when the device found an invalid box (pinned input validated there).
+  bool plan(std::uint32_t n);
   void map_boxes(std::uint32_t n);
   std::uint64_t check_batches(interest::pair_list& out);
   void launch(const batch& b, pipeline_slot& s);
@@ -132,6 +133,8 @@ class pbig_engine {
   device_buffer<plan_state> d_state_;
   device_buffer<grid_plan_dev> d_plan_;
   pinned_buffer<grid_plan_dev> h_plan_;
+  pinned_buffer<bounds_dev> h_bounds_;
+  bool validate_on_device_ = false;  // this call's boxes came straight from pinned memory
   grid_plan_dev plan_{};
   // mapping
   device_buffer<std::uint32_t> d_counts_, d_cursor_;

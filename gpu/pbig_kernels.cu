@@ -54,7 +54,7 @@ cudaError_t launch_plan(const box_arrays& boxes, bounds_dev* bounds, const plan_
                         grid_plan_dev* plan, cudaStream_t stream) {
   init_bounds_kernel<<<1, 32, 0, stream>>>(bounds);
   bounds_kernel<<<std::min<std::uint32_t>(blocks_for(prm.n, tuning::block), 1024), tuning::block, 0, stream>>>(
-      boxes, prm.n, bounds);
+      boxes, prm.n, bounds, prm.validate != 0);
   plan_kernel<<<1, tuning::plan_threads, 0, stream>>>(boxes, bounds, prm, state, plan);
   return cudaGetLastError();
 }

@@ -39,21 +39,28 @@ __device__ __forceinline__ std::uint32_t cell_of(float x, int d, const grid_plan
 // ---- planning ---------------------------------------------------------------------------------
 
 __global__ void init_bounds_kernel(bounds_dev* b) {
+  if (threadIdx.x == 0) b->bad = 0xffffffffu;
   if (threadIdx.x >= 3) return;
   b->lo[threadIdx.x] = float_to_ordered(FLT_MAX);
   b->hi[threadIdx.x] = float_to_ordered(-FLT_MAX);
 }
 
 /// Scene bounds: min of lo and max of hi per axis (block reduction, then one atomic per block).
-__global__ void bounds_kernel(box_arrays boxes, std::uint32_t n, bounds_dev* out) {
+/// With `validate`, also interest::validate's rule per box (lo <= hi, both finite, every axis):
+/// the lowest invalid index goes to out->bad.
+__global__ void bounds_kernel(box_arrays boxes, std::uint32_t n, bounds_dev* out, bool validate) {
   using reduce = cub::BlockReduce<float, tuning::block>;
   __shared__ typename reduce::TempStorage temp;
   float lo[3] = {FLT_MAX, FLT_MAX, FLT_MAX}, hi[3] = {-FLT_MAX, -FLT_MAX, -FLT_MAX};
   for (std::uint32_t i = blockIdx.x * blockDim.x + threadIdx.x; i < n; i += gridDim.x * blockDim.x) {
+    bool ok = true;
     for (int d = 0; d < 3; ++d) {
-      lo[d] = fminf(lo[d], boxes.lo[d][i]);
-      hi[d] = fmaxf(hi[d], boxes.hi[d][i]);
+      const float l = boxes.lo[d][i], h = boxes.hi[d][i];
+      lo[d] = fminf(lo[d], l);
+      hi[d] = fmaxf(hi[d], h);
+      ok = ok && l <= h && isfinite(l) && isfinite(h);
     }
+    if (validate && !ok) atomicMin(&out->bad, i);
   }
   for (int d = 0; d < 3; ++d) {
     const float mn = reduce(temp).Reduce(lo[d], [](float a, float b) { return fminf(a, b); });
@@ -87,6 +94,11 @@ __global__ void __launch_bounds__(tuning::plan_threads) plan_kernel(box_arrays b
   __shared__ typename reduce::TempStorage temp;
   __shared__ double bcast;
   if (blockDim.x != tuning::plan_threads) return;  // guard: launched with exactly one full block
+  if (bounds->bad != 0xffffffffu) {
+    // Invalid input (pinned path): no plan, and the reuse statistics stay as they were.
+    if (threadIdx.x == 0) plan_out->cells = 0;
+    return;
+  }
   const std::uint32_t t = threadIdx.x;
   const std::uint32_t n = prm.n;
 

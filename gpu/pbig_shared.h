@@ -34,6 +34,7 @@ struct plan_state {
 struct bounds_dev {
   std::int32_t lo[3];
   std::int32_t hi[3];
+  std::uint32_t bad;  ///< with plan_params::validate: the first invalid box, else 0xffffffff
 };
 
 /// Per-cell exclusive prefixes: first entry (box slot), first work item, first tile.
@@ -97,6 +98,7 @@ struct plan_params {
   double min_boxes_per_cell;  // W
   double fixed_edge;          // > 0: use it (grown only to respect the cell cap)
   std::uint32_t allow_reuse;
+  std::uint32_t validate;     // 1: the bounds kernel validates every box (pinned input: no host pass)
 };
 
 /// Arguments of one checking-kernel launch (one batch).

@@ -8,6 +8,7 @@
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
+#include <limits>
 #include <random>
 #include <span>
 #include <stdexcept>
@@ -391,5 +392,58 @@ TEST_SUITE("gpu.pbig") {
     REQUIRE(err.has_value());
     CHECK(err->index == 4);
     CHECK(out.empty());
+  }
+
+  TEST_CASE("pinned input (pinned_boxes): DMA from the caller's arrays, validated on the device") {
+    thread_pool pool(4);
+    gpu::pbig_options opt;
+    opt.decode_pool = &pool;
+    auto finder = make_gpu(opt);
+    auto plain = make_gpu(opt);
+    const std::uint64_t seed = std::random_device{}();
+    CAPTURE(seed);
+    for (const char* kind : {"uniform", "gaussian", "mmo", "doc:10"}) {
+      for (const std::size_t n : {std::size_t{20000}, std::size_t{300000}}) {
+        CAPTURE(kind);
+        CAPTURE(n);
+        box_set s = *generate_named(kind, n, seed);
+        std::span<const id_pair> want;
+        REQUIRE_FALSE(gpu::find_pairs_view(*plain, s, want).has_value());
+        const pair_list expected(want.begin(), want.end());
+        {
+          gpu::pinned_boxes pin(s);
+          REQUIRE(pin.active());
+          REQUIRE(gpu::boxes_pinned(s));
+          std::span<const id_pair> got;
+          REQUIRE_FALSE(gpu::find_pairs_view(*finder, s, got).has_value());
+          CHECK(pair_list(got.begin(), got.end()) == expected);  // same pairs, same order
+          // An invalid box: the same error as interest::validate's, and the next call still works.
+          const std::size_t bad = n / 3 + 7;
+          const float keep_z = s.hi_z[bad], keep_x = s.lo_x[bad / 2];
+          s.hi_z[bad] = s.lo_z[bad] - 1.0f;
+          const auto err = gpu::find_pairs_view(*finder, s, got);
+          REQUIRE(err.has_value());
+          CHECK(err->index == bad);
+          CHECK(err->message == validate(s)->message);
+          s.lo_x[bad / 2] = std::numeric_limits<float>::infinity();  // a lower one wins
+          const auto err2 = gpu::find_pairs_view(*finder, s, got);
+          REQUIRE(err2.has_value());
+          CHECK(err2->index == bad / 2);
+          s.hi_z[bad] = keep_z;
+          s.lo_x[bad / 2] = keep_x;
+          REQUIRE_FALSE(gpu::find_pairs_view(*finder, s, got).has_value());
+          CHECK(pair_list(got.begin(), got.end()) == expected);
+        }
+        CHECK_FALSE(gpu::boxes_pinned(s));  // the guard is gone: the staging path again
+        std::span<const id_pair> again;
+        REQUIRE_FALSE(gpu::find_pairs_view(*finder, s, again).has_value());
+        CHECK(pair_list(again.begin(), again.end()) == expected);
+      }
+    }
+    // Small sets are not pinned (the staging copy costs less than the registration).
+    const box_set small = generate_uniform(100, 1);
+    gpu::pinned_boxes pin(small);
+    CHECK_FALSE(pin.active());
+    CHECK_FALSE(gpu::boxes_pinned(small));
   }
 }
