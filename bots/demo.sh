@@ -7,7 +7,8 @@
 #
 # Environment: DEMO_BOTS, DEMO_NPCS, DEMO_SECONDS, DEMO_TICK_HZ, DEMO_OUT (report folder).
 # Defaults: 300 bots + 5,000 NPCs at 20 Hz for 30 s (a 2-core machine keeps up); 2,000 bots +
-# 20,000 NPCs with a CUDA device (the zone still uses the CPU finder: see docs/zone.md).
+# 20,000 NPCs with a CUDA device (the zone then runs its interest step on the GPU: --interest auto,
+# docs/zone.md).
 set -euo pipefail
 
 BUILD=${1:-build}

@@ -79,7 +79,12 @@ class engine final : public interest::visibility_engine {
 
   [[nodiscard]] const char* name() const override { return "gpu"; }
 
-  void prepare() noexcept override { (void)launch_touch(stream_); }
+  void prepare() noexcept override {
+    // A kernel and a small copy each way: the SMs and both copy engines see work before the tick.
+    (void)launch_touch(stream_);
+    (void)cudaMemcpyAsync(d_st_.get(), h_st_.get(), sizeof(std::uint32_t), cudaMemcpyHostToDevice, stream_);
+    (void)cudaMemcpyAsync(h_st_.get(), d_st_.get(), sizeof(std::uint32_t), cudaMemcpyDeviceToHost, stream_);
+  }
 
   interest::visibility_lists fetch_all_visible() override {
     // The last committed sets are the device's previous ones now.
