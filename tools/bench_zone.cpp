@@ -364,7 +364,7 @@ int main(int argc, char** argv) {
   std::vector<std::vector<std::uint8_t>> frame_copy(requests.size()), serial_copy(requests.size());
   for (auto& f : frame_copy) f.reserve(opt.budget + 4096);  // frames stay within the budget
   for (auto& f : serial_copy) f.reserve(opt.budget + 4096);
-  net::tick_update_writer serial_writer;
+  replication_writer serial_writer;
 
   const std::string load_before = load_average();
   std::cout << "bench-zone: " << world.store().size() << " entities (" << opt.entities << " NPCs + bosses, "

@@ -290,6 +290,39 @@ struct replication_request {
   std::uint32_t last_input_sequence = 0;
 };
 
+/// What one thread needs to build frames with replicator::build: the frame writer and the
+/// build's scratch lists (pending enters, due updates, the next view). build() calls that run at
+/// the same time need one each; reuse it from tick to tick (its lists keep their capacity, so a
+/// steady tick allocates nothing). The scratch lives here, not per client, so that it stays in
+/// this thread's cache from one client to the next.
+class replication_writer {
+ public:
+  explicit replication_writer(std::size_t initial_bytes = 4096) : frame_(initial_bytes) {}
+  [[nodiscard]] net::tick_update_writer& frame() { return frame_; }
+
+ private:
+  friend class replicator;
+  struct pending {
+    float priority;       // smaller first
+    std::uint32_t index;  // into the view (updates) or the store (enters)
+    entity_id id;
+    std::uint32_t dense;  // the entity's dense index in the store
+  };
+  /// An update that is due; its priority is computed only when the budget cannot hold them all.
+  struct due_update {
+    std::uint32_t index;      // into the view
+    std::uint32_t dense;      // the entity's dense index in the store
+    float distance_sq;        // from the observer
+    std::uint32_t staleness;  // ticks since it was last sent
+  };
+  net::tick_update_writer frame_;
+  std::vector<pending> enters_, ranked_;
+  std::vector<due_update> due_;
+  std::vector<std::uint32_t> left_;  // view indices sent as leaves this tick (ascending)
+  std::vector<entity_id> next_view_;
+  std::vector<std::uint32_t> next_last_sent_;
+};
+
 /// Per-client replication state and the per-tick message builder.
 ///
 /// The server keeps, per client, the view the client has been sent (sorted entity ids, with the
@@ -302,7 +335,8 @@ struct replication_request {
 /// A client that lost frames is resync()ed: its next frame says reset and rebuilds the view.
 ///
 /// Call build() after interest_tracker::update with the store unchanged in between. build() for
-/// different clients may run concurrently, each with its own writer; the other calls may not.
+/// different clients may run concurrently, each with its own replication_writer; the other calls
+/// may not.
 class replicator {
  public:
   explicit replicator(replication_options opt = {});
@@ -316,11 +350,11 @@ class replicator {
   void resync(client_id c);
 
   /// Builds this tick's frame for client c into `writer`; the span is valid until the writer's
-  /// next begin(). `stats`, when given, receives what was sent and deferred.
+  /// next build. `stats`, when given, receives what was sent and deferred.
   [[nodiscard]] std::span<const std::uint8_t> build(client_id c, const entity_store& store,
                                                     const interest_tracker& tracker, std::uint64_t tick,
                                                     std::uint64_t server_time_us, std::uint32_t last_input_sequence,
-                                                    net::tick_update_writer& writer, replication_stats* stats = nullptr);
+                                                    replication_writer& writer, replication_stats* stats = nullptr);
 
   /// Called by build_many once per request k with its frame (valid only during the call) and
   /// what was sent; calls for different k may run concurrently on different threads.
@@ -342,27 +376,30 @@ class replicator {
   [[nodiscard]] const replication_options& options() const { return opt_; }
 
  private:
-  struct pending {
-    float priority;       // smaller first
-    std::uint32_t index;  // into the view (updates) or the store (enters)
-    entity_id id;
-    std::uint32_t dense;  // the entity's dense index in the store
-  };
+  /// What build() touches per client is only this and the two lists (the scratch is in the
+  /// writer): little memory per client, so that 20,000 clients' states stream through the cache.
   struct client_state {
     entity_id observer = null_entity;
     bool active = false;
     bool reset_pending = true;
-    std::vector<entity_id> view, next_view;
-    std::vector<std::uint64_t> last_sent, next_last_sent;  // parallel to view
-    std::vector<std::uint8_t> keep;                        // per view entry: stays after this tick
-    std::vector<pending> enters, updates;
+    std::vector<entity_id> view;
+    /// Parallel to view: the tick each entry was last sent, modulo 2^32 (staleness is the
+    /// difference modulo 2^32, exact while an entry goes unsent for under 2^32 ticks: 4.5 years
+    /// at 30 Hz).
+    std::vector<std::uint32_t> last_sent;
     std::uint64_t hash = 0;
+  };
+  /// Squared-distance bounds of the tiers (see tier_period in replication.cpp).
+  struct tier_bound {
+    float limit, below_sq, above_sq;  // sqrt(d2) < limit is certain below below_sq, false above above_sq
   };
   replication_options opt_;
   net::position_quantizer quantizer_;
+  tier_bound near_, mid_;
+  std::uint32_t mid_period_, far_period_;  // at least 1
   std::vector<client_state> clients_;
   std::vector<client_id> free_clients_;
-  std::vector<std::unique_ptr<net::tick_update_writer>> writers_;  // one per build_many chunk
+  std::vector<std::unique_ptr<replication_writer>> writers_;  // one per build_many chunk
 };
 
 // ---------------------------------------------------------------------------------------------
