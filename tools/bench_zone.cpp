@@ -37,6 +37,7 @@
 #include <string>
 #include <string_view>
 #include <thread>
+#include <time.h>
 #include <vector>
 
 #include "finders.h"
@@ -70,6 +71,15 @@ using clock_type = std::chrono::steady_clock;
 
 double ms_since(clock_type::time_point t0) {
   return std::chrono::duration<double, std::milli>(clock_type::now() - t0).count();
+}
+
+/// CPU time consumed so far (ms) by the process (all threads) or by the calling thread. Unlike
+/// wall time it does not count time spent descheduled, so it is the steadier figure on a shared
+/// machine.
+double cpu_ms(clockid_t clock) {
+  timespec ts{};
+  clock_gettime(clock, &ts);
+  return static_cast<double>(ts.tv_sec) * 1e3 + static_cast<double>(ts.tv_nsec) * 1e-6;
 }
 
 std::string load_average() {
@@ -376,11 +386,12 @@ int main(int argc, char** argv) {
   series s_beh{"behaviours"}, s_int{"integrate"}, s_boxes{"  boxes"}, s_find{"  find"}, s_diff{"  diff"},
       s_interest{"interest"}, s_f_plan{"    plan"}, s_f_map{"    map"}, s_f_check{"    check"},
       s_f_out{"    output"}, s_d_count{"    count"}, s_d_offsets{"    offsets"}, s_d_fill{"    fill"},
-      s_d_rows{"    rows"}, s_rep{"replicate"}, s_rep_serial{"replicate 1t"}, s_total{"tick"};
+      s_d_rows{"    rows"}, s_rep{"replicate"}, s_rep_serial{"replicate 1t"}, s_total{"tick"},
+      s_rep_cpu{"replicate, CPU time (all threads)"}, s_rep_serial_cpu{"replicate 1t, CPU time"};
   std::vector<double> step_allocs, rep_allocs;  // heap allocations per tick (world step; replication)
   std::vector<double> pairs, candidates, visible, enters, leaves, bytes_per_frame, checks;
   std::uint64_t frames_digest = 0xcbf29ce484222325ull, frames_mismatch = 0;
-  std::uint64_t sent_enters = 0, sent_updates = 0, sent_leaves = 0, deferred = 0;
+  std::uint64_t sent_enters = 0, sent_updates = 0, sent_leaves = 0, deferred = 0, view_entries = 0;
 
   const auto period =
       std::chrono::duration_cast<clock_type::duration>(std::chrono::duration<double>(1.0 / opt.rate));
@@ -409,18 +420,20 @@ int main(int argc, char** argv) {
       return 1;
     }
     const std::uint64_t alloc1 = g_allocations.load();
-    double rep_ms = 0, rep_serial_ms = 0;
+    double rep_ms = 0, rep_serial_ms = 0, rep_cpu = 0, rep_serial_cpu = 0;
     if (!requests.empty()) {
       const std::uint64_t tick = world.tick();
       const std::uint64_t now_us = tick * 1000;  // deterministic, so frames compare across runs
       if (opt.replicate != replicate_mode::serial) {
         const auto r0 = clock_type::now();
+        const double c0 = cpu_ms(CLOCK_PROCESS_CPUTIME_ID);
         repl.build_many(requests, world.store(), world.tracker(), tick, now_us, &pool,
                         [&](std::size_t k, std::span<const std::uint8_t> frame, const replication_stats& st) {
                           frame_copy[k].assign(frame.begin(), frame.end());  // as zone-server's make_shared_frame
                           frame_stats[k] = st;
                         });
         rep_ms = ms_since(r0);
+        rep_cpu = cpu_ms(CLOCK_PROCESS_CPUTIME_ID) - c0;
         for (std::size_t k = 0; k < requests.size(); ++k) {
           frame_bytes[k] = frame_copy[k].size();
           frame_hash[k] = fnv(0xcbf29ce484222325ull, frame_copy[k]);
@@ -429,6 +442,7 @@ int main(int argc, char** argv) {
       if (opt.replicate != replicate_mode::parallel) {
         replicator& r = opt.replicate == replicate_mode::both ? repl_serial : repl;
         const auto r0 = clock_type::now();
+        const double c0 = cpu_ms(CLOCK_THREAD_CPUTIME_ID);
         for (std::size_t k = 0; k < requests.size(); ++k) {
           replication_stats st;
           const auto frame = r.build(requests[k].client, world.store(), world.tracker(), tick, now_us, 0, serial_writer, &st);
@@ -436,6 +450,7 @@ int main(int argc, char** argv) {
           if (opt.replicate != replicate_mode::both) frame_stats[k] = st;
         }
         (opt.replicate == replicate_mode::both ? rep_serial_ms : rep_ms) = ms_since(r0);
+        (opt.replicate == replicate_mode::both ? rep_serial_cpu : rep_cpu) = cpu_ms(CLOCK_THREAD_CPUTIME_ID) - c0;
         for (std::size_t k = 0; k < requests.size(); ++k) {
           const std::uint64_t h = fnv(0xcbf29ce484222325ull, serial_copy[k]);
           if (opt.replicate == replicate_mode::both) {
@@ -454,6 +469,7 @@ int main(int argc, char** argv) {
           sent_updates += frame_stats[k].updates;
           sent_leaves += frame_stats[k].leaves;
           deferred += frame_stats[k].deferred_enters + frame_stats[k].deferred_leaves + frame_stats[k].deferred_updates;
+          view_entries += repl.view(requests[k].client).size();
         }
       }
     }
@@ -480,6 +496,8 @@ int main(int argc, char** argv) {
     s_f_out.v.push_back(fs.output_ms);
     s_rep.v.push_back(rep_ms);
     s_rep_serial.v.push_back(rep_serial_ms);
+    s_rep_cpu.v.push_back(rep_cpu);
+    s_rep_serial_cpu.v.push_back(rep_serial_cpu);
     s_total.v.push_back(total_ms);
     pairs.push_back(static_cast<double>(ts.pairs));
     candidates.push_back(static_cast<double>(ts.candidates));
@@ -500,7 +518,11 @@ int main(int argc, char** argv) {
   for (const series* s : {&s_d_count, &s_d_offsets, &s_d_fill, &s_d_rows}) rows.push_back(s);
   if (!requests.empty()) {
     rows.push_back(&s_rep);
-    if (opt.replicate == replicate_mode::both) rows.push_back(&s_rep_serial);
+    rows.push_back(&s_rep_cpu);
+    if (opt.replicate == replicate_mode::both) {
+      rows.push_back(&s_rep_serial);
+      rows.push_back(&s_rep_serial_cpu);
+    }
   }
   rows.push_back(&s_total);
   std::printf("\n| phase | p50 ms | p99 ms | max ms | mean ms |\n|---|---|---|---|---|\n");
@@ -522,12 +544,14 @@ int main(int argc, char** argv) {
   std::printf("\n");
   if (!requests.empty()) {
     const double frames = static_cast<double>(bytes_per_frame.size());
-    std::printf("replication: %zu clients, %.1f us per client (p50 tick), frame bytes p50 %.0f p99 %.0f, per frame: enters %.2f, "
-                "updates %.1f, leaves %.2f, deferred %.2f; frames digest %016llx",
+    std::printf("replication: %zu clients, %.2f us per client (p50 tick), CPU time %.2f us per client (mean), frame bytes p50 %.0f p99 %.0f, per frame: enters %.2f, "
+                "updates %.1f, leaves %.2f, deferred %.2f; view entries per client %.1f; frames digest %016llx",
                 requests.size(), quantile(s_rep.v, 0.5) * 1000.0 / static_cast<double>(requests.size()),
+                mean_of(s_rep_cpu.v) * 1000.0 / static_cast<double>(requests.size()),
                 quantile(bytes_per_frame, 0.5), quantile(bytes_per_frame, 0.99), static_cast<double>(sent_enters) / frames,
                 static_cast<double>(sent_updates) / frames, static_cast<double>(sent_leaves) / frames,
-                static_cast<double>(deferred) / frames, static_cast<unsigned long long>(frames_digest));
+                static_cast<double>(deferred) / frames, static_cast<double>(view_entries) / frames,
+                static_cast<unsigned long long>(frames_digest));
     if (opt.replicate == replicate_mode::both) {
       std::printf("; serial vs parallel frames differing: %llu", static_cast<unsigned long long>(frames_mismatch));
     }
