@@ -180,6 +180,8 @@ class tick_update_writer {
     updates_.emplace_back(u.id, wire::qpos3(u.position[0], u.position[1], u.position[2]),
                           wire::qvel3(u.velocity[0], u.velocity[1], u.velocity[2]));
   }
+  /// The same with the update already in its wire form (16 bytes, copied as is).
+  void add_wire_update(const wire::entity_update& u) { updates_.push_back(u); }
   void set_digest(const verify_digest& d) { digest_ = d; }
   void set_reset(bool reset) { reset_ = reset; }
   /// The observer's own position at this tick (12 bytes; lets a client check its view exactly).

@@ -109,6 +109,7 @@ struct options {
   replicate_mode replicate = replicate_mode::parallel;
   std::size_t budget = 8 * 1024;
   std::uint32_t clients_per_task = 16;
+  std::uint32_t snapshot = 16;  // replication_options::snapshot_entities_per_client
   float hysteresis = 4;
   std::uint32_t max_visible = 0;
   std::vector<double> sweep_w;
@@ -133,6 +134,8 @@ Usage: bench-zone [options]
                      (both each tick, frames compared byte for byte) (default parallel)
   --budget BYTES     per-client byte budget (default 8192)
   --clients-per-task N  replication chunk size (default 16)
+  --snapshot N       build_many snapshots the entities when clients * N >= entities; 0 = never
+                     (replication_options::snapshot_entities_per_client, default 16)
   --hysteresis M     (default 4)   --max-visible N (default 0 = no cap)
   --find-into-list   GPU finders / auto: find() into the tracker's own pair list instead of
                      reading the finder's result buffer (gpu::find_view, zone-server's way)
@@ -215,6 +218,11 @@ std::optional<std::string> parse_args(int argc, char** argv, options& o, bool& h
       const auto n = number<std::uint32_t>(v);
       if (!n || *n == 0) return need("a positive count");
       o.clients_per_task = *n;
+    } else if (a == "--snapshot") {
+      if (!value()) return need("a count");
+      const auto n = number<std::uint32_t>(v);
+      if (!n) return need("a count");
+      o.snapshot = *n;
     } else if (a == "--hysteresis") {
       if (!value()) return need("metres");
       const auto r = real(v);
@@ -352,6 +360,7 @@ int main(int argc, char** argv) {
   ro.send_digest = cfg.digest_every > 0;
   ro.digest_period = std::max<std::uint32_t>(1, cfg.digest_every);
   ro.clients_per_task = opt.clients_per_task;
+  ro.snapshot_entities_per_client = opt.snapshot;
   replicator repl(ro), repl_serial(ro);  // repl_serial: the serial reference in --replicate both
   std::vector<entity_id> players;
   std::vector<replication_request> requests;

@@ -477,7 +477,10 @@ TEST_SUITE("zone.replication") {
         opt.far_period = 7;
         opt.digest_period = 2;
         opt.clients_per_task = 2;
-        replicator rep(opt), many(opt);
+        replication_options opt_snapshot = opt;
+        opt_snapshot.snapshot_entities_per_client = 1000;  // build_many from a snapshot
+        opt.snapshot_entities_per_client = 0;              // and straight from the store
+        replicator rep(opt), many(opt), many_snapshot(opt_snapshot);
         reference_replicator ref(opt);
         replication_writer writer;
         std::vector<replication_request> requests;
@@ -486,8 +489,9 @@ TEST_SUITE("zone.replication") {
           ref.add_client(o);
           requests.push_back({rep.add_client(o), static_cast<std::uint32_t>(k)});
           REQUIRE(many.add_client(o) == requests.back().client);
+          REQUIRE(many_snapshot.add_client(o) == requests.back().client);
         }
-        std::vector<std::vector<std::uint8_t>> frames(requests.size());
+        std::vector<std::vector<std::uint8_t>> frames(requests.size()), snapshot_frames(requests.size());
         std::uint64_t differing = 0, updates = 0, deferred = 0;
         for (std::uint64_t tick = first_tick; tick < first_tick + 50; ++tick) {
           CAPTURE(tick);
@@ -497,11 +501,16 @@ TEST_SUITE("zone.replication") {
             ref.resync(c);
             rep.resync(requests[c].client);
             many.resync(requests[c].client);
+            many_snapshot.resync(requests[c].client);
           }
           many.build_many(requests, w.store, tracker, tick, tick * 7, &pool,
                           [&](std::size_t k, std::span<const std::uint8_t> frame, const replication_stats&) {
                             frames[k].assign(frame.begin(), frame.end());
                           });
+          many_snapshot.build_many(requests, w.store, tracker, tick, tick * 7, &pool,
+                                   [&](std::size_t k, std::span<const std::uint8_t> frame, const replication_stats&) {
+                                     snapshot_frames[k].assign(frame.begin(), frame.end());
+                                   });
           for (std::size_t c = 0; c < requests.size(); ++c) {
             replication_stats st;
             const auto frame = rep.build(requests[c].client, w.store, tracker, tick, tick * 7, requests[c].last_input_sequence,
@@ -510,6 +519,7 @@ TEST_SUITE("zone.replication") {
             const auto want = ref.build(c, w.store, tracker, tick, tick * 7, requests[c].last_input_sequence);
             differing += got != std::vector<std::uint8_t>(want.begin(), want.end()) ? 1 : 0;
             differing += got != frames[c] ? 1 : 0;
+            differing += got != snapshot_frames[c] ? 1 : 0;
             CHECK(std::vector<entity_id>(rep.view(requests[c].client).begin(), rep.view(requests[c].client).end()) ==
                   std::vector<entity_id>(ref.view(c).begin(), ref.view(c).end()));
             updates += st.updates;
