@@ -187,7 +187,6 @@ void tick_update_writer::begin(std::uint64_t server_tick, std::uint64_t server_t
 
 void tick_update_writer::add_enter(const entity_state& s) { enters_.push_back(build_entity_state(fbb_, s)); }
 void tick_update_writer::add_leave(std::uint32_t id) { leaves_.push_back(id); }
-void tick_update_writer::add_update(const entity_update& u) { updates_.push_back(to_wire(u)); }
 
 std::size_t tick_update_writer::size_estimate() const {
   // Built part + the vectors still to be written (each: length word + elements + padding)
@@ -402,19 +401,6 @@ position_quantizer::position_quantizer(const world_bounds& world) : world_(world
   }
 }
 
-std::array<std::uint16_t, 3> position_quantizer::quantize(const vec3f& p) const {
-  const float v[3] = {p.x, p.y, p.z};
-  const float lo[3] = {world_.lo.x, world_.lo.y, world_.lo.z};
-  std::array<std::uint16_t, 3> q{};
-  for (int d = 0; d < 3; ++d) {
-    if (step_[d] <= 0) continue;
-    const double t = (static_cast<double>(v[d]) - static_cast<double>(lo[d])) / step_[d];
-    // NaN and below-range clamp to 0, above-range to 65535.
-    q[d] = !(t > 0) ? 0 : t >= 65535.0 ? 65535 : static_cast<std::uint16_t>(std::lround(t));
-  }
-  return q;
-}
-
 vec3f position_quantizer::dequantize(const std::array<std::uint16_t, 3>& q) const {
   return {static_cast<float>(world_.lo.x + q[0] * step_[0]), static_cast<float>(world_.lo.y + q[1] * step_[1]),
           static_cast<float>(world_.lo.z + q[2] * step_[2])};
@@ -427,15 +413,6 @@ vec3f position_quantizer::max_error() const {
     return static_cast<float>(step_[d] / 2 + std::nextafter(mag, std::numeric_limits<float>::infinity()) - mag);
   };
   return {axis(0, world_.lo.x, world_.hi.x), axis(1, world_.lo.y, world_.hi.y), axis(2, world_.lo.z, world_.hi.z)};
-}
-
-std::array<std::int16_t, 3> quantize_velocity(const vec3f& v) {
-  const auto axis = [](float x) -> std::int16_t {
-    const double t = static_cast<double>(x) * 100.0;
-    if (!(t == t)) return 0;  // NaN
-    return static_cast<std::int16_t>(std::lround(std::clamp(t, -32767.0, 32767.0)));
-  };
-  return {axis(v.x), axis(v.y), axis(v.z)};
 }
 
 vec3f dequantize_velocity(const std::array<std::int16_t, 3>& q) {

@@ -176,7 +176,12 @@ class tick_update_writer {
   void begin(std::uint64_t server_tick, std::uint64_t server_time_us, std::uint32_t last_input_sequence = 0);
   void add_enter(const entity_state& s);
   void add_leave(std::uint32_t id);
-  void add_update(const entity_update& u);
+  void add_update(const entity_update& u) {
+    updates_.emplace_back(u.id, wire::qpos3(u.position[0], u.position[1], u.position[2]),
+                          wire::qvel3(u.velocity[0], u.velocity[1], u.velocity[2]));
+  }
+  /// The same with the update already in its wire form (16 bytes, copied as is).
+  void add_wire_update(const wire::entity_update& u) { updates_.push_back(u); }
   void set_digest(const verify_digest& d) { digest_ = d; }
   void set_reset(bool reset) { reset_ = reset; }
   /// The observer's own position at this tick (12 bytes; lets a client check its view exactly).
@@ -309,6 +314,7 @@ struct decoded_message {
 class position_quantizer {
  public:
   explicit position_quantizer(const world_bounds& world);
+  /// Inline (replication quantizes every update it sends); exactly the rounding of std::lround.
   [[nodiscard]] std::array<std::uint16_t, 3> quantize(const vec3f& p) const;
   [[nodiscard]] vec3f dequantize(const std::array<std::uint16_t, 3>& q) const;
   /// Guaranteed bound on |dequantize(quantize(p)) - p| per axis for p inside the bounds.
@@ -326,6 +332,39 @@ inline constexpr float velocity_max_error = 0.005f;
 inline constexpr float velocity_limit = 327.67f;
 [[nodiscard]] std::array<std::int16_t, 3> quantize_velocity(const vec3f& v);
 [[nodiscard]] vec3f dequantize_velocity(const std::array<std::int16_t, 3>& q);
+
+namespace detail {
+/// std::lround(t) for 0 <= t < 2^31 without the library call: round half away from zero.
+/// t - trunc(t) is exact in double, so the comparison with 0.5 decides exactly as lround does.
+inline std::uint32_t round_half_up(double t) {
+  const auto i = static_cast<std::uint32_t>(t);
+  return i + (t - static_cast<double>(i) >= 0.5 ? 1u : 0u);
+}
+}  // namespace detail
+
+inline std::array<std::uint16_t, 3> position_quantizer::quantize(const vec3f& p) const {
+  const float v[3] = {p.x, p.y, p.z};
+  const float lo[3] = {world_.lo.x, world_.lo.y, world_.lo.z};
+  std::array<std::uint16_t, 3> q{};
+  for (int d = 0; d < 3; ++d) {
+    if (step_[d] <= 0) continue;
+    const double t = (static_cast<double>(v[d]) - static_cast<double>(lo[d])) / step_[d];
+    // NaN and below-range clamp to 0, above-range to 65535.
+    q[d] = !(t > 0) ? 0 : t >= 65535.0 ? 65535 : static_cast<std::uint16_t>(detail::round_half_up(t));
+  }
+  return q;
+}
+
+inline std::array<std::int16_t, 3> quantize_velocity(const vec3f& v) {
+  const auto axis = [](float x) -> std::int16_t {
+    const double t = static_cast<double>(x) * 100.0;
+    if (!(t == t)) return 0;  // NaN
+    const double c = std::clamp(t, -32767.0, 32767.0);
+    const auto r = static_cast<std::int32_t>(detail::round_half_up(c < 0 ? -c : c));
+    return static_cast<std::int16_t>(c < 0 ? -r : r);
+  };
+  return {axis(v.x), axis(v.y), axis(v.z)};
+}
 
 // ---------------------------------------------------------------------------------------------
 // Visible-set digest.

@@ -37,6 +37,7 @@
 #include <string>
 #include <string_view>
 #include <thread>
+#include <time.h>
 #include <vector>
 
 #include "finders.h"
@@ -73,6 +74,15 @@ double ms_since(clock_type::time_point t0) {
   return std::chrono::duration<double, std::milli>(clock_type::now() - t0).count();
 }
 
+/// CPU time consumed so far (ms) by the process (all threads) or by the calling thread. Unlike
+/// wall time it does not count time spent descheduled, so it is the steadier figure on a shared
+/// machine.
+double cpu_ms(clockid_t clock) {
+  timespec ts{};
+  clock_gettime(clock, &ts);
+  return static_cast<double>(ts.tv_sec) * 1e3 + static_cast<double>(ts.tv_nsec) * 1e-6;
+}
+
 std::string load_average() {
   std::ifstream f("/proc/loadavg");
   std::string a, b, c;
@@ -102,6 +112,7 @@ struct options {
   replicate_mode replicate = replicate_mode::parallel;
   std::size_t budget = 8 * 1024;
   std::uint32_t clients_per_task = 16;
+  std::uint32_t snapshot = 16;  // replication_options::snapshot_entities_per_client
   float hysteresis = 4;
   std::uint32_t max_visible = 0;
   std::vector<double> sweep_w;
@@ -129,6 +140,8 @@ Usage: bench-zone [options]
                      (both each tick, frames compared byte for byte) (default parallel)
   --budget BYTES     per-client byte budget (default 8192)
   --clients-per-task N  replication chunk size (default 16)
+  --snapshot N       build_many snapshots the entities when clients * N >= entities; 0 = never
+                     (replication_options::snapshot_entities_per_client, default 16)
   --hysteresis M     (default 4)   --max-visible N (default 0 = no cap)
   --interest WHERE   auto (the GPU visibility engine when a device is usable and --max-visible is
                      0, else host) | gpu (the engine, or exit 64) | host (the finder and the host
@@ -219,6 +232,11 @@ std::optional<std::string> parse_args(int argc, char** argv, options& o, bool& h
       const auto n = number<std::uint32_t>(v);
       if (!n || *n == 0) return need("a positive count");
       o.clients_per_task = *n;
+    } else if (a == "--snapshot") {
+      if (!value()) return need("a count");
+      const auto n = number<std::uint32_t>(v);
+      if (!n) return need("a count");
+      o.snapshot = *n;
     } else if (a == "--hysteresis") {
       if (!value()) return need("metres");
       const auto r = real(v);
@@ -374,6 +392,7 @@ int main(int argc, char** argv) {
   ro.send_digest = cfg.digest_every > 0;
   ro.digest_period = std::max<std::uint32_t>(1, cfg.digest_every);
   ro.clients_per_task = opt.clients_per_task;
+  ro.snapshot_entities_per_client = opt.snapshot;
   replicator repl(ro), repl_serial(ro);  // repl_serial: the serial reference in --replicate both
   std::vector<entity_id> players;
   std::vector<replication_request> requests;
@@ -396,7 +415,7 @@ int main(int argc, char** argv) {
   std::vector<std::vector<std::uint8_t>> frame_copy(requests.size()), serial_copy(requests.size());
   for (auto& f : frame_copy) f.reserve(opt.budget + 4096);  // frames stay within the budget
   for (auto& f : serial_copy) f.reserve(opt.budget + 4096);
-  net::tick_update_writer serial_writer;
+  replication_writer serial_writer;
 
   const std::string load_before = load_average();
   std::cout << "bench-zone: " << world.store().size() << " entities (" << opt.entities << " NPCs + bosses, "
@@ -412,12 +431,12 @@ int main(int argc, char** argv) {
       s_d_rows{"    rows"}, s_e_pack{"  engine pack"}, s_e_up{"  engine upload"}, s_e_dev{"  engine device"},
       s_e_down{"  engine download"}, s_e_grid{"    grid"}, s_e_query{"    candidates, classified"}, s_e_class{"    scans, enters placed"},
       s_e_write{"    write"}, s_e_host{"  host work (overlapped)"}, s_rep{"replicate"}, s_rep_serial{"replicate 1t"},
-      s_total{"tick"};
+      s_total{"tick"}, s_rep_cpu{"replicate, CPU time (all threads)"}, s_rep_serial_cpu{"replicate 1t, CPU time"};
   std::vector<double> step_allocs, rep_allocs;  // heap allocations per tick (world step; replication)
   std::size_t on_engine_ticks = 0;  // measured ticks whose interest step ran on the engine
   std::vector<double> pairs, candidates, visible, enters, leaves, bytes_per_frame, checks;
   std::uint64_t frames_digest = 0xcbf29ce484222325ull, frames_mismatch = 0;
-  std::uint64_t sent_enters = 0, sent_updates = 0, sent_leaves = 0, deferred = 0;
+  std::uint64_t sent_enters = 0, sent_updates = 0, sent_leaves = 0, deferred = 0, view_entries = 0;
 
   const auto period =
       std::chrono::duration_cast<clock_type::duration>(std::chrono::duration<double>(1.0 / opt.rate));
@@ -453,18 +472,20 @@ int main(int argc, char** argv) {
       return 1;
     }
     const std::uint64_t alloc1 = g_allocations.load();
-    double rep_ms = 0, rep_serial_ms = 0;
+    double rep_ms = 0, rep_serial_ms = 0, rep_cpu = 0, rep_serial_cpu = 0;
     if (!requests.empty()) {
       const std::uint64_t tick = world.tick();
       const std::uint64_t now_us = tick * 1000;  // deterministic, so frames compare across runs
       if (opt.replicate != replicate_mode::serial) {
         const auto r0 = clock_type::now();
+        const double c0 = cpu_ms(CLOCK_PROCESS_CPUTIME_ID);
         repl.build_many(requests, world.store(), world.tracker(), tick, now_us, &pool,
                         [&](std::size_t k, std::span<const std::uint8_t> frame, const replication_stats& st) {
                           frame_copy[k].assign(frame.begin(), frame.end());  // as zone-server's make_shared_frame
                           frame_stats[k] = st;
                         });
         rep_ms = ms_since(r0);
+        rep_cpu = cpu_ms(CLOCK_PROCESS_CPUTIME_ID) - c0;
         for (std::size_t k = 0; k < requests.size(); ++k) {
           frame_bytes[k] = frame_copy[k].size();
           frame_hash[k] = fnv(0xcbf29ce484222325ull, frame_copy[k]);
@@ -473,6 +494,7 @@ int main(int argc, char** argv) {
       if (opt.replicate != replicate_mode::parallel) {
         replicator& r = opt.replicate == replicate_mode::both ? repl_serial : repl;
         const auto r0 = clock_type::now();
+        const double c0 = cpu_ms(CLOCK_THREAD_CPUTIME_ID);
         for (std::size_t k = 0; k < requests.size(); ++k) {
           replication_stats st;
           const auto frame = r.build(requests[k].client, world.store(), world.tracker(), tick, now_us, 0, serial_writer, &st);
@@ -480,6 +502,7 @@ int main(int argc, char** argv) {
           if (opt.replicate != replicate_mode::both) frame_stats[k] = st;
         }
         (opt.replicate == replicate_mode::both ? rep_serial_ms : rep_ms) = ms_since(r0);
+        (opt.replicate == replicate_mode::both ? rep_serial_cpu : rep_cpu) = cpu_ms(CLOCK_THREAD_CPUTIME_ID) - c0;
         for (std::size_t k = 0; k < requests.size(); ++k) {
           const std::uint64_t h = fnv(0xcbf29ce484222325ull, serial_copy[k]);
           if (opt.replicate == replicate_mode::both) {
@@ -498,6 +521,7 @@ int main(int argc, char** argv) {
           sent_updates += frame_stats[k].updates;
           sent_leaves += frame_stats[k].leaves;
           deferred += frame_stats[k].deferred_enters + frame_stats[k].deferred_leaves + frame_stats[k].deferred_updates;
+          view_entries += repl.view(requests[k].client).size();
         }
       }
     }
@@ -534,6 +558,8 @@ int main(int argc, char** argv) {
     s_f_out.v.push_back(fs.output_ms);
     s_rep.v.push_back(rep_ms);
     s_rep_serial.v.push_back(rep_serial_ms);
+    s_rep_cpu.v.push_back(rep_cpu);
+    s_rep_serial_cpu.v.push_back(rep_serial_cpu);
     s_total.v.push_back(total_ms);
     pairs.push_back(static_cast<double>(ts.pairs));
     candidates.push_back(static_cast<double>(ts.candidates));
@@ -565,7 +591,11 @@ int main(int argc, char** argv) {
   }
   if (!requests.empty()) {
     rows.push_back(&s_rep);
-    if (opt.replicate == replicate_mode::both) rows.push_back(&s_rep_serial);
+    rows.push_back(&s_rep_cpu);
+    if (opt.replicate == replicate_mode::both) {
+      rows.push_back(&s_rep_serial);
+      rows.push_back(&s_rep_serial_cpu);
+    }
   }
   rows.push_back(&s_total);
   std::printf("\n| phase | p50 ms | p99 ms | max ms | mean ms |\n|---|---|---|---|---|\n");
@@ -587,12 +617,14 @@ int main(int argc, char** argv) {
   std::printf("\n");
   if (!requests.empty()) {
     const double frames = static_cast<double>(bytes_per_frame.size());
-    std::printf("replication: %zu clients, %.1f us per client (p50 tick), frame bytes p50 %.0f p99 %.0f, per frame: enters %.2f, "
-                "updates %.1f, leaves %.2f, deferred %.2f; frames digest %016llx",
+    std::printf("replication: %zu clients, %.2f us per client (p50 tick), CPU time %.2f us per client (mean), frame bytes p50 %.0f p99 %.0f, per frame: enters %.2f, "
+                "updates %.1f, leaves %.2f, deferred %.2f; view entries per client %.1f; frames digest %016llx",
                 requests.size(), quantile(s_rep.v, 0.5) * 1000.0 / static_cast<double>(requests.size()),
+                mean_of(s_rep_cpu.v) * 1000.0 / static_cast<double>(requests.size()),
                 quantile(bytes_per_frame, 0.5), quantile(bytes_per_frame, 0.99), static_cast<double>(sent_enters) / frames,
                 static_cast<double>(sent_updates) / frames, static_cast<double>(sent_leaves) / frames,
-                static_cast<double>(deferred) / frames, static_cast<unsigned long long>(frames_digest));
+                static_cast<double>(deferred) / frames, static_cast<double>(view_entries) / frames,
+                static_cast<unsigned long long>(frames_digest));
     if (opt.replicate == replicate_mode::both) {
       std::printf("; serial vs parallel frames differing: %llu", static_cast<unsigned long long>(frames_mismatch));
     }

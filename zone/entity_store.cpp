@@ -76,14 +76,6 @@ void entity_store::clear() {
   kind_.clear();
 }
 
-std::size_t entity_store::index_of(entity_id id) const {
-  const std::uint32_t slot = slot_of(id);
-  if (id == null_entity || slot >= slot_dense_.size()) return npos;
-  const std::uint32_t dense = slot_dense_[slot];
-  if (dense == invalid_dense || ids_[dense] != id) return npos;
-  return dense;
-}
-
 entity_id entity_store::create(const entity_desc& d, std::string* error) {
   if (auto why = validate(d)) {
     if (error) *error = std::move(*why);

@@ -82,8 +82,16 @@ class entity_store {
   /// Destroys a live entity; false (and nothing changes) for a null, stale or unknown handle.
   bool destroy(entity_id id);
   [[nodiscard]] bool alive(entity_id id) const { return index_of(id) != npos; }
-  /// Dense index of a live entity, npos otherwise.
-  [[nodiscard]] std::size_t index_of(entity_id id) const;
+  /// Dense index of a live entity, npos otherwise. Inline: replication looks up every entry of
+  /// every client's view each tick.
+  [[nodiscard]] std::size_t index_of(entity_id id) const {
+    const std::uint32_t slot = slot_of(id);
+    if (id == null_entity || slot >= slot_dense_.size()) return npos;
+    const std::uint32_t dense = slot_dense_[slot];
+    // An invalid slot holds 0xffffffff, never a valid dense index.
+    if (dense >= ids_.size() || ids_[dense] != id) return npos;
+    return dense;
+  }
   static constexpr std::size_t npos = static_cast<std::size_t>(-1);
 
   [[nodiscard]] std::size_t size() const { return ids_.size(); }
@@ -339,8 +347,13 @@ struct replication_options {
   bool send_digest = true;
   /// With send_digest: a digest in the frames of every digest_period-th tick (and in every reset frame).
   std::uint32_t digest_period = 1;
-  /// Clients per parallel task of build_many (fixed: the frames never depend on the thread count).
+  /// Clients handed out at a time to build_many's threads (the frames never depend on it, nor
+  /// on the thread count).
   std::uint32_t clients_per_task = 16;
+  /// build_many snapshots the entities (one quantization per entity instead of one per update
+  /// sent) when clients * snapshot_entities_per_client >= entities; 0 = never. The frames are the
+  /// same either way.
+  std::uint32_t snapshot_entities_per_client = 16;
 };
 
 /// What one build() did.
@@ -359,6 +372,48 @@ struct replication_request {
   std::uint32_t last_input_sequence = 0;
 };
 
+/// What one thread needs to build frames with replicator::build: the frame writer and the
+/// build's scratch lists (pending enters, due updates, the next view). build() calls that run at
+/// the same time need one each; reuse it from tick to tick (its lists keep their capacity, so a
+/// steady tick allocates nothing). The scratch lives here, not per client, so that it stays in
+/// this thread's cache from one client to the next.
+class replication_writer {
+ public:
+  explicit replication_writer(std::size_t initial_bytes = 4096) : frame_(initial_bytes) {}
+  [[nodiscard]] net::tick_update_writer& frame() { return frame_; }
+
+ private:
+  friend class replicator;
+  struct pending {
+    float priority;       // smaller first
+    std::uint32_t index;  // into the view (updates) or the store (enters)
+    entity_id id;
+    std::uint32_t dense;  // the entity's dense index in the store
+  };
+  /// An entry of the view that may be due; its priority is computed only when the budget cannot
+  /// hold all the due ones.
+  struct due_update {
+    std::uint32_t index;      // into the view
+    std::uint32_t dense;      // the entity's dense index in the store
+    float distance_sq;        // from the observer
+    std::uint32_t staleness;  // ticks since it was last sent
+  };
+  /// Per view entry, beside the sorted ids: where the entity was in the store when last looked
+  /// up (a hint, checked against the id before use) and the tick it was last sent, modulo 2^32
+  /// (staleness is the difference modulo 2^32: exact while an entry goes unsent for under 2^32
+  /// ticks, 4.5 years at 30 Hz).
+  struct view_meta {
+    std::uint32_t dense;
+    std::uint32_t last_sent;
+  };
+  net::tick_update_writer frame_;
+  std::vector<pending> enters_, ranked_;
+  std::vector<due_update> due_;
+  std::vector<std::uint32_t> left_;  // view indices sent as leaves this tick (ascending)
+  std::vector<entity_id> next_view_;
+  std::vector<view_meta> next_meta_;
+};
+
 /// Per-client replication state and the per-tick message builder.
 ///
 /// The server keeps, per client, the view the client has been sent (sorted entity ids, with the
@@ -371,7 +426,8 @@ struct replication_request {
 /// A client that lost frames is resync()ed: its next frame says reset and rebuilds the view.
 ///
 /// Call build() after interest_tracker::update with the store unchanged in between. build() for
-/// different clients may run concurrently, each with its own writer; the other calls may not.
+/// different clients may run concurrently, each with its own replication_writer; the other calls
+/// may not.
 class replicator {
  public:
   explicit replicator(replication_options opt = {});
@@ -385,20 +441,23 @@ class replicator {
   void resync(client_id c);
 
   /// Builds this tick's frame for client c into `writer`; the span is valid until the writer's
-  /// next begin(). `stats`, when given, receives what was sent and deferred.
+  /// next build. `stats`, when given, receives what was sent and deferred.
   [[nodiscard]] std::span<const std::uint8_t> build(client_id c, const entity_store& store,
                                                     const interest_tracker& tracker, std::uint64_t tick,
                                                     std::uint64_t server_time_us, std::uint32_t last_input_sequence,
-                                                    net::tick_update_writer& writer, replication_stats* stats = nullptr);
+                                                    replication_writer& writer, replication_stats* stats = nullptr);
 
   /// Called by build_many once per request k with its frame (valid only during the call) and
   /// what was sent; calls for different k may run concurrently on different threads.
   using frame_sink = std::function<void(std::size_t k, std::span<const std::uint8_t> frame, const replication_stats& stats)>;
 
-  /// build() for every request (distinct clients), spread over `pool` (null: this thread) in
-  /// fixed chunks of options().clients_per_task requests, each chunk with its own writer owned by
-  /// the replicator (reused: no allocation in steady state). Every frame and every client's state
-  /// afterwards are exactly what calling build() for the requests one by one would give.
+  /// build() for every request (distinct clients), spread over `pool` (null: this thread): the
+  /// requests are handed out in chunks of options().clients_per_task to one task per thread,
+  /// each with its own writer owned by the replicator (reused: no allocation in steady state).
+  /// With many clients for the store's size it first takes a snapshot of every entity's
+  /// position and quantized update, so that each update a client is sent is a 16-byte copy.
+  /// Every frame and every client's state afterwards are exactly what calling build() for the
+  /// requests one by one would give, for any thread count.
   void build_many(std::span<const replication_request> requests, const entity_store& store,
                   const interest_tracker& tracker, std::uint64_t tick, std::uint64_t server_time_us,
                   interest::thread_pool* pool, const frame_sink& sink);
@@ -411,27 +470,49 @@ class replicator {
   [[nodiscard]] const replication_options& options() const { return opt_; }
 
  private:
-  struct pending {
-    float priority;       // smaller first
-    std::uint32_t index;  // into the view (updates) or the store (enters)
-    entity_id id;
-    std::uint32_t dense;  // the entity's dense index in the store
-  };
+  using view_meta = replication_writer::view_meta;
+  /// What build() touches per client is only this and its two lists (the scratch is in the
+  /// writer): little memory per client, so that 20,000 clients' states stream through the cache.
   struct client_state {
     entity_id observer = null_entity;
     bool active = false;
     bool reset_pending = true;
-    std::vector<entity_id> view, next_view;
-    std::vector<std::uint64_t> last_sent, next_last_sent;  // parallel to view
-    std::vector<std::uint8_t> keep;                        // per view entry: stays after this tick
-    std::vector<pending> enters, updates;
+    std::vector<entity_id> view;  // sorted
+    std::vector<view_meta> meta;  // parallel to view
     std::uint64_t hash = 0;
   };
+  /// One entity in build_many's snapshot, by dense index: what a view entry needs (the id to
+  /// check the hint, the position for the tier, the update as sent) in half a cache line.
+  struct alignas(32) entity_snapshot {
+    vec3 position;
+    entity_id id;
+    net::wire::entity_update update;
+  };
+  /// Where build reads the entities: the store (quantizing each update sent) or the snapshot.
+  struct store_source;
+  struct snapshot_source;
+  /// Squared-distance bounds of a tier: sqrt(d2) < limit is certain below below_sq and false
+  /// above above_sq (a relative 1e-4 either side of limit^2); in between the root decides.
+  struct tier_bound {
+    float limit, below_sq, above_sq;
+  };
+  static bool tier_below(float d2, const tier_bound& b);
+  template <class Source>
+  std::span<const std::uint8_t> build_from(const Source& source, client_id c, const entity_store& store,
+                                           const interest_tracker& tracker, std::uint64_t tick,
+                                           std::uint64_t server_time_us, std::uint32_t last_input_sequence,
+                                           replication_writer& writer, replication_stats* stats);
+  /// Starts loading what building client c will read first (its state and lists).
+  void prefetch_client(client_id c) const;
+
   replication_options opt_;
   net::position_quantizer quantizer_;
+  tier_bound near_, mid_;
+  std::uint32_t mid_period_, far_period_;  // at least 1
   std::vector<client_state> clients_;
   std::vector<client_id> free_clients_;
-  std::vector<std::unique_ptr<net::tick_update_writer>> writers_;  // one per build_many chunk
+  std::vector<std::unique_ptr<replication_writer>> writers_;  // one per build_many task (thread)
+  std::vector<entity_snapshot> snapshot_;                     // build_many's, by dense index
 };
 
 // ---------------------------------------------------------------------------------------------

@@ -559,6 +559,60 @@ TEST_SUITE("net.protocol") {
     CHECK(quantize_velocity({1e6f, -1e6f, std::nanf("")}) == std::array<std::int16_t, 3>{32767, -32767, 0});
   }
 
+  TEST_CASE("quantization rounds exactly as std::lround: halves, neighbours of halves, clamps") {
+    // The quantizers round without the library call (they run for every update sent); these
+    // are the formulas they had before, with std::lround, as the reference.
+    const world_bounds w{{-1000.5f, 0, -7}, {3095.25f, 4096, 249}};
+    const position_quantizer q(w);
+    const double step[3] = {(double(w.hi.x) - double(w.lo.x)) / 65535.0, (double(w.hi.y) - double(w.lo.y)) / 65535.0,
+                            (double(w.hi.z) - double(w.lo.z)) / 65535.0};
+    const float lo[3] = {w.lo.x, w.lo.y, w.lo.z};
+    const auto ref_position = [&](const vec3f& p) {
+      const float v[3] = {p.x, p.y, p.z};
+      std::array<std::uint16_t, 3> r{};
+      for (int d = 0; d < 3; ++d) {
+        const double t = (static_cast<double>(v[d]) - static_cast<double>(lo[d])) / step[d];
+        r[d] = !(t > 0) ? 0 : t >= 65535.0 ? 65535 : static_cast<std::uint16_t>(std::lround(t));
+      }
+      return r;
+    };
+    const auto ref_velocity = [](const vec3f& v) {
+      const auto axis = [](float x) -> std::int16_t {
+        const double t = static_cast<double>(x) * 100.0;
+        if (!(t == t)) return 0;
+        return static_cast<std::int16_t>(std::lround(std::clamp(t, -32767.0, 32767.0)));
+      };
+      return std::array<std::int16_t, 3>{axis(v.x), axis(v.y), axis(v.z)};
+    };
+    const std::uint64_t seed = fresh_seed();
+    CAPTURE(seed);
+    gen g(seed);
+    std::vector<float> xs;
+    // Floats at and next to the positions that quantize to k + 0.5 (the rounding boundary),
+    // next to the cm-per-second halves, and at the clamps; then random ones.
+    for (int rep = 0; rep < 3000; ++rep) {
+      const double k = std::floor(g.f(0, 65535)) + 0.5;
+      const float at = static_cast<float>(lo[0] + k * step[0]);
+      xs.insert(xs.end(), {at, std::nextafter(at, -1e9f), std::nextafter(at, 1e9f)});
+      const float half_cm = static_cast<float>((std::floor(g.f(-40000, 40000)) + 0.5) / 100.0);
+      xs.insert(xs.end(), {half_cm, std::nextafter(half_cm, -1e9f), std::nextafter(half_cm, 1e9f)});
+      xs.push_back(g.f(-2e4f, 2e4f));
+      xs.push_back(g.f(-1, 1));
+    }
+    xs.insert(xs.end(), {0.f, -0.f, 0.005f, -0.005f, 0.004999f, -0.004999f, 327.665f, -327.665f, 327.67f, -327.67f,
+                         1e9f, -1e9f, std::numeric_limits<float>::infinity(),
+                         -std::numeric_limits<float>::infinity(), std::nanf(""), w.lo.x, w.hi.x, w.lo.z, w.hi.z});
+    std::size_t checked = 0;
+    for (std::size_t k = 0; k < xs.size(); ++k) {
+      const vec3f p{xs[k], xs[(k * 7 + 1) % xs.size()], xs[(k * 13 + 2) % xs.size()]};
+      CAPTURE(p.x);
+      CHECK(q.quantize(p) == ref_position(p));
+      CHECK(quantize_velocity(p) == ref_velocity(p));
+      ++checked;
+    }
+    CHECK(checked > 10000);
+  }
+
   TEST_CASE("visible digest: incremental equals direct, order independent") {
     const std::uint64_t seed = fresh_seed();
     CAPTURE(seed);

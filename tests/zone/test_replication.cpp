@@ -114,6 +114,136 @@ struct small_world {
 
 const net::world_bounds test_world{{0, 0, 0}, {300, 300, 10}};
 
+/// The replication algorithm of docs/zone.md written the plain way (its first implementation:
+/// a merge into fresh lists, every priority computed, 64-bit ticks), as the reference that
+/// replicator's frames must equal byte for byte.
+class reference_replicator {
+ public:
+  explicit reference_replicator(const replication_options& opt) : opt_(opt), quantizer_(opt.world) {}
+  void add_client(entity_id observer) { clients_.push_back({observer, true, {}, {}, 0}); }
+  void resync(std::size_t c) { clients_[c].reset = true; }
+
+  std::span<const std::uint8_t> build(std::size_t c, const entity_store& store, const interest_tracker& tracker,
+                                      std::uint64_t tick, std::uint64_t time_us, std::uint32_t input) {
+    struct pending {
+      float priority;
+      std::size_t index;
+      entity_id id;
+      std::size_t dense;
+    };
+    state& s = clients_[c];
+    writer_.begin(tick, time_us, input);
+    const bool reset = s.reset;
+    if (s.reset) {
+      s.view.clear();
+      s.last_sent.clear();
+      s.hash = 0;
+      s.reset = false;
+      writer_.set_reset(true);
+    }
+    const auto fits = [&](std::size_t cost) { return writer_.size_estimate() + cost <= opt_.byte_budget; };
+    std::span<const entity_id> visible;
+    const std::size_t row = tracker.row_of(s.observer);
+    if (row != entity_store::npos) visible = tracker.visible(row);
+    const std::size_t self = store.index_of(s.observer);
+    const vec3 eye = self != entity_store::npos ? store.positions()[self] : vec3{};
+    if (self != entity_store::npos) writer_.set_self_position({eye.x, eye.y, eye.z});
+    const auto pos = store.positions();
+    const auto vel = store.velocities();
+    const auto dist = [&](std::size_t k) {
+      const float dx = eye.x - pos[k].x, dy = eye.y - pos[k].y, dz = eye.z - pos[k].z;
+      return std::sqrt(dx * dx + dy * dy + dz * dz);
+    };
+    std::vector<bool> keep(s.view.size(), true);
+    std::vector<pending> enters, updates;
+    std::size_t i = 0, j = 0;
+    while (i < visible.size() || j < s.view.size()) {
+      if (j < s.view.size() && (i == visible.size() || s.view[j] < visible[i])) {
+        if (fits(4)) {
+          writer_.add_leave(s.view[j]);
+          keep[j] = false;
+          s.hash = net::digest_remove(s.hash, s.view[j]);
+        }
+        ++j;
+      } else if (j == s.view.size() || visible[i] < s.view[j]) {
+        const std::size_t k = store.index_of(visible[i]);
+        if (k != entity_store::npos) enters.push_back({dist(k), k, visible[i], k});
+        ++i;
+      } else {
+        const std::size_t k = store.index_of(visible[i]);
+        if (k != entity_store::npos) {
+          const float d = dist(k);
+          const std::uint64_t period = d < opt_.near_distance  ? 1
+                                       : d < opt_.mid_distance ? std::max<std::uint32_t>(1, opt_.mid_period)
+                                                               : std::max<std::uint32_t>(1, opt_.far_period);
+          const std::uint64_t staleness = tick - s.last_sent[j];
+          if (staleness >= period) {
+            updates.push_back({-static_cast<float>(staleness) / std::max(d, 1.0f), j, visible[i], k});
+          }
+        }
+        ++i;
+        ++j;
+      }
+    }
+    const auto by_priority = [](const pending& a, const pending& b) {
+      return a.priority < b.priority || (a.priority == b.priority && a.id < b.id);
+    };
+    std::sort(enters.begin(), enters.end(), by_priority);
+    std::vector<entity_id> entered;
+    for (const pending& e : enters) {
+      if (!fits(128)) break;
+      const std::size_t k = e.dense;
+      writer_.add_enter({e.id, static_cast<net::entity_kind>(store.kinds()[k]), store.visibility_classes()[k],
+                         {pos[k].x, pos[k].y, pos[k].z}, {vel[k].x, vel[k].y, vel[k].z},
+                         {store.presence_half_extents()[k].x, store.presence_half_extents()[k].y,
+                          store.presence_half_extents()[k].z},
+                         {}});
+      s.hash = net::digest_add(s.hash, e.id);
+      entered.push_back(e.id);
+    }
+    // When they do not all fit, the most urgent go first (a full sort; the replicator selects
+    // the ones that fit without sorting the rest); when they do, in view order.
+    const std::size_t used = writer_.size_estimate();
+    if (used + 16 * updates.size() > opt_.byte_budget) std::sort(updates.begin(), updates.end(), by_priority);
+    for (const pending& u : updates) {
+      if (!fits(16)) continue;
+      const std::size_t k = u.dense;
+      writer_.add_update({u.id, quantizer_.quantize({pos[k].x, pos[k].y, pos[k].z}),
+                          net::quantize_velocity({vel[k].x, vel[k].y, vel[k].z})});
+      s.last_sent[u.index] = tick;
+    }
+    std::map<entity_id, std::uint64_t> next;
+    for (std::size_t v = 0; v < s.view.size(); ++v) {
+      if (keep[v]) next[s.view[v]] = s.last_sent[v];
+    }
+    for (const entity_id id : entered) next[id] = tick;
+    s.view.clear();
+    s.last_sent.clear();
+    for (const auto& [id, t] : next) {
+      s.view.push_back(id);
+      s.last_sent.push_back(t);
+    }
+    if (opt_.send_digest && (reset || opt_.digest_period <= 1 || tick % opt_.digest_period == 0)) {
+      writer_.set_digest({tick, s.hash, static_cast<std::uint32_t>(s.view.size())});
+    }
+    return writer_.finish();
+  }
+  [[nodiscard]] std::span<const entity_id> view(std::size_t c) const { return clients_[c].view; }
+
+ private:
+  struct state {
+    entity_id observer;
+    bool reset;
+    std::vector<entity_id> view;
+    std::vector<std::uint64_t> last_sent;
+    std::uint64_t hash;
+  };
+  replication_options opt_;
+  net::position_quantizer quantizer_;
+  std::vector<state> clients_;
+  net::tick_update_writer writer_;
+};
+
 }  // namespace
 
 TEST_SUITE("zone.replication") {
@@ -131,7 +261,7 @@ TEST_SUITE("zone.replication") {
     opt.mid_period = 2;
     opt.far_period = 5;
     replicator rep(opt);
-    net::tick_update_writer writer;
+    replication_writer writer;
     std::vector<entity_id> observers(w.store.ids().begin(), w.store.ids().begin() + 4);
     std::vector<client_id> clients;
     std::vector<sim_client> sims;
@@ -192,7 +322,7 @@ TEST_SUITE("zone.replication") {
     opt.world = test_world;
     opt.byte_budget = 700;
     replicator rep(opt);
-    net::tick_update_writer writer;
+    replication_writer writer;
     const entity_id observer = w.store.ids()[0];
     REQUIRE(w.store.set_aoi_half_extent(observer, {150, 150, 50}));  // sees most of the world
     const client_id c = rep.add_client(observer);
@@ -236,7 +366,7 @@ TEST_SUITE("zone.replication") {
     opt.world = test_world;
     opt.byte_budget = 1 << 20;
     replicator rep(opt);
-    net::tick_update_writer writer;
+    replication_writer writer;
     const entity_id observer = w.store.ids()[0];
     const client_id c = rep.add_client(observer);
     sim_client sim(test_world);
@@ -274,7 +404,7 @@ TEST_SUITE("zone.replication") {
       opt.byte_budget = budget;
       opt.clients_per_task = 3;  // several chunks, so the pool's threads share the clients
       replicator serial(opt), parallel(opt);
-      net::tick_update_writer writer;
+      replication_writer writer;
       // Clients for the first 20 entities (the first 4 survive the churn; the others may die,
       // then their clients see nothing and shed their views).
       std::vector<replication_request> requests;
@@ -323,6 +453,84 @@ TEST_SUITE("zone.replication") {
         w.step(true);
       }
       CHECK(nonempty > 0);  // the clients did see something
+    }
+  }
+
+  TEST_CASE("frames equal the reference algorithm's byte for byte (budgets, resyncs, ticks past 2^32)") {
+    const std::uint64_t seed = fresh_seed();
+    CAPTURE(seed);
+    // Tick numbers from below 2^32 to above: the replicator keeps last-sent ticks modulo 2^32.
+    for (const std::uint64_t first_tick : {std::uint64_t{1}, (std::uint64_t{1} << 32) - 25}) {
+      for (const std::size_t budget : {std::size_t{1} << 20, std::size_t{900}, std::size_t{420}, std::size_t{260}}) {
+        CAPTURE(first_tick);
+        CAPTURE(budget);
+        small_world w(seed + budget, 350);
+        interest::thread_pool pool(2);
+        interest::grid_finder finder;
+        interest_tracker tracker(finder, nullptr, {3.0f, 0, 64});
+        replication_options opt;
+        opt.world = test_world;
+        opt.byte_budget = budget;
+        opt.near_distance = 25;
+        opt.mid_distance = 60;
+        opt.mid_period = 3;
+        opt.far_period = 7;
+        opt.digest_period = 2;
+        opt.clients_per_task = 2;
+        replication_options opt_snapshot = opt;
+        opt_snapshot.snapshot_entities_per_client = 1000;  // build_many from a snapshot
+        opt.snapshot_entities_per_client = 0;              // and straight from the store
+        replicator rep(opt), many(opt), many_snapshot(opt_snapshot);
+        reference_replicator ref(opt);
+        replication_writer writer;
+        std::vector<replication_request> requests;
+        for (std::size_t k = 0; k < 12; ++k) {  // the first 4 observers survive; the others may die
+          const entity_id o = w.store.ids()[k];
+          ref.add_client(o);
+          requests.push_back({rep.add_client(o), static_cast<std::uint32_t>(k)});
+          REQUIRE(many.add_client(o) == requests.back().client);
+          REQUIRE(many_snapshot.add_client(o) == requests.back().client);
+        }
+        std::vector<std::vector<std::uint8_t>> frames(requests.size()), snapshot_frames(requests.size());
+        std::uint64_t differing = 0, updates = 0, deferred = 0;
+        for (std::uint64_t tick = first_tick; tick < first_tick + 50; ++tick) {
+          CAPTURE(tick);
+          REQUIRE_FALSE(tracker.update(w.store).has_value());
+          if (tick % 17 == 5) {  // lost frames
+            const std::size_t c = tick % requests.size();
+            ref.resync(c);
+            rep.resync(requests[c].client);
+            many.resync(requests[c].client);
+            many_snapshot.resync(requests[c].client);
+          }
+          many.build_many(requests, w.store, tracker, tick, tick * 7, &pool,
+                          [&](std::size_t k, std::span<const std::uint8_t> frame, const replication_stats&) {
+                            frames[k].assign(frame.begin(), frame.end());
+                          });
+          many_snapshot.build_many(requests, w.store, tracker, tick, tick * 7, &pool,
+                                   [&](std::size_t k, std::span<const std::uint8_t> frame, const replication_stats&) {
+                                     snapshot_frames[k].assign(frame.begin(), frame.end());
+                                   });
+          for (std::size_t c = 0; c < requests.size(); ++c) {
+            replication_stats st;
+            const auto frame = rep.build(requests[c].client, w.store, tracker, tick, tick * 7, requests[c].last_input_sequence,
+                                         writer, &st);
+            const std::vector<std::uint8_t> got(frame.begin(), frame.end());
+            const auto want = ref.build(c, w.store, tracker, tick, tick * 7, requests[c].last_input_sequence);
+            differing += got != std::vector<std::uint8_t>(want.begin(), want.end()) ? 1 : 0;
+            differing += got != frames[c] ? 1 : 0;
+            differing += got != snapshot_frames[c] ? 1 : 0;
+            CHECK(std::vector<entity_id>(rep.view(requests[c].client).begin(), rep.view(requests[c].client).end()) ==
+                  std::vector<entity_id>(ref.view(c).begin(), ref.view(c).end()));
+            updates += st.updates;
+            deferred += st.deferred_updates + st.deferred_enters + st.deferred_leaves;
+          }
+          w.step(true);
+        }
+        CHECK(differing == 0);
+        if (budget > 300) CHECK(updates > 0);     // (at 260 bytes hardly more than the header fits)
+        if (budget < 1000) CHECK(deferred > 0);  // the budget binds
+      }
     }
   }
 }
