@@ -1,7 +1,7 @@
 // Boost.Asio implementation of net/server.h: an acceptor, one session per socket (each on its own
-// strand), one write in flight per session, a bounded outbound queue that drops the oldest state
-// frame for a slow client, per-session input rate limits and idle timeouts, and a mutex-guarded
-// event list that the game thread drains with poll().
+// strand), one write in flight per session, a bounded outbound queue that drops state for a slow
+// client until a reset (outbound_queue.h), per-session input rate limits and idle timeouts, and a
+// mutex-guarded event list that the game thread drains with poll().
 #include <utility>  // before Asio: GCC 12 in C++20 mode needs it first
 
 #include <atomic>
@@ -14,6 +14,7 @@
 #include <unordered_map>
 
 #include "os_limits.h"
+#include "outbound_queue.h"
 #include "server.h"
 
 namespace zone::net {
@@ -30,8 +31,8 @@ namespace {
 
 struct atomic_counters {
   std::atomic<std::uint64_t> connections_accepted{0}, connections_refused{0}, sessions_open{0}, frames_in{0},
-      frames_out{0}, bytes_in{0}, bytes_out{0}, frames_dropped{0}, frames_rejected{0}, inputs_dropped{0},
-      pings_answered{0};
+      frames_out{0}, bytes_in{0}, bytes_out{0}, frames_dropped{0}, resyncs_requested{0}, frames_rejected{0},
+      inputs_dropped{0}, pings_answered{0};
 };
 
 constexpr std::size_t read_chunk_bytes = 4096;
@@ -88,6 +89,7 @@ class session : public std::enable_shared_from_this<session> {
         id_(id),
         announced_(announced),
         decoder_(srv.opt.inbound),
+        queue_(srv.opt.max_queued_frames),
         tokens_(srv.opt.input_burst),
         last_refill_(steady::now()) {}
 
@@ -121,11 +123,6 @@ class session : public std::enable_shared_from_this<session> {
   }
 
  private:
-  struct out_frame {
-    shared_frame frame;
-    delivery kind;
-  };
-
   void arm_idle(std::chrono::milliseconds after) {
     idle_.expires_after(after);
     idle_.async_wait([self = shared_from_this()](const boost::system::error_code& ec) {
@@ -226,33 +223,30 @@ class session : public std::enable_shared_from_this<session> {
 
   void push(shared_frame frame, delivery d) {
     if (closing_ || closed_ || !frame) return;
-    const std::size_t bound = std::max<std::size_t>(1, srv_.opt.max_queued_frames);
-    if (queue_.size() >= bound) {
-      if (d == delivery::state) {
-        // Drop the oldest queued state frame that is not being written; else this one.
-        auto it = queue_.begin() + (writing_ ? 1 : 0);
-        while (it != queue_.end() && it->kind != delivery::state) ++it;
-        ++srv_.counters.frames_dropped;
-        inbound_event e;
-        e.type = inbound_event::kind::frames_dropped;
-        e.session = id_;
-        e.dropped = 1;
-        srv_.report(std::move(e));
-        if (it == queue_.end()) return;
-        queue_.erase(it);
-      } else if (queue_.size() >= 2 * bound) {
-        close_now("outbound queue overflow with control frames");
-        return;
-      }
+    const auto r = queue_.push(std::move(frame), d);
+    if (r.overflow) {
+      close_now("outbound queue overflow with control frames");
+      return;
     }
-    queue_.push_back({std::move(frame), d});
-    do_write();
+    if (r.dropped != 0) srv_.counters.frames_dropped += r.dropped;
+    if (r.resync) {
+      // Once per episode: the game makes this client's next frame a reset; until it is queued,
+      // the queue drops the deltas built meanwhile (the client could not apply them).
+      ++srv_.counters.resyncs_requested;
+      inbound_event e;
+      e.type = inbound_event::kind::frames_dropped;
+      e.session = id_;
+      e.dropped = r.dropped;
+      srv_.report(std::move(e));
+    }
+    if (r.queued) do_write();
   }
 
   void do_write() {
-    if (writing_ || queue_.empty() || closed_) return;
-    writing_ = true;
-    const auto& f = *queue_.front().frame;
+    if (closed_) return;
+    const auto* next = queue_.start_write();
+    if (!next) return;
+    const auto& f = *next->frame;
     asio::async_write(socket_, asio::buffer(f.data(), f.size()),
                       [self = shared_from_this()](const boost::system::error_code& ec, std::size_t n) {
                         self->on_write(ec, n);
@@ -260,7 +254,7 @@ class session : public std::enable_shared_from_this<session> {
   }
 
   void on_write(const boost::system::error_code& ec, std::size_t n) {
-    writing_ = false;
+    queue_.finish_write();
     if (closed_) return;
     if (ec) {
       if (ec != asio::error::operation_aborted) close_now("write failed: " + ec.message());
@@ -268,7 +262,6 @@ class session : public std::enable_shared_from_this<session> {
     }
     ++srv_.counters.frames_out;
     srv_.counters.bytes_out += n;
-    queue_.pop_front();
     if (!queue_.empty()) {
       do_write();
     } else if (closing_) {
@@ -280,8 +273,8 @@ class session : public std::enable_shared_from_this<session> {
     if (closing_ || closed_) return;
     spdlog::info("session {}: closing with error {}: {}", id_, wire::EnumNameerror_code(code), reason);
     // Keep only the frame being written; the error is the last frame this client gets.
-    if (!queue_.empty()) queue_.erase(queue_.begin() + (writing_ ? 1 : 0), queue_.end());
-    queue_.push_back({make_shared_frame(pong_encoder_.encode(error_msg{code, reason})), delivery::control});
+    queue_.keep_only_in_flight();
+    (void)queue_.push(make_shared_frame(pong_encoder_.encode(error_msg{code, reason})), delivery::control);
     closing_ = true;
     close_reason_ = std::move(reason);
     boost::system::error_code ignored;
@@ -318,8 +311,7 @@ class session : public std::enable_shared_from_this<session> {
   const bool announced_;  // false for a refused connection: the game never hears of it
   frame_decoder decoder_;
   encoder pong_encoder_{256};
-  std::deque<out_frame> queue_;  // front is in flight while writing_
-  bool writing_ = false;
+  outbound_queue queue_;  // front is in flight while queue_.writing()
   bool closing_ = false;  // an error frame is queued; close once it is written
   bool closed_ = false;
   bool hello_seen_ = false;
@@ -513,7 +505,7 @@ server_stats server::stats() const {
   const auto& c = impl_->counters;
   return {c.connections_accepted.load(), c.connections_refused.load(), c.sessions_open.load(), c.frames_in.load(),
           c.frames_out.load(),           c.bytes_in.load(),            c.bytes_out.load(),     c.frames_dropped.load(),
-          c.frames_rejected.load(),      c.inputs_dropped.load(),      c.pings_answered.load()};
+          c.resyncs_requested.load(),    c.frames_rejected.load(),     c.inputs_dropped.load(), c.pings_answered.load()};
 }
 
 }  // namespace zone::net
