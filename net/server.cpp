@@ -352,6 +352,9 @@ void server::impl::do_accept() {
     }
     boost::system::error_code ignored;
     socket.set_option(tcp::no_delay(true), ignored);
+    if (opt.socket_send_buffer > 0) {
+      socket.set_option(asio::socket_base::send_buffer_size(static_cast<int>(opt.socket_send_buffer)), ignored);
+    }
     const session_id id = next_id++;
     std::size_t open;
     {

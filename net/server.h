@@ -34,6 +34,11 @@ struct server_options {
   /// never dropped; a session whose control frames exceed twice the bound is disconnected (that is
   /// a stuck client, not a slow one). Policy: net/outbound_queue.h.
   std::size_t max_queued_frames = 8;
+  /// SO_SNDBUF of each session's socket in bytes; 0 keeps the system's autotuning (on Linux up
+  /// to net.ipv4.tcp_wmem's maximum, 4 MiB by default). What the kernel holds for a client that
+  /// does not read is beyond the queue's drop policy: a small buffer bounds how stale its state
+  /// gets before frames are dropped (4 MiB is minutes of state at 20 KB/s).
+  std::size_t socket_send_buffer = 0;
   /// Inputs per second a client may send (token bucket of `input_burst`); inputs over the rate
   /// are dropped and counted; a client that keeps flooding (more than `flood_limit` drops in
   /// a row) gets error rate_limited and is disconnected.
