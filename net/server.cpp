@@ -38,6 +38,8 @@ struct atomic_counters {
 constexpr std::size_t read_chunk_bytes = 4096;
 /// How long a closing session may take to flush its final error frame before it is cut.
 constexpr std::chrono::milliseconds close_grace{1000};
+/// Most connections taken from the backlog per accept completion.
+constexpr std::size_t accept_batch = 256;
 
 }  // namespace
 
@@ -77,6 +79,8 @@ struct server::impl {
     events.push_back(std::move(e));
   }
   void do_accept();
+  /// Makes a session of an accepted socket (or refuses it over max_connections).
+  void admit(tcp::socket socket);
   void remove(session_id id);
 };
 
@@ -326,6 +330,38 @@ void server::impl::remove(session_id id) {
   sessions.erase(id);
 }
 
+void server::impl::admit(tcp::socket socket) {
+  boost::system::error_code ignored;
+  socket.set_option(tcp::no_delay(true), ignored);
+  if (opt.socket_send_buffer > 0) {
+    socket.set_option(asio::socket_base::send_buffer_size(static_cast<int>(opt.socket_send_buffer)), ignored);
+  }
+  const session_id id = next_id++;
+  std::size_t open;
+  {
+    const std::shared_lock lock(sessions_mutex);
+    open = sessions.size();
+  }
+  if (open >= opt.max_connections) {
+    ++counters.connections_refused;
+    auto s = std::make_shared<session>(*this, std::move(socket), id, false);
+    s->fail(error_code::server_full, "connection limit reached");
+    return;
+  }
+  ++counters.connections_accepted;
+  ++counters.sessions_open;
+  auto s = std::make_shared<session>(*this, std::move(socket), id, true);
+  {
+    const std::lock_guard lock(sessions_mutex);
+    sessions.emplace(id, s);
+  }
+  inbound_event e;
+  e.type = inbound_event::kind::connected;
+  e.session = id;
+  report(std::move(e));
+  s->start();
+}
+
 void server::impl::do_accept() {
   acceptor.async_accept(asio::make_strand(ctx), [this](const boost::system::error_code& ec, tcp::socket socket) {
     if (ec) {
@@ -350,34 +386,18 @@ void server::impl::do_accept() {
       });
       return;
     }
-    boost::system::error_code ignored;
-    socket.set_option(tcp::no_delay(true), ignored);
-    if (opt.socket_send_buffer > 0) {
-      socket.set_option(asio::socket_base::send_buffer_size(static_cast<int>(opt.socket_send_buffer)), ignored);
-    }
-    const session_id id = next_id++;
-    std::size_t open;
-    {
-      const std::shared_lock lock(sessions_mutex);
-      open = sessions.size();
-    }
-    if (open >= opt.max_connections) {
-      ++counters.connections_refused;
-      auto s = std::make_shared<session>(*this, std::move(socket), id, false);
-      s->fail(error_code::server_full, "connection limit reached");
-    } else {
-      ++counters.connections_accepted;
-      ++counters.sessions_open;
-      auto s = std::make_shared<session>(*this, std::move(socket), id, true);
-      {
-        const std::lock_guard lock(sessions_mutex);
-        sessions.emplace(id, s);
-      }
-      inbound_event e;
-      e.type = inbound_event::kind::connected;
-      e.session = id;
-      report(std::move(e));
-      s->start();
+    admit(std::move(socket));
+    // Take what else waits in the backlog now (the acceptor is non-blocking), not one connection
+    // per completion: a completion waits its turn behind every ready handler of the I/O threads,
+    // so a busy server accepted about one connection per round of its I/O queue (~1 per tick),
+    // the backlog filled, and once the wait passed the clients' connect timeout every later
+    // client failed while the server spent its accepts on clients that had given up.
+    for (std::size_t n = 1; n < accept_batch; ++n) {
+      boost::system::error_code e;
+      tcp::socket next(asio::make_strand(ctx));
+      acceptor.accept(next, e);
+      if (e) break;  // would_block: the backlog is empty; other errors: async_accept reports them
+      admit(std::move(next));
     }
     do_accept();
   });
@@ -416,6 +436,7 @@ std::optional<std::string> server::start() {
   if (!ec) m.acceptor.set_option(tcp::acceptor::reuse_address(true), ec);
   if (!ec) m.acceptor.bind(endpoint, ec);
   if (!ec) m.acceptor.listen(asio::socket_base::max_listen_connections, ec);
+  if (!ec) m.acceptor.non_blocking(true, ec);  // do_accept drains the backlog with synchronous accepts
   if (ec) {
     boost::system::error_code ignored;
     m.acceptor.close(ignored);

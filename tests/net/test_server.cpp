@@ -380,6 +380,31 @@ TEST_SUITE("net.server") {
     CHECK(srv.stats().sessions_open == 2);
   }
 
+  TEST_CASE("a burst of connections: each accept takes the whole backlog; the limit holds within a batch") {
+    // The accept handler drains the backlog (up to 256 a completion) instead of one connection per
+    // turn of the I/O queue, which under load accepted ~1 connection per tick (docs/protocol.md).
+    // Here: 400 clients connect at once against a limit of 300: 300 sessions whose hellos reach the
+    // game, 100 refused with server_full, none lost.
+    server_options opt;
+    opt.max_connections = 300;
+    server srv(opt);
+    REQUIRE_FALSE(srv.start().has_value());
+    game g{srv, {}};
+    std::vector<std::unique_ptr<test_client>> clients;
+    for (int i = 0; i < 400; ++i) clients.push_back(std::make_unique<test_client>(srv.port()));
+    for (int i = 0; i < 400; ++i) clients[static_cast<std::size_t>(i)]->send(hello_msg{std::to_string(i), "", protocol_version});
+    REQUIRE(g.wait_for([&] { return srv.stats().connections_accepted + srv.stats().connections_refused == 400; }, 10000ms));
+    CHECK(srv.stats().connections_accepted == 300);
+    CHECK(srv.stats().connections_refused == 100);
+    CHECK(g.wait_for([&] { return g.count(inbound_event::kind::message) == 300; }, 10000ms));
+    CHECK(g.count(inbound_event::kind::connected) == 300);
+    std::size_t refused = 0;
+    for (auto& c : clients) {
+      if (const auto m = c->read(50ms); is_error(m, error_code::server_full)) ++refused;
+    }
+    CHECK(refused == 100);
+  }
+
   TEST_CASE("idle clients time out; pinging clients stay") {
     server_options opt;
     opt.idle_timeout = 300ms;
