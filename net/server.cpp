@@ -1,7 +1,7 @@
 // Boost.Asio implementation of net/server.h: an acceptor, one session per socket (each on its own
-// strand), one write in flight per session, a bounded outbound queue that drops the oldest state
-// frame for a slow client, per-session input rate limits and idle timeouts, and a mutex-guarded
-// event list that the game thread drains with poll().
+// strand), one write in flight per session, a bounded outbound queue that drops state for a slow
+// client until a reset (outbound_queue.h), per-session input rate limits and idle timeouts, and a
+// mutex-guarded event list that the game thread drains with poll().
 #include <utility>  // before Asio: GCC 12 in C++20 mode needs it first
 
 #include <atomic>
@@ -14,6 +14,7 @@
 #include <unordered_map>
 
 #include "os_limits.h"
+#include "outbound_queue.h"
 #include "server.h"
 
 namespace zone::net {
@@ -30,13 +31,15 @@ namespace {
 
 struct atomic_counters {
   std::atomic<std::uint64_t> connections_accepted{0}, connections_refused{0}, sessions_open{0}, frames_in{0},
-      frames_out{0}, bytes_in{0}, bytes_out{0}, frames_dropped{0}, frames_rejected{0}, inputs_dropped{0},
-      pings_answered{0};
+      frames_out{0}, bytes_in{0}, bytes_out{0}, frames_dropped{0}, resyncs_requested{0}, frames_rejected{0},
+      inputs_dropped{0}, pings_answered{0};
 };
 
 constexpr std::size_t read_chunk_bytes = 4096;
 /// How long a closing session may take to flush its final error frame before it is cut.
 constexpr std::chrono::milliseconds close_grace{1000};
+/// Most connections taken from the backlog per accept completion.
+constexpr std::size_t accept_batch = 256;
 
 }  // namespace
 
@@ -76,6 +79,8 @@ struct server::impl {
     events.push_back(std::move(e));
   }
   void do_accept();
+  /// Makes a session of an accepted socket (or refuses it over max_connections).
+  void admit(tcp::socket socket);
   void remove(session_id id);
 };
 
@@ -88,6 +93,7 @@ class session : public std::enable_shared_from_this<session> {
         id_(id),
         announced_(announced),
         decoder_(srv.opt.inbound),
+        queue_(srv.opt.max_queued_frames),
         tokens_(srv.opt.input_burst),
         last_refill_(steady::now()) {}
 
@@ -121,11 +127,6 @@ class session : public std::enable_shared_from_this<session> {
   }
 
  private:
-  struct out_frame {
-    shared_frame frame;
-    delivery kind;
-  };
-
   void arm_idle(std::chrono::milliseconds after) {
     idle_.expires_after(after);
     idle_.async_wait([self = shared_from_this()](const boost::system::error_code& ec) {
@@ -226,33 +227,30 @@ class session : public std::enable_shared_from_this<session> {
 
   void push(shared_frame frame, delivery d) {
     if (closing_ || closed_ || !frame) return;
-    const std::size_t bound = std::max<std::size_t>(1, srv_.opt.max_queued_frames);
-    if (queue_.size() >= bound) {
-      if (d == delivery::state) {
-        // Drop the oldest queued state frame that is not being written; else this one.
-        auto it = queue_.begin() + (writing_ ? 1 : 0);
-        while (it != queue_.end() && it->kind != delivery::state) ++it;
-        ++srv_.counters.frames_dropped;
-        inbound_event e;
-        e.type = inbound_event::kind::frames_dropped;
-        e.session = id_;
-        e.dropped = 1;
-        srv_.report(std::move(e));
-        if (it == queue_.end()) return;
-        queue_.erase(it);
-      } else if (queue_.size() >= 2 * bound) {
-        close_now("outbound queue overflow with control frames");
-        return;
-      }
+    const auto r = queue_.push(std::move(frame), d);
+    if (r.overflow) {
+      close_now("outbound queue overflow with control frames");
+      return;
     }
-    queue_.push_back({std::move(frame), d});
-    do_write();
+    if (r.dropped != 0) srv_.counters.frames_dropped += r.dropped;
+    if (r.resync) {
+      // Once per episode: the game makes this client's next frame a reset; until it is queued,
+      // the queue drops the deltas built meanwhile (the client could not apply them).
+      ++srv_.counters.resyncs_requested;
+      inbound_event e;
+      e.type = inbound_event::kind::frames_dropped;
+      e.session = id_;
+      e.dropped = r.dropped;
+      srv_.report(std::move(e));
+    }
+    if (r.queued) do_write();
   }
 
   void do_write() {
-    if (writing_ || queue_.empty() || closed_) return;
-    writing_ = true;
-    const auto& f = *queue_.front().frame;
+    if (closed_) return;
+    const auto* next = queue_.start_write();
+    if (!next) return;
+    const auto& f = *next->frame;
     asio::async_write(socket_, asio::buffer(f.data(), f.size()),
                       [self = shared_from_this()](const boost::system::error_code& ec, std::size_t n) {
                         self->on_write(ec, n);
@@ -260,7 +258,7 @@ class session : public std::enable_shared_from_this<session> {
   }
 
   void on_write(const boost::system::error_code& ec, std::size_t n) {
-    writing_ = false;
+    queue_.finish_write();
     if (closed_) return;
     if (ec) {
       if (ec != asio::error::operation_aborted) close_now("write failed: " + ec.message());
@@ -268,7 +266,6 @@ class session : public std::enable_shared_from_this<session> {
     }
     ++srv_.counters.frames_out;
     srv_.counters.bytes_out += n;
-    queue_.pop_front();
     if (!queue_.empty()) {
       do_write();
     } else if (closing_) {
@@ -280,8 +277,8 @@ class session : public std::enable_shared_from_this<session> {
     if (closing_ || closed_) return;
     spdlog::info("session {}: closing with error {}: {}", id_, wire::EnumNameerror_code(code), reason);
     // Keep only the frame being written; the error is the last frame this client gets.
-    if (!queue_.empty()) queue_.erase(queue_.begin() + (writing_ ? 1 : 0), queue_.end());
-    queue_.push_back({make_shared_frame(pong_encoder_.encode(error_msg{code, reason})), delivery::control});
+    queue_.keep_only_in_flight();
+    (void)queue_.push(make_shared_frame(pong_encoder_.encode(error_msg{code, reason})), delivery::control);
     closing_ = true;
     close_reason_ = std::move(reason);
     boost::system::error_code ignored;
@@ -318,8 +315,7 @@ class session : public std::enable_shared_from_this<session> {
   const bool announced_;  // false for a refused connection: the game never hears of it
   frame_decoder decoder_;
   encoder pong_encoder_{256};
-  std::deque<out_frame> queue_;  // front is in flight while writing_
-  bool writing_ = false;
+  outbound_queue queue_;  // front is in flight while queue_.writing()
   bool closing_ = false;  // an error frame is queued; close once it is written
   bool closed_ = false;
   bool hello_seen_ = false;
@@ -332,6 +328,38 @@ class session : public std::enable_shared_from_this<session> {
 void server::impl::remove(session_id id) {
   const std::lock_guard lock(sessions_mutex);
   sessions.erase(id);
+}
+
+void server::impl::admit(tcp::socket socket) {
+  boost::system::error_code ignored;
+  socket.set_option(tcp::no_delay(true), ignored);
+  if (opt.socket_send_buffer > 0) {
+    socket.set_option(asio::socket_base::send_buffer_size(static_cast<int>(opt.socket_send_buffer)), ignored);
+  }
+  const session_id id = next_id++;
+  std::size_t open;
+  {
+    const std::shared_lock lock(sessions_mutex);
+    open = sessions.size();
+  }
+  if (open >= opt.max_connections) {
+    ++counters.connections_refused;
+    auto s = std::make_shared<session>(*this, std::move(socket), id, false);
+    s->fail(error_code::server_full, "connection limit reached");
+    return;
+  }
+  ++counters.connections_accepted;
+  ++counters.sessions_open;
+  auto s = std::make_shared<session>(*this, std::move(socket), id, true);
+  {
+    const std::lock_guard lock(sessions_mutex);
+    sessions.emplace(id, s);
+  }
+  inbound_event e;
+  e.type = inbound_event::kind::connected;
+  e.session = id;
+  report(std::move(e));
+  s->start();
 }
 
 void server::impl::do_accept() {
@@ -358,31 +386,18 @@ void server::impl::do_accept() {
       });
       return;
     }
-    boost::system::error_code ignored;
-    socket.set_option(tcp::no_delay(true), ignored);
-    const session_id id = next_id++;
-    std::size_t open;
-    {
-      const std::shared_lock lock(sessions_mutex);
-      open = sessions.size();
-    }
-    if (open >= opt.max_connections) {
-      ++counters.connections_refused;
-      auto s = std::make_shared<session>(*this, std::move(socket), id, false);
-      s->fail(error_code::server_full, "connection limit reached");
-    } else {
-      ++counters.connections_accepted;
-      ++counters.sessions_open;
-      auto s = std::make_shared<session>(*this, std::move(socket), id, true);
-      {
-        const std::lock_guard lock(sessions_mutex);
-        sessions.emplace(id, s);
-      }
-      inbound_event e;
-      e.type = inbound_event::kind::connected;
-      e.session = id;
-      report(std::move(e));
-      s->start();
+    admit(std::move(socket));
+    // Take what else waits in the backlog now (the acceptor is non-blocking), not one connection
+    // per completion: a completion waits its turn behind every ready handler of the I/O threads,
+    // so a busy server accepted about one connection per round of its I/O queue (~1 per tick),
+    // the backlog filled, and once the wait passed the clients' connect timeout every later
+    // client failed while the server spent its accepts on clients that had given up.
+    for (std::size_t n = 1; n < accept_batch; ++n) {
+      boost::system::error_code e;
+      tcp::socket next(asio::make_strand(ctx));
+      acceptor.accept(next, e);
+      if (e) break;  // would_block: the backlog is empty; other errors: async_accept reports them
+      admit(std::move(next));
     }
     do_accept();
   });
@@ -421,6 +436,7 @@ std::optional<std::string> server::start() {
   if (!ec) m.acceptor.set_option(tcp::acceptor::reuse_address(true), ec);
   if (!ec) m.acceptor.bind(endpoint, ec);
   if (!ec) m.acceptor.listen(asio::socket_base::max_listen_connections, ec);
+  if (!ec) m.acceptor.non_blocking(true, ec);  // do_accept drains the backlog with synchronous accepts
   if (ec) {
     boost::system::error_code ignored;
     m.acceptor.close(ignored);
@@ -513,7 +529,7 @@ server_stats server::stats() const {
   const auto& c = impl_->counters;
   return {c.connections_accepted.load(), c.connections_refused.load(), c.sessions_open.load(), c.frames_in.load(),
           c.frames_out.load(),           c.bytes_in.load(),            c.bytes_out.load(),     c.frames_dropped.load(),
-          c.frames_rejected.load(),      c.inputs_dropped.load(),      c.pings_answered.load()};
+          c.resyncs_requested.load(),    c.frames_rejected.load(),     c.inputs_dropped.load(), c.pings_answered.load()};
 }
 
 }  // namespace zone::net

@@ -25,12 +25,20 @@ struct server_options {
   unsigned io_threads = 1;
   std::size_t max_connections = 1000;
   decoder_options inbound{};    ///< max inbound frame size and verifier limits
-  /// Outbound queue bound per session, in frames. When a state frame (delivery::state) arrives at
-  /// a full queue, the oldest queued state frame is dropped (counted; the session is told through
-  /// an inbound_event::frames_dropped so replication can resynchronise it). Control frames
-  /// (delivery::control) are never dropped; a session whose control frames alone exceed the bound
-  /// is disconnected (that is a stuck client, not a slow one).
+  /// Outbound queue bound per session, in frames. State frames are deltas, so when a state frame
+  /// arrives at a full queue, every queued state frame but the one being written is dropped with
+  /// it, and the session delivers no state frame until a reset (delivery::state_reset): plain
+  /// state frames arriving meanwhile are dropped too (all counted). The game is told once per
+  /// such episode (inbound_event::frames_dropped) so replication makes the next frame a reset.
+  /// A reset replaces the state frames queued before it. Control frames (delivery::control) are
+  /// never dropped; a session whose control frames exceed twice the bound is disconnected (that is
+  /// a stuck client, not a slow one). Policy: net/outbound_queue.h.
   std::size_t max_queued_frames = 8;
+  /// SO_SNDBUF of each session's socket in bytes; 0 keeps the system's autotuning (on Linux up
+  /// to net.ipv4.tcp_wmem's maximum, 4 MiB by default). What the kernel holds for a client that
+  /// does not read is beyond the queue's drop policy: a small buffer bounds how stale its state
+  /// gets before frames are dropped (4 MiB is minutes of state at 20 KB/s).
+  std::size_t socket_send_buffer = 0;
   /// Inputs per second a client may send (token bucket of `input_burst`); inputs over the rate
   /// are dropped and counted; a client that keeps flooding (more than `flood_limit` drops in
   /// a row) gets error rate_limited and is disconnected.
@@ -48,13 +56,14 @@ struct inbound_event {
   enum class kind : std::uint8_t {
     connected,       ///< a new session (no message yet)
     message,         ///< a client message (hello, input; pings are answered by the server itself)
-    frames_dropped,  ///< state frames were dropped for this slow session since the last report
+    frames_dropped,  ///< state frames were dropped for this slow session: it gets no state frame
+                     ///< until a delivery::state_reset frame (one event per episode)
     disconnected,    ///< the session is gone (reason says why); no events follow for it
   };
   kind type = kind::message;
   session_id session = 0;
   std::optional<message> msg;   ///< for kind::message
-  std::uint64_t dropped = 0;    ///< for kind::frames_dropped
+  std::uint64_t dropped = 0;    ///< for kind::frames_dropped: state frames dropped when the episode began
   std::string reason;           ///< for kind::disconnected
 };
 
@@ -63,8 +72,11 @@ using shared_frame = std::shared_ptr<const std::vector<std::uint8_t>>;
 [[nodiscard]] shared_frame make_shared_frame(std::span<const std::uint8_t> frame);
 
 enum class delivery : std::uint8_t {
-  state,    ///< superseded by newer state: may be dropped for a slow client
-  control,  ///< welcome, pong, errors: never dropped
+  state,        ///< a delta on the previous state frame: may be dropped for a slow client, and is
+                ///< dropped while the session awaits a reset (after a drop)
+  control,      ///< welcome, pong, errors: never dropped
+  state_reset,  ///< a state frame that rebuilds the client's view (tick_update.reset): ends the
+                ///< wait after a drop; replaces the state frames queued before it
 };
 
 /// Counters (monotonic, thread-safe snapshot).
@@ -76,7 +88,8 @@ struct server_stats {
   std::uint64_t frames_out = 0;
   std::uint64_t bytes_in = 0;
   std::uint64_t bytes_out = 0;
-  std::uint64_t frames_dropped = 0;    ///< state frames dropped for slow clients
+  std::uint64_t frames_dropped = 0;    ///< state frames not delivered to slow clients (dropped or superseded)
+  std::uint64_t resyncs_requested = 0; ///< drop episodes reported to the game (frames_dropped events)
   std::uint64_t frames_rejected = 0;   ///< inbound frames that failed decoding (session closed)
   std::uint64_t inputs_dropped = 0;    ///< over the input rate
   std::uint64_t pings_answered = 0;
@@ -103,6 +116,9 @@ class server {
   void poll(std::vector<inbound_event>& out);
   /// Queues a frame for a session; false when the session is gone. Never blocks on the network;
   /// safe from any thread (the zone server sends each frame from the worker that built it).
+  /// Frames of one session are delivered in the order of the calls (state frames may be dropped,
+  /// see server_options::max_queued_frames); send a session's state frames from one thread at a
+  /// time, in the order they were built.
   bool send(session_id s, shared_frame frame, delivery d = delivery::state);
   /// Sends error(code, reason) to the session, then closes it. Never blocks.
   void disconnect(session_id s, error_code code, std::string reason);

@@ -39,6 +39,7 @@ std::optional<std::string> validate(const zone_config& c) {
   if (!(c.boss_footprint >= 0 && std::isfinite(c.boss_footprint))) return bad("boss-footprint must be >= 0");
   if (c.io_threads == 0) return bad("io-threads must be >= 1");
   if (c.max_frame_bytes < 64) return bad("max-frame-bytes must be >= 64");
+  if (c.socket_send_buffer > (std::size_t{1} << 30)) return bad("socket-send-buffer must be <= 1 GiB");
   if (c.client_byte_budget < 256) return bad("client-byte-budget must be >= 256");
   if (!(c.inputs_per_second > 0)) return bad("inputs-per-second must be > 0");
   if (!(c.teleport_cooldown_s >= 0 && std::isfinite(c.teleport_cooldown_s))) return bad("teleport-cooldown must be >= 0");
@@ -120,6 +121,8 @@ config_result parse_config(int argc, const char* const* argv) {
       ("io-threads", po::value(&c.io_threads)->default_value(c.io_threads), "network I/O threads")            //
       ("max-clients", po::value(&c.max_clients)->default_value(c.max_clients), "connections in total")        //
       ("max-frame-bytes", po::value(&c.max_frame_bytes)->default_value(c.max_frame_bytes), "largest inbound frame")  //
+      ("socket-send-buffer", po::value(&c.socket_send_buffer)->default_value(c.socket_send_buffer),
+       "SO_SNDBUF of each client socket in bytes (0 = the system's autotuning); bounds how much stale state the kernel holds for a slow client")  //
       ("inputs-per-second", po::value(&c.inputs_per_second)->default_value(c.inputs_per_second), "input rate limit per client")  //
       ("client-byte-budget", po::value(&c.client_byte_budget)->default_value(c.client_byte_budget), "bytes per client per tick")  //
       ("teleport", po::value(&c.teleport_enabled)->default_value(c.teleport_enabled), "players may teleport themselves (0 or 1)")  //

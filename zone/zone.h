@@ -560,6 +560,7 @@ struct zone_config {
   unsigned io_threads = 2;
   std::size_t max_clients = 1000;
   std::size_t max_frame_bytes = 16 * 1024;
+  std::size_t socket_send_buffer = 0;  ///< SO_SNDBUF per client socket (bytes; 0 = the system's autotuning)
   double inputs_per_second = 60;
   std::size_t client_byte_budget = 8 * 1024;
   bool teleport_enabled = true;      ///< players may teleport themselves (the teleport message)

@@ -26,6 +26,7 @@ net::server_options net_options(const zone_config& c) {
   o.io_threads = c.io_threads;
   o.max_connections = c.max_clients;
   o.inbound.max_frame_bytes = c.max_frame_bytes;
+  o.socket_send_buffer = c.socket_send_buffer;
   o.inputs_per_second = c.inputs_per_second;
   o.input_burst = std::max(1.0, c.inputs_per_second / 2);
   return o;
@@ -133,7 +134,10 @@ std::string zone_server::metrics_text() const {
   t.counter("zone_net_frames_out_total", "Frames written.", static_cast<double>(ns.frames_out));
   t.counter("zone_net_bytes_in_total", "Bytes received.", static_cast<double>(ns.bytes_in));
   t.counter("zone_net_bytes_out_total", "Bytes written.", static_cast<double>(ns.bytes_out));
-  t.counter("zone_net_frames_dropped_total", "State frames dropped for slow clients.", static_cast<double>(ns.frames_dropped));
+  t.counter("zone_net_frames_dropped_total", "State frames not delivered to slow clients (dropped or superseded by a reset).",
+            static_cast<double>(ns.frames_dropped));
+  t.counter("zone_net_resyncs_requested_total", "Drop episodes: a slow client's view resynchronised with a reset.",
+            static_cast<double>(ns.resyncs_requested));
   t.counter("zone_net_frames_rejected_total", "Inbound frames rejected (client disconnected).", static_cast<double>(ns.frames_rejected));
   t.counter("zone_net_inputs_dropped_total", "Inputs over the rate limit.", static_cast<double>(ns.inputs_dropped));
   // Phase histograms in seconds, one bucket per octave.
@@ -225,6 +229,7 @@ void zone_server::drain_inputs() {
         break;
       }
       case net::inbound_event::kind::frames_dropped: {
+        // The session delivers no state frame until a reset: make this client's next frame one.
         const auto it = clients_.find(e.session);
         if (it != clients_.end()) replicator_.resync(it->second.replica);
         break;
@@ -277,9 +282,11 @@ void zone_server::replicate() {
   }
   frame_bytes_.resize(requests_.size());
   replicator_.build_many(requests_, world_->store(), world_->tracker(), world_->tick(), now, pool_.get(),
-                         [&](std::size_t k, std::span<const std::uint8_t> frame, const replication_stats&) {
+                         [&](std::size_t k, std::span<const std::uint8_t> frame, const replication_stats& st) {
                            frame_bytes_[k] = frame.size();
-                           net_.send(request_sessions_[k], net::make_shared_frame(frame), net::delivery::state);
+                           // A reset frame ends a session's wait after dropped frames (net/server.h).
+                           net_.send(request_sessions_[k], net::make_shared_frame(frame),
+                                     st.reset ? net::delivery::state_reset : net::delivery::state);
                          });
   for (const std::size_t bytes : frame_bytes_) stats_.bytes_sent += bytes;
   stats_.frames_sent += frame_bytes_.size();

@@ -65,9 +65,15 @@ struct harness {
       }
     }
   }
+  /// Ticks n times, reading every frame after each tick, as a client of a real tick loop would
+  /// (ticks 33 ms apart). Ticking many times without reading could fill a session's queue before
+  /// its I/O thread has written anything; the frames after such a drop wait for the next tick's
+  /// reset (docs/protocol.md), which catch_up() would wait for in vain.
   void tick(int n = 1) {
-    for (int i = 0; i < n; ++i) server.tick_once();
-    catch_up();
+    for (int i = 0; i < n; ++i) {
+      server.tick_once();
+      catch_up();
+    }
   }
   /// Ticks until pred() holds (the network threads deliver messages asynchronously).
   template <class Pred>

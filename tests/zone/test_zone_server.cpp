@@ -221,6 +221,96 @@ TEST_SUITE("zone.server") {
     loop.join();
   }
 
+  TEST_CASE("a client that stops reading loses state frames, then gets only frames it can apply") {
+    // The tick is driven by the test (tick_once, no timing): the client stops reading, the
+    // server keeps building frames of ~1,000 visible entities each, the socket and then the
+    // session's bounded queue fill and state frames are dropped; then the client reads again.
+    // Every frame it ever gets must apply cleanly to its view (no delta on top of a state it never
+    // received), and a reset must bring it back.
+    zone_config cfg = test_config();
+    cfg.metrics_enabled = false;
+    cfg.npc_count = 2000;
+    cfg.town_count = 1;
+    cfg.player_aoi = 200;
+    cfg.update_near = cfg.update_mid = 1000;  // every visible entity every tick: large frames fill the socket fast
+    cfg.io_threads = 1;
+    zone_server server(cfg);
+    REQUIRE_FALSE(server.start().has_value());
+    test_client slow(server.port(), 4096);
+    REQUIRE(slow.send(net::hello_msg{"slow", "", net::protocol_version}));
+    std::optional<net::client_view> view;
+    std::uint64_t frames = 0, resets = 0, problems = 0;
+    const auto apply_all = [&](std::chrono::milliseconds wait) {
+      while (auto m = slow.read(wait)) {
+        if (const auto* w = std::get_if<net::welcome_msg>(&*m)) view.emplace(w->world);
+        const auto* u = std::get_if<net::tick_update_msg>(&*m);
+        if (!u) continue;
+        REQUIRE(view.has_value());  // the welcome comes first
+        const auto st = view->apply(*u);
+        CAPTURE(u->server_tick);
+        CHECK(st == net::client_view::status::ok);
+        ++frames;
+        if (u->reset && frames > 1) ++resets;
+        if (st != net::client_view::status::ok) ++problems;
+      }
+    };
+    for (int t = 0; t < 500 && !view; ++t) {
+      server.tick_once();
+      apply_all(5ms);
+    }
+    REQUIRE(view.has_value());
+    // Play normally for a while.
+    std::uint32_t seq = 0;
+    for (int t = 0; t < 20; ++t) {
+      REQUIRE(slow.send(net::input_msg{++seq, {1, 0, 0}}));
+      server.tick_once();
+      apply_all(20ms);
+    }
+    REQUIRE(frames > 0);
+    CHECK(problems == 0);
+
+    // Stall several times: stop reading and keep ticking (the player keeps walking) until frames
+    // are dropped, and then `extra` ticks more (a client that catches up at once, and one that
+    // stays stalled while the queue keeps overflowing); then read again, ticking meanwhile, until a
+    // reset has come and the view has been checked for a while after it.
+    for (const int extra : {0, 1, 3, 60}) {
+      CAPTURE(extra);
+      const auto dropped_before = server.net_stats().frames_dropped;
+      int after_drop = -1;
+      for (int t = 0; t < 20000 && after_drop < extra; ++t) {
+        if (t % 30 == 0) REQUIRE(slow.send(net::input_msg{++seq, {1, 0.3f, 0}}));
+        server.tick_once();
+        if (after_drop >= 0) {
+          ++after_drop;
+        } else if (server.net_stats().frames_dropped > dropped_before) {
+          after_drop = 0;
+        }
+        std::this_thread::sleep_for(1ms);  // let the I/O thread take the frames
+      }
+      REQUIRE_MESSAGE(after_drop >= 0, "no frame was dropped: the test did not stall the client");
+      const auto resets_before = resets;
+      int after_reset = -1;
+      for (int t = 0; t < 3000 && after_reset < 30; ++t) {
+        apply_all(2ms);
+        if (t % 30 == 0) REQUIRE(slow.send(net::input_msg{++seq, {-1, 0.3f, 0}}));
+        server.tick_once();
+        if (after_reset >= 0) {
+          ++after_reset;
+        } else if (resets > resets_before) {
+          after_reset = 0;
+        }
+      }
+      CHECK(resets > resets_before);
+      CHECK(after_reset >= 30);
+    }
+    apply_all(200ms);
+    MESSAGE("frames applied " << frames << ", resets " << resets << ", state frames dropped by the server "
+                              << server.net_stats().frames_dropped);
+    CHECK(problems == 0);
+    CHECK(view->problems() == 0);
+    CHECK_FALSE(slow.closed());
+  }
+
   TEST_CASE("the finder choice: auto and cpu always start; gpu without a usable device refuses, naming why") {
     for (const char* name : {"auto", "cpu"}) {
       zone_config cfg = test_config();

@@ -1,0 +1,131 @@
+// A session's outbound queue and its drop policy (private to net/; server.cpp uses it on the
+// session's strand, tests use it without sockets). Not thread-safe: one owner.
+//
+// State frames are deltas: each one moves the client's view on from the view the previous state
+// frame left. So once one is dropped, every later delta is useless to the client until a frame
+// that rebuilds the view from scratch (a reset). The policy:
+//
+// - control frames (welcome, pong, error) are never dropped and keep their order; more than
+//   twice the bound queued means a stuck client (`overflow`: the caller closes the session);
+// - a state frame arriving at a full queue (`bound` frames, the one being written included)
+//   starts a drop episode: every queued state frame that is not being written is dropped, and so
+//   is the new frame; the queue awaits a reset, and push() says so once (`resync`: report it to
+//   the game, which makes the client's next frame a reset);
+// - while awaiting a reset, plain state frames are dropped on arrival (counted, not reported
+//   again);
+// - a reset frame ends the wait, and replaces every state frame queued before it (they are
+//   superseded; counted as dropped, not reported);
+// - a reset frame that cannot be queued (control frames fill the queue) is dropped and reported
+//   again, so a reset is never lost without another resync being asked for.
+//
+// Hence the client gets, in order, the frame being written when the episode began, then nothing
+// but control frames until a reset: every state frame it receives is a reset or the successor of
+// the state frame it received before. At most `bound` state frames and 2 x `bound` frames in all
+// are held.
+#pragma once
+
+#include <algorithm>
+#include <cstddef>
+#include <deque>
+
+#include "server.h"
+
+namespace zone::net {
+
+class outbound_queue {
+ public:
+  struct entry {
+    shared_frame frame;
+    delivery kind = delivery::state;
+  };
+
+  /// What push() did.
+  struct push_result {
+    bool queued = false;       ///< the frame was queued
+    bool resync = false;       ///< a drop episode began (or a reset was dropped): ask the game for a reset
+    bool overflow = false;     ///< control frames beyond twice the bound: a stuck client, close it
+    std::size_t dropped = 0;   ///< state frames dropped by this push (queued ones, and the new one if not queued)
+  };
+
+  explicit outbound_queue(std::size_t bound) : bound_(std::max<std::size_t>(1, bound)) {}
+
+  push_result push(shared_frame frame, delivery d) {
+    push_result r;
+    switch (d) {
+      case delivery::control:
+        if (queue_.size() >= 2 * bound_) {
+          r.overflow = true;
+          return r;
+        }
+        break;
+      case delivery::state_reset:
+        r.dropped = drop_queued_state();  // superseded by the reset
+        if (queue_.size() >= bound_) {    // control frames alone fill the queue
+          awaiting_reset_ = true;
+          r.resync = true;
+          ++r.dropped;
+          return r;
+        }
+        awaiting_reset_ = false;
+        break;
+      case delivery::state:
+        if (awaiting_reset_) {
+          r.dropped = 1;
+          return r;
+        }
+        if (queue_.size() >= bound_) {
+          r.dropped = drop_queued_state() + 1;
+          awaiting_reset_ = true;
+          r.resync = true;
+          return r;
+        }
+        break;
+    }
+    queue_.push_back({std::move(frame), d});
+    r.queued = true;
+    return r;
+  }
+
+  /// The next frame to write, marked as being written; null when one is being written already or
+  /// nothing is queued.
+  [[nodiscard]] const entry* start_write() {
+    if (writing_ || queue_.empty()) return nullptr;
+    writing_ = true;
+    return &queue_.front();
+  }
+  /// The frame being written is done (written or failed): it leaves the queue.
+  void finish_write() {
+    if (!writing_) return;
+    writing_ = false;
+    queue_.pop_front();
+  }
+  /// Keeps only the frame being written (a closing session queues its error frame next).
+  void keep_only_in_flight() { queue_.erase(queue_.begin() + (writing_ ? 1 : 0), queue_.end()); }
+  void clear() {
+    queue_.clear();
+    writing_ = false;
+  }
+
+  [[nodiscard]] bool writing() const { return writing_; }
+  [[nodiscard]] bool empty() const { return queue_.empty(); }
+  [[nodiscard]] std::size_t size() const { return queue_.size(); }
+  [[nodiscard]] bool awaiting_reset() const { return awaiting_reset_; }
+  [[nodiscard]] const std::deque<entry>& entries() const { return queue_; }
+
+ private:
+  /// Drops every queued state frame (plain or reset) except the one being written; how many.
+  std::size_t drop_queued_state() {
+    const auto first = queue_.begin() + (writing_ ? 1 : 0);
+    const auto kept = std::stable_partition(first, queue_.end(), [](const entry& e) { return e.kind == delivery::control; });
+    const auto n = static_cast<std::size_t>(queue_.end() - kept);
+    queue_.erase(kept, queue_.end());
+    return n;
+  }
+
+  std::size_t bound_;
+  std::deque<entry> queue_;  // front is being written while writing_
+  bool writing_ = false;
+  bool awaiting_reset_ = false;
+};
+
+}  // namespace zone::net

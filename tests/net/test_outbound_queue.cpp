@@ -1,0 +1,271 @@
+// The session's outbound queue policy (net/outbound_queue.h) without sockets: control frames are
+// never dropped and keep their order; after a drop no state frame is delivered until a reset; the
+// game is asked for a reset once per episode, and again if a reset is lost; memory is bounded.
+#include <doctest/doctest.h>
+
+#include "../common/seeds.h"
+
+#include <cstring>
+#include <optional>
+#include <random>
+#include <vector>
+
+#include "outbound_queue.h"
+
+using namespace zone::net;
+
+namespace {
+
+/// A frame whose bytes are its number (8 bytes), to follow it through the queue.
+shared_frame numbered(std::uint64_t n) {
+  std::vector<std::uint8_t> b(8);
+  std::memcpy(b.data(), &n, 8);
+  return make_shared_frame(b);
+}
+std::uint64_t number_of(const shared_frame& f) {
+  std::uint64_t n = 0;
+  std::memcpy(&n, f->data(), 8);
+  return n;
+}
+
+/// What the client receives: (number, kind) in write order.
+struct delivered {
+  std::uint64_t n;
+  delivery kind;
+};
+
+/// Writes (and finishes) everything queued, in order.
+std::vector<delivered> drain(outbound_queue& q) {
+  std::vector<delivered> out;
+  while (const auto* e = q.start_write()) {
+    out.push_back({number_of(e->frame), e->kind});
+    q.finish_write();
+  }
+  return out;
+}
+
+std::vector<std::uint64_t> numbers(const std::vector<delivered>& d) {
+  std::vector<std::uint64_t> n;
+  for (const auto& x : d) n.push_back(x.n);
+  return n;
+}
+
+}  // namespace
+
+TEST_SUITE("net.outbound_queue") {
+  TEST_CASE("below the bound everything is queued in order") {
+    outbound_queue q(4);
+    CHECK(q.push(numbered(1), delivery::control).queued);
+    CHECK(q.push(numbered(2), delivery::state_reset).queued);
+    CHECK(q.push(numbered(3), delivery::state).queued);
+    CHECK(q.push(numbered(4), delivery::control).queued);
+    CHECK(numbers(drain(q)) == std::vector<std::uint64_t>{1, 2, 3, 4});
+    CHECK(q.empty());
+  }
+
+  TEST_CASE("a drop episode: queued deltas dropped, nothing but control frames until a reset, reported once") {
+    outbound_queue q(4);
+    REQUIRE(q.push(numbered(1), delivery::state_reset).queued);
+    REQUIRE(q.start_write() != nullptr);  // frame 1 is being written: it is never dropped
+    REQUIRE(q.push(numbered(2), delivery::state).queued);
+    REQUIRE(q.push(numbered(100), delivery::control).queued);
+    REQUIRE(q.push(numbered(3), delivery::state).queued);
+    REQUIRE(q.size() == 4);
+
+    // Full: frame 4 starts an episode. 2 and 3 go (queued deltas), and 4 itself.
+    auto r = q.push(numbered(4), delivery::state);
+    CHECK_FALSE(r.queued);
+    CHECK(r.resync);
+    CHECK(r.dropped == 3);
+    CHECK(q.awaiting_reset());
+    CHECK(q.size() == 2);  // 1 (being written) and the control frame
+
+    // Deltas built before the game saw the report: dropped, not reported again.
+    r = q.push(numbered(5), delivery::state);
+    CHECK_FALSE(r.queued);
+    CHECK_FALSE(r.resync);
+    CHECK(r.dropped == 1);
+    // Control frames still go through, in order.
+    CHECK(q.push(numbered(101), delivery::control).queued);
+    r = q.push(numbered(6), delivery::state);
+    CHECK(r.dropped == 1);
+    CHECK_FALSE(r.resync);
+
+    // The reset ends the wait; deltas after it are queued again.
+    r = q.push(numbered(7), delivery::state_reset);
+    CHECK(r.queued);
+    CHECK_FALSE(r.resync);
+    CHECK(r.dropped == 0);
+    CHECK_FALSE(q.awaiting_reset());
+    q.finish_write();  // frame 1 written
+    CHECK(q.push(numbered(8), delivery::state).queued);
+    const auto got = drain(q);
+    REQUIRE(numbers(got) == std::vector<std::uint64_t>{100, 101, 7, 8});
+    CHECK(got[2].kind == delivery::state_reset);
+  }
+
+  TEST_CASE("a reset replaces the state frames queued before it, not the one being written") {
+    outbound_queue q(8);
+    REQUIRE(q.push(numbered(1), delivery::state).queued);
+    REQUIRE(q.start_write() != nullptr);
+    REQUIRE(q.push(numbered(2), delivery::state).queued);
+    REQUIRE(q.push(numbered(50), delivery::control).queued);
+    auto r = q.push(numbered(3), delivery::state_reset);
+    CHECK(r.queued);
+    CHECK_FALSE(r.resync);  // nothing the client needs was lost
+    CHECK(r.dropped == 1);  // 2: superseded
+    REQUIRE(q.push(numbered(4), delivery::state).queued);
+    r = q.push(numbered(5), delivery::state_reset);
+    CHECK(r.queued);
+    CHECK_FALSE(r.resync);
+    CHECK(r.dropped == 2);  // 3 and 4
+    q.finish_write();
+    CHECK(numbers(drain(q)) == std::vector<std::uint64_t>{50, 5});
+  }
+
+  TEST_CASE("a queued reset dropped in a later episode is reported again") {
+    outbound_queue q(3);
+    REQUIRE(q.push(numbered(1), delivery::state).queued);
+    REQUIRE(q.start_write() != nullptr);
+    REQUIRE(q.push(numbered(2), delivery::state_reset).queued);
+    REQUIRE(q.push(numbered(3), delivery::state).queued);
+    auto r = q.push(numbered(4), delivery::state);  // full: the reset 2 goes with 3 and 4
+    CHECK(r.resync);
+    CHECK(r.dropped == 3);
+    // The answer to this report is a new reset; until then nothing.
+    CHECK(q.push(numbered(5), delivery::state).dropped == 1);
+    r = q.push(numbered(6), delivery::state_reset);
+    CHECK(r.queued);
+    q.finish_write();
+    CHECK(numbers(drain(q)) == std::vector<std::uint64_t>{6});
+  }
+
+  TEST_CASE("a reset that finds the queue full of control frames is dropped and reported") {
+    outbound_queue q(2);
+    REQUIRE(q.push(numbered(1), delivery::control).queued);
+    REQUIRE(q.push(numbered(2), delivery::control).queued);
+    auto r = q.push(numbered(3), delivery::state_reset);
+    CHECK_FALSE(r.queued);
+    CHECK(r.resync);
+    CHECK(r.dropped == 1);
+    CHECK(q.awaiting_reset());
+    r = q.push(numbered(4), delivery::state);
+    CHECK_FALSE(r.resync);
+    CHECK(r.dropped == 1);
+    // Control frames up to twice the bound; beyond: a stuck client.
+    CHECK(q.push(numbered(5), delivery::control).queued);
+    CHECK(q.push(numbered(6), delivery::control).queued);
+    CHECK(q.push(numbered(7), delivery::control).overflow);
+    CHECK(numbers(drain(q)) == std::vector<std::uint64_t>{1, 2, 5, 6});
+    CHECK(q.push(numbered(8), delivery::state_reset).queued);
+  }
+
+  TEST_CASE("random traffic: every delivered state frame applies, nothing is lost unaccounted, memory bounded") {
+    // A game builds one state frame per tick (a reset when a resync is pending, which it learns a
+    // random number of ticks after the report), sends pongs now and then; a writer takes frames
+    // at a random pace (sometimes stalled for long). The client checks that each state frame it
+    // gets is a reset or the next tick after the state frame before it.
+    const std::uint64_t seed = zone::test::fresh_seed();
+    CAPTURE(seed);
+    std::mt19937_64 rng(seed);
+    std::uint64_t episodes = 0, superseded_or_dropped = 0;
+    for (int round = 0; round < 20; ++round) {
+      const std::size_t bound = 1 + rng() % 10;
+      CAPTURE(bound);
+      outbound_queue q(bound);
+      std::uint64_t sent_state = 0, dropped = 0, delivered_state = 0, reports = 0, resets_sent = 0;
+      std::optional<std::uint64_t> last_state;   // tick of the last state frame the client got
+      bool reset_pending = true;                 // the first frame of a client is a reset
+      std::vector<int> report_delays;            // ticks until the game sees each report
+      bool stalled = false;
+      std::uint64_t next_control = 1ull << 40;
+      std::size_t control_in_queue = 0;
+      const auto take = [&](const outbound_queue::entry& e) {
+        if (e.kind == delivery::control) {
+          CHECK(number_of(e.frame) >= (1ull << 40));
+          --control_in_queue;
+          return;
+        }
+        const std::uint64_t t = number_of(e.frame);
+        ++delivered_state;
+        if (e.kind == delivery::state_reset) {
+          if (last_state) CHECK(t > *last_state);
+        } else {
+          REQUIRE(last_state.has_value());  // a client's first state frame is a reset
+          CHECK(t == *last_state + 1);      // a delta applies only on the frame before it
+        }
+        last_state = t;
+      };
+      for (std::uint64_t tick = 0; tick < 3000; ++tick) {
+        // The game sees reports after a delay (the next tick's input phase, or later).
+        for (auto& d : report_delays) {
+          if (--d <= 0) reset_pending = true;
+        }
+        std::erase_if(report_delays, [](int d) { return d <= 0; });
+        const bool reset = reset_pending;
+        reset_pending = false;
+        resets_sent += reset ? 1 : 0;
+        ++sent_state;
+        const auto r = q.push(numbered(tick), reset ? delivery::state_reset : delivery::state);
+        CHECK_FALSE(r.overflow);
+        dropped += r.dropped;
+        if (r.resync) {
+          ++reports;
+          report_delays.push_back(1 + static_cast<int>(rng() % 4));
+        }
+        if (rng() % 8 == 0 && control_in_queue < bound) {  // a pong (clients ping far slower than the tick)
+          REQUIRE(q.push(numbered(next_control++), delivery::control).queued);
+          ++control_in_queue;
+        }
+        CHECK(q.size() <= 2 * bound);
+        // The writer: stalls now and then for a while, else takes 0..3 frames this tick.
+        if (rng() % 50 == 0) stalled = !stalled;
+        if (!stalled) {
+          const int n = static_cast<int>(rng() % 4);
+          for (int k = 0; k < n; ++k) {
+            if (!q.writing()) {
+              if (q.start_write() == nullptr) break;
+            }
+            take(q.entries().front());
+            q.finish_write();
+          }
+        } else if (!q.writing()) {
+          (void)q.start_write();  // one frame stuck in the socket
+        }
+      }
+      // Unstall: the game keeps ticking until the client is served again.
+      for (std::uint64_t tick = 3000; tick < 3100; ++tick) {
+        for (auto& d : report_delays) {
+          if (--d <= 0) reset_pending = true;
+        }
+        std::erase_if(report_delays, [](int d) { return d <= 0; });
+        const bool reset = reset_pending;
+        reset_pending = false;
+        resets_sent += reset ? 1 : 0;
+        ++sent_state;
+        const auto r = q.push(numbered(tick), reset ? delivery::state_reset : delivery::state);
+        dropped += r.dropped;
+        if (r.resync) {
+          ++reports;
+          report_delays.push_back(1);
+        }
+        if (q.writing()) {
+          take(q.entries().front());
+          q.finish_write();
+        }
+        while (const auto* e = q.start_write()) {
+          take(*e);
+          q.finish_write();
+        }
+      }
+      CHECK(last_state.value_or(0) == 3099);            // served again, up to the newest tick
+      CHECK(delivered_state + dropped == sent_state);   // every state frame delivered or counted
+      CHECK(reports <= resets_sent);                    // each report answered by a reset
+      CHECK_FALSE(q.awaiting_reset());
+      episodes += reports;
+      superseded_or_dropped += dropped;
+    }
+    MESSAGE("drop episodes " << episodes << ", state frames not delivered " << superseded_or_dropped);
+    CHECK(episodes > 20);  // the stalls did overflow the queues
+  }
+}
