@@ -13,7 +13,8 @@
 #   swarm  zone-server (80,000 NPCs, 30 Hz, finder auto) + bot-swarm (20,000 bots, verify) on loopback
 # Environment: SWARM_BOTS (20000), SWARM_NPCS (80000), SWARM_SECONDS (60, after the ramp-up),
 # SWARM_RAMP (bots per second, 2000), SWARM_THREADS (bot-swarm I/O threads, 6), SERVER_THREADS (8),
-# SERVER_IO_THREADS (4), BENCH_ENTITIES (100000), BENCH_TICKS (600), BENCH_FINDERS ("gpu cpu").
+# SERVER_IO_THREADS (4), SERVER_INTEREST (auto), SERVER_SNDBUF (65536), SERVER_ARGS (more zone-server
+# options), BENCH_ENTITIES (100000), BENCH_TICKS (600), BENCH_FINDERS ("gpu cpu").
 # Logs, CSV and JSON go to $OUT (or ./out).
 set -uo pipefail
 dir=${DEVICE_DIR:-.device}
@@ -52,9 +53,9 @@ for step in "$@"; do
     swarm)
       bots=${SWARM_BOTS:-20000}
       limit=$(ulimit -n)
-      if [ "$limit" != unlimited ] && [ $((bots + 1000)) -gt "$limit" ]; then
-        echo "WARNING: open-file limit $limit is too low for $bots bots; running $((limit - 1000))"
-        bots=$((limit - 1000))
+      if [ "$limit" != unlimited ] && [ $((bots + 64)) -gt "$limit" ]; then
+        echo "WARNING: open-file limit $limit is too low for $bots bots; running $((limit - 100))"
+        bots=$((limit - 100))
       fi
       npcs=${SWARM_NPCS:-80000}
       secs=${SWARM_SECONDS:-60}
@@ -63,7 +64,8 @@ for step in "$@"; do
       echo "== zone-server + bot-swarm: $bots bots, $npcs NPCs, 30 Hz, ${duration} s $(date -u +%FT%TZ)"
       "$dir/zone-server" --listen 127.0.0.1 --port 0 --metrics-port 0 --npcs "$npcs" --tick-rate 30 \
         --max-clients $((bots + 100)) --threads "${SERVER_THREADS:-8}" --io-threads "${SERVER_IO_THREADS:-4}" \
-        --finder auto > "$out/zone-server.log" 2>&1 &
+        --finder auto --interest "${SERVER_INTEREST:-auto}" --socket-send-buffer "${SERVER_SNDBUF:-65536}" \
+        ${SERVER_ARGS:-} > "$out/zone-server.log" 2>&1 &
       server=$!
       port=
       for _ in $(seq 600); do
@@ -75,7 +77,7 @@ for step in "$@"; do
         echo "zone-server did not start"; cat "$out/zone-server.log"; kill "$server"; continue
       fi
       "$dir/bot-swarm" --port "$port" --bots "$bots" --duration "$duration" --ramp "$ramp" --threads "${SWARM_THREADS:-6}" --verify \
-        --mix walk=0.6,patrol=0.2,follow=0.1,crowd=0.1 --quiet \
+        --mix "${SWARM_MIX:-walk=0.5,patrol=0.2,follow=0.1,crowd=0.1,teleport=0.1}" --quiet \
         --report-json "$out/swarm-report.json" --report-csv "$out/swarm-series.csv" > "$out/swarm.log" 2>&1
       echo "bot-swarm exit code: $?"
       tail -40 "$out/swarm.log"
