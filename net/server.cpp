@@ -108,7 +108,10 @@ class session : public std::enable_shared_from_this<session> {
   }
 
   /// Any thread.
+  [[nodiscard]] std::shared_ptr<const std::atomic<std::uint32_t>> backlog() const { return backlog_; }
+
   void enqueue(shared_frame frame, delivery d) {
+    if (d != delivery::control) backlog_->fetch_add(1, std::memory_order_relaxed);
     asio::post(socket_.get_executor(),
                [self = shared_from_this(), frame = std::move(frame), d]() mutable { self->push(std::move(frame), d); });
   }
@@ -228,6 +231,8 @@ class session : public std::enable_shared_from_this<session> {
   void push(shared_frame frame, delivery d) {
     if (closing_ || closed_ || !frame) return;
     const auto r = queue_.push(std::move(frame), d);
+    // Every state frame ends queued (then written: on_write) or counted in `dropped`.
+    if (r.dropped != 0) backlog_->fetch_sub(static_cast<std::uint32_t>(r.dropped), std::memory_order_relaxed);
     if (r.overflow) {
       close_now("outbound queue overflow with control frames");
       return;
@@ -250,6 +255,7 @@ class session : public std::enable_shared_from_this<session> {
     if (closed_) return;
     const auto* next = queue_.start_write();
     if (!next) return;
+    writing_state_ = next->kind != delivery::control;
     const auto& f = *next->frame;
     asio::async_write(socket_, asio::buffer(f.data(), f.size()),
                       [self = shared_from_this()](const boost::system::error_code& ec, std::size_t n) {
@@ -259,6 +265,8 @@ class session : public std::enable_shared_from_this<session> {
 
   void on_write(const boost::system::error_code& ec, std::size_t n) {
     queue_.finish_write();
+    if (writing_state_) backlog_->fetch_sub(1, std::memory_order_relaxed);
+    writing_state_ = false;
     if (closed_) return;
     if (ec) {
       if (ec != asio::error::operation_aborted) close_now("write failed: " + ec.message());
@@ -323,6 +331,8 @@ class session : public std::enable_shared_from_this<session> {
   double tokens_;
   steady::time_point last_refill_;
   std::uint32_t consecutive_drops_ = 0;
+  std::shared_ptr<std::atomic<std::uint32_t>> backlog_ = std::make_shared<std::atomic<std::uint32_t>>(0);
+  bool writing_state_ = false;  // the frame being written is a state frame
 };
 
 void server::impl::remove(session_id id) {
@@ -500,6 +510,13 @@ void server::poll(std::vector<inbound_event>& out) {
     std::move(m.events.begin(), m.events.end(), std::back_inserter(out));
     m.events.clear();
   }
+}
+
+std::shared_ptr<const std::atomic<std::uint32_t>> server::state_backlog(session_id s) const {
+  const std::shared_lock lock(impl_->sessions_mutex);
+  const auto it = impl_->sessions.find(s);
+  if (it == impl_->sessions.end()) return nullptr;
+  return it->second->backlog();
 }
 
 bool server::send(session_id s, shared_frame frame, delivery d) {

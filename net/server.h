@@ -9,6 +9,7 @@
 
 #include <chrono>
 #include <cstddef>
+#include <atomic>
 #include <cstdint>
 #include <memory>
 #include <optional>
@@ -120,6 +121,12 @@ class server {
   /// see server_options::max_queued_frames); send a session's state frames from one thread at a
   /// time, in the order they were built.
   bool send(session_id s, shared_frame frame, delivery d = delivery::state);
+  /// The session's state backlog: state frames sent to it (send) and neither written to its
+  /// socket nor dropped yet. Read it (any thread, relaxed) to pace a client to what it absorbs:
+  /// a game that builds no new state frame while the backlog is at a bound never overflows the
+  /// queue, so a slow client gets fewer frames instead of drops and resets. The counter outlives
+  /// the session (it then stays where it was). Null when the session is gone.
+  [[nodiscard]] std::shared_ptr<const std::atomic<std::uint32_t>> state_backlog(session_id s) const;
   /// Sends error(code, reason) to the session, then closes it. Never blocks.
   void disconnect(session_id s, error_code code, std::string reason);
 

@@ -125,6 +125,7 @@ config_result parse_config(int argc, const char* const* argv) {
        "SO_SNDBUF of each client socket in bytes (0 = the system's autotuning); bounds how much stale state the kernel holds for a slow client")  //
       ("inputs-per-second", po::value(&c.inputs_per_second)->default_value(c.inputs_per_second), "input rate limit per client")  //
       ("client-byte-budget", po::value(&c.client_byte_budget)->default_value(c.client_byte_budget), "bytes per client per tick")  //
+      ("client-max-backlog", po::value(&c.client_max_backlog)->default_value(c.client_max_backlog), "a client with this many state frames still unwritten gets no new frame this tick (0 = off: always send; then a full queue drops frames and resyncs)")  //
       ("teleport", po::value(&c.teleport_enabled)->default_value(c.teleport_enabled), "players may teleport themselves (0 or 1)")  //
       ("teleport-cooldown", po::value(&c.teleport_cooldown_s)->default_value(c.teleport_cooldown_s), "least seconds between two teleports of one player")  //
       ("spawn-radius", po::value(&c.spawn_radius)->default_value(c.spawn_radius), "players spawn within this distance of a town (m)")  //

@@ -563,6 +563,10 @@ struct zone_config {
   std::size_t socket_send_buffer = 0;  ///< SO_SNDBUF per client socket (bytes; 0 = the system's autotuning)
   double inputs_per_second = 60;
   std::size_t client_byte_budget = 8 * 1024;
+  /// A client with this many state frames still unwritten (net::server::state_backlog) gets no new
+  /// frame this tick: a slow reader is sent fewer, fresher frames (its view catches up in the next
+  /// one) instead of overflowing its queue into drops and resets. 0 = off (always send).
+  std::uint32_t client_max_backlog = 2;
   bool teleport_enabled = true;      ///< players may teleport themselves (the teleport message)
   float spawn_radius = 200;          ///< players spawn uniformly within this distance of a town centre (m)
   /// Replication's update-rate tiers (docs/zone.md): every tick within update_near metres, every

@@ -134,6 +134,8 @@ std::string zone_server::metrics_text() const {
   t.counter("zone_net_frames_out_total", "Frames written.", static_cast<double>(ns.frames_out));
   t.counter("zone_net_bytes_in_total", "Bytes received.", static_cast<double>(ns.bytes_in));
   t.counter("zone_net_bytes_out_total", "Bytes written.", static_cast<double>(ns.bytes_out));
+  t.counter("zone_frames_held_total", "Client-ticks without a frame because the client had not read its backlog yet.",
+            static_cast<double>(stats_.frames_held));
   t.counter("zone_net_frames_dropped_total", "State frames not delivered to slow clients (dropped or superseded by a reset).",
             static_cast<double>(ns.frames_dropped));
   t.counter("zone_net_resyncs_requested_total", "Drop episodes: a slow client's view resynchronised with a reset.",
@@ -209,6 +211,7 @@ void zone_server::drain_inputs() {
           }
           client& c = clients_[e.session];
           c.entity = id;
+          c.backlog = net_.state_backlog(e.session);
           c.replica = replicator_.add_client(id);
           net::welcome_msg w{id, cfg_.world, static_cast<std::uint16_t>(cfg_.tick_rate_hz), world_->tick(),
                              net::protocol_version};
@@ -277,6 +280,13 @@ void zone_server::replicate() {
   requests_.clear();
   request_sessions_.clear();
   for (const auto& [session, c] : clients_) {
+    // Paced to what the client absorbs: no new frame while its backlog is full (the next one
+    // carries everything since: the replicator moves the view from what was last built).
+    if (cfg_.client_max_backlog != 0 && c.backlog &&
+        c.backlog->load(std::memory_order_relaxed) >= cfg_.client_max_backlog) {
+      ++stats_.frames_held;
+      continue;
+    }
     requests_.push_back({c.replica, c.last_input});
     request_sessions_.push_back(session);
   }

@@ -24,6 +24,7 @@ struct loop_stats {
   std::uint64_t clients = 0;           ///< clients with an entity
   std::uint64_t frames_sent = 0;       ///< tick updates handed to the network
   std::uint64_t bytes_sent = 0;
+  std::uint64_t frames_held = 0;       ///< client-ticks without a frame: the client's backlog was full
   std::uint64_t teleports = 0;          ///< teleport requests applied
   std::uint64_t teleports_clamped = 0;  ///< of which clamped into the world
   std::uint64_t teleports_refused = 0;  ///< refused: off, cooldown, another's entity, not finite
@@ -64,6 +65,7 @@ class zone_server {
     std::uint32_t last_input = 0;
     std::uint64_t last_teleport_tick = 0;  ///< world tick of the last applied teleport
     bool teleported = false;
+    std::shared_ptr<const std::atomic<std::uint32_t>> backlog;  ///< net::server::state_backlog
   };
   void drain_inputs();
   /// Validates and applies one client's teleport request (permission, own entity, cooldown,
