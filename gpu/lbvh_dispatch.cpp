@@ -35,35 +35,6 @@
 
 namespace zone::gpu::detail::lbvh {
 
-template <class T>
-device_array<T>::~device_array() {
-  if (ptr_ != nullptr) cudaFree(ptr_);
-}
-template <class T>
-void device_array<T>::reserve(std::size_t n) {
-  if (n <= cap_ && ptr_ != nullptr) return;
-  const std::size_t want = std::max<std::size_t>({n, cap_ + cap_ / 2, 1});
-  if (ptr_ != nullptr) CUDA_CHECK(cudaFree(ptr_));
-  ptr_ = nullptr;
-  cap_ = 0;
-  CUDA_CHECK(cudaMalloc(reinterpret_cast<void**>(&ptr_), want * sizeof(T)));
-  cap_ = want;
-}
-template <class T>
-pinned_array<T>::~pinned_array() {
-  if (ptr_ != nullptr) cudaFreeHost(ptr_);
-}
-template <class T>
-void pinned_array<T>::reserve(std::size_t n) {
-  if (n <= cap_ && ptr_ != nullptr) return;
-  const std::size_t want = std::max<std::size_t>({n, cap_ + cap_ / 2, 1});
-  if (ptr_ != nullptr) CUDA_CHECK(cudaFreeHost(ptr_));
-  ptr_ = nullptr;
-  cap_ = 0;
-  CUDA_CHECK(cudaHostAlloc(reinterpret_cast<void**>(&ptr_), want * sizeof(T), cudaHostAllocDefault));
-  cap_ = want;
-}
-
 namespace {
 
 using clock_type = std::chrono::steady_clock;

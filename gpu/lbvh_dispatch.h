@@ -13,44 +13,16 @@
 
 #include "interest.h"
 #include "lbvh.h"
+#include "gpu_buffers.h"
 #include "lbvh_shared.h"
 
 namespace zone::gpu::detail::lbvh {
 
-/// Device memory that only grows (by at least 1.5x), freed on destruction.
+/// Grow-only device and page-locked host arrays (gpu_buffers.h; shared with the other engines).
 template <class T>
-class device_array {
- public:
-  device_array() = default;
-  device_array(const device_array&) = delete;
-  device_array& operator=(const device_array&) = delete;
-  ~device_array();
-  /// Ensures room for n elements; contents are not preserved when it grows.
-  void reserve(std::size_t n);
-  [[nodiscard]] T* get() const { return ptr_; }
-  [[nodiscard]] std::size_t capacity() const { return cap_; }
-
- private:
-  T* ptr_ = nullptr;
-  std::size_t cap_ = 0;
-};
-
-/// Page-locked host memory that only grows (by at least 1.5x), freed on destruction.
+using device_array = mem::device_array<T>;
 template <class T>
-class pinned_array {
- public:
-  pinned_array() = default;
-  pinned_array(const pinned_array&) = delete;
-  pinned_array& operator=(const pinned_array&) = delete;
-  ~pinned_array();
-  void reserve(std::size_t n);
-  [[nodiscard]] T* get() const { return ptr_; }
-  [[nodiscard]] std::size_t capacity() const { return cap_; }
-
- private:
-  T* ptr_ = nullptr;
-  std::size_t cap_ = 0;
-};
+using pinned_array = mem::pinned_array<T>;
 
 /// The engine behind the LBVH finder.
 class lbvh_engine {

@@ -13,45 +13,16 @@
 
 #include "interest.h"
 #include "pbig.h"
+#include "gpu_buffers.h"
 #include "pbig_shared.h"
 
 namespace zone::gpu::detail {
 
-/// Device memory that only grows (by at least 1.5x), freed on destruction.
+/// Grow-only device and page-locked host arrays (gpu_buffers.h; shared with the other engines).
 template <class T>
-class device_buffer {
- public:
-  device_buffer() = default;
-  device_buffer(const device_buffer&) = delete;
-  device_buffer& operator=(const device_buffer&) = delete;
-  ~device_buffer();
-  /// Ensures room for n elements; contents are not preserved when it grows.
-  void reserve(std::size_t n);
-  [[nodiscard]] T* get() const { return ptr_; }
-  [[nodiscard]] std::size_t capacity() const { return cap_; }
-  [[nodiscard]] std::size_t bytes() const { return cap_ * sizeof(T); }
-
- private:
-  T* ptr_ = nullptr;
-  std::size_t cap_ = 0;
-};
-
-/// Page-locked host memory that only grows (by at least 1.5x), freed on destruction.
+using device_buffer = mem::device_array<T>;
 template <class T>
-class pinned_buffer {
- public:
-  pinned_buffer() = default;
-  pinned_buffer(const pinned_buffer&) = delete;
-  pinned_buffer& operator=(const pinned_buffer&) = delete;
-  ~pinned_buffer();
-  void reserve(std::size_t n);
-  [[nodiscard]] T* get() const { return ptr_; }
-  [[nodiscard]] std::size_t capacity() const { return cap_; }
-
- private:
-  T* ptr_ = nullptr;
-  std::size_t cap_ = 0;
-};
+using pinned_buffer = mem::pinned_array<T>;
 
 /// One slot of the double-buffered pipeline: a device and a pinned host output buffer, the
 /// batch's per-tile index (device and host), the batch's byte cursor, its stream and events.
