@@ -11,6 +11,10 @@ void cuda_fail(cudaError_t err, const char* call, const char* file, int line) {
   const std::string msg = std::string("CUDA error ") + cudaGetErrorName(err) + " (" + cudaGetErrorString(err) +
                           ") in " + call + " at " + file + ":" + std::to_string(line);
   spdlog::error("{}", msg);
+  // Clear the thread's last error: a failure that was thrown (and perhaps handled, e.g. by a
+  // fallback to the CPU) must not be reported again by the next launch's cudaGetLastError.
+  // (A sticky error, a device fault, stays: every later call reports it anyway.)
+  (void)cudaGetLastError();
   throw std::runtime_error(msg);
 }
 

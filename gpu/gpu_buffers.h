@@ -6,6 +6,7 @@
 
 #include <algorithm>
 #include <cstddef>
+#include <string>
 #include <utility>
 
 #include "cuda_check.h"
@@ -28,10 +29,12 @@ class array {
     const std::size_t want = std::max(n, cap_ + cap_ / 2);
     release();
     void* p = nullptr;
-    if constexpr (Device) {
-      CUDA_CHECK(cudaMalloc(&p, want * sizeof(T)));
-    } else {
-      CUDA_CHECK(cudaHostAlloc(&p, want * sizeof(T), cudaHostAllocDefault));
+    const cudaError_t err =
+        Device ? cudaMalloc(&p, want * sizeof(T)) : cudaHostAlloc(&p, want * sizeof(T), cudaHostAllocDefault);
+    if (err != cudaSuccess) {
+      const std::string what = std::string(Device ? "cudaMalloc" : "cudaHostAlloc") + " of " +
+                               std::to_string(want * sizeof(T)) + " bytes (" + std::to_string(n) + " elements asked)";
+      cuda_fail(err, what.c_str(), __FILE__, __LINE__);
     }
     ptr_ = static_cast<T*>(p);
     cap_ = want;

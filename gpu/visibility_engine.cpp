@@ -189,7 +189,11 @@ class engine final : public interest::visibility_engine {
       st = *h_st_.get();
       if (st.overflow == 0) break;
       ++out.timing.reruns;
-      if ((st.overflow & 1u) != 0) entry_cap_ = std::max<std::uint64_t>(entry_cap_ * 2, st.entries + st.entries / 4 + 1024);
+      if ((st.overflow & 1u) != 0) {
+        // The grid overflowed: nothing after it ran, so the other totals mean nothing yet.
+        entry_cap_ = std::max<std::uint64_t>(entry_cap_ * 2, st.entries + st.entries / 4 + 1024);
+        continue;
+      }
       if ((st.overflow & 2u) != 0) {
         enter_cap_ = std::max<std::uint64_t>(enter_cap_ * 2, st.enter_count + st.enter_count / 4 + 4096);
       }
@@ -240,8 +244,6 @@ class engine final : public interest::visibility_engine {
     out.candidates = st.candidates;
     out.pairs = st.candidates + st.self_pairs;
     out.timing.total_ms = ms_since(t0);
-    grid_ = st.grid;
-    large_ = st.large_count;
     result = out;
     return std::nullopt;
   }
@@ -335,12 +337,16 @@ class engine final : public interest::visibility_engine {
     a.in.prev_row = reinterpret_cast<std::uint32_t*>(d_in_.get() + 48ull * n + (wanted_ ? wanted_bytes(n) : 0));
     a.prev = {d_prev_ids_.get(), d_row_of_slot_.get(), prev_rows_, (1u << slot_bits_) - 1u};
     a.box = {d_glo_.get(), d_ghi_.get(), d_plo_.get(), d_phi_.get()};
-    a.grid = {d_start_.get(), d_elo_.get(), d_ehi_.get(), d_ecx_.get(), entry_cap_, d_large_.get()};
+    // The kernels' bounds are the capacities as allocated. (entry_cap_, enter_cap_ and vis_cap_ stay
+    // what was asked for: the visible list's two buffers trade places every update, and feeding one's
+    // grown capacity back as the other's request made both grow by half every update.)
+    const std::uint64_t entry_capacity = std::min({d_elo_.capacity(), d_ehi_.capacity(), d_ecx_.capacity()});
+    a.grid = {d_start_.get(), d_elo_.get(), d_ehi_.get(), d_ecx_.get(), entry_capacity, d_large_.get()};
     a.st = d_st_.get();
     a.enter_pairs = d_enter_pairs_.get();
-    a.enter_capacity = enter_cap_;
+    a.enter_capacity = std::min({d_enter_pairs_.capacity(), d_enter_tmp_.capacity(), d_enter_out_.capacity()});
     a.enter_cursor = d_enter_cursor_.get();
-    a.vis_capacity = vis_cap_;
+    a.vis_capacity = wanted_ ? std::min(d_vis_out_.capacity(), d_dl_out_.capacity()) : d_vis_out_.capacity();
     a.prev_vis = d_prev_vis_.get();
     a.prev_off = d_prev_off_.get();
     a.prev_rows = prev_rows_;
@@ -377,10 +383,6 @@ class engine final : public interest::visibility_engine {
     d_leave_out_.reserve(prev_total_ + 1);
     d_flag_.reserve(prev_total_ + 1);
     d_kept_prefix_.reserve(prev_total_ + 1);
-    // Capacities as allocated (at least what was asked for).
-    entry_cap_ = std::min({d_elo_.capacity(), d_ehi_.capacity(), d_ecx_.capacity()});
-    enter_cap_ = std::min({d_enter_pairs_.capacity(), d_enter_tmp_.capacity(), d_enter_out_.capacity()});
-    vis_cap_ = wanted_ ? std::min(d_vis_out_.capacity(), d_dl_out_.capacity()) : d_vis_out_.capacity();
     const pass_args a = args(n);
 
     CUDA_CHECK(launch_init(a.st, stream_));
@@ -498,10 +500,8 @@ class engine final : public interest::visibility_engine {
 
   std::uint32_t prev_rows_ = 0;
   std::uint64_t prev_total_ = 0;
-  std::uint64_t entry_cap_ = 0, vis_cap_ = 0, enter_cap_ = 0;
+  std::uint64_t entry_cap_ = 0, vis_cap_ = 0, enter_cap_ = 0;  // sizes asked for (see args())
   std::uint64_t last_vis_ = 0, last_enter_ = 0, last_leave_ = 0;
-  grid_params grid_{};
-  std::uint32_t large_ = 0;
 };
 
 }  // namespace

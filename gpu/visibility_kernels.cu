@@ -379,6 +379,9 @@ __global__ void touch_kernel() {}
 
 __global__ void capacity_kernel(pass_args a) {
   if (threadIdx.x != 0 || blockIdx.x != 0) return;
+  // After a grid overflow the query did not run: the list sizes (and their scans) hold whatever
+  // the buffers held before, so no total may be judged from them (the host grows the grid only).
+  if ((a.st->overflow & 1u) != 0) return;
   if (a.vis_off[a.n] > a.vis_capacity) atomicOr(&a.st->overflow, 4u);
   if (a.st->enter_count > a.enter_capacity) atomicOr(&a.st->overflow, 2u);
 }

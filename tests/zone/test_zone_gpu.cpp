@@ -184,6 +184,21 @@ TEST_SUITE("zone.gpu") {
         for (std::size_t i = 0; i < st.size(); ++i) pos[i] = {pos[i].x + step(rng), pos[i].y + step(rng), 0};
       });
     }
+    SUBCASE("rows growing by half every tick, a tenth with bodies over ~30 cells (the grid overflows as the rows grow)") {
+      std::mt19937_64 rng(fresh_seed());
+      std::uniform_real_distribution<float> u(0, 1500);
+      entity_store s;
+      const auto add = [&](entity_store& st, std::size_t count) {
+        for (std::size_t k = 0; k < count; ++k) {
+          entity_desc e = d;
+          e.position = {u(rng), u(rng), 0};
+          if (rng() % 10 == 0) e.presence_half_extent = {50, 50, 2};
+          (void)st.create(e);
+        }
+      };
+      add(s, 200);
+      same_as_host(s, *engine, 9, 4.0f, [&](entity_store& st, int) { add(st, st.size() / 2); });
+    }
     SUBCASE("only some rows' sets copied back (view demand); the rest fetched on access") {
       std::mt19937_64 rng(fresh_seed());
       std::uniform_real_distribution<float> u(0, 600);
