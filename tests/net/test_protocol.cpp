@@ -807,7 +807,7 @@ TEST_SUITE("net.protocol") {
   }
 
   TEST_CASE("client_view: the batched wire path equals the value path (long update lists, unknown and repeated ids)") {
-    // apply(wire) looks updates up in prefetched batches of 16; apply(msg) one by one. Twin views
+    // apply(wire) looks updates up in prefetched batches of 64; apply(msg) one by one. Twin views
     // fed the same frames must agree on status, bad ids, contents, digest and the positions told.
     const std::uint64_t seed = fresh_seed();
     CAPTURE(seed);
