@@ -243,6 +243,26 @@ TEST_SUITE("net.protocol") {
       CHECK(got == sent);
       CHECK(d.pending_bytes() == 0);
     }
+    {  // The bot swarm's read path: reads of up to 16 KiB, each decoding every frame it completes
+       // before the next read (frames straddle reads; a frame is used before the next next()).
+      frame_decoder d(big_frames());
+      std::vector<message> got;
+      std::size_t reads_with_several = 0;
+      for (std::size_t at = 0; at < stream.size();) {
+        const auto buf = d.prepare(16384);
+        REQUIRE(buf.size() == 16384);
+        const std::size_t n = std::min(stream.size() - at, 1 + g.below(buf.size()));
+        std::memcpy(buf.data(), stream.data() + at, n);
+        d.commit(n);
+        at += n;
+        std::size_t frames = 0;
+        for (auto s = d.next(); s.is_frame(); s = d.next(), ++frames) got.push_back(*to_message(*s.frame.envelope));
+        reads_with_several += frames > 1 ? 1 : 0;
+      }
+      CHECK(got == sent);
+      CHECK(d.pending_bytes() == 0);
+      CHECK(reads_with_several > 0);
+    }
   }
 
   TEST_CASE("misaligned frames (sizes not a multiple of 8) still decode") {
