@@ -180,6 +180,7 @@ class bot_session : public std::enable_shared_from_this<bot_session> {
   net::vec3f heading_{1, 0, 0};
   net::world_bounds world_{};
   bool jumped_ = false;  ///< this session teleported (a board fix from before may be far off)
+  position_board::fix own_fix_{};  ///< the latest self_position (only the leader's goes on the board)
   /// Counts not yet added to the swarm's shared counters (flush_counts, every few frames and at close).
   struct {
     std::uint64_t tick_updates = 0, enters = 0, leaves = 0, updates = 0, resets = 0, digests_checked = 0,
@@ -696,7 +697,10 @@ void bot_session::on_tick_update(const net::wire::tick_update& u, std::uint64_t 
   const auto* self = u.self_position();
   if (self) {
     frame_check_.own = {tick, to_vec(*self), true};
-    board.report(entity_, tick, frame_check_.own.pos);  // followers and the flash crowd read it
+    own_fix_ = frame_check_.own;
+    // Other bots read only the leader's entry (followers, the flash crowd's hotspot): the others
+    // keep their fix to themselves, which spares a striped lock per frame.
+    if (s_.leader.load(std::memory_order_relaxed) == entity_) board.report(entity_, tick, frame_check_.own.pos);
     ++local_.self_positions;
   } else if (!jumped_) {
     frame_check_.own = board.get(entity_);
@@ -814,7 +818,7 @@ void bot_session::schedule_ping() {
 net::vec3f bot_session::steer() {
   const double t = std::chrono::duration<double>(steady::now() - welcomed_at_).count();
   const auto toward = [&](const net::vec3f& target, float stop_at) -> std::optional<net::vec3f> {
-    const auto own = s_.board().get(entity_);
+    const auto own = own_fix_.known ? own_fix_ : s_.board().get(entity_);
     if (!own.known) return std::nullopt;
     const float dx = target.x - own.pos.x, dy = target.y - own.pos.y;
     const float len = std::sqrt(dx * dx + dy * dy);
