@@ -124,22 +124,13 @@ cudaError_t launch_expand(const cell_prefix* prefix, std::uint32_t cells, std::u
   return cudaGetLastError();
 }
 
-cudaError_t launch_check_direct(const check_args& a, bool balanced, bool count_only, cudaStream_t stream) {
-  const std::uint32_t grid = a.item_last - a.item_first;
-  if (grid == 0) return cudaSuccess;
-  if (count_only) {
-    if (balanced) {
-      check_kernel<true, true, check_mode::count><<<grid, tuning::segment, 0, stream>>>(a);
-    } else {
-      check_kernel<false, true, check_mode::count><<<grid, tuning::segment, 0, stream>>>(a);
-    }
-  } else {
-    if (balanced) {
-      check_kernel<true, false, check_mode::direct><<<grid, tuning::segment, 0, stream>>>(a);
-    } else {
-      check_kernel<false, false, check_mode::direct><<<grid, tuning::segment, 0, stream>>>(a);
-    }
-  }
+cudaError_t launch_place_chunks(const unsigned char* chunks, const unsigned long long* cursor, std::uint64_t capacity,
+                                const std::uint64_t* tile_off, const std::uint32_t* tile_pairs,
+                                const std::uint64_t* tile_pos, std::uint32_t tiles, std::uint32_t* out_pairs,
+                                cudaStream_t stream) {
+  if (tiles == 0) return cudaSuccess;
+  place_chunks_kernel<<<blocks_for(std::uint64_t{tiles} * 32, tuning::block), tuning::block, 0, stream>>>(
+      chunks, cursor, capacity, tile_off, tile_pairs, tile_pos, tiles, out_pairs);
   return cudaGetLastError();
 }
 

@@ -370,12 +370,7 @@ __device__ __forceinline__ std::uint32_t hi_flags(const float4& hi, const grid_p
 /// chunk: a 12-byte header then the 3-level encoded rows (Compressed) or plain id pairs, placed
 /// by a block prefix sum plus one atomic per chunk. Chunks past the capacity are counted, not
 /// written: the host sees cursor > capacity and re-runs the batch with room.
-/// Output modes of check_kernel: chunks (the paper's output, compressed or plain), per-tile pair
-/// counts only (pass 1 of the direct output), or final id pairs at the scanned per-tile positions
-/// (pass 2 of the direct output).
-enum class check_mode : int { chunks = 0, count = 1, direct = 2 };
-
-template <bool Balanced, bool Compressed, check_mode Mode = check_mode::chunks>
+template <bool Balanced, bool Compressed>
 __global__ void __launch_bounds__(tuning::segment) check_kernel(check_args a) {
   constexpr std::uint32_t T = tuning::segment;
   using scan = cub::BlockScan<std::uint32_t, T>;
@@ -451,27 +446,6 @@ __global__ void __launch_bounds__(tuning::segment) check_kernel(check_args a) {
     }
 
     const std::uint32_t pairs = static_cast<std::uint32_t>(__popcll(hits));
-    if constexpr (Mode != check_mode::chunks) {
-      std::uint32_t before, tile_total;
-      scan(scan_temp).ExclusiveSum(pairs, before, tile_total);
-      const std::uint32_t tile = tile0 + (h - v);
-      if constexpr (Mode == check_mode::count) {
-        if (tid == 0) a.tile_pairs[tile] = tile_total;
-      } else {
-        if (pairs > 0) {
-          std::uint32_t* w = a.out_pairs + 2 * (a.tile_pos[tile] - a.pair_base + before);
-          std::uint32_t q = 0;
-          while (hits) {
-            const std::uint32_t j = __ffsll(static_cast<long long>(hits)) - 1;
-            hits &= hits - 1;
-            const std::uint32_t other = col_id[j];
-            w[q++] = min(row_id, other);
-            w[q++] = max(row_id, other);
-          }
-        }
-      }
-      continue;
-    }
     const std::uint32_t bytes = Compressed ? (pairs ? 2 + pairs : 0) : 8 * pairs;
     std::uint32_t offset, total;
     scan(scan_temp).ExclusiveSum((pairs << 16) | bytes, offset, total);
@@ -518,6 +492,24 @@ __global__ void __launch_bounds__(tuning::segment) check_kernel(check_args a) {
       }
     }
   }
+}
+
+/// Direct output, after a batch's checking kernel wrote its plain chunks at atomic offsets: moves
+/// each tile's pairs to the tile's scanned position in the batch's pair buffer, dropping the
+/// headers, so the batch's pairs are in tile order (the same order on every run). One warp per
+/// tile, coalesced 4-byte copies. Does nothing when the batch overflowed its chunk buffer (the
+/// host re-runs the batch with room).
+__global__ void place_chunks_kernel(const unsigned char* chunks, const unsigned long long* cursor, std::uint64_t capacity,
+                                    const std::uint64_t* tile_off, const std::uint32_t* tile_pairs,
+                                    const std::uint64_t* tile_pos, std::uint32_t tiles, std::uint32_t* out_pairs) {
+  const std::uint64_t warp = (static_cast<std::uint64_t>(blockIdx.x) * blockDim.x + threadIdx.x) / 32;
+  const std::uint32_t lane = threadIdx.x % 32;
+  if (warp >= tiles || *cursor > capacity) return;
+  const std::uint32_t pairs = tile_pairs[warp];
+  if (pairs == 0) return;
+  const auto* src = reinterpret_cast<const std::uint32_t*>(chunks + tile_off[warp] + sizeof(chunk_header));
+  std::uint32_t* dst = out_pairs + 2 * tile_pos[warp];
+  for (std::uint32_t w = lane; w < 2 * pairs; w += 32) dst[w] = src[w];
 }
 
 // ---- large boxes ------------------------------------------------------------------------------

@@ -35,9 +35,12 @@ cudaError_t launch_gather(const float4* box_lo, const float4* box_hi, const std:
                           float4* packed_lo, float4* packed_hi, cudaStream_t stream);
 cudaError_t launch_expand(const cell_prefix* prefix, std::uint32_t cells, std::uint32_t* items, cudaStream_t stream);
 cudaError_t launch_check(const check_args& args, bool balanced, bool compressed, cudaStream_t stream);
-/// Direct output: pass 1 (count_only: per-tile pair counts into args.tile_pairs, global tile
-/// index) or pass 2 (final id pairs at args.tile_pos[tile] - args.pair_base).
-cudaError_t launch_check_direct(const check_args& args, bool balanced, bool count_only, cudaStream_t stream);
+/// Direct output: moves each tile's plain chunk (written by launch_check, uncompressed) to
+/// out_pairs + 2 * tile_pos[tile]; nothing when *cursor > capacity (the batch overflowed).
+cudaError_t launch_place_chunks(const unsigned char* chunks, const unsigned long long* cursor, std::uint64_t capacity,
+                                const std::uint64_t* tile_off, const std::uint32_t* tile_pairs,
+                                const std::uint64_t* tile_pos, std::uint32_t tiles, std::uint32_t* out_pairs,
+                                cudaStream_t stream);
 /// Exclusive scan of per-tile pair counts into 64-bit positions (count values; pass count + 1
 /// with a zero last count to get the total at position count).
 cudaError_t scan_tiles(void* temp, std::size_t& temp_bytes, const std::uint32_t* tile_pairs, std::uint64_t* tile_pos,
