@@ -300,28 +300,28 @@ bool pbig_engine::plan(std::uint32_t n) {
 void pbig_engine::map_boxes(std::uint32_t n) {
   const box_arrays boxes = arrays_of(d_coord_.get(), d_bits_.get(), n);
   const auto cells = static_cast<std::uint32_t>(plan_.cells);
-  d_counts_.reserve(cells + 1);
-  d_cursor_.reserve(cells);
+  // One zeroed array, one memset: counts[0, cells] (counts[cells] stays 0 for the scan), the
+  // large-box counter at counts[cells + 1], then the map kernel's per-cell cursors.
+  d_counts_.reserve(2ull * cells + 2);
+  std::uint32_t* large_counter = d_counts_.get() + cells + 1;
+  std::uint32_t* cursor = d_counts_.get() + cells + 2;
   d_prefix_.reserve(cells + 1);
   d_is_large_.reserve(n);
-  d_large_.reserve(n);
-  CUDA_CHECK(cudaMemsetAsync(d_counts_.get(), 0, (cells + 1) * sizeof(std::uint32_t), main_));
-  CUDA_CHECK(cudaMemsetAsync(d_cursor_.get(), 0, cells * sizeof(std::uint32_t), main_));
-  CUDA_CHECK(launch_count(boxes, n, plan_, d_counts_.get(), d_is_large_.get(), main_));
+  CUDA_CHECK(cudaMemsetAsync(d_counts_.get(), 0, (2ull * cells + 2) * sizeof(std::uint32_t), main_));
+  CUDA_CHECK(launch_count(boxes, n, plan_, d_counts_.get(), d_is_large_.get(), large_counter, main_));
   d_box_lo_.reserve(n);
   d_box_hi_.reserve(n);
   CUDA_CHECK(launch_pack_boxes(boxes, n, d_box_lo_.get(), d_box_hi_.get(), main_));
 
   map_readback* rb = d_readback_.get();
-  std::size_t select_bytes = 0, scan_bytes = 0, reduce_bytes = 0;
-  CUDA_CHECK(select_large(nullptr, select_bytes, d_is_large_.get(), d_large_.get(), &rb->large_count, n, main_));
+  std::size_t scan_bytes = 0, reduce_bytes = 0;
   CUDA_CHECK(scan_cells(nullptr, scan_bytes, d_counts_.get(), d_prefix_.get(), cells, main_));
   CUDA_CHECK(reduce_cells(nullptr, reduce_bytes, d_counts_.get(), &rb->totals, cells, main_));
-  grow_temp(std::max({select_bytes, scan_bytes, reduce_bytes}));
-  CUDA_CHECK(select_large(d_temp_.get(), select_bytes, d_is_large_.get(), d_large_.get(), &rb->large_count, n, main_));
+  grow_temp(std::max(scan_bytes, reduce_bytes));
   CUDA_CHECK(scan_cells(d_temp_.get(), scan_bytes, d_counts_.get(), d_prefix_.get(), cells, main_));
   CUDA_CHECK(reduce_cells(d_temp_.get(), reduce_bytes, d_counts_.get(), &rb->totals, cells, main_));
-  CUDA_CHECK(launch_batch_plan(d_prefix_.get(), cells, rb, tuning::min_tiles_per_batch, tuning::max_batches, main_));
+  CUDA_CHECK(launch_batch_plan(d_prefix_.get(), cells, large_counter, rb, tuning::min_tiles_per_batch, tuning::max_batches,
+                               main_));
   CUDA_CHECK(cudaEventRecord(ev_counted_, main_));
   CUDA_CHECK(cudaMemcpyAsync(h_readback_.get(), rb, sizeof(map_readback), cudaMemcpyDeviceToHost, main_));
   CUDA_CHECK(cudaStreamSynchronize(main_));
@@ -336,6 +336,15 @@ void pbig_engine::map_boxes(std::uint32_t n) {
     throw std::length_error("pbig: a cell holds more than 65535 segments of boxes");
   }
 
+  if (rb_.large_count > 0) {
+    // The large boxes' ids in id order (for the large-box passes at the end of the call).
+    d_large_.reserve(n);
+    std::size_t select_bytes = 0;
+    CUDA_CHECK(select_large(nullptr, select_bytes, d_is_large_.get(), d_large_.get(), &rb->large_count, n, main_));
+    grow_temp(select_bytes);
+    CUDA_CHECK(select_large(d_temp_.get(), select_bytes, d_is_large_.get(), d_large_.get(), &rb->large_count, n, main_));
+  }
+
   const std::uint32_t entries = rb_.total.entry, items = rb_.total.item;
   d_entries_unsorted_.reserve(entries);
   d_entries_.reserve(entries);
@@ -346,16 +355,20 @@ void pbig_engine::map_boxes(std::uint32_t n) {
     CUDA_CHECK(cudaEventRecord(ev_scattered_, main_));
     CUDA_CHECK(cudaEventRecord(ev_sorted_, main_));
   } else {
-    CUDA_CHECK(launch_map(boxes, n, plan_, d_is_large_.get(), d_prefix_.get(), d_cursor_.get(),
-                          d_entries_unsorted_.get(), main_));
+    CUDA_CHECK(launch_map(boxes, n, plan_, d_is_large_.get(), d_prefix_.get(), cursor, d_entries_unsorted_.get(),
+                          main_));
     CUDA_CHECK(cudaEventRecord(ev_scattered_, main_));
     // Sort each cell's list by box id: the mapping's atomics give a timing-dependent order.
-    std::size_t sort_bytes = 0;
-    CUDA_CHECK(sort_cells(nullptr, sort_bytes, d_entries_unsorted_.get(), d_entries_.get(), entries, cells,
-                          d_prefix_.get(), main_));
-    grow_temp(sort_bytes);
-    CUDA_CHECK(sort_cells(d_temp_.get(), sort_bytes, d_entries_unsorted_.get(), d_entries_.get(), entries, cells,
-                          d_prefix_.get(), main_));
+    if (rb_.totals.max_count <= tuning::small_cell_sort) {
+      CUDA_CHECK(launch_sort_small_cells(d_entries_unsorted_.get(), d_entries_.get(), d_prefix_.get(), cells, main_));
+    } else {
+      std::size_t sort_bytes = 0;
+      CUDA_CHECK(sort_cells(nullptr, sort_bytes, d_entries_unsorted_.get(), d_entries_.get(), entries, cells,
+                            d_prefix_.get(), main_));
+      grow_temp(sort_bytes);
+      CUDA_CHECK(sort_cells(d_temp_.get(), sort_bytes, d_entries_unsorted_.get(), d_entries_.get(), entries, cells,
+                            d_prefix_.get(), main_));
+    }
     CUDA_CHECK(cudaEventRecord(ev_sorted_, main_));
     CUDA_CHECK(launch_gather(d_box_lo_.get(), d_box_hi_.get(), d_entries_.get(), entries, d_packed_lo_.get(),
                              d_packed_hi_.get(), main_));
@@ -641,7 +654,7 @@ std::uint64_t pbig_engine::large_pairs(std::uint32_t n, interest::pair_list& out
 // straight into the result at the running total. Stream order protects a slot's buffers from the
 // next batch on that slot until its copy is done (synchronisation 3); no CPU decode.
 
-void pbig_engine::launch_direct(const batch& b, pipeline_slot& s) {
+void pbig_engine::launch_direct(const batch& b, pipeline_slot& s, std::uint64_t prefetch_pairs) {
   const std::uint32_t tiles = b.tile_last - b.tile_first;
   s.d_tile_off.reserve(tiles);
   s.d_tile_pairs.reserve(tiles + 1);
@@ -678,6 +691,18 @@ void pbig_engine::launch_direct(const batch& b, pipeline_slot& s) {
   CUDA_CHECK(cudaMemcpyAsync(s.h_total.get(), s.d_tile_pos.get() + tiles, sizeof(std::uint64_t), cudaMemcpyDeviceToHost,
                              s.stream));
   CUDA_CHECK(cudaEventRecord(s.totals_ready, s.stream));
+  // Batch 0 sits at the start of the result whatever its size: its copy, sized by the last
+  // call's batch 0 (the paper's prefetch), is queued now rather than after the host has read the
+  // total, so the copy engine does not wait for the host. finish_direct copies any rest.
+  s.prefetched_pairs = std::min<std::uint64_t>({prefetch_pairs, s.capacity / 8, h_result_.capacity()});
+  s.overcopied = false;
+  if (s.prefetched_pairs > 0) {
+    CUDA_CHECK(cudaEventRecord(s.copy_begin, s.stream));
+    CUDA_CHECK(cudaMemcpyAsync(h_result_.get(), s.d_direct.get(), s.prefetched_pairs * sizeof(interest::id_pair),
+                               cudaMemcpyDeviceToHost, s.stream));
+    CUDA_CHECK(cudaEventRecord(s.copy_end, s.stream));
+    s.copy_pending = true;
+  }
 }
 
 void pbig_engine::account_copy(pipeline_slot& s) {
@@ -701,12 +726,13 @@ std::uint64_t pbig_engine::finish_direct(const batch& b, pipeline_slot& s, std::
                                          std::size_t count) {
   // Synchronisation 1: the batch's kernels are done and its totals are in host memory.
   CUDA_CHECK(cudaEventSynchronize(s.totals_ready));
-  account_copy(s);  // the previous batch on this slot (its copy preceded this batch's kernels)
+  if (s.prefetched_pairs == 0) account_copy(s);  // the previous batch on this slot (before these kernels)
   report_.check_ms += elapsed(s.kernel_begin, s.kernel_end);
   const std::uint64_t used = *s.h_cursor.get();
   if (used > s.capacity) {
     // Overflow: no chunk past the capacity was written and nothing was placed. Grow and re-run.
     ++report_.reruns;
+    account_copy(s);  // a prefetch of nothing useful: let it finish before the buffers move
     s.capacity = used + used / 4;
     s.d_out.reserve(s.capacity);
     launch_direct(b, s);
@@ -715,17 +741,27 @@ std::uint64_t pbig_engine::finish_direct(const batch& b, pipeline_slot& s, std::
     if (*s.h_cursor.get() != used) throw std::runtime_error("pbig: a re-run batch produced a different output size");
   }
   const std::uint64_t total = *s.h_total.get();
-  // Room for this batch; when the result must grow, room for the rest at this batch's rate too.
-  const std::uint64_t need = base + total;
-  ensure_result(std::max<std::uint64_t>(1, need > h_result_.capacity() ? need + need / (done + 1) * (count - done - 1) + need / 8 : need),
-                base);
-  CUDA_CHECK(cudaEventRecord(s.copy_begin, s.stream));
-  if (total > 0) {
-    CUDA_CHECK(cudaMemcpyAsync(h_result_.get() + base, s.d_direct.get(), total * sizeof(interest::id_pair),
-                               cudaMemcpyDeviceToHost, s.stream));
+  if (done == 0) last_first_batch_pairs_ = total;
+  // A prefetch past this batch's pairs wrote stale pairs where the next batch's go: the next
+  // batch's copy (on the other stream) must come after it.
+  pipeline_slot& other = &s == &slot_[0] ? slot_[1] : slot_[0];
+  if (other.overcopied) {
+    CUDA_CHECK(cudaStreamWaitEvent(s.stream, other.copy_end, 0));
+    other.overcopied = false;
   }
-  CUDA_CHECK(cudaEventRecord(s.copy_end, s.stream));
-  s.copy_pending = true;
+  const std::uint64_t already = std::min(s.prefetched_pairs, total);
+  s.overcopied = s.prefetched_pairs > total;
+  s.prefetched_pairs = 0;
+  if (already < total) {
+    // Room for this batch; when the result must grow, room for the rest at this batch's rate too.
+    const std::uint64_t need = base + total;
+    ensure_result(need > h_result_.capacity() ? need + need / (done + 1) * (count - done - 1) + need / 8 : need, base + already);
+    if (already == 0) CUDA_CHECK(cudaEventRecord(s.copy_begin, s.stream));
+    CUDA_CHECK(cudaMemcpyAsync(h_result_.get() + base + already, s.d_direct.get() + 2 * already,
+                               (total - already) * sizeof(interest::id_pair), cudaMemcpyDeviceToHost, s.stream));
+    CUDA_CHECK(cudaEventRecord(s.copy_end, s.stream));
+    s.copy_pending = true;
+  }
   report_.bytes_out += total * sizeof(interest::id_pair);
   return total;
 }
@@ -741,7 +777,12 @@ std::uint64_t pbig_engine::check_direct(std::uint32_t n) {
   report_.batches = static_cast<std::uint32_t>(count);
   // Slot 1's stream must see the mapped boxes.
   CUDA_CHECK(cudaStreamWaitEvent(slot_[1].stream, ev_sched_, 0));
-  for (auto& s : slot_) s.copy_pending = false;
+  for (auto& s : slot_) {
+    s.copy_pending = false;
+    s.overcopied = false;
+  }
+  const std::uint64_t prefetch = opt_.pipelining ? last_first_batch_pairs_ : 0;
+  if (prefetch > 0) ensure_result(prefetch, 0);
   std::uint64_t base = 0;
   if (!opt_.pipelining) {
     for (std::size_t k = 0; k < count; ++k) {
@@ -753,7 +794,7 @@ std::uint64_t pbig_engine::check_direct(std::uint32_t n) {
   } else {
     // Fig. 7 without the decode stage: kernel k runs while batch k-1's pairs are copied out.
     for (std::size_t k = 0; k <= count; ++k) {
-      if (k < count) launch_direct(batches[k], slot_[k % 2]);
+      if (k < count) launch_direct(batches[k], slot_[k % 2], k == 0 ? prefetch : 0);
       if (k >= 1) base += finish_direct(batches[k - 1], slot_[(k - 1) % 2], base, k - 1, count);
     }
     for (auto& s : slot_) account_copy(s);

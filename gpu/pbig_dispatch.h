@@ -44,6 +44,8 @@ struct pipeline_slot {
   cudaEvent_t kernel_begin = nullptr, kernel_end = nullptr, copy_begin = nullptr, copy_end = nullptr;
   cudaEvent_t totals_ready = nullptr;  // direct output: h_cursor and h_total are readable
   bool copy_pending = false;           // direct output: a copy whose time is not yet accounted
+  std::uint64_t prefetched_pairs = 0;  // direct output: pairs copied before the batch's total was known
+  bool overcopied = false;             // direct output: the prefetch copied past the batch's pairs
   std::uint64_t capacity = 0;    // usable bytes of d_out / h_out
   std::uint64_t prefetched = 0;  // bytes of the current batch already copied
   bool remainder_pending = false;
@@ -90,7 +92,7 @@ class pbig_engine {
   void large_count_pass(std::uint32_t n);  // queues the count; total in *h_large_total_ after a sync
   void large_write_pass(std::uint32_t n, std::uint64_t total, void* host_dst);
   std::uint64_t check_direct(std::uint32_t n);
-  void launch_direct(const batch& b, pipeline_slot& s);
+  void launch_direct(const batch& b, pipeline_slot& s, std::uint64_t prefetch_pairs = 0);
   std::uint64_t finish_direct(const batch& b, pipeline_slot& s, std::uint64_t base, std::size_t done, std::size_t count);
   void account_copy(pipeline_slot& s);
   void ensure_result(std::uint64_t needed, std::uint64_t keep);
@@ -118,7 +120,7 @@ class pbig_engine {
   bool validate_on_device_ = false;  // this call's boxes came straight from pinned memory
   grid_plan_dev plan_{};
   // mapping
-  device_buffer<std::uint32_t> d_counts_, d_cursor_;
+  device_buffer<std::uint32_t> d_counts_;  // per-cell counts, the large-box counter, per-cell cursors
   device_buffer<cell_prefix> d_prefix_;
   device_buffer<std::uint8_t> d_is_large_;
   device_buffer<std::uint32_t> d_large_;
@@ -135,6 +137,7 @@ class pbig_engine {
   pinned_buffer<std::uint32_t> h_large_pairs_, h_large_total_;
   // direct output: every pair of the call, in pinned host memory (kept across calls)
   pinned_buffer<interest::id_pair> h_result_;
+  std::uint64_t last_first_batch_pairs_ = 0;  // batch 0's pairs in the last call: its prefetch size
   // decode scratch
   std::vector<std::uint64_t> tile_pos_;
   std::vector<std::uint32_t> task_tiles_;

@@ -259,16 +259,20 @@ __device__ __forceinline__ cell_range cells_of(const box_arrays& b, std::uint32_
 }
 
 /// Box counting kernel: one thread per box; +1 (atomic) on every cell the box occupies. A box
-/// that would occupy more than plan.large_cells cells is flagged large and kept out of the grid.
+/// that would occupy more than plan.large_cells cells is flagged large, counted in *large_count
+/// and kept out of the grid.
 __global__ void count_kernel(box_arrays boxes, std::uint32_t n, grid_plan_dev p, std::uint32_t* counts,
-                             std::uint8_t* is_large) {
+                             std::uint8_t* is_large, std::uint32_t* large_count) {
   const std::uint32_t i = blockIdx.x * blockDim.x + threadIdx.x;
   if (i >= n) return;
   const cell_range r = cells_of(boxes, i, p);
   const double occupied = static_cast<double>(r.hi[0] - r.lo[0] + 1) * (r.hi[1] - r.lo[1] + 1) * (r.hi[2] - r.lo[2] + 1);
   const bool large = occupied > p.large_cells;
   is_large[i] = large ? 1 : 0;
-  if (large) return;
+  if (large) {
+    atomicAdd(large_count, 1u);
+    return;
+  }
   for (std::uint32_t z = r.lo[2]; z <= r.hi[2]; ++z) {
     for (std::uint32_t y = r.lo[1]; y <= r.hi[1]; ++y) {
       const std::uint64_t row = (static_cast<std::uint64_t>(z) * p.dims[1] + y) * p.dims[0];
@@ -305,6 +309,23 @@ __global__ void pack_boxes_kernel(box_arrays boxes, std::uint32_t n, float4* box
   box_hi[i] = make_float4(boxes.hi[0][i], boxes.hi[1][i], boxes.hi[2][i], __uint_as_float(boxes.mask[i]));
 }
 
+/// Sorts each cell's list by box id (the mapping's atomics give a timing-dependent order), for
+/// grids whose fullest cell holds at most tuning::small_cell_sort entries: one warp per cell, each
+/// id's slot is its rank (ids in a cell are distinct). Fuller grids use CUB's segmented sort.
+__global__ void sort_small_cells_kernel(const std::uint32_t* in, std::uint32_t* out, const cell_prefix* prefix,
+                                        std::uint32_t cells) {
+  const std::uint64_t cell = (static_cast<std::uint64_t>(blockIdx.x) * blockDim.x + threadIdx.x) / 32;
+  const std::uint32_t lane = threadIdx.x % 32;
+  if (cell >= cells) return;
+  const std::uint32_t b = prefix[cell].entry, e = prefix[cell + 1].entry;
+  for (std::uint32_t i = b + lane; i < e; i += 32) {
+    const std::uint32_t id = in[i];
+    std::uint32_t rank = 0;
+    for (std::uint32_t j = b; j < e; ++j) rank += in[j] < id ? 1u : 0u;
+    out[b + rank] = id;
+  }
+}
+
 /// The box array of the paper: each entry's box, packed for the checking kernel, in cell order.
 __global__ void gather_kernel(const float4* box_lo, const float4* box_hi, const std::uint32_t* entries,
                               std::uint32_t count, float4* packed_lo, float4* packed_hi) {
@@ -326,14 +347,15 @@ __global__ void expand_items_kernel(const cell_prefix* prefix, std::uint32_t cel
 
 /// Fills the read-back block: totals at cell M and the batch boundaries (cells cut so that each
 /// batch holds about the same number of tiles).
-__global__ void batch_plan_kernel(const cell_prefix* prefix, std::uint32_t cells, map_readback* rb,
-                                  std::uint32_t min_tiles, std::uint32_t max_batches) {
+__global__ void batch_plan_kernel(const cell_prefix* prefix, std::uint32_t cells, const std::uint32_t* large_count,
+                                  map_readback* rb, std::uint32_t min_tiles, std::uint32_t max_batches) {
   if (threadIdx.x >= 32) return;
   const std::uint32_t tiles = prefix[cells].tile;
   std::uint32_t count = tiles == 0 ? 0 : (tiles + min_tiles - 1) / min_tiles;
   count = min(count, max_batches);
   if (threadIdx.x == 0) {
     rb->total = prefix[cells];
+    rb->large_count = *large_count;
     rb->batches.count = count;
   }
   for (std::uint32_t b = threadIdx.x; b <= count && b < static_cast<std::uint32_t>(max_batch_slots); b += 32) {
