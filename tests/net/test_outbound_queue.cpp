@@ -24,7 +24,7 @@ shared_frame numbered(std::uint64_t n) {
 }
 std::uint64_t number_of(const shared_frame& f) {
   std::uint64_t n = 0;
-  std::memcpy(&n, f->data(), 8);
+  std::memcpy(&n, f.data(), 8);
   return n;
 }
 
