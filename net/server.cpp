@@ -307,6 +307,16 @@ class session : public std::enable_shared_from_this<session> {
     }
     if (r.dropped != 0) srv_.counters.frames_dropped += r.dropped;
     if (r.resync) {
+      // Why the queue was full (evidence for resyncs under pacing, which should leave at most
+      // client_max_backlog state frames queued): the first 20 episodes and every 1000th.
+      const auto episode = srv_.counters.resyncs_requested.load(std::memory_order_relaxed);
+      if (episode < 20 || episode % 1000 == 0) {
+        std::size_t control = 0;
+        for (const auto& e : queue_.entries()) control += e.kind == delivery::control ? 1 : 0;
+        spdlog::info("session {}: drop episode {}: queue held {} frames ({} control, {} being written), state backlog {}",
+                     id_, episode + 1, queue_.size(), control, queue_.in_flight(),
+                     backlog_->load(std::memory_order_relaxed));
+      }
       // Once per episode: the game makes this client's next frame a reset; until it is queued,
       // the queue drops the deltas built meanwhile (the client could not apply them).
       ++srv_.counters.resyncs_requested;
