@@ -128,7 +128,9 @@ void print_table(const swarm_result& r, const summary& s) {
   row("tick updates", num(r.tick_updates));
   row("enters / leaves / updates", num(r.enters) + " / " + num(r.leaves) + " / " + num(r.updates));
   row("resyncs (reset after the first)", num(r.resets));
-  row("inputs sent", num(r.inputs_sent));
+  row("inputs sent", num(r.inputs_sent) + (r.options.inputs_on_change
+                                               ? " (" + num(r.inputs_unchanged) + " unchanged intents not sent)"
+                                               : std::string()));
   row("digests checked", num(r.digests_checked) + (r.options.verify ? "" : " (not compared: no --verify)"));
   row("digest mismatches", num(r.digest_mismatches));
   row("inconsistent updates", num(r.inconsistent));
@@ -172,6 +174,8 @@ bool write_json(const std::string& path, const swarm_result& r, const summary& s
   o << "  \"frames\": " << r.frames_in << ",\n  \"bytes\": " << r.bytes_in << ",\n  \"tick_updates\": " << r.tick_updates << ",\n";
   o << "  \"enters\": " << r.enters << ",\n  \"leaves\": " << r.leaves << ",\n  \"updates\": " << r.updates << ",\n";
   o << "  \"resets\": " << r.resets << ",\n  \"inputs_sent\": " << r.inputs_sent << ",\n";
+  o << "  \"inputs_unchanged\": " << r.inputs_unchanged << ",\n  \"inputs_mode\": \""
+    << (r.options.inputs_on_change ? "changes" : "every") << "\",\n";
   o << "  \"digests_checked\": " << r.digests_checked << ",\n  \"digest_mismatches\": " << r.digest_mismatches << ",\n";
   o << "  \"inconsistent\": " << r.inconsistent << ",\n  \"aoi_checked\": " << r.aoi_checked << ",\n";
   o << "  \"aoi_unchecked\": " << r.aoi_unchecked << ",\n  \"aoi_violations\": " << r.aoi_violations << ",\n";
@@ -255,7 +259,7 @@ std::string scenario_args(const std::string& path, std::vector<std::string>& arg
 
 int main(int argc, char** argv) {
   swarm_options o;
-  std::string mix = "walk=1", json, csv, plot, hotspot;
+  std::string mix = "walk=1", json, csv, plot, hotspot, inputs_mode = "changes";
   unsigned port = o.port;
   po::options_description desc("bot-swarm options");
   desc.add_options()                                                                                   //
@@ -265,7 +269,9 @@ int main(int argc, char** argv) {
       ("bots", po::value(&o.bots)->default_value(o.bots), "number of bots")                            //
       ("duration", po::value(&o.duration_s)->default_value(o.duration_s), "run time in seconds (ramp-up included)")  //
       ("ramp", po::value(&o.ramp)->default_value(o.ramp), "new bots per second during ramp-up")        //
-      ("input-hz", po::value(&o.input_hz)->default_value(o.input_hz), "inputs per second per bot")     //
+      ("input-hz", po::value(&o.input_hz)->default_value(o.input_hz), "intent evaluations per second per bot (an input each with --inputs every)")  //
+      ("inputs", po::value(&inputs_mode)->default_value(inputs_mode), "changes: send an input when the intent changes (and as a keep-alive); every: at every evaluation")  //
+      ("input-keepalive", po::value(&o.input_keepalive_s)->default_value(o.input_keepalive_s), "--inputs changes: resend an unchanged intent after this many seconds")  //
       ("ping-hz", po::value(&o.ping_hz)->default_value(o.ping_hz), "pings per second per bot")         //
       ("mix", po::value(&mix)->default_value(mix), "behaviour shares, e.g. walk=0.5,patrol=0.2,follow=0.1,crowd=0.1,teleport=0.1")  //
       ("teleport-hz", po::value(&o.teleport_hz)->default_value(o.teleport_hz, "0.2"), "teleport bots: jumps per second per bot (random times and targets)")  //
@@ -328,6 +334,11 @@ int main(int argc, char** argv) {
     o.hotspot = {x, y, z};
     o.hotspot_set = true;
   }
+  if (inputs_mode != "changes" && inputs_mode != "every") {
+    std::fprintf(stderr, "bot-swarm: --inputs must be 'changes' or 'every', not '%s'\n", inputs_mode.c_str());
+    return 64;
+  }
+  o.inputs_on_change = inputs_mode == "changes";
   if (o.bots == 0 || !(o.duration_s > 0) || !(o.ramp > 0) || !(o.input_hz > 0)) {
     std::fprintf(stderr, "bot-swarm: --bots, --duration, --ramp and --input-hz must be > 0\n");
     return 64;

@@ -121,10 +121,11 @@ class position_board {
 class swarm;
 
 /// One session of one bot slot: connect, hello, play, close. Churn ends a session and starts a new
-/// one for the same slot. All handlers run on the session's strand.
+/// one for the same slot. All handlers run on the thread of the session's io_context (one thread
+/// per context), so they never run concurrently.
 class bot_session : public std::enable_shared_from_this<bot_session> {
  public:
-  bot_session(swarm& s, std::size_t slot, behaviour kind, std::uint64_t seed);
+  bot_session(swarm& s, std::size_t slot, unsigned thread, behaviour kind, std::uint64_t seed);
   void start();
   void logout();  ///< graceful, intended close (churn, end of run)
   std::size_t slot() const { return slot_; }
@@ -132,10 +133,11 @@ class bot_session : public std::enable_shared_from_this<bot_session> {
 
  private:
   void on_connect(const boost::system::error_code& ec);
-  void read();
-  void on_frame(const net::frame_view& f);
+  void wait_readable();
+  void on_readable(const boost::system::error_code& ec);
+  void on_frame(const net::frame_view& f, std::uint64_t received_us);
   void on_welcome(const net::wire::welcome& w);
-  void on_tick_update(const net::wire::tick_update& u);
+  void on_tick_update(const net::wire::tick_update& u, std::uint64_t received_us);
   /// 0: unchecked (own position unknown), 1: inside, 2: violation (reported).
   int check_aoi(const position_board::fix& own, std::uint64_t tick, std::uint32_t id, const net::vec3f& p,
                  const net::vec3f& half);
@@ -145,6 +147,7 @@ class bot_session : public std::enable_shared_from_this<bot_session> {
   void schedule_ping();
   void schedule_teleport();
   void send_input();
+  void maybe_send_input(std::uint64_t now_us);
   net::vec3f steer();
   void fail(const std::string& why, bool connection_failure);
   void close();
@@ -154,12 +157,14 @@ class bot_session : public std::enable_shared_from_this<bot_session> {
   std::size_t slot_;
   behaviour kind_;
   std::mt19937_64 rng_;
-  asio::strand<asio::io_context::executor_type> strand_;
+  unsigned thread_;
+  asio::io_context& io_;
   tcp::socket socket_;
   asio::steady_timer input_timer_, ping_timer_, welcome_timer_, teleport_timer_;
   net::frame_decoder decoder_;
   net::encoder encoder_;
-  std::deque<std::vector<std::uint8_t>> outbox_;
+  /// Outbound bytes: frames queued while a write is in flight go out together in the next write.
+  std::vector<std::uint8_t> out_queued_, out_writing_;
   bool writing_ = false, closed_ = false, intended_ = false, got_error_ = false;
   std::atomic<bool> playing_{false};
   std::uint32_t entity_ = 0;
@@ -168,7 +173,10 @@ class bot_session : public std::enable_shared_from_this<bot_session> {
   double tick_rate_ = 30;
   steady::time_point welcomed_at_{};
   std::uint32_t sequence_ = 0;
-  std::uint64_t inputs_ = 0;
+  std::uint64_t inputs_ = 0;  ///< intent evaluations
+  std::uint64_t next_input_us_ = 0, last_input_sent_us_ = 0;
+  net::vec3f last_move_{};
+  bool any_input_sent_ = false;
   net::vec3f heading_{1, 0, 0};
   net::world_bounds world_{};
   bool jumped_ = false;  ///< this session teleported (a board fix from before may be far off)
@@ -176,7 +184,7 @@ class bot_session : public std::enable_shared_from_this<bot_session> {
   struct {
     std::uint64_t tick_updates = 0, enters = 0, leaves = 0, updates = 0, resets = 0, digests_checked = 0,
                   aoi_checked = 0, aoi_unchecked = 0, self_positions = 0, latency_unsynced = 0, frames_in = 0,
-                  bytes_in = 0;
+                  bytes_in = 0, inputs_sent = 0, inputs_unchanged = 0;
   } local_;
   std::uint64_t frames_seen_ = 0;
   /// The frame being applied, for the position visitor's AOI check.
@@ -194,7 +202,15 @@ constexpr std::uint64_t flush_every_frames = 8;
 class swarm {
  public:
   explicit swarm(const swarm_options& opt)
-      : opt_(opt), io_(static_cast<int>(std::max(1u, opt.threads))), slots_(opt.bots), sessions_(opt.bots) {
+      : opt_(opt), slots_(opt.bots), sessions_(opt.bots) {
+    // One io_context per I/O thread, each run by that thread alone (concurrency hint 1): a bot's
+    // handlers all run on its context's thread, so a bot needs no strand, and the threads share
+    // no scheduler queue, reactor or timer heap. Each thread records latencies in its own histogram.
+    const unsigned threads = std::max(1u, opt.threads);
+    for (unsigned t = 0; t < threads; ++t) {
+      ios_.push_back(std::make_unique<asio::io_context>(1));
+      latency_.push_back(std::make_unique<latency_histogram_us>());
+    }
     double total = 0;
     for (const double m : opt_.mix) total += std::max(0.0, m);
     if (total <= 0) opt_.mix = {1, 0, 0, 0, 0}, total = 1;
@@ -214,7 +230,7 @@ class swarm {
   run_outcome run(progress_fn progress) {
     run_outcome out;
     try {
-      tcp::resolver resolver(io_);
+      tcp::resolver resolver(*ios_[0]);
       auto results = resolver.resolve(opt_.host, std::to_string(opt_.port));
       if (results.empty()) throw std::runtime_error("no address");
       endpoint_ = results.begin()->endpoint();
@@ -224,16 +240,19 @@ class swarm {
       return out;
     }
     epoch_ = steady::now();
-    auto guard = asio::make_work_guard(io_);
+    std::vector<asio::executor_work_guard<asio::io_context::executor_type>> guards;
     std::vector<std::thread> threads;
-    for (unsigned t = 0; t < std::max(1u, opt_.threads); ++t) threads.emplace_back([this] { io_.run(); });
+    for (auto& io : ios_) {
+      guards.push_back(asio::make_work_guard(*io));
+      threads.emplace_back([&ctx = *io] { ctx.run(); });
+    }
 
     // Ramp-up: launch bots at opt.ramp per second, in 10 ms steps; then churn.
     const auto start = steady::now();
     const auto end = start + std::chrono::duration_cast<steady::duration>(std::chrono::duration<double>(opt_.duration_s));
     std::size_t launched = 0;
     auto next_second = start + std::chrono::seconds(1);
-    auto prev_lat = latency_.snapshot();
+    auto prev_lat = latency_snapshot();
     second_sample prev{};
     double churn_debt = 0;
     std::mt19937_64 churn_rng(12345);
@@ -259,7 +278,7 @@ class swarm {
         s.leaves = c_.leaves.load();
         s.updates = c_.updates.load();
         s.mismatches = c_.mismatches();
-        const auto lat = latency_.snapshot();
+        const auto lat = latency_snapshot();
         latency_histogram_us::counts window{};
         for (int b = 0; b < latency_histogram_us::buckets; ++b) {
           window[static_cast<std::size_t>(b)] = lat[static_cast<std::size_t>(b)] - prev_lat[static_cast<std::size_t>(b)];
@@ -288,10 +307,13 @@ class swarm {
       }
       if (b) b->logout();
     }
-    guard.reset();
+    guards.clear();
     const auto drain_deadline = steady::now() + std::chrono::seconds(3);
-    while (!io_.stopped() && steady::now() < drain_deadline) std::this_thread::sleep_for(std::chrono::milliseconds(10));
-    io_.stop();
+    const auto all_stopped = [&] {
+      return std::all_of(ios_.begin(), ios_.end(), [](const auto& io) { return io->stopped(); });
+    };
+    while (!all_stopped() && steady::now() < drain_deadline) std::this_thread::sleep_for(std::chrono::milliseconds(10));
+    for (auto& io : ios_) io->stop();
     for (auto& t : threads) t.join();
     {
       std::lock_guard lock(sessions_mutex_);
@@ -303,8 +325,8 @@ class swarm {
     r.elapsed_s = std::chrono::duration<double>(steady::now() - start).count();
     r.slots = slots_;
     r.series = series_;
-    r.latency = latency_.snapshot();
-    r.latency_max_ms = latency_.max_ms();
+    r.latency = latency_snapshot();
+    for (const auto& h : latency_) r.latency_max_ms = std::max(r.latency_max_ms, h->max_ms());
     {
       std::lock_guard lock(problems_mutex_);
       r.problems = problems_;
@@ -314,6 +336,7 @@ class swarm {
     r.unexpected_disconnects = c_.unexpected_disconnects, r.server_errors = c_.server_errors, r.logouts = c_.logouts;
     r.frames_in = c_.frames_in, r.bytes_in = c_.bytes_in, r.tick_updates = c_.tick_updates, r.enters = c_.enters;
     r.leaves = c_.leaves, r.updates = c_.updates, r.resets = c_.resets, r.inputs_sent = c_.inputs_sent;
+    r.inputs_unchanged = c_.inputs_unchanged;
     r.pongs = c_.pongs, r.digests_checked = c_.digests_checked, r.digest_mismatches = c_.digest_mismatches;
     r.inconsistent = c_.inconsistent, r.aoi_checked = c_.aoi_checked, r.aoi_unchecked = c_.aoi_unchecked;
     r.aoi_violations = c_.aoi_violations, r.latency_unsynced = c_.latency_unsynced;
@@ -330,7 +353,8 @@ class swarm {
   }
 
   void launch(std::size_t slot) {
-    auto b = std::make_shared<bot_session>(*this, slot, slots_[slot].kind, 0x9e3779b9ull * (slot + 1) + (seed_++));
+    auto b = std::make_shared<bot_session>(*this, slot, thread_of(slot), slots_[slot].kind,
+                                           0x9e3779b9ull * (slot + 1) + (seed_++));
     {
       std::lock_guard lock(sessions_mutex_);
       sessions_[slot] = b;
@@ -350,7 +374,7 @@ class swarm {
       if (!b || !b->playing()) continue;
       c_.logouts.fetch_add(1, std::memory_order_relaxed);
       b->logout();
-      auto timer = std::make_shared<asio::steady_timer>(io_);
+      auto timer = std::make_shared<asio::steady_timer>(*ios_[thread_of(slot)]);
       timer->expires_after(std::chrono::duration_cast<steady::duration>(std::chrono::duration<double>(opt_.relogin_delay_s)));
       timer->async_wait([this, timer, slot](const boost::system::error_code& ec) {
         if (!ec && !stopping_.load()) launch(slot);
@@ -394,12 +418,25 @@ class swarm {
   }
 
   const swarm_options& opt_ref() const { return opt_; }
-  asio::io_context& io() { return io_; }
+  /// The I/O thread (and context) of a slot: slots in contiguous blocks, so that neighbouring
+  /// slot_stats (written per frame) belong to one thread.
+  unsigned thread_of(std::size_t slot) const {
+    return static_cast<unsigned>(slot * ios_.size() / std::max<std::size_t>(1, slots_.size()));
+  }
+  asio::io_context& io(unsigned thread) { return *ios_[thread]; }
   const tcp::endpoint& endpoint() const { return endpoint_; }
   steady::time_point epoch() const { return epoch_; }
   swarm_counters& counters() { return c_; }
   slot_stats& slot(std::size_t i) { return slots_[i]; }
-  latency_histogram_us& latency() { return latency_; }
+  latency_histogram_us& latency(unsigned thread) { return *latency_[thread]; }
+  latency_histogram_us::counts latency_snapshot() const {
+    latency_histogram_us::counts sum{};
+    for (const auto& h : latency_) {
+      const auto c = h->snapshot();
+      for (std::size_t b = 0; b < sum.size(); ++b) sum[b] += c[b];
+    }
+    return sum;
+  }
   position_board& board() { return board_; }
   bool stopping() const { return stopping_.load(); }
   bool offset_known() const { return offset_known_.load(std::memory_order_relaxed); }
@@ -411,7 +448,7 @@ class swarm {
 
  private:
   swarm_options opt_;
-  asio::io_context io_;
+  std::vector<std::unique_ptr<asio::io_context>> ios_;
   tcp::endpoint endpoint_;
   steady::time_point epoch_;
   std::vector<slot_stats> slots_;  // each written by its slot's session (one at a time)
@@ -419,7 +456,7 @@ class swarm {
   std::vector<std::shared_ptr<bot_session>> sessions_;
   std::uint64_t seed_ = 1;
   swarm_counters c_;
-  latency_histogram_us latency_;
+  std::vector<std::unique_ptr<latency_histogram_us>> latency_;  // one per I/O thread
   position_board board_;
   std::vector<second_sample> series_;
   std::mutex problems_mutex_;
@@ -450,17 +487,18 @@ net::decoder_options client_decoder(std::size_t max_frame) {
 
 net::vec3f to_vec(const net::wire::vec3& v) { return {v.x(), v.y(), v.z()}; }
 
-bot_session::bot_session(swarm& s, std::size_t slot, behaviour kind, std::uint64_t seed)
+bot_session::bot_session(swarm& s, std::size_t slot, unsigned thread, behaviour kind, std::uint64_t seed)
     : s_(s),
       slot_(slot),
       kind_(kind),
       rng_(seed),
-      strand_(asio::make_strand(s.io())),
-      socket_(strand_),
-      input_timer_(strand_),
-      ping_timer_(strand_),
-      welcome_timer_(strand_),
-      teleport_timer_(strand_),
+      thread_(thread),
+      io_(s.io(thread)),
+      socket_(io_),
+      input_timer_(io_),
+      ping_timer_(io_),
+      welcome_timer_(io_),
+      teleport_timer_(io_),
       decoder_(client_decoder(s.opt_ref().max_frame_bytes)) {
   std::uniform_real_distribution<float> angle(0, 6.2831853f);
   const float a = angle(rng_);
@@ -469,7 +507,7 @@ bot_session::bot_session(swarm& s, std::size_t slot, behaviour kind, std::uint64
 
 void bot_session::start() {
   auto self = shared_from_this();
-  asio::dispatch(strand_, [this, self] {
+  asio::dispatch(io_, [this, self] {
     s_.counters().connect_attempts.fetch_add(1, std::memory_order_relaxed);
     welcome_timer_.expires_after(std::chrono::duration_cast<steady::duration>(std::chrono::duration<double>(s_.opt_ref().connect_timeout_s)));
     welcome_timer_.async_wait([this, self](const boost::system::error_code& ec) {
@@ -481,7 +519,7 @@ void bot_session::start() {
 
 void bot_session::logout() {
   auto self = shared_from_this();
-  asio::dispatch(strand_, [this, self] {
+  asio::dispatch(io_, [this, self] {
     intended_ = true;
     close();
   });
@@ -495,20 +533,39 @@ void bot_session::on_connect(const boost::system::error_code& ec) {
   send(net::hello_msg{"bot-" + std::to_string(slot_), "", net::protocol_version});
   send(net::ping_msg{local_us(s_.epoch())});
   s_.counters().pings_sent.fetch_add(1, std::memory_order_relaxed);
-  read();
+  boost::system::error_code ec2;
+  socket_.non_blocking(true, ec2);
+  if (ec2) return fail("non-blocking mode: " + ec2.message(), true);
+  wait_readable();
 }
 
-void bot_session::read() {
+/// Reads rounds per wakeup before yielding to the other bots of the thread.
+constexpr int max_reads_per_wakeup = 8;
+
+void bot_session::wait_readable() {
+  // The bot reads the socket itself (non-blocking) when it is readable, so that the receive time
+  // of every frame is taken as its bytes come out of the socket, not when queued work reaches it.
   auto self = shared_from_this();
-  const auto buf = decoder_.prepare(read_chunk_bytes);
-  socket_.async_read_some(asio::buffer(buf.data(), buf.size()), [this, self](const boost::system::error_code& ec, std::size_t n) {
-    if (closed_) return;
-    if (ec) {
-      if (intended_ || s_.stopping()) return close();
-      return fail(got_error_ ? "closed by the server after an error" : "connection lost: " + ec.message(), !playing_);
-    }
+  socket_.async_wait(tcp::socket::wait_read, [this, self](const boost::system::error_code& ec) { on_readable(ec); });
+}
+
+void bot_session::on_readable(const boost::system::error_code& wait_ec) {
+  if (closed_) return;
+  const auto lost = [&](const boost::system::error_code& ec) {
+    if (intended_ || s_.stopping()) return close();
+    return fail(got_error_ ? "closed by the server after an error" : "connection lost: " + ec.message(), !playing_);
+  };
+  if (wait_ec) return lost(wait_ec);
+  auto& st = s_.slot(slot_);
+  for (int round = 0; round < max_reads_per_wakeup; ++round) {
+    const auto buf = decoder_.prepare(read_chunk_bytes);
+    boost::system::error_code ec;
+    const std::size_t n = socket_.read_some(asio::buffer(buf.data(), buf.size()), ec);
+    if (ec == asio::error::would_block || ec == asio::error::try_again) return wait_readable();
+    if (ec) return lost(ec);
+    // The receive time of every frame these bytes complete: when they were read.
+    const std::uint64_t received_us = local_us(s_.epoch());
     decoder_.commit(n);
-    auto& st = s_.slot(slot_);
     st.bytes_in += n;
     local_.bytes_in += n;
     for (auto step = decoder_.next(); !closed_; step = decoder_.next()) {
@@ -516,23 +573,29 @@ void bot_session::read() {
       if (step.is_error()) return fail(std::string("bad frame from the server: ") + std::string(net::to_string(step.error)), false);
       ++st.frames_in;
       ++local_.frames_in;
-      on_frame(step.frame);
+      on_frame(step.frame, received_us);
     }
-    if (!closed_) read();
-  });
+    if (closed_) return;
+    // A short read took everything there was: wait for the next bytes (edge-triggered readiness
+    // is only consumed by this thread's reactor, after this handler, so none are missed).
+    if (n < buf.size()) return wait_readable();
+  }
+  // Still more: read again after the other ready bots of this thread had their turn.
+  auto self = shared_from_this();
+  asio::post(io_, [this, self] { on_readable({}); });
 }
 
-void bot_session::on_frame(const net::frame_view& f) {
+void bot_session::on_frame(const net::frame_view& f, std::uint64_t received_us) {
   const auto& env = *f.envelope;
   switch (f.type) {
     case net::wire::message::welcome:
       if (const auto* w = env.message_as_welcome()) on_welcome(*w);
       break;
     case net::wire::message::tick_update:
-      if (const auto* u = env.message_as_tick_update()) on_tick_update(*u);
+      if (const auto* u = env.message_as_tick_update()) on_tick_update(*u, received_us);
       break;
     case net::wire::message::pong:
-      if (const auto* p = env.message_as_pong()) s_.on_pong(p->client_time_us(), p->server_time_us(), local_us(s_.epoch()));
+      if (const auto* p = env.message_as_pong()) s_.on_pong(p->client_time_us(), p->server_time_us(), received_us);
       break;
     case net::wire::message::error: {
       const auto* e = env.message_as_error();
@@ -569,7 +632,11 @@ void bot_session::on_welcome(const net::wire::welcome& w) {
   if (const auto* spawn = w.spawn_position()) s_.board().report(entity_, w.server_tick(), to_vec(*spawn));
   std::uint32_t none = 0;
   if (kind_ == behaviour::walk) s_.leader.compare_exchange_strong(none, entity_);
-  schedule_input();
+  if (s_.opt_ref().inputs_on_change) {
+    next_input_us_ = local_us(s_.epoch());  // evaluated as frames arrive (and at each ping)
+  } else {
+    schedule_input();
+  }
   schedule_ping();
   if (kind_ == behaviour::teleport) schedule_teleport();
 }
@@ -598,18 +665,18 @@ int bot_session::check_aoi(const position_board::fix& own, std::uint64_t tick, s
   return 1;
 }
 
-void bot_session::on_tick_update(const net::wire::tick_update& u) {
+void bot_session::on_tick_update(const net::wire::tick_update& u, std::uint64_t received_us) {
   if (!view_) {
     s_.problem("bot " + std::to_string(slot_) + ": tick update before welcome");
     s_.counters().inconsistent.fetch_add(1, std::memory_order_relaxed);
     return;
   }
-  const std::uint64_t now = local_us(s_.epoch());
+  const std::uint64_t now = received_us;
   ++local_.tick_updates;
   if (s_.offset_known()) {
     const auto sent_local = static_cast<std::int64_t>(u.server_time_us()) - s_.offset_us();
     const auto lat = static_cast<std::int64_t>(now) - sent_local;
-    s_.latency().record(static_cast<std::uint64_t>(std::max<std::int64_t>(0, lat)));
+    s_.latency(thread_).record(static_cast<std::uint64_t>(std::max<std::int64_t>(0, lat)));
   } else {
     ++local_.latency_unsynced;
   }
@@ -670,6 +737,7 @@ void bot_session::on_tick_update(const net::wire::tick_update& u) {
   local_.aoi_unchecked += frame_check_.counts[0];
   local_.aoi_checked += frame_check_.counts[1];
   if (frame_check_.counts[2] != 0) s_.counters().aoi_violations.fetch_add(frame_check_.counts[2], std::memory_order_relaxed);
+  if (s_.opt_ref().inputs_on_change) maybe_send_input(now);
   if (++frames_seen_ % flush_every_frames == 0) flush_counts();
 }
 
@@ -693,6 +761,8 @@ void bot_session::flush_counts() {
   add(c.latency_unsynced, local_.latency_unsynced);
   add(c.frames_in, local_.frames_in);
   add(c.bytes_in, local_.bytes_in);
+  add(c.inputs_sent, local_.inputs_sent);
+  add(c.inputs_unchanged, local_.inputs_unchanged);
 }
 
 void bot_session::schedule_input() {
@@ -732,8 +802,11 @@ void bot_session::schedule_ping() {
   ping_timer_.expires_after(std::chrono::duration_cast<steady::duration>(std::chrono::duration<double>(period)));
   ping_timer_.async_wait([this, self](const boost::system::error_code& ec) {
     if (ec || closed_) return;
-    send(net::ping_msg{local_us(s_.epoch())});
+    const std::uint64_t now = local_us(s_.epoch());
+    send(net::ping_msg{now});
     s_.counters().pings_sent.fetch_add(1, std::memory_order_relaxed);
+    // Frames drive the inputs; the ping keeps them going (and the keep-alive) when none come.
+    if (s_.opt_ref().inputs_on_change && playing_) maybe_send_input(now);
     schedule_ping();
   });
 }
@@ -804,30 +877,57 @@ void bot_session::send_input() {
   const auto move = steer();
   ++inputs_;
   send(net::input_msg{++sequence_, move});
-  s_.counters().inputs_sent.fetch_add(1, std::memory_order_relaxed);
+  ++local_.inputs_sent;
+}
+
+void bot_session::maybe_send_input(std::uint64_t now_us) {
+  // The intent is evaluated input_hz times a second (at the first frame or ping due); an input
+  // goes out only when it differs from the last one sent, or as a keep-alive. The zone server
+  // keeps a player's last intent until its next input (zone_world::set_intent), so an unchanged
+  // intent need not be repeated; the 10 s idle timeout is met by the pings and the keep-alive.
+  if (now_us < next_input_us_) return;
+  const auto& o = s_.opt_ref();
+  const auto period = static_cast<std::uint64_t>(1e6 / std::max(0.1, o.input_hz));
+  next_input_us_ += period;
+  if (next_input_us_ <= now_us) next_input_us_ = now_us + period;  // fell behind: no catch-up burst
+  const auto move = steer();
+  ++inputs_;
+  const auto keepalive = static_cast<std::uint64_t>(std::max(0.0, o.input_keepalive_s) * 1e6);
+  if (any_input_sent_ && move == last_move_ && now_us - last_input_sent_us_ < keepalive) {
+    ++local_.inputs_unchanged;
+    return;
+  }
+  send(net::input_msg{++sequence_, move});
+  any_input_sent_ = true;
+  last_move_ = move;
+  last_input_sent_us_ = now_us;
+  ++local_.inputs_sent;
 }
 
 void bot_session::send(const net::message& m) {
   if (closed_) return;
   const auto frame = encoder_.encode(m);
-  outbox_.emplace_back(frame.begin(), frame.end());
+  out_queued_.insert(out_queued_.end(), frame.begin(), frame.end());
   if (!writing_) write_next();
 }
 
 void bot_session::write_next() {
-  if (outbox_.empty() || closed_) {
+  if (out_queued_.empty() || closed_) {
     writing_ = false;
     return;
   }
+  // One write in flight: everything queued so far goes out in it (frames stay in order).
   writing_ = true;
+  out_writing_.swap(out_queued_);
+  out_queued_.clear();
   auto self = shared_from_this();
-  asio::async_write(socket_, asio::buffer(outbox_.front()), [this, self](const boost::system::error_code& ec, std::size_t) {
+  asio::async_write(socket_, asio::buffer(out_writing_), [this, self](const boost::system::error_code& ec, std::size_t) {
     if (closed_) return;
     if (ec) {
       if (intended_ || s_.stopping()) return close();
       return fail("write: " + ec.message(), !playing_);
     }
-    outbox_.pop_front();
+    out_writing_.clear();
     write_next();
   });
 }

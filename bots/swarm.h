@@ -25,7 +25,12 @@ struct swarm_options {
   unsigned bots = 100;
   double duration_s = 30;    ///< from the first connection attempt to the end (ramp included)
   double ramp = 200;         ///< new bots per second during ramp-up
-  double input_hz = 10;      ///< inputs per second per bot
+  double input_hz = 10;      ///< intent evaluations (steering) per second per bot
+  /// true: an input is sent only when the intent differs from the last one sent, or when
+  /// input_keepalive_s has passed since it (the server keeps a player's last intent until the next
+  /// input); evaluated as frames arrive. false: an input at every evaluation, on its own timer.
+  bool inputs_on_change = true;
+  double input_keepalive_s = 1;  ///< with inputs_on_change: resend an unchanged intent this often
   double ping_hz = 1;        ///< pings per second per bot (clock offset, RTT, keep-alive)
   std::array<double, behaviour_count> mix{1, 0, 0, 0, 0};  ///< shares by behaviour
   double teleport_hz = 0.2;  ///< teleport bots: jumps per second per bot (random times, random targets in the world)
@@ -68,7 +73,7 @@ struct swarm_counters {
   std::atomic<std::uint64_t> connect_attempts{0}, connected_now{0}, welcomes{0}, connect_failures{0},
       unexpected_disconnects{0}, server_errors{0}, logouts{0}, teleports_sent{0};
   std::atomic<std::uint64_t> frames_in{0}, bytes_in{0}, tick_updates{0}, enters{0}, leaves{0}, updates{0}, resets{0};
-  std::atomic<std::uint64_t> inputs_sent{0}, pings_sent{0}, pongs{0};
+  std::atomic<std::uint64_t> inputs_sent{0}, inputs_unchanged{0}, pings_sent{0}, pongs{0};
   std::atomic<std::uint64_t> digests_checked{0}, digest_mismatches{0}, inconsistent{0};
   std::atomic<std::uint64_t> aoi_checked{0}, aoi_unchecked{0}, aoi_violations{0};
   std::atomic<std::uint64_t> latency_unsynced{0};
@@ -106,7 +111,7 @@ struct swarm_result {
   // Copies of the counters at the end.
   std::uint64_t connect_attempts = 0, welcomes = 0, connect_failures = 0, unexpected_disconnects = 0,
                 server_errors = 0, logouts = 0, frames_in = 0, bytes_in = 0, tick_updates = 0, enters = 0,
-                leaves = 0, updates = 0, resets = 0, inputs_sent = 0, pongs = 0, digests_checked = 0,
+                leaves = 0, updates = 0, resets = 0, inputs_sent = 0, inputs_unchanged = 0, pongs = 0, digests_checked = 0,
                 digest_mismatches = 0, inconsistent = 0, aoi_checked = 0, aoi_unchecked = 0,
                 aoi_violations = 0, latency_unsynced = 0, teleports_sent = 0, self_positions = 0;
   bool host_clock = false;  ///< latency timed on the host's clock (same host), not by ping sync

@@ -533,18 +533,39 @@ client_view::status client_view::apply(const w::tick_update& u, position_visitor
     }
   }
   if (const auto* v = u.updates()) {
-    for (const auto* x : *v) {
-      const auto it = entities_.find(x->id());
-      if (it == entities_.end()) {
-        bad(x->id());
-        continue;
+    // Updates in batches of 64 (a typical frame in one): first the index slots of a batch are
+    // prefetched, then its entries are looked up and prefetched, then applied in order. A bot's
+    // view is cold when its frame comes (thousands of views share the cache), so taking a batch's
+    // misses together rather than one after another is most of the cost saved. Updates neither
+    // add nor remove entries, so the iterators of a batch stay valid; the order of effects (and
+    // of bad ids) is unchanged.
+    constexpr std::uint32_t batch = 64;
+    id_map<entity>::iterator found[batch];
+    const std::uint32_t n = v->size();
+    for (std::uint32_t base = 0; base < n; base += batch) {
+      const std::uint32_t m = std::min(batch, n - base);
+      for (std::uint32_t j = 0; j < m; ++j) entities_.prefetch(v->Get(base + j)->id());
+      for (std::uint32_t j = 0; j < m; ++j) {
+        found[j] = entities_.find(v->Get(base + j)->id());
+        if (found[j] != entities_.end()) {
+          __builtin_prefetch(&found[j]->second.state.position, 1);
+          __builtin_prefetch(&found[j]->second.last_tick, 1);
+        }
       }
-      const auto& q = x->position();
-      const auto& qv = x->velocity();
-      it->second.state.position = quantizer_.dequantize({q.x(), q.y(), q.z()});
-      it->second.state.velocity = dequantize_velocity({qv.x(), qv.y(), qv.z()});
-      it->second.last_tick = tick;
-      if (visit) visit(ctx, x->id(), it->second.state.position, it->second.state.presence_half_extent);
+      for (std::uint32_t j = 0; j < m; ++j) {
+        const auto* x = v->Get(base + j);
+        const auto it = found[j];
+        if (it == entities_.end()) {
+          bad(x->id());
+          continue;
+        }
+        const auto& q = x->position();
+        const auto& qv = x->velocity();
+        it->second.state.position = quantizer_.dequantize({q.x(), q.y(), q.z()});
+        it->second.state.velocity = dequantize_velocity({qv.x(), qv.y(), qv.z()});
+        it->second.last_tick = tick;
+        if (visit) visit(ctx, x->id(), it->second.state.position, it->second.state.presence_half_extent);
+      }
     }
   }
   std::optional<verify_digest> digest;

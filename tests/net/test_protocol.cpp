@@ -805,4 +805,79 @@ TEST_SUITE("net.protocol") {
     }
     CHECK(view.problems() >= 3);
   }
+
+  TEST_CASE("client_view: the batched wire path equals the value path (long update lists, unknown and repeated ids)") {
+    // apply(wire) looks updates up in prefetched batches of 64; apply(msg) one by one. Twin views
+    // fed the same frames must agree on status, bad ids, contents, digest and the positions told.
+    const std::uint64_t seed = fresh_seed();
+    CAPTURE(seed);
+    gen g(seed);
+    const world_bounds world{{-500, -500, 0}, {500, 500, 50}};
+    const position_quantizer q(world);
+    client_view by_value(world), by_wire(world);
+    std::vector<std::uint32_t> known;
+    std::uint64_t tick = 0;
+    for (int rep = 0; rep < 200; ++rep) {
+      tick_update_msg m;
+      m.server_tick = g.below(20) == 0 ? tick : ++tick;  // now and then a stale tick
+      m.reset = g.below(50) == 0;
+      if (m.reset) known.clear();
+      for (std::size_t k = g.below(4); k-- > 0 && !known.empty();) {
+        const std::size_t i = g.below(known.size());
+        m.leaves.push_back(known[i]);
+        known[i] = known.back();
+        known.pop_back();
+      }
+      for (std::size_t k = g.below(rep < 20 ? 60 : 8); k-- > 0;) {
+        entity_state s = g.state();
+        s.id = 1 + static_cast<std::uint32_t>(g.below(5000));
+        if (std::find(known.begin(), known.end(), s.id) == known.end()) known.push_back(s.id);
+        m.enters.push_back(s);  // an id already known makes the update inconsistent, as it should
+      }
+      const std::size_t n_updates = g.below(4) == 0 ? g.below(3) : g.below(200);  // across batch edges
+      for (std::size_t k = 0; k < n_updates; ++k) {
+        std::uint32_t id = 0;
+        if (!known.empty() && g.below(30) != 0) {
+          id = known[g.below(known.size())];  // repeats happen
+        } else {
+          id = 100000 + static_cast<std::uint32_t>(g.below(100));  // unknown
+        }
+        const vec3f p{g.f(-500, 500), g.f(-500, 500), g.f(0, 50)};
+        m.updates.push_back({id, q.quantize(p), quantize_velocity({g.f(-9, 9), g.f(-9, 9), 0})});
+      }
+      if (g.below(3) != 0) m.digest = verify_digest{m.server_tick, by_value.hash() + g.below(2), 0};
+      const auto expected = by_value.apply(m);
+      const auto frame = encode_frame(m);
+      frame_decoder d(big_frames());
+      d.feed(frame);
+      const auto step = d.next();
+      REQUIRE(step.is_frame());
+      std::vector<std::pair<std::uint32_t, vec3f>> told;
+      const auto got = by_wire.apply(
+          *step.frame.envelope->message_as_tick_update(),
+          [](void* ctx, std::uint32_t id, const vec3f& p, const vec3f&) {
+            static_cast<std::vector<std::pair<std::uint32_t, vec3f>>*>(ctx)->emplace_back(id, p);
+          },
+          &told);
+      CHECK(got == expected);
+      CHECK(by_wire.last_bad_ids() == by_value.last_bad_ids());
+      CHECK(by_wire.hash() == by_value.hash());
+      REQUIRE(by_wire.size() == by_value.size());
+      for (const auto& [id, e] : by_value.entities()) {
+        const auto it = by_wire.entities().find(id);
+        REQUIRE(it != by_wire.entities().end());
+        CHECK(it->second.state == e.state);
+        CHECK(it->second.last_tick == e.last_tick);
+      }
+      // Every known update was told, in frame order, at its dequantized position.
+      std::vector<std::pair<std::uint32_t, vec3f>> told_updates(told.begin() + static_cast<std::ptrdiff_t>(
+                                                                                    std::min(told.size(), m.enters.size())),
+                                                                told.end());
+      std::vector<std::pair<std::uint32_t, vec3f>> want;
+      for (const auto& u : m.updates) {
+        if (by_value.entities().count(u.id) == 1) want.emplace_back(u.id, q.dequantize(u.position));
+      }
+      CHECK(told_updates == want);
+    }
+  }
 }
