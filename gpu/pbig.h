@@ -38,10 +38,11 @@ struct pbig_options {
   double fixed_cell_edge = 0;  ///< 0 = plan by Eq. 6
   std::size_t initial_output_pairs = 0;  ///< initial output buffer capacity (0 = default); tiny values force the overflow path
   interest::thread_pool* decode_pool = nullptr;  ///< threads that decode the output (null = own pool)
-  /// Beyond the paper (default: the fastest measured on the H100, docs/gpu-benchmarks.md): the GPU
-  /// writes final id pairs at deterministic positions (a counting pass per tile, a scan, a writing
-  /// pass) and each batch is copied straight into a pinned result buffer: no CPU decode, and
-  /// `compression` is unused. false = the paper's output: chunks (3-level encoded when
+  /// Beyond the paper (default: the fastest measured on the H100, docs/gpu-benchmarks.md): one
+  /// checking pass per batch writes plain chunks (the paper's plain output), then on the GPU a scan
+  /// of the per-tile pair counts and a placing kernel put each tile's pairs at its position (tile
+  /// order: deterministic), and each batch is copied straight into a pinned result buffer: no CPU
+  /// decode, and `compression` is unused. false = the paper's output: chunks (3-level encoded when
   /// `compression`, else plain), copied through the Fig. 7 pipeline and decoded on the CPU.
   bool direct_output = true;
   bool reuse_plan = true;  ///< keep the previous cell edge while the box statistics barely move

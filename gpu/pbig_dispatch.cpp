@@ -69,11 +69,15 @@ pbig_engine::pbig_engine(const pbig_options& options) : opt_(options) {
   }
   for (auto& s : slot_) {
     CUDA_CHECK(cudaStreamCreateWithFlags(&s.stream, cudaStreamNonBlocking));
-    for (cudaEvent_t* e : {&s.kernel_begin, &s.kernel_end, &s.copy_begin, &s.copy_end}) CUDA_CHECK(cudaEventCreate(e));
+    for (cudaEvent_t* e : {&s.kernel_begin, &s.kernel_end, &s.copy_begin, &s.copy_end, &s.totals_ready}) {
+      CUDA_CHECK(cudaEventCreate(e));
+    }
     s.d_cursor.reserve(1);
     s.h_cursor.reserve(1);
+    s.h_total.reserve(1);
     const std::size_t pairs = opt_.initial_output_pairs > 0 ? opt_.initial_output_pairs : tuning::default_output_pairs;
-    s.capacity = std::max<std::uint64_t>(64, pairs * (opt_.compression ? 2 : 8));
+    // Direct output checks into plain chunks (8 bytes a pair) whatever `compression` says.
+    s.capacity = std::max<std::uint64_t>(64, pairs * (opt_.compression && !opt_.direct_output ? 2 : 8));
     s.d_out.reserve(s.capacity);
     s.h_out.reserve(s.capacity);
   }
@@ -97,7 +101,7 @@ pbig_engine::~pbig_engine() {
   // No throwing here: errors at teardown are logged and ignored.
   for (auto& s : slot_) {
     if (s.stream != nullptr) cudaStreamSynchronize(s.stream);
-    for (cudaEvent_t e : {s.kernel_begin, s.kernel_end, s.copy_begin, s.copy_end}) {
+    for (cudaEvent_t e : {s.kernel_begin, s.kernel_end, s.copy_begin, s.copy_end, s.totals_ready}) {
       if (e != nullptr) cudaEventDestroy(e);
     }
     if (s.stream != nullptr) cudaStreamDestroy(s.stream);
@@ -296,28 +300,28 @@ bool pbig_engine::plan(std::uint32_t n) {
 void pbig_engine::map_boxes(std::uint32_t n) {
   const box_arrays boxes = arrays_of(d_coord_.get(), d_bits_.get(), n);
   const auto cells = static_cast<std::uint32_t>(plan_.cells);
-  d_counts_.reserve(cells + 1);
-  d_cursor_.reserve(cells);
+  // One zeroed array, one memset: counts[0, cells] (counts[cells] stays 0 for the scan), the
+  // large-box counter at counts[cells + 1], then the map kernel's per-cell cursors.
+  d_counts_.reserve(2ull * cells + 2);
+  std::uint32_t* large_counter = d_counts_.get() + cells + 1;
+  std::uint32_t* cursor = d_counts_.get() + cells + 2;
   d_prefix_.reserve(cells + 1);
   d_is_large_.reserve(n);
-  d_large_.reserve(n);
-  CUDA_CHECK(cudaMemsetAsync(d_counts_.get(), 0, (cells + 1) * sizeof(std::uint32_t), main_));
-  CUDA_CHECK(cudaMemsetAsync(d_cursor_.get(), 0, cells * sizeof(std::uint32_t), main_));
-  CUDA_CHECK(launch_count(boxes, n, plan_, d_counts_.get(), d_is_large_.get(), main_));
+  CUDA_CHECK(cudaMemsetAsync(d_counts_.get(), 0, (2ull * cells + 2) * sizeof(std::uint32_t), main_));
+  CUDA_CHECK(launch_count(boxes, n, plan_, d_counts_.get(), d_is_large_.get(), large_counter, main_));
   d_box_lo_.reserve(n);
   d_box_hi_.reserve(n);
   CUDA_CHECK(launch_pack_boxes(boxes, n, d_box_lo_.get(), d_box_hi_.get(), main_));
 
   map_readback* rb = d_readback_.get();
-  std::size_t select_bytes = 0, scan_bytes = 0, reduce_bytes = 0;
-  CUDA_CHECK(select_large(nullptr, select_bytes, d_is_large_.get(), d_large_.get(), &rb->large_count, n, main_));
+  std::size_t scan_bytes = 0, reduce_bytes = 0;
   CUDA_CHECK(scan_cells(nullptr, scan_bytes, d_counts_.get(), d_prefix_.get(), cells, main_));
   CUDA_CHECK(reduce_cells(nullptr, reduce_bytes, d_counts_.get(), &rb->totals, cells, main_));
-  grow_temp(std::max({select_bytes, scan_bytes, reduce_bytes}));
-  CUDA_CHECK(select_large(d_temp_.get(), select_bytes, d_is_large_.get(), d_large_.get(), &rb->large_count, n, main_));
+  grow_temp(std::max(scan_bytes, reduce_bytes));
   CUDA_CHECK(scan_cells(d_temp_.get(), scan_bytes, d_counts_.get(), d_prefix_.get(), cells, main_));
   CUDA_CHECK(reduce_cells(d_temp_.get(), reduce_bytes, d_counts_.get(), &rb->totals, cells, main_));
-  CUDA_CHECK(launch_batch_plan(d_prefix_.get(), cells, rb, tuning::min_tiles_per_batch, tuning::max_batches, main_));
+  CUDA_CHECK(launch_batch_plan(d_prefix_.get(), cells, large_counter, rb, tuning::min_tiles_per_batch, tuning::max_batches,
+                               main_));
   CUDA_CHECK(cudaEventRecord(ev_counted_, main_));
   CUDA_CHECK(cudaMemcpyAsync(h_readback_.get(), rb, sizeof(map_readback), cudaMemcpyDeviceToHost, main_));
   CUDA_CHECK(cudaStreamSynchronize(main_));
@@ -332,6 +336,15 @@ void pbig_engine::map_boxes(std::uint32_t n) {
     throw std::length_error("pbig: a cell holds more than 65535 segments of boxes");
   }
 
+  if (rb_.large_count > 0) {
+    // The large boxes' ids in id order (for the large-box passes at the end of the call).
+    d_large_.reserve(n);
+    std::size_t select_bytes = 0;
+    CUDA_CHECK(select_large(nullptr, select_bytes, d_is_large_.get(), d_large_.get(), &rb->large_count, n, main_));
+    grow_temp(select_bytes);
+    CUDA_CHECK(select_large(d_temp_.get(), select_bytes, d_is_large_.get(), d_large_.get(), &rb->large_count, n, main_));
+  }
+
   const std::uint32_t entries = rb_.total.entry, items = rb_.total.item;
   d_entries_unsorted_.reserve(entries);
   d_entries_.reserve(entries);
@@ -342,16 +355,20 @@ void pbig_engine::map_boxes(std::uint32_t n) {
     CUDA_CHECK(cudaEventRecord(ev_scattered_, main_));
     CUDA_CHECK(cudaEventRecord(ev_sorted_, main_));
   } else {
-    CUDA_CHECK(launch_map(boxes, n, plan_, d_is_large_.get(), d_prefix_.get(), d_cursor_.get(),
-                          d_entries_unsorted_.get(), main_));
+    CUDA_CHECK(launch_map(boxes, n, plan_, d_is_large_.get(), d_prefix_.get(), cursor, d_entries_unsorted_.get(),
+                          main_));
     CUDA_CHECK(cudaEventRecord(ev_scattered_, main_));
     // Sort each cell's list by box id: the mapping's atomics give a timing-dependent order.
-    std::size_t sort_bytes = 0;
-    CUDA_CHECK(sort_cells(nullptr, sort_bytes, d_entries_unsorted_.get(), d_entries_.get(), entries, cells,
-                          d_prefix_.get(), main_));
-    grow_temp(sort_bytes);
-    CUDA_CHECK(sort_cells(d_temp_.get(), sort_bytes, d_entries_unsorted_.get(), d_entries_.get(), entries, cells,
-                          d_prefix_.get(), main_));
+    if (rb_.totals.max_count <= tuning::small_cell_sort) {
+      CUDA_CHECK(launch_sort_small_cells(d_entries_unsorted_.get(), d_entries_.get(), d_prefix_.get(), cells, main_));
+    } else {
+      std::size_t sort_bytes = 0;
+      CUDA_CHECK(sort_cells(nullptr, sort_bytes, d_entries_unsorted_.get(), d_entries_.get(), entries, cells,
+                            d_prefix_.get(), main_));
+      grow_temp(sort_bytes);
+      CUDA_CHECK(sort_cells(d_temp_.get(), sort_bytes, d_entries_unsorted_.get(), d_entries_.get(), entries, cells,
+                            d_prefix_.get(), main_));
+    }
     CUDA_CHECK(cudaEventRecord(ev_sorted_, main_));
     CUDA_CHECK(launch_gather(d_box_lo_.get(), d_box_hi_.get(), d_entries_.get(), entries, d_packed_lo_.get(),
                              d_packed_hi_.get(), main_));
@@ -626,11 +643,28 @@ std::uint64_t pbig_engine::large_pairs(std::uint32_t n, interest::pair_list& out
   return total;
 }
 
-std::uint64_t pbig_engine::check_direct(std::uint32_t n) {
-  const std::uint32_t tiles = rb_.total.tile;
-  d_tile_pairs_all_.reserve(tiles + 1);
-  d_tile_pos_.reserve(tiles + 1);
-  CUDA_CHECK(cudaMemsetAsync(d_tile_pairs_all_.get() + tiles, 0, sizeof(std::uint32_t), main_));
+// ---- direct output ----------------------------------------------------------------------------
+//
+// One checking pass per batch (the paper's Algorithm 2 writing plain chunks at atomic offsets, as
+// in the paper's output path), then on the device: a scan of the batch's per-tile pair counts and
+// a placing kernel that moves every tile's pairs to its scanned position, so the batch's pairs are
+// in tile order whatever order the blocks ran in. The host reads the batch's chunk bytes and pair
+// count (synchronisation 1 of Fig. 7, while the next batch's kernel runs on the other stream), re-runs
+// the batch with room if its chunks overflowed, and queues the device-to-host copy of its pairs
+// straight into the result at the running total. Stream order protects a slot's buffers from the
+// next batch on that slot until its copy is done (synchronisation 3); no CPU decode.
+
+void pbig_engine::launch_direct(const batch& b, pipeline_slot& s, std::uint64_t prefetch_pairs) {
+  const std::uint32_t tiles = b.tile_last - b.tile_first;
+  s.d_tile_off.reserve(tiles);
+  s.d_tile_pairs.reserve(tiles + 1);
+  s.d_tile_pos.reserve(tiles + 1);
+  s.d_direct.reserve(2 * (s.capacity / 8) + 2);  // a chunk holds 8 bytes a pair after its header
+  std::size_t scan_bytes = 0;
+  CUDA_CHECK(scan_tiles(nullptr, scan_bytes, s.d_tile_pairs.get(), s.d_tile_pos.get(), tiles + 1ull, s.stream));
+  s.d_temp.reserve(std::max<std::size_t>(scan_bytes, 256));
+  CUDA_CHECK(cudaMemsetAsync(s.d_cursor.get(), 0, sizeof(unsigned long long), s.stream));
+  CUDA_CHECK(cudaMemsetAsync(s.d_tile_pairs.get() + tiles, 0, sizeof(std::uint32_t), s.stream));
   check_args a{};
   a.plan = plan_;
   a.packed_lo = d_packed_lo_.get();
@@ -638,20 +672,101 @@ std::uint64_t pbig_engine::check_direct(std::uint32_t n) {
   a.entries = d_entries_.get();
   a.prefix = d_prefix_.get();
   a.items = d_items_.get();
-  a.item_first = 0;
-  a.item_last = rb_.total.item;
-  a.tile_pairs = d_tile_pairs_all_.get();
-  a.tile_first = 0;
-  a.tile_pos = d_tile_pos_.get();
-  // Pass 1: pairs per tile, over all cells at once; then their positions (64-bit scan).
-  pipeline_slot& s0 = slot_[0];
-  CUDA_CHECK(cudaEventRecord(s0.kernel_begin, main_));
-  CUDA_CHECK(launch_check_direct(a, opt_.load_balancing, /*count_only=*/true, main_));
-  CUDA_CHECK(cudaEventRecord(s0.kernel_end, main_));
-  std::size_t scan_bytes = 0;
-  CUDA_CHECK(scan_tiles(nullptr, scan_bytes, d_tile_pairs_all_.get(), d_tile_pos_.get(), tiles + 1ull, main_));
-  grow_temp(scan_bytes);
-  CUDA_CHECK(scan_tiles(d_temp_.get(), scan_bytes, d_tile_pairs_all_.get(), d_tile_pos_.get(), tiles + 1ull, main_));
+  a.item_first = b.item_first;
+  a.item_last = b.item_last;
+  a.tile_off = s.d_tile_off.get();
+  a.tile_pairs = s.d_tile_pairs.get();
+  a.tile_first = b.tile_first;
+  a.out = s.d_out.get();
+  a.capacity = s.capacity;
+  a.cursor = s.d_cursor.get();
+  CUDA_CHECK(cudaEventRecord(s.kernel_begin, s.stream));
+  CUDA_CHECK(launch_check(a, opt_.load_balancing, /*compressed=*/false, s.stream));
+  CUDA_CHECK(scan_tiles(s.d_temp.get(), scan_bytes, s.d_tile_pairs.get(), s.d_tile_pos.get(), tiles + 1ull, s.stream));
+  CUDA_CHECK(launch_place_chunks(s.d_out.get(), s.d_cursor.get(), s.capacity, s.d_tile_off.get(), s.d_tile_pairs.get(),
+                                 s.d_tile_pos.get(), tiles, s.d_direct.get(), s.stream));
+  CUDA_CHECK(cudaEventRecord(s.kernel_end, s.stream));
+  CUDA_CHECK(cudaMemcpyAsync(s.h_cursor.get(), s.d_cursor.get(), sizeof(unsigned long long), cudaMemcpyDeviceToHost,
+                             s.stream));
+  CUDA_CHECK(cudaMemcpyAsync(s.h_total.get(), s.d_tile_pos.get() + tiles, sizeof(std::uint64_t), cudaMemcpyDeviceToHost,
+                             s.stream));
+  CUDA_CHECK(cudaEventRecord(s.totals_ready, s.stream));
+  // Batch 0 sits at the start of the result whatever its size: its copy, sized by the last
+  // call's batch 0 (the paper's prefetch), is queued now rather than after the host has read the
+  // total, so the copy engine does not wait for the host. finish_direct copies any rest.
+  s.prefetched_pairs = std::min<std::uint64_t>({prefetch_pairs, s.capacity / 8, h_result_.capacity()});
+  s.overcopied = false;
+  if (s.prefetched_pairs > 0) {
+    CUDA_CHECK(cudaEventRecord(s.copy_begin, s.stream));
+    CUDA_CHECK(cudaMemcpyAsync(h_result_.get(), s.d_direct.get(), s.prefetched_pairs * sizeof(interest::id_pair),
+                               cudaMemcpyDeviceToHost, s.stream));
+    CUDA_CHECK(cudaEventRecord(s.copy_end, s.stream));
+    s.copy_pending = true;
+  }
+}
+
+void pbig_engine::account_copy(pipeline_slot& s) {
+  if (!s.copy_pending) return;
+  CUDA_CHECK(cudaEventSynchronize(s.copy_end));
+  report_.data_out_ms += elapsed(s.copy_begin, s.copy_end);
+  s.copy_pending = false;
+}
+
+void pbig_engine::ensure_result(std::uint64_t needed, std::uint64_t keep) {
+  if (needed <= h_result_.capacity()) return;
+  // Grow the pinned result, keeping its first `keep` pairs: wait for every copy into it first.
+  for (auto& s : slot_) CUDA_CHECK(cudaStreamSynchronize(s.stream));
+  pinned_buffer<interest::id_pair> bigger;
+  bigger.reserve(needed);
+  if (keep > 0) std::memcpy(static_cast<void*>(bigger.get()), h_result_.get(), keep * sizeof(interest::id_pair));
+  h_result_.swap(bigger);
+}
+
+std::uint64_t pbig_engine::finish_direct(const batch& b, pipeline_slot& s, std::uint64_t base, std::size_t done,
+                                         std::size_t count) {
+  // Synchronisation 1: the batch's kernels are done and its totals are in host memory.
+  CUDA_CHECK(cudaEventSynchronize(s.totals_ready));
+  if (s.prefetched_pairs == 0) account_copy(s);  // the previous batch on this slot (before these kernels)
+  report_.check_ms += elapsed(s.kernel_begin, s.kernel_end);
+  const std::uint64_t used = *s.h_cursor.get();
+  if (used > s.capacity) {
+    // Overflow: no chunk past the capacity was written and nothing was placed. Grow and re-run.
+    ++report_.reruns;
+    account_copy(s);  // a prefetch of nothing useful: let it finish before the buffers move
+    s.capacity = used + used / 4;
+    s.d_out.reserve(s.capacity);
+    launch_direct(b, s);
+    CUDA_CHECK(cudaEventSynchronize(s.totals_ready));
+    report_.check_ms += elapsed(s.kernel_begin, s.kernel_end);
+    if (*s.h_cursor.get() != used) throw std::runtime_error("pbig: a re-run batch produced a different output size");
+  }
+  const std::uint64_t total = *s.h_total.get();
+  if (done == 0) last_first_batch_pairs_ = total;
+  // A prefetch past this batch's pairs wrote stale pairs where the next batch's go: the next
+  // batch's copy (on the other stream) must come after it.
+  pipeline_slot& other = &s == &slot_[0] ? slot_[1] : slot_[0];
+  if (other.overcopied) {
+    CUDA_CHECK(cudaStreamWaitEvent(s.stream, other.copy_end, 0));
+    other.overcopied = false;
+  }
+  const std::uint64_t already = std::min(s.prefetched_pairs, total);
+  s.overcopied = s.prefetched_pairs > total;
+  s.prefetched_pairs = 0;
+  if (already < total) {
+    // Room for this batch; when the result must grow, room for the rest at this batch's rate too.
+    const std::uint64_t need = base + total;
+    ensure_result(need > h_result_.capacity() ? need + need / (done + 1) * (count - done - 1) + need / 8 : need, base + already);
+    if (already == 0) CUDA_CHECK(cudaEventRecord(s.copy_begin, s.stream));
+    CUDA_CHECK(cudaMemcpyAsync(h_result_.get() + base + already, s.d_direct.get() + 2 * already,
+                               (total - already) * sizeof(interest::id_pair), cudaMemcpyDeviceToHost, s.stream));
+    CUDA_CHECK(cudaEventRecord(s.copy_end, s.stream));
+    s.copy_pending = true;
+  }
+  report_.bytes_out += total * sizeof(interest::id_pair);
+  return total;
+}
+
+std::uint64_t pbig_engine::check_direct(std::uint32_t n) {
   std::vector<batch> batches;
   const batch_plan& bp = rb_.batches;
   for (std::uint32_t k = 0; k < bp.count; ++k) {
@@ -659,61 +774,38 @@ std::uint64_t pbig_engine::check_direct(std::uint32_t n) {
     if (b.item_last > b.item_first) batches.push_back(b);
   }
   const std::size_t count = batches.size();
-  h_batch_pos_.reserve(2 * count + 2);
-  std::uint64_t* pos = h_batch_pos_.get();
-  for (std::size_t k = 0; k < count; ++k) {
-    CUDA_CHECK(cudaMemcpyAsync(pos + 2 * k, d_tile_pos_.get() + batches[k].tile_first, sizeof(std::uint64_t),
-                               cudaMemcpyDeviceToHost, main_));
-    CUDA_CHECK(cudaMemcpyAsync(pos + 2 * k + 1, d_tile_pos_.get() + batches[k].tile_last, sizeof(std::uint64_t),
-                               cudaMemcpyDeviceToHost, main_));
+  report_.batches = static_cast<std::uint32_t>(count);
+  // Slot 1's stream must see the mapped boxes.
+  CUDA_CHECK(cudaStreamWaitEvent(slot_[1].stream, ev_sched_, 0));
+  for (auto& s : slot_) {
+    s.copy_pending = false;
+    s.overcopied = false;
   }
-  CUDA_CHECK(cudaMemcpyAsync(pos + 2 * count, d_tile_pos_.get() + tiles, sizeof(std::uint64_t), cudaMemcpyDeviceToHost,
-                             main_));
+  const std::uint64_t prefetch = opt_.pipelining ? last_first_batch_pairs_ : 0;
+  if (prefetch > 0) ensure_result(prefetch, 0);
+  std::uint64_t base = 0;
+  if (!opt_.pipelining) {
+    for (std::size_t k = 0; k < count; ++k) {
+      pipeline_slot& s = slot_[k % 2];
+      launch_direct(batches[k], s);
+      base += finish_direct(batches[k], s, base, k, count);
+      account_copy(s);
+    }
+  } else {
+    // Fig. 7 without the decode stage: kernel k runs while batch k-1's pairs are copied out.
+    for (std::size_t k = 0; k <= count; ++k) {
+      if (k < count) launch_direct(batches[k], slot_[k % 2], k == 0 ? prefetch : 0);
+      if (k >= 1) base += finish_direct(batches[k - 1], slot_[(k - 1) % 2], base, k - 1, count);
+    }
+    for (auto& s : slot_) account_copy(s);
+  }
+  // Boxes handled apart: two passes (count, write) on the main stream, after the grid's pairs.
   large_count_pass(n);
   CUDA_CHECK(cudaStreamSynchronize(main_));
-  report_.check_ms += elapsed(s0.kernel_begin, s0.kernel_end);
-  const std::uint64_t grid_total = pos[2 * count];
   const std::uint64_t large_total = *h_large_total_.get();
-  h_result_.reserve(std::max<std::uint64_t>(1, grid_total + large_total));
-  std::uint64_t most = 0;
-  for (std::size_t k = 0; k < count; ++k) most = std::max(most, pos[2 * k + 1] - pos[2 * k]);
-  for (auto& s : slot_) s.d_direct.reserve(std::max<std::uint64_t>(2, 2 * most));
-  report_.batches = static_cast<std::uint32_t>(count);
-
-  // Pass 2, batch by batch on the two slots: kernel k writes final pairs into slot k%2's device
-  // buffer while batch k-1's buffer is copied into the result (stream order protects reuse).
-  CUDA_CHECK(cudaStreamWaitEvent(slot_[1].stream, ev_sched_, 0));
-  CUDA_CHECK(cudaStreamWaitEvent(slot_[1].stream, s0.kernel_end, 0));
-  auto account = [&](pipeline_slot& s) {
-    CUDA_CHECK(cudaEventSynchronize(s.copy_end));
-    report_.check_ms += elapsed(s.kernel_begin, s.kernel_end);
-    report_.data_out_ms += elapsed(s.copy_begin, s.copy_end);
-  };
-  for (std::size_t k = 0; k < count; ++k) {
-    pipeline_slot& s = slot_[k % 2];
-    if (k >= 2) account(s);
-    const std::uint64_t first = pos[2 * k], last = pos[2 * k + 1];
-    a.item_first = batches[k].item_first;
-    a.item_last = batches[k].item_last;
-    a.pair_base = first;
-    a.out_pairs = s.d_direct.get();
-    CUDA_CHECK(cudaEventRecord(s.kernel_begin, s.stream));
-    CUDA_CHECK(launch_check_direct(a, opt_.load_balancing, /*count_only=*/false, s.stream));
-    CUDA_CHECK(cudaEventRecord(s.kernel_end, s.stream));
-    CUDA_CHECK(cudaEventRecord(s.copy_begin, s.stream));
-    if (last > first) {
-      CUDA_CHECK(cudaMemcpyAsync(h_result_.get() + first, s.d_direct.get(), (last - first) * sizeof(interest::id_pair),
-                                 cudaMemcpyDeviceToHost, s.stream));
-    }
-    CUDA_CHECK(cudaEventRecord(s.copy_end, s.stream));
-    report_.bytes_out += (last - first) * sizeof(interest::id_pair);
-    if (!opt_.pipelining) account(s);
-  }
-  if (opt_.pipelining) {
-    for (std::size_t k = count >= 2 ? count - 2 : 0; k < count; ++k) account(slot_[k % 2]);
-  }
-  large_write_pass(n, large_total, h_result_.get() + grid_total);
-  return grid_total + large_total;
+  ensure_result(std::max<std::uint64_t>(1, base + large_total), base);
+  large_write_pass(n, large_total, h_result_.get() + base);
+  return base + large_total;
 }
 
 }  // namespace zone::gpu::detail

@@ -35,9 +35,17 @@ struct pipeline_slot {
   pinned_buffer<std::uint64_t> h_tile_off;
   pinned_buffer<std::uint32_t> h_tile_pairs;
   device_buffer<unsigned long long> d_cursor;
-  device_buffer<std::uint32_t> d_direct;  // direct output: the batch's final pairs
   pinned_buffer<unsigned long long> h_cursor;
+  // Direct output: per-tile pair positions (scan), the batch's pairs in tile order, their count.
+  device_buffer<std::uint64_t> d_tile_pos;
+  device_buffer<std::uint32_t> d_direct;
+  device_buffer<unsigned char> d_temp;  // the slot's own scan scratch (the two streams overlap)
+  pinned_buffer<std::uint64_t> h_total;
   cudaEvent_t kernel_begin = nullptr, kernel_end = nullptr, copy_begin = nullptr, copy_end = nullptr;
+  cudaEvent_t totals_ready = nullptr;  // direct output: h_cursor and h_total are readable
+  bool copy_pending = false;           // direct output: a copy whose time is not yet accounted
+  std::uint64_t prefetched_pairs = 0;  // direct output: pairs copied before the batch's total was known
+  bool overcopied = false;             // direct output: the prefetch copied past the batch's pairs
   std::uint64_t capacity = 0;    // usable bytes of d_out / h_out
   std::uint64_t prefetched = 0;  // bytes of the current batch already copied
   bool remainder_pending = false;
@@ -84,6 +92,10 @@ class pbig_engine {
   void large_count_pass(std::uint32_t n);  // queues the count; total in *h_large_total_ after a sync
   void large_write_pass(std::uint32_t n, std::uint64_t total, void* host_dst);
   std::uint64_t check_direct(std::uint32_t n);
+  void launch_direct(const batch& b, pipeline_slot& s, std::uint64_t prefetch_pairs = 0);
+  std::uint64_t finish_direct(const batch& b, pipeline_slot& s, std::uint64_t base, std::size_t done, std::size_t count);
+  void account_copy(pipeline_slot& s);
+  void ensure_result(std::uint64_t needed, std::uint64_t keep);
   void grow_temp(std::size_t bytes);
   float elapsed(cudaEvent_t a, cudaEvent_t b) const;
 
@@ -108,7 +120,7 @@ class pbig_engine {
   bool validate_on_device_ = false;  // this call's boxes came straight from pinned memory
   grid_plan_dev plan_{};
   // mapping
-  device_buffer<std::uint32_t> d_counts_, d_cursor_;
+  device_buffer<std::uint32_t> d_counts_;  // per-cell counts, the large-box counter, per-cell cursors
   device_buffer<cell_prefix> d_prefix_;
   device_buffer<std::uint8_t> d_is_large_;
   device_buffer<std::uint32_t> d_large_;
@@ -123,11 +135,9 @@ class pbig_engine {
   // large boxes
   device_buffer<std::uint32_t> d_large_counts_, d_large_offsets_, d_large_pairs_;
   pinned_buffer<std::uint32_t> h_large_pairs_, h_large_total_;
-  // direct output
-  device_buffer<std::uint32_t> d_tile_pairs_all_;
-  device_buffer<std::uint64_t> d_tile_pos_;
-  pinned_buffer<std::uint64_t> h_batch_pos_;
+  // direct output: every pair of the call, in pinned host memory (kept across calls)
   pinned_buffer<interest::id_pair> h_result_;
+  std::uint64_t last_first_batch_pairs_ = 0;  // batch 0's pairs in the last call: its prefetch size
   // decode scratch
   std::vector<std::uint64_t> tile_pos_;
   std::vector<std::uint32_t> task_tiles_;

@@ -60,8 +60,8 @@ cudaError_t launch_plan(const box_arrays& boxes, bounds_dev* bounds, const plan_
 }
 
 cudaError_t launch_count(const box_arrays& boxes, std::uint32_t n, const grid_plan_dev& plan, std::uint32_t* counts,
-                         std::uint8_t* is_large, cudaStream_t stream) {
-  count_kernel<<<blocks_for(n, tuning::block), tuning::block, 0, stream>>>(boxes, n, plan, counts, is_large);
+                         std::uint8_t* is_large, std::uint32_t* large_count, cudaStream_t stream) {
+  count_kernel<<<blocks_for(n, tuning::block), tuning::block, 0, stream>>>(boxes, n, plan, counts, is_large, large_count);
   return cudaGetLastError();
 }
 
@@ -85,9 +85,9 @@ cudaError_t reduce_cells(void* temp, std::size_t& temp_bytes, const std::uint32_
                                    cell_totals{0, 0, 0, 0}, stream);
 }
 
-cudaError_t launch_batch_plan(const cell_prefix* prefix, std::uint32_t cells, map_readback* rb, std::uint32_t min_tiles,
-                              std::uint32_t max_batches, cudaStream_t stream) {
-  batch_plan_kernel<<<1, 32, 0, stream>>>(prefix, cells, rb, min_tiles, max_batches);
+cudaError_t launch_batch_plan(const cell_prefix* prefix, std::uint32_t cells, const std::uint32_t* large_count,
+                              map_readback* rb, std::uint32_t min_tiles, std::uint32_t max_batches, cudaStream_t stream) {
+  batch_plan_kernel<<<1, 32, 0, stream>>>(prefix, cells, large_count, rb, min_tiles, max_batches);
   return cudaGetLastError();
 }
 
@@ -104,6 +104,13 @@ cudaError_t sort_cells(void* temp, std::size_t& temp_bytes, const std::uint32_t*
   const auto end = thrust::make_transform_iterator(thrust::counting_iterator<std::uint32_t>(1), entry_at{prefix});
   return cub::DeviceSegmentedSort::SortKeys(temp, temp_bytes, in, out, static_cast<std::int64_t>(entries),
                                             static_cast<std::int64_t>(cells), begin, end, stream);
+}
+
+cudaError_t launch_sort_small_cells(const std::uint32_t* in, std::uint32_t* out, const cell_prefix* prefix,
+                                    std::uint32_t cells, cudaStream_t stream) {
+  sort_small_cells_kernel<<<blocks_for(std::uint64_t{cells} * 32, tuning::block), tuning::block, 0, stream>>>(in, out, prefix,
+                                                                                                          cells);
+  return cudaGetLastError();
 }
 
 cudaError_t launch_pack_boxes(const box_arrays& boxes, std::uint32_t n, float4* box_lo, float4* box_hi,
@@ -124,22 +131,13 @@ cudaError_t launch_expand(const cell_prefix* prefix, std::uint32_t cells, std::u
   return cudaGetLastError();
 }
 
-cudaError_t launch_check_direct(const check_args& a, bool balanced, bool count_only, cudaStream_t stream) {
-  const std::uint32_t grid = a.item_last - a.item_first;
-  if (grid == 0) return cudaSuccess;
-  if (count_only) {
-    if (balanced) {
-      check_kernel<true, true, check_mode::count><<<grid, tuning::segment, 0, stream>>>(a);
-    } else {
-      check_kernel<false, true, check_mode::count><<<grid, tuning::segment, 0, stream>>>(a);
-    }
-  } else {
-    if (balanced) {
-      check_kernel<true, false, check_mode::direct><<<grid, tuning::segment, 0, stream>>>(a);
-    } else {
-      check_kernel<false, false, check_mode::direct><<<grid, tuning::segment, 0, stream>>>(a);
-    }
-  }
+cudaError_t launch_place_chunks(const unsigned char* chunks, const unsigned long long* cursor, std::uint64_t capacity,
+                                const std::uint64_t* tile_off, const std::uint32_t* tile_pairs,
+                                const std::uint64_t* tile_pos, std::uint32_t tiles, std::uint32_t* out_pairs,
+                                cudaStream_t stream) {
+  if (tiles == 0) return cudaSuccess;
+  place_chunks_kernel<<<blocks_for(std::uint64_t{tiles} * 32, tuning::block), tuning::block, 0, stream>>>(
+      chunks, cursor, capacity, tile_off, tile_pairs, tile_pos, tiles, out_pairs);
   return cudaGetLastError();
 }
 

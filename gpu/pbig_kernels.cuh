@@ -259,16 +259,20 @@ __device__ __forceinline__ cell_range cells_of(const box_arrays& b, std::uint32_
 }
 
 /// Box counting kernel: one thread per box; +1 (atomic) on every cell the box occupies. A box
-/// that would occupy more than plan.large_cells cells is flagged large and kept out of the grid.
+/// that would occupy more than plan.large_cells cells is flagged large, counted in *large_count
+/// and kept out of the grid.
 __global__ void count_kernel(box_arrays boxes, std::uint32_t n, grid_plan_dev p, std::uint32_t* counts,
-                             std::uint8_t* is_large) {
+                             std::uint8_t* is_large, std::uint32_t* large_count) {
   const std::uint32_t i = blockIdx.x * blockDim.x + threadIdx.x;
   if (i >= n) return;
   const cell_range r = cells_of(boxes, i, p);
   const double occupied = static_cast<double>(r.hi[0] - r.lo[0] + 1) * (r.hi[1] - r.lo[1] + 1) * (r.hi[2] - r.lo[2] + 1);
   const bool large = occupied > p.large_cells;
   is_large[i] = large ? 1 : 0;
-  if (large) return;
+  if (large) {
+    atomicAdd(large_count, 1u);
+    return;
+  }
   for (std::uint32_t z = r.lo[2]; z <= r.hi[2]; ++z) {
     for (std::uint32_t y = r.lo[1]; y <= r.hi[1]; ++y) {
       const std::uint64_t row = (static_cast<std::uint64_t>(z) * p.dims[1] + y) * p.dims[0];
@@ -305,6 +309,23 @@ __global__ void pack_boxes_kernel(box_arrays boxes, std::uint32_t n, float4* box
   box_hi[i] = make_float4(boxes.hi[0][i], boxes.hi[1][i], boxes.hi[2][i], __uint_as_float(boxes.mask[i]));
 }
 
+/// Sorts each cell's list by box id (the mapping's atomics give a timing-dependent order), for
+/// grids whose fullest cell holds at most tuning::small_cell_sort entries: one warp per cell, each
+/// id's slot is its rank (ids in a cell are distinct). Fuller grids use CUB's segmented sort.
+__global__ void sort_small_cells_kernel(const std::uint32_t* in, std::uint32_t* out, const cell_prefix* prefix,
+                                        std::uint32_t cells) {
+  const std::uint64_t cell = (static_cast<std::uint64_t>(blockIdx.x) * blockDim.x + threadIdx.x) / 32;
+  const std::uint32_t lane = threadIdx.x % 32;
+  if (cell >= cells) return;
+  const std::uint32_t b = prefix[cell].entry, e = prefix[cell + 1].entry;
+  for (std::uint32_t i = b + lane; i < e; i += 32) {
+    const std::uint32_t id = in[i];
+    std::uint32_t rank = 0;
+    for (std::uint32_t j = b; j < e; ++j) rank += in[j] < id ? 1u : 0u;
+    out[b + rank] = id;
+  }
+}
+
 /// The box array of the paper: each entry's box, packed for the checking kernel, in cell order.
 __global__ void gather_kernel(const float4* box_lo, const float4* box_hi, const std::uint32_t* entries,
                               std::uint32_t count, float4* packed_lo, float4* packed_hi) {
@@ -326,14 +347,15 @@ __global__ void expand_items_kernel(const cell_prefix* prefix, std::uint32_t cel
 
 /// Fills the read-back block: totals at cell M and the batch boundaries (cells cut so that each
 /// batch holds about the same number of tiles).
-__global__ void batch_plan_kernel(const cell_prefix* prefix, std::uint32_t cells, map_readback* rb,
-                                  std::uint32_t min_tiles, std::uint32_t max_batches) {
+__global__ void batch_plan_kernel(const cell_prefix* prefix, std::uint32_t cells, const std::uint32_t* large_count,
+                                  map_readback* rb, std::uint32_t min_tiles, std::uint32_t max_batches) {
   if (threadIdx.x >= 32) return;
   const std::uint32_t tiles = prefix[cells].tile;
   std::uint32_t count = tiles == 0 ? 0 : (tiles + min_tiles - 1) / min_tiles;
   count = min(count, max_batches);
   if (threadIdx.x == 0) {
     rb->total = prefix[cells];
+    rb->large_count = *large_count;
     rb->batches.count = count;
   }
   for (std::uint32_t b = threadIdx.x; b <= count && b < static_cast<std::uint32_t>(max_batch_slots); b += 32) {
@@ -370,12 +392,7 @@ __device__ __forceinline__ std::uint32_t hi_flags(const float4& hi, const grid_p
 /// chunk: a 12-byte header then the 3-level encoded rows (Compressed) or plain id pairs, placed
 /// by a block prefix sum plus one atomic per chunk. Chunks past the capacity are counted, not
 /// written: the host sees cursor > capacity and re-runs the batch with room.
-/// Output modes of check_kernel: chunks (the paper's output, compressed or plain), per-tile pair
-/// counts only (pass 1 of the direct output), or final id pairs at the scanned per-tile positions
-/// (pass 2 of the direct output).
-enum class check_mode : int { chunks = 0, count = 1, direct = 2 };
-
-template <bool Balanced, bool Compressed, check_mode Mode = check_mode::chunks>
+template <bool Balanced, bool Compressed>
 __global__ void __launch_bounds__(tuning::segment) check_kernel(check_args a) {
   constexpr std::uint32_t T = tuning::segment;
   using scan = cub::BlockScan<std::uint32_t, T>;
@@ -451,27 +468,6 @@ __global__ void __launch_bounds__(tuning::segment) check_kernel(check_args a) {
     }
 
     const std::uint32_t pairs = static_cast<std::uint32_t>(__popcll(hits));
-    if constexpr (Mode != check_mode::chunks) {
-      std::uint32_t before, tile_total;
-      scan(scan_temp).ExclusiveSum(pairs, before, tile_total);
-      const std::uint32_t tile = tile0 + (h - v);
-      if constexpr (Mode == check_mode::count) {
-        if (tid == 0) a.tile_pairs[tile] = tile_total;
-      } else {
-        if (pairs > 0) {
-          std::uint32_t* w = a.out_pairs + 2 * (a.tile_pos[tile] - a.pair_base + before);
-          std::uint32_t q = 0;
-          while (hits) {
-            const std::uint32_t j = __ffsll(static_cast<long long>(hits)) - 1;
-            hits &= hits - 1;
-            const std::uint32_t other = col_id[j];
-            w[q++] = min(row_id, other);
-            w[q++] = max(row_id, other);
-          }
-        }
-      }
-      continue;
-    }
     const std::uint32_t bytes = Compressed ? (pairs ? 2 + pairs : 0) : 8 * pairs;
     std::uint32_t offset, total;
     scan(scan_temp).ExclusiveSum((pairs << 16) | bytes, offset, total);
@@ -518,6 +514,24 @@ __global__ void __launch_bounds__(tuning::segment) check_kernel(check_args a) {
       }
     }
   }
+}
+
+/// Direct output, after a batch's checking kernel wrote its plain chunks at atomic offsets: moves
+/// each tile's pairs to the tile's scanned position in the batch's pair buffer, dropping the
+/// headers, so the batch's pairs are in tile order (the same order on every run). One warp per
+/// tile, coalesced 4-byte copies. Does nothing when the batch overflowed its chunk buffer (the
+/// host re-runs the batch with room).
+__global__ void place_chunks_kernel(const unsigned char* chunks, const unsigned long long* cursor, std::uint64_t capacity,
+                                    const std::uint64_t* tile_off, const std::uint32_t* tile_pairs,
+                                    const std::uint64_t* tile_pos, std::uint32_t tiles, std::uint32_t* out_pairs) {
+  const std::uint64_t warp = (static_cast<std::uint64_t>(blockIdx.x) * blockDim.x + threadIdx.x) / 32;
+  const std::uint32_t lane = threadIdx.x % 32;
+  if (warp >= tiles || *cursor > capacity) return;
+  const std::uint32_t pairs = tile_pairs[warp];
+  if (pairs == 0) return;
+  const auto* src = reinterpret_cast<const std::uint32_t*>(chunks + tile_off[warp] + sizeof(chunk_header));
+  std::uint32_t* dst = out_pairs + 2 * tile_pos[warp];
+  for (std::uint32_t w = lane; w < 2 * pairs; w += 32) dst[w] = src[w];
 }
 
 // ---- large boxes ------------------------------------------------------------------------------

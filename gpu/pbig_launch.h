@@ -16,28 +16,34 @@ namespace zone::gpu::detail {
 cudaError_t launch_plan(const box_arrays& boxes, bounds_dev* bounds, const plan_params& prm, plan_state* state,
                         grid_plan_dev* plan, cudaStream_t stream);
 cudaError_t launch_count(const box_arrays& boxes, std::uint32_t n, const grid_plan_dev& plan, std::uint32_t* counts,
-                         std::uint8_t* is_large, cudaStream_t stream);
+                         std::uint8_t* is_large, std::uint32_t* large_count, cudaStream_t stream);
 cudaError_t select_large(void* temp, std::size_t& temp_bytes, const std::uint8_t* is_large, std::uint32_t* large,
                          std::uint32_t* large_count, std::uint32_t n, cudaStream_t stream);
 cudaError_t scan_cells(void* temp, std::size_t& temp_bytes, const std::uint32_t* counts, cell_prefix* prefix,
                        std::uint32_t cells, cudaStream_t stream);  // scans cells + 1 values (counts[cells] == 0)
 cudaError_t reduce_cells(void* temp, std::size_t& temp_bytes, const std::uint32_t* counts, cell_totals* totals,
                          std::uint32_t cells, cudaStream_t stream);
-cudaError_t launch_batch_plan(const cell_prefix* prefix, std::uint32_t cells, map_readback* rb, std::uint32_t min_tiles,
-                              std::uint32_t max_batches, cudaStream_t stream);
+cudaError_t launch_batch_plan(const cell_prefix* prefix, std::uint32_t cells, const std::uint32_t* large_count,
+                              map_readback* rb, std::uint32_t min_tiles, std::uint32_t max_batches, cudaStream_t stream);
 cudaError_t launch_map(const box_arrays& boxes, std::uint32_t n, const grid_plan_dev& plan, const std::uint8_t* is_large,
                        const cell_prefix* prefix, std::uint32_t* cursor, std::uint32_t* entries, cudaStream_t stream);
 cudaError_t sort_cells(void* temp, std::size_t& temp_bytes, const std::uint32_t* in, std::uint32_t* out,
                        std::uint32_t entries, std::uint32_t cells, const cell_prefix* prefix, cudaStream_t stream);
+/// The per-cell sort for grids whose fullest cell holds at most tuning::small_cell_sort entries.
+cudaError_t launch_sort_small_cells(const std::uint32_t* in, std::uint32_t* out, const cell_prefix* prefix,
+                                    std::uint32_t cells, cudaStream_t stream);
 cudaError_t launch_pack_boxes(const box_arrays& boxes, std::uint32_t n, float4* box_lo, float4* box_hi,
                               cudaStream_t stream);
 cudaError_t launch_gather(const float4* box_lo, const float4* box_hi, const std::uint32_t* entries, std::uint32_t count,
                           float4* packed_lo, float4* packed_hi, cudaStream_t stream);
 cudaError_t launch_expand(const cell_prefix* prefix, std::uint32_t cells, std::uint32_t* items, cudaStream_t stream);
 cudaError_t launch_check(const check_args& args, bool balanced, bool compressed, cudaStream_t stream);
-/// Direct output: pass 1 (count_only: per-tile pair counts into args.tile_pairs, global tile
-/// index) or pass 2 (final id pairs at args.tile_pos[tile] - args.pair_base).
-cudaError_t launch_check_direct(const check_args& args, bool balanced, bool count_only, cudaStream_t stream);
+/// Direct output: moves each tile's plain chunk (written by launch_check, uncompressed) to
+/// out_pairs + 2 * tile_pos[tile]; nothing when *cursor > capacity (the batch overflowed).
+cudaError_t launch_place_chunks(const unsigned char* chunks, const unsigned long long* cursor, std::uint64_t capacity,
+                                const std::uint64_t* tile_off, const std::uint32_t* tile_pairs,
+                                const std::uint64_t* tile_pos, std::uint32_t tiles, std::uint32_t* out_pairs,
+                                cudaStream_t stream);
 /// Exclusive scan of per-tile pair counts into 64-bit positions (count values; pass count + 1
 /// with a zero last count to get the total at position count).
 cudaError_t scan_tiles(void* temp, std::size_t& temp_bytes, const std::uint32_t* tile_pairs, std::uint64_t* tile_pos,

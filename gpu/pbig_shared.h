@@ -117,10 +117,6 @@ struct check_args {
   unsigned char* out;
   std::uint64_t capacity;
   unsigned long long* cursor;  // bytes claimed in `out` (may pass capacity: overflow)
-  // Direct output (pbig_options::direct_output): global tile positions and the batch's first pair.
-  const std::uint64_t* tile_pos;
-  std::uint64_t pair_base;
-  std::uint32_t* out_pairs;
 };
 
 }  // namespace zone::gpu::detail

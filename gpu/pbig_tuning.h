@@ -31,6 +31,9 @@ inline constexpr std::size_t default_output_pairs = std::size_t{1} << 22;
 inline constexpr std::uint64_t parallel_decode_pairs = 32768;
 /// Validation in find_pairs_view: boxes per parallel chunk.
 inline constexpr std::size_t validate_chunk = 65536;
+/// Per-cell sort by id after the mapping: one warp per cell ranks its ids when the fullest cell
+/// holds at most this many entries (one kernel); otherwise CUB's segmented sort.
+inline constexpr std::uint32_t small_cell_sort = 256;
 /// Block size of the element-wise kernels (bounds, count, map, gather, large boxes).
 inline constexpr std::uint32_t block = 256;
 /// Box upload: the pinned staging copy is cut into parts so that packing part k+1 on the CPU

@@ -18,10 +18,15 @@
 // - a reset frame that cannot be queued (control frames fill the queue) is dropped and reported
 //   again, so a reset is never lost without another resync being asked for.
 //
-// Hence the client gets, in order, the frame being written when the episode began, then nothing
+// Hence the client gets, in order, the frames being written when the episode began, then nothing
 // but control frames until a reset: every state frame it receives is a reset or the successor of
 // the state frame it received before. At most `bound` state frames and 2 x `bound` frames in all
 // are held.
+//
+// Writes are gathered: start_write() marks the first few queued frames (at most `bound` - 1, so a
+// reset always fits behind them, and about `gather_bytes`) as being written, and the session
+// writes them with one gathered write; finish_write() retires them all. "The frame being
+// written" above means these frames.
 #pragma once
 
 #include <algorithm>
@@ -46,6 +51,9 @@ class outbound_queue {
     bool overflow = false;     ///< control frames beyond twice the bound: a stuck client, close it
     std::size_t dropped = 0;   ///< state frames dropped by this push (queued ones, and the new one if not queued)
   };
+
+  /// Most bytes one gathered write takes (a larger first frame is still taken alone).
+  static constexpr std::size_t gather_bytes = 64 * 1024;
 
   explicit outbound_queue(std::size_t bound) : bound_(std::max<std::size_t>(1, bound)) {}
 
@@ -86,36 +94,49 @@ class outbound_queue {
     return r;
   }
 
-  /// The next frame to write, marked as being written; null when one is being written already or
-  /// nothing is queued.
-  [[nodiscard]] const entry* start_write() {
-    if (writing_ || queue_.empty()) return nullptr;
-    writing_ = true;
-    return &queue_.front();
+  /// The next frame to write, marked as being written; null when a write is in flight already or
+  /// nothing is queued. (One frame per write; start_write_many() gathers.)
+  [[nodiscard]] const entry* start_write() { return start_write_many(1) == 0 ? nullptr : &queue_.front(); }
+  /// Marks the first queued frames as being written, one gathered write: at most `max_frames`,
+  /// at most bound - 1, and no more than gather_bytes (at least one frame). How many (they are
+  /// entries()[0, n)); 0 when a write is in flight already or nothing is queued.
+  [[nodiscard]] std::size_t start_write_many(std::size_t max_frames) {
+    if (in_flight_ != 0 || queue_.empty()) return 0;
+    const std::size_t most = std::min({max_frames, std::max<std::size_t>(1, bound_ - 1), queue_.size()});
+    std::size_t n = 0, bytes = 0;
+    while (n < std::max<std::size_t>(1, most)) {
+      const std::size_t b = queue_[n].frame.size();
+      if (n != 0 && bytes + b > gather_bytes) break;
+      bytes += b;
+      ++n;
+    }
+    in_flight_ = n;
+    return n;
   }
-  /// The frame being written is done (written or failed): it leaves the queue.
+  /// The frames being written are done (written or failed): they leave the queue.
   void finish_write() {
-    if (!writing_) return;
-    writing_ = false;
-    queue_.pop_front();
+    queue_.erase(queue_.begin(), queue_.begin() + static_cast<std::ptrdiff_t>(in_flight_));
+    in_flight_ = 0;
   }
-  /// Keeps only the frame being written (a closing session queues its error frame next).
-  void keep_only_in_flight() { queue_.erase(queue_.begin() + (writing_ ? 1 : 0), queue_.end()); }
+  /// Keeps only the frames being written (a closing session queues its error frame next).
+  void keep_only_in_flight() { queue_.erase(queue_.begin() + static_cast<std::ptrdiff_t>(in_flight_), queue_.end()); }
   void clear() {
     queue_.clear();
-    writing_ = false;
+    in_flight_ = 0;
   }
 
-  [[nodiscard]] bool writing() const { return writing_; }
+  [[nodiscard]] bool writing() const { return in_flight_ != 0; }
+  /// Frames being written (the first ones of entries()).
+  [[nodiscard]] std::size_t in_flight() const { return in_flight_; }
   [[nodiscard]] bool empty() const { return queue_.empty(); }
   [[nodiscard]] std::size_t size() const { return queue_.size(); }
   [[nodiscard]] bool awaiting_reset() const { return awaiting_reset_; }
   [[nodiscard]] const std::deque<entry>& entries() const { return queue_; }
 
  private:
-  /// Drops every queued state frame (plain or reset) except the one being written; how many.
+  /// Drops every queued state frame (plain or reset) except those being written; how many.
   std::size_t drop_queued_state() {
-    const auto first = queue_.begin() + (writing_ ? 1 : 0);
+    const auto first = queue_.begin() + static_cast<std::ptrdiff_t>(in_flight_);
     const auto kept = std::stable_partition(first, queue_.end(), [](const entry& e) { return e.kind == delivery::control; });
     const auto n = static_cast<std::size_t>(queue_.end() - kept);
     queue_.erase(kept, queue_.end());
@@ -123,8 +144,8 @@ class outbound_queue {
   }
 
   std::size_t bound_;
-  std::deque<entry> queue_;  // front is being written while writing_
-  bool writing_ = false;
+  std::deque<entry> queue_;     // the first in_flight_ entries are being written
+  std::size_t in_flight_ = 0;
   bool awaiting_reset_ = false;
 };
 

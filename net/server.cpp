@@ -1,11 +1,21 @@
-// Boost.Asio implementation of net/server.h: an acceptor, one session per socket (each on its own
-// strand), one write in flight per session, a bounded outbound queue that drops state for a slow
-// client until a reset (outbound_queue.h), per-session input rate limits and idle timeouts, and a
-// mutex-guarded event list that the game thread drains with poll().
+// Boost.Asio implementation of net/server.h: an acceptor, one session per socket, one write in
+// flight per session (gathering what is queued), a bounded outbound queue that drops state for a
+// slow client until a reset (outbound_queue.h), per-session input rate limits and idle timeouts,
+// and a mutex-guarded event list that the game thread drains with poll().
+//
+// Threads: one io_context per I/O thread (an "I/O lane"); each session is bound to one lane, so
+// its handlers run on that thread only, one at a time (no strand needed). The hand-off from the
+// game's threads (send): the frame goes into the session's mailbox under its own short lock; a
+// session whose mailbox was empty is appended to its lane's ready list, and a ready list that was
+// empty posts one drain to the lane. The drain moves each ready session's mailbox through its
+// outbound queue in order and starts one gathered write. So a tick's burst of 20,000 frames costs
+// a few posts and wake-ups per lane instead of a post (a strand lock, a scheduler lock, often a
+// wake-up) per frame.
 #include <utility>  // before Asio: GCC 12 in C++20 mode needs it first
 
 #include <atomic>
 #include <boost/asio.hpp>
+#include <cstring>
 #include <deque>
 #include <mutex>
 #include <shared_mutex>
@@ -24,14 +34,20 @@ using tcp = asio::ip::tcp;
 using steady = std::chrono::steady_clock;
 
 shared_frame make_shared_frame(std::span<const std::uint8_t> frame) {
-  return std::make_shared<const std::vector<std::uint8_t>>(frame.begin(), frame.end());
+  // One allocation for the count and the bytes (not a control block plus a vector and its buffer).
+  auto bytes = std::make_shared_for_overwrite<std::uint8_t[]>(std::max<std::size_t>(1, frame.size()));
+  if (!frame.empty()) std::memcpy(bytes.get(), frame.data(), frame.size());
+  shared_frame f;
+  f.bytes_ = std::move(bytes);
+  f.size_ = frame.size();
+  return f;
 }
 
 namespace {
 
 struct atomic_counters {
   std::atomic<std::uint64_t> connections_accepted{0}, connections_refused{0}, sessions_open{0}, frames_in{0},
-      frames_out{0}, bytes_in{0}, bytes_out{0}, frames_dropped{0}, resyncs_requested{0}, frames_rejected{0},
+      frames_out{0}, writes{0}, bytes_in{0}, bytes_out{0}, frames_dropped{0}, resyncs_requested{0}, frames_rejected{0},
       inputs_dropped{0}, pings_answered{0};
 };
 
@@ -40,22 +56,49 @@ constexpr std::size_t read_chunk_bytes = 4096;
 constexpr std::chrono::milliseconds close_grace{1000};
 /// Most connections taken from the backlog per accept completion.
 constexpr std::size_t accept_batch = 256;
+/// Most frames one gathered write takes (also at most the queue bound - 1; outbound_queue.h).
+constexpr std::size_t max_gather_frames = 64;
 
 }  // namespace
 
 class session;
 
+/// One I/O thread with its own event loop, and the sessions bound to it that have frames waiting
+/// in their mailboxes (the ready list). Any thread appends; the lane's thread drains.
+struct io_lane {
+  asio::io_context ctx{1};
+  std::optional<asio::executor_work_guard<asio::io_context::executor_type>> work;
+  std::thread thread;
+  std::mutex ready_mutex;
+  std::vector<std::shared_ptr<session>> ready;     // guarded by ready_mutex
+  bool drain_posted = false;                       // guarded by ready_mutex
+  std::vector<std::shared_ptr<session>> draining;  // the lane's thread only
+
+  /// Any thread: `s` has frames in its mailbox (called once per empty -> non-empty).
+  void schedule(std::shared_ptr<session> s);
+  /// The lane's thread: every ready session takes its mailbox and writes.
+  void drain();
+};
+
 struct server::impl {
-  explicit impl(server_options o) : opt(std::move(o)), acceptor(asio::make_strand(ctx)), accept_retry(acceptor.get_executor()) {}
+  explicit impl(server_options o)
+      : opt(std::move(o)), lanes(make_lanes(opt.io_threads)), acceptor(lanes[0]->ctx), accept_retry(acceptor.get_executor()) {}
+
+  static std::vector<std::unique_ptr<io_lane>> make_lanes(unsigned n) {
+    std::vector<std::unique_ptr<io_lane>> v;
+    for (unsigned i = 0; i < std::max(1u, n); ++i) v.push_back(std::make_unique<io_lane>());
+    return v;
+  }
+  /// The lane of the next session (round robin; the acceptor's thread only).
+  io_lane& next_lane() { return *lanes[next_lane_index++ % lanes.size()]; }
 
   server_options opt;
-  asio::io_context ctx;
-  tcp::acceptor acceptor;
+  std::vector<std::unique_ptr<io_lane>> lanes;
+  std::size_t next_lane_index = 0;
+  tcp::acceptor acceptor;  // on lane 0
   asio::steady_timer accept_retry;  // on the acceptor's strand: a pause after an accept error
   std::uint64_t file_limit = 0;     // the open-file limit after start() raised it
   steady::time_point last_accept_warning{};
-  std::optional<asio::executor_work_guard<asio::io_context::executor_type>> work;
-  std::vector<std::thread> threads;
   bool running = false;
   std::uint16_t bound_port = 0;
 
@@ -79,15 +122,16 @@ struct server::impl {
     events.push_back(std::move(e));
   }
   void do_accept();
-  /// Makes a session of an accepted socket (or refuses it over max_connections).
-  void admit(tcp::socket socket);
+  /// Makes a session of an accepted socket (or refuses it over max_connections) on `lane`.
+  void admit(tcp::socket socket, io_lane& lane);
   void remove(session_id id);
 };
 
 class session : public std::enable_shared_from_this<session> {
  public:
-  session(server::impl& srv, tcp::socket socket, session_id id, bool announced)
+  session(server::impl& srv, io_lane& lane, tcp::socket socket, session_id id, bool announced)
       : srv_(srv),
+        lane_(lane),
         socket_(std::move(socket)),
         idle_(socket_.get_executor()),
         id_(id),
@@ -110,10 +154,33 @@ class session : public std::enable_shared_from_this<session> {
   /// Any thread.
   [[nodiscard]] std::shared_ptr<const std::atomic<std::uint32_t>> backlog() const { return backlog_; }
 
+  /// Any thread: into the mailbox; the lane is told only when the mailbox was empty.
   void enqueue(shared_frame frame, delivery d) {
     if (d != delivery::control) backlog_->fetch_add(1, std::memory_order_relaxed);
-    asio::post(socket_.get_executor(),
-               [self = shared_from_this(), frame = std::move(frame), d]() mutable { self->push(std::move(frame), d); });
+    bool first;
+    {
+      const std::lock_guard lock(mailbox_mutex_);
+      mailbox_.push_back({std::move(frame), d});
+      first = !scheduled_;
+      scheduled_ = true;
+    }
+    if (first) lane_.schedule(shared_from_this());
+  }
+
+  /// The lane's thread: every frame the mailbox holds goes through the outbound queue's policy,
+  /// in the order of the sends; then one gathered write (if none is in flight).
+  void take_mailbox() {
+    {
+      const std::lock_guard lock(mailbox_mutex_);
+      inbox_.swap(mailbox_);
+      scheduled_ = false;
+    }
+    for (auto& e : inbox_) {
+      push(std::move(e.frame), e.kind, false);
+      if (closed_) break;
+    }
+    inbox_.clear();
+    do_write();
   }
 
   /// Any thread: error frame, then close.
@@ -211,7 +278,7 @@ class session : public std::enable_shared_from_this<session> {
       case wire::message::ping: {
         const auto* p = f.envelope->message_as_ping();
         ++srv_.counters.pings_answered;
-        push(make_shared_frame(pong_encoder_.encode(pong_msg{p->client_time_us(), srv_.now_us()})), delivery::control);
+        push(make_shared_frame(pong_encoder_.encode(pong_msg{p->client_time_us(), srv_.now_us()})), delivery::control, true);
         return;
       }
       default:
@@ -228,7 +295,8 @@ class session : public std::enable_shared_from_this<session> {
     srv_.report(std::move(e));
   }
 
-  void push(shared_frame frame, delivery d) {
+  /// Through the queue's policy; `write`: start a write now (else the caller does, once).
+  void push(shared_frame frame, delivery d, bool write) {
     if (closing_ || closed_ || !frame) return;
     const auto r = queue_.push(std::move(frame), d);
     // Every state frame ends queued (then written: on_write) or counted in `dropped`.
@@ -239,6 +307,16 @@ class session : public std::enable_shared_from_this<session> {
     }
     if (r.dropped != 0) srv_.counters.frames_dropped += r.dropped;
     if (r.resync) {
+      // Why the queue was full (evidence for resyncs under pacing, which should leave at most
+      // client_max_backlog state frames queued): the first 20 episodes and every 1000th.
+      const auto episode = srv_.counters.resyncs_requested.load(std::memory_order_relaxed);
+      if (episode < 20 || episode % 1000 == 0) {
+        std::size_t control = 0;
+        for (const auto& e : queue_.entries()) control += e.kind == delivery::control ? 1 : 0;
+        spdlog::info("session {}: drop episode {}: queue held {} frames ({} control, {} being written), state backlog {}",
+                     id_, episode + 1, queue_.size(), control, queue_.in_flight(),
+                     backlog_->load(std::memory_order_relaxed));
+      }
       // Once per episode: the game makes this client's next frame a reset; until it is queued,
       // the queue drops the deltas built meanwhile (the client could not apply them).
       ++srv_.counters.resyncs_requested;
@@ -248,31 +326,40 @@ class session : public std::enable_shared_from_this<session> {
       e.dropped = r.dropped;
       srv_.report(std::move(e));
     }
-    if (r.queued) do_write();
+    if (r.queued && write) do_write();
   }
 
+  /// One gathered write of the first queued frames, unless a write is in flight.
   void do_write() {
     if (closed_) return;
-    const auto* next = queue_.start_write();
-    if (!next) return;
-    writing_state_ = next->kind != delivery::control;
-    const auto& f = *next->frame;
-    asio::async_write(socket_, asio::buffer(f.data(), f.size()),
-                      [self = shared_from_this()](const boost::system::error_code& ec, std::size_t n) {
-                        self->on_write(ec, n);
+    const std::size_t n = queue_.start_write_many(max_gather_frames);
+    if (n == 0) return;
+    write_buffers_.clear();
+    writing_state_ = 0;
+    const auto& entries = queue_.entries();
+    for (std::size_t i = 0; i < n; ++i) {
+      const auto& e = entries[i];
+      if (e.kind != delivery::control) ++writing_state_;
+      write_buffers_.emplace_back(e.frame.data(), e.frame.size());
+    }
+    asio::async_write(socket_, write_buffers_,
+                      [self = shared_from_this()](const boost::system::error_code& ec, std::size_t bytes) {
+                        self->on_write(ec, bytes);
                       });
   }
 
   void on_write(const boost::system::error_code& ec, std::size_t n) {
+    const std::size_t frames = queue_.in_flight();
     queue_.finish_write();
-    if (writing_state_) backlog_->fetch_sub(1, std::memory_order_relaxed);
-    writing_state_ = false;
+    if (writing_state_ != 0) backlog_->fetch_sub(writing_state_, std::memory_order_relaxed);
+    writing_state_ = 0;
     if (closed_) return;
     if (ec) {
       if (ec != asio::error::operation_aborted) close_now("write failed: " + ec.message());
       return;
     }
-    ++srv_.counters.frames_out;
+    srv_.counters.frames_out += frames;
+    ++srv_.counters.writes;
     srv_.counters.bytes_out += n;
     if (!queue_.empty()) {
       do_write();
@@ -317,7 +404,8 @@ class session : public std::enable_shared_from_this<session> {
   }
 
   server::impl& srv_;
-  tcp::socket socket_;  // its executor is the session's strand: every handler runs there
+  io_lane& lane_;
+  tcp::socket socket_;  // its executor is the lane's io_context (one thread): every handler runs there
   asio::steady_timer idle_;
   const session_id id_;
   const bool announced_;  // false for a refused connection: the game never hears of it
@@ -332,15 +420,41 @@ class session : public std::enable_shared_from_this<session> {
   steady::time_point last_refill_;
   std::uint32_t consecutive_drops_ = 0;
   std::shared_ptr<std::atomic<std::uint32_t>> backlog_ = std::make_shared<std::atomic<std::uint32_t>>(0);
-  bool writing_state_ = false;  // the frame being written is a state frame
+  std::uint32_t writing_state_ = 0;  // state frames among those being written
+  std::vector<asio::const_buffer> write_buffers_;  // the gathered write in flight
+  std::mutex mailbox_mutex_;
+  std::vector<outbound_queue::entry> mailbox_;  // guarded by mailbox_mutex_: sent, not yet taken
+  bool scheduled_ = false;                      // guarded by mailbox_mutex_: on the lane's ready list
+  std::vector<outbound_queue::entry> inbox_;    // the lane's thread: the mailbox being taken
 };
+
+void io_lane::schedule(std::shared_ptr<session> s) {
+  bool post;
+  {
+    const std::lock_guard lock(ready_mutex);
+    ready.push_back(std::move(s));
+    post = !drain_posted;
+    drain_posted = true;
+  }
+  if (post) asio::post(ctx, [this] { drain(); });
+}
+
+void io_lane::drain() {
+  {
+    const std::lock_guard lock(ready_mutex);
+    draining.swap(ready);
+    drain_posted = false;
+  }
+  for (auto& s : draining) s->take_mailbox();
+  draining.clear();
+}
 
 void server::impl::remove(session_id id) {
   const std::lock_guard lock(sessions_mutex);
   sessions.erase(id);
 }
 
-void server::impl::admit(tcp::socket socket) {
+void server::impl::admit(tcp::socket socket, io_lane& lane) {
   boost::system::error_code ignored;
   socket.set_option(tcp::no_delay(true), ignored);
   if (opt.socket_send_buffer > 0) {
@@ -354,13 +468,13 @@ void server::impl::admit(tcp::socket socket) {
   }
   if (open >= opt.max_connections) {
     ++counters.connections_refused;
-    auto s = std::make_shared<session>(*this, std::move(socket), id, false);
+    auto s = std::make_shared<session>(*this, lane, std::move(socket), id, false);
     s->fail(error_code::server_full, "connection limit reached");
     return;
   }
   ++counters.connections_accepted;
   ++counters.sessions_open;
-  auto s = std::make_shared<session>(*this, std::move(socket), id, true);
+  auto s = std::make_shared<session>(*this, lane, std::move(socket), id, true);
   {
     const std::lock_guard lock(sessions_mutex);
     sessions.emplace(id, s);
@@ -373,7 +487,8 @@ void server::impl::admit(tcp::socket socket) {
 }
 
 void server::impl::do_accept() {
-  acceptor.async_accept(asio::make_strand(ctx), [this](const boost::system::error_code& ec, tcp::socket socket) {
+  io_lane& lane = next_lane();
+  acceptor.async_accept(lane.ctx, [this, &lane](const boost::system::error_code& ec, tcp::socket socket) {
     if (ec) {
       if (ec == asio::error::operation_aborted || !acceptor.is_open()) return;
       // Out of file descriptors (or memory): the pending connection stays in the backlog; say
@@ -396,7 +511,7 @@ void server::impl::do_accept() {
       });
       return;
     }
-    admit(std::move(socket));
+    admit(std::move(socket), lane);
     // Take what else waits in the backlog now (the acceptor is non-blocking), not one connection
     // per completion: a completion waits its turn behind every ready handler of the I/O threads,
     // so a busy server accepted about one connection per round of its I/O queue (~1 per tick),
@@ -404,10 +519,11 @@ void server::impl::do_accept() {
     // client failed while the server spent its accepts on clients that had given up.
     for (std::size_t n = 1; n < accept_batch; ++n) {
       boost::system::error_code e;
-      tcp::socket next(asio::make_strand(ctx));
+      io_lane& other = next_lane();
+      tcp::socket next(other.ctx);
       acceptor.accept(next, e);
       if (e) break;  // would_block: the backlog is empty; other errors: async_accept reports them
-      admit(std::move(next));
+      admit(std::move(next), other);
     }
     do_accept();
   });
@@ -453,10 +569,10 @@ std::optional<std::string> server::start() {
     return "cannot listen on " + m.opt.address + ":" + std::to_string(m.opt.port) + ": " + ec.message();
   }
   m.bound_port = m.acceptor.local_endpoint(ec).port();
-  m.work.emplace(m.ctx.get_executor());
+  const auto n = static_cast<unsigned>(m.lanes.size());
+  for (auto& lane : m.lanes) lane->work.emplace(lane->ctx.get_executor());
   m.do_accept();
-  const unsigned n = std::max(1u, m.opt.io_threads);
-  for (unsigned i = 0; i < n; ++i) m.threads.emplace_back([&m] { m.ctx.run(); });
+  for (auto& lane : m.lanes) lane->thread = std::thread([l = lane.get()] { l->ctx.run(); });
   m.running = true;
   spdlog::info("zone server listening on {}:{} ({} I/O threads)", m.opt.address, port(), n);
   return std::nullopt;
@@ -468,7 +584,7 @@ void server::stop() {
   auto& m = *impl_;
   if (!m.running) return;
   m.running = false;
-  asio::post(m.acceptor.get_executor(), [&m] {  // on the acceptor's strand, like its handlers
+  asio::post(m.acceptor.get_executor(), [&m] {  // on lane 0, like the acceptor's handlers
     boost::system::error_code ignored;
     m.acceptor.close(ignored);
     m.accept_retry.cancel();
@@ -480,7 +596,7 @@ void server::stop() {
   }
   for (auto& s : open) s->close("server stopping");
   open.clear();
-  m.work.reset();
+  for (auto& lane : m.lanes) lane->work.reset();
   // Sessions close on their strands; give them a moment, then stop whatever is left.
   const auto deadline = steady::now() + std::chrono::seconds(2);
   for (;;) {
@@ -491,9 +607,14 @@ void server::stop() {
     if (steady::now() > deadline) break;
     std::this_thread::sleep_for(std::chrono::milliseconds(2));
   }
-  m.ctx.stop();
-  for (auto& t : m.threads) t.join();
-  m.threads.clear();
+  for (auto& lane : m.lanes) lane->ctx.stop();
+  for (auto& lane : m.lanes) {
+    if (lane->thread.joinable()) lane->thread.join();
+    // Sessions left on a ready list hold themselves; let them go.
+    const std::lock_guard lock(lane->ready_mutex);
+    lane->ready.clear();
+    lane->drain_posted = false;
+  }
   {
     const std::lock_guard lock(m.sessions_mutex);
     m.sessions.clear();
@@ -545,7 +666,7 @@ void server::disconnect(session_id s, error_code code, std::string reason) {
 server_stats server::stats() const {
   const auto& c = impl_->counters;
   return {c.connections_accepted.load(), c.connections_refused.load(), c.sessions_open.load(), c.frames_in.load(),
-          c.frames_out.load(),           c.bytes_in.load(),            c.bytes_out.load(),     c.frames_dropped.load(),
+          c.frames_out.load(),           c.writes.load(),              c.bytes_in.load(),            c.bytes_out.load(),     c.frames_dropped.load(),
           c.resyncs_requested.load(),    c.frames_rejected.load(),     c.inputs_dropped.load(), c.pings_answered.load()};
 }
 

@@ -13,6 +13,7 @@
 #include <cstdint>
 #include <memory>
 #include <optional>
+#include <span>
 #include <string>
 #include <vector>
 
@@ -23,7 +24,7 @@ namespace zone::net {
 struct server_options {
   std::string address = "127.0.0.1";
   std::uint16_t port = 0;       ///< 0 = an ephemeral port (see server::port())
-  unsigned io_threads = 1;
+  unsigned io_threads = 1;       ///< each runs its own event loop; a session lives on one of them
   std::size_t max_connections = 1000;
   decoder_options inbound{};    ///< max inbound frame size and verifier limits
   /// Outbound queue bound per session, in frames. State frames are deltas, so when a state frame
@@ -68,8 +69,25 @@ struct inbound_event {
   std::string reason;           ///< for kind::disconnected
 };
 
-/// Shared immutable frame: a message sent to many sessions is serialized once.
-using shared_frame = std::shared_ptr<const std::vector<std::uint8_t>>;
+/// Shared immutable frame: a message sent to many sessions is serialized once. The reference
+/// count and the bytes are one allocation (make_shared_frame); copies share the bytes and are
+/// thread-safe like std::shared_ptr. Null when default-constructed.
+class shared_frame {
+ public:
+  shared_frame() = default;
+  [[nodiscard]] const std::uint8_t* data() const { return bytes_.get(); }
+  [[nodiscard]] std::size_t size() const { return size_; }
+  [[nodiscard]] std::span<const std::uint8_t> bytes() const { return {bytes_.get(), size_}; }
+  explicit operator bool() const { return bytes_ != nullptr; }
+  /// Holders of these bytes (std::shared_ptr::use_count: approximate while other threads copy).
+  [[nodiscard]] long use_count() const { return bytes_.use_count(); }
+
+ private:
+  friend shared_frame make_shared_frame(std::span<const std::uint8_t> frame);
+  std::shared_ptr<const std::uint8_t[]> bytes_;
+  std::size_t size_ = 0;
+};
+/// A shared frame holding a copy of `frame` (one allocation).
 [[nodiscard]] shared_frame make_shared_frame(std::span<const std::uint8_t> frame);
 
 enum class delivery : std::uint8_t {
@@ -87,6 +105,7 @@ struct server_stats {
   std::uint64_t sessions_open = 0;
   std::uint64_t frames_in = 0;
   std::uint64_t frames_out = 0;
+  std::uint64_t writes = 0;            ///< socket writes (gathered: one may carry several frames)
   std::uint64_t bytes_in = 0;
   std::uint64_t bytes_out = 0;
   std::uint64_t frames_dropped = 0;    ///< state frames not delivered to slow clients (dropped or superseded)
@@ -119,7 +138,11 @@ class server {
   /// safe from any thread (the zone server sends each frame from the worker that built it).
   /// Frames of one session are delivered in the order of the calls (state frames may be dropped,
   /// see server_options::max_queued_frames); send a session's state frames from one thread at a
-  /// time, in the order they were built.
+  /// time, in the order they were built. Cost: the frame goes into the session's mailbox (a short
+  /// lock); only a session that had nothing waiting is put on its I/O thread's ready list, and
+  /// only a ready list that was empty posts a wake-up to that thread: a burst of sends (a tick's
+  /// frames) costs the I/O threads a few wake-ups, not one per frame. A session writes what is
+  /// queued with one gathered write (frames_out counts frames, writes counts writes).
   bool send(session_id s, shared_frame frame, delivery d = delivery::state);
   /// The session's state backlog: state frames sent to it (send) and neither written to its
   /// socket nor dropped yet. Read it (any thread, relaxed) to pace a client to what it absorbs:

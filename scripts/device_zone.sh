@@ -14,7 +14,8 @@
 # Environment: SWARM_BOTS (20000), SWARM_NPCS (80000), SWARM_SECONDS (60, after the ramp-up),
 # SWARM_RAMP (bots per second, 2000), SWARM_THREADS (bot-swarm I/O threads, 6), SERVER_THREADS (8),
 # SERVER_IO_THREADS (4), SERVER_INTEREST (auto), SERVER_SNDBUF (65536), SERVER_ARGS (more zone-server
-# options), BENCH_ENTITIES (100000), BENCH_TICKS (600), BENCH_FINDERS ("gpu cpu").
+# options), SERVER_CPUS / SWARM_CPUS (taskset CPU lists, e.g. 0-9 and 10-15: server and swarm on
+# disjoint cores; unset = no pinning), BENCH_ENTITIES (100000), BENCH_TICKS (600), BENCH_FINDERS ("gpu cpu").
 # Logs, CSV and JSON go to $OUT (or ./out).
 set -uo pipefail
 dir=${DEVICE_DIR:-.device}
@@ -62,7 +63,11 @@ for step in "$@"; do
       ramp=${SWARM_RAMP:-2000}
       duration=$((secs + bots / ramp + 1))
       echo "== zone-server + bot-swarm: $bots bots, $npcs NPCs, 30 Hz, ${duration} s $(date -u +%FT%TZ)"
-      "$dir/zone-server" --listen 127.0.0.1 --port 0 --metrics-port 0 --npcs "$npcs" --tick-rate 30 \
+      server_pin=()
+      swarm_pin=()
+      [ -n "${SERVER_CPUS:-}" ] && server_pin=(taskset -c "$SERVER_CPUS")
+      [ -n "${SWARM_CPUS:-}" ] && swarm_pin=(taskset -c "$SWARM_CPUS")
+      "${server_pin[@]}" "$dir/zone-server" --listen 127.0.0.1 --port 0 --metrics-port 0 --npcs "$npcs" --tick-rate 30 \
         --max-clients $((bots + 100)) --threads "${SERVER_THREADS:-8}" --io-threads "${SERVER_IO_THREADS:-4}" \
         --finder auto --interest "${SERVER_INTEREST:-auto}" --socket-send-buffer "${SERVER_SNDBUF:-65536}" \
         ${SERVER_ARGS:-} > "$out/zone-server.log" 2>&1 &
@@ -76,14 +81,16 @@ for step in "$@"; do
       if [ -z "$port" ]; then
         echo "zone-server did not start"; cat "$out/zone-server.log"; kill "$server"; continue
       fi
-      "$dir/bot-swarm" --port "$port" --bots "$bots" --duration "$duration" --ramp "$ramp" --threads "${SWARM_THREADS:-6}" --verify \
+      "${swarm_pin[@]}" "$dir/bot-swarm" --port "$port" --bots "$bots" --duration "$duration" --ramp "$ramp" --threads "${SWARM_THREADS:-6}" --verify \
         --mix "${SWARM_MIX:-walk=0.5,patrol=0.2,follow=0.1,crowd=0.1,teleport=0.1}" --quiet \
         --report-json "$out/swarm-report.json" --report-csv "$out/swarm-series.csv" > "$out/swarm.log" 2>&1
       echo "bot-swarm exit code: $?"
       tail -40 "$out/swarm.log"
+      awk '{printf "zone-server CPU time (user + system): %.1f s\n", ($14 + $15) / 100}' "/proc/$server/stat" 2>/dev/null
       kill -TERM "$server"
       wait "$server"
       grep -A8 'stopped after' "$out/zone-server.log"
+      grep -E 'CPU|cpu' "$out/zone-server.log" | tail -3
       grep -E 'finder|auto' "$out/zone-server.log" | head -5
       ;;
     *) echo "unknown step $step"; exit 2 ;;

@@ -2,7 +2,8 @@
 // on every core) side by side where it finishes within a minute. Prints tables and writes CSV.
 //
 //   bench_gpu [--csv FILE] [--csv-lbvh FILE] [--only LIST] [--max-n N] [--reps R] [--cgal-max-n N]
-//     LIST: comma-separated of floors,targets,nsweep,cells,doc,gauss,ablation,lbvh (default: all)
+//     LIST: comma-separated of floors,targets,wsweep,nsweep,cells,doc,gauss,ablation,lbvh
+//           (default: all but wsweep)
 //
 // lbvh: PBIG, LBVH, the auto finder, the CPU grid finder and CGAL (box_self_intersection_d,
 // sequential; when its headers are found, up to --cgal-max-n boxes) side by side on the paper's
@@ -127,7 +128,7 @@ struct bench {
   zi::pair_finder& gpu(const zg::pbig_options& o) {
     std::ostringstream key;
     key << o.load_balancing << o.compression << o.pipelining << o.direct_output << '/' << o.fixed_cell_edge << '/'
-        << o.reuse_plan;
+        << o.reuse_plan << '/' << o.min_boxes_per_cell;
     auto& f = gpu_finders[key.str()];
     if (!f) {
       std::string why;
@@ -529,7 +530,8 @@ int main(int argc, char** argv) {
       std::printf(
           "bench_gpu: the PBIG paper's experiments on the GPU, PBIG beside LBVH, auto, the CPU grid finder and CGAL\n\n"
           "usage: bench_gpu [--csv FILE] [--csv-lbvh FILE] [--only LIST] [--max-n N] [--reps R] [--cgal-max-n N]\n"
-          "  --only LIST       comma-separated of floors,targets,nsweep,cells,doc,gauss,ablation,lbvh (default: all)\n"
+          "  --only LIST       comma-separated of floors,targets,wsweep,nsweep,cells,doc,gauss,ablation,lbvh\n"
+          "                    (default: all but wsweep)\n"
           "  --csv FILE        PBIG rows as CSV (default bench_gpu.csv)\n"
           "  --csv-lbvh FILE   the lbvh experiment's rows as CSV (default bench_lbvh.csv)\n"
           "  --max-n N         skip sets larger than N boxes (default 10000000)\n"
@@ -598,6 +600,31 @@ int main(int argc, char** argv) {
                     g.e2e_ms, t.target_ms, g.e2e_min_ms, g.report.data_in_ms, g.report.plan_ms, g.report.map_ms,
                     g.report.pipeline_ms);
         b.row("targets", t.kind, t.n, param, opts_name(o) + (pin.active() ? "+pinned" : "+unpinned"), g, c);
+      }
+    }
+  }
+  if (want("wsweep")) {
+    // Eq. 6's W (the least boxes per cell on average) on the target sets, direct output, pinned
+    // input: W trades mapping work (cells a box occupies) against checks per cell.
+    print_head("W sweep: Eq. 6's W on the target sets (direct output, pinned input)");
+    struct set_spec { const char* kind; std::size_t n; };
+    for (const set_spec t : {set_spec{"uniform", 100000}, set_spec{"uniform", 1000000}, set_spec{"uniform", 10000000},
+                             set_spec{"gaussian", 1000000}, set_spec{"doc:10", 1000000}, set_spec{"gaussian", 10000000}}) {
+      if (t.n > b.max_n) continue;
+      const zi::box_set s = *zi::generate_named(t.kind, t.n, seed);
+      const zg::pinned_boxes pin(s);
+      for (const double w : {16.0, 32.0, 64.0, 128.0}) {
+        zg::pbig_options o = all;
+        o.direct_output = true;
+        o.min_boxes_per_cell = w;
+        const gpu_result g = b.run_gpu(s, o, t.n >= 10000000 ? 5 : 11);
+        char param[32];
+        std::snprintf(param, sizeof param, "W=%g", w);
+        print_row(b, t.kind, t.n, param, g, cpu_result{});
+        std::printf("   W=%g: e2e %.3f ms (map %.3f, check+out %.3f; edge %.1f, alpha %.2f, checks %.3g)\n", w, g.e2e_ms,
+                    g.report.map_ms, g.report.pipeline_ms, g.stats.cell_edge, g.report.alpha,
+                    static_cast<double>(g.stats.checks));
+        b.row("wsweep", t.kind, t.n, param, opts_name(o) + "+pinned", g, cpu_result{});
       }
     }
   }

@@ -132,6 +132,7 @@ std::string zone_server::metrics_text() const {
   t.gauge("zone_net_sessions_open", "Open sessions.", static_cast<double>(ns.sessions_open));
   t.counter("zone_net_frames_in_total", "Frames received.", static_cast<double>(ns.frames_in));
   t.counter("zone_net_frames_out_total", "Frames written.", static_cast<double>(ns.frames_out));
+  t.counter("zone_net_writes_total", "Socket writes (gathered: one may carry several frames).", static_cast<double>(ns.writes));
   t.counter("zone_net_bytes_in_total", "Bytes received.", static_cast<double>(ns.bytes_in));
   t.counter("zone_net_bytes_out_total", "Bytes written.", static_cast<double>(ns.bytes_out));
   t.counter("zone_frames_held_total", "Client-ticks without a frame because the client had not read its backlog yet.",
@@ -274,9 +275,9 @@ void zone_server::replicate() {
   const std::uint64_t now = net_.now_us();
   // Every client's frame is built on the worker pool (replicator::build_many: fixed chunks of
   // clients, one writer each; the frames are those of building them one by one) and handed to
-  // the network by the worker that built it: posting to a session's strand costs microseconds
-  // (a lock, often a wake-up of an I/O thread), which on this thread alone took ~200 ms a tick
-  // for 20,000 clients. Each session gets one frame per tick, so its frames stay in tick order.
+  // the network by the worker that built it (net::server::send: into the session's mailbox, one
+  // wake-up per I/O thread for a burst). Each session gets one frame per tick, so its frames stay
+  // in tick order.
   requests_.clear();
   request_sessions_.clear();
   for (const auto& [session, c] : clients_) {

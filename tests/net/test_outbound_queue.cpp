@@ -8,6 +8,7 @@
 #include <cstring>
 #include <optional>
 #include <random>
+#include <unordered_map>
 #include <vector>
 
 #include "outbound_queue.h"
@@ -24,7 +25,7 @@ shared_frame numbered(std::uint64_t n) {
 }
 std::uint64_t number_of(const shared_frame& f) {
   std::uint64_t n = 0;
-  std::memcpy(&n, f->data(), 8);
+  std::memcpy(&n, f.data(), 8);
   return n;
 }
 
@@ -267,5 +268,117 @@ TEST_SUITE("net.outbound_queue") {
     }
     MESSAGE("drop episodes " << episodes << ", state frames not delivered " << superseded_or_dropped);
     CHECK(episodes > 20);  // the stalls did overflow the queues
+  }
+
+  TEST_CASE("gathered writes: at most bound - 1 frames and about 64 KiB a write, retired together, in order") {
+    outbound_queue q(8);
+    for (std::uint64_t n = 0; n < 8; ++n) REQUIRE(q.push(numbered(n), n % 3 == 0 ? delivery::control : delivery::state).queued);
+    CHECK(q.start_write_many(64) == 7);  // bound - 1: a reset always fits behind a write
+    CHECK(q.writing());
+    CHECK(q.in_flight() == 7);
+    CHECK(q.start_write_many(64) == 0);  // one write in flight
+    CHECK(q.start_write() == nullptr);
+    REQUIRE(q.push(numbered(8), delivery::control).queued);
+    REQUIRE(q.push(numbered(9), delivery::control).queued);
+    q.finish_write();
+    CHECK_FALSE(q.writing());
+    CHECK(q.size() == 3);
+    CHECK(number_of(q.entries()[0].frame) == 7);
+    CHECK(q.start_write_many(2) == 2);  // the caller's cap
+    q.finish_write();
+    CHECK(number_of(q.entries()[0].frame) == 9);
+
+    // Bytes: 40 KiB frames go one a write (a second would pass 64 KiB); a frame larger than that
+    // still goes, alone.
+    outbound_queue big(8);
+    std::vector<std::uint8_t> b40(40 * 1024), b100(100 * 1024);
+    REQUIRE(big.push(make_shared_frame(b40), delivery::state).queued);
+    REQUIRE(big.push(make_shared_frame(b40), delivery::state).queued);
+    CHECK(big.start_write_many(64) == 1);
+    big.finish_write();
+    CHECK(big.start_write_many(64) == 1);
+    big.finish_write();
+    REQUIRE(big.push(make_shared_frame(b100), delivery::state).queued);
+    REQUIRE(big.push(numbered(1), delivery::state).queued);
+    CHECK(big.start_write_many(64) == 1);
+    big.finish_write();
+    std::vector<std::uint8_t> small(1000);
+    for (int i = 0; i < 6; ++i) REQUIRE(big.push(make_shared_frame(small), delivery::state).queued);
+    CHECK(big.start_write_many(64) == 7);  // the numbered frame and six of 1,000 bytes
+  }
+
+  TEST_CASE("a drop episode while several frames are being written keeps them all; the reset fits behind them") {
+    outbound_queue q(8);
+    for (std::uint64_t n = 1; n <= 7; ++n) REQUIRE(q.push(numbered(n), delivery::state).queued);
+    REQUIRE(q.start_write_many(64) == 7);
+    REQUIRE(q.push(numbered(8), delivery::state).queued);  // 8 held: the bound
+    auto r = q.push(numbered(9), delivery::state);
+    CHECK_FALSE(r.queued);
+    CHECK(r.resync);
+    CHECK(r.dropped == 2);  // 8 (queued, not being written) and 9
+    CHECK(q.size() == 7);   // 1..7 are on their way: kept
+    r = q.push(numbered(10), delivery::state);
+    CHECK_FALSE(r.queued);  // awaiting a reset
+    CHECK_FALSE(r.resync);
+    r = q.push(numbered(11), delivery::state_reset);
+    CHECK(r.queued);  // 7 in flight + the reset < 8
+    CHECK_FALSE(r.resync);
+    q.finish_write();
+    CHECK(numbers(drain(q)) == std::vector<std::uint64_t>{11});
+  }
+
+  TEST_CASE("random traffic with gathered writes: every delivered state frame applies, memory bounded") {
+    const auto seed = zone::test::fresh_seed();
+    INFO("seed " << seed);
+    std::mt19937_64 rng(seed);
+    outbound_queue q(6);
+    std::uint64_t next = 1, last_state = 0, sent_state = 0, delivered_state = 0, dropped = 0, episodes = 0;
+    bool reset_due = true, awaiting = false;
+    std::vector<delivered> in_flight;
+    std::unordered_map<std::uint64_t, std::uint64_t> previous_sent;  // state frame -> the state frame sent before it
+    std::uint64_t last_sent_state = 0;
+    for (int step = 0; step < 200000; ++step) {
+      const auto roll = rng() % 100;
+      if (roll < 55) {  // the game sends
+        const bool control = rng() % 8 == 0 && q.size() < 11;
+        const delivery d = control ? delivery::control : reset_due ? delivery::state_reset : delivery::state;
+        if (!control) {
+          ++sent_state;
+          previous_sent[next] = last_sent_state;
+          last_sent_state = next;
+        }
+        const auto r = q.push(numbered(next), d);
+        dropped += r.dropped;
+        if (r.resync) {
+          ++episodes;
+          reset_due = true;  // the game's next state frame is a reset
+        } else if (d == delivery::state_reset && r.queued) {
+          reset_due = false;
+        }
+        awaiting = q.awaiting_reset();
+        ++next;
+      } else if (roll < 80) {  // the socket takes a gathered write
+        if (q.start_write_many(1 + rng() % 8) != 0) {
+          for (std::size_t i = 0; i < q.in_flight(); ++i) in_flight.push_back({number_of(q.entries()[i].frame), q.entries()[i].kind});
+        }
+      } else if (q.writing()) {  // the write completes
+        q.finish_write();
+        for (const auto& d : in_flight) {
+          if (d.kind == delivery::control) continue;
+          ++delivered_state;
+          // A delta applies only on the state frame sent right before it (numbers are per send).
+          if (d.kind == delivery::state) {
+            REQUIRE_MESSAGE(previous_sent[d.n] == last_state, "delta " << d.n << " after " << last_state);
+          }
+          last_state = d.n;
+        }
+        in_flight.clear();
+      }
+      REQUIRE(q.size() <= 12);
+      (void)awaiting;
+    }
+    for (const auto& e : q.entries()) delivered_state += e.kind != delivery::control ? 1 : 0;
+    CHECK(delivered_state + dropped == sent_state);  // every state frame delivered or counted
+    CHECK(episodes > 20);
   }
 }

@@ -362,6 +362,117 @@ TEST_SUITE("net.server") {
                     << reports_seen);
   }
 
+  TEST_CASE("a burst to a client that is not reading goes out in gathered writes, complete and in order") {
+    server_options opt;
+    opt.max_queued_frames = 64;     // no drop: this is about the write path
+    opt.socket_send_buffer = 4096;  // the kernel holds little, so the queue fills behind a blocked write
+    server srv(opt);
+    REQUIRE_FALSE(srv.start().has_value());
+    game g{srv, {}};
+    test_client c(srv.port(), 4096);
+    REQUIRE(c.send(hello_msg{"burst", "", protocol_version}));
+    REQUIRE(g.wait_for([&] { return g.hello_session("burst") != 0; }));
+    const session_id s = g.hello_session("burst");
+    const auto before = srv.stats();
+    constexpr std::uint64_t frames = 60;  // ~8 KB each: ~480 KB, far beyond the socket buffers
+    for (std::uint64_t t = 0; t < frames; ++t) {
+      REQUIRE(srv.send(s, frame(tick(t, 2000)), t == 0 ? delivery::state_reset : delivery::state));
+    }
+    const auto backlog = srv.state_backlog(s);
+    REQUIRE(backlog != nullptr);
+    CHECK(backlog->load() > 0);
+    for (std::uint64_t t = 0; t < frames; ++t) {
+      const auto m = c.read();
+      REQUIRE(m.has_value());
+      REQUIRE(std::get<tick_update_msg>(*m).server_tick == t);
+    }
+    REQUIRE(g.wait_for([&] { return srv.stats().frames_out - before.frames_out == frames; }));
+    const auto after = srv.stats();
+    CHECK(after.frames_dropped == 0);
+    CHECK(backlog->load() == 0);
+    // Frames that waited behind a blocked write left together.
+    CHECK(after.writes - before.writes < frames);
+    MESSAGE(frames << " frames in " << after.writes - before.writes << " writes");
+  }
+
+  TEST_CASE("concurrent senders: each sender's frames in its order, a session's state stream intact, nothing lost") {
+    server_options opt;
+    opt.max_queued_frames = 128;  // 100 frames a session at most: no drop, no overflow
+    opt.io_threads = 2;
+    server srv(opt);
+    REQUIRE_FALSE(srv.start().has_value());
+    game g{srv, {}};
+    constexpr int clients = 4, senders = 4, per_sender = 25;
+    std::vector<std::unique_ptr<test_client>> cs;
+    std::vector<session_id> ss;
+    for (int i = 0; i < clients; ++i) {
+      cs.push_back(std::make_unique<test_client>(srv.port()));
+      REQUIRE(cs.back()->send(hello_msg{"c" + std::to_string(i), "", protocol_version}));
+    }
+    REQUIRE(g.wait_for([&] {
+      for (int i = 0; i < clients; ++i) {
+        if (g.hello_session("c" + std::to_string(i)) == 0) return false;
+      }
+      return true;
+    }));
+    for (int i = 0; i < clients; ++i) ss.push_back(g.hello_session("c" + std::to_string(i)));
+    // Sender 0 is each session's game (its state frames, in order); senders 1..3 send control
+    // frames to every session at once. Frame tick = sender * 1000 + sequence.
+    std::vector<std::thread> threads;
+    std::atomic<int> start{0};
+    for (int k = 0; k < senders; ++k) {
+      threads.emplace_back([&, k] {
+        ++start;
+        while (start.load() < senders) std::this_thread::yield();
+        for (int q = 0; q < per_sender; ++q) {
+          for (int i = 0; i < clients; ++i) {
+            const auto f = frame(tick(static_cast<std::uint64_t>(k * 1000 + q), 8));
+            const bool ok = srv.send(ss[static_cast<std::size_t>(i)], f,
+                                     k == 0 ? (q == 0 ? delivery::state_reset : delivery::state) : delivery::control);
+            if (!ok) std::abort();
+          }
+        }
+      });
+    }
+    for (auto& t : threads) t.join();
+    for (int i = 0; i < clients; ++i) {
+      std::vector<int> last(senders, -1);
+      for (int n = 0; n < senders * per_sender; ++n) {
+        const auto m = cs[static_cast<std::size_t>(i)]->read();
+        REQUIRE(m.has_value());
+        const auto t = static_cast<int>(std::get<tick_update_msg>(*m).server_tick);
+        const int k = t / 1000, q = t % 1000;
+        REQUIRE(k < senders);
+        CHECK_MESSAGE(q == last[static_cast<std::size_t>(k)] + 1, "client " << i << " sender " << k << ": " << q << " after " << last[static_cast<std::size_t>(k)]);
+        last[static_cast<std::size_t>(k)] = q;
+      }
+      for (int k = 0; k < senders; ++k) CHECK(last[static_cast<std::size_t>(k)] == per_sender - 1);
+    }
+    REQUIRE(g.wait_for([&] { return srv.stats().frames_out >= static_cast<std::uint64_t>(clients * senders * per_sender); }));
+    CHECK(srv.stats().frames_dropped == 0);
+    CHECK(srv.stats().frames_out == static_cast<std::uint64_t>(clients * senders * per_sender));
+  }
+
+  TEST_CASE("sends then a game-side disconnect: a prefix of the frames, in order, then the error, then nothing") {
+    server srv;
+    REQUIRE_FALSE(srv.start().has_value());
+    game g{srv, {}};
+    test_client c(srv.port());
+    REQUIRE(c.send(hello_msg{"late", "", protocol_version}));
+    REQUIRE(g.wait_for([&] { return g.hello_session("late") != 0; }));
+    const session_id s = g.hello_session("late");
+    for (std::uint64_t t = 0; t < 5; ++t) REQUIRE(srv.send(s, frame(tick(t, 1)), delivery::control));
+    srv.disconnect(s, error_code::server_full, "bye");
+    std::vector<message> seen;
+    CHECK(c.wait_closed(3000ms, &seen));
+    // A closing session keeps only what is being written (net/server.h): the frames before the
+    // error are the first ones sent, in order.
+    REQUIRE(!seen.empty());
+    REQUIRE(seen.size() <= 6);
+    for (std::size_t t = 0; t + 1 < seen.size(); ++t) CHECK(std::get<tick_update_msg>(seen[t]).server_tick == t);
+    CHECK(is_error(seen.back(), error_code::server_full));
+  }
+
   TEST_CASE("connection limit") {
     server_options opt;
     opt.max_connections = 2;

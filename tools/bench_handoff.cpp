@@ -1,0 +1,247 @@
+// bench-handoff: the cost of handing replicated frames to the network (net::server::send), without
+// the game. N loopback clients connect to a net::server; each "tick", K sender threads (the
+// replication workers' role) give every session one state frame of B bytes, paced like the zone
+// server (no frame while the session's state backlog is at 2); a reader thread drains every
+// client socket through epoll and discards the bytes. Prints a table: the senders' CPU per frame
+// (make_shared_frame + send), the server's CPU per frame (the whole process less the reader and
+// the idle main thread: senders plus I/O threads), the hand-off's wall time per tick, and what the
+// server wrote. Benchmarks print tables; they are not timed tests (docs/zone-benchmarks.md).
+#include <arpa/inet.h>
+#include <netinet/in.h>
+#include <netinet/tcp.h>
+#include <sys/epoll.h>
+#include <sys/resource.h>
+#include <sys/socket.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <atomic>
+#include <chrono>
+#include <cstdio>
+#include <cstdlib>
+#include <cstring>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include <spdlog/spdlog.h>
+
+#include "server.h"
+
+using namespace zone::net;
+
+namespace {
+
+double thread_cpu_s() {
+  timespec ts{};
+  clock_gettime(CLOCK_THREAD_CPUTIME_ID, &ts);
+  return static_cast<double>(ts.tv_sec) + static_cast<double>(ts.tv_nsec) * 1e-9;
+}
+double process_cpu_s() {
+  rusage r{};
+  getrusage(RUSAGE_SELF, &r);
+  return static_cast<double>(r.ru_utime.tv_sec + r.ru_stime.tv_sec) +
+         static_cast<double>(r.ru_utime.tv_usec + r.ru_stime.tv_usec) * 1e-6;
+}
+
+struct options {
+  std::size_t sessions = 1000;
+  std::size_t ticks = 300;
+  unsigned senders = 2;
+  unsigned io_threads = 2;
+  std::size_t frame_bytes = 600;
+  double rate_hz = 30;  // 0: back to back
+  std::uint32_t max_backlog = 2;
+};
+
+bool parse(int argc, char** argv, options& o) {
+  for (int i = 1; i < argc; ++i) {
+    const std::string a = argv[i];
+    const auto next = [&]() -> const char* { return i + 1 < argc ? argv[++i] : nullptr; };
+    const char* v = nullptr;
+    if (a == "--help") return false;
+    if (!(v = next())) return false;
+    if (a == "--sessions") o.sessions = std::strtoull(v, nullptr, 10);
+    else if (a == "--ticks") o.ticks = std::strtoull(v, nullptr, 10);
+    else if (a == "--senders") o.senders = static_cast<unsigned>(std::strtoul(v, nullptr, 10));
+    else if (a == "--io-threads") o.io_threads = static_cast<unsigned>(std::strtoul(v, nullptr, 10));
+    else if (a == "--frame-bytes") o.frame_bytes = std::strtoull(v, nullptr, 10);
+    else if (a == "--rate") o.rate_hz = std::strtod(v, nullptr);
+    else if (a == "--max-backlog") o.max_backlog = static_cast<std::uint32_t>(std::strtoul(v, nullptr, 10));
+    else return false;
+  }
+  return o.sessions > 0 && o.senders > 0 && o.frame_bytes >= 64;
+}
+
+double percentile(std::vector<double> v, double q) {
+  if (v.empty()) return 0;
+  std::sort(v.begin(), v.end());
+  return v[std::min(v.size() - 1, static_cast<std::size_t>(q * static_cast<double>(v.size())))];
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  options o;
+  if (!parse(argc, argv, o)) {
+    std::fprintf(stderr,
+                 "usage: bench-handoff [--sessions 1000] [--ticks 300] [--senders 2] [--io-threads 2] "
+                 "[--frame-bytes 600] [--rate 30 (0: back to back)] [--max-backlog 2 (0: off)]\n");
+    return 64;
+  }
+  spdlog::set_level(spdlog::level::warn);
+  server_options so;
+  so.io_threads = o.io_threads;
+  so.max_connections = o.sessions + 16;
+  so.idle_timeout = std::chrono::hours(1);
+  server srv(so);
+  if (auto err = srv.start()) {
+    std::fprintf(stderr, "bench-handoff: %s\n", err->c_str());
+    return 1;
+  }
+
+  // Clients: plain sockets, one hello each (the session exists from the connection on).
+  std::vector<int> fds;
+  const auto hello = encode_frame(hello_msg{"bench", "", protocol_version});
+  for (std::size_t i = 0; i < o.sessions; ++i) {
+    const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
+    sockaddr_in addr{};
+    addr.sin_family = AF_INET;
+    addr.sin_port = htons(srv.port());
+    addr.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+    if (fd < 0 || ::connect(fd, reinterpret_cast<sockaddr*>(&addr), sizeof addr) != 0) {
+      std::fprintf(stderr, "bench-handoff: connect %zu failed: %s (ulimit -n?)\n", i, std::strerror(errno));
+      return 1;
+    }
+    (void)::write(fd, hello.data(), hello.size());
+    fds.push_back(fd);
+  }
+  std::vector<session_id> sessions;
+  std::vector<std::shared_ptr<const std::atomic<std::uint32_t>>> backlogs;
+  std::vector<inbound_event> events;
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(20);
+  while (sessions.size() < o.sessions && std::chrono::steady_clock::now() < deadline) {
+    events.clear();
+    srv.poll(events);
+    for (const auto& e : events) {
+      if (e.type == inbound_event::kind::connected) {
+        sessions.push_back(e.session);
+        backlogs.push_back(srv.state_backlog(e.session));
+      }
+    }
+    std::this_thread::sleep_for(std::chrono::milliseconds(1));
+  }
+  if (sessions.size() < o.sessions) {
+    std::fprintf(stderr, "bench-handoff: only %zu of %zu sessions\n", sessions.size(), o.sessions);
+    return 1;
+  }
+
+  // The reader: drains every client socket, discards the bytes.
+  std::atomic<bool> stop{false};
+  std::atomic<std::uint64_t> bytes_read{0};
+  double reader_cpu = 0;
+  std::thread reader([&] {
+    const int ep = epoll_create1(0);
+    for (const int fd : fds) {
+      epoll_event ev{};
+      ev.events = EPOLLIN;
+      ev.data.fd = fd;
+      epoll_ctl(ep, EPOLL_CTL_ADD, fd, &ev);
+    }
+    std::vector<epoll_event> ready(256);
+    std::vector<char> buf(1 << 16);
+    const double c0 = thread_cpu_s();
+    while (!stop.load(std::memory_order_relaxed)) {
+      const int n = epoll_wait(ep, ready.data(), static_cast<int>(ready.size()), 20);
+      for (int i = 0; i < n; ++i) {
+        const ssize_t got = ::read(ready[static_cast<std::size_t>(i)].data.fd, buf.data(), buf.size());
+        if (got > 0) bytes_read.fetch_add(static_cast<std::uint64_t>(got), std::memory_order_relaxed);
+      }
+    }
+    reader_cpu = thread_cpu_s() - c0;
+    ::close(ep);
+  });
+
+  // A real tick_update of about frame_bytes (leaves of 4 bytes each), serialized per session
+  // per tick as the zone server does (each client's frame is its own).
+  tick_update_msg u;
+  u.server_tick = 1;
+  u.leaves.assign((o.frame_bytes - 64) / 4, 7u);
+  const auto payload = encode_frame(u);
+
+  std::vector<double> tick_wall_ms, tick_sender_cpu_ms;
+  std::atomic<std::uint64_t> sent{0}, held{0};
+  const auto period = o.rate_hz > 0 ? std::chrono::duration<double>(1.0 / o.rate_hz) : std::chrono::duration<double>(0);
+  const auto s0 = srv.stats();
+  const double p0 = process_cpu_s();
+  double senders_cpu_total = 0;
+  const auto w0 = std::chrono::steady_clock::now();
+  auto next = std::chrono::steady_clock::now();
+  for (std::size_t t = 0; t < o.ticks; ++t) {
+    std::vector<double> cpu(o.senders, 0);
+    const auto t0 = std::chrono::steady_clock::now();
+    std::vector<std::thread> workers;
+    for (unsigned k = 0; k < o.senders; ++k) {
+      workers.emplace_back([&, k] {
+        const double c0 = thread_cpu_s();
+        std::uint64_t n = 0, h = 0;
+        for (std::size_t i = k; i < sessions.size(); i += o.senders) {
+          if (o.max_backlog != 0 && backlogs[i] && backlogs[i]->load(std::memory_order_relaxed) >= o.max_backlog) {
+            ++h;
+            continue;
+          }
+          srv.send(sessions[i], make_shared_frame(payload), delivery::state);
+          ++n;
+        }
+        sent += n;
+        held += h;
+        cpu[k] = thread_cpu_s() - c0;
+      });
+    }
+    for (auto& w : workers) w.join();
+    tick_wall_ms.push_back(std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count());
+    double c = 0;
+    for (const double x : cpu) c += x;
+    tick_sender_cpu_ms.push_back(c * 1000);
+    senders_cpu_total += c;
+    if (o.rate_hz > 0) {
+      next += std::chrono::duration_cast<std::chrono::steady_clock::duration>(period);
+      std::this_thread::sleep_until(next);
+    }
+  }
+  // Let the I/O threads write what is queued.
+  const auto flush_deadline = std::chrono::steady_clock::now() + std::chrono::seconds(5);
+  while (std::chrono::steady_clock::now() < flush_deadline) {
+    const auto s = srv.stats();
+    if (s.frames_out - s0.frames_out + s.frames_dropped - s0.frames_dropped >= sent.load()) break;
+    std::this_thread::sleep_for(std::chrono::milliseconds(2));
+  }
+  const double wall = std::chrono::duration<double>(std::chrono::steady_clock::now() - w0).count();
+  const double p1 = process_cpu_s();
+  stop = true;
+  reader.join();
+  const auto s1 = srv.stats();
+  // Server CPU: the process less the reader thread (the main thread sleeps; its polling is noise).
+  const double server_cpu = (p1 - p0) - reader_cpu;
+  const double frames = static_cast<double>(sent.load());
+
+  std::printf("bench-handoff: %zu sessions, %zu ticks at %s, %u senders, %u I/O threads, %zu-byte frames, pacing %u\n",
+              o.sessions, o.ticks, o.rate_hz > 0 ? (std::to_string(o.rate_hz) + " Hz").c_str() : "back to back",
+              o.senders, o.io_threads, payload.size(), o.max_backlog);
+  std::printf("| frames handed off | held (paced) | written | dropped | resyncs | wall s |\n");
+  std::printf("|---|---|---|---|---|---|\n");
+  std::printf("| %llu | %llu | %llu | %llu | %llu | %.2f |\n", static_cast<unsigned long long>(sent.load()),
+              static_cast<unsigned long long>(held.load()),
+              static_cast<unsigned long long>(s1.frames_out - s0.frames_out),
+              static_cast<unsigned long long>(s1.frames_dropped - s0.frames_dropped),
+              static_cast<unsigned long long>(s1.resyncs_requested - s0.resyncs_requested), wall);
+  std::printf("| senders' CPU per frame | server CPU per frame (senders + I/O) | hand-off wall per tick p50 / p99 | "
+              "senders' CPU per tick p50 | reader CPU per frame |\n");
+  std::printf("|---|---|---|---|---|\n");
+  std::printf("| %.2f us | %.2f us | %.3f / %.3f ms | %.3f ms | %.2f us |\n", senders_cpu_total / frames * 1e6,
+              server_cpu / frames * 1e6, percentile(tick_wall_ms, 0.5), percentile(tick_wall_ms, 0.99),
+              percentile(tick_sender_cpu_ms, 0.5), reader_cpu / frames * 1e6);
+  srv.stop();
+  for (const int fd : fds) ::close(fd);
+  return 0;
+}
