@@ -57,6 +57,7 @@ class thread_pool {
   std::atomic<const std::function<void(std::size_t)>*> task_{nullptr};
   std::atomic<std::uint32_t> task_count_{0};
   std::atomic<std::uint64_t> job_{0};
+  static constexpr std::uint32_t closed_index = 0xffffffffu;  ///< in job_: no index to claim (above any count)
   std::atomic<std::uint32_t> generation_{0};
   std::atomic<std::uint32_t> finished_{0};
   std::atomic<int> sleepers_{0};

@@ -50,15 +50,17 @@ thread_pool::~thread_pool() {
 }
 
 void thread_pool::drain(std::uint32_t generation) {
-  std::uint64_t w = job_.load(std::memory_order_acquire);
+  std::uint64_t w = job_.load();
   for (;;) {
     if (static_cast<std::uint32_t>(w >> 32) != generation) return;  // a later run (or none)
     const auto i = static_cast<std::uint32_t>(w);
-    const std::uint32_t count = task_count_.load(std::memory_order_relaxed);
+    // The count read here is this run's: run() closes job_ (a new value) before it stores the
+    // next run's count, so if the count read is a later run's, the CAS below fails (all seq_cst).
+    const std::uint32_t count = task_count_.load();
     if (i >= count) return;
-    if (!job_.compare_exchange_weak(w, w + 1, std::memory_order_acq_rel, std::memory_order_acquire)) continue;
+    if (!job_.compare_exchange_weak(w, w + 1)) continue;
     // Index i of this run is ours: the run's task and count were published before job_.
-    (*task_.load(std::memory_order_relaxed))(i);
+    (*task_.load())(i);
     if (finished_.fetch_add(1) + 1 == count && caller_waiting_.load()) {  // seq_cst: see run()
       std::lock_guard lock(mutex_);
       done_.notify_all();
@@ -103,10 +105,14 @@ void thread_pool::run(std::size_t n, const std::function<void(std::size_t)>& tas
   }
   const auto count = static_cast<std::uint32_t>(n);
   const std::uint32_t generation = generation_.load(std::memory_order_relaxed) + 1;
-  task_.store(&task, std::memory_order_relaxed);
-  task_count_.store(count, std::memory_order_relaxed);
-  finished_.store(0, std::memory_order_relaxed);
-  job_.store(static_cast<std::uint64_t>(generation) << 32, std::memory_order_release);
+  // Close the previous run first: a worker that read its last job_ value (every index claimed)
+  // and is about to read the count must fail its CAS rather than claim an index of this run with
+  // this run's count (that ran an index twice and could leave finished_ past the count: a hang).
+  job_.store((static_cast<std::uint64_t>(generation) << 32) | closed_index);
+  task_.store(&task);
+  task_count_.store(count);
+  finished_.store(0);
+  job_.store(static_cast<std::uint64_t>(generation) << 32);
   generation_.store(generation);  // seq_cst: ordered against sleepers_ below
   if (sleepers_.load() > 0) {
     std::lock_guard lock(mutex_);

@@ -2,6 +2,7 @@
 // back and after the workers went to sleep, nested data written by tasks visible to the caller.
 #include <doctest/doctest.h>
 
+#include <algorithm>
 #include <atomic>
 #include <chrono>
 #include <thread>
@@ -43,6 +44,25 @@ TEST_SUITE("interest.thread_pool") {
         CHECK(pool.spin_us() == spin);
         check_runs(pool, 400, false);  // back to back: workers still spinning or still draining
         check_runs(pool, 200, true);   // with pauses longer than the spin: workers asleep
+      }
+    }
+  }
+
+  TEST_CASE("a small run then a larger one, back to back: no index of the next run claimed early") {
+    // Regression: a worker that had read the small run's last job value (every index claimed)
+    // could read the next run's larger count and claim an index of it before the run was
+    // published: that index ran twice, and the extra finish could hang the caller.
+    for (const unsigned spin : {0u, 2000u}) {
+      CAPTURE(spin);
+      thread_pool pool(4, spin);
+      std::vector<std::uint32_t> hits(64);
+      for (int r = 0; r < 20000; ++r) {
+        const std::size_t n = r % 2 == 0 ? 2 : 64;
+        std::fill(hits.begin(), hits.begin() + static_cast<std::ptrdiff_t>(n), 0u);
+        pool.run(n, [&](std::size_t i) { ++hits[i]; });
+        for (std::size_t i = 0; i < n; ++i) {
+          if (hits[i] != 1) FAIL("run " << r << " index " << i << " ran " << hits[i] << " times");
+        }
       }
     }
   }
