@@ -393,11 +393,7 @@ void pbig_engine::map_boxes(std::uint32_t n) {
   CUDA_CHECK(cudaEventRecord(ev_entries_, side));
 }
 
-void pbig_engine::launch(const batch& b, pipeline_slot& s) {
-  const std::uint32_t tiles = b.tile_last - b.tile_first;
-  s.d_tile_off.reserve(tiles);
-  s.d_tile_pairs.reserve(tiles);
-  CUDA_CHECK(cudaMemsetAsync(s.d_cursor.get(), 0, sizeof(unsigned long long), s.stream));
+check_args pbig_engine::batch_args(const batch& b, const pipeline_slot& s) const {
   check_args a{};
   a.plan = plan_;
   a.packed_lo = d_packed_lo_.get();
@@ -413,6 +409,25 @@ void pbig_engine::launch(const batch& b, pipeline_slot& s) {
   a.out = s.d_out.get();
   a.capacity = s.capacity;
   a.cursor = s.d_cursor.get();
+  return a;
+}
+
+std::vector<pbig_engine::batch> pbig_engine::planned_batches() const {
+  std::vector<batch> batches;
+  const batch_plan& bp = rb_.batches;
+  for (std::uint32_t k = 0; k < bp.count; ++k) {
+    const batch b{bp.item[k], bp.item[k + 1], bp.tile[k], bp.tile[k + 1]};
+    if (b.item_last > b.item_first) batches.push_back(b);
+  }
+  return batches;
+}
+
+void pbig_engine::launch(const batch& b, pipeline_slot& s) {
+  const std::uint32_t tiles = b.tile_last - b.tile_first;
+  s.d_tile_off.reserve(tiles);
+  s.d_tile_pairs.reserve(tiles);
+  CUDA_CHECK(cudaMemsetAsync(s.d_cursor.get(), 0, sizeof(unsigned long long), s.stream));
+  const check_args a = batch_args(b, s);
   CUDA_CHECK(cudaEventRecord(s.kernel_begin, s.stream));
   CUDA_CHECK(launch_check(a, opt_.load_balancing, opt_.compression, s.stream));
   CUDA_CHECK(cudaEventRecord(s.kernel_end, s.stream));
@@ -557,12 +572,7 @@ std::uint64_t pbig_engine::decode(const batch& b, pipeline_slot& s, interest::pa
 }
 
 std::uint64_t pbig_engine::check_batches(interest::pair_list& out) {
-  std::vector<batch> batches;
-  const batch_plan& bp = rb_.batches;
-  for (std::uint32_t k = 0; k < bp.count; ++k) {
-    const batch b{bp.item[k], bp.item[k + 1], bp.tile[k], bp.tile[k + 1]};
-    if (b.item_last > b.item_first) batches.push_back(b);
-  }
+  const std::vector<batch> batches = planned_batches();
   report_.batches = static_cast<std::uint32_t>(batches.size());
   // Slot 1's stream must see the mapped boxes.
   CUDA_CHECK(cudaStreamWaitEvent(slot_[1].stream, ev_sched_, 0));
@@ -665,21 +675,7 @@ void pbig_engine::launch_direct(const batch& b, pipeline_slot& s, std::uint64_t 
   s.d_temp.reserve(std::max<std::size_t>(scan_bytes, 256));
   CUDA_CHECK(cudaMemsetAsync(s.d_cursor.get(), 0, sizeof(unsigned long long), s.stream));
   CUDA_CHECK(cudaMemsetAsync(s.d_tile_pairs.get() + tiles, 0, sizeof(std::uint32_t), s.stream));
-  check_args a{};
-  a.plan = plan_;
-  a.packed_lo = d_packed_lo_.get();
-  a.packed_hi = d_packed_hi_.get();
-  a.entries = d_entries_.get();
-  a.prefix = d_prefix_.get();
-  a.items = d_items_.get();
-  a.item_first = b.item_first;
-  a.item_last = b.item_last;
-  a.tile_off = s.d_tile_off.get();
-  a.tile_pairs = s.d_tile_pairs.get();
-  a.tile_first = b.tile_first;
-  a.out = s.d_out.get();
-  a.capacity = s.capacity;
-  a.cursor = s.d_cursor.get();
+  const check_args a = batch_args(b, s);
   CUDA_CHECK(cudaEventRecord(s.kernel_begin, s.stream));
   CUDA_CHECK(launch_check(a, opt_.load_balancing, /*compressed=*/false, s.stream));
   CUDA_CHECK(scan_tiles(s.d_temp.get(), scan_bytes, s.d_tile_pairs.get(), s.d_tile_pos.get(), tiles + 1ull, s.stream));
@@ -767,12 +763,7 @@ std::uint64_t pbig_engine::finish_direct(const batch& b, pipeline_slot& s, std::
 }
 
 std::uint64_t pbig_engine::check_direct(std::uint32_t n) {
-  std::vector<batch> batches;
-  const batch_plan& bp = rb_.batches;
-  for (std::uint32_t k = 0; k < bp.count; ++k) {
-    const batch b{bp.item[k], bp.item[k + 1], bp.tile[k], bp.tile[k + 1]};
-    if (b.item_last > b.item_first) batches.push_back(b);
-  }
+  const std::vector<batch> batches = planned_batches();
   const std::size_t count = batches.size();
   report_.batches = static_cast<std::uint32_t>(count);
   // Slot 1's stream must see the mapped boxes.

@@ -84,6 +84,10 @@ class pbig_engine {
   bool plan(std::uint32_t n);
   void map_boxes(std::uint32_t n);
   std::uint64_t check_batches(interest::pair_list& out);
+  /// The checking kernel's arguments for batch b on slot s (its buffers, cursor and capacity).
+  [[nodiscard]] check_args batch_args(const batch& b, const pipeline_slot& s) const;
+  /// The non-empty batches of the map read-back's batch plan, in order.
+  [[nodiscard]] std::vector<batch> planned_batches() const;
   void launch(const batch& b, pipeline_slot& s);
   void prefetch(const batch& b, pipeline_slot& s, std::uint64_t bytes);
   void finish(const batch& b, pipeline_slot& s);
