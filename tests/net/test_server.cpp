@@ -323,7 +323,7 @@ TEST_SUITE("net.server") {
     // Now it reads while the game keeps ticking: every state frame it gets must apply, i.e. be a
     // reset or the tick right after the one before; it catches up with the game.
     std::atomic<bool> ticking{true};
-    std::uint64_t received = 0, resets_received = 0, last = 0, bad = 0;
+    std::uint64_t received = 0, resets_received = 0, resync_resets = 0, last = 0, bad = 0;
     bool first = true;
     const auto take = [&](const message& m) {
       const auto& u = std::get<tick_update_msg>(m);
@@ -332,6 +332,7 @@ TEST_SUITE("net.server") {
       last = u.server_tick;
       ++received;
       resets_received += u.reset ? 1 : 0;
+      resync_resets += u.reset && u.server_tick > 0 ? 1 : 0;
     };
     std::thread reader([&] {
       while (auto m = slow.read(2000ms)) {
@@ -355,7 +356,10 @@ TEST_SUITE("net.server") {
     CHECK(bad == 0);
     CHECK(received < sent);
     CHECK(reports_seen >= 1);
-    CHECK(resets_received >= 2);  // the first frame and at least one resync
+    // At least one resync: a reset after tick 0 (the reset of tick 0 may itself have been dropped:
+    // the I/O thread drains a burst of sends before it writes, so it can be superseded unwritten).
+    CHECK(resets_received >= 1);
+    CHECK(resync_resets >= 1);
     CHECK(srv.stats().resyncs_requested == g.count(inbound_event::kind::frames_dropped));
     CHECK_FALSE(slow.closed());
     MESSAGE("sent " << sent << ", received " << received << " (" << resets_received << " resets), drop episodes "
