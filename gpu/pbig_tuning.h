@@ -34,7 +34,7 @@ inline constexpr std::uint32_t plan_threads = 1024;
 /// Calibration: H100 (NVIDIA H100 80GB HBM3, sm_90), direct output, pinned input, the phase
 /// breakdown of `bench_gpu --only wsweep` (docs/data/gpu-wsweep-2026-11-24.csv) and of the edge
 /// sweep `bench_gpu --only esweep` (fixed edges e0 * 2^(j/3) on the six target sets;
-/// docs/data/gpu-esweep-2026-11-24-plan.csv): across edges, MAP moves by about 0.11 ns per cell
+/// docs/data/gpu-targets-2026-11-24-plan-esweep.csv): across edges, MAP moves by about 0.11 ns per cell
 /// entry plus ~1 ns per cell (DoC 10: 2.39 -> 0.76 ms for 20.6 -> 4.8 M entries; uniform 1e7:
 /// 5.27 -> 3.56 ms for 32.5 -> 22.1 M entries, 970k -> 238k cells), CHECK by about 1.5 ps per
 /// pair check (Gaussian 1e7: 37.3 -> 43.7 ms for 13.9 -> 18.4 G checks; Gaussian 1e6 shows 2-5 ps,

@@ -258,7 +258,7 @@ TEST_SUITE("gpu.pbig") {
     CAPTURE(seed);
     sets.emplace_back("uniform 2e5", generate_uniform(200000, seed));
     sets.emplace_back("gaussian 2e5", generate_gaussian(200000, seed + 1));
-    sets.emplace_back("doc:10 3e5", *generate_named("doc:10", 300000, seed + 2));
+    sets.emplace_back("doc:10 2e5", *generate_named("doc:10", 200000, seed + 2));
     sets.emplace_back("doc:1 2e5", *generate_named("doc:1", 200000, seed + 3));
     sets.emplace_back("mmo 1e5", *generate_named("mmo", 100000, seed + 4));
     {
@@ -290,6 +290,7 @@ TEST_SUITE("gpu.pbig") {
       CAPTURE(name);
       const pair_list expected = run(grid, s);
       for (const bool direct : {true, false}) {
+        if (!direct && k >= 3) continue;  // the paper's output path: on the first three sets only (time)
         CAPTURE(direct);
         auto eq6 = make_gpu(gpu::pbig_options{.decode_pool = &pool, .direct_output = direct, .cost_aware_plan = false});
         auto cost = make_gpu(gpu::pbig_options{.decode_pool = &pool, .direct_output = direct, .cost_aware_plan = true});
