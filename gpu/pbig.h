@@ -47,6 +47,11 @@ struct pbig_options {
   bool direct_output = true;
   bool reuse_plan = true;  ///< keep the previous cell edge while the box statistics barely move
   double min_boxes_per_cell = 32.0;  ///< Eq. 6's W (the warp width)
+  /// Beyond the paper (default; docs/gpu.md, "PLAN"): Eq. 6's edge and a few larger ones (each
+  /// still with f >= W) are scored on the sample by a cost calibrated on the H100 (cell entries
+  /// mapped, grid cells, estimated pair checks) and the cheapest is used. false = the paper's
+  /// pure Eq. 6 (smallest edge with f >= W), for the paper's figures and the ablation.
+  bool cost_aware_plan = true;
 };
 
 /// Where the time of the last call went (the paper's Table V/VI tasks) and what it moved.

@@ -284,6 +284,7 @@ bool pbig_engine::plan(std::uint32_t n) {
   prm.fixed_edge = opt_.fixed_cell_edge;
   prm.allow_reuse = opt_.reuse_plan ? 1 : 0;
   prm.validate = validate_on_device_ ? 1 : 0;
+  prm.cost_aware = opt_.cost_aware_plan ? 1 : 0;
   CUDA_CHECK(launch_plan(boxes, d_bounds_.get(), prm, d_state_.get(), d_plan_.get(), main_));
   CUDA_CHECK(cudaMemcpyAsync(h_plan_.get(), d_plan_.get(), sizeof(grid_plan_dev), cudaMemcpyDeviceToHost, main_));
   if (validate_on_device_) {

@@ -56,6 +56,11 @@ cudaError_t launch_plan(const box_arrays& boxes, bounds_dev* bounds, const plan_
   bounds_kernel<<<std::min<std::uint32_t>(blocks_for(prm.n, tuning::block), 1024), tuning::block, 0, stream>>>(
       boxes, prm.n, bounds, prm.validate != 0);
   plan_kernel<<<1, tuning::plan_threads, 0, stream>>>(boxes, bounds, prm, state, plan);
+  if (prm.cost_aware != 0 && prm.fixed_edge <= 0) {
+    static_assert(tuning::plan_candidates <= max_plan_candidates);
+    plan_cost_kernel<<<tuning::plan_candidates * tuning::plan_cost_chunks, tuning::plan_cost_threads, 0, stream>>>(
+        boxes, bounds, prm, state, plan);
+  }
   return cudaGetLastError();
 }
 

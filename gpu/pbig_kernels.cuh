@@ -82,6 +82,21 @@ __device__ __forceinline__ std::uint64_t splitmix64(std::uint64_t x) {
   return x ^ (x >> 31);
 }
 
+/// Scene origin and extent per axis from the bounds kernel's result.
+__device__ __forceinline__ void scene_of(const bounds_dev* bounds, double origin[3], double extent[3]) {
+  for (int d = 0; d < 3; ++d) {
+    const float lo = ordered_to_float(bounds->lo[d]);
+    const float hi = ordered_to_float(bounds->hi[d]);
+    origin[d] = lo;
+    extent[d] = fmax(0.0, static_cast<double>(hi) - static_cast<double>(lo));
+  }
+}
+
+/// Index of sample box t of k (all boxes when k == n): a fixed-seed hash, with replacement.
+__device__ __forceinline__ std::uint32_t sample_index(const plan_params& prm, std::uint32_t k, std::uint32_t t) {
+  return (k == prm.n) ? t : static_cast<std::uint32_t>(splitmix64(prm.seed + t) % prm.n);
+}
+
 /// Planning (Eq. 6) in one block: each thread holds one box of a simple random sample; alpha(l)
 /// is a block sum; a binary search on the cubic edge l finds the smallest l with f(l) >= W,
 /// then, where f is flat (boxes covering each other), the largest edge whose f stays within 5%
@@ -96,19 +111,17 @@ __global__ void __launch_bounds__(tuning::plan_threads) plan_kernel(box_arrays b
   if (blockDim.x != tuning::plan_threads) return;  // guard: launched with exactly one full block
   if (bounds->bad != 0xffffffffu) {
     // Invalid input (pinned path): no plan, and the reuse statistics stay as they were.
-    if (threadIdx.x == 0) plan_out->cells = 0;
+    if (threadIdx.x == 0) {
+      plan_out->cells = 0;
+      state->cost_pending = 0;
+    }
     return;
   }
   const std::uint32_t t = threadIdx.x;
   const std::uint32_t n = prm.n;
 
   double origin[3], extent[3];
-  for (int d = 0; d < 3; ++d) {
-    const float lo = ordered_to_float(bounds->lo[d]);
-    const float hi = ordered_to_float(bounds->hi[d]);
-    origin[d] = lo;
-    extent[d] = fmax(0.0, static_cast<double>(hi) - static_cast<double>(lo));
-  }
+  scene_of(bounds, origin, extent);
   const double max_extent = fmax(extent[0], fmax(extent[1], extent[2]));
   const double max_cells = fmin(2.0 * n + 64.0, 2147483647.0);
 
@@ -116,7 +129,7 @@ __global__ void __launch_bounds__(tuning::plan_threads) plan_kernel(box_arrays b
   double blo[3] = {0, 0, 0}, bhi[3] = {0, 0, 0};
   const bool has = t < k;
   if (has) {
-    const std::uint32_t idx = (k == n) ? t : static_cast<std::uint32_t>(splitmix64(prm.seed + t) % n);
+    const std::uint32_t idx = sample_index(prm, k, t);
     for (int d = 0; d < 3; ++d) {
       blo[d] = boxes.lo[d][idx];
       bhi[d] = boxes.hi[d][idx];
@@ -165,6 +178,7 @@ __global__ void __launch_bounds__(tuning::plan_threads) plan_kernel(box_arrays b
   for (int d = 0; d < 3; ++d) mean_size[d] = k == 0 ? 0.0 : block_sum(has ? bhi[d] - blo[d] : 0.0) / k;
 
   std::uint32_t reused = 0;
+  bool searched = false;  // Eq. 6's search ran (no reuse, no fixed edge, a real scene)
   double edge;
   auto close = [](double a, double b, double tol) { return fabs(a - b) <= tol * fabs(b) + 1e-9; };
   if (max_extent <= 0.0 || n < 2) {
@@ -192,6 +206,7 @@ __global__ void __launch_bounds__(tuning::plan_threads) plan_kernel(box_arrays b
       edge = state->edge;
       reused = 1;
     } else {
+      searched = true;
       const double w = fmax(1.0, prm.min_boxes_per_cell);
       const double one_cell = max_extent * (1.0 + 1e-6) + 1e-6;
       auto feasible = [&](double l) {
@@ -239,7 +254,145 @@ __global__ void __launch_bounds__(tuning::plan_threads) plan_kernel(box_arrays b
       }
       state->valid = 1;
     }
+    // Cost-aware choice (plan_cost_kernel, next in the stream): Eq. 6's edge and larger ones.
+    const bool score = searched && prm.cost_aware != 0 && k >= 2 && edge <= max_extent;
+    state->cost_pending = score ? 1u : 0u;
+    state->cost_blocks_done = 0;
+    for (int j = 0; j < max_plan_candidates; ++j) {
+      const double l = edge * exp2(j / 3.0);
+      const double prev = edge * exp2((j - 1) / 3.0);
+      // A candidate past the one-cell edge only when the previous one still has several cells.
+      state->cand_edge[j] = (score && j < static_cast<int>(tuning::plan_candidates) && (j == 0 || prev <= max_extent)) ? l : 0.0;
+      state->cand_cells[j] = 0;
+      state->cand_shared[j] = 0;
+    }
   }
+}
+
+/// Cost-aware edge choice (beyond the paper; tuning::plan_cost_* says what is scored and where the
+/// constants come from). Block b scores candidate b / plan_cost_chunks: every block maps the
+/// plan's sample into the candidate's grid (cell ranges in shared memory) and sums, over its slice
+/// of the sample's pairs, the cells both boxes occupy (sum over cells of m_c(m_c-1)/2 for the
+/// sample; scaled by N^2/(k(k-1)) it estimates the pair checks sum n_c(n_c-1)/2); slice 0 also sums
+/// the cells each sample box occupies (alpha). The last block to finish computes each candidate's
+/// cost and, where one is cheaper than Eq. 6's edge by at least plan_min_saving_ns, rewrites the
+/// plan (edge, dims, alpha, large-box threshold) and the edge kept for reuse. Does nothing unless
+/// the planning kernel ran Eq. 6's search in this call (state->cost_pending).
+__global__ void __launch_bounds__(tuning::plan_cost_threads) plan_cost_kernel(box_arrays boxes, const bounds_dev* bounds,
+                                                                            plan_params prm, plan_state* state,
+                                                                            grid_plan_dev* plan_out) {
+  using reduce = cub::BlockReduce<unsigned long long, tuning::plan_cost_threads>;
+  __shared__ typename reduce::TempStorage temp;
+  __shared__ std::int32_t lo_s[3][tuning::plan_threads];
+  __shared__ std::int32_t hi_s[3][tuning::plan_threads];
+  __shared__ std::uint32_t idx_s[tuning::plan_threads];
+  if (state->cost_pending == 0) return;  // the same for every block: all return
+  const std::uint32_t tid = threadIdx.x;
+  const std::uint32_t chunks = tuning::plan_cost_chunks;
+  const std::uint32_t cand = blockIdx.x / chunks, chunk = blockIdx.x % chunks;
+  const std::uint32_t n = prm.n;
+  const std::uint32_t k = min(n, min(prm.samples, tuning::plan_threads));
+  double origin[3], extent[3];
+  scene_of(bounds, origin, extent);
+  auto dims_for = [&](double l, double dims[3]) {
+    for (int d = 0; d < 3; ++d) dims[d] = floor(extent[d] / l) + 1.0;
+  };
+  const double l = state->cand_edge[cand];
+  const bool active = l > 0.0;
+  unsigned long long my_cells = 0, my_shared = 0;
+  if (active) {
+    double dims[3];
+    dims_for(l, dims);
+    for (std::uint32_t i = tid; i < k; i += blockDim.x) {
+      const std::uint32_t idx = sample_index(prm, k, i);
+      unsigned long long cells = 1;
+      for (int d = 0; d < 3; ++d) {
+        const double last = dims[d] - 1;
+        const double a = fmin(fmax(floor((static_cast<double>(boxes.lo[d][idx]) - origin[d]) / l), 0.0), last);
+        const double z = fmin(fmax(floor((static_cast<double>(boxes.hi[d][idx]) - origin[d]) / l), 0.0), last);
+        lo_s[d][i] = static_cast<std::int32_t>(a);
+        hi_s[d][i] = static_cast<std::int32_t>(z);
+        cells *= static_cast<unsigned long long>(z - a + 1);
+      }
+      idx_s[i] = idx;
+      if (chunk == 0) my_cells += cells;
+    }
+  }
+  __syncthreads();
+  if (active) {
+    // Unordered pairs (i, i+s mod k), s = 1..k/2: each pair once (for even k, s = k/2 from i < k/2).
+    const std::uint32_t half = k / 2;
+    const std::uint32_t r0 = static_cast<std::uint32_t>(static_cast<std::uint64_t>(k) * chunk / chunks);
+    const std::uint32_t r1 = static_cast<std::uint32_t>(static_cast<std::uint64_t>(k) * (chunk + 1) / chunks);
+    const std::uint32_t total = (r1 - r0) * half;
+    for (std::uint32_t p = tid; p < total; p += blockDim.x) {
+      const std::uint32_t i = r0 + p / half;
+      const std::uint32_t s = 1 + p % half;
+      if (2 * s == k && i >= half) continue;
+      std::uint32_t j = i + s;
+      if (j >= k) j -= k;
+      if (idx_s[i] == idx_s[j]) continue;  // the same box drawn twice
+      const std::int32_t ox = min(hi_s[0][i], hi_s[0][j]) - max(lo_s[0][i], lo_s[0][j]) + 1;
+      if (ox <= 0) continue;
+      const std::int32_t oy = min(hi_s[1][i], hi_s[1][j]) - max(lo_s[1][i], lo_s[1][j]) + 1;
+      if (oy <= 0) continue;
+      const std::int32_t oz = min(hi_s[2][i], hi_s[2][j]) - max(lo_s[2][i], lo_s[2][j]) + 1;
+      if (oz <= 0) continue;
+      my_shared += static_cast<unsigned long long>(ox) * static_cast<unsigned long long>(oy) * static_cast<unsigned long long>(oz);
+    }
+  }
+  const unsigned long long block_shared = reduce(temp).Sum(my_shared);
+  __syncthreads();
+  const unsigned long long block_cells = reduce(temp).Sum(my_cells);
+  if (tid != 0) return;
+  if (active) {
+    atomicAdd(&state->cand_shared[cand], block_shared);
+    if (chunk == 0) atomicAdd(&state->cand_cells[cand], block_cells);
+  }
+  __threadfence();
+  if (atomicAdd(&state->cost_blocks_done, 1u) + 1 != gridDim.x) return;
+  __threadfence();
+  // The last block: score the candidates and keep the cheapest.
+  const double nd = static_cast<double>(n);
+  const double max_cells = fmin(2.0 * n + 64.0, 2147483647.0);
+  const double scale = (k == n) ? 1.0 : nd * nd / (static_cast<double>(k) * (k - 1));
+  int best = 0;
+  double best_cost = INFINITY, cost0 = INFINITY, best_alpha = 0;
+  for (int j = 0; j < static_cast<int>(tuning::plan_candidates); ++j) {
+    const double lj = state->cand_edge[j];
+    if (!(lj > 0.0)) continue;
+    double dims[3];
+    dims_for(lj, dims);
+    const double m = dims[0] * dims[1] * dims[2];
+    if (m > max_cells) continue;
+    const double alpha = static_cast<double>(atomicAdd(&state->cand_cells[j], 0ull)) / k;
+    const double entries = nd * alpha;
+    if (j > 0 && entries > tuning::plan_max_fill * m) continue;  // the fullest cell would pass small_cell_sort
+    const double sampled = static_cast<double>(atomicAdd(&state->cand_shared[j], 0ull)) * scale;
+    const double bound = 0.5 * (entries * entries / m - entries);  // Cauchy-Schwarz: sum n_c^2 >= (sum n_c)^2 / M
+    const double checks = fmax(sampled, bound);
+    const double cost = tuning::plan_cost_entry_ns * entries + tuning::plan_cost_cell_ns * m +
+                        tuning::plan_cost_check_ns * checks;
+    if (j == 0) cost0 = cost;
+    if (cost < best_cost) {
+      best_cost = cost;
+      best = j;
+      best_alpha = alpha;
+    }
+  }
+  if (best == 0 || !(cost0 - best_cost >= tuning::plan_min_saving_ns)) return;  // Eq. 6's edge stays
+  const double edge = state->cand_edge[best];
+  double dims[3];
+  dims_for(edge, dims);
+  grid_plan_dev p = *plan_out;
+  for (int d = 0; d < 3; ++d) p.dims[d] = static_cast<std::uint32_t>(dims[d]);
+  p.edge = edge;
+  p.inv_edge = 1.0 / edge;
+  p.alpha = best_alpha;
+  p.large_cells = fmax(tuning::large_box_min_cells, tuning::large_box_alpha_factor * best_alpha);
+  p.cells = static_cast<std::uint64_t>(p.dims[0]) * p.dims[1] * p.dims[2];
+  *plan_out = p;
+  state->edge = edge;
 }
 
 // ---- mapping ----------------------------------------------------------------------------------

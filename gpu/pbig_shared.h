@@ -22,12 +22,20 @@ struct grid_plan_dev {
 };
 
 /// Box statistics the planner compares to decide whether the previous edge still fits.
+/// With the cost-aware plan it also carries the candidate edges from the planning kernel to the
+/// cost kernel, and that kernel's sums (zeroed by the planning kernel on every fresh plan).
+inline constexpr int max_plan_candidates = 8;
 struct plan_state {
   double edge;
   double count;
   double extent[3];
   double mean_size[3];
   std::uint32_t valid;
+  std::uint32_t cost_pending;  ///< 1: the cost kernel scores cand_edge[] and may replace the edge
+  std::uint32_t cost_blocks_done;
+  double cand_edge[max_plan_candidates];  ///< candidate 0 = Eq. 6's edge; 0 = no candidate
+  unsigned long long cand_cells[max_plan_candidates];   ///< sum over the sample of cells occupied
+  unsigned long long cand_shared[max_plan_candidates];  ///< sum over sample pairs of cells shared
 };
 
 /// Scene bounds as order-preserving integers (float bit patterns mapped to signed ints).
@@ -99,6 +107,7 @@ struct plan_params {
   double fixed_edge;          // > 0: use it (grown only to respect the cell cap)
   std::uint32_t allow_reuse;
   std::uint32_t validate;     // 1: the bounds kernel validates every box (pinned input: no host pass)
+  std::uint32_t cost_aware;   // 1: score larger edges than Eq. 6's and keep the cheapest (beyond the paper)
 };
 
 /// Arguments of one checking-kernel launch (one batch).

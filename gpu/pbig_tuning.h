@@ -13,6 +13,44 @@ inline constexpr double warp_width = 32.0;
 /// Boxes sampled on the GPU to estimate alpha (the paper uses 1000; at most plan_threads).
 inline constexpr std::uint32_t plan_samples = 1000;
 inline constexpr std::uint32_t plan_threads = 1024;
+/// Cost-aware edge choice (beyond the paper; pbig_options::cost_aware_plan, docs/gpu.md "PLAN").
+/// Eq. 6's edge e0 (smallest cubic edge with f >= W) is kept as the paper's baseline and as the
+/// smallest candidate; the candidates are e0 * 2^(j/3), j = 0..plan_candidates-1 (f only grows
+/// with the edge, so each still meets f >= W). Each is scored from the same sample as
+///   cost(e) = plan_cost_entry_ns * N*alpha(e)   (MAP: count, scatter, sort, gather per cell entry)
+///           + plan_cost_cell_ns  * M(e)         (per grid cell: counters, scans, sort segments,
+///                                                work items of the checking kernel)
+///           + plan_cost_check_ns * C(e)         (CHECK: C = sum over cells of n_c(n_c-1)/2, the
+///                                                pair checks; estimated from the sample's shared
+///                                                cells, never below its Cauchy-Schwarz bound
+///                                                ((N alpha)^2/M - N alpha)/2)
+/// and the cheapest wins if it saves at least plan_min_saving_ns over e0 (else e0: the paper's
+/// edge). The output (pairs) does not depend on the edge and is left out. A larger candidate whose
+/// mean fill N*alpha/M passes plan_max_fill is not taken: its fullest cells would pass
+/// small_cell_sort and the per-cell sort by id would switch to CUB's segmented sort, which costs
+/// about 80 ns per cell of 200-600 entries on the H100 (uniform 1e7 at 2.52 x e0: sort 4.6 ms
+/// instead of 1.2; DoC 10 at 3.17 x e0: 1.27 ms instead of 0.28).
+/// The sort by id of small cells (one warp per cell, O(n_c^2)) is in the check term.
+/// Calibration: H100 (NVIDIA H100 80GB HBM3, sm_90), direct output, pinned input, the phase
+/// breakdown of `bench_gpu --only wsweep` (docs/data/gpu-wsweep-2026-11-24.csv) and of the edge
+/// sweep `bench_gpu --only esweep` (fixed edges e0 * 2^(j/3) on the six target sets;
+/// docs/data/gpu-targets-2026-11-24-plan-esweep.csv): across edges, MAP moves by about 0.11 ns per cell
+/// entry plus ~1 ns per cell (DoC 10: 2.39 -> 0.76 ms for 20.6 -> 4.8 M entries; uniform 1e7:
+/// 5.27 -> 3.56 ms for 32.5 -> 22.1 M entries, 970k -> 238k cells), CHECK by about 1.5 ps per
+/// pair check (Gaussian 1e7: 37.3 -> 43.7 ms for 13.9 -> 18.4 G checks; Gaussian 1e6 shows 2-5 ps,
+/// so the estimate leans towards Eq. 6 there) plus ~1 ns per cell (work items). Scored with these
+/// constants on the measured sweep, the rule picks the fastest or within 1% of the fastest edge
+/// among the allowed candidates on all six sets (docs/gpu-benchmarks.md, "Cost-aware plan").
+inline constexpr std::uint32_t plan_candidates = 7;
+inline constexpr double plan_cost_entry_ns = 0.11;
+inline constexpr double plan_cost_cell_ns = 2.0;
+inline constexpr double plan_cost_check_ns = 0.0015;
+inline constexpr double plan_min_saving_ns = 20000.0;
+inline constexpr double plan_max_fill = 128.0;  // half of small_cell_sort (Poisson tail of the fullest cell)
+/// The candidates' pair counts are summed by plan_candidates * plan_cost_chunks blocks of
+/// plan_cost_threads threads (each block a slice of the sample's pairs for one candidate).
+inline constexpr std::uint32_t plan_cost_chunks = 16;
+inline constexpr std::uint32_t plan_cost_threads = 256;
 /// A box that would occupy more than max(large_box_min_cells, large_box_alpha_factor * alpha)
 /// cells is handled apart from the grid (same rule as the CPU grid finder).
 inline constexpr double large_box_min_cells = 64.0;

@@ -2,8 +2,8 @@
 // on every core) side by side where it finishes within a minute. Prints tables and writes CSV.
 //
 //   bench_gpu [--csv FILE] [--csv-lbvh FILE] [--only LIST] [--max-n N] [--reps R] [--cgal-max-n N]
-//     LIST: comma-separated of floors,targets,wsweep,nsweep,cells,doc,gauss,ablation,lbvh
-//           (default: all but wsweep)
+//     LIST: comma-separated of floors,targets,wsweep,esweep,eplan,nsweep,cells,doc,gauss,ablation,lbvh
+//           (default: all but wsweep, esweep, eplan)
 //
 // lbvh: PBIG, LBVH, the auto finder, the CPU grid finder and CGAL (box_self_intersection_d,
 // sequential; when its headers are found, up to --cgal-max-n boxes) side by side on the paper's
@@ -128,7 +128,7 @@ struct bench {
   zi::pair_finder& gpu(const zg::pbig_options& o) {
     std::ostringstream key;
     key << o.load_balancing << o.compression << o.pipelining << o.direct_output << '/' << o.fixed_cell_edge << '/'
-        << o.reuse_plan << '/' << o.min_boxes_per_cell;
+        << o.reuse_plan << '/' << o.min_boxes_per_cell << '/' << o.cost_aware_plan;
     auto& f = gpu_finders[key.str()];
     if (!f) {
       std::string why;
@@ -141,7 +141,7 @@ struct bench {
     return *f;
   }
 
-  gpu_result run_gpu(const zi::box_set& s, zg::pbig_options o, int r = 0) {
+  gpu_result run_gpu(const zi::box_set& s, zg::pbig_options o, int r = 0, bool with_find = true) {
     o.decode_pool = &pool;
     zi::pair_finder& f = gpu(o);
     gpu_result g;
@@ -170,6 +170,7 @@ struct bench {
     g.stats = f.stats();
     const zi::pair_list copy(view.begin(), view.end());
     g.dig = digest(copy, pool);
+    if (!with_find) return g;
     // The pair_finder interface: validation and a pair_list that grows from empty each call.
     (void)f.find(s, out);
     std::vector<double> tf;
@@ -530,8 +531,8 @@ int main(int argc, char** argv) {
       std::printf(
           "bench_gpu: the PBIG paper's experiments on the GPU, PBIG beside LBVH, auto, the CPU grid finder and CGAL\n\n"
           "usage: bench_gpu [--csv FILE] [--csv-lbvh FILE] [--only LIST] [--max-n N] [--reps R] [--cgal-max-n N]\n"
-          "  --only LIST       comma-separated of floors,targets,wsweep,nsweep,cells,doc,gauss,ablation,lbvh\n"
-          "                    (default: all but wsweep)\n"
+          "  --only LIST       comma-separated of floors,targets,wsweep,esweep,eplan,nsweep,cells,doc,gauss,ablation,lbvh\n"
+          "                    (default: all but wsweep, esweep, eplan)\n"
           "  --csv FILE        PBIG rows as CSV (default bench_gpu.csv)\n"
           "  --csv-lbvh FILE   the lbvh experiment's rows as CSV (default bench_lbvh.csv)\n"
           "  --max-n N         skip sets larger than N boxes (default 10000000)\n"
@@ -625,6 +626,53 @@ int main(int argc, char** argv) {
                     g.report.map_ms, g.report.pipeline_ms, g.stats.cell_edge, g.report.alpha,
                     static_cast<double>(g.stats.checks));
         b.row("wsweep", t.kind, t.n, param, opts_name(o) + "+pinned", g, cpu_result{});
+      }
+    }
+  }
+  if (want("esweep") || want("eplan")) {
+    // The cost-aware plan against the paper's pure Eq. 6 on the target sets (direct output, pinned
+    // input), and fixed edges e0 * 2^(j/3) (e0 = Eq. 6's edge) for the cost model's calibration.
+    print_head("Edge sweep: pure Eq. 6, the cost-aware plan, fixed multiples of Eq. 6's edge (direct, pinned)");
+    struct set_spec { const char* kind; std::size_t n; };
+    for (const set_spec t : {set_spec{"uniform", 100000}, set_spec{"uniform", 1000000}, set_spec{"uniform", 10000000},
+                             set_spec{"gaussian", 1000000}, set_spec{"doc:10", 1000000}, set_spec{"gaussian", 10000000}}) {
+      if (t.n > b.max_n) continue;
+      const zi::box_set s = *zi::generate_named(t.kind, t.n, seed);
+      const zg::pinned_boxes pin(s);
+      const int reps = t.n >= 10000000 ? 5 : 11;
+      zg::pbig_options o = all;
+      o.direct_output = true;
+      double e0 = 0;
+      pair_digest d0;
+      for (int j = -2; j <= 8; ++j) {
+        char param[32];
+        if (j == -2) {
+          o.cost_aware_plan = false;  // the paper's Eq. 6
+          std::snprintf(param, sizeof param, "eq6");
+        } else if (j == -1) {
+          o.cost_aware_plan = true;  // the default
+          std::snprintf(param, sizeof param, "cost");
+        } else if (j == 0 || !want("esweep")) {
+          continue;  // = eq6; eplan: only the two plans
+        } else {
+          o.fixed_cell_edge = e0 * std::exp2(j / 3.0);
+          std::snprintf(param, sizeof param, "x%.2f", std::exp2(j / 3.0));
+        }
+        const gpu_result g = b.run_gpu(s, o, reps, false);
+        if (j == -2) {
+          e0 = g.stats.cell_edge;
+          d0 = g.dig;
+        }
+        print_row(b, t.kind, t.n, param, g, cpu_result{});
+        std::printf("   %s: e2e %.3f ms (map %.3f, check %.3f, check+out %.3f; edge %.1f = %.2f x eq6, alpha %.2f, cells %llu, "
+                    "checks %.4g)%s\n",
+                    param, g.e2e_ms, g.report.map_ms, g.report.check_ms, g.report.pipeline_ms, g.stats.cell_edge,
+                    g.stats.cell_edge / e0, g.report.alpha, static_cast<unsigned long long>(g.stats.cells),
+                    static_cast<double>(g.stats.checks), g.dig == d0 ? "" : "  PAIRS DIFFER FROM EQ6");
+        cpu_result same;  // verified column: "yes" when the pair set equals the pure Eq. 6 one
+        same.ran = true;
+        same.dig = d0;
+        b.row("esweep", t.kind, t.n, param, opts_name(o) + "+pinned", g, same);
       }
     }
   }
