@@ -289,7 +289,7 @@ TEST_SUITE("gpu.pbig") {
         o.single_queue = false;
         auto reference = make_gpu(o);
         const auto* report = gpu::last_pbig_report(*finder);
-        int queued = 0, requeued = 0, reruns = 0;
+        int queued = 0, requeued = 0;
         for (std::size_t i = 0; i < steps.size(); ++i) {
           CAPTURE(i);
           CAPTURE(steps[i].what);
@@ -303,7 +303,6 @@ TEST_SUITE("gpu.pbig") {
           CHECK(got == cpu[i]);
           queued += report->single_queue && !report->requeued ? 1 : 0;
           requeued += report->requeued ? 1 : 0;
-          reruns += report->single_queue && !report->requeued && report->reruns > 0 ? 1 : 0;
           if (i == 0) CHECK_FALSE(report->single_queue);  // no last call
           if (i == 1 || i == 9 || i == 10) CHECK((report->single_queue && !report->requeued));
           if (i == 3 || i == 5 || i == 7) CHECK(report->requeued);  // more cells, a full cell, large boxes
@@ -311,7 +310,21 @@ TEST_SUITE("gpu.pbig") {
         }
         CHECK(queued >= 3);
         CHECK(requeued >= 3);
-        if (initial == 1) CHECK(reruns >= 1);  // an overflowing chunk buffer inside a single queue
+        // On a fresh finder, steps 8-10 alone: the unmasked call has ~2.8x the pairs of the masked
+        // ones on the same grid, so with tiny initial buffers its chunks overflow inside a single
+        // queue (re-run by finish_direct) and its pairs outrun the prefetched copy.
+        o.single_queue = true;
+        auto fresh = make_gpu(o);
+        for (const std::size_t i : {std::size_t{8}, std::size_t{9}, std::size_t{10}}) {
+          CAPTURE(i);
+          pair_list got;
+          REQUIRE_FALSE(fresh->find(steps[i].set, got).has_value());
+          sort_canonical(got, steps[i].set.size());
+          CHECK(got == cpu[i]);
+        }
+        const auto* last = gpu::last_pbig_report(*fresh);
+        CHECK((last->single_queue && !last->requeued));
+        if (initial == 1) CHECK(last->reruns >= 1);  // an overflowing chunk buffer inside a single queue
       }
     }
   }
