@@ -426,12 +426,14 @@ __global__ void __launch_bounds__(tuning::segment) check_kernel(check_args a) {
   __shared__ std::uint32_t col_id[T];
   __shared__ std::uint8_t col_flags[T];
   __shared__ std::uint64_t chunk_base;
+  __shared__ grid_plan_dev plan;  // in shared memory, not registers: a register copy cost occupancy
 
   const std::uint32_t item = a.item_first + blockIdx.x;
   // guard (uniform over the block); a batch queued with a capacity has blocks past the grid's items
   if (item >= a.item_last || item >= a.grid->total.item || blockDim.x != T) return;
-  const grid_plan_dev plan = *a.plan;
   const std::uint32_t tid = threadIdx.x;
+  if (tid == 0) plan = *a.plan;
+  __syncthreads();
   const std::uint32_t cell = a.items[item];
   const cell_prefix p0 = a.prefix[cell], p1 = a.prefix[cell + 1];
   const std::uint32_t segs = p1.item - p0.item;
