@@ -13,6 +13,9 @@
 //  5. CHECK / DataOut / REPORT: batches of cells through the 3-stage pipeline of Fig. 7 on two
 //     streams with double-buffered device and pinned host output buffers.
 //  6. Boxes handled apart (large): two passes (count, scan, write), so their order is fixed.
+// That is read-back sizing. Single queue (direct output, after a small call): the same steps
+// queued at once with the last call's sizes as capacity and one synchronisation at the end; a
+// grid past that capacity is re-run with read-back sizing (run_single_queue, docs/gpu.md).
 #include <algorithm>
 #if defined(__SSE2__)
 #include <immintrin.h>
