@@ -46,6 +46,13 @@ struct pbig_options {
   /// `compression`, else plain), copied through the Fig. 7 pipeline and decoded on the CPU.
   bool direct_output = true;
   bool reuse_plan = true;  ///< keep the previous cell edge while the box statistics barely move
+  /// Beyond the paper (with direct_output and pipelining): after a call of one batch (a small
+  /// set), the next call is queued whole on the device, its buffers sized by the last call's
+  /// figures plus a margin, the plan and totals read by the kernels from device memory, with one
+  /// host synchronisation at the end; a grid that outgrew that capacity is re-run with the sizes
+  /// read back (pbig_report::requeued), an overflowing output buffer as always. false = every
+  /// call reads the plan and the map totals back before sizing what follows (three synchronisations).
+  bool single_queue = true;
   double min_boxes_per_cell = 32.0;  ///< Eq. 6's W (the warp width)
   /// Beyond the paper (default; docs/gpu.md, "PLAN"): Eq. 6's edge and a few larger ones (each
   /// still with f >= W) are scored on the sample by a cost calibrated on the H100 (cell entries
@@ -78,6 +85,8 @@ struct pbig_report {
   std::uint32_t batches = 0;
   std::uint32_t reruns = 0;     ///< batches re-run after an output buffer overflow
   bool plan_reused = false;
+  bool single_queue = false;  ///< queued whole with the last call's capacity (one synchronisation)
+  bool requeued = false;      ///< ... and the grid outgrew it: re-run with read-back sizing
   double alpha = 0;
 };
 

@@ -13,6 +13,9 @@
 //  5. CHECK / DataOut / REPORT: batches of cells through the 3-stage pipeline of Fig. 7 on two
 //     streams with double-buffered device and pinned host output buffers.
 //  6. Boxes handled apart (large): two passes (count, scan, write), so their order is fixed.
+// That is read-back sizing. Single queue (direct output, after a small call): the same steps
+// queued at once with the last call's sizes as capacity and one synchronisation at the end; a
+// grid past that capacity is re-run with read-back sizing (run_single_queue, docs/gpu.md).
 #include <algorithm>
 #if defined(__SSE2__)
 #include <immintrin.h>
@@ -131,13 +134,27 @@ std::optional<std::uint64_t> pbig_engine::run(const interest::box_set& boxes, in
 
   CUDA_CHECK(cudaEventRecord(ev_start_, main_));
   if (!upload(boxes, validate)) return std::nullopt;
-  if (!plan(n)) return std::nullopt;
-  map_boxes(n);
+  queue_plan(n);
 
-  const auto t_pipe = clock_type::now();
+  auto t_pipe = clock_type::now();
   std::uint64_t grid_pairs = 0, large = 0;
+  bool queued_whole = false;
+  if (opt_.direct_output && opt_.pipelining && opt_.single_queue && next_.valid) {
+    // One queue of work, one synchronisation, sizes from the last call (see run_single_queue).
+    report_.single_queue = true;
+    const queue_result r = run_single_queue(n, grid_pairs);
+    if (r == queue_result::invalid) return std::nullopt;
+    queued_whole = r == queue_result::done;
+    report_.requeued = !queued_whole;
+  }
+  if (!queued_whole) {
+    // Read-back sizing: the plan, then the map's totals, are read back before what they size.
+    if (!read_plan()) return std::nullopt;
+    map_boxes(n);
+    t_pipe = clock_type::now();
+  }
   if (opt_.direct_output) {
-    grid_pairs = check_direct(n);  // large-box pairs included
+    if (!queued_whole) grid_pairs = check_direct(n);  // large-box pairs included
     report_.pipeline_ms = ms_since(t_pipe);
     if (!keep_size) {
       // Through pair_finder::find: copy the pinned result into the caller's list.
@@ -182,6 +199,7 @@ std::optional<std::uint64_t> pbig_engine::run(const interest::box_set& boxes, in
   stats.large_boxes = rb_.large_count;
   stats.checks = rb_.totals.checks + static_cast<std::uint64_t>(rb_.large_count) * n;
   if (!keep_size && !opt_.direct_output) out.resize(report_.pairs);
+  remember_sizes();
   return report_.pairs;
 }
 
@@ -274,7 +292,7 @@ box_arrays arrays_of(const float* coord, const std::uint32_t* bits, std::size_t 
 }
 }  // namespace
 
-bool pbig_engine::plan(std::uint32_t n) {
+void pbig_engine::queue_plan(std::uint32_t n) {
   const box_arrays boxes = arrays_of(d_coord_.get(), d_bits_.get(), n);
   plan_params prm{};
   prm.n = n;
@@ -286,11 +304,14 @@ bool pbig_engine::plan(std::uint32_t n) {
   prm.validate = validate_on_device_ ? 1 : 0;
   prm.cost_aware = opt_.cost_aware_plan ? 1 : 0;
   CUDA_CHECK(launch_plan(boxes, d_bounds_.get(), prm, d_state_.get(), d_plan_.get(), main_));
+  CUDA_CHECK(cudaEventRecord(ev_plan_, main_));
+}
+
+bool pbig_engine::read_plan() {
   CUDA_CHECK(cudaMemcpyAsync(h_plan_.get(), d_plan_.get(), sizeof(grid_plan_dev), cudaMemcpyDeviceToHost, main_));
   if (validate_on_device_) {
     CUDA_CHECK(cudaMemcpyAsync(h_bounds_.get(), d_bounds_.get(), sizeof(bounds_dev), cudaMemcpyDeviceToHost, main_));
   }
-  CUDA_CHECK(cudaEventRecord(ev_plan_, main_));
   CUDA_CHECK(cudaStreamSynchronize(main_));
   if (validate_on_device_ && h_bounds_.get()->bad != 0xffffffffu) return false;  // an invalid box
   plan_ = *h_plan_.get();
@@ -298,18 +319,18 @@ bool pbig_engine::plan(std::uint32_t n) {
   return true;
 }
 
-void pbig_engine::map_boxes(std::uint32_t n) {
+void pbig_engine::queue_count(std::uint32_t n, const grid_capacity& cap) {
   const box_arrays boxes = arrays_of(d_coord_.get(), d_bits_.get(), n);
-  const auto cells = static_cast<std::uint32_t>(plan_.cells);
+  const auto cells = static_cast<std::uint32_t>(cap.cells);
   // One zeroed array, one memset: counts[0, cells] (counts[cells] stays 0 for the scan), the
-  // large-box counter at counts[cells + 1], then the map kernel's per-cell cursors.
+  // large-box counter at counts[cells + 1], then the map kernel's per-cell cursors. A plan of
+  // fewer cells than the capacity leaves the counts past it at 0: the scans see empty cells.
   d_counts_.reserve(2ull * cells + 2);
   std::uint32_t* large_counter = d_counts_.get() + cells + 1;
-  std::uint32_t* cursor = d_counts_.get() + cells + 2;
-  d_prefix_.reserve(cells + 1);
+  d_prefix_.reserve(cells + 1ull);
   d_is_large_.reserve(n);
   CUDA_CHECK(cudaMemsetAsync(d_counts_.get(), 0, (2ull * cells + 2) * sizeof(std::uint32_t), main_));
-  CUDA_CHECK(launch_count(boxes, n, plan_, d_counts_.get(), d_is_large_.get(), large_counter, main_));
+  CUDA_CHECK(launch_count(boxes, n, d_plan_.get(), cap.cells, d_counts_.get(), d_is_large_.get(), large_counter, main_));
   d_box_lo_.reserve(n);
   d_box_hi_.reserve(n);
   CUDA_CHECK(launch_pack_boxes(boxes, n, d_box_lo_.get(), d_box_hi_.get(), main_));
@@ -321,14 +342,64 @@ void pbig_engine::map_boxes(std::uint32_t n) {
   grow_temp(std::max(scan_bytes, reduce_bytes));
   CUDA_CHECK(scan_cells(d_temp_.get(), scan_bytes, d_counts_.get(), d_prefix_.get(), cells, main_));
   CUDA_CHECK(reduce_cells(d_temp_.get(), reduce_bytes, d_counts_.get(), &rb->totals, cells, main_));
-  CUDA_CHECK(launch_batch_plan(d_prefix_.get(), cells, large_counter, rb, tuning::min_tiles_per_batch, tuning::max_batches,
-                               main_));
+  CUDA_CHECK(launch_batch_plan(d_plan_.get(), d_prefix_.get(), large_counter, rb, cap, tuning::min_tiles_per_batch,
+                               tuning::max_batches, main_));
   CUDA_CHECK(cudaEventRecord(ev_counted_, main_));
+}
+
+void pbig_engine::queue_map(std::uint32_t n, const grid_sizes& size, bool small_cells) {
+  const box_arrays boxes = arrays_of(d_coord_.get(), d_bits_.get(), n);
+  const map_readback* grid = d_readback_.get();
+  std::uint32_t* cursor = d_counts_.get() + size.cells + 2;  // queue_count's layout
+  d_entries_unsorted_.reserve(size.entries);
+  d_entries_.reserve(size.entries);
+  d_packed_lo_.reserve(size.entries);
+  d_packed_hi_.reserve(size.entries);
+  d_items_.reserve(size.items);
+  if (size.entries == 0) {
+    CUDA_CHECK(cudaEventRecord(ev_scattered_, main_));
+    CUDA_CHECK(cudaEventRecord(ev_sorted_, main_));
+  } else {
+    CUDA_CHECK(launch_map(boxes, n, d_plan_.get(), grid, d_is_large_.get(), d_prefix_.get(), cursor,
+                          d_entries_unsorted_.get(), main_));
+    CUDA_CHECK(cudaEventRecord(ev_scattered_, main_));
+    // Sort each cell's list by box id: the mapping's atomics give a timing-dependent order.
+    if (small_cells) {
+      CUDA_CHECK(launch_sort_small_cells(d_entries_unsorted_.get(), d_entries_.get(), d_prefix_.get(), size.cells, grid,
+                                         main_));
+    } else {
+      // Read-back sizing only: CUB's sort takes exact sizes.
+      std::size_t sort_bytes = 0;
+      CUDA_CHECK(sort_cells(nullptr, sort_bytes, d_entries_unsorted_.get(), d_entries_.get(), size.entries, size.cells,
+                            d_prefix_.get(), main_));
+      grow_temp(sort_bytes);
+      CUDA_CHECK(sort_cells(d_temp_.get(), sort_bytes, d_entries_unsorted_.get(), d_entries_.get(), size.entries,
+                            size.cells, d_prefix_.get(), main_));
+    }
+    CUDA_CHECK(cudaEventRecord(ev_sorted_, main_));
+    CUDA_CHECK(launch_gather(d_box_lo_.get(), d_box_hi_.get(), d_entries_.get(), size.entries, grid, d_packed_lo_.get(),
+                             d_packed_hi_.get(), main_));
+  }
+  CUDA_CHECK(cudaEventRecord(ev_map_, main_));
+  if (size.items > 0) {
+    CUDA_CHECK(launch_expand(d_prefix_.get(), size.cells, grid, d_items_.get(), main_));
+  }
+  CUDA_CHECK(cudaEventRecord(ev_sched_, main_));
+}
+
+void pbig_engine::map_boxes(std::uint32_t n) {
+  // Read-back sizing: the counters sized by the plan, the rest by the totals read back.
+  const grid_capacity limits{plan_.cells, std::numeric_limits<std::uint32_t>::max() / 2,
+                             std::numeric_limits<std::uint32_t>::max(), std::numeric_limits<std::uint32_t>::max(),
+                             65535ull * tuning::segment, 1};
+  queue_count(n, limits);
+  map_readback* rb = d_readback_.get();
   CUDA_CHECK(cudaMemcpyAsync(h_readback_.get(), rb, sizeof(map_readback), cudaMemcpyDeviceToHost, main_));
   CUDA_CHECK(cudaStreamSynchronize(main_));
   rb_ = *h_readback_.get();
 
-  // 32-bit limits of the cell lists (prefixes wrap silently past them: refuse instead).
+  // 32-bit limits of the cell lists (prefixes wrap silently past them: refuse instead). The
+  // device refused the same grids (fits = 0, nothing mapped).
   if (rb_.totals.entries != rb_.total.entry || rb_.totals.tiles != rb_.total.tile ||
       rb_.totals.entries > std::numeric_limits<std::uint32_t>::max() / 2) {
     throw std::length_error("pbig: more than 2^31 (cell, box) entries or tiles");
@@ -336,6 +407,7 @@ void pbig_engine::map_boxes(std::uint32_t n) {
   if (rb_.totals.max_count > 65535ull * tuning::segment) {
     throw std::length_error("pbig: a cell holds more than 65535 segments of boxes");
   }
+  if (rb_.fits == 0) throw std::logic_error("pbig: the grid does not fit its read-back sizes (internal error)");
 
   if (rb_.large_count > 0) {
     // The large boxes' ids in id order (for the large-box passes at the end of the call).
@@ -346,57 +418,81 @@ void pbig_engine::map_boxes(std::uint32_t n) {
     CUDA_CHECK(select_large(d_temp_.get(), select_bytes, d_is_large_.get(), d_large_.get(), &rb->large_count, n, main_));
   }
 
-  const std::uint32_t entries = rb_.total.entry, items = rb_.total.item;
-  d_entries_unsorted_.reserve(entries);
-  d_entries_.reserve(entries);
-  d_packed_lo_.reserve(entries);
-  d_packed_hi_.reserve(entries);
-  d_items_.reserve(items);
-  if (entries == 0) {
-    CUDA_CHECK(cudaEventRecord(ev_scattered_, main_));
-    CUDA_CHECK(cudaEventRecord(ev_sorted_, main_));
-  } else {
-    CUDA_CHECK(launch_map(boxes, n, plan_, d_is_large_.get(), d_prefix_.get(), cursor, d_entries_unsorted_.get(),
-                          main_));
-    CUDA_CHECK(cudaEventRecord(ev_scattered_, main_));
-    // Sort each cell's list by box id: the mapping's atomics give a timing-dependent order.
-    if (rb_.totals.max_count <= tuning::small_cell_sort) {
-      CUDA_CHECK(launch_sort_small_cells(d_entries_unsorted_.get(), d_entries_.get(), d_prefix_.get(), cells, main_));
-    } else {
-      std::size_t sort_bytes = 0;
-      CUDA_CHECK(sort_cells(nullptr, sort_bytes, d_entries_unsorted_.get(), d_entries_.get(), entries, cells,
-                            d_prefix_.get(), main_));
-      grow_temp(sort_bytes);
-      CUDA_CHECK(sort_cells(d_temp_.get(), sort_bytes, d_entries_unsorted_.get(), d_entries_.get(), entries, cells,
-                            d_prefix_.get(), main_));
-    }
-    CUDA_CHECK(cudaEventRecord(ev_sorted_, main_));
-    CUDA_CHECK(launch_gather(d_box_lo_.get(), d_box_hi_.get(), d_entries_.get(), entries, d_packed_lo_.get(),
-                             d_packed_hi_.get(), main_));
-  }
-  CUDA_CHECK(cudaEventRecord(ev_map_, main_));
-  if (items > 0) {
-    CUDA_CHECK(launch_expand(d_prefix_.get(), cells, d_items_.get(), main_));
-  }
-  CUDA_CHECK(cudaEventRecord(ev_sched_, main_));
+  const grid_sizes exact{static_cast<std::uint32_t>(plan_.cells), rb_.total.entry, rb_.total.item, rb_.total.tile};
+  queue_map(n, exact, rb_.totals.max_count <= tuning::small_cell_sort);
 
   // The decoder needs the box array (cell-sorted ids): copy it on the second stream, overlapping
   // the first checking kernels.
   cudaStream_t side = slot_[1].stream;
   CUDA_CHECK(cudaStreamWaitEvent(side, ev_sched_, 0));
   CUDA_CHECK(cudaEventRecord(ev_entries_begin_, side));
-  if (opt_.compression && !opt_.direct_output && entries > 0) {
-    h_entries_.reserve(entries);
-    CUDA_CHECK(cudaMemcpyAsync(h_entries_.get(), d_entries_.get(), entries * sizeof(std::uint32_t),
+  if (opt_.compression && !opt_.direct_output && exact.entries > 0) {
+    h_entries_.reserve(exact.entries);
+    CUDA_CHECK(cudaMemcpyAsync(h_entries_.get(), d_entries_.get(), exact.entries * sizeof(std::uint32_t),
                                cudaMemcpyDeviceToHost, side));
-    report_.bytes_out += entries * sizeof(std::uint32_t);
+    report_.bytes_out += exact.entries * sizeof(std::uint32_t);
   }
   CUDA_CHECK(cudaEventRecord(ev_entries_, side));
 }
 
+// ---- single queue -----------------------------------------------------------------------------
+//
+// When the last call was one batch with no boxes handled apart and no cell over
+// tuning::small_cell_sort boxes (a small set), this call is queued whole before the host knows
+// its plan or totals: counters, entry lists, work items and the tile index sized by the last
+// call's figures plus a margin (next_), one batch over that capacity, batch 0's pairs copied
+// sized by the last call's pairs, then one read-back and one synchronisation. The kernels read
+// the plan and the totals from device memory and do nothing past them; the batch-planning kernel
+// checks the grid against the capacity, and a grid past it is not mapped (fits = 0): the host
+// re-runs the call from the count kernel with read-back sizing (pbig_report::requeued). An
+// overflowing chunk buffer is re-run as in every direct batch (finish_direct).
+
+pbig_engine::queue_result pbig_engine::run_single_queue(std::uint32_t n, std::uint64_t& pairs) {
+  const grid_sizes cap = next_.sizes;
+  queue_count(n, grid_capacity{cap.cells, cap.entries, cap.items, cap.tiles, tuning::small_cell_sort, 0});
+  queue_map(n, cap, /*small_cells=*/true);
+  for (auto& s : slot_) {
+    s.copy_pending = false;
+    s.overcopied = false;
+  }
+  pipeline_slot& s = slot_[0];
+  const batch b{0, cap.items, 0, cap.tiles};
+  ensure_result(next_.pairs, 0);
+  launch_direct(b, s, next_.pairs);
+  CUDA_CHECK(cudaMemcpyAsync(h_readback_.get(), d_readback_.get(), sizeof(map_readback), cudaMemcpyDeviceToHost, main_));
+  if (validate_on_device_) {
+    CUDA_CHECK(cudaMemcpyAsync(h_bounds_.get(), d_bounds_.get(), sizeof(bounds_dev), cudaMemcpyDeviceToHost, main_));
+  }
+  CUDA_CHECK(cudaStreamSynchronize(main_));  // the call's synchronisation
+  if (validate_on_device_ && h_bounds_.get()->bad != 0xffffffffu) return queue_result::invalid;
+  rb_ = *h_readback_.get();
+  plan_ = rb_.plan;
+  if (rb_.fits == 0) {
+    account_copy(s);
+    return queue_result::outgrown;
+  }
+  report_.batches = 1;
+  pairs = finish_direct(b, s, 0, 0, 1);  // overflow re-run; the rest of the pairs if the copy was short
+  for (auto& sl : slot_) account_copy(sl);
+  *h_large_total_.get() = 0;
+  return queue_result::done;
+}
+
+void pbig_engine::remember_sizes() {
+  const auto grow = [](std::uint64_t x) {
+    return static_cast<std::uint32_t>(std::min<std::uint64_t>(x + x / tuning::queue_margin_div + tuning::queue_margin_add,
+                                                              std::numeric_limits<std::uint32_t>::max() / 2));
+  };
+  next_.valid = rb_.large_count == 0 && rb_.totals.max_count <= tuning::small_cell_sort &&
+                rb_.total.tile <= tuning::min_tiles_per_batch;
+  next_.sizes = {grow(plan_.cells), grow(rb_.total.entry), grow(rb_.total.item), grow(rb_.total.tile)};
+  next_.pairs = grow(report_.pairs);
+}
+
 check_args pbig_engine::batch_args(const batch& b, const pipeline_slot& s) const {
   check_args a{};
-  a.plan = plan_;
+  a.plan = d_plan_.get();
+  a.grid = d_readback_.get();
   a.packed_lo = d_packed_lo_.get();
   a.packed_hi = d_packed_hi_.get();
   a.entries = d_entries_.get();
@@ -675,7 +771,9 @@ void pbig_engine::launch_direct(const batch& b, pipeline_slot& s, std::uint64_t 
   CUDA_CHECK(scan_tiles(nullptr, scan_bytes, s.d_tile_pairs.get(), s.d_tile_pos.get(), tiles + 1ull, s.stream));
   s.d_temp.reserve(std::max<std::size_t>(scan_bytes, 256));
   CUDA_CHECK(cudaMemsetAsync(s.d_cursor.get(), 0, sizeof(unsigned long long), s.stream));
-  CUDA_CHECK(cudaMemsetAsync(s.d_tile_pairs.get() + tiles, 0, sizeof(std::uint32_t), s.stream));
+  // Every tile count zeroed, the extra one for the scan's total too: a batch queued with a
+  // capacity (single queue) has tiles past the grid's, which no checking block writes.
+  CUDA_CHECK(cudaMemsetAsync(s.d_tile_pairs.get(), 0, (tiles + 1ull) * sizeof(std::uint32_t), s.stream));
   const check_args a = batch_args(b, s);
   CUDA_CHECK(cudaEventRecord(s.kernel_begin, s.stream));
   CUDA_CHECK(launch_check(a, opt_.load_balancing, /*compressed=*/false, s.stream));

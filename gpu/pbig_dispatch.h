@@ -79,10 +79,29 @@ class pbig_engine {
   struct batch {
     std::uint32_t item_first, item_last, tile_first, tile_last;
   };
+  /// The grid sizes the map and check steps are queued with: exact (read back) or capacities.
+  struct grid_sizes {
+    std::uint32_t cells, entries, items, tiles;
+  };
+  enum class queue_result { done, invalid, outgrown };
   bool upload(const interest::box_set& boxes, bool check);
-  /// False when the device found an invalid box (pinned input validated there).
-  bool plan(std::uint32_t n);
+  /// Queues the bounds and planning kernels: the plan is in d_plan_ (device memory).
+  void queue_plan(std::uint32_t n);
+  /// Read-back sizing, synchronisation 1: the plan into plan_. False when the device found an
+  /// invalid box (pinned input validated there).
+  bool read_plan();
+  /// Queues count, pack, scans, reduce and the batch-planning kernel (fills d_readback_ and
+  /// checks the grid against `cap`).
+  void queue_count(std::uint32_t n, const grid_capacity& cap);
+  /// Queues map, per-cell sort, gather and work items for `size` (an upper bound: the kernels
+  /// stop at d_readback_'s sizes). small_cells: the one-kernel sort (else CUB's, exact sizes only).
+  void queue_map(std::uint32_t n, const grid_sizes& size, bool small_cells);
+  /// Read-back sizing of the map: queue_count, synchronisation 2 (totals into rb_), queue_map.
   void map_boxes(std::uint32_t n);
+  /// The whole call as one queue sized by next_ (docs/gpu.md, "Single queue"); `pairs` when done.
+  queue_result run_single_queue(std::uint32_t n, std::uint64_t& pairs);
+  /// Keeps this call's figures (with a margin) as the next call's single-queue capacity.
+  void remember_sizes();
   std::uint64_t check_batches(interest::pair_list& out);
   /// The checking kernel's arguments for batch b on slot s (its buffers, cursor and capacity).
   [[nodiscard]] check_args batch_args(const batch& b, const pipeline_slot& s) const;
@@ -142,6 +161,12 @@ class pbig_engine {
   // direct output: every pair of the call, in pinned host memory (kept across calls)
   pinned_buffer<interest::id_pair> h_result_;
   std::uint64_t last_first_batch_pairs_ = 0;  // batch 0's pairs in the last call: its prefetch size
+  // single queue: the capacity the next call is queued with (the last call's figures + margin)
+  struct queue_capacity {
+    bool valid = false;  // the last call was small enough: one batch, no large boxes, small cells
+    grid_sizes sizes{};
+    std::uint64_t pairs = 0;  // batch 0's copy
+  } next_;
   // decode scratch
   std::vector<std::uint64_t> tile_pos_;
   std::vector<std::uint32_t> task_tiles_;

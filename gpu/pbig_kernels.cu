@@ -64,9 +64,10 @@ cudaError_t launch_plan(const box_arrays& boxes, bounds_dev* bounds, const plan_
   return cudaGetLastError();
 }
 
-cudaError_t launch_count(const box_arrays& boxes, std::uint32_t n, const grid_plan_dev& plan, std::uint32_t* counts,
-                         std::uint8_t* is_large, std::uint32_t* large_count, cudaStream_t stream) {
-  count_kernel<<<blocks_for(n, tuning::block), tuning::block, 0, stream>>>(boxes, n, plan, counts, is_large, large_count);
+cudaError_t launch_count(const box_arrays& boxes, std::uint32_t n, const grid_plan_dev* plan, std::uint64_t cell_capacity,
+                         std::uint32_t* counts, std::uint8_t* is_large, std::uint32_t* large_count, cudaStream_t stream) {
+  count_kernel<<<blocks_for(n, tuning::block), tuning::block, 0, stream>>>(boxes, n, plan, cell_capacity, counts, is_large,
+                                                                           large_count);
   return cudaGetLastError();
 }
 
@@ -90,15 +91,17 @@ cudaError_t reduce_cells(void* temp, std::size_t& temp_bytes, const std::uint32_
                                    cell_totals{0, 0, 0, 0}, stream);
 }
 
-cudaError_t launch_batch_plan(const cell_prefix* prefix, std::uint32_t cells, const std::uint32_t* large_count,
-                              map_readback* rb, std::uint32_t min_tiles, std::uint32_t max_batches, cudaStream_t stream) {
-  batch_plan_kernel<<<1, 32, 0, stream>>>(prefix, cells, large_count, rb, min_tiles, max_batches);
+cudaError_t launch_batch_plan(const grid_plan_dev* plan, const cell_prefix* prefix, const std::uint32_t* large_count,
+                              map_readback* rb, const grid_capacity& cap, std::uint32_t min_tiles,
+                              std::uint32_t max_batches, cudaStream_t stream) {
+  batch_plan_kernel<<<1, 32, 0, stream>>>(plan, prefix, large_count, rb, cap, min_tiles, max_batches);
   return cudaGetLastError();
 }
 
-cudaError_t launch_map(const box_arrays& boxes, std::uint32_t n, const grid_plan_dev& plan, const std::uint8_t* is_large,
-                       const cell_prefix* prefix, std::uint32_t* cursor, std::uint32_t* entries, cudaStream_t stream) {
-  map_kernel<<<blocks_for(n, tuning::block), tuning::block, 0, stream>>>(boxes, n, plan, is_large, prefix, cursor,
+cudaError_t launch_map(const box_arrays& boxes, std::uint32_t n, const grid_plan_dev* plan, const map_readback* grid,
+                       const std::uint8_t* is_large, const cell_prefix* prefix, std::uint32_t* cursor,
+                       std::uint32_t* entries, cudaStream_t stream) {
+  map_kernel<<<blocks_for(n, tuning::block), tuning::block, 0, stream>>>(boxes, n, plan, grid, is_large, prefix, cursor,
                                                                          entries);
   return cudaGetLastError();
 }
@@ -112,9 +115,9 @@ cudaError_t sort_cells(void* temp, std::size_t& temp_bytes, const std::uint32_t*
 }
 
 cudaError_t launch_sort_small_cells(const std::uint32_t* in, std::uint32_t* out, const cell_prefix* prefix,
-                                    std::uint32_t cells, cudaStream_t stream) {
-  sort_small_cells_kernel<<<blocks_for(std::uint64_t{cells} * 32, tuning::block), tuning::block, 0, stream>>>(in, out, prefix,
-                                                                                                          cells);
+                                    std::uint32_t cells, const map_readback* grid, cudaStream_t stream) {
+  sort_small_cells_kernel<<<blocks_for(std::uint64_t{cells} * 32, tuning::block), tuning::block, 0, stream>>>(
+      in, out, prefix, cells, grid);
   return cudaGetLastError();
 }
 
@@ -125,14 +128,15 @@ cudaError_t launch_pack_boxes(const box_arrays& boxes, std::uint32_t n, float4* 
 }
 
 cudaError_t launch_gather(const float4* box_lo, const float4* box_hi, const std::uint32_t* entries, std::uint32_t count,
-                          float4* packed_lo, float4* packed_hi, cudaStream_t stream) {
-  gather_kernel<<<blocks_for(count, tuning::block), tuning::block, 0, stream>>>(box_lo, box_hi, entries, count,
+                          const map_readback* grid, float4* packed_lo, float4* packed_hi, cudaStream_t stream) {
+  gather_kernel<<<blocks_for(count, tuning::block), tuning::block, 0, stream>>>(box_lo, box_hi, entries, count, grid,
                                                                                 packed_lo, packed_hi);
   return cudaGetLastError();
 }
 
-cudaError_t launch_expand(const cell_prefix* prefix, std::uint32_t cells, std::uint32_t* items, cudaStream_t stream) {
-  expand_items_kernel<<<blocks_for(cells, tuning::block), tuning::block, 0, stream>>>(prefix, cells, items);
+cudaError_t launch_expand(const cell_prefix* prefix, std::uint32_t cells, const map_readback* grid, std::uint32_t* items,
+                          cudaStream_t stream) {
+  expand_items_kernel<<<blocks_for(cells, tuning::block), tuning::block, 0, stream>>>(prefix, cells, grid, items);
   return cudaGetLastError();
 }
 

@@ -413,11 +413,14 @@ __device__ __forceinline__ cell_range cells_of(const box_arrays& b, std::uint32_
 
 /// Box counting kernel: one thread per box; +1 (atomic) on every cell the box occupies. A box
 /// that would occupy more than plan.large_cells cells is flagged large, counted in *large_count
-/// and kept out of the grid.
-__global__ void count_kernel(box_arrays boxes, std::uint32_t n, grid_plan_dev p, std::uint32_t* counts,
-                             std::uint8_t* is_large, std::uint32_t* large_count) {
+/// and kept out of the grid. Reads the plan from device memory; a plan of more cells than the
+/// counters were queued for (`cell_capacity`), or none (invalid input), counts nothing.
+__global__ void count_kernel(box_arrays boxes, std::uint32_t n, const grid_plan_dev* plan, std::uint64_t cell_capacity,
+                             std::uint32_t* counts, std::uint8_t* is_large, std::uint32_t* large_count) {
   const std::uint32_t i = blockIdx.x * blockDim.x + threadIdx.x;
   if (i >= n) return;
+  const grid_plan_dev p = *plan;
+  if (p.cells == 0 || p.cells > cell_capacity) return;
   const cell_range r = cells_of(boxes, i, p);
   const double occupied = static_cast<double>(r.hi[0] - r.lo[0] + 1) * (r.hi[1] - r.lo[1] + 1) * (r.hi[2] - r.lo[2] + 1);
   const bool large = occupied > p.large_cells;
@@ -436,11 +439,14 @@ __global__ void count_kernel(box_arrays boxes, std::uint32_t n, grid_plan_dev p,
 
 /// Box mapping kernel: one thread per box; its slot in each cell's list is the cell's offset
 /// plus an atomic ticket. (The lists are sorted by id afterwards, for a deterministic order.)
-__global__ void map_kernel(box_arrays boxes, std::uint32_t n, grid_plan_dev p, const std::uint8_t* is_large,
-                           const cell_prefix* prefix, std::uint32_t* cursor, std::uint32_t* entries) {
+/// Nothing when the grid did not fit the call's capacity (grid->fits == 0).
+__global__ void map_kernel(box_arrays boxes, std::uint32_t n, const grid_plan_dev* plan, const map_readback* grid,
+                           const std::uint8_t* is_large, const cell_prefix* prefix, std::uint32_t* cursor,
+                           std::uint32_t* entries) {
   const std::uint32_t i = blockIdx.x * blockDim.x + threadIdx.x;
-  if (i >= n) return;
+  if (i >= n || grid->fits == 0) return;
   if (is_large[i]) return;
+  const grid_plan_dev p = *plan;
   const cell_range r = cells_of(boxes, i, p);
   for (std::uint32_t z = r.lo[2]; z <= r.hi[2]; ++z) {
     for (std::uint32_t y = r.lo[1]; y <= r.hi[1]; ++y) {
@@ -466,10 +472,10 @@ __global__ void pack_boxes_kernel(box_arrays boxes, std::uint32_t n, float4* box
 /// grids whose fullest cell holds at most tuning::small_cell_sort entries: one warp per cell, each
 /// id's slot is its rank (ids in a cell are distinct). Fuller grids use CUB's segmented sort.
 __global__ void sort_small_cells_kernel(const std::uint32_t* in, std::uint32_t* out, const cell_prefix* prefix,
-                                        std::uint32_t cells) {
+                                        std::uint32_t cells, const map_readback* grid) {
   const std::uint64_t cell = (static_cast<std::uint64_t>(blockIdx.x) * blockDim.x + threadIdx.x) / 32;
   const std::uint32_t lane = threadIdx.x % 32;
-  if (cell >= cells) return;
+  if (cell >= cells || cell >= grid->cells) return;
   const std::uint32_t b = prefix[cell].entry, e = prefix[cell + 1].entry;
   for (std::uint32_t i = b + lane; i < e; i += 32) {
     const std::uint32_t id = in[i];
@@ -481,9 +487,9 @@ __global__ void sort_small_cells_kernel(const std::uint32_t* in, std::uint32_t* 
 
 /// The box array of the paper: each entry's box, packed for the checking kernel, in cell order.
 __global__ void gather_kernel(const float4* box_lo, const float4* box_hi, const std::uint32_t* entries,
-                              std::uint32_t count, float4* packed_lo, float4* packed_hi) {
+                              std::uint32_t count, const map_readback* grid, float4* packed_lo, float4* packed_hi) {
   const std::uint32_t e = blockIdx.x * blockDim.x + threadIdx.x;
-  if (e >= count) return;
+  if (e >= count || e >= grid->total.entry) return;
   const std::uint32_t i = entries[e];
   packed_lo[e] = box_lo[i];
   packed_hi[e] = box_hi[i];
@@ -492,23 +498,41 @@ __global__ void gather_kernel(const float4* box_lo, const float4* box_hi, const 
 // ---- scheduling -------------------------------------------------------------------------------
 
 /// Thread-block scheduling: one work item per (cell, row segment); items[k] = its cell.
-__global__ void expand_items_kernel(const cell_prefix* prefix, std::uint32_t cells, std::uint32_t* items) {
+__global__ void expand_items_kernel(const cell_prefix* prefix, std::uint32_t cells, const map_readback* grid,
+                                    std::uint32_t* items) {
   const std::uint32_t c = blockIdx.x * blockDim.x + threadIdx.x;
-  if (c >= cells) return;
+  if (c >= cells || c >= grid->cells) return;
   for (std::uint32_t k = prefix[c].item; k < prefix[c + 1].item; ++k) items[k] = c;
 }
 
-/// Fills the read-back block: totals at cell M and the batch boundaries (cells cut so that each
+/// Fills the read-back block (rb->totals is the reduce's): the plan, whether the grid fits the
+/// capacity the call was queued with (`cap`; else cells and totals 0, so the later kernels of
+/// the call do nothing), the totals at cell M and the batch boundaries (cells cut so that each
 /// batch holds about the same number of tiles).
-__global__ void batch_plan_kernel(const cell_prefix* prefix, std::uint32_t cells, const std::uint32_t* large_count,
-                                  map_readback* rb, std::uint32_t min_tiles, std::uint32_t max_batches) {
+__global__ void batch_plan_kernel(const grid_plan_dev* plan, const cell_prefix* prefix, const std::uint32_t* large_count,
+                                  map_readback* rb, grid_capacity cap, std::uint32_t min_tiles,
+                                  std::uint32_t max_batches) {
   if (threadIdx.x >= 32) return;
-  const std::uint32_t tiles = prefix[cells].tile;
+  const grid_plan_dev p = *plan;
+  const cell_totals t = rb->totals;
+  const std::uint32_t large = *large_count;
+  // Counted at all (the count kernel skips a plan past the capacity), then within every size.
+  const bool counted = p.cells > 0 && p.cells <= cap.cells;
+  const cell_prefix at_end = prefix[counted ? p.cells : 0];
+  const bool fits = counted && t.entries == at_end.entry && t.tiles == at_end.tile && t.entries <= cap.entries &&
+                    at_end.item <= cap.items && t.tiles <= cap.tiles && t.max_count <= cap.max_count &&
+                    (cap.large != 0 || large == 0);
+  const std::uint32_t cells = fits ? static_cast<std::uint32_t>(p.cells) : 0;
+  const std::uint32_t tiles = fits ? at_end.tile : 0;
   std::uint32_t count = tiles == 0 ? 0 : (tiles + min_tiles - 1) / min_tiles;
   count = min(count, max_batches);
+  __syncwarp();  // every lane has read rb->totals before lane 0 writes the block
   if (threadIdx.x == 0) {
-    rb->total = prefix[cells];
-    rb->large_count = *large_count;
+    rb->plan = p;
+    rb->fits = fits ? 1u : 0u;
+    rb->cells = cells;
+    rb->total = fits ? at_end : cell_prefix{0, 0, 0};
+    rb->large_count = large;
     rb->batches.count = count;
   }
   for (std::uint32_t b = threadIdx.x; b <= count && b < static_cast<std::uint32_t>(max_batch_slots); b += 32) {
@@ -555,18 +579,22 @@ __global__ void __launch_bounds__(tuning::segment) check_kernel(check_args a) {
   __shared__ std::uint32_t col_id[T];
   __shared__ std::uint8_t col_flags[T];
   __shared__ std::uint64_t chunk_base;
+  __shared__ grid_plan_dev plan;  // in shared memory, not registers: a register copy cost occupancy
 
   const std::uint32_t item = a.item_first + blockIdx.x;
-  if (item >= a.item_last || blockDim.x != T) return;  // guard (uniform over the block)
+  // guard (uniform over the block); a batch queued with a capacity has blocks past the grid's items
+  if (item >= a.item_last || item >= a.grid->total.item || blockDim.x != T) return;
   const std::uint32_t tid = threadIdx.x;
+  if (tid == 0) plan = *a.plan;
+  __syncthreads();
   const std::uint32_t cell = a.items[item];
   const cell_prefix p0 = a.prefix[cell], p1 = a.prefix[cell + 1];
   const std::uint32_t segs = p1.item - p0.item;
   const std::uint32_t v = item - p0.item;
   const std::uint32_t count = p1.entry - p0.entry;
   const std::uint32_t tile0 = p0.tile + v * segs - v * (v - 1) / 2 - a.tile_first;
-  const std::uint32_t cc[3] = {cell % a.plan.dims[0], (cell / a.plan.dims[0]) % a.plan.dims[1],
-                               cell / (a.plan.dims[0] * a.plan.dims[1])};
+  const std::uint32_t cc[3] = {cell % plan.dims[0], (cell / plan.dims[0]) % plan.dims[1],
+                               cell / (plan.dims[0] * plan.dims[1])};
 
   const std::uint32_t m = min(T, count - v * T);
   float4 row_lo = make_float4(0, 0, 0, 0), row_hi = make_float4(0, 0, 0, 0);
@@ -575,7 +603,7 @@ __global__ void __launch_bounds__(tuning::segment) check_kernel(check_args a) {
     const std::uint32_t e = p0.entry + v * T + tid;
     row_lo = a.packed_lo[e];
     row_hi = a.packed_hi[e];
-    row_flags = hi_flags(row_hi, a.plan, cc);
+    row_flags = hi_flags(row_hi, plan, cc);
     if (!Compressed) row_id = a.entries[e];
   }
   const std::uint32_t row_cat = __float_as_uint(row_lo.w), row_mask = __float_as_uint(row_hi.w);
@@ -587,7 +615,7 @@ __global__ void __launch_bounds__(tuning::segment) check_kernel(check_args a) {
       const std::uint32_t e = p0.entry + h * T + tid;
       col_lo[tid] = a.packed_lo[e];
       col_hi[tid] = a.packed_hi[e];
-      col_flags[tid] = static_cast<std::uint8_t>(hi_flags(col_hi[tid], a.plan, cc));
+      col_flags[tid] = static_cast<std::uint8_t>(hi_flags(col_hi[tid], plan, cc));
       if (!Compressed) col_id[tid] = a.entries[e];
     }
     __syncthreads();

@@ -15,28 +15,35 @@ namespace zone::gpu::detail {
 
 cudaError_t launch_plan(const box_arrays& boxes, bounds_dev* bounds, const plan_params& prm, plan_state* state,
                         grid_plan_dev* plan, cudaStream_t stream);
-cudaError_t launch_count(const box_arrays& boxes, std::uint32_t n, const grid_plan_dev& plan, std::uint32_t* counts,
-                         std::uint8_t* is_large, std::uint32_t* large_count, cudaStream_t stream);
+/// The plan is read from device memory; nothing is counted when plan->cells > cell_capacity.
+cudaError_t launch_count(const box_arrays& boxes, std::uint32_t n, const grid_plan_dev* plan, std::uint64_t cell_capacity,
+                         std::uint32_t* counts, std::uint8_t* is_large, std::uint32_t* large_count, cudaStream_t stream);
 cudaError_t select_large(void* temp, std::size_t& temp_bytes, const std::uint8_t* is_large, std::uint32_t* large,
                          std::uint32_t* large_count, std::uint32_t n, cudaStream_t stream);
 cudaError_t scan_cells(void* temp, std::size_t& temp_bytes, const std::uint32_t* counts, cell_prefix* prefix,
                        std::uint32_t cells, cudaStream_t stream);  // scans cells + 1 values (counts[cells] == 0)
 cudaError_t reduce_cells(void* temp, std::size_t& temp_bytes, const std::uint32_t* counts, cell_totals* totals,
                          std::uint32_t cells, cudaStream_t stream);
-cudaError_t launch_batch_plan(const cell_prefix* prefix, std::uint32_t cells, const std::uint32_t* large_count,
-                              map_readback* rb, std::uint32_t min_tiles, std::uint32_t max_batches, cudaStream_t stream);
-cudaError_t launch_map(const box_arrays& boxes, std::uint32_t n, const grid_plan_dev& plan, const std::uint8_t* is_large,
-                       const cell_prefix* prefix, std::uint32_t* cursor, std::uint32_t* entries, cudaStream_t stream);
+/// Fills rb (its totals written by reduce_cells before): plan, fits (against cap), totals, batches.
+cudaError_t launch_batch_plan(const grid_plan_dev* plan, const cell_prefix* prefix, const std::uint32_t* large_count,
+                              map_readback* rb, const grid_capacity& cap, std::uint32_t min_tiles,
+                              std::uint32_t max_batches, cudaStream_t stream);
+// The kernels below read `grid` (device memory, filled by launch_batch_plan) and do nothing past
+// its sizes, so they can be queued with capacities as sizes before the host knows the grid.
+cudaError_t launch_map(const box_arrays& boxes, std::uint32_t n, const grid_plan_dev* plan, const map_readback* grid,
+                       const std::uint8_t* is_large, const cell_prefix* prefix, std::uint32_t* cursor,
+                       std::uint32_t* entries, cudaStream_t stream);
 cudaError_t sort_cells(void* temp, std::size_t& temp_bytes, const std::uint32_t* in, std::uint32_t* out,
                        std::uint32_t entries, std::uint32_t cells, const cell_prefix* prefix, cudaStream_t stream);
 /// The per-cell sort for grids whose fullest cell holds at most tuning::small_cell_sort entries.
 cudaError_t launch_sort_small_cells(const std::uint32_t* in, std::uint32_t* out, const cell_prefix* prefix,
-                                    std::uint32_t cells, cudaStream_t stream);
+                                    std::uint32_t cells, const map_readback* grid, cudaStream_t stream);
 cudaError_t launch_pack_boxes(const box_arrays& boxes, std::uint32_t n, float4* box_lo, float4* box_hi,
                               cudaStream_t stream);
 cudaError_t launch_gather(const float4* box_lo, const float4* box_hi, const std::uint32_t* entries, std::uint32_t count,
-                          float4* packed_lo, float4* packed_hi, cudaStream_t stream);
-cudaError_t launch_expand(const cell_prefix* prefix, std::uint32_t cells, std::uint32_t* items, cudaStream_t stream);
+                          const map_readback* grid, float4* packed_lo, float4* packed_hi, cudaStream_t stream);
+cudaError_t launch_expand(const cell_prefix* prefix, std::uint32_t cells, const map_readback* grid, std::uint32_t* items,
+                          cudaStream_t stream);
 cudaError_t launch_check(const check_args& args, bool balanced, bool compressed, cudaStream_t stream);
 /// Direct output: moves each tile's plain chunk (written by launch_check, uncompressed) to
 /// out_pairs + 2 * tile_pos[tile]; nothing when *cursor > capacity (the batch overflowed).

@@ -70,12 +70,31 @@ struct batch_plan {
   std::uint32_t tile[max_batch_slots];
 };
 
-/// What one call reads back at its first synchronisation after mapping.
+/// The sizes a call's grid buffers were queued with (the batch-planning kernel checks the grid
+/// against them). Read-back sizing: the planned cells and the 32-bit limits. Single queue: the
+/// last call's figures with a margin, so nothing waits for the host; a grid past any of them is
+/// not mapped (every later kernel of the call does nothing) and the call is re-run with the
+/// read-back sizes.
+struct grid_capacity {
+  std::uint64_t cells;      ///< counts and prefixes hold cells + 1 values
+  std::uint64_t entries;    ///< (cell, box) entries: entry lists and the packed box array
+  std::uint64_t items;      ///< work items (cell, row segment)
+  std::uint64_t tiles;      ///< tiles (one batch's tile index)
+  std::uint64_t max_count;  ///< the fullest cell the queued per-cell sort handles
+  std::uint32_t large;      ///< 1: boxes handled apart may exist (their passes read sizes back)
+};
+
+/// What one call reads back after mapping (the batch-planning kernel fills it; the reduce writes
+/// `totals`). When the grid does not fit the capacity it was queued with, `fits` is 0 and
+/// `cells` and `total` are 0: the later kernels of the call, which read them, do nothing.
 struct map_readback {
   cell_prefix total;  ///< prefix at cell M: totals of entries, items, tiles (32-bit)
   cell_totals totals;
   std::uint32_t large_count;
+  std::uint32_t cells;  ///< the grid's cells when it fits, else 0
+  std::uint32_t fits;
   batch_plan batches;
+  grid_plan_dev plan;  ///< the call's plan (for the host's report and statistics)
 };
 
 /// Header of one output chunk (one tile with at least one pair), 12 bytes, 4-byte aligned.
@@ -112,7 +131,8 @@ struct plan_params {
 
 /// Arguments of one checking-kernel launch (one batch).
 struct check_args {
-  grid_plan_dev plan;
+  const grid_plan_dev* plan;  // device memory (the planning kernel's output)
+  const map_readback* grid;   // device memory: blocks past grid->total.item do nothing
   const float4* packed_lo;
   const float4* packed_hi;
   const std::uint32_t* entries;  // cell-sorted box ids (plain mode writes final ids)

@@ -78,5 +78,10 @@ inline constexpr std::uint32_t block = 256;
 /// overlaps the host-to-device copy of part k.
 inline constexpr std::size_t upload_part_boxes = std::size_t{1} << 19;
 inline constexpr std::size_t max_upload_parts = 16;
+/// Single queue (pbig_options::single_queue): the next call's capacity is this call's figure x
+/// plus x / queue_margin_div + queue_margin_add (cells, entries, work items, tiles, pairs), so a
+/// set that grows by up to 25% between calls still fits.
+inline constexpr std::uint64_t queue_margin_div = 4;
+inline constexpr std::uint64_t queue_margin_add = 64;
 
 }  // namespace zone::gpu::tuning

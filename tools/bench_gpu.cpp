@@ -128,7 +128,7 @@ struct bench {
   zi::pair_finder& gpu(const zg::pbig_options& o) {
     std::ostringstream key;
     key << o.load_balancing << o.compression << o.pipelining << o.direct_output << '/' << o.fixed_cell_edge << '/'
-        << o.reuse_plan << '/' << o.min_boxes_per_cell << '/' << o.cost_aware_plan;
+        << o.reuse_plan << '/' << o.min_boxes_per_cell << '/' << o.cost_aware_plan << '/' << o.single_queue;
     auto& f = gpu_finders[key.str()];
     if (!f) {
       std::string why;
@@ -208,7 +208,7 @@ struct bench {
     if (!csv) return;
     csv << "experiment,set,n,param,options,e2e_ms,e2e_min_ms,find_ms,gpu_total_ms,data_in_ms,plan_ms,map_ms,sched_ms,check_ms,"
            "data_out_ms,report_ms,large_ms,pipeline_ms,map_count_ms,map_scatter_ms,map_sort_ms,map_gather_ms,pairs,checks,cells,cell_edge,alpha,large_boxes,bytes_in,"
-           "bytes_out,batches,reruns,plan_reused,floor_ms,cpu_ms,cpu_pairs,verified\n";
+           "bytes_out,batches,reruns,plan_reused,floor_ms,cpu_ms,cpu_pairs,verified,single_queue,requeued\n";
   }
 
   double floor_ms(const zg::pbig_report& r) const {
@@ -231,7 +231,7 @@ struct bench {
           << r.pairs << ',' << g.stats.checks << ',' << g.stats.cells << ',' << g.stats.cell_edge << ',' << r.alpha << ','
           << g.stats.large_boxes << ',' << r.bytes_in << ',' << r.bytes_out << ',' << r.batches << ',' << r.reruns << ','
           << r.plan_reused << ',' << floor_ms(r) << ',' << (c.ran ? c.ms : -1) << ',' << (c.ran ? c.dig.count : 0)
-          << ',' << verify(g, c) << '\n';
+          << ',' << verify(g, c) << ',' << r.single_queue << ',' << r.requeued << '\n';
       csv.flush();
     }
   }
@@ -243,6 +243,7 @@ std::string opts_name(const zg::pbig_options& o) {
   if (o.compression) s += "C";
   if (o.pipelining) s += "P";
   if (o.load_balancing) s += "B";
+  if (o.direct_output && !o.single_queue) s += "-readback";  // sizes read back (no single queue)
   return s.empty() ? "base" : s;
 }
 
@@ -601,6 +602,17 @@ int main(int argc, char** argv) {
                     g.e2e_ms, t.target_ms, g.e2e_min_ms, g.report.data_in_ms, g.report.plan_ms, g.report.map_ms,
                     g.report.pipeline_ms);
         b.row("targets", t.kind, t.n, param, opts_name(o) + (pin.active() ? "+pinned" : "+unpinned"), g, c);
+        std::printf("   single queue: %s%s\n", g.report.single_queue ? "yes" : "no", g.report.requeued ? " (requeued)" : "");
+        if (t.n <= 1000000) {
+          // Before/after in the same session: every size read back before what it sizes.
+          o.single_queue = false;
+          const gpu_result r = b.run_gpu(s, o, 21);
+          std::printf("   %s pinned input, read-back sizing: e2e %.3f ms (min %.3f ms; in %.3f, plan %.3f, map %.3f, "
+                      "check+out %.3f)\n",
+                      opts_name(o).c_str(), r.e2e_ms, r.e2e_min_ms, r.report.data_in_ms, r.report.plan_ms,
+                      r.report.map_ms, r.report.pipeline_ms);
+          b.row("targets", t.kind, t.n, param, opts_name(o) + (pin.active() ? "+pinned" : "+unpinned"), r, c);
+        }
       }
     }
   }

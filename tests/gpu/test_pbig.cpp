@@ -310,6 +310,131 @@ TEST_SUITE("gpu.pbig") {
     CHECK(larger >= 1);  // at least the DoC 10 set (boxes larger than Eq. 6's cells)
   }
 
+  TEST_CASE("single queue: sizes from the last call; outgrown grids re-queued, overflow re-run, no pair lost") {
+    thread_pool pool(4);
+    grid_finder grid(&pool);
+    const auto seed = fresh_seed();
+    CAPTURE(seed);
+    // Grows and shrinks: the same size again twice (fits), N x 4 (more cells), small again
+    // (capacity far above the grid), a full cell (past the one-kernel sort), small, boxes handled
+    // apart, more pairs on the same grid, then small and large alternating.
+    struct step {
+      box_set set;
+      const char* what;
+    };
+    std::vector<step> steps;
+    steps.push_back({generate_uniform(20000, seed), "uniform 2e4"});
+    steps.push_back({generate_uniform(20000, seed + 1), "uniform 2e4, other seed"});
+    steps.push_back({generate_uniform(20000, seed + 2), "uniform 2e4, third seed"});
+    steps.push_back({generate_uniform(80000, seed + 3), "uniform 8e4"});
+    steps.push_back({generate_uniform(3000, seed + 4), "uniform 3e3"});
+    steps.push_back({make_family(family::identical, 3000, seed + 5), "identical 3e3"});
+    steps.push_back({generate_uniform(3000, seed + 6), "uniform 3e3 after identical"});
+    box_set spanning = generate_uniform(6000, seed + 7);
+    for (int k = 0; k < 3; ++k) spanning.push_back(box{{-1, -1, -1}, {1e4f + 1, 1e4f + 1, 1e4f + 1}, 1, 1});
+    steps.push_back({spanning, "uniform 6e3 + 3 world-spanning boxes"});
+    // The same geometry three times (the same plan and grid): 80% of the masks 0, again, then
+    // every mask 1 (about 2.8x the pairs: past the output capacity of the last call).
+    box_set masked = generate_uniform(20000, seed + 8, 2.0);
+    const box_set unmasked = masked;
+    for (std::size_t i = 0; i < masked.size(); ++i) masked.mask[i] = i % 5 == 0 ? 1u : 0u;
+    steps.push_back({masked, "uniform 2e4 x2, masked, after large boxes"});
+    steps.push_back({masked, "the same again"});
+    steps.push_back({unmasked, "the same geometry unmasked"});
+    for (int k = 0; k < 6; ++k) {
+      steps.push_back({generate_uniform(k % 2 == 0 ? 4000 : 150000, seed + 10 + k), k % 2 == 0 ? "small" : "large"});
+    }
+    std::vector<pair_list> cpu;
+    for (const auto& st : steps) cpu.push_back(run(grid, st.set));
+    for (const std::size_t initial : {std::size_t{0}, std::size_t{1}}) {
+      for (int mask = 0; mask < 4; ++mask) {
+        gpu::pbig_options o;
+        o.load_balancing = (mask & 1) != 0;
+        o.compression = (mask & 2) != 0;
+        o.initial_output_pairs = initial;
+        o.decode_pool = &pool;
+        CAPTURE(describe(o));
+        auto finder = make_gpu(o);
+        o.single_queue = false;
+        auto reference = make_gpu(o);
+        const auto* report = gpu::last_pbig_report(*finder);
+        int queued = 0, requeued = 0;
+        for (std::size_t i = 0; i < steps.size(); ++i) {
+          CAPTURE(i);
+          CAPTURE(steps[i].what);
+          pair_list got, want;
+          REQUIRE_FALSE(finder->find(steps[i].set, got).has_value());
+          REQUIRE_FALSE(reference->find(steps[i].set, want).has_value());
+          CHECK_FALSE(gpu::last_pbig_report(*reference)->single_queue);
+          CHECK(got == want);  // same pairs, same order as read-back sizing
+          CHECK(report->pairs == got.size());
+          sort_canonical(got, steps[i].set.size());
+          CHECK(got == cpu[i]);
+          queued += report->single_queue && !report->requeued ? 1 : 0;
+          requeued += report->requeued ? 1 : 0;
+          if (i == 0) CHECK_FALSE(report->single_queue);  // no last call
+          if (i == 1 || i == 9 || i == 10) CHECK((report->single_queue && !report->requeued));
+          if (i == 3 || i == 5 || i == 7) CHECK(report->requeued);  // more cells, a full cell, large boxes
+          if (i == 6 || i == 8) CHECK_FALSE(report->single_queue);  // the last call was not small
+        }
+        CHECK(queued >= 3);
+        CHECK(requeued >= 3);
+        // On a fresh finder, steps 8-10 alone: the unmasked call has ~2.8x the pairs of the masked
+        // ones on the same grid, so with tiny initial buffers its chunks overflow inside a single
+        // queue (re-run by finish_direct) and its pairs outrun the prefetched copy.
+        o.single_queue = true;
+        auto fresh = make_gpu(o);
+        for (const std::size_t i : {std::size_t{8}, std::size_t{9}, std::size_t{10}}) {
+          CAPTURE(i);
+          pair_list got;
+          REQUIRE_FALSE(fresh->find(steps[i].set, got).has_value());
+          sort_canonical(got, steps[i].set.size());
+          CHECK(got == cpu[i]);
+        }
+        const auto* last = gpu::last_pbig_report(*fresh);
+        CHECK((last->single_queue && !last->requeued));
+        if (initial == 1) CHECK(last->reruns >= 1);  // an overflowing chunk buffer inside a single queue
+      }
+    }
+  }
+
+  TEST_CASE("single queue: an invalid pinned set is reported from the one read-back, the next call unaffected") {
+    thread_pool pool(4);
+    gpu::pbig_options o;
+    o.decode_pool = &pool;
+    auto finder = make_gpu(o);
+    const auto seed = fresh_seed();
+    CAPTURE(seed);
+    box_set s = generate_uniform(30000, seed);
+    const pair_list expected = [&] {
+      grid_finder grid(&pool);
+      return run(grid, s);
+    }();
+    gpu::pinned_boxes pin(s);
+    REQUIRE(pin.active());
+    const auto* report = gpu::last_pbig_report(*finder);
+    std::span<const id_pair> got;
+    for (int call = 0; call < 2; ++call) {
+      REQUIRE_FALSE(gpu::find_pairs_view(*finder, s, got).has_value());
+      pair_list sorted(got.begin(), got.end());
+      sort_canonical(sorted, s.size());
+      CHECK(sorted == expected);
+    }
+    CHECK((report->single_queue && !report->requeued));
+    const std::size_t bad = 12345;
+    const float keep = s.lo_y[bad];
+    s.lo_y[bad] = std::nanf("");
+    const auto err = gpu::find_pairs_view(*finder, s, got);
+    REQUIRE(err.has_value());
+    CHECK(err->index == bad);
+    s.lo_y[bad] = keep;
+    REQUIRE_FALSE(gpu::find_pairs_view(*finder, s, got).has_value());
+    CHECK((report->single_queue && !report->requeued));
+    pair_list sorted(got.begin(), got.end());
+    sort_canonical(sorted, s.size());
+    CHECK(sorted == expected);
+  }
+
   TEST_CASE("degenerate: 10^4 identical boxes in one cell") {
     thread_pool pool(4);
     box_set s;
