@@ -41,6 +41,18 @@ struct server_options {
   /// does not read is beyond the queue's drop policy: a small buffer bounds how stale its state
   /// gets before frames are dropped (4 MiB is minutes of state at 20 KB/s).
   std::size_t socket_send_buffer = 0;
+  /// Who writes a session's frames to its socket. true: the thread that calls send() writes the
+  /// frame itself with one non-blocking sendmsg when nothing is queued ahead of it for that session
+  /// (no I/O-thread wake-up, no epoll round trip); on EAGAIN or a partial write the rest waits in
+  /// the queue and the session's I/O thread finishes it when the socket is writable. false: every
+  /// write is made by the session's I/O thread (one wake-up per I/O thread for a burst of sends,
+  /// then one gathered write per session). Either way one write at a time per session, in order.
+  bool direct_writes = true;
+  /// Nice value the I/O threads give themselves (0 = unchanged; 1-19 = lower priority than the
+  /// game's threads, which an unprivileged process may always ask for): where the I/O threads
+  /// share cores with the tick's workers, the scheduler then lets a worker run its part of a tick
+  /// phase before an I/O thread takes the core, so a phase does not end with a preempted task.
+  int io_thread_nice = 0;
   /// Inputs per second a client may send (token bucket of `input_burst`); inputs over the rate
   /// are dropped and counted; a client that keeps flooding (more than `flood_limit` drops in
   /// a row) gets error rate_limited and is disconnected.
@@ -105,7 +117,8 @@ struct server_stats {
   std::uint64_t sessions_open = 0;
   std::uint64_t frames_in = 0;
   std::uint64_t frames_out = 0;
-  std::uint64_t writes = 0;            ///< socket writes (gathered: one may carry several frames)
+  std::uint64_t writes = 0;            ///< gathered socket writes (one may carry several frames; one the
+                                       ///< socket takes in part goes on in more sendmsg calls)
   std::uint64_t bytes_in = 0;
   std::uint64_t bytes_out = 0;
   std::uint64_t frames_dropped = 0;    ///< state frames not delivered to slow clients (dropped or superseded)
@@ -138,11 +151,12 @@ class server {
   /// safe from any thread (the zone server sends each frame from the worker that built it).
   /// Frames of one session are delivered in the order of the calls (state frames may be dropped,
   /// see server_options::max_queued_frames); send a session's state frames from one thread at a
-  /// time, in the order they were built. Cost: the frame goes into the session's mailbox (a short
-  /// lock); only a session that had nothing waiting is put on its I/O thread's ready list, and
-  /// only a ready list that was empty posts a wake-up to that thread: a burst of sends (a tick's
-  /// frames) costs the I/O threads a few wake-ups, not one per frame. A session writes what is
-  /// queued with one gathered write (frames_out counts frames, writes counts writes).
+  /// time, in the order they were built. Cost: the frame goes through the session's outbound
+  /// queue under the session's own lock; with direct_writes (the default) a session with nothing
+  /// queued gets the frame written at once by the calling thread (one non-blocking sendmsg: the
+  /// kernel's loopback or TCP send is then the caller's CPU), otherwise its I/O thread writes it
+  /// (a session that was idle is put on its I/O thread's ready list, and only a ready list that
+  /// was empty posts a wake-up). frames_out counts frames, writes counts socket writes.
   bool send(session_id s, shared_frame frame, delivery d = delivery::state);
   /// The session's state backlog: state frames sent to it (send) and neither written to its
   /// socket nor dropped yet. Read it (any thread, relaxed) to pace a client to what it absorbs:

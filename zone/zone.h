@@ -561,6 +561,10 @@ struct zone_config {
   std::size_t max_clients = 1000;
   std::size_t max_frame_bytes = 16 * 1024;
   std::size_t socket_send_buffer = 0;  ///< SO_SNDBUF per client socket (bytes; 0 = the system's autotuning)
+  /// The replication worker that built a frame writes it to the socket itself when nothing is
+  /// queued ahead of it (net::server_options::direct_writes); false: the I/O threads write.
+  bool direct_writes = true;
+  int io_nice = 0;  ///< nice value of the I/O threads (net::server_options::io_thread_nice; 0-19)
   double inputs_per_second = 60;
   std::size_t client_byte_budget = 8 * 1024;
   /// A client with this many state frames still unwritten (net::server::state_backlog) gets no new

@@ -27,6 +27,8 @@ net::server_options net_options(const zone_config& c) {
   o.max_connections = c.max_clients;
   o.inbound.max_frame_bytes = c.max_frame_bytes;
   o.socket_send_buffer = c.socket_send_buffer;
+  o.direct_writes = c.direct_writes;
+  o.io_thread_nice = c.io_nice;
   o.inputs_per_second = c.inputs_per_second;
   o.input_burst = std::max(1.0, c.inputs_per_second / 2);
   return o;

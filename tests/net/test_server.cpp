@@ -82,7 +82,13 @@ bool is_error(const std::optional<message>& m, error_code code) {
 
 TEST_SUITE("net.server") {
   TEST_CASE("handshake, control and state frames, ping, game-side disconnect") {
-    server srv;
+    // Both write paths: the sender writes itself (direct), or the session's I/O thread does.
+    bool direct = true;
+    SUBCASE("direct writes") { direct = true; }
+    SUBCASE("I/O-thread writes") { direct = false; }
+    server_options opt;
+    opt.direct_writes = direct;
+    server srv(opt);
     REQUIRE_FALSE(srv.start().has_value());
     REQUIRE(srv.port() != 0);
     game g{srv, {}};
@@ -286,7 +292,12 @@ TEST_SUITE("net.server") {
   }
 
   TEST_CASE("a slow client: bounded queue, no delta after a drop until a reset, served again, not disconnected") {
+    // Both write paths: the sender writes itself (direct), or the session's I/O thread does.
+    bool direct = true;
+    SUBCASE("direct writes") { direct = true; }
+    SUBCASE("I/O-thread writes") { direct = false; }
     server_options opt;
+    opt.direct_writes = direct;
     opt.max_queued_frames = 4;
     server srv(opt);
     REQUIRE_FALSE(srv.start().has_value());
@@ -367,7 +378,12 @@ TEST_SUITE("net.server") {
   }
 
   TEST_CASE("a burst to a client that is not reading goes out in gathered writes, complete and in order") {
+    // Both write paths: the sender writes itself (direct), or the session's I/O thread does.
+    bool direct = true;
+    SUBCASE("direct writes") { direct = true; }
+    SUBCASE("I/O-thread writes") { direct = false; }
     server_options opt;
+    opt.direct_writes = direct;
     opt.max_queued_frames = 64;     // no drop: this is about the write path
     opt.socket_send_buffer = 4096;  // the kernel holds little, so the queue fills behind a blocked write
     server srv(opt);
@@ -400,7 +416,12 @@ TEST_SUITE("net.server") {
   }
 
   TEST_CASE("concurrent senders: each sender's frames in its order, a session's state stream intact, nothing lost") {
+    // Both write paths: the sender writes itself (direct), or the session's I/O thread does.
+    bool direct = true;
+    SUBCASE("direct writes") { direct = true; }
+    SUBCASE("I/O-thread writes") { direct = false; }
     server_options opt;
+    opt.direct_writes = direct;
     opt.max_queued_frames = 128;  // 100 frames a session at most: no drop, no overflow
     opt.io_threads = 2;
     server srv(opt);
@@ -458,7 +479,13 @@ TEST_SUITE("net.server") {
   }
 
   TEST_CASE("sends then a game-side disconnect: a prefix of the frames, in order, then the error, then nothing") {
-    server srv;
+    // Both write paths: the sender writes itself (direct), or the session's I/O thread does.
+    bool direct = true;
+    SUBCASE("direct writes") { direct = true; }
+    SUBCASE("I/O-thread writes") { direct = false; }
+    server_options opt;
+    opt.direct_writes = direct;
+    server srv(opt);
     REQUIRE_FALSE(srv.start().has_value());
     game g{srv, {}};
     test_client c(srv.port());
@@ -475,6 +502,111 @@ TEST_SUITE("net.server") {
     REQUIRE(seen.size() <= 6);
     for (std::size_t t = 0; t + 1 < seen.size(); ++t) CHECK(std::get<tick_update_msg>(seen[t]).server_tick == t);
     CHECK(is_error(seen.back(), error_code::server_full));
+  }
+
+  TEST_CASE("direct writes: a frame for an idle session is in its socket when send() returns") {
+    server_options opt;
+    opt.direct_writes = true;
+    server srv(opt);
+    REQUIRE_FALSE(srv.start().has_value());
+    game g{srv, {}};
+    test_client c(srv.port());
+    REQUIRE(c.send(hello_msg{"direct", "", protocol_version}));
+    REQUIRE(g.wait_for([&] { return g.hello_session("direct") != 0; }));
+    const session_id s = g.hello_session("direct");
+    const auto backlog = srv.state_backlog(s);
+    REQUIRE(backlog != nullptr);
+    for (std::uint64_t t = 0; t < 20; ++t) {
+      const auto before = srv.stats();
+      REQUIRE(srv.send(s, frame(tick(t, 4)), t == 0 ? delivery::state_reset : delivery::state));
+      // Written by this thread, whole, before send() returned: no I/O thread in between.
+      const auto after = srv.stats();
+      CHECK(after.frames_out == before.frames_out + 1);
+      CHECK(after.writes == before.writes + 1);
+      CHECK(backlog->load() == 0);
+      const auto m = c.read();
+      REQUIRE(m.has_value());
+      CHECK(std::get<tick_update_msg>(*m).server_tick == t);
+    }
+  }
+
+  TEST_CASE("partial writes with pongs beside them: a slow reader gets whole frames, in order, none lost or twice") {
+    // Both write paths: the sender writes itself (direct), or the session's I/O thread does.
+    bool direct = true;
+    SUBCASE("direct writes") { direct = true; }
+    SUBCASE("I/O-thread writes") { direct = false; }
+    server_options opt;
+    opt.direct_writes = direct;
+    opt.max_queued_frames = 6;
+    opt.socket_send_buffer = 4096;  // ~3 KB frames: the socket takes them in parts
+    server srv(opt);
+    REQUIRE_FALSE(srv.start().has_value());
+    game g{srv, {}};
+    test_client c(srv.port(), 4096);
+    REQUIRE(c.send(hello_msg{"partial", "", protocol_version}));
+    REQUIRE(g.wait_for([&] { return g.hello_session("partial") != 0; }));
+    const session_id s = g.hello_session("partial");
+
+    // The game thread: a state frame a millisecond, a reset first and after each drop report.
+    std::atomic<bool> stop{false};
+    std::atomic<std::uint64_t> sent{0};
+    std::thread game_thread([&] {
+      std::vector<inbound_event> events;
+      std::uint64_t t = 0;
+      bool reset = true;
+      while (!stop) {
+        events.clear();
+        srv.poll(events);
+        for (const auto& e : events) reset |= e.type == inbound_event::kind::frames_dropped;
+        tick_update_msg u = tick(t++, 700);
+        u.reset = reset;
+        if (!srv.send(s, frame(u), reset ? delivery::state_reset : delivery::state)) std::abort();
+        reset = false;
+        ++sent;
+        std::this_thread::sleep_for(std::chrono::microseconds(500));
+      }
+    });
+    // The client pings all along (the lane queues pongs between the state frames) and reads
+    // slowly; every frame must decode (the stream is never cut inside a frame: test_client checks).
+    std::uint64_t received = 0, pongs = 0, last = 0, bad = 0, resets = 0;
+    bool first = true;
+    const auto take = [&](const message& m) {
+      if (std::holds_alternative<pong_msg>(m)) {
+        ++pongs;
+        return;
+      }
+      const auto& u = std::get<tick_update_msg>(m);
+      if (first ? !u.reset : (u.server_tick <= last || (!u.reset && u.server_tick != last + 1))) ++bad;
+      first = false;
+      last = u.server_tick;
+      resets += u.reset ? 1 : 0;
+      ++received;
+    };
+    const auto until = std::chrono::steady_clock::now() + 1500ms;
+    std::uint64_t pings = 0;
+    while (std::chrono::steady_clock::now() < until) {
+      REQUIRE(c.send(ping_msg{++pings}));
+      for (int k = 0; k < 3; ++k) {
+        if (auto m = c.read(50ms)) take(*m);
+      }
+      std::this_thread::sleep_for(2ms);  // slower than the game: drops and resyncs
+    }
+    stop = true;
+    game_thread.join();
+    // Drain: everything sent was delivered or counted as dropped, and every ping answered.
+    const bool accounted = g.wait_for([&] {
+      while (auto m = c.read(50ms)) take(*m);
+      return received + srv.stats().frames_dropped == sent && pongs == pings;
+    }, 5000ms);
+    CHECK_MESSAGE(accounted, "sent " << sent.load() << ", received " << received << ", dropped " << srv.stats().frames_dropped
+                                      << ", pings " << pings << ", pongs " << pongs);
+    CHECK(bad == 0);
+    CHECK(srv.stats().frames_dropped > 0);  // the reader was slow: the drop policy ran
+    CHECK(resets >= 1);                     // the first frame (or the resync that superseded it)
+    CHECK(srv.stats().frames_out == received + pongs);
+    CHECK_FALSE(c.closed());
+    MESSAGE("direct " << direct << ": sent " << sent.load() << ", received " << received << " (" << resets << " resets), pongs "
+                      << pongs << ", writes " << srv.stats().writes);
   }
 
   TEST_CASE("connection limit") {
