@@ -54,6 +54,22 @@ shared_frame make_shared_frame(std::span<const std::uint8_t> frame) {
   return f;
 }
 
+shared_frame frame_arena::make(std::span<const std::uint8_t> frame) {
+  if (frame.size() > block_bytes_ / 4) return make_shared_frame(frame);
+  if (!block_ || used_ + frame.size() > block_bytes_) {
+    block_ = std::make_shared_for_overwrite<std::uint8_t[]>(block_bytes_);
+    used_ = 0;
+    ++blocks_;
+  }
+  std::uint8_t* at = block_.get() + used_;
+  if (!frame.empty()) std::memcpy(at, frame.data(), frame.size());
+  used_ += (frame.size() + 15) & ~std::size_t{15};  // frames at 16-byte offsets in the block
+  shared_frame f;
+  f.bytes_ = std::shared_ptr<const std::uint8_t[]>(block_, at);  // shares the block's count
+  f.size_ = frame.size();
+  return f;
+}
+
 namespace {
 
 struct atomic_counters {
@@ -100,6 +116,8 @@ struct io_lane {
 
   /// Any thread: `s` has frames for the lane to write (once until the lane has taken it).
   void schedule(std::shared_ptr<session> s);
+  /// schedule() for several sessions of this lane under one lock (moves them out).
+  void schedule_many(std::span<std::shared_ptr<session>> sessions);
   /// The lane's thread: every ready session writes what it has queued.
   void drain();
 };
@@ -179,39 +197,45 @@ class session : public std::enable_shared_from_this<session> {
   /// Any thread.
   [[nodiscard]] std::shared_ptr<const std::atomic<std::uint32_t>> backlog() const { return backlog_; }
 
+  /// Any thread: enqueue(), and the lane told now when it must write.
+  void enqueue_and_schedule(shared_frame frame, delivery d) {
+    if (enqueue(std::move(frame), d)) lane_.schedule(shared_from_this());
+  }
+  [[nodiscard]] io_lane& lane() const { return lane_; }
+
   /// Any thread: through the outbound queue's policy, then written at once by this thread (direct
-  /// writes) unless the session waits for its socket, or handed to the lane.
-  void enqueue(shared_frame frame, delivery d) {
+  /// writes) unless the session waits for its socket. True: the lane must be told to write it
+  /// (io_lane::schedule; the session is marked as on its ready list).
+  [[nodiscard]] bool enqueue(shared_frame frame, delivery d) {
     if (d != delivery::control) backlog_->fetch_add(1, std::memory_order_relaxed);
     std::unique_lock lock(write_mutex_);
     const auto r = push_locked(std::move(frame), d);
     if (r.overflow) {
       lock.unlock();
       close("outbound queue overflow with control frames");
-      return;
+      return false;
     }
-    if (!r.queued || blocked_ || flush_posted_ || closed_) return;
+    if (!r.queued || blocked_ || flush_posted_ || closed_) return false;
     if (srv_.opt.direct_writes) {
       switch (flush_locked()) {
-        case flush_result::drained: return;
+        case flush_result::drained: return false;
         case flush_result::blocked:
           // The lane retries once before it waits: an EPOLLOUT edge its event loop took before
           // that handler runs found no waiter (edge-triggered: it would not come again).
           lock.unlock();
           asio::post(socket_.get_executor(), [self = shared_from_this()] { self->resume_write(); });
-          return;
+          return false;
         case flush_result::failed: {
           std::string why = "write failed: " + write_error_;
           lock.unlock();
           close(std::move(why));
-          return;
+          return false;
         }
       }
-      return;
+      return false;
     }
     flush_posted_ = true;
-    lock.unlock();
-    lane_.schedule(shared_from_this());
+    return true;
   }
 
   /// The lane's thread (its ready list): write what is queued.
@@ -562,6 +586,18 @@ void io_lane::schedule(std::shared_ptr<session> s) {
   if (post) asio::post(ctx, [this] { drain(); });
 }
 
+void io_lane::schedule_many(std::span<std::shared_ptr<session>> sessions) {
+  if (sessions.empty()) return;
+  bool post;
+  {
+    const std::lock_guard lock(ready_mutex);
+    for (auto& s : sessions) ready.push_back(std::move(s));
+    post = !drain_posted;
+    drain_posted = true;
+  }
+  if (post) asio::post(ctx, [this] { drain(); });
+}
+
 void io_lane::drain() {
   {
     const std::lock_guard lock(ready_mutex);
@@ -784,8 +820,43 @@ bool server::send(session_id s, shared_frame frame, delivery d) {
     if (it == impl_->sessions.end()) return false;
     target = it->second;
   }
-  target->enqueue(std::move(frame), d);
+  target->enqueue_and_schedule(std::move(frame), d);
   return true;
+}
+
+std::size_t server::send_many(std::span<const outgoing_frame> frames) {
+  auto& m = *impl_;
+  // Per thread, reused: the sessions of the frames, then those their lanes must be told of.
+  thread_local std::vector<std::shared_ptr<session>> targets, ready;
+  targets.clear();
+  {
+    const std::shared_lock lock(m.sessions_mutex);
+    for (const auto& f : frames) {
+      const auto it = m.sessions.find(f.session);
+      targets.push_back(it == m.sessions.end() ? nullptr : it->second);
+    }
+  }
+  std::size_t sent = 0;
+  ready.clear();
+  for (std::size_t i = 0; i < frames.size(); ++i) {
+    if (!targets[i]) continue;
+    ++sent;
+    if (targets[i]->enqueue(frames[i].frame, frames[i].kind)) ready.push_back(std::move(targets[i]));
+  }
+  targets.clear();
+  // One append per lane (few lanes: a pass over the list for each lane that has a session in it).
+  for (std::size_t i = 0; i < ready.size(); ++i) {
+    if (!ready[i]) continue;
+    io_lane& lane = ready[i]->lane();
+    std::size_t n = 0;
+    for (std::size_t j = i; j < ready.size(); ++j) {
+      if (ready[j] && &ready[j]->lane() == &lane) std::swap(ready[i + n++], ready[j]);
+    }
+    lane.schedule_many(std::span(ready).subspan(i, n));  // leaves them null
+    i += n - 1;
+  }
+  ready.clear();
+  return sent;
 }
 
 void server::disconnect(session_id s, error_code code, std::string reason) {

@@ -609,6 +609,110 @@ TEST_SUITE("net.server") {
                       << pongs << ", writes " << srv.stats().writes);
   }
 
+  TEST_CASE("send_many: a chunk of frames for several sessions, each session's in order, gone sessions skipped") {
+    bool direct = true;
+    SUBCASE("direct writes") { direct = true; }
+    SUBCASE("I/O-thread writes") { direct = false; }
+    server_options opt;
+    opt.direct_writes = direct;
+    opt.io_threads = 3;
+    opt.max_queued_frames = 64;  // 2 x 25 frames a session at most: no drop
+    server srv(opt);
+    REQUIRE_FALSE(srv.start().has_value());
+    game g{srv, {}};
+    constexpr int clients = 6, rounds = 25;
+    std::vector<std::unique_ptr<test_client>> cs;
+    std::vector<session_id> ss;
+    for (int i = 0; i < clients; ++i) {
+      cs.push_back(std::make_unique<test_client>(srv.port()));
+      REQUIRE(cs.back()->send(hello_msg{"m" + std::to_string(i), "", protocol_version}));
+    }
+    REQUIRE(g.wait_for([&] {
+      for (int i = 0; i < clients; ++i) {
+        if (g.hello_session("m" + std::to_string(i)) == 0) return false;
+      }
+      return true;
+    }));
+    for (int i = 0; i < clients; ++i) ss.push_back(g.hello_session("m" + std::to_string(i)));
+    // Two threads, as two replication workers: thread w sends the sessions i with i % 2 == w, a
+    // chunk per round, with an unknown session in every chunk; frames from one arena per thread.
+    std::atomic<std::size_t> skipped{0};
+    std::vector<std::thread> workers;
+    for (int w = 0; w < 2; ++w) {
+      workers.emplace_back([&, w] {
+        frame_arena arena(4096);
+        for (int q = 0; q < rounds; ++q) {
+          std::vector<outgoing_frame> chunk;
+          for (int i = w; i < clients; i += 2) {
+            chunk.push_back({ss[static_cast<std::size_t>(i)], arena.make(encode_frame(tick(static_cast<std::uint64_t>(q), 30))),
+                             q == 0 ? delivery::state_reset : delivery::state});
+            if (i == w) chunk.push_back({999999, arena.make(encode_frame(tick(0))), delivery::state});
+          }
+          // The same session twice in one chunk: both, in chunk order.
+          chunk.push_back({ss[static_cast<std::size_t>(w)], arena.make(encode_frame(tick(static_cast<std::uint64_t>(1000 + q), 1))),
+                           delivery::control});
+          const std::size_t sent = srv.send_many(chunk);
+          skipped += chunk.size() - sent;
+        }
+      });
+    }
+    for (auto& t : workers) t.join();
+    CHECK(skipped == 2 * rounds);
+    for (int i = 0; i < clients; ++i) {
+      std::uint64_t next = 0, next_control = 1000;
+      const std::size_t expected = rounds + (i < 2 ? rounds : 0);
+      for (std::size_t n = 0; n < expected; ++n) {
+        const auto m = cs[static_cast<std::size_t>(i)]->read();
+        REQUIRE(m.has_value());
+        const auto t = std::get<tick_update_msg>(*m).server_tick;
+        if (t >= 1000) {
+          CHECK(t == next_control++);
+          CHECK(next_control - 1000 == next);  // after this round's state frame, before the next
+        } else {
+          CHECK(t == next++);
+        }
+      }
+      CHECK(next == rounds);
+      CHECK_FALSE(cs[static_cast<std::size_t>(i)]->read(50ms).has_value());  // nothing twice
+    }
+    REQUIRE(g.wait_for([&] { return srv.stats().frames_out == static_cast<std::uint64_t>(clients * rounds + 2 * rounds); }));
+    CHECK(srv.stats().frames_dropped == 0);
+  }
+
+  TEST_CASE("frame_arena: frames share blocks, keep their bytes, outlive the arena; a large frame stands alone") {
+    std::vector<shared_frame> frames;
+    std::vector<std::vector<std::uint8_t>> expect;
+    std::mt19937 rng(fresh_seed());
+    {
+      frame_arena arena(4096);
+      for (int i = 0; i < 100; ++i) {
+        std::vector<std::uint8_t> bytes(1 + rng() % 700);  // up to 1/4 block (1024): in a block
+        for (auto& b : bytes) b = static_cast<std::uint8_t>(rng());
+        frames.push_back(arena.make(bytes));
+        expect.push_back(std::move(bytes));
+      }
+      std::size_t total = 0;
+      for (const auto& e : expect) total += (e.size() + 15) / 16 * 16;
+      CHECK(arena.blocks() >= (total + 4095) / 4096);
+      CHECK(arena.blocks() < 100 / 3);  // several frames a block
+      const auto before = arena.blocks();
+      const std::vector<std::uint8_t> big(1025, 7);
+      const auto f = arena.make(big);
+      CHECK(arena.blocks() == before);  // its own allocation
+      CHECK(f.use_count() == 1);
+      CHECK(std::equal(big.begin(), big.end(), f.data()));
+      const auto empty = arena.make({});
+      CHECK(empty);
+      CHECK(empty.size() == 0);
+    }
+    // The arena is gone; every frame still holds its bytes (shared with the frames of its block).
+    for (std::size_t i = 0; i < frames.size(); ++i) {
+      REQUIRE(frames[i].size() == expect[i].size());
+      CHECK(std::equal(expect[i].begin(), expect[i].end(), frames[i].data()));
+    }
+    CHECK(frames.front().use_count() > 1);
+  }
+
   TEST_CASE("connection limit") {
     server_options opt;
     opt.max_connections = 2;
