@@ -6,6 +6,10 @@
 
 #include "interest.h"
 
+#include <pthread.h>
+
+#include <cstdio>
+
 namespace zone::interest {
 
 namespace {
@@ -37,7 +41,15 @@ bool spin_until(unsigned spin_us, Ready ready) {
 thread_pool::thread_pool(unsigned threads, unsigned spin_us) : spin_us_(spin_us) {
   if (threads == 0) threads = std::max(1u, std::thread::hardware_concurrency());
   workers_.reserve(threads - 1);
-  for (unsigned i = 1; i < threads; ++i) workers_.emplace_back([this] { worker_loop(); });
+  for (unsigned i = 1; i < threads; ++i) {
+    workers_.emplace_back([this, i] {
+      // Named for per-thread CPU readings (top -H, /proc/<pid>/task/*/comm).
+      char name[16];
+      std::snprintf(name, sizeof name, "zone-worker-%u", i);
+      pthread_setname_np(pthread_self(), name);
+      worker_loop();
+    });
+  }
 }
 
 thread_pool::~thread_pool() {

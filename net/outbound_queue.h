@@ -25,8 +25,9 @@
 //
 // Writes are gathered: start_write() marks the first few queued frames (at most `bound` - 1, so a
 // reset always fits behind them, and about `gather_bytes`) as being written, and the session
-// writes them with one gathered write; finish_write() retires them all. "The frame being
-// written" above means these frames.
+// writes them with one gathered write; finish_write() retires them all, finish_frames(k) the first
+// k of them (a partial write: the others stay in flight). "The frame being written" above means
+// these frames.
 #pragma once
 
 #include <algorithm>
@@ -117,6 +118,13 @@ class outbound_queue {
   void finish_write() {
     queue_.erase(queue_.begin(), queue_.begin() + static_cast<std::ptrdiff_t>(in_flight_));
     in_flight_ = 0;
+  }
+  /// The first `k` frames being written are done (a partial write: the rest stay in flight, so
+  /// the next write goes on with them and the drop policy still never touches them).
+  void finish_frames(std::size_t k) {
+    k = std::min(k, in_flight_);
+    queue_.erase(queue_.begin(), queue_.begin() + static_cast<std::ptrdiff_t>(k));
+    in_flight_ -= k;
   }
   /// Keeps only the frames being written (a closing session queues its error frame next).
   void keep_only_in_flight() { queue_.erase(queue_.begin() + static_cast<std::ptrdiff_t>(in_flight_), queue_.end()); }

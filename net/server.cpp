@@ -4,17 +4,28 @@
 // and a mutex-guarded event list that the game thread drains with poll().
 //
 // Threads: one io_context per I/O thread (an "I/O lane"); each session is bound to one lane, so
-// its handlers run on that thread only, one at a time (no strand needed). The hand-off from the
-// game's threads (send): the frame goes into the session's mailbox under its own short lock; a
-// session whose mailbox was empty is appended to its lane's ready list, and a ready list that was
-// empty posts one drain to the lane. The drain moves each ready session's mailbox through its
-// outbound queue in order and starts one gathered write. So a tick's burst of 20,000 frames costs
-// a few posts and wake-ups per lane instead of a post (a strand lock, a scheduler lock, often a
-// wake-up) per frame.
+// its handlers run on that thread only, one at a time (no strand needed). The write side of a
+// session (its outbound queue, the partial write, whether it waits for the socket) is guarded by
+// the session's own write lock, and every write is one non-blocking sendmsg made under it: so one
+// write at a time per session, in queue order, whichever thread makes it. The hand-off from the
+// game's threads (send): the frame goes through the outbound queue's policy under that lock; with
+// direct writes (the default) the sending thread then writes it at once unless the session waits
+// for its socket (EAGAIN or a partial write: the lane arms a writable wait and finishes the queue,
+// gathered). Without, a session that was idle is appended to its lane's ready list, and a ready
+// list that was empty posts one drain to the lane, which writes each ready session's queue with
+// one gathered write.
 #include <utility>  // before Asio: GCC 12 in C++20 mode needs it first
 
+#include <array>
 #include <atomic>
 #include <boost/asio.hpp>
+#include <cerrno>
+#include <cstdio>
+#include <pthread.h>
+#include <sys/resource.h>
+#include <sys/socket.h>
+#include <unistd.h>
+#include <sys/uio.h>
 #include <cstring>
 #include <deque>
 #include <mutex>
@@ -43,13 +54,40 @@ shared_frame make_shared_frame(std::span<const std::uint8_t> frame) {
   return f;
 }
 
+shared_frame frame_arena::make(std::span<const std::uint8_t> frame) {
+  if (frame.size() > block_bytes_ / 4) return make_shared_frame(frame);
+  if (!block_ || used_ + frame.size() > block_bytes_) {
+    block_ = std::make_shared_for_overwrite<std::uint8_t[]>(block_bytes_);
+    used_ = 0;
+    ++blocks_;
+  }
+  std::uint8_t* at = block_.get() + used_;
+  if (!frame.empty()) std::memcpy(at, frame.data(), frame.size());
+  used_ += (frame.size() + 15) & ~std::size_t{15};  // frames at 16-byte offsets in the block
+  shared_frame f;
+  f.bytes_ = std::shared_ptr<const std::uint8_t[]>(block_, at);  // shares the block's count
+  f.size_ = frame.size();
+  return f;
+}
+
 namespace {
 
 struct atomic_counters {
   std::atomic<std::uint64_t> connections_accepted{0}, connections_refused{0}, sessions_open{0}, frames_in{0},
-      frames_out{0}, writes{0}, bytes_in{0}, bytes_out{0}, frames_dropped{0}, resyncs_requested{0}, frames_rejected{0},
-      inputs_dropped{0}, pings_answered{0};
+      bytes_in{0}, frames_dropped{0}, resyncs_requested{0}, frames_rejected{0}, inputs_dropped{0}, pings_answered{0};
 };
+
+/// The write counters, striped by thread: every sending thread counts each frame it writes, and
+/// one shared cache line for all of them would bounce between the workers' cores.
+struct alignas(64) write_counters {
+  std::atomic<std::uint64_t> frames_out{0}, writes{0}, bytes_out{0};
+};
+constexpr std::size_t write_counter_stripes = 16;
+std::size_t write_counter_stripe() {
+  static std::atomic<std::size_t> next{0};
+  thread_local const std::size_t stripe = next.fetch_add(1, std::memory_order_relaxed) % write_counter_stripes;
+  return stripe;
+}
 
 constexpr std::size_t read_chunk_bytes = 4096;
 /// How long a closing session may take to flush its final error frame before it is cut.
@@ -58,13 +96,15 @@ constexpr std::chrono::milliseconds close_grace{1000};
 constexpr std::size_t accept_batch = 256;
 /// Most frames one gathered write takes (also at most the queue bound - 1; outbound_queue.h).
 constexpr std::size_t max_gather_frames = 64;
+static_assert(max_gather_frames <= IOV_MAX);
 
 }  // namespace
 
 class session;
 
 /// One I/O thread with its own event loop, and the sessions bound to it that have frames waiting
-/// in their mailboxes (the ready list). Any thread appends; the lane's thread drains.
+/// for it to write (the ready list; without direct writes). Any thread appends; the lane's thread
+/// drains.
 struct io_lane {
   asio::io_context ctx{1};
   std::optional<asio::executor_work_guard<asio::io_context::executor_type>> work;
@@ -74,9 +114,11 @@ struct io_lane {
   bool drain_posted = false;                       // guarded by ready_mutex
   std::vector<std::shared_ptr<session>> draining;  // the lane's thread only
 
-  /// Any thread: `s` has frames in its mailbox (called once per empty -> non-empty).
+  /// Any thread: `s` has frames for the lane to write (once until the lane has taken it).
   void schedule(std::shared_ptr<session> s);
-  /// The lane's thread: every ready session takes its mailbox and writes.
+  /// schedule() for several sessions of this lane under one lock (moves them out).
+  void schedule_many(std::span<std::shared_ptr<session>> sessions);
+  /// The lane's thread: every ready session writes what it has queued.
   void drain();
 };
 
@@ -110,6 +152,7 @@ struct server::impl {
   std::vector<inbound_event> events;
 
   atomic_counters counters;
+  std::array<write_counters, write_counter_stripes> write_stats;
 
   /// The host's CLOCK_MONOTONIC (steady_clock on Linux) in microseconds: a client on the same
   /// host reads the same clock, so its update latency needs no clock sync.
@@ -137,9 +180,9 @@ class session : public std::enable_shared_from_this<session> {
         id_(id),
         announced_(announced),
         decoder_(srv.opt.inbound),
-        queue_(srv.opt.max_queued_frames),
         tokens_(srv.opt.input_burst),
-        last_refill_(steady::now()) {}
+        last_refill_(steady::now()),
+        queue_(srv.opt.max_queued_frames) {}
 
   [[nodiscard]] session_id id() const { return id_; }
 
@@ -154,33 +197,52 @@ class session : public std::enable_shared_from_this<session> {
   /// Any thread.
   [[nodiscard]] std::shared_ptr<const std::atomic<std::uint32_t>> backlog() const { return backlog_; }
 
-  /// Any thread: into the mailbox; the lane is told only when the mailbox was empty.
-  void enqueue(shared_frame frame, delivery d) {
+  /// Any thread: enqueue(), and the lane told now when it must write.
+  void enqueue_and_schedule(shared_frame frame, delivery d) {
+    if (enqueue(std::move(frame), d)) lane_.schedule(shared_from_this());
+  }
+  [[nodiscard]] io_lane& lane() const { return lane_; }
+
+  /// Any thread: through the outbound queue's policy, then written at once by this thread (direct
+  /// writes) unless the session waits for its socket. True: the lane must be told to write it
+  /// (io_lane::schedule; the session is marked as on its ready list).
+  [[nodiscard]] bool enqueue(shared_frame frame, delivery d) {
     if (d != delivery::control) backlog_->fetch_add(1, std::memory_order_relaxed);
-    bool first;
-    {
-      const std::lock_guard lock(mailbox_mutex_);
-      mailbox_.push_back({std::move(frame), d});
-      first = !scheduled_;
-      scheduled_ = true;
+    std::unique_lock lock(write_mutex_);
+    const auto r = push_locked(std::move(frame), d);
+    if (r.overflow) {
+      lock.unlock();
+      close("outbound queue overflow with control frames");
+      return false;
     }
-    if (first) lane_.schedule(shared_from_this());
+    if (!r.queued || blocked_ || flush_posted_ || closed_) return false;
+    if (srv_.opt.direct_writes) {
+      switch (flush_locked()) {
+        case flush_result::drained: return false;
+        case flush_result::blocked:
+          // The lane retries once before it waits: an EPOLLOUT edge its event loop took before
+          // that handler runs found no waiter (edge-triggered: it would not come again).
+          lock.unlock();
+          asio::post(socket_.get_executor(), [self = shared_from_this()] { self->resume_write(); });
+          return false;
+        case flush_result::failed: {
+          std::string why = "write failed: " + write_error_;
+          lock.unlock();
+          close(std::move(why));
+          return false;
+        }
+      }
+      return false;
+    }
+    flush_posted_ = true;
+    return true;
   }
 
-  /// The lane's thread: every frame the mailbox holds goes through the outbound queue's policy,
-  /// in the order of the sends; then one gathered write (if none is in flight).
-  void take_mailbox() {
-    {
-      const std::lock_guard lock(mailbox_mutex_);
-      inbox_.swap(mailbox_);
-      scheduled_ = false;
-    }
-    for (auto& e : inbox_) {
-      push(std::move(e.frame), e.kind, false);
-      if (closed_) break;
-    }
-    inbox_.clear();
-    do_write();
+  /// The lane's thread (its ready list): write what is queued.
+  void lane_flush() {
+    std::unique_lock lock(write_mutex_);
+    flush_posted_ = false;
+    if (!blocked_) flush_on_lane(lock);
   }
 
   /// Any thread: error frame, then close.
@@ -278,7 +340,8 @@ class session : public std::enable_shared_from_this<session> {
       case wire::message::ping: {
         const auto* p = f.envelope->message_as_ping();
         ++srv_.counters.pings_answered;
-        push(make_shared_frame(pong_encoder_.encode(pong_msg{p->client_time_us(), srv_.now_us()})), delivery::control, true);
+        push_from_lane(make_shared_frame(pong_encoder_.encode(pong_msg{p->client_time_us(), srv_.now_us()})),
+                       delivery::control);
         return;
       }
       default:
@@ -295,16 +358,16 @@ class session : public std::enable_shared_from_this<session> {
     srv_.report(std::move(e));
   }
 
-  /// Through the queue's policy; `write`: start a write now (else the caller does, once).
-  void push(shared_frame frame, delivery d, bool write) {
-    if (closing_ || closed_ || !frame) return;
-    const auto r = queue_.push(std::move(frame), d);
-    // Every state frame ends queued (then written: on_write) or counted in `dropped`.
-    if (r.dropped != 0) backlog_->fetch_sub(static_cast<std::uint32_t>(r.dropped), std::memory_order_relaxed);
-    if (r.overflow) {
-      close_now("outbound queue overflow with control frames");
-      return;
+  /// Through the queue's policy (write lock held; any thread): counts drops, reports a resync.
+  outbound_queue::push_result push_locked(shared_frame frame, delivery d) {
+    if (closing_ || closed_ || !frame) {
+      if (d != delivery::control && frame) backlog_->fetch_sub(1, std::memory_order_relaxed);
+      return {};
     }
+    const auto r = queue_.push(std::move(frame), d);
+    // Every state frame ends queued (then written: flush_locked) or counted in `dropped`.
+    if (r.dropped != 0) backlog_->fetch_sub(static_cast<std::uint32_t>(r.dropped), std::memory_order_relaxed);
+    if (r.overflow) return r;
     if (r.dropped != 0) srv_.counters.frames_dropped += r.dropped;
     if (r.resync) {
       // Why the queue was full (evidence for resyncs under pacing, which should leave at most
@@ -326,71 +389,153 @@ class session : public std::enable_shared_from_this<session> {
       e.dropped = r.dropped;
       srv_.report(std::move(e));
     }
-    if (r.queued && write) do_write();
+    return r;
   }
 
-  /// One gathered write of the first queued frames, unless a write is in flight.
-  void do_write() {
-    if (closed_) return;
-    const std::size_t n = queue_.start_write_many(max_gather_frames);
-    if (n == 0) return;
-    write_buffers_.clear();
-    writing_state_ = 0;
-    const auto& entries = queue_.entries();
-    for (std::size_t i = 0; i < n; ++i) {
-      const auto& e = entries[i];
-      if (e.kind != delivery::control) ++writing_state_;
-      write_buffers_.emplace_back(e.frame.data(), e.frame.size());
-    }
-    asio::async_write(socket_, write_buffers_,
-                      [self = shared_from_this()](const boost::system::error_code& ec, std::size_t bytes) {
-                        self->on_write(ec, bytes);
-                      });
-  }
-
-  void on_write(const boost::system::error_code& ec, std::size_t n) {
-    const std::size_t frames = queue_.in_flight();
-    queue_.finish_write();
-    if (writing_state_ != 0) backlog_->fetch_sub(writing_state_, std::memory_order_relaxed);
-    writing_state_ = 0;
-    if (closed_) return;
-    if (ec) {
-      if (ec != asio::error::operation_aborted) close_now("write failed: " + ec.message());
+  /// The lane's thread: a frame of its own (pong) into the queue and out.
+  void push_from_lane(shared_frame frame, delivery d) {
+    std::unique_lock lock(write_mutex_);
+    const auto r = push_locked(std::move(frame), d);
+    if (r.overflow) {
+      lock.unlock();
+      close_now("outbound queue overflow with control frames");
       return;
     }
-    srv_.counters.frames_out += frames;
-    ++srv_.counters.writes;
-    srv_.counters.bytes_out += n;
-    if (!queue_.empty()) {
-      do_write();
-    } else if (closing_) {
-      close_now(close_reason_);
+    if (r.queued && !blocked_) flush_on_lane(lock);
+  }
+
+  enum class flush_result { drained, blocked, failed };
+
+  /// Writes the queue's frames in order (write lock held; any thread), each write one
+  /// non-blocking sendmsg of the frames being written (gathered: at most bound - 1 frames, about
+  /// 64 KiB), the first from where a partial write left it. Stops at EAGAIN or a partial write
+  /// (blocked: the rest stays queued, in flight, and blocked_ holds every other writer off until
+  /// the lane resumes) or an error (failed: blocked_ too; the caller closes the session).
+  flush_result flush_locked() {
+    if (closed_) return flush_result::drained;
+    std::array<iovec, max_gather_frames> iov;
+    while (!queue_.empty()) {
+      std::size_t n = queue_.in_flight();
+      const bool new_write = n == 0;  // else the rest of a partial write
+      if (new_write) n = queue_.start_write_many(max_gather_frames);
+      const auto& entries = queue_.entries();
+      for (std::size_t i = 0; i < n; ++i) {
+        const std::size_t skip = i == 0 ? partial_ : 0;
+        iov[i].iov_base = const_cast<std::uint8_t*>(entries[i].frame.data() + skip);
+        iov[i].iov_len = entries[i].frame.size() - skip;
+      }
+      msghdr msg{};
+      msg.msg_iov = iov.data();
+      msg.msg_iovlen = n;
+      const ssize_t written = ::sendmsg(fd_, &msg, MSG_DONTWAIT | MSG_NOSIGNAL);
+      if (written < 0) {
+        if (errno == EINTR) continue;
+        blocked_ = true;
+        if (errno == EAGAIN || errno == EWOULDBLOCK) return flush_result::blocked;
+        write_error_ = std::strerror(errno);
+        return flush_result::failed;
+      }
+      // Retire the frames written whole; a frame written in part stays first, in flight.
+      auto left = static_cast<std::size_t>(written);
+      std::size_t done = 0, offset = partial_;
+      std::uint32_t state_done = 0;
+      while (done < n) {
+        const std::size_t rest = entries[done].frame.size() - offset;
+        if (left < rest) {
+          offset += left;
+          break;
+        }
+        left -= rest;
+        offset = 0;
+        if (entries[done].kind != delivery::control) ++state_done;
+        ++done;
+      }
+      partial_ = offset;
+      queue_.finish_frames(done);
+      if (state_done != 0) backlog_->fetch_sub(state_done, std::memory_order_relaxed);
+      auto& c = srv_.write_stats[write_counter_stripe()];
+      if (new_write) c.writes.fetch_add(1, std::memory_order_relaxed);
+      c.bytes_out.fetch_add(static_cast<std::uint64_t>(written), std::memory_order_relaxed);
+      if (done != 0) c.frames_out.fetch_add(done, std::memory_order_relaxed);
+      if (done < n) {
+        blocked_ = true;  // the kernel took less than offered: its buffer is full
+        return flush_result::blocked;
+      }
     }
+    return flush_result::drained;
+  }
+
+  /// The lane's thread, write lock held (released on return): flush; wait for the socket when it
+  /// blocks; close on an error, or once a closing session's queue is out.
+  void flush_on_lane(std::unique_lock<std::mutex>& lock) {
+    switch (flush_locked()) {
+      case flush_result::blocked:
+        // The lane's thread runs its event loop: no EPOLLOUT edge is taken between the EAGAIN
+        // above and this wait, so none is lost.
+        socket_.async_wait(tcp::socket::wait_write,
+                           [self = shared_from_this()](const boost::system::error_code& ec) { self->on_writable(ec); });
+        return;
+      case flush_result::failed: {
+        std::string why = "write failed: " + write_error_;
+        lock.unlock();
+        close_now(std::move(why));
+        return;
+      }
+      case flush_result::drained:
+        if (closing_ && queue_.empty()) {
+          lock.unlock();
+          close_now(close_reason_);
+        }
+        return;
+    }
+  }
+
+  /// The lane's thread: a direct write blocked; try again here, then wait for the socket.
+  void resume_write() {
+    std::unique_lock lock(write_mutex_);
+    if (closed_ || !blocked_) return;
+    blocked_ = false;
+    flush_on_lane(lock);
+  }
+
+  void on_writable(const boost::system::error_code& ec) {
+    if (ec == asio::error::operation_aborted || closed_) return;
+    if (ec) {
+      close_now("write failed: " + ec.message());
+      return;
+    }
+    resume_write();
   }
 
   void fail_now(error_code code, std::string reason) {
     if (closing_ || closed_) return;
     spdlog::info("session {}: closing with error {}: {}", id_, wire::EnumNameerror_code(code), reason);
-    // Keep only the frame being written; the error is the last frame this client gets.
+    boost::system::error_code ignored;
+    socket_.shutdown(tcp::socket::shutdown_receive, ignored);
+    arm_idle(close_grace);
+    std::unique_lock lock(write_mutex_);
+    // Keep only the frames being written; the error is the last frame this client gets.
     queue_.keep_only_in_flight();
     (void)queue_.push(make_shared_frame(pong_encoder_.encode(error_msg{code, reason})), delivery::control);
     closing_ = true;
     close_reason_ = std::move(reason);
-    boost::system::error_code ignored;
-    socket_.shutdown(tcp::socket::shutdown_receive, ignored);
-    arm_idle(close_grace);
-    do_write();
+    if (!blocked_) flush_on_lane(lock);
   }
 
   void close_now(std::string reason) {
     if (closed_) return;
-    closed_ = true;
-    if (closing_) reason = close_reason_;  // the error that started the close is the reason
-    boost::system::error_code ignored;
-    socket_.shutdown(tcp::socket::shutdown_both, ignored);
-    socket_.close(ignored);
+    {
+      // No sender is inside a write now, and none writes after this (the descriptor is closed).
+      const std::lock_guard lock(write_mutex_);
+      closed_ = true;
+      queue_.clear();
+      partial_ = 0;
+      if (closing_) reason = close_reason_;  // the error that started the close is the reason
+      boost::system::error_code ignored;
+      socket_.shutdown(tcp::socket::shutdown_both, ignored);
+      socket_.close(ignored);
+    }
     idle_.cancel();
-    queue_.clear();
     if (announced_) {
       spdlog::info("session {}: disconnected ({})", id_, reason);
       inbound_event e;
@@ -406,26 +551,28 @@ class session : public std::enable_shared_from_this<session> {
   server::impl& srv_;
   io_lane& lane_;
   tcp::socket socket_;  // its executor is the lane's io_context (one thread): every handler runs there
+  const int fd_ = socket_.native_handle();  // what flush_locked writes to (while !closed_)
   asio::steady_timer idle_;
   const session_id id_;
   const bool announced_;  // false for a refused connection: the game never hears of it
   frame_decoder decoder_;
   encoder pong_encoder_{256};
-  outbound_queue queue_;  // front is in flight while queue_.writing()
-  bool closing_ = false;  // an error frame is queued; close once it is written
-  bool closed_ = false;
   bool hello_seen_ = false;
-  std::string close_reason_;
   double tokens_;
   steady::time_point last_refill_;
   std::uint32_t consecutive_drops_ = 0;
   std::shared_ptr<std::atomic<std::uint32_t>> backlog_ = std::make_shared<std::atomic<std::uint32_t>>(0);
-  std::uint32_t writing_state_ = 0;  // state frames among those being written
-  std::vector<asio::const_buffer> write_buffers_;  // the gathered write in flight
-  std::mutex mailbox_mutex_;
-  std::vector<outbound_queue::entry> mailbox_;  // guarded by mailbox_mutex_: sent, not yet taken
-  bool scheduled_ = false;                      // guarded by mailbox_mutex_: on the lane's ready list
-  std::vector<outbound_queue::entry> inbox_;    // the lane's thread: the mailbox being taken
+  // The write side. Written under write_mutex_ only; the lane's thread also reads closing_ and
+  // closed_ without it (it is their only writer).
+  std::mutex write_mutex_;
+  outbound_queue queue_;  // its first in_flight() frames are being written
+  std::size_t partial_ = 0;      // bytes of the first frame being written already in the socket
+  bool blocked_ = false;         // the socket took less than offered: only the lane writes next
+  bool flush_posted_ = false;    // on the lane's ready list (without direct writes)
+  bool closing_ = false;  // an error frame is queued; close once it is written
+  bool closed_ = false;
+  std::string close_reason_;
+  std::string write_error_;
 };
 
 void io_lane::schedule(std::shared_ptr<session> s) {
@@ -439,13 +586,25 @@ void io_lane::schedule(std::shared_ptr<session> s) {
   if (post) asio::post(ctx, [this] { drain(); });
 }
 
+void io_lane::schedule_many(std::span<std::shared_ptr<session>> sessions) {
+  if (sessions.empty()) return;
+  bool post;
+  {
+    const std::lock_guard lock(ready_mutex);
+    for (auto& s : sessions) ready.push_back(std::move(s));
+    post = !drain_posted;
+    drain_posted = true;
+  }
+  if (post) asio::post(ctx, [this] { drain(); });
+}
+
 void io_lane::drain() {
   {
     const std::lock_guard lock(ready_mutex);
     draining.swap(ready);
     drain_posted = false;
   }
-  for (auto& s : draining) s->take_mailbox();
+  for (auto& s : draining) s->lane_flush();
   draining.clear();
 }
 
@@ -572,9 +731,22 @@ std::optional<std::string> server::start() {
   const auto n = static_cast<unsigned>(m.lanes.size());
   for (auto& lane : m.lanes) lane->work.emplace(lane->ctx.get_executor());
   m.do_accept();
-  for (auto& lane : m.lanes) lane->thread = std::thread([l = lane.get()] { l->ctx.run(); });
+  for (std::size_t i = 0; i < m.lanes.size(); ++i) {
+    m.lanes[i]->thread = std::thread([l = m.lanes[i].get(), i, nice = m.opt.io_thread_nice] {
+      // Named for per-thread CPU readings (top -H, /proc/<pid>/task/*/comm).
+      char name[16];
+      std::snprintf(name, sizeof name, "zone-io-%zu", i);
+      pthread_setname_np(pthread_self(), name);
+      if (nice != 0 && ::setpriority(PRIO_PROCESS, static_cast<id_t>(::gettid()), nice) != 0) {
+        spdlog::warn("I/O thread {}: setpriority({}) failed: {}", i, nice, std::strerror(errno));
+      }
+      l->ctx.run();
+    });
+  }
   m.running = true;
-  spdlog::info("zone server listening on {}:{} ({} I/O threads)", m.opt.address, port(), n);
+  spdlog::info("zone server listening on {}:{} ({} I/O threads{}, {})", m.opt.address, port(), n,
+               m.opt.io_thread_nice != 0 ? " at nice " + std::to_string(m.opt.io_thread_nice) : std::string(),
+               m.opt.direct_writes ? "direct writes" : "I/O-thread writes");
   return std::nullopt;
 }
 
@@ -648,8 +820,43 @@ bool server::send(session_id s, shared_frame frame, delivery d) {
     if (it == impl_->sessions.end()) return false;
     target = it->second;
   }
-  target->enqueue(std::move(frame), d);
+  target->enqueue_and_schedule(std::move(frame), d);
   return true;
+}
+
+std::size_t server::send_many(std::span<const outgoing_frame> frames) {
+  auto& m = *impl_;
+  // Per thread, reused: the sessions of the frames, then those their lanes must be told of.
+  thread_local std::vector<std::shared_ptr<session>> targets, ready;
+  targets.clear();
+  {
+    const std::shared_lock lock(m.sessions_mutex);
+    for (const auto& f : frames) {
+      const auto it = m.sessions.find(f.session);
+      targets.push_back(it == m.sessions.end() ? nullptr : it->second);
+    }
+  }
+  std::size_t sent = 0;
+  ready.clear();
+  for (std::size_t i = 0; i < frames.size(); ++i) {
+    if (!targets[i]) continue;
+    ++sent;
+    if (targets[i]->enqueue(frames[i].frame, frames[i].kind)) ready.push_back(std::move(targets[i]));
+  }
+  targets.clear();
+  // One append per lane (few lanes: a pass over the list for each lane that has a session in it).
+  for (std::size_t i = 0; i < ready.size(); ++i) {
+    if (!ready[i]) continue;
+    io_lane& lane = ready[i]->lane();
+    std::size_t n = 0;
+    for (std::size_t j = i; j < ready.size(); ++j) {
+      if (ready[j] && &ready[j]->lane() == &lane) std::swap(ready[i + n++], ready[j]);
+    }
+    lane.schedule_many(std::span(ready).subspan(i, n));  // leaves them null
+    i += n - 1;
+  }
+  ready.clear();
+  return sent;
 }
 
 void server::disconnect(session_id s, error_code code, std::string reason) {
@@ -665,8 +872,14 @@ void server::disconnect(session_id s, error_code code, std::string reason) {
 
 server_stats server::stats() const {
   const auto& c = impl_->counters;
+  std::uint64_t frames_out = 0, writes = 0, bytes_out = 0;
+  for (const auto& w : impl_->write_stats) {
+    frames_out += w.frames_out.load();
+    writes += w.writes.load();
+    bytes_out += w.bytes_out.load();
+  }
   return {c.connections_accepted.load(), c.connections_refused.load(), c.sessions_open.load(), c.frames_in.load(),
-          c.frames_out.load(),           c.writes.load(),              c.bytes_in.load(),            c.bytes_out.load(),     c.frames_dropped.load(),
+          frames_out,                    writes,                       c.bytes_in.load(),            bytes_out,              c.frames_dropped.load(),
           c.resyncs_requested.load(),    c.frames_rejected.load(),     c.inputs_dropped.load(), c.pings_answered.load()};
 }
 

@@ -41,6 +41,18 @@ struct server_options {
   /// does not read is beyond the queue's drop policy: a small buffer bounds how stale its state
   /// gets before frames are dropped (4 MiB is minutes of state at 20 KB/s).
   std::size_t socket_send_buffer = 0;
+  /// Who writes a session's frames to its socket. true: the thread that calls send() writes the
+  /// frame itself with one non-blocking sendmsg when nothing is queued ahead of it for that session
+  /// (no I/O-thread wake-up, no epoll round trip); on EAGAIN or a partial write the rest waits in
+  /// the queue and the session's I/O thread finishes it when the socket is writable. false: every
+  /// write is made by the session's I/O thread (one wake-up per I/O thread for a burst of sends,
+  /// then one gathered write per session). Either way one write at a time per session, in order.
+  bool direct_writes = false;
+  /// Nice value the I/O threads give themselves (0 = unchanged; 1-19 = lower priority than the
+  /// game's threads, which an unprivileged process may always ask for): where the I/O threads
+  /// share cores with the tick's workers, the scheduler then lets a worker run its part of a tick
+  /// phase before an I/O thread takes the core, so a phase does not end with a preempted task.
+  int io_thread_nice = 0;
   /// Inputs per second a client may send (token bucket of `input_burst`); inputs over the rate
   /// are dropped and counted; a client that keeps flooding (more than `flood_limit` drops in
   /// a row) gets error rate_limited and is disconnected.
@@ -84,11 +96,34 @@ class shared_frame {
 
  private:
   friend shared_frame make_shared_frame(std::span<const std::uint8_t> frame);
+  friend class frame_arena;
   std::shared_ptr<const std::uint8_t[]> bytes_;
   std::size_t size_ = 0;
 };
 /// A shared frame holding a copy of `frame` (one allocation).
 [[nodiscard]] shared_frame make_shared_frame(std::span<const std::uint8_t> frame);
+
+/// Shared frames carved out of larger blocks: one allocation (and, once every frame of it is
+/// written, one free) per block_bytes of frames instead of one per frame. For one thread (each
+/// replication worker has its own); the frames it makes are ordinary shared frames, safe on any
+/// thread, and they outlive the arena. The frames are freed by the I/O threads, which made
+/// glibc's malloc take the allocating thread's arena lock on every free (their tcache fills up:
+/// they never allocate frames), against the worker's own mallocs. A block stays allocated while
+/// any frame of it is queued; a frame over a quarter of a block gets its own allocation.
+class frame_arena {
+ public:
+  static constexpr std::size_t default_block_bytes = 16 * 1024;
+  explicit frame_arena(std::size_t block_bytes = default_block_bytes) : block_bytes_(block_bytes) {}
+  [[nodiscard]] shared_frame make(std::span<const std::uint8_t> frame);
+  /// Blocks allocated so far (tests, statistics).
+  [[nodiscard]] std::uint64_t blocks() const { return blocks_; }
+
+ private:
+  std::size_t block_bytes_;
+  std::shared_ptr<std::uint8_t[]> block_;
+  std::size_t used_ = 0;
+  std::uint64_t blocks_ = 0;
+};
 
 enum class delivery : std::uint8_t {
   state,        ///< a delta on the previous state frame: may be dropped for a slow client, and is
@@ -98,6 +133,13 @@ enum class delivery : std::uint8_t {
                 ///< wait after a drop; replaces the state frames queued before it
 };
 
+/// One frame for server::send_many().
+struct outgoing_frame {
+  session_id session = 0;
+  shared_frame frame;
+  delivery kind = delivery::state;
+};
+
 /// Counters (monotonic, thread-safe snapshot).
 struct server_stats {
   std::uint64_t connections_accepted = 0;
@@ -105,7 +147,8 @@ struct server_stats {
   std::uint64_t sessions_open = 0;
   std::uint64_t frames_in = 0;
   std::uint64_t frames_out = 0;
-  std::uint64_t writes = 0;            ///< socket writes (gathered: one may carry several frames)
+  std::uint64_t writes = 0;            ///< gathered socket writes (one may carry several frames; one the
+                                       ///< socket takes in part goes on in more sendmsg calls)
   std::uint64_t bytes_in = 0;
   std::uint64_t bytes_out = 0;
   std::uint64_t frames_dropped = 0;    ///< state frames not delivered to slow clients (dropped or superseded)
@@ -138,12 +181,18 @@ class server {
   /// safe from any thread (the zone server sends each frame from the worker that built it).
   /// Frames of one session are delivered in the order of the calls (state frames may be dropped,
   /// see server_options::max_queued_frames); send a session's state frames from one thread at a
-  /// time, in the order they were built. Cost: the frame goes into the session's mailbox (a short
-  /// lock); only a session that had nothing waiting is put on its I/O thread's ready list, and
-  /// only a ready list that was empty posts a wake-up to that thread: a burst of sends (a tick's
-  /// frames) costs the I/O threads a few wake-ups, not one per frame. A session writes what is
-  /// queued with one gathered write (frames_out counts frames, writes counts writes).
+  /// time, in the order they were built. Cost: the frame goes through the session's outbound
+  /// queue under the session's own lock; with direct_writes (the default) a session with nothing
+  /// queued gets the frame written at once by the calling thread (one non-blocking sendmsg: the
+  /// kernel's loopback or TCP send is then the caller's CPU), otherwise its I/O thread writes it
+  /// (a session that was idle is put on its I/O thread's ready list, and only a ready list that
+  /// was empty posts a wake-up). frames_out counts frames, writes counts socket writes.
   bool send(session_id s, shared_frame frame, delivery d = delivery::state);
+  /// send() for each frame, in order: one lookup lock for all of them, and (without direct
+  /// writes) one ready-list append per I/O thread for the sessions that became ready. How many
+  /// went to a session that is open (the others are gone and skipped). The replication workers
+  /// hand over a chunk of clients' frames at a time this way.
+  std::size_t send_many(std::span<const outgoing_frame> frames);
   /// The session's state backlog: state frames sent to it (send) and neither written to its
   /// socket nor dropped yet. Read it (any thread, relaxed) to pace a client to what it absorbs:
   /// a game that builds no new state frame while the backlog is at a bound never overflows the

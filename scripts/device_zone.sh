@@ -15,7 +15,11 @@
 # SWARM_RAMP (bots per second, 2000), SWARM_THREADS (bot-swarm I/O threads, 6), SERVER_THREADS (8),
 # SERVER_IO_THREADS (4), SERVER_INTEREST (auto), SERVER_SNDBUF (65536), SERVER_ARGS (more zone-server
 # options), SERVER_CPUS / SWARM_CPUS (taskset CPU lists, e.g. 0-9 and 10-15: server and swarm on
-# disjoint cores; unset = no pinning), BENCH_ENTITIES (100000), BENCH_TICKS (600), BENCH_FINDERS ("gpu cpu").
+# disjoint cores; unset = no pinning), SERVER_BIN (the zone-server binary, $DEVICE_DIR/zone-server),
+# RUN_TAG (prefix of the swarm step's log names, to keep several runs in one $OUT), BENCH_ENTITIES
+# (100000), BENCH_TICKS (600), BENCH_FINDERS ("gpu cpu").
+# The swarm step also writes the server's CPU time per thread, summed by thread name (zone-worker-N,
+# zone-io-N, the main thread as zone-server), before it stops the server: <tag>server-threads.txt.
 # Logs, CSV and JSON go to $OUT (or ./out).
 set -uo pipefail
 dir=${DEVICE_DIR:-.device}
@@ -62,36 +66,43 @@ for step in "$@"; do
       secs=${SWARM_SECONDS:-60}
       ramp=${SWARM_RAMP:-2000}
       duration=$((secs + bots / ramp + 1))
-      echo "== zone-server + bot-swarm: $bots bots, $npcs NPCs, 30 Hz, ${duration} s $(date -u +%FT%TZ)"
+      tag=${RUN_TAG:+$RUN_TAG-}
+      server_bin=${SERVER_BIN:-$dir/zone-server}
+      echo "== ${tag}zone-server ($server_bin ${SERVER_ARGS:-}) + bot-swarm: $bots bots, $npcs NPCs, 30 Hz, ${duration} s $(date -u +%FT%TZ)"
       server_pin=()
       swarm_pin=()
       [ -n "${SERVER_CPUS:-}" ] && server_pin=(taskset -c "$SERVER_CPUS")
       [ -n "${SWARM_CPUS:-}" ] && swarm_pin=(taskset -c "$SWARM_CPUS")
-      "${server_pin[@]}" "$dir/zone-server" --listen 127.0.0.1 --port 0 --metrics-port 0 --npcs "$npcs" --tick-rate 30 \
+      "${server_pin[@]}" "$server_bin" --listen 127.0.0.1 --port 0 --metrics-port 0 --npcs "$npcs" --tick-rate 30 \
         --max-clients $((bots + 100)) --threads "${SERVER_THREADS:-8}" --io-threads "${SERVER_IO_THREADS:-4}" \
         --finder auto --interest "${SERVER_INTEREST:-auto}" --socket-send-buffer "${SERVER_SNDBUF:-65536}" \
-        ${SERVER_ARGS:-} > "$out/zone-server.log" 2>&1 &
+        ${SERVER_ARGS:-} > "$out/${tag}zone-server.log" 2>&1 &
       server=$!
       port=
       for _ in $(seq 600); do
-        port=$(grep -o 'listening on [0-9.]*:[0-9]*' "$out/zone-server.log" | sed 's/.*://')
+        port=$(grep -o 'listening on [0-9.]*:[0-9]*' "$out/${tag}zone-server.log" | sed 's/.*://')
         [ -n "$port" ] && break
         sleep 0.1
       done
       if [ -z "$port" ]; then
-        echo "zone-server did not start"; cat "$out/zone-server.log"; kill "$server"; continue
+        echo "zone-server did not start"; cat "$out/${tag}zone-server.log"; kill "$server"; continue
       fi
       "${swarm_pin[@]}" "$dir/bot-swarm" --port "$port" --bots "$bots" --duration "$duration" --ramp "$ramp" --threads "${SWARM_THREADS:-6}" --verify \
         --mix "${SWARM_MIX:-walk=0.5,patrol=0.2,follow=0.1,crowd=0.1,teleport=0.1}" --quiet \
-        --report-json "$out/swarm-report.json" --report-csv "$out/swarm-series.csv" > "$out/swarm.log" 2>&1
+        --report-json "$out/${tag}swarm-report.json" --report-csv "$out/${tag}swarm-series.csv" > "$out/${tag}swarm.log" 2>&1
       echo "bot-swarm exit code: $?"
-      tail -40 "$out/swarm.log"
+      tail -40 "$out/${tag}swarm.log"
       awk '{printf "zone-server CPU time (user + system): %.1f s\n", ($14 + $15) / 100}' "/proc/$server/stat" 2>/dev/null
+      for t in /proc/"$server"/task/*; do
+        printf '%s %s\n' "$(sed 's/-[0-9][0-9]*$/-N/' "$t/comm")" "$(cut -d' ' -f14,15 "$t/stat")"
+      done | awk '{cpu[$1] += ($2 + $3) / 100; n[$1]++} END {for (k in cpu) printf "  %-16s %3d threads %8.1f s\n", k, n[k], cpu[k]}' |
+        sort > "$out/${tag}server-threads.txt"
+      echo "zone-server CPU by thread name:"; cat "$out/${tag}server-threads.txt"
       kill -TERM "$server"
       wait "$server"
-      grep -A8 'stopped after' "$out/zone-server.log"
-      grep -E 'CPU|cpu' "$out/zone-server.log" | tail -3
-      grep -E 'finder|auto' "$out/zone-server.log" | head -5
+      grep -A8 'stopped after' "$out/${tag}zone-server.log"
+      grep -E 'CPU|cpu' "$out/${tag}zone-server.log" | tail -3
+      grep -E 'finder|auto|listening' "$out/${tag}zone-server.log" | head -5
       ;;
     *) echo "unknown step $step"; exit 2 ;;
   esac

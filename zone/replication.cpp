@@ -353,7 +353,7 @@ void replicator::prefetch_client(client_id c) const {
 
 void replicator::build_many(std::span<const replication_request> requests, const entity_store& store,
                             const interest_tracker& tracker, std::uint64_t tick, std::uint64_t server_time_us,
-                            interest::thread_pool* pool, const frame_sink& sink) {
+                            interest::thread_pool* pool, const frame_sink& sink, const chunk_sink& chunk_done) {
   if (requests.empty()) return;
   // The snapshot: one quantization per entity rather than one per update sent.
   const std::size_t n = store.size();
@@ -401,6 +401,7 @@ void replicator::build_many(std::span<const replication_request> requests, const
                                   writer, &st);
         sink(k, frame, st);
       }
+      if (chunk_done) chunk_done(begin, end);
     }
   });
 }

@@ -458,9 +458,12 @@ class replicator {
   /// position and quantized update, so that each update a client is sent is a 16-byte copy.
   /// Every frame and every client's state afterwards are exactly what calling build() for the
   /// requests one by one would give, for any thread count.
+  /// `chunk_done` (when set) is called by the thread that built a chunk of requests [begin, end)
+  /// right after the sink saw its last frame: a caller can hand a chunk's frames on together.
+  using chunk_sink = std::function<void(std::size_t begin, std::size_t end)>;
   void build_many(std::span<const replication_request> requests, const entity_store& store,
                   const interest_tracker& tracker, std::uint64_t tick, std::uint64_t server_time_us,
-                  interest::thread_pool* pool, const frame_sink& sink);
+                  interest::thread_pool* pool, const frame_sink& sink, const chunk_sink& chunk_done = {});
 
   /// The client's view as sent so far (sorted ids) and its digest hash.
   [[nodiscard]] std::span<const entity_id> view(client_id c) const { return clients_[c].view; }
@@ -561,6 +564,12 @@ struct zone_config {
   std::size_t max_clients = 1000;
   std::size_t max_frame_bytes = 16 * 1024;
   std::size_t socket_send_buffer = 0;  ///< SO_SNDBUF per client socket (bytes; 0 = the system's autotuning)
+  /// The replication worker that built a frame writes it to the socket itself when nothing is
+  /// queued ahead of it (net::server_options::direct_writes); false (the default): the I/O
+  /// threads write. On the H100 host direct writes cut latency but doubled the replicate phase
+  /// (the kernel's send is then the tick's CPU): docs/zone-benchmarks.md.
+  bool direct_writes = false;
+  int io_nice = 0;  ///< nice value of the I/O threads (net::server_options::io_thread_nice; 0-19)
   double inputs_per_second = 60;
   std::size_t client_byte_budget = 8 * 1024;
   /// A client with this many state frames still unwritten (net::server::state_backlog) gets no new

@@ -89,6 +89,7 @@ class zone_server {
   std::vector<replication_request> requests_;
   std::vector<net::session_id> request_sessions_;
   std::vector<std::size_t> frame_bytes_;  // by request: the frame's size
+  std::vector<net::outgoing_frame> outgoing_;  // replicate(): frame k, handed on by chunk (send_many)
   net::encoder encoder_;
   std::vector<net::inbound_event> events_;
   std::unordered_map<net::session_id, client> clients_;

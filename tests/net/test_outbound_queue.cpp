@@ -270,6 +270,28 @@ TEST_SUITE("net.outbound_queue") {
     CHECK(episodes > 20);  // the stalls did overflow the queues
   }
 
+  TEST_CASE("a partial write: the frames written whole retire, the rest stay in flight and are never dropped") {
+    outbound_queue q(4);
+    for (int i = 0; i < 3; ++i) REQUIRE(q.push(make_shared_frame(std::vector<std::uint8_t>(100, std::uint8_t(i))), delivery::state).queued);
+    REQUIRE(q.start_write_many(64) == 3);  // bound - 1
+    q.finish_frames(1);                     // the socket took frame 0 and part of frame 1
+    CHECK(q.in_flight() == 2);
+    CHECK(q.writing());
+    CHECK(q.start_write_many(64) == 0);     // still one write in flight: its rest
+    // A state frame at a full queue drops what is not being written: here only itself.
+    REQUIRE(q.push(make_shared_frame(std::vector<std::uint8_t>(100, 3)), delivery::state).queued);
+    REQUIRE(q.push(make_shared_frame(std::vector<std::uint8_t>(100, 4)), delivery::state).queued);
+    const auto r = q.push(make_shared_frame(std::vector<std::uint8_t>(100, 5)), delivery::state);
+    CHECK(r.resync);
+    CHECK(r.dropped == 3);  // frames 3 and 4 (queued) and 5 (new); frames 1 and 2 are in flight
+    REQUIRE(q.size() == 2);
+    CHECK(q.entries()[0].frame.data()[0] == 1);
+    CHECK(q.entries()[1].frame.data()[0] == 2);
+    q.finish_frames(5);  // more than in flight: only those
+    CHECK(q.empty());
+    CHECK_FALSE(q.writing());
+  }
+
   TEST_CASE("gathered writes: at most bound - 1 frames and about 64 KiB a write, retired together, in order") {
     outbound_queue q(8);
     for (std::uint64_t n = 0; n < 8; ++n) REQUIRE(q.push(numbered(n), n % 3 == 0 ? delivery::control : delivery::state).queued);

@@ -82,7 +82,13 @@ bool is_error(const std::optional<message>& m, error_code code) {
 
 TEST_SUITE("net.server") {
   TEST_CASE("handshake, control and state frames, ping, game-side disconnect") {
-    server srv;
+    // Both write paths: the sender writes itself (direct), or the session's I/O thread does.
+    bool direct = true;
+    SUBCASE("direct writes") { direct = true; }
+    SUBCASE("I/O-thread writes") { direct = false; }
+    server_options opt;
+    opt.direct_writes = direct;
+    server srv(opt);
     REQUIRE_FALSE(srv.start().has_value());
     REQUIRE(srv.port() != 0);
     game g{srv, {}};
@@ -286,7 +292,12 @@ TEST_SUITE("net.server") {
   }
 
   TEST_CASE("a slow client: bounded queue, no delta after a drop until a reset, served again, not disconnected") {
+    // Both write paths: the sender writes itself (direct), or the session's I/O thread does.
+    bool direct = true;
+    SUBCASE("direct writes") { direct = true; }
+    SUBCASE("I/O-thread writes") { direct = false; }
     server_options opt;
+    opt.direct_writes = direct;
     opt.max_queued_frames = 4;
     server srv(opt);
     REQUIRE_FALSE(srv.start().has_value());
@@ -367,7 +378,12 @@ TEST_SUITE("net.server") {
   }
 
   TEST_CASE("a burst to a client that is not reading goes out in gathered writes, complete and in order") {
+    // Both write paths: the sender writes itself (direct), or the session's I/O thread does.
+    bool direct = true;
+    SUBCASE("direct writes") { direct = true; }
+    SUBCASE("I/O-thread writes") { direct = false; }
     server_options opt;
+    opt.direct_writes = direct;
     opt.max_queued_frames = 64;     // no drop: this is about the write path
     opt.socket_send_buffer = 4096;  // the kernel holds little, so the queue fills behind a blocked write
     server srv(opt);
@@ -400,7 +416,12 @@ TEST_SUITE("net.server") {
   }
 
   TEST_CASE("concurrent senders: each sender's frames in its order, a session's state stream intact, nothing lost") {
+    // Both write paths: the sender writes itself (direct), or the session's I/O thread does.
+    bool direct = true;
+    SUBCASE("direct writes") { direct = true; }
+    SUBCASE("I/O-thread writes") { direct = false; }
     server_options opt;
+    opt.direct_writes = direct;
     opt.max_queued_frames = 128;  // 100 frames a session at most: no drop, no overflow
     opt.io_threads = 2;
     server srv(opt);
@@ -458,7 +479,13 @@ TEST_SUITE("net.server") {
   }
 
   TEST_CASE("sends then a game-side disconnect: a prefix of the frames, in order, then the error, then nothing") {
-    server srv;
+    // Both write paths: the sender writes itself (direct), or the session's I/O thread does.
+    bool direct = true;
+    SUBCASE("direct writes") { direct = true; }
+    SUBCASE("I/O-thread writes") { direct = false; }
+    server_options opt;
+    opt.direct_writes = direct;
+    server srv(opt);
     REQUIRE_FALSE(srv.start().has_value());
     game g{srv, {}};
     test_client c(srv.port());
@@ -475,6 +502,215 @@ TEST_SUITE("net.server") {
     REQUIRE(seen.size() <= 6);
     for (std::size_t t = 0; t + 1 < seen.size(); ++t) CHECK(std::get<tick_update_msg>(seen[t]).server_tick == t);
     CHECK(is_error(seen.back(), error_code::server_full));
+  }
+
+  TEST_CASE("direct writes: a frame for an idle session is in its socket when send() returns") {
+    server_options opt;
+    opt.direct_writes = true;
+    server srv(opt);
+    REQUIRE_FALSE(srv.start().has_value());
+    game g{srv, {}};
+    test_client c(srv.port());
+    REQUIRE(c.send(hello_msg{"direct", "", protocol_version}));
+    REQUIRE(g.wait_for([&] { return g.hello_session("direct") != 0; }));
+    const session_id s = g.hello_session("direct");
+    const auto backlog = srv.state_backlog(s);
+    REQUIRE(backlog != nullptr);
+    for (std::uint64_t t = 0; t < 20; ++t) {
+      const auto before = srv.stats();
+      REQUIRE(srv.send(s, frame(tick(t, 4)), t == 0 ? delivery::state_reset : delivery::state));
+      // Written by this thread, whole, before send() returned: no I/O thread in between.
+      const auto after = srv.stats();
+      CHECK(after.frames_out == before.frames_out + 1);
+      CHECK(after.writes == before.writes + 1);
+      CHECK(backlog->load() == 0);
+      const auto m = c.read();
+      REQUIRE(m.has_value());
+      CHECK(std::get<tick_update_msg>(*m).server_tick == t);
+    }
+  }
+
+  TEST_CASE("partial writes with pongs beside them: a slow reader gets whole frames, in order, none lost or twice") {
+    // Both write paths: the sender writes itself (direct), or the session's I/O thread does.
+    bool direct = true;
+    SUBCASE("direct writes") { direct = true; }
+    SUBCASE("I/O-thread writes") { direct = false; }
+    server_options opt;
+    opt.direct_writes = direct;
+    opt.max_queued_frames = 6;
+    opt.socket_send_buffer = 4096;  // ~3 KB frames: the socket takes them in parts
+    server srv(opt);
+    REQUIRE_FALSE(srv.start().has_value());
+    game g{srv, {}};
+    test_client c(srv.port(), 4096);
+    REQUIRE(c.send(hello_msg{"partial", "", protocol_version}));
+    REQUIRE(g.wait_for([&] { return g.hello_session("partial") != 0; }));
+    const session_id s = g.hello_session("partial");
+
+    // The game thread: a state frame a millisecond, a reset first and after each drop report.
+    std::atomic<bool> stop{false};
+    std::atomic<std::uint64_t> sent{0};
+    std::thread game_thread([&] {
+      std::vector<inbound_event> events;
+      std::uint64_t t = 0;
+      bool reset = true;
+      while (!stop) {
+        events.clear();
+        srv.poll(events);
+        for (const auto& e : events) reset |= e.type == inbound_event::kind::frames_dropped;
+        tick_update_msg u = tick(t++, 700);
+        u.reset = reset;
+        if (!srv.send(s, frame(u), reset ? delivery::state_reset : delivery::state)) std::abort();
+        reset = false;
+        ++sent;
+        std::this_thread::sleep_for(std::chrono::microseconds(500));
+      }
+    });
+    // The client pings all along (the lane queues pongs between the state frames) and reads
+    // slowly; every frame must decode (the stream is never cut inside a frame: test_client checks).
+    std::uint64_t received = 0, pongs = 0, last = 0, bad = 0, resets = 0;
+    bool first = true;
+    const auto take = [&](const message& m) {
+      if (std::holds_alternative<pong_msg>(m)) {
+        ++pongs;
+        return;
+      }
+      const auto& u = std::get<tick_update_msg>(m);
+      if (first ? !u.reset : (u.server_tick <= last || (!u.reset && u.server_tick != last + 1))) ++bad;
+      first = false;
+      last = u.server_tick;
+      resets += u.reset ? 1 : 0;
+      ++received;
+    };
+    const auto until = std::chrono::steady_clock::now() + 1500ms;
+    std::uint64_t pings = 0;
+    while (std::chrono::steady_clock::now() < until) {
+      REQUIRE(c.send(ping_msg{++pings}));
+      for (int k = 0; k < 3; ++k) {
+        if (auto m = c.read(50ms)) take(*m);
+      }
+      std::this_thread::sleep_for(2ms);  // slower than the game: drops and resyncs
+    }
+    stop = true;
+    game_thread.join();
+    // Drain: everything sent was delivered or counted as dropped, and every ping answered.
+    const bool accounted = g.wait_for([&] {
+      while (auto m = c.read(50ms)) take(*m);
+      return received + srv.stats().frames_dropped == sent && pongs == pings;
+    }, 5000ms);
+    CHECK_MESSAGE(accounted, "sent " << sent.load() << ", received " << received << ", dropped " << srv.stats().frames_dropped
+                                      << ", pings " << pings << ", pongs " << pongs);
+    CHECK(bad == 0);
+    CHECK(srv.stats().frames_dropped > 0);  // the reader was slow: the drop policy ran
+    CHECK(resets >= 1);                     // the first frame (or the resync that superseded it)
+    CHECK(srv.stats().frames_out == received + pongs);
+    CHECK_FALSE(c.closed());
+    MESSAGE("direct " << direct << ": sent " << sent.load() << ", received " << received << " (" << resets << " resets), pongs "
+                      << pongs << ", writes " << srv.stats().writes);
+  }
+
+  TEST_CASE("send_many: a chunk of frames for several sessions, each session's in order, gone sessions skipped") {
+    bool direct = true;
+    SUBCASE("direct writes") { direct = true; }
+    SUBCASE("I/O-thread writes") { direct = false; }
+    server_options opt;
+    opt.direct_writes = direct;
+    opt.io_threads = 3;
+    opt.max_queued_frames = 64;  // 2 x 25 frames a session at most: no drop
+    server srv(opt);
+    REQUIRE_FALSE(srv.start().has_value());
+    game g{srv, {}};
+    constexpr int clients = 6, rounds = 25;
+    std::vector<std::unique_ptr<test_client>> cs;
+    std::vector<session_id> ss;
+    for (int i = 0; i < clients; ++i) {
+      cs.push_back(std::make_unique<test_client>(srv.port()));
+      REQUIRE(cs.back()->send(hello_msg{"m" + std::to_string(i), "", protocol_version}));
+    }
+    REQUIRE(g.wait_for([&] {
+      for (int i = 0; i < clients; ++i) {
+        if (g.hello_session("m" + std::to_string(i)) == 0) return false;
+      }
+      return true;
+    }));
+    for (int i = 0; i < clients; ++i) ss.push_back(g.hello_session("m" + std::to_string(i)));
+    // Two threads, as two replication workers: thread w sends the sessions i with i % 2 == w, a
+    // chunk per round, with an unknown session in every chunk; frames from one arena per thread.
+    std::atomic<std::size_t> skipped{0};
+    std::vector<std::thread> workers;
+    for (int w = 0; w < 2; ++w) {
+      workers.emplace_back([&, w] {
+        frame_arena arena(4096);
+        for (int q = 0; q < rounds; ++q) {
+          std::vector<outgoing_frame> chunk;
+          for (int i = w; i < clients; i += 2) {
+            chunk.push_back({ss[static_cast<std::size_t>(i)], arena.make(encode_frame(tick(static_cast<std::uint64_t>(q), 30))),
+                             q == 0 ? delivery::state_reset : delivery::state});
+            if (i == w) chunk.push_back({999999, arena.make(encode_frame(tick(0))), delivery::state});
+          }
+          // The same session twice in one chunk: both, in chunk order.
+          chunk.push_back({ss[static_cast<std::size_t>(w)], arena.make(encode_frame(tick(static_cast<std::uint64_t>(1000 + q), 1))),
+                           delivery::control});
+          const std::size_t sent = srv.send_many(chunk);
+          skipped += chunk.size() - sent;
+        }
+      });
+    }
+    for (auto& t : workers) t.join();
+    CHECK(skipped == 2 * rounds);
+    for (int i = 0; i < clients; ++i) {
+      std::uint64_t next = 0, next_control = 1000;
+      const std::size_t expected = rounds + (i < 2 ? rounds : 0);
+      for (std::size_t n = 0; n < expected; ++n) {
+        const auto m = cs[static_cast<std::size_t>(i)]->read();
+        REQUIRE(m.has_value());
+        const auto t = std::get<tick_update_msg>(*m).server_tick;
+        if (t >= 1000) {
+          CHECK(t == next_control++);
+          CHECK(next_control - 1000 == next);  // after this round's state frame, before the next
+        } else {
+          CHECK(t == next++);
+        }
+      }
+      CHECK(next == rounds);
+      CHECK_FALSE(cs[static_cast<std::size_t>(i)]->read(50ms).has_value());  // nothing twice
+    }
+    REQUIRE(g.wait_for([&] { return srv.stats().frames_out == static_cast<std::uint64_t>(clients * rounds + 2 * rounds); }));
+    CHECK(srv.stats().frames_dropped == 0);
+  }
+
+  TEST_CASE("frame_arena: frames share blocks, keep their bytes, outlive the arena; a large frame stands alone") {
+    std::vector<shared_frame> frames;
+    std::vector<std::vector<std::uint8_t>> expect;
+    std::mt19937 rng(fresh_seed());
+    {
+      frame_arena arena(4096);
+      for (int i = 0; i < 100; ++i) {
+        std::vector<std::uint8_t> bytes(1 + rng() % 700);  // up to 1/4 block (1024): in a block
+        for (auto& b : bytes) b = static_cast<std::uint8_t>(rng());
+        frames.push_back(arena.make(bytes));
+        expect.push_back(std::move(bytes));
+      }
+      std::size_t total = 0;
+      for (const auto& e : expect) total += (e.size() + 15) / 16 * 16;
+      CHECK(arena.blocks() >= (total + 4095) / 4096);
+      CHECK(arena.blocks() < 100 / 3);  // several frames a block
+      const auto before = arena.blocks();
+      const std::vector<std::uint8_t> big(1025, 7);
+      const auto f = arena.make(big);
+      CHECK(arena.blocks() == before);  // its own allocation
+      CHECK(f.use_count() == 1);
+      CHECK(std::equal(big.begin(), big.end(), f.data()));
+      const auto empty = arena.make({});
+      CHECK(empty);
+      CHECK(empty.size() == 0);
+    }
+    // The arena is gone; every frame still holds its bytes (shared with the frames of its block).
+    for (std::size_t i = 0; i < frames.size(); ++i) {
+      REQUIRE(frames[i].size() == expect[i].size());
+      CHECK(std::equal(expect[i].begin(), expect[i].end(), frames[i].data()));
+    }
+    CHECK(frames.front().use_count() > 1);
   }
 
   TEST_CASE("connection limit") {
