@@ -216,8 +216,11 @@ void zone_server::drain_inputs() {
           c.entity = id;
           c.backlog = net_.state_backlog(e.session);
           c.replica = replicator_.add_client(id);
-          net::welcome_msg w{id, cfg_.world, static_cast<std::uint16_t>(cfg_.tick_rate_hz), world_->tick(),
-                             net::protocol_version};
+          net::welcome_msg w;
+          w.entity_id = id;
+          w.world = cfg_.world;
+          w.tick_rate_hz = static_cast<std::uint16_t>(cfg_.tick_rate_hz);
+          w.server_tick = world_->tick();
           if (const auto at = world_->store().get(id)) w.spawn_position = net::vec3f{at->position.x, at->position.y, at->position.z};
           w.host_clock = true;  // net::server::now_us() is CLOCK_MONOTONIC
           net_.send(e.session, net::make_shared_frame(encoder_.encode(w)), net::delivery::control);
