@@ -3,8 +3,9 @@
 // One call, on the main stream unless said otherwise:
 //  1. DataIn: the box arrays are packed into pinned staging memory by the thread pool in parts,
 //     each part's host-to-device copy overlapping the packing of the next.
-//  2. PLAN: bounds kernel, then the one-block planning kernel (Eq. 6 on a GPU-side sample);
-//     the plan is read back (synchronisation 1 of the call).
+//  2. PLAN: bounds kernel, then the one-block planning kernel (Eq. 6 on a GPU-side sample) and,
+//     when Eq. 6's search ran, the cost kernel, which may take a larger edge (the cost-aware plan,
+//     beyond the paper); the plan is read back (synchronisation 1 of the call).
 //  3. MAP: count kernel (atomics; large boxes flagged), CUB select of the large boxes, CUB scan of
 //     the per-cell (entries, work items, tiles), CUB reduce of the totals, batch planning; the
 //     totals are read back (synchronisation 2); map kernel (atomics), CUB segmented sort of each
