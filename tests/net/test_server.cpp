@@ -78,20 +78,59 @@ bool is_error(const std::optional<message>& m, error_code code) {
   return m && std::holds_alternative<error_msg>(*m) && std::get<error_msg>(*m).code == code;
 }
 
+/// Runs the enclosing test case once per write path: the sender writes itself (direct), or the
+/// session's I/O thread does (server_options::direct_writes).
+#define FOR_BOTH_WRITE_PATHS(opt)                         \
+  SUBCASE("direct writes") { (opt).direct_writes = true; } \
+  SUBCASE("I/O-thread writes") { (opt).direct_writes = false; }
+
+/// A started server and the game side polling it.
+struct started {
+  server srv;
+  game g;
+  explicit started(const server_options& opt) : srv(opt), g{srv, {}} {
+    REQUIRE_FALSE(srv.start().has_value());
+    REQUIRE(srv.port() != 0);
+  }
+};
+
+/// c says hello as `name`; returns its session once the game has seen the hello.
+session_id join(game& g, test_client& c, const std::string& name) {
+  REQUIRE(c.send(hello_msg{name, "", protocol_version}));
+  REQUIRE(g.wait_for([&] { return g.hello_session(name) != 0; }));
+  return g.hello_session(name);
+}
+
+/// n clients named prefix + 0 .. n - 1: all say hello, then all are awaited.
+struct joined_clients {
+  std::vector<std::unique_ptr<test_client>> clients;
+  std::vector<session_id> sessions;
+};
+joined_clients join_all(game& g, std::uint16_t port, const std::string& prefix, int n) {
+  joined_clients j;
+  for (int i = 0; i < n; ++i) {
+    j.clients.push_back(std::make_unique<test_client>(port));
+    REQUIRE(j.clients.back()->send(hello_msg{prefix + std::to_string(i), "", protocol_version}));
+  }
+  REQUIRE(g.wait_for([&] {
+    for (int i = 0; i < n; ++i) {
+      if (g.hello_session(prefix + std::to_string(i)) == 0) return false;
+    }
+    return true;
+  }));
+  for (int i = 0; i < n; ++i) j.sessions.push_back(g.hello_session(prefix + std::to_string(i)));
+  return j;
+}
+
 }  // namespace
 
 TEST_SUITE("net.server") {
   TEST_CASE("handshake, control and state frames, ping, game-side disconnect") {
-    // Both write paths: the sender writes itself (direct), or the session's I/O thread does.
-    bool direct = true;
-    SUBCASE("direct writes") { direct = true; }
-    SUBCASE("I/O-thread writes") { direct = false; }
     server_options opt;
-    opt.direct_writes = direct;
-    server srv(opt);
-    REQUIRE_FALSE(srv.start().has_value());
-    REQUIRE(srv.port() != 0);
-    game g{srv, {}};
+    FOR_BOTH_WRITE_PATHS(opt)
+    started run(opt);
+    auto& srv = run.srv;
+    auto& g = run.g;
     test_client a(srv.port()), b(srv.port());
     REQUIRE(a.send(hello_msg{"alpha", "token-a", protocol_version}));
     REQUIRE(b.send(hello_msg{"beta", "token-b", protocol_version}));
@@ -100,7 +139,10 @@ TEST_SUITE("net.server") {
     const session_id sa = g.hello_session("alpha"), sb = g.hello_session("beta");
     CHECK(sa != sb);
 
-    const welcome_msg w{7, {{0, 0, 0}, {100, 100, 10}}, 30, 0, protocol_version};
+    welcome_msg w;
+    w.entity_id = 7;
+    w.world = {{0, 0, 0}, {100, 100, 10}};
+    w.tick_rate_hz = 30;
     REQUIRE(srv.send(sa, frame(w), delivery::control));
     const auto got_w = a.read();
     REQUIRE(got_w.has_value());
@@ -160,14 +202,12 @@ TEST_SUITE("net.server") {
     opt.input_burst = 10;
     opt.flood_limit = 50;
     opt.max_queued_frames = 64;
-    server srv(opt);
-    REQUIRE_FALSE(srv.start().has_value());
-    game g{srv, {}};
+    started run(opt);
+    auto& srv = run.srv;
+    auto& g = run.g;
 
     test_client good(srv.port());
-    REQUIRE(good.send(hello_msg{"good", "", protocol_version}));
-    REQUIRE(g.wait_for([&] { return g.hello_session("good") != 0; }));
-    const session_id sg = g.hello_session("good");
+    const session_id sg = join(g, good, "good");
 
     // The game broadcasts a tick update every 2 ms to every session it knows, while hostiles act.
     std::atomic<bool> ticking{true};
@@ -292,20 +332,14 @@ TEST_SUITE("net.server") {
   }
 
   TEST_CASE("a slow client: bounded queue, no delta after a drop until a reset, served again, not disconnected") {
-    // Both write paths: the sender writes itself (direct), or the session's I/O thread does.
-    bool direct = true;
-    SUBCASE("direct writes") { direct = true; }
-    SUBCASE("I/O-thread writes") { direct = false; }
     server_options opt;
-    opt.direct_writes = direct;
+    FOR_BOTH_WRITE_PATHS(opt)
     opt.max_queued_frames = 4;
-    server srv(opt);
-    REQUIRE_FALSE(srv.start().has_value());
-    game g{srv, {}};
+    started run(opt);
+    auto& srv = run.srv;
+    auto& g = run.g;
     test_client slow(srv.port(), 4096);
-    REQUIRE(slow.send(hello_msg{"slow", "", protocol_version}));
-    REQUIRE(g.wait_for([&] { return g.hello_session("slow") != 0; }));
-    const session_id s = g.hello_session("slow");
+    const session_id s = join(g, slow, "slow");
 
     // The game as the zone server plays it: frame t is a delta on frame t - 1, except a reset,
     // which it sends first and then after each frames_dropped report it polls.
@@ -378,21 +412,15 @@ TEST_SUITE("net.server") {
   }
 
   TEST_CASE("a burst to a client that is not reading goes out in gathered writes, complete and in order") {
-    // Both write paths: the sender writes itself (direct), or the session's I/O thread does.
-    bool direct = true;
-    SUBCASE("direct writes") { direct = true; }
-    SUBCASE("I/O-thread writes") { direct = false; }
     server_options opt;
-    opt.direct_writes = direct;
+    FOR_BOTH_WRITE_PATHS(opt)
     opt.max_queued_frames = 64;     // no drop: this is about the write path
     opt.socket_send_buffer = 4096;  // the kernel holds little, so the queue fills behind a blocked write
-    server srv(opt);
-    REQUIRE_FALSE(srv.start().has_value());
-    game g{srv, {}};
+    started run(opt);
+    auto& srv = run.srv;
+    auto& g = run.g;
     test_client c(srv.port(), 4096);
-    REQUIRE(c.send(hello_msg{"burst", "", protocol_version}));
-    REQUIRE(g.wait_for([&] { return g.hello_session("burst") != 0; }));
-    const session_id s = g.hello_session("burst");
+    const session_id s = join(g, c, "burst");
     const auto before = srv.stats();
     constexpr std::uint64_t frames = 60;  // ~8 KB each: ~480 KB, far beyond the socket buffers
     for (std::uint64_t t = 0; t < frames; ++t) {
@@ -416,31 +444,17 @@ TEST_SUITE("net.server") {
   }
 
   TEST_CASE("concurrent senders: each sender's frames in its order, a session's state stream intact, nothing lost") {
-    // Both write paths: the sender writes itself (direct), or the session's I/O thread does.
-    bool direct = true;
-    SUBCASE("direct writes") { direct = true; }
-    SUBCASE("I/O-thread writes") { direct = false; }
     server_options opt;
-    opt.direct_writes = direct;
+    FOR_BOTH_WRITE_PATHS(opt)
     opt.max_queued_frames = 128;  // 100 frames a session at most: no drop, no overflow
     opt.io_threads = 2;
-    server srv(opt);
-    REQUIRE_FALSE(srv.start().has_value());
-    game g{srv, {}};
+    started run(opt);
+    auto& srv = run.srv;
+    auto& g = run.g;
     constexpr int clients = 4, senders = 4, per_sender = 25;
-    std::vector<std::unique_ptr<test_client>> cs;
-    std::vector<session_id> ss;
-    for (int i = 0; i < clients; ++i) {
-      cs.push_back(std::make_unique<test_client>(srv.port()));
-      REQUIRE(cs.back()->send(hello_msg{"c" + std::to_string(i), "", protocol_version}));
-    }
-    REQUIRE(g.wait_for([&] {
-      for (int i = 0; i < clients; ++i) {
-        if (g.hello_session("c" + std::to_string(i)) == 0) return false;
-      }
-      return true;
-    }));
-    for (int i = 0; i < clients; ++i) ss.push_back(g.hello_session("c" + std::to_string(i)));
+    const joined_clients joined = join_all(g, srv.port(), "c", clients);
+    const auto& cs = joined.clients;
+    const auto& ss = joined.sessions;
     // Sender 0 is each session's game (its state frames, in order); senders 1..3 send control
     // frames to every session at once. Frame tick = sender * 1000 + sequence.
     std::vector<std::thread> threads;
@@ -479,19 +493,13 @@ TEST_SUITE("net.server") {
   }
 
   TEST_CASE("sends then a game-side disconnect: a prefix of the frames, in order, then the error, then nothing") {
-    // Both write paths: the sender writes itself (direct), or the session's I/O thread does.
-    bool direct = true;
-    SUBCASE("direct writes") { direct = true; }
-    SUBCASE("I/O-thread writes") { direct = false; }
     server_options opt;
-    opt.direct_writes = direct;
-    server srv(opt);
-    REQUIRE_FALSE(srv.start().has_value());
-    game g{srv, {}};
+    FOR_BOTH_WRITE_PATHS(opt)
+    started run(opt);
+    auto& srv = run.srv;
+    auto& g = run.g;
     test_client c(srv.port());
-    REQUIRE(c.send(hello_msg{"late", "", protocol_version}));
-    REQUIRE(g.wait_for([&] { return g.hello_session("late") != 0; }));
-    const session_id s = g.hello_session("late");
+    const session_id s = join(g, c, "late");
     for (std::uint64_t t = 0; t < 5; ++t) REQUIRE(srv.send(s, frame(tick(t, 1)), delivery::control));
     srv.disconnect(s, error_code::server_full, "bye");
     std::vector<message> seen;
@@ -507,13 +515,11 @@ TEST_SUITE("net.server") {
   TEST_CASE("direct writes: a frame for an idle session is in its socket when send() returns") {
     server_options opt;
     opt.direct_writes = true;
-    server srv(opt);
-    REQUIRE_FALSE(srv.start().has_value());
-    game g{srv, {}};
+    started run(opt);
+    auto& srv = run.srv;
+    auto& g = run.g;
     test_client c(srv.port());
-    REQUIRE(c.send(hello_msg{"direct", "", protocol_version}));
-    REQUIRE(g.wait_for([&] { return g.hello_session("direct") != 0; }));
-    const session_id s = g.hello_session("direct");
+    const session_id s = join(g, c, "direct");
     const auto backlog = srv.state_backlog(s);
     REQUIRE(backlog != nullptr);
     for (std::uint64_t t = 0; t < 20; ++t) {
@@ -531,21 +537,15 @@ TEST_SUITE("net.server") {
   }
 
   TEST_CASE("partial writes with pongs beside them: a slow reader gets whole frames, in order, none lost or twice") {
-    // Both write paths: the sender writes itself (direct), or the session's I/O thread does.
-    bool direct = true;
-    SUBCASE("direct writes") { direct = true; }
-    SUBCASE("I/O-thread writes") { direct = false; }
     server_options opt;
-    opt.direct_writes = direct;
+    FOR_BOTH_WRITE_PATHS(opt)
     opt.max_queued_frames = 6;
     opt.socket_send_buffer = 4096;  // ~3 KB frames: the socket takes them in parts
-    server srv(opt);
-    REQUIRE_FALSE(srv.start().has_value());
-    game g{srv, {}};
+    started run(opt);
+    auto& srv = run.srv;
+    auto& g = run.g;
     test_client c(srv.port(), 4096);
-    REQUIRE(c.send(hello_msg{"partial", "", protocol_version}));
-    REQUIRE(g.wait_for([&] { return g.hello_session("partial") != 0; }));
-    const session_id s = g.hello_session("partial");
+    const session_id s = join(g, c, "partial");
 
     // The game thread: a state frame a millisecond, a reset first and after each drop report.
     std::atomic<bool> stop{false};
@@ -605,35 +605,22 @@ TEST_SUITE("net.server") {
     CHECK(resets >= 1);                     // the first frame (or the resync that superseded it)
     CHECK(srv.stats().frames_out == received + pongs);
     CHECK_FALSE(c.closed());
-    MESSAGE("direct " << direct << ": sent " << sent.load() << ", received " << received << " (" << resets << " resets), pongs "
+    MESSAGE("direct " << opt.direct_writes << ": sent " << sent.load() << ", received " << received << " (" << resets << " resets), pongs "
                       << pongs << ", writes " << srv.stats().writes);
   }
 
   TEST_CASE("send_many: a chunk of frames for several sessions, each session's in order, gone sessions skipped") {
-    bool direct = true;
-    SUBCASE("direct writes") { direct = true; }
-    SUBCASE("I/O-thread writes") { direct = false; }
     server_options opt;
-    opt.direct_writes = direct;
+    FOR_BOTH_WRITE_PATHS(opt)
     opt.io_threads = 3;
     opt.max_queued_frames = 64;  // 2 x 25 frames a session at most: no drop
-    server srv(opt);
-    REQUIRE_FALSE(srv.start().has_value());
-    game g{srv, {}};
+    started run(opt);
+    auto& srv = run.srv;
+    auto& g = run.g;
     constexpr int clients = 6, rounds = 25;
-    std::vector<std::unique_ptr<test_client>> cs;
-    std::vector<session_id> ss;
-    for (int i = 0; i < clients; ++i) {
-      cs.push_back(std::make_unique<test_client>(srv.port()));
-      REQUIRE(cs.back()->send(hello_msg{"m" + std::to_string(i), "", protocol_version}));
-    }
-    REQUIRE(g.wait_for([&] {
-      for (int i = 0; i < clients; ++i) {
-        if (g.hello_session("m" + std::to_string(i)) == 0) return false;
-      }
-      return true;
-    }));
-    for (int i = 0; i < clients; ++i) ss.push_back(g.hello_session("m" + std::to_string(i)));
+    const joined_clients joined = join_all(g, srv.port(), "m", clients);
+    const auto& cs = joined.clients;
+    const auto& ss = joined.sessions;
     // Two threads, as two replication workers: thread w sends the sessions i with i % 2 == w, a
     // chunk per round, with an unknown session in every chunk; frames from one arena per thread.
     std::atomic<std::size_t> skipped{0};
@@ -716,9 +703,9 @@ TEST_SUITE("net.server") {
   TEST_CASE("connection limit") {
     server_options opt;
     opt.max_connections = 2;
-    server srv(opt);
-    REQUIRE_FALSE(srv.start().has_value());
-    game g{srv, {}};
+    started run(opt);
+    auto& srv = run.srv;
+    auto& g = run.g;
     test_client a(srv.port()), b(srv.port());
     REQUIRE(g.wait_for([&] { return g.count(inbound_event::kind::connected) == 2; }));
     test_client c(srv.port());
@@ -738,9 +725,9 @@ TEST_SUITE("net.server") {
     // game, 100 refused with server_full, none lost.
     server_options opt;
     opt.max_connections = 300;
-    server srv(opt);
-    REQUIRE_FALSE(srv.start().has_value());
-    game g{srv, {}};
+    started run(opt);
+    auto& srv = run.srv;
+    auto& g = run.g;
     std::vector<std::unique_ptr<test_client>> clients;
     for (int i = 0; i < 400; ++i) clients.push_back(std::make_unique<test_client>(srv.port()));
     for (int i = 0; i < 400; ++i) clients[static_cast<std::size_t>(i)]->send(hello_msg{std::to_string(i), "", protocol_version});
