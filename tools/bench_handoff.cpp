@@ -1,9 +1,12 @@
-// bench-handoff: the cost of handing replicated frames to the network (net::server::send), without
-// the game. N loopback clients connect to a net::server; each "tick", K sender threads (the
+// bench-handoff: the cost of handing replicated frames to the network (net::server), without the
+// game. N loopback clients connect to a net::server; each "tick", K sender threads (the
 // replication workers' role) give every session one state frame of B bytes, paced like the zone
-// server (no frame while the session's state backlog is at 2); a reader thread drains every
-// client socket through epoll and discards the bytes. Prints a table: the senders' CPU per frame
-// (make_shared_frame + send), the server's CPU per frame (the whole process less the reader and
+// server (no frame while the session's state backlog is at 2): as the zone server does it by
+// default (--mode many: frames carved from a per-sender net::frame_arena, handed over a chunk of
+// sessions at a time with server::send_many) or one by one (--mode send: make_shared_frame +
+// server::send per frame). A reader thread drains every client socket through epoll and discards
+// the bytes. Prints a table: the senders' CPU per frame, the server's CPU per frame (the whole
+// process less the reader and
 // the idle main thread: senders plus I/O threads), the hand-off's wall time per tick, and what the
 // server wrote. Benchmarks print tables; they are not timed tests (docs/zone-benchmarks.md).
 #include <arpa/inet.h>
@@ -52,14 +55,20 @@ struct options {
   std::size_t frame_bytes = 600;
   double rate_hz = 30;  // 0: back to back
   std::uint32_t max_backlog = 2;
+  bool many = true;         // --mode many (send_many + frame_arena) or send
+  std::size_t chunk = 16;   // sessions per send_many call (the zone's clients per replication task)
+  bool direct_writes = false;
 };
 
-bool parse(int argc, char** argv, options& o) {
+bool parse(int argc, char** argv, options& o, bool& help) {
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
     const auto next = [&]() -> const char* { return i + 1 < argc ? argv[++i] : nullptr; };
     const char* v = nullptr;
-    if (a == "--help") return false;
+    if (a == "--help") {
+      help = true;
+      return false;
+    }
     if (!(v = next())) return false;
     if (a == "--sessions") o.sessions = std::strtoull(v, nullptr, 10);
     else if (a == "--ticks") o.ticks = std::strtoull(v, nullptr, 10);
@@ -68,9 +77,12 @@ bool parse(int argc, char** argv, options& o) {
     else if (a == "--frame-bytes") o.frame_bytes = std::strtoull(v, nullptr, 10);
     else if (a == "--rate") o.rate_hz = std::strtod(v, nullptr);
     else if (a == "--max-backlog") o.max_backlog = static_cast<std::uint32_t>(std::strtoul(v, nullptr, 10));
+    else if (a == "--chunk") o.chunk = std::strtoull(v, nullptr, 10);
+    else if (a == "--direct-writes") o.direct_writes = std::string(v) == "1";
+    else if (a == "--mode" && (std::string(v) == "many" || std::string(v) == "send")) o.many = std::string(v) == "many";
     else return false;
   }
-  return o.sessions > 0 && o.senders > 0 && o.frame_bytes >= 64;
+  return o.sessions > 0 && o.senders > 0 && o.frame_bytes >= 64 && o.chunk > 0;
 }
 
 double percentile(std::vector<double> v, double q) {
@@ -83,15 +95,20 @@ double percentile(std::vector<double> v, double q) {
 
 int main(int argc, char** argv) {
   options o;
-  if (!parse(argc, argv, o)) {
-    std::fprintf(stderr,
+  bool help = false;
+  if (!parse(argc, argv, o, help)) {
+    std::fprintf(help ? stdout : stderr,
                  "usage: bench-handoff [--sessions 1000] [--ticks 300] [--senders 2] [--io-threads 2] "
-                 "[--frame-bytes 600] [--rate 30 (0: back to back)] [--max-backlog 2 (0: off)]\n");
-    return 64;
+                 "[--frame-bytes 600] [--rate 30 (0: back to back)] [--max-backlog 2 (0: off)]\n"
+                 "                     [--mode many|send (default many: frame_arena + send_many, the zone server's "
+                 "way; send: make_shared_frame + send per frame)] [--chunk 16 (sessions per send_many)]\n"
+                 "                     [--direct-writes 0|1 (default 0: the I/O threads write)]\n");
+    return help ? 0 : 64;
   }
   spdlog::set_level(spdlog::level::warn);
   server_options so;
   so.io_threads = o.io_threads;
+  so.direct_writes = o.direct_writes;
   so.max_connections = o.sessions + 16;
   so.idle_timeout = std::chrono::hours(1);
   server srv(so);
@@ -177,6 +194,7 @@ int main(int argc, char** argv) {
   double senders_cpu_total = 0;
   const auto w0 = std::chrono::steady_clock::now();
   auto next = std::chrono::steady_clock::now();
+  std::vector<frame_arena> arenas(o.senders);  // each sender's, kept across ticks like a worker's
   for (std::size_t t = 0; t < o.ticks; ++t) {
     std::vector<double> cpu(o.senders, 0);
     const auto t0 = std::chrono::steady_clock::now();
@@ -185,14 +203,25 @@ int main(int argc, char** argv) {
       workers.emplace_back([&, k] {
         const double c0 = thread_cpu_s();
         std::uint64_t n = 0, h = 0;
+        std::vector<outgoing_frame> batch;
+        batch.reserve(o.chunk);
         for (std::size_t i = k; i < sessions.size(); i += o.senders) {
           if (o.max_backlog != 0 && backlogs[i] && backlogs[i]->load(std::memory_order_relaxed) >= o.max_backlog) {
             ++h;
             continue;
           }
-          srv.send(sessions[i], make_shared_frame(payload), delivery::state);
+          if (o.many) {
+            batch.push_back({sessions[i], arenas[k].make(payload), delivery::state});
+            if (batch.size() == o.chunk) {
+              srv.send_many(batch);
+              batch.clear();
+            }
+          } else {
+            srv.send(sessions[i], make_shared_frame(payload), delivery::state);
+          }
           ++n;
         }
+        if (!batch.empty()) srv.send_many(batch);
         sent += n;
         held += h;
         cpu[k] = thread_cpu_s() - c0;
@@ -225,9 +254,11 @@ int main(int argc, char** argv) {
   const double server_cpu = (p1 - p0) - reader_cpu;
   const double frames = static_cast<double>(sent.load());
 
-  std::printf("bench-handoff: %zu sessions, %zu ticks at %s, %u senders, %u I/O threads, %zu-byte frames, pacing %u\n",
+  std::printf("bench-handoff: %zu sessions, %zu ticks at %s, %u senders, %u I/O threads, %zu-byte frames, pacing %u, %s, %s\n",
               o.sessions, o.ticks, o.rate_hz > 0 ? (std::to_string(o.rate_hz) + " Hz").c_str() : "back to back",
-              o.senders, o.io_threads, payload.size(), o.max_backlog);
+              o.senders, o.io_threads, payload.size(), o.max_backlog,
+              o.many ? ("send_many of " + std::to_string(o.chunk) + " + frame_arena").c_str() : "send per frame",
+              o.direct_writes ? "direct writes" : "I/O-thread writes");
   std::printf("| frames handed off | held (paced) | written | dropped | resyncs | wall s |\n");
   std::printf("|---|---|---|---|---|---|\n");
   std::printf("| %llu | %llu | %llu | %llu | %llu | %.2f |\n", static_cast<unsigned long long>(sent.load()),
