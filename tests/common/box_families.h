@@ -46,6 +46,15 @@ struct rng_box_maker {
     }
     return b;
   }
+  /// A rod: make(centre_range, thickness) stretched along a random axis, from a start in
+  /// [start_lo, start_hi) over a length in [min_len, max_len).
+  box rod(float centre_range, float thickness, float start_lo, float start_hi, float min_len, float max_len) {
+    box b = make(centre_range, thickness);
+    const int axis = static_cast<int>(rng() % 3);
+    b.lo[axis] = uni(start_lo, start_hi);
+    b.hi[axis] = b.lo[axis] + uni(min_len, max_len);
+    return b;
+  }
 };
 
 /// Box-set families, each a stress for a different part of the grid finder.
@@ -116,13 +125,9 @@ inline box_set make_family(family f, std::size_t n, std::uint64_t seed) {
       case family::huge_over_tiny:
         b = (i % 97 == 3) ? r.make(10, 400, -100) : r.make(200, 2);
         break;
-      case family::long_thin: {
-        b = r.make(100, 1);
-        const int axis = static_cast<int>(r.rng() % 3);
-        b.lo[axis] = r.uni(-50, 50);
-        b.hi[axis] = b.lo[axis] + r.uni(50, 250);
+      case family::long_thin:
+        b = r.rod(100, 1, -50, 50, 50, 250);
         break;
-      }
       case family::negative_large:
         b = r.make(2e6f, 5e4f, -1e6f);
         break;

@@ -273,13 +273,7 @@ TEST_SUITE("gpu.pbig") {
     {
       rng_box_maker r(seed + 5);
       box_set thin;
-      for (int i = 0; i < 100000; ++i) {
-        box b = r.make(1e4f, 2);
-        const int axis = static_cast<int>(r.rng() % 3);
-        b.lo[axis] = r.uni(-500, 1e4f);
-        b.hi[axis] = b.lo[axis] + r.uni(200, 4000);
-        thin.push_back(b);
-      }
+      for (int i = 0; i < 100000; ++i) thin.push_back(r.rod(1e4f, 2, -500, 1e4f, 200, 4000));
       sets.emplace_back("thin rods 1e5", std::move(thin));
     }
     for (const family f : all_families) sets.emplace_back(family_name(f) + " 2e4", make_family(f, 20000, seed + 6));
@@ -490,13 +484,7 @@ TEST_SUITE("gpu.pbig") {
       CAPTURE(seed);
       rng_box_maker r(seed);
       box_set s;
-      for (int i = 0; i < 200000; ++i) {
-        box b = r.make(1e4f, 4);
-        const int axis = static_cast<int>(r.rng() % 3);
-        b.lo[axis] = r.uni(-500, 1e4f);
-        b.hi[axis] = b.lo[axis] + r.uni(500, 3000);
-        s.push_back(b);
-      }
+      for (int i = 0; i < 200000; ++i) s.push_back(r.rod(1e4f, 4, -500, 1e4f, 500, 3000));
       CHECK(run(*finder, s) == run(grid, s));
     }
     {
