@@ -9,7 +9,7 @@
 // the session's own write lock, and every write is one non-blocking sendmsg made under it: so one
 // write at a time per session, in queue order, whichever thread makes it. The hand-off from the
 // game's threads (send): the frame goes through the outbound queue's policy under that lock; with
-// direct writes (the default) the sending thread then writes it at once unless the session waits
+// direct writes (off by default) the sending thread then writes it at once unless the session waits
 // for its socket (EAGAIN or a partial write: the lane arms a writable wait and finishes the queue,
 // gathered). Without, a session that was idle is appended to its lane's ready list, and a ready
 // list that was empty posts one drain to the lane, which writes each ready session's queue with
@@ -575,16 +575,7 @@ class session : public std::enable_shared_from_this<session> {
   std::string write_error_;
 };
 
-void io_lane::schedule(std::shared_ptr<session> s) {
-  bool post;
-  {
-    const std::lock_guard lock(ready_mutex);
-    ready.push_back(std::move(s));
-    post = !drain_posted;
-    drain_posted = true;
-  }
-  if (post) asio::post(ctx, [this] { drain(); });
-}
+void io_lane::schedule(std::shared_ptr<session> s) { schedule_many(std::span(&s, 1)); }
 
 void io_lane::schedule_many(std::span<std::shared_ptr<session>> sessions) {
   if (sessions.empty()) return;
@@ -878,9 +869,11 @@ server_stats server::stats() const {
     writes += w.writes.load();
     bytes_out += w.bytes_out.load();
   }
-  return {c.connections_accepted.load(), c.connections_refused.load(), c.sessions_open.load(), c.frames_in.load(),
-          frames_out,                    writes,                       c.bytes_in.load(),            bytes_out,              c.frames_dropped.load(),
-          c.resyncs_requested.load(),    c.frames_rejected.load(),     c.inputs_dropped.load(), c.pings_answered.load()};
+  return {c.connections_accepted.load(), c.connections_refused.load(), c.sessions_open.load(),
+          c.frames_in.load(),            frames_out,                   writes,
+          c.bytes_in.load(),             bytes_out,                    c.frames_dropped.load(),
+          c.resyncs_requested.load(),    c.frames_rejected.load(),     c.inputs_dropped.load(),
+          c.pings_answered.load()};
 }
 
 }  // namespace zone::net
