@@ -50,7 +50,11 @@ TEST_SUITE("net.client") {
       return s != 0;
     }));
     const world_bounds world{{0, 0, 0}, {1000, 1000, 100}};
-    REQUIRE(srv.send(s, make_shared_frame(encode_frame(welcome_msg{42, world, 30, 0, protocol_version})), delivery::control));
+    welcome_msg w;
+    w.entity_id = 42;
+    w.world = world;
+    w.tick_rate_hz = 30;
+    REQUIRE(srv.send(s, make_shared_frame(encode_frame(w)), delivery::control));
     REQUIRE(eventually([&] { return bot.snapshot().phase == client_snapshot::state::welcomed; }));
     CHECK(bot.snapshot().entity_id == 42);
     CHECK(bot.snapshot().world == world);
