@@ -182,7 +182,7 @@ class server {
   /// Frames of one session are delivered in the order of the calls (state frames may be dropped,
   /// see server_options::max_queued_frames); send a session's state frames from one thread at a
   /// time, in the order they were built. Cost: the frame goes through the session's outbound
-  /// queue under the session's own lock; with direct_writes (the default) a session with nothing
+  /// queue under the session's own lock; with direct_writes (off by default) a session with nothing
   /// queued gets the frame written at once by the calling thread (one non-blocking sendmsg: the
   /// kernel's loopback or TCP send is then the caller's CPU), otherwise its I/O thread writes it
   /// (a session that was idle is put on its I/O thread's ready list, and only a ready list that
