@@ -59,9 +59,9 @@ flatbuffers::Offset<void> build_body(flatbuffers::FlatBufferBuilder& fbb, const 
           std::vector<w::entity_update> updates;
           updates.reserve(msg.updates.size());
           for (const auto& u : msg.updates) updates.push_back(to_wire(u));
-          const auto enters_v = fbb.CreateVector(enters);
-          const auto leaves_v = fbb.CreateVector(msg.leaves);
-          const auto updates_v = fbb.CreateVectorOfStructs(updates);
+          const auto enters_v = enters.empty() ? 0 : fbb.CreateVector(enters);  // empty: absent, as tick_update_writer
+          const auto leaves_v = msg.leaves.empty() ? 0 : fbb.CreateVector(msg.leaves);
+          const auto updates_v = updates.empty() ? 0 : fbb.CreateVectorOfStructs(updates);
           std::optional<w::verify_digest> digest;
           if (msg.digest) digest.emplace(msg.digest->tick, msg.digest->hash, msg.digest->count);
           std::optional<w::vec3> self;
@@ -197,9 +197,11 @@ std::size_t tick_update_writer::size_estimate() const {
 }
 
 std::span<const std::uint8_t> tick_update_writer::finish() {
-  const auto enters_v = fbb_.CreateVector(enters_);
-  const auto leaves_v = fbb_.CreateVector(leaves_);
-  const auto updates_v = fbb_.CreateVectorOfStructs(updates_);
+  // An empty vector is left out: absent reads as empty, and most frames have no enters and no
+  // leaves (8 bytes each: the length word and the field's offset).
+  const auto enters_v = enters_.empty() ? 0 : fbb_.CreateVector(enters_);
+  const auto leaves_v = leaves_.empty() ? 0 : fbb_.CreateVector(leaves_);
+  const auto updates_v = updates_.empty() ? 0 : fbb_.CreateVectorOfStructs(updates_);
   std::optional<w::verify_digest> digest;
   if (digest_) digest.emplace(digest_->tick, digest_->hash, digest_->count);
   std::optional<w::vec3> self;

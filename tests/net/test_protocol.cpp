@@ -49,13 +49,23 @@ struct gen {
       case 1: return input_msg{u32(), v()};
       case 2: return ping_msg{u64()};
       case 3: {
-        welcome_msg w{u32(), {v(), v()}, static_cast<std::uint16_t>(rng()), u64(), u32()};
+        // By field, in the order of the draws a braced list would make.
+        welcome_msg w;
+        w.entity_id = u32();
+        w.world.lo = v();
+        w.world.hi = v();
+        w.tick_rate_hz = static_cast<std::uint16_t>(rng());
+        w.server_tick = u64();
+        w.protocol_version = u32();
         if (rng() % 2) w.spawn_position = v();
         w.host_clock = rng() % 2 == 0;
         return w;
       }
       case 4: {
-        tick_update_msg t{u64(), u64(), u32(), {}, {}, {}, std::nullopt};
+        tick_update_msg t;
+        t.server_tick = u64();
+        t.server_time_us = u64();
+        t.last_input_sequence = u32();
         for (std::size_t i = below(20); i-- > 0;) t.enters.push_back(state());
         for (std::size_t i = below(50); i-- > 0;) t.leaves.push_back(u32());
         for (std::size_t i = below(200); i-- > 0;) t.updates.push_back(update());
@@ -201,6 +211,42 @@ TEST_SUITE("net.protocol") {
       const auto back = decode_frame(frame, big_frames());
       REQUIRE(back.value.has_value());
       CHECK(std::get<tick_update_msg>(*back.value) == t);
+    }
+  }
+
+  TEST_CASE("tick_update: an empty enters, leaves or updates vector is absent on the wire; writer and encoder agree byte for byte") {
+    const std::uint64_t seed = fresh_seed();
+    CAPTURE(seed);
+    gen g(seed);
+    tick_update_writer w;
+    encoder enc;
+    for (int rep = 0; rep < 40; ++rep) {
+      for (int empty = 0; empty < 8; ++empty) {  // bit 0: no enters, bit 1: no leaves, bit 2: no updates
+        CAPTURE(empty);
+        auto t = std::get<tick_update_msg>(g.make(4));
+        if (empty & 1) t.enters.clear(); else if (t.enters.empty()) t.enters.push_back(g.state());
+        if (empty & 2) t.leaves.clear(); else if (t.leaves.empty()) t.leaves.push_back(g.u32());
+        if (empty & 4) t.updates.clear(); else if (t.updates.empty()) t.updates.push_back(g.update());
+        w.begin(t.server_tick, t.server_time_us, t.last_input_sequence);
+        for (const auto& s : t.enters) w.add_enter(s);
+        for (const auto id : t.leaves) w.add_leave(id);
+        for (const auto& u : t.updates) w.add_update(u);
+        if (t.digest) w.set_digest(*t.digest);
+        w.set_reset(t.reset);
+        if (t.self_position) w.set_self_position(*t.self_position);
+        const auto written = w.finish();
+        const bytes from_writer(written.begin(), written.end());
+        const auto encoded = enc.encode(message{t});
+        CHECK(from_writer == bytes(encoded.begin(), encoded.end()));
+        const auto* body = zone::net::wire::GetSizePrefixedenvelope(from_writer.data())->message_as_tick_update();
+        REQUIRE(body != nullptr);
+        CHECK((body->enters() == nullptr) == ((empty & 1) != 0));
+        CHECK((body->leaves() == nullptr) == ((empty & 2) != 0));
+        CHECK((body->updates() == nullptr) == ((empty & 4) != 0));
+        const auto back = decode_frame(from_writer, big_frames());
+        REQUIRE(back.value.has_value());
+        CHECK(std::get<tick_update_msg>(*back.value) == t);
+      }
     }
   }
 
