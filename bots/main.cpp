@@ -69,6 +69,9 @@ double quantile(std::vector<double> v, double q) {
 struct summary {
   double p50 = 0, p95 = 0, p99 = 0, max = 0;
   std::uint64_t samples = 0;
+  // The same from when every bot was connected (swarm_result::steady_latency).
+  double steady_p50 = 0, steady_p95 = 0, steady_p99 = 0;
+  std::uint64_t steady_samples = 0;
   double kbps_median = 0, kbps_p95 = 0, msgs_median = 0;
   double total_kbps = 0;
 };
@@ -80,6 +83,12 @@ summary summarize(const swarm_result& r) {
   s.p99 = latency_histogram_us::percentile_ms(r.latency, 0.99);
   s.max = r.latency_max_ms;
   s.samples = latency_histogram_us::total(r.latency);
+  s.steady_samples = latency_histogram_us::total(r.steady_latency);
+  if (s.steady_samples > 0) {
+    s.steady_p50 = latency_histogram_us::percentile_ms(r.steady_latency, 0.5);
+    s.steady_p95 = latency_histogram_us::percentile_ms(r.steady_latency, 0.95);
+    s.steady_p99 = latency_histogram_us::percentile_ms(r.steady_latency, 0.99);
+  }
   std::vector<double> kbps, msgs;
   for (const auto& slot : r.slots) {
     if (slot.connected_s < 1.0) continue;
@@ -120,6 +129,15 @@ void print_table(const swarm_result& r, const summary& s) {
   row("update latency p99", ms(s.p99));
   row("update latency max", ms(s.max));
   row("latency samples (unsynced)", num(s.samples) + " (" + num(r.latency_unsynced) + ")");
+  if (s.steady_samples > 0) {
+    char from[32];
+    std::snprintf(from, sizeof from, "%.0f", r.steady_from_s);
+    row((std::string("all connected (from ") + from + " s): p50").c_str(), ms(s.steady_p50));
+    row("all connected: p95 / p99", ms(s.steady_p95) + " / " + ms(s.steady_p99));
+    row("all connected: latency samples", num(s.steady_samples));
+  } else {
+    row("all connected", std::string("never (no second with every bot connected)"));
+  }
   row("clock", r.host_clock ? std::string("host clock (same host: exact)") : "ping sync, fastest RTT " + ms(r.min_rtt_ms));
   row("downstream per bot, median", fmt(s.kbps_median, "KB/s"));
   row("downstream per bot, p95", fmt(s.kbps_p95, "KB/s"));
@@ -168,6 +186,8 @@ bool write_json(const std::string& path, const swarm_result& r, const summary& s
   o << "  \"self_positions\": " << r.self_positions << ",\n  \"host_clock\": " << (r.host_clock ? "true" : "false") << ",\n";
   o << "  \"latency_ms\": {\"p50\": " << s.p50 << ", \"p95\": " << s.p95 << ", \"p99\": " << s.p99 << ", \"max\": " << s.max
     << ", \"samples\": " << s.samples << ", \"unsynced\": " << r.latency_unsynced << ", \"min_rtt\": " << r.min_rtt_ms << "},\n";
+  o << "  \"latency_steady_ms\": {\"from_s\": " << r.steady_from_s << ", \"p50\": " << s.steady_p50 << ", \"p95\": "
+    << s.steady_p95 << ", \"p99\": " << s.steady_p99 << ", \"samples\": " << s.steady_samples << "},\n";
   o << "  \"per_bot\": {\"kbps_median\": " << s.kbps_median << ", \"kbps_p95\": " << s.kbps_p95
     << ", \"msgs_per_s_median\": " << s.msgs_median << "},\n";
   o << "  \"downstream_kbps_total\": " << s.total_kbps << ",\n";

@@ -254,6 +254,8 @@ class swarm {
     std::size_t launched = 0;
     auto next_second = start + std::chrono::seconds(1);
     auto prev_lat = latency_snapshot();
+    latency_histogram_us::counts steady_start{};  // the counts when every bot was first connected
+    double steady_from = -1;
     second_sample prev{};
     double churn_debt = 0;
     std::mt19937_64 churn_rng(12345);
@@ -280,6 +282,10 @@ class swarm {
         s.updates = c_.updates.load();
         s.mismatches = c_.mismatches();
         const auto lat = latency_snapshot();
+        if (steady_from < 0 && s.connected >= opt_.bots) {
+          steady_from = since;
+          steady_start = lat;
+        }
         latency_histogram_us::counts window{};
         for (int b = 0; b < latency_histogram_us::buckets; ++b) {
           window[static_cast<std::size_t>(b)] = lat[static_cast<std::size_t>(b)] - prev_lat[static_cast<std::size_t>(b)];
@@ -328,6 +334,10 @@ class swarm {
     r.series = series_;
     r.latency = latency_snapshot();
     for (const auto& h : latency_) r.latency_max_ms = std::max(r.latency_max_ms, h->max_ms());
+    if (steady_from >= 0) {
+      r.steady_from_s = steady_from;
+      for (std::size_t b = 0; b < r.latency.size(); ++b) r.steady_latency[b] = r.latency[b] - steady_start[b];
+    }
     {
       std::lock_guard lock(problems_mutex_);
       r.problems = problems_;

@@ -106,6 +106,10 @@ struct swarm_result {
   std::vector<second_sample> series;
   latency_histogram_us::counts latency{};
   double latency_max_ms = 0;
+  /// The latencies from the first once-a-second sample with every bot connected to the end (the
+  /// ramp-up left out); steady_from_s < 0 when that never happened (then steady_latency is empty).
+  double steady_from_s = -1;
+  latency_histogram_us::counts steady_latency{};
   std::vector<std::string> problems;  ///< first mismatches and failures, readable (tick and ids)
   std::uint64_t problems_total = 0;
   // Copies of the counters at the end.

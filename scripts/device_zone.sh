@@ -18,7 +18,7 @@
 # disjoint cores; unset = no pinning), SERVER_BIN (the zone-server binary, $DEVICE_DIR/zone-server),
 # RUN_TAG (prefix of the swarm step's log names, to keep several runs in one $OUT), BENCH_ENTITIES
 # (100000), BENCH_TICKS (600), BENCH_FINDERS ("gpu cpu").
-# The swarm step also writes the server's CPU time per thread, summed by thread name (zone-worker-N,
+# The swarm step also writes the server's per-tick CSV (--tick-csv: <tag>zone-ticks.csv) and the server's CPU time per thread, summed by thread name (zone-worker-N,
 # zone-io-N, the main thread as zone-server), before it stops the server: <tag>server-threads.txt.
 # Logs, CSV and JSON go to $OUT (or ./out).
 set -uo pipefail
@@ -76,7 +76,7 @@ for step in "$@"; do
       "${server_pin[@]}" "$server_bin" --listen 127.0.0.1 --port 0 --metrics-port 0 --npcs "$npcs" --tick-rate 30 \
         --max-clients $((bots + 100)) --threads "${SERVER_THREADS:-8}" --io-threads "${SERVER_IO_THREADS:-4}" \
         --finder auto --interest "${SERVER_INTEREST:-auto}" --socket-send-buffer "${SERVER_SNDBUF:-65536}" \
-        ${SERVER_ARGS:-} > "$out/${tag}zone-server.log" 2>&1 &
+        --tick-csv "$out/${tag}zone-ticks.csv" ${SERVER_ARGS:-} > "$out/${tag}zone-server.log" 2>&1 &
       server=$!
       port=
       for _ in $(seq 600); do

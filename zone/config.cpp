@@ -49,6 +49,10 @@ std::optional<std::string> validate(const zone_config& c) {
     return bad("update-near and update-mid must be >= 0 with update-mid >= update-near");
   }
   if (c.update_mid_period == 0 || c.update_far_period == 0) return bad("update periods must be >= 1");
+  if (c.client_send_every == 0) return bad("client-send-every must be >= 1");
+  // The digest goes in the frames of ticks that are multiples of digest-every: with staggered
+  // clients some would never get one.
+  if (c.client_send_every > 1 && c.digest_every > 1) return bad("client-send-every > 1 needs digest-every 0 or 1");
   static const char* finders[] = {"auto", "cpu", "gpu", "pbig", "lbvh", "brute"};
   if (std::find(std::begin(finders), std::end(finders), c.finder) == std::end(finders)) {
     return bad("finder must be auto, cpu, gpu (= pbig), pbig, lbvh or brute");
@@ -81,7 +85,8 @@ config_result parse_config(int argc, const char* const* argv) {
   general.add_options()                                                                   //
       ("help,h", "print this help and exit")                                              //
       ("config", po::value(&config_file), "read options from an INI-style file (name = value)")  //
-      ("log-level", po::value(&c.log_level)->default_value(c.log_level), "trace, debug, info, warn, error, critical, off");
+      ("log-level", po::value(&c.log_level)->default_value(c.log_level), "trace, debug, info, warn, error, critical, off")  //
+      ("tick-csv", po::value(&c.tick_csv), "write one CSV line per tick to this file: tick, seconds since start, clients, frames, bytes, and the phases' ms (docs/zone.md)");
   po::options_description world("World and tick");
   world.add_options()                                                                                  //
       ("world-x", po::value(&world_x)->default_value(world_x), "world size along x (m), from 0")        //
@@ -128,6 +133,7 @@ config_result parse_config(int argc, const char* const* argv) {
       ("io-nice", po::value(&c.io_nice)->default_value(c.io_nice), "nice value of the I/O threads, 0-19 (above 0: lower priority than the tick's workers where they share cores)")  //
       ("inputs-per-second", po::value(&c.inputs_per_second)->default_value(c.inputs_per_second), "input rate limit per client")  //
       ("client-byte-budget", po::value(&c.client_byte_budget)->default_value(c.client_byte_budget), "bytes per client per tick")  //
+      ("client-send-every", po::value(&c.client_send_every)->default_value(c.client_send_every), "each client gets a frame every K ticks, clients staggered (1 = every tick; 2 at 30 Hz = 15 frames a second each, half the frames built and sent per tick)")  //
       ("client-max-backlog", po::value(&c.client_max_backlog)->default_value(c.client_max_backlog), "a client with this many state frames still unwritten gets no new frame this tick (0 = off: always send; then a full queue drops frames and resyncs)")  //
       ("teleport", po::value(&c.teleport_enabled)->default_value(c.teleport_enabled), "players may teleport themselves (0 or 1)")  //
       ("teleport-cooldown", po::value(&c.teleport_cooldown_s)->default_value(c.teleport_cooldown_s), "least seconds between two teleports of one player")  //

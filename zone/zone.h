@@ -576,6 +576,10 @@ struct zone_config {
   /// frame this tick: a slow reader is sent fewer, fresher frames (its view catches up in the next
   /// one) instead of overflowing its queue into drops and resets. 0 = off (always send).
   std::uint32_t client_max_backlog = 2;
+  /// Each client gets a frame every this many ticks (1: every tick), the clients staggered by
+  /// session so that each tick builds about 1/K of the frames. The world still steps every tick;
+  /// a frame carries everything since the client's last one.
+  std::uint32_t client_send_every = 1;
   bool teleport_enabled = true;      ///< players may teleport themselves (the teleport message)
   float spawn_radius = 200;          ///< players spawn uniformly within this distance of a town centre (m)
   /// Replication's update-rate tiers (docs/zone.md): every tick within update_near metres, every
@@ -587,6 +591,9 @@ struct zone_config {
   bool metrics_enabled = true;        ///< serve Prometheus text at http://listen:metrics_port/metrics
   std::uint16_t metrics_port = 9100;  ///< 0 = an ephemeral port
   std::string log_level = "info";
+  /// When set, one CSV line per tick (its wall time, clients, frames and phase timings) goes to
+  /// this file, so percentiles can be taken over any window (e.g. after a swarm's ramp-up).
+  std::string tick_csv;
 };
 
 /// Result of parse_config: a config, or a message (the help text, or a readable error).

@@ -7,7 +7,9 @@
 #include <spdlog/spdlog.h>
 
 #include <chrono>
+#include <cerrno>
 #include <cmath>
+#include <cstring>
 #include <thread>
 
 namespace zone {
@@ -110,6 +112,7 @@ std::string zone_server::interest_name() const {
 zone_server::~zone_server() {
   net_.stop();
   if (metrics_) metrics_->stop();
+  if (tick_csv_) std::fclose(tick_csv_);
 }
 
 std::string zone_server::metrics_text() const {
@@ -173,6 +176,12 @@ std::optional<std::string> zone_server::start() {
   if (auto err = validate(cfg_)) return err;
   if (!finder_error_.empty()) return finder_error_;
   if (!engine_error_.empty()) return engine_error_;
+  if (!cfg_.tick_csv.empty()) {
+    tick_csv_ = std::fopen(cfg_.tick_csv.c_str(), "w");
+    if (!tick_csv_) return "cannot write tick-csv file '" + cfg_.tick_csv + "': " + std::strerror(errno);
+    std::fputs("tick,t_s,clients,frames,bytes,inputs_ms,behaviours_ms,integrate_ms,interest_ms,replicate_ms,tick_ms\n",
+               tick_csv_);
+  }
   world_->populate();
   spdlog::info("zone: {} NPCs, world {}x{}x{} m, {} Hz, {} worker threads, interest on {}", world_->store().size(),
                cfg_.world.hi.x, cfg_.world.hi.y, cfg_.world.hi.z, cfg_.tick_rate_hz, pool_->size(), interest_name());
@@ -285,7 +294,10 @@ void zone_server::replicate() {
   // in tick order.
   requests_.clear();
   request_sessions_.clear();
+  const std::uint64_t every = cfg_.client_send_every, phase = world_->tick() % every;
   for (const auto& [session, c] : clients_) {
+    // Not this client's tick (client_send_every > 1): its next frame carries this tick's changes.
+    if (every > 1 && session % every != phase) continue;
     // Paced to what the client absorbs: no new frame while its backlog is full (the next one
     // carries everything since: the replicator moves the view from what was last built).
     if (cfg_.client_max_backlog != 0 && c.backlog &&
@@ -320,10 +332,30 @@ void zone_server::replicate() {
   stats_.frames_sent += frame_bytes_.size();
 }
 
+void zone_server::write_tick_line(double inputs_ms, double replicate_ms, double tick_ms, std::uint64_t frames,
+                                  std::uint64_t bytes) {
+  // The world's phases of this tick: the growth of their histograms' sums since the last line.
+  const auto& ph = world_->phases();
+  const double sums[3] = {ph.behaviours.sum(), ph.integrate.sum(), ph.interest.sum()};
+  double ms[3];
+  for (int k = 0; k < 3; ++k) {
+    ms[k] = sums[k] - phase_sums_[k];
+    phase_sums_[k] = sums[k];
+  }
+  const double t = std::chrono::duration<double>(clock_type::now() - started_).count();
+  std::fprintf(tick_csv_, "%llu,%.4f,%llu,%llu,%llu,%.3f,%.3f,%.3f,%.3f,%.3f,%.3f\n",
+               static_cast<unsigned long long>(world_->tick()), t, static_cast<unsigned long long>(stats_.clients),
+               static_cast<unsigned long long>(frames), static_cast<unsigned long long>(bytes), inputs_ms, ms[0], ms[1],
+               ms[2], replicate_ms, tick_ms);
+}
+
 void zone_server::tick_once() {
   const auto t0 = clock_type::now();
+  if (stats_.ticks == 0) started_ = t0;
+  const std::uint64_t frames0 = stats_.frames_sent, bytes0 = stats_.bytes_sent;
   drain_inputs();
-  stats_.inputs_ms.record(ms_since(t0));
+  const double inputs_ms = ms_since(t0);
+  stats_.inputs_ms.record(inputs_ms);
   if (auto err = world_->step()) spdlog::error("tick {}: {}", world_->tick(), err->message);
   if (!engine_failure_logged_ && !world_->tracker().engine_error().empty()) {
     engine_failure_logged_ = true;
@@ -332,9 +364,13 @@ void zone_server::tick_once() {
   }
   const auto t1 = clock_type::now();
   replicate();
-  stats_.replicate_ms.record(ms_since(t1));
-  stats_.tick_ms.record(ms_since(t0));
+  const double replicate_ms = ms_since(t1), tick_ms = ms_since(t0);
+  stats_.replicate_ms.record(replicate_ms);
+  stats_.tick_ms.record(tick_ms);
   ++stats_.ticks;
+  if (tick_csv_) {
+    write_tick_line(inputs_ms, replicate_ms, tick_ms, stats_.frames_sent - frames0, stats_.bytes_sent - bytes0);
+  }
   // Refresh the metrics snapshot about once a second (the scrape never touches game state).
   const auto every = static_cast<std::uint64_t>(std::max(1.0, cfg_.tick_rate_hz));
   if (metrics_ && stats_.ticks % every == 1) metrics_->publish(metrics_text());

@@ -60,6 +60,19 @@ TEST_SUITE("zone.config") {
     CHECK_FALSE(bad_finder.config.has_value());
     CHECK(bad_finder.message.find("finder") != std::string::npos);
 
+    CHECK(d.config->client_send_every == 1);
+    const auto every3 = parse({"--client-send-every", "3"});
+    REQUIRE(every3.config.has_value());
+    CHECK(every3.config->client_send_every == 3);
+    const auto every0 = parse({"--client-send-every", "0"});
+    CHECK_FALSE(every0.config.has_value());
+    CHECK(every0.message.find("client-send-every") != std::string::npos);
+    // Staggered clients with a digest every K > 1 ticks: some clients would never get one.
+    const auto staggered = parse({"--client-send-every", "2", "--digest-every", "3"});
+    CHECK_FALSE(staggered.config.has_value());
+    CHECK(staggered.message.find("digest-every") != std::string::npos);
+    CHECK(parse({"--client-send-every", "2", "--digest-every", "0"}).config.has_value());
+
     const std::string path = "zone_config_test_" + std::to_string(fresh_seed()) + ".ini";
     {
       std::ofstream f(path);

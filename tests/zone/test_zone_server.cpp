@@ -3,7 +3,10 @@
 // client's own entity; a hostile client is cut off while the others keep receiving correct updates.
 #include <doctest/doctest.h>
 
+#include <cstdio>
+#include <fstream>
 #include <map>
+#include <sstream>
 #include <set>
 #include <random>
 #include <thread>
@@ -378,6 +381,118 @@ TEST_SUITE("zone.server") {
     CHECK(problems == 0);
     CHECK(view->problems() == 0);
     CHECK_FALSE(slow.closed());
+  }
+
+  TEST_CASE("client_send_every 2: each client a frame every other tick, staggered; every frame applies and verifies") {
+    zone_config cfg = test_config();
+    cfg.metrics_enabled = false;
+    cfg.client_send_every = 2;
+    zone_server server(cfg);
+    REQUIRE_FALSE(server.start().has_value());
+    constexpr int count = 4;
+    std::vector<std::unique_ptr<test_client>> clients;
+    for (int i = 0; i < count; ++i) {
+      clients.push_back(std::make_unique<test_client>(server.port()));
+      REQUIRE(clients.back()->send(net::hello_msg{"every2-" + std::to_string(i), "", net::protocol_version}));
+    }
+    // Tick until every client has its welcome (the hellos are drained by the ticks).
+    std::optional<net::position_quantizer> quantizer;
+    std::vector<view_state> views(count);
+    std::vector<std::vector<std::uint64_t>> ticks(count);
+    const auto take = [&](int i, const net::message& m) {
+      if (const auto* w = std::get_if<net::welcome_msg>(&m)) quantizer.emplace(w->world);
+      if (const auto* u = std::get_if<net::tick_update_msg>(&m)) {
+        REQUIRE(quantizer.has_value());
+        views[i].apply(*u, *quantizer);
+        ticks[i].push_back(u->server_tick);
+      }
+    };
+    for (int t = 0; t < 60; ++t) {
+      server.tick_once();
+      std::this_thread::sleep_for(3ms);
+    }
+    for (int i = 0; i < count; ++i) {
+      while (auto m = clients[i]->read(300ms)) take(i, *m);
+    }
+    std::set<std::uint64_t> parities;
+    for (int i = 0; i < count; ++i) {
+      CAPTURE(i);
+      REQUIRE(ticks[i].size() >= 10);
+      for (std::size_t k = 1; k < ticks[i].size(); ++k) CHECK(ticks[i][k] - ticks[i][k - 1] == 2);
+      parities.insert(ticks[i].front() % 2);
+      CHECK(views[i].consistent);
+      CHECK(views[i].digest_ok);
+      CHECK(views[i].entities.size() > 0);
+    }
+    CHECK(parities.size() == 2);  // four consecutive sessions: both halves of the stagger
+  }
+
+  TEST_CASE("--tick-csv: one line per tick whose phases add up to the server's histograms; an unwritable path refuses to start") {
+    const std::string path = "test_zone_server_ticks.csv";
+    constexpr int ticks = 12;
+    double interest_sum = 0, behaviours_sum = 0, replicate_sum = 0;
+    std::uint64_t frames_sent = 0, bytes_sent = 0;
+    {
+      zone_config cfg = test_config();
+      cfg.metrics_enabled = false;
+      cfg.tick_csv = path;
+      zone_server server(cfg);
+      REQUIRE_FALSE(server.start().has_value());
+      test_client player(server.port());
+      REQUIRE(player.send(net::hello_msg{"csv", "", net::protocol_version}));
+      for (int t = 0; t < ticks; ++t) {
+        server.tick_once();
+        std::this_thread::sleep_for(5ms);  // the hello arrives within the first ticks
+      }
+      interest_sum = server.world().phases().interest.sum();
+      behaviours_sum = server.world().phases().behaviours.sum();
+      replicate_sum = server.stats().replicate_ms.sum();
+      frames_sent = server.stats().frames_sent;
+      bytes_sent = server.stats().bytes_sent;
+      CHECK(frames_sent > 0);
+    }  // the file is complete once the server is gone
+    std::ifstream in(path);
+    REQUIRE(in.good());
+    std::string line;
+    REQUIRE(std::getline(in, line));
+    CHECK(line == "tick,t_s,clients,frames,bytes,inputs_ms,behaviours_ms,integrate_ms,interest_ms,replicate_ms,tick_ms");
+    int lines = 0;
+    double sums[11] = {};
+    double last_t = -1;
+    while (std::getline(in, line)) {
+      double v[11];
+      std::istringstream row(line);
+      char comma = 0;
+      for (int k = 0; k < 11; ++k) {
+        REQUIRE((row >> v[k]));
+        if (k < 10) {
+          REQUIRE((row >> comma));
+          REQUIRE(comma == ',');
+        }
+        sums[k] += v[k];
+      }
+      ++lines;
+      CHECK(v[0] == lines);  // the world's tick after the step
+      CHECK(v[1] >= last_t);
+      last_t = v[1];
+      CHECK(v[10] + 0.002 >= v[5] + v[9]);  // the tick holds its inputs and replicate phases
+    }
+    CHECK(lines == ticks);
+    CHECK(sums[3] == doctest::Approx(static_cast<double>(frames_sent)));
+    CHECK(sums[4] == doctest::Approx(static_cast<double>(bytes_sent)));
+    CHECK(sums[2] >= 1);  // the client was counted once it joined
+    CHECK(sums[8] == doctest::Approx(interest_sum).epsilon(0.01));
+    CHECK(sums[6] == doctest::Approx(behaviours_sum).epsilon(0.01));
+    CHECK(sums[9] == doctest::Approx(replicate_sum).epsilon(0.01));
+    std::remove(path.c_str());
+
+    zone_config cfg = test_config();
+    cfg.metrics_enabled = false;
+    cfg.tick_csv = "no-such-directory/ticks.csv";
+    zone_server server(cfg);
+    const auto err = server.start();
+    REQUIRE(err.has_value());
+    CHECK(err->find("no-such-directory/ticks.csv") != std::string::npos);
   }
 
   TEST_CASE("the finder choice: auto and cpu always start; gpu without a usable device refuses, naming why") {

@@ -1,0 +1,103 @@
+#!/usr/bin/env bash
+# How many bots one host holds: scripts/device_zone.sh's swarm step (zone-server + bot-swarm on
+# loopback, verify mode) once per bot count, then one table of what each run measured against
+# issue 5's targets (docs/zone-benchmarks.md, "How many bots one host holds").
+#
+#   SWEEP_BOTS="5000 10000 15000 19900" DEVICE_DIR=.device-zone bash scripts/device_swarm_sweep.sh
+#
+# Environment: SWEEP_BOTS (the bot counts, in order), SWEEP_LAYOUT (pinned: server on cores 0-9
+# with 4 I/O threads, swarm on 10-15 with 6 threads; shared: both on every core, 6 I/O threads, 8
+# swarm threads; default pinned), SWEEP_REPEAT (runs per bot count, default 1), and everything
+# device_zone.sh's swarm step reads (SWARM_NPCS, SWARM_SECONDS, SERVER_THREADS, SERVER_ARGS, ...).
+# Each run's logs are in $OUT with the prefix <layout>-<bots>[-<repeat>]-; the table is printed and
+# written to $OUT/sweep.csv.
+set -uo pipefail
+dir=${DEVICE_DIR:-.device}
+out=${OUT:-out}
+mkdir -p "$out"
+here=$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)
+layout=${SWEEP_LAYOUT:-pinned}
+case "$layout" in
+  pinned) export SERVER_CPUS=${SERVER_CPUS:-0-9} SWARM_CPUS=${SWARM_CPUS:-10-15} \
+            SERVER_IO_THREADS=${SERVER_IO_THREADS:-4} SWARM_THREADS=${SWARM_THREADS:-6} ;;
+  shared) unset SERVER_CPUS SWARM_CPUS
+          export SERVER_IO_THREADS=${SERVER_IO_THREADS:-6} SWARM_THREADS=${SWARM_THREADS:-8} ;;
+  *) echo "SWEEP_LAYOUT must be pinned or shared" >&2; exit 2 ;;
+esac
+export SERVER_ARGS=${SERVER_ARGS:---worker-spin-us 0}
+tags=()
+for bots in ${SWEEP_BOTS:-5000 10000 15000 19900}; do
+  for r in $(seq "${SWEEP_REPEAT:-1}"); do
+    tag=$layout-$bots
+    [ "${SWEEP_REPEAT:-1}" -gt 1 ] && tag=$tag-$r
+    tags+=("$tag")
+    SWARM_BOTS=$bots RUN_TAG=$tag DEVICE_DIR=$dir OUT=$out bash "$here/device_zone.sh" swarm > "$out/$tag-step.log" 2>&1
+    grep -E "^==|bot-swarm exit" "$out/$tag-step.log"
+  done
+done
+
+# One row per run: the swarm's report (JSON) and the server's phase histograms (its log).
+python3 - "$out" "${tags[@]}" <<'EOF'
+import csv, json, math, re, sys
+out, tags = sys.argv[1], sys.argv[2:]
+# Latency and tick percentiles are the steady state's: from the first second with every bot
+# connected (the swarm's latency_steady_ms) and the ticks with every bot a client (the server's
+# --tick-csv); the whole run's, ramp-up included, follow in brackets.
+cols = ["run", "bots", "connected", "mismatches", "resyncs", "frames/s/bot", "KB/s/bot median",
+        "latency p50 / p99 ms [whole run]", "tick p50 / p99 / max ms [whole run p99]", "replicate p50 / p99 ms",
+        "interest p99 ms", "steady ticks (over 33.3 ms)", "server CPU s", "swarm CPU s", "CPU us/frame (server + swarm)"]
+
+def pct(values, q):
+    # Nearest rank.
+    if not values:
+        return float("nan")
+    v = sorted(values)
+    return v[min(len(v), max(1, math.ceil(q * len(v)))) - 1]
+rows = []
+for tag in tags:
+    try:
+        rep = json.load(open(f"{out}/{tag}-swarm-report.json"))
+        log = open(f"{out}/{tag}-zone-server.log").read()
+    except OSError as e:
+        rows.append([tag] + ["(missing: %s)" % e.filename] + [""] * (len(cols) - 2))
+        continue
+    def phase(name):
+        m = re.search(r"\]\s+%s\s+p50\s+([\d.]+) ms\s+p99\s+([\d.]+) ms" % name, log)
+        return (float(m.group(1)), float(m.group(2))) if m else (float("nan"), float("nan"))
+    steady = []
+    try:
+        for row in csv.DictReader(open(f"{out}/{tag}-zone-ticks.csv")):
+            if int(row["clients"]) >= rep["bots"]:
+                steady.append({k: float(v) for k, v in row.items()})
+    except OSError:
+        pass
+    tick = [r["tick_ms"] for r in steady]
+    repl = [r["replicate_ms"] for r in steady]
+    inter = [r["interest_ms"] for r in steady]
+    over = sum(1 for t in tick if t > 1000.0 / 30)
+    lat = rep.get("latency_steady_ms", {})
+    cpu = 0.0
+    try:
+        for line in open(f"{out}/{tag}-server-threads.txt"):
+            cpu += float(line.split()[-2])
+    except OSError:
+        cpu = float("nan")
+    frames = rep["tick_updates"] or 1
+    rows.append([tag, rep["bots"], rep["bots_connected"], rep["mismatches"], rep["resets"],
+                 "%.1f" % rep["per_bot"]["msgs_per_s_median"], "%.1f" % rep["per_bot"]["kbps_median"],
+                 "%.1f / %.1f [%.1f / %.1f]" % (lat.get("p50", float("nan")), lat.get("p99", float("nan")),
+                                                rep["latency_ms"]["p50"], rep["latency_ms"]["p99"]),
+                 "%.1f / %.1f / %.1f [%.1f]" % (pct(tick, 0.5), pct(tick, 0.99), max(tick, default=float("nan")),
+                                                phase("tick")[1]),
+                 "%.1f / %.1f" % (pct(repl, 0.5), pct(repl, 0.99)), "%.1f" % pct(inter, 0.99),
+                 "%d (%d)" % (len(tick), over), "%.1f" % cpu,
+                 "%.1f" % rep["swarm_cpu_s"], "%.1f + %.1f" % (cpu / frames * 1e6, rep["swarm_cpu_s"] / frames * 1e6)])
+with open(f"{out}/sweep.csv", "w") as f:
+    f.write(",".join(cols) + "\n")
+    for r in rows:
+        f.write(",".join('"%s"' % c if "," in str(c) else str(c) for c in r) + "\n")
+print("| " + " | ".join(cols) + " |")
+print("|" + "---|" * len(cols))
+for r in rows:
+    print("| " + " | ".join(str(c) for c in r) + " |")
+EOF
