@@ -189,6 +189,18 @@ TEST_CASE("end to end: 200 bots in verify mode, zero mismatches, p99 tick bounde
   CHECK(json_number(report, "digests_checked").value_or(0) > 200 * 20 * 5);
   CHECK(json_number(report, "aoi_checked").value_or(0) > 0);
   CHECK(json_number(report, "samples").value_or(0) > 0);
+  // The steady state: 200 bots at 100 a second are all connected after ~2 s (sampled once a
+  // second), and its latency samples are part of the whole run's.
+  const auto steady_at = report.find("\"latency_steady_ms\"");
+  REQUIRE(steady_at != std::string::npos);
+  const std::string steady = report.substr(steady_at);
+  const double from_s = json_number(steady, "from_s").value_or(-1);
+  CHECK(from_s >= 1);
+  CHECK(from_s <= 6);
+  const double steady_samples = json_number(steady, "samples").value_or(0);
+  CHECK(steady_samples > 200 * 20 * 5);
+  CHECK(steady_samples < json_number(report, "samples").value_or(0));
+  CHECK(json_number(steady, "p99").value_or(0) > 0);
   // --inputs changes (the default): the intent is evaluated at 10 Hz (>= 10 s of play per bot),
   // and sent only when it changed or as the 1 s keep-alive. Walk and patrol bots (60 %) change
   // every 3-4 s, follow and crowd bots (40 %) steer all the time: measured 43 % of evaluations sent.
