@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # How many bots one host holds: scripts/device_zone.sh's swarm step (zone-server + bot-swarm on
 # loopback, verify mode) once per bot count, then one table of what each run measured against
-# issue 5's targets (docs/zone-benchmarks.md, "How many bots one host holds").
+# issue 5's targets (docs/zone-benchmarks.md, "2026-11-24 (d): how many bots one host holds").
 #
 #   SWEEP_BOTS="5000 10000 15000 19900" DEVICE_DIR=.device-zone bash scripts/device_swarm_sweep.sh
 #
@@ -36,7 +36,7 @@ for bots in ${SWEEP_BOTS:-5000 10000 15000 19900}; do
   done
 done
 
-# One row per run: the swarm's report (JSON) and the server's phase histograms (its log).
+# One row per run: the swarm's report (JSON), the server's tick CSV and, for the whole run, its log.
 python3 - "$out" "${tags[@]}" <<'EOF'
 import csv, json, math, re, sys
 out, tags = sys.argv[1], sys.argv[2:]

@@ -18,10 +18,12 @@
 # disjoint cores; unset = no pinning), SERVER_BIN (the zone-server binary, $DEVICE_DIR/zone-server),
 # RUN_TAG (prefix of the swarm step's log names, to keep several runs in one $OUT), BENCH_ENTITIES
 # (100000), BENCH_TICKS (600), BENCH_FINDERS ("gpu cpu").
-# The swarm step also writes the server's per-tick CSV (--tick-csv: <tag>zone-ticks.csv) and the server's CPU time per thread, summed by thread name (zone-worker-N,
+# The swarm step also writes the server's per-tick CSV (--tick-csv: <tag>zone-ticks.csv) and the
+# server's CPU time per thread, summed by thread name (zone-worker-N,
 # zone-io-N, the main thread as zone-server), before it stops the server: <tag>server-threads.txt.
 # Logs, CSV and JSON go to $OUT (or ./out).
 set -uo pipefail
+. "$(dirname "${BASH_SOURCE[0]}")/zone_procs.sh"
 dir=${DEVICE_DIR:-.device}
 out=${OUT:-out}
 mkdir -p "$out"
@@ -78,12 +80,7 @@ for step in "$@"; do
         --finder auto --interest "${SERVER_INTEREST:-auto}" --socket-send-buffer "${SERVER_SNDBUF:-65536}" \
         --tick-csv "$out/${tag}zone-ticks.csv" ${SERVER_ARGS:-} > "$out/${tag}zone-server.log" 2>&1 &
       server=$!
-      port=
-      for _ in $(seq 600); do
-        port=$(grep -o 'listening on [0-9.]*:[0-9]*' "$out/${tag}zone-server.log" | sed 's/.*://')
-        [ -n "$port" ] && break
-        sleep 0.1
-      done
+      port=$(zone_port "$out/${tag}zone-server.log" 600)
       if [ -z "$port" ]; then
         echo "zone-server did not start"; cat "$out/${tag}zone-server.log"; kill "$server"; continue
       fi
@@ -93,10 +90,7 @@ for step in "$@"; do
       echo "bot-swarm exit code: $?"
       tail -40 "$out/${tag}swarm.log"
       awk '{printf "zone-server CPU time (user + system): %.1f s\n", ($14 + $15) / 100}' "/proc/$server/stat" 2>/dev/null
-      for t in /proc/"$server"/task/*; do
-        printf '%s %s\n' "$(sed 's/-[0-9][0-9]*$/-N/' "$t/comm")" "$(cut -d' ' -f14,15 "$t/stat")"
-      done | awk '{cpu[$1] += ($2 + $3) / 100; n[$1]++} END {for (k in cpu) printf "  %-16s %3d threads %8.1f s\n", k, n[k], cpu[k]}' |
-        sort > "$out/${tag}server-threads.txt"
+      thread_cpu "$server" | awk '{printf "  %-16s %3d threads %8.1f s\n", $1, $2, $3 / 100}' > "$out/${tag}server-threads.txt"
       echo "zone-server CPU by thread name:"; cat "$out/${tag}server-threads.txt"
       kill -TERM "$server"
       wait "$server"

@@ -10,6 +10,7 @@
 # window instead of a plain wait; the data goes to OUTDIR/TAG/perf.data).
 # docs/zone-benchmarks.md ("2026-11-24 (b)") has runs of it; alternate old and new binaries.
 set -u
+. "$(dirname "${BASH_SOURCE[0]}")/zone_procs.sh"
 srv=$1; sw=$2; tag=$3; shift 3
 ulimit -n 8192 2>/dev/null
 BOTS=${BOTS:-1500}; NPCS=${NPCS:-5000}; SECS=${SECS:-25}; HZ=${HZ:-20}
@@ -17,12 +18,7 @@ out=${OUTDIR:-/tmp/zone-cpu}/$tag; mkdir -p "$out"
 "$srv" --listen 127.0.0.1 --port 0 --metrics-port 0 --npcs "$NPCS" --tick-rate "$HZ" --threads "${THREADS:-2}" \
   --io-threads "${IO_THREADS:-2}" --max-clients $((BOTS + 100)) --socket-send-buffer 65536 "$@" > "$out/server.log" 2>&1 &
 pid=$!
-port=
-for _ in $(seq 300); do
-  port=$(grep -o 'listening on [0-9.]*:[0-9]*' "$out/server.log" | sed 's/.*://')
-  [ -n "$port" ] && break
-  sleep 0.1
-done
+port=$(zone_port "$out/server.log" 300)
 [ -n "$port" ] || { echo "zone-server did not start"; cat "$out/server.log"; kill "$pid"; exit 1; }
 mport=$(grep -o 'metrics on http://[0-9.]*:[0-9]*' "$out/server.log" | sed 's/.*://')
 ramp=250
@@ -32,11 +28,7 @@ load0=$(cut -d' ' -f1 /proc/loadavg)
 swarm=$!
 sleep $((BOTS / ramp + 3))
 metric() { curl -s "http://127.0.0.1:$mport/metrics" | awk -v m="$1" '$1 == m {print $2}'; }
-threads() {
-  for t in /proc/"$pid"/task/*; do
-    printf '%s %s\n' "$(sed 's/-[0-9][0-9]*$/-N/' "$t/comm")" "$(cut -d' ' -f14,15 "$t/stat")"
-  done | awk '{cpu[$1] += $2 + $3} END {for (k in cpu) print k, cpu[k]}' | sort
-}
+threads() { thread_cpu "$pid"; }
 f0=$(metric zone_net_frames_out_total); c0=$(cut -d' ' -f14,15 "/proc/$pid/stat" | awk '{print $1 + $2}'); threads > "$out/t0"
 w0=$(date +%s.%N)
 if [ -n "${PERF:-}" ]; then
@@ -49,7 +41,7 @@ w1=$(date +%s.%N)
 wait "$swarm"
 kill -TERM "$pid"; wait "$pid"
 echo "== $tag (load before $load0), window $(awk -v a="$w0" -v b="$w1" 'BEGIN {printf "%.1f", b - a}') s"
-join "$out/t0" "$out/t1" | awk '{printf "  %-16s %6.2f s\n", $1, ($3 - $2) / 100}'
+join "$out/t0" "$out/t1" | awk '{printf "  %-16s %6.2f s\n", $1, ($5 - $3) / 100}'  # name, count, ticks twice
 awk -v f0="$f0" -v f1="$f1" -v c0="$c0" -v c1="$c1" 'BEGIN {
   f = f1 - f0; c = (c1 - c0) / 100
   printf "  frames written %d, server CPU %.2f s: %.2f us per frame\n", f, c, (f > 0 ? c / f * 1e6 : 0) }'

@@ -395,7 +395,7 @@ TEST_SUITE("zone.server") {
       clients.push_back(std::make_unique<test_client>(server.port()));
       REQUIRE(clients.back()->send(net::hello_msg{"every2-" + std::to_string(i), "", net::protocol_version}));
     }
-    // Tick until every client has its welcome (the hellos are drained by the ticks).
+    // 60 ticks: the first drain the hellos (welcomes), the rest send each client a frame every other tick.
     std::optional<net::position_quantizer> quantizer;
     std::vector<view_state> views(count);
     std::vector<std::vector<std::uint64_t>> ticks(count);
