@@ -5,10 +5,14 @@
 #
 #   SWEEP_BOTS="5000 10000 15000 19900" DEVICE_DIR=.device-zone bash scripts/device_swarm_sweep.sh
 #
-# Environment: SWEEP_BOTS (the bot counts, in order), SWEEP_LAYOUT (pinned: server on cores 0-9
-# with 4 I/O threads, swarm on 10-15 with 6 threads; shared: both on every core, 6 I/O threads, 8
-# swarm threads; default pinned), SWEEP_REPEAT (runs per bot count, default 1), and everything
-# device_zone.sh's swarm step reads (SWARM_NPCS, SWARM_SECONDS, SERVER_THREADS, SERVER_ARGS, ...).
+# Environment: SWEEP_BOTS (the bot counts, in order), SWEEP_LAYOUT (pinned: the server on the first
+# 5/8 of the cores with 8 workers and 4 I/O threads per 10 cores, the swarm on the rest with a
+# thread per core; on the 16-core H100 host: server 0-9, 8 workers, 4 I/O threads, swarm 10-15, 6
+# threads; on a 32-core host: 0-19, 16, 8, and 20-31, 12. shared: both on every core, 3/8 of the
+# cores as I/O threads and half as swarm threads: 6 and 8 on 16 cores. Default pinned),
+# SWEEP_REPEAT (runs per bot count, default 1), and everything device_zone.sh's swarm step reads
+# (SWARM_NPCS, SWARM_SECONDS, SERVER_THREADS, SERVER_CPUS, SERVER_ARGS, ...), which win over the
+# layout's.
 # Each run's logs are in $OUT with the prefix <layout>-<bots>[-<repeat>]-; the table is printed and
 # written to $OUT/sweep.csv.
 set -uo pipefail
@@ -17,14 +21,22 @@ out=${OUT:-out}
 mkdir -p "$out"
 here=$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)
 layout=${SWEEP_LAYOUT:-pinned}
+cores=$(nproc)
+[ "$cores" -ge 4 ] || { echo "device_swarm_sweep.sh: $cores cores; the layouts need at least 4" >&2; exit 2; }
+at_least_1() { echo $(($1 > 0 ? $1 : 1)); }
+server_cores=$((cores * 5 / 8))
 case "$layout" in
-  pinned) export SERVER_CPUS=${SERVER_CPUS:-0-9} SWARM_CPUS=${SWARM_CPUS:-10-15} \
-            SERVER_IO_THREADS=${SERVER_IO_THREADS:-4} SWARM_THREADS=${SWARM_THREADS:-6} ;;
+  pinned) export SERVER_CPUS=${SERVER_CPUS:-0-$((server_cores - 1))} SWARM_CPUS=${SWARM_CPUS:-$server_cores-$((cores - 1))} \
+            SERVER_THREADS=${SERVER_THREADS:-$(at_least_1 $((server_cores * 4 / 5)))} \
+            SERVER_IO_THREADS=${SERVER_IO_THREADS:-$(at_least_1 $((server_cores * 2 / 5)))} \
+            SWARM_THREADS=${SWARM_THREADS:-$((cores - server_cores))} ;;
   shared) unset SERVER_CPUS SWARM_CPUS
-          export SERVER_IO_THREADS=${SERVER_IO_THREADS:-6} SWARM_THREADS=${SWARM_THREADS:-8} ;;
+          export SERVER_IO_THREADS=${SERVER_IO_THREADS:-$(at_least_1 $((cores * 3 / 8)))} SWARM_THREADS=${SWARM_THREADS:-$((cores / 2))} ;;
   *) echo "SWEEP_LAYOUT must be pinned or shared" >&2; exit 2 ;;
 esac
 export SERVER_ARGS=${SERVER_ARGS:---worker-spin-us 0}
+echo "layout $layout on $cores cores: zone-server on ${SERVER_CPUS:-every core} (${SERVER_THREADS:-8} workers," \
+  "$SERVER_IO_THREADS I/O threads), bot-swarm on ${SWARM_CPUS:-every core} ($SWARM_THREADS threads)"
 tags=()
 for bots in ${SWEEP_BOTS:-5000 10000 15000 19900}; do
   for r in $(seq "${SWEEP_REPEAT:-1}"); do
