@@ -463,8 +463,6 @@ int main(int argc, char** argv) {
         (void)world.set_intent(players[p], {u(script), u(script), 0});
       }
     }
-    const auto& ph = world.phases();
-    const double beh0 = ph.behaviours.sum(), int0 = ph.integrate.sum(), interest0 = ph.interest.sum();
     const std::uint64_t alloc0 = g_allocations.load();
     const auto t0 = clock_type::now();
     if (auto err = world.step()) {
@@ -535,9 +533,10 @@ int main(int argc, char** argv) {
     rep_allocs.push_back(static_cast<double>(alloc2 - alloc1));
     const auto& ts = world.tracker().stats();
     const auto& fs = finder->stats();
-    s_beh.v.push_back(ph.behaviours.sum() - beh0);
-    s_int.v.push_back(ph.integrate.sum() - int0);
-    s_interest.v.push_back(ph.interest.sum() - interest0);
+    const step_times& ph = world.last_step();
+    s_beh.v.push_back(ph.behaviours);
+    s_int.v.push_back(ph.integrate);
+    s_interest.v.push_back(ph.interest);
     s_boxes.v.push_back(ts.boxes_ms);
     s_find.v.push_back(ts.find_ms);
     s_diff.v.push_back(ts.diff_ms);

@@ -284,7 +284,8 @@ std::optional<interest::box_error> zone_world::step() {
   // 1. Behaviours: velocities from the previous tick's positions and visible sets.
   auto t0 = clock_type::now();
   run_each(pool_, tasks, [&](std::size_t t) { decide(t * chunk, std::min(n, (t + 1) * chunk)); });
-  phases_.behaviours.record(ms_since(t0));
+  last_step_.behaviours = ms_since(t0);
+  phases_.behaviours.record(last_step_.behaviours);
 
   // 2. Integrate inside the world bounds (bounce off the edges).
   t0 = clock_type::now();
@@ -301,13 +302,16 @@ std::optional<interest::box_error> zone_world::step() {
       pos[i] = clamp_to_world(p);
     }
   });
-  phases_.integrate.record(ms_since(t0));
+  last_step_.integrate = ms_since(t0);
+  phases_.integrate.record(last_step_.integrate);
 
   // 3. Interest.
   t0 = clock_type::now();
   auto err = tracker_.update(store_);
-  phases_.interest.record(ms_since(t0));
-  phases_.total.record(ms_since(t_start));
+  last_step_.interest = ms_since(t0);
+  last_step_.total = ms_since(t_start);
+  phases_.interest.record(last_step_.interest);
+  phases_.total.record(last_step_.total);
   return err;
 }
 

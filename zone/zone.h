@@ -642,6 +642,11 @@ struct tick_phases {
   latency_histogram behaviours, integrate, interest, total;
 };
 
+/// The ms of one step's phases (zone_world::last_step): what the step also recorded in tick_phases.
+struct step_times {
+  double behaviours = 0, integrate = 0, interest = 0, total = 0;
+};
+
 /// Entities, NPC behaviours and interest of one zone. step() is deterministic: the same config,
 /// seed and calls give the same positions and visible sets whatever the thread count.
 class zone_world {
@@ -680,6 +685,8 @@ class zone_world {
   void set_visibility_engine(interest::visibility_engine* engine) { tracker_.set_engine(engine); }
   [[nodiscard]] behaviour behaviour_of(entity_id id) const;
   [[nodiscard]] const tick_phases& phases() const { return phases_; }
+  /// The phases of the last step() alone (per-tick series: bench-zone --csv, zone-server --tick-csv).
+  [[nodiscard]] const step_times& last_step() const { return last_step_; }
   [[nodiscard]] const zone_config& config() const { return cfg_; }
   [[nodiscard]] vec3 town(std::size_t t) const { return towns_[t]; }
   [[nodiscard]] std::size_t town_count() const { return towns_.size(); }
@@ -707,6 +714,7 @@ class zone_world {
   std::vector<vec3> towns_;
   std::uint64_t tick_ = 0;
   tick_phases phases_;
+  step_times last_step_;
 };
 
 }  // namespace zone

@@ -334,19 +334,12 @@ void zone_server::replicate() {
 
 void zone_server::write_tick_line(double inputs_ms, double replicate_ms, double tick_ms, std::uint64_t frames,
                                   std::uint64_t bytes) {
-  // The world's phases of this tick: the growth of their histograms' sums since the last line.
-  const auto& ph = world_->phases();
-  const double sums[3] = {ph.behaviours.sum(), ph.integrate.sum(), ph.interest.sum()};
-  double ms[3];
-  for (int k = 0; k < 3; ++k) {
-    ms[k] = sums[k] - phase_sums_[k];
-    phase_sums_[k] = sums[k];
-  }
+  const step_times& ph = world_->last_step();
   const double t = std::chrono::duration<double>(clock_type::now() - started_).count();
   std::fprintf(tick_csv_, "%llu,%.4f,%llu,%llu,%llu,%.3f,%.3f,%.3f,%.3f,%.3f,%.3f\n",
                static_cast<unsigned long long>(world_->tick()), t, static_cast<unsigned long long>(stats_.clients),
-               static_cast<unsigned long long>(frames), static_cast<unsigned long long>(bytes), inputs_ms, ms[0], ms[1],
-               ms[2], replicate_ms, tick_ms);
+               static_cast<unsigned long long>(frames), static_cast<unsigned long long>(bytes), inputs_ms, ph.behaviours,
+               ph.integrate, ph.interest, replicate_ms, tick_ms);
 }
 
 void zone_server::tick_once() {

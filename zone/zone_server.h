@@ -97,10 +97,9 @@ class zone_server {
   std::unordered_map<net::session_id, client> clients_;
   loop_stats stats_;
   std::atomic<bool> stop_requested_{false};
-  // --tick-csv: the file, the loop's start, and the world's phase sums at the last line.
+  // --tick-csv: the file and the loop's start.
   std::FILE* tick_csv_ = nullptr;
   std::chrono::steady_clock::time_point started_{};
-  double phase_sums_[3] = {0, 0, 0};  // behaviours, integrate, interest
   void write_tick_line(double inputs_ms, double replicate_ms, double tick_ms, std::uint64_t frames, std::uint64_t bytes);
 };
 
