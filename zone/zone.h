@@ -573,6 +573,10 @@ struct zone_config {
   /// device is usable and max_visible is 0; else the host path), "gpu" (the engine, or refuse to
   /// start), "host" (the pair finder above and the host diff).
   std::string interest = "auto";
+  /// Where replication's per-client decisions run: "auto" (the GPU replication engine,
+  /// gpu/replication.h, when a device is usable; else the CPU replicator), "gpu" (the engine, or
+  /// refuse to start), "cpu". The frames are the same either way (docs/zone.md).
+  std::string replicate = "auto";
   float hysteresis = 4;
   std::uint32_t max_visible = 0;  ///< per observer, 0 = no cap
   /// AOI half-extents of the tiers tiny .. gigantic (metres).
