@@ -121,7 +121,13 @@ struct options {
   float hysteresis = 4;
   std::uint32_t max_visible = 0;
   std::vector<double> sweep_w;
+  double density = 0;      // entities per km^2 (the world grows with N); 0 = the config's fixed world
+  std::string summary_csv;  // one line per run appended (the growth curve)
 };
+
+/// --density's reference: with the default NPC mix, about 100 visible entities per entity
+/// (measured: docs/zone-benchmarks.md, "Growth past 100,000").
+constexpr double reference_density = 15000;
 
 constexpr const char* usage = R"(bench-zone: the zone server's tick (world step + replication) without sockets
 
@@ -152,6 +158,13 @@ Usage: bench-zone [options]
   --snapshot N       build_many snapshots the entities when clients * N >= entities; 0 = never
                      (replication_options::snapshot_entities_per_client, default 16)
   --hysteresis M     (default 4)   --max-visible N (default 0 = no cap)
+  --density D        constant density: the world's x and y edges grow with the entity count
+                     (NPCs + bosses + clients) to hold D entities per km^2 (height unchanged),
+                     so each entity sees about as many others whatever N; 15000 gives ~100
+                     visible per entity with the default mix (default 0: the fixed 4,096 m world,
+                     where density grows with N). "ref" = 15000
+  --summary-csv FILE append one line for this run (entities, world, visible per entity, tick and
+                     interest percentiles, setup time, load): the growth curve, one run per N
   --interest WHERE   auto (the GPU visibility engine when a device is usable and --max-visible is
                      0, else host) | gpu (the engine, or exit 64) | host (the finder and the host
                      diff), as zone-server's --interest (default auto)
@@ -265,6 +278,18 @@ std::optional<std::string> parse_args(int argc, char** argv, options& o, bool& h
       if (!value()) return need("auto, gpu or host");
       o.interest = std::string(v);
       if (o.interest != "auto" && o.interest != "gpu" && o.interest != "host") return need("auto, gpu or host");
+    } else if (a == "--density") {
+      if (!value()) return need("entities per km^2");
+      if (v == "ref") {
+        o.density = reference_density;
+      } else {
+        const auto r = real(v);
+        if (!r || *r < 0 || *r > 1e9) return need("entities per km^2 in [0, 1e9] or ref");
+        o.density = *r;
+      }
+    } else if (a == "--summary-csv") {
+      if (!value()) return need("a file name");
+      o.summary_csv = std::string(v);
     } else if (a == "--find-into-list") {
       o.view = false;
     } else if (a == "--csv") {
@@ -284,6 +309,11 @@ std::optional<std::string> parse_args(int argc, char** argv, options& o, bool& h
     }
   }
   if (o.ticks == 0) return std::string("--ticks must be >= 1");
+  // The limit the zone checks too (validate), said here with the option's name.
+  if (o.entities > zone::max_entities || o.clients > zone::max_entities - std::min(o.entities, zone::max_entities) - 1) {
+    return "--entities + --clients + 1 boss must be at most " + std::to_string(zone::max_entities) +
+           " (the most entities one zone holds)";
+  }
   return std::nullopt;
 }
 
@@ -367,6 +397,13 @@ int main(int argc, char** argv) {
   cfg.hysteresis = opt.hysteresis;
   cfg.max_visible = opt.max_visible;
   cfg.client_byte_budget = opt.budget;
+  if (opt.density > 0) {
+    // Square world of (NPCs + bosses + clients) / density km^2; at least 1 m.
+    const double n = static_cast<double>(opt.entities + cfg.boss_count + opt.clients);
+    const auto edge = static_cast<float>(std::max(1.0, std::sqrt(n / opt.density) * 1000.0));
+    cfg.world.hi.x = cfg.world.lo.x + edge;
+    cfg.world.hi.y = cfg.world.lo.y + edge;
+  }
   if (auto err = validate(cfg)) {
     std::cerr << "bench-zone: " << *err << "\n";
     return 64;
@@ -392,6 +429,14 @@ int main(int argc, char** argv) {
     }
   }
   const auto setup0 = clock_type::now();
+  // Progress on stdout during set-up, flushed: a million entities take seconds to place, and the
+  // first ticks (the engine sizes its buffers) longer than the rest.
+  std::printf("bench-zone: placing %zu NPCs + %zu bosses + %zu clients in a %.0f x %.0f x %.0f m world%s\n", opt.entities,
+              cfg.boss_count, opt.clients, static_cast<double>(cfg.world.hi.x - cfg.world.lo.x),
+              static_cast<double>(cfg.world.hi.y - cfg.world.lo.y), static_cast<double>(cfg.world.hi.z - cfg.world.lo.z),
+              opt.density > 0 ? (" (constant density " + std::to_string(static_cast<long long>(opt.density)) + " per km^2)").c_str()
+                              : "");
+  std::fflush(stdout);
   world.populate();
 
   // Players and their replication clients, as zone-server makes them: spawned uniformly within
@@ -446,6 +491,9 @@ int main(int argc, char** argv) {
   for (auto& f : serial_copy) f.reserve(opt.budget + 4096);
   replication_writer serial_writer;
 
+  const double setup_ms = ms_since(setup0);
+  std::printf("bench-zone: placed in %.0f ms; %zu warm-up ticks next\n", setup_ms, opt.warmup);
+  std::fflush(stdout);
   const std::string load_before = load_average();
   std::cout << "bench-zone: " << world.store().size() << " entities (" << opt.entities << " NPCs + bosses, "
             << players.size() << " players/clients), " << world.town_count() << " towns, interest on "
@@ -478,6 +526,8 @@ int main(int argc, char** argv) {
       std::chrono::duration_cast<clock_type::duration>(std::chrono::duration<double>(1.0 / opt.rate));
   auto next = clock_type::now();
   const std::size_t total_ticks = opt.warmup + opt.ticks;
+  auto last_progress = clock_type::now();
+  double first_tick_ms = 0;
   for (std::size_t t = 0; t < total_ticks; ++t) {
     if (opt.paced) {
       const auto now = clock_type::now();
@@ -506,6 +556,17 @@ int main(int argc, char** argv) {
       return 1;
     }
     const double step_ms = ms_since(t0);
+    // Progress: the first tick, and a line every 10 s of a long run.
+    if (t == 0) {
+      first_tick_ms = step_ms;
+      std::printf("bench-zone: first tick %.1f ms\n", step_ms);
+      std::fflush(stdout);
+      last_progress = clock_type::now();
+    } else if (clock_type::now() - last_progress > std::chrono::seconds(10)) {
+      std::printf("bench-zone: tick %zu of %zu (last world step %.1f ms)\n", t + 1, total_ticks, step_ms);
+      std::fflush(stdout);
+      last_progress = clock_type::now();
+    }
     const std::uint64_t alloc1 = g_allocations.load();
     double rep_ms = 0, rep_serial_ms = 0, rep_cpu = 0, rep_serial_cpu = 0;
     if (!requests.empty()) {
@@ -675,7 +736,11 @@ int main(int argc, char** argv) {
                 static_cast<unsigned long long>(finder->stats().cell_entries),
                 static_cast<unsigned long long>(finder->stats().large_boxes));
   }
-  std::printf("\n");
+  const double visible_per_entity = mean_of(visible) / static_cast<double>(std::max<std::size_t>(1, world.store().size()));
+  std::printf("\nvisible per entity (mean): %.1f; world %.0f x %.0f m, %.0f entities per km^2\n", visible_per_entity,
+              static_cast<double>(cfg.world.hi.x - cfg.world.lo.x), static_cast<double>(cfg.world.hi.y - cfg.world.lo.y),
+              static_cast<double>(world.store().size()) * 1e6 /
+                  (static_cast<double>(cfg.world.hi.x - cfg.world.lo.x) * static_cast<double>(cfg.world.hi.y - cfg.world.lo.y)));
   if (!requests.empty()) {
     const double frames = static_cast<double>(bytes_per_frame.size());
     std::printf("replication: %zu clients, %.2f us per client (p50 tick), CPU time %.2f us per client (mean), frame bytes p50 %.0f p99 %.0f, per frame: enters %.2f, "
@@ -706,6 +771,33 @@ int main(int argc, char** argv) {
   std::printf("\n");
   std::printf("world digest after the run: %016llx\n", static_cast<unsigned long long>(world.digest()));
   std::printf("load average before: %s, after: %s\n", load_before.c_str(), load_after.c_str());
+
+  if (!opt.summary_csv.empty()) {
+    // One line per run, appended; the header when the file is new or empty.
+    bool fresh = true;
+    {
+      std::ifstream in(opt.summary_csv);
+      fresh = !in || in.peek() == std::ifstream::traits_type::eof();
+    }
+    std::ofstream f(opt.summary_csv, std::ios::app);
+    if (!f) {
+      std::cerr << "bench-zone: cannot write " << opt.summary_csv << "\n";
+      return 1;
+    }
+    if (fresh) {
+      f << "entities,clients,world_x_m,world_y_m,density_per_km2,interest,threads,visible_per_entity,pairs,setup_ms,"
+           "first_tick_ms,tick_p50_ms,tick_p99_ms,tick_max_ms,interest_p50_ms,interest_p99_ms,engine_device_p50_ms,"
+           "behaviours_p50_ms,integrate_p50_ms,ticks,load_before,load_after\n";
+    }
+    f << world.store().size() << ',' << players.size() << ',' << (cfg.world.hi.x - cfg.world.lo.x) << ','
+      << (cfg.world.hi.y - cfg.world.lo.y) << ',' << opt.density << ','
+      << (engine ? std::string(engine->name()) : "host " + std::string(finder->name())) << ',' << pool.size() << ','
+      << visible_per_entity << ',' << mean_of(pairs) << ',' << setup_ms << ',' << first_tick_ms << ','
+      << quantile(s_total.v, 0.5) << ',' << quantile(s_total.v, 0.99) << ','
+      << *std::max_element(s_total.v.begin(), s_total.v.end()) << ',' << quantile(s_interest.v, 0.5) << ','
+      << quantile(s_interest.v, 0.99) << ',' << quantile(s_e_dev.v, 0.5) << ',' << quantile(s_beh.v, 0.5) << ','
+      << quantile(s_int.v, 0.5) << ',' << s_total.v.size() << ",\"" << load_before << "\",\"" << load_after << "\"\n";
+  }
 
   if (!opt.csv.empty()) {
     std::ofstream f(opt.csv);

@@ -32,7 +32,12 @@ std::optional<std::string> validate(const zone_config& c) {
     sum += s;
   }
   if (c.npc_count > 0 && !(sum > 0)) return bad("behaviour shares must not all be 0 when there are NPCs");
-  if (c.npc_count + c.boss_count >= max_entities) return bad("too many NPCs for one zone");
+  // The players (max_clients) come on top at run time: a full store refuses them (server_full).
+  if (c.npc_count > max_entities || c.npc_count + c.boss_count > max_entities) {
+    return bad("npcs + bosses must be at most " + std::to_string(max_entities) + " (the most entities one zone holds: " +
+               std::to_string(entity_index_bits) + " slot bits of a 32-bit handle); got " + std::to_string(c.npc_count) +
+               " + " + std::to_string(c.boss_count));
+  }
   if (!(c.npc_speed >= 0 && c.player_speed >= 0 && std::isfinite(c.npc_speed) && std::isfinite(c.player_speed))) {
     return bad("speeds must be >= 0");
   }

@@ -31,13 +31,17 @@ namespace zone {
 /// A generation-checked entity handle: (generation << entity_index_bits) | slot. Generations run
 /// 1 .. 2^(32 - entity_index_bits) - 1 and wrap back to 1, so a handle is never 0 (null_entity).
 /// A stale handle (its entity destroyed, even if the slot was reused) is rejected by every lookup
-/// until the slot's generation wraps around (4,095 reuses of that one slot).
+/// until the slot's generation wraps around (max_generation = 1,023 reuses of that one slot).
+/// 22 slot bits: up to 4,194,304 entities in one zone (20 bits capped a zone at 1,048,576, below
+/// what the GPU interest engine steps in a tick; docs/zone-benchmarks.md, "Growth").
 using entity_id = std::uint32_t;
 inline constexpr entity_id null_entity = 0;
-inline constexpr unsigned entity_index_bits = 20;
+inline constexpr unsigned entity_index_bits = 22;
 inline constexpr std::uint32_t entity_index_mask = (1u << entity_index_bits) - 1;
 /// Most entities alive at once in one store.
 inline constexpr std::size_t max_entities = std::size_t{1} << entity_index_bits;
+/// The highest generation of a slot (then it wraps to 1).
+inline constexpr std::uint32_t max_generation = (1u << (32 - entity_index_bits)) - 1;
 
 [[nodiscard]] constexpr std::uint32_t slot_of(entity_id id) { return id & entity_index_mask; }
 [[nodiscard]] constexpr std::uint32_t generation_of(entity_id id) { return id >> entity_index_bits; }
