@@ -26,11 +26,12 @@ void run_each(interest::thread_pool* pool, std::size_t n, F&& task) {
   interest::run_tasks(pool, n, std::ref(task));
 }
 
-/// Upper bound on the bytes one entered entity adds to a frame: the entity_state table (vtable,
-/// fields, padding), its name string and its offset in the enters vector.
-constexpr std::size_t enter_cost_base = 128;
-constexpr std::size_t leave_cost = sizeof(std::uint32_t);
-constexpr std::size_t update_cost = sizeof(net::wire::entity_update);
+/// What each entry costs against the byte budget: net::frame_cost, the closed-form upper bound
+/// that the GPU path computes too (the frame's size is a function of the counts alone).
+constexpr std::size_t enter_cost = net::frame_cost::enter;
+constexpr std::size_t leave_cost = net::frame_cost::leave;
+constexpr std::size_t update_cost = net::frame_cost::update;
+static_assert(update_cost == sizeof(net::wire::entity_update));
 
 /// Entities per task of build_many's snapshot.
 constexpr std::size_t snapshot_chunk = 4096;
@@ -260,7 +261,7 @@ std::span<const std::uint8_t> replicator::build_from(const Source& source, clien
   if (!w.enters_.empty()) {
     std::sort(w.enters_.begin(), w.enters_.end(), by_priority);
     for (const pending& e : w.enters_) {
-      if (!fits(enter_cost_base)) {
+      if (!fits(enter_cost)) {
         st.deferred_enters = static_cast<std::uint32_t>(w.enters_.size() - entered);
         break;
       }
