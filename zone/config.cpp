@@ -44,6 +44,10 @@ std::optional<std::string> validate(const zone_config& c) {
   if (!(c.boss_footprint >= 0 && std::isfinite(c.boss_footprint))) return bad("boss-footprint must be >= 0");
   if (c.io_threads == 0) return bad("io-threads must be >= 1");
   if (c.io_nice < 0 || c.io_nice > 19) return bad("io-nice must be 0 .. 19");
+  static const char* batchings[] = {"auto", "io_uring", "sendmsg"};  // net::parse_write_batching
+  if (std::find(std::begin(batchings), std::end(batchings), c.write_batching) == std::end(batchings)) {
+    return bad("write-batching must be auto, io_uring or sendmsg");
+  }
   if (c.max_frame_bytes < 64) return bad("max-frame-bytes must be >= 64");
   if (c.socket_send_buffer > (std::size_t{1} << 30)) return bad("socket-send-buffer must be <= 1 GiB");
   if (c.client_byte_budget < 256) return bad("client-byte-budget must be >= 256");
@@ -141,6 +145,7 @@ config_result parse_config(int argc, const char* const* argv) {
        "SO_SNDBUF of each client socket in bytes (0 = the system's autotuning); bounds how much stale state the kernel holds for a slow client")  //
       ("direct-writes", po::value(&c.direct_writes)->default_value(c.direct_writes), "1: the replication worker that built a frame writes it to the client's socket itself when nothing is queued ahead of it (lower latency, but the sends then lengthen the tick); 0: the I/O threads write every frame")  //
       ("io-nice", po::value(&c.io_nice)->default_value(c.io_nice), "nice value of the I/O threads, 0-19 (above 0: lower priority than the tick's workers where they share cores)")  //
+      ("write-batching", po::value(&c.write_batching)->default_value(c.write_batching), "how the I/O threads write: auto (io_uring where the kernel allows it, else sendmsg), io_uring (or refuse to start), sendmsg (one system call per session write)")  //
       ("inputs-per-second", po::value(&c.inputs_per_second)->default_value(c.inputs_per_second), "input rate limit per client")  //
       ("client-byte-budget", po::value(&c.client_byte_budget)->default_value(c.client_byte_budget), "bytes per client per tick")  //
       ("client-send-every", po::value(&c.client_send_every)->default_value(c.client_send_every), "each client gets a frame every K ticks, clients staggered (1 = every tick; 2 at 30 Hz = 15 frames a second each, half the frames built and sent per tick)")  //

@@ -608,6 +608,9 @@ struct zone_config {
   /// (the kernel's send is then the tick's CPU): docs/zone-benchmarks.md.
   bool direct_writes = false;
   int io_nice = 0;  ///< nice value of the I/O threads (net::server_options::io_thread_nice; 0-19)
+  /// How the I/O threads write (net::server_options::batching): "auto" (io_uring where the kernel
+  /// allows it, else sendmsg), "io_uring" (or refuse to start), "sendmsg".
+  std::string write_batching = "auto";
   double inputs_per_second = 60;
   std::size_t client_byte_budget = 8 * 1024;
   /// A client with this many state frames still unwritten (net::server::state_backlog) gets no new

@@ -32,6 +32,7 @@ net::server_options net_options(const zone_config& c) {
   o.socket_send_buffer = c.socket_send_buffer;
   o.direct_writes = c.direct_writes;
   o.io_thread_nice = c.io_nice;
+  o.batching = net::parse_write_batching(c.write_batching).value_or(net::write_batching::automatic);
   o.inputs_per_second = c.inputs_per_second;
   o.input_burst = std::max(1.0, c.inputs_per_second / 2);
   return o;
@@ -158,6 +159,10 @@ std::string zone_server::metrics_text() const {
   t.counter("zone_net_frames_in_total", "Frames received.", static_cast<double>(ns.frames_in));
   t.counter("zone_net_frames_out_total", "Frames written.", static_cast<double>(ns.frames_out));
   t.counter("zone_net_writes_total", "Socket writes (gathered: one may carry several frames).", static_cast<double>(ns.writes));
+  t.counter("zone_net_write_batches_total", "io_uring submissions of the I/O threads (each carries several sessions' writes).",
+            static_cast<double>(ns.write_batches));
+  t.gauge("zone_net_io_uring", "1 when the I/O threads write through io_uring (--write-batching), else 0.",
+          net_.uses_io_uring() ? 1.0 : 0.0);
   t.counter("zone_net_bytes_in_total", "Bytes received.", static_cast<double>(ns.bytes_in));
   t.counter("zone_net_bytes_out_total", "Bytes written.", static_cast<double>(ns.bytes_out));
   t.counter("zone_frames_held_total", "Client-ticks without a frame because the client had not read its backlog yet.",
