@@ -74,6 +74,23 @@ struct teleport_msg {
 };
 
 // server -> client
+/// The zone's interest rules, as the welcome tells them (see the schema's interest_rules).
+struct interest_rules {
+  vec3f player_aoi{60, 60, 60};
+  float hysteresis = 4;
+  std::uint32_t max_visible = 0;
+  std::uint32_t player_class = 1;
+  std::uint32_t player_sees = 0;
+  std::vector<float> npc_aoi_tiers;
+  vec3f quantization_step{};
+  float update_near = 0, update_mid = 0;
+  std::uint32_t update_mid_period = 1, update_far_period = 1;
+  std::uint32_t byte_budget = 0;
+  std::uint32_t send_every = 1;
+  std::uint32_t digest_every = 1;
+  float max_speed = 0;
+  friend bool operator==(const interest_rules&, const interest_rules&) = default;
+};
 struct welcome_msg {
   std::uint32_t entity_id = 0;
   world_bounds world{};
@@ -82,6 +99,8 @@ struct welcome_msg {
   std::uint32_t protocol_version = net::protocol_version;
   std::optional<vec3f> spawn_position;  ///< where the client's entity starts
   bool host_clock = false;              ///< server_time_us is the host's CLOCK_MONOTONIC in microseconds
+  std::optional<interest_rules> rules;  ///< the zone's interest rules
+  std::uint16_t oracle_port = 0;        ///< loopback port of the ground-truth stream (0 = none)
   friend bool operator==(const welcome_msg&, const welcome_msg&) = default;
 };
 /// Full state of an entity entering a view.
@@ -109,6 +128,12 @@ struct verify_digest {
   std::uint32_t count = 0;
   friend bool operator==(const verify_digest&, const verify_digest&) = default;
 };
+/// What a frame left for later because of the byte budget (see the schema).
+struct deferred_counts {
+  std::uint32_t enters = 0, leaves = 0, updates = 0;
+  [[nodiscard]] bool any() const { return (enters | leaves | updates) != 0; }
+  friend bool operator==(const deferred_counts&, const deferred_counts&) = default;
+};
 struct tick_update_msg {
   std::uint64_t server_tick = 0;
   std::uint64_t server_time_us = 0;
@@ -119,6 +144,7 @@ struct tick_update_msg {
   std::optional<verify_digest> digest;
   bool reset = false;  ///< drop the whole view before applying (a resync after lost frames)
   std::optional<vec3f> self_position;  ///< the observer's own position at server_tick (exact)
+  std::optional<deferred_counts> deferred;  ///< what the byte budget left for later (absent: nothing)
   friend bool operator==(const tick_update_msg&, const tick_update_msg&) = default;
 };
 struct pong_msg {
@@ -186,6 +212,8 @@ class tick_update_writer {
   void set_reset(bool reset) { reset_ = reset; }
   /// The observer's own position at this tick (12 bytes; lets a client check its view exactly).
   void set_self_position(const vec3f& p) { self_position_ = p; }
+  /// What the budget left for later (written only when any count is non-zero; 16 bytes).
+  void set_deferred(const deferred_counts& d) { deferred_ = d; }
   /// Upper bound on the bytes of the frame if finish() were called now (prefix included).
   [[nodiscard]] std::size_t size_estimate() const;
   [[nodiscard]] std::size_t enter_count() const { return enters_.size(); }
@@ -202,6 +230,7 @@ class tick_update_writer {
   std::vector<wire::entity_update> updates_;
   std::optional<verify_digest> digest_;
   std::optional<vec3f> self_position_;
+  deferred_counts deferred_{};
   bool reset_ = false;
 };
 
