@@ -169,13 +169,16 @@ TEST_CASE("latency histogram percentiles") {
   CHECK(h.max_ms() == doctest::Approx(10.0));
 }
 
-TEST_CASE("end to end: 200 bots in verify mode, zero mismatches, p99 tick bounded") {
+TEST_CASE("end to end: 200 bots in verify mode and checked by the oracle, zero mismatches, p99 tick bounded") {
   const std::string dir = temp_dir();
-  zone_server_process server(ZONE_SERVER_EXE, dir, server_args);
+  std::vector<std::string> args = server_args;
+  args.push_back("--oracle");
+  zone_server_process server(ZONE_SERVER_EXE, dir, args);
   REQUIRE_MESSAGE(server.port != 0, server.proc.log());
   child_process swarm(swarm_args(server.port, dir,
                                  {"--bots", "200", "--duration", "15", "--ramp", "100", "--input-hz", "10", "--verify",
-                                  "--mix", "walk=0.4,patrol=0.2,follow=0.2,crowd=0.2", "--report-csv", dir + "/report.csv"}),
+                                  "--oracle", "--mix", "walk=0.4,patrol=0.2,follow=0.2,crowd=0.2", "--report-csv",
+                                  dir + "/report.csv"}),
                       dir + "/bot-swarm.log");
   const auto rc = swarm.wait(60000ms);
   const std::string report = read_file(dir + "/report.json");
@@ -189,6 +192,16 @@ TEST_CASE("end to end: 200 bots in verify mode, zero mismatches, p99 tick bounde
   CHECK(json_number(report, "digests_checked").value_or(0) > 200 * 20 * 5);
   CHECK(json_number(report, "aoi_checked").value_or(0) > 0);
   CHECK(json_number(report, "samples").value_or(0) > 0);
+  // The oracle checked (nearly) every frame of every bot against the ground truth: not one
+  // mismatch of any kind, and the stream ran to the end.
+  CHECK(report.find("\"rules_from_server\": true") != std::string::npos);
+  CHECK(report.find("\"stream_error\": \"\"") != std::string::npos);
+  CHECK(json_number(report, "oracle_mismatches").value_or(-1) == 0);
+  const double checked = json_number(report, "frames_checked").value_or(0);
+  CHECK(checked > 200 * 20 * 5);
+  CHECK(json_number(report, "frames_unchecked").value_or(1e9) <= checked / 100);
+  CHECK(json_number(report, "entities_checked").value_or(0) > checked * 5);
+  CHECK(json_number(report, "positions_checked").value_or(0) > checked * 5);
   // The steady state: 200 bots at 100 a second are all connected after ~2 s (sampled once a
   // second), and its latency samples are part of the whole run's.
   const auto steady_at = report.find("\"latency_steady_ms\"");
@@ -217,6 +230,71 @@ TEST_CASE("end to end: 200 bots in verify mode, zero mismatches, p99 tick bounde
   REQUIRE(p99.has_value());
   MESSAGE("server p99 tick " << *p99 << " ms; bot latency p99 " << json_number(report, "p99").value_or(-1) << " ms");
   CHECK(*p99 <= p99_tick_bound_ms);
+}
+
+TEST_CASE("rules: zone-server --player-aoi 100 --hysteresis 7 with a default bot-swarm gives no mismatch (the welcome tells the rules)") {
+  const std::string dir = temp_dir();
+  std::vector<std::string> args = server_args;
+  args.insert(args.end(), {"--player-aoi", "100", "--hysteresis", "7", "--oracle"});
+  zone_server_process server(ZONE_SERVER_EXE, dir, args);
+  REQUIRE_MESSAGE(server.port != 0, server.proc.log());
+  child_process swarm(swarm_args(server.port, dir, {"--bots", "60", "--duration", "8", "--ramp", "100", "--verify", "--oracle"}),
+                      dir + "/bot-swarm.log");
+  const auto rc = swarm.wait(60000ms);
+  const std::string report = read_file(dir + "/report.json");
+  INFO("bot-swarm output:\n" << swarm.log());
+  REQUIRE(rc.has_value());
+  CHECK(*rc == 0);
+  CHECK(report.find("\"rules_from_server\": true") != std::string::npos);
+  CHECK(json_number(report, "mismatches").value_or(-1) == 0);
+  CHECK(json_number(report, "aoi_checked").value_or(0) > 1000);
+  CHECK(json_number(report, "frames_checked").value_or(0) > 60 * 20 * 4);
+  CHECK(server.proc.terminate().value_or(-1) == 0);
+}
+
+namespace {
+
+/// zone-server --test-fault KIND against 20 bots with the oracle: the swarm fails, the oracle
+/// reports the fault (and only it) under its kind's counter, and, for the faults whose frames keep
+/// the digest consistent with what the client holds, the server's own digests see nothing.
+void oracle_catches(const std::string& fault, const std::string& counter, bool digests_blind) {
+  const std::string dir = temp_dir();
+  std::vector<std::string> args = server_args;
+  args.insert(args.end(), {"--oracle", "--test-fault", fault, "--test-fault-tick", "40"});
+  zone_server_process server(ZONE_SERVER_EXE, dir, args);
+  REQUIRE_MESSAGE(server.port != 0, server.proc.log());
+  child_process swarm(swarm_args(server.port, dir, {"--bots", "20", "--duration", "7", "--ramp", "100", "--verify", "--oracle"}),
+                      dir + "/bot-swarm.log");
+  const auto rc = swarm.wait(60000ms);
+  const std::string report = read_file(dir + "/report.json");
+  INFO("bot-swarm output:\n" << swarm.log());
+  REQUIRE(rc.has_value());
+  CHECK(*rc == 1);  // mismatches
+  const double caught = json_number(report, counter).value_or(0);
+  MESSAGE("fault " << fault << ": the oracle counted " << caught << " " << counter << " mismatches");
+  CHECK(caught > 0);
+  CHECK(json_number(report, "oracle_mismatches").value_or(-1) == caught);
+  if (digests_blind) CHECK(json_number(report, "digest_mismatches").value_or(-1) == 0);
+  CHECK(json_number(report, "frames_checked").value_or(0) > 20 * 20 * 4);
+  CHECK(server.proc.terminate().value_or(-1) == 0);
+}
+
+}  // namespace
+
+TEST_CASE("oracle fault drop: an entity left out of one client's view is caught as missing") {
+  oracle_catches("drop", "missing", true);
+}
+TEST_CASE("oracle fault extra: an entity far outside one client's AOI is caught as extra") {
+  oracle_catches("extra", "extra", false);
+}
+TEST_CASE("oracle fault stealth: a stealth entity leaked to one client is caught as leaked") {
+  oracle_catches("stealth", "leaked", true);
+}
+TEST_CASE("oracle fault freeze: one entity's frozen position is caught as a position mismatch") {
+  oracle_catches("freeze", "position", true);
+}
+TEST_CASE("oracle fault class: an entity sent with the wrong class is caught") {
+  oracle_catches("class", "wrong_class", true);
 }
 
 TEST_CASE("teleport: bots jump at random across the world; views and AOI checks stay exact") {

@@ -243,8 +243,7 @@ TEST_SUITE("bots.oracle") {
     REQUIRE(added);
     CHECK(oracle.counters().missing.load() > missing_before);
     CHECK(oracle.counters().extra.load() + oracle.counters().leaked.load() > extra_before);
-    CHECK(oracle.counters().position.load() == 0);
-    CHECK(oracle.counters().stale.load() == 0);
-    CHECK(oracle.counters().wrong_class.load() == 0);
+    // (The unbroken clients had no mismatch of any kind: checked after each of their frames above.
+    // The broken ones may show others later, e.g. the extra entity becoming visible for real.)
   }
 }
