@@ -167,7 +167,9 @@ void print_table(const swarm_result& r, const summary& s) {
     row("oracle: truth ticks, KB per tick", num(q.truth_ticks) + ", " + fmt(static_cast<double>(q.truth_bytes) / 1024.0 / ticks, "KB"));
     row("oracle: recompute CPU per tick", fmt(q.compute_cpu_ms / ticks, "ms") + " (slowest tick " + ms(q.compute_max_ms) +
                                               ", up to " + num(q.observers_max) + " observers)");
-    row("oracle: bots' comparisons per tick", fmt(q.check_ms / ticks, "ms"));
+    row("oracle: comparisons per tick", fmt(q.check_ms / ticks, "ms") + " (" + num(q.deferred_checks) +
+                                             " frames checked after they waited for their truth, " +
+                                             num(q.pending_overflow) + " not: too many waiting)");
     if (!q.stream_error.empty()) row("oracle: TRUTH STREAM FAILED", q.stream_error);
   }
   row("MISMATCHES", num(r.mismatches()));
@@ -225,7 +227,8 @@ bool write_json(const std::string& path, const swarm_result& r, const summary& s
       << ", \"stale\": " << q.stale << ", \"deferral\": " << q.deferral << ", \"oracle_mismatches\": " << q.mismatches()
       << ", \"truth_ticks\": " << q.truth_ticks << ", \"truth_bytes\": " << q.truth_bytes << ", \"truth_layouts\": " << q.truth_layouts
       << ", \"compute_cpu_ms\": " << q.compute_cpu_ms << ", \"compute_max_ms\": " << q.compute_max_ms
-      << ", \"check_ms\": " << q.check_ms << ", \"observers_max\": " << q.observers_max << ", \"stream_error\": \""
+      << ", \"check_ms\": " << q.check_ms << ", \"deferred_checks\": " << q.deferred_checks
+      << ", \"pending_overflow\": " << q.pending_overflow << ", \"observers_max\": " << q.observers_max << ", \"stream_error\": \""
       << json_escape(q.stream_error) << "\"},\n";
   }
   o << "  \"mismatches\": " << r.mismatches() << ",\n";

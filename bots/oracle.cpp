@@ -133,6 +133,7 @@ void oracle::stop() {
   if (fd_ >= 0) ::close(fd_), fd_ = -1;
   ended_ = true;
   ready_cv_.notify_all();
+  drain_pending(true);  // what still waits: checked if its truth came, else unchecked
 }
 
 void oracle::run(int fd) {
@@ -347,6 +348,7 @@ void oracle::compute(const net::truth::tick_frame& f) {
     any_ready_ = true;
   }
   ready_cv_.notify_all();
+  drain_pending(false);
 }
 
 std::optional<std::vector<std::uint32_t>> oracle::visible(std::uint32_t observer, std::uint64_t tick) const {
@@ -366,13 +368,62 @@ void oracle::log(const char* kind, std::atomic<std::uint32_t>& logged, const std
 
 void oracle::check(std::uint32_t observer, std::uint64_t tick, const net::client_view& view,
                    const net::deferred_counts& deferred, const std::optional<net::vec3f>& self_position, std::size_t bot) {
-  // The truth of this tick: computed by now, or soon (the server publishes it before the frames).
-  if (!any_ready_.load(std::memory_order_acquire) || ready_tick_.load(std::memory_order_acquire) < tick) {
-    std::unique_lock lock(ready_mutex_);
-    ready_cv_.wait_for(lock, std::chrono::milliseconds(wait_ms),
-                       [&] { return (any_ready_.load() && ready_tick_.load() >= tick) || ended_.load(); });
+  thread_local view_snapshot v;
+  v.observer = observer, v.tick = tick, v.deferred = deferred, v.self_position = self_position, v.bot = bot;
+  v.held.clear();
+  v.held.reserve(view.size());
+  for (const auto& [id, e] : view.entities()) {
+    v.held.push_back({id, e.state.visibility_class, e.state.position.x, e.state.position.y, e.state.position.z, e.last_tick});
   }
+  std::sort(v.held.begin(), v.held.end(), [](const held_entity& a, const held_entity& b) { return a.id < b.id; });
+  // The truth of this tick is usually computed a few milliseconds after its frames arrive: then
+  // the snapshot waits for the oracle's thread, and the bot goes on at once.
+  if (any_ready_.load(std::memory_order_acquire) && ready_tick_.load(std::memory_order_acquire) >= tick) {
+    check_snapshot(v);
+    return;
+  }
+  const std::size_t bytes = sizeof(view_snapshot) + v.held.size() * sizeof(held_entity);
+  std::lock_guard lock(pending_mutex_);
+  if (pending_bytes_ + bytes > max_pending_bytes || ended_.load()) {
+    pending_overflow_.fetch_add(1, std::memory_order_relaxed);
+    c_.frames_unchecked.fetch_add(1, std::memory_order_relaxed);
+    return;
+  }
+  pending_bytes_ += bytes;
+  pending_.push_back(v);
+}
+
+void oracle::drain_pending(bool all) {
+  std::vector<view_snapshot> jobs;
+  {
+    std::lock_guard lock(pending_mutex_);
+    jobs.swap(pending_);
+    pending_bytes_ = 0;
+  }
+  if (jobs.empty()) return;
+  const std::uint64_t ready = ready_tick_.load();
+  std::vector<view_snapshot> later;
+  for (auto& v : jobs) {
+    if (all || (any_ready_.load() && v.tick <= ready)) {
+      deferred_checks_.fetch_add(1, std::memory_order_relaxed);
+      check_snapshot(v);
+    } else {
+      later.push_back(std::move(v));
+    }
+  }
+  if (!later.empty()) {
+    std::lock_guard lock(pending_mutex_);
+    for (auto& v : later) {
+      pending_bytes_ += sizeof(view_snapshot) + v.held.size() * sizeof(held_entity);
+      pending_.push_back(std::move(v));
+    }
+  }
+}
+
+void oracle::check_snapshot(const view_snapshot& v) {
   const auto t0 = std::chrono::steady_clock::now();
+  const std::uint64_t tick = v.tick;
+  const std::uint32_t observer = v.observer;
   const tick_truth& now = *ring_[tick % ring_ticks];
   std::shared_lock lock(now.mutex);
   const std::uint32_t oi = now.valid && now.tick == tick ? now.find(observer) : npos32;
@@ -385,47 +436,13 @@ void oracle::check(std::uint32_t observer, std::uint64_t tick, const net::client
   const std::uint32_t self = lay.dense_of(observer);
   const float* eye = now.pos.data() + 3 * self;
   const std::uint32_t sees = lay.sees[self];
+  const auto& deferred = v.deferred;
   const auto who = [&] {
-    return "tick " + std::to_string(tick) + ", bot " + std::to_string(bot) + " (entity " + std::to_string(observer) + ")";
+    return "tick " + std::to_string(tick) + ", bot " + std::to_string(v.bot) + " (entity " + std::to_string(observer) + ")";
   };
   const auto distance_to = [&](std::uint32_t dense) {
     return dense == npos32 ? -1.0 : std::sqrt(static_cast<double>(dist2(eye, now.pos.data() + 3 * dense)));
   };
-  const auto& held = view.entities();
-
-  // Own position: exact.
-  if (self_position && (self_position->x != eye[0] || self_position->y != eye[1] || self_position->z != eye[2])) {
-    c_.position.fetch_add(1, std::memory_order_relaxed);
-    log("position", logged_position_,
-        who() + ": its own position is (" + std::to_string(self_position->x) + ", " + std::to_string(self_position->y) +
-            ", " + std::to_string(self_position->z) + "), the truth (" + std::to_string(eye[0]) + ", " +
-            std::to_string(eye[1]) + ", " + std::to_string(eye[2]) + ")");
-  }
-
-  // Missing: visible but not held.
-  std::uint64_t missing = 0, matched = 0;
-  std::uint32_t first_missing = 0;
-  for (const std::uint32_t id : truth) {
-    if (held.find(id) == held.end()) {
-      if (missing++ == 0) first_missing = id;
-    } else {
-      ++matched;
-    }
-  }
-  // Extra: held but not visible (a leak when of a class the observer does not see).
-  std::uint64_t extra = 0, leaked = 0;
-  std::uint32_t first_extra = 0, first_leak = 0;
-  if (matched != held.size()) {
-    for (const auto& [id, e] : held) {
-      if (std::binary_search(truth.begin(), truth.end(), id)) continue;
-      const std::uint32_t d = lay.dense_of(id);
-      if (d != npos32 && (lay.classes[d] & sees) == 0) {
-        if (leaked++ == 0) first_leak = id;
-      } else if (extra++ == 0) {
-        first_extra = id;
-      }
-    }
-  }
   const auto entity_line = [&](std::uint32_t id) {
     const std::uint32_t d = lay.dense_of(id);
     char dist[48];
@@ -433,6 +450,108 @@ void oracle::check(std::uint32_t observer, std::uint64_t tick, const net::client
     return "entity " + std::to_string(id) + " at " + (d == npos32 ? std::string("(gone)") : std::string(dist)) +
            (d == npos32 ? std::string() : ", class " + std::to_string(lay.classes[d]));
   };
+
+  // Own position: exact.
+  if (const auto& sp = v.self_position; sp && (sp->x != eye[0] || sp->y != eye[1] || sp->z != eye[2])) {
+    c_.position.fetch_add(1, std::memory_order_relaxed);
+    log("position", logged_position_,
+        who() + ": its own position is (" + std::to_string(sp->x) + ", " + std::to_string(sp->y) + ", " +
+            std::to_string(sp->z) + "), the truth (" + std::to_string(eye[0]) + ", " + std::to_string(eye[1]) + ", " +
+            std::to_string(eye[2]) + ")");
+  }
+
+  const float near = rules_.update_near, mid = rules_.update_mid;
+  const std::uint32_t mid_period = std::max<std::uint32_t>(1, rules_.update_mid_period);
+  const std::uint32_t far_period = std::max<std::uint32_t>(1, rules_.update_far_period);
+  std::uint64_t missing = 0, extra = 0, leaked = 0;
+  std::uint32_t first_missing = 0, first_extra = 0, first_leak = 0;
+  std::uint64_t due_unsent = 0, due_maybe = 0, checked = 0, pos_checked = 0, pos_unchecked = 0;
+  // Slots of earlier ticks (positions last sent then), locked once each.
+  struct earlier {
+    std::uint64_t tick;
+    const tick_truth* slot;
+  };
+  std::vector<earlier> seen;
+  std::vector<std::shared_lock<std::shared_mutex>> locks;
+  const auto truth_at = [&](std::uint64_t t) -> const tick_truth* {
+    if (t == tick) return &now;
+    for (const auto& e : seen) {
+      if (e.tick == t) return e.slot;
+    }
+    const tick_truth* s = ring_[t % ring_ticks].get();
+    if (s == &now) return nullptr;  // this tick's slot: the tick asked for is gone
+    locks.emplace_back(s->mutex);
+    if (!s->valid || s->tick != t) s = nullptr;
+    seen.push_back({t, s});
+    return s;
+  };
+
+  // The visible set and the held entities, both by ascending id, side by side.
+  std::size_t i = 0, j = 0;
+  while (i < truth.size() || j < v.held.size()) {
+    if (j == v.held.size() || (i < truth.size() && truth[i] < v.held[j].id)) {
+      if (missing++ == 0) first_missing = truth[i];  // visible, not held
+      ++i;
+      continue;
+    }
+    if (i == truth.size() || v.held[j].id < truth[i]) {
+      // Held, not visible: a leak when of a class the observer does not see.
+      const std::uint32_t id = v.held[j].id;
+      const std::uint32_t d = lay.dense_of(id);
+      if (d != npos32 && (lay.classes[d] & sees) == 0) {
+        if (leaked++ == 0) first_leak = id;
+      } else if (extra++ == 0) {
+        first_extra = id;
+      }
+      ++j;
+      continue;
+    }
+    // Held and visible: its class, its position, and whether an update was due.
+    const held_entity& e = v.held[j];
+    const std::uint32_t id = e.id;
+    ++i, ++j, ++checked;
+    const std::uint32_t d = lay.dense_of(id);
+    if (e.visibility_class != lay.classes[d]) {
+      c_.wrong_class.fetch_add(1, std::memory_order_relaxed);
+      log("class", logged_class_, who() + ": " + entity_line(id) + " is held with class " + std::to_string(e.visibility_class));
+    }
+    const tick_truth* at = e.last_tick <= tick && tick - e.last_tick < ring_ticks ? truth_at(e.last_tick) : nullptr;
+    if (at == nullptr) {
+      ++pos_unchecked;
+    } else {
+      ++pos_checked;
+      const std::uint32_t dl = at->lay->dense_of(id);
+      const float* p = dl == npos32 ? nullptr : at->pos.data() + 3 * dl;
+      if (p == nullptr || std::fabs(e.x - p[0]) > tolerance_.x || std::fabs(e.y - p[1]) > tolerance_.y ||
+          std::fabs(e.z - p[2]) > tolerance_.z) {
+        c_.position.fetch_add(1, std::memory_order_relaxed);
+        char line[200];
+        if (p != nullptr) {
+          std::snprintf(line, sizeof line, " is held at (%.3f, %.3f, %.3f), sent at tick %llu when it was at (%.3f, %.3f, %.3f)",
+                        e.x, e.y, e.z, static_cast<unsigned long long>(e.last_tick), p[0], p[1], p[2]);
+        } else {
+          std::snprintf(line, sizeof line, " did not exist at tick %llu when it was last sent",
+                        static_cast<unsigned long long>(e.last_tick));
+        }
+        log("position", logged_position_, who() + ": " + entity_line(id) + line);
+      }
+    }
+    // Due by its tier (from this tick's distance) but not sent in this frame.
+    if (e.last_tick < tick) {
+      const float r = std::sqrt(dist2(eye, now.pos.data() + 3 * d));
+      const std::uint64_t age = tick - e.last_tick;
+      const auto period_for = [&](float dist) { return dist < near ? 1u : dist < mid ? mid_period : far_period; };
+      // Near a tier boundary the server's rounding may decide either way.
+      const bool boundary =
+          std::fabs(r - near) <= 1e-4f * std::max(1.0f, near) || std::fabs(r - mid) <= 1e-4f * std::max(1.0f, mid);
+      if (age >= period_for(r)) {
+        ++due_unsent;
+      } else if (boundary && (age >= period_for(r * (1 - 2e-4f)) || age >= period_for(r * (1 + 2e-4f)))) {
+        ++due_maybe;
+      }
+    }
+  }
+
   if (missing > deferred.enters) {
     c_.missing.fetch_add(missing - deferred.enters, std::memory_order_relaxed);
     log("missing", logged_missing_,
@@ -457,82 +576,6 @@ void oracle::check(std::uint32_t observer, std::uint64_t tick, const net::client
         who() + ": the frame deferred " + std::to_string(deferred.enters) + " enters and " +
             std::to_string(deferred.leaves) + " leaves, but " + std::to_string(missing) + " were missing and " +
             std::to_string(extra + leaked) + " extra");
-  }
-
-  // Classes, positions and due updates of the held, visible entities.
-  const float near = rules_.update_near, mid = rules_.update_mid;
-  const std::uint32_t mid_period = std::max<std::uint32_t>(1, rules_.update_mid_period);
-  const std::uint32_t far_period = std::max<std::uint32_t>(1, rules_.update_far_period);
-  std::uint64_t due_unsent = 0, due_maybe = 0, checked = 0, pos_checked = 0, pos_unchecked = 0;
-  // Slots of earlier ticks (positions last sent then), locked once each.
-  struct earlier {
-    std::uint64_t tick;
-    const tick_truth* slot;
-  };
-  std::vector<earlier> seen;
-  std::vector<std::shared_lock<std::shared_mutex>> locks;
-  const auto truth_at = [&](std::uint64_t t) -> const tick_truth* {
-    if (t == tick) return &now;
-    for (const auto& e : seen) {
-      if (e.tick == t) return e.slot;
-    }
-    const tick_truth* s = ring_[t % ring_ticks].get();
-    if (s == &now) return nullptr;  // this tick's slot: the tick asked for is gone
-    locks.emplace_back(s->mutex);
-    if (!s->valid || s->tick != t) s = nullptr;
-    seen.push_back({t, s});
-    return s;
-  };
-  for (const std::uint32_t id : truth) {
-    const auto it = held.find(id);
-    if (it == held.end()) continue;
-    ++checked;
-    const net::client_view::entity& e = it->second;
-    const std::uint32_t d = lay.dense_of(id);
-    if (e.state.visibility_class != lay.classes[d]) {
-      c_.wrong_class.fetch_add(1, std::memory_order_relaxed);
-      log("class", logged_class_,
-          who() + ": " + entity_line(id) + " is held with class " + std::to_string(e.state.visibility_class));
-    }
-    // Position: the truth at the tick it was last sent.
-    const tick_truth* at = e.last_tick <= tick && tick - e.last_tick < ring_ticks ? truth_at(e.last_tick) : nullptr;
-    if (at == nullptr) {
-      ++pos_unchecked;
-    } else {
-      ++pos_checked;
-      const std::uint32_t dl = at->lay->dense_of(id);
-      const float* p = dl == npos32 ? nullptr : at->pos.data() + 3 * dl;
-      const auto& q = e.state.position;
-      if (p == nullptr || std::fabs(q.x - p[0]) > tolerance_.x || std::fabs(q.y - p[1]) > tolerance_.y ||
-          std::fabs(q.z - p[2]) > tolerance_.z) {
-        c_.position.fetch_add(1, std::memory_order_relaxed);
-        char line[200];
-        if (p != nullptr) {
-          std::snprintf(line, sizeof line, " is held at (%.3f, %.3f, %.3f), sent at tick %llu when it was at (%.3f, %.3f, %.3f)",
-                        q.x, q.y, q.z, static_cast<unsigned long long>(e.last_tick), p[0], p[1], p[2]);
-        } else {
-          std::snprintf(line, sizeof line, " did not exist at tick %llu when it was last sent",
-                        static_cast<unsigned long long>(e.last_tick));
-        }
-        log("position", logged_position_, who() + ": " + entity_line(id) + line);
-      }
-    }
-    // Due by its tier (from this tick's distance) but not sent in this frame.
-    if (e.last_tick < tick) {
-      const float d2 = dist2(eye, now.pos.data() + 3 * d);
-      const float r = std::sqrt(d2);
-      const std::uint64_t age = tick - e.last_tick;
-      const auto period_for = [&](float dist) { return dist < near ? 1u : dist < mid ? mid_period : far_period; };
-      // Near a tier boundary the server's rounding may decide either way.
-      const bool boundary = std::fabs(r - near) <= 1e-4f * std::max(1.0f, near) || std::fabs(r - mid) <= 1e-4f * std::max(1.0f, mid);
-      const bool due = age >= period_for(r);
-      const bool due_other = boundary && (age >= period_for(r * (1 - 2e-4f)) || age >= period_for(r * (1 + 2e-4f)));
-      if (due) {
-        ++due_unsent;
-      } else if (due_other) {
-        ++due_maybe;
-      }
-    }
   }
   if (deferred.updates < due_unsent || deferred.updates > due_unsent + due_maybe) {
     const bool stale = deferred.updates < due_unsent;
@@ -560,6 +603,8 @@ oracle_report oracle::report() const {
   r.truth_ticks = truth_ticks_, r.truth_bytes = truth_bytes_, r.truth_layouts = truth_layouts_;
   r.compute_cpu_ms = compute_cpu_ms_, r.compute_max_ms = compute_max_ms_;
   r.check_ms = static_cast<double>(check_ns_.load()) / 1e6;
+  r.deferred_checks = deferred_checks_.load();
+  r.pending_overflow = pending_overflow_.load();
   r.observers_max = observers_max_;
   std::lock_guard lock(ready_mutex_);
   r.stream_error = stream_error_;

@@ -51,7 +51,9 @@ struct oracle_report {
   std::uint64_t truth_ticks = 0, truth_bytes = 0, truth_layouts = 0;
   double compute_cpu_ms = 0;  ///< CPU of decoding and recomputing the visible sets, all ticks
   double compute_max_ms = 0;  ///< the slowest tick's wall time
-  double check_ms = 0;        ///< wall time of the bots' comparisons, summed
+  double check_ms = 0;        ///< wall time of the comparisons, summed (bots' threads and the oracle's)
+  std::uint64_t deferred_checks = 0;  ///< frames checked by the oracle's thread (they came before their truth)
+  std::uint64_t pending_overflow = 0;  ///< frames not checked: too many waiting for their truth
   std::uint64_t observers_max = 0;
   std::string stream_error;  ///< why the stream ended early (empty: it ran to the end)
   [[nodiscard]] std::uint64_t mismatches() const {
@@ -78,10 +80,29 @@ class oracle {
   void stop();
 
   /// Checks `observer`'s view right after it applied the frame of `tick` (with what that frame
-  /// said it deferred and the observer's own position, when it carried one). Waits, at most
-  /// `wait_ms`, for the truth of that tick. Thread-safe; `bot` names the bot in the log.
+  /// said it deferred and the observer's own position, when it carried one). Never waits: when
+  /// the truth of that tick is not computed yet, a snapshot of the view waits for it and the
+  /// oracle's thread checks it then. Thread-safe; `bot` names the bot in the log.
   void check(std::uint32_t observer, std::uint64_t tick, const net::client_view& view,
              const net::deferred_counts& deferred, const std::optional<net::vec3f>& self_position, std::size_t bot);
+
+  /// One entity of a bot's view after a frame, as the checks read it.
+  struct held_entity {
+    std::uint32_t id, visibility_class;
+    float x, y, z;
+    std::uint64_t last_tick;  ///< the tick it was last sent (enter or update)
+  };
+  /// A bot's view after the frame of `tick` (entities by ascending id) and what that frame said.
+  struct view_snapshot {
+    std::uint32_t observer = 0;
+    std::uint64_t tick = 0;
+    net::deferred_counts deferred;
+    std::optional<net::vec3f> self_position;
+    std::size_t bot = 0;
+    std::vector<held_entity> held;
+  };
+  /// Most bytes of snapshots waiting for their tick's truth; beyond, a frame is counted unchecked.
+  static constexpr std::size_t max_pending_bytes = std::size_t{256} << 20;
 
   /// Feeds one truth frame's body directly (tests; start() does this from the socket).
   [[nodiscard]] std::optional<std::string> feed(std::span<const std::uint8_t> body);
@@ -94,7 +115,6 @@ class oracle {
   [[nodiscard]] oracle_report report() const;
   /// Ticks of truth kept for checks of late frames and of positions last sent long ago.
   static constexpr std::size_t ring_ticks = 64;
-  int wait_ms = 2000;
 
  private:
   struct layout;
@@ -102,6 +122,10 @@ class oracle {
   void run(int fd);
   void compute(const net::truth::tick_frame& f);
   void log(const char* kind, std::atomic<std::uint32_t>& logged, const std::string& line);
+  /// Compares a snapshot with the truth of its tick (unchecked when that tick is gone or unknown).
+  void check_snapshot(const view_snapshot& v);
+  /// Checks the waiting snapshots whose tick's truth is there (`all`: every one, the rest unchecked).
+  void drain_pending(bool all);
 
   net::world_bounds world_;
   net::interest_rules rules_;
@@ -129,6 +153,11 @@ class oracle {
   std::uint64_t truth_ticks_ = 0, truth_bytes_ = 0, truth_layouts_ = 0, observers_max_ = 0;
   double compute_cpu_ms_ = 0, compute_max_ms_ = 0;
   std::atomic<std::uint64_t> check_ns_{0};
+  // Snapshots of frames that came before their tick's truth (checked by the oracle's thread).
+  std::mutex pending_mutex_;
+  std::vector<view_snapshot> pending_;
+  std::size_t pending_bytes_ = 0;
+  std::atomic<std::uint64_t> deferred_checks_{0}, pending_overflow_{0};
   // Per-thread scratch of compute().
   std::vector<std::vector<std::uint8_t>> flags_;
   std::vector<std::vector<std::uint32_t>> sets_;  // by observer index, reused tick to tick

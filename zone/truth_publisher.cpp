@@ -67,7 +67,19 @@ void truth_publisher::publish(const entity_store& store, std::uint64_t tick) {
   const auto t0 = std::chrono::steady_clock::now();
   const std::size_t n = store.size();
   const bool layout = !any_published_ || store.layout_version() != layout_version_ || need_layout_.exchange(false);
-  auto frame = std::make_shared<std::vector<std::uint8_t>>();
+  // A buffer no subscriber still holds (the sender drops its reference once written), else a new one.
+  std::shared_ptr<std::vector<std::uint8_t>> frame;
+  for (const auto& b : pool_) {
+    if (b.use_count() == 1) {
+      std::atomic_thread_fence(std::memory_order_acquire);  // the sender's last read of it came before
+      frame = b;
+      break;
+    }
+  }
+  if (!frame) {
+    frame = std::make_shared<std::vector<std::uint8_t>>();
+    if (pool_.size() < 16) pool_.push_back(frame);
+  }
   const auto floats = [](std::span<const vec3> v) {
     return std::span<const float>(reinterpret_cast<const float*>(v.data()), 3 * v.size());
   };

@@ -69,6 +69,7 @@ class truth_publisher {
   bool any_published_ = false;
   // Scratch columns (the store's types are plain floats and integers; copied as they are).
   std::vector<std::uint8_t> kinds_;
+  std::vector<std::shared_ptr<std::vector<std::uint8_t>>> pool_;  // frames' buffers, reused
   truth_stats stats_;
 };
 
