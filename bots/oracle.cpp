@@ -164,7 +164,7 @@ void oracle::run(int fd) {
     }
     body.resize(len);
     if (!read_all(body.data(), len)) {
-      error = "the truth stream ended in the middle of a frame";
+      if (!stopping_.load()) error = "the truth stream ended in the middle of a frame";
       break;
     }
     truth_bytes_ += len + 4;
@@ -212,19 +212,33 @@ void oracle::compute(const net::truth::tick_frame& f) {
   const layout& lay = *layout_;
   const std::size_t n = f.count;
   const float* pos = f.positions.data();
-  // Presence boxes, as the server builds them (position -+ half-extent, in float).
-  std::vector<float> b(6 * n);
+  // Presence boxes, as the server builds them (position -+ half-extent, in float), laid out by
+  // ascending x of the position (slot s holds dense index by_x[s]): an observer's scan can then
+  // skip the entities whose x alone rules them out (below).
+  std::vector<std::uint32_t> by_x(n);
+  for (std::size_t k = 0; k < n; ++k) by_x[k] = static_cast<std::uint32_t>(k);
+  std::sort(by_x.begin(), by_x.end(), [&](std::uint32_t x, std::uint32_t y) {
+    return pos[3 * x] < pos[3 * y] || (pos[3 * x] == pos[3 * y] && x < y);
+  });
+  std::vector<float> b(7 * n);
   float* blo_x = b.data();
   float* blo_y = blo_x + n;
   float* blo_z = blo_y + n;
   float* bhi_x = blo_z + n;
   float* bhi_y = bhi_x + n;
   float* bhi_z = bhi_y + n;
-  for (std::size_t k = 0; k < n; ++k) {
+  float* px = bhi_z + n;
+  std::vector<std::uint32_t> cls(n);
+  float max_half_x = 0;
+  for (std::size_t s = 0; s < n; ++s) {
+    const std::uint32_t k = by_x[s];
     const float* p = pos + 3 * k;
-    const float* h = lay.presence.data() + 3 * k;
-    blo_x[k] = p[0] - h[0], blo_y[k] = p[1] - h[1], blo_z[k] = p[2] - h[2];
-    bhi_x[k] = p[0] + h[0], bhi_y[k] = p[1] + h[1], bhi_z[k] = p[2] + h[2];
+    const float* hx = lay.presence.data() + 3 * k;
+    blo_x[s] = p[0] - hx[0], blo_y[s] = p[1] - hx[1], blo_z[s] = p[2] - hx[2];
+    bhi_x[s] = p[0] + hx[0], bhi_y[s] = p[1] + hx[1], bhi_z[s] = p[2] + hx[2];
+    px[s] = p[0];
+    cls[s] = lay.classes[k];
+    max_half_x = std::max(max_half_x, hx[0]);
   }
 
   // The previous tick's sets (the hysteresis): only when it is the tick just before this one.
@@ -243,7 +257,6 @@ void oracle::compute(const net::truth::tick_frame& f) {
   const auto work = [&](unsigned t, std::size_t first, std::size_t last) {
     std::vector<std::uint8_t>& flags = flags_[t];
     flags.resize(n + 8);
-    std::fill(flags.begin() + static_cast<std::ptrdiff_t>(n), flags.end(), 0);
     std::vector<std::uint64_t> keys;
     for (std::size_t i = first; i < last; ++i) {
       const std::uint32_t a = lay.observers[i];
@@ -271,15 +284,28 @@ void oracle::compute(const net::truth::tick_frame& f) {
       const grown_box g{p[0] - gx, p[1] - gy, p[2] - gz, p[0] + gx, p[1] + gy, p[2] + gz};
       const float lo_x = p[0] - e[0], lo_y = p[1] - e[1], lo_z = p[2] - e[2];
       const float hi_x = p[0] + e[0], hi_y = p[1] + e[1], hi_z = p[2] + e[2];
-      candidate_flags(blo_x, blo_y, blo_z, bhi_x, bhi_y, bhi_z, lay.classes.data(), n, g, lay.sees[a], flags.data());
-      flags[a] = 0;  // never itself
-      for (std::size_t k0 = 0; k0 < n; k0 += 8) {
+      // Every target is tested (brute force), except, unless full_scan, those whose position's x
+      // is farther from the observer's than the grown AOI plus the largest presence half-extent
+      // plus 1 m: their boxes cannot meet on x (the 1 m covers any rounding of the box bounds).
+      std::size_t first_s = 0, last_s = n;
+      if (!full_scan) {
+        const float reach = gx + max_half_x + 1;
+        first_s = static_cast<std::size_t>(std::lower_bound(px, px + n, p[0] - reach) - px);
+        last_s = static_cast<std::size_t>(std::upper_bound(px, px + n, p[0] + reach) - px);
+      }
+      const std::size_t m = last_s - first_s;
+      candidate_flags(blo_x + first_s, blo_y + first_s, blo_z + first_s, bhi_x + first_s, bhi_y + first_s,
+                      bhi_z + first_s, cls.data() + first_s, m, g, lay.sees[a], flags.data());
+      std::fill(flags.begin() + static_cast<std::ptrdiff_t>(m), flags.begin() + static_cast<std::ptrdiff_t>(m + 8), 0);
+      for (std::size_t k0 = 0; k0 < m; k0 += 8) {
         std::uint64_t word;
         std::memcpy(&word, flags.data() + k0, 8);
         if (word == 0) continue;
-        for (std::size_t k = k0; k < std::min(n, k0 + 8); ++k) {
-          if (flags[k] == 0) continue;
-          const std::uint32_t target = lay.ids[k];
+        for (std::size_t r = k0; r < std::min(m, k0 + 8); ++r) {
+          if (flags[r] == 0) continue;
+          const std::size_t k = first_s + r;
+          if (by_x[k] == a) continue;  // never itself
+          const std::uint32_t target = lay.ids[by_x[k]];
           // Enter: the presence box meets the exact AOI box; stay: it was visible last tick.
           const bool meets = blo_x[k] <= hi_x && lo_x <= bhi_x[k] && blo_y[k] <= hi_y && lo_y <= bhi_y[k] &&
                              blo_z[k] <= hi_z && lo_z <= bhi_z[k];
@@ -368,6 +394,9 @@ void oracle::log(const char* kind, std::atomic<std::uint32_t>& logged, const std
 
 void oracle::check(std::uint32_t observer, std::uint64_t tick, const net::client_view& view,
                    const net::deferred_counts& deferred, const std::optional<net::vec3f>& self_position, std::size_t bot) {
+  for (std::uint64_t seen = newest_checked_tick_.load(std::memory_order_relaxed);
+       tick > seen && !newest_checked_tick_.compare_exchange_weak(seen, tick, std::memory_order_relaxed);) {
+  }
   thread_local view_snapshot v;
   v.observer = observer, v.tick = tick, v.deferred = deferred, v.self_position = self_position, v.bot = bot;
   v.held.clear();
@@ -391,6 +420,13 @@ void oracle::check(std::uint32_t observer, std::uint64_t tick, const net::client
   }
   pending_bytes_ += bytes;
   pending_.push_back(v);
+}
+
+void oracle::catch_up(double timeout_s) {
+  const std::uint64_t want = newest_checked_tick_.load();
+  std::unique_lock lock(ready_mutex_);
+  ready_cv_.wait_for(lock, std::chrono::duration<double>(timeout_s),
+                     [&] { return (any_ready_.load() && ready_tick_.load() >= want) || ended_.load(); });
 }
 
 void oracle::drain_pending(bool all) {

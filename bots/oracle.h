@@ -115,6 +115,12 @@ class oracle {
   [[nodiscard]] oracle_report report() const;
   /// Ticks of truth kept for checks of late frames and of positions last sent long ago.
   static constexpr std::size_t ring_ticks = 64;
+  /// Test every target for every observer (true), or skip those whose x alone rules them out
+  /// (false, the default: the same sets, tested against each other, about 20x less work).
+  bool full_scan = false;
+  /// Waits (at most `timeout_s`) until the truth of every tick a bot checked so far is computed
+  /// and the views that waited for it are checked: called at the end of a run, before stop().
+  void catch_up(double timeout_s);
 
  private:
   struct layout;
@@ -158,6 +164,7 @@ class oracle {
   std::vector<view_snapshot> pending_;
   std::size_t pending_bytes_ = 0;
   std::atomic<std::uint64_t> deferred_checks_{0}, pending_overflow_{0};
+  std::atomic<std::uint64_t> newest_checked_tick_{0};  // the newest tick a bot asked to check
   // Per-thread scratch of compute().
   std::vector<std::vector<std::uint8_t>> flags_;
   std::vector<std::vector<std::uint32_t>> sets_;  // by observer index, reused tick to tick

@@ -339,6 +339,7 @@ class swarm {
 
     swarm_result& r = out.result;
     if (oracle_) {
+      oracle_->catch_up(60);  // the views still waiting for their truth are checked first
       oracle_->stop();
       r.oracle_on = true;
       r.oracle = oracle_->report();

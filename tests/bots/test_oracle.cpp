@@ -83,6 +83,7 @@ TEST_SUITE("bots.oracle") {
   TEST_CASE("the oracle's visible sets equal the interest tracker's (brute-force finder), tick after tick") {
     for (const std::uint32_t cap : {0u, 7u}) {
       for (const unsigned threads : {1u, 3u}) {
+       for (const bool full_scan : {true, false}) {
         const std::uint64_t seed = zone::test::fresh_seed();
         CAPTURE(seed);
         CAPTURE(cap);
@@ -95,6 +96,8 @@ TEST_SUITE("bots.oracle") {
         rules.hysteresis = 4;
         rules.max_visible = cap;
         bots::oracle oracle(w.world, rules, threads, nullptr, nullptr);
+        oracle.full_scan = full_scan;
+        CAPTURE(full_scan);
         std::uint64_t compared = 0, visible_total = 0, differing = 0, in_band = 0;
         std::uint64_t layout_version = 0;
         for (std::uint64_t tick = 0; tick < 150; ++tick) {
@@ -136,13 +139,14 @@ TEST_SUITE("bots.oracle") {
             if (!std::equal(expect.begin(), expect.end(), got->begin(), got->end())) ++differing;
           }
         }
-        MESSAGE("cap " << cap << ", threads " << threads << ": " << compared << " visible sets compared, "
+        MESSAGE("cap " << cap << ", threads " << threads << std::string(full_scan ? ", every target" : ", x window") << ": " << compared << " visible sets compared, "
                        << visible_total << " entries, " << in_band << " kept by the hysteresis alone");
         CHECK(compared > 2000);
         CHECK(in_band > 100);
         CHECK(visible_total > compared * 5);
         CHECK(differing == 0);
         CHECK(oracle.counters().mismatches() == 0);
+       }
       }
     }
   }
