@@ -507,8 +507,10 @@ void oracle::check_snapshot(const view_snapshot& v) {
     std::uint64_t tick;
     const tick_truth* slot;
   };
-  std::vector<earlier> seen;
-  std::vector<std::shared_lock<std::shared_mutex>> locks;
+  thread_local std::vector<earlier> seen;
+  thread_local std::vector<std::shared_lock<std::shared_mutex>> locks;
+  seen.clear();
+  locks.clear();
   const auto truth_at = [&](std::uint64_t t) -> const tick_truth* {
     if (t == tick) return &now;
     for (const auto& e : seen) {
@@ -621,6 +623,7 @@ void oracle::check_snapshot(const view_snapshot& v) {
             std::to_string(due_maybe) + " more at a tier boundary), the frame deferred " +
             std::to_string(deferred.updates) + " updates");
   }
+  locks.clear();  // the earlier ticks' slots, released
   c_.frames_checked.fetch_add(1, std::memory_order_relaxed);
   c_.entities_checked.fetch_add(checked, std::memory_order_relaxed);
   c_.positions_checked.fetch_add(pos_checked, std::memory_order_relaxed);
