@@ -76,12 +76,16 @@ struct oracle::tick_truth {
   std::vector<std::uint32_t> obs_off;      // CSR offsets into vis, size + 1
   std::vector<std::uint8_t> obs_known;     // whole history seen (else not checked)
   std::vector<std::uint32_t> vis;          // each observer's visible set, ascending
+  std::vector<std::uint32_t> vis_dense;    // beside vis: each entry's dense index in lay
   [[nodiscard]] std::uint32_t find(std::uint32_t observer) const {
     const auto it = std::lower_bound(obs_ids.begin(), obs_ids.end(), observer);
     return it != obs_ids.end() && *it == observer ? static_cast<std::uint32_t>(it - obs_ids.begin()) : npos32;
   }
   [[nodiscard]] std::span<const std::uint32_t> set(std::uint32_t i) const {
     return {vis.data() + obs_off[i], obs_off[i + 1] - obs_off[i]};
+  }
+  [[nodiscard]] std::span<const std::uint32_t> set_dense(std::uint32_t i) const {
+    return {vis_dense.data() + obs_off[i], obs_off[i + 1] - obs_off[i]};
   }
 };
 
@@ -133,7 +137,7 @@ void oracle::stop() {
   if (fd_ >= 0) ::close(fd_), fd_ = -1;
   ended_ = true;
   ready_cv_.notify_all();
-  drain_pending(true);  // what still waits: checked if its truth came, else unchecked
+  drain_pending(true, static_cast<std::size_t>(-1));  // what still waits: checked if its truth came, else unchecked
 }
 
 void oracle::run(int fd) {
@@ -261,7 +265,7 @@ void oracle::compute(const net::truth::tick_frame& f) {
     for (std::size_t i = first; i < last; ++i) {
       const std::uint32_t a = lay.observers[i];
       const std::uint32_t id = lay.ids[a];
-      std::vector<std::uint32_t>& out = sets_[i];
+      std::vector<std::uint64_t>& out = sets_[i];  // (id << 32) | dense index
       out.clear();
       // History: a new entity starts from an empty set; one seen last tick continues from its set
       // there; any other (present before the stream began, or after a gap) is not checked.
@@ -306,22 +310,27 @@ void oracle::compute(const net::truth::tick_frame& f) {
           const std::size_t k = first_s + r;
           if (by_x[k] == a) continue;  // never itself
           const std::uint32_t target = lay.ids[by_x[k]];
+          const std::uint64_t entry = (std::uint64_t{target} << 32) | by_x[k];
           // Enter: the presence box meets the exact AOI box; stay: it was visible last tick.
           const bool meets = blo_x[k] <= hi_x && lo_x <= bhi_x[k] && blo_y[k] <= hi_y && lo_y <= bhi_y[k] &&
                              blo_z[k] <= hi_z && lo_z <= bhi_z[k];
-          if (meets || std::binary_search(before.begin(), before.end(), target)) out.push_back(target);
+          if (meets || std::binary_search(before.begin(), before.end(), target)) out.push_back(entry);
         }
       }
       if (cap != 0 && out.size() > cap) {
         // The cap closest by squared distance (ties by id), as the server keeps them.
         keys.clear();
-        for (const std::uint32_t t2 : out) {
-          const std::uint32_t k = lay.dense_of(t2);
-          keys.push_back((std::uint64_t{std::bit_cast<std::uint32_t>(dist2(p, pos + 3 * k))} << 32) | t2);
+        for (const std::uint64_t e2 : out) {
+          const auto k = static_cast<std::uint32_t>(e2);
+          keys.push_back((std::uint64_t{std::bit_cast<std::uint32_t>(dist2(p, pos + 3 * k))} << 32) | (e2 >> 32));
         }
         std::sort(keys.begin(), keys.end());
+        keys.resize(cap);
         out.clear();
-        for (std::size_t c = 0; c < cap; ++c) out.push_back(static_cast<std::uint32_t>(keys[c]));
+        for (const std::uint64_t key : keys) {
+          const auto t2 = static_cast<std::uint32_t>(key);
+          out.push_back((std::uint64_t{t2} << 32) | lay.dense_of(t2));
+        }
       }
       std::sort(out.begin(), out.end());
     }
@@ -359,10 +368,14 @@ void oracle::compute(const net::truth::tick_frame& f) {
     slot.obs_off.assign(1, 0);
     slot.obs_known.clear();
     slot.vis.clear();
+    slot.vis_dense.clear();
     for (const std::uint32_t i : order) {
       slot.obs_ids.push_back(lay.ids[lay.observers[i]]);
       slot.obs_known.push_back(known[i]);
-      slot.vis.insert(slot.vis.end(), sets_[i].begin(), sets_[i].end());
+      for (const std::uint64_t e : sets_[i]) {
+        slot.vis.push_back(static_cast<std::uint32_t>(e >> 32));
+        slot.vis_dense.push_back(static_cast<std::uint32_t>(e));
+      }
       slot.obs_off.push_back(static_cast<std::uint32_t>(slot.vis.size()));
     }
   }
@@ -374,7 +387,7 @@ void oracle::compute(const net::truth::tick_frame& f) {
     any_ready_ = true;
   }
   ready_cv_.notify_all();
-  drain_pending(false);
+  drain_pending(false, static_cast<std::size_t>(-1));
 }
 
 std::optional<std::vector<std::uint32_t>> oracle::visible(std::uint32_t observer, std::uint64_t tick) const {
@@ -406,7 +419,9 @@ void oracle::check(std::uint32_t observer, std::uint64_t tick, const net::client
   }
   std::sort(v.held.begin(), v.held.end(), [](const held_entity& a, const held_entity& b) { return a.id < b.id; });
   // The truth of this tick is usually computed a few milliseconds after its frames arrive: then
-  // the snapshot waits for the oracle's thread, and the bot goes on at once.
+  // the snapshot waits, and the bot goes on at once. Waiting snapshots whose truth has come are
+  // checked by the next bots to call (a few each) and by the oracle's thread.
+  drain_pending(false, 8);
   if (any_ready_.load(std::memory_order_acquire) && ready_tick_.load(std::memory_order_acquire) >= tick) {
     check_snapshot(v);
     return;
@@ -429,30 +444,26 @@ void oracle::catch_up(double timeout_s) {
                      [&] { return (any_ready_.load() && ready_tick_.load() >= want) || ended_.load(); });
 }
 
-void oracle::drain_pending(bool all) {
-  std::vector<view_snapshot> jobs;
-  {
-    std::lock_guard lock(pending_mutex_);
-    jobs.swap(pending_);
-    pending_bytes_ = 0;
-  }
-  if (jobs.empty()) return;
-  const std::uint64_t ready = ready_tick_.load();
-  std::vector<view_snapshot> later;
-  for (auto& v : jobs) {
-    if (all || (any_ready_.load() && v.tick <= ready)) {
-      deferred_checks_.fetch_add(1, std::memory_order_relaxed);
-      check_snapshot(v);
-    } else {
-      later.push_back(std::move(v));
+void oracle::drain_pending(bool all, std::size_t max_jobs) {
+  // Oldest first, a few at a time, checked outside the lock (bots' threads and the oracle's
+  // thread drain at once).
+  std::vector<view_snapshot> batch;
+  for (std::size_t done = 0; done < max_jobs;) {
+    batch.clear();
+    {
+      std::lock_guard lock(pending_mutex_);
+      const std::uint64_t ready = ready_tick_.load();
+      const bool any = any_ready_.load();
+      while (!pending_.empty() && batch.size() < 16 && (all || (any && pending_.front().tick <= ready))) {
+        pending_bytes_ -= sizeof(view_snapshot) + pending_.front().held.size() * sizeof(held_entity);
+        batch.push_back(std::move(pending_.front()));
+        pending_.pop_front();
+      }
     }
-  }
-  if (!later.empty()) {
-    std::lock_guard lock(pending_mutex_);
-    for (auto& v : later) {
-      pending_bytes_ += sizeof(view_snapshot) + v.held.size() * sizeof(held_entity);
-      pending_.push_back(std::move(v));
-    }
+    if (batch.empty()) return;
+    for (const auto& v : batch) check_snapshot(v);
+    deferred_checks_.fetch_add(batch.size(), std::memory_order_relaxed);
+    done += batch.size();
   }
 }
 
@@ -469,6 +480,7 @@ void oracle::check_snapshot(const view_snapshot& v) {
   }
   const layout& lay = *now.lay;
   const std::span<const std::uint32_t> truth = now.set(oi);
+  const std::span<const std::uint32_t> truth_dense = now.set_dense(oi);
   const std::uint32_t self = lay.dense_of(observer);
   const float* eye = now.pos.data() + 3 * self;
   const std::uint32_t sees = lay.sees[self];
@@ -547,8 +559,8 @@ void oracle::check_snapshot(const view_snapshot& v) {
     // Held and visible: its class, its position, and whether an update was due.
     const held_entity& e = v.held[j];
     const std::uint32_t id = e.id;
+    const std::uint32_t d = truth_dense[i];
     ++i, ++j, ++checked;
-    const std::uint32_t d = lay.dense_of(id);
     if (e.visibility_class != lay.classes[d]) {
       c_.wrong_class.fetch_add(1, std::memory_order_relaxed);
       log("class", logged_class_, who() + ": " + entity_line(id) + " is held with class " + std::to_string(e.visibility_class));
@@ -558,7 +570,7 @@ void oracle::check_snapshot(const view_snapshot& v) {
       ++pos_unchecked;
     } else {
       ++pos_checked;
-      const std::uint32_t dl = at->lay->dense_of(id);
+      const std::uint32_t dl = at->lay == now.lay ? d : at->lay->dense_of(id);  // same layout: same index
       const float* p = dl == npos32 ? nullptr : at->pos.data() + 3 * dl;
       if (p == nullptr || std::fabs(e.x - p[0]) > tolerance_.x || std::fabs(e.y - p[1]) > tolerance_.y ||
           std::fabs(e.z - p[2]) > tolerance_.z) {

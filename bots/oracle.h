@@ -19,6 +19,7 @@
 #include <atomic>
 #include <condition_variable>
 #include <cstdint>
+#include <deque>
 #include <memory>
 #include <mutex>
 #include <optional>
@@ -130,8 +131,9 @@ class oracle {
   void log(const char* kind, std::atomic<std::uint32_t>& logged, const std::string& line);
   /// Compares a snapshot with the truth of its tick (unchecked when that tick is gone or unknown).
   void check_snapshot(const view_snapshot& v);
-  /// Checks the waiting snapshots whose tick's truth is there (`all`: every one, the rest unchecked).
-  void drain_pending(bool all);
+  /// Checks up to `max_jobs` waiting snapshots whose tick's truth is there (`all`: every one; those
+  /// whose truth never came are counted unchecked).
+  void drain_pending(bool all, std::size_t max_jobs);
 
   net::world_bounds world_;
   net::interest_rules rules_;
@@ -161,13 +163,13 @@ class oracle {
   std::atomic<std::uint64_t> check_ns_{0};
   // Snapshots of frames that came before their tick's truth (checked by the oracle's thread).
   std::mutex pending_mutex_;
-  std::vector<view_snapshot> pending_;
+  std::deque<view_snapshot> pending_;
   std::size_t pending_bytes_ = 0;
   std::atomic<std::uint64_t> deferred_checks_{0}, pending_overflow_{0};
   std::atomic<std::uint64_t> newest_checked_tick_{0};  // the newest tick a bot asked to check
   // Per-thread scratch of compute().
   std::vector<std::vector<std::uint8_t>> flags_;
-  std::vector<std::vector<std::uint32_t>> sets_;  // by observer index, reused tick to tick
+  std::vector<std::vector<std::uint64_t>> sets_;  // by observer index, reused tick to tick: (id << 32) | dense
 };
 
 }  // namespace zone::bots
