@@ -194,7 +194,7 @@ class reference_replicator {
     std::sort(enters.begin(), enters.end(), by_priority);
     std::vector<entity_id> entered;
     for (const pending& e : enters) {
-      if (!fits(128)) {
+      if (!fits(net::frame_cost::enter)) {
         deferred.enters = static_cast<std::uint32_t>(enters.size() - entered.size());
         break;
       }
