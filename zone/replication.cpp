@@ -341,6 +341,8 @@ std::span<const std::uint8_t> replicator::build_from(const Source& source, clien
   if (opt_.send_digest && (st.reset || opt_.digest_period <= 1 || tick % opt_.digest_period == 0)) {
     writer.set_digest({tick, s.hash, static_cast<std::uint32_t>(s.view.size())});
   }
+  // What the budget left for later: a client (the oracle, docs/bots.md) can then tell a deferral from a loss.
+  writer.set_deferred({st.deferred_enters, st.deferred_leaves, st.deferred_updates});
   const auto frame = writer.finish();
   st.bytes = frame.size();
   if (stats) *stats = st;
@@ -515,6 +517,7 @@ void replicator::build_on_engine(std::span<const replication_request> requests, 
         if (opt_.send_digest && (stats.reset || opt_.digest_period <= 1 || tick % opt_.digest_period == 0)) {
           writer.set_digest({tick, res.hash, res.view_size});
         }
+        writer.set_deferred({res.deferred_enters, res.deferred_leaves, res.deferred_updates});
         const auto frame = writer.finish();
         stats.enters = res.enters;
         stats.leaves = res.leaves;

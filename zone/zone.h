@@ -643,6 +643,16 @@ struct zone_config {
   /// When set, one CSV line per tick (its wall time, clients, frames and phase timings) goes to
   /// this file, so percentiles can be taken over any window (e.g. after a swarm's ramp-up).
   std::string tick_csv;
+  // Correctness (docs/bots.md, the oracle).
+  /// Publish every tick's ground truth on a loopback stream (127.0.0.1:oracle_port; 0 = an
+  /// ephemeral port, told in the welcome): what an independent oracle checks each client's view
+  /// against. Off: nothing is built or sent.
+  bool oracle = false;
+  std::uint16_t oracle_port = 0;
+  /// Testing only: a deliberate replication fault for one client, to prove that the oracle
+  /// catches it: "" (none), "drop", "extra", "stealth", "freeze" or "class" (zone/fault_injection.h).
+  std::string test_fault;
+  std::uint64_t test_fault_tick = 40;  ///< the world tick from which the fault acts
 };
 
 /// Result of parse_config: a config, or a message (the help text, or a readable error).
