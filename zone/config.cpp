@@ -71,6 +71,10 @@ std::optional<std::string> validate(const zone_config& c) {
   if (std::find(std::begin(interests), std::end(interests), c.interest) == std::end(interests)) {
     return bad("interest must be auto, gpu or host");
   }
+  static const char* replicates[] = {"auto", "gpu", "cpu"};
+  if (std::find(std::begin(replicates), std::end(replicates), c.replicate) == std::end(replicates)) {
+    return bad("replicate must be auto, gpu or cpu");
+  }
   if (c.interest == "gpu" && c.max_visible != 0) return bad("interest gpu does not support max-visible (use auto or host)");
   static const char* levels[] = {"trace", "debug", "info", "warn", "error", "critical", "off"};
   if (std::find(std::begin(levels), std::end(levels), c.log_level) == std::end(levels)) {
@@ -109,6 +113,7 @@ config_result parse_config(int argc, const char* const* argv) {
   interest.add_options()                                                                                     //
       ("finder", po::value(&c.finder)->default_value(c.finder), "pair finder: auto (chosen per tick from the box statistics: GPU when usable, else CPU), cpu, gpu (= pbig), pbig, lbvh, brute")  //
       ("interest", po::value(&c.interest)->default_value(c.interest), "where the interest step runs: auto (the GPU visibility engine when a device is usable and max-visible is 0, else host), gpu, host (the pair finder and the host diff)")  //
+      ("replicate", po::value(&c.replicate)->default_value(c.replicate), "where replication's per-client decisions run: auto (the GPU replication engine when a device is usable, else cpu), gpu, cpu; the frames are the same")  //
       ("hysteresis", po::value(&c.hysteresis)->default_value(c.hysteresis), "leave margin beyond the AOI (m)")  //
       ("max-visible", po::value(&c.max_visible)->default_value(c.max_visible), "cap per observer (0 = none)")   //
       ("aoi-tiny", po::value(&c.aoi_tier[0])->default_value(c.aoi_tier[0]), "AOI half-extent of tier tiny (m)")  //
