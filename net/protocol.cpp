@@ -4,6 +4,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstring>
+#include <bit>
 #include <limits>
 #include <type_traits>
 
@@ -164,8 +165,24 @@ error_code to_error_code(decode_error e) {
 // ---- encoder --------------------------------------------------------------------------------
 
 encoder::encoder(std::size_t initial_bytes) : fbb_(initial_bytes) {}
+encoder::~encoder() = default;
+encoder::encoder(encoder&&) noexcept = default;
+encoder& encoder::operator=(encoder&&) noexcept = default;
 
 std::span<const std::uint8_t> encoder::encode(const message& m) {
+  if (const auto* t = std::get_if<tick_update_msg>(&m)) {
+    // The canonical layout (canonical_tick_update), the same bytes as tick_update_writer's.
+    if (!tick_) tick_ = std::make_unique<tick_update_writer>();
+    tick_->begin(t->server_tick, t->server_time_us, t->last_input_sequence);
+    for (const auto& s : t->enters) tick_->add_enter(s);
+    for (const auto id : t->leaves) tick_->add_leave(id);
+    for (const auto& u : t->updates) tick_->add_update(u);
+    if (t->digest) tick_->set_digest(*t->digest);
+    tick_->set_reset(t->reset);
+    if (t->self_position) tick_->set_self_position(*t->self_position);
+    if (t->deferred) tick_->set_deferred(*t->deferred);
+    return tick_->finish();
+  }
   fbb_.Clear();
   const auto body = build_body(fbb_, m);
   return finish_frame(fbb_, type_of(m), body);
@@ -181,12 +198,12 @@ std::vector<std::uint8_t> encode_frame(const message& m) {
   return {frame.begin(), frame.end()};
 }
 
-tick_update_writer::tick_update_writer(std::size_t initial_bytes) : fbb_(initial_bytes) {}
+tick_update_writer::tick_update_writer(std::size_t initial_bytes) { out_.reserve((initial_bytes + 7) / 8); }
 
 void tick_update_writer::begin(std::uint64_t server_tick, std::uint64_t server_time_us,
                                std::uint32_t last_input_sequence) {
-  fbb_.Clear();
   enters_.clear();
+  names_.clear();
   leaves_.clear();
   updates_.clear();
   leaves_span_ = {};
@@ -202,7 +219,17 @@ void tick_update_writer::begin(std::uint64_t server_tick, std::uint64_t server_t
 }
 
 void tick_update_writer::add_enter(const entity_state& s) {
-  enters_.push_back(build_entity_state(fbb_, s));
+  enter_record r;
+  r.id = s.id;
+  r.visibility_class = s.visibility_class;
+  r.position = to_wire(s.position);
+  r.velocity = to_wire(s.velocity);
+  r.half = to_wire(s.presence_half_extent);
+  r.name_at = static_cast<std::uint32_t>(names_.size());
+  r.name_length = static_cast<std::uint32_t>(s.name.size());
+  r.kind = s.kind;
+  names_ += s.name;
+  enters_.push_back(r);
   enter_name_bytes_ += frame_cost::entity_name_cost(s.name.size());
 }
 void tick_update_writer::add_leave(std::uint32_t id) { leaves_.push_back(id); }
@@ -211,25 +238,129 @@ std::size_t tick_update_writer::size_estimate() const {
   return frame_cost::of(enters_.size(), leave_count(), update_count(), self_position_.has_value(), enter_name_bytes_);
 }
 
+namespace {
+// Little-endian stores at byte offsets (the wire is little-endian; so are the hosts we build for).
+static_assert(std::endian::native == std::endian::little, "the canonical writer stores host words as they are");
+template <class T>
+inline void put(std::uint8_t* base, std::size_t at, T v) {
+  std::memcpy(base + at, &v, sizeof(T));
+}
+inline void put_vec3(std::uint8_t* base, std::size_t at, const w::vec3& v) {
+  put(base, at, v.x());
+  put(base, at + 4, v.y());
+  put(base, at + 8, v.z());
+}
+}  // namespace
+
 std::span<const std::uint8_t> tick_update_writer::finish() {
-  // An empty vector is left out: absent reads as empty, and most frames have no enters and no
-  // leaves (8 bytes each: the length word and the field's offset).
-  const auto enters_v = enters_.empty() ? 0 : fbb_.CreateVector(enters_);
+  using c = canonical_tick_update;
   const std::span<const std::uint32_t> leaves = leaves_span_.empty() ? std::span<const std::uint32_t>(leaves_) : leaves_span_;
   const std::span<const w::entity_update> updates =
       updates_span_.empty() ? std::span<const w::entity_update>(updates_) : updates_span_;
-  const auto leaves_v = leaves.empty() ? 0 : fbb_.CreateVector(leaves.data(), leaves.size());
-  const auto updates_v = updates.empty() ? 0 : fbb_.CreateVectorOfStructs(updates.data(), updates.size());
-  std::optional<w::verify_digest> digest;
-  if (digest_) digest.emplace(digest_->tick, digest_->hash, digest_->count);
-  std::optional<w::vec3> self;
-  if (self_position_) self = to_wire(*self_position_);
-  std::optional<w::deferred_counts> deferred;
-  if (deferred_.any()) deferred.emplace(deferred_.enters, deferred_.leaves, deferred_.updates);
-  const auto body = w::Createtick_update(fbb_, tick_, time_us_, last_input_, enters_v, leaves_v, updates_v,
-                                         digest ? &*digest : nullptr, reset_, self ? &*self : nullptr,
-                                         deferred ? &*deferred : nullptr);
-  return finish_frame(fbb_, w::message::tick_update, body.Union());
+  std::size_t names = 0;
+  for (const auto& e : enters_) names += c::name_bytes(e.name_length);
+  const std::size_t n = enters_.size();
+  const std::size_t size = c::size(n, leaves.size(), updates.size(), names);
+  out_.resize(size / 8);
+  auto* const f = reinterpret_cast<std::uint8_t*>(out_.data());
+  std::memset(f, 0, c::vectors_at);
+  out_[size / 8 - 1] = 0;  // the tail padding
+
+  // Prefix, root offset, identifier.
+  put<std::uint32_t>(f, 0, static_cast<std::uint32_t>(size - frame_header_bytes));
+  put<std::uint32_t>(f, 4, 20 - 4);
+  std::memcpy(f + 8, w::envelopeIdentifier(), 4);
+  // Envelope vtable and table.
+  put<std::uint16_t>(f, 12, 8);
+  put<std::uint16_t>(f, 14, 12);
+  put<std::uint16_t>(f, 16, 8);  // message_type
+  put<std::uint16_t>(f, 18, 4);  // message
+  put<std::int32_t>(f, 20, 20 - 12);
+  put<std::uint32_t>(f, 24, static_cast<std::uint32_t>(c::table_at - 24));
+  f[28] = static_cast<std::uint8_t>(w::message::tick_update);
+  // tick_update vtable: the fields' places (0 = absent) in schema order.
+  constexpr std::size_t vt = 32, t = c::table_at;
+  const bool has_enters = n != 0, has_leaves = !leaves.empty(), has_updates = !updates.empty();
+  const bool has_deferred = deferred_.any();
+  const std::uint16_t places[10] = {8,
+                                    16,
+                                    4,
+                                    static_cast<std::uint16_t>(has_enters ? 48 : 0),
+                                    static_cast<std::uint16_t>(has_leaves ? 52 : 0),
+                                    static_cast<std::uint16_t>(has_updates ? 56 : 0),
+                                    static_cast<std::uint16_t>(digest_ ? 24 : 0),
+                                    84,
+                                    static_cast<std::uint16_t>(self_position_ ? 60 : 0),
+                                    static_cast<std::uint16_t>(has_deferred ? 72 : 0)};
+  put<std::uint16_t>(f, vt, 4 + 2 * 10);
+  put<std::uint16_t>(f, vt + 2, static_cast<std::uint16_t>(c::vectors_at - c::table_at));
+  std::memcpy(f + vt + 4, places, sizeof places);
+  // The table.
+  put<std::int32_t>(f, t, static_cast<std::int32_t>(t - vt));
+  put<std::uint32_t>(f, t + 4, last_input_);
+  put<std::uint64_t>(f, t + 8, tick_);
+  put<std::uint64_t>(f, t + 16, time_us_);
+  if (digest_) {
+    put<std::uint64_t>(f, t + 24, digest_->tick);
+    put<std::uint64_t>(f, t + 32, digest_->hash);
+    put<std::uint32_t>(f, t + 40, digest_->count);
+  }
+  if (self_position_) put_vec3(f, t + 60, to_wire(*self_position_));
+  if (has_deferred) {
+    put<std::uint32_t>(f, t + 72, deferred_.enters);
+    put<std::uint32_t>(f, t + 76, deferred_.leaves);
+    put<std::uint32_t>(f, t + 80, deferred_.updates);
+  }
+  f[t + 84] = reset_ ? 1 : 0;
+  // The vectors.
+  std::size_t at = c::vectors_at;
+  const std::size_t enters_at = at;
+  if (has_enters) {
+    put<std::uint32_t>(f, t + 48, static_cast<std::uint32_t>(at - (t + 48)));
+    at += 4 + 4 * n;
+  }
+  if (has_leaves) {
+    put<std::uint32_t>(f, t + 52, static_cast<std::uint32_t>(at - (t + 52)));
+    put<std::uint32_t>(f, at, static_cast<std::uint32_t>(leaves.size()));
+    std::memcpy(f + at + 4, leaves.data(), leaves.size() * 4);
+    at += 4 + 4 * leaves.size();
+  }
+  if (has_updates) {
+    put<std::uint32_t>(f, t + 56, static_cast<std::uint32_t>(at - (t + 56)));
+    put<std::uint32_t>(f, at, static_cast<std::uint32_t>(updates.size()));
+    static_assert(sizeof(w::entity_update) == 16);
+    std::memcpy(f + at + 4, updates.data(), updates.size() * 16);
+    at += 4 + 16 * updates.size();
+  }
+  if (has_enters) {
+    // One shared vtable, then each enter's table and name.
+    const std::size_t evt = at;
+    const std::uint16_t eplaces[9] = {4 + 2 * 7, static_cast<std::uint16_t>(c::enter_table), 4, 52, 8, 12, 24, 36, 48};
+    std::memcpy(f + evt, eplaces, sizeof eplaces);
+    put<std::uint16_t>(f, evt + 18, 0);
+    at += c::enter_vtable;
+    put<std::uint32_t>(f, enters_at, static_cast<std::uint32_t>(n));
+    for (std::size_t k = 0; k < n; ++k) {
+      const auto& e = enters_[k];
+      const std::size_t slot = enters_at + 4 + 4 * k;
+      put<std::uint32_t>(f, slot, static_cast<std::uint32_t>(at - slot));
+      put<std::int32_t>(f, at, static_cast<std::int32_t>(at - evt));
+      put<std::uint32_t>(f, at + 4, e.id);
+      put<std::uint32_t>(f, at + 8, e.visibility_class);
+      put_vec3(f, at + 12, e.position);
+      put_vec3(f, at + 24, e.velocity);
+      put_vec3(f, at + 36, e.half);
+      put<std::uint32_t>(f, at + 48, c::enter_table - 48);
+      put<std::uint32_t>(f, at + 52, static_cast<std::uint32_t>(static_cast<std::uint8_t>(e.kind)));
+      at += c::enter_table;
+      const std::size_t nb = c::name_bytes(e.name_length);
+      put<std::uint32_t>(f, at + nb - 4, 0);  // terminator and padding
+      put<std::uint32_t>(f, at, e.name_length);
+      std::memcpy(f + at + 4, names_.data() + e.name_at, e.name_length);
+      at += nb;
+    }
+  }
+  return {f, size};
 }
 
 // ---- conversion -----------------------------------------------------------------------------

@@ -13,6 +13,7 @@
 #include <bit>
 #include <cstddef>
 #include <cstdint>
+#include <memory>
 #include <optional>
 #include <span>
 #include <string>
@@ -174,9 +175,14 @@ using message =
 /// Builds frames: each a 4-byte little-endian length then one FlatBuffer (root `envelope`,
 /// identifier "ZSV1"). The builder's memory is reused between frames; a returned span stays valid
 /// until the next call on the same encoder. Not thread-safe: one encoder per thread.
+class tick_update_writer;
+
 class encoder {
  public:
   explicit encoder(std::size_t initial_bytes = 1024);
+  ~encoder();
+  encoder(encoder&&) noexcept;
+  encoder& operator=(encoder&&) noexcept;
 
   /// Encodes one message as a complete frame (length prefix included).
   [[nodiscard]] std::span<const std::uint8_t> encode(const message& m);
@@ -189,12 +195,16 @@ class encoder {
 
  private:
   flatbuffers::FlatBufferBuilder fbb_;
+  std::unique_ptr<tick_update_writer> tick_;  // tick_update messages: the canonical layout
 };
 
 /// Streams one tick_update into a frame without building a tick_update_msg first: the replication
 /// step adds enters, leaves and updates as it decides them and can ask for the frame size so far
 /// (for a per-client byte budget). Memory is reused between frames. Usage per frame:
 /// begin(); add_*()...; finish(). A returned span is valid until the next begin().
+/// The frame is written straight in the canonical tick_update layout (canonical_tick_update,
+/// docs/protocol.md), not through a FlatBuffers builder: the same values give the same bytes
+/// whoever writes them (the CPU replicator, the GPU path's wrapping, encoder::encode).
 /// The closed-form cost model of a tick_update frame (prefix included): an upper bound on the
 /// encoded size of a frame with these counts, whatever the values, field order of the builder
 /// or vtable sharing. Replication decides its byte budget with it alone (on the CPU and on the
@@ -218,6 +228,38 @@ struct frame_cost {
   static constexpr std::size_t of(std::size_t enters, std::size_t leaves, std::size_t updates, bool has_self,
                                   std::size_t name_bytes = 0) {
     return header + (has_self ? self_position : 0) + enters * enter + name_bytes + leaves * leave + updates * update;
+  }
+};
+
+/// The canonical layout of a tick_update frame: one deterministic FlatBuffers serialization
+/// (valid for any FlatBuffers reader and the verifier), written by tick_update_writer. Offsets in
+/// bytes from the frame's first byte (the length prefix), which is 8-byte aligned:
+///   0 length prefix, 4 root offset (16), 8 identifier "ZSV1";
+///   12 envelope vtable (8 bytes), 20 envelope table (12: message offset, message type);
+///   32 tick_update vtable (24 bytes: ten fields; 0 for each absent one);
+///   56 tick_update table (88 bytes, every field at a fixed place, absent ones zero):
+///      +4 last_input_sequence, +8 server_tick, +16 server_time_us, +24 digest, +48 enters,
+///      +52 leaves, +56 updates, +60 self_position, +72 deferred, +84 reset;
+///   144 the enters' offsets vector, the leaves vector, the updates vector, each present only
+///      when not empty, in that order;
+///   then, with enters, one entity_state vtable (20 bytes) shared by all enters, and per enter
+///      its table (56 bytes: +4 id, +8 visibility_class, +12 position, +24 velocity,
+///      +36 presence_half_extent, +48 name, +52 kind) followed by its name (always present,
+///      padded to 4);
+///   zero padding to a multiple of 8.
+struct canonical_tick_update {
+  static constexpr std::size_t table_at = 56;
+  static constexpr std::size_t vectors_at = 144;  ///< the header's size: a frame without vectors
+  static constexpr std::size_t enter_vtable = 20;
+  static constexpr std::size_t enter_table = 56;
+  /// Bytes of one enter's name string (length word, characters, terminator, padding to 4).
+  static constexpr std::size_t name_bytes(std::size_t length) { return 4 + ((length + 4) & ~std::size_t{3}); }
+  /// The exact size of a frame (prefix included) with these counts; `names` is the sum of
+  /// name_bytes over the enters.
+  static constexpr std::size_t size(std::size_t enters, std::size_t leaves, std::size_t updates, std::size_t names) {
+    const std::size_t n = vectors_at + (enters != 0 ? 4 + 4 * enters + enter_vtable + enter_table * enters + names : 0) +
+                          (leaves != 0 ? 4 + 4 * leaves : 0) + (updates != 0 ? 4 + 16 * updates : 0);
+    return (n + 7) & ~std::size_t{7};
   }
 };
 
@@ -255,10 +297,17 @@ class tick_update_writer {
   [[nodiscard]] std::span<const std::uint8_t> finish();
 
  private:
-  flatbuffers::FlatBufferBuilder fbb_;
+  struct enter_record {
+    std::uint32_t id = 0, visibility_class = 0;
+    wire::vec3 position, velocity, half;
+    std::uint32_t name_at = 0, name_length = 0;  // in names_
+    entity_kind kind = entity_kind::player;
+  };
+  std::vector<std::uint64_t> out_;  // the frame (8-byte aligned)
   std::uint64_t tick_ = 0, time_us_ = 0;
   std::uint32_t last_input_ = 0;
-  std::vector<flatbuffers::Offset<wire::entity_state>> enters_;
+  std::vector<enter_record> enters_;
+  std::string names_;
   std::vector<std::uint32_t> leaves_;
   std::vector<wire::entity_update> updates_;
   std::span<const std::uint32_t> leaves_span_;
