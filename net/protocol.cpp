@@ -260,10 +260,20 @@ std::span<const std::uint8_t> tick_update_writer::finish() {
   std::size_t names = 0;
   for (const auto& e : enters_) names += c::name_bytes(e.name_length);
   const std::size_t n = enters_.size();
-  const std::size_t size = c::size(n, leaves.size(), updates.size(), names);
+  c::parts parts;
+  parts.enters = n != 0;
+  parts.leaves = !leaves.empty();
+  parts.updates = !updates.empty();
+  parts.digest = digest_.has_value();
+  parts.self = self_position_.has_value();
+  parts.deferred = deferred_.any();
+  parts.reset = reset_;
+  const c::table_layout l = c::layout(parts);
+  const std::size_t size = c::size(parts, n, leaves.size(), updates.size(), names);
   out_.resize(size / 8);
   auto* const f = reinterpret_cast<std::uint8_t*>(out_.data());
-  std::memset(f, 0, c::vectors_at);
+  const std::size_t t = l.table_at;
+  std::memset(f, 0, t + l.table_size);
   out_[size / 8 - 1] = 0;  // the tail padding
 
   // Prefix, root offset, identifier.
@@ -276,57 +286,45 @@ std::span<const std::uint8_t> tick_update_writer::finish() {
   put<std::uint16_t>(f, 16, 8);  // message_type
   put<std::uint16_t>(f, 18, 4);  // message
   put<std::int32_t>(f, 20, 20 - 12);
-  put<std::uint32_t>(f, 24, static_cast<std::uint32_t>(c::table_at - 24));
+  put<std::uint32_t>(f, 24, static_cast<std::uint32_t>(t - 24));
   f[28] = static_cast<std::uint8_t>(w::message::tick_update);
-  // tick_update vtable: the fields' places (0 = absent) in schema order.
-  constexpr std::size_t vt = 32, t = c::table_at;
-  const bool has_enters = n != 0, has_leaves = !leaves.empty(), has_updates = !updates.empty();
-  const bool has_deferred = deferred_.any();
-  const std::uint16_t places[10] = {8,
-                                    16,
-                                    4,
-                                    static_cast<std::uint16_t>(has_enters ? 48 : 0),
-                                    static_cast<std::uint16_t>(has_leaves ? 52 : 0),
-                                    static_cast<std::uint16_t>(has_updates ? 56 : 0),
-                                    static_cast<std::uint16_t>(digest_ ? 24 : 0),
-                                    84,
-                                    static_cast<std::uint16_t>(self_position_ ? 60 : 0),
-                                    static_cast<std::uint16_t>(has_deferred ? 72 : 0)};
-  put<std::uint16_t>(f, vt, 4 + 2 * 10);
-  put<std::uint16_t>(f, vt + 2, static_cast<std::uint16_t>(c::vectors_at - c::table_at));
-  std::memcpy(f + vt + 4, places, sizeof places);
-  // The table.
+  // tick_update vtable and table.
+  constexpr std::size_t vt = c::vtable_at;
+  put<std::uint16_t>(f, vt, static_cast<std::uint16_t>(l.vtable_size));
+  put<std::uint16_t>(f, vt + 2, static_cast<std::uint16_t>(l.table_size));
+  std::memcpy(f + vt + 4, l.field, l.vtable_size - 4);
   put<std::int32_t>(f, t, static_cast<std::int32_t>(t - vt));
-  put<std::uint32_t>(f, t + 4, last_input_);
-  put<std::uint64_t>(f, t + 8, tick_);
-  put<std::uint64_t>(f, t + 16, time_us_);
-  if (digest_) {
-    put<std::uint64_t>(f, t + 24, digest_->tick);
-    put<std::uint64_t>(f, t + 32, digest_->hash);
-    put<std::uint32_t>(f, t + 40, digest_->count);
+  put<std::uint64_t>(f, t + l.field[0], tick_);
+  put<std::uint64_t>(f, t + l.field[1], time_us_);
+  put<std::uint32_t>(f, t + l.field[2], last_input_);
+  if (parts.digest) {
+    put<std::uint64_t>(f, t + l.field[6], digest_->tick);
+    put<std::uint64_t>(f, t + l.field[6] + 8, digest_->hash);
+    put<std::uint32_t>(f, t + l.field[6] + 16, digest_->count);
   }
-  if (self_position_) put_vec3(f, t + 60, to_wire(*self_position_));
-  if (has_deferred) {
-    put<std::uint32_t>(f, t + 72, deferred_.enters);
-    put<std::uint32_t>(f, t + 76, deferred_.leaves);
-    put<std::uint32_t>(f, t + 80, deferred_.updates);
+  if (parts.self) put_vec3(f, t + l.field[8], to_wire(*self_position_));
+  if (parts.deferred) {
+    put<std::uint32_t>(f, t + l.field[9], deferred_.enters);
+    put<std::uint32_t>(f, t + l.field[9] + 4, deferred_.leaves);
+    put<std::uint32_t>(f, t + l.field[9] + 8, deferred_.updates);
   }
-  f[t + 84] = reset_ ? 1 : 0;
+  if (parts.reset) f[t + l.field[7]] = 1;
+  const bool has_enters = parts.enters, has_leaves = parts.leaves, has_updates = parts.updates;
   // The vectors.
-  std::size_t at = c::vectors_at;
+  std::size_t at = t + l.table_size;
   const std::size_t enters_at = at;
   if (has_enters) {
-    put<std::uint32_t>(f, t + 48, static_cast<std::uint32_t>(at - (t + 48)));
+    put<std::uint32_t>(f, t + l.field[3], static_cast<std::uint32_t>(at - (t + l.field[3])));
     at += 4 + 4 * n;
   }
   if (has_leaves) {
-    put<std::uint32_t>(f, t + 52, static_cast<std::uint32_t>(at - (t + 52)));
+    put<std::uint32_t>(f, t + l.field[4], static_cast<std::uint32_t>(at - (t + l.field[4])));
     put<std::uint32_t>(f, at, static_cast<std::uint32_t>(leaves.size()));
     std::memcpy(f + at + 4, leaves.data(), leaves.size() * 4);
     at += 4 + 4 * leaves.size();
   }
   if (has_updates) {
-    put<std::uint32_t>(f, t + 56, static_cast<std::uint32_t>(at - (t + 56)));
+    put<std::uint32_t>(f, t + l.field[5], static_cast<std::uint32_t>(at - (t + l.field[5])));
     put<std::uint32_t>(f, at, static_cast<std::uint32_t>(updates.size()));
     static_assert(sizeof(w::entity_update) == 16);
     std::memcpy(f + at + 4, updates.data(), updates.size() * 16);

@@ -236,28 +236,69 @@ struct frame_cost {
 /// bytes from the frame's first byte (the length prefix), which is 8-byte aligned:
 ///   0 length prefix, 4 root offset (16), 8 identifier "ZSV1";
 ///   12 envelope vtable (8 bytes), 20 envelope table (12: message offset, message type);
-///   32 tick_update vtable (24 bytes: ten fields; 0 for each absent one);
-///   56 tick_update table (88 bytes, every field at a fixed place, absent ones zero):
-///      +4 last_input_sequence, +8 server_tick, +16 server_time_us, +24 digest, +48 enters,
-///      +52 leaves, +56 updates, +60 self_position, +72 deferred, +84 reset;
-///   144 the enters' offsets vector, the leaves vector, the updates vector, each present only
-///      when not empty, in that order;
+///   32 tick_update vtable: up to the last present field (at least the first three), zero for
+///      absent ones, padded so that the table starts at 4 mod 8;
+///   the tick_update table: its vtable offset, then the present fields in this order:
+///      server_tick, server_time_us (always), digest, last_input_sequence (always), enters,
+///      leaves, updates (offsets; present when not empty), self_position, deferred (when any
+///      count is non-zero), reset (only when true; then padded to 4);
+///   the enters' offsets vector, the leaves vector, the updates vector (each when not empty);
 ///   then, with enters, one entity_state vtable (20 bytes) shared by all enters, and per enter
 ///      its table (56 bytes: +4 id, +8 visibility_class, +12 position, +24 velocity,
 ///      +36 presence_half_extent, +48 name, +52 kind) followed by its name (always present,
 ///      padded to 4);
 ///   zero padding to a multiple of 8.
 struct canonical_tick_update {
-  static constexpr std::size_t table_at = 56;
-  static constexpr std::size_t vectors_at = 144;  ///< the header's size: a frame without vectors
+  static constexpr std::size_t vtable_at = 32;
   static constexpr std::size_t enter_vtable = 20;
   static constexpr std::size_t enter_table = 56;
+  /// Which optional parts a frame has.
+  struct parts {
+    bool enters = false, leaves = false, updates = false, digest = false, self = false, deferred = false,
+         reset = false;
+  };
+  /// The tick_update table's place and its fields' (0 = absent), in schema order, and its size.
+  struct table_layout {
+    std::size_t table_at = 0, table_size = 0, vtable_size = 0;
+    std::uint16_t field[10] = {};
+  };
+  static constexpr table_layout layout(const parts& p) {
+    table_layout l;
+    const bool present[10] = {true, true, true, p.enters, p.leaves, p.updates, p.digest, p.reset, p.self, p.deferred};
+    std::size_t fields = 3;
+    for (std::size_t i = 3; i < 10; ++i) {
+      if (present[i]) fields = i + 1;
+    }
+    l.vtable_size = 4 + 2 * fields;
+    l.table_at = vtable_at + l.vtable_size;
+    l.table_at += (12 - l.table_at % 8) % 8;  // 4 mod 8: the 8-byte fields after the vtable offset align
+    std::size_t at = 4;
+    const auto take = [&](std::size_t field, std::size_t bytes) {
+      l.field[field] = static_cast<std::uint16_t>(at);
+      at += bytes;
+    };
+    take(0, 8);
+    take(1, 8);
+    if (p.digest) take(6, 24);
+    take(2, 4);
+    if (p.enters) take(3, 4);
+    if (p.leaves) take(4, 4);
+    if (p.updates) take(5, 4);
+    if (p.self) take(8, 12);
+    if (p.deferred) take(9, 12);
+    if (p.reset) take(7, 4);  // the byte and its padding
+    l.table_size = at;
+    return l;
+  }
   /// Bytes of one enter's name string (length word, characters, terminator, padding to 4).
   static constexpr std::size_t name_bytes(std::size_t length) { return 4 + ((length + 4) & ~std::size_t{3}); }
-  /// The exact size of a frame (prefix included) with these counts; `names` is the sum of
-  /// name_bytes over the enters.
-  static constexpr std::size_t size(std::size_t enters, std::size_t leaves, std::size_t updates, std::size_t names) {
-    const std::size_t n = vectors_at + (enters != 0 ? 4 + 4 * enters + enter_vtable + enter_table * enters + names : 0) +
+  /// The exact size of a frame (prefix included) with these parts and counts; `names` is the sum
+  /// of name_bytes over the enters.
+  static constexpr std::size_t size(const parts& p, std::size_t enters, std::size_t leaves, std::size_t updates,
+                                    std::size_t names) {
+    const table_layout l = layout(p);
+    const std::size_t n = l.table_at + l.table_size +
+                          (enters != 0 ? 4 + 4 * enters + enter_vtable + enter_table * enters + names : 0) +
                           (leaves != 0 ? 4 + 4 * leaves : 0) + (updates != 0 ? 4 + 16 * updates : 0);
     return (n + 7) & ~std::size_t{7};
   }

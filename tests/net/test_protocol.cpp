@@ -362,7 +362,16 @@ TEST_SUITE("net.protocol") {
       CAPTURE(rep);
       std::size_t names = 0;
       for (const auto& e : t.enters) names += c::name_bytes(e.name.size());
-      REQUIRE(f.size() == c::size(t.enters.size(), t.leaves.size(), t.updates.size(), names));
+      c::parts parts;
+      parts.enters = !t.enters.empty();
+      parts.leaves = !t.leaves.empty();
+      parts.updates = !t.updates.empty();
+      parts.digest = t.digest.has_value();
+      parts.self = t.self_position.has_value();
+      parts.deferred = t.deferred.has_value() && t.deferred->any();
+      parts.reset = t.reset;
+      const auto l = c::layout(parts);
+      REQUIRE(f.size() == c::size(parts, t.enters.size(), t.leaves.size(), t.updates.size(), names));
       CHECK(f.size() % 8 == 0);
       CHECK(reinterpret_cast<std::uintptr_t>(span.data()) % 8 == 0);
       flatbuffers::Verifier v(f.data(), f.size());
@@ -376,8 +385,20 @@ TEST_SUITE("net.protocol") {
       REQUIRE(body != nullptr);
       const auto at = [&](const void* p) { return static_cast<std::size_t>(static_cast<const std::uint8_t*>(p) - f.data()); };
       CHECK(at(env) == 20);
-      CHECK(at(body) == c::table_at);
-      std::size_t next = c::vectors_at;
+      CHECK(at(body) == l.table_at);
+      CHECK(l.table_at % 8 == 4);
+      // Every present field where the layout puts it; absent ones absent.
+      const auto* vt = f.data() + c::vtable_at;
+      for (int k = 0; k < 10; ++k) {
+        const std::uint16_t place = k * 2 + 4 < static_cast<int>(l.vtable_size) ? static_cast<std::uint16_t>(vt[4 + 2 * k] | vt[5 + 2 * k] << 8) : 0;
+        CHECK(place == l.field[k]);
+      }
+      CHECK((l.field[6] != 0) == t.digest.has_value());
+      CHECK((l.field[8] != 0) == t.self_position.has_value());
+      CHECK((l.field[7] != 0) == t.reset);
+      if (t.self_position) CHECK(at(body->self_position()) == l.table_at + l.field[8]);
+      if (t.digest) CHECK(at(body->digest()) == l.table_at + l.field[6]);
+      std::size_t next = l.table_at + l.table_size;
       if (!t.enters.empty()) {
         REQUIRE(body->enters() != nullptr);
         CHECK(at(body->enters()) == next);
