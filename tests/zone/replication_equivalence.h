@@ -37,6 +37,10 @@ struct replication_equivalence_case {
 /// What the runs covered (summed over every frame compared).
 struct replication_coverage {
   std::uint64_t frames = 0, differing = 0, stats_differing = 0, hash_differing = 0;
+  /// Engine frames the FlatBuffers verifier or the decoder rejected, or that decoded to another
+  /// message than the CPU replicator's frame; one byte flipped per tick in a copy of a frame, and
+  /// how many of those the comparison caught (all of them, or the check could not fail).
+  std::uint64_t undecodable = 0, broken_probes = 0, broken_caught = 0;
   std::uint64_t enters = 0, leaves = 0, updates = 0;
   std::uint64_t deferred_enters = 0, deferred_leaves = 0, deferred_updates = 0;
   std::uint64_t ranked = 0;  ///< frames where the budget cut the due updates and some were sent
@@ -154,6 +158,18 @@ inline replication_coverage check_replication_equivalence(
           const client_id id = requests[k].client;
           ++cov.frames;
           cov.differing += want[k] != got[k] ? 1 : 0;
+          {
+            net::decoder_options big;
+            big.max_frame_bytes = std::size_t{4} << 20;
+            const auto a_msg = net::decode_frame(got[k], big), b_msg = net::decode_frame(want[k], big);
+            cov.undecodable += (!a_msg.value || !b_msg.value || *a_msg.value != *b_msg.value) ? 1 : 0;
+          }
+          if (k == 0) {  // a deliberately broken byte must fail the comparison
+            auto broken = got[k];
+            broken[rng() % broken.size()] ^= static_cast<std::uint8_t>(1u << (rng() % 8));
+            ++cov.broken_probes;
+            cov.broken_caught += broken != want[k] ? 1 : 0;
+          }
           const auto& a = want_st[k];
           const auto& b = got_st[k];
           cov.stats_differing += (a.enters != b.enters || a.leaves != b.leaves || a.updates != b.updates ||
@@ -287,6 +303,9 @@ inline void require_equivalent(const replication_coverage& cov, bool tiny_budget
   CHECK(cov.differing == 0);
   CHECK(cov.stats_differing == 0);
   CHECK(cov.hash_differing == 0);
+  CHECK(cov.undecodable == 0);
+  CHECK(cov.broken_probes > 0);
+  CHECK(cov.broken_caught == cov.broken_probes);
   CHECK(cov.frames > 0);
   CHECK(cov.enters > 0);
   CHECK(cov.leaves > 0);
