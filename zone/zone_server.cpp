@@ -110,6 +110,8 @@ zone_server::zone_server(const zone_config& cfg)
     replication_engine_ = gpu::make_replication_engine(&why);
     if (replication_engine_) {
       replicator_.set_engine(replication_engine_.get());
+      // With the interest step on the GPU too, replication reads the visible sets there in place.
+      world_->set_player_views_on_host(false);
     } else if (cfg.replicate == "gpu") {
       replicate_error_ = "replicate 'gpu' cannot run here: " + why + " (use --replicate auto or cpu)";
     } else {
@@ -443,6 +445,7 @@ void zone_server::tick_once() {
     replication_failure_logged_ = true;
     spdlog::warn("zone: the GPU replication engine failed ({}); replication runs on the CPU from now on, every client resynced",
                  replicator_.engine_error());
+    world_->set_player_views_on_host(true);
   }
   const double replicate_ms = ms_since(t1), tick_ms = ms_since(t0);
   stats_.replicate_ms.record(replicate_ms);
