@@ -259,7 +259,13 @@ class ws_session : public std::enable_shared_from_this<ws_session> {
   }
 
   void on_read(beast::error_code ec) {
-    if (ec) return close(ec == websocket::error::buffer_overflow ? &srv_->hostile : nullptr);
+    if (ec) {
+      // A WebSocket protocol violation (a message over read_message_max, a text message that is
+      // not UTF-8, a bad frame) is hostile; a close or a socket error is not.
+      const beast::error_code closed = websocket::error::closed;
+      const bool violation = ec.category() == closed.category() && ec != closed;
+      return close(violation ? &srv_->hostile : nullptr);
+    }
     const auto data = in_.cdata();
     const std::span<const std::uint8_t> bytes(static_cast<const std::uint8_t*>(data.data()), data.size());
     const auto request = ws_.got_binary() ? parse_viewer_request(bytes) : std::nullopt;
@@ -407,7 +413,12 @@ void viewer_server::publish_stats(std::string json) {
 
 viewer_server::counters viewer_server::stats() const {
   const auto& m = *impl_;
-  return {m.opened.load(), m.refused.load(), m.stalled.load(), m.hostile.load(), m.frames.load(), m.bytes.load()};
+  std::uint64_t published = 0;
+  {
+    const std::lock_guard lock(m.mutex);
+    published = m.snapshot_seq;
+  }
+  return {m.opened.load(), m.refused.load(), m.stalled.load(), m.hostile.load(), m.frames.load(), m.bytes.load(), published};
 }
 
 // ---- the routes (viewer_route.h) -------------------------------------------------------------

@@ -81,7 +81,7 @@ class viewer_server {
 
   struct counters {
     std::uint64_t sessions_opened = 0, sessions_refused = 0, sessions_closed_stalled = 0, sessions_closed_hostile = 0,
-                  frames_sent = 0, bytes_sent = 0;
+                  frames_sent = 0, bytes_sent = 0, snapshots_published = 0;
   };
   [[nodiscard]] counters stats() const;
 
