@@ -43,6 +43,7 @@ function cleanup() {
   for (const c of children) if (c.exitCode === null) c.kill('SIGTERM');
 }
 process.on('exit', cleanup);
+for (const sig of ['SIGINT', 'SIGTERM']) process.on(sig, () => process.exit(1));
 const deadline = setTimeout(() => { console.error('FAIL: the test ran past 50 s'); cleanup(); process.exit(1); }, 50000);
 
 function fail(msg) {
