@@ -9,7 +9,7 @@
 // Usage: node tools/viewer_bench.mjs tick --server build/zone/zone-server [--npcs 20000]
 //          [--phase-s 20] [--rounds 3] [--viewer page|socket] [--csv FILE]
 //        node tools/viewer_bench.mjs fps --server build/zone/zone-server [--npcs 100000] [--seconds 8]
-//          [--server-args "--tick-rate 5 --threads 1"] [--csv FILE]
+//          [--server-args "--tick-rate 5 --threads 1"] [--csv FILE] [--screenshot PREFIX.png]
 import { spawn } from 'node:child_process';
 import { existsSync, readFileSync, writeFileSync, mkdtempSync } from 'node:fs';
 import { tmpdir } from 'node:os';
@@ -136,6 +136,31 @@ if (mode === 'tick') {
     const f1 = await page.evaluate(() => window.zoneViewer.state.frames);
     const total = await page.evaluate(() => window.zoneViewer.state.total);
     results.push({ label, ...r, total, snapshots_per_s: (f1 - f0) / r.seconds });
+    await page.close();
+  }
+  if (args.screenshot) {
+    // The whole world (the density grid), then a town zoomed in with its busiest entity selected.
+    const page = await browser.newPage({ viewport: { width: 1280, height: 800 } });
+    await page.goto(`http://127.0.0.1:${srv.http}/viewer`);
+    await page.waitForFunction(() => window.zoneViewer && window.zoneViewer.state.mode === 'density grid', null, { timeout: 120000 });
+    await page.waitForFunction(() => window.zoneViewer.state.stats, null, { timeout: 60000 });
+    await sleep(1500);
+    await page.screenshot({ path: args.screenshot.replace(/\.png$/, '') + '-world.png' });
+    // The densest cell of the grid: a town.
+    const town = await page.evaluate(() => {
+      const v = window.zoneViewer; return v.densest();
+    });
+    await page.evaluate((t) => window.zoneViewer.setView(t[0] - 150, t[1] - 95, t[0] + 150, t[1] + 95), town);
+    await page.waitForFunction(() => window.zoneViewer.state.mode === 'entities' && window.zoneViewer.state.decoded > 0, null, { timeout: 60000 });
+    const id = await page.evaluate((t) => {
+      const v = window.zoneViewer; let best = 0, bestD = Infinity;
+      for (const e of v.entityIds()) { const p = v.positionOf(e); const d = (p[0] - t[0]) ** 2 + (p[1] - t[1]) ** 2; if (p[2] === 1 && d < bestD) { bestD = d; best = e; } }
+      v.select(best); return best;
+    }, town);
+    await page.waitForFunction(() => window.zoneViewer.state.selection, null, { timeout: 60000 });
+    await sleep(4000);  // a few stats messages for the strip
+    await page.screenshot({ path: args.screenshot.replace(/\.png$/, '') + '-town.png' });
+    console.log(`screenshots: ${args.screenshot.replace(/\.png$/, '')}-world.png, -town.png (entity ${id} selected)`);
     await page.close();
   }
   await browser.close();
