@@ -9,7 +9,7 @@
 // Usage: node tools/viewer_bench.mjs tick --server build/zone/zone-server [--npcs 20000]
 //          [--phase-s 20] [--rounds 3] [--viewer page|socket] [--csv FILE]
 //        node tools/viewer_bench.mjs fps --server build/zone/zone-server [--npcs 100000] [--seconds 8]
-//          [--server-args "--tick-rate 5 --threads 1"] [--csv FILE] [--screenshot PREFIX.png]
+//          [--server-args "--tick-rate 5 --threads 1"] [--pause-server 1] [--csv FILE] [--screenshot PREFIX.png]
 import { spawn } from 'node:child_process';
 import { existsSync, readFileSync, writeFileSync, mkdtempSync } from 'node:fs';
 import { tmpdir } from 'node:os';
@@ -121,18 +121,29 @@ if (mode === 'tick') {
   }
   if (args.csv) writeFileSync(args.csv, 'round,viewer,ticks,p50_ms,p99_ms,max_ms\n' + table.map((t) => [t.round, t.viewer, t.ticks, t.p50, t.p99, t.max].join(',')).join('\n') + '\n');
 } else {
-  const npcs = Number(args.npcs || 100000), seconds = Number(args.seconds || 8);
+  const npcs = Number(args.npcs || 100000), seconds = Number(args.seconds || 8), pause = args['pause-server'] === '1';
   const extra = args['server-args'] ? args['server-args'].split(' ').filter(Boolean) : [];
   const srv = await startServer(['--npcs', String(npcs), '--log-level', 'info', ...extra]);
   const browser = await chromium.launch({ executablePath: chromiumPath, args: browserArgs });
   const results = [];
-  for (const [label, max] of [['every entity', 1 << 20], ['default budget', 0]]) {
+  for (const [label, max, zoom] of [['every entity', 1 << 20, 1], ['default budget', 0, 1], ['zoomed in 4x', 0, 4]]) {
     const page = await browser.newPage({ viewport: { width: 1280, height: 800 } });
     await page.goto(`http://127.0.0.1:${srv.http}/viewer${max ? `?max=${max}` : ''}`);
     await page.waitForFunction(() => window.zoneViewer && window.zoneViewer.state.total > 0 && window.zoneViewer.state.mode, null, { timeout: 120000 });
+    if (zoom > 1) {
+      // A quarter of the world's width around its centre (the page asks for half a screen more
+      // on every side): the entities there are drawn one by one.
+      await page.evaluate((z) => { const w = window.zoneViewer.state.world, cx = (w[0] + w[2]) / 2, cy = (w[1] + w[3]) / 2, h = (w[2] - w[0]) / z / 2;
+                                   window.zoneViewer.setView(cx - h, cy - h * 0.625, cx + h, cy + h * 0.625); }, zoom);
+      await page.waitForFunction(() => window.zoneViewer.state.mode === 'entities', null, { timeout: 120000 });
+    }
     await sleep(2000);
     const f0 = await page.evaluate(() => window.zoneViewer.state.frames);
+    // --pause-server 1: the server is stopped (SIGSTOP) while the page pans, so that the page has
+    // the 2 cores to itself, as a browser on another machine would; the last frame stays drawn.
+    if (pause) srv.child.kill('SIGSTOP');
     const r = await page.evaluate((s) => window.zoneViewer.benchmark(s), seconds);
+    if (pause) srv.child.kill('SIGCONT');
     const f1 = await page.evaluate(() => window.zoneViewer.state.frames);
     const total = await page.evaluate(() => window.zoneViewer.state.total);
     results.push({ label, ...r, total, snapshots_per_s: (f1 - f0) / r.seconds });
@@ -164,7 +175,7 @@ if (mode === 'tick') {
     await page.close();
   }
   await browser.close();
-  console.log(`page frames a second while panning, zone-server --npcs ${npcs} ${extra.join(' ')}, headless chromium (software WebGL), 1280x800`);
+  console.log(`page frames a second while panning, zone-server --npcs ${npcs} ${extra.join(' ')}${pause ? ' (paused while panning)' : ''}, headless chromium (software WebGL), 1280x800`);
   console.log('view            entities  drawn_as       drawn   fps   messages_per_s');
   for (const r of results) console.log(`${r.label.padEnd(15)} ${String(r.total).padStart(8)}  ${r.mode.padEnd(13)} ${String(r.drawn).padStart(6)} ${r.fps.toFixed(1).padStart(5)} ${r.snapshots_per_s.toFixed(1).padStart(8)}`);
   if (args.csv) writeFileSync(args.csv, 'view,entities,drawn_as,drawn,fps,messages_per_s\n' + results.map((r) => [r.label, r.total, r.mode, r.drawn, r.fps.toFixed(2), r.snapshots_per_s.toFixed(2)].join(',')).join('\n') + '\n');
