@@ -13,8 +13,10 @@
 #include <unordered_map>
 #include <vector>
 
+#include "fault_injection.h"
 #include "metrics.h"
 #include "server.h"
+#include "truth_publisher.h"
 #include "viewer.h"
 #include "zone.h"
 
@@ -65,6 +67,10 @@ class zone_server {
   /// The live viewer (null unless cfg.viewer_enabled); its page is on metrics_port().
   [[nodiscard]] const net::viewer_server* viewer() const { return viewer_.get(); }
   [[nodiscard]] net::server_stats net_stats() const { return net_.stats(); }
+  /// Port of the ground-truth stream (0 when --oracle is off).
+  [[nodiscard]] std::uint16_t oracle_port() const { return truth_ ? truth_->port() : 0; }
+  /// The zone's interest rules as the welcome tells them.
+  [[nodiscard]] net::interest_rules rules() const;
 
  private:
   struct client {
@@ -85,6 +91,8 @@ class zone_server {
   void publish_viewer();
   void fill_viewer_snapshot(net::viewer_snapshot& s) const;
   [[nodiscard]] std::string viewer_stats_json() const;
+  /// --test-fault: the client whose frames are broken (the lowest session with an entity).
+  void choose_fault_victim();
 
   zone_config cfg_;
   std::unique_ptr<interest::thread_pool> pool_;
@@ -119,6 +127,10 @@ class zone_server {
   std::vector<tick_sample> viewer_ticks_;
   double viewer_ms_ = 0;  // the last tick's publish_viewer
   std::chrono::steady_clock::time_point next_viewer_stats_{};
+  std::unique_ptr<truth_publisher> truth_;  // --oracle
+  std::unique_ptr<fault_injector> fault_;   // --test-fault
+  net::session_id fault_session_ = 0;
+  bool fault_has_victim_ = false;
   // Replication scratch, reused every tick: one request per client, its session and its frame.
   std::vector<replication_request> requests_;
   std::vector<net::session_id> request_sessions_;
