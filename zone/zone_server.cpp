@@ -543,7 +543,7 @@ std::string zone_server::viewer_stats_json() const {
   std::string j = "{\"type\":\"stats\",\"tick\":" + std::to_string(world_->tick());
   const auto field = [&j](const char* name, double v) {
     char buf[64];
-    std::snprintf(buf, sizeof buf, ",\"%s\":%.6g", name, v);
+    std::snprintf(buf, sizeof buf, ",\"%s\":%.10g", name, v);  // counts exact to 10 digits
     j += buf;
   };
   field("tick_rate", cfg_.tick_rate_hz);
