@@ -353,6 +353,11 @@ TEST_SUITE("net.protocol") {
     gen g(seed);
     tick_update_writer w;
     using c = canonical_tick_update;
+    {  // docs/protocol.md's example: a self position and N updates
+      c::parts p;
+      p.updates = p.self = true;
+      for (std::size_t n = 1; n < 50; ++n) CHECK(c::size(p, 0, 0, n, 0) == 104 + 16 * n);
+    }
     for (int rep = 0; rep < 200; ++rep) {
       auto t = std::get<tick_update_msg>(g.make(4));
       if (rep % 4 == 0) t.enters.clear();
