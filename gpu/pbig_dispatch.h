@@ -11,9 +11,9 @@
 #include <optional>
 #include <vector>
 
-#include "interest.h"
-#include "pbig.h"
 #include "gpu_buffers.h"
+#include "interest/interest.h"
+#include "pbig.h"
 #include "pbig_shared.h"
 
 namespace zone::gpu::detail {

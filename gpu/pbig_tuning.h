@@ -32,8 +32,8 @@ inline constexpr std::uint32_t plan_threads = 1024;
 /// instead of 1.2; DoC 10 at 3.17 x e0: 1.27 ms instead of 0.28).
 /// The sort by id of small cells (one warp per cell, O(n_c^2)) is in the check term.
 /// Calibration: H100 (NVIDIA H100 80GB HBM3, sm_90), direct output, pinned input, the phase
-/// breakdown of `bench_gpu --only wsweep` (docs/data/gpu-wsweep-2026-11-24.csv) and of the edge
-/// sweep `bench_gpu --only esweep` (fixed edges e0 * 2^(j/3) on the six target sets;
+/// breakdown of `bench-gpu --only wsweep` (docs/data/gpu-wsweep-2026-11-24.csv) and of the edge
+/// sweep `bench-gpu --only esweep` (fixed edges e0 * 2^(j/3) on the six target sets;
 /// docs/data/gpu-targets-2026-11-24-plan-esweep.csv): across edges, MAP moves by about 0.11 ns per cell
 /// entry plus ~1 ns per cell (DoC 10: 2.39 -> 0.76 ms for 20.6 -> 4.8 M entries; uniform 1e7:
 /// 5.27 -> 3.56 ms for 32.5 -> 22.1 M entries, 970k -> 238k cells), CHECK by about 1.5 ps per

@@ -34,7 +34,7 @@
 #include <thread>
 #include <vector>
 
-#include "interest.h"
+#include "interest/interest.h"
 
 #if ZONE_HAVE_CGAL
 #include <CGAL/box_intersection_d.h>
@@ -92,8 +92,9 @@ Usage: bench-finders [options]
                      (default: 3; 1 where the warm-up took over 10 s; none where it took
                      over 30 s: that one run is then the measurement, marked 1*)
   --threads N        threads of the cpu finder (and brute); default 0 = all cores
-  --csv FILE         CSV output (default docs/bench/finders.csv, docs/bench/sweep_w.csv,
-                     docs/bench/sweep_edge.csv by mode); directories are created
+  --csv FILE         CSV output (default, in the current directory: bench-finders.csv,
+                     bench-finders-sweep-w.csv or bench-finders-sweep-edge.csv by mode);
+                     directories are created
   --max-seconds S    skip a finder at larger N of a family once its median exceeded S seconds
                      at a smaller N of that family (default 30)
   --brute-max N      run brute only where N <= this (default 2e4; it is O(N^2))
@@ -253,9 +254,9 @@ std::optional<std::string> parse_args(int argc, char** argv, options& opt, bool&
     if (auto e = parse_sets(defaults, opt.sets)) return e;
   }
   if (opt.csv_path.empty()) {
-    opt.csv_path = opt.run_mode == mode::compare   ? "docs/bench/finders.csv"
-                   : opt.run_mode == mode::sweep_w ? "docs/bench/sweep_w.csv"
-                                                   : "docs/bench/sweep_edge.csv";
+    opt.csv_path = opt.run_mode == mode::compare   ? "bench-finders.csv"
+                   : opt.run_mode == mode::sweep_w ? "bench-finders-sweep-w.csv"
+                                                   : "bench-finders-sweep-edge.csv";
   }
   if (opt.threads == 0) opt.threads = std::max(1u, std::thread::hardware_concurrency());
   return std::nullopt;

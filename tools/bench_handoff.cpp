@@ -29,7 +29,7 @@
 
 #include <spdlog/spdlog.h>
 
-#include "server.h"
+#include "net/server.h"
 
 using namespace zone::net;
 

@@ -18,7 +18,7 @@
 #include <vector>
 
 #include "gpu/finders.h"
-#include "interest.h"
+#include "interest/interest.h"
 
 namespace {
 

@@ -18,9 +18,9 @@
 #include <string>
 #include <vector>
 
-#include "interest.h"
-#include "protocol.h"
-#include "visibility_engine.h"
+#include "interest/interest.h"
+#include "interest/visibility_engine.h"
+#include "net/protocol.h"
 
 namespace zone {
 

@@ -12,8 +12,8 @@
 #include <unordered_map>
 #include <vector>
 
-#include "metrics.h"
-#include "server.h"
+#include "net/metrics.h"
+#include "net/server.h"
 #include "zone.h"
 
 namespace zone {

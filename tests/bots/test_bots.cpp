@@ -11,9 +11,9 @@
 #include <cstring>
 #include <random>
 
+#include "bots/swarm.h"
+#include "net/protocol.h"
 #include "process.h"
-#include "protocol.h"
-#include "swarm.h"
 
 using namespace zone::bots::testing;
 

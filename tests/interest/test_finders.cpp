@@ -7,7 +7,7 @@
 #include <set>
 
 #include "../common/box_families.h"
-#include "interest.h"
+#include "interest/interest.h"
 
 using namespace zone::interest;
 using namespace zone::test;

@@ -8,7 +8,7 @@
 #include <thread>
 #include <vector>
 
-#include "interest.h"
+#include "interest/interest.h"
 
 using zone::interest::thread_pool;
 
