@@ -35,6 +35,7 @@
 #include <vector>
 
 #include "interest/interest.h"
+#include "interest/measure.h"
 
 #if ZONE_HAVE_CGAL
 #include <CGAL/box_intersection_d.h>
@@ -45,16 +46,9 @@ namespace {
 using namespace zone::interest;
 using clock_type = std::chrono::steady_clock;
 
-double ms_since(clock_type::time_point t0) {
-  return std::chrono::duration<double, std::milli>(clock_type::now() - t0).count();
-}
+using zone::ms_since;
 
-double median_of(std::vector<double> v) {
-  if (v.empty()) return 0;
-  std::sort(v.begin(), v.end());
-  const std::size_t m = v.size() / 2;
-  return v.size() % 2 ? v[m] : 0.5 * (v[m - 1] + v[m]);
-}
+using zone::median;
 
 // ---- Options --------------------------------------------------------------------------------
 
@@ -611,12 +605,12 @@ int run_compare(const options& opt) {
       measurement m = measure(*finder, boxes, opt.reps);
       r.ran = true;
       r.pairs = m.pairs.size();
-      r.median_ms = median_of(m.times_ms);
+      r.median_ms = median(m.times_ms);
       r.min_ms = *std::min_element(m.times_ms.begin(), m.times_ms.end());
       r.first_ms = m.first.total_ms;
       r.reps = static_cast<int>(m.times_ms.size());
       r.warmup_only = m.warmup_only;
-      r.build_median_ms = median_of(m.build_ms);
+      r.build_median_ms = median(m.build_ms);
       r.stats = m.first;
       std::cerr << " -> " << r.pairs << " pairs, first " << fmt(r.first_ms, 1) << " ms, median " << fmt(r.median_ms, 1)
                 << " ms of " << r.reps << (r.warmup_only ? " (the warm-up only)" : "") << "\n";
@@ -832,7 +826,7 @@ int run_sweep(const options& opt) {
     }
     for (std::size_t c = 0; c < configs.size(); ++c) {
       sweep_point& p = set_points[c];
-      p.median_ms = median_of(times[c]);
+      p.median_ms = median(times[c]);
       p.min_ms = *std::min_element(times[c].begin(), times[c].end());
       p.reps = reps;
       points.push_back(p);

@@ -44,6 +44,7 @@
 #include "gpu/lbvh.h"
 #include "gpu/pbig.h"
 #include "interest/interest.h"
+#include "interest/measure.h"
 
 #if __has_include(<CGAL/box_intersection_d.h>)
 #include <CGAL/box_intersection_d.h>
@@ -58,15 +59,9 @@ namespace zg = zone::gpu;
 namespace {
 
 using clock_type = std::chrono::steady_clock;
-double ms_since(clock_type::time_point t) {
-  return std::chrono::duration<double, std::milli>(clock_type::now() - t).count();
-}
+using zone::ms_since;
 
-double median(std::vector<double> v) {
-  std::sort(v.begin(), v.end());
-  const std::size_t k = v.size();
-  return k == 0 ? 0 : (k % 2 ? v[k / 2] : 0.5 * (v[k / 2 - 1] + v[k / 2]));
-}
+using zone::median;
 
 struct pair_digest {
   std::uint64_t count = 0, sum = 0, xr = 0;

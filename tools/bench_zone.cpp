@@ -43,6 +43,7 @@
 #include "finders.h"
 #include "visibility.h"
 #include "interest.h"
+#include "interest/measure.h"
 #include "protocol.h"
 #include "zone.h"
 
@@ -69,10 +70,6 @@ namespace {
 
 using namespace zone;
 using clock_type = std::chrono::steady_clock;
-
-double ms_since(clock_type::time_point t0) {
-  return std::chrono::duration<double, std::milli>(clock_type::now() - t0).count();
-}
 
 /// CPU time consumed so far (ms) by the process (all threads) or by the calling thread. Unlike
 /// wall time it does not count time spent descheduled, so it is the steadier figure on a shared
@@ -332,13 +329,6 @@ struct series {
   std::string name;
   std::vector<double> v;
 };
-
-double quantile(std::vector<double> v, double q) {
-  if (v.empty()) return 0;
-  std::sort(v.begin(), v.end());
-  const auto rank = static_cast<std::size_t>(std::ceil(q * static_cast<double>(v.size())));
-  return v[std::clamp<std::size_t>(rank, 1, v.size()) - 1];
-}
 
 double mean_of(const std::vector<double>& v) {
   double s = 0;

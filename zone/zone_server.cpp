@@ -2,6 +2,7 @@
 #include "zone_server.h"
 
 #include "finders.h"
+#include "interest/measure.h"
 #include "visibility.h"
 
 #include <spdlog/spdlog.h>
@@ -17,9 +18,6 @@ namespace zone {
 namespace {
 
 using clock_type = std::chrono::steady_clock;
-double ms_since(clock_type::time_point t0) {
-  return std::chrono::duration<double, std::milli>(clock_type::now() - t0).count();
-}
 
 net::server_options net_options(const zone_config& c) {
   net::server_options o;
