@@ -430,6 +430,21 @@ std::unique_ptr<interest::pair_finder> make_finder(finder_backend backend, inter
   return nullptr;
 }
 
+std::unique_ptr<interest::pair_finder> make_finder(std::string_view name, interest::thread_pool* pool, std::string* why,
+                                                   const interest::grid_finder_options& grid) {
+  if (name == "cpu") return std::make_unique<interest::grid_finder>(pool, grid);
+  if (name == "cpu-1t") return std::make_unique<interest::grid_finder>(nullptr, grid);
+  const auto backend = parse_backend(name);
+  if (!backend) {
+    if (why) *why = "unknown finder '" + std::string(name) + "' (brute, cpu, cpu-1t, gpu, pbig, lbvh, auto)";
+    return nullptr;
+  }
+  std::string reason;
+  auto f = make_finder(*backend, pool, &reason);
+  if (!f && why) *why = "finder '" + std::string(name) + "' cannot run here: " + reason;
+  return f;
+}
+
 std::optional<finder_backend> last_auto_choice(const interest::pair_finder& finder) {
   const auto* f = dynamic_cast<const auto_finder*>(&finder);
   return f != nullptr ? f->last_choice() : std::nullopt;

@@ -300,26 +300,15 @@ std::optional<std::string> parse_args(int argc, char** argv, options& o, bool& h
   return std::nullopt;
 }
 
-// ---- The finder factory (the one place that maps a name to a backend) -----------------------
+// ---- The finder by name (gpu::make_finder maps the name to a backend) -----------------------
 
 /// A pair finder by name, on `pool` where it takes one; nullptr (and `*error`) for an unknown name.
 std::unique_ptr<interest::pair_finder> make_finder(const std::string& name, interest::thread_pool* pool, double w,
                                                    std::string* error) {
   interest::grid_finder_options g;
   if (w > 0) g.min_boxes_per_cell = w;
-  if (name == "cpu") return std::make_unique<interest::grid_finder>(pool, g);
-  if (name == "cpu-1t") return std::make_unique<interest::grid_finder>(nullptr, g);
-  if (name == "brute") return std::make_unique<interest::brute_force_finder>(pool);
-  // The GPU finders and `auto` (gpu/finders.h: auto picks per call from the box statistics).
-  const auto backend = gpu::parse_backend(name);
-  if (!backend) {
-    *error = "unknown finder '" + name + "' (cpu, cpu-1t, brute, gpu, pbig, lbvh, auto)";
-    return nullptr;
-  }
-  std::string why;
-  auto f = gpu::make_finder(*backend, pool, &why);
-  if (!f) *error = "finder '" + name + "' cannot run here: " + why;
-  return f;
+  // gpu/finders.h: the CPU finders, the GPU finders and `auto` (which picks per call).
+  return gpu::make_finder(name, pool, error, g);
 }
 
 // ---- Samples and the table ------------------------------------------------------------------
