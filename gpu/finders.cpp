@@ -12,6 +12,7 @@
 #include <stdexcept>
 #include <vector>
 
+#include "interest/thread_pool.h"
 #include "lbvh.h"
 #include "pbig.h"
 

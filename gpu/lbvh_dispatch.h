@@ -13,6 +13,7 @@
 
 #include "gpu_buffers.h"
 #include "interest/interest.h"
+#include "interest/thread_pool.h"
 #include "lbvh.h"
 #include "lbvh_shared.h"
 

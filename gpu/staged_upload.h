@@ -13,6 +13,7 @@
 
 #include "cuda_check.h"
 #include "interest/interest.h"
+#include "interest/thread_pool.h"
 
 namespace zone::gpu::detail {
 

@@ -28,6 +28,7 @@
 #include "cuda_check.h"
 #include "gpu_buffers.h"
 #include "interest/measure.h"
+#include "interest/thread_pool.h"
 #include "pbig.h"
 #include "visibility.h"
 #include "visibility_launch.h"

@@ -36,6 +36,7 @@
 
 #include "interest/interest.h"
 #include "interest/measure.h"
+#include "interest/thread_pool.h"
 
 #if ZONE_HAVE_CGAL
 #include <CGAL/box_intersection_d.h>

@@ -45,6 +45,7 @@
 #include "gpu/pbig.h"
 #include "interest/interest.h"
 #include "interest/measure.h"
+#include "interest/thread_pool.h"
 
 #if __has_include(<CGAL/box_intersection_d.h>)
 #include <CGAL/box_intersection_d.h>

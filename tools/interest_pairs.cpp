@@ -20,6 +20,7 @@
 #include "gpu/finders.h"
 #include "interest/interest.h"
 #include "interest/measure.h"
+#include "interest/thread_pool.h"
 
 namespace {
 

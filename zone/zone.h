@@ -19,6 +19,7 @@
 #include <vector>
 
 #include "interest/interest.h"
+#include "interest/thread_pool.h"
 #include "interest/visibility_engine.h"
 #include "net/protocol.h"
 

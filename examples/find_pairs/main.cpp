@@ -5,6 +5,7 @@
 // With the GPU target (a package built with CUDA) the finder is `auto`: PBIG or LBVH on a usable
 // device, the CPU grid finder otherwise; without it, the CPU grid finder.
 #include <zone/interest.h>
+#include <zone/thread_pool.h>
 #ifdef EXAMPLE_WITH_GPU
 #include <zone/finders.h>
 #include <zone/pbig.h>

@@ -17,6 +17,7 @@
 #include "gpu/lbvh.h"
 #include "gpu/pbig.h"
 #include "interest/interest.h"
+#include "interest/thread_pool.h"
 
 using namespace zone::interest;
 using namespace zone::test;

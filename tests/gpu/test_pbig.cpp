@@ -17,6 +17,7 @@
 #include "../common/box_families.h"
 #include "gpu/pbig.h"
 #include "interest/interest.h"
+#include "interest/thread_pool.h"
 
 using namespace zone::interest;
 using namespace zone::test;

@@ -8,6 +8,7 @@
 
 #include "../common/box_families.h"
 #include "interest/interest.h"
+#include "interest/thread_pool.h"
 
 using namespace zone::interest;
 using namespace zone::test;

@@ -8,7 +8,7 @@
 #include <thread>
 #include <vector>
 
-#include "interest/interest.h"
+#include "interest/thread_pool.h"
 
 using zone::interest::thread_pool;
 
