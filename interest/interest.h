@@ -183,7 +183,7 @@ class brute_force_finder final : public pair_finder {
 /// Tuning of the uniform-grid CPU finder.
 struct grid_finder_options {
   /// Eq. 6's lower bound W on f = N*alpha/M (average boxes per cell). On the GPU W is the warp
-  /// width (32). On a CPU core the best W depends on the data (docs/bench/sweep_w.txt, 1e6 boxes on
+  /// width (32). On a CPU core the best W depends on the data (docs/data/sweep_w.txt, 1e6 boxes on
   /// the 2-core machine): uniform is flat from 3 to 32, the MMO-like set wants 12-16 (smaller cells
   /// cut its large view boxes into many pieces), the Gaussian set, dense in its centre, wants 2-6.
   /// W = 12 has the best geometric mean over the three (1.15x the per-set best).
