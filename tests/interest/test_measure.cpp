@@ -44,7 +44,9 @@ TEST_SUITE("measure") {
       const double q = round % 10 == 0 ? 1.0 : share(rng);
       const double got = zone::quantile(v, q);
       const auto n = static_cast<double>(v.size());
-      const auto at_or_below = [&](double x) { return static_cast<double>(std::count_if(v.begin(), v.end(), [&](double y) { return y <= x; })); };
+      const auto at_or_below = [&](double x) {
+        return static_cast<double>(std::count_if(v.begin(), v.end(), [&](double y) { return y <= x; }));
+      };
       CHECK(std::find(v.begin(), v.end(), got) != v.end());
       CHECK(at_or_below(got) >= q * n - 1e-9);
       for (const double x : v) {
