@@ -41,6 +41,7 @@
 #include <vector>
 
 #include "finders.h"
+#include "replication.h"
 #include "visibility.h"
 #include "interest.h"
 #include "interest/measure.h"
@@ -89,7 +90,10 @@ std::string load_average() {
 
 // ---- Options --------------------------------------------------------------------------------
 
-enum class replicate_mode { serial, parallel, both };
+/// serial: build() one by one; parallel (= cpu): build_many on the pool; both: the two, compared;
+/// gpu: build_many on the GPU replication engine; gpu_vs_cpu: the engine (timed as the tick's)
+/// and the CPU build_many each tick, frames compared byte for byte.
+enum class replicate_mode { serial, parallel, both, gpu, gpu_vs_cpu };
 
 struct options {
   std::size_t entities = 20000;
@@ -107,6 +111,8 @@ struct options {
   bool view = true;  // GPU finders / auto: the tracker reads the finder's buffer (gpu::find_view)
   std::string interest = "auto";  // auto | gpu | host (zone_config::interest)
   replicate_mode replicate = replicate_mode::parallel;
+  bool replicate_auto = true;  // --replicate auto: gpu when a device is usable
+  bool host_views = false;     // --host-views: the GPU replication engine gets the sets from the host
   std::size_t budget = 8 * 1024;
   std::uint32_t clients_per_task = 16;
   std::uint32_t snapshot = 16;  // replication_options::snapshot_entities_per_client
@@ -139,8 +145,12 @@ Usage: bench-zone [options]
   --finder NAME      pair finder: cpu (grid finder on the pool) | cpu-1t | brute | gpu (= pbig) |
                      pbig | lbvh | auto (gpu/finders.h) (default cpu)
   --w W              grid finder's W (min_boxes_per_cell; default: the finder's default)
-  --replicate MODE   serial (one writer, this thread) | parallel (build_many on the pool) | both
-                     (both each tick, frames compared byte for byte) (default parallel)
+  --replicate MODE   cpu (= parallel: build_many on the pool) | gpu (build_many's decisions on the
+                     GPU replication engine, as zone-server --replicate gpu; exit 64 without a
+                     device) | auto (gpu when a device is usable, else cpu) | serial (build()
+                     one by one on this thread) | both (serial and parallel each tick, frames
+                     compared) | gpu-vs-cpu (the engine, timed as the tick's, and the CPU
+                     build_many each tick, frames compared byte for byte) (default auto)
   --budget BYTES     per-client byte budget (default 8192)
   --clients-per-task N  replication chunk size (default 16)
   --snapshot N       build_many snapshots the entities when clients * N >= entities; 0 = never
@@ -156,6 +166,8 @@ Usage: bench-zone [options]
   --interest WHERE   auto (the GPU visibility engine when a device is usable and --max-visible is
                      0, else host) | gpu (the engine, or exit 64) | host (the finder and the host
                      diff), as zone-server's --interest (default auto)
+  --host-views       with --replicate gpu: copy the players' visible sets to the host and stage
+                     them for the engine, instead of its reading them in place on the device
   --find-into-list   GPU finders / auto: find() into the tracker's own pair list instead of
                      reading the finder's result buffer (gpu::find_view, zone-server's way)
   --csv FILE         per-tick samples (ms and counts) as CSV
@@ -232,11 +244,16 @@ std::optional<std::string> parse_args(int argc, char** argv, options& o, bool& h
       if (!value()) return need("a finder name");
       o.finder = std::string(v);
     } else if (a == "--replicate") {
-      if (!value()) return need("serial|parallel|both");
+      const char* modes = "cpu|gpu|auto|serial|parallel|both|gpu-vs-cpu";
+      if (!value()) return need(modes);
+      o.replicate_auto = false;
       if (v == "serial") o.replicate = replicate_mode::serial;
-      else if (v == "parallel") o.replicate = replicate_mode::parallel;
+      else if (v == "parallel" || v == "cpu") o.replicate = replicate_mode::parallel;
       else if (v == "both") o.replicate = replicate_mode::both;
-      else return need("serial|parallel|both");
+      else if (v == "gpu") o.replicate = replicate_mode::gpu;
+      else if (v == "gpu-vs-cpu") o.replicate = replicate_mode::gpu_vs_cpu;
+      else if (v == "auto") o.replicate_auto = true;
+      else return need(modes);
     } else if (a == "--clients-per-task") {
       if (!value()) return need("a count");
       const auto n = number<std::uint32_t>(v);
@@ -273,6 +290,8 @@ std::optional<std::string> parse_args(int argc, char** argv, options& o, bool& h
     } else if (a == "--summary-csv") {
       if (!value()) return need("a file name");
       o.summary_csv = std::string(v);
+    } else if (a == "--host-views") {
+      o.host_views = true;
     } else if (a == "--find-into-list") {
       o.view = false;
     } else if (a == "--csv") {
@@ -417,7 +436,25 @@ int main(int argc, char** argv) {
   ro.digest_period = std::max<std::uint32_t>(1, cfg.digest_every);
   ro.clients_per_task = opt.clients_per_task;
   ro.snapshot_entities_per_client = opt.snapshot;
-  replicator repl(ro), repl_serial(ro);  // repl_serial: the serial reference in --replicate both
+  replicator repl(ro), repl_serial(ro);  // repl_serial: the reference in --replicate both and gpu-vs-cpu
+  // As zone-server --replicate: the decisions on the GPU replication engine when asked and possible.
+  std::unique_ptr<interest::replication_engine> rep_engine;
+  if (opt.replicate_auto || opt.replicate == replicate_mode::gpu || opt.replicate == replicate_mode::gpu_vs_cpu) {
+    std::string why;
+    rep_engine = gpu::make_replication_engine(&why);
+    if (rep_engine) {
+      if (opt.replicate_auto) opt.replicate = replicate_mode::gpu;
+      repl.set_engine(rep_engine.get());
+      // As zone-server: the players' sets stay on the device (the CPU reference of gpu-vs-cpu
+      // reads them on the host).
+      if (opt.replicate != replicate_mode::gpu_vs_cpu && !opt.host_views) world.set_player_views_on_host(false);
+    } else if (!opt.replicate_auto) {
+      std::cerr << "bench-zone: replicate on the GPU cannot run here: " << why << "\n";
+      return 64;
+    }
+  }
+  const bool on_gpu = opt.replicate == replicate_mode::gpu || opt.replicate == replicate_mode::gpu_vs_cpu;
+  const bool reference = opt.replicate == replicate_mode::both || opt.replicate == replicate_mode::gpu_vs_cpu;
   std::vector<entity_id> players;
   std::vector<replication_request> requests;
   std::mt19937_64 spawn_rng(opt.seed ^ 0x7370776eull);
@@ -448,6 +485,8 @@ int main(int argc, char** argv) {
   std::cout << "bench-zone: " << world.store().size() << " entities (" << opt.entities << " NPCs + bosses, "
             << players.size() << " players/clients), " << world.town_count() << " towns, interest on "
             << (engine ? std::string(engine->name()) + " engine" : "host, finder " + std::string(finder->name()))
+            << ", replication on " << (on_gpu ? "gpu engine" : opt.replicate == replicate_mode::serial ? "cpu, serial" : "cpu")
+            << (opt.replicate == replicate_mode::gpu_vs_cpu ? " (and the cpu, compared)" : "")
             << ", " << pool.size() << " threads (spin " << pool.spin_us() << " us), " << opt.rate << " Hz " << (opt.paced ? "paced" : "back to back")
             << ", " << opt.warmup << " warm-up + " << opt.ticks << " ticks, seed " << opt.seed << "\n";
   std::cout << "load average before: " << load_before << "  (setup " << ms_since(setup0) << " ms)\n";
@@ -458,9 +497,15 @@ int main(int argc, char** argv) {
       s_d_rows{"    rows"}, s_e_pack{"  engine pack"}, s_e_up{"  engine upload"}, s_e_dev{"  engine device"},
       s_e_down{"  engine download"}, s_e_grid{"    grid"}, s_e_query{"    candidates, classified"}, s_e_class{"    scans, enters placed"},
       s_e_write{"    write"}, s_e_host{"  host work (overlapped)"}, s_rep{"replicate"}, s_rep_serial{"replicate 1t"},
-      s_total{"tick"}, s_rep_cpu{"replicate, CPU time (all threads)"}, s_rep_serial_cpu{"replicate 1t, CPU time"};
+      s_total{"tick"}, s_rep_cpu{"replicate, CPU time (all threads)"}, s_rep_serial_cpu{"replicate 1t, CPU time"},
+      s_rg_total{"  engine run"}, s_rg_up{"    upload"}, s_rg_dev{"    device"}, s_rg_down{"    download"};
+  if (opt.replicate == replicate_mode::gpu_vs_cpu) {
+    s_rep_serial.name = "replicate cpu (reference)";
+    s_rep_serial_cpu.name = "replicate cpu, CPU time";
+  }
   std::vector<double> step_allocs, rep_allocs;  // heap allocations per tick (world step; replication)
   std::size_t on_engine_ticks = 0;  // measured ticks whose interest step ran on the engine
+  std::size_t resident_ticks = 0;   // measured ticks whose replication read the sets on the device
   std::vector<double> pairs, candidates, visible, enters, leaves, bytes_per_frame, checks;
   std::uint64_t frames_digest = 0xcbf29ce484222325ull, frames_mismatch = 0;
   std::uint64_t sent_enters = 0, sent_updates = 0, sent_leaves = 0, deferred = 0, view_entries = 0;
@@ -516,6 +561,7 @@ int main(int argc, char** argv) {
       const std::uint64_t tick = world.tick();
       const std::uint64_t now_us = tick * 1000;  // deterministic, so frames compare across runs
       if (opt.replicate != replicate_mode::serial) {
+        // parallel, both, gpu, gpu-vs-cpu: build_many (on the engine when set).
         const auto r0 = clock_type::now();
         const double c0 = cpu_ms(CLOCK_PROCESS_CPUTIME_ID);
         repl.build_many(requests, world.store(), world.tracker(), tick, now_us, &pool,
@@ -530,7 +576,19 @@ int main(int argc, char** argv) {
           frame_hash[k] = fnv(0xcbf29ce484222325ull, frame_copy[k]);
         }
       }
-      if (opt.replicate != replicate_mode::parallel) {
+      if (opt.replicate == replicate_mode::gpu_vs_cpu) {
+        // The CPU replicator's build_many: the reference the engine's frames must equal.
+        const auto r0 = clock_type::now();
+        const double c0 = cpu_ms(CLOCK_PROCESS_CPUTIME_ID);
+        repl_serial.build_many(requests, world.store(), world.tracker(), tick, now_us, &pool,
+                               [&](std::size_t k, std::span<const std::uint8_t> frame, const replication_stats&) {
+                                 serial_copy[k].assign(frame.begin(), frame.end());
+                               });
+        rep_serial_ms = ms_since(r0);
+        rep_serial_cpu = cpu_ms(CLOCK_PROCESS_CPUTIME_ID) - c0;
+        for (std::size_t k = 0; k < requests.size(); ++k) frames_mismatch += serial_copy[k] != frame_copy[k] ? 1 : 0;
+      }
+      if (opt.replicate == replicate_mode::serial || opt.replicate == replicate_mode::both) {
         replicator& r = opt.replicate == replicate_mode::both ? repl_serial : repl;
         const auto r0 = clock_type::now();
         const double c0 = cpu_ms(CLOCK_THREAD_CPUTIME_ID);
@@ -560,7 +618,7 @@ int main(int argc, char** argv) {
           sent_updates += frame_stats[k].updates;
           sent_leaves += frame_stats[k].leaves;
           deferred += frame_stats[k].deferred_enters + frame_stats[k].deferred_leaves + frame_stats[k].deferred_updates;
-          view_entries += repl.view(requests[k].client).size();
+          view_entries += repl.view_size(requests[k].client);
         }
       }
     }
@@ -602,6 +660,14 @@ int main(int argc, char** argv) {
     s_rep_serial.v.push_back(rep_serial_ms);
     s_rep_cpu.v.push_back(rep_cpu);
     s_rep_serial_cpu.v.push_back(rep_serial_cpu);
+    if (rep_engine) {
+      const auto& rt = rep_engine->timing();
+      resident_ticks += rt.resident ? 1 : 0;
+      s_rg_total.v.push_back(rt.total_ms);
+      s_rg_up.v.push_back(rt.upload_ms);
+      s_rg_dev.v.push_back(rt.device_ms);
+      s_rg_down.v.push_back(rt.download_ms);
+    }
     s_total.v.push_back(total_ms);
     pairs.push_back(static_cast<double>(ts.pairs));
     candidates.push_back(static_cast<double>(ts.candidates));
@@ -633,8 +699,11 @@ int main(int argc, char** argv) {
   }
   if (!requests.empty()) {
     rows.push_back(&s_rep);
+    if (on_gpu && !s_rg_total.v.empty()) {
+      for (const series* s : {&s_rg_total, &s_rg_up, &s_rg_dev, &s_rg_down}) rows.push_back(s);
+    }
     rows.push_back(&s_rep_cpu);
-    if (opt.replicate == replicate_mode::both) {
+    if (reference) {
       rows.push_back(&s_rep_serial);
       rows.push_back(&s_rep_serial_cpu);
     }
@@ -674,6 +743,12 @@ int main(int argc, char** argv) {
     if (opt.replicate == replicate_mode::both) {
       std::printf("; serial vs parallel frames differing: %llu", static_cast<unsigned long long>(frames_mismatch));
     }
+    if (opt.replicate == replicate_mode::gpu_vs_cpu) {
+      std::printf("; gpu vs cpu frames differing: %llu of %llu", static_cast<unsigned long long>(frames_mismatch),
+                  static_cast<unsigned long long>(static_cast<std::uint64_t>(total_ticks) * requests.size()));
+    }
+    if (on_gpu) std::printf("; visible sets read on the device in %zu of %zu ticks", resident_ticks, s_total.v.size());
+    if (on_gpu && !repl.engine_error().empty()) std::printf("; GPU ENGINE FAILED: %s", repl.engine_error().c_str());
     std::printf("\n");
   }
   std::printf("heap allocations per measured tick: world step mean %.1f max %.0f", mean_of(step_allocs),

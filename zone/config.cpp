@@ -44,6 +44,10 @@ std::optional<std::string> validate(const zone_config& c) {
   if (!(c.boss_footprint >= 0 && std::isfinite(c.boss_footprint))) return bad("boss-footprint must be >= 0");
   if (c.io_threads == 0) return bad("io-threads must be >= 1");
   if (c.io_nice < 0 || c.io_nice > 19) return bad("io-nice must be 0 .. 19");
+  static const char* batchings[] = {"auto", "io_uring", "sendmsg"};  // net::parse_write_batching
+  if (std::find(std::begin(batchings), std::end(batchings), c.write_batching) == std::end(batchings)) {
+    return bad("write-batching must be auto, io_uring or sendmsg");
+  }
   if (c.max_frame_bytes < 64) return bad("max-frame-bytes must be >= 64");
   if (c.socket_send_buffer > (std::size_t{1} << 30)) return bad("socket-send-buffer must be <= 1 GiB");
   if (c.client_byte_budget < 256) return bad("client-byte-budget must be >= 256");
@@ -67,6 +71,15 @@ std::optional<std::string> validate(const zone_config& c) {
   if (std::find(std::begin(interests), std::end(interests), c.interest) == std::end(interests)) {
     return bad("interest must be auto, gpu or host");
   }
+  static const char* faults[] = {"", "drop", "extra", "stealth", "freeze", "class"};
+  if (std::find(std::begin(faults), std::end(faults), c.test_fault) == std::end(faults)) {
+    return bad("test-fault must be drop, extra, stealth, freeze or class");
+  }
+  if (!c.test_fault.empty() && !c.oracle) return bad("test-fault needs --oracle (it exists to prove the oracle)");
+  static const char* replicates[] = {"auto", "gpu", "cpu"};
+  if (std::find(std::begin(replicates), std::end(replicates), c.replicate) == std::end(replicates)) {
+    return bad("replicate must be auto, gpu or cpu");
+  }
   if (c.interest == "gpu" && c.max_visible != 0) return bad("interest gpu does not support max-visible (use auto or host)");
   static const char* levels[] = {"trace", "debug", "info", "warn", "error", "critical", "off"};
   if (std::find(std::begin(levels), std::end(levels), c.log_level) == std::end(levels)) {
@@ -84,7 +97,7 @@ config_result parse_config(int argc, const char* const* argv) {
   zone_config c;
   float world_x = c.world.hi.x, world_y = c.world.hi.y, world_z = c.world.hi.z;
   std::string config_file;
-  unsigned port = c.port, metrics_port = c.metrics_port;
+  unsigned port = c.port, metrics_port = c.metrics_port, oracle_port = c.oracle_port;
 
   po::options_description general("General");
   general.add_options()                                                                   //
@@ -105,6 +118,7 @@ config_result parse_config(int argc, const char* const* argv) {
   interest.add_options()                                                                                     //
       ("finder", po::value(&c.finder)->default_value(c.finder), "pair finder: auto (chosen per tick from the box statistics: GPU when usable, else CPU), cpu, gpu (= pbig), pbig, lbvh, brute")  //
       ("interest", po::value(&c.interest)->default_value(c.interest), "where the interest step runs: auto (the GPU visibility engine when a device is usable and max-visible is 0, else host), gpu, host (the pair finder and the host diff)")  //
+      ("replicate", po::value(&c.replicate)->default_value(c.replicate), "where replication's per-client decisions run: auto (the GPU replication engine when a device is usable, else cpu), gpu, cpu; the frames are the same")  //
       ("hysteresis", po::value(&c.hysteresis)->default_value(c.hysteresis), "leave margin beyond the AOI (m)")  //
       ("max-visible", po::value(&c.max_visible)->default_value(c.max_visible), "cap per observer (0 = none)")   //
       ("aoi-tiny", po::value(&c.aoi_tier[0])->default_value(c.aoi_tier[0]), "AOI half-extent of tier tiny (m)")  //
@@ -136,6 +150,7 @@ config_result parse_config(int argc, const char* const* argv) {
        "SO_SNDBUF of each client socket in bytes (0 = the system's autotuning); bounds how much stale state the kernel holds for a slow client")  //
       ("direct-writes", po::value(&c.direct_writes)->default_value(c.direct_writes), "1: the replication worker that built a frame writes it to the client's socket itself when nothing is queued ahead of it (lower latency, but the sends then lengthen the tick); 0: the I/O threads write every frame")  //
       ("io-nice", po::value(&c.io_nice)->default_value(c.io_nice), "nice value of the I/O threads, 0-19 (above 0: lower priority than the tick's workers where they share cores)")  //
+      ("write-batching", po::value(&c.write_batching)->default_value(c.write_batching), "how the I/O threads write: auto (io_uring where the kernel allows it, else sendmsg), io_uring (or refuse to start), sendmsg (one system call per session write)")  //
       ("inputs-per-second", po::value(&c.inputs_per_second)->default_value(c.inputs_per_second), "input rate limit per client")  //
       ("client-byte-budget", po::value(&c.client_byte_budget)->default_value(c.client_byte_budget), "bytes per client per tick")  //
       ("client-send-every", po::value(&c.client_send_every)->default_value(c.client_send_every), "each client gets a frame every K ticks, clients staggered (1 = every tick; 2 at 30 Hz = 15 frames a second each, half the frames built and sent per tick)")  //
@@ -150,8 +165,14 @@ config_result parse_config(int argc, const char* const* argv) {
       ("digest-every", po::value(&c.digest_every)->default_value(c.digest_every), "a visible-set digest every K ticks (0 = none)")  //
       ("metrics", po::value(&c.metrics_enabled)->default_value(c.metrics_enabled), "serve Prometheus text at /metrics (0 or 1)")  //
       ("metrics-port", po::value(&metrics_port)->default_value(metrics_port), "port of /metrics (0 = ephemeral)");
+  po::options_description correctness("Correctness (docs/bots.md)");
+  correctness.add_options()  //
+      ("oracle", po::bool_switch(&c.oracle), "publish every tick's ground truth (entities, boxes, classes) on a loopback stream for an independent oracle (bot-swarm --oracle); off by default, and costs nothing when off")  //
+      ("oracle-port", po::value(&oracle_port)->default_value(oracle_port), "loopback port of the ground-truth stream (0 = ephemeral; the welcome tells clients)")  //
+      ("test-fault", po::value(&c.test_fault)->default_value(c.test_fault), "TESTING ONLY: break one client's view on purpose to prove the oracle: drop, extra, stealth, freeze or class (needs --oracle)")  //
+      ("test-fault-tick", po::value(&c.test_fault_tick)->default_value(c.test_fault_tick), "TESTING ONLY: the world tick from which --test-fault acts");
   po::options_description all("zone-server options");
-  all.add(general).add(world).add(interest).add(npcs).add(net);
+  all.add(general).add(world).add(interest).add(npcs).add(net).add(correctness);
 
   config_result r;
   try {
@@ -178,12 +199,13 @@ config_result parse_config(int argc, const char* const* argv) {
     r.message = e.what();
     return r;
   }
-  if (port > 65535 || metrics_port > 65535) {
+  if (port > 65535 || metrics_port > 65535 || oracle_port > 65535) {
     r.message = "ports must be <= 65535";
     return r;
   }
   c.port = static_cast<std::uint16_t>(port);
   c.metrics_port = static_cast<std::uint16_t>(metrics_port);
+  c.oracle_port = static_cast<std::uint16_t>(oracle_port);
   c.world = {{0, 0, 0}, {world_x, world_y, world_z}};
   if (auto err = validate(c)) {
     r.message = *err;

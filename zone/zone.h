@@ -19,6 +19,7 @@
 #include <vector>
 
 #include "interest/interest.h"
+#include "interest/replication_engine.h"
 #include "interest/thread_pool.h"
 #include "interest/visibility_engine.h"
 #include "net/protocol.h"
@@ -136,6 +137,8 @@ class entity_store {
   /// versions mean equal ids, extents, classes and sees. (A GPU interest engine skips uploading
   /// them then.)
   [[nodiscard]] std::uint64_t layout_version() const { return layout_version_; }
+  /// Dense index by slot (0xffffffff: none), slot_count() entries: the map index_of reads.
+  [[nodiscard]] std::span<const std::uint32_t> slot_dense() const { return slot_dense_; }
 
  private:
   void bump_layout();
@@ -237,6 +240,14 @@ class interest_tracker {
   }
   /// True when the last update ran on the engine.
   [[nodiscard]] bool last_update_on_engine() const { return last_by_engine_; }
+  /// The last update's visible sets where the engine keeps them (its device), by this tracker's
+  /// rows, for a replication engine on the same device to read in place; empty when the last
+  /// update did not run on an engine or the engine keeps none.
+  [[nodiscard]] interest::visibility_engine::resident_lists resident_visible() const {
+    if (!last_by_engine_ || engine_ == nullptr || !engine_error_.empty()) return {};
+    const auto r = engine_->resident_visible();
+    return r.rows == ids_.size() ? r : interest::visibility_engine::resident_lists{};
+  }
 
   /// Rows of the last update (= the store's size then).
   [[nodiscard]] std::size_t observer_count() const { return ids_.size(); }
@@ -470,8 +481,25 @@ class replicator {
                   const interest_tracker& tracker, std::uint64_t tick, std::uint64_t server_time_us,
                   interest::thread_pool* pool, const frame_sink& sink, const chunk_sink& chunk_done = {});
 
-  /// The client's view as sent so far (sorted ids) and its digest hash.
+  /// Runs build_many's decisions on `engine` (interest/replication_engine.h; the GPU:
+  /// gpu/replication.h), which then holds the clients' views; null: back to the CPU. The frames
+  /// are byte for byte those of the CPU path (tests/zone/test_zone_gpu.cpp). Every active client's
+  /// next frame is a reset (the views start over on the new side). `engine` must outlive the
+  /// replicator or be unset first. If the engine fails (a device error), build_many gives it up
+  /// for good (engine_error() says why) and builds that tick and the next on the CPU, every
+  /// client's next frame a reset. With an engine, build() must not be called, and view() is empty
+  /// (the view lives on the engine); view_hash() and view_size() stay exact.
+  void set_engine(interest::replication_engine* engine);
+  /// True while build_many runs on the engine.
+  [[nodiscard]] bool on_engine() const { return engine_ != nullptr && engine_error_.empty(); }
+  /// Why the engine was given up (empty while it works or when none is set).
+  [[nodiscard]] const std::string& engine_error() const { return engine_error_; }
+
+  /// The client's view as sent so far (sorted ids; empty on an engine) and its digest hash.
   [[nodiscard]] std::span<const entity_id> view(client_id c) const { return clients_[c].view; }
+  [[nodiscard]] std::size_t view_size(client_id c) const {
+    return on_engine() ? clients_[c].engine_view_size : clients_[c].view.size();
+  }
   [[nodiscard]] std::uint64_t view_hash(client_id c) const { return clients_[c].hash; }
   [[nodiscard]] entity_id observer(client_id c) const { return clients_[c].observer; }
   [[nodiscard]] const net::position_quantizer& quantizer() const { return quantizer_; }
@@ -488,6 +516,7 @@ class replicator {
     std::vector<entity_id> view;  // sorted
     std::vector<view_meta> meta;  // parallel to view
     std::uint64_t hash = 0;
+    std::uint32_t engine_view_size = 0;  // with an engine: its view's size after the last frame
   };
   /// One entity in build_many's snapshot, by dense index: what a view entry needs (the id to
   /// check the hint, the position for the tier, the update as sent) in half a cache line.
@@ -512,6 +541,12 @@ class replicator {
                                            replication_writer& writer, replication_stats* stats);
   /// Starts loading what building client c will read first (its state and lists).
   void prefetch_client(client_id c) const;
+  /// build_many on the engine (throws what the engine throws, before any frame reaches the sink).
+  void build_on_engine(std::span<const replication_request> requests, const entity_store& store,
+                       const interest_tracker& tracker, std::uint64_t tick, std::uint64_t server_time_us,
+                       interest::thread_pool* pool, const frame_sink& sink, const chunk_sink& chunk_done);
+  /// Every active client starts over (its next frame is a reset).
+  void reset_all_clients();
 
   replication_options opt_;
   net::position_quantizer quantizer_;
@@ -521,6 +556,9 @@ class replicator {
   std::vector<client_id> free_clients_;
   std::vector<std::unique_ptr<replication_writer>> writers_;  // one per build_many task (thread)
   std::vector<entity_snapshot> snapshot_;                     // build_many's, by dense index
+  interest::replication_engine* engine_ = nullptr;
+  std::string engine_error_;
+  std::vector<std::uint32_t> job_visible_;  // build_on_engine: visible-set size, then offset, by request
 };
 
 // ---------------------------------------------------------------------------------------------
@@ -548,6 +586,10 @@ struct zone_config {
   /// device is usable and max_visible is 0; else the host path), "gpu" (the engine, or refuse to
   /// start), "host" (the pair finder above and the host diff).
   std::string interest = "auto";
+  /// Where replication's per-client decisions run: "auto" (the GPU replication engine,
+  /// gpu/replication.h, when a device is usable; else the CPU replicator), "gpu" (the engine, or
+  /// refuse to start), "cpu". The frames are the same either way (docs/zone.md).
+  std::string replicate = "auto";
   float hysteresis = 4;
   std::uint32_t max_visible = 0;  ///< per observer, 0 = no cap
   /// AOI half-extents of the tiers tiny .. gigantic (metres).
@@ -575,6 +617,9 @@ struct zone_config {
   /// (the kernel's send is then the tick's CPU): docs/zone-benchmarks.md.
   bool direct_writes = false;
   int io_nice = 0;  ///< nice value of the I/O threads (net::server_options::io_thread_nice; 0-19)
+  /// How the I/O threads write (net::server_options::batching): "auto" (io_uring where the kernel
+  /// allows it, else sendmsg), "io_uring" (or refuse to start), "sendmsg".
+  std::string write_batching = "auto";
   double inputs_per_second = 60;
   std::size_t client_byte_budget = 8 * 1024;
   /// A client with this many state frames still unwritten (net::server::state_backlog) gets no new
@@ -599,6 +644,16 @@ struct zone_config {
   /// When set, one CSV line per tick (its wall time, clients, frames and phase timings) goes to
   /// this file, so percentiles can be taken over any window (e.g. after a swarm's ramp-up).
   std::string tick_csv;
+  // Correctness (docs/bots.md, the oracle).
+  /// Publish every tick's ground truth on a loopback stream (127.0.0.1:oracle_port; 0 = an
+  /// ephemeral port, told in the welcome): what an independent oracle checks each client's view
+  /// against. Off: nothing is built or sent.
+  bool oracle = false;
+  std::uint16_t oracle_port = 0;
+  /// Testing only: a deliberate replication fault for one client, to prove that the oracle
+  /// catches it: "" (none), "drop", "extra", "stealth", "freeze" or "class" (zone/fault_injection.h).
+  std::string test_fault;
+  std::uint64_t test_fault_tick = 40;  ///< the world tick from which the fault acts
 };
 
 /// Result of parse_config: a config, or a message (the help text, or a readable error).
@@ -688,6 +743,11 @@ class zone_world {
   void prepare() noexcept { tracker_.prepare(); }
   /// See interest_tracker::set_engine.
   void set_visibility_engine(interest::visibility_engine* engine) { tracker_.set_engine(engine); }
+  /// Whether the players' visible sets are copied back to the host after each interest step
+  /// (interest_tracker::set_view_demand; default true: the CPU replicator reads them). A GPU
+  /// replication engine that reads them in place on the device (replicator::set_engine) needs
+  /// no copy; a row not copied is still fetched on first access, so the CPU path stays exact.
+  void set_player_views_on_host(bool on);
   [[nodiscard]] behaviour behaviour_of(entity_id id) const;
   [[nodiscard]] const tick_phases& phases() const { return phases_; }
   /// The phases of the last step() alone (per-tick series: bench-zone --csv, zone-server --tick-csv).
@@ -715,6 +775,7 @@ class zone_world {
   interest_tracker tracker_;
   std::vector<npc_state> by_slot_;  // indexed by slot_of(id)
   std::vector<std::uint8_t> reads_view_;  // by slot: the entity's visible set is read each tick
+  bool player_views_on_host_ = true;
   void set_reads_view(entity_id id, bool reads);
   std::vector<vec3> towns_;
   std::uint64_t tick_ = 0;

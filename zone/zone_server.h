@@ -12,8 +12,10 @@
 #include <unordered_map>
 #include <vector>
 
+#include "fault_injection.h"
 #include "net/metrics.h"
 #include "net/server.h"
+#include "truth_publisher.h"
 #include "zone.h"
 
 namespace zone {
@@ -57,8 +59,14 @@ class zone_server {
   [[nodiscard]] std::string finder_name() const { return std::string(finder_->name()); }
   /// Where the interest step runs: "gpu engine" or "host (finder <name>)".
   [[nodiscard]] std::string interest_name() const;
+  /// Where replication runs now: "gpu engine" or "cpu".
+  [[nodiscard]] std::string replication_name() const;
   [[nodiscard]] const loop_stats& stats() const { return stats_; }
   [[nodiscard]] net::server_stats net_stats() const { return net_.stats(); }
+  /// Port of the ground-truth stream (0 when --oracle is off).
+  [[nodiscard]] std::uint16_t oracle_port() const { return truth_ ? truth_->port() : 0; }
+  /// The zone's interest rules as the welcome tells them.
+  [[nodiscard]] net::interest_rules rules() const;
 
  private:
   struct client {
@@ -74,6 +82,8 @@ class zone_server {
   /// finite target clamped into the world).
   void teleport(net::session_id session, client& c, const net::teleport_msg& t);
   void replicate();
+  /// --test-fault: the client whose frames are broken (the lowest session with an entity).
+  void choose_fault_victim();
 
   zone_config cfg_;
   std::unique_ptr<interest::thread_pool> pool_;
@@ -84,9 +94,17 @@ class zone_server {
   std::string engine_note_;   ///< why auto chose the host path
   std::unique_ptr<interest::visibility_engine> engine_;
   bool engine_failure_logged_ = false;
+  std::string replicate_error_;  ///< why replicate = gpu cannot run here (start() reports it)
+  std::string replicate_note_;   ///< why auto chose the CPU replicator
+  std::unique_ptr<interest::replication_engine> replication_engine_;  ///< before replicator_: outlives it
+  bool replication_failure_logged_ = false;
   replicator replicator_;
   net::server net_;
   std::unique_ptr<net::metrics_server> metrics_;
+  std::unique_ptr<truth_publisher> truth_;  // --oracle
+  std::unique_ptr<fault_injector> fault_;   // --test-fault
+  net::session_id fault_session_ = 0;
+  bool fault_has_victim_ = false;
   // Replication scratch, reused every tick: one request per client, its session and its frame.
   std::vector<replication_request> requests_;
   std::vector<net::session_id> request_sessions_;

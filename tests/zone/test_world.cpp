@@ -56,6 +56,15 @@ TEST_SUITE("zone.config") {
       REQUIRE(r.config.has_value());
       CHECK(r.config->finder == f);
     }
+    CHECK(d.config->replicate == "auto");
+    for (const char* r : {"auto", "gpu", "cpu"}) {
+      const auto parsed = parse({"--replicate", r});
+      REQUIRE(parsed.config.has_value());
+      CHECK(parsed.config->replicate == r);
+    }
+    const auto bad_replicate = parse({"--replicate", "fpga"});
+    CHECK_FALSE(bad_replicate.config.has_value());
+    CHECK(bad_replicate.message.find("replicate") != std::string::npos);
     const auto bad_finder = parse({"--finder", "quantum"});
     CHECK_FALSE(bad_finder.config.has_value());
     CHECK(bad_finder.message.find("finder") != std::string::npos);
