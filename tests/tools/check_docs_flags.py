@@ -6,7 +6,7 @@ Reads docs/*.md, README.md and the shell scripts under scripts/ and bots/. A fla
 to NAME when it follows NAME's executable on a command line (a line, joined with the next while
 it ends in a backslash) before the command ends (|, ;, &&, a backtick or another program's name)
 and the first word after NAME is itself a flag (so `script.sh build/zone/zone-server TAG --x` is a
-script's argument, not zone-server's). Exits 1 naming each flag --help lacks, with where the
+script's argument, not zone-server's), unless NAME is an option's value (`tool --server NAME --x`). Exits 1 naming each flag --help lacks, with where the
 documentation gives it.
 """
 import glob
@@ -56,6 +56,9 @@ def main():
         for number, line in command_lines(path):
             for name in programs:
                 for m in re.finditer(r"(?<![\w.-])(?:[\w./$-]*/)?" + re.escape(name) + r"(?![\w.-])", line):
+                    before = line[:m.start()].split()
+                    if before and before[-1].startswith("-"):
+                        continue  # the program is an option's value (`tool --server build/zone/zone-server`)
                     rest = stop.split(line[m.end():])[0]
                     words = rest.split()
                     if not words or not words[0].startswith("-"):
