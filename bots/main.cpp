@@ -10,6 +10,7 @@
 #include <iostream>
 #include <sstream>
 
+#include "interest/measure.h"
 #include "os_limits.h"
 #include "swarm.h"
 
@@ -59,12 +60,7 @@ void print_progress(const zone::bots::second_sample& s, const zone::bots::swarm_
                static_cast<unsigned long long>(s.leaves), static_cast<unsigned long long>(s.mismatches));
 }
 
-double quantile(std::vector<double> v, double q) {
-  if (v.empty()) return 0;
-  std::sort(v.begin(), v.end());
-  const auto i = static_cast<std::size_t>(std::clamp(q * static_cast<double>(v.size() - 1), 0.0, static_cast<double>(v.size() - 1)));
-  return v[i];
-}
+using zone::quantile;
 
 struct summary {
   double p50 = 0, p95 = 0, p99 = 0, max = 0;

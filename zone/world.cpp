@@ -7,6 +7,7 @@
 #include <cmath>
 #include <random>
 
+#include "interest/measure.h"
 #include "zone.h"
 
 namespace zone {
@@ -24,9 +25,6 @@ void run_each(interest::thread_pool* pool, std::size_t n, F&& task) {
 }
 
 using clock_type = std::chrono::steady_clock;
-double ms_since(clock_type::time_point t0) {
-  return std::chrono::duration<double, std::milli>(clock_type::now() - t0).count();
-}
 
 std::uint64_t splitmix(std::uint64_t z) {
   z += 0x9e3779b97f4a7c15ull;

@@ -18,10 +18,11 @@
 #include <string>
 #include <vector>
 
-#include "interest.h"
-#include "protocol.h"
-#include "replication_engine.h"
-#include "visibility_engine.h"
+#include "interest/interest.h"
+#include "interest/replication_engine.h"
+#include "interest/thread_pool.h"
+#include "interest/visibility_engine.h"
+#include "net/protocol.h"
 
 namespace zone {
 

@@ -2,6 +2,7 @@
 #include "zone_server.h"
 
 #include "finders.h"
+#include "interest/measure.h"
 #include "replication.h"
 #include "visibility.h"
 
@@ -19,9 +20,6 @@ namespace zone {
 namespace {
 
 using clock_type = std::chrono::steady_clock;
-double ms_since(clock_type::time_point t0) {
-  return std::chrono::duration<double, std::milli>(clock_type::now() - t0).count();
-}
 
 net::server_options net_options(const zone_config& c) {
   net::server_options o;
@@ -64,14 +62,8 @@ replication_options replica_options(const zone_config& c) {
 /// grid finder in place and the reason in `error` (start() refuses to run then).
 std::unique_ptr<interest::pair_finder> make_zone_finder(const zone_config& c, interest::thread_pool* pool,
                                                         std::string& error) {
-  const auto backend = gpu::parse_backend(c.finder);
-  if (!backend) {
-    error = "unknown finder '" + c.finder + "'";
-    return std::make_unique<interest::grid_finder>(pool);
-  }
-  std::string why;
-  if (auto f = gpu::make_finder(*backend, pool, &why)) return f;
-  error = "finder '" + c.finder + "' cannot run here: " + why + " (use --finder auto or cpu)";
+  if (auto f = gpu::make_finder(c.finder, pool, &error)) return f;
+  if (gpu::parse_backend(c.finder)) error += " (use --finder auto or cpu)";
   return std::make_unique<interest::grid_finder>(pool);
 }
 

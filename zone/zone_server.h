@@ -14,8 +14,8 @@
 #include <vector>
 
 #include "fault_injection.h"
-#include "metrics.h"
-#include "server.h"
+#include "net/metrics.h"
+#include "net/server.h"
 #include "truth_publisher.h"
 #include "viewer.h"
 #include "zone.h"

@@ -12,7 +12,7 @@
 #include <set>
 #include <unordered_map>
 
-#include "protocol.h"
+#include "net/protocol.h"
 
 using namespace zone::net;
 using bytes = std::vector<std::uint8_t>;
