@@ -187,8 +187,17 @@ entity_id zone_world::spawn_player(const vec3& at) {
   const entity_id id = store_.create(d);
   if (id == null_entity) return id;
   set_state(id, npc_state{behaviour::player, d.position, 0, {}});
-  set_reads_view(id, true);
+  set_reads_view(id, player_views_on_host_);
   return id;
+}
+
+void zone_world::set_player_views_on_host(bool on) {
+  if (on == player_views_on_host_) return;
+  player_views_on_host_ = on;
+  for (const entity_id id : store_.ids()) {
+    const std::uint32_t slot = slot_of(id);
+    if (slot < by_slot_.size() && by_slot_[slot].kind == behaviour::player) set_reads_view(id, on);
+  }
 }
 
 bool zone_world::despawn(entity_id id) {
