@@ -173,10 +173,19 @@ void zone_world::populate() {
     d.sees = cb::normal | cb::team_red | cb::team_blue | (d.visibility_class == cb::stealth ? cb::stealth : 0u);
     const entity_id id = store_.create(d);
     if (id == null_entity) break;
-    if (by_slot_.size() <= slot_of(id)) by_slot_.resize(slot_of(id) + 1);
-    by_slot_[slot_of(id)] = st;
+    set_state(id, st);
     set_reads_view(id, st.kind == behaviour::chase);
   }
+}
+
+void zone_world::set_state(entity_id id, const npc_state& st) {
+  const std::uint32_t slot = slot_of(id);
+  if (by_slot_.size() <= slot) {
+    by_slot_.resize(slot + 1);
+    is_player_.resize(slot + 1, 0);
+  }
+  by_slot_[slot] = st;
+  is_player_[slot] = st.kind == behaviour::player ? 1 : 0;
 }
 
 entity_id zone_world::spawn_player(const vec3& at) {
@@ -187,8 +196,7 @@ entity_id zone_world::spawn_player(const vec3& at) {
   d.kind = entity_kind::player;
   const entity_id id = store_.create(d);
   if (id == null_entity) return id;
-  if (by_slot_.size() <= slot_of(id)) by_slot_.resize(slot_of(id) + 1);
-  by_slot_[slot_of(id)] = npc_state{behaviour::player, d.position, 0, {}};
+  set_state(id, npc_state{behaviour::player, d.position, 0, {}});
   set_reads_view(id, player_views_on_host_);
   return id;
 }
@@ -265,8 +273,13 @@ void zone_world::decide(std::size_t first, std::size_t last) {
         entity_id prey = null_entity;
         if (row != entity_store::npos) {
           for (const entity_id seen : tracker_.visible(row)) {
+            // The kind first (one byte by slot): most of what a chaser sees is not a player,
+            // and the store's lookup (two more random reads) is needed only for players. Same
+            // result as the lookup first.
+            const std::uint32_t slot = slot_of(seen);
+            if (slot >= is_player_.size() || is_player_[slot] == 0) continue;
             const std::size_t k = store_.index_of(seen);
-            if (k == entity_store::npos || by_slot_[slot_of(seen)].kind != behaviour::player) continue;
+            if (k == entity_store::npos) continue;
             const vec3 d{pos[k].x - p.x, pos[k].y - p.y, pos[k].z - p.z};
             const float dist = length(d);
             if (dist < best || (dist == best && seen < prey)) {

@@ -783,6 +783,10 @@ class zone_world {
   entity_store store_;
   interest_tracker tracker_;
   std::vector<npc_state> by_slot_;  // indexed by slot_of(id)
+  /// By slot: 1 where by_slot_'s kind is player. What the chasers' scan reads: a byte a slot
+  /// (1 MB a million entities) instead of a 32-byte state.
+  std::vector<std::uint8_t> is_player_;
+  void set_state(entity_id id, const npc_state& st);
   std::vector<std::uint8_t> reads_view_;  // by slot: the entity's visible set is read each tick
   bool player_views_on_host_ = true;
   void set_reads_view(entity_id id, bool reads);
