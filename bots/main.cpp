@@ -124,6 +124,7 @@ void print_table(const swarm_result& r, const summary& s) {
   row("server errors received", num(r.server_errors));
   row("churn logouts", num(r.logouts));
   row("teleports sent", num(r.teleports_sent));
+  row("redirects followed (world of zones)", num(r.redirects));
   row("update latency p50", ms(s.p50));
   row("update latency p95", ms(s.p95));
   row("update latency p99", ms(s.p99));
@@ -183,6 +184,7 @@ bool write_json(const std::string& path, const swarm_result& r, const summary& s
   o << "  \"connect_failures\": " << r.connect_failures << ",\n  \"unexpected_disconnects\": " << r.unexpected_disconnects << ",\n";
   o << "  \"server_errors\": " << r.server_errors << ",\n  \"logouts\": " << r.logouts << ",\n";
   o << "  \"threads\": " << r.options.threads << ",\n  \"teleports_sent\": " << r.teleports_sent << ",\n";
+  o << "  \"redirects\": " << r.redirects << ",\n";
   o << "  \"self_positions\": " << r.self_positions << ",\n  \"host_clock\": " << (r.host_clock ? "true" : "false") << ",\n";
   o << "  \"latency_ms\": {\"p50\": " << s.p50 << ", \"p95\": " << s.p95 << ", \"p99\": " << s.p99 << ", \"max\": " << s.max
     << ", \"samples\": " << s.samples << ", \"unsynced\": " << r.latency_unsynced << ", \"min_rtt\": " << r.min_rtt_ms << "},\n";

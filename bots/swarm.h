@@ -72,6 +72,8 @@ class latency_histogram_us {
 struct swarm_counters {
   std::atomic<std::uint64_t> connect_attempts{0}, connected_now{0}, welcomes{0}, connect_failures{0},
       unexpected_disconnects{0}, server_errors{0}, logouts{0}, teleports_sent{0};
+  /// A world of zones (docs/world.md): redirects followed (a new connection with the token).
+  std::atomic<std::uint64_t> redirects{0};
   std::atomic<std::uint64_t> frames_in{0}, bytes_in{0}, tick_updates{0}, enters{0}, leaves{0}, updates{0}, resets{0};
   std::atomic<std::uint64_t> inputs_sent{0}, inputs_unchanged{0}, pings_sent{0}, pongs{0};
   std::atomic<std::uint64_t> digests_checked{0}, digest_mismatches{0}, inconsistent{0};
@@ -117,7 +119,7 @@ struct swarm_result {
                 server_errors = 0, logouts = 0, frames_in = 0, bytes_in = 0, tick_updates = 0, enters = 0,
                 leaves = 0, updates = 0, resets = 0, inputs_sent = 0, inputs_unchanged = 0, pongs = 0, digests_checked = 0,
                 digest_mismatches = 0, inconsistent = 0, aoi_checked = 0, aoi_unchecked = 0,
-                aoi_violations = 0, latency_unsynced = 0, teleports_sent = 0, self_positions = 0;
+                aoi_violations = 0, latency_unsynced = 0, teleports_sent = 0, self_positions = 0, redirects = 0;
   bool host_clock = false;  ///< latency timed on the host's clock (same host), not by ping sync
   std::uint64_t bots_connected = 0;  ///< slots that got a welcome at least once
   double min_rtt_ms = 0;

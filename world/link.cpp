@@ -249,9 +249,10 @@ std::optional<handoff_record> decode_handoff(std::span<const std::uint8_t> bytes
 }
 
 float ghost_band(const zone_config& c, float handoff_margin) {
-  float aoi = c.player_aoi;
-  for (const float a : c.aoi_tier) aoi = std::max(aoi, a);
-  const float presence = std::max(1.0f, c.boss_footprint);
+  // The AOIs populate() and players use: NPC tiers 0-2 (chasers 2), bosses the gigantic tier 4.
+  float aoi = std::max({c.player_aoi, c.aoi_tier[0], c.aoi_tier[1], c.aoi_tier[2]});
+  if (c.boss_count > 0) aoi = std::max(aoi, c.aoi_tier[4]);
+  const float presence = c.boss_count > 0 ? std::max(1.0f, c.boss_footprint) : 1.0f;
   const float speed = std::max(c.npc_speed * 1.5f, c.player_speed);
   return aoi + c.hysteresis + presence + handoff_margin + 2 * speed / static_cast<float>(c.tick_rate_hz) + 1;
 }
@@ -327,12 +328,39 @@ std::vector<global_id> zone_link::owned_ids() const {
   return out;
 }
 
+std::vector<global_id> zone_link::transit_ids() const {
+  std::vector<global_id> out;
+  for (const auto& i : by_slot_) {
+    if (i.what == role::transit) out.push_back(i.gid);
+  }
+  std::sort(out.begin(), out.end());
+  return out;
+}
+
+std::vector<std::pair<global_id, std::uint64_t>> zone_link::owned_epochs() const {
+  std::vector<std::pair<global_id, std::uint64_t>> out;
+  for (const auto& i : by_slot_) {
+    if (i.what == role::owned) out.emplace_back(i.gid, i.epoch);
+  }
+  std::sort(out.begin(), out.end());
+  return out;
+}
+
 std::uint64_t zone_link::owner_revision(global_id g) const {
   const auto* i = info(local_of(g));
   return i ? i->revision : 0;
 }
 
 void zone_link::assign_ids(const zone_world& w) {
+  // Entities removed by the zone itself (a player who left): forgotten.
+  for (auto& i : by_slot_) {
+    if (i.what != role::none && !w.store().alive(i.local)) {
+      if (i.what == role::owned && i.epoch > 0) departed_.push_back(i.gid);
+      const auto it = local_.find(i.gid);
+      if (it != local_.end() && it->second == i.local) local_.erase(it);
+      i = slot_info{};
+    }
+  }
   const auto ids = w.store().ids();
   for (const entity_id id : ids) {
     const auto s = slot_of(id);

@@ -170,8 +170,9 @@ std::unique_ptr<nats_node> nats_node::join(const node_options& opt, const zone_c
   n->heartbeat_ = std::thread([p = n.get()] { p->heartbeat_loop(); });
   n->fetcher_ = std::thread([p = n.get()] { p->fetch_loop(); });
   n->sender_ = std::thread([p = n.get()] { p->send_loop(); });
-  spdlog::info("world '{}': region {} of {} ({}x{}), incarnation {}, ghost band {:.0f} m", opt.world, n->region_,
-               n->map_.count(), n->map_.cols(), n->map_.rows(), n->incarnation_, n->link_->options().ghost_band);
+  spdlog::info("world '{}': region {} of {} ({}x{}), incarnation {}, neighbours {}, ghost band {:.0f} m", opt.world,
+               n->region_, n->map_.count(), n->map_.cols(), n->map_.rows(), n->incarnation_,
+               n->map_.neighbours(n->region_).size(), n->link_->options().ghost_band);
   return n;
 }
 
@@ -319,8 +320,13 @@ void nats_node::send_loop() {
       r = outbox_.front();
       outbox_.pop_front();
     }
-    // 1. Ownership by compare-and-set: from (us, epoch - 1) at the revision we know to (them, epoch).
     const std::string key = "e." + hex(r.gid);
+    if (r.epoch == 0) {
+      // The entity left the world here (a player logged out): its ownership record goes too.
+      kvStore_Delete(kv_, key.c_str());
+      continue;
+    }
+    // 1. Ownership by compare-and-set: from (us, epoch - 1) at the revision we know to (them, epoch).
     const std::string value = std::to_string(r.to) + " " + std::to_string(r.epoch);
     std::uint64_t rev = 0;
     natsStatus s = r.owner_revision == 0
@@ -357,15 +363,24 @@ void nats_node::send_loop() {
 }
 
 void nats_node::answer_census(const std::string& reply) {
-  // region u32, incarnation u32, tick u64, count u32, gids u64...
-  const auto ids = link_->owned_ids();
-  std::vector<std::uint8_t> out(20 + ids.size() * 8);
+  // region u32, incarnation u32, tick u64, count u32, then (gid u64, epoch u64) per owned entity,
+  // then count u32 and gid u64 per entity in transit from here.
+  const auto ids = link_->owned_epochs();
+  const auto transit = link_->transit_ids();
+  std::vector<std::uint8_t> out(20 + ids.size() * 16 + 4 + transit.size() * 8);
   const std::uint32_t head[2] = {region_, incarnation_};
   const auto count = static_cast<std::uint32_t>(ids.size());
   std::memcpy(out.data(), head, 8);
   std::memcpy(out.data() + 8, &tick_, 8);
   std::memcpy(out.data() + 16, &count, 4);
-  if (!ids.empty()) std::memcpy(out.data() + 20, ids.data(), ids.size() * 8);
+  for (std::size_t k = 0; k < ids.size(); ++k) {
+    std::memcpy(out.data() + 20 + 16 * k, &ids[k].first, 8);
+    std::memcpy(out.data() + 28 + 16 * k, &ids[k].second, 8);
+  }
+  const auto tcount = static_cast<std::uint32_t>(transit.size());
+  std::uint8_t* t = out.data() + 20 + ids.size() * 16;
+  std::memcpy(t, &tcount, 4);
+  if (tcount) std::memcpy(t + 4, transit.data(), transit.size() * 8);
   natsConnection_Publish(nc_, reply.c_str(), out.data(), static_cast<int>(out.size()));
 }
 
@@ -440,7 +455,7 @@ void nats_node::before_step(zone_world& w) {
         break;
       }
       case inbound_msg::kind::census:
-        if (!m.reply.empty()) answer_census(m.reply);
+        if (!m.reply.empty()) census_replies_.push_back(m.reply);  // answered at the end of the tick
         break;
     }
   }
@@ -468,6 +483,16 @@ void nats_node::before_step(zone_world& w) {
 void nats_node::after_step(zone_world& w, std::vector<redirect>& out) {
   tick_ = w.tick();
   link_->assign_ids(w);
+  if (auto gone = link_->take_departed(); !gone.empty()) {
+    std::lock_guard lock(out_mutex_);
+    for (const global_id g : gone) {
+      handoff_record r;
+      r.gid = g;
+      r.epoch = 0;
+      outbox_.push_back(r);
+    }
+    out_cv_.notify_one();
+  }
   auto records = link_->collect_handoffs(w, monotonic_us());
   if (!records.empty()) {
     std::vector<std::pair<std::string, std::uint16_t>> addr;
@@ -491,6 +516,8 @@ void nats_node::after_step(zone_world& w, std::vector<redirect>& out) {
     }
     out_cv_.notify_one();
   }
+  for (const auto& reply : census_replies_) answer_census(reply);
+  census_replies_.clear();
   link_->build_ghosts(w, ghost_out_);
   for (const auto& m : ghost_out_) {
     const auto bytes = encode(m);
@@ -527,6 +554,158 @@ void nats_node::forward_input(entity_id e, const vec3& intent, std::uint32_t seq
   if (target == forward_target_.end()) return;
   natsConnection_Publish(nc_, subject("input", target->second).c_str(), buf, sizeof buf);
   ++stats_.inputs_forwarded;
+}
+
+// ---- checking a world from outside ---------------------------------------------------------------
+
+std::optional<std::vector<census_entry>> take_census(const std::string& url, const std::string& world, int wait_ms,
+                                                     std::string* error, const std::function<void()>& pump) {
+  natsConnection* nc = nullptr;
+  if (natsStatus s = natsConnection_ConnectTo(&nc, url.c_str()); s != NATS_OK) {
+    if (error) *error = "cannot connect to " + url + ": " + status_text(s);
+    return std::nullopt;
+  }
+  std::vector<census_entry> out;
+  char inbox[64];
+  std::snprintf(inbox, sizeof inbox, "census.%llx", static_cast<unsigned long long>(monotonic_us()));
+  natsSubscription* sub = nullptr;
+  natsConnection_SubscribeSync(&sub, nc, inbox);
+  natsConnection_PublishRequest(nc, ("world." + world + ".census").c_str(), inbox, "", 0);
+  natsConnection_Flush(nc);
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::milliseconds(wait_ms);
+  while (std::chrono::steady_clock::now() < deadline) {
+    if (pump) pump();
+    natsMsg* m = nullptr;
+    if (natsSubscription_NextMsg(&m, sub, 20) != NATS_OK) continue;
+    const auto* d = reinterpret_cast<const std::uint8_t*>(natsMsg_GetData(m));
+    const auto len = static_cast<std::size_t>(natsMsg_GetDataLength(m));
+    census_entry e;
+    std::uint32_t count = 0;
+    if (len >= 20) {
+      std::memcpy(&e.region, d, 4);
+      std::memcpy(&e.incarnation, d + 4, 4);
+      std::memcpy(&e.tick, d + 8, 8);
+      std::memcpy(&count, d + 16, 4);
+    }
+    std::uint32_t tcount = 0;
+    const std::size_t head = 20 + std::size_t{count} * 16;
+    if (len >= 20 && len >= head + 4) std::memcpy(&tcount, d + head, 4);
+    if (len >= 20 && len == head + 4 + std::size_t{tcount} * 8) {
+      e.owned.resize(count);
+      for (std::size_t k = 0; k < count; ++k) {
+        std::memcpy(&e.owned[k].first, d + 20 + 16 * k, 8);
+        std::memcpy(&e.owned[k].second, d + 28 + 16 * k, 8);
+      }
+      e.transit.resize(tcount);
+      if (tcount) std::memcpy(e.transit.data(), d + head + 4, std::size_t{tcount} * 8);
+      out.push_back(std::move(e));
+    }
+    natsMsg_Destroy(m);
+  }
+  natsSubscription_Destroy(sub);
+  natsConnection_Destroy(nc);
+  std::sort(out.begin(), out.end(), [](const census_entry& a, const census_entry& b) { return a.region < b.region; });
+  return out;
+}
+
+std::optional<std::map<global_id, std::pair<std::uint32_t, std::uint64_t>>> read_owners(const std::string& url,
+                                                                                        const std::string& world,
+                                                                                        std::string* error) {
+  natsConnection* nc = nullptr;
+  jsCtx* js = nullptr;
+  kvStore* kv = nullptr;
+  const auto fail = [&](const std::string& why) {
+    if (error) *error = why;
+    if (kv) kvStore_Destroy(kv);
+    if (js) jsCtx_Destroy(js);
+    if (nc) natsConnection_Destroy(nc);
+    return std::nullopt;
+  };
+  if (natsStatus s = natsConnection_ConnectTo(&nc, url.c_str()); s != NATS_OK) return fail("cannot connect: " + status_text(s));
+  if (natsConnection_JetStream(&js, nc, nullptr) != NATS_OK) return fail("no JetStream");
+  if (js_KeyValue(&kv, js, ("world-" + world).c_str()) != NATS_OK) return fail("no world '" + world + "' in KV");
+  std::map<global_id, std::pair<std::uint32_t, std::uint64_t>> out;
+  kvKeysList keys{};
+  const natsStatus ks = kvStore_Keys(&keys, kv, nullptr);
+  if (ks == NATS_OK) {
+    for (int i = 0; i < keys.Count; ++i) {
+      const std::string k = keys.Keys[i];
+      if (k.rfind("e.", 0) != 0) continue;
+      kvEntry* e = nullptr;
+      if (kvStore_Get(&e, kv, k.c_str()) != NATS_OK) continue;
+      std::istringstream in(kvEntry_ValueString(e));
+      std::uint32_t region = 0;
+      std::uint64_t epoch = 0;
+      if (in >> region >> epoch) out[std::strtoull(k.c_str() + 2, nullptr, 16)] = {region, epoch};
+      kvEntry_Destroy(e);
+    }
+    kvKeysList_Destroy(&keys);
+  } else if (ks != NATS_NOT_FOUND) {
+    return fail("cannot list keys: " + status_text(ks));
+  }
+  kvStore_Destroy(kv);
+  jsCtx_Destroy(js);
+  natsConnection_Destroy(nc);
+  return out;
+}
+
+world_check check_world(const std::vector<census_entry>& census,
+                        const std::map<global_id, std::pair<std::uint32_t, std::uint64_t>>& owners) {
+  world_check c;
+  c.zones = census.size();
+  c.kv_records = owners.size();
+  std::unordered_map<global_id, std::vector<std::pair<std::uint32_t, std::uint64_t>>> seen;  // id -> (region, epoch)
+  for (const auto& z : census) {
+    c.owned += z.owned.size();
+    for (const auto& [g, epoch] : z.owned) seen[g].emplace_back(z.region, epoch);
+  }
+  for (const auto& [g, where] : seen) {
+    for (std::size_t a = 0; a < where.size(); ++a) {
+      for (std::size_t b = a + 1; b < where.size(); ++b) {
+        if (where[a].second == where[b].second) {
+          ++c.owned_twice;
+        } else {
+          ++c.moving;
+        }
+      }
+    }
+    for (const auto& [region, epoch] : where) {
+      if (epoch == 0) continue;  // never handed off: no record needed
+      const auto it = owners.find(g);
+      if (it == owners.end()) {
+        ++c.kv_missing;
+      } else if (it->second.second < epoch || (it->second.second == epoch && it->second.first != region)) {
+        ++c.kv_disagree;
+      }
+    }
+  }
+  std::unordered_map<global_id, bool> transit;
+  for (const auto& z : census) {
+    for (const global_id g : z.transit) {
+      if (!seen.contains(g)) transit[g] = true;
+    }
+  }
+  c.transit_only = transit.size();
+  for (const auto& [g, rec] : owners) {
+    const auto it = seen.find(g);
+    bool current = false;
+    if (it != seen.end()) {
+      for (const auto& [region, epoch] : it->second) current = current || epoch >= rec.second;
+    }
+    if (!current) {
+      ++c.kv_in_flight;
+      if (c.in_flight_examples.size() < 10) {
+        std::string what = "id " + hex(g) + ": KV says region " + std::to_string(rec.first) + " epoch " + std::to_string(rec.second) + "; zones:";
+        if (it != seen.end()) {
+          for (const auto& [region, epoch] : it->second) what += " region " + std::to_string(region) + " epoch " + std::to_string(epoch);
+        } else {
+          what += transit.contains(g) ? " in transit" : " none";
+        }
+        c.in_flight_examples.push_back(what);
+      }
+    }
+  }
+  return c;
 }
 
 }  // namespace zone::world

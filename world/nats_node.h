@@ -8,7 +8,7 @@
 //   world.W.snap.r      "send me a snapshot" to region r (payload: the asking region)
 //   world.W.input.r     inputs forwarded to region r (a handed-off player's client not moved yet)
 //   world.W.handoff.r   handoff records to region r (JetStream stream WORLD_W, durable consumer per region)
-//   world.W.census      request: every zone answers with the world-wide ids it owns
+//   world.W.census      request: every zone answers with the world-wide ids it owns (and their epochs)
 // KV buckets: world-W (key "layout", "inc.r" = region r's claim count, "e.<gid>" = an entity's
 // owner "region epoch"), world-W-lease (key "r.r" = "host port incarnation" of region r's zone,
 // with a TTL: a zone that stops renewing it loses the region).
@@ -16,6 +16,8 @@
 
 #include <atomic>
 #include <condition_variable>
+#include <functional>
+#include <map>
 #include <cstdint>
 #include <deque>
 #include <memory>
@@ -131,7 +133,7 @@ class nats_node final : public zone_extension {
   // Handoff records for the sender thread.
   std::mutex out_mutex_;
   std::condition_variable out_cv_;
-  std::deque<handoff_record> outbox_;
+  std::deque<handoff_record> outbox_;  ///< a record with to == region_ and epoch 0: delete the gid's KV record
   // Region addresses (host, port), refreshed by the heartbeat thread.
   mutable std::mutex addr_mutex_;
   std::vector<std::pair<std::string, std::uint16_t>> addresses_;
@@ -146,10 +148,46 @@ class nats_node final : public zone_extension {
   std::unordered_map<global_id, std::pair<vec3, std::uint32_t>> early_inputs_;       // forwarded before the entity came
   std::unordered_map<global_id, std::uint32_t> forward_target_;                     // handed-off player -> its zone
   std::vector<ghost_message> ghost_out_;
+  std::vector<std::string> census_replies_;
   std::uint64_t tick_ = 0;
   double tick_rate_hz_ = 30;
   node_stats stats_;
   latency_histogram handoff_ms_, handoff_ticks_;
 };
+
+// ---------------------------------------------------------------------------------------------
+// Checking a running world from outside (world-check, the tests).
+
+/// One zone's answer to the census.
+struct census_entry {
+  std::uint32_t region = 0, incarnation = 0;
+  std::uint64_t tick = 0;
+  std::vector<std::pair<global_id, std::uint64_t>> owned;  ///< (id, epoch)
+  std::vector<global_id> transit;                          ///< handed off from here, not confirmed yet
+};
+/// Asks every zone of the world (world.W.census) and collects the answers for `wait_ms`;
+/// `pump` (when set) is called while waiting (in-process zones answer from their game thread).
+[[nodiscard]] std::optional<std::vector<census_entry>> take_census(const std::string& url, const std::string& world,
+                                                                   int wait_ms, std::string* error,
+                                                                   const std::function<void()>& pump = {});
+/// The ownership records in KV: id -> (region, epoch).
+[[nodiscard]] std::optional<std::map<global_id, std::pair<std::uint32_t, std::uint64_t>>> read_owners(
+    const std::string& url, const std::string& world, std::string* error);
+
+/// What a census and the KV records say together.
+struct world_check {
+  std::size_t zones = 0, owned = 0;
+  std::size_t transit_only = 0;    ///< handed off and owned by no zone yet (on the stream)
+  std::size_t owned_twice = 0;     ///< the same (id, epoch) in two zones: a broken guarantee
+  std::size_t moving = 0;          ///< the same id in two zones with different epochs (the census caught a handoff)
+  std::size_t kv_records = 0;
+  std::size_t kv_disagree = 0;     ///< a zone owns (id, epoch) while KV names another zone for it, or an older epoch
+  std::size_t kv_missing = 0;      ///< a zone owns an id handed off (epoch > 0) that has no KV record
+  std::size_t kv_in_flight = 0;    ///< KV is ahead of every zone (CAS done, the record not applied yet)
+  std::vector<std::string> in_flight_examples;  ///< the first few of those, readable
+  [[nodiscard]] bool ok() const { return owned_twice == 0 && kv_disagree == 0 && kv_missing == 0; }
+};
+[[nodiscard]] world_check check_world(const std::vector<census_entry>& census,
+                                      const std::map<global_id, std::pair<std::uint32_t, std::uint64_t>>& owners);
 
 }  // namespace zone::world

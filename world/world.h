@@ -11,6 +11,7 @@
 #include <string>
 #include <string_view>
 #include <unordered_map>
+#include <utility>
 #include <vector>
 
 #include "zone.h"
@@ -121,8 +122,10 @@ struct link_options {
   std::uint32_t ghost_timeout_ticks = 60;
 };
 
-/// The band a zone config needs (largest AOI of any tier + hysteresis + boss footprint +
-/// handoff margin + two ticks of the fastest movement + 1 m).
+/// The band a zone config needs: the largest AOI its entities get (players, NPC tiers 0-2, and
+/// with bosses the gigantic tier) + hysteresis + the largest presence half-extent (a boss's
+/// footprint) + handoff margin + two ticks of the fastest movement + 1 m. Every zone of a world
+/// must run the same entity config (docs/world.md).
 [[nodiscard]] float ghost_band(const zone_config& c, float handoff_margin);
 
 struct link_stats {
@@ -143,8 +146,13 @@ class zone_link {
  public:
   explicit zone_link(link_options opt);
 
-  /// Gives world-wide ids to entities created since the last call (populate, players).
+  /// Gives world-wide ids to entities created since the last call (populate, players) and
+  /// forgets those the zone removed.
   void assign_ids(const zone_world& w);
+
+  /// Owned entities the zone removed (a player who left) that had been handed off (so have an
+  /// ownership record somewhere), since the last call; clears the list.
+  [[nodiscard]] std::vector<global_id> take_departed() { return std::exchange(departed_, {}); }
 
   /// Applies a neighbour's ghost message. `gap`: deltas were missed, a snapshot is needed
   /// (snapshot_wanted() names the neighbours to ask); nothing of it applied.
@@ -182,6 +190,10 @@ class zone_link {
   [[nodiscard]] std::size_t owned_count() const;
   /// World-wide ids of every entity this zone owns, ascending.
   [[nodiscard]] std::vector<global_id> owned_ids() const;
+  /// Entities this zone handed off whose new owner has not confirmed them yet, ascending.
+  [[nodiscard]] std::vector<global_id> transit_ids() const;
+  /// The same with each one's ownership epoch (0: never handed off), ascending by id.
+  [[nodiscard]] std::vector<std::pair<global_id, std::uint64_t>> owned_epochs() const;
   [[nodiscard]] const link_stats& stats() const { return stats_; }
   [[nodiscard]] const link_options& options() const { return opt_; }
   [[nodiscard]] const rect& area() const { return area_; }
@@ -227,6 +239,7 @@ class zone_link {
   std::unordered_map<global_id, std::uint64_t> last_epoch_;  ///< highest epoch applied per gid
   std::vector<neighbour_out> out_;
   std::unordered_map<std::uint32_t, neighbour_in> in_;
+  std::vector<global_id> departed_;
   std::uint32_t next_counter_ = 1;
   std::uint64_t tick_ = 0;  ///< the zone's tick at the last call
   link_stats stats_;
