@@ -11,6 +11,7 @@ packages=(
   doctest-dev
   libcgal-dev libgmp-dev libmpfr-dev
   python3
+  nats-server libnats-dev  # the world of zones (world/, docs/world.md)
 )
 
 missing=()
