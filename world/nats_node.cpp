@@ -494,27 +494,44 @@ void nats_node::after_step(zone_world& w, std::vector<redirect>& out) {
     out_cv_.notify_one();
   }
   auto records = link_->collect_handoffs(w, monotonic_us());
+  for (auto& r : records) {
+    if (r.behaviour.kind != behaviour::player) continue;
+    r.token = rng_() | 1;  // never 0
+    pending_redirects_.push_back({link_->local_of(r.gid), r.gid, r.to, hex(r.token), tick_});
+    forward_target_[r.gid] = r.to;
+    if (forward_target_.size() > 100000) forward_target_.clear();
+  }
   if (!records.empty()) {
-    std::vector<std::pair<std::string, std::uint16_t>> addr;
-    {
-      std::lock_guard lock(addr_mutex_);
-      addr = addresses_;
-    }
-    for (auto& r : records) {
-      if (r.behaviour.kind != behaviour::player) continue;
-      r.token = rng_() | 1;  // never 0
-      const entity_id local = link_->local_of(r.gid);
-      const auto& [host, port] = addr[r.to];
-      out.push_back({local, host, port, hex(r.token)});
-      forward_target_[r.gid] = r.to;
-      if (forward_target_.size() > 100000) forward_target_.clear();
-      ++stats_.redirects;
-    }
     {
       std::lock_guard lock(out_mutex_);
       for (auto& r : records) outbox_.push_back(std::move(r));
     }
     out_cv_.notify_one();
+  }
+  // Redirects go out once the new zone's address is known (a zone that just started may not be
+  // in the table yet: read KV again then); the client's inputs are forwarded meanwhile.
+  if (!pending_redirects_.empty()) {
+    std::vector<std::pair<std::string, std::uint16_t>> addr;
+    {
+      std::lock_guard lock(addr_mutex_);
+      addr = addresses_;
+    }
+    const bool unknown = std::any_of(pending_redirects_.begin(), pending_redirects_.end(),
+                                     [&](const pending_redirect& p) { return addr[p.to].second == 0; });
+    if (unknown && refresh_addresses()) {
+      std::lock_guard lock(addr_mutex_);
+      addr = addresses_;
+    }
+    const auto give_up = static_cast<std::uint64_t>(opt_.unclaimed_player_s * tick_rate_hz_);
+    std::erase_if(pending_redirects_, [&](const pending_redirect& p) {
+      const auto& [host, port] = addr[p.to];
+      if (port != 0) {
+        out.push_back({p.local, host, port, p.token});
+        ++stats_.redirects;
+        return true;
+      }
+      return tick_ > p.since_tick + give_up;
+    });
   }
   for (const auto& reply : census_replies_) answer_census(reply);
   census_replies_.clear();

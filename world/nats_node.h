@@ -149,6 +149,14 @@ class nats_node final : public zone_extension {
   std::unordered_map<global_id, std::uint32_t> forward_target_;                     // handed-off player -> its zone
   std::vector<ghost_message> ghost_out_;
   std::vector<std::string> census_replies_;
+  struct pending_redirect {
+    entity_id local;
+    global_id gid;
+    std::uint32_t to;
+    std::string token;
+    std::uint64_t since_tick;
+  };
+  std::vector<pending_redirect> pending_redirects_;
   std::uint64_t tick_ = 0;
   double tick_rate_hz_ = 30;
   node_stats stats_;

@@ -275,4 +275,63 @@ TEST_SUITE("world.nats") {
     for (auto& z : zones) after += z->node->link().owned_count();
     CHECK(after == total);
   }
+
+  TEST_CASE("a player handed off: a redirect with a token, inputs sent meanwhile forwarded, the token claims it once") {
+    nats_server ns;
+    REQUIRE_FALSE(ns.url.empty());
+    auto c = small_world(5);
+    c.npc_count = 0;
+    std::vector<std::unique_ptr<node_zone>> zones;
+    for (int k = 0; k < 2; ++k) {
+      std::string err;
+      auto n = nats_node::join(options(ns.url, "redirect", 2, 1, c), c, &err);
+      REQUIRE_MESSAGE(n != nullptr, err);
+      zones.push_back(std::make_unique<node_zone>(std::move(n), c));
+    }
+    auto& a = zones[0]->node->region() == 0 ? *zones[0] : *zones[1];
+    auto& b = zones[0]->node->region() == 0 ? *zones[1] : *zones[0];
+    // Both zones have ticked once (ids given, the address table read).
+    a.tick();
+    b.tick();
+    // A player of zone A that walked 20 m into B's region.
+    const entity_id player = a.world->spawn_player({220, 100, 0});
+    REQUIRE(player != null_entity);
+    a.redirects.clear();
+    a.node->after_step(*a.world, a.redirects);
+    REQUIRE(a.redirects.size() == 1);
+    const auto r = a.redirects[0];
+    CHECK(r.entity == player);
+    CHECK(r.host == "127.0.0.1");
+    CHECK(r.port == 7000 + b.node->region());
+    CHECK(r.token.size() == 16);
+    CHECK_FALSE(a.node->owns(player));  // a ghost here from now on
+    // The client has not moved yet: its inputs go to A, which forwards them.
+    a.node->forward_input(player, {0, 1, 0}, 41);
+    a.node->forward_input(player, {-1, 0, 0}, 42);
+    // B: the handoff lands, the forwarded inputs apply; the token claims the entity, once.
+    entity_id there = null_entity;
+    auto verdict = zone_extension::claim::wait;
+    const auto deadline = std::chrono::steady_clock::now() + 5s;
+    while (verdict == zone_extension::claim::wait && std::chrono::steady_clock::now() < deadline) {
+      b.node->before_step(*b.world);
+      verdict = b.node->claim_token(r.token, *b.world, there);
+      std::this_thread::sleep_for(5ms);
+    }
+    REQUIRE(verdict == zone_extension::claim::ready);
+    CHECK(b.node->owns(there));
+    CHECK(b.world->behaviour_of(there) == behaviour::player);
+    // Inputs forwarded before the entity arrived are kept and applied on arrival; later ones too.
+    for (int k = 0; k < 20; ++k) {
+      b.node->before_step(*b.world);
+      std::this_thread::sleep_for(5ms);
+    }
+    const auto st = b.world->behaviour_state_of(there);
+    REQUIRE(st.has_value());
+    CHECK(st->intent == vec3{-1, 0, 0});  // the last input sent
+    entity_id again = null_entity;
+    CHECK(b.node->claim_token(r.token, *b.world, again) != zone_extension::claim::ready);
+    CHECK(b.node->claim_token("not-a-token", *b.world, again) == zone_extension::claim::refused);
+    CHECK(b.node->claim_token("0000000000000000", *b.world, again) == zone_extension::claim::refused);
+    CHECK(b.node->stats().inputs_received.load() == 2);
+  }
 }
