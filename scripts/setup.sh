@@ -10,6 +10,7 @@ packages=(
   libspdlog-dev libfmt-dev
   doctest-dev
   libcgal-dev libgmp-dev libmpfr-dev
+  liburing-dev pkg-config
   python3
   nats-server libnats-dev  # the world of zones (world/, docs/world.md)
 )
