@@ -334,4 +334,47 @@ TEST_SUITE("world.nats") {
     CHECK(b.node->claim_token("0000000000000000", *b.world, again) == zone_extension::claim::refused);
     CHECK(b.node->stats().inputs_received.load() == 2);
   }
+
+  TEST_CASE("a stalled neighbour: the other zone ticks on, its ghosts of it expire, a snapshot heals it afterwards") {
+    nats_server ns;
+    REQUIRE_FALSE(ns.url.empty());
+    auto c = small_world(9);
+    std::vector<std::unique_ptr<node_zone>> zones;
+    for (int k = 0; k < 2; ++k) {
+      std::string err;
+      auto n = nats_node::join(options(ns.url, "stall", 2, 1, c), c, &err);
+      REQUIRE_MESSAGE(n != nullptr, err);
+      zones.push_back(std::make_unique<node_zone>(std::move(n), c));
+    }
+    auto& a = *zones[0];
+    auto& b = *zones[1];
+    const auto ghosts = [](node_zone& z) {
+      std::size_t n = 0;
+      // Not counting its own in-transit copies (handoffs to the stalled zone wait on the stream).
+      for (const entity_id id : z.world->store().ids()) n += z.node->owns(id) || z.node->link().in_transit(id) ? 0 : 1;
+      return n;
+    };
+    for (int t = 0; t < 30; ++t) {
+      a.tick();
+      b.tick();
+      std::this_thread::sleep_for(3ms);
+    }
+    CHECK(ghosts(a) > 0);
+    CHECK(ghosts(b) > 0);
+    // B stalls (its game thread stops): A goes on ticking, nothing it does waits for B; after the
+    // timeout (60 ticks) A holds no ghost of B.
+    const auto stalled_at = b.world->tick();
+    for (int t = 0; t < 80; ++t) a.tick();
+    CHECK(b.world->tick() == stalled_at);
+    CHECK(ghosts(a) == 0);
+    CHECK(a.node->link().stats().ghosts_expired > 0);
+    // B resumes: A needs a snapshot (its ghosts of B expired with the silence), asks, gets it.
+    for (int t = 0; t < 40; ++t) {
+      a.tick();
+      b.tick();
+      std::this_thread::sleep_for(3ms);
+    }
+    CHECK(ghosts(a) > 0);
+    CHECK(a.node->link().snapshot_wanted().empty());
+  }
 }
