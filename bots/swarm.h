@@ -37,6 +37,10 @@ struct swarm_options {
   double churn = 0;          ///< logouts per second across the swarm (each logged-out bot logs in again)
   double churn_for_s = 0;    ///< churn stops this many seconds into the run (0 = until the end)
   double relogin_delay_s = 0.2;
+  /// After an unexpected disconnect, log in again (a new session for the slot, at the address it
+  /// was connected to) after relogin_delay_s, retrying refused connects for up to
+  /// connect_timeout_s: a zone restarted on the same port (docs/world.md) gets its players back.
+  bool reconnect = false;
   bool verify = false;       ///< compare the server's visible-set digests with the tracked view
   unsigned threads = 0;      ///< I/O threads (0 = auto: one per 2,500 bots, at least 2, at most half the cores)
   // What the bot assumes of the server, for the AOI check (zone-server's defaults).
@@ -74,6 +78,7 @@ struct swarm_counters {
       unexpected_disconnects{0}, server_errors{0}, logouts{0}, teleports_sent{0};
   /// A world of zones (docs/world.md): redirects followed (a new connection with the token).
   std::atomic<std::uint64_t> redirects{0};
+  std::atomic<std::uint64_t> reconnects{0};  ///< logins again after an unexpected disconnect (--reconnect)
   std::atomic<std::uint64_t> frames_in{0}, bytes_in{0}, tick_updates{0}, enters{0}, leaves{0}, updates{0}, resets{0};
   std::atomic<std::uint64_t> inputs_sent{0}, inputs_unchanged{0}, pings_sent{0}, pongs{0};
   std::atomic<std::uint64_t> digests_checked{0}, digest_mismatches{0}, inconsistent{0};
@@ -119,7 +124,7 @@ struct swarm_result {
                 server_errors = 0, logouts = 0, frames_in = 0, bytes_in = 0, tick_updates = 0, enters = 0,
                 leaves = 0, updates = 0, resets = 0, inputs_sent = 0, inputs_unchanged = 0, pongs = 0, digests_checked = 0,
                 digest_mismatches = 0, inconsistent = 0, aoi_checked = 0, aoi_unchecked = 0,
-                aoi_violations = 0, latency_unsynced = 0, teleports_sent = 0, self_positions = 0, redirects = 0;
+                aoi_violations = 0, latency_unsynced = 0, teleports_sent = 0, self_positions = 0, redirects = 0, reconnects = 0;
   bool host_clock = false;  ///< latency timed on the host's clock (same host), not by ping sync
   std::uint64_t bots_connected = 0;  ///< slots that got a welcome at least once
   double min_rtt_ms = 0;

@@ -73,9 +73,9 @@ done
 
 name=local
 zone_args=(--world "$name" --nats "$url" --world-grid "$grid" --world-x "$size" --world-y "$size" --listen 127.0.0.1
-           --port 0 --metrics 0 --npcs "$npcs" --bosses "$bosses" --threads "$threads" --finder cpu --interest host)
-start_zone() {  # start_zone K: zone K's process (log zone-K.log); prints its pid
-  "$build/zone/zone-server" "${zone_args[@]}" --tick-csv "$out/zone-$1.csv" >"$out/zone-$1.log" 2>&1 &
+           --metrics 0 --npcs "$npcs" --bosses "$bosses" --threads "$threads" --finder cpu --interest host)
+start_zone() {  # start_zone K [PORT]: zone K's process (log zone-K.log); prints its pid
+  "$build/zone/zone-server" "${zone_args[@]}" --port "${2:-0}" --tick-csv "$out/zone-$1.csv" >"$out/zone-$1.log" 2>&1 &
   echo $!
 }
 
@@ -91,10 +91,12 @@ done
 
 # 3. One swarm per zone: its bots spawn at that zone's towns and walk (random headings) across borders.
 per=$(( (bots + zones - 1) / zones ))
+reconnect=()
+[ "$kill" = 1 ] && reconnect=(--reconnect --relogin-delay 0.5 --connect-timeout 15)  # back to the restarted zone
 declare -a spid
 for k in $(seq 0 $((zones - 1))); do
   "$build/bots/bot-swarm" --host 127.0.0.1 --port "${zport[$k]}" --bots "$per" --duration "$duration" --ramp 100 \
-    --mix walk=1 --verify --quiet --report-json "$out/swarm-$k.json" >"$out/swarm-$k.log" 2>&1 &
+    --mix walk=1 --verify --quiet "${reconnect[@]}" --report-json "$out/swarm-$k.json" >"$out/swarm-$k.log" 2>&1 &
   spid[$k]=$!
   pids+=("${spid[$k]}")
 done
@@ -107,7 +109,7 @@ if [ "$kill" = 1 ] && [ "$zones" -gt 1 ]; then
   wait "${zpid[1]}" 2>/dev/null || true
   t_kill=$(date +%s.%N)
   mv "$out/zone-1.log" "$out/zone-1-killed.log"
-  zpid[1]=$(start_zone 1)
+  zpid[1]=$(start_zone 1 "${zport[1]}")  # the same port: its bots log in again there
   pids+=("${zpid[1]}")
   zport[1]=$(zone_port "$out/zone-1.log" 300)
   t_up=$(date +%s.%N)
@@ -132,14 +134,15 @@ json() { grep -o "\"$2\": [0-9.e+-]*" "$1" | head -1 | awk '{print $2}'; }
 echo "== world '$name': $grid regions of ${size} m, $npcs NPCs per zone, $bots bots, ${duration} s ($(nproc) cores, $(date -u +%F))"
 [ -n "$killed_note" ] && echo "fault: $killed_note"
 mism=0
-printf '%-6s %-7s %9s %9s %9s %11s %10s %12s\n' zone region connected redirects digests mismatches failures "tick p99 ms"
+printf '%-6s %-7s %9s %9s %9s %11s %10s %10s %12s\n' zone region connected redirects digests mismatches failures "re-logins" "tick p99 ms"
 for k in $(seq 0 $((zones - 1))); do
   f="$out/swarm-$k.json"
   m=$(json "$f" mismatches); m=${m:-0}
   mism=$((mism + ${m%.*}))
   p99=$(awk -F, 'NR > 1 && $2 > 5 {print $11}' "$out/zone-$k.csv" | sort -g | awk '{a[NR] = $1} END {if (NR) print a[int(NR * 0.99 + 0.999)]; else print "-"}')
-  printf '%-6s %-7s %9s %9s %9s %11s %10s %12s\n' "$k" "${zregion[$k]:-?}" "$(json "$f" bots_connected)" "$(json "$f" redirects)" \
-    "$(json "$f" digests_checked)" "$m" "$(( $(json "$f" connect_failures || echo 0) + $(json "$f" unexpected_disconnects || echo 0) ))" "$p99"
+  printf '%-6s %-7s %9s %9s %9s %11s %10s %10s %12s\n' "$k" "${zregion[$k]:-?}" "$(json "$f" bots_connected)" "$(json "$f" redirects)" \
+    "$(json "$f" digests_checked)" "$m" "$(( $(json "$f" connect_failures || echo 0) + $(json "$f" unexpected_disconnects || echo 0) ))" \
+    "$(json "$f" reconnects)" "$p99"
 done
 echo "-- handoffs and ghosts per zone (from each zone's exit line)"
 for log in "$out"/zone-*.log; do
