@@ -19,12 +19,14 @@ Usage: scripts/world.sh [options]
   --bosses N       bosses per zone (default 0: a boss's 400 m AOI widens the ghost band to ~470 m)
   --kill           SIGKILL zone 1 at a third of the run and restart it (fault test)
   --threads N      worker threads per zone (default 1)
+  --zone-args "A"  more zone-server options for every zone (e.g. "--npc-speed 8")
   --out DIR        keep logs and reports here (default: a temporary directory)
   --help
 Exit status: 0 when no entity is owned twice, KV agrees and the swarms saw no mismatch; 1 otherwise.
 EOF
 }
 
+extra_zone_args=()
 build=build grid=2x2 bots=200 npcs=5000 duration=30 size=1024 kill=0 threads=1 bosses=0 out=
 while [ $# -gt 0 ]; do
   case "$1" in
@@ -36,6 +38,7 @@ while [ $# -gt 0 ]; do
     --world-size) size=$2; shift 2 ;;
     --kill) kill=1; shift ;;
     --bosses) bosses=$2; shift 2 ;;
+    --zone-args) read -r -a extra_zone_args <<<"$2"; shift 2 ;;
     --threads) threads=$2; shift 2 ;;
     --out) out=$2; shift 2 ;;
     --help|-h) usage; exit 0 ;;
@@ -73,7 +76,8 @@ done
 
 name=local
 zone_args=(--world "$name" --nats "$url" --world-grid "$grid" --world-x "$size" --world-y "$size" --listen 127.0.0.1
-           --metrics 0 --npcs "$npcs" --bosses "$bosses" --threads "$threads" --finder cpu --interest host)
+           --metrics 0 --npcs "$npcs" --bosses "$bosses" --threads "$threads" --finder cpu --interest host
+           ${extra_zone_args[@]+"${extra_zone_args[@]}"})
 start_zone() {  # start_zone K [PORT]: zone K's process (log zone-K.log); prints its pid
   "$build/zone/zone-server" "${zone_args[@]}" --port "${2:-0}" --tick-csv "$out/zone-$1.csv" >"$out/zone-$1.log" 2>&1 &
   echo $!
