@@ -574,7 +574,8 @@ handoff_status zone_link::apply_handoff(zone_world& w, const handoff_record& r, 
     ++stats_.handoffs_refused;
     return handoff_status::refused;
   }
-  auto& last = last_epoch_[r.gid];
+  const auto seen = last_epoch_.find(r.gid);
+  const std::uint64_t last = seen == last_epoch_.end() ? 0 : seen->second;
   const entity_id have = local_of(r.gid);
   slot_info* i = info(have);
   if (r.epoch <= last || (i != nullptr && i->what == role::owned && i->epoch >= r.epoch)) {
@@ -582,7 +583,6 @@ handoff_status zone_link::apply_handoff(zone_world& w, const handoff_record& r, 
     if (local) *local = have;
     return handoff_status::duplicate;
   }
-  last = r.epoch;
   entity_id id = have;
   if (i != nullptr) {
     // Our ghost of it becomes the entity: same handle, so views here see no leave and enter.
@@ -597,12 +597,13 @@ handoff_status zone_link::apply_handoff(zone_world& w, const handoff_record& r, 
     i->claims = i->owner_claims = 0;
   } else {
     id = w.adopt(r.desc, r.behaviour);
-    if (id == null_entity) {
+    if (id == null_entity) {  // the zone is full (a redelivery may find room)
       ++stats_.handoffs_refused;
       return handoff_status::refused;
     }
     i = &bind(id, r.gid, role::owned);
   }
+  last_epoch_[r.gid] = r.epoch;
   i->epoch = r.epoch;
   i->revision = r.owner_revision;
   i->source = opt_.region;

@@ -155,13 +155,22 @@ std::unique_ptr<nats_node> nats_node::join(const node_options& opt, const zone_c
     return lo;
   }());
   // Core subscriptions: their callbacks only queue (the game thread applies).
-  const auto sub = [&](natsSubscription** out, const std::string& subj) {
-    if (natsConnection_Subscribe(out, n->nc_, subj.c_str(), &nats_node::on_message, n.get()) != NATS_OK) return false;
+  using kind = inbound_msg::kind;
+  for (const kind k : {kind::ghosts, kind::snapshot_request, kind::input, kind::census}) {
+    n->sub_ctx_[static_cast<std::size_t>(k)] = {n.get(), k};
+  }
+  const auto sub = [&](natsSubscription** out, const std::string& subj, kind k) {
+    if (natsConnection_Subscribe(out, n->nc_, subj.c_str(), &nats_node::on_message, &n->sub_ctx_[static_cast<std::size_t>(k)]) !=
+        NATS_OK) {
+      return false;
+    }
     natsSubscription_SetPendingLimits(*out, 100000, 256 * 1024 * 1024);
     return true;
   };
-  if (!sub(&n->sub_ghosts_, n->subject("ghost", n->region_)) || !sub(&n->sub_snap_, n->subject("snap", n->region_)) ||
-      !sub(&n->sub_input_, n->subject("input", n->region_)) || !sub(&n->sub_census_, "world." + opt.world + ".census")) {
+  if (!sub(&n->sub_ghosts_, n->subject("ghost", n->region_), kind::ghosts) ||
+      !sub(&n->sub_snap_, n->subject("snap", n->region_), kind::snapshot_request) ||
+      !sub(&n->sub_input_, n->subject("input", n->region_), kind::input) ||
+      !sub(&n->sub_census_, "world." + opt.world + ".census", kind::census)) {
     return fail("cannot subscribe");
   }
   natsConnection_Flush(n->nc_);
@@ -217,17 +226,12 @@ void nats_node::leave() {
 
 nats_node::~nats_node() { leave(); }
 
-void nats_node::on_message(natsConnection*, natsSubscription* sub, natsMsg* msg, void* closure) {
-  auto* n = static_cast<nats_node*>(closure);
+void nats_node::on_message(natsConnection*, natsSubscription*, natsMsg* msg, void* closure) {
+  const auto* ctx = static_cast<const sub_context*>(closure);
+  nats_node* n = ctx->node;
   inbound_msg m{};
-  if (sub == n->sub_ghosts_) {
-    m.what = inbound_msg::kind::ghosts;
-  } else if (sub == n->sub_snap_) {
-    m.what = inbound_msg::kind::snapshot_request;
-  } else if (sub == n->sub_input_) {
-    m.what = inbound_msg::kind::input;
-  } else {
-    m.what = inbound_msg::kind::census;
+  m.what = ctx->what;
+  if (m.what == inbound_msg::kind::census) {
     if (const char* r = natsMsg_GetReply(msg)) m.reply = r;
   }
   const auto* d = reinterpret_cast<const std::uint8_t*>(natsMsg_GetData(msg));
@@ -282,8 +286,10 @@ void nats_node::heartbeat_loop() {
       const natsStatus s = kvStore_UpdateString(&rev, lease_, lease_key_.c_str(), lease_value_.c_str(), lease_revision_);
       if (s == NATS_OK) {
         lease_revision_ = rev;
-      } else if (s != NATS_TIMEOUT && s != NATS_CONNECTION_CLOSED && s != NATS_NO_SERVER) {
-        // Someone else holds the region now (our lease lapsed): this zone must stop serving it.
+      } else if (s == NATS_ERR || s == NATS_NOT_FOUND) {
+        // The update was refused (wrong last revision: our lease lapsed and the key is gone or
+        // someone else holds the region now): this zone must stop serving it. Timeouts and a
+        // lost connection are transient: the next renewal tries again.
         spdlog::error("world '{}': lost the lease of region {}: {}", opt_.world, region_, status_text(s));
         lease_lost_ = true;
         return;

@@ -14,6 +14,7 @@
 // with a TTL: a zone that stops renewing it loses the region).
 #pragma once
 
+#include <array>
 #include <atomic>
 #include <condition_variable>
 #include <functional>
@@ -100,6 +101,11 @@ class nats_node final : public zone_extension {
     std::vector<std::uint8_t> data;
     std::string reply;
   };
+  struct sub_context {
+    nats_node* node = nullptr;
+    inbound_msg::kind what = inbound_msg::kind::ghosts;
+  };
+  std::array<sub_context, 4> sub_ctx_{};  ///< one per core subscription (its callback's closure)
   static void on_message(__natsConnection*, __natsSubscription*, __natsMsg* msg, void* closure);
   void heartbeat_loop();
   void fetch_loop();
