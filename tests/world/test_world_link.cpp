@@ -133,6 +133,7 @@ struct reference {
 };
 
 struct run_result {
+  std::uint64_t client_views = 0, client_mismatches = 0;
   std::uint64_t compared = 0, mismatches = 0, handoffs = 0, duplicates = 0, border_observers = 0, cross_views = 0;
   std::string first_problem;
 };
@@ -154,6 +155,20 @@ run_result run_world(std::uint32_t cols, std::uint32_t rows, std::uint64_t seed,
   for (std::size_t k = 0; k < zones.size(); ++k) refs.push_back(std::make_unique<reference>(base.hysteresis));
   run_result res;
   std::vector<ghost_message> msgs;
+  // Clients: replicators that follow observers near a border, as zone-server's clients do (a
+  // budget that always fits: then a client's view after its frame is exactly what it sees).
+  struct client_set {
+    std::unique_ptr<replicator> rep;
+    std::map<entity_id, client_id> by_observer;
+    replication_writer writer;
+  };
+  std::vector<client_set> clients(zones.size());
+  for (auto& c : clients) {
+    replication_options o;
+    o.world = base.world;
+    o.byte_budget = 1 << 20;
+    c.rep = std::make_unique<replicator>(o);
+  }
   for (int t = 0; t < ticks; ++t) {
     // 1. Deliver last tick's handoffs (twice each) and ghosts.
     for (const auto& h : handoff_wire) {
@@ -200,6 +215,30 @@ run_result run_world(std::uint32_t cols, std::uint32_t rows, std::uint64_t seed,
       }
       refs[k]->set(world);
       const rect area = z.link->area();
+      // What clients near the border see: their replicated views, after this tick's frame.
+      auto& cl = clients[k];
+      for (auto it = cl.by_observer.begin(); it != cl.by_observer.end();) {
+        if (!z.link->owns(it->first)) {  // handed off: its client was redirected
+          cl.rep->remove_client(it->second);
+          it = cl.by_observer.erase(it);
+        } else {
+          ++it;
+        }
+      }
+      for (std::size_t i = 0; i < s.size() && cl.by_observer.size() < 40; ++i) {
+        const entity_id id = s.ids()[i];
+        const vec3 p = s.positions()[i];
+        const float inner = std::min({p.x - area.lo_x, area.hi_x - p.x, p.y - area.lo_y, area.hi_y - p.y});
+        if (z.link->owns(id) && inner < 30 && !cl.by_observer.contains(id)) cl.by_observer[id] = cl.rep->add_client(id);
+      }
+      for (const auto& [observer, client] : cl.by_observer) {
+        (void)cl.rep->build(client, s, z.world->tracker(), z.world->tick(), 0, 0, cl.writer);
+        std::vector<global_id> seen;
+        for (const entity_id e : cl.rep->view(client)) seen.push_back(z.link->gid_of(e));
+        std::sort(seen.begin(), seen.end());
+        ++res.client_views;
+        if (seen != refs[k]->visible(z.link->gid_of(observer))) ++res.client_mismatches;
+      }
       for (std::size_t i = 0; i < s.size(); ++i) {
         const entity_id id = s.ids()[i];
         if (!z.link->owns(id)) continue;
@@ -336,7 +375,7 @@ TEST_SUITE("world.wire") {
 }
 
 TEST_SUITE("world.link") {
-  TEST_CASE("2x1 and 2x2 worlds: views across borders equal one zone's brute force; each entity owned once") {
+  TEST_CASE("2x1 and 2x2 worlds: views across borders (interest and clients' replicated views) equal one zone's brute force; each entity owned once") {
     for (const auto& [cols, rows] : {std::pair{2u, 1u}, std::pair{2u, 2u}}) {
       const std::uint64_t seed = zone::test::fresh_seed();
       CAPTURE(seed);
@@ -346,6 +385,8 @@ TEST_SUITE("world.link") {
       INFO(r.first_problem);
       CHECK(r.mismatches == 0);
       CHECK(r.compared > 10000);
+      CHECK(r.client_mismatches == 0);  // a client near a border sees what one zone would show
+      CHECK(r.client_views > 3000);
       CHECK(r.border_observers > 1000);
       CHECK(r.cross_views > 100);  // views do cross borders
       CHECK(r.handoffs > 20);      // and entities do move
