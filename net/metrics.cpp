@@ -12,6 +12,7 @@
 #include <thread>
 
 #include "metrics.h"
+#include "viewer_route.h"
 
 namespace zone::net {
 
@@ -91,6 +92,7 @@ struct metrics_server::impl {
   std::mutex body_mutex;
   std::shared_ptr<const std::string> body = std::make_shared<const std::string>();
   std::atomic<std::uint64_t> requests{0};
+  viewer_server* viewer = nullptr;  ///< attach_viewer
 
   void do_accept();
 };
@@ -112,6 +114,9 @@ class http_exchange : public std::enable_shared_from_this<http_exchange> {
 
  private:
   void answer() {
+    if (srv_.viewer != nullptr && is_viewer_target({request_.target().data(), request_.target().size()})) {
+      return viewer_handoff(*srv_.viewer, std::move(stream_), std::move(request_));
+    }
     ++srv_.requests;
     response_.version(request_.version());
     response_.keep_alive(false);
@@ -211,5 +216,7 @@ void metrics_server::publish(std::string body) {
 }
 
 std::uint64_t metrics_server::requests() const { return impl_->requests.load(); }
+
+void metrics_server::attach_viewer(viewer_server* viewer) { impl_->viewer = viewer; }
 
 }  // namespace zone::net

@@ -12,6 +12,8 @@
 
 namespace zone::net {
 
+class viewer_server;  // net/viewer.h
+
 /// Builds Prometheus text exposition format (version 0.0.4).
 class prometheus_text {
  public:
@@ -46,6 +48,9 @@ class metrics_server {
   [[nodiscard]] std::uint16_t port() const;
   void publish(std::string body);
   [[nodiscard]] std::uint64_t requests() const;
+  /// Hands the /viewer routes (net/viewer.h) to `viewer` (call before start(); it must outlive
+  /// this server). Without one they answer 404 like any other path.
+  void attach_viewer(viewer_server* viewer);
 
   struct impl;  ///< the Beast implementation (metrics.cpp)
 

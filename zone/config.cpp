@@ -26,6 +26,9 @@ std::optional<std::string> validate(const zone_config& c) {
     if (!(a >= 0 && std::isfinite(a))) return bad("AOI tiers must be >= 0");
   }
   if (!(c.player_aoi >= 0 && std::isfinite(c.player_aoi))) return bad("player-aoi must be >= 0");
+  if (c.viewer_enabled && !c.metrics_enabled) return bad("viewer needs the HTTP endpoint of /metrics (--metrics 1)");
+  if (!(c.viewer_hz > 0 && c.viewer_hz <= 1000)) return bad("viewer-hz must be in (0, 1000]");
+  if (c.max_viewers < 1 || c.max_viewers > 64) return bad("max-viewers must be in [1, 64]");
   const float shares[4] = {c.share_wander, c.share_patrol, c.share_town, c.share_chase};
   float sum = 0;
   for (const float s : shares) {
@@ -84,6 +87,11 @@ std::optional<std::string> validate(const zone_config& c) {
   if (std::find(std::begin(interests), std::end(interests), c.interest) == std::end(interests)) {
     return bad("interest must be auto, gpu or host");
   }
+  static const char* faults[] = {"", "drop", "extra", "stealth", "freeze", "class"};
+  if (std::find(std::begin(faults), std::end(faults), c.test_fault) == std::end(faults)) {
+    return bad("test-fault must be drop, extra, stealth, freeze or class");
+  }
+  if (!c.test_fault.empty() && !c.oracle) return bad("test-fault needs --oracle (it exists to prove the oracle)");
   static const char* replicates[] = {"auto", "gpu", "cpu"};
   if (std::find(std::begin(replicates), std::end(replicates), c.replicate) == std::end(replicates)) {
     return bad("replicate must be auto, gpu or cpu");
@@ -105,7 +113,7 @@ config_result parse_config(int argc, const char* const* argv) {
   zone_config c;
   float world_x = c.world.hi.x, world_y = c.world.hi.y, world_z = c.world.hi.z;
   std::string config_file;
-  unsigned port = c.port, metrics_port = c.metrics_port;
+  unsigned port = c.port, metrics_port = c.metrics_port, oracle_port = c.oracle_port;
 
   po::options_description general("General");
   general.add_options()                                                                   //
@@ -179,8 +187,20 @@ config_result parse_config(int argc, const char* const* argv) {
       ("world", po::value(&c.world_name), "join the world of this name (letters, digits, - and _): take a free region of its layout in NATS KV and serve it; without it the server is one zone")  //
       ("nats", po::value(&c.nats_url), "NATS server URL of the world (e.g. nats://127.0.0.1:4222); needed with --world")  //
       ("world-grid", po::value(&world_grid)->default_value(world_grid), "regions COLSxROWS of a new world's layout (a layout already in KV wins)");
+  po::options_description viewer("Live viewer (docs/viewer.md)");
+  viewer.add_options()                                                                                      //
+      ("viewer", po::value(&c.viewer_enabled)->default_value(c.viewer_enabled), "serve the live viewer at /viewer beside /metrics (0 or 1; needs --metrics 1)")  //
+      ("viewer-remote", po::value(&c.viewer_remote)->default_value(c.viewer_remote), "serve the viewer to peers that are not on a loopback address too (0 or 1)")  //
+      ("max-viewers", po::value(&c.max_viewers)->default_value(c.max_viewers), "viewer pages at once (more are refused)")  //
+      ("viewer-hz", po::value(&c.viewer_hz)->default_value(c.viewer_hz), "snapshots a second sent to viewer pages (at most the tick rate)");
+  po::options_description correctness("Correctness (docs/bots.md)");
+  correctness.add_options()  //
+      ("oracle", po::bool_switch(&c.oracle), "publish every tick's ground truth (entities, boxes, classes) on a loopback stream for an independent oracle (bot-swarm --oracle); off by default, and costs nothing when off")  //
+      ("oracle-port", po::value(&oracle_port)->default_value(oracle_port), "loopback port of the ground-truth stream (0 = ephemeral; the welcome tells clients)")  //
+      ("test-fault", po::value(&c.test_fault)->default_value(c.test_fault), "TESTING ONLY: break one client's view on purpose to prove the oracle: drop, extra, stealth, freeze or class (needs --oracle)")  //
+      ("test-fault-tick", po::value(&c.test_fault_tick)->default_value(c.test_fault_tick), "TESTING ONLY: the world tick from which --test-fault acts");
   po::options_description all("zone-server options");
-  all.add(general).add(world).add(interest).add(npcs).add(net).add(zones);
+  all.add(general).add(world).add(interest).add(npcs).add(net).add(correctness).add(viewer).add(zones);
 
   config_result r;
   try {
@@ -207,12 +227,13 @@ config_result parse_config(int argc, const char* const* argv) {
     r.message = e.what();
     return r;
   }
-  if (port > 65535 || metrics_port > 65535) {
+  if (port > 65535 || metrics_port > 65535 || oracle_port > 65535) {
     r.message = "ports must be <= 65535";
     return r;
   }
   c.port = static_cast<std::uint16_t>(port);
   c.metrics_port = static_cast<std::uint16_t>(metrics_port);
+  c.oracle_port = static_cast<std::uint16_t>(oracle_port);
   c.world = {{0, 0, 0}, {world_x, world_y, world_z}};
   {
     unsigned cols = 0, rows = 0;

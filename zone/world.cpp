@@ -103,6 +103,18 @@ void zone_world::set_reads_view(entity_id id, bool reads) {
   reads_view_[slot] = reads ? 1 : 0;
 }
 
+void zone_world::set_watched(std::span<const entity_id> ids) {
+  for (const entity_id id : watched_) {
+    if (!store_.alive(id)) continue;
+    const behaviour b = by_slot_[slot_of(id)].kind;  // back to what the world itself reads
+    set_reads_view(id, b == behaviour::player || b == behaviour::chase);
+  }
+  watched_.assign(ids.begin(), ids.end());
+  for (const entity_id id : watched_) {
+    if (store_.alive(id)) set_reads_view(id, true);
+  }
+}
+
 std::uint64_t zone_world::noise(entity_id id, std::uint64_t salt) const {
   return splitmix(cfg_.seed ^ splitmix(std::uint64_t{id} ^ splitmix(salt)));
 }
@@ -186,8 +198,17 @@ entity_id zone_world::spawn_player(const vec3& at) {
   if (id == null_entity) return id;
   if (by_slot_.size() <= slot_of(id)) by_slot_.resize(slot_of(id) + 1);
   by_slot_[slot_of(id)] = npc_state{behaviour::player, d.position, 0, {}};
-  set_reads_view(id, true);
+  set_reads_view(id, player_views_on_host_);
   return id;
+}
+
+void zone_world::set_player_views_on_host(bool on) {
+  if (on == player_views_on_host_) return;
+  player_views_on_host_ = on;
+  for (const entity_id id : store_.ids()) {
+    const std::uint32_t slot = slot_of(id);
+    if (slot < by_slot_.size() && by_slot_[slot].kind == behaviour::player) set_reads_view(id, on);
+  }
 }
 
 bool zone_world::despawn(entity_id id) {

@@ -7,6 +7,7 @@
 
 #include <spdlog/spdlog.h>
 
+#include <bit>
 #include <chrono>
 #include <cerrno>
 #include <cmath>
@@ -110,6 +111,8 @@ zone_server::zone_server(const zone_config& cfg)
     replication_engine_ = gpu::make_replication_engine(&why);
     if (replication_engine_) {
       replicator_.set_engine(replication_engine_.get());
+      // With the interest step on the GPU too, replication reads the visible sets there in place.
+      world_->set_player_views_on_host(false);
     } else if (cfg.replicate == "gpu") {
       replicate_error_ = "replicate 'gpu' cannot run here: " + why + " (use --replicate auto or cpu)";
     } else {
@@ -197,6 +200,28 @@ std::string zone_server::metrics_text() const {
   return t.str();
 }
 
+net::interest_rules zone_server::rules() const {
+  net::interest_rules r;
+  r.player_aoi = {cfg_.player_aoi, cfg_.player_aoi, cfg_.player_aoi};
+  r.hysteresis = cfg_.hysteresis;
+  r.max_visible = cfg_.max_visible;
+  const entity_desc player{};  // a player's class and sees (zone_world::spawn_player keeps the defaults)
+  r.player_class = player.visibility_class;
+  r.player_sees = player.sees;
+  r.npc_aoi_tiers.assign(std::begin(cfg_.aoi_tier), std::end(cfg_.aoi_tier));
+  const auto& w = cfg_.world;
+  r.quantization_step = {(w.hi.x - w.lo.x) / 65535.0f, (w.hi.y - w.lo.y) / 65535.0f, (w.hi.z - w.lo.z) / 65535.0f};
+  r.update_near = cfg_.update_near;
+  r.update_mid = cfg_.update_mid;
+  r.update_mid_period = std::max<std::uint32_t>(1, cfg_.update_mid_period);
+  r.update_far_period = std::max<std::uint32_t>(1, cfg_.update_far_period);
+  r.byte_budget = static_cast<std::uint32_t>(cfg_.client_byte_budget);
+  r.send_every = cfg_.client_send_every;
+  r.digest_every = cfg_.digest_every;
+  r.max_speed = std::max(cfg_.player_speed, 1.5f * cfg_.npc_speed);  // chasers run at 1.5 x npc-speed
+  return r;
+}
+
 std::optional<std::string> zone_server::start() {
   if (auto err = validate(cfg_)) return err;
   if (!finder_error_.empty()) return finder_error_;
@@ -208,6 +233,16 @@ std::optional<std::string> zone_server::start() {
     std::fputs("tick,t_s,clients,frames,bytes,inputs_ms,behaviours_ms,integrate_ms,interest_ms,replicate_ms,tick_ms\n",
                tick_csv_);
   }
+  if (cfg_.oracle) {
+    truth_ = std::make_unique<truth_publisher>();
+    if (auto err = truth_->start(cfg_.oracle_port)) return err;
+    spdlog::info("zone: oracle stream on 127.0.0.1:{} (ground truth of every tick, for bot-swarm --oracle)", truth_->port());
+    if (const auto k = fault_injector::parse(cfg_.test_fault)) {
+      fault_ = std::make_unique<fault_injector>(*k, cfg_.test_fault_tick, cfg_.world, cfg_.player_aoi + cfg_.hysteresis);
+      spdlog::warn("zone: TESTING: fault '{}' injected into one client's frames from tick {}", cfg_.test_fault,
+                   cfg_.test_fault_tick);
+    }
+  }
   world_->populate();
   spdlog::info("zone: {} NPCs, world {}x{}x{} m, {} Hz, {} worker threads, interest on {}, replication on {}",
                world_->store().size(), cfg_.world.hi.x, cfg_.world.hi.y, cfg_.world.hi.z, cfg_.tick_rate_hz,
@@ -218,8 +253,19 @@ std::optional<std::string> zone_server::start() {
   if (ext_ != nullptr) ext_->started(net_.port());
   if (cfg_.metrics_enabled) {
     metrics_ = std::make_unique<net::metrics_server>(cfg_.listen_address, cfg_.metrics_port);
+    if (cfg_.viewer_enabled) {
+      net::viewer_options vo;
+      vo.max_viewers = cfg_.max_viewers;
+      vo.allow_remote = cfg_.viewer_remote;
+      viewer_ = std::make_unique<net::viewer_server>(vo);
+      metrics_->attach_viewer(viewer_.get());
+    }
     if (auto err = metrics_->start()) return err;
     metrics_->publish(metrics_text());
+    if (viewer_) {
+      spdlog::info("viewer on http://{}:{}/viewer ({})", cfg_.listen_address, metrics_->port(),
+                   cfg_.viewer_remote ? "any peer" : "loopback peers only");
+    }
   }
   return std::nullopt;
 }
@@ -311,8 +357,11 @@ void zone_server::welcome(net::session_id session, entity_id id, const std::stri
   w.server_tick = world_->tick();
   if (const auto at = world_->store().get(id)) w.spawn_position = net::vec3f{at->position.x, at->position.y, at->position.z};
   w.host_clock = true;  // net::server::now_us() is CLOCK_MONOTONIC
+  w.rules = rules();
+  if (const auto d = world_->store().get(id)) w.rules->player_class = d->visibility_class, w.rules->player_sees = d->sees;
+  w.oracle_port = oracle_port();
   net_.send(session, net::make_shared_frame(encoder_.encode(w)), net::delivery::control);
-  spdlog::debug("session {}: '{}' joined as entity {}", session, name, id);
+  spdlog::info("session {}: '{}' joined as entity {}", session, name, id);
 }
 
 void zone_server::retry_pending_hellos() {
@@ -354,8 +403,21 @@ void zone_server::teleport(net::session_id session, client& c, const net::telepo
   if (clamped) ++stats_.teleports_clamped;
 }
 
+void zone_server::choose_fault_victim() {
+  if (fault_has_victim_ && clients_.count(fault_session_) != 0) return;
+  fault_has_victim_ = false;
+  for (const auto& [session, c] : clients_) {
+    if (!fault_has_victim_ || session < fault_session_) fault_session_ = session, fault_has_victim_ = true;
+  }
+  if (fault_has_victim_) {
+    fault_->set_victim(clients_[fault_session_].entity);
+    spdlog::warn("zone: TESTING: fault acts on session {} (entity {})", fault_session_, fault_->victim());
+  }
+}
+
 void zone_server::replicate() {
   const std::uint64_t now = net_.now_us();
+  if (fault_ && world_->tick() >= fault_->from_tick()) choose_fault_victim();
   // Every client's frame is built on the worker pool (replicator::build_many: fixed chunks of
   // clients, one writer each; the frames are those of building them one by one) and handed to
   // the network by the worker that built it (net::server::send: into the session's mailbox, one
@@ -383,6 +445,10 @@ void zone_server::replicate() {
   replicator_.build_many(
       requests_, world_->store(), world_->tracker(), world_->tick(), now, pool_.get(),
       [&](std::size_t k, std::span<const std::uint8_t> frame, const replication_stats& st) {
+        // TESTING ONLY (--test-fault): the victim's frame broken on purpose.
+        if (fault_ && fault_has_victim_ && request_sessions_[k] == fault_session_) {
+          frame = fault_->rewrite(frame, world_->tick(), world_->store());
+        }
         frame_bytes_[k] = frame.size();
         // Each worker carves its frames out of its own blocks (net::frame_arena: one malloc per
         // ~20 frames, and no free per frame against this thread's malloc arena).
@@ -443,14 +509,25 @@ void zone_server::tick_once() {
     spdlog::warn("zone: the GPU interest engine failed ({}); interest runs on the host from now on, finder {}",
                  world_->tracker().engine_error(), finder_->name());
   }
+  // The ground truth of this tick (--oracle), before any frame of it is sent.
+  if (truth_) truth_->publish(world_->store(), world_->tick());
   const auto t1 = clock_type::now();
   replicate();
   if (!replication_failure_logged_ && !replicator_.engine_error().empty()) {
     replication_failure_logged_ = true;
     spdlog::warn("zone: the GPU replication engine failed ({}); replication runs on the CPU from now on, every client resynced",
                  replicator_.engine_error());
+    world_->set_player_views_on_host(true);
   }
-  const double replicate_ms = ms_since(t1), tick_ms = ms_since(t0);
+  const double replicate_ms = ms_since(t1);
+  const auto t2 = clock_type::now();
+  publish_viewer();
+  viewer_ms_ = ms_since(t2);
+  const double tick_ms = ms_since(t0);
+  if (viewer_ && viewer_->viewers() > 0 && viewer_ticks_.size() < 256) {
+    const step_times& ph = world_->last_step();
+    viewer_ticks_.push_back({world_->tick(), inputs_ms, ph.behaviours, ph.integrate, ph.interest, replicate_ms, viewer_ms_, tick_ms});
+  }
   stats_.replicate_ms.record(replicate_ms);
   stats_.tick_ms.record(tick_ms);
   ++stats_.ticks;
@@ -460,6 +537,168 @@ void zone_server::tick_once() {
   // Refresh the metrics snapshot about once a second (the scrape never touches game state).
   const auto every = static_cast<std::uint64_t>(std::max(1.0, cfg_.tick_rate_hz));
   if (metrics_ && stats_.ticks % every == 1) metrics_->publish(metrics_text());
+}
+
+void zone_server::fill_viewer_snapshot(net::viewer_snapshot& s) const {
+  const entity_store& store = world_->store();
+  const interest_tracker& tr = world_->tracker();
+  s.tick = world_->tick();
+  s.world_lo[0] = cfg_.world.lo.x, s.world_lo[1] = cfg_.world.lo.y, s.world_lo[2] = cfg_.world.lo.z;
+  s.world_hi[0] = cfg_.world.hi.x, s.world_hi[1] = cfg_.world.hi.y, s.world_hi[2] = cfg_.world.hi.z;
+  const std::size_t n = store.size();
+  const auto ids = store.ids();
+  const auto pos = store.positions();
+  const auto cls = store.visibility_classes();
+  const auto kinds = store.kinds();
+  s.ids.assign(ids.begin(), ids.end());
+  s.x.resize(n);
+  s.y.resize(n);
+  s.visibility.resize(n);
+  s.kind.resize(n);
+  for (std::size_t i = 0; i < n; ++i) {
+    s.x[i] = pos[i].x;
+    s.y[i] = pos[i].y;
+    s.visibility[i] = static_cast<std::uint8_t>(std::countr_zero(cls[i]));
+    s.kind[i] = static_cast<std::uint8_t>(kinds[i]);
+  }
+  // The selected entities: boxes, visible set with each entity's replication tier, events.
+  s.selections.resize(viewer_watch_.size());
+  const float near_sq = cfg_.update_near * cfg_.update_near, mid_sq = cfg_.update_mid * cfg_.update_mid;
+  for (std::size_t k = 0; k < viewer_watch_.size(); ++k) {
+    auto& sel = s.selections[k];
+    sel.id = viewer_watch_[k].id;
+    sel.events.assign(viewer_watch_[k].events.begin(), viewer_watch_[k].events.end());
+    sel.visible.clear();
+    sel.tier.clear();
+    const std::size_t d = store.index_of(sel.id), row = tr.row_of(sel.id);
+    sel.alive = d != entity_store::npos && row != entity_store::npos;
+    if (!sel.alive) continue;
+    const vec3 p = pos[d], a = store.aoi_half_extents()[d], h = store.presence_half_extents()[d];
+    sel.position[0] = p.x, sel.position[1] = p.y, sel.position[2] = p.z;
+    sel.aoi_half[0] = a.x, sel.aoi_half[1] = a.y, sel.aoi_half[2] = a.z;
+    sel.presence_half[0] = h.x, sel.presence_half[1] = h.y, sel.presence_half[2] = h.z;
+    sel.hysteresis = tr.options().hysteresis;
+    sel.sees = store.sees()[d];
+    sel.visibility = static_cast<std::uint8_t>(std::countr_zero(cls[d]));
+    sel.kind = static_cast<std::uint8_t>(kinds[d]);
+    const auto visible = tr.visible(row);
+    sel.visible.assign(visible.begin(), visible.end());
+    sel.tier.resize(visible.size());
+    for (std::size_t v = 0; v < visible.size(); ++v) {
+      const std::size_t j = store.index_of(visible[v]);
+      if (j == entity_store::npos) {
+        sel.tier[v] = 2;
+        continue;
+      }
+      // The replicator's distance tiers (docs/zone.md): every tick near, every few ticks mid, far.
+      const float dx = pos[j].x - p.x, dy = pos[j].y - p.y, dz = pos[j].z - p.z, d2 = dx * dx + dy * dy + dz * dz;
+      sel.tier[v] = d2 < near_sq ? 0 : d2 < mid_sq ? 1 : 2;
+    }
+  }
+}
+
+std::string zone_server::viewer_stats_json() const {
+  const auto& ts = world_->tracker().stats();
+  const auto vs = viewer_->stats();
+  std::string j = "{\"type\":\"stats\",\"tick\":" + std::to_string(world_->tick());
+  const auto field = [&j](const char* name, double v) {
+    char buf[64];
+    std::snprintf(buf, sizeof buf, ",\"%s\":%.10g", name, v);  // counts exact to 10 digits
+    j += buf;
+  };
+  field("tick_rate", cfg_.tick_rate_hz);
+  field("budget_ms", 1000.0 / cfg_.tick_rate_hz);
+  field("entities", static_cast<double>(world_->store().size()));
+  field("clients", static_cast<double>(stats_.clients));
+  field("pairs", static_cast<double>(ts.pairs));
+  field("candidates", static_cast<double>(ts.candidates));
+  field("visible", static_cast<double>(ts.visible));
+  field("enters", static_cast<double>(ts.enters));
+  field("leaves", static_cast<double>(ts.leaves));
+  field("viewers", static_cast<double>(viewer_->viewers()));
+  field("viewer_bytes", static_cast<double>(vs.bytes_sent));
+  field("overruns", static_cast<double>(stats_.overruns));
+  field("byte_budget", static_cast<double>(cfg_.client_byte_budget));
+  field("update_near", cfg_.update_near);
+  field("update_mid", cfg_.update_mid);
+  field("tick_p99_ms", stats_.tick_ms.percentile(0.99));
+  field("interest_p99_ms", world_->phases().interest.percentile(0.99));
+  j += ",\"interest_on\":\"" + interest_name() + "\"";
+  char world[160];
+  std::snprintf(world, sizeof world, ",\"world\":[%.6g,%.6g,%.6g,%.6g]", cfg_.world.lo.x, cfg_.world.lo.y, cfg_.world.hi.x,
+                cfg_.world.hi.y);
+  j += world;
+  j += ",\"phases\":[\"inputs\",\"behaviours\",\"integrate\",\"interest\",\"replicate\",\"viewer\"],\"ticks\":[";
+  for (std::size_t k = 0; k < viewer_ticks_.size(); ++k) {
+    const auto& t = viewer_ticks_[k];
+    char buf[256];
+    std::snprintf(buf, sizeof buf, "%s[%llu,%.4f,%.4f,%.4f,%.4f,%.4f,%.4f,%.4f]", k ? "," : "",
+                  static_cast<unsigned long long>(t.tick), t.inputs, t.behaviours, t.integrate, t.interest, t.replicate,
+                  t.viewer, t.total);
+    j += buf;
+  }
+  j += "]}";
+  return j;
+}
+
+void zone_server::publish_viewer() {
+  if (!viewer_) return;
+  if (viewer_->viewers() == 0) {
+    if (!viewer_watch_ids_.empty()) {
+      viewer_watch_.clear();
+      viewer_watch_ids_.clear();
+      world_->set_watched({});
+    }
+    viewer_ticks_.clear();
+    return;
+  }
+  const interest_tracker& tr = world_->tracker();
+  const std::uint64_t tick = world_->tick();
+  // The watched entities' enters and leaves of this step (a window of the latest 64 each).
+  for (auto& w : viewer_watch_) {
+    const std::size_t row = tr.row_of(w.id);
+    if (row == entity_store::npos) continue;
+    for (const entity_id id : tr.enters(row)) w.events.push_back({tick, id, true});
+    for (const entity_id id : tr.leaves(row)) w.events.push_back({tick, id, false});
+    while (w.events.size() > 64) w.events.pop_front();
+  }
+  const auto every = static_cast<std::uint64_t>(std::max(1.0, std::round(cfg_.tick_rate_hz / cfg_.viewer_hz)));
+  if (tick % every == 0) {
+    // A spare snapshot no session holds any more (no allocation in steady state), else a new one.
+    std::shared_ptr<net::viewer_snapshot> snap;
+    for (auto& spare : viewer_spares_) {
+      if (spare.use_count() == 1) {
+        snap = spare;
+        break;
+      }
+    }
+    if (!snap && viewer_spares_.size() < 8) snap = viewer_spares_.emplace_back(std::make_shared<net::viewer_snapshot>());
+    if (snap) {
+      fill_viewer_snapshot(*snap);
+      viewer_->publish(snap);
+    }
+  }
+  const auto now = clock_type::now();
+  if (now >= next_viewer_stats_) {
+    next_viewer_stats_ = now + std::chrono::milliseconds(500);
+    viewer_->publish_stats(viewer_stats_json());
+    viewer_ticks_.clear();
+  }
+  // The pages' selections, watched from the next step on (a GPU engine copies their rows back).
+  const auto wanted = viewer_->selected();
+  if (wanted != viewer_watch_ids_) {
+    std::vector<viewer_watch> next;
+    for (const entity_id id : wanted) {
+      auto& w = next.emplace_back();
+      w.id = id;
+      for (auto& old : viewer_watch_) {
+        if (old.id == id) w.events = std::move(old.events);
+      }
+    }
+    viewer_watch_ = std::move(next);
+    viewer_watch_ids_ = wanted;
+    world_->set_watched(viewer_watch_ids_);
+  }
 }
 
 void zone_server::run() {
@@ -505,6 +744,14 @@ void zone_server::run() {
   report("integrate", world_->phases().integrate);
   report("interest", world_->phases().interest);
   report("replicate", stats_.replicate_ms);
+  if (truth_) {
+    truth_->stop();
+    const auto& t = truth_->stats();
+    const double n = static_cast<double>(std::max<std::uint64_t>(1, t.ticks));
+    spdlog::info("  oracle stream: {} ticks published, {:.1f} KB per tick ({} with the layout), publish {:.3f} ms per tick, "
+                 "{} subscribers dropped",
+                 t.ticks, static_cast<double>(t.bytes) / 1024.0 / n, t.layouts, t.publish_ms / n, t.dropped_subscribers);
+  }
 }
 
 }  // namespace zone
