@@ -5,7 +5,7 @@
 #include <string>
 
 #include "loopback_client.h"
-#include "metrics.h"
+#include "net/metrics.h"
 
 using namespace zone::net;
 using zone::net::testing::http_get;
