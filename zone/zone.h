@@ -571,6 +571,18 @@ struct zone_config {
   bool direct_writes = false;
   int io_nice = 0;  ///< nice value of the I/O threads (net::server_options::io_thread_nice; 0-19)
   double inputs_per_second = 60;
+  double pings_per_second = 10;  ///< per client; over it pings get no pong (net::server_options)
+  /// Admission (net::server_options): a connection must complete its hello within hello_timeout_s
+  /// of accept; connections without a hello are capped in total and per source address, apart
+  /// from the max_clients player slots.
+  double hello_timeout_s = 3;
+  std::size_t max_pending = 1024;
+  std::size_t max_pending_per_address = 256;
+  std::size_t max_name_bytes = 32;  ///< longest player name (printable ASCII)
+  double idle_timeout_s = 10;       ///< a player that sends no complete frame this long is closed
+  /// Seconds between the info-level summary of joins, leaves and refusals (per-session lines are
+  /// at debug level); 0 = none.
+  double log_summary_s = 10;
   std::size_t client_byte_budget = 8 * 1024;
   /// A client with this many state frames still unwritten (net::server::state_backlog) gets no new
   /// frame this tick: a slow reader is sent fewer, fresher frames (its view catches up in the next

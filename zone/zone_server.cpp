@@ -33,6 +33,13 @@ net::server_options net_options(const zone_config& c) {
   o.io_thread_nice = c.io_nice;
   o.inputs_per_second = c.inputs_per_second;
   o.input_burst = std::max(1.0, c.inputs_per_second / 2);
+  o.pings_per_second = c.pings_per_second;
+  o.ping_burst = std::max(1.0, c.pings_per_second);
+  o.hello_timeout = std::chrono::milliseconds(static_cast<std::int64_t>(std::ceil(c.hello_timeout_s * 1000)));
+  o.idle_timeout = std::chrono::milliseconds(static_cast<std::int64_t>(std::ceil(c.idle_timeout_s * 1000)));
+  o.max_pending = c.max_pending;
+  o.max_pending_per_address = c.max_pending_per_address;
+  o.max_name_bytes = c.max_name_bytes;
   return o;
 }
 
@@ -148,6 +155,30 @@ std::string zone_server::metrics_text() const {
             static_cast<double>(ns.resyncs_requested));
   t.counter("zone_net_frames_rejected_total", "Inbound frames rejected (client disconnected).", static_cast<double>(ns.frames_rejected));
   t.counter("zone_net_inputs_dropped_total", "Inputs over the rate limit.", static_cast<double>(ns.inputs_dropped));
+  t.counter("zone_net_pings_answered_total", "Pings answered with a pong.", static_cast<double>(ns.pings_answered));
+  t.counter("zone_net_pings_dropped_total", "Pings over the rate limit (no pong).", static_cast<double>(ns.pings_dropped));
+  t.counter("zone_net_rate_limited_total", "Sessions closed for flooding (error rate_limited).", static_cast<double>(ns.rate_limited));
+  t.gauge("zone_net_pending_open", "Connections open that have not said hello yet.", static_cast<double>(ns.pending_open));
+  t.counter("zone_net_pending_refused_total", "Connections refused at accept: their address had max-pending-per-address without a hello.",
+            static_cast<double>(ns.pending_refused));
+  t.counter("zone_net_pending_evicted_total", "Connections without a hello closed to admit a newer one (max-pending).",
+            static_cast<double>(ns.pending_evicted));
+  t.counter("zone_net_hello_timeouts_total", "Connections closed at the hello deadline.", static_cast<double>(ns.hello_timeouts));
+  t.counter("zone_net_hellos_rejected_total", "Hellos refused (bad name).", static_cast<double>(ns.hellos_rejected));
+  t.counter("zone_net_idle_timeouts_total", "Sessions closed at the idle timeout.", static_cast<double>(ns.idle_timeouts));
+  // The configured limits, so a dashboard reads them beside what they bound.
+  const auto limit = [&](const char* name, double v) {
+    t.gauge("zone_limit", "Configured limits (docs/zone.md, Limits and hardening).", v, std::string("limit=\"") + name + "\"");
+  };
+  limit("max_clients", static_cast<double>(cfg_.max_clients));
+  limit("max_pending", static_cast<double>(cfg_.max_pending));
+  limit("max_pending_per_address", static_cast<double>(cfg_.max_pending_per_address));
+  limit("hello_timeout_seconds", cfg_.hello_timeout_s);
+  limit("idle_timeout_seconds", cfg_.idle_timeout_s);
+  limit("inputs_per_second", cfg_.inputs_per_second);
+  limit("pings_per_second", cfg_.pings_per_second);
+  limit("max_name_bytes", static_cast<double>(cfg_.max_name_bytes));
+  limit("max_frame_bytes", static_cast<double>(cfg_.max_frame_bytes));
   // Phase histograms in seconds, one bucket per octave.
   const auto phase = [&](const char* name, const latency_histogram& h) {
     std::vector<double> bounds;
@@ -233,7 +264,9 @@ void zone_server::drain_inputs() {
           if (const auto at = world_->store().get(id)) w.spawn_position = net::vec3f{at->position.x, at->position.y, at->position.z};
           w.host_clock = true;  // net::server::now_us() is CLOCK_MONOTONIC
           net_.send(e.session, net::make_shared_frame(encoder_.encode(w)), net::delivery::control);
-          spdlog::info("session {}: '{}' joined as entity {}", e.session, hello->name, id);
+          // The name is client data: escaped (the server also checked it at hello), at debug.
+          spdlog::debug("session {}: '{}' joined as entity {}", e.session, net::escape_for_log(hello->name), id);
+          ++stats_.joins;
         } else if (const auto* in = std::get_if<net::input_msg>(&*e.msg)) {
           const auto it = clients_.find(e.session);
           if (it == clients_.end()) break;
@@ -255,9 +288,11 @@ void zone_server::drain_inputs() {
       case net::inbound_event::kind::disconnected: {
         const auto it = clients_.find(e.session);
         if (it == clients_.end()) break;
+        spdlog::debug("session {}: left ({})", e.session, net::escape_for_log(e.reason, 200));
         world_->despawn(it->second.entity);
         replicator_.remove_client(it->second.replica);
         clients_.erase(it);
+        ++stats_.leaves;
         break;
       }
     }
@@ -332,6 +367,33 @@ void zone_server::replicate() {
   stats_.frames_sent += frame_bytes_.size();
 }
 
+void zone_server::log_summary() {
+  if (!(cfg_.log_summary_s > 0)) return;
+  const auto now = clock_type::now();
+  if (last_summary_ == clock_type::time_point{}) last_summary_ = now;
+  if (now - last_summary_ < std::chrono::duration<double>(cfg_.log_summary_s)) return;
+  last_summary_ = now;
+  const auto ns = net_.stats();
+  const auto& a = summary_net_;
+  const std::uint64_t joined = stats_.joins - summary_loop_.joins, left = stats_.leaves - summary_loop_.leaves;
+  const std::uint64_t refused = (ns.connections_refused - a.connections_refused) + (ns.pending_refused - a.pending_refused) +
+                                (ns.pending_evicted - a.pending_evicted) + (ns.hellos_rejected - a.hellos_rejected);
+  const std::uint64_t timeouts = (ns.hello_timeouts - a.hello_timeouts) + (ns.idle_timeouts - a.idle_timeouts);
+  const std::uint64_t limited = ns.rate_limited - a.rate_limited, rejected = ns.frames_rejected - a.frames_rejected;
+  // Quiet when nothing happened.
+  if (joined + left + refused + timeouts + limited + rejected != 0) {
+    spdlog::info("clients: {} ({} joined, {} left in {:.0f} s); refused {} (slots {}, per-address {}, evicted {}, bad hello {}); "
+                 "timeouts {} (hello {}, idle {}); rate-limited {}; bad frames {}; {} without hello now",
+                 clients_.size(), joined, left, cfg_.log_summary_s, refused, ns.connections_refused - a.connections_refused,
+                 ns.pending_refused - a.pending_refused, ns.pending_evicted - a.pending_evicted,
+                 ns.hellos_rejected - a.hellos_rejected, timeouts, ns.hello_timeouts - a.hello_timeouts,
+                 ns.idle_timeouts - a.idle_timeouts, limited, rejected, ns.pending_open);
+  }
+  summary_net_ = ns;
+  summary_loop_.joins = stats_.joins;
+  summary_loop_.leaves = stats_.leaves;
+}
+
 void zone_server::write_tick_line(double inputs_ms, double replicate_ms, double tick_ms, std::uint64_t frames,
                                   std::uint64_t bytes) {
   const step_times& ph = world_->last_step();
@@ -367,6 +429,7 @@ void zone_server::tick_once() {
   // Refresh the metrics snapshot about once a second (the scrape never touches game state).
   const auto every = static_cast<std::uint64_t>(std::max(1.0, cfg_.tick_rate_hz));
   if (metrics_ && stats_.ticks % every == 1) metrics_->publish(metrics_text());
+  log_summary();
 }
 
 void zone_server::run() {

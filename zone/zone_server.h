@@ -30,6 +30,8 @@ struct loop_stats {
   std::uint64_t teleports = 0;          ///< teleport requests applied
   std::uint64_t teleports_clamped = 0;  ///< of which clamped into the world
   std::uint64_t teleports_refused = 0;  ///< refused: off, cooldown, another's entity, not finite
+  std::uint64_t joins = 0;              ///< players that joined (welcomed)
+  std::uint64_t leaves = 0;             ///< players that left
   latency_histogram inputs_ms, replicate_ms, tick_ms;  ///< plus zone_world::phases()
 };
 
@@ -74,6 +76,9 @@ class zone_server {
   /// finite target clamped into the world).
   void teleport(net::session_id session, client& c, const net::teleport_msg& t);
   void replicate();
+  /// Every log_summary_s: one info line of joins, leaves and refused connections since the last
+  /// (per-session lines are at debug: a flood of connections cannot flood the log).
+  void log_summary();
 
   zone_config cfg_;
   std::unique_ptr<interest::thread_pool> pool_;
@@ -100,6 +105,10 @@ class zone_server {
   // --tick-csv: the file and the loop's start.
   std::FILE* tick_csv_ = nullptr;
   std::chrono::steady_clock::time_point started_{};
+  // log_summary(): when it last wrote, and the counters then.
+  std::chrono::steady_clock::time_point last_summary_{};
+  loop_stats summary_loop_{};
+  net::server_stats summary_net_{};
   void write_tick_line(double inputs_ms, double replicate_ms, double tick_ms, std::uint64_t frames, std::uint64_t bytes);
 };
 
