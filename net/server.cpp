@@ -803,10 +803,12 @@ std::optional<std::string> server::start() {
   m.file_limit = files.soft;
   if (!files.error.empty()) spdlog::warn("{}", files.error);
   spdlog::info("open-file limit {} (was {}, hard {})", files.soft, files.before, files.hard);
-  if (files.soft != 0 && m.opt.max_connections + reserved_file_descriptors > files.soft) {
-    spdlog::warn("max-clients {} exceeds what the open-file limit {} allows (about {} connections): raise the hard "
-                 "limit (ulimit -Hn) or connections beyond it are refused by the system",
-                 m.opt.max_connections, files.soft,
+  // Player slots and pending connections together must fit (the metrics server's few come out of
+  // the reserve): then nothing else in the process can take a player's descriptor.
+  if (files.soft != 0 && m.opt.max_connections + m.opt.max_pending + reserved_file_descriptors > files.soft) {
+    spdlog::warn("max-clients {} plus max-pending {} exceed what the open-file limit {} allows (about {} connections): "
+                 "raise the hard limit (ulimit -Hn) or connections beyond it are refused by the system",
+                 m.opt.max_connections, m.opt.max_pending, files.soft,
                  files.soft > reserved_file_descriptors ? files.soft - reserved_file_descriptors : 0);
   }
   boost::system::error_code ec;

@@ -49,6 +49,7 @@ std::optional<std::string> validate(const zone_config& c) {
   if (c.max_pending == 0 || c.max_pending_per_address == 0) return bad("max-pending and max-pending-per-address must be >= 1");
   if (c.max_name_bytes == 0 || c.max_name_bytes > 1024) return bad("max-name-bytes must be 1 .. 1024");
   if (!(c.log_summary_s >= 0 && std::isfinite(c.log_summary_s))) return bad("log-summary must be >= 0 seconds");
+  if (c.metrics_max_connections == 0 || c.metrics_max_connections > 4096) return bad("metrics-max-connections must be 1 .. 4096");
   if (!(c.teleport_cooldown_s >= 0 && std::isfinite(c.teleport_cooldown_s))) return bad("teleport-cooldown must be >= 0");
   if (!(c.spawn_radius >= 0 && std::isfinite(c.spawn_radius))) return bad("spawn-radius must be >= 0");
   if (!(c.update_near >= 0 && c.update_mid >= c.update_near && std::isfinite(c.update_mid))) {
@@ -157,7 +158,9 @@ config_result parse_config(int argc, const char* const* argv) {
       ("update-far-period", po::value(&c.update_far_period)->default_value(c.update_far_period), "ticks between updates of entities beyond update-mid")  //
       ("digest-every", po::value(&c.digest_every)->default_value(c.digest_every), "a visible-set digest every K ticks (0 = none)")  //
       ("metrics", po::value(&c.metrics_enabled)->default_value(c.metrics_enabled), "serve Prometheus text at /metrics (0 or 1)")  //
-      ("metrics-port", po::value(&metrics_port)->default_value(metrics_port), "port of /metrics (0 = ephemeral)");
+      ("metrics-port", po::value(&metrics_port)->default_value(metrics_port), "port of /metrics (0 = ephemeral)")  //
+      ("metrics-address", po::value(&c.metrics_address)->default_value(c.metrics_address), "address /metrics listens on (loopback by default: it has no authentication; 0.0.0.0 opens it to all)")  //
+      ("metrics-max-connections", po::value(&c.metrics_max_connections)->default_value(c.metrics_max_connections), "connections /metrics holds at once, apart from the players' (more are closed at accept)");
   po::options_description all("zone-server options");
   all.add(general).add(world).add(interest).add(npcs).add(net);
 

@@ -600,8 +600,13 @@ struct zone_config {
   std::uint32_t update_mid_period = 3, update_far_period = 8;
   std::uint32_t digest_every = 1;    ///< a visible-set digest every K ticks (0 = none)
   double teleport_cooldown_s = 0.5;  ///< least time between two jumps of one player (0 = none)
-  bool metrics_enabled = true;        ///< serve Prometheus text at http://listen:metrics_port/metrics
+  bool metrics_enabled = true;        ///< serve Prometheus text at http://metrics_address:metrics_port/metrics
   std::uint16_t metrics_port = 9100;  ///< 0 = an ephemeral port
+  /// Where /metrics listens: loopback by default (it has no authentication); "0.0.0.0" opens it.
+  std::string metrics_address = "127.0.0.1";
+  /// Connections /metrics holds at once (its own, apart from the game's descriptors); more are
+  /// closed at accept. Each must send its request within 5 s.
+  std::size_t metrics_max_connections = 16;
   std::string log_level = "info";
   /// When set, one CSV line per tick (its wall time, clients, frames and phase timings) goes to
   /// this file, so percentiles can be taken over any window (e.g. after a swarm's ramp-up).

@@ -179,6 +179,13 @@ std::string zone_server::metrics_text() const {
   limit("pings_per_second", cfg_.pings_per_second);
   limit("max_name_bytes", static_cast<double>(cfg_.max_name_bytes));
   limit("max_frame_bytes", static_cast<double>(cfg_.max_frame_bytes));
+  limit("metrics_max_connections", static_cast<double>(cfg_.metrics_max_connections));
+  if (metrics_) {
+    t.counter("zone_metrics_connections_refused_total", "/metrics connections closed at accept (over metrics-max-connections).",
+              static_cast<double>(metrics_->connections_refused()));
+    t.counter("zone_metrics_accept_errors_total", "/metrics accepts that failed (each followed by a 50 ms pause).",
+              static_cast<double>(metrics_->accept_errors()));
+  }
   // Phase histograms in seconds, one bucket per octave.
   const auto phase = [&](const char* name, const latency_histogram& h) {
     std::vector<double> bounds;
@@ -219,7 +226,9 @@ std::optional<std::string> zone_server::start() {
   if (!engine_note_.empty()) spdlog::info("zone: interest runs on the host: {}", engine_note_);
   if (auto err = net_.start()) return err;
   if (cfg_.metrics_enabled) {
-    metrics_ = std::make_unique<net::metrics_server>(cfg_.listen_address, cfg_.metrics_port);
+    net::metrics_limits limits;
+    limits.max_connections = cfg_.metrics_max_connections;
+    metrics_ = std::make_unique<net::metrics_server>(cfg_.metrics_address, cfg_.metrics_port, limits);
     if (auto err = metrics_->start()) return err;
     metrics_->publish(metrics_text());
   }
