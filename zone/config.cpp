@@ -149,7 +149,8 @@ config_result parse_config(int argc, const char* const* argv) {
       ("client-byte-budget", po::value(&c.client_byte_budget)->default_value(c.client_byte_budget), "bytes per client per tick")  //
       ("client-send-every", po::value(&c.client_send_every)->default_value(c.client_send_every), "each client gets a frame every K ticks, clients staggered (1 = every tick; 2 at 30 Hz = 15 frames a second each, half the frames built and sent per tick)")  //
       ("client-max-backlog", po::value(&c.client_max_backlog)->default_value(c.client_max_backlog), "a client with this many state frames still unwritten gets no new frame this tick (0 = off: always send; then a full queue drops frames and resyncs)")  //
-      ("teleport", po::value(&c.teleport_enabled)->default_value(c.teleport_enabled), "players may teleport themselves (0 or 1)")  //
+      ("teleport", po::value(&c.teleport_enabled)->default_value(c.teleport_enabled), "players may teleport themselves (0 or 1; an ability the server grants, off by default)")  //
+      ("player-fly", po::value(&c.player_fly)->default_value(c.player_fly), "players may move vertically (0: a movement intent's z is ignored)")  //
       ("teleport-cooldown", po::value(&c.teleport_cooldown_s)->default_value(c.teleport_cooldown_s), "least seconds between two teleports of one player")  //
       ("spawn-radius", po::value(&c.spawn_radius)->default_value(c.spawn_radius), "players spawn within this distance of a town (m)")  //
       ("update-near", po::value(&c.update_near)->default_value(c.update_near), "updates every tick within this distance (m)")  //

@@ -592,7 +592,12 @@ struct zone_config {
   /// session so that each tick builds about 1/K of the frames. The world still steps every tick;
   /// a frame carries everything since the client's last one.
   std::uint32_t client_send_every = 1;
-  bool teleport_enabled = true;      ///< players may teleport themselves (the teleport message)
+  /// Players may teleport themselves (the teleport message): an ability the server grants, off
+  /// unless configured (a client could otherwise cross the world in a tick).
+  bool teleport_enabled = false;
+  /// Players may move vertically (fly). Off: a player's movement intent is horizontal (its z is
+  /// ignored), players walk at the height they have.
+  bool player_fly = false;
   float spawn_radius = 200;          ///< players spawn uniformly within this distance of a town centre (m)
   /// Replication's update-rate tiers (docs/zone.md): every tick within update_near metres, every
   /// update_mid_period ticks within update_mid, every update_far_period ticks beyond.
@@ -677,7 +682,9 @@ class zone_world {
   [[nodiscard]] entity_id spawn_player(const vec3& at);
   bool despawn(entity_id id);
   /// A player's movement intent: its length is clamped to 1 and scaled by player_speed, so a
-  /// client can never move faster than allowed. false (ignored) for a non-player or dead handle.
+  /// client can never move faster than allowed (any finite intent, however large, keeps its
+  /// direction: no overflow to zero or infinity); its z is dropped unless player_fly. false
+  /// (ignored) for a non-player or dead handle, or a non-finite intent.
   bool set_intent(entity_id player, const vec3& intent);
   /// A player's teleport jump to `to`, clamped into the world (`*clamped` says whether it was);
   /// the next step() integrates and finds interest from there, so the jump's enters and leaves

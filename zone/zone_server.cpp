@@ -281,7 +281,7 @@ void zone_server::drain_inputs() {
           if (it == clients_.end()) break;
           // A client steers only its own entity; the world clamps the speed.
           world_->set_intent(it->second.entity, {in->move.x, in->move.y, in->move.z});
-          it->second.last_input = std::max(it->second.last_input, in->sequence);
+          note_sequence(it->second, in->sequence);
         } else if (const auto* tp = std::get_if<net::teleport_msg>(&*e.msg)) {
           const auto it = clients_.find(e.session);
           if (it != clients_.end()) teleport(e.session, it->second, *tp);
@@ -310,7 +310,7 @@ void zone_server::drain_inputs() {
 }
 
 void zone_server::teleport(net::session_id session, client& c, const net::teleport_msg& t) {
-  c.last_input = std::max(c.last_input, t.sequence);
+  note_sequence(c, t.sequence);
   const auto refuse = [&](const char* why) {
     ++stats_.teleports_refused;
     spdlog::debug("session {}: teleport refused: {}", session, why);
@@ -327,6 +327,11 @@ void zone_server::teleport(net::session_id session, client& c, const net::telepo
   c.last_teleport_tick = world_->tick();
   ++stats_.teleports;
   if (clamped) ++stats_.teleports_clamped;
+}
+
+void zone_server::note_sequence(client& c, std::uint32_t sequence) {
+  if (!c.any_input || static_cast<std::int32_t>(sequence - c.last_input) > 0) c.last_input = sequence;
+  c.any_input = true;
 }
 
 void zone_server::replicate() {

@@ -66,7 +66,8 @@ class zone_server {
   struct client {
     entity_id entity = null_entity;
     client_id replica = 0;
-    std::uint32_t last_input = 0;
+    std::uint32_t last_input = 0;     ///< newest input sequence applied (serial-number order)
+    bool any_input = false;           ///< last_input is set
     std::uint64_t last_teleport_tick = 0;  ///< world tick of the last applied teleport
     bool teleported = false;
     std::shared_ptr<const std::atomic<std::uint32_t>> backlog;  ///< net::server::state_backlog
@@ -75,6 +76,9 @@ class zone_server {
   /// Validates and applies one client's teleport request (permission, own entity, cooldown,
   /// finite target clamped into the world).
   void teleport(net::session_id session, client& c, const net::teleport_msg& t);
+  /// Records an input's sequence as the client's last when it is newer (RFC 1982 serial-number
+  /// order: a sequence 1 .. 2^31 - 1 ahead, wrapping past 2^32); older ones leave it.
+  static void note_sequence(client& c, std::uint32_t sequence);
   void replicate();
   /// Every log_summary_s: one info line of joins, leaves and refused connections since the last
   /// (per-session lines are at debug: a flood of connections cannot flood the log).

@@ -610,4 +610,47 @@ TEST_SUITE("zone.server") {
     CHECK(left == 5);
     CHECK(count < 40);
   }
+
+  TEST_CASE("input rules on the wire: sequences wrap around; an old one is ignored; teleports are off unless granted") {
+    zone_server server(test_config());
+    REQUIRE_FALSE(server.start().has_value());
+    test_client c(server.port());
+    REQUIRE(c.send(net::hello_msg{"seq", "", net::protocol_version}));
+    std::optional<net::message> w;
+    for (int i = 0; i < 100 && !w; ++i) {
+      server.tick_once();
+      w = c.read(20ms);
+    }
+    REQUIRE(w.has_value());
+    REQUIRE(std::holds_alternative<net::welcome_msg>(*w));
+    // One input per tick, so the rate limit never drops one; the echo is read after each tick.
+    const auto echo_after = [&](std::uint32_t sequence) {
+      REQUIRE(c.send(net::input_msg{sequence, {1, 0, 0}}));
+      std::this_thread::sleep_for(20ms);  // the input reaches the game's queue
+      server.tick_once();
+      // The newest frame's echo: read until the socket stays quiet (earlier ticks' frames first).
+      std::optional<std::uint32_t> echo;
+      for (int i = 0; i < 200; ++i) {
+        const auto m = c.read(100ms);
+        if (!m) break;
+        if (const auto* u = std::get_if<net::tick_update_msg>(&*m)) echo = u->last_input_sequence;
+      }
+      REQUIRE(echo.has_value());
+      return *echo;
+    };
+    CHECK(echo_after(0xfffffffdu) == 0xfffffffdu);
+    CHECK(echo_after(0xffffffffu) == 0xffffffffu);
+    CHECK(echo_after(0) == 0);  // wrapped: newer than 0xffffffff (it stuck at the maximum before)
+    CHECK(echo_after(2) == 2);
+    CHECK(echo_after(0xfffffff0u) == 2);  // older: ignored
+    CHECK(echo_after(1) == 2);
+    CHECK(echo_after(3) == 3);
+    // Teleports: the config's default is off, so a client's jump is refused and it does not move.
+    CHECK_FALSE(zone_config{}.teleport_enabled);
+    REQUIRE(c.send(net::teleport_msg{4, {500, 500, 0}, 0}));
+    std::this_thread::sleep_for(20ms);
+    server.tick_once();
+    CHECK(server.stats().teleports == 0);
+    CHECK(server.stats().teleports_refused == 1);
+  }
 }
