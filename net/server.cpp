@@ -76,7 +76,7 @@ namespace {
 struct atomic_counters {
   std::atomic<std::uint64_t> connections_accepted{0}, connections_refused{0}, sessions_open{0}, frames_in{0},
       bytes_in{0}, frames_dropped{0}, resyncs_requested{0}, frames_rejected{0}, inputs_dropped{0}, pings_answered{0},
-      pending_open{0}, pending_refused{0}, pending_evicted{0}, hello_timeouts{0}, hellos_rejected{0}, idle_timeouts{0},
+      pending_open{0}, pending_evicted_address{0}, pending_evicted{0}, hello_timeouts{0}, hellos_rejected{0}, idle_timeouts{0},
       rate_limited{0}, pings_dropped{0};
 };
 
@@ -707,25 +707,33 @@ void server::impl::admit(tcp::socket socket, io_lane& lane) {
   auto s = std::make_shared<session>(*this, lane, std::move(socket), id, std::move(address));
   // Admission: the connection is pending until its hello, within the per-address and total caps
   // (never against the player slots).
-  std::shared_ptr<session> evicted;
+  // At a cap, the connection pending longest (of the address, or of all) makes room for the new
+  // one: a player who connects and says hello at once always gets in, and an attacker who holds
+  // many connections without a hello only closes his own oldest (one closed or past its hello
+  // has left the list).
+  std::shared_ptr<session> evicted_address, evicted_total;
   {
     const std::lock_guard lock(pending_mutex);
     auto& from_address = pending_by_address[s->address()];
-    if (from_address >= opt.max_pending_per_address) {
-      ++counters.pending_refused;
-      s->fail(error_code::server_full, "too many connections from this address waiting for their hello");
-      return;
-    }
-    // At the total cap, the connection pending longest makes room (one closed or past its hello
-    // has left the list).
-    if (pending.size() >= opt.max_pending && !pending.empty()) {
-      evicted = pending.front();
-      session& old = *evicted;
-      old.pending = false;
-      pending.pop_front();
-      const auto it = pending_by_address.find(old.address());
+    const auto evict = [&](std::list<std::shared_ptr<session>>::iterator at) {
+      std::shared_ptr<session> old = *at;
+      old->pending = false;
+      pending.erase(at);
+      const auto it = pending_by_address.find(old->address());
       if (it != pending_by_address.end() && --it->second == 0 && &it->second != &from_address) pending_by_address.erase(it);
       --counters.pending_open;
+      return old;
+    };
+    if (from_address >= opt.max_pending_per_address) {
+      const auto oldest = std::find_if(pending.begin(), pending.end(),
+                                       [&](const std::shared_ptr<session>& p) { return p->address() == s->address(); });
+      if (oldest != pending.end()) {
+        evicted_address = evict(oldest);
+        ++counters.pending_evicted_address;
+      }
+    }
+    if (pending.size() >= opt.max_pending && !pending.empty()) {
+      evicted_total = evict(pending.begin());
       ++counters.pending_evicted;
     }
     ++from_address;
@@ -733,7 +741,8 @@ void server::impl::admit(tcp::socket socket, io_lane& lane) {
     s->pending_at = pending.insert(pending.end(), s);
     ++counters.pending_open;
   }
-  if (evicted) evicted->fail(error_code::server_full, "too many connections waiting for their hello");
+  if (evicted_address) evicted_address->fail(error_code::server_full, "too many connections from this address waiting for their hello");
+  if (evicted_total) evicted_total->fail(error_code::server_full, "too many connections waiting for their hello");
   {
     const std::lock_guard lock(sessions_mutex);
     sessions.emplace(id, s);
@@ -987,7 +996,7 @@ server_stats server::stats() const {
   st.connections_refused = c.connections_refused.load();
   st.sessions_open = c.sessions_open.load();
   st.pending_open = c.pending_open.load();
-  st.pending_refused = c.pending_refused.load();
+  st.pending_evicted_address = c.pending_evicted_address.load();
   st.pending_evicted = c.pending_evicted.load();
   st.hello_timeouts = c.hello_timeouts.load();
   st.hellos_rejected = c.hellos_rejected.load();

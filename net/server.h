@@ -77,8 +77,9 @@ struct server_options {
   /// Pending connections in total: at the cap, the one pending longest is closed (error
   /// server_full) to admit the new one, so connections that never say hello cannot keep a player out.
   std::size_t max_pending = 1024;
-  /// Pending connections per source address: over it, a new connection from that address is
-  /// refused at once (error server_full) and the ones it already has keep their deadlines.
+  /// Pending connections per source address: at the cap, that address's connection pending
+  /// longest is closed (error server_full) to admit the new one. One address thus holds at most
+  /// this many, and a player behind it (NAT) who says hello at once still gets in.
   std::size_t max_pending_per_address = 256;
   /// Longest player name in bytes; a name must be 1 .. max_name_bytes printable ASCII characters
   /// (0x20-0x7E) without leading or trailing spaces (error bad_hello otherwise).
@@ -168,8 +169,8 @@ struct server_stats {
   std::uint64_t connections_refused = 0;  ///< hellos over max_connections (error server_full)
   std::uint64_t sessions_open = 0;        ///< sessions that said hello and are open (player slots held)
   std::uint64_t pending_open = 0;         ///< connections open that have not said hello yet
-  std::uint64_t pending_refused = 0;      ///< connections refused at accept: their address was at max_pending_per_address
-  std::uint64_t pending_evicted = 0;      ///< pending connections closed to admit a newer one (max_pending)
+  std::uint64_t pending_evicted_address = 0;  ///< pending connections closed for a newer one from their address (max_pending_per_address)
+  std::uint64_t pending_evicted = 0;      ///< pending connections closed for a newer one (max_pending)
   std::uint64_t hello_timeouts = 0;       ///< pending connections closed at hello_timeout
   std::uint64_t hellos_rejected = 0;      ///< hellos with a bad name (error bad_hello)
   std::uint64_t idle_timeouts = 0;        ///< sessions closed at idle_timeout

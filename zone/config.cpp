@@ -136,7 +136,7 @@ config_result parse_config(int argc, const char* const* argv) {
       ("max-clients", po::value(&c.max_clients)->default_value(c.max_clients), "player slots: sessions past their hello (a hello over it: error server_full)")  //
       ("hello-timeout", po::value(&c.hello_timeout_s)->default_value(c.hello_timeout_s), "seconds from accept by which a connection must have completed its hello, whatever it sends (error timeout)")  //
       ("max-pending", po::value(&c.max_pending)->default_value(c.max_pending), "connections without a hello yet, in total, apart from the player slots; at the cap the oldest is closed for the new one")  //
-      ("max-pending-per-address", po::value(&c.max_pending_per_address)->default_value(c.max_pending_per_address), "connections without a hello yet from one source address; over it new ones from that address are refused at once (raise it for a bot swarm on one host)")  //
+      ("max-pending-per-address", po::value(&c.max_pending_per_address)->default_value(c.max_pending_per_address), "connections without a hello yet from one source address; at the cap the address's oldest is closed for the new one (raise it for a bot swarm on one host)")  //
       ("max-name-bytes", po::value(&c.max_name_bytes)->default_value(c.max_name_bytes), "longest player name; names are printable ASCII without leading or trailing spaces (error bad_hello)")  //
       ("idle-timeout", po::value(&c.idle_timeout_s)->default_value(c.idle_timeout_s), "seconds a player may send no complete frame before it is closed (clients ping)")  //
       ("max-frame-bytes", po::value(&c.max_frame_bytes)->default_value(c.max_frame_bytes), "largest inbound frame")  //

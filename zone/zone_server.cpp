@@ -159,10 +159,10 @@ std::string zone_server::metrics_text() const {
   t.counter("zone_net_pings_dropped_total", "Pings over the rate limit (no pong).", static_cast<double>(ns.pings_dropped));
   t.counter("zone_net_rate_limited_total", "Sessions closed for flooding (error rate_limited).", static_cast<double>(ns.rate_limited));
   t.gauge("zone_net_pending_open", "Connections open that have not said hello yet.", static_cast<double>(ns.pending_open));
-  t.counter("zone_net_pending_refused_total", "Connections refused at accept: their address had max-pending-per-address without a hello.",
-            static_cast<double>(ns.pending_refused));
-  t.counter("zone_net_pending_evicted_total", "Connections without a hello closed to admit a newer one (max-pending).",
-            static_cast<double>(ns.pending_evicted));
+  t.counter("zone_net_pending_evicted_total", "Connections without a hello closed to admit a newer one (cap: max-pending-per-address or max-pending).",
+            static_cast<double>(ns.pending_evicted_address), "cap=\"address\"");
+  t.counter("zone_net_pending_evicted_total", "Connections without a hello closed to admit a newer one (cap: max-pending-per-address or max-pending).",
+            static_cast<double>(ns.pending_evicted), "cap=\"total\"");
   t.counter("zone_net_hello_timeouts_total", "Connections closed at the hello deadline.", static_cast<double>(ns.hello_timeouts));
   t.counter("zone_net_hellos_rejected_total", "Hellos refused (bad name).", static_cast<double>(ns.hellos_rejected));
   t.counter("zone_net_idle_timeouts_total", "Sessions closed at the idle timeout.", static_cast<double>(ns.idle_timeouts));
@@ -390,16 +390,16 @@ void zone_server::log_summary() {
   const auto ns = net_.stats();
   const auto& a = summary_net_;
   const std::uint64_t joined = stats_.joins - summary_loop_.joins, left = stats_.leaves - summary_loop_.leaves;
-  const std::uint64_t refused = (ns.connections_refused - a.connections_refused) + (ns.pending_refused - a.pending_refused) +
+  const std::uint64_t refused = (ns.connections_refused - a.connections_refused) + (ns.pending_evicted_address - a.pending_evicted_address) +
                                 (ns.pending_evicted - a.pending_evicted) + (ns.hellos_rejected - a.hellos_rejected);
   const std::uint64_t timeouts = (ns.hello_timeouts - a.hello_timeouts) + (ns.idle_timeouts - a.idle_timeouts);
   const std::uint64_t limited = ns.rate_limited - a.rate_limited, rejected = ns.frames_rejected - a.frames_rejected;
   // Quiet when nothing happened.
   if (joined + left + refused + timeouts + limited + rejected != 0) {
-    spdlog::info("clients: {} ({} joined, {} left in {:.0f} s); refused {} (slots {}, per-address {}, evicted {}, bad hello {}); "
+    spdlog::info("clients: {} ({} joined, {} left in {:.0f} s); refused {} (slots {}, evicted per address {}, evicted in all {}, bad hello {}); "
                  "timeouts {} (hello {}, idle {}); rate-limited {}; bad frames {}; {} without hello now",
                  clients_.size(), joined, left, cfg_.log_summary_s, refused, ns.connections_refused - a.connections_refused,
-                 ns.pending_refused - a.pending_refused, ns.pending_evicted - a.pending_evicted,
+                 ns.pending_evicted_address - a.pending_evicted_address, ns.pending_evicted - a.pending_evicted,
                  ns.hellos_rejected - a.hellos_rejected, timeouts, ns.hello_timeouts - a.hello_timeouts,
                  ns.idle_timeouts - a.idle_timeouts, limited, rejected, ns.pending_open);
   }
