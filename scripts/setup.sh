@@ -11,6 +11,7 @@ packages=(
   doctest-dev
   libcgal-dev libgmp-dev libmpfr-dev
   python3
+  clang libclang-rt-14-dev  # the fuzz targets (fuzz/, scripts/fuzz.sh): clang's libFuzzer, ASan, UBSan
 )
 
 missing=()
