@@ -54,13 +54,17 @@ struct box_set_summary {
   /// from pairs of sampled boxes that share a cell. About 1 for uniform sets, about 20 for the
   /// paper's Gaussian set (dense in its centre).
   double crowding = 0;
+  /// Every array of the set lies in memory page-locked by a live pinned_boxes (boxes_pinned): PBIG
+  /// then uploads it by DMA and validates it on the device, while LBVH still stages it on the host.
+  bool pinned = false;
 };
 inline constexpr std::size_t auto_sample_boxes = 8192;
 
 [[nodiscard]] box_set_summary summarize(const interest::box_set& boxes);
 
 /// The auto rule: which finder a set with this summary goes to, given which GPU finders can run;
-/// the reason in words in `reason`. See docs/lbvh.md for the rule and the measurements behind it.
+/// the reason in words in `reason`. See docs/lbvh.md for the rule and the measurements behind it
+/// (a pinned set goes to PBIG unless it is small or PBIG's large-box pass would be quadratic).
 [[nodiscard]] finder_backend choose_backend(const box_set_summary& summary, bool pbig_usable, bool lbvh_usable,
                                             std::string* reason = nullptr);
 
@@ -71,7 +75,8 @@ inline constexpr double auto_crowding = 4.0;                ///< above, with siz
 inline constexpr double auto_even_spread = 4.0;
 inline constexpr double auto_many_cells = 10.0;             ///< mean cells per box above: LBVH
 /// The auto finder re-summarizes when N moved by more than this fraction since its last decision,
-/// or after auto_redecide_calls calls; in between it keeps its choice (the statistics of a zone
+/// when the set's pinned state (boxes_pinned) changed, or after auto_redecide_calls calls; in
+/// between it keeps its choice (the statistics of a zone
 /// move slowly; a decision costs a sample of auto_sample_boxes boxes).
 inline constexpr double auto_redecide_n_change = 0.10;
 inline constexpr int auto_redecide_calls = 64;

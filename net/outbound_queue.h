@@ -32,7 +32,8 @@
 
 #include <algorithm>
 #include <cstddef>
-#include <deque>
+#include <iterator>
+#include <vector>
 
 #include "server.h"
 
@@ -43,6 +44,93 @@ class outbound_queue {
   struct entry {
     shared_frame frame;
     delivery kind = delivery::state;
+  };
+
+  /// The queued frames, oldest first: a ring of 2 x bound slots allocated with the queue, so
+  /// pushing and retiring frames allocates nothing (a std::deque allocated a block every 16
+  /// frames and freed one as many). Random access and iteration, like the deque it replaced.
+  class ring {
+   public:
+    explicit ring(std::size_t capacity) : slots_(std::max<std::size_t>(1, capacity)) {}
+    [[nodiscard]] std::size_t size() const { return size_; }
+    [[nodiscard]] bool empty() const { return size_ == 0; }
+    [[nodiscard]] std::size_t capacity() const { return slots_.size(); }
+    [[nodiscard]] const entry& operator[](std::size_t i) const { return slots_[at(i)]; }
+    [[nodiscard]] entry& operator[](std::size_t i) { return slots_[at(i)]; }
+    [[nodiscard]] const entry& front() const { return slots_[head_]; }
+    [[nodiscard]] const entry& back() const { return (*this)[size_ - 1]; }
+
+    class const_iterator {
+     public:
+      using iterator_category = std::forward_iterator_tag;
+      using value_type = entry;
+      using difference_type = std::ptrdiff_t;
+      using pointer = const entry*;
+      using reference = const entry&;
+      const_iterator() = default;
+      const_iterator(const ring* r, std::size_t i) : r_(r), i_(i) {}
+      reference operator*() const { return (*r_)[i_]; }
+      pointer operator->() const { return &(*r_)[i_]; }
+      const_iterator& operator++() {
+        ++i_;
+        return *this;
+      }
+      const_iterator operator++(int) {
+        auto t = *this;
+        ++i_;
+        return t;
+      }
+      friend bool operator==(const const_iterator& a, const const_iterator& b) { return a.i_ == b.i_; }
+
+     private:
+      const ring* r_ = nullptr;
+      std::size_t i_ = 0;
+    };
+    [[nodiscard]] const_iterator begin() const { return {this, 0}; }
+    [[nodiscard]] const_iterator end() const { return {this, size_}; }
+
+    /// The caller keeps size() < capacity() (the queue's bounds do).
+    void push_back(entry e) {
+      slots_[at(size_)] = std::move(e);
+      ++size_;
+    }
+    /// Retires the first k entries (their frames are released now).
+    void pop_front(std::size_t k) {
+      k = std::min(k, size_);
+      for (std::size_t i = 0; i < k; ++i) {
+        slots_[head_] = entry{};
+        head_ = head_ + 1 == slots_.size() ? 0 : head_ + 1;
+      }
+      size_ -= k;
+      if (size_ == 0) head_ = 0;
+    }
+    /// Keeps the first n entries.
+    void truncate(std::size_t n) {
+      for (std::size_t i = n; i < size_; ++i) (*this)[i] = entry{};
+      size_ = std::min(n, size_);
+    }
+    /// Removes the entries from `first` on that `drop` selects, keeping the others in order; how many.
+    template <class Pred>
+    std::size_t remove_from_if(std::size_t first, Pred drop) {
+      std::size_t w = first;
+      for (std::size_t i = first; i < size_; ++i) {
+        if (drop((*this)[i])) continue;
+        if (w != i) (*this)[w] = std::move((*this)[i]);
+        ++w;
+      }
+      const std::size_t removed = size_ - w;
+      truncate(w);
+      return removed;
+    }
+    void clear() { truncate(0); head_ = 0; }
+
+   private:
+    [[nodiscard]] std::size_t at(std::size_t i) const {
+      const std::size_t j = head_ + i;
+      return j >= slots_.size() ? j - slots_.size() : j;
+    }
+    std::vector<entry> slots_;
+    std::size_t head_ = 0, size_ = 0;
   };
 
   /// What push() did.
@@ -56,7 +144,7 @@ class outbound_queue {
   /// Most bytes one gathered write takes (a larger first frame is still taken alone).
   static constexpr std::size_t gather_bytes = 64 * 1024;
 
-  explicit outbound_queue(std::size_t bound) : bound_(std::max<std::size_t>(1, bound)) {}
+  explicit outbound_queue(std::size_t bound) : bound_(std::max<std::size_t>(1, bound)), queue_(2 * bound_) {}
 
   push_result push(shared_frame frame, delivery d) {
     push_result r;
@@ -116,18 +204,18 @@ class outbound_queue {
   }
   /// The frames being written are done (written or failed): they leave the queue.
   void finish_write() {
-    queue_.erase(queue_.begin(), queue_.begin() + static_cast<std::ptrdiff_t>(in_flight_));
+    queue_.pop_front(in_flight_);
     in_flight_ = 0;
   }
   /// The first `k` frames being written are done (a partial write: the rest stay in flight, so
   /// the next write goes on with them and the drop policy still never touches them).
   void finish_frames(std::size_t k) {
     k = std::min(k, in_flight_);
-    queue_.erase(queue_.begin(), queue_.begin() + static_cast<std::ptrdiff_t>(k));
+    queue_.pop_front(k);
     in_flight_ -= k;
   }
   /// Keeps only the frames being written (a closing session queues its error frame next).
-  void keep_only_in_flight() { queue_.erase(queue_.begin() + static_cast<std::ptrdiff_t>(in_flight_), queue_.end()); }
+  void keep_only_in_flight() { queue_.truncate(in_flight_); }
   void clear() {
     queue_.clear();
     in_flight_ = 0;
@@ -139,20 +227,16 @@ class outbound_queue {
   [[nodiscard]] bool empty() const { return queue_.empty(); }
   [[nodiscard]] std::size_t size() const { return queue_.size(); }
   [[nodiscard]] bool awaiting_reset() const { return awaiting_reset_; }
-  [[nodiscard]] const std::deque<entry>& entries() const { return queue_; }
+  [[nodiscard]] const ring& entries() const { return queue_; }
 
  private:
   /// Drops every queued state frame (plain or reset) except those being written; how many.
   std::size_t drop_queued_state() {
-    const auto first = queue_.begin() + static_cast<std::ptrdiff_t>(in_flight_);
-    const auto kept = std::stable_partition(first, queue_.end(), [](const entry& e) { return e.kind == delivery::control; });
-    const auto n = static_cast<std::size_t>(queue_.end() - kept);
-    queue_.erase(kept, queue_.end());
-    return n;
+    return queue_.remove_from_if(in_flight_, [](const entry& e) { return e.kind != delivery::control; });
   }
 
   std::size_t bound_;
-  std::deque<entry> queue_;     // the first in_flight_ entries are being written
+  ring queue_;                  // the first in_flight_ entries are being written; at most 2 x bound_
   std::size_t in_flight_ = 0;
   bool awaiting_reset_ = false;
 };

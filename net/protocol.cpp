@@ -178,6 +178,9 @@ void tick_update_writer::begin(std::uint64_t server_tick, std::uint64_t server_t
   enters_.clear();
   leaves_.clear();
   updates_.clear();
+  leaves_span_ = {};
+  updates_span_ = {};
+  enter_name_bytes_ = 0;
   digest_.reset();
   self_position_.reset();
   reset_ = false;
@@ -186,23 +189,25 @@ void tick_update_writer::begin(std::uint64_t server_tick, std::uint64_t server_t
   last_input_ = last_input_sequence;
 }
 
-void tick_update_writer::add_enter(const entity_state& s) { enters_.push_back(build_entity_state(fbb_, s)); }
+void tick_update_writer::add_enter(const entity_state& s) {
+  enters_.push_back(build_entity_state(fbb_, s));
+  enter_name_bytes_ += frame_cost::entity_name_cost(s.name.size());
+}
 void tick_update_writer::add_leave(std::uint32_t id) { leaves_.push_back(id); }
 
 std::size_t tick_update_writer::size_estimate() const {
-  // Built part + the vectors still to be written (each: length word + elements + padding)
-  // + the tick_update and envelope tables, their vtables, digest, identifier and prefix.
-  return fbb_.GetSize() + enters_.size() * sizeof(flatbuffers::uoffset_t) + leaves_.size() * sizeof(std::uint32_t) +
-         updates_.size() * sizeof(w::entity_update) + 3 * (sizeof(flatbuffers::uoffset_t) + 8) + 160 +
-         (self_position_ ? sizeof(w::vec3) + 4 : 0);
+  return frame_cost::of(enters_.size(), leave_count(), update_count(), self_position_.has_value(), enter_name_bytes_);
 }
 
 std::span<const std::uint8_t> tick_update_writer::finish() {
   // An empty vector is left out: absent reads as empty, and most frames have no enters and no
   // leaves (8 bytes each: the length word and the field's offset).
   const auto enters_v = enters_.empty() ? 0 : fbb_.CreateVector(enters_);
-  const auto leaves_v = leaves_.empty() ? 0 : fbb_.CreateVector(leaves_);
-  const auto updates_v = updates_.empty() ? 0 : fbb_.CreateVectorOfStructs(updates_);
+  const std::span<const std::uint32_t> leaves = leaves_span_.empty() ? std::span<const std::uint32_t>(leaves_) : leaves_span_;
+  const std::span<const w::entity_update> updates =
+      updates_span_.empty() ? std::span<const w::entity_update>(updates_) : updates_span_;
+  const auto leaves_v = leaves.empty() ? 0 : fbb_.CreateVector(leaves.data(), leaves.size());
+  const auto updates_v = updates.empty() ? 0 : fbb_.CreateVectorOfStructs(updates.data(), updates.size());
   std::optional<w::verify_digest> digest;
   if (digest_) digest.emplace(digest_->tick, digest_->hash, digest_->count);
   std::optional<w::vec3> self;

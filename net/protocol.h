@@ -169,6 +169,31 @@ class encoder {
 /// step adds enters, leaves and updates as it decides them and can ask for the frame size so far
 /// (for a per-client byte budget). Memory is reused between frames. Usage per frame:
 /// begin(); add_*()...; finish(). A returned span is valid until the next begin().
+/// The closed-form cost model of a tick_update frame (prefix included): an upper bound on the
+/// encoded size of a frame with these counts, whatever the values, field order of the builder
+/// or vtable sharing. Replication decides its byte budget with it alone (on the CPU and on the
+/// GPU alike: the same integers give the same decisions); tested against real frames in
+/// tests/net/test_protocol.cpp. `name_bytes` is the sum of entity_name_cost over the enters'
+/// names (0 when they have none, as replication sends them).
+struct frame_cost {
+  /// The header: envelope and tick_update tables with their vtables, the three vectors' length
+  /// words and offsets with alignment, the digest, identifier and prefix.
+  static constexpr std::size_t header = 196;
+  static constexpr std::size_t self_position = 16;  ///< the optional self_position struct and its vtable slot
+  /// One enter: its offset in the enters vector, the entity_state table with a vtable of its own
+  /// (the builder may share it; the bound does not count on it) and an empty name string, with
+  /// alignment padding.
+  static constexpr std::size_t enter = 96;
+  static constexpr std::size_t leave = sizeof(std::uint32_t);
+  static constexpr std::size_t update = 16;  ///< sizeof(wire::entity_update)
+  /// The extra bytes of a non-empty name: its characters and terminator, padded to 4.
+  static constexpr std::size_t entity_name_cost(std::size_t length) { return length == 0 ? 0 : (length + 4) & ~std::size_t{3}; }
+  static constexpr std::size_t of(std::size_t enters, std::size_t leaves, std::size_t updates, bool has_self,
+                                  std::size_t name_bytes = 0) {
+    return header + (has_self ? self_position : 0) + enters * enter + name_bytes + leaves * leave + updates * update;
+  }
+};
+
 class tick_update_writer {
  public:
   explicit tick_update_writer(std::size_t initial_bytes = 4096);
@@ -186,11 +211,17 @@ class tick_update_writer {
   void set_reset(bool reset) { reset_ = reset; }
   /// The observer's own position at this tick (12 bytes; lets a client check its view exactly).
   void set_self_position(const vec3f& p) { self_position_ = p; }
-  /// Upper bound on the bytes of the frame if finish() were called now (prefix included).
+  /// Leaves and updates taken from the caller's arrays instead of add_leave/add_wire_update
+  /// (which must not be called in the same frame): the spans must stay valid until finish(), which
+  /// copies them into the frame as they are (the GPU replication path hands over its slices).
+  void set_leaves(std::span<const std::uint32_t> ids) { leaves_span_ = ids; }
+  void set_wire_updates(std::span<const wire::entity_update> updates) { updates_span_ = updates; }
+  /// Upper bound on the bytes of the frame if finish() were called now (prefix included). A closed
+  /// form of the counts (frame_cost): it never reads the builder, so a device can compute it too.
   [[nodiscard]] std::size_t size_estimate() const;
   [[nodiscard]] std::size_t enter_count() const { return enters_.size(); }
-  [[nodiscard]] std::size_t leave_count() const { return leaves_.size(); }
-  [[nodiscard]] std::size_t update_count() const { return updates_.size(); }
+  [[nodiscard]] std::size_t leave_count() const { return leaves_.size() + leaves_span_.size(); }
+  [[nodiscard]] std::size_t update_count() const { return updates_.size() + updates_span_.size(); }
   [[nodiscard]] std::span<const std::uint8_t> finish();
 
  private:
@@ -200,6 +231,9 @@ class tick_update_writer {
   std::vector<flatbuffers::Offset<wire::entity_state>> enters_;
   std::vector<std::uint32_t> leaves_;
   std::vector<wire::entity_update> updates_;
+  std::span<const std::uint32_t> leaves_span_;
+  std::span<const wire::entity_update> updates_span_;
+  std::size_t enter_name_bytes_ = 0;  // frame_cost's name term, summed over the enters
   std::optional<verify_digest> digest_;
   std::optional<vec3f> self_position_;
   bool reset_ = false;

@@ -13,7 +13,8 @@
 // for its socket (EAGAIN or a partial write: the lane arms a writable wait and finishes the queue,
 // gathered). Without, a session that was idle is appended to its lane's ready list, and a ready
 // list that was empty posts one drain to the lane, which writes each ready session's queue with
-// one gathered write.
+// one gathered write. With io_uring (server_options::batching) a drain prepares the writes of
+// every ready session and submits them together; each completion is handled as a sendmsg's return.
 #include <utility>  // before Asio: GCC 12 in C++20 mode needs it first
 
 #include <array>
@@ -34,6 +35,10 @@
 #include <spdlog/spdlog.h>
 #include <thread>
 #include <unordered_map>
+
+#if ZONE_HAVE_LIBURING
+#include <liburing.h>
+#endif
 
 #include "os_limits.h"
 #include "outbound_queue.h"
@@ -116,8 +121,29 @@ constexpr std::size_t accept_batch = 256;
 /// Most frames one gathered write takes (also at most the queue bound - 1; outbound_queue.h).
 constexpr std::size_t max_gather_frames = 64;
 static_assert(max_gather_frames <= IOV_MAX);
+/// Most session writes in one io_uring submission (the ring's size).
+constexpr unsigned ring_entries = 256;
+/// Rounds of one drain (each takes what became ready meanwhile) before it yields to the lane's
+/// other handlers (reads, timers) and goes on in a fresh drain.
+constexpr unsigned max_drain_rounds = 8;
 
 }  // namespace
+
+const char* to_string(write_batching b) {
+  switch (b) {
+    case write_batching::automatic: return "auto";
+    case write_batching::uring: return "io_uring";
+    case write_batching::sendmsg: return "sendmsg";
+  }
+  return "?";
+}
+
+std::optional<write_batching> parse_write_batching(std::string_view s) {
+  if (s == "auto") return write_batching::automatic;
+  if (s == "io_uring" || s == "uring") return write_batching::uring;
+  if (s == "sendmsg") return write_batching::sendmsg;
+  return std::nullopt;
+}
 
 class session;
 
@@ -125,6 +151,11 @@ class session;
 /// for it to write (the ready list; without direct writes). Any thread appends; the lane's thread
 /// drains.
 struct io_lane {
+  explicit io_lane(std::atomic<std::uint64_t>& batches) : write_batches(batches) {}
+  ~io_lane();
+  io_lane(const io_lane&) = delete;
+  io_lane& operator=(const io_lane&) = delete;
+
   asio::io_context ctx{1};
   std::optional<asio::executor_work_guard<asio::io_context::executor_type>> work;
   std::thread thread;
@@ -132,28 +163,54 @@ struct io_lane {
   std::vector<std::shared_ptr<session>> ready;     // guarded by ready_mutex
   bool drain_posted = false;                       // guarded by ready_mutex
   std::vector<std::shared_ptr<session>> draining;  // the lane's thread only
+  /// The lane's thread: sessions whose batched write completed with more queued behind it; the
+  /// next round of the drain writes them again (they stay marked as on the ready list).
+  std::vector<std::shared_ptr<session>> again;
 
+  // io_uring (server_options::batching): the ring and, per submission slot, the session whose
+  // write it carries, its gathered buffers and its msghdr (valid until the completion).
+#if ZONE_HAVE_LIBURING
+  io_uring ring{};
+#endif
+  bool ring_ok = false;
+  std::atomic<std::uint64_t>& write_batches;
+  std::vector<std::shared_ptr<session>> slots;
+  std::vector<std::array<iovec, max_gather_frames>> slot_iov;
+  std::vector<msghdr> slot_msg;
+
+  /// Sets up the ring; the reason when it cannot be (then the lane writes with sendmsg).
+  std::optional<std::string> init_ring();
+  /// Before the lane runs: back to sendmsg.
+  void drop_ring();
   /// Any thread: `s` has frames for the lane to write (once until the lane has taken it).
   void schedule(std::shared_ptr<session> s);
   /// schedule() for several sessions of this lane under one lock (moves them out).
   void schedule_many(std::span<std::shared_ptr<session>> sessions);
-  /// The lane's thread: every ready session writes what it has queued.
+  /// The lane's thread: every ready session writes what it has queued; rounds until the ready
+  /// list stays empty (a burst of sends from the workers costs one wake-up, not one per chunk).
   void drain();
+  /// The lane's thread: `draining` written through the ring, ring_entries sessions a submission.
+  void write_batched();
+  /// Submits the prepared slots [0, n), waits for their completions and hands each to its session.
+  void submit_slots(unsigned n);
 };
 
 struct server::impl {
   explicit impl(server_options o)
-      : opt(std::move(o)), lanes(make_lanes(opt.io_threads)), acceptor(lanes[0]->ctx), accept_retry(acceptor.get_executor()) {}
+      : opt(std::move(o)), lanes(make_lanes(opt.io_threads, write_batches)), acceptor(lanes[0]->ctx),
+        accept_retry(acceptor.get_executor()) {}
 
-  static std::vector<std::unique_ptr<io_lane>> make_lanes(unsigned n) {
+  static std::vector<std::unique_ptr<io_lane>> make_lanes(unsigned n, std::atomic<std::uint64_t>& batches) {
     std::vector<std::unique_ptr<io_lane>> v;
-    for (unsigned i = 0; i < std::max(1u, n); ++i) v.push_back(std::make_unique<io_lane>());
+    for (unsigned i = 0; i < std::max(1u, n); ++i) v.push_back(std::make_unique<io_lane>(batches));
     return v;
   }
   /// The lane of the next session (round robin; the acceptor's thread only).
   io_lane& next_lane() { return *lanes[next_lane_index++ % lanes.size()]; }
 
   server_options opt;
+  std::atomic<std::uint64_t> write_batches{0};  // io_uring submissions (before the lanes: they count into it)
+  bool uring = false;                           // the lanes write through io_uring
   std::vector<std::unique_ptr<io_lane>> lanes;
   std::size_t next_lane_index = 0;
   tcp::acceptor acceptor;  // on lane 0
@@ -241,6 +298,7 @@ class session : public std::enable_shared_from_this<session> {
     if (enqueue(std::move(frame), d)) lane_.schedule(shared_from_this());
   }
   [[nodiscard]] io_lane& lane() const { return lane_; }
+  [[nodiscard]] int native_fd() const { return fd_; }
 
   /// Any thread: through the outbound queue's policy, then written at once by this thread (direct
   /// writes) unless the session waits for its socket. True: the lane must be told to write it
@@ -284,6 +342,52 @@ class session : public std::enable_shared_from_this<session> {
     if (!blocked_) flush_on_lane(lock);
   }
 
+  /// The lane's thread (its ready list, io_uring): the next write into `iov` / `msg` for the
+  /// lane's submission. True: prepared (the session stays marked as on the ready list, so no
+  /// other writer starts one, until ring_complete). False: nothing to submit (done here).
+  bool ring_prepare(std::array<iovec, max_gather_frames>& iov, msghdr& msg) {
+    std::unique_lock lock(write_mutex_);
+    if (closed_ || blocked_ || queue_.empty()) {
+      flush_posted_ = false;
+      if (!blocked_) flush_on_lane(lock);  // nothing queued: a closing session closes now
+      return false;
+    }
+    ring_frames_ = prepare_write_locked(iov.data());
+    msg = msghdr{};
+    msg.msg_iov = iov.data();
+    msg.msg_iovlen = ring_frames_;
+    return true;
+  }
+
+  /// The lane's thread: the kernel's answer to the write ring_prepare made (bytes, or -errno).
+  /// More queued behind it: the session goes on `again` (written in the drain's next round).
+  void ring_complete(int result, std::vector<std::shared_ptr<session>>& again) {
+    std::unique_lock lock(write_mutex_);
+    flush_posted_ = false;
+    if (closed_) return;
+    switch (finish_write_locked(result, ring_frames_)) {
+      case write_outcome::complete:
+      case write_outcome::retry:
+        if (!queue_.empty()) {
+          flush_posted_ = true;
+          again.push_back(shared_from_this());
+        } else if (closing_) {
+          lock.unlock();
+          close_now(close_reason_);
+        }
+        return;
+      case write_outcome::blocked:
+        wait_writable();
+        return;
+      case write_outcome::failed: {
+        std::string why = "write failed: " + write_error_;
+        lock.unlock();
+        close_now(std::move(why));
+        return;
+      }
+    }
+  }
+
   /// Any thread: error frame, then close.
   void fail(error_code code, std::string reason) {
     asio::post(socket_.get_executor(), [self = shared_from_this(), code, reason = std::move(reason)]() mutable {
@@ -298,10 +402,28 @@ class session : public std::enable_shared_from_this<session> {
   }
 
  private:
+  /// The session times out `after` from now (the lane's thread). Every read pushes the deadline
+  /// on; the timer is not re-armed for that (a re-arm cancels the pending wait, whose handler
+  /// then runs too: two timer operations and a handler per read): it fires at the deadline it was
+  /// armed for and waits again for the rest when reads have pushed the deadline on. It is
+  /// re-armed only when the new deadline comes sooner (a closing session's grace period).
   void arm_idle(std::chrono::milliseconds after) {
-    idle_.expires_after(after);
+    const auto deadline = steady::now() + after;
+    idle_deadline_ = deadline;
+    if (idle_armed_ && idle_.expiry() <= deadline) return;
+    idle_armed_ = true;
+    wait_idle(deadline);
+  }
+
+  void wait_idle(steady::time_point at) {
+    idle_.expires_at(at);  // cancels a pending wait: its handler sees operation_aborted
     idle_.async_wait([self = shared_from_this()](const boost::system::error_code& ec) {
       if (ec == asio::error::operation_aborted || self->closed_) return;
+      if (steady::now() < self->idle_deadline_) {
+        self->wait_idle(self->idle_deadline_);  // reads came meanwhile: wait for the rest
+        return;
+      }
+      self->idle_armed_ = false;
       if (self->closing_) {
         self->close_now("closing: the final frame was not taken in time");
       } else if (!self->hello_seen_) {
@@ -485,60 +607,86 @@ class session : public std::enable_shared_from_this<session> {
 
   enum class flush_result { drained, blocked, failed };
 
+  /// Marks the next write (write lock held; the queue not empty): the rest of a partial write, or
+  /// a new gathered write of the first queued frames (at most bound - 1, about 64 KiB); points
+  /// iov[0, n) at it, the first from where a partial write left it. How many frames (n).
+  std::size_t prepare_write_locked(iovec* iov) {
+    std::size_t n = queue_.in_flight();
+    write_is_new_ = n == 0;  // else the rest of a partial write
+    if (write_is_new_) n = queue_.start_write_many(max_gather_frames);
+    const auto& entries = queue_.entries();
+    for (std::size_t i = 0; i < n; ++i) {
+      const std::size_t skip = i == 0 ? partial_ : 0;
+      iov[i].iov_base = const_cast<std::uint8_t*>(entries[i].frame.data() + skip);
+      iov[i].iov_len = entries[i].frame.size() - skip;
+    }
+    return n;
+  }
+
+  enum class write_outcome { complete, retry, blocked, failed };
+
+  /// The kernel's answer to the write prepared over `n` frames (write lock held): `result` bytes
+  /// taken, or -errno. Retires the frames written whole (a frame written in part stays first, in
+  /// flight). complete: all n written; retry: EINTR, nothing changed; blocked: EAGAIN or a
+  /// partial write (the kernel's buffer is full: blocked_ holds every other writer off until the
+  /// lane resumes); failed: an error (blocked_ too; the caller closes the session).
+  write_outcome finish_write_locked(long result, std::size_t n) {
+    if (result < 0) {
+      const int err = static_cast<int>(-result);
+      if (err == EINTR) return write_outcome::retry;
+      blocked_ = true;
+      if (err == EAGAIN || err == EWOULDBLOCK) return write_outcome::blocked;
+      write_error_ = std::strerror(err);
+      return write_outcome::failed;
+    }
+    const auto& entries = queue_.entries();
+    auto left = static_cast<std::size_t>(result);
+    std::size_t done = 0, offset = partial_;
+    std::uint32_t state_done = 0;
+    while (done < n) {
+      const std::size_t rest = entries[done].frame.size() - offset;
+      if (left < rest) {
+        offset += left;
+        break;
+      }
+      left -= rest;
+      offset = 0;
+      if (entries[done].kind != delivery::control) ++state_done;
+      ++done;
+    }
+    partial_ = offset;
+    queue_.finish_frames(done);
+    if (state_done != 0) backlog_->fetch_sub(state_done, std::memory_order_relaxed);
+    auto& c = srv_.write_stats[write_counter_stripe()];
+    if (write_is_new_) c.writes.fetch_add(1, std::memory_order_relaxed);
+    write_is_new_ = false;  // what is left of this write goes on as its rest
+    c.bytes_out.fetch_add(static_cast<std::uint64_t>(result), std::memory_order_relaxed);
+    if (done != 0) c.frames_out.fetch_add(done, std::memory_order_relaxed);
+    if (done < n) {
+      blocked_ = true;  // the kernel took less than offered: its buffer is full
+      return write_outcome::blocked;
+    }
+    return write_outcome::complete;
+  }
+
   /// Writes the queue's frames in order (write lock held; any thread), each write one
-  /// non-blocking sendmsg of the frames being written (gathered: at most bound - 1 frames, about
-  /// 64 KiB), the first from where a partial write left it. Stops at EAGAIN or a partial write
-  /// (blocked: the rest stays queued, in flight, and blocked_ holds every other writer off until
-  /// the lane resumes) or an error (failed: blocked_ too; the caller closes the session).
+  /// non-blocking sendmsg of the frames prepare_write_locked marks. Stops at EAGAIN or a partial
+  /// write (blocked: the rest stays queued, in flight, and blocked_ holds every other writer off
+  /// until the lane resumes) or an error (failed: blocked_ too; the caller closes the session).
   flush_result flush_locked() {
     if (closed_) return flush_result::drained;
     std::array<iovec, max_gather_frames> iov;
     while (!queue_.empty()) {
-      std::size_t n = queue_.in_flight();
-      const bool new_write = n == 0;  // else the rest of a partial write
-      if (new_write) n = queue_.start_write_many(max_gather_frames);
-      const auto& entries = queue_.entries();
-      for (std::size_t i = 0; i < n; ++i) {
-        const std::size_t skip = i == 0 ? partial_ : 0;
-        iov[i].iov_base = const_cast<std::uint8_t*>(entries[i].frame.data() + skip);
-        iov[i].iov_len = entries[i].frame.size() - skip;
-      }
+      const std::size_t n = prepare_write_locked(iov.data());
       msghdr msg{};
       msg.msg_iov = iov.data();
       msg.msg_iovlen = n;
       const ssize_t written = ::sendmsg(fd_, &msg, MSG_DONTWAIT | MSG_NOSIGNAL);
-      if (written < 0) {
-        if (errno == EINTR) continue;
-        blocked_ = true;
-        if (errno == EAGAIN || errno == EWOULDBLOCK) return flush_result::blocked;
-        write_error_ = std::strerror(errno);
-        return flush_result::failed;
-      }
-      // Retire the frames written whole; a frame written in part stays first, in flight.
-      auto left = static_cast<std::size_t>(written);
-      std::size_t done = 0, offset = partial_;
-      std::uint32_t state_done = 0;
-      while (done < n) {
-        const std::size_t rest = entries[done].frame.size() - offset;
-        if (left < rest) {
-          offset += left;
-          break;
-        }
-        left -= rest;
-        offset = 0;
-        if (entries[done].kind != delivery::control) ++state_done;
-        ++done;
-      }
-      partial_ = offset;
-      queue_.finish_frames(done);
-      if (state_done != 0) backlog_->fetch_sub(state_done, std::memory_order_relaxed);
-      auto& c = srv_.write_stats[write_counter_stripe()];
-      if (new_write) c.writes.fetch_add(1, std::memory_order_relaxed);
-      c.bytes_out.fetch_add(static_cast<std::uint64_t>(written), std::memory_order_relaxed);
-      if (done != 0) c.frames_out.fetch_add(done, std::memory_order_relaxed);
-      if (done < n) {
-        blocked_ = true;  // the kernel took less than offered: its buffer is full
-        return flush_result::blocked;
+      switch (finish_write_locked(written < 0 ? -errno : written, n)) {
+        case write_outcome::complete:
+        case write_outcome::retry: continue;
+        case write_outcome::blocked: return flush_result::blocked;
+        case write_outcome::failed: return flush_result::failed;
       }
     }
     return flush_result::drained;
@@ -549,10 +697,7 @@ class session : public std::enable_shared_from_this<session> {
   void flush_on_lane(std::unique_lock<std::mutex>& lock) {
     switch (flush_locked()) {
       case flush_result::blocked:
-        // The lane's thread runs its event loop: no EPOLLOUT edge is taken between the EAGAIN
-        // above and this wait, so none is lost.
-        socket_.async_wait(tcp::socket::wait_write,
-                           [self = shared_from_this()](const boost::system::error_code& ec) { self->on_writable(ec); });
+        wait_writable();
         return;
       case flush_result::failed: {
         std::string why = "write failed: " + write_error_;
@@ -567,6 +712,14 @@ class session : public std::enable_shared_from_this<session> {
         }
         return;
     }
+  }
+
+  /// The lane's thread, after EAGAIN or a partial write: resume when the socket is writable. The
+  /// lane's thread runs its event loop: no EPOLLOUT edge is taken between the EAGAIN and this
+  /// wait, so none is lost.
+  void wait_writable() {
+    socket_.async_wait(tcp::socket::wait_write,
+                       [self = shared_from_this()](const boost::system::error_code& ec) { self->on_writable(ec); });
   }
 
   /// The lane's thread: a direct write blocked; try again here, then wait for the socket.
@@ -633,6 +786,8 @@ class session : public std::enable_shared_from_this<session> {
   tcp::socket socket_;  // its executor is the lane's io_context (one thread): every handler runs there
   const int fd_ = socket_.native_handle();  // what flush_locked writes to (while !closed_)
   asio::steady_timer idle_;
+  steady::time_point idle_deadline_{};  // the lane's thread: when the session times out
+  bool idle_armed_ = false;             // the lane's thread: a wait on idle_ is pending
   const session_id id_;
   const std::string address_;  // the peer's address (the pending cap's key)
   bool announced_ = false;     // the game heard of it (a valid hello in a free slot); lane only
@@ -648,7 +803,9 @@ class session : public std::enable_shared_from_this<session> {
   outbound_queue queue_;  // its first in_flight() frames are being written
   std::size_t partial_ = 0;      // bytes of the first frame being written already in the socket
   bool blocked_ = false;         // the socket took less than offered: only the lane writes next
-  bool flush_posted_ = false;    // on the lane's ready list (without direct writes)
+  bool flush_posted_ = false;    // on the lane's ready list, or its io_uring write in flight
+  bool write_is_new_ = false;    // the write prepared starts new frames (not the rest of a partial one)
+  std::size_t ring_frames_ = 0;  // frames of the write submitted through the lane's ring
   bool closing_ = false;  // an error frame is queued; close once it is written
   bool closed_ = false;
   std::string close_reason_;
@@ -670,13 +827,143 @@ void io_lane::schedule_many(std::span<std::shared_ptr<session>> sessions) {
 }
 
 void io_lane::drain() {
-  {
-    const std::lock_guard lock(ready_mutex);
-    draining.swap(ready);
-    drain_posted = false;
+  for (unsigned round = 0;; ++round) {
+    {
+      const std::lock_guard lock(ready_mutex);
+      if (ready.empty() && again.empty()) {
+        drain_posted = false;  // the next schedule() posts a new drain
+        return;
+      }
+      if (round == max_drain_rounds) {
+        // Let the lane's reads and timers run; drain_posted stays set, so senders do not post.
+        asio::post(ctx, [this] { drain(); });
+        return;
+      }
+      draining.swap(ready);
+    }
+    for (auto& s : again) draining.push_back(std::move(s));
+    again.clear();
+    if (ring_ok) {
+      write_batched();
+    } else {
+      for (auto& s : draining) s->lane_flush();
+    }
+    draining.clear();
   }
-  for (auto& s : draining) s->lane_flush();
-  draining.clear();
+}
+
+io_lane::~io_lane() { drop_ring(); }
+
+void io_lane::drop_ring() {
+#if ZONE_HAVE_LIBURING
+  if (ring_ok) io_uring_queue_exit(&ring);
+#endif
+  ring_ok = false;
+}
+
+std::optional<std::string> io_lane::init_ring() {
+#if ZONE_HAVE_LIBURING
+  io_uring_params p{};
+  // Every submission is taken whole even where one fails; completions posted without IPIs.
+  p.flags = IORING_SETUP_SUBMIT_ALL | IORING_SETUP_COOP_TASKRUN;
+  int r = io_uring_queue_init_params(ring_entries, &ring, &p);
+  if (r == -EINVAL) {  // a kernel before 5.19 knows neither flag
+    p = io_uring_params{};
+    r = io_uring_queue_init_params(ring_entries, &ring, &p);
+  }
+  if (r < 0) return std::string("io_uring_queue_init: ") + std::strerror(-r);
+  // A send marked MSG_DONTWAIT must fail with EAGAIN instead of waiting in the kernel (the lane
+  // then waits for the socket itself, as with sendmsg): IORING_FEAT_NODROP and the nowait
+  // semantics of socket ops came with 5.5; older kernels are refused.
+  if ((p.features & IORING_FEAT_NODROP) == 0) {
+    io_uring_queue_exit(&ring);
+    return std::string("the kernel's io_uring is too old (no IORING_FEAT_NODROP)");
+  }
+  ring_ok = true;
+  slots.resize(ring_entries);
+  slot_iov.resize(ring_entries);
+  slot_msg.resize(ring_entries);
+  return std::nullopt;
+#else
+  return std::string("built without liburing");
+#endif
+}
+
+void io_lane::write_batched() {
+  unsigned n = 0;
+  for (auto& s : draining) {
+    if (!s->ring_prepare(slot_iov[n], slot_msg[n])) continue;
+    slots[n++] = std::move(s);
+    if (n == ring_entries) {
+      submit_slots(n);
+      n = 0;
+    }
+  }
+  if (n != 0) submit_slots(n);
+}
+
+void io_lane::submit_slots(unsigned n) {
+#if ZONE_HAVE_LIBURING
+  for (unsigned i = 0; i < n; ++i) {
+    io_uring_sqe* sqe = io_uring_get_sqe(&ring);  // never null: at most ring_entries per submission, all reaped
+    const msghdr& m = slot_msg[i];
+    if (m.msg_iovlen == 1) {
+      // One buffer (the common case: a frame a tick): a plain send, no msghdr to import.
+      io_uring_prep_send(sqe, slots[i]->native_fd(), m.msg_iov[0].iov_base, m.msg_iov[0].iov_len, MSG_DONTWAIT | MSG_NOSIGNAL);
+    } else {
+      io_uring_prep_sendmsg(sqe, slots[i]->native_fd(), &m, MSG_DONTWAIT | MSG_NOSIGNAL);
+    }
+    io_uring_sqe_set_data64(sqe, i);
+  }
+  write_batches.fetch_add(1, std::memory_order_relaxed);
+  // MSG_DONTWAIT: every send completes within the submission (EAGAIN rather than a wait), so
+  // waiting for all n completions returns at once.
+  unsigned submitted = 0, reaped = 0;
+  std::string failure;
+  while (submitted < n) {
+    const int r = io_uring_submit_and_wait(&ring, n - submitted);
+    if (r >= 0) {
+      submitted += static_cast<unsigned>(r);
+      if (r == 0) break;
+      continue;
+    }
+    if (r == -EINTR || r == -EAGAIN || r == -EBUSY) continue;
+    failure = std::string("io_uring submit: ") + std::strerror(-r);
+    break;
+  }
+  while (reaped < submitted) {
+    io_uring_cqe* cqe = nullptr;
+    const int r = io_uring_wait_cqe(&ring, &cqe);
+    if (r == -EINTR) continue;
+    if (r < 0) {
+      failure = std::string("io_uring wait: ") + std::strerror(-r);
+      break;
+    }
+    const auto i = static_cast<unsigned>(io_uring_cqe_get_data64(cqe));
+    const int res = cqe->res;
+    io_uring_cqe_seen(&ring, cqe);
+    ++reaped;
+    if (i < n && slots[i]) {
+      slots[i]->ring_complete(res, again);
+      slots[i].reset();
+    }
+  }
+  if (!failure.empty() || reaped < n) {
+    ring_ok = false;  // the ring may still hold answers to these writes: never read it again
+    // Never seen: the kernel refused the submission. The sessions it left without an answer
+    // cannot know what reached their sockets; they are closed (their clients reconnect).
+    spdlog::error("I/O lane: {} ({} of {} writes answered): closing their sessions", failure.empty() ? "io_uring" : failure,
+                  reaped, n);
+    for (unsigned i = 0; i < n; ++i) {
+      if (slots[i]) {
+        slots[i]->ring_complete(-EIO, again);
+        slots[i].reset();
+      }
+    }
+  }
+#else
+  (void)n;
+#endif
 }
 
 void server::impl::remove(session_id id) {
@@ -835,6 +1122,25 @@ std::optional<std::string> server::start() {
     return "cannot listen on " + m.opt.address + ":" + std::to_string(m.opt.port) + ": " + ec.message();
   }
   m.bound_port = m.acceptor.local_endpoint(ec).port();
+  // The writes: io_uring on every lane, or sendmsg on every lane.
+  std::string why_not;
+  if (m.opt.batching != write_batching::sendmsg) {
+    for (auto& lane : m.lanes) {
+      if (auto err = lane->init_ring()) {
+        why_not = *err;
+        break;
+      }
+    }
+    m.uring = why_not.empty();
+    if (!m.uring) {
+      for (auto& lane : m.lanes) lane->drop_ring();  // all lanes alike
+      if (m.opt.batching == write_batching::uring) {
+        boost::system::error_code ignored;
+        m.acceptor.close(ignored);
+        return "io_uring writes asked for but unavailable: " + why_not;
+      }
+    }
+  }
   const auto n = static_cast<unsigned>(m.lanes.size());
   for (auto& lane : m.lanes) lane->work.emplace(lane->ctx.get_executor());
   m.do_accept();
@@ -851,9 +1157,11 @@ std::optional<std::string> server::start() {
     });
   }
   m.running = true;
-  spdlog::info("zone server listening on {}:{} ({} I/O threads{}, {})", m.opt.address, port(), n,
+  spdlog::info("zone server listening on {}:{} ({} I/O threads{}, {}, {})", m.opt.address, port(), n,
                m.opt.io_thread_nice != 0 ? " at nice " + std::to_string(m.opt.io_thread_nice) : std::string(),
-               m.opt.direct_writes ? "direct writes" : "I/O-thread writes");
+               m.opt.direct_writes ? "direct writes" : "I/O-thread writes",
+               m.uring ? std::string("batched through io_uring")
+                       : "sendmsg per write" + (why_not.empty() ? std::string() : " (io_uring unavailable: " + why_not + ")"));
   return std::nullopt;
 }
 
@@ -1005,6 +1313,7 @@ server_stats server::stats() const {
   st.frames_in = c.frames_in.load();
   st.frames_out = frames_out;
   st.writes = writes;
+  st.write_batches = impl_->write_batches.load();
   st.bytes_in = c.bytes_in.load();
   st.bytes_out = bytes_out;
   st.frames_dropped = c.frames_dropped.load();
@@ -1015,5 +1324,7 @@ server_stats server::stats() const {
   st.pings_dropped = c.pings_dropped.load();
   return st;
 }
+
+bool server::uses_io_uring() const { return impl_->uring; }
 
 }  // namespace zone::net

@@ -15,11 +15,23 @@
 #include <optional>
 #include <span>
 #include <string>
+#include <string_view>
 #include <vector>
 
 #include "protocol.h"
 
 namespace zone::net {
+
+/// How the I/O threads hand their writes to the kernel (server_options::batching).
+enum class write_batching : std::uint8_t {
+  automatic,  ///< io_uring where the kernel allows it (and the build has liburing), else sendmsg
+  uring,      ///< io_uring, or start() fails saying why
+  sendmsg,    ///< one sendmsg per session write
+};
+/// "auto", "io_uring", "sendmsg".
+[[nodiscard]] const char* to_string(write_batching b);
+/// Parses "auto", "io_uring" (or "uring"), "sendmsg".
+[[nodiscard]] std::optional<write_batching> parse_write_batching(std::string_view s);
 
 struct server_options {
   std::string address = "127.0.0.1";
@@ -50,6 +62,14 @@ struct server_options {
   /// write is made by the session's I/O thread (one wake-up per I/O thread for a burst of sends,
   /// then one gathered write per session). Either way one write at a time per session, in order.
   bool direct_writes = false;
+  /// How an I/O thread writes the sessions on its ready list. With io_uring, one drain prepares
+  /// every ready session's write (a gathered sendmsg each, as below) and submits them to the
+  /// kernel together: one system call for up to 256 sessions instead of one each, and no epoll
+  /// round trip. Each completion is then handled as a sendmsg's return would be (retire the frames
+  /// written, a partial write or EAGAIN waits for the socket, an error closes). Still one write in
+  /// flight per session, in queue order; the slow-client rules are unchanged. Writes made by the
+  /// sending thread (direct_writes) stay plain sendmsg calls.
+  write_batching batching = write_batching::automatic;
   /// Nice value the I/O threads give themselves (0 = unchanged; 1-19 = lower priority than the
   /// game's threads, which an unprivileged process may always ask for): where the I/O threads
   /// share cores with the tick's workers, the scheduler then lets a worker run its part of a tick
@@ -179,6 +199,8 @@ struct server_stats {
   std::uint64_t frames_out = 0;
   std::uint64_t writes = 0;            ///< gathered socket writes (one may carry several frames; one the
                                        ///< socket takes in part goes on in more sendmsg calls)
+  std::uint64_t write_batches = 0;     ///< io_uring submissions of the I/O threads (each carries the
+                                       ///< writes of several sessions); 0 without io_uring
   std::uint64_t bytes_in = 0;
   std::uint64_t bytes_out = 0;
   std::uint64_t frames_dropped = 0;    ///< state frames not delivered to slow clients (dropped or superseded)
@@ -234,6 +256,8 @@ class server {
   void disconnect(session_id s, error_code code, std::string reason);
 
   [[nodiscard]] server_stats stats() const;
+  /// Whether the I/O threads write through io_uring (after start; server_options::batching).
+  [[nodiscard]] bool uses_io_uring() const;
   [[nodiscard]] const server_options& options() const;
 
   /// Microseconds on the host's CLOCK_MONOTONIC (steady_clock): what pong and tick updates carry,

@@ -10,6 +10,7 @@ packages=(
   libspdlog-dev libfmt-dev
   doctest-dev
   libcgal-dev libgmp-dev libmpfr-dev
+  liburing-dev pkg-config
   python3
   clang libclang-rt-14-dev  # the fuzz targets (fuzz/, scripts/fuzz.sh): clang's libFuzzer, ASan, UBSan
 )

@@ -2,8 +2,13 @@
 // on every core) side by side where it finishes within a minute. Prints tables and writes CSV.
 //
 //   bench_gpu [--csv FILE] [--csv-lbvh FILE] [--only LIST] [--max-n N] [--reps R] [--cgal-max-n N]
-//     LIST: comma-separated of floors,targets,wsweep,esweep,eplan,nsweep,cells,doc,gauss,ablation,lbvh
+//     LIST: comma-separated of floors,public,targets,wsweep,esweep,eplan,nsweep,cells,doc,gauss,ablation,lbvh
 //           (default: all but wsweep, esweep, eplan)
+//
+// public (first): the documented call of docs/embedding.md and examples/find_pairs, timed on the
+// six target sets beside the best path below: make_finder(auto) once, pinned_boxes over the set,
+// gpu::find_view per call. The best path: a PBIG finder with the default options, pinned input,
+// find_pairs_view. Also pair_finder::find (pairs copied into a caller's pair_list).
 //
 // lbvh: PBIG, LBVH, the auto finder, the CPU grid finder and CGAL (box_self_intersection_d,
 // sequential; when its headers are found, up to --cgal-max-n boxes) side by side on the paper's
@@ -76,7 +81,7 @@ std::uint64_t mix(std::uint64_t x) {
 }
 
 /// Order-independent digest of a pair list (each pair taken as (min, max)).
-pair_digest digest(const zi::pair_list& p, zi::thread_pool& pool) {
+pair_digest digest(std::span<const zi::id_pair> p, zi::thread_pool& pool) {
   const std::size_t chunks = std::max<std::size_t>(1, std::min<std::size_t>(256, p.size() / 65536));
   std::vector<pair_digest> part(chunks);
   zi::run_tasks(&pool, chunks, [&](std::size_t c) {
@@ -516,11 +521,85 @@ constexpr target_set target_sets[] = {{"uniform", 100000, 0.25}, {"uniform", 100
                                       {"uniform", 10000000, 20}, {"gaussian", 1000000, 4},
                                       {"doc:10", 1000000, 8},    {"gaussian", 10000000, 250}};
 
+
+/// The public experiment (see the header comment): per target set, the documented call (auto
+/// finder, pinned input, find_view) and the best path (PBIG, default options, pinned input,
+/// find_pairs_view), one warm-up each, then rounds timing each once (alternating which goes
+/// first); medians; the pair sets compared (count + order-independent hash); then
+/// pair_finder::find of the auto finder into a reused pair_list.
+void public_section(bench& b, std::uint64_t seed) {
+  std::printf("\n== The documented call (docs/embedding.md): make_finder(auto), pinned_boxes, find_view; beside "
+              "the best path (PBIG defaults, pinned, find_pairs_view)\n");
+  std::printf("%-9s %9s %11s %10s %-6s %10s %7s %10s %10s %s\n", "set", "N", "pairs", "public_ms", "choice", "best_ms",
+              "ratio", "pub_min", "find_ms", "same_pairs");
+  bool all_within = true;
+  for (const target_set& t : target_sets) {
+    if (t.n > b.max_n) continue;
+    const zi::box_set s = *zi::generate_named(t.kind, t.n, seed);
+    const zg::pinned_boxes pin(s);
+    std::string why;
+    auto pub = zg::make_finder(zg::finder_backend::auto_select, &b.pool, &why);
+    zg::pbig_options o;
+    o.decode_pool = &b.pool;
+    zi::pair_finder& best = b.gpu(o);
+    std::span<const zi::id_pair> pv, bv;
+    if (zg::find_view(*pub, s, pv) || zg::find_pairs_view(best, s, bv)) {  // warm-ups
+      std::fprintf(stderr, "bench_gpu: invalid input\n");
+      std::exit(2);
+    }
+    const int reps = t.n >= 10000000 ? 5 : 21;
+    std::vector<double> tp, tb;
+    for (int k = 0; k < reps; ++k) {
+      for (int j = 0; j < 2; ++j) {
+        const bool public_now = (j == 0) == (k % 2 == 0);
+        const auto t0 = clock_type::now();
+        if (public_now) (void)zg::find_view(*pub, s, pv); else (void)zg::find_pairs_view(best, s, bv);
+        (public_now ? tp : tb).push_back(ms_since(t0));
+      }
+    }
+    gpu_result gp, gb;
+    gp.e2e_ms = median(tp);
+    gp.e2e_min_ms = *std::min_element(tp.begin(), tp.end());
+    gb.e2e_ms = median(tb);
+    gb.e2e_min_ms = *std::min_element(tb.begin(), tb.end());
+    gp.dig = digest(pv, b.pool);
+    gb.dig = digest(bv, b.pool);
+    gp.stats = pub->stats();
+    gb.stats = best.stats();
+    gb.report = *zg::last_pbig_report(best);
+    const auto choice = zg::last_auto_choice(*pub);
+    const std::string choice_name = choice ? std::string(zg::backend_name(*choice)) : "?";
+    // The pair_finder interface: the same finder, the pairs copied into a list the caller owns.
+    (void)pub->find(s, b.out);
+    std::vector<double> tf;
+    for (int k = 0; k < (t.n >= 10000000 ? 3 : 7); ++k) {
+      const auto t0 = clock_type::now();
+      (void)pub->find(s, b.out);
+      tf.push_back(ms_since(t0));
+    }
+    gp.find_ms = median(tf);
+    const bool same = gp.dig == gb.dig && digest(b.out, b.pool) == gb.dig;
+    const double ratio = gp.e2e_ms / gb.e2e_ms;
+    all_within = all_within && ratio <= 1.15 && same;
+    std::printf("%-9s %9zu %11llu %10.3f %-6s %10.3f %6.2fx %10.3f %10.3f %s%s\n", t.kind, t.n,
+                static_cast<unsigned long long>(gp.dig.count), gp.e2e_ms, choice_name.c_str(), gb.e2e_ms, ratio,
+                gp.e2e_min_ms, gp.find_ms, same ? "yes" : "MISMATCH", pin.active() ? "" : " (input NOT pinned)");
+    std::fflush(stdout);
+    cpu_result c;  // rows compare the two paths with each other, not with the CPU finder
+    std::string param = "auto->";
+    param += choice_name;
+    b.row("public", t.kind, t.n, param, "public+pinned", gp, c);
+    b.row("public", t.kind, t.n, "best", opts_name(o) + "+pinned", gb, c);
+  }
+  std::printf("  the documented call within 1.15x of the best path on every set, same pairs: %s\n",
+              all_within ? "MET" : "missed");
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
   bench b;
-  std::string only = "floors,targets,nsweep,cells,doc,gauss,ablation,lbvh";
+  std::string only = "floors,public,targets,nsweep,cells,doc,gauss,ablation,lbvh";
   std::string csv_path = "bench_gpu.csv";
   std::string csv_lbvh = "bench_lbvh.csv";
   std::size_t cgal_max_n = 1000000;
@@ -543,7 +622,7 @@ int main(int argc, char** argv) {
       std::printf(
           "bench_gpu: the PBIG paper's experiments on the GPU, PBIG beside LBVH, auto, the CPU grid finder and CGAL\n\n"
           "usage: bench_gpu [--csv FILE] [--csv-lbvh FILE] [--only LIST] [--max-n N] [--reps R] [--cgal-max-n N]\n"
-          "  --only LIST       comma-separated of floors,targets,wsweep,esweep,eplan,nsweep,cells,doc,gauss,ablation,lbvh\n"
+          "  --only LIST       comma-separated of floors,public,targets,wsweep,esweep,eplan,nsweep,cells,doc,gauss,ablation,lbvh\n"
           "                    (default: all but wsweep, esweep, eplan)\n"
           "  --csv FILE        PBIG rows as CSV (default bench_gpu.csv)\n"
           "  --csv-lbvh FILE   the lbvh experiment's rows as CSV (default bench_lbvh.csv)\n"
@@ -575,6 +654,7 @@ int main(int argc, char** argv) {
   }();
   const std::uint64_t seed = 42;
 
+  if (want("public")) public_section(b, seed);
   if (want("targets")) {
     print_head("Targets (issue 3): end to end, all optimisations");
     for (const target_set& t : target_sets) {

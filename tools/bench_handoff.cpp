@@ -58,6 +58,7 @@ struct options {
   bool many = true;         // --mode many (send_many + frame_arena) or send
   std::size_t chunk = 16;   // sessions per send_many call (the zone's clients per replication task)
   bool direct_writes = false;
+  write_batching batching = write_batching::automatic;
 };
 
 bool parse(int argc, char** argv, options& o, bool& help) {
@@ -79,6 +80,11 @@ bool parse(int argc, char** argv, options& o, bool& help) {
     else if (a == "--max-backlog") o.max_backlog = static_cast<std::uint32_t>(std::strtoul(v, nullptr, 10));
     else if (a == "--chunk") o.chunk = std::strtoull(v, nullptr, 10);
     else if (a == "--direct-writes") o.direct_writes = std::string(v) == "1";
+    else if (a == "--write-batching") {
+      const auto b = parse_write_batching(v);
+      if (!b) return false;
+      o.batching = *b;
+    }
     else if (a == "--mode" && (std::string(v) == "many" || std::string(v) == "send")) o.many = std::string(v) == "many";
     else return false;
   }
@@ -102,13 +108,16 @@ int main(int argc, char** argv) {
                  "[--frame-bytes 600] [--rate 30 (0: back to back)] [--max-backlog 2 (0: off)]\n"
                  "                     [--mode many|send (default many: frame_arena + send_many, the zone server's "
                  "way; send: make_shared_frame + send per frame)] [--chunk 16 (sessions per send_many)]\n"
-                 "                     [--direct-writes 0|1 (default 0: the I/O threads write)]\n");
+                 "                     [--direct-writes 0|1 (default 0: the I/O threads write)]\n"
+                 "                     [--write-batching auto|io_uring|sendmsg (default auto: io_uring where the "
+                 "kernel allows it)]\n");
     return help ? 0 : 64;
   }
   spdlog::set_level(spdlog::level::warn);
   server_options so;
   so.io_threads = o.io_threads;
   so.direct_writes = o.direct_writes;
+  so.batching = o.batching;
   so.max_connections = o.sessions + 16;
   so.max_pending = so.max_pending_per_address = o.sessions + 16;  // every client connects at once from loopback
   so.idle_timeout = std::chrono::hours(1);
@@ -255,11 +264,12 @@ int main(int argc, char** argv) {
   const double server_cpu = (p1 - p0) - reader_cpu;
   const double frames = static_cast<double>(sent.load());
 
-  std::printf("bench-handoff: %zu sessions, %zu ticks at %s, %u senders, %u I/O threads, %zu-byte frames, pacing %u, %s, %s\n",
+  std::printf("bench-handoff: %zu sessions, %zu ticks at %s, %u senders, %u I/O threads, %zu-byte frames, pacing %u, %s, %s, %s\n",
               o.sessions, o.ticks, o.rate_hz > 0 ? (std::to_string(o.rate_hz) + " Hz").c_str() : "back to back",
               o.senders, o.io_threads, payload.size(), o.max_backlog,
               o.many ? ("send_many of " + std::to_string(o.chunk) + " + frame_arena").c_str() : "send per frame",
-              o.direct_writes ? "direct writes" : "I/O-thread writes");
+              o.direct_writes ? "direct writes" : "I/O-thread writes",
+              srv.uses_io_uring() ? "io_uring batches" : "sendmsg per write");
   std::printf("| frames handed off | held (paced) | written | dropped | resyncs | wall s |\n");
   std::printf("|---|---|---|---|---|---|\n");
   std::printf("| %llu | %llu | %llu | %llu | %llu | %.2f |\n", static_cast<unsigned long long>(sent.load()),
@@ -267,12 +277,14 @@ int main(int argc, char** argv) {
               static_cast<unsigned long long>(s1.frames_out - s0.frames_out),
               static_cast<unsigned long long>(s1.frames_dropped - s0.frames_dropped),
               static_cast<unsigned long long>(s1.resyncs_requested - s0.resyncs_requested), wall);
-  std::printf("| senders' CPU per frame | server CPU per frame (senders + I/O) | hand-off wall per tick p50 / p99 | "
-              "senders' CPU per tick p50 | reader CPU per frame |\n");
-  std::printf("|---|---|---|---|---|\n");
-  std::printf("| %.2f us | %.2f us | %.3f / %.3f ms | %.3f ms | %.2f us |\n", senders_cpu_total / frames * 1e6,
-              server_cpu / frames * 1e6, percentile(tick_wall_ms, 0.5), percentile(tick_wall_ms, 0.99),
-              percentile(tick_sender_cpu_ms, 0.5), reader_cpu / frames * 1e6);
+  const auto writes = s1.writes - s0.writes, batches = s1.write_batches - s0.write_batches;
+  std::printf("| senders' CPU per frame | I/O threads' CPU per frame | server CPU per frame (senders + I/O) | hand-off wall per tick p50 / p99 | "
+              "senders' CPU per tick p50 | reader CPU per frame | writes per io_uring submission |\n");
+  std::printf("|---|---|---|---|---|---|---|\n");
+  std::printf("| %.2f us | %.2f us | %.2f us | %.3f / %.3f ms | %.3f ms | %.2f us | %s |\n", senders_cpu_total / frames * 1e6,
+              (server_cpu - senders_cpu_total) / frames * 1e6, server_cpu / frames * 1e6, percentile(tick_wall_ms, 0.5),
+              percentile(tick_wall_ms, 0.99), percentile(tick_sender_cpu_ms, 0.5), reader_cpu / frames * 1e6,
+              batches > 0 ? std::to_string(static_cast<double>(writes) / static_cast<double>(batches)).c_str() : "-");
   srv.stop();
   for (const int fd : fds) ::close(fd);
   return 0;

@@ -41,6 +41,7 @@
 #include <vector>
 
 #include "finders.h"
+#include "replication.h"
 #include "visibility.h"
 #include "interest.h"
 #include "protocol.h"
@@ -92,7 +93,10 @@ std::string load_average() {
 
 // ---- Options --------------------------------------------------------------------------------
 
-enum class replicate_mode { serial, parallel, both };
+/// serial: build() one by one; parallel (= cpu): build_many on the pool; both: the two, compared;
+/// gpu: build_many on the GPU replication engine; gpu_vs_cpu: the engine (timed as the tick's)
+/// and the CPU build_many each tick, frames compared byte for byte.
+enum class replicate_mode { serial, parallel, both, gpu, gpu_vs_cpu };
 
 struct options {
   std::size_t entities = 20000;
@@ -110,13 +114,20 @@ struct options {
   bool view = true;  // GPU finders / auto: the tracker reads the finder's buffer (gpu::find_view)
   std::string interest = "auto";  // auto | gpu | host (zone_config::interest)
   replicate_mode replicate = replicate_mode::parallel;
+  bool replicate_auto = true;  // --replicate auto: gpu when a device is usable
   std::size_t budget = 8 * 1024;
   std::uint32_t clients_per_task = 16;
   std::uint32_t snapshot = 16;  // replication_options::snapshot_entities_per_client
   float hysteresis = 4;
   std::uint32_t max_visible = 0;
   std::vector<double> sweep_w;
+  double density = 0;      // entities per km^2 (the world grows with N); 0 = the config's fixed world
+  std::string summary_csv;  // one line per run appended (the growth curve)
 };
+
+/// --density's reference: with the default NPC mix, about 100 visible entities per entity
+/// (measured: docs/zone-benchmarks.md, "Growth past 100,000").
+constexpr double reference_density = 15000;
 
 constexpr const char* usage = R"(bench-zone: the zone server's tick (world step + replication) without sockets
 
@@ -136,13 +147,24 @@ Usage: bench-zone [options]
   --finder NAME      pair finder: cpu (grid finder on the pool) | cpu-1t | brute | gpu (= pbig) |
                      pbig | lbvh | auto (gpu/finders.h) (default cpu)
   --w W              grid finder's W (min_boxes_per_cell; default: the finder's default)
-  --replicate MODE   serial (one writer, this thread) | parallel (build_many on the pool) | both
-                     (both each tick, frames compared byte for byte) (default parallel)
+  --replicate MODE   cpu (= parallel: build_many on the pool) | gpu (build_many's decisions on the
+                     GPU replication engine, as zone-server --replicate gpu; exit 64 without a
+                     device) | auto (gpu when a device is usable, else cpu) | serial (build()
+                     one by one on this thread) | both (serial and parallel each tick, frames
+                     compared) | gpu-vs-cpu (the engine, timed as the tick's, and the CPU
+                     build_many each tick, frames compared byte for byte) (default auto)
   --budget BYTES     per-client byte budget (default 8192)
   --clients-per-task N  replication chunk size (default 16)
   --snapshot N       build_many snapshots the entities when clients * N >= entities; 0 = never
                      (replication_options::snapshot_entities_per_client, default 16)
   --hysteresis M     (default 4)   --max-visible N (default 0 = no cap)
+  --density D        constant density: the world's x and y edges grow with the entity count
+                     (NPCs + bosses + clients) to hold D entities per km^2 (height unchanged),
+                     so each entity sees about as many others whatever N; 15000 gives ~100
+                     visible per entity with the default mix (default 0: the fixed 4,096 m world,
+                     where density grows with N). "ref" = 15000
+  --summary-csv FILE append one line for this run (entities, world, visible per entity, tick and
+                     interest percentiles, setup time, load): the growth curve, one run per N
   --interest WHERE   auto (the GPU visibility engine when a device is usable and --max-visible is
                      0, else host) | gpu (the engine, or exit 64) | host (the finder and the host
                      diff), as zone-server's --interest (default auto)
@@ -222,11 +244,16 @@ std::optional<std::string> parse_args(int argc, char** argv, options& o, bool& h
       if (!value()) return need("a finder name");
       o.finder = std::string(v);
     } else if (a == "--replicate") {
-      if (!value()) return need("serial|parallel|both");
+      const char* modes = "cpu|gpu|auto|serial|parallel|both|gpu-vs-cpu";
+      if (!value()) return need(modes);
+      o.replicate_auto = false;
       if (v == "serial") o.replicate = replicate_mode::serial;
-      else if (v == "parallel") o.replicate = replicate_mode::parallel;
+      else if (v == "parallel" || v == "cpu") o.replicate = replicate_mode::parallel;
       else if (v == "both") o.replicate = replicate_mode::both;
-      else return need("serial|parallel|both");
+      else if (v == "gpu") o.replicate = replicate_mode::gpu;
+      else if (v == "gpu-vs-cpu") o.replicate = replicate_mode::gpu_vs_cpu;
+      else if (v == "auto") o.replicate_auto = true;
+      else return need(modes);
     } else if (a == "--clients-per-task") {
       if (!value()) return need("a count");
       const auto n = number<std::uint32_t>(v);
@@ -251,6 +278,18 @@ std::optional<std::string> parse_args(int argc, char** argv, options& o, bool& h
       if (!value()) return need("auto, gpu or host");
       o.interest = std::string(v);
       if (o.interest != "auto" && o.interest != "gpu" && o.interest != "host") return need("auto, gpu or host");
+    } else if (a == "--density") {
+      if (!value()) return need("entities per km^2");
+      if (v == "ref") {
+        o.density = reference_density;
+      } else {
+        const auto r = real(v);
+        if (!r || *r < 0 || *r > 1e9) return need("entities per km^2 in [0, 1e9] or ref");
+        o.density = *r;
+      }
+    } else if (a == "--summary-csv") {
+      if (!value()) return need("a file name");
+      o.summary_csv = std::string(v);
     } else if (a == "--find-into-list") {
       o.view = false;
     } else if (a == "--csv") {
@@ -270,6 +309,11 @@ std::optional<std::string> parse_args(int argc, char** argv, options& o, bool& h
     }
   }
   if (o.ticks == 0) return std::string("--ticks must be >= 1");
+  // The limit the zone checks too (validate), said here with the option's name.
+  if (o.entities > zone::max_entities || o.clients > zone::max_entities - std::min(o.entities, zone::max_entities) - 1) {
+    return "--entities + --clients + 1 boss must be at most " + std::to_string(zone::max_entities) +
+           " (the most entities one zone holds)";
+  }
   return std::nullopt;
 }
 
@@ -353,6 +397,13 @@ int main(int argc, char** argv) {
   cfg.hysteresis = opt.hysteresis;
   cfg.max_visible = opt.max_visible;
   cfg.client_byte_budget = opt.budget;
+  if (opt.density > 0) {
+    // Square world of (NPCs + bosses + clients) / density km^2; at least 1 m.
+    const double n = static_cast<double>(opt.entities + cfg.boss_count + opt.clients);
+    const auto edge = static_cast<float>(std::max(1.0, std::sqrt(n / opt.density) * 1000.0));
+    cfg.world.hi.x = cfg.world.lo.x + edge;
+    cfg.world.hi.y = cfg.world.lo.y + edge;
+  }
   if (auto err = validate(cfg)) {
     std::cerr << "bench-zone: " << *err << "\n";
     return 64;
@@ -378,6 +429,14 @@ int main(int argc, char** argv) {
     }
   }
   const auto setup0 = clock_type::now();
+  // Progress on stdout during set-up, flushed: a million entities take seconds to place, and the
+  // first ticks (the engine sizes its buffers) longer than the rest.
+  std::printf("bench-zone: placing %zu NPCs + %zu bosses + %zu clients in a %.0f x %.0f x %.0f m world%s\n", opt.entities,
+              cfg.boss_count, opt.clients, static_cast<double>(cfg.world.hi.x - cfg.world.lo.x),
+              static_cast<double>(cfg.world.hi.y - cfg.world.lo.y), static_cast<double>(cfg.world.hi.z - cfg.world.lo.z),
+              opt.density > 0 ? (" (constant density " + std::to_string(static_cast<long long>(opt.density)) + " per km^2)").c_str()
+                              : "");
+  std::fflush(stdout);
   world.populate();
 
   // Players and their replication clients, as zone-server makes them: spawned uniformly within
@@ -393,7 +452,22 @@ int main(int argc, char** argv) {
   ro.digest_period = std::max<std::uint32_t>(1, cfg.digest_every);
   ro.clients_per_task = opt.clients_per_task;
   ro.snapshot_entities_per_client = opt.snapshot;
-  replicator repl(ro), repl_serial(ro);  // repl_serial: the serial reference in --replicate both
+  replicator repl(ro), repl_serial(ro);  // repl_serial: the reference in --replicate both and gpu-vs-cpu
+  // As zone-server --replicate: the decisions on the GPU replication engine when asked and possible.
+  std::unique_ptr<interest::replication_engine> rep_engine;
+  if (opt.replicate_auto || opt.replicate == replicate_mode::gpu || opt.replicate == replicate_mode::gpu_vs_cpu) {
+    std::string why;
+    rep_engine = gpu::make_replication_engine(&why);
+    if (rep_engine) {
+      if (opt.replicate_auto) opt.replicate = replicate_mode::gpu;
+      repl.set_engine(rep_engine.get());
+    } else if (!opt.replicate_auto) {
+      std::cerr << "bench-zone: replicate on the GPU cannot run here: " << why << "\n";
+      return 64;
+    }
+  }
+  const bool on_gpu = opt.replicate == replicate_mode::gpu || opt.replicate == replicate_mode::gpu_vs_cpu;
+  const bool reference = opt.replicate == replicate_mode::both || opt.replicate == replicate_mode::gpu_vs_cpu;
   std::vector<entity_id> players;
   std::vector<replication_request> requests;
   std::mt19937_64 spawn_rng(opt.seed ^ 0x7370776eull);
@@ -417,10 +491,15 @@ int main(int argc, char** argv) {
   for (auto& f : serial_copy) f.reserve(opt.budget + 4096);
   replication_writer serial_writer;
 
+  const double setup_ms = ms_since(setup0);
+  std::printf("bench-zone: placed in %.0f ms; %zu warm-up ticks next\n", setup_ms, opt.warmup);
+  std::fflush(stdout);
   const std::string load_before = load_average();
   std::cout << "bench-zone: " << world.store().size() << " entities (" << opt.entities << " NPCs + bosses, "
             << players.size() << " players/clients), " << world.town_count() << " towns, interest on "
             << (engine ? std::string(engine->name()) + " engine" : "host, finder " + std::string(finder->name()))
+            << ", replication on " << (on_gpu ? "gpu engine" : opt.replicate == replicate_mode::serial ? "cpu, serial" : "cpu")
+            << (opt.replicate == replicate_mode::gpu_vs_cpu ? " (and the cpu, compared)" : "")
             << ", " << pool.size() << " threads (spin " << pool.spin_us() << " us), " << opt.rate << " Hz " << (opt.paced ? "paced" : "back to back")
             << ", " << opt.warmup << " warm-up + " << opt.ticks << " ticks, seed " << opt.seed << "\n";
   std::cout << "load average before: " << load_before << "  (setup " << ms_since(setup0) << " ms)\n";
@@ -431,7 +510,12 @@ int main(int argc, char** argv) {
       s_d_rows{"    rows"}, s_e_pack{"  engine pack"}, s_e_up{"  engine upload"}, s_e_dev{"  engine device"},
       s_e_down{"  engine download"}, s_e_grid{"    grid"}, s_e_query{"    candidates, classified"}, s_e_class{"    scans, enters placed"},
       s_e_write{"    write"}, s_e_host{"  host work (overlapped)"}, s_rep{"replicate"}, s_rep_serial{"replicate 1t"},
-      s_total{"tick"}, s_rep_cpu{"replicate, CPU time (all threads)"}, s_rep_serial_cpu{"replicate 1t, CPU time"};
+      s_total{"tick"}, s_rep_cpu{"replicate, CPU time (all threads)"}, s_rep_serial_cpu{"replicate 1t, CPU time"},
+      s_rg_total{"  engine run"}, s_rg_up{"    upload"}, s_rg_dev{"    device"}, s_rg_down{"    download"};
+  if (opt.replicate == replicate_mode::gpu_vs_cpu) {
+    s_rep_serial.name = "replicate cpu (reference)";
+    s_rep_serial_cpu.name = "replicate cpu, CPU time";
+  }
   std::vector<double> step_allocs, rep_allocs;  // heap allocations per tick (world step; replication)
   std::size_t on_engine_ticks = 0;  // measured ticks whose interest step ran on the engine
   std::vector<double> pairs, candidates, visible, enters, leaves, bytes_per_frame, checks;
@@ -442,6 +526,8 @@ int main(int argc, char** argv) {
       std::chrono::duration_cast<clock_type::duration>(std::chrono::duration<double>(1.0 / opt.rate));
   auto next = clock_type::now();
   const std::size_t total_ticks = opt.warmup + opt.ticks;
+  auto last_progress = clock_type::now();
+  double first_tick_ms = 0;
   for (std::size_t t = 0; t < total_ticks; ++t) {
     if (opt.paced) {
       const auto now = clock_type::now();
@@ -470,12 +556,24 @@ int main(int argc, char** argv) {
       return 1;
     }
     const double step_ms = ms_since(t0);
+    // Progress: the first tick, and a line every 10 s of a long run.
+    if (t == 0) {
+      first_tick_ms = step_ms;
+      std::printf("bench-zone: first tick %.1f ms\n", step_ms);
+      std::fflush(stdout);
+      last_progress = clock_type::now();
+    } else if (clock_type::now() - last_progress > std::chrono::seconds(10)) {
+      std::printf("bench-zone: tick %zu of %zu (last world step %.1f ms)\n", t + 1, total_ticks, step_ms);
+      std::fflush(stdout);
+      last_progress = clock_type::now();
+    }
     const std::uint64_t alloc1 = g_allocations.load();
     double rep_ms = 0, rep_serial_ms = 0, rep_cpu = 0, rep_serial_cpu = 0;
     if (!requests.empty()) {
       const std::uint64_t tick = world.tick();
       const std::uint64_t now_us = tick * 1000;  // deterministic, so frames compare across runs
       if (opt.replicate != replicate_mode::serial) {
+        // parallel, both, gpu, gpu-vs-cpu: build_many (on the engine when set).
         const auto r0 = clock_type::now();
         const double c0 = cpu_ms(CLOCK_PROCESS_CPUTIME_ID);
         repl.build_many(requests, world.store(), world.tracker(), tick, now_us, &pool,
@@ -490,7 +588,19 @@ int main(int argc, char** argv) {
           frame_hash[k] = fnv(0xcbf29ce484222325ull, frame_copy[k]);
         }
       }
-      if (opt.replicate != replicate_mode::parallel) {
+      if (opt.replicate == replicate_mode::gpu_vs_cpu) {
+        // The CPU replicator's build_many: the reference the engine's frames must equal.
+        const auto r0 = clock_type::now();
+        const double c0 = cpu_ms(CLOCK_PROCESS_CPUTIME_ID);
+        repl_serial.build_many(requests, world.store(), world.tracker(), tick, now_us, &pool,
+                               [&](std::size_t k, std::span<const std::uint8_t> frame, const replication_stats&) {
+                                 serial_copy[k].assign(frame.begin(), frame.end());
+                               });
+        rep_serial_ms = ms_since(r0);
+        rep_serial_cpu = cpu_ms(CLOCK_PROCESS_CPUTIME_ID) - c0;
+        for (std::size_t k = 0; k < requests.size(); ++k) frames_mismatch += serial_copy[k] != frame_copy[k] ? 1 : 0;
+      }
+      if (opt.replicate == replicate_mode::serial || opt.replicate == replicate_mode::both) {
         replicator& r = opt.replicate == replicate_mode::both ? repl_serial : repl;
         const auto r0 = clock_type::now();
         const double c0 = cpu_ms(CLOCK_THREAD_CPUTIME_ID);
@@ -520,7 +630,7 @@ int main(int argc, char** argv) {
           sent_updates += frame_stats[k].updates;
           sent_leaves += frame_stats[k].leaves;
           deferred += frame_stats[k].deferred_enters + frame_stats[k].deferred_leaves + frame_stats[k].deferred_updates;
-          view_entries += repl.view(requests[k].client).size();
+          view_entries += repl.view_size(requests[k].client);
         }
       }
     }
@@ -562,6 +672,13 @@ int main(int argc, char** argv) {
     s_rep_serial.v.push_back(rep_serial_ms);
     s_rep_cpu.v.push_back(rep_cpu);
     s_rep_serial_cpu.v.push_back(rep_serial_cpu);
+    if (rep_engine) {
+      const auto& rt = rep_engine->timing();
+      s_rg_total.v.push_back(rt.total_ms);
+      s_rg_up.v.push_back(rt.upload_ms);
+      s_rg_dev.v.push_back(rt.device_ms);
+      s_rg_down.v.push_back(rt.download_ms);
+    }
     s_total.v.push_back(total_ms);
     pairs.push_back(static_cast<double>(ts.pairs));
     candidates.push_back(static_cast<double>(ts.candidates));
@@ -593,8 +710,11 @@ int main(int argc, char** argv) {
   }
   if (!requests.empty()) {
     rows.push_back(&s_rep);
+    if (on_gpu && !s_rg_total.v.empty()) {
+      for (const series* s : {&s_rg_total, &s_rg_up, &s_rg_dev, &s_rg_down}) rows.push_back(s);
+    }
     rows.push_back(&s_rep_cpu);
-    if (opt.replicate == replicate_mode::both) {
+    if (reference) {
       rows.push_back(&s_rep_serial);
       rows.push_back(&s_rep_serial_cpu);
     }
@@ -616,7 +736,11 @@ int main(int argc, char** argv) {
                 static_cast<unsigned long long>(finder->stats().cell_entries),
                 static_cast<unsigned long long>(finder->stats().large_boxes));
   }
-  std::printf("\n");
+  const double visible_per_entity = mean_of(visible) / static_cast<double>(std::max<std::size_t>(1, world.store().size()));
+  std::printf("\nvisible per entity (mean): %.1f; world %.0f x %.0f m, %.0f entities per km^2\n", visible_per_entity,
+              static_cast<double>(cfg.world.hi.x - cfg.world.lo.x), static_cast<double>(cfg.world.hi.y - cfg.world.lo.y),
+              static_cast<double>(world.store().size()) * 1e6 /
+                  (static_cast<double>(cfg.world.hi.x - cfg.world.lo.x) * static_cast<double>(cfg.world.hi.y - cfg.world.lo.y)));
   if (!requests.empty()) {
     const double frames = static_cast<double>(bytes_per_frame.size());
     std::printf("replication: %zu clients, %.2f us per client (p50 tick), CPU time %.2f us per client (mean), frame bytes p50 %.0f p99 %.0f, per frame: enters %.2f, "
@@ -630,6 +754,11 @@ int main(int argc, char** argv) {
     if (opt.replicate == replicate_mode::both) {
       std::printf("; serial vs parallel frames differing: %llu", static_cast<unsigned long long>(frames_mismatch));
     }
+    if (opt.replicate == replicate_mode::gpu_vs_cpu) {
+      std::printf("; gpu vs cpu frames differing: %llu of %llu", static_cast<unsigned long long>(frames_mismatch),
+                  static_cast<unsigned long long>(static_cast<std::uint64_t>(total_ticks) * requests.size()));
+    }
+    if (on_gpu && !repl.engine_error().empty()) std::printf("; GPU ENGINE FAILED: %s", repl.engine_error().c_str());
     std::printf("\n");
   }
   std::printf("heap allocations per measured tick: world step mean %.1f max %.0f", mean_of(step_allocs),
@@ -642,6 +771,33 @@ int main(int argc, char** argv) {
   std::printf("\n");
   std::printf("world digest after the run: %016llx\n", static_cast<unsigned long long>(world.digest()));
   std::printf("load average before: %s, after: %s\n", load_before.c_str(), load_after.c_str());
+
+  if (!opt.summary_csv.empty()) {
+    // One line per run, appended; the header when the file is new or empty.
+    bool fresh = true;
+    {
+      std::ifstream in(opt.summary_csv);
+      fresh = !in || in.peek() == std::ifstream::traits_type::eof();
+    }
+    std::ofstream f(opt.summary_csv, std::ios::app);
+    if (!f) {
+      std::cerr << "bench-zone: cannot write " << opt.summary_csv << "\n";
+      return 1;
+    }
+    if (fresh) {
+      f << "entities,clients,world_x_m,world_y_m,density_per_km2,interest,threads,visible_per_entity,pairs,setup_ms,"
+           "first_tick_ms,tick_p50_ms,tick_p99_ms,tick_max_ms,interest_p50_ms,interest_p99_ms,engine_device_p50_ms,"
+           "behaviours_p50_ms,integrate_p50_ms,ticks,load_before,load_after\n";
+    }
+    f << world.store().size() << ',' << players.size() << ',' << (cfg.world.hi.x - cfg.world.lo.x) << ','
+      << (cfg.world.hi.y - cfg.world.lo.y) << ',' << opt.density << ','
+      << (engine ? std::string(engine->name()) : "host " + std::string(finder->name())) << ',' << pool.size() << ','
+      << visible_per_entity << ',' << mean_of(pairs) << ',' << setup_ms << ',' << first_tick_ms << ','
+      << quantile(s_total.v, 0.5) << ',' << quantile(s_total.v, 0.99) << ','
+      << *std::max_element(s_total.v.begin(), s_total.v.end()) << ',' << quantile(s_interest.v, 0.5) << ','
+      << quantile(s_interest.v, 0.99) << ',' << quantile(s_e_dev.v, 0.5) << ',' << quantile(s_beh.v, 0.5) << ','
+      << quantile(s_int.v, 0.5) << ',' << s_total.v.size() << ",\"" << load_before << "\",\"" << load_after << "\"\n";
+  }
 
   if (!opt.csv.empty()) {
     std::ofstream f(opt.csv);

@@ -32,13 +32,22 @@ std::optional<std::string> validate(const zone_config& c) {
     sum += s;
   }
   if (c.npc_count > 0 && !(sum > 0)) return bad("behaviour shares must not all be 0 when there are NPCs");
-  if (c.npc_count + c.boss_count >= max_entities) return bad("too many NPCs for one zone");
+  // The players (max_clients) come on top at run time: a full store refuses them (server_full).
+  if (c.npc_count > max_entities || c.npc_count + c.boss_count > max_entities) {
+    return bad("npcs + bosses must be at most " + std::to_string(max_entities) + " (the most entities one zone holds: " +
+               std::to_string(entity_index_bits) + " slot bits of a 32-bit handle); got " + std::to_string(c.npc_count) +
+               " + " + std::to_string(c.boss_count));
+  }
   if (!(c.npc_speed >= 0 && c.player_speed >= 0 && std::isfinite(c.npc_speed) && std::isfinite(c.player_speed))) {
     return bad("speeds must be >= 0");
   }
   if (!(c.boss_footprint >= 0 && std::isfinite(c.boss_footprint))) return bad("boss-footprint must be >= 0");
   if (c.io_threads == 0) return bad("io-threads must be >= 1");
   if (c.io_nice < 0 || c.io_nice > 19) return bad("io-nice must be 0 .. 19");
+  static const char* batchings[] = {"auto", "io_uring", "sendmsg"};  // net::parse_write_batching
+  if (std::find(std::begin(batchings), std::end(batchings), c.write_batching) == std::end(batchings)) {
+    return bad("write-batching must be auto, io_uring or sendmsg");
+  }
   if (c.max_frame_bytes < 64) return bad("max-frame-bytes must be >= 64");
   if (c.socket_send_buffer > (std::size_t{1} << 30)) return bad("socket-send-buffer must be <= 1 GiB");
   if (c.client_byte_budget < 256) return bad("client-byte-budget must be >= 256");
@@ -68,6 +77,10 @@ std::optional<std::string> validate(const zone_config& c) {
   static const char* interests[] = {"auto", "gpu", "host"};
   if (std::find(std::begin(interests), std::end(interests), c.interest) == std::end(interests)) {
     return bad("interest must be auto, gpu or host");
+  }
+  static const char* replicates[] = {"auto", "gpu", "cpu"};
+  if (std::find(std::begin(replicates), std::end(replicates), c.replicate) == std::end(replicates)) {
+    return bad("replicate must be auto, gpu or cpu");
   }
   if (c.interest == "gpu" && c.max_visible != 0) return bad("interest gpu does not support max-visible (use auto or host)");
   static const char* levels[] = {"trace", "debug", "info", "warn", "error", "critical", "off"};
@@ -108,6 +121,7 @@ config_result parse_config(int argc, const char* const* argv) {
   interest.add_options()                                                                                     //
       ("finder", po::value(&c.finder)->default_value(c.finder), "pair finder: auto (chosen per tick from the box statistics: GPU when usable, else CPU), cpu, gpu (= pbig), pbig, lbvh, brute")  //
       ("interest", po::value(&c.interest)->default_value(c.interest), "where the interest step runs: auto (the GPU visibility engine when a device is usable and max-visible is 0, else host), gpu, host (the pair finder and the host diff)")  //
+      ("replicate", po::value(&c.replicate)->default_value(c.replicate), "where replication's per-client decisions run: auto (the GPU replication engine when a device is usable, else cpu), gpu, cpu; the frames are the same")  //
       ("hysteresis", po::value(&c.hysteresis)->default_value(c.hysteresis), "leave margin beyond the AOI (m)")  //
       ("max-visible", po::value(&c.max_visible)->default_value(c.max_visible), "cap per observer (0 = none)")   //
       ("aoi-tiny", po::value(&c.aoi_tier[0])->default_value(c.aoi_tier[0]), "AOI half-extent of tier tiny (m)")  //
@@ -144,6 +158,7 @@ config_result parse_config(int argc, const char* const* argv) {
        "SO_SNDBUF of each client socket in bytes (0 = the system's autotuning); bounds how much stale state the kernel holds for a slow client")  //
       ("direct-writes", po::value(&c.direct_writes)->default_value(c.direct_writes), "1: the replication worker that built a frame writes it to the client's socket itself when nothing is queued ahead of it (lower latency, but the sends then lengthen the tick); 0: the I/O threads write every frame")  //
       ("io-nice", po::value(&c.io_nice)->default_value(c.io_nice), "nice value of the I/O threads, 0-19 (above 0: lower priority than the tick's workers where they share cores)")  //
+      ("write-batching", po::value(&c.write_batching)->default_value(c.write_batching), "how the I/O threads write: auto (io_uring where the kernel allows it, else sendmsg), io_uring (or refuse to start), sendmsg (one system call per session write)")  //
       ("inputs-per-second", po::value(&c.inputs_per_second)->default_value(c.inputs_per_second), "input rate limit per client (inputs and teleports; burst half a second's worth); over it inputs are dropped, 200 in a row: error rate_limited")  //
       ("pings-per-second", po::value(&c.pings_per_second)->default_value(c.pings_per_second), "ping rate limit per client (burst one second's worth); over it no pong, 200 in a row: error rate_limited")  //
       ("client-byte-budget", po::value(&c.client_byte_budget)->default_value(c.client_byte_budget), "bytes per client per tick")  //

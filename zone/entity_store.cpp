@@ -12,7 +12,6 @@ namespace zone {
 namespace {
 
 constexpr std::uint32_t invalid_dense = 0xffffffffu;
-constexpr std::uint32_t max_generation = (1u << (32 - entity_index_bits)) - 1;
 
 bool finite(const vec3& v) { return std::isfinite(v.x) && std::isfinite(v.y) && std::isfinite(v.z); }
 bool extent_ok(const vec3& v) { return finite(v) && v.x >= 0 && v.y >= 0 && v.z >= 0; }

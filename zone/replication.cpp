@@ -4,6 +4,8 @@
 #include <atomic>
 #include <functional>
 #include <cmath>
+#include <cstring>
+#include <stdexcept>
 
 #include "zone.h"
 
@@ -26,11 +28,12 @@ void run_each(interest::thread_pool* pool, std::size_t n, F&& task) {
   interest::run_tasks(pool, n, std::ref(task));
 }
 
-/// Upper bound on the bytes one entered entity adds to a frame: the entity_state table (vtable,
-/// fields, padding), its name string and its offset in the enters vector.
-constexpr std::size_t enter_cost_base = 128;
-constexpr std::size_t leave_cost = sizeof(std::uint32_t);
-constexpr std::size_t update_cost = sizeof(net::wire::entity_update);
+/// What each entry costs against the byte budget: net::frame_cost, the closed-form upper bound
+/// that the GPU path computes too (the frame's size is a function of the counts alone).
+constexpr std::size_t enter_cost = net::frame_cost::enter;
+constexpr std::size_t leave_cost = net::frame_cost::leave;
+constexpr std::size_t update_cost = net::frame_cost::update;
+static_assert(update_cost == sizeof(net::wire::entity_update));
 
 /// Entities per task of build_many's snapshot.
 constexpr std::size_t snapshot_chunk = 4096;
@@ -260,7 +263,7 @@ std::span<const std::uint8_t> replicator::build_from(const Source& source, clien
   if (!w.enters_.empty()) {
     std::sort(w.enters_.begin(), w.enters_.end(), by_priority);
     for (const pending& e : w.enters_) {
-      if (!fits(enter_cost_base)) {
+      if (!fits(enter_cost)) {
         st.deferred_enters = static_cast<std::uint32_t>(w.enters_.size() - entered);
         break;
       }
@@ -351,10 +354,186 @@ void replicator::prefetch_client(client_id c) const {
   prefetch(reinterpret_cast<const char*>(s.meta.data()) + 64);
 }
 
+void replicator::reset_all_clients() {
+  for (client_state& s : clients_) {
+    if (!s.active) continue;
+    s.reset_pending = true;
+    s.view.clear();
+    s.meta.clear();
+    s.hash = 0;
+    s.engine_view_size = 0;
+  }
+}
+
+void replicator::set_engine(interest::replication_engine* engine) {
+  engine_ = engine;
+  engine_error_.clear();
+  if (engine_ != nullptr) engine_->forget_all();
+  reset_all_clients();
+}
+
+void replicator::build_on_engine(std::span<const replication_request> requests, const entity_store& store,
+                                 const interest_tracker& tracker, std::uint64_t tick, std::uint64_t server_time_us,
+                                 interest::thread_pool* pool, const frame_sink& sink, const chunk_sink& chunk_done) {
+  const std::size_t n = store.size(), jobs = requests.size();
+  const auto slot_dense = store.slot_dense();
+  // Each job's visible set (the observer's row; empty when it is gone): sizes, then offsets.
+  job_visible_.resize(jobs + 1);
+  const std::size_t chunk = std::max<std::uint32_t>(1, opt_.clients_per_task);
+  const std::size_t chunks = (jobs + chunk - 1) / chunk;
+  const auto visible_of = [&](client_id c) -> std::span<const entity_id> {
+    const std::size_t row = tracker.row_of(clients_[c].observer);
+    return row != entity_store::npos ? tracker.visible(row) : std::span<const entity_id>{};
+  };
+  run_each(pool, chunks, [&](std::size_t ch) {
+    const std::size_t end = std::min(jobs, (ch + 1) * chunk);
+    for (std::size_t k = ch * chunk; k < end; ++k) {
+      job_visible_[k] = static_cast<std::uint32_t>(visible_of(requests[k].client).size());
+    }
+  });
+  std::uint64_t total = 0;
+  for (std::size_t k = 0; k < jobs; ++k) {
+    const std::uint32_t len = job_visible_[k];
+    job_visible_[k] = static_cast<std::uint32_t>(total);
+    total += len;
+  }
+  job_visible_[jobs] = static_cast<std::uint32_t>(total);
+  if (total > 0xffffffffu) throw std::length_error("replication engine: more than 2^32 visible entries");
+
+  // The staging: every entity as the snapshot has it, the slot map, the jobs with their sets.
+  const auto st = engine_->stage(n, slot_dense.size(), jobs, total);
+  const auto ids = store.ids();
+  const auto pos = store.positions();
+  const auto vel = store.velocities();
+  run_each(pool, (n + snapshot_chunk - 1) / snapshot_chunk, [&](std::size_t task) {
+    const std::size_t end = std::min(n, (task + 1) * snapshot_chunk);
+    for (std::size_t k = task * snapshot_chunk; k < end; ++k) {
+      interest::replication_entity& e = st.entities[k];
+      e.x = pos[k].x;
+      e.y = pos[k].y;
+      e.z = pos[k].z;
+      e.id = ids[k];
+      const net::wire::entity_update u = wire_update(ids[k], pos[k], vel[k], quantizer_);
+      static_assert(sizeof(u) == sizeof(e.update));
+      std::memcpy(e.update, &u, sizeof(u));
+    }
+  });
+  if (!slot_dense.empty()) std::memcpy(st.slot_dense, slot_dense.data(), slot_dense.size_bytes());
+  run_each(pool, chunks, [&](std::size_t ch) {
+    const std::size_t end = std::min(jobs, (ch + 1) * chunk);
+    for (std::size_t k = ch * chunk; k < end; ++k) {
+      const client_state& s = clients_[requests[k].client];
+      interest::replication_job& j = st.jobs[k];
+      j.client = requests[k].client;
+      j.flags = s.reset_pending ? interest::job_reset : 0;
+      const std::size_t self = store.index_of(s.observer);
+      if (self != entity_store::npos) {
+        j.flags |= interest::job_has_self;
+        j.eye[0] = pos[self].x;
+        j.eye[1] = pos[self].y;
+        j.eye[2] = pos[self].z;
+      } else {
+        j.eye[0] = j.eye[1] = j.eye[2] = 0;
+      }
+      j.visible_off = job_visible_[k];
+      j.visible_len = job_visible_[k + 1] - job_visible_[k];
+      const auto vis = visible_of(requests[k].client);
+      if (!vis.empty()) std::memcpy(st.visible + j.visible_off, vis.data(), vis.size_bytes());
+    }
+  });
+
+  interest::replication_rules rules;
+  rules.tick = tick;
+  rules.byte_budget = opt_.byte_budget;
+  rules.header_cost = static_cast<std::uint32_t>(net::frame_cost::header);
+  rules.self_cost = static_cast<std::uint32_t>(net::frame_cost::self_position);
+  rules.enter_cost = static_cast<std::uint32_t>(enter_cost);
+  rules.leave_cost = static_cast<std::uint32_t>(leave_cost);
+  rules.update_cost = static_cast<std::uint32_t>(update_cost);
+  rules.near_limit = near_.limit;
+  rules.near_below_sq = near_.below_sq;
+  rules.near_above_sq = near_.above_sq;
+  rules.mid_limit = mid_.limit;
+  rules.mid_below_sq = mid_.below_sq;
+  rules.mid_above_sq = mid_.above_sq;
+  rules.mid_period = mid_period_;
+  rules.far_period = far_period_;
+  rules.slot_mask = entity_index_mask;
+  const auto out = engine_->run(rules, clients_.size());
+
+  // Each frame wraps its record: enters built from the store (full state), leaves and updates
+  // copied as they are. Chunks of requests per task, as on the CPU path.
+  const std::size_t tasks = std::min<std::size_t>(chunks, pool != nullptr ? pool->size() : 1);
+  while (writers_.size() < tasks) writers_.push_back(std::make_unique<replication_writer>());
+  std::atomic<std::size_t> next_chunk{0};
+  const auto kinds = store.kinds();
+  const auto classes = store.visibility_classes();
+  const auto extents = store.presence_half_extents();
+  run_each(pool, tasks, [&](std::size_t task) {
+    net::tick_update_writer& writer = writers_[task]->frame_;
+    for (std::size_t ch = next_chunk.fetch_add(1, std::memory_order_relaxed); ch < chunks;
+         ch = next_chunk.fetch_add(1, std::memory_order_relaxed)) {
+      const std::size_t begin = ch * chunk, end = std::min(jobs, begin + chunk);
+      for (std::size_t k = begin; k < end; ++k) {
+        const replication_request& r = requests[k];
+        const interest::replication_result& res = out.results[k];
+        const interest::replication_job& j = st.jobs[k];
+        client_state& s = clients_[r.client];
+        replication_stats stats;
+        writer.begin(tick, server_time_us, r.last_input_sequence);
+        if ((j.flags & interest::job_reset) != 0) {
+          writer.set_reset(true);
+          stats.reset = true;
+          s.reset_pending = false;
+        }
+        if ((j.flags & interest::job_has_self) != 0) writer.set_self_position({j.eye[0], j.eye[1], j.eye[2]});
+        const std::uint8_t* rec = out.records + res.record_off;
+        const auto* leaves = reinterpret_cast<const std::uint32_t*>(rec);
+        const auto* enters = reinterpret_cast<const std::uint32_t*>(rec + 4 * std::size_t{res.leaves});
+        const auto* updates =
+            reinterpret_cast<const net::wire::entity_update*>(rec + 4 * std::size_t{res.leaves} + 8 * std::size_t{res.enters});
+        for (std::uint32_t e = 0; e < res.enters; ++e) {
+          const std::uint32_t d = enters[2 * e];
+          writer.add_enter({enters[2 * e + 1], static_cast<net::entity_kind>(kinds[d]), classes[d], to_net(pos[d]),
+                            to_net(vel[d]), to_net(extents[d]), {}});
+        }
+        writer.set_leaves({leaves, res.leaves});
+        writer.set_wire_updates({updates, res.updates});
+        s.hash = res.hash;
+        s.engine_view_size = res.view_size;
+        if (opt_.send_digest && (stats.reset || opt_.digest_period <= 1 || tick % opt_.digest_period == 0)) {
+          writer.set_digest({tick, res.hash, res.view_size});
+        }
+        const auto frame = writer.finish();
+        stats.enters = res.enters;
+        stats.leaves = res.leaves;
+        stats.updates = res.updates;
+        stats.deferred_enters = res.deferred_enters;
+        stats.deferred_leaves = res.deferred_leaves;
+        stats.deferred_updates = res.deferred_updates;
+        stats.bytes = frame.size();
+        sink(k, frame, stats);
+      }
+      if (chunk_done) chunk_done(begin, end);
+    }
+  });
+}
+
 void replicator::build_many(std::span<const replication_request> requests, const entity_store& store,
                             const interest_tracker& tracker, std::uint64_t tick, std::uint64_t server_time_us,
                             interest::thread_pool* pool, const frame_sink& sink, const chunk_sink& chunk_done) {
   if (requests.empty()) return;
+  if (on_engine()) {
+    try {
+      build_on_engine(requests, store, tracker, tick, server_time_us, pool, sink, chunk_done);
+      return;
+    } catch (const std::exception& e) {
+      // Nothing reached the sink: this tick is built on the CPU, every client starting over.
+      engine_error_ = e.what();
+      if (engine_error_.empty()) engine_error_ = "replication engine failed";
+      reset_all_clients();
+    }
+  }
   // The snapshot: one quantization per entity rather than one per update sent.
   const std::size_t n = store.size();
   // Each client is sent tens of updates a tick, so with clients at least 1/16 of the entities

@@ -20,6 +20,7 @@
 
 #include "interest.h"
 #include "protocol.h"
+#include "replication_engine.h"
 #include "visibility_engine.h"
 
 namespace zone {
@@ -30,13 +31,17 @@ namespace zone {
 /// A generation-checked entity handle: (generation << entity_index_bits) | slot. Generations run
 /// 1 .. 2^(32 - entity_index_bits) - 1 and wrap back to 1, so a handle is never 0 (null_entity).
 /// A stale handle (its entity destroyed, even if the slot was reused) is rejected by every lookup
-/// until the slot's generation wraps around (4,095 reuses of that one slot).
+/// until the slot's generation wraps around (max_generation = 1,023 reuses of that one slot).
+/// 22 slot bits: up to 4,194,304 entities in one zone (20 bits capped a zone at 1,048,576, below
+/// what the GPU interest engine steps in a tick; docs/zone-benchmarks.md, "Growth").
 using entity_id = std::uint32_t;
 inline constexpr entity_id null_entity = 0;
-inline constexpr unsigned entity_index_bits = 20;
+inline constexpr unsigned entity_index_bits = 22;
 inline constexpr std::uint32_t entity_index_mask = (1u << entity_index_bits) - 1;
 /// Most entities alive at once in one store.
 inline constexpr std::size_t max_entities = std::size_t{1} << entity_index_bits;
+/// The highest generation of a slot (then it wraps to 1).
+inline constexpr std::uint32_t max_generation = (1u << (32 - entity_index_bits)) - 1;
 
 [[nodiscard]] constexpr std::uint32_t slot_of(entity_id id) { return id & entity_index_mask; }
 [[nodiscard]] constexpr std::uint32_t generation_of(entity_id id) { return id >> entity_index_bits; }
@@ -131,6 +136,8 @@ class entity_store {
   /// versions mean equal ids, extents, classes and sees. (A GPU interest engine skips uploading
   /// them then.)
   [[nodiscard]] std::uint64_t layout_version() const { return layout_version_; }
+  /// Dense index by slot (0xffffffff: none), slot_count() entries: the map index_of reads.
+  [[nodiscard]] std::span<const std::uint32_t> slot_dense() const { return slot_dense_; }
 
  private:
   void bump_layout();
@@ -465,8 +472,25 @@ class replicator {
                   const interest_tracker& tracker, std::uint64_t tick, std::uint64_t server_time_us,
                   interest::thread_pool* pool, const frame_sink& sink, const chunk_sink& chunk_done = {});
 
-  /// The client's view as sent so far (sorted ids) and its digest hash.
+  /// Runs build_many's decisions on `engine` (interest/replication_engine.h; the GPU:
+  /// gpu/replication.h), which then holds the clients' views; null: back to the CPU. The frames
+  /// are byte for byte those of the CPU path (tests/zone/test_zone_gpu.cpp). Every active client's
+  /// next frame is a reset (the views start over on the new side). `engine` must outlive the
+  /// replicator or be unset first. If the engine fails (a device error), build_many gives it up
+  /// for good (engine_error() says why) and builds that tick and the next on the CPU, every
+  /// client's next frame a reset. With an engine, build() must not be called, and view() is empty
+  /// (the view lives on the engine); view_hash() and view_size() stay exact.
+  void set_engine(interest::replication_engine* engine);
+  /// True while build_many runs on the engine.
+  [[nodiscard]] bool on_engine() const { return engine_ != nullptr && engine_error_.empty(); }
+  /// Why the engine was given up (empty while it works or when none is set).
+  [[nodiscard]] const std::string& engine_error() const { return engine_error_; }
+
+  /// The client's view as sent so far (sorted ids; empty on an engine) and its digest hash.
   [[nodiscard]] std::span<const entity_id> view(client_id c) const { return clients_[c].view; }
+  [[nodiscard]] std::size_t view_size(client_id c) const {
+    return on_engine() ? clients_[c].engine_view_size : clients_[c].view.size();
+  }
   [[nodiscard]] std::uint64_t view_hash(client_id c) const { return clients_[c].hash; }
   [[nodiscard]] entity_id observer(client_id c) const { return clients_[c].observer; }
   [[nodiscard]] const net::position_quantizer& quantizer() const { return quantizer_; }
@@ -483,6 +507,7 @@ class replicator {
     std::vector<entity_id> view;  // sorted
     std::vector<view_meta> meta;  // parallel to view
     std::uint64_t hash = 0;
+    std::uint32_t engine_view_size = 0;  // with an engine: its view's size after the last frame
   };
   /// One entity in build_many's snapshot, by dense index: what a view entry needs (the id to
   /// check the hint, the position for the tier, the update as sent) in half a cache line.
@@ -507,6 +532,12 @@ class replicator {
                                            replication_writer& writer, replication_stats* stats);
   /// Starts loading what building client c will read first (its state and lists).
   void prefetch_client(client_id c) const;
+  /// build_many on the engine (throws what the engine throws, before any frame reaches the sink).
+  void build_on_engine(std::span<const replication_request> requests, const entity_store& store,
+                       const interest_tracker& tracker, std::uint64_t tick, std::uint64_t server_time_us,
+                       interest::thread_pool* pool, const frame_sink& sink, const chunk_sink& chunk_done);
+  /// Every active client starts over (its next frame is a reset).
+  void reset_all_clients();
 
   replication_options opt_;
   net::position_quantizer quantizer_;
@@ -516,6 +547,9 @@ class replicator {
   std::vector<client_id> free_clients_;
   std::vector<std::unique_ptr<replication_writer>> writers_;  // one per build_many task (thread)
   std::vector<entity_snapshot> snapshot_;                     // build_many's, by dense index
+  interest::replication_engine* engine_ = nullptr;
+  std::string engine_error_;
+  std::vector<std::uint32_t> job_visible_;  // build_on_engine: visible-set size, then offset, by request
 };
 
 // ---------------------------------------------------------------------------------------------
@@ -543,6 +577,10 @@ struct zone_config {
   /// device is usable and max_visible is 0; else the host path), "gpu" (the engine, or refuse to
   /// start), "host" (the pair finder above and the host diff).
   std::string interest = "auto";
+  /// Where replication's per-client decisions run: "auto" (the GPU replication engine,
+  /// gpu/replication.h, when a device is usable; else the CPU replicator), "gpu" (the engine, or
+  /// refuse to start), "cpu". The frames are the same either way (docs/zone.md).
+  std::string replicate = "auto";
   float hysteresis = 4;
   std::uint32_t max_visible = 0;  ///< per observer, 0 = no cap
   /// AOI half-extents of the tiers tiny .. gigantic (metres).
@@ -570,6 +608,9 @@ struct zone_config {
   /// (the kernel's send is then the tick's CPU): docs/zone-benchmarks.md.
   bool direct_writes = false;
   int io_nice = 0;  ///< nice value of the I/O threads (net::server_options::io_thread_nice; 0-19)
+  /// How the I/O threads write (net::server_options::batching): "auto" (io_uring where the kernel
+  /// allows it, else sendmsg), "io_uring" (or refuse to start), "sendmsg".
+  std::string write_batching = "auto";
   double inputs_per_second = 60;
   double pings_per_second = 10;  ///< per client; over it pings get no pong (net::server_options)
   /// Admission (net::server_options): a connection must complete its hello within hello_timeout_s

@@ -2,6 +2,7 @@
 #include "zone_server.h"
 
 #include "finders.h"
+#include "replication.h"
 #include "visibility.h"
 
 #include <spdlog/spdlog.h>
@@ -31,6 +32,7 @@ net::server_options net_options(const zone_config& c) {
   o.socket_send_buffer = c.socket_send_buffer;
   o.direct_writes = c.direct_writes;
   o.io_thread_nice = c.io_nice;
+  o.batching = net::parse_write_batching(c.write_batching).value_or(net::write_batching::automatic);
   o.inputs_per_second = c.inputs_per_second;
   o.input_burst = std::max(1.0, c.inputs_per_second / 2);
   o.pings_per_second = c.pings_per_second;
@@ -109,6 +111,23 @@ zone_server::zone_server(const zone_config& cfg)
   } else if (cfg.interest == "auto") {
     engine_note_ = "max-visible is set (the cap runs on the host)";
   }
+  // Replication's decisions on the GPU (the frames are the CPU replicator's, byte for byte).
+  if (cfg.replicate == "gpu" || cfg.replicate == "auto") {
+    std::string why;
+    replication_engine_ = gpu::make_replication_engine(&why);
+    if (replication_engine_) {
+      replicator_.set_engine(replication_engine_.get());
+    } else if (cfg.replicate == "gpu") {
+      replicate_error_ = "replicate 'gpu' cannot run here: " + why + " (use --replicate auto or cpu)";
+    } else {
+      replicate_note_ = why;
+    }
+  }
+}
+
+std::string zone_server::replication_name() const {
+  if (replicator_.on_engine()) return std::string(replication_engine_->name()) + " engine";
+  return "cpu";
 }
 
 std::string zone_server::interest_name() const {
@@ -133,6 +152,8 @@ std::string zone_server::metrics_text() const {
   t.gauge("zone_clients", "Clients with an entity.", static_cast<double>(stats_.clients));
   t.gauge("zone_interest_pairs", "Pairs found by the last interest step.", static_cast<double>(ts.pairs));
   t.gauge("zone_visible_total", "Sum of visible-set sizes after the last tick.", static_cast<double>(ts.visible));
+  t.gauge("zone_replication_on_gpu", "1 while replication's decisions run on the GPU engine (--replicate), else 0.",
+          replicator_.on_engine() ? 1.0 : 0.0);
   t.counter("zone_replication_frames_total", "Tick updates handed to the network.", static_cast<double>(stats_.frames_sent));
   t.counter("zone_replication_bytes_total", "Bytes of tick updates handed to the network.", static_cast<double>(stats_.bytes_sent));
   t.counter("zone_teleports_total", "Teleport requests applied.", static_cast<double>(stats_.teleports));
@@ -145,6 +166,10 @@ std::string zone_server::metrics_text() const {
   t.counter("zone_net_frames_in_total", "Frames received.", static_cast<double>(ns.frames_in));
   t.counter("zone_net_frames_out_total", "Frames written.", static_cast<double>(ns.frames_out));
   t.counter("zone_net_writes_total", "Socket writes (gathered: one may carry several frames).", static_cast<double>(ns.writes));
+  t.counter("zone_net_write_batches_total", "io_uring submissions of the I/O threads (each carries several sessions' writes).",
+            static_cast<double>(ns.write_batches));
+  t.gauge("zone_net_io_uring", "1 when the I/O threads write through io_uring (--write-batching), else 0.",
+          net_.uses_io_uring() ? 1.0 : 0.0);
   t.counter("zone_net_bytes_in_total", "Bytes received.", static_cast<double>(ns.bytes_in));
   t.counter("zone_net_bytes_out_total", "Bytes written.", static_cast<double>(ns.bytes_out));
   t.counter("zone_frames_held_total", "Client-ticks without a frame because the client had not read its backlog yet.",
@@ -214,6 +239,7 @@ std::optional<std::string> zone_server::start() {
   if (auto err = validate(cfg_)) return err;
   if (!finder_error_.empty()) return finder_error_;
   if (!engine_error_.empty()) return engine_error_;
+  if (!replicate_error_.empty()) return replicate_error_;
   if (!cfg_.tick_csv.empty()) {
     tick_csv_ = std::fopen(cfg_.tick_csv.c_str(), "w");
     if (!tick_csv_) return "cannot write tick-csv file '" + cfg_.tick_csv + "': " + std::strerror(errno);
@@ -221,9 +247,11 @@ std::optional<std::string> zone_server::start() {
                tick_csv_);
   }
   world_->populate();
-  spdlog::info("zone: {} NPCs, world {}x{}x{} m, {} Hz, {} worker threads, interest on {}", world_->store().size(),
-               cfg_.world.hi.x, cfg_.world.hi.y, cfg_.world.hi.z, cfg_.tick_rate_hz, pool_->size(), interest_name());
+  spdlog::info("zone: {} NPCs, world {}x{}x{} m, {} Hz, {} worker threads, interest on {}, replication on {}",
+               world_->store().size(), cfg_.world.hi.x, cfg_.world.hi.y, cfg_.world.hi.z, cfg_.tick_rate_hz,
+               pool_->size(), interest_name(), replication_name());
   if (!engine_note_.empty()) spdlog::info("zone: interest runs on the host: {}", engine_note_);
+  if (!replicate_note_.empty()) spdlog::info("zone: replication runs on the CPU: {}", replicate_note_);
   if (auto err = net_.start()) return err;
   if (cfg_.metrics_enabled) {
     net::metrics_limits limits;
@@ -433,6 +461,11 @@ void zone_server::tick_once() {
   }
   const auto t1 = clock_type::now();
   replicate();
+  if (!replication_failure_logged_ && !replicator_.engine_error().empty()) {
+    replication_failure_logged_ = true;
+    spdlog::warn("zone: the GPU replication engine failed ({}); replication runs on the CPU from now on, every client resynced",
+                 replicator_.engine_error());
+  }
   const double replicate_ms = ms_since(t1), tick_ms = ms_since(t0);
   stats_.replicate_ms.record(replicate_ms);
   stats_.tick_ms.record(tick_ms);

@@ -59,6 +59,8 @@ class zone_server {
   [[nodiscard]] std::string finder_name() const { return std::string(finder_->name()); }
   /// Where the interest step runs: "gpu engine" or "host (finder <name>)".
   [[nodiscard]] std::string interest_name() const;
+  /// Where replication runs now: "gpu engine" or "cpu".
+  [[nodiscard]] std::string replication_name() const;
   [[nodiscard]] const loop_stats& stats() const { return stats_; }
   [[nodiscard]] net::server_stats net_stats() const { return net_.stats(); }
 
@@ -93,6 +95,10 @@ class zone_server {
   std::string engine_note_;   ///< why auto chose the host path
   std::unique_ptr<interest::visibility_engine> engine_;
   bool engine_failure_logged_ = false;
+  std::string replicate_error_;  ///< why replicate = gpu cannot run here (start() reports it)
+  std::string replicate_note_;   ///< why auto chose the CPU replicator
+  std::unique_ptr<interest::replication_engine> replication_engine_;  ///< before replicator_: outlives it
+  bool replication_failure_logged_ = false;
   replicator replicator_;
   net::server net_;
   std::unique_ptr<net::metrics_server> metrics_;

@@ -141,6 +141,35 @@ TEST_SUITE("gpu.finders") {
     CHECK_THROWS_AS((void)gpu::find_view(grid, s, view), std::invalid_argument);
   }
 
+  TEST_CASE("auto: a crowded set goes to LBVH unpinned and to PBIG once pinned, same pairs") {
+    thread_pool pool(2);
+    if (!gpu::device_available()) return;  // needs both GPU finders
+    auto f = gpu::make_finder(gpu::finder_backend::auto_select, &pool);
+    REQUIRE(f);
+    const box_set s = generate_gaussian(300000, fresh_seed());
+    grid_finder grid(&pool);
+    const pair_list expected = run(grid, s);
+    std::span<const id_pair> view;
+    auto sorted_view = [&] {
+      pair_list copy(view.begin(), view.end());
+      sort_canonical(copy, s.size());
+      return copy;
+    };
+    REQUIRE_FALSE(gpu::find_view(*f, s, view).has_value());
+    CHECK(*gpu::last_auto_choice(*f) == gpu::finder_backend::lbvh);
+    CHECK(sorted_view() == expected);
+    {
+      const gpu::pinned_boxes pin(s);
+      REQUIRE(pin.active());
+      REQUIRE_FALSE(gpu::find_view(*f, s, view).has_value());  // re-decided at once, not after 64 calls
+      CHECK(*gpu::last_auto_choice(*f) == gpu::finder_backend::pbig);
+      CHECK(sorted_view() == expected);
+    }
+    REQUIRE_FALSE(gpu::find_view(*f, s, view).has_value());  // unpinned again
+    CHECK(*gpu::last_auto_choice(*f) == gpu::finder_backend::lbvh);
+    CHECK(sorted_view() == expected);
+  }
+
   TEST_CASE("auto: a GPU finder that throws mid-call is logged, and that call and all later ones run on the CPU") {
     thread_pool pool(2);
     brute_force_finder brute(&pool);
@@ -276,6 +305,19 @@ TEST_SUITE("gpu.finders") {
     const auto mmo_big = gpu::summarize(generate_mmo(3000000, fresh_seed()));
     CHECK(mmo_big.large_estimate * 3e6 > gpu::auto_large_pass_tests);  // about 1.6e10, 3 sd above 4e9
     CHECK(gpu::choose_backend(mmo_big, true, true) == gpu::finder_backend::lbvh);
+    // Pinned input (rule 3): PBIG where rules 4 and 5 would take LBVH; the small-set and large-box rules
+    // still take LBVH; unpinned sets are decided as before.
+    CHECK_FALSE(gauss.pinned);
+    for (gpu::box_set_summary p : {gauss, dense}) {
+      p.pinned = true;
+      CHECK(gpu::choose_backend(p, true, true, &reason) == gpu::finder_backend::pbig);
+      CHECK(reason.find("pinned") != std::string::npos);
+      CHECK(gpu::choose_backend(p, false, true) == gpu::finder_backend::lbvh);
+    }
+    for (gpu::box_set_summary p : {small, mmo_big}) {
+      p.pinned = true;
+      CHECK(gpu::choose_backend(p, true, true) == gpu::finder_backend::lbvh);
+    }
   }
 
   TEST_CASE("auto: keeps its choice between decisions, re-decides when N moves by more than 10%") {

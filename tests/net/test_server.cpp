@@ -79,10 +79,27 @@ bool is_error(const std::optional<message>& m, error_code code) {
 }
 
 /// Runs the enclosing test case once per write path: the sender writes itself (direct), or the
-/// session's I/O thread does (server_options::direct_writes).
-#define FOR_BOTH_WRITE_PATHS(opt)                         \
-  SUBCASE("direct writes") { (opt).direct_writes = true; } \
-  SUBCASE("I/O-thread writes") { (opt).direct_writes = false; }
+/// session's I/O thread does (server_options::direct_writes); and the I/O threads' writes one
+/// sendmsg each, or batched through io_uring (server_options::batching; where the kernel refuses
+/// io_uring the "io_uring" subcases run the sendmsg path again; "io_uring writes" below checks
+/// that io_uring is used where the kernel offers it).
+#define FOR_BOTH_WRITE_PATHS(opt)                                                                 \
+  SUBCASE("direct writes, sendmsg lanes") {                                                       \
+    (opt).direct_writes = true;                                                                   \
+    (opt).batching = write_batching::sendmsg;                                                     \
+  }                                                                                               \
+  SUBCASE("direct writes, io_uring lanes") {                                                      \
+    (opt).direct_writes = true;                                                                   \
+    (opt).batching = write_batching::automatic;                                                   \
+  }                                                                                               \
+  SUBCASE("I/O-thread writes, sendmsg") {                                                         \
+    (opt).direct_writes = false;                                                                  \
+    (opt).batching = write_batching::sendmsg;                                                     \
+  }                                                                                               \
+  SUBCASE("I/O-thread writes, io_uring") {                                                        \
+    (opt).direct_writes = false;                                                                  \
+    (opt).batching = write_batching::automatic;                                                   \
+  }
 
 /// A started server and the game side polling it.
 struct started {
@@ -675,6 +692,68 @@ TEST_SUITE("net.server") {
     }
     REQUIRE(g.wait_for([&] { return srv.stats().frames_out == static_cast<std::uint64_t>(clients * rounds + 2 * rounds); }));
     CHECK(srv.stats().frames_dropped == 0);
+  }
+
+  TEST_CASE("io_uring writes: used when asked for (or start() says why not); many sessions' writes in few submissions") {
+    CHECK(parse_write_batching("auto") == write_batching::automatic);
+    CHECK(parse_write_batching("io_uring") == write_batching::uring);
+    CHECK(parse_write_batching("sendmsg") == write_batching::sendmsg);
+    CHECK_FALSE(parse_write_batching("writev").has_value());
+    for (const auto b : {write_batching::automatic, write_batching::uring, write_batching::sendmsg}) {
+      CHECK(parse_write_batching(to_string(b)) == b);
+    }
+    {
+      server_options plain;
+      plain.batching = write_batching::sendmsg;
+      started run(plain);
+      CHECK_FALSE(run.srv.uses_io_uring());
+    }
+    server_options opt;
+    opt.batching = write_batching::uring;
+    opt.io_threads = 2;
+    opt.max_queued_frames = 64;
+    server probe(opt);
+    if (const auto err = probe.start()) {
+      // The kernel (or a seccomp filter) refuses io_uring: the error says so, and auto falls back.
+      CHECK(err->find("io_uring") != std::string::npos);
+      MESSAGE("io_uring unavailable here: " << *err);
+      server_options fallback = opt;
+      fallback.batching = write_batching::automatic;
+      started run(fallback);
+      CHECK_FALSE(run.srv.uses_io_uring());
+      return;
+    }
+    probe.stop();
+    started run(opt);
+    auto& srv = run.srv;
+    REQUIRE(srv.uses_io_uring());
+    constexpr int clients = 40, rounds = 30;
+    const joined_clients joined = join_all(run.g, srv.port(), "u", clients);
+    const auto before = srv.stats();
+    frame_arena arena;
+    for (int q = 0; q < rounds; ++q) {
+      std::vector<outgoing_frame> chunk;
+      for (int i = 0; i < clients; ++i) {
+        chunk.push_back({joined.sessions[static_cast<std::size_t>(i)],
+                         arena.make(encode_frame(tick(static_cast<std::uint64_t>(q), 1 + (i + q) % 40))),
+                         q == 0 ? delivery::state_reset : delivery::state});
+      }
+      REQUIRE(srv.send_many(chunk) == static_cast<std::size_t>(clients));
+    }
+    for (int i = 0; i < clients; ++i) {
+      for (int q = 0; q < rounds; ++q) {
+        const auto m = joined.clients[static_cast<std::size_t>(i)]->read();
+        REQUIRE(m.has_value());
+        CHECK(std::get<tick_update_msg>(*m).server_tick == static_cast<std::uint64_t>(q));
+      }
+    }
+    REQUIRE(run.g.wait_for([&] { return srv.stats().frames_out - before.frames_out == static_cast<std::uint64_t>(clients * rounds); }));
+    const auto after = srv.stats();
+    const auto batches = after.write_batches - before.write_batches, writes = after.writes - before.writes;
+    CHECK(batches > 0);
+    CHECK(batches < writes);  // several sessions' writes per submission
+    CHECK(after.frames_dropped == 0);
+    MESSAGE(writes << " writes in " << batches << " io_uring submissions");
   }
 
   TEST_CASE("frame_arena: frames share blocks, keep their bytes, outlive the arena; a large frame stands alone") {

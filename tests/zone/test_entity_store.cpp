@@ -143,12 +143,40 @@ TEST_SUITE("zone.entity_store") {
     CHECK(store.create(entity_desc{}) != null_entity);
   }
 
+  TEST_CASE("more than 2^20 entities: slots past the old 20-bit cap, distinct handles, the cap at max_entities") {
+    static_assert(max_entities == std::size_t{1} << 22);
+    const std::size_t n = (std::size_t{1} << 20) + 4096;
+    entity_store store;
+    store.reserve(n);
+    entity_id last = null_entity;
+    for (std::size_t i = 0; i < n; ++i) {
+      entity_desc d;
+      d.position = {static_cast<float>(i % 4096), static_cast<float>(i / 4096), 0};
+      last = store.create(d);
+      REQUIRE(last != null_entity);
+    }
+    CHECK(slot_of(last) == n - 1);
+    CHECK(generation_of(last) == 1);
+    CHECK(store.get(last)->position.x == static_cast<float>((n - 1) % 4096));
+    // The handle of slot 2^20 is not the handle of slot 0 (the 20-bit layout would have made it
+    // slot 0 of generation 2).
+    const entity_id first = store.ids()[0], past = store.ids()[std::size_t{1} << 20];
+    CHECK(slot_of(past) == (std::uint32_t{1} << 20));
+    CHECK(first != past);
+    CHECK(store.destroy(first));
+    CHECK(store.alive(past));
+    CHECK_FALSE(store.alive(first));
+    // A small store caps at its capacity; the default one at max_entities.
+    CHECK(entity_store().capacity() == max_entities);
+    CHECK(entity_store(max_entities + 5).capacity() == max_entities);
+  }
+
   TEST_CASE("a reused slot gets a new generation; handles are never null") {
     entity_store store;
     const entity_id keep = store.create({});
     std::set<entity_id> handles;
     entity_id prev = null_entity;
-    for (int i = 0; i < 4095; ++i) {
+    for (std::uint32_t i = 0; i < max_generation; ++i) {
       const entity_id id = store.create({});
       REQUIRE(id != null_entity);
       CHECK(slot_of(id) == 1);  // the same slot every time
@@ -157,7 +185,7 @@ TEST_SUITE("zone.entity_store") {
       CHECK(store.destroy(id));
       prev = id;
     }
-    // After 4,095 reuses the generation wraps (documented), skipping 0.
+    // After max_generation (1,023) reuses the generation wraps (documented), skipping 0.
     const entity_id wrapped = store.create({});
     CHECK(generation_of(wrapped) == 1);
     CHECK(store.alive(keep));

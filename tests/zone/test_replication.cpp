@@ -191,7 +191,7 @@ class reference_replicator {
     std::sort(enters.begin(), enters.end(), by_priority);
     std::vector<entity_id> entered;
     for (const pending& e : enters) {
-      if (!fits(128)) break;
+      if (!fits(net::frame_cost::enter)) break;
       const std::size_t k = e.dense;
       writer_.add_enter({e.id, static_cast<net::entity_kind>(store.kinds()[k]), store.visibility_classes()[k],
                          {pos[k].x, pos[k].y, pos[k].z}, {vel[k].x, vel[k].y, vel[k].z},

@@ -75,6 +75,15 @@ TEST_SUITE("zone.config") {
       REQUIRE(r.config.has_value());
       CHECK(r.config->finder == f);
     }
+    CHECK(d.config->replicate == "auto");
+    for (const char* r : {"auto", "gpu", "cpu"}) {
+      const auto parsed = parse({"--replicate", r});
+      REQUIRE(parsed.config.has_value());
+      CHECK(parsed.config->replicate == r);
+    }
+    const auto bad_replicate = parse({"--replicate", "fpga"});
+    CHECK_FALSE(bad_replicate.config.has_value());
+    CHECK(bad_replicate.message.find("replicate") != std::string::npos);
     const auto bad_finder = parse({"--finder", "quantum"});
     CHECK_FALSE(bad_finder.config.has_value());
     CHECK(bad_finder.message.find("finder") != std::string::npos);
@@ -91,6 +100,20 @@ TEST_SUITE("zone.config") {
     CHECK_FALSE(staggered.config.has_value());
     CHECK(staggered.message.find("digest-every") != std::string::npos);
     CHECK(parse({"--client-send-every", "2", "--digest-every", "0"}).config.has_value());
+
+    // The most entities one zone holds: NPCs + bosses up to max_entities (2^22) pass, one more
+    // is refused with the limit named.
+    zone_config big = *d.config;
+    big.npc_count = 2'000'000;
+    CHECK_FALSE(validate(big).has_value());
+    big.npc_count = max_entities - big.boss_count;
+    CHECK_FALSE(validate(big).has_value());
+    big.npc_count += 1;
+    const auto over = validate(big);
+    REQUIRE(over.has_value());
+    CHECK(over->find(std::to_string(max_entities)) != std::string::npos);
+    big.npc_count = static_cast<std::size_t>(-1);  // no wrap-around in the sum
+    CHECK(validate(big).has_value());
 
     const std::string path = "zone_config_test_" + std::to_string(fresh_seed()) + ".ini";
     {

@@ -160,6 +160,9 @@ TEST_SUITE("zone.server") {
     CHECK(scrape.find("\nzone_clients 3\n") != std::string::npos);
     CHECK(scrape.find("zone_tick_phase_seconds_bucket{phase=\"interest\",le=") != std::string::npos);
     CHECK(scrape.find("zone_net_frames_rejected_total 1\n") != std::string::npos);
+    // Where replication runs (1: the GPU engine), as the start log says.
+    CHECK(scrape.find(std::string("\nzone_replication_on_gpu ") + (server.replication_name() == "cpu" ? "0" : "1") + "\n") !=
+          std::string::npos);
 
     server.stop();
     loop.join();

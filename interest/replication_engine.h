@@ -1,0 +1,98 @@
+// interest/replication_engine.h: replication's per-client decisions (zone::replicator, docs/zone.md
+// "Replication") as one engine call for every client of a tick, run where the engine runs (the
+// GPU: gpu/replication.h) and holding each client's view (sorted ids, last-sent tick) there.
+// Plain arrays only, so that the GPU layer can implement it without knowing the zone's types (as
+// interest/visibility_engine.h). zone::replicator uses an engine when one is set
+// (set_engine) and is the reference it is tested against byte for byte (tests/zone/test_zone_gpu.cpp).
+#pragma once
+
+#include <cstddef>
+#include <cstdint>
+
+namespace zone::interest {
+
+/// One entity by dense index, 32 bytes: zone::replicator's snapshot layout (position, handle, the
+/// 16-byte wire update as sent: id, quantized position, quantized velocity).
+struct replication_entity {
+  float x, y, z;
+  std::uint32_t id;
+  std::uint32_t update[4];
+};
+static_assert(sizeof(replication_entity) == 32);
+
+/// The rules of a tick (zone::replication_options, resolved).
+struct replication_rules {
+  std::uint64_t tick = 0;  ///< last-sent ticks are kept modulo 2^32, as the CPU replicator does
+  std::uint64_t byte_budget = 0;
+  /// net::frame_cost: header, self position, per enter, leave, update.
+  std::uint32_t header_cost = 0, self_cost = 0, enter_cost = 0, leave_cost = 0, update_cost = 0;
+  /// Tiers: sqrt(d2) < limit, decided on d2 below below_sq, false above above_sq, else by the root.
+  float near_limit = 0, near_below_sq = 0, near_above_sq = 0;
+  float mid_limit = 0, mid_below_sq = 0, mid_above_sq = 0;
+  std::uint32_t mid_period = 1, far_period = 1;  ///< at least 1
+  std::uint32_t slot_mask = 0;                   ///< handle -> slot (the slot map's index)
+};
+
+/// One client's frame to decide.
+struct replication_job {
+  std::uint32_t client = 0;  ///< < client_count; at most one job per client per run
+  std::uint32_t flags = 0;   ///< job_reset: drop the client's view first; job_has_self: eye is the observer's
+  float eye[3] = {0, 0, 0};  ///< the observer's position (0 when it has none)
+  std::uint32_t visible_off = 0, visible_len = 0;  ///< its visible set (sorted handles) in staging.visible
+};
+inline constexpr std::uint32_t job_reset = 1u, job_has_self = 2u;
+
+/// What the engine decided for a job. Its record (at record_off bytes into output::records, 4-byte
+/// aligned) holds the leaves sent (ids, view order), then the enters sent (dense index, id: pairs of
+/// u32, closest first), then the updates sent (16-byte wire updates, in frame order).
+struct replication_result {
+  std::uint32_t record_off = 0;
+  std::uint32_t leaves = 0, enters = 0, updates = 0;
+  std::uint32_t deferred_leaves = 0, deferred_enters = 0, deferred_updates = 0;
+  std::uint32_t view_size = 0;  ///< the client's view after this frame
+  std::uint64_t hash = 0;       ///< its digest hash (net::digest_add over the view)
+};
+static_assert(sizeof(replication_result) == 40);
+
+/// Where the engine's time went in the last run.
+struct replication_timing {
+  double upload_ms = 0, device_ms = 0, download_ms = 0, total_ms = 0;
+  std::uint64_t record_bytes = 0;  ///< bytes of records copied back
+};
+
+class replication_engine {
+ public:
+  replication_engine() = default;
+  replication_engine(const replication_engine&) = delete;
+  replication_engine& operator=(const replication_engine&) = delete;
+  virtual ~replication_engine() = default;
+
+  /// Staging memory (pinned where the engine has a device) the caller fills before run(); valid
+  /// until the next stage() call. entities by dense index; slot_dense by slot (0xffffffff: no
+  /// entity); jobs; visible: the jobs' visible sets.
+  struct staging {
+    replication_entity* entities = nullptr;
+    std::uint32_t* slot_dense = nullptr;
+    replication_job* jobs = nullptr;
+    std::uint32_t* visible = nullptr;
+  };
+  [[nodiscard]] virtual staging stage(std::size_t entities, std::size_t slots, std::size_t jobs,
+                                      std::size_t visible) = 0;
+
+  struct output {
+    const replication_result* results = nullptr;  ///< one per job, in job order
+    const std::uint8_t* records = nullptr;
+  };
+  /// Decides every staged job's frame (zone::replicator's algorithm, the same integers and the same
+  /// float operations) and moves each job's client view on. Clients are numbered below
+  /// client_count; those without a job keep their views. The output stays valid until the next
+  /// stage() or run(). Throws std::runtime_error on a device error (then call forget_all()).
+  [[nodiscard]] virtual output run(const replication_rules& rules, std::size_t client_count) = 0;
+
+  /// Drops every client's view (the next job of each must have job_reset).
+  virtual void forget_all() = 0;
+  [[nodiscard]] virtual const replication_timing& timing() const = 0;
+  [[nodiscard]] virtual const char* name() const = 0;
+};
+
+}  // namespace zone::interest

@@ -1,0 +1,125 @@
+// The GPU replication engine's per-job code (gpu/replication_shared.h: the client table's plan, the
+// carry of views without a job, decide_job) run on the CPU through an emulated engine, against the
+// CPU replicator byte for byte (replication_equivalence.h). This runs in every CI run, device or
+// not; test_zone_gpu runs the same comparison on the device. The jobs run in a shuffled order, as
+// the device's threads may (their records land anywhere in the buffer).
+#include <doctest/doctest.h>
+
+#include <algorithm>
+#include <numeric>
+#include <random>
+#include <vector>
+
+#include "../../gpu/replication_shared.h"
+#include "../common/seeds.h"
+#include "replication_equivalence.h"
+#include "zone.h"
+
+using namespace zone;
+namespace rep = zone::gpu::detail::rep;
+
+namespace {
+
+class emulated_engine final : public interest::replication_engine {
+ public:
+  explicit emulated_engine(std::uint64_t seed) : rng_(seed) {}
+  [[nodiscard]] const char* name() const override { return "emulated"; }
+  [[nodiscard]] const interest::replication_timing& timing() const override { return timing_; }
+
+  staging stage(std::size_t entities, std::size_t slots, std::size_t jobs, std::size_t visible) override {
+    entities_.assign(entities, {});
+    slot_dense_.assign(slots, 0);
+    jobs_.assign(jobs, {});
+    visible_.assign(visible, 0);
+    return {entities_.data(), slot_dense_.data(), jobs_.data(), visible_.data()};
+  }
+
+  output run(const interest::replication_rules& rules, std::size_t client_count) override {
+    if (len_.size() < client_count) {
+      len_.resize(client_count, 0);
+      off_.resize(client_count, 0);
+      hash_.resize(client_count, 0);
+    }
+    clients_.resize(client_count);
+    std::uint64_t record_cap = 0;
+    const std::uint64_t total = rep::plan_clients(jobs_.data(), jobs_.size(), visible_.size(), len_.data(), off_.data(),
+                                                  client_count, rules.byte_budget, clients_.data(), record_cap);
+    new_id_.assign(total, 0xdeadbeef);
+    new_sent_.assign(total, 0xdeadbeef);
+    scratch_.assign(total, {});
+    records_.assign(record_cap, 0xcd);
+    results_.assign(jobs_.size(), {});
+    std::uint32_t cursor[2] = {0, 0};
+    rep::run_args a{};
+    a.rules = rules;
+    a.entities = entities_.data();
+    a.entity_count = static_cast<std::uint32_t>(entities_.size());
+    a.slot_dense = slot_dense_.data();
+    a.slot_count = static_cast<std::uint32_t>(slot_dense_.size());
+    a.jobs = jobs_.data();
+    a.job_count = static_cast<std::uint32_t>(jobs_.size());
+    a.visible = visible_.data();
+    a.clients = clients_.data();
+    a.client_count = static_cast<std::uint32_t>(client_count);
+    a.old_id = id_.data();
+    a.old_sent = sent_.data();
+    a.new_id = new_id_.data();
+    a.new_sent = new_sent_.data();
+    a.scratch = scratch_.data();
+    a.hash = hash_.data();
+    a.records = records_.data();
+    a.record_capacity = record_cap;
+    a.cursor = cursor;
+    a.results = results_.data();
+    for (std::uint32_t c = 0; c < client_count; ++c) rep::carry_client(a, c, 0, 1);
+    std::vector<std::uint32_t> order(jobs_.size());
+    std::iota(order.begin(), order.end(), 0u);
+    std::shuffle(order.begin(), order.end(), rng_);
+    for (const std::uint32_t t : order) rep::decide_job(a, t);
+    REQUIRE(cursor[1] == 0);
+    REQUIRE(cursor[0] <= record_cap);
+    id_.swap(new_id_);
+    sent_.swap(new_sent_);
+    for (std::size_t c = 0; c < client_count; ++c) off_[c] = clients_[c].new_off;
+    for (std::size_t k = 0; k < jobs_.size(); ++k) len_[jobs_[k].client] = results_[k].view_size;
+    return {results_.data(), records_.data()};
+  }
+
+  void forget_all() override {
+    std::fill(len_.begin(), len_.end(), 0u);
+    std::fill(off_.begin(), off_.end(), 0u);
+  }
+
+ private:
+  std::mt19937_64 rng_;
+  std::vector<interest::replication_entity> entities_;
+  std::vector<std::uint32_t> slot_dense_, visible_;
+  std::vector<interest::replication_job> jobs_;
+  std::vector<rep::client_slot> clients_;
+  std::vector<std::uint32_t> len_, off_, id_, sent_, new_id_, new_sent_;
+  std::vector<std::uint64_t> hash_;
+  std::vector<rep::scratch_entry> scratch_;
+  std::vector<std::uint8_t> records_;
+  std::vector<interest::replication_result> results_;
+  interest::replication_timing timing_;
+};
+
+}  // namespace
+
+TEST_SUITE("zone.replication") {
+  TEST_CASE("the GPU engine's per-job code, emulated on the CPU, gives the CPU replicator's frames byte for byte") {
+    const std::uint64_t seed = zone::test::fresh_seed();
+    CAPTURE(seed);
+    zone::test::replication_equivalence_case c;
+    const auto cov = zone::test::check_replication_equivalence(
+        seed, c, [&] { return std::make_unique<emulated_engine>(seed); });
+    zone::test::require_equivalent(cov);
+  }
+
+  TEST_CASE("emulated GPU engine: views grown past a frame's leaves, then every observer blind: leaves deferred, frames equal") {
+    const std::uint64_t seed = zone::test::fresh_seed();
+    CAPTURE(seed);
+    const auto cov = zone::test::check_replication_equivalence(seed, zone::test::deferred_leaves_case(), [&] { return std::make_unique<emulated_engine>(seed); });
+    zone::test::require_equivalent(cov, true, true);
+  }
+}
