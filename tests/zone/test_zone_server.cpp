@@ -626,17 +626,24 @@ TEST_SUITE("zone.server") {
     }
     REQUIRE(w.has_value());
     REQUIRE(std::holds_alternative<net::welcome_msg>(*w));
-    // One input per tick, so the rate limit never drops one; the echo is read after each tick.
+    // One input per tick, so the rate limit never drops one. The input is in the game's queue once
+    // the network counted its frame; the echo is read from the frame of the tick that follows.
     const auto echo_after = [&](std::uint32_t sequence) {
+      const auto frames_before = server.net_stats().frames_in;
       REQUIRE(c.send(net::input_msg{sequence, {1, 0, 0}}));
-      std::this_thread::sleep_for(20ms);  // the input reaches the game's queue
+      for (int i = 0; i < 500 && server.net_stats().frames_in == frames_before; ++i) std::this_thread::sleep_for(2ms);
+      std::this_thread::sleep_for(10ms);  // the event follows the count in the same handler
       server.tick_once();
-      // The newest frame's echo: read until the socket stays quiet (earlier ticks' frames first).
+      const std::uint64_t tick = server.world().tick();
       std::optional<std::uint32_t> echo;
-      for (int i = 0; i < 200; ++i) {
-        const auto m = c.read(100ms);
-        if (!m) break;
-        if (const auto* u = std::get_if<net::tick_update_msg>(&*m)) echo = u->last_input_sequence;
+      for (int i = 0; i < 500; ++i) {
+        const auto m = c.read(3000ms);
+        REQUIRE(m.has_value());
+        const auto* u = std::get_if<net::tick_update_msg>(&*m);
+        if (u && u->server_tick >= tick) {
+          echo = u->last_input_sequence;
+          break;
+        }
       }
       REQUIRE(echo.has_value());
       return *echo;
@@ -650,8 +657,10 @@ TEST_SUITE("zone.server") {
     CHECK(echo_after(3) == 3);
     // Teleports: the config's default is off, so a client's jump is refused and it does not move.
     CHECK_FALSE(zone_config{}.teleport_enabled);
+    const auto frames_before = server.net_stats().frames_in;
     REQUIRE(c.send(net::teleport_msg{4, {500, 500, 0}, 0}));
-    std::this_thread::sleep_for(20ms);
+    for (int i = 0; i < 500 && server.net_stats().frames_in == frames_before; ++i) std::this_thread::sleep_for(2ms);
+    std::this_thread::sleep_for(10ms);
     server.tick_once();
     CHECK(server.stats().teleports == 0);
     CHECK(server.stats().teleports_refused == 1);
