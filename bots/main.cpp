@@ -154,6 +154,24 @@ void print_table(const swarm_result& r, const summary& s) {
   row("inconsistent updates", num(r.inconsistent));
   row("frames with the bot's own position", num(r.self_positions));
   row("AOI checks / unchecked / violations", num(r.aoi_checked) + " / " + num(r.aoi_unchecked) + " / " + num(r.aoi_violations));
+  row("AOI check's rules", r.rules_from_server ? std::string("from the server's welcome") : std::string("from the flags (the server told none)"));
+  if (r.oracle_on) {
+    const auto& q = r.oracle;
+    row("oracle: frames checked / unchecked", num(q.frames_checked) + " / " + num(q.frames_unchecked));
+    row("oracle: entities checked", num(q.entities_checked) + " (positions " + num(q.positions_checked) + ", unchecked " +
+                                        num(q.positions_unchecked) + ")");
+    row("oracle: missing / extra / leaked", num(q.missing) + " / " + num(q.extra) + " / " + num(q.leaked));
+    row("oracle: wrong class / position / stale", num(q.wrong_class) + " / " + num(q.position) + " / " + num(q.stale));
+    row("oracle: wrong deferral counts", num(q.deferral));
+    const double ticks = static_cast<double>(std::max<std::uint64_t>(1, q.truth_ticks));
+    row("oracle: truth ticks, KB per tick", num(q.truth_ticks) + ", " + fmt(static_cast<double>(q.truth_bytes) / 1024.0 / ticks, "KB"));
+    row("oracle: recompute CPU per tick", fmt(q.compute_cpu_ms / ticks, "ms") + " (slowest tick " + ms(q.compute_max_ms) +
+                                              ", up to " + num(q.observers_max) + " observers)");
+    row("oracle: comparisons per tick", fmt(q.check_ms / ticks, "ms") + " (" + num(q.deferred_checks) +
+                                             " frames checked after they waited for their truth, " +
+                                             num(q.pending_overflow) + " not: too many waiting)");
+    if (!q.stream_error.empty()) row("oracle: TRUTH STREAM FAILED", q.stream_error);
+  }
   row("MISMATCHES", num(r.mismatches()));
   row("bot-swarm CPU time (user + system)", fmt(r.cpu_s, "s"));
   if (!r.problems.empty()) {
@@ -199,6 +217,20 @@ bool write_json(const std::string& path, const swarm_result& r, const summary& s
   o << "  \"digests_checked\": " << r.digests_checked << ",\n  \"digest_mismatches\": " << r.digest_mismatches << ",\n";
   o << "  \"inconsistent\": " << r.inconsistent << ",\n  \"aoi_checked\": " << r.aoi_checked << ",\n";
   o << "  \"aoi_unchecked\": " << r.aoi_unchecked << ",\n  \"aoi_violations\": " << r.aoi_violations << ",\n";
+  o << "  \"rules_from_server\": " << (r.rules_from_server ? "true" : "false") << ",\n";
+  if (r.oracle_on) {
+    const auto& q = r.oracle;
+    o << "  \"oracle\": {\"frames_checked\": " << q.frames_checked << ", \"frames_unchecked\": " << q.frames_unchecked
+      << ", \"entities_checked\": " << q.entities_checked << ", \"positions_checked\": " << q.positions_checked
+      << ", \"positions_unchecked\": " << q.positions_unchecked << ", \"missing\": " << q.missing << ", \"extra\": " << q.extra
+      << ", \"leaked\": " << q.leaked << ", \"wrong_class\": " << q.wrong_class << ", \"position\": " << q.position
+      << ", \"stale\": " << q.stale << ", \"deferral\": " << q.deferral << ", \"oracle_mismatches\": " << q.mismatches()
+      << ", \"truth_ticks\": " << q.truth_ticks << ", \"truth_bytes\": " << q.truth_bytes << ", \"truth_layouts\": " << q.truth_layouts
+      << ", \"compute_cpu_ms\": " << q.compute_cpu_ms << ", \"compute_max_ms\": " << q.compute_max_ms
+      << ", \"check_ms\": " << q.check_ms << ", \"deferred_checks\": " << q.deferred_checks
+      << ", \"pending_overflow\": " << q.pending_overflow << ", \"observers_max\": " << q.observers_max << ", \"stream_error\": \""
+      << json_escape(q.stream_error) << "\"},\n";
+  }
   o << "  \"mismatches\": " << r.mismatches() << ",\n";
   o << "  \"swarm_cpu_s\": " << r.cpu_s << ",\n";
   o << "  \"problems_total\": " << r.problems_total << ",\n  \"problems\": [";
@@ -301,10 +333,12 @@ int main(int argc, char** argv) {
       ("relogin-delay", po::value(&o.relogin_delay_s)->default_value(o.relogin_delay_s, "0.2"), "seconds before a churned bot logs in again")  //
       ("churn-for", po::value(&o.churn_for_s)->default_value(o.churn_for_s), "seconds into the run when churn stops (0 = until the end)")  //
       ("verify", po::bool_switch(&o.verify), "compare the server's visible-set digests with each bot's tracked view")  //
+      ("oracle", po::bool_switch(&o.oracle), "check every bot's view against the server's ground truth (the server runs with --oracle): missing, extra, leaked, wrong class, wrong or stale position")  //
+      ("oracle-threads", po::value(&o.oracle_threads)->default_value(o.oracle_threads), "threads recomputing the visible sets for the oracle (0 = one per 8 hardware threads)")  //
       ("threads", po::value(&o.threads)->default_value(o.threads), "I/O threads (0 = one per 2,500 bots, 2 .. half the cores)")  //
-      ("aoi", po::value(&o.aoi)->default_value(o.aoi), "players' AOI half-extent on the server (its --player-aoi), for the AOI check")  //
-      ("hysteresis", po::value(&o.hysteresis)->default_value(o.hysteresis), "the server's --hysteresis (m)")  //
-      ("max-speed", po::value(&o.max_speed)->default_value(o.max_speed), "fastest entity speed on the server (m/s)")  //
+      ("aoi", po::value(&o.aoi)->default_value(o.aoi), "for servers whose welcome tells no rules: the players' AOI half-extent (its --player-aoi), for the AOI check")  //
+      ("hysteresis", po::value(&o.hysteresis)->default_value(o.hysteresis), "for servers whose welcome tells no rules: the server's --hysteresis (m)")  //
+      ("max-speed", po::value(&o.max_speed)->default_value(o.max_speed), "for servers whose welcome tells no rules: the fastest entity speed on the server (m/s)")  //
       ("connect-timeout", po::value(&o.connect_timeout_s)->default_value(o.connect_timeout_s), "seconds to connect and get a welcome")  //
       ("report-json", po::value(&json), "write the report as JSON to this file")                      //
       ("report-csv", po::value(&csv), "write the per-second series as CSV to this file")             //

@@ -119,6 +119,7 @@ class position_board {
 };
 
 class swarm;
+net::decoder_options client_decoder(std::size_t max_frame);
 
 /// One session of one bot slot: connect, hello, play, close. Churn ends a session and starts a new
 /// one for the same slot. All handlers run on the thread of the session's io_context (one thread
@@ -170,6 +171,9 @@ class bot_session : public std::enable_shared_from_this<bot_session> {
   std::uint32_t entity_ = 0;
   std::optional<net::client_view> view_;
   net::vec3f q_err_{};
+  // The AOI check's assumptions: the welcome's rules, or the swarm's flags for an older server.
+  net::vec3f aoi_{};
+  float hysteresis_ = 0, max_speed_ = 0;
   double tick_rate_ = 30;
   steady::time_point welcomed_at_{};
   std::uint32_t sequence_ = 0;
@@ -240,6 +244,12 @@ class swarm {
       out.error = "cannot resolve " + opt_.host + ": " + e.what();
       return out;
     }
+    if (opt_.oracle) {
+      if (auto err = start_oracle()) {
+        out.error = *err;
+        return out;
+      }
+    }
     epoch_ = steady::now();
     std::vector<asio::executor_work_guard<asio::io_context::executor_type>> guards;
     std::vector<std::thread> threads;
@@ -280,7 +290,7 @@ class swarm {
         s.enters = c_.enters.load();
         s.leaves = c_.leaves.load();
         s.updates = c_.updates.load();
-        s.mismatches = c_.mismatches();
+        s.mismatches = c_.mismatches() + (oracle_ ? oracle_->counters().mismatches() : 0);
         const auto lat = latency_snapshot();
         if (steady_from < 0 && s.connected >= opt_.bots) {
           steady_from = since;
@@ -328,6 +338,13 @@ class swarm {
     }
 
     swarm_result& r = out.result;
+    if (oracle_) {
+      oracle_->catch_up(60);  // the views still waiting for their truth are checked first
+      oracle_->stop();
+      r.oracle_on = true;
+      r.oracle = oracle_->report();
+    }
+    r.rules_from_server = rules_told.load();
     r.options = opt_;
     r.elapsed_s = std::chrono::duration<double>(steady::now() - start).count();
     r.slots = slots_;
@@ -457,6 +474,8 @@ class swarm {
   bool offset_known() const { return offset_known_.load(std::memory_order_relaxed); }
   std::int64_t offset_us() const { return offset_us_.load(std::memory_order_relaxed); }
   std::atomic<std::uint32_t> leader{0};
+  std::atomic<bool> rules_told{false};
+  [[nodiscard]] oracle* oracle_ptr() const { return oracle_.get(); }
   std::mutex hotspot_mutex;
   bool hotspot_known = false;
   net::vec3f hotspot{};
@@ -484,6 +503,46 @@ class swarm {
   std::atomic<bool> host_clock_{false};
   bool loopback_ = false;
   std::atomic<bool> stopping_{false};
+  std::unique_ptr<oracle> oracle_;
+
+  /// --oracle: one connection before any bot, for the welcome (the rules and the truth stream's
+  /// port); then the oracle subscribes, so every bot's entity is born after its first truth tick.
+  std::optional<std::string> start_oracle() {
+    asio::io_context io;
+    tcp::socket sock(io);
+    boost::system::error_code ec;
+    sock.connect(endpoint_, ec);
+    if (ec) return "oracle probe: connect: " + ec.message();
+    const auto hello = net::encode_frame(net::hello_msg{"oracle-probe", "", net::protocol_version});
+    asio::write(sock, asio::buffer(hello), ec);
+    if (ec) return "oracle probe: write: " + ec.message();
+    net::frame_decoder dec(client_decoder(opt_.max_frame_bytes));
+    std::optional<net::welcome_msg> welcome;
+    const auto deadline = steady::now() + std::chrono::duration<double>(opt_.connect_timeout_s);
+    sock.non_blocking(true, ec);
+    while (!welcome && steady::now() < deadline) {
+      const auto buf = dec.prepare(64 * 1024);
+      const std::size_t n = sock.read_some(asio::buffer(buf.data(), buf.size()), ec);
+      if (ec == asio::error::would_block || ec == asio::error::try_again) {
+        std::this_thread::sleep_for(std::chrono::milliseconds(5));
+        continue;
+      }
+      if (ec) return "oracle probe: read: " + ec.message();
+      dec.commit(n);
+      for (auto step = dec.next(); step.is_frame(); step = dec.next()) {
+        if (step.frame.type != net::wire::message::welcome) continue;
+        if (auto m = net::to_message(*step.frame.envelope)) welcome = std::get<net::welcome_msg>(*m);
+      }
+    }
+    sock.close(ec);
+    if (!welcome) return "oracle probe: no welcome within the connect timeout";
+    if (!welcome->rules) return "the server's welcome tells no interest rules (an older server): no oracle";
+    if (welcome->oracle_port == 0) return "the server publishes no ground truth: start zone-server with --oracle";
+    oracle_ = std::make_unique<oracle>(welcome->world, *welcome->rules, opt_.oracle_threads,
+                                       [](void* ctx, std::string line) { static_cast<swarm*>(ctx)->problem(std::move(line)); },
+                                       this);
+    return oracle_->start(welcome->oracle_port, opt_.connect_timeout_s);
+  }
 };
 
 // ---------------------------------------------------------------------------------------------
@@ -636,6 +695,17 @@ void bot_session::on_welcome(const net::wire::welcome& w) {
   if (w.host_clock()) s_.on_host_clock();
   view_.emplace(world);
   q_err_ = view_->quantizer().max_error();
+  const auto& o = s_.opt_ref();
+  if (const auto* r = w.rules()) {
+    aoi_ = r->player_aoi() ? to_vec(*r->player_aoi()) : net::vec3f{o.aoi, o.aoi, o.aoi};
+    hysteresis_ = r->hysteresis();
+    max_speed_ = r->max_speed();
+    s_.rules_told.store(true, std::memory_order_relaxed);
+  } else {
+    aoi_ = {o.aoi, o.aoi, o.aoi};
+    hysteresis_ = o.hysteresis;
+    max_speed_ = o.max_speed;
+  }
   tick_rate_ = std::max<double>(1, w.tick_rate_hz());
   welcomed_at_ = steady::now();
   playing_ = true;
@@ -661,14 +731,14 @@ int bot_session::check_aoi(const position_board::fix& own, std::uint64_t tick, s
   // The entity must lie inside this bot's AOI grown by the hysteresis band (boxes meet), allowing
   // the staleness of the bot's own position fix, quantization and float slack.
   if (!own.known) return 0;
-  const auto& o = s_.opt_ref();
   const double stale_ticks = std::fabs(static_cast<double>(tick) - static_cast<double>(own.tick));
-  const double slack = o.max_speed * stale_ticks / tick_rate_ + 0.01;
+  const double slack = max_speed_ * stale_ticks / tick_rate_ + 0.01;
   const float qs[3] = {q_err_.x, q_err_.y, q_err_.z};
   const float d[3] = {p.x - own.pos.x, p.y - own.pos.y, p.z - own.pos.z};
   const float h[3] = {half.x, half.y, half.z};
+  const float aoi[3] = {aoi_.x, aoi_.y, aoi_.z};
   for (int a = 0; a < 3; ++a) {
-    const double bound = o.aoi + o.hysteresis + h[a] + 2 * qs[a] + slack;
+    const double bound = aoi[a] + hysteresis_ + h[a] + 2 * qs[a] + slack;
     if (std::fabs(d[a]) > bound) {
       s_.problem("bot " + std::to_string(slot_) + " (entity " + std::to_string(entity_) + ") tick " + std::to_string(tick) +
                  ": entity " + std::to_string(id) + " is " + std::to_string(std::fabs(d[a])) + " m away on axis " +
@@ -742,6 +812,14 @@ void bot_session::on_tick_update(const net::wire::tick_update& u, std::uint64_t 
     for (std::size_t i = 0; i < bad.size(); ++i) ids += (i ? "," : "") + std::to_string(bad[i]);
     s_.problem("bot " + std::to_string(slot_) + " (entity " + std::to_string(entity_) + ") tick " + std::to_string(tick) +
                ": inconsistent update (previous tick " + std::to_string(last) + "; ids " + (ids.empty() ? "-" : ids) + ")");
+  }
+  // The oracle: this view against the ground truth of this tick.
+  if (auto* o = s_.oracle_ptr()) {
+    net::deferred_counts deferred;
+    if (const auto* d = u.deferred()) deferred = {d->enters(), d->leaves(), d->updates()};
+    std::optional<net::vec3f> own;
+    if (self) own = to_vec(*self);
+    o->check(entity_, tick, *view_, deferred, own, slot_);
   }
   if (const auto* d = u.digest()) {
     ++local_.digests_checked;

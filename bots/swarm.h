@@ -10,6 +10,7 @@
 #include <string>
 #include <vector>
 
+#include "oracle.h"
 #include "protocol.h"
 
 namespace zone::bots {
@@ -38,11 +39,16 @@ struct swarm_options {
   double churn_for_s = 0;    ///< churn stops this many seconds into the run (0 = until the end)
   double relogin_delay_s = 0.2;
   bool verify = false;       ///< compare the server's visible-set digests with the tracked view
+  /// Check every bot's view against the server's ground truth (oracle.h; the server runs with
+  /// --oracle): a probe connection reads the welcome (rules, truth port) before any bot starts.
+  bool oracle = false;
+  unsigned oracle_threads = 0;  ///< threads recomputing the visible sets (0 = 1 per 8 hardware threads)
   unsigned threads = 0;      ///< I/O threads (0 = auto: one per 2,500 bots, at least 2, at most half the cores)
-  // What the bot assumes of the server, for the AOI check (zone-server's defaults).
+  // What the AOI check assumes of a server whose welcome does not tell its rules (older servers;
+  // a welcome's rules always win, so a current server's flags need no matching ones here).
   float aoi = 60;            ///< the players' AOI half-extent (--player-aoi)
   float hysteresis = 4;      ///< leave margin (--hysteresis)
-  float max_speed = 6;       ///< fastest any entity moves (m/s; max of --player-speed, --npc-speed)
+  float max_speed = 6;       ///< fastest any entity moves (m/s; max of --player-speed, 1.5 x --npc-speed)
   bool hotspot_set = false;
   net::vec3f hotspot{};      ///< the flash crowd's target; default: where the leader first is
   double crowd_at_s = 0;     ///< crowd bots walk until this many seconds into the run, then converge
@@ -119,10 +125,17 @@ struct swarm_result {
                 digest_mismatches = 0, inconsistent = 0, aoi_checked = 0, aoi_unchecked = 0,
                 aoi_violations = 0, latency_unsynced = 0, teleports_sent = 0, self_positions = 0;
   bool host_clock = false;  ///< latency timed on the host's clock (same host), not by ping sync
+  bool rules_from_server = false;  ///< the welcome told the zone's interest rules (the AOI check used them)
+  bool oracle_on = false;
+  oracle_report oracle;  ///< with oracle_on
   std::uint64_t bots_connected = 0;  ///< slots that got a welcome at least once
   double min_rtt_ms = 0;
   double cpu_s = 0;  ///< CPU time of the bot-swarm process (user + system), to judge a shared machine
-  [[nodiscard]] std::uint64_t mismatches() const { return digest_mismatches + inconsistent + aoi_violations; }
+  /// Every failed check; an oracle whose stream broke counts one (its checks are incomplete).
+  [[nodiscard]] std::uint64_t mismatches() const {
+    return digest_mismatches + inconsistent + aoi_violations +
+           (oracle_on ? oracle.mismatches() + (oracle.stream_error.empty() ? 0 : 1) : 0);
+  }
 };
 
 /// Runs the swarm for options.duration_s; calls `progress` once a second (from the calling thread)

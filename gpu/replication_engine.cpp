@@ -67,43 +67,30 @@ class engine final : public interest::replication_engine {
     return {h_entities_.get(), h_slot_dense_.get(), h_jobs_.get(), h_visible_.get()};
   }
 
-  output run(const interest::replication_rules& rules, std::size_t client_count) override {
+  [[nodiscard]] bool reads_resident() const override { return true; }
+
+  output run(const interest::replication_rules& rules, std::size_t client_count,
+             const interest::visibility_engine::resident_lists* rows) override {
     const auto t0 = std::chrono::steady_clock::now();
     if (rules.leave_cost == 0 || rules.enter_cost == 0 || rules.update_cost == 0) {
       throw std::invalid_argument("replication engine: entry costs must be positive");
     }
+    const bool resident = rows != nullptr && rows->data != nullptr && rows->off != nullptr && rows->rows > 0;
+    if (resident && rows->rows >= 0xffffffffu) throw std::invalid_argument("replication engine: too many rows");
     grow_clients(client_count);
     h_clients_.reserve(client_count);
+    h_new_off_.reserve(client_count + 1);
     client_slot* cl = h_clients_.get();
     const interest::replication_job* jobs = h_jobs_.get();
-    std::uint64_t record_cap = 0;
-    const std::uint64_t total = plan_clients(jobs, n_jobs_, n_visible_, len_.data(), off_.data(), client_count,
-                                             rules.byte_budget, cl, record_cap);
-    const int next = 1 - cur_;
-    d_id_[next].reserve(total);
-    d_sent_[next].reserve(total);
-    d_scratch_.reserve(total);
-    d_records_.reserve(record_cap);
-    h_records_.reserve(record_cap);
+    table_clients(jobs, n_jobs_, n_visible_, resident ? rows->rows : 0, len_.data(), off_.data(), client_count, cl);
     d_entities_.reserve(n_entities_);
     d_slot_dense_.reserve(n_slots_);
     d_jobs_.reserve(n_jobs_);
-    d_visible_.reserve(n_visible_);
+    d_visible_.reserve(resident ? 1 : n_visible_);
     d_clients_.reserve(client_count);
+    d_new_off_.reserve(client_count + 1);
     d_results_.reserve(n_jobs_);
     h_results_.reserve(n_jobs_);
-
-    CUDA_CHECK(cudaEventRecord(ev_begin_, stream_));
-    const auto up = [&](void* d, const void* h, std::size_t bytes) {
-      if (bytes > 0) CUDA_CHECK(cudaMemcpyAsync(d, h, bytes, cudaMemcpyHostToDevice, stream_));
-    };
-    up(d_entities_.get(), h_entities_.get(), n_entities_ * sizeof(interest::replication_entity));
-    up(d_slot_dense_.get(), h_slot_dense_.get(), n_slots_ * sizeof(std::uint32_t));
-    up(d_jobs_.get(), h_jobs_.get(), n_jobs_ * sizeof(interest::replication_job));
-    up(d_visible_.get(), h_visible_.get(), n_visible_ * sizeof(std::uint32_t));
-    up(d_clients_.get(), h_clients_.get(), client_count * sizeof(client_slot));
-    CUDA_CHECK(cudaMemsetAsync(d_cursor_.get(), 0, 2 * sizeof(std::uint32_t), stream_));
-    CUDA_CHECK(cudaEventRecord(ev_up_, stream_));
 
     run_args a{};
     a.rules = rules;
@@ -114,8 +101,59 @@ class engine final : public interest::replication_engine {
     a.jobs = d_jobs_.get();
     a.job_count = static_cast<std::uint32_t>(n_jobs_);
     a.visible = d_visible_.get();
+    if (resident) {
+      a.rows_data = rows->data;
+      a.rows_off = rows->off;
+      a.row_count = static_cast<std::uint32_t>(rows->rows);
+    }
     a.clients = d_clients_.get();
     a.client_count = static_cast<std::uint32_t>(client_count);
+    a.new_off = d_new_off_.get();
+
+    CUDA_CHECK(cudaEventRecord(ev_begin_, stream_));
+    const auto up = [&](void* d, const void* h, std::size_t bytes) {
+      if (bytes > 0) CUDA_CHECK(cudaMemcpyAsync(d, h, bytes, cudaMemcpyHostToDevice, stream_));
+    };
+    up(d_entities_.get(), h_entities_.get(), n_entities_ * sizeof(interest::replication_entity));
+    up(d_slot_dense_.get(), h_slot_dense_.get(), n_slots_ * sizeof(std::uint32_t));
+    up(d_jobs_.get(), h_jobs_.get(), n_jobs_ * sizeof(interest::replication_job));
+    up(d_clients_.get(), h_clients_.get(), client_count * sizeof(client_slot));
+    std::uint64_t total = 0, record_cap = 0;
+    if (!resident) {
+      // The sizes are here: plan on the host.
+      total = plan_staged(jobs, cl, client_count, rules.byte_budget, h_new_off_.get(), record_cap);
+      up(d_visible_.get(), h_visible_.get(), n_visible_ * sizeof(std::uint32_t));
+      up(d_new_off_.get(), h_new_off_.get(), (client_count + 1) * sizeof(std::uint32_t));
+    } else if (client_count > 0) {
+      // The sizes are on the device (the rows' lengths): plan there, read back the totals.
+      d_rooms_.reserve(client_count + 1);
+      d_record_bounds_.reserve(client_count);
+      d_sum_.reserve(1);
+      h_sum_.reserve(1);
+      CUDA_CHECK(launch_rooms(a, d_rooms_.get(), d_record_bounds_.get(), stream_));
+      std::size_t temp = 0;
+      CUDA_CHECK(scan_rooms(nullptr, temp, d_rooms_.get(), d_new_off_.get(), static_cast<std::uint32_t>(client_count + 1),
+                            d_record_bounds_.get(), d_sum_.get(), static_cast<std::uint32_t>(client_count), stream_));
+      d_temp_.reserve(std::max<std::size_t>(temp, 256));
+      temp = d_temp_.capacity();
+      CUDA_CHECK(scan_rooms(d_temp_.get(), temp, d_rooms_.get(), d_new_off_.get(),
+                            static_cast<std::uint32_t>(client_count + 1), d_record_bounds_.get(), d_sum_.get(),
+                            static_cast<std::uint32_t>(client_count), stream_));
+      CUDA_CHECK(cudaMemcpyAsync(h_new_off_.get() + client_count, d_new_off_.get() + client_count, sizeof(std::uint32_t),
+                                 cudaMemcpyDeviceToHost, stream_));
+      CUDA_CHECK(cudaMemcpyAsync(h_sum_.get(), d_sum_.get(), sizeof(std::uint64_t), cudaMemcpyDeviceToHost, stream_));
+      CUDA_CHECK(cudaStreamSynchronize(stream_));
+      total = h_new_off_.get()[client_count];
+      record_cap = h_sum_.get()[0];
+    }
+    CUDA_CHECK(cudaMemsetAsync(d_cursor_.get(), 0, 2 * sizeof(std::uint32_t), stream_));
+    CUDA_CHECK(cudaEventRecord(ev_up_, stream_));
+    const int next = 1 - cur_;
+    d_id_[next].reserve(total);
+    d_sent_[next].reserve(total);
+    d_scratch_.reserve(total);
+    d_records_.reserve(record_cap);
+    h_records_.reserve(record_cap);
     a.old_id = d_id_[cur_].get();
     a.old_sent = d_sent_[cur_].get();
     a.new_id = d_id_[next].get();
@@ -133,6 +171,10 @@ class engine final : public interest::replication_engine {
       CUDA_CHECK(cudaMemcpyAsync(h_results_.get(), d_results_.get(), n_jobs_ * sizeof(interest::replication_result),
                                  cudaMemcpyDeviceToHost, stream_));
     }
+    if (resident && client_count > 0) {
+      CUDA_CHECK(cudaMemcpyAsync(h_new_off_.get(), d_new_off_.get(), client_count * sizeof(std::uint32_t),
+                                 cudaMemcpyDeviceToHost, stream_));
+    }
     CUDA_CHECK(cudaMemcpyAsync(h_cursor_.get(), d_cursor_.get(), 2 * sizeof(std::uint32_t), cudaMemcpyDeviceToHost,
                                stream_));
     CUDA_CHECK(cudaStreamSynchronize(stream_));
@@ -146,7 +188,8 @@ class engine final : public interest::replication_engine {
 
     // The views moved: the new buffer is the current one.
     cur_ = next;
-    for (std::size_t c = 0; c < client_count; ++c) off_[c] = cl[c].new_off;
+    const std::uint32_t* new_off = h_new_off_.get();
+    for (std::size_t c = 0; c < client_count; ++c) off_[c] = new_off[c];
     const interest::replication_result* res = h_results_.get();
     for (std::size_t k = 0; k < n_jobs_; ++k) len_[jobs[k].client] = res[k].view_size;
 
@@ -158,6 +201,7 @@ class engine final : public interest::replication_engine {
     CUDA_CHECK(cudaEventElapsedTime(&ms, ev_kernels_, ev_down_));
     timing_.download_ms = ms;
     timing_.record_bytes = used;
+    timing_.resident = resident;
     timing_.total_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
     return {h_results_.get(), h_records_.get()};
   }
@@ -207,6 +251,11 @@ class engine final : public interest::replication_engine {
   device_array<std::uint32_t> d_id_[2], d_sent_[2];
   device_array<scratch_entry> d_scratch_;
   device_array<std::uint64_t> d_hash_;
+  pinned_array<std::uint32_t> h_new_off_;
+  pinned_array<std::uint64_t> h_sum_;
+  device_array<std::uint32_t> d_new_off_, d_rooms_;
+  device_array<std::uint64_t> d_record_bounds_, d_sum_;
+  device_array<unsigned char> d_temp_;
   std::size_t hash_cap_ = 0;
   int cur_ = 0;
   std::vector<std::uint32_t> len_, off_;  // by client: its view's size and place in d_id_[cur_]

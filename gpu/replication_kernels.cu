@@ -1,6 +1,9 @@
 // Kernels of the GPU replication engine (replication_launch.h): the per-job code is
 // replication_shared.h's decide_job, one thread per job; see there for how the floats stay
 // bit-identical to the host's.
+#include <cub/device/device_reduce.cuh>
+#include <cub/device/device_scan.cuh>
+
 #include <algorithm>
 
 #include "replication_launch.h"
@@ -12,6 +15,16 @@ constexpr std::uint32_t block = 128;
 
 std::uint32_t blocks_for(std::uint64_t n, std::uint32_t per_block) {
   return static_cast<std::uint32_t>(std::max<std::uint64_t>(1, (n + per_block - 1) / per_block));
+}
+
+__global__ void rooms_kernel(run_args a, std::uint32_t* rooms, std::uint64_t* records) {
+  const std::uint32_t c = blockIdx.x * blockDim.x + threadIdx.x;
+  if (c > a.client_count) return;
+  if (c == a.client_count) {
+    rooms[c] = 0;
+    return;
+  }
+  client_room(a, c, rooms[c], records[c]);
 }
 
 __global__ void carry_kernel(run_args a) {
@@ -27,6 +40,27 @@ __global__ void decide_kernel(run_args a) {
 }
 
 }  // namespace
+
+cudaError_t launch_rooms(const run_args& a, std::uint32_t* rooms, std::uint64_t* records, cudaStream_t stream) {
+  rooms_kernel<<<blocks_for(std::uint64_t{a.client_count} + 1, 256), 256, 0, stream>>>(a, rooms, records);
+  return cudaGetLastError();
+}
+
+cudaError_t scan_rooms(void* temp, std::size_t& temp_bytes, const std::uint32_t* rooms, std::uint32_t* new_off,
+                       std::uint32_t items, const std::uint64_t* records, std::uint64_t* sum, std::uint32_t n,
+                       cudaStream_t stream) {
+  if (temp == nullptr) {
+    std::size_t scan = 0, reduce = 0;
+    cudaError_t e = cub::DeviceScan::ExclusiveSum(nullptr, scan, rooms, new_off, items, stream);
+    if (e != cudaSuccess) return e;
+    e = cub::DeviceReduce::Sum(nullptr, reduce, records, sum, std::max<std::uint32_t>(n, 1), stream);
+    temp_bytes = std::max(scan, reduce);
+    return e;
+  }
+  cudaError_t e = cub::DeviceScan::ExclusiveSum(temp, temp_bytes, rooms, new_off, items, stream);
+  if (e != cudaSuccess) return e;
+  return cub::DeviceReduce::Sum(temp, temp_bytes, records, sum, std::max<std::uint32_t>(n, 1), stream);
+}
 
 cudaError_t launch_carry(const run_args& a, cudaStream_t stream) {
   if (a.client_count == 0) return cudaSuccess;

@@ -28,10 +28,10 @@
 
 namespace zone::gpu::detail::rep {
 
-/// Per client slot: where its view is now (old) and where it goes (new), and its job (index + 1;
-/// 0: no job this run, the view is copied as it is).
+/// Per client slot: where its view is now (old) and its job (index + 1; 0: no job this run, the
+/// view is copied as it is). Where the view goes is run_args::new_off.
 struct client_slot {
-  std::uint32_t old_off, old_len, new_off, job;
+  std::uint32_t old_off, old_len, job, pad;
 };
 
 /// A scratch entry: a due update {view index, dense, d2 (then priority), staleness (then rank)} or
@@ -49,8 +49,12 @@ struct run_args {
   std::uint32_t slot_count;
   const interest::replication_job* jobs;
   std::uint32_t job_count;
-  const std::uint32_t* visible;
+  const std::uint32_t* visible;   // the jobs' visible sets, staged (rows_off null)
+  const std::uint32_t* rows_data;  // or resident rows: row r = rows_data[rows_off[r], rows_off[r + 1])
+  const std::uint32_t* rows_off;
+  std::uint32_t row_count;
   const client_slot* clients;
+  const std::uint32_t* new_off;  // by client: where its view goes in new_id / new_sent (and its scratch)
   std::uint32_t client_count;
   const std::uint32_t* old_id;  // views now: ids (sorted per client) and last-sent ticks
   const std::uint32_t* old_sent;
@@ -64,37 +68,54 @@ struct run_args {
   interest::replication_result* results;
 };
 
-/// The client table of a run (host side): each job's client gets room for its view plus its
-/// visible set (a new view is a subset of their union), every other client for its view as it is.
-/// `len`/`off`: by client, the views' sizes and places now. Returns the new views' total size and
-/// sets `record_cap` to a bound of the records' bytes. Throws std::invalid_argument on a job whose
-/// client is out of range or repeated, or whose visible set is out of range.
-inline std::uint64_t plan_clients(const interest::replication_job* jobs, std::size_t job_count, std::size_t visible_count,
-                                  const std::uint32_t* len, const std::uint32_t* off, std::size_t client_count,
-                                  std::uint64_t byte_budget, client_slot* out, std::uint64_t& record_cap) {
+/// The client table of a run (host side): each client's view now and its job. Throws
+/// std::invalid_argument on a job whose client is out of range or repeated, or (staged sets,
+/// `rows` 0) whose visible set is out of range of `visible_count` entries, or (resident rows) whose
+/// row is not below `rows` and not interest::no_row.
+inline void table_clients(const interest::replication_job* jobs, std::size_t job_count, std::size_t visible_count,
+                          std::size_t rows, const std::uint32_t* len, const std::uint32_t* off, std::size_t client_count,
+                          client_slot* out) {
   for (std::size_t c = 0; c < client_count; ++c) out[c] = {off[c], len[c], 0, 0};
-  record_cap = 0;
   for (std::size_t k = 0; k < job_count; ++k) {
     const auto& j = jobs[k];
     if (j.client >= client_count) throw std::invalid_argument("replication engine: a job's client is out of range");
     if (out[j.client].job != 0) throw std::invalid_argument("replication engine: two jobs for one client");
-    if (std::uint64_t{j.visible_off} + j.visible_len > visible_count) {
+    if (rows == 0 && std::uint64_t{j.visible_off} + j.visible_len > visible_count) {
       throw std::invalid_argument("replication engine: a job's visible set is out of range");
     }
+    if (rows != 0 && j.visible_off != interest::no_row && j.visible_off >= rows) {
+      throw std::invalid_argument("replication engine: a job's row is out of range");
+    }
     out[j.client].job = static_cast<std::uint32_t>(k + 1);
-    const std::uint64_t v = (j.flags & interest::job_reset) != 0 ? 0 : len[j.client];
-    // At most every leave (4 bytes), enter (8) and update (16) of the job, and never more bytes
-    // than the budget (each entry costs at least its record bytes).
-    const std::uint64_t most = 20 * v + 8 * std::uint64_t{j.visible_len};
-    record_cap += most < byte_budget ? most : byte_budget;
   }
+}
+
+/// At most every leave (4 bytes), enter (8) and update (16) of a job with a view of v entries and a
+/// visible set of s, and never more bytes than the budget (each entry costs at least its record's).
+ZONE_REP_HD std::uint64_t record_bound(std::uint64_t v, std::uint64_t s, std::uint64_t budget) {
+  const std::uint64_t most = 20 * v + 8 * s;
+  return most < budget ? most : budget;
+}
+
+/// Where each client's new view goes (staged sets: the sizes are on the host): a job's client gets
+/// room for its view plus its visible set (the new view is a subset of their union), every other
+/// client for its view as it is. Returns the total and sets `record_cap` to the records' bound.
+inline std::uint64_t plan_staged(const interest::replication_job* jobs, const client_slot* clients,
+                                 std::size_t client_count, std::uint64_t byte_budget, std::uint32_t* new_off,
+                                 std::uint64_t& record_cap) {
   std::uint64_t total = 0;
+  record_cap = 0;
   for (std::size_t c = 0; c < client_count; ++c) {
-    out[c].new_off = static_cast<std::uint32_t>(total);
-    total += out[c].old_len;
-    if (out[c].job != 0) total += jobs[out[c].job - 1].visible_len;
+    new_off[c] = static_cast<std::uint32_t>(total);
+    total += clients[c].old_len;
+    if (clients[c].job != 0) {
+      const auto& j = jobs[clients[c].job - 1];
+      total += j.visible_len;
+      record_cap += record_bound((j.flags & interest::job_reset) != 0 ? 0 : clients[c].old_len, j.visible_len, byte_budget);
+    }
     if (total > 0xffffffffu) throw std::invalid_argument("replication engine: more than 2^32 view entries");
   }
+  new_off[client_count] = static_cast<std::uint32_t>(total);
   return total;
 }
 
@@ -190,13 +211,42 @@ ZONE_REP_HD scratch_entry entry(std::uint32_t x, std::uint32_t y, std::uint32_t 
   return e;
 }
 
+/// A job's visible set: staged, or its row of the resident rows (none: empty).
+ZONE_REP_HD const std::uint32_t* job_visible(const run_args& a, const interest::replication_job& job, std::uint32_t& len) {
+  if (a.rows_off == nullptr) {
+    len = job.visible_len;
+    return a.visible + job.visible_off;
+  }
+  if (job.visible_off == interest::no_row || job.visible_off >= a.row_count) {
+    len = 0;
+    return a.rows_data;
+  }
+  len = a.rows_off[job.visible_off + 1] - a.rows_off[job.visible_off];
+  return a.rows_data + a.rows_off[job.visible_off];
+}
+
+/// Client c's room in the new buffer (resident rows: the sizes are on the device): its view, plus
+/// its visible set when it has a job; and its job's record bound (0 without).
+ZONE_REP_HD void client_room(const run_args& a, std::uint32_t c, std::uint32_t& room, std::uint64_t& record) {
+  const client_slot s = a.clients[c];
+  room = s.old_len;
+  record = 0;
+  if (s.job == 0) return;
+  const interest::replication_job& job = a.jobs[s.job - 1];
+  std::uint32_t len = 0;
+  (void)job_visible(a, job, len);
+  room += len;
+  record = record_bound((job.flags & interest::job_reset) != 0 ? 0 : s.old_len, len, a.rules.byte_budget);
+}
+
 /// Client c's view into the new buffer when it has no job (lanes `first`, `first + stride`, ...).
 ZONE_REP_HD void carry_client(const run_args& a, std::uint32_t c, std::uint32_t first, std::uint32_t stride) {
   const client_slot s = a.clients[c];
   if (s.job != 0) return;
+  const std::uint32_t to = a.new_off[c];
   for (std::uint32_t k = first; k < s.old_len; k += stride) {
-    a.new_id[s.new_off + k] = a.old_id[s.old_off + k];
-    a.new_sent[s.new_off + k] = a.old_sent[s.old_off + k];
+    a.new_id[to + k] = a.old_id[s.old_off + k];
+    a.new_sent[to + k] = a.old_sent[s.old_off + k];
   }
 }
 
@@ -206,12 +256,14 @@ ZONE_REP_HD void decide_job(const run_args& a, std::uint32_t t) {
   const client_slot cs = a.clients[job.client];
   const interest::replication_rules& r = a.rules;
   const bool reset = (job.flags & interest::job_reset) != 0, has_self = (job.flags & interest::job_has_self) != 0;
-  const std::uint32_t V = reset ? 0 : cs.old_len, S = job.visible_len;
+  std::uint32_t S = 0;
+  const std::uint32_t* vis = job_visible(a, job, S);
+  const std::uint32_t V = reset ? 0 : cs.old_len;
   const std::uint32_t* view = a.old_id + cs.old_off;
   const std::uint32_t* sent = a.old_sent + cs.old_off;
-  const std::uint32_t* vis = a.visible + job.visible_off;
-  scratch_entry* due = a.scratch + cs.new_off;        // up to V
-  scratch_entry* enter = a.scratch + cs.new_off + V;  // up to S
+  const std::uint32_t to = a.new_off[job.client];
+  scratch_entry* due = a.scratch + to;        // up to V
+  scratch_entry* enter = a.scratch + to + V;  // up to S
   const std::uint32_t tick32 = static_cast<std::uint32_t>(r.tick);
   const std::uint32_t mid_period = r.mid_period > 1 ? r.mid_period : 1u;
   const std::uint32_t far_period = r.far_period > 1 ? r.far_period : 1u;
@@ -299,8 +351,8 @@ ZONE_REP_HD void decide_job(const run_args& a, std::uint32_t t) {
   // Pass 2: the same merge writes the record and the new view (kept entries and sent enters, in
   // id order) with the last-sent ticks, and moves the digest hash.
   std::uint64_t hash = reset ? 0 : a.hash[job.client];
-  std::uint32_t* new_id = a.new_id + cs.new_off;
-  std::uint32_t* new_sent = a.new_sent + cs.new_off;
+  std::uint32_t* new_id = a.new_id + to;
+  std::uint32_t* new_sent = a.new_sent + to;
   std::uint32_t w = 0;
   {
     std::uint32_t i = 0, j = 0, li = 0, di = 0, ei = 0;

@@ -79,6 +79,11 @@ class engine final : public interest::visibility_engine {
 
   [[nodiscard]] const char* name() const override { return "gpu"; }
 
+  [[nodiscard]] resident_lists resident_visible() const override {
+    if (d_prev_off_.get() == nullptr || prev_rows_ == 0) return {};
+    return {d_prev_vis_.get(), d_prev_off_.get(), prev_rows_, prev_total_};
+  }
+
   void prepare() noexcept override {
     // A kernel and a small copy each way: the SMs and both copy engines see work before the tick.
     (void)launch_touch(stream_);

@@ -43,6 +43,10 @@ class thread_pool {
   [[nodiscard]] unsigned spin_us() const { return spin_us_; }
   /// Runs task(i) for every i in [0, n), each exactly once, spread over the threads.
   void run(std::size_t n, const std::function<void(std::size_t)>& task);
+  /// Idle workers stop spinning now and sleep until the next run (which wakes them): for a caller
+  /// about to block for longer than the spin (e.g. on a device), so the workers do not burn the
+  /// spin meanwhile. Any thread may call it; it changes nothing else.
+  void park() noexcept { park_.store(generation_.load()); }
 
  private:
   void worker_loop();
@@ -63,6 +67,8 @@ class thread_pool {
   std::atomic<int> sleepers_{0};
   std::atomic<bool> caller_waiting_{false};
   std::atomic<bool> stop_{false};
+  /// The run generation after which park() was called: a worker idle after that run sleeps.
+  std::atomic<std::uint32_t> park_{0xffffffffu};
 };
 
 /// Runs task(i) for i in [0, n) on `pool`, or inline when `pool` is null.

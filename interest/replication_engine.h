@@ -9,6 +9,8 @@
 #include <cstddef>
 #include <cstdint>
 
+#include "visibility_engine.h"
+
 namespace zone::interest {
 
 /// One entity by dense index, 32 bytes: zone::replicator's snapshot layout (position, handle, the
@@ -38,8 +40,11 @@ struct replication_job {
   std::uint32_t client = 0;  ///< < client_count; at most one job per client per run
   std::uint32_t flags = 0;   ///< job_reset: drop the client's view first; job_has_self: eye is the observer's
   float eye[3] = {0, 0, 0};  ///< the observer's position (0 when it has none)
-  std::uint32_t visible_off = 0, visible_len = 0;  ///< its visible set (sorted handles) in staging.visible
+  /// Its visible set (sorted handles): staging.visible[visible_off, + visible_len); or, when run()
+  /// is given resident rows, row visible_off of those (no_row: none) and visible_len unused.
+  std::uint32_t visible_off = 0, visible_len = 0;
 };
+inline constexpr std::uint32_t no_row = 0xffffffffu;
 inline constexpr std::uint32_t job_reset = 1u, job_has_self = 2u;
 
 /// What the engine decided for a job. Its record (at record_off bytes into output::records, 4-byte
@@ -58,6 +63,7 @@ static_assert(sizeof(replication_result) == 40);
 struct replication_timing {
   double upload_ms = 0, device_ms = 0, download_ms = 0, total_ms = 0;
   std::uint64_t record_bytes = 0;  ///< bytes of records copied back
+  bool resident = false;           ///< the visible sets were read in place (resident rows)
 };
 
 class replication_engine {
@@ -87,7 +93,12 @@ class replication_engine {
   /// float operations) and moves each job's client view on. Clients are numbered below
   /// client_count; those without a job keep their views. The output stays valid until the next
   /// stage() or run(). Throws std::runtime_error on a device error (then call forget_all()).
-  [[nodiscard]] virtual output run(const replication_rules& rules, std::size_t client_count) = 0;
+  /// With `rows` (non-null, from visibility_engine::resident_visible of an engine on the same
+  /// device; only when reads_resident()), each job's visible set is read there in place, by row.
+  [[nodiscard]] virtual output run(const replication_rules& rules, std::size_t client_count,
+                                   const visibility_engine::resident_lists* rows = nullptr) = 0;
+  /// Whether run() can read a GPU visibility engine's resident rows.
+  [[nodiscard]] virtual bool reads_resident() const { return false; }
 
   /// Drops every client's view (the next job of each must have job_reset).
   virtual void forget_all() = 0;

@@ -85,7 +85,11 @@ void thread_pool::worker_loop() {
   std::uint32_t seen = 0;
   for (;;) {
     std::uint32_t g = seen;
-    spin_until(spin_us_, [&] { return stop_.load(std::memory_order_relaxed) || (g = generation_.load()) != seen; });
+    // park() after run `seen` (the one this worker just drained) ends the spin: sleep then.
+    spin_until(spin_us_, [&] {
+      return stop_.load(std::memory_order_relaxed) || (g = generation_.load()) != seen ||
+             park_.load(std::memory_order_relaxed) == seen;
+    });
     if (g == seen && !stop_) {
       std::unique_lock lock(mutex_);
       ++sleepers_;

@@ -119,6 +119,18 @@ class visibility_engine {
   /// valid until the next update or load_previous. Waits for the copy.
   [[nodiscard]] virtual visibility_lists fetch_all_visible() = 0;
 
+  /// The last successful update's visible sets where the engine keeps them, for another engine
+  /// of the same device to read in place (replication: interest/replication_engine.h): row r's
+  /// handles are data[off[r], off[r + 1]), rows rows, total entries in all. All null / 0 when the
+  /// engine keeps none (the default). Valid until the next update or load_previous.
+  struct resident_lists {
+    const std::uint32_t* data = nullptr;
+    const std::uint32_t* off = nullptr;
+    std::size_t rows = 0;
+    std::uint64_t total = 0;
+  };
+  [[nodiscard]] virtual resident_lists resident_visible() const { return {}; }
+
   [[nodiscard]] virtual const char* name() const = 0;
 };
 

@@ -50,8 +50,17 @@ flatbuffers::Offset<void> build_body(flatbuffers::FlatBufferBuilder& fbb, const 
           const w::bounds3 world(to_wire(msg.world.lo), to_wire(msg.world.hi));
           std::optional<w::vec3> spawn;
           if (msg.spawn_position) spawn = to_wire(*msg.spawn_position);
+          flatbuffers::Offset<w::interest_rules> rules = 0;
+          if (msg.rules) {
+            const auto& r = *msg.rules;
+            const auto tiers = fbb.CreateVector(r.npc_aoi_tiers);
+            const w::vec3 aoi = to_wire(r.player_aoi), step = to_wire(r.quantization_step);
+            rules = w::Createinterest_rules(fbb, &aoi, r.hysteresis, r.max_visible, r.player_class, r.player_sees, tiers,
+                                            &step, r.update_near, r.update_mid, r.update_mid_period, r.update_far_period,
+                                            r.byte_budget, r.send_every, r.digest_every, r.max_speed);
+          }
           return w::Createwelcome(fbb, msg.entity_id, &world, msg.tick_rate_hz, msg.server_tick, msg.protocol_version,
-                                  spawn ? &*spawn : nullptr, msg.host_clock)
+                                  spawn ? &*spawn : nullptr, msg.host_clock, rules, msg.oracle_port)
               .Union();
         } else if constexpr (std::is_same_v<T, tick_update_msg>) {
           std::vector<flatbuffers::Offset<w::entity_state>> enters;
@@ -67,8 +76,11 @@ flatbuffers::Offset<void> build_body(flatbuffers::FlatBufferBuilder& fbb, const 
           if (msg.digest) digest.emplace(msg.digest->tick, msg.digest->hash, msg.digest->count);
           std::optional<w::vec3> self;
           if (msg.self_position) self = to_wire(*msg.self_position);
+          std::optional<w::deferred_counts> deferred;
+          if (msg.deferred) deferred.emplace(msg.deferred->enters, msg.deferred->leaves, msg.deferred->updates);
           return w::Createtick_update(fbb, msg.server_tick, msg.server_time_us, msg.last_input_sequence, enters_v,
-                                      leaves_v, updates_v, digest ? &*digest : nullptr, msg.reset, self ? &*self : nullptr)
+                                      leaves_v, updates_v, digest ? &*digest : nullptr, msg.reset, self ? &*self : nullptr,
+                                      deferred ? &*deferred : nullptr)
               .Union();
         } else if constexpr (std::is_same_v<T, pong_msg>) {
           return w::Createpong(fbb, msg.client_time_us, msg.server_time_us).Union();
@@ -183,6 +195,7 @@ void tick_update_writer::begin(std::uint64_t server_tick, std::uint64_t server_t
   enter_name_bytes_ = 0;
   digest_.reset();
   self_position_.reset();
+  deferred_ = {};
   reset_ = false;
   tick_ = server_tick;
   time_us_ = server_time_us;
@@ -212,8 +225,11 @@ std::span<const std::uint8_t> tick_update_writer::finish() {
   if (digest_) digest.emplace(digest_->tick, digest_->hash, digest_->count);
   std::optional<w::vec3> self;
   if (self_position_) self = to_wire(*self_position_);
+  std::optional<w::deferred_counts> deferred;
+  if (deferred_.any()) deferred.emplace(deferred_.enters, deferred_.leaves, deferred_.updates);
   const auto body = w::Createtick_update(fbb_, tick_, time_us_, last_input_, enters_v, leaves_v, updates_v,
-                                         digest ? &*digest : nullptr, reset_, self ? &*self : nullptr);
+                                         digest ? &*digest : nullptr, reset_, self ? &*self : nullptr,
+                                         deferred ? &*deferred : nullptr);
   return finish_frame(fbb_, w::message::tick_update, body.Union());
 }
 
@@ -247,6 +263,26 @@ std::optional<message> to_message(const w::envelope& env) {
       out.protocol_version = m->protocol_version();
       if (const auto* p = m->spawn_position()) out.spawn_position = from_wire(p);
       out.host_clock = m->host_clock();
+      if (const auto* r = m->rules()) {
+        interest_rules rules;
+        if (const auto* a = r->player_aoi()) rules.player_aoi = from_wire(a);
+        rules.hysteresis = r->hysteresis();
+        rules.max_visible = r->max_visible();
+        rules.player_class = r->player_class();
+        rules.player_sees = r->player_sees();
+        if (const auto* t = r->npc_aoi_tiers()) rules.npc_aoi_tiers.assign(t->begin(), t->end());
+        if (const auto* q = r->quantization_step()) rules.quantization_step = from_wire(q);
+        rules.update_near = r->update_near();
+        rules.update_mid = r->update_mid();
+        rules.update_mid_period = r->update_mid_period();
+        rules.update_far_period = r->update_far_period();
+        rules.byte_budget = r->byte_budget();
+        rules.send_every = r->send_every();
+        rules.digest_every = r->digest_every();
+        rules.max_speed = r->max_speed();
+        out.rules = std::move(rules);
+      }
+      out.oracle_port = m->oracle_port();
       return out;
     }
     case w::message::tick_update: {
@@ -276,6 +312,7 @@ std::optional<message> to_message(const w::envelope& env) {
       if (const auto* d = m->digest()) out.digest = verify_digest{d->tick(), d->hash(), d->count()};
       out.reset = m->reset();
       if (const auto* p = m->self_position()) out.self_position = from_wire(p);
+      if (const auto* d = m->deferred()) out.deferred = deferred_counts{d->enters(), d->leaves(), d->updates()};
       return out;
     }
     case w::message::pong: {

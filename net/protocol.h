@@ -74,6 +74,23 @@ struct teleport_msg {
 };
 
 // server -> client
+/// The zone's interest rules, as the welcome tells them (see the schema's interest_rules).
+struct interest_rules {
+  vec3f player_aoi{60, 60, 60};
+  float hysteresis = 4;
+  std::uint32_t max_visible = 0;
+  std::uint32_t player_class = 1;
+  std::uint32_t player_sees = 0;
+  std::vector<float> npc_aoi_tiers;
+  vec3f quantization_step{};
+  float update_near = 0, update_mid = 0;
+  std::uint32_t update_mid_period = 1, update_far_period = 1;
+  std::uint32_t byte_budget = 0;
+  std::uint32_t send_every = 1;
+  std::uint32_t digest_every = 1;
+  float max_speed = 0;
+  friend bool operator==(const interest_rules&, const interest_rules&) = default;
+};
 struct welcome_msg {
   std::uint32_t entity_id = 0;
   world_bounds world{};
@@ -82,6 +99,8 @@ struct welcome_msg {
   std::uint32_t protocol_version = net::protocol_version;
   std::optional<vec3f> spawn_position;  ///< where the client's entity starts
   bool host_clock = false;              ///< server_time_us is the host's CLOCK_MONOTONIC in microseconds
+  std::optional<interest_rules> rules;  ///< the zone's interest rules
+  std::uint16_t oracle_port = 0;        ///< loopback port of the ground-truth stream (0 = none)
   friend bool operator==(const welcome_msg&, const welcome_msg&) = default;
 };
 /// Full state of an entity entering a view.
@@ -109,6 +128,12 @@ struct verify_digest {
   std::uint32_t count = 0;
   friend bool operator==(const verify_digest&, const verify_digest&) = default;
 };
+/// What a frame left for later because of the byte budget (see the schema).
+struct deferred_counts {
+  std::uint32_t enters = 0, leaves = 0, updates = 0;
+  [[nodiscard]] bool any() const { return (enters | leaves | updates) != 0; }
+  friend bool operator==(const deferred_counts&, const deferred_counts&) = default;
+};
 struct tick_update_msg {
   std::uint64_t server_tick = 0;
   std::uint64_t server_time_us = 0;
@@ -119,6 +144,7 @@ struct tick_update_msg {
   std::optional<verify_digest> digest;
   bool reset = false;  ///< drop the whole view before applying (a resync after lost frames)
   std::optional<vec3f> self_position;  ///< the observer's own position at server_tick (exact)
+  std::optional<deferred_counts> deferred;  ///< what the byte budget left for later (absent: nothing)
   friend bool operator==(const tick_update_msg&, const tick_update_msg&) = default;
 };
 struct pong_msg {
@@ -177,8 +203,9 @@ class encoder {
 /// names (0 when they have none, as replication sends them).
 struct frame_cost {
   /// The header: envelope and tick_update tables with their vtables, the three vectors' length
-  /// words and offsets with alignment, the digest, identifier and prefix.
-  static constexpr std::size_t header = 196;
+  /// words and offsets with alignment, the digest, the deferred counts (16: the struct and its
+  /// vtable slot), identifier and prefix.
+  static constexpr std::size_t header = 212;
   static constexpr std::size_t self_position = 16;  ///< the optional self_position struct and its vtable slot
   /// One enter: its offset in the enters vector, the entity_state table with a vtable of its own
   /// (the builder may share it; the bound does not count on it) and an empty name string, with
@@ -211,6 +238,9 @@ class tick_update_writer {
   void set_reset(bool reset) { reset_ = reset; }
   /// The observer's own position at this tick (12 bytes; lets a client check its view exactly).
   void set_self_position(const vec3f& p) { self_position_ = p; }
+  /// What the budget left for later (written only when any count is non-zero; frame_cost's header
+  /// has room for it).
+  void set_deferred(const deferred_counts& d) { deferred_ = d; }
   /// Leaves and updates taken from the caller's arrays instead of add_leave/add_wire_update
   /// (which must not be called in the same frame): the spans must stay valid until finish(), which
   /// copies them into the frame as they are (the GPU replication path hands over its slices).
@@ -236,6 +266,7 @@ class tick_update_writer {
   std::size_t enter_name_bytes_ = 0;  // frame_cost's name term, summed over the enters
   std::optional<verify_digest> digest_;
   std::optional<vec3f> self_position_;
+  deferred_counts deferred_{};
   bool reset_ = false;
 };
 

@@ -123,9 +123,6 @@ constexpr std::size_t max_gather_frames = 64;
 static_assert(max_gather_frames <= IOV_MAX);
 /// Most session writes in one io_uring submission (the ring's size).
 constexpr unsigned ring_entries = 256;
-/// Rounds of one drain (each takes what became ready meanwhile) before it yields to the lane's
-/// other handlers (reads, timers) and goes on in a fresh drain.
-constexpr unsigned max_drain_rounds = 8;
 
 }  // namespace
 
@@ -164,7 +161,7 @@ struct io_lane {
   bool drain_posted = false;                       // guarded by ready_mutex
   std::vector<std::shared_ptr<session>> draining;  // the lane's thread only
   /// The lane's thread: sessions whose batched write completed with more queued behind it; the
-  /// next round of the drain writes them again (they stay marked as on the ready list).
+  /// next drain writes them again (they stay marked as on the ready list).
   std::vector<std::shared_ptr<session>> again;
 
   // io_uring (server_options::batching): the ring and, per submission slot, the session whose
@@ -186,8 +183,9 @@ struct io_lane {
   void schedule(std::shared_ptr<session> s);
   /// schedule() for several sessions of this lane under one lock (moves them out).
   void schedule_many(std::span<std::shared_ptr<session>> sessions);
-  /// The lane's thread: every ready session writes what it has queued; rounds until the ready
-  /// list stays empty (a burst of sends from the workers costs one wake-up, not one per chunk).
+  /// The lane's thread: every ready session writes what it has queued. What becomes ready
+  /// meanwhile gets one more drain, posted by the drain itself (behind the lane's other
+  /// handlers), so the senders of a burst do not post (nor wake the lane) once per chunk.
   void drain();
   /// The lane's thread: `draining` written through the ring, ring_entries sessions a submission.
   void write_batched();
@@ -360,7 +358,7 @@ class session : public std::enable_shared_from_this<session> {
   }
 
   /// The lane's thread: the kernel's answer to the write ring_prepare made (bytes, or -errno).
-  /// More queued behind it: the session goes on `again` (written in the drain's next round).
+  /// More queued behind it: the session goes on `again` (written by the lane's next drain).
   void ring_complete(int result, std::vector<std::shared_ptr<session>>& again) {
     std::unique_lock lock(write_mutex_);
     flush_posted_ = false;
@@ -827,29 +825,29 @@ void io_lane::schedule_many(std::span<std::shared_ptr<session>> sessions) {
 }
 
 void io_lane::drain() {
-  for (unsigned round = 0;; ++round) {
-    {
-      const std::lock_guard lock(ready_mutex);
-      if (ready.empty() && again.empty()) {
-        drain_posted = false;  // the next schedule() posts a new drain
-        return;
-      }
-      if (round == max_drain_rounds) {
-        // Let the lane's reads and timers run; drain_posted stays set, so senders do not post.
-        asio::post(ctx, [this] { drain(); });
-        return;
-      }
-      draining.swap(ready);
-    }
-    for (auto& s : again) draining.push_back(std::move(s));
-    again.clear();
-    if (ring_ok) {
-      write_batched();
-    } else {
-      for (auto& s : draining) s->lane_flush();
-    }
-    draining.clear();
+  {
+    const std::lock_guard lock(ready_mutex);
+    draining.swap(ready);
   }
+  for (auto& s : again) draining.push_back(std::move(s));
+  again.clear();
+  if (ring_ok) {
+    write_batched();
+  } else {
+    for (auto& s : draining) s->lane_flush();
+  }
+  draining.clear();
+  {
+    const std::lock_guard lock(ready_mutex);
+    if (ready.empty() && again.empty()) {
+      drain_posted = false;  // the next schedule() posts a new drain
+      return;
+    }
+  }
+  // More became ready meanwhile: one more drain, behind the lane's other handlers (accepts, reads,
+  // timers: a drain that looped until its list stayed empty held them off for seconds on a lane
+  // that cannot keep up, H100 2026-11-25). drain_posted stays set, so senders do not post.
+  asio::post(ctx, [this] { drain(); });
 }
 
 io_lane::~io_lane() { drop_ring(); }

@@ -115,6 +115,7 @@ struct options {
   std::string interest = "auto";  // auto | gpu | host (zone_config::interest)
   replicate_mode replicate = replicate_mode::parallel;
   bool replicate_auto = true;  // --replicate auto: gpu when a device is usable
+  bool host_views = false;     // --host-views: the GPU replication engine gets the sets from the host
   std::size_t budget = 8 * 1024;
   std::uint32_t clients_per_task = 16;
   std::uint32_t snapshot = 16;  // replication_options::snapshot_entities_per_client
@@ -168,6 +169,8 @@ Usage: bench-zone [options]
   --interest WHERE   auto (the GPU visibility engine when a device is usable and --max-visible is
                      0, else host) | gpu (the engine, or exit 64) | host (the finder and the host
                      diff), as zone-server's --interest (default auto)
+  --host-views       with --replicate gpu: copy the players' visible sets to the host and stage
+                     them for the engine, instead of its reading them in place on the device
   --find-into-list   GPU finders / auto: find() into the tracker's own pair list instead of
                      reading the finder's result buffer (gpu::find_view, zone-server's way)
   --csv FILE         per-tick samples (ms and counts) as CSV
@@ -290,6 +293,8 @@ std::optional<std::string> parse_args(int argc, char** argv, options& o, bool& h
     } else if (a == "--summary-csv") {
       if (!value()) return need("a file name");
       o.summary_csv = std::string(v);
+    } else if (a == "--host-views") {
+      o.host_views = true;
     } else if (a == "--find-into-list") {
       o.view = false;
     } else if (a == "--csv") {
@@ -461,6 +466,9 @@ int main(int argc, char** argv) {
     if (rep_engine) {
       if (opt.replicate_auto) opt.replicate = replicate_mode::gpu;
       repl.set_engine(rep_engine.get());
+      // As zone-server: the players' sets stay on the device (the CPU reference of gpu-vs-cpu
+      // reads them on the host).
+      if (opt.replicate != replicate_mode::gpu_vs_cpu && !opt.host_views) world.set_player_views_on_host(false);
     } else if (!opt.replicate_auto) {
       std::cerr << "bench-zone: replicate on the GPU cannot run here: " << why << "\n";
       return 64;
@@ -518,6 +526,7 @@ int main(int argc, char** argv) {
   }
   std::vector<double> step_allocs, rep_allocs;  // heap allocations per tick (world step; replication)
   std::size_t on_engine_ticks = 0;  // measured ticks whose interest step ran on the engine
+  std::size_t resident_ticks = 0;   // measured ticks whose replication read the sets on the device
   std::vector<double> pairs, candidates, visible, enters, leaves, bytes_per_frame, checks;
   std::uint64_t frames_digest = 0xcbf29ce484222325ull, frames_mismatch = 0;
   std::uint64_t sent_enters = 0, sent_updates = 0, sent_leaves = 0, deferred = 0, view_entries = 0;
@@ -674,6 +683,7 @@ int main(int argc, char** argv) {
     s_rep_serial_cpu.v.push_back(rep_serial_cpu);
     if (rep_engine) {
       const auto& rt = rep_engine->timing();
+      resident_ticks += rt.resident ? 1 : 0;
       s_rg_total.v.push_back(rt.total_ms);
       s_rg_up.v.push_back(rt.upload_ms);
       s_rg_dev.v.push_back(rt.device_ms);
@@ -758,6 +768,7 @@ int main(int argc, char** argv) {
       std::printf("; gpu vs cpu frames differing: %llu of %llu", static_cast<unsigned long long>(frames_mismatch),
                   static_cast<unsigned long long>(static_cast<std::uint64_t>(total_ticks) * requests.size()));
     }
+    if (on_gpu) std::printf("; visible sets read on the device in %zu of %zu ticks", resident_ticks, s_total.v.size());
     if (on_gpu && !repl.engine_error().empty()) std::printf("; GPU ENGINE FAILED: %s", repl.engine_error().c_str());
     std::printf("\n");
   }

@@ -78,6 +78,11 @@ std::optional<std::string> validate(const zone_config& c) {
   if (std::find(std::begin(interests), std::end(interests), c.interest) == std::end(interests)) {
     return bad("interest must be auto, gpu or host");
   }
+  static const char* faults[] = {"", "drop", "extra", "stealth", "freeze", "class"};
+  if (std::find(std::begin(faults), std::end(faults), c.test_fault) == std::end(faults)) {
+    return bad("test-fault must be drop, extra, stealth, freeze or class");
+  }
+  if (!c.test_fault.empty() && !c.oracle) return bad("test-fault needs --oracle (it exists to prove the oracle)");
   static const char* replicates[] = {"auto", "gpu", "cpu"};
   if (std::find(std::begin(replicates), std::end(replicates), c.replicate) == std::end(replicates)) {
     return bad("replicate must be auto, gpu or cpu");
@@ -99,7 +104,7 @@ config_result parse_config(int argc, const char* const* argv) {
   zone_config c;
   float world_x = c.world.hi.x, world_y = c.world.hi.y, world_z = c.world.hi.z;
   std::string config_file;
-  unsigned port = c.port, metrics_port = c.metrics_port;
+  unsigned port = c.port, metrics_port = c.metrics_port, oracle_port = c.oracle_port;
 
   po::options_description general("General");
   general.add_options()                                                                   //
@@ -177,8 +182,14 @@ config_result parse_config(int argc, const char* const* argv) {
       ("metrics-port", po::value(&metrics_port)->default_value(metrics_port), "port of /metrics (0 = ephemeral)")  //
       ("metrics-address", po::value(&c.metrics_address)->default_value(c.metrics_address), "address /metrics listens on (loopback by default: it has no authentication; 0.0.0.0 opens it to all)")  //
       ("metrics-max-connections", po::value(&c.metrics_max_connections)->default_value(c.metrics_max_connections), "connections /metrics holds at once, apart from the players' (more are closed at accept)");
+  po::options_description correctness("Correctness (docs/bots.md)");
+  correctness.add_options()  //
+      ("oracle", po::bool_switch(&c.oracle), "publish every tick's ground truth (entities, boxes, classes) on a loopback stream for an independent oracle (bot-swarm --oracle); off by default, and costs nothing when off")  //
+      ("oracle-port", po::value(&oracle_port)->default_value(oracle_port), "loopback port of the ground-truth stream (0 = ephemeral; the welcome tells clients)")  //
+      ("test-fault", po::value(&c.test_fault)->default_value(c.test_fault), "TESTING ONLY: break one client's view on purpose to prove the oracle: drop, extra, stealth, freeze or class (needs --oracle)")  //
+      ("test-fault-tick", po::value(&c.test_fault_tick)->default_value(c.test_fault_tick), "TESTING ONLY: the world tick from which --test-fault acts");
   po::options_description all("zone-server options");
-  all.add(general).add(world).add(interest).add(npcs).add(net);
+  all.add(general).add(world).add(interest).add(npcs).add(net).add(correctness);
 
   config_result r;
   try {
@@ -205,12 +216,13 @@ config_result parse_config(int argc, const char* const* argv) {
     r.message = e.what();
     return r;
   }
-  if (port > 65535 || metrics_port > 65535) {
+  if (port > 65535 || metrics_port > 65535 || oracle_port > 65535) {
     r.message = "ports must be <= 65535";
     return r;
   }
   c.port = static_cast<std::uint16_t>(port);
   c.metrics_port = static_cast<std::uint16_t>(metrics_port);
+  c.oracle_port = static_cast<std::uint16_t>(oracle_port);
   c.world = {{0, 0, 0}, {world_x, world_y, world_z}};
   if (auto err = validate(c)) {
     r.message = *err;

@@ -341,6 +341,8 @@ std::span<const std::uint8_t> replicator::build_from(const Source& source, clien
   if (opt_.send_digest && (st.reset || opt_.digest_period <= 1 || tick % opt_.digest_period == 0)) {
     writer.set_digest({tick, s.hash, static_cast<std::uint32_t>(s.view.size())});
   }
+  // What the budget left for later: a client (the oracle, docs/bots.md) can then tell a deferral from a loss.
+  writer.set_deferred({st.deferred_enters, st.deferred_leaves, st.deferred_updates});
   const auto frame = writer.finish();
   st.bytes = frame.size();
   if (stats) *stats = st;
@@ -377,15 +379,18 @@ void replicator::build_on_engine(std::span<const replication_request> requests, 
                                  interest::thread_pool* pool, const frame_sink& sink, const chunk_sink& chunk_done) {
   const std::size_t n = store.size(), jobs = requests.size();
   const auto slot_dense = store.slot_dense();
-  // Each job's visible set (the observer's row; empty when it is gone): sizes, then offsets.
-  job_visible_.resize(jobs + 1);
   const std::size_t chunk = std::max<std::uint32_t>(1, opt_.clients_per_task);
   const std::size_t chunks = (jobs + chunk - 1) / chunk;
   const auto visible_of = [&](client_id c) -> std::span<const entity_id> {
     const std::size_t row = tracker.row_of(clients_[c].observer);
     return row != entity_store::npos ? tracker.visible(row) : std::span<const entity_id>{};
   };
-  run_each(pool, chunks, [&](std::size_t ch) {
+  // The visible sets: read in place from the interest engine's device rows when the replication
+  // engine can (then each job names its observer's row), else copied into the staging.
+  const auto rows = engine_->reads_resident() ? tracker.resident_visible() : interest::visibility_engine::resident_lists{};
+  const bool resident = rows.data != nullptr;
+  job_visible_.assign(jobs + 1, 0);
+  if (!resident) run_each(pool, chunks, [&](std::size_t ch) {
     const std::size_t end = std::min(jobs, (ch + 1) * chunk);
     for (std::size_t k = ch * chunk; k < end; ++k) {
       job_visible_[k] = static_cast<std::uint32_t>(visible_of(requests[k].client).size());
@@ -401,7 +406,7 @@ void replicator::build_on_engine(std::span<const replication_request> requests, 
   if (total > 0xffffffffu) throw std::length_error("replication engine: more than 2^32 visible entries");
 
   // The staging: every entity as the snapshot has it, the slot map, the jobs with their sets.
-  const auto st = engine_->stage(n, slot_dense.size(), jobs, total);
+  const auto st = engine_->stage(n, slot_dense.size(), jobs, resident ? 0 : total);
   const auto ids = store.ids();
   const auto pos = store.positions();
   const auto vel = store.velocities();
@@ -435,6 +440,12 @@ void replicator::build_on_engine(std::span<const replication_request> requests, 
       } else {
         j.eye[0] = j.eye[1] = j.eye[2] = 0;
       }
+      if (resident) {
+        const std::size_t row = tracker.row_of(s.observer);
+        j.visible_off = row != entity_store::npos ? static_cast<std::uint32_t>(row) : interest::no_row;
+        j.visible_len = 0;
+        continue;
+      }
       j.visible_off = job_visible_[k];
       j.visible_len = job_visible_[k + 1] - job_visible_[k];
       const auto vis = visible_of(requests[k].client);
@@ -459,7 +470,9 @@ void replicator::build_on_engine(std::span<const replication_request> requests, 
   rules.mid_period = mid_period_;
   rules.far_period = far_period_;
   rules.slot_mask = entity_index_mask;
-  const auto out = engine_->run(rules, clients_.size());
+  // The workers would spin through the device's work: let them sleep until the wrapping below.
+  if (pool != nullptr) pool->park();
+  const auto out = engine_->run(rules, clients_.size(), resident ? &rows : nullptr);
 
   // Each frame wraps its record: enters built from the store (full state), leaves and updates
   // copied as they are. Chunks of requests per task, as on the CPU path.
@@ -504,6 +517,7 @@ void replicator::build_on_engine(std::span<const replication_request> requests, 
         if (opt_.send_digest && (stats.reset || opt_.digest_period <= 1 || tick % opt_.digest_period == 0)) {
           writer.set_digest({tick, res.hash, res.view_size});
         }
+        writer.set_deferred({res.deferred_enters, res.deferred_leaves, res.deferred_updates});
         const auto frame = writer.finish();
         stats.enters = res.enters;
         stats.leaves = res.leaves;

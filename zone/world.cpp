@@ -179,8 +179,17 @@ entity_id zone_world::spawn_player(const vec3& at) {
   if (id == null_entity) return id;
   if (by_slot_.size() <= slot_of(id)) by_slot_.resize(slot_of(id) + 1);
   by_slot_[slot_of(id)] = npc_state{behaviour::player, d.position, 0, {}};
-  set_reads_view(id, true);
+  set_reads_view(id, player_views_on_host_);
   return id;
+}
+
+void zone_world::set_player_views_on_host(bool on) {
+  if (on == player_views_on_host_) return;
+  player_views_on_host_ = on;
+  for (const entity_id id : store_.ids()) {
+    const std::uint32_t slot = slot_of(id);
+    if (slot < by_slot_.size() && by_slot_[slot].kind == behaviour::player) set_reads_view(id, on);
+  }
 }
 
 bool zone_world::despawn(entity_id id) {

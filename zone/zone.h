@@ -239,6 +239,14 @@ class interest_tracker {
   }
   /// True when the last update ran on the engine.
   [[nodiscard]] bool last_update_on_engine() const { return last_by_engine_; }
+  /// The last update's visible sets where the engine keeps them (its device), by this tracker's
+  /// rows, for a replication engine on the same device to read in place; empty when the last
+  /// update did not run on an engine or the engine keeps none.
+  [[nodiscard]] interest::visibility_engine::resident_lists resident_visible() const {
+    if (!last_by_engine_ || engine_ == nullptr || !engine_error_.empty()) return {};
+    const auto r = engine_->resident_visible();
+    return r.rows == ids_.size() ? r : interest::visibility_engine::resident_lists{};
+  }
 
   /// Rows of the last update (= the store's size then).
   [[nodiscard]] std::size_t observer_count() const { return ids_.size(); }
@@ -657,6 +665,16 @@ struct zone_config {
   /// When set, one CSV line per tick (its wall time, clients, frames and phase timings) goes to
   /// this file, so percentiles can be taken over any window (e.g. after a swarm's ramp-up).
   std::string tick_csv;
+  // Correctness (docs/bots.md, the oracle).
+  /// Publish every tick's ground truth on a loopback stream (127.0.0.1:oracle_port; 0 = an
+  /// ephemeral port, told in the welcome): what an independent oracle checks each client's view
+  /// against. Off: nothing is built or sent.
+  bool oracle = false;
+  std::uint16_t oracle_port = 0;
+  /// Testing only: a deliberate replication fault for one client, to prove that the oracle
+  /// catches it: "" (none), "drop", "extra", "stealth", "freeze" or "class" (zone/fault_injection.h).
+  std::string test_fault;
+  std::uint64_t test_fault_tick = 40;  ///< the world tick from which the fault acts
 };
 
 /// Result of parse_config: a config, or a message (the help text, or a readable error).
@@ -748,6 +766,11 @@ class zone_world {
   void prepare() noexcept { tracker_.prepare(); }
   /// See interest_tracker::set_engine.
   void set_visibility_engine(interest::visibility_engine* engine) { tracker_.set_engine(engine); }
+  /// Whether the players' visible sets are copied back to the host after each interest step
+  /// (interest_tracker::set_view_demand; default true: the CPU replicator reads them). A GPU
+  /// replication engine that reads them in place on the device (replicator::set_engine) needs
+  /// no copy; a row not copied is still fetched on first access, so the CPU path stays exact.
+  void set_player_views_on_host(bool on);
   [[nodiscard]] behaviour behaviour_of(entity_id id) const;
   [[nodiscard]] const tick_phases& phases() const { return phases_; }
   /// The phases of the last step() alone (per-tick series: bench-zone --csv, zone-server --tick-csv).
@@ -775,6 +798,7 @@ class zone_world {
   interest_tracker tracker_;
   std::vector<npc_state> by_slot_;  // indexed by slot_of(id)
   std::vector<std::uint8_t> reads_view_;  // by slot: the entity's visible set is read each tick
+  bool player_views_on_host_ = true;
   void set_reads_view(entity_id id, bool reads);
   std::vector<vec3> towns_;
   std::uint64_t tick_ = 0;

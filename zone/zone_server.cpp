@@ -117,6 +117,8 @@ zone_server::zone_server(const zone_config& cfg)
     replication_engine_ = gpu::make_replication_engine(&why);
     if (replication_engine_) {
       replicator_.set_engine(replication_engine_.get());
+      // With the interest step on the GPU too, replication reads the visible sets there in place.
+      world_->set_player_views_on_host(false);
     } else if (cfg.replicate == "gpu") {
       replicate_error_ = "replicate 'gpu' cannot run here: " + why + " (use --replicate auto or cpu)";
     } else {
@@ -235,6 +237,28 @@ std::string zone_server::metrics_text() const {
   return t.str();
 }
 
+net::interest_rules zone_server::rules() const {
+  net::interest_rules r;
+  r.player_aoi = {cfg_.player_aoi, cfg_.player_aoi, cfg_.player_aoi};
+  r.hysteresis = cfg_.hysteresis;
+  r.max_visible = cfg_.max_visible;
+  const entity_desc player{};  // a player's class and sees (zone_world::spawn_player keeps the defaults)
+  r.player_class = player.visibility_class;
+  r.player_sees = player.sees;
+  r.npc_aoi_tiers.assign(std::begin(cfg_.aoi_tier), std::end(cfg_.aoi_tier));
+  const auto& w = cfg_.world;
+  r.quantization_step = {(w.hi.x - w.lo.x) / 65535.0f, (w.hi.y - w.lo.y) / 65535.0f, (w.hi.z - w.lo.z) / 65535.0f};
+  r.update_near = cfg_.update_near;
+  r.update_mid = cfg_.update_mid;
+  r.update_mid_period = std::max<std::uint32_t>(1, cfg_.update_mid_period);
+  r.update_far_period = std::max<std::uint32_t>(1, cfg_.update_far_period);
+  r.byte_budget = static_cast<std::uint32_t>(cfg_.client_byte_budget);
+  r.send_every = cfg_.client_send_every;
+  r.digest_every = cfg_.digest_every;
+  r.max_speed = std::max(cfg_.player_speed, 1.5f * cfg_.npc_speed);  // chasers run at 1.5 x npc-speed
+  return r;
+}
+
 std::optional<std::string> zone_server::start() {
   if (auto err = validate(cfg_)) return err;
   if (!finder_error_.empty()) return finder_error_;
@@ -245,6 +269,16 @@ std::optional<std::string> zone_server::start() {
     if (!tick_csv_) return "cannot write tick-csv file '" + cfg_.tick_csv + "': " + std::strerror(errno);
     std::fputs("tick,t_s,clients,frames,bytes,inputs_ms,behaviours_ms,integrate_ms,interest_ms,replicate_ms,tick_ms\n",
                tick_csv_);
+  }
+  if (cfg_.oracle) {
+    truth_ = std::make_unique<truth_publisher>();
+    if (auto err = truth_->start(cfg_.oracle_port)) return err;
+    spdlog::info("zone: oracle stream on 127.0.0.1:{} (ground truth of every tick, for bot-swarm --oracle)", truth_->port());
+    if (const auto k = fault_injector::parse(cfg_.test_fault)) {
+      fault_ = std::make_unique<fault_injector>(*k, cfg_.test_fault_tick, cfg_.world, cfg_.player_aoi + cfg_.hysteresis);
+      spdlog::warn("zone: TESTING: fault '{}' injected into one client's frames from tick {}", cfg_.test_fault,
+                   cfg_.test_fault_tick);
+    }
   }
   world_->populate();
   spdlog::info("zone: {} NPCs, world {}x{}x{} m, {} Hz, {} worker threads, interest on {}, replication on {}",
@@ -300,6 +334,9 @@ void zone_server::drain_inputs() {
           w.server_tick = world_->tick();
           if (const auto at = world_->store().get(id)) w.spawn_position = net::vec3f{at->position.x, at->position.y, at->position.z};
           w.host_clock = true;  // net::server::now_us() is CLOCK_MONOTONIC
+          w.rules = rules();
+          if (const auto d = world_->store().get(id)) w.rules->player_class = d->visibility_class, w.rules->player_sees = d->sees;
+          w.oracle_port = oracle_port();
           net_.send(e.session, net::make_shared_frame(encoder_.encode(w)), net::delivery::control);
           // The name is client data: escaped (the server also checked it at hello), at debug.
           spdlog::debug("session {}: '{}' joined as entity {}", e.session, net::escape_for_log(hello->name), id);
@@ -362,8 +399,21 @@ void zone_server::note_sequence(client& c, std::uint32_t sequence) {
   c.any_input = true;
 }
 
+void zone_server::choose_fault_victim() {
+  if (fault_has_victim_ && clients_.count(fault_session_) != 0) return;
+  fault_has_victim_ = false;
+  for (const auto& [session, c] : clients_) {
+    if (!fault_has_victim_ || session < fault_session_) fault_session_ = session, fault_has_victim_ = true;
+  }
+  if (fault_has_victim_) {
+    fault_->set_victim(clients_[fault_session_].entity);
+    spdlog::warn("zone: TESTING: fault acts on session {} (entity {})", fault_session_, fault_->victim());
+  }
+}
+
 void zone_server::replicate() {
   const std::uint64_t now = net_.now_us();
+  if (fault_ && world_->tick() >= fault_->from_tick()) choose_fault_victim();
   // Every client's frame is built on the worker pool (replicator::build_many: fixed chunks of
   // clients, one writer each; the frames are those of building them one by one) and handed to
   // the network by the worker that built it (net::server::send: into the session's mailbox, one
@@ -390,6 +440,10 @@ void zone_server::replicate() {
   replicator_.build_many(
       requests_, world_->store(), world_->tracker(), world_->tick(), now, pool_.get(),
       [&](std::size_t k, std::span<const std::uint8_t> frame, const replication_stats& st) {
+        // TESTING ONLY (--test-fault): the victim's frame broken on purpose.
+        if (fault_ && fault_has_victim_ && request_sessions_[k] == fault_session_) {
+          frame = fault_->rewrite(frame, world_->tick(), world_->store());
+        }
         frame_bytes_[k] = frame.size();
         // Each worker carves its frames out of its own blocks (net::frame_arena: one malloc per
         // ~20 frames, and no free per frame against this thread's malloc arena).
@@ -459,12 +513,15 @@ void zone_server::tick_once() {
     spdlog::warn("zone: the GPU interest engine failed ({}); interest runs on the host from now on, finder {}",
                  world_->tracker().engine_error(), finder_->name());
   }
+  // The ground truth of this tick (--oracle), before any frame of it is sent.
+  if (truth_) truth_->publish(world_->store(), world_->tick());
   const auto t1 = clock_type::now();
   replicate();
   if (!replication_failure_logged_ && !replicator_.engine_error().empty()) {
     replication_failure_logged_ = true;
     spdlog::warn("zone: the GPU replication engine failed ({}); replication runs on the CPU from now on, every client resynced",
                  replicator_.engine_error());
+    world_->set_player_views_on_host(true);
   }
   const double replicate_ms = ms_since(t1), tick_ms = ms_since(t0);
   stats_.replicate_ms.record(replicate_ms);
@@ -522,6 +579,14 @@ void zone_server::run() {
   report("integrate", world_->phases().integrate);
   report("interest", world_->phases().interest);
   report("replicate", stats_.replicate_ms);
+  if (truth_) {
+    truth_->stop();
+    const auto& t = truth_->stats();
+    const double n = static_cast<double>(std::max<std::uint64_t>(1, t.ticks));
+    spdlog::info("  oracle stream: {} ticks published, {:.1f} KB per tick ({} with the layout), publish {:.3f} ms per tick, "
+                 "{} subscribers dropped",
+                 t.ticks, static_cast<double>(t.bytes) / 1024.0 / n, t.layouts, t.publish_ms / n, t.dropped_subscribers);
+  }
 }
 
 }  // namespace zone

@@ -12,8 +12,10 @@
 #include <unordered_map>
 #include <vector>
 
+#include "fault_injection.h"
 #include "metrics.h"
 #include "server.h"
+#include "truth_publisher.h"
 #include "zone.h"
 
 namespace zone {
@@ -63,6 +65,10 @@ class zone_server {
   [[nodiscard]] std::string replication_name() const;
   [[nodiscard]] const loop_stats& stats() const { return stats_; }
   [[nodiscard]] net::server_stats net_stats() const { return net_.stats(); }
+  /// Port of the ground-truth stream (0 when --oracle is off).
+  [[nodiscard]] std::uint16_t oracle_port() const { return truth_ ? truth_->port() : 0; }
+  /// The zone's interest rules as the welcome tells them.
+  [[nodiscard]] net::interest_rules rules() const;
 
  private:
   struct client {
@@ -85,6 +91,8 @@ class zone_server {
   /// Every log_summary_s: one info line of joins, leaves and refused connections since the last
   /// (per-session lines are at debug: a flood of connections cannot flood the log).
   void log_summary();
+  /// --test-fault: the client whose frames are broken (the lowest session with an entity).
+  void choose_fault_victim();
 
   zone_config cfg_;
   std::unique_ptr<interest::thread_pool> pool_;
@@ -102,6 +110,10 @@ class zone_server {
   replicator replicator_;
   net::server net_;
   std::unique_ptr<net::metrics_server> metrics_;
+  std::unique_ptr<truth_publisher> truth_;  // --oracle
+  std::unique_ptr<fault_injector> fault_;   // --test-fault
+  net::session_id fault_session_ = 0;
+  bool fault_has_victim_ = false;
   // Replication scratch, reused every tick: one request per client, its session and its frame.
   std::vector<replication_request> requests_;
   std::vector<net::session_id> request_sessions_;

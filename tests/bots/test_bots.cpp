@@ -10,6 +10,7 @@
 #include <cerrno>
 #include <cstring>
 #include <random>
+#include <sstream>
 
 #include "process.h"
 #include "protocol.h"
@@ -169,13 +170,16 @@ TEST_CASE("latency histogram percentiles") {
   CHECK(h.max_ms() == doctest::Approx(10.0));
 }
 
-TEST_CASE("end to end: 200 bots in verify mode, zero mismatches, p99 tick bounded") {
+TEST_CASE("end to end: 200 bots in verify mode and checked by the oracle, zero mismatches, p99 tick bounded") {
   const std::string dir = temp_dir();
-  zone_server_process server(ZONE_SERVER_EXE, dir, server_args);
+  std::vector<std::string> args = server_args;
+  args.push_back("--oracle");
+  zone_server_process server(ZONE_SERVER_EXE, dir, args);
   REQUIRE_MESSAGE(server.port != 0, server.proc.log());
   child_process swarm(swarm_args(server.port, dir,
                                  {"--bots", "200", "--duration", "15", "--ramp", "100", "--input-hz", "10", "--verify",
-                                  "--mix", "walk=0.4,patrol=0.2,follow=0.2,crowd=0.2", "--report-csv", dir + "/report.csv"}),
+                                  "--oracle", "--mix", "walk=0.4,patrol=0.2,follow=0.2,crowd=0.2", "--report-csv",
+                                  dir + "/report.csv"}),
                       dir + "/bot-swarm.log");
   const auto rc = swarm.wait(60000ms);
   const std::string report = read_file(dir + "/report.json");
@@ -189,6 +193,16 @@ TEST_CASE("end to end: 200 bots in verify mode, zero mismatches, p99 tick bounde
   CHECK(json_number(report, "digests_checked").value_or(0) > 200 * 20 * 5);
   CHECK(json_number(report, "aoi_checked").value_or(0) > 0);
   CHECK(json_number(report, "samples").value_or(0) > 0);
+  // The oracle checked (nearly) every frame of every bot against the ground truth: not one
+  // mismatch of any kind, and the stream ran to the end.
+  CHECK(report.find("\"rules_from_server\": true") != std::string::npos);
+  CHECK(report.find("\"stream_error\": \"\"") != std::string::npos);
+  CHECK(json_number(report, "oracle_mismatches").value_or(-1) == 0);
+  const double checked = json_number(report, "frames_checked").value_or(0);
+  CHECK(checked > 200 * 20 * 5);
+  CHECK(json_number(report, "frames_unchecked").value_or(1e9) <= checked / 100);
+  CHECK(json_number(report, "entities_checked").value_or(0) > checked * 5);
+  CHECK(json_number(report, "positions_checked").value_or(0) > checked * 5);
   // The steady state: 200 bots at 100 a second are all connected after ~2 s (sampled once a
   // second), and its latency samples are part of the whole run's.
   const auto steady_at = report.find("\"latency_steady_ms\"");
@@ -217,6 +231,163 @@ TEST_CASE("end to end: 200 bots in verify mode, zero mismatches, p99 tick bounde
   REQUIRE(p99.has_value());
   MESSAGE("server p99 tick " << *p99 << " ms; bot latency p99 " << json_number(report, "p99").value_or(-1) << " ms");
   CHECK(*p99 <= p99_tick_bound_ms);
+}
+
+namespace {
+
+/// The p-quantile of one column of zone-server's --tick-csv, over the ticks from `from_s` seconds on.
+std::optional<double> tick_csv_quantile(const std::string& path, const std::string& column, double from_s, double q) {
+  std::istringstream in(read_file(path));
+  std::string line;
+  if (!std::getline(in, line)) return std::nullopt;
+  std::vector<std::string> header;
+  {
+    std::istringstream h(line);
+    for (std::string f; std::getline(h, f, ',');) header.push_back(f);
+  }
+  const auto col = std::find(header.begin(), header.end(), column) - header.begin();
+  const auto t_col = std::find(header.begin(), header.end(), "t_s") - header.begin();
+  if (col == static_cast<std::ptrdiff_t>(header.size()) || t_col == static_cast<std::ptrdiff_t>(header.size())) return std::nullopt;
+  std::vector<double> v;
+  while (std::getline(in, line)) {
+    std::vector<std::string> f;
+    std::istringstream l(line);
+    for (std::string x; std::getline(l, x, ',');) f.push_back(x);
+    if (f.size() != header.size() || std::stod(f[static_cast<std::size_t>(t_col)]) < from_s) continue;
+    v.push_back(std::stod(f[static_cast<std::size_t>(col)]));
+  }
+  if (v.empty()) return std::nullopt;
+  std::sort(v.begin(), v.end());
+  return v[std::min(v.size() - 1, static_cast<std::size_t>(q * static_cast<double>(v.size())))];
+}
+
+}  // namespace
+
+// Bounds of the timing test (docs/bots.md): about 1.5 x the figures measured on the 2-core
+// machine, so that a 2x regression fails it (run alone: RUN_SERIAL).
+constexpr double timing_tick_p99_bound_ms = TIMING_TICK_P99_BOUND_MS;
+constexpr double timing_latency_p99_bound_ms = TIMING_LATENCY_P99_BOUND_MS;
+
+namespace {
+
+struct timing_figures {
+  double tick_p99 = -1, latency_p99 = -1;
+};
+
+/// One timing run: 200 bots on 2,000 NPCs at 20 Hz for 15 s; the steady state's tick p99 (from
+/// --tick-csv) and update latency p99 (the swarm's report).
+timing_figures timing_run() {
+  const std::string dir = temp_dir();
+  std::vector<std::string> args = server_args;
+  args.insert(args.end(), {"--tick-csv", dir + "/ticks.csv"});
+  zone_server_process server(ZONE_SERVER_EXE, dir, args);
+  REQUIRE_MESSAGE(server.port != 0, server.proc.log());
+  child_process swarm(swarm_args(server.port, dir,
+                                 {"--bots", "200", "--duration", "15", "--ramp", "100", "--mix",
+                                  "walk=0.4,patrol=0.2,follow=0.2,crowd=0.2"}),
+                      dir + "/bot-swarm.log");
+  const auto rc = swarm.wait(60000ms);
+  const std::string report = read_file(dir + "/report.json");
+  INFO("bot-swarm output:\n" << swarm.log());
+  REQUIRE(rc.has_value());
+  CHECK(*rc == 0);
+  REQUIRE(server.proc.terminate().value_or(-1) == 0);
+  const auto steady_at = report.find("\"latency_steady_ms\"");
+  REQUIRE(steady_at != std::string::npos);
+  const double from_s = json_number(report.substr(steady_at), "from_s").value_or(-1);
+  REQUIRE(from_s >= 0);
+  timing_figures f;
+  f.latency_p99 = json_number(report.substr(steady_at), "p99").value_or(-1);
+  // The server's ticks over the same steady window (its clock starts a moment before the swarm's).
+  const auto tick_p99 = tick_csv_quantile(dir + "/ticks.csv", "tick_ms", from_s + 1, 0.99);
+  REQUIRE(tick_p99.has_value());
+  f.tick_p99 = *tick_p99;
+  return f;
+}
+
+}  // namespace
+
+TEST_CASE("timing: 200 bots on 2,000 NPCs at 20 Hz; tick p99 and update latency p99 in the steady state within bounds") {
+  // The best of up to three runs: a 2x regression makes every run slow, while a neighbour's
+  // burst of CPU (a shared machine) seldom spoils three in a row.
+  timing_figures best{1e9, 1e9};
+  for (int attempt = 1; attempt <= 3; ++attempt) {
+    const timing_figures f = timing_run();
+    MESSAGE("run " << attempt << ": tick p99 " << f.tick_p99 << " ms (bound " << timing_tick_p99_bound_ms
+                   << "), update latency p99 " << f.latency_p99 << " ms (bound " << timing_latency_p99_bound_ms << ")");
+    REQUIRE(f.latency_p99 > 0);
+    REQUIRE(f.tick_p99 > 0);
+    best.tick_p99 = std::min(best.tick_p99, f.tick_p99);
+    best.latency_p99 = std::min(best.latency_p99, f.latency_p99);
+    if (best.tick_p99 <= timing_tick_p99_bound_ms && best.latency_p99 <= timing_latency_p99_bound_ms) break;
+  }
+  CHECK(best.tick_p99 <= timing_tick_p99_bound_ms);
+  CHECK(best.latency_p99 <= timing_latency_p99_bound_ms);
+}
+
+TEST_CASE("rules: zone-server --player-aoi 100 --hysteresis 7 with a default bot-swarm gives no mismatch (the welcome tells the rules)") {
+  const std::string dir = temp_dir();
+  std::vector<std::string> args = server_args;
+  args.insert(args.end(), {"--player-aoi", "100", "--hysteresis", "7", "--oracle"});
+  zone_server_process server(ZONE_SERVER_EXE, dir, args);
+  REQUIRE_MESSAGE(server.port != 0, server.proc.log());
+  child_process swarm(swarm_args(server.port, dir, {"--bots", "60", "--duration", "8", "--ramp", "100", "--verify", "--oracle"}),
+                      dir + "/bot-swarm.log");
+  const auto rc = swarm.wait(60000ms);
+  const std::string report = read_file(dir + "/report.json");
+  INFO("bot-swarm output:\n" << swarm.log());
+  REQUIRE(rc.has_value());
+  CHECK(*rc == 0);
+  CHECK(report.find("\"rules_from_server\": true") != std::string::npos);
+  CHECK(json_number(report, "mismatches").value_or(-1) == 0);
+  CHECK(json_number(report, "aoi_checked").value_or(0) > 1000);
+  CHECK(json_number(report, "frames_checked").value_or(0) > 60 * 20 * 4);
+  CHECK(server.proc.terminate().value_or(-1) == 0);
+}
+
+namespace {
+
+/// zone-server --test-fault KIND against 20 bots with the oracle: the swarm fails, the oracle
+/// reports the fault (and only it) under its kind's counter, and, for the faults whose frames keep
+/// the digest consistent with what the client holds, the server's own digests see nothing.
+void oracle_catches(const std::string& fault, const std::string& counter, bool digests_blind) {
+  const std::string dir = temp_dir();
+  std::vector<std::string> args = server_args;
+  args.insert(args.end(), {"--oracle", "--test-fault", fault, "--test-fault-tick", "40"});
+  zone_server_process server(ZONE_SERVER_EXE, dir, args);
+  REQUIRE_MESSAGE(server.port != 0, server.proc.log());
+  child_process swarm(swarm_args(server.port, dir, {"--bots", "20", "--duration", "7", "--ramp", "100", "--verify", "--oracle"}),
+                      dir + "/bot-swarm.log");
+  const auto rc = swarm.wait(60000ms);
+  const std::string report = read_file(dir + "/report.json");
+  INFO("bot-swarm output:\n" << swarm.log());
+  REQUIRE(rc.has_value());
+  CHECK(*rc == 1);  // mismatches
+  const double caught = json_number(report, counter).value_or(0);
+  MESSAGE("fault " << fault << ": the oracle counted " << caught << " " << counter << " mismatches");
+  CHECK(caught > 0);
+  CHECK(json_number(report, "oracle_mismatches").value_or(-1) == caught);
+  if (digests_blind) CHECK(json_number(report, "digest_mismatches").value_or(-1) == 0);
+  CHECK(json_number(report, "frames_checked").value_or(0) > 20 * 20 * 4);
+  CHECK(server.proc.terminate().value_or(-1) == 0);
+}
+
+}  // namespace
+
+TEST_CASE("oracle fault drop: an entity left out of one client's view is caught as missing") {
+  oracle_catches("drop", "missing", true);
+}
+TEST_CASE("oracle fault extra: an entity far outside one client's AOI is caught as extra") {
+  oracle_catches("extra", "extra", false);
+}
+TEST_CASE("oracle fault stealth: a stealth entity leaked to one client is caught as leaked") {
+  oracle_catches("stealth", "leaked", true);
+}
+TEST_CASE("oracle fault freeze: one entity's frozen position is caught as a position mismatch") {
+  oracle_catches("freeze", "position", true);
+}
+TEST_CASE("oracle fault class: an entity sent with the wrong class is caught") {
+  oracle_catches("class", "wrong_class", true);
 }
 
 TEST_CASE("teleport: bots jump at random across the world; views and AOI checks stay exact") {

@@ -5,6 +5,7 @@
 #include <algorithm>
 #include <atomic>
 #include <chrono>
+#include <ctime>
 #include <thread>
 #include <vector>
 
@@ -82,5 +83,25 @@ TEST_SUITE("interest.thread_pool") {
       thread_pool pool(3, spin);
       pool.run(10, [](std::size_t) {});
     }  // the destructor must not hang, whichever state the workers are in
+  }
+
+  TEST_CASE("park: spinning workers go to sleep at once (no CPU while idle), and the next runs are whole") {
+    // Workers that spin for a whole second after a run would burn ~3 CPU-seconds per second
+    // here; parked, they burn nothing while the caller waits.
+    thread_pool pool(4, 1000000);
+    for (int round = 0; round < 3; ++round) {
+      pool.run(64, [](std::size_t) {});
+      pool.park();
+      timespec a{}, b{};
+      clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &a);
+      std::this_thread::sleep_for(std::chrono::milliseconds(200));
+      clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &b);
+      const double cpu_ms = (b.tv_sec - a.tv_sec) * 1e3 + (b.tv_nsec - a.tv_nsec) / 1e6;
+      CAPTURE(round);
+      CHECK(cpu_ms < 60);  // spinning: ~600 ms of CPU in these 200 ms
+      check_runs(pool, 20, false);
+    }
+    pool.park();  // parking twice in a row, then destruction
+    pool.park();
   }
 }

@@ -59,6 +59,26 @@ struct gen {
         w.protocol_version = u32();
         if (rng() % 2) w.spawn_position = v();
         w.host_clock = rng() % 2 == 0;
+        if (rng() % 2) {
+          interest_rules r;
+          r.player_aoi = v();
+          r.hysteresis = static_cast<float>(below(100)) / 4;
+          r.max_visible = u32();
+          r.player_class = u32();
+          r.player_sees = u32();
+          for (std::size_t i = below(6); i-- > 0;) r.npc_aoi_tiers.push_back(static_cast<float>(below(1000)));
+          r.quantization_step = v();
+          r.update_near = static_cast<float>(below(100));
+          r.update_mid = static_cast<float>(below(300));
+          r.update_mid_period = u32();
+          r.update_far_period = u32();
+          r.byte_budget = u32();
+          r.send_every = u32();
+          r.digest_every = u32();
+          r.max_speed = static_cast<float>(below(50));
+          w.rules = r;
+        }
+        w.oracle_port = static_cast<std::uint16_t>(rng());
         return w;
       }
       case 4: {
@@ -72,6 +92,7 @@ struct gen {
         if (rng() % 2) t.digest = verify_digest{u64(), u64(), u32()};
         t.reset = rng() % 4 == 0;
         if (rng() % 2) t.self_position = v();
+        if (rng() % 2) t.deferred = deferred_counts{u32() | 1, u32(), u32()};  // present only when not all 0
         return t;
       }
       case 5: return pong_msg{u64(), u64()};
@@ -163,6 +184,7 @@ void write_all(tick_update_writer& w, const tick_update_msg& t) {
   if (t.digest) w.set_digest(*t.digest);
   w.set_reset(t.reset);
   if (t.self_position) w.set_self_position(*t.self_position);
+  if (t.deferred) w.set_deferred(*t.deferred);
 }
 
 }  // namespace

@@ -29,6 +29,9 @@ struct replication_equivalence_case {
   std::vector<std::uint64_t> first_ticks{1, (std::uint64_t{1} << 32) - 20};
   bool switch_engine = true;  ///< turn the engine off and on again mid-run
   bool churn = true;
+  /// When set, the interest tracker runs on this engine (the GPU's) with no row copied back, so a
+  /// replication engine that can reads the visible sets in place (the CPU side fetches them).
+  std::function<std::unique_ptr<interest::visibility_engine>(interest::thread_pool*)> make_visibility;
 };
 
 /// What the runs covered (summed over every frame compared).
@@ -38,6 +41,7 @@ struct replication_coverage {
   std::uint64_t deferred_enters = 0, deferred_leaves = 0, deferred_updates = 0;
   std::uint64_t ranked = 0;  ///< frames where the budget cut the due updates and some were sent
   std::uint64_t resets = 0, empty = 0, near = 0, mid = 0, far = 0;
+  std::uint64_t resident_runs = 0;  ///< engine runs that read the visible sets in place
 };
 
 /// Runs `c` with engines from `make_engine` (one per budget and first tick) and compares every
@@ -72,6 +76,14 @@ inline replication_coverage check_replication_equivalence(
       for (std::size_t k = 0; k < c.entities; ++k) (void)store.create(random_desc());
       interest::grid_finder finder(&pool);
       interest_tracker tracker(finder, &pool, {3.0f, 0, 64});
+      std::unique_ptr<interest::visibility_engine> vis_engine;
+      const std::vector<std::uint8_t> no_rows;  // demand: no row copied back
+      if (c.make_visibility) {
+        vis_engine = c.make_visibility(&pool);
+        REQUIRE(vis_engine != nullptr);
+        tracker.set_engine(vis_engine.get());
+        tracker.set_view_demand(&no_rows);
+      }
       replication_options opt;
       opt.world = {{0, 0, 0}, {c.side, c.side, 20}};
       opt.byte_budget = budget;
@@ -135,6 +147,8 @@ inline replication_coverage check_replication_equivalence(
                          got_st[k] = st;
                        });
         REQUIRE(dev.engine_error().empty());
+        if (c.make_visibility) REQUIRE(tracker.last_update_on_engine());
+        if (dev.on_engine() && !requests.empty() && engine->timing().resident) ++cov.resident_runs;
         if (c.switch_engine) REQUIRE(dev.on_engine() == (tick - first_tick < 4 || tick - first_tick >= 7));
         for (std::size_t k = 0; k < requests.size(); ++k) {
           const client_id id = requests[k].client;

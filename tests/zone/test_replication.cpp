@@ -156,6 +156,7 @@ class reference_replicator {
     };
     std::vector<bool> keep(s.view.size(), true);
     std::vector<pending> enters, updates;
+    net::deferred_counts deferred;
     std::size_t i = 0, j = 0;
     while (i < visible.size() || j < s.view.size()) {
       if (j < s.view.size() && (i == visible.size() || s.view[j] < visible[i])) {
@@ -163,6 +164,8 @@ class reference_replicator {
           writer_.add_leave(s.view[j]);
           keep[j] = false;
           s.hash = net::digest_remove(s.hash, s.view[j]);
+        } else {
+          ++deferred.leaves;
         }
         ++j;
       } else if (j == s.view.size() || visible[i] < s.view[j]) {
@@ -191,7 +194,10 @@ class reference_replicator {
     std::sort(enters.begin(), enters.end(), by_priority);
     std::vector<entity_id> entered;
     for (const pending& e : enters) {
-      if (!fits(net::frame_cost::enter)) break;
+      if (!fits(net::frame_cost::enter)) {
+        deferred.enters = static_cast<std::uint32_t>(enters.size() - entered.size());
+        break;
+      }
       const std::size_t k = e.dense;
       writer_.add_enter({e.id, static_cast<net::entity_kind>(store.kinds()[k]), store.visibility_classes()[k],
                          {pos[k].x, pos[k].y, pos[k].z}, {vel[k].x, vel[k].y, vel[k].z},
@@ -206,7 +212,10 @@ class reference_replicator {
     const std::size_t used = writer_.size_estimate();
     if (used + 16 * updates.size() > opt_.byte_budget) std::sort(updates.begin(), updates.end(), by_priority);
     for (const pending& u : updates) {
-      if (!fits(16)) continue;
+      if (!fits(16)) {
+        ++deferred.updates;
+        continue;
+      }
       const std::size_t k = u.dense;
       writer_.add_update({u.id, quantizer_.quantize({pos[k].x, pos[k].y, pos[k].z}),
                           net::quantize_velocity({vel[k].x, vel[k].y, vel[k].z})});
@@ -226,6 +235,7 @@ class reference_replicator {
     if (opt_.send_digest && (reset || opt_.digest_period <= 1 || tick % opt_.digest_period == 0)) {
       writer_.set_digest({tick, s.hash, static_cast<std::uint32_t>(s.view.size())});
     }
+    writer_.set_deferred(deferred);  // what the budget left for later
     return writer_.finish();
   }
   [[nodiscard]] std::span<const entity_id> view(std::size_t c) const { return clients_[c].view; }

@@ -34,16 +34,23 @@ class emulated_engine final : public interest::replication_engine {
     return {entities_.data(), slot_dense_.data(), jobs_.data(), visible_.data()};
   }
 
-  output run(const interest::replication_rules& rules, std::size_t client_count) override {
+  output run(const interest::replication_rules& rules, std::size_t client_count,
+             const interest::visibility_engine::resident_lists* rows) override {
+    REQUIRE(rows == nullptr);  // reads_resident() is false: the replicator stages the sets
     if (len_.size() < client_count) {
       len_.resize(client_count, 0);
       off_.resize(client_count, 0);
       hash_.resize(client_count, 0);
     }
     clients_.resize(client_count);
+    new_off_.resize(client_count + 1);
+    rep::table_clients(jobs_.data(), jobs_.size(), visible_.size(), 0, len_.data(), off_.data(), client_count,
+                       clients_.data());
     std::uint64_t record_cap = 0;
-    const std::uint64_t total = rep::plan_clients(jobs_.data(), jobs_.size(), visible_.size(), len_.data(), off_.data(),
-                                                  client_count, rules.byte_budget, clients_.data(), record_cap);
+    const std::uint64_t total =
+        rep::plan_staged(jobs_.data(), clients_.data(), client_count, rules.byte_budget, new_off_.data(), record_cap);
+    // The device's planning (client_room, used with resident rows) must agree with the host's.
+    std::uint64_t rooms = 0, records = 0;
     new_id_.assign(total, 0xdeadbeef);
     new_sent_.assign(total, 0xdeadbeef);
     scratch_.assign(total, {});
@@ -61,6 +68,17 @@ class emulated_engine final : public interest::replication_engine {
     a.visible = visible_.data();
     a.clients = clients_.data();
     a.client_count = static_cast<std::uint32_t>(client_count);
+    a.new_off = new_off_.data();
+    for (std::uint32_t c = 0; c < client_count; ++c) {
+      std::uint32_t room = 0;
+      std::uint64_t record = 0;
+      rep::client_room(a, c, room, record);
+      CHECK(new_off_[c] == rooms);
+      rooms += room;
+      records += record;
+    }
+    CHECK(rooms == total);
+    CHECK(records == record_cap);
     a.old_id = id_.data();
     a.old_sent = sent_.data();
     a.new_id = new_id_.data();
@@ -80,7 +98,7 @@ class emulated_engine final : public interest::replication_engine {
     REQUIRE(cursor[0] <= record_cap);
     id_.swap(new_id_);
     sent_.swap(new_sent_);
-    for (std::size_t c = 0; c < client_count; ++c) off_[c] = clients_[c].new_off;
+    for (std::size_t c = 0; c < client_count; ++c) off_[c] = new_off_[c];
     for (std::size_t k = 0; k < jobs_.size(); ++k) len_[jobs_[k].client] = results_[k].view_size;
     return {results_.data(), records_.data()};
   }
@@ -96,7 +114,7 @@ class emulated_engine final : public interest::replication_engine {
   std::vector<std::uint32_t> slot_dense_, visible_;
   std::vector<interest::replication_job> jobs_;
   std::vector<rep::client_slot> clients_;
-  std::vector<std::uint32_t> len_, off_, id_, sent_, new_id_, new_sent_;
+  std::vector<std::uint32_t> len_, off_, id_, sent_, new_id_, new_sent_, new_off_;
   std::vector<std::uint64_t> hash_;
   std::vector<rep::scratch_entry> scratch_;
   std::vector<std::uint8_t> records_;

@@ -7,6 +7,7 @@
 
 #include "../common/seeds.h"
 #include "replication.h"
+#include "visibility.h"
 #include "replication_equivalence.h"
 #include "zone.h"
 
@@ -51,5 +52,45 @@ TEST_SUITE("zone.gpu") {
     CAPTURE(seed);
     const auto cov = zone::test::check_replication_equivalence(seed, zone::test::deferred_leaves_case(), make_gpu_replication);
     zone::test::require_equivalent(cov, true, true);
+  }
+
+  TEST_CASE("GPU replication reading the GPU interest engine's visible sets in place equals the CPU replicator") {
+    const std::uint64_t seed = zone::test::fresh_seed();
+    CAPTURE(seed);
+    zone::test::replication_equivalence_case c;
+    c.budgets = {260, 900, 8192, std::size_t{1} << 20};
+    c.make_visibility = [](interest::thread_pool* pool) {
+      std::string why;
+      auto e = gpu::make_visibility_engine(pool, &why);
+      if (!e) FAIL("make_visibility_engine failed: " << why);
+      return e;
+    };
+    const auto cov = zone::test::check_replication_equivalence(seed, c, make_gpu_replication);
+    zone::test::require_equivalent(cov);
+    CHECK(cov.resident_runs > 0);
+    MESSAGE("engine runs that read the sets in place: " << cov.resident_runs);
+  }
+
+  TEST_CASE("GPU replication in place: a large world (20,000 entities, 3,000 clients) equals the CPU replicator") {
+    const std::uint64_t seed = zone::test::fresh_seed();
+    CAPTURE(seed);
+    zone::test::replication_equivalence_case c;
+    c.entities = 20000;
+    c.clients = 3000;
+    c.ticks = 20;
+    c.side = 2000;
+    c.aoi_lo = 20;
+    c.aoi_hi = 80;
+    c.budgets = {700, 8192};
+    c.first_ticks = {7};
+    c.make_visibility = [](interest::thread_pool* pool) {
+      std::string why;
+      auto e = gpu::make_visibility_engine(pool, &why);
+      if (!e) FAIL("make_visibility_engine failed: " << why);
+      return e;
+    };
+    const auto cov = zone::test::check_replication_equivalence(seed, c, make_gpu_replication);
+    zone::test::require_equivalent(cov);
+    CHECK(cov.resident_runs > 0);
   }
 }

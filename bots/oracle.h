@@ -1,0 +1,175 @@
+// The oracle (docs/bots.md): an independent check of every bot's view against the server's ground
+// truth. The server (zone-server --oracle) publishes each tick's entities, boxes and classes on a
+// loopback stream (net/truth.h); the oracle recomputes every player's visible set from that
+// truth alone, by brute force (every observer against every entity) under the zone's rules (the
+// visibility rule, the hysteresis, the cap), and each bot, right after applying the frame of tick
+// t, has its view compared with the visible set of tick t. What the server promises after a frame
+// of tick t (and the oracle checks exactly):
+//   - the view holds every visible entity but `deferred.enters` of them, and no entity that is
+//     not visible but `deferred.leaves` of them (the frame says what the byte budget left for
+//     later); never one of a class the observer does not see (a leak);
+//   - every held entity has its true visibility class;
+//   - every held entity's position is its true position at the tick it was last sent (enter:
+//     exact; update: within the quantization error), and the bot's own position is exact;
+//   - an entity held and visible is updated when its distance tier makes it due, but
+//     `deferred.updates` of them.
+// The bots, not the server, hold the views; nothing the server says about its own view is trusted.
+#pragma once
+
+#include <atomic>
+#include <condition_variable>
+#include <cstdint>
+#include <deque>
+#include <memory>
+#include <mutex>
+#include <optional>
+#include <shared_mutex>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "protocol.h"
+#include "truth.h"
+
+namespace zone::bots {
+
+/// Mismatches by kind, and what was checked (relaxed atomics: bots on several threads add to them).
+struct oracle_counters {
+  std::atomic<std::uint64_t> frames_checked{0}, frames_unchecked{0}, entities_checked{0}, positions_checked{0},
+      positions_unchecked{0};
+  std::atomic<std::uint64_t> missing{0}, extra{0}, leaked{0}, wrong_class{0}, position{0}, stale{0}, deferral{0};
+  [[nodiscard]] std::uint64_t mismatches() const {
+    return missing.load() + extra.load() + leaked.load() + wrong_class.load() + position.load() + stale.load() +
+           deferral.load();
+  }
+};
+
+/// A plain copy of the counters and the oracle's own costs (for the report).
+struct oracle_report {
+  std::uint64_t frames_checked = 0, frames_unchecked = 0, entities_checked = 0, positions_checked = 0,
+                positions_unchecked = 0;
+  std::uint64_t missing = 0, extra = 0, leaked = 0, wrong_class = 0, position = 0, stale = 0, deferral = 0;
+  std::uint64_t truth_ticks = 0, truth_bytes = 0, truth_layouts = 0;
+  double compute_cpu_ms = 0;  ///< CPU of decoding and recomputing the visible sets, all ticks
+  double compute_max_ms = 0;  ///< the slowest tick's wall time
+  double check_ms = 0;        ///< wall time of the comparisons, summed (bots' threads and the oracle's)
+  std::uint64_t deferred_checks = 0;  ///< frames checked by the oracle's thread (they came before their truth)
+  std::uint64_t pending_overflow = 0;  ///< frames not checked: too many waiting for their truth
+  std::uint64_t observers_max = 0;
+  std::string stream_error;  ///< why the stream ended early (empty: it ran to the end)
+  [[nodiscard]] std::uint64_t mismatches() const {
+    return missing + extra + leaked + wrong_class + position + stale + deferral;
+  }
+};
+
+class oracle {
+ public:
+  /// Called with a readable line for each of the first few mismatches of every kind.
+  using problem_fn = void (*)(void* ctx, std::string line);
+
+  /// `rules` and `world` as the server's welcome tells them; `threads` recompute the visible sets
+  /// (0 = 1 per 8 hardware threads, at least 1).
+  oracle(const net::world_bounds& world, const net::interest_rules& rules, unsigned threads, problem_fn problem,
+         void* ctx);
+  ~oracle();
+  oracle(const oracle&) = delete;
+  oracle& operator=(const oracle&) = delete;
+
+  /// Connects to the truth stream at 127.0.0.1:port and starts reading; waits (up to `timeout_s`)
+  /// for the first tick, so that every entity spawned afterwards has its whole history seen.
+  [[nodiscard]] std::optional<std::string> start(std::uint16_t port, double timeout_s);
+  void stop();
+
+  /// Checks `observer`'s view right after it applied the frame of `tick` (with what that frame
+  /// said it deferred and the observer's own position, when it carried one). Never waits: when
+  /// the truth of that tick is not computed yet, a snapshot of the view waits for it and the
+  /// oracle's thread checks it then. Thread-safe; `bot` names the bot in the log.
+  void check(std::uint32_t observer, std::uint64_t tick, const net::client_view& view,
+             const net::deferred_counts& deferred, const std::optional<net::vec3f>& self_position, std::size_t bot);
+
+  /// One entity of a bot's view after a frame, as the checks read it.
+  struct held_entity {
+    std::uint32_t id, visibility_class;
+    float x, y, z;
+    std::uint64_t last_tick;  ///< the tick it was last sent (enter or update)
+  };
+  /// A bot's view after the frame of `tick` (entities by ascending id) and what that frame said.
+  struct view_snapshot {
+    std::uint32_t observer = 0;
+    std::uint64_t tick = 0;
+    net::deferred_counts deferred;
+    std::optional<net::vec3f> self_position;
+    std::size_t bot = 0;
+    std::vector<held_entity> held;
+  };
+  /// Most bytes of snapshots waiting for their tick's truth; beyond, a frame is counted unchecked.
+  static constexpr std::size_t max_pending_bytes = std::size_t{256} << 20;
+
+  /// Feeds one truth frame's body directly (tests; start() does this from the socket).
+  [[nodiscard]] std::optional<std::string> feed(std::span<const std::uint8_t> body);
+
+  /// The visible set the oracle computed for `observer` at `tick` (tests), or nothing when that
+  /// tick is gone or the observer's history is unknown.
+  [[nodiscard]] std::optional<std::vector<std::uint32_t>> visible(std::uint32_t observer, std::uint64_t tick) const;
+
+  [[nodiscard]] const oracle_counters& counters() const { return c_; }
+  [[nodiscard]] oracle_report report() const;
+  /// Ticks of truth kept for checks of late frames and of positions last sent long ago.
+  static constexpr std::size_t ring_ticks = 64;
+  /// Test every target for every observer (true), or skip those whose x alone rules them out
+  /// (false, the default: the same sets, tested against each other, about 20x less work).
+  bool full_scan = false;
+  /// Waits (at most `timeout_s`) until the truth of every tick a bot checked so far is computed
+  /// and the views that waited for it are checked: called at the end of a run, before stop().
+  void catch_up(double timeout_s);
+
+ private:
+  struct layout;
+  struct tick_truth;
+  void run(int fd);
+  void compute(const net::truth::tick_frame& f);
+  void log(const char* kind, std::atomic<std::uint32_t>& logged, const std::string& line);
+  /// Compares a snapshot with the truth of its tick (unchecked when that tick is gone or unknown).
+  void check_snapshot(const view_snapshot& v);
+  /// Checks up to `max_jobs` waiting snapshots whose tick's truth is there (`all`: every one; those
+  /// whose truth never came are counted unchecked).
+  void drain_pending(bool all, std::size_t max_jobs);
+
+  net::world_bounds world_;
+  net::interest_rules rules_;
+  net::vec3f tolerance_;
+  unsigned threads_;
+  problem_fn problem_;
+  void* ctx_;
+  oracle_counters c_;
+  std::vector<std::unique_ptr<tick_truth>> ring_;
+  std::shared_ptr<const layout> layout_;
+  net::truth::tick_frame frame_;
+  std::uint64_t prev_tick_ = 0;
+  bool any_tick_ = false;
+  // Ready ticks: the newest computed (valid while any_ready_).
+  mutable std::mutex ready_mutex_;
+  std::condition_variable ready_cv_;
+  std::atomic<std::uint64_t> ready_tick_{0};
+  std::atomic<bool> any_ready_{false}, ended_{false}, stopping_{false};
+  std::thread thread_;
+  int fd_ = -1;
+  std::string stream_error_;
+  std::atomic<std::uint32_t> logged_missing_{0}, logged_extra_{0}, logged_leaked_{0}, logged_class_{0},
+      logged_position_{0}, logged_stale_{0}, logged_deferral_{0};
+  // Costs.
+  std::uint64_t truth_ticks_ = 0, truth_bytes_ = 0, truth_layouts_ = 0, observers_max_ = 0;
+  double compute_cpu_ms_ = 0, compute_max_ms_ = 0;
+  std::atomic<std::uint64_t> check_ns_{0};
+  // Snapshots of frames that came before their tick's truth (checked by the oracle's thread).
+  std::mutex pending_mutex_;
+  std::deque<view_snapshot> pending_;
+  std::size_t pending_bytes_ = 0;
+  std::atomic<std::uint64_t> deferred_checks_{0}, pending_overflow_{0};
+  std::atomic<std::uint64_t> newest_checked_tick_{0};  // the newest tick a bot asked to check
+  // Per-thread scratch of compute().
+  std::vector<std::vector<std::uint8_t>> flags_;
+  std::vector<std::vector<std::uint64_t>> sets_;  // by observer index, reused tick to tick: (id << 32) | dense
+};
+
+}  // namespace zone::bots

@@ -1,0 +1,76 @@
+// The ground-truth stream of zone-server --oracle (docs/protocol.md, net/truth.h): a loopback
+// listener and one sender thread; the tick loop hands it each tick's entities after the world step.
+#pragma once
+
+#include <atomic>
+#include <condition_variable>
+#include <cstdint>
+#include <deque>
+#include <memory>
+#include <mutex>
+#include <optional>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "zone.h"
+
+namespace zone {
+
+/// What the stream cost (the tick loop's side: encoding and queueing).
+struct truth_stats {
+  std::uint64_t ticks = 0;         ///< ticks published (with at least one subscriber)
+  std::uint64_t bytes = 0;         ///< bytes of those frames
+  std::uint64_t layouts = 0;       ///< frames that carried the layout
+  std::uint64_t dropped_subscribers = 0;  ///< subscribers closed for falling too far behind
+  double publish_ms = 0;           ///< summed time of publish() on the tick loop
+};
+
+class truth_publisher {
+ public:
+  /// Most bytes queued for one subscriber; beyond, it is disconnected (an oracle that cannot keep
+  /// up must not grow the server without bound, and a gap would make its checks meaningless).
+  static constexpr std::size_t max_queued_bytes = std::size_t{512} << 20;
+  static constexpr int max_subscribers = 4;
+
+  truth_publisher() = default;
+  ~truth_publisher();
+  truth_publisher(const truth_publisher&) = delete;
+  truth_publisher& operator=(const truth_publisher&) = delete;
+
+  /// Listens on 127.0.0.1:port (0 = ephemeral) and starts the sender thread.
+  [[nodiscard]] std::optional<std::string> start(std::uint16_t port);
+  [[nodiscard]] std::uint16_t port() const { return port_; }
+  /// The world after the step of `tick`: encoded once and queued for every subscriber (nothing
+  /// done while there is none). Game thread only.
+  void publish(const entity_store& store, std::uint64_t tick);
+  void stop();
+  [[nodiscard]] const truth_stats& stats() const { return stats_; }
+
+ private:
+  struct subscriber {
+    int fd = -1;
+    bool has_layout = false;  ///< got a frame with the layout (frames before it are not sent)
+    std::deque<std::shared_ptr<const std::vector<std::uint8_t>>> queue;
+    std::size_t queued_bytes = 0, offset = 0;  // offset into queue.front()
+  };
+  void run();
+  void wake();
+
+  int listen_fd_ = -1, wake_fd_ = -1;
+  std::uint16_t port_ = 0;
+  std::thread thread_;
+  std::atomic<bool> stopping_{false};
+  std::atomic<int> subscribers_{0};
+  std::atomic<bool> need_layout_{false};  ///< a subscriber joined: the next frame carries the layout
+  std::mutex mutex_;  // guards subs_
+  std::vector<subscriber> subs_;
+  std::uint64_t layout_version_ = 0;
+  bool any_published_ = false;
+  // Scratch columns (the store's types are plain floats and integers; copied as they are).
+  std::vector<std::uint8_t> kinds_;
+  std::vector<std::shared_ptr<std::vector<std::uint8_t>>> pool_;  // frames' buffers, reused
+  truth_stats stats_;
+};
+
+}  // namespace zone
