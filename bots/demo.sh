@@ -5,7 +5,7 @@
 #
 #   bash bots/demo.sh [BUILD_DIR]        # default build dir: build
 #
-# Environment: DEMO_BOTS, DEMO_NPCS, DEMO_SECONDS, DEMO_TICK_HZ, DEMO_OUT (report folder).
+# Environment: DEMO_BOTS, DEMO_NPCS, DEMO_SECONDS, DEMO_TICK_HZ, DEMO_OUT (report folder), DEMO_ORACLE (1: the oracle on, 0: off).
 # Defaults: 300 bots + 5,000 NPCs at 20 Hz for 30 s (a 2-core machine keeps up); 2,000 bots +
 # 20,000 NPCs with a CUDA device (the zone then runs its interest step on the GPU: --interest auto,
 # docs/zone.md).
@@ -30,8 +30,11 @@ mkdir -p "$OUT"
 # Both programs raise their open-file limit to the hard limit themselves and say so when the bots
 # or clients cannot fit.
 
+# The oracle (docs/bots.md) checks every bot's view against the server's ground truth; DEMO_ORACLE=0 leaves it out.
+ORACLE=()
+[[ ${DEMO_ORACLE:-1} != 0 ]] && ORACLE=(--oracle)
 "$SERVER_EXE" --listen 127.0.0.1 --port 0 --metrics-port 0 --npcs "$NPCS" --tick-rate "$HZ" \
-  --max-clients $((BOTS + 100)) --teleport 1 > "$OUT/zone-server.log" 2>&1 &
+  --max-clients $((BOTS + 100)) --teleport 1 "${ORACLE[@]}" > "$OUT/zone-server.log" 2>&1 &
 SERVER=$!
 stop_server() {
   if kill -0 "$SERVER" 2>/dev/null; then
@@ -54,7 +57,7 @@ done
 echo "demo: zone-server on 127.0.0.1:$PORT ($NPCS NPCs, $HZ Hz); $BOTS bots for $SECONDS_ s; reports in $OUT"
 
 set +e
-"$SWARM_EXE" --port "$PORT" --bots "$BOTS" --duration "$SECONDS_" --ramp 200 --verify \
+"$SWARM_EXE" --port "$PORT" --bots "$BOTS" --duration "$SECONDS_" --ramp 200 --verify "${ORACLE[@]}" \
   --mix walk=0.5,patrol=0.2,follow=0.1,crowd=0.1,teleport=0.1 \
   --report-json "$OUT/report.json" --report-csv "$OUT/report.csv" --plot "$OUT/latency.png"
 RC=$?

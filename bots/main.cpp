@@ -165,8 +165,9 @@ void print_table(const swarm_result& r, const summary& s) {
     row("oracle: wrong deferral counts", num(q.deferral));
     const double ticks = static_cast<double>(std::max<std::uint64_t>(1, q.truth_ticks));
     row("oracle: truth ticks, KB per tick", num(q.truth_ticks) + ", " + fmt(static_cast<double>(q.truth_bytes) / 1024.0 / ticks, "KB"));
-    row("oracle: recompute CPU per tick", fmt(q.compute_cpu_ms / ticks, "ms") + " (slowest tick " + ms(q.compute_max_ms) +
-                                              ", up to " + num(q.observers_max) + " observers)");
+    row("oracle: recompute CPU per tick", fmt(q.compute_cpu_ms / ticks, "ms") + " (up to " + num(q.observers_max) +
+                                              " observers; slowest tick with its checks " + ms(q.compute_max_ms) + ")");
+    row("oracle: its thread's checks, CPU per tick", fmt(q.drain_cpu_ms / ticks, "ms"));
     row("oracle: comparisons per tick", fmt(q.check_ms / ticks, "ms") + " (" + num(q.deferred_checks) +
                                              " frames checked after they waited for their truth, " +
                                              num(q.pending_overflow) + " not: too many waiting)");
@@ -226,7 +227,8 @@ bool write_json(const std::string& path, const swarm_result& r, const summary& s
       << ", \"leaked\": " << q.leaked << ", \"wrong_class\": " << q.wrong_class << ", \"position\": " << q.position
       << ", \"stale\": " << q.stale << ", \"deferral\": " << q.deferral << ", \"oracle_mismatches\": " << q.mismatches()
       << ", \"truth_ticks\": " << q.truth_ticks << ", \"truth_bytes\": " << q.truth_bytes << ", \"truth_layouts\": " << q.truth_layouts
-      << ", \"compute_cpu_ms\": " << q.compute_cpu_ms << ", \"compute_max_ms\": " << q.compute_max_ms
+      << ", \"compute_cpu_ms\": " << q.compute_cpu_ms << ", \"drain_cpu_ms\": " << q.drain_cpu_ms
+      << ", \"compute_max_ms\": " << q.compute_max_ms
       << ", \"check_ms\": " << q.check_ms << ", \"deferred_checks\": " << q.deferred_checks
       << ", \"pending_overflow\": " << q.pending_overflow << ", \"observers_max\": " << q.observers_max << ", \"stream_error\": \""
       << json_escape(q.stream_error) << "\"},\n";

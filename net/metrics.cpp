@@ -12,6 +12,7 @@
 #include <thread>
 
 #include "metrics.h"
+#include "viewer_route.h"
 
 namespace zone::net {
 
@@ -97,6 +98,7 @@ struct metrics_server::impl {
 
   std::mutex body_mutex;
   std::shared_ptr<const std::string> body = std::make_shared<const std::string>();
+  viewer_server* viewer = nullptr;  ///< attach_viewer
 
   void do_accept();
 };
@@ -121,6 +123,9 @@ class http_exchange : public std::enable_shared_from_this<http_exchange> {
 
  private:
   void answer() {
+    if (srv_.viewer != nullptr && is_viewer_target({request_.target().data(), request_.target().size()})) {
+      return viewer_handoff(*srv_.viewer, std::move(stream_), std::move(request_));
+    }
     ++srv_.requests;
     response_.version(request_.version());
     response_.keep_alive(false);
@@ -244,5 +249,7 @@ std::uint64_t metrics_server::requests() const { return impl_->requests.load(); 
 std::uint64_t metrics_server::connections_refused() const { return impl_->refused.load(); }
 std::uint64_t metrics_server::accept_errors() const { return impl_->accept_errors.load(); }
 std::uint64_t metrics_server::connections_open() const { return impl_->open.load(); }
+
+void metrics_server::attach_viewer(viewer_server* viewer) { impl_->viewer = viewer; }
 
 }  // namespace zone::net

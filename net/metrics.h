@@ -13,6 +13,8 @@
 
 namespace zone::net {
 
+class viewer_server;  // net/viewer.h
+
 /// Builds Prometheus text exposition format (version 0.0.4).
 class prometheus_text {
  public:
@@ -63,6 +65,9 @@ class metrics_server {
   [[nodiscard]] std::uint64_t accept_errors() const;
   /// Connections open now.
   [[nodiscard]] std::uint64_t connections_open() const;
+  /// Hands the /viewer routes (net/viewer.h) to `viewer` (call before start(); it must outlive
+  /// this server). Without one they answer 404 like any other path.
+  void attach_viewer(viewer_server* viewer);
 
   struct impl;  ///< the Beast implementation (metrics.cpp)
 

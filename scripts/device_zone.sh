@@ -16,6 +16,8 @@
 # SERVER_IO_THREADS (4), SERVER_INTEREST (auto), SERVER_SNDBUF (65536), SERVER_ARGS (more zone-server
 # options), SERVER_CPUS / SWARM_CPUS (taskset CPU lists, e.g. 0-9 and 10-15: server and swarm on
 # disjoint cores; unset = no pinning), SERVER_BIN (the zone-server binary, $DEVICE_DIR/zone-server),
+# SWARM_ARGS (more bot-swarm options; with SERVER_ARGS=--oracle, SWARM_ARGS=--oracle checks every
+# bot's view against the ground truth, docs/bots.md),
 # RUN_TAG (prefix of the swarm step's log names, to keep several runs in one $OUT), BENCH_ENTITIES
 # (100000), BENCH_TICKS (600), BENCH_FINDERS ("gpu cpu").
 # The swarm step also writes the server's per-tick CSV (--tick-csv: <tag>zone-ticks.csv) and the
@@ -85,7 +87,7 @@ for step in "$@"; do
         echo "zone-server did not start"; cat "$out/${tag}zone-server.log"; kill "$server"; continue
       fi
       "${swarm_pin[@]}" "$dir/bot-swarm" --port "$port" --bots "$bots" --duration "$duration" --ramp "$ramp" --threads "${SWARM_THREADS:-6}" --verify \
-        --mix "${SWARM_MIX:-walk=0.5,patrol=0.2,follow=0.1,crowd=0.1,teleport=0.1}" --quiet \
+        --mix "${SWARM_MIX:-walk=0.5,patrol=0.2,follow=0.1,crowd=0.1,teleport=0.1}" --quiet ${SWARM_ARGS:-} \
         --report-json "$out/${tag}swarm-report.json" --report-csv "$out/${tag}swarm-series.csv" > "$out/${tag}swarm.log" 2>&1
       echo "bot-swarm exit code: $?"
       tail -40 "$out/${tag}swarm.log"

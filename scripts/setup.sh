@@ -12,6 +12,7 @@ packages=(
   libcgal-dev libgmp-dev libmpfr-dev
   liburing-dev pkg-config
   python3
+  chromium
   clang libclang-rt-14-dev  # the fuzz targets (fuzz/, scripts/fuzz.sh): clang's libFuzzer, ASan, UBSan
 )
 
@@ -24,13 +25,25 @@ done
 
 if [ ${#missing[@]} -eq 0 ]; then
   echo "setup: all build dependencies are installed"
-  exit 0
+else
+  echo "setup: installing ${missing[*]}"
+  sudo_cmd=()
+  if [ "$(id -u)" -ne 0 ]; then sudo_cmd=(sudo); fi
+  export DEBIAN_FRONTEND=noninteractive
+  "${sudo_cmd[@]}" apt-get update -qq
+  "${sudo_cmd[@]}" apt-get install -y -qq --no-install-recommends "${missing[@]}"
 fi
 
-echo "setup: installing ${missing[*]}"
-sudo_cmd=()
-if [ "$(id -u)" -ne 0 ]; then sudo_cmd=(sudo); fi
-export DEBIAN_FRONTEND=noninteractive
-"${sudo_cmd[@]}" apt-get update -qq
-"${sudo_cmd[@]}" apt-get install -y -qq --no-install-recommends "${missing[@]}"
+# The viewer's browser test (tests/viewer): playwright-core from npm, pinned by its lock file, into
+# tests/viewer/node_modules (git-ignored). It downloads no browser: the test drives chromium above.
+# Without node and npm the test is skipped.
+viewer_dir="$(dirname "$0")/../tests/viewer"
+if [ -d "$viewer_dir/node_modules/playwright-core" ]; then
+  echo "setup: playwright-core is installed"
+elif command -v npm > /dev/null; then
+  echo "setup: installing playwright-core into tests/viewer/node_modules"
+  PLAYWRIGHT_SKIP_BROWSER_DOWNLOAD=1 npm ci --prefix "$viewer_dir" --no-audit --no-fund --loglevel=error
+else
+  echo "setup: npm not found: the viewer's browser test will be skipped (install node and npm, then rerun)"
+fi
 echo "setup: done"

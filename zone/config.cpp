@@ -25,6 +25,9 @@ std::optional<std::string> validate(const zone_config& c) {
     if (!(a >= 0 && std::isfinite(a))) return bad("AOI tiers must be >= 0");
   }
   if (!(c.player_aoi >= 0 && std::isfinite(c.player_aoi))) return bad("player-aoi must be >= 0");
+  if (c.viewer_enabled && !c.metrics_enabled) return bad("viewer needs the HTTP endpoint of /metrics (--metrics 1)");
+  if (!(c.viewer_hz > 0 && c.viewer_hz <= 1000)) return bad("viewer-hz must be in (0, 1000]");
+  if (c.max_viewers < 1 || c.max_viewers > 64) return bad("max-viewers must be in [1, 64]");
   const float shares[4] = {c.share_wander, c.share_patrol, c.share_town, c.share_chase};
   float sum = 0;
   for (const float s : shares) {
@@ -182,6 +185,12 @@ config_result parse_config(int argc, const char* const* argv) {
       ("metrics-port", po::value(&metrics_port)->default_value(metrics_port), "port of /metrics (0 = ephemeral)")  //
       ("metrics-address", po::value(&c.metrics_address)->default_value(c.metrics_address), "address /metrics listens on (loopback by default: it has no authentication; 0.0.0.0 opens it to all)")  //
       ("metrics-max-connections", po::value(&c.metrics_max_connections)->default_value(c.metrics_max_connections), "connections /metrics holds at once, apart from the players' (more are closed at accept)");
+  po::options_description viewer("Live viewer (docs/viewer.md)");
+  viewer.add_options()                                                                                      //
+      ("viewer", po::value(&c.viewer_enabled)->default_value(c.viewer_enabled), "serve the live viewer at /viewer beside /metrics (0 or 1; needs --metrics 1)")  //
+      ("viewer-remote", po::value(&c.viewer_remote)->default_value(c.viewer_remote), "serve the viewer to peers that are not on a loopback address too (0 or 1)")  //
+      ("max-viewers", po::value(&c.max_viewers)->default_value(c.max_viewers), "viewer pages at once (more are refused)")  //
+      ("viewer-hz", po::value(&c.viewer_hz)->default_value(c.viewer_hz), "snapshots a second sent to viewer pages (at most the tick rate)");
   po::options_description correctness("Correctness (docs/bots.md)");
   correctness.add_options()  //
       ("oracle", po::bool_switch(&c.oracle), "publish every tick's ground truth (entities, boxes, classes) on a loopback stream for an independent oracle (bot-swarm --oracle); off by default, and costs nothing when off")  //
@@ -189,7 +198,7 @@ config_result parse_config(int argc, const char* const* argv) {
       ("test-fault", po::value(&c.test_fault)->default_value(c.test_fault), "TESTING ONLY: break one client's view on purpose to prove the oracle: drop, extra, stealth, freeze or class (needs --oracle)")  //
       ("test-fault-tick", po::value(&c.test_fault_tick)->default_value(c.test_fault_tick), "TESTING ONLY: the world tick from which --test-fault acts");
   po::options_description all("zone-server options");
-  all.add(general).add(world).add(interest).add(npcs).add(net).add(correctness);
+  all.add(general).add(world).add(interest).add(npcs).add(net).add(correctness).add(viewer);
 
   config_result r;
   try {

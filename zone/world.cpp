@@ -103,6 +103,18 @@ void zone_world::set_reads_view(entity_id id, bool reads) {
   reads_view_[slot] = reads ? 1 : 0;
 }
 
+void zone_world::set_watched(std::span<const entity_id> ids) {
+  for (const entity_id id : watched_) {
+    if (!store_.alive(id)) continue;
+    const behaviour b = by_slot_[slot_of(id)].kind;  // back to what the world itself reads
+    set_reads_view(id, b == behaviour::player || b == behaviour::chase);
+  }
+  watched_.assign(ids.begin(), ids.end());
+  for (const entity_id id : watched_) {
+    if (store_.alive(id)) set_reads_view(id, true);
+  }
+}
+
 std::uint64_t zone_world::noise(entity_id id, std::uint64_t salt) const {
   return splitmix(cfg_.seed ^ splitmix(std::uint64_t{id} ^ splitmix(salt)));
 }

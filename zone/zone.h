@@ -665,6 +665,11 @@ struct zone_config {
   /// When set, one CSV line per tick (its wall time, clients, frames and phase timings) goes to
   /// this file, so percentiles can be taken over any window (e.g. after a swarm's ramp-up).
   std::string tick_csv;
+  // The live viewer (docs/viewer.md), served beside /metrics: off unless enabled.
+  bool viewer_enabled = false;   ///< serve /viewer and /viewer/ws
+  bool viewer_remote = false;    ///< also to peers that are not on a loopback address
+  std::size_t max_viewers = 4;   ///< viewer pages at once
+  double viewer_hz = 10;         ///< snapshots a second while a page is open (at most the tick rate)
   // Correctness (docs/bots.md, the oracle).
   /// Publish every tick's ground truth on a loopback stream (127.0.0.1:oracle_port; 0 = an
   /// ephemeral port, told in the welcome): what an independent oracle checks each client's view
@@ -762,6 +767,10 @@ class zone_world {
   void set_pair_view_source(interest_tracker::pair_view_source source) {
     tracker_.set_pair_view_source(std::move(source));
   }
+  /// Entities whose visible sets a viewer reads after each step (net/viewer.h): with a GPU
+  /// engine their rows are copied back with the players' from the next step on. Replaces the
+  /// previous list; dead handles are ignored.
+  void set_watched(std::span<const entity_id> ids);
   /// A tick follows soon: see interest_tracker::prepare.
   void prepare() noexcept { tracker_.prepare(); }
   /// See interest_tracker::set_engine.
@@ -800,6 +809,7 @@ class zone_world {
   std::vector<std::uint8_t> reads_view_;  // by slot: the entity's visible set is read each tick
   bool player_views_on_host_ = true;
   void set_reads_view(entity_id id, bool reads);
+  std::vector<entity_id> watched_;  // set_watched
   std::vector<vec3> towns_;
   std::uint64_t tick_ = 0;
   tick_phases phases_;

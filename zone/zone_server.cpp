@@ -7,6 +7,7 @@
 
 #include <spdlog/spdlog.h>
 
+#include <bit>
 #include <chrono>
 #include <cerrno>
 #include <cmath>
@@ -291,8 +292,19 @@ std::optional<std::string> zone_server::start() {
     net::metrics_limits limits;
     limits.max_connections = cfg_.metrics_max_connections;
     metrics_ = std::make_unique<net::metrics_server>(cfg_.metrics_address, cfg_.metrics_port, limits);
+    if (cfg_.viewer_enabled) {
+      net::viewer_options vo;
+      vo.max_viewers = cfg_.max_viewers;
+      vo.allow_remote = cfg_.viewer_remote;
+      viewer_ = std::make_unique<net::viewer_server>(vo);
+      metrics_->attach_viewer(viewer_.get());
+    }
     if (auto err = metrics_->start()) return err;
     metrics_->publish(metrics_text());
+    if (viewer_) {
+      spdlog::info("viewer on http://{}:{}/viewer ({})", cfg_.metrics_address, metrics_->port(),
+                   cfg_.viewer_remote ? "any peer" : "loopback peers only");
+    }
   }
   return std::nullopt;
 }
@@ -523,7 +535,15 @@ void zone_server::tick_once() {
                  replicator_.engine_error());
     world_->set_player_views_on_host(true);
   }
-  const double replicate_ms = ms_since(t1), tick_ms = ms_since(t0);
+  const double replicate_ms = ms_since(t1);
+  const auto t2 = clock_type::now();
+  publish_viewer();
+  viewer_ms_ = ms_since(t2);
+  const double tick_ms = ms_since(t0);
+  if (viewer_ && viewer_->viewers() > 0 && viewer_ticks_.size() < 256) {
+    const step_times& ph = world_->last_step();
+    viewer_ticks_.push_back({world_->tick(), inputs_ms, ph.behaviours, ph.integrate, ph.interest, replicate_ms, viewer_ms_, tick_ms});
+  }
   stats_.replicate_ms.record(replicate_ms);
   stats_.tick_ms.record(tick_ms);
   ++stats_.ticks;
@@ -534,6 +554,168 @@ void zone_server::tick_once() {
   const auto every = static_cast<std::uint64_t>(std::max(1.0, cfg_.tick_rate_hz));
   if (metrics_ && stats_.ticks % every == 1) metrics_->publish(metrics_text());
   log_summary();
+}
+
+void zone_server::fill_viewer_snapshot(net::viewer_snapshot& s) const {
+  const entity_store& store = world_->store();
+  const interest_tracker& tr = world_->tracker();
+  s.tick = world_->tick();
+  s.world_lo[0] = cfg_.world.lo.x, s.world_lo[1] = cfg_.world.lo.y, s.world_lo[2] = cfg_.world.lo.z;
+  s.world_hi[0] = cfg_.world.hi.x, s.world_hi[1] = cfg_.world.hi.y, s.world_hi[2] = cfg_.world.hi.z;
+  const std::size_t n = store.size();
+  const auto ids = store.ids();
+  const auto pos = store.positions();
+  const auto cls = store.visibility_classes();
+  const auto kinds = store.kinds();
+  s.ids.assign(ids.begin(), ids.end());
+  s.x.resize(n);
+  s.y.resize(n);
+  s.visibility.resize(n);
+  s.kind.resize(n);
+  for (std::size_t i = 0; i < n; ++i) {
+    s.x[i] = pos[i].x;
+    s.y[i] = pos[i].y;
+    s.visibility[i] = static_cast<std::uint8_t>(std::countr_zero(cls[i]));
+    s.kind[i] = static_cast<std::uint8_t>(kinds[i]);
+  }
+  // The selected entities: boxes, visible set with each entity's replication tier, events.
+  s.selections.resize(viewer_watch_.size());
+  const float near_sq = cfg_.update_near * cfg_.update_near, mid_sq = cfg_.update_mid * cfg_.update_mid;
+  for (std::size_t k = 0; k < viewer_watch_.size(); ++k) {
+    auto& sel = s.selections[k];
+    sel.id = viewer_watch_[k].id;
+    sel.events.assign(viewer_watch_[k].events.begin(), viewer_watch_[k].events.end());
+    sel.visible.clear();
+    sel.tier.clear();
+    const std::size_t d = store.index_of(sel.id), row = tr.row_of(sel.id);
+    sel.alive = d != entity_store::npos && row != entity_store::npos;
+    if (!sel.alive) continue;
+    const vec3 p = pos[d], a = store.aoi_half_extents()[d], h = store.presence_half_extents()[d];
+    sel.position[0] = p.x, sel.position[1] = p.y, sel.position[2] = p.z;
+    sel.aoi_half[0] = a.x, sel.aoi_half[1] = a.y, sel.aoi_half[2] = a.z;
+    sel.presence_half[0] = h.x, sel.presence_half[1] = h.y, sel.presence_half[2] = h.z;
+    sel.hysteresis = tr.options().hysteresis;
+    sel.sees = store.sees()[d];
+    sel.visibility = static_cast<std::uint8_t>(std::countr_zero(cls[d]));
+    sel.kind = static_cast<std::uint8_t>(kinds[d]);
+    const auto visible = tr.visible(row);
+    sel.visible.assign(visible.begin(), visible.end());
+    sel.tier.resize(visible.size());
+    for (std::size_t v = 0; v < visible.size(); ++v) {
+      const std::size_t j = store.index_of(visible[v]);
+      if (j == entity_store::npos) {
+        sel.tier[v] = 2;
+        continue;
+      }
+      // The replicator's distance tiers (docs/zone.md): every tick near, every few ticks mid, far.
+      const float dx = pos[j].x - p.x, dy = pos[j].y - p.y, dz = pos[j].z - p.z, d2 = dx * dx + dy * dy + dz * dz;
+      sel.tier[v] = d2 < near_sq ? 0 : d2 < mid_sq ? 1 : 2;
+    }
+  }
+}
+
+std::string zone_server::viewer_stats_json() const {
+  const auto& ts = world_->tracker().stats();
+  const auto vs = viewer_->stats();
+  std::string j = "{\"type\":\"stats\",\"tick\":" + std::to_string(world_->tick());
+  const auto field = [&j](const char* name, double v) {
+    char buf[64];
+    std::snprintf(buf, sizeof buf, ",\"%s\":%.10g", name, v);  // counts exact to 10 digits
+    j += buf;
+  };
+  field("tick_rate", cfg_.tick_rate_hz);
+  field("budget_ms", 1000.0 / cfg_.tick_rate_hz);
+  field("entities", static_cast<double>(world_->store().size()));
+  field("clients", static_cast<double>(stats_.clients));
+  field("pairs", static_cast<double>(ts.pairs));
+  field("candidates", static_cast<double>(ts.candidates));
+  field("visible", static_cast<double>(ts.visible));
+  field("enters", static_cast<double>(ts.enters));
+  field("leaves", static_cast<double>(ts.leaves));
+  field("viewers", static_cast<double>(viewer_->viewers()));
+  field("viewer_bytes", static_cast<double>(vs.bytes_sent));
+  field("overruns", static_cast<double>(stats_.overruns));
+  field("byte_budget", static_cast<double>(cfg_.client_byte_budget));
+  field("update_near", cfg_.update_near);
+  field("update_mid", cfg_.update_mid);
+  field("tick_p99_ms", stats_.tick_ms.percentile(0.99));
+  field("interest_p99_ms", world_->phases().interest.percentile(0.99));
+  j += ",\"interest_on\":\"" + interest_name() + "\"";
+  char world[160];
+  std::snprintf(world, sizeof world, ",\"world\":[%.6g,%.6g,%.6g,%.6g]", cfg_.world.lo.x, cfg_.world.lo.y, cfg_.world.hi.x,
+                cfg_.world.hi.y);
+  j += world;
+  j += ",\"phases\":[\"inputs\",\"behaviours\",\"integrate\",\"interest\",\"replicate\",\"viewer\"],\"ticks\":[";
+  for (std::size_t k = 0; k < viewer_ticks_.size(); ++k) {
+    const auto& t = viewer_ticks_[k];
+    char buf[256];
+    std::snprintf(buf, sizeof buf, "%s[%llu,%.4f,%.4f,%.4f,%.4f,%.4f,%.4f,%.4f]", k ? "," : "",
+                  static_cast<unsigned long long>(t.tick), t.inputs, t.behaviours, t.integrate, t.interest, t.replicate,
+                  t.viewer, t.total);
+    j += buf;
+  }
+  j += "]}";
+  return j;
+}
+
+void zone_server::publish_viewer() {
+  if (!viewer_) return;
+  if (viewer_->viewers() == 0) {
+    if (!viewer_watch_ids_.empty()) {
+      viewer_watch_.clear();
+      viewer_watch_ids_.clear();
+      world_->set_watched({});
+    }
+    viewer_ticks_.clear();
+    return;
+  }
+  const interest_tracker& tr = world_->tracker();
+  const std::uint64_t tick = world_->tick();
+  // The watched entities' enters and leaves of this step (a window of the latest 64 each).
+  for (auto& w : viewer_watch_) {
+    const std::size_t row = tr.row_of(w.id);
+    if (row == entity_store::npos) continue;
+    for (const entity_id id : tr.enters(row)) w.events.push_back({tick, id, true});
+    for (const entity_id id : tr.leaves(row)) w.events.push_back({tick, id, false});
+    while (w.events.size() > 64) w.events.pop_front();
+  }
+  const auto every = static_cast<std::uint64_t>(std::max(1.0, std::round(cfg_.tick_rate_hz / cfg_.viewer_hz)));
+  if (tick % every == 0) {
+    // A spare snapshot no session holds any more (no allocation in steady state), else a new one.
+    std::shared_ptr<net::viewer_snapshot> snap;
+    for (auto& spare : viewer_spares_) {
+      if (spare.use_count() == 1) {
+        snap = spare;
+        break;
+      }
+    }
+    if (!snap && viewer_spares_.size() < 8) snap = viewer_spares_.emplace_back(std::make_shared<net::viewer_snapshot>());
+    if (snap) {
+      fill_viewer_snapshot(*snap);
+      viewer_->publish(snap);
+    }
+  }
+  const auto now = clock_type::now();
+  if (now >= next_viewer_stats_) {
+    next_viewer_stats_ = now + std::chrono::milliseconds(500);
+    viewer_->publish_stats(viewer_stats_json());
+    viewer_ticks_.clear();
+  }
+  // The pages' selections, watched from the next step on (a GPU engine copies their rows back).
+  const auto wanted = viewer_->selected();
+  if (wanted != viewer_watch_ids_) {
+    std::vector<viewer_watch> next;
+    for (const entity_id id : wanted) {
+      auto& w = next.emplace_back();
+      w.id = id;
+      for (auto& old : viewer_watch_) {
+        if (old.id == id) w.events = std::move(old.events);
+      }
+    }
+    viewer_watch_ = std::move(next);
+    viewer_watch_ids_ = wanted;
+    world_->set_watched(viewer_watch_ids_);
+  }
 }
 
 void zone_server::run() {

@@ -5,6 +5,7 @@
 
 #include <atomic>
 #include <chrono>
+#include <deque>
 #include <cstdio>
 #include <memory>
 #include <optional>
@@ -16,6 +17,7 @@
 #include "metrics.h"
 #include "server.h"
 #include "truth_publisher.h"
+#include "viewer.h"
 #include "zone.h"
 
 namespace zone {
@@ -64,6 +66,8 @@ class zone_server {
   /// Where replication runs now: "gpu engine" or "cpu".
   [[nodiscard]] std::string replication_name() const;
   [[nodiscard]] const loop_stats& stats() const { return stats_; }
+  /// The live viewer (null unless cfg.viewer_enabled); its page is on metrics_port().
+  [[nodiscard]] const net::viewer_server* viewer() const { return viewer_.get(); }
   [[nodiscard]] net::server_stats net_stats() const { return net_.stats(); }
   /// Port of the ground-truth stream (0 when --oracle is off).
   [[nodiscard]] std::uint16_t oracle_port() const { return truth_ ? truth_->port() : 0; }
@@ -91,6 +95,11 @@ class zone_server {
   /// Every log_summary_s: one info line of joins, leaves and refused connections since the last
   /// (per-session lines are at debug: a flood of connections cannot flood the log).
   void log_summary();
+  /// While a viewer page is open: collects the watched entities' events, publishes a snapshot at
+  /// cfg.viewer_hz and stats twice a second, and takes the pages' selections for the next step.
+  void publish_viewer();
+  void fill_viewer_snapshot(net::viewer_snapshot& s) const;
+  [[nodiscard]] std::string viewer_stats_json() const;
   /// --test-fault: the client whose frames are broken (the lowest session with an entity).
   void choose_fault_victim();
 
@@ -109,7 +118,24 @@ class zone_server {
   bool replication_failure_logged_ = false;
   replicator replicator_;
   net::server net_;
+  std::unique_ptr<net::viewer_server> viewer_;  // before metrics_, which hands it requests
   std::unique_ptr<net::metrics_server> metrics_;
+  // The viewer's state on the game thread: the entities watched during the last step (with their
+  // latest events), spare snapshots, and the ticks' phases since the last stats message.
+  struct viewer_watch {
+    entity_id id = null_entity;
+    std::deque<net::viewer_snapshot::event> events;
+  };
+  std::vector<viewer_watch> viewer_watch_;
+  std::vector<entity_id> viewer_watch_ids_;
+  std::vector<std::shared_ptr<net::viewer_snapshot>> viewer_spares_;
+  struct tick_sample {
+    std::uint64_t tick = 0;
+    double inputs = 0, behaviours = 0, integrate = 0, interest = 0, replicate = 0, viewer = 0, total = 0;
+  };
+  std::vector<tick_sample> viewer_ticks_;
+  double viewer_ms_ = 0;  // the last tick's publish_viewer
+  std::chrono::steady_clock::time_point next_viewer_stats_{};
   std::unique_ptr<truth_publisher> truth_;  // --oracle
   std::unique_ptr<fault_injector> fault_;   // --test-fault
   net::session_id fault_session_ = 0;

@@ -1,0 +1,500 @@
+// net/viewer.h: the page, the /viewer/ws sessions (Boost.Beast WebSocket) and the frame encoders.
+#include <utility>  // before Asio: GCC 12 in C++20 mode needs it first
+
+#include <algorithm>
+#include <atomic>
+#include <boost/asio.hpp>
+#include <boost/beast/core.hpp>
+#include <boost/beast/http.hpp>
+#include <boost/beast/websocket.hpp>
+#include <chrono>
+#include <cmath>
+#include <cstring>
+#include <deque>
+#include <mutex>
+#include <spdlog/spdlog.h>
+
+#include "viewer.h"
+#include "viewer_route.h"
+
+namespace zone::net {
+
+namespace asio = boost::asio;
+namespace beast = boost::beast;
+namespace http = beast::http;
+namespace websocket = beast::websocket;
+using tcp = asio::ip::tcp;
+
+// ---- wire format ---------------------------------------------------------------------------
+
+namespace {
+
+template <class T>
+void put(std::vector<std::uint8_t>& out, T v) {
+  static_assert(std::is_trivially_copyable_v<T>);
+  const auto at = out.size();
+  out.resize(at + sizeof(T));
+  std::memcpy(out.data() + at, &v, sizeof(T));  // little-endian hosts only (x86-64, aarch64)
+}
+
+template <class T>
+T get(std::span<const std::uint8_t> in, std::size_t at) {
+  T v;
+  std::memcpy(&v, in.data() + at, sizeof(T));
+  return v;
+}
+
+void put_header(std::vector<std::uint8_t>& out, std::uint8_t type, std::uint16_t grid, const viewer_snapshot& s,
+                std::uint32_t count, const viewer_request& r) {
+  out.clear();
+  put<std::uint8_t>(out, type);
+  put<std::uint8_t>(out, 0);
+  put<std::uint16_t>(out, grid);
+  put<std::uint32_t>(out, static_cast<std::uint32_t>(s.tick));
+  put<std::uint32_t>(out, static_cast<std::uint32_t>(s.ids.size()));
+  put<std::uint32_t>(out, count);
+  put<float>(out, r.x0);
+  put<float>(out, r.y0);
+  put<float>(out, r.x1);
+  put<float>(out, r.y1);
+}
+
+std::uint16_t quantize(float v, float lo, float scale) {
+  const float q = std::round((v - lo) * scale);
+  return static_cast<std::uint16_t>(std::clamp(q, 0.0f, 65535.0f));
+}
+
+}  // namespace
+
+std::optional<viewer_request> parse_viewer_request(std::span<const std::uint8_t> bytes) {
+  if (bytes.size() != viewer_request_bytes || bytes[0] != viewer_request_type) return std::nullopt;
+  if (bytes[1] != 0 || bytes[2] != 0 || bytes[3] != 0) return std::nullopt;
+  viewer_request r;
+  r.x0 = get<float>(bytes, 4);
+  r.y0 = get<float>(bytes, 8);
+  r.x1 = get<float>(bytes, 12);
+  r.y1 = get<float>(bytes, 16);
+  r.selected = get<std::uint32_t>(bytes, 20);
+  r.max_points = get<std::uint32_t>(bytes, 24);
+  if (r.max_points > viewer_max_points) return std::nullopt;
+  for (const float v : {r.x0, r.y0, r.x1, r.y1}) {
+    if (!std::isfinite(v) || std::fabs(v) > 1e9f) return std::nullopt;
+  }
+  if (!(r.x0 < r.x1) || !(r.y0 < r.y1)) return std::nullopt;
+  return r;
+}
+
+void encode_viewer_view(const viewer_snapshot& s, const viewer_request& r, std::uint32_t grid_cells,
+                        std::vector<std::uint8_t>& out) {
+  const std::size_t n = s.ids.size();
+  std::uint32_t inside = 0;
+  for (std::size_t i = 0; i < n; ++i) {
+    inside += (s.x[i] >= r.x0 && s.x[i] <= r.x1 && s.y[i] >= r.y0 && s.y[i] <= r.y1) ? 1u : 0u;
+  }
+  if (inside > r.max_points) {
+    // Too many to draw one by one: counts per cell of a grid_cells^2 grid over the viewport.
+    const std::uint32_t g = std::clamp<std::uint32_t>(grid_cells, 1, 1024);
+    put_header(out, viewer_frame_density, static_cast<std::uint16_t>(g), s, inside, r);
+    const std::size_t at = out.size();
+    out.resize(at + std::size_t{g} * g * 2, 0);
+    auto* counts = out.data() + at;
+    const float sx = static_cast<float>(g) / (r.x1 - r.x0), sy = static_cast<float>(g) / (r.y1 - r.y0);
+    for (std::size_t i = 0; i < n; ++i) {
+      if (!(s.x[i] >= r.x0 && s.x[i] <= r.x1 && s.y[i] >= r.y0 && s.y[i] <= r.y1)) continue;
+      const auto cx = std::min<std::uint32_t>(g - 1, static_cast<std::uint32_t>((s.x[i] - r.x0) * sx));
+      const auto cy = std::min<std::uint32_t>(g - 1, static_cast<std::uint32_t>((s.y[i] - r.y0) * sy));
+      auto* cell = counts + (std::size_t{cy} * g + cx) * 2;
+      std::uint16_t c;
+      std::memcpy(&c, cell, 2);
+      if (c != 0xffff) ++c;
+      std::memcpy(cell, &c, 2);
+    }
+    return;
+  }
+  put_header(out, viewer_frame_entities, 0, s, inside, r);
+  const std::size_t at = out.size();
+  out.resize(at + std::size_t{inside} * viewer_entity_record_bytes);
+  auto* p = out.data() + at;
+  const float sx = 65535.0f / (r.x1 - r.x0), sy = 65535.0f / (r.y1 - r.y0);
+  for (std::size_t i = 0; i < n; ++i) {
+    if (!(s.x[i] >= r.x0 && s.x[i] <= r.x1 && s.y[i] >= r.y0 && s.y[i] <= r.y1)) continue;
+    const std::uint16_t qx = quantize(s.x[i], r.x0, sx), qy = quantize(s.y[i], r.y0, sy);
+    std::memcpy(p, &s.ids[i], 4);
+    std::memcpy(p + 4, &qx, 2);
+    std::memcpy(p + 6, &qy, 2);
+    p[8] = s.visibility[i];
+    p[9] = s.kind[i];
+    p += viewer_entity_record_bytes;
+  }
+}
+
+void encode_viewer_selection(const viewer_snapshot& s, const viewer_snapshot::selection& sel, std::vector<std::uint8_t>& out) {
+  out.clear();
+  put<std::uint8_t>(out, viewer_frame_selection);
+  put<std::uint8_t>(out, sel.alive ? 1 : 0);
+  put<std::uint8_t>(out, sel.visibility);
+  put<std::uint8_t>(out, sel.kind);
+  put<std::uint32_t>(out, static_cast<std::uint32_t>(s.tick));
+  put<std::uint32_t>(out, sel.id);
+  for (const float v : sel.position) put<float>(out, v);
+  for (const float v : sel.aoi_half) put<float>(out, v);
+  for (const float v : sel.presence_half) put<float>(out, v);
+  put<float>(out, sel.hysteresis);
+  put<std::uint32_t>(out, sel.sees);
+  put<std::uint32_t>(out, static_cast<std::uint32_t>(sel.visible.size()));
+  put<std::uint32_t>(out, static_cast<std::uint32_t>(sel.events.size()));
+  for (const auto id : sel.visible) put<std::uint32_t>(out, id);
+  for (std::size_t k = 0; k < sel.visible.size(); ++k) put<std::uint8_t>(out, k < sel.tier.size() ? sel.tier[k] : 0);
+  for (const auto& e : sel.events) {
+    put<std::uint32_t>(out, static_cast<std::uint32_t>(e.tick));
+    put<std::uint32_t>(out, e.id);
+    put<std::uint8_t>(out, e.enter ? 1 : 0);
+  }
+}
+
+std::string viewer_selection_json(const viewer_snapshot& s, const viewer_snapshot::selection& sel) {
+  std::string j = "{\"tick\":" + std::to_string(s.tick) + ",\"id\":" + std::to_string(sel.id) +
+                  ",\"alive\":" + (sel.alive ? "true" : "false") + ",\"visible\":[";
+  for (std::size_t k = 0; k < sel.visible.size(); ++k) {
+    if (k) j += ',';
+    j += std::to_string(sel.visible[k]);
+  }
+  j += "],\"tier\":[";
+  for (std::size_t k = 0; k < sel.tier.size(); ++k) {
+    if (k) j += ',';
+    j += std::to_string(sel.tier[k]);
+  }
+  j += "]}";
+  return j;
+}
+
+// ---- the server ------------------------------------------------------------------------------
+
+class ws_session;
+
+struct viewer_server::impl {
+  explicit impl(viewer_options o) : opt(o) {}
+  viewer_options opt;
+
+  mutable std::mutex mutex;  // guards everything below but the atomics
+  std::shared_ptr<const viewer_snapshot> snapshot;
+  std::uint64_t snapshot_seq = 0;
+  std::shared_ptr<const std::string> stats_json;
+  std::uint64_t stats_seq = 0;
+  std::vector<ws_session*> sessions;
+  std::atomic<std::size_t> open{0};
+
+  std::atomic<std::uint64_t> opened{0}, refused{0}, stalled{0}, hostile{0}, frames{0}, bytes{0};
+};
+
+namespace {
+
+using clock_type = std::chrono::steady_clock;
+
+/// One plain HTTP answer on a handed-over connection, then close.
+class http_reply : public std::enable_shared_from_this<http_reply> {
+ public:
+  http_reply(beast::tcp_stream stream, unsigned version, http::status status, std::string content_type, std::string body)
+      : stream_(std::move(stream)) {
+    response_.version(version);
+    response_.keep_alive(false);
+    response_.result(status);
+    response_.set(http::field::server, "zone-server");
+    response_.set(http::field::content_type, content_type);
+    response_.set(http::field::cache_control, "no-store");
+    response_.body() = std::move(body);
+    response_.prepare_payload();
+  }
+  void start() {
+    stream_.expires_after(std::chrono::seconds(5));
+    http::async_write(stream_, response_, [self = shared_from_this()](beast::error_code, std::size_t) {
+      beast::error_code ignored;
+      self->stream_.socket().shutdown(tcp::socket::shutdown_send, ignored);
+    });
+  }
+
+ private:
+  beast::tcp_stream stream_;
+  http::response<http::string_body> response_;
+};
+
+}  // namespace
+
+/// One page's WebSocket: reads view requests, writes the newest snapshot's frames, one write in flight.
+class ws_session : public std::enable_shared_from_this<ws_session> {
+ public:
+  ws_session(beast::tcp_stream stream, std::shared_ptr<viewer_server::impl> srv)
+      : ws_(std::move(stream)), srv_(std::move(srv)), timer_(ws_.get_executor()) {}
+
+  ~ws_session() {
+    const std::lock_guard lock(srv_->mutex);
+    auto& s = srv_->sessions;
+    s.erase(std::remove(s.begin(), s.end(), this), s.end());
+    srv_->open.store(s.size(), std::memory_order_relaxed);
+  }
+
+  [[nodiscard]] std::uint32_t selected() const { return selected_.load(std::memory_order_relaxed); }
+
+  void start(http::request<http::string_body> request) {
+    beast::get_lowest_layer(ws_).expires_never();
+    websocket::stream_base::timeout t;
+    t.handshake_timeout = std::chrono::seconds(5);
+    t.idle_timeout = std::chrono::seconds(20);  // a ping after 10 s of silence; no answer: closed
+    t.keep_alive_pings = true;
+    ws_.set_option(t);
+    ws_.read_message_max(64);  // a view request is 28 bytes; anything larger closes the session
+    ws_.binary(true);
+    ws_.async_accept(request, [self = shared_from_this()](beast::error_code ec) {
+      if (ec) return;
+      self->last_refill_ = clock_type::now();
+      self->tokens_ = self->srv_->opt.max_requests_per_s;
+      self->read();
+      self->arm_timer();
+    });
+  }
+
+ private:
+  void read() {
+    ws_.async_read(in_, [self = shared_from_this()](beast::error_code ec, std::size_t) { self->on_read(ec); });
+  }
+
+  void on_read(beast::error_code ec) {
+    if (ec) {
+      // A WebSocket protocol violation (a message over read_message_max, a text message that is
+      // not UTF-8, a bad frame) is hostile; a close or a socket error is not.
+      const beast::error_code closed = websocket::error::closed;
+      const bool violation = ec.category() == closed.category() && ec != closed;
+      return close(violation ? &srv_->hostile : nullptr);
+    }
+    const auto data = in_.cdata();
+    const std::span<const std::uint8_t> bytes(static_cast<const std::uint8_t*>(data.data()), data.size());
+    const auto request = ws_.got_binary() ? parse_viewer_request(bytes) : std::nullopt;
+    in_.consume(in_.size());
+    // A token bucket: a page sends a request when its view changes (a few a second while panning).
+    const auto now = clock_type::now();
+    const double rate = srv_->opt.max_requests_per_s;
+    tokens_ = std::min(rate, tokens_ + rate * std::chrono::duration<double>(now - last_refill_).count());
+    last_refill_ = now;
+    if (!request || tokens_ < 1) return close(&srv_->hostile);
+    tokens_ -= 1;
+    request_ = *request;
+    selected_.store(request->selected, std::memory_order_relaxed);
+    sent_snapshot_ = 0;  // the new view gets the newest snapshot at once
+    pump();
+    read();
+  }
+
+  void arm_timer() {
+    timer_.expires_after(std::chrono::milliseconds(50));
+    timer_.async_wait([self = shared_from_this()](beast::error_code ec) {
+      if (ec || self->closed_) return;
+      if (self->writing_ && clock_type::now() - self->write_started_ >
+                                std::chrono::duration<double>(self->srv_->opt.stall_close_s)) {
+        return self->close(&self->srv_->stalled);
+      }
+      self->pump();
+      self->arm_timer();
+    });
+  }
+
+  /// Starts the next write: the queued frames, else the newest snapshot's and stats if new.
+  void pump() {
+    if (writing_ || closed_) return;
+    if (queue_.empty()) fill_queue();
+    if (queue_.empty()) return;
+    current_ = std::move(queue_.front());
+    queue_.pop_front();
+    writing_ = true;
+    write_started_ = clock_type::now();
+    ws_.binary(!current_.text);
+    ws_.async_write(asio::buffer(current_.bytes), [self = shared_from_this()](beast::error_code ec, std::size_t n) {
+      self->writing_ = false;
+      if (ec) return self->close(nullptr);
+      self->srv_->frames.fetch_add(1, std::memory_order_relaxed);
+      self->srv_->bytes.fetch_add(n, std::memory_order_relaxed);
+      self->spare_.push_back(std::move(self->current_.bytes));
+      self->pump();
+    });
+  }
+
+  void fill_queue() {
+    std::shared_ptr<const viewer_snapshot> snap;
+    std::shared_ptr<const std::string> stats;
+    std::uint64_t snap_seq = 0, stats_seq = 0;
+    {
+      const std::lock_guard lock(srv_->mutex);
+      snap = srv_->snapshot;
+      snap_seq = srv_->snapshot_seq;
+      stats = srv_->stats_json;
+      stats_seq = srv_->stats_seq;
+    }
+    if (stats && stats_seq != sent_stats_) {
+      sent_stats_ = stats_seq;
+      queue_.push_back({std::vector<std::uint8_t>(stats->begin(), stats->end()), true});
+    }
+    if (!snap || !request_ || snap_seq == sent_snapshot_) return;
+    sent_snapshot_ = snap_seq;
+    queue_.push_back({take_spare(), false});
+    encode_viewer_view(*snap, *request_, srv_->opt.grid_cells, queue_.back().bytes);
+    if (request_->selected != 0) {
+      for (const auto& sel : snap->selections) {
+        if (sel.id != request_->selected) continue;
+        queue_.push_back({take_spare(), false});
+        encode_viewer_selection(*snap, sel, queue_.back().bytes);
+      }
+    }
+  }
+
+  std::vector<std::uint8_t> take_spare() {
+    if (spare_.empty()) return {};
+    auto v = std::move(spare_.back());
+    spare_.pop_back();
+    return v;
+  }
+
+  void close(std::atomic<std::uint64_t>* reason) {
+    if (closed_) return;
+    closed_ = true;
+    if (reason) reason->fetch_add(1, std::memory_order_relaxed);
+    timer_.cancel();
+    beast::error_code ignored;
+    beast::get_lowest_layer(ws_).socket().shutdown(tcp::socket::shutdown_both, ignored);
+    beast::get_lowest_layer(ws_).socket().close(ignored);
+  }
+
+  struct frame {
+    std::vector<std::uint8_t> bytes;
+    bool text = false;
+  };
+  websocket::stream<beast::tcp_stream> ws_;
+  std::shared_ptr<viewer_server::impl> srv_;
+  asio::steady_timer timer_;
+  beast::flat_buffer in_;
+  std::optional<viewer_request> request_;
+  std::atomic<std::uint32_t> selected_{0};
+  std::uint64_t sent_snapshot_ = 0, sent_stats_ = 0;
+  std::deque<frame> queue_;
+  std::vector<std::vector<std::uint8_t>> spare_;
+  frame current_;
+  bool writing_ = false, closed_ = false;
+  clock_type::time_point write_started_{}, last_refill_{};
+  double tokens_ = 0;
+};
+
+viewer_server::viewer_server(viewer_options opt) : impl_(std::make_shared<impl>(opt)) {}
+viewer_server::~viewer_server() = default;
+
+std::size_t viewer_server::viewers() const { return impl_->open.load(std::memory_order_relaxed); }
+
+std::vector<std::uint32_t> viewer_server::selected() const {
+  std::vector<std::uint32_t> ids;
+  const std::lock_guard lock(impl_->mutex);
+  for (const auto* s : impl_->sessions) {
+    if (const auto id = s->selected(); id != 0) ids.push_back(id);
+  }
+  std::sort(ids.begin(), ids.end());
+  ids.erase(std::unique(ids.begin(), ids.end()), ids.end());
+  return ids;
+}
+
+void viewer_server::publish(std::shared_ptr<const viewer_snapshot> s) {
+  const std::lock_guard lock(impl_->mutex);
+  impl_->snapshot.swap(s);
+  ++impl_->snapshot_seq;
+  // `s` (the previous snapshot) is released after the lock, below.
+}
+
+void viewer_server::publish_stats(std::string json) {
+  auto shared = std::make_shared<const std::string>(std::move(json));
+  const std::lock_guard lock(impl_->mutex);
+  impl_->stats_json.swap(shared);
+  ++impl_->stats_seq;
+}
+
+viewer_server::counters viewer_server::stats() const {
+  const auto& m = *impl_;
+  std::uint64_t published = 0;
+  {
+    const std::lock_guard lock(m.mutex);
+    published = m.snapshot_seq;
+  }
+  return {m.opened.load(), m.refused.load(), m.stalled.load(), m.hostile.load(), m.frames.load(), m.bytes.load(), published};
+}
+
+// ---- the routes (viewer_route.h) -------------------------------------------------------------
+
+bool is_viewer_target(std::string_view target) {
+  return target == "/viewer" || target.starts_with("/viewer/") || target.starts_with("/viewer?");
+}
+
+void viewer_handoff(viewer_server& viewer, beast::tcp_stream stream, http::request<http::string_body> request) {
+  auto& m = viewer.get();
+  const auto reply = [&](http::status status, std::string type, std::string body) {
+    std::make_shared<http_reply>(std::move(stream), request.version(), status, std::move(type), std::move(body))->start();
+  };
+  beast::error_code ec;
+  const auto peer = stream.socket().remote_endpoint(ec);
+  if (ec) return;
+  if (!m.opt.allow_remote && !peer.address().is_loopback()) {
+    return reply(http::status::forbidden, "text/plain", "the viewer serves loopback peers only (zone-server --viewer-remote 1)\n");
+  }
+  if (request.method() != http::verb::get) return reply(http::status::method_not_allowed, "text/plain", "only GET\n");
+  std::string_view target(request.target().data(), request.target().size());
+  std::string_view query;
+  if (const auto q = target.find('?'); q != std::string_view::npos) {
+    query = target.substr(q + 1);
+    target = target.substr(0, q);
+  }
+  if (target == "/viewer" || target == "/viewer/") {
+    return reply(http::status::ok, "text/html; charset=utf-8", std::string(viewer_page()));
+  }
+  if (target == "/viewer/entity.json") {
+    std::uint32_t id = 0;
+    if (query.starts_with("id=")) {
+      for (const char c : query.substr(3)) {
+        if (c < '0' || c > '9' || id > 400'000'000u) {
+          id = 0;
+          break;
+        }
+        id = id * 10 + static_cast<std::uint32_t>(c - '0');
+      }
+    }
+    if (id == 0) return reply(http::status::bad_request, "text/plain", "usage: /viewer/entity.json?id=N\n");
+    std::shared_ptr<const viewer_snapshot> snap;
+    {
+      const std::lock_guard lock(m.mutex);
+      snap = m.snapshot;
+    }
+    if (snap) {
+      for (const auto& sel : snap->selections) {
+        if (sel.id == id) return reply(http::status::ok, "application/json", viewer_selection_json(*snap, sel));
+      }
+    }
+    return reply(http::status::not_found, "text/plain", "entity not selected by any viewer in the latest snapshot\n");
+  }
+  if (target == "/viewer/ws") {
+    if (!websocket::is_upgrade(request)) return reply(http::status::bad_request, "text/plain", "a WebSocket upgrade\n");
+    std::shared_ptr<ws_session> session;
+    {
+      const std::lock_guard lock(m.mutex);
+      if (m.sessions.size() >= m.opt.max_viewers) {
+        session = nullptr;
+      } else {
+        session = std::make_shared<ws_session>(std::move(stream), viewer.shared_impl());
+        m.sessions.push_back(session.get());
+        m.open.store(m.sessions.size(), std::memory_order_relaxed);
+      }
+    }
+    if (!session) {
+      m.refused.fetch_add(1, std::memory_order_relaxed);
+      return reply(http::status::service_unavailable, "text/plain", "too many viewers\n");
+    }
+    m.opened.fetch_add(1, std::memory_order_relaxed);
+    spdlog::info("viewer: page connected from {}", peer.address().to_string());
+    session->start(std::move(request));
+    return;
+  }
+  return reply(http::status::not_found, "text/plain", "try /viewer\n");
+}
+
+}  // namespace zone::net

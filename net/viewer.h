@@ -1,0 +1,128 @@
+// The live zone viewer (docs/viewer.md): GET /viewer serves one static page (embedded in the
+// binary), /viewer/ws streams the latest published snapshot of the zone to each connected page
+// over a WebSocket, and GET /viewer/entity.json?id=N answers one selected entity's data as JSON.
+//
+// The tick never waits for a viewer: it fills a snapshot (only while a viewer is connected) and
+// publishes it with one pointer swap. Each viewer session, on the HTTP server's I/O thread,
+// encodes the newest snapshot for its own viewport when its previous frames are written (so a slow
+// page gets fewer, fresher frames), and is closed when a write stalls, when it sends anything but
+// a well-formed view request, or when it floods. The page can only choose what it looks at.
+#pragma once
+
+#include <cstdint>
+#include <memory>
+#include <optional>
+#include <span>
+#include <string>
+#include <string_view>
+#include <vector>
+
+namespace zone::net {
+
+/// One published state of the zone, as the viewer streams it. Plain data: the zone fills it.
+struct viewer_snapshot {
+  std::uint64_t tick = 0;
+  float world_lo[3]{}, world_hi[3]{};
+  // Every entity, by dense index.
+  std::vector<std::uint32_t> ids;
+  std::vector<float> x, y;
+  std::vector<std::uint8_t> visibility;  ///< index of the class bit (1 normal, 2 stealth, 3 red, 4 blue)
+  std::vector<std::uint8_t> kind;        ///< 0 player, 1 NPC, 2 boss
+
+  /// What a page shows for the entity it selected (only entities some viewer selected).
+  struct event {
+    std::uint64_t tick = 0;
+    std::uint32_t id = 0;
+    bool enter = false;
+  };
+  struct selection {
+    std::uint32_t id = 0;
+    bool alive = false;
+    float position[3]{};
+    float aoi_half[3]{};
+    float presence_half[3]{};
+    float hysteresis = 0;
+    std::uint32_t sees = 0;  ///< visibility-class bit set of its AOI
+    std::uint8_t visibility = 0;
+    std::uint8_t kind = 0;
+    std::vector<std::uint32_t> visible;   ///< its visible set at `tick`, ascending
+    std::vector<std::uint8_t> tier;       ///< replication tier of each visible entity: 0 near, 1 mid, 2 far
+    std::vector<event> events;            ///< its latest enter/leave events (a sliding window), oldest first
+  };
+  std::vector<selection> selections;
+};
+
+/// Limits and switches of the viewer.
+struct viewer_options {
+  std::size_t max_viewers = 4;       ///< WebSocket sessions at once; more are refused (503)
+  bool allow_remote = false;         ///< serve peers that are not on a loopback address
+  double stall_close_s = 5;          ///< close a session whose frame has not been written for this long
+  double max_requests_per_s = 60;    ///< close a session that sends more view requests than this
+  std::uint32_t grid_cells = 128;    ///< density grid cells per axis when a viewport holds too many entities
+};
+
+/// The viewer's HTTP routes and WebSocket sessions. publish() and stats are thread-safe; the
+/// sessions run on the executor of the connection handed over by the HTTP server.
+class viewer_server {
+ public:
+  explicit viewer_server(viewer_options opt = {});
+  ~viewer_server();
+  viewer_server(const viewer_server&) = delete;
+  viewer_server& operator=(const viewer_server&) = delete;
+
+  /// Open sessions now (a relaxed read: the tick skips building snapshots while it is 0).
+  [[nodiscard]] std::size_t viewers() const;
+  /// The entities some page has selected (at most one per session), for the tick to fill in.
+  [[nodiscard]] std::vector<std::uint32_t> selected() const;
+  /// Makes `s` the newest snapshot (one swap under a lock; sessions pick it up).
+  void publish(std::shared_ptr<const viewer_snapshot> s);
+  /// Makes `json` the newest stats message (a JSON object; sent to each session once).
+  void publish_stats(std::string json);
+
+  struct counters {
+    std::uint64_t sessions_opened = 0, sessions_refused = 0, sessions_closed_stalled = 0, sessions_closed_hostile = 0,
+                  frames_sent = 0, bytes_sent = 0, snapshots_published = 0;
+  };
+  [[nodiscard]] counters stats() const;
+
+  struct impl;  ///< the Beast implementation (viewer.cpp); sessions share it
+  [[nodiscard]] impl& get() { return *impl_; }
+  [[nodiscard]] std::shared_ptr<impl> shared_impl() { return impl_; }
+
+ private:
+  std::shared_ptr<impl> impl_;
+};
+
+/// The embedded page (net/viewer/index.html).
+[[nodiscard]] std::string_view viewer_page();
+
+// ---- The wire format of /viewer/ws (little-endian; docs/viewer.md) ---------------------------
+
+/// A page's view request: 28 bytes, the only message a session accepts: u8 type (1), three zero
+/// bytes, f32 x0 y0 x1 y1, u32 selected, u32 max_points.
+struct viewer_request {
+  float x0 = 0, y0 = 0, x1 = 0, y1 = 0;  ///< the viewport (world metres), x0 < x1, y0 < y1
+  std::uint32_t selected = 0;             ///< entity to follow (0 = none)
+  std::uint32_t max_points = 0;           ///< most entities sent one by one; beyond, a density grid
+};
+inline constexpr std::size_t viewer_request_bytes = 28;
+inline constexpr std::uint8_t viewer_request_type = 1;
+inline constexpr std::uint32_t viewer_max_points = 1u << 20;
+/// Parses a view request; nothing for anything malformed (size, type, non-finite, empty
+/// viewport, max_points above viewer_max_points).
+[[nodiscard]] std::optional<viewer_request> parse_viewer_request(std::span<const std::uint8_t> bytes);
+
+inline constexpr std::uint8_t viewer_frame_entities = 1, viewer_frame_density = 2, viewer_frame_selection = 3;
+inline constexpr std::size_t viewer_frame_header_bytes = 32, viewer_entity_record_bytes = 10;
+
+/// Encodes the entities frame of `s` for request `r` into `out` (replacing it): the entities in
+/// the viewport one by one (quantized to 16 bits over the viewport), or the density grid when more
+/// than r.max_points are inside.
+void encode_viewer_view(const viewer_snapshot& s, const viewer_request& r, std::uint32_t grid_cells,
+                        std::vector<std::uint8_t>& out);
+/// Encodes the selection frame of one selected entity.
+void encode_viewer_selection(const viewer_snapshot& s, const viewer_snapshot::selection& sel, std::vector<std::uint8_t>& out);
+/// The selection as JSON (GET /viewer/entity.json).
+[[nodiscard]] std::string viewer_selection_json(const viewer_snapshot& s, const viewer_snapshot::selection& sel);
+
+}  // namespace zone::net

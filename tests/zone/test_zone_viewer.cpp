@@ -1,0 +1,138 @@
+// The zone server's live viewer (net/viewer.h): the tick publishes snapshots only while a page is
+// open, a page's frames hold every entity of the zone, and a selected entity's visible set, tiers
+// and events are the interest tracker's.
+#include <doctest/doctest.h>
+
+#include <algorithm>
+#include <cmath>
+#include <set>
+
+#include "ws_client.h"
+#include "zone_server.h"
+
+using namespace zone;
+using zone::net::testing::at;
+using zone::net::testing::eventually;
+using zone::net::testing::request_bytes;
+using zone::net::testing::ws_client;
+
+namespace {
+
+zone_config viewer_config() {
+  zone_config c;
+  c.world = {{0, 0, 0}, {600, 600, 40}};
+  c.listen_address = "127.0.0.1";
+  c.port = 0;
+  c.npc_count = 400;
+  c.town_count = 2;
+  c.worker_threads = 2;
+  c.log_level = "warn";
+  c.metrics_enabled = true;
+  c.metrics_port = 0;
+  c.viewer_enabled = true;
+  c.tick_rate_hz = 30;
+  c.viewer_hz = 30;  // a snapshot every tick
+  return c;
+}
+
+}  // namespace
+
+TEST_SUITE("zone.viewer") {
+  TEST_CASE("config: the viewer needs the HTTP endpoint; rates and caps are checked") {
+    auto c = viewer_config();
+    c.metrics_enabled = false;
+    CHECK(validate(c).has_value());
+    c = viewer_config();
+    c.viewer_hz = 0;
+    CHECK(validate(c).has_value());
+    c = viewer_config();
+    c.max_viewers = 0;
+    CHECK(validate(c).has_value());
+    CHECK_FALSE(validate(viewer_config()).has_value());
+    const char* argv[] = {"zone-server", "--viewer", "1", "--max-viewers", "2", "--viewer-hz", "5"};
+    const auto parsed = parse_config(7, argv);
+    REQUIRE(parsed.config);
+    CHECK(parsed.config->viewer_enabled);
+    CHECK(parsed.config->max_viewers == 2);
+    CHECK(parsed.config->viewer_hz == 5);
+    CHECK_FALSE(parse_config(1, argv).config->viewer_enabled);  // off by default
+  }
+
+  TEST_CASE("a page sees every entity and the tracker's visible set of the entity it selects") {
+    zone_server server(viewer_config());
+    REQUIRE_FALSE(server.start().has_value());
+    REQUIRE(server.viewer() != nullptr);
+    // No page: the tick publishes nothing.
+    for (int k = 0; k < 5; ++k) server.tick_once();
+    CHECK(server.viewer()->stats().snapshots_published == 0);
+
+    const auto& store = server.world().store();
+    // The entity that sees the most (a selection worth checking), as of the last tick.
+    entity_id chosen = null_entity;
+    std::size_t most = 0;
+    for (std::size_t r = 0; r < server.world().tracker().observer_count(); ++r) {
+      if (server.world().tracker().visible(r).size() > most) {
+        most = server.world().tracker().visible(r).size();
+        chosen = server.world().tracker().observer(r);
+      }
+    }
+    REQUIRE(most > 5);
+    ws_client page(server.metrics_port());
+    REQUIRE_FALSE(page.error);
+    REQUIRE(page.send(request_bytes({-10, -10, 610, 610, chosen, 100000})));
+    REQUIRE(eventually([&] { return server.viewer()->selected() == std::vector<std::uint32_t>{chosen}; }));
+    for (int k = 0; k < 40; ++k) server.tick_once();
+    CHECK(server.viewer()->stats().snapshots_published >= 39);
+
+    // The newest frames are those of the last tick (nothing ticks while we read).
+    const auto tick = static_cast<std::uint32_t>(server.world().tick());
+    std::optional<std::vector<std::uint8_t>> entities, selection;
+    for (int k = 0; k < 200 && !(entities && selection); ++k) {
+      auto m = page.read();
+      REQUIRE(m);
+      if (m->first || m->second.empty()) continue;
+      const auto& f = m->second;
+      if (at<std::uint32_t>(f, 4) != tick) continue;
+      if (f[0] == net::viewer_frame_entities) entities = f;
+      if (f[0] == net::viewer_frame_selection) selection = f;
+    }
+    REQUIRE(entities);
+    REQUIRE(selection);
+    // Every entity, once.
+    CHECK(at<std::uint32_t>(*entities, 8) == store.size());
+    REQUIRE(at<std::uint32_t>(*entities, 12) == store.size());
+    std::set<std::uint32_t> seen;
+    for (std::size_t k = 0; k < store.size(); ++k) {
+      seen.insert(at<std::uint32_t>(*entities, net::viewer_frame_header_bytes + k * net::viewer_entity_record_bytes));
+    }
+    CHECK(seen == std::set<std::uint32_t>(store.ids().begin(), store.ids().end()));
+    // The selection: the tracker's visible set, in order, with the replicator's distance tiers.
+    const auto& tr = server.world().tracker();
+    const auto row = tr.row_of(chosen);
+    REQUIRE(row != entity_store::npos);
+    const auto visible = tr.visible(row);
+    CHECK(visible.size() > 5);
+    CHECK(at<std::uint32_t>(*selection, 8) == chosen);
+    CHECK((*selection)[1] == 1);  // alive
+    REQUIRE(at<std::uint32_t>(*selection, 56) == visible.size());
+    const auto me = *store.get(chosen);
+    for (std::size_t k = 0; k < visible.size(); ++k) {
+      CHECK(at<std::uint32_t>(*selection, 64 + 4 * k) == visible[k]);
+      const auto other = *store.get(visible[k]);
+      const float dx = other.position.x - me.position.x, dy = other.position.y - me.position.y,
+                  dz = other.position.z - me.position.z, d = std::sqrt(dx * dx + dy * dy + dz * dz);
+      const std::uint8_t tier = (*selection)[64 + 4 * visible.size() + k];
+      if (std::fabs(d - 12) > 0.01f && std::fabs(d - 30) > 0.01f) CHECK(tier == (d < 12 ? 0 : d < 30 ? 1 : 2));
+    }
+    CHECK(at<float>(*selection, 24) == me.aoi_half_extent.x);
+    CHECK(at<float>(*selection, 12) == me.position.x);
+
+    // The page leaves: the tick stops publishing.
+    page.ws.next_layer().close();
+    REQUIRE(eventually([&] { return server.viewer()->viewers() == 0; }));
+    server.tick_once();
+    const auto published = server.viewer()->stats().snapshots_published;
+    for (int k = 0; k < 5; ++k) server.tick_once();
+    CHECK(server.viewer()->stats().snapshots_published == published);
+  }
+}
