@@ -10,6 +10,7 @@
 #include <iostream>
 #include <sstream>
 
+#include "interest/measure.h"
 #include "os_limits.h"
 #include "swarm.h"
 
@@ -59,12 +60,7 @@ void print_progress(const zone::bots::second_sample& s, const zone::bots::swarm_
                static_cast<unsigned long long>(s.leaves), static_cast<unsigned long long>(s.mismatches));
 }
 
-double quantile(std::vector<double> v, double q) {
-  if (v.empty()) return 0;
-  std::sort(v.begin(), v.end());
-  const auto i = static_cast<std::size_t>(std::clamp(q * static_cast<double>(v.size() - 1), 0.0, static_cast<double>(v.size() - 1)));
-  return v[i];
-}
+using zone::quantile;
 
 struct summary {
   double p50 = 0, p95 = 0, p99 = 0, max = 0;
@@ -124,6 +120,8 @@ void print_table(const swarm_result& r, const summary& s) {
   row("server errors received", num(r.server_errors));
   row("churn logouts", num(r.logouts));
   row("teleports sent", num(r.teleports_sent));
+  row("redirects followed (world of zones)", num(r.redirects));
+  row("logins again after a disconnect", num(r.reconnects));
   row("update latency p50", ms(s.p50));
   row("update latency p95", ms(s.p95));
   row("update latency p99", ms(s.p99));
@@ -202,6 +200,7 @@ bool write_json(const std::string& path, const swarm_result& r, const summary& s
   o << "  \"connect_failures\": " << r.connect_failures << ",\n  \"unexpected_disconnects\": " << r.unexpected_disconnects << ",\n";
   o << "  \"server_errors\": " << r.server_errors << ",\n  \"logouts\": " << r.logouts << ",\n";
   o << "  \"threads\": " << r.options.threads << ",\n  \"teleports_sent\": " << r.teleports_sent << ",\n";
+  o << "  \"redirects\": " << r.redirects << ",\n  \"reconnects\": " << r.reconnects << ",\n";
   o << "  \"self_positions\": " << r.self_positions << ",\n  \"host_clock\": " << (r.host_clock ? "true" : "false") << ",\n";
   o << "  \"latency_ms\": {\"p50\": " << s.p50 << ", \"p95\": " << s.p95 << ", \"p99\": " << s.p99 << ", \"max\": " << s.max
     << ", \"samples\": " << s.samples << ", \"unsynced\": " << r.latency_unsynced << ", \"min_rtt\": " << r.min_rtt_ms << "},\n";
@@ -334,6 +333,7 @@ int main(int argc, char** argv) {
       ("churn", po::value(&o.churn)->default_value(o.churn), "logouts per second (each bot logs in again)")  //
       ("relogin-delay", po::value(&o.relogin_delay_s)->default_value(o.relogin_delay_s, "0.2"), "seconds before a churned bot logs in again")  //
       ("churn-for", po::value(&o.churn_for_s)->default_value(o.churn_for_s), "seconds into the run when churn stops (0 = until the end)")  //
+      ("reconnect", po::bool_switch(&o.reconnect), "after an unexpected disconnect, log in again at the same address (retrying for --connect-timeout)")  //
       ("verify", po::bool_switch(&o.verify), "compare the server's visible-set digests with each bot's tracked view")  //
       ("oracle", po::bool_switch(&o.oracle), "check every bot's view against the server's ground truth (the server runs with --oracle): missing, extra, leaked, wrong class, wrong or stale position")  //
       ("oracle-threads", po::value(&o.oracle_threads)->default_value(o.oracle_threads), "threads recomputing the visible sets for the oracle (0 = one per 8 hardware threads)")  //

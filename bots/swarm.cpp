@@ -127,6 +127,16 @@ net::decoder_options client_decoder(std::size_t max_frame);
 class bot_session : public std::enable_shared_from_this<bot_session> {
  public:
   bot_session(swarm& s, std::size_t slot, unsigned thread, behaviour kind, std::uint64_t seed);
+  /// A session that follows a redirect: connects to `to` and says hello with `token`.
+  void redirect_to(const tcp::endpoint& to, std::string token) {
+    endpoint_override_ = to;
+    token_ = std::move(token);
+  }
+  /// A login again after a lost connection (--reconnect): `since` is when the first retry began.
+  void reconnect_to(const tcp::endpoint& to, steady::time_point since) {
+    endpoint_override_ = to;
+    reconnecting_since_ = since;
+  }
   void start();
   void logout();  ///< graceful, intended close (churn, end of run)
   std::size_t slot() const { return slot_; }
@@ -155,6 +165,9 @@ class bot_session : public std::enable_shared_from_this<bot_session> {
   void flush_counts();
 
   swarm& s_;
+  std::optional<tcp::endpoint> endpoint_override_;
+  std::string token_;
+  std::optional<steady::time_point> reconnecting_since_;
   std::size_t slot_;
   behaviour kind_;
   std::mt19937_64 rng_;
@@ -368,7 +381,8 @@ class swarm {
     r.pongs = c_.pongs, r.digests_checked = c_.digests_checked, r.digest_mismatches = c_.digest_mismatches;
     r.inconsistent = c_.inconsistent, r.aoi_checked = c_.aoi_checked, r.aoi_unchecked = c_.aoi_unchecked;
     r.aoi_violations = c_.aoi_violations, r.latency_unsynced = c_.latency_unsynced;
-    r.teleports_sent = c_.teleports_sent, r.self_positions = c_.self_positions;
+    r.teleports_sent = c_.teleports_sent, r.self_positions = c_.self_positions, r.redirects = c_.redirects;
+    r.reconnects = c_.reconnects;
     r.host_clock = host_clock_.load();
     for (const auto& s : slots_) r.bots_connected += s.ever_connected ? 1 : 0;
     r.min_rtt_ms = best_rtt_us_.load() == UINT64_MAX ? 0 : static_cast<double>(best_rtt_us_.load()) / 1000.0;
@@ -380,14 +394,39 @@ class swarm {
     return out;
   }
 
-  void launch(std::size_t slot) {
-    auto b = std::make_shared<bot_session>(*this, slot, thread_of(slot), slots_[slot].kind,
-                                           0x9e3779b9ull * (slot + 1) + (seed_++));
+  void launch(std::size_t slot, std::optional<tcp::endpoint> to = std::nullopt, std::string token = {}) {
+    std::uint64_t seed = 0;
+    {
+      std::lock_guard lock(sessions_mutex_);
+      seed = 0x9e3779b9ull * (slot + 1) + (seed_++);
+    }
+    auto b = std::make_shared<bot_session>(*this, slot, thread_of(slot), slots_[slot].kind, seed);
+    if (to) b->redirect_to(*to, std::move(token));
     {
       std::lock_guard lock(sessions_mutex_);
       sessions_[slot] = b;
     }
     b->start();
+  }
+
+  /// A new session for `slot` at `to` after relogin_delay_s (--reconnect).
+  void relaunch_later(std::size_t slot, const tcp::endpoint& to, steady::time_point since) {
+    auto timer = std::make_shared<asio::steady_timer>(*ios_[thread_of(slot)]);
+    timer->expires_after(std::chrono::duration_cast<steady::duration>(std::chrono::duration<double>(std::max(0.05, opt_.relogin_delay_s))));
+    timer->async_wait([this, timer, slot, to, since](const boost::system::error_code& ec) {
+      if (ec || stopping_.load()) return;
+      auto b = std::make_shared<bot_session>(*this, slot, thread_of(slot), slots_[slot].kind, next_seed(slot));
+      b->reconnect_to(to, since);
+      {
+        std::lock_guard lock(sessions_mutex_);
+        sessions_[slot] = b;
+      }
+      b->start();
+    });
+  }
+  std::uint64_t next_seed(std::size_t slot) {
+    std::lock_guard lock(sessions_mutex_);
+    return 0x9e3779b9ull * (slot + 1) + (seed_++);
   }
 
   void churn_one(std::mt19937_64& rng) {
@@ -587,7 +626,7 @@ void bot_session::start() {
     welcome_timer_.async_wait([this, self](const boost::system::error_code& ec) {
       if (!ec && !closed_ && !playing_) fail("no welcome within the connect timeout", true);
     });
-    socket_.async_connect(s_.endpoint(), [this, self](const boost::system::error_code& ec) { on_connect(ec); });
+    socket_.async_connect(endpoint_override_ ? *endpoint_override_ : s_.endpoint(), [this, self](const boost::system::error_code& ec) { on_connect(ec); });
   });
 }
 
@@ -604,7 +643,7 @@ void bot_session::on_connect(const boost::system::error_code& ec) {
   if (ec) return fail("connect: " + ec.message(), true);
   boost::system::error_code ignored;
   socket_.set_option(tcp::no_delay(true), ignored);
-  send(net::hello_msg{"bot-" + std::to_string(slot_), "", net::protocol_version});
+  send(net::hello_msg{"bot-" + std::to_string(slot_), token_, net::protocol_version});
   send(net::ping_msg{local_us(s_.epoch())});
   s_.counters().pings_sent.fetch_add(1, std::memory_order_relaxed);
   boost::system::error_code ec2;
@@ -671,6 +710,23 @@ void bot_session::on_frame(const net::frame_view& f, std::uint64_t received_us) 
     case net::wire::message::pong:
       if (const auto* p = env.message_as_pong()) s_.on_pong(p->client_time_us(), p->server_time_us(), received_us);
       break;
+    case net::wire::message::redirect: {
+      // A world of zones moved this bot's entity: go on at the zone named, with the token.
+      const auto* r = env.message_as_redirect();
+      if (!r || !r->host() || !r->token()) break;
+      boost::system::error_code ec;
+      const auto addr = asio::ip::make_address(r->host()->str(), ec);
+      if (ec || r->port() == 0) {
+        s_.problem("bot " + std::to_string(slot_) + ": redirect to an unusable address '" + r->host()->str() + ":" +
+                   std::to_string(r->port()) + "'");
+        break;
+      }
+      s_.counters().redirects.fetch_add(1, std::memory_order_relaxed);
+      intended_ = true;
+      close();
+      if (!s_.stopping()) s_.launch(slot_, tcp::endpoint(addr, r->port()), r->token()->str());
+      break;
+    }
     case net::wire::message::error: {
       const auto* e = env.message_as_error();
       got_error_ = true;
@@ -688,6 +744,7 @@ void bot_session::on_frame(const net::frame_view& f, std::uint64_t received_us) 
 void bot_session::on_welcome(const net::wire::welcome& w) {
   if (playing_) return;
   welcome_timer_.cancel();
+  reconnecting_since_.reset();  // logged in again: a later loss starts its own retries
   entity_ = w.entity_id();
   net::world_bounds world{};
   if (w.world()) world = {to_vec(w.world()->lo()), to_vec(w.world()->hi())};
@@ -1031,6 +1088,27 @@ void bot_session::write_next() {
 void bot_session::fail(const std::string& why, bool connection_failure) {
   if (closed_) return;
   auto& c = s_.counters();
+  const auto& o = s_.opt_ref();
+  if (o.reconnect && !s_.stopping()) {
+    // Log in again at the same address: after a lost connection, and after refused connects of
+    // such a login while its zone restarts (up to connect_timeout_s).
+    const auto now = steady::now();
+    const auto since = reconnecting_since_.value_or(now);
+    const bool retry = !connection_failure || (reconnecting_since_ &&
+                                               now - since < std::chrono::duration<double>(o.connect_timeout_s));
+    if (retry) {
+      if (!connection_failure) {
+        c.unexpected_disconnects.fetch_add(1, std::memory_order_relaxed);
+        s_.problem("bot " + std::to_string(slot_) + (entity_ ? " (entity " + std::to_string(entity_) + ")" : std::string()) +
+                   ": " + why + " (logging in again)");
+        c.reconnects.fetch_add(1, std::memory_order_relaxed);
+      }
+      const tcp::endpoint to = endpoint_override_ ? *endpoint_override_ : s_.endpoint();
+      close();
+      s_.relaunch_later(slot_, to, since);
+      return;
+    }
+  }
   if (connection_failure) {
     c.connect_failures.fetch_add(1, std::memory_order_relaxed);
   } else {

@@ -38,6 +38,10 @@ struct swarm_options {
   double churn = 0;          ///< logouts per second across the swarm (each logged-out bot logs in again)
   double churn_for_s = 0;    ///< churn stops this many seconds into the run (0 = until the end)
   double relogin_delay_s = 0.2;
+  /// After an unexpected disconnect, log in again (a new session for the slot, at the address it
+  /// was connected to) after relogin_delay_s, retrying refused connects for up to
+  /// connect_timeout_s: a zone restarted on the same port (docs/world.md) gets its players back.
+  bool reconnect = false;
   bool verify = false;       ///< compare the server's visible-set digests with the tracked view
   /// Check every bot's view against the server's ground truth (oracle.h; the server runs with
   /// --oracle): a probe connection reads the welcome (rules, truth port) before any bot starts.
@@ -78,6 +82,9 @@ class latency_histogram_us {
 struct swarm_counters {
   std::atomic<std::uint64_t> connect_attempts{0}, connected_now{0}, welcomes{0}, connect_failures{0},
       unexpected_disconnects{0}, server_errors{0}, logouts{0}, teleports_sent{0};
+  /// A world of zones (docs/world.md): redirects followed (a new connection with the token).
+  std::atomic<std::uint64_t> redirects{0};
+  std::atomic<std::uint64_t> reconnects{0};  ///< logins again after an unexpected disconnect (--reconnect)
   std::atomic<std::uint64_t> frames_in{0}, bytes_in{0}, tick_updates{0}, enters{0}, leaves{0}, updates{0}, resets{0};
   std::atomic<std::uint64_t> inputs_sent{0}, inputs_unchanged{0}, pings_sent{0}, pongs{0};
   std::atomic<std::uint64_t> digests_checked{0}, digest_mismatches{0}, inconsistent{0};
@@ -123,7 +130,7 @@ struct swarm_result {
                 server_errors = 0, logouts = 0, frames_in = 0, bytes_in = 0, tick_updates = 0, enters = 0,
                 leaves = 0, updates = 0, resets = 0, inputs_sent = 0, inputs_unchanged = 0, pongs = 0, digests_checked = 0,
                 digest_mismatches = 0, inconsistent = 0, aoi_checked = 0, aoi_unchecked = 0,
-                aoi_violations = 0, latency_unsynced = 0, teleports_sent = 0, self_positions = 0;
+                aoi_violations = 0, latency_unsynced = 0, teleports_sent = 0, self_positions = 0, redirects = 0, reconnects = 0;
   bool host_clock = false;  ///< latency timed on the host's clock (same host), not by ping sync
   bool rules_from_server = false;  ///< the welcome told the zone's interest rules (the AOI check used them)
   bool oracle_on = false;

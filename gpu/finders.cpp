@@ -12,6 +12,7 @@
 #include <stdexcept>
 #include <vector>
 
+#include "interest/thread_pool.h"
 #include "lbvh.h"
 #include "pbig.h"
 
@@ -428,6 +429,21 @@ std::unique_ptr<interest::pair_finder> make_finder(finder_backend backend, inter
   }
   if (why) *why = "unknown backend";
   return nullptr;
+}
+
+std::unique_ptr<interest::pair_finder> make_finder(std::string_view name, interest::thread_pool* pool, std::string* why,
+                                                   const interest::grid_finder_options& grid) {
+  if (name == "cpu") return std::make_unique<interest::grid_finder>(pool, grid);
+  if (name == "cpu-1t") return std::make_unique<interest::grid_finder>(nullptr, grid);
+  const auto backend = parse_backend(name);
+  if (!backend) {
+    if (why) *why = "unknown finder '" + std::string(name) + "' (brute, cpu, cpu-1t, gpu, pbig, lbvh, auto)";
+    return nullptr;
+  }
+  std::string reason;
+  auto f = make_finder(*backend, pool, &reason);
+  if (!f && why) *why = "finder '" + std::string(name) + "' cannot run here: " + reason;
+  return f;
 }
 
 std::optional<finder_backend> last_auto_choice(const interest::pair_finder& finder) {

@@ -31,6 +31,15 @@ enum class finder_backend { brute, cpu, pbig, lbvh, auto_select };
 [[nodiscard]] std::unique_ptr<interest::pair_finder> make_finder(finder_backend backend, interest::thread_pool* pool,
                                                                  std::string* why = nullptr);
 
+/// Builds a finder by name: parse_backend's names, and "cpu-1t" (the CPU grid finder on the calling
+/// thread only). `grid` tunes the CPU grid finder of "cpu" and "cpu-1t". Returns null with the
+/// reason in `why` for an unknown name ("unknown finder 'x' (brute, cpu, cpu-1t, gpu, pbig, lbvh,
+/// auto)") and for a backend that cannot run here ("finder 'x' cannot run here: ..."). The one
+/// place that maps a user's finder name to a finder (zone-server's --finder, bench-zone's).
+[[nodiscard]] std::unique_ptr<interest::pair_finder> make_finder(std::string_view name, interest::thread_pool* pool,
+                                                                 std::string* why = nullptr,
+                                                                 const interest::grid_finder_options& grid = {});
+
 /// Cheap statistics of a box set that the auto finder decides on: read from a fixed stratified
 /// sample of at most `auto_sample_boxes` boxes (the same boxes every call for a given N), so the
 /// cost does not grow with N (0.1-1.5 ms on the 2-core build machine; the auto finder amortises it, see

@@ -30,17 +30,16 @@
 #include <stdexcept>
 
 #include "cuda_check.h"
+#include "interest/measure.h"
 #include "lbvh_launch.h"
 #include "lbvh_tuning.h"
+#include "staged_upload.h"
 
 namespace zone::gpu::detail::lbvh {
 
 namespace {
 
 using clock_type = std::chrono::steady_clock;
-double ms_since(clock_type::time_point t) {
-  return std::chrono::duration<double, std::milli>(clock_type::now() - t).count();
-}
 
 box_arrays arrays_of(const float* coord, const std::uint32_t* bits, std::size_t n) {
   box_arrays b{};
@@ -109,54 +108,8 @@ bool lbvh_engine::upload(const interest::box_set& boxes, bool check) {
   d_coord_.reserve(6 * n);
   d_bits_.reserve(2 * n);
   h_stage_.reserve(32 * n);
-  const float* lo[3] = {boxes.lo_x.data(), boxes.lo_y.data(), boxes.lo_z.data()};
-  const float* hi[3] = {boxes.hi_x.data(), boxes.hi_y.data(), boxes.hi_z.data()};
-  const std::uint32_t* bits[2] = {boxes.category.data(), boxes.mask.data()};
-  float* stage_f = reinterpret_cast<float*>(h_stage_.get());                   // 6 arrays of n floats
-  std::uint32_t* stage_u = reinterpret_cast<std::uint32_t*>(stage_f + 6 * n);  // then 2 of n bits
-  const std::size_t parts = std::clamp<std::size_t>(
-      (n + lbvh_tuning::upload_part_boxes - 1) / lbvh_tuning::upload_part_boxes, 1, lbvh_tuning::max_upload_parts);
-  const std::size_t sub = std::max<std::size_t>(1, (pool_->size() + 3) / 4);
-  std::atomic<bool> ok{true};
-  for (std::size_t p = 0; p < parts; ++p) {
-    const std::size_t b = n * p / parts, e = n * (p + 1) / parts;
-    const std::size_t len = e - b;
-    // Tasks: (axis d: copy lo_d and hi_d, checking them when asked) or (category and mask).
-    interest::run_tasks(len * 32 >= (std::size_t{1} << 20) ? pool_ : nullptr, 4 * sub, [&](std::size_t t) {
-      const std::size_t a = t % 4, k = t / 4;
-      const std::size_t sb = b + len * k / sub, se = b + len * (k + 1) / sub;
-      if (se <= sb) return;
-      if (a == 3) {
-        for (int q = 0; q < 2; ++q) std::memcpy(stage_u + q * n + sb, bits[q] + sb, (se - sb) * 4);
-        return;
-      }
-      float* dst_lo = stage_f + a * n;
-      float* dst_hi = stage_f + (3 + a) * n;
-      if (!check) {
-        std::memcpy(dst_lo + sb, lo[a] + sb, (se - sb) * 4);
-        std::memcpy(dst_hi + sb, hi[a] + sb, (se - sb) * 4);
-        return;
-      }
-      // interest::validate's rule on this axis: lo <= hi (false for NaN) and both finite.
-      const float* src_lo = lo[a];
-      const float* src_hi = hi[a];
-      bool good = true;
-      for (std::size_t i = sb; i < se; ++i) {
-        const float l = src_lo[i], h = src_hi[i];
-        dst_lo[i] = l;
-        dst_hi[i] = h;
-        good &= (l <= h) & std::isfinite(l) & std::isfinite(h);
-      }
-      if (!good) ok = false;
-    });
-    if (!ok) break;
-    for (int a = 0; a < 6; ++a) {
-      CUDA_CHECK(cudaMemcpyAsync(d_coord_.get() + a * n + b, stage_f + a * n + b, len * 4, cudaMemcpyHostToDevice, main_));
-    }
-    for (int q = 0; q < 2; ++q) {
-      CUDA_CHECK(cudaMemcpyAsync(d_bits_.get() + q * n + b, stage_u + q * n + b, len * 4, cudaMemcpyHostToDevice, main_));
-    }
-  }
+  const bool ok = staged_upload(boxes, check, d_coord_.get(), d_bits_.get(), h_stage_.get(), pool_, main_,
+                                lbvh_tuning::upload_part_boxes, lbvh_tuning::max_upload_parts);
   CUDA_CHECK(cudaEventRecord(ev_in_, main_));
   report_.bytes_in += 32 * n;
   if (!ok) CUDA_CHECK(cudaStreamSynchronize(main_));  // the staging buffer is free again

@@ -11,9 +11,10 @@
 #include <memory>
 #include <optional>
 
-#include "interest.h"
-#include "lbvh.h"
 #include "gpu_buffers.h"
+#include "interest/interest.h"
+#include "interest/thread_pool.h"
+#include "lbvh.h"
 #include "lbvh_shared.h"
 
 namespace zone::gpu::detail::lbvh {

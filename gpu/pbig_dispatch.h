@@ -11,9 +11,10 @@
 #include <optional>
 #include <vector>
 
-#include "interest.h"
-#include "pbig.h"
 #include "gpu_buffers.h"
+#include "interest/interest.h"
+#include "interest/thread_pool.h"
+#include "pbig.h"
 #include "pbig_shared.h"
 
 namespace zone::gpu::detail {

@@ -28,19 +28,13 @@ inline constexpr std::uint32_t plan_threads = 1024;
 /// edge). The output (pairs) does not depend on the edge and is left out. A larger candidate whose
 /// mean fill N*alpha/M passes plan_max_fill is not taken: its fullest cells would pass
 /// small_cell_sort and the per-cell sort by id would switch to CUB's segmented sort, which costs
-/// about 80 ns per cell of 200-600 entries on the H100 (uniform 1e7 at 2.52 x e0: sort 4.6 ms
-/// instead of 1.2; DoC 10 at 3.17 x e0: 1.27 ms instead of 0.28).
+/// far more per cell than the one-kernel sort.
 /// The sort by id of small cells (one warp per cell, O(n_c^2)) is in the check term.
-/// Calibration: H100 (NVIDIA H100 80GB HBM3, sm_90), direct output, pinned input, the phase
-/// breakdown of `bench_gpu --only wsweep` (docs/data/gpu-wsweep-2026-11-24.csv) and of the edge
-/// sweep `bench_gpu --only esweep` (fixed edges e0 * 2^(j/3) on the six target sets;
-/// docs/data/gpu-targets-2026-11-24-plan-esweep.csv): across edges, MAP moves by about 0.11 ns per cell
-/// entry plus ~1 ns per cell (DoC 10: 2.39 -> 0.76 ms for 20.6 -> 4.8 M entries; uniform 1e7:
-/// 5.27 -> 3.56 ms for 32.5 -> 22.1 M entries, 970k -> 238k cells), CHECK by about 1.5 ps per
-/// pair check (Gaussian 1e7: 37.3 -> 43.7 ms for 13.9 -> 18.4 G checks; Gaussian 1e6 shows 2-5 ps,
-/// so the estimate leans towards Eq. 6 there) plus ~1 ns per cell (work items). Scored with these
-/// constants on the measured sweep, the rule picks the fastest or within 1% of the fastest edge
-/// among the allowed candidates on all six sets (docs/gpu-benchmarks.md, "Cost-aware plan").
+/// Calibration: the three cost constants are fitted to the phase breakdown (MAP per cell entry and
+/// per cell, CHECK per pair check) of `bench-gpu --only wsweep` and of the edge sweep
+/// `bench-gpu --only esweep` (fixed edges e0 * 2^(j/3) on the six target sets), direct output,
+/// pinned input; the figures, the machine, the date and the data files are in
+/// docs/gpu-benchmarks.md ("Cost-aware plan").
 inline constexpr std::uint32_t plan_candidates = 7;
 inline constexpr double plan_cost_entry_ns = 0.11;
 inline constexpr double plan_cost_cell_ns = 2.0;

@@ -1,4 +1,4 @@
-// The interest step on the GPU (interest/visibility.h's engine): per observer, candidates from a
+// The interest step on the GPU (interest/visibility_engine.h): per observer, candidates from a
 // uniform grid over the presence boxes, classified against the previous visible sets kept in
 // device memory; only the new sets and the events come back to the host. See docs/zone.md
 // ("The interest step on the GPU") for the algorithm and how it relates to the pair finders.

@@ -27,6 +27,8 @@
 
 #include "cuda_check.h"
 #include "gpu_buffers.h"
+#include "interest/measure.h"
+#include "interest/thread_pool.h"
 #include "pbig.h"
 #include "visibility.h"
 #include "visibility_launch.h"
@@ -36,9 +38,6 @@ namespace detail::vis {
 namespace {
 
 using clock_type = std::chrono::steady_clock;
-double ms_since(clock_type::time_point t) {
-  return std::chrono::duration<double, std::milli>(clock_type::now() - t).count();
-}
 
 /// Most cells of the grid (its counters are allocated once: 3 x 4 MiB).
 constexpr std::uint32_t max_cells = 1u << 20;

@@ -5,6 +5,7 @@
 #include <sstream>
 
 #include "interest.h"
+#include "thread_pool.h"
 
 namespace zone::interest {
 

@@ -7,6 +7,7 @@
 #include <bit>
 
 #include "interest.h"
+#include "thread_pool.h"
 
 namespace zone::interest {
 

@@ -33,6 +33,7 @@
 #include <random>
 
 #include "interest.h"
+#include "thread_pool.h"
 
 namespace zone::interest {
 namespace {

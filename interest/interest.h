@@ -1,19 +1,16 @@
 // Public API of the interest core: boxes, pairs, the pair_finder interface and its CPU backends,
-// data-set generators and box-file formats. Other layers include only this header.
+// data-set generators and box-file formats. Other layers include this header, and thread_pool.h
+// where they construct or drive the worker threads.
 //
 // Semantics (see ../shared/DESIGN.md): boxes are closed; the pair {a, b}, a != b, qualifies iff the
 // boxes intersect on every axis (lo_a <= hi_b and lo_b <= hi_a) and
 // ((category_a & mask_b) != 0 or (category_b & mask_a) != 0).
 #pragma once
 
-#include <condition_variable>
-#include <atomic>
 #include <cstddef>
 #include <cstdint>
 #include <functional>
 #include <memory>
-#include <mutex>
-#include <thread>
 #include <type_traits>
 #include <utility>
 #include <optional>
@@ -24,55 +21,9 @@
 
 namespace zone::interest {
 
-/// A fixed set of worker threads for data-parallel loops. `run` hands out task indices to the
-/// workers and the calling thread and returns when every task has finished. One `run` at a time.
-///
-/// Idle workers (and the caller waiting for the last task) spin for `spin_us` microseconds before
-/// they block: a tick made of several short parallel phases then pays no thread wake-up between
-/// its phases (on a virtual machine a wake-up of a sleeping thread can take milliseconds), at the
-/// price of up to `spin_us` of busy CPU per thread after each phase. 0 blocks at once.
-class thread_pool {
- public:
-  /// `threads` = total threads that run tasks, the caller included; 0 = hardware concurrency.
-  explicit thread_pool(unsigned threads = 0, unsigned spin_us = 0);
-  ~thread_pool();
-  thread_pool(const thread_pool&) = delete;
-  thread_pool& operator=(const thread_pool&) = delete;
-
-  [[nodiscard]] unsigned size() const { return static_cast<unsigned>(workers_.size()) + 1; }
-  [[nodiscard]] unsigned spin_us() const { return spin_us_; }
-  /// Runs task(i) for every i in [0, n), each exactly once, spread over the threads.
-  void run(std::size_t n, const std::function<void(std::size_t)>& task);
-  /// Idle workers stop spinning now and sleep until the next run (which wakes them): for a caller
-  /// about to block for longer than the spin (e.g. on a device), so the workers do not burn the
-  /// spin meanwhile. Any thread may call it; it changes nothing else.
-  void park() noexcept { park_.store(generation_.load()); }
-
- private:
-  void worker_loop();
-  void drain(std::uint32_t generation);
-  std::vector<std::thread> workers_;
-  unsigned spin_us_ = 0;
-  std::mutex mutex_;
-  std::condition_variable wake_, done_;
-  // The current run: its task and size are written before the run is published through job_;
-  // job_ = (generation << 32) | next index, claimed by compare-and-swap, so a worker late from
-  // an earlier run can never take an index of a later one.
-  std::atomic<const std::function<void(std::size_t)>*> task_{nullptr};
-  std::atomic<std::uint32_t> task_count_{0};
-  std::atomic<std::uint64_t> job_{0};
-  static constexpr std::uint32_t closed_index = 0xffffffffu;  ///< in job_: no index to claim (above any count)
-  std::atomic<std::uint32_t> generation_{0};
-  std::atomic<std::uint32_t> finished_{0};
-  std::atomic<int> sleepers_{0};
-  std::atomic<bool> caller_waiting_{false};
-  std::atomic<bool> stop_{false};
-  /// The run generation after which park() was called: a worker idle after that run sleeps.
-  std::atomic<std::uint32_t> park_{0xffffffffu};
-};
-
-/// Runs task(i) for i in [0, n) on `pool`, or inline when `pool` is null.
-void run_tasks(thread_pool* pool, std::size_t n, const std::function<void(std::size_t)>& task);
+/// The worker threads the finders run on (thread_pool.h: construct one there). May be null
+/// wherever a pool is taken: the calling thread runs everything then.
+class thread_pool;
 
 /// Box id: the 0-based index of a box in its box_set.
 using box_id = std::uint32_t;
@@ -232,7 +183,7 @@ class brute_force_finder final : public pair_finder {
 /// Tuning of the uniform-grid CPU finder.
 struct grid_finder_options {
   /// Eq. 6's lower bound W on f = N*alpha/M (average boxes per cell). On the GPU W is the warp
-  /// width (32). On a CPU core the best W depends on the data (docs/bench/sweep_w.txt, 1e6 boxes on
+  /// width (32). On a CPU core the best W depends on the data (docs/data/sweep_w.txt, 1e6 boxes on
   /// the 2-core machine): uniform is flat from 3 to 32, the MMO-like set wants 12-16 (smaller cells
   /// cut its large view boxes into many pieces), the Gaussian set, dense in its centre, wants 2-6.
   /// W = 12 has the best geometric mean over the three (1.15x the per-set best).

@@ -4,7 +4,7 @@
 #include <immintrin.h>
 #endif
 
-#include "interest.h"
+#include "thread_pool.h"
 
 #include <pthread.h>
 

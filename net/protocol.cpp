@@ -87,10 +87,14 @@ flatbuffers::Offset<void> build_body(flatbuffers::FlatBufferBuilder& fbb, const 
         } else if constexpr (std::is_same_v<T, error_msg>) {
           const auto reason = fbb.CreateString(msg.reason);
           return w::Createerror(fbb, msg.code, reason).Union();
-        } else {
-          static_assert(std::is_same_v<T, teleport_msg>);
+        } else if constexpr (std::is_same_v<T, teleport_msg>) {
           const w::vec3 position = to_wire(msg.position);
           return w::Createteleport(fbb, msg.sequence, &position, msg.entity_id).Union();
+        } else {
+          static_assert(std::is_same_v<T, redirect_msg>);
+          const auto host = fbb.CreateString(msg.host);
+          const auto token = fbb.CreateString(msg.token);
+          return w::Createredirect(fbb, host, msg.port, token).Union();
         }
       },
       m);
@@ -331,6 +335,11 @@ std::optional<message> to_message(const w::envelope& env) {
       // An absent position converts to NaN, so the server refuses it rather than jumping to 0,0,0.
       const float nan = std::numeric_limits<float>::quiet_NaN();
       return teleport_msg{m->sequence(), m->position() ? from_wire(m->position()) : vec3f{nan, nan, nan}, m->entity_id()};
+    }
+    case w::message::redirect: {
+      const auto* m = env.message_as_redirect();
+      if (!m) return std::nullopt;
+      return redirect_msg{from_wire(m->host()), m->port(), from_wire(m->token())};
     }
     default: return std::nullopt;
   }

@@ -158,9 +158,18 @@ struct error_msg {
   friend bool operator==(const error_msg&, const error_msg&) = default;
 };
 
+/// A world's handoff moved the client's entity: reconnect to host:port with hello{token}.
+struct redirect_msg {
+  std::string host;
+  std::uint16_t port = 0;
+  std::string token;
+  friend bool operator==(const redirect_msg&, const redirect_msg&) = default;
+};
+
 /// Any message; the alternatives are in the order of the schema's union (index + 1 = wire type).
 using message =
-    std::variant<hello_msg, input_msg, ping_msg, welcome_msg, tick_update_msg, pong_msg, error_msg, teleport_msg>;
+    std::variant<hello_msg, input_msg, ping_msg, welcome_msg, tick_update_msg, pong_msg, error_msg, teleport_msg,
+                 redirect_msg>;
 
 /// The wire type of a message value.
 [[nodiscard]] wire::message type_of(const message& m);

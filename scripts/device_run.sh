@@ -22,9 +22,9 @@ while [ $# -gt 0 ]; do
       shift
       args=()
       while [ $# -gt 0 ] && [ "$1" != test ] && [ "$1" != bench ]; do args+=("$1"); shift; done
-      echo "== bench_gpu ${args[*]} $(date -u +%FT%TZ)"
-      .device/bench_gpu --csv "$out/bench.csv" "${args[@]}" 2>&1 | tee "$out/bench.log"
-      echo "bench_gpu exit code: ${PIPESTATUS[0]}"
+      echo "== bench-gpu ${args[*]} $(date -u +%FT%TZ)"
+      .device/bench-gpu --csv "$out/bench.csv" "${args[@]}" 2>&1 | tee "$out/bench.log"
+      echo "bench-gpu exit code: ${PIPESTATUS[0]}"
       ;;
     *) echo "unknown step $1"; exit 2 ;;
   esac

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Turns bench_gpu's CSV into the markdown tables of docs/gpu-benchmarks.md and the data files
+"""Turns bench-gpu's CSV into the markdown tables of docs/gpu-benchmarks.md and the data files
 that scripts/gpu_bench_plots.gp plots. Usage: gpu_bench_tables.py BENCH.csv OUTDIR"""
 import csv, os, sys
 

@@ -12,6 +12,7 @@ packages=(
   libcgal-dev libgmp-dev libmpfr-dev
   liburing-dev pkg-config
   python3
+  nats-server libnats-dev  # the world of zones (world/, docs/world.md)
   chromium
   clang libclang-rt-14-dev  # the fuzz targets (fuzz/, scripts/fuzz.sh): clang's libFuzzer, ASan, UBSan
 )

@@ -34,7 +34,9 @@
 #include <thread>
 #include <vector>
 
-#include "interest.h"
+#include "interest/interest.h"
+#include "interest/measure.h"
+#include "interest/thread_pool.h"
 
 #if ZONE_HAVE_CGAL
 #include <CGAL/box_intersection_d.h>
@@ -45,16 +47,9 @@ namespace {
 using namespace zone::interest;
 using clock_type = std::chrono::steady_clock;
 
-double ms_since(clock_type::time_point t0) {
-  return std::chrono::duration<double, std::milli>(clock_type::now() - t0).count();
-}
+using zone::ms_since;
 
-double median_of(std::vector<double> v) {
-  if (v.empty()) return 0;
-  std::sort(v.begin(), v.end());
-  const std::size_t m = v.size() / 2;
-  return v.size() % 2 ? v[m] : 0.5 * (v[m - 1] + v[m]);
-}
+using zone::median;
 
 // ---- Options --------------------------------------------------------------------------------
 
@@ -92,8 +87,9 @@ Usage: bench-finders [options]
                      (default: 3; 1 where the warm-up took over 10 s; none where it took
                      over 30 s: that one run is then the measurement, marked 1*)
   --threads N        threads of the cpu finder (and brute); default 0 = all cores
-  --csv FILE         CSV output (default docs/bench/finders.csv, docs/bench/sweep_w.csv,
-                     docs/bench/sweep_edge.csv by mode); directories are created
+  --csv FILE         CSV output (default, in the current directory: bench-finders.csv,
+                     bench-finders-sweep-w.csv or bench-finders-sweep-edge.csv by mode);
+                     directories are created
   --max-seconds S    skip a finder at larger N of a family once its median exceeded S seconds
                      at a smaller N of that family (default 30)
   --brute-max N      run brute only where N <= this (default 2e4; it is O(N^2))
@@ -253,9 +249,9 @@ std::optional<std::string> parse_args(int argc, char** argv, options& opt, bool&
     if (auto e = parse_sets(defaults, opt.sets)) return e;
   }
   if (opt.csv_path.empty()) {
-    opt.csv_path = opt.run_mode == mode::compare   ? "docs/bench/finders.csv"
-                   : opt.run_mode == mode::sweep_w ? "docs/bench/sweep_w.csv"
-                                                   : "docs/bench/sweep_edge.csv";
+    opt.csv_path = opt.run_mode == mode::compare   ? "bench-finders.csv"
+                   : opt.run_mode == mode::sweep_w ? "bench-finders-sweep-w.csv"
+                                                   : "bench-finders-sweep-edge.csv";
   }
   if (opt.threads == 0) opt.threads = std::max(1u, std::thread::hardware_concurrency());
   return std::nullopt;
@@ -610,12 +606,12 @@ int run_compare(const options& opt) {
       measurement m = measure(*finder, boxes, opt.reps);
       r.ran = true;
       r.pairs = m.pairs.size();
-      r.median_ms = median_of(m.times_ms);
+      r.median_ms = median(m.times_ms);
       r.min_ms = *std::min_element(m.times_ms.begin(), m.times_ms.end());
       r.first_ms = m.first.total_ms;
       r.reps = static_cast<int>(m.times_ms.size());
       r.warmup_only = m.warmup_only;
-      r.build_median_ms = median_of(m.build_ms);
+      r.build_median_ms = median(m.build_ms);
       r.stats = m.first;
       std::cerr << " -> " << r.pairs << " pairs, first " << fmt(r.first_ms, 1) << " ms, median " << fmt(r.median_ms, 1)
                 << " ms of " << r.reps << (r.warmup_only ? " (the warm-up only)" : "") << "\n";
@@ -831,7 +827,7 @@ int run_sweep(const options& opt) {
     }
     for (std::size_t c = 0; c < configs.size(); ++c) {
       sweep_point& p = set_points[c];
-      p.median_ms = median_of(times[c]);
+      p.median_ms = median(times[c]);
       p.min_ms = *std::min_element(times[c].begin(), times[c].end());
       p.reps = reps;
       points.push_back(p);

@@ -1,7 +1,7 @@
-// bench_gpu: the PBIG paper's experiments for the GPU finder, with the fast CPU finder (grid_finder
+// bench-gpu: the PBIG paper's experiments for the GPU finder, with the fast CPU finder (grid_finder
 // on every core) side by side where it finishes within a minute. Prints tables and writes CSV.
 //
-//   bench_gpu [--csv FILE] [--csv-lbvh FILE] [--only LIST] [--max-n N] [--reps R] [--cgal-max-n N]
+//   bench-gpu [--csv FILE] [--csv-lbvh FILE] [--only LIST] [--max-n N] [--reps R] [--cgal-max-n N]
 //     LIST: comma-separated of floors,public,targets,wsweep,esweep,eplan,nsweep,cells,doc,gauss,ablation,lbvh
 //           (default: all but wsweep, esweep, eplan)
 //
@@ -40,10 +40,12 @@
 #include <string>
 #include <vector>
 
-#include "finders.h"
-#include "interest.h"
-#include "lbvh.h"
-#include "pbig.h"
+#include "gpu/finders.h"
+#include "gpu/lbvh.h"
+#include "gpu/pbig.h"
+#include "interest/interest.h"
+#include "interest/measure.h"
+#include "interest/thread_pool.h"
 
 #if __has_include(<CGAL/box_intersection_d.h>)
 #include <CGAL/box_intersection_d.h>
@@ -58,15 +60,9 @@ namespace zg = zone::gpu;
 namespace {
 
 using clock_type = std::chrono::steady_clock;
-double ms_since(clock_type::time_point t) {
-  return std::chrono::duration<double, std::milli>(clock_type::now() - t).count();
-}
+using zone::ms_since;
 
-double median(std::vector<double> v) {
-  std::sort(v.begin(), v.end());
-  const std::size_t k = v.size();
-  return k == 0 ? 0 : (k % 2 ? v[k / 2] : 0.5 * (v[k / 2 - 1] + v[k / 2]));
-}
+using zone::median;
 
 struct pair_digest {
   std::uint64_t count = 0, sum = 0, xr = 0;
@@ -139,7 +135,7 @@ struct bench {
       std::string why;
       f = zg::make_pbig_finder(o, &why);
       if (!f) {
-        std::fprintf(stderr, "bench_gpu: no GPU finder: %s\n", why.c_str());
+        std::fprintf(stderr, "bench-gpu: no GPU finder: %s\n", why.c_str());
         std::exit(2);
       }
     }
@@ -422,7 +418,7 @@ void lbvh_section(bench& b, const std::string& csv_path, std::size_t cgal_max_n)
   auto pbig = zg::make_finder(zg::finder_backend::pbig, &b.pool);
   auto lbvh = zg::make_finder(zg::finder_backend::lbvh, &b.pool);
   if (!pbig || !lbvh) {
-    std::fprintf(stderr, "bench_gpu: no GPU finder\n");
+    std::fprintf(stderr, "bench-gpu: no GPU finder\n");
     std::exit(2);
   }
   std::printf("\n== LBVH beside PBIG, auto, the CPU grid finder and CGAL (e2e ms: boxes in host memory -> every pair "
@@ -544,7 +540,7 @@ void public_section(bench& b, std::uint64_t seed) {
     zi::pair_finder& best = b.gpu(o);
     std::span<const zi::id_pair> pv, bv;
     if (zg::find_view(*pub, s, pv) || zg::find_pairs_view(best, s, bv)) {  // warm-ups
-      std::fprintf(stderr, "bench_gpu: invalid input\n");
+      std::fprintf(stderr, "bench-gpu: invalid input\n");
       std::exit(2);
     }
     const int reps = t.n >= 10000000 ? 5 : 21;
@@ -600,7 +596,7 @@ void public_section(bench& b, std::uint64_t seed) {
 int main(int argc, char** argv) {
   bench b;
   std::string only = "floors,public,targets,nsweep,cells,doc,gauss,ablation,lbvh";
-  std::string csv_path = "bench_gpu.csv";
+  std::string csv_path = "bench-gpu.csv";
   std::string csv_lbvh = "bench_lbvh.csv";
   std::size_t cgal_max_n = 1000000;
   for (int i = 1; i < argc; ++i) {
@@ -620,11 +616,11 @@ int main(int argc, char** argv) {
     else if (a == "--cgal-max-n") cgal_max_n = std::stoull(next());
     else if (a == "--help" || a == "-h") {
       std::printf(
-          "bench_gpu: the PBIG paper's experiments on the GPU, PBIG beside LBVH, auto, the CPU grid finder and CGAL\n\n"
-          "usage: bench_gpu [--csv FILE] [--csv-lbvh FILE] [--only LIST] [--max-n N] [--reps R] [--cgal-max-n N]\n"
+          "bench-gpu: the PBIG paper's experiments on the GPU, PBIG beside LBVH, auto, the CPU grid finder and CGAL\n\n"
+          "usage: bench-gpu [--csv FILE] [--csv-lbvh FILE] [--only LIST] [--max-n N] [--reps R] [--cgal-max-n N]\n"
           "  --only LIST       comma-separated of floors,public,targets,wsweep,esweep,eplan,nsweep,cells,doc,gauss,ablation,lbvh\n"
           "                    (default: all but wsweep, esweep, eplan)\n"
-          "  --csv FILE        PBIG rows as CSV (default bench_gpu.csv)\n"
+          "  --csv FILE        PBIG rows as CSV (default bench-gpu.csv)\n"
           "  --csv-lbvh FILE   the lbvh experiment's rows as CSV (default bench_lbvh.csv)\n"
           "  --max-n N         skip sets larger than N boxes (default 10000000)\n"
           "  --reps R          timed repetitions per row (default 5; the targets use 21 below 10^7)\n"
@@ -632,14 +628,14 @@ int main(int argc, char** argv) {
           "Exits 77 without a CUDA device. docs/gpu-benchmarks.md says what each table means.\n");
       return 0;
     } else {
-      std::fprintf(stderr, "usage: bench_gpu [--csv FILE] [--csv-lbvh FILE] [--only LIST] [--max-n N] [--reps R] [--cgal-max-n N] [--help]\n");
+      std::fprintf(stderr, "usage: bench-gpu [--csv FILE] [--csv-lbvh FILE] [--only LIST] [--max-n N] [--reps R] [--cgal-max-n N] [--help]\n");
       return 2;
     }
   }
   auto want = [&](const char* name) { return ("," + only + ",").find("," + std::string(name) + ",") != std::string::npos; };
   std::string why;
   if (!zg::device_available(nullptr, &why)) {
-    std::fprintf(stderr, "bench_gpu: %s\n", why.c_str());
+    std::fprintf(stderr, "bench-gpu: %s\n", why.c_str());
     return 77;
   }
   b.csv.open(csv_path);

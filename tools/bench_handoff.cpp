@@ -29,7 +29,8 @@
 
 #include <spdlog/spdlog.h>
 
-#include "server.h"
+#include "interest/measure.h"
+#include "net/server.h"
 
 using namespace zone::net;
 
@@ -91,11 +92,7 @@ bool parse(int argc, char** argv, options& o, bool& help) {
   return o.sessions > 0 && o.senders > 0 && o.frame_bytes >= 64 && o.chunk > 0;
 }
 
-double percentile(std::vector<double> v, double q) {
-  if (v.empty()) return 0;
-  std::sort(v.begin(), v.end());
-  return v[std::min(v.size() - 1, static_cast<std::size_t>(q * static_cast<double>(v.size())))];
-}
+using zone::quantile;
 
 }  // namespace
 
@@ -282,8 +279,8 @@ int main(int argc, char** argv) {
               "senders' CPU per tick p50 | reader CPU per frame | writes per io_uring submission |\n");
   std::printf("|---|---|---|---|---|---|---|\n");
   std::printf("| %.2f us | %.2f us | %.2f us | %.3f / %.3f ms | %.3f ms | %.2f us | %s |\n", senders_cpu_total / frames * 1e6,
-              (server_cpu - senders_cpu_total) / frames * 1e6, server_cpu / frames * 1e6, percentile(tick_wall_ms, 0.5),
-              percentile(tick_wall_ms, 0.99), percentile(tick_sender_cpu_ms, 0.5), reader_cpu / frames * 1e6,
+              (server_cpu - senders_cpu_total) / frames * 1e6, server_cpu / frames * 1e6, quantile(tick_wall_ms, 0.5),
+              quantile(tick_wall_ms, 0.99), quantile(tick_sender_cpu_ms, 0.5), reader_cpu / frames * 1e6,
               batches > 0 ? std::to_string(static_cast<double>(writes) / static_cast<double>(batches)).c_str() : "-");
   srv.stop();
   for (const int fd : fds) ::close(fd);

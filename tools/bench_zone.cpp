@@ -44,6 +44,7 @@
 #include "replication.h"
 #include "visibility.h"
 #include "interest.h"
+#include "interest/measure.h"
 #include "protocol.h"
 #include "zone.h"
 
@@ -70,10 +71,6 @@ namespace {
 
 using namespace zone;
 using clock_type = std::chrono::steady_clock;
-
-double ms_since(clock_type::time_point t0) {
-  return std::chrono::duration<double, std::milli>(clock_type::now() - t0).count();
-}
 
 /// CPU time consumed so far (ms) by the process (all threads) or by the calling thread. Unlike
 /// wall time it does not count time spent descheduled, so it is the steadier figure on a shared
@@ -322,26 +319,15 @@ std::optional<std::string> parse_args(int argc, char** argv, options& o, bool& h
   return std::nullopt;
 }
 
-// ---- The finder factory (the one place that maps a name to a backend) -----------------------
+// ---- The finder by name (gpu::make_finder maps the name to a backend) -----------------------
 
 /// A pair finder by name, on `pool` where it takes one; nullptr (and `*error`) for an unknown name.
 std::unique_ptr<interest::pair_finder> make_finder(const std::string& name, interest::thread_pool* pool, double w,
                                                    std::string* error) {
   interest::grid_finder_options g;
   if (w > 0) g.min_boxes_per_cell = w;
-  if (name == "cpu") return std::make_unique<interest::grid_finder>(pool, g);
-  if (name == "cpu-1t") return std::make_unique<interest::grid_finder>(nullptr, g);
-  if (name == "brute") return std::make_unique<interest::brute_force_finder>(pool);
-  // The GPU finders and `auto` (gpu/finders.h: auto picks per call from the box statistics).
-  const auto backend = gpu::parse_backend(name);
-  if (!backend) {
-    *error = "unknown finder '" + name + "' (cpu, cpu-1t, brute, gpu, pbig, lbvh, auto)";
-    return nullptr;
-  }
-  std::string why;
-  auto f = gpu::make_finder(*backend, pool, &why);
-  if (!f) *error = "finder '" + name + "' cannot run here: " + why;
-  return f;
+  // gpu/finders.h: the CPU finders, the GPU finders and `auto` (which picks per call).
+  return gpu::make_finder(name, pool, error, g);
 }
 
 // ---- Samples and the table ------------------------------------------------------------------
@@ -351,13 +337,6 @@ struct series {
   std::string name;
   std::vector<double> v;
 };
-
-double quantile(std::vector<double> v, double q) {
-  if (v.empty()) return 0;
-  std::sort(v.begin(), v.end());
-  const auto rank = static_cast<std::size_t>(std::ceil(q * static_cast<double>(v.size())));
-  return v[std::clamp<std::size_t>(rank, 1, v.size()) - 1];
-}
 
 double mean_of(const std::vector<double>& v) {
   double s = 0;

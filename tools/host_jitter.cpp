@@ -23,6 +23,8 @@
 #include <thread>
 #include <vector>
 
+#include "interest/measure.h"
+
 namespace {
 
 using clock_type = std::chrono::steady_clock;
@@ -94,7 +96,7 @@ cpu_times read_cpu() {
 
 void print_row(const char* what, std::vector<double> v, double work_us) {
   std::sort(v.begin(), v.end());
-  const auto q = [&](double p) { return v[std::min(v.size() - 1, static_cast<std::size_t>(p * static_cast<double>(v.size())))]; };
+  const auto q = [&](double p) { return zone::quantile(v, p); };
   const double over = static_cast<double>(std::count_if(v.begin(), v.end(), [&](double x) { return x > 2.0 * work_us; }));
   std::printf("| %s | %.0f | %.0f | %.0f | %.0f | %.2f | %.2f | %.1f%% |\n", what, q(0.5), q(0.9), q(0.99), v.back(),
               q(0.5) / work_us, q(0.99) / work_us, 100.0 * over / static_cast<double>(v.size()));

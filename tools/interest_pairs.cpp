@@ -18,7 +18,9 @@
 #include <vector>
 
 #include "gpu/finders.h"
-#include "interest.h"
+#include "interest/interest.h"
+#include "interest/measure.h"
+#include "interest/thread_pool.h"
 
 namespace {
 
@@ -104,9 +106,7 @@ class arg_reader {
   std::size_t pos_ = 0;
 };
 
-double ms_since(std::chrono::steady_clock::time_point t0) {
-  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
-}
+using zone::ms_since;
 
 /// Writes `text` pieces through a large buffer to a FILE*; remembers the first error.
 class fast_writer {

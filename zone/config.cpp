@@ -2,6 +2,7 @@
 #include <algorithm>
 #include <thread>
 #include <boost/program_options.hpp>
+#include <cctype>
 #include <cmath>
 #include <fstream>
 #include <sstream>
@@ -76,6 +77,18 @@ std::optional<std::string> validate(const zone_config& c) {
   if (std::find(std::begin(finders), std::end(finders), c.finder) == std::end(finders)) {
     return bad("finder must be auto, cpu, gpu (= pbig), pbig, lbvh or brute");
   }
+  if (c.world_cols == 0 || c.world_rows == 0 || c.world_cols > 64 || c.world_rows > 64) {
+    return bad("world-grid must be 1x1 .. 64x64");
+  }
+  if (!c.world_name.empty()) {
+    if (c.world_name.size() > 64 || !std::all_of(c.world_name.begin(), c.world_name.end(), [](char ch) {
+          return std::isalnum(static_cast<unsigned char>(ch)) || ch == '-' || ch == '_';
+        })) {
+      return bad("world must be 1-64 letters, digits, - or _");
+    }
+    if (c.nats_url.empty()) return bad("--world needs --nats URL");
+  }
+  if (c.world_name.empty() && !c.nats_url.empty()) return bad("--nats needs --world NAME");
   if (c.worker_spin_us < -1 || c.worker_spin_us > 1000000) return bad("worker-spin-us must be -1 (auto) or 0 .. 1000000");
   static const char* interests[] = {"auto", "gpu", "host"};
   if (std::find(std::begin(interests), std::end(interests), c.interest) == std::end(interests)) {
@@ -185,6 +198,12 @@ config_result parse_config(int argc, const char* const* argv) {
       ("metrics-port", po::value(&metrics_port)->default_value(metrics_port), "port of /metrics (0 = ephemeral)")  //
       ("metrics-address", po::value(&c.metrics_address)->default_value(c.metrics_address), "address /metrics listens on (loopback by default: it has no authentication; 0.0.0.0 opens it to all)")  //
       ("metrics-max-connections", po::value(&c.metrics_max_connections)->default_value(c.metrics_max_connections), "connections /metrics holds at once, apart from the players' (more are closed at accept)");
+  std::string world_grid = std::to_string(c.world_cols) + "x" + std::to_string(c.world_rows);
+  po::options_description zones("World of zones (docs/world.md; built with libnats)");
+  zones.add_options()  //
+      ("world", po::value(&c.world_name), "join the world of this name (letters, digits, - and _): take a free region of its layout in NATS KV and serve it; without it the server is one zone")  //
+      ("nats", po::value(&c.nats_url), "NATS server URL of the world (e.g. nats://127.0.0.1:4222); needed with --world")  //
+      ("world-grid", po::value(&world_grid)->default_value(world_grid), "regions COLSxROWS of a new world's layout (a layout already in KV wins)");
   po::options_description viewer("Live viewer (docs/viewer.md)");
   viewer.add_options()                                                                                      //
       ("viewer", po::value(&c.viewer_enabled)->default_value(c.viewer_enabled), "serve the live viewer at /viewer beside /metrics (0 or 1; needs --metrics 1)")  //
@@ -198,7 +217,7 @@ config_result parse_config(int argc, const char* const* argv) {
       ("test-fault", po::value(&c.test_fault)->default_value(c.test_fault), "TESTING ONLY: break one client's view on purpose to prove the oracle: drop, extra, stealth, freeze or class (needs --oracle)")  //
       ("test-fault-tick", po::value(&c.test_fault_tick)->default_value(c.test_fault_tick), "TESTING ONLY: the world tick from which --test-fault acts");
   po::options_description all("zone-server options");
-  all.add(general).add(world).add(interest).add(npcs).add(net).add(correctness).add(viewer);
+  all.add(general).add(world).add(interest).add(npcs).add(net).add(correctness).add(viewer).add(zones);
 
   config_result r;
   try {
@@ -233,6 +252,16 @@ config_result parse_config(int argc, const char* const* argv) {
   c.metrics_port = static_cast<std::uint16_t>(metrics_port);
   c.oracle_port = static_cast<std::uint16_t>(oracle_port);
   c.world = {{0, 0, 0}, {world_x, world_y, world_z}};
+  {
+    unsigned cols = 0, rows = 0;
+    char x = 0, extra = 0;
+    std::istringstream grid(world_grid);
+    if (!(grid >> cols >> x >> rows) || x != 'x' || (grid >> extra)) {
+      r.message = "world-grid must be COLSxROWS, e.g. 2x2";
+      return r;
+    }
+    c.world_cols = cols, c.world_rows = rows;
+  }
   if (auto err = validate(c)) {
     r.message = *err;
     return r;

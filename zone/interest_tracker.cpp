@@ -15,6 +15,7 @@
 #include <cmath>
 #include <utility>
 
+#include "interest/measure.h"
 #include "zone.h"
 
 namespace zone {
@@ -38,9 +39,6 @@ void run_each(interest::thread_pool* pool, std::size_t n, F&& task) {
 }
 
 using clock_type = std::chrono::steady_clock;
-double ms_since(clock_type::time_point t0) {
-  return std::chrono::duration<double, std::milli>(clock_type::now() - t0).count();
-}
 
 constexpr std::uint32_t no_row = 0xffffffffu;
 constexpr std::size_t no_pair = static_cast<std::size_t>(-1);

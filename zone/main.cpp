@@ -1,14 +1,23 @@
-// zone-server: the MMO zone server (docs/zone.md). `zone-server --help` lists the options.
+// zone-server: the MMO zone server (docs/zone.md). `zone-server --help` lists the options. With
+// --world NAME --nats URL it serves one region of a world of zones (docs/world.md).
+#include <chrono>
 #include <csignal>
 #include <cstdio>
+#include <memory>
+#include <thread>
 
 #include <spdlog/spdlog.h>
 
 #include "zone_server.h"
+#ifdef ZONE_HAVE_NATS
+#include "nats_node.h"
+#endif
 
 namespace {
 zone::zone_server* running = nullptr;
+volatile std::sig_atomic_t interrupted = 0;
 extern "C" void on_signal(int) {
+  interrupted = 1;
   if (running) running->stop();
 }
 }  // namespace
@@ -24,15 +33,63 @@ int main(int argc, char** argv) {
     return 2;
   }
   spdlog::set_level(spdlog::level::from_str(parsed.config->log_level));
-  zone::zone_server server(*parsed.config);
+  zone::zone_config cfg = *parsed.config;
+  std::signal(SIGINT, on_signal);
+  std::signal(SIGTERM, on_signal);
+#ifdef ZONE_HAVE_NATS
+  std::unique_ptr<zone::world::nats_node> node;
+  if (!cfg.world_name.empty()) {
+    zone::world::node_options o;
+    o.world = cfg.world_name;
+    o.url = cfg.nats_url;
+    o.cols = cfg.world_cols;
+    o.rows = cfg.world_rows;
+    o.bounds = cfg.world;
+    o.advertise_host = cfg.listen_address == "0.0.0.0" ? "127.0.0.1" : cfg.listen_address;
+    // A restarted zone waits for its predecessor's lease to lapse (a few seconds).
+    const auto give_up = std::chrono::steady_clock::now() + std::chrono::seconds(20);
+    std::string err;
+    while (!(node = zone::world::nats_node::join(o, cfg, &err))) {
+      if (interrupted || std::chrono::steady_clock::now() > give_up || err.find("every region") == std::string::npos) {
+        spdlog::critical("{}", err);
+        return 1;
+      }
+      std::this_thread::sleep_for(std::chrono::milliseconds(250));
+    }
+    cfg = node->zone_for_region(cfg);
+  }
+#else
+  if (!cfg.world_name.empty()) {
+    std::fprintf(stderr, "zone-server: built without libnats: --world is not available (docs/world.md)\n");
+    return 2;
+  }
+#endif
+  zone::zone_server server(cfg);
+#ifdef ZONE_HAVE_NATS
+  if (node) server.set_extension(node.get());
+#endif
   if (auto err = server.start()) {
     spdlog::critical("{}", *err);
     return 1;
   }
   running = &server;
-  std::signal(SIGINT, on_signal);
-  std::signal(SIGTERM, on_signal);
+  if (interrupted) server.stop();
   server.run();
   running = nullptr;
+#ifdef ZONE_HAVE_NATS
+  if (node) {
+    const auto& s = node->stats();
+    const auto& l = node->link().stats();
+    spdlog::info("world: region {} owned {} entities at the end; handoffs out {} (CAS conflicts {}, publish failures {}), in {} "
+                 "(duplicates {}); handoff latency p50 {:.2f} ms p99 {:.2f} ms max {:.2f} ms; redirects {} claimed {}; "
+                 "ghost bytes out {} in {} over {} / {} messages; gaps {}, snapshots out {}",
+                 node->region(), node->link().owned_count(), l.handoffs_out, s.handoff_cas_conflicts.load(),
+                 s.handoff_publish_failures.load(), s.handoffs_applied.load(), s.handoff_duplicates.load(),
+                 node->handoff_ms().percentile(0.5), node->handoff_ms().percentile(0.99), node->handoff_ms().max(),
+                 s.redirects.load(), s.redirect_claims.load(), l.ghost_bytes_out, l.ghost_bytes_in, l.ghost_messages_out,
+                 l.ghost_messages_in, l.gaps, l.snapshots_out);
+    node->leave();
+  }
+#endif
   return 0;
 }

@@ -7,6 +7,7 @@
 #include <cmath>
 #include <random>
 
+#include "interest/measure.h"
 #include "zone.h"
 
 namespace zone {
@@ -24,9 +25,6 @@ void run_each(interest::thread_pool* pool, std::size_t n, F&& task) {
 }
 
 using clock_type = std::chrono::steady_clock;
-double ms_since(clock_type::time_point t0) {
-  return std::chrono::duration<double, std::milli>(clock_type::now() - t0).count();
-}
 
 std::uint64_t splitmix(std::uint64_t z) {
   z += 0x9e3779b97f4a7c15ull;
@@ -84,7 +82,7 @@ void latency_histogram::clear() { *this = latency_histogram{}; }
 zone_world::zone_world(const zone_config& cfg, interest::pair_finder& finder, interest::thread_pool* pool)
     : cfg_(cfg), pool_(pool), tracker_(finder, pool, interest_options{cfg.hysteresis, cfg.max_visible, 256}) {
   std::mt19937_64 rng(cfg_.seed ^ 0x70776e73ull);
-  const auto& w = cfg_.world;
+  const auto w = spawn_area();
   const std::size_t towns = cfg_.town_count != 0 ? cfg_.town_count : std::max<std::size_t>(1, cfg_.npc_count / 2000);
   for (std::size_t t = 0; t < towns; ++t) {
     const auto at = [&](float lo, float hi) {
@@ -124,6 +122,12 @@ vec3 zone_world::clamp_to_world(const vec3& p) const {
   return {std::clamp(p.x, w.lo.x, w.hi.x), std::clamp(p.y, w.lo.y, w.hi.y), std::clamp(p.z, w.lo.z, w.hi.z)};
 }
 
+net::world_bounds zone_world::spawn_area() const {
+  const auto& a = cfg_.spawn_area;
+  if (!(a.lo.x < a.hi.x && a.lo.y < a.hi.y)) return cfg_.world;
+  return {{a.lo.x, a.lo.y, cfg_.world.lo.z}, {a.hi.x, a.hi.y, cfg_.world.hi.z}};
+}
+
 behaviour zone_world::behaviour_of(entity_id id) const {
   if (!store_.alive(id)) return behaviour::player;
   return by_slot_[slot_of(id)].kind;
@@ -132,7 +136,7 @@ behaviour zone_world::behaviour_of(entity_id id) const {
 void zone_world::populate() {
   std::mt19937_64 rng(cfg_.seed);
   const auto u = [&] { return unit_of(rng()); };
-  const auto& w = cfg_.world;
+  const auto w = spawn_area();
   const float shares[4] = {cfg_.share_wander, cfg_.share_patrol, cfg_.share_town, cfg_.share_chase};
   const float total = shares[0] + shares[1] + shares[2] + shares[3];
   const std::size_t n = cfg_.npc_count + cfg_.boss_count;
@@ -153,7 +157,8 @@ void zone_world::populate() {
     if (st.kind == behaviour::town) {
       // A Gaussian crowd around the town.
       std::normal_distribution<float> spread(0, town_spread);
-      d.position = clamp_to_world({town.x + spread(rng), town.y + spread(rng), w.lo.z});
+      const vec3 at{town.x + spread(rng), town.y + spread(rng), w.lo.z};
+      d.position = clamp_to_world({std::clamp(at.x, w.lo.x, w.hi.x), std::clamp(at.y, w.lo.y, w.hi.y), at.z});
     } else {
       d.position = {static_cast<float>(w.lo.x + (w.hi.x - w.lo.x) * u()), static_cast<float>(w.lo.y + (w.hi.y - w.lo.y) * u()),
                     w.lo.z};
@@ -175,10 +180,19 @@ void zone_world::populate() {
     d.sees = cb::normal | cb::team_red | cb::team_blue | (d.visibility_class == cb::stealth ? cb::stealth : 0u);
     const entity_id id = store_.create(d);
     if (id == null_entity) break;
-    if (by_slot_.size() <= slot_of(id)) by_slot_.resize(slot_of(id) + 1);
-    by_slot_[slot_of(id)] = st;
+    set_state(id, st);
     set_reads_view(id, st.kind == behaviour::chase);
   }
+}
+
+void zone_world::set_state(entity_id id, const npc_state& st) {
+  const std::uint32_t slot = slot_of(id);
+  if (by_slot_.size() <= slot) {
+    by_slot_.resize(slot + 1);
+    is_player_.resize(slot + 1, 0);
+  }
+  by_slot_[slot] = st;
+  is_player_[slot] = st.kind == behaviour::player ? 1 : 0;
 }
 
 entity_id zone_world::spawn_player(const vec3& at) {
@@ -189,8 +203,7 @@ entity_id zone_world::spawn_player(const vec3& at) {
   d.kind = entity_kind::player;
   const entity_id id = store_.create(d);
   if (id == null_entity) return id;
-  if (by_slot_.size() <= slot_of(id)) by_slot_.resize(slot_of(id) + 1);
-  by_slot_[slot_of(id)] = npc_state{behaviour::player, d.position, 0, {}};
+  set_state(id, npc_state{behaviour::player, d.position, 0, {}});
   set_reads_view(id, player_views_on_host_);
   return id;
 }
@@ -207,6 +220,27 @@ void zone_world::set_player_views_on_host(bool on) {
 bool zone_world::despawn(entity_id id) {
   if (!store_.destroy(id)) return false;
   set_reads_view(id, false);
+  return true;
+}
+
+entity_id zone_world::adopt(const entity_desc& d, const behaviour_state& b) {
+  const entity_id id = store_.create(d);
+  if (id == null_entity) return id;
+  if (by_slot_.size() <= slot_of(id)) by_slot_.resize(slot_of(id) + 1);
+  by_slot_[slot_of(id)] = b;
+  set_reads_view(id, b.kind == behaviour::player || b.kind == behaviour::chase);
+  return id;
+}
+
+std::optional<behaviour_state> zone_world::behaviour_state_of(entity_id id) const {
+  if (!store_.alive(id)) return std::nullopt;
+  return by_slot_[slot_of(id)];
+}
+
+bool zone_world::set_behaviour_state(entity_id id, const behaviour_state& b) {
+  if (!store_.alive(id)) return false;
+  by_slot_[slot_of(id)] = b;
+  set_reads_view(id, b.kind == behaviour::player || b.kind == behaviour::chase);
   return true;
 }
 
@@ -273,8 +307,13 @@ void zone_world::decide(std::size_t first, std::size_t last) {
         entity_id prey = null_entity;
         if (row != entity_store::npos) {
           for (const entity_id seen : tracker_.visible(row)) {
+            // The kind first (one byte by slot): most of what a chaser sees is not a player,
+            // and the store's lookup (two more random reads) is needed only for players. Same
+            // result as the lookup first.
+            const std::uint32_t slot = slot_of(seen);
+            if (slot >= is_player_.size() || is_player_[slot] == 0) continue;
             const std::size_t k = store_.index_of(seen);
-            if (k == entity_store::npos || by_slot_[slot_of(seen)].kind != behaviour::player) continue;
+            if (k == entity_store::npos) continue;
             const vec3 d{pos[k].x - p.x, pos[k].y - p.y, pos[k].z - p.z};
             const float dist = length(d);
             if (dist < best || (dist == best && seen < prey)) {
@@ -297,6 +336,9 @@ void zone_world::decide(std::size_t first, std::size_t last) {
         vel[i] = length(d) > 100 ? toward(p, {st.home.x, st.home.y, p.z}, cfg_.npc_speed / 2) : heading(cfg_.npc_speed / 2);
         break;
       }
+      case behaviour::ghost:
+        vel[i] = {};  // placed by its owner zone's messages
+        break;
     }
   }
 }

@@ -18,10 +18,11 @@
 #include <string>
 #include <vector>
 
-#include "interest.h"
-#include "protocol.h"
-#include "replication_engine.h"
-#include "visibility_engine.h"
+#include "interest/interest.h"
+#include "interest/replication_engine.h"
+#include "interest/thread_pool.h"
+#include "interest/visibility_engine.h"
+#include "net/protocol.h"
 
 namespace zone {
 
@@ -564,7 +565,18 @@ class replicator {
 // Configuration.
 
 /// NPC behaviours (players have none: they move by their inputs).
-enum class behaviour : std::uint8_t { player, wander, patrol, town, chase, boss };
+/// `ghost`: a copy of another zone's entity (world/: BigWorld's ghosts); it has no velocity of its
+/// own, its owner's messages place it.
+enum class behaviour : std::uint8_t { player, wander, patrol, town, chase, boss, ghost };
+
+/// What an entity's behaviour remembers between ticks (a world's handoff carries it to the next zone).
+struct behaviour_state {
+  behaviour kind = behaviour::player;
+  vec3 home{};                 ///< town centre, patrol origin or boss lair
+  std::uint32_t waypoint = 0;  ///< patrol
+  vec3 intent{};               ///< players: clamped input
+  friend bool operator==(const behaviour_state&, const behaviour_state&) = default;
+};
 
 /// Everything the zone server needs, with defaults that run without any file.
 struct zone_config {
@@ -665,6 +677,13 @@ struct zone_config {
   /// When set, one CSV line per tick (its wall time, clients, frames and phase timings) goes to
   /// this file, so percentiles can be taken over any window (e.g. after a swarm's ramp-up).
   std::string tick_csv;
+  // World of zones (world/, docs/world.md): empty world_name = a single zone.
+  std::string world_name;  ///< --world: the world this zone joins
+  std::string nats_url;    ///< --nats: the NATS server that holds the world's layout
+  std::uint32_t world_cols = 2, world_rows = 2;  ///< --world-grid: regions of a new world's layout
+  /// Where populate() places NPCs and towns (x, y; z from world): the zone's region in a world.
+  /// Empty (lo == hi) = the whole world.
+  net::world_bounds spawn_area{};
   // The live viewer (docs/viewer.md), served beside /metrics: off unless enabled.
   bool viewer_enabled = false;   ///< serve /viewer and /viewer/ws
   bool viewer_remote = false;    ///< also to peers that are not on a loopback address
@@ -745,6 +764,13 @@ class zone_world {
   /// A player entity at `at` (clamped into the world); null_entity when the zone is full.
   [[nodiscard]] entity_id spawn_player(const vec3& at);
   bool despawn(entity_id id);
+  /// An entity with a given behaviour state (a world's ghost or handed-off entity); null_entity
+  /// when the description is invalid or the zone is full.
+  [[nodiscard]] entity_id adopt(const entity_desc& d, const behaviour_state& b);
+  /// The behaviour state of a live entity.
+  [[nodiscard]] std::optional<behaviour_state> behaviour_state_of(entity_id id) const;
+  /// Replaces a live entity's behaviour state (false for a dead handle).
+  bool set_behaviour_state(entity_id id, const behaviour_state& b);
   /// A player's movement intent: its length is clamped to 1 and scaled by player_speed, so a
   /// client can never move faster than allowed (any finite intent, however large, keeps its
   /// direction: no overflow to zero or infinity); its z is dropped unless player_fly. false
@@ -791,21 +817,21 @@ class zone_world {
   [[nodiscard]] std::uint64_t digest() const;
 
  private:
-  struct npc_state {
-    behaviour kind = behaviour::player;
-    vec3 home{};                // town centre, patrol origin or boss lair
-    std::uint32_t waypoint = 0;  // patrol
-    vec3 intent{};              // players: clamped input
-  };
+  using npc_state = behaviour_state;
   void decide(std::size_t first, std::size_t last);
   [[nodiscard]] std::uint64_t noise(entity_id id, std::uint64_t salt) const;
   [[nodiscard]] vec3 clamp_to_world(const vec3& p) const;
+  [[nodiscard]] net::world_bounds spawn_area() const;
 
   zone_config cfg_;
   interest::thread_pool* pool_;
   entity_store store_;
   interest_tracker tracker_;
   std::vector<npc_state> by_slot_;  // indexed by slot_of(id)
+  /// By slot: 1 where by_slot_'s kind is player. What the chasers' scan reads: a byte a slot
+  /// (1 MB a million entities) instead of a 32-byte state.
+  std::vector<std::uint8_t> is_player_;
+  void set_state(entity_id id, const npc_state& st);
   std::vector<std::uint8_t> reads_view_;  // by slot: the entity's visible set is read each tick
   bool player_views_on_host_ = true;
   void set_reads_view(entity_id id, bool reads);

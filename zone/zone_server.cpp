@@ -2,6 +2,7 @@
 #include "zone_server.h"
 
 #include "finders.h"
+#include "interest/measure.h"
 #include "replication.h"
 #include "visibility.h"
 
@@ -19,9 +20,6 @@ namespace zone {
 namespace {
 
 using clock_type = std::chrono::steady_clock;
-double ms_since(clock_type::time_point t0) {
-  return std::chrono::duration<double, std::milli>(clock_type::now() - t0).count();
-}
 
 net::server_options net_options(const zone_config& c) {
   net::server_options o;
@@ -71,14 +69,8 @@ replication_options replica_options(const zone_config& c) {
 /// grid finder in place and the reason in `error` (start() refuses to run then).
 std::unique_ptr<interest::pair_finder> make_zone_finder(const zone_config& c, interest::thread_pool* pool,
                                                         std::string& error) {
-  const auto backend = gpu::parse_backend(c.finder);
-  if (!backend) {
-    error = "unknown finder '" + c.finder + "'";
-    return std::make_unique<interest::grid_finder>(pool);
-  }
-  std::string why;
-  if (auto f = gpu::make_finder(*backend, pool, &why)) return f;
-  error = "finder '" + c.finder + "' cannot run here: " + why + " (use --finder auto or cpu)";
+  if (auto f = gpu::make_finder(c.finder, pool, &error)) return f;
+  if (gpu::parse_backend(c.finder)) error += " (use --finder auto or cpu)";
   return std::make_unique<interest::grid_finder>(pool);
 }
 
@@ -288,6 +280,7 @@ std::optional<std::string> zone_server::start() {
   if (!engine_note_.empty()) spdlog::info("zone: interest runs on the host: {}", engine_note_);
   if (!replicate_note_.empty()) spdlog::info("zone: replication runs on the CPU: {}", replicate_note_);
   if (auto err = net_.start()) return err;
+  if (ext_ != nullptr) ext_->started(net_.port());
   if (cfg_.metrics_enabled) {
     net::metrics_limits limits;
     limits.max_connections = cfg_.metrics_max_connections;
@@ -324,6 +317,12 @@ void zone_server::drain_inputs() {
                             "server speaks protocol " + std::to_string(net::protocol_version));
             break;
           }
+          if (ext_ != nullptr && !hello->token.empty()) {
+            // A client redirected here by another zone of the world.
+            pending_hellos_.push_back({e.session, hello->token, hello->name,
+                                       world_->tick() + static_cast<std::uint64_t>(5 * cfg_.tick_rate_hz)});
+            break;
+          }
           // Spawn uniformly within spawn_radius of a town (deterministic in the session id).
           const vec3 town = world_->town(e.session % world_->town_count());
           const std::uint64_t h = spawn_hash(e.session);
@@ -335,29 +334,18 @@ void zone_server::drain_inputs() {
             net_.disconnect(e.session, net::error_code::server_full, "the zone is full");
             break;
           }
-          client& c = clients_[e.session];
-          c.entity = id;
-          c.backlog = net_.state_backlog(e.session);
-          c.replica = replicator_.add_client(id);
-          net::welcome_msg w;
-          w.entity_id = id;
-          w.world = cfg_.world;
-          w.tick_rate_hz = static_cast<std::uint16_t>(cfg_.tick_rate_hz);
-          w.server_tick = world_->tick();
-          if (const auto at = world_->store().get(id)) w.spawn_position = net::vec3f{at->position.x, at->position.y, at->position.z};
-          w.host_clock = true;  // net::server::now_us() is CLOCK_MONOTONIC
-          w.rules = rules();
-          if (const auto d = world_->store().get(id)) w.rules->player_class = d->visibility_class, w.rules->player_sees = d->sees;
-          w.oracle_port = oracle_port();
-          net_.send(e.session, net::make_shared_frame(encoder_.encode(w)), net::delivery::control);
-          // The name is client data: escaped (the server also checked it at hello), at debug.
-          spdlog::debug("session {}: '{}' joined as entity {}", e.session, net::escape_for_log(hello->name), id);
-          ++stats_.joins;
+          welcome(e.session, id, hello->name);
         } else if (const auto* in = std::get_if<net::input_msg>(&*e.msg)) {
           const auto it = clients_.find(e.session);
           if (it == clients_.end()) break;
           // A client steers only its own entity; the world clamps the speed.
-          world_->set_intent(it->second.entity, {in->move.x, in->move.y, in->move.z});
+          const vec3 intent{in->move.x, in->move.y, in->move.z};
+          if (ext_ != nullptr && !ext_->owns(it->second.entity)) {
+            // Handed off (its redirect may still be on the way): the input goes after the entity.
+            ext_->forward_input(it->second.entity, intent, in->sequence);
+          } else {
+            world_->set_intent(it->second.entity, intent);
+          }
           note_sequence(it->second, in->sequence);
         } else if (const auto* tp = std::get_if<net::teleport_msg>(&*e.msg)) {
           const auto it = clients_.find(e.session);
@@ -372,10 +360,14 @@ void zone_server::drain_inputs() {
         break;
       }
       case net::inbound_event::kind::disconnected: {
+        std::erase_if(pending_hellos_, [&](const pending_hello& p) { return p.session == e.session; });
         const auto it = clients_.find(e.session);
         if (it == clients_.end()) break;
         spdlog::debug("session {}: left ({})", e.session, net::escape_for_log(e.reason, 200));
-        world_->despawn(it->second.entity);
+        // An entity handed off to another zone lives on there (here it is a ghost).
+        if (ext_ == nullptr || ext_->owns(it->second.entity)) world_->despawn(it->second.entity);
+        const auto se = session_of_entity_.find(it->second.entity);
+        if (se != session_of_entity_.end() && se->second == e.session) session_of_entity_.erase(se);
         replicator_.remove_client(it->second.replica);
         clients_.erase(it);
         ++stats_.leaves;
@@ -384,6 +376,47 @@ void zone_server::drain_inputs() {
     }
   }
   stats_.clients = clients_.size();
+}
+
+void zone_server::welcome(net::session_id session, entity_id id, const std::string& name) {
+  client& c = clients_[session];
+  c.entity = id;
+  c.backlog = net_.state_backlog(session);
+  c.replica = replicator_.add_client(id);
+  session_of_entity_[id] = session;
+  net::welcome_msg w;
+  w.entity_id = id;
+  w.world = cfg_.world;
+  w.tick_rate_hz = static_cast<std::uint16_t>(cfg_.tick_rate_hz);
+  w.server_tick = world_->tick();
+  if (const auto at = world_->store().get(id)) w.spawn_position = net::vec3f{at->position.x, at->position.y, at->position.z};
+  w.host_clock = true;  // net::server::now_us() is CLOCK_MONOTONIC
+  w.rules = rules();
+  if (const auto d = world_->store().get(id)) w.rules->player_class = d->visibility_class, w.rules->player_sees = d->sees;
+  w.oracle_port = oracle_port();
+  net_.send(session, net::make_shared_frame(encoder_.encode(w)), net::delivery::control);
+  // The name is client data: escaped (the server also checked it at hello), at debug.
+  spdlog::debug("session {}: '{}' joined as entity {}", session, net::escape_for_log(name), id);
+  ++stats_.joins;
+}
+
+void zone_server::retry_pending_hellos() {
+  if (ext_ == nullptr) return;
+  for (std::size_t k = 0; k < pending_hellos_.size();) {
+    const pending_hello p = pending_hellos_[k];
+    entity_id id = null_entity;
+    const auto verdict = ext_->claim_token(p.token, *world_, id);
+    if (verdict == zone_extension::claim::wait && world_->tick() < p.deadline_tick) {
+      ++k;
+      continue;
+    }
+    pending_hellos_.erase(pending_hellos_.begin() + static_cast<std::ptrdiff_t>(k));
+    if (verdict == zone_extension::claim::ready) {
+      welcome(p.session, id, p.name);
+    } else {
+      net_.disconnect(p.session, net::error_code::auth_failed, "unknown or expired redirect token");
+    }
+  }
 }
 
 void zone_server::teleport(net::session_id session, client& c, const net::teleport_msg& t) {
@@ -435,6 +468,7 @@ void zone_server::replicate() {
   request_sessions_.clear();
   const std::uint64_t every = cfg_.client_send_every, phase = world_->tick() % every;
   for (const auto& [session, c] : clients_) {
+    if (c.redirected) continue;  // its entity is served by another zone now
     // Not this client's tick (client_send_every > 1): its next frame carries this tick's changes.
     if (every > 1 && session % every != phase) continue;
     // Paced to what the client absorbs: no new frame while its backlog is full (the next one
@@ -517,9 +551,27 @@ void zone_server::tick_once() {
   if (stats_.ticks == 0) started_ = t0;
   const std::uint64_t frames0 = stats_.frames_sent, bytes0 = stats_.bytes_sent;
   drain_inputs();
+  if (ext_ != nullptr) {
+    ext_->before_step(*world_);
+    retry_pending_hellos();
+  }
   const double inputs_ms = ms_since(t0);
   stats_.inputs_ms.record(inputs_ms);
   if (auto err = world_->step()) spdlog::error("tick {}: {}", world_->tick(), err->message);
+  if (ext_ != nullptr) {
+    redirects_.clear();
+    ext_->after_step(*world_, redirects_);
+    for (const auto& r : redirects_) {
+      const auto se = session_of_entity_.find(r.entity);
+      if (se == session_of_entity_.end()) continue;
+      const auto it = clients_.find(se->second);
+      if (it == clients_.end() || it->second.redirected) continue;
+      it->second.redirected = true;
+      net_.send(se->second, net::make_shared_frame(encoder_.encode(net::redirect_msg{r.host, r.port, r.token})),
+                net::delivery::control);
+    }
+    if (ext_->must_stop()) stop();
+  }
   if (!engine_failure_logged_ && !world_->tracker().engine_error().empty()) {
     engine_failure_logged_ = true;
     spdlog::warn("zone: the GPU interest engine failed ({}); interest runs on the host from now on, finder {}",

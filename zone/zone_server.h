@@ -14,8 +14,8 @@
 #include <vector>
 
 #include "fault_injection.h"
-#include "metrics.h"
-#include "server.h"
+#include "net/metrics.h"
+#include "net/server.h"
 #include "truth_publisher.h"
 #include "viewer.h"
 #include "zone.h"
@@ -39,9 +39,41 @@ struct loop_stats {
   latency_histogram inputs_ms, replicate_ms, tick_ms;  ///< plus zone_world::phases()
 };
 
+/// What a world of zones (world/, docs/world.md) plugs into the tick loop; a single zone has none.
+/// Every call comes from the game thread.
+class zone_extension {
+ public:
+  virtual ~zone_extension() = default;
+  /// After start(): the port clients reach this zone on.
+  virtual void started(std::uint16_t port) = 0;
+  /// Before the step: what other zones sent (ghosts, handed-off entities, forwarded inputs).
+  virtual void before_step(zone_world& w) = 0;
+  /// A client whose entity moved to another zone: send it there.
+  struct redirect {
+    entity_id entity = null_entity;
+    std::string host;
+    std::uint16_t port = 0;
+    std::string token;
+  };
+  /// After the step: hand entities off and send ghosts; `out` receives the clients to redirect.
+  virtual void after_step(zone_world& w, std::vector<redirect>& out) = 0;
+  /// A hello with a token (a redirected client): ready (its entity in `entity`), wait (its entity
+  /// has not arrived yet: ask again next tick) or refused.
+  enum class claim { ready, wait, refused };
+  virtual claim claim_token(const std::string& token, zone_world& w, entity_id& entity) = 0;
+  /// The entity is simulated here (false: another zone's, e.g. handed off after its client's last frame).
+  [[nodiscard]] virtual bool owns(entity_id e) const = 0;
+  /// An input for an entity handed off (its client has not moved yet): to its new zone.
+  virtual void forward_input(entity_id e, const vec3& intent, std::uint32_t sequence) = 0;
+  /// The zone must stop (e.g. it lost its region's lease): the loop ends.
+  [[nodiscard]] virtual bool must_stop() const { return false; }
+};
+
 class zone_server {
  public:
   explicit zone_server(const zone_config& cfg);
+  /// Plugs a world of zones in (before start(); must outlive the server).
+  void set_extension(zone_extension* ext) { ext_ = ext; }
   ~zone_server();
 
   /// Populates the world and starts listening. A readable error on failure.
@@ -82,6 +114,7 @@ class zone_server {
     bool any_input = false;           ///< last_input is set
     std::uint64_t last_teleport_tick = 0;  ///< world tick of the last applied teleport
     bool teleported = false;
+    bool redirected = false;  ///< its entity moved to another zone: no more frames, inputs forwarded
     std::shared_ptr<const std::atomic<std::uint32_t>> backlog;  ///< net::server::state_backlog
   };
   void drain_inputs();
@@ -95,6 +128,19 @@ class zone_server {
   /// Every log_summary_s: one info line of joins, leaves and refused connections since the last
   /// (per-session lines are at debug: a flood of connections cannot flood the log).
   void log_summary();
+  /// Binds a session to an entity (a new player or a redirected client's) and welcomes it.
+  void welcome(net::session_id session, entity_id id, const std::string& name);
+  /// Hellos with a token whose entity has not arrived yet (retried each tick until the deadline).
+  struct pending_hello {
+    net::session_id session;
+    std::string token, name;
+    std::uint64_t deadline_tick;
+  };
+  std::vector<pending_hello> pending_hellos_;
+  void retry_pending_hellos();
+  zone_extension* ext_ = nullptr;
+  std::vector<zone_extension::redirect> redirects_;
+  std::unordered_map<entity_id, net::session_id> session_of_entity_;
   /// While a viewer page is open: collects the watched entities' events, publishes a snapshot at
   /// cfg.viewer_hz and stats twice a second, and takes the pages' selections for the next step.
   void publish_viewer();

@@ -1,10 +1,11 @@
 // The offline finder API of the installed `zone` package: boxes in, pairs out (docs/embedding.md).
-//   find_pairs BOXES PAIRS   reads a box file (CSV `minx,miny,minz,maxx,maxy,maxz[,category,mask]`
+//   find-pairs BOXES PAIRS   reads a box file (CSV `minx,miny,minz,maxx,maxy,maxz[,category,mask]`
 //                            or the binary format), writes every qualifying pair to PAIRS as a
 //                            line "i j" (i < j), sorted, and prints how many there are.
 // With the GPU target (a package built with CUDA) the finder is `auto`: PBIG or LBVH on a usable
 // device, the CPU grid finder otherwise; without it, the CPU grid finder.
 #include <zone/interest.h>
+#include <zone/thread_pool.h>
 #ifdef EXAMPLE_WITH_GPU
 #include <zone/finders.h>
 #include <zone/pbig.h>
@@ -19,7 +20,7 @@ namespace zi = zone::interest;
 
 int main(int argc, char** argv) {
   if (argc != 3) {
-    std::fprintf(stderr, "usage: find_pairs BOXES PAIRS   (writes every qualifying pair of the boxes to PAIRS)\n");
+    std::fprintf(stderr, "usage: find-pairs BOXES PAIRS   (writes every qualifying pair of the boxes to PAIRS)\n");
     return argc == 2 && std::string(argv[1]) == "--help" ? 0 : 2;
   }
   zi::box_set boxes;

@@ -4,6 +4,7 @@
 // boxes qualifies iff they touch and one's category meets the other's mask, so "A sees B" is the
 // pair (AOI of A, presence of B). Stealth and large bodies need no special case.
 #include <zone/interest.h>
+#include <zone/thread_pool.h>
 
 #include <algorithm>
 #include <cstdio>

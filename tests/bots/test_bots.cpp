@@ -12,9 +12,9 @@
 #include <random>
 #include <sstream>
 
+#include "bots/swarm.h"
+#include "net/protocol.h"
 #include "process.h"
-#include "protocol.h"
-#include "swarm.h"
 
 using namespace zone::bots::testing;
 

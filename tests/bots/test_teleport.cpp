@@ -10,7 +10,7 @@
 #include <thread>
 
 #include "../net/loopback_client.h"
-#include "zone_server.h"
+#include "zone/zone_server.h"
 
 using namespace zone;
 using zone::net::testing::test_client;

@@ -9,7 +9,7 @@
 #include <random>
 #include <string>
 
-#include "interest.h"
+#include "interest/interest.h"
 #include "seeds.h"
 
 namespace zone::test {

@@ -10,10 +10,11 @@
 #include <string>
 
 #include "../common/box_families.h"
-#include "finders.h"
-#include "interest.h"
-#include "lbvh.h"
-#include "pbig.h"
+#include "gpu/finders.h"
+#include "gpu/lbvh.h"
+#include "gpu/pbig.h"
+#include "interest/interest.h"
+#include "interest/thread_pool.h"
 
 using namespace zone::interest;
 using namespace zone::test;
@@ -88,6 +89,48 @@ TEST_SUITE("gpu.finders") {
         CHECK(f == nullptr);
         CHECK_FALSE(reason.empty());
       }
+    }
+  }
+
+  TEST_CASE("make_finder by name: every documented name, cpu-1t, grid options, readable errors") {
+    thread_pool pool(2);
+    const bool device = gpu::device_available(nullptr, nullptr);
+    for (const char* name : {"brute", "cpu", "cpu-1t", "auto"}) {
+      CAPTURE(name);
+      std::string why;
+      auto f = gpu::make_finder(std::string_view(name), &pool, &why);
+      REQUIRE(f != nullptr);
+      CHECK(why.empty());
+      const std::string_view want = std::string_view(name) == "cpu-1t" ? "cpu" : std::string_view(name);
+      CHECK(f->name() == want);
+    }
+    grid_finder_options g;
+    g.min_boxes_per_cell = 5.0;
+    for (const char* name : {"cpu", "cpu-1t"}) {
+      CAPTURE(name);
+      auto f = gpu::make_finder(std::string_view(name), &pool, nullptr, g);
+      const auto* grid = dynamic_cast<const grid_finder*>(f.get());
+      REQUIRE(grid != nullptr);
+      CHECK(grid->options().min_boxes_per_cell == 5.0);
+    }
+    for (const char* name : {"gpu", "pbig", "lbvh"}) {
+      CAPTURE(name);
+      std::string why;
+      auto f = gpu::make_finder(std::string_view(name), &pool, &why);
+      if (device) {
+        CHECK(f != nullptr);
+      } else {
+        CHECK(f == nullptr);
+        CHECK(why.find(std::string("finder '") + name + "' cannot run here: ") == 0);
+        CHECK(why.size() > std::string("finder '' cannot run here: ").size() + std::string(name).size());
+      }
+    }
+    for (const char* bad : {"", "GPU", "cpu1", "cgal"}) {
+      CAPTURE(bad);
+      std::string why;
+      CHECK(gpu::make_finder(std::string_view(bad), &pool, &why) == nullptr);
+      CHECK(why == std::string("unknown finder '") + bad + "' (brute, cpu, cpu-1t, gpu, pbig, lbvh, auto)");
+      CHECK(gpu::make_finder(std::string_view(bad), &pool) == nullptr);
     }
   }
 

@@ -13,10 +13,11 @@
 #include <string>
 
 #include "../common/box_families.h"
-#include "finders.h"
-#include "interest.h"
-#include "lbvh.h"
-#include "pbig.h"
+#include "gpu/finders.h"
+#include "gpu/lbvh.h"
+#include "gpu/pbig.h"
+#include "interest/interest.h"
+#include "interest/thread_pool.h"
 
 using namespace zone::interest;
 using namespace zone::test;

@@ -15,8 +15,9 @@
 #include <string>
 
 #include "../common/box_families.h"
-#include "interest.h"
-#include "pbig.h"
+#include "gpu/pbig.h"
+#include "interest/interest.h"
+#include "interest/thread_pool.h"
 
 using namespace zone::interest;
 using namespace zone::test;

@@ -2,8 +2,8 @@
 #  1. cmake --install BUILD_DIR into WORK_DIR/prefix; only headers, libraries and package files;
 #     zone::gpu there iff the build has CUDA;
 #  2. configure examples/ against that prefix (CMAKE_PREFIX_PATH only), build it;
-#  3. run who_sees_whom and find_pairs and compare what they print with what is known to be right
-#     (find_pairs also on a fresh generated set against the brute-force reference, when the
+#  3. run who-sees-whom and find-pairs and compare what they print with what is known to be right
+#     (find-pairs also on a fresh generated set against the brute-force reference, when the
 #     interest-pairs tool is built).
 # Any failure is a FATAL_ERROR (a non-zero exit: CTest reports a failure).
 cmake_minimum_required(VERSION 3.25)
@@ -66,17 +66,17 @@ if(CXX_LAUNCHER)
 endif()
 step(configure "${CMAKE_COMMAND}" ${configure_args})
 if(HAVE_CUDA)
-  set(gpu_line "find_pairs: GPU finders ON")
+  set(gpu_line "find-pairs: GPU finders ON")
 else()
-  set(gpu_line "find_pairs: GPU finders OFF")
+  set(gpu_line "find-pairs: GPU finders OFF")
 endif()
 string(FIND "${step_out}" "${gpu_line}" at)
 if(at EQUAL -1)
   message(FATAL_ERROR "configure of the examples did not say \"${gpu_line}\":\n${step_out}")
 endif()
 step(build "${CMAKE_COMMAND}" --build "${WORK_DIR}/build" -j 2)
-set(who "${WORK_DIR}/build/who_sees_whom/who_sees_whom")
-set(find "${WORK_DIR}/build/find_pairs/find_pairs")
+set(who "${WORK_DIR}/build/who_sees_whom/who-sees-whom")
+set(find "${WORK_DIR}/build/find_pairs/find-pairs")
 
 # ---- 3. run them -------------------------------------------------------------------------------
 step(who_sees_whom "${who}")

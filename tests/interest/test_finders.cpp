@@ -7,7 +7,8 @@
 #include <set>
 
 #include "../common/box_families.h"
-#include "interest.h"
+#include "interest/interest.h"
+#include "interest/thread_pool.h"
 
 using namespace zone::interest;
 using namespace zone::test;

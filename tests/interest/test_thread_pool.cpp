@@ -9,7 +9,7 @@
 #include <thread>
 #include <vector>
 
-#include "interest.h"
+#include "interest/thread_pool.h"
 
 using zone::interest::thread_pool;
 

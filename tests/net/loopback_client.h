@@ -18,7 +18,7 @@
 #include <string>
 #include <vector>
 
-#include "protocol.h"
+#include "net/protocol.h"
 
 namespace zone::net::testing {
 

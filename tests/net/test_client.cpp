@@ -6,8 +6,8 @@
 #include <set>
 #include <thread>
 
-#include "client.h"
-#include "server.h"
+#include "net/client.h"
+#include "net/server.h"
 
 using namespace zone::net;
 using namespace std::chrono_literals;

@@ -12,7 +12,7 @@
 #include <spdlog/spdlog.h>
 
 #include "loopback_client.h"
-#include "metrics.h"
+#include "net/metrics.h"
 
 using namespace zone::net;
 using zone::net::testing::http_get;

@@ -11,7 +11,7 @@
 #include <unordered_map>
 #include <vector>
 
-#include "outbound_queue.h"
+#include "net/outbound_queue.h"
 
 using namespace zone::net;
 

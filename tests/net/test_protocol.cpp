@@ -12,7 +12,7 @@
 #include <set>
 #include <unordered_map>
 
-#include "protocol.h"
+#include "net/protocol.h"
 
 using namespace zone::net;
 using bytes = std::vector<std::uint8_t>;
@@ -97,7 +97,8 @@ struct gen {
       }
       case 5: return pong_msg{u64(), u64()};
       case 6: return error_msg{static_cast<error_code>(below(12)), str()};
-      default: return teleport_msg{u32(), v(), rng() % 2 ? 0u : u32()};
+      case 7: return teleport_msg{u32(), v(), rng() % 2 ? 0u : u32()};
+      default: return redirect_msg{str(), static_cast<std::uint16_t>(u32()), str()};
     }
   }
   message any() { return make(below(std::variant_size_v<message>)); }

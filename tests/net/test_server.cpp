@@ -17,7 +17,7 @@
 #include <thread>
 
 #include "loopback_client.h"
-#include "server.h"
+#include "net/server.h"
 
 using namespace zone::net;
 using namespace std::chrono_literals;

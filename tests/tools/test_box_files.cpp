@@ -16,7 +16,7 @@
 #include <string>
 #include <vector>
 
-#include "interest.h"
+#include "interest/interest.h"
 
 using namespace zone::interest;
 namespace fs = std::filesystem;

@@ -8,7 +8,7 @@
 #include <random>
 #include <set>
 
-#include "zone.h"
+#include "zone/zone.h"
 
 using namespace zone;
 namespace cb = zone::interest::category_bits;

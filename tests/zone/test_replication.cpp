@@ -11,7 +11,7 @@
 #include <map>
 #include <random>
 
-#include "zone.h"
+#include "zone/zone.h"
 
 using namespace zone;
 namespace cb = zone::interest::category_bits;

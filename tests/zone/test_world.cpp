@@ -11,7 +11,7 @@
 #include <random>
 
 #include "world_script.h"
-#include "zone.h"
+#include "zone/zone.h"
 
 using namespace zone;
 

@@ -14,12 +14,12 @@
 #include <string>
 
 #include "../common/seeds.h"
-#include "finders.h"
-#include "pbig.h"
+#include "gpu/finders.h"
+#include "gpu/pbig.h"
+#include "gpu/visibility.h"
 #include "tracker_harness.h"
-#include "visibility.h"
 #include "world_script.h"
-#include "zone.h"
+#include "zone/zone.h"
 
 using namespace zone;
 using zone::test::fresh_seed;

@@ -15,9 +15,9 @@
 #include <spdlog/spdlog.h>
 
 #include "../net/loopback_client.h"
-#include "client.h"
-#include "pbig.h"
-#include "zone_server.h"
+#include "gpu/pbig.h"
+#include "net/client.h"
+#include "zone/zone_server.h"
 
 using namespace zone;
 using zone::net::testing::test_client;

@@ -14,7 +14,7 @@
 #include <random>
 
 #include "../common/seeds.h"
-#include "zone.h"
+#include "zone/zone.h"
 
 namespace zone::test {
 namespace cb = zone::interest::category_bits;

@@ -1,0 +1,165 @@
+#!/usr/bin/env bash
+# A local world of zones (docs/world.md) in one command: a nats-server with JetStream on a free
+# loopback port, COLSxROWS zone-servers (one region each), one bot swarm per zone whose bots walk
+# across borders (following redirects), and optionally a zone killed with SIGKILL and restarted.
+# Prints one report: the swarms' checks, handoffs and their latency, ghost bytes per border per
+# tick, tick p99 per zone, and world-check's census (no entity owned twice; KV agrees).
+# Bounded in time: everything stops after --duration (+ about 15 s to start, drain and check).
+set -euo pipefail
+
+usage() {
+  cat <<'EOF'
+Usage: scripts/world.sh [options]
+  --build DIR      build directory with zone-server, bot-swarm, world-check (default: build)
+  --grid CxR       regions (default 2x2)
+  --bots N         bots in all, spread over the zones (default 200)
+  --npcs N         NPCs per zone (default 5000)
+  --duration S     seconds the swarms run (default 30)
+  --world-size M   world side in metres (default 1024)
+  --bosses N       bosses per zone (default 0: a boss's 400 m AOI widens the ghost band to ~470 m)
+  --kill           SIGKILL zone 1 at a third of the run and restart it (fault test)
+  --threads N      worker threads per zone (default 1)
+  --zone-args "A"  more zone-server options for every zone (e.g. "--npc-speed 8")
+  --out DIR        keep logs and reports here (default: a temporary directory)
+  --help
+Exit status: 0 when no entity is owned twice, KV agrees and the swarms saw no mismatch; 1 otherwise.
+EOF
+}
+
+extra_zone_args=()
+build=build grid=2x2 bots=200 npcs=5000 duration=30 size=1024 kill=0 threads=1 bosses=0 out=
+while [ $# -gt 0 ]; do
+  case "$1" in
+    --build) build=$2; shift 2 ;;
+    --grid) grid=$2; shift 2 ;;
+    --bots) bots=$2; shift 2 ;;
+    --npcs) npcs=$2; shift 2 ;;
+    --duration) duration=$2; shift 2 ;;
+    --world-size) size=$2; shift 2 ;;
+    --kill) kill=1; shift ;;
+    --bosses) bosses=$2; shift 2 ;;
+    --zone-args) read -r -a extra_zone_args <<<"$2"; shift 2 ;;
+    --threads) threads=$2; shift 2 ;;
+    --out) out=$2; shift 2 ;;
+    --help|-h) usage; exit 0 ;;
+    *) echo "world.sh: unknown option $1 (try --help)" >&2; exit 64 ;;
+  esac
+done
+[[ $grid =~ ^([0-9]+)x([0-9]+)$ ]] || { echo "world.sh: --grid must be COLSxROWS" >&2; exit 64; }
+zones=$(( ${BASH_REMATCH[1]} * ${BASH_REMATCH[2]} ))
+for exe in zone/zone-server bots/bot-swarm world/world-check; do
+  [ -x "$build/$exe" ] || { echo "world.sh: $build/$exe missing (build with libnats-dev installed)" >&2; exit 64; }
+done
+command -v nats-server >/dev/null || { echo "world.sh: nats-server not installed (scripts/setup.sh)" >&2; exit 64; }
+[ -n "$out" ] || out=$(mktemp -d /tmp/world-XXXXXX)
+mkdir -p "$out"
+. "$(dirname "${BASH_SOURCE[0]}")/zone_procs.sh"
+
+pids=()
+cleanup() {
+  for p in "${pids[@]}"; do kill "$p" 2>/dev/null || true; done
+  for p in "${pids[@]}"; do wait "$p" 2>/dev/null || true; done
+}
+trap cleanup EXIT
+
+# 1. nats-server on a free loopback port.
+nats-server -a 127.0.0.1 -p -1 -js -sd "$out/js" --ports_file_dir "$out" >"$out/nats.log" 2>&1 &
+nats_pid=$!
+pids+=("$nats_pid")
+url=
+for _ in $(seq 100); do
+  url=$(grep -o 'nats://[0-9.]*:[0-9]*' "$out/nats-server_$nats_pid.ports" 2>/dev/null | head -1 || true)
+  [ -n "$url" ] && break
+  sleep 0.1
+done
+[ -n "$url" ] || { echo "world.sh: nats-server did not start ($out/nats.log)" >&2; exit 1; }
+
+name=local
+zone_args=(--world "$name" --nats "$url" --world-grid "$grid" --world-x "$size" --world-y "$size" --listen 127.0.0.1
+           --metrics 0 --npcs "$npcs" --bosses "$bosses" --threads "$threads" --finder cpu --interest host
+           ${extra_zone_args[@]+"${extra_zone_args[@]}"})
+start_zone() {  # start_zone K [PORT]: zone K's process (log zone-K.log); prints its pid
+  "$build/zone/zone-server" "${zone_args[@]}" --port "${2:-0}" --tick-csv "$out/zone-$1.csv" >"$out/zone-$1.log" 2>&1 &
+  echo $!
+}
+
+# 2. The zones, one after the other (each takes the next free region).
+declare -a zpid zport zregion
+for k in $(seq 0 $((zones - 1))); do
+  zpid[$k]=$(start_zone "$k")
+  pids+=("${zpid[$k]}")
+  zport[$k]=$(zone_port "$out/zone-$k.log" 200)
+  [ -n "${zport[$k]}" ] || { echo "world.sh: zone $k did not start ($out/zone-$k.log)" >&2; tail -5 "$out/zone-$k.log" >&2; exit 1; }
+  zregion[$k]=$(grep -o 'region [0-9]* of' "$out/zone-$k.log" | head -1 | awk '{print $2}')
+done
+
+# 3. One swarm per zone: its bots spawn at that zone's towns and walk (random headings) across borders.
+per=$(( (bots + zones - 1) / zones ))
+reconnect=()
+[ "$kill" = 1 ] && reconnect=(--reconnect --relogin-delay 0.5 --connect-timeout 15)  # back to the restarted zone
+declare -a spid
+for k in $(seq 0 $((zones - 1))); do
+  "$build/bots/bot-swarm" --host 127.0.0.1 --port "${zport[$k]}" --bots "$per" --duration "$duration" --ramp 100 \
+    --mix walk=1 --verify --quiet "${reconnect[@]}" --report-json "$out/swarm-$k.json" >"$out/swarm-$k.log" 2>&1 &
+  spid[$k]=$!
+  pids+=("${spid[$k]}")
+done
+
+# 4. Fault: SIGKILL zone 1 at a third of the run; restart it (it waits for the lease to lapse).
+killed_note=
+if [ "$kill" = 1 ] && [ "$zones" -gt 1 ]; then
+  sleep $(( duration / 3 ))
+  kill -9 "${zpid[1]}" 2>/dev/null || true
+  wait "${zpid[1]}" 2>/dev/null || true
+  t_kill=$(date +%s.%N)
+  mv "$out/zone-1.log" "$out/zone-1-killed.log"
+  zpid[1]=$(start_zone 1 "${zport[1]}")  # the same port: its bots log in again there
+  pids+=("${zpid[1]}")
+  zport[1]=$(zone_port "$out/zone-1.log" 300)
+  t_up=$(date +%s.%N)
+  killed_note=$(awk -v a="$t_kill" -v b="$t_up" -v r="$(grep -o 'region [0-9]* of' "$out/zone-1.log" | head -1 | awk '{print $2}')" \
+    'BEGIN{printf "zone 1 (SIGKILL) back on region %s after %.1f s (lease lapse + start)", r, b - a}')
+fi
+
+# 5. Wait for the swarms, then take the census while the zones still run.
+for k in $(seq 0 $((zones - 1))); do wait "${spid[$k]}" 2>/dev/null || true; done
+sleep 0.5  # the zones see the swarms' disconnects (their players leave)
+expect=()
+[ "$kill" = 1 ] || expect=(--expect $(( zones * (npcs + bosses) )))
+set +e
+"$build/world/world-check" --nats "$url" --world "$name" --wait-ms 2000 "${expect[@]}" >"$out/world-check.txt" 2>&1
+check_rc=$?
+set -e
+for k in $(seq 0 $((zones - 1))); do kill -TERM "${zpid[$k]}" 2>/dev/null || true; done
+for k in $(seq 0 $((zones - 1))); do wait "${zpid[$k]}" 2>/dev/null || true; done
+
+# 6. The report.
+json() { grep -o "\"$2\": [0-9.e+-]*" "$1" | head -1 | awk '{print $2}'; }
+echo "== world '$name': $grid regions of ${size} m, $npcs NPCs per zone, $bots bots, ${duration} s ($(nproc) cores, $(date -u +%F))"
+[ -n "$killed_note" ] && echo "fault: $killed_note"
+mism=0
+printf '%-6s %-7s %9s %9s %9s %11s %10s %10s %12s\n' zone region connected redirects digests mismatches failures "re-logins" "tick p99 ms"
+for k in $(seq 0 $((zones - 1))); do
+  f="$out/swarm-$k.json"
+  m=$(json "$f" mismatches); m=${m:-0}
+  mism=$((mism + ${m%.*}))
+  p99=$(awk -F, 'NR > 1 && $2 > 5 {print $11}' "$out/zone-$k.csv" | sort -g | awk '{a[NR] = $1} END {if (NR) print a[int(NR * 0.99 + 0.999)]; else print "-"}')
+  printf '%-6s %-7s %9s %9s %9s %11s %10s %10s %12s\n' "$k" "${zregion[$k]:-?}" "$(json "$f" bots_connected)" "$(json "$f" redirects)" \
+    "$(json "$f" digests_checked)" "$m" "$(( $(json "$f" connect_failures || echo 0) + $(json "$f" unexpected_disconnects || echo 0) ))" \
+    "$(json "$f" reconnects)" "$p99"
+done
+echo "-- handoffs and ghosts per zone (from each zone's exit line)"
+for log in "$out"/zone-*.log; do
+  line=$(grep -o 'world: region.*' "$log" | tail -1 || true)
+  [ -n "$line" ] || { echo "$(basename "$log"): no exit report (killed)"; continue; }
+  ticks=$(grep -o 'stopped after [0-9]* ticks' "$log" | awk '{print $3}')
+  nb=$(grep -o 'neighbours [0-9]*' "$log" | head -1 | awk '{print $2}')
+  echo "$(basename "$log" .log): $line"
+  echo "$line" | awk -v t="${ticks:-1}" -v n="${nb:-1}" '{
+    for (i = 1; i <= NF; ++i) if ($i == "bytes" && $(i+1) == "out") out = $(i+2);
+    printf "    ghost bytes per tick per neighbour: %.0f (over %d ticks, %d neighbours)\n", out / t / n, t, n }'
+done
+echo "-- world-check (census of the zones + KV ownership records)"
+cat "$out/world-check.txt"
+echo "logs: $out"
+[ "$check_rc" = 0 ] && [ "$mism" = 0 ]

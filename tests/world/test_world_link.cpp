@@ -1,0 +1,455 @@
+// world/: the layout, the wire formats and zone_link in lockstep worlds of 2x1 and 2x2 zones
+// (an in-memory transport): every owned observer's visible set equals a single zone's
+// brute-force answer over every entity of the world (the neighbours' as they published them the
+// tick before, quantized: the one tick of ghost delay docs/world.md defines); every entity is
+// owned exactly once through thousands of handoffs, duplicates and replays included.
+#include <doctest/doctest.h>
+
+#include "../common/seeds.h"
+
+#include <algorithm>
+#include <map>
+#include <memory>
+#include <random>
+#include <set>
+
+#include "world.h"
+
+using namespace zone;
+using namespace zone::world;
+
+namespace {
+
+zone_config world_config(std::uint64_t seed) {
+  zone_config c;
+  c.world = {{0, 0, 0}, {400, 400, 40}};
+  c.tick_rate_hz = 10;
+  c.seed = seed;
+  c.npc_count = 250;
+  c.boss_count = 1;
+  c.boss_footprint = 6;
+  c.aoi_tier[0] = 4, c.aoi_tier[1] = 8, c.aoi_tier[2] = 14, c.aoi_tier[3] = 20, c.aoi_tier[4] = 30;
+  c.player_aoi = 20;
+  c.npc_speed = 6;  // 0.6 m per tick: many border crossings
+  c.hysteresis = 3;
+  c.share_wander = 0.7f, c.share_patrol = 0.1f, c.share_town = 0.15f, c.share_chase = 0.05f;
+  c.town_count = 1;
+  return c;
+}
+
+/// One zone of the test world.
+struct test_zone {
+  zone_config cfg;
+  std::unique_ptr<interest::brute_force_finder> finder = std::make_unique<interest::brute_force_finder>();
+  std::unique_ptr<zone_world> world;
+  std::unique_ptr<zone_link> link;
+  test_zone(const zone_config& c, const layout& map, std::uint32_t region) : cfg(c) {
+    const rect r = map.region(region);
+    cfg.spawn_area = {{r.lo_x, r.lo_y, 0}, {r.hi_x, r.hi_y, 0}};
+    cfg.seed = c.seed * 31 + region;
+    world = std::make_unique<zone_world>(cfg, *finder, nullptr);
+    world->populate();
+    link_options o;
+    o.map = map;
+    o.region = region;
+    o.ghost_band = ghost_band(cfg, o.handoff_margin);
+    link = std::make_unique<zone_link>(o);
+    link->assign_ids(*world);
+  }
+};
+
+/// What a zone published after its step: every entity it owns or has in transit, as its
+/// neighbours would get it (quantized), whatever its distance from the border.
+struct published {
+  global_id gid;
+  entity_desc desc;
+  bool transit;
+};
+
+std::uint16_t q16(float h) { return static_cast<std::uint16_t>(std::clamp(std::lround(h * 16.0), 0l, 65535l)); }
+vec3 qhalf(const vec3& h) { return {q16(h.x) / 16.0f, q16(h.y) / 16.0f, q16(h.z) / 16.0f}; }
+
+std::vector<published> publish(const test_zone& z) {
+  std::vector<published> out;
+  const net::position_quantizer q(z.cfg.world);
+  const auto& s = z.world->store();
+  for (std::size_t k = 0; k < s.size(); ++k) {
+    const entity_id id = s.ids()[k];
+    const global_id g = z.link->gid_of(id);
+    const bool transit = z.link->in_transit(id);
+    if (!z.link->owns(id) && !transit) continue;
+    entity_desc d = *s.get(id);
+    const auto p = q.dequantize(q.quantize({d.position.x, d.position.y, d.position.z}));
+    d.position = {p.x, p.y, p.z};
+    d.aoi_half_extent = qhalf(d.aoi_half_extent);
+    d.presence_half_extent = qhalf(d.presence_half_extent);
+    out.push_back({g, d, transit});
+  }
+  return out;
+}
+
+/// A single zone of reference: entities by gid in one store, a brute-force tracker over it.
+struct reference {
+  interest::brute_force_finder finder;
+  entity_store store;
+  interest_tracker tracker;
+  std::map<global_id, entity_id> by_gid;
+  std::map<entity_id, global_id> gid_of;
+  explicit reference(float hysteresis) : tracker(finder, nullptr, interest_options{hysteresis, 0, 256}) {}
+  void set(const std::map<global_id, entity_desc>& world) {
+    for (auto it = by_gid.begin(); it != by_gid.end();) {
+      if (!world.contains(it->first)) {
+        store.destroy(it->second);
+        gid_of.erase(it->second);
+        it = by_gid.erase(it);
+      } else {
+        ++it;
+      }
+    }
+    for (const auto& [g, d] : world) {
+      const auto it = by_gid.find(g);
+      if (it == by_gid.end()) {
+        const entity_id id = store.create(d);
+        REQUIRE(id != null_entity);
+        by_gid[g] = id;
+        gid_of[id] = g;
+      } else {
+        store.set_position(it->second, d.position);
+        const auto have = *store.get(it->second);
+        if (!(have.aoi_half_extent == d.aoi_half_extent)) store.set_aoi_half_extent(it->second, d.aoi_half_extent);
+        if (!(have.presence_half_extent == d.presence_half_extent)) store.set_presence_half_extent(it->second, d.presence_half_extent);
+        if (have.visibility_class != d.visibility_class || have.sees != d.sees) store.set_visibility(it->second, d.visibility_class, d.sees);
+      }
+    }
+    REQUIRE_FALSE(tracker.update(store).has_value());
+  }
+  std::vector<global_id> visible(global_id observer) const {
+    std::vector<global_id> out;
+    const auto row = tracker.row_of(by_gid.at(observer));
+    for (const entity_id e : tracker.visible(row)) out.push_back(gid_of.at(e));
+    std::sort(out.begin(), out.end());
+    return out;
+  }
+};
+
+struct run_result {
+  std::uint64_t client_views = 0, client_mismatches = 0;
+  std::uint64_t compared = 0, mismatches = 0, handoffs = 0, duplicates = 0, border_observers = 0, cross_views = 0;
+  std::string first_problem;
+};
+
+/// Runs `ticks` lockstep ticks of a cols x rows world; every handoff record is delivered twice
+/// (and the first ones replayed once more at the end): duplicates must change nothing.
+run_result run_world(std::uint32_t cols, std::uint32_t rows, std::uint64_t seed, int ticks) {
+  const zone_config base = world_config(seed);
+  const layout map(base.world, cols, rows);
+  std::vector<std::unique_ptr<test_zone>> zones;
+  for (std::uint32_t r = 0; r < map.count(); ++r) zones.push_back(std::make_unique<test_zone>(base, map, r));
+  std::size_t total = 0;
+  for (const auto& z : zones) total += z->link->owned_count();
+
+  std::vector<std::vector<std::uint8_t>> ghost_wire;  // in flight to the next tick
+  std::vector<handoff_record> handoff_wire, all_records;
+  std::vector<std::vector<published>> last_published(zones.size());
+  std::vector<std::unique_ptr<reference>> refs;
+  for (std::size_t k = 0; k < zones.size(); ++k) refs.push_back(std::make_unique<reference>(base.hysteresis));
+  run_result res;
+  std::vector<ghost_message> msgs;
+  // Clients: replicators that follow observers near a border, as zone-server's clients do (a
+  // budget that always fits: then a client's view after its frame is exactly what it sees).
+  struct client_set {
+    std::unique_ptr<replicator> rep;
+    std::map<entity_id, client_id> by_observer;
+    replication_writer writer;
+  };
+  std::vector<client_set> clients(zones.size());
+  for (auto& c : clients) {
+    replication_options o;
+    o.world = base.world;
+    o.byte_budget = 1 << 20;
+    c.rep = std::make_unique<replicator>(o);
+  }
+  for (int t = 0; t < ticks; ++t) {
+    // 1. Deliver last tick's handoffs (twice each) and ghosts.
+    for (const auto& h : handoff_wire) {
+      auto& z = *zones[h.to];
+      const auto first = z.link->apply_handoff(*z.world, h);
+      CHECK(first == handoff_status::adopted);
+      CHECK(z.link->apply_handoff(*z.world, h) == handoff_status::duplicate);
+      ++res.duplicates;
+    }
+    handoff_wire.clear();
+    for (const auto& bytes : ghost_wire) {
+      const auto m = decode_ghosts(bytes);
+      REQUIRE(m.has_value());
+      CHECK(zones[m->to]->link->apply_ghosts(*zones[m->to]->world, bytes) == ghost_status::applied);
+    }
+    ghost_wire.clear();
+    // 2. Step every zone.
+    for (auto& z : zones) {
+      z->link->expire(*z->world);
+      REQUIRE_FALSE(z->world->step().has_value());
+    }
+    // 3. Compare each zone's owned observers with the reference (own entities now, the others as
+    //    published last tick).
+    for (std::size_t k = 0; k < zones.size(); ++k) {
+      auto& z = *zones[k];
+      std::map<global_id, entity_desc> world;
+      // In-transit copies first: the owner's entry, where there is one, wins (as in place_ghost).
+      for (const bool transit : {true, false}) {
+        for (std::size_t j = 0; j < zones.size(); ++j) {
+          if (j == k) continue;
+          for (const auto& p : last_published[j]) {
+            if (p.transit == transit) world[p.gid] = p.desc;
+          }
+        }
+      }
+      const auto& s = z.world->store();
+      for (std::size_t i = 0; i < s.size(); ++i) {
+        const entity_id id = s.ids()[i];
+        const global_id g = z.link->gid_of(id);
+        if (z.link->owns(id)) world[g] = *s.get(id);
+        // Its own copies of entities it handed off that no neighbour has published yet (their
+        // last position here: the handoff's tick of delay).
+        if (z.link->in_transit(id) && !world.contains(g)) world[g] = *s.get(id);
+      }
+      refs[k]->set(world);
+      const rect area = z.link->area();
+      // What clients near the border see: their replicated views, after this tick's frame.
+      auto& cl = clients[k];
+      for (auto it = cl.by_observer.begin(); it != cl.by_observer.end();) {
+        if (!z.link->owns(it->first)) {  // handed off: its client was redirected
+          cl.rep->remove_client(it->second);
+          it = cl.by_observer.erase(it);
+        } else {
+          ++it;
+        }
+      }
+      for (std::size_t i = 0; i < s.size() && cl.by_observer.size() < 40; ++i) {
+        const entity_id id = s.ids()[i];
+        const vec3 p = s.positions()[i];
+        const float inner = std::min({p.x - area.lo_x, area.hi_x - p.x, p.y - area.lo_y, area.hi_y - p.y});
+        if (z.link->owns(id) && inner < 30 && !cl.by_observer.contains(id)) cl.by_observer[id] = cl.rep->add_client(id);
+      }
+      for (const auto& [observer, client] : cl.by_observer) {
+        (void)cl.rep->build(client, s, z.world->tracker(), z.world->tick(), 0, 0, cl.writer);
+        std::vector<global_id> seen;
+        for (const entity_id e : cl.rep->view(client)) seen.push_back(z.link->gid_of(e));
+        std::sort(seen.begin(), seen.end());
+        ++res.client_views;
+        if (seen != refs[k]->visible(z.link->gid_of(observer))) ++res.client_mismatches;
+      }
+      for (std::size_t i = 0; i < s.size(); ++i) {
+        const entity_id id = s.ids()[i];
+        if (!z.link->owns(id)) continue;
+        std::vector<global_id> got;
+        for (const entity_id e : z.world->tracker().visible(z.world->tracker().row_of(id))) got.push_back(z.link->gid_of(e));
+        std::sort(got.begin(), got.end());
+        const auto want = refs[k]->visible(z.link->gid_of(id));
+        ++res.compared;
+        const vec3 p = s.positions()[i];
+        const float inner = std::min({p.x - area.lo_x, area.hi_x - p.x, p.y - area.lo_y, area.hi_y - p.y});
+        if (inner < 40) ++res.border_observers;
+        for (const global_id g : got) res.cross_views += region_of_gid(g) != k && !z.link->owns(z.link->local_of(g)) ? 1 : 0;
+        if (got != want) {
+          ++res.mismatches;
+          if (res.first_problem.empty()) {
+            res.first_problem = "tick " + std::to_string(t) + " zone " + std::to_string(k) + " observer " +
+                                std::to_string(z.link->gid_of(id)) + ": " + std::to_string(got.size()) + " visible, reference " +
+                                std::to_string(want.size());
+          }
+        }
+      }
+    }
+    // 4. Hand off, publish, send ghosts.
+    std::size_t in_flight = 0;
+    for (auto& z : zones) {
+      z->link->assign_ids(*z->world);
+      for (auto& h : z->link->collect_handoffs(*z->world, 0)) {
+        handoff_wire.push_back(h);
+        all_records.push_back(h);
+        ++in_flight;
+      }
+    }
+    res.handoffs += in_flight;
+    for (std::size_t k = 0; k < zones.size(); ++k) {
+      last_published[k] = publish(*zones[k]);
+      zones[k]->link->build_ghosts(*zones[k]->world, msgs);
+      for (const auto& m : msgs) ghost_wire.push_back(encode(m));
+    }
+    // Every entity owned exactly once, or in flight.
+    std::set<global_id> owned;
+    std::size_t owned_total = 0;
+    for (const auto& z : zones) {
+      for (const global_id g : z->link->owned_ids()) {
+        CHECK(owned.insert(g).second);  // never owned by two zones
+        ++owned_total;
+      }
+    }
+    CHECK(owned_total + in_flight == total);
+  }
+  // The last tick's records land; then replays of old records (a redelivery after a crash, a duplicate past the dedupe window): refused as duplicates.
+  for (const auto& h : handoff_wire) CHECK(zones[h.to]->link->apply_handoff(*zones[h.to]->world, h) == handoff_status::adopted);
+  for (std::size_t i = 0; i < std::min<std::size_t>(all_records.size(), 50); ++i) {
+    auto& z = *zones[all_records[i].to];
+    CHECK(z.link->apply_handoff(*z.world, all_records[i]) == handoff_status::duplicate);
+  }
+  return res;
+}
+
+}  // namespace
+
+TEST_SUITE("world.layout") {
+  TEST_CASE("regions tile the bounds; region_at, neighbours, encode and decode") {
+    const layout m({{0, 0, 0}, {4096, 2048, 256}}, 4, 2);
+    CHECK(m.count() == 8);
+    CHECK(m.region(0) == rect{0, 0, 1024, 1024});
+    CHECK(m.region(7) == rect{3072, 1024, 4096, 2048});
+    CHECK(m.region_at(0, 0) == 0);
+    CHECK(m.region_at(1023.99f, 10) == 0);
+    CHECK(m.region_at(1024, 10) == 1);
+    CHECK(m.region_at(4096, 2048) == 7);
+    CHECK(m.region_at(-50, 5000) == 4);  // outside: the nearest
+    CHECK(m.neighbours(0) == std::vector<std::uint32_t>{1, 4, 5});
+    CHECK(m.neighbours(5) == std::vector<std::uint32_t>{0, 1, 2, 4, 6});
+    const auto back = layout::decode(m.encode());
+    REQUIRE(back.has_value());
+    CHECK(*back == m);
+    CHECK_FALSE(layout::decode("").has_value());
+    CHECK_FALSE(layout::decode("2 2 0 0 0 10 10").has_value());
+    CHECK_FALSE(layout::decode("0 2 0 0 0 10 10 10").has_value());
+    CHECK_FALSE(layout::decode("2 2 0 0 0 -10 10 10").has_value());
+    CHECK_FALSE(layout::decode("2 2 0 0 0 10 10 10 junk").has_value());
+    CHECK(m.region(1).distance(1000, 500) == doctest::Approx(24));
+    CHECK(m.region(1).distance(1500, 500) == 0);
+    // Random points: region_at's region contains them.
+    std::mt19937 rng(static_cast<unsigned>(zone::test::fresh_seed()));
+    std::uniform_real_distribution<float> ux(0, 4096), uy(0, 2048);
+    for (int i = 0; i < 10000; ++i) {
+      const float x = ux(rng), y = uy(rng);
+      CHECK(m.region(m.region_at(x, y)).distance(x, y) == 0);
+    }
+  }
+}
+
+TEST_SUITE("world.wire") {
+  TEST_CASE("ghost messages and handoff records round-trip; malformed input is refused") {
+    ghost_message m;
+    m.from = 3, m.to = 1, m.seq = 77, m.tick = 1234, m.snapshot = true;
+    m.entries.push_back({0x1000200000005ull, {1, 2, 3}, {16, 32, 48}, {8, 8, 16}, 2, 30, 1, 0});
+    m.entries.push_back({0x2000200000006ull, {4, 5, 6}, {160, 160, 160}, {640, 640, 640}, 4, 6, 2, ghost_in_transit});
+    m.removed = {42, 43};
+    const auto bytes = encode(m);
+    CHECK(bytes.size() == ghost_header_bytes + 2 * ghost_entry_bytes + 16);
+    const auto back = decode_ghosts(bytes);
+    REQUIRE(back.has_value());
+    CHECK(back->entries == m.entries);
+    CHECK(back->removed == m.removed);
+    CHECK(back->seq == 77);
+    CHECK(back->snapshot);
+    for (std::size_t cut = 0; cut < bytes.size(); ++cut) {
+      CHECK_FALSE(decode_ghosts(std::span(bytes).first(cut)).has_value());
+    }
+    auto bad = bytes;
+    bad[28] = 0xff;  // an entry count that does not match the size
+    CHECK_FALSE(decode_ghosts(bad).has_value());
+
+    handoff_record h;
+    h.gid = 0x3000100000009ull, h.epoch = 4, h.from = 2, h.to = 3;
+    h.desc.position = {10, 20, 0};
+    h.desc.kind = entity_kind::player;
+    h.behaviour = {behaviour::player, {1, 2, 3}, 0, {0.5f, 0, 0}};
+    h.token = 99, h.owner_revision = 17, h.last_input = 5, h.sent_us = 123456, h.sent_tick = 88;
+    const auto hb = encode(h);
+    const auto hback = decode_handoff(hb);
+    REQUIRE(hback.has_value());
+    CHECK(*hback == h);
+    for (std::size_t cut = 0; cut < hb.size(); ++cut) CHECK_FALSE(decode_handoff(std::span(hb).first(cut)).has_value());
+    auto nan = h;
+    nan.desc.position.x = std::numeric_limits<float>::quiet_NaN();
+    CHECK_FALSE(decode_handoff(encode(nan)).has_value());
+    auto ghost = h;
+    ghost.behaviour.kind = behaviour::ghost;
+    CHECK_FALSE(decode_handoff(encode(ghost)).has_value());
+  }
+}
+
+TEST_SUITE("world.link") {
+  TEST_CASE("2x1 and 2x2 worlds: views across borders (interest and clients' replicated views) equal one zone's brute force; each entity owned once") {
+    for (const auto& [cols, rows] : {std::pair{2u, 1u}, std::pair{2u, 2u}}) {
+      const std::uint64_t seed = zone::test::fresh_seed();
+      CAPTURE(seed);
+      CAPTURE(cols);
+      CAPTURE(rows);
+      const auto r = run_world(cols, rows, seed, 120);
+      INFO(r.first_problem);
+      CHECK(r.mismatches == 0);
+      CHECK(r.compared > 10000);
+      CHECK(r.client_mismatches == 0);  // a client near a border sees what one zone would show
+      CHECK(r.client_views > 3000);
+      CHECK(r.border_observers > 1000);
+      CHECK(r.cross_views > 100);  // views do cross borders
+      CHECK(r.handoffs > 20);      // and entities do move
+    }
+  }
+
+  TEST_CASE("a lost ghost message: the receiver sees the gap, asks for a snapshot and converges") {
+    const std::uint64_t seed = zone::test::fresh_seed();
+    CAPTURE(seed);
+    const zone_config base = world_config(seed);
+    const layout map(base.world, 2, 1);
+    test_zone a(base, map, 0), b(base, map, 1);
+    std::vector<ghost_message> msgs;
+    CHECK(b.link->snapshot_wanted() == std::vector<std::uint32_t>{0});
+    for (int t = 0; t < 30; ++t) {
+      REQUIRE_FALSE(a.world->step().has_value());
+      a.link->build_ghosts(*a.world, msgs);
+      REQUIRE(msgs.size() == 1);
+      const auto bytes = encode(msgs[0]);
+      if (t == 0) CHECK(msgs[0].snapshot);
+      if (t == 10 || t == 11) continue;  // lost
+      const auto st = b.link->apply_ghosts(*b.world, bytes);
+      if (t == 12) {
+        CHECK(st == ghost_status::gap);
+        CHECK(b.link->snapshot_wanted() == std::vector<std::uint32_t>{0});
+        a.link->snapshot_requested(1);
+      } else if (t == 13) {
+        CHECK(st == ghost_status::applied);
+        CHECK(msgs[0].snapshot);
+      } else {
+        CHECK(st == ghost_status::applied);
+      }
+      if (st == ghost_status::applied) {
+        CHECK(b.link->snapshot_wanted().empty());
+        // b's ghosts are exactly a's band entities, at a's quantized positions.
+        const rect rb = map.region(1);
+        std::set<global_id> want, got;
+        const auto& s = a.world->store();
+        for (std::size_t i = 0; i < s.size(); ++i) {
+          if (rb.distance(s.positions()[i].x, s.positions()[i].y) <= b.link->options().ghost_band) want.insert(a.link->gid_of(s.ids()[i]));
+        }
+        for (const entity_id id : b.world->store().ids()) {
+          if (!b.link->owns(id)) got.insert(b.link->gid_of(id));
+        }
+        CHECK(got == want);
+      }
+    }
+    CHECK(b.link->stats().gaps == 1);
+    CHECK(b.link->stats().snapshots_in == 2);
+    // A stale (replayed) message is ignored; garbage is refused.
+    a.link->build_ghosts(*a.world, msgs);
+    auto old = msgs[0];
+    old.seq = 3, old.snapshot = false;
+    CHECK(b.link->apply_ghosts(*b.world, encode(old)) == ghost_status::stale);
+    const std::vector<std::uint8_t> junk(100, 0x5a);
+    CHECK(b.link->apply_ghosts(*b.world, junk) == ghost_status::bad);
+    // A neighbour that goes silent: its ghosts expire.
+    for (int t = 0; t < 70; ++t) {
+      REQUIRE_FALSE(b.world->step().has_value());
+      b.link->expire(*b.world);
+    }
+    std::size_t ghosts = 0;
+    for (const entity_id id : b.world->store().ids()) ghosts += b.link->owns(id) ? 0 : 1;
+    CHECK(ghosts == 0);
+  }
+}

@@ -1,0 +1,680 @@
+// The world layout, the ghost and handoff wire formats and zone_link (world.h).
+#include <algorithm>
+#include <bit>
+#include <cmath>
+#include <cstring>
+#include <sstream>
+
+#include "world.h"
+
+namespace zone::world {
+
+// ---- rect and layout ---------------------------------------------------------------------------
+
+float rect::distance(float x, float y) const {
+  const float dx = std::max({0.0f, lo_x - x, x - hi_x});
+  const float dy = std::max({0.0f, lo_y - y, y - hi_y});
+  return std::max(dx, dy);
+}
+
+layout::layout(const net::world_bounds& bounds, std::uint32_t cols, std::uint32_t rows)
+    : bounds_(bounds), cols_(std::max(1u, cols)), rows_(std::max(1u, rows)) {}
+
+rect layout::region(std::uint32_t r) const {
+  const std::uint32_t c = r % cols_, w = r / cols_;
+  const float sx = (bounds_.hi.x - bounds_.lo.x) / static_cast<float>(cols_);
+  const float sy = (bounds_.hi.y - bounds_.lo.y) / static_cast<float>(rows_);
+  rect out{bounds_.lo.x + sx * static_cast<float>(c), bounds_.lo.y + sy * static_cast<float>(w),
+           bounds_.lo.x + sx * static_cast<float>(c + 1), bounds_.lo.y + sy * static_cast<float>(w + 1)};
+  if (c + 1 == cols_) out.hi_x = bounds_.hi.x;
+  if (w + 1 == rows_) out.hi_y = bounds_.hi.y;
+  return out;
+}
+
+std::uint32_t layout::region_at(float x, float y) const {
+  const auto cell = [](float v, float lo, float hi, std::uint32_t n) {
+    if (!(v > lo)) return 0u;  // NaN goes to 0 too
+    const double t = (static_cast<double>(v) - lo) / (static_cast<double>(hi) - lo) * n;
+    return static_cast<std::uint32_t>(std::min<double>(n - 1, std::floor(t)));
+  };
+  std::uint32_t c = cell(x, bounds_.lo.x, bounds_.hi.x, cols_), w = cell(y, bounds_.lo.y, bounds_.hi.y, rows_);
+  // Float rounding at a boundary: trust the rectangles (a point on lo belongs to the region).
+  while (c > 0 && x < region(w * cols_ + c).lo_x) --c;
+  while (c + 1 < cols_ && x >= region(w * cols_ + c + 1).lo_x) ++c;
+  while (w > 0 && y < region(w * cols_ + c).lo_y) --w;
+  while (w + 1 < rows_ && y >= region((w + 1) * cols_ + c).lo_y) ++w;
+  return w * cols_ + c;
+}
+
+std::vector<std::uint32_t> layout::neighbours(std::uint32_t r) const {
+  std::vector<std::uint32_t> out;
+  const int c = static_cast<int>(r % cols_), w = static_cast<int>(r / cols_);
+  for (int dw = -1; dw <= 1; ++dw) {
+    for (int dc = -1; dc <= 1; ++dc) {
+      const int nc = c + dc, nw = w + dw;
+      if ((dc == 0 && dw == 0) || nc < 0 || nw < 0 || nc >= static_cast<int>(cols_) || nw >= static_cast<int>(rows_)) continue;
+      out.push_back(static_cast<std::uint32_t>(nw) * cols_ + static_cast<std::uint32_t>(nc));
+    }
+  }
+  std::sort(out.begin(), out.end());
+  return out;
+}
+
+std::string layout::encode() const {
+  std::ostringstream o;
+  o.precision(9);
+  o << cols_ << ' ' << rows_ << ' ' << bounds_.lo.x << ' ' << bounds_.lo.y << ' ' << bounds_.lo.z << ' ' << bounds_.hi.x << ' '
+    << bounds_.hi.y << ' ' << bounds_.hi.z;
+  return o.str();
+}
+
+std::optional<layout> layout::decode(std::string_view text) {
+  std::istringstream in{std::string(text)};
+  std::uint32_t cols = 0, rows = 0;
+  net::world_bounds b{};
+  if (!(in >> cols >> rows >> b.lo.x >> b.lo.y >> b.lo.z >> b.hi.x >> b.hi.y >> b.hi.z)) return std::nullopt;
+  std::string extra;
+  if (in >> extra) return std::nullopt;
+  if (cols == 0 || rows == 0 || cols > 64 || rows > 64) return std::nullopt;
+  const float lo[3] = {b.lo.x, b.lo.y, b.lo.z}, hi[3] = {b.hi.x, b.hi.y, b.hi.z};
+  for (int d = 0; d < 3; ++d) {
+    if (!std::isfinite(lo[d]) || !std::isfinite(hi[d]) || !(hi[d] > lo[d])) return std::nullopt;
+  }
+  return layout(b, cols, rows);
+}
+
+// ---- wire helpers ------------------------------------------------------------------------------
+
+namespace {
+
+struct writer {
+  std::vector<std::uint8_t>& out;
+  template <class T>
+  void put(T v) {
+    static_assert(std::is_trivially_copyable_v<T>);
+    const std::size_t at = out.size();
+    out.resize(at + sizeof(T));
+    std::memcpy(out.data() + at, &v, sizeof(T));  // the hosts we build for are little-endian
+  }
+  void put3(const vec3& v) { put(v.x), put(v.y), put(v.z); }
+};
+
+struct reader {
+  std::span<const std::uint8_t> in;
+  std::size_t at = 0;
+  bool ok = true;
+  template <class T>
+  T get() {
+    T v{};
+    if (at + sizeof(T) > in.size()) {
+      ok = false;
+      return v;
+    }
+    std::memcpy(&v, in.data() + at, sizeof(T));
+    at += sizeof(T);
+    return v;
+  }
+  vec3 get3() {
+    vec3 v;
+    v.x = get<float>(), v.y = get<float>(), v.z = get<float>();
+    return v;
+  }
+};
+
+constexpr std::uint32_t ghost_magic = 0x31484753;    // "SGH1"
+constexpr std::uint32_t handoff_magic = 0x31464f48;  // "HOF1"
+
+std::uint16_t half_q(float h) {
+  return static_cast<std::uint16_t>(std::clamp(std::lround(static_cast<double>(h) * 16.0), 0l, 65535l));
+}
+float half_dq(std::uint16_t q) { return static_cast<float>(q) / 16.0f; }
+
+}  // namespace
+
+std::vector<std::uint8_t> encode(const ghost_message& m) {
+  std::vector<std::uint8_t> out;
+  out.reserve(ghost_header_bytes + m.entries.size() * ghost_entry_bytes + m.removed.size() * 8);
+  writer w{out};
+  w.put(ghost_magic);
+  w.put(static_cast<std::uint16_t>(m.from));
+  w.put(static_cast<std::uint16_t>(m.to));
+  w.put(m.seq);
+  w.put(m.tick);
+  w.put(static_cast<std::uint32_t>(m.snapshot ? 1 : 0));
+  w.put(static_cast<std::uint32_t>(m.entries.size()));
+  w.put(static_cast<std::uint32_t>(m.removed.size()));
+  for (const auto& e : m.entries) {
+    w.put(e.gid);
+    for (auto v : e.position) w.put(v);
+    for (auto v : e.aoi_half) w.put(v);
+    for (auto v : e.presence_half) w.put(v);
+    w.put(e.visibility_class);
+    w.put(e.sees);
+    w.put(e.kind);
+    w.put(e.flags);
+  }
+  for (const auto g : m.removed) w.put(g);
+  return out;
+}
+
+std::optional<ghost_message> decode_ghosts(std::span<const std::uint8_t> bytes) {
+  reader r{bytes};
+  if (r.get<std::uint32_t>() != ghost_magic) return std::nullopt;
+  ghost_message m;
+  m.from = r.get<std::uint16_t>();
+  m.to = r.get<std::uint16_t>();
+  m.seq = r.get<std::uint64_t>();
+  m.tick = r.get<std::uint64_t>();
+  const auto flags = r.get<std::uint32_t>();
+  const auto n = r.get<std::uint32_t>();
+  const auto k = r.get<std::uint32_t>();
+  if (!r.ok || flags > 1) return std::nullopt;
+  m.snapshot = flags == 1;
+  // Sizes checked before allocating: a hostile count cannot make us reserve gigabytes.
+  if (bytes.size() != ghost_header_bytes + std::size_t{n} * ghost_entry_bytes + std::size_t{k} * 8) return std::nullopt;
+  m.entries.resize(n);
+  for (auto& e : m.entries) {
+    e.gid = r.get<std::uint64_t>();
+    for (auto& v : e.position) v = r.get<std::uint16_t>();
+    for (auto& v : e.aoi_half) v = r.get<std::uint16_t>();
+    for (auto& v : e.presence_half) v = r.get<std::uint16_t>();
+    e.visibility_class = r.get<std::uint32_t>();
+    e.sees = r.get<std::uint32_t>();
+    e.kind = r.get<std::uint8_t>();
+    e.flags = r.get<std::uint8_t>();
+  }
+  m.removed.resize(k);
+  for (auto& g : m.removed) g = r.get<std::uint64_t>();
+  if (!r.ok || r.at != bytes.size()) return std::nullopt;
+  return m;
+}
+
+std::vector<std::uint8_t> encode(const handoff_record& h) {
+  std::vector<std::uint8_t> out;
+  writer w{out};
+  w.put(handoff_magic);
+  w.put(h.gid);
+  w.put(h.epoch);
+  w.put(h.from);
+  w.put(h.to);
+  w.put3(h.desc.position);
+  w.put3(h.desc.velocity);
+  w.put(h.desc.visibility_class);
+  w.put(h.desc.sees);
+  w.put3(h.desc.aoi_half_extent);
+  w.put3(h.desc.presence_half_extent);
+  w.put(static_cast<std::uint8_t>(h.desc.kind));
+  w.put(static_cast<std::uint8_t>(h.behaviour.kind));
+  w.put3(h.behaviour.home);
+  w.put(h.behaviour.waypoint);
+  w.put3(h.behaviour.intent);
+  w.put(h.token);
+  w.put(h.owner_revision);
+  w.put(h.last_input);
+  w.put(h.sent_us);
+  w.put(h.sent_tick);
+  return out;
+}
+
+std::optional<handoff_record> decode_handoff(std::span<const std::uint8_t> bytes) {
+  reader r{bytes};
+  if (r.get<std::uint32_t>() != handoff_magic) return std::nullopt;
+  handoff_record h;
+  h.gid = r.get<std::uint64_t>();
+  h.epoch = r.get<std::uint64_t>();
+  h.from = r.get<std::uint32_t>();
+  h.to = r.get<std::uint32_t>();
+  h.desc.position = r.get3();
+  h.desc.velocity = r.get3();
+  h.desc.visibility_class = r.get<std::uint32_t>();
+  h.desc.sees = r.get<std::uint32_t>();
+  h.desc.aoi_half_extent = r.get3();
+  h.desc.presence_half_extent = r.get3();
+  const auto kind = r.get<std::uint8_t>();
+  const auto beh = r.get<std::uint8_t>();
+  h.behaviour.home = r.get3();
+  h.behaviour.waypoint = r.get<std::uint32_t>();
+  h.behaviour.intent = r.get3();
+  h.token = r.get<std::uint64_t>();
+  h.owner_revision = r.get<std::uint64_t>();
+  h.last_input = r.get<std::uint32_t>();
+  h.sent_us = r.get<std::uint64_t>();
+  h.sent_tick = r.get<std::uint64_t>();
+  if (!r.ok || r.at != bytes.size()) return std::nullopt;
+  if (kind > static_cast<std::uint8_t>(entity_kind::boss) || beh > static_cast<std::uint8_t>(behaviour::ghost)) return std::nullopt;
+  h.desc.kind = static_cast<entity_kind>(kind);
+  h.behaviour.kind = static_cast<behaviour>(beh);
+  if (h.behaviour.kind == behaviour::ghost || validate(h.desc)) return std::nullopt;
+  return h;
+}
+
+float ghost_band(const zone_config& c, float handoff_margin) {
+  // The AOIs populate() and players use: NPC tiers 0-2 (chasers 2), bosses the gigantic tier 4.
+  float aoi = std::max({c.player_aoi, c.aoi_tier[0], c.aoi_tier[1], c.aoi_tier[2]});
+  if (c.boss_count > 0) aoi = std::max(aoi, c.aoi_tier[4]);
+  const float presence = c.boss_count > 0 ? std::max(1.0f, c.boss_footprint) : 1.0f;
+  const float speed = std::max(c.npc_speed * 1.5f, c.player_speed);
+  return aoi + c.hysteresis + presence + handoff_margin + 2 * speed / static_cast<float>(c.tick_rate_hz) + 1;
+}
+
+// ---- zone_link ---------------------------------------------------------------------------------
+
+zone_link::zone_link(link_options opt)
+    : opt_(std::move(opt)), area_(opt_.map.region(opt_.region)), quantizer_(opt_.map.bounds()) {
+  for (const auto n : opt_.map.neighbours(opt_.region)) out_.push_back(neighbour_out{n, 0, true, {}});
+}
+
+zone_link::slot_info* zone_link::info(entity_id local) {
+  const auto s = slot_of(local);
+  if (local == null_entity || s >= by_slot_.size() || by_slot_[s].local != local) return nullptr;
+  return &by_slot_[s];
+}
+
+const zone_link::slot_info* zone_link::info(entity_id local) const {
+  return const_cast<zone_link*>(this)->info(local);
+}
+
+zone_link::slot_info& zone_link::bind(entity_id local, global_id g, role what) {
+  const auto s = slot_of(local);
+  if (by_slot_.size() <= s) by_slot_.resize(s + 1);
+  slot_info& i = by_slot_[s];
+  // A slot reused by a new entity: the old one's gid no longer maps here.
+  if (i.local != local && i.gid != 0) {
+    const auto it = local_.find(i.gid);
+    if (it != local_.end() && it->second == i.local) local_.erase(it);
+  }
+  i = slot_info{};
+  i.local = local;
+  i.gid = g;
+  i.what = what;
+  local_[g] = local;
+  return i;
+}
+
+global_id zone_link::gid_of(entity_id local) const {
+  const auto* i = info(local);
+  return i ? i->gid : 0;
+}
+
+entity_id zone_link::local_of(global_id g) const {
+  const auto it = local_.find(g);
+  if (it == local_.end()) return null_entity;
+  const auto* i = info(it->second);
+  return i && i->gid == g ? it->second : null_entity;
+}
+
+bool zone_link::owns(entity_id local) const {
+  const auto* i = info(local);
+  return i && i->what == role::owned;
+}
+
+bool zone_link::in_transit(entity_id local) const {
+  const auto* i = info(local);
+  return i && i->what == role::transit;
+}
+
+std::size_t zone_link::owned_count() const {
+  std::size_t n = 0;
+  for (const auto& i : by_slot_) n += i.what == role::owned ? 1 : 0;
+  return n;
+}
+
+std::vector<global_id> zone_link::owned_ids() const {
+  std::vector<global_id> out;
+  for (const auto& i : by_slot_) {
+    if (i.what == role::owned) out.push_back(i.gid);
+  }
+  std::sort(out.begin(), out.end());
+  return out;
+}
+
+std::vector<global_id> zone_link::transit_ids() const {
+  std::vector<global_id> out;
+  for (const auto& i : by_slot_) {
+    if (i.what == role::transit) out.push_back(i.gid);
+  }
+  std::sort(out.begin(), out.end());
+  return out;
+}
+
+std::vector<std::pair<global_id, std::uint64_t>> zone_link::owned_epochs() const {
+  std::vector<std::pair<global_id, std::uint64_t>> out;
+  for (const auto& i : by_slot_) {
+    if (i.what == role::owned) out.emplace_back(i.gid, i.epoch);
+  }
+  std::sort(out.begin(), out.end());
+  return out;
+}
+
+std::uint64_t zone_link::owner_revision(global_id g) const {
+  const auto* i = info(local_of(g));
+  return i ? i->revision : 0;
+}
+
+void zone_link::assign_ids(const zone_world& w) {
+  // Entities removed by the zone itself (a player who left): forgotten.
+  for (auto& i : by_slot_) {
+    if (i.what != role::none && !w.store().alive(i.local)) {
+      if (i.what == role::owned && i.epoch > 0) departed_.push_back(i.gid);
+      const auto it = local_.find(i.gid);
+      if (it != local_.end() && it->second == i.local) local_.erase(it);
+      i = slot_info{};
+    }
+  }
+  const auto ids = w.store().ids();
+  for (const entity_id id : ids) {
+    const auto s = slot_of(id);
+    if (s < by_slot_.size() && by_slot_[s].local == id) continue;
+    const global_id g = (std::uint64_t{opt_.region + 1} << 48) | (std::uint64_t{opt_.incarnation & 0xffff} << 32) | next_counter_++;
+    bind(id, g, role::owned);
+  }
+}
+
+ghost_entry zone_link::make_entry(const entity_store& s, std::size_t k, std::uint8_t flags) const {
+  ghost_entry e;
+  e.gid = gid_of(s.ids()[k]);
+  const vec3 p = s.positions()[k];
+  e.position = quantizer_.quantize({p.x, p.y, p.z});
+  const vec3 a = s.aoi_half_extents()[k], h = s.presence_half_extents()[k];
+  e.aoi_half = {half_q(a.x), half_q(a.y), half_q(a.z)};
+  e.presence_half = {half_q(h.x), half_q(h.y), half_q(h.z)};
+  e.visibility_class = s.visibility_classes()[k];
+  e.sees = s.sees()[k];
+  e.kind = static_cast<std::uint8_t>(s.kinds()[k]);
+  e.flags = flags;
+  return e;
+}
+
+void zone_link::build_ghosts(const zone_world& w, std::vector<ghost_message>& out) {
+  out.clear();
+  tick_ = w.tick();
+  const auto& s = w.store();
+  const auto ids = s.ids();
+  const auto pos = s.positions();
+  for (auto& n : out_) {
+    const rect r = opt_.map.region(n.region);
+    ghost_message m;
+    m.from = opt_.region;
+    m.to = n.region;
+    m.seq = ++n.seq;
+    m.tick = w.tick();
+    m.snapshot = n.snapshot_next;
+    std::unordered_map<global_id, ghost_entry> now;
+    now.reserve(n.sent.size() + 16);
+    for (std::size_t k = 0; k < ids.size(); ++k) {
+      const slot_info* i = info(ids[k]);
+      if (i == nullptr) continue;
+      // Owned entities, and in-transit ones (so that neighbours keep seeing them until the new
+      // owner's ghosts take over); never other zones' ghosts.
+      const bool transit = i->what == role::transit;
+      if (i->what != role::owned && !transit) continue;
+      if (r.distance(pos[k].x, pos[k].y) > opt_.ghost_band) continue;
+      const ghost_entry e = make_entry(s, k, transit ? ghost_in_transit : 0);
+      now.emplace(e.gid, e);
+      if (m.snapshot) {
+        m.entries.push_back(e);
+      } else {
+        const auto it = n.sent.find(e.gid);
+        if (it == n.sent.end() || !(it->second == e)) m.entries.push_back(e);
+      }
+    }
+    if (!m.snapshot) {
+      for (const auto& [g, e] : n.sent) {
+        if (!now.contains(g)) m.removed.push_back(g);
+      }
+    }
+    // Deterministic order (the unordered maps' order is not).
+    std::sort(m.entries.begin(), m.entries.end(), [](const ghost_entry& a, const ghost_entry& b) { return a.gid < b.gid; });
+    std::sort(m.removed.begin(), m.removed.end());
+    if (m.snapshot) ++stats_.snapshots_out;
+    n.snapshot_next = false;
+    n.sent = std::move(now);
+    ++stats_.ghost_messages_out;
+    stats_.ghost_bytes_out += ghost_header_bytes + m.entries.size() * ghost_entry_bytes + m.removed.size() * 8;
+    out.push_back(std::move(m));
+  }
+}
+
+void zone_link::snapshot_requested(std::uint32_t neighbour) {
+  for (auto& n : out_) {
+    if (n.region == neighbour) n.snapshot_next = true;
+  }
+}
+
+std::vector<std::uint32_t> zone_link::snapshot_wanted() const {
+  std::vector<std::uint32_t> out;
+  for (const auto& n : out_) {
+    const auto it = in_.find(n.region);
+    if (it == in_.end() || it->second.expected == 0) out.push_back(n.region);
+  }
+  return out;
+}
+
+int zone_link::neighbour_index(std::uint32_t region) const {
+  for (std::size_t k = 0; k < out_.size(); ++k) {
+    if (out_[k].region == region) return static_cast<int>(k);
+  }
+  return -1;
+}
+
+void zone_link::place_ghost(zone_world& w, const ghost_entry& e, unsigned source) {
+  const net::vec3f p = quantizer_.dequantize(e.position);
+  const vec3 at{p.x, p.y, p.z};
+  const vec3 aoi{half_dq(e.aoi_half[0]), half_dq(e.aoi_half[1]), half_dq(e.aoi_half[2])};
+  const vec3 pres{half_dq(e.presence_half[0]), half_dq(e.presence_half[1]), half_dq(e.presence_half[2])};
+  const auto bit = static_cast<std::uint8_t>(1u << source);
+  const bool transit = (e.flags & ghost_in_transit) != 0;
+  const entity_id have = local_of(e.gid);
+  if (have != null_entity) {
+    slot_info* i = info(have);
+    if (i->what == role::owned) return;  // ours (an in-transit copy of what we adopted): ignore
+    // Our own in-transit copy, claimed by a neighbour (its new owner's ghost): a ghost now.
+    if (i->what == role::transit) i->what = role::ghost, i->claims = 0, i->owner_claims = 0;
+    i->claims |= bit;
+    i->owner_claims = static_cast<std::uint8_t>(transit ? i->owner_claims & ~bit : i->owner_claims | bit);
+    // The owner's state wins over an in-transit copy's.
+    if (transit && (i->owner_claims & ~bit) != 0) return;
+    auto& st = w.store();
+    const std::size_t k = st.index_of(have);
+    st.set_position(have, at);
+    if (!(st.aoi_half_extents()[k] == aoi)) st.set_aoi_half_extent(have, aoi);
+    if (!(st.presence_half_extents()[k] == pres)) st.set_presence_half_extent(have, pres);
+    if (st.visibility_classes()[k] != e.visibility_class || st.sees()[k] != e.sees) {
+      st.set_visibility(have, e.visibility_class, e.sees);
+    }
+    return;
+  }
+  entity_desc d;
+  d.position = at;
+  d.aoi_half_extent = aoi;
+  d.presence_half_extent = pres;
+  d.visibility_class = e.visibility_class;
+  d.sees = e.sees;
+  d.kind = e.kind <= static_cast<std::uint8_t>(entity_kind::boss) ? static_cast<entity_kind>(e.kind) : entity_kind::npc;
+  if (validate(d)) {
+    ++stats_.bad;
+    return;
+  }
+  const entity_id id = w.adopt(d, behaviour_state{behaviour::ghost, at, 0, {}});
+  if (id == null_entity) return;
+  slot_info& i = bind(id, e.gid, role::ghost);
+  i.claims = bit;
+  i.owner_claims = transit ? 0 : bit;
+}
+
+void zone_link::unclaim(zone_world& w, entity_id local, unsigned source) {
+  slot_info* i = info(local);
+  if (i == nullptr || i->what != role::ghost) return;
+  const auto bit = static_cast<std::uint8_t>(1u << source);
+  i->claims = static_cast<std::uint8_t>(i->claims & ~bit);
+  i->owner_claims = static_cast<std::uint8_t>(i->owner_claims & ~bit);
+  if (i->claims == 0) drop_ghost(w, local);
+}
+
+void zone_link::drop_ghost(zone_world& w, entity_id local) {
+  slot_info* i = info(local);
+  if (i == nullptr || i->what == role::owned) return;
+  local_.erase(i->gid);
+  *i = slot_info{};
+  w.despawn(local);
+}
+
+ghost_status zone_link::apply_ghosts(zone_world& w, std::span<const std::uint8_t> bytes) {
+  tick_ = w.tick();
+  auto m = decode_ghosts(bytes);
+  const int src = m ? neighbour_index(m->from) : -1;
+  if (!m || m->to != opt_.region || src < 0) {
+    ++stats_.bad;
+    return ghost_status::bad;
+  }
+  const auto source = static_cast<unsigned>(src);
+  ++stats_.ghost_messages_in;
+  stats_.ghost_bytes_in += bytes.size();
+  neighbour_in& n = in_[m->from];
+  n.heard = true;
+  n.last_tick = w.tick();
+  if (!m->snapshot) {
+    if (n.expected == 0 || m->seq > n.expected) {
+      if (n.expected != 0) ++stats_.gaps;
+      n.expected = 0;  // wait for a snapshot; the ghosts stay as they are meanwhile
+      return ghost_status::gap;
+    }
+    if (m->seq < n.expected) {
+      ++stats_.stale;
+      return ghost_status::stale;
+    }
+  } else {
+    if (n.expected != 0 && m->seq < n.expected) {
+      ++stats_.stale;
+      return ghost_status::stale;
+    }
+    ++stats_.snapshots_in;
+    // The snapshot is the whole set: this neighbour's ghosts not in it go.
+    std::vector<global_id> keep;
+    for (const auto& e : m->entries) keep.push_back(e.gid);
+    std::sort(keep.begin(), keep.end());
+    std::vector<entity_id> gone;
+    for (const auto& i : by_slot_) {
+      if (i.what == role::ghost && (i.claims & (1u << source)) && !std::binary_search(keep.begin(), keep.end(), i.gid)) {
+        gone.push_back(i.local);
+      }
+    }
+    for (const entity_id id : gone) unclaim(w, id, source);
+  }
+  n.expected = m->seq + 1;
+  for (const auto& e : m->entries) place_ghost(w, e, source);
+  // A removal takes back only this sender's claim: an entity handed on may be another's now.
+  for (const global_id g : m->removed) unclaim(w, local_of(g), source);
+  return ghost_status::applied;
+}
+
+handoff_status zone_link::apply_handoff(zone_world& w, const handoff_record& r, entity_id* local) {
+  tick_ = w.tick();
+  if (r.to != opt_.region || r.gid == 0) {
+    ++stats_.handoffs_refused;
+    return handoff_status::refused;
+  }
+  const auto seen = last_epoch_.find(r.gid);
+  const std::uint64_t last = seen == last_epoch_.end() ? 0 : seen->second;
+  const entity_id have = local_of(r.gid);
+  slot_info* i = info(have);
+  if (r.epoch <= last || (i != nullptr && i->what == role::owned && i->epoch >= r.epoch)) {
+      ++stats_.handoff_duplicates;
+    if (local) *local = have;
+    return handoff_status::duplicate;
+  }
+  entity_id id = have;
+  if (i != nullptr) {
+    // Our ghost of it becomes the entity: same handle, so views here see no leave and enter.
+    auto& st = w.store();
+    st.set_position(id, r.desc.position);
+    st.set_velocity(id, r.desc.velocity);
+    st.set_aoi_half_extent(id, r.desc.aoi_half_extent);
+    st.set_presence_half_extent(id, r.desc.presence_half_extent);
+    st.set_visibility(id, r.desc.visibility_class, r.desc.sees);
+    w.set_behaviour_state(id, r.behaviour);
+    i->what = role::owned;
+    i->claims = i->owner_claims = 0;
+  } else {
+    id = w.adopt(r.desc, r.behaviour);
+    if (id == null_entity) {  // the zone is full (a redelivery may find room)
+      ++stats_.handoffs_refused;
+      return handoff_status::refused;
+    }
+    i = &bind(id, r.gid, role::owned);
+  }
+  last_epoch_[r.gid] = r.epoch;
+  i->epoch = r.epoch;
+  i->revision = r.owner_revision;
+  i->source = opt_.region;
+  ++stats_.handoffs_in;
+  if (local) *local = id;
+  return handoff_status::adopted;
+}
+
+std::vector<handoff_record> zone_link::collect_handoffs(zone_world& w, std::uint64_t now_us) {
+  tick_ = w.tick();
+  std::vector<handoff_record> out;
+  const auto& s = w.store();
+  const auto ids = s.ids();
+  const auto pos = s.positions();
+  for (std::size_t k = 0; k < ids.size(); ++k) {
+    slot_info* i = info(ids[k]);
+    if (i == nullptr || i->what != role::owned) continue;
+    if (area_.distance(pos[k].x, pos[k].y) <= opt_.handoff_margin) continue;
+    const std::uint32_t to = opt_.map.region_at(pos[k].x, pos[k].y);
+    if (to == opt_.region) continue;
+    handoff_record r;
+    r.gid = i->gid;
+    r.epoch = i->epoch + 1;
+    r.from = opt_.region;
+    r.to = to;
+    r.desc = *s.get(ids[k]);
+    r.behaviour = *w.behaviour_state_of(ids[k]);
+    r.owner_revision = i->revision;
+    r.sent_us = now_us;
+    r.sent_tick = w.tick();
+    out.push_back(r);
+  }
+  // Each becomes an in-transit ghost here (after the scan: changing behaviours does not move
+  // dense indices, but keep the loop simple).
+  for (const auto& r : out) {
+    const entity_id id = local_of(r.gid);
+    slot_info* i = info(id);
+    i->what = role::transit;
+    i->source = r.to;
+    i->since_tick = w.tick();
+    w.set_behaviour_state(id, behaviour_state{behaviour::ghost, r.desc.position, 0, {}});
+    w.store().set_velocity(id, {});
+    last_epoch_[r.gid] = std::max(last_epoch_[r.gid], r.epoch);
+    ++stats_.handoffs_out;
+  }
+  return out;
+}
+
+void zone_link::expire(zone_world& w) {
+  tick_ = w.tick();
+  // Neighbours silent too long: their claims go (and the ghosts only they claimed).
+  std::uint8_t silent = 0;
+  for (std::size_t k = 0; k < out_.size(); ++k) {
+    const auto it = in_.find(out_[k].region);
+    if (it != in_.end() && it->second.heard && tick_ > it->second.last_tick + opt_.ghost_timeout_ticks) {
+      silent = static_cast<std::uint8_t>(silent | (1u << k));
+      it->second.expected = 0;  // and a snapshot is needed when it speaks again
+    }
+  }
+  std::vector<entity_id> gone;
+  for (auto& i : by_slot_) {
+    if (i.what == role::ghost && (i.claims & silent) != 0) {
+      i.claims = static_cast<std::uint8_t>(i.claims & ~silent);
+      i.owner_claims = static_cast<std::uint8_t>(i.owner_claims & ~silent);
+      if (i.claims == 0) gone.push_back(i.local);
+    } else if (i.what == role::transit && tick_ > i.since_tick + opt_.ghost_timeout_ticks) {
+      gone.push_back(i.local);
+    }
+  }
+  for (const entity_id id : gone) drop_ghost(w, id);
+  stats_.ghosts_expired += gone.size();
+}
+
+}  // namespace zone::world

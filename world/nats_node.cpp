@@ -1,0 +1,734 @@
+// nats_node (nats_node.h): a zone's membership in a world over NATS.
+#include "nats_node.h"
+
+#include <nats/nats.h>
+#include <spdlog/spdlog.h>
+
+#include <algorithm>
+#include <chrono>
+#include <cstring>
+#include <ctime>
+#include <sstream>
+
+namespace zone::world {
+
+namespace {
+
+std::uint64_t monotonic_us() {
+  timespec ts{};
+  clock_gettime(CLOCK_MONOTONIC, &ts);
+  return static_cast<std::uint64_t>(ts.tv_sec) * 1000000u + static_cast<std::uint64_t>(ts.tv_nsec) / 1000u;
+}
+
+std::string status_text(natsStatus s) {
+  const char* last = nats_GetLastError(nullptr);
+  return std::string(natsStatus_GetText(s)) + (last && *last ? std::string(" (") + last + ")" : std::string());
+}
+
+std::string hex(std::uint64_t v) {
+  char b[17];
+  std::snprintf(b, sizeof b, "%016llx", static_cast<unsigned long long>(v));
+  return b;
+}
+
+/// Creates a KV bucket, or binds to it when it exists.
+natsStatus open_bucket(kvStore** kv, jsCtx* js, const std::string& name, std::int64_t ttl_ns) {
+  kvConfig kc;
+  kvConfig_Init(&kc);
+  kc.Bucket = name.c_str();
+  kc.History = 1;
+  kc.TTL = ttl_ns;  // nanoseconds (libnats 3.4 passes it on as the stream's MaxAge)
+  kc.StorageType = js_FileStorage;
+  natsStatus s = js_CreateKeyValue(kv, js, &kc);
+  if (s != NATS_OK) s = js_KeyValue(kv, js, name.c_str());
+  return s;
+}
+
+}  // namespace
+
+std::string nats_node::subject(const char* what, std::uint32_t region) const {
+  return "world." + opt_.world + "." + what + "." + std::to_string(region);
+}
+
+std::unique_ptr<nats_node> nats_node::join(const node_options& opt, const zone_config& zone, std::string* error) {
+  const auto fail = [&](const std::string& why) -> std::unique_ptr<nats_node> {
+    if (error) *error = "world '" + opt.world + "': " + why;
+    return nullptr;
+  };
+  std::unique_ptr<nats_node> n(new nats_node());
+  n->opt_ = opt;
+  n->tick_rate_hz_ = zone.tick_rate_hz;
+  natsOptions* no = nullptr;
+  natsOptions_Create(&no);
+  natsOptions_SetURL(no, opt.url.c_str());
+  natsOptions_SetTimeout(no, 2000);
+  natsOptions_SetMaxReconnect(no, -1);  // keep trying: a NATS restart must not kill the zone
+  natsOptions_SetReconnectWait(no, 200);
+  natsStatus s = natsConnection_Connect(&n->nc_, no);
+  natsOptions_Destroy(no);
+  if (s != NATS_OK) return fail("cannot connect to NATS at " + opt.url + ": " + status_text(s));
+  jsOptions jo;
+  jsOptions_Init(&jo);
+  jo.Wait = 2000;
+  if ((s = natsConnection_JetStream(&n->js_, n->nc_, &jo)) != NATS_OK) return fail("JetStream: " + status_text(s));
+  if ((s = open_bucket(&n->kv_, n->js_, "world-" + opt.world, 0)) != NATS_OK) {
+    return fail("KV bucket world-" + opt.world + ": " + status_text(s) + " (is JetStream on: nats-server -js?)");
+  }
+  if ((s = open_bucket(&n->lease_, n->js_, "world-" + opt.world + "-lease",
+                       static_cast<std::int64_t>(opt.lease_ttl_s * 1e9))) != NATS_OK) {
+    return fail("KV lease bucket: " + status_text(s));
+  }
+  // The layout: the first zone writes it (create = only if absent); everyone reads what is there.
+  const layout proposed(opt.bounds, opt.cols, opt.rows);
+  std::uint64_t rev = 0;
+  kvStore_CreateString(&rev, n->kv_, "layout", proposed.encode().c_str());
+  kvEntry* e = nullptr;
+  if ((s = kvStore_Get(&e, n->kv_, "layout")) != NATS_OK) return fail("cannot read the layout: " + status_text(s));
+  const auto map = layout::decode(kvEntry_ValueString(e));
+  const std::string text = kvEntry_ValueString(e);
+  kvEntry_Destroy(e);
+  if (!map) return fail("the layout in KV is malformed: '" + text + "'");
+  if (!(map->bounds() == zone.world)) return fail("the layout's bounds differ from this zone's --world-size");
+  n->map_ = *map;
+  // A free region: its lease key created (fails while another zone holds it).
+  bool claimed = false;
+  for (std::uint32_t r = 0; r < n->map_.count() && !claimed; ++r) {
+    const std::string key = "r." + std::to_string(r);
+    if (kvStore_CreateString(&rev, n->lease_, key.c_str(), "claiming") == NATS_OK) {
+      n->region_ = r;
+      n->lease_key_ = key;
+      n->lease_revision_ = rev;
+      claimed = true;
+    }
+  }
+  if (!claimed) return fail("every region of the layout (" + std::to_string(n->map_.count()) + ") is taken");
+  // This claim's incarnation: inc.r counted up by CAS (ids of a restarted zone differ).
+  const std::string inc_key = "inc." + std::to_string(n->region_);
+  for (int attempt = 0; attempt < 50 && n->incarnation_ == 0; ++attempt) {
+    kvEntry* ie = nullptr;
+    if (kvStore_Get(&ie, n->kv_, inc_key.c_str()) == NATS_OK) {
+      const std::uint64_t have = std::strtoull(kvEntry_ValueString(ie), nullptr, 10);
+      const std::uint64_t last = kvEntry_Revision(ie);
+      kvEntry_Destroy(ie);
+      if (kvStore_UpdateString(&rev, n->kv_, inc_key.c_str(), std::to_string(have + 1).c_str(), last) == NATS_OK) {
+        n->incarnation_ = static_cast<std::uint32_t>(have + 1);
+      }
+    } else if (kvStore_CreateString(&rev, n->kv_, inc_key.c_str(), "1") == NATS_OK) {
+      n->incarnation_ = 1;
+    }
+  }
+  if (n->incarnation_ == 0 || n->incarnation_ > 0xffff) return fail("cannot count the region's incarnation");
+  // The handoff stream (idempotent: an existing one is fine) and this region's durable consumer.
+  {
+    jsStreamConfig sc;
+    jsStreamConfig_Init(&sc);
+    const std::string name = "WORLD_" + opt.world;
+    const std::string subj = "world." + opt.world + ".handoff.>";
+    const char* subjects[1] = {subj.c_str()};
+    sc.Name = name.c_str();
+    sc.Subjects = subjects;
+    sc.SubjectsLen = 1;
+    sc.Storage = js_FileStorage;
+    sc.Duplicates = static_cast<std::int64_t>(120) * 1000000000;  // 2 minutes of message-id dedupe
+    sc.MaxAge = static_cast<std::int64_t>(3600) * 1000000000;
+    jsErrCode jerr = static_cast<jsErrCode>(0);
+    s = js_AddStream(nullptr, n->js_, &sc, nullptr, &jerr);
+    if (s != NATS_OK && jerr != JSStreamNameExistErr) return fail("handoff stream: " + status_text(s));
+    jsSubOptions so;
+    jsSubOptions_Init(&so);
+    so.Stream = name.c_str();
+    so.Config.AckWait = static_cast<std::int64_t>(5) * 1000000000;
+    const std::string durable = "region-" + std::to_string(n->region_);
+    const std::string hsubj = n->subject("handoff", n->region_);
+    if ((s = js_PullSubscribe(&n->sub_handoff_, n->js_, hsubj.c_str(), durable.c_str(), nullptr, &so, &jerr)) != NATS_OK) {
+      return fail("handoff consumer: " + status_text(s));
+    }
+  }
+  n->link_ = std::make_unique<zone_link>([&] {
+    link_options lo;
+    lo.map = n->map_;
+    lo.region = n->region_;
+    lo.incarnation = n->incarnation_;
+    lo.handoff_margin = opt.handoff_margin;
+    lo.ghost_band = opt.ghost_band > 0 ? opt.ghost_band : ghost_band(zone, opt.handoff_margin);
+    lo.ghost_timeout_ticks = opt.ghost_timeout_ticks;
+    return lo;
+  }());
+  // Core subscriptions: their callbacks only queue (the game thread applies).
+  using kind = inbound_msg::kind;
+  for (const kind k : {kind::ghosts, kind::snapshot_request, kind::input, kind::census}) {
+    n->sub_ctx_[static_cast<std::size_t>(k)] = {n.get(), k};
+  }
+  const auto sub = [&](natsSubscription** out, const std::string& subj, kind k) {
+    if (natsConnection_Subscribe(out, n->nc_, subj.c_str(), &nats_node::on_message, &n->sub_ctx_[static_cast<std::size_t>(k)]) !=
+        NATS_OK) {
+      return false;
+    }
+    natsSubscription_SetPendingLimits(*out, 100000, 256 * 1024 * 1024);
+    return true;
+  };
+  if (!sub(&n->sub_ghosts_, n->subject("ghost", n->region_), kind::ghosts) ||
+      !sub(&n->sub_snap_, n->subject("snap", n->region_), kind::snapshot_request) ||
+      !sub(&n->sub_input_, n->subject("input", n->region_), kind::input) ||
+      !sub(&n->sub_census_, "world." + opt.world + ".census", kind::census)) {
+    return fail("cannot subscribe");
+  }
+  natsConnection_Flush(n->nc_);
+  n->addresses_.assign(n->map_.count(), {std::string(), 0});
+  n->lease_value_ = opt.advertise_host + " 0 " + std::to_string(n->incarnation_);
+  n->heartbeat_ = std::thread([p = n.get()] { p->heartbeat_loop(); });
+  n->fetcher_ = std::thread([p = n.get()] { p->fetch_loop(); });
+  n->sender_ = std::thread([p = n.get()] { p->send_loop(); });
+  spdlog::info("world '{}': region {} of {} ({}x{}), incarnation {}, neighbours {}, ghost band {:.0f} m", opt.world,
+               n->region_, n->map_.count(), n->map_.cols(), n->map_.rows(), n->incarnation_,
+               n->map_.neighbours(n->region_).size(), n->link_->options().ghost_band);
+  return n;
+}
+
+zone_config nats_node::zone_for_region(zone_config c) const {
+  const rect r = map_.region(region_);
+  c.spawn_area = {{r.lo_x, r.lo_y, c.world.lo.z}, {r.hi_x, r.hi_y, c.world.hi.z}};
+  c.seed = c.seed * 1000003u + region_ * 7919u + incarnation_;
+  return c;
+}
+
+void nats_node::leave() {
+  if (stopping_.exchange(true)) return;
+  out_cv_.notify_all();
+  if (sender_.joinable()) sender_.join();
+  if (fetcher_.joinable()) fetcher_.join();
+  if (heartbeat_.joinable()) heartbeat_.join();
+  for (auto* s : {&sub_ghosts_, &sub_snap_, &sub_input_, &sub_census_, &sub_handoff_}) {
+    if (*s) {
+      natsSubscription_Unsubscribe(*s);
+      natsSubscription_Destroy(*s);
+      *s = nullptr;
+    }
+  }
+  {
+    std::lock_guard lock(inbox_mutex_);
+    // Unapplied handoffs are not acked: JetStream gives them to the region's next zone.
+    for (auto* m : handoff_inbox_) natsMsg_Destroy(m);
+    handoff_inbox_.clear();
+  }
+  if (lease_ && !lease_lost_.load()) kvStore_Delete(lease_, lease_key_.c_str());
+  if (kv_) kvStore_Destroy(kv_);
+  if (lease_) kvStore_Destroy(lease_);
+  if (js_) jsCtx_Destroy(js_);
+  if (nc_) {
+    natsConnection_FlushTimeout(nc_, 500);
+    natsConnection_Destroy(nc_);
+  }
+  kv_ = lease_ = nullptr;
+  js_ = nullptr;
+  nc_ = nullptr;
+}
+
+nats_node::~nats_node() { leave(); }
+
+void nats_node::on_message(natsConnection*, natsSubscription*, natsMsg* msg, void* closure) {
+  const auto* ctx = static_cast<const sub_context*>(closure);
+  nats_node* n = ctx->node;
+  inbound_msg m{};
+  m.what = ctx->what;
+  if (m.what == inbound_msg::kind::census) {
+    if (const char* r = natsMsg_GetReply(msg)) m.reply = r;
+  }
+  const auto* d = reinterpret_cast<const std::uint8_t*>(natsMsg_GetData(msg));
+  m.data.assign(d, d + natsMsg_GetDataLength(msg));
+  natsMsg_Destroy(msg);
+  std::lock_guard lock(n->inbox_mutex_);
+  if (n->inbox_.size() > 100000) {  // a stalled game thread must not grow memory without bound
+    ++n->stats_.ghost_inbox_dropped;
+    return;
+  }
+  n->inbox_.push_back(std::move(m));
+}
+
+void nats_node::started(std::uint16_t port) {
+  std::lock_guard lock(lease_mutex_);
+  lease_value_ = opt_.advertise_host + " " + std::to_string(port) + " " + std::to_string(incarnation_);
+  std::uint64_t rev = 0;
+  if (kvStore_UpdateString(&rev, lease_, lease_key_.c_str(), lease_value_.c_str(), lease_revision_) == NATS_OK) {
+    lease_revision_ = rev;
+  } else {
+    lease_lost_ = true;
+  }
+  refresh_addresses();
+}
+
+bool nats_node::refresh_addresses() {
+  std::vector<std::pair<std::string, std::uint16_t>> table(map_.count());
+  for (std::uint32_t r = 0; r < map_.count(); ++r) {
+    kvEntry* e = nullptr;
+    if (kvStore_Get(&e, lease_, ("r." + std::to_string(r)).c_str()) != NATS_OK) continue;
+    std::istringstream in(kvEntry_ValueString(e));
+    std::string host;
+    unsigned port = 0;
+    if (in >> host >> port && port <= 65535) table[r] = {host, static_cast<std::uint16_t>(port)};
+    kvEntry_Destroy(e);
+  }
+  std::lock_guard lock(addr_mutex_);
+  addresses_ = std::move(table);
+  return true;
+}
+
+void nats_node::heartbeat_loop() {
+  const auto period = std::chrono::duration<double>(std::max(0.05, opt_.lease_ttl_s / 4));
+  auto next = std::chrono::steady_clock::now();
+  while (!stopping_.load()) {
+    next += std::chrono::duration_cast<std::chrono::steady_clock::duration>(period);
+    while (!stopping_.load() && std::chrono::steady_clock::now() < next) std::this_thread::sleep_for(std::chrono::milliseconds(20));
+    if (stopping_.load()) break;
+    {
+      std::lock_guard lock(lease_mutex_);
+      std::uint64_t rev = 0;
+      const natsStatus s = kvStore_UpdateString(&rev, lease_, lease_key_.c_str(), lease_value_.c_str(), lease_revision_);
+      if (s == NATS_OK) {
+        lease_revision_ = rev;
+      } else if (s == NATS_ERR || s == NATS_NOT_FOUND) {
+        // The update was refused (wrong last revision: our lease lapsed and the key is gone or
+        // someone else holds the region now): this zone must stop serving it. Timeouts and a
+        // lost connection are transient: the next renewal tries again.
+        spdlog::error("world '{}': lost the lease of region {}: {}", opt_.world, region_, status_text(s));
+        lease_lost_ = true;
+        return;
+      }
+    }
+    refresh_addresses();
+  }
+}
+
+void nats_node::fetch_loop() {
+  while (!stopping_.load()) {
+    natsMsgList list{};
+    const natsStatus s = natsSubscription_Fetch(&list, sub_handoff_, 256, 100, nullptr);
+    if (s != NATS_OK) {
+      if (s != NATS_TIMEOUT) std::this_thread::sleep_for(std::chrono::milliseconds(50));
+      continue;
+    }
+    std::lock_guard lock(inbox_mutex_);
+    for (int i = 0; i < list.Count; ++i) {
+      handoff_inbox_.push_back(list.Msgs[i]);
+      list.Msgs[i] = nullptr;  // ours now (acked and destroyed by the game thread)
+    }
+    natsMsgList_Destroy(&list);
+  }
+}
+
+void nats_node::send_loop() {
+  while (true) {
+    handoff_record r;
+    {
+      std::unique_lock lock(out_mutex_);
+      out_cv_.wait(lock, [&] { return stopping_.load() || !outbox_.empty(); });
+      if (outbox_.empty()) return;  // stopping, nothing left
+      r = outbox_.front();
+      outbox_.pop_front();
+    }
+    const std::string key = "e." + hex(r.gid);
+    if (r.epoch == 0) {
+      // The entity left the world here (a player logged out): its ownership record goes too.
+      kvStore_Delete(kv_, key.c_str());
+      continue;
+    }
+    // 1. Ownership by compare-and-set: from (us, epoch - 1) at the revision we know to (them, epoch).
+    const std::string value = std::to_string(r.to) + " " + std::to_string(r.epoch);
+    std::uint64_t rev = 0;
+    natsStatus s = r.owner_revision == 0
+                       ? kvStore_CreateString(&rev, kv_, key.c_str(), value.c_str())
+                       : kvStore_UpdateString(&rev, kv_, key.c_str(), value.c_str(), r.owner_revision);
+    if (s != NATS_OK) {
+      // Not ours per KV (or KV unreachable): the entity is not handed on; our in-transit copy expires.
+      ++stats_.handoff_cas_conflicts;
+      spdlog::warn("world '{}': handoff of {:x} to region {} refused by the ownership CAS: {}", opt_.world, r.gid, r.to,
+                   status_text(s));
+      continue;
+    }
+    r.owner_revision = rev;
+    // 2. The record on the stream, deduplicated by (gid, epoch) if a retry sends it twice.
+    const auto bytes = encode(r);
+    const std::string subj = subject("handoff", r.to);
+    const std::string msg_id = hex(r.gid) + "-" + std::to_string(r.epoch);
+    jsPubOptions po;
+    jsPubOptions_Init(&po);
+    po.MsgId = msg_id.c_str();
+    bool sent = false;
+    for (int attempt = 0; attempt < 5 && !sent; ++attempt) {
+      s = js_Publish(nullptr, js_, subj.c_str(), bytes.data(), static_cast<int>(bytes.size()), &po, nullptr);
+      sent = s == NATS_OK;
+      if (!sent) std::this_thread::sleep_for(std::chrono::milliseconds(20 << attempt));
+    }
+    if (sent) {
+      ++stats_.handoffs_sent;
+    } else {
+      ++stats_.handoff_publish_failures;
+      spdlog::error("world '{}': handoff of {:x} to region {} not published: {}", opt_.world, r.gid, r.to, status_text(s));
+    }
+  }
+}
+
+void nats_node::answer_census(const std::string& reply) {
+  // region u32, incarnation u32, tick u64, count u32, then (gid u64, epoch u64) per owned entity,
+  // then count u32 and gid u64 per entity in transit from here.
+  const auto ids = link_->owned_epochs();
+  const auto transit = link_->transit_ids();
+  std::vector<std::uint8_t> out(20 + ids.size() * 16 + 4 + transit.size() * 8);
+  const std::uint32_t head[2] = {region_, incarnation_};
+  const auto count = static_cast<std::uint32_t>(ids.size());
+  std::memcpy(out.data(), head, 8);
+  std::memcpy(out.data() + 8, &tick_, 8);
+  std::memcpy(out.data() + 16, &count, 4);
+  for (std::size_t k = 0; k < ids.size(); ++k) {
+    std::memcpy(out.data() + 20 + 16 * k, &ids[k].first, 8);
+    std::memcpy(out.data() + 28 + 16 * k, &ids[k].second, 8);
+  }
+  const auto tcount = static_cast<std::uint32_t>(transit.size());
+  std::uint8_t* t = out.data() + 20 + ids.size() * 16;
+  std::memcpy(t, &tcount, 4);
+  if (tcount) std::memcpy(t + 4, transit.data(), transit.size() * 8);
+  natsConnection_Publish(nc_, reply.c_str(), out.data(), static_cast<int>(out.size()));
+}
+
+void nats_node::before_step(zone_world& w) {
+  tick_ = w.tick();
+  std::vector<inbound_msg> inbox;
+  std::vector<natsMsg*> handoffs;
+  {
+    std::lock_guard lock(inbox_mutex_);
+    inbox.swap(inbox_);
+    handoffs.swap(handoff_inbox_);
+  }
+  // Handoffs first (a ghost of an entity adopted here is then ignored).
+  for (natsMsg* m : handoffs) {
+    const auto* d = reinterpret_cast<const std::uint8_t*>(natsMsg_GetData(m));
+    const auto r = decode_handoff({d, static_cast<std::size_t>(natsMsg_GetDataLength(m))});
+    if (r) {
+      entity_id local = null_entity;
+      const auto st = link_->apply_handoff(w, *r, &local);
+      if (st == handoff_status::adopted) {
+        ++stats_.handoffs_applied;
+        const std::uint64_t now = monotonic_us();
+        const double ms = now > r->sent_us ? static_cast<double>(now - r->sent_us) / 1000.0 : 0.0;
+        handoff_ms_.record(ms);
+        handoff_ticks_.record(ms * tick_rate_hz_ / 1000.0);
+        if (r->token != 0) tokens_[r->token] = {r->gid, tick_ + static_cast<std::uint64_t>(opt_.unclaimed_player_s * tick_rate_hz_)};
+        if (const auto it = early_inputs_.find(r->gid); it != early_inputs_.end()) {
+          w.set_intent(local, it->second.first);
+          early_inputs_.erase(it);
+        }
+      } else if (st == handoff_status::duplicate) {
+        ++stats_.handoff_duplicates;
+      }
+    }
+    natsMsg_Ack(m, nullptr);  // applied (or refused for good): not again
+    natsMsg_Destroy(m);
+  }
+  for (const auto& m : inbox) {
+    switch (m.what) {
+      case inbound_msg::kind::ghosts:
+        if (link_->apply_ghosts(w, m.data) == ghost_status::gap) {
+          const auto from = decode_ghosts(m.data);
+          if (from) {
+            const std::string me = std::to_string(region_);
+            natsConnection_Publish(nc_, subject("snap", from->from).c_str(), me.data(), static_cast<int>(me.size()));
+            ++stats_.snapshot_requests;
+          }
+        }
+        break;
+      case inbound_msg::kind::snapshot_request: {
+        const std::string text(m.data.begin(), m.data.end());
+        char* end = nullptr;
+        const unsigned long r = std::strtoul(text.c_str(), &end, 10);
+        if (end != text.c_str() && r < map_.count()) link_->snapshot_requested(static_cast<std::uint32_t>(r));
+        break;
+      }
+      case inbound_msg::kind::input: {
+        if (m.data.size() != 8 + 4 + 12) break;
+        global_id g;
+        std::uint32_t seq;
+        float v[3];
+        std::memcpy(&g, m.data.data(), 8);
+        std::memcpy(&seq, m.data.data() + 8, 4);
+        std::memcpy(v, m.data.data() + 12, 12);
+        ++stats_.inputs_received;
+        const entity_id local = link_->local_of(g);
+        if (local != null_entity && link_->owns(local)) {
+          w.set_intent(local, {v[0], v[1], v[2]});
+        } else {
+          early_inputs_[g] = {{v[0], v[1], v[2]}, seq};  // the entity is still on its way
+        }
+        break;
+      }
+      case inbound_msg::kind::census:
+        if (!m.reply.empty()) census_replies_.push_back(m.reply);  // answered at the end of the tick
+        break;
+    }
+  }
+  // Neighbours that lost deltas and still wait: ask again now and then.
+  if (tick_ % 15 == 0) {
+    for (const auto n : link_->snapshot_wanted()) {
+      const std::string me = std::to_string(region_);
+      natsConnection_Publish(nc_, subject("snap", n).c_str(), me.data(), static_cast<int>(me.size()));
+    }
+  }
+  link_->expire(w);
+  // Handed-off players whose clients never came: removed (documented loss, docs/world.md).
+  for (auto it = tokens_.begin(); it != tokens_.end();) {
+    if (tick_ > it->second.deadline_tick) {
+      const entity_id local = link_->local_of(it->second.gid);
+      if (local != null_entity && link_->owns(local) && w.despawn(local)) ++stats_.players_abandoned;
+      it = tokens_.erase(it);
+    } else {
+      ++it;
+    }
+  }
+  if (early_inputs_.size() > 100000) early_inputs_.clear();
+}
+
+void nats_node::after_step(zone_world& w, std::vector<redirect>& out) {
+  tick_ = w.tick();
+  link_->assign_ids(w);
+  if (auto gone = link_->take_departed(); !gone.empty()) {
+    std::lock_guard lock(out_mutex_);
+    for (const global_id g : gone) {
+      handoff_record r;
+      r.gid = g;
+      r.epoch = 0;
+      outbox_.push_back(r);
+    }
+    out_cv_.notify_one();
+  }
+  auto records = link_->collect_handoffs(w, monotonic_us());
+  for (auto& r : records) {
+    if (r.behaviour.kind != behaviour::player) continue;
+    r.token = rng_() | 1;  // never 0
+    pending_redirects_.push_back({link_->local_of(r.gid), r.gid, r.to, hex(r.token), tick_});
+    forward_target_[r.gid] = r.to;
+    if (forward_target_.size() > 100000) forward_target_.clear();
+  }
+  if (!records.empty()) {
+    {
+      std::lock_guard lock(out_mutex_);
+      for (auto& r : records) outbox_.push_back(std::move(r));
+    }
+    out_cv_.notify_one();
+  }
+  // Redirects go out once the new zone's address is known (a zone that just started may not be
+  // in the table yet: read KV again then); the client's inputs are forwarded meanwhile.
+  if (!pending_redirects_.empty()) {
+    std::vector<std::pair<std::string, std::uint16_t>> addr;
+    {
+      std::lock_guard lock(addr_mutex_);
+      addr = addresses_;
+    }
+    const bool unknown = std::any_of(pending_redirects_.begin(), pending_redirects_.end(),
+                                     [&](const pending_redirect& p) { return addr[p.to].second == 0; });
+    if (unknown && refresh_addresses()) {
+      std::lock_guard lock(addr_mutex_);
+      addr = addresses_;
+    }
+    const auto give_up = static_cast<std::uint64_t>(opt_.unclaimed_player_s * tick_rate_hz_);
+    std::erase_if(pending_redirects_, [&](const pending_redirect& p) {
+      const auto& [host, port] = addr[p.to];
+      if (port != 0) {
+        out.push_back({p.local, host, port, p.token});
+        ++stats_.redirects;
+        return true;
+      }
+      return tick_ > p.since_tick + give_up;
+    });
+  }
+  for (const auto& reply : census_replies_) answer_census(reply);
+  census_replies_.clear();
+  link_->build_ghosts(w, ghost_out_);
+  for (const auto& m : ghost_out_) {
+    const auto bytes = encode(m);
+    if (natsConnection_Publish(nc_, subject("ghost", m.to).c_str(), bytes.data(), static_cast<int>(bytes.size())) != NATS_OK) {
+      ++stats_.ghost_publish_failures;
+    }
+  }
+}
+
+zone_extension::claim nats_node::claim_token(const std::string& token, zone_world& w, entity_id& entity) {
+  char* end = nullptr;
+  const std::uint64_t t = std::strtoull(token.c_str(), &end, 16);
+  if (token.size() != 16 || end != token.c_str() + 16 || t == 0) return claim::refused;
+  const auto it = tokens_.find(t);
+  if (it == tokens_.end()) return claim::wait;  // the handoff may not have landed yet
+  const entity_id local = link_->local_of(it->second.gid);
+  tokens_.erase(it);
+  if (local == null_entity || !link_->owns(local) || w.behaviour_of(local) != behaviour::player) return claim::refused;
+  entity = local;
+  ++stats_.redirect_claims;
+  return claim::ready;
+}
+
+void nats_node::forward_input(entity_id e, const vec3& intent, std::uint32_t sequence) {
+  const global_id g = link_->gid_of(e);
+  if (g == 0) return;
+  // Where it went: the zone this one handed it to.
+  std::uint8_t buf[24];
+  std::memcpy(buf, &g, 8);
+  std::memcpy(buf + 8, &sequence, 4);
+  const float v[3] = {intent.x, intent.y, intent.z};
+  std::memcpy(buf + 12, v, 12);
+  const auto target = forward_target_.find(g);
+  if (target == forward_target_.end()) return;
+  natsConnection_Publish(nc_, subject("input", target->second).c_str(), buf, sizeof buf);
+  ++stats_.inputs_forwarded;
+}
+
+// ---- checking a world from outside ---------------------------------------------------------------
+
+std::optional<std::vector<census_entry>> take_census(const std::string& url, const std::string& world, int wait_ms,
+                                                     std::string* error, const std::function<void()>& pump) {
+  natsConnection* nc = nullptr;
+  if (natsStatus s = natsConnection_ConnectTo(&nc, url.c_str()); s != NATS_OK) {
+    if (error) *error = "cannot connect to " + url + ": " + status_text(s);
+    return std::nullopt;
+  }
+  std::vector<census_entry> out;
+  char inbox[64];
+  std::snprintf(inbox, sizeof inbox, "census.%llx", static_cast<unsigned long long>(monotonic_us()));
+  natsSubscription* sub = nullptr;
+  natsConnection_SubscribeSync(&sub, nc, inbox);
+  natsConnection_PublishRequest(nc, ("world." + world + ".census").c_str(), inbox, "", 0);
+  natsConnection_Flush(nc);
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::milliseconds(wait_ms);
+  while (std::chrono::steady_clock::now() < deadline) {
+    if (pump) pump();
+    natsMsg* m = nullptr;
+    if (natsSubscription_NextMsg(&m, sub, 20) != NATS_OK) continue;
+    const auto* d = reinterpret_cast<const std::uint8_t*>(natsMsg_GetData(m));
+    const auto len = static_cast<std::size_t>(natsMsg_GetDataLength(m));
+    census_entry e;
+    std::uint32_t count = 0;
+    if (len >= 20) {
+      std::memcpy(&e.region, d, 4);
+      std::memcpy(&e.incarnation, d + 4, 4);
+      std::memcpy(&e.tick, d + 8, 8);
+      std::memcpy(&count, d + 16, 4);
+    }
+    std::uint32_t tcount = 0;
+    const std::size_t head = 20 + std::size_t{count} * 16;
+    if (len >= 20 && len >= head + 4) std::memcpy(&tcount, d + head, 4);
+    if (len >= 20 && len == head + 4 + std::size_t{tcount} * 8) {
+      e.owned.resize(count);
+      for (std::size_t k = 0; k < count; ++k) {
+        std::memcpy(&e.owned[k].first, d + 20 + 16 * k, 8);
+        std::memcpy(&e.owned[k].second, d + 28 + 16 * k, 8);
+      }
+      e.transit.resize(tcount);
+      if (tcount) std::memcpy(e.transit.data(), d + head + 4, std::size_t{tcount} * 8);
+      out.push_back(std::move(e));
+    }
+    natsMsg_Destroy(m);
+  }
+  natsSubscription_Destroy(sub);
+  natsConnection_Destroy(nc);
+  std::sort(out.begin(), out.end(), [](const census_entry& a, const census_entry& b) { return a.region < b.region; });
+  return out;
+}
+
+std::optional<std::map<global_id, std::pair<std::uint32_t, std::uint64_t>>> read_owners(const std::string& url,
+                                                                                        const std::string& world,
+                                                                                        std::string* error) {
+  natsConnection* nc = nullptr;
+  jsCtx* js = nullptr;
+  kvStore* kv = nullptr;
+  const auto fail = [&](const std::string& why) {
+    if (error) *error = why;
+    if (kv) kvStore_Destroy(kv);
+    if (js) jsCtx_Destroy(js);
+    if (nc) natsConnection_Destroy(nc);
+    return std::nullopt;
+  };
+  if (natsStatus s = natsConnection_ConnectTo(&nc, url.c_str()); s != NATS_OK) return fail("cannot connect: " + status_text(s));
+  if (natsConnection_JetStream(&js, nc, nullptr) != NATS_OK) return fail("no JetStream");
+  if (js_KeyValue(&kv, js, ("world-" + world).c_str()) != NATS_OK) return fail("no world '" + world + "' in KV");
+  std::map<global_id, std::pair<std::uint32_t, std::uint64_t>> out;
+  kvKeysList keys{};
+  const natsStatus ks = kvStore_Keys(&keys, kv, nullptr);
+  if (ks == NATS_OK) {
+    for (int i = 0; i < keys.Count; ++i) {
+      const std::string k = keys.Keys[i];
+      if (k.rfind("e.", 0) != 0) continue;
+      kvEntry* e = nullptr;
+      if (kvStore_Get(&e, kv, k.c_str()) != NATS_OK) continue;
+      std::istringstream in(kvEntry_ValueString(e));
+      std::uint32_t region = 0;
+      std::uint64_t epoch = 0;
+      if (in >> region >> epoch) out[std::strtoull(k.c_str() + 2, nullptr, 16)] = {region, epoch};
+      kvEntry_Destroy(e);
+    }
+    kvKeysList_Destroy(&keys);
+  } else if (ks != NATS_NOT_FOUND) {
+    return fail("cannot list keys: " + status_text(ks));
+  }
+  kvStore_Destroy(kv);
+  jsCtx_Destroy(js);
+  natsConnection_Destroy(nc);
+  return out;
+}
+
+world_check check_world(const std::vector<census_entry>& census,
+                        const std::map<global_id, std::pair<std::uint32_t, std::uint64_t>>& owners) {
+  world_check c;
+  c.zones = census.size();
+  c.kv_records = owners.size();
+  std::unordered_map<global_id, std::vector<std::pair<std::uint32_t, std::uint64_t>>> seen;  // id -> (region, epoch)
+  for (const auto& z : census) {
+    c.owned += z.owned.size();
+    for (const auto& [g, epoch] : z.owned) seen[g].emplace_back(z.region, epoch);
+  }
+  for (const auto& [g, where] : seen) {
+    for (std::size_t a = 0; a < where.size(); ++a) {
+      for (std::size_t b = a + 1; b < where.size(); ++b) {
+        if (where[a].second == where[b].second) {
+          ++c.owned_twice;
+        } else {
+          ++c.moving;
+        }
+      }
+    }
+    for (const auto& [region, epoch] : where) {
+      if (epoch == 0) continue;  // never handed off: no record needed
+      const auto it = owners.find(g);
+      if (it == owners.end()) {
+        ++c.kv_missing;
+      } else if (it->second.second < epoch || (it->second.second == epoch && it->second.first != region)) {
+        ++c.kv_disagree;
+      }
+    }
+  }
+  std::unordered_map<global_id, bool> transit;
+  for (const auto& z : census) {
+    for (const global_id g : z.transit) {
+      if (!seen.contains(g)) transit[g] = true;
+    }
+  }
+  c.transit_only = transit.size();
+  for (const auto& [g, rec] : owners) {
+    const auto it = seen.find(g);
+    bool current = false;
+    if (it != seen.end()) {
+      for (const auto& [region, epoch] : it->second) current = current || epoch >= rec.second;
+    }
+    if (!current) {
+      ++c.kv_in_flight;
+      if (c.in_flight_examples.size() < 10) {
+        std::string what = "id " + hex(g) + ": KV says region " + std::to_string(rec.first) + " epoch " + std::to_string(rec.second) + "; zones:";
+        if (it != seen.end()) {
+          for (const auto& [region, epoch] : it->second) what += " region " + std::to_string(region) + " epoch " + std::to_string(epoch);
+        } else {
+          what += transit.contains(g) ? " in transit" : " none";
+        }
+        c.in_flight_examples.push_back(what);
+      }
+    }
+  }
+  return c;
+}
+
+}  // namespace zone::world

@@ -1,0 +1,207 @@
+// A zone server's membership in a world of zones over NATS (docs/world.md): the layout and the
+// region leases in NATS KV (changed only by compare-and-set), ghosts on core NATS subjects, and
+// handoffs on a JetStream stream (message-id dedupe) with entity ownership CAS'd in KV. Built
+// only when libnats is found (ZONE_HAVE_NATS).
+//
+// Subjects (W = the world's name, r = a region):
+//   world.W.ghost.r     ghost messages to region r (one per neighbour per tick)
+//   world.W.snap.r      "send me a snapshot" to region r (payload: the asking region)
+//   world.W.input.r     inputs forwarded to region r (a handed-off player's client not moved yet)
+//   world.W.handoff.r   handoff records to region r (JetStream stream WORLD_W, durable consumer per region)
+//   world.W.census      request: every zone answers with the world-wide ids it owns (and their epochs)
+// KV buckets: world-W (key "layout", "inc.r" = region r's claim count, "e.<gid>" = an entity's
+// owner "region epoch"), world-W-lease (key "r.r" = "host port incarnation" of region r's zone,
+// with a TTL: a zone that stops renewing it loses the region).
+#pragma once
+
+#include <array>
+#include <atomic>
+#include <condition_variable>
+#include <functional>
+#include <map>
+#include <cstdint>
+#include <deque>
+#include <memory>
+#include <mutex>
+#include <optional>
+#include <random>
+#include <string>
+#include <thread>
+#include <unordered_map>
+#include <vector>
+
+#include "world.h"
+#include "zone_server.h"
+
+struct __natsConnection;
+struct __natsSubscription;
+struct __natsMsg;
+struct __jsCtx;
+struct __kvStore;
+
+namespace zone::world {
+
+struct node_options {
+  std::string world;   ///< the world's name
+  std::string url;     ///< NATS server URL
+  std::uint32_t cols = 2, rows = 2;  ///< layout of a new world (an existing layout wins)
+  net::world_bounds bounds{{0, 0, 0}, {4096, 4096, 256}};
+  std::string advertise_host = "127.0.0.1";  ///< where redirected clients reach this zone
+  double lease_ttl_s = 3;                    ///< a region's lease lapses this long after its zone's last renewal
+  float handoff_margin = 8;
+  float ghost_band = 0;  ///< 0: world::ghost_band(zone config)
+  std::uint32_t ghost_timeout_ticks = 60;
+  double unclaimed_player_s = 10;  ///< a handed-off player whose client never came is removed after this
+};
+
+/// Counters of a node (game thread writes, any thread may read roughly).
+struct node_stats {
+  std::atomic<std::uint64_t> handoffs_sent{0}, handoff_cas_conflicts{0}, handoff_publish_failures{0};
+  std::atomic<std::uint64_t> handoffs_applied{0}, handoff_duplicates{0}, redirects{0}, redirect_claims{0};
+  std::atomic<std::uint64_t> inputs_forwarded{0}, inputs_received{0}, snapshot_requests{0}, players_abandoned{0};
+  std::atomic<std::uint64_t> ghost_publish_failures{0}, ghost_inbox_dropped{0};
+};
+
+/// One zone's NATS side; a zone_extension for zone_server.
+class nats_node final : public zone_extension {
+ public:
+  /// Connects, reads or creates the layout, and claims a free region (lease by CAS). nullptr and
+  /// `*error` when the server is unreachable or every region is taken.
+  static std::unique_ptr<nats_node> join(const node_options& opt, const zone_config& zone, std::string* error);
+  ~nats_node() override;
+  nats_node(const nats_node&) = delete;
+  nats_node& operator=(const nats_node&) = delete;
+
+  [[nodiscard]] std::uint32_t region() const { return region_; }
+  [[nodiscard]] std::uint32_t incarnation() const { return incarnation_; }
+  [[nodiscard]] const layout& map() const { return map_; }
+  /// The zone config to run this region with: NPCs and towns inside the region, a seed of its own.
+  [[nodiscard]] zone_config zone_for_region(zone_config c) const;
+  [[nodiscard]] const zone_link& link() const { return *link_; }
+  [[nodiscard]] const node_stats& stats() const { return stats_; }
+  /// Handoff latency (decision in the old zone to adoption in the new one), ms and ticks.
+  [[nodiscard]] const latency_histogram& handoff_ms() const { return handoff_ms_; }
+  [[nodiscard]] const latency_histogram& handoff_ticks() const { return handoff_ticks_; }
+  /// Gives the region up (deletes the lease) on the way out; the destructor calls it.
+  void leave();
+
+  // zone_extension
+  void started(std::uint16_t port) override;
+  void before_step(zone_world& w) override;
+  void after_step(zone_world& w, std::vector<redirect>& out) override;
+  claim claim_token(const std::string& token, zone_world& w, entity_id& entity) override;
+  [[nodiscard]] bool owns(entity_id e) const override { return link_->owns(e); }
+  void forward_input(entity_id e, const vec3& intent, std::uint32_t sequence) override;
+  [[nodiscard]] bool must_stop() const override { return lease_lost_.load(); }
+
+ private:
+  nats_node() = default;
+  struct inbound_msg {
+    enum class kind : std::uint8_t { ghosts, snapshot_request, input, census } what;
+    std::vector<std::uint8_t> data;
+    std::string reply;
+  };
+  struct sub_context {
+    nats_node* node = nullptr;
+    inbound_msg::kind what = inbound_msg::kind::ghosts;
+  };
+  std::array<sub_context, 4> sub_ctx_{};  ///< one per core subscription (its callback's closure)
+  static void on_message(__natsConnection*, __natsSubscription*, __natsMsg* msg, void* closure);
+  void heartbeat_loop();
+  void fetch_loop();
+  void send_loop();
+  [[nodiscard]] std::string subject(const char* what, std::uint32_t region) const;
+  bool refresh_addresses();
+  void answer_census(const std::string& reply);
+
+  node_options opt_;
+  layout map_;
+  std::uint32_t region_ = 0, incarnation_ = 0;
+  std::unique_ptr<zone_link> link_;
+  __natsConnection* nc_ = nullptr;
+  __jsCtx* js_ = nullptr;
+  __kvStore* kv_ = nullptr;
+  __kvStore* lease_ = nullptr;
+  __natsSubscription* sub_ghosts_ = nullptr;
+  __natsSubscription* sub_snap_ = nullptr;
+  __natsSubscription* sub_input_ = nullptr;
+  __natsSubscription* sub_census_ = nullptr;
+  __natsSubscription* sub_handoff_ = nullptr;  // pull consumer
+  std::string lease_key_, lease_value_;
+  std::uint64_t lease_revision_ = 0;
+  std::mutex lease_mutex_;
+  std::atomic<bool> lease_lost_{false}, stopping_{false};
+
+  // Inboxes filled by NATS threads, drained by the game thread.
+  std::mutex inbox_mutex_;
+  std::vector<inbound_msg> inbox_;
+  std::vector<__natsMsg*> handoff_inbox_;  // JetStream messages: acked after they are applied
+  // Handoff records for the sender thread.
+  std::mutex out_mutex_;
+  std::condition_variable out_cv_;
+  std::deque<handoff_record> outbox_;  ///< a record with to == region_ and epoch 0: delete the gid's KV record
+  // Region addresses (host, port), refreshed by the heartbeat thread.
+  mutable std::mutex addr_mutex_;
+  std::vector<std::pair<std::string, std::uint16_t>> addresses_;
+
+  std::thread heartbeat_, fetcher_, sender_;
+  std::mt19937_64 rng_{std::random_device{}()};
+  struct pending_player {
+    global_id gid;
+    std::uint64_t deadline_tick;
+  };
+  std::unordered_map<std::uint64_t, pending_player> tokens_;                         // token -> player
+  std::unordered_map<global_id, std::pair<vec3, std::uint32_t>> early_inputs_;       // forwarded before the entity came
+  std::unordered_map<global_id, std::uint32_t> forward_target_;                     // handed-off player -> its zone
+  std::vector<ghost_message> ghost_out_;
+  std::vector<std::string> census_replies_;
+  struct pending_redirect {
+    entity_id local;
+    global_id gid;
+    std::uint32_t to;
+    std::string token;
+    std::uint64_t since_tick;
+  };
+  std::vector<pending_redirect> pending_redirects_;
+  std::uint64_t tick_ = 0;
+  double tick_rate_hz_ = 30;
+  node_stats stats_;
+  latency_histogram handoff_ms_, handoff_ticks_;
+};
+
+// ---------------------------------------------------------------------------------------------
+// Checking a running world from outside (world-check, the tests).
+
+/// One zone's answer to the census.
+struct census_entry {
+  std::uint32_t region = 0, incarnation = 0;
+  std::uint64_t tick = 0;
+  std::vector<std::pair<global_id, std::uint64_t>> owned;  ///< (id, epoch)
+  std::vector<global_id> transit;                          ///< handed off from here, not confirmed yet
+};
+/// Asks every zone of the world (world.W.census) and collects the answers for `wait_ms`;
+/// `pump` (when set) is called while waiting (in-process zones answer from their game thread).
+[[nodiscard]] std::optional<std::vector<census_entry>> take_census(const std::string& url, const std::string& world,
+                                                                   int wait_ms, std::string* error,
+                                                                   const std::function<void()>& pump = {});
+/// The ownership records in KV: id -> (region, epoch).
+[[nodiscard]] std::optional<std::map<global_id, std::pair<std::uint32_t, std::uint64_t>>> read_owners(
+    const std::string& url, const std::string& world, std::string* error);
+
+/// What a census and the KV records say together.
+struct world_check {
+  std::size_t zones = 0, owned = 0;
+  std::size_t transit_only = 0;    ///< handed off and owned by no zone yet (on the stream)
+  std::size_t owned_twice = 0;     ///< the same (id, epoch) in two zones: a broken guarantee
+  std::size_t moving = 0;          ///< the same id in two zones with different epochs (the census caught a handoff)
+  std::size_t kv_records = 0;
+  std::size_t kv_disagree = 0;     ///< a zone owns (id, epoch) while KV names another zone for it, or an older epoch
+  std::size_t kv_missing = 0;      ///< a zone owns an id handed off (epoch > 0) that has no KV record
+  std::size_t kv_in_flight = 0;    ///< KV is ahead of every zone (CAS done, the record not applied yet)
+  std::vector<std::string> in_flight_examples;  ///< the first few of those, readable
+  [[nodiscard]] bool ok() const { return owned_twice == 0 && kv_disagree == 0 && kv_missing == 0; }
+};
+[[nodiscard]] world_check check_world(const std::vector<census_entry>& census,
+                                      const std::map<global_id, std::pair<std::uint32_t, std::uint64_t>>& owners);
+
+}  // namespace zone::world
