@@ -34,7 +34,7 @@ mkdir -p "$OUT"
 ORACLE=()
 [[ ${DEMO_ORACLE:-1} != 0 ]] && ORACLE=(--oracle)
 "$SERVER_EXE" --listen 127.0.0.1 --port 0 --metrics-port 0 --npcs "$NPCS" --tick-rate "$HZ" \
-  --max-clients $((BOTS + 100)) "${ORACLE[@]}" > "$OUT/zone-server.log" 2>&1 &
+  --max-clients $((BOTS + 100)) --teleport 1 "${ORACLE[@]}" > "$OUT/zone-server.log" 2>&1 &
 SERVER=$!
 stop_server() {
   if kill -0 "$SERVER" 2>/dev/null; then

@@ -437,8 +437,12 @@ class swarm {
       {
         std::lock_guard lock(sessions_mutex_);
         b = sessions_[slot];
+        if (!b || !b->playing()) continue;
+        // Claimed: playing() turns false only once the bot's thread has run the logout, so a
+        // second pick of this slot meanwhile would log it out again and launch it twice (a bot
+        // too many, seen on a loaded machine as "bots 83/80").
+        sessions_[slot] = nullptr;
       }
-      if (!b || !b->playing()) continue;
       c_.logouts.fetch_add(1, std::memory_order_relaxed);
       b->logout();
       auto timer = std::make_shared<asio::steady_timer>(*ios_[thread_of(slot)]);

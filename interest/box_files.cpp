@@ -1,8 +1,10 @@
 // Box files: the CSV text format and the binary ".boxes" format (docs/formats.md).
 //
-// Both readers load the whole file (CSV: into one string, parsed with string_view and
-// std::from_chars; binary: one fread per column straight into the box_set's vectors) and
-// validate every box. Both writers write PATH.tmp and rename it over PATH, so a failed write
+// The CSV reader streams: the file is read 1 MiB at a time and parsed line by line (string_view
+// and std::from_chars), so what it holds beyond the boxes themselves is one chunk and at most one
+// unfinished line of max_csv_line_bytes; a longer line (a file that is not CSV, /dev/zero) is an
+// error naming it. The binary reader reads one fread per column straight into the box_set's
+// vectors. Both validate every box. Both writers write PATH.tmp and rename it over PATH, so a failed write
 // never leaves a partial file behind.
 #include <algorithm>
 #include <bit>
@@ -32,6 +34,8 @@ constexpr std::uint32_t known_flags = flag_category_mask;
 constexpr std::size_t header_bytes = 24;  // magic 8, version 4, flags 4, count 8
 /// Box ids are 32-bit: a set may hold at most 2^32 boxes (ids 0 .. 2^32-1).
 constexpr std::uint64_t max_boxes = std::uint64_t{1} << 32;
+/// The longest CSV line (a box line is at most ~150 bytes; comments may be longer).
+constexpr std::size_t max_csv_line_bytes = 4096;
 
 std::string errno_text(int err) { return std::generic_category().message(err); }
 
@@ -53,21 +57,6 @@ long long file_size_of(std::FILE* f) {
   const long long size = std::ftell(f);
   if (std::fseek(f, 0, SEEK_SET) != 0) return -1;
   return size;
-}
-
-/// Reads the rest of `f` and appends it to `text`. `size_hint` is the file's size (-1: unknown).
-std::optional<file_error> read_all(std::FILE* f, const std::string& path, long long size_hint, std::string& text) {
-  std::size_t used = text.size();
-  text.resize(used + (size_hint > 0 ? static_cast<std::size_t>(size_hint) + 1 : std::size_t{1} << 16));
-  for (;;) {
-    if (used == text.size()) text.resize(text.size() * 2);
-    const std::size_t got = std::fread(text.data() + used, 1, text.size() - used, f);
-    used += got;
-    if (got == 0) break;
-  }
-  if (std::ferror(f)) return io_error("cannot read", path, errno);
-  text.resize(used);
-  return std::nullopt;
 }
 
 /// Writes to PATH.tmp, then renames it over PATH; on any failure the temporary is removed.
@@ -247,6 +236,80 @@ bool parse_box_line_fast(const char* p, const char* end, box& b) {
 }
 
 /// Parses one box line (already stripped of '\r' and known not blank or a comment).
+std::optional<file_error> parse_box_line(std::string_view text, std::size_t line, std::size_t box_index, box& b);
+
+/// CSV text fed in pieces: complete lines are parsed as they come, an unfinished one is kept
+/// (at most max_csv_line_bytes). Errors name the line; after one, `out` is cleared.
+class csv_stream {
+ public:
+  explicit csv_stream(box_set& out) : out_(out) { out_.clear(); }
+  std::optional<file_error> feed(std::string_view chunk) {
+    while (!chunk.empty()) {
+      const std::size_t nl = chunk.find('\n');
+      if (nl == std::string_view::npos) {
+        if (partial_.size() + chunk.size() > max_csv_line_bytes) return fail(too_long());
+        partial_.append(chunk);
+        return std::nullopt;
+      }
+      std::optional<file_error> err;
+      if (partial_.empty()) {
+        err = row(chunk.substr(0, nl));
+      } else {
+        if (partial_.size() + nl > max_csv_line_bytes) return fail(too_long());
+        partial_.append(chunk.substr(0, nl));
+        err = row(partial_);
+        partial_.clear();
+      }
+      if (err) return fail(std::move(*err));
+      chunk.remove_prefix(nl + 1);
+    }
+    return std::nullopt;
+  }
+  /// The last line (without a line break) and the end.
+  std::optional<file_error> finish() {
+    if (partial_.empty()) return std::nullopt;
+    auto err = row(partial_);
+    partial_.clear();
+    if (err) return fail(std::move(*err));
+    return std::nullopt;
+  }
+
+ private:
+  file_error too_long() const {
+    return file_error{line_ + 1, line_prefix(line_ + 1) + "longer than " + std::to_string(max_csv_line_bytes) +
+                                     " bytes without a line break (not a CSV box file?)"};
+  }
+  file_error fail(file_error e) {
+    out_.clear();
+    return e;
+  }
+  std::optional<file_error> row(std::string_view r) {
+    ++line_;
+    if (r.size() > max_csv_line_bytes) return too_long_at(line_);
+    if (line_ == 1 && r.starts_with("\xEF\xBB\xBF")) r.remove_prefix(3);  // UTF-8 byte-order mark
+    if (!r.empty() && r.back() == '\r') r.remove_suffix(1);
+    const std::size_t first = r.find_first_not_of(" \t");
+    if (first == std::string_view::npos || r[first] == '#') return std::nullopt;
+    if (out_.size() == max_boxes) {
+      return file_error{line_, line_prefix(line_) + "too many boxes (at most 2^32; box ids are 32-bit)"};
+    }
+    if (!parse_box_line_fast(r.data(), r.data() + r.size(), b_)) {
+      if (auto err = parse_box_line(r, line_, out_.size(), b_)) return err;
+    }
+    out_.push_back(b_);
+    return std::nullopt;
+  }
+  static file_error too_long_at(std::size_t line) {
+    return file_error{line, line_prefix(line) + "longer than " + std::to_string(max_csv_line_bytes) +
+                                " bytes (not a CSV box file?)"};
+  }
+
+  box_set& out_;
+  std::string partial_;
+  std::size_t line_ = 0;
+  box b_;
+};
+
 std::optional<file_error> parse_box_line(std::string_view text, std::size_t line, std::size_t box_index, box& b) {
   std::string_view fields[8];
   std::size_t count = 0;
@@ -405,43 +468,36 @@ std::optional<file_error> read_binary(std::FILE* f, const std::string& path, lon
 // ---- Public API -----------------------------------------------------------------------------
 
 std::optional<file_error> parse_csv(std::string_view text, box_set& out) {
-  out.clear();
-  if (text.starts_with("\xEF\xBB\xBF")) text.remove_prefix(3);  // UTF-8 byte-order mark
+  csv_stream csv(out);
   out.reserve(static_cast<std::size_t>(std::count(text.begin(), text.end(), '\n')) + 1);
-  std::size_t line = 0;
-  std::size_t pos = 0;
-  box b;
-  while (pos < text.size()) {
-    ++line;
-    const std::size_t nl = text.find('\n', pos);
-    const std::size_t end = nl == std::string_view::npos ? text.size() : nl;
-    std::string_view row = text.substr(pos, end - pos);
-    pos = end + 1;
-    if (!row.empty() && row.back() == '\r') row.remove_suffix(1);
-    const std::size_t first = row.find_first_not_of(" \t");
-    if (first == std::string_view::npos || row[first] == '#') continue;
-    if (out.size() == max_boxes) {
-      out.clear();
-      return file_error{line, line_prefix(line) + "too many boxes (at most 2^32; box ids are 32-bit)"};
-    }
-    if (!parse_box_line_fast(row.data(), row.data() + row.size(), b)) {
-      if (auto err = parse_box_line(row, line, out.size(), b)) {
-        out.clear();
-        return err;
-      }
-    }
-    out.push_back(b);
-  }
-  return std::nullopt;
+  if (auto err = csv.feed(text)) return err;
+  return csv.finish();
 }
+
+namespace {
+/// Streams the rest of `f` through a CSV parser; `head` is what was read of it already.
+std::optional<file_error> read_csv_stream(std::FILE* f, const std::string& path, std::string_view head, box_set& out) {
+  csv_stream csv(out);
+  if (auto err = csv.feed(head)) return err;
+  std::vector<char> chunk(std::size_t{1} << 20);
+  for (;;) {
+    const std::size_t got = std::fread(chunk.data(), 1, chunk.size(), f);
+    if (got == 0) break;
+    if (auto err = csv.feed({chunk.data(), got})) return err;
+  }
+  if (std::ferror(f)) {
+    out.clear();
+    return io_error("cannot read", path, errno);
+  }
+  return csv.finish();
+}
+}  // namespace
 
 std::optional<file_error> read_csv_file(const std::string& path, box_set& out) {
   out.clear();
   file_ptr f(std::fopen(path.c_str(), "rb"));
   if (!f) return io_error("cannot open", path, errno);
-  std::string text;
-  if (auto err = read_all(f.get(), path, file_size_of(f.get()), text)) return err;
-  return parse_csv(text, out);
+  return read_csv_stream(f.get(), path, {}, out);
 }
 
 std::optional<file_error> write_csv_file(const std::string& path, const box_set& boxes) {
@@ -517,8 +573,7 @@ std::optional<file_error> read_box_file(const std::string& path, box_set& out) {
     }
     return read_binary(f.get(), path, size, out);
   }
-  if (auto err = read_all(f.get(), path, size, text)) return err;
-  return parse_csv(text, out);
+  return read_csv_stream(f.get(), path, text, out);
 }
 
 }  // namespace zone::interest

@@ -3,6 +3,7 @@
 // touches game state and the tick never waits for a scraper.
 #pragma once
 
+#include <chrono>
 #include <cstdint>
 #include <memory>
 #include <optional>
@@ -33,12 +34,22 @@ class prometheus_text {
   std::string last_header_;
 };
 
+/// What the metrics server allows itself: its own descriptors, apart from the game's.
+struct metrics_limits {
+  /// Connections open at once; one over it is closed as soon as it is accepted (counted).
+  std::size_t max_connections = 16;
+  /// A connection must have sent its request and taken the answer within this.
+  std::chrono::milliseconds request_timeout{5000};
+};
+
 /// Serves GET /metrics with the latest published body on its own I/O thread (404 for other
 /// paths, 405 for other methods; one request per connection). publish() is thread-safe.
+/// Accept errors (out of descriptors) pause accepting 50 ms at a time and are logged at most
+/// once a second, with the count since the last line.
 class metrics_server {
  public:
   /// `port` 0 = an ephemeral port (see port()).
-  metrics_server(std::string address, std::uint16_t port);
+  metrics_server(std::string address, std::uint16_t port, metrics_limits limits = {});
   ~metrics_server();
   metrics_server(const metrics_server&) = delete;
   metrics_server& operator=(const metrics_server&) = delete;
@@ -48,6 +59,12 @@ class metrics_server {
   [[nodiscard]] std::uint16_t port() const;
   void publish(std::string body);
   [[nodiscard]] std::uint64_t requests() const;
+  /// Connections closed at accept because max_connections were open.
+  [[nodiscard]] std::uint64_t connections_refused() const;
+  /// Failed accepts (each followed by a pause).
+  [[nodiscard]] std::uint64_t accept_errors() const;
+  /// Connections open now.
+  [[nodiscard]] std::uint64_t connections_open() const;
   /// Hands the /viewer routes (net/viewer.h) to `viewer` (call before start(); it must outlive
   /// this server). Without one they answer 404 like any other path.
   void attach_viewer(viewer_server* viewer);

@@ -3,6 +3,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdio>
 #include <cstring>
 #include <bit>
 #include <limits>
@@ -753,6 +754,44 @@ client_view::status client_view::apply(const w::tick_update& u, position_visitor
   std::optional<verify_digest> digest;
   if (const auto* d = u.digest()) digest = verify_digest{d->tick(), d->hash(), d->count()};
   return finish(tick, digest, consistent);
+}
+
+std::optional<std::string> check_player_name(std::string_view name, std::size_t max_bytes) {
+  if (name.empty()) return std::string("empty name");
+  if (name.size() > max_bytes) {
+    return "name of " + std::to_string(name.size()) + " bytes (at most " + std::to_string(max_bytes) + ")";
+  }
+  for (std::size_t i = 0; i < name.size(); ++i) {
+    const auto c = static_cast<unsigned char>(name[i]);
+    if (c < 0x20 || c > 0x7e) {
+      char buf[64];
+      std::snprintf(buf, sizeof buf, "name byte %zu is 0x%02x (printable ASCII only)", i, c);
+      return std::string(buf);
+    }
+  }
+  if (name.front() == ' ' || name.back() == ' ') return std::string("name starts or ends with a space");
+  return std::nullopt;
+}
+
+std::string escape_for_log(std::string_view s, std::size_t max_bytes) {
+  static constexpr char hex[] = "0123456789abcdef";
+  const std::size_t shown = std::min(s.size(), max_bytes);
+  std::string out;
+  out.reserve(shown + 16);
+  for (std::size_t i = 0; i < shown; ++i) {
+    const auto c = static_cast<unsigned char>(s[i]);
+    if (c == '\\') {
+      out += "\\\\";
+    } else if (c >= 0x20 && c <= 0x7e) {
+      out += static_cast<char>(c);
+    } else {
+      out += "\\x";
+      out += hex[c >> 4];
+      out += hex[c & 15];
+    }
+  }
+  if (shown < s.size()) out += "...(" + std::to_string(s.size()) + " bytes)";
+  return out;
 }
 
 }  // namespace zone::net

@@ -29,6 +29,7 @@
 #include <sys/uio.h>
 #include <cstring>
 #include <deque>
+#include <list>
 #include <mutex>
 #include <shared_mutex>
 #include <spdlog/spdlog.h>
@@ -79,7 +80,25 @@ namespace {
 
 struct atomic_counters {
   std::atomic<std::uint64_t> connections_accepted{0}, connections_refused{0}, sessions_open{0}, frames_in{0},
-      bytes_in{0}, frames_dropped{0}, resyncs_requested{0}, frames_rejected{0}, inputs_dropped{0}, pings_answered{0};
+      bytes_in{0}, frames_dropped{0}, resyncs_requested{0}, frames_rejected{0}, inputs_dropped{0}, pings_answered{0},
+      pending_open{0}, pending_evicted_address{0}, pending_evicted{0}, hello_timeouts{0}, hellos_rejected{0}, idle_timeouts{0},
+      rate_limited{0}, pings_dropped{0};
+};
+
+/// A token bucket (one per message kind and session; the session's lane only).
+struct token_bucket {
+  double tokens;
+  std::chrono::steady_clock::time_point last;
+  explicit token_bucket(double burst) : tokens(burst), last(std::chrono::steady_clock::now()) {}
+  /// Takes a token if one is there (refilled at `rate` per second up to `burst`).
+  bool take(double rate, double burst) {
+    const auto now = std::chrono::steady_clock::now();
+    tokens = std::min(burst, tokens + std::chrono::duration<double>(now - last).count() * rate);
+    last = now;
+    if (tokens < 1.0) return false;
+    tokens -= 1.0;
+    return true;
+  }
 };
 
 /// The write counters, striped by thread: every sending thread counts each frame it writes, and
@@ -206,6 +225,21 @@ struct server::impl {
   std::mutex events_mutex;
   std::vector<inbound_event> events;
 
+  // Connections that have not said hello: oldest first, and how many each source address has.
+  std::mutex pending_mutex;
+  std::list<std::shared_ptr<session>> pending;                   // guarded by pending_mutex
+  std::unordered_map<std::string, std::size_t> pending_by_address;  // guarded by pending_mutex
+  /// Takes `s` off the pending list (its hello came, or it closed). Any thread.
+  void leave_pending(session& s);
+  /// Players (sessions past their hello): claims a slot, false when max_connections are taken.
+  bool claim_player_slot() {
+    auto open = counters.sessions_open.load();
+    do {
+      if (open >= opt.max_connections) return false;
+    } while (!counters.sessions_open.compare_exchange_weak(open, open + 1));
+    return true;
+  }
+
   atomic_counters counters;
   std::array<write_counters, write_counter_stripes> write_stats;
 
@@ -227,27 +261,32 @@ struct server::impl {
 
 class session : public std::enable_shared_from_this<session> {
  public:
-  session(server::impl& srv, io_lane& lane, tcp::socket socket, session_id id, bool announced)
+  session(server::impl& srv, io_lane& lane, tcp::socket socket, session_id id, std::string address)
       : srv_(srv),
         lane_(lane),
         socket_(std::move(socket)),
         idle_(socket_.get_executor()),
         id_(id),
-        announced_(announced),
+        address_(std::move(address)),
         decoder_(srv.opt.inbound),
-        tokens_(srv.opt.input_burst),
-        last_refill_(steady::now()),
+        input_tokens_(srv.opt.input_burst),
+        ping_tokens_(srv.opt.ping_burst),
         queue_(srv.opt.max_queued_frames) {}
 
   [[nodiscard]] session_id id() const { return id_; }
+  [[nodiscard]] const std::string& address() const { return address_; }
 
-  /// Starts reading and the idle timer (on the session's strand).
+  /// Starts reading and the hello deadline (on the session's strand).
   void start() {
     asio::post(socket_.get_executor(), [self = shared_from_this()] {
-      self->arm_idle(self->srv_.opt.idle_timeout);
+      self->arm_idle(self->srv_.opt.hello_timeout);
       self->do_read();
     });
   }
+
+  // Admission bookkeeping (impl::pending_mutex held).
+  std::list<std::shared_ptr<session>>::iterator pending_at;
+  bool pending = false;
 
   /// Any thread.
   [[nodiscard]] std::shared_ptr<const std::atomic<std::uint32_t>> backlog() const { return backlog_; }
@@ -385,7 +424,11 @@ class session : public std::enable_shared_from_this<session> {
       self->idle_armed_ = false;
       if (self->closing_) {
         self->close_now("closing: the final frame was not taken in time");
+      } else if (!self->hello_seen_) {
+        ++self->srv_.counters.hello_timeouts;
+        self->fail_now(error_code::timeout, "no hello in time");
       } else {
+        ++self->srv_.counters.idle_timeouts;
         self->fail_now(error_code::timeout, "idle for too long");
       }
     });
@@ -416,48 +459,56 @@ class session : public std::enable_shared_from_this<session> {
     decoder_.commit(n);
     srv_.counters.bytes_in += n;
     if (closing_) return;  // only the final frame matters now
+    bool any_frame = false;
     for (;;) {
       const decode_step step = decoder_.next();
       if (step.needs_more()) break;
       if (step.is_error()) {
         ++srv_.counters.frames_rejected;
-        spdlog::warn("session {}: {}", id_, to_string(step.error));
+        spdlog::debug("session {}: {}", id_, to_string(step.error));
         fail_now(to_error_code(step.error), std::string(to_string(step.error)));
         return;
       }
       ++srv_.counters.frames_in;
       handle(step.frame);
       if (closing_ || closed_) return;
+      // The idle timer restarts on a complete frame of a session past its hello (the hello
+      // included): before it, the deadline from accept stands, and bytes of an unfinished frame
+      // are no sign of life.
+      any_frame = any_frame || hello_seen_;
     }
-    arm_idle(srv_.opt.idle_timeout);
+    if (any_frame) arm_idle(srv_.opt.idle_timeout);
     do_read();
   }
 
   void handle(const frame_view& f) {
+    // Before its hello a connection is served nothing: any other message closes it.
+    if (!hello_seen_ && f.type != wire::message::hello) {
+      if (f.type == wire::message::input || f.type == wire::message::teleport || f.type == wire::message::ping) {
+        return fail_now(error_code::unexpected_message, std::string(type_name(f.type)) + " before hello");
+      }
+    }
     switch (f.type) {
       case wire::message::hello:
         if (hello_seen_) return fail_now(error_code::unexpected_message, "second hello");
-        hello_seen_ = true;
-        return forward(f);
+        return on_hello(f);
       case wire::message::input:
-      case wire::message::teleport: {
+      case wire::message::teleport:
         // Teleports count against the same input rate as inputs (the game adds its own cooldown).
-        if (!hello_seen_) return fail_now(error_code::unexpected_message, std::string(type_name(f.type)) + " before hello");
-        // Token bucket.
-        const auto now = steady::now();
-        tokens_ = std::min(srv_.opt.input_burst,
-                           tokens_ + std::chrono::duration<double>(now - last_refill_).count() * srv_.opt.inputs_per_second);
-        last_refill_ = now;
-        if (tokens_ >= 1.0) {
-          tokens_ -= 1.0;
-          consecutive_drops_ = 0;
+        if (input_tokens_.take(srv_.opt.inputs_per_second, srv_.opt.input_burst)) {
+          input_drops_ = 0;
           return forward(f);
         }
         ++srv_.counters.inputs_dropped;
-        if (++consecutive_drops_ > srv_.opt.flood_limit) fail_now(error_code::rate_limited, "input flood");
+        if (++input_drops_ > srv_.opt.flood_limit) return flood("input flood");
         return;
-      }
       case wire::message::ping: {
+        if (!ping_tokens_.take(srv_.opt.pings_per_second, srv_.opt.ping_burst)) {
+          ++srv_.counters.pings_dropped;
+          if (++ping_drops_ > srv_.opt.flood_limit) return flood("ping flood");
+          return;
+        }
+        ping_drops_ = 0;
         const auto* p = f.envelope->message_as_ping();
         ++srv_.counters.pings_answered;
         push_from_lane(make_shared_frame(pong_encoder_.encode(pong_msg{p->client_time_us(), srv_.now_us()})),
@@ -468,6 +519,34 @@ class session : public std::enable_shared_from_this<session> {
         return fail_now(error_code::unexpected_message,
                         "a client may not send " + std::string(type_name(f.type)));
     }
+  }
+
+  void flood(const char* what) {
+    ++srv_.counters.rate_limited;
+    fail_now(error_code::rate_limited, what);
+  }
+
+  /// The hello of a pending connection: the name checked, a player slot claimed, then the game
+  /// hears of the session (connected, then the hello).
+  void on_hello(const frame_view& f) {
+    hello_seen_ = true;
+    srv_.leave_pending(*this);
+    const auto* h = f.envelope->message_as_hello();
+    const std::string_view name = h->name() ? std::string_view(h->name()->c_str(), h->name()->size()) : std::string_view();
+    if (auto why = check_player_name(name, srv_.opt.max_name_bytes)) {
+      ++srv_.counters.hellos_rejected;
+      return fail_now(error_code::bad_hello, "bad name: " + *why);
+    }
+    if (!srv_.claim_player_slot()) {
+      ++srv_.counters.connections_refused;
+      return fail_now(error_code::server_full, "connection limit reached");
+    }
+    announced_ = true;
+    inbound_event e;
+    e.type = inbound_event::kind::connected;
+    e.session = id_;
+    srv_.report(std::move(e));
+    forward(f);
   }
 
   void forward(const frame_view& f) {
@@ -660,7 +739,7 @@ class session : public std::enable_shared_from_this<session> {
 
   void fail_now(error_code code, std::string reason) {
     if (closing_ || closed_) return;
-    spdlog::info("session {}: closing with error {}: {}", id_, wire::EnumNameerror_code(code), reason);
+    spdlog::debug("session {}: closing with error {}: {}", id_, wire::EnumNameerror_code(code), reason);
     boost::system::error_code ignored;
     socket_.shutdown(tcp::socket::shutdown_receive, ignored);
     arm_idle(close_grace);
@@ -687,8 +766,9 @@ class session : public std::enable_shared_from_this<session> {
       socket_.close(ignored);
     }
     idle_.cancel();
+    srv_.leave_pending(*this);
     if (announced_) {
-      spdlog::info("session {}: disconnected ({})", id_, reason);
+      spdlog::debug("session {}: disconnected ({})", id_, reason);
       inbound_event e;
       e.type = inbound_event::kind::disconnected;
       e.session = id_;
@@ -707,13 +787,13 @@ class session : public std::enable_shared_from_this<session> {
   steady::time_point idle_deadline_{};  // the lane's thread: when the session times out
   bool idle_armed_ = false;             // the lane's thread: a wait on idle_ is pending
   const session_id id_;
-  const bool announced_;  // false for a refused connection: the game never hears of it
+  const std::string address_;  // the peer's address (the pending cap's key)
+  bool announced_ = false;     // the game heard of it (a valid hello in a free slot); lane only
   frame_decoder decoder_;
   encoder pong_encoder_{256};
   bool hello_seen_ = false;
-  double tokens_;
-  steady::time_point last_refill_;
-  std::uint32_t consecutive_drops_ = 0;
+  token_bucket input_tokens_, ping_tokens_;
+  std::uint32_t input_drops_ = 0, ping_drops_ = 0;  // over the rate in a row
   std::shared_ptr<std::atomic<std::uint32_t>> backlog_ = std::make_shared<std::atomic<std::uint32_t>>(0);
   // The write side. Written under write_mutex_ only; the lane's thread also reads closing_ and
   // closed_ without it (it is their only writer).
@@ -889,6 +969,16 @@ void server::impl::remove(session_id id) {
   sessions.erase(id);
 }
 
+void server::impl::leave_pending(session& s) {
+  const std::lock_guard lock(pending_mutex);
+  if (!s.pending) return;
+  s.pending = false;
+  pending.erase(s.pending_at);
+  const auto it = pending_by_address.find(s.address());
+  if (it != pending_by_address.end() && --it->second == 0) pending_by_address.erase(it);
+  --counters.pending_open;
+}
+
 void server::impl::admit(tcp::socket socket, io_lane& lane) {
   boost::system::error_code ignored;
   socket.set_option(tcp::no_delay(true), ignored);
@@ -896,28 +986,52 @@ void server::impl::admit(tcp::socket socket, io_lane& lane) {
     socket.set_option(asio::socket_base::send_buffer_size(static_cast<int>(opt.socket_send_buffer)), ignored);
   }
   const session_id id = next_id++;
-  std::size_t open;
-  {
-    const std::shared_lock lock(sessions_mutex);
-    open = sessions.size();
-  }
-  if (open >= opt.max_connections) {
-    ++counters.connections_refused;
-    auto s = std::make_shared<session>(*this, lane, std::move(socket), id, false);
-    s->fail(error_code::server_full, "connection limit reached");
-    return;
-  }
+  const auto peer = socket.remote_endpoint(ignored);
+  std::string address = ignored ? std::string("?") : peer.address().to_string();
   ++counters.connections_accepted;
-  ++counters.sessions_open;
-  auto s = std::make_shared<session>(*this, lane, std::move(socket), id, true);
+  auto s = std::make_shared<session>(*this, lane, std::move(socket), id, std::move(address));
+  // Admission: the connection is pending until its hello, within the per-address and total caps
+  // (never against the player slots).
+  // At a cap, the connection pending longest (of the address, or of all) makes room for the new
+  // one: a player who connects and says hello at once always gets in, and an attacker who holds
+  // many connections without a hello only closes his own oldest (one closed or past its hello
+  // has left the list).
+  std::shared_ptr<session> evicted_address, evicted_total;
+  {
+    const std::lock_guard lock(pending_mutex);
+    auto& from_address = pending_by_address[s->address()];
+    const auto evict = [&](std::list<std::shared_ptr<session>>::iterator at) {
+      std::shared_ptr<session> old = *at;
+      old->pending = false;
+      pending.erase(at);
+      const auto it = pending_by_address.find(old->address());
+      if (it != pending_by_address.end() && --it->second == 0 && &it->second != &from_address) pending_by_address.erase(it);
+      --counters.pending_open;
+      return old;
+    };
+    if (from_address >= opt.max_pending_per_address) {
+      const auto oldest = std::find_if(pending.begin(), pending.end(),
+                                       [&](const std::shared_ptr<session>& p) { return p->address() == s->address(); });
+      if (oldest != pending.end()) {
+        evicted_address = evict(oldest);
+        ++counters.pending_evicted_address;
+      }
+    }
+    if (pending.size() >= opt.max_pending && !pending.empty()) {
+      evicted_total = evict(pending.begin());
+      ++counters.pending_evicted;
+    }
+    ++from_address;
+    s->pending = true;
+    s->pending_at = pending.insert(pending.end(), s);
+    ++counters.pending_open;
+  }
+  if (evicted_address) evicted_address->fail(error_code::server_full, "too many connections from this address waiting for their hello");
+  if (evicted_total) evicted_total->fail(error_code::server_full, "too many connections waiting for their hello");
   {
     const std::lock_guard lock(sessions_mutex);
     sessions.emplace(id, s);
   }
-  inbound_event e;
-  e.type = inbound_event::kind::connected;
-  e.session = id;
-  report(std::move(e));
   s->start();
 }
 
@@ -983,10 +1097,12 @@ std::optional<std::string> server::start() {
   m.file_limit = files.soft;
   if (!files.error.empty()) spdlog::warn("{}", files.error);
   spdlog::info("open-file limit {} (was {}, hard {})", files.soft, files.before, files.hard);
-  if (files.soft != 0 && m.opt.max_connections + reserved_file_descriptors > files.soft) {
-    spdlog::warn("max-clients {} exceeds what the open-file limit {} allows (about {} connections): raise the hard "
-                 "limit (ulimit -Hn) or connections beyond it are refused by the system",
-                 m.opt.max_connections, files.soft,
+  // Player slots and pending connections together must fit (the metrics server's few come out of
+  // the reserve): then nothing else in the process can take a player's descriptor.
+  if (files.soft != 0 && m.opt.max_connections + m.opt.max_pending + reserved_file_descriptors > files.soft) {
+    spdlog::warn("max-clients {} plus max-pending {} exceed what the open-file limit {} allows (about {} connections): "
+                 "raise the hard limit (ulimit -Hn) or connections beyond it are refused by the system",
+                 m.opt.max_connections, m.opt.max_pending, files.soft,
                  files.soft > reserved_file_descriptors ? files.soft - reserved_file_descriptors : 0);
   }
   boost::system::error_code ec;
@@ -1088,6 +1204,12 @@ void server::stop() {
     const std::lock_guard lock(m.sessions_mutex);
     m.sessions.clear();
   }
+  {
+    const std::lock_guard lock(m.pending_mutex);
+    for (auto& s : m.pending) s->pending = false;
+    m.pending.clear();
+    m.pending_by_address.clear();
+  }
   spdlog::info("zone server stopped");
 }
 
@@ -1179,6 +1301,13 @@ server_stats server::stats() const {
   st.connections_accepted = c.connections_accepted.load();
   st.connections_refused = c.connections_refused.load();
   st.sessions_open = c.sessions_open.load();
+  st.pending_open = c.pending_open.load();
+  st.pending_evicted_address = c.pending_evicted_address.load();
+  st.pending_evicted = c.pending_evicted.load();
+  st.hello_timeouts = c.hello_timeouts.load();
+  st.hellos_rejected = c.hellos_rejected.load();
+  st.idle_timeouts = c.idle_timeouts.load();
+  st.rate_limited = c.rate_limited.load();
   st.frames_in = c.frames_in.load();
   st.frames_out = frames_out;
   st.writes = writes;
@@ -1190,6 +1319,7 @@ server_stats server::stats() const {
   st.frames_rejected = c.frames_rejected.load();
   st.inputs_dropped = c.inputs_dropped.load();
   st.pings_answered = c.pings_answered.load();
+  st.pings_dropped = c.pings_dropped.load();
   return st;
 }
 

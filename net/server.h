@@ -37,6 +37,8 @@ struct server_options {
   std::string address = "127.0.0.1";
   std::uint16_t port = 0;       ///< 0 = an ephemeral port (see server::port())
   unsigned io_threads = 1;       ///< each runs its own event loop; a session lives on one of them
+  /// Player slots: sessions that said hello. A hello over it gets error server_full. Connections
+  /// that have not said hello are counted apart (max_pending, max_pending_per_address).
   std::size_t max_connections = 1000;
   decoder_options inbound{};    ///< max inbound frame size and verifier limits
   /// Outbound queue bound per session, in frames. State frames are deltas, so when a state frame
@@ -79,8 +81,29 @@ struct server_options {
   double inputs_per_second = 60;
   double input_burst = 30;
   std::uint32_t flood_limit = 200;
-  /// A session that sends nothing for this long gets error timeout and is closed (clients ping).
+  /// Pings per second a client may send (its own token bucket of `ping_burst`): pings over the
+  /// rate get no pong and are counted; more than `flood_limit` in a row: error rate_limited.
+  double pings_per_second = 10;
+  double ping_burst = 10;
+  /// A session that sends no complete frame for this long gets error timeout and is closed
+  /// (clients ping). Bytes of an unfinished frame do not count: a client that drips a frame is idle.
   std::chrono::milliseconds idle_timeout{10000};
+
+  // Admission: a connection is "pending" from accept until its hello, and holds no player slot.
+  /// A pending connection that has not completed its hello this long after accept gets error
+  /// timeout and is closed, whatever bytes it sent. Nothing but a hello is served before it (a
+  /// ping, an input: error unexpected_message).
+  std::chrono::milliseconds hello_timeout{3000};
+  /// Pending connections in total: at the cap, the one pending longest is closed (error
+  /// server_full) to admit the new one, so connections that never say hello cannot keep a player out.
+  std::size_t max_pending = 1024;
+  /// Pending connections per source address: at the cap, that address's connection pending
+  /// longest is closed (error server_full) to admit the new one. One address thus holds at most
+  /// this many, and a player behind it (NAT) who says hello at once still gets in.
+  std::size_t max_pending_per_address = 256;
+  /// Longest player name in bytes; a name must be 1 .. max_name_bytes printable ASCII characters
+  /// (0x20-0x7E) without leading or trailing spaces (error bad_hello otherwise).
+  std::size_t max_name_bytes = 32;
 };
 
 using session_id = std::uint64_t;
@@ -88,7 +111,7 @@ using session_id = std::uint64_t;
 /// What the network threads report to the game thread (in arrival order per session).
 struct inbound_event {
   enum class kind : std::uint8_t {
-    connected,       ///< a new session (no message yet)
+    connected,       ///< a new session: it said a valid hello (the hello message follows at once)
     message,         ///< a client message (hello, input; pings are answered by the server itself)
     frames_dropped,  ///< state frames were dropped for this slow session: it gets no state frame
                      ///< until a delivery::state_reset frame (one event per episode)
@@ -162,9 +185,16 @@ struct outgoing_frame {
 
 /// Counters (monotonic, thread-safe snapshot).
 struct server_stats {
-  std::uint64_t connections_accepted = 0;
-  std::uint64_t connections_refused = 0;  ///< over max_connections
-  std::uint64_t sessions_open = 0;
+  std::uint64_t connections_accepted = 0;  ///< TCP connections taken from the backlog (pending until hello)
+  std::uint64_t connections_refused = 0;  ///< hellos over max_connections (error server_full)
+  std::uint64_t sessions_open = 0;        ///< sessions that said hello and are open (player slots held)
+  std::uint64_t pending_open = 0;         ///< connections open that have not said hello yet
+  std::uint64_t pending_evicted_address = 0;  ///< pending connections closed for a newer one from their address (max_pending_per_address)
+  std::uint64_t pending_evicted = 0;      ///< pending connections closed for a newer one (max_pending)
+  std::uint64_t hello_timeouts = 0;       ///< pending connections closed at hello_timeout
+  std::uint64_t hellos_rejected = 0;      ///< hellos with a bad name (error bad_hello)
+  std::uint64_t idle_timeouts = 0;        ///< sessions closed at idle_timeout
+  std::uint64_t rate_limited = 0;         ///< sessions closed for flooding (error rate_limited)
   std::uint64_t frames_in = 0;
   std::uint64_t frames_out = 0;
   std::uint64_t writes = 0;            ///< gathered socket writes (one may carry several frames; one the
@@ -178,6 +208,7 @@ struct server_stats {
   std::uint64_t frames_rejected = 0;   ///< inbound frames that failed decoding (session closed)
   std::uint64_t inputs_dropped = 0;    ///< over the input rate
   std::uint64_t pings_answered = 0;
+  std::uint64_t pings_dropped = 0;     ///< over the ping rate (no pong)
 };
 
 class server {

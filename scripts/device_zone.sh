@@ -78,7 +78,7 @@ for step in "$@"; do
       [ -n "${SERVER_CPUS:-}" ] && server_pin=(taskset -c "$SERVER_CPUS")
       [ -n "${SWARM_CPUS:-}" ] && swarm_pin=(taskset -c "$SWARM_CPUS")
       "${server_pin[@]}" "$server_bin" --listen 127.0.0.1 --port 0 --metrics-port 0 --npcs "$npcs" --tick-rate 30 \
-        --max-clients $((bots + 100)) --threads "${SERVER_THREADS:-8}" --io-threads "${SERVER_IO_THREADS:-4}" \
+        --max-clients $((bots + 100)) --max-pending-per-address $((bots + 100)) --teleport 1 --threads "${SERVER_THREADS:-8}" --io-threads "${SERVER_IO_THREADS:-4}" \
         --finder auto --interest "${SERVER_INTEREST:-auto}" --socket-send-buffer "${SERVER_SNDBUF:-65536}" \
         --tick-csv "$out/${tag}zone-ticks.csv" ${SERVER_ARGS:-} > "$out/${tag}zone-server.log" 2>&1 &
       server=$!

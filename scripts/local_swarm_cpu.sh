@@ -16,7 +16,7 @@ ulimit -n 8192 2>/dev/null
 BOTS=${BOTS:-1500}; NPCS=${NPCS:-5000}; SECS=${SECS:-25}; HZ=${HZ:-20}
 out=${OUTDIR:-/tmp/zone-cpu}/$tag; mkdir -p "$out"
 "$srv" --listen 127.0.0.1 --port 0 --metrics-port 0 --npcs "$NPCS" --tick-rate "$HZ" --threads "${THREADS:-2}" \
-  --io-threads "${IO_THREADS:-2}" --max-clients $((BOTS + 100)) --socket-send-buffer 65536 "$@" > "$out/server.log" 2>&1 &
+  --io-threads "${IO_THREADS:-2}" --max-clients $((BOTS + 100)) --max-pending-per-address $((BOTS + 100)) --teleport 1 --socket-send-buffer 65536 "$@" > "$out/server.log" 2>&1 &
 pid=$!
 port=$(zone_port "$out/server.log" 300)
 [ -n "$port" ] || { echo "zone-server did not start"; cat "$out/server.log"; kill "$pid"; exit 1; }

@@ -14,6 +14,7 @@ packages=(
   python3
   nats-server libnats-dev  # the world of zones (world/, docs/world.md)
   chromium
+  clang libclang-rt-14-dev  # the fuzz targets (fuzz/, scripts/fuzz.sh): clang's libFuzzer, ASan, UBSan
 )
 
 missing=()

@@ -116,6 +116,7 @@ int main(int argc, char** argv) {
   so.direct_writes = o.direct_writes;
   so.batching = o.batching;
   so.max_connections = o.sessions + 16;
+  so.max_pending = so.max_pending_per_address = o.sessions + 16;  // every client connects at once from loopback
   so.idle_timeout = std::chrono::hours(1);
   server srv(so);
   if (auto err = srv.start()) {

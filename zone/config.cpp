@@ -56,6 +56,13 @@ std::optional<std::string> validate(const zone_config& c) {
   if (c.socket_send_buffer > (std::size_t{1} << 30)) return bad("socket-send-buffer must be <= 1 GiB");
   if (c.client_byte_budget < 256) return bad("client-byte-budget must be >= 256");
   if (!(c.inputs_per_second > 0)) return bad("inputs-per-second must be > 0");
+  if (!(c.pings_per_second > 0)) return bad("pings-per-second must be > 0");
+  if (!(c.hello_timeout_s > 0 && c.hello_timeout_s <= 3600)) return bad("hello-timeout must be in (0, 3600] seconds");
+  if (!(c.idle_timeout_s > 0 && c.idle_timeout_s <= 86400)) return bad("idle-timeout must be in (0, 86400] seconds");
+  if (c.max_pending == 0 || c.max_pending_per_address == 0) return bad("max-pending and max-pending-per-address must be >= 1");
+  if (c.max_name_bytes == 0 || c.max_name_bytes > 1024) return bad("max-name-bytes must be 1 .. 1024");
+  if (!(c.log_summary_s >= 0 && std::isfinite(c.log_summary_s))) return bad("log-summary must be >= 0 seconds");
+  if (c.metrics_max_connections == 0 || c.metrics_max_connections > 4096) return bad("metrics-max-connections must be 1 .. 4096");
   if (!(c.teleport_cooldown_s >= 0 && std::isfinite(c.teleport_cooldown_s))) return bad("teleport-cooldown must be >= 0");
   if (!(c.spawn_radius >= 0 && std::isfinite(c.spawn_radius))) return bad("spawn-radius must be >= 0");
   if (!(c.update_near >= 0 && c.update_mid >= c.update_near && std::isfinite(c.update_mid))) {
@@ -119,7 +126,8 @@ config_result parse_config(int argc, const char* const* argv) {
   general.add_options()                                                                   //
       ("help,h", "print this help and exit")                                              //
       ("config", po::value(&config_file), "read options from an INI-style file (name = value)")  //
-      ("log-level", po::value(&c.log_level)->default_value(c.log_level), "trace, debug, info, warn, error, critical, off")  //
+      ("log-level", po::value(&c.log_level)->default_value(c.log_level), "trace, debug, info, warn, error, critical, off (per-session joins and leaves are at debug)")  //
+      ("log-summary", po::value(&c.log_summary_s)->default_value(c.log_summary_s), "seconds between info lines summing up joins, leaves and refused connections (0 = none)")  //
       ("tick-csv", po::value(&c.tick_csv), "write one CSV line per tick to this file: tick, seconds since start, clients, frames, bytes, and the phases' ms (docs/zone.md)");
   po::options_description world("World and tick");
   world.add_options()                                                                                  //
@@ -160,18 +168,25 @@ config_result parse_config(int argc, const char* const* argv) {
       ("listen", po::value(&c.listen_address)->default_value(c.listen_address), "listen address")             //
       ("port", po::value(&port)->default_value(port), "TCP port for clients")                                 //
       ("io-threads", po::value(&c.io_threads)->default_value(c.io_threads), "network I/O threads")            //
-      ("max-clients", po::value(&c.max_clients)->default_value(c.max_clients), "connections in total")        //
+      ("max-clients", po::value(&c.max_clients)->default_value(c.max_clients), "player slots: sessions past their hello (a hello over it: error server_full)")  //
+      ("hello-timeout", po::value(&c.hello_timeout_s)->default_value(c.hello_timeout_s), "seconds from accept by which a connection must have completed its hello, whatever it sends (error timeout)")  //
+      ("max-pending", po::value(&c.max_pending)->default_value(c.max_pending), "connections without a hello yet, in total, apart from the player slots; at the cap the oldest is closed for the new one")  //
+      ("max-pending-per-address", po::value(&c.max_pending_per_address)->default_value(c.max_pending_per_address), "connections without a hello yet from one source address; at the cap the address's oldest is closed for the new one (raise it for a bot swarm on one host)")  //
+      ("max-name-bytes", po::value(&c.max_name_bytes)->default_value(c.max_name_bytes), "longest player name; names are printable ASCII without leading or trailing spaces (error bad_hello)")  //
+      ("idle-timeout", po::value(&c.idle_timeout_s)->default_value(c.idle_timeout_s), "seconds a player may send no complete frame before it is closed (clients ping)")  //
       ("max-frame-bytes", po::value(&c.max_frame_bytes)->default_value(c.max_frame_bytes), "largest inbound frame")  //
       ("socket-send-buffer", po::value(&c.socket_send_buffer)->default_value(c.socket_send_buffer),
        "SO_SNDBUF of each client socket in bytes (0 = the system's autotuning); bounds how much stale state the kernel holds for a slow client")  //
       ("direct-writes", po::value(&c.direct_writes)->default_value(c.direct_writes), "1: the replication worker that built a frame writes it to the client's socket itself when nothing is queued ahead of it (lower latency, but the sends then lengthen the tick); 0: the I/O threads write every frame")  //
       ("io-nice", po::value(&c.io_nice)->default_value(c.io_nice), "nice value of the I/O threads, 0-19 (above 0: lower priority than the tick's workers where they share cores)")  //
       ("write-batching", po::value(&c.write_batching)->default_value(c.write_batching), "how the I/O threads write: auto (io_uring where the kernel allows it, else sendmsg), io_uring (or refuse to start), sendmsg (one system call per session write)")  //
-      ("inputs-per-second", po::value(&c.inputs_per_second)->default_value(c.inputs_per_second), "input rate limit per client")  //
+      ("inputs-per-second", po::value(&c.inputs_per_second)->default_value(c.inputs_per_second), "input rate limit per client (inputs and teleports; burst half a second's worth); over it inputs are dropped, 200 in a row: error rate_limited")  //
+      ("pings-per-second", po::value(&c.pings_per_second)->default_value(c.pings_per_second), "ping rate limit per client (burst one second's worth); over it no pong, 200 in a row: error rate_limited")  //
       ("client-byte-budget", po::value(&c.client_byte_budget)->default_value(c.client_byte_budget), "bytes per client per tick")  //
       ("client-send-every", po::value(&c.client_send_every)->default_value(c.client_send_every), "each client gets a frame every K ticks, clients staggered (1 = every tick; 2 at 30 Hz = 15 frames a second each, half the frames built and sent per tick)")  //
       ("client-max-backlog", po::value(&c.client_max_backlog)->default_value(c.client_max_backlog), "a client with this many state frames still unwritten gets no new frame this tick (0 = off: always send; then a full queue drops frames and resyncs)")  //
-      ("teleport", po::value(&c.teleport_enabled)->default_value(c.teleport_enabled), "players may teleport themselves (0 or 1)")  //
+      ("teleport", po::value(&c.teleport_enabled)->default_value(c.teleport_enabled), "players may teleport themselves (0 or 1; an ability the server grants, off by default)")  //
+      ("player-fly", po::value(&c.player_fly)->default_value(c.player_fly), "players may move vertically (0: a movement intent's z is ignored)")  //
       ("teleport-cooldown", po::value(&c.teleport_cooldown_s)->default_value(c.teleport_cooldown_s), "least seconds between two teleports of one player")  //
       ("spawn-radius", po::value(&c.spawn_radius)->default_value(c.spawn_radius), "players spawn within this distance of a town (m)")  //
       ("update-near", po::value(&c.update_near)->default_value(c.update_near), "updates every tick within this distance (m)")  //
@@ -180,7 +195,9 @@ config_result parse_config(int argc, const char* const* argv) {
       ("update-far-period", po::value(&c.update_far_period)->default_value(c.update_far_period), "ticks between updates of entities beyond update-mid")  //
       ("digest-every", po::value(&c.digest_every)->default_value(c.digest_every), "a visible-set digest every K ticks (0 = none)")  //
       ("metrics", po::value(&c.metrics_enabled)->default_value(c.metrics_enabled), "serve Prometheus text at /metrics (0 or 1)")  //
-      ("metrics-port", po::value(&metrics_port)->default_value(metrics_port), "port of /metrics (0 = ephemeral)");
+      ("metrics-port", po::value(&metrics_port)->default_value(metrics_port), "port of /metrics (0 = ephemeral)")  //
+      ("metrics-address", po::value(&c.metrics_address)->default_value(c.metrics_address), "address /metrics listens on (loopback by default: it has no authentication; 0.0.0.0 opens it to all)")  //
+      ("metrics-max-connections", po::value(&c.metrics_max_connections)->default_value(c.metrics_max_connections), "connections /metrics holds at once, apart from the players' (more are closed at accept)");
   std::string world_grid = std::to_string(c.world_cols) + "x" + std::to_string(c.world_rows);
   po::options_description zones("World of zones (docs/world.md; built with libnats)");
   zones.add_options()  //

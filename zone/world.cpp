@@ -247,8 +247,14 @@ bool zone_world::set_behaviour_state(entity_id id, const behaviour_state& b) {
 bool zone_world::set_intent(entity_id player, const vec3& intent) {
   if (!store_.alive(player) || by_slot_[slot_of(player)].kind != behaviour::player) return false;
   if (!std::isfinite(intent.x) || !std::isfinite(intent.y) || !std::isfinite(intent.z)) return false;
-  const float len = length(intent);
-  by_slot_[slot_of(player)].intent = len > 1 ? scaled(intent, 1 / len) : intent;
+  // The vertical rule: players walk unless they may fly.
+  vec3 v{intent.x, intent.y, cfg_.player_fly ? intent.z : 0.0f};
+  // Scale by the largest component first: the squares of a large finite intent (1e30) overflow
+  // to infinity and the normalised intent became zero; of a tiny one they underflow.
+  const float m = std::max({std::abs(v.x), std::abs(v.y), std::abs(v.z)});
+  if (m > 1) v = scaled(v, 1 / m);
+  const float len = length(v);
+  by_slot_[slot_of(player)].intent = len > 1 ? scaled(v, 1 / len) : v;
   return true;
 }
 

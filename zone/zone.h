@@ -632,6 +632,18 @@ struct zone_config {
   /// allows it, else sendmsg), "io_uring" (or refuse to start), "sendmsg".
   std::string write_batching = "auto";
   double inputs_per_second = 60;
+  double pings_per_second = 10;  ///< per client; over it pings get no pong (net::server_options)
+  /// Admission (net::server_options): a connection must complete its hello within hello_timeout_s
+  /// of accept; connections without a hello are capped in total and per source address, apart
+  /// from the max_clients player slots.
+  double hello_timeout_s = 3;
+  std::size_t max_pending = 1024;
+  std::size_t max_pending_per_address = 256;
+  std::size_t max_name_bytes = 32;  ///< longest player name (printable ASCII)
+  double idle_timeout_s = 10;       ///< a player that sends no complete frame this long is closed
+  /// Seconds between the info-level summary of joins, leaves and refusals (per-session lines are
+  /// at debug level); 0 = none.
+  double log_summary_s = 10;
   std::size_t client_byte_budget = 8 * 1024;
   /// A client with this many state frames still unwritten (net::server::state_backlog) gets no new
   /// frame this tick: a slow reader is sent fewer, fresher frames (its view catches up in the next
@@ -641,7 +653,12 @@ struct zone_config {
   /// session so that each tick builds about 1/K of the frames. The world still steps every tick;
   /// a frame carries everything since the client's last one.
   std::uint32_t client_send_every = 1;
-  bool teleport_enabled = true;      ///< players may teleport themselves (the teleport message)
+  /// Players may teleport themselves (the teleport message): an ability the server grants, off
+  /// unless configured (a client could otherwise cross the world in a tick).
+  bool teleport_enabled = false;
+  /// Players may move vertically (fly). Off: a player's movement intent is horizontal (its z is
+  /// ignored), players walk at the height they have.
+  bool player_fly = false;
   float spawn_radius = 200;          ///< players spawn uniformly within this distance of a town centre (m)
   /// Replication's update-rate tiers (docs/zone.md): every tick within update_near metres, every
   /// update_mid_period ticks within update_mid, every update_far_period ticks beyond.
@@ -649,8 +666,13 @@ struct zone_config {
   std::uint32_t update_mid_period = 3, update_far_period = 8;
   std::uint32_t digest_every = 1;    ///< a visible-set digest every K ticks (0 = none)
   double teleport_cooldown_s = 0.5;  ///< least time between two jumps of one player (0 = none)
-  bool metrics_enabled = true;        ///< serve Prometheus text at http://listen:metrics_port/metrics
+  bool metrics_enabled = true;        ///< serve Prometheus text at http://metrics_address:metrics_port/metrics
   std::uint16_t metrics_port = 9100;  ///< 0 = an ephemeral port
+  /// Where /metrics listens: loopback by default (it has no authentication); "0.0.0.0" opens it.
+  std::string metrics_address = "127.0.0.1";
+  /// Connections /metrics holds at once (its own, apart from the game's descriptors); more are
+  /// closed at accept. Each must send its request within 5 s.
+  std::size_t metrics_max_connections = 16;
   std::string log_level = "info";
   /// When set, one CSV line per tick (its wall time, clients, frames and phase timings) goes to
   /// this file, so percentiles can be taken over any window (e.g. after a swarm's ramp-up).
@@ -750,7 +772,9 @@ class zone_world {
   /// Replaces a live entity's behaviour state (false for a dead handle).
   bool set_behaviour_state(entity_id id, const behaviour_state& b);
   /// A player's movement intent: its length is clamped to 1 and scaled by player_speed, so a
-  /// client can never move faster than allowed. false (ignored) for a non-player or dead handle.
+  /// client can never move faster than allowed (any finite intent, however large, keeps its
+  /// direction: no overflow to zero or infinity); its z is dropped unless player_fly. false
+  /// (ignored) for a non-player or dead handle, or a non-finite intent.
   bool set_intent(entity_id player, const vec3& intent);
   /// A player's teleport jump to `to`, clamped into the world (`*clamped` says whether it was);
   /// the next step() integrates and finds interest from there, so the jump's enters and leaves

@@ -34,6 +34,13 @@ net::server_options net_options(const zone_config& c) {
   o.batching = net::parse_write_batching(c.write_batching).value_or(net::write_batching::automatic);
   o.inputs_per_second = c.inputs_per_second;
   o.input_burst = std::max(1.0, c.inputs_per_second / 2);
+  o.pings_per_second = c.pings_per_second;
+  o.ping_burst = std::max(1.0, c.pings_per_second);
+  o.hello_timeout = std::chrono::milliseconds(static_cast<std::int64_t>(std::ceil(c.hello_timeout_s * 1000)));
+  o.idle_timeout = std::chrono::milliseconds(static_cast<std::int64_t>(std::ceil(c.idle_timeout_s * 1000)));
+  o.max_pending = c.max_pending;
+  o.max_pending_per_address = c.max_pending_per_address;
+  o.max_name_bytes = c.max_name_bytes;
   return o;
 }
 
@@ -168,6 +175,37 @@ std::string zone_server::metrics_text() const {
             static_cast<double>(ns.resyncs_requested));
   t.counter("zone_net_frames_rejected_total", "Inbound frames rejected (client disconnected).", static_cast<double>(ns.frames_rejected));
   t.counter("zone_net_inputs_dropped_total", "Inputs over the rate limit.", static_cast<double>(ns.inputs_dropped));
+  t.counter("zone_net_pings_answered_total", "Pings answered with a pong.", static_cast<double>(ns.pings_answered));
+  t.counter("zone_net_pings_dropped_total", "Pings over the rate limit (no pong).", static_cast<double>(ns.pings_dropped));
+  t.counter("zone_net_rate_limited_total", "Sessions closed for flooding (error rate_limited).", static_cast<double>(ns.rate_limited));
+  t.gauge("zone_net_pending_open", "Connections open that have not said hello yet.", static_cast<double>(ns.pending_open));
+  t.counter("zone_net_pending_evicted_total", "Connections without a hello closed to admit a newer one (cap: max-pending-per-address or max-pending).",
+            static_cast<double>(ns.pending_evicted_address), "cap=\"address\"");
+  t.counter("zone_net_pending_evicted_total", "Connections without a hello closed to admit a newer one (cap: max-pending-per-address or max-pending).",
+            static_cast<double>(ns.pending_evicted), "cap=\"total\"");
+  t.counter("zone_net_hello_timeouts_total", "Connections closed at the hello deadline.", static_cast<double>(ns.hello_timeouts));
+  t.counter("zone_net_hellos_rejected_total", "Hellos refused (bad name).", static_cast<double>(ns.hellos_rejected));
+  t.counter("zone_net_idle_timeouts_total", "Sessions closed at the idle timeout.", static_cast<double>(ns.idle_timeouts));
+  // The configured limits, so a dashboard reads them beside what they bound.
+  const auto limit = [&](const char* name, double v) {
+    t.gauge("zone_limit", "Configured limits (docs/zone.md, Limits and hardening).", v, std::string("limit=\"") + name + "\"");
+  };
+  limit("max_clients", static_cast<double>(cfg_.max_clients));
+  limit("max_pending", static_cast<double>(cfg_.max_pending));
+  limit("max_pending_per_address", static_cast<double>(cfg_.max_pending_per_address));
+  limit("hello_timeout_seconds", cfg_.hello_timeout_s);
+  limit("idle_timeout_seconds", cfg_.idle_timeout_s);
+  limit("inputs_per_second", cfg_.inputs_per_second);
+  limit("pings_per_second", cfg_.pings_per_second);
+  limit("max_name_bytes", static_cast<double>(cfg_.max_name_bytes));
+  limit("max_frame_bytes", static_cast<double>(cfg_.max_frame_bytes));
+  limit("metrics_max_connections", static_cast<double>(cfg_.metrics_max_connections));
+  if (metrics_) {
+    t.counter("zone_metrics_connections_refused_total", "/metrics connections closed at accept (over metrics-max-connections).",
+              static_cast<double>(metrics_->connections_refused()));
+    t.counter("zone_metrics_accept_errors_total", "/metrics accepts that failed (each followed by a 50 ms pause).",
+              static_cast<double>(metrics_->accept_errors()));
+  }
   // Phase histograms in seconds, one bucket per octave.
   const auto phase = [&](const char* name, const latency_histogram& h) {
     std::vector<double> bounds;
@@ -244,7 +282,9 @@ std::optional<std::string> zone_server::start() {
   if (auto err = net_.start()) return err;
   if (ext_ != nullptr) ext_->started(net_.port());
   if (cfg_.metrics_enabled) {
-    metrics_ = std::make_unique<net::metrics_server>(cfg_.listen_address, cfg_.metrics_port);
+    net::metrics_limits limits;
+    limits.max_connections = cfg_.metrics_max_connections;
+    metrics_ = std::make_unique<net::metrics_server>(cfg_.metrics_address, cfg_.metrics_port, limits);
     if (cfg_.viewer_enabled) {
       net::viewer_options vo;
       vo.max_viewers = cfg_.max_viewers;
@@ -255,7 +295,7 @@ std::optional<std::string> zone_server::start() {
     if (auto err = metrics_->start()) return err;
     metrics_->publish(metrics_text());
     if (viewer_) {
-      spdlog::info("viewer on http://{}:{}/viewer ({})", cfg_.listen_address, metrics_->port(),
+      spdlog::info("viewer on http://{}:{}/viewer ({})", cfg_.metrics_address, metrics_->port(),
                    cfg_.viewer_remote ? "any peer" : "loopback peers only");
     }
   }
@@ -306,7 +346,7 @@ void zone_server::drain_inputs() {
           } else {
             world_->set_intent(it->second.entity, intent);
           }
-          it->second.last_input = std::max(it->second.last_input, in->sequence);
+          note_sequence(it->second, in->sequence);
         } else if (const auto* tp = std::get_if<net::teleport_msg>(&*e.msg)) {
           const auto it = clients_.find(e.session);
           if (it != clients_.end()) teleport(e.session, it->second, *tp);
@@ -323,12 +363,14 @@ void zone_server::drain_inputs() {
         std::erase_if(pending_hellos_, [&](const pending_hello& p) { return p.session == e.session; });
         const auto it = clients_.find(e.session);
         if (it == clients_.end()) break;
+        spdlog::debug("session {}: left ({})", e.session, net::escape_for_log(e.reason, 200));
         // An entity handed off to another zone lives on there (here it is a ghost).
         if (ext_ == nullptr || ext_->owns(it->second.entity)) world_->despawn(it->second.entity);
         const auto se = session_of_entity_.find(it->second.entity);
         if (se != session_of_entity_.end() && se->second == e.session) session_of_entity_.erase(se);
         replicator_.remove_client(it->second.replica);
         clients_.erase(it);
+        ++stats_.leaves;
         break;
       }
     }
@@ -353,7 +395,9 @@ void zone_server::welcome(net::session_id session, entity_id id, const std::stri
   if (const auto d = world_->store().get(id)) w.rules->player_class = d->visibility_class, w.rules->player_sees = d->sees;
   w.oracle_port = oracle_port();
   net_.send(session, net::make_shared_frame(encoder_.encode(w)), net::delivery::control);
-  spdlog::info("session {}: '{}' joined as entity {}", session, name, id);
+  // The name is client data: escaped (the server also checked it at hello), at debug.
+  spdlog::debug("session {}: '{}' joined as entity {}", session, net::escape_for_log(name), id);
+  ++stats_.joins;
 }
 
 void zone_server::retry_pending_hellos() {
@@ -376,7 +420,7 @@ void zone_server::retry_pending_hellos() {
 }
 
 void zone_server::teleport(net::session_id session, client& c, const net::teleport_msg& t) {
-  c.last_input = std::max(c.last_input, t.sequence);
+  note_sequence(c, t.sequence);
   const auto refuse = [&](const char* why) {
     ++stats_.teleports_refused;
     spdlog::debug("session {}: teleport refused: {}", session, why);
@@ -393,6 +437,11 @@ void zone_server::teleport(net::session_id session, client& c, const net::telepo
   c.last_teleport_tick = world_->tick();
   ++stats_.teleports;
   if (clamped) ++stats_.teleports_clamped;
+}
+
+void zone_server::note_sequence(client& c, std::uint32_t sequence) {
+  if (!c.any_input || static_cast<std::int32_t>(sequence - c.last_input) > 0) c.last_input = sequence;
+  c.any_input = true;
 }
 
 void zone_server::choose_fault_victim() {
@@ -458,6 +507,33 @@ void zone_server::replicate() {
       });
   for (const std::size_t bytes : frame_bytes_) stats_.bytes_sent += bytes;
   stats_.frames_sent += frame_bytes_.size();
+}
+
+void zone_server::log_summary() {
+  if (!(cfg_.log_summary_s > 0)) return;
+  const auto now = clock_type::now();
+  if (last_summary_ == clock_type::time_point{}) last_summary_ = now;
+  if (now - last_summary_ < std::chrono::duration<double>(cfg_.log_summary_s)) return;
+  last_summary_ = now;
+  const auto ns = net_.stats();
+  const auto& a = summary_net_;
+  const std::uint64_t joined = stats_.joins - summary_loop_.joins, left = stats_.leaves - summary_loop_.leaves;
+  const std::uint64_t refused = (ns.connections_refused - a.connections_refused) + (ns.pending_evicted_address - a.pending_evicted_address) +
+                                (ns.pending_evicted - a.pending_evicted) + (ns.hellos_rejected - a.hellos_rejected);
+  const std::uint64_t timeouts = (ns.hello_timeouts - a.hello_timeouts) + (ns.idle_timeouts - a.idle_timeouts);
+  const std::uint64_t limited = ns.rate_limited - a.rate_limited, rejected = ns.frames_rejected - a.frames_rejected;
+  // Quiet when nothing happened.
+  if (joined + left + refused + timeouts + limited + rejected != 0) {
+    spdlog::info("clients: {} ({} joined, {} left in {:.0f} s); refused {} (slots {}, evicted per address {}, evicted in all {}, bad hello {}); "
+                 "timeouts {} (hello {}, idle {}); rate-limited {}; bad frames {}; {} without hello now",
+                 clients_.size(), joined, left, cfg_.log_summary_s, refused, ns.connections_refused - a.connections_refused,
+                 ns.pending_evicted_address - a.pending_evicted_address, ns.pending_evicted - a.pending_evicted,
+                 ns.hellos_rejected - a.hellos_rejected, timeouts, ns.hello_timeouts - a.hello_timeouts,
+                 ns.idle_timeouts - a.idle_timeouts, limited, rejected, ns.pending_open);
+  }
+  summary_net_ = ns;
+  summary_loop_.joins = stats_.joins;
+  summary_loop_.leaves = stats_.leaves;
 }
 
 void zone_server::write_tick_line(double inputs_ms, double replicate_ms, double tick_ms, std::uint64_t frames,
@@ -529,6 +605,7 @@ void zone_server::tick_once() {
   // Refresh the metrics snapshot about once a second (the scrape never touches game state).
   const auto every = static_cast<std::uint64_t>(std::max(1.0, cfg_.tick_rate_hz));
   if (metrics_ && stats_.ticks % every == 1) metrics_->publish(metrics_text());
+  log_summary();
 }
 
 void zone_server::fill_viewer_snapshot(net::viewer_snapshot& s) const {

@@ -34,6 +34,8 @@ struct loop_stats {
   std::uint64_t teleports = 0;          ///< teleport requests applied
   std::uint64_t teleports_clamped = 0;  ///< of which clamped into the world
   std::uint64_t teleports_refused = 0;  ///< refused: off, cooldown, another's entity, not finite
+  std::uint64_t joins = 0;              ///< players that joined (welcomed)
+  std::uint64_t leaves = 0;             ///< players that left
   latency_histogram inputs_ms, replicate_ms, tick_ms;  ///< plus zone_world::phases()
 };
 
@@ -108,7 +110,8 @@ class zone_server {
   struct client {
     entity_id entity = null_entity;
     client_id replica = 0;
-    std::uint32_t last_input = 0;
+    std::uint32_t last_input = 0;     ///< newest input sequence applied (serial-number order)
+    bool any_input = false;           ///< last_input is set
     std::uint64_t last_teleport_tick = 0;  ///< world tick of the last applied teleport
     bool teleported = false;
     bool redirected = false;  ///< its entity moved to another zone: no more frames, inputs forwarded
@@ -118,7 +121,13 @@ class zone_server {
   /// Validates and applies one client's teleport request (permission, own entity, cooldown,
   /// finite target clamped into the world).
   void teleport(net::session_id session, client& c, const net::teleport_msg& t);
+  /// Records an input's sequence as the client's last when it is newer (RFC 1982 serial-number
+  /// order: a sequence 1 .. 2^31 - 1 ahead, wrapping past 2^32); older ones leave it.
+  static void note_sequence(client& c, std::uint32_t sequence);
   void replicate();
+  /// Every log_summary_s: one info line of joins, leaves and refused connections since the last
+  /// (per-session lines are at debug: a flood of connections cannot flood the log).
+  void log_summary();
   /// Binds a session to an entity (a new player or a redirected client's) and welcomes it.
   void welcome(net::session_id session, entity_id id, const std::string& name);
   /// Hellos with a token whose entity has not arrived yet (retried each tick until the deadline).
@@ -190,6 +199,10 @@ class zone_server {
   // --tick-csv: the file and the loop's start.
   std::FILE* tick_csv_ = nullptr;
   std::chrono::steady_clock::time_point started_{};
+  // log_summary(): when it last wrote, and the counters then.
+  std::chrono::steady_clock::time_point last_summary_{};
+  loop_stats summary_loop_{};
+  net::server_stats summary_net_{};
   void write_tick_line(double inputs_ms, double replicate_ms, double tick_ms, std::uint64_t frames, std::uint64_t bytes);
 };
 

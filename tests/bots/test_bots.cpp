@@ -423,7 +423,7 @@ TEST_CASE("oracle fault class: an entity sent with the wrong class is caught") {
 TEST_CASE("teleport: bots jump at random across the world; views and AOI checks stay exact") {
   const std::string dir = temp_dir();
   std::vector<std::string> args = server_args;
-  args.insert(args.end(), {"--teleport-cooldown", "0.2"});
+  args.insert(args.end(), {"--teleport", "1", "--teleport-cooldown", "0.2"});
   zone_server_process server(ZONE_SERVER_EXE, dir, args);
   REQUIRE_MESSAGE(server.port != 0, server.proc.log());
   child_process swarm(swarm_args(server.port, dir,

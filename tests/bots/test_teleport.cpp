@@ -31,6 +31,7 @@ zone_config teleport_config() {
   c.player_aoi = 60;
   c.client_byte_budget = 64 * 1024;  // ample: every enter and leave goes out the tick it happens
   c.teleport_cooldown_s = 0.5;       // 15 ticks
+  c.teleport_enabled = true;         // a server-granted ability, off by default
   c.log_level = "warn";
   c.metrics_enabled = false;
   return c;

@@ -27,12 +27,20 @@ using namespace std::chrono_literals;
 /// A blocking loopback client on plain POSIX sockets, using the codec under test to read.
 class test_client {
  public:
-  explicit test_client(std::uint16_t port, int rcvbuf = 0) {
+  /// `source`: the loopback address to connect from (host order, e.g. 0x7f000002 for
+  /// 127.0.0.2; 0 = the system's choice, 127.0.0.1), so tests can play several hosts.
+  explicit test_client(std::uint16_t port, int rcvbuf = 0, std::uint32_t source = 0) {
     fd_ = ::socket(AF_INET, SOCK_STREAM, 0);
     REQUIRE(fd_ >= 0);
     if (rcvbuf > 0) ::setsockopt(fd_, SOL_SOCKET, SO_RCVBUF, &rcvbuf, sizeof rcvbuf);
     int one = 1;
     ::setsockopt(fd_, IPPROTO_TCP, TCP_NODELAY, &one, sizeof one);
+    if (source != 0) {
+      sockaddr_in from{};
+      from.sin_family = AF_INET;
+      from.sin_addr.s_addr = htonl(source);
+      REQUIRE(::bind(fd_, reinterpret_cast<sockaddr*>(&from), sizeof from) == 0);
+    }
     sockaddr_in addr{};
     addr.sin_family = AF_INET;
     addr.sin_port = htons(port);

@@ -1,8 +1,15 @@
 // The Prometheus text builder and the /metrics HTTP server over loopback.
 #include <doctest/doctest.h>
 
+#include <sys/resource.h>
+
 #include <random>
+#include <sstream>
 #include <string>
+#include <thread>
+
+#include <spdlog/sinks/ostream_sink.h>
+#include <spdlog/spdlog.h>
 
 #include "loopback_client.h"
 #include "net/metrics.h"
@@ -53,5 +60,69 @@ TEST_SUITE("net.metrics") {
     CHECK(m.requests() >= 5);
     m.stop();
     m.stop();
+  }
+
+  TEST_CASE("its own connection cap: idle connections beyond it are closed at once, the held ones time out") {
+    metrics_limits limits;
+    limits.max_connections = 4;
+    limits.request_timeout = std::chrono::milliseconds(300);
+    metrics_server m("127.0.0.1", 0, limits);
+    REQUIRE_FALSE(m.start().has_value());
+    m.publish("zone_entities 3\n");
+    std::vector<std::unique_ptr<zone::net::testing::test_client>> idle;
+    for (int i = 0; i < 200; ++i) idle.push_back(std::make_unique<zone::net::testing::test_client>(m.port()));
+    const auto t0 = std::chrono::steady_clock::now();
+    while (m.connections_refused() < 196 && std::chrono::steady_clock::now() - t0 < std::chrono::seconds(3)) {
+      std::this_thread::sleep_for(std::chrono::milliseconds(5));
+    }
+    CHECK(m.connections_refused() == 196);
+    CHECK(m.connections_open() == 4);
+    // Every idle connection is closed: 196 at once, 4 at the request timeout.
+    std::size_t closed = 0;
+    for (auto& c : idle) closed += c->wait_closed(std::chrono::milliseconds(2000)) ? 1 : 0;
+    CHECK(closed == 200);
+    CHECK(m.connections_open() == 0);
+    CHECK(http_get(m.port(), "/metrics").ends_with("zone_entities 3\n"));
+  }
+
+  TEST_CASE("out of descriptors: accepting pauses and the log gets at most a line a second, then it serves again") {
+    std::ostringstream log;
+    auto logger = std::make_shared<spdlog::logger>("capture", std::make_shared<spdlog::sinks::ostream_sink_mt>(log));
+    const auto previous = spdlog::default_logger();
+    spdlog::set_default_logger(logger);
+    metrics_limits limits;
+    limits.request_timeout = std::chrono::milliseconds(500);
+    metrics_server m("127.0.0.1", 0, limits);
+    REQUIRE_FALSE(m.start().has_value());
+    m.publish("zone_entities 5\n");
+    // The client's socket first; then the process's table is made full, so the server's accept fails.
+    rlimit before{};
+    REQUIRE(::getrlimit(RLIMIT_NOFILE, &before) == 0);
+    zone::net::testing::test_client* pending = nullptr;
+    {
+      auto c = std::make_unique<zone::net::testing::test_client>(m.port());  // connects: waits in the backlog
+      pending = c.release();
+    }
+    rlimit low = before;
+    low.rlim_cur = 3;  // stdin, stdout, stderr: every other descriptor in use is already beyond it
+    REQUIRE(::setrlimit(RLIMIT_NOFILE, &low) == 0);
+    std::this_thread::sleep_for(std::chrono::milliseconds(1500));
+    REQUIRE(::setrlimit(RLIMIT_NOFILE, &before) == 0);
+    const auto errors = m.accept_errors();
+    const std::string text = log.str();
+    // Served once descriptors are back.
+    std::vector<message> ignored;
+    CHECK(pending->wait_closed(std::chrono::milliseconds(3000), &ignored));  // accepted, timed out (no request)
+    delete pending;
+    CHECK(http_get(m.port(), "/metrics").ends_with("zone_entities 5\n"));
+    spdlog::set_default_logger(previous);
+    MESSAGE("accept errors in 1.5 s: " << errors << "; log: " << text.size() << " bytes");
+    CHECK(errors >= 2);
+    CHECK(errors <= 40);  // 50 ms pauses, not a spin
+    std::size_t lines = 0;
+    for (const char ch : text) lines += ch == '\n' ? 1 : 0;
+    CHECK(lines >= 1);
+    CHECK(lines <= 3);
+    CHECK(text.size() < 1024);
   }
 }

@@ -1132,4 +1132,58 @@ TEST_SUITE("net.protocol") {
       CHECK(told_updates == want);
     }
   }
+
+  TEST_CASE("player names: printable ASCII, 1 .. max bytes, no outer spaces; every byte value tried") {
+    CHECK_FALSE(check_player_name("bot-17", 32).has_value());
+    CHECK_FALSE(check_player_name("Ann Lee_2.0~", 32).has_value());
+    CHECK_FALSE(check_player_name(std::string(32, 'x'), 32).has_value());
+    CHECK(check_player_name(std::string(33, 'x'), 32).has_value());
+    CHECK(check_player_name("", 32).has_value());
+    CHECK(check_player_name(" a", 32).has_value());
+    CHECK(check_player_name("a ", 32).has_value());
+    for (int b = 0; b < 256; ++b) {
+      CAPTURE(b);
+      const std::string name = std::string("a") + static_cast<char>(b) + "z";
+      CHECK(check_player_name(name, 32).has_value() == (b < 0x20 || b > 0x7e));
+    }
+  }
+
+  TEST_CASE("escape_for_log: no control byte or non-ASCII byte survives, bounded, and it can be undone") {
+    const std::uint64_t seed = fresh_seed();
+    CAPTURE(seed);
+    std::mt19937_64 rng(seed);
+    const auto unescape = [](const std::string& e) {
+      std::string out;
+      for (std::size_t i = 0; i < e.size(); ++i) {
+        if (e[i] != '\\') {
+          out += e[i];
+        } else if (e[i + 1] == '\\') {
+          out += '\\';
+          ++i;
+        } else {
+          REQUIRE(e[i + 1] == 'x');
+          out += static_cast<char>(std::stoi(e.substr(i + 2, 2), nullptr, 16));
+          i += 3;
+        }
+      }
+      return out;
+    };
+    CHECK(escape_for_log("plain name") == "plain name");
+    CHECK(escape_for_log("x\n[critical] INJECTED") == "x\\x0a[critical] INJECTED");
+    CHECK(escape_for_log("a\\b") == "a\\\\b");
+    CHECK(escape_for_log(std::string(100, 'q'), 10) == std::string(10, 'q') + "...(100 bytes)");
+    for (int round = 0; round < 2000; ++round) {
+      std::string s(rng() % 80, '\0');
+      for (auto& c : s) c = static_cast<char>(rng() % 256);
+      const std::size_t max = 1 + rng() % 64;
+      const std::string e = escape_for_log(s, max);
+      CHECK(e.size() <= 4 * max + 32);
+      CHECK(std::all_of(e.begin(), e.end(), [](char c) { return c >= 0x20 && c <= 0x7e; }));
+      if (s.size() <= max) {
+        CHECK(unescape(e) == s);
+      } else {
+        CHECK(unescape(e.substr(0, e.rfind("...("))) == s.substr(0, max));
+      }
+    }
+  }
 }

@@ -244,6 +244,8 @@ TEST_SUITE("net.server") {
       std::vector<std::uint8_t> bytes;
       error_code expected;
       bool may_reset;  // still sending when cut off: the close may arrive as a reset
+      std::string reason = {};  // the error's reason (and, past a hello, the game's disconnect reason)
+      bool said_hello = false;  // only then does the game hear of it
     };
     std::vector<hostile> hostiles;
     {  // Garbage under a small prefix: a root offset beyond the frame.
@@ -254,11 +256,11 @@ TEST_SUITE("net.server") {
       std::memcpy(f.data() + 4, &root, 4);
       auto hello = encode_frame(hello_msg{"garbage", "", protocol_version});
       hello.insert(hello.end(), f.begin(), f.end());
-      hostiles.push_back({"garbage", hello, error_code::verification_failed, false});
+      hostiles.push_back({"garbage", hello, error_code::verification_failed, false, "frame failed verification", true});
     }
     {  // Oversize prefix.
       std::vector<std::uint8_t> f{0x00, 0x00, 0x10, 0x00};  // 1 MiB
-      hostiles.push_back({"oversize", f, error_code::oversize, false});
+      hostiles.push_back({"oversize", f, error_code::oversize, false, "oversize frame"});
     }
     {  // Unknown message type.
       flatbuffers::FlatBufferBuilder fbb;
@@ -266,28 +268,31 @@ TEST_SUITE("net.server") {
       const auto env = zone::net::wire::Createenvelope(fbb, static_cast<zone::net::wire::message>(99), body);
       zone::net::wire::FinishSizePrefixedenvelopeBuffer(fbb, env);
       hostiles.push_back({"unknown", {fbb.GetBufferPointer(), fbb.GetBufferPointer() + fbb.GetSize()},
-                          error_code::unknown_type, false});
+                          error_code::unknown_type, false, "unknown message type"});
     }
     // A server-to-client message, and input before hello.
-    hostiles.push_back({"wrong direction", encode_frame(tick(1)), error_code::unexpected_message, false});
-    hostiles.push_back({"input first", encode_frame(input_msg{1, {}}), error_code::unexpected_message, false});
+    hostiles.push_back({"wrong direction", encode_frame(tick(1)), error_code::unexpected_message, false,
+                        "a client may not send tick_update"});
+    hostiles.push_back({"input first", encode_frame(input_msg{1, {}}), error_code::unexpected_message, false, "input before hello"});
+    hostiles.push_back({"ping first", encode_frame(ping_msg{1}), error_code::unexpected_message, false, "ping before hello"});
     {  // Input flood after a hello.
       auto f = encode_frame(hello_msg{"flood", "", protocol_version});
       for (std::uint32_t i = 0; i < 3000; ++i) {
         const auto in = encode_frame(input_msg{i, {0, 1, 0}});
         f.insert(f.end(), in.begin(), in.end());
       }
-      hostiles.push_back({"flood", f, error_code::rate_limited, true});
+      hostiles.push_back({"flood", f, error_code::rate_limited, true, "input flood", true});
     }
     // Teleport before hello, and a teleport flood (teleports count against the input rate).
-    hostiles.push_back({"teleport first", encode_frame(teleport_msg{1, {1, 2, 3}, 0}), error_code::unexpected_message, false});
+    hostiles.push_back({"teleport first", encode_frame(teleport_msg{1, {1, 2, 3}, 0}), error_code::unexpected_message, false,
+                        "teleport before hello"});
     {
       auto f = encode_frame(hello_msg{"teleport flood", "", protocol_version});
       for (std::uint32_t i = 0; i < 3000; ++i) {
         const auto in = encode_frame(teleport_msg{i, {static_cast<float>(i), 0, 0}, 0});
         f.insert(f.end(), in.begin(), in.end());
       }
-      hostiles.push_back({"teleport flood", f, error_code::rate_limited, true});
+      hostiles.push_back({"teleport flood", f, error_code::rate_limited, true, "input flood", true});
     }
 
     std::vector<std::unique_ptr<test_client>> clients;
@@ -300,7 +305,8 @@ TEST_SUITE("net.server") {
       std::vector<message> seen;
       CHECK(clients[i]->wait_closed(5000ms, &seen));
       const bool got_error = std::any_of(seen.begin(), seen.end(), [&](const message& m) {
-        return std::holds_alternative<error_msg>(m) && std::get<error_msg>(m).code == hostiles[i].expected;
+        return std::holds_alternative<error_msg>(m) && std::get<error_msg>(m).code == hostiles[i].expected &&
+               std::get<error_msg>(m).reason == hostiles[i].reason;
       });
       if (hostiles[i].may_reset && clients[i]->reset()) {
         MESSAGE(hostiles[i].what << ": connection reset before the error frame was read");
@@ -325,14 +331,17 @@ TEST_SUITE("net.server") {
     CHECK_FALSE(good.closed());
     CHECK(sent > 10);
 
-    // Every hostile left with its reason; the rejected frames and dropped inputs are counted.
-    REQUIRE(g.wait_for([&] { return g.count(inbound_event::kind::disconnected) == hostiles.size(); }));
+    // Every hostile past its hello left the game with its reason (the others the game never
+    // heard of); the rejected frames and dropped inputs are counted.
+    const auto with_hello = static_cast<std::size_t>(
+        std::count_if(hostiles.begin(), hostiles.end(), [](const hostile& h) { return h.said_hello; }));
+    REQUIRE(g.wait_for([&] { return g.count(inbound_event::kind::disconnected) == with_hello; }));
+    CHECK(g.count(inbound_event::kind::connected) == with_hello + 1);
     const auto reasons = g.disconnect_reasons();
-    for (const char* r : {"frame failed verification", "oversize frame", "unknown message type",
-                          "a client may not send tick_update", "input before hello", "teleport before hello",
-                          "input flood"}) {
-      CAPTURE(r);
-      CHECK(std::find(reasons.begin(), reasons.end(), r) != reasons.end());
+    for (const auto& h : hostiles) {
+      if (!h.said_hello) continue;
+      CAPTURE(h.reason);
+      CHECK(std::find(reasons.begin(), reasons.end(), h.reason) != reasons.end());
     }
     const auto st = srv.stats();
     CHECK(st.frames_rejected == 3);
@@ -558,6 +567,8 @@ TEST_SUITE("net.server") {
     FOR_BOTH_WRITE_PATHS(opt)
     opt.max_queued_frames = 6;
     opt.socket_send_buffer = 4096;  // ~3 KB frames: the socket takes them in parts
+    opt.pings_per_second = 1e6;     // pongs beside the frames, not the ping limit, are the subject
+    opt.ping_burst = 1e6;
     started run(opt);
     auto& srv = run.srv;
     auto& g = run.g;
@@ -779,22 +790,38 @@ TEST_SUITE("net.server") {
     CHECK(frames.front().use_count() > 1);
   }
 
-  TEST_CASE("connection limit") {
+  TEST_CASE("connection limit: player slots are taken at hello; connections without one hold none") {
     server_options opt;
     opt.max_connections = 2;
     started run(opt);
     auto& srv = run.srv;
     auto& g = run.g;
+    // Three connections that have not said hello take no slot, and the game does not hear of them.
+    test_client q1(srv.port()), q2(srv.port()), q3(srv.port());
+    REQUIRE(g.wait_for([&] { return srv.stats().pending_open == 3; }));
+    CHECK(g.count(inbound_event::kind::connected) == 0);
     test_client a(srv.port()), b(srv.port());
-    REQUIRE(g.wait_for([&] { return g.count(inbound_event::kind::connected) == 2; }));
+    join(g, a, "a");
+    join(g, b, "b");
+    CHECK(g.count(inbound_event::kind::connected) == 2);
     test_client c(srv.port());
+    REQUIRE(c.send(hello_msg{"c", "", protocol_version}));
     std::vector<message> seen;
     CHECK(c.wait_closed(3000ms, &seen));
     REQUIRE(seen.size() == 1);
     CHECK(std::get<error_msg>(seen[0]).code == error_code::server_full);
     CHECK(srv.stats().connections_refused == 1);
     CHECK(g.count(inbound_event::kind::connected) == 2);  // the game never hears of it
+    CHECK(g.hello_session("c") == 0);
     CHECK(srv.stats().sessions_open == 2);
+    CHECK(srv.stats().pending_open == 3);
+    // A slot freed is a slot for the next hello.
+    srv.disconnect(g.hello_session("a"), error_code::shutting_down, "bye");
+    REQUIRE(a.wait_closed(3000ms));
+    REQUIRE(g.wait_for([&] { return srv.stats().sessions_open == 1; }));
+    join(g, q1, "q1");
+    CHECK(srv.stats().sessions_open == 2);
+    CHECK(srv.stats().pending_open == 2);
   }
 
   TEST_CASE("a burst of connections: each accept takes the whole backlog; the limit holds within a batch") {
@@ -804,14 +831,17 @@ TEST_SUITE("net.server") {
     // game, 100 refused with server_full, none lost.
     server_options opt;
     opt.max_connections = 300;
+    opt.max_pending_per_address = 400;  // all from 127.0.0.1, all at once
+    opt.max_pending = 400;
     started run(opt);
     auto& srv = run.srv;
     auto& g = run.g;
     std::vector<std::unique_ptr<test_client>> clients;
     for (int i = 0; i < 400; ++i) clients.push_back(std::make_unique<test_client>(srv.port()));
     for (int i = 0; i < 400; ++i) clients[static_cast<std::size_t>(i)]->send(hello_msg{std::to_string(i), "", protocol_version});
-    REQUIRE(g.wait_for([&] { return srv.stats().connections_accepted + srv.stats().connections_refused == 400; }, 10000ms));
-    CHECK(srv.stats().connections_accepted == 300);
+    REQUIRE(g.wait_for([&] { return srv.stats().sessions_open + srv.stats().connections_refused == 400; }, 10000ms));
+    CHECK(srv.stats().connections_accepted == 400);
+    CHECK(srv.stats().sessions_open == 300);
     CHECK(srv.stats().connections_refused == 100);
     CHECK(g.wait_for([&] { return g.count(inbound_event::kind::message) == 300; }, 10000ms));
     CHECK(g.count(inbound_event::kind::connected) == 300);
@@ -822,13 +852,19 @@ TEST_SUITE("net.server") {
     CHECK(refused == 100);
   }
 
-  TEST_CASE("idle clients time out; pinging clients stay") {
+  TEST_CASE("idle clients time out; pinging clients stay; a dripped frame is no sign of life") {
     server_options opt;
     opt.idle_timeout = 300ms;
-    server srv(opt);
-    REQUIRE_FALSE(srv.start().has_value());
-    test_client idle(srv.port()), busy(srv.port());
+    started run(opt);
+    auto& srv = run.srv;
+    test_client idle(srv.port()), busy(srv.port()), drip(srv.port());
+    join(run.g, idle, "idle");
+    join(run.g, busy, "busy");
+    join(run.g, drip, "drip");
+    const auto input = encode_frame(input_msg{1, {1, 0, 0}});
+    std::size_t dripped = 0;
     for (int i = 0; i < 12; ++i) {
+      if (dripped < input.size() - 1) (void)drip.send_bytes(std::span(input).subspan(dripped++, 1));
       REQUIRE(busy.send(ping_msg{static_cast<std::uint64_t>(i)}));
       const auto p = busy.read();
       REQUIRE(p.has_value());
@@ -839,6 +875,171 @@ TEST_SUITE("net.server") {
     CHECK(idle.wait_closed(2000ms, &seen));
     REQUIRE(seen.size() == 1);
     CHECK(is_error(seen[0], error_code::timeout));
+    seen.clear();
+    CHECK(drip.wait_closed(2000ms, &seen));
+    REQUIRE(seen.size() == 1);
+    CHECK(is_error(seen[0], error_code::timeout));
     CHECK_FALSE(busy.closed());
+    CHECK(srv.stats().idle_timeouts == 2);
+  }
+
+  TEST_CASE("admission: 1,000 half-open and dripping connections from one address; a player joins at once; each closed by the hello deadline") {
+    server_options opt;  // the default caps (256 pending per address, 1,024 in all)
+    opt.max_connections = 4;
+    opt.hello_timeout = 1000ms;
+    started run(opt);
+    auto& srv = run.srv;
+    auto& g = run.g;
+    const auto hello = encode_frame(hello_msg{"dripper", "", protocol_version});
+    std::vector<std::unique_ptr<test_client>> attackers;
+    const auto t_attack = std::chrono::steady_clock::now();
+    for (int i = 0; i < 1000; ++i) {
+      attackers.push_back(std::make_unique<test_client>(srv.port()));
+      // Every other one drips its hello a byte at a time; the rest send nothing.
+      if (i % 2 == 1) (void)attackers.back()->send_bytes(std::span(hello).subspan(0, 1));
+    }
+    REQUIRE(g.wait_for([&] { return srv.stats().connections_accepted == 1000; }, 5000ms));
+    REQUIRE(g.wait_for([&] { return srv.stats().pending_evicted_address == 1000 - opt.max_pending_per_address; }, 5000ms));
+    CHECK(srv.stats().pending_open == opt.max_pending_per_address);
+    // A player from another address joins within a second, and one from the attackers' own.
+    const auto t0 = std::chrono::steady_clock::now();
+    test_client player(srv.port(), 0, 0x7f000002), other(srv.port());
+    REQUIRE(player.send(hello_msg{"player", "", protocol_version}));
+    REQUIRE(other.send(hello_msg{"other", "", protocol_version}));
+    REQUIRE(g.wait_for([&] { return g.hello_session("player") != 0 && g.hello_session("other") != 0; }, 1000ms));
+    const double join_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+    MESSAGE("two players joined in " << join_ms << " ms beside 1,000 half-open connections");
+    CHECK(join_ms < 1000);
+    // The drippers keep dripping; nobody is served, and every one of the 1,000 is closed by the
+    // hello deadline (plus the grace a closing connection has to take its error frame).
+    std::size_t dripped = 1;
+    while (std::chrono::steady_clock::now() - t_attack < 900ms && dripped < hello.size() - 1) {
+      for (std::size_t i = 1; i < attackers.size(); i += 2) (void)attackers[i]->send_bytes(std::span(hello).subspan(dripped, 1));
+      ++dripped;
+      std::this_thread::sleep_for(100ms);
+    }
+    std::size_t closed = 0, timeouts = 0, refused = 0, other_messages = 0;
+    for (auto& a : attackers) {
+      const auto left = std::chrono::duration_cast<std::chrono::milliseconds>(t_attack + 2500ms - std::chrono::steady_clock::now());
+      std::vector<message> seen;
+      if (a->wait_closed(std::max(left, 1ms), &seen)) ++closed;
+      for (const auto& m : seen) {
+        if (is_error(m, error_code::timeout)) ++timeouts;
+        else if (is_error(m, error_code::server_full)) ++refused;
+        else ++other_messages;
+      }
+    }
+    CHECK(closed == 1000);
+    CHECK(other_messages == 0);
+    CHECK(timeouts + refused == 1000);
+    CHECK(timeouts == opt.max_pending_per_address - 1);
+    CHECK(timeouts >= 1);
+    REQUIRE(g.wait_for([&] { return srv.stats().pending_open == 0; }, 2000ms));
+    const auto st = srv.stats();
+    CHECK(st.hello_timeouts == timeouts);
+    CHECK(st.pending_evicted_address == refused);  // 744, and one more for the player from 127.0.0.1
+    CHECK(st.connections_refused == 0);
+    CHECK(st.sessions_open == 2);
+    CHECK(g.count(inbound_event::kind::connected) == 2);  // the game heard of the two players only
+    CHECK_FALSE(player.closed());
+  }
+
+  TEST_CASE("admission: at the total cap of pending connections the oldest makes room for a new one") {
+    server_options opt;
+    opt.max_pending = 8;
+    opt.max_pending_per_address = 8;
+    started run(opt);
+    auto& srv = run.srv;
+    auto& g = run.g;
+    std::vector<std::unique_ptr<test_client>> idle;
+    for (std::uint32_t i = 0; i < 8; ++i) {
+      idle.push_back(std::make_unique<test_client>(srv.port(), 0, 0x7f000010 + i));
+      REQUIRE(g.wait_for([&] { return srv.stats().pending_open == i + 1; }));
+    }
+    test_client player(srv.port(), 0, 0x7f000002);
+    REQUIRE(player.send(hello_msg{"player", "", protocol_version}));
+    REQUIRE(g.wait_for([&] { return g.hello_session("player") != 0; }));
+    std::vector<message> seen;
+    CHECK(idle.front()->wait_closed(3000ms, &seen));  // the oldest
+    REQUIRE(seen.size() == 1);
+    CHECK(is_error(seen[0], error_code::server_full));
+    CHECK(srv.stats().pending_evicted == 1);
+    CHECK(srv.stats().pending_open == 7);
+    for (std::size_t i = 1; i < idle.size(); ++i) CHECK_FALSE(idle[i]->closed());
+  }
+
+  TEST_CASE("nothing but a hello before the hello: a ping gets no pong but an error") {
+    started run(server_options{});
+    test_client c(run.srv.port());
+    REQUIRE(c.send(ping_msg{42}));
+    std::vector<message> seen;
+    CHECK(c.wait_closed(3000ms, &seen));
+    REQUIRE(seen.size() == 1);
+    CHECK(is_error(seen[0], error_code::unexpected_message));
+    CHECK(std::get<error_msg>(seen[0]).reason == "ping before hello");
+    CHECK(run.srv.stats().pings_answered == 0);
+  }
+
+  TEST_CASE("rate limits: a ping flood is answered at the ping rate, then cut off with rate_limited") {
+    server_options opt;
+    opt.pings_per_second = 10;
+    opt.ping_burst = 5;
+    opt.flood_limit = 100;
+    started run(opt);
+    auto& srv = run.srv;
+    test_client polite(srv.port()), flood(srv.port());
+    join(run.g, polite, "polite");
+    join(run.g, flood, "flood");
+    std::vector<std::uint8_t> burst;
+    for (std::uint64_t i = 0; i < 2000; ++i) {
+      const auto f = encode_frame(ping_msg{i});
+      burst.insert(burst.end(), f.begin(), f.end());
+    }
+    (void)flood.send_bytes(burst);
+    std::vector<message> seen;
+    CHECK(flood.wait_closed(3000ms, &seen));
+    std::size_t pongs = 0;
+    for (const auto& m : seen) pongs += std::holds_alternative<pong_msg>(m) ? 1 : 0;
+    CHECK(pongs >= 1);
+    CHECK(pongs <= 5 + 2);  // the burst and what refilled meanwhile
+    if (!flood.reset()) {
+      REQUIRE_FALSE(seen.empty());
+      CHECK(is_error(seen.back(), error_code::rate_limited));
+      CHECK(std::get<error_msg>(seen.back()).reason == "ping flood");
+    }
+    const auto st = srv.stats();
+    CHECK(st.pings_dropped == opt.flood_limit + 1);
+    CHECK(st.rate_limited == 1);
+    // A client pinging at the rate is answered every time.
+    for (std::uint64_t i = 0; i < 5; ++i) {
+      REQUIRE(polite.send(ping_msg{i}));
+      const auto p = polite.read();
+      REQUIRE(p.has_value());
+      CHECK(std::get<pong_msg>(*p).client_time_us == i);
+      std::this_thread::sleep_for(100ms);
+    }
+  }
+
+  TEST_CASE("names: checked at hello; a bad one gets bad_hello and the game never hears of it") {
+    server_options opt;
+    opt.max_name_bytes = 16;
+    started run(opt);
+    auto& srv = run.srv;
+    auto& g = run.g;
+    const std::vector<std::string> bad = {"", std::string(17, 'a'), "x\n[critical] INJECTED", std::string("nul\0x", 5),
+                                          "\x1b[31mred", " lead", "trail ", "caf\xc3\xa9"};
+    for (const auto& name : bad) {
+      CAPTURE(name);
+      test_client c(srv.port());
+      REQUIRE(c.send(hello_msg{name, "", protocol_version}));
+      std::vector<message> seen;
+      CHECK(c.wait_closed(3000ms, &seen));
+      REQUIRE(seen.size() == 1);
+      CHECK(is_error(seen[0], error_code::bad_hello));
+    }
+    test_client ok(srv.port());
+    join(g, ok, std::string(16, 'z'));
+    CHECK(g.count(inbound_event::kind::connected) == 1);
+    CHECK(srv.stats().hellos_rejected == bad.size());
   }
 }

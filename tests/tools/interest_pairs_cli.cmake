@@ -104,6 +104,12 @@ elseif(CASE STREQUAL "bad_input")
   expect_rc(damaged 2)
   expect_contains("stderr for a damaged binary file" "${damaged_err}" "unsupported version")
   expect_no_file("${WORK_DIR}/damaged.pairs")
+  # Not a box file at all, of unbounded length: /dev/zero (NUL bytes, no line break) is refused at
+  # its first line after 4 KiB read (it read the whole stream before and ran out of memory).
+  run(zero --output "${WORK_DIR}/zero.pairs" /dev/zero)
+  expect_rc(zero 2)
+  expect_contains("stderr for /dev/zero" "${zero_err}" "line 1: longer than 4096 bytes")
+  expect_no_file("${WORK_DIR}/zero.pairs")
   # An output path that cannot be created: exit 1, nothing left behind.
   run(unwritable --output "${WORK_DIR}/no/such/dir/out.txt" "${DATA_DIR}/known.csv")
   expect_rc(unwritable 1)

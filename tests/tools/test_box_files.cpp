@@ -268,6 +268,60 @@ TEST_SUITE("interest.files") {
     expect_csv_error("0,0,0,1,1,1\n1,1\n2,2\n", 2, "found 2");
   }
 
+  TEST_CASE("csv streaming: a file read in chunks parses as the whole text does; an overlong line is an error naming it") {
+    const std::uint64_t seed = fresh_seed();
+    CAPTURE(seed);
+    std::mt19937_64 rng(seed);
+    // ~3 MiB of lines of random lengths (comments of up to 4,000 bytes, CRLF, blanks), so lines
+    // cross the reader's 1 MiB chunks at every kind of place.
+    std::string text;
+    std::size_t boxes = 0;
+    while (text.size() < (std::size_t{3} << 20)) {
+      switch (rng() % 5) {
+        case 0: text += "# " + std::string(rng() % 4000, 'c') + "\n"; break;
+        case 1: text += "\r\n"; break;
+        default: {
+          const float x = static_cast<float>(rng() % 1000) / 7;
+          text += std::to_string(x) + "," + std::to_string(x) + ",0," + std::to_string(x + 1) + "," + std::to_string(x + 2) +
+                  ",1" + (rng() % 2 ? ",3,5\r\n" : "\n");
+          ++boxes;
+        }
+      }
+    }
+    text += "1,2,3,4,5,6";  // the last line without a line break
+    ++boxes;
+    const std::string path = (fs::temp_directory_path() / ("zone_stream_" + std::to_string(seed) + ".csv")).string();
+    {
+      std::ofstream f(path, std::ios::binary);
+      f << text;
+    }
+    box_set whole, streamed;
+    REQUIRE_FALSE(parse_csv(text, whole).has_value());
+    REQUIRE_FALSE(read_box_file(path, streamed).has_value());
+    CHECK(whole.size() == boxes);
+    CHECK(streamed.size() == boxes);
+    CHECK(streamed.lo_x == whole.lo_x);
+    CHECK(streamed.hi_y == whole.hi_y);
+    CHECK(streamed.mask == whole.mask);
+    // A line over 4,096 bytes, in a file and in text: the error names it, nothing is kept.
+    const std::string long_line = "1,2,3,4,5,6\n# fine\n" + std::string(5000, 'x') + "\n1,2,3,4,5,6\n";
+    box_set bad;
+    auto err = parse_csv(long_line, bad);
+    REQUIRE(err.has_value());
+    CHECK(err->line == 3);
+    CHECK(err->message.find("line 3: longer than 4096 bytes") != std::string::npos);
+    CHECK(bad.empty());
+    {
+      std::ofstream f(path, std::ios::binary);
+      f << "1,2,3,4,5,6\n" << std::string(std::size_t{3} << 20, '\0');  // no line break for 3 MiB
+    }
+    err = read_box_file(path, bad);
+    REQUIRE(err.has_value());
+    CHECK(err->line == 2);
+    CHECK(bad.empty());
+    fs::remove(path);
+  }
+
   TEST_CASE("csv: long fields are shortened in messages") {
     const std::string junk(200, 'z');
     box_set s;

@@ -7,6 +7,7 @@
 #include <cmath>
 #include <cstdio>
 #include <fstream>
+#include <limits>
 #include <random>
 
 #include "world_script.h"
@@ -41,6 +42,24 @@ TEST_SUITE("zone.config") {
     CHECK_FALSE(h.config.has_value());
     CHECK(h.message.find("--tick-rate") != std::string::npos);
     CHECK(h.message.find("--hysteresis") != std::string::npos);
+    // Hardening defaults (docs/zone.md, Limits and hardening): teleports are granted, /metrics is
+    // on loopback, and the admission and rate limits are options.
+    CHECK_FALSE(d.config->teleport_enabled);
+    CHECK_FALSE(d.config->player_fly);
+    CHECK(d.config->metrics_address == "127.0.0.1");
+    for (const char* o : {"--hello-timeout", "--max-pending", "--max-pending-per-address", "--pings-per-second",
+                          "--max-name-bytes", "--metrics-address", "--metrics-max-connections", "--log-summary"}) {
+      CAPTURE(o);
+      CHECK(h.message.find(o) != std::string::npos);
+    }
+    CHECK_FALSE(parse({"--hello-timeout", "0"}).config.has_value());
+    CHECK_FALSE(parse({"--max-pending", "0"}).config.has_value());
+    CHECK_FALSE(parse({"--pings-per-second", "-1"}).config.has_value());
+    const auto limits = parse({"--hello-timeout", "1.5", "--max-pending-per-address", "4", "--teleport", "1"});
+    REQUIRE(limits.config.has_value());
+    CHECK(limits.config->hello_timeout_s == 1.5);
+    CHECK(limits.config->max_pending_per_address == 4);
+    CHECK(limits.config->teleport_enabled);
 
     const auto bad = parse({"--tick-rate", "fast"});
     CHECK_FALSE(bad.config.has_value());
@@ -184,6 +203,58 @@ TEST_SUITE("zone.world") {
     CHECK(w.phases().interest.count() == 30);
     CHECK(w.phases().total.percentile(0.99) <= w.phases().total.max());
     CHECK(w.phases().total.percentile(0.5) > 0);
+  }
+
+  TEST_CASE("input rules: any finite intent moves at most player_speed in its direction; walking is horizontal unless fly") {
+    const std::uint64_t seed = fresh_seed();
+    CAPTURE(seed);
+    for (const bool fly : {false, true}) {
+      CAPTURE(fly);
+      zone_config cfg = small_config(seed);
+      cfg.npc_count = 0;
+      cfg.boss_count = 0;
+      cfg.player_fly = fly;
+      interest::grid_finder finder(nullptr);
+      zone_world w(cfg, finder, nullptr);
+      w.populate();
+      const vec3 start{400, 400, (cfg.world.lo.z + cfg.world.hi.z) / 2};
+      const entity_id p = w.spawn_player(start);
+      REQUIRE(p != null_entity);
+      const float step = cfg.player_speed / static_cast<float>(cfg.tick_rate_hz);
+      // {intent, expected unit direction of the horizontal move (or of the 3-D move when flying)}
+      const float big = std::numeric_limits<float>::max();
+      struct probe {
+        vec3 intent;
+        vec3 direction;  // unit, for the walking (z dropped) case
+        vec3 fly_direction;
+      };
+      const float r2 = 1 / std::sqrt(2.0f), r3 = 1 / std::sqrt(3.0f);
+      const probe probes[] = {
+          {{1e30f, 1e30f, 0}, {r2, r2, 0}, {r2, r2, 0}},               // squares overflow: was a zero intent
+          {{big, -big, big}, {r2, -r2, 0}, {r3, -r3, r3}},             // the largest finite floats
+          {{-3e38f, 0, 0}, {-1, 0, 0}, {-1, 0, 0}},
+          {{0, 0, 1e20f}, {0, 0, 0}, {0, 0, 1}},                      // upward: only when flying
+          {{1e-30f, 0, 0}, {0, 0, 0}, {0, 0, 0}},                     // tiny: moves (almost) nothing
+      };
+      for (const auto& pr : probes) {
+        CAPTURE(pr.intent.x);
+        CAPTURE(pr.intent.z);
+        REQUIRE(w.store().set_position(p, start));
+        REQUIRE(w.set_intent(p, pr.intent));
+        REQUIRE_FALSE(w.step().has_value());
+        const vec3 at = w.store().get(p)->position;
+        const vec3 d = fly ? pr.fly_direction : pr.direction;
+        CHECK(at.x == doctest::Approx(start.x + d.x * step).epsilon(1e-4));
+        CHECK(at.y == doctest::Approx(start.y + d.y * step).epsilon(1e-4));
+        CHECK(at.z == doctest::Approx(start.z + d.z * step).epsilon(1e-4));
+        const float moved = std::hypot(at.x - start.x, at.y - start.y, at.z - start.z);
+        CHECK(moved <= step * 1.0001f);
+      }
+      const float nan = std::numeric_limits<float>::quiet_NaN(), inf = std::numeric_limits<float>::infinity();
+      CHECK_FALSE(w.set_intent(p, {nan, 0, 0}));
+      CHECK_FALSE(w.set_intent(p, {0, inf, 0}));
+      CHECK_FALSE(w.set_intent(p, {0, 0, -inf}));
+    }
   }
 
   TEST_CASE("latency histogram percentiles are within a bucket of the truth") {

@@ -11,6 +11,9 @@
 #include <random>
 #include <thread>
 
+#include <spdlog/sinks/ostream_sink.h>
+#include <spdlog/spdlog.h>
+
 #include "../net/loopback_client.h"
 #include "gpu/pbig.h"
 #include "net/client.h"
@@ -522,5 +525,144 @@ TEST_SUITE("zone.server") {
       CHECK(err->find("gpu") != std::string::npos);
       CHECK(err->find("cannot run here") != std::string::npos);
     }
+  }
+
+  TEST_CASE("client strings never forge a log line; joins and leaves at debug, a summary at info; admission in /metrics") {
+    // Capture the log (info level, as a production server runs) for the whole test.
+    std::ostringstream log;
+    auto logger = std::make_shared<spdlog::logger>("capture", std::make_shared<spdlog::sinks::ostream_sink_mt>(log));
+    logger->set_level(spdlog::level::info);
+    logger->set_pattern("[%H:%M:%S.%e] [%l] %v");
+    const auto previous = spdlog::default_logger();
+    spdlog::set_default_logger(logger);
+    struct restore {
+      std::shared_ptr<spdlog::logger> l;
+      ~restore() { spdlog::set_default_logger(l); }
+    } restore_logger{previous};
+
+    zone_config c = test_config();
+    c.log_summary_s = 0.2;
+    c.hello_timeout_s = 0.3;
+    zone_server server(c);
+    REQUIRE_FALSE(server.start().has_value());
+    std::thread loop([&] { server.run(); });
+
+    // The probe's forged line: a newline and escape bytes in the name. Refused at hello.
+    test_client forger(server.port());
+    REQUIRE(forger.send(net::hello_msg{"x\n[critical] INJECTED-BY-PROBE\x1b[2J", "", net::protocol_version}));
+    std::vector<net::message> seen;
+    CHECK(forger.wait_closed(3000ms, &seen));
+    REQUIRE(seen.size() == 1);
+    CHECK(std::get<net::error_msg>(seen[0]).code == net::error_code::bad_hello);
+    // Three connections that never say hello: closed at the deadline.
+    std::vector<std::unique_ptr<test_client>> silent;
+    for (int i = 0; i < 3; ++i) silent.push_back(std::make_unique<test_client>(server.port()));
+    // Five players join and leave.
+    for (int i = 0; i < 5; ++i) {
+      test_client p(server.port());
+      REQUIRE(p.send(net::hello_msg{"p" + std::to_string(i), "", net::protocol_version}));
+      const auto w = p.read(5000ms);
+      REQUIRE(w.has_value());
+      CHECK(std::holds_alternative<net::welcome_msg>(*w));
+    }
+    for (auto& s : silent) {
+      seen.clear();
+      CHECK(s->wait_closed(3000ms, &seen));
+      REQUIRE(seen.size() == 1);
+      CHECK(std::get<net::error_msg>(seen[0]).code == net::error_code::timeout);
+    }
+    std::string scrape;
+    for (int attempt = 0; attempt < 40; ++attempt) {
+      scrape = zone::net::testing::http_get(server.metrics_port(), "/metrics");
+      if (scrape.find("zone_net_hello_timeouts_total 3\n") != std::string::npos &&
+          scrape.find("\nzone_clients 0\n") != std::string::npos) break;
+      std::this_thread::sleep_for(100ms);
+    }
+    CHECK(scrape.find("zone_net_hello_timeouts_total 3\n") != std::string::npos);
+    CHECK(scrape.find("zone_net_hellos_rejected_total 1\n") != std::string::npos);
+    CHECK(scrape.find("zone_net_pending_open 0\n") != std::string::npos);
+    CHECK(scrape.find("zone_limit{limit=\"max_clients\"} 1000\n") != std::string::npos);
+    CHECK(scrape.find("zone_limit{limit=\"hello_timeout_seconds\"} 0.29999999999999999\n") != std::string::npos);
+    CHECK(scrape.find("zone_limit{limit=\"max_pending_per_address\"} 256\n") != std::string::npos);
+    std::this_thread::sleep_for(300ms);  // one more summary period
+    server.stop();
+    loop.join();
+
+    const std::string text = log.str();
+    CAPTURE(text);
+    // Every line is one the server wrote (its pattern), none forged; the name is nowhere raw.
+    std::istringstream lines(text);
+    std::size_t count = 0, summaries = 0;
+    std::uint64_t joined = 0, left = 0;
+    for (std::string line; std::getline(lines, line); ++count) {
+      CHECK(line.starts_with("["));
+      CHECK(line.find("] [") == 13);
+      CHECK(std::all_of(line.begin(), line.end(), [](char ch) { return ch >= 0x20 && ch <= 0x7e; }));
+      CHECK(line.find("joined as entity") == std::string::npos);  // per-session lines are debug
+      if (line.find("[info] clients: ") != std::string::npos) {
+        ++summaries;
+        unsigned long long j = 0, l = 0;
+        REQUIRE(std::sscanf(line.c_str() + line.find("clients: "), "clients: %*u (%llu joined, %llu left", &j, &l) == 2);
+        joined += j;
+        left += l;
+      }
+    }
+    CHECK(text.find("INJECTED") == std::string::npos);  // the hello was refused before any log
+    CHECK(summaries >= 1);
+    CHECK(joined == 5);
+    CHECK(left == 5);
+    CHECK(count < 40);
+  }
+
+  TEST_CASE("input rules on the wire: sequences wrap around; an old one is ignored; teleports are off unless granted") {
+    zone_server server(test_config());
+    REQUIRE_FALSE(server.start().has_value());
+    test_client c(server.port());
+    REQUIRE(c.send(net::hello_msg{"seq", "", net::protocol_version}));
+    std::optional<net::message> w;
+    for (int i = 0; i < 100 && !w; ++i) {
+      server.tick_once();
+      w = c.read(20ms);
+    }
+    REQUIRE(w.has_value());
+    REQUIRE(std::holds_alternative<net::welcome_msg>(*w));
+    // One input per tick, so the rate limit never drops one. The input is in the game's queue once
+    // the network counted its frame; the echo is read from the frame of the tick that follows.
+    const auto echo_after = [&](std::uint32_t sequence) {
+      const auto frames_before = server.net_stats().frames_in;
+      REQUIRE(c.send(net::input_msg{sequence, {1, 0, 0}}));
+      for (int i = 0; i < 500 && server.net_stats().frames_in == frames_before; ++i) std::this_thread::sleep_for(2ms);
+      std::this_thread::sleep_for(10ms);  // the event follows the count in the same handler
+      server.tick_once();
+      const std::uint64_t tick = server.world().tick();
+      std::optional<std::uint32_t> echo;
+      for (int i = 0; i < 500; ++i) {
+        const auto m = c.read(3000ms);
+        REQUIRE(m.has_value());
+        const auto* u = std::get_if<net::tick_update_msg>(&*m);
+        if (u && u->server_tick >= tick) {
+          echo = u->last_input_sequence;
+          break;
+        }
+      }
+      REQUIRE(echo.has_value());
+      return *echo;
+    };
+    CHECK(echo_after(0xfffffffdu) == 0xfffffffdu);
+    CHECK(echo_after(0xffffffffu) == 0xffffffffu);
+    CHECK(echo_after(0) == 0);  // wrapped: newer than 0xffffffff (it stuck at the maximum before)
+    CHECK(echo_after(2) == 2);
+    CHECK(echo_after(0xfffffff0u) == 2);  // older: ignored
+    CHECK(echo_after(1) == 2);
+    CHECK(echo_after(3) == 3);
+    // Teleports: the config's default is off, so a client's jump is refused and it does not move.
+    CHECK_FALSE(zone_config{}.teleport_enabled);
+    const auto frames_before = server.net_stats().frames_in;
+    REQUIRE(c.send(net::teleport_msg{4, {500, 500, 0}, 0}));
+    for (int i = 0; i < 500 && server.net_stats().frames_in == frames_before; ++i) std::this_thread::sleep_for(2ms);
+    std::this_thread::sleep_for(10ms);
+    server.tick_once();
+    CHECK(server.stats().teleports == 0);
+    CHECK(server.stats().teleports_refused == 1);
   }
 }
