@@ -377,12 +377,9 @@ class session : public std::enable_shared_from_this<session> {
       case write_outcome::blocked:
         wait_writable();
         return;
-      case write_outcome::failed: {
-        std::string why = "write failed: " + write_error_;
-        lock.unlock();
-        close_now(std::move(why));
+      case write_outcome::failed:
+        close_after_write_error(lock);
         return;
-      }
     }
   }
 
@@ -690,6 +687,13 @@ class session : public std::enable_shared_from_this<session> {
     return flush_result::drained;
   }
 
+  /// The lane's thread, write lock held (released here): close with the failed write's error.
+  void close_after_write_error(std::unique_lock<std::mutex>& lock) {
+    std::string why = "write failed: " + write_error_;
+    lock.unlock();
+    close_now(std::move(why));
+  }
+
   /// The lane's thread, write lock held (released on return): flush; wait for the socket when it
   /// blocks; close on an error, or once a closing session's queue is out.
   void flush_on_lane(std::unique_lock<std::mutex>& lock) {
@@ -697,12 +701,9 @@ class session : public std::enable_shared_from_this<session> {
       case flush_result::blocked:
         wait_writable();
         return;
-      case flush_result::failed: {
-        std::string why = "write failed: " + write_error_;
-        lock.unlock();
-        close_now(std::move(why));
+      case flush_result::failed:
+        close_after_write_error(lock);
         return;
-      }
       case flush_result::drained:
         if (closing_ && queue_.empty()) {
           lock.unlock();
