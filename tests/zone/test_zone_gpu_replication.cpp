@@ -22,6 +22,28 @@ std::unique_ptr<interest::replication_engine> make_gpu_replication() {
   return e;
 }
 
+/// The GPU interest engine, whose visible sets the replication engine reads in place.
+auto make_gpu_visibility(interest::thread_pool* pool) {
+  std::string why;
+  auto e = gpu::make_visibility_engine(pool, &why);
+  if (!e) FAIL("make_visibility_engine failed: " << why);
+  return e;
+}
+
+/// 20,000 entities, 3,000 clients, 20 ticks at two budgets.
+zone::test::replication_equivalence_case large_world_case() {
+  zone::test::replication_equivalence_case c;
+  c.entities = 20000;
+  c.clients = 3000;
+  c.ticks = 20;
+  c.side = 2000;
+  c.aoi_lo = 20;
+  c.aoi_hi = 80;
+  c.budgets = {700, 8192};
+  c.first_ticks = {7};
+  return c;
+}
+
 }  // namespace
 
 TEST_SUITE("zone.gpu") {
@@ -35,15 +57,7 @@ TEST_SUITE("zone.gpu") {
   TEST_CASE("GPU replication: a large world (20,000 entities, 3,000 clients) equals the CPU replicator") {
     const std::uint64_t seed = zone::test::fresh_seed();
     CAPTURE(seed);
-    zone::test::replication_equivalence_case c;
-    c.entities = 20000;
-    c.clients = 3000;
-    c.ticks = 20;
-    c.side = 2000;
-    c.aoi_lo = 20;
-    c.aoi_hi = 80;
-    c.budgets = {700, 8192};
-    c.first_ticks = {7};
+    zone::test::replication_equivalence_case c = large_world_case();
     zone::test::require_equivalent(zone::test::check_replication_equivalence(seed, c, make_gpu_replication));
   }
 
@@ -63,12 +77,7 @@ TEST_SUITE("zone.gpu") {
     CAPTURE(seed);
     zone::test::replication_equivalence_case c;
     c.budgets = {260, 900, 8192, std::size_t{1} << 20};
-    c.make_visibility = [](interest::thread_pool* pool) {
-      std::string why;
-      auto e = gpu::make_visibility_engine(pool, &why);
-      if (!e) FAIL("make_visibility_engine failed: " << why);
-      return e;
-    };
+    c.make_visibility = make_gpu_visibility;
     const auto cov = zone::test::check_replication_equivalence(seed, c, make_gpu_replication);
     zone::test::require_equivalent(cov);
     CHECK(cov.resident_runs > 0);
@@ -78,21 +87,8 @@ TEST_SUITE("zone.gpu") {
   TEST_CASE("GPU replication in place: a large world (20,000 entities, 3,000 clients) equals the CPU replicator") {
     const std::uint64_t seed = zone::test::fresh_seed();
     CAPTURE(seed);
-    zone::test::replication_equivalence_case c;
-    c.entities = 20000;
-    c.clients = 3000;
-    c.ticks = 20;
-    c.side = 2000;
-    c.aoi_lo = 20;
-    c.aoi_hi = 80;
-    c.budgets = {700, 8192};
-    c.first_ticks = {7};
-    c.make_visibility = [](interest::thread_pool* pool) {
-      std::string why;
-      auto e = gpu::make_visibility_engine(pool, &why);
-      if (!e) FAIL("make_visibility_engine failed: " << why);
-      return e;
-    };
+    zone::test::replication_equivalence_case c = large_world_case();
+    c.make_visibility = make_gpu_visibility;
     const auto cov = zone::test::check_replication_equivalence(seed, c, make_gpu_replication);
     zone::test::require_equivalent(cov);
     CHECK(cov.resident_runs > 0);
