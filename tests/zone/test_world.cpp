@@ -9,6 +9,8 @@
 #include <fstream>
 #include <limits>
 #include <random>
+#include <set>
+#include <string>
 
 #include "world_script.h"
 #include "zone/zone.h"
@@ -128,6 +130,40 @@ TEST_SUITE("zone.config") {
     CHECK(fromfile.config->world.hi.x == 2000.f);
     CHECK(fromfile.config->port == 5000);
     CHECK_FALSE(parse({"--config", "/nonexistent/zone.ini"}).config.has_value());
+  }
+
+  TEST_CASE("the shipped sample config/zone-server.ini loads, validates and is what it says") {
+    const std::string path = std::string(ZONE_SOURCE_DIR) + "/config/zone-server.ini";
+    // Every name in the file is an option of --help: an unknown one fails the parse.
+    const auto sample = parse({"--config", path});
+    INFO(sample.message);
+    REQUIRE(sample.config.has_value());
+    CHECK_FALSE(validate(*sample.config).has_value());
+    // The values the sample sets apart from the defaults were read.
+    CHECK(sample.config->npc_count == 10000);
+    CHECK(sample.config->tick_rate_hz == 20);
+    CHECK(sample.config->listen_address == "127.0.0.1");
+    CHECK(sample.config->max_clients == 1100);
+    // The command line wins over the file.
+    const auto over = parse({"--config", path, "--npcs", "500", "--tick-rate", "30"});
+    REQUIRE(over.config.has_value());
+    CHECK(over.config->npc_count == 500);
+    CHECK(over.config->tick_rate_hz == 30);
+    // The file holds no option twice (the parser would take the first; the reader would not see it).
+    std::ifstream in(path);
+    REQUIRE(in);
+    std::set<std::string> names;
+    for (std::string line; std::getline(in, line);) {
+      const auto first = line.find_first_not_of(" \t");
+      if (first == std::string::npos || line[first] == '#') continue;
+      const auto eq = line.find('=');
+      REQUIRE(eq != std::string::npos);
+      std::string name = line.substr(first, eq - first);
+      name.erase(name.find_last_not_of(" \t") + 1);
+      CAPTURE(name);
+      CHECK(names.insert(name).second);
+    }
+    CHECK(names.size() >= 20);
   }
 }
 
