@@ -1,13 +1,21 @@
 #!/usr/bin/env python3
-"""Every flag the documentation gives a program exists in that program's --help.
+"""The documentation and the programs' --help agree, both ways.
 
 Usage: check_docs_flags.py REPO_ROOT NAME=EXECUTABLE...
-Reads docs/*.md, README.md and the shell scripts under scripts/ and bots/. A flag counts as given
-to NAME when it follows NAME's executable on a command line (a line, joined with the next while
-it ends in a backslash) before the command ends (|, ;, &&, a backtick or another program's name)
-and the first word after NAME is itself a flag (so `script.sh build/zone/zone-server TAG --x` is a
-script's argument, not zone-server's), unless NAME is an option's value (`tool --server NAME --x`). Exits 1 naming each flag --help lacks, with where the
-documentation gives it.
+
+1. Every flag the documentation gives a program exists in that program's --help. Reads docs/*.md,
+   README.md and the shell scripts under scripts/ and bots/. A flag counts as given to NAME when it
+   follows NAME's executable on a command line (a line, joined with the next while it ends in a
+   backslash) before the command ends (|, ;, &&, a backtick or another program's name) and the
+   first word after NAME is itself a flag (so `script.sh build/zone/zone-server TAG --x` is a
+   script's argument, not zone-server's), unless NAME is an option's value
+   (`tool --server NAME --x`).
+2. Every option a program's --help defines is documented in that program's manual (MANUALS
+   below): the flag appears there as `--flag`. An option is defined by a --help line that starts
+   with it (after indentation, or `-h [ --help ]`), or by a usage line (`usage: ...` and the lines
+   of `[...]` under it).
+Exits 1 naming each flag --help lacks, with where the documentation gives it, and each option
+its manual lacks.
 """
 import glob
 import os
@@ -15,13 +23,48 @@ import re
 import subprocess
 import sys
 
+FLAG = re.compile(r"(?<![\w-])--[a-z][a-z0-9-]*")
 
-def help_flags(exe):
+# Where each program's options are documented (paths relative to the repository root).
+MANUALS = {
+    "zone-server": ["docs/operating.md"],
+    "bot-swarm": ["docs/bots.md"],
+    "bench-zone": ["docs/zone-benchmarks.md"],
+    "bench-handoff": ["docs/zone-benchmarks.md"],
+    "bench-gpu": ["docs/gpu-benchmarks.md"],
+    "bench-peers": ["docs/gpu-benchmarks.md"],
+    "bench-finders": ["docs/benchmarks.md"],
+    "host-jitter": ["docs/benchmarks.md", "docs/zone-benchmarks.md"],
+    "interest-pairs": ["docs/formats.md"],
+    "world-check": ["docs/world.md"],
+    "zone-probe": ["docs/operating.md"],
+}
+# Every program of the tree, so that a command line given to one ends where another begins.
+PROGRAMS = set(MANUALS)
+
+
+def run_help(exe):
     out = subprocess.run([exe, "--help"], capture_output=True, text=True, timeout=60)
-    flags = set(re.findall(r"(?<![\w-])--[a-z][a-z0-9-]*", out.stdout + out.stderr))
-    if out.returncode != 0 or not flags:
-        sys.exit(f"{exe} --help: exit {out.returncode}, {len(flags)} flags:\n{out.stdout}{out.stderr}")
-    return flags
+    text = out.stdout + out.stderr
+    if out.returncode != 0 or not FLAG.search(text):
+        sys.exit(f"{exe} --help: exit {out.returncode}:\n{text}")
+    return text
+
+
+def defined_options(text):
+    """The options a --help text defines (not the ones its descriptions merely mention)."""
+    found = set()
+    for line in text.splitlines():
+        stripped = line.strip()
+        if stripped.lower().startswith("usage") or stripped.startswith("["):
+            found |= set(FLAG.findall(stripped))
+        elif stripped.startswith("-"):
+            m = re.match(r"(?:-[a-zA-Z] \[ )?(--[a-z][a-z0-9-]*)", stripped)
+            if m:
+                found.add(m.group(1))
+            found |= set(re.findall(r"\s{2,}(--[a-z][a-z0-9-]*)", stripped))  # two on one line
+    found.discard("--help")
+    return found
 
 
 def command_lines(path):
@@ -44,11 +87,16 @@ def command_lines(path):
 def main():
     root, pairs = sys.argv[1], sys.argv[2:]
     programs = dict(p.split("=", 1) for p in pairs)
-    flags = {name: help_flags(exe) for name, exe in programs.items()}
-    stop = re.compile(r"\||;|&&|`|\b(?:" + "|".join(map(re.escape, programs)) + r"|bench-handoff|bench-gpu|"
-                      r"bench-finders|host-jitter|interest-pairs)\b")
+    unknown = set(programs) - set(MANUALS)
+    if unknown:
+        sys.exit(f"no manual known for {', '.join(sorted(unknown))}: add it to MANUALS")
+    helps = {name: run_help(exe) for name, exe in programs.items()}
+    flags = {name: set(FLAG.findall(text)) for name, text in helps.items()}
+    stop = re.compile(r"\||;|&&|`|\b(?:" + "|".join(map(re.escape, sorted(PROGRAMS | set(programs)))) + r")\b")
     files = sorted(glob.glob(os.path.join(root, "docs", "*.md"))) + [os.path.join(root, "README.md")]
     files += sorted(glob.glob(os.path.join(root, "scripts", "*.sh")) + glob.glob(os.path.join(root, "bots", "*.sh")))
+
+    # 1. What the documentation gives a program exists in its --help.
     missing, checked = [], 0
     for path in files:
         if not os.path.exists(path):
@@ -63,15 +111,31 @@ def main():
                     words = rest.split()
                     if not words or not words[0].startswith("-"):
                         continue
-                    for flag in re.findall(r"(?<![\w-])--[a-z][a-z0-9-]*", rest):
+                    for flag in FLAG.findall(rest):
                         checked += 1
                         if flag not in flags[name]:
                             missing.append(f"{os.path.relpath(path, root)}:{number}: {name} {flag}")
-    print(f"{checked} flags given to {', '.join(programs)} in the documentation checked against --help")
+
+    # 2. What --help defines is documented in the program's manual.
+    undocumented, defined = [], 0
+    for name, text in helps.items():
+        manual_text = ""
+        for rel in MANUALS[name]:
+            with open(os.path.join(root, rel), encoding="utf-8") as f:
+                manual_text += f.read()
+        documented = set(FLAG.findall(manual_text))
+        for option in sorted(defined_options(text)):
+            defined += 1
+            if option not in documented:
+                undocumented.append(f"{name} {option} (not in {', '.join(MANUALS[name])})")
+
+    print(f"{checked} flags given to {', '.join(programs)} in the documentation checked against --help; "
+          f"{defined} options of their --help checked against their manuals")
     if missing:
-        print("not in --help:\n  " + "\n  ".join(missing))
-        return 1
-    return 0 if checked > 0 else 1
+        print("given in the documentation, not in --help:\n  " + "\n  ".join(missing))
+    if undocumented:
+        print("in --help, not in the manual:\n  " + "\n  ".join(undocumented))
+    return 1 if missing or undocumented or checked == 0 or defined == 0 else 0
 
 
 if __name__ == "__main__":
