@@ -54,6 +54,25 @@ struct vec3 {
 
 enum class entity_kind : std::uint8_t { player, npc, boss };
 
+/// A player's visibility from its choice (docs/zone.md, "Visibility classes and teams"): its
+/// presence class is normal unless stealthed; stealthed, it is its team's class (team_red,
+/// team_blue: seen by that team only) or, without a team, stealth (seen by no player). Its AOI
+/// sees normal and its own team's class. team: 0 none, 1 red, 2 blue (others: treated as none;
+/// the server validates before).
+struct player_visibility {
+  std::uint32_t visibility_class = interest::category_bits::normal;
+  std::uint32_t sees = interest::category_bits::normal;
+};
+[[nodiscard]] constexpr player_visibility visibility_for(bool stealth, std::uint8_t team) {
+  const std::uint32_t team_bit = team == 1   ? interest::category_bits::team_red
+                                 : team == 2 ? interest::category_bits::team_blue
+                                             : 0u;
+  player_visibility v;
+  v.visibility_class = !stealth ? interest::category_bits::normal : team_bit != 0 ? team_bit : interest::category_bits::stealth;
+  v.sees = interest::category_bits::normal | team_bit;
+  return v;
+}
+
 /// Everything needed to create an entity. Visibility: `visibility_class` is the one category bit
 /// of its presence box (category_bits::normal, stealth, team_red, ...; never category_bits::aoi);
 /// `sees` is the set of classes its AOI box sees (its mask; never containing the aoi bit).
@@ -455,6 +474,15 @@ class replicator {
   void set_observer(client_id c, entity_id observer);
   /// The client lost frames: the next frame resets its view and starts it again.
   void resync(client_id c);
+  /// Entity `changed` switched visibility class (from `old_class` to its class in `store` now).
+  /// A frame enters an entity with its class once and never sends the class again, so every client
+  /// that may hold it with the old class and keeps seeing it is resync()ed: its next frame resets
+  /// the view (enters carry the new class). Those are the active clients whose observer sees the
+  /// new class and whose AOI box, grown by `hysteresis` (and a centimetre), meets the entity's
+  /// presence box at the store's positions (call after the interest step of those positions: a
+  /// client holding it from farther away is sent its leave in this tick's frame). Returns how many.
+  /// The decision reads only the store, so the CPU path and an engine resync the same clients.
+  std::size_t resync_viewers_of(const entity_store& store, entity_id changed, std::uint32_t old_class, float hysteresis);
 
   /// Builds this tick's frame for client c into `writer`; the span is valid until the writer's
   /// next build. `stats`, when given, receives what was sent and deferred.
@@ -666,6 +694,12 @@ struct zone_config {
   std::uint32_t update_mid_period = 3, update_far_period = 8;
   std::uint32_t digest_every = 1;    ///< a visible-set digest every K ticks (0 = none)
   double teleport_cooldown_s = 0.5;  ///< least time between two jumps of one player (0 = none)
+  /// Client-chosen visibility (hello, set_visibility; docs/zone.md "Visibility classes and
+  /// teams"): players may choose stealth, and join one of `player_teams` teams (0 none, 1 red,
+  /// 2 red and blue); a client switches at most once per visibility_cooldown_s.
+  bool allow_stealth = true;
+  std::uint32_t player_teams = 2;
+  double visibility_cooldown_s = 1.0;
   bool metrics_enabled = true;        ///< serve Prometheus text at http://metrics_address:metrics_port/metrics
   std::uint16_t metrics_port = 9100;  ///< 0 = an ephemeral port
   /// Where /metrics listens: loopback by default (it has no authentication); "0.0.0.0" opens it.
@@ -761,8 +795,9 @@ class zone_world {
 
   /// Creates the NPCs and bosses of the config (deterministic in cfg.seed).
   void populate();
-  /// A player entity at `at` (clamped into the world); null_entity when the zone is full.
-  [[nodiscard]] entity_id spawn_player(const vec3& at);
+  /// A player entity at `at` (clamped into the world) with the visibility a player's choice
+  /// gives (player_visibility); null_entity when the zone is full.
+  [[nodiscard]] entity_id spawn_player(const vec3& at, bool stealth = false, std::uint8_t team = 0);
   bool despawn(entity_id id);
   /// An entity with a given behaviour state (a world's ghost or handed-off entity); null_entity
   /// when the description is invalid or the zone is full.
