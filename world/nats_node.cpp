@@ -152,6 +152,7 @@ std::unique_ptr<nats_node> nats_node::join(const node_options& opt, const zone_c
     lo.handoff_margin = opt.handoff_margin;
     lo.ghost_band = opt.ghost_band > 0 ? opt.ghost_band : ghost_band(zone, opt.handoff_margin);
     lo.ghost_timeout_ticks = opt.ghost_timeout_ticks;
+    lo.capacity = opt.capacity;
     return lo;
   }());
   // Core subscriptions: their callbacks only queue (the game thread applies).
@@ -419,6 +420,13 @@ void nats_node::before_step(zone_world& w) {
         }
       } else if (st == handoff_status::duplicate) {
         ++stats_.handoff_duplicates;
+      } else if (st == handoff_status::no_room) {
+        // A full zone: the record goes back to the stream and comes again (KV names this zone
+        // already, so no other zone may take the entity; dropping it would lose it).
+        ++stats_.handoffs_no_room;
+        natsMsg_NakWithDelay(m, static_cast<std::int64_t>(opt_.no_room_retry_s * 1000), nullptr);  // ms
+        natsMsg_Destroy(m);
+        continue;
       }
     }
     natsMsg_Ack(m, nullptr);  // applied (or refused for good): not again

@@ -52,6 +52,10 @@ struct node_options {
   float ghost_band = 0;  ///< 0: world::ghost_band(zone config)
   std::uint32_t ghost_timeout_ticks = 60;
   double unclaimed_player_s = 10;  ///< a handed-off player whose client never came is removed after this
+  /// Most entities the zone owns (link_options::capacity; 0: the store's capacity): a handoff
+  /// into a full zone is not acked but offered again after `no_room_retry_s` (docs/world.md).
+  std::size_t capacity = 0;
+  double no_room_retry_s = 0.25;
 };
 
 /// Counters of a node (game thread writes, any thread may read roughly).
@@ -60,6 +64,7 @@ struct node_stats {
   std::atomic<std::uint64_t> handoffs_applied{0}, handoff_duplicates{0}, redirects{0}, redirect_claims{0};
   std::atomic<std::uint64_t> inputs_forwarded{0}, inputs_received{0}, snapshot_requests{0}, players_abandoned{0};
   std::atomic<std::uint64_t> ghost_publish_failures{0}, ghost_inbox_dropped{0};
+  std::atomic<std::uint64_t> handoffs_no_room{0};  ///< records offered to a full zone, handed back to the stream to retry
 };
 
 /// One zone's NATS side; a zone_extension for zone_server.
