@@ -27,8 +27,8 @@ Usage: scripts/world.sh [options]
                    then 0 only when the oracle caught it (mismatches > 0) and nothing else failed
   --threads N      worker threads per zone (default 1)
   --zone-args "A"  more zone-server options for every zone (e.g. "--npc-speed 8")
-  --single         also run one zone-server with the whole world's NPCs and all the bots (the
-                   same load in one zone) after the world, for the tick p99 beside it
+  --single S       afterwards, run the same load in ONE zone-server for S seconds (all the zones'
+                   NPCs and all the bots, zones x --threads worker threads) and report its tick p99
   --out DIR        keep logs and reports here (default: a temporary directory)
   --help
 Exit status: 0 when no entity is owned twice, KV agrees and the swarms saw no mismatch; 1 otherwise.
@@ -48,7 +48,7 @@ while [ $# -gt 0 ]; do
     --kill) kill=1; shift ;;
     --oracle) oracle=1; shift ;;
     --test-fault) fault=$2; shift 2 ;;
-    --single) single=1; shift ;;
+    --single) single=$2; shift 2 ;;
     --bosses) bosses=$2; shift 2 ;;
     --zone-args) read -r -a extra_zone_args <<<"$2"; shift 2 ;;
     --threads) threads=$2; shift 2 ;;
@@ -59,8 +59,8 @@ while [ $# -gt 0 ]; do
 done
 [[ $grid =~ ^([0-9]+)x([0-9]+)$ ]] || { echo "world.sh: --grid must be COLSxROWS" >&2; exit 64; }
 zones=$(( ${BASH_REMATCH[1]} * ${BASH_REMATCH[2]} ))
-for v in "$bots" "$npcs" "$duration" "$size" "$threads" "$bosses"; do
-  [[ $v =~ ^[0-9]+$ ]] || { echo "world.sh: --bots, --npcs, --duration, --world-size, --threads and --bosses take whole numbers (got '$v')" >&2; exit 64; }
+for v in "$bots" "$npcs" "$duration" "$size" "$threads" "$bosses" "$single"; do
+  [[ $v =~ ^[0-9]+$ ]] || { echo "world.sh: --bots, --npcs, --duration, --world-size, --threads, --bosses and --single take whole numbers (got '$v')" >&2; exit 64; }
 done
 [ "$kill" = 1 ] && [ "$oracle" = 1 ] && { echo "world.sh: --oracle and --kill do not go together (a killed zone's truth stream ends)" >&2; exit 64; }
 case "$fault" in ''|drop|extra|stealth|freeze|class) ;; *) echo "world.sh: --test-fault must be drop, extra, stealth, freeze or class" >&2; exit 64 ;; esac
@@ -123,7 +123,7 @@ reconnect=()
 check=()
 if [ "$oracle" = 1 ]; then
   all_ports=$(IFS=,; echo "${zport[*]}")
-  check=(--oracle --oracle-zones "$all_ports")  # each bot judged by the truth of the zone it is in now
+  check=(--oracle --oracle-threads 1 --oracle-zones "$all_ports")  # each bot judged by the truth of the zone it is in now
 fi
 declare -a spid
 for k in $(seq 0 $((zones - 1))); do
@@ -162,18 +162,37 @@ set -e
 for k in $(seq 0 $((zones - 1))); do kill -TERM "${zpid[$k]}" 2>/dev/null || true; done
 for k in $(seq 0 $((zones - 1))); do wait "${zpid[$k]}" 2>/dev/null || true; done
 
-# 6. The report.
+# 6. The same load in one zone (--single), for the tick p99 beside the world's.
+if [ "$single" -gt 0 ]; then
+  "$build/zone/zone-server" --world-x "$size" --world-y "$size" --listen 127.0.0.1 --metrics 0 --npcs $((zones * npcs)) \
+    --bosses $((zones * bosses)) --threads $((zones * threads)) --finder cpu --interest host \
+    ${extra_zone_args[@]+"${extra_zone_args[@]}"} --port 0 --tick-csv "$out/single.csv" >"$out/single.log" 2>&1 &
+  single_pid=$!
+  pids+=("$single_pid")
+  single_port=$(zone_port "$out/single.log" 200)
+  if [ -n "$single_port" ]; then
+    "$build/bots/bot-swarm" --host 127.0.0.1 --port "$single_port" --bots "$bots" --duration "$single" --ramp $((100 * zones)) \
+      --mix walk=1 --verify --quiet --report-json "$out/swarm-single.json" >"$out/swarm-single.log" 2>&1 || true
+  else
+    echo "world.sh: the single zone did not start ($out/single.log)" >&2
+  fi
+  kill -TERM "$single_pid" 2>/dev/null || true
+  wait "$single_pid" 2>/dev/null || true
+fi
+
+# 7. The report.
 json() { grep -o "\"$2\": [0-9.e+-]*" "$1" | head -1 | awk '{print $2}'; }
 echo "== world '$name': $grid regions of ${size} m, $npcs NPCs per zone, $bots bots, ${duration} s ($(nproc) cores, $(date -u +%F))"
 [ -n "$killed_note" ] && echo "fault: $killed_note"
 mism=0
-printf '%-6s %-7s %9s %9s %9s %11s %10s %10s %12s\n' zone region connected redirects digests mismatches failures "re-logins" "tick p99 ms"
+printf '%-6s %-7s %9s %9s %9s %11s %10s %10s %16s\n' zone region connected redirects digests mismatches failures "re-logins" "tick p50/p99 ms"
 for k in $(seq 0 $((zones - 1))); do
   f="$out/swarm-$k.json"
   m=$(json "$f" mismatches); m=${m:-0}
   mism=$((mism + ${m%.*}))
-  p99=$(awk -F, 'NR > 1 && $2 > 5 {print $11}' "$out/zone-$k.csv" | sort -g | awk '{a[NR] = $1} END {if (NR) print a[int(NR * 0.99 + 0.999)]; else print "-"}')
-  printf '%-6s %-7s %9s %9s %9s %11s %10s %10s %12s\n' "$k" "${zregion[$k]:-?}" "$(json "$f" bots_connected)" "$(json "$f" redirects)" \
+  p99=$(awk -F, 'NR > 1 && $2 > 5 {print $11}' "$out/zone-$k.csv" | sort -g |
+        awk '{a[NR] = $1} END {if (NR) printf "%s/%s", a[int(NR * 0.5 + 0.999)], a[int(NR * 0.99 + 0.999)]; else print "-"}')
+  printf '%-6s %-7s %9s %9s %9s %11s %10s %10s %16s\n' "$k" "${zregion[$k]:-?}" "$(json "$f" bots_connected)" "$(json "$f" redirects)" \
     "$(json "$f" digests_checked)" "$m" "$(( $(json "$f" connect_failures || echo 0) + $(json "$f" unexpected_disconnects || echo 0) ))" \
     "$(json "$f" reconnects)" "$p99"
 done
@@ -205,6 +224,21 @@ for log in "$out"/zone-*.log; do
     for (i = 1; i <= NF; ++i) if ($i == "bytes" && $(i+1) == "out") out = $(i+2);
     printf "    ghost bytes per tick per neighbour: %.0f (over %d ticks, %d neighbours)\n", out / t / n, t, n }'
 done
+# Over the world: handoffs adopted, and the worst zone's handoff p99 (ms and ticks).
+cat "$out"/zone-*.log | grep -o 'world: region.*' | awk '{
+    for (i = 1; i <= NF; ++i) {
+      if ($i == "in" && $(i+2) == "(duplicates") n += $(i+1)
+      if ($i == "p99" && $(i+2) == "ms" && $(i+1) + 0 > ms) ms = $(i+1) + 0
+      if ($i == "(p99" && $(i+2) ~ /^ticks/ && $(i+1) + 0 > tk) tk = $(i+1) + 0
+    }
+  } END { printf "handoffs adopted in all: %d; worst zone handoff p99: %.1f ms = %.2f ticks\n", n, ms, tk }'
+if [ "$single" -gt 0 ]; then
+  p=$(awk -F, 'NR > 1 && $2 > 5 {print $11}' "$out/single.csv" 2>/dev/null | sort -g |
+      awk '{a[NR] = $1} END {if (NR) printf "%s / %s", a[int(NR * 0.5 + 0.999)], a[int(NR * 0.99 + 0.999)]; else print "-"}')
+  f="$out/swarm-single.json"
+  echo "-- the same load in one zone ($((zones * npcs)) NPCs, $bots bots, $((zones * threads)) worker threads, ${single} s): tick p50 / p99 ${p} ms;" \
+    "bots connected $(json "$f" bots_connected), digests $(json "$f" digests_checked), mismatches $(json "$f" mismatches)"
+fi
 echo "-- world-check (census of the zones + KV ownership records)"
 cat "$out/world-check.txt"
 echo "logs: $out"

@@ -183,6 +183,9 @@ struct census_entry {
   std::uint64_t tick = 0;
   std::vector<std::pair<global_id, std::uint64_t>> owned;  ///< (id, epoch)
   std::vector<global_id> transit;                          ///< handed off from here, not confirmed yet
+  /// Players handed off to this zone whose client has not come with its token yet (removed after
+  /// node_options::unclaimed_player_s): owned here, but no longer any client's.
+  std::vector<global_id> awaiting;
 };
 /// Asks every zone of the world (world.W.census) and collects the answers for `wait_ms`;
 /// `pump` (when set) is called while waiting (in-process zones answer from their game thread).
@@ -197,6 +200,7 @@ struct census_entry {
 struct world_check {
   std::size_t zones = 0, owned = 0;
   std::size_t transit_only = 0;    ///< handed off and owned by no zone yet (on the stream)
+  std::size_t awaiting_players = 0;  ///< owned players whose client has not followed its redirect (yet)
   std::size_t owned_twice = 0;     ///< the same (id, epoch) in two zones: a broken guarantee
   std::size_t moving = 0;          ///< the same id in two zones with different epochs (the census caught a handoff)
   std::size_t kv_records = 0;
