@@ -3,7 +3,8 @@
 // builder, a count query, a scan, a fill query; pinned in, pinned pairs out) on the six target
 // sets. Prints a table and writes CSV.
 //
-//   bench-peers [--csv FILE] [--sets LIST] [--max-n N] [--reps R] [--cubql-leaf L] [--seed S]
+//   bench-peers [--csv FILE] [--sets LIST] [--max-n N] [--reps R] [--cubql-leaf L]
+//               [--cubql-builder B] [--seed S]
 //
 // Per set: the boxes generated once (seed 42 unless --seed), the set pinned (pinned_boxes) for
 // the documented call, and a page-locked AoS copy (6 floats a box; category/mask only when some
@@ -147,8 +148,8 @@ zi::box_set edge_case_set(std::size_t n, bool classes, std::uint64_t seed) {
 }
 
 /// cuBQL against the brute-force reference on edge-case and random sets; false on any difference.
-bool self_check(zi::thread_pool& pool, int leaf) {
-  zp::cubql_join peer(leaf);
+bool self_check(zi::thread_pool& pool, int leaf, zp::cubql_builder builder) {
+  zp::cubql_join peer(leaf, builder);
   zi::brute_force_finder brute(&pool);
   bool ok = true;
   struct c {
@@ -215,6 +216,8 @@ int main(int argc, char** argv) {
   std::size_t max_n = 10000000;
   int reps = 0;
   int leaf = 0;
+  zp::cubql_builder builder = zp::cubql_builder::spatial_median;
+  std::string builder_name = "median";
   std::uint64_t seed = 42;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
@@ -232,16 +235,29 @@ int main(int argc, char** argv) {
       else if (a == "--reps") reps = std::stoi(next());
       else if (a == "--cubql-leaf") leaf = std::stoi(next());
       else if (a == "--seed") seed = std::stoull(next());
+      else if (a == "--cubql-builder") {
+        builder_name = next();
+        if (builder_name == "median") builder = zp::cubql_builder::spatial_median;
+        else if (builder_name == "radix") builder = zp::cubql_builder::radix;
+        else if (builder_name == "rebin") builder = zp::cubql_builder::rebin_radix;
+        else {
+          std::fprintf(stderr, "bench-peers: unknown --cubql-builder '%s' (median, radix, rebin)\n", builder_name.c_str());
+          return 2;
+        }
+      }
       else if (a == "--help" || a == "-h") {
         std::printf(
             "bench-peers: the documented finder call (make_finder(auto), pinned_boxes, find_view) beside NVIDIA cuBQL\n\n"
-            "usage: bench-peers [--csv FILE] [--sets LIST] [--max-n N] [--reps R] [--cubql-leaf L] [--seed S]\n"
+            "usage: bench-peers [--csv FILE] [--sets LIST] [--max-n N] [--reps R] [--cubql-leaf L] [--cubql-builder B]\n"
+            "                   [--seed S]\n"
             "  --csv FILE       rows as CSV (default bench-peers.csv)\n"
             "  --sets LIST      comma-separated KIND:N, KIND one of uniform, gaussian, mmo, doc:<value>\n"
             "                   (default: the six target sets, uniform 1e5/1e6/1e7, gaussian 1e6, doc:10 1e6, gaussian 1e7)\n"
             "  --max-n N        skip sets larger than N boxes (default 10000000)\n"
             "  --reps R         timed rounds per set (default 21; 5 at 10^7 boxes and more)\n"
             "  --cubql-leaf L   cuBQL BuildConfig::makeLeafThreshold (default 0: the builder's default)\n"
+            "  --cubql-builder B  median (cuBQL::gpuBuilder, default BuildConfig; the default), radix\n"
+            "                   (cuBQL::cuda::radixBuilder) or rebin (cuBQL::cuda::rebinRadixBuilder)\n"
             "  --seed S         generator seed (default 42)\n"
             "A self-check (cuBQL against brute force on edge-case sets) runs first. Exits 1 when a pair set\n"
             "differs, 77 without a CUDA device. docs/gpu-benchmarks.md says what the table means.\n");
@@ -297,7 +313,8 @@ int main(int argc, char** argv) {
   }
   zi::thread_pool pool(0);
   std::printf("bench-peers on %s (%d SMs), %u host threads\n", dev.name.c_str(), dev.multiprocessors, pool.size());
-  if (!self_check(pool, leaf)) {
+  std::printf("cuBQL builder: %s, leaf threshold %d\n", builder_name.c_str(), leaf);
+  if (!self_check(pool, leaf, builder)) {
     std::fprintf(stderr, "bench-peers: cuBQL's pairs differ from the brute-force reference\n");
     return 1;
   }
@@ -307,7 +324,7 @@ int main(int argc, char** argv) {
          "cubql_build_ms,cubql_count_ms,cubql_scan_ms,cubql_fill_ms,cubql_out_ms,pbig_ms,pbig_in_ms,pbig_plan_ms,"
          "pbig_map_ms,pbig_map_count_ms,pbig_map_scatter_ms,pbig_map_sort_ms,pbig_map_gather_ms,pbig_check_ms,"
          "pbig_out_ms,pbig_pipeline_ms,pbig_batches,bytes_in,bytes_out,floor_serial_ms,cubql_leaf,pbig_no_fill_ms,"
-         "pbig_no_indirect_ms,pbig_neither_ms,classes_filled,indirect_check,verified\n";
+         "pbig_no_indirect_ms,pbig_neither_ms,classes_filled,indirect_check,cubql_builder,verified\n";
   std::printf("\n== The documented call (make_finder(auto), pinned_boxes, find_view) beside cuBQL (gpuBuilder, count, "
               "scan, fill; pinned in and out); ms, medians\n");
   std::printf("%-9s %9s %13s %10s %-5s %10s %7s | %7s %7s %7s %7s %7s %7s | %7s %7s %7s %7s %7s %7s %s\n", "set", "N",
@@ -320,7 +337,7 @@ int main(int argc, char** argv) {
     const zg::pinned_boxes pin(s);
     const peer_input in(s);
     auto pub = zg::make_finder(zg::finder_backend::auto_select, &pool, &why);
-    zp::cubql_join peer(leaf);
+    zp::cubql_join peer(leaf, builder);
     std::span<const zi::id_pair> view;
     // Warm-ups, then the pair sets compared before anything is timed.
     if (zg::find_view(*pub, s, view)) {
@@ -365,8 +382,11 @@ int main(int argc, char** argv) {
     // PBIG (the path auto takes on a pinned set) with its defaults and with each change off, on
     // the same pinned set, interleaved rounds after a warm-up each; the defaults' phase report of
     // its median call.
+    // (Sets of more than 10^8 pairs time the defaults only: each variant holds its own pinned
+    // result buffer of 8 bytes a pair.)
     std::vector<variant_result> var;
     for (const variant& v : variants) {
+      if (dp.count > 100000000 && !var.empty()) break;
       zg::pbig_options o = v.options;
       o.decode_pool = &pool;
       var.push_back({v.name, zg::make_pbig_finder(o, &why), {}, {}, 0});
@@ -400,6 +420,7 @@ int main(int argc, char** argv) {
       return d.reports[at];
     }();
     const double pbig_ms = var[0].median;
+    auto variant_ms = [&](std::size_t k) { return k < var.size() ? var[k].median : -1.0; };
     const double bytes_out = static_cast<double>(dp.count) * 8;
     const double floor_ms = (32.0 * static_cast<double>(sp.n) + bytes_out) / 55e9 * 1e3;  // 55 GB/s each way, serial
     const std::string verified = same && same_after ? "yes" : "MISMATCH";
@@ -414,7 +435,7 @@ int main(int argc, char** argv) {
                 pbig_ms, rep.data_in_ms, rep.plan_ms, rep.map_ms, rep.map_count_ms, rep.map_scatter_ms, rep.map_sort_ms,
                 rep.map_gather_ms, rep.sched_ms, rep.pipeline_ms, rep.check_ms, rep.data_out_ms, rep.batches,
                 static_cast<double>(rep.bytes_in) / 1e6, static_cast<double>(rep.bytes_out) / 1e6);
-    std::printf("   PBIG variants (medians of %d, interleaved):", vr);
+    std::printf("   PBIG variants (medians of %d, interleaved%s):", vr, var.size() < 4 ? "; defaults only above 10^8 pairs" : "");
     for (const auto& v : var) std::printf(" %s %.3f ms;", v.name, v.median);
     std::printf(" classes filled %s, indirect checks %s\n", rep.classes_filled ? "yes" : "no",
                 rep.indirect_check ? "yes" : "no");
@@ -425,8 +446,8 @@ int main(int argc, char** argv) {
         << ct.out_ms << ',' << pbig_ms << ',' << rep.data_in_ms << ',' << rep.plan_ms << ',' << rep.map_ms << ','
         << rep.map_count_ms << ',' << rep.map_scatter_ms << ',' << rep.map_sort_ms << ',' << rep.map_gather_ms << ','
         << rep.check_ms << ',' << rep.data_out_ms << ',' << rep.pipeline_ms << ',' << rep.batches << ',' << rep.bytes_in
-        << ',' << rep.bytes_out << ',' << floor_ms << ',' << leaf << ',' << var[1].median << ',' << var[2].median << ','
-        << var[3].median << ',' << rep.classes_filled << ',' << rep.indirect_check << ',' << verified << '\n';
+        << ',' << rep.bytes_out << ',' << floor_ms << ',' << leaf << ',' << variant_ms(1) << ',' << variant_ms(2) << ','
+        << variant_ms(3) << ',' << rep.classes_filled << ',' << rep.indirect_check << ',' << builder_name << ',' << verified << '\n';
     csv.flush();
   }
   std::printf("CSV: %s\n", csv_path.c_str());

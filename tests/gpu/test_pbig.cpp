@@ -596,6 +596,9 @@ TEST_SUITE("gpu.pbig") {
       }
     }
     for (const family f : all_families) {
+      // One finder per mode and family: with tiny buffers each larger set overflows them again.
+      std::vector<std::unique_ptr<pair_finder>> finders;
+      for (const auto& o : modes) finders.push_back(make_gpu(o));
       for (const std::size_t n : {0, 1, 2, 33, 513, 4001}) {
         const auto seed = fresh_seed();
         CAPTURE(family_name(f));
@@ -603,11 +606,11 @@ TEST_SUITE("gpu.pbig") {
         CAPTURE(seed);
         const box_set s = make_family(f, n, seed);
         const pair_list expected = run(brute, s);
-        for (const auto& o : modes) {
-          CAPTURE(describe(o));
-          auto finder = make_gpu(o);
-          CHECK(run(*finder, s) == expected);
-          if (n > 0) CHECK(gpu::last_pbig_report(*finder)->indirect_check);
+        for (std::size_t k = 0; k < modes.size(); ++k) {
+          CAPTURE(describe(modes[k]));
+          CHECK(run(*finders[k], s) == expected);
+          // (Sets under 2 boxes never reach the device: no report of their own.)
+          if (n >= 2) CHECK(gpu::last_pbig_report(*finders[k])->indirect_check);
         }
       }
     }
