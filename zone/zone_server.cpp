@@ -126,8 +126,9 @@ zone_server::zone_server(const zone_config& cfg)
         faulty_replication_ = std::make_unique<faulty_replication_engine>(*replication_engine_, gpu_fault(cfg));
       }
       replicator_.set_engine(faulty_replication_ ? faulty_replication_.get() : replication_engine_.get());
-      // With the interest step on the GPU too, replication reads the visible sets there in place.
-      world_->set_player_views_on_host(false);
+      // With the interest step on the GPU too, replication reads the visible sets there in place;
+      // unless --host-views (the default), the players' rows then stay on the device only.
+      world_->set_player_views_on_host(cfg.host_views);
     } else if (cfg.replicate == "gpu") {
       replicate_error_ = "replicate 'gpu' cannot run here: " + why + " (use --replicate auto or cpu)";
     } else {
