@@ -50,7 +50,7 @@ for step in "${steps[@]}"; do
       ;;
     tests)
       echo "== test_zone_server (GPU fault case) $(date -u +%FT%TZ)"
-      "$dir/test_zone_server" -tc='--test-fault gpu-*' 2>&1 | tail -4
+      "$dir/test_zone_server" -tc="--test-fault gpu-*" > "$out/test_zone_server.log" 2>&1; tail -4 "$out/test_zone_server.log"
       "$dir/test_zone" -ts=zone.engine_faults 2>&1 | tail -3
       ;;
     faults)
