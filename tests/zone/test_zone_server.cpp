@@ -15,7 +15,7 @@
 #include <spdlog/spdlog.h>
 
 #include "../net/loopback_client.h"
-#include "gpu/pbig.h"
+#include "gpu/device.h"
 #include "net/client.h"
 #include "zone/zone_server.h"
 
