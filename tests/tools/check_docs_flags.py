@@ -12,8 +12,8 @@ Usage: check_docs_flags.py REPO_ROOT NAME=EXECUTABLE...
    (`tool --server NAME --x`).
 2. Every option a program's --help defines is documented in that program's manual (MANUALS
    below): the flag appears there as `--flag`. An option is defined by a --help line that starts
-   with it (after indentation, or `-h [ --help ]`), or by a usage line (`usage: ...` and the lines
-   of `[...]` under it).
+   with it (indented by at most 4 spaces, or `-h [ --help ]`; a deeper line continues a
+   description), or by a usage line (`usage: ...` and the lines of `[...]` under it).
 Exits 1 naming each flag --help lacks, with where the documentation gives it, and each option
 its manual lacks.
 """
@@ -58,7 +58,7 @@ def defined_options(text):
         stripped = line.strip()
         if stripped.lower().startswith("usage") or stripped.startswith("["):
             found |= set(FLAG.findall(stripped))
-        elif stripped.startswith("-"):
+        elif re.match(r" {0,4}-", line):  # an option's own line; deeper lines continue a description
             m = re.match(r"(?:-[a-zA-Z] \[ )?(--[a-z][a-z0-9-]*)", stripped)
             if m:
                 found.add(m.group(1))
