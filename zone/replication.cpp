@@ -3,7 +3,6 @@
 #include <algorithm>
 #include <atomic>
 #include <chrono>
-#include <ctime>
 #include <functional>
 #include <cmath>
 #include <cstring>
@@ -57,12 +56,6 @@ net::wire::entity_update wire_update(entity_id id, const vec3& p, const vec3& v,
 
 void prefetch(const void* p) { __builtin_prefetch(p); }
 
-/// CPU time of every thread of the process so far, ms.
-double process_cpu_ms() {
-  timespec ts{};
-  clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &ts);
-  return static_cast<double>(ts.tv_sec) * 1e3 + static_cast<double>(ts.tv_nsec) * 1e-6;
-}
 
 }  // namespace
 
@@ -388,15 +381,15 @@ void replicator::build_on_engine(std::span<const replication_request> requests, 
                                  interest::thread_pool* pool, const frame_sink& sink, const chunk_sink& chunk_done) {
   // Phase clocks: wall always, the process's CPU time when asked (set_phase_cpu_timing).
   replication_phase_times times;
-  times.cpu = phase_cpu_;
+  times.cpu = static_cast<bool>(phase_cpu_);
   auto mark_wall = std::chrono::steady_clock::now();
-  double mark_cpu = phase_cpu_ ? process_cpu_ms() : 0;
+  double mark_cpu = phase_cpu_ ? phase_cpu_() : 0;
   const auto phase_end = [&](double& wall, double& cpu) {
     const auto now = std::chrono::steady_clock::now();
     wall = std::chrono::duration<double, std::milli>(now - mark_wall).count();
     mark_wall = now;
     if (phase_cpu_) {
-      const double c = process_cpu_ms();
+      const double c = phase_cpu_();
       cpu = c - mark_cpu;
       mark_cpu = c;
     }
