@@ -261,6 +261,10 @@ struct canonical_tick_update {
   static constexpr std::size_t vtable_at = 32;
   static constexpr std::size_t enter_vtable = 20;
   static constexpr std::size_t enter_table = 56;
+  /// The enters' shared vtable, as written: its size, the table's size, then the entity_state
+  /// fields' offsets in schema order (id, kind, visibility_class, position, velocity,
+  /// presence_half_extent, name), and a zero pad to 20 bytes.
+  static constexpr std::uint16_t enter_vtable_fields[10] = {4 + 2 * 7, enter_table, 4, 52, 8, 12, 24, 36, 48, 0};
   /// Which optional parts a frame has.
   struct parts {
     bool enters = false, leaves = false, updates = false, digest = false, self = false, deferred = false,

@@ -8,7 +8,9 @@
 //     sizes the host mirrors, and everything is copied up at once.
 //  2. Every entity's wire update is quantized (one thread per entity); views of clients without a
 //     job are copied into the new view buffer (one warp per client); one thread per job decides its frame, writes its record (atomic cursor) and its new view.
-//  3. The results and the cursor come back; then the records, exactly the bytes used.
+//     Each job writes its whole frame in the canonical layout (replication_frame_format) but
+//     for its enters' class, extents and kind, which the caller fills in.
+//  3. The results and the cursor come back; then the frames, exactly the bytes used.
 //  The two view buffers are swapped: a run that fails leaves the engine unusable until
 //  forget_all().
 #include <algorithm>
@@ -71,6 +73,12 @@ class engine final : public interest::replication_engine {
 
   [[nodiscard]] bool reads_resident() const override { return true; }
   void set_blocking_wait(bool blocking) override { blocking_ = blocking; }
+  void set_frame_format(const interest::replication_frame_format& format) override {
+    format_ = format;
+    d_format_.reserve(1);
+    CUDA_CHECK(cudaMemcpy(d_format_.get(), &format_, sizeof format_, cudaMemcpyHostToDevice));
+    has_format_ = true;
+  }
 
   output run(const interest::replication_rules& rules, std::size_t client_count,
              const interest::visibility_engine::resident_lists* rows) override {
@@ -79,6 +87,7 @@ class engine final : public interest::replication_engine {
     if (rules.leave_cost == 0 || rules.enter_cost == 0 || rules.update_cost == 0) {
       throw std::invalid_argument("replication engine: entry costs must be positive");
     }
+    if (!has_format_) throw std::logic_error("replication engine: run() before set_frame_format()");
     const bool resident = rows != nullptr && rows->data != nullptr && rows->off != nullptr && rows->rows > 0;
     if (resident && rows->rows >= 0xffffffffu) throw std::invalid_argument("replication engine: too many rows");
     grow_clients(client_count);
@@ -102,6 +111,7 @@ class engine final : public interest::replication_engine {
     a.entities = d_entities_.get();
     a.entity_count = static_cast<std::uint32_t>(n_entities_);
     a.updates = d_updates_.get();
+    a.format = d_format_.get();
     a.slot_dense = d_slot_dense_.get();
     a.slot_count = static_cast<std::uint32_t>(n_slots_);
     a.jobs = d_jobs_.get();
@@ -127,7 +137,7 @@ class engine final : public interest::replication_engine {
     std::uint64_t total = 0, record_cap = 0;
     if (!resident) {
       // The sizes are here: plan on the host.
-      total = plan_staged(jobs, cl, client_count, rules.byte_budget, h_new_off_.get(), record_cap);
+      total = plan_staged(jobs, cl, client_count, rules, format_, h_new_off_.get(), record_cap);
       up(d_visible_.get(), h_visible_.get(), n_visible_ * sizeof(std::uint32_t));
       up(d_new_off_.get(), h_new_off_.get(), (client_count + 1) * sizeof(std::uint32_t));
     } else if (client_count > 0) {
@@ -268,6 +278,9 @@ class engine final : public interest::replication_engine {
   pinned_array<std::uint8_t> h_records_;
   device_array<interest::replication_entity> d_entities_;
   device_array<std::uint32_t> d_updates_;  // 4 words per entity: its wire update
+  interest::replication_frame_format format_;
+  device_array<interest::replication_frame_format> d_format_;
+  bool has_format_ = false;
   device_array<std::uint32_t> d_slot_dense_, d_visible_, d_cursor_;
   device_array<interest::replication_job> d_jobs_;
   device_array<client_slot> d_clients_;
