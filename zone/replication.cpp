@@ -182,6 +182,30 @@ void replicator::set_observer(client_id c, entity_id observer) { clients_[c].obs
 
 void replicator::resync(client_id c) { clients_[c].reset_pending = true; }
 
+std::size_t replicator::resync_viewers_of(const entity_store& store, entity_id changed, std::uint32_t old_class,
+                                          float hysteresis) {
+  const std::size_t x = store.index_of(changed);
+  if (x == entity_store::npos) return 0;
+  const std::uint32_t cls = store.visibility_classes()[x];
+  if (cls == old_class) return 0;
+  const vec3 p = store.positions()[x], b = store.presence_half_extents()[x];
+  const float slack = hysteresis + 0.01f;
+  std::size_t n = 0;
+  for (client_state& s : clients_) {
+    if (!s.active || s.reset_pending || s.observer == changed) continue;
+    const std::size_t o = store.index_of(s.observer);
+    if (o == entity_store::npos || (store.sees()[o] & cls) == 0) continue;
+    const vec3 q = store.positions()[o], a = store.aoi_half_extents()[o];
+    if (std::fabs(p.x - q.x) > a.x + b.x + slack || std::fabs(p.y - q.y) > a.y + b.y + slack ||
+        std::fabs(p.z - q.z) > a.z + b.z + slack) {
+      continue;
+    }
+    s.reset_pending = true;
+    ++n;
+  }
+  return n;
+}
+
 std::span<const std::uint8_t> replicator::build(client_id c, const entity_store& store, const interest_tracker& tracker,
                                                 std::uint64_t tick, std::uint64_t server_time_us,
                                                 std::uint32_t last_input_sequence, replication_writer& writer,

@@ -22,7 +22,7 @@
 
 #include "gpu/common/cuda_check.h"
 #include "gpu/common/gpu_buffers.h"
-#include "gpu/pbig.h"
+#include "gpu/device.h"
 #include "gpu/replication.h"
 #include "replication_launch.h"
 

@@ -201,7 +201,7 @@ TEST_SUITE("zone.replication") {
       const std::uint64_t seed = zone::test::fresh_seed();
       CAPTURE(seed);
       const auto world = zone::test::check_replication_equivalence(seed, zone::test::deferred_leaves_case(), [&] { return std::make_unique<emulated_engine>(seed); });
-      zone::test::require_equivalent(world, true, false);
+      zone::test::require_equivalent(world, true, false, false);
       return world;
     });
     CHECK(cov.deferred_leaves > 0);
