@@ -194,7 +194,7 @@ struct options {
   replicate_mode replicate = replicate_mode::parallel;
   bool replicate_auto = true;  // --replicate auto: gpu when a device is usable
   bool host_views = false;     // --host-views: the GPU replication engine gets the sets from the host
-  bool device_wait_block = true;  // --device-wait: the replication engine's waits for the device
+  bool device_wait_block = false;  // --device-wait: the replication engine's waits for the device
   bool rep_park = true;           // --rep-park: replication_options::park_between_phases
   bool sink_arena = true;         // --sink: build_many's frames into net::frame_arena (as zone-server) or per-client vectors
   std::size_t budget = 8 * 1024;
@@ -236,7 +236,7 @@ Usage: bench-zone [options]
                      compared) | gpu-vs-cpu (the engine, timed as the tick's, and the CPU
                      build_many each tick, frames compared byte for byte) (default auto)
   --device-wait HOW  block | spin: how the GPU replication engine waits for the device
-                     (replication_engine::set_blocking_wait; default block, as zone-server)
+                     (replication_engine::set_blocking_wait; default spin, as zone-server)
   --rep-park on|off  idle workers sleep after each host phase of replication on an engine
                      (replication_options::park_between_phases; default on, as zone-server)
   --sink arena|copy  where build_many's sink copies each frame: arena (net::frame_arena, a block

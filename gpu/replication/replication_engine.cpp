@@ -1,8 +1,8 @@
 // Host dispatch of the GPU replication engine (gpu/replication.h; algorithm in docs/zone.md,
 // "Replication on the GPU").
 //
-// One run, on one stream, with up to three host synchronisations (blocking by default:
-// set_blocking_wait):
+// One run, on one stream, with up to three host synchronisations (spinning by default, or
+// blocking: set_blocking_wait):
 //  1. The caller filled the pinned staging (entities, slot map, jobs, visible sets); the client
 //     table (where each view is and goes, each client's job) is laid out here from the views'
 //     sizes the host mirrors, and everything is copied up at once.
@@ -169,7 +169,6 @@ class engine final : public interest::replication_engine {
     d_sent_[next].reserve(total);
     d_scratch_.reserve(total);
     d_records_.reserve(record_cap);
-    h_records_.reserve(record_cap);
     a.old_id = d_id_[cur_].get();
     a.old_sent = d_sent_[cur_].get();
     a.new_id = d_id_[next].get();
@@ -197,6 +196,9 @@ class engine final : public interest::replication_engine {
     wait();
     if (h_cursor_.get()[1] != 0) throw std::runtime_error("replication engine: record buffer overflow (a bug)");
     const std::uint32_t used = h_cursor_.get()[0];
+    // The pinned copy is sized by the bytes used, not by the bound (about 14 times more at 20,000
+    // clients): its growth, a cudaFreeHost and a cudaHostAlloc, stalled ramp-up ticks for 30-90 ms.
+    h_records_.reserve(used);
     if (used > 0) {
       CUDA_CHECK(cudaMemcpyAsync(h_records_.get(), d_records_.get(), used, cudaMemcpyDeviceToHost, stream_));
     }
@@ -267,7 +269,7 @@ class engine final : public interest::replication_engine {
   cudaStream_t stream_ = nullptr;
   cudaEvent_t ev_begin_ = nullptr, ev_up_ = nullptr, ev_kernels_ = nullptr, ev_down_ = nullptr;
   cudaEvent_t ev_sync_ = nullptr;  // blocking-sync: wait() sleeps on it
-  bool blocking_ = true;
+  bool blocking_ = false;
   double wait_ms_ = 0;
   std::size_t n_entities_ = 0, n_slots_ = 0, n_jobs_ = 0, n_visible_ = 0;
   pinned_array<interest::replication_entity> h_entities_;
