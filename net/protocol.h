@@ -226,7 +226,8 @@ class encoder {
 /// begin(); add_*()...; finish(). A returned span is valid until the next begin().
 /// The frame is written straight in the canonical tick_update layout (canonical_tick_update,
 /// docs/protocol.md), not through a FlatBuffers builder: the same values give the same bytes
-/// whoever writes them (the CPU replicator, the GPU path's wrapping, encoder::encode).
+/// whoever writes them (the CPU replicator, the GPU replication engine from the same tables,
+/// encoder::encode).
 /// The closed-form cost model of a tick_update frame (prefix included): an upper bound on the
 /// encoded size of a frame with these counts, whatever the values, field order of the builder
 /// or vtable sharing. Replication decides its byte budget with it alone (on the CPU and on the
