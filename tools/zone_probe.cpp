@@ -66,10 +66,13 @@ void figure(const std::string& name, double value) { figures.emplace_back(name, 
 
 double ms_since(steady::time_point t) { return std::chrono::duration<double, std::milli>(steady::now() - t).count(); }
 
-/// A TCP connection to 127.0.0.1:port from 127.0.0.<from>; -1 on failure.
-int connect_from(std::uint16_t port, std::uint8_t from, bool nonblocking) {
+/// A TCP connection to 127.0.0.1:port from 127.0.0.<from> (SO_RCVBUF `rcvbuf` unless 0); -1 on failure.
+int connect_from(std::uint16_t port, std::uint8_t from, bool nonblocking, int rcvbuf = 0) {
   const int fd = ::socket(AF_INET, SOCK_STREAM | (nonblocking ? SOCK_NONBLOCK : 0), 0);
   if (fd < 0) return -1;
+  // Before connect: the window scale is agreed in the handshake (set later, the kernel may have
+  // advertised more than the buffer then holds, and drop what overflows).
+  if (rcvbuf > 0) ::setsockopt(fd, SOL_SOCKET, SO_RCVBUF, &rcvbuf, sizeof rcvbuf);
   int one = 1;
   ::setsockopt(fd, IPPROTO_TCP, TCP_NODELAY, &one, sizeof one);
   sockaddr_in src{};
@@ -431,8 +434,7 @@ int attack_stall(const options& o) {
   const std::size_t n = std::max<std::size_t>(1, std::min<std::size_t>(o.count, 2000));
   std::vector<stall_player> ps(n);
   for (auto& p : ps) {
-    p.fd = connect_from(o.port, 4, false);
-    if (p.fd >= 0 && o.rcvbuf > 0) ::setsockopt(p.fd, SOL_SOCKET, SO_RCVBUF, &o.rcvbuf, sizeof o.rcvbuf);
+    p.fd = connect_from(o.port, 4, false, o.rcvbuf);
     if (p.fd < 0 || !send_all(p.fd, encode_frame(hello_msg{"stall", "", protocol_version}))) {
       std::fprintf(stderr, "zone-probe: a stalling player could not connect: %s\n", std::strerror(errno));
       return 1;
