@@ -319,6 +319,7 @@ int main(int argc, char** argv) {
   swarm_options o;
   std::string mix = "walk=1", json, csv, plot, hotspot, inputs_mode = "changes";
   unsigned port = o.port;
+  std::string oracle_zones;
   po::options_description desc("bot-swarm options");
   desc.add_options()                                                                                   //
       ("help,h", "print this help and exit")                                                           //
@@ -345,6 +346,7 @@ int main(int argc, char** argv) {
       ("verify", po::bool_switch(&o.verify), "compare the server's visible-set digests with each bot's tracked view")  //
       ("oracle", po::bool_switch(&o.oracle), "check every bot's view against the server's ground truth (the server runs with --oracle): missing, extra, leaked, wrong class, wrong or stale position")  //
       ("oracle-threads", po::value(&o.oracle_threads)->default_value(o.oracle_threads), "threads recomputing the visible sets for the oracle (0 = one per 8 hardware threads)")  //
+      ("oracle-zones", po::value(&oracle_zones), "a world of zones (docs/world.md): the other zones' client ports on --host, comma-separated; with --oracle each zone's truth is read and a bot is checked against the zone it is in now (following redirects)")  //
       ("threads", po::value(&o.threads)->default_value(o.threads), "I/O threads (0 = one per 2,500 bots, 2 .. half the cores)")  //
       ("aoi", po::value(&o.aoi)->default_value(o.aoi), "for servers whose welcome tells no rules: the players' AOI half-extent (its --player-aoi), for the AOI check")  //
       ("hysteresis", po::value(&o.hysteresis)->default_value(o.hysteresis), "for servers whose welcome tells no rules: the server's --hysteresis (m)")  //
@@ -385,6 +387,22 @@ int main(int argc, char** argv) {
     return 64;
   }
   o.port = static_cast<std::uint16_t>(port);
+  if (!oracle_zones.empty()) {
+    std::stringstream list(oracle_zones);
+    for (std::string item; std::getline(list, item, ',');) {
+      char* end = nullptr;
+      const unsigned long p = std::strtoul(item.c_str(), &end, 10);
+      if (item.empty() || end != item.c_str() + item.size() || p == 0 || p > 65535) {
+        std::fprintf(stderr, "bot-swarm: --oracle-zones must be ports 1..65535, comma-separated (got '%s')\n", item.c_str());
+        return 64;
+      }
+      o.oracle_zones.push_back(static_cast<std::uint16_t>(p));
+    }
+    if (!o.oracle) {
+      std::fprintf(stderr, "bot-swarm: --oracle-zones needs --oracle\n");
+      return 64;
+    }
+  }
   if (const auto err = parse_mix(mix, o.mix); !err.empty()) {
     std::fprintf(stderr, "bot-swarm: %s\n", err.c_str());
     return 64;

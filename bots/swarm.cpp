@@ -262,7 +262,7 @@ class swarm {
       return out;
     }
     if (opt_.oracle) {
-      if (auto err = start_oracle()) {
+      if (auto err = start_oracles()) {
         out.error = *err;
         return out;
       }
@@ -307,7 +307,8 @@ class swarm {
         s.enters = c_.enters.load();
         s.leaves = c_.leaves.load();
         s.updates = c_.updates.load();
-        s.mismatches = c_.mismatches() + (oracle_ ? oracle_->counters().mismatches() : 0);
+        s.mismatches = c_.mismatches();
+        for (const auto& z : oracles_) s.mismatches += z.check->counters().mismatches();
         const auto lat = latency_snapshot();
         if (steady_from < 0 && s.connected >= opt_.bots) {
           steady_from = since;
@@ -355,11 +356,15 @@ class swarm {
     }
 
     swarm_result& r = out.result;
-    if (oracle_) {
-      oracle_->catch_up(60);  // the views still waiting for their truth are checked first
-      oracle_->stop();
+    if (!oracles_.empty()) {
+      // The views still waiting for their truth are checked first; a world's zones' oracles add up.
+      for (auto& z : oracles_) z.check->catch_up(60);
       r.oracle_on = true;
-      r.oracle = oracle_->report();
+      for (auto& z : oracles_) {
+        z.check->stop();
+        add_report(r.oracle, z.check->report(), z.at);
+      }
+      r.oracle.frames_unchecked += oracle_unrouted_.load();
     }
     r.rules_from_server = rules_told.load();
     r.options = opt_;
@@ -519,7 +524,15 @@ class swarm {
   std::int64_t offset_us() const { return offset_us_.load(std::memory_order_relaxed); }
   std::atomic<std::uint32_t> leader{0};
   std::atomic<bool> rules_told{false};
-  [[nodiscard]] oracle* oracle_ptr() const { return oracle_.get(); }
+  /// The oracle of the zone at `at` (nullptr: none; the frame counts as unchecked when oracles run).
+  [[nodiscard]] oracle* oracle_for(const tcp::endpoint& at) {
+    if (oracles_.empty()) return nullptr;
+    for (const auto& z : oracles_) {
+      if (z.at == at) return z.check.get();
+    }
+    oracle_unrouted_.fetch_add(1, std::memory_order_relaxed);
+    return nullptr;
+  }
   std::mutex hotspot_mutex;
   bool hotspot_known = false;
   net::vec3f hotspot{};
@@ -547,15 +560,47 @@ class swarm {
   std::atomic<bool> host_clock_{false};
   bool loopback_ = false;
   std::atomic<bool> stopping_{false};
-  std::unique_ptr<oracle> oracle_;
+  /// --oracle: one per zone (the swarm's, and with oracle_zones the world's other zones).
+  struct zone_oracle {
+    tcp::endpoint at;
+    std::unique_ptr<oracle> check;
+  };
+  std::vector<zone_oracle> oracles_;
+  std::atomic<std::uint64_t> oracle_unrouted_{0};  ///< frames in zones with no oracle
 
-  /// --oracle: one connection before any bot, for the welcome (the rules and the truth stream's
-  /// port); then the oracle subscribes, so every bot's entity is born after its first truth tick.
-  std::optional<std::string> start_oracle() {
+  static void add_report(oracle_report& sum, const oracle_report& q, const tcp::endpoint& at) {
+    sum.frames_checked += q.frames_checked, sum.frames_unchecked += q.frames_unchecked;
+    sum.entities_checked += q.entities_checked, sum.positions_checked += q.positions_checked;
+    sum.positions_unchecked += q.positions_unchecked;
+    sum.missing += q.missing, sum.extra += q.extra, sum.leaked += q.leaked, sum.wrong_class += q.wrong_class;
+    sum.position += q.position, sum.stale += q.stale, sum.deferral += q.deferral;
+    sum.truth_ticks += q.truth_ticks, sum.truth_bytes += q.truth_bytes, sum.truth_layouts += q.truth_layouts;
+    sum.compute_cpu_ms += q.compute_cpu_ms, sum.compute_max_ms = std::max(sum.compute_max_ms, q.compute_max_ms);
+    sum.drain_cpu_ms += q.drain_cpu_ms, sum.check_ms += q.check_ms, sum.deferred_checks += q.deferred_checks;
+    sum.pending_overflow += q.pending_overflow, sum.observers_max = std::max(sum.observers_max, q.observers_max);
+    if (!q.stream_error.empty()) {
+      sum.stream_error += (sum.stream_error.empty() ? "" : "; ") + std::string("port ") + std::to_string(at.port()) + ": " +
+                          q.stream_error;
+    }
+  }
+
+  std::optional<std::string> start_oracles() {
+    if (auto err = start_oracle(endpoint_)) return err;
+    for (const std::uint16_t port : opt_.oracle_zones) {
+      const tcp::endpoint at(endpoint_.address(), port);
+      if (at == endpoint_) continue;
+      if (auto err = start_oracle(at)) return "zone at port " + std::to_string(port) + ": " + *err;
+    }
+    return std::nullopt;
+  }
+
+  /// One connection before any bot, for the welcome (the rules and the truth stream's port); then
+  /// the oracle subscribes, so every bot's entity is born after its first truth tick.
+  std::optional<std::string> start_oracle(const tcp::endpoint& at) {
     asio::io_context io;
     tcp::socket sock(io);
     boost::system::error_code ec;
-    sock.connect(endpoint_, ec);
+    sock.connect(at, ec);
     if (ec) return "oracle probe: connect: " + ec.message();
     const auto hello = net::encode_frame(net::hello_msg{"oracle-probe", "", net::protocol_version});
     asio::write(sock, asio::buffer(hello), ec);
@@ -582,10 +627,12 @@ class swarm {
     if (!welcome) return "oracle probe: no welcome within the connect timeout";
     if (!welcome->rules) return "the server's welcome tells no interest rules (an older server): no oracle";
     if (welcome->oracle_port == 0) return "the server publishes no ground truth: start zone-server with --oracle";
-    oracle_ = std::make_unique<oracle>(welcome->world, *welcome->rules, opt_.oracle_threads,
-                                       [](void* ctx, std::string line) { static_cast<swarm*>(ctx)->problem(std::move(line)); },
-                                       this);
-    return oracle_->start(welcome->oracle_port, opt_.connect_timeout_s);
+    auto o = std::make_unique<oracle>(welcome->world, *welcome->rules, opt_.oracle_threads,
+                                      [](void* ctx, std::string line) { static_cast<swarm*>(ctx)->problem(std::move(line)); },
+                                      this);
+    if (auto err = o->start(welcome->oracle_port, opt_.connect_timeout_s)) return err;
+    oracles_.push_back({at, std::move(o)});
+    return std::nullopt;
   }
 };
 
@@ -906,7 +953,7 @@ void bot_session::on_tick_update(const net::wire::tick_update& u, std::uint64_t 
                ": inconsistent update (previous tick " + std::to_string(last) + "; ids " + (ids.empty() ? "-" : ids) + ")");
   }
   // The oracle: this view against the ground truth of this tick.
-  if (auto* o = s_.oracle_ptr()) {
+  if (auto* o = s_.oracle_for(endpoint_override_ ? *endpoint_override_ : s_.endpoint())) {
     net::deferred_counts deferred;
     if (const auto* d = u.deferred()) deferred = {d->enters(), d->leaves(), d->updates()};
     std::optional<net::vec3f> own;

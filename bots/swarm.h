@@ -54,6 +54,12 @@ struct swarm_options {
   /// --oracle): a probe connection reads the welcome (rules, truth port) before any bot starts.
   bool oracle = false;
   unsigned oracle_threads = 0;  ///< threads recomputing the visible sets (0 = 1 per 8 hardware threads)
+  /// A world of zones (docs/world.md): the client ports of the other zones (on `host`). With
+  /// `oracle`, each gets an oracle of its own (its truth stream), and a bot is checked against the
+  /// truth of the zone it is connected to now: it follows redirects across borders, its view
+  /// (ghosts of the neighbours included) judged in every zone. A bot in a zone not named here is
+  /// not checked (its frames count as unchecked).
+  std::vector<std::uint16_t> oracle_zones;
   unsigned threads = 0;      ///< I/O threads (0 = auto: one per 2,500 bots, at least 2, at most half the cores)
   // What the AOI check assumes of a server whose welcome does not tell its rules (older servers;
   // a welcome's rules always win, so a current server's flags need no matching ones here).

@@ -229,8 +229,9 @@ bool zone_world::despawn(entity_id id) {
 entity_id zone_world::adopt(const entity_desc& d, const behaviour_state& b) {
   const entity_id id = store_.create(d);
   if (id == null_entity) return id;
-  if (by_slot_.size() <= slot_of(id)) by_slot_.resize(slot_of(id) + 1);
-  by_slot_[slot_of(id)] = b;
+  set_state(id, b);  // by_slot_ and is_player_ grow together
+  // is_player_ tells the entity's kind (a world's ghost of a player is one too: chasers see it).
+  is_player_[slot_of(id)] = d.kind == entity_kind::player ? 1 : 0;
   set_reads_view(id, b.kind == behaviour::player || b.kind == behaviour::chase);
   return id;
 }

@@ -126,8 +126,9 @@ zone_server::zone_server(const zone_config& cfg)
         faulty_replication_ = std::make_unique<faulty_replication_engine>(*replication_engine_, gpu_fault(cfg));
       }
       replicator_.set_engine(faulty_replication_ ? faulty_replication_.get() : replication_engine_.get());
-      // With the interest step on the GPU too, replication reads the visible sets there in place.
-      world_->set_player_views_on_host(false);
+      // With the interest step on the GPU too, replication reads the visible sets there in place;
+      // unless --host-views (the default), the players' rows then stay on the device only.
+      world_->set_player_views_on_host(cfg.host_views);
     } else if (cfg.replicate == "gpu") {
       replicate_error_ = "replicate 'gpu' cannot run here: " + why + " (use --replicate auto or cpu)";
     } else {
@@ -735,17 +736,23 @@ void zone_server::fill_viewer_snapshot(net::viewer_snapshot& s) const {
   const auto pos = store.positions();
   const auto cls = store.visibility_classes();
   const auto kinds = store.kinds();
-  s.ids.assign(ids.begin(), ids.end());
+  s.ids.resize(n);
   s.x.resize(n);
   s.y.resize(n);
   s.visibility.resize(n);
   s.kind.resize(n);
-  for (std::size_t i = 0; i < n; ++i) {
-    s.x[i] = pos[i].x;
-    s.y[i] = pos[i].y;
-    s.visibility[i] = static_cast<std::uint8_t>(std::countr_zero(cls[i]));
-    s.kind[i] = static_cast<std::uint8_t>(kinds[i]);
-  }
+  // On the workers, in chunks: at 100,000 entities one thread takes most of a millisecond, which
+  // shows in the tick's p99 on a fast host (docs/viewer.md).
+  constexpr std::size_t chunk = 8192;
+  interest::run_tasks(n > chunk ? pool_.get() : nullptr, (n + chunk - 1) / chunk, [&](std::size_t c) {
+    for (std::size_t i = c * chunk, e = std::min(n, (c + 1) * chunk); i < e; ++i) {
+      s.ids[i] = ids[i];
+      s.x[i] = pos[i].x;
+      s.y[i] = pos[i].y;
+      s.visibility[i] = static_cast<std::uint8_t>(std::countr_zero(cls[i]));
+      s.kind[i] = static_cast<std::uint8_t>(kinds[i]);
+    }
+  });
   // The selected entities: boxes, visible set with each entity's replication tier, events.
   s.selections.resize(viewer_watch_.size());
   const float near_sq = cfg_.update_near * cfg_.update_near, mid_sq = cfg_.update_mid * cfg_.update_mid;

@@ -104,7 +104,9 @@ class zone_world {
   entity_store store_;
   interest_tracker tracker_;
   std::vector<npc_state> by_slot_;  // indexed by slot_of(id)
-  /// By slot: 1 where by_slot_'s kind is player. What the chasers' scan reads: a byte a slot
+  /// By slot: 1 where the entity is a player (spawned as one, or adopted with kind player: a
+  /// world's ghost of a player or a handed-off one; set_state and adopt keep it as long as
+  /// by_slot_). What the chasers' scan reads: a byte a slot
   /// (1 MB a million entities) instead of a 32-byte state.
   std::vector<std::uint8_t> is_player_;
   void set_state(entity_id id, const npc_state& st);
