@@ -5,6 +5,7 @@
 #include <boost/property_tree/ptree.hpp>
 
 #include <algorithm>
+#include <cmath>
 #include <cstdio>
 #include <fstream>
 #include <iostream>
@@ -120,6 +121,8 @@ void print_table(const swarm_result& r, const summary& s) {
   row("server errors received", num(r.server_errors));
   row("churn logouts", num(r.logouts));
   row("teleports sent", num(r.teleports_sent));
+  row("joined stealthed / in a team", num(r.stealth_joins) + " / " + num(r.team_joins));
+  row("visibility switches sent", num(r.visibility_switches_sent));
   row("redirects followed (world of zones)", num(r.redirects));
   row("logins again after a disconnect", num(r.reconnects));
   row("update latency p50", ms(s.p50));
@@ -201,6 +204,8 @@ bool write_json(const std::string& path, const swarm_result& r, const summary& s
   o << "  \"server_errors\": " << r.server_errors << ",\n  \"logouts\": " << r.logouts << ",\n";
   o << "  \"threads\": " << r.options.threads << ",\n  \"teleports_sent\": " << r.teleports_sent << ",\n";
   o << "  \"redirects\": " << r.redirects << ",\n  \"reconnects\": " << r.reconnects << ",\n";
+  o << "  \"stealth_joins\": " << r.stealth_joins << ",\n  \"team_joins\": " << r.team_joins << ",\n";
+  o << "  \"visibility_switches_sent\": " << r.visibility_switches_sent << ",\n";
   o << "  \"self_positions\": " << r.self_positions << ",\n  \"host_clock\": " << (r.host_clock ? "true" : "false") << ",\n";
   o << "  \"latency_ms\": {\"p50\": " << s.p50 << ", \"p95\": " << s.p95 << ", \"p99\": " << s.p99 << ", \"max\": " << s.max
     << ", \"samples\": " << s.samples << ", \"unsynced\": " << r.latency_unsynced << ", \"min_rtt\": " << r.min_rtt_ms << "},\n";
@@ -329,6 +334,9 @@ int main(int argc, char** argv) {
       ("ping-hz", po::value(&o.ping_hz)->default_value(o.ping_hz), "pings per second per bot")         //
       ("mix", po::value(&mix)->default_value(mix), "behaviour shares, e.g. walk=0.5,patrol=0.2,follow=0.1,crowd=0.1,teleport=0.1")  //
       ("teleport-hz", po::value(&o.teleport_hz)->default_value(o.teleport_hz, "0.2"), "teleport bots: jumps per second per bot (random times and targets)")  //
+      ("stealth-bots", po::value(&o.stealth_share)->default_value(o.stealth_share, "0.1"), "share of bots that join stealthed (the server must allow stealth: zone-server --allow-stealth)")  //
+      ("team-bots", po::value(&o.team_share)->default_value(o.team_share, "0.2"), "share of bots that join a team, red or blue (the server must allow 2 teams: --player-teams)")  //
+      ("visibility-switch-hz", po::value(&o.visibility_switch_hz)->default_value(o.visibility_switch_hz, "0.2"), "stealth and team bots: visibility switches per second per bot (set_visibility; 0 = never)")  //
       ("hotspot", po::value(&hotspot), "flash-crowd target x,y,z (default: where the leader bot first is)")  //
       ("crowd-at", po::value(&o.crowd_at_s)->default_value(o.crowd_at_s), "seconds into the run when the crowd bots start converging")  //
       ("churn", po::value(&o.churn)->default_value(o.churn), "logouts per second (each bot logs in again)")  //
@@ -415,6 +423,11 @@ int main(int argc, char** argv) {
   o.inputs_on_change = inputs_mode == "changes";
   if (o.bots == 0 || !(o.duration_s > 0) || !(o.ramp > 0) || !(o.input_hz > 0)) {
     std::fprintf(stderr, "bot-swarm: --bots, --duration, --ramp and --input-hz must be > 0\n");
+    return 64;
+  }
+  if (!(o.stealth_share >= 0 && o.stealth_share <= 1) || !(o.team_share >= 0 && o.team_share <= 1) ||
+      !(o.visibility_switch_hz >= 0 && std::isfinite(o.visibility_switch_hz))) {
+    std::fprintf(stderr, "bot-swarm: --stealth-bots and --team-bots must be in [0, 1], --visibility-switch-hz >= 0\n");
     return 64;
   }
   if (!(o.teleport_hz >= 0) || !(o.churn_for_s >= 0)) {

@@ -157,6 +157,7 @@ class bot_session : public std::enable_shared_from_this<bot_session> {
   void schedule_input();
   void schedule_ping();
   void schedule_teleport();
+  void schedule_visibility_switch();
   void send_input();
   void maybe_send_input(std::uint64_t now_us);
   net::vec3f steer();
@@ -174,7 +175,10 @@ class bot_session : public std::enable_shared_from_this<bot_session> {
   unsigned thread_;
   asio::io_context& io_;
   tcp::socket socket_;
-  asio::steady_timer input_timer_, ping_timer_, welcome_timer_, teleport_timer_;
+  asio::steady_timer input_timer_, ping_timer_, welcome_timer_, teleport_timer_, switch_timer_;
+  bool stealth_ = false;   ///< the visibility this session chose (hello, then set_visibility)
+  std::uint8_t team_ = 0;
+  bool chooses_ = false;   ///< it chose stealth or a team at hello: it also switches during play
   net::frame_decoder decoder_;
   net::encoder encoder_;
   /// Outbound bytes: frames queued while a write is in flight go out together in the next write.
@@ -387,6 +391,7 @@ class swarm {
     r.inconsistent = c_.inconsistent, r.aoi_checked = c_.aoi_checked, r.aoi_unchecked = c_.aoi_unchecked;
     r.aoi_violations = c_.aoi_violations, r.latency_unsynced = c_.latency_unsynced;
     r.teleports_sent = c_.teleports_sent, r.self_positions = c_.self_positions, r.redirects = c_.redirects;
+    r.stealth_joins = c_.stealth_joins, r.team_joins = c_.team_joins, r.visibility_switches_sent = c_.visibility_switches_sent;
     r.reconnects = c_.reconnects;
     r.host_clock = host_clock_.load();
     for (const auto& s : slots_) r.bots_connected += s.ever_connected ? 1 : 0;
@@ -659,10 +664,15 @@ bot_session::bot_session(swarm& s, std::size_t slot, unsigned thread, behaviour 
       ping_timer_(io_),
       welcome_timer_(io_),
       teleport_timer_(io_),
+      switch_timer_(io_),
       decoder_(client_decoder(s.opt_ref().max_frame_bytes)) {
   std::uniform_real_distribution<float> angle(0, 6.2831853f);
   const float a = angle(rng_);
   heading_ = {std::cos(a), std::sin(a), 0};
+  std::uniform_real_distribution<double> u(0, 1);
+  stealth_ = u(rng_) < s.opt_ref().stealth_share;
+  team_ = u(rng_) < s.opt_ref().team_share ? static_cast<std::uint8_t>(1 + rng_() % 2) : 0;
+  chooses_ = stealth_ || team_ != 0;
 }
 
 void bot_session::start() {
@@ -690,7 +700,9 @@ void bot_session::on_connect(const boost::system::error_code& ec) {
   if (ec) return fail("connect: " + ec.message(), true);
   boost::system::error_code ignored;
   socket_.set_option(tcp::no_delay(true), ignored);
-  send(net::hello_msg{"bot-" + std::to_string(slot_), token_, net::protocol_version});
+  net::hello_msg hello{"bot-" + std::to_string(slot_), token_, net::protocol_version};
+  if (token_.empty()) hello.stealth = stealth_, hello.team = team_;  // a redirected entity keeps its class
+  send(hello);
   send(net::ping_msg{local_us(s_.epoch())});
   s_.counters().pings_sent.fetch_add(1, std::memory_order_relaxed);
   boost::system::error_code ec2;
@@ -828,6 +840,29 @@ void bot_session::on_welcome(const net::wire::welcome& w) {
   }
   schedule_ping();
   if (kind_ == behaviour::teleport) schedule_teleport();
+  if (token_.empty()) {
+    if (stealth_) s_.counters().stealth_joins.fetch_add(1, std::memory_order_relaxed);
+    if (team_ != 0) s_.counters().team_joins.fetch_add(1, std::memory_order_relaxed);
+  }
+  if (chooses_) schedule_visibility_switch();
+}
+
+void bot_session::schedule_visibility_switch() {
+  const double hz = s_.opt_ref().visibility_switch_hz;
+  if (!(hz > 0)) return;
+  // Switches at random times (a Poisson process of the given rate): stealth toggled, and half the
+  // time another team (or none). The server applies them subject to its cooldown.
+  std::exponential_distribution<double> gap(hz);
+  auto self = shared_from_this();
+  switch_timer_.expires_after(std::chrono::duration_cast<steady::duration>(std::chrono::duration<double>(gap(rng_))));
+  switch_timer_.async_wait([this, self](const boost::system::error_code& ec) {
+    if (ec || closed_) return;
+    stealth_ = !stealth_;
+    if (rng_() % 2 == 0) team_ = static_cast<std::uint8_t>(rng_() % 3);
+    send(net::set_visibility_msg{++sequence_, stealth_, team_});
+    s_.counters().visibility_switches_sent.fetch_add(1, std::memory_order_relaxed);
+    schedule_visibility_switch();
+  });
 }
 
 int bot_session::check_aoi(const position_board::fix& own, std::uint64_t tick, std::uint32_t id, const net::vec3f& p,
@@ -1174,6 +1209,7 @@ void bot_session::close() {
   ping_timer_.cancel();
   welcome_timer_.cancel();
   teleport_timer_.cancel();
+  switch_timer_.cancel();
   socket_.shutdown(tcp::socket::shutdown_both, ignored);
   socket_.close(ignored);
   if (playing_) {

@@ -195,8 +195,11 @@ void zone_world::set_state(entity_id id, const npc_state& st) {
   is_player_[slot] = st.kind == behaviour::player ? 1 : 0;
 }
 
-entity_id zone_world::spawn_player(const vec3& at) {
+entity_id zone_world::spawn_player(const vec3& at, bool stealth, std::uint8_t team) {
   entity_desc d;
+  const player_visibility v = visibility_for(stealth, team);
+  d.visibility_class = v.visibility_class;
+  d.sees = v.sees;
   d.position = clamp_to_world(at);
   d.aoi_half_extent = {cfg_.player_aoi, cfg_.player_aoi, cfg_.player_aoi};
   d.presence_half_extent = {0.5f, 0.5f, 1.0f};

@@ -36,8 +36,9 @@ class zone_world {
 
   /// Creates the NPCs and bosses of the config (deterministic in cfg.seed).
   void populate();
-  /// A player entity at `at` (clamped into the world); null_entity when the zone is full.
-  [[nodiscard]] entity_id spawn_player(const vec3& at);
+  /// A player entity at `at` (clamped into the world) with the visibility a player's choice
+  /// gives (visibility_for); null_entity when the zone is full.
+  [[nodiscard]] entity_id spawn_player(const vec3& at, bool stealth = false, std::uint8_t team = 0);
   bool despawn(entity_id id);
   /// An entity with a given behaviour state (a world's ghost or handed-off entity); null_entity
   /// when the description is invalid or the zone is full.
