@@ -7,8 +7,10 @@
 #   DEVICE_DIR=.device-x scripts/pack_device.sh build build/zone/zone-server build/bots/bot-swarm \
 #     build/world/world-check build/tools/host-jitter /usr/sbin/nats-server
 #   cp scripts/world.sh scripts/zone_procs.sh scripts/device_world.sh .device-x/
-#   (device) bash .device-x/device_world.sh [--duration S] [--single S] [--kill-duration S] [--bots N] [--npcs N]
-#            [--threads N] [--interest gpu|cpu] [--zone-args "..."]
+#   (device) bash .device-x/device_world.sh [options]
+# Options (defaults: the targets): --duration S (60) --single S (20; 0: none)
+#   --kill-duration S (15) --bots N (2000) --npcs N (per zone, 5000) --threads N (per zone, 2)
+#   --interest gpu|cpu (gpu) --zone-args "..." (NPCs wandering at 10 m/s) --jitter-periods N (150)
 set -uo pipefail
 duration=60 single=20 kill_duration=15 bots=2000 npcs=5000 threads=2 size=1024 interest=gpu jitter_periods=150
 zone_args="--npc-speed 10 --share-wander 1 --share-patrol 0 --share-town 0 --share-chase 0"
@@ -22,9 +24,8 @@ while [ $# -gt 0 ]; do
     --threads) threads=$2; shift 2 ;;
     --interest) interest=$2; shift 2 ;;
     --jitter-periods) jitter_periods=$2; shift 2 ;;
-    --skip-single) single=0; shift ;;
     --zone-args) zone_args=$2; shift 2 ;;
-    --help|-h) sed -n 2,10p "$0"; exit 0 ;;
+    --help|-h) sed -n 2,13p "$0"; exit 0 ;;
     *) echo "device_world.sh: unknown option $1" >&2; exit 64 ;;
   esac
 done
