@@ -7,7 +7,7 @@
 #include <fstream>
 #include <sstream>
 
-#include "zone.h"
+#include "zone/zone_config.h"
 
 namespace zone {
 

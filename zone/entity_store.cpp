@@ -5,7 +5,7 @@
 
 #include <atomic>
 
-#include "zone.h"
+#include "zone/entity_store.h"
 
 namespace zone {
 

@@ -16,7 +16,7 @@
 #include <utility>
 
 #include "interest/measure.h"
-#include "zone.h"
+#include "zone/interest_tracker.h"
 
 namespace zone {
 

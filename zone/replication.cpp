@@ -7,7 +7,7 @@
 #include <cstring>
 #include <stdexcept>
 
-#include "zone.h"
+#include "zone/replicator.h"
 
 namespace zone {
 

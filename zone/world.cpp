@@ -8,7 +8,7 @@
 #include <random>
 
 #include "interest/measure.h"
-#include "zone.h"
+#include "zone/zone_world.h"
 
 namespace zone {
 

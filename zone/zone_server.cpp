@@ -1,7 +1,7 @@
 // The tick loop (zone_server.h): drain client inputs, step the world, replicate, at a fixed rate.
 #include "zone_server.h"
 
-#include "device_fault.h"
+#include "gpu/device_fault.h"
 #include "engine_faults.h"
 #include "finders.h"
 #include "interest/measure.h"

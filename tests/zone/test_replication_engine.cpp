@@ -1,4 +1,4 @@
-// The GPU replication engine's per-job code (gpu/replication_shared.h: the client table's plan, the
+// The GPU replication engine's per-job code (gpu/replication/replication_shared.h: the client table's plan, the
 // carry of views without a job, decide_job) run on the CPU through an emulated engine, against the
 // CPU replicator byte for byte (replication_equivalence.h). This runs in every CI run, device or
 // not; test_zone_gpu runs the same comparison on the device. The jobs run in a shuffled order, as
@@ -11,8 +11,8 @@
 #include <set>
 #include <vector>
 
-#include "../../gpu/replication_shared.h"
 #include "../common/seeds.h"
+#include "gpu/replication/replication_shared.h"
 #include "replication_equivalence.h"
 #include "zone.h"
 #include "zone/engine_faults.h"

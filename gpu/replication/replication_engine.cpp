@@ -1,0 +1,278 @@
+// Host dispatch of the GPU replication engine (gpu/replication.h; algorithm in docs/zone.md,
+// "Replication on the GPU").
+//
+// One run, on one stream, with two host synchronisations:
+//  1. The caller filled the pinned staging (entities, slot map, jobs, visible sets); the client
+//     table (where each view is and goes, each client's job) is laid out here from the views'
+//     sizes the host mirrors, and everything is copied up at once.
+//  2. Views of clients without a job are copied into the new view buffer (one warp per client);
+//     one thread per job decides its frame, writes its record (atomic cursor) and its new view.
+//  3. The results and the cursor come back; then the records, exactly the bytes used.
+//  The two view buffers are swapped: a run that fails leaves the engine unusable until
+//  forget_all().
+#include <algorithm>
+#include <chrono>
+#include <cstring>
+#include <stdexcept>
+#include <string>
+#include <vector>
+
+#include "gpu/common/cuda_check.h"
+#include "gpu/common/gpu_buffers.h"
+#include "gpu/pbig.h"
+#include "gpu/replication.h"
+#include "replication_launch.h"
+
+namespace zone::gpu {
+namespace detail::rep {
+namespace {
+
+template <class T>
+using device_array = mem::device_array<T>;
+template <class T>
+using pinned_array = mem::pinned_array<T>;
+
+class engine final : public interest::replication_engine {
+ public:
+  engine() {
+    CUDA_CHECK(cudaSetDevice(0));
+    CUDA_CHECK(cudaStreamCreateWithFlags(&stream_, cudaStreamNonBlocking));
+    for (cudaEvent_t* e : {&ev_begin_, &ev_up_, &ev_kernels_, &ev_down_}) CUDA_CHECK(cudaEventCreate(e));
+    d_cursor_.reserve(2);
+    h_cursor_.reserve(2);
+  }
+  ~engine() override {
+    if (stream_ != nullptr) cudaStreamSynchronize(stream_);
+    for (cudaEvent_t e : {ev_begin_, ev_up_, ev_kernels_, ev_down_}) {
+      if (e != nullptr) cudaEventDestroy(e);
+    }
+    if (stream_ != nullptr) cudaStreamDestroy(stream_);
+  }
+
+  [[nodiscard]] const char* name() const override { return "gpu"; }
+  [[nodiscard]] const interest::replication_timing& timing() const override { return timing_; }
+
+  staging stage(std::size_t entities, std::size_t slots, std::size_t jobs, std::size_t visible) override {
+    if (entities > 0xffffffffu || slots > 0xffffffffu || jobs > 0xffffffffu || visible > 0xffffffffu) {
+      throw std::invalid_argument("replication engine: more than 2^32 entities, slots, jobs or visible entries");
+    }
+    h_entities_.reserve(entities);
+    h_slot_dense_.reserve(slots);
+    h_jobs_.reserve(jobs);
+    h_visible_.reserve(visible);
+    n_entities_ = entities;
+    n_slots_ = slots;
+    n_jobs_ = jobs;
+    n_visible_ = visible;
+    return {h_entities_.get(), h_slot_dense_.get(), h_jobs_.get(), h_visible_.get()};
+  }
+
+  [[nodiscard]] bool reads_resident() const override { return true; }
+
+  output run(const interest::replication_rules& rules, std::size_t client_count,
+             const interest::visibility_engine::resident_lists* rows) override {
+    const auto t0 = std::chrono::steady_clock::now();
+    if (rules.leave_cost == 0 || rules.enter_cost == 0 || rules.update_cost == 0) {
+      throw std::invalid_argument("replication engine: entry costs must be positive");
+    }
+    const bool resident = rows != nullptr && rows->data != nullptr && rows->off != nullptr && rows->rows > 0;
+    if (resident && rows->rows >= 0xffffffffu) throw std::invalid_argument("replication engine: too many rows");
+    grow_clients(client_count);
+    h_clients_.reserve(client_count);
+    h_new_off_.reserve(client_count + 1);
+    client_slot* cl = h_clients_.get();
+    const interest::replication_job* jobs = h_jobs_.get();
+    table_clients(jobs, n_jobs_, n_visible_, resident ? rows->rows : 0, len_.data(), off_.data(), client_count, cl);
+    d_entities_.reserve(n_entities_);
+    d_slot_dense_.reserve(n_slots_);
+    d_jobs_.reserve(n_jobs_);
+    d_visible_.reserve(resident ? 1 : n_visible_);
+    d_clients_.reserve(client_count);
+    d_new_off_.reserve(client_count + 1);
+    d_results_.reserve(n_jobs_);
+    h_results_.reserve(n_jobs_);
+
+    run_args a{};
+    a.rules = rules;
+    a.entities = d_entities_.get();
+    a.entity_count = static_cast<std::uint32_t>(n_entities_);
+    a.slot_dense = d_slot_dense_.get();
+    a.slot_count = static_cast<std::uint32_t>(n_slots_);
+    a.jobs = d_jobs_.get();
+    a.job_count = static_cast<std::uint32_t>(n_jobs_);
+    a.visible = d_visible_.get();
+    if (resident) {
+      a.rows_data = rows->data;
+      a.rows_off = rows->off;
+      a.row_count = static_cast<std::uint32_t>(rows->rows);
+    }
+    a.clients = d_clients_.get();
+    a.client_count = static_cast<std::uint32_t>(client_count);
+    a.new_off = d_new_off_.get();
+
+    CUDA_CHECK(cudaEventRecord(ev_begin_, stream_));
+    const auto up = [&](void* d, const void* h, std::size_t bytes) {
+      if (bytes > 0) CUDA_CHECK(cudaMemcpyAsync(d, h, bytes, cudaMemcpyHostToDevice, stream_));
+    };
+    up(d_entities_.get(), h_entities_.get(), n_entities_ * sizeof(interest::replication_entity));
+    up(d_slot_dense_.get(), h_slot_dense_.get(), n_slots_ * sizeof(std::uint32_t));
+    up(d_jobs_.get(), h_jobs_.get(), n_jobs_ * sizeof(interest::replication_job));
+    up(d_clients_.get(), h_clients_.get(), client_count * sizeof(client_slot));
+    std::uint64_t total = 0, record_cap = 0;
+    if (!resident) {
+      // The sizes are here: plan on the host.
+      total = plan_staged(jobs, cl, client_count, rules.byte_budget, h_new_off_.get(), record_cap);
+      up(d_visible_.get(), h_visible_.get(), n_visible_ * sizeof(std::uint32_t));
+      up(d_new_off_.get(), h_new_off_.get(), (client_count + 1) * sizeof(std::uint32_t));
+    } else if (client_count > 0) {
+      // The sizes are on the device (the rows' lengths): plan there, read back the totals.
+      d_rooms_.reserve(client_count + 1);
+      d_record_bounds_.reserve(client_count);
+      d_sum_.reserve(1);
+      h_sum_.reserve(1);
+      CUDA_CHECK(launch_rooms(a, d_rooms_.get(), d_record_bounds_.get(), stream_));
+      std::size_t temp = 0;
+      CUDA_CHECK(scan_rooms(nullptr, temp, d_rooms_.get(), d_new_off_.get(), static_cast<std::uint32_t>(client_count + 1),
+                            d_record_bounds_.get(), d_sum_.get(), static_cast<std::uint32_t>(client_count), stream_));
+      d_temp_.reserve(std::max<std::size_t>(temp, 256));
+      temp = d_temp_.capacity();
+      CUDA_CHECK(scan_rooms(d_temp_.get(), temp, d_rooms_.get(), d_new_off_.get(),
+                            static_cast<std::uint32_t>(client_count + 1), d_record_bounds_.get(), d_sum_.get(),
+                            static_cast<std::uint32_t>(client_count), stream_));
+      CUDA_CHECK(cudaMemcpyAsync(h_new_off_.get() + client_count, d_new_off_.get() + client_count, sizeof(std::uint32_t),
+                                 cudaMemcpyDeviceToHost, stream_));
+      CUDA_CHECK(cudaMemcpyAsync(h_sum_.get(), d_sum_.get(), sizeof(std::uint64_t), cudaMemcpyDeviceToHost, stream_));
+      CUDA_CHECK(cudaStreamSynchronize(stream_));
+      total = h_new_off_.get()[client_count];
+      record_cap = h_sum_.get()[0];
+    }
+    CUDA_CHECK(cudaMemsetAsync(d_cursor_.get(), 0, 2 * sizeof(std::uint32_t), stream_));
+    CUDA_CHECK(cudaEventRecord(ev_up_, stream_));
+    const int next = 1 - cur_;
+    d_id_[next].reserve(total);
+    d_sent_[next].reserve(total);
+    d_scratch_.reserve(total);
+    d_records_.reserve(record_cap);
+    h_records_.reserve(record_cap);
+    a.old_id = d_id_[cur_].get();
+    a.old_sent = d_sent_[cur_].get();
+    a.new_id = d_id_[next].get();
+    a.new_sent = d_sent_[next].get();
+    a.scratch = d_scratch_.get();
+    a.hash = d_hash_.get();
+    a.records = d_records_.get();
+    a.record_capacity = record_cap;
+    a.cursor = d_cursor_.get();
+    a.results = d_results_.get();
+    CUDA_CHECK(launch_carry(a, stream_));
+    CUDA_CHECK(launch_decide(a, stream_));
+    CUDA_CHECK(cudaEventRecord(ev_kernels_, stream_));
+    if (n_jobs_ > 0) {
+      CUDA_CHECK(cudaMemcpyAsync(h_results_.get(), d_results_.get(), n_jobs_ * sizeof(interest::replication_result),
+                                 cudaMemcpyDeviceToHost, stream_));
+    }
+    if (resident && client_count > 0) {
+      CUDA_CHECK(cudaMemcpyAsync(h_new_off_.get(), d_new_off_.get(), client_count * sizeof(std::uint32_t),
+                                 cudaMemcpyDeviceToHost, stream_));
+    }
+    CUDA_CHECK(cudaMemcpyAsync(h_cursor_.get(), d_cursor_.get(), 2 * sizeof(std::uint32_t), cudaMemcpyDeviceToHost,
+                               stream_));
+    CUDA_CHECK(cudaStreamSynchronize(stream_));
+    if (h_cursor_.get()[1] != 0) throw std::runtime_error("replication engine: record buffer overflow (a bug)");
+    const std::uint32_t used = h_cursor_.get()[0];
+    if (used > 0) {
+      CUDA_CHECK(cudaMemcpyAsync(h_records_.get(), d_records_.get(), used, cudaMemcpyDeviceToHost, stream_));
+    }
+    CUDA_CHECK(cudaEventRecord(ev_down_, stream_));
+    CUDA_CHECK(cudaStreamSynchronize(stream_));
+
+    // The views moved: the new buffer is the current one.
+    cur_ = next;
+    const std::uint32_t* new_off = h_new_off_.get();
+    for (std::size_t c = 0; c < client_count; ++c) off_[c] = new_off[c];
+    const interest::replication_result* res = h_results_.get();
+    for (std::size_t k = 0; k < n_jobs_; ++k) len_[jobs[k].client] = res[k].view_size;
+
+    float ms = 0;
+    CUDA_CHECK(cudaEventElapsedTime(&ms, ev_begin_, ev_up_));
+    timing_.upload_ms = ms;
+    CUDA_CHECK(cudaEventElapsedTime(&ms, ev_up_, ev_kernels_));
+    timing_.device_ms = ms;
+    CUDA_CHECK(cudaEventElapsedTime(&ms, ev_kernels_, ev_down_));
+    timing_.download_ms = ms;
+    timing_.record_bytes = used;
+    timing_.resident = resident;
+    timing_.total_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+    return {h_results_.get(), h_records_.get()};
+  }
+
+  void forget_all() override {
+    std::fill(len_.begin(), len_.end(), 0u);
+    std::fill(off_.begin(), off_.end(), 0u);
+  }
+
+ private:
+  /// Per-client arrays for client_count clients; the device's hashes keep their values.
+  void grow_clients(std::size_t n) {
+    if (n > len_.size()) {
+      len_.resize(n, 0);
+      off_.resize(n, 0);
+    }
+    if (n > hash_cap_) {
+      const std::size_t cap = std::max(n, hash_cap_ + hash_cap_ / 2);
+      device_array<std::uint64_t> grown;
+      grown.reserve(cap);
+      CUDA_CHECK(cudaMemsetAsync(grown.get(), 0, cap * sizeof(std::uint64_t), stream_));
+      if (hash_cap_ > 0) {
+        CUDA_CHECK(cudaMemcpyAsync(grown.get(), d_hash_.get(), hash_cap_ * sizeof(std::uint64_t),
+                                   cudaMemcpyDeviceToDevice, stream_));
+      }
+      CUDA_CHECK(cudaStreamSynchronize(stream_));
+      d_hash_.swap(grown);
+      hash_cap_ = cap;
+    }
+  }
+
+  cudaStream_t stream_ = nullptr;
+  cudaEvent_t ev_begin_ = nullptr, ev_up_ = nullptr, ev_kernels_ = nullptr, ev_down_ = nullptr;
+  std::size_t n_entities_ = 0, n_slots_ = 0, n_jobs_ = 0, n_visible_ = 0;
+  pinned_array<interest::replication_entity> h_entities_;
+  pinned_array<std::uint32_t> h_slot_dense_, h_visible_, h_cursor_;
+  pinned_array<interest::replication_job> h_jobs_;
+  pinned_array<client_slot> h_clients_;
+  pinned_array<interest::replication_result> h_results_;
+  pinned_array<std::uint8_t> h_records_;
+  device_array<interest::replication_entity> d_entities_;
+  device_array<std::uint32_t> d_slot_dense_, d_visible_, d_cursor_;
+  device_array<interest::replication_job> d_jobs_;
+  device_array<client_slot> d_clients_;
+  device_array<interest::replication_result> d_results_;
+  device_array<std::uint8_t> d_records_;
+  device_array<std::uint32_t> d_id_[2], d_sent_[2];
+  device_array<scratch_entry> d_scratch_;
+  device_array<std::uint64_t> d_hash_;
+  pinned_array<std::uint32_t> h_new_off_;
+  pinned_array<std::uint64_t> h_sum_;
+  device_array<std::uint32_t> d_new_off_, d_rooms_;
+  device_array<std::uint64_t> d_record_bounds_, d_sum_;
+  device_array<unsigned char> d_temp_;
+  std::size_t hash_cap_ = 0;
+  int cur_ = 0;
+  std::vector<std::uint32_t> len_, off_;  // by client: its view's size and place in d_id_[cur_]
+  interest::replication_timing timing_;
+};
+
+}  // namespace
+}  // namespace detail::rep
+
+std::unique_ptr<interest::replication_engine> make_replication_engine(std::string* why) {
+  if (!device_available(nullptr, why)) return nullptr;
+  try {
+    return std::make_unique<detail::rep::engine>();
+  } catch (const std::exception& e) {
+    if (why) *why = e.what();
+    return nullptr;
+  }
+}
+
+}  // namespace zone::gpu

@@ -1,0 +1,233 @@
+// zone/replicator.h: replication, one tick_update per client per tick (what each client is
+// sent, within its byte budget; docs/zone.md, "Replication").
+#pragma once
+
+#include <cstddef>
+#include <cstdint>
+#include <functional>
+#include <memory>
+#include <span>
+#include <string>
+#include <vector>
+
+#include "interest/replication_engine.h"
+#include "interest/thread_pool.h"
+#include "net/protocol.h"
+#include "zone/entity_store.h"
+#include "zone/interest_tracker.h"
+
+namespace zone {
+
+struct replication_options {
+  /// World bounds for position quantization (sent to clients in welcome).
+  net::world_bounds world{{0, 0, 0}, {4096, 4096, 256}};
+  /// Most bytes of one client's frame per tick, prefix included (leave >= 256 for the header).
+  std::size_t byte_budget = 8 * 1024;
+  /// Update rate tiers by distance from the observer: every tick within near_distance, every
+  /// mid_period ticks within mid_distance, every far_period ticks beyond.
+  float near_distance = 60;
+  float mid_distance = 200;
+  std::uint32_t mid_period = 2;
+  std::uint32_t far_period = 4;
+  bool send_digest = true;
+  /// With send_digest: a digest in the frames of every digest_period-th tick (and in every reset frame).
+  std::uint32_t digest_period = 1;
+  /// Clients handed out at a time to build_many's threads (the frames never depend on it, nor
+  /// on the thread count).
+  std::uint32_t clients_per_task = 16;
+  /// build_many snapshots the entities (one quantization per entity instead of one per update
+  /// sent) when clients * snapshot_entities_per_client >= entities; 0 = never. The frames are the
+  /// same either way.
+  std::uint32_t snapshot_entities_per_client = 16;
+};
+
+/// What one build() did.
+struct replication_stats {
+  std::uint32_t enters = 0, leaves = 0, updates = 0;
+  std::uint32_t deferred_enters = 0, deferred_leaves = 0, deferred_updates = 0;  ///< carried over
+  std::size_t bytes = 0;
+  bool reset = false;
+};
+
+using client_id = std::uint32_t;
+
+/// One client's frame to build in replicator::build_many.
+struct replication_request {
+  client_id client = 0;
+  std::uint32_t last_input_sequence = 0;
+};
+
+/// What one thread needs to build frames with replicator::build: the frame writer and the
+/// build's scratch lists (pending enters, due updates, the next view). build() calls that run at
+/// the same time need one each; reuse it from tick to tick (its lists keep their capacity, so a
+/// steady tick allocates nothing). The scratch lives here, not per client, so that it stays in
+/// this thread's cache from one client to the next.
+class replication_writer {
+ public:
+  explicit replication_writer(std::size_t initial_bytes = 4096) : frame_(initial_bytes) {}
+  [[nodiscard]] net::tick_update_writer& frame() { return frame_; }
+
+ private:
+  friend class replicator;
+  struct pending {
+    float priority;       // smaller first
+    std::uint32_t index;  // into the view (updates) or the store (enters)
+    entity_id id;
+    std::uint32_t dense;  // the entity's dense index in the store
+  };
+  /// An entry of the view that may be due; its priority is computed only when the budget cannot
+  /// hold all the due ones.
+  struct due_update {
+    std::uint32_t index;      // into the view
+    std::uint32_t dense;      // the entity's dense index in the store
+    float distance_sq;        // from the observer
+    std::uint32_t staleness;  // ticks since it was last sent
+  };
+  /// Per view entry, beside the sorted ids: where the entity was in the store when last looked
+  /// up (a hint, checked against the id before use) and the tick it was last sent, modulo 2^32
+  /// (staleness is the difference modulo 2^32: exact while an entry goes unsent for under 2^32
+  /// ticks, 4.5 years at 30 Hz).
+  struct view_meta {
+    std::uint32_t dense;
+    std::uint32_t last_sent;
+  };
+  net::tick_update_writer frame_;
+  std::vector<pending> enters_, ranked_;
+  std::vector<due_update> due_;
+  std::vector<std::uint32_t> left_;  // view indices sent as leaves this tick (ascending)
+  std::vector<entity_id> next_view_;
+  std::vector<view_meta> next_meta_;
+};
+
+/// Per-client replication state and the per-tick message builder.
+///
+/// The server keeps, per client, the view the client has been sent (sorted entity ids, with the
+/// tick each was last sent). Each tick, build() moves that view toward the observer's visible set
+/// (from the interest tracker): leaves first, then enters with full state (closest first), then
+/// quantized updates of entities in the view that are due by their distance tier (highest
+/// staleness / distance first), all within the byte budget; whatever does not fit stays pending
+/// and is sent on a later tick (carry-over needs no queue: it is the difference between the view
+/// and the visible set, recomputed each tick). The frame carries the digest of the view after it.
+/// A client that lost frames is resync()ed: its next frame says reset and rebuilds the view.
+///
+/// Call build() after interest_tracker::update with the store unchanged in between. build() for
+/// different clients may run concurrently, each with its own replication_writer; the other calls
+/// may not.
+class replicator {
+ public:
+  explicit replicator(replication_options opt = {});
+
+  /// A client that sees through `observer` (its entity). Ids are reused after remove_client.
+  [[nodiscard]] client_id add_client(entity_id observer);
+  void remove_client(client_id c);
+  /// The client's entity changed (respawn); its view is kept and converges as usual.
+  void set_observer(client_id c, entity_id observer);
+  /// The client lost frames: the next frame resets its view and starts it again.
+  void resync(client_id c);
+
+  /// Builds this tick's frame for client c into `writer`; the span is valid until the writer's
+  /// next build. `stats`, when given, receives what was sent and deferred.
+  [[nodiscard]] std::span<const std::uint8_t> build(client_id c, const entity_store& store,
+                                                    const interest_tracker& tracker, std::uint64_t tick,
+                                                    std::uint64_t server_time_us, std::uint32_t last_input_sequence,
+                                                    replication_writer& writer, replication_stats* stats = nullptr);
+
+  /// Called by build_many once per request k with its frame (valid only during the call) and
+  /// what was sent; calls for different k may run concurrently on different threads.
+  using frame_sink = std::function<void(std::size_t k, std::span<const std::uint8_t> frame, const replication_stats& stats)>;
+
+  /// build() for every request (distinct clients), spread over `pool` (null: this thread): the
+  /// requests are handed out in chunks of options().clients_per_task to one task per thread,
+  /// each with its own writer owned by the replicator (reused: no allocation in steady state).
+  /// With many clients for the store's size it first takes a snapshot of every entity's
+  /// position and quantized update, so that each update a client is sent is a 16-byte copy.
+  /// Every frame and every client's state afterwards are exactly what calling build() for the
+  /// requests one by one would give, for any thread count.
+  /// `chunk_done` (when set) is called by the thread that built a chunk of requests [begin, end)
+  /// right after the sink saw its last frame: a caller can hand a chunk's frames on together.
+  using chunk_sink = std::function<void(std::size_t begin, std::size_t end)>;
+  void build_many(std::span<const replication_request> requests, const entity_store& store,
+                  const interest_tracker& tracker, std::uint64_t tick, std::uint64_t server_time_us,
+                  interest::thread_pool* pool, const frame_sink& sink, const chunk_sink& chunk_done = {});
+
+  /// Runs build_many's decisions on `engine` (interest/replication_engine.h; the GPU:
+  /// gpu/replication.h), which then holds the clients' views; null: back to the CPU. The frames
+  /// are byte for byte those of the CPU path (tests/zone/test_zone_gpu.cpp). Every active client's
+  /// next frame is a reset (the views start over on the new side). `engine` must outlive the
+  /// replicator or be unset first. If the engine fails (a device error), build_many gives it up
+  /// for good (engine_error() says why) and builds that tick and the next on the CPU, every
+  /// client's next frame a reset. With an engine, build() must not be called, and view() is empty
+  /// (the view lives on the engine); view_hash() and view_size() stay exact.
+  void set_engine(interest::replication_engine* engine);
+  /// True while build_many runs on the engine.
+  [[nodiscard]] bool on_engine() const { return engine_ != nullptr && engine_error_.empty(); }
+  /// Why the engine was given up (empty while it works or when none is set).
+  [[nodiscard]] const std::string& engine_error() const { return engine_error_; }
+
+  /// The client's view as sent so far (sorted ids; empty on an engine) and its digest hash.
+  [[nodiscard]] std::span<const entity_id> view(client_id c) const { return clients_[c].view; }
+  [[nodiscard]] std::size_t view_size(client_id c) const {
+    return on_engine() ? clients_[c].engine_view_size : clients_[c].view.size();
+  }
+  [[nodiscard]] std::uint64_t view_hash(client_id c) const { return clients_[c].hash; }
+  [[nodiscard]] entity_id observer(client_id c) const { return clients_[c].observer; }
+  [[nodiscard]] const net::position_quantizer& quantizer() const { return quantizer_; }
+  [[nodiscard]] const replication_options& options() const { return opt_; }
+
+ private:
+  using view_meta = replication_writer::view_meta;
+  /// What build() touches per client is only this and its two lists (the scratch is in the
+  /// writer): little memory per client, so that 20,000 clients' states stream through the cache.
+  struct client_state {
+    entity_id observer = null_entity;
+    bool active = false;
+    bool reset_pending = true;
+    std::vector<entity_id> view;  // sorted
+    std::vector<view_meta> meta;  // parallel to view
+    std::uint64_t hash = 0;
+    std::uint32_t engine_view_size = 0;  // with an engine: its view's size after the last frame
+  };
+  /// One entity in build_many's snapshot, by dense index: what a view entry needs (the id to
+  /// check the hint, the position for the tier, the update as sent) in half a cache line.
+  struct alignas(32) entity_snapshot {
+    vec3 position;
+    entity_id id;
+    net::wire::entity_update update;
+  };
+  /// Where build reads the entities: the store (quantizing each update sent) or the snapshot.
+  struct store_source;
+  struct snapshot_source;
+  /// Squared-distance bounds of a tier: sqrt(d2) < limit is certain below below_sq and false
+  /// above above_sq (a relative 1e-4 either side of limit^2); in between the root decides.
+  struct tier_bound {
+    float limit, below_sq, above_sq;
+  };
+  static bool tier_below(float d2, const tier_bound& b);
+  template <class Source>
+  std::span<const std::uint8_t> build_from(const Source& source, client_id c, const entity_store& store,
+                                           const interest_tracker& tracker, std::uint64_t tick,
+                                           std::uint64_t server_time_us, std::uint32_t last_input_sequence,
+                                           replication_writer& writer, replication_stats* stats);
+  /// Starts loading what building client c will read first (its state and lists).
+  void prefetch_client(client_id c) const;
+  /// build_many on the engine (throws what the engine throws, before any frame reaches the sink).
+  void build_on_engine(std::span<const replication_request> requests, const entity_store& store,
+                       const interest_tracker& tracker, std::uint64_t tick, std::uint64_t server_time_us,
+                       interest::thread_pool* pool, const frame_sink& sink, const chunk_sink& chunk_done);
+  /// Every active client starts over (its next frame is a reset).
+  void reset_all_clients();
+
+  replication_options opt_;
+  net::position_quantizer quantizer_;
+  tier_bound near_, mid_;
+  std::uint32_t mid_period_, far_period_;  // at least 1
+  std::vector<client_state> clients_;
+  std::vector<client_id> free_clients_;
+  std::vector<std::unique_ptr<replication_writer>> writers_;  // one per build_many task (thread)
+  std::vector<entity_snapshot> snapshot_;                     // build_many's, by dense index
+  interest::replication_engine* engine_ = nullptr;
+  std::string engine_error_;
+  std::vector<std::uint32_t> job_visible_;  // build_on_engine: visible-set size, then offset, by request
+};
+
+}  // namespace zone

@@ -1,0 +1,120 @@
+// zone/zone_world.h: the simulated world: NPC behaviours, movement and interest, one
+// deterministic step per tick.
+#pragma once
+
+#include <cstddef>
+#include <cstdint>
+#include <optional>
+#include <span>
+#include <vector>
+
+#include "interest/interest.h"
+#include "interest/thread_pool.h"
+#include "zone/entity_store.h"
+#include "zone/interest_tracker.h"
+#include "zone/latency_histogram.h"
+#include "zone/zone_config.h"
+
+namespace zone {
+
+/// Phase timings of zone_world::step (milliseconds).
+struct tick_phases {
+  latency_histogram behaviours, integrate, interest, total;
+};
+
+/// The ms of one step's phases (zone_world::last_step): what the step also recorded in tick_phases.
+struct step_times {
+  double behaviours = 0, integrate = 0, interest = 0, total = 0;
+};
+
+/// Entities, NPC behaviours and interest of one zone. step() is deterministic: the same config,
+/// seed and calls give the same positions and visible sets whatever the thread count.
+class zone_world {
+ public:
+  /// `finder` and `pool` must outlive the world; `pool` may be null.
+  zone_world(const zone_config& cfg, interest::pair_finder& finder, interest::thread_pool* pool);
+
+  /// Creates the NPCs and bosses of the config (deterministic in cfg.seed).
+  void populate();
+  /// A player entity at `at` (clamped into the world); null_entity when the zone is full.
+  [[nodiscard]] entity_id spawn_player(const vec3& at);
+  bool despawn(entity_id id);
+  /// An entity with a given behaviour state (a world's ghost or handed-off entity); null_entity
+  /// when the description is invalid or the zone is full.
+  [[nodiscard]] entity_id adopt(const entity_desc& d, const behaviour_state& b);
+  /// The behaviour state of a live entity.
+  [[nodiscard]] std::optional<behaviour_state> behaviour_state_of(entity_id id) const;
+  /// Replaces a live entity's behaviour state (false for a dead handle).
+  bool set_behaviour_state(entity_id id, const behaviour_state& b);
+  /// A player's movement intent: its length is clamped to 1 and scaled by player_speed, so a
+  /// client can never move faster than allowed (any finite intent, however large, keeps its
+  /// direction: no overflow to zero or infinity); its z is dropped unless player_fly. false
+  /// (ignored) for a non-player or dead handle, or a non-finite intent.
+  bool set_intent(entity_id player, const vec3& intent);
+  /// A player's teleport jump to `to`, clamped into the world (`*clamped` says whether it was);
+  /// the next step() integrates and finds interest from there, so the jump's enters and leaves
+  /// come in that tick. false (nothing moves) for a non-player, a dead handle or a non-finite `to`.
+  bool teleport(entity_id player, const vec3& to, bool* clamped = nullptr);
+
+  /// One tick: behaviours decide velocities (from the previous tick's positions and visible sets),
+  /// positions integrate inside the world bounds, interest updates.
+  [[nodiscard]] std::optional<interest::box_error> step();
+
+  [[nodiscard]] std::uint64_t tick() const { return tick_; }
+  [[nodiscard]] entity_store& store() { return store_; }
+  [[nodiscard]] const entity_store& store() const { return store_; }
+  [[nodiscard]] const interest_tracker& tracker() const { return tracker_; }
+  /// See interest_tracker::set_pair_view_source.
+  void set_pair_view_source(interest_tracker::pair_view_source source) {
+    tracker_.set_pair_view_source(std::move(source));
+  }
+  /// Entities whose visible sets a viewer reads after each step (net/viewer.h): with a GPU
+  /// engine their rows are copied back with the players' from the next step on. Replaces the
+  /// previous list; dead handles are ignored.
+  void set_watched(std::span<const entity_id> ids);
+  /// A tick follows soon: see interest_tracker::prepare.
+  void prepare() noexcept { tracker_.prepare(); }
+  /// See interest_tracker::set_engine.
+  void set_visibility_engine(interest::visibility_engine* engine) { tracker_.set_engine(engine); }
+  /// Whether the players' visible sets are copied back to the host after each interest step
+  /// (interest_tracker::set_view_demand; default true: the CPU replicator reads them). A GPU
+  /// replication engine that reads them in place on the device (replicator::set_engine) needs
+  /// no copy; a row not copied is still fetched on first access, so the CPU path stays exact.
+  void set_player_views_on_host(bool on);
+  [[nodiscard]] behaviour behaviour_of(entity_id id) const;
+  [[nodiscard]] const tick_phases& phases() const { return phases_; }
+  /// The phases of the last step() alone (per-tick series: bench-zone --csv, zone-server --tick-csv).
+  [[nodiscard]] const step_times& last_step() const { return last_step_; }
+  [[nodiscard]] const zone_config& config() const { return cfg_; }
+  [[nodiscard]] vec3 town(std::size_t t) const { return towns_[t]; }
+  [[nodiscard]] std::size_t town_count() const { return towns_.size(); }
+  /// Hash of every position and of the tracker's output after the last step.
+  [[nodiscard]] std::uint64_t digest() const;
+
+ private:
+  using npc_state = behaviour_state;
+  void decide(std::size_t first, std::size_t last);
+  [[nodiscard]] std::uint64_t noise(entity_id id, std::uint64_t salt) const;
+  [[nodiscard]] vec3 clamp_to_world(const vec3& p) const;
+  [[nodiscard]] net::world_bounds spawn_area() const;
+
+  zone_config cfg_;
+  interest::thread_pool* pool_;
+  entity_store store_;
+  interest_tracker tracker_;
+  std::vector<npc_state> by_slot_;  // indexed by slot_of(id)
+  /// By slot: 1 where by_slot_'s kind is player. What the chasers' scan reads: a byte a slot
+  /// (1 MB a million entities) instead of a 32-byte state.
+  std::vector<std::uint8_t> is_player_;
+  void set_state(entity_id id, const npc_state& st);
+  std::vector<std::uint8_t> reads_view_;  // by slot: the entity's visible set is read each tick
+  bool player_views_on_host_ = true;
+  void set_reads_view(entity_id id, bool reads);
+  std::vector<entity_id> watched_;  // set_watched
+  std::vector<vec3> towns_;
+  std::uint64_t tick_ = 0;
+  tick_phases phases_;
+  step_times last_step_;
+};
+
+}  // namespace zone
