@@ -121,6 +121,12 @@ struct zone_config {
   std::uint32_t update_mid_period = 3, update_far_period = 8;
   std::uint32_t digest_every = 1;    ///< a visible-set digest every K ticks (0 = none)
   double teleport_cooldown_s = 0.5;  ///< least time between two jumps of one player (0 = none)
+  /// Client-chosen visibility (hello, set_visibility; docs/zone.md "Visibility classes and
+  /// teams"): players may choose stealth, and join one of `player_teams` teams (0 none, 1 red,
+  /// 2 red and blue); a client switches at most once per visibility_cooldown_s.
+  bool allow_stealth = true;
+  std::uint32_t player_teams = 2;
+  double visibility_cooldown_s = 1.0;
   bool metrics_enabled = true;        ///< serve Prometheus text at http://metrics_address:metrics_port/metrics
   std::uint16_t metrics_port = 9100;  ///< 0 = an ephemeral port
   /// Where /metrics listens: loopback by default (it has no authentication); "0.0.0.0" opens it.
