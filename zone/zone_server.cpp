@@ -208,7 +208,7 @@ std::string zone_server::metrics_text() const {
   t.counter("zone_net_frames_rejected_total", "Inbound frames rejected (client disconnected).", static_cast<double>(ns.frames_rejected));
   t.counter("zone_net_inputs_dropped_total", "Inputs over the rate limit.", static_cast<double>(ns.inputs_dropped));
   t.counter("zone_net_pings_answered_total", "Pings answered with a pong.", static_cast<double>(ns.pings_answered));
-  t.counter("zone_net_pings_dropped_total", "Pings over the rate limit (no pong).", static_cast<double>(ns.pings_dropped));
+  t.counter("zone_net_pings_dropped_total", "Pings over the rate limit, or from a client that does not read its pongs (no pong).", static_cast<double>(ns.pings_dropped));
   t.counter("zone_net_rate_limited_total", "Sessions closed for flooding (error rate_limited).", static_cast<double>(ns.rate_limited));
   t.gauge("zone_net_pending_open", "Connections open that have not said hello yet.", static_cast<double>(ns.pending_open));
   t.counter("zone_net_pending_evicted_total", "Connections without a hello closed to admit a newer one (cap: max-pending-per-address or max-pending).",
