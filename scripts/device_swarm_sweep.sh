@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # How many bots one host holds: scripts/device_zone.sh's swarm step (zone-server + bot-swarm on
 # loopback, verify mode) once per bot count, then one table of what each run measured against
-# issue 5's targets (docs/zone-benchmarks.md, "2026-11-24 (d): how many bots one host holds").
+# issue 5's targets (docs/zone-benchmarks.md, "The swarm").
 #
 #   SWEEP_BOTS="5000 10000 15000 19900" DEVICE_DIR=.device-zone bash scripts/device_swarm_sweep.sh
 #
