@@ -31,6 +31,7 @@ MANUALS = {
     "bot-swarm": ["docs/bots.md"],
     "bench-zone": ["docs/zone-benchmarks.md"],
     "bench-handoff": ["docs/zone-benchmarks.md"],
+    "bench-pool": ["docs/zone-benchmarks.md"],
     "bench-gpu": ["docs/gpu-benchmarks.md"],
     "bench-peers": ["docs/gpu-benchmarks.md"],
     "bench-finders": ["docs/benchmarks.md"],
