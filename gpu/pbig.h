@@ -45,6 +45,16 @@ struct pbig_options {
   /// mapped, grid cells, estimated pair checks) and the cheapest is used. false = the paper's
   /// pure Eq. 6 (smallest edge with f >= W), for the paper's figures and the ablation.
   bool cost_aware_plan = true;
+  /// Beyond the paper: from this many boxes on, the checking kernel reads each box through its id
+  /// from the id-ordered box array instead of a copy gathered in cell order, so no gather kernel
+  /// runs between the mapping and the first check (about 1.1 ms of 3.6 ms of MAP at 10^7 uniform
+  /// boxes), at the price of scattered reads in the checks, which large sets hide behind the
+  /// output copy. 0 = always, SIZE_MAX = never (the paper's box array).
+  std::size_t indirect_check_min_boxes = std::size_t{1} << 22;
+  /// Beyond the paper: pinned input of at least 2^18 boxes that all share one category and one
+  /// mask (checked on the host while the coordinates are copied) has those two arrays filled on
+  /// the device instead of copied: 24 bytes a box in instead of 32. false = always copied.
+  bool fill_uniform_classes = true;
 };
 
 /// Where the time of the last call went (the paper's Table V/VI tasks) and what it moved.
@@ -73,6 +83,10 @@ struct pbig_report {
   bool plan_reused = false;
   bool single_queue = false;  ///< queued whole with the last call's capacity (one synchronisation)
   bool requeued = false;      ///< ... and the grid outgrew it: re-run with read-back sizing
+  /// Pinned input of at least tuning::uniform_classes_min_boxes boxes that all share one category
+  /// and one mask: those arrays were filled on the device, not copied (24 bytes a box in, not 32).
+  bool classes_filled = false;
+  bool indirect_check = false;  ///< the checks read boxes through their ids (no gather; indirect_check_min_boxes)
   double alpha = 0;
 };
 

@@ -22,6 +22,9 @@ class position_quantizer {
   /// Guaranteed bound on |dequantize(quantize(p)) - p| per axis for p inside the bounds.
   [[nodiscard]] vec3f max_error() const;
   [[nodiscard]] const world_bounds& world() const { return world_; }
+  /// The step of axis 0, 1 or 2 (0 for a zero-width or non-finite axis): what a device quantizing
+  /// the same way needs (gpu/replication/replication_shared.h).
+  [[nodiscard]] double step(int axis) const { return step_[axis]; }
 
  private:
   world_bounds world_;
