@@ -8,6 +8,7 @@ packages=(
   libboost-dev libboost-program-options-dev
   libflatbuffers-dev flatbuffers-compiler
   libspdlog-dev libfmt-dev
+  nlohmann-json3-dev  # JSON output (bot-swarm's report, the viewer)
   doctest-dev
   libcgal-dev libgmp-dev libmpfr-dev
   liburing-dev pkg-config
