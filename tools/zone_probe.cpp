@@ -19,7 +19,8 @@
 //   "Slow and stalled clients"). Reports, over the players: the age of the first frame after
 //   resuming, the stale frames and bytes read before a frame at most 2 ticks old, how long after
 //   resuming that fresh frame came, views that failed to apply or verify, and the server's RSS
-//   before, at the end of and after the stall (with --server-pid).
+//   before, at the end of and after the stall (with --server-pid). --rcvbuf sets the players'
+//   SO_RCVBUF (what their kernel holds for them unread).
 // With --server-pid the server's RSS and high-water mark (VmRSS, VmHWM) are reported at the end.
 // Output: a table, then one CSV line per figure (attack,metric,value).
 #include <arpa/inet.h>
@@ -58,6 +59,7 @@ struct options {
   std::size_t count = 1000;
   double seconds = 5;
   long server_pid = 0;
+  int rcvbuf = 0;  ///< stall: each player's SO_RCVBUF (0 = the system's)
 };
 
 std::vector<std::pair<std::string, double>> figures;
@@ -65,10 +67,13 @@ void figure(const std::string& name, double value) { figures.emplace_back(name, 
 
 double ms_since(steady::time_point t) { return std::chrono::duration<double, std::milli>(steady::now() - t).count(); }
 
-/// A TCP connection to 127.0.0.1:port from 127.0.0.<from>; -1 on failure.
-int connect_from(std::uint16_t port, std::uint8_t from, bool nonblocking) {
+/// A TCP connection to 127.0.0.1:port from 127.0.0.<from> (SO_RCVBUF `rcvbuf` unless 0); -1 on failure.
+int connect_from(std::uint16_t port, std::uint8_t from, bool nonblocking, int rcvbuf = 0) {
   const int fd = ::socket(AF_INET, SOCK_STREAM | (nonblocking ? SOCK_NONBLOCK : 0), 0);
   if (fd < 0) return -1;
+  // Before connect: the window scale is agreed in the handshake (set later, the kernel may have
+  // advertised more than the buffer then holds, and drop what overflows).
+  if (rcvbuf > 0) ::setsockopt(fd, SOL_SOCKET, SO_RCVBUF, &rcvbuf, sizeof rcvbuf);
   int one = 1;
   ::setsockopt(fd, IPPROTO_TCP, TCP_NODELAY, &one, sizeof one);
   sockaddr_in src{};
@@ -430,7 +435,7 @@ int attack_stall(const options& o) {
   const std::size_t n = std::max<std::size_t>(1, std::min<std::size_t>(o.count, 2000));
   std::vector<stall_player> ps(n);
   for (auto& p : ps) {
-    p.fd = connect_from(o.port, 4, false);
+    p.fd = connect_from(o.port, 4, false, o.rcvbuf);
     if (p.fd < 0 || !send_all(p.fd, encode_frame(hello_msg{"stall", "", protocol_version}))) {
       std::fprintf(stderr, "zone-probe: a stalling player could not connect: %s\n", std::strerror(errno));
       return 1;
@@ -486,6 +491,7 @@ int attack_stall(const options& o) {
 const char* const usage_text =
     "usage: zone-probe --port P --attack halfopen|pingflood|httpidle|stall [--count N (1000)] [--seconds S (5)]\n"
     "                  [--metrics-port M (httpidle)] [--server-pid PID (CPU and memory readings)]\n"
+    "                  [--rcvbuf BYTES (stall: the players' SO_RCVBUF; 0 = the system's)]\n"
     "Hostile clients against a zone-server on loopback (docs/zone.md, Limits and hardening).\n";
 
 int usage(bool help) {
@@ -501,10 +507,11 @@ int main(int argc, char** argv) {
   po::options_description cli;
   cli.add_options()("port", po::value(&o.port))("metrics-port", po::value(&o.metrics_port))(
       "attack", po::value(&o.attack))("count", po::value(&o.count))("seconds", po::value(&o.seconds))(
-      "server-pid", po::value(&o.server_pid));
+      "server-pid", po::value(&o.server_pid))("rcvbuf", po::value(&o.rcvbuf));
   if (const auto rc = zone::tools::parse_command_line(argc, argv, "zone-probe", usage_text, cli, 64)) return *rc;
   o.count = std::min<std::size_t>(o.count, 20000);
   o.seconds = std::clamp(o.seconds, 0.5, 120.0);
+  o.rcvbuf = std::clamp(o.rcvbuf, 0, 1 << 26);
   if (o.port == 0 || (o.attack == "httpidle" && o.metrics_port == 0)) return usage(false);
   int rc;
   if (o.attack == "halfopen") rc = attack_halfopen(o);
