@@ -108,7 +108,7 @@ struct options {
   std::string finder = "cpu";
   double w = 0;  // 0 = the finder's default
   std::string csv;
-  bool view = true;  // GPU finders / auto: the tracker reads the finder's buffer (gpu::find_view)
+  bool view = true;  // GPU finders / auto: the tracker reads the finder's buffer (pair_finder::find_view)
   std::string interest = "auto";  // auto | gpu | host (zone_config::interest)
   replicate_mode replicate = replicate_mode::parallel;
   bool replicate_auto = true;  // --replicate auto: gpu when a device is usable
@@ -169,7 +169,7 @@ Usage: bench-zone [options]
   --host-views       with --replicate gpu: copy the players' visible sets to the host and stage
                      them for the engine, instead of its reading them in place on the device
   --find-into-list   GPU finders / auto: find() into the tracker's own pair list instead of
-                     reading the finder's result buffer (gpu::find_view, zone-server's way)
+                     reading the finder's result buffer (pair_finder::find_view, zone-server's way)
   --csv FILE         per-tick samples (ms and counts) as CSV
   --sweep-w LIST     after the run, time the finder on the last tick's boxes for each W
                      (comma-separated; 5 calls each, median)
@@ -393,13 +393,9 @@ int main(int argc, char** argv) {
     return 64;
   }
   zone_world world(cfg, *finder, &pool);
-  // As zone-server does: the GPU finders and auto hand their result buffer to the tracker.
-  const bool gpu_side = opt.finder != "cpu" && opt.finder != "cpu-1t" && opt.finder != "brute";
-  if (gpu_side && opt.view) {
-    world.set_pair_view_source([f = finder.get()](const interest::box_set& boxes, std::span<const interest::id_pair>& view) {
-      return gpu::find_view(*f, boxes, view);
-    });
-  }
+  // As zone-server does: the GPU finders and auto hand their result buffer to the tracker
+  // (pair_finder::find_view), unless --find-into-list.
+  world.set_finder_view(opt.view);
   // As zone-server does: the whole interest step on the GPU engine when asked and possible.
   std::unique_ptr<interest::visibility_engine> engine;
   if (opt.interest == "gpu" || (opt.interest == "auto" && opt.max_visible == 0)) {
@@ -808,7 +804,7 @@ int main(int argc, char** argv) {
   if (!opt.sweep_w.empty()) {
     // The finder alone on the last tick's boxes (the zone's real distribution), per W.
     interest::box_set boxes;
-    world.tracker().build_boxes(world.store(), boxes);  // also when the engine ran the ticks
+    world.tracker().build_boxes(world.store().columns(), boxes);  // also when the engine ran the ticks
     std::printf("\nW sweep on the last tick's %zu boxes (grid finder, %u threads, median of 5 calls)\n", boxes.size(),
                 pool.size());
     std::printf("| W | median ms | min ms | pairs | checks | cell edge m | cells | entries | large |\n"

@@ -186,4 +186,19 @@ bool entity_store::set_visibility(entity_id id, std::uint32_t visibility_class, 
   return true;
 }
 
+interest::entity_columns entity_store::columns() const {
+  interest::entity_columns c;
+  c.n = ids_.size();
+  c.ids = ids_.data();
+  c.slot_bits = entity_index_bits;
+  c.slot_count = slot_count();
+  c.position = position_.data();
+  c.aoi_half = aoi_half_.data();
+  c.presence_half = presence_half_.data();
+  c.visibility = visibility_class_.data();
+  c.sees = sees_.data();
+  c.layout_version = layout_version_;
+  return c;
+}
+
 }  // namespace zone

@@ -10,6 +10,7 @@
 #include <vector>
 
 #include "interest/interest.h"
+#include "interest/interest_tracker.h"
 
 namespace zone {
 
@@ -19,8 +20,8 @@ namespace zone {
 /// until the slot's generation wraps around (max_generation = 1,023 reuses of that one slot).
 /// 22 slot bits: up to 4,194,304 entities in one zone (20 bits capped a zone at 1,048,576, below
 /// what the GPU interest engine steps in a tick; docs/zone-benchmarks.md, "Growth").
-using entity_id = std::uint32_t;
-inline constexpr entity_id null_entity = 0;
+using interest::entity_id;
+using interest::null_entity;
 inline constexpr unsigned entity_index_bits = 22;
 inline constexpr std::uint32_t entity_index_mask = (1u << entity_index_bits) - 1;
 /// Most entities alive at once in one store.
@@ -31,10 +32,7 @@ inline constexpr std::uint32_t max_generation = (1u << (32 - entity_index_bits))
 [[nodiscard]] constexpr std::uint32_t slot_of(entity_id id) { return id & entity_index_mask; }
 [[nodiscard]] constexpr std::uint32_t generation_of(entity_id id) { return id >> entity_index_bits; }
 
-struct vec3 {
-  float x = 0, y = 0, z = 0;
-  friend bool operator==(const vec3&, const vec3&) = default;
-};
+using interest::vec3;
 
 enum class entity_kind : std::uint8_t { player, npc, boss };
 
@@ -123,6 +121,9 @@ class entity_store {
   [[nodiscard]] std::uint64_t layout_version() const { return layout_version_; }
   /// Dense index by slot (0xffffffff: none), slot_count() entries: the map index_of reads.
   [[nodiscard]] std::span<const std::uint32_t> slot_dense() const { return slot_dense_; }
+  /// The interest columns of the live entities (row = dense index), for interest_tracker::update;
+  /// valid until the store changes.
+  [[nodiscard]] interest::entity_columns columns() const;
 
  private:
   void bump_layout();

@@ -149,7 +149,7 @@ void replicator::set_observer(client_id c, entity_id observer) { clients_[c].obs
 
 void replicator::resync(client_id c) { clients_[c].reset_pending = true; }
 
-std::span<const std::uint8_t> replicator::build(client_id c, const entity_store& store, const interest_tracker& tracker,
+std::span<const std::uint8_t> replicator::build(client_id c, const entity_store& store, const interest::interest_tracker& tracker,
                                                 std::uint64_t tick, std::uint64_t server_time_us,
                                                 std::uint32_t last_input_sequence, replication_writer& writer,
                                                 replication_stats* stats) {
@@ -159,7 +159,7 @@ std::span<const std::uint8_t> replicator::build(client_id c, const entity_store&
 
 template <class Source>
 std::span<const std::uint8_t> replicator::build_from(const Source& source, client_id c, const entity_store& store,
-                                                     const interest_tracker& tracker, std::uint64_t tick,
+                                                     const interest::interest_tracker& tracker, std::uint64_t tick,
                                                      std::uint64_t server_time_us, std::uint32_t last_input_sequence,
                                                      replication_writer& w, replication_stats* stats) {
   client_state& s = clients_[c];
@@ -375,7 +375,7 @@ void replicator::set_engine(interest::replication_engine* engine) {
 }
 
 void replicator::build_on_engine(std::span<const replication_request> requests, const entity_store& store,
-                                 const interest_tracker& tracker, std::uint64_t tick, std::uint64_t server_time_us,
+                                 const interest::interest_tracker& tracker, std::uint64_t tick, std::uint64_t server_time_us,
                                  interest::thread_pool* pool, const frame_sink& sink, const chunk_sink& chunk_done) {
   const std::size_t n = store.size(), jobs = requests.size();
   const auto slot_dense = store.slot_dense();
@@ -534,7 +534,7 @@ void replicator::build_on_engine(std::span<const replication_request> requests, 
 }
 
 void replicator::build_many(std::span<const replication_request> requests, const entity_store& store,
-                            const interest_tracker& tracker, std::uint64_t tick, std::uint64_t server_time_us,
+                            const interest::interest_tracker& tracker, std::uint64_t tick, std::uint64_t server_time_us,
                             interest::thread_pool* pool, const frame_sink& sink, const chunk_sink& chunk_done) {
   if (requests.empty()) return;
   if (on_engine()) {

@@ -376,7 +376,7 @@ std::optional<interest::box_error> zone_world::step() {
 
   // 3. Interest.
   t0 = clock_type::now();
-  auto err = tracker_.update(store_);
+  auto err = tracker_.update(store_.columns());
   last_step_.interest = ms_since(t0);
   last_step_.total = ms_since(t_start);
   phases_.interest.record(last_step_.interest);

@@ -83,13 +83,6 @@ zone_server::zone_server(const zone_config& cfg)
       world_(std::make_unique<zone_world>(cfg, *finder_, pool_.get())),
       replicator_(replica_options(cfg)),
       net_(net_options(cfg)) {
-  // The GPU finders and auto hand over their own result buffer (no copy of every pair per tick).
-  const auto backend = gpu::parse_backend(cfg.finder);
-  if (finder_error_.empty() && backend && *backend != gpu::finder_backend::cpu && *backend != gpu::finder_backend::brute) {
-    world_->set_pair_view_source([f = finder_.get()](const interest::box_set& boxes, std::span<const interest::id_pair>& view) {
-      return gpu::find_view(*f, boxes, view);
-    });
-  }
   // The interest step on the GPU (the whole of it: candidates, classification, events).
   if (cfg.interest == "gpu" || (cfg.interest == "auto" && cfg.max_visible == 0)) {
     std::string why;

@@ -11,11 +11,16 @@
 #include "interest/interest.h"
 #include "interest/thread_pool.h"
 #include "zone/entity_store.h"
-#include "zone/interest_tracker.h"
+#include "interest/interest_tracker.h"
 #include "zone/latency_histogram.h"
 #include "zone/zone_config.h"
 
 namespace zone {
+
+// The interest layer's tracker under the names zone code has always used.
+using interest::interest_options;
+using interest::interest_stats;
+using interest::interest_tracker;
 
 /// Phase timings of zone_world::step (milliseconds).
 struct tick_phases {
@@ -64,9 +69,12 @@ class zone_world {
   [[nodiscard]] entity_store& store() { return store_; }
   [[nodiscard]] const entity_store& store() const { return store_; }
   [[nodiscard]] const interest_tracker& tracker() const { return tracker_; }
-  /// See interest_tracker::set_pair_view_source.
-  void set_pair_view_source(interest_tracker::pair_view_source source) {
-    tracker_.set_pair_view_source(std::move(source));
+  /// Whether the host path reads the finder's own result buffer (interest_options::finder_view;
+  /// default true).
+  void set_finder_view(bool on) {
+    auto o = tracker_.options();
+    o.finder_view = on;
+    tracker_.set_options(o);
   }
   /// Entities whose visible sets a viewer reads after each step (net/viewer.h): with a GPU
   /// engine their rows are copied back with the players' from the next step on. Replaces the

@@ -109,7 +109,7 @@ TEST_SUITE("bots.oracle") {
             REQUIRE(w.store.destroy(w.players.front()));
             w.players.erase(w.players.begin());
           }
-          REQUIRE_FALSE(tracker.update(w.store).has_value());
+          REQUIRE_FALSE(tracker.update(w.store.columns()).has_value());
           const bool layout = tick == 0 || w.store.layout_version() != layout_version;
           layout_version = w.store.layout_version();
           const auto body = truth_body(w.store, tick, layout);
@@ -193,7 +193,7 @@ TEST_SUITE("bots.oracle") {
         const entity_id id = w.add_player();
         clients.push_back({id, rep.add_client(id), net::client_view(w.world)});
       }
-      REQUIRE_FALSE(tracker.update(w.store).has_value());
+      REQUIRE_FALSE(tracker.update(w.store.columns()).has_value());
       const bool layout = tick == 0 || w.store.layout_version() != layout_version;
       layout_version = w.store.layout_version();
       REQUIRE_FALSE(oracle.feed(truth_body(w.store, tick, layout)).has_value());

@@ -128,7 +128,7 @@ inline replication_coverage check_replication_equivalence(
       std::vector<replication_stats> want_st, got_st;
       for (std::uint64_t tick = first_tick; tick < first_tick + static_cast<std::uint64_t>(c.ticks); ++tick) {
         CAPTURE(tick);
-        REQUIRE_FALSE(tracker.update(store).has_value());
+        REQUIRE_FALSE(tracker.update(store.columns()).has_value());
         // Who is built this tick: usually everyone, sometimes a random part (the rest carry over).
         requests.clear();
         const bool some = rng() % 3 == 0;
