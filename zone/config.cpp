@@ -94,11 +94,12 @@ std::optional<std::string> validate(const zone_config& c) {
   if (std::find(std::begin(interests), std::end(interests), c.interest) == std::end(interests)) {
     return bad("interest must be auto, gpu or host");
   }
-  static const char* faults[] = {"", "drop", "extra", "stealth", "freeze", "class"};
+  static const char* faults[] = {"", "drop", "extra", "stealth", "freeze", "class", "gpu-interest", "gpu-replication", "gpu-lost"};
   if (std::find(std::begin(faults), std::end(faults), c.test_fault) == std::end(faults)) {
-    return bad("test-fault must be drop, extra, stealth, freeze or class");
+    return bad("test-fault must be drop, extra, stealth, freeze, class, gpu-interest, gpu-replication or gpu-lost");
   }
-  if (!c.test_fault.empty() && !c.oracle) return bad("test-fault needs --oracle (it exists to prove the oracle)");
+  const bool gpu_fault = c.test_fault.rfind("gpu-", 0) == 0;
+  if (!c.test_fault.empty() && !gpu_fault && !c.oracle) return bad("test-fault needs --oracle (it exists to prove the oracle)");
   static const char* replicates[] = {"auto", "gpu", "cpu"};
   if (std::find(std::begin(replicates), std::end(replicates), c.replicate) == std::end(replicates)) {
     return bad("replicate must be auto, gpu or cpu");
@@ -214,8 +215,8 @@ config_result parse_config(int argc, const char* const* argv) {
   correctness.add_options()  //
       ("oracle", po::bool_switch(&c.oracle), "publish every tick's ground truth (entities, boxes, classes) on a loopback stream for an independent oracle (bot-swarm --oracle); off by default, and costs nothing when off")  //
       ("oracle-port", po::value(&oracle_port)->default_value(oracle_port), "loopback port of the ground-truth stream (0 = ephemeral; the welcome tells clients)")  //
-      ("test-fault", po::value(&c.test_fault)->default_value(c.test_fault), "TESTING ONLY: break one client's view on purpose to prove the oracle: drop, extra, stealth, freeze or class (needs --oracle)")  //
-      ("test-fault-tick", po::value(&c.test_fault_tick)->default_value(c.test_fault_tick), "TESTING ONLY: the world tick from which --test-fault acts");
+      ("test-fault", po::value(&c.test_fault)->default_value(c.test_fault), "TESTING ONLY: break one client's view on purpose to prove the oracle: drop, extra, stealth, freeze or class (needs --oracle); or make a GPU engine fail mid-run: gpu-interest or gpu-replication (the engine reports a CUDA error), gpu-lost (a kernel traps: a real, sticky device fault)")  //
+      ("test-fault-tick", po::value(&c.test_fault_tick)->default_value(c.test_fault_tick), "TESTING ONLY: the world tick from which --test-fault acts (for gpu-*: the tick whose step fails)");
   po::options_description all("zone-server options");
   all.add(general).add(world).add(interest).add(npcs).add(net).add(correctness).add(viewer).add(zones);
 

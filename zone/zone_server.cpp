@@ -1,6 +1,8 @@
 // The tick loop (zone_server.h): drain client inputs, step the world, replicate, at a fixed rate.
 #include "zone_server.h"
 
+#include "gpu/device_fault.h"
+#include "engine_faults.h"
 #include "finders.h"
 #include "interest/measure.h"
 #include "replication.h"
@@ -76,6 +78,14 @@ std::unique_ptr<interest::pair_finder> make_zone_finder(const zone_config& c, in
 
 }  // namespace
 
+engine_fault zone_server::gpu_fault(const zone_config& cfg) const {
+  engine_fault f;
+  f.tick = [w = world_.get()] { return w->tick(); };
+  f.at_tick = cfg.test_fault_tick;
+  if (cfg.test_fault == "gpu-lost") f.raise = [] { gpu::raise_device_fault(); };
+  return f;
+}
+
 zone_server::zone_server(const zone_config& cfg)
     : cfg_(cfg),
       pool_(std::make_unique<interest::thread_pool>(cfg.worker_threads, worker_spin(cfg))),
@@ -88,7 +98,10 @@ zone_server::zone_server(const zone_config& cfg)
     std::string why;
     engine_ = gpu::make_visibility_engine(pool_.get(), &why);
     if (engine_) {
-      world_->set_visibility_engine(engine_.get());
+      if (cfg.test_fault == "gpu-interest" || cfg.test_fault == "gpu-lost") {
+        faulty_engine_ = std::make_unique<faulty_visibility_engine>(*engine_, gpu_fault(cfg));
+      }
+      world_->set_visibility_engine(faulty_engine_ ? faulty_engine_.get() : engine_.get());
     } else if (cfg.interest == "gpu") {
       engine_error_ = "interest 'gpu' cannot run here: " + why + " (use --interest auto or host)";
     } else {
@@ -102,7 +115,10 @@ zone_server::zone_server(const zone_config& cfg)
     std::string why;
     replication_engine_ = gpu::make_replication_engine(&why);
     if (replication_engine_) {
-      replicator_.set_engine(replication_engine_.get());
+      if (cfg.test_fault == "gpu-replication" || (cfg.test_fault == "gpu-lost" && !faulty_engine_)) {
+        faulty_replication_ = std::make_unique<faulty_replication_engine>(*replication_engine_, gpu_fault(cfg));
+      }
+      replicator_.set_engine(faulty_replication_ ? faulty_replication_.get() : replication_engine_.get());
       // With the interest step on the GPU too, replication reads the visible sets there in place.
       world_->set_player_views_on_host(false);
     } else if (cfg.replicate == "gpu") {
@@ -140,6 +156,14 @@ std::string zone_server::metrics_text() const {
   t.gauge("zone_clients", "Clients with an entity.", static_cast<double>(stats_.clients));
   t.gauge("zone_interest_pairs", "Pairs found by the last interest step.", static_cast<double>(ts.pairs));
   t.gauge("zone_visible_total", "Sum of visible-set sizes after the last tick.", static_cast<double>(ts.visible));
+  t.gauge("zone_interest_on_gpu", "1 while the interest step runs on the GPU engine (--interest), else 0.",
+          engine_ && world_->tracker().engine_error().empty() ? 1.0 : 0.0);
+  t.counter("zone_interest_gpu_fallbacks_total",
+            "Times the GPU interest engine failed and the interest step fell back to the host (for good).",
+            engine_failure_logged_ ? 1.0 : 0.0);
+  t.counter("zone_replication_gpu_fallbacks_total",
+            "Times the GPU replication engine failed and replication fell back to the CPU (for good).",
+            replication_failure_logged_ ? 1.0 : 0.0);
   t.gauge("zone_replication_on_gpu", "1 while replication's decisions run on the GPU engine (--replicate), else 0.",
           replicator_.on_engine() ? 1.0 : 0.0);
   t.counter("zone_replication_frames_total", "Tick updates handed to the network.", static_cast<double>(stats_.frames_sent));
@@ -255,6 +279,17 @@ std::optional<std::string> zone_server::start() {
     if (!tick_csv_) return "cannot write tick-csv file '" + cfg_.tick_csv + "': " + std::strerror(errno);
     std::fputs("tick,t_s,clients,frames,bytes,inputs_ms,behaviours_ms,integrate_ms,interest_ms,replicate_ms,tick_ms\n",
                tick_csv_);
+  }
+  if (cfg_.test_fault.rfind("gpu-", 0) == 0) {
+    if (!faulty_engine_ && !faulty_replication_) {
+      return "test-fault " + cfg_.test_fault + " needs the GPU " +
+             (cfg_.test_fault == "gpu-replication" ? std::string("replication engine (--replicate auto or gpu)")
+                                                   : std::string("interest engine (--interest auto or gpu)")) +
+             ", which does not run here";
+    }
+    spdlog::warn("zone: TESTING: the GPU {} fails at tick {} ({})",
+                 faulty_engine_ ? "interest engine" : "replication engine", cfg_.test_fault_tick,
+                 cfg_.test_fault == "gpu-lost" ? "a real device fault: a kernel traps" : "an injected CUDA error");
   }
   if (cfg_.oracle) {
     truth_ = std::make_unique<truth_publisher>();
@@ -567,8 +602,8 @@ void zone_server::tick_once() {
   }
   if (!engine_failure_logged_ && !world_->tracker().engine_error().empty()) {
     engine_failure_logged_ = true;
-    spdlog::warn("zone: the GPU interest engine failed ({}); interest runs on the host from now on, finder {}",
-                 world_->tracker().engine_error(), finder_->name());
+    spdlog::warn("zone: tick {}: the GPU interest engine failed ({}); interest runs on the host from this tick on, finder {}",
+                 world_->tick(), world_->tracker().engine_error(), finder_->name());
   }
   // The ground truth of this tick (--oracle), before any frame of it is sent.
   if (truth_) truth_->publish(world_->store(), world_->tick());
@@ -576,8 +611,8 @@ void zone_server::tick_once() {
   replicate();
   if (!replication_failure_logged_ && !replicator_.engine_error().empty()) {
     replication_failure_logged_ = true;
-    spdlog::warn("zone: the GPU replication engine failed ({}); replication runs on the CPU from now on, every client resynced",
-                 replicator_.engine_error());
+    spdlog::warn("zone: tick {}: the GPU replication engine failed ({}); replication runs on the CPU from this tick on, every client resynced",
+                 world_->tick(), replicator_.engine_error());
     world_->set_player_views_on_host(true);
   }
   const double replicate_ms = ms_since(t1);

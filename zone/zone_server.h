@@ -13,6 +13,7 @@
 #include <unordered_map>
 #include <vector>
 
+#include "engine_faults.h"
 #include "fault_injection.h"
 #include "net/metrics.h"
 #include "net/server.h"
@@ -148,6 +149,8 @@ class zone_server {
   [[nodiscard]] std::string viewer_stats_json() const;
   /// --test-fault: the client whose frames are broken (the lowest session with an entity).
   void choose_fault_victim();
+  /// --test-fault gpu-*: when and how the wrapped GPU engine fails.
+  [[nodiscard]] engine_fault gpu_fault(const zone_config& cfg) const;
 
   zone_config cfg_;
   std::unique_ptr<interest::thread_pool> pool_;
@@ -157,10 +160,12 @@ class zone_server {
   std::string engine_error_;  ///< why interest = gpu cannot run here (start() reports it)
   std::string engine_note_;   ///< why auto chose the host path
   std::unique_ptr<interest::visibility_engine> engine_;
+  std::unique_ptr<faulty_visibility_engine> faulty_engine_;  ///< --test-fault gpu-interest, gpu-lost: wraps engine_
   bool engine_failure_logged_ = false;
   std::string replicate_error_;  ///< why replicate = gpu cannot run here (start() reports it)
   std::string replicate_note_;   ///< why auto chose the CPU replicator
   std::unique_ptr<interest::replication_engine> replication_engine_;  ///< before replicator_: outlives it
+  std::unique_ptr<faulty_replication_engine> faulty_replication_;     ///< --test-fault gpu-replication: wraps it
   bool replication_failure_logged_ = false;
   replicator replicator_;
   net::server net_;

@@ -1,4 +1,4 @@
-// The GPU replication engine's per-job code (gpu/replication_shared.h: the client table's plan, the
+// The GPU replication engine's per-job code (gpu/replication/replication_shared.h: the client table's plan, the
 // carry of views without a job, decide_job) run on the CPU through an emulated engine, against the
 // CPU replicator byte for byte (replication_equivalence.h). This runs in every CI run, device or
 // not; test_zone_gpu runs the same comparison on the device. The jobs run in a shuffled order, as
@@ -8,12 +8,14 @@
 #include <algorithm>
 #include <numeric>
 #include <random>
+#include <set>
 #include <vector>
 
-#include "../../gpu/replication_shared.h"
 #include "../common/seeds.h"
+#include "gpu/replication/replication_shared.h"
 #include "replication_equivalence.h"
 #include "zone.h"
+#include "zone/engine_faults.h"
 
 using namespace zone;
 namespace rep = zone::gpu::detail::rep;
@@ -143,5 +145,107 @@ TEST_SUITE("zone.replication") {
       return world;
     });
     CHECK(cov.deferred_leaves > 0);
+  }
+}
+
+// The GPU fan-out failing mid-run (zone/engine_faults.h, zone-server --test-fault gpu-replication):
+// the emulated engine behind the fault wrapper. Before the fault tick its frames are the CPU
+// replicator's byte for byte; the fault's tick is built on the CPU within the same build_many
+// call, every client reset; from then on the frames equal those of a CPU replicator that resynced
+// every client at that tick, and each client's view (decoded from its frames) equals the server's.
+TEST_SUITE("zone.engine_faults") {
+  TEST_CASE("the GPU replication engine failing mid-run: the same tick on the CPU, every client reset, frames exact") {
+    namespace cb = interest::category_bits;
+    for (const std::uint64_t at : {0u, 1u, 6u, 17u}) {
+      const std::uint64_t seed = zone::test::fresh_seed();
+      CAPTURE(seed);
+      CAPTURE(at);
+      std::mt19937_64 rng(seed);
+      const auto uni = [&](float lo, float hi) { return std::uniform_real_distribution<float>(lo, hi)(rng); };
+      entity_store store;
+      for (int k = 0; k < 300; ++k) {
+        entity_desc d;
+        d.position = {uni(0, 250), uni(0, 250), uni(0, 10)};
+        d.velocity = {uni(-3, 3), uni(-3, 3), 0};
+        const float aoi = uni(15, 80);
+        d.aoi_half_extent = {aoi, aoi, 40};
+        d.presence_half_extent = {1, 1, 1};
+        d.visibility_class = k % 7 == 0 ? cb::stealth : cb::normal;
+        d.sees = cb::normal;
+        (void)store.create(d);
+      }
+      interest::thread_pool pool(2);
+      interest::grid_finder finder(&pool);
+      interest_tracker tracker(finder, &pool, {3.0f, 0, 64});
+      replication_options opt;
+      opt.world = {{0, 0, 0}, {250, 250, 20}};
+      opt.byte_budget = 700;  // small enough that enters and updates are deferred
+      replicator cpu(opt), dev(opt);
+      emulated_engine inner(seed);
+      std::uint64_t tick = 0;
+      engine_fault fault;
+      fault.tick = [&] { return tick; };
+      fault.at_tick = at;
+      faulty_replication_engine engine(inner, fault);
+      dev.set_engine(&engine);
+      std::vector<replication_request> requests;
+      for (std::size_t k = 0; k < 40; ++k) {
+        const client_id a = cpu.add_client(store.ids()[k * 7]), b = dev.add_client(store.ids()[k * 7]);
+        REQUIRE(a == b);
+        requests.push_back({a, 0});
+      }
+      std::vector<std::set<std::uint32_t>> held(requests.size());  // each client's view, from its frames
+      std::vector<std::vector<std::uint8_t>> want(requests.size()), got(requests.size());
+      std::uint64_t deferred = 0, compared = 0;
+      for (; tick < 30; ++tick) {
+        CAPTURE(tick);
+        auto pos = store.positions();
+        const auto vel = store.velocities();
+        for (std::size_t i = 0; i < store.size(); ++i) {
+          pos[i] = {std::clamp(pos[i].x + vel[i].x, 0.f, 250.f), std::clamp(pos[i].y + vel[i].y, 0.f, 250.f), pos[i].z};
+        }
+        REQUIRE_FALSE(tracker.update(store.columns()).has_value());
+        if (tick == at) {
+          for (const auto& r : requests) cpu.resync(r.client);
+        }
+        const auto sink = [](std::vector<std::vector<std::uint8_t>>& into) {
+          return [&into](std::size_t k, std::span<const std::uint8_t> f, const replication_stats&) {
+            into[k].assign(f.begin(), f.end());
+          };
+        };
+        cpu.build_many(requests, store, tracker, tick, tick * 3, &pool, sink(want));
+        dev.build_many(requests, store, tracker, tick, tick * 3, &pool, sink(got));
+        REQUIRE(dev.on_engine() == (tick < at));
+        REQUIRE(engine.fault().fired() == (tick >= at));
+        if (tick >= at) CHECK(dev.engine_error().find("CUDA error") != std::string::npos);
+        for (std::size_t k = 0; k < requests.size(); ++k) {
+          CHECK(got[k] == want[k]);
+          ++compared;
+          net::decoder_options big;
+          big.max_frame_bytes = std::size_t{4} << 20;
+          const auto msg = net::decode_frame(got[k], big);
+          REQUIRE(msg.value);
+          const auto* m = std::get_if<net::tick_update_msg>(&*msg.value);
+          REQUIRE(m != nullptr);
+          CHECK(m->reset == (tick == at || tick == 0));  // a new client's first frame, and the fallback's tick
+          if (m->reset) held[k].clear();
+          for (const std::uint32_t id : m->leaves) CHECK(held[k].erase(id) == 1);
+          for (const auto& e : m->enters) CHECK(held[k].insert(e.id).second);
+          for (const auto& u : m->updates) CHECK(held[k].count(u.id) == 1);
+          if (m->deferred) deferred += m->deferred->enters + m->deferred->updates;
+          // What the client holds is the server's view of it, exactly.
+          CHECK(held[k].size() == dev.view_size(requests[k].client));
+          CHECK(dev.view_hash(requests[k].client) == cpu.view_hash(requests[k].client));
+          if (m->digest) {
+            CHECK(m->digest->count == held[k].size());
+            std::uint64_t h = 0;
+            for (const std::uint32_t id : held[k]) h += net::digest_mix(id);
+            CHECK(m->digest->hash == h);
+          }
+        }
+      }
+      CHECK(compared == 30 * requests.size());
+      CHECK(deferred > 0);  // the budget cut frames, before and after the fault
+    }
   }
 }

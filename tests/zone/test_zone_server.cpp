@@ -527,6 +527,52 @@ TEST_SUITE("zone.server") {
     }
   }
 
+  TEST_CASE("--test-fault gpu-*: needs no oracle; refused without the GPU engine it fails; on a device the tick falls back") {
+    zone_config c = test_config();
+    for (const char* name : {"gpu-interest", "gpu-replication", "gpu-lost"}) {
+      c.test_fault = name;
+      CHECK_FALSE(validate(c).has_value());
+    }
+    c.test_fault = "gpu-everything";
+    REQUIRE(validate(c).has_value());
+    CHECK(validate(c)->find("gpu-lost") != std::string::npos);
+    c.test_fault = "drop";  // the replication faults still prove the oracle
+    CHECK(validate(c).has_value());
+    for (const char* name : {"gpu-interest", "gpu-replication"}) {
+      CAPTURE(name);
+      zone_config cfg = test_config();
+      cfg.test_fault = name;
+      cfg.test_fault_tick = 4;
+      cfg.metrics_enabled = false;
+      zone_server server(cfg);
+      const auto err = server.start();
+      if (!gpu::device_available()) {
+        // No engine to fail: refused, naming what is missing.
+        REQUIRE(err.has_value());
+        CHECK(err->find(std::string("test-fault ") + name + " needs the GPU") != std::string::npos);
+        CHECK(server.metrics_text().find("zone_interest_gpu_fallbacks_total 0") != std::string::npos);
+        CHECK(server.metrics_text().find("zone_replication_gpu_fallbacks_total 0") != std::string::npos);
+        continue;
+      }
+      REQUIRE_FALSE(err.has_value());
+      const bool interest = std::string(name) == "gpu-interest";
+      for (int t = 0; t < 4; ++t) server.tick_once();
+      CHECK(server.metrics_text().find(interest ? "zone_interest_gpu_fallbacks_total 0" : "zone_replication_gpu_fallbacks_total 0") !=
+            std::string::npos);
+      for (int t = 0; t < 4; ++t) server.tick_once();
+      const std::string m = server.metrics_text();
+      CHECK(m.find(interest ? "zone_interest_gpu_fallbacks_total 1" : "zone_replication_gpu_fallbacks_total 1") !=
+            std::string::npos);
+      if (interest) {
+        CHECK(m.find("zone_interest_on_gpu 0") != std::string::npos);
+        CHECK(server.interest_name().rfind("host", 0) == 0);
+      } else {
+        CHECK(server.replication_name() == "cpu");
+      }
+      CHECK(server.world().tick() == 8);
+    }
+  }
+
   TEST_CASE("client strings never forge a log line; joins and leaves at debug, a summary at info; admission in /metrics") {
     // Capture the log (info level, as a production server runs) for the whole test.
     std::ostringstream log;

@@ -1,7 +1,7 @@
 // The GPU layer in a build without CUDA: every entry point says so, callers fall back to the CPU.
 #include <stdexcept>
 
-#include "pbig.h"
+#include "gpu/pbig.h"
 
 namespace zone::gpu {
 

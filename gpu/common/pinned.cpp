@@ -7,7 +7,7 @@
 #include <mutex>
 #include <vector>
 
-#include "pbig.h"
+#include "gpu/pbig.h"
 
 namespace zone::gpu {
 namespace {

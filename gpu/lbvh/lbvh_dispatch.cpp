@@ -29,11 +29,11 @@
 #include <limits>
 #include <stdexcept>
 
-#include "cuda_check.h"
+#include "gpu/common/cuda_check.h"
+#include "gpu/common/staged_upload.h"
 #include "interest/measure.h"
 #include "lbvh_launch.h"
 #include "lbvh_tuning.h"
-#include "staged_upload.h"
 
 namespace zone::gpu::detail::lbvh {
 

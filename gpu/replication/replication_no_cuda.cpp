@@ -1,6 +1,6 @@
 // The GPU replication engine in a build without CUDA: it says so, and the zone replicates on the CPU.
-#include "pbig.h"
-#include "replication.h"
+#include "gpu/pbig.h"
+#include "gpu/replication.h"
 
 namespace zone::gpu {
 

@@ -11,10 +11,10 @@
 #include <optional>
 #include <vector>
 
-#include "gpu_buffers.h"
+#include "gpu/common/gpu_buffers.h"
+#include "gpu/pbig.h"
 #include "interest/interest.h"
 #include "interest/thread_pool.h"
-#include "pbig.h"
 #include "pbig_shared.h"
 
 namespace zone::gpu::detail {

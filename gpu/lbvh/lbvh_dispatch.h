@@ -11,10 +11,10 @@
 #include <memory>
 #include <optional>
 
-#include "gpu_buffers.h"
+#include "gpu/common/gpu_buffers.h"
+#include "gpu/lbvh.h"
 #include "interest/interest.h"
 #include "interest/thread_pool.h"
-#include "lbvh.h"
 #include "lbvh_shared.h"
 
 namespace zone::gpu::detail::lbvh {

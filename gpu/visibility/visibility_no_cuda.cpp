@@ -1,6 +1,6 @@
 // The GPU visibility engine in a build without CUDA: it says so, and the zone keeps its host path.
-#include "pbig.h"
-#include "visibility.h"
+#include "gpu/pbig.h"
+#include "gpu/visibility.h"
 
 namespace zone::gpu {
 

@@ -18,7 +18,7 @@
 #include <cstring>
 #include <stdexcept>
 
-#include "replication_engine.h"
+#include "interest/replication_engine.h"
 
 #if defined(__CUDACC__)
 #define ZONE_REP_HD __host__ __device__ __forceinline__

@@ -4,10 +4,10 @@
 #include <cstring>
 #include <stdexcept>
 
-#include "lbvh.h"
+#include "gpu/lbvh.h"
+#include "gpu/pbig.h"
 #include "lbvh_dispatch.h"
 #include "lbvh_tuning.h"
-#include "pbig.h"
 
 namespace zone::gpu {
 namespace {

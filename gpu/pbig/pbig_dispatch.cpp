@@ -29,12 +29,12 @@
 #include <stdexcept>
 #include <string>
 
-#include "cuda_check.h"
+#include "gpu/common/cuda_check.h"
+#include "gpu/common/staged_upload.h"
 #include "interest/measure.h"
 #include "pbig_dispatch.h"
 #include "pbig_launch.h"
 #include "pbig_tuning.h"
-#include "staged_upload.h"
 
 namespace zone::gpu::detail {
 

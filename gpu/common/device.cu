@@ -1,7 +1,7 @@
 // Device discovery for the GPU layer (the finder itself: pbig_finder.cpp).
 #include <cuda_runtime.h>
 
-#include "pbig.h"
+#include "gpu/pbig.h"
 
 namespace zone::gpu {
 

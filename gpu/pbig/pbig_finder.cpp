@@ -5,7 +5,7 @@
 #include <cmath>
 #include <stdexcept>
 
-#include "pbig.h"
+#include "gpu/pbig.h"
 #include "pbig_dispatch.h"
 #include "pbig_tuning.h"
 

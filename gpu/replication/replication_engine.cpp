@@ -17,10 +17,10 @@
 #include <string>
 #include <vector>
 
-#include "cuda_check.h"
-#include "gpu_buffers.h"
-#include "pbig.h"
-#include "replication.h"
+#include "gpu/common/cuda_check.h"
+#include "gpu/common/gpu_buffers.h"
+#include "gpu/pbig.h"
+#include "gpu/replication.h"
 #include "replication_launch.h"
 
 namespace zone::gpu {

@@ -25,12 +25,12 @@
 #include <string>
 #include <utility>
 
-#include "cuda_check.h"
-#include "gpu_buffers.h"
+#include "gpu/common/cuda_check.h"
+#include "gpu/common/gpu_buffers.h"
+#include "gpu/pbig.h"
+#include "gpu/visibility.h"
 #include "interest/measure.h"
 #include "interest/thread_pool.h"
-#include "pbig.h"
-#include "visibility.h"
 #include "visibility_launch.h"
 
 namespace zone::gpu {
