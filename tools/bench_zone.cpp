@@ -11,8 +11,8 @@
 // sleeps until each tick is due at --rate like the server's loop (an overrun starts the next tick
 // at once). Percentiles here are exact (sorted per-tick samples), not histogram bucket edges.
 //
-// The finder is a parameter (--finder; make_finder below is the one place that maps a name to a
-// pair_finder), so other backends slot in without touching the rest of the tool.
+// The finder is a parameter (--finder; zone/interest_setup.h builds it and the GPU engine as
+// zone-server does), so other backends slot in without touching the rest of the tool.
 //
 // Modes: the default tick table; --clients K adds replication (build() for K clients per tick,
 // serial with one writer or build_many on the pool: --replicate serial|parallel|both, the frames'
@@ -47,6 +47,7 @@
 #include "interest/measure.h"
 #include "protocol.h"
 #include "zone.h"
+#include "zone/interest_setup.h"
 
 // Every heap allocation of the process is counted (operator new below), so the table can say
 // how many a steady-state tick makes (the tick loop should make none).
@@ -319,17 +320,6 @@ std::optional<std::string> parse_args(int argc, char** argv, options& o, bool& h
   return std::nullopt;
 }
 
-// ---- The finder by name (gpu::make_finder maps the name to a backend) -----------------------
-
-/// A pair finder by name, on `pool` where it takes one; nullptr (and `*error`) for an unknown name.
-std::unique_ptr<interest::pair_finder> make_finder(const std::string& name, interest::thread_pool* pool, double w,
-                                                   std::string* error) {
-  interest::grid_finder_options g;
-  if (w > 0) g.min_boxes_per_cell = w;
-  // gpu/finders.h: the CPU finders, the GPU finders and `auto` (which picks per call).
-  return gpu::make_finder(name, pool, error, g);
-}
-
 // ---- Samples and the table ------------------------------------------------------------------
 
 struct series {
@@ -366,13 +356,6 @@ int main(int argc, char** argv) {
   zone_config spin_cfg;
   spin_cfg.worker_spin_us = opt.spin_us;
   interest::thread_pool pool(opt.threads, worker_spin(spin_cfg));
-  std::string error;
-  auto finder = make_finder(opt.finder, &pool, opt.w, &error);
-  if (!finder) {
-    std::cerr << "bench-zone: " << error << "\n";
-    return 64;
-  }
-
   zone_config cfg;
   cfg.npc_count = opt.entities;
   cfg.tick_rate_hz = opt.rate;
@@ -392,22 +375,26 @@ int main(int argc, char** argv) {
     std::cerr << "bench-zone: " << *err << "\n";
     return 64;
   }
+  // The interest step as zone-server builds it (zone/interest_setup.h): the finder of --finder
+  // and, per --interest, the whole step on the GPU engine when asked and possible.
+  cfg.finder = opt.finder;
+  cfg.interest = opt.interest;
+  interest::grid_finder_options grid_tuning;
+  if (opt.w > 0) grid_tuning.min_boxes_per_cell = opt.w;
+  interest_parts parts = make_interest_parts(cfg, &pool, grid_tuning);
+  for (const std::string* why : {&parts.finder_error, &parts.engine_error}) {
+    if (!why->empty()) {
+      std::cerr << "bench-zone: " << *why << "\n";
+      return 64;
+    }
+  }
+  const auto& finder = parts.finder;
+  const auto& engine = parts.engine;
   zone_world world(cfg, *finder, &pool);
   // As zone-server does: the GPU finders and auto hand their result buffer to the tracker
   // (pair_finder::find_view), unless --find-into-list.
   world.set_finder_view(opt.view);
-  // As zone-server does: the whole interest step on the GPU engine when asked and possible.
-  std::unique_ptr<interest::visibility_engine> engine;
-  if (opt.interest == "gpu" || (opt.interest == "auto" && opt.max_visible == 0)) {
-    std::string why;
-    engine = gpu::make_visibility_engine(&pool, &why);
-    if (engine) {
-      world.set_visibility_engine(engine.get());
-    } else if (opt.interest == "gpu") {
-      std::cerr << "bench-zone: interest 'gpu' cannot run here: " << why << "\n";
-      return 64;
-    }
-  }
+  if (engine) world.set_visibility_engine(engine.get());
   const auto setup0 = clock_type::now();
   // Progress on stdout during set-up, flushed: a million entities take seconds to place, and the
   // first ticks (the engine sizes its buffers) longer than the rest.

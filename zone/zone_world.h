@@ -36,8 +36,13 @@ struct step_times {
 /// seed and calls give the same positions and visible sets whatever the thread count.
 class zone_world {
  public:
-  /// `finder` and `pool` must outlive the world; `pool` may be null.
+  /// The interest step on `finder` (the CPU backend until set_visibility_engine); `finder` and
+  /// `pool` must outlive the world; `pool` may be null.
   zone_world(const zone_config& cfg, interest::pair_finder& finder, interest::thread_pool* pool);
+  /// The interest step as `interest` says (interest_setup.h builds it from the config: backend,
+  /// finder, pool); its hysteresis and max_visible are the config's. Throws what
+  /// interest::interest_space's constructor throws.
+  zone_world(const zone_config& cfg, interest::space_options interest);
 
   /// Creates the NPCs and bosses of the config (deterministic in cfg.seed).
   void populate();
@@ -68,22 +73,25 @@ class zone_world {
   [[nodiscard]] std::uint64_t tick() const { return tick_; }
   [[nodiscard]] entity_store& store() { return store_; }
   [[nodiscard]] const entity_store& store() const { return store_; }
-  [[nodiscard]] const interest_tracker& tracker() const { return tracker_; }
+  [[nodiscard]] const interest_tracker& tracker() const { return store_.space().tracker(); }
+  /// The interest step (the tick API, interest/interest_space.h): its backend can be switched here.
+  [[nodiscard]] interest::interest_space& interest() { return store_.space(); }
+  [[nodiscard]] const interest::interest_space& interest() const { return store_.space(); }
   /// Whether the host path reads the finder's own result buffer (interest_options::finder_view;
   /// default true).
   void set_finder_view(bool on) {
-    auto o = tracker_.options();
+    auto o = tracker().options();
     o.finder_view = on;
-    tracker_.set_options(o);
+    store_.space().set_tracker_options(o);
   }
   /// Entities whose visible sets a viewer reads after each step (net/viewer.h): with a GPU
   /// engine their rows are copied back with the players' from the next step on. Replaces the
   /// previous list; dead handles are ignored.
   void set_watched(std::span<const entity_id> ids);
   /// A tick follows soon: see interest_tracker::prepare.
-  void prepare() noexcept { tracker_.prepare(); }
-  /// See interest_tracker::set_engine.
-  void set_visibility_engine(interest::visibility_engine* engine) { tracker_.set_engine(engine); }
+  void prepare() noexcept { store_.space().prepare(); }
+  /// See interest::interest_space::use_engine.
+  void set_visibility_engine(interest::visibility_engine* engine) { store_.space().use_engine(engine); }
   /// Whether the players' visible sets are copied back to the host after each interest step
   /// (interest_tracker::set_view_demand; default true: the CPU replicator reads them). A GPU
   /// replication engine that reads them in place on the device (replicator::set_engine) needs
@@ -108,8 +116,7 @@ class zone_world {
 
   zone_config cfg_;
   interest::thread_pool* pool_;
-  entity_store store_;
-  interest_tracker tracker_;
+  entity_store store_;  // with the interest step (store_.space())
   std::vector<npc_state> by_slot_;  // indexed by slot_of(id)
   /// By slot: 1 where by_slot_'s kind is player. What the chasers' scan reads: a byte a slot
   /// (1 MB a million entities) instead of a 32-byte state.

@@ -14,6 +14,7 @@
 #include <string>
 
 #include "../common/seeds.h"
+#include "../interest/space_reference.h"
 #include "gpu/finders.h"
 #include "gpu/pbig.h"
 #include "gpu/visibility.h"
@@ -92,6 +93,57 @@ void same_as_host(entity_store& store, interest::visibility_engine& engine, int 
 }  // namespace
 
 TEST_SUITE("zone.gpu") {
+  TEST_CASE("the tick API on the GPU backend: every step is the brute-force model's; switching backends mid-run") {
+    for (const float h : {0.0f, 3.0f}) {
+      const std::uint64_t seed = fresh_seed();
+      CAPTURE(seed);
+      CAPTURE(h);
+      interest::thread_pool pool(4);
+      interest::space_options o;
+      o.where = interest::backend::gpu;
+      o.gpu = gpu::make_visibility_engine;
+      o.pool = &pool;
+      o.hysteresis = h;
+      interest::interest_space on_gpu(o);
+      REQUIRE(on_gpu.current_backend() == interest::backend::gpu);
+      CHECK(run_random_space(on_gpu, h, seed, 30, 300) > 100);
+      CHECK(on_gpu.current_backend() == interest::backend::gpu);
+      CHECK(on_gpu.tracker().last_update_on_engine());
+    }
+    // The same random run, its backend switched every few steps: the sets carry over.
+    interest::thread_pool pool(2);
+    interest::space_options o;
+    o.where = interest::backend::automatic;
+    o.gpu = gpu::make_visibility_engine;
+    o.pool = &pool;
+    interest::interest_space a(o), b(o);
+    REQUIRE(a.current_backend() == interest::backend::gpu);
+    std::mt19937_64 rng(fresh_seed());
+    std::vector<interest::entity_id> ids;
+    for (int k = 0; k < 400; ++k) {
+      const interest::vec3 p{static_cast<float>(rng() % 200), static_cast<float>(rng() % 200), 0};
+      ids.push_back(a.add({.position = p, .aoi_half = {12, 12, 12}}));
+      REQUIRE(b.add({.position = p, .aoi_half = {12, 12, 12}}) == ids.back());
+    }
+    REQUIRE(b.set_backend(interest::backend::cpu));
+    for (int t = 0; t < 24; ++t) {
+      if (t % 3 == 0) REQUIRE(a.set_backend(t % 2 == 0 ? interest::backend::cpu : interest::backend::gpu));
+      for (const auto id : ids) {
+        const auto p = a.positions()[a.index_of(id)];
+        const interest::vec3 q{p.x + static_cast<float>(rng() % 7) - 3, p.y + static_cast<float>(rng() % 7) - 3, 0};
+        REQUIRE(a.move(id, q));
+        REQUIRE(b.move(id, q));
+      }
+      REQUIRE_FALSE(a.step().has_value());
+      REQUIRE_FALSE(b.step().has_value());
+      for (const auto id : ids) {
+        CHECK(as_vector(a.visible(id)) == as_vector(b.visible(id)));
+        CHECK(as_vector(a.entered(id)) == as_vector(b.entered(id)));
+        CHECK(as_vector(a.left(id)) == as_vector(b.left(id)));
+      }
+    }
+  }
+
   TEST_CASE("GPU interest engine: events match the brute-force oracle over many ticks") {
     interest::thread_pool pool(4);
     auto engine = make_engine(&pool);
