@@ -5,6 +5,7 @@
 #include <boost/property_tree/ptree.hpp>
 
 #include <algorithm>
+#include <cmath>
 #include <cstdio>
 #include <fstream>
 #include <iostream>
@@ -120,6 +121,8 @@ void print_table(const swarm_result& r, const summary& s) {
   row("server errors received", num(r.server_errors));
   row("churn logouts", num(r.logouts));
   row("teleports sent", num(r.teleports_sent));
+  row("joined stealthed / in a team", num(r.stealth_joins) + " / " + num(r.team_joins));
+  row("visibility switches sent", num(r.visibility_switches_sent));
   row("redirects followed (world of zones)", num(r.redirects));
   row("logins again after a disconnect", num(r.reconnects));
   row("update latency p50", ms(s.p50));
@@ -201,6 +204,8 @@ bool write_json(const std::string& path, const swarm_result& r, const summary& s
   o << "  \"server_errors\": " << r.server_errors << ",\n  \"logouts\": " << r.logouts << ",\n";
   o << "  \"threads\": " << r.options.threads << ",\n  \"teleports_sent\": " << r.teleports_sent << ",\n";
   o << "  \"redirects\": " << r.redirects << ",\n  \"reconnects\": " << r.reconnects << ",\n";
+  o << "  \"stealth_joins\": " << r.stealth_joins << ",\n  \"team_joins\": " << r.team_joins << ",\n";
+  o << "  \"visibility_switches_sent\": " << r.visibility_switches_sent << ",\n";
   o << "  \"self_positions\": " << r.self_positions << ",\n  \"host_clock\": " << (r.host_clock ? "true" : "false") << ",\n";
   o << "  \"latency_ms\": {\"p50\": " << s.p50 << ", \"p95\": " << s.p95 << ", \"p99\": " << s.p99 << ", \"max\": " << s.max
     << ", \"samples\": " << s.samples << ", \"unsynced\": " << r.latency_unsynced << ", \"min_rtt\": " << r.min_rtt_ms << "},\n";
@@ -314,6 +319,7 @@ int main(int argc, char** argv) {
   swarm_options o;
   std::string mix = "walk=1", json, csv, plot, hotspot, inputs_mode = "changes";
   unsigned port = o.port;
+  std::string oracle_zones;
   po::options_description desc("bot-swarm options");
   desc.add_options()                                                                                   //
       ("help,h", "print this help and exit")                                                           //
@@ -328,6 +334,9 @@ int main(int argc, char** argv) {
       ("ping-hz", po::value(&o.ping_hz)->default_value(o.ping_hz), "pings per second per bot")         //
       ("mix", po::value(&mix)->default_value(mix), "behaviour shares, e.g. walk=0.5,patrol=0.2,follow=0.1,crowd=0.1,teleport=0.1")  //
       ("teleport-hz", po::value(&o.teleport_hz)->default_value(o.teleport_hz, "0.2"), "teleport bots: jumps per second per bot (random times and targets)")  //
+      ("stealth-bots", po::value(&o.stealth_share)->default_value(o.stealth_share, "0.1"), "share of bots that join stealthed (the server must allow stealth: zone-server --allow-stealth)")  //
+      ("team-bots", po::value(&o.team_share)->default_value(o.team_share, "0.2"), "share of bots that join a team, red or blue (the server must allow 2 teams: --player-teams)")  //
+      ("visibility-switch-hz", po::value(&o.visibility_switch_hz)->default_value(o.visibility_switch_hz, "0.2"), "stealth and team bots: visibility switches per second per bot (set_visibility; 0 = never)")  //
       ("hotspot", po::value(&hotspot), "flash-crowd target x,y,z (default: where the leader bot first is)")  //
       ("crowd-at", po::value(&o.crowd_at_s)->default_value(o.crowd_at_s), "seconds into the run when the crowd bots start converging")  //
       ("churn", po::value(&o.churn)->default_value(o.churn), "logouts per second (each bot logs in again)")  //
@@ -337,6 +346,7 @@ int main(int argc, char** argv) {
       ("verify", po::bool_switch(&o.verify), "compare the server's visible-set digests with each bot's tracked view")  //
       ("oracle", po::bool_switch(&o.oracle), "check every bot's view against the server's ground truth (the server runs with --oracle): missing, extra, leaked, wrong class, wrong or stale position")  //
       ("oracle-threads", po::value(&o.oracle_threads)->default_value(o.oracle_threads), "threads recomputing the visible sets for the oracle (0 = one per 8 hardware threads)")  //
+      ("oracle-zones", po::value(&oracle_zones), "a world of zones (docs/world.md): the other zones' client ports on --host, comma-separated; with --oracle each zone's truth is read and a bot is checked against the zone it is in now (following redirects)")  //
       ("threads", po::value(&o.threads)->default_value(o.threads), "I/O threads (0 = one per 2,500 bots, 2 .. half the cores)")  //
       ("aoi", po::value(&o.aoi)->default_value(o.aoi), "for servers whose welcome tells no rules: the players' AOI half-extent (its --player-aoi), for the AOI check")  //
       ("hysteresis", po::value(&o.hysteresis)->default_value(o.hysteresis), "for servers whose welcome tells no rules: the server's --hysteresis (m)")  //
@@ -377,6 +387,22 @@ int main(int argc, char** argv) {
     return 64;
   }
   o.port = static_cast<std::uint16_t>(port);
+  if (!oracle_zones.empty()) {
+    std::stringstream list(oracle_zones);
+    for (std::string item; std::getline(list, item, ',');) {
+      char* end = nullptr;
+      const unsigned long p = std::strtoul(item.c_str(), &end, 10);
+      if (item.empty() || end != item.c_str() + item.size() || p == 0 || p > 65535) {
+        std::fprintf(stderr, "bot-swarm: --oracle-zones must be ports 1..65535, comma-separated (got '%s')\n", item.c_str());
+        return 64;
+      }
+      o.oracle_zones.push_back(static_cast<std::uint16_t>(p));
+    }
+    if (!o.oracle) {
+      std::fprintf(stderr, "bot-swarm: --oracle-zones needs --oracle\n");
+      return 64;
+    }
+  }
   if (const auto err = parse_mix(mix, o.mix); !err.empty()) {
     std::fprintf(stderr, "bot-swarm: %s\n", err.c_str());
     return 64;
@@ -397,6 +423,11 @@ int main(int argc, char** argv) {
   o.inputs_on_change = inputs_mode == "changes";
   if (o.bots == 0 || !(o.duration_s > 0) || !(o.ramp > 0) || !(o.input_hz > 0)) {
     std::fprintf(stderr, "bot-swarm: --bots, --duration, --ramp and --input-hz must be > 0\n");
+    return 64;
+  }
+  if (!(o.stealth_share >= 0 && o.stealth_share <= 1) || !(o.team_share >= 0 && o.team_share <= 1) ||
+      !(o.visibility_switch_hz >= 0 && std::isfinite(o.visibility_switch_hz))) {
+    std::fprintf(stderr, "bot-swarm: --stealth-bots and --team-bots must be in [0, 1], --visibility-switch-hz >= 0\n");
     return 64;
   }
   if (!(o.teleport_hz >= 0) || !(o.churn_for_s >= 0)) {

@@ -157,6 +157,7 @@ class bot_session : public std::enable_shared_from_this<bot_session> {
   void schedule_input();
   void schedule_ping();
   void schedule_teleport();
+  void schedule_visibility_switch();
   void send_input();
   void maybe_send_input(std::uint64_t now_us);
   net::vec3f steer();
@@ -174,7 +175,10 @@ class bot_session : public std::enable_shared_from_this<bot_session> {
   unsigned thread_;
   asio::io_context& io_;
   tcp::socket socket_;
-  asio::steady_timer input_timer_, ping_timer_, welcome_timer_, teleport_timer_;
+  asio::steady_timer input_timer_, ping_timer_, welcome_timer_, teleport_timer_, switch_timer_;
+  bool stealth_ = false;   ///< the visibility this session chose (hello, then set_visibility)
+  std::uint8_t team_ = 0;
+  bool chooses_ = false;   ///< it chose stealth or a team at hello: it also switches during play
   net::frame_decoder decoder_;
   net::encoder encoder_;
   /// Outbound bytes: frames queued while a write is in flight go out together in the next write.
@@ -258,7 +262,7 @@ class swarm {
       return out;
     }
     if (opt_.oracle) {
-      if (auto err = start_oracle()) {
+      if (auto err = start_oracles()) {
         out.error = *err;
         return out;
       }
@@ -303,7 +307,8 @@ class swarm {
         s.enters = c_.enters.load();
         s.leaves = c_.leaves.load();
         s.updates = c_.updates.load();
-        s.mismatches = c_.mismatches() + (oracle_ ? oracle_->counters().mismatches() : 0);
+        s.mismatches = c_.mismatches();
+        for (const auto& z : oracles_) s.mismatches += z.check->counters().mismatches();
         const auto lat = latency_snapshot();
         if (steady_from < 0 && s.connected >= opt_.bots) {
           steady_from = since;
@@ -351,11 +356,15 @@ class swarm {
     }
 
     swarm_result& r = out.result;
-    if (oracle_) {
-      oracle_->catch_up(60);  // the views still waiting for their truth are checked first
-      oracle_->stop();
+    if (!oracles_.empty()) {
+      // The views still waiting for their truth are checked first; a world's zones' oracles add up.
+      for (auto& z : oracles_) z.check->catch_up(60);
       r.oracle_on = true;
-      r.oracle = oracle_->report();
+      for (auto& z : oracles_) {
+        z.check->stop();
+        add_report(r.oracle, z.check->report(), z.at);
+      }
+      r.oracle.frames_unchecked += oracle_unrouted_.load();
     }
     r.rules_from_server = rules_told.load();
     r.options = opt_;
@@ -382,6 +391,7 @@ class swarm {
     r.inconsistent = c_.inconsistent, r.aoi_checked = c_.aoi_checked, r.aoi_unchecked = c_.aoi_unchecked;
     r.aoi_violations = c_.aoi_violations, r.latency_unsynced = c_.latency_unsynced;
     r.teleports_sent = c_.teleports_sent, r.self_positions = c_.self_positions, r.redirects = c_.redirects;
+    r.stealth_joins = c_.stealth_joins, r.team_joins = c_.team_joins, r.visibility_switches_sent = c_.visibility_switches_sent;
     r.reconnects = c_.reconnects;
     r.host_clock = host_clock_.load();
     for (const auto& s : slots_) r.bots_connected += s.ever_connected ? 1 : 0;
@@ -514,7 +524,15 @@ class swarm {
   std::int64_t offset_us() const { return offset_us_.load(std::memory_order_relaxed); }
   std::atomic<std::uint32_t> leader{0};
   std::atomic<bool> rules_told{false};
-  [[nodiscard]] oracle* oracle_ptr() const { return oracle_.get(); }
+  /// The oracle of the zone at `at` (nullptr: none; the frame counts as unchecked when oracles run).
+  [[nodiscard]] oracle* oracle_for(const tcp::endpoint& at) {
+    if (oracles_.empty()) return nullptr;
+    for (const auto& z : oracles_) {
+      if (z.at == at) return z.check.get();
+    }
+    oracle_unrouted_.fetch_add(1, std::memory_order_relaxed);
+    return nullptr;
+  }
   std::mutex hotspot_mutex;
   bool hotspot_known = false;
   net::vec3f hotspot{};
@@ -542,15 +560,47 @@ class swarm {
   std::atomic<bool> host_clock_{false};
   bool loopback_ = false;
   std::atomic<bool> stopping_{false};
-  std::unique_ptr<oracle> oracle_;
+  /// --oracle: one per zone (the swarm's, and with oracle_zones the world's other zones).
+  struct zone_oracle {
+    tcp::endpoint at;
+    std::unique_ptr<oracle> check;
+  };
+  std::vector<zone_oracle> oracles_;
+  std::atomic<std::uint64_t> oracle_unrouted_{0};  ///< frames in zones with no oracle
 
-  /// --oracle: one connection before any bot, for the welcome (the rules and the truth stream's
-  /// port); then the oracle subscribes, so every bot's entity is born after its first truth tick.
-  std::optional<std::string> start_oracle() {
+  static void add_report(oracle_report& sum, const oracle_report& q, const tcp::endpoint& at) {
+    sum.frames_checked += q.frames_checked, sum.frames_unchecked += q.frames_unchecked;
+    sum.entities_checked += q.entities_checked, sum.positions_checked += q.positions_checked;
+    sum.positions_unchecked += q.positions_unchecked;
+    sum.missing += q.missing, sum.extra += q.extra, sum.leaked += q.leaked, sum.wrong_class += q.wrong_class;
+    sum.position += q.position, sum.stale += q.stale, sum.deferral += q.deferral;
+    sum.truth_ticks += q.truth_ticks, sum.truth_bytes += q.truth_bytes, sum.truth_layouts += q.truth_layouts;
+    sum.compute_cpu_ms += q.compute_cpu_ms, sum.compute_max_ms = std::max(sum.compute_max_ms, q.compute_max_ms);
+    sum.drain_cpu_ms += q.drain_cpu_ms, sum.check_ms += q.check_ms, sum.deferred_checks += q.deferred_checks;
+    sum.pending_overflow += q.pending_overflow, sum.observers_max = std::max(sum.observers_max, q.observers_max);
+    if (!q.stream_error.empty()) {
+      sum.stream_error += (sum.stream_error.empty() ? "" : "; ") + std::string("port ") + std::to_string(at.port()) + ": " +
+                          q.stream_error;
+    }
+  }
+
+  std::optional<std::string> start_oracles() {
+    if (auto err = start_oracle(endpoint_)) return err;
+    for (const std::uint16_t port : opt_.oracle_zones) {
+      const tcp::endpoint at(endpoint_.address(), port);
+      if (at == endpoint_) continue;
+      if (auto err = start_oracle(at)) return "zone at port " + std::to_string(port) + ": " + *err;
+    }
+    return std::nullopt;
+  }
+
+  /// One connection before any bot, for the welcome (the rules and the truth stream's port); then
+  /// the oracle subscribes, so every bot's entity is born after its first truth tick.
+  std::optional<std::string> start_oracle(const tcp::endpoint& at) {
     asio::io_context io;
     tcp::socket sock(io);
     boost::system::error_code ec;
-    sock.connect(endpoint_, ec);
+    sock.connect(at, ec);
     if (ec) return "oracle probe: connect: " + ec.message();
     const auto hello = net::encode_frame(net::hello_msg{"oracle-probe", "", net::protocol_version});
     asio::write(sock, asio::buffer(hello), ec);
@@ -577,10 +627,12 @@ class swarm {
     if (!welcome) return "oracle probe: no welcome within the connect timeout";
     if (!welcome->rules) return "the server's welcome tells no interest rules (an older server): no oracle";
     if (welcome->oracle_port == 0) return "the server publishes no ground truth: start zone-server with --oracle";
-    oracle_ = std::make_unique<oracle>(welcome->world, *welcome->rules, opt_.oracle_threads,
-                                       [](void* ctx, std::string line) { static_cast<swarm*>(ctx)->problem(std::move(line)); },
-                                       this);
-    return oracle_->start(welcome->oracle_port, opt_.connect_timeout_s);
+    auto o = std::make_unique<oracle>(welcome->world, *welcome->rules, opt_.oracle_threads,
+                                      [](void* ctx, std::string line) { static_cast<swarm*>(ctx)->problem(std::move(line)); },
+                                      this);
+    if (auto err = o->start(welcome->oracle_port, opt_.connect_timeout_s)) return err;
+    oracles_.push_back({at, std::move(o)});
+    return std::nullopt;
   }
 };
 
@@ -612,10 +664,15 @@ bot_session::bot_session(swarm& s, std::size_t slot, unsigned thread, behaviour 
       ping_timer_(io_),
       welcome_timer_(io_),
       teleport_timer_(io_),
+      switch_timer_(io_),
       decoder_(client_decoder(s.opt_ref().max_frame_bytes)) {
   std::uniform_real_distribution<float> angle(0, 6.2831853f);
   const float a = angle(rng_);
   heading_ = {std::cos(a), std::sin(a), 0};
+  std::uniform_real_distribution<double> u(0, 1);
+  stealth_ = u(rng_) < s.opt_ref().stealth_share;
+  team_ = u(rng_) < s.opt_ref().team_share ? static_cast<std::uint8_t>(1 + rng_() % 2) : 0;
+  chooses_ = stealth_ || team_ != 0;
 }
 
 void bot_session::start() {
@@ -643,7 +700,9 @@ void bot_session::on_connect(const boost::system::error_code& ec) {
   if (ec) return fail("connect: " + ec.message(), true);
   boost::system::error_code ignored;
   socket_.set_option(tcp::no_delay(true), ignored);
-  send(net::hello_msg{"bot-" + std::to_string(slot_), token_, net::protocol_version});
+  net::hello_msg hello{"bot-" + std::to_string(slot_), token_, net::protocol_version};
+  if (token_.empty()) hello.stealth = stealth_, hello.team = team_;  // a redirected entity keeps its class
+  send(hello);
   send(net::ping_msg{local_us(s_.epoch())});
   s_.counters().pings_sent.fetch_add(1, std::memory_order_relaxed);
   boost::system::error_code ec2;
@@ -781,6 +840,29 @@ void bot_session::on_welcome(const net::wire::welcome& w) {
   }
   schedule_ping();
   if (kind_ == behaviour::teleport) schedule_teleport();
+  if (token_.empty()) {
+    if (stealth_) s_.counters().stealth_joins.fetch_add(1, std::memory_order_relaxed);
+    if (team_ != 0) s_.counters().team_joins.fetch_add(1, std::memory_order_relaxed);
+  }
+  if (chooses_) schedule_visibility_switch();
+}
+
+void bot_session::schedule_visibility_switch() {
+  const double hz = s_.opt_ref().visibility_switch_hz;
+  if (!(hz > 0)) return;
+  // Switches at random times (a Poisson process of the given rate): stealth toggled, and half the
+  // time another team (or none). The server applies them subject to its cooldown.
+  std::exponential_distribution<double> gap(hz);
+  auto self = shared_from_this();
+  switch_timer_.expires_after(std::chrono::duration_cast<steady::duration>(std::chrono::duration<double>(gap(rng_))));
+  switch_timer_.async_wait([this, self](const boost::system::error_code& ec) {
+    if (ec || closed_) return;
+    stealth_ = !stealth_;
+    if (rng_() % 2 == 0) team_ = static_cast<std::uint8_t>(rng_() % 3);
+    send(net::set_visibility_msg{++sequence_, stealth_, team_});
+    s_.counters().visibility_switches_sent.fetch_add(1, std::memory_order_relaxed);
+    schedule_visibility_switch();
+  });
 }
 
 int bot_session::check_aoi(const position_board::fix& own, std::uint64_t tick, std::uint32_t id, const net::vec3f& p,
@@ -871,7 +953,7 @@ void bot_session::on_tick_update(const net::wire::tick_update& u, std::uint64_t 
                ": inconsistent update (previous tick " + std::to_string(last) + "; ids " + (ids.empty() ? "-" : ids) + ")");
   }
   // The oracle: this view against the ground truth of this tick.
-  if (auto* o = s_.oracle_ptr()) {
+  if (auto* o = s_.oracle_for(endpoint_override_ ? *endpoint_override_ : s_.endpoint())) {
     net::deferred_counts deferred;
     if (const auto* d = u.deferred()) deferred = {d->enters(), d->leaves(), d->updates()};
     std::optional<net::vec3f> own;
@@ -1127,6 +1209,7 @@ void bot_session::close() {
   ping_timer_.cancel();
   welcome_timer_.cancel();
   teleport_timer_.cancel();
+  switch_timer_.cancel();
   socket_.shutdown(tcp::socket::shutdown_both, ignored);
   socket_.close(ignored);
   if (playing_) {

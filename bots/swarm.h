@@ -35,6 +35,13 @@ struct swarm_options {
   double ping_hz = 1;        ///< pings per second per bot (clock offset, RTT, keep-alive)
   std::array<double, behaviour_count> mix{1, 0, 0, 0, 0};  ///< shares by behaviour
   double teleport_hz = 0.2;  ///< teleport bots: jumps per second per bot (random times, random targets in the world)
+  /// Client-chosen visibility (docs/bots.md): the share of bots that join stealthed, and the share
+  /// that join a team (red or blue, half each), chosen per session at random; those bots switch
+  /// (set_visibility: stealth toggled, the team changed half the time) at visibility_switch_hz
+  /// each (random times; 0 = never).
+  double stealth_share = 0.1;
+  double team_share = 0.2;
+  double visibility_switch_hz = 0.2;
   double churn = 0;          ///< logouts per second across the swarm (each logged-out bot logs in again)
   double churn_for_s = 0;    ///< churn stops this many seconds into the run (0 = until the end)
   double relogin_delay_s = 0.2;
@@ -47,6 +54,12 @@ struct swarm_options {
   /// --oracle): a probe connection reads the welcome (rules, truth port) before any bot starts.
   bool oracle = false;
   unsigned oracle_threads = 0;  ///< threads recomputing the visible sets (0 = 1 per 8 hardware threads)
+  /// A world of zones (docs/world.md): the client ports of the other zones (on `host`). With
+  /// `oracle`, each gets an oracle of its own (its truth stream), and a bot is checked against the
+  /// truth of the zone it is connected to now: it follows redirects across borders, its view
+  /// (ghosts of the neighbours included) judged in every zone. A bot in a zone not named here is
+  /// not checked (its frames count as unchecked).
+  std::vector<std::uint16_t> oracle_zones;
   unsigned threads = 0;      ///< I/O threads (0 = auto: one per 2,500 bots, at least 2, at most half the cores)
   // What the AOI check assumes of a server whose welcome does not tell its rules (older servers;
   // a welcome's rules always win, so a current server's flags need no matching ones here).
@@ -82,6 +95,7 @@ class latency_histogram_us {
 struct swarm_counters {
   std::atomic<std::uint64_t> connect_attempts{0}, connected_now{0}, welcomes{0}, connect_failures{0},
       unexpected_disconnects{0}, server_errors{0}, logouts{0}, teleports_sent{0};
+  std::atomic<std::uint64_t> stealth_joins{0}, team_joins{0}, visibility_switches_sent{0};
   /// A world of zones (docs/world.md): redirects followed (a new connection with the token).
   std::atomic<std::uint64_t> redirects{0};
   std::atomic<std::uint64_t> reconnects{0};  ///< logins again after an unexpected disconnect (--reconnect)
@@ -131,6 +145,7 @@ struct swarm_result {
                 leaves = 0, updates = 0, resets = 0, inputs_sent = 0, inputs_unchanged = 0, pongs = 0, digests_checked = 0,
                 digest_mismatches = 0, inconsistent = 0, aoi_checked = 0, aoi_unchecked = 0,
                 aoi_violations = 0, latency_unsynced = 0, teleports_sent = 0, self_positions = 0, redirects = 0, reconnects = 0;
+  std::uint64_t stealth_joins = 0, team_joins = 0, visibility_switches_sent = 0;
   bool host_clock = false;  ///< latency timed on the host's clock (same host), not by ping sync
   bool rules_from_server = false;  ///< the welcome told the zone's interest rules (the AOI check used them)
   bool oracle_on = false;

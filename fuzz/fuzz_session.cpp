@@ -98,8 +98,9 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
         if (!announced.count(e.session) || !e.msg) std::abort();
         if (const auto* h = std::get_if<hello_msg>(&*e.msg)) {
           if (check_player_name(h->name, srv.options().max_name_bytes)) std::abort();
-        } else if (!std::holds_alternative<input_msg>(*e.msg) && !std::holds_alternative<teleport_msg>(*e.msg)) {
-          std::abort();  // only hello, input and teleport reach the game
+        } else if (!std::holds_alternative<input_msg>(*e.msg) && !std::holds_alternative<teleport_msg>(*e.msg) &&
+                   !std::holds_alternative<set_visibility_msg>(*e.msg)) {
+          std::abort();  // only hello, input, teleport and set_visibility reach the game
         }
         break;
       case inbound_event::kind::disconnected:

@@ -1,6 +1,7 @@
-// Public API of the GPU layer: the PBIG pair finder (Lo, Lee, Chung & Chung 2013) on CUDA.
-// Built only when CUDA is found; without it every entry point reports that the build has no GPU
-// backend, so callers (the `auto` choice) fall back to the CPU finder.
+// Public API of the GPU PBIG pair finder (Lo, Lee, Chung & Chung 2013) on CUDA. Built only when
+// CUDA is found; without it every entry point reports that the build has no GPU backend, so
+// callers (the `auto` choice) fall back to the CPU finder. Device discovery and pinned box sets,
+// which every GPU finder and engine shares, are in device.h (included here).
 #pragma once
 
 #include <cstddef>
@@ -10,25 +11,10 @@
 #include <span>
 #include <string>
 
+#include "device.h"
 #include "interest.h"
 
 namespace zone::gpu {
-
-/// What the CUDA runtime says of device 0.
-struct device_info {
-  std::string name;
-  int compute_major = 0;
-  int compute_minor = 0;
-  int multiprocessors = 0;
-  std::size_t global_memory_bytes = 0;
-};
-
-/// True when this build has the GPU backend and a CUDA device can be used. Otherwise false, with
-/// the reason in `why` (built without CUDA, no device, driver error). Never throws.
-[[nodiscard]] bool device_available(device_info* info = nullptr, std::string* why = nullptr);
-
-/// True when this build was compiled with the CUDA backend.
-[[nodiscard]] bool built_with_cuda();
 
 /// Options of the PBIG finder (each optimisation can be switched off for ablation).
 struct pbig_options {
@@ -59,6 +45,16 @@ struct pbig_options {
   /// mapped, grid cells, estimated pair checks) and the cheapest is used. false = the paper's
   /// pure Eq. 6 (smallest edge with f >= W), for the paper's figures and the ablation.
   bool cost_aware_plan = true;
+  /// Beyond the paper: from this many boxes on, the checking kernel reads each box through its id
+  /// from the id-ordered box array instead of a copy gathered in cell order, so no gather kernel
+  /// runs between the mapping and the first check (about 1.1 ms of 3.6 ms of MAP at 10^7 uniform
+  /// boxes), at the price of scattered reads in the checks, which large sets hide behind the
+  /// output copy. 0 = always, SIZE_MAX = never (the paper's box array).
+  std::size_t indirect_check_min_boxes = std::size_t{1} << 22;
+  /// Beyond the paper: pinned input of at least 2^18 boxes that all share one category and one
+  /// mask (checked on the host while the coordinates are copied) has those two arrays filled on
+  /// the device instead of copied: 24 bytes a box in instead of 32. false = always copied.
+  bool fill_uniform_classes = true;
 };
 
 /// Where the time of the last call went (the paper's Table V/VI tasks) and what it moved.
@@ -87,6 +83,10 @@ struct pbig_report {
   bool plan_reused = false;
   bool single_queue = false;  ///< queued whole with the last call's capacity (one synchronisation)
   bool requeued = false;      ///< ... and the grid outgrew it: re-run with read-back sizing
+  /// Pinned input of at least tuning::uniform_classes_min_boxes boxes that all share one category
+  /// and one mask: those arrays were filled on the device, not copied (24 bytes a box in, not 32).
+  bool classes_filled = false;
+  bool indirect_check = false;  ///< the checks read boxes through their ids (no gather; indirect_check_min_boxes)
   double alpha = 0;
 };
 
@@ -104,32 +104,6 @@ struct pbig_report {
 [[nodiscard]] std::optional<interest::box_error> find_pairs_view(interest::pair_finder& finder,
                                                                  const interest::box_set& boxes,
                                                                  std::span<const interest::id_pair>& view);
-
-/// Page-locks the eight arrays of a box set while it lives (cudaHostRegister), so that the GPU
-/// finders copy them to the device by DMA straight from the caller's memory, without a staging
-/// copy on the host, and validate them on the device instead (same rule, same first-error
-/// report). For a caller that keeps its box arrays from call to call (a server's per-tick box
-/// buffer; a benchmark's data set): registration costs about as much as one staging copy, so it
-/// pays from the second call on. The set must not be resized or reallocated while pinned. Without
-/// a usable device, for a set under 64 KiB an array, when another live guard holds the same
-/// pages, or when the driver refuses, it pins nothing (active() is false) and the finders take the
-/// staging path as before. (Whole pages are registered; arrays sharing a page share a range.)
-class pinned_boxes {
- public:
-  explicit pinned_boxes(const interest::box_set& boxes);
-  ~pinned_boxes();
-  pinned_boxes(const pinned_boxes&) = delete;
-  pinned_boxes& operator=(const pinned_boxes&) = delete;
-  [[nodiscard]] bool active() const { return count_ > 0; }
-
- private:
-  const void* ptr_[8]{};  // registered page ranges (at most one per array)
-  int count_ = 0;
-};
-
-/// True when every array of `boxes` (all of its n elements) lies in memory pinned by a live
-/// pinned_boxes.
-[[nodiscard]] bool boxes_pinned(const interest::box_set& boxes);
 
 /// Creates the GPU PBIG finder, or returns null with the reason in `why` when no device can be used.
 [[nodiscard]] std::unique_ptr<interest::pair_finder> make_pbig_finder(const pbig_options& options = {},

@@ -13,12 +13,14 @@
 
 namespace zone::interest {
 
-/// One entity by dense index, 32 bytes: zone::replicator's snapshot layout (position, handle, the
-/// 16-byte wire update as sent: id, quantized position, quantized velocity).
+/// One entity by dense index, 32 bytes, as the store has it: position, handle, velocity. The engine
+/// quantizes each entity's wire update itself (zone::replicator's net::position_quantizer and
+/// net::quantize_velocity, the same double operations), so the host only copies.
 struct replication_entity {
   float x, y, z;
   std::uint32_t id;
-  std::uint32_t update[4];
+  float vx, vy, vz;
+  std::uint32_t pad;
 };
 static_assert(sizeof(replication_entity) == 32);
 
@@ -33,19 +35,25 @@ struct replication_rules {
   float mid_limit = 0, mid_below_sq = 0, mid_above_sq = 0;
   std::uint32_t mid_period = 1, far_period = 1;  ///< at least 1
   std::uint32_t slot_mask = 0;                   ///< handle -> slot (the slot map's index)
+  /// Position quantization (net::position_quantizer): the world's low corner and the step per
+  /// axis (0: that axis is always 0).
+  float quant_lo[3] = {0, 0, 0};
+  double quant_step[3] = {0, 0, 0};
 };
 
 /// One client's frame to decide.
 struct replication_job {
-  std::uint32_t client = 0;  ///< < client_count; at most one job per client per run
-  std::uint32_t flags = 0;   ///< job_reset: drop the client's view first; job_has_self: eye is the observer's
-  float eye[3] = {0, 0, 0};  ///< the observer's position (0 when it has none)
+  std::uint32_t client = 0;    ///< < client_count; at most one job per client per run
+  std::uint32_t flags = 0;     ///< job_reset: drop the client's view first
+  std::uint32_t observer = 0;  ///< its entity's handle: the eye is its position when it is live
   /// Its visible set (sorted handles): staging.visible[visible_off, + visible_len); or, when run()
   /// is given resident rows, row visible_off of those (no_row: none) and visible_len unused.
   std::uint32_t visible_off = 0, visible_len = 0;
 };
 inline constexpr std::uint32_t no_row = 0xffffffffu;
-inline constexpr std::uint32_t job_reset = 1u, job_has_self = 2u;
+inline constexpr std::uint32_t job_reset = 1u;
+/// In replication_result::flags: the observer was live (eye is its position; else eye is 0).
+inline constexpr std::uint32_t result_has_self = 1u;
 
 /// What the engine decided for a job. Its record (at record_off bytes into output::records, 4-byte
 /// aligned) holds the leaves sent (ids, view order), then the enters sent (dense index, id: pairs of
@@ -56,12 +64,16 @@ struct replication_result {
   std::uint32_t deferred_leaves = 0, deferred_enters = 0, deferred_updates = 0;
   std::uint32_t view_size = 0;  ///< the client's view after this frame
   std::uint64_t hash = 0;       ///< its digest hash (net::digest_add over the view)
+  float eye[3] = {0, 0, 0};     ///< the observer's position (0 without result_has_self)
+  std::uint32_t flags = 0;      ///< result_has_self
 };
-static_assert(sizeof(replication_result) == 40);
+static_assert(sizeof(replication_result) == 56);
 
 /// Where the engine's time went in the last run.
 struct replication_timing {
   double upload_ms = 0, device_ms = 0, download_ms = 0, total_ms = 0;
+  /// Of total_ms, the host waiting for the device (its synchronisations).
+  double wait_ms = 0;
   std::uint64_t record_bytes = 0;  ///< bytes of records copied back
   bool resident = false;           ///< the visible sets were read in place (resident rows)
 };
@@ -99,6 +111,11 @@ class replication_engine {
                                    const visibility_engine::resident_lists* rows = nullptr) = 0;
   /// Whether run() can read a GPU visibility engine's resident rows.
   [[nodiscard]] virtual bool reads_resident() const { return false; }
+
+  /// How run() waits for the device: blocking (the thread sleeps until the device signals; no CPU
+  /// burnt, a wake-up's latency added) or spinning (the CUDA default). Engines without a device
+  /// ignore it.
+  virtual void set_blocking_wait(bool blocking) { (void)blocking; }
 
   /// Drops every client's view (the next job of each must have job_reset).
   virtual void forget_all() = 0;

@@ -41,7 +41,7 @@ flatbuffers::Offset<void> build_body(flatbuffers::FlatBufferBuilder& fbb, const 
         if constexpr (std::is_same_v<T, hello_msg>) {
           const auto name = fbb.CreateString(msg.name);
           const auto token = fbb.CreateString(msg.token);
-          return w::Createhello(fbb, name, token, msg.protocol_version).Union();
+          return w::Createhello(fbb, name, token, msg.protocol_version, msg.stealth, msg.team).Union();
         } else if constexpr (std::is_same_v<T, input_msg>) {
           const w::vec3 move = to_wire(msg.move);
           return w::Createinput(fbb, msg.sequence, &move).Union();
@@ -58,7 +58,8 @@ flatbuffers::Offset<void> build_body(flatbuffers::FlatBufferBuilder& fbb, const 
             const w::vec3 aoi = to_wire(r.player_aoi), step = to_wire(r.quantization_step);
             rules = w::Createinterest_rules(fbb, &aoi, r.hysteresis, r.max_visible, r.player_class, r.player_sees, tiers,
                                             &step, r.update_near, r.update_mid, r.update_mid_period, r.update_far_period,
-                                            r.byte_budget, r.send_every, r.digest_every, r.max_speed);
+                                            r.byte_budget, r.send_every, r.digest_every, r.max_speed, r.allow_stealth,
+                                            r.teams, r.visibility_cooldown);
           }
           return w::Createwelcome(fbb, msg.entity_id, &world, msg.tick_rate_hz, msg.server_tick, msg.protocol_version,
                                   spawn ? &*spawn : nullptr, msg.host_clock, rules, msg.oracle_port)
@@ -91,6 +92,8 @@ flatbuffers::Offset<void> build_body(flatbuffers::FlatBufferBuilder& fbb, const 
         } else if constexpr (std::is_same_v<T, teleport_msg>) {
           const w::vec3 position = to_wire(msg.position);
           return w::Createteleport(fbb, msg.sequence, &position, msg.entity_id).Union();
+        } else if constexpr (std::is_same_v<T, set_visibility_msg>) {
+          return w::Createset_visibility(fbb, msg.sequence, msg.stealth, msg.team).Union();
         } else {
           static_assert(std::is_same_v<T, redirect_msg>);
           const auto host = fbb.CreateString(msg.host);
@@ -373,7 +376,7 @@ std::optional<message> to_message(const w::envelope& env) {
     case w::message::hello: {
       const auto* m = env.message_as_hello();
       if (!m) return std::nullopt;
-      return hello_msg{from_wire(m->name()), from_wire(m->token()), m->protocol_version()};
+      return hello_msg{from_wire(m->name()), from_wire(m->token()), m->protocol_version(), m->stealth(), m->team()};
     }
     case w::message::input: {
       const auto* m = env.message_as_input();
@@ -413,6 +416,9 @@ std::optional<message> to_message(const w::envelope& env) {
         rules.send_every = r->send_every();
         rules.digest_every = r->digest_every();
         rules.max_speed = r->max_speed();
+        rules.allow_stealth = r->allow_stealth();
+        rules.teams = r->teams();
+        rules.visibility_cooldown = r->visibility_cooldown();
         out.rules = std::move(rules);
       }
       out.oracle_port = m->oracle_port();
@@ -469,6 +475,11 @@ std::optional<message> to_message(const w::envelope& env) {
       const auto* m = env.message_as_redirect();
       if (!m) return std::nullopt;
       return redirect_msg{from_wire(m->host()), m->port(), from_wire(m->token())};
+    }
+    case w::message::set_visibility: {
+      const auto* m = env.message_as_set_visibility();
+      if (!m) return std::nullopt;
+      return set_visibility_msg{m->sequence(), m->stealth(), m->team()};
     }
     default: return std::nullopt;
   }

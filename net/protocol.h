@@ -55,6 +55,8 @@ struct hello_msg {
   std::string name;
   std::string token;
   std::uint32_t protocol_version = net::protocol_version;
+  bool stealth = false;    ///< join stealthed (the zone may refuse: interest_rules::allow_stealth)
+  std::uint8_t team = 0;   ///< 0 = none, 1 = red, 2 = blue (at most interest_rules::teams)
   friend bool operator==(const hello_msg&, const hello_msg&) = default;
 };
 struct input_msg {
@@ -74,6 +76,14 @@ struct teleport_msg {
   friend bool operator==(const teleport_msg&, const teleport_msg&) = default;
 };
 
+/// Switch the sender's own visibility (hello's choices) during play; validated by the zone.
+struct set_visibility_msg {
+  std::uint32_t sequence = 0;  ///< shares the input counter
+  bool stealth = false;
+  std::uint8_t team = 0;
+  friend bool operator==(const set_visibility_msg&, const set_visibility_msg&) = default;
+};
+
 // server -> client
 /// The zone's interest rules, as the welcome tells them (see the schema's interest_rules).
 struct interest_rules {
@@ -90,6 +100,9 @@ struct interest_rules {
   std::uint32_t send_every = 1;
   std::uint32_t digest_every = 1;
   float max_speed = 0;
+  bool allow_stealth = false;       ///< a player may choose stealth
+  std::uint8_t teams = 0;           ///< teams a player may join (0 none, 1 red, 2 red and blue)
+  float visibility_cooldown = 0;    ///< seconds between two applied set_visibility of one client
   friend bool operator==(const interest_rules&, const interest_rules&) = default;
 };
 struct welcome_msg {
@@ -170,7 +183,7 @@ struct redirect_msg {
 /// Any message; the alternatives are in the order of the schema's union (index + 1 = wire type).
 using message =
     std::variant<hello_msg, input_msg, ping_msg, welcome_msg, tick_update_msg, pong_msg, error_msg, teleport_msg,
-                 redirect_msg>;
+                 redirect_msg, set_visibility_msg>;
 
 /// The wire type of a message value.
 [[nodiscard]] wire::message type_of(const message& m);
@@ -484,6 +497,9 @@ class position_quantizer {
   /// Guaranteed bound on |dequantize(quantize(p)) - p| per axis for p inside the bounds.
   [[nodiscard]] vec3f max_error() const;
   [[nodiscard]] const world_bounds& world() const { return world_; }
+  /// The step of axis 0, 1 or 2 (0 for a zero-width or non-finite axis): what a device quantizing
+  /// the same way needs (gpu/replication_shared.h).
+  [[nodiscard]] double step(int axis) const { return step_[axis]; }
 
  private:
   world_bounds world_;

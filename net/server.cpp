@@ -481,7 +481,8 @@ class session : public std::enable_shared_from_this<session> {
   void handle(const frame_view& f) {
     // Before its hello a connection is served nothing: any other message closes it.
     if (!hello_seen_ && f.type != wire::message::hello) {
-      if (f.type == wire::message::input || f.type == wire::message::teleport || f.type == wire::message::ping) {
+      if (f.type == wire::message::input || f.type == wire::message::teleport || f.type == wire::message::ping ||
+          f.type == wire::message::set_visibility) {
         return fail_now(error_code::unexpected_message, std::string(type_name(f.type)) + " before hello");
       }
     }
@@ -491,7 +492,9 @@ class session : public std::enable_shared_from_this<session> {
         return on_hello(f);
       case wire::message::input:
       case wire::message::teleport:
-        // Teleports count against the same input rate as inputs (the game adds its own cooldown).
+      case wire::message::set_visibility:
+        // Teleports and visibility switches count against the same input rate as inputs (the
+        // game adds its own cooldowns).
         if (input_tokens_.take(srv_.opt.inputs_per_second, srv_.opt.input_burst)) {
           input_drops_ = 0;
           return forward(f);

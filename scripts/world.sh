@@ -18,8 +18,17 @@ Usage: scripts/world.sh [options]
   --world-size M   world side in metres (default 1024)
   --bosses N       bosses per zone (default 0: a boss's 400 m AOI widens the ghost band to ~470 m)
   --kill           SIGKILL zone 1 at a third of the run and restart it (fault test)
+  --oracle         zones publish their ground truth (zone-server --oracle) and every swarm checks each
+                   bot against the truth of the zone it is in (ghosts included), following it across
+                   borders (bot-swarm --oracle --oracle-zones); the run fails if no bot crossed a
+                   border (followed a redirect) or the oracle checked nothing; not with --kill
+  --test-fault K   TESTING: zone 0 breaks one client's frames on purpose (zone-server --test-fault K:
+                   drop, extra, stealth, freeze, class) from tick 60; with --oracle the exit status is
+                   then 0 only when the oracle caught it (mismatches > 0) and nothing else failed
   --threads N      worker threads per zone (default 1)
   --zone-args "A"  more zone-server options for every zone (e.g. "--npc-speed 8")
+  --single S       afterwards, run the same load in ONE zone-server for S seconds (all the zones'
+                   NPCs and all the bots, zones x --threads worker threads) and report its tick p99
   --out DIR        keep logs and reports here (default: a temporary directory)
   --help
 Exit status: 0 when no entity is owned twice, KV agrees and the swarms saw no mismatch; 1 otherwise.
@@ -27,7 +36,7 @@ EOF
 }
 
 extra_zone_args=()
-build=build grid=2x2 bots=200 npcs=5000 duration=30 size=1024 kill=0 threads=1 bosses=0 out=
+build=build grid=2x2 bots=200 npcs=5000 duration=30 size=1024 kill=0 threads=1 bosses=0 out= oracle=0 fault= single=0
 while [ $# -gt 0 ]; do
   case "$1" in
     --build) build=$2; shift 2 ;;
@@ -37,6 +46,9 @@ while [ $# -gt 0 ]; do
     --duration) duration=$2; shift 2 ;;
     --world-size) size=$2; shift 2 ;;
     --kill) kill=1; shift ;;
+    --oracle) oracle=1; shift ;;
+    --test-fault) fault=$2; shift 2 ;;
+    --single) single=$2; shift 2 ;;
     --bosses) bosses=$2; shift 2 ;;
     --zone-args) read -r -a extra_zone_args <<<"$2"; shift 2 ;;
     --threads) threads=$2; shift 2 ;;
@@ -47,6 +59,11 @@ while [ $# -gt 0 ]; do
 done
 [[ $grid =~ ^([0-9]+)x([0-9]+)$ ]] || { echo "world.sh: --grid must be COLSxROWS" >&2; exit 64; }
 zones=$(( ${BASH_REMATCH[1]} * ${BASH_REMATCH[2]} ))
+for v in "$bots" "$npcs" "$duration" "$size" "$threads" "$bosses" "$single"; do
+  [[ $v =~ ^[0-9]+$ ]] || { echo "world.sh: --bots, --npcs, --duration, --world-size, --threads, --bosses and --single take whole numbers (got '$v')" >&2; exit 64; }
+done
+[ "$kill" = 1 ] && [ "$oracle" = 1 ] && { echo "world.sh: --oracle and --kill do not go together (a killed zone's truth stream ends)" >&2; exit 64; }
+case "$fault" in ''|drop|extra|stealth|freeze|class) ;; *) echo "world.sh: --test-fault must be drop, extra, stealth, freeze or class" >&2; exit 64 ;; esac
 for exe in zone/zone-server bots/bot-swarm world/world-check; do
   [ -x "$build/$exe" ] || { echo "world.sh: $build/$exe missing (build with libnats-dev installed)" >&2; exit 64; }
 done
@@ -62,7 +79,9 @@ cleanup() {
 }
 trap cleanup EXIT
 
-# 1. nats-server on a free loopback port.
+# 1. nats-server on a free loopback port (a fresh JetStream store: an --out reused from an earlier
+# run must not bring that world's streams and KV back).
+rm -rf "$out/js"
 nats-server -a 127.0.0.1 -p -1 -js -sd "$out/js" --ports_file_dir "$out" >"$out/nats.log" 2>&1 &
 nats_pid=$!
 pids+=("$nats_pid")
@@ -78,8 +97,12 @@ name=local
 zone_args=(--world "$name" --nats "$url" --world-grid "$grid" --world-x "$size" --world-y "$size" --listen 127.0.0.1
            --metrics 0 --npcs "$npcs" --bosses "$bosses" --threads "$threads" --finder cpu --interest host
            ${extra_zone_args[@]+"${extra_zone_args[@]}"})
+[ "$oracle" = 1 ] && zone_args+=(--oracle)
 start_zone() {  # start_zone K [PORT]: zone K's process (log zone-K.log); prints its pid
-  "$build/zone/zone-server" "${zone_args[@]}" --port "${2:-0}" --tick-csv "$out/zone-$1.csv" >"$out/zone-$1.log" 2>&1 &
+  local more=()
+  [ -n "$fault" ] && [ "$1" = 0 ] && more=(--test-fault "$fault" --test-fault-tick 60)
+  "$build/zone/zone-server" "${zone_args[@]}" ${more[@]+"${more[@]}"} --port "${2:-0}" --tick-csv "$out/zone-$1.csv" \
+    >"$out/zone-$1.log" 2>&1 &
   echo $!
 }
 
@@ -97,10 +120,16 @@ done
 per=$(( (bots + zones - 1) / zones ))
 reconnect=()
 [ "$kill" = 1 ] && reconnect=(--reconnect --relogin-delay 0.5 --connect-timeout 15)  # back to the restarted zone
+check=()
+if [ "$oracle" = 1 ]; then
+  all_ports=$(IFS=,; echo "${zport[*]}")
+  check=(--oracle --oracle-threads 1 --oracle-zones "$all_ports")  # each bot judged by the truth of the zone it is in now
+fi
 declare -a spid
 for k in $(seq 0 $((zones - 1))); do
   "$build/bots/bot-swarm" --host 127.0.0.1 --port "${zport[$k]}" --bots "$per" --duration "$duration" --ramp 100 \
-    --mix walk=1 --verify --quiet "${reconnect[@]}" --report-json "$out/swarm-$k.json" >"$out/swarm-$k.log" 2>&1 &
+    --mix walk=1 --verify --quiet ${reconnect[@]+"${reconnect[@]}"} ${check[@]+"${check[@]}"} \
+    --report-json "$out/swarm-$k.json" >"$out/swarm-$k.log" 2>&1 &
   spid[$k]=$!
   pids+=("${spid[$k]}")
 done
@@ -133,20 +162,56 @@ set -e
 for k in $(seq 0 $((zones - 1))); do kill -TERM "${zpid[$k]}" 2>/dev/null || true; done
 for k in $(seq 0 $((zones - 1))); do wait "${zpid[$k]}" 2>/dev/null || true; done
 
-# 6. The report.
+# 6. The same load in one zone (--single), for the tick p99 beside the world's.
+if [ "$single" -gt 0 ]; then
+  "$build/zone/zone-server" --world-x "$size" --world-y "$size" --listen 127.0.0.1 --metrics 0 --npcs $((zones * npcs)) \
+    --bosses $((zones * bosses)) --threads $((zones * threads)) --finder cpu --interest host \
+    ${extra_zone_args[@]+"${extra_zone_args[@]}"} --port 0 --tick-csv "$out/single.csv" >"$out/single.log" 2>&1 &
+  single_pid=$!
+  pids+=("$single_pid")
+  single_port=$(zone_port "$out/single.log" 200)
+  if [ -n "$single_port" ]; then
+    "$build/bots/bot-swarm" --host 127.0.0.1 --port "$single_port" --bots "$bots" --duration "$single" --ramp $((100 * zones)) \
+      --mix walk=1 --verify --quiet --report-json "$out/swarm-single.json" >"$out/swarm-single.log" 2>&1 || true
+  else
+    echo "world.sh: the single zone did not start ($out/single.log)" >&2
+  fi
+  kill -TERM "$single_pid" 2>/dev/null || true
+  wait "$single_pid" 2>/dev/null || true
+fi
+
+# 7. The report.
 json() { grep -o "\"$2\": [0-9.e+-]*" "$1" | head -1 | awk '{print $2}'; }
 echo "== world '$name': $grid regions of ${size} m, $npcs NPCs per zone, $bots bots, ${duration} s ($(nproc) cores, $(date -u +%F))"
 [ -n "$killed_note" ] && echo "fault: $killed_note"
 mism=0
-printf '%-6s %-7s %9s %9s %9s %11s %10s %10s %12s\n' zone region connected redirects digests mismatches failures "re-logins" "tick p99 ms"
+printf '%-6s %-7s %9s %9s %9s %11s %10s %10s %16s\n' zone region connected redirects digests mismatches failures "re-logins" "tick p50/p99 ms"
 for k in $(seq 0 $((zones - 1))); do
   f="$out/swarm-$k.json"
   m=$(json "$f" mismatches); m=${m:-0}
   mism=$((mism + ${m%.*}))
-  p99=$(awk -F, 'NR > 1 && $2 > 5 {print $11}' "$out/zone-$k.csv" | sort -g | awk '{a[NR] = $1} END {if (NR) print a[int(NR * 0.99 + 0.999)]; else print "-"}')
-  printf '%-6s %-7s %9s %9s %9s %11s %10s %10s %12s\n' "$k" "${zregion[$k]:-?}" "$(json "$f" bots_connected)" "$(json "$f" redirects)" \
+  p99=$(awk -F, 'NR > 1 && $2 > 5 {print $11}' "$out/zone-$k.csv" | sort -g |
+        awk '{a[NR] = $1} END {if (NR) printf "%s/%s", a[int(NR * 0.5 + 0.999)], a[int(NR * 0.99 + 0.999)]; else print "-"}')
+  printf '%-6s %-7s %9s %9s %9s %11s %10s %10s %16s\n' "$k" "${zregion[$k]:-?}" "$(json "$f" bots_connected)" "$(json "$f" redirects)" \
     "$(json "$f" digests_checked)" "$m" "$(( $(json "$f" connect_failures || echo 0) + $(json "$f" unexpected_disconnects || echo 0) ))" \
     "$(json "$f" reconnects)" "$p99"
+done
+oracle_mism=0 digest_mism=0 oracle_checked=0 crossings=0
+if [ "$oracle" = 1 ]; then
+  echo "-- the oracle (each bot against the truth of the zone it is in; ghosts of the neighbours included)"
+  printf '%-6s %14s %12s %11s %9s %8s %8s %8s %9s\n' zone "frames checked" unchecked mismatches missing extra leaked stale position
+  for k in $(seq 0 $((zones - 1))); do
+    f="$out/swarm-$k.json"
+    om=$(json "$f" oracle_mismatches); om=${om:-0}
+    oracle_mism=$((oracle_mism + om))
+    oracle_checked=$((oracle_checked + $(json "$f" frames_checked || echo 0)))
+    printf '%-6s %14s %12s %11s %9s %8s %8s %8s %9s\n' "$k" "$(json "$f" frames_checked)" "$(json "$f" frames_unchecked)" "$om" \
+      "$(json "$f" missing)" "$(json "$f" extra)" "$(json "$f" leaked)" "$(json "$f" stale)" "$(json "$f" position)"
+  done
+fi
+for k in $(seq 0 $((zones - 1))); do
+  d=$(json "$out/swarm-$k.json" digest_mismatches); digest_mism=$((digest_mism + ${d:-0}))
+  c=$(json "$out/swarm-$k.json" redirects); crossings=$((crossings + ${c:-0}))
 done
 echo "-- handoffs and ghosts per zone (from each zone's exit line)"
 for log in "$out"/zone-*.log; do
@@ -159,7 +224,32 @@ for log in "$out"/zone-*.log; do
     for (i = 1; i <= NF; ++i) if ($i == "bytes" && $(i+1) == "out") out = $(i+2);
     printf "    ghost bytes per tick per neighbour: %.0f (over %d ticks, %d neighbours)\n", out / t / n, t, n }'
 done
+# Over the world: handoffs adopted, and the worst zone's handoff p99 (ms and ticks).
+cat "$out"/zone-*.log | grep -o 'world: region.*' | awk '{
+    for (i = 1; i <= NF; ++i) {
+      if ($i == "in" && $(i+2) == "(duplicates") n += $(i+1)
+      if ($i == "p99" && $(i+2) == "ms" && $(i+1) + 0 > ms) ms = $(i+1) + 0
+      if ($i == "(p99" && $(i+2) ~ /^ticks/ && $(i+1) + 0 > tk) tk = $(i+1) + 0
+    }
+  } END { printf "handoffs adopted in all: %d; worst zone handoff p99: %.1f ms = %.2f ticks\n", n, ms, tk }'
+if [ "$single" -gt 0 ]; then
+  p=$(awk -F, 'NR > 1 && $2 > 5 {print $11}' "$out/single.csv" 2>/dev/null | sort -g |
+      awk '{a[NR] = $1} END {if (NR) printf "%s / %s", a[int(NR * 0.5 + 0.999)], a[int(NR * 0.99 + 0.999)]; else print "-"}')
+  f="$out/swarm-single.json"
+  echo "-- the same load in one zone ($((zones * npcs)) NPCs, $bots bots, $((zones * threads)) worker threads, ${single} s): tick p50 / p99 ${p} ms;" \
+    "bots connected $(json "$f" bots_connected), digests $(json "$f" digests_checked), mismatches $(json "$f" mismatches)"
+fi
 echo "-- world-check (census of the zones + KV ownership records)"
 cat "$out/world-check.txt"
 echo "logs: $out"
+if [ -n "$fault" ] && [ "$oracle" = 1 ]; then
+  # The injected fault must be caught by the oracle (the fault fixes up digests: only it can see
+  # it), and nothing else may fail.
+  others=$((mism - oracle_mism))
+  echo "injected fault '$fault' in zone 0: oracle mismatches $oracle_mism (must be > 0), other failures $others (must be 0)"
+  [ "$check_rc" = 0 ] && [ "$oracle_mism" -gt 0 ] && [ "$others" = 0 ] && [ "$digest_mism" = 0 ] && [ "$crossings" -gt 0 ]
+  exit
+fi
+[ "$oracle" = 1 ] && [ "$oracle_checked" = 0 ] && { echo "the oracle checked no frame" >&2; exit 1; }
+[ "$oracle" = 1 ] && [ "$crossings" = 0 ] && { echo "no bot crossed a border: the oracle spanned no zones" >&2; exit 1; }
 [ "$check_rc" = 0 ] && [ "$mism" = 0 ]

@@ -3,7 +3,8 @@
 // builder, a count query, a scan, a fill query; pinned in, pinned pairs out) on the six target
 // sets. Prints a table and writes CSV.
 //
-//   bench-peers [--csv FILE] [--sets LIST] [--max-n N] [--reps R] [--cubql-leaf L] [--seed S]
+//   bench-peers [--csv FILE] [--sets LIST] [--max-n N] [--reps R] [--cubql-leaf L]
+//               [--cubql-builder B] [--seed S]
 //
 // Per set: the boxes generated once (seed 42 unless --seed), the set pinned (pinned_boxes) for
 // the documented call, and a page-locked AoS copy (6 floats a box; category/mask only when some
@@ -24,6 +25,8 @@
 #include <cstdlib>
 #include <cstring>
 #include <fstream>
+#include <limits>
+#include <memory>
 #include <random>
 #include <span>
 #include <string>
@@ -145,8 +148,8 @@ zi::box_set edge_case_set(std::size_t n, bool classes, std::uint64_t seed) {
 }
 
 /// cuBQL against the brute-force reference on edge-case and random sets; false on any difference.
-bool self_check(zi::thread_pool& pool, int leaf) {
-  zp::cubql_join peer(leaf);
+bool self_check(zi::thread_pool& pool, int leaf, zp::cubql_builder builder) {
+  zp::cubql_join peer(leaf, builder);
   zi::brute_force_finder brute(&pool);
   bool ok = true;
   struct c {
@@ -179,6 +182,27 @@ bool self_check(zi::thread_pool& pool, int leaf) {
   return ok;
 }
 
+/// The PBIG variants timed beside the documented call: the defaults first, then each of this
+/// session's changes off, then both off (the code before them).
+struct variant {
+  const char* name;
+  zg::pbig_options options;
+};
+const variant variants[] = {
+    {"defaults", zg::pbig_options{}},
+    {"no-class-fill", zg::pbig_options{.fill_uniform_classes = false}},
+    {"gathered", zg::pbig_options{.indirect_check_min_boxes = std::numeric_limits<std::size_t>::max()}},
+    {"neither", zg::pbig_options{.indirect_check_min_boxes = std::numeric_limits<std::size_t>::max(),
+                                 .fill_uniform_classes = false}},
+};
+struct variant_result {
+  const char* name;
+  std::unique_ptr<zi::pair_finder> finder;
+  std::vector<double> ms;
+  std::vector<zg::pbig_report> reports;
+  double median = 0;
+};
+
 struct set_spec {
   std::string kind;
   std::size_t n;
@@ -192,6 +216,8 @@ int main(int argc, char** argv) {
   std::size_t max_n = 10000000;
   int reps = 0;
   int leaf = 0;
+  zp::cubql_builder builder = zp::cubql_builder::spatial_median;
+  std::string builder_name = "median";
   std::uint64_t seed = 42;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
@@ -209,16 +235,29 @@ int main(int argc, char** argv) {
       else if (a == "--reps") reps = std::stoi(next());
       else if (a == "--cubql-leaf") leaf = std::stoi(next());
       else if (a == "--seed") seed = std::stoull(next());
+      else if (a == "--cubql-builder") {
+        builder_name = next();
+        if (builder_name == "median") builder = zp::cubql_builder::spatial_median;
+        else if (builder_name == "radix") builder = zp::cubql_builder::radix;
+        else if (builder_name == "rebin") builder = zp::cubql_builder::rebin_radix;
+        else {
+          std::fprintf(stderr, "bench-peers: unknown --cubql-builder '%s' (median, radix, rebin)\n", builder_name.c_str());
+          return 2;
+        }
+      }
       else if (a == "--help" || a == "-h") {
         std::printf(
             "bench-peers: the documented finder call (make_finder(auto), pinned_boxes, find_view) beside NVIDIA cuBQL\n\n"
-            "usage: bench-peers [--csv FILE] [--sets LIST] [--max-n N] [--reps R] [--cubql-leaf L] [--seed S]\n"
+            "usage: bench-peers [--csv FILE] [--sets LIST] [--max-n N] [--reps R] [--cubql-leaf L] [--cubql-builder B]\n"
+            "                   [--seed S]\n"
             "  --csv FILE       rows as CSV (default bench-peers.csv)\n"
             "  --sets LIST      comma-separated KIND:N, KIND one of uniform, gaussian, mmo, doc:<value>\n"
             "                   (default: the six target sets, uniform 1e5/1e6/1e7, gaussian 1e6, doc:10 1e6, gaussian 1e7)\n"
             "  --max-n N        skip sets larger than N boxes (default 10000000)\n"
             "  --reps R         timed rounds per set (default 21; 5 at 10^7 boxes and more)\n"
             "  --cubql-leaf L   cuBQL BuildConfig::makeLeafThreshold (default 0: the builder's default)\n"
+            "  --cubql-builder B  median (cuBQL::gpuBuilder, default BuildConfig; the default), radix\n"
+            "                   (cuBQL::cuda::radixBuilder) or rebin (cuBQL::cuda::rebinRadixBuilder)\n"
             "  --seed S         generator seed (default 42)\n"
             "A self-check (cuBQL against brute force on edge-case sets) runs first. Exits 1 when a pair set\n"
             "differs, 77 without a CUDA device. docs/gpu-benchmarks.md says what the table means.\n");
@@ -274,7 +313,8 @@ int main(int argc, char** argv) {
   }
   zi::thread_pool pool(0);
   std::printf("bench-peers on %s (%d SMs), %u host threads\n", dev.name.c_str(), dev.multiprocessors, pool.size());
-  if (!self_check(pool, leaf)) {
+  std::printf("cuBQL builder: %s, leaf threshold %d\n", builder_name.c_str(), leaf);
+  if (!self_check(pool, leaf, builder)) {
     std::fprintf(stderr, "bench-peers: cuBQL's pairs differ from the brute-force reference\n");
     return 1;
   }
@@ -283,7 +323,8 @@ int main(int argc, char** argv) {
   csv << "set,n,pairs,public_ms,public_min_ms,public_choice,cubql_ms,cubql_min_ms,cubql_over_public,cubql_in_ms,"
          "cubql_build_ms,cubql_count_ms,cubql_scan_ms,cubql_fill_ms,cubql_out_ms,pbig_ms,pbig_in_ms,pbig_plan_ms,"
          "pbig_map_ms,pbig_map_count_ms,pbig_map_scatter_ms,pbig_map_sort_ms,pbig_map_gather_ms,pbig_check_ms,"
-         "pbig_out_ms,pbig_pipeline_ms,pbig_batches,bytes_in,bytes_out,floor_serial_ms,cubql_leaf,verified\n";
+         "pbig_out_ms,pbig_pipeline_ms,pbig_batches,bytes_in,bytes_out,floor_serial_ms,cubql_leaf,pbig_no_fill_ms,"
+         "pbig_no_indirect_ms,pbig_neither_ms,classes_filled,indirect_check,cubql_builder,verified\n";
   std::printf("\n== The documented call (make_finder(auto), pinned_boxes, find_view) beside cuBQL (gpuBuilder, count, "
               "scan, fill; pinned in and out); ms, medians\n");
   std::printf("%-9s %9s %13s %10s %-5s %10s %7s | %7s %7s %7s %7s %7s %7s | %7s %7s %7s %7s %7s %7s %s\n", "set", "N",
@@ -296,7 +337,7 @@ int main(int argc, char** argv) {
     const zg::pinned_boxes pin(s);
     const peer_input in(s);
     auto pub = zg::make_finder(zg::finder_backend::auto_select, &pool, &why);
-    zp::cubql_join peer(leaf);
+    zp::cubql_join peer(leaf, builder);
     std::span<const zi::id_pair> view;
     // Warm-ups, then the pair sets compared before anything is timed.
     if (zg::find_view(*pub, s, view)) {
@@ -337,22 +378,49 @@ int main(int argc, char** argv) {
     const zp::cubql_timing& ct = phases[mid];
     const auto choice = zg::last_auto_choice(*pub);
     const std::string choice_name = choice ? std::string(zg::backend_name(*choice)) : "?";
-    // Where the documented call's time goes: one call of PBIG (the path auto takes on a pinned set
-    // of this kind) on the same pinned set, after a warm-up.
-    zg::pbig_options o;
-    o.decode_pool = &pool;
-    auto pbig = zg::make_pbig_finder(o, &why);
-    zg::pbig_report rep;
-    double pbig_ms = 0;
-    if (pbig) {
+    // Where the documented call's time goes, and what this session's two upload/map changes give:
+    // PBIG (the path auto takes on a pinned set) with its defaults and with each change off, on
+    // the same pinned set, interleaved rounds after a warm-up each; the defaults' phase report of
+    // its median call.
+    // (Sets of more than 10^8 pairs time the defaults only: each variant holds its own pinned
+    // result buffer of 8 bytes a pair.)
+    std::vector<variant_result> var;
+    for (const variant& v : variants) {
+      if (dp.count > 100000000 && !var.empty()) break;
+      zg::pbig_options o = v.options;
+      o.decode_pool = &pool;
+      var.push_back({v.name, zg::make_pbig_finder(o, &why), {}, {}, 0});
+    }
+    const int vr = sp.n >= 10000000 ? 5 : 11;
+    for (auto& v : var) {
       std::span<const zi::id_pair> v2;
-      (void)zg::find_pairs_view(*pbig, s, v2);
-      const auto t0 = clock_type::now();
-      (void)zg::find_pairs_view(*pbig, s, v2);
-      pbig_ms = ms_since(t0);
-      rep = *zg::last_pbig_report(*pbig);
+      if (!v.finder || zg::find_pairs_view(*v.finder, s, v2)) {
+        std::fprintf(stderr, "bench-peers: PBIG finder failed: %s\n", why.c_str());
+        return 2;
+      }
       if (digest(v2, pool) != dp) all_same = false;
     }
+    for (int k = 0; k < vr; ++k) {
+      for (std::size_t j = 0; j < var.size(); ++j) {
+        variant_result& v = var[(j + static_cast<std::size_t>(k)) % var.size()];
+        std::span<const zi::id_pair> v2;
+        const auto t0 = clock_type::now();
+        (void)zg::find_pairs_view(*v.finder, s, v2);
+        v.ms.push_back(ms_since(t0));
+        v.reports.push_back(*zg::last_pbig_report(*v.finder));
+      }
+    }
+    for (auto& v : var) v.median = median(v.ms);
+    const zg::pbig_report rep = [&] {
+      const variant_result& d = var[0];
+      std::size_t at = 0;
+      for (std::size_t k = 0; k < d.ms.size(); ++k) {
+        if (std::abs(d.ms[k] - d.median) < std::abs(d.ms[at] - d.median)) at = k;
+      }
+      return d.reports[at];
+    }();
+    const double pbig_ms = var[0].median;
+    auto variant_ms = [&](std::size_t k) { return k < var.size() ? var[k].median : -1.0; };
     const double bytes_out = static_cast<double>(dp.count) * 8;
     const double floor_ms = (32.0 * static_cast<double>(sp.n) + bytes_out) / 55e9 * 1e3;  // 55 GB/s each way, serial
     const std::string verified = same && same_after ? "yes" : "MISMATCH";
@@ -362,13 +430,15 @@ int main(int argc, char** argv) {
                 ct.in_ms, ct.build_ms, ct.count_ms, ct.scan_ms, ct.fill_ms, ct.out_ms, rep.data_in_ms, rep.plan_ms,
                 rep.map_ms, rep.check_ms, rep.data_out_ms, rep.pipeline_ms, verified.c_str(),
                 pin.active() ? "" : " (input NOT pinned)");
-    if (pbig) {
-      std::printf("   PBIG one call %.3f ms: in %.3f, plan %.3f, map %.3f (count %.3f, scatter %.3f, sort %.3f, gather "
-                  "%.3f), sched %.3f, check+out wall %.3f (check %.3f, out %.3f, %u batches); %.1f MB in, %.1f MB out\n",
-                  pbig_ms, rep.data_in_ms, rep.plan_ms, rep.map_ms, rep.map_count_ms, rep.map_scatter_ms, rep.map_sort_ms,
-                  rep.map_gather_ms, rep.sched_ms, rep.pipeline_ms, rep.check_ms, rep.data_out_ms, rep.batches,
-                  static_cast<double>(rep.bytes_in) / 1e6, static_cast<double>(rep.bytes_out) / 1e6);
-    }
+    std::printf("   PBIG defaults %.3f ms: in %.3f, plan %.3f, map %.3f (count %.3f, scatter %.3f, sort %.3f, gather "
+                "%.3f), sched %.3f, check+out wall %.3f (check %.3f, out %.3f, %u batches); %.1f MB in, %.1f MB out\n",
+                pbig_ms, rep.data_in_ms, rep.plan_ms, rep.map_ms, rep.map_count_ms, rep.map_scatter_ms, rep.map_sort_ms,
+                rep.map_gather_ms, rep.sched_ms, rep.pipeline_ms, rep.check_ms, rep.data_out_ms, rep.batches,
+                static_cast<double>(rep.bytes_in) / 1e6, static_cast<double>(rep.bytes_out) / 1e6);
+    std::printf("   PBIG variants (medians of %d, interleaved%s):", vr, var.size() < 4 ? "; defaults only above 10^8 pairs" : "");
+    for (const auto& v : var) std::printf(" %s %.3f ms;", v.name, v.median);
+    std::printf(" classes filled %s, indirect checks %s\n", rep.classes_filled ? "yes" : "no",
+                rep.indirect_check ? "yes" : "no");
     std::fflush(stdout);
     csv << sp.kind << ',' << sp.n << ',' << dp.count << ',' << pm << ',' << *std::min_element(tp.begin(), tp.end())
         << ',' << choice_name << ',' << cm << ',' << *std::min_element(tc.begin(), tc.end()) << ',' << cm / pm << ','
@@ -376,7 +446,8 @@ int main(int argc, char** argv) {
         << ct.out_ms << ',' << pbig_ms << ',' << rep.data_in_ms << ',' << rep.plan_ms << ',' << rep.map_ms << ','
         << rep.map_count_ms << ',' << rep.map_scatter_ms << ',' << rep.map_sort_ms << ',' << rep.map_gather_ms << ','
         << rep.check_ms << ',' << rep.data_out_ms << ',' << rep.pipeline_ms << ',' << rep.batches << ',' << rep.bytes_in
-        << ',' << rep.bytes_out << ',' << floor_ms << ',' << leaf << ',' << verified << '\n';
+        << ',' << rep.bytes_out << ',' << floor_ms << ',' << leaf << ',' << variant_ms(1) << ',' << variant_ms(2) << ','
+        << variant_ms(3) << ',' << rep.classes_filled << ',' << rep.indirect_check << ',' << builder_name << ',' << verified << '\n';
     csv.flush();
   }
   std::printf("CSV: %s\n", csv_path.c_str());

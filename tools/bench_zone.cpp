@@ -38,6 +38,9 @@
 #include <string_view>
 #include <thread>
 #include <time.h>
+#include <dirent.h>
+#include <unistd.h>
+#include <cctype>
 #include <vector>
 
 #include "finders.h"
@@ -82,6 +85,48 @@ double cpu_ms(clockid_t clock) {
   return static_cast<double>(ts.tv_sec) * 1e3 + static_cast<double>(ts.tv_nsec) * 1e-6;
 }
 
+/// CPU time of a group of threads (those whose name is the same once a trailing "-N" or number is
+/// dropped: zone-worker-1..15 -> zone-worker), from /proc/self/task/*/stat (clock ticks).
+struct thread_group_cpu {
+  double seconds = 0;
+  int threads = 0;
+};
+std::map<std::string, thread_group_cpu> thread_cpu_by_name() {
+  std::map<std::string, thread_group_cpu> out;
+  const long hz = sysconf(_SC_CLK_TCK);
+  if (hz <= 0) return out;
+  DIR* d = opendir("/proc/self/task");
+  if (d == nullptr) return out;
+  while (const dirent* e = readdir(d)) {
+    if (e->d_name[0] == '.') continue;
+    const std::string base = std::string("/proc/self/task/") + e->d_name;
+    std::ifstream stat(base + "/stat");
+    std::string line;
+    if (!std::getline(stat, line)) continue;
+    // Fields after the ")" that closes the name: state is field 3, utime 14, stime 15.
+    const auto close = line.rfind(')');
+    if (close == std::string::npos) continue;
+    std::istringstream rest(line.substr(close + 2));
+    std::string field;
+    double utime = 0, stime = 0;
+    for (int f = 3; f <= 15 && (rest >> field); ++f) {
+      if (f == 14) utime = std::atof(field.c_str());
+      if (f == 15) stime = std::atof(field.c_str());
+    }
+    std::ifstream comm(base + "/comm");
+    std::string name;
+    std::getline(comm, name);
+    while (!name.empty() && (std::isdigit(static_cast<unsigned char>(name.back())) != 0)) name.pop_back();
+    while (!name.empty() && name.back() == '-') name.pop_back();
+    if (name.empty()) name.push_back('?');
+    auto& g = out[name];
+    g.seconds += (utime + stime) / static_cast<double>(hz);
+    ++g.threads;
+  }
+  closedir(d);
+  return out;
+}
+
 std::string load_average() {
   std::ifstream f("/proc/loadavg");
   std::string a, b, c;
@@ -114,6 +159,8 @@ struct options {
   replicate_mode replicate = replicate_mode::parallel;
   bool replicate_auto = true;  // --replicate auto: gpu when a device is usable
   bool host_views = false;     // --host-views: the GPU replication engine gets the sets from the host
+  bool device_wait_block = true;  // --device-wait: the replication engine's waits for the device
+  bool rep_park = true;           // --rep-park: replication_options::park_between_phases
   std::size_t budget = 8 * 1024;
   std::uint32_t clients_per_task = 16;
   std::uint32_t snapshot = 16;  // replication_options::snapshot_entities_per_client
@@ -152,6 +199,10 @@ Usage: bench-zone [options]
                      one by one on this thread) | both (serial and parallel each tick, frames
                      compared) | gpu-vs-cpu (the engine, timed as the tick's, and the CPU
                      build_many each tick, frames compared byte for byte) (default auto)
+  --device-wait HOW  block | spin: how the GPU replication engine waits for the device
+                     (replication_engine::set_blocking_wait; default block, as zone-server)
+  --rep-park on|off  idle workers sleep after each host phase of replication on an engine
+                     (replication_options::park_between_phases; default on, as zone-server)
   --budget BYTES     per-client byte budget (default 8192)
   --clients-per-task N  replication chunk size (default 16)
   --snapshot N       build_many snapshots the entities when clients * N >= entities; 0 = never
@@ -255,6 +306,12 @@ std::optional<std::string> parse_args(int argc, char** argv, options& o, bool& h
       else if (v == "gpu-vs-cpu") o.replicate = replicate_mode::gpu_vs_cpu;
       else if (v == "auto") o.replicate_auto = true;
       else return need(modes);
+    } else if (a == "--device-wait") {
+      if (!value() || (v != "block" && v != "spin")) return need("block|spin");
+      o.device_wait_block = v == "block";
+    } else if (a == "--rep-park") {
+      if (!value() || (v != "on" && v != "off")) return need("on|off");
+      o.rep_park = v == "on";
     } else if (a == "--clients-per-task") {
       if (!value()) return need("a count");
       const auto n = number<std::uint32_t>(v);
@@ -419,6 +476,7 @@ int main(int argc, char** argv) {
   ro.digest_period = std::max<std::uint32_t>(1, cfg.digest_every);
   ro.clients_per_task = opt.clients_per_task;
   ro.snapshot_entities_per_client = opt.snapshot;
+  ro.park_between_phases = opt.rep_park;
   replicator repl(ro), repl_serial(ro);  // repl_serial: the reference in --replicate both and gpu-vs-cpu
   // As zone-server --replicate: the decisions on the GPU replication engine when asked and possible.
   std::unique_ptr<interest::replication_engine> rep_engine;
@@ -427,7 +485,9 @@ int main(int argc, char** argv) {
     rep_engine = gpu::make_replication_engine(&why);
     if (rep_engine) {
       if (opt.replicate_auto) opt.replicate = replicate_mode::gpu;
+      rep_engine->set_blocking_wait(opt.device_wait_block);
       repl.set_engine(rep_engine.get());
+      repl.set_phase_cpu_timing(true);
       // As zone-server: the players' sets stay on the device (the CPU reference of gpu-vs-cpu
       // reads them on the host).
       if (opt.replicate != replicate_mode::gpu_vs_cpu && !opt.host_views) world.set_player_views_on_host(false);
@@ -481,7 +541,11 @@ int main(int argc, char** argv) {
       s_e_down{"  engine download"}, s_e_grid{"    grid"}, s_e_query{"    candidates, classified"}, s_e_class{"    scans, enters placed"},
       s_e_write{"    write"}, s_e_host{"  host work (overlapped)"}, s_rep{"replicate"}, s_rep_serial{"replicate 1t"},
       s_total{"tick"}, s_rep_cpu{"replicate, CPU time (all threads)"}, s_rep_serial_cpu{"replicate 1t, CPU time"},
-      s_rg_total{"  engine run"}, s_rg_up{"    upload"}, s_rg_dev{"    device"}, s_rg_down{"    download"};
+      s_rg_total{"  engine run"}, s_rg_up{"    upload"}, s_rg_dev{"    device"}, s_rg_down{"    download"},
+      s_rg_wait{"    host waiting for the device"}, s_rp_stage{"  host staging (entities, slot map, jobs)"},
+      s_rp_wrap{"  wrap (frames to the sink)"}, s_rp_stage_cpu{"  host staging, CPU time (all threads)"},
+      s_rp_engine_cpu{"  engine run, CPU time (all threads)"}, s_rp_wrap_cpu{"  wrap, CPU time (all threads)"};
+  std::map<std::string, thread_group_cpu> threads_before;
   if (opt.replicate == replicate_mode::gpu_vs_cpu) {
     s_rep_serial.name = "replicate cpu (reference)";
     s_rep_serial_cpu.name = "replicate cpu, CPU time";
@@ -513,6 +577,7 @@ int main(int argc, char** argv) {
       next = std::max(next + period, clock_type::now() - period);
     }
     const bool measured = t >= opt.warmup;
+    if (t == opt.warmup) threads_before = thread_cpu_by_name();
     // Player inputs (a seeded random walk, changed every 30 ticks).
     for (std::size_t p = 0; p < players.size(); ++p) {
       if ((t + p) % 30 == 0) {
@@ -650,6 +715,13 @@ int main(int argc, char** argv) {
       s_rg_up.v.push_back(rt.upload_ms);
       s_rg_dev.v.push_back(rt.device_ms);
       s_rg_down.v.push_back(rt.download_ms);
+      s_rg_wait.v.push_back(rt.wait_ms);
+      const auto& ph = repl.phase_times();
+      s_rp_stage.v.push_back(ph.stage_ms);
+      s_rp_wrap.v.push_back(ph.wrap_ms);
+      s_rp_stage_cpu.v.push_back(ph.stage_cpu_ms);
+      s_rp_engine_cpu.v.push_back(ph.engine_cpu_ms);
+      s_rp_wrap_cpu.v.push_back(ph.wrap_cpu_ms);
     }
     s_total.v.push_back(total_ms);
     pairs.push_back(static_cast<double>(ts.pairs));
@@ -660,6 +732,7 @@ int main(int argc, char** argv) {
     checks.push_back(static_cast<double>(fs.checks));
   }
   const std::string load_after = load_average();
+  const auto threads_after = thread_cpu_by_name();
 
   // ---- Report ----
   std::vector<const series*> rows = {&s_beh, &s_int, &s_interest};
@@ -683,7 +756,10 @@ int main(int argc, char** argv) {
   if (!requests.empty()) {
     rows.push_back(&s_rep);
     if (on_gpu && !s_rg_total.v.empty()) {
-      for (const series* s : {&s_rg_total, &s_rg_up, &s_rg_dev, &s_rg_down}) rows.push_back(s);
+      for (const series* s : {&s_rp_stage, &s_rg_total, &s_rg_up, &s_rg_dev, &s_rg_down, &s_rg_wait, &s_rp_wrap,
+                              &s_rp_stage_cpu, &s_rp_engine_cpu, &s_rp_wrap_cpu}) {
+        rows.push_back(s);
+      }
     }
     rows.push_back(&s_rep_cpu);
     if (reference) {
@@ -740,6 +816,15 @@ int main(int argc, char** argv) {
     std::printf(", replication (%s) mean %.1f max %.0f",
                 opt.replicate == replicate_mode::both ? "both modes" : "the frames' copies included", mean_of(rep_allocs),
                 *std::max_element(rep_allocs.begin(), rep_allocs.end()));
+  }
+  std::printf("\n");
+  // Where the process's CPU went over the measured ticks, by thread name (the main thread has the
+  // program's name; CUDA's own threads show as theirs).
+  std::printf("CPU over the measured ticks by thread (ms per tick):");
+  for (const auto& [name, g] : threads_after) {
+    const auto before = threads_before.find(name);
+    const double sec = g.seconds - (before != threads_before.end() ? before->second.seconds : 0.0);
+    std::printf(" %s (%d) %.2f;", name.c_str(), g.threads, sec * 1000.0 / static_cast<double>(std::max<std::size_t>(1, opt.ticks)));
   }
   std::printf("\n");
   std::printf("world digest after the run: %016llx\n", static_cast<unsigned long long>(world.digest()));

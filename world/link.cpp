@@ -583,6 +583,12 @@ handoff_status zone_link::apply_handoff(zone_world& w, const handoff_record& r, 
     if (local) *local = have;
     return handoff_status::duplicate;
   }
+  // A full zone adopts nothing (the record is offered again later: never dropped).
+  const bool full = opt_.capacity != 0 && owned_count() >= opt_.capacity;
+  if (full || (i == nullptr && w.store().size() >= w.store().capacity())) {
+    ++stats_.handoffs_no_room;
+    return handoff_status::no_room;
+  }
   entity_id id = have;
   if (i != nullptr) {
     // Our ghost of it becomes the entity: same handle, so views here see no leave and enter.
@@ -597,9 +603,9 @@ handoff_status zone_link::apply_handoff(zone_world& w, const handoff_record& r, 
     i->claims = i->owner_claims = 0;
   } else {
     id = w.adopt(r.desc, r.behaviour);
-    if (id == null_entity) {  // the zone is full (a redelivery may find room)
-      ++stats_.handoffs_refused;
-      return handoff_status::refused;
+    if (id == null_entity) {  // the store is full after all: offered again later
+      ++stats_.handoffs_no_room;
+      return handoff_status::no_room;
     }
     i = &bind(id, r.gid, role::owned);
   }

@@ -152,6 +152,7 @@ std::unique_ptr<nats_node> nats_node::join(const node_options& opt, const zone_c
     lo.handoff_margin = opt.handoff_margin;
     lo.ghost_band = opt.ghost_band > 0 ? opt.ghost_band : ghost_band(zone, opt.handoff_margin);
     lo.ghost_timeout_ticks = opt.ghost_timeout_ticks;
+    lo.capacity = opt.capacity;
     return lo;
   }());
   // Core subscriptions: their callbacks only queue (the game thread applies).
@@ -370,10 +371,17 @@ void nats_node::send_loop() {
 
 void nats_node::answer_census(const std::string& reply) {
   // region u32, incarnation u32, tick u64, count u32, then (gid u64, epoch u64) per owned entity,
-  // then count u32 and gid u64 per entity in transit from here.
+  // then count u32 and gid u64 per entity in transit from here, then count u32 and gid u64 per
+  // player handed off here whose client has not come yet.
   const auto ids = link_->owned_epochs();
   const auto transit = link_->transit_ids();
-  std::vector<std::uint8_t> out(20 + ids.size() * 16 + 4 + transit.size() * 8);
+  std::vector<global_id> awaiting;
+  for (const auto& [token, p] : tokens_) {
+    const entity_id local = link_->local_of(p.gid);
+    if (local != null_entity && link_->owns(local)) awaiting.push_back(p.gid);
+  }
+  std::sort(awaiting.begin(), awaiting.end());
+  std::vector<std::uint8_t> out(20 + ids.size() * 16 + 4 + transit.size() * 8 + 4 + awaiting.size() * 8);
   const std::uint32_t head[2] = {region_, incarnation_};
   const auto count = static_cast<std::uint32_t>(ids.size());
   std::memcpy(out.data(), head, 8);
@@ -387,6 +395,10 @@ void nats_node::answer_census(const std::string& reply) {
   std::uint8_t* t = out.data() + 20 + ids.size() * 16;
   std::memcpy(t, &tcount, 4);
   if (tcount) std::memcpy(t + 4, transit.data(), transit.size() * 8);
+  const auto acount = static_cast<std::uint32_t>(awaiting.size());
+  std::uint8_t* a = t + 4 + transit.size() * 8;
+  std::memcpy(a, &acount, 4);
+  if (acount) std::memcpy(a + 4, awaiting.data(), awaiting.size() * 8);
   natsConnection_Publish(nc_, reply.c_str(), out.data(), static_cast<int>(out.size()));
 }
 
@@ -419,6 +431,13 @@ void nats_node::before_step(zone_world& w) {
         }
       } else if (st == handoff_status::duplicate) {
         ++stats_.handoff_duplicates;
+      } else if (st == handoff_status::no_room) {
+        // A full zone: the record goes back to the stream and comes again (KV names this zone
+        // already, so no other zone may take the entity; dropping it would lose it).
+        ++stats_.handoffs_no_room;
+        natsMsg_NakWithDelay(m, static_cast<std::int64_t>(opt_.no_room_retry_s * 1000), nullptr);  // ms
+        natsMsg_Destroy(m);
+        continue;
       }
     }
     natsMsg_Ack(m, nullptr);  // applied (or refused for good): not again
@@ -613,7 +632,10 @@ std::optional<std::vector<census_entry>> take_census(const std::string& url, con
     std::uint32_t tcount = 0;
     const std::size_t head = 20 + std::size_t{count} * 16;
     if (len >= 20 && len >= head + 4) std::memcpy(&tcount, d + head, 4);
-    if (len >= 20 && len == head + 4 + std::size_t{tcount} * 8) {
+    const std::size_t tail = head + 4 + std::size_t{tcount} * 8;
+    std::uint32_t acount = 0;
+    if (len >= 20 && len >= tail + 4) std::memcpy(&acount, d + tail, 4);
+    if (len >= 20 && len >= tail + 4 && len == tail + 4 + std::size_t{acount} * 8) {
       e.owned.resize(count);
       for (std::size_t k = 0; k < count; ++k) {
         std::memcpy(&e.owned[k].first, d + 20 + 16 * k, 8);
@@ -621,6 +643,8 @@ std::optional<std::vector<census_entry>> take_census(const std::string& url, con
       }
       e.transit.resize(tcount);
       if (tcount) std::memcpy(e.transit.data(), d + head + 4, std::size_t{tcount} * 8);
+      e.awaiting.resize(acount);
+      if (acount) std::memcpy(e.awaiting.data(), d + tail + 4, std::size_t{acount} * 8);
       out.push_back(std::move(e));
     }
     natsMsg_Destroy(m);
@@ -709,6 +733,7 @@ world_check check_world(const std::vector<census_entry>& census,
     }
   }
   c.transit_only = transit.size();
+  for (const auto& z : census) c.awaiting_players += z.awaiting.size();
   for (const auto& [g, rec] : owners) {
     const auto it = seen.find(g);
     bool current = false;

@@ -52,6 +52,10 @@ struct node_options {
   float ghost_band = 0;  ///< 0: world::ghost_band(zone config)
   std::uint32_t ghost_timeout_ticks = 60;
   double unclaimed_player_s = 10;  ///< a handed-off player whose client never came is removed after this
+  /// Most entities the zone owns (link_options::capacity; 0: the store's capacity): a handoff
+  /// into a full zone is not acked but offered again after `no_room_retry_s` (docs/world.md).
+  std::size_t capacity = 0;
+  double no_room_retry_s = 0.25;
 };
 
 /// Counters of a node (game thread writes, any thread may read roughly).
@@ -60,6 +64,7 @@ struct node_stats {
   std::atomic<std::uint64_t> handoffs_applied{0}, handoff_duplicates{0}, redirects{0}, redirect_claims{0};
   std::atomic<std::uint64_t> inputs_forwarded{0}, inputs_received{0}, snapshot_requests{0}, players_abandoned{0};
   std::atomic<std::uint64_t> ghost_publish_failures{0}, ghost_inbox_dropped{0};
+  std::atomic<std::uint64_t> handoffs_no_room{0};  ///< records offered to a full zone, handed back to the stream to retry
 };
 
 /// One zone's NATS side; a zone_extension for zone_server.
@@ -178,6 +183,9 @@ struct census_entry {
   std::uint64_t tick = 0;
   std::vector<std::pair<global_id, std::uint64_t>> owned;  ///< (id, epoch)
   std::vector<global_id> transit;                          ///< handed off from here, not confirmed yet
+  /// Players handed off to this zone whose client has not come with its token yet (removed after
+  /// node_options::unclaimed_player_s): owned here, but no longer any client's.
+  std::vector<global_id> awaiting;
 };
 /// Asks every zone of the world (world.W.census) and collects the answers for `wait_ms`;
 /// `pump` (when set) is called while waiting (in-process zones answer from their game thread).
@@ -192,6 +200,7 @@ struct census_entry {
 struct world_check {
   std::size_t zones = 0, owned = 0;
   std::size_t transit_only = 0;    ///< handed off and owned by no zone yet (on the stream)
+  std::size_t awaiting_players = 0;  ///< owned players whose client has not followed its redirect (yet)
   std::size_t owned_twice = 0;     ///< the same (id, epoch) in two zones: a broken guarantee
   std::size_t moving = 0;          ///< the same id in two zones with different epochs (the census caught a handoff)
   std::size_t kv_records = 0;

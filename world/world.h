@@ -120,6 +120,10 @@ struct link_options {
   /// A neighbour silent this many ticks loses its ghosts here; an in-transit ghost that its new
   /// owner has not confirmed within it goes too.
   std::uint32_t ghost_timeout_ticks = 60;
+  /// Most entities this zone owns: a handoff that would exceed it is not adopted (no_room: the
+  /// record waits and is offered again; docs/world.md, "A full zone"). 0: only the store's
+  /// capacity bounds it.
+  std::size_t capacity = 0;
 };
 
 /// The band a zone config needs: the largest AOI its entities get (players, NPC tiers 0-2, and
@@ -132,13 +136,16 @@ struct link_stats {
   std::uint64_t ghost_messages_out = 0, ghost_bytes_out = 0, ghost_messages_in = 0, ghost_bytes_in = 0;
   std::uint64_t snapshots_out = 0, snapshots_in = 0, gaps = 0, stale = 0, bad = 0;
   std::uint64_t handoffs_out = 0, handoffs_in = 0, handoff_duplicates = 0, handoffs_refused = 0;
+  std::uint64_t handoffs_no_room = 0;  ///< offers of a record refused for want of room (each retry counts)
   std::uint64_t ghosts_expired = 0;
 };
 
 /// What apply_ghosts made of a message.
 enum class ghost_status { applied, gap, stale, bad };
-/// What apply_handoff made of a record.
-enum class handoff_status { adopted, duplicate, refused };
+/// What apply_handoff made of a record. `no_room`: the zone is full (link_options::capacity or
+/// its store's); nothing changed, and the same record must be offered again later (it is not
+/// lost: KV already names this zone as its owner).
+enum class handoff_status { adopted, duplicate, refused, no_room };
 
 /// The world's view of one zone. Tick thread only (no locking): call apply_* before
 /// zone_world::step, then collect_handoffs and build_ghosts after it.
@@ -164,7 +171,8 @@ class zone_link {
 
   /// Takes over a handed-off entity: idempotent in (gid, epoch) (a replay or a duplicate changes
   /// nothing); a ghost of it here becomes the entity itself (same local handle: clients see no
-  /// leave and enter). `*local` receives its handle here.
+  /// leave and enter). `*local` receives its handle here. A full zone answers no_room and
+  /// changes nothing (offer the record again later).
   handoff_status apply_handoff(zone_world& w, const handoff_record& r, entity_id* local = nullptr);
 
   /// Entities beyond handoff_margin outside this zone's rectangle: each becomes an in-transit

@@ -64,6 +64,8 @@ std::optional<std::string> validate(const zone_config& c) {
   if (!(c.log_summary_s >= 0 && std::isfinite(c.log_summary_s))) return bad("log-summary must be >= 0 seconds");
   if (c.metrics_max_connections == 0 || c.metrics_max_connections > 4096) return bad("metrics-max-connections must be 1 .. 4096");
   if (!(c.teleport_cooldown_s >= 0 && std::isfinite(c.teleport_cooldown_s))) return bad("teleport-cooldown must be >= 0");
+  if (!(c.visibility_cooldown_s >= 0 && std::isfinite(c.visibility_cooldown_s))) return bad("visibility-cooldown must be >= 0");
+  if (c.player_teams > 2) return bad("player-teams must be 0, 1 or 2");
   if (!(c.spawn_radius >= 0 && std::isfinite(c.spawn_radius))) return bad("spawn-radius must be >= 0");
   if (!(c.update_near >= 0 && c.update_mid >= c.update_near && std::isfinite(c.update_mid))) {
     return bad("update-near and update-mid must be >= 0 with update-mid >= update-near");
@@ -144,6 +146,7 @@ config_result parse_config(int argc, const char* const* argv) {
       ("finder", po::value(&c.finder)->default_value(c.finder), "pair finder: auto (chosen per tick from the box statistics: GPU when usable, else CPU), cpu, gpu (= pbig), pbig, lbvh, brute")  //
       ("interest", po::value(&c.interest)->default_value(c.interest), "where the interest step runs: auto (the GPU visibility engine when a device is usable and max-visible is 0, else host), gpu, host (the pair finder and the host diff)")  //
       ("replicate", po::value(&c.replicate)->default_value(c.replicate), "where replication's per-client decisions run: auto (the GPU replication engine when a device is usable, else cpu), gpu, cpu; the frames are the same")  //
+      ("host-views", po::value(&c.host_views)->default_value(c.host_views), "with interest and replication both on the GPU: 1 = copy the players' visible sets back every tick, so a GPU failing mid-run loses no client's history; 0 = read them on the device only (a little faster; a lost device then costs clients mismatches)")  //
       ("hysteresis", po::value(&c.hysteresis)->default_value(c.hysteresis), "leave margin beyond the AOI (m)")  //
       ("max-visible", po::value(&c.max_visible)->default_value(c.max_visible), "cap per observer (0 = none)")   //
       ("aoi-tiny", po::value(&c.aoi_tier[0])->default_value(c.aoi_tier[0]), "AOI half-extent of tier tiny (m)")  //
@@ -189,6 +192,9 @@ config_result parse_config(int argc, const char* const* argv) {
       ("teleport", po::value(&c.teleport_enabled)->default_value(c.teleport_enabled), "players may teleport themselves (0 or 1; an ability the server grants, off by default)")  //
       ("player-fly", po::value(&c.player_fly)->default_value(c.player_fly), "players may move vertically (0: a movement intent's z is ignored)")  //
       ("teleport-cooldown", po::value(&c.teleport_cooldown_s)->default_value(c.teleport_cooldown_s), "least seconds between two teleports of one player")  //
+      ("allow-stealth", po::value(&c.allow_stealth)->default_value(c.allow_stealth), "players may choose stealth in hello or set_visibility (0 or 1)")  //
+      ("player-teams", po::value(&c.player_teams)->default_value(c.player_teams), "teams a player may join: 0 none, 1 red, 2 red and blue (a team sees its stealthed members)")  //
+      ("visibility-cooldown", po::value(&c.visibility_cooldown_s)->default_value(c.visibility_cooldown_s), "least seconds between two visibility switches (set_visibility) of one player")  //
       ("spawn-radius", po::value(&c.spawn_radius)->default_value(c.spawn_radius), "players spawn within this distance of a town (m)")  //
       ("update-near", po::value(&c.update_near)->default_value(c.update_near), "updates every tick within this distance (m)")  //
       ("update-mid", po::value(&c.update_mid)->default_value(c.update_mid), "updates every update-mid-period ticks within this distance (m)")  //

@@ -37,6 +37,25 @@ using interest::vec3;
 
 enum class entity_kind : std::uint8_t { player, npc, boss };
 
+/// A player's visibility from its choice (docs/zone.md, "Visibility classes and teams"): its
+/// presence class is normal unless stealthed; stealthed, it is its team's class (team_red,
+/// team_blue: seen by that team only) or, without a team, stealth (seen by no player). Its AOI
+/// sees normal and its own team's class. team: 0 none, 1 red, 2 blue (others: treated as none;
+/// the server validates before).
+struct player_visibility {
+  std::uint32_t visibility_class = interest::category_bits::normal;
+  std::uint32_t sees = interest::category_bits::normal;
+};
+[[nodiscard]] constexpr player_visibility visibility_for(bool stealth, std::uint8_t team) {
+  const std::uint32_t team_bit = team == 1   ? interest::category_bits::team_red
+                                 : team == 2 ? interest::category_bits::team_blue
+                                             : 0u;
+  player_visibility v;
+  v.visibility_class = !stealth ? interest::category_bits::normal : team_bit != 0 ? team_bit : interest::category_bits::stealth;
+  v.sees = interest::category_bits::normal | team_bit;
+  return v;
+}
+
 /// Everything needed to create an entity. Visibility: `visibility_class` is the one category bit
 /// of its presence box (category_bits::normal, stealth, team_red, ...; never category_bits::aoi);
 /// `sees` is the set of classes its AOI box sees (its mask; never containing the aoi bit).

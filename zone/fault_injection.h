@@ -30,7 +30,12 @@ class fault_injector {
       : kind_(k), from_tick_(from_tick), quantizer_(world), reach_(aoi_reach) {}
 
   /// The client whose frames are rewritten (its observer entity); chosen by the tick loop.
-  void set_victim(entity_id observer) { victim_ = observer; }
+  /// A new victim (the last one left, e.g. redirected to another zone) starts the fault afresh:
+  /// what the old one was believed to hold says nothing of the new one's view.
+  void set_victim(entity_id observer) {
+    if (observer != victim_) target_ = 0, target_held_ = false, class_done_ = false;
+    victim_ = observer;
+  }
   [[nodiscard]] entity_id victim() const { return victim_; }
   [[nodiscard]] std::uint64_t from_tick() const { return from_tick_; }
   /// Entities the fault touched so far (the oracle's log names them).

@@ -2,6 +2,8 @@
 // observer's visible set within a byte budget. Algorithm in docs/zone.md.
 #include <algorithm>
 #include <atomic>
+#include <chrono>
+#include <ctime>
 #include <functional>
 #include <cmath>
 #include <cstring>
@@ -54,6 +56,13 @@ net::wire::entity_update wire_update(entity_id id, const vec3& p, const vec3& v,
 }
 
 void prefetch(const void* p) { __builtin_prefetch(p); }
+
+/// CPU time of every thread of the process so far, ms.
+double process_cpu_ms() {
+  timespec ts{};
+  clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &ts);
+  return static_cast<double>(ts.tv_sec) * 1e3 + static_cast<double>(ts.tv_nsec) * 1e-6;
+}
 
 }  // namespace
 
@@ -148,6 +157,30 @@ void replicator::remove_client(client_id c) {
 void replicator::set_observer(client_id c, entity_id observer) { clients_[c].observer = observer; }
 
 void replicator::resync(client_id c) { clients_[c].reset_pending = true; }
+
+std::size_t replicator::resync_viewers_of(const entity_store& store, entity_id changed, std::uint32_t old_class,
+                                          float hysteresis) {
+  const std::size_t x = store.index_of(changed);
+  if (x == entity_store::npos) return 0;
+  const std::uint32_t cls = store.visibility_classes()[x];
+  if (cls == old_class) return 0;
+  const vec3 p = store.positions()[x], b = store.presence_half_extents()[x];
+  const float slack = hysteresis + 0.01f;
+  std::size_t n = 0;
+  for (client_state& s : clients_) {
+    if (!s.active || s.reset_pending || s.observer == changed) continue;
+    const std::size_t o = store.index_of(s.observer);
+    if (o == entity_store::npos || (store.sees()[o] & cls) == 0) continue;
+    const vec3 q = store.positions()[o], a = store.aoi_half_extents()[o];
+    if (std::fabs(p.x - q.x) > a.x + b.x + slack || std::fabs(p.y - q.y) > a.y + b.y + slack ||
+        std::fabs(p.z - q.z) > a.z + b.z + slack) {
+      continue;
+    }
+    s.reset_pending = true;
+    ++n;
+  }
+  return n;
+}
 
 std::span<const std::uint8_t> replicator::build(client_id c, const entity_store& store, const interest::interest_tracker& tracker,
                                                 std::uint64_t tick, std::uint64_t server_time_us,
@@ -377,6 +410,26 @@ void replicator::set_engine(interest::replication_engine* engine) {
 void replicator::build_on_engine(std::span<const replication_request> requests, const entity_store& store,
                                  const interest::interest_tracker& tracker, std::uint64_t tick, std::uint64_t server_time_us,
                                  interest::thread_pool* pool, const frame_sink& sink, const chunk_sink& chunk_done) {
+  // Phase clocks: wall always, the process's CPU time when asked (set_phase_cpu_timing).
+  replication_phase_times times;
+  times.cpu = phase_cpu_;
+  auto mark_wall = std::chrono::steady_clock::now();
+  double mark_cpu = phase_cpu_ ? process_cpu_ms() : 0;
+  const auto phase_end = [&](double& wall, double& cpu) {
+    const auto now = std::chrono::steady_clock::now();
+    wall = std::chrono::duration<double, std::milli>(now - mark_wall).count();
+    mark_wall = now;
+    if (phase_cpu_) {
+      const double c = process_cpu_ms();
+      cpu = c - mark_cpu;
+      mark_cpu = c;
+    }
+  };
+  // Idle workers sleep after each host phase rather than spin until the next (options).
+  const auto rest = [&] {
+    if (pool != nullptr && opt_.park_between_phases) pool->park();
+  };
+
   const std::size_t n = store.size(), jobs = requests.size();
   const auto slot_dense = store.slot_dense();
   const std::size_t chunk = std::max<std::uint32_t>(1, opt_.clients_per_task);
@@ -389,57 +442,59 @@ void replicator::build_on_engine(std::span<const replication_request> requests, 
   // engine can (then each job names its observer's row), else copied into the staging.
   const auto rows = engine_->reads_resident() ? tracker.resident_visible() : interest::visibility_engine::resident_lists{};
   const bool resident = rows.data != nullptr;
-  job_visible_.assign(jobs + 1, 0);
-  if (!resident) run_each(pool, chunks, [&](std::size_t ch) {
-    const std::size_t end = std::min(jobs, (ch + 1) * chunk);
-    for (std::size_t k = ch * chunk; k < end; ++k) {
-      job_visible_[k] = static_cast<std::uint32_t>(visible_of(requests[k].client).size());
-    }
-  });
   std::uint64_t total = 0;
-  for (std::size_t k = 0; k < jobs; ++k) {
-    const std::uint32_t len = job_visible_[k];
-    job_visible_[k] = static_cast<std::uint32_t>(total);
-    total += len;
+  if (!resident) {
+    job_visible_.assign(jobs + 1, 0);
+    run_each(pool, chunks, [&](std::size_t ch) {
+      const std::size_t end = std::min(jobs, (ch + 1) * chunk);
+      for (std::size_t k = ch * chunk; k < end; ++k) {
+        job_visible_[k] = static_cast<std::uint32_t>(visible_of(requests[k].client).size());
+      }
+    });
+    for (std::size_t k = 0; k < jobs; ++k) {
+      const std::uint32_t len = job_visible_[k];
+      job_visible_[k] = static_cast<std::uint32_t>(total);
+      total += len;
+    }
+    job_visible_[jobs] = static_cast<std::uint32_t>(total);
+    if (total > 0xffffffffu) throw std::length_error("replication engine: more than 2^32 visible entries");
   }
-  job_visible_[jobs] = static_cast<std::uint32_t>(total);
-  if (total > 0xffffffffu) throw std::length_error("replication engine: more than 2^32 visible entries");
 
-  // The staging: every entity as the snapshot has it, the slot map, the jobs with their sets.
+  // The staging, in one pool run: every entity as the store has it (the engine quantizes), the
+  // slot map, the jobs (each names its observer; the engine finds its position) with their sets.
   const auto st = engine_->stage(n, slot_dense.size(), jobs, resident ? 0 : total);
   const auto ids = store.ids();
   const auto pos = store.positions();
   const auto vel = store.velocities();
-  run_each(pool, (n + snapshot_chunk - 1) / snapshot_chunk, [&](std::size_t task) {
-    const std::size_t end = std::min(n, (task + 1) * snapshot_chunk);
-    for (std::size_t k = task * snapshot_chunk; k < end; ++k) {
-      interest::replication_entity& e = st.entities[k];
-      e.x = pos[k].x;
-      e.y = pos[k].y;
-      e.z = pos[k].z;
-      e.id = ids[k];
-      const net::wire::entity_update u = wire_update(ids[k], pos[k], vel[k], quantizer_);
-      static_assert(sizeof(u) == sizeof(e.update));
-      std::memcpy(e.update, &u, sizeof(u));
+  const std::size_t entity_tasks = (n + snapshot_chunk - 1) / snapshot_chunk;
+  run_each(pool, 1 + entity_tasks + chunks, [&](std::size_t task) {
+    if (task == 0) {
+      if (!slot_dense.empty()) std::memcpy(st.slot_dense, slot_dense.data(), slot_dense.size_bytes());
+      return;
     }
-  });
-  if (!slot_dense.empty()) std::memcpy(st.slot_dense, slot_dense.data(), slot_dense.size_bytes());
-  run_each(pool, chunks, [&](std::size_t ch) {
+    if (task <= entity_tasks) {
+      const std::size_t begin = (task - 1) * snapshot_chunk, end = std::min(n, begin + snapshot_chunk);
+      for (std::size_t k = begin; k < end; ++k) {
+        interest::replication_entity& e = st.entities[k];
+        e.x = pos[k].x;
+        e.y = pos[k].y;
+        e.z = pos[k].z;
+        e.id = ids[k];
+        e.vx = vel[k].x;
+        e.vy = vel[k].y;
+        e.vz = vel[k].z;
+        e.pad = 0;
+      }
+      return;
+    }
+    const std::size_t ch = task - 1 - entity_tasks;
     const std::size_t end = std::min(jobs, (ch + 1) * chunk);
     for (std::size_t k = ch * chunk; k < end; ++k) {
       const client_state& s = clients_[requests[k].client];
       interest::replication_job& j = st.jobs[k];
       j.client = requests[k].client;
       j.flags = s.reset_pending ? interest::job_reset : 0;
-      const std::size_t self = store.index_of(s.observer);
-      if (self != entity_store::npos) {
-        j.flags |= interest::job_has_self;
-        j.eye[0] = pos[self].x;
-        j.eye[1] = pos[self].y;
-        j.eye[2] = pos[self].z;
-      } else {
-        j.eye[0] = j.eye[1] = j.eye[2] = 0;
-      }
+      j.observer = s.observer;
       if (resident) {
         const std::size_t row = tracker.row_of(s.observer);
         j.visible_off = row != entity_store::npos ? static_cast<std::uint32_t>(row) : interest::no_row;
@@ -470,9 +525,17 @@ void replicator::build_on_engine(std::span<const replication_request> requests, 
   rules.mid_period = mid_period_;
   rules.far_period = far_period_;
   rules.slot_mask = entity_index_mask;
-  // The workers would spin through the device's work: let them sleep until the wrapping below.
+  const net::world_bounds& wb = quantizer_.world();
+  rules.quant_lo[0] = wb.lo.x;
+  rules.quant_lo[1] = wb.lo.y;
+  rules.quant_lo[2] = wb.lo.z;
+  for (int d = 0; d < 3; ++d) rules.quant_step[d] = quantizer_.step(d);
+  // The workers would spin through the device's work: let them sleep until the wrapping below
+  // (always, whatever park_between_phases says).
   if (pool != nullptr) pool->park();
+  phase_end(times.stage_ms, times.stage_cpu_ms);
   const auto out = engine_->run(rules, clients_.size(), resident ? &rows : nullptr);
+  phase_end(times.engine_ms, times.engine_cpu_ms);
 
   // Each frame wraps its record: enters built from the store (full state), leaves and updates
   // copied as they are. Chunks of requests per task, as on the CPU path.
@@ -499,7 +562,7 @@ void replicator::build_on_engine(std::span<const replication_request> requests, 
           stats.reset = true;
           s.reset_pending = false;
         }
-        if ((j.flags & interest::job_has_self) != 0) writer.set_self_position({j.eye[0], j.eye[1], j.eye[2]});
+        if ((res.flags & interest::result_has_self) != 0) writer.set_self_position({res.eye[0], res.eye[1], res.eye[2]});
         const std::uint8_t* rec = out.records + res.record_off;
         const auto* leaves = reinterpret_cast<const std::uint32_t*>(rec);
         const auto* enters = reinterpret_cast<const std::uint32_t*>(rec + 4 * std::size_t{res.leaves});
@@ -531,6 +594,9 @@ void replicator::build_on_engine(std::span<const replication_request> requests, 
       if (chunk_done) chunk_done(begin, end);
     }
   });
+  rest();
+  phase_end(times.wrap_ms, times.wrap_cpu_ms);
+  phase_times_ = times;
 }
 
 void replicator::build_many(std::span<const replication_request> requests, const entity_store& store,

@@ -39,6 +39,21 @@ struct replication_options {
   /// sent) when clients * snapshot_entities_per_client >= entities; 0 = never. The frames are the
   /// same either way.
   std::uint32_t snapshot_entities_per_client = 16;
+  /// On a replication engine: the pool's idle workers sleep after each of build_many's host
+  /// phases (thread_pool::park) instead of spinning until their next run; the frames never
+  /// depend on it.
+  bool park_between_phases = true;
+};
+
+/// Where build_many's last call on a replication engine spent its time (ms): wall clock per
+/// phase, and the process's CPU time (every thread) over each phase when
+/// replicator::set_phase_cpu_timing(true).
+struct replication_phase_times {
+  double stage_ms = 0;  ///< the staging: entities, slot map, jobs (one pool run)
+  double engine_ms = 0;  ///< the engine's run (the device's work, copies and waits)
+  double wrap_ms = 0;    ///< the frames from the engine's output, handed to the sink
+  double stage_cpu_ms = 0, engine_cpu_ms = 0, wrap_cpu_ms = 0;
+  bool cpu = false;  ///< the CPU figures were measured
 };
 
 /// What one build() did.
@@ -124,6 +139,15 @@ class replicator {
   void set_observer(client_id c, entity_id observer);
   /// The client lost frames: the next frame resets its view and starts it again.
   void resync(client_id c);
+  /// Entity `changed` switched visibility class (from `old_class` to its class in `store` now).
+  /// A frame enters an entity with its class once and never sends the class again, so every client
+  /// that may hold it with the old class and keeps seeing it is resync()ed: its next frame resets
+  /// the view (enters carry the new class). Those are the active clients whose observer sees the
+  /// new class and whose AOI box, grown by `hysteresis` (and a centimetre), meets the entity's
+  /// presence box at the store's positions (call after the interest step of those positions: a
+  /// client holding it from farther away is sent its leave in this tick's frame). Returns how many.
+  /// The decision reads only the store, so the CPU path and an engine resync the same clients.
+  std::size_t resync_viewers_of(const entity_store& store, entity_id changed, std::uint32_t old_class, float hysteresis);
 
   /// Builds this tick's frame for client c into `writer`; the span is valid until the writer's
   /// next build. `stats`, when given, receives what was sent and deferred.
@@ -159,6 +183,11 @@ class replicator {
   /// client's next frame a reset. With an engine, build() must not be called, and view() is empty
   /// (the view lives on the engine); view_hash() and view_size() stay exact.
   void set_engine(interest::replication_engine* engine);
+  /// Whether build_many on an engine also reads the process's CPU clock at its phases' ends
+  /// (replication_phase_times; a few system calls a tick).
+  void set_phase_cpu_timing(bool on) { phase_cpu_ = on; }
+  /// The phases of build_many's last call on the engine.
+  [[nodiscard]] const replication_phase_times& phase_times() const { return phase_times_; }
   /// True while build_many runs on the engine.
   [[nodiscard]] bool on_engine() const { return engine_ != nullptr && engine_error_.empty(); }
   /// Why the engine was given up (empty while it works or when none is set).
@@ -228,6 +257,8 @@ class replicator {
   interest::replication_engine* engine_ = nullptr;
   std::string engine_error_;
   std::vector<std::uint32_t> job_visible_;  // build_on_engine: visible-set size, then offset, by request
+  replication_phase_times phase_times_;
+  bool phase_cpu_ = false;
 };
 
 }  // namespace zone

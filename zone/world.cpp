@@ -216,8 +216,11 @@ void zone_world::set_state(entity_id id, const npc_state& st) {
   is_player_[slot] = st.kind == behaviour::player ? 1 : 0;
 }
 
-entity_id zone_world::spawn_player(const vec3& at) {
+entity_id zone_world::spawn_player(const vec3& at, bool stealth, std::uint8_t team) {
   entity_desc d;
+  const player_visibility v = visibility_for(stealth, team);
+  d.visibility_class = v.visibility_class;
+  d.sees = v.sees;
   d.position = clamp_to_world(at);
   d.aoi_half_extent = {cfg_.player_aoi, cfg_.player_aoi, cfg_.player_aoi};
   d.presence_half_extent = {0.5f, 0.5f, 1.0f};
@@ -247,8 +250,9 @@ bool zone_world::despawn(entity_id id) {
 entity_id zone_world::adopt(const entity_desc& d, const behaviour_state& b) {
   const entity_id id = store_.create(d);
   if (id == null_entity) return id;
-  if (by_slot_.size() <= slot_of(id)) by_slot_.resize(slot_of(id) + 1);
-  by_slot_[slot_of(id)] = b;
+  set_state(id, b);  // by_slot_ and is_player_ grow together
+  // is_player_ tells the entity's kind (a world's ghost of a player is one too: chasers see it).
+  is_player_[slot_of(id)] = d.kind == entity_kind::player ? 1 : 0;
   set_reads_view(id, b.kind == behaviour::player || b.kind == behaviour::chase);
   return id;
 }
@@ -284,7 +288,7 @@ bool zone_world::teleport(entity_id player, const vec3& to, bool* clamped) {
   if (!std::isfinite(to.x) || !std::isfinite(to.y) || !std::isfinite(to.z)) return false;
   const vec3 at = clamp_to_world(to);
   if (clamped) *clamped = !(at == to);
-  return store_.set_position(player, at);
+  return store_.space().teleport(player, at);  // the tick API's jump
 }
 
 void zone_world::decide(std::size_t first, std::size_t last) {

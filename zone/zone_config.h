@@ -49,6 +49,13 @@ struct zone_config {
   /// gpu/replication.h, when a device is usable; else the CPU replicator), "gpu" (the engine, or
   /// refuse to start), "cpu". The frames are the same either way (docs/zone.md).
   std::string replicate = "auto";
+  /// With both engines on the GPU: copy the players' visible sets back to the host after every
+  /// interest step (true), or let the replication engine read them on the device only (false:
+  /// ~0.3 ms less per tick at 20,000 clients, docs/zone-benchmarks.md). With false a GPU that
+  /// fails mid-run takes the players' last sets with it: their hysteresis history is lost and
+  /// clients hold entities the rules say they should not (or lack ones they should) for a while;
+  /// with true the fallback is exact (docs/zone.md, "A GPU that fails mid-run").
+  bool host_views = true;
   float hysteresis = 4;
   std::uint32_t max_visible = 0;  ///< per observer, 0 = no cap
   /// AOI half-extents of the tiers tiny .. gigantic (metres).
@@ -114,6 +121,12 @@ struct zone_config {
   std::uint32_t update_mid_period = 3, update_far_period = 8;
   std::uint32_t digest_every = 1;    ///< a visible-set digest every K ticks (0 = none)
   double teleport_cooldown_s = 0.5;  ///< least time between two jumps of one player (0 = none)
+  /// Client-chosen visibility (hello, set_visibility; docs/zone.md "Visibility classes and
+  /// teams"): players may choose stealth, and join one of `player_teams` teams (0 none, 1 red,
+  /// 2 red and blue); a client switches at most once per visibility_cooldown_s.
+  bool allow_stealth = true;
+  std::uint32_t player_teams = 2;
+  double visibility_cooldown_s = 1.0;
   bool metrics_enabled = true;        ///< serve Prometheus text at http://metrics_address:metrics_port/metrics
   std::uint16_t metrics_port = 9100;  ///< 0 = an ephemeral port
   /// Where /metrics listens: loopback by default (it has no authentication); "0.0.0.0" opens it.

@@ -101,8 +101,9 @@ zone_server::zone_server(const zone_config& cfg)
         faulty_replication_ = std::make_unique<faulty_replication_engine>(*replication_engine_, gpu_fault(cfg));
       }
       replicator_.set_engine(faulty_replication_ ? faulty_replication_.get() : replication_engine_.get());
-      // With the interest step on the GPU too, replication reads the visible sets there in place.
-      world_->set_player_views_on_host(false);
+      // With the interest step on the GPU too, replication reads the visible sets there in place;
+      // unless --host-views (the default), the players' rows then stay on the device only.
+      world_->set_player_views_on_host(cfg.host_views);
     } else if (cfg.replicate == "gpu") {
       replicate_error_ = "replicate 'gpu' cannot run here: " + why + " (use --replicate auto or cpu)";
     } else {
@@ -154,6 +155,11 @@ std::string zone_server::metrics_text() const {
   t.counter("zone_teleports_clamped_total", "Applied teleports clamped into the world.", static_cast<double>(stats_.teleports_clamped));
   t.counter("zone_teleports_refused_total", "Teleport requests refused (off, cooldown, another's entity, not finite).",
             static_cast<double>(stats_.teleports_refused));
+  t.counter("zone_visibility_switches_total", "Visibility switches (set_visibility) applied.", static_cast<double>(stats_.visibility_switches));
+  t.counter("zone_visibility_refused_total", "Visibility switches refused (a value the zone does not allow, cooldown).",
+            static_cast<double>(stats_.visibility_refused));
+  t.counter("zone_visibility_resyncs_total", "Clients resynced because an entity they may hold changed class.",
+            static_cast<double>(stats_.visibility_resyncs));
   t.counter("zone_net_connections_accepted_total", "Connections accepted.", static_cast<double>(ns.connections_accepted));
   t.counter("zone_net_connections_refused_total", "Connections refused (limit).", static_cast<double>(ns.connections_refused));
   t.gauge("zone_net_sessions_open", "Open sessions.", static_cast<double>(ns.sessions_open));
@@ -234,7 +240,7 @@ net::interest_rules zone_server::rules() const {
   r.player_aoi = {cfg_.player_aoi, cfg_.player_aoi, cfg_.player_aoi};
   r.hysteresis = cfg_.hysteresis;
   r.max_visible = cfg_.max_visible;
-  const entity_desc player{};  // a player's class and sees (zone_world::spawn_player keeps the defaults)
+  const player_visibility player = visibility_for(false, 0);  // a player that chose nothing (the welcome says the client's own)
   r.player_class = player.visibility_class;
   r.player_sees = player.sees;
   r.npc_aoi_tiers.assign(std::begin(cfg_.aoi_tier), std::end(cfg_.aoi_tier));
@@ -248,6 +254,9 @@ net::interest_rules zone_server::rules() const {
   r.send_every = cfg_.client_send_every;
   r.digest_every = cfg_.digest_every;
   r.max_speed = std::max(cfg_.player_speed, 1.5f * cfg_.npc_speed);  // chasers run at 1.5 x npc-speed
+  r.allow_stealth = cfg_.allow_stealth;
+  r.teams = static_cast<std::uint8_t>(cfg_.player_teams);
+  r.visibility_cooldown = static_cast<float>(cfg_.visibility_cooldown_s);
   return r;
 }
 
@@ -333,13 +342,18 @@ void zone_server::drain_inputs() {
                                        world_->tick() + static_cast<std::uint64_t>(5 * cfg_.tick_rate_hz)});
             break;
           }
+          if (auto why = check_visibility_choice(hello->stealth, hello->team)) {
+            net_.disconnect(e.session, net::error_code::bad_hello, *why);
+            break;
+          }
           // Spawn uniformly within spawn_radius of a town (deterministic in the session id).
           const vec3 town = world_->town(e.session % world_->town_count());
           const std::uint64_t h = spawn_hash(e.session);
           const double r = cfg_.spawn_radius * std::sqrt(static_cast<double>(h >> 40) / 16777216.0);
           const double a = static_cast<double>(h & 0xffffff) / 16777216.0 * 6.283185307179586;
           const entity_id id = world_->spawn_player(
-              {town.x + static_cast<float>(r * std::cos(a)), town.y + static_cast<float>(r * std::sin(a)), town.z});
+              {town.x + static_cast<float>(r * std::cos(a)), town.y + static_cast<float>(r * std::sin(a)), town.z},
+              hello->stealth, hello->team);
           if (id == null_entity) {
             net_.disconnect(e.session, net::error_code::server_full, "the zone is full");
             break;
@@ -360,6 +374,9 @@ void zone_server::drain_inputs() {
         } else if (const auto* tp = std::get_if<net::teleport_msg>(&*e.msg)) {
           const auto it = clients_.find(e.session);
           if (it != clients_.end()) teleport(e.session, it->second, *tp);
+        } else if (const auto* sv = std::get_if<net::set_visibility_msg>(&*e.msg)) {
+          const auto it = clients_.find(e.session);
+          if (it != clients_.end()) set_visibility(e.session, it->second, *sv);
         }
         break;
       }
@@ -447,6 +464,43 @@ void zone_server::teleport(net::session_id session, client& c, const net::telepo
   c.last_teleport_tick = world_->tick();
   ++stats_.teleports;
   if (clamped) ++stats_.teleports_clamped;
+}
+
+std::optional<std::string> zone_server::check_visibility_choice(bool stealth, std::uint8_t team) const {
+  if (stealth && !cfg_.allow_stealth) return std::string("stealth is not allowed in this zone");
+  if (team > cfg_.player_teams) {
+    return "team " + std::to_string(team) + " is not allowed in this zone (teams 1 .. " + std::to_string(cfg_.player_teams) +
+           ", 0 = none)";
+  }
+  return std::nullopt;
+}
+
+void zone_server::set_visibility(net::session_id session, client& c, const net::set_visibility_msg& v) {
+  note_sequence(c, v.sequence);
+  const auto refuse = [&](const std::string& why) {
+    ++stats_.visibility_refused;
+    spdlog::debug("session {}: set_visibility refused: {}", session, why);
+  };
+  if (auto why = check_visibility_choice(v.stealth, v.team)) return refuse(*why);
+  if (ext_ != nullptr && !ext_->owns(c.entity)) return refuse("the entity was handed off");
+  const auto cooldown = static_cast<std::uint64_t>(std::ceil(cfg_.visibility_cooldown_s * cfg_.tick_rate_hz));
+  if (c.switched && world_->tick() < c.last_visibility_tick + cooldown) return refuse("cooldown");
+  const std::size_t d = world_->store().index_of(c.entity);
+  if (d == entity_store::npos) return refuse("no entity");
+  const std::uint32_t old_class = world_->store().visibility_classes()[d];
+  const player_visibility pv = visibility_for(v.stealth, v.team);
+  if (!world_->store().set_visibility(c.entity, pv.visibility_class, pv.sees)) return refuse("invalid");
+  if (pv.visibility_class != old_class) class_changes_.push_back({c.entity, old_class});
+  c.switched = true;
+  c.last_visibility_tick = world_->tick();
+  ++stats_.visibility_switches;
+}
+
+void zone_server::replicate_class_changes() {
+  for (const auto& ch : class_changes_) {
+    stats_.visibility_resyncs += replicator_.resync_viewers_of(world_->store(), ch.entity, ch.old_class, cfg_.hysteresis);
+  }
+  class_changes_.clear();
 }
 
 void zone_server::note_sequence(client& c, std::uint32_t sequence) {
@@ -587,6 +641,7 @@ void zone_server::tick_once() {
     spdlog::warn("zone: tick {}: the GPU interest engine failed ({}); interest runs on the host from this tick on, finder {}",
                  world_->tick(), world_->tracker().engine_error(), parts_.finder->name());
   }
+  replicate_class_changes();
   // The ground truth of this tick (--oracle), before any frame of it is sent.
   if (truth_) truth_->publish(world_->store(), world_->tick());
   const auto t1 = clock_type::now();
@@ -620,7 +675,7 @@ void zone_server::tick_once() {
 
 void zone_server::fill_viewer_snapshot(net::viewer_snapshot& s) const {
   const entity_store& store = world_->store();
-  const interest_tracker& tr = world_->tracker();
+  const interest::interest_tracker& tr = world_->tracker();
   s.tick = world_->tick();
   s.world_lo[0] = cfg_.world.lo.x, s.world_lo[1] = cfg_.world.lo.y, s.world_lo[2] = cfg_.world.lo.z;
   s.world_hi[0] = cfg_.world.hi.x, s.world_hi[1] = cfg_.world.hi.y, s.world_hi[2] = cfg_.world.hi.z;
@@ -629,17 +684,23 @@ void zone_server::fill_viewer_snapshot(net::viewer_snapshot& s) const {
   const auto pos = store.positions();
   const auto cls = store.visibility_classes();
   const auto kinds = store.kinds();
-  s.ids.assign(ids.begin(), ids.end());
+  s.ids.resize(n);
   s.x.resize(n);
   s.y.resize(n);
   s.visibility.resize(n);
   s.kind.resize(n);
-  for (std::size_t i = 0; i < n; ++i) {
-    s.x[i] = pos[i].x;
-    s.y[i] = pos[i].y;
-    s.visibility[i] = static_cast<std::uint8_t>(std::countr_zero(cls[i]));
-    s.kind[i] = static_cast<std::uint8_t>(kinds[i]);
-  }
+  // On the workers, in chunks: at 100,000 entities one thread takes most of a millisecond, which
+  // shows in the tick's p99 on a fast host (docs/viewer.md).
+  constexpr std::size_t chunk = 8192;
+  interest::run_tasks(n > chunk ? pool_.get() : nullptr, (n + chunk - 1) / chunk, [&](std::size_t c) {
+    for (std::size_t i = c * chunk, e = std::min(n, (c + 1) * chunk); i < e; ++i) {
+      s.ids[i] = ids[i];
+      s.x[i] = pos[i].x;
+      s.y[i] = pos[i].y;
+      s.visibility[i] = static_cast<std::uint8_t>(std::countr_zero(cls[i]));
+      s.kind[i] = static_cast<std::uint8_t>(kinds[i]);
+    }
+  });
   // The selected entities: boxes, visible set with each entity's replication tier, events.
   s.selections.resize(viewer_watch_.size());
   const float near_sq = cfg_.update_near * cfg_.update_near, mid_sq = cfg_.update_mid * cfg_.update_mid;
@@ -731,7 +792,7 @@ void zone_server::publish_viewer() {
     viewer_ticks_.clear();
     return;
   }
-  const interest_tracker& tr = world_->tracker();
+  const interest::interest_tracker& tr = world_->tracker();
   const std::uint64_t tick = world_->tick();
   // The watched entities' enters and leaves of this step (a window of the latest 64 each).
   for (auto& w : viewer_watch_) {

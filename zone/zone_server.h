@@ -36,6 +36,9 @@ struct loop_stats {
   std::uint64_t teleports = 0;          ///< teleport requests applied
   std::uint64_t teleports_clamped = 0;  ///< of which clamped into the world
   std::uint64_t teleports_refused = 0;  ///< refused: off, cooldown, another's entity, not finite
+  std::uint64_t visibility_switches = 0;  ///< set_visibility requests applied
+  std::uint64_t visibility_refused = 0;   ///< refused: a value the zone does not allow, cooldown, handed off
+  std::uint64_t visibility_resyncs = 0;   ///< clients resynced because an entity they hold changed class
   std::uint64_t joins = 0;              ///< players that joined (welcomed)
   std::uint64_t leaves = 0;             ///< players that left
   latency_histogram inputs_ms, replicate_ms, tick_ms;  ///< plus zone_world::phases()
@@ -116,6 +119,8 @@ class zone_server {
     bool any_input = false;           ///< last_input is set
     std::uint64_t last_teleport_tick = 0;  ///< world tick of the last applied teleport
     bool teleported = false;
+    std::uint64_t last_visibility_tick = 0;  ///< world tick of the last applied set_visibility
+    bool switched = false;
     bool redirected = false;  ///< its entity moved to another zone: no more frames, inputs forwarded
     std::shared_ptr<const std::atomic<std::uint32_t>> backlog;  ///< net::server::state_backlog
   };
@@ -123,6 +128,19 @@ class zone_server {
   /// Validates and applies one client's teleport request (permission, own entity, cooldown,
   /// finite target clamped into the world).
   void teleport(net::session_id session, client& c, const net::teleport_msg& t);
+  /// Validates and applies one client's set_visibility (allowed values, cooldown); a class change
+  /// is queued for replicate_class_changes().
+  void set_visibility(net::session_id session, client& c, const net::set_visibility_msg& v);
+  /// Whether the zone allows a player's visibility choice; why not otherwise.
+  [[nodiscard]] std::optional<std::string> check_visibility_choice(bool stealth, std::uint8_t team) const;
+  /// After the step: every client that may hold an entity whose class changed this tick with its
+  /// old class is resynced (replicator::resync_viewers_of).
+  void replicate_class_changes();
+  struct class_change {
+    entity_id entity;
+    std::uint32_t old_class;
+  };
+  std::vector<class_change> class_changes_;
   /// Records an input's sequence as the client's last when it is newer (RFC 1982 serial-number
   /// order: a sequence 1 .. 2^31 - 1 ahead, wrapping past 2^32); older ones leave it.
   static void note_sequence(client& c, std::uint32_t sequence);

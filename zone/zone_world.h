@@ -46,8 +46,9 @@ class zone_world {
 
   /// Creates the NPCs and bosses of the config (deterministic in cfg.seed).
   void populate();
-  /// A player entity at `at` (clamped into the world); null_entity when the zone is full.
-  [[nodiscard]] entity_id spawn_player(const vec3& at);
+  /// A player entity at `at` (clamped into the world) with the visibility a player's choice
+  /// gives (visibility_for); null_entity when the zone is full.
+  [[nodiscard]] entity_id spawn_player(const vec3& at, bool stealth = false, std::uint8_t team = 0);
   bool despawn(entity_id id);
   /// An entity with a given behaviour state (a world's ghost or handed-off entity); null_entity
   /// when the description is invalid or the zone is full.
@@ -118,7 +119,9 @@ class zone_world {
   interest::thread_pool* pool_;
   entity_store store_;  // with the interest step (store_.space())
   std::vector<npc_state> by_slot_;  // indexed by slot_of(id)
-  /// By slot: 1 where by_slot_'s kind is player. What the chasers' scan reads: a byte a slot
+  /// By slot: 1 where the entity is a player (spawned as one, or adopted with kind player: a
+  /// world's ghost of a player or a handed-off one; set_state and adopt keep it as long as
+  /// by_slot_). What the chasers' scan reads: a byte a slot
   /// (1 MB a million entities) instead of a 32-byte state.
   std::vector<std::uint8_t> is_player_;
   void set_state(entity_id id, const npc_state& st);

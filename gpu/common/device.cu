@@ -1,7 +1,7 @@
-// Device discovery for the GPU layer (the finder itself: pbig_finder.cpp).
+// Device discovery for the GPU layer (gpu/device.h).
 #include <cuda_runtime.h>
 
-#include "gpu/pbig.h"
+#include "gpu/device.h"
 
 namespace zone::gpu {
 

@@ -1,4 +1,4 @@
-// pinned_boxes (pbig.h): page-locked box arrays, and the registry the finders consult.
+// pinned_boxes (gpu/device.h): page-locked box arrays, and the registry the finders consult.
 #include <cuda_runtime.h>
 
 #include <algorithm>
@@ -7,7 +7,7 @@
 #include <mutex>
 #include <vector>
 
-#include "gpu/pbig.h"
+#include "gpu/device.h"
 
 namespace zone::gpu {
 namespace {

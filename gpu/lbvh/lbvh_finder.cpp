@@ -4,8 +4,8 @@
 #include <cstring>
 #include <stdexcept>
 
+#include "gpu/device.h"
 #include "gpu/lbvh.h"
-#include "gpu/pbig.h"
 #include "lbvh_dispatch.h"
 #include "lbvh_tuning.h"
 

@@ -1,8 +1,8 @@
 // The LBVH finder in a build without CUDA: every entry point says so, callers fall back to the CPU.
 #include <stdexcept>
 
+#include "gpu/device.h"
 #include "gpu/lbvh.h"
-#include "gpu/pbig.h"
 
 namespace zone::gpu {
 

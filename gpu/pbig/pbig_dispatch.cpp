@@ -131,6 +131,8 @@ std::optional<std::uint64_t> pbig_engine::run(const interest::box_set& boxes, in
   const auto n = static_cast<std::uint32_t>(count);
   report_ = {};
   entries_ready_ = false;
+  indirect_ = count >= opt_.indirect_check_min_boxes;
+  report_.indirect_check = indirect_;
 
   CUDA_CHECK(cudaEventRecord(ev_start_, main_));
   if (!upload(boxes, validate)) return std::nullopt;
@@ -203,6 +205,24 @@ std::optional<std::uint64_t> pbig_engine::run(const interest::box_set& boxes, in
   return report_.pairs;
 }
 
+bool pbig_engine::uniform_classes(const interest::box_set& boxes) const {
+  const std::size_t n = boxes.size();
+  if (n == 0) return true;
+  const std::uint32_t c0 = boxes.category[0], m0 = boxes.mask[0];
+  const std::size_t parts = (n + tuning::uniform_classes_part - 1) / tuning::uniform_classes_part;
+  std::atomic<bool> differs{false};
+  interest::run_tasks(pool_, parts, [&](std::size_t p) {
+    if (differs.load(std::memory_order_relaxed)) return;
+    const std::size_t b = p * tuning::uniform_classes_part, e = std::min(n, b + tuning::uniform_classes_part);
+    const std::uint32_t* cat = boxes.category.data();
+    const std::uint32_t* mask = boxes.mask.data();
+    std::uint32_t diff = 0;
+    for (std::size_t i = b; i < e; ++i) diff |= (cat[i] ^ c0) | (mask[i] ^ m0);
+    if (diff != 0) differs.store(true, std::memory_order_relaxed);
+  });
+  return !differs.load();
+}
+
 bool pbig_engine::upload(const interest::box_set& boxes, bool check) {
   const std::size_t n = boxes.size();
   d_coord_.reserve(6 * n);
@@ -216,10 +236,20 @@ bool pbig_engine::upload(const interest::box_set& boxes, bool check) {
     for (int a = 0; a < 6; ++a) {
       CUDA_CHECK(cudaMemcpyAsync(d_coord_.get() + a * n, src_f[a], n * 4, cudaMemcpyHostToDevice, main_));
     }
-    CUDA_CHECK(cudaMemcpyAsync(d_bits_.get(), boxes.category.data(), n * 4, cudaMemcpyHostToDevice, main_));
-    CUDA_CHECK(cudaMemcpyAsync(d_bits_.get() + n, boxes.mask.data(), n * 4, cudaMemcpyHostToDevice, main_));
+    // While the coordinates are copied: one category and one mask for every box (the plain
+    // self-join)? Then those arrays are filled on the device instead of copied.
+    if (opt_.fill_uniform_classes && n >= tuning::uniform_classes_min_boxes && uniform_classes(boxes)) {
+      const auto n32 = static_cast<std::uint32_t>(n);
+      CUDA_CHECK(launch_fill_u32(d_bits_.get(), n32, boxes.category[0], main_));
+      CUDA_CHECK(launch_fill_u32(d_bits_.get() + n, n32, boxes.mask[0], main_));
+      report_.bytes_in += 24 * n;
+      report_.classes_filled = true;
+    } else {
+      CUDA_CHECK(cudaMemcpyAsync(d_bits_.get(), boxes.category.data(), n * 4, cudaMemcpyHostToDevice, main_));
+      CUDA_CHECK(cudaMemcpyAsync(d_bits_.get() + n, boxes.mask.data(), n * 4, cudaMemcpyHostToDevice, main_));
+      report_.bytes_in += 32 * n;
+    }
     CUDA_CHECK(cudaEventRecord(ev_in_, main_));
-    report_.bytes_in += 32 * n;
     validate_on_device_ = check;
     return true;
   }
@@ -306,8 +336,10 @@ void pbig_engine::queue_map(std::uint32_t n, const grid_sizes& size, bool small_
   std::uint32_t* cursor = d_counts_.get() + size.cells + 2;  // queue_count's layout
   d_entries_unsorted_.reserve(size.entries);
   d_entries_.reserve(size.entries);
-  d_packed_lo_.reserve(size.entries);
-  d_packed_hi_.reserve(size.entries);
+  if (!indirect_) {
+    d_packed_lo_.reserve(size.entries);
+    d_packed_hi_.reserve(size.entries);
+  }
   d_items_.reserve(size.items);
   if (size.entries == 0) {
     CUDA_CHECK(cudaEventRecord(ev_scattered_, main_));
@@ -330,8 +362,10 @@ void pbig_engine::queue_map(std::uint32_t n, const grid_sizes& size, bool small_
                             size.cells, d_prefix_.get(), main_));
     }
     CUDA_CHECK(cudaEventRecord(ev_sorted_, main_));
-    CUDA_CHECK(launch_gather(d_box_lo_.get(), d_box_hi_.get(), d_entries_.get(), size.entries, grid, d_packed_lo_.get(),
-                             d_packed_hi_.get(), main_));
+    if (!indirect_) {  // else the checks read the id-ordered boxes through the ids
+      CUDA_CHECK(launch_gather(d_box_lo_.get(), d_box_hi_.get(), d_entries_.get(), size.entries, grid,
+                               d_packed_lo_.get(), d_packed_hi_.get(), main_));
+    }
   }
   CUDA_CHECK(cudaEventRecord(ev_map_, main_));
   if (size.items > 0) {
@@ -446,8 +480,9 @@ check_args pbig_engine::batch_args(const batch& b, const pipeline_slot& s) const
   check_args a{};
   a.plan = d_plan_.get();
   a.grid = d_readback_.get();
-  a.packed_lo = d_packed_lo_.get();
-  a.packed_hi = d_packed_hi_.get();
+  a.packed_lo = indirect_ ? d_box_lo_.get() : d_packed_lo_.get();
+  a.packed_hi = indirect_ ? d_box_hi_.get() : d_packed_hi_.get();
+  a.indirect = indirect_ ? 1u : 0u;
   a.entries = d_entries_.get();
   a.prefix = d_prefix_.get();
   a.items = d_items_.get();

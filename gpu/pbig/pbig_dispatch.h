@@ -86,6 +86,8 @@ class pbig_engine {
   };
   enum class queue_result { done, invalid, outgrown };
   bool upload(const interest::box_set& boxes, bool check);
+  /// True when every box has boxes.category[0] and boxes.mask[0] (checked on the pool, early exit).
+  [[nodiscard]] bool uniform_classes(const interest::box_set& boxes) const;
   /// Queues the bounds and planning kernels: the plan is in d_plan_ (device memory).
   void queue_plan(std::uint32_t n);
   /// Read-back sizing, synchronisation 1: the plan into plan_. False when the device found an
@@ -154,6 +156,7 @@ class pbig_engine {
   device_buffer<std::uint32_t> d_entries_unsorted_, d_entries_, d_items_;
   device_buffer<float4> d_box_lo_, d_box_hi_;        // boxes in id order, 2 x 16 bytes
   device_buffer<float4> d_packed_lo_, d_packed_hi_;  // the box array: boxes in cell order
+  bool indirect_ = false;  // this call's checks read d_box_lo_/hi_ through the ids (no gather)
   pinned_buffer<std::uint32_t> h_entries_;
   device_buffer<unsigned char> d_temp_;
   // large boxes

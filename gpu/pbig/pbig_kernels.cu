@@ -127,6 +127,19 @@ cudaError_t launch_pack_boxes(const box_arrays& boxes, std::uint32_t n, float4* 
   return cudaGetLastError();
 }
 
+namespace {
+/// Fills n 32-bit words with `value` (the category or mask array of a set whose boxes all share it).
+__global__ void fill_u32_kernel(std::uint32_t* out, std::uint32_t n, std::uint32_t value) {
+  const std::uint32_t i = blockIdx.x * blockDim.x + threadIdx.x;
+  if (i < n) out[i] = value;
+}
+}  // namespace
+
+cudaError_t launch_fill_u32(std::uint32_t* out, std::uint32_t n, std::uint32_t value, cudaStream_t stream) {
+  fill_u32_kernel<<<blocks_for(n, tuning::block), tuning::block, 0, stream>>>(out, n, value);
+  return cudaGetLastError();
+}
+
 cudaError_t launch_gather(const float4* box_lo, const float4* box_hi, const std::uint32_t* entries, std::uint32_t count,
                           const map_readback* grid, float4* packed_lo, float4* packed_hi, cudaStream_t stream) {
   gather_kernel<<<blocks_for(count, tuning::block), tuning::block, 0, stream>>>(box_lo, box_hi, entries, count, grid,

@@ -602,10 +602,15 @@ __global__ void __launch_bounds__(tuning::segment) check_kernel(check_args a) {
   std::uint32_t row_flags = 0, row_id = 0;
   if (tid < m) {
     const std::uint32_t e = p0.entry + v * T + tid;
-    row_lo = a.packed_lo[e];
-    row_hi = a.packed_hi[e];
+    std::uint32_t at = e;
+    if (a.indirect != 0 || !Compressed) {
+      const std::uint32_t id = a.entries[e];
+      if (!Compressed) row_id = id;
+      if (a.indirect != 0) at = id;
+    }
+    row_lo = a.packed_lo[at];
+    row_hi = a.packed_hi[at];
     row_flags = hi_flags(row_hi, plan, cc);
-    if (!Compressed) row_id = a.entries[e];
   }
   const std::uint32_t row_cat = __float_as_uint(row_lo.w), row_mask = __float_as_uint(row_hi.w);
 
@@ -614,10 +619,15 @@ __global__ void __launch_bounds__(tuning::segment) check_kernel(check_args a) {
     __syncthreads();  // the previous tile's readers are done with shared memory
     if (tid < n) {
       const std::uint32_t e = p0.entry + h * T + tid;
-      col_lo[tid] = a.packed_lo[e];
-      col_hi[tid] = a.packed_hi[e];
+      std::uint32_t at = e;
+      if (a.indirect != 0 || !Compressed) {
+        const std::uint32_t id = a.entries[e];
+        if (!Compressed) col_id[tid] = id;
+        if (a.indirect != 0) at = id;
+      }
+      col_lo[tid] = a.packed_lo[at];
+      col_hi[tid] = a.packed_hi[at];
       col_flags[tid] = static_cast<std::uint8_t>(hi_flags(col_hi[tid], plan, cc));
-      if (!Compressed) col_id[tid] = a.entries[e];
     }
     __syncthreads();
 

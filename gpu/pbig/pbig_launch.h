@@ -40,6 +40,8 @@ cudaError_t launch_sort_small_cells(const std::uint32_t* in, std::uint32_t* out,
                                     std::uint32_t cells, const map_readback* grid, cudaStream_t stream);
 cudaError_t launch_pack_boxes(const box_arrays& boxes, std::uint32_t n, float4* box_lo, float4* box_hi,
                               cudaStream_t stream);
+/// out[0, n) = value (a class array whose boxes all share one value: not uploaded, filled here).
+cudaError_t launch_fill_u32(std::uint32_t* out, std::uint32_t n, std::uint32_t value, cudaStream_t stream);
 cudaError_t launch_gather(const float4* box_lo, const float4* box_hi, const std::uint32_t* entries, std::uint32_t count,
                           const map_readback* grid, float4* packed_lo, float4* packed_hi, cudaStream_t stream);
 cudaError_t launch_expand(const cell_prefix* prefix, std::uint32_t cells, const map_readback* grid, std::uint32_t* items,

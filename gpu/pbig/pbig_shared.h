@@ -133,9 +133,10 @@ struct plan_params {
 struct check_args {
   const grid_plan_dev* plan;  // device memory (the planning kernel's output)
   const map_readback* grid;   // device memory: blocks past grid->total.item do nothing
-  const float4* packed_lo;
+  const float4* packed_lo;  // in cell order (entry e), or by box id when `indirect`
   const float4* packed_hi;
   const std::uint32_t* entries;  // cell-sorted box ids (plain mode writes final ids)
+  std::uint32_t indirect;        // 1: packed_lo/hi are indexed by entries[e] (no gathered copy)
   const cell_prefix* prefix;
   const std::uint32_t* items;
   std::uint32_t item_first;

@@ -72,6 +72,13 @@ inline constexpr std::uint32_t block = 256;
 /// overlaps the host-to-device copy of part k.
 inline constexpr std::size_t upload_part_boxes = std::size_t{1} << 19;
 inline constexpr std::size_t max_upload_parts = 16;
+/// Pinned upload: from this many boxes on, while the coordinates are copied the host checks (on
+/// the decode pool, early exit) whether every box has the same category and the same mask, as in
+/// the plain self-join; then those two arrays (8 of the 32 bytes a box) are not copied but filled
+/// on the device. Below it the check would cost more than the copy it saves.
+inline constexpr std::size_t uniform_classes_min_boxes = std::size_t{1} << 18;
+/// Boxes per part of that check (parts run on the pool; each stops once a part found a difference).
+inline constexpr std::size_t uniform_classes_part = std::size_t{1} << 16;
 /// Single queue (pbig_options::single_queue): the next call's capacity is this call's figure x
 /// plus x / queue_margin_div + queue_margin_add (cells, entries, work items, tiles, pairs), so a
 /// set that grows by up to 25% between calls still fits.

@@ -1,12 +1,13 @@
 // Host dispatch of the GPU replication engine (gpu/replication.h; algorithm in docs/zone.md,
 // "Replication on the GPU").
 //
-// One run, on one stream, with two host synchronisations:
+// One run, on one stream, with up to three host synchronisations (blocking by default:
+// set_blocking_wait):
 //  1. The caller filled the pinned staging (entities, slot map, jobs, visible sets); the client
 //     table (where each view is and goes, each client's job) is laid out here from the views'
 //     sizes the host mirrors, and everything is copied up at once.
-//  2. Views of clients without a job are copied into the new view buffer (one warp per client);
-//     one thread per job decides its frame, writes its record (atomic cursor) and its new view.
+//  2. Every entity's wire update is quantized (one thread per entity); views of clients without a
+//     job are copied into the new view buffer (one warp per client); one thread per job decides its frame, writes its record (atomic cursor) and its new view.
 //  3. The results and the cursor come back; then the records, exactly the bytes used.
 //  The two view buffers are swapped: a run that fails leaves the engine unusable until
 //  forget_all().
@@ -19,7 +20,7 @@
 
 #include "gpu/common/cuda_check.h"
 #include "gpu/common/gpu_buffers.h"
-#include "gpu/pbig.h"
+#include "gpu/device.h"
 #include "gpu/replication.h"
 #include "replication_launch.h"
 
@@ -38,12 +39,13 @@ class engine final : public interest::replication_engine {
     CUDA_CHECK(cudaSetDevice(0));
     CUDA_CHECK(cudaStreamCreateWithFlags(&stream_, cudaStreamNonBlocking));
     for (cudaEvent_t* e : {&ev_begin_, &ev_up_, &ev_kernels_, &ev_down_}) CUDA_CHECK(cudaEventCreate(e));
+    CUDA_CHECK(cudaEventCreateWithFlags(&ev_sync_, cudaEventBlockingSync | cudaEventDisableTiming));
     d_cursor_.reserve(2);
     h_cursor_.reserve(2);
   }
   ~engine() override {
     if (stream_ != nullptr) cudaStreamSynchronize(stream_);
-    for (cudaEvent_t e : {ev_begin_, ev_up_, ev_kernels_, ev_down_}) {
+    for (cudaEvent_t e : {ev_begin_, ev_up_, ev_kernels_, ev_down_, ev_sync_}) {
       if (e != nullptr) cudaEventDestroy(e);
     }
     if (stream_ != nullptr) cudaStreamDestroy(stream_);
@@ -68,10 +70,12 @@ class engine final : public interest::replication_engine {
   }
 
   [[nodiscard]] bool reads_resident() const override { return true; }
+  void set_blocking_wait(bool blocking) override { blocking_ = blocking; }
 
   output run(const interest::replication_rules& rules, std::size_t client_count,
              const interest::visibility_engine::resident_lists* rows) override {
     const auto t0 = std::chrono::steady_clock::now();
+    wait_ms_ = 0;
     if (rules.leave_cost == 0 || rules.enter_cost == 0 || rules.update_cost == 0) {
       throw std::invalid_argument("replication engine: entry costs must be positive");
     }
@@ -84,6 +88,7 @@ class engine final : public interest::replication_engine {
     const interest::replication_job* jobs = h_jobs_.get();
     table_clients(jobs, n_jobs_, n_visible_, resident ? rows->rows : 0, len_.data(), off_.data(), client_count, cl);
     d_entities_.reserve(n_entities_);
+    d_updates_.reserve(4 * n_entities_);
     d_slot_dense_.reserve(n_slots_);
     d_jobs_.reserve(n_jobs_);
     d_visible_.reserve(resident ? 1 : n_visible_);
@@ -96,6 +101,7 @@ class engine final : public interest::replication_engine {
     a.rules = rules;
     a.entities = d_entities_.get();
     a.entity_count = static_cast<std::uint32_t>(n_entities_);
+    a.updates = d_updates_.get();
     a.slot_dense = d_slot_dense_.get();
     a.slot_count = static_cast<std::uint32_t>(n_slots_);
     a.jobs = d_jobs_.get();
@@ -142,7 +148,7 @@ class engine final : public interest::replication_engine {
       CUDA_CHECK(cudaMemcpyAsync(h_new_off_.get() + client_count, d_new_off_.get() + client_count, sizeof(std::uint32_t),
                                  cudaMemcpyDeviceToHost, stream_));
       CUDA_CHECK(cudaMemcpyAsync(h_sum_.get(), d_sum_.get(), sizeof(std::uint64_t), cudaMemcpyDeviceToHost, stream_));
-      CUDA_CHECK(cudaStreamSynchronize(stream_));
+      wait();
       total = h_new_off_.get()[client_count];
       record_cap = h_sum_.get()[0];
     }
@@ -164,6 +170,7 @@ class engine final : public interest::replication_engine {
     a.record_capacity = record_cap;
     a.cursor = d_cursor_.get();
     a.results = d_results_.get();
+    CUDA_CHECK(launch_quantize(a, stream_));
     CUDA_CHECK(launch_carry(a, stream_));
     CUDA_CHECK(launch_decide(a, stream_));
     CUDA_CHECK(cudaEventRecord(ev_kernels_, stream_));
@@ -177,14 +184,14 @@ class engine final : public interest::replication_engine {
     }
     CUDA_CHECK(cudaMemcpyAsync(h_cursor_.get(), d_cursor_.get(), 2 * sizeof(std::uint32_t), cudaMemcpyDeviceToHost,
                                stream_));
-    CUDA_CHECK(cudaStreamSynchronize(stream_));
+    wait();
     if (h_cursor_.get()[1] != 0) throw std::runtime_error("replication engine: record buffer overflow (a bug)");
     const std::uint32_t used = h_cursor_.get()[0];
     if (used > 0) {
       CUDA_CHECK(cudaMemcpyAsync(h_records_.get(), d_records_.get(), used, cudaMemcpyDeviceToHost, stream_));
     }
     CUDA_CHECK(cudaEventRecord(ev_down_, stream_));
-    CUDA_CHECK(cudaStreamSynchronize(stream_));
+    wait();
 
     // The views moved: the new buffer is the current one.
     cur_ = next;
@@ -202,6 +209,7 @@ class engine final : public interest::replication_engine {
     timing_.download_ms = ms;
     timing_.record_bytes = used;
     timing_.resident = resident;
+    timing_.wait_ms = wait_ms_;
     timing_.total_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
     return {h_results_.get(), h_records_.get()};
   }
@@ -212,6 +220,19 @@ class engine final : public interest::replication_engine {
   }
 
  private:
+  /// Waits for everything queued on the stream: sleeping on a blocking-sync event, or spinning in
+  /// cudaStreamSynchronize (set_blocking_wait). Adds the time to wait_ms_.
+  void wait() {
+    const auto t0 = std::chrono::steady_clock::now();
+    if (blocking_) {
+      CUDA_CHECK(cudaEventRecord(ev_sync_, stream_));
+      CUDA_CHECK(cudaEventSynchronize(ev_sync_));
+    } else {
+      CUDA_CHECK(cudaStreamSynchronize(stream_));
+    }
+    wait_ms_ += std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+  }
+
   /// Per-client arrays for client_count clients; the device's hashes keep their values.
   void grow_clients(std::size_t n) {
     if (n > len_.size()) {
@@ -235,6 +256,9 @@ class engine final : public interest::replication_engine {
 
   cudaStream_t stream_ = nullptr;
   cudaEvent_t ev_begin_ = nullptr, ev_up_ = nullptr, ev_kernels_ = nullptr, ev_down_ = nullptr;
+  cudaEvent_t ev_sync_ = nullptr;  // blocking-sync: wait() sleeps on it
+  bool blocking_ = true;
+  double wait_ms_ = 0;
   std::size_t n_entities_ = 0, n_slots_ = 0, n_jobs_ = 0, n_visible_ = 0;
   pinned_array<interest::replication_entity> h_entities_;
   pinned_array<std::uint32_t> h_slot_dense_, h_visible_, h_cursor_;
@@ -243,6 +267,7 @@ class engine final : public interest::replication_engine {
   pinned_array<interest::replication_result> h_results_;
   pinned_array<std::uint8_t> h_records_;
   device_array<interest::replication_entity> d_entities_;
+  device_array<std::uint32_t> d_updates_;  // 4 words per entity: its wire update
   device_array<std::uint32_t> d_slot_dense_, d_visible_, d_cursor_;
   device_array<interest::replication_job> d_jobs_;
   device_array<client_slot> d_clients_;

@@ -27,6 +27,11 @@ __global__ void rooms_kernel(run_args a, std::uint32_t* rooms, std::uint64_t* re
   client_room(a, c, rooms[c], records[c]);
 }
 
+__global__ void quantize_kernel(run_args a) {
+  const std::uint32_t k = blockIdx.x * blockDim.x + threadIdx.x;
+  if (k < a.entity_count) quantize_entity(a, k);
+}
+
 __global__ void carry_kernel(run_args a) {
   const std::uint32_t warp = (blockIdx.x * blockDim.x + threadIdx.x) / 32, lane = threadIdx.x % 32;
   if (warp >= a.client_count) return;
@@ -60,6 +65,12 @@ cudaError_t scan_rooms(void* temp, std::size_t& temp_bytes, const std::uint32_t*
   cudaError_t e = cub::DeviceScan::ExclusiveSum(temp, temp_bytes, rooms, new_off, items, stream);
   if (e != cudaSuccess) return e;
   return cub::DeviceReduce::Sum(temp, temp_bytes, records, sum, std::max<std::uint32_t>(n, 1), stream);
+}
+
+cudaError_t launch_quantize(const run_args& a, cudaStream_t stream) {
+  if (a.entity_count == 0) return cudaSuccess;
+  quantize_kernel<<<blocks_for(a.entity_count, 256), 256, 0, stream>>>(a);
+  return cudaGetLastError();
 }
 
 cudaError_t launch_carry(const run_args& a, cudaStream_t stream) {

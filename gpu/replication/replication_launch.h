@@ -17,6 +17,8 @@ cudaError_t launch_rooms(const run_args& a, std::uint32_t* rooms, std::uint64_t*
 cudaError_t scan_rooms(void* temp, std::size_t& temp_bytes, const std::uint32_t* rooms, std::uint32_t* new_off,
                        std::uint32_t items, const std::uint64_t* records, std::uint64_t* sum, std::uint32_t n,
                        cudaStream_t stream);
+/// Every entity's wire update (quantize_entity), before launch_decide.
+cudaError_t launch_quantize(const run_args& a, cudaStream_t stream);
 /// Views of clients without a job into the new buffer (one warp per client).
 cudaError_t launch_carry(const run_args& a, cudaStream_t stream);
 /// One thread per job: the frame's decisions, its record, the client's new view (decide_job).

@@ -1,5 +1,5 @@
 // The GPU replication engine in a build without CUDA: it says so, and the zone replicates on the CPU.
-#include "gpu/pbig.h"
+#include "gpu/device.h"
 #include "gpu/replication.h"
 
 namespace zone::gpu {

@@ -45,6 +45,7 @@ struct run_args {
   interest::replication_rules rules;
   const interest::replication_entity* entities;
   std::uint32_t entity_count;
+  std::uint32_t* updates;  // by dense index: 4 words, the entity's 16-byte wire update (quantize_entity)
   const std::uint32_t* slot_dense;
   std::uint32_t slot_count;
   const interest::replication_job* jobs;
@@ -128,6 +129,9 @@ __device__ __forceinline__ float rn_mul(float a, float b) { return __fmul_rn(a, 
 __device__ __forceinline__ float rn_div(float a, float b) { return __fdiv_rn(a, b); }
 __device__ __forceinline__ float rn_sqrt(float a) { return __fsqrt_rn(a); }
 __device__ __forceinline__ float u32_to_float(std::uint32_t v) { return __uint2float_rn(v); }
+__device__ __forceinline__ double rn_dsub(double a, double b) { return __dsub_rn(a, b); }
+__device__ __forceinline__ double rn_dmul(double a, double b) { return __dmul_rn(a, b); }
+__device__ __forceinline__ double rn_ddiv(double a, double b) { return __ddiv_rn(a, b); }
 __device__ __forceinline__ std::uint32_t float_bits(float f) { return __float_as_uint(f); }
 __device__ __forceinline__ float bits_float(std::uint32_t u) { return __uint_as_float(u); }
 __device__ __forceinline__ std::uint32_t reserve_bytes(std::uint32_t* cursor, std::uint32_t n) { return atomicAdd(cursor, n); }
@@ -141,6 +145,9 @@ inline float rn_mul(float a, float b) { return a * b; }
 inline float rn_div(float a, float b) { return a / b; }
 inline float rn_sqrt(float a) { return std::sqrt(a); }
 inline float u32_to_float(std::uint32_t v) { return static_cast<float>(v); }
+inline double rn_dsub(double a, double b) { return a - b; }
+inline double rn_dmul(double a, double b) { return a * b; }
+inline double rn_ddiv(double a, double b) { return a / b; }
 inline std::uint32_t float_bits(float f) {
   std::uint32_t u;
   std::memcpy(&u, &f, 4);
@@ -165,6 +172,44 @@ ZONE_REP_HD std::uint64_t digest_mix(std::uint32_t id) {
   z = (z ^ (z >> 30)) * 0xbf58476d1ce4e5b9ull;
   z = (z ^ (z >> 27)) * 0x94d049bb133111ebull;
   return z ^ (z >> 31);
+}
+
+/// net::detail::round_half_up (std::lround for 0 <= t < 2^31).
+ZONE_REP_HD std::uint32_t round_half_up(double t) {
+  const auto i = static_cast<std::uint32_t>(t);
+  return i + (rn_dsub(t, static_cast<double>(i)) >= 0.5 ? 1u : 0u);
+}
+
+/// net::position_quantizer::quantize on one axis.
+ZONE_REP_HD std::uint16_t quantize_axis(float v, float lo, double step) {
+  if (step <= 0) return 0;
+  const double t = rn_ddiv(rn_dsub(static_cast<double>(v), static_cast<double>(lo)), step);
+  return !(t > 0) ? std::uint16_t{0} : t >= 65535.0 ? std::uint16_t{65535} : static_cast<std::uint16_t>(round_half_up(t));
+}
+
+/// net::quantize_velocity on one axis.
+ZONE_REP_HD std::int16_t quantize_speed(float x) {
+  const double t = rn_dmul(static_cast<double>(x), 100.0);
+  if (!(t == t)) return 0;  // NaN
+  const double c = t < -32767.0 ? -32767.0 : t > 32767.0 ? 32767.0 : t;
+  const auto r = static_cast<std::int32_t>(round_half_up(c < 0 ? -c : c));
+  return static_cast<std::int16_t>(c < 0 ? -r : r);
+}
+
+/// Entity k's wire update (net::wire::entity_update: id, qpos3, qvel3, 16 bytes) into a.updates,
+/// as zone::replicator's wire_update makes it.
+ZONE_REP_HD void quantize_entity(const run_args& a, std::uint32_t k) {
+  const interest::replication_entity e = a.entities[k];
+  const interest::replication_rules& r = a.rules;
+  const std::uint16_t q[3] = {quantize_axis(e.x, r.quant_lo[0], r.quant_step[0]),
+                              quantize_axis(e.y, r.quant_lo[1], r.quant_step[1]),
+                              quantize_axis(e.z, r.quant_lo[2], r.quant_step[2])};
+  const std::int16_t v[3] = {quantize_speed(e.vx), quantize_speed(e.vy), quantize_speed(e.vz)};
+  std::uint32_t* u = a.updates + 4 * std::size_t{k};
+  u[0] = e.id;
+  u[1] = std::uint32_t{q[0]} | std::uint32_t{q[1]} << 16;
+  u[2] = std::uint32_t{q[2]} | std::uint32_t{static_cast<std::uint16_t>(v[0])} << 16;
+  u[3] = std::uint32_t{static_cast<std::uint16_t>(v[1])} | std::uint32_t{static_cast<std::uint16_t>(v[2])} << 16;
 }
 
 /// entity_store::index_of through the slot map.
@@ -255,7 +300,16 @@ ZONE_REP_HD void decide_job(const run_args& a, std::uint32_t t) {
   const interest::replication_job job = a.jobs[t];
   const client_slot cs = a.clients[job.client];
   const interest::replication_rules& r = a.rules;
-  const bool reset = (job.flags & interest::job_reset) != 0, has_self = (job.flags & interest::job_has_self) != 0;
+  const bool reset = (job.flags & interest::job_reset) != 0;
+  // The eye: the observer's position when it is live (the replicator's store.index_of), else 0.
+  const std::uint32_t self = find_dense(a, job.observer);
+  const bool has_self = self != no_index;
+  float eye[3] = {0, 0, 0};
+  if (has_self) {
+    eye[0] = a.entities[self].x;
+    eye[1] = a.entities[self].y;
+    eye[2] = a.entities[self].z;
+  }
   std::uint32_t S = 0;
   const std::uint32_t* vis = job_visible(a, job, S);
   const std::uint32_t V = reset ? 0 : cs.old_len;
@@ -280,14 +334,14 @@ ZONE_REP_HD void decide_job(const run_args& a, std::uint32_t t) {
       } else if (j == V || vis[i] < view[j]) {
         const std::uint32_t k = find_dense(a, vis[i]);
         if (k != no_index) {
-          const float d = rn_sqrt(distance_sq(job.eye, a.entities[k]));
+          const float d = rn_sqrt(distance_sq(eye, a.entities[k]));
           enter[E++] = entry(float_bits(d), vis[i], k, 0);
         }
         ++i;
       } else {
         const std::uint32_t k = find_dense(a, view[j]);
         if (k != no_index) {
-          const float d2 = distance_sq(job.eye, a.entities[k]);
+          const float d2 = distance_sq(eye, a.entities[k]);
           const bool near = tier_below(d2, r.near_limit, r.near_below_sq, r.near_above_sq);
           const bool mid = tier_below(d2, r.mid_limit, r.mid_below_sq, r.mid_above_sq);
           const std::uint32_t period = near ? 1u : mid ? mid_period : far_period;
@@ -384,8 +438,7 @@ ZONE_REP_HD void decide_job(const run_args& a, std::uint32_t t) {
         if (di < D && due[di].x == j) {
           const std::uint32_t pos = all_fit ? di : (due[di].w < n_u ? due[di].w : no_index);
           if (pos != no_index) {
-            const interest::replication_entity& ent = a.entities[due[di].y];
-            std::memcpy(updates_out + 16 * pos, ent.update, 16);
+            std::memcpy(updates_out + 16 * pos, a.updates + 4 * std::size_t{due[di].y}, 16);
             last = tick32;
           }
           ++di;
@@ -408,6 +461,10 @@ ZONE_REP_HD void decide_job(const run_args& a, std::uint32_t t) {
   res.deferred_updates = D - n_u;
   res.view_size = w;
   res.hash = hash;
+  res.eye[0] = eye[0];
+  res.eye[1] = eye[1];
+  res.eye[2] = eye[2];
+  res.flags = has_self ? interest::result_has_self : 0u;
   a.results[t] = res;
 }
 

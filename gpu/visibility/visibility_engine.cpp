@@ -27,7 +27,7 @@
 
 #include "gpu/common/cuda_check.h"
 #include "gpu/common/gpu_buffers.h"
-#include "gpu/pbig.h"
+#include "gpu/device.h"
 #include "gpu/visibility.h"
 #include "interest/measure.h"
 #include "interest/thread_pool.h"

@@ -1,5 +1,5 @@
 // The GPU visibility engine in a build without CUDA: it says so, and the zone keeps its host path.
-#include "gpu/pbig.h"
+#include "gpu/device.h"
 #include "gpu/visibility.h"
 
 namespace zone::gpu {

@@ -178,7 +178,8 @@ TEST_CASE("end to end: 200 bots in verify mode and checked by the oracle, zero m
   REQUIRE_MESSAGE(server.port != 0, server.proc.log());
   child_process swarm(swarm_args(server.port, dir,
                                  {"--bots", "200", "--duration", "15", "--ramp", "100", "--input-hz", "10", "--verify",
-                                  "--oracle", "--mix", "walk=0.4,patrol=0.2,follow=0.2,crowd=0.2", "--report-csv",
+                                  "--oracle", "--mix", "walk=0.4,patrol=0.2,follow=0.2,crowd=0.2", "--stealth-bots",
+                                  "0.1", "--team-bots", "0.2", "--visibility-switch-hz", "0.5", "--report-csv",
                                   dir + "/report.csv"}),
                       dir + "/bot-swarm.log");
   const auto rc = swarm.wait(60000ms);
@@ -198,6 +199,11 @@ TEST_CASE("end to end: 200 bots in verify mode and checked by the oracle, zero m
   CHECK(report.find("\"rules_from_server\": true") != std::string::npos);
   CHECK(report.find("\"stream_error\": \"\"") != std::string::npos);
   CHECK(json_number(report, "oracle_mismatches").value_or(-1) == 0);
+  // Stealth and team bots joined and switched during the run (each switch of a team bot resyncs
+  // its teammates nearby): the oracle judged every class from the tick it took effect.
+  CHECK(json_number(report, "stealth_joins").value_or(0) > 5);
+  CHECK(json_number(report, "team_joins").value_or(0) > 15);
+  CHECK(json_number(report, "visibility_switches_sent").value_or(0) > 100);
   const double checked = json_number(report, "frames_checked").value_or(0);
   CHECK(checked > 200 * 20 * 5);
   CHECK(json_number(report, "frames_unchecked").value_or(1e9) <= checked / 100);
@@ -386,7 +392,9 @@ void oracle_catches(const std::string& fault, const std::string& counter, bool d
   args.insert(args.end(), {"--oracle", "--test-fault", fault, "--test-fault-tick", "40"});
   zone_server_process server(ZONE_SERVER_EXE, dir, args);
   REQUIRE_MESSAGE(server.port != 0, server.proc.log());
-  child_process swarm(swarm_args(server.port, dir, {"--bots", "20", "--duration", "7", "--ramp", "100", "--verify", "--oracle"}),
+  // With stealth and team bots switching: the faults are caught among legitimate class changes.
+  child_process swarm(swarm_args(server.port, dir, {"--bots", "20", "--duration", "7", "--ramp", "100", "--verify", "--oracle",
+                                                    "--stealth-bots", "0.2", "--team-bots", "0.4", "--visibility-switch-hz", "0.5"}),
                       dir + "/bot-swarm.log");
   const auto rc = swarm.wait(60000ms);
   const std::string report = read_file(dir + "/report.json");

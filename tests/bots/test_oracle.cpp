@@ -250,4 +250,108 @@ TEST_SUITE("bots.oracle") {
     // (The unbroken clients had no mismatch of any kind: checked after each of their frames above.
     // The broken ones may show others later, e.g. the extra entity becoming visible for real.)
   }
+
+  TEST_CASE("players switch stealth and team mid-run: the replicator's views pass the oracle from the tick a switch takes effect") {
+    // A crowd of players in teams switching visibility every few ticks beside NPCs of every class.
+    // With replicator::resync_viewers_of (what zone_server does after the step), every client's
+    // view passes the oracle's checks at every tick; without it, a teammate's view keeps the
+    // class an entity entered with, and the oracle reports wrong classes (the check is not blind).
+    for (const bool with_resync : {true, false}) {
+      CAPTURE(with_resync);
+      const std::uint64_t seed = zone::test::fresh_seed();
+      CAPTURE(seed);
+      world_sim w(seed);
+      w.add_npcs(300);
+      interest::brute_force_finder finder;
+      interest_tracker tracker(finder, nullptr, {4.0f, 0, 256});
+      replication_options ro;
+      ro.world = w.world;
+      ro.byte_budget = 4000;
+      replicator rep(ro);
+      net::interest_rules rules;
+      rules.hysteresis = 4;
+      rules.update_near = ro.near_distance;
+      rules.update_mid = ro.mid_distance;
+      rules.update_mid_period = ro.mid_period;
+      rules.update_far_period = ro.far_period;
+      bots::oracle oracle(w.world, rules, 1, nullptr, nullptr);
+      struct client {
+        entity_id id;
+        client_id c;
+        net::client_view view;
+      };
+      std::vector<client> clients;
+      replication_writer writer;
+      std::uint64_t layout_version = 0, switches = 0, resyncs = 0;
+      std::uint64_t first_bad_tick = 0;
+      for (std::uint64_t tick = 0; tick < 100; ++tick) {
+        if (tick > 0) {
+          for (auto& p : w.store.positions()) {
+            p.x = std::clamp(p.x + w.uni(-1.5f, 1.5f), 0.0f, 400.0f);
+            p.y = std::clamp(p.y + w.uni(-1.5f, 1.5f), 0.0f, 400.0f);
+          }
+        }
+        if (tick == 1) {
+          for (int k = 0; k < 24; ++k) {
+            const auto v = visibility_for(k % 3 == 0, static_cast<std::uint8_t>(k % 3));
+            entity_desc d;
+            d.position = {w.uni(150, 210), w.uni(150, 210), w.uni(0, 10)};
+            d.aoi_half_extent = {30, 30, 30};
+            d.kind = entity_kind::player;
+            d.visibility_class = v.visibility_class;
+            d.sees = v.sees;
+            const entity_id id = w.store.create(d);
+            REQUIRE(id != null_entity);
+            clients.push_back({id, rep.add_client(id), net::client_view(w.world)});
+          }
+        }
+        // Two players switch each tick: stealth toggled, sometimes another team.
+        std::vector<std::pair<entity_id, std::uint32_t>> changed;
+        for (int k = 0; k < 2 && tick > 3; ++k) {
+          const entity_id id = clients[w.rng() % clients.size()].id;
+          const auto d = *w.store.get(id);
+          const bool stealthed = d.visibility_class != cb::normal;
+          const std::uint8_t team = (d.sees & cb::team_red) ? 1 : (d.sees & cb::team_blue) ? 2 : 0;
+          const auto v = visibility_for(!stealthed, w.rng() % 2 ? team : static_cast<std::uint8_t>(w.rng() % 3));
+          REQUIRE(w.store.set_visibility(id, v.visibility_class, v.sees));
+          if (v.visibility_class != d.visibility_class) changed.emplace_back(id, d.visibility_class);
+          ++switches;
+        }
+        REQUIRE_FALSE(tracker.update(w.store.columns()).has_value());
+        if (with_resync) {
+          for (const auto& [id, old] : changed) resyncs += rep.resync_viewers_of(w.store, id, old, 4.0f);
+        }
+        const bool layout = tick == 0 || w.store.layout_version() != layout_version;
+        layout_version = w.store.layout_version();
+        REQUIRE_FALSE(oracle.feed(truth_body(w.store, tick, layout)).has_value());
+        for (std::size_t i = 0; i < clients.size(); ++i) {
+          client& cl = clients[i];
+          const auto frame = rep.build(cl.c, w.store, tracker, tick, 0, 0, writer, nullptr);
+          auto decoded = net::decode_frame(frame, [] {
+            net::decoder_options o;
+            o.max_frame_bytes = 1 << 20;
+            return o;
+          }());
+          REQUIRE(decoded.value.has_value());
+          const auto& m = std::get<net::tick_update_msg>(*decoded.value);
+          REQUIRE(cl.view.apply(m) == net::client_view::status::ok);
+          const std::uint64_t before = oracle.counters().mismatches();
+          oracle.check(cl.id, tick, cl.view, m.deferred.value_or(net::deferred_counts{}), m.self_position, i);
+          if (oracle.counters().mismatches() != before && first_bad_tick == 0) first_bad_tick = tick;
+        }
+      }
+      const auto& c = oracle.counters();
+      MESSAGE(std::string(with_resync ? "with" : "without") << " resync: " << switches << " switches, " << resyncs << " clients resynced, "
+              << c.frames_checked.load() << " frames checked; wrong class " << c.wrong_class.load() << ", missing "
+              << c.missing.load() << ", extra " << c.extra.load() << ", leaked " << c.leaked.load());
+      CHECK(c.frames_checked.load() == 99 * clients.size());
+      if (with_resync) {
+        CHECK(resyncs > 20);
+        CHECK(c.mismatches() == 0);
+        CHECK(first_bad_tick == 0);
+      } else {
+        CHECK(c.wrong_class.load() > 0);
+      }
+    }
+  }
 }

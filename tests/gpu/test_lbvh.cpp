@@ -13,9 +13,9 @@
 #include <string>
 
 #include "../common/box_families.h"
+#include "gpu/device.h"
 #include "gpu/finders.h"
 #include "gpu/lbvh.h"
-#include "gpu/pbig.h"
 #include "interest/interest.h"
 #include "interest/thread_pool.h"
 

@@ -573,6 +573,136 @@ TEST_SUITE("gpu.pbig") {
     CHECK(out.empty());
   }
 
+  TEST_CASE("indirect checks (no gathered box array): the same pairs in the same order") {
+    // pbig_options::indirect_check_min_boxes = 0 makes every call read the boxes through their ids;
+    // SIZE_MAX never does. Small sets of every family against brute force with the paper's output
+    // (plain and compressed) and the direct output, tiny buffers included (re-runs); larger sets
+    // of the generators element by element against the gathered path, in several batches.
+    thread_pool pool(4);
+    brute_force_finder brute(&pool);
+    constexpr std::size_t always = 0, never = std::numeric_limits<std::size_t>::max();
+    std::vector<gpu::pbig_options> modes;
+    for (const bool direct : {false, true}) {
+      for (const bool comp : {false, true}) {
+        for (const std::size_t init : {std::size_t{0}, std::size_t{1}}) {
+          gpu::pbig_options o;
+          o.direct_output = direct;
+          o.compression = comp;
+          o.initial_output_pairs = init;
+          o.decode_pool = &pool;
+          o.indirect_check_min_boxes = always;
+          modes.push_back(o);
+        }
+      }
+    }
+    for (const family f : all_families) {
+      // One finder per mode and family: with tiny buffers each larger set overflows them again.
+      std::vector<std::unique_ptr<pair_finder>> finders;
+      for (const auto& o : modes) finders.push_back(make_gpu(o));
+      for (const std::size_t n : {0, 1, 2, 33, 513, 4001}) {
+        const auto seed = fresh_seed();
+        CAPTURE(family_name(f));
+        CAPTURE(n);
+        CAPTURE(seed);
+        const box_set s = make_family(f, n, seed);
+        const pair_list expected = run(brute, s);
+        for (std::size_t k = 0; k < modes.size(); ++k) {
+          CAPTURE(describe(modes[k]));
+          CHECK(run(*finders[k], s) == expected);
+          // (Sets under 2 boxes never reach the device: no report of their own.)
+          if (n >= 2) CHECK(gpu::last_pbig_report(*finders[k])->indirect_check);
+        }
+      }
+    }
+    const std::uint64_t seed = fresh_seed();
+    CAPTURE(seed);
+    gpu::pbig_options on, off;
+    on.decode_pool = off.decode_pool = &pool;
+    on.indirect_check_min_boxes = always;
+    off.indirect_check_min_boxes = never;
+    auto finder_on = make_gpu(on);
+    auto finder_off = make_gpu(off);
+    for (const char* kind : {"uniform", "gaussian", "mmo", "doc:10"}) {
+      for (const std::size_t n : {std::size_t{30000}, std::size_t{400000}}) {
+        CAPTURE(kind);
+        CAPTURE(n);
+        const box_set s = *generate_named(kind, n, seed);
+        for (int call = 0; call < 2; ++call) {  // the second call: reused plan, single queue where small
+          std::span<const id_pair> a, b;
+          REQUIRE_FALSE(gpu::find_pairs_view(*finder_off, s, a).has_value());
+          const pair_list gathered(a.begin(), a.end());
+          REQUIRE_FALSE(gpu::find_pairs_view(*finder_on, s, b).has_value());
+          CHECK(pair_list(b.begin(), b.end()) == gathered);  // same pairs, same order
+          CHECK(gpu::last_pbig_report(*finder_on)->indirect_check);
+          CHECK_FALSE(gpu::last_pbig_report(*finder_off)->indirect_check);
+        }
+      }
+    }
+    // The default: gathered below 2^22 boxes, indirect from there on.
+    auto finder_default = make_gpu(gpu::pbig_options{.decode_pool = &pool});
+    const box_set big = *generate_named("uniform", std::size_t{1} << 22, seed);
+    std::span<const id_pair> a, b;
+    REQUIRE_FALSE(gpu::find_pairs_view(*finder_default, big, a).has_value());
+    CHECK(gpu::last_pbig_report(*finder_default)->indirect_check);
+    const pair_list by_default(a.begin(), a.end());
+    REQUIRE_FALSE(gpu::find_pairs_view(*finder_off, big, b).has_value());
+    CHECK(pair_list(b.begin(), b.end()) == by_default);
+    CHECK(gpu::last_pbig_report(*finder_off)->batches > 1);
+  }
+
+  TEST_CASE("pinned input whose boxes share one category and one mask: the classes filled on the device") {
+    // From tuning::uniform_classes_min_boxes (2^18) boxes on, a pinned set whose boxes all share
+    // one category and one mask uploads the coordinates only; every variant below is compared
+    // with the CPU grid finder, including sets that differ from uniform in their first or last box.
+    thread_pool pool(4);
+    grid_finder grid(&pool);
+    gpu::pbig_options opt;
+    opt.decode_pool = &pool;
+    auto finder = make_gpu(opt);
+    const std::uint64_t seed = std::random_device{}();
+    CAPTURE(seed);
+    const std::size_t n = 300000;
+    struct variant {
+      const char* name;
+      std::uint32_t category, mask;
+      long odd_box;  // -1: none; else this box gets category = mask = 2 (it then pairs with nobody)
+      bool filled;
+    };
+    for (const variant v : {variant{"plain 1/1", 1, 1, -1, true}, variant{"2/2", 2, 2, -1, true},
+                            variant{"4/0 (no pairs)", 4, 0, -1, true}, variant{"last box differs", 1, 1, long(n) - 1, false},
+                            variant{"first box differs", 1, 1, 0, false},
+                            variant{"middle box differs", 1, 1, long(n) / 2 + 3, false}}) {
+      CAPTURE(v.name);
+      box_set s = *generate_named("uniform", n, seed);
+      std::fill(s.category.begin(), s.category.end(), v.category);
+      std::fill(s.mask.begin(), s.mask.end(), v.mask);
+      if (v.odd_box >= 0) {
+        s.category[static_cast<std::size_t>(v.odd_box)] = 2;
+        s.mask[static_cast<std::size_t>(v.odd_box)] = 2;
+      }
+      pair_list want;
+      REQUIRE_FALSE(grid.find(s, want).has_value());
+      for (auto& p : want) {
+        if (p.a > p.b) std::swap(p.a, p.b);
+      }
+      std::sort(want.begin(), want.end());
+      if (v.mask == 0) CHECK(want.empty());
+      gpu::pinned_boxes pin(s);
+      REQUIRE(pin.active());
+      for (int call = 0; call < 2; ++call) {  // the second call reuses the plan and buffers
+        std::span<const id_pair> got;
+        REQUIRE_FALSE(gpu::find_pairs_view(*finder, s, got).has_value());
+        pair_list sorted(got.begin(), got.end());
+        std::sort(sorted.begin(), sorted.end());
+        CHECK(sorted == want);
+        const gpu::pbig_report* rep = gpu::last_pbig_report(*finder);
+        REQUIRE(rep != nullptr);
+        CHECK(rep->classes_filled == v.filled);
+        CHECK(rep->bytes_in == (v.filled ? 24u : 32u) * n);
+      }
+    }
+  }
+
   TEST_CASE("pinned input (pinned_boxes): DMA from the caller's arrays, validated on the device") {
     thread_pool pool(4);
     gpu::pbig_options opt;

@@ -45,7 +45,12 @@ struct gen {
   /// A random message of kind `kind` (index of the variant).
   message make(std::size_t kind) {
     switch (kind) {
-      case 0: return hello_msg{str(), str(64), u32()};
+      case 0: {
+        hello_msg h{str(), str(64), u32()};
+        h.stealth = rng() % 2 == 0;
+        h.team = static_cast<std::uint8_t>(rng());
+        return h;
+      }
       case 1: return input_msg{u32(), v()};
       case 2: return ping_msg{u64()};
       case 3: {
@@ -76,6 +81,9 @@ struct gen {
           r.send_every = u32();
           r.digest_every = u32();
           r.max_speed = static_cast<float>(below(50));
+          r.allow_stealth = rng() % 2 == 0;
+          r.teams = static_cast<std::uint8_t>(rng());
+          r.visibility_cooldown = static_cast<float>(below(10));
           w.rules = r;
         }
         w.oracle_port = static_cast<std::uint16_t>(rng());
@@ -98,7 +106,8 @@ struct gen {
       case 5: return pong_msg{u64(), u64()};
       case 6: return error_msg{static_cast<error_code>(below(12)), str()};
       case 7: return teleport_msg{u32(), v(), rng() % 2 ? 0u : u32()};
-      default: return redirect_msg{str(), static_cast<std::uint16_t>(u32()), str()};
+      case 8: return redirect_msg{str(), static_cast<std::uint16_t>(u32()), str()};
+      default: return set_visibility_msg{u32(), rng() % 2 == 0, static_cast<std::uint8_t>(rng())};
     }
   }
   message any() { return make(below(std::variant_size_v<message>)); }
@@ -600,6 +609,8 @@ TEST_SUITE("net.protocol") {
     CHECK(static_cast<int>(w::message::error) == 7);
     CHECK(static_cast<int>(w::message::teleport) == 8);
     CHECK(static_cast<int>(type_of(teleport_msg{})) == 8);
+    CHECK(static_cast<int>(w::message::redirect) == 9);
+    CHECK(static_cast<int>(type_of(set_visibility_msg{})) == 10);
     const auto body_frame = [](auto build) {
       flatbuffers::FlatBufferBuilder fbb;
       const auto body = build(fbb);
@@ -621,6 +632,19 @@ TEST_SUITE("net.protocol") {
     }));
     REQUIRE(tick.value.has_value());
     CHECK_FALSE(std::get<tick_update_msg>(*tick.value).self_position.has_value());
+    // A hello as an older client builds it (no visibility choice): not stealthed, no team.
+    const auto old_hello = decode_frame(body_frame([&](flatbuffers::FlatBufferBuilder& fbb) {
+      return std::pair{w::message::hello, w::Createhello(fbb, fbb.CreateString("old"), 0, 1).Union()};
+    }));
+    REQUIRE(old_hello.value.has_value());
+    CHECK_FALSE(std::get<hello_msg>(*old_hello.value).stealth);
+    CHECK(std::get<hello_msg>(*old_hello.value).team == 0);
+    // An empty set_visibility asks for the plain class (not stealthed, no team).
+    const auto plain = decode_frame(body_frame([&](flatbuffers::FlatBufferBuilder& fbb) {
+      return std::pair{w::message::set_visibility, w::Createset_visibility(fbb).Union()};
+    }));
+    REQUIRE(plain.value.has_value());
+    CHECK(std::get<set_visibility_msg>(*plain.value) == set_visibility_msg{});
     // A teleport without a position decodes to a non-finite target (the server refuses it),
     // never to the origin.
     const auto empty = decode_frame(body_frame([&](flatbuffers::FlatBufferBuilder& fbb) {

@@ -377,4 +377,83 @@ TEST_SUITE("world.nats") {
     CHECK(ghosts(a) > 0);
     CHECK(a.node->link().snapshot_wanted().empty());
   }
+
+  TEST_CASE("a full zone: handoffs into it wait on the stream (retried, never lost or owned twice) until it has room") {
+    nats_server ns;
+    REQUIRE_FALSE(ns.url.empty());
+    const std::uint64_t seed = zone::test::fresh_seed();
+    CAPTURE(seed);
+    // A's NPCs run fast (many walk into B); B's barely move (B stays full: it hands out almost none).
+    auto fast = small_world(seed);
+    auto slow = fast;
+    slow.npc_speed = 0.05f;
+    std::string err;
+    auto na = nats_node::join(options(ns.url, "full", 2, 1, fast), fast, &err);
+    REQUIRE_MESSAGE(na != nullptr, err);
+    auto ob = options(ns.url, "full", 2, 1, slow);
+    ob.capacity = slow.npc_count;  // full from the start
+    ob.no_room_retry_s = 0.05;
+    auto nb = nats_node::join(ob, slow, &err);
+    REQUIRE_MESSAGE(nb != nullptr, err);
+    REQUIRE(na->region() == 0);
+    node_zone a(std::move(na), fast), b(std::move(nb), slow);
+    const std::size_t total = a.world->store().size() + b.world->store().size();
+    // Until a dozen records into B went back to the stream for want of room (bounded: 600 ticks).
+    for (int t = 0; t < 600 && (t < 150 || b.node->stats().handoffs_no_room.load() < 12); ++t) {
+      a.tick();
+      b.tick();
+      CHECK(b.node->link().owned_count() <= slow.npc_count);  // never past its capacity
+      std::this_thread::sleep_for(2ms);
+    }
+    const auto sent = [&] {
+      return a.node->stats().handoffs_sent.load() + b.node->stats().handoffs_sent.load();
+    };
+    const auto applied = [&] {
+      return a.node->stats().handoffs_applied.load() + b.node->stats().handoffs_applied.load();
+    };
+    // Records into B came and went back to the stream; none was applied while B was full.
+    const std::uint64_t a_to_b = a.node->stats().handoffs_sent.load();
+    CHECK(a_to_b > 3);
+    CHECK(b.node->stats().handoffs_no_room.load() >= 12);
+    CHECK(b.node->link().stats().handoffs_no_room > 0);
+    CHECK(applied() < sent());
+    const std::uint64_t waiting = sent() - applied();
+    // Room in B: 2 x the waiting records' worth of its own NPCs leave the world (despawned by the zone).
+    std::size_t removed = 0;
+    for (const entity_id id : std::vector<entity_id>(b.world->store().ids().begin(), b.world->store().ids().end())) {
+      if (removed >= 2 * waiting + 10) break;
+      if (b.node->owns(id) && b.world->despawn(id)) ++removed;
+    }
+    b.node->after_step(*b.world, b.redirects);  // the zone's link sees them gone (at the end of its tick)
+    // The waiting records are offered again and adopted: none lost.
+    const auto deadline = std::chrono::steady_clock::now() + 10s;
+    while (applied() < sent() && std::chrono::steady_clock::now() < deadline) {
+      a.node->before_step(*a.world);
+      b.node->before_step(*b.world);
+      std::this_thread::sleep_for(10ms);
+    }
+    CHECK(applied() == sent());
+    CHECK(a.node->stats().handoff_cas_conflicts.load() + b.node->stats().handoff_cas_conflicts.load() == 0);
+    const auto census = take_census(ns.url, "full", 1500, &err, [&] {
+      for (node_zone* z : {&a, &b}) {
+        z->node->before_step(*z->world);
+        z->node->after_step(*z->world, z->redirects);
+      }
+    });
+    REQUIRE_MESSAGE(census.has_value(), err);
+    REQUIRE(census->size() == 2);
+    std::size_t owned = 0;
+    std::set<global_id> ids;
+    for (const auto& z : *census) {
+      for (const auto& [g, epoch] : z.owned) {
+        CHECK_MESSAGE(ids.insert(g).second, "entity owned by two zones");
+        ++owned;
+      }
+    }
+    const auto owners = read_owners(ns.url, "full", &err);
+    REQUIRE_MESSAGE(owners.has_value(), err);
+    const auto verdict = check_world(*census, *owners);
+    CHECK(verdict.ok());
+    CHECK(owned + verdict.transit_only == total - removed);  // every handed-off entity arrived
+  }
 }

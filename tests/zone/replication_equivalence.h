@@ -1,7 +1,9 @@
 // Replication on an engine (interest/replication_engine.h) against the CPU replicator, byte for
 // byte: shared by test_zone (the engine's per-job code emulated on the CPU, every CI run) and
 // test_zone_gpu (the GPU engine). Random worlds with movement, teleports, entities created and
-// destroyed (observers too), stealth and team classes changing, observers that see nothing;
+// destroyed (observers too), stealth and team classes changing, observers that see nothing,
+// clients' players switching stealth and team as zone_server applies it (the clients that may hold
+// a switched entity resynced on both sides by replicator::resync_viewers_of);
 // clients joining, leaving and resynced mid-run, only some clients built each tick (the others'
 // views carried over); budgets from below the header to huge, every distance tier, ticks across
 // 2^32; the engine switched off and on mid-run.
@@ -29,6 +31,7 @@ struct replication_equivalence_case {
   std::vector<std::uint64_t> first_ticks{1, (std::uint64_t{1} << 32) - 20};
   bool switch_engine = true;  ///< turn the engine off and on again mid-run
   bool churn = true;
+  bool player_switches = true;  ///< clients' players switch stealth and team (each switch resyncs the clients near)
   /// When set, the interest tracker runs on this engine (the GPU's) with no row copied back, so a
   /// replication engine that can reads the visible sets in place (the CPU side fetches them).
   std::function<std::unique_ptr<interest::visibility_engine>(interest::thread_pool*)> make_visibility;
@@ -46,6 +49,8 @@ struct replication_coverage {
   std::uint64_t ranked = 0;  ///< frames where the budget cut the due updates and some were sent
   std::uint64_t resets = 0, empty = 0, near = 0, mid = 0, far = 0;
   std::uint64_t resident_runs = 0;  ///< engine runs that read the visible sets in place
+  std::uint64_t switches = 0;          ///< players' visibility switches (visibility_for) that changed their class
+  std::uint64_t switch_resyncs = 0;    ///< clients resynced for them (resync_viewers_of; equal on both sides)
 };
 
 /// Runs `c` with engines from `make_engine` (one per budget and first tick) and compares every
@@ -126,9 +131,18 @@ inline replication_coverage check_replication_equivalence(
       std::vector<replication_request> requests;
       std::vector<std::vector<std::uint8_t>> want, got;
       std::vector<replication_stats> want_st, got_st;
+      std::vector<std::pair<entity_id, std::uint32_t>> switched;  // (entity, class before) since the last step
       for (std::uint64_t tick = first_tick; tick < first_tick + static_cast<std::uint64_t>(c.ticks); ++tick) {
         CAPTURE(tick);
         REQUIRE_FALSE(tracker.update(store.columns()).has_value());
+        // After the step, as zone_server does: the clients that may hold a switched entity with
+        // its old class start over, on both sides alike.
+        for (const auto& [e, old] : switched) {
+          const std::size_t a = cpu.resync_viewers_of(store, e, old, 3.0f), b = dev.resync_viewers_of(store, e, old, 3.0f);
+          REQUIRE(a == b);
+          cov.switch_resyncs += a;
+        }
+        switched.clear();
         // Who is built this tick: usually everyone, sometimes a random part (the rest carry over).
         requests.clear();
         const bool some = rng() % 3 == 0;
@@ -270,6 +284,19 @@ inline replication_coverage check_replication_equivalence(
           const auto d = random_desc();
           (void)store.set_visibility(e, d.visibility_class, d.sees);
         }
+        // Players switch as clients ask (set_visibility): stealth and team by visibility_for.
+        for (int t = 0; t < 3 && c.player_switches && !clients.empty(); ++t) {
+          const entity_id o = cpu.observer(clients[rng() % clients.size()].id);
+          const std::size_t k = store.index_of(o);
+          if (k == entity_store::npos) continue;
+          const std::uint32_t old = store.visibility_classes()[k];
+          const auto v = visibility_for(rng() % 2 == 0, static_cast<std::uint8_t>(rng() % 3));
+          REQUIRE(store.set_visibility(o, v.visibility_class, v.sees));
+          if (v.visibility_class != old) {
+            switched.emplace_back(o, old);
+            ++cov.switches;
+          }
+        }
         if (c.churn) {
           for (int t = 0; t < 3 && store.size() > 1; ++t) store.destroy(store.ids()[rng() % store.size()]);
           for (int t = 0; t < 3; ++t) (void)store.create(random_desc());
@@ -289,6 +316,7 @@ inline replication_equivalence_case deferred_leaves_case() {
   c.budgets = {330, 420};
   c.first_ticks = {5};
   c.switch_engine = false;
+  c.player_switches = false;  // each resyncs views, which then never grow long enough
   c.aoi_lo = 80;
   c.aoi_hi = 150;
   return c;
@@ -305,11 +333,13 @@ replication_coverage deferred_leaves_runs(Run run_one_world) {
 
 /// The checks every run must pass, and that the run covered what it claims (deferred leaves only
 /// where `leaves_deferred`: see deferred_leaves_case).
-inline void require_equivalent(const replication_coverage& cov, bool tiny_budgets = true, bool leaves_deferred = false) {
+inline void require_equivalent(const replication_coverage& cov, bool tiny_budgets = true, bool leaves_deferred = false,
+                               bool switches = true) {
   MESSAGE("frames " << cov.frames << ": enters " << cov.enters << " leaves " << cov.leaves << " updates " << cov.updates
                     << "; deferred enters " << cov.deferred_enters << " leaves " << cov.deferred_leaves << " updates "
                     << cov.deferred_updates << "; ranked " << cov.ranked << ", resets " << cov.resets << ", empty "
-                    << cov.empty << "; view entries near/mid/far " << cov.near << "/" << cov.mid << "/" << cov.far);
+                    << cov.empty << "; view entries near/mid/far " << cov.near << "/" << cov.mid << "/" << cov.far
+                    << "; visibility switches " << cov.switches << " (clients resynced " << cov.switch_resyncs << ")");
   CHECK(cov.differing == 0);
   CHECK(cov.stats_differing == 0);
   CHECK(cov.hash_differing == 0);
@@ -325,6 +355,10 @@ inline void require_equivalent(const replication_coverage& cov, bool tiny_budget
   CHECK(cov.near > 0);
   CHECK(cov.mid > 0);
   CHECK(cov.far > 0);
+  if (switches) {
+    CHECK(cov.switches > 0);
+    CHECK(cov.switch_resyncs > 0);
+  }
   if (tiny_budgets) {
     CHECK(cov.deferred_enters > 0);
     if (leaves_deferred) CHECK(cov.deferred_leaves > 0);

@@ -66,7 +66,7 @@ TEST_SUITE("zone.gpu") {
       const std::uint64_t seed = zone::test::fresh_seed();
       CAPTURE(seed);
       const auto world = zone::test::check_replication_equivalence(seed, zone::test::deferred_leaves_case(), make_gpu_replication);
-      zone::test::require_equivalent(world, true, false);
+      zone::test::require_equivalent(world, true, false, false);
       return world;
     });
     CHECK(cov.deferred_leaves > 0);

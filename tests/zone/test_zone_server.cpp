@@ -15,7 +15,7 @@
 #include <spdlog/spdlog.h>
 
 #include "../net/loopback_client.h"
-#include "gpu/pbig.h"
+#include "gpu/device.h"
 #include "net/client.h"
 #include "zone/zone_server.h"
 
@@ -556,19 +556,20 @@ TEST_SUITE("zone.server") {
       }
       REQUIRE_FALSE(err.has_value());
       const bool interest = std::string(name) == "gpu-interest";
-      for (int t = 0; t < 4; ++t) server.tick_once();
+      // The replication engine runs only with clients to build frames for: its fault is run on
+      // the device with a swarm (scripts/device_reliab.sh) and emulated in test_zone.
+      if (!interest) continue;
+      for (int t = 0; t < 2; ++t) server.tick_once();
+      INFO("metrics after 2 ticks:\n" << server.metrics_text());
       CHECK(server.metrics_text().find(interest ? "zone_interest_gpu_fallbacks_total 0" : "zone_replication_gpu_fallbacks_total 0") !=
             std::string::npos);
-      for (int t = 0; t < 4; ++t) server.tick_once();
+      for (int t = 0; t < 6; ++t) server.tick_once();
       const std::string m = server.metrics_text();
+      INFO("metrics after 8 ticks:\n" << m);
       CHECK(m.find(interest ? "zone_interest_gpu_fallbacks_total 1" : "zone_replication_gpu_fallbacks_total 1") !=
             std::string::npos);
-      if (interest) {
-        CHECK(m.find("zone_interest_on_gpu 0") != std::string::npos);
-        CHECK(server.interest_name().rfind("host", 0) == 0);
-      } else {
-        CHECK(server.replication_name() == "cpu");
-      }
+      CHECK(m.find("zone_interest_on_gpu 0") != std::string::npos);
+      CHECK(server.interest_name().rfind("host", 0) == 0);
       CHECK(server.world().tick() == 8);
     }
   }
@@ -710,5 +711,91 @@ TEST_SUITE("zone.server") {
     server.tick_once();
     CHECK(server.stats().teleports == 0);
     CHECK(server.stats().teleports_refused == 1);
+  }
+
+  TEST_CASE("visibility choices: hello picks class and team, set_visibility switches them; values and cooldown validated") {
+    zone_config cfg = test_config();
+    cfg.player_teams = 1;  // red only
+    cfg.visibility_cooldown_s = 1;  // 30 ticks
+    zone_server server(cfg);
+    REQUIRE_FALSE(server.start().has_value());
+    const auto first = [&](test_client& c) {
+      std::optional<net::message> m;
+      for (int i = 0; i < 100 && !m; ++i) {
+        server.tick_once();
+        m = c.read(20ms);
+      }
+      return m;
+    };
+    // A stealthed member of team red: class team_red (seen by red only), sees normal and red.
+    test_client a(server.port());
+    net::hello_msg ha{"red", "", net::protocol_version};
+    ha.stealth = true;
+    ha.team = 1;
+    REQUIRE(a.send(ha));
+    const auto wa = first(a);
+    REQUIRE(wa.has_value());
+    REQUIRE(std::holds_alternative<net::welcome_msg>(*wa));
+    const auto& welcome = std::get<net::welcome_msg>(*wa);
+    REQUIRE(welcome.rules.has_value());
+    CHECK(welcome.rules->player_class == interest::category_bits::team_red);
+    CHECK(welcome.rules->player_sees == (interest::category_bits::normal | interest::category_bits::team_red));
+    CHECK(welcome.rules->allow_stealth);
+    CHECK(welcome.rules->teams == 1);
+    CHECK(welcome.rules->visibility_cooldown == doctest::Approx(1));
+    const entity_id id = welcome.entity_id;
+    const auto cls = [&] { return server.world().store().get(id)->visibility_class; };
+    const auto sees = [&] { return server.world().store().get(id)->sees; };
+    CHECK(cls() == interest::category_bits::team_red);
+    // A team the zone does not have: refused at hello with bad_hello.
+    test_client b(server.port());
+    net::hello_msg hb{"blue", "", net::protocol_version};
+    hb.team = 2;
+    REQUIRE(b.send(hb));
+    const auto eb = first(b);
+    REQUIRE(eb.has_value());
+    REQUIRE(std::holds_alternative<net::error_msg>(*eb));
+    CHECK(std::get<net::error_msg>(*eb).code == net::error_code::bad_hello);
+    // Switches: applied at the next tick; one within the cooldown and one with a value the zone
+    // does not allow are refused and change nothing.
+    const auto send_and_tick = [&](const net::set_visibility_msg& m) {
+      const auto frames_before = server.net_stats().frames_in;
+      REQUIRE(a.send(m));
+      for (int i = 0; i < 500 && server.net_stats().frames_in == frames_before; ++i) std::this_thread::sleep_for(2ms);
+      std::this_thread::sleep_for(10ms);
+      server.tick_once();
+    };
+    send_and_tick({1, false, 0});
+    CHECK(server.stats().visibility_switches == 1);
+    CHECK(cls() == interest::category_bits::normal);
+    CHECK(sees() == interest::category_bits::normal);
+    send_and_tick({2, true, 0});  // within the cooldown
+    CHECK(server.stats().visibility_refused == 1);
+    CHECK(cls() == interest::category_bits::normal);
+    for (int i = 0; i < 31; ++i) server.tick_once();
+    send_and_tick({3, true, 2});  // no team 2 here
+    CHECK(server.stats().visibility_refused == 2);
+    send_and_tick({4, true, 0});  // stealthed without a team: class stealth
+    CHECK(server.stats().visibility_switches == 2);
+    CHECK(cls() == interest::category_bits::stealth);
+    CHECK(sees() == interest::category_bits::normal);
+    CHECK(server.metrics_text().find("zone_visibility_refused_total 2") != std::string::npos);
+    // A zone without stealth refuses a stealthed hello.
+    zone_config plain = test_config();
+    plain.allow_stealth = false;
+    zone_server no_stealth(plain);
+    REQUIRE_FALSE(no_stealth.start().has_value());
+    test_client s(no_stealth.port());
+    net::hello_msg hs{"sneak", "", net::protocol_version};
+    hs.stealth = true;
+    REQUIRE(s.send(hs));
+    std::optional<net::message> es;
+    for (int i = 0; i < 100 && !es; ++i) {
+      no_stealth.tick_once();
+      es = s.read(20ms);
+    }
+    REQUIRE(es.has_value());
+    REQUIRE(std::holds_alternative<net::error_msg>(*es));
+    CHECK(std::get<net::error_msg>(*es).code == net::error_code::bad_hello);
   }
 }

@@ -3,6 +3,8 @@
 #define CUBQL_GPU_BUILDER_IMPLEMENTATION 1
 #include "cuBQL/bvh.h"
 #include "cuBQL/builder/cuda.h"
+#include "cuBQL/builder/cuda/radix.h"
+#include "cuBQL/builder/cuda/rebinMortonBuilder.h"
 #include "cuBQL/traversal/fixedBoxQuery.h"
 
 #include <cub/device/device_scan.cuh>
@@ -93,6 +95,7 @@ __global__ void fill_kernel(cuBQL::bvh3f bvh, const cuBQL::box3f* boxes, const s
 
 struct cubql_join::impl {
   int leaf_threshold = 0;
+  cubql_builder builder = cubql_builder::spatial_median;
   cudaStream_t stream = nullptr;
   cudaEvent_t ev[7]{};
   buffer<cuBQL::box3f, false> d_boxes;
@@ -130,7 +133,10 @@ struct cubql_join::impl {
   }
 };
 
-cubql_join::cubql_join(int leaf_threshold) : p_(std::make_unique<impl>()) { p_->leaf_threshold = leaf_threshold; }
+cubql_join::cubql_join(int leaf_threshold, cubql_builder builder) : p_(std::make_unique<impl>()) {
+  p_->leaf_threshold = leaf_threshold;
+  p_->builder = builder;
+}
 cubql_join::~cubql_join() = default;
 
 const std::uint32_t* cubql_join::pairs() const { return p_->h_pairs.ptr; }
@@ -186,7 +192,11 @@ std::uint64_t cubql_join::run(const float* boxes, const std::uint32_t* category,
   PEER_CHECK(cudaEventRecord(m.ev[1], s));
   cuBQL::BuildConfig config;
   config.makeLeafThreshold = m.leaf_threshold;
-  cuBQL::gpuBuilder(m.bvh, m.d_boxes.ptr, n, config, s);
+  switch (m.builder) {
+    case cubql_builder::spatial_median: cuBQL::gpuBuilder(m.bvh, m.d_boxes.ptr, n, config, s); break;
+    case cubql_builder::radix: cuBQL::cuda::radixBuilder(m.bvh, m.d_boxes.ptr, n, config, s); break;
+    case cubql_builder::rebin_radix: cuBQL::cuda::rebinRadixBuilder(m.bvh, m.d_boxes.ptr, n, config, s); break;
+  }
   m.have_bvh = true;
   PEER_CHECK(cudaEventRecord(m.ev[2], s));
   const std::uint32_t block = 128;

@@ -3,9 +3,9 @@
 // C++ interface; the CUDA lives in cubql_peer.cu.
 //
 // Per call, on one stream: the boxes (page-locked AoS, 24 bytes a box) copied to the device,
-// cuBQL's default GPU builder (cuBQL::gpuBuilder, BuildConfig defaults) builds a binary BVH over
-// them, then one thread per box queries the BVH with its own box (cuBQL::fixedBoxQuery), counting
-// the boxes j > i it overlaps; a CUB exclusive scan gives each box its first slot and the total,
+// cuBQL's default GPU builder (cuBQL::gpuBuilder, BuildConfig defaults; or one of its Morton
+// builders, cubql_builder) builds a binary BVH over them, then one thread per box queries the BVH
+// with its own box (cuBQL::fixedBoxQuery), counting the boxes j > i it overlaps; a CUB exclusive scan gives each box its first slot and the total,
 // which is read back; the same query fills the pairs (i, j) at those slots; the pairs are copied
 // into page-locked host memory. Semantics as DESIGN.md: closed boxes (touching faces intersect,
 // cuBQL's box_t::overlaps), no self pairs, each pair once with a < b, and, when category/mask
@@ -29,6 +29,11 @@ struct cubql_timing {
   double total_ms = 0;  ///< wall time of run()
 };
 
+/// Which of cuBQL's GPU builders builds the BVH: cuBQL::gpuBuilder with the default BuildConfig
+/// (an adaptive spatial-median builder; what its samples use), cuBQL::cuda::radixBuilder (Morton
+/// codes) or cuBQL::cuda::rebinRadixBuilder (Morton codes, re-binned where the data needs it).
+enum class cubql_builder { spatial_median, radix, rebin_radix };
+
 /// Page-locked host memory for the peer's input (cudaMallocHost); freed by free_pinned.
 [[nodiscard]] void* alloc_pinned(std::size_t bytes);
 void free_pinned(void* p);
@@ -39,7 +44,7 @@ void free_pinned(void* p);
 class cubql_join {
  public:
   /// leaf_threshold: BuildConfig::makeLeafThreshold (0 = the builder's default).
-  explicit cubql_join(int leaf_threshold = 0);
+  explicit cubql_join(int leaf_threshold = 0, cubql_builder builder = cubql_builder::spatial_median);
   ~cubql_join();
   cubql_join(const cubql_join&) = delete;
   cubql_join& operator=(const cubql_join&) = delete;

@@ -1,0 +1,248 @@
+#!/usr/bin/env python3
+"""The zone's tick with and without a viewer open, in alternating phases of one zone-server.
+
+Starts `zone-server --viewer 1 --tick-csv ...` with --npcs entities, waits --warmup-s, then runs
+--rounds rounds of two --phase-s phases: no viewer, then --viewers viewer sockets open. A viewer
+socket is what the page does on the wire (docs/viewer.md): a WebSocket on /viewer/ws that asks for
+the whole world with a point budget of 2^20 (every entity in every frame, the most the server
+encodes and writes), selects an entity (its AOI, visible set and events are then in every
+snapshot, and a GPU interest engine copies its row back), re-sends its view every second and reads
+every frame; it draws nothing. Python standard library only (no browser, no npm): it runs on the
+device machine too. Prints a table (per condition: ticks, p50, p99, max of the CSV's tick_ms,
+which includes the tick's own viewer phase) and the p99 change, one row per round pair, and the
+tick's viewer phase itself (from the stats messages); --csv writes every tick with its phase.
+
+  python3 tools/viewer_tick_ab.py --server build/zone/zone-server --npcs 20000 --phase-s 5 --rounds 6
+"""
+import argparse
+import base64
+import json
+import os
+import re
+import select
+import socket
+import struct
+import subprocess
+import sys
+import tempfile
+import time
+
+
+def pct(values, q):
+    if not values:
+        return float("nan")
+    s = sorted(values)
+    return s[min(len(s) - 1, int(q * len(s)))]
+
+
+class viewer_socket:
+    """A minimal RFC 6455 client: binary view requests out (masked), every frame read."""
+
+    def __init__(self, port, world):
+        self.sock = socket.create_connection(("127.0.0.1", port), timeout=10)
+        key = base64.b64encode(os.urandom(16)).decode()
+        self.sock.sendall((f"GET /viewer/ws HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nUpgrade: websocket\r\n"
+                           f"Connection: Upgrade\r\nSec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n").encode())
+        head = b""
+        while b"\r\n\r\n" not in head:
+            chunk = self.sock.recv(4096)
+            if not chunk:
+                raise RuntimeError("viewer socket: closed during the handshake")
+            head += chunk
+        status = head.split(b"\r\n", 1)[0]
+        if b" 101 " not in status:
+            raise RuntimeError(f"viewer socket: handshake refused: {status!r}")
+        self.buf = head.split(b"\r\n\r\n", 1)[1]
+        self.sock.setblocking(False)
+        self.world = world
+        self.selected = 0
+        self.frames = 0
+        self.bytes = 0
+        self.viewer_ms = []  # the tick's viewer phase, from the stats messages
+        self.last_view = 0.0
+        self.send_view()
+
+    def send_frame(self, opcode, payload):
+        mask = os.urandom(4)
+        n = len(payload)
+        head = bytes([0x80 | opcode])
+        head += bytes([0x80 | n]) if n < 126 else bytes([0x80 | 126]) + struct.pack(">H", n)
+        masked = bytes(b ^ mask[i % 4] for i, b in enumerate(payload))
+        self.sock.setblocking(True)
+        self.sock.sendall(head + mask + masked)
+        self.sock.setblocking(False)
+
+    def send_view(self):
+        x0, y0, x1, y1 = self.world
+        self.send_frame(2, struct.pack("<B3xffffII", 1, x0, y0, x1, y1, self.selected, 1 << 20))
+        self.last_view = time.monotonic()
+
+    def pump(self):
+        """Reads what has arrived; answers pings; re-sends the view once a second."""
+        while True:
+            try:
+                chunk = self.sock.recv(1 << 20)
+            except BlockingIOError:
+                break
+            if not chunk:
+                raise RuntimeError("viewer socket: closed by the server")
+            self.buf += chunk
+        while True:
+            if len(self.buf) < 2:
+                break
+            b0, b1 = self.buf[0], self.buf[1]
+            n, at = b1 & 0x7F, 2
+            if n == 126:
+                if len(self.buf) < 4:
+                    break
+                n, at = struct.unpack(">H", self.buf[2:4])[0], 4
+            elif n == 127:
+                if len(self.buf) < 10:
+                    break
+                n, at = struct.unpack(">Q", self.buf[2:10])[0], 10
+            if len(self.buf) < at + n:
+                break
+            payload, self.buf = self.buf[at:at + n], self.buf[at + n:]
+            opcode = b0 & 0x0F
+            if opcode == 9:
+                self.send_frame(10, payload)
+            elif opcode == 8:
+                raise RuntimeError("viewer socket: the server closed it")
+            elif opcode == 1:
+                msg = json.loads(payload)
+                for t in msg.get("ticks", []):
+                    self.viewer_ms.append(t[6])
+            elif opcode == 2:
+                self.frames += 1
+                self.bytes += n
+                if self.selected == 0 and len(payload) >= 42 and payload[0] == 1 and struct.unpack("<I", payload[12:16])[0] > 0:
+                    # The first entity of the frame: watched from now on.
+                    self.selected = struct.unpack("<I", payload[32:36])[0]
+                    self.send_view()
+        if time.monotonic() - self.last_view > 1.0:
+            self.send_view()
+
+    def close(self):
+        try:
+            self.send_frame(8, struct.pack(">H", 1000))
+        except OSError:
+            pass
+        self.sock.close()
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--server", required=True, help="the zone-server binary")
+    ap.add_argument("--npcs", type=int, default=20000)
+    ap.add_argument("--phase-s", type=float, default=5)
+    ap.add_argument("--rounds", type=int, default=6)
+    ap.add_argument("--warmup-s", type=float, default=5)
+    ap.add_argument("--viewers", type=int, default=1, help="viewer sockets open in the 'with' phases")
+    ap.add_argument("--world", type=float, default=4096, help="the world's side (m), as --world-x/--world-y")
+    ap.add_argument("--server-args", default="", help="more zone-server options")
+    ap.add_argument("--csv", help="write tick,t_s,tick_ms,phase,round per tick")
+    ap.add_argument("--label", default="", help="a label for the printed table")
+    a = ap.parse_args()
+    if a.rounds < 1 or a.phase_s <= 0 or a.npcs < 0 or a.viewers < 1:
+        ap.error("rounds >= 1, phase-s > 0, npcs >= 0, viewers >= 1")
+
+    tmp = tempfile.mkdtemp(prefix="viewer-ab-")
+    ticks_csv = os.path.join(tmp, "ticks.csv")
+    log_path = os.path.join(tmp, "zone-server.log")
+    args = [a.server, "--listen", "127.0.0.1", "--port", "0", "--metrics-port", "0", "--viewer", "1",
+            "--max-viewers", str(max(4, a.viewers)), "--npcs", str(a.npcs), "--world-x", str(a.world), "--world-y", str(a.world),
+            "--tick-csv", ticks_csv, "--log-level", "info"] + a.server_args.split()
+    log = open(log_path, "w")
+    srv = subprocess.Popen(args, stdout=log, stderr=subprocess.STDOUT)
+    try:
+        port = None
+        deadline = time.monotonic() + 120
+        while port is None and time.monotonic() < deadline:
+            if srv.poll() is not None:
+                sys.exit("zone-server exited:\n" + open(log_path).read())
+            m = re.search(r"viewer on http://[0-9.]+:(\d+)/viewer", open(log_path).read())
+            port = int(m.group(1)) if m else None
+            time.sleep(0.1)
+        if port is None:
+            sys.exit("zone-server did not start in 120 s")
+        t_start = None
+        while t_start is None:  # the CSV's t_s = 0 is the loop's first tick
+            with open(ticks_csv) as f:
+                f.readline()
+                line = f.readline()
+            if line.count(",") >= 10:
+                t_start = time.monotonic() - float(line.split(",")[1])
+            else:
+                time.sleep(0.05)
+        now = lambda: time.monotonic() - t_start
+        time.sleep(a.warmup_s)
+        phases = []  # (round, open, t0, t1)
+        viewer_ms, frames, nbytes = [], 0, 0
+        for r in range(a.rounds):
+            for opened in (False, True):
+                t0 = now()
+                socks = [viewer_socket(port, (0.0, 0.0, a.world, a.world)) for _ in range(a.viewers)] if opened else []
+                end = time.monotonic() + a.phase_s
+                while time.monotonic() < end:
+                    if socks:
+                        select.select([s.sock for s in socks], [], [], 0.05)
+                        for s in socks:
+                            s.pump()
+                    else:
+                        time.sleep(0.05)
+                for s in socks:
+                    viewer_ms += s.viewer_ms
+                    frames += s.frames
+                    nbytes += s.bytes
+                    s.close()
+                phases.append((r, opened, t0, now()))
+                time.sleep(0.3)  # the sockets close; this gap is in neither phase
+        time.sleep(0.5)
+    finally:
+        srv.terminate()
+        try:
+            srv.wait(30)
+        except subprocess.TimeoutExpired:
+            srv.kill()
+        log.close()
+
+    rows = []
+    with open(ticks_csv) as f:
+        header = f.readline().strip().split(",")
+        it, ic = header.index("t_s"), header.index("tick_ms")
+        for line in f:
+            p = line.strip().split(",")
+            if len(p) == len(header):
+                rows.append((int(p[0]), float(p[it]), float(p[ic])))
+    by = {False: [], True: []}
+    per_round = []
+    out = []
+    for (r, opened, t0, t1) in phases:
+        sel = [ms for (_, t, ms) in rows if t0 <= t < t1]
+        by[opened] += sel
+        per_round.append((r, opened, len(sel), pct(sel, 0.5), pct(sel, 0.99)))
+        out += [(tick, t, ms, "viewer" if opened else "none", r) for (tick, t, ms) in rows if t0 <= t < t1]
+    label = f" {a.label}" if a.label else ""
+    print(f"\nviewer A/B{label}: {a.npcs} NPCs, {a.rounds} rounds of {a.phase_s:g} s + {a.phase_s:g} s, "
+          f"{a.viewers} viewer socket(s), server args: {a.server_args or '(none)'}")
+    print("| viewer | ticks | p50 ms | p99 ms | max ms |")
+    print("|---|---|---|---|---|")
+    for opened in (False, True):
+        v = by[opened]
+        print(f"| {'open' if opened else 'none'} | {len(v)} | {pct(v, 0.5):.3f} | {pct(v, 0.99):.3f} | {max(v) if v else float('nan'):.3f} |")
+    p_none, p_open = pct(by[False], 0.99), pct(by[True], 0.99)
+    print(f"p99 change with the viewer open: {100 * (p_open - p_none) / p_none:+.2f}%  "
+          f"(p50 change {100 * (pct(by[True], 0.5) - pct(by[False], 0.5)) / pct(by[False], 0.5):+.2f}%)")
+    print("per round: " + "; ".join(f"r{r} {'open' if o else 'none'} p99 {p99:.3f}" for (r, o, n, p50, p99) in per_round))
+    print(f"the tick's own viewer phase (stats messages, {len(viewer_ms)} ticks): p50 {pct(viewer_ms, 0.5):.4f} ms, "
+          f"p99 {pct(viewer_ms, 0.99):.4f} ms, max {max(viewer_ms) if viewer_ms else float('nan'):.4f} ms; "
+          f"frames read {frames} ({nbytes / 1e6:.1f} MB)")
+    if a.csv:
+        with open(a.csv, "w") as f:
+            f.write("tick,t_s,tick_ms,phase,round\n")
+            for row in out:
+                f.write("%d,%.4f,%.4f,%s,%d\n" % row)
+
+
+if __name__ == "__main__":
+    main()
