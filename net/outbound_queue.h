@@ -214,6 +214,15 @@ class outbound_queue {
     queue_.pop_front(k);
     in_flight_ -= k;
   }
+  /// The client is not draining its socket (the game decided: net::server::drop_stale_state):
+  /// every queued state frame that is not being written is dropped (it would be stale when the
+  /// client reads it), and the queue awaits a reset, as after a drop episode (plain state frames
+  /// dropped on arrival). Not reported (the caller resyncs the client itself). How many dropped.
+  std::size_t drop_stale() {
+    const std::size_t n = drop_queued_state();
+    awaiting_reset_ = true;
+    return n;
+  }
   /// Keeps only the frames being written (a closing session queues its error frame next).
   void keep_only_in_flight() { queue_.truncate(in_flight_); }
   void clear() {

@@ -80,7 +80,7 @@ namespace {
 
 struct atomic_counters {
   std::atomic<std::uint64_t> connections_accepted{0}, connections_refused{0}, sessions_open{0}, frames_in{0},
-      bytes_in{0}, frames_dropped{0}, resyncs_requested{0}, frames_rejected{0}, inputs_dropped{0}, pings_answered{0},
+      bytes_in{0}, frames_dropped{0}, resyncs_requested{0}, stale_drops{0}, frames_rejected{0}, inputs_dropped{0}, pings_answered{0},
       pending_open{0}, pending_evicted_address{0}, pending_evicted{0}, hello_timeouts{0}, hellos_rejected{0}, idle_timeouts{0},
       rate_limited{0}, pings_dropped{0};
 };
@@ -290,6 +290,20 @@ class session : public std::enable_shared_from_this<session> {
 
   /// Any thread.
   [[nodiscard]] std::shared_ptr<const std::atomic<std::uint32_t>> backlog() const { return backlog_; }
+  [[nodiscard]] std::shared_ptr<const std::atomic<std::uint64_t>> written() const { return written_; }
+
+  /// Any thread: outbound_queue::drop_stale under the write lock, counted (server::drop_stale_state).
+  std::size_t drop_stale() {
+    const std::unique_lock lock(write_mutex_);
+    if (closing_ || closed_) return 0;
+    const std::size_t n = queue_.drop_stale();
+    if (n != 0) {
+      backlog_->fetch_sub(static_cast<std::uint32_t>(n), std::memory_order_relaxed);
+      srv_.counters.frames_dropped += n;
+    }
+    ++srv_.counters.stale_drops;
+    return n;
+  }
 
   /// Any thread: enqueue(), and the lane told now when it must write.
   void enqueue_and_schedule(shared_frame frame, delivery d) {
@@ -659,6 +673,7 @@ class session : public std::enable_shared_from_this<session> {
     if (write_is_new_) c.writes.fetch_add(1, std::memory_order_relaxed);
     write_is_new_ = false;  // what is left of this write goes on as its rest
     c.bytes_out.fetch_add(static_cast<std::uint64_t>(result), std::memory_order_relaxed);
+    written_->fetch_add(static_cast<std::uint64_t>(result), std::memory_order_relaxed);
     if (done != 0) c.frames_out.fetch_add(done, std::memory_order_relaxed);
     if (done < n) {
       blocked_ = true;  // the kernel took less than offered: its buffer is full
@@ -799,6 +814,7 @@ class session : public std::enable_shared_from_this<session> {
   token_bucket input_tokens_, ping_tokens_;
   std::uint32_t input_drops_ = 0, ping_drops_ = 0;  // over the rate in a row
   std::shared_ptr<std::atomic<std::uint32_t>> backlog_ = std::make_shared<std::atomic<std::uint32_t>>(0);
+  std::shared_ptr<std::atomic<std::uint64_t>> written_ = std::make_shared<std::atomic<std::uint64_t>>(0);
   // The write side. Written under write_mutex_ only; the lane's thread also reads closing_ and
   // closed_ without it (it is their only writer).
   std::mutex write_mutex_;
@@ -1235,6 +1251,24 @@ std::shared_ptr<const std::atomic<std::uint32_t>> server::state_backlog(session_
   return it->second->backlog();
 }
 
+std::size_t server::drop_stale_state(session_id s) {
+  std::shared_ptr<session> target;
+  {
+    const std::shared_lock lock(impl_->sessions_mutex);
+    const auto it = impl_->sessions.find(s);
+    if (it == impl_->sessions.end()) return 0;
+    target = it->second;
+  }
+  return target->drop_stale();
+}
+
+std::shared_ptr<const std::atomic<std::uint64_t>> server::bytes_written(session_id s) const {
+  const std::shared_lock lock(impl_->sessions_mutex);
+  const auto it = impl_->sessions.find(s);
+  if (it == impl_->sessions.end()) return nullptr;
+  return it->second->written();
+}
+
 bool server::send(session_id s, shared_frame frame, delivery d) {
   std::shared_ptr<session> target;
   {
@@ -1320,6 +1354,7 @@ server_stats server::stats() const {
   st.bytes_out = bytes_out;
   st.frames_dropped = c.frames_dropped.load();
   st.resyncs_requested = c.resyncs_requested.load();
+  st.stale_drops = c.stale_drops.load();
   st.frames_rejected = c.frames_rejected.load();
   st.inputs_dropped = c.inputs_dropped.load();
   st.pings_answered = c.pings_answered.load();

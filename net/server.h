@@ -205,6 +205,7 @@ struct server_stats {
   std::uint64_t bytes_out = 0;
   std::uint64_t frames_dropped = 0;    ///< state frames not delivered to slow clients (dropped or superseded)
   std::uint64_t resyncs_requested = 0; ///< drop episodes reported to the game (frames_dropped events)
+  std::uint64_t stale_drops = 0;       ///< drop_stale_state calls that found the session (stalled clients)
   std::uint64_t frames_rejected = 0;   ///< inbound frames that failed decoding (session closed)
   std::uint64_t inputs_dropped = 0;    ///< over the input rate
   std::uint64_t pings_answered = 0;
@@ -252,6 +253,17 @@ class server {
   /// queue, so a slow client gets fewer frames instead of drops and resets. The counter outlives
   /// the session (it then stays where it was). Null when the session is gone.
   [[nodiscard]] std::shared_ptr<const std::atomic<std::uint32_t>> state_backlog(session_id s) const;
+  /// Bytes written to the session's socket so far (any thread, relaxed): a client that reads, even
+  /// slowly, moves it on; one that stopped reading does not once the kernel's buffers are full.
+  /// Outlives the session. Null when the session is gone.
+  [[nodiscard]] std::shared_ptr<const std::atomic<std::uint64_t>> bytes_written(session_id s) const;
+  /// The game finds the session stalled (it has not drained its socket for a while): its queued
+  /// state frames that are not being written are dropped (counted in frames_dropped; they would be
+  /// stale by the time the client reads them) and its queue awaits a reset (outbound_queue::
+  /// drop_stale: plain state frames are dropped until one), so the caller makes its next frame a
+  /// reset and builds it once state_backlog() is 0 (the socket drained). How many were dropped;
+  /// 0 also when the session is gone. Any thread.
+  std::size_t drop_stale_state(session_id s);
   /// Sends error(code, reason) to the session, then closes it. Never blocks.
   void disconnect(session_id s, error_code code, std::string reason);
 

@@ -14,6 +14,12 @@
 //   disconnect rule: 190 pings per 110 ms). Reports the server's CPU (from /proc/PID/stat) in each.
 // httpidle: --count idle connections to /metrics, then a player joins (time to its welcome) and
 //   a scrape is tried; reports how many of the idle connections the server kept.
+// stall: --count players (at most 2,000) from 127.0.0.4 read and verify their views (digests) for
+//   2 s, then all stop reading for `seconds` (pinging once a second) and read again (docs/zone.md,
+//   "Slow and stalled clients"). Reports, over the players: the age of the first frame after
+//   resuming, the stale frames and bytes read before a frame at most 2 ticks old, how long after
+//   resuming that fresh frame came, views that failed to apply or verify, and the server's RSS
+//   before, at the end of and after the stall (with --server-pid).
 // With --server-pid the server's RSS and high-water mark (VmRSS, VmHWM) are reported at the end.
 // Output: a table, then one CSV line per figure (attack,metric,value).
 #include <arpa/inet.h>
@@ -356,9 +362,129 @@ int attack_httpidle(const options& o) {
   return 0;
 }
 
+/// A player of the stall attack: its socket, decoder and verified view.
+struct stall_player {
+  int fd = -1;
+  frame_decoder dec;
+  std::optional<client_view> view;
+  double tick_ms = 50;
+  bool closed = false;
+  std::uint64_t problems = 0, frames = 0;
+  // After resuming: the first frame's age, stale frames and bytes before a fresh one, when that came.
+  std::optional<double> first_age, fresh_ms;
+  std::uint64_t stale_frames = 0, stale_bytes = 0, resets = 0;
+};
+
+std::uint64_t host_us() {
+  return static_cast<std::uint64_t>(std::chrono::duration_cast<std::chrono::microseconds>(steady::now().time_since_epoch()).count());
+}
+
+/// Reads what is there for every player (poll, up to `ms`), applying every frame; `resumed` set:
+/// records each player's ages after that time point.
+void stall_read(std::vector<stall_player>& ps, double ms, const steady::time_point* resumed) {
+  const auto deadline = steady::now() + std::chrono::duration_cast<steady::duration>(std::chrono::duration<double, std::milli>(ms));
+  std::vector<pollfd> fds(ps.size());
+  std::uint8_t buf[65536];
+  while (steady::now() < deadline) {
+    for (std::size_t i = 0; i < ps.size(); ++i) fds[i] = {ps[i].closed ? -1 : ps[i].fd, POLLIN, 0};
+    if (::poll(fds.data(), fds.size(), 5) <= 0) continue;
+    for (std::size_t i = 0; i < ps.size(); ++i) {
+      if ((fds[i].revents & (POLLIN | POLLHUP | POLLERR)) == 0) continue;
+      auto& p = ps[i];
+      const ssize_t n = ::recv(p.fd, buf, sizeof buf, MSG_DONTWAIT);
+      if (n <= 0) {
+        if (n == 0 || (errno != EAGAIN && errno != EWOULDBLOCK)) p.closed = true;
+        continue;
+      }
+      p.dec.feed({buf, static_cast<std::size_t>(n)});
+      for (auto st = p.dec.next(); st.is_frame(); st = p.dec.next()) {
+        const auto m = to_message(*st.frame.envelope);
+        if (!m) continue;
+        if (const auto* w = std::get_if<welcome_msg>(&*m)) {
+          p.view.emplace(w->world);
+          p.tick_ms = 1000.0 / std::max<double>(1, w->tick_rate_hz);
+          continue;
+        }
+        const auto* u = std::get_if<tick_update_msg>(&*m);
+        if (!u || !p.view) continue;
+        ++p.frames;
+        if (p.view->apply(*u) != client_view::status::ok) ++p.problems;
+        if (!resumed || p.fresh_ms) continue;
+        const double age = static_cast<double>(host_us() - u->server_time_us) / 1000.0;
+        if (!p.first_age) p.first_age = age;
+        if (age <= 2 * p.tick_ms) {
+          p.fresh_ms = ms_since(*resumed);
+          p.resets += u->reset ? 1 : 0;
+        } else {
+          ++p.stale_frames;
+          p.stale_bytes += st.frame.bytes.size();
+        }
+      }
+      if (p.dec.failed()) p.closed = true;
+    }
+  }
+}
+
+int attack_stall(const options& o) {
+  const std::size_t n = std::max<std::size_t>(1, std::min<std::size_t>(o.count, 2000));
+  std::vector<stall_player> ps(n);
+  for (auto& p : ps) {
+    p.fd = connect_from(o.port, 4, false);
+    if (p.fd < 0 || !send_all(p.fd, encode_frame(hello_msg{"stall", "", protocol_version}))) {
+      std::fprintf(stderr, "zone-probe: a stalling player could not connect: %s\n", std::strerror(errno));
+      return 1;
+    }
+  }
+  stall_read(ps, 2000, nullptr);
+  std::size_t joined = 0;
+  for (const auto& p : ps) joined += p.view && p.frames > 0 ? 1 : 0;
+  figure("players (joined and reading)", static_cast<double>(joined));
+  figure("stall (s)", o.seconds);
+  figure("server RSS before the stall (MiB)", status_mib(o.server_pid, "VmRSS:"));
+  // The stall: nothing read, a ping a second (not idle).
+  for (double t = 0; t < o.seconds; t += 1) {
+    std::this_thread::sleep_for(std::chrono::duration<double>(std::min(1.0, o.seconds - t)));
+    for (auto& p : ps) (void)send_all(p.fd, encode_frame(ping_msg{0}));
+  }
+  figure("server RSS at the end of the stall (MiB)", status_mib(o.server_pid, "VmRSS:"));
+  const auto resumed = steady::now();
+  stall_read(ps, 3000, &resumed);
+  figure("server RSS 3 s after resuming (MiB)", status_mib(o.server_pid, "VmRSS:"));
+  std::vector<double> first, fresh, stale, stale_kb;
+  std::size_t never = 0, closed = 0, problems = 0, resets = 0;
+  for (const auto& p : ps) {
+    closed += p.closed ? 1 : 0;
+    problems += p.problems;
+    resets += p.resets;
+    if (p.first_age) first.push_back(*p.first_age);
+    if (!p.fresh_ms) {
+      ++never;
+      continue;
+    }
+    fresh.push_back(*p.fresh_ms);
+    stale.push_back(static_cast<double>(p.stale_frames));
+    stale_kb.push_back(static_cast<double>(p.stale_bytes) / 1024.0);
+  }
+  for (auto* v : {&first, &fresh, &stale, &stale_kb}) std::sort(v->begin(), v->end());
+  const auto both = [](const std::string& name, const std::vector<double>& v) {
+    figure(name + ", median", v.empty() ? -1 : percentile(v, 0.5));
+    figure(name + ", max", v.empty() ? -1 : v.back());
+  };
+  both("age of the first frame after resuming (ms)", first);
+  both("stale frames read before a fresh one (<= 2 ticks old)", stale);
+  both("stale KiB read before it", stale_kb);
+  both("fresh frame this long after resuming (ms)", fresh);
+  figure("fresh frames that were resets (resyncs after the stall)", static_cast<double>(resets));
+  figure("players with no fresh frame within 3 s", static_cast<double>(never));
+  figure("frames that did not apply or verify (digest)", static_cast<double>(problems));
+  figure("players disconnected", static_cast<double>(closed));
+  for (auto& p : ps) ::close(p.fd);
+  return never == 0 && problems == 0 && closed == 0 ? 0 : 1;
+}
+
 int usage(bool help) {
   std::fprintf(help ? stdout : stderr,
-               "usage: zone-probe --port P --attack halfopen|pingflood|httpidle [--count N (1000)] [--seconds S (5)]\n"
+               "usage: zone-probe --port P --attack halfopen|pingflood|httpidle|stall [--count N (1000)] [--seconds S (5)]\n"
                "                  [--metrics-port M (httpidle)] [--server-pid PID (CPU and memory readings)]\n"
                "Hostile clients against a zone-server on loopback (docs/zone.md, Limits and hardening).\n");
   return help ? 0 : 64;
@@ -387,6 +513,7 @@ int main(int argc, char** argv) {
   if (o.attack == "halfopen") rc = attack_halfopen(o);
   else if (o.attack == "pingflood") rc = attack_pingflood(o);
   else if (o.attack == "httpidle") rc = attack_httpidle(o);
+  else if (o.attack == "stall") rc = attack_stall(o);
   else return usage(false);
   if (o.server_pid > 0) {
     figure("server RSS now (MiB)", status_mib(o.server_pid, "VmRSS:"));

@@ -53,6 +53,7 @@ std::optional<std::string> validate(const zone_config& c) {
     return bad("write-batching must be auto, io_uring or sendmsg");
   }
   if (c.max_frame_bytes < 64) return bad("max-frame-bytes must be >= 64");
+  if (!(c.client_stall_s >= 0 && c.client_stall_s <= 3600)) return bad("client-stall must be 0 .. 3600 seconds");
   if (c.socket_send_buffer > (std::size_t{1} << 30)) return bad("socket-send-buffer must be <= 1 GiB");
   if (c.client_byte_budget < 256) return bad("client-byte-budget must be >= 256");
   if (!(c.inputs_per_second > 0)) return bad("inputs-per-second must be > 0");
@@ -188,6 +189,7 @@ config_result parse_config(int argc, const char* const* argv) {
       ("pings-per-second", po::value(&c.pings_per_second)->default_value(c.pings_per_second), "ping rate limit per client (burst one second's worth); over it no pong, 200 in a row: error rate_limited")  //
       ("client-byte-budget", po::value(&c.client_byte_budget)->default_value(c.client_byte_budget), "bytes per client per tick")  //
       ("client-send-every", po::value(&c.client_send_every)->default_value(c.client_send_every), "each client gets a frame every K ticks, clients staggered (1 = every tick; 2 at 30 Hz = 15 frames a second each, half the frames built and sent per tick)")  //
+      ("client-stall", po::value(&c.client_stall_s)->default_value(c.client_stall_s, "1"), "a client whose backlog stays full, its socket taking not one byte, this many seconds is stalled: its queued state frames are dropped, and once its socket drains it gets a reset of the current state instead of stale frames (0 = off; needs client-max-backlog > 0)")  //
       ("client-max-backlog", po::value(&c.client_max_backlog)->default_value(c.client_max_backlog), "a client with this many state frames still unwritten gets no new frame this tick (0 = off: always send; then a full queue drops frames and resyncs)")  //
       ("teleport", po::value(&c.teleport_enabled)->default_value(c.teleport_enabled), "players may teleport themselves (0 or 1; an ability the server grants, off by default)")  //
       ("player-fly", po::value(&c.player_fly)->default_value(c.player_fly), "players may move vertically (0: a movement intent's z is ignored)")  //

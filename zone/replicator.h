@@ -139,15 +139,18 @@ class replicator {
   void set_observer(client_id c, entity_id observer);
   /// The client lost frames: the next frame resets its view and starts it again.
   void resync(client_id c);
-  /// Entity `changed` switched visibility class (from `old_class` to its class in `store` now).
-  /// A frame enters an entity with its class once and never sends the class again, so every client
-  /// that may hold it with the old class and keeps seeing it is resync()ed: its next frame resets
-  /// the view (enters carry the new class). Those are the active clients whose observer sees the
-  /// new class and whose AOI box, grown by `hysteresis` (and a centimetre), meets the entity's
-  /// presence box at the store's positions (call after the interest step of those positions: a
-  /// client holding it from farther away is sent its leave in this tick's frame). Returns how many.
+  /// Entity `changed` switched visibility (from `old_class` and `old_sees` to its class and mask
+  /// in `store` now). A frame enters an entity with its class once and never sends the class
+  /// again, so the clients that may hold it with the old class and keep seeing it are resync()ed:
+  /// their next frame resets the view (enters carry the new class). Those are the active clients
+  /// whose observer's mask holds both classes and whose AOI box, grown by `hysteresis` (and a
+  /// centimetre), meets the entity's presence box at the store's positions (call after the
+  /// interest step of those positions: a client holding it from farther away is sent its leave in
+  /// this tick's frame); and, when its mask changed, the clients that see through the entity
+  /// itself (so that a mask judged above is the one their view was built with). Returns how many.
   /// The decision reads only the store, so the CPU path and an engine resync the same clients.
-  std::size_t resync_viewers_of(const entity_store& store, entity_id changed, std::uint32_t old_class, float hysteresis);
+  std::size_t resync_viewers_of(const entity_store& store, entity_id changed, std::uint32_t old_class,
+                                std::uint32_t old_sees, float hysteresis);
 
   /// Builds this tick's frame for client c into `writer`; the span is valid until the writer's
   /// next build. `stats`, when given, receives what was sent and deferred.

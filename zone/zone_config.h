@@ -76,7 +76,10 @@ struct zone_config {
   unsigned io_threads = 2;
   std::size_t max_clients = 1000;
   std::size_t max_frame_bytes = 16 * 1024;
-  std::size_t socket_send_buffer = 0;  ///< SO_SNDBUF per client socket (bytes; 0 = the system's autotuning)
+  /// SO_SNDBUF per client socket (bytes; 0 = the system's autotuning, up to 4 MiB). Small by
+  /// default: what the kernel holds for a client that stops reading reaches it stale when it
+  /// resumes (docs/zone.md, "Slow and stalled clients"); Linux doubles the value asked for.
+  std::size_t socket_send_buffer = 32768;
   /// The replication worker that built a frame writes it to the socket itself when nothing is
   /// queued ahead of it (net::server_options::direct_writes); false (the default): the I/O
   /// threads write. On the H100 host direct writes cut latency but doubled the replicate phase
@@ -104,6 +107,13 @@ struct zone_config {
   /// frame this tick: a slow reader is sent fewer, fresher frames (its view catches up in the next
   /// one) instead of overflowing its queue into drops and resets. 0 = off (always send).
   std::uint32_t client_max_backlog = 2;
+  /// Bounded staleness after a stall (docs/zone.md, "Slow and stalled clients"): a client whose
+  /// backlog stays at client_max_backlog, its socket taking not one byte, for this long (seconds,
+  /// in ticks rounded up; 0 = off) is
+  /// stalled: its queued state frames that are not being written are dropped (they would be stale
+  /// when read), it gets no frame until its socket has drained (backlog 0), and then a reset of
+  /// the current state. Needs client_max_backlog > 0.
+  double client_stall_s = 1.0;
   /// Each client gets a frame every this many ticks (1: every tick), the clients staggered by
   /// session so that each tick builds about 1/K of the frames. The world still steps every tick;
   /// a frame carries everything since the client's last one.

@@ -174,6 +174,8 @@ std::string zone_server::metrics_text() const {
   t.counter("zone_net_bytes_out_total", "Bytes written.", static_cast<double>(ns.bytes_out));
   t.counter("zone_frames_held_total", "Client-ticks without a frame because the client had not read its backlog yet.",
             static_cast<double>(stats_.frames_held));
+  t.counter("zone_client_stalls_total", "Stalled clients (backlog full for client-stall seconds): queued state dropped, a reset once drained.",
+            static_cast<double>(stats_.client_stalls));
   t.counter("zone_net_frames_dropped_total", "State frames not delivered to slow clients (dropped or superseded by a reset).",
             static_cast<double>(ns.frames_dropped));
   t.counter("zone_net_resyncs_requested_total", "Drop episodes: a slow client's view resynchronised with a reset.",
@@ -409,6 +411,7 @@ void zone_server::welcome(net::session_id session, entity_id id, const std::stri
   client& c = clients_[session];
   c.entity = id;
   c.backlog = net_.state_backlog(session);
+  c.written = net_.bytes_written(session);
   c.replica = replicator_.add_client(id);
   session_of_entity_[id] = session;
   net::welcome_msg w;
@@ -487,10 +490,10 @@ void zone_server::set_visibility(net::session_id session, client& c, const net::
   if (c.switched && world_->tick() < c.last_visibility_tick + cooldown) return refuse("cooldown");
   const std::size_t d = world_->store().index_of(c.entity);
   if (d == entity_store::npos) return refuse("no entity");
-  const std::uint32_t old_class = world_->store().visibility_classes()[d];
+  const std::uint32_t old_class = world_->store().visibility_classes()[d], old_sees = world_->store().sees()[d];
   const player_visibility pv = visibility_for(v.stealth, v.team);
   if (!world_->store().set_visibility(c.entity, pv.visibility_class, pv.sees)) return refuse("invalid");
-  if (pv.visibility_class != old_class) class_changes_.push_back({c.entity, old_class});
+  if (pv.visibility_class != old_class || pv.sees != old_sees) class_changes_.push_back({c.entity, old_class, old_sees});
   c.switched = true;
   c.last_visibility_tick = world_->tick();
   ++stats_.visibility_switches;
@@ -498,7 +501,7 @@ void zone_server::set_visibility(net::session_id session, client& c, const net::
 
 void zone_server::replicate_class_changes() {
   for (const auto& ch : class_changes_) {
-    stats_.visibility_resyncs += replicator_.resync_viewers_of(world_->store(), ch.entity, ch.old_class, cfg_.hysteresis);
+    stats_.visibility_resyncs += replicator_.resync_viewers_of(world_->store(), ch.entity, ch.old_class, ch.old_sees, cfg_.hysteresis);
   }
   class_changes_.clear();
 }
@@ -531,16 +534,40 @@ void zone_server::replicate() {
   requests_.clear();
   request_sessions_.clear();
   const std::uint64_t every = cfg_.client_send_every, phase = world_->tick() % every;
-  for (const auto& [session, c] : clients_) {
+  const std::uint64_t tick = world_->tick();
+  const auto stall_ticks = static_cast<std::uint64_t>(std::ceil(cfg_.client_stall_s * cfg_.tick_rate_hz));
+  for (auto& [session, c] : clients_) {
     if (c.redirected) continue;  // its entity is served by another zone now
     // Not this client's tick (client_send_every > 1): its next frame carries this tick's changes.
     if (every > 1 && session % every != phase) continue;
-    // Paced to what the client absorbs: no new frame while its backlog is full (the next one
-    // carries everything since: the replicator moves the view from what was last built).
-    if (cfg_.client_max_backlog != 0 && c.backlog &&
-        c.backlog->load(std::memory_order_relaxed) >= cfg_.client_max_backlog) {
-      ++stats_.frames_held;
-      continue;
+    if (cfg_.client_max_backlog != 0 && c.backlog) {
+      const std::uint32_t backlog = c.backlog->load(std::memory_order_relaxed);
+      if (c.stalled) {
+        // Stalled: nothing until its socket has taken every frame, then the current state.
+        if (backlog != 0) {
+          ++stats_.frames_held;
+          continue;
+        }
+        c.stalled = c.holding = false;
+      } else if (backlog >= cfg_.client_max_backlog) {
+        // Paced to what the client absorbs: no new frame while its backlog is full (the next one
+        // carries everything since: the replicator moves the view from what was last built).
+        ++stats_.frames_held;
+        // Stalled: held this long with not one byte taken by its socket (a slow reader moves it on).
+        const std::uint64_t written = c.written ? c.written->load(std::memory_order_relaxed) : 0;
+        if (!c.holding || written != c.held_written) c.holding = true, c.held_since = tick, c.held_written = written;
+        if (stall_ticks > 0 && tick - c.held_since >= stall_ticks) {
+          // Full for client_stall_s and nothing written: the client is not reading. The frames queued for it would be
+          // stale when it reads again: dropped, and its next frame (once it drained) a reset.
+          (void)net_.drop_stale_state(session);
+          replicator_.resync(c.replica);
+          c.stalled = true;
+          ++stats_.client_stalls;
+        }
+        continue;
+      } else {
+        c.holding = false;
+      }
     }
     requests_.push_back({c.replica, c.last_input});
     request_sessions_.push_back(session);

@@ -33,6 +33,7 @@ struct loop_stats {
   std::uint64_t frames_sent = 0;       ///< tick updates handed to the network
   std::uint64_t bytes_sent = 0;
   std::uint64_t frames_held = 0;       ///< client-ticks without a frame: the client's backlog was full
+  std::uint64_t client_stalls = 0;     ///< stalls: a backlog full for client_stall_s (queued state dropped, then a reset)
   std::uint64_t teleports = 0;          ///< teleport requests applied
   std::uint64_t teleports_clamped = 0;  ///< of which clamped into the world
   std::uint64_t teleports_refused = 0;  ///< refused: off, cooldown, another's entity, not finite
@@ -122,6 +123,11 @@ class zone_server {
     std::uint64_t last_visibility_tick = 0;  ///< world tick of the last applied set_visibility
     bool switched = false;
     bool redirected = false;  ///< its entity moved to another zone: no more frames, inputs forwarded
+    bool holding = false;     ///< its backlog was full at its last turn, and no byte was written since world tick held_since
+    std::uint64_t held_since = 0;
+    std::uint64_t held_written = 0;  ///< *written at held_since
+    std::shared_ptr<const std::atomic<std::uint64_t>> written;  ///< net::server::bytes_written
+    bool stalled = false;     ///< stalled (client_stall_s): no frame until the backlog is 0, then a reset
     std::shared_ptr<const std::atomic<std::uint32_t>> backlog;  ///< net::server::state_backlog
   };
   void drain_inputs();
@@ -138,7 +144,7 @@ class zone_server {
   void replicate_class_changes();
   struct class_change {
     entity_id entity;
-    std::uint32_t old_class;
+    std::uint32_t old_class, old_sees;
   };
   std::vector<class_change> class_changes_;
   /// Records an input's sequence as the client's last when it is newer (RFC 1982 serial-number

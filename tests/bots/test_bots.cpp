@@ -594,17 +594,21 @@ void slow_clients(bool paced) {
     CHECK(c->digest_mismatches == 0);
     CHECK(c->digests == c->frames);
     if (paced) {
-      CHECK(c->resets == 0);  // nothing dropped, nothing to resynchronise
+      // The stalled reader's backlog stayed full past --client-stall (1 s): its queued state was
+      // dropped and it got a reset once it drained; the slow reader drains all along: no reset.
+      CHECK(c->resets == (c == &stalled ? 1u : 0u));
     } else {
       CHECK(c->resets >= 1);  // it was resynchronised after its drops
     }
   }
   CHECK(stalled.frames > stalled_before + 40);  // served again
   CHECK(slow.frames > slow_before + 40);
+  const double stalls = metric(text, "zone_client_stalls_total").value_or(0);
   if (paced) {
     CHECK(held > 0);
-    CHECK(dropped == 0);
-    CHECK(resyncs == 0);
+    CHECK(stalls == 1);      // the stalled reader, once
+    CHECK(dropped <= 2);     // at most what was queued behind its write in flight
+    CHECK(resyncs == 0);     // the queue never overflowed
   } else {
     CHECK(dropped > 0);
     CHECK(resyncs >= 2);
@@ -621,7 +625,7 @@ void slow_clients(bool paced) {
 
 }  // namespace
 
-TEST_CASE("slow clients paced: one stops reading for 10 s, one reads slower than it is sent to; nothing dropped") {
+TEST_CASE("slow clients paced: one stops reading for 10 s (one reset when it drains), one reads slower than it is sent to (no reset)") {
   slow_clients(true);
 }
 

@@ -306,7 +306,11 @@ TEST_SUITE("bots.oracle") {
           }
         }
         // Two players switch each tick: stealth toggled, sometimes another team.
-        std::vector<std::pair<entity_id, std::uint32_t>> changed;
+        struct change {
+          entity_id id;
+          std::uint32_t old_class, old_sees;
+        };
+        std::vector<change> changed;
         for (int k = 0; k < 2 && tick > 3; ++k) {
           const entity_id id = clients[w.rng() % clients.size()].id;
           const auto d = *w.store.get(id);
@@ -314,12 +318,12 @@ TEST_SUITE("bots.oracle") {
           const std::uint8_t team = (d.sees & cb::team_red) ? 1 : (d.sees & cb::team_blue) ? 2 : 0;
           const auto v = visibility_for(!stealthed, w.rng() % 2 ? team : static_cast<std::uint8_t>(w.rng() % 3));
           REQUIRE(w.store.set_visibility(id, v.visibility_class, v.sees));
-          if (v.visibility_class != d.visibility_class) changed.emplace_back(id, d.visibility_class);
+          if (v.visibility_class != d.visibility_class || v.sees != d.sees) changed.push_back({id, d.visibility_class, d.sees});
           ++switches;
         }
         REQUIRE_FALSE(tracker.update(w.store.columns()).has_value());
         if (with_resync) {
-          for (const auto& [id, old] : changed) resyncs += rep.resync_viewers_of(w.store, id, old, 4.0f);
+          for (const auto& ch : changed) resyncs += rep.resync_viewers_of(w.store, ch.id, ch.old_class, ch.old_sees, 4.0f);
         }
         const bool layout = tick == 0 || w.store.layout_version() != layout_version;
         layout_version = w.store.layout_version();

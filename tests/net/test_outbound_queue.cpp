@@ -403,4 +403,26 @@ TEST_SUITE("net.outbound_queue") {
     CHECK(delivered_state + dropped == sent_state);  // every state frame delivered or counted
     CHECK(episodes > 20);
   }
+
+  TEST_CASE("drop_stale (a stalled client): queued state dropped, the write in flight and control frames kept, then only a reset") {
+    outbound_queue q(8);
+    REQUIRE(q.push(numbered(1), delivery::state).queued);
+    REQUIRE(q.start_write() != nullptr);  // frame 1 is being written
+    REQUIRE(q.push(numbered(2), delivery::state).queued);
+    REQUIRE(q.push(numbered(3), delivery::control).queued);
+    REQUIRE(q.push(numbered(4), delivery::state).queued);
+    CHECK(q.drop_stale() == 2);  // 2 and 4
+    CHECK(q.awaiting_reset());
+    const auto late = q.push(numbered(5), delivery::state);  // a delta built before the game knew
+    CHECK_FALSE(late.queued);
+    CHECK(late.dropped == 1);
+    CHECK_FALSE(late.resync);  // the caller resyncs itself: not reported again
+    REQUIRE(q.push(numbered(6), delivery::state_reset).queued);
+    CHECK_FALSE(q.awaiting_reset());
+    REQUIRE(q.push(numbered(7), delivery::state).queued);
+    q.finish_write();
+    CHECK(numbers(drain(q)) == std::vector<std::uint64_t>{3, 6, 7});
+    CHECK(q.drop_stale() == 0);  // nothing queued: still awaits a reset
+    CHECK(q.awaiting_reset());
+  }
 }

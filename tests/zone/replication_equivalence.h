@@ -131,14 +131,19 @@ inline replication_coverage check_replication_equivalence(
       std::vector<replication_request> requests;
       std::vector<std::vector<std::uint8_t>> want, got;
       std::vector<replication_stats> want_st, got_st;
-      std::vector<std::pair<entity_id, std::uint32_t>> switched;  // (entity, class before) since the last step
+      struct switch_rec {
+        entity_id entity;
+        std::uint32_t old_class, old_sees;
+      };
+      std::vector<switch_rec> switched;  // since the last step
       for (std::uint64_t tick = first_tick; tick < first_tick + static_cast<std::uint64_t>(c.ticks); ++tick) {
         CAPTURE(tick);
         REQUIRE_FALSE(tracker.update(store.columns()).has_value());
         // After the step, as zone_server does: the clients that may hold a switched entity with
         // its old class start over, on both sides alike.
-        for (const auto& [e, old] : switched) {
-          const std::size_t a = cpu.resync_viewers_of(store, e, old, 3.0f), b = dev.resync_viewers_of(store, e, old, 3.0f);
+        for (const auto& sw : switched) {
+          const std::size_t a = cpu.resync_viewers_of(store, sw.entity, sw.old_class, sw.old_sees, 3.0f);
+          const std::size_t b = dev.resync_viewers_of(store, sw.entity, sw.old_class, sw.old_sees, 3.0f);
           REQUIRE(a == b);
           cov.switch_resyncs += a;
         }
@@ -289,11 +294,11 @@ inline replication_coverage check_replication_equivalence(
           const entity_id o = cpu.observer(clients[rng() % clients.size()].id);
           const std::size_t k = store.index_of(o);
           if (k == entity_store::npos) continue;
-          const std::uint32_t old = store.visibility_classes()[k];
+          const std::uint32_t old = store.visibility_classes()[k], old_sees = store.sees()[k];
           const auto v = visibility_for(rng() % 2 == 0, static_cast<std::uint8_t>(rng() % 3));
           REQUIRE(store.set_visibility(o, v.visibility_class, v.sees));
-          if (v.visibility_class != old) {
-            switched.emplace_back(o, old);
+          if (v.visibility_class != old || v.sees != old_sees) {
+            switched.push_back({o, old, old_sees});
             ++cov.switches;
           }
         }

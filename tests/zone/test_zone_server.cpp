@@ -335,6 +335,7 @@ TEST_SUITE("zone.server") {
     cfg.io_threads = 1;
     cfg.socket_send_buffer = 16384;  // the kernel holds little: the backlog builds within a few ticks
     REQUIRE(cfg.client_max_backlog == 2);  // the default
+    cfg.client_stall_s = 0;  // pacing alone (the stall bound would make the next frame a reset: tested below)
     zone_server server(cfg);
     REQUIRE_FALSE(server.start().has_value());
     test_client slow(server.port(), 4096);
@@ -797,5 +798,116 @@ TEST_SUITE("zone.server") {
     REQUIRE(es.has_value());
     REQUIRE(std::holds_alternative<net::error_msg>(*es));
     CHECK(std::get<net::error_msg>(*es).code == net::error_code::bad_hello);
+  }
+
+  TEST_CASE("bounded staleness: a client that stops reading for 3 s gets current state within a few ticks of resuming") {
+    // The server ticks in real time (20 Hz) with every visible entity updated every tick
+    // (~100 entities in view, a few KB a frame). A client reads for a second, stops reading for
+    // 3 s, then reads again. Stale bytes were already in the kernel's buffers (the server's send
+    // buffer and the client's receive buffer: bounded in bytes, read in milliseconds); the server
+    // holds nothing stale itself: once the backlog has been full for client_stall_s, its queued
+    // state is dropped, and when the socket drains the next frame is a reset of the current
+    // state. So within a second of resuming the client holds a frame at most 2 ticks old, every
+    // frame applies, and the digest (every frame) says its view is the server's.
+    zone_config cfg = test_config();
+    cfg.metrics_enabled = false;
+    cfg.npc_count = 2000;
+    cfg.town_count = 1;
+    cfg.tick_rate_hz = 20;
+    cfg.player_aoi = 100;
+    cfg.update_near = cfg.update_mid = 1000;
+    cfg.io_threads = 1;
+    REQUIRE(cfg.client_max_backlog == 2);  // the defaults: pacing, a stall bound, a small send buffer
+    REQUIRE(cfg.client_stall_s > 0);
+    REQUIRE(cfg.socket_send_buffer > 0);
+    zone_server server(cfg);
+    REQUIRE_FALSE(server.start().has_value());
+    std::thread loop([&] { server.run(); });
+    struct stop_at_exit {
+      zone_server& s;
+      std::thread& t;
+      ~stop_at_exit() {
+        s.stop();
+        if (t.joinable()) t.join();
+      }
+    } stopper{server, loop};
+    const int rcvbuf = 16384;  // the client's choice (the kernel doubles it): the stale bytes it can hold
+    test_client c(server.port(), rcvbuf);
+    REQUIRE(c.send(net::hello_msg{"stall", "", net::protocol_version}));
+    std::optional<net::client_view> view;
+    std::uint64_t frames = 0, problems = 0, resets = 0;
+    const double tick_ms = 1000.0 / cfg.tick_rate_hz;
+    const auto now_us = [] {
+      return static_cast<std::uint64_t>(
+          std::chrono::duration_cast<std::chrono::microseconds>(std::chrono::steady_clock::now().time_since_epoch()).count());
+    };
+    // Applies one message; the age of a tick update on arrival (ms), else -1.
+    const auto apply = [&](const net::message& m) -> double {
+      if (const auto* w = std::get_if<net::welcome_msg>(&m)) {
+        REQUIRE(w->host_clock);
+        view.emplace(w->world);
+      }
+      const auto* u = std::get_if<net::tick_update_msg>(&m);
+      if (!u) return -1;
+      REQUIRE(view.has_value());
+      REQUIRE(u->digest.has_value());
+      const auto st = view->apply(*u);
+      if (st != net::client_view::status::ok) ++problems;
+      if (u->reset && frames > 0) ++resets;
+      ++frames;
+      return static_cast<double>(now_us() - u->server_time_us) / 1000.0;
+    };
+    // Read for a second.
+    const auto until = [](std::chrono::milliseconds d) { return std::chrono::steady_clock::now() + d; };
+    for (auto end = until(1000ms); std::chrono::steady_clock::now() < end;) {
+      if (auto m = c.read(20ms)) (void)apply(*m);
+    }
+    REQUIRE(frames > 10);
+    REQUIRE(view->size() > 20);
+    // Stop reading for 3 s (the server keeps ticking; the kernel buffers fill, then the backlog).
+    std::this_thread::sleep_for(3000ms);
+    const auto stalls = server.stats().client_stalls;
+    CHECK(stalls >= 1);
+    // Resume: read as fast as frames come. Every frame's age on arrival, until a fresh one.
+    const auto resumed = std::chrono::steady_clock::now();
+    std::optional<double> first_age, fresh_after_ms;
+    std::uint64_t stale_frames = 0, stale_bytes = 0, after = 0;
+    double fresh_age = -1;
+    for (auto end = until(1500ms); std::chrono::steady_clock::now() < end;) {
+      auto m = c.read(20ms);
+      if (!m) continue;
+      const double age = apply(*m);
+      if (age < 0) continue;
+      ++after;
+      if (!first_age) first_age = age;
+      if (!fresh_after_ms) {
+        if (age <= 2 * tick_ms) {
+          fresh_after_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - resumed).count();
+          fresh_age = age;
+        } else {
+          ++stale_frames;
+          stale_bytes += net::encode_frame(*m).size();  // about the size it had on the wire
+        }
+      }
+    }
+    MESSAGE("stall 3 s: first frame after resuming " << first_age.value_or(-1) << " ms old; " << stale_frames
+            << " stale frames, " << stale_bytes << " bytes (from the kernel's buffers and the write in flight), then a frame " << fresh_age
+            << " ms old, " << fresh_after_ms.value_or(-1) << " ms after resuming; " << after << " frames in 1.5 s; "
+            << resets << " resets; server: " << stalls << " stalls, " << server.net_stats().frames_dropped
+            << " frames dropped, " << server.stats().frames_held << " client-ticks held");
+    REQUIRE(fresh_after_ms.has_value());
+    CHECK(*fresh_after_ms <= 1000);
+    CHECK(fresh_age <= 2 * tick_ms);
+    CHECK(resets >= 1);  // the view was rebuilt from the current state
+    CHECK(problems == 0);  // every frame applied and its digest matched the server's view
+    CHECK(view->problems() == 0);
+    CHECK(view->size() > 20);
+    // The stale frames are what the kernels held (the server's send buffer and the client's
+    // receive buffer, each doubled by Linux) and the gathered write in flight, nothing the server
+    // queued: bounded in bytes, whatever the stall's length.
+    CHECK(stale_bytes <= 2 * cfg.socket_send_buffer + 2 * rcvbuf + 64 * 1024);
+    CHECK(server.net_stats().stale_drops >= 1);
+    CHECK(after > 20);  // served at the full rate again
+    CHECK_FALSE(c.closed());
   }
 }
