@@ -27,6 +27,9 @@ static_assert(sizeof(replication_entity) == 32);
 /// The rules of a tick (zone::replication_options, resolved).
 struct replication_rules {
   std::uint64_t tick = 0;  ///< last-sent ticks are kept modulo 2^32, as the CPU replicator does
+  std::uint64_t server_time_us = 0;  ///< the frames' server_time_us
+  /// Which frames carry the digest: 0 none, 1 reset frames only, 2 every frame.
+  std::uint32_t digest = 0;
   std::uint64_t byte_budget = 0;
   /// net::frame_cost: header, self position, per enter, leave, update.
   std::uint32_t header_cost = 0, self_cost = 0, enter_cost = 0, leave_cost = 0, update_cost = 0;
@@ -41,11 +44,38 @@ struct replication_rules {
   double quant_step[3] = {0, 0, 0};
 };
 
+/// The layout the engine writes each frame in: net::canonical_tick_update (docs/protocol.md) as
+/// plain numbers, filled by zone::replicator from net/protocol.h so that the engine needs no
+/// protocol header. The engine writes every byte of a frame except three fields of each enter's
+/// table (visibility class, presence half extents, kind), which the caller fills in (enters are
+/// few, and those fields are not on the device).
+struct replication_frame_format {
+  /// The tick_update table for one combination of optional parts: its place, its size, its
+  /// vtable's size and each field's offset in it (0: absent), in schema order.
+  struct table {
+    std::uint16_t at = 0, size = 0, vtable = 0;
+    std::uint16_t field[10] = {};
+  };
+  /// By parts: bit 0 enters, 1 leaves, 2 updates, 3 digest, 4 self position, 5 deferred, 6 reset.
+  table tables[128];
+  std::uint16_t enter_vtable[10] = {};  ///< the enters' shared vtable (its 20 bytes)
+  std::uint32_t enter_table = 0;         ///< bytes of one enter's table (and then its empty name)
+  std::uint32_t enter_name = 0;
+  std::uint32_t prefix_bytes = 0;        ///< the length prefix (the frame's size minus this)
+  std::uint32_t header_max = 0;          ///< the largest tables[i].at + size
+  std::uint8_t identifier[4] = {};       ///< the file identifier after the root offset
+  std::uint32_t message_type = 0;        ///< the envelope's type byte for a tick_update
+};
+inline constexpr std::uint32_t frame_part_enters = 1, frame_part_leaves = 2, frame_part_updates = 4,
+                               frame_part_digest = 8, frame_part_self = 16, frame_part_deferred = 32,
+                               frame_part_reset = 64;
+
 /// One client's frame to decide.
 struct replication_job {
   std::uint32_t client = 0;    ///< < client_count; at most one job per client per run
   std::uint32_t flags = 0;     ///< job_reset: drop the client's view first
   std::uint32_t observer = 0;  ///< its entity's handle: the eye is its position when it is live
+  std::uint32_t last_input = 0;  ///< the frame's last_input_sequence
   /// Its visible set (sorted handles): staging.visible[visible_off, + visible_len); or, when run()
   /// is given resident rows, row visible_off of those (no_row: none) and visible_len unused.
   std::uint32_t visible_off = 0, visible_len = 0;
@@ -55,11 +85,13 @@ inline constexpr std::uint32_t job_reset = 1u;
 /// In replication_result::flags: the observer was live (eye is its position; else eye is 0).
 inline constexpr std::uint32_t result_has_self = 1u;
 
-/// What the engine decided for a job. Its record (at record_off bytes into output::records, 4-byte
-/// aligned) holds the leaves sent (ids, view order), then the enters sent (dense index, id: pairs of
-/// u32, closest first), then the updates sent (16-byte wire updates, in frame order).
+/// What the engine decided for a job. Its frame (frame_size bytes at record_off into
+/// output::records, 8-byte aligned) is the whole tick_update in the replication_frame_format,
+/// except for the enters' class, half extents and kind (enters_at: the first enter's table; each
+/// enter's table and name take enter_table + enter_name bytes, closest first).
 struct replication_result {
   std::uint32_t record_off = 0;
+  std::uint32_t frame_size = 0, enters_at = 0;
   std::uint32_t leaves = 0, enters = 0, updates = 0;
   std::uint32_t deferred_leaves = 0, deferred_enters = 0, deferred_updates = 0;
   std::uint32_t view_size = 0;  ///< the client's view after this frame
@@ -67,7 +99,7 @@ struct replication_result {
   float eye[3] = {0, 0, 0};     ///< the observer's position (0 without result_has_self)
   std::uint32_t flags = 0;      ///< result_has_self
 };
-static_assert(sizeof(replication_result) == 56);
+static_assert(sizeof(replication_result) == 64);
 
 /// Where the engine's time went in the last run.
 struct replication_timing {
@@ -99,7 +131,7 @@ class replication_engine {
 
   struct output {
     const replication_result* results = nullptr;  ///< one per job, in job order
-    const std::uint8_t* records = nullptr;
+    std::uint8_t* records = nullptr;  ///< the frames (the caller fills in the enters' three fields)
   };
   /// Decides every staged job's frame (zone::replicator's algorithm, the same integers and the same
   /// float operations) and moves each job's client view on. Clients are numbered below
@@ -112,9 +144,12 @@ class replication_engine {
   /// Whether run() can read a GPU visibility engine's resident rows.
   [[nodiscard]] virtual bool reads_resident() const { return false; }
 
-  /// How run() waits for the device: blocking (the thread sleeps until the device signals; no CPU
-  /// burnt, a wake-up's latency added) or spinning (the CUDA default). Engines without a device
-  /// ignore it.
+  /// The layout of the frames run() writes; before the first run().
+  virtual void set_frame_format(const replication_frame_format& format) = 0;
+  /// How run() waits for the device: spinning (the CUDA default, and the engines' default) or
+  /// blocking (the thread sleeps until the device signals: no CPU burnt while it waits, but on the
+  /// H100 host the wake-up put the wait's p99 at 4-6 ms against 2.3 spinning). Engines without a
+  /// device ignore it.
   virtual void set_blocking_wait(bool blocking) { (void)blocking; }
 
   /// Drops every client's view (the next job of each must have job_reset).

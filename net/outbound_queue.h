@@ -214,6 +214,12 @@ class outbound_queue {
     queue_.pop_front(k);
     in_flight_ -= k;
   }
+  /// Control frames queued behind the frames being written.
+  [[nodiscard]] std::size_t control_waiting() const {
+    std::size_t n = 0;
+    for (std::size_t i = in_flight_; i < queue_.size(); ++i) n += queue_[i].kind == delivery::control ? 1 : 0;
+    return n;
+  }
   /// The client is not draining its socket (the game decided: net::server::drop_stale_state):
   /// every queued state frame that is not being written is dropped (it would be stale when the
   /// client reads it), and the queue awaits a reset, as after a drop episode (plain state frames

@@ -341,9 +341,8 @@ std::span<const std::uint8_t> tick_update_writer::finish() {
   if (has_enters) {
     // One shared vtable, then each enter's table and name.
     const std::size_t evt = at;
-    const std::uint16_t eplaces[9] = {4 + 2 * 7, static_cast<std::uint16_t>(c::enter_table), 4, 52, 8, 12, 24, 36, 48};
-    std::memcpy(f + evt, eplaces, sizeof eplaces);
-    put<std::uint16_t>(f, evt + 18, 0);
+    static_assert(sizeof c::enter_vtable_fields == c::enter_vtable);
+    for (std::size_t k = 0; k < 10; ++k) put<std::uint16_t>(f, evt + 2 * k, c::enter_vtable_fields[k]);
     at += c::enter_vtable;
     put<std::uint32_t>(f, enters_at, static_cast<std::uint32_t>(n));
     for (std::size_t k = 0; k < n; ++k) {

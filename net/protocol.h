@@ -226,7 +226,8 @@ class encoder {
 /// begin(); add_*()...; finish(). A returned span is valid until the next begin().
 /// The frame is written straight in the canonical tick_update layout (canonical_tick_update,
 /// docs/protocol.md), not through a FlatBuffers builder: the same values give the same bytes
-/// whoever writes them (the CPU replicator, the GPU path's wrapping, encoder::encode).
+/// whoever writes them (the CPU replicator, the GPU replication engine from the same tables,
+/// encoder::encode).
 /// The closed-form cost model of a tick_update frame (prefix included): an upper bound on the
 /// encoded size of a frame with these counts, whatever the values, field order of the builder
 /// or vtable sharing. Replication decides its byte budget with it alone (on the CPU and on the
@@ -274,6 +275,10 @@ struct canonical_tick_update {
   static constexpr std::size_t vtable_at = 32;
   static constexpr std::size_t enter_vtable = 20;
   static constexpr std::size_t enter_table = 56;
+  /// The enters' shared vtable, as written: its size, the table's size, then the entity_state
+  /// fields' offsets in schema order (id, kind, visibility_class, position, velocity,
+  /// presence_half_extent, name), and a zero pad to 20 bytes.
+  static constexpr std::uint16_t enter_vtable_fields[10] = {4 + 2 * 7, enter_table, 4, 52, 8, 12, 24, 36, 48, 0};
   /// Which optional parts a frame has.
   struct parts {
     bool enters = false, leaves = false, updates = false, digest = false, self = false, deferred = false,

@@ -292,6 +292,12 @@ class session : public std::enable_shared_from_this<session> {
   [[nodiscard]] std::shared_ptr<const std::atomic<std::uint32_t>> backlog() const { return backlog_; }
   [[nodiscard]] std::shared_ptr<const std::atomic<std::uint64_t>> written() const { return written_; }
 
+  /// Any thread: outbound_queue::control_waiting under the write lock.
+  std::size_t control_waiting() {
+    const std::unique_lock lock(write_mutex_);
+    return queue_.control_waiting();
+  }
+
   /// Any thread: outbound_queue::drop_stale under the write lock, counted (server::drop_stale_state).
   std::size_t drop_stale() {
     const std::unique_lock lock(write_mutex_);
@@ -523,6 +529,13 @@ class session : public std::enable_shared_from_this<session> {
           return;
         }
         ping_drops_ = 0;
+        // A client that pings but does not read (stalled) would pile up pongs until its queue
+        // overflows with control frames and it is closed as stuck: with half the bound of
+        // control frames already waiting, this ping gets no pong (counted as dropped).
+        if (control_waiting() * 2 >= srv_.opt.max_queued_frames) {
+          ++srv_.counters.pings_dropped;
+          return;
+        }
         const auto* p = f.envelope->message_as_ping();
         ++srv_.counters.pings_answered;
         push_from_lane(make_shared_frame(pong_encoder_.encode(pong_msg{p->client_time_us(), srv_.now_us()})),

@@ -209,7 +209,7 @@ struct server_stats {
   std::uint64_t frames_rejected = 0;   ///< inbound frames that failed decoding (session closed)
   std::uint64_t inputs_dropped = 0;    ///< over the input rate
   std::uint64_t pings_answered = 0;
-  std::uint64_t pings_dropped = 0;     ///< over the ping rate (no pong)
+  std::uint64_t pings_dropped = 0;     ///< over the ping rate, or with half the queue bound of control frames waiting (no pong)
 };
 
 class server {

@@ -28,6 +28,9 @@ struct viewer_snapshot {
   std::vector<float> x, y;
   std::vector<std::uint8_t> visibility;  ///< index of the class bit (1 normal, 2 stealth, 3 red, 4 blue)
   std::vector<std::uint8_t> kind;        ///< 0 player, 1 NPC, 2 boss
+  /// The filler's own tag for ids, visibility and kind (the zone: its store's layout version):
+  /// equal tags mean those three need not be copied again; 0 = none.
+  std::uint64_t layout = 0;
 
   /// What a page shows for the entity it selected (only entities some viewer selected).
   struct event {

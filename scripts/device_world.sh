@@ -7,9 +7,12 @@
 #   DEVICE_DIR=.device-x scripts/pack_device.sh build build/zone/zone-server build/bots/bot-swarm \
 #     build/world/world-check build/tools/host-jitter /usr/sbin/nats-server
 #   cp scripts/world.sh scripts/zone_procs.sh scripts/device_world.sh .device-x/
-#   (device) bash .device-x/device_world.sh [--duration S] [--single S] [--kill-duration S] [--bots N] [--npcs N]
+#   (device) bash .device-x/device_world.sh [options]
+# Options (defaults: the issue's targets): --duration S (60) --single S (20; 0: none)
+#   --kill-duration S (15) --bots N (2000) --npcs N (per zone, 5000) --threads N (per zone, 2)
+#   --interest gpu|cpu (gpu) --zone-args "..." (NPCs wandering at 10 m/s) --jitter-periods N (150)
 set -uo pipefail
-duration=60 single=20 kill_duration=15 bots=2000 npcs=5000 threads=2 size=1024
+duration=60 single=20 kill_duration=15 bots=2000 npcs=5000 threads=2 size=1024 interest=gpu jitter_periods=150
 zone_args="--npc-speed 10 --share-wander 1 --share-patrol 0 --share-town 0 --share-chase 0"
 while [ $# -gt 0 ]; do
   case "$1" in
@@ -19,8 +22,10 @@ while [ $# -gt 0 ]; do
     --bots) bots=$2; shift 2 ;;
     --npcs) npcs=$2; shift 2 ;;
     --threads) threads=$2; shift 2 ;;
+    --interest) interest=$2; shift 2 ;;
+    --jitter-periods) jitter_periods=$2; shift 2 ;;
     --zone-args) zone_args=$2; shift 2 ;;
-    --help|-h) sed -n 2,10p "$0"; exit 0 ;;
+    --help|-h) sed -n 2,13p "$0"; exit 0 ;;
     *) echo "device_world.sh: unknown option $1" >&2; exit 64 ;;
   esac
 done
@@ -39,7 +44,7 @@ ulimit -n 65536 2>/dev/null || true
   echo "date: $(date -u '+%F %T') UTC; host: $(nproc) cores; $(nvidia-smi --query-gpu=name --format=csv,noheader 2>/dev/null | head -1)"
   echo "nats-server $(nats-server --version 2>&1 | head -1)"
 } | tee "$out/summary.txt"
-"$here/host-jitter" --periods 150 >"$out/host-jitter.txt" 2>&1
+"$here/host-jitter" --periods "$jitter_periods" >"$out/host-jitter.txt" 2>&1
 grep -A3 '^| us' "$out/host-jitter.txt" | tee -a "$out/summary.txt"
 run() {  # run NAME world.sh-args...: its report into $OUT/NAME.txt, its logs into /tmp/NAME
   local name=$1
@@ -49,9 +54,9 @@ run() {  # run NAME world.sh-args...: its report into $OUT/NAME.txt, its logs in
   bash "$here/world.sh" --build "$b" --out "/tmp/$name" "$@" >"$out/$name.txt" 2>&1
   echo "exit $? after $((SECONDS - t0)) s" | tee -a "$out/$name.txt" "$out/summary.txt"
 }
-run world --grid 2x2 --bots "$bots" --npcs "$npcs" --duration "$duration" --threads "$threads" --world-size "$size" \
+run world --grid 2x2 --bots "$bots" --npcs "$npcs" --duration "$duration" --threads "$threads" --world-size "$size" --interest "$interest" \
   --zone-args "$zone_args" --oracle --single "$single"
-run kill --grid 2x2 --bots "$bots" --npcs "$npcs" --duration "$kill_duration" --threads "$threads" --world-size "$size" \
+run kill --grid 2x2 --bots "$bots" --npcs "$npcs" --duration "$kill_duration" --threads "$threads" --world-size "$size" --interest "$interest" \
   --zone-args "$zone_args" --kill
 # The raw outputs the tables cite: tick CSVs, swarm reports, zone logs' last lines, world-check.
 tar -C /tmp -cJf "$out/world-raw.tar.xz" --exclude='js' world kill 2>/dev/null

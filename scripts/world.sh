@@ -26,6 +26,8 @@ Usage: scripts/world.sh [options]
                    drop, extra, stealth, freeze, class) from tick 60; with --oracle the exit status is
                    then 0 only when the oracle caught it (mismatches > 0) and nothing else failed
   --threads N      worker threads per zone (default 1)
+  --interest WHERE cpu (default: --finder cpu --interest host) or gpu (--finder gpu --interest gpu:
+                   every zone, and --single, on the host's GPU)
   --zone-args "A"  more zone-server options for every zone (e.g. "--npc-speed 8")
   --single S       afterwards, run the same load in ONE zone-server for S seconds (all the zones'
                    NPCs and all the bots, zones x --threads worker threads) and report its tick p99
@@ -36,7 +38,7 @@ EOF
 }
 
 extra_zone_args=()
-build=build grid=2x2 bots=200 npcs=5000 duration=30 size=1024 kill=0 threads=1 bosses=0 out= oracle=0 fault= single=0
+build=build grid=2x2 bots=200 npcs=5000 duration=30 size=1024 kill=0 threads=1 bosses=0 out= oracle=0 fault= single=0 interest=cpu
 while [ $# -gt 0 ]; do
   case "$1" in
     --build) build=$2; shift 2 ;;
@@ -47,6 +49,7 @@ while [ $# -gt 0 ]; do
     --world-size) size=$2; shift 2 ;;
     --kill) kill=1; shift ;;
     --oracle) oracle=1; shift ;;
+    --interest) interest=$2; shift 2 ;;
     --test-fault) fault=$2; shift 2 ;;
     --single) single=$2; shift 2 ;;
     --bosses) bosses=$2; shift 2 ;;
@@ -63,6 +66,8 @@ for v in "$bots" "$npcs" "$duration" "$size" "$threads" "$bosses" "$single"; do
   [[ $v =~ ^[0-9]+$ ]] || { echo "world.sh: --bots, --npcs, --duration, --world-size, --threads, --bosses and --single take whole numbers (got '$v')" >&2; exit 64; }
 done
 [ "$kill" = 1 ] && [ "$oracle" = 1 ] && { echo "world.sh: --oracle and --kill do not go together (a killed zone's truth stream ends)" >&2; exit 64; }
+case "$interest" in cpu) where=(--finder cpu --interest host) ;; gpu) where=(--finder gpu --interest gpu) ;;
+  *) echo "world.sh: --interest must be cpu or gpu" >&2; exit 64 ;; esac
 case "$fault" in ''|drop|extra|stealth|freeze|class) ;; *) echo "world.sh: --test-fault must be drop, extra, stealth, freeze or class" >&2; exit 64 ;; esac
 for exe in zone/zone-server bots/bot-swarm world/world-check; do
   [ -x "$build/$exe" ] || { echo "world.sh: $build/$exe missing (build with libnats-dev installed)" >&2; exit 64; }
@@ -95,7 +100,7 @@ done
 
 name=local
 zone_args=(--world "$name" --nats "$url" --world-grid "$grid" --world-x "$size" --world-y "$size" --listen 127.0.0.1
-           --metrics 0 --npcs "$npcs" --bosses "$bosses" --threads "$threads" --finder cpu --interest host
+           --metrics 0 --npcs "$npcs" --bosses "$bosses" --threads "$threads" "${where[@]}" --max-clients $((bots + 100))
            ${extra_zone_args[@]+"${extra_zone_args[@]}"})
 [ "$oracle" = 1 ] && zone_args+=(--oracle)
 start_zone() {  # start_zone K [PORT]: zone K's process (log zone-K.log); prints its pid
@@ -138,6 +143,9 @@ done
 killed_note=
 if [ "$kill" = 1 ] && [ "$zones" -gt 1 ]; then
   sleep $(( duration / 3 ))
+  # What the zone owns just before the kill (a census of the whole world, about a second before):
+  # what the kill may lose at most.
+  "$build/world/world-check" --nats "$url" --world "$name" --wait-ms 800 >"$out/world-check-before-kill.txt" 2>&1 || true
   kill -9 "${zpid[1]}" 2>/dev/null || true
   wait "${zpid[1]}" 2>/dev/null || true
   t_kill=$(date +%s.%N)
@@ -148,11 +156,13 @@ if [ "$kill" = 1 ] && [ "$zones" -gt 1 ]; then
   t_up=$(date +%s.%N)
   killed_note=$(awk -v a="$t_kill" -v b="$t_up" -v r="$(grep -o 'region [0-9]* of' "$out/zone-1.log" | head -1 | awk '{print $2}')" \
     'BEGIN{printf "zone 1 (SIGKILL) back on region %s after %.1f s (lease lapse + start)", r, b - a}')
+  before=$(grep -o "region ${zregion[1]} (incarnation [0-9]*, [0-9]* owned)" "$out/world-check-before-kill.txt" | grep -o '[0-9]* owned' || true)
+  killed_note="$killed_note; it owned ${before:-?} at a census about a second before the kill (lost with it)"
 fi
 
 # 5. Wait for the swarms, then take the census while the zones still run.
 for k in $(seq 0 $((zones - 1))); do wait "${spid[$k]}" 2>/dev/null || true; done
-sleep 0.5  # the zones see the swarms' disconnects (their players leave)
+sleep 2  # the zones see the swarms' disconnects (their players leave; a loaded zone takes a few ticks)
 expect=()
 [ "$kill" = 1 ] || expect=(--expect $(( zones * (npcs + bosses) )))
 set +e
@@ -165,7 +175,7 @@ for k in $(seq 0 $((zones - 1))); do wait "${zpid[$k]}" 2>/dev/null || true; don
 # 6. The same load in one zone (--single), for the tick p99 beside the world's.
 if [ "$single" -gt 0 ]; then
   "$build/zone/zone-server" --world-x "$size" --world-y "$size" --listen 127.0.0.1 --metrics 0 --npcs $((zones * npcs)) \
-    --bosses $((zones * bosses)) --threads $((zones * threads)) --finder cpu --interest host \
+    --bosses $((zones * bosses)) --threads $((zones * threads)) "${where[@]}" --max-clients $((bots + 100)) \
     ${extra_zone_args[@]+"${extra_zone_args[@]}"} --port 0 --tick-csv "$out/single.csv" >"$out/single.log" 2>&1 &
   single_pid=$!
   pids+=("$single_pid")

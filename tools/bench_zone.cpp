@@ -49,6 +49,7 @@
 #include "interest.h"
 #include "interest/measure.h"
 #include "protocol.h"
+#include "server.h"
 #include "zone.h"
 #include "zone/interest_setup.h"
 
@@ -127,6 +128,41 @@ std::map<std::string, thread_group_cpu> thread_cpu_by_name() {
   return out;
 }
 
+/// Exact CPU time (ms) of every thread of the process: the sum of each thread's own CPU clock
+/// (clock_gettime on its per-thread clock, by TID). CLOCK_PROCESS_CPUTIME_ID is not exact with
+/// several threads running: Linux adds the pending time of the calling thread only, and other
+/// running threads' time since their last scheduler tick or switch shows up later (up to a tick
+/// each), which put the pool's workers' time from the world step into replication's window.
+class thread_clocks {
+ public:
+  /// Lists the process's threads now (call again after threads are created).
+  void refresh() {
+    clocks_.clear();
+    DIR* d = opendir("/proc/self/task");
+    if (d == nullptr) return;
+    while (const dirent* e = readdir(d)) {
+      if (e->d_name[0] == '.') continue;
+      const long tid = std::atol(e->d_name);
+      if (tid <= 0) continue;
+      // glibc's MAKE_THREAD_CPUCLOCK(tid, CPUCLOCK_SCHED): what pthread_getcpuclockid returns.
+      clocks_.push_back(static_cast<clockid_t>((~static_cast<unsigned>(tid)) << 3) | 6);
+    }
+    closedir(d);
+  }
+  [[nodiscard]] double ms() const {
+    double total = 0;
+    for (const clockid_t c : clocks_) {
+      timespec ts{};
+      if (clock_gettime(c, &ts) == 0) total += static_cast<double>(ts.tv_sec) * 1e3 + static_cast<double>(ts.tv_nsec) * 1e-6;
+    }
+    return total;
+  }
+  [[nodiscard]] std::size_t threads() const { return clocks_.size(); }
+
+ private:
+  std::vector<clockid_t> clocks_;
+};
+
 std::string load_average() {
   std::ifstream f("/proc/loadavg");
   std::string a, b, c;
@@ -159,8 +195,9 @@ struct options {
   replicate_mode replicate = replicate_mode::parallel;
   bool replicate_auto = true;  // --replicate auto: gpu when a device is usable
   bool host_views = false;     // --host-views: the GPU replication engine gets the sets from the host
-  bool device_wait_block = true;  // --device-wait: the replication engine's waits for the device
+  bool device_wait_block = false;  // --device-wait: the replication engine's waits for the device
   bool rep_park = true;           // --rep-park: replication_options::park_between_phases
+  bool sink_arena = true;         // --sink: build_many's frames into net::frame_arena (as zone-server) or per-client vectors
   std::size_t budget = 8 * 1024;
   std::uint32_t clients_per_task = 16;
   std::uint32_t snapshot = 16;  // replication_options::snapshot_entities_per_client
@@ -200,9 +237,12 @@ Usage: bench-zone [options]
                      compared) | gpu-vs-cpu (the engine, timed as the tick's, and the CPU
                      build_many each tick, frames compared byte for byte) (default auto)
   --device-wait HOW  block | spin: how the GPU replication engine waits for the device
-                     (replication_engine::set_blocking_wait; default block, as zone-server)
+                     (replication_engine::set_blocking_wait; default spin, as zone-server)
   --rep-park on|off  idle workers sleep after each host phase of replication on an engine
                      (replication_options::park_between_phases; default on, as zone-server)
+  --sink arena|copy  where build_many's sink copies each frame: arena (net::frame_arena, a block
+                     per ~20 frames, as zone-server's sink) or copy (one vector per client, the
+                     sink of bench-zone before issue 22's third round) (default arena)
   --budget BYTES     per-client byte budget (default 8192)
   --clients-per-task N  replication chunk size (default 16)
   --snapshot N       build_many snapshots the entities when clients * N >= entities; 0 = never
@@ -309,6 +349,9 @@ std::optional<std::string> parse_args(int argc, char** argv, options& o, bool& h
     } else if (a == "--device-wait") {
       if (!value() || (v != "block" && v != "spin")) return need("block|spin");
       o.device_wait_block = v == "block";
+    } else if (a == "--sink") {
+      if (!value() || (v != "arena" && v != "copy")) return need("arena|copy");
+      o.sink_arena = v == "arena";
     } else if (a == "--rep-park") {
       if (!value() || (v != "on" && v != "off")) return need("on|off");
       o.rep_park = v == "on";
@@ -480,6 +523,7 @@ int main(int argc, char** argv) {
   replicator repl(ro), repl_serial(ro);  // repl_serial: the reference in --replicate both and gpu-vs-cpu
   // As zone-server --replicate: the decisions on the GPU replication engine when asked and possible.
   std::unique_ptr<interest::replication_engine> rep_engine;
+  thread_clocks clocks;  // replication's CPU time, every thread read exactly (refreshed below)
   if (opt.replicate_auto || opt.replicate == replicate_mode::gpu || opt.replicate == replicate_mode::gpu_vs_cpu) {
     std::string why;
     rep_engine = gpu::make_replication_engine(&why);
@@ -487,7 +531,7 @@ int main(int argc, char** argv) {
       if (opt.replicate_auto) opt.replicate = replicate_mode::gpu;
       rep_engine->set_blocking_wait(opt.device_wait_block);
       repl.set_engine(rep_engine.get());
-      repl.set_phase_cpu_timing(true);
+      repl.set_phase_cpu_clock([&clocks] { return clocks.ms(); });
       // As zone-server: the players' sets stay on the device (the CPU reference of gpu-vs-cpu
       // reads them on the host).
       if (opt.replicate != replicate_mode::gpu_vs_cpu && !opt.host_views) world.set_player_views_on_host(false);
@@ -517,7 +561,13 @@ int main(int argc, char** argv) {
   std::vector<std::uint64_t> frame_hash(requests.size());
   std::vector<replication_stats> frame_stats(requests.size());
   std::vector<std::vector<std::uint8_t>> frame_copy(requests.size()), serial_copy(requests.size());
-  for (auto& f : frame_copy) f.reserve(opt.budget + 4096);  // frames stay within the budget
+  if (!opt.sink_arena) {
+    for (auto& f : frame_copy) f.reserve(opt.budget + 4096);  // frames stay within the budget
+  }
+  std::vector<net::shared_frame> frame_shared(opt.sink_arena ? requests.size() : 0);
+  const auto frame_of = [&](std::size_t k) -> std::span<const std::uint8_t> {
+    return opt.sink_arena ? frame_shared[k].bytes() : std::span<const std::uint8_t>(frame_copy[k]);
+  };
   for (auto& f : serial_copy) f.reserve(opt.budget + 4096);
   replication_writer serial_writer;
 
@@ -540,7 +590,7 @@ int main(int argc, char** argv) {
       s_d_rows{"    rows"}, s_e_pack{"  engine pack"}, s_e_up{"  engine upload"}, s_e_dev{"  engine device"},
       s_e_down{"  engine download"}, s_e_grid{"    grid"}, s_e_query{"    candidates, classified"}, s_e_class{"    scans, enters placed"},
       s_e_write{"    write"}, s_e_host{"  host work (overlapped)"}, s_rep{"replicate"}, s_rep_serial{"replicate 1t"},
-      s_total{"tick"}, s_rep_cpu{"replicate, CPU time (all threads)"}, s_rep_serial_cpu{"replicate 1t, CPU time"},
+      s_total{"tick"}, s_rep_cpu{"replicate, CPU time (all threads)"}, s_rep_cpu_process{"replicate, CPU time (process clock, lags)"}, s_rep_serial_cpu{"replicate 1t, CPU time"},
       s_rg_total{"  engine run"}, s_rg_up{"    upload"}, s_rg_dev{"    device"}, s_rg_down{"    download"},
       s_rg_wait{"    host waiting for the device"}, s_rp_stage{"  host staging (entities, slot map, jobs)"},
       s_rp_wrap{"  wrap (frames to the sink)"}, s_rp_stage_cpu{"  host staging, CPU time (all threads)"},
@@ -577,6 +627,7 @@ int main(int argc, char** argv) {
       next = std::max(next + period, clock_type::now() - period);
     }
     const bool measured = t >= opt.warmup;
+    if (t == 0 || t == opt.warmup) clocks.refresh();  // the pool's and the device runtime's threads
     if (t == opt.warmup) threads_before = thread_cpu_by_name();
     // Player inputs (a seeded random walk, changed every 30 ticks).
     for (std::size_t p = 0; p < players.size(); ++p) {
@@ -604,37 +655,44 @@ int main(int argc, char** argv) {
       last_progress = clock_type::now();
     }
     const std::uint64_t alloc1 = g_allocations.load();
-    double rep_ms = 0, rep_serial_ms = 0, rep_cpu = 0, rep_serial_cpu = 0;
+    double rep_ms = 0, rep_serial_ms = 0, rep_cpu = 0, rep_serial_cpu = 0, rep_cpu_process = 0;
     if (!requests.empty()) {
       const std::uint64_t tick = world.tick();
       const std::uint64_t now_us = tick * 1000;  // deterministic, so frames compare across runs
       if (opt.replicate != replicate_mode::serial) {
         // parallel, both, gpu, gpu-vs-cpu: build_many (on the engine when set).
         const auto r0 = clock_type::now();
-        const double c0 = cpu_ms(CLOCK_PROCESS_CPUTIME_ID);
+        const double c0 = clocks.ms(), p0 = cpu_ms(CLOCK_PROCESS_CPUTIME_ID);
         repl.build_many(requests, world.store(), world.tracker(), tick, now_us, &pool,
                         [&](std::size_t k, std::span<const std::uint8_t> frame, const replication_stats& st) {
-                          frame_copy[k].assign(frame.begin(), frame.end());  // as zone-server's make_shared_frame
+                          if (opt.sink_arena) {
+                            // As zone-server's sink: each worker carves its frames out of its own blocks.
+                            thread_local net::frame_arena arena;
+                            frame_shared[k] = arena.make(frame);
+                          } else {
+                            frame_copy[k].assign(frame.begin(), frame.end());
+                          }
                           frame_stats[k] = st;
                         });
         rep_ms = ms_since(r0);
-        rep_cpu = cpu_ms(CLOCK_PROCESS_CPUTIME_ID) - c0;
+        rep_cpu = clocks.ms() - c0;
+        rep_cpu_process = cpu_ms(CLOCK_PROCESS_CPUTIME_ID) - p0;
         for (std::size_t k = 0; k < requests.size(); ++k) {
-          frame_bytes[k] = frame_copy[k].size();
-          frame_hash[k] = fnv(0xcbf29ce484222325ull, frame_copy[k]);
+          frame_bytes[k] = frame_of(k).size();
+          frame_hash[k] = fnv(0xcbf29ce484222325ull, frame_of(k));
         }
       }
       if (opt.replicate == replicate_mode::gpu_vs_cpu) {
         // The CPU replicator's build_many: the reference the engine's frames must equal.
         const auto r0 = clock_type::now();
-        const double c0 = cpu_ms(CLOCK_PROCESS_CPUTIME_ID);
+        const double c0 = clocks.ms();
         repl_serial.build_many(requests, world.store(), world.tracker(), tick, now_us, &pool,
                                [&](std::size_t k, std::span<const std::uint8_t> frame, const replication_stats&) {
                                  serial_copy[k].assign(frame.begin(), frame.end());
                                });
         rep_serial_ms = ms_since(r0);
-        rep_serial_cpu = cpu_ms(CLOCK_PROCESS_CPUTIME_ID) - c0;
-        for (std::size_t k = 0; k < requests.size(); ++k) frames_mismatch += serial_copy[k] != frame_copy[k] ? 1 : 0;
+        rep_serial_cpu = clocks.ms() - c0;
+        for (std::size_t k = 0; k < requests.size(); ++k) frames_mismatch += std::ranges::equal(serial_copy[k], frame_of(k)) ? 0 : 1;
       }
       if (opt.replicate == replicate_mode::serial || opt.replicate == replicate_mode::both) {
         replicator& r = opt.replicate == replicate_mode::both ? repl_serial : repl;
@@ -707,6 +765,7 @@ int main(int argc, char** argv) {
     s_rep.v.push_back(rep_ms);
     s_rep_serial.v.push_back(rep_serial_ms);
     s_rep_cpu.v.push_back(rep_cpu);
+    s_rep_cpu_process.v.push_back(rep_cpu_process);
     s_rep_serial_cpu.v.push_back(rep_serial_cpu);
     if (rep_engine) {
       const auto& rt = rep_engine->timing();
@@ -762,6 +821,7 @@ int main(int argc, char** argv) {
       }
     }
     rows.push_back(&s_rep_cpu);
+    if (opt.replicate != replicate_mode::serial) rows.push_back(&s_rep_cpu_process);
     if (reference) {
       rows.push_back(&s_rep_serial);
       rows.push_back(&s_rep_serial_cpu);
@@ -791,10 +851,12 @@ int main(int argc, char** argv) {
                   (static_cast<double>(cfg.world.hi.x - cfg.world.lo.x) * static_cast<double>(cfg.world.hi.y - cfg.world.lo.y)));
   if (!requests.empty()) {
     const double frames = static_cast<double>(bytes_per_frame.size());
-    std::printf("replication: %zu clients, %.2f us per client (p50 tick), CPU time %.2f us per client (mean), frame bytes p50 %.0f p99 %.0f, per frame: enters %.2f, "
+    std::printf("replication: %zu clients, %.2f us per client (p50 tick), CPU time %.2f us per client (mean; process clock %.2f), "
+                "frame bytes p50 %.0f p99 %.0f, per frame: enters %.2f, "
                 "updates %.1f, leaves %.2f, deferred %.2f; view entries per client %.1f; frames digest %016llx",
                 requests.size(), quantile(s_rep.v, 0.5) * 1000.0 / static_cast<double>(requests.size()),
                 mean_of(s_rep_cpu.v) * 1000.0 / static_cast<double>(requests.size()),
+                mean_of(s_rep_cpu_process.v) * 1000.0 / static_cast<double>(requests.size()),
                 quantile(bytes_per_frame, 0.5), quantile(bytes_per_frame, 0.99), static_cast<double>(sent_enters) / frames,
                 static_cast<double>(sent_updates) / frames, static_cast<double>(sent_leaves) / frames,
                 static_cast<double>(deferred) / frames, static_cast<double>(view_entries) / frames,

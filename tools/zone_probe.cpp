@@ -19,7 +19,8 @@
 //   "Slow and stalled clients"). Reports, over the players: the age of the first frame after
 //   resuming, the stale frames and bytes read before a frame at most 2 ticks old, how long after
 //   resuming that fresh frame came, views that failed to apply or verify, and the server's RSS
-//   before, at the end of and after the stall (with --server-pid).
+//   before, at the end of and after the stall (with --server-pid). --rcvbuf sets the players'
+//   SO_RCVBUF (what their kernel holds for them unread).
 // With --server-pid the server's RSS and high-water mark (VmRSS, VmHWM) are reported at the end.
 // Output: a table, then one CSV line per figure (attack,metric,value).
 #include <arpa/inet.h>
@@ -57,6 +58,7 @@ struct options {
   std::size_t count = 1000;
   double seconds = 5;
   long server_pid = 0;
+  int rcvbuf = 0;  ///< stall: each player's SO_RCVBUF (0 = the system's)
 };
 
 std::vector<std::pair<std::string, double>> figures;
@@ -64,10 +66,13 @@ void figure(const std::string& name, double value) { figures.emplace_back(name, 
 
 double ms_since(steady::time_point t) { return std::chrono::duration<double, std::milli>(steady::now() - t).count(); }
 
-/// A TCP connection to 127.0.0.1:port from 127.0.0.<from>; -1 on failure.
-int connect_from(std::uint16_t port, std::uint8_t from, bool nonblocking) {
+/// A TCP connection to 127.0.0.1:port from 127.0.0.<from> (SO_RCVBUF `rcvbuf` unless 0); -1 on failure.
+int connect_from(std::uint16_t port, std::uint8_t from, bool nonblocking, int rcvbuf = 0) {
   const int fd = ::socket(AF_INET, SOCK_STREAM | (nonblocking ? SOCK_NONBLOCK : 0), 0);
   if (fd < 0) return -1;
+  // Before connect: the window scale is agreed in the handshake (set later, the kernel may have
+  // advertised more than the buffer then holds, and drop what overflows).
+  if (rcvbuf > 0) ::setsockopt(fd, SOL_SOCKET, SO_RCVBUF, &rcvbuf, sizeof rcvbuf);
   int one = 1;
   ::setsockopt(fd, IPPROTO_TCP, TCP_NODELAY, &one, sizeof one);
   sockaddr_in src{};
@@ -429,7 +434,7 @@ int attack_stall(const options& o) {
   const std::size_t n = std::max<std::size_t>(1, std::min<std::size_t>(o.count, 2000));
   std::vector<stall_player> ps(n);
   for (auto& p : ps) {
-    p.fd = connect_from(o.port, 4, false);
+    p.fd = connect_from(o.port, 4, false, o.rcvbuf);
     if (p.fd < 0 || !send_all(p.fd, encode_frame(hello_msg{"stall", "", protocol_version}))) {
       std::fprintf(stderr, "zone-probe: a stalling player could not connect: %s\n", std::strerror(errno));
       return 1;
@@ -486,6 +491,7 @@ int usage(bool help) {
   std::fprintf(help ? stdout : stderr,
                "usage: zone-probe --port P --attack halfopen|pingflood|httpidle|stall [--count N (1000)] [--seconds S (5)]\n"
                "                  [--metrics-port M (httpidle)] [--server-pid PID (CPU and memory readings)]\n"
+               "                  [--rcvbuf BYTES (stall: the players' SO_RCVBUF; 0 = the system's)]\n"
                "Hostile clients against a zone-server on loopback (docs/zone.md, Limits and hardening).\n");
   return help ? 0 : 64;
 }
@@ -506,6 +512,7 @@ int main(int argc, char** argv) {
     else if (a == "--count") o.count = std::min<std::size_t>(std::strtoull(v, nullptr, 10), 20000);
     else if (a == "--seconds") o.seconds = std::clamp(std::atof(v), 0.5, 120.0);
     else if (a == "--server-pid") o.server_pid = std::atol(v);
+    else if (a == "--rcvbuf") o.rcvbuf = std::clamp(std::atoi(v), 0, 1 << 26);
     else return usage(false);
   }
   if (o.port == 0 || (o.attack == "httpidle" && o.metrics_port == 0)) return usage(false);

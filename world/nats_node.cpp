@@ -330,6 +330,7 @@ void nats_node::send_loop() {
     const std::string key = "e." + hex(r.gid);
     if (r.epoch == 0) {
       // The entity left the world here (a player logged out): its ownership record goes too.
+      spdlog::debug("world '{}': {:x} left the world in region {}: its ownership record deleted", opt_.world, r.gid, region_);
       kvStore_Delete(kv_, key.c_str());
       continue;
     }
@@ -657,7 +658,8 @@ std::optional<std::vector<census_entry>> take_census(const std::string& url, con
 
 std::optional<std::map<global_id, std::pair<std::uint32_t, std::uint64_t>>> read_owners(const std::string& url,
                                                                                         const std::string& world,
-                                                                                        std::string* error) {
+                                                                                        std::string* error,
+                                                                                        const std::vector<global_id>* only) {
   natsConnection* nc = nullptr;
   jsCtx* js = nullptr;
   kvStore* kv = nullptr;
@@ -672,23 +674,36 @@ std::optional<std::map<global_id, std::pair<std::uint32_t, std::uint64_t>>> read
   if (natsConnection_JetStream(&js, nc, nullptr) != NATS_OK) return fail("no JetStream");
   if (js_KeyValue(&kv, js, ("world-" + world).c_str()) != NATS_OK) return fail("no world '" + world + "' in KV");
   std::map<global_id, std::pair<std::uint32_t, std::uint64_t>> out;
-  kvKeysList keys{};
-  const natsStatus ks = kvStore_Keys(&keys, kv, nullptr);
-  if (ks == NATS_OK) {
-    for (int i = 0; i < keys.Count; ++i) {
-      const std::string k = keys.Keys[i];
-      if (k.rfind("e.", 0) != 0) continue;
+  // One record; a read that fails for another reason than "no such key" (a timeout on a loaded
+  // host) is tried again: a record silently skipped would read as a missing one.
+  const auto read = [&](const std::string& k) {
+    for (int attempt = 0; attempt < 3; ++attempt) {
       kvEntry* e = nullptr;
-      if (kvStore_Get(&e, kv, k.c_str()) != NATS_OK) continue;
+      const natsStatus s = kvStore_Get(&e, kv, k.c_str());
+      if (s == NATS_NOT_FOUND) return;
+      if (s != NATS_OK) continue;
       std::istringstream in(kvEntry_ValueString(e));
       std::uint32_t region = 0;
       std::uint64_t epoch = 0;
       if (in >> region >> epoch) out[std::strtoull(k.c_str() + 2, nullptr, 16)] = {region, epoch};
       kvEntry_Destroy(e);
+      return;
     }
-    kvKeysList_Destroy(&keys);
-  } else if (ks != NATS_NOT_FOUND) {
-    return fail("cannot list keys: " + status_text(ks));
+  };
+  if (only != nullptr) {
+    for (const global_id g : *only) read("e." + hex(g));
+  } else {
+    kvKeysList keys{};
+    const natsStatus ks = kvStore_Keys(&keys, kv, nullptr);
+    if (ks == NATS_OK) {
+      for (int i = 0; i < keys.Count; ++i) {
+        const std::string k = keys.Keys[i];
+        if (k.rfind("e.", 0) == 0) read(k);
+      }
+      kvKeysList_Destroy(&keys);
+    } else if (ks != NATS_NOT_FOUND) {
+      return fail("cannot list keys: " + status_text(ks));
+    }
   }
   kvStore_Destroy(kv);
   jsCtx_Destroy(js);
@@ -702,6 +717,12 @@ world_check check_world(const std::vector<census_entry>& census,
   c.zones = census.size();
   c.kv_records = owners.size();
   std::unordered_map<global_id, std::vector<std::pair<std::uint32_t, std::uint64_t>>> seen;  // id -> (region, epoch)
+  // Players whose client never followed its redirect are removed (and their KV record deleted)
+  // unclaimed_player_s after the handoff; that may fall between the census and the KV read.
+  std::unordered_map<global_id, bool> awaiting;
+  for (const auto& z : census) {
+    for (const global_id g : z.awaiting) awaiting[g] = true;
+  }
   for (const auto& z : census) {
     c.owned += z.owned.size();
     for (const auto& [g, epoch] : z.owned) seen[g].emplace_back(z.region, epoch);
@@ -720,9 +741,20 @@ world_check check_world(const std::vector<census_entry>& census,
       if (epoch == 0) continue;  // never handed off: no record needed
       const auto it = owners.find(g);
       if (it == owners.end()) {
+        if (awaiting.contains(g)) continue;  // leaving now: its record may be gone already
         ++c.kv_missing;
+        c.missing_ids.push_back(g);
+        if (c.problem_examples.size() < 10) {
+          c.problem_examples.push_back("missing: id " + hex(g) + " owned by region " + std::to_string(region) + " at epoch " +
+                                       std::to_string(epoch) + ", no KV record");
+        }
       } else if (it->second.second < epoch || (it->second.second == epoch && it->second.first != region)) {
         ++c.kv_disagree;
+        if (c.problem_examples.size() < 10) {
+          c.problem_examples.push_back("disagree: id " + hex(g) + " owned by region " + std::to_string(region) + " at epoch " +
+                                       std::to_string(epoch) + ", KV says region " + std::to_string(it->second.first) +
+                                       " epoch " + std::to_string(it->second.second));
+        }
       }
     }
   }

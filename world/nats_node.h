@@ -192,9 +192,11 @@ struct census_entry {
 [[nodiscard]] std::optional<std::vector<census_entry>> take_census(const std::string& url, const std::string& world,
                                                                    int wait_ms, std::string* error,
                                                                    const std::function<void()>& pump = {});
-/// The ownership records in KV: id -> (region, epoch).
+/// The ownership records in KV: id -> (region, epoch). Every record (listing the bucket's keys), or
+/// with `only` just those ids' (read one by one: a listing taken while zones keep handing entities
+/// off can miss a key that changed under it).
 [[nodiscard]] std::optional<std::map<global_id, std::pair<std::uint32_t, std::uint64_t>>> read_owners(
-    const std::string& url, const std::string& world, std::string* error);
+    const std::string& url, const std::string& world, std::string* error, const std::vector<global_id>* only = nullptr);
 
 /// What a census and the KV records say together.
 struct world_check {
@@ -205,9 +207,12 @@ struct world_check {
   std::size_t moving = 0;          ///< the same id in two zones with different epochs (the census caught a handoff)
   std::size_t kv_records = 0;
   std::size_t kv_disagree = 0;     ///< a zone owns (id, epoch) while KV names another zone for it, or an older epoch
-  std::size_t kv_missing = 0;      ///< a zone owns an id handed off (epoch > 0) that has no KV record
+  std::size_t kv_missing = 0;      ///< a zone owns an id handed off (epoch > 0) that has no KV record (but
+                                   ///< a player awaiting its client: removed with its record any moment)
   std::size_t kv_in_flight = 0;    ///< KV is ahead of every zone (CAS done, the record not applied yet)
   std::vector<std::string> in_flight_examples;  ///< the first few of those, readable
+  std::vector<std::string> problem_examples;    ///< the first few kv_missing and kv_disagree, readable
+  std::vector<global_id> missing_ids;            ///< every kv_missing id (to read again: read_owners' `only`)
   [[nodiscard]] bool ok() const { return owned_twice == 0 && kv_disagree == 0 && kv_missing == 0; }
 };
 [[nodiscard]] world_check check_world(const std::vector<census_entry>& census,

@@ -79,6 +79,8 @@ class faulty_replication_engine final : public interest::replication_engine {
     return inner_.run(rules, client_count, rows);
   }
   [[nodiscard]] bool reads_resident() const override { return inner_.reads_resident(); }
+  void set_frame_format(const interest::replication_frame_format& format) override { inner_.set_frame_format(format); }
+  void set_blocking_wait(bool blocking) override { inner_.set_blocking_wait(blocking); }
   void forget_all() override {
     if (!fault_.fired()) inner_.forget_all();
   }

@@ -3,7 +3,6 @@
 #include <algorithm>
 #include <atomic>
 #include <chrono>
-#include <ctime>
 #include <functional>
 #include <cmath>
 #include <cstring>
@@ -57,12 +56,37 @@ net::wire::entity_update wire_update(entity_id id, const vec3& p, const vec3& v,
 
 void prefetch(const void* p) { __builtin_prefetch(p); }
 
-/// CPU time of every thread of the process so far, ms.
-double process_cpu_ms() {
-  timespec ts{};
-  clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &ts);
-  return static_cast<double>(ts.tv_sec) * 1e3 + static_cast<double>(ts.tv_nsec) * 1e-6;
+/// net::canonical_tick_update as the replication engine takes it (plain numbers).
+interest::replication_frame_format frame_format() {
+  using c = net::canonical_tick_update;
+  interest::replication_frame_format f;
+  for (std::uint32_t i = 0; i < 128; ++i) {
+    c::parts p;
+    p.enters = (i & interest::frame_part_enters) != 0;
+    p.leaves = (i & interest::frame_part_leaves) != 0;
+    p.updates = (i & interest::frame_part_updates) != 0;
+    p.digest = (i & interest::frame_part_digest) != 0;
+    p.self = (i & interest::frame_part_self) != 0;
+    p.deferred = (i & interest::frame_part_deferred) != 0;
+    p.reset = (i & interest::frame_part_reset) != 0;
+    const c::table_layout l = c::layout(p);
+    auto& t = f.tables[i];
+    t.at = static_cast<std::uint16_t>(l.table_at);
+    t.size = static_cast<std::uint16_t>(l.table_size);
+    t.vtable = static_cast<std::uint16_t>(l.vtable_size);
+    for (int k = 0; k < 10; ++k) t.field[k] = l.field[k];
+    f.header_max = std::max<std::uint32_t>(f.header_max, static_cast<std::uint32_t>(l.table_at + l.table_size));
+  }
+  static_assert(sizeof f.enter_vtable == c::enter_vtable);
+  for (int k = 0; k < 10; ++k) f.enter_vtable[k] = c::enter_vtable_fields[k];
+  f.enter_table = static_cast<std::uint32_t>(c::enter_table);
+  f.enter_name = static_cast<std::uint32_t>(c::name_bytes(0));
+  f.prefix_bytes = static_cast<std::uint32_t>(net::frame_header_bytes);
+  std::memcpy(f.identifier, net::wire::envelopeIdentifier(), 4);
+  f.message_type = static_cast<std::uint32_t>(net::wire::message::tick_update);
+  return f;
 }
+
 
 }  // namespace
 
@@ -411,7 +435,15 @@ void replicator::reset_all_clients() {
 void replicator::set_engine(interest::replication_engine* engine) {
   engine_ = engine;
   engine_error_.clear();
-  if (engine_ != nullptr) engine_->forget_all();
+  if (engine_ != nullptr) {
+    try {
+      engine_->set_frame_format(frame_format());
+    } catch (const std::exception& e) {
+      engine_error_ = e.what();
+      if (engine_error_.empty()) engine_error_ = "replication engine failed";
+    }
+    engine_->forget_all();
+  }
   reset_all_clients();
 }
 
@@ -420,15 +452,15 @@ void replicator::build_on_engine(std::span<const replication_request> requests, 
                                  interest::thread_pool* pool, const frame_sink& sink, const chunk_sink& chunk_done) {
   // Phase clocks: wall always, the process's CPU time when asked (set_phase_cpu_timing).
   replication_phase_times times;
-  times.cpu = phase_cpu_;
+  times.cpu = static_cast<bool>(phase_cpu_);
   auto mark_wall = std::chrono::steady_clock::now();
-  double mark_cpu = phase_cpu_ ? process_cpu_ms() : 0;
+  double mark_cpu = phase_cpu_ ? phase_cpu_() : 0;
   const auto phase_end = [&](double& wall, double& cpu) {
     const auto now = std::chrono::steady_clock::now();
     wall = std::chrono::duration<double, std::milli>(now - mark_wall).count();
     mark_wall = now;
     if (phase_cpu_) {
-      const double c = process_cpu_ms();
+      const double c = phase_cpu_();
       cpu = c - mark_cpu;
       mark_cpu = c;
     }
@@ -503,6 +535,7 @@ void replicator::build_on_engine(std::span<const replication_request> requests, 
       j.client = requests[k].client;
       j.flags = s.reset_pending ? interest::job_reset : 0;
       j.observer = s.observer;
+      j.last_input = requests[k].last_input_sequence;
       if (resident) {
         const std::size_t row = tracker.row_of(s.observer);
         j.visible_off = row != entity_store::npos ? static_cast<std::uint32_t>(row) : interest::no_row;
@@ -518,6 +551,9 @@ void replicator::build_on_engine(std::span<const replication_request> requests, 
 
   interest::replication_rules rules;
   rules.tick = tick;
+  rules.server_time_us = server_time_us;
+  // The digest: in every frame of a digest tick, else only in reset frames (build_from's rule).
+  rules.digest = !opt_.send_digest ? 0u : (opt_.digest_period <= 1 || tick % opt_.digest_period == 0) ? 2u : 1u;
   rules.byte_budget = opt_.byte_budget;
   rules.header_cost = static_cast<std::uint32_t>(net::frame_cost::header);
   rules.self_cost = static_cast<std::uint32_t>(net::frame_cost::self_position);
@@ -545,59 +581,52 @@ void replicator::build_on_engine(std::span<const replication_request> requests, 
   const auto out = engine_->run(rules, clients_.size(), resident ? &rows : nullptr);
   phase_end(times.engine_ms, times.engine_cpu_ms);
 
-  // Each frame wraps its record: enters built from the store (full state), leaves and updates
-  // copied as they are. Chunks of requests per task, as on the CPU path.
+  // The frames are the engine's, whole but for the enters' class, half extents and kind (from
+  // the store: enters are few once the views are built); each goes to the sink from where the
+  // engine put it. Chunks of requests per task, as on the CPU path.
   const std::size_t tasks = std::min<std::size_t>(chunks, pool != nullptr ? pool->size() : 1);
-  while (writers_.size() < tasks) writers_.push_back(std::make_unique<replication_writer>());
   std::atomic<std::size_t> next_chunk{0};
   const auto kinds = store.kinds();
   const auto classes = store.visibility_classes();
   const auto extents = store.presence_half_extents();
-  run_each(pool, tasks, [&](std::size_t task) {
-    net::tick_update_writer& writer = writers_[task]->frame_;
+  const std::size_t enter_step = net::canonical_tick_update::enter_table + net::canonical_tick_update::name_bytes(0);
+  const auto put32 = [](std::uint8_t* p, std::uint32_t v) { std::memcpy(p, &v, 4); };
+  run_each(pool, tasks, [&](std::size_t) {
     for (std::size_t ch = next_chunk.fetch_add(1, std::memory_order_relaxed); ch < chunks;
          ch = next_chunk.fetch_add(1, std::memory_order_relaxed)) {
       const std::size_t begin = ch * chunk, end = std::min(jobs, begin + chunk);
       for (std::size_t k = begin; k < end; ++k) {
-        const replication_request& r = requests[k];
         const interest::replication_result& res = out.results[k];
-        const interest::replication_job& j = st.jobs[k];
-        client_state& s = clients_[r.client];
+        client_state& s = clients_[requests[k].client];
         replication_stats stats;
-        writer.begin(tick, server_time_us, r.last_input_sequence);
-        if ((j.flags & interest::job_reset) != 0) {
-          writer.set_reset(true);
+        if ((st.jobs[k].flags & interest::job_reset) != 0) {
           stats.reset = true;
           s.reset_pending = false;
         }
-        if ((res.flags & interest::result_has_self) != 0) writer.set_self_position({res.eye[0], res.eye[1], res.eye[2]});
-        const std::uint8_t* rec = out.records + res.record_off;
-        const auto* leaves = reinterpret_cast<const std::uint32_t*>(rec);
-        const auto* enters = reinterpret_cast<const std::uint32_t*>(rec + 4 * std::size_t{res.leaves});
-        const auto* updates =
-            reinterpret_cast<const net::wire::entity_update*>(rec + 4 * std::size_t{res.leaves} + 8 * std::size_t{res.enters});
+        std::uint8_t* const frame = out.records + res.record_off;
         for (std::uint32_t e = 0; e < res.enters; ++e) {
-          const std::uint32_t d = enters[2 * e];
-          writer.add_enter({enters[2 * e + 1], static_cast<net::entity_kind>(kinds[d]), classes[d], to_net(pos[d]),
-                            to_net(vel[d]), to_net(extents[d]), {}});
+          std::uint8_t* const table = frame + res.enters_at + e * enter_step;
+          std::uint32_t id = 0;
+          std::memcpy(&id, table + 4, 4);
+          const std::size_t d = store.index_of(id);  // live: the engine found it in this tick's staging
+          if (d == entity_store::npos) continue;
+          put32(table + 8, classes[d]);
+          const net::vec3f half = to_net(extents[d]);
+          std::memcpy(table + 36, &half.x, 4);
+          std::memcpy(table + 40, &half.y, 4);
+          std::memcpy(table + 44, &half.z, 4);
+          put32(table + 52, static_cast<std::uint32_t>(static_cast<std::uint8_t>(kinds[d])));
         }
-        writer.set_leaves({leaves, res.leaves});
-        writer.set_wire_updates({updates, res.updates});
         s.hash = res.hash;
         s.engine_view_size = res.view_size;
-        if (opt_.send_digest && (stats.reset || opt_.digest_period <= 1 || tick % opt_.digest_period == 0)) {
-          writer.set_digest({tick, res.hash, res.view_size});
-        }
-        writer.set_deferred({res.deferred_enters, res.deferred_leaves, res.deferred_updates});
-        const auto frame = writer.finish();
         stats.enters = res.enters;
         stats.leaves = res.leaves;
         stats.updates = res.updates;
         stats.deferred_enters = res.deferred_enters;
         stats.deferred_leaves = res.deferred_leaves;
         stats.deferred_updates = res.deferred_updates;
-        stats.bytes = frame.size();
-        sink(k, frame, stats);
+        stats.bytes = res.frame_size;
+        sink(k, {frame, res.frame_size}, stats);
       }
       if (chunk_done) chunk_done(begin, end);
     }

@@ -46,8 +46,8 @@ struct replication_options {
 };
 
 /// Where build_many's last call on a replication engine spent its time (ms): wall clock per
-/// phase, and the process's CPU time (every thread) over each phase when
-/// replicator::set_phase_cpu_timing(true).
+/// phase, and CPU time over each phase as the clock given to replicator::set_phase_cpu_clock
+/// reads it (bench-zone: every thread of the process, each read exactly).
 struct replication_phase_times {
   double stage_ms = 0;  ///< the staging: entities, slot map, jobs (one pool run)
   double engine_ms = 0;  ///< the engine's run (the device's work, copies and waits)
@@ -186,9 +186,11 @@ class replicator {
   /// client's next frame a reset. With an engine, build() must not be called, and view() is empty
   /// (the view lives on the engine); view_hash() and view_size() stay exact.
   void set_engine(interest::replication_engine* engine);
-  /// Whether build_many on an engine also reads the process's CPU clock at its phases' ends
-  /// (replication_phase_times; a few system calls a tick).
-  void set_phase_cpu_timing(bool on) { phase_cpu_ = on; }
+  /// A CPU clock (ms) that build_many on an engine reads at its phases' ends
+  /// (replication_phase_times); null: none. (CLOCK_PROCESS_CPUTIME_ID lags: Linux leaves out the
+  /// time other threads ran since their last tick or switch, so bench-zone passes a sum of the
+  /// threads' own clocks.)
+  void set_phase_cpu_clock(std::function<double()> clock) { phase_cpu_ = std::move(clock); }
   /// The phases of build_many's last call on the engine.
   [[nodiscard]] const replication_phase_times& phase_times() const { return phase_times_; }
   /// True while build_many runs on the engine.
@@ -261,7 +263,7 @@ class replicator {
   std::string engine_error_;
   std::vector<std::uint32_t> job_visible_;  // build_on_engine: visible-set size, then offset, by request
   replication_phase_times phase_times_;
-  bool phase_cpu_ = false;
+  std::function<double()> phase_cpu_;
 };
 
 }  // namespace zone

@@ -183,7 +183,7 @@ std::string zone_server::metrics_text() const {
   t.counter("zone_net_frames_rejected_total", "Inbound frames rejected (client disconnected).", static_cast<double>(ns.frames_rejected));
   t.counter("zone_net_inputs_dropped_total", "Inputs over the rate limit.", static_cast<double>(ns.inputs_dropped));
   t.counter("zone_net_pings_answered_total", "Pings answered with a pong.", static_cast<double>(ns.pings_answered));
-  t.counter("zone_net_pings_dropped_total", "Pings over the rate limit (no pong).", static_cast<double>(ns.pings_dropped));
+  t.counter("zone_net_pings_dropped_total", "Pings over the rate limit, or from a client that does not read its pongs (no pong).", static_cast<double>(ns.pings_dropped));
   t.counter("zone_net_rate_limited_total", "Sessions closed for flooding (error rate_limited).", static_cast<double>(ns.rate_limited));
   t.gauge("zone_net_pending_open", "Connections open that have not said hello yet.", static_cast<double>(ns.pending_open));
   t.counter("zone_net_pending_evicted_total", "Connections without a hello closed to admit a newer one (cap: max-pending-per-address or max-pending).",
@@ -711,19 +711,28 @@ void zone_server::fill_viewer_snapshot(net::viewer_snapshot& s) const {
   const auto pos = store.positions();
   const auto cls = store.visibility_classes();
   const auto kinds = store.kinds();
+  // Ids, classes and kinds only when the store's layout changed since this snapshot was filled
+  // (its version covers ids and classes; an entity's kind is fixed at creation); positions always.
+  const std::uint64_t layout = store.layout_version();
+  const bool all = layout == 0 || s.layout != layout || s.ids.size() != n;
+  s.layout = layout;
   s.ids.resize(n);
   s.x.resize(n);
   s.y.resize(n);
   s.visibility.resize(n);
   s.kind.resize(n);
-  // On the workers, in chunks: at 100,000 entities one thread takes most of a millisecond, which
-  // shows in the tick's p99 on a fast host (docs/viewer.md).
+  // On the workers, in chunks: at 100,000 entities one thread took most of a millisecond, which
+  // showed in the tick's p99 on the H100 (docs/viewer.md).
   constexpr std::size_t chunk = 8192;
   interest::run_tasks(n > chunk ? pool_.get() : nullptr, (n + chunk - 1) / chunk, [&](std::size_t c) {
-    for (std::size_t i = c * chunk, e = std::min(n, (c + 1) * chunk); i < e; ++i) {
-      s.ids[i] = ids[i];
+    const std::size_t e = std::min(n, (c + 1) * chunk);
+    for (std::size_t i = c * chunk; i < e; ++i) {
       s.x[i] = pos[i].x;
       s.y[i] = pos[i].y;
+    }
+    if (!all) return;
+    for (std::size_t i = c * chunk; i < e; ++i) {
+      s.ids[i] = ids[i];
       s.visibility[i] = static_cast<std::uint8_t>(std::countr_zero(cls[i]));
       s.kind[i] = static_cast<std::uint8_t>(kinds[i]);
     }

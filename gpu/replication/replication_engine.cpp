@@ -1,14 +1,16 @@
 // Host dispatch of the GPU replication engine (gpu/replication.h; algorithm in docs/zone.md,
 // "Replication on the GPU").
 //
-// One run, on one stream, with up to three host synchronisations (blocking by default:
-// set_blocking_wait):
+// One run, on one stream, with up to three host synchronisations (spinning by default, or
+// blocking: set_blocking_wait):
 //  1. The caller filled the pinned staging (entities, slot map, jobs, visible sets); the client
 //     table (where each view is and goes, each client's job) is laid out here from the views'
 //     sizes the host mirrors, and everything is copied up at once.
 //  2. Every entity's wire update is quantized (one thread per entity); views of clients without a
 //     job are copied into the new view buffer (one warp per client); one thread per job decides its frame, writes its record (atomic cursor) and its new view.
-//  3. The results and the cursor come back; then the records, exactly the bytes used.
+//     Each job writes its whole frame in the canonical layout (replication_frame_format) but
+//     for its enters' class, extents and kind, which the caller fills in.
+//  3. The results and the cursor come back; then the frames, exactly the bytes used.
 //  The two view buffers are swapped: a run that fails leaves the engine unusable until
 //  forget_all().
 #include <algorithm>
@@ -71,6 +73,12 @@ class engine final : public interest::replication_engine {
 
   [[nodiscard]] bool reads_resident() const override { return true; }
   void set_blocking_wait(bool blocking) override { blocking_ = blocking; }
+  void set_frame_format(const interest::replication_frame_format& format) override {
+    format_ = format;
+    d_format_.reserve(1);
+    CUDA_CHECK(cudaMemcpy(d_format_.get(), &format_, sizeof format_, cudaMemcpyHostToDevice));
+    has_format_ = true;
+  }
 
   output run(const interest::replication_rules& rules, std::size_t client_count,
              const interest::visibility_engine::resident_lists* rows) override {
@@ -79,6 +87,7 @@ class engine final : public interest::replication_engine {
     if (rules.leave_cost == 0 || rules.enter_cost == 0 || rules.update_cost == 0) {
       throw std::invalid_argument("replication engine: entry costs must be positive");
     }
+    if (!has_format_) throw std::logic_error("replication engine: run() before set_frame_format()");
     const bool resident = rows != nullptr && rows->data != nullptr && rows->off != nullptr && rows->rows > 0;
     if (resident && rows->rows >= 0xffffffffu) throw std::invalid_argument("replication engine: too many rows");
     grow_clients(client_count);
@@ -102,6 +111,7 @@ class engine final : public interest::replication_engine {
     a.entities = d_entities_.get();
     a.entity_count = static_cast<std::uint32_t>(n_entities_);
     a.updates = d_updates_.get();
+    a.format = d_format_.get();
     a.slot_dense = d_slot_dense_.get();
     a.slot_count = static_cast<std::uint32_t>(n_slots_);
     a.jobs = d_jobs_.get();
@@ -127,7 +137,7 @@ class engine final : public interest::replication_engine {
     std::uint64_t total = 0, record_cap = 0;
     if (!resident) {
       // The sizes are here: plan on the host.
-      total = plan_staged(jobs, cl, client_count, rules.byte_budget, h_new_off_.get(), record_cap);
+      total = plan_staged(jobs, cl, client_count, rules, format_, h_new_off_.get(), record_cap);
       up(d_visible_.get(), h_visible_.get(), n_visible_ * sizeof(std::uint32_t));
       up(d_new_off_.get(), h_new_off_.get(), (client_count + 1) * sizeof(std::uint32_t));
     } else if (client_count > 0) {
@@ -159,7 +169,6 @@ class engine final : public interest::replication_engine {
     d_sent_[next].reserve(total);
     d_scratch_.reserve(total);
     d_records_.reserve(record_cap);
-    h_records_.reserve(record_cap);
     a.old_id = d_id_[cur_].get();
     a.old_sent = d_sent_[cur_].get();
     a.new_id = d_id_[next].get();
@@ -187,6 +196,9 @@ class engine final : public interest::replication_engine {
     wait();
     if (h_cursor_.get()[1] != 0) throw std::runtime_error("replication engine: record buffer overflow (a bug)");
     const std::uint32_t used = h_cursor_.get()[0];
+    // The pinned copy is sized by the bytes used, not by the bound (about 14 times more at 20,000
+    // clients): its growth, a cudaFreeHost and a cudaHostAlloc, stalled ramp-up ticks for 30-90 ms.
+    h_records_.reserve(used);
     if (used > 0) {
       CUDA_CHECK(cudaMemcpyAsync(h_records_.get(), d_records_.get(), used, cudaMemcpyDeviceToHost, stream_));
     }
@@ -257,7 +269,7 @@ class engine final : public interest::replication_engine {
   cudaStream_t stream_ = nullptr;
   cudaEvent_t ev_begin_ = nullptr, ev_up_ = nullptr, ev_kernels_ = nullptr, ev_down_ = nullptr;
   cudaEvent_t ev_sync_ = nullptr;  // blocking-sync: wait() sleeps on it
-  bool blocking_ = true;
+  bool blocking_ = false;
   double wait_ms_ = 0;
   std::size_t n_entities_ = 0, n_slots_ = 0, n_jobs_ = 0, n_visible_ = 0;
   pinned_array<interest::replication_entity> h_entities_;
@@ -268,6 +280,9 @@ class engine final : public interest::replication_engine {
   pinned_array<std::uint8_t> h_records_;
   device_array<interest::replication_entity> d_entities_;
   device_array<std::uint32_t> d_updates_;  // 4 words per entity: its wire update
+  interest::replication_frame_format format_;
+  device_array<interest::replication_frame_format> d_format_;
+  bool has_format_ = false;
   device_array<std::uint32_t> d_slot_dense_, d_visible_, d_cursor_;
   device_array<interest::replication_job> d_jobs_;
   device_array<client_slot> d_clients_;

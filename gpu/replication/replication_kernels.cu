@@ -11,7 +11,10 @@
 namespace zone::gpu::detail::rep {
 namespace {
 
-constexpr std::uint32_t block = 128;
+// Threads per block of the decide kernel: one warp, so that 20,000 jobs (one thread each, long and
+// latency-bound) spread over every SM in one wave; with 128 some SMs held two blocks and the kernel
+// took two rounds.
+constexpr std::uint32_t block = 32;
 
 std::uint32_t blocks_for(std::uint64_t n, std::uint32_t per_block) {
   return static_cast<std::uint32_t>(std::max<std::uint64_t>(1, (n + per_block - 1) / per_block));

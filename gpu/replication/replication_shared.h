@@ -46,6 +46,7 @@ struct run_args {
   const interest::replication_entity* entities;
   std::uint32_t entity_count;
   std::uint32_t* updates;  // by dense index: 4 words, the entity's 16-byte wire update (quantize_entity)
+  const interest::replication_frame_format* format;  // the frames' layout
   const std::uint32_t* slot_dense;
   std::uint32_t slot_count;
   const interest::replication_job* jobs;
@@ -91,18 +92,35 @@ inline void table_clients(const interest::replication_job* jobs, std::size_t job
   }
 }
 
-/// At most every leave (4 bytes), enter (8) and update (16) of a job with a view of v entries and a
-/// visible set of s, and never more bytes than the budget (each entry costs at least its record's).
-ZONE_REP_HD std::uint64_t record_bound(std::uint64_t v, std::uint64_t s, std::uint64_t budget) {
-  const std::uint64_t most = 20 * v + 8 * s;
-  return most < budget ? most : budget;
+/// Bytes of a frame with these parts and counts (net::canonical_tick_update::size).
+ZONE_REP_HD std::uint64_t frame_size(const interest::replication_frame_format& f, std::uint32_t parts, std::uint64_t enters,
+                                     std::uint64_t leaves, std::uint64_t updates) {
+  const interest::replication_frame_format::table& t = f.tables[parts];
+  const std::uint64_t n = std::uint64_t{t.at} + t.size +
+                          (enters != 0 ? 4 + 4 * enters + sizeof f.enter_vtable + (f.enter_table + f.enter_name) * enters : 0) +
+                          (leaves != 0 ? 4 + 4 * leaves : 0) + (updates != 0 ? 4 + 16 * updates : 0);
+  return (n + 7) & ~std::uint64_t{7};
+}
+
+/// The most bytes a job's frame can take with a view of v entries and a visible set of s: every
+/// leave, enter and update with the largest header, and never more than the budget allows (the
+/// decisions keep net::frame_cost's estimate, an upper bound on the size, within the budget, or
+/// at the header's alone when that is over it).
+ZONE_REP_HD std::uint64_t frame_bound(const interest::replication_rules& r, const interest::replication_frame_format& f,
+                                      std::uint64_t v, std::uint64_t s) {
+  const std::uint64_t most = f.header_max + (4 + 4 * s + sizeof f.enter_vtable + (f.enter_table + f.enter_name) * s) +
+                             (4 + 4 * v) + (4 + 16 * v) + 7;
+  const std::uint64_t header = std::uint64_t{r.header_cost} + r.self_cost;
+  const std::uint64_t budget = (r.byte_budget > header ? r.byte_budget : header) + 7;
+  return (most < budget ? most : budget) & ~std::uint64_t{7};
 }
 
 /// Where each client's new view goes (staged sets: the sizes are on the host): a job's client gets
 /// room for its view plus its visible set (the new view is a subset of their union), every other
-/// client for its view as it is. Returns the total and sets `record_cap` to the records' bound.
+/// client for its view as it is. Returns the total and sets `record_cap` to the frames' bound.
 inline std::uint64_t plan_staged(const interest::replication_job* jobs, const client_slot* clients,
-                                 std::size_t client_count, std::uint64_t byte_budget, std::uint32_t* new_off,
+                                 std::size_t client_count, const interest::replication_rules& rules,
+                                 const interest::replication_frame_format& format, std::uint32_t* new_off,
                                  std::uint64_t& record_cap) {
   std::uint64_t total = 0;
   record_cap = 0;
@@ -112,7 +130,7 @@ inline std::uint64_t plan_staged(const interest::replication_job* jobs, const cl
     if (clients[c].job != 0) {
       const auto& j = jobs[clients[c].job - 1];
       total += j.visible_len;
-      record_cap += record_bound((j.flags & interest::job_reset) != 0 ? 0 : clients[c].old_len, j.visible_len, byte_budget);
+      record_cap += frame_bound(rules, format, (j.flags & interest::job_reset) != 0 ? 0 : clients[c].old_len, j.visible_len);
     }
     if (total > 0xffffffffu) throw std::invalid_argument("replication engine: more than 2^32 view entries");
   }
@@ -245,7 +263,22 @@ ZONE_REP_HD std::uint32_t fit(std::uint32_t count, std::uint64_t room) {
   return room < count ? static_cast<std::uint32_t>(room) : count;
 }
 
-ZONE_REP_HD void put_u32(std::uint8_t* p, std::uint32_t v) { std::memcpy(p, &v, 4); }
+// Stores into a frame. Every u32 field of the canonical layout is 4-byte aligned in a frame that
+// starts 8-byte aligned (the engine's frames do), so the device stores words; the host copies bytes.
+#if defined(__CUDA_ARCH__)
+__device__ __forceinline__ void put_u32(std::uint8_t* p, std::uint32_t v) { *reinterpret_cast<std::uint32_t*>(p) = v; }
+#else
+inline void put_u32(std::uint8_t* p, std::uint32_t v) { std::memcpy(p, &v, 4); }
+#endif
+ZONE_REP_HD void put_u16(std::uint8_t* p, std::uint16_t v) {
+  p[0] = static_cast<std::uint8_t>(v);
+  p[1] = static_cast<std::uint8_t>(v >> 8);
+}
+ZONE_REP_HD void put_u64(std::uint8_t* p, std::uint64_t v) {
+  put_u32(p, static_cast<std::uint32_t>(v));
+  put_u32(p + 4, static_cast<std::uint32_t>(v >> 32));
+}
+ZONE_REP_HD void put_f32(std::uint8_t* p, float v) { put_u32(p, float_bits(v)); }
 
 ZONE_REP_HD scratch_entry entry(std::uint32_t x, std::uint32_t y, std::uint32_t z, std::uint32_t w) {
   scratch_entry e;
@@ -281,7 +314,7 @@ ZONE_REP_HD void client_room(const run_args& a, std::uint32_t c, std::uint32_t& 
   std::uint32_t len = 0;
   (void)job_visible(a, job, len);
   room += len;
-  record = record_bound((job.flags & interest::job_reset) != 0 ? 0 : s.old_len, len, a.rules.byte_budget);
+  record = frame_bound(a.rules, *a.format, (job.flags & interest::job_reset) != 0 ? 0 : s.old_len, len);
 }
 
 /// Client c's view into the new buffer when it has no job (lanes `first`, `first + stride`, ...).
@@ -295,9 +328,9 @@ ZONE_REP_HD void carry_client(const run_args& a, std::uint32_t c, std::uint32_t 
   }
 }
 
-/// Job t: its frame's decisions, its record, its client's new view and hash, its result.
-ZONE_REP_HD void decide_job(const run_args& a, std::uint32_t t) {
-  const interest::replication_job job = a.jobs[t];
+/// Job job_index: its frame's decisions, the frame itself, its client's new view and hash, its result.
+ZONE_REP_HD void decide_job(const run_args& a, std::uint32_t job_index) {
+  const interest::replication_job job = a.jobs[job_index];
   const client_slot cs = a.clients[job.client];
   const interest::replication_rules& r = a.rules;
   const bool reset = (job.flags & interest::job_reset) != 0;
@@ -391,19 +424,43 @@ ZONE_REP_HD void decide_job(const run_args& a, std::uint32_t t) {
     }
   }
 
-  // The record: leaves, enters, updates.
-  const std::uint32_t bytes = 4 * n_l + 8 * n_e + 16 * n_u;
-  const std::uint32_t off = bytes == 0 ? 0 : reserve_bytes(a.cursor, bytes);
+  // The frame, in the canonical layout: its parts and size are known now (the digest's values
+  // only after the second pass; they do not change its size).
+  const interest::replication_frame_format& fmt = *a.format;
+  const std::uint32_t DL = L - n_l, DE = E - n_e, DU = D - n_u;
+  const bool digest = r.digest == 2 || (r.digest == 1 && reset);
+  const std::uint32_t parts = (n_e != 0 ? interest::frame_part_enters : 0u) | (n_l != 0 ? interest::frame_part_leaves : 0u) |
+                              (n_u != 0 ? interest::frame_part_updates : 0u) | (digest ? interest::frame_part_digest : 0u) |
+                              (has_self ? interest::frame_part_self : 0u) |
+                              ((DL | DE | DU) != 0 ? interest::frame_part_deferred : 0u) |
+                              (reset ? interest::frame_part_reset : 0u);
+  const interest::replication_frame_format::table& tl = fmt.tables[parts];
+  const std::uint32_t bytes = static_cast<std::uint32_t>(frame_size(fmt, parts, n_e, n_l, n_u));
+  const std::uint32_t off = reserve_bytes(a.cursor, bytes);
   if (std::uint64_t{off} + bytes > a.record_capacity) {
     flag_overflow(a.cursor + 1);
     return;
   }
-  std::uint8_t* leaves_out = a.records + off;
-  std::uint8_t* enters_out = leaves_out + 4 * n_l;
-  std::uint8_t* updates_out = enters_out + 8 * n_e;
+  std::uint8_t* const f = a.records + off;
+  const std::uint32_t t = tl.at;
+  // The vectors' places: the enters' offsets, the leaves, the updates, then the enters' shared
+  // vtable and their tables (each followed by its empty name).
+  const std::uint32_t enters_vec = t + tl.size;
+  const std::uint32_t leaves_vec = enters_vec + (n_e != 0 ? 4 + 4 * n_e : 0);
+  const std::uint32_t updates_vec = leaves_vec + (n_l != 0 ? 4 + 4 * n_l : 0);
+  const std::uint32_t evt = updates_vec + (n_u != 0 ? 4 + 16 * n_u : 0);
+  const std::uint32_t first_enter = evt + static_cast<std::uint32_t>(sizeof fmt.enter_vtable);
+  const std::uint32_t enter_step = fmt.enter_table + fmt.enter_name;
+  std::uint8_t* leaves_out = f + leaves_vec + 4;
+  std::uint8_t* updates_out = f + updates_vec + 4;
+  // Zeros first, as tick_update_writer::finish: the header's gaps and the tail padding (which
+  // the vectors written below may partly cover).
+  for (std::uint32_t b = 0; b < t + tl.size; b += 4) put_u32(f + b, 0);
+  put_u32(f + bytes - 8, 0);
+  put_u32(f + bytes - 4, 0);
 
-  // Pass 2: the same merge writes the record and the new view (kept entries and sent enters, in
-  // id order) with the last-sent ticks, and moves the digest hash.
+  // Pass 2: the same merge writes the frame's leaves, enters and updates and the new view (kept
+  // entries and sent enters, in id order) with the last-sent ticks, and moves the digest hash.
   std::uint64_t hash = reset ? 0 : a.hash[job.client];
   std::uint32_t* new_id = a.new_id + to;
   std::uint32_t* new_sent = a.new_sent + to;
@@ -425,8 +482,24 @@ ZONE_REP_HD void decide_job(const run_args& a, std::uint32_t t) {
         if (ei < E && enter[ei].y == vis[i]) {
           const scratch_entry en = enter[ei++];
           if (en.w < n_e) {
-            put_u32(enters_out + 8 * en.w, en.z);
-            put_u32(enters_out + 8 * en.w + 4, en.y);
+            // Its offset slot and its table: id, position, velocity (the class, half extents and
+            // kind are the caller's), the name's offset, then the empty name.
+            const std::uint32_t slot = enters_vec + 4 + 4 * en.w, at = first_enter + enter_step * en.w;
+            const interest::replication_entity& e = a.entities[en.z];
+            put_u32(f + slot, at - slot);
+            put_u32(f + at, at - evt);
+            put_u32(f + at + 4, en.y);
+            put_u32(f + at + 8, 0);
+            put_f32(f + at + 12, e.x);
+            put_f32(f + at + 16, e.y);
+            put_f32(f + at + 20, e.z);
+            put_f32(f + at + 24, e.vx);
+            put_f32(f + at + 28, e.vy);
+            put_f32(f + at + 32, e.vz);
+            for (std::uint32_t b = 36; b < fmt.enter_table - 8; b += 4) put_u32(f + at + b, 0);
+            put_u32(f + at + fmt.enter_table - 8, 8);  // the name's offset (the name follows the table)
+            put_u32(f + at + fmt.enter_table - 4, 0);
+            for (std::uint32_t b = 0; b < fmt.enter_name; b += 4) put_u32(f + at + fmt.enter_table + b, 0);
             hash += digest_mix(en.y);
             new_id[w] = en.y;
             new_sent[w++] = tick32;
@@ -438,7 +511,12 @@ ZONE_REP_HD void decide_job(const run_args& a, std::uint32_t t) {
         if (di < D && due[di].x == j) {
           const std::uint32_t pos = all_fit ? di : (due[di].w < n_u ? due[di].w : no_index);
           if (pos != no_index) {
-            std::memcpy(updates_out + 16 * pos, a.updates + 4 * std::size_t{due[di].y}, 16);
+            const std::uint32_t* u = a.updates + 4 * std::size_t{due[di].y};
+            std::uint8_t* o = updates_out + 16 * pos;
+            put_u32(o, u[0]);
+            put_u32(o + 4, u[1]);
+            put_u32(o + 8, u[2]);
+            put_u32(o + 12, u[3]);
             last = tick32;
           }
           ++di;
@@ -451,21 +529,73 @@ ZONE_REP_HD void decide_job(const run_args& a, std::uint32_t t) {
     }
   }
   a.hash[job.client] = hash;
+
+  // The header (tick_update_writer::finish): prefix, root offset, identifier, the envelope, the
+  // tick_update's vtable and table, the vectors' lengths and offsets, the enters' vtable.
+  put_u32(f, bytes - fmt.prefix_bytes);
+  put_u32(f + 4, 16);
+  for (int b = 0; b < 4; ++b) f[8 + b] = fmt.identifier[b];
+  put_u16(f + 12, 8);
+  put_u16(f + 14, 12);
+  put_u16(f + 16, 8);
+  put_u16(f + 18, 4);
+  put_u32(f + 20, 8);
+  put_u32(f + 24, t - 24);
+  f[28] = static_cast<std::uint8_t>(fmt.message_type);
+  put_u16(f + 32, tl.vtable);
+  put_u16(f + 34, tl.size);
+  for (std::uint32_t k = 0; 4 + 2 * k < tl.vtable; ++k) put_u16(f + 36 + 2 * k, tl.field[k]);
+  put_u32(f + t, t - 32);
+  put_u64(f + t + tl.field[0], r.tick);
+  put_u64(f + t + tl.field[1], r.server_time_us);
+  put_u32(f + t + tl.field[2], job.last_input);
+  if (digest) {
+    put_u64(f + t + tl.field[6], r.tick);
+    put_u64(f + t + tl.field[6] + 8, hash);
+    put_u32(f + t + tl.field[6] + 16, w);
+  }
+  if (has_self) {
+    put_f32(f + t + tl.field[8], eye[0]);
+    put_f32(f + t + tl.field[8] + 4, eye[1]);
+    put_f32(f + t + tl.field[8] + 8, eye[2]);
+  }
+  if ((parts & interest::frame_part_deferred) != 0) {
+    put_u32(f + t + tl.field[9], DE);
+    put_u32(f + t + tl.field[9] + 4, DL);
+    put_u32(f + t + tl.field[9] + 8, DU);
+  }
+  if (reset) f[t + tl.field[7]] = 1;
+  if (n_e != 0) {
+    put_u32(f + t + tl.field[3], enters_vec - (t + tl.field[3]));
+    put_u32(f + enters_vec, n_e);
+    for (int k = 0; k < 10; ++k) put_u16(f + evt + 2 * k, fmt.enter_vtable[k]);
+  }
+  if (n_l != 0) {
+    put_u32(f + t + tl.field[4], leaves_vec - (t + tl.field[4]));
+    put_u32(f + leaves_vec, n_l);
+  }
+  if (n_u != 0) {
+    put_u32(f + t + tl.field[5], updates_vec - (t + tl.field[5]));
+    put_u32(f + updates_vec, n_u);
+  }
+
   interest::replication_result res;
   res.record_off = off;
+  res.frame_size = bytes;
+  res.enters_at = n_e != 0 ? first_enter : 0;
   res.leaves = n_l;
   res.enters = n_e;
   res.updates = n_u;
-  res.deferred_leaves = L - n_l;
-  res.deferred_enters = E - n_e;
-  res.deferred_updates = D - n_u;
+  res.deferred_leaves = DL;
+  res.deferred_enters = DE;
+  res.deferred_updates = DU;
   res.view_size = w;
   res.hash = hash;
   res.eye[0] = eye[0];
   res.eye[1] = eye[1];
   res.eye[2] = eye[2];
   res.flags = has_self ? interest::result_has_self : 0u;
-  a.results[t] = res;
+  a.results[job_index] = res;
 }
 
 }  // namespace zone::gpu::detail::rep

@@ -235,6 +235,18 @@ TEST_SUITE("world.nats") {
       CHECK(it->second == region);
     }
 
+    // The records read one by one (what world-check does for ids a listing missed): the same
+    // records, and nothing for an id with none.
+    {
+      std::vector<global_id> ids;
+      for (const auto& [g, region] : kv) ids.push_back(g);
+      ids.push_back(0xdead0000beefull);
+      const auto one_by_one = read_owners(ns.url, "handoff", &err, &ids);
+      REQUIRE_MESSAGE(one_by_one.has_value(), err);
+      CHECK(one_by_one->size() == kv.size());
+      for (const auto& [g, rec] : *one_by_one) CHECK(rec.first == kv.at(g));
+    }
+
     // A replay (an old record under a new message id, past the dedupe window): refused by epoch.
     const auto [replay_gid, replay_region] = *kv.begin();
     handoff_record r;

@@ -29,6 +29,7 @@ class emulated_engine final : public interest::replication_engine {
   explicit emulated_engine(std::uint64_t seed) : rng_(seed) {}
   [[nodiscard]] const char* name() const override { return "emulated"; }
   [[nodiscard]] const interest::replication_timing& timing() const override { return timing_; }
+  void set_frame_format(const interest::replication_frame_format& format) override { format_ = format; }
 
   staging stage(std::size_t entities, std::size_t slots, std::size_t jobs, std::size_t visible) override {
     entities_.assign(entities, {});
@@ -52,7 +53,7 @@ class emulated_engine final : public interest::replication_engine {
                        clients_.data());
     std::uint64_t record_cap = 0;
     const std::uint64_t total =
-        rep::plan_staged(jobs_.data(), clients_.data(), client_count, rules.byte_budget, new_off_.data(), record_cap);
+        rep::plan_staged(jobs_.data(), clients_.data(), client_count, rules, format_, new_off_.data(), record_cap);
     // The device's planning (client_room, used with resident rows) must agree with the host's.
     std::uint64_t rooms = 0, records = 0;
     new_id_.assign(total, 0xdeadbeef);
@@ -67,6 +68,7 @@ class emulated_engine final : public interest::replication_engine {
     a.entity_count = static_cast<std::uint32_t>(entities_.size());
     updates_.assign(4 * entities_.size(), 0xdeadbeef);
     a.updates = updates_.data();
+    a.format = &format_;
     a.slot_dense = slot_dense_.data();
     a.slot_count = static_cast<std::uint32_t>(slot_dense_.size());
     a.jobs = jobs_.data();
@@ -127,6 +129,7 @@ class emulated_engine final : public interest::replication_engine {
   std::vector<std::uint8_t> records_;
   std::vector<interest::replication_result> results_;
   interest::replication_timing timing_;
+  interest::replication_frame_format format_;
 };
 
 }  // namespace

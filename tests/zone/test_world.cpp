@@ -205,6 +205,49 @@ TEST_SUITE("zone.world") {
     CHECK(w.phases().total.percentile(0.5) > 0);
   }
 
+  TEST_CASE("adopted entities (a world's ghosts, a handed-off player): chasers chase adopted players; players spawn after them") {
+    // A world zone adopts entities between ticks (world/: ghosts, handoffs); the chasers' scan
+    // reads is_player_ by slot, which must cover every adopted slot (it once grew with spawns
+    // only, and a player spawned after adoptions wrote past its end).
+    const std::uint64_t seed = fresh_seed();
+    CAPTURE(seed);
+    zone_config cfg = small_config(seed);
+    cfg.share_wander = cfg.share_patrol = cfg.share_town = 0;
+    cfg.share_chase = 1;
+    interest::grid_finder finder(nullptr);
+    zone_world w(cfg, finder, nullptr);
+    w.populate();
+    // Ghosts of another zone's NPCs, far away: new slots past every populated one.
+    for (int k = 0; k < 64; ++k) {
+      entity_desc d;
+      d.position = {10.0f + static_cast<float>(k), 10, 0};
+      REQUIRE(w.adopt(d, behaviour_state{behaviour::ghost, d.position, 0, {}}) != null_entity);
+    }
+    // A player handed off to this zone (behaviour player, kind player), standing still.
+    entity_desc pd;
+    pd.position = {400, 400, 0};
+    pd.kind = entity_kind::player;
+    pd.aoi_half_extent = {cfg.player_aoi, cfg.player_aoi, cfg.player_aoi};
+    const entity_id adopted = w.adopt(pd, behaviour_state{behaviour::player, pd.position, 0, {}});
+    REQUIRE(adopted != null_entity);
+    // A player who logs in here afterwards (its slot is past the adopted ones).
+    const entity_id later = w.spawn_player({100, 100, 0});
+    REQUIRE(later != null_entity);
+    CHECK(w.behaviour_of(later) == behaviour::player);
+    entity_id chaser = null_entity;
+    for (const auto id : w.store().ids()) {
+      if (w.behaviour_of(id) == behaviour::chase) {
+        chaser = id;
+        break;
+      }
+    }
+    REQUIRE(chaser != null_entity);
+    REQUIRE(w.store().set_position(chaser, {440, 400, 0}));
+    for (int t = 0; t < 40; ++t) REQUIRE_FALSE(w.step().has_value());
+    const vec3 c = w.store().get(chaser)->position;
+    CHECK(std::hypot(c.x - 400.0f, c.y - 400.0f) < 2);  // it came to the adopted player
+  }
+
   TEST_CASE("input rules: any finite intent moves at most player_speed in its direction; walking is horizontal unless fly") {
     const std::uint64_t seed = fresh_seed();
     CAPTURE(seed);

@@ -4,7 +4,9 @@
 #include <doctest/doctest.h>
 
 #include <algorithm>
+#include <bit>
 #include <cmath>
+#include <optional>
 #include <set>
 
 #include "ws_client.h"
@@ -134,5 +136,68 @@ TEST_SUITE("zone.viewer") {
     const auto published = server.viewer()->stats().snapshots_published;
     for (int k = 0; k < 5; ++k) server.tick_once();
     CHECK(server.viewer()->stats().snapshots_published == published);
+  }
+
+  TEST_CASE("entities created and destroyed while a page is open: every frame holds the store's entities, where they are") {
+    // The snapshot copies ids, classes and kinds only when the store's layout changed since that
+    // snapshot was filled (positions always): churn every tick must show in every frame.
+    struct churn final : zone_extension {
+      std::vector<entity_id> spawned;
+      int step = 0;
+      void started(std::uint16_t) override {}
+      void before_step(zone_world& w) override {
+        ++step;
+        if (step > 4) {  // then one out and one in every step: the count stays, the ids do not
+          CHECK(w.despawn(spawned.front()));
+          spawned.erase(spawned.begin());
+        }
+        spawned.push_back(w.spawn_player({50.0f + 7.0f * static_cast<float>(step), 300, 0}, step % 4 == 1));
+      }
+      void after_step(zone_world&, std::vector<redirect>&) override {}
+      claim claim_token(const std::string&, zone_world&, entity_id&) override { return claim::refused; }
+      [[nodiscard]] bool owns(entity_id) const override { return true; }
+      void forward_input(entity_id, const vec3&, std::uint32_t) override {}
+    } ext;
+    zone_server server(viewer_config());
+    server.set_extension(&ext);
+    REQUIRE_FALSE(server.start().has_value());
+    ws_client page(server.metrics_port());
+    REQUIRE_FALSE(page.error);
+    REQUIRE(page.send(request_bytes({-10, -10, 610, 610, 0, 100000})));
+    REQUIRE(eventually([&] { return server.viewer()->viewers() == 1; }));
+    const auto& store = server.world().store();
+    int checked = 0;
+    for (int round = 0; round < 12; ++round) {
+      server.tick_once();
+      const auto tick = static_cast<std::uint32_t>(server.world().tick());
+      std::optional<std::vector<std::uint8_t>> f;
+      for (int k = 0; k < 200 && !f; ++k) {
+        auto m = page.read();
+        REQUIRE(m);
+        if (!m->first && !m->second.empty() && m->second[0] == net::viewer_frame_entities && at<std::uint32_t>(m->second, 4) == tick) {
+          f = m->second;
+        }
+      }
+      if (!f) continue;  // the session wrote an older frame meanwhile: the next round has this one's successor
+      ++checked;
+      REQUIRE(at<std::uint32_t>(*f, 12) == store.size());
+      const float x0 = at<float>(*f, 16), y0 = at<float>(*f, 20), x1 = at<float>(*f, 24), y1 = at<float>(*f, 28);
+      std::set<std::uint32_t> seen;
+      for (std::size_t k = 0; k < store.size(); ++k) {
+        const std::size_t o = net::viewer_frame_header_bytes + k * net::viewer_entity_record_bytes;
+        const std::uint32_t id = at<std::uint32_t>(*f, o);
+        seen.insert(id);
+        const auto e = store.get(id);
+        REQUIRE(e);
+        const float x = x0 + at<std::uint16_t>(*f, o + 4) * (x1 - x0) / 65535, y = y0 + at<std::uint16_t>(*f, o + 6) * (y1 - y0) / 65535;
+        CHECK(std::fabs(x - e->position.x) <= (x1 - x0) / 65535 + 1e-3f);
+        CHECK(std::fabs(y - e->position.y) <= (y1 - y0) / 65535 + 1e-3f);
+        CHECK((*f)[o + 9] == static_cast<std::uint8_t>(e->kind));
+        CHECK((*f)[o + 8] == std::countr_zero(e->visibility_class));
+      }
+      CHECK(seen == std::set<std::uint32_t>(store.ids().begin(), store.ids().end()));
+    }
+    CHECK(checked >= 6);
+    CHECK(ext.spawned.size() >= 4);
   }
 }
