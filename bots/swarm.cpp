@@ -184,6 +184,9 @@ class bot_session : public std::enable_shared_from_this<bot_session> {
   /// Outbound bytes: frames queued while a write is in flight go out together in the next write.
   std::vector<std::uint8_t> out_queued_, out_writing_;
   bool writing_ = false, closed_ = false, intended_ = false, got_error_ = false;
+  bool connecting_ = false;  ///< counted in connecting_now: started, the hello not yet written
+  /// The hello is out (written), or the session ended before: it leaves connecting_now.
+  void hello_out();
   std::atomic<bool> playing_{false};
   std::uint32_t entity_ = 0;
   std::optional<net::client_view> view_;
@@ -291,7 +294,9 @@ class swarm {
       const auto now = steady::now();
       const double since = std::chrono::duration<double>(now - start).count();
       const auto due = std::min<std::size_t>(opt_.bots, static_cast<std::size_t>(opt_.ramp * since) + 1);
-      for (; launched < due; ++launched) launch(launched);
+      for (; launched < due && (opt_.max_connecting == 0 || c_.connecting_now.load() < opt_.max_connecting); ++launched) {
+        launch(launched);
+      }
       if (opt_.churn > 0 && launched == opt_.bots && (opt_.churn_for_s <= 0 || since < opt_.churn_for_s)) {
         churn_debt += opt_.churn * std::chrono::duration<double>(now - last_step).count();
         for (; churn_debt >= 1; churn_debt -= 1) churn_one(churn_rng);
@@ -675,8 +680,17 @@ bot_session::bot_session(swarm& s, std::size_t slot, unsigned thread, behaviour 
   chooses_ = stealth_ || team_ != 0;
 }
 
+void bot_session::hello_out() {
+  if (!connecting_) return;
+  connecting_ = false;
+  s_.counters().connecting_now.fetch_sub(1, std::memory_order_relaxed);
+}
+
 void bot_session::start() {
   auto self = shared_from_this();
+  // Counted at once (the ramp reads it right after launching); the session's thread decrements.
+  connecting_ = true;
+  s_.counters().connecting_now.fetch_add(1, std::memory_order_relaxed);
   asio::dispatch(io_, [this, self] {
     s_.counters().connect_attempts.fetch_add(1, std::memory_order_relaxed);
     welcome_timer_.expires_after(std::chrono::duration_cast<steady::duration>(std::chrono::duration<double>(s_.opt_ref().connect_timeout_s)));
@@ -1162,6 +1176,7 @@ void bot_session::write_next() {
       if (intended_ || s_.stopping()) return close();
       return fail("write: " + ec.message(), !playing_);
     }
+    hello_out();  // the first write holds the hello
     out_writing_.clear();
     write_next();
   });
@@ -1203,6 +1218,7 @@ void bot_session::fail(const std::string& why, bool connection_failure) {
 void bot_session::close() {
   if (closed_) return;
   closed_ = true;
+  hello_out();
   flush_counts();
   boost::system::error_code ignored;
   input_timer_.cancel();
