@@ -1,8 +1,7 @@
 // bot-swarm: many scripted bots against a zone server, with measurements and verification
 // (docs/bots.md). `bot-swarm --help` lists the options.
 #include <boost/program_options.hpp>
-#include <boost/property_tree/json_parser.hpp>
-#include <boost/property_tree/ptree.hpp>
+#include <nlohmann/json.hpp>
 
 #include <algorithm>
 #include <cmath>
@@ -182,73 +181,100 @@ void print_table(const swarm_result& r, const summary& s) {
   }
 }
 
-std::string json_escape(const std::string& s) {
-  std::string o;
-  for (const char c : s) {
-    if (c == '"' || c == '\\') o += '\\', o += c;
-    else if (static_cast<unsigned char>(c) < 0x20) o += ' ';
-    else o += c;
-  }
-  return o;
-}
-
 bool write_json(const std::string& path, const swarm_result& r, const summary& s) {
-  std::ofstream o(path);
-  if (!o) return false;
-  o << "{\n";
-  o << "  \"bots\": " << r.options.bots << ",\n  \"duration_s\": " << r.elapsed_s << ",\n";
-  o << "  \"input_hz\": " << r.options.input_hz << ",\n  \"churn_per_s\": " << r.options.churn << ",\n";
-  o << "  \"verify\": " << (r.options.verify ? "true" : "false") << ",\n";
-  o << "  \"bots_connected\": " << r.bots_connected << ",\n  \"connect_attempts\": " << r.connect_attempts << ",\n";
-  o << "  \"connect_failures\": " << r.connect_failures << ",\n  \"unexpected_disconnects\": " << r.unexpected_disconnects << ",\n";
-  o << "  \"server_errors\": " << r.server_errors << ",\n  \"logouts\": " << r.logouts << ",\n";
-  o << "  \"threads\": " << r.options.threads << ",\n  \"teleports_sent\": " << r.teleports_sent << ",\n";
-  o << "  \"redirects\": " << r.redirects << ",\n  \"reconnects\": " << r.reconnects << ",\n";
-  o << "  \"stealth_joins\": " << r.stealth_joins << ",\n  \"team_joins\": " << r.team_joins << ",\n";
-  o << "  \"visibility_switches_sent\": " << r.visibility_switches_sent << ",\n";
-  o << "  \"self_positions\": " << r.self_positions << ",\n  \"host_clock\": " << (r.host_clock ? "true" : "false") << ",\n";
-  o << "  \"latency_ms\": {\"p50\": " << s.p50 << ", \"p95\": " << s.p95 << ", \"p99\": " << s.p99 << ", \"max\": " << s.max
-    << ", \"samples\": " << s.samples << ", \"unsynced\": " << r.latency_unsynced << ", \"min_rtt\": " << r.min_rtt_ms << "},\n";
-  o << "  \"latency_steady_ms\": {\"from_s\": " << r.steady_from_s << ", \"p50\": " << s.steady_p50 << ", \"p95\": "
-    << s.steady_p95 << ", \"p99\": " << s.steady_p99 << ", \"samples\": " << s.steady_samples << "},\n";
-  o << "  \"per_bot\": {\"kbps_median\": " << s.kbps_median << ", \"kbps_p95\": " << s.kbps_p95
-    << ", \"msgs_per_s_median\": " << s.msgs_median << "},\n";
-  o << "  \"downstream_kbps_total\": " << s.total_kbps << ",\n";
-  o << "  \"frames\": " << r.frames_in << ",\n  \"bytes\": " << r.bytes_in << ",\n  \"tick_updates\": " << r.tick_updates << ",\n";
-  o << "  \"enters\": " << r.enters << ",\n  \"leaves\": " << r.leaves << ",\n  \"updates\": " << r.updates << ",\n";
-  o << "  \"resets\": " << r.resets << ",\n  \"inputs_sent\": " << r.inputs_sent << ",\n";
-  o << "  \"inputs_unchanged\": " << r.inputs_unchanged << ",\n  \"inputs_mode\": \""
-    << (r.options.inputs_on_change ? "changes" : "every") << "\",\n";
-  o << "  \"digests_checked\": " << r.digests_checked << ",\n  \"digest_mismatches\": " << r.digest_mismatches << ",\n";
-  o << "  \"inconsistent\": " << r.inconsistent << ",\n  \"aoi_checked\": " << r.aoi_checked << ",\n";
-  o << "  \"aoi_unchecked\": " << r.aoi_unchecked << ",\n  \"aoi_violations\": " << r.aoi_violations << ",\n";
-  o << "  \"rules_from_server\": " << (r.rules_from_server ? "true" : "false") << ",\n";
+  using json = nlohmann::ordered_json;  // keys in the order written, for a reader of the file
+  json j;
+  j["bots"] = r.options.bots;
+  j["duration_s"] = r.elapsed_s;
+  j["input_hz"] = r.options.input_hz;
+  j["churn_per_s"] = r.options.churn;
+  j["verify"] = r.options.verify;
+  j["bots_connected"] = r.bots_connected;
+  j["connect_attempts"] = r.connect_attempts;
+  j["connect_failures"] = r.connect_failures;
+  j["unexpected_disconnects"] = r.unexpected_disconnects;
+  j["server_errors"] = r.server_errors;
+  j["logouts"] = r.logouts;
+  j["threads"] = r.options.threads;
+  j["teleports_sent"] = r.teleports_sent;
+  j["redirects"] = r.redirects;
+  j["reconnects"] = r.reconnects;
+  j["stealth_joins"] = r.stealth_joins;
+  j["team_joins"] = r.team_joins;
+  j["visibility_switches_sent"] = r.visibility_switches_sent;
+  j["self_positions"] = r.self_positions;
+  j["host_clock"] = r.host_clock;
+  j["latency_ms"] = {{"p50", s.p50},         {"p95", s.p95},
+                     {"p99", s.p99},         {"max", s.max},
+                     {"samples", s.samples}, {"unsynced", r.latency_unsynced},
+                     {"min_rtt", r.min_rtt_ms}};
+  j["latency_steady_ms"] = {{"from_s", r.steady_from_s}, {"p50", s.steady_p50},          {"p95", s.steady_p95},
+                            {"p99", s.steady_p99},       {"samples", s.steady_samples}};
+  j["per_bot"] = {{"kbps_median", s.kbps_median}, {"kbps_p95", s.kbps_p95}, {"msgs_per_s_median", s.msgs_median}};
+  j["downstream_kbps_total"] = s.total_kbps;
+  j["frames"] = r.frames_in;
+  j["bytes"] = r.bytes_in;
+  j["tick_updates"] = r.tick_updates;
+  j["enters"] = r.enters;
+  j["leaves"] = r.leaves;
+  j["updates"] = r.updates;
+  j["resets"] = r.resets;
+  j["inputs_sent"] = r.inputs_sent;
+  j["inputs_unchanged"] = r.inputs_unchanged;
+  j["inputs_mode"] = r.options.inputs_on_change ? "changes" : "every";
+  j["digests_checked"] = r.digests_checked;
+  j["digest_mismatches"] = r.digest_mismatches;
+  j["inconsistent"] = r.inconsistent;
+  j["aoi_checked"] = r.aoi_checked;
+  j["aoi_unchecked"] = r.aoi_unchecked;
+  j["aoi_violations"] = r.aoi_violations;
+  j["rules_from_server"] = r.rules_from_server;
   if (r.oracle_on) {
     const auto& q = r.oracle;
-    o << "  \"oracle\": {\"frames_checked\": " << q.frames_checked << ", \"frames_unchecked\": " << q.frames_unchecked
-      << ", \"entities_checked\": " << q.entities_checked << ", \"positions_checked\": " << q.positions_checked
-      << ", \"positions_unchecked\": " << q.positions_unchecked << ", \"missing\": " << q.missing << ", \"extra\": " << q.extra
-      << ", \"leaked\": " << q.leaked << ", \"wrong_class\": " << q.wrong_class << ", \"position\": " << q.position
-      << ", \"stale\": " << q.stale << ", \"deferral\": " << q.deferral << ", \"oracle_mismatches\": " << q.mismatches()
-      << ", \"truth_ticks\": " << q.truth_ticks << ", \"truth_bytes\": " << q.truth_bytes << ", \"truth_layouts\": " << q.truth_layouts
-      << ", \"compute_cpu_ms\": " << q.compute_cpu_ms << ", \"drain_cpu_ms\": " << q.drain_cpu_ms
-      << ", \"compute_max_ms\": " << q.compute_max_ms
-      << ", \"check_ms\": " << q.check_ms << ", \"deferred_checks\": " << q.deferred_checks
-      << ", \"pending_overflow\": " << q.pending_overflow << ", \"observers_max\": " << q.observers_max << ", \"stream_error\": \""
-      << json_escape(q.stream_error) << "\"},\n";
+    j["oracle"] = {{"frames_checked", q.frames_checked},
+                   {"frames_unchecked", q.frames_unchecked},
+                   {"entities_checked", q.entities_checked},
+                   {"positions_checked", q.positions_checked},
+                   {"positions_unchecked", q.positions_unchecked},
+                   {"missing", q.missing},
+                   {"extra", q.extra},
+                   {"leaked", q.leaked},
+                   {"wrong_class", q.wrong_class},
+                   {"position", q.position},
+                   {"stale", q.stale},
+                   {"deferral", q.deferral},
+                   {"oracle_mismatches", q.mismatches()},
+                   {"truth_ticks", q.truth_ticks},
+                   {"truth_bytes", q.truth_bytes},
+                   {"truth_layouts", q.truth_layouts},
+                   {"compute_cpu_ms", q.compute_cpu_ms},
+                   {"drain_cpu_ms", q.drain_cpu_ms},
+                   {"compute_max_ms", q.compute_max_ms},
+                   {"check_ms", q.check_ms},
+                   {"deferred_checks", q.deferred_checks},
+                   {"pending_overflow", q.pending_overflow},
+                   {"observers_max", q.observers_max},
+                   {"stream_error", q.stream_error}};
   }
-  o << "  \"mismatches\": " << r.mismatches() << ",\n";
-  o << "  \"swarm_cpu_s\": " << r.cpu_s << ",\n";
-  o << "  \"problems_total\": " << r.problems_total << ",\n  \"problems\": [";
-  for (std::size_t i = 0; i < r.problems.size(); ++i) o << (i ? ", " : "") << '"' << json_escape(r.problems[i]) << '"';
-  o << "],\n  \"series\": [\n";
-  for (std::size_t i = 0; i < r.series.size(); ++i) {
-    const auto& x = r.series[i];
-    o << "    {\"t\": " << x.t << ", \"connected\": " << x.connected << ", \"frames\": " << x.frames << ", \"bytes\": " << x.bytes
-      << ", \"p50_ms\": " << x.p50_ms << ", \"p99_ms\": " << x.p99_ms << ", \"mismatches\": " << x.mismatches << "}"
-      << (i + 1 < r.series.size() ? ",\n" : "\n");
+  j["mismatches"] = r.mismatches();
+  j["swarm_cpu_s"] = r.cpu_s;
+  j["problems_total"] = r.problems_total;
+  j["problems"] = r.problems;
+  json series = json::array();
+  for (const auto& x : r.series) {
+    series.push_back({{"t", x.t},
+                      {"connected", x.connected},
+                      {"frames", x.frames},
+                      {"bytes", x.bytes},
+                      {"p50_ms", x.p50_ms},
+                      {"p99_ms", x.p99_ms},
+                      {"mismatches", x.mismatches}});
   }
-  o << "  ]\n}\n";
+  j["series"] = std::move(series);
+  std::ofstream o(path);
+  if (!o) return false;
+  // Problems quote client text: invalid UTF-8 is replaced rather than thrown on.
+  o << j.dump(2, ' ', false, json::error_handler_t::replace) << '\n';
   return static_cast<bool>(o);
 }
 
@@ -285,29 +311,38 @@ bool write_plot(const std::string& png, const swarm_result& r) {
   return rc == 0;
 }
 
-/// A scenario file (JSON, read with Boost.PropertyTree) as command-line arguments: each top-level
-/// key is an option name with its value ("bots": 1000, "verify": true), and "mix" may be an object
-/// of shares ({"walk": 0.6, "crowd": 0.4}). An error text on failure.
+/// A scenario file (JSON) as command-line arguments: each top-level key is an option name with its
+/// value ("bots": 1000, "verify": true), and "mix" may be an object of shares ({"walk": 0.6,
+/// "crowd": 0.4}). An error text on failure.
 std::string scenario_args(const std::string& path, std::vector<std::string>& args) {
-  namespace pt = boost::property_tree;
-  pt::ptree tree;
+  using json = nlohmann::ordered_json;  // the file's order: the command line's order
+  std::ifstream in(path);
+  if (!in) return "scenario " + path + ": cannot open the file";
+  json tree;
   try {
-    pt::read_json(path, tree);
-  } catch (const pt::json_parser_error& e) {
+    tree = json::parse(in);
+  } catch (const json::exception& e) {
     return "scenario " + path + ": " + e.what();
   }
+  if (!tree.is_object()) return "scenario " + path + ": the file must hold one JSON object";
+  const auto text = [](const json& v) { return v.is_string() ? v.get<std::string>() : v.dump(); };
   args.push_back("bot-swarm");
-  for (const auto& [key, value] : tree) {
+  for (const auto& [key, value] : tree.items()) {
     if (key == "scenario") return "scenario " + path + ": a scenario cannot name another";
-    if (!value.empty()) {  // an object: only "mix" has one
+    if (value.is_object()) {  // only "mix" has one
       if (key != "mix") return "scenario " + path + ": '" + key + "' must be a plain value";
       std::string mix;
-      for (const auto& [name, share] : value) mix += (mix.empty() ? "" : ",") + name + "=" + share.data();
+      for (const auto& [name, share] : value.items()) {
+        if (!share.is_number()) return "scenario " + path + ": mix share '" + name + "' must be a number";
+        mix += (mix.empty() ? "" : ",") + name + "=" + text(share);
+      }
       args.push_back("--mix=" + mix);
-    } else if (value.data() == "true") {
-      args.push_back("--" + key);
-    } else if (value.data() != "false") {
-      args.push_back("--" + key + "=" + value.data());
+    } else if (value.is_array() || value.is_null()) {
+      return "scenario " + path + ": '" + key + "' must be a plain value";
+    } else if (value.is_boolean()) {
+      if (value.get<bool>()) args.push_back("--" + key);
+    } else {
+      args.push_back("--" + key + "=" + text(value));
     }
   }
   return {};

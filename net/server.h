@@ -1,6 +1,5 @@
 // The zone server's network side: a Boost.Asio TCP server with one session per connection.
-// Server-only public header of net/ (bots include net/protocol.h and, later, the client
-// connector; they never pull this in). No Asio types appear here: the implementation is private.
+// Server-only public header of net/ (bots include net/protocol.h; they never pull this in). No Asio types appear here: the implementation is private.
 //
 // Threading: the server runs its own I/O threads. The game (tick) thread talks to it through
 // three calls only: poll() drains what the clients sent, send() queues a frame for a session,

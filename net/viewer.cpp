@@ -12,6 +12,7 @@
 #include <cstring>
 #include <deque>
 #include <mutex>
+#include <nlohmann/json.hpp>
 #include <spdlog/spdlog.h>
 
 #include "viewer.h"
@@ -153,19 +154,13 @@ void encode_viewer_selection(const viewer_snapshot& s, const viewer_snapshot::se
 }
 
 std::string viewer_selection_json(const viewer_snapshot& s, const viewer_snapshot::selection& sel) {
-  std::string j = "{\"tick\":" + std::to_string(s.tick) + ",\"id\":" + std::to_string(sel.id) +
-                  ",\"alive\":" + (sel.alive ? "true" : "false") + ",\"visible\":[";
-  for (std::size_t k = 0; k < sel.visible.size(); ++k) {
-    if (k) j += ',';
-    j += std::to_string(sel.visible[k]);
-  }
-  j += "],\"tier\":[";
-  for (std::size_t k = 0; k < sel.tier.size(); ++k) {
-    if (k) j += ',';
-    j += std::to_string(sel.tier[k]);
-  }
-  j += "]}";
-  return j;
+  nlohmann::ordered_json j;
+  j["tick"] = s.tick;
+  j["id"] = sel.id;
+  j["alive"] = sel.alive;
+  j["visible"] = sel.visible;
+  j["tier"] = sel.tier;
+  return j.dump();
 }
 
 // ---- the server ------------------------------------------------------------------------------

@@ -1,9 +1,9 @@
 #!/usr/bin/env bash
 # Issue 21's GPU-fault and ping-flood targets and issue 17's viewer target on the device machine,
 # from binaries packed by scripts/pack_device.sh into $DEVICE_DIR (default .device):
-#   cmake --build build --target zone-server bot-swarm host-jitter zone-probe test_zone_server test_zone
+#   cmake --build build --target zone-server bot-swarm host-jitter zone-probe test-zone-server test-zone
 #   DEVICE_DIR=.device-x bash scripts/pack_device.sh build build/zone/zone-server build/bots/bot-swarm \
-#     build/tools/host-jitter build/tools/zone-probe build/tests/zone/test_zone_server build/tests/zone/test_zone
+#     build/tools/host-jitter build/tools/zone-probe build/tests/zone/test-zone-server build/tests/zone/test-zone
 # then, on the device (tool `run`, carry .device-x): DEVICE_DIR=.device-x bash scripts/device_reliab.sh [steps]
 # Steps (default all, in this order):
 #   jitter  host-jitter (5 s, 8 threads): the host's own noise, to read the timings beside
@@ -50,8 +50,8 @@ for step in "${steps[@]}"; do
       ;;
     tests)
       echo "== test_zone_server (GPU fault case) $(date -u +%FT%TZ)"
-      "$dir/test_zone_server" -tc="--test-fault gpu-*" > "$out/test_zone_server.log" 2>&1; tail -4 "$out/test_zone_server.log"
-      "$dir/test_zone" -ts=zone.engine_faults 2>&1 | tail -3
+      "$dir/test-zone-server" -tc="--test-fault gpu-*" > "$out/test_zone_server.log" 2>&1; tail -4 "$out/test_zone_server.log"
+      "$dir/test-zone" -ts=zone.engine_faults 2>&1 | tail -3
       ;;
     faults)
       tick=${FAULT_TICK:-240}

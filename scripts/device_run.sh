@@ -15,7 +15,7 @@ while [ $# -gt 0 ]; do
     test)
       shift
       echo "== test_gpu $(date -u +%FT%TZ)"
-      .device/test_gpu -d 2>&1 | tee "$out/test_gpu.log" | grep -v '^$' | tail -25
+      .device/test-gpu -d 2>&1 | tee "$out/test_gpu.log" | grep -v '^$' | tail -25
       echo "test_gpu exit code: ${PIPESTATUS[0]}" | tee -a "$out/test_gpu.log"
       ;;
     bench)

@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # The zone benchmarks of issues 4 and 5 on the device machine (docs/zone-benchmarks.md), from
 # binaries packed here by scripts/pack_device.sh into $DEVICE_DIR (default .device):
-#   cmake --build build --target test_zone_gpu bench-zone zone-server bot-swarm
-#   DEVICE_DIR=.device-zone bash scripts/pack_device.sh build build/tests/zone/test_zone_gpu \
+#   cmake --build build --target test-zone-gpu bench-zone zone-server bot-swarm
+#   DEVICE_DIR=.device-zone bash scripts/pack_device.sh build build/tests/zone/test-zone-gpu \
 #     build/tools/bench-zone build/zone/zone-server build/bots/bot-swarm
 # then, on the device (tool `run`, carry .device-zone):
 #   DEVICE_DIR=.device-zone bash scripts/device_zone.sh [test] [bench] [swarm]
@@ -42,7 +42,7 @@ for step in "$@"; do
   case "$step" in
     test)
       echo "== test_zone_gpu $(date -u +%FT%TZ)"
-      "$dir/test_zone_gpu" 2>&1 | tail -4 | tee "$out/test_zone_gpu.log"
+      "$dir/test-zone-gpu" 2>&1 | tail -4 | tee "$out/test_zone_gpu.log"
       ;;
     bench)
       n=${BENCH_ENTITIES:-100000}

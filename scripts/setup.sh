@@ -8,6 +8,8 @@ packages=(
   libboost-dev libboost-program-options-dev
   libflatbuffers-dev flatbuffers-compiler
   libspdlog-dev libfmt-dev
+  nlohmann-json3-dev  # JSON output (bot-swarm's report, the viewer)
+  libtbb-dev  # bench-pool: the thread pool beside oneTBB (docs/zone-benchmarks.md)
   doctest-dev
   libcgal-dev libgmp-dev libmpfr-dev
   liburing-dev pkg-config

@@ -37,6 +37,7 @@
 #include "interest/interest.h"
 #include "interest/measure.h"
 #include "interest/thread_pool.h"
+#include "tools/cli.h"
 
 #if ZONE_HAVE_CGAL
 #include <CGAL/box_intersection_d.h>
@@ -161,84 +162,59 @@ std::optional<std::string> parse_doubles(std::string_view list, std::vector<doub
   return std::nullopt;
 }
 
-/// Parses argv; returns an error message, or nothing. Sets `help` on --help.
-std::optional<std::string> parse_args(int argc, char** argv, options& opt, bool& help) {
+/// Checks the values of the command line (read by tools/cli.h); returns an error message, or nothing.
+std::optional<std::string> parse_args(const std::map<std::string, std::string>& given, bool sweep_w, bool sweep_edge,
+                                      options& opt) {
+  if (sweep_w) opt.run_mode = mode::sweep_w;
+  if (sweep_edge) opt.run_mode = mode::sweep_edge;
+  const auto get = [&](const char* name) -> std::optional<std::string_view> {
+    const auto it = given.find(name);
+    if (it == given.end()) return std::nullopt;
+    return std::string_view(it->second);
+  };
   bool sets_given = false;
-  for (int i = 1; i < argc; ++i) {
-    const std::string_view a = argv[i];
-    auto value = [&]() -> std::optional<std::string_view> {
-      if (i + 1 >= argc) return std::nullopt;
-      return std::string_view(argv[++i]);
-    };
-    auto need = [&](std::optional<std::string_view> v) -> std::optional<std::string> {
-      if (!v) return std::string(a) + " needs a value";
-      return std::nullopt;
-    };
-    if (a == "--help" || a == "-h") {
-      help = true;
-      return std::nullopt;
-    } else if (a == "--sweep-w") {
-      opt.run_mode = mode::sweep_w;
-    } else if (a == "--sweep-edge") {
-      opt.run_mode = mode::sweep_edge;
-    } else if (a == "--sets") {
-      const auto v = value();
-      if (auto e = need(v)) return e;
-      if (auto e = parse_sets(*v, opt.sets)) return e;
-      sets_given = true;
-    } else if (a == "--finders") {
-      const auto v = value();
-      if (auto e = need(v)) return e;
-      opt.finders = split(*v, ',');
-      for (const auto& f : opt.finders) {
-        if (f != "brute" && f != "cpu" && f != "cpu-1t" && f != "cgal") return "unknown finder '" + f + "'";
-      }
-      if (opt.finders.empty()) return std::string("--finders is empty");
-    } else if (a == "--reps") {
-      const auto v = value();
-      if (auto e = need(v)) return e;
-      const auto n = parse_count(*v);
-      if (!n || *n < 1 || *n > 1000) return std::string("--reps: expected 1..1000");
-      opt.reps = static_cast<int>(*n);
-    } else if (a == "--threads") {
-      const auto v = value();
-      if (auto e = need(v)) return e;
-      const auto n = parse_count(*v);
-      if (!n || *n > 4096) return std::string("--threads: expected 0..4096");
-      opt.threads = static_cast<unsigned>(*n);
-    } else if (a == "--csv") {
-      const auto v = value();
-      if (auto e = need(v)) return e;
-      opt.csv_path = std::string(*v);
-    } else if (a == "--max-seconds") {
-      const auto v = value();
-      if (auto e = need(v)) return e;
-      const auto s = parse_number(*v);
-      if (!s || *s <= 0) return std::string("--max-seconds: expected a positive number");
-      opt.max_seconds = *s;
-    } else if (a == "--brute-max") {
-      const auto v = value();
-      if (auto e = need(v)) return e;
-      const auto n = parse_count(*v);
-      if (!n) return std::string("--brute-max: expected a count");
-      opt.brute_max = *n;
-    } else if (a == "--seed") {
-      const auto v = value();
-      if (auto e = need(v)) return e;
-      const auto n = parse_count(*v);
-      if (!n) return std::string("--seed: expected a non-negative integer");
-      opt.seed = *n;
-    } else if (a == "--w-values") {
-      const auto v = value();
-      if (auto e = need(v)) return e;
-      if (auto e = parse_doubles(*v, opt.w_values, "--w-values")) return e;
-    } else if (a == "--edges") {
-      const auto v = value();
-      if (auto e = need(v)) return e;
-      if (auto e = parse_doubles(*v, opt.edges, "--edges")) return e;
-    } else {
-      return "unknown argument '" + std::string(a) + "' (see --help)";
+  if (const auto v = get("sets")) {
+    if (auto e = parse_sets(*v, opt.sets)) return e;
+    sets_given = true;
+  }
+  if (const auto v = get("finders")) {
+    opt.finders = split(*v, ',');
+    for (const auto& f : opt.finders) {
+      if (f != "brute" && f != "cpu" && f != "cpu-1t" && f != "cgal") return "unknown finder '" + f + "'";
     }
+    if (opt.finders.empty()) return std::string("--finders is empty");
+  }
+  if (const auto v = get("reps")) {
+    const auto n = parse_count(*v);
+    if (!n || *n < 1 || *n > 1000) return std::string("--reps: expected 1..1000");
+    opt.reps = static_cast<int>(*n);
+  }
+  if (const auto v = get("threads")) {
+    const auto n = parse_count(*v);
+    if (!n || *n > 4096) return std::string("--threads: expected 0..4096");
+    opt.threads = static_cast<unsigned>(*n);
+  }
+  if (const auto v = get("csv")) opt.csv_path = std::string(*v);
+  if (const auto v = get("max-seconds")) {
+    const auto sec = parse_number(*v);
+    if (!sec || *sec <= 0) return std::string("--max-seconds: expected a positive number");
+    opt.max_seconds = *sec;
+  }
+  if (const auto v = get("brute-max")) {
+    const auto n = parse_count(*v);
+    if (!n) return std::string("--brute-max: expected a count");
+    opt.brute_max = *n;
+  }
+  if (const auto v = get("seed")) {
+    const auto n = parse_count(*v);
+    if (!n) return std::string("--seed: expected a non-negative integer");
+    opt.seed = *n;
+  }
+  if (const auto v = get("w-values")) {
+    if (auto e = parse_doubles(*v, opt.w_values, "--w-values")) return e;
+  }
+  if (const auto v = get("edges")) {
+    if (auto e = parse_doubles(*v, opt.edges, "--edges")) return e;
   }
   if (!sets_given) {
     const char* defaults = opt.run_mode == mode::compare
@@ -912,14 +888,19 @@ int run_sweep(const options& opt) {
 
 int main(int argc, char** argv) {
   options opt;
-  bool help = false;
-  if (auto err = parse_args(argc, argv, opt, help)) {
+  namespace po = zone::tools::po;
+  po::options_description cli;
+  std::map<std::string, std::string> given;  // the valued options, checked by parse_args
+  bool sweep_w = false, sweep_edge = false;
+  cli.add_options()("sweep-w", po::bool_switch(&sweep_w))("sweep-edge", po::bool_switch(&sweep_edge));
+  for (const char* name : {"sets", "finders", "reps", "threads", "csv", "max-seconds", "brute-max", "seed", "w-values",
+                           "edges"}) {
+    cli.add_options()(name, po::value<std::string>()->notifier([&given, name](const std::string& v) { given[name] = v; }));
+  }
+  if (const auto rc = zone::tools::parse_command_line(argc, argv, "bench-finders", help_text, cli, 2)) return *rc;
+  if (auto err = parse_args(given, sweep_w, sweep_edge, opt)) {
     std::cerr << "bench-finders: " << *err << "\n";
     return 2;
-  }
-  if (help) {
-    std::cout << help_text;
-    return 0;
   }
   return opt.run_mode == mode::compare ? run_compare(opt) : run_sweep(opt);
 }

@@ -31,6 +31,7 @@
 
 #include "interest/measure.h"
 #include "net/server.h"
+#include "tools/cli.h"
 
 using namespace zone::net;
 
@@ -62,54 +63,40 @@ struct options {
   write_batching batching = write_batching::automatic;
 };
 
-bool parse(int argc, char** argv, options& o, bool& help) {
-  for (int i = 1; i < argc; ++i) {
-    const std::string a = argv[i];
-    const auto next = [&]() -> const char* { return i + 1 < argc ? argv[++i] : nullptr; };
-    const char* v = nullptr;
-    if (a == "--help") {
-      help = true;
-      return false;
-    }
-    if (!(v = next())) return false;
-    if (a == "--sessions") o.sessions = std::strtoull(v, nullptr, 10);
-    else if (a == "--ticks") o.ticks = std::strtoull(v, nullptr, 10);
-    else if (a == "--senders") o.senders = static_cast<unsigned>(std::strtoul(v, nullptr, 10));
-    else if (a == "--io-threads") o.io_threads = static_cast<unsigned>(std::strtoul(v, nullptr, 10));
-    else if (a == "--frame-bytes") o.frame_bytes = std::strtoull(v, nullptr, 10);
-    else if (a == "--rate") o.rate_hz = std::strtod(v, nullptr);
-    else if (a == "--max-backlog") o.max_backlog = static_cast<std::uint32_t>(std::strtoul(v, nullptr, 10));
-    else if (a == "--chunk") o.chunk = std::strtoull(v, nullptr, 10);
-    else if (a == "--direct-writes") o.direct_writes = std::string(v) == "1";
-    else if (a == "--write-batching") {
-      const auto b = parse_write_batching(v);
-      if (!b) return false;
-      o.batching = *b;
-    }
-    else if (a == "--mode" && (std::string(v) == "many" || std::string(v) == "send")) o.many = std::string(v) == "many";
-    else return false;
-  }
-  return o.sessions > 0 && o.senders > 0 && o.frame_bytes >= 64 && o.chunk > 0;
-}
-
 using zone::quantile;
 
 }  // namespace
 
 int main(int argc, char** argv) {
+  const std::string usage =
+      "usage: bench-handoff [--sessions 1000] [--ticks 300] [--senders 2] [--io-threads 2] "
+      "[--frame-bytes 600] [--rate 30 (0: back to back)] [--max-backlog 2 (0: off)]\n"
+      "                     [--mode many|send (default many: frame_arena + send_many, the zone server's "
+      "way; send: make_shared_frame + send per frame)] [--chunk 16 (sessions per send_many)]\n"
+      "                     [--direct-writes 0|1 (default 0: the I/O threads write)]\n"
+      "                     [--write-batching auto|io_uring|sendmsg (default auto: io_uring where the "
+      "kernel allows it)]\n";
   options o;
-  bool help = false;
-  if (!parse(argc, argv, o, help)) {
-    std::fprintf(help ? stdout : stderr,
-                 "usage: bench-handoff [--sessions 1000] [--ticks 300] [--senders 2] [--io-threads 2] "
-                 "[--frame-bytes 600] [--rate 30 (0: back to back)] [--max-backlog 2 (0: off)]\n"
-                 "                     [--mode many|send (default many: frame_arena + send_many, the zone server's "
-                 "way; send: make_shared_frame + send per frame)] [--chunk 16 (sessions per send_many)]\n"
-                 "                     [--direct-writes 0|1 (default 0: the I/O threads write)]\n"
-                 "                     [--write-batching auto|io_uring|sendmsg (default auto: io_uring where the "
-                 "kernel allows it)]\n");
-    return help ? 0 : 64;
+  std::string mode = "many", batching = "auto";
+  int direct_writes = 0;
+  namespace po = zone::tools::po;
+  po::options_description cli;
+  cli.add_options()("sessions", po::value(&o.sessions))("ticks", po::value(&o.ticks))("senders", po::value(&o.senders))(
+      "io-threads", po::value(&o.io_threads))("frame-bytes", po::value(&o.frame_bytes))("rate", po::value(&o.rate_hz))(
+      "max-backlog", po::value(&o.max_backlog))("chunk", po::value(&o.chunk))("direct-writes", po::value(&direct_writes))(
+      "write-batching", po::value(&batching))("mode", po::value(&mode));
+  if (const auto rc = zone::tools::parse_command_line(argc, argv, "bench-handoff", usage, cli, 64)) return *rc;
+  const auto b = parse_write_batching(batching);
+  if (!b || (mode != "many" && mode != "send") || (direct_writes != 0 && direct_writes != 1) || o.sessions == 0 ||
+      o.senders == 0 || o.frame_bytes < 64 || o.chunk == 0) {
+    std::fprintf(stderr, "bench-handoff: bad value (--mode many|send, --write-batching auto|io_uring|sendmsg, "
+                         "--direct-writes 0|1, --sessions, --senders and --chunk > 0, --frame-bytes >= 64)\n%s",
+                 usage.c_str());
+    return 64;
   }
+  o.batching = *b;
+  o.many = mode == "many";
+  o.direct_writes = direct_writes == 1;
   spdlog::set_level(spdlog::level::warn);
   server_options so;
   so.io_threads = o.io_threads;

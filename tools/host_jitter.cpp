@@ -24,6 +24,7 @@
 #include <vector>
 
 #include "interest/measure.h"
+#include "tools/cli.h"
 
 namespace {
 
@@ -36,8 +37,7 @@ struct options {
   int periods = 600;
 };
 
-void usage() {
-  std::cout << R"(host-jitter: a paced, pure-CPU stand-in for the tick, to measure the host's noise
+const char* const usage_text = R"(host-jitter: a paced, pure-CPU stand-in for the tick, to measure the host's noise
 
 Usage: host-jitter [--threads N] [--work-us US] [--rate HZ] [--periods N] [--help]
   --threads N    threads in the parallel phase, the calling one included (default 0 = all cores)
@@ -47,7 +47,6 @@ Usage: host-jitter [--threads N] [--work-us US] [--rate HZ] [--periods N] [--hel
 Prints p50 / p90 / p99 / max of one thread's work and of the parallel phase (start of the period
 -> last thread done), the ratio to the calibrated work, and the host's steal time (/proc/stat).
 )";
-}
 
 /// A dependent chain of integer operations the compiler cannot fold or vectorise.
 std::uint64_t spin(std::uint64_t iters, std::uint64_t seed) {
@@ -106,36 +105,11 @@ void print_row(const char* what, std::vector<double> v, double work_us) {
 
 int main(int argc, char** argv) {
   options o;
-  for (int i = 1; i < argc; ++i) {
-    const std::string a = argv[i];
-    const auto next = [&]() -> std::string {
-      if (i + 1 >= argc) {
-        std::cerr << "host-jitter: " << a << " needs a value (see --help)\n";
-        std::exit(2);
-      }
-      return argv[++i];
-    };
-    try {
-      if (a == "--help" || a == "-h") {
-        usage();
-        return 0;
-      } else if (a == "--threads") {
-        o.threads = std::stoi(next());
-      } else if (a == "--work-us") {
-        o.work_us = std::stod(next());
-      } else if (a == "--rate") {
-        o.rate = std::stod(next());
-      } else if (a == "--periods") {
-        o.periods = std::stoi(next());
-      } else {
-        std::cerr << "host-jitter: unknown option " << a << " (see --help)\n";
-        return 2;
-      }
-    } catch (const std::exception&) {
-      std::cerr << "host-jitter: bad value for " << a << "\n";
-      return 2;
-    }
-  }
+  namespace po = zone::tools::po;
+  po::options_description cli;
+  cli.add_options()("threads", po::value(&o.threads))("work-us", po::value(&o.work_us))("rate", po::value(&o.rate))(
+      "periods", po::value(&o.periods));
+  if (const auto rc = zone::tools::parse_command_line(argc, argv, "host-jitter", usage_text, cli, 2)) return *rc;
   if (o.threads <= 0) o.threads = static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
   if (!(o.work_us > 0) || !(o.rate > 0) || o.periods <= 0 || 1e6 / o.rate <= 2 * o.work_us) {
     std::cerr << "host-jitter: need work-us > 0, rate > 0, periods > 0 and the work well inside a period\n";

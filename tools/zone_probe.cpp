@@ -45,6 +45,7 @@
 #include <vector>
 
 #include "protocol.h"
+#include "tools/cli.h"
 
 namespace {
 
@@ -487,12 +488,14 @@ int attack_stall(const options& o) {
   return never == 0 && problems == 0 && closed == 0 ? 0 : 1;
 }
 
+const char* const usage_text =
+    "usage: zone-probe --port P --attack halfopen|pingflood|httpidle|stall [--count N (1000)] [--seconds S (5)]\n"
+    "                  [--metrics-port M (httpidle)] [--server-pid PID (CPU and memory readings)]\n"
+    "                  [--rcvbuf BYTES (stall: the players' SO_RCVBUF; 0 = the system's)]\n"
+    "Hostile clients against a zone-server on loopback (docs/zone.md, Limits and hardening).\n";
+
 int usage(bool help) {
-  std::fprintf(help ? stdout : stderr,
-               "usage: zone-probe --port P --attack halfopen|pingflood|httpidle|stall [--count N (1000)] [--seconds S (5)]\n"
-               "                  [--metrics-port M (httpidle)] [--server-pid PID (CPU and memory readings)]\n"
-               "                  [--rcvbuf BYTES (stall: the players' SO_RCVBUF; 0 = the system's)]\n"
-               "Hostile clients against a zone-server on loopback (docs/zone.md, Limits and hardening).\n");
+  std::fputs(usage_text, help ? stdout : stderr);
   return help ? 0 : 64;
 }
 
@@ -500,21 +503,15 @@ int usage(bool help) {
 
 int main(int argc, char** argv) {
   options o;
-  for (int i = 1; i < argc; ++i) {
-    const std::string a = argv[i];
-    const auto value = [&]() -> const char* { return i + 1 < argc ? argv[++i] : nullptr; };
-    if (a == "--help" || a == "-h") return usage(true);
-    const char* v = value();
-    if (!v) return usage(false);
-    if (a == "--port") o.port = static_cast<std::uint16_t>(std::atoi(v));
-    else if (a == "--metrics-port") o.metrics_port = static_cast<std::uint16_t>(std::atoi(v));
-    else if (a == "--attack") o.attack = v;
-    else if (a == "--count") o.count = std::min<std::size_t>(std::strtoull(v, nullptr, 10), 20000);
-    else if (a == "--seconds") o.seconds = std::clamp(std::atof(v), 0.5, 120.0);
-    else if (a == "--server-pid") o.server_pid = std::atol(v);
-    else if (a == "--rcvbuf") o.rcvbuf = std::clamp(std::atoi(v), 0, 1 << 26);
-    else return usage(false);
-  }
+  namespace po = zone::tools::po;
+  po::options_description cli;
+  cli.add_options()("port", po::value(&o.port))("metrics-port", po::value(&o.metrics_port))(
+      "attack", po::value(&o.attack))("count", po::value(&o.count))("seconds", po::value(&o.seconds))(
+      "server-pid", po::value(&o.server_pid))("rcvbuf", po::value(&o.rcvbuf));
+  if (const auto rc = zone::tools::parse_command_line(argc, argv, "zone-probe", usage_text, cli, 64)) return *rc;
+  o.count = std::min<std::size_t>(o.count, 20000);
+  o.seconds = std::clamp(o.seconds, 0.5, 120.0);
+  o.rcvbuf = std::clamp(o.rcvbuf, 0, 1 << 26);
   if (o.port == 0 || (o.attack == "httpidle" && o.metrics_port == 0)) return usage(false);
   int rc;
   if (o.attack == "halfopen") rc = attack_halfopen(o);

@@ -1,7 +1,7 @@
 // TESTING ONLY (zone-server --test-fault gpu-interest|gpu-replication|gpu-lost): a GPU engine that
 // fails mid-run. Each wrapper forwards every call to the real engine until the world reaches the
 // fault tick; then the call that would run that tick's step throws instead, as the GPU layer
-// throws on a CUDA error (gpu/cuda_check.h), and every later call that could touch the device
+// throws on a CUDA error (gpu/common/cuda_check.h), and every later call that could touch the device
 // throws again (a device that failed stays failed). What throws is `raise`: by default a
 // std::runtime_error worded like CUDA_CHECK's; zone-server's gpu-lost passes one that makes the
 // device fail for real (gpu::raise_device_fault). The zone's own fallback is under test: the

@@ -13,6 +13,7 @@
 #include <string>
 
 #include "../common/box_families.h"
+#include "../common/device_or_skip.h"
 #include "gpu/device.h"
 #include "gpu/finders.h"
 #include "gpu/lbvh.h"
@@ -26,15 +27,7 @@ namespace gpu = zone::gpu;
 namespace {
 
 /// Runs before main (static initialisation): no device, no tests.
-const bool lbvh_device_present = [] {
-  std::string why;
-  if (!gpu::device_available(nullptr, &why)) {
-    std::printf("test_gpu (lbvh): skipped, no CUDA device: %s\n", why.c_str());
-    std::fflush(stdout);
-    std::_Exit(77);
-  }
-  return true;
-}();
+const bool lbvh_device_present = zone::test::device_or_skip("test_gpu (lbvh)");
 
 std::unique_ptr<pair_finder> make_lbvh(const gpu::lbvh_options& opt = {}) {
   std::string why;

@@ -15,6 +15,7 @@
 #include <string>
 
 #include "../common/box_families.h"
+#include "../common/device_or_skip.h"
 #include "gpu/pbig.h"
 #include "interest/interest.h"
 #include "interest/thread_pool.h"
@@ -26,15 +27,7 @@ namespace gpu = zone::gpu;
 namespace {
 
 /// Runs before main (static initialisation): no device, no tests.
-const bool device_present = [] {
-  std::string why;
-  if (!gpu::device_available(nullptr, &why)) {
-    std::printf("test_gpu: skipped, no CUDA device: %s\n", why.c_str());
-    std::fflush(stdout);
-    std::_Exit(77);
-  }
-  return true;
-}();
+const bool device_present = zone::test::device_or_skip("test_gpu");
 
 std::unique_ptr<pair_finder> make_gpu(const gpu::pbig_options& opt = {}) {
   std::string why;

@@ -13,6 +13,7 @@
 #include <cstdlib>
 #include <string>
 
+#include "../common/device_or_skip.h"
 #include "../common/seeds.h"
 #include "gpu/finders.h"
 #include "gpu/pbig.h"
@@ -29,15 +30,8 @@ using namespace zone::test;
 
 namespace {
 
-const bool device_present = [] {
-  std::string why;
-  if (!gpu::device_available(nullptr, &why)) {
-    std::printf("test_zone_gpu: skipped, no CUDA device: %s\n", why.c_str());
-    std::fflush(stdout);
-    std::_Exit(77);
-  }
-  return true;
-}();
+/// Runs before main (static initialisation): no device, no tests.
+const bool device_present = zone::test::device_or_skip("test_zone_gpu");
 
 std::unique_ptr<interest::pair_finder> make_gpu(const gpu::pbig_options& opt) {
   std::string why;

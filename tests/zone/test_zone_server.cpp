@@ -15,8 +15,8 @@
 #include <spdlog/spdlog.h>
 
 #include "../net/loopback_client.h"
+#include "bots/swarm.h"
 #include "gpu/device.h"
-#include "net/client.h"
 #include "zone/zone_server.h"
 
 using namespace zone;
@@ -184,50 +184,64 @@ TEST_SUITE("zone.server") {
     CHECK(server.stats().ticks > 0);
     CHECK(server.stats().frames_sent > 0);
   }
-  TEST_CASE("a swarm of connector bots: every update consistent, every digest right") {
+  TEST_CASE("a swarm of bots (bots/swarm.h, bot-swarm's connection): every update consistent, every digest right") {
     zone_config cfg = test_config();
     cfg.metrics_enabled = false;
     zone_server server(cfg);
     REQUIRE_FALSE(server.start().has_value());
     std::thread loop([&] { server.run(); });
-    {
-      net::client_pool pool(2);
-      std::vector<std::unique_ptr<net::client_connection>> bots;
-      for (int i = 0; i < 12; ++i) {
-        net::client_options opt;
-        opt.port = server.port();
-        opt.name = "bot" + std::to_string(i);
-        bots.push_back(std::make_unique<net::client_connection>(pool, opt));
-        bots.back()->connect();
-      }
-      std::mt19937_64 rng(std::random_device{}());
-      std::uniform_real_distribution<float> u(-1, 1);
-      for (int step = 0; step < 45; ++step) {  // about 1.5 s of play
-        for (auto& b : bots) b->send_input({u(rng), u(rng), 0});
-        if (step % 10 == 0) {
-          for (auto& b : bots) b->send_ping();
-        }
-        std::this_thread::sleep_for(33ms);
-      }
-      std::this_thread::sleep_for(200ms);
-      std::set<entity_id> entities;
-      for (std::size_t i = 0; i < bots.size(); ++i) {
-        CAPTURE(i);
-        const auto snap = bots[i]->snapshot();
-        CHECK(snap.phase == net::client_snapshot::state::welcomed);
-        CHECK(snap.updates > 10);
-        CHECK(snap.problems == 0);
-        CHECK(snap.digests_checked == snap.updates);
-        CHECK(snap.last_input_echo > 0);
-        CHECK(snap.pongs > 0);
-        entities.insert(snap.entity_id);
-      }
-      CHECK(entities.size() == bots.size());
-      for (auto& b : bots) b->close();
-      bots.clear();
-    }
+    bots::swarm_options opt;
+    opt.port = server.port();
+    opt.bots = 12;
+    opt.duration_s = 1.5;
+    opt.ramp = 1000;
+    opt.inputs_on_change = false;  // an input at every evaluation
+    opt.input_hz = 30;
+    opt.ping_hz = 4;
+    opt.stealth_share = 0;  // the visibility choices are tested elsewhere; this zone allows none
+    opt.team_share = 0;
+    opt.visibility_switch_hz = 0;
+    opt.verify = true;
+    const auto out = bots::run_swarm(opt, nullptr);
     server.stop();
     loop.join();
+    REQUIRE(out.error.empty());
+    const auto& r = out.result;
+    for (const auto& p : r.problems) MESSAGE(p);
+    CHECK(r.bots_connected == 12);
+    CHECK(r.welcomes == 12);
+    CHECK(r.connect_failures == 0);
+    CHECK(r.unexpected_disconnects == 0);
+    CHECK(r.server_errors == 0);
+    CHECK(r.tick_updates > 12 * 10);
+    CHECK(r.problems_total == 0);
+    CHECK(r.mismatches() == 0);
+    CHECK(r.digests_checked == r.tick_updates);  // this zone sends a digest with every update
+    CHECK(r.inputs_sent > 12);
+    CHECK(r.pongs > 0);
+    for (const auto& slot : r.slots) CHECK(slot.ever_connected);
+  }
+
+  TEST_CASE("a swarm against a port nobody listens on: every connect fails and is counted, nothing hangs") {
+    std::uint16_t port = 0;
+    {  // a free loopback port: bound, then released (nothing listens on it afterwards)
+      zone_config cfg = test_config();
+      cfg.metrics_enabled = false;
+      zone_server server(cfg);
+      REQUIRE_FALSE(server.start().has_value());
+      port = server.port();
+      server.stop();
+    }
+    bots::swarm_options opt;
+    opt.port = port;
+    opt.bots = 3;
+    opt.duration_s = 0.5;
+    opt.ramp = 1000;
+    const auto out = bots::run_swarm(opt, nullptr);
+    REQUIRE(out.error.empty());
+    CHECK(out.result.welcomes == 0);
+    CHECK(out.result.bots_connected == 0);
+    CHECK(out.result.connect_failures == 3);
   }
 
   TEST_CASE("a client that stops reading loses state frames, then gets only frames it can apply") {
