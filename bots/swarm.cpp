@@ -162,6 +162,8 @@ class bot_session : public std::enable_shared_from_this<bot_session> {
   void maybe_send_input(std::uint64_t now_us);
   net::vec3f steer();
   void fail(const std::string& why, bool connection_failure);
+  /// An error frame the server sent before it closed, still unread in the socket ("code: reason").
+  std::optional<std::string> server_error_waiting();
   void close();
   void flush_counts();
 
@@ -1174,12 +1176,37 @@ void bot_session::write_next() {
     if (closed_) return;
     if (ec) {
       if (intended_ || s_.stopping()) return close();
+      // Before the welcome a write fails mostly because the server closed the connection after
+      // an error frame (a cap on connections without a hello, a full server): name its reason.
+      if (!playing_) {
+        if (auto said = server_error_waiting()) return fail("write: " + ec.message() + " (the server closed the connection: " + *said + ")", true);
+        return fail("write: " + ec.message() + " (the server closed the connection before the welcome; no reason arrived)", true);
+      }
       return fail("write: " + ec.message(), !playing_);
     }
     hello_out();  // the first write holds the hello
     out_writing_.clear();
     write_next();
   });
+}
+
+std::optional<std::string> bot_session::server_error_waiting() {
+  boost::system::error_code ec;
+  socket_.non_blocking(true, ec);
+  for (int round = 0; round < max_reads_per_wakeup && !ec; ++round) {
+    const auto buf = decoder_.prepare(read_chunk_bytes);
+    const std::size_t n = socket_.read_some(asio::buffer(buf.data(), buf.size()), ec);
+    decoder_.commit(ec ? 0 : n);
+    for (auto step = decoder_.next(); !step.needs_more() && !step.is_error(); step = decoder_.next()) {
+      if (step.frame.type != net::wire::message::error) continue;
+      const auto* e = step.frame.envelope->message_as_error();
+      if (!e) return std::string("?");
+      got_error_ = true;
+      s_.counters().server_errors.fetch_add(1, std::memory_order_relaxed);
+      return std::string(net::wire::EnumNameerror_code(e->code())) + ": " + (e->reason() ? e->reason()->str() : std::string());
+    }
+  }
+  return std::nullopt;
 }
 
 void bot_session::fail(const std::string& why, bool connection_failure) {
