@@ -162,6 +162,8 @@ class bot_session : public std::enable_shared_from_this<bot_session> {
   void maybe_send_input(std::uint64_t now_us);
   net::vec3f steer();
   void fail(const std::string& why, bool connection_failure);
+  /// An error frame the server sent before it closed, still unread in the socket ("code: reason").
+  std::optional<std::string> server_error_waiting();
   void close();
   void flush_counts();
 
@@ -184,6 +186,9 @@ class bot_session : public std::enable_shared_from_this<bot_session> {
   /// Outbound bytes: frames queued while a write is in flight go out together in the next write.
   std::vector<std::uint8_t> out_queued_, out_writing_;
   bool writing_ = false, closed_ = false, intended_ = false, got_error_ = false;
+  bool connecting_ = false;  ///< counted in connecting_now: started, the hello not yet written
+  /// The hello is out (written), or the session ended before: it leaves connecting_now.
+  void hello_out();
   std::atomic<bool> playing_{false};
   std::uint32_t entity_ = 0;
   std::optional<net::client_view> view_;
@@ -291,7 +296,9 @@ class swarm {
       const auto now = steady::now();
       const double since = std::chrono::duration<double>(now - start).count();
       const auto due = std::min<std::size_t>(opt_.bots, static_cast<std::size_t>(opt_.ramp * since) + 1);
-      for (; launched < due; ++launched) launch(launched);
+      for (; launched < due && (opt_.max_connecting == 0 || c_.connecting_now.load() < opt_.max_connecting); ++launched) {
+        launch(launched);
+      }
       if (opt_.churn > 0 && launched == opt_.bots && (opt_.churn_for_s <= 0 || since < opt_.churn_for_s)) {
         churn_debt += opt_.churn * std::chrono::duration<double>(now - last_step).count();
         for (; churn_debt >= 1; churn_debt -= 1) churn_one(churn_rng);
@@ -675,8 +682,17 @@ bot_session::bot_session(swarm& s, std::size_t slot, unsigned thread, behaviour 
   chooses_ = stealth_ || team_ != 0;
 }
 
+void bot_session::hello_out() {
+  if (!connecting_) return;
+  connecting_ = false;
+  s_.counters().connecting_now.fetch_sub(1, std::memory_order_relaxed);
+}
+
 void bot_session::start() {
   auto self = shared_from_this();
+  // Counted at once (the ramp reads it right after launching); the session's thread decrements.
+  connecting_ = true;
+  s_.counters().connecting_now.fetch_add(1, std::memory_order_relaxed);
   asio::dispatch(io_, [this, self] {
     s_.counters().connect_attempts.fetch_add(1, std::memory_order_relaxed);
     welcome_timer_.expires_after(std::chrono::duration_cast<steady::duration>(std::chrono::duration<double>(s_.opt_ref().connect_timeout_s)));
@@ -1160,11 +1176,37 @@ void bot_session::write_next() {
     if (closed_) return;
     if (ec) {
       if (intended_ || s_.stopping()) return close();
+      // Before the welcome a write fails mostly because the server closed the connection after
+      // an error frame (a cap on connections without a hello, a full server): name its reason.
+      if (!playing_) {
+        if (auto said = server_error_waiting()) return fail("write: " + ec.message() + " (the server closed the connection: " + *said + ")", true);
+        return fail("write: " + ec.message() + " (the server closed the connection before the welcome; no reason arrived)", true);
+      }
       return fail("write: " + ec.message(), !playing_);
     }
+    hello_out();  // the first write holds the hello
     out_writing_.clear();
     write_next();
   });
+}
+
+std::optional<std::string> bot_session::server_error_waiting() {
+  boost::system::error_code ec;
+  socket_.non_blocking(true, ec);
+  for (int round = 0; round < max_reads_per_wakeup && !ec; ++round) {
+    const auto buf = decoder_.prepare(read_chunk_bytes);
+    const std::size_t n = socket_.read_some(asio::buffer(buf.data(), buf.size()), ec);
+    decoder_.commit(ec ? 0 : n);
+    for (auto step = decoder_.next(); !step.needs_more() && !step.is_error(); step = decoder_.next()) {
+      if (step.frame.type != net::wire::message::error) continue;
+      const auto* e = step.frame.envelope->message_as_error();
+      if (!e) return std::string("?");
+      got_error_ = true;
+      s_.counters().server_errors.fetch_add(1, std::memory_order_relaxed);
+      return std::string(net::wire::EnumNameerror_code(e->code())) + ": " + (e->reason() ? e->reason()->str() : std::string());
+    }
+  }
+  return std::nullopt;
 }
 
 void bot_session::fail(const std::string& why, bool connection_failure) {
@@ -1203,6 +1245,7 @@ void bot_session::fail(const std::string& why, bool connection_failure) {
 void bot_session::close() {
   if (closed_) return;
   closed_ = true;
+  hello_out();
   flush_counts();
   boost::system::error_code ignored;
   input_timer_.cancel();

@@ -26,6 +26,12 @@ struct swarm_options {
   unsigned bots = 100;
   double duration_s = 30;    ///< from the first connection attempt to the end (ramp included)
   double ramp = 200;         ///< new bots per second during ramp-up
+  /// At most this many sessions connecting at once (from the connect until the hello is written):
+  /// the ramp waits for hellos rather than run ahead of them. A swarm whose threads lag behind
+  /// its ramp otherwise holds thousands of connections that the server sees as silent, and the
+  /// server's cap on connections without a hello (zone-server --max-pending, 1,024 by default;
+  /// --max-pending-per-address, 256) closes the oldest of them. 0 = no limit.
+  unsigned max_connecting = 128;
   double input_hz = 10;      ///< intent evaluations (steering) per second per bot
   /// true: an input is sent only when the intent differs from the last one sent, or when
   /// input_keepalive_s has passed since it (the server keeps a player's last intent until the next
@@ -93,6 +99,9 @@ class latency_histogram_us {
 
 /// Counters of the whole swarm (relaxed atomics; read by the progress line while bots run).
 struct swarm_counters {
+  /// Sessions started whose hello is not yet written (connecting, or connected and not yet heard
+  /// from): the ramp holds new connects while max_connecting of them are outstanding.
+  std::atomic<std::uint64_t> connecting_now{0};
   std::atomic<std::uint64_t> connect_attempts{0}, connected_now{0}, welcomes{0}, connect_failures{0},
       unexpected_disconnects{0}, server_errors{0}, logouts{0}, teleports_sent{0};
   std::atomic<std::uint64_t> stealth_joins{0}, team_joins{0}, visibility_switches_sent{0};

@@ -267,6 +267,11 @@ class auto_finder final : public interest::pair_finder {
   [[nodiscard]] std::string_view name() const override { return "auto"; }
   [[nodiscard]] std::optional<finder_backend> last_choice() const { return last_; }
 
+  /// pair_finder::find_view: view() (`scratch` unused).
+  std::optional<interest::box_error> find_view(const interest::box_set& boxes, interest::pair_list& /*scratch*/,
+                                               std::span<const interest::id_pair>& out) override {
+    return view(boxes, out);
+  }
   /// find_view for the auto finder: validation in the chosen GPU finder's packing pass.
   std::optional<interest::box_error> view(const interest::box_set& boxes, std::span<const interest::id_pair>& out) {
     out = {};

@@ -176,4 +176,12 @@ adjacency to_adjacency(const pair_list& pairs, std::size_t box_count) {
   return adj;
 }
 
+std::optional<box_error> pair_finder::find_view(const box_set& boxes, pair_list& scratch,
+                                                std::span<const id_pair>& view) {
+  view = {};
+  auto err = find(boxes, scratch);
+  if (!err) view = scratch;
+  return err;
+}
+
 }  // namespace zone::interest

@@ -15,6 +15,7 @@
 #include <utility>
 #include <optional>
 #include <random>
+#include <span>
 #include <string>
 #include <string_view>
 #include <vector>
@@ -151,6 +152,13 @@ class pair_finder {
 
   /// Sets larger than 2^32 - 1 boxes (32-bit ids) are rejected too.
   [[nodiscard]] std::optional<box_error> find(const box_set& boxes, pair_list& out);
+
+  /// The same pairs as find, as a view: a finder with a result buffer of its own (the GPU finders:
+  /// their pinned buffer, gpu/finders.h) points `view` at it and leaves `scratch` alone, saving a
+  /// copy of every pair; the others (the default) find into `scratch` and view that. `view` is
+  /// valid until the next call of this finder or a change of `scratch`; empty on error.
+  [[nodiscard]] virtual std::optional<box_error> find_view(const box_set& boxes, pair_list& scratch,
+                                                           std::span<const id_pair>& view);
 
   /// Statistics of the last successful call.
   [[nodiscard]] const finder_stats& stats() const { return stats_; }

@@ -11,8 +11,8 @@
 // sleeps until each tick is due at --rate like the server's loop (an overrun starts the next tick
 // at once). Percentiles here are exact (sorted per-tick samples), not histogram bucket edges.
 //
-// The finder is a parameter (--finder; make_finder below is the one place that maps a name to a
-// pair_finder), so other backends slot in without touching the rest of the tool.
+// The finder is a parameter (--finder; zone/interest_setup.h builds it and the GPU engine as
+// zone-server does), so other backends slot in without touching the rest of the tool.
 //
 // Modes: the default tick table; --clients K adds replication (build() for K clients per tick,
 // serial with one writer or build_many on the pool: --replicate serial|parallel|both, the frames'
@@ -51,6 +51,7 @@
 #include "protocol.h"
 #include "server.h"
 #include "zone.h"
+#include "zone/interest_setup.h"
 
 // Every heap allocation of the process is counted (operator new below), so the table can say
 // how many a steady-state tick makes (the tick loop should make none).
@@ -189,7 +190,7 @@ struct options {
   std::string finder = "cpu";
   double w = 0;  // 0 = the finder's default
   std::string csv;
-  bool view = true;  // GPU finders / auto: the tracker reads the finder's buffer (gpu::find_view)
+  bool view = true;  // GPU finders / auto: the tracker reads the finder's buffer (pair_finder::find_view)
   std::string interest = "auto";  // auto | gpu | host (zone_config::interest)
   replicate_mode replicate = replicate_mode::parallel;
   bool replicate_auto = true;  // --replicate auto: gpu when a device is usable
@@ -260,7 +261,7 @@ Usage: bench-zone [options]
   --host-views       with --replicate gpu: copy the players' visible sets to the host and stage
                      them for the engine, instead of its reading them in place on the device
   --find-into-list   GPU finders / auto: find() into the tracker's own pair list instead of
-                     reading the finder's result buffer (gpu::find_view, zone-server's way)
+                     reading the finder's result buffer (pair_finder::find_view, zone-server's way)
   --csv FILE         per-tick samples (ms and counts) as CSV
   --sweep-w LIST     after the run, time the finder on the last tick's boxes for each W
                      (comma-separated; 5 calls each, median)
@@ -419,17 +420,6 @@ std::optional<std::string> parse_args(int argc, char** argv, options& o, bool& h
   return std::nullopt;
 }
 
-// ---- The finder by name (gpu::make_finder maps the name to a backend) -----------------------
-
-/// A pair finder by name, on `pool` where it takes one; nullptr (and `*error`) for an unknown name.
-std::unique_ptr<interest::pair_finder> make_finder(const std::string& name, interest::thread_pool* pool, double w,
-                                                   std::string* error) {
-  interest::grid_finder_options g;
-  if (w > 0) g.min_boxes_per_cell = w;
-  // gpu/finders.h: the CPU finders, the GPU finders and `auto` (which picks per call).
-  return gpu::make_finder(name, pool, error, g);
-}
-
 // ---- Samples and the table ------------------------------------------------------------------
 
 struct series {
@@ -466,13 +456,6 @@ int main(int argc, char** argv) {
   zone_config spin_cfg;
   spin_cfg.worker_spin_us = opt.spin_us;
   interest::thread_pool pool(opt.threads, worker_spin(spin_cfg));
-  std::string error;
-  auto finder = make_finder(opt.finder, &pool, opt.w, &error);
-  if (!finder) {
-    std::cerr << "bench-zone: " << error << "\n";
-    return 64;
-  }
-
   zone_config cfg;
   cfg.npc_count = opt.entities;
   cfg.tick_rate_hz = opt.rate;
@@ -492,26 +475,26 @@ int main(int argc, char** argv) {
     std::cerr << "bench-zone: " << *err << "\n";
     return 64;
   }
-  zone_world world(cfg, *finder, &pool);
-  // As zone-server does: the GPU finders and auto hand their result buffer to the tracker.
-  const bool gpu_side = opt.finder != "cpu" && opt.finder != "cpu-1t" && opt.finder != "brute";
-  if (gpu_side && opt.view) {
-    world.set_pair_view_source([f = finder.get()](const interest::box_set& boxes, std::span<const interest::id_pair>& view) {
-      return gpu::find_view(*f, boxes, view);
-    });
-  }
-  // As zone-server does: the whole interest step on the GPU engine when asked and possible.
-  std::unique_ptr<interest::visibility_engine> engine;
-  if (opt.interest == "gpu" || (opt.interest == "auto" && opt.max_visible == 0)) {
-    std::string why;
-    engine = gpu::make_visibility_engine(&pool, &why);
-    if (engine) {
-      world.set_visibility_engine(engine.get());
-    } else if (opt.interest == "gpu") {
-      std::cerr << "bench-zone: interest 'gpu' cannot run here: " << why << "\n";
+  // The interest step as zone-server builds it (zone/interest_setup.h): the finder of --finder
+  // and, per --interest, the whole step on the GPU engine when asked and possible.
+  cfg.finder = opt.finder;
+  cfg.interest = opt.interest;
+  interest::grid_finder_options grid_tuning;
+  if (opt.w > 0) grid_tuning.min_boxes_per_cell = opt.w;
+  interest_parts parts = make_interest_parts(cfg, &pool, grid_tuning);
+  for (const std::string* why : {&parts.finder_error, &parts.engine_error}) {
+    if (!why->empty()) {
+      std::cerr << "bench-zone: " << *why << "\n";
       return 64;
     }
   }
+  const auto& finder = parts.finder;
+  const auto& engine = parts.engine;
+  zone_world world(cfg, *finder, &pool);
+  // As zone-server does: the GPU finders and auto hand their result buffer to the tracker
+  // (pair_finder::find_view), unless --find-into-list.
+  world.set_finder_view(opt.view);
+  if (engine) world.set_visibility_engine(engine.get());
   const auto setup0 = clock_type::now();
   // Progress on stdout during set-up, flushed: a million entities take seconds to place, and the
   // first ticks (the engine sizes its buffers) longer than the rest.
@@ -955,7 +938,7 @@ int main(int argc, char** argv) {
   if (!opt.sweep_w.empty()) {
     // The finder alone on the last tick's boxes (the zone's real distribution), per W.
     interest::box_set boxes;
-    world.tracker().build_boxes(world.store(), boxes);  // also when the engine ran the ticks
+    world.tracker().build_boxes(world.store().columns(), boxes);  // also when the engine ran the ticks
     std::printf("\nW sweep on the last tick's %zu boxes (grid finder, %u threads, median of 5 calls)\n", boxes.size(),
                 pool.size());
     std::printf("| W | median ms | min ms | pairs | checks | cell edge m | cells | entries | large |\n"

@@ -10,6 +10,8 @@
 #include <vector>
 
 #include "interest/interest.h"
+#include "interest/interest_space.h"
+#include "interest/interest_tracker.h"
 
 namespace zone {
 
@@ -19,22 +21,19 @@ namespace zone {
 /// until the slot's generation wraps around (max_generation = 1,023 reuses of that one slot).
 /// 22 slot bits: up to 4,194,304 entities in one zone (20 bits capped a zone at 1,048,576, below
 /// what the GPU interest engine steps in a tick; docs/zone-benchmarks.md, "Growth").
-using entity_id = std::uint32_t;
-inline constexpr entity_id null_entity = 0;
-inline constexpr unsigned entity_index_bits = 22;
+using interest::entity_id;
+using interest::null_entity;
+inline constexpr unsigned entity_index_bits = interest::space_slot_bits;
 inline constexpr std::uint32_t entity_index_mask = (1u << entity_index_bits) - 1;
 /// Most entities alive at once in one store.
-inline constexpr std::size_t max_entities = std::size_t{1} << entity_index_bits;
+inline constexpr std::size_t max_entities = interest::space_max_entities;
 /// The highest generation of a slot (then it wraps to 1).
-inline constexpr std::uint32_t max_generation = (1u << (32 - entity_index_bits)) - 1;
+inline constexpr std::uint32_t max_generation = interest::space_max_generation;
 
 [[nodiscard]] constexpr std::uint32_t slot_of(entity_id id) { return id & entity_index_mask; }
 [[nodiscard]] constexpr std::uint32_t generation_of(entity_id id) { return id >> entity_index_bits; }
 
-struct vec3 {
-  float x = 0, y = 0, z = 0;
-  friend bool operator==(const vec3&, const vec3&) = default;
-};
+using interest::vec3;
 
 enum class entity_kind : std::uint8_t { player, npc, boss };
 
@@ -76,36 +75,31 @@ struct entity_desc {
 /// extents, a class that is not exactly one non-aoi bit, or `sees` containing the aoi bit.
 [[nodiscard]] std::optional<std::string> validate(const entity_desc& d);
 
-/// Dense structure-of-arrays entity storage with generation-checked handles (the sparse-set
-/// layout: slot -> dense index, dense index -> handle). Live entities occupy dense indices
-/// [0, size()); destroy() moves the last entity into the hole, so dense indices are not stable
-/// across destroys, handles are. Not thread-safe for mutation; concurrent reads are fine.
+/// The zone's entities: an interest::interest_space (the tick-level API: handles, positions,
+/// boxes, classes, the interest step) with the zone's own columns beside it (velocity, kind), in
+/// the same dense order. Live entities occupy dense indices [0, size()); destroy() moves the last
+/// entity into the hole, so dense indices are not stable across destroys, handles are. Not
+/// thread-safe for mutation; concurrent reads are fine.
 class entity_store {
  public:
-  /// `capacity`: most entities alive at once (at most max_entities).
-  explicit entity_store(std::size_t capacity = max_entities);
+  /// `capacity`: most entities alive at once (at most max_entities); `interest`: the space's
+  /// step (its backend, finder, pool, hysteresis; its capacity is `capacity`).
+  explicit entity_store(std::size_t capacity = max_entities, interest::space_options interest = {});
 
   /// Creates an entity. Returns null_entity, with the reason in `*error` when given, if the
   /// description is invalid or the store is full.
   [[nodiscard]] entity_id create(const entity_desc& d, std::string* error = nullptr);
   /// Destroys a live entity; false (and nothing changes) for a null, stale or unknown handle.
   bool destroy(entity_id id);
-  [[nodiscard]] bool alive(entity_id id) const { return index_of(id) != npos; }
+  [[nodiscard]] bool alive(entity_id id) const { return space_.alive(id); }
   /// Dense index of a live entity, npos otherwise. Inline: replication looks up every entry of
   /// every client's view each tick.
-  [[nodiscard]] std::size_t index_of(entity_id id) const {
-    const std::uint32_t slot = slot_of(id);
-    if (id == null_entity || slot >= slot_dense_.size()) return npos;
-    const std::uint32_t dense = slot_dense_[slot];
-    // An invalid slot holds 0xffffffff, never a valid dense index.
-    if (dense >= ids_.size() || ids_[dense] != id) return npos;
-    return dense;
-  }
-  static constexpr std::size_t npos = static_cast<std::size_t>(-1);
+  [[nodiscard]] std::size_t index_of(entity_id id) const { return space_.index_of(id); }
+  static constexpr std::size_t npos = interest::interest_space::npos;
 
-  [[nodiscard]] std::size_t size() const { return ids_.size(); }
-  [[nodiscard]] bool empty() const { return ids_.empty(); }
-  [[nodiscard]] std::size_t capacity() const { return capacity_; }
+  [[nodiscard]] std::size_t size() const { return space_.size(); }
+  [[nodiscard]] bool empty() const { return space_.size() == 0; }
+  [[nodiscard]] std::size_t capacity() const { return space_.capacity(); }
   void clear();
   void reserve(std::size_t n);
 
@@ -113,48 +107,48 @@ class entity_store {
   [[nodiscard]] std::optional<entity_desc> get(entity_id id) const;
 
   // Checked setters (false for a dead handle or an invalid value; nothing changes then).
-  bool set_position(entity_id id, const vec3& p);
+  bool set_position(entity_id id, const vec3& p) { return space_.move(id, p); }
   bool set_velocity(entity_id id, const vec3& v);
-  bool set_aoi_half_extent(entity_id id, const vec3& h);
-  bool set_presence_half_extent(entity_id id, const vec3& h);
-  bool set_visibility(entity_id id, std::uint32_t visibility_class, std::uint32_t sees);
+  bool set_aoi_half_extent(entity_id id, const vec3& h) { return space_.resize_aoi(id, h); }
+  bool set_presence_half_extent(entity_id id, const vec3& h) { return space_.resize_presence(id, h); }
+  bool set_visibility(entity_id id, std::uint32_t visibility_class, std::uint32_t sees) {
+    return space_.set_classes(id, visibility_class, sees);
+  }
 
   // Dense columns, index = dense index. Positions and velocities are writable in bulk (the
-  // movement systems); the interest tracker rejects non-finite values naming the entity.
-  [[nodiscard]] std::span<const entity_id> ids() const { return ids_; }
-  [[nodiscard]] std::span<vec3> positions() { return position_; }
-  [[nodiscard]] std::span<const vec3> positions() const { return position_; }
+  // movement systems); the interest step rejects non-finite values naming the entity.
+  [[nodiscard]] std::span<const entity_id> ids() const { return space_.ids(); }
+  [[nodiscard]] std::span<vec3> positions() { return space_.positions(); }
+  [[nodiscard]] std::span<const vec3> positions() const { return space_.positions(); }
   [[nodiscard]] std::span<vec3> velocities() { return velocity_; }
   [[nodiscard]] std::span<const vec3> velocities() const { return velocity_; }
-  [[nodiscard]] std::span<const std::uint32_t> visibility_classes() const { return visibility_class_; }
-  [[nodiscard]] std::span<const std::uint32_t> sees() const { return sees_; }
-  [[nodiscard]] std::span<const vec3> aoi_half_extents() const { return aoi_half_; }
-  [[nodiscard]] std::span<const vec3> presence_half_extents() const { return presence_half_; }
+  [[nodiscard]] std::span<const std::uint32_t> visibility_classes() const { return space_.visibility_classes(); }
+  [[nodiscard]] std::span<const std::uint32_t> sees() const { return space_.sees(); }
+  [[nodiscard]] std::span<const vec3> aoi_half_extents() const { return space_.aoi_halves(); }
+  [[nodiscard]] std::span<const vec3> presence_half_extents() const { return space_.presence_halves(); }
   [[nodiscard]] std::span<const entity_kind> kinds() const { return kind_; }
 
   /// One past the highest slot index ever used (sizes per-slot side tables of other systems).
-  [[nodiscard]] std::size_t slot_count() const { return slot_generation_.size(); }
+  [[nodiscard]] std::size_t slot_count() const { return space_.slot_count(); }
 
   /// Changes whenever anything but positions and velocities may have changed (an entity created
   /// or destroyed, an extent, class or sees set), to a value no other store ever had: equal
   /// versions mean equal ids, extents, classes and sees. (A GPU interest engine skips uploading
   /// them then.)
-  [[nodiscard]] std::uint64_t layout_version() const { return layout_version_; }
+  [[nodiscard]] std::uint64_t layout_version() const { return space_.layout_version(); }
   /// Dense index by slot (0xffffffff: none), slot_count() entries: the map index_of reads.
-  [[nodiscard]] std::span<const std::uint32_t> slot_dense() const { return slot_dense_; }
+  [[nodiscard]] std::span<const std::uint32_t> slot_dense() const { return space_.slot_dense(); }
+  /// The interest columns of the live entities (row = dense index), for interest_tracker::update;
+  /// valid until the store changes.
+  [[nodiscard]] interest::entity_columns columns() const { return space_.columns(); }
+
+  /// The interest step of these entities (the tick API the zone is built on).
+  [[nodiscard]] interest::interest_space& space() { return space_; }
+  [[nodiscard]] const interest::interest_space& space() const { return space_; }
 
  private:
-  void bump_layout();
-  std::size_t capacity_;
-  std::uint64_t layout_version_ = 0;
-  // Sparse side, by slot.
-  std::vector<std::uint32_t> slot_dense_;       // dense index of the slot's entity, or invalid_dense
-  std::vector<std::uint16_t> slot_generation_;  // generation of the slot's current (or next) entity
-  std::vector<std::uint32_t> free_slots_;       // LIFO
-  // Dense side.
-  std::vector<entity_id> ids_;
-  std::vector<vec3> position_, velocity_, aoi_half_, presence_half_;
-  std::vector<std::uint32_t> visibility_class_, sees_;
+  interest::interest_space space_;
+  std::vector<vec3> velocity_;
   std::vector<entity_kind> kind_;
 };
 

@@ -214,7 +214,7 @@ std::size_t replicator::resync_viewers_of(const entity_store& store, entity_id c
   return n;
 }
 
-std::span<const std::uint8_t> replicator::build(client_id c, const entity_store& store, const interest_tracker& tracker,
+std::span<const std::uint8_t> replicator::build(client_id c, const entity_store& store, const interest::interest_tracker& tracker,
                                                 std::uint64_t tick, std::uint64_t server_time_us,
                                                 std::uint32_t last_input_sequence, replication_writer& writer,
                                                 replication_stats* stats) {
@@ -224,7 +224,7 @@ std::span<const std::uint8_t> replicator::build(client_id c, const entity_store&
 
 template <class Source>
 std::span<const std::uint8_t> replicator::build_from(const Source& source, client_id c, const entity_store& store,
-                                                     const interest_tracker& tracker, std::uint64_t tick,
+                                                     const interest::interest_tracker& tracker, std::uint64_t tick,
                                                      std::uint64_t server_time_us, std::uint32_t last_input_sequence,
                                                      replication_writer& w, replication_stats* stats) {
   client_state& s = clients_[c];
@@ -448,7 +448,7 @@ void replicator::set_engine(interest::replication_engine* engine) {
 }
 
 void replicator::build_on_engine(std::span<const replication_request> requests, const entity_store& store,
-                                 const interest_tracker& tracker, std::uint64_t tick, std::uint64_t server_time_us,
+                                 const interest::interest_tracker& tracker, std::uint64_t tick, std::uint64_t server_time_us,
                                  interest::thread_pool* pool, const frame_sink& sink, const chunk_sink& chunk_done) {
   // Phase clocks: wall always, the process's CPU time when asked (set_phase_cpu_timing).
   replication_phase_times times;
@@ -637,7 +637,7 @@ void replicator::build_on_engine(std::span<const replication_request> requests, 
 }
 
 void replicator::build_many(std::span<const replication_request> requests, const entity_store& store,
-                            const interest_tracker& tracker, std::uint64_t tick, std::uint64_t server_time_us,
+                            const interest::interest_tracker& tracker, std::uint64_t tick, std::uint64_t server_time_us,
                             interest::thread_pool* pool, const frame_sink& sink, const chunk_sink& chunk_done) {
   if (requests.empty()) return;
   if (on_engine()) {

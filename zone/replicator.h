@@ -10,11 +10,11 @@
 #include <string>
 #include <vector>
 
+#include "interest/interest_tracker.h"
 #include "interest/replication_engine.h"
 #include "interest/thread_pool.h"
 #include "net/protocol.h"
 #include "zone/entity_store.h"
-#include "zone/interest_tracker.h"
 
 namespace zone {
 
@@ -155,7 +155,7 @@ class replicator {
   /// Builds this tick's frame for client c into `writer`; the span is valid until the writer's
   /// next build. `stats`, when given, receives what was sent and deferred.
   [[nodiscard]] std::span<const std::uint8_t> build(client_id c, const entity_store& store,
-                                                    const interest_tracker& tracker, std::uint64_t tick,
+                                                    const interest::interest_tracker& tracker, std::uint64_t tick,
                                                     std::uint64_t server_time_us, std::uint32_t last_input_sequence,
                                                     replication_writer& writer, replication_stats* stats = nullptr);
 
@@ -174,7 +174,7 @@ class replicator {
   /// right after the sink saw its last frame: a caller can hand a chunk's frames on together.
   using chunk_sink = std::function<void(std::size_t begin, std::size_t end)>;
   void build_many(std::span<const replication_request> requests, const entity_store& store,
-                  const interest_tracker& tracker, std::uint64_t tick, std::uint64_t server_time_us,
+                  const interest::interest_tracker& tracker, std::uint64_t tick, std::uint64_t server_time_us,
                   interest::thread_pool* pool, const frame_sink& sink, const chunk_sink& chunk_done = {});
 
   /// Runs build_many's decisions on `engine` (interest/replication_engine.h; the GPU:
@@ -239,14 +239,14 @@ class replicator {
   static bool tier_below(float d2, const tier_bound& b);
   template <class Source>
   std::span<const std::uint8_t> build_from(const Source& source, client_id c, const entity_store& store,
-                                           const interest_tracker& tracker, std::uint64_t tick,
+                                           const interest::interest_tracker& tracker, std::uint64_t tick,
                                            std::uint64_t server_time_us, std::uint32_t last_input_sequence,
                                            replication_writer& writer, replication_stats* stats);
   /// Starts loading what building client c will read first (its state and lists).
   void prefetch_client(client_id c) const;
   /// build_many on the engine (throws what the engine throws, before any frame reaches the sink).
   void build_on_engine(std::span<const replication_request> requests, const entity_store& store,
-                       const interest_tracker& tracker, std::uint64_t tick, std::uint64_t server_time_us,
+                       const interest::interest_tracker& tracker, std::uint64_t tick, std::uint64_t server_time_us,
                        interest::thread_pool* pool, const frame_sink& sink, const chunk_sink& chunk_done);
   /// Every active client starts over (its next frame is a reset).
   void reset_all_clients();

@@ -79,8 +79,29 @@ void latency_histogram::clear() { *this = latency_histogram{}; }
 
 // ---- zone_world --------------------------------------------------------------------------------
 
+namespace {
+
+interest::space_options on_finder(interest::pair_finder& finder, interest::thread_pool* pool) {
+  interest::space_options o;
+  o.where = interest::backend::cpu;
+  o.finder = &finder;
+  o.pool = pool;
+  return o;
+}
+
+interest::space_options with_config(interest::space_options o, const zone_config& cfg) {
+  o.hysteresis = cfg.hysteresis;
+  o.max_visible = cfg.max_visible;
+  return o;
+}
+
+}  // namespace
+
 zone_world::zone_world(const zone_config& cfg, interest::pair_finder& finder, interest::thread_pool* pool)
-    : cfg_(cfg), pool_(pool), tracker_(finder, pool, interest_options{cfg.hysteresis, cfg.max_visible, 256}) {
+    : zone_world(cfg, on_finder(finder, pool)) {}
+
+zone_world::zone_world(const zone_config& cfg, interest::space_options interest)
+    : cfg_(cfg), pool_(interest.pool), store_(max_entities, with_config(std::move(interest), cfg)) {
   std::mt19937_64 rng(cfg_.seed ^ 0x70776e73ull);
   const auto w = spawn_area();
   const std::size_t towns = cfg_.town_count != 0 ? cfg_.town_count : std::max<std::size_t>(1, cfg_.npc_count / 2000);
@@ -92,7 +113,7 @@ zone_world::zone_world(const zone_config& cfg, interest::pair_finder& finder, in
   }
   // Only players (replication) and chasers (their behaviour) read visible sets right after the
   // interest step; a GPU engine copies back only theirs (interest_tracker::set_view_demand).
-  tracker_.set_view_demand(&reads_view_);
+  store_.space().set_view_demand(&reads_view_);
 }
 
 void zone_world::set_reads_view(entity_id id, bool reads) {
@@ -267,7 +288,7 @@ bool zone_world::teleport(entity_id player, const vec3& to, bool* clamped) {
   if (!std::isfinite(to.x) || !std::isfinite(to.y) || !std::isfinite(to.z)) return false;
   const vec3 at = clamp_to_world(to);
   if (clamped) *clamped = !(at == to);
-  return store_.set_position(player, at);
+  return store_.space().teleport(player, at);  // the tick API's jump
 }
 
 void zone_world::decide(std::size_t first, std::size_t last) {
@@ -306,11 +327,11 @@ void zone_world::decide(std::size_t first, std::size_t last) {
       }
       case behaviour::chase: {
         // The nearest player this NPC saw last tick (the same interest results as everyone).
-        const std::size_t row = tracker_.row_of(id);
+        const std::size_t row = tracker().row_of(id);
         float best = std::numeric_limits<float>::infinity();
         entity_id prey = null_entity;
         if (row != entity_store::npos) {
-          for (const entity_id seen : tracker_.visible(row)) {
+          for (const entity_id seen : tracker().visible(row)) {
             // The kind first (one byte by slot): most of what a chaser sees is not a player,
             // and the store's lookup (two more random reads) is needed only for players. Same
             // result as the lookup first.
@@ -380,7 +401,7 @@ std::optional<interest::box_error> zone_world::step() {
 
   // 3. Interest.
   t0 = clock_type::now();
-  auto err = tracker_.update(store_);
+  auto err = store_.space().step();
   last_step_.interest = ms_since(t0);
   last_step_.total = ms_since(t_start);
   phases_.interest.record(last_step_.interest);
@@ -389,7 +410,7 @@ std::optional<interest::box_error> zone_world::step() {
 }
 
 std::uint64_t zone_world::digest() const {
-  std::uint64_t h = tracker_.digest() ^ splitmix(tick_);
+  std::uint64_t h = tracker().digest() ^ splitmix(tick_);
   for (std::size_t i = 0; i < store_.size(); ++i) {
     const vec3 p = store_.positions()[i];
     h = splitmix(h ^ store_.ids()[i]);

@@ -67,15 +67,6 @@ replication_options replica_options(const zone_config& c) {
   return o;
 }
 
-/// The configured pair finder (gpu/finders.h). A GPU finder that cannot run here leaves the CPU
-/// grid finder in place and the reason in `error` (start() refuses to run then).
-std::unique_ptr<interest::pair_finder> make_zone_finder(const zone_config& c, interest::thread_pool* pool,
-                                                        std::string& error) {
-  if (auto f = gpu::make_finder(c.finder, pool, &error)) return f;
-  if (gpu::parse_backend(c.finder)) error += " (use --finder auto or cpu)";
-  return std::make_unique<interest::grid_finder>(pool);
-}
-
 }  // namespace
 
 engine_fault zone_server::gpu_fault(const zone_config& cfg) const {
@@ -89,33 +80,17 @@ engine_fault zone_server::gpu_fault(const zone_config& cfg) const {
 zone_server::zone_server(const zone_config& cfg)
     : cfg_(cfg),
       pool_(std::make_unique<interest::thread_pool>(cfg.worker_threads, worker_spin(cfg))),
-      finder_(make_zone_finder(cfg, pool_.get(), finder_error_)),
-      world_(std::make_unique<zone_world>(cfg, *finder_, pool_.get())),
+      parts_(make_interest_parts(cfg, pool_.get())),
+      world_(std::make_unique<zone_world>(cfg, *parts_.finder, pool_.get())),
       replicator_(replica_options(cfg)),
       net_(net_options(cfg)) {
-  // The GPU finders and auto hand over their own result buffer (no copy of every pair per tick).
-  const auto backend = gpu::parse_backend(cfg.finder);
-  if (finder_error_.empty() && backend && *backend != gpu::finder_backend::cpu && *backend != gpu::finder_backend::brute) {
-    world_->set_pair_view_source([f = finder_.get()](const interest::box_set& boxes, std::span<const interest::id_pair>& view) {
-      return gpu::find_view(*f, boxes, view);
-    });
-  }
-  // The interest step on the GPU (the whole of it: candidates, classification, events).
-  if (cfg.interest == "gpu" || (cfg.interest == "auto" && cfg.max_visible == 0)) {
-    std::string why;
-    engine_ = gpu::make_visibility_engine(pool_.get(), &why);
-    if (engine_) {
-      if (cfg.test_fault == "gpu-interest" || cfg.test_fault == "gpu-lost") {
-        faulty_engine_ = std::make_unique<faulty_visibility_engine>(*engine_, gpu_fault(cfg));
-      }
-      world_->set_visibility_engine(faulty_engine_ ? faulty_engine_.get() : engine_.get());
-    } else if (cfg.interest == "gpu") {
-      engine_error_ = "interest 'gpu' cannot run here: " + why + " (use --interest auto or host)";
-    } else {
-      engine_note_ = why;
+  // The interest step on the GPU (the whole of it: candidates, classification, events), when
+  // make_interest_parts made its engine.
+  if (parts_.engine) {
+    if (cfg.test_fault == "gpu-interest" || cfg.test_fault == "gpu-lost") {
+      faulty_engine_ = std::make_unique<faulty_visibility_engine>(*parts_.engine, gpu_fault(cfg));
     }
-  } else if (cfg.interest == "auto") {
-    engine_note_ = "max-visible is set (the cap runs on the host)";
+    world_->set_visibility_engine(faulty_engine_ ? faulty_engine_.get() : parts_.engine.get());
   }
   // Replication's decisions on the GPU (the frames are the CPU replicator's, byte for byte).
   if (cfg.replicate == "gpu" || cfg.replicate == "auto") {
@@ -143,8 +118,8 @@ std::string zone_server::replication_name() const {
 }
 
 std::string zone_server::interest_name() const {
-  if (engine_ && world_->tracker().engine_error().empty()) return std::string(engine_->name()) + " engine";
-  return "host (finder " + std::string(finder_->name()) + ")";
+  if (parts_.engine && world_->tracker().engine_error().empty()) return std::string(parts_.engine->name()) + " engine";
+  return "host (finder " + std::string(parts_.finder->name()) + ")";
 }
 
 zone_server::~zone_server() {
@@ -165,7 +140,7 @@ std::string zone_server::metrics_text() const {
   t.gauge("zone_interest_pairs", "Pairs found by the last interest step.", static_cast<double>(ts.pairs));
   t.gauge("zone_visible_total", "Sum of visible-set sizes after the last tick.", static_cast<double>(ts.visible));
   t.gauge("zone_interest_on_gpu", "1 while the interest step runs on the GPU engine (--interest), else 0.",
-          engine_ && world_->tracker().engine_error().empty() ? 1.0 : 0.0);
+          parts_.engine && world_->tracker().engine_error().empty() ? 1.0 : 0.0);
   t.counter("zone_interest_gpu_fallbacks_total",
             "Times the GPU interest engine failed and the interest step fell back to the host (for good).",
             engine_failure_logged_ ? 1.0 : 0.0);
@@ -289,8 +264,8 @@ net::interest_rules zone_server::rules() const {
 
 std::optional<std::string> zone_server::start() {
   if (auto err = validate(cfg_)) return err;
-  if (!finder_error_.empty()) return finder_error_;
-  if (!engine_error_.empty()) return engine_error_;
+  if (!parts_.finder_error.empty()) return parts_.finder_error;
+  if (!parts_.engine_error.empty()) return parts_.engine_error;
   if (!replicate_error_.empty()) return replicate_error_;
   if (!cfg_.tick_csv.empty()) {
     tick_csv_ = std::fopen(cfg_.tick_csv.c_str(), "w");
@@ -323,7 +298,7 @@ std::optional<std::string> zone_server::start() {
   spdlog::info("zone: {} NPCs, world {}x{}x{} m, {} Hz, {} worker threads, interest on {}, replication on {}",
                world_->store().size(), cfg_.world.hi.x, cfg_.world.hi.y, cfg_.world.hi.z, cfg_.tick_rate_hz,
                pool_->size(), interest_name(), replication_name());
-  if (!engine_note_.empty()) spdlog::info("zone: interest runs on the host: {}", engine_note_);
+  if (!parts_.engine_note.empty()) spdlog::info("zone: interest runs on the host: {}", parts_.engine_note);
   if (!replicate_note_.empty()) spdlog::info("zone: replication runs on the CPU: {}", replicate_note_);
   if (auto err = net_.start()) return err;
   if (ext_ != nullptr) ext_->started(net_.port());
@@ -691,7 +666,7 @@ void zone_server::tick_once() {
   if (!engine_failure_logged_ && !world_->tracker().engine_error().empty()) {
     engine_failure_logged_ = true;
     spdlog::warn("zone: tick {}: the GPU interest engine failed ({}); interest runs on the host from this tick on, finder {}",
-                 world_->tick(), world_->tracker().engine_error(), finder_->name());
+                 world_->tick(), world_->tracker().engine_error(), parts_.finder->name());
   }
   replicate_class_changes();
   // The ground truth of this tick (--oracle), before any frame of it is sent.
@@ -727,7 +702,7 @@ void zone_server::tick_once() {
 
 void zone_server::fill_viewer_snapshot(net::viewer_snapshot& s) const {
   const entity_store& store = world_->store();
-  const interest_tracker& tr = world_->tracker();
+  const interest::interest_tracker& tr = world_->tracker();
   s.tick = world_->tick();
   s.world_lo[0] = cfg_.world.lo.x, s.world_lo[1] = cfg_.world.lo.y, s.world_lo[2] = cfg_.world.lo.z;
   s.world_hi[0] = cfg_.world.hi.x, s.world_hi[1] = cfg_.world.hi.y, s.world_hi[2] = cfg_.world.hi.z;
@@ -853,7 +828,7 @@ void zone_server::publish_viewer() {
     viewer_ticks_.clear();
     return;
   }
-  const interest_tracker& tr = world_->tracker();
+  const interest::interest_tracker& tr = world_->tracker();
   const std::uint64_t tick = world_->tick();
   // The watched entities' enters and leaves of this step (a window of the latest 64 each).
   for (auto& w : viewer_watch_) {

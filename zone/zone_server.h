@@ -20,6 +20,7 @@
 #include "truth_publisher.h"
 #include "viewer.h"
 #include "zone.h"
+#include "zone/interest_setup.h"
 
 namespace zone {
 
@@ -97,7 +98,7 @@ class zone_server {
   [[nodiscard]] std::string metrics_text() const;
   [[nodiscard]] const zone_world& world() const { return *world_; }
   /// The pair finder's name ("auto", "cpu grid", ...).
-  [[nodiscard]] std::string finder_name() const { return std::string(finder_->name()); }
+  [[nodiscard]] std::string finder_name() const { return std::string(parts_.finder->name()); }
   /// Where the interest step runs: "gpu engine" or "host (finder <name>)".
   [[nodiscard]] std::string interest_name() const;
   /// Where replication runs now: "gpu engine" or "cpu".
@@ -178,12 +179,9 @@ class zone_server {
 
   zone_config cfg_;
   std::unique_ptr<interest::thread_pool> pool_;
-  std::string finder_error_;  ///< why the configured finder cannot run here (start() reports it); before finder_
-  std::unique_ptr<interest::pair_finder> finder_;
+  /// The finder, the GPU engine and why either cannot run (start() reports it): before world_.
+  interest_parts parts_;
   std::unique_ptr<zone_world> world_;
-  std::string engine_error_;  ///< why interest = gpu cannot run here (start() reports it)
-  std::string engine_note_;   ///< why auto chose the host path
-  std::unique_ptr<interest::visibility_engine> engine_;
   std::unique_ptr<faulty_visibility_engine> faulty_engine_;  ///< --test-fault gpu-interest, gpu-lost: wraps engine_
   bool engine_failure_logged_ = false;
   std::string replicate_error_;  ///< why replicate = gpu cannot run here (start() reports it)

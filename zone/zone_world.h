@@ -11,11 +11,16 @@
 #include "interest/interest.h"
 #include "interest/thread_pool.h"
 #include "zone/entity_store.h"
-#include "zone/interest_tracker.h"
+#include "interest/interest_tracker.h"
 #include "zone/latency_histogram.h"
 #include "zone/zone_config.h"
 
 namespace zone {
+
+// The interest layer's tracker under the names zone code has always used.
+using interest::interest_options;
+using interest::interest_stats;
+using interest::interest_tracker;
 
 /// Phase timings of zone_world::step (milliseconds).
 struct tick_phases {
@@ -31,8 +36,13 @@ struct step_times {
 /// seed and calls give the same positions and visible sets whatever the thread count.
 class zone_world {
  public:
-  /// `finder` and `pool` must outlive the world; `pool` may be null.
+  /// The interest step on `finder` (the CPU backend until set_visibility_engine); `finder` and
+  /// `pool` must outlive the world; `pool` may be null.
   zone_world(const zone_config& cfg, interest::pair_finder& finder, interest::thread_pool* pool);
+  /// The interest step as `interest` says (interest_setup.h builds it from the config: backend,
+  /// finder, pool); its hysteresis and max_visible are the config's. Throws what
+  /// interest::interest_space's constructor throws.
+  zone_world(const zone_config& cfg, interest::space_options interest);
 
   /// Creates the NPCs and bosses of the config (deterministic in cfg.seed).
   void populate();
@@ -64,19 +74,25 @@ class zone_world {
   [[nodiscard]] std::uint64_t tick() const { return tick_; }
   [[nodiscard]] entity_store& store() { return store_; }
   [[nodiscard]] const entity_store& store() const { return store_; }
-  [[nodiscard]] const interest_tracker& tracker() const { return tracker_; }
-  /// See interest_tracker::set_pair_view_source.
-  void set_pair_view_source(interest_tracker::pair_view_source source) {
-    tracker_.set_pair_view_source(std::move(source));
+  [[nodiscard]] const interest_tracker& tracker() const { return store_.space().tracker(); }
+  /// The interest step (the tick API, interest/interest_space.h): its backend can be switched here.
+  [[nodiscard]] interest::interest_space& interest() { return store_.space(); }
+  [[nodiscard]] const interest::interest_space& interest() const { return store_.space(); }
+  /// Whether the host path reads the finder's own result buffer (interest_options::finder_view;
+  /// default true).
+  void set_finder_view(bool on) {
+    auto o = tracker().options();
+    o.finder_view = on;
+    store_.space().set_tracker_options(o);
   }
   /// Entities whose visible sets a viewer reads after each step (net/viewer.h): with a GPU
   /// engine their rows are copied back with the players' from the next step on. Replaces the
   /// previous list; dead handles are ignored.
   void set_watched(std::span<const entity_id> ids);
   /// A tick follows soon: see interest_tracker::prepare.
-  void prepare() noexcept { tracker_.prepare(); }
-  /// See interest_tracker::set_engine.
-  void set_visibility_engine(interest::visibility_engine* engine) { tracker_.set_engine(engine); }
+  void prepare() noexcept { store_.space().prepare(); }
+  /// See interest::interest_space::use_engine.
+  void set_visibility_engine(interest::visibility_engine* engine) { store_.space().use_engine(engine); }
   /// Whether the players' visible sets are copied back to the host after each interest step
   /// (interest_tracker::set_view_demand; default true: the CPU replicator reads them). A GPU
   /// replication engine that reads them in place on the device (replicator::set_engine) needs
@@ -101,8 +117,7 @@ class zone_world {
 
   zone_config cfg_;
   interest::thread_pool* pool_;
-  entity_store store_;
-  interest_tracker tracker_;
+  entity_store store_;  // with the interest step (store_.space())
   std::vector<npc_state> by_slot_;  // indexed by slot_of(id)
   /// By slot: 1 where the entity is a player (spawned as one, or adopted with kind player: a
   /// world's ghost of a player or a handed-off one; set_state and adopt keep it as long as

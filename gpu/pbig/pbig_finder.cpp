@@ -22,6 +22,11 @@ class pbig_finder final : public interest::pair_finder {
   [[nodiscard]] std::string_view name() const override { return "gpu"; }
   [[nodiscard]] const pbig_report& report() const { return engine_.report(); }
 
+  /// pair_finder::find_view: the pairs stay in this finder's result buffer (`scratch` unused).
+  std::optional<interest::box_error> find_view(const interest::box_set& boxes, interest::pair_list& /*scratch*/,
+                                               std::span<const interest::id_pair>& view) override {
+    return find_view(boxes, view);
+  }
   std::optional<interest::box_error> find_view(const interest::box_set& boxes,
                                                std::span<const interest::id_pair>& view) {
     view = {};

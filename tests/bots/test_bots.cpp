@@ -381,6 +381,33 @@ TEST_CASE("rules: zone-server --player-aoi 100 --hysteresis 7 with a default bot
   CHECK(server.proc.terminate().value_or(-1) == 0);
 }
 
+TEST_CASE("ramp: 800 bots launched at once from one address all join under the server's default pending caps") {
+  // Every bot connects from 127.0.0.1 and the swarm's threads lag behind a ramp this fast: before
+  // --max-connecting, hundreds of connections were open with no hello written yet, the server's
+  // default --max-pending-per-address (256) closed the oldest of them, and those bots failed with
+  // "write: Broken pipe" (about a quarter joined). The ramp now waits for hellos.
+  const std::string dir = temp_dir();
+  std::vector<std::string> args = server_args;
+  args.insert(args.end(), {"--max-clients", "900"});
+  zone_server_process server(ZONE_SERVER_EXE, dir, args);
+  REQUIRE_MESSAGE(server.port != 0, server.proc.log());
+  child_process swarm(swarm_args(server.port, dir, {"--bots", "800", "--duration", "4", "--ramp", "100000", "--quiet"}),
+                      dir + "/bot-swarm.log");
+  const auto rc = swarm.wait(60000ms);
+  const std::string report = read_file(dir + "/report.json");
+  INFO("bot-swarm output:\n" << swarm.log());
+  REQUIRE(rc.has_value());
+  CHECK(*rc == 0);
+  CHECK(json_number(report, "bots_connected").value_or(-1) == 800);
+  CHECK(json_number(report, "connect_failures").value_or(-1) == 0);
+  // The server closed no connection for the pending caps (the swarm held at most --max-connecting).
+  const std::string scrape = http_get_metrics(server.metrics_port);
+  INFO("zone-server metrics:\n" << scrape);
+  CHECK(scrape.find("zone_net_pending_evicted_total{cap=\"address\"} 0\n") != std::string::npos);
+  CHECK(scrape.find("zone_net_pending_evicted_total{cap=\"total\"} 0\n") != std::string::npos);
+  CHECK(server.proc.terminate().value_or(-1) == 0);
+}
+
 namespace {
 
 /// zone-server --test-fault KIND against 20 bots with the oracle: the swarm fails, the oracle

@@ -109,7 +109,7 @@ TEST_SUITE("bots.oracle") {
             REQUIRE(w.store.destroy(w.players.front()));
             w.players.erase(w.players.begin());
           }
-          REQUIRE_FALSE(tracker.update(w.store).has_value());
+          REQUIRE_FALSE(tracker.update(w.store.columns()).has_value());
           const bool layout = tick == 0 || w.store.layout_version() != layout_version;
           layout_version = w.store.layout_version();
           const auto body = truth_body(w.store, tick, layout);
@@ -193,7 +193,7 @@ TEST_SUITE("bots.oracle") {
         const entity_id id = w.add_player();
         clients.push_back({id, rep.add_client(id), net::client_view(w.world)});
       }
-      REQUIRE_FALSE(tracker.update(w.store).has_value());
+      REQUIRE_FALSE(tracker.update(w.store.columns()).has_value());
       const bool layout = tick == 0 || w.store.layout_version() != layout_version;
       layout_version = w.store.layout_version();
       REQUIRE_FALSE(oracle.feed(truth_body(w.store, tick, layout)).has_value());
@@ -321,7 +321,7 @@ TEST_SUITE("bots.oracle") {
           if (v.visibility_class != d.visibility_class || v.sees != d.sees) changed.push_back({id, d.visibility_class, d.sees});
           ++switches;
         }
-        REQUIRE_FALSE(tracker.update(w.store).has_value());
+        REQUIRE_FALSE(tracker.update(w.store.columns()).has_value());
         if (with_resync) {
           for (const auto& ch : changed) resyncs += rep.resync_viewers_of(w.store, ch.id, ch.old_class, ch.old_sees, 4.0f);
         }

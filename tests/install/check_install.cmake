@@ -2,7 +2,7 @@
 #  1. cmake --install BUILD_DIR into WORK_DIR/prefix; only headers, libraries and package files;
 #     zone::gpu there iff the build has CUDA;
 #  2. configure examples/ against that prefix (CMAKE_PREFIX_PATH only), build it;
-#  3. run who-sees-whom and find-pairs and compare what they print with what is known to be right
+#  3. run who-sees-whom, find-pairs and tick-loop and compare what they print with what is known to be right
 #     (find-pairs also on a fresh generated set against the brute-force reference, when the
 #     interest-pairs tool is built).
 # Any failure is a FATAL_ERROR (a non-zero exit: CTest reports a failure).
@@ -41,7 +41,7 @@ foreach(f IN LISTS installed)
                         "installed:\n${installed}")
   endif()
 endforeach()
-foreach(f include/zone/interest.h lib/cmake/zone/zoneConfig.cmake lib/cmake/zone/zoneConfigVersion.cmake)
+foreach(f include/zone/interest.h include/zone/interest_space.h lib/cmake/zone/zoneConfig.cmake lib/cmake/zone/zoneConfigVersion.cmake)
   if(NOT EXISTS "${prefix}/${f}")
     message(FATAL_ERROR "the install lacks ${f}\ninstalled:\n${installed}")
   endif()
@@ -77,6 +77,7 @@ endif()
 step(build "${CMAKE_COMMAND}" --build "${WORK_DIR}/build" -j 2)
 set(who "${WORK_DIR}/build/who_sees_whom/who-sees-whom")
 set(find "${WORK_DIR}/build/find_pairs/find-pairs")
+set(tick "${WORK_DIR}/build/tick_loop/tick-loop")
 
 # ---- 3. run them -------------------------------------------------------------------------------
 step(who_sees_whom "${who}")
@@ -96,6 +97,23 @@ execute_process(COMMAND "${find}" "${DATA_DIR}/bad_nan.csv" "${WORK_DIR}/bad_pai
                 RESULT_VARIABLE rc OUTPUT_VARIABLE out ERROR_VARIABLE err)
 if(NOT rc EQUAL 2 OR NOT err MATCHES "bad_nan.csv" OR EXISTS "${WORK_DIR}/bad_pairs.txt")
   message(FATAL_ERROR "find_pairs on bad input: exit ${rc} (expected 2, no output file), stdout:\n${out}\nstderr:\n${err}")
+endif()
+
+# The tick API: the same events on the CPU and with auto (the GPU where the package and a device
+# allow it); a bad backend name is refused.
+set(expected "tick 3: guard + thief\ntick 3: thief + guard\ntick 4: guard + merchant\ntick 4: thief + merchant\n"
+             "tick 4: merchant + guard\ntick 6: guard - thief\ntick 6: guard - merchant\ntick 6: thief - merchant\n"
+             "guard sees 0 at the end\n")
+string(CONCAT expected ${expected})
+foreach(backend cpu auto)
+  step(tick_loop_${backend} "${tick}" ${backend})
+  if(NOT step_out STREQUAL expected)
+    message(FATAL_ERROR "tick-loop ${backend} printed:\n${step_out}\nexpected:\n${expected}\nstderr:\n${step_err}")
+  endif()
+endforeach()
+execute_process(COMMAND "${tick}" quantum RESULT_VARIABLE rc OUTPUT_VARIABLE out ERROR_VARIABLE err)
+if(NOT rc EQUAL 64 OR NOT err MATCHES "usage")
+  message(FATAL_ERROR "tick-loop quantum: exit ${rc} (expected 64 and a usage line), stderr:\n${err}")
 endif()
 
 if(INTEREST_PAIRS)  # a fresh set (seed from the clock) against the brute-force reference

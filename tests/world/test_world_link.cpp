@@ -121,7 +121,7 @@ struct reference {
         if (have.visibility_class != d.visibility_class || have.sees != d.sees) store.set_visibility(it->second, d.visibility_class, d.sees);
       }
     }
-    REQUIRE_FALSE(tracker.update(store).has_value());
+    REQUIRE_FALSE(tracker.update(store.columns()).has_value());
   }
   std::vector<global_id> visible(global_id observer) const {
     std::vector<global_id> out;

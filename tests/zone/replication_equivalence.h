@@ -138,7 +138,7 @@ inline replication_coverage check_replication_equivalence(
       std::vector<switch_rec> switched;  // since the last step
       for (std::uint64_t tick = first_tick; tick < first_tick + static_cast<std::uint64_t>(c.ticks); ++tick) {
         CAPTURE(tick);
-        REQUIRE_FALSE(tracker.update(store).has_value());
+        REQUIRE_FALSE(tracker.update(store.columns()).has_value());
         // After the step, as zone_server does: the clients that may hold a switched entity with
         // its old class start over, on both sides alike.
         for (const auto& sw : switched) {

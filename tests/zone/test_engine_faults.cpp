@@ -181,7 +181,7 @@ fault_run run_with_fault(std::uint64_t seed, int fault_tick, bool demand, bool r
     CAPTURE(tick);
     by_slot.assign(w.store.slot_count(), 0);
     for (std::size_t k = 0; k < by_slot.size(); k += 3) by_slot[k] = 1;
-    REQUIRE_FALSE(tracker.update(w.store).has_value());
+    REQUIRE_FALSE(tracker.update(w.store.columns()).has_value());
     const bool before = tick < static_cast<std::uint64_t>(fault_tick);
     REQUIRE(tracker.last_update_on_engine() == before);
     REQUIRE(engine.fault().fired() == !before);

@@ -44,21 +44,21 @@ TEST_SUITE("zone.interest_tracker") {
     interest::box_set boxes;
     interest::pair_list pairs;
     for (int tick = 0; tick < 20; ++tick) {
-      REQUIRE_FALSE(a.update(w.store).has_value());
-      b.build_boxes(w.store, boxes);
+      REQUIRE_FALSE(a.update(w.store.columns()).has_value());
+      b.build_boxes(w.store.columns(), boxes);
       REQUIRE_FALSE(brute.find(boxes, pairs).has_value());
       std::shuffle(pairs.begin(), pairs.end(), std::mt19937_64(seed + tick));  // any order
-      REQUIRE_FALSE(b.apply_pairs(w.store, boxes, pairs).has_value());
+      REQUIRE_FALSE(b.apply_pairs(w.store.columns(), boxes, pairs).has_value());
       CHECK(a.digest() == b.digest());
       w.step();
     }
     const std::uint64_t before = b.digest();
-    b.build_boxes(w.store, boxes);
+    b.build_boxes(w.store.columns(), boxes);
     boxes.resize(boxes.size() - 2);
-    CHECK(b.apply_pairs(w.store, boxes, pairs).has_value());
-    b.build_boxes(w.store, boxes);
+    CHECK(b.apply_pairs(w.store.columns(), boxes, pairs).has_value());
+    b.build_boxes(w.store.columns(), boxes);
     pairs.push_back({0, static_cast<interest::box_id>(boxes.size())});
-    CHECK(b.apply_pairs(w.store, boxes, pairs).has_value());
+    CHECK(b.apply_pairs(w.store.columns(), boxes, pairs).has_value());
     CHECK(b.digest() == before);
   }
 

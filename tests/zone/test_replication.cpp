@@ -283,7 +283,7 @@ TEST_SUITE("zone.replication") {
     std::uint64_t enters = 0, leaves = 0, updates = 0;
     for (std::uint64_t tick = 1; tick <= 80; ++tick) {
       CAPTURE(tick);
-      REQUIRE_FALSE(tracker.update(w.store).has_value());
+      REQUIRE_FALSE(tracker.update(w.store.columns()).has_value());
       for (std::size_t c = 0; c < clients.size(); ++c) {
         CAPTURE(c);
         replication_stats st;
@@ -341,7 +341,7 @@ TEST_SUITE("zone.replication") {
     std::uint64_t tick = 1;
     for (; tick <= 60; ++tick) {
       CAPTURE(tick);
-      REQUIRE_FALSE(tracker.update(w.store).has_value());
+      REQUIRE_FALSE(tracker.update(w.store.columns()).has_value());
       replication_stats st;
       const auto frame = rep.build(c, w.store, tracker, tick, 0, 0, writer, &st);
       CHECK(frame.size() <= opt.byte_budget);
@@ -356,7 +356,7 @@ TEST_SUITE("zone.replication") {
     for (auto& v : w.store.velocities()) v = {};
     bool converged = false;
     for (int k = 0; k < 200 && !converged; ++k, ++tick) {
-      REQUIRE_FALSE(tracker.update(w.store).has_value());
+      REQUIRE_FALSE(tracker.update(w.store.columns()).has_value());
       const auto frame = rep.build(c, w.store, tracker, tick, 0, 0, writer);
       CHECK(frame.size() <= opt.byte_budget);
       sim.apply(frame, opt.byte_budget);
@@ -382,7 +382,7 @@ TEST_SUITE("zone.replication") {
     sim_client sim(test_world);
     for (std::uint64_t tick = 1; tick <= 40; ++tick) {
       CAPTURE(tick);
-      REQUIRE_FALSE(tracker.update(w.store).has_value());
+      REQUIRE_FALSE(tracker.update(w.store.columns()).has_value());
       const auto frame = rep.build(c, w.store, tracker, tick, 0, 0, writer);
       const bool lost = tick >= 10 && tick < 15;  // the network dropped these
       if (!lost) {
@@ -431,7 +431,7 @@ TEST_SUITE("zone.replication") {
       std::size_t nonempty = 0;
       for (std::uint64_t tick = 1; tick <= 40; ++tick) {
         CAPTURE(tick);
-        REQUIRE_FALSE(tracker.update(w.store).has_value());
+        REQUIRE_FALSE(tracker.update(w.store.columns()).has_value());
         if (tick == 20) {
           serial.resync(requests[5].client);
           parallel.resync(requests[5].client);
@@ -505,7 +505,7 @@ TEST_SUITE("zone.replication") {
         std::uint64_t differing = 0, updates = 0, deferred = 0;
         for (std::uint64_t tick = first_tick; tick < first_tick + 50; ++tick) {
           CAPTURE(tick);
-          REQUIRE_FALSE(tracker.update(w.store).has_value());
+          REQUIRE_FALSE(tracker.update(w.store.columns()).has_value());
           if (tick % 17 == 5) {  // lost frames
             const std::size_t c = tick % requests.size();
             ref.resync(c);

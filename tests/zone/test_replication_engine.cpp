@@ -264,7 +264,7 @@ TEST_SUITE("zone.engine_faults") {
         for (std::size_t i = 0; i < store.size(); ++i) {
           pos[i] = {std::clamp(pos[i].x + vel[i].x, 0.f, 250.f), std::clamp(pos[i].y + vel[i].y, 0.f, 250.f), pos[i].z};
         }
-        REQUIRE_FALSE(tracker.update(store).has_value());
+        REQUIRE_FALSE(tracker.update(store.columns()).has_value());
         if (tick == at) {
           for (const auto& r : requests) cpu.resync(r.client);
         }

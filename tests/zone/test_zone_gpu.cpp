@@ -1,7 +1,7 @@
 // Tick determinism with the GPU finder: the same seed and inputs give the same per-tick world
 // digest (positions and the interest tracker's visible sets, enters and leaves) with the CPU grid
 // finder and with the GPU finders (PBIG in both its output modes, LBVH, auto), with 1 and several
-// threads, with the tracker reading the finder's own buffer (gpu::find_view, zone-server's way),
+// threads, with the tracker reading the finder's own buffer (pair_finder::find_view, zone-server's way),
 // and with an output buffer forced tiny (the overflow path runs inside the tick loop). The GPU
 // visibility engine (the whole interest step on the device) against the brute-force oracle of
 // tracker_harness.h, the hand-made scenarios, the host path's digests on zone worlds and on
@@ -15,6 +15,7 @@
 
 #include "../common/device_or_skip.h"
 #include "../common/seeds.h"
+#include "../interest/space_reference.h"
 #include "gpu/finders.h"
 #include "gpu/pbig.h"
 #include "gpu/visibility.h"
@@ -40,13 +41,6 @@ std::unique_ptr<interest::pair_finder> make_gpu(const gpu::pbig_options& opt) {
   return f;
 }
 
-/// The tracker's pair source as zone-server sets it for GPU finders and auto.
-interest_tracker::pair_view_source view_of(interest::pair_finder& f) {
-  return [&f](const interest::box_set& boxes, std::span<const interest::id_pair>& view) {
-    return gpu::find_view(f, boxes, view);
-  };
-}
-
 std::unique_ptr<interest::visibility_engine> make_engine(interest::thread_pool* pool) {
   std::string why;
   auto e = gpu::make_visibility_engine(pool, &why);
@@ -69,8 +63,8 @@ void same_as_host(entity_store& store, interest::visibility_engine& engine, int 
   dev.set_view_demand(demand);
   for (int t = 0; t < ticks; ++t) {
     CAPTURE(t);
-    REQUIRE_FALSE(host.update(store).has_value());
-    REQUIRE_FALSE(dev.update(store).has_value());
+    REQUIRE_FALSE(host.update(store.columns()).has_value());
+    REQUIRE_FALSE(dev.update(store.columns()).has_value());
     REQUIRE(dev.last_update_on_engine());
     if (demand != nullptr) {
       for (std::size_t r = 0; r < store.size(); ++r) {
@@ -93,6 +87,57 @@ void same_as_host(entity_store& store, interest::visibility_engine& engine, int 
 }  // namespace
 
 TEST_SUITE("zone.gpu") {
+  TEST_CASE("the tick API on the GPU backend: every step is the brute-force model's; switching backends mid-run") {
+    for (const float h : {0.0f, 3.0f}) {
+      const std::uint64_t seed = fresh_seed();
+      CAPTURE(seed);
+      CAPTURE(h);
+      interest::thread_pool pool(4);
+      interest::space_options o;
+      o.where = interest::backend::gpu;
+      o.gpu = gpu::make_visibility_engine;
+      o.pool = &pool;
+      o.hysteresis = h;
+      interest::interest_space on_gpu(o);
+      REQUIRE(on_gpu.current_backend() == interest::backend::gpu);
+      CHECK(run_random_space(on_gpu, h, seed, 30, 300) > 100);
+      CHECK(on_gpu.current_backend() == interest::backend::gpu);
+      CHECK(on_gpu.tracker().last_update_on_engine());
+    }
+    // The same random run, its backend switched every few steps: the sets carry over.
+    interest::thread_pool pool(2);
+    interest::space_options o;
+    o.where = interest::backend::automatic;
+    o.gpu = gpu::make_visibility_engine;
+    o.pool = &pool;
+    interest::interest_space a(o), b(o);
+    REQUIRE(a.current_backend() == interest::backend::gpu);
+    std::mt19937_64 rng(fresh_seed());
+    std::vector<interest::entity_id> ids;
+    for (int k = 0; k < 400; ++k) {
+      const interest::vec3 p{static_cast<float>(rng() % 200), static_cast<float>(rng() % 200), 0};
+      ids.push_back(a.add({.position = p, .aoi_half = {12, 12, 12}}));
+      REQUIRE(b.add({.position = p, .aoi_half = {12, 12, 12}}) == ids.back());
+    }
+    REQUIRE(b.set_backend(interest::backend::cpu));
+    for (int t = 0; t < 24; ++t) {
+      if (t % 3 == 0) REQUIRE(a.set_backend(t % 2 == 0 ? interest::backend::cpu : interest::backend::gpu));
+      for (const auto id : ids) {
+        const auto p = a.positions()[a.index_of(id)];
+        const interest::vec3 q{p.x + static_cast<float>(rng() % 7) - 3, p.y + static_cast<float>(rng() % 7) - 3, 0};
+        REQUIRE(a.move(id, q));
+        REQUIRE(b.move(id, q));
+      }
+      REQUIRE_FALSE(a.step().has_value());
+      REQUIRE_FALSE(b.step().has_value());
+      for (const auto id : ids) {
+        CHECK(as_vector(a.visible(id)) == as_vector(b.visible(id)));
+        CHECK(as_vector(a.entered(id)) == as_vector(b.entered(id)));
+        CHECK(as_vector(a.left(id)) == as_vector(b.left(id)));
+      }
+    }
+  }
+
   TEST_CASE("GPU interest engine: events match the brute-force oracle over many ticks") {
     interest::thread_pool pool(4);
     auto engine = make_engine(&pool);
@@ -129,8 +174,8 @@ TEST_SUITE("zone.gpu") {
       CAPTURE(tick);
       // Engine for 7 ticks, host path for 5, and so on.
       mixed.set_engine(tick % 12 < 7 ? engine.get() : nullptr);
-      REQUIRE_FALSE(host.update(a.store).has_value());
-      REQUIRE_FALSE(mixed.update(b.store).has_value());
+      REQUIRE_FALSE(host.update(a.store.columns()).has_value());
+      REQUIRE_FALSE(mixed.update(b.store.columns()).has_value());
       CHECK(mixed.last_update_on_engine() == (tick % 12 < 7));
       CHECK(mixed.digest() == host.digest());
       a.step();
@@ -238,12 +283,12 @@ TEST_SUITE("zone.gpu") {
     interest::grid_finder cpu(&pool);
     auto engine = make_engine(&pool);
     const zone_config small = small_config(seed);
-    CHECK(run_digests(small, cpu, &pool, 60, 8, {}, engine.get()) == run_digests(small, cpu, &pool, 60));
+    CHECK(run_digests(small, cpu, &pool, 60, 8, false, engine.get()) == run_digests(small, cpu, &pool, 60));
     zone_config cfg;  // the default world and NPC mix
     cfg.seed = seed;
     cfg.npc_count = 20000;
     cfg.npc_speed = 20;
-    CHECK(run_digests(cfg, cpu, &pool, 20, 32, {}, engine.get()) == run_digests(cfg, cpu, &pool, 20, 32));
+    CHECK(run_digests(cfg, cpu, &pool, 20, 32, false, engine.get()) == run_digests(cfg, cpu, &pool, 20, 32));
   }
 
   TEST_CASE("small fast zone: CPU and GPU finders give the same per-tick digests") {
@@ -260,8 +305,8 @@ TEST_SUITE("zone.gpu") {
     auto gpu_direct = make_gpu(direct);
     CHECK(run_digests(cfg, *gpu_direct, &four, 60) == reference);
     CHECK(run_digests(cfg, *gpu_direct, nullptr, 60) == reference);  // the same finder again: plan reuse
-    // zone-server's way: the tracker reads the finder's own result buffer (gpu::find_view).
-    CHECK(run_digests(cfg, *gpu_direct, &four, 60, 8, view_of(*gpu_direct)) == reference);
+    // zone-server's way: the tracker reads the finder's own result buffer (pair_finder::find_view).
+    CHECK(run_digests(cfg, *gpu_direct, &four, 60, 8, true) == reference);
 
     gpu::pbig_options paper = direct;
     paper.direct_output = false;
@@ -284,13 +329,13 @@ TEST_SUITE("zone.gpu") {
     auto gpu_finder = make_gpu(opt);
     const auto reference = run_digests(cfg, cpu, &pool, 20, 32);
     CHECK(run_digests(cfg, *gpu_finder, &pool, 20, 32) == reference);
-    CHECK(run_digests(cfg, *gpu_finder, &pool, 20, 32, view_of(*gpu_finder)) == reference);
+    CHECK(run_digests(cfg, *gpu_finder, &pool, 20, 32, true) == reference);
     for (const char* name : {"lbvh", "auto"}) {
       CAPTURE(name);
       std::string why;
       auto f = gpu::make_finder(*gpu::parse_backend(name), &pool, &why);
       REQUIRE_MESSAGE(f != nullptr, why);
-      CHECK(run_digests(cfg, *f, &pool, 20, 32, view_of(*f)) == reference);
+      CHECK(run_digests(cfg, *f, &pool, 20, 32, true) == reference);
     }
   }
 }

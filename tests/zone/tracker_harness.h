@@ -250,7 +250,7 @@ inline void run_against_oracle(std::uint64_t seed, const run_config& c, int tick
   std::uint64_t enters = 0, leaves = 0, stays_in_margin = 0;
   for (int tick = 0; tick < ticks; ++tick) {
     CAPTURE(tick);
-    REQUIRE_FALSE(tracker.update(w.store).has_value());
+    REQUIRE_FALSE(tracker.update(w.store.columns()).has_value());
     if (engine != nullptr && c.cap == 0) {
       REQUIRE(tracker.engine_error().empty());
       REQUIRE(tracker.last_update_on_engine());  // the engine, not the host path, is under test
@@ -301,7 +301,7 @@ struct pair_fixture {
   };
   /// Runs a tick and reports A's view of B.
   seen tick() {
-    REQUIRE_FALSE(tracker.update(store).has_value());
+    REQUIRE_FALSE(tracker.update(store.columns()).has_value());
     if (on_engine) REQUIRE(tracker.last_update_on_engine());
     const std::size_t r = tracker.row_of(a);
     REQUIRE(r != entity_store::npos);
@@ -319,7 +319,7 @@ inline std::vector<std::uint64_t> digests(std::uint64_t seed, interest::pair_fin
   if (engine != nullptr) tracker.set_engine(engine);
   std::vector<std::uint64_t> out;
   for (int tick = 0; tick < ticks; ++tick) {
-    REQUIRE_FALSE(tracker.update(w.store).has_value());
+    REQUIRE_FALSE(tracker.update(w.store.columns()).has_value());
     out.push_back(tracker.digest());
     w.step();
   }
@@ -393,7 +393,7 @@ inline void scenario_visibility(interest::visibility_engine* engine = nullptr) {
   CHECK(f.tick().entered);
   const entity_id b = f.b;
   REQUIRE(f.store.destroy(b));
-  REQUIRE_FALSE(f.tracker.update(f.store).has_value());
+  REQUIRE_FALSE(f.tracker.update(f.store.columns()).has_value());
   const std::size_t r = f.tracker.row_of(f.a);
   REQUIRE(f.tracker.leaves(r).size() == 1);
   CHECK(f.tracker.leaves(r)[0] == b);
@@ -405,7 +405,7 @@ inline void scenario_visibility(interest::visibility_engine* engine = nullptr) {
   const entity_id c = f.store.create(d);
   CHECK(slot_of(c) == slot_of(b));
   CHECK(c != b);
-  REQUIRE_FALSE(f.tracker.update(f.store).has_value());
+  REQUIRE_FALSE(f.tracker.update(f.store.columns()).has_value());
   const std::size_t r2 = f.tracker.row_of(f.a);
   REQUIRE(f.tracker.enters(r2).size() == 1);
   CHECK(f.tracker.enters(r2)[0] == c);
@@ -418,7 +418,7 @@ inline void scenario_non_finite(interest::visibility_engine* engine = nullptr) {
   CHECK(f.tick().entered);
   const std::uint64_t before = f.tracker.digest();
   f.store.positions()[f.store.index_of(f.b)].x = std::nanf("");
-  const auto err = f.tracker.update(f.store);
+  const auto err = f.tracker.update(f.store.columns());
   REQUIRE(err.has_value());
   CHECK(err->message.find("entity " + std::to_string(f.b)) != std::string::npos);
   CHECK(f.tracker.digest() == before);

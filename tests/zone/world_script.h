@@ -25,13 +25,14 @@ inline zone_config small_config(std::uint64_t seed) {
   return c;
 }
 
-/// Per-tick digests of a run with some players steered by a seeded script.
+/// Per-tick digests of a run with some players steered by a seeded script. `finder_view`: the
+/// tracker reads the finder's own result buffer (pair_finder::find_view; zone-server's way).
 inline std::vector<std::uint64_t> run_digests(const zone_config& cfg, interest::pair_finder& finder,
                                               interest::thread_pool* pool, int ticks, int players = 8,
-                                              interest_tracker::pair_view_source source = {},
+                                              bool finder_view = false,
                                               interest::visibility_engine* engine = nullptr) {
   zone_world w(cfg, finder, pool);
-  if (source) w.set_pair_view_source(std::move(source));
+  w.set_finder_view(finder_view);
   if (engine != nullptr) w.set_visibility_engine(engine);
   w.populate();
   std::mt19937_64 script(cfg.seed + 7);

@@ -1,4 +1,4 @@
-// The interest tracker (zone.h; algorithm in docs/zone.md).
+// The interest tracker (interest_tracker.h; algorithm in docs/zone.md).
 //
 // One finder call per tick with every AOI box grown by the hysteresis margin h yields, per
 // observer, every target that could be visible under either rule: inside the grown box (the
@@ -15,14 +15,14 @@
 #include <cmath>
 #include <utility>
 
-#include "interest/measure.h"
-#include "zone/interest_tracker.h"
+#include "interest_tracker.h"
+#include "measure.h"
 
-namespace zone {
+namespace zone::interest {
 
 namespace {
 
-/// interest::run_tasks without a heap allocation per call: std::function keeps a
+/// run_tasks without a heap allocation per call: std::function keeps a
 /// reference_wrapper in place, where a lambda capturing several references would be copied to
 /// the heap (the tick allocates nothing in steady state).
 /// resize() with 25% spare capacity when it must grow, so that counts creeping up from tick to
@@ -34,8 +34,8 @@ void resize_with_headroom(V& v, std::size_t n) {
 }
 
 template <class F>
-void run_each(interest::thread_pool* pool, std::size_t n, F&& task) {
-  interest::run_tasks(pool, n, std::ref(task));
+void run_each(thread_pool* pool, std::size_t n, F&& task) {
+  run_tasks(pool, n, std::ref(task));
 }
 
 using clock_type = std::chrono::steady_clock;
@@ -57,26 +57,26 @@ std::uint64_t mix(std::uint64_t h, std::uint64_t v) {
 
 }  // namespace
 
-interest_tracker::interest_tracker(interest::pair_finder& finder, interest::thread_pool* pool, interest_options opt)
+interest_tracker::interest_tracker(pair_finder& finder, thread_pool* pool, interest_options opt)
     : finder_(&finder), pool_(pool), opt_(opt) {}
 
 std::size_t interest_tracker::row_of(entity_id id) const {
   const std::uint32_t slot = slot_of(id);
-  if (id == null_entity || slot >= row_of_slot_.size()) return entity_store::npos;
+  if (id == null_entity || slot >= row_of_slot_.size()) return npos;
   const std::uint32_t row = row_of_slot_[slot];
-  if (row >= ids_.size() || ids_[row] != id) return entity_store::npos;
+  if (row >= ids_.size() || ids_[row] != id) return npos;
   return row;
 }
 
-void interest_tracker::build_boxes(const entity_store& store, interest::box_set& out) const {
-  namespace cb = interest::category_bits;
-  const std::size_t n = store.size();
+void interest_tracker::build_boxes(const entity_columns& in, box_set& out) const {
+  namespace cb = category_bits;
+  const std::size_t n = in.n;
   out.resize(2 * n);
-  const auto pos = store.positions();
-  const auto aoi = store.aoi_half_extents();
-  const auto body = store.presence_half_extents();
-  const auto cls = store.visibility_classes();
-  const auto sees = store.sees();
+  const vec3* pos = in.position;
+  const vec3* aoi = in.aoi_half;
+  const vec3* body = in.presence_half;
+  const std::uint32_t* cls = in.visibility;
+  const std::uint32_t* sees = in.sees;
   const float h = opt_.hysteresis;
   // In fixed chunks on the pool (each box is written by exactly one task).
   const std::size_t chunk = 8192;
@@ -109,10 +109,20 @@ void interest_tracker::build_boxes(const entity_store& store, interest::box_set&
   });
 }
 
-std::optional<interest::box_error> interest_tracker::update(const entity_store& store) {
+void interest_tracker::begin_update(const entity_columns& in) {
+  slot_bits_ = in.slot_bits;
+  std::size_t slots = in.slot_count;
+  if (slots == 0) {
+    for (std::size_t i = 0; i < in.n; ++i) slots = std::max<std::size_t>(slots, slot_of(in.ids[i]) + std::size_t{1});
+  }
+  slot_count_ = std::max(slot_count_, slots);
+}
+
+std::optional<box_error> interest_tracker::update(const entity_columns& in) {
+  begin_update(in);
   if (engine_ != nullptr && engine_error_.empty() && opt_.max_visible == 0) {
     try {
-      return update_on_engine(store);
+      return update_on_engine(in);
     } catch (const std::exception& e) {
       // A device error: the host path takes over from the last update's sets, which are intact
       // (update_on_engine changes the tracker only after the engine's call succeeded).
@@ -120,48 +130,48 @@ std::optional<interest::box_error> interest_tracker::update(const entity_store& 
       engine_synced_ = false;
     }
   }
-  return update_on_host(store);
+  return update_on_host(in);
 }
 
-std::optional<interest::box_error> interest_tracker::name_box_error(const entity_store& store,
-                                                                   std::optional<interest::box_error> err) const {
+std::optional<box_error> interest_tracker::name_box_error(const entity_columns& in,
+                                                                   std::optional<box_error> err) const {
   if (!err) return err;
   const std::size_t k = err->index / 2;
-  err->message = "entity " + std::to_string(store.ids()[k]) + (err->index % 2 ? " (presence box): " : " (AOI box): ") +
+  err->message = "entity " + std::to_string(in.ids[k]) + (err->index % 2 ? " (presence box): " : " (AOI box): ") +
                  err->message;
   return err;
 }
 
-std::optional<interest::box_error> interest_tracker::update_on_host(const entity_store& store) {
+std::optional<box_error> interest_tracker::update_on_host(const entity_columns& in) {
   auto t0 = clock_type::now();
-  build_boxes(store, boxes_);
+  build_boxes(in, boxes_);
   const double boxes_ms = ms_since(t0);
   t0 = clock_type::now();
-  std::span<const interest::id_pair> pairs;
-  auto err = view_source_ ? view_source_(boxes_, pairs) : finder_->find(boxes_, pairs_);
-  if (err) return name_box_error(store, std::move(err));
-  if (!view_source_) pairs = pairs_;
+  std::span<const id_pair> pairs;
+  auto err = opt_.finder_view ? finder_->find_view(boxes_, pairs_, pairs) : finder_->find(boxes_, pairs_);
+  if (err) return name_box_error(in, std::move(err));
+  if (!opt_.finder_view) pairs = pairs_;
   const double find_ms = ms_since(t0);
-  if (auto apply_err = apply_pairs(store, boxes_, pairs)) return apply_err;
+  if (auto apply_err = apply_pairs(in, boxes_, pairs)) return apply_err;
   stats_.boxes_ms = boxes_ms;
   stats_.find_ms = find_ms;
   return std::nullopt;
 }
 
-void interest_tracker::set_engine(interest::visibility_engine* engine) {
+void interest_tracker::set_engine(visibility_engine* engine) {
   adopt_engine_output();  // an earlier engine's output stays readable through the host arrays
   engine_ = engine;
   engine_synced_ = false;
   engine_error_.clear();
 }
 
-void interest_tracker::map_rows(const entity_store& store) { map_rows_into(store, ids_, row_of_slot_); }
+void interest_tracker::map_rows() { map_rows_into(ids_, row_of_slot_); }
 
-void interest_tracker::map_rows_into(const entity_store& store, const std::vector<entity_id>& ids,
+void interest_tracker::map_rows_into(const std::vector<entity_id>& ids,
                                      std::vector<std::uint32_t>& row_of_slot) const {
   // Entries of slots not in `ids` may be stale; row_of() checks the handle.
   const std::size_t n = ids.size();
-  if (row_of_slot.size() < store.slot_count()) row_of_slot.resize(store.slot_count(), no_row);
+  if (row_of_slot.size() < slot_count_) row_of_slot.resize(slot_count_, no_row);
   const std::size_t chunk = 16384;
   run_each(n > chunk ? pool_ : nullptr, (n + chunk - 1) / chunk, [&](std::size_t c) {
     for (std::size_t i = c * chunk, e = std::min(n, (c + 1) * chunk); i < e; ++i) {
@@ -174,7 +184,7 @@ std::span<const entity_id> interest_tracker::fetched_row(std::size_t row) const 
   if (!fetched_.load(std::memory_order_acquire)) {
     const std::lock_guard lock(fetch_mutex_);
     if (!fetched_.load(std::memory_order_relaxed)) {
-      const interest::visibility_lists all = engine_->fetch_all_visible();
+      const visibility_lists all = engine_->fetch_all_visible();
       full_list_ = {all.data, all.off, nullptr};
       fetched_.store(true, std::memory_order_release);
     }
@@ -194,7 +204,7 @@ void interest_tracker::adopt_engine_output() {
   // The engine's compact lists into the host path's layout: visible sets and enters share the
   // visible offsets (enters are a subset of the visible set), leaves have their own.
   const std::size_t n = ids_.size();
-  const interest::visibility_output& o = engine_out_;
+  const visibility_output& o = engine_out_;
   // Every row's visible set: the engine may have kept some rows' sets on the device. If the device
   // is gone (an engine failure), those rows start again from empty sets (their targets enter anew;
   // nothing on the host read them).
@@ -238,10 +248,10 @@ void interest_tracker::adopt_engine_output() {
   last_by_engine_ = false;
 }
 
-std::optional<interest::box_error> interest_tracker::update_on_engine(const entity_store& store) {
+std::optional<box_error> interest_tracker::update_on_engine(const entity_columns& in) {
   const auto t0 = clock_type::now();
-  const std::size_t n = store.size();
-  const auto ids = store.ids();
+  const std::size_t n = in.n;
+  const std::span<const entity_id> ids(in.ids, n);
   if (!engine_synced_) {
     // The engine does not hold the last update's sets (first use, or the host path made them):
     // hand them over in compact form.
@@ -257,21 +267,20 @@ std::optional<interest::box_error> interest_tracker::update_on_engine(const enti
         vis.insert(vis.end(), row.begin(), row.end());
       }
     }
-    engine_->load_previous(ids_, entity_index_bits, off, vis);
+    engine_->load_previous(ids_, slot_bits_, off, vis);
     engine_synced_ = true;
   }
-  static_assert(sizeof(vec3) == 3 * sizeof(float), "vec3 must be three packed floats");
-  interest::visibility_input in;
-  in.n = n;
-  in.ids = ids.data();
-  in.slot_bits = entity_index_bits;
-  in.position = reinterpret_cast<const float*>(store.positions().data());
-  in.aoi_half = reinterpret_cast<const float*>(store.aoi_half_extents().data());
-  in.body_half = reinterpret_cast<const float*>(store.presence_half_extents().data());
-  in.visibility = store.visibility_classes().data();
-  in.sees = store.sees().data();
-  in.hysteresis = opt_.hysteresis;
-  in.static_version = store.layout_version();
+  visibility_input vin;
+  vin.n = n;
+  vin.ids = ids.data();
+  vin.slot_bits = slot_bits_;
+  vin.position = reinterpret_cast<const float*>(in.position);
+  vin.aoi_half = reinterpret_cast<const float*>(in.aoi_half);
+  vin.body_half = reinterpret_cast<const float*>(in.presence_half);
+  vin.visibility = in.visibility;
+  vin.sees = in.sees;
+  vin.hysteresis = opt_.hysteresis;
+  vin.static_version = in.layout_version;
   if (view_demand_ != nullptr) {
     // Per row: is its visible set read on the host (by slot, from the caller).
     next_demand_rows_.resize(n);
@@ -283,33 +292,33 @@ std::optional<interest::box_error> interest_tracker::update_on_engine(const enti
         next_demand_rows_[i] = slot < by_slot.size() ? by_slot[slot] : std::uint8_t{0};
       }
     });
-    in.wanted = next_demand_rows_.data();
+    vin.wanted = next_demand_rows_.data();
   }
   // While the device works: this update's rows and slot map, into spare buffers (swapped in only
   // if the update succeeds, so that a refused one changes nothing here either).
   double host_ms = 0;
   bool host_done = false;
-  in.while_waiting = [&] {
+  vin.while_waiting = [&] {
     host_done = true;
     const auto th = clock_type::now();
     next_ids_.assign(ids.begin(), ids.end());
-    map_rows_into(store, next_ids_, spare_row_of_slot_);
+    map_rows_into(next_ids_, spare_row_of_slot_);
     host_ms = ms_since(th);
   };
   const auto t_engine = clock_type::now();
-  const auto bad = engine_->update(in, engine_out_);
+  const auto bad = engine_->update(vin, engine_out_);
   const double engine_ms = ms_since(t_engine);
   if (bad) {
     // Nothing changed, on the engine or here. The host's validation names the box exactly as the
     // host path would.
-    build_boxes(store, boxes_);
-    auto err = interest::validate(boxes_, pool_);
-    if (!err) err = interest::box_error{*bad, "box " + std::to_string(*bad) + " is invalid"};
-    return name_box_error(store, std::move(err));
+    build_boxes(in, boxes_);
+    auto err = validate(boxes_, pool_);
+    if (!err) err = box_error{*bad, "box " + std::to_string(*bad) + " is invalid"};
+    return name_box_error(in, std::move(err));
   }
   if (!host_done) {
     next_ids_.assign(ids.begin(), ids.end());
-    map_rows_into(store, next_ids_, spare_row_of_slot_);
+    map_rows_into(next_ids_, spare_row_of_slot_);
   }
   std::swap(ids_, next_ids_);
   std::swap(row_of_slot_, spare_row_of_slot_);
@@ -334,24 +343,25 @@ std::optional<interest::box_error> interest_tracker::update_on_engine(const enti
   return std::nullopt;
 }
 
-std::optional<interest::box_error> interest_tracker::apply_pairs(const entity_store& store,
-                                                                const interest::box_set& boxes,
-                                                                std::span<const interest::id_pair> pairs) {
+std::optional<box_error> interest_tracker::apply_pairs(const entity_columns& in,
+                                                                const box_set& boxes,
+                                                                std::span<const id_pair> pairs) {
   const auto t0 = clock_type::now();
-  if (boxes.size() != 2 * store.size()) {
-    return interest::box_error{boxes.size(), "box set has " + std::to_string(boxes.size()) + " boxes, expected 2 x " +
-                                                 std::to_string(store.size()) + " entities"};
+  begin_update(in);
+  if (boxes.size() != 2 * in.n) {
+    return box_error{boxes.size(), "box set has " + std::to_string(boxes.size()) + " boxes, expected 2 x " +
+                                                 std::to_string(in.n) + " entities"};
   }
   adopt_engine_output();  // the previous sets in this path's arrays
-  const std::size_t n = store.size();
-  const auto ids = store.ids();
+  const std::size_t n = in.n;
+  const std::span<const entity_id> ids(in.ids, n);
 
   // Box 2k is entity k's AOI box, 2k+1 its presence box; only mixed pairs mean "k sees j" (an
   // entity's own AOI and presence boxes aside). The visibility rule needs no re-check here: a
   // mixed pair qualifies (the contract: every pair given qualifies) exactly when
   // (aoi & 0) | (class & sees) != 0, i.e. when k sees j's class, and reading the two columns
   // for every pair cost two cache misses each in both passes below.
-  const auto split = [](const interest::id_pair& p, std::uint32_t& observer, std::uint32_t& target) {
+  const auto split = [](const id_pair& p, std::uint32_t& observer, std::uint32_t& target) {
     if ((p.a & 1u) == (p.b & 1u)) return false;
     const std::uint32_t aoi_box = (p.a & 1u) ? p.b : p.a;
     const std::uint32_t presence_box = (p.a & 1u) ? p.a : p.b;
@@ -395,7 +405,7 @@ std::optional<interest::box_error> interest_tracker::apply_pairs(const entity_st
   for (const std::size_t k : task_bad_) {
     if (k == no_pair) continue;
     const auto& p = pairs[k];
-    return interest::box_error{std::max(p.a, p.b), "pair (" + std::to_string(p.a) + ", " + std::to_string(p.b) +
+    return box_error{std::max(p.a, p.b), "pair (" + std::to_string(p.a) + ", " + std::to_string(p.b) +
                                                       ") refers to a box beyond the set"};
   }
 
@@ -418,7 +428,7 @@ std::optional<interest::box_error> interest_tracker::apply_pairs(const entity_st
   for (std::size_t c = 0; c < row_chunks; ++c) chunk_base_[c + 1] += chunk_base_[c];
   const std::uint64_t candidates = chunk_base_[row_chunks];
   if (candidates > 0xffffffffu) {
-    return interest::box_error{0, "too many visibility candidates in one tick (" + std::to_string(candidates) + ")"};
+    return box_error{0, "too many visibility candidates in one tick (" + std::to_string(candidates) + ")"};
   }
 
   // The last tick's output becomes the previous state.
@@ -490,13 +500,13 @@ std::optional<interest::box_error> interest_tracker::apply_pairs(const entity_st
   const std::size_t tasks = (n + chunk - 1) / chunk;
   capped_pending_ = 0;
   t_part = clock_type::now();
+  // Slot -> row of this update (the previous rows are looked up above): for the cap's positions
+  // by handle, the next tick's lookups and row_of().
+  map_rows();
   run_each(pool_, tasks, [&](std::size_t task) {
-    process_rows(store, task * chunk, std::min(n, (task + 1) * chunk));
+    process_rows(in, task * chunk, std::min(n, (task + 1) * chunk));
   });
   const double rows_ms = ms_since(t_part);
-
-  // Slot -> row for the next tick's lookups and row_of().
-  map_rows(store);
   point_lists_at_host();
   engine_synced_ = false;
 
@@ -517,10 +527,10 @@ std::optional<interest::box_error> interest_tracker::apply_pairs(const entity_st
   return std::nullopt;
 }
 
-void interest_tracker::process_rows(const entity_store& store, std::size_t first,
+void interest_tracker::process_rows(const entity_columns& in, std::size_t first,
                                     std::size_t last) {
-  const auto pos = store.positions();
-  const auto aoi = store.aoi_half_extents();
+  const vec3* pos = in.position;
+  const vec3* aoi = in.aoi_half;
   const std::uint32_t cap = opt_.max_visible;
   std::uint64_t capped = 0;
 
@@ -532,7 +542,7 @@ void interest_tracker::process_rows(const entity_store& store, std::size_t first
   // compared, so a slot reused by a new entity is never mistaken for the old one.
   thread_local std::vector<std::uint64_t> mark;
   thread_local std::uint32_t stamp = 0;
-  if (mark.size() < store.slot_count()) mark.resize(store.slot_count(), 0);
+  if (mark.size() < slot_count_) mark.resize(slot_count_, 0);
 
   for (std::size_t i = first; i < last; ++i) {
     const std::uint32_t off = vis_off_[i];
@@ -607,7 +617,7 @@ void interest_tracker::process_rows(const entity_store& store, std::size_t first
     if (cap != 0 && kept_n > cap) {
       std::uint64_t* keys = cap_keys_.data() + off;
       for (std::uint32_t k = 0; k < kept_n; ++k) {
-        keys[k] = (std::uint64_t{distance_key(p, pos[store.index_of(kept[k])])} << 32) | kept[k];
+        keys[k] = (std::uint64_t{distance_key(p, pos[row_of_slot_[slot_of(kept[k])]])} << 32) | kept[k];
       }
       std::nth_element(keys, keys + cap, keys + kept_n);
       for (std::uint32_t k = 0; k < cap; ++k) kept[k] = static_cast<entity_id>(keys[k]);
@@ -651,4 +661,4 @@ std::uint64_t interest_tracker::digest() const {
   return h;
 }
 
-}  // namespace zone
+}  // namespace zone::interest

@@ -1,5 +1,9 @@
-// zone/interest_tracker.h: the interest tracker (pairs -> per-observer visible sets -> enter/leave
-// events with hysteresis; docs/zone.md, "Interest tracker").
+// interest/interest_tracker.h: the interest step's one home: per-observer visible sets with enter
+// and leave events, hysteresis and visibility classes, from plain entity columns (docs/zone.md,
+// "Interest tracker"). It runs on the host (interest_tracker's own diff on any pair_finder, the
+// reference) or on a visibility engine (visibility_engine.h: the GPU's, gpu/visibility.h), with the
+// same result. A server calls it through interest_space.h (the tick-level API); this header is
+// the layer below it.
 #pragma once
 
 #include <cstddef>
@@ -13,12 +17,41 @@
 #include <string>
 #include <vector>
 
-#include "interest/interest.h"
-#include "interest/thread_pool.h"
-#include "interest/visibility_engine.h"
-#include "zone/entity_store.h"
+#include "interest.h"
+#include "thread_pool.h"
+#include "visibility_engine.h"
 
-namespace zone {
+namespace zone::interest {
+
+/// A point or a half-extent (metres): three packed floats.
+struct vec3 {
+  float x = 0, y = 0, z = 0;
+  friend bool operator==(const vec3&, const vec3&) = default;
+};
+static_assert(sizeof(vec3) == 3 * sizeof(float), "vec3 must be three packed floats");
+
+/// An entity handle: its low `slot_bits` bits are its slot (distinct among live entities, reused
+/// after a remove), the rest a generation; 0 is never a handle.
+using entity_id = std::uint32_t;
+inline constexpr entity_id null_entity = 0;
+
+/// One update's entities as plain columns, n rows each (row = the caller's index of the entity,
+/// e.g. a dense store's). The tracker reads them during update() only.
+struct entity_columns {
+  std::size_t n = 0;
+  const entity_id* ids = nullptr;  ///< handles, never 0; their slots pairwise distinct
+  std::uint32_t slot_bits = 22;    ///< slot = id & ((1 << slot_bits) - 1); at most 31
+  /// One past the highest slot of any id (sizes per-slot tables); 0: the tracker computes it.
+  std::size_t slot_count = 0;
+  const vec3* position = nullptr;       ///< centre of both boxes
+  const vec3* aoi_half = nullptr;       ///< AOI half-extents (>= 0)
+  const vec3* presence_half = nullptr;  ///< presence (body) half-extents (>= 0)
+  const std::uint32_t* visibility = nullptr;  ///< the presence box's class (one bit, never category_bits::aoi)
+  const std::uint32_t* sees = nullptr;        ///< the classes the AOI box sees (0: none)
+  /// Identifies ids, extents, classes and sees: equal non-zero versions promise equal columns
+  /// (an engine then skips uploading them). 0: unknown.
+  std::uint64_t layout_version = 0;
+};
 
 struct interest_options {
   /// Hysteresis margin h (metres, >= 0): an entity enters A's view when its presence box meets
@@ -28,6 +61,9 @@ struct interest_options {
   std::uint32_t max_visible = 0;
   /// Observers per parallel task (fixed, so output never depends on the thread count).
   std::uint32_t rows_per_task = 256;
+  /// Host path: find the pairs through pair_finder::find_view (the GPU finders hand over their
+  /// own result buffer: no copy of every pair); false: find() into the tracker's own list.
+  bool finder_view = true;
 };
 
 /// Counters and phase times of the last update.
@@ -46,49 +82,41 @@ struct interest_stats {
   /// call, boxes_ms and the parts above are 0, diff_ms is the host's bookkeeping (previous rows,
   /// row map), and `engine_timing` says where the engine's time went.
   bool on_engine = false;
-  interest::visibility_timing engine_timing;
+  visibility_timing engine_timing;
 };
 
 /// Per-observer visible sets with enter/leave events and hysteresis, on top of any pair_finder.
 ///
 /// Every entity is an observer (players and NPCs alike: NPC perception uses the same sets).
-/// After update(), row r (= the entity's dense index in the store at that moment) holds the
+/// After update(), row r (= row r of the columns given to it) holds the
 /// observer's visible set and this tick's enter and leave events, each sorted ascending by handle.
 /// A visible set never contains the observer itself. Output is deterministic: it depends only on
-/// the store's contents and the previous tick, not on the finder's pair order or the thread count.
+/// the columns' contents and the previous tick, not on the finder's pair order or the thread count.
 /// Memory is reused between ticks: no allocation in steady state beyond growth.
 class interest_tracker {
  public:
   /// `finder` and `pool` must outlive the tracker; `pool` may be null (single-threaded).
-  interest_tracker(interest::pair_finder& finder, interest::thread_pool* pool = nullptr, interest_options opt = {});
+  interest_tracker(pair_finder& finder, thread_pool* pool = nullptr, interest_options opt = {});
 
   /// One tick: builds the boxes, finds the pairs, updates visible sets and events. On error (a
   /// non-finite position or extent) nothing changes and the error names the entity.
-  [[nodiscard]] std::optional<interest::box_error> update(const entity_store& store);
+  [[nodiscard]] std::optional<box_error> update(const entity_columns& in);
 
   /// The two halves of update(), for callers that find pairs themselves (e.g. a GPU pipeline):
   /// build_boxes writes entity k's AOI box grown by the hysteresis margin as box 2k (category
   /// aoi, mask = sees) and its presence box as box 2k+1 (category = class, mask 0);
   /// apply_pairs takes every qualifying pair of exactly those boxes (any order, each once). It
-  /// refuses (error, nothing changes) a box set whose size is not 2 * store.size() or a pair with
+  /// refuses (error, nothing changes) a box set whose size is not 2 * in.n or a pair with
   /// an id beyond it.
-  void build_boxes(const entity_store& store, interest::box_set& out) const;
-  [[nodiscard]] std::optional<interest::box_error> apply_pairs(const entity_store& store, const interest::box_set& boxes,
-                                                               std::span<const interest::id_pair> pairs);
-
-  /// Finds the pairs of a box set into a view the callee owns (valid until its next call).
-  using pair_view_source = std::function<std::optional<interest::box_error>(const interest::box_set&,
-                                                                            std::span<const interest::id_pair>&)>;
-  /// When set, update() finds the pairs through `source` instead of finder.find into a list of
-  /// its own: for the GPU finders, gpu::find_view hands over the finder's pinned result buffer
-  /// and saves copying every pair once more (docs/zone.md). Empty: back to finder.find.
-  void set_pair_view_source(pair_view_source source) { view_source_ = std::move(source); }
+  void build_boxes(const entity_columns& in, box_set& out) const;
+  [[nodiscard]] std::optional<box_error> apply_pairs(const entity_columns& in, const box_set& boxes,
+                                                               std::span<const id_pair> pairs);
 
   /// When set (non-null; it must outlive the tracker or be unset first), update() runs the whole
   /// interest step on the engine (the GPU: gpu/visibility.h) instead of the finder and the host
   /// diff, with the same result. Not used while max_visible != 0 (the cap is host-only), and not
   /// after the engine failed once (engine_error() says why; the host path takes over).
-  void set_engine(interest::visibility_engine* engine);
+  void set_engine(visibility_engine* engine);
   /// Which observers' visible sets are read on the host right after an update (by slot: non-zero
   /// = read; slots beyond the vector: not read), so that an engine copies only those back; any
   /// other row's set is fetched from the engine on first access (visible() stays exact for every
@@ -105,17 +133,18 @@ class interest_tracker {
   /// The last update's visible sets where the engine keeps them (its device), by this tracker's
   /// rows, for a replication engine on the same device to read in place; empty when the last
   /// update did not run on an engine or the engine keeps none.
-  [[nodiscard]] interest::visibility_engine::resident_lists resident_visible() const {
+  [[nodiscard]] visibility_engine::resident_lists resident_visible() const {
     if (!last_by_engine_ || engine_ == nullptr || !engine_error_.empty()) return {};
     const auto r = engine_->resident_visible();
-    return r.rows == ids_.size() ? r : interest::visibility_engine::resident_lists{};
+    return r.rows == ids_.size() ? r : visibility_engine::resident_lists{};
   }
 
-  /// Rows of the last update (= the store's size then).
+  /// Rows of the last update (= its columns' n).
   [[nodiscard]] std::size_t observer_count() const { return ids_.size(); }
   [[nodiscard]] entity_id observer(std::size_t row) const { return ids_[row]; }
-  /// Row of an observer in the last update, or entity_store::npos.
+  /// Row of an observer in the last update, or npos.
   [[nodiscard]] std::size_t row_of(entity_id id) const;
+  static constexpr std::size_t npos = static_cast<std::size_t>(-1);
 
   /// Safe to call from several threads at once (the first access to a row whose set the engine
   /// kept on the device fetches them all, once).
@@ -135,19 +164,20 @@ class interest_tracker {
   /// Takes effect at the next update (the margin applies to the sets kept from this tick).
   void set_options(const interest_options& opt) { opt_ = opt; }
   /// The boxes of the last update (build_boxes' layout).
-  [[nodiscard]] const interest::box_set& boxes() const { return boxes_; }
+  [[nodiscard]] const box_set& boxes() const { return boxes_; }
 
  private:
-  void process_rows(const entity_store& store, std::size_t first, std::size_t last);
-  [[nodiscard]] std::optional<interest::box_error> update_on_engine(const entity_store& store);
-  [[nodiscard]] std::optional<interest::box_error> update_on_host(const entity_store& store);
-  [[nodiscard]] std::optional<interest::box_error> name_box_error(const entity_store& store,
-                                                                  std::optional<interest::box_error> err) const;
+  void process_rows(const entity_columns& in, std::size_t first, std::size_t last);
+  [[nodiscard]] std::optional<box_error> update_on_engine(const entity_columns& in);
+  [[nodiscard]] std::optional<box_error> update_on_host(const entity_columns& in);
+  [[nodiscard]] std::optional<box_error> name_box_error(const entity_columns& in,
+                                                                  std::optional<box_error> err) const;
   void adopt_engine_output();  // the engine's last output into the host path's arrays
   [[nodiscard]] std::span<const entity_id> fetched_row(std::size_t row) const;
   void point_lists_at_host();
-  void map_rows(const entity_store& store);  // row_of_slot_ for the rows of this update
-  void map_rows_into(const entity_store& store, const std::vector<entity_id>& ids,
+  void begin_update(const entity_columns& in);  // slot_bits_, slot_count_
+  void map_rows();  // row_of_slot_ for the rows of this update
+  void map_rows_into(const std::vector<entity_id>& ids,
                      std::vector<std::uint32_t>& row_of_slot) const;
   /// One kind of per-row list: row r is data[off[r], off[r] + len[r]) (len null: off[r + 1]).
   struct row_lists {
@@ -162,13 +192,15 @@ class interest_tracker {
     float lo_x, lo_y, lo_z, hi_x, hi_y, hi_z;
   };
 
-  interest::pair_finder* finder_;
-  pair_view_source view_source_;
-  interest::thread_pool* pool_;
+  pair_finder* finder_;
+  thread_pool* pool_;
   interest_options opt_;
   interest_stats stats_;
-  interest::box_set boxes_;
-  interest::pair_list pairs_;
+  std::uint32_t slot_bits_ = 22;  // of the last update's ids
+  std::size_t slot_count_ = 0;    // one past the highest slot seen
+  [[nodiscard]] std::uint32_t slot_of(entity_id id) const { return id & ((1u << slot_bits_) - 1u); }
+  box_set boxes_;
+  pair_list pairs_;
 
   // This tick, by row. Visible sets and enters share the candidate offsets (capacity per row =
   // candidate count); leaves are laid out by the previous set's size.
@@ -193,8 +225,8 @@ class interest_tracker {
 
   // What the accessors read: the host path's arrays, or the engine's output.
   row_lists vis_list_, enter_list_, leave_list_;
-  interest::visibility_engine* engine_ = nullptr;
-  interest::visibility_output engine_out_;
+  visibility_engine* engine_ = nullptr;
+  visibility_output engine_out_;
   bool engine_synced_ = false;  // the engine holds the last update's sets
   std::vector<entity_id> next_ids_;                 // engine path: this update's rows, swapped in on success
   std::vector<std::uint32_t> spare_row_of_slot_;    // engine path: this update's slot map, likewise
@@ -208,4 +240,4 @@ class interest_tracker {
   std::string engine_error_;
 };
 
-}  // namespace zone
+}  // namespace zone::interest
