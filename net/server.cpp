@@ -23,6 +23,8 @@
 #include <cerrno>
 #include <cstdio>
 #include <pthread.h>
+#include <arpa/inet.h>
+#include <netinet/in.h>
 #include <sys/ioctl.h>
 #include <sys/resource.h>
 #include <sys/socket.h>
@@ -108,6 +110,14 @@ address_key key_of(const asio::ip::address& a) {
   return k;
 }
 
+address_key key_of(const sockaddr_storage& a) {
+  if (a.ss_family == AF_INET) return {0, ntohl(reinterpret_cast<const sockaddr_in&>(a).sin_addr.s_addr)};
+  const auto& in6 = reinterpret_cast<const sockaddr_in6&>(a).sin6_addr;
+  asio::ip::address_v6::bytes_type b;
+  std::memcpy(b.data(), &in6, b.size());
+  return key_of(asio::ip::address(asio::ip::address_v6(b)));
+}
+
 /// An address's reconnect churn (server_options::connect_rate): tokens, in debt down to a minute
 /// of refill.
 struct churn_bucket {
@@ -116,6 +126,11 @@ struct churn_bucket {
 };
 /// Most addresses tracked at once (full buckets are dropped; about 64 bytes each).
 constexpr std::size_t max_churn_addresses = std::size_t{1} << 16;
+/// Connections refused at accept that are held (server_options::connect_refusal_hold): at most
+/// this many per address (a newer one releases the address's oldest) and in all (beyond it a
+/// refusal is answered at once).
+constexpr std::size_t max_held_per_address = 64;
+constexpr std::size_t max_held = 512;
 /// At most one summary line of refusals at accept this often.
 constexpr std::chrono::seconds refusal_log_interval{10};
 
@@ -231,6 +246,7 @@ struct server::impl {
   explicit impl(server_options o)
       : opt(std::move(o)), lanes(make_lanes(opt.io_threads, write_batches)), acceptor(lanes[0]->ctx),
         accept_retry(acceptor.get_executor()),
+        held_timer(acceptor.get_executor()),
         refusal_frame(encode_frame(error_msg{error_code::rate_limited, "too many short connections from this address: try again later"})) {}
 
   static std::vector<std::unique_ptr<io_lane>> make_lanes(unsigned n, std::atomic<std::uint64_t>& batches) {
@@ -311,7 +327,48 @@ struct server::impl {
   std::vector<std::uint8_t> refusal_frame;
   std::uint64_t refusals_unlogged = 0;
   steady::time_point refusals_logged{};
-  void refuse(tcp::socket& socket, const tcp::endpoint& peer);
+  void refuse(int fd, const sockaddr_storage& peer, const address_key& key);
+  // Refused connections held before their answer (connect_refusal_hold; the acceptor's thread).
+  struct held_connection {
+    int fd;
+    steady::time_point since;
+  };
+  std::unordered_map<address_key, std::deque<held_connection>, address_key_hash> held;
+  std::size_t held_total = 0;
+  std::size_t held_cap = max_held;  // start(): what the open-file limit leaves beside the players and pending connections
+  asio::steady_timer held_timer;
+  bool held_timer_armed = false;
+  /// The refusal's answer: the error frame written without waiting, then a reset (no TIME_WAIT).
+  void answer_refused(int fd) {
+    (void)::send(fd, refusal_frame.data(), refusal_frame.size(), MSG_DONTWAIT | MSG_NOSIGNAL);
+    const linger reset{1, 0};
+    (void)::setsockopt(fd, SOL_SOCKET, SO_LINGER, &reset, sizeof reset);
+    ::close(fd);
+  }
+  /// Answers the held connections older than the hold (all: every one). The acceptor's thread.
+  void release_held(bool all) {
+    const auto now = steady::now();
+    for (auto it = held.begin(); it != held.end();) {
+      auto& q = it->second;
+      while (!q.empty() && (all || now - q.front().since >= opt.connect_refusal_hold)) {
+        answer_refused(q.front().fd);
+        q.pop_front();
+        --held_total;
+      }
+      it = q.empty() ? held.erase(it) : std::next(it);
+    }
+  }
+  void arm_held_timer() {
+    if (held_timer_armed || held_total == 0) return;
+    held_timer_armed = true;
+    held_timer.expires_after(std::max<std::chrono::milliseconds>(opt.connect_refusal_hold / 4, std::chrono::milliseconds(10)));
+    held_timer.async_wait([this](const boost::system::error_code& ec) {
+      held_timer_armed = false;
+      if (ec || !acceptor.is_open()) return;
+      release_held(false);
+      arm_held_timer();
+    });
+  }
 
   /// Players (sessions past their hello): claims a slot, false when max_connections are taken.
   bool claim_player_slot() {
@@ -335,9 +392,15 @@ struct server::impl {
     const std::lock_guard lock(events_mutex);
     events.push_back(std::move(e));
   }
+  /// Waits until the listening socket is readable, then accept_ready().
   void do_accept();
-  /// Makes a session of an accepted socket (or refuses it over max_connections) on `lane`.
-  void admit(tcp::socket socket, io_lane& lane);
+  /// Takes what waits in the backlog (up to accept_batch connections; raw accept4, so that a
+  /// connection refused at accept costs no more than the accept, a write and the close).
+  void accept_ready();
+  /// An accept error: logged at most once a second, accepting resumes after a pause.
+  void accept_failed(int err);
+  /// Makes a session of an accepted descriptor on the next lane (or refuses it: reconnect churn).
+  void admit(int fd, const sockaddr_storage& peer, socklen_t peer_len);
   void remove(session_id id);
 };
 
@@ -1106,33 +1169,57 @@ void server::impl::leave_pending(session& s) {
   --counters.pending_open;
 }
 
-void server::impl::refuse(tcp::socket& socket, const tcp::endpoint& peer) {
+void server::impl::refuse(int fd, const sockaddr_storage& peer, const address_key& key) {
   ++counters.connections_rate_limited;
-  // One write that does not wait (the frame fits any fresh socket's buffer), then a reset rather
-  // than a FIN: no TIME_WAIT left behind per refusal.
-  (void)::send(socket.native_handle(), refusal_frame.data(), refusal_frame.size(), MSG_DONTWAIT | MSG_NOSIGNAL);
-  boost::system::error_code ignored;
-  socket.set_option(asio::socket_base::linger(true, 0), ignored);
-  socket.close(ignored);
+  // Held unanswered for connect_refusal_hold (a client that waits for its answer before it tries
+  // again then tries once per hold, instead of as fast as the server can refuse), within the
+  // caps; then (or at once) the answer.
+  if (opt.connect_refusal_hold.count() > 0 && held_total < held_cap) {
+    auto& q = held[key];
+    if (q.size() >= max_held_per_address) {
+      answer_refused(q.front().fd);
+      q.pop_front();
+      --held_total;
+    }
+    q.push_back({fd, steady::now()});
+    ++held_total;
+    arm_held_timer();
+  } else {
+    answer_refused(fd);
+  }
   ++refusals_unlogged;
   const auto now = steady::now();
   if (now - refusals_logged >= refusal_log_interval) {
+    char text[INET6_ADDRSTRLEN] = "?";
+    if (peer.ss_family == AF_INET) ::inet_ntop(AF_INET, &reinterpret_cast<const sockaddr_in&>(peer).sin_addr, text, sizeof text);
+    else ::inet_ntop(AF_INET6, &reinterpret_cast<const sockaddr_in6&>(peer).sin6_addr, text, sizeof text);
     spdlog::warn("refused {} new connection{} at accept since the last such line: reconnect churn over {} a second from "
                  "one address (the latest from {}; zone_net_connections_rate_limited_total counts them all)",
-                 refusals_unlogged, refusals_unlogged == 1 ? "" : "s", opt.connect_rate, peer.address().to_string());
+                 refusals_unlogged, refusals_unlogged == 1 ? "" : "s", opt.connect_rate, text);
     refusals_logged = now;
     refusals_unlogged = 0;
   }
 }
 
-void server::impl::admit(tcp::socket socket, io_lane& lane) {
-  boost::system::error_code ignored;
-  const auto peer = socket.remote_endpoint(ignored);
-  const bool known = !ignored;
-  const address_key key = known ? key_of(peer.address()) : address_key{};
+void server::impl::admit(int fd, const sockaddr_storage& peer_addr, socklen_t peer_len) {
+  const bool known = peer_addr.ss_family == AF_INET || peer_addr.ss_family == AF_INET6;
+  const address_key key = known ? key_of(peer_addr) : address_key{};
   // Before anything else: an address over its reconnect churn is refused here, at the cost of a
   // lookup, a write and a close.
-  if (known && !churn_allows(key)) return refuse(socket, peer);
+  if (known && !churn_allows(key)) return refuse(fd, peer_addr, key);
+  io_lane& lane = next_lane();
+  tcp::endpoint peer;
+  if (known) {
+    std::memcpy(peer.data(), &peer_addr, peer_len);
+    peer.resize(peer_len);
+  }
+  boost::system::error_code ignored;
+  tcp::socket socket(lane.ctx);
+  socket.assign(known ? peer.protocol() : tcp::v4(), fd, ignored);
+  if (ignored) {
+    ::close(fd);
+    return;
+  }
   socket.set_option(tcp::no_delay(true), ignored);
   if (opt.socket_send_buffer > 0) {
     socket.set_option(asio::socket_base::send_buffer_size(static_cast<int>(opt.socket_send_buffer)), ignored);
@@ -1204,45 +1291,57 @@ void server::impl::admit(tcp::socket socket, io_lane& lane) {
 }
 
 void server::impl::do_accept() {
-  io_lane& lane = next_lane();
-  acceptor.async_accept(lane.ctx, [this, &lane](const boost::system::error_code& ec, tcp::socket socket) {
-    if (ec) {
-      if (ec == asio::error::operation_aborted || !acceptor.is_open()) return;
-      // Out of file descriptors (or memory): the pending connection stays in the backlog; say
-      // why (at most once a second) and try again shortly instead of spinning on the error.
-      const bool out_of_files = ec == asio::error::no_descriptors || ec.value() == ENFILE;
-      const auto now = steady::now();
-      if (now - last_accept_warning > std::chrono::seconds(1)) {
-        last_accept_warning = now;
-        if (out_of_files) {
-          spdlog::error("accept failed: {} ({} sessions open, open-file limit {}): raise the hard limit "
-                        "(ulimit -Hn, or LimitNOFILE= under systemd) or lower --max-clients",
-                        ec.message(), counters.sessions_open.load(), file_limit);
-        } else {
-          spdlog::warn("accept failed: {}", ec.message());
-        }
-      }
-      accept_retry.expires_after(std::chrono::milliseconds(out_of_files ? 50 : 1));
-      accept_retry.async_wait([this](const boost::system::error_code& e) {
-        if (!e && acceptor.is_open()) do_accept();
-      });
-      return;
+  acceptor.async_wait(tcp::acceptor::wait_read, [this](const boost::system::error_code& ec) {
+    if (ec == asio::error::operation_aborted || !acceptor.is_open()) return;
+    if (ec) return accept_failed(ec.value());
+    accept_ready();
+  });
+}
+
+void server::impl::accept_ready() {
+  // Take what waits in the backlog now, not one connection per completion: a completion waits its
+  // turn behind every ready handler of the I/O threads, so a busy server accepted about one
+  // connection per round of its I/O queue (~1 per tick), the backlog filled, and once the wait
+  // passed the clients' connect timeout every later client failed while the server spent its
+  // accepts on clients that had given up.
+  for (std::size_t n = 0; n < accept_batch; ++n) {
+    sockaddr_storage peer{};
+    socklen_t len = sizeof peer;
+    const int fd = ::accept4(acceptor.native_handle(), reinterpret_cast<sockaddr*>(&peer), &len, SOCK_NONBLOCK | SOCK_CLOEXEC);
+    if (fd >= 0) {
+      admit(fd, peer, len);
+      continue;
     }
-    admit(std::move(socket), lane);
-    // Take what else waits in the backlog now (the acceptor is non-blocking), not one connection
-    // per completion: a completion waits its turn behind every ready handler of the I/O threads,
-    // so a busy server accepted about one connection per round of its I/O queue (~1 per tick),
-    // the backlog filled, and once the wait passed the clients' connect timeout every later
-    // client failed while the server spent its accepts on clients that had given up.
-    for (std::size_t n = 1; n < accept_batch; ++n) {
-      boost::system::error_code e;
-      io_lane& other = next_lane();
-      tcp::socket next(other.ctx);
-      acceptor.accept(next, e);
-      if (e) break;  // would_block: the backlog is empty; other errors: async_accept reports them
-      admit(std::move(next), other);
+    const int err = errno;
+    if (err == EAGAIN || err == EWOULDBLOCK) return do_accept();  // the backlog is empty: wait for the next
+    if (err == EINTR || err == ECONNABORTED || err == EPROTO) continue;  // that connection is gone; go on
+    return accept_failed(err);
+  }
+  // A full batch: the rest after the lane's other handlers (reads, writes), not after a wait that
+  // only a new connection would end.
+  asio::post(acceptor.get_executor(), [this] {
+    if (acceptor.is_open()) accept_ready();
+  });
+}
+
+void server::impl::accept_failed(int err) {
+  // Out of file descriptors (or memory): the pending connection stays in the backlog; say why (at
+  // most once a second) and try again shortly instead of spinning on the error.
+  const bool out_of_files = err == EMFILE || err == ENFILE;
+  const auto now = steady::now();
+  if (now - last_accept_warning > std::chrono::seconds(1)) {
+    last_accept_warning = now;
+    if (out_of_files) {
+      spdlog::error("accept failed: {} ({} sessions open, open-file limit {}): raise the hard limit "
+                    "(ulimit -Hn, or LimitNOFILE= under systemd) or lower --max-clients",
+                    std::strerror(err), counters.sessions_open.load(), file_limit);
+    } else {
+      spdlog::warn("accept failed: {}", std::strerror(err));
     }
-    do_accept();
+  }
+  accept_retry.expires_after(std::chrono::milliseconds(out_of_files ? 50 : 1));
+  accept_retry.async_wait([this](const boost::system::error_code& e) {
+    if (!e && acceptor.is_open()) accept_ready();
   });
 }
 
@@ -1273,6 +1372,9 @@ std::optional<std::string> server::start() {
                  m.opt.max_connections, m.opt.max_pending, files.soft,
                  files.soft > reserved_file_descriptors ? files.soft - reserved_file_descriptors : 0);
   }
+  // Refused connections are held only in descriptors nobody else is counted on for.
+  const std::size_t budgeted = m.opt.max_connections + m.opt.max_pending + reserved_file_descriptors;
+  m.held_cap = files.soft == 0 ? max_held : (files.soft > budgeted ? std::min<std::size_t>(max_held, files.soft - budgeted) : 0);
   boost::system::error_code ec;
   const auto address = asio::ip::make_address(m.opt.address, ec);
   if (ec) return "bad listen address '" + m.opt.address + "': " + ec.message();
@@ -1341,6 +1443,8 @@ void server::stop() {
     boost::system::error_code ignored;
     m.acceptor.close(ignored);
     m.accept_retry.cancel();
+    m.held_timer.cancel();
+    m.release_held(true);
   });
   std::vector<std::shared_ptr<session>> open;
   {
@@ -1363,6 +1467,7 @@ void server::stop() {
   for (auto& lane : m.lanes) lane->ctx.stop();
   for (auto& lane : m.lanes) {
     if (lane->thread.joinable()) lane->thread.join();
+    if (lane.get() == m.lanes.front().get()) m.release_held(true);  // the acceptor's lane has stopped: what it still held
     // Sessions left on a ready list hold themselves; let them go.
     const std::lock_guard lock(lane->ready_mutex);
     lane->ready.clear();

@@ -114,6 +114,13 @@ struct server_options {
   double connect_rate = 20;
   double connect_burst = 64;
   std::chrono::milliseconds connect_min_session{10000};
+  /// A connection refused for reconnect churn is held this long before its answer (error
+  /// rate_limited, then a reset), unread: a client that waits for an answer before it tries again
+  /// tries once per hold instead of as fast as the server can refuse (tens of thousands a second
+  /// on loopback, each an accept and a close). At most 64 held per address (a newer one releases
+  /// that address's oldest) and 512 in all, fewer where the open-file limit leaves less beside
+  /// max_connections and max_pending (beyond, answered at once). 0 = answered at once.
+  std::chrono::milliseconds connect_refusal_hold{2000};
   /// Longest player name in bytes; a name must be 1 .. max_name_bytes printable ASCII characters
   /// (0x20-0x7E) without leading or trailing spaces (error bad_hello otherwise).
   std::size_t max_name_bytes = 32;

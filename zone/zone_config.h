@@ -104,6 +104,7 @@ struct zone_config {
   double connect_rate = 20;
   double connect_burst = 64;
   double connect_min_session_s = 10;
+  double connect_refusal_hold_s = 2;  ///< a refused connection is held unanswered this long (0 = answered at once)
   std::size_t max_name_bytes = 32;  ///< longest player name (printable ASCII)
   double idle_timeout_s = 10;       ///< a player that sends no complete frame this long is closed
   /// Seconds between the info-level summary of joins, leaves and refusals (per-session lines are

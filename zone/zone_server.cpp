@@ -45,6 +45,7 @@ net::server_options net_options(const zone_config& c) {
   o.connect_rate = c.connect_rate;
   o.connect_burst = c.connect_burst;
   o.connect_min_session = std::chrono::milliseconds(static_cast<std::int64_t>(std::ceil(c.connect_min_session_s * 1000)));
+  o.connect_refusal_hold = std::chrono::milliseconds(static_cast<std::int64_t>(std::ceil(c.connect_refusal_hold_s * 1000)));
   o.max_name_bytes = c.max_name_bytes;
   return o;
 }
@@ -216,6 +217,7 @@ std::string zone_server::metrics_text() const {
   limit("connect_rate", cfg_.connect_rate);
   limit("connect_burst", cfg_.connect_burst);
   limit("connect_min_session_seconds", cfg_.connect_min_session_s);
+  limit("connect_refusal_hold_seconds", cfg_.connect_refusal_hold_s);
   limit("idle_timeout_seconds", cfg_.idle_timeout_s);
   limit("inputs_per_second", cfg_.inputs_per_second);
   limit("pings_per_second", cfg_.pings_per_second);

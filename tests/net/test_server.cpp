@@ -978,6 +978,7 @@ TEST_SUITE("net.server") {
     opt.connect_rate = 1;  // a token a second
     opt.connect_burst = 3;
     opt.connect_min_session = 600ms;
+    opt.connect_refusal_hold = 0ms;  // answered at once (the hold: below)
     started run(opt);
     auto& srv = run.srv;
     auto& g = run.g;
@@ -1038,6 +1039,7 @@ TEST_SUITE("net.server") {
       server_options opt;
       opt.connect_rate = 2;
       opt.connect_burst = 2;
+      opt.connect_refusal_hold = 0ms;
       started run(opt);
       auto& srv = run.srv;
       auto& g = run.g;
@@ -1065,6 +1067,7 @@ TEST_SUITE("net.server") {
       server_options opt;
       opt.connect_rate = 0.5;
       opt.connect_burst = 2;
+      opt.connect_refusal_hold = 0ms;
       opt.pings_per_second = 1;
       opt.ping_burst = 1;
       opt.flood_limit = 5;
@@ -1112,6 +1115,51 @@ TEST_SUITE("net.server") {
       CHECK(srv.stats().connections_charged == 0);
       CHECK(srv.stats().connections_accepted == 20);
     }
+  }
+
+  TEST_CASE("admission: a connection refused for reconnect churn is held unanswered for the hold, at most 64 per address") {
+    server_options opt;
+    opt.connect_rate = 0.2;
+    opt.connect_burst = 1;
+    opt.connect_refusal_hold = 1500ms;
+    started run(opt);
+    auto& srv = run.srv;
+    auto& g = run.g;
+    {
+      test_client c(srv.port());
+      join(g, c, "short");
+    }
+    REQUIRE(g.wait_for([&] { return srv.stats().connections_charged == 1; }));
+    // 70 more from the same address, all refused: the first 6 are answered as soon as a newer one
+    // takes their place (64 held per address), the other 64 at the end of the hold.
+    const auto t0 = std::chrono::steady_clock::now();
+    std::vector<std::unique_ptr<test_client>> refused;
+    for (int i = 0; i < 70; ++i) {
+      refused.push_back(std::make_unique<test_client>(srv.port()));
+      (void)refused.back()->send(hello_msg{"r" + std::to_string(i), "", protocol_version});
+    }
+    REQUIRE(g.wait_for([&] { return srv.stats().connections_rate_limited == 70; }));
+    for (int i = 0; i < 6; ++i) {
+      std::vector<message> seen;
+      CHECK(refused[static_cast<std::size_t>(i)]->wait_closed(1000ms, &seen));
+      REQUIRE(seen.size() == 1);
+      CHECK(is_error(seen[0], error_code::rate_limited));
+    }
+    CHECK(std::chrono::steady_clock::now() - t0 < 1400ms);  // else the checks above might have seen the hold's end
+    CHECK_FALSE(refused[6]->wait_closed(100ms));
+    CHECK_FALSE(refused[69]->wait_closed(10ms));
+    for (int i = 6; i < 70; ++i) {
+      std::vector<message> seen;
+      CHECK(refused[static_cast<std::size_t>(i)]->wait_closed(4000ms, &seen));
+      REQUIRE(seen.size() == 1);
+      CHECK(is_error(seen[0], error_code::rate_limited));
+    }
+    const double waited_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+    CHECK(waited_ms >= 1400);  // held for the hold (1,500 ms from each accept, after t0)
+    const auto st = srv.stats();
+    CHECK(st.connections_accepted == 1);
+    CHECK(st.pending_open == 0);
+    CHECK(g.count(inbound_event::kind::connected) == 1);
   }
 
   TEST_CASE("admission: at a pending cap, a connection whose hello waits unread is not the one evicted") {

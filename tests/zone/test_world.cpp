@@ -51,7 +51,7 @@ TEST_SUITE("zone.config") {
     CHECK(d.config->metrics_address == "127.0.0.1");
     for (const char* o : {"--hello-timeout", "--max-pending", "--max-pending-per-address", "--pings-per-second",
                           "--max-name-bytes", "--metrics-address", "--metrics-max-connections", "--log-summary",
-                          "--connect-rate", "--connect-burst", "--connect-min-session"}) {
+                          "--connect-rate", "--connect-burst", "--connect-min-session", "--connect-refusal-hold"}) {
       CAPTURE(o);
       CHECK(h.message.find(o) != std::string::npos);
     }
@@ -61,6 +61,7 @@ TEST_SUITE("zone.config") {
     CHECK_FALSE(parse({"--connect-rate", "-1"}).config.has_value());
     CHECK_FALSE(parse({"--connect-burst", "0.5"}).config.has_value());
     CHECK_FALSE(parse({"--connect-min-session", "-2"}).config.has_value());
+    CHECK_FALSE(parse({"--connect-refusal-hold", "61"}).config.has_value());
     CHECK(d.config->connect_rate == 20);
     CHECK(d.config->connect_burst == 64);
     CHECK(d.config->connect_min_session_s == 10);
