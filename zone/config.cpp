@@ -61,6 +61,10 @@ std::optional<std::string> validate(const zone_config& c) {
   if (!(c.hello_timeout_s > 0 && c.hello_timeout_s <= 3600)) return bad("hello-timeout must be in (0, 3600] seconds");
   if (!(c.idle_timeout_s > 0 && c.idle_timeout_s <= 86400)) return bad("idle-timeout must be in (0, 86400] seconds");
   if (c.max_pending == 0 || c.max_pending_per_address == 0) return bad("max-pending and max-pending-per-address must be >= 1");
+  if (!(c.connect_rate >= 0 && std::isfinite(c.connect_rate))) return bad("connect-rate must be >= 0 (0 = no limit)");
+  if (!(c.connect_burst >= 1 && std::isfinite(c.connect_burst))) return bad("connect-burst must be >= 1");
+  if (!(c.connect_min_session_s >= 0 && c.connect_min_session_s <= 3600)) return bad("connect-min-session must be 0 .. 3600 seconds");
+  if (!(c.connect_refusal_hold_s >= 0 && c.connect_refusal_hold_s <= 60)) return bad("connect-refusal-hold must be 0 .. 60 seconds");
   if (c.max_name_bytes == 0 || c.max_name_bytes > 1024) return bad("max-name-bytes must be 1 .. 1024");
   if (!(c.log_summary_s >= 0 && std::isfinite(c.log_summary_s))) return bad("log-summary must be >= 0 seconds");
   if (c.metrics_max_connections == 0 || c.metrics_max_connections > 4096) return bad("metrics-max-connections must be 1 .. 4096");
@@ -177,6 +181,10 @@ config_result parse_config(int argc, const char* const* argv) {
       ("hello-timeout", po::value(&c.hello_timeout_s)->default_value(c.hello_timeout_s), "seconds from accept by which a connection must have completed its hello, whatever it sends (error timeout)")  //
       ("max-pending", po::value(&c.max_pending)->default_value(c.max_pending), "connections without a hello yet, in total, apart from the player slots; at the cap the oldest is closed for the new one")  //
       ("max-pending-per-address", po::value(&c.max_pending_per_address)->default_value(c.max_pending_per_address), "connections without a hello yet from one source address; at the cap the address's oldest is closed for the new one (raise it for a bot swarm on one host)")  //
+      ("connect-rate", po::value(&c.connect_rate)->default_value(c.connect_rate), "reconnect churn per source address: connections a second that may end within connect-min-session of their accept (never said hello, refused, cut off, or left soon after joining); an address past it is refused at accept with error rate_limited until its bucket refills (connections that stay cost nothing: a bot swarm ramping from one host is not limited); 0 = no limit")  //
+      ("connect-burst", po::value(&c.connect_burst)->default_value(c.connect_burst), "reconnect churn per source address: how many such short connections an address may make at once before connect-rate applies")  //
+      ("connect-min-session", po::value(&c.connect_min_session_s)->default_value(c.connect_min_session_s), "seconds: a connection that ends sooner after its accept counts against its address's connect-rate")  //
+      ("connect-refusal-hold", po::value(&c.connect_refusal_hold_s)->default_value(c.connect_refusal_hold_s), "seconds a connection refused for connect-rate is held unread before its error rate_limited and reset, so a client that waits for its answer retries once per hold rather than as fast as the server refuses (at most 64 held per address, 512 in all; 0 = answered at once)")  //
       ("max-name-bytes", po::value(&c.max_name_bytes)->default_value(c.max_name_bytes), "longest player name; names are printable ASCII without leading or trailing spaces (error bad_hello)")  //
       ("idle-timeout", po::value(&c.idle_timeout_s)->default_value(c.idle_timeout_s), "seconds a player may send no complete frame before it is closed (clients ping)")  //
       ("max-frame-bytes", po::value(&c.max_frame_bytes)->default_value(c.max_frame_bytes), "largest inbound frame")  //

@@ -42,6 +42,10 @@ net::server_options net_options(const zone_config& c) {
   o.idle_timeout = std::chrono::milliseconds(static_cast<std::int64_t>(std::ceil(c.idle_timeout_s * 1000)));
   o.max_pending = c.max_pending;
   o.max_pending_per_address = c.max_pending_per_address;
+  o.connect_rate = c.connect_rate;
+  o.connect_burst = c.connect_burst;
+  o.connect_min_session = std::chrono::milliseconds(static_cast<std::int64_t>(std::ceil(c.connect_min_session_s * 1000)));
+  o.connect_refusal_hold = std::chrono::milliseconds(static_cast<std::int64_t>(std::ceil(c.connect_refusal_hold_s * 1000)));
   o.max_name_bytes = c.max_name_bytes;
   return o;
 }
@@ -183,6 +187,15 @@ std::string zone_server::metrics_text() const {
   t.counter("zone_net_pending_evicted_total", "Connections without a hello closed to admit a newer one (cap: max-pending-per-address or max-pending).",
             static_cast<double>(ns.pending_evicted), "cap=\"total\"");
   t.counter("zone_net_hello_timeouts_total", "Connections closed at the hello deadline.", static_cast<double>(ns.hello_timeouts));
+  t.counter("zone_net_connections_rate_limited_total",
+            "Connections refused at accept (error rate_limited, no session): their address's reconnect churn was over connect-rate.",
+            static_cast<double>(ns.connections_rate_limited));
+  t.counter("zone_net_connections_short_total",
+            "Connections that ended within connect-min-session of their accept (each took a token of its address's connect-rate).",
+            static_cast<double>(ns.connections_charged));
+  t.counter("zone_net_pending_spared_total",
+            "At a pending cap, connections not evicted because their first bytes (a hello) waited unread in the socket.",
+            static_cast<double>(ns.pending_spared));
   t.counter("zone_net_hellos_rejected_total", "Hellos refused (bad name).", static_cast<double>(ns.hellos_rejected));
   t.counter("zone_net_idle_timeouts_total", "Sessions closed at the idle timeout.", static_cast<double>(ns.idle_timeouts));
   // The configured limits, so a dashboard reads them beside what they bound.
@@ -193,6 +206,10 @@ std::string zone_server::metrics_text() const {
   limit("max_pending", static_cast<double>(cfg_.max_pending));
   limit("max_pending_per_address", static_cast<double>(cfg_.max_pending_per_address));
   limit("hello_timeout_seconds", cfg_.hello_timeout_s);
+  limit("connect_rate", cfg_.connect_rate);
+  limit("connect_burst", cfg_.connect_burst);
+  limit("connect_min_session_seconds", cfg_.connect_min_session_s);
+  limit("connect_refusal_hold_seconds", cfg_.connect_refusal_hold_s);
   limit("idle_timeout_seconds", cfg_.idle_timeout_s);
   limit("inputs_per_second", cfg_.inputs_per_second);
   limit("pings_per_second", cfg_.pings_per_second);
@@ -598,14 +615,15 @@ void zone_server::log_summary() {
                                 (ns.pending_evicted - a.pending_evicted) + (ns.hellos_rejected - a.hellos_rejected);
   const std::uint64_t timeouts = (ns.hello_timeouts - a.hello_timeouts) + (ns.idle_timeouts - a.idle_timeouts);
   const std::uint64_t limited = ns.rate_limited - a.rate_limited, rejected = ns.frames_rejected - a.frames_rejected;
+  const std::uint64_t churn = ns.connections_rate_limited - a.connections_rate_limited;
   // Quiet when nothing happened.
-  if (joined + left + refused + timeouts + limited + rejected != 0) {
+  if (joined + left + refused + timeouts + limited + rejected + churn != 0) {
     spdlog::info("clients: {} ({} joined, {} left in {:.0f} s); refused {} (slots {}, evicted per address {}, evicted in all {}, bad hello {}); "
-                 "timeouts {} (hello {}, idle {}); rate-limited {}; bad frames {}; {} without hello now",
+                 "timeouts {} (hello {}, idle {}); rate-limited {}; refused at accept (connect-rate) {}; bad frames {}; {} without hello now",
                  clients_.size(), joined, left, cfg_.log_summary_s, refused, ns.connections_refused - a.connections_refused,
                  ns.pending_evicted_address - a.pending_evicted_address, ns.pending_evicted - a.pending_evicted,
                  ns.hellos_rejected - a.hellos_rejected, timeouts, ns.hello_timeouts - a.hello_timeouts,
-                 ns.idle_timeouts - a.idle_timeouts, limited, rejected, ns.pending_open);
+                 ns.idle_timeouts - a.idle_timeouts, limited, churn, rejected, ns.pending_open);
   }
   summary_net_ = ns;
   summary_loop_.joins = stats_.joins;
