@@ -191,7 +191,7 @@ struct options {
   double rate = 30;
   bool paced = false;
   unsigned threads = 0;
-  int spin_us = -1;  // zone_config::worker_spin_us
+  int spin_us = 0;  // zone_config::worker_spin_us
   std::uint64_t seed = 1;
   std::string finder = "cpu";
   double w = 0;  // 0 = the finder's default
@@ -234,7 +234,7 @@ Usage: bench-zone [options]
   --threads N        worker threads, the calling thread included (default 0 = all cores)
   --spin-us N        microseconds an idle worker spins before it sleeps, and (--paced) how early
                      the workers are woken before a tick, as zone-server's --worker-spin-us
-                     (default -1 = auto: 1000 with 8 or more hardware threads, else 0)
+                     (default 0, as zone-server's: no spin)
   --seed S           world seed (default 1)
   --finder NAME      pair finder: cpu (grid finder on the pool) | cpu-1t | brute | gpu (= pbig) |
                      pbig | lbvh | auto (gpu/finders.h) (default cpu)
