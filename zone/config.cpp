@@ -120,8 +120,9 @@ std::optional<std::string> validate(const zone_config& c) {
 }
 
 unsigned worker_spin(const zone_config& c) {
-  if (c.worker_spin_us >= 0) return static_cast<unsigned>(c.worker_spin_us);
-  return std::thread::hardware_concurrency() >= 8 ? 1000u : 0u;
+  // Auto (-1) was 1000 us on 8+ hardware threads until issue 22: the spin did not pay there
+  // either (docs/zone-benchmarks.md, "The pool's idle spin").
+  return c.worker_spin_us > 0 ? static_cast<unsigned>(c.worker_spin_us) : 0u;
 }
 
 config_result parse_config(int argc, const char* const* argv) {
@@ -145,7 +146,7 @@ config_result parse_config(int argc, const char* const* argv) {
       ("tick-rate", po::value(&c.tick_rate_hz)->default_value(c.tick_rate_hz), "ticks per second")      //
       ("seed", po::value(&c.seed)->default_value(c.seed), "seed of the NPC population and behaviours")  //
       ("threads", po::value(&c.worker_threads)->default_value(c.worker_threads), "worker threads (0 = all cores)")  //
-      ("worker-spin-us", po::value(&c.worker_spin_us)->default_value(c.worker_spin_us), "microseconds an idle worker spins before it sleeps, and how early the loop wakes the workers before a tick (-1 = auto: 1000 with 8 or more hardware threads, else 0)");
+      ("worker-spin-us", po::value(&c.worker_spin_us)->default_value(c.worker_spin_us), "microseconds an idle worker spins before it sleeps, and how early the loop wakes the workers before a tick (0 = no spin, the default: it cost more CPU than it saved tick time; -1 = auto, the same)");
   po::options_description interest("Interest");
   interest.add_options()                                                                                     //
       ("finder", po::value(&c.finder)->default_value(c.finder), "pair finder: auto (chosen per tick from the box statistics: GPU when usable, else CPU), cpu, gpu (= pbig), pbig, lbvh, brute")  //
