@@ -310,6 +310,7 @@ std::optional<std::string> zone_server::start() {
       net::viewer_options vo;
       vo.max_viewers = cfg_.max_viewers;
       vo.allow_remote = cfg_.viewer_remote;
+      vo.nice = cfg_.viewer_nice;
       viewer_ = std::make_unique<net::viewer_server>(vo);
       metrics_->attach_viewer(viewer_.get());
     }
