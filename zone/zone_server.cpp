@@ -645,6 +645,7 @@ void zone_server::tick_once() {
   drain_inputs();
   if (ext_ != nullptr) {
     ext_->before_step(*world_);
+    ext_->take_class_changes(class_changes_);
     retry_pending_hellos();
   }
   const double inputs_ms = ms_since(t0);
