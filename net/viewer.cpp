@@ -14,6 +14,7 @@
 #include <deque>
 #include <nlohmann/json.hpp>
 #include <optional>
+#include <pthread.h>
 #include <spdlog/spdlog.h>
 #include <sys/resource.h>
 #include <thread>
@@ -486,6 +487,7 @@ viewer_server::viewer_server(viewer_options opt) : impl_(std::make_shared<impl>(
   auto& m = *impl_;
   m.work.emplace(m.ioc->get_executor());
   m.thread = std::thread([&m] {
+    pthread_setname_np(pthread_self(), "zone-viewer");  // per-thread CPU readings (top -H, /proc/<pid>/task/*/comm)
     // Linux: a thread's own nice value; raising it needs no privilege. On 2 cores the tick's
     // threads then take the CPU back from an encode at once.
     if (m.opt.nice != 0 && ::setpriority(PRIO_PROCESS, static_cast<id_t>(::gettid()), m.opt.nice) != 0) {

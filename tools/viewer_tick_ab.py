@@ -34,6 +34,27 @@ import tempfile
 import time
 
 
+def thread_cpu(pid):
+    """CPU seconds (user + system) of each of the process's threads, summed by thread name with
+    its digits dropped (zone-worker-1 and zone-worker-2 -> zone-worker-); {} where /proc is not readable."""
+    out = {}
+    hz = os.sysconf("SC_CLK_TCK")
+    try:
+        tasks = os.listdir(f"/proc/{pid}/task")
+    except OSError:
+        return out
+    for t in tasks:
+        try:
+            with open(f"/proc/{pid}/task/{t}/stat") as f:
+                stat = f.read()
+        except OSError:
+            continue
+        name = stat[stat.index("(") + 1:stat.rindex(")")].rstrip("0123456789")
+        fields = stat[stat.rindex(")") + 2:].split()
+        out[name] = out.get(name, 0.0) + (int(fields[11]) + int(fields[12])) / hz
+    return out
+
+
 def pct(values, q):
     if not values:
         return float("nan")
@@ -194,9 +215,13 @@ def main():
         phases = []  # (round, open, t0, t1)
         viewer_ms, frames, nbytes = [], 0, 0
         loads = [os.getloadavg()[0]]
+        cpu = {False: {}, True: {}}   # condition -> thread name -> CPU seconds in its phases
+        client_cpu = {False: 0.0, True: 0.0}
+        phase_s = {False: 0.0, True: 0.0}
         for r in range(a.rounds):
             for opened in ((False, True) if r % 2 == 0 else (True, False)):
                 t0 = now()
+                cpu0, own0 = thread_cpu(srv.pid), os.times()
                 socks = [viewer_socket(port, (0.0, 0.0, a.world, a.world)) for _ in range(a.viewers)] if opened else []
                 end = time.monotonic() + a.phase_s
                 while time.monotonic() < end:
@@ -211,7 +236,12 @@ def main():
                     frames += s.frames
                     nbytes += s.bytes
                     s.close()
+                cpu1, own1 = thread_cpu(srv.pid), os.times()
                 phases.append((r, opened, t0, now()))
+                phase_s[opened] += phases[-1][3] - t0
+                for name, v in cpu1.items():
+                    cpu[opened][name] = cpu[opened].get(name, 0.0) + v - cpu0.get(name, 0.0)
+                client_cpu[opened] += (own1.user + own1.system) - (own0.user + own0.system)
                 loads.append(os.getloadavg()[0])
                 time.sleep(0.3)  # the sockets close; this gap is in neither phase
         time.sleep(0.5)
@@ -284,6 +314,12 @@ def main():
         print(f"per-pair p99 change ({len(diffs)} pairs): median {median(diffs):+.2f}% (95% bootstrap {lo:+.2f}% .. {hi:+.2f}%), "
               f"min {min(diffs):+.2f}%, max {max(diffs):+.2f}%, open higher in {sum(d > 0 for d in diffs)} of {len(diffs)}")
         print(f"pooled p99 change: {pooled_change(rounds):+.2f}% (95% bootstrap over pairs {plo:+.2f}% .. {phi:+.2f}%)")
+    if cpu[True]:
+        names = sorted(set(cpu[False]) | set(cpu[True]), key=lambda n: -cpu[True].get(n, 0.0))
+        print("CPU ms per second of the phases (none -> open), by thread: " + "; ".join(
+            f"{n} {1000 * cpu[False].get(n, 0.0) / phase_s[False]:.1f} -> {1000 * cpu[True].get(n, 0.0) / phase_s[True]:.1f}"
+            for n in names if cpu[False].get(n, 0.0) + cpu[True].get(n, 0.0) > 0) +
+            f"; the viewer client (this script) {1000 * client_cpu[False] / phase_s[False]:.1f} -> {1000 * client_cpu[True] / phase_s[True]:.1f}")
     print(f"load average (1 min) over the run: {min(loads):.2f} .. {max(loads):.2f} (median {median(loads):.2f}); "
           f"client nice {a.client_nice}")
     print(f"the tick's own viewer phase (stats messages, {len(viewer_ms)} ticks): p50 {pct(viewer_ms, 0.5):.4f} ms, "
