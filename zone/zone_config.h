@@ -169,6 +169,7 @@ struct zone_config {
   bool viewer_remote = false;    ///< also to peers that are not on a loopback address
   std::size_t max_viewers = 4;   ///< viewer pages at once
   double viewer_hz = 10;         ///< snapshots a second while a page is open (at most the tick rate)
+  int viewer_nice = 19;          ///< nice value of the viewer's thread (0-19; net::viewer_options::nice)
   // Correctness (docs/bots.md, the oracle).
   /// Publish every tick's ground truth on a loopback stream (127.0.0.1:oracle_port; 0 = an
   /// ephemeral port, told in the welcome): what an independent oracle checks each client's view
