@@ -97,6 +97,8 @@ def analyze(paths, bootstrap):
     """--analyze: the statistics of earlier runs' --csv files together (pairs keyed by file and round)."""
     ticks_of = {}
     for n, path in enumerate(paths):
+        if not os.path.isfile(path):
+            sys.exit(f"--analyze {path}: no such file")
         with open(path) as f:
             header = f.readline().strip().split(",")
             if header[:5] != ["tick", "t_s", "tick_ms", "phase", "round"]:
@@ -241,7 +243,9 @@ def main():
         ap.error("rounds >= 1, phase-s > 0, npcs >= 0, viewers >= 1, bootstrap >= 0, client-nice 0..19")
     if a.analyze:
         return analyze(a.analyze, a.bootstrap)
-    if not a.server or not os.access(a.server, os.X_OK):
+    if not a.server:
+        ap.error("--server is required (or --analyze CSV ...)")
+    if not os.access(a.server, os.X_OK):
         ap.error(f"--server {a.server}: not an executable file")
 
     tmp = tempfile.mkdtemp(prefix="viewer-ab-")
