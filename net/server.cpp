@@ -35,8 +35,10 @@
 #include <list>
 #include <mutex>
 #include <shared_mutex>
+#include <stdexcept>
 #include <spdlog/spdlog.h>
 #include <thread>
+#include <type_traits>
 #include <unordered_map>
 
 #if ZONE_HAVE_LIBURING
@@ -63,20 +65,83 @@ shared_frame make_shared_frame(std::span<const std::uint8_t> frame) {
   return f;
 }
 
-shared_frame frame_arena::make(std::span<const std::uint8_t> frame) {
-  if (frame.size() > block_bytes_ / 4) return make_shared_frame(frame);
-  if (!block_ || used_ + frame.size() > block_bytes_) {
-    block_ = std::make_shared_for_overwrite<std::uint8_t[]>(block_bytes_);
-    used_ = 0;
-    ++blocks_;
+namespace {
+/// `bytes` bytes, 8-byte aligned, in one allocation with their reference count.
+std::shared_ptr<std::uint8_t[]> aligned_bytes(std::size_t bytes) {
+  auto words = std::make_shared_for_overwrite<std::uint64_t[]>(std::max<std::size_t>(1, (bytes + 7) / 8));
+  return std::shared_ptr<std::uint8_t[]>(words, reinterpret_cast<std::uint8_t*>(words.get()));
+}
+}  // namespace
+
+frame_arena::frame_arena(std::size_t block_bytes) : block_bytes_(std::max<std::size_t>(64, (block_bytes + 7) & ~std::size_t{7})) {
+  spare_.reserve(max_spare);
+}
+
+void frame_arena::next_block() {
+  std::shared_ptr<std::uint8_t[]> old = std::move(block_);
+  used_ = 0;
+  for (auto& b : spare_) {
+    // Only the arena holds it: no frame of it is left, and none can be made but by this arena.
+    // The acquire fence pairs with the release of the last frame's count (that thread's reads of
+    // the bytes, the socket write, happen before this thread writes them again).
+    if (b.use_count() == 1) {
+      std::atomic_thread_fence(std::memory_order_acquire);
+      block_ = std::move(b);
+      b = std::move(old);  // the block just filled takes its place (none: an empty slot)
+      if (!b) {
+        b = std::move(spare_.back());
+        spare_.pop_back();
+      }
+      ++reused_;
+      return;
+    }
   }
-  std::uint8_t* at = block_.get() + used_;
-  if (!frame.empty()) std::memcpy(at, frame.data(), frame.size());
-  used_ += (frame.size() + 15) & ~std::size_t{15};  // frames at 16-byte offsets in the block
+  if (old) {
+    if (spare_.size() < max_spare) {
+      spare_.push_back(std::move(old));
+    } else {
+      // Frames hold every spare block (slow clients): let go of one in turn (its last frame frees it).
+      spare_[spare_head_] = std::move(old);
+      spare_head_ = (spare_head_ + 1) % max_spare;
+    }
+  }
+  block_ = aligned_bytes(block_bytes_);
+  ++blocks_;
+}
+
+std::span<std::uint8_t> frame_arena::reserve(std::size_t bytes) {
+  own_.reset();
+  if (bytes > block_bytes_ / 4) {
+    own_ = aligned_bytes(bytes);
+    ++large_;
+    reserved_ = own_.get();
+  } else {
+    if (!block_ || used_ + bytes > block_bytes_) next_block();
+    reserved_ = block_.get() + used_;
+  }
+  reserved_bytes_ = bytes;
+  return {reserved_, bytes};
+}
+
+shared_frame frame_arena::commit(std::size_t bytes) {
+  if (reserved_ == nullptr || bytes > reserved_bytes_) throw std::logic_error("frame_arena::commit: no reservation of that size");
   shared_frame f;
-  f.bytes_ = std::shared_ptr<const std::uint8_t[]>(block_, at);  // shares the block's count
-  f.size_ = frame.size();
+  if (own_) {
+    f.bytes_ = std::move(own_);
+  } else {
+    f.bytes_ = std::shared_ptr<const std::uint8_t[]>(block_, reserved_);  // shares the block's count
+    used_ += (bytes + 15) & ~std::size_t{15};  // frames at 16-byte offsets in the block
+  }
+  f.size_ = bytes;
+  reserved_ = nullptr;
+  reserved_bytes_ = 0;
   return f;
+}
+
+shared_frame frame_arena::make(std::span<const std::uint8_t> frame) {
+  const auto room = reserve(frame.size());
+  if (!frame.empty()) std::memcpy(room.data(), frame.data(), frame.size());
+  return commit(frame.size());
 }
 
 namespace {
@@ -268,6 +333,10 @@ struct server::impl {
   steady::time_point last_accept_warning{};
   bool running = false;
   std::uint16_t bound_port = 0;
+
+  /// server::send_many (const frames: copied) and send_many_moved (taken).
+  template <class Frames>
+  std::size_t send_many(Frames frames);
 
   std::shared_mutex sessions_mutex;  // shared: lookups (send, disconnect, the count); unique: insert, erase
   std::unordered_map<session_id, std::shared_ptr<session>> sessions;
@@ -1534,8 +1603,13 @@ bool server::send(session_id s, shared_frame frame, delivery d) {
   return true;
 }
 
-std::size_t server::send_many(std::span<const outgoing_frame> frames) {
-  auto& m = *impl_;
+std::size_t server::send_many(std::span<const outgoing_frame> frames) { return impl_->send_many(frames); }
+
+std::size_t server::send_many_moved(std::span<outgoing_frame> frames) { return impl_->send_many(frames); }
+
+template <class Frames>
+std::size_t server::impl::send_many(Frames frames) {
+  auto& m = *this;
   // Per thread, reused: the sessions of the frames, then those their lanes must be told of.
   thread_local std::vector<std::shared_ptr<session>> targets, ready;
   targets.clear();
@@ -1549,9 +1623,20 @@ std::size_t server::send_many(std::span<const outgoing_frame> frames) {
   std::size_t sent = 0;
   ready.clear();
   for (std::size_t i = 0; i < frames.size(); ++i) {
-    if (!targets[i]) continue;
+    if (!targets[i]) {
+      if constexpr (!std::is_const_v<typename Frames::element_type>) frames[i].frame = {};
+      continue;
+    }
     ++sent;
-    if (targets[i]->enqueue(frames[i].frame, frames[i].kind)) ready.push_back(std::move(targets[i]));
+    // A span of non-const frames is taken (moved from), so no count is touched for a copy.
+    auto frame = [&]() -> decltype(auto) {
+      if constexpr (std::is_const_v<typename Frames::element_type>) {
+        return frames[i].frame;
+      } else {
+        return std::move(frames[i].frame);
+      }
+    };
+    if (targets[i]->enqueue(frame(), frames[i].kind)) ready.push_back(std::move(targets[i]));
   }
   targets.clear();
   // One append per lane (few lanes: a pass over the list for each lane that has a session in it).

@@ -166,26 +166,53 @@ class shared_frame {
 /// A shared frame holding a copy of `frame` (one allocation).
 [[nodiscard]] shared_frame make_shared_frame(std::span<const std::uint8_t> frame);
 
-/// Shared frames carved out of larger blocks: one allocation (and, once every frame of it is
-/// written, one free) per block_bytes of frames instead of one per frame. For one thread (each
-/// replication worker has its own); the frames it makes are ordinary shared frames, safe on any
-/// thread, and they outlive the arena. The frames are freed by the I/O threads, which made
-/// glibc's malloc take the allocating thread's arena lock on every free (their tcache fills up:
-/// they never allocate frames), against the worker's own mallocs. A block stays allocated while
-/// any frame of it is queued; a frame over a quarter of a block gets its own allocation.
+/// Shared frames carved out of larger blocks, for one thread (each replication worker has its
+/// own); the frames it makes are ordinary shared frames, safe on any thread, and they outlive the
+/// arena. A frame is either copied in (make) or written in place: reserve() gives room in the
+/// current block, the caller writes the frame there (tick_update_writer::finish_into), and
+/// commit() makes the frame of it, with no copy. A block is shared by its frames (one reference
+/// count) and the arena; once every frame of a block has been written and released, the arena
+/// takes the block again (no allocation and no free in the steady state: the I/O threads, which
+/// release the frames, never free a block the workers allocated while it is in use, which made
+/// glibc's malloc take the allocating thread's arena lock on every free). The arena keeps at most
+/// max_spare earlier blocks; when frames hold every one of them (slow clients), it lets go of one
+/// in turn (freed by its last frame). A frame over a quarter of a block gets its own allocation.
 class frame_arena {
  public:
-  static constexpr std::size_t default_block_bytes = 16 * 1024;
-  explicit frame_arena(std::size_t block_bytes = default_block_bytes) : block_bytes_(block_bytes) {}
+  static constexpr std::size_t default_block_bytes = 64 * 1024;
+  static constexpr std::size_t max_spare = 64;
+  explicit frame_arena(std::size_t block_bytes = default_block_bytes);
+  /// A copy of `frame` (reserve, copy, commit).
   [[nodiscard]] shared_frame make(std::span<const std::uint8_t> frame);
-  /// Blocks allocated so far (tests, statistics).
+  /// Room for a frame of up to `bytes` bytes, 8-byte aligned, valid until the next reserve(),
+  /// make() or commit(): write the frame there, then commit() it. Nothing is taken until then.
+  [[nodiscard]] std::span<std::uint8_t> reserve(std::size_t bytes);
+  /// The frame written into the last reservation: its first `bytes` bytes (at most the
+  /// reservation's size; throws std::logic_error without one).
+  [[nodiscard]] shared_frame commit(std::size_t bytes);
+  /// Whether `frame` lies in the last reservation, from its start (then commit(frame.size())).
+  [[nodiscard]] bool in_reservation(std::span<const std::uint8_t> frame) const {
+    return reserved_ != nullptr && frame.data() == reserved_ && frame.size() <= reserved_bytes_;
+  }
+  /// Blocks allocated so far (tests, statistics); blocks taken again are not counted.
   [[nodiscard]] std::uint64_t blocks() const { return blocks_; }
+  /// Blocks taken again after their frames were released.
+  [[nodiscard]] std::uint64_t reused() const { return reused_; }
+  /// Frames that got their own allocation (over a quarter of a block).
+  [[nodiscard]] std::uint64_t large() const { return large_; }
 
  private:
+  /// A fresh current block: a spare one whose frames are all released, or a new one.
+  void next_block();
   std::size_t block_bytes_;
-  std::shared_ptr<std::uint8_t[]> block_;
+  std::shared_ptr<std::uint8_t[]> block_;  // the current block (aliases a uint64_t array: 8-byte aligned)
   std::size_t used_ = 0;
-  std::uint64_t blocks_ = 0;
+  std::vector<std::shared_ptr<std::uint8_t[]>> spare_;  // earlier blocks
+  std::size_t spare_head_ = 0;  // the one let go of next when all are held
+  std::shared_ptr<std::uint8_t[]> own_;  // the reservation of a large frame
+  std::uint8_t* reserved_ = nullptr;
+  std::size_t reserved_bytes_ = 0;
+  std::uint64_t blocks_ = 0, reused_ = 0, large_ = 0;
 };
 
 enum class delivery : std::uint8_t {
@@ -270,6 +297,9 @@ class server {
   /// went to a session that is open (the others are gone and skipped). The replication workers
   /// hand over a chunk of clients' frames at a time this way.
   std::size_t send_many(std::span<const outgoing_frame> frames);
+  /// send_many(), taking the frames (each slot's frame is left null): no reference count is
+  /// touched for a copy of each frame (the zone server's replication workers hand theirs over so).
+  std::size_t send_many_moved(std::span<outgoing_frame> frames);
   /// The session's state backlog: state frames sent to it (send) and neither written to its
   /// socket nor dropped yet. Read it (any thread, relaxed) to pace a client to what it absorbs:
   /// a game that builds no new state frame while the backlog is at a bound never overflows the

@@ -48,6 +48,7 @@ std::optional<std::string> validate(const zone_config& c) {
   if (!(c.boss_footprint >= 0 && std::isfinite(c.boss_footprint))) return bad("boss-footprint must be >= 0");
   if (c.io_threads == 0) return bad("io-threads must be >= 1");
   if (c.io_nice < 0 || c.io_nice > 19) return bad("io-nice must be 0 .. 19");
+  if (c.viewer_nice < 0 || c.viewer_nice > 19) return bad("viewer-nice must be 0 .. 19");
   static const char* batchings[] = {"auto", "io_uring", "sendmsg"};  // net::parse_write_batching
   if (std::find(std::begin(batchings), std::end(batchings), c.write_batching) == std::end(batchings)) {
     return bad("write-batching must be auto, io_uring or sendmsg");
@@ -120,8 +121,9 @@ std::optional<std::string> validate(const zone_config& c) {
 }
 
 unsigned worker_spin(const zone_config& c) {
-  if (c.worker_spin_us >= 0) return static_cast<unsigned>(c.worker_spin_us);
-  return std::thread::hardware_concurrency() >= 8 ? 1000u : 0u;
+  // Auto (-1) was 1000 us on 8+ hardware threads until issue 22: the spin did not pay there
+  // either (docs/zone-benchmarks.md, "The pool's idle spin").
+  return c.worker_spin_us > 0 ? static_cast<unsigned>(c.worker_spin_us) : 0u;
 }
 
 config_result parse_config(int argc, const char* const* argv) {
@@ -145,7 +147,7 @@ config_result parse_config(int argc, const char* const* argv) {
       ("tick-rate", po::value(&c.tick_rate_hz)->default_value(c.tick_rate_hz), "ticks per second")      //
       ("seed", po::value(&c.seed)->default_value(c.seed), "seed of the NPC population and behaviours")  //
       ("threads", po::value(&c.worker_threads)->default_value(c.worker_threads), "worker threads (0 = all cores)")  //
-      ("worker-spin-us", po::value(&c.worker_spin_us)->default_value(c.worker_spin_us), "microseconds an idle worker spins before it sleeps, and how early the loop wakes the workers before a tick (-1 = auto: 1000 with 8 or more hardware threads, else 0)");
+      ("worker-spin-us", po::value(&c.worker_spin_us)->default_value(c.worker_spin_us), "microseconds an idle worker spins before it sleeps, and how early the loop wakes the workers before a tick (0 = no spin, the default: it cost more CPU than it saved tick time; -1 = auto, the same)");
   po::options_description interest("Interest");
   interest.add_options()                                                                                     //
       ("finder", po::value(&c.finder)->default_value(c.finder), "pair finder: auto (chosen per tick from the box statistics: GPU when usable, else CPU), cpu, gpu (= pbig), pbig, lbvh, brute")  //
@@ -226,7 +228,8 @@ config_result parse_config(int argc, const char* const* argv) {
       ("viewer", po::value(&c.viewer_enabled)->default_value(c.viewer_enabled), "serve the live viewer at /viewer beside /metrics (0 or 1; needs --metrics 1)")  //
       ("viewer-remote", po::value(&c.viewer_remote)->default_value(c.viewer_remote), "serve the viewer to peers that are not on a loopback address too (0 or 1)")  //
       ("max-viewers", po::value(&c.max_viewers)->default_value(c.max_viewers), "viewer pages at once (more are refused)")  //
-      ("viewer-hz", po::value(&c.viewer_hz)->default_value(c.viewer_hz), "snapshots a second sent to viewer pages (at most the tick rate)");
+      ("viewer-hz", po::value(&c.viewer_hz)->default_value(c.viewer_hz), "snapshots a second sent to viewer pages (at most the tick rate)")  //
+      ("viewer-nice", po::value(&c.viewer_nice)->default_value(c.viewer_nice), "nice value of the viewer's thread, 0-19 (it encodes and writes every page's frames; 19: the tick's threads take a shared core back at once)");
   po::options_description correctness("Correctness (docs/bots.md)");
   correctness.add_options()  //
       ("oracle", po::bool_switch(&c.oracle), "publish every tick's ground truth (entities, boxes, classes) on a loopback stream for an independent oracle (bot-swarm --oracle); off by default, and costs nothing when off")  //
