@@ -100,6 +100,27 @@ struct server_options {
   /// longest is closed (error server_full) to admit the new one. One address thus holds at most
   /// this many, and a player behind it (NAT) who says hello at once still gets in.
   std::size_t max_pending_per_address = 256;
+  /// Reconnect churn per source address (a token bucket per IPv4 address or IPv6 /64): each
+  /// connection that ends less than `connect_min_session` after its accept (it never said hello,
+  /// was refused or cut off, or left soon after joining) takes a token from its address's bucket,
+  /// which refills at `connect_rate` per second up to `connect_burst` and may run into debt down to
+  /// a minute of refill (so a wave of connections opened at once is paid for afterwards). While the
+  /// bucket holds less than one token, a new connection from that address is refused at accept:
+  /// one pre-encoded error rate_limited frame written without waiting, then closed: no session, no
+  /// pending entry, no join, no log line (counted in connections_rate_limited; the server logs one
+  /// summary line at most every 10 s). Connections that stay cost nothing, so a load-test swarm that
+  /// ramps thousands of bots from one host, or players behind one NAT, are never limited; a client
+  /// that reconnects as fast as it is cut off gets `connect_rate` sessions a second. 0 = no limit.
+  double connect_rate = 20;
+  double connect_burst = 64;
+  std::chrono::milliseconds connect_min_session{10000};
+  /// A connection refused for reconnect churn is held this long before its answer (error
+  /// rate_limited, then a reset), unread: a client that waits for an answer before it tries again
+  /// tries once per hold instead of as fast as the server can refuse (tens of thousands a second
+  /// on loopback, each an accept and a close). At most 64 held per address (a newer one releases
+  /// that address's oldest) and 512 in all, fewer where the open-file limit leaves less beside
+  /// max_connections and max_pending (beyond, answered at once). 0 = answered at once.
+  std::chrono::milliseconds connect_refusal_hold{2000};
   /// Longest player name in bytes; a name must be 1 .. max_name_bytes printable ASCII characters
   /// (0x20-0x7E) without leading or trailing spaces (error bad_hello otherwise).
   std::size_t max_name_bytes = 32;
@@ -212,13 +233,16 @@ struct outgoing_frame {
 
 /// Counters (monotonic, thread-safe snapshot).
 struct server_stats {
-  std::uint64_t connections_accepted = 0;  ///< TCP connections taken from the backlog (pending until hello)
+  std::uint64_t connections_accepted = 0;  ///< TCP connections taken from the backlog and admitted (pending until hello; not those refused at accept)
   std::uint64_t connections_refused = 0;  ///< hellos over max_connections (error server_full)
   std::uint64_t sessions_open = 0;        ///< sessions that said hello and are open (player slots held)
   std::uint64_t pending_open = 0;         ///< connections open that have not said hello yet
   std::uint64_t pending_evicted_address = 0;  ///< pending connections closed for a newer one from their address (max_pending_per_address)
   std::uint64_t pending_evicted = 0;      ///< pending connections closed for a newer one (max_pending)
   std::uint64_t hello_timeouts = 0;       ///< pending connections closed at hello_timeout
+  std::uint64_t connections_rate_limited = 0;  ///< connections refused at accept: their address's reconnect churn was over connect_rate
+  std::uint64_t connections_charged = 0;  ///< connections that ended within connect_min_session of their accept (took a token)
+  std::uint64_t pending_spared = 0;       ///< at a pending cap, connections not evicted because their first bytes (a hello) waited unread
   std::uint64_t hellos_rejected = 0;      ///< hellos with a bad name (error bad_hello)
   std::uint64_t idle_timeouts = 0;        ///< sessions closed at idle_timeout
   std::uint64_t rate_limited = 0;         ///< sessions closed for flooding (error rate_limited)

@@ -98,6 +98,14 @@ struct zone_config {
   double hello_timeout_s = 3;
   std::size_t max_pending = 1024;
   std::size_t max_pending_per_address = 256;
+  /// Reconnect churn per source address (net::server_options::connect_rate): connections that end
+  /// within connect_min_session_s of their accept take a token from their address's bucket
+  /// (connect_rate a second, burst connect_burst); an address without a token is refused at
+  /// accept. Connections that stay cost nothing. connect_rate 0 = no limit.
+  double connect_rate = 20;
+  double connect_burst = 64;
+  double connect_min_session_s = 10;
+  double connect_refusal_hold_s = 2;  ///< a refused connection is held unanswered this long (0 = answered at once)
   std::size_t max_name_bytes = 32;  ///< longest player name (printable ASCII)
   double idle_timeout_s = 10;       ///< a player that sends no complete frame this long is closed
   /// Seconds between the info-level summary of joins, leaves and refusals (per-session lines are
@@ -161,6 +169,7 @@ struct zone_config {
   bool viewer_remote = false;    ///< also to peers that are not on a loopback address
   std::size_t max_viewers = 4;   ///< viewer pages at once
   double viewer_hz = 10;         ///< snapshots a second while a page is open (at most the tick rate)
+  int viewer_nice = 19;          ///< nice value of the viewer's thread (0-19; net::viewer_options::nice)
   // Correctness (docs/bots.md, the oracle).
   /// Publish every tick's ground truth on a loopback stream (127.0.0.1:oracle_port; 0 = an
   /// ephemeral port, told in the welcome): what an independent oracle checks each client's view

@@ -1,14 +1,20 @@
 // The Asio server over loopback with real sockets: handshake and broadcast, pings, game-initiated
 // disconnects, hostile clients (garbage, oversize, unknown type, wrong direction, input before
 // hello, input flood) cut off while a good client keeps receiving every update, a slow client
-// whose bounded queue keeps the newest state, the connection limit and the idle timeout.
+// whose bounded queue keeps the newest state, the connection limit and the idle timeout; admission:
+// the pending caps (sparing a connection whose hello waits unread), the hello deadline, and the
+// per-address limit on reconnect churn (refusal at accept, debt, the hold).
 #include <doctest/doctest.h>
 
 #include "../common/seeds.h"
 
+#include <sys/wait.h>
+#include <unistd.h>
+
 #include <algorithm>
 #include <atomic>
 #include <cerrno>
+#include <csignal>
 #include <cstring>
 #include <deque>
 #include <map>
@@ -295,6 +301,9 @@ TEST_SUITE("net.server") {
       hostiles.push_back({"teleport flood", f, error_code::rate_limited, true, "input flood", true});
     }
 
+    // The good client is being served when the hostiles come (however slowly this machine runs
+    // the ticker: the hostiles' turn is over in milliseconds when nothing else runs).
+    REQUIRE(g.wait_for([&] { return ticks_sent >= 5; }, 30000ms));
     std::vector<std::unique_ptr<test_client>> clients;
     for (const auto& h : hostiles) {
       clients.push_back(std::make_unique<test_client>(srv.port()));
@@ -314,8 +323,10 @@ TEST_SUITE("net.server") {
         CHECK(got_error);
       }
     }
-    // The good client is still served: it keeps receiving in order, with nothing missing.
-    std::this_thread::sleep_for(50ms);
+    // The good client is still served: it keeps receiving in order, with nothing missing (ticks
+    // go on after the last hostile is gone).
+    const std::uint64_t at_end = ticks_sent;
+    REQUIRE(g.wait_for([&] { return ticks_sent >= at_end + 5; }, 30000ms));
     REQUIRE(good.send(input_msg{1, {1, 0, 0}}));
     ticking = false;
     ticker.join();
@@ -329,7 +340,6 @@ TEST_SUITE("net.server") {
       ++expect;
     }
     CHECK_FALSE(good.closed());
-    CHECK(sent > 10);
 
     // Every hostile past its hello left the game with its reason (the others the game never
     // heard of); the rejected frames and dropped inputs are counted.
@@ -406,7 +416,7 @@ TEST_SUITE("net.server") {
       resync_resets += u.reset && u.server_tick > 0 ? 1 : 0;
     };
     std::thread reader([&] {
-      while (auto m = slow.read(2000ms)) {
+      while (auto m = slow.read(10000ms)) {
         take(*m);
         if (last >= 3200) break;  // served again, well after the stall
       }
@@ -610,24 +620,33 @@ TEST_SUITE("net.server") {
       resets += u.reset ? 1 : 0;
       ++received;
     };
-    const auto until = std::chrono::steady_clock::now() + 1500ms;
+    // 1.5 s at least, and until the drop policy has run (at most 30 s): each round reads 3
+    // messages, then waits for the game to send 12 more frames, so the reader is slower than the
+    // game however the machine shares its cores between them.
+    const auto until = std::chrono::steady_clock::now() + 1500ms, deadline = until + 30000ms;
     std::uint64_t pings = 0;
-    while (std::chrono::steady_clock::now() < until) {
+    while (std::chrono::steady_clock::now() < until ||
+           (srv.stats().frames_dropped == 0 && std::chrono::steady_clock::now() < deadline)) {
       REQUIRE(c.send(ping_msg{++pings}));
       for (int k = 0; k < 3; ++k) {
         if (auto m = c.read(50ms)) take(*m);
       }
-      std::this_thread::sleep_for(2ms);  // slower than the game: drops and resyncs
+      const std::uint64_t target = sent + 12;
+      while (sent < target && std::chrono::steady_clock::now() < deadline) std::this_thread::sleep_for(1ms);
     }
     stop = true;
     game_thread.join();
-    // Drain: everything sent was delivered or counted as dropped, and every ping answered.
+    // Drain: everything sent was delivered or counted as dropped, and every ping answered, or
+    // counted as dropped where pongs waited unread (half the queue bound of control frames: the
+    // server's guard against a client that pings but does not read; a slow reader on a busy
+    // machine meets it now and then).
     const bool accounted = g.wait_for([&] {
       while (auto m = c.read(50ms)) take(*m);
-      return received + srv.stats().frames_dropped == sent && pongs == pings;
-    }, 5000ms);
+      return received + srv.stats().frames_dropped == sent && pongs + srv.stats().pings_dropped == pings;
+    }, 10000ms);
     CHECK_MESSAGE(accounted, "sent " << sent.load() << ", received " << received << ", dropped " << srv.stats().frames_dropped
-                                      << ", pings " << pings << ", pongs " << pongs);
+                                      << ", pings " << pings << ", pongs " << pongs << ", pings dropped " << srv.stats().pings_dropped);
+    CHECK(srv.stats().pings_answered == pongs);
     CHECK(bad == 0);
     CHECK(srv.stats().frames_dropped > 0);  // the reader was slow: the drop policy ran
     CHECK(resets >= 1);                     // the first frame (or the resync that superseded it)
@@ -1128,6 +1147,7 @@ TEST_SUITE("net.server") {
 
   TEST_CASE("admission: 1,000 half-open and dripping connections from one address; a player joins at once; each closed by the hello deadline") {
     server_options opt;  // the default caps (256 pending per address, 1,024 in all)
+    opt.connect_rate = 0;  // the caps alone (the 744 evicted would spend the address's reconnect churn: tested below)
     opt.max_connections = 4;
     opt.hello_timeout = 1000ms;
     started run(opt);
@@ -1209,6 +1229,260 @@ TEST_SUITE("net.server") {
     CHECK(srv.stats().pending_evicted == 1);
     CHECK(srv.stats().pending_open == 7);
     for (std::size_t i = 1; i < idle.size(); ++i) CHECK_FALSE(idle[i]->closed());
+  }
+
+  TEST_CASE("admission: reconnect churn per address: short connections spend the burst, then that address is refused at accept until it refills; connections that stay cost nothing") {
+    server_options opt;
+    opt.connect_rate = 0.5;  // a token every 2 s
+    opt.connect_burst = 3;
+    opt.connect_min_session = 600ms;
+    opt.connect_refusal_hold = 0ms;  // answered at once (the hold: below)
+    started run(opt);
+    auto& srv = run.srv;
+    auto& g = run.g;
+    // Five players from 127.0.0.3, more than the burst, all at once: none has ended, none is charged.
+    std::vector<std::unique_ptr<test_client>> stayers;
+    const auto t_stayers = std::chrono::steady_clock::now();
+    for (int i = 0; i < 5; ++i) {
+      stayers.push_back(std::make_unique<test_client>(srv.port(), 0, 0x7f000003));
+      join(g, *stayers.back(), "stayer" + std::to_string(i));
+    }
+    // Three from 127.0.0.1 join and leave at once: each takes a token.
+    for (int i = 0; i < 3; ++i) {
+      auto c = std::make_unique<test_client>(srv.port());
+      join(g, *c, "short" + std::to_string(i));
+      c.reset();
+      REQUIRE(g.wait_for([&] { return g.count(inbound_event::kind::disconnected) == static_cast<std::size_t>(i + 1); }));
+    }
+    const auto t_spent = std::chrono::steady_clock::now();
+    CHECK(srv.stats().connections_charged == 3);
+    const auto accepted = srv.stats().connections_accepted;
+    CHECK(accepted == 8);
+    // The fourth from 127.0.0.1 (within the 2 s that refill one token): refused at accept with
+    // error rate_limited; no session, no pending connection, nothing for the game.
+    {
+      test_client refused(srv.port());
+      (void)refused.send(hello_msg{"refused", "", protocol_version});
+      std::vector<message> seen;
+      REQUIRE(refused.wait_closed(3000ms, &seen));
+      REQUIRE(seen.size() == 1);
+      CHECK(is_error(seen[0], error_code::rate_limited));
+    }
+    CHECK(std::chrono::steady_clock::now() - t_spent < 1900ms);  // else the bucket may have refilled: the check above proves nothing
+    auto st = srv.stats();
+    CHECK(st.connections_rate_limited == 1);
+    CHECK(st.connections_accepted == accepted);
+    CHECK(st.pending_open == 0);
+    CHECK(g.hello_session("refused") == 0);
+    CHECK(g.count(inbound_event::kind::connected) == 8);
+    // Another address is not affected.
+    test_client other(srv.port(), 0, 0x7f000002);
+    join(g, other, "other");
+    // The players that stayed longer than connect_min_session leave: still no token taken.
+    std::this_thread::sleep_until(t_stayers + opt.connect_min_session + 50ms);
+    stayers.clear();
+    REQUIRE(g.wait_for([&] { return g.count(inbound_event::kind::disconnected) == 8; }));
+    CHECK(srv.stats().connections_charged == 3);
+    // A token later, 127.0.0.1 is served again.
+    std::this_thread::sleep_until(t_spent + 2100ms);
+    test_client again(srv.port());
+    join(g, again, "again");
+    st = srv.stats();
+    CHECK(st.connections_rate_limited == 1);
+    CHECK(st.connections_accepted == accepted + 2);
+  }
+
+  TEST_CASE("admission: reconnect churn: a wave of connections opened at once is paid for after they end; a cut-off flooder is charged like a leaver; 0 = no limit") {
+    SUBCASE("a wave: debt") {
+      server_options opt;
+      opt.connect_rate = 2;
+      opt.connect_burst = 2;
+      opt.connect_refusal_hold = 0ms;
+      started run(opt);
+      auto& srv = run.srv;
+      auto& g = run.g;
+      {
+        std::vector<std::unique_ptr<test_client>> wave;
+        for (int i = 0; i < 6; ++i) wave.push_back(std::make_unique<test_client>(srv.port()));  // all admitted: none has ended
+        REQUIRE(g.wait_for([&] { return srv.stats().pending_open == 6; }));
+      }
+      REQUIRE(g.wait_for([&] { return srv.stats().connections_charged == 6; }));
+      // 2 - 6 = 4 tokens in debt: 2.5 s at 2 a second until the next token; refused meanwhile.
+      const auto t_spent = std::chrono::steady_clock::now();
+      for (int i = 0; i < 3; ++i) {
+        test_client c(srv.port());
+        std::vector<message> seen;
+        REQUIRE(c.wait_closed(3000ms, &seen));
+        REQUIRE(seen.size() == 1);
+        CHECK(is_error(seen[0], error_code::rate_limited));
+        std::this_thread::sleep_for(300ms);
+      }
+      CHECK(std::chrono::steady_clock::now() - t_spent < 2000ms);
+      CHECK(srv.stats().connections_rate_limited == 3);
+      CHECK(srv.stats().connections_accepted == 6);
+    }
+    SUBCASE("flooders cut off with rate_limited take a token each; then the address is refused at accept") {
+      server_options opt;
+      opt.connect_rate = 0.5;
+      opt.connect_burst = 2;
+      opt.connect_refusal_hold = 0ms;
+      opt.pings_per_second = 1;
+      opt.ping_burst = 1;
+      opt.flood_limit = 5;
+      started run(opt);
+      auto& srv = run.srv;
+      auto& g = run.g;
+      std::vector<std::uint8_t> pings;
+      for (std::uint64_t i = 0; i < 50; ++i) {
+        const auto f = encode_frame(ping_msg{i});
+        pings.insert(pings.end(), f.begin(), f.end());
+      }
+      for (int i = 0; i < 2; ++i) {
+        test_client flooder(srv.port());
+        join(g, flooder, "flooder" + std::to_string(i));
+        (void)flooder.send_bytes(pings);
+        std::vector<message> seen;
+        REQUIRE(flooder.wait_closed(3000ms, &seen));
+        REQUIRE_FALSE(seen.empty());
+        CHECK(is_error(seen.back(), error_code::rate_limited));
+      }
+      REQUIRE(g.wait_for([&] { return srv.stats().connections_charged == 2; }));
+      CHECK(srv.stats().rate_limited == 2);
+      test_client third(srv.port());
+      (void)third.send(hello_msg{"flooder2", "", protocol_version});
+      std::vector<message> seen;
+      REQUIRE(third.wait_closed(3000ms, &seen));
+      REQUIRE(seen.size() == 1);
+      CHECK(is_error(seen[0], error_code::rate_limited));
+      CHECK(srv.stats().connections_rate_limited == 1);
+      CHECK(g.hello_session("flooder2") == 0);
+    }
+    SUBCASE("connect_rate 0: no limit") {
+      server_options opt;
+      opt.connect_rate = 0;
+      opt.connect_burst = 1;
+      started run(opt);
+      auto& srv = run.srv;
+      auto& g = run.g;
+      for (int i = 0; i < 20; ++i) {
+        test_client c(srv.port());
+        join(g, c, "c" + std::to_string(i));
+      }
+      REQUIRE(g.wait_for([&] { return g.count(inbound_event::kind::disconnected) == 20; }));
+      CHECK(srv.stats().connections_rate_limited == 0);
+      CHECK(srv.stats().connections_charged == 0);
+      CHECK(srv.stats().connections_accepted == 20);
+    }
+  }
+
+  TEST_CASE("admission: a connection refused for reconnect churn is held unanswered for the hold, at most 64 per address") {
+    server_options opt;
+    opt.connect_rate = 0.2;
+    opt.connect_burst = 1;
+    opt.connect_refusal_hold = 2500ms;
+    started run(opt);
+    auto& srv = run.srv;
+    auto& g = run.g;
+    {
+      test_client c(srv.port());
+      join(g, c, "short");
+    }
+    REQUIRE(g.wait_for([&] { return srv.stats().connections_charged == 1; }));
+    // 70 more from the same address, all refused: the first 6 are answered as soon as a newer one
+    // takes their place (64 held per address), the other 64 at the end of the hold.
+    const auto t0 = std::chrono::steady_clock::now();
+    std::vector<std::unique_ptr<test_client>> refused;
+    for (int i = 0; i < 70; ++i) {
+      refused.push_back(std::make_unique<test_client>(srv.port()));
+      (void)refused.back()->send(hello_msg{"r" + std::to_string(i), "", protocol_version});
+    }
+    REQUIRE(g.wait_for([&] { return srv.stats().connections_rate_limited == 70; }));
+    for (int i = 0; i < 6; ++i) {
+      std::vector<message> seen;
+      CHECK(refused[static_cast<std::size_t>(i)]->wait_closed(1000ms, &seen));
+      REQUIRE(seen.size() == 1);
+      CHECK(is_error(seen[0], error_code::rate_limited));
+    }
+    CHECK(std::chrono::steady_clock::now() - t0 < 2300ms);  // else the checks above might have seen the hold's end
+    CHECK_FALSE(refused[6]->wait_closed(100ms));
+    CHECK_FALSE(refused[69]->wait_closed(10ms));
+    for (int i = 6; i < 70; ++i) {
+      std::vector<message> seen;
+      CHECK(refused[static_cast<std::size_t>(i)]->wait_closed(4000ms, &seen));
+      REQUIRE(seen.size() == 1);
+      CHECK(is_error(seen[0], error_code::rate_limited));
+    }
+    const double waited_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+    CHECK(waited_ms >= 2400);  // held for the hold (2,500 ms from each accept, after t0)
+    const auto st = srv.stats();
+    CHECK(st.connections_accepted == 1);
+    CHECK(st.pending_open == 0);
+    CHECK(g.count(inbound_event::kind::connected) == 1);
+  }
+
+  TEST_CASE("admission: at a pending cap, a connection whose hello waits unread is not the one evicted") {
+    // The server runs in a child process that is stopped (SIGSTOP) while the connections below
+    // wait in its listen backlog, so that on SIGCONT it accepts them all in one batch before its
+    // I/O thread reads any: the player's hello (and a ping) is in its socket, unread, when the
+    // later connections reach the cap. Evicting the oldest would close the player with
+    // server_full although it had said hello; the oldest without unread bytes goes instead.
+    for (const bool address_cap : {true, false}) {
+      CAPTURE(address_cap);
+      int port_pipe[2];
+      REQUIRE(::pipe(port_pipe) == 0);
+      const pid_t child = ::fork();
+      REQUIRE(child >= 0);
+      if (child == 0) {
+        ::close(port_pipe[0]);
+        server_options opt;
+        opt.io_threads = 1;
+        opt.connect_rate = 0;
+        opt.max_pending_per_address = address_cap ? 2 : 100;
+        opt.max_pending = address_cap ? 100 : 2;
+        server srv(opt);
+        if (srv.start()) ::_exit(3);
+        const std::uint16_t p = srv.port();
+        if (::write(port_pipe[1], &p, sizeof p) != sizeof p) ::_exit(4);
+        std::vector<inbound_event> events;
+        for (;;) {  // until killed
+          srv.poll(events);
+          events.clear();
+          std::this_thread::sleep_for(2ms);
+        }
+      }
+      ::close(port_pipe[1]);
+      struct reaper {
+        pid_t pid;
+        ~reaper() {
+          ::kill(pid, SIGKILL);
+          ::waitpid(pid, nullptr, 0);
+        }
+      } reap{child};
+      std::uint16_t port = 0;
+      REQUIRE(::read(port_pipe[0], &port, sizeof port) == sizeof port);
+      ::close(port_pipe[0]);
+      REQUIRE(::kill(child, SIGSTOP) == 0);
+      int status = 0;
+      REQUIRE(::waitpid(child, &status, WUNTRACED) == child);
+      REQUIRE(WIFSTOPPED(status));
+      test_client player(port);
+      REQUIRE(player.send(hello_msg{"player", "", protocol_version}));
+      REQUIRE(player.send(ping_msg{7}));
+      const std::uint32_t from = address_cap ? 0 : 0x7f000002;
+      test_client silent1(port, 0, from), silent2(port, 0, from);
+      REQUIRE(::kill(child, SIGCONT) == 0);
+      // The player is served (its pong), and the oldest silent connection made room.
+      const auto m = player.read(3000ms);
+      REQUIRE(m.has_value());
+      REQUIRE(std::holds_alternative<pong_msg>(*m));
+      CHECK(std::get<pong_msg>(*m).client_time_us == 7);
+      std::vector<message> seen;
+      CHECK(silent1.wait_closed(3000ms, &seen));
+      REQUIRE(seen.size() == 1);
+      CHECK(is_error(seen[0], error_code::server_full));
+      CHECK_FALSE(silent2.wait_closed(200ms));
+      CHECK_FALSE(player.closed());
+    }
   }
 
   TEST_CASE("nothing but a hello before the hello: a ping gets no pong but an error") {
