@@ -3,6 +3,7 @@
 // it in-process on an ephemeral port.
 #pragma once
 
+#include <array>
 #include <atomic>
 #include <chrono>
 #include <deque>
@@ -71,6 +72,11 @@ class zone_extension {
   [[nodiscard]] virtual bool owns(entity_id e) const = 0;
   /// An input for an entity handed off (its client has not moved yet): to its new zone.
   virtual void forward_input(entity_id e, const vec3& intent, std::uint32_t sequence) = 0;
+  /// The classes before_step changed of entities that were already here (a ghost whose owner
+  /// switched its visibility, a ghost adopted with another class): appended to `out`, and the
+  /// list cleared. Clients holding them with the old class are resynced after the step, as for
+  /// a player's own switch.
+  virtual void take_class_changes(std::vector<class_change>& out) { (void)out; }
   /// The zone must stop (e.g. it lost its region's lease): the loop ends.
   [[nodiscard]] virtual bool must_stop() const { return false; }
 };
@@ -140,12 +146,9 @@ class zone_server {
   /// Whether the zone allows a player's visibility choice; why not otherwise.
   [[nodiscard]] std::optional<std::string> check_visibility_choice(bool stealth, std::uint8_t team) const;
   /// After the step: every client that may hold an entity whose class changed this tick with its
-  /// old class is resynced (replicator::resync_viewers_of).
+  /// old class is resynced (replicator::resync_viewers_of): players' own switches and, in a
+  /// world, ghosts' (zone_extension::take_class_changes).
   void replicate_class_changes();
-  struct class_change {
-    entity_id entity;
-    std::uint32_t old_class, old_sees;
-  };
   std::vector<class_change> class_changes_;
   /// Records an input's sequence as the client's last when it is newer (RFC 1982 serial-number
   /// order: a sequence 1 .. 2^31 - 1 ahead, wrapping past 2^32); older ones leave it.
@@ -171,7 +174,7 @@ class zone_server {
   /// cfg.viewer_hz and stats twice a second, and takes the pages' selections for the next step.
   void publish_viewer();
   void fill_viewer_snapshot(net::viewer_snapshot& s) const;
-  [[nodiscard]] std::string viewer_stats_json() const;
+  void fill_viewer_stats(net::viewer_stats& s) const;
   /// --test-fault: the client whose frames are broken (the lowest session with an entity).
   void choose_fault_victim();
   /// --test-fault gpu-*: when and how the wrapped GPU engine fails.
@@ -194,19 +197,20 @@ class zone_server {
   std::unique_ptr<net::viewer_server> viewer_;  // before metrics_, which hands it requests
   std::unique_ptr<net::metrics_server> metrics_;
   // The viewer's state on the game thread: the entities watched during the last step (with their
-  // latest events), spare snapshots, and the ticks' phases since the last stats message.
+  // latest events, in a ring: nothing allocated per tick) and the selection they came from.
   struct viewer_watch {
+    static constexpr std::size_t max_events = 64;
     entity_id id = null_entity;
-    std::deque<net::viewer_snapshot::event> events;
+    std::array<net::viewer_snapshot::event, max_events> events{};
+    std::size_t first = 0, count = 0;  // the oldest event's place in `events`, how many
+    void add(const net::viewer_snapshot::event& e) {
+      events[(first + count) % max_events] = e;
+      if (count < max_events) ++count; else first = (first + 1) % max_events;
+    }
   };
   std::vector<viewer_watch> viewer_watch_;
   std::vector<entity_id> viewer_watch_ids_;
-  std::vector<std::shared_ptr<net::viewer_snapshot>> viewer_spares_;
-  struct tick_sample {
-    std::uint64_t tick = 0;
-    double inputs = 0, behaviours = 0, integrate = 0, interest = 0, replicate = 0, viewer = 0, total = 0;
-  };
-  std::vector<tick_sample> viewer_ticks_;
+  std::uint64_t viewer_selection_version_ = 0;
   double viewer_ms_ = 0;  // the last tick's publish_viewer
   std::chrono::steady_clock::time_point next_viewer_stats_{};
   std::unique_ptr<truth_publisher> truth_;  // --oracle
