@@ -237,7 +237,7 @@ def main():
     ap.add_argument("--label", default="", help="a label for the printed table")
     ap.add_argument("--bootstrap", type=int, default=2000, help="bootstrap resamples for the intervals")
     ap.add_argument("--client-nice", type=int, default=0,
-                    help="nice value of this script (the viewer socket's client) once the server runs (0: unchanged)")
+                    help="nice value (absolute) of this script, the viewer socket's client, once the server runs (0: unchanged)")
     a = ap.parse_args()
     if a.rounds < 1 or a.phase_s <= 0 or a.npcs < 0 or a.viewers < 1 or a.bootstrap < 0 or not 0 <= a.client_nice <= 19:
         ap.error("rounds >= 1, phase-s > 0, npcs >= 0, viewers >= 1, bootstrap >= 0, client-nice 0..19")
@@ -278,7 +278,7 @@ def main():
                 time.sleep(0.05)
         now = lambda: time.monotonic() - t_start
         if a.client_nice:
-            os.nice(a.client_nice)
+            os.setpriority(os.PRIO_PROCESS, 0, a.client_nice)  # this process only (the server runs already)
         time.sleep(a.warmup_s)
         phases = []  # (round, open, t0, t1)
         viewer_ms, frames, nbytes = [], 0, 0
