@@ -11,7 +11,7 @@
 #include <sstream>
 
 #include "interest/measure.h"
-#include "os_limits.h"
+#include "net/os_limits.h"
 #include "swarm.h"
 
 namespace {

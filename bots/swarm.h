@@ -11,7 +11,7 @@
 #include <vector>
 
 #include "oracle.h"
-#include "protocol.h"
+#include "net/protocol.h"
 
 namespace zone::bots {
 

@@ -3,10 +3,10 @@
 
 #include "gpu/device_fault.h"
 #include "engine_faults.h"
-#include "finders.h"
+#include "gpu/finders.h"
 #include "interest/measure.h"
-#include "replication.h"
-#include "visibility.h"
+#include "gpu/replication.h"
+#include "gpu/visibility.h"
 
 #include <spdlog/spdlog.h>
 

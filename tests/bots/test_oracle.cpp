@@ -9,9 +9,9 @@
 
 #include <random>
 
-#include "oracle.h"
-#include "truth.h"
-#include "zone.h"
+#include "bots/oracle.h"
+#include "net/truth.h"
+#include "zone/zone.h"
 
 using namespace zone;
 namespace cb = interest::category_bits;

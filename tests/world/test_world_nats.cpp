@@ -15,7 +15,7 @@
 
 #include "../bots/process.h"
 #include "../common/seeds.h"
-#include "nats_node.h"
+#include "world/nats_node.h"
 
 using namespace zone;
 using namespace zone::world;

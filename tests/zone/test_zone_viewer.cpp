@@ -9,8 +9,8 @@
 #include <optional>
 #include <set>
 
-#include "ws_client.h"
-#include "zone_server.h"
+#include "tests/net/ws_client.h"
+#include "zone/zone_server.h"
 
 using namespace zone;
 using zone::net::testing::at;
