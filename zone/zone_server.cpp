@@ -218,10 +218,10 @@ std::string zone_server::metrics_text() const {
     std::vector<double> bounds;
     std::vector<std::uint64_t> cumulative;
     std::uint64_t seen = 0;
-    for (int b = 0; b < latency_histogram::bucket_count; ++b) {
+    for (int b = 0; b < latency_histogram::buckets; ++b) {
       seen += h.bucket(b);
       if (b % 4 == 3) {
-        bounds.push_back(latency_histogram::bucket_upper_ms(b) / 1000.0);
+        bounds.push_back(latency_histogram::bucket_upper(b) / 1000.0);
         cumulative.push_back(seen);
       }
     }
