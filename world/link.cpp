@@ -457,6 +457,13 @@ int zone_link::neighbour_index(std::uint32_t region) const {
   return -1;
 }
 
+void zone_link::set_classes(entity_store& st, std::size_t dense, entity_id id, std::uint32_t cls, std::uint32_t sees) {
+  const std::uint32_t old_class = st.visibility_classes()[dense], old_sees = st.sees()[dense];
+  if (old_class == cls && old_sees == sees) return;
+  // Only a valid change is applied (and recorded): a bad one leaves the entity as it was.
+  if (st.set_visibility(id, cls, sees)) class_changes_.push_back({id, old_class, old_sees});
+}
+
 void zone_link::place_ghost(zone_world& w, const ghost_entry& e, unsigned source) {
   const net::vec3f p = quantizer_.dequantize(e.position);
   const vec3 at{p.x, p.y, p.z};
@@ -479,9 +486,7 @@ void zone_link::place_ghost(zone_world& w, const ghost_entry& e, unsigned source
     st.set_position(have, at);
     if (!(st.aoi_half_extents()[k] == aoi)) st.set_aoi_half_extent(have, aoi);
     if (!(st.presence_half_extents()[k] == pres)) st.set_presence_half_extent(have, pres);
-    if (st.visibility_classes()[k] != e.visibility_class || st.sees()[k] != e.sees) {
-      st.set_visibility(have, e.visibility_class, e.sees);
-    }
+    set_classes(st, k, have, e.visibility_class, e.sees);
     return;
   }
   entity_desc d;
@@ -597,7 +602,7 @@ handoff_status zone_link::apply_handoff(zone_world& w, const handoff_record& r, 
     st.set_velocity(id, r.desc.velocity);
     st.set_aoi_half_extent(id, r.desc.aoi_half_extent);
     st.set_presence_half_extent(id, r.desc.presence_half_extent);
-    st.set_visibility(id, r.desc.visibility_class, r.desc.sees);
+    set_classes(st, st.index_of(id), id, r.desc.visibility_class, r.desc.sees);
     w.set_behaviour_state(id, r.behaviour);
     i->what = role::owned;
     i->claims = i->owner_claims = 0;

@@ -506,6 +506,11 @@ void nats_node::before_step(zone_world& w) {
   if (early_inputs_.size() > 100000) early_inputs_.clear();
 }
 
+void nats_node::take_class_changes(std::vector<class_change>& out) {
+  const auto changed = link_->take_class_changes();
+  out.insert(out.end(), changed.begin(), changed.end());
+}
+
 void nats_node::after_step(zone_world& w, std::vector<redirect>& out) {
   tick_ = w.tick();
   link_->assign_ids(w);

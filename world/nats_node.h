@@ -93,6 +93,7 @@ class nats_node final : public zone_extension {
   // zone_extension
   void started(std::uint16_t port) override;
   void before_step(zone_world& w) override;
+  void take_class_changes(std::vector<class_change>& out) override;
   void after_step(zone_world& w, std::vector<redirect>& out) override;
   claim claim_token(const std::string& token, zone_world& w, entity_id& entity) override;
   [[nodiscard]] bool owns(entity_id e) const override { return link_->owns(e); }

@@ -165,6 +165,11 @@ class zone_link {
   /// Applies a neighbour's ghost message. `gap`: deltas were missed, a snapshot is needed
   /// (snapshot_wanted() names the neighbours to ask); nothing of it applied.
   ghost_status apply_ghosts(zone_world& w, std::span<const std::uint8_t> bytes);
+  /// Entities already here whose visibility class or mask apply_ghosts or apply_handoff changed
+  /// (the owner switched it), with their old values, since the last call; clears the list. The
+  /// zone must resync the clients that hold them (replicator::resync_viewers_of), or they keep
+  /// the class the entity entered their view with.
+  [[nodiscard]] std::vector<class_change> take_class_changes() { return std::exchange(class_changes_, {}); }
   /// Neighbours whose ghosts wait for a snapshot (ask them again every few ticks).
   [[nodiscard]] std::vector<std::uint32_t> snapshot_wanted() const;
   /// A neighbour asked for a snapshot: its next message is one.
@@ -249,6 +254,9 @@ class zone_link {
   std::vector<neighbour_out> out_;
   std::unordered_map<std::uint32_t, neighbour_in> in_;
   std::vector<global_id> departed_;
+  std::vector<class_change> class_changes_;
+  /// set_visibility on an entity already here, the change recorded for take_class_changes.
+  void set_classes(entity_store& st, std::size_t dense, entity_id id, std::uint32_t cls, std::uint32_t sees);
   std::uint32_t next_counter_ = 1;
   std::uint64_t tick_ = 0;  ///< the zone's tick at the last call
   link_stats stats_;

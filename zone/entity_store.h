@@ -37,6 +37,15 @@ using interest::vec3;
 
 enum class entity_kind : std::uint8_t { player, npc, boss };
 
+/// An entity whose visibility class or mask was changed (its values before): a client may hold
+/// it with its old class, so the zone resyncs those clients after the step
+/// (replicator::resync_viewers_of). A player's own set_visibility, and a world's ghost or
+/// handed-off entity whose class its owner changed (world::zone_link), give one.
+struct class_change {
+  entity_id entity = null_entity;
+  std::uint32_t old_class = 0, old_sees = 0;
+};
+
 /// A player's visibility from its choice (docs/zone.md, "Visibility classes and teams"): its
 /// presence class is normal unless stealthed; stealthed, it is its team's class (team_red,
 /// team_blue: seen by that team only) or, without a team, stealth (seen by no player). Its AOI

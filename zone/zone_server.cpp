@@ -46,14 +46,6 @@ net::server_options net_options(const zone_config& c) {
   return o;
 }
 
-/// A 64-bit mix of a session id (splitmix64), for where the session's player spawns.
-std::uint64_t spawn_hash(std::uint64_t z) {
-  z += 0x9e3779b97f4a7c15ull;
-  z = (z ^ (z >> 30)) * 0xbf58476d1ce4e5b9ull;
-  z = (z ^ (z >> 27)) * 0x94d049bb133111ebull;
-  return z ^ (z >> 31);
-}
-
 replication_options replica_options(const zone_config& c) {
   replication_options o;
   o.world = c.world;
@@ -348,14 +340,7 @@ void zone_server::drain_inputs() {
             net_.disconnect(e.session, net::error_code::bad_hello, *why);
             break;
           }
-          // Spawn uniformly within spawn_radius of a town (deterministic in the session id).
-          const vec3 town = world_->town(e.session % world_->town_count());
-          const std::uint64_t h = spawn_hash(e.session);
-          const double r = cfg_.spawn_radius * std::sqrt(static_cast<double>(h >> 40) / 16777216.0);
-          const double a = static_cast<double>(h & 0xffffff) / 16777216.0 * 6.283185307179586;
-          const entity_id id = world_->spawn_player(
-              {town.x + static_cast<float>(r * std::cos(a)), town.y + static_cast<float>(r * std::sin(a)), town.z},
-              hello->stealth, hello->team);
+          const entity_id id = world_->spawn_player(world_->player_spawn_point(e.session), hello->stealth, hello->team);
           if (id == null_entity) {
             net_.disconnect(e.session, net::error_code::server_full, "the zone is full");
             break;
@@ -644,6 +629,7 @@ void zone_server::tick_once() {
   drain_inputs();
   if (ext_ != nullptr) {
     ext_->before_step(*world_);
+    ext_->take_class_changes(class_changes_);
     retry_pending_hellos();
   }
   const double inputs_ms = ms_since(t0);

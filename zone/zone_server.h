@@ -71,6 +71,11 @@ class zone_extension {
   [[nodiscard]] virtual bool owns(entity_id e) const = 0;
   /// An input for an entity handed off (its client has not moved yet): to its new zone.
   virtual void forward_input(entity_id e, const vec3& intent, std::uint32_t sequence) = 0;
+  /// The classes before_step changed of entities that were already here (a ghost whose owner
+  /// switched its visibility, a ghost adopted with another class): appended to `out`, and the
+  /// list cleared. Clients holding them with the old class are resynced after the step, as for
+  /// a player's own switch.
+  virtual void take_class_changes(std::vector<class_change>& out) { (void)out; }
   /// The zone must stop (e.g. it lost its region's lease): the loop ends.
   [[nodiscard]] virtual bool must_stop() const { return false; }
 };
@@ -140,12 +145,9 @@ class zone_server {
   /// Whether the zone allows a player's visibility choice; why not otherwise.
   [[nodiscard]] std::optional<std::string> check_visibility_choice(bool stealth, std::uint8_t team) const;
   /// After the step: every client that may hold an entity whose class changed this tick with its
-  /// old class is resynced (replicator::resync_viewers_of).
+  /// old class is resynced (replicator::resync_viewers_of): players' own switches and, in a
+  /// world, ghosts' (zone_extension::take_class_changes).
   void replicate_class_changes();
-  struct class_change {
-    entity_id entity;
-    std::uint32_t old_class, old_sees;
-  };
   std::vector<class_change> class_changes_;
   /// Records an input's sequence as the client's last when it is newer (RFC 1982 serial-number
   /// order: a sequence 1 .. 2^31 - 1 ahead, wrapping past 2^32); older ones leave it.

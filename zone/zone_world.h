@@ -52,6 +52,10 @@ class zone_world {
   /// A player entity at `at` (clamped into the world) with the visibility a player's choice
   /// gives (visibility_for); null_entity when the zone is full.
   [[nodiscard]] entity_id spawn_player(const vec3& at, bool stealth = false, std::uint8_t team = 0);
+  /// Where the player keyed `key` (a session id) spawns: uniformly within spawn_radius of town
+  /// `key % town_count()`, deterministic in the key, and inside the spawn area (a world zone's
+  /// region, config.spawn_area), so no player is born on a neighbour's side of a border.
+  [[nodiscard]] vec3 player_spawn_point(std::uint64_t key) const;
   bool despawn(entity_id id);
   /// An entity with a given behaviour state (a world's ghost or handed-off entity); null_entity
   /// when the description is invalid or the zone is full.

@@ -393,6 +393,93 @@ TEST_SUITE("world.link") {
     }
   }
 
+  TEST_CASE("a ghost whose owner switches its class: the link reports it, and the clients holding it get the new class") {
+    // The CI failure of test_world_script_oracle (wrong classes that the oracle counted): a zone
+    // set a ghost's new class (apply_ghosts) or an adopted ghost's (apply_handoff) without
+    // resyncing its clients, so a client that held the ghost kept the class it entered with.
+    const std::uint64_t seed = zone::test::fresh_seed();
+    CAPTURE(seed);
+    zone_config base = world_config(seed);
+    base.npc_count = 0, base.boss_count = 0;
+    const layout map(base.world, 2, 1);  // the border at x = 200
+    test_zone a(base, map, 0), b(base, map, 1);
+    namespace cb = interest::category_bits;
+    // A red-team player in zone 0, 5 m from the border; a red-team observer across it in zone 1.
+    const entity_id p = a.world->spawn_player({195, 200, 5}, false, 1);
+    const entity_id o = b.world->spawn_player({205, 200, 5}, false, 1);
+    REQUIRE(p != null_entity);
+    REQUIRE(o != null_entity);
+    a.link->assign_ids(*a.world);
+    b.link->assign_ids(*b.world);
+    replication_options ro;
+    ro.world = base.world;
+    ro.byte_budget = 1 << 20;
+    replicator rep(ro);
+    const client_id c = rep.add_client(o);
+    replication_writer writer;
+    net::client_view view(base.world);
+    std::vector<ghost_message> msgs;
+    std::size_t resyncs = 0;
+    std::vector<class_change> changed;
+    // One lockstep tick: zone 0 steps and sends its ghosts (and `handoff`, its records) to zone
+    // 1, which applies them as nats_node does (handoffs first), steps, resyncs the clients of
+    // what changed class (as zone_server does) and sends its client a frame.
+    const auto tick = [&](bool handoff) {
+      REQUIRE_FALSE(a.world->step().has_value());
+      std::vector<handoff_record> records;
+      if (handoff) records = a.link->collect_handoffs(*a.world, 0);
+      a.link->build_ghosts(*a.world, msgs);
+      REQUIRE(msgs.size() == 1);
+      for (const auto& r : records) REQUIRE(b.link->apply_handoff(*b.world, r) == handoff_status::adopted);
+      REQUIRE(b.link->apply_ghosts(*b.world, encode(msgs[0])) == ghost_status::applied);
+      changed = b.link->take_class_changes();
+      REQUIRE_FALSE(b.world->step().has_value());
+      for (const auto& ch : changed) resyncs += rep.resync_viewers_of(b.world->store(), ch.entity, ch.old_class, ch.old_sees, base.hysteresis);
+      const auto frame = rep.build(c, b.world->store(), b.world->tracker(), b.world->tick(), 0, 0, writer);
+      const auto decoded = net::decode_frame(frame, [] {
+        net::decoder_options d;
+        d.max_frame_bytes = 1 << 20;
+        return d;
+      }());
+      REQUIRE(decoded.value.has_value());
+      REQUIRE(view.apply(std::get<net::tick_update_msg>(*decoded.value)) == net::client_view::status::ok);
+    };
+    // The class zone 1's client holds for the player (0: not held).
+    const auto held_class = [&]() -> std::uint32_t {
+      const entity_id ghost = b.link->local_of(a.link->gid_of(p));
+      if (ghost == null_entity) return 0;
+      const auto it = view.entities().find(ghost);
+      return it == view.entities().end() ? 0 : it->second.state.visibility_class;
+    };
+    for (int t = 0; t < 3; ++t) tick(false);
+    CHECK(changed.empty());
+    CHECK(held_class() == cb::normal);  // the ghost is in the observer's view
+    // The owner stealths the player in the red team: still seen by the red observer.
+    const auto red = visibility_for(true, 1);
+    REQUIRE(a.world->store().set_visibility(p, red.visibility_class, red.sees));
+    tick(false);
+    REQUIRE(changed.size() == 1);
+    CHECK(changed[0].entity == b.link->local_of(a.link->gid_of(p)));
+    CHECK(changed[0].old_class == cb::normal);
+    CHECK(resyncs == 1);
+    CHECK(held_class() == cb::team_red);
+    // The owner switches back and the player crosses the border in the same tick: zone 1 adopts
+    // the ghost (same handle) with its owner's class before the ghosts say so.
+    const auto plain = visibility_for(false, 1);
+    REQUIRE(a.world->store().set_visibility(p, plain.visibility_class, plain.sees));
+    REQUIRE(a.world->store().set_position(p, {200 + a.link->options().handoff_margin + 1, 200, 5}));
+    tick(true);
+    CHECK(b.link->owns(b.link->local_of(a.link->gid_of(p))));
+    REQUIRE(changed.size() == 1);
+    CHECK(changed[0].old_class == cb::team_red);
+    CHECK(resyncs == 2);
+    CHECK(held_class() == cb::normal);
+    // Ghost messages that change nothing report nothing.
+    tick(false);
+    CHECK(changed.empty());
+    CHECK(held_class() == cb::normal);
+  }
+
   TEST_CASE("a lost ghost message: the receiver sees the gap, asks for a snapshot and converges") {
     const std::uint64_t seed = zone::test::fresh_seed();
     CAPTURE(seed);

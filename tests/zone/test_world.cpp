@@ -4,6 +4,7 @@
 
 #include "../common/seeds.h"
 
+#include <algorithm>
 #include <cmath>
 #include <cstdio>
 #include <fstream>
@@ -239,6 +240,45 @@ TEST_SUITE("zone.world") {
     CHECK(w.phases().interest.count() == 30);
     CHECK(w.phases().total.percentile(0.99) <= w.phases().total.max());
     CHECK(w.phases().total.percentile(0.5) > 0);
+  }
+
+  TEST_CASE("players spawn near their town, deterministically, and never outside the spawn area (a world zone's region)") {
+    const std::uint64_t seed = fresh_seed();
+    CAPTURE(seed);
+    interest::thread_pool pool(1);
+    interest::grid_finder finder(&pool);
+    // The whole world: within spawn_radius of the key's town.
+    zone_config open = small_config(seed);
+    open.spawn_radius = 60;
+    zone_world a(open, finder, &pool);
+    float farthest = 0;
+    for (std::uint64_t key = 0; key < 2000; ++key) {
+      const vec3 p = a.player_spawn_point(key);
+      const vec3 t = a.town(key % a.town_count());
+      const float d = std::hypot(p.x - t.x, p.y - t.y);
+      CHECK(d <= open.spawn_radius + 1e-3f);
+      farthest = std::max(farthest, d);
+      const vec3 again = a.player_spawn_point(key);
+      CHECK((again.x == p.x && again.y == p.y && again.z == p.z));
+    }
+    CHECK(farthest > 0.8f * open.spawn_radius);  // spread over the disc, not piled on the town
+    // A region of the world (what a world zone gets) narrower than the spawn disc: every point
+    // inside the region, none on the neighbour's side of the border.
+    zone_config region = small_config(seed);
+    region.spawn_radius = 500;
+    region.spawn_area = {{100, 200, 0}, {300, 260, 50}};
+    zone_world b(region, finder, &pool);
+    int on_border = 0;
+    for (std::uint64_t key = 0; key < 2000; ++key) {
+      const vec3 p = b.player_spawn_point(key);
+      CAPTURE(key);
+      CHECK(p.x >= 100);
+      CHECK(p.x <= 300);
+      CHECK(p.y >= 200);
+      CHECK(p.y <= 260);
+      on_border += (p.x == 100 || p.x == 300 || p.y == 200 || p.y == 260) ? 1 : 0;
+    }
+    CHECK(on_border > 0);  // the disc does reach past the region: the clamp is what holds it in
   }
 
   TEST_CASE("adopted entities (a world's ghosts, a handed-off player): chasers chase adopted players; players spawn after them") {
