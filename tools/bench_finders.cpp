@@ -107,12 +107,7 @@ Every finder's output is sorted canonically after timing and compared for exact 
 the program exits with status 1 on any MISMATCH, 2 on bad arguments.
 )";
 
-std::optional<double> parse_number(std::string_view s) {
-  double v = 0;
-  const auto [ptr, ec] = std::from_chars(s.data(), s.data() + s.size(), v);
-  if (ec != std::errc{} || ptr != s.data() + s.size() || !std::isfinite(v)) return std::nullopt;
-  return v;
-}
+std::optional<double> parse_number(std::string_view s) { return zone::tools::parse_value<double>(s); }
 
 std::optional<std::size_t> parse_count(std::string_view s) {
   const auto v = parse_number(s);

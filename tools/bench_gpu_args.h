@@ -52,20 +52,19 @@ inline constexpr const char* bench_gpu_usage =
     if (it == given.end()) return true;
     const std::string& s = it->second;
     using T = std::remove_reference_t<decltype(out)>;
-    T v{};
-    const auto r = std::from_chars(s.data(), s.data() + s.size(), v);
-    if (r.ec != std::errc{} || r.ptr != s.data() + s.size() || v < static_cast<T>(least)) {
+    const auto v = parse_value<T>(s);
+    if (!v || *v < static_cast<T>(least)) {
       std::fprintf(stderr, "bench-gpu: --%s: expected a whole number >= %lld, not '%s'\n%s", name, least, s.c_str(),
                    bench_gpu_usage_line);
       return false;
     }
-    out = v;
+    out = *v;
     return true;
   };
   if (!count("max-n", a.max_n, 0) || !count("reps", a.reps, 1) || !count("cgal-max-n", a.cgal_max_n, 0)) return 2;
-  if (const auto it = given.find("csv"); it != given.end()) a.csv_path = it->second;
-  if (const auto it = given.find("csv-lbvh"); it != given.end()) a.csv_lbvh = it->second;
-  if (const auto it = given.find("only"); it != given.end()) a.only = it->second;
+  take_text(given, "csv", a.csv_path);
+  take_text(given, "csv-lbvh", a.csv_lbvh);
+  take_text(given, "only", a.only);
   return std::nullopt;
 }
 

@@ -55,14 +55,12 @@ inline constexpr const char* bench_peers_usage =
     const auto it = given.find(name);
     if (it == given.end()) return true;
     const std::string& s = it->second;
-    using T = std::remove_reference_t<decltype(out)>;
-    T v{};
-    const auto r = std::from_chars(s.data(), s.data() + s.size(), v);
-    if (r.ec != std::errc{} || r.ptr != s.data() + s.size()) {
+    const auto v = parse_value<std::remove_reference_t<decltype(out)>>(s);
+    if (!v) {
       std::fprintf(stderr, "bench-peers: bad value for --%s (see --help)\n", name);
       return false;
     }
-    out = v;
+    out = *v;
     return true;
   };
   if (!number("max-n", a.max_n) || !number("reps", a.reps) || !number("cubql-leaf", a.leaf) || !number("seed", a.seed)) {
@@ -72,8 +70,8 @@ inline constexpr const char* bench_peers_usage =
     std::fprintf(stderr, "bench-peers: --reps and --cubql-leaf take values >= 0\n");
     return 2;
   }
-  if (const auto it = given.find("csv"); it != given.end()) a.csv_path = it->second;
-  if (const auto it = given.find("sets"); it != given.end()) a.sets = it->second;
+  take_text(given, "csv", a.csv_path);
+  take_text(given, "sets", a.sets);
   if (const auto it = given.find("cubql-builder"); it != given.end()) {
     a.builder_name = it->second;
     if (a.builder_name == "median") a.builder = peers::cubql_builder::spatial_median;

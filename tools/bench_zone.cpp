@@ -269,13 +269,7 @@ Usage: bench-zone [options]
   --help             this text
 )";
 
-template <class T>
-std::optional<T> number(std::string_view s) {
-  T v{};
-  const auto r = std::from_chars(s.data(), s.data() + s.size(), v);
-  if (r.ec != std::errc{} || r.ptr != s.data() + s.size()) return std::nullopt;
-  return v;
-}
+using zone::tools::parse_value;
 
 std::optional<double> real(std::string_view s) {
   try {
@@ -309,7 +303,7 @@ std::optional<std::string> parse_args(const std::map<std::string, std::string>& 
   const auto need = [](const char* name, const char* what) { return std::string("--") + name + ": expected " + what; };
   for (const char* name : {"entities", "clients", "ticks", "warmup", "budget"}) {
     if (!value(name)) continue;
-    const auto n = number<std::size_t>(v);
+    const auto n = parse_value<std::size_t>(v);
     if (!n) return need(name, "a count");
     (name == std::string_view("entities")  ? o.entities
      : name == std::string_view("clients") ? o.clients
@@ -318,17 +312,17 @@ std::optional<std::string> parse_args(const std::map<std::string, std::string>& 
                                            : o.budget) = *n;
   }
   if (value("threads")) {
-    const auto n = number<unsigned>(v);
+    const auto n = parse_value<unsigned>(v);
     if (!n || *n > 1024) return need("threads", "0..1024");
     o.threads = *n;
   }
   if (value("spin-us")) {
-    const auto n = number<long long>(v);
+    const auto n = parse_value<long long>(v);
     if (!n || *n < -1 || *n > 1000000) return need("spin-us", "-1 .. 1000000");
     o.spin_us = static_cast<int>(*n);
   }
   if (value("seed")) {
-    const auto n = number<std::uint64_t>(v);
+    const auto n = parse_value<std::uint64_t>(v);
     if (!n) return need("seed", "an unsigned integer");
     o.seed = *n;
   }
@@ -366,12 +360,12 @@ std::optional<std::string> parse_args(const std::map<std::string, std::string>& 
     o.rep_park = v == "on";
   }
   if (value("clients-per-task")) {
-    const auto n = number<std::uint32_t>(v);
+    const auto n = parse_value<std::uint32_t>(v);
     if (!n || *n == 0) return need("clients-per-task", "a positive count");
     o.clients_per_task = *n;
   }
   if (value("snapshot")) {
-    const auto n = number<std::uint32_t>(v);
+    const auto n = parse_value<std::uint32_t>(v);
     if (!n) return need("snapshot", "a count");
     o.snapshot = *n;
   }
@@ -381,7 +375,7 @@ std::optional<std::string> parse_args(const std::map<std::string, std::string>& 
     o.hysteresis = static_cast<float>(*r);
   }
   if (value("max-visible")) {
-    const auto n = number<std::uint32_t>(v);
+    const auto n = parse_value<std::uint32_t>(v);
     if (!n) return need("max-visible", "a count");
     o.max_visible = *n;
   }
@@ -514,16 +508,8 @@ int main(int argc, char** argv) {
   world.populate();
 
   // Players and their replication clients, as zone-server makes them: spawned uniformly within
-  // spawn_radius of town(i % towns); replication options from the config (zone_server.cpp).
-  replication_options ro;
-  ro.world = cfg.world;
-  ro.byte_budget = cfg.client_byte_budget;
-  ro.near_distance = cfg.update_near;
-  ro.mid_distance = cfg.update_mid;
-  ro.mid_period = cfg.update_mid_period;
-  ro.far_period = cfg.update_far_period;
-  ro.send_digest = cfg.digest_every > 0;
-  ro.digest_period = std::max<std::uint32_t>(1, cfg.digest_every);
+  // spawn_radius of town(i % towns); replication options from the config (replication_options_of).
+  replication_options ro = replication_options_of(cfg);
   ro.clients_per_task = opt.clients_per_task;
   ro.snapshot_entities_per_client = opt.snapshot;
   ro.park_between_phases = opt.rep_park;

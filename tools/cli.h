@@ -5,11 +5,15 @@
 
 #include <boost/program_options.hpp>
 
+#include <charconv>
+#include <cmath>
 #include <cstdio>
 #include <initializer_list>
 #include <map>
 #include <optional>
 #include <string>
+#include <string_view>
+#include <type_traits>
 
 namespace zone::tools {
 
@@ -49,6 +53,19 @@ namespace po = boost::program_options;
   return std::nullopt;
 }
 
+/// `text`, all of it, as a T (std::from_chars: no leading space or '+', no sign for an unsigned T,
+/// no suffix; a floating-point T must be finite); nothing otherwise.
+template <class T>
+[[nodiscard]] std::optional<T> parse_value(std::string_view text) {
+  T v{};
+  const auto r = std::from_chars(text.data(), text.data() + text.size(), v);
+  if (r.ec != std::errc{} || r.ptr != text.data() + text.size()) return std::nullopt;
+  if constexpr (std::is_floating_point_v<T>) {
+    if (!std::isfinite(v)) return std::nullopt;
+  }
+  return v;
+}
+
 /// Valued options that the tool checks itself (its own messages and ranges): adds each of `names`
 /// ("name" or "name,c" with a one-letter alias) to `options`, taking one value as text; after
 /// parse_command_line, `given` holds each given option's value under its long name.
@@ -59,6 +76,11 @@ inline void add_text_options(po::options_description& options, std::map<std::str
     if (const auto comma = name.find(','); comma != std::string::npos) name.resize(comma);
     options.add_options()(spec, po::value<std::string>()->notifier([&given, name](const std::string& v) { given[name] = v; }));
   }
+}
+
+/// Sets `out` to the text of option `name` (see add_text_options) when it was given.
+inline void take_text(const std::map<std::string, std::string>& given, const char* name, std::string& out) {
+  if (const auto it = given.find(name); it != given.end()) out = it->second;
 }
 
 }  // namespace zone::tools

@@ -70,8 +70,9 @@ int usage_error(const std::string& message) {
 
 template <class T>
 bool parse_uint(std::string_view s, T& value) {
-  const auto [ptr, ec] = std::from_chars(s.data(), s.data() + s.size(), value);
-  return ec == std::errc{} && ptr == s.data() + s.size() && !s.empty();
+  const auto v = zone::tools::parse_value<T>(s);
+  if (v) value = *v;
+  return v.has_value();
 }
 
 using zone::ms_since;
@@ -167,14 +168,11 @@ int run_gen(int argc, char** argv) {
                                                         exit_bad_input, nullptr, usage_line)) {
       return *rc;
     }
-    const auto take = [&](const char* name, std::string& out) {
-      if (const auto it = given.find(name); it != given.end()) out = it->second;
-    };
-    take("set", set);
-    take("count", count_text);
-    take("seed", seed_text);
-    take("format", format);
-    take("output", output);
+    zone::tools::take_text(given, "set", set);
+    zone::tools::take_text(given, "count", count_text);
+    zone::tools::take_text(given, "seed", seed_text);
+    zone::tools::take_text(given, "format", format);
+    zone::tools::take_text(given, "output", output);
   }
   if (set.empty()) return usage_error("gen: --set is required");
   if (count_text.empty()) return usage_error("gen: --count is required");
@@ -216,13 +214,10 @@ int run_pairs(int argc, char** argv) {
                                                         &positional, usage_line)) {
       return *rc;
     }
-    const auto take = [&](const char* name, std::string& out) {
-      if (const auto it = given.find(name); it != given.end()) out = it->second;
-    };
-    take("backend", backend);
-    take("output", output);
-    take("threads", threads_text);
-    take("input", input);
+    zone::tools::take_text(given, "backend", backend);
+    zone::tools::take_text(given, "output", output);
+    zone::tools::take_text(given, "threads", threads_text);
+    zone::tools::take_text(given, "input", input);
   }
   if (quiet) spdlog::set_level(spdlog::level::warn);
   const bool have_input = !input.empty();
