@@ -1,9 +1,11 @@
 // interest/interest_tracker.h: the interest step's one home: per-observer visible sets with enter
 // and leave events, hysteresis and visibility classes, from plain entity columns (docs/zone.md,
-// "Interest tracker"). It runs on the host (interest_tracker's own diff on any pair_finder, the
-// reference) or on a visibility engine (visibility_engine.h: the GPU's, gpu/visibility.h), with the
-// same result. A server calls it through interest_space.h (the tick-level API); this header is
-// the layer below it.
+// "Interest tracker"). Every update runs on a visibility engine (visibility_engine.h): the one
+// given to set_engine (the GPU's, gpu/visibility.h), or the tracker's own host reference
+// (host_visibility_engine.h, on the pair_finder it was built with) when none is set, when the
+// set one cannot cap (max_visible) or after it failed; the result is the same. The tracker keeps
+// the rows, hands the sets over when the engine changes and names invalid input. A server calls
+// it through interest_space.h (the tick-level API); this header is the layer below it.
 #pragma once
 
 #include <cstddef>
@@ -17,6 +19,7 @@
 #include <string>
 #include <vector>
 
+#include "host_visibility_engine.h"
 #include "interest.h"
 #include "thread_pool.h"
 #include "visibility_engine.h"
@@ -59,14 +62,14 @@ struct interest_options {
   float hysteresis = 4.0f;
   /// Keep at most this many entities per observer, the closest (0 = no cap). See docs/zone.md.
   std::uint32_t max_visible = 0;
-  /// Observers per parallel task (fixed, so output never depends on the thread count).
+  /// The host reference engine's tuning (host_engine_options): observers per parallel task
+  /// (fixed, so output never depends on the thread count), and whether it reads the finder's own
+  /// result buffer (pair_finder::find_view) or finds into a list of its own.
   std::uint32_t rows_per_task = 256;
-  /// Host path: find the pairs through pair_finder::find_view (the GPU finders hand over their
-  /// own result buffer: no copy of every pair); false: find() into the tracker's own list.
   bool finder_view = true;
 };
 
-/// Counters and phase times of the last update.
+/// Counters and phase times of the last update (from its engine's visibility_output).
 struct interest_stats {
   std::uint64_t pairs = 0;       ///< pairs found with the grown AOI boxes
   std::uint64_t candidates = 0;  ///< (observer, target) candidates after the self/visibility filter
@@ -74,18 +77,20 @@ struct interest_stats {
   std::uint64_t enters = 0;
   std::uint64_t leaves = 0;
   std::uint64_t capped = 0;  ///< entities dropped by the max_visible cap
+  /// boxes_ms: the engine's box building; find_ms: its call less the phases it reports apart
+  /// (boxes, diff): the host reference's pair finder, a device engine's whole call; diff_ms: its
+  /// diff plus the tracker's own bookkeeping (rows, slot map; overlapped with the device or not).
   double boxes_ms = 0, find_ms = 0, diff_ms = 0;
-  /// Parts of diff_ms: counting candidates per row, row offsets, filling the rows, the per-row
-  /// sort-and-merge with the previous sets (the rest: presence records, previous rows, stats).
+  /// Parts of the host reference's diff: counting candidates per row, row offsets, filling the
+  /// rows, the per-row merge with the previous sets (the rest: presence records, previous rows).
   double count_ms = 0, offsets_ms = 0, fill_ms = 0, rows_ms = 0;
-  /// The update ran on the visibility engine (set_engine): then find_ms is the engine's whole
-  /// call, boxes_ms and the parts above are 0, diff_ms is the host's bookkeeping (previous rows,
-  /// row map), and `engine_timing` says where the engine's time went.
+  /// The update ran on the engine given to set_engine (not the tracker's own host reference).
   bool on_engine = false;
-  visibility_timing engine_timing;
+  visibility_timing engine_timing;  ///< the engine's own phases
 };
 
-/// Per-observer visible sets with enter/leave events and hysteresis, on top of any pair_finder.
+/// Per-observer visible sets with enter/leave events and hysteresis, on a visibility engine (its
+/// own host reference on any pair_finder, or the one set).
 ///
 /// Every entity is an observer (players and NPCs alike: NPC perception uses the same sets).
 /// After update(), row r (= row r of the columns given to it) holds the
@@ -102,20 +107,19 @@ class interest_tracker {
   /// non-finite position or extent) nothing changes and the error names the entity.
   [[nodiscard]] std::optional<box_error> update(const entity_columns& in);
 
-  /// The two halves of update(), for callers that find pairs themselves (e.g. a GPU pipeline):
-  /// build_boxes writes entity k's AOI box grown by the hysteresis margin as box 2k (category
-  /// aoi, mask = sees) and its presence box as box 2k+1 (category = class, mask 0);
-  /// apply_pairs takes every qualifying pair of exactly those boxes (any order, each once). It
-  /// refuses (error, nothing changes) a box set whose size is not 2 * in.n or a pair with
-  /// an id beyond it.
+  /// The two halves of update() on the host reference, for callers that find pairs themselves
+  /// (e.g. a GPU pipeline): build_boxes writes build_step_boxes' layout (entity k's AOI box grown
+  /// by the margin as box 2k, its presence box as 2k + 1); apply_pairs takes every qualifying pair
+  /// of exactly those boxes (any order, each once). It refuses (error, nothing changes) a box set
+  /// whose size is not 2 * in.n or a pair with an id beyond it.
   void build_boxes(const entity_columns& in, box_set& out) const;
   [[nodiscard]] std::optional<box_error> apply_pairs(const entity_columns& in, const box_set& boxes,
-                                                               std::span<const id_pair> pairs);
+                                                     std::span<const id_pair> pairs);
 
-  /// When set (non-null; it must outlive the tracker or be unset first), update() runs the whole
-  /// interest step on the engine (the GPU: gpu/visibility.h) instead of the finder and the host
-  /// diff, with the same result. Not used while max_visible != 0 (the cap is host-only), and not
-  /// after the engine failed once (engine_error() says why; the host path takes over).
+  /// When set (non-null; it must outlive the tracker or be unset first), update() runs on
+  /// `engine` instead of the host reference, with the same result. Not used while max_visible != 0
+  /// unless it caps (visibility_engine::caps_visible), and not after it failed once (engine_error()
+  /// says why; the host reference takes over from the last sets).
   void set_engine(visibility_engine* engine);
   /// Which observers' visible sets are read on the host right after an update (by slot: non-zero
   /// = read; slots beyond the vector: not read), so that an engine copies only those back; any
@@ -125,17 +129,15 @@ class interest_tracker {
   /// Why the engine was given up (empty while it works or when none is set).
   [[nodiscard]] const std::string& engine_error() const { return engine_error_; }
   /// Tells the engine (if any) that an update follows soon (see visibility_engine::prepare).
-  void prepare() noexcept {
-    if (engine_ != nullptr && engine_error_.empty()) engine_->prepare();
-  }
-  /// True when the last update ran on the engine.
-  [[nodiscard]] bool last_update_on_engine() const { return last_by_engine_; }
+  void prepare() noexcept { active()->prepare(); }
+  /// True when the last update ran on the engine given to set_engine.
+  [[nodiscard]] bool last_update_on_engine() const { return last_on_engine_; }
   /// The last update's visible sets where the engine keeps them (its device), by this tracker's
   /// rows, for a replication engine on the same device to read in place; empty when the last
   /// update did not run on an engine or the engine keeps none.
   [[nodiscard]] visibility_engine::resident_lists resident_visible() const {
-    if (!last_by_engine_ || engine_ == nullptr || !engine_error_.empty()) return {};
-    const auto r = engine_->resident_visible();
+    if (!last_on_engine_ || producer_ == nullptr || !engine_error_.empty()) return {};
+    const auto r = producer_->resident_visible();
     return r.rows == ids_.size() ? r : visibility_engine::resident_lists{};
   }
 
@@ -162,23 +164,29 @@ class interest_tracker {
   [[nodiscard]] const interest_stats& stats() const { return stats_; }
   [[nodiscard]] const interest_options& options() const { return opt_; }
   /// Takes effect at the next update (the margin applies to the sets kept from this tick).
-  void set_options(const interest_options& opt) { opt_ = opt; }
-  /// The boxes of the last update (build_boxes' layout).
-  [[nodiscard]] const box_set& boxes() const { return boxes_; }
+  void set_options(const interest_options& opt);
+  /// The host reference engine the tracker falls back to (its pair finder, its options).
+  [[nodiscard]] const host_visibility_engine& reference() const { return reference_; }
 
  private:
-  void process_rows(const entity_columns& in, std::size_t first, std::size_t last);
-  [[nodiscard]] std::optional<box_error> update_on_engine(const entity_columns& in);
-  [[nodiscard]] std::optional<box_error> update_on_host(const entity_columns& in);
-  [[nodiscard]] std::optional<box_error> name_box_error(const entity_columns& in,
-                                                                  std::optional<box_error> err) const;
-  void adopt_engine_output();  // the engine's last output into the host path's arrays
+  /// The engine the next update runs on.
+  [[nodiscard]] visibility_engine* active() {
+    const bool usable = engine_ != nullptr && engine_error_.empty() && (opt_.max_visible == 0 || engine_->caps_visible());
+    return usable ? engine_ : &reference_;
+  }
+  [[nodiscard]] visibility_input input_of(const entity_columns& in) const;
+  [[nodiscard]] std::optional<box_error> run(visibility_engine& e, const entity_columns& in);
+  /// After a successful update or apply_pairs on `e`: rows, lists and stats from out_.
+  void commit(visibility_engine& e, const entity_columns& in, double engine_ms, double host_ms, bool host_done);
+  [[nodiscard]] std::optional<box_error> name_box_error(const entity_columns& in, std::optional<box_error> err) const;
+  /// The last update's sets, enters and leaves into the tracker's own arrays (the lists then no
+  /// longer point into an engine's output); nothing when they already are.
+  void adopt();
+  /// Hands the last update's sets to `e` (load_previous) from the tracker's own copy.
+  void hand_over(visibility_engine& e);
   [[nodiscard]] std::span<const entity_id> fetched_row(std::size_t row) const;
-  void point_lists_at_host();
   void begin_update(const entity_columns& in);  // slot_bits_, slot_count_
-  void map_rows();  // row_of_slot_ for the rows of this update
-  void map_rows_into(const std::vector<entity_id>& ids,
-                     std::vector<std::uint32_t>& row_of_slot) const;
+  void map_rows_into(const std::vector<entity_id>& ids, std::vector<std::uint32_t>& row_of_slot) const;
   /// One kind of per-row list: row r is data[off[r], off[r] + len[r]) (len null: off[r + 1]).
   struct row_lists {
     const entity_id* data = nullptr;
@@ -188,56 +196,34 @@ class interest_tracker {
       return {data + off[r], len != nullptr ? len[r] : off[r + 1] - off[r]};
     }
   };
-  struct presence_box {
-    float lo_x, lo_y, lo_z, hi_x, hi_y, hi_z;
-  };
 
-  pair_finder* finder_;
   thread_pool* pool_;
   interest_options opt_;
   interest_stats stats_;
+  host_visibility_engine reference_;
+  visibility_engine* engine_ = nullptr;  // set_engine's
+  std::string engine_error_;
+  visibility_engine* holder_ = nullptr;    // holds the last update's sets as its previous ones
+  visibility_engine* producer_ = nullptr;  // the lists point into its output (null: own_*)
+  bool last_on_engine_ = false;
+  visibility_output out_;
   std::uint32_t slot_bits_ = 22;  // of the last update's ids
   std::size_t slot_count_ = 0;    // one past the highest slot seen
   [[nodiscard]] std::uint32_t slot_of(entity_id id) const { return id & ((1u << slot_bits_) - 1u); }
-  box_set boxes_;
-  pair_list pairs_;
 
-  // This tick, by row. Visible sets and enters share the candidate offsets (capacity per row =
-  // candidate count); leaves are laid out by the previous set's size.
-  std::vector<entity_id> ids_;
-  std::vector<std::uint32_t> vis_off_;  // size rows + 1
-  std::vector<std::uint32_t> vis_len_, enter_len_, leave_off_, leave_len_;
-  std::vector<entity_id> vis_, enter_, leave_;
-  std::vector<std::uint64_t> cand_;         // candidates by row: (target handle << 32) | target dense index
-  std::vector<std::uint32_t> task_cursor_;   // per (pair task, row): candidate count, then fill cursor
-  std::vector<std::uint64_t> chunk_base_;    // per chunk of rows: its first candidate (a scan)
-  std::vector<std::size_t> task_bad_;        // per pair task: first pair with an id beyond the set
-  std::vector<std::uint64_t> cap_keys_;      // (distance key << 32) | handle, for the cap
-  std::vector<std::uint32_t> prev_row_;    // previous row of each row's observer, or none
-  std::vector<presence_box> presence_;     // presence box by dense index (from the box set)
-
-  // The previous tick.
-  std::vector<entity_id> prev_ids_;
-  std::vector<std::uint32_t> prev_off_, prev_len_;
-  std::vector<entity_id> prev_vis_;
-  std::vector<std::uint32_t> row_of_slot_;  // slot -> row in the last update (checked against ids)
-  std::uint64_t capped_pending_ = 0;        // summed by the row tasks (atomic_ref)
-
-  // What the accessors read: the host path's arrays, or the engine's output.
-  row_lists vis_list_, enter_list_, leave_list_;
-  visibility_engine* engine_ = nullptr;
-  visibility_output engine_out_;
-  bool engine_synced_ = false;  // the engine holds the last update's sets
-  std::vector<entity_id> next_ids_;                 // engine path: this update's rows, swapped in on success
-  std::vector<std::uint32_t> spare_row_of_slot_;    // engine path: this update's slot map, likewise
+  std::vector<entity_id> ids_, next_ids_;                          // rows of the last update / the next
+  std::vector<std::uint32_t> row_of_slot_, spare_row_of_slot_;     // slot -> row (checked against ids)
   const std::vector<std::uint8_t>* view_demand_ = nullptr;
   std::vector<std::uint8_t> demand_rows_, next_demand_rows_;  // per row of the last / next update
   bool partial_ = false;  // vis_list_ holds the demanded rows only; the rest via fetched_row
   mutable std::mutex fetch_mutex_;
   mutable std::atomic<bool> fetched_{false};
   mutable row_lists full_list_;
-  bool last_by_engine_ = false;
-  std::string engine_error_;
+
+  // What the accessors read: producer_'s output, or the tracker's own copy.
+  row_lists vis_list_, enter_list_, leave_list_;
+  std::vector<entity_id> own_vis_, own_enter_, own_leave_;
+  std::vector<std::uint32_t> own_vis_off_{0}, own_enter_off_{0}, own_leave_off_{0};
 };
 
 }  // namespace zone::interest

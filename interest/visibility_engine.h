@@ -1,9 +1,10 @@
 // interest/visibility_engine.h: the interest step as one engine call: per observer, the visible set with enter and leave events
-// and hysteresis, computed where the engine runs (the GPU: gpu/visibility.h) instead of finding
-// pairs there and diffing them on the host. The contract is the zone interest tracker's
-// (docs/zone.md, "Interest tracker"); zone::interest_tracker uses an engine when one is set and
-// falls back to its host path (a pair_finder and the host diff) otherwise. Plain arrays only, so
-// that the GPU layer can implement it without knowing the zone's types.
+// and hysteresis. Two implementations: the host reference (host_visibility_engine.h: any
+// pair_finder, then the diff on the host) and the GPU's (gpu/visibility.h: candidates and
+// classification where the engine runs, only the sets and events come back). The contract is the
+// interest tracker's (docs/zone.md, "Interest tracker"); interest_tracker runs every update on an
+// engine (the one set, or its own host reference). Plain arrays only, so that the GPU layer can
+// implement it without knowing the tracker's types.
 #pragma once
 
 #include <cstddef>
@@ -22,6 +23,8 @@ struct visibility_input {
   /// a row's previous row is the row with the same handle in the previous update.
   const std::uint32_t* ids = nullptr;
   std::uint32_t slot_bits = 20;
+  /// One past the highest slot among ids (sizes per-slot tables); 0: the engine finds it.
+  std::size_t slot_count = 0;
   const float* position = nullptr;            ///< centre
   const float* aoi_half = nullptr;            ///< AOI half-extents (>= 0)
   const float* body_half = nullptr;           ///< presence half-extents (>= 0)
@@ -32,18 +35,31 @@ struct visibility_input {
   /// every row. Enters and leaves always come back whole.
   const std::uint8_t* wanted = nullptr;
   float hysteresis = 0;  ///< margin h >= 0
+  /// Keep at most this many entities per observer, the closest (0: no cap; see docs/zone.md).
+  /// Only for an engine whose caps_visible() is true.
+  std::uint32_t max_visible = 0;
   /// Identifies ids, aoi_half, body_half, visibility and sees (0: unknown). When it equals the
   /// previous call's (and n too), the engine may keep those columns from that call and take only
   /// the positions (and wanted): the caller promises they did not change.
   std::uint64_t static_version = 0;
   /// Called once the device work is under way, before the engine waits for it: host work that
-  /// needs none of the result runs in the device's shadow. May be empty.
+  /// needs none of the result runs in the device's shadow. May be empty. An engine without a
+  /// device (host_visibility_engine) does not call it: the caller does that work after update().
   std::function<void()> while_waiting;
 };
 
 /// Where the time of the last update went (host wall clock, and device events where the engine
-/// has a device).
+/// has a device). An engine fills the phases it has and leaves the others 0.
 struct visibility_timing {
+  // A host engine (host_visibility_engine.h): boxes, the pair finder, the diff.
+  double boxes_ms = 0;    ///< boxes built (AOI grown by h, presence)
+  double find_ms = 0;     ///< the pair finder
+  double diff_ms = 0;     ///< pairs into per-observer sets and events, of which:
+  double count_ms = 0;    ///<   candidates counted per row
+  double offsets_ms = 0;  ///<   row offsets
+  double fill_ms = 0;     ///<   candidates filled into their rows
+  double rows_ms = 0;     ///<   per row: classified, merged with the previous set (and capped)
+  // A device engine (gpu/visibility.h):
   double pack_ms = 0;      ///< host: inputs into the engine's staging memory
   double upload_ms = 0;    ///< host-to-device copy
   double device_ms = 0;    ///< grid, candidates, classification (device time), of which:
@@ -52,7 +68,7 @@ struct visibility_timing {
   double place_ms = 0;     ///<   scans of the list sizes, enters placed in their rows
   double write_ms = 0;     ///<   sorted lists written (and the rows copied back gathered)
   double download_ms = 0;  ///< device-to-host copy of the sets and events
-  double total_ms = 0;     ///< wall time of the whole update
+  double total_ms = 0;     ///< wall time of the whole update (every engine)
   std::uint32_t reruns = 0;  ///< device passes redone after a buffer grew
 };
 
@@ -62,9 +78,10 @@ struct visibility_lists {
   const std::uint32_t* off = nullptr;
 };
 
-/// The result of an update, valid until the engine's next update or load_previous. Every list is
-/// in compact CSR form: row r's entries are [off[r], off[r + 1]) of its array (off has n + 1
-/// entries); visible sets, enters and leaves are each sorted ascending by handle. With
+/// The result of an update, valid until the engine's next update or load_previous. Row r of a
+/// list is [off[r], off[r] + len[r]) of its array where the list has a `len` array, else (compact
+/// CSR) [off[r], off[r + 1]) (off has n + 1 entries); visible sets, enters and leaves are each
+/// sorted ascending by handle. With
 /// visibility_input::wanted, `visible` holds the wanted rows' sets only (the others are empty
 /// there: visible_complete is false) and fetch_all_visible() brings every row's.
 struct visibility_output {
@@ -74,21 +91,29 @@ struct visibility_output {
   const std::uint32_t* enter_off = nullptr;
   const std::uint32_t* leaves = nullptr;
   const std::uint32_t* leave_off = nullptr;
+  /// Row lengths (null: compact, the length is off[r + 1] - off[r]).
+  const std::uint32_t* visible_len = nullptr;
+  const std::uint32_t* enter_len = nullptr;
+  const std::uint32_t* leave_len = nullptr;
   bool visible_complete = true;
   std::uint64_t visible_total = 0;  ///< entries of every row's visible set (also when not complete)
   std::uint64_t pairs = 0;       ///< qualifying (AOI grown by h, presence) pairs, self pairs included
   std::uint64_t candidates = 0;  ///< the same without self pairs
+  std::uint64_t capped = 0;      ///< entities dropped by visibility_input::max_visible
   visibility_timing timing;
 };
 
 /// Computes, for every row i with AOI box A_i = position_i +- aoi_half_i, grown box
 /// G_i = position_i +- (aoi_half_i + h) and presence box P_j = position_j +- body_half_j (the float
-/// expressions of zone::interest_tracker::build_boxes):
+/// expressions of build_step_boxes, host_visibility_engine.h):
 ///  - candidates(i) = { j != i : G_i meets P_j (closed boxes) and visibility_j & sees_i != 0 };
 ///  - a candidate whose handle was in the previous visible set of the same observer (the row with
 ///    the same handle in the previous update; none for a new observer) stays; any other enters
 ///    only if A_i meets P_j; previous entries that are no candidates leave;
-///  - visible(i) = the stayed ones and the enters, by handle.
+///  - visible(i) = the stayed ones and the enters, by handle;
+///  - with max_visible = m > 0 (caps_visible engines only): visible(i) keeps its m closest entries
+///    (squared centre distance, ties by handle), and enters and leaves are the difference of that
+///    set with the previous one.
 /// Holds the previous update's visible sets itself (by the rows of that update).
 class visibility_engine {
  public:
@@ -98,7 +123,7 @@ class visibility_engine {
   virtual ~visibility_engine() = default;
 
   /// One update. On invalid input (a non-finite or inverted box) returns the index of the first
-  /// invalid box in build_boxes' numbering (2i: row i's grown AOI box, 2i + 1: its presence box)
+  /// invalid box in build_step_boxes' numbering (2i: row i's grown AOI box, 2i + 1: its presence box)
   /// and changes nothing: the previous sets stay. Throws std::runtime_error on a device error
   /// (then the engine's state is unspecified: load_previous before using it again). `out` is
   /// written only on success; the lists of the last successful update stay readable until then.
@@ -130,6 +155,10 @@ class visibility_engine {
     std::uint64_t total = 0;
   };
   [[nodiscard]] virtual resident_lists resident_visible() const { return {}; }
+
+  /// Whether update() honours visibility_input::max_visible (false: a caller with a cap uses
+  /// another engine).
+  [[nodiscard]] virtual bool caps_visible() const { return false; }
 
   [[nodiscard]] virtual const char* name() const = 0;
 };

@@ -186,7 +186,16 @@ class tick_update_writer {
   [[nodiscard]] std::size_t enter_count() const { return enters_.size(); }
   [[nodiscard]] std::size_t leave_count() const { return leaves_.size() + leaves_span_.size(); }
   [[nodiscard]] std::size_t update_count() const { return updates_.size() + updates_span_.size(); }
+  /// The frame in the writer's own buffer (valid until the next begin() or finish()).
   [[nodiscard]] std::span<const std::uint8_t> finish();
+  /// The exact size of the frame finish() would write now (prefix included; a multiple of 8).
+  [[nodiscard]] std::size_t frame_size() const;
+  /// finish() straight into the caller's memory (at least frame_size() bytes; every byte of the
+  /// frame is written, none after it): the same bytes, without the copy out of the writer's
+  /// buffer (the zone server writes each frame into the block its session then holds,
+  /// net::frame_arena::reserve). Returns the frame, a prefix of `out`. Throws
+  /// std::length_error when `out` is too small.
+  std::span<const std::uint8_t> finish_into(std::span<std::uint8_t> out);
 
  private:
   struct enter_record {
@@ -195,6 +204,7 @@ class tick_update_writer {
     std::uint32_t name_at = 0, name_length = 0;  // in names_
     entity_kind kind = entity_kind::player;
   };
+  [[nodiscard]] canonical_tick_update::parts frame_parts() const;
   std::vector<std::uint64_t> out_;  // the frame (8-byte aligned)
   std::uint64_t tick_ = 0, time_us_ = 0;
   std::uint32_t last_input_ = 0;

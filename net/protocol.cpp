@@ -7,6 +7,7 @@
 #include <cstring>
 #include <bit>
 #include <limits>
+#include <stdexcept>
 #include <type_traits>
 
 namespace zone::net {
@@ -260,7 +261,32 @@ inline void put_vec3(std::uint8_t* base, std::size_t at, const w::vec3& v) {
 }
 }  // namespace
 
+canonical_tick_update::parts tick_update_writer::frame_parts() const {
+  canonical_tick_update::parts parts;
+  parts.enters = !enters_.empty();
+  parts.leaves = leave_count() != 0;
+  parts.updates = update_count() != 0;
+  parts.digest = digest_.has_value();
+  parts.self = self_position_.has_value();
+  parts.deferred = deferred_.any();
+  parts.reset = reset_;
+  return parts;
+}
+
+std::size_t tick_update_writer::frame_size() const {
+  using c = canonical_tick_update;
+  std::size_t names = 0;
+  for (const auto& e : enters_) names += c::name_bytes(e.name_length);
+  return c::size(frame_parts(), enters_.size(), leave_count(), update_count(), names);
+}
+
 std::span<const std::uint8_t> tick_update_writer::finish() {
+  const std::size_t size = frame_size();
+  out_.resize(size / 8);
+  return finish_into({reinterpret_cast<std::uint8_t*>(out_.data()), size});
+}
+
+std::span<const std::uint8_t> tick_update_writer::finish_into(std::span<std::uint8_t> out) {
   using c = canonical_tick_update;
   const std::span<const std::uint32_t> leaves = leaves_span_.empty() ? std::span<const std::uint32_t>(leaves_) : leaves_span_;
   const std::span<const w::entity_update> updates =
@@ -268,21 +294,14 @@ std::span<const std::uint8_t> tick_update_writer::finish() {
   std::size_t names = 0;
   for (const auto& e : enters_) names += c::name_bytes(e.name_length);
   const std::size_t n = enters_.size();
-  c::parts parts;
-  parts.enters = n != 0;
-  parts.leaves = !leaves.empty();
-  parts.updates = !updates.empty();
-  parts.digest = digest_.has_value();
-  parts.self = self_position_.has_value();
-  parts.deferred = deferred_.any();
-  parts.reset = reset_;
+  const c::parts parts = frame_parts();
   const c::table_layout l = c::layout(parts);
   const std::size_t size = c::size(parts, n, leaves.size(), updates.size(), names);
-  out_.resize(size / 8);
-  auto* const f = reinterpret_cast<std::uint8_t*>(out_.data());
+  if (out.size() < size) throw std::length_error("tick_update_writer::finish_into: the buffer is smaller than the frame");
+  std::uint8_t* const f = out.data();
   const std::size_t t = l.table_at;
   std::memset(f, 0, t + l.table_size);
-  out_[size / 8 - 1] = 0;  // the tail padding
+  std::memset(f + size - 8, 0, 8);  // the tail padding (the content after it overwrites the rest)
 
   // Prefix, root offset, identifier.
   put<std::uint32_t>(f, 0, static_cast<std::uint32_t>(size - frame_header_bytes));

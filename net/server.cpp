@@ -23,6 +23,9 @@
 #include <cerrno>
 #include <cstdio>
 #include <pthread.h>
+#include <arpa/inet.h>
+#include <netinet/in.h>
+#include <sys/ioctl.h>
 #include <sys/resource.h>
 #include <sys/socket.h>
 #include <unistd.h>
@@ -32,8 +35,10 @@
 #include <list>
 #include <mutex>
 #include <shared_mutex>
+#include <stdexcept>
 #include <spdlog/spdlog.h>
 #include <thread>
+#include <type_traits>
 #include <unordered_map>
 
 #if ZONE_HAVE_LIBURING
@@ -60,20 +65,83 @@ shared_frame make_shared_frame(std::span<const std::uint8_t> frame) {
   return f;
 }
 
-shared_frame frame_arena::make(std::span<const std::uint8_t> frame) {
-  if (frame.size() > block_bytes_ / 4) return make_shared_frame(frame);
-  if (!block_ || used_ + frame.size() > block_bytes_) {
-    block_ = std::make_shared_for_overwrite<std::uint8_t[]>(block_bytes_);
-    used_ = 0;
-    ++blocks_;
+namespace {
+/// `bytes` bytes, 8-byte aligned, in one allocation with their reference count.
+std::shared_ptr<std::uint8_t[]> aligned_bytes(std::size_t bytes) {
+  auto words = std::make_shared_for_overwrite<std::uint64_t[]>(std::max<std::size_t>(1, (bytes + 7) / 8));
+  return std::shared_ptr<std::uint8_t[]>(words, reinterpret_cast<std::uint8_t*>(words.get()));
+}
+}  // namespace
+
+frame_arena::frame_arena(std::size_t block_bytes) : block_bytes_(std::max<std::size_t>(64, (block_bytes + 7) & ~std::size_t{7})) {
+  spare_.reserve(max_spare);
+}
+
+void frame_arena::next_block() {
+  std::shared_ptr<std::uint8_t[]> old = std::move(block_);
+  used_ = 0;
+  for (auto& b : spare_) {
+    // Only the arena holds it: no frame of it is left, and none can be made but by this arena.
+    // The acquire fence pairs with the release of the last frame's count (that thread's reads of
+    // the bytes, the socket write, happen before this thread writes them again).
+    if (b.use_count() == 1) {
+      std::atomic_thread_fence(std::memory_order_acquire);
+      block_ = std::move(b);
+      b = std::move(old);  // the block just filled takes its place (none: an empty slot)
+      if (!b) {
+        b = std::move(spare_.back());
+        spare_.pop_back();
+      }
+      ++reused_;
+      return;
+    }
   }
-  std::uint8_t* at = block_.get() + used_;
-  if (!frame.empty()) std::memcpy(at, frame.data(), frame.size());
-  used_ += (frame.size() + 15) & ~std::size_t{15};  // frames at 16-byte offsets in the block
+  if (old) {
+    if (spare_.size() < max_spare) {
+      spare_.push_back(std::move(old));
+    } else {
+      // Frames hold every spare block (slow clients): let go of one in turn (its last frame frees it).
+      spare_[spare_head_] = std::move(old);
+      spare_head_ = (spare_head_ + 1) % max_spare;
+    }
+  }
+  block_ = aligned_bytes(block_bytes_);
+  ++blocks_;
+}
+
+std::span<std::uint8_t> frame_arena::reserve(std::size_t bytes) {
+  own_.reset();
+  if (bytes > block_bytes_ / 4) {
+    own_ = aligned_bytes(bytes);
+    ++large_;
+    reserved_ = own_.get();
+  } else {
+    if (!block_ || used_ + bytes > block_bytes_) next_block();
+    reserved_ = block_.get() + used_;
+  }
+  reserved_bytes_ = bytes;
+  return {reserved_, bytes};
+}
+
+shared_frame frame_arena::commit(std::size_t bytes) {
+  if (reserved_ == nullptr || bytes > reserved_bytes_) throw std::logic_error("frame_arena::commit: no reservation of that size");
   shared_frame f;
-  f.bytes_ = std::shared_ptr<const std::uint8_t[]>(block_, at);  // shares the block's count
-  f.size_ = frame.size();
+  if (own_) {
+    f.bytes_ = std::move(own_);
+  } else {
+    f.bytes_ = std::shared_ptr<const std::uint8_t[]>(block_, reserved_);  // shares the block's count
+    used_ += (bytes + 15) & ~std::size_t{15};  // frames at 16-byte offsets in the block
+  }
+  f.size_ = bytes;
+  reserved_ = nullptr;
+  reserved_bytes_ = 0;
   return f;
+}
+
+shared_frame frame_arena::make(std::span<const std::uint8_t> frame) {
+  const auto room = reserve(frame.size());
+  if (!frame.empty()) std::memcpy(room.data(), frame.data(), frame.size());
+  return commit(frame.size());
 }
 
 namespace {
@@ -82,8 +150,54 @@ struct atomic_counters {
   std::atomic<std::uint64_t> connections_accepted{0}, connections_refused{0}, sessions_open{0}, frames_in{0},
       bytes_in{0}, frames_dropped{0}, resyncs_requested{0}, stale_drops{0}, frames_rejected{0}, inputs_dropped{0}, pings_answered{0},
       pending_open{0}, pending_evicted_address{0}, pending_evicted{0}, hello_timeouts{0}, hellos_rejected{0}, idle_timeouts{0},
-      rate_limited{0}, pings_dropped{0};
+      rate_limited{0}, pings_dropped{0}, connections_rate_limited{0}, connections_charged{0}, pending_spared{0};
 };
+
+/// A source address as the reconnect-churn limit keys it: an IPv4 address (also when mapped into
+/// IPv6), or an IPv6 address's /64 (one host's or one subscriber's usual allocation).
+struct address_key {
+  std::uint64_t hi = 0, lo = 0;
+  bool operator==(const address_key&) const = default;
+};
+struct address_key_hash {
+  std::size_t operator()(const address_key& k) const {
+    return static_cast<std::size_t>((k.hi ^ (k.lo * 0x9E3779B97F4A7C15ull)) * 0xBF58476D1CE4E5B9ull >> 16);
+  }
+};
+address_key key_of(const asio::ip::address& a) {
+  if (a.is_v4()) return {0, a.to_v4().to_uint()};
+  const auto v6 = a.to_v6();
+  if (v6.is_v4_mapped()) return {0, asio::ip::make_address_v4(asio::ip::v4_mapped, v6).to_uint()};
+  const auto b = v6.to_bytes();
+  address_key k;
+  std::memcpy(&k.hi, b.data(), sizeof k.hi);
+  k.lo = std::uint64_t{1} << 40;  // apart from every IPv4 key
+  return k;
+}
+
+address_key key_of(const sockaddr_storage& a) {
+  if (a.ss_family == AF_INET) return {0, ntohl(reinterpret_cast<const sockaddr_in&>(a).sin_addr.s_addr)};
+  const auto& in6 = reinterpret_cast<const sockaddr_in6&>(a).sin6_addr;
+  asio::ip::address_v6::bytes_type b;
+  std::memcpy(b.data(), &in6, b.size());
+  return key_of(asio::ip::address(asio::ip::address_v6(b)));
+}
+
+/// An address's reconnect churn (server_options::connect_rate): tokens, in debt down to a minute
+/// of refill.
+struct churn_bucket {
+  double tokens = 0;
+  std::chrono::steady_clock::time_point last;
+};
+/// Most addresses tracked at once (full buckets are dropped; about 64 bytes each).
+constexpr std::size_t max_churn_addresses = std::size_t{1} << 16;
+/// Connections refused at accept that are held (server_options::connect_refusal_hold): at most
+/// this many per address (a newer one releases the address's oldest) and in all (beyond it a
+/// refusal is answered at once).
+constexpr std::size_t max_held_per_address = 64;
+constexpr std::size_t max_held = 512;
+/// At most one summary line of refusals at accept this often.
+constexpr std::chrono::seconds refusal_log_interval{10};
 
 /// A token bucket (one per message kind and session; the session's lane only).
 struct token_bucket {
@@ -196,7 +310,9 @@ struct io_lane {
 struct server::impl {
   explicit impl(server_options o)
       : opt(std::move(o)), lanes(make_lanes(opt.io_threads, write_batches)), acceptor(lanes[0]->ctx),
-        accept_retry(acceptor.get_executor()) {}
+        accept_retry(acceptor.get_executor()),
+        held_timer(acceptor.get_executor()),
+        refusal_frame(encode_frame(error_msg{error_code::rate_limited, "too many short connections from this address: try again later"})) {}
 
   static std::vector<std::unique_ptr<io_lane>> make_lanes(unsigned n, std::atomic<std::uint64_t>& batches) {
     std::vector<std::unique_ptr<io_lane>> v;
@@ -218,6 +334,10 @@ struct server::impl {
   bool running = false;
   std::uint16_t bound_port = 0;
 
+  /// server::send_many (const frames: copied) and send_many_moved (taken).
+  template <class Frames>
+  std::size_t send_many(Frames frames);
+
   std::shared_mutex sessions_mutex;  // shared: lookups (send, disconnect, the count); unique: insert, erase
   std::unordered_map<session_id, std::shared_ptr<session>> sessions;
   std::atomic<session_id> next_id{1};
@@ -231,6 +351,94 @@ struct server::impl {
   std::unordered_map<std::string, std::size_t> pending_by_address;  // guarded by pending_mutex
   /// Takes `s` off the pending list (its hello came, or it closed). Any thread.
   void leave_pending(session& s);
+  // Reconnect churn per source address (server_options::connect_rate).
+  std::mutex churn_mutex;
+  std::unordered_map<address_key, churn_bucket, address_key_hash> churn;  // guarded by churn_mutex; absent = full
+  /// Refills `b` to `now` (churn_mutex held).
+  void refill(churn_bucket& b, steady::time_point now) const {
+    b.tokens = std::min(opt.connect_burst, b.tokens + std::chrono::duration<double>(now - b.last).count() * opt.connect_rate);
+    b.last = now;
+  }
+  /// Whether a new connection from `k` may be admitted (the acceptor's thread).
+  bool churn_allows(const address_key& k) {
+    if (!(opt.connect_rate > 0)) return true;
+    const std::lock_guard lock(churn_mutex);
+    const auto it = churn.find(k);
+    if (it == churn.end()) return true;
+    refill(it->second, steady::now());
+    if (it->second.tokens >= opt.connect_burst) {
+      churn.erase(it);  // full again: forget the address
+      return true;
+    }
+    return it->second.tokens >= 1.0;
+  }
+  /// A connection from `k` ended within connect_min_session of its accept: a token. Any thread.
+  void charge(const address_key& k) {
+    if (!(opt.connect_rate > 0)) return;
+    const auto now = steady::now();
+    const std::lock_guard lock(churn_mutex);
+    auto it = churn.find(k);
+    if (it == churn.end()) {
+      if (churn.size() >= max_churn_addresses) {
+        for (auto at = churn.begin(); at != churn.end();) {
+          refill(at->second, now);
+          at = at->second.tokens >= opt.connect_burst ? churn.erase(at) : std::next(at);
+        }
+        if (churn.size() >= max_churn_addresses) return;  // every tracked address in churn: this one goes free
+      }
+      it = churn.emplace(k, churn_bucket{opt.connect_burst, now}).first;
+    }
+    refill(it->second, now);
+    it->second.tokens = std::max(it->second.tokens - 1.0, -60.0 * opt.connect_rate);
+    ++counters.connections_charged;
+  }
+  /// Refused at accept (the acceptor's thread): the error frame, encoded once, and the summary line.
+  std::vector<std::uint8_t> refusal_frame;
+  std::uint64_t refusals_unlogged = 0;
+  steady::time_point refusals_logged{};
+  void refuse(int fd, const sockaddr_storage& peer, const address_key& key);
+  // Refused connections held before their answer (connect_refusal_hold; the acceptor's thread).
+  struct held_connection {
+    int fd;
+    steady::time_point since;
+  };
+  std::unordered_map<address_key, std::deque<held_connection>, address_key_hash> held;
+  std::size_t held_total = 0;
+  std::size_t held_cap = max_held;  // start(): what the open-file limit leaves beside the players and pending connections
+  asio::steady_timer held_timer;
+  bool held_timer_armed = false;
+  /// The refusal's answer: the error frame written without waiting, then a reset (no TIME_WAIT).
+  void answer_refused(int fd) {
+    (void)::send(fd, refusal_frame.data(), refusal_frame.size(), MSG_DONTWAIT | MSG_NOSIGNAL);
+    const linger reset{1, 0};
+    (void)::setsockopt(fd, SOL_SOCKET, SO_LINGER, &reset, sizeof reset);
+    ::close(fd);
+  }
+  /// Answers the held connections older than the hold (all: every one). The acceptor's thread.
+  void release_held(bool all) {
+    const auto now = steady::now();
+    for (auto it = held.begin(); it != held.end();) {
+      auto& q = it->second;
+      while (!q.empty() && (all || now - q.front().since >= opt.connect_refusal_hold)) {
+        answer_refused(q.front().fd);
+        q.pop_front();
+        --held_total;
+      }
+      it = q.empty() ? held.erase(it) : std::next(it);
+    }
+  }
+  void arm_held_timer() {
+    if (held_timer_armed || held_total == 0) return;
+    held_timer_armed = true;
+    held_timer.expires_after(std::max<std::chrono::milliseconds>(opt.connect_refusal_hold / 4, std::chrono::milliseconds(10)));
+    held_timer.async_wait([this](const boost::system::error_code& ec) {
+      held_timer_armed = false;
+      if (ec || !acceptor.is_open()) return;
+      release_held(false);
+      arm_held_timer();
+    });
+  }
+
   /// Players (sessions past their hello): claims a slot, false when max_connections are taken.
   bool claim_player_slot() {
     auto open = counters.sessions_open.load();
@@ -253,21 +461,28 @@ struct server::impl {
     const std::lock_guard lock(events_mutex);
     events.push_back(std::move(e));
   }
+  /// Waits until the listening socket is readable, then accept_ready().
   void do_accept();
-  /// Makes a session of an accepted socket (or refuses it over max_connections) on `lane`.
-  void admit(tcp::socket socket, io_lane& lane);
+  /// Takes what waits in the backlog (up to accept_batch connections; raw accept4, so that a
+  /// connection refused at accept costs no more than the accept, a write and the close).
+  void accept_ready();
+  /// An accept error: logged at most once a second, accepting resumes after a pause.
+  void accept_failed(int err);
+  /// Makes a session of an accepted descriptor on the next lane (or refuses it: reconnect churn).
+  void admit(int fd, const sockaddr_storage& peer, socklen_t peer_len);
   void remove(session_id id);
 };
 
 class session : public std::enable_shared_from_this<session> {
  public:
-  session(server::impl& srv, io_lane& lane, tcp::socket socket, session_id id, std::string address)
+  session(server::impl& srv, io_lane& lane, tcp::socket socket, session_id id, std::string address, address_key key)
       : srv_(srv),
         lane_(lane),
         socket_(std::move(socket)),
         idle_(socket_.get_executor()),
         id_(id),
         address_(std::move(address)),
+        key_(key),
         decoder_(srv.opt.inbound),
         input_tokens_(srv.opt.input_burst),
         ping_tokens_(srv.opt.ping_burst),
@@ -275,6 +490,12 @@ class session : public std::enable_shared_from_this<session> {
 
   [[nodiscard]] session_id id() const { return id_; }
   [[nodiscard]] const std::string& address() const { return address_; }
+  /// Bytes that wait unread in the socket (FIONREAD; 0 on error). Any thread: the descriptor may
+  /// have been closed meanwhile (and its number reused), so this is a hint, never a guarantee.
+  [[nodiscard]] int unread_bytes() const {
+    int n = 0;
+    return ::ioctl(fd_, FIONREAD, &n) == 0 ? n : 0;
+  }
 
   /// Starts reading and the hello deadline (on the session's strand).
   void start() {
@@ -799,6 +1020,9 @@ class session : public std::enable_shared_from_this<session> {
     }
     idle_.cancel();
     srv_.leave_pending(*this);
+    // Reconnect churn: a connection that ends this soon after its accept takes a token from its
+    // address (server_options::connect_rate).
+    if (steady::now() - accepted_at_ < srv_.opt.connect_min_session) srv_.charge(key_);
     if (announced_) {
       spdlog::debug("session {}: disconnected ({})", id_, reason);
       inbound_event e;
@@ -820,6 +1044,8 @@ class session : public std::enable_shared_from_this<session> {
   bool idle_armed_ = false;             // the lane's thread: a wait on idle_ is pending
   const session_id id_;
   const std::string address_;  // the peer's address (the pending cap's key)
+  const address_key key_;      // the reconnect-churn limit's key
+  const steady::time_point accepted_at_ = steady::now();
   bool announced_ = false;     // the game heard of it (a valid hello in a free slot); lane only
   frame_decoder decoder_;
   encoder pong_encoder_{256};
@@ -1012,17 +1238,65 @@ void server::impl::leave_pending(session& s) {
   --counters.pending_open;
 }
 
-void server::impl::admit(tcp::socket socket, io_lane& lane) {
+void server::impl::refuse(int fd, const sockaddr_storage& peer, const address_key& key) {
+  ++counters.connections_rate_limited;
+  // Held unanswered for connect_refusal_hold (a client that waits for its answer before it tries
+  // again then tries once per hold, instead of as fast as the server can refuse), within the
+  // caps; then (or at once) the answer.
+  if (opt.connect_refusal_hold.count() > 0 && held_total < held_cap) {
+    auto& q = held[key];
+    if (q.size() >= max_held_per_address) {
+      answer_refused(q.front().fd);
+      q.pop_front();
+      --held_total;
+    }
+    q.push_back({fd, steady::now()});
+    ++held_total;
+    arm_held_timer();
+  } else {
+    answer_refused(fd);
+  }
+  ++refusals_unlogged;
+  const auto now = steady::now();
+  if (now - refusals_logged >= refusal_log_interval) {
+    char text[INET6_ADDRSTRLEN] = "?";
+    if (peer.ss_family == AF_INET) ::inet_ntop(AF_INET, &reinterpret_cast<const sockaddr_in&>(peer).sin_addr, text, sizeof text);
+    else ::inet_ntop(AF_INET6, &reinterpret_cast<const sockaddr_in6&>(peer).sin6_addr, text, sizeof text);
+    spdlog::warn("refused {} new connection{} at accept since the last such line: reconnect churn over {} a second from "
+                 "one address (the latest from {}; zone_net_connections_rate_limited_total counts them all)",
+                 refusals_unlogged, refusals_unlogged == 1 ? "" : "s", opt.connect_rate, text);
+    refusals_logged = now;
+    refusals_unlogged = 0;
+  }
+}
+
+void server::impl::admit(int fd, const sockaddr_storage& peer_addr, socklen_t peer_len) {
+  const bool known = peer_addr.ss_family == AF_INET || peer_addr.ss_family == AF_INET6;
+  const address_key key = known ? key_of(peer_addr) : address_key{};
+  // Before anything else: an address over its reconnect churn is refused here, at the cost of a
+  // lookup, a write and a close.
+  if (known && !churn_allows(key)) return refuse(fd, peer_addr, key);
+  io_lane& lane = next_lane();
+  tcp::endpoint peer;
+  if (known) {
+    std::memcpy(peer.data(), &peer_addr, peer_len);
+    peer.resize(peer_len);
+  }
   boost::system::error_code ignored;
+  tcp::socket socket(lane.ctx);
+  socket.assign(known ? peer.protocol() : tcp::v4(), fd, ignored);
+  if (ignored) {
+    ::close(fd);
+    return;
+  }
   socket.set_option(tcp::no_delay(true), ignored);
   if (opt.socket_send_buffer > 0) {
     socket.set_option(asio::socket_base::send_buffer_size(static_cast<int>(opt.socket_send_buffer)), ignored);
   }
   const session_id id = next_id++;
-  const auto peer = socket.remote_endpoint(ignored);
-  std::string address = ignored ? std::string("?") : peer.address().to_string();
+  std::string address = known ? peer.address().to_string() : std::string("?");
   ++counters.connections_accepted;
-  auto s = std::make_shared<session>(*this, lane, std::move(socket), id, std::move(address));
+  auto s = std::make_shared<session>(*this, lane, std::move(socket), id, std::move(address), key);
   // Admission: the connection is pending until its hello, within the per-address and total caps
   // (never against the player slots).
   // At a cap, the connection pending longest (of the address, or of all) makes room for the new
@@ -1042,16 +1316,33 @@ void server::impl::admit(tcp::socket socket, io_lane& lane) {
       --counters.pending_open;
       return old;
     };
+    // The victim: the oldest candidate whose socket holds no unread bytes. One with bytes waiting
+    // has sent its first frame (a client says hello at once) that its lane has not read yet (this
+    // accept batch ran first): it is spared while a candidate without any is found among the 16
+    // oldest; failing that the oldest goes (the cap holds).
+    const auto victim = [&](auto match) {
+      auto first = pending.end();
+      std::size_t looked = 0;
+      for (auto it = pending.begin(); it != pending.end() && looked < 16; ++it) {
+        if (!match(**it)) continue;
+        if (first == pending.end()) first = it;
+        if ((*it)->unread_bytes() == 0) {
+          counters.pending_spared += looked;
+          return it;
+        }
+        ++looked;
+      }
+      return first;
+    };
     if (from_address >= opt.max_pending_per_address) {
-      const auto oldest = std::find_if(pending.begin(), pending.end(),
-                                       [&](const std::shared_ptr<session>& p) { return p->address() == s->address(); });
+      const auto oldest = victim([&](const session& p) { return p.address() == s->address(); });
       if (oldest != pending.end()) {
         evicted_address = evict(oldest);
         ++counters.pending_evicted_address;
       }
     }
     if (pending.size() >= opt.max_pending && !pending.empty()) {
-      evicted_total = evict(pending.begin());
+      evicted_total = evict(victim([](const session&) { return true; }));
       ++counters.pending_evicted;
     }
     ++from_address;
@@ -1069,45 +1360,57 @@ void server::impl::admit(tcp::socket socket, io_lane& lane) {
 }
 
 void server::impl::do_accept() {
-  io_lane& lane = next_lane();
-  acceptor.async_accept(lane.ctx, [this, &lane](const boost::system::error_code& ec, tcp::socket socket) {
-    if (ec) {
-      if (ec == asio::error::operation_aborted || !acceptor.is_open()) return;
-      // Out of file descriptors (or memory): the pending connection stays in the backlog; say
-      // why (at most once a second) and try again shortly instead of spinning on the error.
-      const bool out_of_files = ec == asio::error::no_descriptors || ec.value() == ENFILE;
-      const auto now = steady::now();
-      if (now - last_accept_warning > std::chrono::seconds(1)) {
-        last_accept_warning = now;
-        if (out_of_files) {
-          spdlog::error("accept failed: {} ({} sessions open, open-file limit {}): raise the hard limit "
-                        "(ulimit -Hn, or LimitNOFILE= under systemd) or lower --max-clients",
-                        ec.message(), counters.sessions_open.load(), file_limit);
-        } else {
-          spdlog::warn("accept failed: {}", ec.message());
-        }
-      }
-      accept_retry.expires_after(std::chrono::milliseconds(out_of_files ? 50 : 1));
-      accept_retry.async_wait([this](const boost::system::error_code& e) {
-        if (!e && acceptor.is_open()) do_accept();
-      });
-      return;
+  acceptor.async_wait(tcp::acceptor::wait_read, [this](const boost::system::error_code& ec) {
+    if (ec == asio::error::operation_aborted || !acceptor.is_open()) return;
+    if (ec) return accept_failed(ec.value());
+    accept_ready();
+  });
+}
+
+void server::impl::accept_ready() {
+  // Take what waits in the backlog now, not one connection per completion: a completion waits its
+  // turn behind every ready handler of the I/O threads, so a busy server accepted about one
+  // connection per round of its I/O queue (~1 per tick), the backlog filled, and once the wait
+  // passed the clients' connect timeout every later client failed while the server spent its
+  // accepts on clients that had given up.
+  for (std::size_t n = 0; n < accept_batch; ++n) {
+    sockaddr_storage peer{};
+    socklen_t len = sizeof peer;
+    const int fd = ::accept4(acceptor.native_handle(), reinterpret_cast<sockaddr*>(&peer), &len, SOCK_NONBLOCK | SOCK_CLOEXEC);
+    if (fd >= 0) {
+      admit(fd, peer, len);
+      continue;
     }
-    admit(std::move(socket), lane);
-    // Take what else waits in the backlog now (the acceptor is non-blocking), not one connection
-    // per completion: a completion waits its turn behind every ready handler of the I/O threads,
-    // so a busy server accepted about one connection per round of its I/O queue (~1 per tick),
-    // the backlog filled, and once the wait passed the clients' connect timeout every later
-    // client failed while the server spent its accepts on clients that had given up.
-    for (std::size_t n = 1; n < accept_batch; ++n) {
-      boost::system::error_code e;
-      io_lane& other = next_lane();
-      tcp::socket next(other.ctx);
-      acceptor.accept(next, e);
-      if (e) break;  // would_block: the backlog is empty; other errors: async_accept reports them
-      admit(std::move(next), other);
+    const int err = errno;
+    if (err == EAGAIN || err == EWOULDBLOCK) return do_accept();  // the backlog is empty: wait for the next
+    if (err == EINTR || err == ECONNABORTED || err == EPROTO) continue;  // that connection is gone; go on
+    return accept_failed(err);
+  }
+  // A full batch: the rest after the lane's other handlers (reads, writes), not after a wait that
+  // only a new connection would end.
+  asio::post(acceptor.get_executor(), [this] {
+    if (acceptor.is_open()) accept_ready();
+  });
+}
+
+void server::impl::accept_failed(int err) {
+  // Out of file descriptors (or memory): the pending connection stays in the backlog; say why (at
+  // most once a second) and try again shortly instead of spinning on the error.
+  const bool out_of_files = err == EMFILE || err == ENFILE;
+  const auto now = steady::now();
+  if (now - last_accept_warning > std::chrono::seconds(1)) {
+    last_accept_warning = now;
+    if (out_of_files) {
+      spdlog::error("accept failed: {} ({} sessions open, open-file limit {}): raise the hard limit "
+                    "(ulimit -Hn, or LimitNOFILE= under systemd) or lower --max-clients",
+                    std::strerror(err), counters.sessions_open.load(), file_limit);
+    } else {
+      spdlog::warn("accept failed: {}", std::strerror(err));
     }
-    do_accept();
+  }
+  accept_retry.expires_after(std::chrono::milliseconds(out_of_files ? 50 : 1));
+  accept_retry.async_wait([this](const boost::system::error_code& e) {
+    if (!e && acceptor.is_open()) accept_ready();
   });
 }
 
@@ -1138,6 +1441,9 @@ std::optional<std::string> server::start() {
                  m.opt.max_connections, m.opt.max_pending, files.soft,
                  files.soft > reserved_file_descriptors ? files.soft - reserved_file_descriptors : 0);
   }
+  // Refused connections are held only in descriptors nobody else is counted on for.
+  const std::size_t budgeted = m.opt.max_connections + m.opt.max_pending + reserved_file_descriptors;
+  m.held_cap = files.soft == 0 ? max_held : (files.soft > budgeted ? std::min<std::size_t>(max_held, files.soft - budgeted) : 0);
   boost::system::error_code ec;
   const auto address = asio::ip::make_address(m.opt.address, ec);
   if (ec) return "bad listen address '" + m.opt.address + "': " + ec.message();
@@ -1206,6 +1512,8 @@ void server::stop() {
     boost::system::error_code ignored;
     m.acceptor.close(ignored);
     m.accept_retry.cancel();
+    m.held_timer.cancel();
+    m.release_held(true);
   });
   std::vector<std::shared_ptr<session>> open;
   {
@@ -1228,6 +1536,7 @@ void server::stop() {
   for (auto& lane : m.lanes) lane->ctx.stop();
   for (auto& lane : m.lanes) {
     if (lane->thread.joinable()) lane->thread.join();
+    if (lane.get() == m.lanes.front().get()) m.release_held(true);  // the acceptor's lane has stopped: what it still held
     // Sessions left on a ready list hold themselves; let them go.
     const std::lock_guard lock(lane->ready_mutex);
     lane->ready.clear();
@@ -1294,8 +1603,13 @@ bool server::send(session_id s, shared_frame frame, delivery d) {
   return true;
 }
 
-std::size_t server::send_many(std::span<const outgoing_frame> frames) {
-  auto& m = *impl_;
+std::size_t server::send_many(std::span<const outgoing_frame> frames) { return impl_->send_many(frames); }
+
+std::size_t server::send_many_moved(std::span<outgoing_frame> frames) { return impl_->send_many(frames); }
+
+template <class Frames>
+std::size_t server::impl::send_many(Frames frames) {
+  auto& m = *this;
   // Per thread, reused: the sessions of the frames, then those their lanes must be told of.
   thread_local std::vector<std::shared_ptr<session>> targets, ready;
   targets.clear();
@@ -1309,9 +1623,20 @@ std::size_t server::send_many(std::span<const outgoing_frame> frames) {
   std::size_t sent = 0;
   ready.clear();
   for (std::size_t i = 0; i < frames.size(); ++i) {
-    if (!targets[i]) continue;
+    if (!targets[i]) {
+      if constexpr (!std::is_const_v<typename Frames::element_type>) frames[i].frame = {};
+      continue;
+    }
     ++sent;
-    if (targets[i]->enqueue(frames[i].frame, frames[i].kind)) ready.push_back(std::move(targets[i]));
+    // A span of non-const frames is taken (moved from), so no count is touched for a copy.
+    auto frame = [&]() -> decltype(auto) {
+      if constexpr (std::is_const_v<typename Frames::element_type>) {
+        return frames[i].frame;
+      } else {
+        return std::move(frames[i].frame);
+      }
+    };
+    if (targets[i]->enqueue(frame(), frames[i].kind)) ready.push_back(std::move(targets[i]));
   }
   targets.clear();
   // One append per lane (few lanes: a pass over the list for each lane that has a session in it).
@@ -1356,6 +1681,9 @@ server_stats server::stats() const {
   st.pending_evicted_address = c.pending_evicted_address.load();
   st.pending_evicted = c.pending_evicted.load();
   st.hello_timeouts = c.hello_timeouts.load();
+  st.connections_rate_limited = c.connections_rate_limited.load();
+  st.connections_charged = c.connections_charged.load();
+  st.pending_spared = c.pending_spared.load();
   st.hellos_rejected = c.hellos_rejected.load();
   st.idle_timeouts = c.idle_timeouts.load();
   st.rate_limited = c.rate_limited.load();

@@ -100,6 +100,27 @@ struct server_options {
   /// longest is closed (error server_full) to admit the new one. One address thus holds at most
   /// this many, and a player behind it (NAT) who says hello at once still gets in.
   std::size_t max_pending_per_address = 256;
+  /// Reconnect churn per source address (a token bucket per IPv4 address or IPv6 /64): each
+  /// connection that ends less than `connect_min_session` after its accept (it never said hello,
+  /// was refused or cut off, or left soon after joining) takes a token from its address's bucket,
+  /// which refills at `connect_rate` per second up to `connect_burst` and may run into debt down to
+  /// a minute of refill (so a wave of connections opened at once is paid for afterwards). While the
+  /// bucket holds less than one token, a new connection from that address is refused at accept:
+  /// one pre-encoded error rate_limited frame written without waiting, then closed: no session, no
+  /// pending entry, no join, no log line (counted in connections_rate_limited; the server logs one
+  /// summary line at most every 10 s). Connections that stay cost nothing, so a load-test swarm that
+  /// ramps thousands of bots from one host, or players behind one NAT, are never limited; a client
+  /// that reconnects as fast as it is cut off gets `connect_rate` sessions a second. 0 = no limit.
+  double connect_rate = 20;
+  double connect_burst = 64;
+  std::chrono::milliseconds connect_min_session{10000};
+  /// A connection refused for reconnect churn is held this long before its answer (error
+  /// rate_limited, then a reset), unread: a client that waits for an answer before it tries again
+  /// tries once per hold instead of as fast as the server can refuse (tens of thousands a second
+  /// on loopback, each an accept and a close). At most 64 held per address (a newer one releases
+  /// that address's oldest) and 512 in all, fewer where the open-file limit leaves less beside
+  /// max_connections and max_pending (beyond, answered at once). 0 = answered at once.
+  std::chrono::milliseconds connect_refusal_hold{2000};
   /// Longest player name in bytes; a name must be 1 .. max_name_bytes printable ASCII characters
   /// (0x20-0x7E) without leading or trailing spaces (error bad_hello otherwise).
   std::size_t max_name_bytes = 32;
@@ -145,26 +166,53 @@ class shared_frame {
 /// A shared frame holding a copy of `frame` (one allocation).
 [[nodiscard]] shared_frame make_shared_frame(std::span<const std::uint8_t> frame);
 
-/// Shared frames carved out of larger blocks: one allocation (and, once every frame of it is
-/// written, one free) per block_bytes of frames instead of one per frame. For one thread (each
-/// replication worker has its own); the frames it makes are ordinary shared frames, safe on any
-/// thread, and they outlive the arena. The frames are freed by the I/O threads, which made
-/// glibc's malloc take the allocating thread's arena lock on every free (their tcache fills up:
-/// they never allocate frames), against the worker's own mallocs. A block stays allocated while
-/// any frame of it is queued; a frame over a quarter of a block gets its own allocation.
+/// Shared frames carved out of larger blocks, for one thread (each replication worker has its
+/// own); the frames it makes are ordinary shared frames, safe on any thread, and they outlive the
+/// arena. A frame is either copied in (make) or written in place: reserve() gives room in the
+/// current block, the caller writes the frame there (tick_update_writer::finish_into), and
+/// commit() makes the frame of it, with no copy. A block is shared by its frames (one reference
+/// count) and the arena; once every frame of a block has been written and released, the arena
+/// takes the block again (no allocation and no free in the steady state: the I/O threads, which
+/// release the frames, never free a block the workers allocated while it is in use, which made
+/// glibc's malloc take the allocating thread's arena lock on every free). The arena keeps at most
+/// max_spare earlier blocks; when frames hold every one of them (slow clients), it lets go of one
+/// in turn (freed by its last frame). A frame over a quarter of a block gets its own allocation.
 class frame_arena {
  public:
-  static constexpr std::size_t default_block_bytes = 16 * 1024;
-  explicit frame_arena(std::size_t block_bytes = default_block_bytes) : block_bytes_(block_bytes) {}
+  static constexpr std::size_t default_block_bytes = 64 * 1024;
+  static constexpr std::size_t max_spare = 64;
+  explicit frame_arena(std::size_t block_bytes = default_block_bytes);
+  /// A copy of `frame` (reserve, copy, commit).
   [[nodiscard]] shared_frame make(std::span<const std::uint8_t> frame);
-  /// Blocks allocated so far (tests, statistics).
+  /// Room for a frame of up to `bytes` bytes, 8-byte aligned, valid until the next reserve(),
+  /// make() or commit(): write the frame there, then commit() it. Nothing is taken until then.
+  [[nodiscard]] std::span<std::uint8_t> reserve(std::size_t bytes);
+  /// The frame written into the last reservation: its first `bytes` bytes (at most the
+  /// reservation's size; throws std::logic_error without one).
+  [[nodiscard]] shared_frame commit(std::size_t bytes);
+  /// Whether `frame` lies in the last reservation, from its start (then commit(frame.size())).
+  [[nodiscard]] bool in_reservation(std::span<const std::uint8_t> frame) const {
+    return reserved_ != nullptr && frame.data() == reserved_ && frame.size() <= reserved_bytes_;
+  }
+  /// Blocks allocated so far (tests, statistics); blocks taken again are not counted.
   [[nodiscard]] std::uint64_t blocks() const { return blocks_; }
+  /// Blocks taken again after their frames were released.
+  [[nodiscard]] std::uint64_t reused() const { return reused_; }
+  /// Frames that got their own allocation (over a quarter of a block).
+  [[nodiscard]] std::uint64_t large() const { return large_; }
 
  private:
+  /// A fresh current block: a spare one whose frames are all released, or a new one.
+  void next_block();
   std::size_t block_bytes_;
-  std::shared_ptr<std::uint8_t[]> block_;
+  std::shared_ptr<std::uint8_t[]> block_;  // the current block (aliases a uint64_t array: 8-byte aligned)
   std::size_t used_ = 0;
-  std::uint64_t blocks_ = 0;
+  std::vector<std::shared_ptr<std::uint8_t[]>> spare_;  // earlier blocks
+  std::size_t spare_head_ = 0;  // the one let go of next when all are held
+  std::shared_ptr<std::uint8_t[]> own_;  // the reservation of a large frame
+  std::uint8_t* reserved_ = nullptr;
+  std::size_t reserved_bytes_ = 0;
+  std::uint64_t blocks_ = 0, reused_ = 0, large_ = 0;
 };
 
 enum class delivery : std::uint8_t {
@@ -184,13 +232,16 @@ struct outgoing_frame {
 
 /// Counters (monotonic, thread-safe snapshot).
 struct server_stats {
-  std::uint64_t connections_accepted = 0;  ///< TCP connections taken from the backlog (pending until hello)
+  std::uint64_t connections_accepted = 0;  ///< TCP connections taken from the backlog and admitted (pending until hello; not those refused at accept)
   std::uint64_t connections_refused = 0;  ///< hellos over max_connections (error server_full)
   std::uint64_t sessions_open = 0;        ///< sessions that said hello and are open (player slots held)
   std::uint64_t pending_open = 0;         ///< connections open that have not said hello yet
   std::uint64_t pending_evicted_address = 0;  ///< pending connections closed for a newer one from their address (max_pending_per_address)
   std::uint64_t pending_evicted = 0;      ///< pending connections closed for a newer one (max_pending)
   std::uint64_t hello_timeouts = 0;       ///< pending connections closed at hello_timeout
+  std::uint64_t connections_rate_limited = 0;  ///< connections refused at accept: their address's reconnect churn was over connect_rate
+  std::uint64_t connections_charged = 0;  ///< connections that ended within connect_min_session of their accept (took a token)
+  std::uint64_t pending_spared = 0;       ///< at a pending cap, connections not evicted because their first bytes (a hello) waited unread
   std::uint64_t hellos_rejected = 0;      ///< hellos with a bad name (error bad_hello)
   std::uint64_t idle_timeouts = 0;        ///< sessions closed at idle_timeout
   std::uint64_t rate_limited = 0;         ///< sessions closed for flooding (error rate_limited)
@@ -246,6 +297,9 @@ class server {
   /// went to a session that is open (the others are gone and skipped). The replication workers
   /// hand over a chunk of clients' frames at a time this way.
   std::size_t send_many(std::span<const outgoing_frame> frames);
+  /// send_many(), taking the frames (each slot's frame is left null): no reference count is
+  /// touched for a copy of each frame (the zone server's replication workers hand theirs over so).
+  std::size_t send_many_moved(std::span<outgoing_frame> frames);
   /// The session's state backlog: state frames sent to it (send) and neither written to its
   /// socket nor dropped yet. Read it (any thread, relaxed) to pace a client to what it absorbs:
   /// a game that builds no new state frame while the backlog is at a bound never overflows the

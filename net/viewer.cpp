@@ -3,6 +3,7 @@
 
 #include <algorithm>
 #include <atomic>
+#include <bit>
 #include <boost/asio.hpp>
 #include <boost/beast/core.hpp>
 #include <boost/beast/http.hpp>
@@ -11,9 +12,13 @@
 #include <cmath>
 #include <cstring>
 #include <deque>
-#include <mutex>
 #include <nlohmann/json.hpp>
+#include <optional>
+#include <pthread.h>
 #include <spdlog/spdlog.h>
+#include <sys/resource.h>
+#include <thread>
+#include <unistd.h>
 
 #include "viewer.h"
 #include "viewer_route.h"
@@ -52,7 +57,7 @@ void put_header(std::vector<std::uint8_t>& out, std::uint8_t type, std::uint16_t
   put<std::uint8_t>(out, 0);
   put<std::uint16_t>(out, grid);
   put<std::uint32_t>(out, static_cast<std::uint32_t>(s.tick));
-  put<std::uint32_t>(out, static_cast<std::uint32_t>(s.ids.size()));
+  put<std::uint32_t>(out, static_cast<std::uint32_t>(s.size()));
   put<std::uint32_t>(out, count);
   put<float>(out, r.x0);
   put<float>(out, r.y0);
@@ -87,11 +92,14 @@ std::optional<viewer_request> parse_viewer_request(std::span<const std::uint8_t>
 
 void encode_viewer_view(const viewer_snapshot& s, const viewer_request& r, std::uint32_t grid_cells,
                         std::vector<std::uint8_t>& out) {
-  const std::size_t n = s.ids.size();
+  const std::size_t n = s.size();
+  const float* xyz = s.xyz.data();
+  const auto in_view = [&](std::size_t i) {
+    const float x = xyz[3 * i], y = xyz[3 * i + 1];
+    return x >= r.x0 && x <= r.x1 && y >= r.y0 && y <= r.y1;
+  };
   std::uint32_t inside = 0;
-  for (std::size_t i = 0; i < n; ++i) {
-    inside += (s.x[i] >= r.x0 && s.x[i] <= r.x1 && s.y[i] >= r.y0 && s.y[i] <= r.y1) ? 1u : 0u;
-  }
+  for (std::size_t i = 0; i < n; ++i) inside += in_view(i) ? 1u : 0u;
   if (inside > r.max_points) {
     // Too many to draw one by one: counts per cell of a grid_cells^2 grid over the viewport.
     const std::uint32_t g = std::clamp<std::uint32_t>(grid_cells, 1, 1024);
@@ -101,9 +109,9 @@ void encode_viewer_view(const viewer_snapshot& s, const viewer_request& r, std::
     auto* counts = out.data() + at;
     const float sx = static_cast<float>(g) / (r.x1 - r.x0), sy = static_cast<float>(g) / (r.y1 - r.y0);
     for (std::size_t i = 0; i < n; ++i) {
-      if (!(s.x[i] >= r.x0 && s.x[i] <= r.x1 && s.y[i] >= r.y0 && s.y[i] <= r.y1)) continue;
-      const auto cx = std::min<std::uint32_t>(g - 1, static_cast<std::uint32_t>((s.x[i] - r.x0) * sx));
-      const auto cy = std::min<std::uint32_t>(g - 1, static_cast<std::uint32_t>((s.y[i] - r.y0) * sy));
+      if (!in_view(i)) continue;
+      const auto cx = std::min<std::uint32_t>(g - 1, static_cast<std::uint32_t>((xyz[3 * i] - r.x0) * sx));
+      const auto cy = std::min<std::uint32_t>(g - 1, static_cast<std::uint32_t>((xyz[3 * i + 1] - r.y0) * sy));
       auto* cell = counts + (std::size_t{cy} * g + cx) * 2;
       std::uint16_t c;
       std::memcpy(&c, cell, 2);
@@ -118,12 +126,12 @@ void encode_viewer_view(const viewer_snapshot& s, const viewer_request& r, std::
   auto* p = out.data() + at;
   const float sx = 65535.0f / (r.x1 - r.x0), sy = 65535.0f / (r.y1 - r.y0);
   for (std::size_t i = 0; i < n; ++i) {
-    if (!(s.x[i] >= r.x0 && s.x[i] <= r.x1 && s.y[i] >= r.y0 && s.y[i] <= r.y1)) continue;
-    const std::uint16_t qx = quantize(s.x[i], r.x0, sx), qy = quantize(s.y[i], r.y0, sy);
+    if (!in_view(i)) continue;
+    const std::uint16_t qx = quantize(xyz[3 * i], r.x0, sx), qy = quantize(xyz[3 * i + 1], r.y0, sy);
     std::memcpy(p, &s.ids[i], 4);
     std::memcpy(p + 4, &qx, 2);
     std::memcpy(p + 6, &qy, 2);
-    p[8] = s.visibility[i];
+    p[8] = static_cast<std::uint8_t>(std::countr_zero(s.classes[i]));  // the class's bit index (32 for none)
     p[9] = s.kind[i];
     p += viewer_entity_record_bytes;
   }
@@ -163,23 +171,122 @@ std::string viewer_selection_json(const viewer_snapshot& s, const viewer_snapsho
   return j.dump();
 }
 
+std::string viewer_stats_json(const viewer_stats& s, std::size_t viewers, std::uint64_t viewer_bytes) {
+  std::string j = "{\"type\":\"stats\",\"tick\":" + std::to_string(s.tick);
+  const auto field = [&j](const char* name, double v) {
+    char buf[64];
+    std::snprintf(buf, sizeof buf, ",\"%s\":%.10g", name, v);  // counts exact to 10 digits
+    j += buf;
+  };
+  field("tick_rate", s.tick_rate);
+  field("budget_ms", s.budget_ms);
+  field("entities", s.entities);
+  field("clients", s.clients);
+  field("pairs", s.pairs);
+  field("candidates", s.candidates);
+  field("visible", s.visible);
+  field("enters", s.enters);
+  field("leaves", s.leaves);
+  field("viewers", static_cast<double>(viewers));
+  field("viewer_bytes", static_cast<double>(viewer_bytes));
+  field("overruns", s.overruns);
+  field("byte_budget", s.byte_budget);
+  field("update_near", s.update_near);
+  field("update_mid", s.update_mid);
+  field("tick_p99_ms", s.tick_p99_ms);
+  field("interest_p99_ms", s.interest_p99_ms);
+  j += ",\"interest_on\":" + nlohmann::json(s.interest_on).dump();
+  char world[160];
+  std::snprintf(world, sizeof world, ",\"world\":[%.6g,%.6g,%.6g,%.6g]", s.world[0], s.world[1], s.world[2], s.world[3]);
+  j += world;
+  j += ",\"phases\":[\"inputs\",\"behaviours\",\"integrate\",\"interest\",\"replicate\",\"viewer\"],\"ticks\":[";
+  for (std::size_t k = 0; k < s.ticks.size(); ++k) {
+    const auto& t = s.ticks[k];
+    char buf[256];
+    std::snprintf(buf, sizeof buf, "%s[%llu,%.4f,%.4f,%.4f,%.4f,%.4f,%.4f,%.4f]", k ? "," : "",
+                  static_cast<unsigned long long>(t.tick), t.inputs, t.behaviours, t.integrate, t.interest, t.replicate,
+                  t.viewer, t.total);
+    j += buf;
+  }
+  j += "]}";
+  return j;
+}
+
 // ---- the server ------------------------------------------------------------------------------
+
+namespace {
+
+/// Three buffers between one producer and one consumer: the producer fills its own, then swaps it
+/// with the middle one (marked fresh) in one atomic exchange; the consumer swaps its own with the
+/// middle one when that is fresh. Neither side ever waits for the other.
+template <class T>
+struct triple_buffer {
+  static constexpr std::uint32_t fresh = 4;
+  T slot[3];
+  std::uint32_t back = 0;                 // the producer's
+  std::atomic<std::uint32_t> middle{1};   // index | fresh
+  std::uint32_t front = 2;                // the consumer's
+  std::uint64_t front_seq = 0;            // the consumer's: how many it has taken (0: none yet)
+  std::atomic<std::uint64_t> published{0};
+
+  T& producer() { return slot[back]; }
+  void publish() {
+    back = middle.exchange(back | fresh, std::memory_order_acq_rel) & 3;
+    published.fetch_add(1, std::memory_order_relaxed);
+  }
+  /// The consumer's: takes the newest if there is a fresher one than its own; true if it did.
+  bool take() {
+    if ((middle.load(std::memory_order_relaxed) & fresh) == 0) return false;
+    front = middle.exchange(front, std::memory_order_acq_rel) & 3;
+    ++front_seq;
+    return true;
+  }
+  const T& consumer() const { return slot[front]; }
+};
+
+}  // namespace
 
 class ws_session;
 
 struct viewer_server::impl {
-  explicit impl(viewer_options o) : opt(o) {}
+  explicit impl(viewer_options o)
+      : opt(o), selected(std::make_unique<std::atomic<std::uint32_t>[]>(std::max<std::size_t>(1, o.max_viewers))),
+        slot_used(std::max<std::size_t>(1, o.max_viewers), false) {
+    for (auto& st : stats.slot) st.ticks.reserve(viewer_stats::max_ticks);
+  }
   viewer_options opt;
 
-  mutable std::mutex mutex;  // guards everything below but the atomics
-  std::shared_ptr<const viewer_snapshot> snapshot;
-  std::uint64_t snapshot_seq = 0;
-  std::shared_ptr<const std::string> stats_json;
-  std::uint64_t stats_seq = 0;
-  std::vector<ws_session*> sessions;
+  // The producer's side (lock-free).
+  triple_buffer<viewer_snapshot> snapshots;
+  triple_buffer<viewer_stats> stats;
+  std::unique_ptr<std::atomic<std::uint32_t>[]> selected;  // one slot per session (0: none)
+  std::atomic<std::uint64_t> selection_version{0};
   std::atomic<std::size_t> open{0};
 
+  // The viewer's thread (everything below is touched only there, but the counters).
+  std::unique_ptr<asio::io_context> ioc = std::make_unique<asio::io_context>(1);
+  std::optional<asio::executor_work_guard<asio::io_context::executor_type>> work;
+  std::thread thread;
+  std::vector<ws_session*> sessions;
+  std::vector<bool> slot_used;
+  std::shared_ptr<const std::string> stats_json;
+  std::uint64_t stats_seq = 0;
+
   std::atomic<std::uint64_t> opened{0}, refused{0}, stalled{0}, hostile{0}, frames{0}, bytes{0};
+
+  /// The newest snapshot on the viewer's thread (null before the first), and its number.
+  const viewer_snapshot* latest(std::uint64_t* seq) {
+    snapshots.take();
+    *seq = snapshots.front_seq;
+    return snapshots.front_seq == 0 ? nullptr : &snapshots.consumer();
+  }
+  /// The newest stats message on the viewer's thread, formatted once when it is new.
+  void refresh_stats() {
+    if (!stats.take()) return;
+    stats_json = std::make_shared<const std::string>(
+        viewer_stats_json(stats.consumer(), open.load(std::memory_order_relaxed), bytes.load(std::memory_order_relaxed)));
+    ++stats_seq;
+  }
 };
 
 namespace {
@@ -218,17 +325,19 @@ class http_reply : public std::enable_shared_from_this<http_reply> {
 /// One page's WebSocket: reads view requests, writes the newest snapshot's frames, one write in flight.
 class ws_session : public std::enable_shared_from_this<ws_session> {
  public:
-  ws_session(beast::tcp_stream stream, std::shared_ptr<viewer_server::impl> srv)
-      : ws_(std::move(stream)), srv_(std::move(srv)), timer_(ws_.get_executor()) {}
+  /// `slot`: this session's selection slot in `srv` (free; the session frees it when it ends).
+  ws_session(beast::tcp_stream stream, std::shared_ptr<viewer_server::impl> srv, std::size_t slot)
+      : ws_(std::move(stream)), srv_(std::move(srv)), timer_(ws_.get_executor()), slot_(slot) {}
 
+  // On the viewer's thread (or in ~viewer_server, once that thread has ended).
   ~ws_session() {
-    const std::lock_guard lock(srv_->mutex);
     auto& s = srv_->sessions;
     s.erase(std::remove(s.begin(), s.end(), this), s.end());
+    srv_->slot_used[slot_] = false;
+    srv_->selected[slot_].store(0, std::memory_order_relaxed);
+    srv_->selection_version.fetch_add(1, std::memory_order_release);
     srv_->open.store(s.size(), std::memory_order_relaxed);
   }
-
-  [[nodiscard]] std::uint32_t selected() const { return selected_.load(std::memory_order_relaxed); }
 
   void start(http::request<http::string_body> request) {
     beast::get_lowest_layer(ws_).expires_never();
@@ -239,6 +348,9 @@ class ws_session : public std::enable_shared_from_this<ws_session> {
     ws_.set_option(t);
     ws_.read_message_max(64);  // a view request is 28 bytes; anything larger closes the session
     ws_.binary(true);
+    // One frame per message, written at once (Beast's default splits a message into 4 KB frames,
+    // one write each: a 200 KB entities frame took 50 writes). The page sees the same messages.
+    ws_.auto_fragment(false);
     ws_.async_accept(request, [self = shared_from_this()](beast::error_code ec) {
       if (ec) return;
       self->last_refill_ = clock_type::now();
@@ -273,7 +385,9 @@ class ws_session : public std::enable_shared_from_this<ws_session> {
     if (!request || tokens_ < 1) return close(&srv_->hostile);
     tokens_ -= 1;
     request_ = *request;
-    selected_.store(request->selected, std::memory_order_relaxed);
+    if (srv_->selected[slot_].exchange(request->selected, std::memory_order_relaxed) != request->selected) {
+      srv_->selection_version.fetch_add(1, std::memory_order_release);
+    }
     sent_snapshot_ = 0;  // the new view gets the newest snapshot at once
     pump();
     read();
@@ -313,19 +427,12 @@ class ws_session : public std::enable_shared_from_this<ws_session> {
   }
 
   void fill_queue() {
-    std::shared_ptr<const viewer_snapshot> snap;
-    std::shared_ptr<const std::string> stats;
-    std::uint64_t snap_seq = 0, stats_seq = 0;
-    {
-      const std::lock_guard lock(srv_->mutex);
-      snap = srv_->snapshot;
-      snap_seq = srv_->snapshot_seq;
-      stats = srv_->stats_json;
-      stats_seq = srv_->stats_seq;
-    }
-    if (stats && stats_seq != sent_stats_) {
-      sent_stats_ = stats_seq;
-      queue_.push_back({std::vector<std::uint8_t>(stats->begin(), stats->end()), true});
+    std::uint64_t snap_seq = 0;
+    const viewer_snapshot* snap = srv_->latest(&snap_seq);  // stable until this thread takes a newer one
+    srv_->refresh_stats();
+    if (srv_->stats_json && srv_->stats_seq != sent_stats_) {
+      sent_stats_ = srv_->stats_seq;
+      queue_.push_back({std::vector<std::uint8_t>(srv_->stats_json->begin(), srv_->stats_json->end()), true});
     }
     if (!snap || !request_ || snap_seq == sent_snapshot_) return;
     sent_snapshot_ = snap_seq;
@@ -366,7 +473,7 @@ class ws_session : public std::enable_shared_from_this<ws_session> {
   asio::steady_timer timer_;
   beast::flat_buffer in_;
   std::optional<viewer_request> request_;
-  std::atomic<std::uint32_t> selected_{0};
+  std::size_t slot_ = 0;
   std::uint64_t sent_snapshot_ = 0, sent_stats_ = 0;
   std::deque<frame> queue_;
   std::vector<std::vector<std::uint8_t>> spare_;
@@ -376,44 +483,57 @@ class ws_session : public std::enable_shared_from_this<ws_session> {
   double tokens_ = 0;
 };
 
-viewer_server::viewer_server(viewer_options opt) : impl_(std::make_shared<impl>(opt)) {}
-viewer_server::~viewer_server() = default;
+viewer_server::viewer_server(viewer_options opt) : impl_(std::make_shared<impl>(opt)) {
+  auto& m = *impl_;
+  m.work.emplace(m.ioc->get_executor());
+  m.thread = std::thread([&m] {
+    pthread_setname_np(pthread_self(), "zone-viewer");  // per-thread CPU readings (top -H, /proc/<pid>/task/*/comm)
+    // Linux: a thread's own nice value; raising it needs no privilege. On 2 cores the tick's
+    // threads then take the CPU back from an encode at once.
+    if (m.opt.nice != 0 && ::setpriority(PRIO_PROCESS, static_cast<id_t>(::gettid()), m.opt.nice) != 0) {
+      spdlog::debug("viewer: could not set the viewer thread's nice value to {}", m.opt.nice);
+    }
+    m.ioc->run();
+  });
+}
+
+viewer_server::~viewer_server() {
+  auto& m = *impl_;
+  m.work.reset();
+  m.ioc->stop();
+  if (m.thread.joinable()) m.thread.join();
+  m.ioc.reset();  // destroys the sessions' pending handlers, and so the sessions
+}
 
 std::size_t viewer_server::viewers() const { return impl_->open.load(std::memory_order_relaxed); }
 
+std::uint64_t viewer_server::selection_version() const {
+  return impl_->selection_version.load(std::memory_order_acquire);
+}
+
 std::vector<std::uint32_t> viewer_server::selected() const {
   std::vector<std::uint32_t> ids;
-  const std::lock_guard lock(impl_->mutex);
-  for (const auto* s : impl_->sessions) {
-    if (const auto id = s->selected(); id != 0) ids.push_back(id);
+  for (std::size_t k = 0; k < impl_->slot_used.size(); ++k) {
+    if (const auto id = impl_->selected[k].load(std::memory_order_relaxed); id != 0) ids.push_back(id);
   }
   std::sort(ids.begin(), ids.end());
   ids.erase(std::unique(ids.begin(), ids.end()), ids.end());
   return ids;
 }
 
-void viewer_server::publish(std::shared_ptr<const viewer_snapshot> s) {
-  const std::lock_guard lock(impl_->mutex);
-  impl_->snapshot.swap(s);
-  ++impl_->snapshot_seq;
-  // `s` (the previous snapshot) is released after the lock, below.
-}
+viewer_snapshot& viewer_server::next_snapshot() { return impl_->snapshots.producer(); }
+void viewer_server::publish() { impl_->snapshots.publish(); }
 
-void viewer_server::publish_stats(std::string json) {
-  auto shared = std::make_shared<const std::string>(std::move(json));
-  const std::lock_guard lock(impl_->mutex);
-  impl_->stats_json.swap(shared);
-  ++impl_->stats_seq;
+viewer_stats& viewer_server::next_stats() { return impl_->stats.producer(); }
+void viewer_server::publish_stats() {
+  impl_->stats.publish();
+  impl_->stats.producer().ticks.clear();
 }
 
 viewer_server::counters viewer_server::stats() const {
   const auto& m = *impl_;
-  std::uint64_t published = 0;
-  {
-    const std::lock_guard lock(m.mutex);
-    published = m.snapshot_seq;
-  }
-  return {m.opened.load(), m.refused.load(), m.stalled.load(), m.hostile.load(), m.frames.load(), m.bytes.load(), published};
+  return {m.opened.load(), m.refused.load(), m.stalled.load(), m.hostile.load(), m.frames.load(), m.bytes.load(),
+          m.snapshots.published.load()};
 }
 
 // ---- the routes (viewer_route.h) -------------------------------------------------------------
@@ -422,14 +542,15 @@ bool is_viewer_target(std::string_view target) {
   return target == "/viewer" || target.starts_with("/viewer/") || target.starts_with("/viewer?");
 }
 
-void viewer_handoff(viewer_server& viewer, beast::tcp_stream stream, http::request<http::string_body> request) {
-  auto& m = viewer.get();
+namespace {
+
+/// Answers a /viewer request on the viewer's thread (the connection already moved there).
+void viewer_answer(const std::shared_ptr<viewer_server::impl>& srv, beast::tcp_stream stream,
+                   http::request<http::string_body> request, const tcp::endpoint& peer) {
+  auto& m = *srv;
   const auto reply = [&](http::status status, std::string type, std::string body) {
     std::make_shared<http_reply>(std::move(stream), request.version(), status, std::move(type), std::move(body))->start();
   };
-  beast::error_code ec;
-  const auto peer = stream.socket().remote_endpoint(ec);
-  if (ec) return;
   if (!m.opt.allow_remote && !peer.address().is_loopback()) {
     return reply(http::status::forbidden, "text/plain", "the viewer serves loopback peers only (zone-server --viewer-remote 1)\n");
   }
@@ -455,12 +576,8 @@ void viewer_handoff(viewer_server& viewer, beast::tcp_stream stream, http::reque
       }
     }
     if (id == 0) return reply(http::status::bad_request, "text/plain", "usage: /viewer/entity.json?id=N\n");
-    std::shared_ptr<const viewer_snapshot> snap;
-    {
-      const std::lock_guard lock(m.mutex);
-      snap = m.snapshot;
-    }
-    if (snap) {
+    std::uint64_t seq = 0;
+    if (const viewer_snapshot* snap = m.latest(&seq)) {
       for (const auto& sel : snap->selections) {
         if (sel.id == id) return reply(http::status::ok, "application/json", viewer_selection_json(*snap, sel));
       }
@@ -469,27 +586,47 @@ void viewer_handoff(viewer_server& viewer, beast::tcp_stream stream, http::reque
   }
   if (target == "/viewer/ws") {
     if (!websocket::is_upgrade(request)) return reply(http::status::bad_request, "text/plain", "a WebSocket upgrade\n");
-    std::shared_ptr<ws_session> session;
-    {
-      const std::lock_guard lock(m.mutex);
-      if (m.sessions.size() >= m.opt.max_viewers) {
-        session = nullptr;
-      } else {
-        session = std::make_shared<ws_session>(std::move(stream), viewer.shared_impl());
-        m.sessions.push_back(session.get());
-        m.open.store(m.sessions.size(), std::memory_order_relaxed);
-      }
-    }
-    if (!session) {
+    const auto free = std::find(m.slot_used.begin(), m.slot_used.end(), false);
+    if (m.sessions.size() >= m.opt.max_viewers || free == m.slot_used.end()) {
       m.refused.fetch_add(1, std::memory_order_relaxed);
       return reply(http::status::service_unavailable, "text/plain", "too many viewers\n");
     }
+    const auto slot = static_cast<std::size_t>(free - m.slot_used.begin());
+    m.slot_used[slot] = true;
+    auto session = std::make_shared<ws_session>(std::move(stream), srv, slot);
+    m.sessions.push_back(session.get());
+    m.open.store(m.sessions.size(), std::memory_order_relaxed);
     m.opened.fetch_add(1, std::memory_order_relaxed);
     spdlog::info("viewer: page connected from {}", peer.address().to_string());
     session->start(std::move(request));
     return;
   }
   return reply(http::status::not_found, "text/plain", "try /viewer\n");
+}
+
+}  // namespace
+
+void viewer_handoff(viewer_server& viewer, beast::tcp_stream stream, http::request<http::string_body> request) {
+  // The connection moves onto the viewer's own thread (its io_context): the page, the JSON and
+  // every session's reads, encodes and writes run there, never on the HTTP server's thread.
+  auto srv = viewer.shared_impl();
+  beast::error_code ec;
+  auto& from = stream.socket();
+  const auto peer = from.remote_endpoint(ec);
+  if (ec) return;
+  const auto protocol = from.local_endpoint(ec).protocol();
+  if (ec) return;
+  const auto fd = from.release(ec);
+  if (ec) return;
+  tcp::socket to(*srv->ioc);
+  to.assign(protocol, fd, ec);
+  if (ec) {
+    ::close(fd);
+    return;
+  }
+  asio::post(*srv->ioc, [srv, s = beast::tcp_stream(std::move(to)), r = std::move(request), peer]() mutable {
+    viewer_answer(srv, std::move(s), std::move(r), peer);
+  });
 }
 
 }  // namespace zone::net

@@ -2,11 +2,14 @@
 // binary), /viewer/ws streams the latest published snapshot of the zone to each connected page
 // over a WebSocket, and GET /viewer/entity.json?id=N answers one selected entity's data as JSON.
 //
-// The tick never waits for a viewer: it fills a snapshot (only while a viewer is connected) and
-// publishes it with one pointer swap. Each viewer session, on the HTTP server's I/O thread,
-// encodes the newest snapshot for its own viewport when its previous frames are written (so a slow
-// page gets fewer, fresher frames), and is closed when a write stalls, when it sends anything but
-// a well-formed view request, or when it floods. The page can only choose what it looks at.
+// The tick never waits for a viewer: it copies the zone's columns into a snapshot buffer (only
+// while a viewer is connected) and publishes it with one atomic exchange (three buffers rotate
+// between the tick and the viewer's thread: no lock, no allocation). Everything else runs on the
+// viewer's own thread, at a low CPU priority (viewer_options::nice): each session encodes the
+// newest snapshot for its own viewport when its previous frames are written (so a slow page gets
+// fewer, fresher frames), the stats JSON is formatted there, and a session is closed when a write
+// stalls, when it sends anything but a well-formed view request, or when it floods. The page can
+// only choose what it looks at.
 #pragma once
 
 #include <cstdint>
@@ -19,18 +22,29 @@
 
 namespace zone::net {
 
-/// One published state of the zone, as the viewer streams it. Plain data: the zone fills it.
+/// One published state of the zone, as the viewer streams it. Plain data: the zone fills it with
+/// plain copies of its columns (converted only when encoded, on the viewer's thread).
 struct viewer_snapshot {
   std::uint64_t tick = 0;
   float world_lo[3]{}, world_hi[3]{};
-  // Every entity, by dense index.
+  // Every entity, by dense index (size() entities: ids, classes and kind hold size() values, xyz
+  // three times as many).
   std::vector<std::uint32_t> ids;
-  std::vector<float> x, y;
-  std::vector<std::uint8_t> visibility;  ///< index of the class bit (1 normal, 2 stealth, 3 red, 4 blue)
-  std::vector<std::uint8_t> kind;        ///< 0 player, 1 NPC, 2 boss
-  /// The filler's own tag for ids, visibility and kind (the zone: its store's layout version):
-  /// equal tags mean those three need not be copied again; 0 = none.
+  std::vector<float> xyz;               ///< x, y, z of each entity, as the zone's store holds positions
+  std::vector<std::uint32_t> classes;   ///< visibility class of each entity (one bit set: bit 1 normal, 2 stealth, 3 red, 4 blue)
+  std::vector<std::uint8_t> kind;       ///< 0 player, 1 NPC, 2 boss
+  /// The filler's own tag for ids, classes and kind (the zone: its store's layout version): equal
+  /// tags mean those three need not be copied again; 0 = none.
   std::uint64_t layout = 0;
+
+  /// Entities in the snapshot (the columns' common length; a short column shortens it).
+  [[nodiscard]] std::size_t size() const {
+    const std::size_t n = ids.size() < classes.size() ? ids.size() : classes.size();
+    const std::size_t m = kind.size() < xyz.size() / 3 ? kind.size() : xyz.size() / 3;
+    return n < m ? n : m;
+  }
+  [[nodiscard]] float x(std::size_t i) const { return xyz[3 * i]; }
+  [[nodiscard]] float y(std::size_t i) const { return xyz[3 * i + 1]; }
 
   /// What a page shows for the entity it selected (only entities some viewer selected).
   struct event {
@@ -55,6 +69,28 @@ struct viewer_snapshot {
   std::vector<selection> selections;
 };
 
+/// What the stats message (a JSON text frame, about twice a second) says: the zone fills it, the
+/// viewer's thread formats it (viewer_stats_json).
+struct viewer_stats {
+  std::uint64_t tick = 0;
+  double tick_rate = 0, budget_ms = 0, entities = 0, clients = 0, pairs = 0, candidates = 0, visible = 0, enters = 0,
+         leaves = 0, overruns = 0, byte_budget = 0, update_near = 0, update_mid = 0, tick_p99_ms = 0,
+         interest_p99_ms = 0;
+  std::string interest_on;
+  double world[4]{};  ///< x0, y0, x1, y1
+  /// One tick's phases (ms): the ticks since the previous message, at most max_ticks.
+  struct tick_row {
+    std::uint64_t tick = 0;
+    double inputs = 0, behaviours = 0, integrate = 0, interest = 0, replicate = 0, viewer = 0, total = 0;
+  };
+  static constexpr std::size_t max_ticks = 256;
+  std::vector<tick_row> ticks;  ///< capacity max_ticks in the viewer's buffers: appending allocates nothing
+};
+
+/// The stats message as JSON: `{"type":"stats","tick":...,"ticks":[[tick, inputs, behaviours,
+/// integrate, interest, replicate, viewer, total], ...]}` (docs/viewer.md).
+[[nodiscard]] std::string viewer_stats_json(const viewer_stats& s, std::size_t viewers, std::uint64_t viewer_bytes);
+
 /// Limits and switches of the viewer.
 struct viewer_options {
   std::size_t max_viewers = 4;       ///< WebSocket sessions at once; more are refused (503)
@@ -62,10 +98,14 @@ struct viewer_options {
   double stall_close_s = 5;          ///< close a session whose frame has not been written for this long
   double max_requests_per_s = 60;    ///< close a session that sends more view requests than this
   std::uint32_t grid_cells = 128;    ///< density grid cells per axis when a viewport holds too many entities
+  int nice = 19;                     ///< the viewer thread's nice value (Linux, per thread): it yields the cores to the tick
 };
 
-/// The viewer's HTTP routes and WebSocket sessions. publish() and stats are thread-safe; the
-/// sessions run on the executor of the connection handed over by the HTTP server.
+/// The viewer's HTTP routes, WebSocket sessions and own thread. Two sides:
+/// - the producer (one thread: the zone's tick): next_snapshot()/publish(), next_stats()/
+///   publish_stats(), selection_version()/selected(), viewers(): no lock, no allocation, no wait;
+/// - the viewer's thread: every /viewer request handed over by the HTTP server (handoff moves the
+///   connection onto it), every session, every encode.
 class viewer_server {
  public:
   explicit viewer_server(viewer_options opt = {});
@@ -75,12 +115,22 @@ class viewer_server {
 
   /// Open sessions now (a relaxed read: the tick skips building snapshots while it is 0).
   [[nodiscard]] std::size_t viewers() const;
-  /// The entities some page has selected (at most one per session), for the tick to fill in.
+  /// Changes whenever a page's selection may have changed (a relaxed read: the tick reads
+  /// selected() only then).
+  [[nodiscard]] std::uint64_t selection_version() const;
+  /// The entities some page has selected (at most one per session), ascending, for the tick to
+  /// fill in (lock-free reads of one slot per session).
   [[nodiscard]] std::vector<std::uint32_t> selected() const;
-  /// Makes `s` the newest snapshot (one swap under a lock; sessions pick it up).
-  void publish(std::shared_ptr<const viewer_snapshot> s);
-  /// Makes `json` the newest stats message (a JSON object; sent to each session once).
-  void publish_stats(std::string json);
+
+  /// The snapshot the producer fills next. One of three buffers that rotate: it holds what was
+  /// last filled into that buffer (so a filler can skip columns that did not change: `layout`).
+  [[nodiscard]] viewer_snapshot& next_snapshot();
+  /// Makes next_snapshot() the newest (one atomic exchange; the viewer's thread picks it up); the
+  /// next call of next_snapshot() returns another buffer.
+  void publish();
+  /// Likewise for the stats message; publish_stats() leaves the next buffer's `ticks` empty.
+  [[nodiscard]] viewer_stats& next_stats();
+  void publish_stats();
 
   struct counters {
     std::uint64_t sessions_opened = 0, sessions_refused = 0, sessions_closed_stalled = 0, sessions_closed_hostile = 0,

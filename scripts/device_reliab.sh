@@ -13,7 +13,7 @@
 #           (FAULT_BOTS bots, --verify --oracle): the swarm's exit code and mismatches, the server's
 #           fallback log lines and /metrics counters, and the ticks around the fault (late = over the
 #           33.3 ms budget)
-#   ping    zone-probe --attack pingflood against zone-server at its defaults pinned to 2 cores
+#   ping    zone-probe --attack pingflood, then --attack reconnect, against zone-server at its defaults pinned to 2 cores
 #           (PING_CPUS, default 0-1; the probe on others): the server's CPU and a good client's
 #           frame gap p99, alone and during the floods
 #   viewer  tools/viewer_tick_ab.py: tick p50/p99 with and without a viewer socket at VIEWER_NPCS
@@ -99,6 +99,13 @@ EOF
       port=$(zone_port "$log" 600)
       taskset -c "${PROBE_CPUS:-4-7}" "$dir/zone-probe" --port "$port" --attack pingflood --seconds "${PING_SECONDS:-5}" --server-pid "$server" \
         2>&1 | tee "$out/ping-probe.log"
+      stop_server "$server"
+      # The reconnect flood (32 threads: connect, hello, wait for the answer, close), on a fresh server.
+      taskset -c "$cpus" "$dir/zone-server" --listen 127.0.0.1 --port 0 --metrics-port 0 --threads 2 > "$out/reconnect-server.log" 2>&1 &
+      server=$!
+      port=$(zone_port "$out/reconnect-server.log" 600)
+      taskset -c "${PROBE_CPUS:-4-7}" "$dir/zone-probe" --port "$port" --attack reconnect --seconds "${PING_SECONDS:-5}" --server-pid "$server" \
+        2>&1 | tee "$out/reconnect-probe.log"
       stop_server "$server"
       ;;
     viewer)

@@ -207,7 +207,7 @@ int main(int argc, char** argv) {
           if (o.many) {
             batch.push_back({sessions[i], arenas[k].make(payload), delivery::state});
             if (batch.size() == o.chunk) {
-              srv.send_many(batch);
+              srv.send_many_moved(batch);  // as the zone server: the frames handed over
               batch.clear();
             }
           } else {
@@ -215,7 +215,7 @@ int main(int argc, char** argv) {
           }
           ++n;
         }
-        if (!batch.empty()) srv.send_many(batch);
+        if (!batch.empty()) srv.send_many_moved(batch);
         sent += n;
         held += h;
         cpu[k] = thread_cpu_s() - c0;

@@ -78,6 +78,12 @@ namespace {
 using namespace zone;
 using clock_type = std::chrono::steady_clock;
 
+/// The calling thread's frame arena (--sink arena, arena-copy): one per worker, as zone-server's.
+net::frame_arena& sink_arena() {
+  thread_local net::frame_arena arena;
+  return arena;
+}
+
 /// CPU time consumed so far (ms) by the process (all threads) or by the calling thread. Unlike
 /// wall time it does not count time spent descheduled, so it is the steadier figure on a shared
 /// machine.
@@ -186,7 +192,7 @@ struct options {
   double rate = 30;
   bool paced = false;
   unsigned threads = 0;
-  int spin_us = -1;  // zone_config::worker_spin_us
+  int spin_us = 0;  // zone_config::worker_spin_us
   std::uint64_t seed = 1;
   std::string finder = "cpu";
   double w = 0;  // 0 = the finder's default
@@ -198,7 +204,10 @@ struct options {
   bool host_views = false;     // --host-views: the GPU replication engine gets the sets from the host
   bool device_wait_block = false;  // --device-wait: the replication engine's waits for the device
   bool rep_park = true;           // --rep-park: replication_options::park_between_phases
-  bool sink_arena = true;         // --sink: build_many's frames into net::frame_arena (as zone-server) or per-client vectors
+  // --sink: build_many's frames written into net::frame_arena in place (as zone-server), copied
+  // into it (zone-server's sink before issue 22's fourth round), or copied into per-client vectors.
+  enum class sink_mode { arena, arena_copy, copy } sink = sink_mode::arena;
+  bool sink_arena = true;  // arena or arena_copy
   std::size_t budget = 8 * 1024;
   std::uint32_t clients_per_task = 16;
   std::uint32_t snapshot = 16;  // replication_options::snapshot_entities_per_client
@@ -226,7 +235,7 @@ Usage: bench-zone [options]
   --threads N        worker threads, the calling thread included (default 0 = all cores)
   --spin-us N        microseconds an idle worker spins before it sleeps, and (--paced) how early
                      the workers are woken before a tick, as zone-server's --worker-spin-us
-                     (default -1 = auto: 1000 with 8 or more hardware threads, else 0)
+                     (default 0, as zone-server's: no spin)
   --seed S           world seed (default 1)
   --finder NAME      pair finder: cpu (grid finder on the pool) | cpu-1t | brute | gpu (= pbig) |
                      pbig | lbvh | auto (gpu/finders.h) (default cpu)
@@ -241,9 +250,11 @@ Usage: bench-zone [options]
                      (replication_engine::set_blocking_wait; default spin, as zone-server)
   --rep-park on|off  idle workers sleep after each host phase of replication on an engine
                      (replication_options::park_between_phases; default on, as zone-server)
-  --sink arena|copy  where build_many's sink copies each frame: arena (net::frame_arena, a block
-                     per ~20 frames, as zone-server's sink) or copy (one vector per client, the
-                     sink of bench-zone before issue 22's third round) (default arena)
+  --sink MODE        where build_many's frames go: arena (written in place into net::frame_arena
+                     blocks, reserved through build_many's frame room, as zone-server's sink),
+                     arena-copy (built in the replicator's buffer, then copied into the arena: the
+                     sink before issue 22's fourth round) or copy (one vector per client, the sink
+                     of bench-zone before its third round) (default arena)
   --budget BYTES     per-client byte budget (default 8192)
   --clients-per-task N  replication chunk size (default 16)
   --snapshot N       build_many snapshots the entities when clients * N >= entities; 0 = never
@@ -352,8 +363,9 @@ std::optional<std::string> parse_args(const std::map<std::string, std::string>& 
     o.device_wait_block = v == "block";
   }
   if (value("sink")) {
-    if (v != "arena" && v != "copy") return need("sink", "arena|copy");
-    o.sink_arena = v == "arena";
+    if (v != "arena" && v != "arena-copy" && v != "copy") return need("sink", "arena|arena-copy|copy");
+    o.sink = v == "arena" ? options::sink_mode::arena : v == "arena-copy" ? options::sink_mode::arena_copy : options::sink_mode::copy;
+    o.sink_arena = o.sink != options::sink_mode::copy;
   }
   if (value("rep-park")) {
     if (v != "on" && v != "off") return need("rep-park", "on|off");
@@ -659,14 +671,19 @@ int main(int argc, char** argv) {
         repl.build_many(requests, world.store(), world.tracker(), tick, now_us, &pool,
                         [&](std::size_t k, std::span<const std::uint8_t> frame, const replication_stats& st) {
                           if (opt.sink_arena) {
-                            // As zone-server's sink: each worker carves its frames out of its own blocks.
-                            thread_local net::frame_arena arena;
-                            frame_shared[k] = arena.make(frame);
+                            // As zone-server's sink: each worker's frames in its own blocks,
+                            // written there in place (arena) or copied in (arena-copy).
+                            net::frame_arena& arena = sink_arena();
+                            frame_shared[k] = arena.in_reservation(frame) ? arena.commit(frame.size()) : arena.make(frame);
                           } else {
                             frame_copy[k].assign(frame.begin(), frame.end());
                           }
                           frame_stats[k] = st;
-                        });
+                        },
+                        {},
+                        opt.sink == options::sink_mode::arena
+                            ? replicator::frame_room([](std::size_t, std::size_t bytes) { return sink_arena().reserve(bytes); })
+                            : replicator::frame_room{});
         rep_ms = ms_since(r0);
         rep_cpu = clocks.ms() - c0;
         rep_cpu_process = cpu_ms(CLOCK_PROCESS_CPUTIME_ID) - p0;

@@ -2,15 +2,20 @@
 """The zone's tick with and without a viewer open, in alternating phases of one zone-server.
 
 Starts `zone-server --viewer 1 --tick-csv ...` with --npcs entities, waits --warmup-s, then runs
---rounds rounds of two --phase-s phases: no viewer, then --viewers viewer sockets open. A viewer
+--rounds rounds of two --phase-s phases, one without a viewer and one with --viewers viewer
+sockets open (in alternating order: none/open, open/none, ..., so a drift of the machine's load
+weighs on both conditions alike). A viewer
 socket is what the page does on the wire (docs/viewer.md): a WebSocket on /viewer/ws that asks for
 the whole world with a point budget of 2^20 (every entity in every frame, the most the server
 encodes and writes), selects an entity (its AOI, visible set and events are then in every
 snapshot, and a GPU interest engine copies its row back), re-sends its view every second and reads
 every frame; it draws nothing. Python standard library only (no browser, no npm): it runs on the
 device machine too. Prints a table (per condition: ticks, p50, p99, max of the CSV's tick_ms,
-which includes the tick's own viewer phase) and the p99 change, one row per round pair, and the
-tick's viewer phase itself (from the stats messages); --csv writes every tick with its phase.
+which includes the tick's own viewer phase) and the p99 change; per round pair the p99 change, with
+the median of those changes, its 95% bootstrap interval (pairs resampled) and their min/max; the
+pooled p99 change with its 95% bootstrap interval (whole pairs resampled); the machine's load
+average over the run; and the tick's viewer phase itself (from the stats messages); --csv writes
+every tick with its phase.
 
   python3 tools/viewer_tick_ab.py --server build/zone/zone-server --npcs 20000 --phase-s 5 --rounds 6
 """
@@ -18,6 +23,7 @@ import argparse
 import base64
 import json
 import os
+import random
 import re
 import select
 import socket
@@ -26,6 +32,27 @@ import subprocess
 import sys
 import tempfile
 import time
+
+
+def thread_cpu(pid):
+    """CPU seconds (user + system) of each of the process's threads, summed by thread name with
+    its digits dropped (zone-worker-1 and zone-worker-2 -> zone-worker-); {} where /proc is not readable."""
+    out = {}
+    hz = os.sysconf("SC_CLK_TCK")
+    try:
+        tasks = os.listdir(f"/proc/{pid}/task")
+    except OSError:
+        return out
+    for t in tasks:
+        try:
+            with open(f"/proc/{pid}/task/{t}/stat") as f:
+                stat = f.read()
+        except OSError:
+            continue
+        name = stat[stat.index("(") + 1:stat.rindex(")")].rstrip("0123456789")
+        fields = stat[stat.rindex(")") + 2:].split()
+        out[name] = out.get(name, 0.0) + (int(fields[11]) + int(fields[12])) / hz
+    return out
 
 
 def pct(values, q):
@@ -112,6 +139,8 @@ class viewer_socket:
                 msg = json.loads(payload)
                 for t in msg.get("ticks", []):
                     self.viewer_ms.append(t[6])
+            elif opcode == 0:
+                self.bytes += n  # a continuation of a fragmented message
             elif opcode == 2:
                 self.frames += 1
                 self.bytes += n
@@ -142,9 +171,14 @@ def main():
     ap.add_argument("--server-args", default="", help="more zone-server options")
     ap.add_argument("--csv", help="write tick,t_s,tick_ms,phase,round per tick")
     ap.add_argument("--label", default="", help="a label for the printed table")
+    ap.add_argument("--bootstrap", type=int, default=2000, help="bootstrap resamples for the intervals")
+    ap.add_argument("--client-nice", type=int, default=0,
+                    help="nice value of this script (the viewer socket's client) once the server runs (0: unchanged)")
     a = ap.parse_args()
-    if a.rounds < 1 or a.phase_s <= 0 or a.npcs < 0 or a.viewers < 1:
-        ap.error("rounds >= 1, phase-s > 0, npcs >= 0, viewers >= 1")
+    if a.rounds < 1 or a.phase_s <= 0 or a.npcs < 0 or a.viewers < 1 or a.bootstrap < 0 or not 0 <= a.client_nice <= 19:
+        ap.error("rounds >= 1, phase-s > 0, npcs >= 0, viewers >= 1, bootstrap >= 0, client-nice 0..19")
+    if not os.access(a.server, os.X_OK):
+        ap.error(f"--server {a.server}: not an executable file")
 
     tmp = tempfile.mkdtemp(prefix="viewer-ab-")
     ticks_csv = os.path.join(tmp, "ticks.csv")
@@ -175,12 +209,19 @@ def main():
             else:
                 time.sleep(0.05)
         now = lambda: time.monotonic() - t_start
+        if a.client_nice:
+            os.nice(a.client_nice)
         time.sleep(a.warmup_s)
         phases = []  # (round, open, t0, t1)
         viewer_ms, frames, nbytes = [], 0, 0
+        loads = [os.getloadavg()[0]]
+        cpu = {False: {}, True: {}}   # condition -> thread name -> CPU seconds in its phases
+        client_cpu = {False: 0.0, True: 0.0}
+        phase_s = {False: 0.0, True: 0.0}
         for r in range(a.rounds):
-            for opened in (False, True):
+            for opened in ((False, True) if r % 2 == 0 else (True, False)):
                 t0 = now()
+                cpu0, own0 = thread_cpu(srv.pid), os.times()
                 socks = [viewer_socket(port, (0.0, 0.0, a.world, a.world)) for _ in range(a.viewers)] if opened else []
                 end = time.monotonic() + a.phase_s
                 while time.monotonic() < end:
@@ -195,7 +236,13 @@ def main():
                     frames += s.frames
                     nbytes += s.bytes
                     s.close()
+                cpu1, own1 = thread_cpu(srv.pid), os.times()
                 phases.append((r, opened, t0, now()))
+                phase_s[opened] += phases[-1][3] - t0
+                for name, v in cpu1.items():
+                    cpu[opened][name] = cpu[opened].get(name, 0.0) + v - cpu0.get(name, 0.0)
+                client_cpu[opened] += (own1.user + own1.system) - (own0.user + own0.system)
+                loads.append(os.getloadavg()[0])
                 time.sleep(0.3)  # the sockets close; this gap is in neither phase
         time.sleep(0.5)
     finally:
@@ -222,6 +269,33 @@ def main():
         by[opened] += sel
         per_round.append((r, opened, len(sel), pct(sel, 0.5), pct(sel, 0.99)))
         out += [(tick, t, ms, "viewer" if opened else "none", r) for (tick, t, ms) in rows if t0 <= t < t1]
+    # Per round pair: the p99 change; pooled: the p99 of all ticks of each condition. Intervals by
+    # the bootstrap over round pairs (ticks within a phase are not independent; pairs are).
+    pairs = {}
+    for (r, opened, n, p50, p99) in per_round:
+        pairs.setdefault(r, {})[opened] = p99
+    ticks_of = {}
+    for (r, opened, t0, t1) in phases:
+        ticks_of[(r, opened)] = [ms for (_, t, ms) in rows if t0 <= t < t1]
+    rounds = sorted(r for r in pairs if len(pairs[r]) == 2 and pairs[r][False] == pairs[r][False] and pairs[r][False] > 0)
+    diffs = [100 * (pairs[r][True] - pairs[r][False]) / pairs[r][False] for r in rounds]
+    rng = random.Random(12345)
+
+    def median(v):
+        s = sorted(v)
+        return float("nan") if not s else (s[len(s) // 2] if len(s) % 2 else 0.5 * (s[len(s) // 2 - 1] + s[len(s) // 2]))
+
+    def pooled_change(rs):
+        none = [ms for r in rs for ms in ticks_of[(r, False)]]
+        opn = [ms for r in rs for ms in ticks_of[(r, True)]]
+        return 100 * (pct(opn, 0.99) - pct(none, 0.99)) / pct(none, 0.99) if none and opn else float("nan")
+
+    def interval(stat, items):
+        if not items or a.bootstrap == 0:
+            return float("nan"), float("nan")
+        v = sorted(stat([rng.choice(items) for _ in items]) for _ in range(a.bootstrap))
+        return v[int(0.025 * len(v))], v[min(len(v) - 1, int(0.975 * len(v)))]
+
     label = f" {a.label}" if a.label else ""
     print(f"\nviewer A/B{label}: {a.npcs} NPCs, {a.rounds} rounds of {a.phase_s:g} s + {a.phase_s:g} s, "
           f"{a.viewers} viewer socket(s), server args: {a.server_args or '(none)'}")
@@ -234,6 +308,20 @@ def main():
     print(f"p99 change with the viewer open: {100 * (p_open - p_none) / p_none:+.2f}%  "
           f"(p50 change {100 * (pct(by[True], 0.5) - pct(by[False], 0.5)) / pct(by[False], 0.5):+.2f}%)")
     print("per round: " + "; ".join(f"r{r} {'open' if o else 'none'} p99 {p99:.3f}" for (r, o, n, p50, p99) in per_round))
+    if diffs:
+        lo, hi = interval(median, diffs)
+        plo, phi = interval(pooled_change, rounds)
+        print(f"per-pair p99 change ({len(diffs)} pairs): median {median(diffs):+.2f}% (95% bootstrap {lo:+.2f}% .. {hi:+.2f}%), "
+              f"min {min(diffs):+.2f}%, max {max(diffs):+.2f}%, open higher in {sum(d > 0 for d in diffs)} of {len(diffs)}")
+        print(f"pooled p99 change: {pooled_change(rounds):+.2f}% (95% bootstrap over pairs {plo:+.2f}% .. {phi:+.2f}%)")
+    if cpu[True]:
+        names = sorted(set(cpu[False]) | set(cpu[True]), key=lambda n: -cpu[True].get(n, 0.0))
+        print("CPU ms per second of the phases (none -> open), by thread: " + "; ".join(
+            f"{n} {1000 * cpu[False].get(n, 0.0) / phase_s[False]:.1f} -> {1000 * cpu[True].get(n, 0.0) / phase_s[True]:.1f}"
+            for n in names if cpu[False].get(n, 0.0) + cpu[True].get(n, 0.0) > 0) +
+            f"; the viewer client (this script) {1000 * client_cpu[False] / phase_s[False]:.1f} -> {1000 * client_cpu[True] / phase_s[True]:.1f}")
+    print(f"load average (1 min) over the run: {min(loads):.2f} .. {max(loads):.2f} (median {median(loads):.2f}); "
+          f"client nice {a.client_nice}")
     print(f"the tick's own viewer phase (stats messages, {len(viewer_ms)} ticks): p50 {pct(viewer_ms, 0.5):.4f} ms, "
           f"p99 {pct(viewer_ms, 0.99):.4f} ms, max {max(viewer_ms) if viewer_ms else float('nan'):.4f} ms; "
           f"frames read {frames} ({nbytes / 1e6:.1f} MB)")

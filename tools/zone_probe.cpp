@@ -4,6 +4,7 @@
 //
 //   zone-probe --port P --attack halfopen [--count 1000] [--server-pid PID]
 //   zone-probe --port P --attack pingflood [--seconds 5] [--server-pid PID]
+//   zone-probe --port P --attack reconnect [--seconds 5] [--server-pid PID]
 //   zone-probe --port P --attack httpidle --metrics-port M [--count 1000] [--server-pid PID]
 //
 // halfopen: --count connections from 127.0.0.1, half silent, half dripping a hello a byte every
@@ -13,6 +14,11 @@
 //   alone, then `seconds` beside a flood from 127.0.0.2 in two forms: blast (pings as fast as the
 //   socket takes them; reconnecting with a hello when cut off) and paced (just under the
 //   disconnect rule: 190 pings per 110 ms). Reports the server's CPU (from /proc/PID/stat) in each.
+// reconnect: a good client as in pingflood, alone, then beside a reconnect flood from 127.0.0.2:
+//   min(--count, 32) threads each connect, say hello, wait for the welcome (or the server's error,
+//   or the close), close, and at once again, for `seconds` (a welcome waits for the next tick, so
+//   one thread joins about once a tick). Reports the connections, joins (welcomes) and refusals a second, the
+//   server's CPU above the baseline and the good client's frame gaps.
 // httpidle: --count idle connections to /metrics, then a player joins (time to its welcome) and
 //   a scrape is tried; reports how many of the idle connections the server kept.
 // stall: --count players (at most 2,000) from 127.0.0.4 read and verify their views (digests) for
@@ -42,6 +48,7 @@
 #include <optional>
 #include <sstream>
 #include <string>
+#include <atomic>
 #include <thread>
 #include <vector>
 
@@ -348,6 +355,81 @@ int attack_pingflood(const options& o) {
   return 0;
 }
 
+int attack_reconnect(const options& o) {
+  int good = -1;
+  if (!join_ms(o.port, 3, &good)) {
+    std::fprintf(stderr, "zone-probe: the good client could not join\n");
+    return 1;
+  }
+  frame_decoder good_dec;
+  auto next_keepalive = steady::now();
+  const auto keepalive = [&] {
+    if (steady::now() < next_keepalive) return;
+    (void)send_all(good, encode_frame(ping_msg{1}));
+    next_keepalive += 1s;
+  };
+  double c0 = cpu_seconds(o.server_pid);
+  auto t0 = steady::now();
+  const auto base = frame_gaps(good, good_dec, o.seconds, keepalive);
+  const double base_cpu = (cpu_seconds(o.server_pid) - c0) / std::chrono::duration<double>(steady::now() - t0).count();
+  figure("baseline: good client frame gap p50 (ms)", percentile(base, 0.5));
+  figure("baseline: good client frame gap p99 (ms)", percentile(base, 0.99));
+  figure("baseline: server CPU (% of a core)", 100 * base_cpu);
+
+  // The flood, on its own threads: each one connection at a time, closed as soon as the server
+  // has answered its hello (welcome: a join and, at the close, a leave; an error: refused).
+  const auto hello = encode_frame(hello_msg{"reconnector", "", protocol_version});
+  std::atomic<bool> stop{false};
+  std::atomic<std::uint64_t> attempts{0}, welcomes{0}, rate_limited{0}, other_errors{0}, silent_closes{0}, failed_connects{0};
+  const auto flood = [&] {
+    while (!stop.load(std::memory_order_relaxed)) {
+      const int fd = connect_from(o.port, 2, false);
+      if (fd < 0) {
+        ++failed_connects;
+        continue;
+      }
+      ++attempts;
+      frame_decoder dec;
+      std::optional<message> answer;
+      if (send_all(fd, hello)) {
+        (void)read_until(fd, dec, 1000ms, [&](const message& m) {
+          if (!std::holds_alternative<welcome_msg>(m) && !std::holds_alternative<error_msg>(m)) return false;
+          answer = m;
+          return true;
+        });
+      }
+      ::close(fd);
+      if (!answer) ++silent_closes;
+      else if (std::holds_alternative<welcome_msg>(*answer)) ++welcomes;
+      else if (std::get<error_msg>(*answer).code == error_code::rate_limited) ++rate_limited;
+      else ++other_errors;
+    }
+  };
+  const std::size_t threads = std::clamp<std::size_t>(o.count, 1, 32);
+  std::vector<std::thread> flooders;
+  c0 = cpu_seconds(o.server_pid);
+  t0 = steady::now();
+  for (std::size_t i = 0; i < threads; ++i) flooders.emplace_back(flood);
+  const auto gaps = frame_gaps(good, good_dec, o.seconds, keepalive);
+  const double secs = std::chrono::duration<double>(steady::now() - t0).count();
+  const double cpu = (cpu_seconds(o.server_pid) - c0) / secs;
+  stop = true;
+  for (auto& t : flooders) t.join();
+  ::close(good);
+  figure("reconnect flood: threads", static_cast<double>(threads));
+  figure("reconnect flood: connections per second", static_cast<double>(attempts.load()) / secs);
+  figure("reconnect flood: joins (welcomes) per second", static_cast<double>(welcomes.load()) / secs);
+  figure("reconnect flood: refused with rate_limited per second", static_cast<double>(rate_limited.load()) / secs);
+  figure("reconnect flood: other errors", static_cast<double>(other_errors.load()));
+  figure("reconnect flood: closed without an answer", static_cast<double>(silent_closes.load()));
+  figure("reconnect flood: failed connects", static_cast<double>(failed_connects.load()));
+  figure("reconnect flood: server CPU (% of a core)", 100 * cpu);
+  figure("reconnect flood: server CPU above baseline (% of a core)", 100 * (cpu - base_cpu));
+  figure("reconnect flood: good client frame gap p50 (ms)", percentile(gaps, 0.5));
+  figure("reconnect flood: good client frame gap p99 (ms)", percentile(gaps, 0.99));
+  return 0;
+}
+
 int attack_httpidle(const options& o) {
   std::vector<int> idle;
   for (std::size_t i = 0; i < o.count; ++i) {
@@ -490,7 +572,7 @@ int attack_stall(const options& o) {
 }
 
 const char* const usage_text =
-    "usage: zone-probe --port P --attack halfopen|pingflood|httpidle|stall [--count N (1000)] [--seconds S (5)]\n"
+    "usage: zone-probe --port P --attack halfopen|pingflood|reconnect|httpidle|stall [--count N (1000)] [--seconds S (5)]\n"
     "                  [--metrics-port M (httpidle)] [--server-pid PID (CPU and memory readings)]\n"
     "                  [--rcvbuf BYTES (stall: the players' SO_RCVBUF; 0 = the system's)]\n"
     "Hostile clients against a zone-server on loopback (docs/operating.md, Limits and hardening).\n";
@@ -517,6 +599,7 @@ int main(int argc, char** argv) {
   int rc;
   if (o.attack == "halfopen") rc = attack_halfopen(o);
   else if (o.attack == "pingflood") rc = attack_pingflood(o);
+  else if (o.attack == "reconnect") rc = attack_reconnect(o);
   else if (o.attack == "httpidle") rc = attack_httpidle(o);
   else if (o.attack == "stall") rc = attack_stall(o);
   else return usage(false);

@@ -49,6 +49,7 @@ std::optional<std::string> validate(const zone_config& c) {
   if (!(c.boss_footprint >= 0 && std::isfinite(c.boss_footprint))) return bad("boss-footprint must be >= 0");
   if (c.io_threads == 0) return bad("io-threads must be >= 1");
   if (c.io_nice < 0 || c.io_nice > 19) return bad("io-nice must be 0 .. 19");
+  if (c.viewer_nice < 0 || c.viewer_nice > 19) return bad("viewer-nice must be 0 .. 19");
   static const char* batchings[] = {"auto", "io_uring", "sendmsg"};  // net::parse_write_batching
   if (std::find(std::begin(batchings), std::end(batchings), c.write_batching) == std::end(batchings)) {
     return bad("write-batching must be auto, io_uring or sendmsg");
@@ -62,6 +63,10 @@ std::optional<std::string> validate(const zone_config& c) {
   if (!(c.hello_timeout_s > 0 && c.hello_timeout_s <= 3600)) return bad("hello-timeout must be in (0, 3600] seconds");
   if (!(c.idle_timeout_s > 0 && c.idle_timeout_s <= 86400)) return bad("idle-timeout must be in (0, 86400] seconds");
   if (c.max_pending == 0 || c.max_pending_per_address == 0) return bad("max-pending and max-pending-per-address must be >= 1");
+  if (!(c.connect_rate >= 0 && std::isfinite(c.connect_rate))) return bad("connect-rate must be >= 0 (0 = no limit)");
+  if (!(c.connect_burst >= 1 && std::isfinite(c.connect_burst))) return bad("connect-burst must be >= 1");
+  if (!(c.connect_min_session_s >= 0 && c.connect_min_session_s <= 3600)) return bad("connect-min-session must be 0 .. 3600 seconds");
+  if (!(c.connect_refusal_hold_s >= 0 && c.connect_refusal_hold_s <= 60)) return bad("connect-refusal-hold must be 0 .. 60 seconds");
   if (c.max_name_bytes == 0 || c.max_name_bytes > 1024) return bad("max-name-bytes must be 1 .. 1024");
   if (!(c.log_summary_s >= 0 && std::isfinite(c.log_summary_s))) return bad("log-summary must be >= 0 seconds");
   if (c.metrics_max_connections == 0 || c.metrics_max_connections > 4096) return bad("metrics-max-connections must be 1 .. 4096");
@@ -130,8 +135,9 @@ replication_options replication_options_of(const zone_config& c) {
 }
 
 unsigned worker_spin(const zone_config& c) {
-  if (c.worker_spin_us >= 0) return static_cast<unsigned>(c.worker_spin_us);
-  return std::thread::hardware_concurrency() >= 8 ? 1000u : 0u;
+  // Auto (-1) was 1000 us on 8+ hardware threads until issue 22: the spin did not pay there
+  // either (docs/zone-benchmarks.md, "The pool's idle spin").
+  return c.worker_spin_us > 0 ? static_cast<unsigned>(c.worker_spin_us) : 0u;
 }
 
 config_result parse_config(int argc, const char* const* argv) {
@@ -155,7 +161,7 @@ config_result parse_config(int argc, const char* const* argv) {
       ("tick-rate", po::value(&c.tick_rate_hz)->default_value(c.tick_rate_hz), "ticks per second")      //
       ("seed", po::value(&c.seed)->default_value(c.seed), "seed of the NPC population and behaviours")  //
       ("threads", po::value(&c.worker_threads)->default_value(c.worker_threads), "worker threads (0 = all cores)")  //
-      ("worker-spin-us", po::value(&c.worker_spin_us)->default_value(c.worker_spin_us), "microseconds an idle worker spins before it sleeps, and how early the loop wakes the workers before a tick (-1 = auto: 1000 with 8 or more hardware threads, else 0)");
+      ("worker-spin-us", po::value(&c.worker_spin_us)->default_value(c.worker_spin_us), "microseconds an idle worker spins before it sleeps, and how early the loop wakes the workers before a tick (0 = no spin, the default: it cost more CPU than it saved tick time; -1 = auto, the same)");
   po::options_description interest("Interest");
   interest.add_options()                                                                                     //
       ("finder", po::value(&c.finder)->default_value(c.finder), "pair finder: auto (chosen per tick from the box statistics: GPU when usable, else CPU), cpu, gpu (= pbig), pbig, lbvh, brute")  //
@@ -191,6 +197,10 @@ config_result parse_config(int argc, const char* const* argv) {
       ("hello-timeout", po::value(&c.hello_timeout_s)->default_value(c.hello_timeout_s), "seconds from accept by which a connection must have completed its hello, whatever it sends (error timeout)")  //
       ("max-pending", po::value(&c.max_pending)->default_value(c.max_pending), "connections without a hello yet, in total, apart from the player slots; at the cap the oldest is closed for the new one")  //
       ("max-pending-per-address", po::value(&c.max_pending_per_address)->default_value(c.max_pending_per_address), "connections without a hello yet from one source address; at the cap the address's oldest is closed for the new one (raise it for a bot swarm on one host)")  //
+      ("connect-rate", po::value(&c.connect_rate)->default_value(c.connect_rate), "reconnect churn per source address: connections a second that may end within connect-min-session of their accept (never said hello, refused, cut off, or left soon after joining); an address past it is refused at accept with error rate_limited until its bucket refills (connections that stay cost nothing: a bot swarm ramping from one host is not limited); 0 = no limit")  //
+      ("connect-burst", po::value(&c.connect_burst)->default_value(c.connect_burst), "reconnect churn per source address: how many such short connections an address may make at once before connect-rate applies")  //
+      ("connect-min-session", po::value(&c.connect_min_session_s)->default_value(c.connect_min_session_s), "seconds: a connection that ends sooner after its accept counts against its address's connect-rate")  //
+      ("connect-refusal-hold", po::value(&c.connect_refusal_hold_s)->default_value(c.connect_refusal_hold_s), "seconds a connection refused for connect-rate is held unread before its error rate_limited and reset, so a client that waits for its answer retries once per hold rather than as fast as the server refuses (at most 64 held per address, 512 in all; 0 = answered at once)")  //
       ("max-name-bytes", po::value(&c.max_name_bytes)->default_value(c.max_name_bytes), "longest player name; names are printable ASCII without leading or trailing spaces (error bad_hello)")  //
       ("idle-timeout", po::value(&c.idle_timeout_s)->default_value(c.idle_timeout_s), "seconds a player may send no complete frame before it is closed (clients ping)")  //
       ("max-frame-bytes", po::value(&c.max_frame_bytes)->default_value(c.max_frame_bytes), "largest inbound frame")  //
@@ -232,7 +242,8 @@ config_result parse_config(int argc, const char* const* argv) {
       ("viewer", po::value(&c.viewer_enabled)->default_value(c.viewer_enabled), "serve the live viewer at /viewer beside /metrics (0 or 1; needs --metrics 1)")  //
       ("viewer-remote", po::value(&c.viewer_remote)->default_value(c.viewer_remote), "serve the viewer to peers that are not on a loopback address too (0 or 1)")  //
       ("max-viewers", po::value(&c.max_viewers)->default_value(c.max_viewers), "viewer pages at once (more are refused)")  //
-      ("viewer-hz", po::value(&c.viewer_hz)->default_value(c.viewer_hz), "snapshots a second sent to viewer pages (at most the tick rate)");
+      ("viewer-hz", po::value(&c.viewer_hz)->default_value(c.viewer_hz), "snapshots a second sent to viewer pages (at most the tick rate)")  //
+      ("viewer-nice", po::value(&c.viewer_nice)->default_value(c.viewer_nice), "nice value of the viewer's thread, 0-19 (it encodes and writes every page's frames; 19: the tick's threads take a shared core back at once)");
   po::options_description correctness("Correctness (docs/bots.md)");
   correctness.add_options()  //
       ("oracle", po::bool_switch(&c.oracle), "publish every tick's ground truth (entities, boxes, classes) on a loopback stream for an independent oracle (bot-swarm --oracle); off by default, and costs nothing when off")  //

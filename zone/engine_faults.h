@@ -56,6 +56,7 @@ class faulty_visibility_engine final : public interest::visibility_engine {
   [[nodiscard]] resident_lists resident_visible() const override {
     return fault_.fired() ? resident_lists{} : inner_.resident_visible();
   }
+  [[nodiscard]] bool caps_visible() const override { return inner_.caps_visible(); }
   [[nodiscard]] const char* name() const override { return inner_.name(); }
   [[nodiscard]] const engine_fault& fault() const { return fault_; }
 

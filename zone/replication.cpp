@@ -226,7 +226,8 @@ template <class Source>
 std::span<const std::uint8_t> replicator::build_from(const Source& source, client_id c, const entity_store& store,
                                                      const interest::interest_tracker& tracker, std::uint64_t tick,
                                                      std::uint64_t server_time_us, std::uint32_t last_input_sequence,
-                                                     replication_writer& w, replication_stats* stats) {
+                                                     replication_writer& w, replication_stats* stats,
+                                                     const frame_room* out_room, std::size_t k) {
   client_state& s = clients_[c];
   net::tick_update_writer& writer = w.frame_;
   replication_stats st;
@@ -408,7 +409,9 @@ std::span<const std::uint8_t> replicator::build_from(const Source& source, clien
   }
   // What the budget left for later: a client (the oracle, docs/bots.md) can then tell a deferral from a loss.
   writer.set_deferred({st.deferred_enters, st.deferred_leaves, st.deferred_updates});
-  const auto frame = writer.finish();
+  // Into the caller's memory when it gives some (build_many's room), else the writer's buffer.
+  const auto frame =
+      out_room != nullptr && *out_room ? writer.finish_into((*out_room)(k, writer.frame_size())) : writer.finish();
   st.bytes = frame.size();
   if (stats) *stats = st;
   return frame;
@@ -449,7 +452,8 @@ void replicator::set_engine(interest::replication_engine* engine) {
 
 void replicator::build_on_engine(std::span<const replication_request> requests, const entity_store& store,
                                  const interest::interest_tracker& tracker, std::uint64_t tick, std::uint64_t server_time_us,
-                                 interest::thread_pool* pool, const frame_sink& sink, const chunk_sink& chunk_done) {
+                                 interest::thread_pool* pool, const frame_sink& sink, const chunk_sink& chunk_done,
+                                 const frame_room& room) {
   // Phase clocks: wall always, the process's CPU time when asked (set_phase_cpu_timing).
   replication_phase_times times;
   times.cpu = static_cast<bool>(phase_cpu_);
@@ -626,7 +630,14 @@ void replicator::build_on_engine(std::span<const replication_request> requests, 
         stats.deferred_leaves = res.deferred_leaves;
         stats.deferred_updates = res.deferred_updates;
         stats.bytes = res.frame_size;
-        sink(k, {frame, res.frame_size}, stats);
+        if (room) {
+          // Copied where the caller sends it from (the engine's output is reused next tick).
+          const auto to = room(k, res.frame_size);
+          std::memcpy(to.data(), frame, res.frame_size);
+          sink(k, to.first(res.frame_size), stats);
+        } else {
+          sink(k, {frame, res.frame_size}, stats);
+        }
       }
       if (chunk_done) chunk_done(begin, end);
     }
@@ -638,11 +649,12 @@ void replicator::build_on_engine(std::span<const replication_request> requests, 
 
 void replicator::build_many(std::span<const replication_request> requests, const entity_store& store,
                             const interest::interest_tracker& tracker, std::uint64_t tick, std::uint64_t server_time_us,
-                            interest::thread_pool* pool, const frame_sink& sink, const chunk_sink& chunk_done) {
+                            interest::thread_pool* pool, const frame_sink& sink, const chunk_sink& chunk_done,
+                            const frame_room& room) {
   if (requests.empty()) return;
   if (on_engine()) {
     try {
-      build_on_engine(requests, store, tracker, tick, server_time_us, pool, sink, chunk_done);
+      build_on_engine(requests, store, tracker, tick, server_time_us, pool, sink, chunk_done, room);
       return;
     } catch (const std::exception& e) {
       // Nothing reached the sink: this tick is built on the CPU, every client starting over.
@@ -692,9 +704,9 @@ void replicator::build_many(std::span<const replication_request> requests, const
         replication_stats st;
         const auto frame =
             snapshot ? build_from(from_snapshot, r.client, store, tracker, tick, server_time_us, r.last_input_sequence,
-                                  writer, &st)
+                                  writer, &st, &room, k)
                      : build_from(from_store, r.client, store, tracker, tick, server_time_us, r.last_input_sequence,
-                                  writer, &st);
+                                  writer, &st, &room, k);
         sink(k, frame, st);
       }
       if (chunk_done) chunk_done(begin, end);

@@ -173,9 +173,17 @@ class replicator {
   /// `chunk_done` (when set) is called by the thread that built a chunk of requests [begin, end)
   /// right after the sink saw its last frame: a caller can hand a chunk's frames on together.
   using chunk_sink = std::function<void(std::size_t begin, std::size_t end)>;
+  /// Where frame k is written (optional): given the frame's exact size, the caller returns
+  /// writable memory of at least that size (net::frame_arena::reserve: the block the session
+  /// will send it from), valid until the sink's call for k, which the same thread makes next.
+  /// The frame is then written there once (no copy out of the replicator's buffer), and the
+  /// sink's span is that memory. On an engine the frame is copied there from the engine's output.
+  /// Unset: the sink's span is in the replicator's (or the engine's) own buffer.
+  using frame_room = std::function<std::span<std::uint8_t>(std::size_t k, std::size_t bytes)>;
   void build_many(std::span<const replication_request> requests, const entity_store& store,
                   const interest::interest_tracker& tracker, std::uint64_t tick, std::uint64_t server_time_us,
-                  interest::thread_pool* pool, const frame_sink& sink, const chunk_sink& chunk_done = {});
+                  interest::thread_pool* pool, const frame_sink& sink, const chunk_sink& chunk_done = {},
+                  const frame_room& room = {});
 
   /// Runs build_many's decisions on `engine` (interest/replication_engine.h; the GPU:
   /// gpu/replication.h), which then holds the clients' views; null: back to the CPU. The frames
@@ -241,13 +249,15 @@ class replicator {
   std::span<const std::uint8_t> build_from(const Source& source, client_id c, const entity_store& store,
                                            const interest::interest_tracker& tracker, std::uint64_t tick,
                                            std::uint64_t server_time_us, std::uint32_t last_input_sequence,
-                                           replication_writer& writer, replication_stats* stats);
+                                           replication_writer& writer, replication_stats* stats,
+                                           const frame_room* out_room = nullptr, std::size_t k = 0);
   /// Starts loading what building client c will read first (its state and lists).
   void prefetch_client(client_id c) const;
   /// build_many on the engine (throws what the engine throws, before any frame reaches the sink).
   void build_on_engine(std::span<const replication_request> requests, const entity_store& store,
                        const interest::interest_tracker& tracker, std::uint64_t tick, std::uint64_t server_time_us,
-                       interest::thread_pool* pool, const frame_sink& sink, const chunk_sink& chunk_done);
+                       interest::thread_pool* pool, const frame_sink& sink, const chunk_sink& chunk_done,
+                       const frame_room& room);
   /// Every active client starts over (its next frame is a reset).
   void reset_all_clients();
 

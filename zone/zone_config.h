@@ -34,9 +34,10 @@ struct zone_config {
   std::uint64_t seed = 1;
   unsigned worker_threads = 0;  ///< interest and tick work; 0 = hardware concurrency
   /// Microseconds an idle worker spins before it sleeps (interest::thread_pool), and the tick
-  /// loop wakes the workers this long before a tick is due; -1 = auto: 1000 on hosts with at
-  /// least 8 hardware threads, else 0 (a small machine's cores are better left to others).
-  int worker_spin_us = -1;
+  /// loop wakes the workers this long before a tick is due. 0 (the default): no spin; on the
+  /// 2-core VM and on the H100 host the spin cost more CPU than it saved tick time
+  /// (docs/zone-benchmarks.md, "The pool's idle spin"). -1 (auto, the default before) is 0 too.
+  int worker_spin_us = 0;
   // Interest.
   /// Pair finder (gpu/finders.h): "auto" (chosen per tick: a GPU finder when a device is usable,
   /// else the CPU grid finder), "cpu", "gpu" (= "pbig"), "pbig", "lbvh", "brute".
@@ -97,6 +98,14 @@ struct zone_config {
   double hello_timeout_s = 3;
   std::size_t max_pending = 1024;
   std::size_t max_pending_per_address = 256;
+  /// Reconnect churn per source address (net::server_options::connect_rate): connections that end
+  /// within connect_min_session_s of their accept take a token from their address's bucket
+  /// (connect_rate a second, burst connect_burst); an address without a token is refused at
+  /// accept. Connections that stay cost nothing. connect_rate 0 = no limit.
+  double connect_rate = 20;
+  double connect_burst = 64;
+  double connect_min_session_s = 10;
+  double connect_refusal_hold_s = 2;  ///< a refused connection is held unanswered this long (0 = answered at once)
   std::size_t max_name_bytes = 32;  ///< longest player name (printable ASCII)
   double idle_timeout_s = 10;       ///< a player that sends no complete frame this long is closed
   /// Seconds between the info-level summary of joins, leaves and refusals (per-session lines are
@@ -160,6 +169,7 @@ struct zone_config {
   bool viewer_remote = false;    ///< also to peers that are not on a loopback address
   std::size_t max_viewers = 4;   ///< viewer pages at once
   double viewer_hz = 10;         ///< snapshots a second while a page is open (at most the tick rate)
+  int viewer_nice = 19;          ///< nice value of the viewer's thread (0-19; net::viewer_options::nice)
   // Correctness (docs/bots.md, the oracle).
   /// Publish every tick's ground truth on a loopback stream (127.0.0.1:oracle_port; 0 = an
   /// ephemeral port, told in the welcome): what an independent oracle checks each client's view
@@ -179,7 +189,7 @@ struct config_result {
   bool help = false;  ///< --help was given: print message, exit 0
 };
 
-/// zone_config::worker_spin_us resolved (-1 = auto: 1000 us with >= 8 hardware threads, else 0).
+/// zone_config::worker_spin_us resolved (-1 = auto: 0).
 [[nodiscard]] unsigned worker_spin(const zone_config& c);
 
 struct replication_options;  // zone/replicator.h

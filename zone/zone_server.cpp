@@ -42,6 +42,10 @@ net::server_options net_options(const zone_config& c) {
   o.idle_timeout = std::chrono::milliseconds(static_cast<std::int64_t>(std::ceil(c.idle_timeout_s * 1000)));
   o.max_pending = c.max_pending;
   o.max_pending_per_address = c.max_pending_per_address;
+  o.connect_rate = c.connect_rate;
+  o.connect_burst = c.connect_burst;
+  o.connect_min_session = std::chrono::milliseconds(static_cast<std::int64_t>(std::ceil(c.connect_min_session_s * 1000)));
+  o.connect_refusal_hold = std::chrono::milliseconds(static_cast<std::int64_t>(std::ceil(c.connect_refusal_hold_s * 1000)));
   o.max_name_bytes = c.max_name_bytes;
   return o;
 }
@@ -170,6 +174,15 @@ std::string zone_server::metrics_text() const {
   t.counter("zone_net_pending_evicted_total", "Connections without a hello closed to admit a newer one (cap: max-pending-per-address or max-pending).",
             static_cast<double>(ns.pending_evicted), "cap=\"total\"");
   t.counter("zone_net_hello_timeouts_total", "Connections closed at the hello deadline.", static_cast<double>(ns.hello_timeouts));
+  t.counter("zone_net_connections_rate_limited_total",
+            "Connections refused at accept (error rate_limited, no session): their address's reconnect churn was over connect-rate.",
+            static_cast<double>(ns.connections_rate_limited));
+  t.counter("zone_net_connections_short_total",
+            "Connections that ended within connect-min-session of their accept (each took a token of its address's connect-rate).",
+            static_cast<double>(ns.connections_charged));
+  t.counter("zone_net_pending_spared_total",
+            "At a pending cap, connections not evicted because their first bytes (a hello) waited unread in the socket.",
+            static_cast<double>(ns.pending_spared));
   t.counter("zone_net_hellos_rejected_total", "Hellos refused (bad name).", static_cast<double>(ns.hellos_rejected));
   t.counter("zone_net_idle_timeouts_total", "Sessions closed at the idle timeout.", static_cast<double>(ns.idle_timeouts));
   // The configured limits, so a dashboard reads them beside what they bound.
@@ -180,6 +193,10 @@ std::string zone_server::metrics_text() const {
   limit("max_pending", static_cast<double>(cfg_.max_pending));
   limit("max_pending_per_address", static_cast<double>(cfg_.max_pending_per_address));
   limit("hello_timeout_seconds", cfg_.hello_timeout_s);
+  limit("connect_rate", cfg_.connect_rate);
+  limit("connect_burst", cfg_.connect_burst);
+  limit("connect_min_session_seconds", cfg_.connect_min_session_s);
+  limit("connect_refusal_hold_seconds", cfg_.connect_refusal_hold_s);
   limit("idle_timeout_seconds", cfg_.idle_timeout_s);
   limit("inputs_per_second", cfg_.inputs_per_second);
   limit("pings_per_second", cfg_.pings_per_second);
@@ -289,6 +306,7 @@ std::optional<std::string> zone_server::start() {
       net::viewer_options vo;
       vo.max_viewers = cfg_.max_viewers;
       vo.allow_remote = cfg_.viewer_remote;
+      vo.nice = cfg_.viewer_nice;
       viewer_ = std::make_unique<net::viewer_server>(vo);
       metrics_->attach_viewer(viewer_.get());
     }
@@ -495,6 +513,14 @@ void zone_server::choose_fault_victim() {
   }
 }
 
+namespace {
+/// Each replication worker's frames: carved out of its own blocks (net::frame_arena).
+net::frame_arena& replication_arena() {
+  thread_local net::frame_arena arena;
+  return arena;
+}
+}  // namespace
+
 void zone_server::replicate() {
   const std::uint64_t now = net_.now_us();
   if (fault_ && world_->tick() >= fault_->from_tick()) choose_fault_victim();
@@ -554,20 +580,21 @@ void zone_server::replicate() {
           frame = fault_->rewrite(frame, world_->tick(), world_->store());
         }
         frame_bytes_[k] = frame.size();
-        // Each worker carves its frames out of its own blocks (net::frame_arena: one malloc per
-        // ~20 frames, and no free per frame against this thread's malloc arena).
-        thread_local net::frame_arena arena;
+        net::frame_arena& arena = replication_arena();
+        // The frame was written into the room reserved for it below: it becomes the session's
+        // frame as it is (the rewritten one of the fault test is copied in).
+        net::shared_frame out = arena.in_reservation(frame) ? arena.commit(frame.size()) : arena.make(frame);
         // A reset frame ends a session's wait after dropped frames (net/server.h).
-        outgoing_[k] = {request_sessions_[k], arena.make(frame),
-                        st.reset ? net::delivery::state_reset : net::delivery::state};
+        outgoing_[k] = {request_sessions_[k], std::move(out), st.reset ? net::delivery::state_reset : net::delivery::state};
       },
       [&](std::size_t begin, std::size_t end) {
         // A chunk's frames to the network together: one lookup lock, one ready-list append per
-        // I/O thread (net::server::send_many).
-        const auto chunk = std::span(outgoing_).subspan(begin, end - begin);
-        net_.send_many(chunk);
-        for (auto& f : chunk) f.frame = {};
-      });
+        // I/O thread (net::server::send_many_moved: the frames are taken, the slots left empty).
+        net_.send_many_moved(std::span(outgoing_).subspan(begin, end - begin));
+      },
+      // Each frame is written straight into its worker's net::frame_arena (blocks taken again
+      // once their frames are written: no allocation a frame, no copy out of the writer).
+      [](std::size_t, std::size_t bytes) { return replication_arena().reserve(bytes); });
   for (const std::size_t bytes : frame_bytes_) stats_.bytes_sent += bytes;
   stats_.frames_sent += frame_bytes_.size();
 }
@@ -585,14 +612,15 @@ void zone_server::log_summary() {
                                 (ns.pending_evicted - a.pending_evicted) + (ns.hellos_rejected - a.hellos_rejected);
   const std::uint64_t timeouts = (ns.hello_timeouts - a.hello_timeouts) + (ns.idle_timeouts - a.idle_timeouts);
   const std::uint64_t limited = ns.rate_limited - a.rate_limited, rejected = ns.frames_rejected - a.frames_rejected;
+  const std::uint64_t churn = ns.connections_rate_limited - a.connections_rate_limited;
   // Quiet when nothing happened.
-  if (joined + left + refused + timeouts + limited + rejected != 0) {
+  if (joined + left + refused + timeouts + limited + rejected + churn != 0) {
     spdlog::info("clients: {} ({} joined, {} left in {:.0f} s); refused {} (slots {}, evicted per address {}, evicted in all {}, bad hello {}); "
-                 "timeouts {} (hello {}, idle {}); rate-limited {}; bad frames {}; {} without hello now",
+                 "timeouts {} (hello {}, idle {}); rate-limited {}; refused at accept (connect-rate) {}; bad frames {}; {} without hello now",
                  clients_.size(), joined, left, cfg_.log_summary_s, refused, ns.connections_refused - a.connections_refused,
                  ns.pending_evicted_address - a.pending_evicted_address, ns.pending_evicted - a.pending_evicted,
                  ns.hellos_rejected - a.hellos_rejected, timeouts, ns.hello_timeouts - a.hello_timeouts,
-                 ns.idle_timeouts - a.idle_timeouts, limited, rejected, ns.pending_open);
+                 ns.idle_timeouts - a.idle_timeouts, limited, churn, rejected, ns.pending_open);
   }
   summary_net_ = ns;
   summary_loop_.joins = stats_.joins;
@@ -657,9 +685,12 @@ void zone_server::tick_once() {
   publish_viewer();
   viewer_ms_ = ms_since(t2);
   const double tick_ms = ms_since(t0);
-  if (viewer_ && viewer_->viewers() > 0 && viewer_ticks_.size() < 256) {
+  if (viewer_ && viewer_->viewers() > 0) {
+    auto& rows = viewer_->next_stats().ticks;  // reserved: no allocation
     const step_times& ph = world_->last_step();
-    viewer_ticks_.push_back({world_->tick(), inputs_ms, ph.behaviours, ph.integrate, ph.interest, replicate_ms, viewer_ms_, tick_ms});
+    if (rows.size() < net::viewer_stats::max_ticks) {
+      rows.push_back({world_->tick(), inputs_ms, ph.behaviours, ph.integrate, ph.interest, replicate_ms, viewer_ms_, tick_ms});
+    }
   }
   stats_.replicate_ms.record(replicate_ms);
   stats_.tick_ms.record(tick_ms);
@@ -680,43 +711,34 @@ void zone_server::fill_viewer_snapshot(net::viewer_snapshot& s) const {
   s.world_lo[0] = cfg_.world.lo.x, s.world_lo[1] = cfg_.world.lo.y, s.world_lo[2] = cfg_.world.lo.z;
   s.world_hi[0] = cfg_.world.hi.x, s.world_hi[1] = cfg_.world.hi.y, s.world_hi[2] = cfg_.world.hi.z;
   const std::size_t n = store.size();
-  const auto ids = store.ids();
   const auto pos = store.positions();
   const auto cls = store.visibility_classes();
   const auto kinds = store.kinds();
-  // Ids, classes and kinds only when the store's layout changed since this snapshot was filled
-  // (its version covers ids and classes; an entity's kind is fixed at creation); positions always.
+  // Plain copies of the store's columns, converted only when encoded on the viewer's thread:
+  // positions always (one memcpy, 12 bytes an entity, on this thread: no worker to wake); ids,
+  // classes and kinds only when the store's layout changed since this buffer was filled (its
+  // version covers ids and classes; an entity's kind is fixed at creation).
   const std::uint64_t layout = store.layout_version();
-  const bool all = layout == 0 || s.layout != layout || s.ids.size() != n;
+  s.xyz.resize(3 * n);
+  if (n > 0) std::memcpy(s.xyz.data(), pos.data(), n * sizeof(vec3));
+  if (layout == 0 || s.layout != layout || s.ids.size() != n) {
+    const auto ids = store.ids();
+    s.ids.assign(ids.begin(), ids.end());
+    s.classes.assign(cls.begin(), cls.end());
+    s.kind.resize(n);
+    static_assert(sizeof(entity_kind) == 1);
+    if (n > 0) std::memcpy(s.kind.data(), kinds.data(), n);
+  }
   s.layout = layout;
-  s.ids.resize(n);
-  s.x.resize(n);
-  s.y.resize(n);
-  s.visibility.resize(n);
-  s.kind.resize(n);
-  // On the workers, in chunks: at 100,000 entities one thread took most of a millisecond, which
-  // showed in the tick's p99 on the H100 (docs/viewer.md).
-  constexpr std::size_t chunk = 8192;
-  interest::run_tasks(n > chunk ? pool_.get() : nullptr, (n + chunk - 1) / chunk, [&](std::size_t c) {
-    const std::size_t e = std::min(n, (c + 1) * chunk);
-    for (std::size_t i = c * chunk; i < e; ++i) {
-      s.x[i] = pos[i].x;
-      s.y[i] = pos[i].y;
-    }
-    if (!all) return;
-    for (std::size_t i = c * chunk; i < e; ++i) {
-      s.ids[i] = ids[i];
-      s.visibility[i] = static_cast<std::uint8_t>(std::countr_zero(cls[i]));
-      s.kind[i] = static_cast<std::uint8_t>(kinds[i]);
-    }
-  });
   // The selected entities: boxes, visible set with each entity's replication tier, events.
   s.selections.resize(viewer_watch_.size());
   const float near_sq = cfg_.update_near * cfg_.update_near, mid_sq = cfg_.update_mid * cfg_.update_mid;
   for (std::size_t k = 0; k < viewer_watch_.size(); ++k) {
     auto& sel = s.selections[k];
-    sel.id = viewer_watch_[k].id;
-    sel.events.assign(viewer_watch_[k].events.begin(), viewer_watch_[k].events.end());
+    const auto& w = viewer_watch_[k];
+    sel.id = w.id;
+    sel.events.resize(w.count);
+    for (std::size_t e = 0; e < w.count; ++e) sel.events[e] = w.events[(w.first + e) % viewer_watch::max_events];
     sel.visible.clear();
     sel.tier.clear();
     const std::size_t d = store.index_of(sel.id), row = tr.row_of(sel.id);
@@ -746,48 +768,26 @@ void zone_server::fill_viewer_snapshot(net::viewer_snapshot& s) const {
   }
 }
 
-std::string zone_server::viewer_stats_json() const {
+void zone_server::fill_viewer_stats(net::viewer_stats& s) const {
   const auto& ts = world_->tracker().stats();
-  const auto vs = viewer_->stats();
-  std::string j = "{\"type\":\"stats\",\"tick\":" + std::to_string(world_->tick());
-  const auto field = [&j](const char* name, double v) {
-    char buf[64];
-    std::snprintf(buf, sizeof buf, ",\"%s\":%.10g", name, v);  // counts exact to 10 digits
-    j += buf;
-  };
-  field("tick_rate", cfg_.tick_rate_hz);
-  field("budget_ms", 1000.0 / cfg_.tick_rate_hz);
-  field("entities", static_cast<double>(world_->store().size()));
-  field("clients", static_cast<double>(stats_.clients));
-  field("pairs", static_cast<double>(ts.pairs));
-  field("candidates", static_cast<double>(ts.candidates));
-  field("visible", static_cast<double>(ts.visible));
-  field("enters", static_cast<double>(ts.enters));
-  field("leaves", static_cast<double>(ts.leaves));
-  field("viewers", static_cast<double>(viewer_->viewers()));
-  field("viewer_bytes", static_cast<double>(vs.bytes_sent));
-  field("overruns", static_cast<double>(stats_.overruns));
-  field("byte_budget", static_cast<double>(cfg_.client_byte_budget));
-  field("update_near", cfg_.update_near);
-  field("update_mid", cfg_.update_mid);
-  field("tick_p99_ms", stats_.tick_ms.percentile(0.99));
-  field("interest_p99_ms", world_->phases().interest.percentile(0.99));
-  j += ",\"interest_on\":\"" + interest_name() + "\"";
-  char world[160];
-  std::snprintf(world, sizeof world, ",\"world\":[%.6g,%.6g,%.6g,%.6g]", cfg_.world.lo.x, cfg_.world.lo.y, cfg_.world.hi.x,
-                cfg_.world.hi.y);
-  j += world;
-  j += ",\"phases\":[\"inputs\",\"behaviours\",\"integrate\",\"interest\",\"replicate\",\"viewer\"],\"ticks\":[";
-  for (std::size_t k = 0; k < viewer_ticks_.size(); ++k) {
-    const auto& t = viewer_ticks_[k];
-    char buf[256];
-    std::snprintf(buf, sizeof buf, "%s[%llu,%.4f,%.4f,%.4f,%.4f,%.4f,%.4f,%.4f]", k ? "," : "",
-                  static_cast<unsigned long long>(t.tick), t.inputs, t.behaviours, t.integrate, t.interest, t.replicate,
-                  t.viewer, t.total);
-    j += buf;
-  }
-  j += "]}";
-  return j;
+  s.tick = world_->tick();
+  s.tick_rate = cfg_.tick_rate_hz;
+  s.budget_ms = 1000.0 / cfg_.tick_rate_hz;
+  s.entities = static_cast<double>(world_->store().size());
+  s.clients = static_cast<double>(stats_.clients);
+  s.pairs = static_cast<double>(ts.pairs);
+  s.candidates = static_cast<double>(ts.candidates);
+  s.visible = static_cast<double>(ts.visible);
+  s.enters = static_cast<double>(ts.enters);
+  s.leaves = static_cast<double>(ts.leaves);
+  s.overruns = static_cast<double>(stats_.overruns);
+  s.byte_budget = static_cast<double>(cfg_.client_byte_budget);
+  s.update_near = cfg_.update_near;
+  s.update_mid = cfg_.update_mid;
+  s.tick_p99_ms = stats_.tick_ms.percentile(0.99);
+  s.interest_p99_ms = world_->phases().interest.percentile(0.99);
+  s.interest_on = interest_name();
+  s.world[0] = cfg_.world.lo.x, s.world[1] = cfg_.world.lo.y, s.world[2] = cfg_.world.hi.x, s.world[3] = cfg_.world.hi.y;
 }
 
 void zone_server::publish_viewer() {
@@ -798,7 +798,7 @@ void zone_server::publish_viewer() {
       viewer_watch_ids_.clear();
       world_->set_watched({});
     }
-    viewer_ticks_.clear();
+    viewer_->next_stats().ticks.clear();
     return;
   }
   const interest::interest_tracker& tr = world_->tracker();
@@ -807,46 +807,41 @@ void zone_server::publish_viewer() {
   for (auto& w : viewer_watch_) {
     const std::size_t row = tr.row_of(w.id);
     if (row == entity_store::npos) continue;
-    for (const entity_id id : tr.enters(row)) w.events.push_back({tick, id, true});
-    for (const entity_id id : tr.leaves(row)) w.events.push_back({tick, id, false});
-    while (w.events.size() > 64) w.events.pop_front();
+    for (const entity_id id : tr.enters(row)) w.add({tick, id, true});
+    for (const entity_id id : tr.leaves(row)) w.add({tick, id, false});
   }
+  // A snapshot every tick_rate / viewer_hz ticks: filled into the viewer's free buffer and handed
+  // over with one atomic exchange (no lock, no allocation once the buffers have grown).
   const auto every = static_cast<std::uint64_t>(std::max(1.0, std::round(cfg_.tick_rate_hz / cfg_.viewer_hz)));
   if (tick % every == 0) {
-    // A spare snapshot no session holds any more (no allocation in steady state), else a new one.
-    std::shared_ptr<net::viewer_snapshot> snap;
-    for (auto& spare : viewer_spares_) {
-      if (spare.use_count() == 1) {
-        snap = spare;
-        break;
-      }
-    }
-    if (!snap && viewer_spares_.size() < 8) snap = viewer_spares_.emplace_back(std::make_shared<net::viewer_snapshot>());
-    if (snap) {
-      fill_viewer_snapshot(*snap);
-      viewer_->publish(snap);
-    }
+    fill_viewer_snapshot(viewer_->next_snapshot());
+    viewer_->publish();
   }
+  // The stats twice a second: numbers only; the viewer's thread formats the JSON.
   const auto now = clock_type::now();
   if (now >= next_viewer_stats_) {
     next_viewer_stats_ = now + std::chrono::milliseconds(500);
-    viewer_->publish_stats(viewer_stats_json());
-    viewer_ticks_.clear();
+    fill_viewer_stats(viewer_->next_stats());
+    viewer_->publish_stats();
   }
-  // The pages' selections, watched from the next step on (a GPU engine copies their rows back).
-  const auto wanted = viewer_->selected();
-  if (wanted != viewer_watch_ids_) {
-    std::vector<viewer_watch> next;
-    for (const entity_id id : wanted) {
-      auto& w = next.emplace_back();
-      w.id = id;
-      for (auto& old : viewer_watch_) {
-        if (old.id == id) w.events = std::move(old.events);
+  // The pages' selections, watched from the next step on (a GPU engine copies their rows back):
+  // read only when a page changed its selection (one relaxed atomic read a tick otherwise).
+  if (const auto version = viewer_->selection_version(); version != viewer_selection_version_) {
+    viewer_selection_version_ = version;
+    const auto wanted = viewer_->selected();
+    if (wanted != viewer_watch_ids_) {
+      std::vector<viewer_watch> next;
+      for (const entity_id id : wanted) {
+        auto& w = next.emplace_back();
+        w.id = id;
+        for (const auto& old : viewer_watch_) {
+          if (old.id == id) w = old;
+        }
       }
+      viewer_watch_ = std::move(next);
+      viewer_watch_ids_ = wanted;
+      world_->set_watched(viewer_watch_ids_);
     }
-    viewer_watch_ = std::move(next);
-    viewer_watch_ids_ = wanted;
-    world_->set_watched(viewer_watch_ids_);
   }
 }
 

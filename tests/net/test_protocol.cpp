@@ -10,6 +10,7 @@
 #include <limits>
 #include <random>
 #include <set>
+#include <stdexcept>
 #include <unordered_map>
 
 #include "net/protocol.h"
@@ -248,6 +249,45 @@ TEST_SUITE("net.protocol") {
       const auto back = decode_frame(frame, big_frames());
       REQUIRE(back.value.has_value());
       CHECK(std::get<tick_update_msg>(*back.value) == t);
+    }
+  }
+
+  TEST_CASE("tick_update_writer::finish_into writes finish()'s bytes, every one of them, and nothing past the frame") {
+    const std::uint64_t seed = fresh_seed();
+    CAPTURE(seed);
+    gen g(seed);
+    std::mt19937_64 rng(seed);
+    tick_update_writer w;
+    std::vector<std::uint8_t> buffer;
+    for (int rep = 0; rep < 200; ++rep) {
+      CAPTURE(rep);
+      auto t = std::get<tick_update_msg>(g.make(4));
+      if (rep % 5 == 0) t.enters.clear();  // every part present or not, over the reps
+      if (rep % 7 == 0) t.updates.clear();
+      write_all(w, t);
+      const std::size_t size = w.frame_size();
+      const auto frame = w.finish();
+      REQUIRE(frame.size() == size);
+      const std::vector<std::uint8_t> want(frame.begin(), frame.end());
+      // Into memory full of garbage, at an offset, with room to spare after the frame.
+      write_all(w, t);
+      const std::size_t offset = 8 * (rng() % 4), spare = rng() % 64;
+      const auto fill = static_cast<std::uint8_t>(rng());
+      buffer.assign(offset + size + spare, fill);
+      const auto into = w.finish_into(std::span(buffer).subspan(offset));
+      REQUIRE(into.size() == size);
+      CHECK(into.data() == buffer.data() + offset);
+      CHECK(std::equal(want.begin(), want.end(), into.begin()));
+      CHECK(std::all_of(buffer.begin(), buffer.begin() + static_cast<std::ptrdiff_t>(offset), [&](std::uint8_t b) { return b == fill; }));
+      CHECK(std::all_of(buffer.begin() + static_cast<std::ptrdiff_t>(offset + size), buffer.end(), [&](std::uint8_t b) { return b == fill; }));
+      const auto back = decode_frame(into, big_frames());
+      REQUIRE(back.value.has_value());
+      CHECK(std::get<tick_update_msg>(*back.value) == t);
+      // A buffer one byte short is refused, untouched.
+      write_all(w, t);
+      buffer.assign(size - 1, fill);
+      CHECK_THROWS_AS((void)w.finish_into(buffer), std::length_error);
+      CHECK(std::all_of(buffer.begin(), buffer.end(), [&](std::uint8_t b) { return b == fill; }));
     }
   }
 

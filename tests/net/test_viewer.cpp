@@ -16,6 +16,9 @@
 #include <random>
 #include <set>
 #include <thread>
+#include <atomic>
+#include <bit>
+#include <nlohmann/json.hpp>
 
 #include "loopback_client.h"
 #include "ws_client.h"
@@ -39,9 +42,10 @@ std::shared_ptr<viewer_snapshot> random_snapshot(std::mt19937_64& rng, std::size
   std::uniform_real_distribution<float> coord(0, side);
   for (std::size_t i = 0; i < n; ++i) {
     s->ids.push_back(static_cast<std::uint32_t>(i + 1 + (rng() % 7) * (1u << 20)));
-    s->x.push_back(coord(rng));
-    s->y.push_back(coord(rng));
-    s->visibility.push_back(static_cast<std::uint8_t>(1 + rng() % 4));
+    s->xyz.push_back(coord(rng));
+    s->xyz.push_back(coord(rng));
+    s->xyz.push_back(coord(rng));
+    s->classes.push_back(1u << (1 + rng() % 4));
     s->kind.push_back(static_cast<std::uint8_t>(rng() % 3));
   }
   return s;
@@ -49,7 +53,7 @@ std::shared_ptr<viewer_snapshot> random_snapshot(std::mt19937_64& rng, std::size
 
 
 bool inside(const viewer_snapshot& s, std::size_t i, const viewer_request& r) {
-  return s.x[i] >= r.x0 && s.x[i] <= r.x1 && s.y[i] >= r.y0 && s.y[i] <= r.y1;
+  return s.x(i) >= r.x0 && s.x(i) <= r.x1 && s.y(i) >= r.y0 && s.y(i) <= r.y1;
 }
 
 
@@ -115,9 +119,9 @@ TEST_SUITE("net.viewer") {
         REQUIRE(it != expected.end());
         const std::size_t i = it->second;
         const float x = r.x0 + at<std::uint16_t>(out, o + 4) * stepx, y = r.y0 + at<std::uint16_t>(out, o + 6) * stepy;
-        CHECK(std::fabs(x - s->x[i]) <= stepx * 0.51f + 1e-3f);
-        CHECK(std::fabs(y - s->y[i]) <= stepy * 0.51f + 1e-3f);
-        CHECK(out[o + 8] == s->visibility[i]);
+        CHECK(std::fabs(x - s->x(i)) <= stepx * 0.51f + 1e-3f);
+        CHECK(std::fabs(y - s->y(i)) <= stepy * 0.51f + 1e-3f);
+        CHECK(out[o + 8] == std::countr_zero(s->classes[i]));
         CHECK(out[o + 9] == s->kind[i]);
         expected.erase(it);  // each once
       }
@@ -140,8 +144,8 @@ TEST_SUITE("net.viewer") {
     for (std::size_t i = 0; i < s->ids.size(); ++i) {
       if (!inside(*s, i, r)) continue;
       ++in;
-      const auto cx = std::min<std::uint32_t>(g - 1, static_cast<std::uint32_t>((s->x[i] - r.x0) * (g / (r.x1 - r.x0))));
-      const auto cy = std::min<std::uint32_t>(g - 1, static_cast<std::uint32_t>((s->y[i] - r.y0) * (g / (r.y1 - r.y0))));
+      const auto cx = std::min<std::uint32_t>(g - 1, static_cast<std::uint32_t>((s->x(i) - r.x0) * (g / (r.x1 - r.x0))));
+      const auto cy = std::min<std::uint32_t>(g - 1, static_cast<std::uint32_t>((s->y(i) - r.y0) * (g / (r.y1 - r.y0))));
       ++ref[cy * g + cx];
     }
     CHECK(at<std::uint32_t>(out, 12) == in);
@@ -198,7 +202,8 @@ TEST_SUITE("net.viewer") {
     s->selections[0].alive = true;
     s->selections[0].visible = {1, 2};
     s->selections[0].tier = {0, 2};
-    viewer.publish(s);
+    viewer.next_snapshot() = *s;
+    viewer.publish();
     const auto json = http_get(m.port(), "/viewer/entity.json?id=9");
     CHECK(json.starts_with("HTTP/1.1 200"));
     CHECK(json.ends_with(R"({"tick":5,"id":9,"alive":true,"visible":[1,2],"tier":[0,2]})"));
@@ -220,13 +225,27 @@ TEST_SUITE("net.viewer") {
     sel.visible = {s->ids[1], s->ids[2]};
     sel.tier = {0, 1};
     s->selections.push_back(sel);
-    viewer.publish(s);
-    viewer.publish_stats(R"({"type":"stats","tick":1})");
+    viewer.next_snapshot() = *s;
+    viewer.publish();
+    viewer.next_stats().tick = 4242;
+    viewer.next_stats().ticks.push_back({4242, 1, 2, 3, 4, 5, 6, 21});
+    viewer.publish_stats();
+    CHECK(viewer.next_stats().ticks.empty());  // the next buffer starts with no ticks
 
     ws_client a(m.port());
     REQUIRE_FALSE(a.error);
     CHECK(eventually([&] { return viewer.viewers() == 1; }));
+    CHECK(viewer.selection_version() == 0);
     REQUIRE(a.send(request_bytes({0, 0, 500, 500, sel.id, 100000})));
+    // The stats message, formatted on the viewer's thread from what the producer filled in.
+    std::optional<std::pair<bool, std::vector<std::uint8_t>>> text;
+    for (int k = 0; k < 10 && !(text && text->first); ++k) text = a.read();
+    REQUIRE(text);
+    REQUIRE(text->first);
+    const std::string stats(text->second.begin(), text->second.end());
+    CHECK(stats.starts_with(R"({"type":"stats","tick":4242,)"));
+    CHECK(stats.find(R"("viewers":1,)") != std::string::npos);
+    CHECK(stats.ends_with(R"("ticks":[[4242,1.0000,2.0000,3.0000,4.0000,5.0000,6.0000,21.0000]]})"));
     const auto frame = a.read_frame(viewer_frame_entities);
     REQUIRE(frame);
     CHECK(at<std::uint32_t>(*frame, 12) == 2000);
@@ -235,10 +254,12 @@ TEST_SUITE("net.viewer") {
     CHECK(at<std::uint32_t>(*selection, 8) == sel.id);
     CHECK(at<std::uint32_t>(*selection, 56) == 2);
     CHECK(viewer.selected() == std::vector<std::uint32_t>{sel.id});
+    CHECK(viewer.selection_version() > 0);
     // A newer snapshot reaches the page.
     auto s2 = random_snapshot(rng, 10, 500);
     s2->tick = s->tick + 1;
-    viewer.publish(s2);
+    viewer.next_snapshot() = *s2;
+    viewer.publish();
     bool newer = false;
     for (int k = 0; k < 10 && !newer; ++k) {
       const auto f = a.read_frame(viewer_frame_entities);
@@ -291,7 +312,7 @@ TEST_SUITE("net.viewer") {
     // A well-behaved page still works afterwards.
     ws_client ok(m.port());
     REQUIRE(ok.send(good));
-    viewer.publish(std::make_shared<viewer_snapshot>());
+    viewer.publish();
     CHECK(ok.read_frame(viewer_frame_entities));
     m.stop();
   }
@@ -308,19 +329,114 @@ TEST_SUITE("net.viewer") {
     ws_client c(m.port(), 4096);
     REQUIRE(c.send(request_bytes({0, 0, 4000, 4000, 0, viewer_max_points})));
     // Publish for up to 10 s while the page reads nothing: its socket fills, its write stalls,
-    // and it is closed; every publish returns at once meanwhile (it only swaps a pointer).
+    // and it is closed; every publish returns at once meanwhile (one atomic exchange).
     std::uint64_t published = 0;
     const bool closed = eventually(
         [&] {
-          auto s = std::make_shared<viewer_snapshot>(*big);
-          s->tick = ++published;
-          viewer.publish(std::move(s));
+          auto& s = viewer.next_snapshot();
+          if (s.ids.size() != big->ids.size()) s = *big;  // three buffers rotate: each filled once
+          s.tick = ++published;
+          viewer.publish();
           return viewer.stats().sessions_closed_stalled == 1;
         },
         std::chrono::milliseconds(10000));
     CHECK(closed);
     CHECK(published > 5);
     CHECK(eventually([&] { return viewer.viewers() == 0; }));
+    m.stop();
+  }
+
+  TEST_CASE("the stats message: every field the producer filled, as JSON, in order") {
+    viewer_stats st;
+    st.tick = 12;
+    st.tick_rate = 30;
+    st.budget_ms = 1000.0 / 30;
+    st.entities = 20001;
+    st.clients = 3;
+    st.pairs = 1234567890;
+    st.candidates = 5;
+    st.visible = 6;
+    st.enters = 7;
+    st.leaves = 8;
+    st.overruns = 9;
+    st.byte_budget = 16384;
+    st.update_near = 20;
+    st.update_mid = 60;
+    st.tick_p99_ms = 12.5;
+    st.interest_p99_ms = 1.25;
+    st.interest_on = "cpu \"grid\"";
+    st.world[2] = st.world[3] = 4096;
+    st.ticks = {{11, 0.1, 0.2, 0.3, 0.4, 0.5, 0.00049, 1.5}, {12, 1, 2, 3, 4, 5, 6, 7}};
+    const auto j = viewer_stats_json(st, 2, 1000);
+    CHECK(j == R"({"type":"stats","tick":12,"tick_rate":30,"budget_ms":33.33333333,"entities":20001,"clients":3,)"
+               R"("pairs":1234567890,"candidates":5,"visible":6,"enters":7,"leaves":8,"viewers":2,"viewer_bytes":1000,)"
+               R"("overruns":9,"byte_budget":16384,"update_near":20,"update_mid":60,"tick_p99_ms":12.5,"interest_p99_ms":1.25,)"
+               R"("interest_on":"cpu \"grid\"","world":[0,0,4096,4096],)"
+               R"("phases":["inputs","behaviours","integrate","interest","replicate","viewer"],)"
+               R"("ticks":[[11,0.1000,0.2000,0.3000,0.4000,0.5000,0.0005,1.5000],[12,1.0000,2.0000,3.0000,4.0000,5.0000,6.0000,7.0000]]})");
+    CHECK(nlohmann::json::parse(j)["ticks"].size() == 2);
+  }
+
+  TEST_CASE("publishing hands over three rotating buffers: the newest reaches the page, none is torn") {
+    // The producer fills a buffer while the viewer's thread encodes from another: every frame a
+    // page gets must be one whole published snapshot (its tick and its entities agree), and the
+    // last one published must arrive.
+    viewer_server viewer;
+    metrics_server m("127.0.0.1", 0);
+    m.attach_viewer(&viewer);
+    REQUIRE_FALSE(m.start().has_value());
+    ws_client page(m.port());
+    REQUIRE(page.send(request_bytes({0, 0, 1000, 1000, 0, viewer_max_points})));
+    std::vector<viewer_snapshot*> buffers;
+    std::atomic<bool> stop{false};
+    std::uint64_t last = 0;
+    std::thread producer([&] {
+      // Snapshot t holds (t % 50) + 1 entities, each with id t * 1000 + k and x = t % 1000: until
+      // the page has read its frames (at most 10 s).
+      const auto end = std::chrono::steady_clock::now() + std::chrono::seconds(10);
+      for (std::uint64_t t = 1; !stop && std::chrono::steady_clock::now() < end; ++t) {
+        auto& s = viewer.next_snapshot();
+        if (std::find(buffers.begin(), buffers.end(), &s) == buffers.end()) buffers.push_back(&s);
+        const std::size_t n = t % 50 + 1;
+        s.tick = t;
+        s.ids.resize(n);
+        s.xyz.assign(3 * n, static_cast<float>(t % 1000));
+        s.classes.assign(n, 2);
+        s.kind.assign(n, 1);
+        for (std::size_t k = 0; k < n; ++k) s.ids[k] = static_cast<std::uint32_t>(t * 1000 + k);
+        viewer.publish();
+        last = t;
+        std::this_thread::sleep_for(std::chrono::microseconds(200));
+      }
+    });
+    std::size_t frames = 0;
+    bool whole = true;
+    for (int k = 0; k < 100; ++k) {
+      const auto f = page.read_frame(viewer_frame_entities);
+      if (!f) break;
+      ++frames;
+      const auto t = at<std::uint32_t>(*f, 4), count = at<std::uint32_t>(*f, 12);
+      whole = whole && at<std::uint32_t>(*f, 8) == t % 50 + 1 && count == t % 50 + 1;
+      for (std::uint32_t e = 0; e < count && whole; ++e) {
+        const std::size_t o = viewer_frame_header_bytes + e * viewer_entity_record_bytes;
+        whole = at<std::uint32_t>(*f, o) == t * 1000 + e && (*f)[o + 8] == 1 && (*f)[o + 9] == 1;
+      }
+    }
+    stop = true;
+    producer.join();
+    CHECK(whole);
+    CHECK(frames == 100);
+    CHECK(buffers.size() == 3);  // the producer's buffer is one of three, never a new one
+    // The newest: once publishing has stopped, the page gets the last snapshot.
+    REQUIRE(page.send(request_bytes({0, 0, 1000, 1000, 0, viewer_max_points})));  // resend: a frame at once
+    bool newest = false;
+    for (int k = 0; k < 10 && !newest; ++k) {
+      const auto f = page.read_frame(viewer_frame_entities);
+      REQUIRE(f);
+      newest = at<std::uint32_t>(*f, 4) == last;
+    }
+    CHECK(newest);
+    CHECK(viewer.stats().snapshots_published == last);
     m.stop();
   }
 }

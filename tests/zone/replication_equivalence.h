@@ -12,6 +12,7 @@
 #include <doctest/doctest.h>
 
 #include <algorithm>
+#include <atomic>
 #include <functional>
 #include <memory>
 #include <random>
@@ -51,6 +52,9 @@ struct replication_coverage {
   std::uint64_t resident_runs = 0;  ///< engine runs that read the visible sets in place
   std::uint64_t switches = 0;          ///< players' visibility switches (visibility_for) that changed their class
   std::uint64_t switch_resyncs = 0;    ///< clients resynced for them (resync_viewers_of; equal on both sides)
+  /// Engine-side frames written into the caller's room (build_many's frame_room), and those the
+  /// sink did not get there.
+  std::uint64_t room_frames = 0, room_misplaced = 0;
 };
 
 /// Runs `c` with engines from `make_engine` (one per budget and first tick) and compares every
@@ -131,6 +135,7 @@ inline replication_coverage check_replication_equivalence(
       std::vector<replication_request> requests;
       std::vector<std::vector<std::uint8_t>> want, got;
       std::vector<replication_stats> want_st, got_st;
+      std::vector<const std::uint8_t*> rooms;  // by request: the room given for its frame
       struct switch_rec {
         entity_id entity;
         std::uint32_t old_class, old_sees;
@@ -165,11 +170,31 @@ inline replication_coverage check_replication_equivalence(
                          want[k].assign(f.begin(), f.end());
                          want_st[k] = st;
                        });
-        dev.build_many(requests, store, tracker, tick, tick * 3, &pool,
-                       [&](std::size_t k, std::span<const std::uint8_t> f, const replication_stats& st) {
-                         got[k].assign(f.begin(), f.end());
-                         got_st[k] = st;
-                       });
+        // Every other tick the engine side writes each frame into room the caller gives
+        // (build_many's frame_room, as zone_server's arena): each thread's own buffer, filled
+        // with garbage first, so a byte the writer left unwritten would show.
+        const bool in_room = tick % 2 == 1;
+        std::atomic<std::uint64_t> room_frames{0}, room_misplaced{0};  // counted on the pool's threads
+        rooms.assign(requests.size(), nullptr);
+        dev.build_many(
+            requests, store, tracker, tick, tick * 3, &pool,
+            [&](std::size_t k, std::span<const std::uint8_t> f, const replication_stats& st) {
+              if (in_room && f.data() != rooms[k]) room_misplaced.fetch_add(1, std::memory_order_relaxed);
+              got[k].assign(f.begin(), f.end());
+              got_st[k] = st;
+            },
+            {},
+            in_room ? replicator::frame_room([&](std::size_t k, std::size_t bytes) {
+              thread_local std::vector<std::uint64_t> room;
+              room.assign(bytes / 8 + 2, 0xa5a5a5a5a5a5a5a5ull);
+              auto* const at = reinterpret_cast<std::uint8_t*>(room.data());
+              rooms[k] = at;
+              room_frames.fetch_add(1, std::memory_order_relaxed);
+              return std::span<std::uint8_t>(at, bytes);
+            })
+                    : replicator::frame_room{});
+        cov.room_frames += room_frames.load();
+        cov.room_misplaced += room_misplaced.load();
         REQUIRE(dev.engine_error().empty());
         if (c.make_visibility) REQUIRE(tracker.last_update_on_engine());
         if (dev.on_engine() && !requests.empty() && engine->timing().resident) ++cov.resident_runs;
@@ -346,6 +371,8 @@ inline void require_equivalent(const replication_coverage& cov, bool tiny_budget
                     << cov.empty << "; view entries near/mid/far " << cov.near << "/" << cov.mid << "/" << cov.far
                     << "; visibility switches " << cov.switches << " (clients resynced " << cov.switch_resyncs << ")");
   CHECK(cov.differing == 0);
+  CHECK(cov.room_frames > 0);
+  CHECK(cov.room_misplaced == 0);
   CHECK(cov.stats_differing == 0);
   CHECK(cov.hash_differing == 0);
   CHECK(cov.undecodable == 0);

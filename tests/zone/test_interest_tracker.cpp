@@ -1,8 +1,11 @@
 // The interest tracker against a brute-force oracle that applies the rules of docs/zone.md
 // literally, over many ticks of moving, teleporting, AOI-changing, stealthy and team entities;
 // hand-made scenarios for hysteresis, teleports, AOI changes and visibility; determinism across
-// finders and thread counts. The harness (oracle, world, checks) is tracker_harness.h.
+// finders and thread counts; the host reference engine as the set engine, engines switched between
+// ticks, and the output of fixed worlds pinned. The harness (oracle, world, checks) is tracker_harness.h.
 #include <doctest/doctest.h>
+
+#include <memory>
 
 #include "tracker_harness.h"
 
@@ -78,6 +81,107 @@ TEST_SUITE("zone.interest_tracker") {
       CHECK(digests(seed, grid_three, nullptr, 256, cap, 60) == reference);
       // A different seed gives a different history (the hash is not trivially constant).
       CHECK(digests(seed + 1, grid_one, &one, 256, cap, 60) != reference);
+    }
+  }
+}
+
+namespace {
+
+struct pinned_run {
+  std::uint64_t seed;
+  float hysteresis;
+  std::uint32_t cap;
+  bool lattice;
+  std::uint64_t digest;  ///< of every tick's tracker digest, in order
+};
+
+/// Fixed worlds (seed, margin, cap, lattice) run for 60 ticks; the hash of every tick's digest.
+std::uint64_t pinned_digest(const pinned_run& r, interest::pair_finder& finder, interest::thread_pool* pool,
+                            interest::visibility_engine* engine = nullptr) {
+  world w(r.seed, 300, r.lattice);
+  interest_tracker tracker(finder, pool, interest_options{r.hysteresis, r.cap, 64});
+  if (engine != nullptr) tracker.set_engine(engine);
+  std::uint64_t h = 0xcbf29ce484222325ull;
+  for (int tick = 0; tick < 60; ++tick) {
+    REQUIRE_FALSE(tracker.update(w.store.columns()).has_value());
+    h = (h ^ tracker.digest()) * 0x100000001b3ull;
+    w.step();
+  }
+  return h;
+}
+
+}  // namespace
+
+TEST_SUITE("zone.interest_tracker") {
+  TEST_CASE("pinned: the output of fixed worlds is the one recorded before the host step became an engine") {
+    // Recorded with the tracker of 2fbebfa, whose host path (pairs -> sets, events, cap) was
+    // interest_tracker's own code; interest::host_visibility_engine took it over unchanged. Any
+    // change of a visible set, enter, leave or row order in 60 ticks of these worlds shows here.
+    const pinned_run runs[] = {{1, 4.0f, 0, false, 11469895698779576218ull},
+                               {2, 0.0f, 0, true, 17716891122987042873ull},
+                               {3, 2.5f, 5, false, 6758721431865836063ull},
+                               {4, 10.0f, 3, true, 9299729432517542371ull}};
+    interest::thread_pool pool(2);
+    interest::grid_finder grid(&pool);
+    interest::brute_force_finder brute;
+    for (const auto& r : runs) {
+      CAPTURE(r.seed);
+      CHECK(pinned_digest(r, grid, &pool) == r.digest);
+      CHECK(pinned_digest(r, brute, nullptr) == r.digest);
+      // The host reference engine given to the tracker as its engine (the GPU engine's place).
+      interest::host_visibility_engine engine(brute);
+      CHECK(pinned_digest(r, grid, &pool, &engine) == r.digest);
+    }
+  }
+
+  TEST_CASE("the host reference engine as the tracker's set engine: the oracle's events, caps included") {
+    const run_config configs[] = {{200, 4.0f, 0, false, 2}, {200, 0.0f, 0, true, 1}, {200, 3.0f, 4, false, 3}};
+    for (const auto& c : configs) {
+      interest::thread_pool pool(2);
+      interest::brute_force_finder brute(&pool);
+      interest::host_visibility_engine engine(brute, &pool, {.rows_per_task = 3, .finder_view = false});
+      run_against_oracle(fresh_seed(), c, 50, &engine);
+    }
+  }
+
+  TEST_CASE("engines switched between ticks (set_engine, the cap on and off): the sets carry over") {
+    const std::uint64_t seed = fresh_seed();
+    CAPTURE(seed);
+    world wa(seed, 250, false), wb(seed, 250, false);
+    interest::thread_pool pool(2);
+    interest::grid_finder grid(&pool);
+    interest::brute_force_finder brute;
+    interest_tracker plain(grid, &pool, interest_options{3.0f, 0, 64});
+    interest_tracker switched(grid, &pool, interest_options{3.0f, 0, 64});
+    auto one = std::make_unique<interest::host_visibility_engine>(brute);
+    interest::host_visibility_engine two(grid, &pool);
+    for (int tick = 0; tick < 40; ++tick) {
+      CAPTURE(tick);
+      if (tick == 5) switched.set_engine(one.get());
+      if (tick == 12) {
+        switched.set_engine(&two);
+        one.reset();  // the tracker's lists no longer point into it
+      }
+      if (tick == 18) switched.set_engine(nullptr);
+      if (tick == 24) switched.set_engine(&two);
+      if (tick == 30 || tick == 35) {  // the cap on, then off again
+        for (interest_tracker* t : {&plain, &switched}) {
+          auto o = t->options();
+          o.max_visible = tick == 30 ? 4 : 0;
+          t->set_options(o);
+        }
+      }
+      REQUIRE_FALSE(plain.update(wa.store.columns()).has_value());
+      REQUIRE_FALSE(switched.update(wb.store.columns()).has_value());
+      CHECK(switched.last_update_on_engine() == ((tick >= 5 && tick < 18) || tick >= 24));
+      CHECK(switched.digest() == plain.digest());
+      CHECK(switched.stats().visible == plain.stats().visible);
+      CHECK(switched.stats().enters == plain.stats().enters);
+      CHECK(switched.stats().leaves == plain.stats().leaves);
+      CHECK(switched.stats().capped == plain.stats().capped);
+      if (tick == 32) CHECK(plain.stats().capped > 0);
+      wa.step();
+      wb.step();
     }
   }
 }

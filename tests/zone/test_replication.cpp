@@ -413,7 +413,7 @@ TEST_SUITE("zone.replication") {
       opt.world = test_world;
       opt.byte_budget = budget;
       opt.clients_per_task = 3;  // several chunks, so the pool's threads share the clients
-      replicator serial(opt), parallel(opt);
+      replicator serial(opt), parallel(opt), placed(opt);
       replication_writer writer;
       // Clients for the first 20 entities (the first 4 survive the churn; the others may die,
       // then their clients see nothing and shed their views).
@@ -423,6 +423,7 @@ TEST_SUITE("zone.replication") {
         const client_id a = serial.add_client(o);
         const client_id b = parallel.add_client(o);
         REQUIRE(a == b);
+        REQUIRE(placed.add_client(o) == a);
         requests.push_back({a, static_cast<std::uint32_t>(k * 7)});
       }
       std::reverse(requests.begin(), requests.end());  // any order of clients
@@ -435,6 +436,7 @@ TEST_SUITE("zone.replication") {
         if (tick == 20) {
           serial.resync(requests[5].client);
           parallel.resync(requests[5].client);
+          placed.resync(requests[5].client);
         }
         std::vector<int> calls(requests.size(), 0);
         parallel.build_many(requests, w.store, tracker, tick, tick * 1000, &pool,
@@ -443,9 +445,29 @@ TEST_SUITE("zone.replication") {
                               frames[k].assign(frame.begin(), frame.end());
                               stats[k] = st;
                             });
+        // The same with each frame written into room the caller gives (build_many's frame_room,
+        // zone_server's arena): a buffer of garbage per call, so a byte left unwritten shows.
+        std::vector<std::vector<std::uint8_t>> rooms(requests.size()), in_room(requests.size());
+        std::vector<std::size_t> asked(requests.size(), 0);
+        std::vector<int> where(requests.size(), 0);  // 1: the sink got the frame where it was put
+        placed.build_many(
+            requests, w.store, tracker, tick, tick * 1000, &pool,
+            [&](std::size_t k, std::span<const std::uint8_t> frame, const replication_stats&) {
+              where[k] = frame.data() == rooms[k].data() ? 1 : 0;
+              in_room[k].assign(frame.begin(), frame.end());
+            },
+            {},
+            [&](std::size_t k, std::size_t bytes) {
+              asked[k] = bytes;
+              rooms[k].assign(bytes, static_cast<std::uint8_t>(0xa5 + k));
+              return std::span<std::uint8_t>(rooms[k]);
+            });
         for (std::size_t k = 0; k < requests.size(); ++k) {
           CAPTURE(k);
           CHECK(calls[k] == 1);
+          CHECK(in_room[k] == frames[k]);
+          CHECK(where[k] == 1);
+          CHECK(asked[k] == frames[k].size());  // the room asked for is the frame's exact size
           replication_stats st;
           const auto frame = serial.build(requests[k].client, w.store, tracker, tick, tick * 1000,
                                           requests[k].last_input_sequence, writer, &st);

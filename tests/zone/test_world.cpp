@@ -59,13 +59,22 @@ TEST_SUITE("zone.config") {
     CHECK_FALSE(d.config->player_fly);
     CHECK(d.config->metrics_address == "127.0.0.1");
     for (const char* o : {"--hello-timeout", "--max-pending", "--max-pending-per-address", "--pings-per-second",
-                          "--max-name-bytes", "--metrics-address", "--metrics-max-connections", "--log-summary"}) {
+                          "--max-name-bytes", "--metrics-address", "--metrics-max-connections", "--log-summary",
+                          "--connect-rate", "--connect-burst", "--connect-min-session", "--connect-refusal-hold"}) {
       CAPTURE(o);
       CHECK(h.message.find(o) != std::string::npos);
     }
     CHECK_FALSE(parse({"--hello-timeout", "0"}).config.has_value());
     CHECK_FALSE(parse({"--max-pending", "0"}).config.has_value());
     CHECK_FALSE(parse({"--pings-per-second", "-1"}).config.has_value());
+    CHECK_FALSE(parse({"--connect-rate", "-1"}).config.has_value());
+    CHECK_FALSE(parse({"--connect-burst", "0.5"}).config.has_value());
+    CHECK_FALSE(parse({"--connect-min-session", "-2"}).config.has_value());
+    CHECK_FALSE(parse({"--connect-refusal-hold", "61"}).config.has_value());
+    CHECK(d.config->connect_rate == 20);
+    CHECK(d.config->connect_burst == 64);
+    CHECK(d.config->connect_min_session_s == 10);
+    REQUIRE(parse({"--connect-rate", "0"}).config.has_value());  // 0: no limit
     const auto limits = parse({"--hello-timeout", "1.5", "--max-pending-per-address", "4", "--teleport", "1"});
     REQUIRE(limits.config.has_value());
     CHECK(limits.config->hello_timeout_s == 1.5);
