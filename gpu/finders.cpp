@@ -253,9 +253,6 @@ void copy_pairs(std::span<const interest::id_pair> src, interest::pair_list& out
   });
 }
 
-bool is_pbig(const interest::pair_finder& f) { return last_pbig_report(f) != nullptr; }
-bool is_lbvh(const interest::pair_finder& f) { return last_lbvh_report(f) != nullptr; }
-
 class auto_finder final : public interest::pair_finder {
  public:
   auto_finder(std::unique_ptr<interest::pair_finder> cpu, std::unique_ptr<interest::pair_finder> pbig,
@@ -265,29 +262,20 @@ class auto_finder final : public interest::pair_finder {
     if (!cpu_) throw std::invalid_argument("make_auto_finder: the CPU finder must not be null");
   }
   [[nodiscard]] std::string_view name() const override { return "auto"; }
+  [[nodiscard]] bool views_own_buffer() const override { return true; }
   [[nodiscard]] std::optional<finder_backend> last_choice() const { return last_; }
 
-  /// pair_finder::find_view: view() (`scratch` unused).
+  /// pair_finder::find_view: the chosen finder's view (its own buffer for the GPU finders, with
+  /// the validation in their packing pass), or a list of this finder's own (`scratch` unused).
   std::optional<interest::box_error> find_view(const interest::box_set& boxes, interest::pair_list& /*scratch*/,
                                                std::span<const interest::id_pair>& out) override {
-    return view(boxes, out);
-  }
-  /// find_view for the auto finder: validation in the chosen GPU finder's packing pass.
-  std::optional<interest::box_error> view(const interest::box_set& boxes, std::span<const interest::id_pair>& out) {
     out = {};
     const finder_backend b = decide(boxes);
     if (b != finder_backend::cpu) {
       try {
         interest::pair_finder& f = *(b == finder_backend::pbig ? pbig_ : lbvh_);
-        std::optional<interest::box_error> err;
-        if (is_pbig(f)) {
-          err = find_pairs_view(f, boxes, out);
-        } else if (is_lbvh(f)) {
-          err = find_lbvh_view(f, boxes, out);
-        } else {  // an injected finder (tests)
-          err = f.find(boxes, buffer_);
-          if (!err) out = buffer_;
-        }
+        // The GPU finders view their own buffer; an injected finder (tests) finds into buffer_.
+        const auto err = f.find_view(boxes, buffer_, out);
         if (!err) stats_ = f.stats();
         return err;
       } catch (const std::exception& e) {
@@ -311,10 +299,10 @@ class auto_finder final : public interest::pair_finder {
       bool ran = false;
       try {
         interest::pair_finder& f = *(b == finder_backend::pbig ? pbig_ : lbvh_);
-        if (is_pbig(f) || is_lbvh(f)) {
+        if (f.views_own_buffer()) {
           // The GPU finders validate while packing the upload: cheaper than a second full pass.
           std::span<const interest::id_pair> v;
-          err = is_pbig(f) ? find_pairs_view(f, boxes, v) : find_lbvh_view(f, boxes, v);
+          err = f.find_view(boxes, buffer_, v);
           if (!err) copy_pairs(v, out, pool_);
         } else {
           err = f.find(boxes, out);
@@ -458,10 +446,11 @@ std::optional<finder_backend> last_auto_choice(const interest::pair_finder& find
 
 std::optional<interest::box_error> find_view(interest::pair_finder& finder, const interest::box_set& boxes,
                                              std::span<const interest::id_pair>& view) {
-  if (auto* f = dynamic_cast<auto_finder*>(&finder)) return f->view(boxes, view);
-  if (is_pbig(finder)) return find_pairs_view(finder, boxes, view);
-  if (is_lbvh(finder)) return find_lbvh_view(finder, boxes, view);
-  throw std::invalid_argument("find_view: not a GPU finder or an auto finder");
+  // The finder says whether it views a buffer of its own (pair_finder::views_own_buffer): such a
+  // finder never touches the scratch list, so an empty one is passed.
+  if (!finder.views_own_buffer()) throw std::invalid_argument("find_view: not a GPU finder or an auto finder");
+  interest::pair_list unused;
+  return finder.find_view(boxes, unused, view);
 }
 
 }  // namespace zone::gpu

@@ -108,8 +108,8 @@ inline constexpr int auto_redecide_calls = 64;
 /// Zero-copy find for the GPU finders and the auto finder: validates, finds the same pairs as
 /// `finder.find` into a buffer the finder owns and reuses, and points `view` at them (valid until
 /// the finder's next call). When auto runs the CPU finder, the pairs are found into a list the auto
-/// finder owns. Throws std::invalid_argument for any other finder (brute, cpu). See
-/// gpu::find_pairs_view for the PBIG details.
+/// finder owns. Throws std::invalid_argument for any other finder (brute, cpu: those whose
+/// pair_finder::views_own_buffer() is false). See gpu::find_pairs_view for the PBIG details.
 [[nodiscard]] std::optional<interest::box_error> find_view(interest::pair_finder& finder,
                                                            const interest::box_set& boxes,
                                                            std::span<const interest::id_pair>& view);

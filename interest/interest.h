@@ -159,6 +159,10 @@ class pair_finder {
   /// valid until the next call of this finder or a change of `scratch`; empty on error.
   [[nodiscard]] virtual std::optional<box_error> find_view(const box_set& boxes, pair_list& scratch,
                                                            std::span<const id_pair>& view);
+  /// True when find_view points `view` at a result buffer of the finder's own and never touches
+  /// `scratch` (the GPU finders and the auto finder, gpu/finders.h); false (the default) when it
+  /// finds into `scratch`. gpu::find_view takes only finders that say true.
+  [[nodiscard]] virtual bool views_own_buffer() const { return false; }
 
   /// Statistics of the last successful call.
   [[nodiscard]] const finder_stats& stats() const { return stats_; }

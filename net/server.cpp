@@ -311,8 +311,8 @@ struct server::impl {
   explicit impl(server_options o)
       : opt(std::move(o)), lanes(make_lanes(opt.io_threads, write_batches)), acceptor(lanes[0]->ctx),
         accept_retry(acceptor.get_executor()),
-        held_timer(acceptor.get_executor()),
-        refusal_frame(encode_frame(error_msg{error_code::rate_limited, "too many short connections from this address: try again later"})) {}
+        refusal_frame(encode_frame(error_msg{error_code::rate_limited, "too many short connections from this address: try again later"})),
+        held_timer(acceptor.get_executor()) {}
 
   static std::vector<std::unique_ptr<io_lane>> make_lanes(unsigned n, std::atomic<std::uint64_t>& batches) {
     std::vector<std::unique_ptr<io_lane>> v;

@@ -179,7 +179,8 @@ class shared_frame {
 /// in turn (freed by its last frame). A frame over a quarter of a block gets its own allocation.
 class frame_arena {
  public:
-  static constexpr std::size_t default_block_bytes = 64 * 1024;
+  /// A quarter of it holds a frame of the default byte budget (8 KiB): every frame in a block.
+  static constexpr std::size_t default_block_bytes = 32 * 1024;
   static constexpr std::size_t max_spare = 64;
   explicit frame_arena(std::size_t block_bytes = default_block_bytes);
   /// A copy of `frame` (reserve, copy, commit).

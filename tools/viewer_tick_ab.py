@@ -55,6 +55,68 @@ def thread_cpu(pid):
     return out
 
 
+def median(v):
+    s = sorted(v)
+    return float("nan") if not s else (s[len(s) // 2] if len(s) % 2 else 0.5 * (s[len(s) // 2 - 1] + s[len(s) // 2]))
+
+
+def print_pairs(ticks_of, bootstrap):
+    """ticks_of: (pair key, open) -> that phase's tick_ms. Prints the per-pair p99 changes (median,
+    its 95% bootstrap interval, min, max) and the pooled p99 change with its 95% bootstrap interval,
+    pairs resampled (ticks within a phase are not independent; pairs are)."""
+    keys = sorted(k for (k, o) in ticks_of if not o and (k, True) in ticks_of and ticks_of[(k, False)] and ticks_of[(k, True)])
+    if not keys:
+        return
+    p99 = {(k, o): pct(ticks_of[(k, o)], 0.99) for k in keys for o in (False, True)}
+    diffs = [100 * (p99[(k, True)] - p99[(k, False)]) / p99[(k, False)] for k in keys]
+    rng = random.Random(12345)
+
+    def pooled_change(ks):
+        none = [ms for k in ks for ms in ticks_of[(k, False)]]
+        opn = [ms for k in ks for ms in ticks_of[(k, True)]]
+        return 100 * (pct(opn, 0.99) - pct(none, 0.99)) / pct(none, 0.99)
+
+    def interval(stat, items):
+        if bootstrap == 0:
+            return float("nan"), float("nan")
+        v = sorted(stat([rng.choice(items) for _ in items]) for _ in range(bootstrap))
+        return v[int(0.025 * len(v))], v[min(len(v) - 1, int(0.975 * len(v)))]
+
+    lo, hi = interval(median, diffs)
+    plo, phi = interval(pooled_change, keys)
+    print(f"per-pair p99 change ({len(diffs)} pairs): median {median(diffs):+.2f}% (95% bootstrap {lo:+.2f}% .. {hi:+.2f}%), "
+          f"min {min(diffs):+.2f}%, max {max(diffs):+.2f}%, open higher in {sum(d > 0 for d in diffs)} of {len(diffs)}")
+    print(f"pooled p99 change: {pooled_change(keys):+.2f}% (95% bootstrap over pairs {plo:+.2f}% .. {phi:+.2f}%)")
+    d50 = [100 * (pct(ticks_of[(k, True)], 0.5) - pct(ticks_of[(k, False)], 0.5)) / pct(ticks_of[(k, False)], 0.5) for k in keys]
+    lo50, hi50 = interval(median, d50)
+    print(f"per-pair p50 change: median {median(d50):+.2f}% (95% bootstrap {lo50:+.2f}% .. {hi50:+.2f}%), "
+          f"open higher in {sum(d > 0 for d in d50)} of {len(d50)}")
+
+
+def analyze(paths, bootstrap):
+    """--analyze: the statistics of earlier runs' --csv files together (pairs keyed by file and round)."""
+    ticks_of = {}
+    for n, path in enumerate(paths):
+        if not os.path.isfile(path):
+            sys.exit(f"--analyze {path}: no such file")
+        with open(path) as f:
+            header = f.readline().strip().split(",")
+            if header[:5] != ["tick", "t_s", "tick_ms", "phase", "round"]:
+                sys.exit(f"{path}: not a viewer_tick_ab.py --csv file")
+            for line in f:
+                p = line.strip().split(",")
+                if len(p) == 5:
+                    ticks_of.setdefault(((n, int(p[4])), p[3] == "viewer"), []).append(float(p[2]))
+    by = {o: [ms for (k, oo), v in ticks_of.items() if oo == o for ms in v] for o in (False, True)}
+    print(f"\nviewer A/B, {len(paths)} run(s) together: " + ", ".join(paths))
+    print("| viewer | ticks | p50 ms | p99 ms | max ms |")
+    print("|---|---|---|---|---|")
+    for o in (False, True):
+        v = by[o]
+        print(f"| {'open' if o else 'none'} | {len(v)} | {pct(v, 0.5):.3f} | {pct(v, 0.99):.3f} | {max(v) if v else float('nan'):.3f} |")
+    print_pairs(ticks_of, bootstrap)
+
+
 def pct(values, q):
     if not values:
         return float("nan")
@@ -161,7 +223,9 @@ class viewer_socket:
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--server", required=True, help="the zone-server binary")
+    ap.add_argument("--server", help="the zone-server binary (required unless --analyze)")
+    ap.add_argument("--analyze", nargs="+", metavar="CSV",
+                    help="run nothing: the statistics of earlier runs' --csv files together (pairs keyed by file and round)")
     ap.add_argument("--npcs", type=int, default=20000)
     ap.add_argument("--phase-s", type=float, default=5)
     ap.add_argument("--rounds", type=int, default=6)
@@ -177,6 +241,10 @@ def main():
     a = ap.parse_args()
     if a.rounds < 1 or a.phase_s <= 0 or a.npcs < 0 or a.viewers < 1 or a.bootstrap < 0 or not 0 <= a.client_nice <= 19:
         ap.error("rounds >= 1, phase-s > 0, npcs >= 0, viewers >= 1, bootstrap >= 0, client-nice 0..19")
+    if a.analyze:
+        return analyze(a.analyze, a.bootstrap)
+    if not a.server:
+        ap.error("--server is required (or --analyze CSV ...)")
     if not os.access(a.server, os.X_OK):
         ap.error(f"--server {a.server}: not an executable file")
 
@@ -269,32 +337,9 @@ def main():
         by[opened] += sel
         per_round.append((r, opened, len(sel), pct(sel, 0.5), pct(sel, 0.99)))
         out += [(tick, t, ms, "viewer" if opened else "none", r) for (tick, t, ms) in rows if t0 <= t < t1]
-    # Per round pair: the p99 change; pooled: the p99 of all ticks of each condition. Intervals by
-    # the bootstrap over round pairs (ticks within a phase are not independent; pairs are).
-    pairs = {}
-    for (r, opened, n, p50, p99) in per_round:
-        pairs.setdefault(r, {})[opened] = p99
     ticks_of = {}
     for (r, opened, t0, t1) in phases:
         ticks_of[(r, opened)] = [ms for (_, t, ms) in rows if t0 <= t < t1]
-    rounds = sorted(r for r in pairs if len(pairs[r]) == 2 and pairs[r][False] == pairs[r][False] and pairs[r][False] > 0)
-    diffs = [100 * (pairs[r][True] - pairs[r][False]) / pairs[r][False] for r in rounds]
-    rng = random.Random(12345)
-
-    def median(v):
-        s = sorted(v)
-        return float("nan") if not s else (s[len(s) // 2] if len(s) % 2 else 0.5 * (s[len(s) // 2 - 1] + s[len(s) // 2]))
-
-    def pooled_change(rs):
-        none = [ms for r in rs for ms in ticks_of[(r, False)]]
-        opn = [ms for r in rs for ms in ticks_of[(r, True)]]
-        return 100 * (pct(opn, 0.99) - pct(none, 0.99)) / pct(none, 0.99) if none and opn else float("nan")
-
-    def interval(stat, items):
-        if not items or a.bootstrap == 0:
-            return float("nan"), float("nan")
-        v = sorted(stat([rng.choice(items) for _ in items]) for _ in range(a.bootstrap))
-        return v[int(0.025 * len(v))], v[min(len(v) - 1, int(0.975 * len(v)))]
 
     label = f" {a.label}" if a.label else ""
     print(f"\nviewer A/B{label}: {a.npcs} NPCs, {a.rounds} rounds of {a.phase_s:g} s + {a.phase_s:g} s, "
@@ -308,12 +353,7 @@ def main():
     print(f"p99 change with the viewer open: {100 * (p_open - p_none) / p_none:+.2f}%  "
           f"(p50 change {100 * (pct(by[True], 0.5) - pct(by[False], 0.5)) / pct(by[False], 0.5):+.2f}%)")
     print("per round: " + "; ".join(f"r{r} {'open' if o else 'none'} p99 {p99:.3f}" for (r, o, n, p50, p99) in per_round))
-    if diffs:
-        lo, hi = interval(median, diffs)
-        plo, phi = interval(pooled_change, rounds)
-        print(f"per-pair p99 change ({len(diffs)} pairs): median {median(diffs):+.2f}% (95% bootstrap {lo:+.2f}% .. {hi:+.2f}%), "
-              f"min {min(diffs):+.2f}%, max {max(diffs):+.2f}%, open higher in {sum(d > 0 for d in diffs)} of {len(diffs)}")
-        print(f"pooled p99 change: {pooled_change(rounds):+.2f}% (95% bootstrap over pairs {plo:+.2f}% .. {phi:+.2f}%)")
+    print_pairs(ticks_of, a.bootstrap)
     if cpu[True]:
         names = sorted(set(cpu[False]) | set(cpu[True]), key=lambda n: -cpu[True].get(n, 0.0))
         print("CPU ms per second of the phases (none -> open), by thread: " + "; ".join(

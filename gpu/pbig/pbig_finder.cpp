@@ -27,6 +27,7 @@ class pbig_finder final : public interest::pair_finder {
                                                std::span<const interest::id_pair>& view) override {
     return find_view(boxes, view);
   }
+  [[nodiscard]] bool views_own_buffer() const override { return true; }
   std::optional<interest::box_error> find_view(const interest::box_set& boxes,
                                                std::span<const interest::id_pair>& view) {
     view = {};

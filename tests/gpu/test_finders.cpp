@@ -50,6 +50,32 @@ class counting_finder final : public pair_finder {
   }
 };
 
+/// A stand-in for a GPU finder with a result buffer of its own (pair_finder::views_own_buffer):
+/// find_view points at its buffer and never touches the caller's scratch list.
+class buffered_finder final : public pair_finder {
+ public:
+  pair_list own;
+  int views = 0;
+  bool scratch_touched = false;
+  [[nodiscard]] std::string_view name() const override { return "buffered"; }
+  [[nodiscard]] bool views_own_buffer() const override { return true; }
+  std::optional<box_error> find_view(const box_set& boxes, pair_list& scratch, std::span<const id_pair>& view) override {
+    ++views;
+    scratch_touched |= !scratch.empty();
+    view = {};
+    brute_force_finder b;
+    auto err = b.find(boxes, own);
+    if (!err) view = own;
+    return err;
+  }
+
+ protected:
+  void find_valid(const box_set& boxes, pair_list& out) override {
+    brute_force_finder b;
+    (void)b.find(boxes, out);
+  }
+};
+
 }  // namespace
 
 TEST_SUITE("gpu.finders") {
@@ -260,6 +286,42 @@ TEST_SUITE("gpu.finders") {
     CHECK(gpu::last_auto_choice(*f) == gpu::finder_backend::pbig);
     CHECK(ptr->calls == 1);
     CHECK_THROWS_AS((void)gpu::make_auto_finder(nullptr, nullptr, nullptr, &pool), std::invalid_argument);
+  }
+
+  TEST_CASE("find_view: any finder with a buffer of its own is viewed in place, through auto too; others are refused") {
+    thread_pool pool(2);
+    brute_force_finder brute(&pool);
+    grid_finder grid(&pool);
+    const box_set s = make_family(family::mask_mix, 700, fresh_seed());
+    const pair_list expected = run(brute, s);
+    const auto sorted = [&](std::span<const id_pair> v) {
+      pair_list copy(v.begin(), v.end());
+      sort_canonical(copy, s.size());
+      return copy;
+    };
+    // Which finders say they view a buffer of their own (gpu::find_view asks them, no type test).
+    CHECK_FALSE(brute.views_own_buffer());
+    CHECK_FALSE(grid.views_own_buffer());
+    std::span<const id_pair> view;
+    CHECK_THROWS_AS((void)gpu::find_view(brute, s, view), std::invalid_argument);
+    buffered_finder alone;
+    REQUIRE_FALSE(gpu::find_view(alone, s, view).has_value());
+    CHECK(view.data() == alone.own.data());  // no copy
+    CHECK(sorted(view) == expected);
+    // The auto finder hands over its candidate's own buffer.
+    auto stand_in = std::make_unique<buffered_finder>();
+    buffered_finder* ptr = stand_in.get();
+    auto f = gpu::make_auto_finder(std::make_unique<grid_finder>(&pool), std::move(stand_in), nullptr, &pool);
+    CHECK(f->views_own_buffer());
+    REQUIRE_FALSE(gpu::find_view(*f, s, view).has_value());
+    CHECK(gpu::last_auto_choice(*f) == gpu::finder_backend::pbig);
+    CHECK(ptr->views == 1);
+    CHECK(view.data() == ptr->own.data());
+    CHECK(sorted(view) == expected);
+    CHECK(run(*f, s) == expected);  // find(): the candidate's view, copied into the caller's list
+    CHECK(ptr->views == 2);
+    CHECK_FALSE(ptr->scratch_touched);
+    CHECK_FALSE(alone.scratch_touched);
   }
 
   TEST_CASE("auto: invalid boxes are rejected with the box named, whatever runs") {
