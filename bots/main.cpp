@@ -11,7 +11,7 @@
 #include <sstream>
 
 #include "interest/measure.h"
-#include "os_limits.h"
+#include "net/os_limits.h"
 #include "swarm.h"
 
 namespace {
@@ -74,16 +74,16 @@ struct summary {
 
 summary summarize(const swarm_result& r) {
   summary s;
-  s.p50 = latency_histogram_us::percentile_ms(r.latency, 0.5);
-  s.p95 = latency_histogram_us::percentile_ms(r.latency, 0.95);
-  s.p99 = latency_histogram_us::percentile_ms(r.latency, 0.99);
+  s.p50 = zone::bots::percentile_ms(r.latency, 0.5);
+  s.p95 = zone::bots::percentile_ms(r.latency, 0.95);
+  s.p99 = zone::bots::percentile_ms(r.latency, 0.99);
   s.max = r.latency_max_ms;
   s.samples = latency_histogram_us::total(r.latency);
   s.steady_samples = latency_histogram_us::total(r.steady_latency);
   if (s.steady_samples > 0) {
-    s.steady_p50 = latency_histogram_us::percentile_ms(r.steady_latency, 0.5);
-    s.steady_p95 = latency_histogram_us::percentile_ms(r.steady_latency, 0.95);
-    s.steady_p99 = latency_histogram_us::percentile_ms(r.steady_latency, 0.99);
+    s.steady_p50 = zone::bots::percentile_ms(r.steady_latency, 0.5);
+    s.steady_p95 = zone::bots::percentile_ms(r.steady_latency, 0.95);
+    s.steady_p99 = zone::bots::percentile_ms(r.steady_latency, 0.99);
   }
   std::vector<double> kbps, msgs;
   for (const auto& slot : r.slots) {

@@ -28,8 +28,8 @@
 #include <thread>
 #include <vector>
 
-#include "protocol.h"
-#include "truth.h"
+#include "net/protocol.h"
+#include "net/truth.h"
 
 namespace zone::bots {
 

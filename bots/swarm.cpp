@@ -22,48 +22,6 @@ using tcp = asio::ip::tcp;
 using steady = std::chrono::steady_clock;
 
 // ---------------------------------------------------------------------------------------------
-// latency_histogram_us
-
-namespace {
-int bucket_of(std::uint64_t us) {
-  const double b = std::log2(static_cast<double>(us) + 1.0) * 16.0;
-  return std::clamp(static_cast<int>(b), 0, latency_histogram_us::buckets - 1);
-}
-double bucket_mid_us(int b) { return std::exp2((b + 0.5) / 16.0) - 1.0; }
-}  // namespace
-
-void latency_histogram_us::record(std::uint64_t us) {
-  count_[static_cast<std::size_t>(bucket_of(us))].fetch_add(1, std::memory_order_relaxed);
-  std::uint64_t m = max_.load(std::memory_order_relaxed);
-  while (us > m && !max_.compare_exchange_weak(m, us, std::memory_order_relaxed)) {
-  }
-}
-
-latency_histogram_us::counts latency_histogram_us::snapshot() const {
-  counts c{};
-  for (int b = 0; b < buckets; ++b) c[static_cast<std::size_t>(b)] = count_[static_cast<std::size_t>(b)].load(std::memory_order_relaxed);
-  return c;
-}
-
-std::uint64_t latency_histogram_us::total(const counts& c) {
-  std::uint64_t n = 0;
-  for (const auto v : c) n += v;
-  return n;
-}
-
-double latency_histogram_us::percentile_ms(const counts& c, double q) {
-  const std::uint64_t n = total(c);
-  if (n == 0) return 0;
-  const auto rank = static_cast<std::uint64_t>(std::ceil(q * static_cast<double>(n)));
-  std::uint64_t seen = 0;
-  for (int b = 0; b < buckets; ++b) {
-    seen += c[static_cast<std::size_t>(b)];
-    if (seen >= std::max<std::uint64_t>(rank, 1)) return bucket_mid_us(b) / 1000.0;
-  }
-  return bucket_mid_us(buckets - 1) / 1000.0;
-}
-
-// ---------------------------------------------------------------------------------------------
 // The swarm
 
 namespace {
@@ -325,9 +283,9 @@ class swarm {
         for (int b = 0; b < latency_histogram_us::buckets; ++b) {
           window[static_cast<std::size_t>(b)] = lat[static_cast<std::size_t>(b)] - prev_lat[static_cast<std::size_t>(b)];
         }
-        s.p50_ms = latency_histogram_us::percentile_ms(window, 0.5);
-        s.p99_ms = latency_histogram_us::percentile_ms(window, 0.99);
-        s.max_window_ms = latency_histogram_us::percentile_ms(window, 1.0);
+        s.p50_ms = percentile_ms(window, 0.5);
+        s.p99_ms = percentile_ms(window, 0.99);
+        s.max_window_ms = percentile_ms(window, 1.0);
         prev_lat = lat;
         // The series holds per-second deltas of the counters.
         second_sample d = s;
@@ -379,7 +337,7 @@ class swarm {
     r.slots = slots_;
     r.series = series_;
     r.latency = latency_snapshot();
-    for (const auto& h : latency_) r.latency_max_ms = std::max(r.latency_max_ms, h->max_ms());
+    for (const auto& h : latency_) r.latency_max_ms = std::max(r.latency_max_ms, h->max() / 1000.0);
     if (steady_from >= 0) {
       r.steady_from_s = steady_from;
       for (std::size_t b = 0; b < r.latency.size(); ++b) r.steady_latency[b] = r.latency[b] - steady_start[b];
@@ -916,7 +874,7 @@ void bot_session::on_tick_update(const net::wire::tick_update& u, std::uint64_t 
   if (s_.offset_known()) {
     const auto sent_local = static_cast<std::int64_t>(u.server_time_us()) - s_.offset_us();
     const auto lat = static_cast<std::int64_t>(now) - sent_local;
-    s_.latency(thread_).record(static_cast<std::uint64_t>(std::max<std::int64_t>(0, lat)));
+    s_.latency(thread_).record(static_cast<double>(static_cast<std::uint64_t>(std::max<std::int64_t>(0, lat))));
   } else {
     ++local_.latency_unsynced;
   }

@@ -11,7 +11,8 @@
 #include <vector>
 
 #include "oracle.h"
-#include "protocol.h"
+#include "net/latency_histogram.h"
+#include "net/protocol.h"
 
 namespace zone::bots {
 
@@ -79,23 +80,12 @@ struct swarm_options {
   std::size_t max_frame_bytes = 1 << 22;
 };
 
-/// Log-bucketed latency histogram in microseconds (16 buckets per octave, ~4% resolution),
-/// lock-free for concurrent recording.
-class latency_histogram_us {
- public:
-  static constexpr int buckets = 16 * 40;
-  void record(std::uint64_t us);
-  using counts = std::array<std::uint64_t, buckets>;
-  [[nodiscard]] counts snapshot() const;
-  /// Percentile (0..1) of a snapshot or of the difference of two, in milliseconds.
-  [[nodiscard]] static double percentile_ms(const counts& c, double q);
-  [[nodiscard]] static std::uint64_t total(const counts& c);
-  [[nodiscard]] double max_ms() const { return static_cast<double>(max_.load()) / 1000.0; }
-
- private:
-  std::array<std::atomic<std::uint64_t>, buckets> count_{};
-  std::atomic<std::uint64_t> max_{0};
-};
+/// End-to-end latencies in microseconds, lock-free for concurrent recording (net/latency_histogram.h).
+using latency_histogram_us = net::latency_histogram_us;
+/// Percentile (0..1) of a snapshot or of the difference of two, in milliseconds (its bucket's middle).
+[[nodiscard]] inline double percentile_ms(const latency_histogram_us::counts& c, double q) {
+  return latency_histogram_us::percentile_mid(c, q) / 1000.0;
+}
 
 /// Counters of the whole swarm (relaxed atomics; read by the progress line while bots run).
 struct swarm_counters {

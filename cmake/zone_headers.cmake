@@ -3,8 +3,9 @@
 # zone::gpu) under which a parent project that takes this tree by add_subdirectory links it.
 # Installed consumers write `#include <zone/<header>>`; so that such a parent writes the same, the
 # build tree gets forwarding headers under ${PROJECT_BINARY_DIR}/include/zone/, on the include
-# path of <alias> only: inside the tree the layers keep including each other as "<header>"
-# (their source folders are on the include path).
+# path of <alias> only. The installed headers include each other as "<header>" (one folder once
+# installed; their source folders are on the include path); every other file names the layer
+# ("interest/interest.h", "gpu/finders.h").
 function(zone_public_headers target alias)
   set(sources "")
   foreach(header IN LISTS ARGN)

@@ -9,7 +9,7 @@
 #include <cstdlib>
 #include <string>
 
-#include "interest.h"
+#include "interest/interest.h"
 
 using namespace zone::interest;
 

@@ -10,7 +10,7 @@
 #include <string>
 #include <string_view>
 
-#include "interest.h"
+#include "interest/interest.h"
 
 using namespace zone::interest;
 

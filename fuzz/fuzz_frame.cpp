@@ -6,7 +6,7 @@
 #include <cstdlib>
 #include <span>
 
-#include "protocol.h"
+#include "net/protocol.h"
 
 using namespace zone::net;
 

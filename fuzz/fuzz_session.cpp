@@ -19,8 +19,8 @@
 #include <spdlog/spdlog.h>
 #include <vector>
 
-#include "protocol.h"
-#include "server.h"
+#include "net/protocol.h"
+#include "net/server.h"
 
 using namespace zone::net;
 

@@ -7,7 +7,7 @@
 #include <memory>
 #include <string>
 
-#include "replication_engine.h"
+#include "interest/replication_engine.h"
 
 namespace zone::gpu {
 

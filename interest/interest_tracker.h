@@ -97,14 +97,17 @@ struct interest_stats {
 /// observer's visible set and this tick's enter and leave events, each sorted ascending by handle.
 /// A visible set never contains the observer itself. Output is deterministic: it depends only on
 /// the columns' contents and the previous tick, not on the finder's pair order or the thread count.
-/// Memory is reused between ticks: no allocation in steady state beyond growth.
+/// Memory is reused between ticks: no allocation in steady state beyond growth (a change of
+/// engine copies the sets once).
 class interest_tracker {
  public:
-  /// `finder` and `pool` must outlive the tracker; `pool` may be null (single-threaded).
+  /// `finder` (the host reference engine's) and `pool` must outlive the tracker; `pool` may be
+  /// null (single-threaded).
   interest_tracker(pair_finder& finder, thread_pool* pool = nullptr, interest_options opt = {});
 
-  /// One tick: builds the boxes, finds the pairs, updates visible sets and events. On error (a
-  /// non-finite position or extent) nothing changes and the error names the entity.
+  /// One tick on the engine in use (see set_engine): visible sets and events. On error (a
+  /// non-finite position or extent) nothing changes and the error names the entity and its box.
+  /// A device error of a set engine is not an error here: the host reference redoes the tick.
   [[nodiscard]] std::optional<box_error> update(const entity_columns& in);
 
   /// The two halves of update() on the host reference, for callers that find pairs themselves

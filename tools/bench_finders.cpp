@@ -107,12 +107,7 @@ Every finder's output is sorted canonically after timing and compared for exact 
 the program exits with status 1 on any MISMATCH, 2 on bad arguments.
 )";
 
-std::optional<double> parse_number(std::string_view s) {
-  double v = 0;
-  const auto [ptr, ec] = std::from_chars(s.data(), s.data() + s.size(), v);
-  if (ec != std::errc{} || ptr != s.data() + s.size() || !std::isfinite(v)) return std::nullopt;
-  return v;
-}
+std::optional<double> parse_number(std::string_view s) { return zone::tools::parse_value<double>(s); }
 
 std::optional<std::size_t> parse_count(std::string_view s) {
   const auto v = parse_number(s);
@@ -893,10 +888,8 @@ int main(int argc, char** argv) {
   std::map<std::string, std::string> given;  // the valued options, checked by parse_args
   bool sweep_w = false, sweep_edge = false;
   cli.add_options()("sweep-w", po::bool_switch(&sweep_w))("sweep-edge", po::bool_switch(&sweep_edge));
-  for (const char* name : {"sets", "finders", "reps", "threads", "csv", "max-seconds", "brute-max", "seed", "w-values",
-                           "edges"}) {
-    cli.add_options()(name, po::value<std::string>()->notifier([&given, name](const std::string& v) { given[name] = v; }));
-  }
+  zone::tools::add_text_options(cli, given, {"sets", "finders", "reps", "threads", "csv", "max-seconds", "brute-max", "seed",
+                                             "w-values", "edges"});
   if (const auto rc = zone::tools::parse_command_line(argc, argv, "bench-finders", help_text, cli, 2)) return *rc;
   if (auto err = parse_args(given, sweep_w, sweep_edge, opt)) {
     std::cerr << "bench-finders: " << *err << "\n";

@@ -46,6 +46,7 @@
 #include "interest/interest.h"
 #include "interest/measure.h"
 #include "interest/thread_pool.h"
+#include "tools/bench_gpu_args.h"
 #include "tools/pair_digest.h"
 
 #if __has_include(<CGAL/box_intersection_d.h>)
@@ -562,44 +563,15 @@ void public_section(bench& b, std::uint64_t seed) {
 
 int main(int argc, char** argv) {
   bench b;
-  std::string only = "floors,public,targets,nsweep,cells,doc,gauss,ablation,lbvh";
-  std::string csv_path = "bench-gpu.csv";
-  std::string csv_lbvh = "bench_lbvh.csv";
-  std::size_t cgal_max_n = 1000000;
-  for (int i = 1; i < argc; ++i) {
-    const std::string a = argv[i];
-    auto next = [&]() -> std::string {
-      if (i + 1 >= argc) {
-        std::fprintf(stderr, "%s needs a value\n", a.c_str());
-        std::exit(2);
-      }
-      return argv[++i];
-    };
-    if (a == "--csv") csv_path = next();
-    else if (a == "--only") only = next();
-    else if (a == "--max-n") b.max_n = std::stoull(next());
-    else if (a == "--reps") b.reps = std::stoi(next());
-    else if (a == "--csv-lbvh") csv_lbvh = next();
-    else if (a == "--cgal-max-n") cgal_max_n = std::stoull(next());
-    else if (a == "--help" || a == "-h") {
-      std::printf(
-          "bench-gpu: the PBIG paper's experiments on the GPU, PBIG beside LBVH, auto, the CPU grid finder and CGAL\n\n"
-          "usage: bench-gpu [--csv FILE] [--csv-lbvh FILE] [--only LIST] [--max-n N] [--reps R] [--cgal-max-n N]\n"
-          "  --only LIST       comma-separated of floors,public,targets,wsweep,esweep,eplan,nsweep,cells,doc,gauss,ablation,lbvh\n"
-          "                    (default: all but wsweep, esweep, eplan)\n"
-          "  --csv FILE        PBIG rows as CSV (default bench-gpu.csv)\n"
-          "  --csv-lbvh FILE   the lbvh experiment's rows as CSV (default bench_lbvh.csv)\n"
-          "  --max-n N         skip sets larger than N boxes (default 10000000)\n"
-          "  --reps R          timed repetitions per row (default 5; the targets use 21 below 10^7)\n"
-          "  --cgal-max-n N    run CGAL up to N boxes (default 1000000)\n"
-          "Exits 77 without a CUDA device. docs/gpu-benchmarks.md says what each table means.\n");
-      return 0;
-    } else {
-      std::fprintf(stderr, "usage: bench-gpu [--csv FILE] [--csv-lbvh FILE] [--only LIST] [--max-n N] [--reps R] [--cgal-max-n N] [--help]\n");
-      return 2;
-    }
-  }
-  auto want = [&](const char* name) { return ("," + only + ",").find("," + std::string(name) + ",") != std::string::npos; };
+  zone::tools::bench_gpu_args args;
+  if (const auto rc = zone::tools::parse_bench_gpu_args(argc, argv, args)) return *rc;
+  b.max_n = args.max_n;
+  b.reps = args.reps;
+  const std::string& csv_path = args.csv_path;
+  const std::string& csv_lbvh = args.csv_lbvh;
+  const std::size_t cgal_max_n = args.cgal_max_n;
+  const std::string only = "," + args.only + ",";
+  auto want = [&](const char* name) { return only.find(std::string(",") + name + ",") != std::string::npos; };
   std::string why;
   if (!zg::device_available(nullptr, &why)) {
     std::fprintf(stderr, "bench-gpu: %s\n", why.c_str());

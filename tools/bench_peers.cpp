@@ -37,6 +37,7 @@
 #include "interest/interest.h"
 #include "interest/measure.h"
 #include "interest/thread_pool.h"
+#include "tools/bench_peers_args.h"
 #include "tools/pair_digest.h"
 #include "tools/peers/cubql_peer.h"
 
@@ -178,70 +179,16 @@ struct set_spec {
 }  // namespace
 
 int main(int argc, char** argv) {
-  std::string csv_path = "bench-peers.csv";
-  std::string sets = "uniform:100000,uniform:1000000,uniform:10000000,gaussian:1000000,doc:10:1000000,gaussian:10000000";
-  std::size_t max_n = 10000000;
-  int reps = 0;
-  int leaf = 0;
-  zp::cubql_builder builder = zp::cubql_builder::spatial_median;
-  std::string builder_name = "median";
-  std::uint64_t seed = 42;
-  for (int i = 1; i < argc; ++i) {
-    const std::string a = argv[i];
-    auto next = [&]() -> std::string {
-      if (i + 1 >= argc) {
-        std::fprintf(stderr, "bench-peers: %s needs a value\n", a.c_str());
-        std::exit(2);
-      }
-      return argv[++i];
-    };
-    try {
-      if (a == "--csv") csv_path = next();
-      else if (a == "--sets") sets = next();
-      else if (a == "--max-n") max_n = std::stoull(next());
-      else if (a == "--reps") reps = std::stoi(next());
-      else if (a == "--cubql-leaf") leaf = std::stoi(next());
-      else if (a == "--seed") seed = std::stoull(next());
-      else if (a == "--cubql-builder") {
-        builder_name = next();
-        if (builder_name == "median") builder = zp::cubql_builder::spatial_median;
-        else if (builder_name == "radix") builder = zp::cubql_builder::radix;
-        else if (builder_name == "rebin") builder = zp::cubql_builder::rebin_radix;
-        else {
-          std::fprintf(stderr, "bench-peers: unknown --cubql-builder '%s' (median, radix, rebin)\n", builder_name.c_str());
-          return 2;
-        }
-      }
-      else if (a == "--help" || a == "-h") {
-        std::printf(
-            "bench-peers: the documented finder call (make_finder(auto), pinned_boxes, find_view) beside NVIDIA cuBQL\n\n"
-            "usage: bench-peers [--csv FILE] [--sets LIST] [--max-n N] [--reps R] [--cubql-leaf L] [--cubql-builder B]\n"
-            "                   [--seed S]\n"
-            "  --csv FILE       rows as CSV (default bench-peers.csv)\n"
-            "  --sets LIST      comma-separated KIND:N, KIND one of uniform, gaussian, mmo, doc:<value>\n"
-            "                   (default: the six target sets, uniform 1e5/1e6/1e7, gaussian 1e6, doc:10 1e6, gaussian 1e7)\n"
-            "  --max-n N        skip sets larger than N boxes (default 10000000)\n"
-            "  --reps R         timed rounds per set (default 21; 5 at 10^7 boxes and more)\n"
-            "  --cubql-leaf L   cuBQL BuildConfig::makeLeafThreshold (default 0: the builder's default)\n"
-            "  --cubql-builder B  median (cuBQL::gpuBuilder, default BuildConfig; the default), radix\n"
-            "                   (cuBQL::cuda::radixBuilder) or rebin (cuBQL::cuda::rebinRadixBuilder)\n"
-            "  --seed S         generator seed (default 42)\n"
-            "A self-check (cuBQL against brute force on edge-case sets) runs first. Exits 1 when a pair set\n"
-            "differs, 77 without a CUDA device. docs/gpu-benchmarks.md says what the table means.\n");
-        return 0;
-      } else {
-        std::fprintf(stderr, "bench-peers: unknown argument '%s' (see --help)\n", a.c_str());
-        return 2;
-      }
-    } catch (const std::exception&) {
-      std::fprintf(stderr, "bench-peers: bad value for %s (see --help)\n", a.c_str());
-      return 2;
-    }
-  }
-  if (reps < 0 || leaf < 0) {
-    std::fprintf(stderr, "bench-peers: --reps and --cubql-leaf take values >= 0\n");
-    return 2;
-  }
+  zone::tools::bench_peers_args args;
+  if (const auto rc = zone::tools::parse_bench_peers_args(argc, argv, args)) return *rc;
+  const std::string& csv_path = args.csv_path;
+  const std::string& sets = args.sets;
+  const std::size_t max_n = args.max_n;
+  const int reps = args.reps;
+  const int leaf = args.leaf;
+  const zp::cubql_builder builder = args.builder;
+  const std::string& builder_name = args.builder_name;
+  const std::uint64_t seed = args.seed;
   std::vector<set_spec> specs;
   {
     std::size_t b = 0;

@@ -43,14 +43,15 @@
 #include <cctype>
 #include <vector>
 
-#include "finders.h"
-#include "replication.h"
-#include "visibility.h"
-#include "interest.h"
+#include "gpu/finders.h"
+#include "gpu/replication.h"
+#include "gpu/visibility.h"
+#include "interest/interest.h"
 #include "interest/measure.h"
-#include "protocol.h"
-#include "server.h"
-#include "zone.h"
+#include "net/protocol.h"
+#include "net/server.h"
+#include "zone/zone.h"
+#include "tools/cli.h"
 #include "zone/interest_setup.h"
 
 // Every heap allocation of the process is counted (operator new below), so the table can say
@@ -279,13 +280,7 @@ Usage: bench-zone [options]
   --help             this text
 )";
 
-template <class T>
-std::optional<T> number(std::string_view s) {
-  T v{};
-  const auto r = std::from_chars(s.data(), s.data() + s.size(), v);
-  if (r.ec != std::errc{} || r.ptr != s.data() + s.size()) return std::nullopt;
-  return v;
-}
+using zone::tools::parse_value;
 
 std::optional<double> real(std::string_view s) {
   try {
@@ -298,129 +293,126 @@ std::optional<double> real(std::string_view s) {
   }
 }
 
-std::optional<std::string> parse_args(int argc, char** argv, options& o, bool& help) {
-  for (int i = 1; i < argc; ++i) {
-    const std::string_view a = argv[i];
-    std::string_view v;
-    const auto value = [&]() -> bool {
-      if (i + 1 >= argc) return false;
-      v = argv[++i];
-      return true;
-    };
-    const auto need = [&](const char* what) { return std::string(a) + ": expected " + what; };
-    if (a == "--help" || a == "-h") {
-      help = true;
-      return std::nullopt;
-    } else if (a == "--paced") {
-      o.paced = true;
-    } else if (a == "--entities" || a == "--clients" || a == "--ticks" || a == "--warmup" || a == "--budget") {
-      if (!value()) return need("a count");
-      const auto n = number<std::size_t>(v);
-      if (!n) return need("a count");
-      (a == "--entities" ? o.entities : a == "--clients" ? o.clients : a == "--ticks" ? o.ticks : a == "--warmup" ? o.warmup : o.budget) = *n;
-    } else if (a == "--threads") {
-      if (!value()) return need("a thread count");
-      const auto n = number<unsigned>(v);
-      if (!n || *n > 1024) return need("0..1024");
-      o.threads = *n;
-    } else if (a == "--spin-us") {
-      if (!value()) return need("microseconds");
-      const auto n = number<long long>(v);
-      if (!n || *n < -1 || *n > 1000000) return need("-1 .. 1000000");
-      o.spin_us = static_cast<int>(*n);
-    } else if (a == "--seed") {
-      if (!value()) return need("a seed");
-      const auto n = number<std::uint64_t>(v);
-      if (!n) return need("an unsigned integer");
-      o.seed = *n;
-    } else if (a == "--rate") {
-      if (!value()) return need("Hz");
-      const auto r = real(v);
-      if (!r || *r <= 0 || *r > 1000) return need("a rate in (0, 1000]");
-      o.rate = *r;
-    } else if (a == "--w") {
-      if (!value()) return need("W");
-      const auto r = real(v);
-      if (!r || *r < 1) return need("W >= 1");
-      o.w = *r;
-    } else if (a == "--finder") {
-      if (!value()) return need("a finder name");
-      o.finder = std::string(v);
-    } else if (a == "--replicate") {
-      const char* modes = "cpu|gpu|auto|serial|parallel|both|gpu-vs-cpu";
-      if (!value()) return need(modes);
-      o.replicate_auto = false;
-      if (v == "serial") o.replicate = replicate_mode::serial;
-      else if (v == "parallel" || v == "cpu") o.replicate = replicate_mode::parallel;
-      else if (v == "both") o.replicate = replicate_mode::both;
-      else if (v == "gpu") o.replicate = replicate_mode::gpu;
-      else if (v == "gpu-vs-cpu") o.replicate = replicate_mode::gpu_vs_cpu;
-      else if (v == "auto") o.replicate_auto = true;
-      else return need(modes);
-    } else if (a == "--device-wait") {
-      if (!value() || (v != "block" && v != "spin")) return need("block|spin");
-      o.device_wait_block = v == "block";
-    } else if (a == "--sink") {
-      if (!value() || (v != "arena" && v != "arena-copy" && v != "copy")) return need("arena|arena-copy|copy");
-      o.sink = v == "arena" ? options::sink_mode::arena : v == "arena-copy" ? options::sink_mode::arena_copy : options::sink_mode::copy;
-      o.sink_arena = o.sink != options::sink_mode::copy;
-    } else if (a == "--rep-park") {
-      if (!value() || (v != "on" && v != "off")) return need("on|off");
-      o.rep_park = v == "on";
-    } else if (a == "--clients-per-task") {
-      if (!value()) return need("a count");
-      const auto n = number<std::uint32_t>(v);
-      if (!n || *n == 0) return need("a positive count");
-      o.clients_per_task = *n;
-    } else if (a == "--snapshot") {
-      if (!value()) return need("a count");
-      const auto n = number<std::uint32_t>(v);
-      if (!n) return need("a count");
-      o.snapshot = *n;
-    } else if (a == "--hysteresis") {
-      if (!value()) return need("metres");
-      const auto r = real(v);
-      if (!r || *r < 0) return need("metres >= 0");
-      o.hysteresis = static_cast<float>(*r);
-    } else if (a == "--max-visible") {
-      if (!value()) return need("a count");
-      const auto n = number<std::uint32_t>(v);
-      if (!n) return need("a count");
-      o.max_visible = *n;
-    } else if (a == "--interest") {
-      if (!value()) return need("auto, gpu or host");
-      o.interest = std::string(v);
-      if (o.interest != "auto" && o.interest != "gpu" && o.interest != "host") return need("auto, gpu or host");
-    } else if (a == "--density") {
-      if (!value()) return need("entities per km^2");
-      if (v == "ref") {
-        o.density = reference_density;
-      } else {
-        const auto r = real(v);
-        if (!r || *r < 0 || *r > 1e9) return need("entities per km^2 in [0, 1e9] or ref");
-        o.density = *r;
-      }
-    } else if (a == "--summary-csv") {
-      if (!value()) return need("a file name");
-      o.summary_csv = std::string(v);
-    } else if (a == "--host-views") {
-      o.host_views = true;
-    } else if (a == "--find-into-list") {
-      o.view = false;
-    } else if (a == "--csv") {
-      if (!value()) return need("a file name");
-      o.csv = std::string(v);
-    } else if (a == "--sweep-w") {
-      if (!value()) return need("a list of W values");
-      std::stringstream ss{std::string(v)};
-      std::string item;
-      while (std::getline(ss, item, ',')) {
-        const auto r = real(item);
-        if (!r || *r < 1) return need("W values >= 1");
-        o.sweep_w.push_back(*r);
-      }
+/// The switches of the command line (read by tools/cli.h).
+struct switches {
+  bool paced = false, host_views = false, find_into_list = false;
+};
+
+/// Checks the values of the command line (read by tools/cli.h: `given` holds each valued option's
+/// text under its name) into `o`; returns an error message, or nothing.
+std::optional<std::string> parse_args(const std::map<std::string, std::string>& given, const switches& sw, options& o) {
+  o.paced = sw.paced;
+  o.host_views = sw.host_views;
+  o.view = !sw.find_into_list;
+  std::string_view v;
+  const auto value = [&](const char* name) -> bool {
+    const auto it = given.find(name);
+    if (it == given.end()) return false;
+    v = it->second;
+    return true;
+  };
+  const auto need = [](const char* name, const char* what) { return std::string("--") + name + ": expected " + what; };
+  for (const char* name : {"entities", "clients", "ticks", "warmup", "budget"}) {
+    if (!value(name)) continue;
+    const auto n = parse_value<std::size_t>(v);
+    if (!n) return need(name, "a count");
+    (name == std::string_view("entities")  ? o.entities
+     : name == std::string_view("clients") ? o.clients
+     : name == std::string_view("ticks")   ? o.ticks
+     : name == std::string_view("warmup")  ? o.warmup
+                                           : o.budget) = *n;
+  }
+  if (value("threads")) {
+    const auto n = parse_value<unsigned>(v);
+    if (!n || *n > 1024) return need("threads", "0..1024");
+    o.threads = *n;
+  }
+  if (value("spin-us")) {
+    const auto n = parse_value<long long>(v);
+    if (!n || *n < -1 || *n > 1000000) return need("spin-us", "-1 .. 1000000");
+    o.spin_us = static_cast<int>(*n);
+  }
+  if (value("seed")) {
+    const auto n = parse_value<std::uint64_t>(v);
+    if (!n) return need("seed", "an unsigned integer");
+    o.seed = *n;
+  }
+  if (value("rate")) {
+    const auto r = real(v);
+    if (!r || *r <= 0 || *r > 1000) return need("rate", "a rate in (0, 1000]");
+    o.rate = *r;
+  }
+  if (value("w")) {
+    const auto r = real(v);
+    if (!r || *r < 1) return need("w", "W >= 1");
+    o.w = *r;
+  }
+  if (value("finder")) o.finder = std::string(v);
+  if (value("replicate")) {
+    o.replicate_auto = false;
+    if (v == "serial") o.replicate = replicate_mode::serial;
+    else if (v == "parallel" || v == "cpu") o.replicate = replicate_mode::parallel;
+    else if (v == "both") o.replicate = replicate_mode::both;
+    else if (v == "gpu") o.replicate = replicate_mode::gpu;
+    else if (v == "gpu-vs-cpu") o.replicate = replicate_mode::gpu_vs_cpu;
+    else if (v == "auto") o.replicate_auto = true;
+    else return need("replicate", "cpu|gpu|auto|serial|parallel|both|gpu-vs-cpu");
+  }
+  if (value("device-wait")) {
+    if (v != "block" && v != "spin") return need("device-wait", "block|spin");
+    o.device_wait_block = v == "block";
+  }
+  if (value("sink")) {
+    if (v != "arena" && v != "arena-copy" && v != "copy") return need("sink", "arena|arena-copy|copy");
+    o.sink = v == "arena" ? options::sink_mode::arena : v == "arena-copy" ? options::sink_mode::arena_copy : options::sink_mode::copy;
+    o.sink_arena = o.sink != options::sink_mode::copy;
+  }
+  if (value("rep-park")) {
+    if (v != "on" && v != "off") return need("rep-park", "on|off");
+    o.rep_park = v == "on";
+  }
+  if (value("clients-per-task")) {
+    const auto n = parse_value<std::uint32_t>(v);
+    if (!n || *n == 0) return need("clients-per-task", "a positive count");
+    o.clients_per_task = *n;
+  }
+  if (value("snapshot")) {
+    const auto n = parse_value<std::uint32_t>(v);
+    if (!n) return need("snapshot", "a count");
+    o.snapshot = *n;
+  }
+  if (value("hysteresis")) {
+    const auto r = real(v);
+    if (!r || *r < 0) return need("hysteresis", "metres >= 0");
+    o.hysteresis = static_cast<float>(*r);
+  }
+  if (value("max-visible")) {
+    const auto n = parse_value<std::uint32_t>(v);
+    if (!n) return need("max-visible", "a count");
+    o.max_visible = *n;
+  }
+  if (value("interest")) {
+    o.interest = std::string(v);
+    if (o.interest != "auto" && o.interest != "gpu" && o.interest != "host") return need("interest", "auto, gpu or host");
+  }
+  if (value("density")) {
+    if (v == "ref") {
+      o.density = reference_density;
     } else {
-      return "unknown option " + std::string(a) + " (see --help)";
+      const auto r = real(v);
+      if (!r || *r < 0 || *r > 1e9) return need("density", "entities per km^2 in [0, 1e9] or ref");
+      o.density = *r;
+    }
+  }
+  if (value("summary-csv")) o.summary_csv = std::string(v);
+  if (value("csv")) o.csv = std::string(v);
+  if (value("sweep-w")) {
+    std::stringstream ss{std::string(v)};
+    std::string item;
+    while (std::getline(ss, item, ',')) {
+      const auto r = real(item);
+      if (!r || *r < 1) return need("sweep-w", "W values >= 1");
+      o.sweep_w.push_back(*r);
     }
   }
   if (o.ticks == 0) return std::string("--ticks must be >= 1");
@@ -455,14 +447,23 @@ std::uint64_t fnv(std::uint64_t h, std::span<const std::uint8_t> bytes) {
 
 int main(int argc, char** argv) {
   options opt;
-  bool help = false;
-  if (auto err = parse_args(argc, argv, opt, help)) {
-    std::cerr << "bench-zone: " << *err << "\n";
-    return 64;
-  }
-  if (help) {
-    std::cout << usage;
-    return 0;
+  {
+    namespace po = zone::tools::po;
+    po::options_description cli;
+    std::map<std::string, std::string> given;  // the valued options, checked by parse_args
+    switches sw;
+    cli.add_options()("paced", po::bool_switch(&sw.paced))("host-views", po::bool_switch(&sw.host_views))(
+        "find-into-list", po::bool_switch(&sw.find_into_list));
+    zone::tools::add_text_options(cli, given,
+                                  {"entities", "clients", "ticks", "warmup", "budget", "threads", "spin-us", "seed", "rate",
+                                   "w", "finder", "replicate", "device-wait", "sink", "rep-park", "clients-per-task",
+                                   "snapshot", "hysteresis", "max-visible", "interest", "density", "summary-csv", "csv",
+                                   "sweep-w"});
+    if (const auto rc = zone::tools::parse_command_line(argc, argv, "bench-zone", usage, cli, 64)) return *rc;
+    if (auto err = parse_args(given, sw, opt)) {
+      std::cerr << "bench-zone: " << *err << "\n";
+      return 64;
+    }
   }
 
   zone_config spin_cfg;
@@ -519,16 +520,8 @@ int main(int argc, char** argv) {
   world.populate();
 
   // Players and their replication clients, as zone-server makes them: spawned uniformly within
-  // spawn_radius of town(i % towns); replication options from the config (zone_server.cpp).
-  replication_options ro;
-  ro.world = cfg.world;
-  ro.byte_budget = cfg.client_byte_budget;
-  ro.near_distance = cfg.update_near;
-  ro.mid_distance = cfg.update_mid;
-  ro.mid_period = cfg.update_mid_period;
-  ro.far_period = cfg.update_far_period;
-  ro.send_digest = cfg.digest_every > 0;
-  ro.digest_period = std::max<std::uint32_t>(1, cfg.digest_every);
+  // spawn_radius of town(i % towns); replication options from the config (replication_options_of).
+  replication_options ro = replication_options_of(cfg);
   ro.clients_per_task = opt.clients_per_task;
   ro.snapshot_entities_per_client = opt.snapshot;
   ro.park_between_phases = opt.rep_park;

@@ -11,6 +11,7 @@
 #include <chrono>
 #include <cstdio>
 #include <cstring>
+#include <map>
 #include <memory>
 #include <optional>
 #include <string>
@@ -21,6 +22,7 @@
 #include "interest/interest.h"
 #include "interest/measure.h"
 #include "interest/thread_pool.h"
+#include "tools/cli.h"
 
 namespace {
 
@@ -59,6 +61,8 @@ constexpr const char* help_text =
     "Exit status: 0 success, 1 failure (no GPU for --backend gpu/pbig/lbvh, write error),\n"
     "2 bad input or usage (the message names the offending line or box).\n";
 
+const std::string usage_text = std::string(usage_line) + help_text;
+
 int usage_error(const std::string& message) {
   std::fprintf(stderr, "interest-pairs: %s\n%s", message.c_str(), usage_line);
   return exit_bad_input;
@@ -66,45 +70,10 @@ int usage_error(const std::string& message) {
 
 template <class T>
 bool parse_uint(std::string_view s, T& value) {
-  const auto [ptr, ec] = std::from_chars(s.data(), s.data() + s.size(), value);
-  return ec == std::errc{} && ptr == s.data() + s.size() && !s.empty();
+  const auto v = zone::tools::parse_value<T>(s);
+  if (v) value = *v;
+  return v.has_value();
 }
-
-/// A tiny command-line reader: `--name value`, `--name=value`, flags, positionals, `--` ends options.
-class arg_reader {
- public:
-  arg_reader(int argc, char** argv, int first) {
-    for (int i = first; i < argc; ++i) args_.emplace_back(argv[i]);
-  }
-  [[nodiscard]] bool done() const { return pos_ >= args_.size(); }
-  /// The current argument.
-  [[nodiscard]] std::string_view peek() const { return args_[pos_]; }
-  void skip() { ++pos_; }
-  /// If the current argument is option `name` taking a value: consumes it and stores the value.
-  /// Sets `missing` when the value is absent.
-  bool take(std::string_view name, std::string& value, bool& missing) {
-    const std::string_view a = args_[pos_];
-    if (a == name) {
-      ++pos_;
-      if (pos_ >= args_.size()) {
-        missing = true;
-        return true;
-      }
-      value = args_[pos_++];
-      return true;
-    }
-    if (a.size() > name.size() && a.starts_with(name) && a[name.size()] == '=') {
-      value = std::string(a.substr(name.size() + 1));
-      ++pos_;
-      return true;
-    }
-    return false;
-  }
-
- private:
-  std::vector<std::string> args_;
-  std::size_t pos_ = 0;
-};
 
 using zone::ms_since;
 
@@ -189,22 +158,21 @@ int write_result(const std::string& output, const zi::pair_list& pairs, bool cou
 
 int run_gen(int argc, char** argv) {
   std::string set, count_text, seed_text = "1", format, output;
-  arg_reader args(argc, argv, 2);
-  while (!args.done()) {
-    const std::string_view a = args.peek();
-    bool missing = false;
-    if (a == "--help" || a == "-h") {
-      std::fputs(usage_line, stdout);
-      std::fputs(help_text, stdout);
-      return exit_ok;
+  {
+    namespace po = zone::tools::po;
+    po::options_description cli;
+    std::map<std::string, std::string> given;
+    zone::tools::add_text_options(cli, given, {"set", "count", "seed", "format", "output,o"});
+    // argv[1] is "gen": the parser reads from there, as a program name.
+    if (const auto rc = zone::tools::parse_command_line(argc - 1, argv + 1, "interest-pairs: gen", usage_text, cli,
+                                                        exit_bad_input, nullptr, usage_line)) {
+      return *rc;
     }
-    if (args.take("--set", set, missing) || args.take("--count", count_text, missing) ||
-        args.take("--seed", seed_text, missing) || args.take("--format", format, missing) ||
-        args.take("--output", output, missing) || args.take("-o", output, missing)) {
-      if (missing) return usage_error("gen: option '" + std::string(a) + "' needs a value");
-      continue;
-    }
-    return usage_error("gen: unknown argument '" + std::string(a) + "'");
+    zone::tools::take_text(given, "set", set);
+    zone::tools::take_text(given, "count", count_text);
+    zone::tools::take_text(given, "seed", seed_text);
+    zone::tools::take_text(given, "format", format);
+    zone::tools::take_text(given, "output", output);
   }
   if (set.empty()) return usage_error("gen: --set is required");
   if (count_text.empty()) return usage_error("gen: --count is required");
@@ -233,46 +201,26 @@ int run_gen(int argc, char** argv) {
 
 int run_pairs(int argc, char** argv) {
   std::string backend = "auto", output, threads_text = "0", input;
-  bool count_only = false;
-  bool have_input = false;
-  bool options_done = false;
-  arg_reader args(argc, argv, 1);
-  while (!args.done()) {
-    const std::string_view a = args.peek();
-    bool missing = false;
-    if (!options_done && a.size() > 1 && a.front() == '-') {
-      if (a == "--") {
-        options_done = true;
-        args.skip();
-        continue;
-      }
-      if (a == "--help" || a == "-h") {
-        std::fputs(usage_line, stdout);
-        std::fputs(help_text, stdout);
-        return exit_ok;
-      }
-      if (a == "--count-only") {
-        count_only = true;
-        args.skip();
-        continue;
-      }
-      if (a == "--quiet" || a == "-q") {
-        spdlog::set_level(spdlog::level::warn);
-        args.skip();
-        continue;
-      }
-      if (args.take("--backend", backend, missing) || args.take("--output", output, missing) ||
-          args.take("-o", output, missing) || args.take("--threads", threads_text, missing)) {
-        if (missing) return usage_error("option '" + std::string(a) + "' needs a value");
-        continue;
-      }
-      return usage_error("unknown option '" + std::string(a) + "'");
+  bool count_only = false, quiet = false;
+  {
+    namespace po = zone::tools::po;
+    po::options_description cli;
+    std::map<std::string, std::string> given;
+    zone::tools::add_text_options(cli, given, {"backend", "output,o", "threads", "input"});
+    cli.add_options()("count-only", po::bool_switch(&count_only))("quiet,q", po::bool_switch(&quiet));
+    po::positional_options_description positional;
+    positional.add("input", 1);
+    if (const auto rc = zone::tools::parse_command_line(argc, argv, "interest-pairs", usage_text, cli, exit_bad_input,
+                                                        &positional, usage_line)) {
+      return *rc;
     }
-    if (have_input) return usage_error("more than one INPUT given ('" + input + "' and '" + std::string(a) + "')");
-    input = std::string(a);
-    have_input = true;
-    args.skip();
+    zone::tools::take_text(given, "backend", backend);
+    zone::tools::take_text(given, "output", output);
+    zone::tools::take_text(given, "threads", threads_text);
+    zone::tools::take_text(given, "input", input);
   }
+  if (quiet) spdlog::set_level(spdlog::level::warn);
+  const bool have_input = !input.empty();
   if (!have_input) return usage_error("missing INPUT");
   const auto chosen = zone::gpu::parse_backend(backend);
   if (!chosen) return usage_error("unknown backend '" + backend + "' (expected brute, cpu, gpu, pbig, lbvh or auto)");

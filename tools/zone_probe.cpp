@@ -1,5 +1,6 @@
-// zone-probe: hostile clients against a running zone-server on loopback, with the figures of
-// docs/zone.md ("Limits and hardening"). Every attack is bounded in connections and time.
+// zone-probe: hostile clients against a running zone-server on loopback (docs/operating.md,
+// "Limits and hardening"; the figures: docs/zone-benchmarks.md, "Hostile clients"). Every attack is
+// bounded in connections and time.
 //
 //   zone-probe --port P --attack halfopen [--count 1000] [--server-pid PID]
 //   zone-probe --port P --attack pingflood [--seconds 5] [--server-pid PID]
@@ -51,7 +52,7 @@
 #include <thread>
 #include <vector>
 
-#include "protocol.h"
+#include "net/protocol.h"
 #include "tools/cli.h"
 
 namespace {
@@ -574,7 +575,7 @@ const char* const usage_text =
     "usage: zone-probe --port P --attack halfopen|pingflood|reconnect|httpidle|stall [--count N (1000)] [--seconds S (5)]\n"
     "                  [--metrics-port M (httpidle)] [--server-pid PID (CPU and memory readings)]\n"
     "                  [--rcvbuf BYTES (stall: the players' SO_RCVBUF; 0 = the system's)]\n"
-    "Hostile clients against a zone-server on loopback (docs/zone.md, Limits and hardening).\n";
+    "Hostile clients against a zone-server on loopback (docs/operating.md, Limits and hardening).\n";
 
 int usage(bool help) {
   std::fputs(usage_text, help ? stdout : stderr);

@@ -31,7 +31,7 @@
 #include <vector>
 
 #include "world.h"
-#include "zone_server.h"
+#include "zone/zone_server.h"
 
 struct __natsConnection;
 struct __natsSubscription;

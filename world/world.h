@@ -1,7 +1,8 @@
 // Public API of the world layer: several zone servers that together serve one seamless space
-// (docs/world.md; DESIGN.md "Past one machine"). This header is transport-free: the layout of
-// regions, the ghost and handoff wire formats, and zone_link, the per-zone logic that gives every
-// entity a world-wide id, builds and applies ghost messages and hands entities off exactly once.
+// (docs/world.md; docs/architecture.md, "Past one machine"). This header is transport-free: the
+// layout of regions, the ghost and handoff wire formats, and zone_link, the per-zone logic that
+// gives every entity a world-wide id, builds and applies ghost messages and hands entities off
+// exactly once.
 // world/nats_node.h carries these over NATS (built when libnats is found).
 #pragma once
 
@@ -14,7 +15,7 @@
 #include <utility>
 #include <vector>
 
-#include "zone.h"
+#include "zone/zone.h"
 
 namespace zone::world {
 

@@ -8,6 +8,7 @@
 #include <sstream>
 
 #include "zone/zone_config.h"
+#include "zone/replicator.h"
 
 namespace zone {
 
@@ -118,6 +119,19 @@ std::optional<std::string> validate(const zone_config& c) {
     return bad("log-level must be one of trace, debug, info, warn, error, critical, off");
   }
   return std::nullopt;
+}
+
+replication_options replication_options_of(const zone_config& c) {
+  replication_options o;
+  o.world = c.world;
+  o.byte_budget = c.client_byte_budget;
+  o.near_distance = c.update_near;
+  o.mid_distance = c.update_mid;
+  o.mid_period = c.update_mid_period;
+  o.far_period = c.update_far_period;
+  o.send_digest = c.digest_every > 0;
+  o.digest_period = std::max<std::uint32_t>(1, c.digest_every);
+  return o;
 }
 
 unsigned worker_spin(const zone_config& c) {

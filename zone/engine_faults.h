@@ -13,8 +13,8 @@
 #include <functional>
 #include <string>
 
-#include "replication_engine.h"
-#include "visibility_engine.h"
+#include "interest/replication_engine.h"
+#include "interest/visibility_engine.h"
 
 namespace zone {
 

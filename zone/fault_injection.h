@@ -15,7 +15,7 @@
 #include <string>
 #include <vector>
 
-#include "protocol.h"
+#include "net/protocol.h"
 #include "zone.h"
 
 namespace zone {

@@ -1,8 +1,8 @@
 // The zone's interest step from its configuration (interest_setup.h).
 #include "zone/interest_setup.h"
 
-#include "finders.h"
-#include "visibility.h"
+#include "gpu/finders.h"
+#include "gpu/visibility.h"
 
 namespace zone {
 

@@ -1,6 +1,7 @@
 // zone/interest_setup.h: the zone's interest step built from its configuration, in one place for
-// zone-server and bench-zone: the pair finder of --finder and, per --interest, the GPU visibility
-// engine; both handed to the world's interest_space (interest/interest_space.h).
+// zone-server and bench-zone: the pair finder of --finder (the host reference engine's,
+// interest/host_visibility_engine.h, which the world's tracker builds on it) and, per --interest,
+// the GPU visibility engine; both handed to the world's interest_space (interest/interest_space.h).
 #pragma once
 
 #include <memory>

@@ -10,7 +10,7 @@
 
 #include "zone_server.h"
 #ifdef ZONE_HAVE_NATS
-#include "nats_node.h"
+#include "world/nats_node.h"
 #endif
 
 namespace {

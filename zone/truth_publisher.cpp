@@ -14,7 +14,7 @@
 #include <chrono>
 #include <cstring>
 
-#include "truth.h"
+#include "net/truth.h"
 
 namespace zone {
 

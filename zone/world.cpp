@@ -1,4 +1,4 @@
-// zone_world (NPC behaviours, movement, interest per tick) and latency_histogram (zone.h).
+// zone_world (NPC behaviours, movement, interest per tick).
 #include <algorithm>
 #include <functional>
 #include <bit>
@@ -50,32 +50,6 @@ constexpr float town_spread = 150;                 // town crowds: Gaussian of t
 constexpr float town_radius = 250;                 // town NPCs walk back when farther than this
 
 }  // namespace
-
-// ---- latency_histogram ------------------------------------------------------------------------
-
-double latency_histogram::bucket_upper_ms(int b) { return std::exp2((b + 1) / 4.0 - 10.0); }
-
-void latency_histogram::record(double ms) {
-  if (!(ms >= 0)) ms = 0;
-  const int b = ms <= 0 ? 0 : std::clamp(static_cast<int>(std::floor((std::log2(ms) + 10.0) * 4.0)), 0, bucket_count - 1);
-  ++counts_[b];
-  ++count_;
-  max_ = std::max(max_, ms);
-  sum_ += ms;
-}
-
-double latency_histogram::percentile(double q) const {
-  if (count_ == 0) return 0;
-  const auto rank = static_cast<std::uint64_t>(std::ceil(std::clamp(q, 0.0, 1.0) * static_cast<double>(count_)));
-  std::uint64_t seen = 0;
-  for (int b = 0; b < bucket_count; ++b) {
-    seen += counts_[b];
-    if (seen >= std::max<std::uint64_t>(rank, 1)) return std::min(bucket_upper_ms(b), max_);
-  }
-  return max_;
-}
-
-void latency_histogram::clear() { *this = latency_histogram{}; }
 
 // ---- zone_world --------------------------------------------------------------------------------
 

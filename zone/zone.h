@@ -5,12 +5,11 @@
 //    events and hysteresis;
 //  - zone/replicator.h: what each client is sent per tick;
 //  - zone/zone_config.h: configuration (command line, config file) and NPC behaviours;
-//  - zone/latency_histogram.h, zone/zone_world.h: the per-tick world step and its timings.
+//  - zone/zone_world.h: the per-tick world step and its timings (net/latency_histogram.h).
 #pragma once
 
 #include "zone/entity_store.h"
 #include "interest/interest_tracker.h"
-#include "zone/latency_histogram.h"
 #include "zone/replicator.h"
 #include "zone/zone_config.h"
 #include "zone/zone_world.h"

@@ -192,6 +192,11 @@ struct config_result {
 /// zone_config::worker_spin_us resolved (-1 = auto: 0).
 [[nodiscard]] unsigned worker_spin(const zone_config& c);
 
+struct replication_options;  // zone/replicator.h
+/// The replicator's options from the configuration (world, byte budget, update distances and
+/// periods, digests), as zone-server sets them; the rest keep their defaults.
+[[nodiscard]] replication_options replication_options_of(const zone_config& c);
+
 /// Parses the command line; `--config FILE` reads an INI-style file of the same option names
 /// (the command line wins). Unknown options and bad values are errors naming the option.
 [[nodiscard]] config_result parse_config(int argc, const char* const* argv);

@@ -3,10 +3,10 @@
 
 #include "gpu/device_fault.h"
 #include "engine_faults.h"
-#include "finders.h"
+#include "gpu/finders.h"
 #include "interest/measure.h"
-#include "replication.h"
-#include "visibility.h"
+#include "gpu/replication.h"
+#include "gpu/visibility.h"
 
 #include <spdlog/spdlog.h>
 
@@ -50,19 +50,6 @@ net::server_options net_options(const zone_config& c) {
   return o;
 }
 
-replication_options replica_options(const zone_config& c) {
-  replication_options o;
-  o.world = c.world;
-  o.byte_budget = c.client_byte_budget;
-  o.near_distance = c.update_near;
-  o.mid_distance = c.update_mid;
-  o.mid_period = c.update_mid_period;
-  o.far_period = c.update_far_period;
-  o.send_digest = c.digest_every > 0;
-  o.digest_period = std::max<std::uint32_t>(1, c.digest_every);
-  return o;
-}
-
 }  // namespace
 
 engine_fault zone_server::gpu_fault(const zone_config& cfg) const {
@@ -78,7 +65,7 @@ zone_server::zone_server(const zone_config& cfg)
       pool_(std::make_unique<interest::thread_pool>(cfg.worker_threads, worker_spin(cfg))),
       parts_(make_interest_parts(cfg, pool_.get())),
       world_(std::make_unique<zone_world>(cfg, *parts_.finder, pool_.get())),
-      replicator_(replica_options(cfg)),
+      replicator_(replication_options_of(cfg)),
       net_(net_options(cfg)) {
   // The interest step on the GPU (the whole of it: candidates, classification, events), when
   // make_interest_parts made its engine.
@@ -227,10 +214,10 @@ std::string zone_server::metrics_text() const {
     std::vector<double> bounds;
     std::vector<std::uint64_t> cumulative;
     std::uint64_t seen = 0;
-    for (int b = 0; b < latency_histogram::bucket_count; ++b) {
+    for (int b = 0; b < latency_histogram::buckets; ++b) {
       seen += h.bucket(b);
       if (b % 4 == 3) {
-        bounds.push_back(latency_histogram::bucket_upper_ms(b) / 1000.0);
+        bounds.push_back(latency_histogram::bucket_upper(b) / 1000.0);
         cumulative.push_back(seen);
       }
     }

@@ -19,7 +19,7 @@
 #include "net/metrics.h"
 #include "net/server.h"
 #include "truth_publisher.h"
-#include "viewer.h"
+#include "net/viewer.h"
 #include "zone.h"
 #include "zone/interest_setup.h"
 

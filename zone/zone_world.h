@@ -12,7 +12,7 @@
 #include "interest/thread_pool.h"
 #include "zone/entity_store.h"
 #include "interest/interest_tracker.h"
-#include "zone/latency_histogram.h"
+#include "net/latency_histogram.h"
 #include "zone/zone_config.h"
 
 namespace zone {
@@ -21,6 +21,9 @@ namespace zone {
 using interest::interest_options;
 using interest::interest_stats;
 using interest::interest_tracker;
+
+/// Latencies in milliseconds (tick phases, /metrics, handoffs): net/latency_histogram.h.
+using latency_histogram = net::latency_histogram_ms;
 
 /// Phase timings of zone_world::step (milliseconds).
 struct tick_phases {

@@ -9,14 +9,16 @@
 #include <atomic>
 #include <cerrno>
 #include <cstring>
+#include <initializer_list>
+#include <optional>
 #include <random>
 #include <sstream>
 
 #include "bots/swarm.h"
 #include "net/protocol.h"
-#include "process.h"
+#include "../common/process.h"
 
-using namespace zone::bots::testing;
+using namespace zone::test;
 
 namespace {
 
@@ -26,16 +28,24 @@ const std::vector<std::string> server_args = {"--npcs", "2000", "--towns", "4", 
                                               "--io-threads", "2"};
 // Documented bound on the server's p99 tick for these tests (docs/bots.md): one tick period.
 constexpr double p99_tick_bound_ms = 50;
-// A machine too busy to judge timing on (process.h, cpu_stretch): the server's tick thread
-// waited for a CPU 3 times as long as it ran, on average (1-3 where the machine has capacity).
+// A machine too busy to judge timing on (tests/common/process.h, cpu_stretch): the server's tick
+// thread waited for a CPU 3 times as long as it ran, on average (1-3 where the machine has
+// capacity).
 constexpr double busy_stretch = 4;
+
+/// server_args, then `extra`.
+std::vector<std::string> server_args_with(std::initializer_list<std::string> extra) {
+  std::vector<std::string> a = server_args;
+  a.insert(a.end(), extra);
+  return a;
+}
 
 /// How the machine treated the server during a run. The rates these tests bound (frames, digests
 /// and checks, inputs: they follow the server's ticks) and its tick time hold where the server
 /// gets the CPU it asks for (CI's 2-core machine running two tests at once). How long its tick
-/// thread waited for a CPU when it could run tells (process.h, cpu_stretch: 1-3 where the machine
-/// has capacity, 20 and more beside 8 busy loops on 2 cores). On a machine that busy, tick-time
-/// bounds are reported but not judged, and the rates must reach half their bounds.
+/// thread waited for a CPU when it could run tells (tests/common/process.h, cpu_stretch: 1-3
+/// where the machine has capacity, 20 and more beside 8 busy loops on 2 cores). On a machine that
+/// busy, tick-time bounds are reported but not judged, and the rates must reach half their bounds.
 struct machine_judgement {
   double stretch = 1;
   bool busy = false;
@@ -55,6 +65,31 @@ std::vector<std::string> swarm_args(std::uint16_t port, const std::string& dir, 
   std::vector<std::string> a{BOT_SWARM_EXE, "--port", std::to_string(port), "--threads", "2", "--report-json", dir + "/report.json"};
   a.insert(a.end(), extra.begin(), extra.end());
   return a;
+}
+
+/// How a bot-swarm run ended: its exit code (none when it outlived the limit and was killed), its
+/// JSON report and its output.
+struct swarm_end {
+  std::optional<int> rc;
+  std::string report, log;
+};
+
+/// Waits (at most `limit`) for `swarm`, started with swarm_args(.., dir, ..), to end.
+swarm_end finish(child_process& swarm, const std::string& dir, std::chrono::milliseconds limit) {
+  swarm_end e;
+  e.rc = swarm.wait(limit);
+  e.report = read_file(dir + "/report.json");
+  e.log = swarm.log();
+  return e;
+}
+
+/// bot-swarm against the server on `port` with `extra` arguments, run to its end (at most 60 s:
+/// REQUIREs that it ended).
+swarm_end run_swarm(std::uint16_t port, const std::string& dir, std::vector<std::string> extra) {
+  child_process swarm(swarm_args(port, dir, std::move(extra)), dir + "/bot-swarm.log");
+  swarm_end e = finish(swarm, dir, 60000ms);
+  REQUIRE_MESSAGE(e.rc.has_value(), "bot-swarm did not end within 60 s; its output:\n" << e.log);
+  return e;
 }
 
 /// A raw loopback client for hostile behaviour (plain POSIX sockets).
@@ -189,30 +224,24 @@ TEST_CASE("latency histogram percentiles") {
   for (int i = 1; i <= 1000; ++i) h.record(static_cast<std::uint64_t>(i) * 10);  // 10 us .. 10 ms
   const auto c = h.snapshot();
   CHECK(zone::bots::latency_histogram_us::total(c) == 1000);
-  CHECK(zone::bots::latency_histogram_us::percentile_ms(c, 0.5) == doctest::Approx(5.0).epsilon(0.05));
-  CHECK(zone::bots::latency_histogram_us::percentile_ms(c, 0.99) == doctest::Approx(9.9).epsilon(0.05));
-  CHECK(h.max_ms() == doctest::Approx(10.0));
+  CHECK(zone::bots::percentile_ms(c, 0.5) == doctest::Approx(5.0).epsilon(0.05));
+  CHECK(zone::bots::percentile_ms(c, 0.99) == doctest::Approx(9.9).epsilon(0.05));
+  CHECK(h.max() / 1000.0 == doctest::Approx(10.0));
 }
 
 TEST_CASE("end to end: 200 bots in verify mode and checked by the oracle, zero mismatches, p99 tick bounded") {
   const std::string dir = temp_dir();
-  std::vector<std::string> args = server_args;
-  args.push_back("--oracle");
-  zone_server_process server(ZONE_SERVER_EXE, dir, args);
+  zone_server_process server(ZONE_SERVER_EXE, dir, server_args_with({"--oracle"}));
   REQUIRE_MESSAGE(server.port != 0, server.proc.log());
-  child_process swarm(swarm_args(server.port, dir,
-                                 {"--bots", "200", "--duration", "15", "--ramp", "100", "--input-hz", "10", "--verify",
-                                  "--oracle", "--mix", "walk=0.4,patrol=0.2,follow=0.2,crowd=0.2", "--stealth-bots",
-                                  "0.1", "--team-bots", "0.2", "--visibility-switch-hz", "0.5", "--report-csv",
-                                  dir + "/report.csv"}),
-                      dir + "/bot-swarm.log");
-  const auto rc = swarm.wait(60000ms);
+  const swarm_end run = run_swarm(server.port, dir, {"--bots", "200", "--duration", "15", "--ramp", "100", "--input-hz", "10", "--verify",
+                                                     "--oracle", "--mix", "walk=0.4,patrol=0.2,follow=0.2,crowd=0.2", "--stealth-bots",
+                                                     "0.1", "--team-bots", "0.2", "--visibility-switch-hz", "0.5", "--report-csv",
+                                                     dir + "/report.csv"});
   const auto [stretch, busy, rate] = judge_machine(server);
-  const std::string report = read_file(dir + "/report.json");
-  INFO("bot-swarm output:\n" << swarm.log());
+  const std::string& report = run.report;
+  INFO("bot-swarm output:\n" << run.log);
   INFO("CPU stretch " << stretch);
-  REQUIRE(rc.has_value());
-  CHECK(*rc == 0);
+  CHECK(run.rc == 0);
   CHECK(json_number(report, "bots_connected").value_or(-1) == 200);
   CHECK(json_number(report, "connect_failures").value_or(-1) == 0);
   CHECK(json_number(report, "unexpected_disconnects").value_or(-1) == 0);
@@ -314,19 +343,13 @@ struct timing_figures {
 /// --tick-csv) and update latency p99 (the swarm's report).
 timing_figures timing_run() {
   const std::string dir = temp_dir();
-  std::vector<std::string> args = server_args;
-  args.insert(args.end(), {"--tick-csv", dir + "/ticks.csv"});
-  zone_server_process server(ZONE_SERVER_EXE, dir, args);
+  zone_server_process server(ZONE_SERVER_EXE, dir, server_args_with({"--tick-csv", dir + "/ticks.csv"}));
   REQUIRE_MESSAGE(server.port != 0, server.proc.log());
-  child_process swarm(swarm_args(server.port, dir,
-                                 {"--bots", "200", "--duration", "15", "--ramp", "100", "--mix",
-                                  "walk=0.4,patrol=0.2,follow=0.2,crowd=0.2"}),
-                      dir + "/bot-swarm.log");
-  const auto rc = swarm.wait(60000ms);
-  const std::string report = read_file(dir + "/report.json");
-  INFO("bot-swarm output:\n" << swarm.log());
-  REQUIRE(rc.has_value());
-  CHECK(*rc == 0);
+  const swarm_end run = run_swarm(server.port, dir, {"--bots", "200", "--duration", "15", "--ramp", "100", "--mix",
+                                                     "walk=0.4,patrol=0.2,follow=0.2,crowd=0.2"});
+  const std::string& report = run.report;
+  INFO("bot-swarm output:\n" << run.log);
+  CHECK(run.rc == 0);
   REQUIRE(server.proc.terminate().value_or(-1) == 0);
   const auto steady_at = report.find("\"latency_steady_ms\"");
   REQUIRE(steady_at != std::string::npos);
@@ -393,18 +416,13 @@ TEST_CASE("timing: 200 bots on 2,000 NPCs at 20 Hz; tick p99 and update latency 
 
 TEST_CASE("rules: zone-server --player-aoi 100 --hysteresis 7 with a default bot-swarm gives no mismatch (the welcome tells the rules)") {
   const std::string dir = temp_dir();
-  std::vector<std::string> args = server_args;
-  args.insert(args.end(), {"--player-aoi", "100", "--hysteresis", "7", "--oracle"});
-  zone_server_process server(ZONE_SERVER_EXE, dir, args);
+  zone_server_process server(ZONE_SERVER_EXE, dir, server_args_with({"--player-aoi", "100", "--hysteresis", "7", "--oracle"}));
   REQUIRE_MESSAGE(server.port != 0, server.proc.log());
-  child_process swarm(swarm_args(server.port, dir, {"--bots", "60", "--duration", "8", "--ramp", "100", "--verify", "--oracle"}),
-                      dir + "/bot-swarm.log");
-  const auto rc = swarm.wait(60000ms);
+  const swarm_end run = run_swarm(server.port, dir, {"--bots", "60", "--duration", "8", "--ramp", "100", "--verify", "--oracle"});
   const double rate = judge_machine(server).rate;
-  const std::string report = read_file(dir + "/report.json");
-  INFO("bot-swarm output:\n" << swarm.log());
-  REQUIRE(rc.has_value());
-  CHECK(*rc == 0);
+  const std::string& report = run.report;
+  INFO("bot-swarm output:\n" << run.log);
+  CHECK(run.rc == 0);
   CHECK(report.find("\"rules_from_server\": true") != std::string::npos);
   CHECK(json_number(report, "mismatches").value_or(-1) == 0);
   CHECK(json_number(report, "aoi_checked").value_or(0) > 1000);
@@ -418,17 +436,12 @@ TEST_CASE("ramp: 800 bots launched at once from one address all join under the s
   // default --max-pending-per-address (256) closed the oldest of them, and those bots failed with
   // "write: Broken pipe" (about a quarter joined). The ramp now waits for hellos.
   const std::string dir = temp_dir();
-  std::vector<std::string> args = server_args;
-  args.insert(args.end(), {"--max-clients", "900"});
-  zone_server_process server(ZONE_SERVER_EXE, dir, args);
+  zone_server_process server(ZONE_SERVER_EXE, dir, server_args_with({"--max-clients", "900"}));
   REQUIRE_MESSAGE(server.port != 0, server.proc.log());
-  child_process swarm(swarm_args(server.port, dir, {"--bots", "800", "--duration", "4", "--ramp", "100000", "--quiet"}),
-                      dir + "/bot-swarm.log");
-  const auto rc = swarm.wait(60000ms);
-  const std::string report = read_file(dir + "/report.json");
-  INFO("bot-swarm output:\n" << swarm.log());
-  REQUIRE(rc.has_value());
-  CHECK(*rc == 0);
+  const swarm_end run = run_swarm(server.port, dir, {"--bots", "800", "--duration", "4", "--ramp", "100000", "--quiet"});
+  const std::string& report = run.report;
+  INFO("bot-swarm output:\n" << run.log);
+  CHECK(run.rc == 0);
   CHECK(json_number(report, "bots_connected").value_or(-1) == 800);
   CHECK(json_number(report, "connect_failures").value_or(-1) == 0);
   // The server closed no connection for the pending caps (the swarm held at most --max-connecting).
@@ -446,20 +459,15 @@ namespace {
 /// the digest consistent with what the client holds, the server's own digests see nothing.
 void oracle_catches(const std::string& fault, const std::string& counter, bool digests_blind) {
   const std::string dir = temp_dir();
-  std::vector<std::string> args = server_args;
-  args.insert(args.end(), {"--oracle", "--test-fault", fault, "--test-fault-tick", "40"});
-  zone_server_process server(ZONE_SERVER_EXE, dir, args);
+  zone_server_process server(ZONE_SERVER_EXE, dir, server_args_with({"--oracle", "--test-fault", fault, "--test-fault-tick", "40"}));
   REQUIRE_MESSAGE(server.port != 0, server.proc.log());
   // With stealth and team bots switching: the faults are caught among legitimate class changes.
-  child_process swarm(swarm_args(server.port, dir, {"--bots", "20", "--duration", "7", "--ramp", "100", "--verify", "--oracle",
-                                                    "--stealth-bots", "0.2", "--team-bots", "0.4", "--visibility-switch-hz", "0.5"}),
-                      dir + "/bot-swarm.log");
-  const auto rc = swarm.wait(60000ms);
+  const swarm_end run = run_swarm(server.port, dir, {"--bots", "20", "--duration", "7", "--ramp", "100", "--verify", "--oracle",
+                                                     "--stealth-bots", "0.2", "--team-bots", "0.4", "--visibility-switch-hz", "0.5"});
   const double rate = judge_machine(server).rate;
-  const std::string report = read_file(dir + "/report.json");
-  INFO("bot-swarm output:\n" << swarm.log());
-  REQUIRE(rc.has_value());
-  CHECK(*rc == 1);  // mismatches
+  const std::string& report = run.report;
+  INFO("bot-swarm output:\n" << run.log);
+  CHECK(run.rc == 1);  // mismatches
   const double caught = json_number(report, counter).value_or(0);
   MESSAGE("fault " << fault << ": the oracle counted " << caught << " " << counter << " mismatches");
   CHECK(caught > 0);
@@ -489,20 +497,14 @@ TEST_CASE("oracle fault class: an entity sent with the wrong class is caught") {
 
 TEST_CASE("teleport: bots jump at random across the world; views and AOI checks stay exact") {
   const std::string dir = temp_dir();
-  std::vector<std::string> args = server_args;
-  args.insert(args.end(), {"--teleport", "1", "--teleport-cooldown", "0.2"});
-  zone_server_process server(ZONE_SERVER_EXE, dir, args);
+  zone_server_process server(ZONE_SERVER_EXE, dir, server_args_with({"--teleport", "1", "--teleport-cooldown", "0.2"}));
   REQUIRE_MESSAGE(server.port != 0, server.proc.log());
-  child_process swarm(swarm_args(server.port, dir,
-                                 {"--bots", "100", "--duration", "15", "--ramp", "100", "--verify", "--mix",
-                                  "walk=0.3,teleport=0.5,follow=0.1,crowd=0.1", "--teleport-hz", "1"}),
-                      dir + "/bot-swarm.log");
-  const auto rc = swarm.wait(60000ms);
+  const swarm_end run = run_swarm(server.port, dir, {"--bots", "100", "--duration", "15", "--ramp", "100", "--verify", "--mix",
+                                                     "walk=0.3,teleport=0.5,follow=0.1,crowd=0.1", "--teleport-hz", "1"});
   const double rate = judge_machine(server).rate;
-  const std::string report = read_file(dir + "/report.json");
-  INFO("bot-swarm output:\n" << swarm.log());
-  REQUIRE(rc.has_value());
-  CHECK(*rc == 0);
+  const std::string& report = run.report;
+  INFO("bot-swarm output:\n" << run.log);
+  CHECK(run.rc == 0);
   CHECK(json_number(report, "bots_connected").value_or(-1) == 100);
   CHECK(json_number(report, "mismatches").value_or(-1) == 0);
   CHECK(json_number(report, "digests_checked").value_or(0) > 100 * 20 * 5 * rate);
@@ -568,10 +570,10 @@ TEST_CASE("churn: bots log out and in continuously for a minute; no crash, no le
     std::this_thread::sleep_for(250ms);
     REQUIRE(server.proc.alive());
   }
-  const auto rc = swarm.wait(1000ms);
-  const std::string report = read_file(dir + "/report.json");
-  INFO("bot-swarm output:\n" << swarm.log());
-  CHECK(rc.value_or(-1) == 0);
+  const swarm_end run = finish(swarm, dir, 1000ms);
+  const std::string& report = run.report;
+  INFO("bot-swarm output:\n" << run.log);
+  CHECK(run.rc == 0);
   // 20 logouts a second for 60 s is 1,200; a loaded machine may fall somewhat behind.
   CHECK(json_number(report, "logouts").value_or(0) >= 800);
   CHECK(report.find("\"verify\": true") != std::string::npos);
@@ -611,11 +613,9 @@ void slow_clients(bool paced) {
   // A small world (~150 entities in a view) and every visible entity updated every tick: ~60 KB/s
   // per client; a 32 KiB socket send buffer (the kernel's default autotuning would hold up to
   // 4 MiB, over a minute of these frames, before the server's queue saw anything).
-  std::vector<std::string> args = server_args;
-  args.insert(args.end(), {"--world-x", "800", "--world-y", "800", "--player-aoi", "120", "--update-near", "120",
+  zone_server_process server(ZONE_SERVER_EXE, dir, server_args_with({"--world-x", "800", "--world-y", "800", "--player-aoi", "120", "--update-near", "120",
                            "--update-mid", "120", "--socket-send-buffer", "32768", "--client-max-backlog",
-                           paced ? "2" : "0"});
-  zone_server_process server(ZONE_SERVER_EXE, dir, args);
+                           paced ? "2" : "0"}));
   REQUIRE_MESSAGE(server.port != 0, server.proc.log());
   child_process swarm(swarm_args(server.port, dir, {"--bots", "50", "--duration", "24", "--ramp", "100", "--verify",
                                                     "--aoi", "120"}),
@@ -674,10 +674,10 @@ void slow_clients(bool paced) {
     CHECK(resyncs >= 2);
   }
 
-  const auto rc = swarm.wait(60000ms);
-  const std::string report = read_file(dir + "/report.json");
-  INFO("bot-swarm output:\n" << swarm.log());
-  CHECK(rc.value_or(-1) == 0);
+  const swarm_end run = finish(swarm, dir, 60000ms);
+  const std::string& report = run.report;
+  INFO("bot-swarm output:\n" << run.log);
+  CHECK(run.rc == 0);
   CHECK(json_number(report, "bots_connected").value_or(-1) == 50);
   CHECK(json_number(report, "mismatches").value_or(-1) == 0);
   CHECK(server.proc.terminate().value_or(-1) == 0);
@@ -760,10 +760,10 @@ TEST_CASE("hostile clients beside 100 good bots") {
   stalled.join();
   const long rss_after = server.proc.rss_kib();
 
-  const auto rc = swarm.wait(60000ms);
-  const std::string report = read_file(dir + "/report.json");
-  INFO("bot-swarm output:\n" << swarm.log());
-  CHECK(rc.value_or(-1) == 0);
+  const swarm_end run = finish(swarm, dir, 60000ms);
+  const std::string& report = run.report;
+  INFO("bot-swarm output:\n" << run.log);
+  CHECK(run.rc == 0);
   CHECK(json_number(report, "bots_connected").value_or(-1) == 100);
   CHECK(json_number(report, "mismatches").value_or(-1) == 0);
   CHECK(json_number(report, "unexpected_disconnects").value_or(-1) == 0);

@@ -9,9 +9,9 @@
 
 #include <random>
 
-#include "oracle.h"
-#include "truth.h"
-#include "zone.h"
+#include "bots/oracle.h"
+#include "net/truth.h"
+#include "zone/zone.h"
 
 using namespace zone;
 namespace cb = interest::category_bits;
@@ -76,6 +76,18 @@ struct world_sim {
     if (!players.empty() && rng() % 4 == 0) store.set_position(players[rng() % players.size()], anywhere());  // a teleport
   }
 };
+
+/// The rules the oracle checks a replicator's views by: the tracker's hysteresis and the
+/// replicator's update distances and periods (what zone-server's welcome tells the bots).
+net::interest_rules rules_of(const replication_options& ro, float hysteresis) {
+  net::interest_rules rules;
+  rules.hysteresis = hysteresis;
+  rules.update_near = ro.near_distance;
+  rules.update_mid = ro.mid_distance;
+  rules.update_mid_period = ro.mid_period;
+  rules.update_far_period = ro.far_period;
+  return rules;
+}
 
 }  // namespace
 
@@ -166,12 +178,7 @@ TEST_SUITE("bots.oracle") {
     ro.mid_period = 3;
     ro.far_period = 8;
     replicator rep(ro);
-    net::interest_rules rules;
-    rules.hysteresis = 4;
-    rules.update_near = ro.near_distance;
-    rules.update_mid = ro.mid_distance;
-    rules.update_mid_period = ro.mid_period;
-    rules.update_far_period = ro.far_period;
+    const net::interest_rules rules = rules_of(ro, 4);
     std::vector<std::string> problems;
     bots::oracle oracle(w.world, rules, 1, [](void* ctx, std::string line) {
       static_cast<std::vector<std::string>*>(ctx)->push_back(std::move(line));
@@ -268,12 +275,7 @@ TEST_SUITE("bots.oracle") {
       ro.world = w.world;
       ro.byte_budget = 4000;
       replicator rep(ro);
-      net::interest_rules rules;
-      rules.hysteresis = 4;
-      rules.update_near = ro.near_distance;
-      rules.update_mid = ro.mid_distance;
-      rules.update_mid_period = ro.mid_period;
-      rules.update_far_period = ro.far_period;
+      const net::interest_rules rules = rules_of(ro, 4);
       bots::oracle oracle(w.world, rules, 1, nullptr, nullptr);
       struct client {
         entity_id id;

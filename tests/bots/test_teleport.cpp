@@ -9,6 +9,7 @@
 #include <limits>
 #include <thread>
 
+#include "../common/loopback_zone.h"
 #include "../net/loopback_client.h"
 #include "zone/zone_server.h"
 
@@ -19,20 +20,15 @@ using namespace std::chrono_literals;
 namespace {
 
 zone_config teleport_config() {
-  zone_config c;
-  c.world = {{0, 0, 0}, {600, 600, 40}};
-  c.listen_address = "127.0.0.1";
-  c.port = 0;
+  zone_config c = zone::test::loopback_zone_config();
   c.npc_count = 300;
   c.town_count = 1;
-  c.tick_rate_hz = 30;
   c.worker_threads = 1;
   c.io_threads = 1;
   c.player_aoi = 60;
   c.client_byte_budget = 64 * 1024;  // ample: every enter and leave goes out the tick it happens
   c.teleport_cooldown_s = 0.5;       // 15 ticks
   c.teleport_enabled = true;         // a server-granted ability, off by default
-  c.log_level = "warn";
   c.metrics_enabled = false;
   return c;
 }

@@ -1407,6 +1407,58 @@ TEST_SUITE("net.server") {
     }
   }
 
+  TEST_CASE("admission: reconnect churn over IPv6 (::1): admitted, charged and refused like IPv4") {
+    server_options opt;
+    opt.address = "::1";
+    opt.connect_rate = 0.2;
+    opt.connect_burst = 1;
+    opt.connect_refusal_hold = 0ms;
+    server srv(opt);
+    if (const auto err = srv.start()) {
+      MESSAGE("no IPv6 loopback here (" << *err << "): not tested");
+      return;
+    }
+    game g{srv, {}};
+    /// A connection from ::1 that sends `bytes` and reads until the server closes it: the errors it got.
+    const auto exchange = [&](std::span<const std::uint8_t> bytes) {
+      const int fd = ::socket(AF_INET6, SOCK_STREAM, 0);
+      REQUIRE(fd >= 0);
+      sockaddr_in6 to{};
+      to.sin6_family = AF_INET6;
+      to.sin6_port = htons(srv.port());
+      to.sin6_addr = in6addr_loopback;
+      REQUIRE(::connect(fd, reinterpret_cast<sockaddr*>(&to), sizeof to) == 0);
+      (void)::send(fd, bytes.data(), bytes.size(), MSG_NOSIGNAL);
+      frame_decoder dec;
+      std::vector<error_code> errors;
+      std::uint8_t buf[4096];
+      for (;;) {
+        pollfd p{fd, POLLIN, 0};
+        if (::poll(&p, 1, 3000) <= 0) break;
+        const ssize_t n = ::recv(fd, buf, sizeof buf, 0);
+        if (n <= 0) break;
+        dec.feed({buf, static_cast<std::size_t>(n)});
+        for (auto st = dec.next(); st.is_frame(); st = dec.next()) {
+          if (const auto m = to_message(*st.frame.envelope); m && std::holds_alternative<error_msg>(*m)) errors.push_back(std::get<error_msg>(*m).code);
+        }
+      }
+      ::close(fd);
+      return errors;
+    };
+    const auto ping = encode_frame(ping_msg{1});
+    // A ping before a hello: admitted (the IPv6 peer's session), closed with unexpected_message.
+    auto errors = exchange(ping);
+    REQUIRE(errors.size() == 1);
+    CHECK(errors[0] == error_code::unexpected_message);
+    REQUIRE(g.wait_for([&] { return srv.stats().connections_charged == 1; }));
+    // The burst is spent: the next is refused at accept.
+    errors = exchange(ping);
+    REQUIRE(errors.size() == 1);
+    CHECK(errors[0] == error_code::rate_limited);
+    CHECK(srv.stats().connections_rate_limited == 1);
+    CHECK(srv.stats().connections_accepted == 1);
+  }
+
   TEST_CASE("admission: a connection refused for reconnect churn is held unanswered for the hold, at most 64 per address") {
     server_options opt;
     opt.connect_rate = 0.2;

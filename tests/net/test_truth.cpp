@@ -7,7 +7,7 @@
 #include <cstring>
 #include <random>
 
-#include "truth.h"
+#include "net/truth.h"
 
 using namespace zone::net;
 using zone::test::fresh_seed;

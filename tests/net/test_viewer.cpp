@@ -22,8 +22,8 @@
 
 #include "loopback_client.h"
 #include "ws_client.h"
-#include "metrics.h"
-#include "viewer.h"
+#include "net/metrics.h"
+#include "net/viewer.h"
 
 using namespace zone::net;
 using zone::net::testing::http_get;

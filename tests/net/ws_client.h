@@ -15,7 +15,7 @@
 #include <thread>
 #include <vector>
 
-#include "viewer.h"
+#include "net/viewer.h"
 
 namespace zone::net::testing {
 

@@ -13,7 +13,7 @@
 #include <random>
 #include <set>
 
-#include "world.h"
+#include "world/world.h"
 
 using namespace zone;
 using namespace zone::world;

@@ -13,15 +13,15 @@
 #include <regex>
 #include <set>
 
-#include "../bots/process.h"
+#include "../common/process.h"
 #include "../common/seeds.h"
-#include "nats_node.h"
+#include "world/nats_node.h"
 
 using namespace zone;
 using namespace zone::world;
-using zone::bots::testing::child_process;
-using zone::bots::testing::read_file;
-using zone::bots::testing::temp_dir;
+using zone::test::child_process;
+using zone::test::read_file;
+using zone::test::temp_dir;
 using namespace std::chrono_literals;
 
 namespace {

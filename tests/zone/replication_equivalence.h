@@ -18,7 +18,7 @@
 #include <random>
 #include <vector>
 
-#include "zone.h"
+#include "zone/zone.h"
 
 namespace zone::test {
 

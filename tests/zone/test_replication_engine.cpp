@@ -16,7 +16,7 @@
 #include "../common/seeds.h"
 #include "gpu/replication/replication_shared.h"
 #include "replication_equivalence.h"
-#include "zone.h"
+#include "zone/zone.h"
 #include "zone/engine_faults.h"
 
 using namespace zone;

@@ -31,6 +31,14 @@ config_result parse(std::vector<std::string> args) {
   return parse_config(static_cast<int>(argv.size()), argv.data());
 }
 
+/// The first entity of `w` with behaviour `b`, or null_entity.
+entity_id first_with(const zone_world& w, behaviour b) {
+  for (const auto id : w.store().ids()) {
+    if (w.behaviour_of(id) == b) return id;
+  }
+  return null_entity;
+}
+
 }  // namespace
 
 TEST_SUITE("zone.config") {
@@ -213,13 +221,7 @@ TEST_SUITE("zone.world") {
     REQUIRE(player != null_entity);
     CHECK(w.behaviour_of(player) == behaviour::player);
     // A chaser next to the player.
-    entity_id chaser = null_entity;
-    for (const auto id : w.store().ids()) {
-      if (w.behaviour_of(id) == behaviour::chase) {
-        chaser = id;
-        break;
-      }
-    }
+    const entity_id chaser = first_with(w, behaviour::chase);
     REQUIRE(chaser != null_entity);
     CHECK_FALSE(w.set_intent(chaser, {1, 0, 0}));  // a client can only steer a player
     REQUIRE(w.store().set_position(chaser, {450, 400, 0}));
@@ -319,13 +321,7 @@ TEST_SUITE("zone.world") {
     const entity_id later = w.spawn_player({100, 100, 0});
     REQUIRE(later != null_entity);
     CHECK(w.behaviour_of(later) == behaviour::player);
-    entity_id chaser = null_entity;
-    for (const auto id : w.store().ids()) {
-      if (w.behaviour_of(id) == behaviour::chase) {
-        chaser = id;
-        break;
-      }
-    }
+    const entity_id chaser = first_with(w, behaviour::chase);
     REQUIRE(chaser != null_entity);
     REQUIRE(w.store().set_position(chaser, {440, 400, 0}));
     for (int t = 0; t < 40; ++t) REQUIRE_FALSE(w.step().has_value());

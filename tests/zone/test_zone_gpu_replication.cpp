@@ -6,10 +6,10 @@
 #include <string>
 
 #include "../common/seeds.h"
-#include "replication.h"
-#include "visibility.h"
+#include "gpu/replication.h"
+#include "gpu/visibility.h"
 #include "replication_equivalence.h"
-#include "zone.h"
+#include "zone/zone.h"
 
 using namespace zone;
 

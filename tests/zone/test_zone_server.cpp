@@ -14,6 +14,7 @@
 #include <spdlog/sinks/ostream_sink.h>
 #include <spdlog/spdlog.h>
 
+#include "../common/loopback_zone.h"
 #include "../net/loopback_client.h"
 #include "bots/swarm.h"
 #include "gpu/device.h"
@@ -62,20 +63,14 @@ struct view_state {
 };
 
 zone_config test_config() {
-  zone_config c;
-  c.world = {{0, 0, 0}, {600, 600, 40}};
-  c.listen_address = "127.0.0.1";
-  c.port = 0;
+  zone_config c = zone::test::loopback_zone_config();
   c.npc_count = 400;
   c.town_count = 2;
-  c.tick_rate_hz = 30;
   c.worker_threads = 2;
   c.io_threads = 2;
   c.player_aoi = 120;
   c.client_byte_budget = 64 * 1024;
-  c.log_level = "warn";
   c.metrics_enabled = true;
-  c.metrics_port = 0;  // ephemeral
   return c;
 }
 

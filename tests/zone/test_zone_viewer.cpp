@@ -9,8 +9,9 @@
 #include <optional>
 #include <set>
 
-#include "ws_client.h"
-#include "zone_server.h"
+#include "../common/loopback_zone.h"
+#include "tests/net/ws_client.h"
+#include "zone/zone_server.h"
 
 using namespace zone;
 using zone::net::testing::at;
@@ -21,18 +22,12 @@ using zone::net::testing::ws_client;
 namespace {
 
 zone_config viewer_config() {
-  zone_config c;
-  c.world = {{0, 0, 0}, {600, 600, 40}};
-  c.listen_address = "127.0.0.1";
-  c.port = 0;
+  zone_config c = zone::test::loopback_zone_config();
   c.npc_count = 400;
   c.town_count = 2;
   c.worker_threads = 2;
-  c.log_level = "warn";
   c.metrics_enabled = true;
-  c.metrics_port = 0;
   c.viewer_enabled = true;
-  c.tick_rate_hz = 30;
   c.viewer_hz = 30;  // a snapshot every tick
   return c;
 }

@@ -7,7 +7,7 @@
 // builders, cubql_builder) builds a binary BVH over them, then one thread per box queries the BVH
 // with its own box (cuBQL::fixedBoxQuery), counting the boxes j > i it overlaps; a CUB exclusive scan gives each box its first slot and the total,
 // which is read back; the same query fills the pairs (i, j) at those slots; the pairs are copied
-// into page-locked host memory. Semantics as DESIGN.md: closed boxes (touching faces intersect,
+// into page-locked host memory. Semantics as docs/architecture.md's: closed boxes (touching faces intersect,
 // cuBQL's box_t::overlaps), no self pairs, each pair once with a < b, and, when category/mask
 // arrays are given, the pair qualifies iff (category_a & mask_b) | (category_b & mask_a) != 0.
 #pragma once

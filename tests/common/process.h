@@ -1,6 +1,7 @@
-// Child processes for the end-to-end tests: the real zone-server and bot-swarm executables, each
-// with its output in a file, killed (SIGKILL) when the owning object goes away and also when the
-// test process dies (PR_SET_PDEATHSIG), so no test leaves a server behind.
+// tests/common/process.h: child processes for the end-to-end tests (tests/bots, tests/world): the
+// real zone-server and bot-swarm executables, each with its output in a file, killed (SIGKILL)
+// when the owning object goes away and also when the test process dies (PR_SET_PDEATHSIG), so no
+// test leaves a server behind.
 #pragma once
 
 #include <arpa/inet.h>
@@ -24,7 +25,7 @@
 #include <thread>
 #include <vector>
 
-namespace zone::bots::testing {
+namespace zone::test {
 
 using namespace std::chrono_literals;
 
@@ -230,4 +231,4 @@ inline std::optional<double> json_number(const std::string& text, const std::str
   return std::nullopt;
 }
 
-}  // namespace zone::bots::testing
+}  // namespace zone::test
