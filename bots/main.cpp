@@ -364,8 +364,8 @@ int main(int argc, char** argv) {
       ("duration", po::value(&o.duration_s)->default_value(o.duration_s), "run time in seconds (ramp-up included)")  //
       ("ramp", po::value(&o.ramp)->default_value(o.ramp), "new bots per second during ramp-up")        //
       ("max-connecting", po::value(&o.max_connecting)->default_value(o.max_connecting),
-       "at most this many bots connecting at once (connect until hello written; the ramp waits for hellos "
-       "so a lagging swarm never holds more silent connections than the server's --max-pending caps; 0 = no limit)")  //
+       "at most this many bots connecting at once (from connect until the welcome; the ramp waits for welcomes "
+       "so a lagging swarm or server never holds more connections without a hello read than the server's --max-pending caps; 0 = no limit)")  //
       ("input-hz", po::value(&o.input_hz)->default_value(o.input_hz), "intent evaluations per second per bot (an input each with --inputs every)")  //
       ("inputs", po::value(&inputs_mode)->default_value(inputs_mode), "changes: send an input when the intent changes (and as a keep-alive); every: at every evaluation")  //
       ("input-keepalive", po::value(&o.input_keepalive_s)->default_value(o.input_keepalive_s), "--inputs changes: resend an unchanged intent after this many seconds")  //

@@ -144,9 +144,9 @@ class bot_session : public std::enable_shared_from_this<bot_session> {
   /// Outbound bytes: frames queued while a write is in flight go out together in the next write.
   std::vector<std::uint8_t> out_queued_, out_writing_;
   bool writing_ = false, closed_ = false, intended_ = false, got_error_ = false;
-  bool connecting_ = false;  ///< counted in connecting_now: started, the hello not yet written
-  /// The hello is out (written), or the session ended before: it leaves connecting_now.
-  void hello_out();
+  bool connecting_ = false;  ///< counted in connecting_now: started, not yet welcomed
+  /// The welcome arrived, or the session ended before: it leaves connecting_now.
+  void connect_done();
   std::atomic<bool> playing_{false};
   std::uint32_t entity_ = 0;
   std::optional<net::client_view> view_;
@@ -640,7 +640,7 @@ bot_session::bot_session(swarm& s, std::size_t slot, unsigned thread, behaviour 
   chooses_ = stealth_ || team_ != 0;
 }
 
-void bot_session::hello_out() {
+void bot_session::connect_done() {
   if (!connecting_) return;
   connecting_ = false;
   s_.counters().connecting_now.fetch_sub(1, std::memory_order_relaxed);
@@ -798,6 +798,7 @@ void bot_session::on_welcome(const net::wire::welcome& w) {
   }
   tick_rate_ = std::max<double>(1, w.tick_rate_hz());
   welcomed_at_ = steady::now();
+  connect_done();
   playing_ = true;
   auto& st = s_.slot(slot_);
   st.ever_connected = true;
@@ -1142,7 +1143,6 @@ void bot_session::write_next() {
       }
       return fail("write: " + ec.message(), !playing_);
     }
-    hello_out();  // the first write holds the hello
     out_writing_.clear();
     write_next();
   });
@@ -1203,7 +1203,7 @@ void bot_session::fail(const std::string& why, bool connection_failure) {
 void bot_session::close() {
   if (closed_) return;
   closed_ = true;
-  hello_out();
+  connect_done();
   flush_counts();
   boost::system::error_code ignored;
   input_timer_.cancel();

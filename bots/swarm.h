@@ -27,9 +27,10 @@ struct swarm_options {
   unsigned bots = 100;
   double duration_s = 30;    ///< from the first connection attempt to the end (ramp included)
   double ramp = 200;         ///< new bots per second during ramp-up
-  /// At most this many sessions connecting at once (from the connect until the hello is written):
-  /// the ramp waits for hellos rather than run ahead of them. A swarm whose threads lag behind
-  /// its ramp otherwise holds thousands of connections that the server sees as silent, and the
+  /// At most this many sessions connecting at once (from the connect until the welcome): the ramp
+  /// waits for welcomes rather than run ahead of them. A swarm whose threads lag behind its ramp
+  /// (or a server behind on reading hellos) otherwise holds hundreds of connections that the
+  /// server has not yet heard a hello from, and the
   /// server's cap on connections without a hello (zone-server --max-pending, 1,024 by default;
   /// --max-pending-per-address, 256) closes the oldest of them. 0 = no limit.
   unsigned max_connecting = 128;
@@ -89,8 +90,9 @@ using latency_histogram_us = net::latency_histogram_us;
 
 /// Counters of the whole swarm (relaxed atomics; read by the progress line while bots run).
 struct swarm_counters {
-  /// Sessions started whose hello is not yet written (connecting, or connected and not yet heard
-  /// from): the ramp holds new connects while max_connecting of them are outstanding.
+  /// Sessions started and not yet welcomed (connecting, the hello not yet written, or written and
+  /// not yet read by the server): the ramp holds new connects while max_connecting of them are
+  /// outstanding, so the server never holds more of the swarm's connections without a hello read.
   std::atomic<std::uint64_t> connecting_now{0};
   std::atomic<std::uint64_t> connect_attempts{0}, connected_now{0}, welcomes{0}, connect_failures{0},
       unexpected_disconnects{0}, server_errors{0}, logouts{0}, teleports_sent{0};
