@@ -269,27 +269,46 @@ double percentile(const std::vector<double>& sorted, double q) {
   return sorted[std::min(sorted.size() - 1, static_cast<std::size_t>(q * static_cast<double>(sorted.size())))];
 }
 
-int attack_pingflood(const options& o) {
-  int good = -1;
-  if (!join_ms(o.port, 3, &good)) {
-    std::fprintf(stderr, "zone-probe: the good client could not join\n");
-    return 1;
-  }
-  frame_decoder good_dec;
-  // Keep-alive for the good client: a ping a second (within any rate limit).
-  auto next_keepalive = steady::now();
-  const auto keepalive = [&] {
+/// The good client the floods are measured against: joined, kept alive with a ping a second
+/// (within any rate limit), its baseline over o.seconds (frame gaps, the server's CPU) printed.
+struct good_client {
+  int fd = -1;
+  frame_decoder dec;
+  steady::time_point next_keepalive = steady::now();
+  double base_cpu = 0;  ///< the server's CPU, fraction of a core, without the attack
+  void keepalive() {
     if (steady::now() < next_keepalive) return;
-    (void)send_all(good, encode_frame(ping_msg{1}));
+    (void)send_all(fd, encode_frame(ping_msg{1}));
     next_keepalive += 1s;
-  };
-  double c0 = cpu_seconds(o.server_pid);
-  auto t0 = steady::now();
-  const auto base = frame_gaps(good, good_dec, o.seconds, keepalive);
-  const double base_cpu = (cpu_seconds(o.server_pid) - c0) / std::chrono::duration<double>(steady::now() - t0).count();
+  }
+};
+
+/// Joins the good client and measures its baseline; false (said on stderr) when it cannot join.
+bool start_good_client(const options& o, good_client& g) {
+  if (!join_ms(o.port, 3, &g.fd)) {
+    std::fprintf(stderr, "zone-probe: the good client could not join\n");
+    return false;
+  }
+  g.next_keepalive = steady::now();
+  const double c0 = cpu_seconds(o.server_pid);
+  const auto t0 = steady::now();
+  const auto base = frame_gaps(g.fd, g.dec, o.seconds, [&] { g.keepalive(); });
+  g.base_cpu = (cpu_seconds(o.server_pid) - c0) / std::chrono::duration<double>(steady::now() - t0).count();
   figure("baseline: good client frame gap p50 (ms)", percentile(base, 0.5));
   figure("baseline: good client frame gap p99 (ms)", percentile(base, 0.99));
-  figure("baseline: server CPU (% of a core)", 100 * base_cpu);
+  figure("baseline: server CPU (% of a core)", 100 * g.base_cpu);
+  return true;
+}
+
+int attack_pingflood(const options& o) {
+  good_client g;
+  if (!start_good_client(o, g)) return 1;
+  const int good = g.fd;
+  frame_decoder& good_dec = g.dec;
+  const auto keepalive = [&] { g.keepalive(); };
+  const double base_cpu = g.base_cpu;
+  double c0 = 0;
+  auto t0 = steady::now();
 
   std::vector<std::uint8_t> pings;
   for (std::uint64_t i = 0; i < 190; ++i) {
@@ -356,25 +375,14 @@ int attack_pingflood(const options& o) {
 }
 
 int attack_reconnect(const options& o) {
-  int good = -1;
-  if (!join_ms(o.port, 3, &good)) {
-    std::fprintf(stderr, "zone-probe: the good client could not join\n");
-    return 1;
-  }
-  frame_decoder good_dec;
-  auto next_keepalive = steady::now();
-  const auto keepalive = [&] {
-    if (steady::now() < next_keepalive) return;
-    (void)send_all(good, encode_frame(ping_msg{1}));
-    next_keepalive += 1s;
-  };
-  double c0 = cpu_seconds(o.server_pid);
+  good_client g;
+  if (!start_good_client(o, g)) return 1;
+  const int good = g.fd;
+  frame_decoder& good_dec = g.dec;
+  const auto keepalive = [&] { g.keepalive(); };
+  const double base_cpu = g.base_cpu;
+  double c0 = 0;
   auto t0 = steady::now();
-  const auto base = frame_gaps(good, good_dec, o.seconds, keepalive);
-  const double base_cpu = (cpu_seconds(o.server_pid) - c0) / std::chrono::duration<double>(steady::now() - t0).count();
-  figure("baseline: good client frame gap p50 (ms)", percentile(base, 0.5));
-  figure("baseline: good client frame gap p99 (ms)", percentile(base, 0.99));
-  figure("baseline: server CPU (% of a core)", 100 * base_cpu);
 
   // The flood, on its own threads: each one connection at a time, closed as soon as the server
   // has answered its hello (welcome: a join and, at the close, a leave; an error: refused).
