@@ -63,7 +63,7 @@ struct space_options {
   backend where = backend::cpu;
   /// The engine for backend gpu and automatic (e.g. zone::gpu::make_visibility_engine). Empty:
   /// automatic means cpu, gpu is refused.
-  engine_maker gpu;
+  engine_maker gpu{};
   /// The CPU backend's pair finder (not owned). Null: a grid finder of the space's own.
   pair_finder* finder = nullptr;
   /// Worker threads for the step (not owned; null: the calling thread only).
