@@ -190,19 +190,9 @@ void zone_world::set_state(entity_id id, const npc_state& st) {
   is_player_[slot] = st.kind == behaviour::player ? 1 : 0;
 }
 
-namespace {
-/// A 64-bit mix of a key (splitmix64), for where a player spawns.
-std::uint64_t spawn_hash(std::uint64_t z) {
-  z += 0x9e3779b97f4a7c15ull;
-  z = (z ^ (z >> 30)) * 0xbf58476d1ce4e5b9ull;
-  z = (z ^ (z >> 27)) * 0x94d049bb133111ebull;
-  return z ^ (z >> 31);
-}
-}  // namespace
-
 vec3 zone_world::player_spawn_point(std::uint64_t key) const {
   const vec3 at = towns_[static_cast<std::size_t>(key % towns_.size())];
-  const std::uint64_t h = spawn_hash(key);
+  const std::uint64_t h = splitmix(key);
   const double r = cfg_.spawn_radius * std::sqrt(static_cast<double>(h >> 40) / 16777216.0);
   const double a = static_cast<double>(h & 0xffffff) / 16777216.0 * 6.283185307179586;
   const auto w = spawn_area();
