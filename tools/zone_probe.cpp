@@ -303,12 +303,6 @@ bool start_good_client(const options& o, good_client& g) {
 int attack_pingflood(const options& o) {
   good_client g;
   if (!start_good_client(o, g)) return 1;
-  const int good = g.fd;
-  frame_decoder& good_dec = g.dec;
-  const auto keepalive = [&] { g.keepalive(); };
-  const double base_cpu = g.base_cpu;
-  double c0 = 0;
-  auto t0 = steady::now();
 
   std::vector<std::uint8_t> pings;
   for (std::uint64_t i = 0; i < 190; ++i) {
@@ -354,10 +348,10 @@ int attack_pingflood(const options& o) {
         }
       }
     };
-    c0 = cpu_seconds(o.server_pid);
-    t0 = steady::now();
-    const auto gaps = frame_gaps(good, good_dec, o.seconds, [&] {
-      keepalive();
+    const double c0 = cpu_seconds(o.server_pid);
+    const auto t0 = steady::now();
+    const auto gaps = frame_gaps(g.fd, g.dec, o.seconds, [&] {
+      g.keepalive();
       flood();
     });
     const double secs = std::chrono::duration<double>(steady::now() - t0).count();
@@ -366,23 +360,17 @@ int attack_pingflood(const options& o) {
     figure(tag + ": pings written per second (blast: mostly never read)", static_cast<double>(sent) / secs);
     figure(tag + ": connections (hellos) per second", static_cast<double>(reconnects) / secs);
     figure(tag + ": server CPU (% of a core)", 100 * cpu);
-    figure(tag + ": server CPU above baseline (% of a core)", 100 * (cpu - base_cpu));
+    figure(tag + ": server CPU above baseline (% of a core)", 100 * (cpu - g.base_cpu));
     figure(tag + ": good client frame gap p50 (ms)", percentile(gaps, 0.5));
     figure(tag + ": good client frame gap p99 (ms)", percentile(gaps, 0.99));
   }
-  ::close(good);
+  ::close(g.fd);
   return 0;
 }
 
 int attack_reconnect(const options& o) {
   good_client g;
   if (!start_good_client(o, g)) return 1;
-  const int good = g.fd;
-  frame_decoder& good_dec = g.dec;
-  const auto keepalive = [&] { g.keepalive(); };
-  const double base_cpu = g.base_cpu;
-  double c0 = 0;
-  auto t0 = steady::now();
 
   // The flood, on its own threads: each one connection at a time, closed as soon as the server
   // has answered its hello (welcome: a join and, at the close, a leave; an error: refused).
@@ -415,15 +403,15 @@ int attack_reconnect(const options& o) {
   };
   const std::size_t threads = std::clamp<std::size_t>(o.count, 1, 32);
   std::vector<std::thread> flooders;
-  c0 = cpu_seconds(o.server_pid);
-  t0 = steady::now();
+  const double c0 = cpu_seconds(o.server_pid);
+  const auto t0 = steady::now();
   for (std::size_t i = 0; i < threads; ++i) flooders.emplace_back(flood);
-  const auto gaps = frame_gaps(good, good_dec, o.seconds, keepalive);
+  const auto gaps = frame_gaps(g.fd, g.dec, o.seconds, [&] { g.keepalive(); });
   const double secs = std::chrono::duration<double>(steady::now() - t0).count();
   const double cpu = (cpu_seconds(o.server_pid) - c0) / secs;
   stop = true;
   for (auto& t : flooders) t.join();
-  ::close(good);
+  ::close(g.fd);
   figure("reconnect flood: threads", static_cast<double>(threads));
   figure("reconnect flood: connections per second", static_cast<double>(attempts.load()) / secs);
   figure("reconnect flood: joins (welcomes) per second", static_cast<double>(welcomes.load()) / secs);
@@ -432,7 +420,7 @@ int attack_reconnect(const options& o) {
   figure("reconnect flood: closed without an answer", static_cast<double>(silent_closes.load()));
   figure("reconnect flood: failed connects", static_cast<double>(failed_connects.load()));
   figure("reconnect flood: server CPU (% of a core)", 100 * cpu);
-  figure("reconnect flood: server CPU above baseline (% of a core)", 100 * (cpu - base_cpu));
+  figure("reconnect flood: server CPU above baseline (% of a core)", 100 * (cpu - g.base_cpu));
   figure("reconnect flood: good client frame gap p50 (ms)", percentile(gaps, 0.5));
   figure("reconnect flood: good client frame gap p99 (ms)", percentile(gaps, 0.99));
   return 0;
