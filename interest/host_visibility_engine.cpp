@@ -10,6 +10,9 @@
 #include "host_visibility_engine.h"
 
 #include <algorithm>
+#include <array>
+#include <cmath>
+#include <limits>
 #include <atomic>
 #include <bit>
 #include <chrono>
@@ -50,6 +53,27 @@ constexpr std::size_t no_pair = static_cast<std::size_t>(-1);
 std::uint32_t distance_key(const float* a, const float* b) {
   const float dx = a[0] - b[0], dy = a[1] - b[1], dz = a[2] - b[2];
   return std::bit_cast<std::uint32_t>(dx * dx + dy * dy + dz * dz);
+}
+
+/// The presence grid (host_visibility_engine::grid_candidates): a presence box covering more
+/// cells than this is kept out of the grid and tested by every observer (a boss's footprint), as
+/// in the GPU engine; at most this many cells (per entity, and in all).
+constexpr std::uint64_t grid_large_cells = 64;
+constexpr double grid_cells_per_row = 8;
+constexpr double grid_max_cells = 1 << 20;
+/// The grid declines (the pair finder runs) when more presence boxes than this share of the rows
+/// (and more than grid_large_min) are large: every observer tests each of them.
+constexpr std::size_t grid_large_min = 256;
+constexpr std::size_t grid_large_share = 16;  // 1/16
+
+/// The presence grid's cell function: floor((v - origin) / edge) clamped to [0, last]; monotone
+/// non-decreasing in v (a rounded subtraction and a product with a positive constant, then
+/// clamped), which the output-cell rule in grid_candidates relies on.
+inline std::uint32_t grid_cell(float v, float origin, float inv_edge, std::uint32_t last) {
+  float t = (v - origin) * inv_edge;
+  t = t > 0.0f ? t : 0.0f;  // NaN cannot occur (finite inputs), but would map to 0
+  const auto top = static_cast<float>(last);
+  return t < top ? static_cast<std::uint32_t>(t) : last;
 }
 
 }  // namespace
@@ -139,6 +163,47 @@ void host_visibility_engine::map_rows() {
 std::optional<std::size_t> host_visibility_engine::update(const visibility_input& in, visibility_output& out) {
   // in.while_waiting is not called: there is no device to overlap, the caller does that work after.
   const auto t0 = clock_type::now();
+  if (opt_.presence_grid) {
+    begin(in);
+    std::size_t bad = 0;
+    double build_ms = 0;
+    const grid_result r = grid_candidates(in, bad, build_ms);
+    if (r == grid_result::invalid) return bad;
+    if (r == grid_result::done) {
+      const double query_ms = ms_since(t0) - build_ms;
+      const auto t_diff = clock_type::now();
+      // Counts per row (task_cursor_) into offsets; the candidates stay in their tasks' buffers.
+      const std::size_t n = in.n;
+      std::uint64_t candidates = 0;
+      for (std::size_t i = 0; i < n; ++i) candidates += task_cursor_[i];
+      if (candidates > 0xffffffffu) {
+        throw std::length_error("too many visibility candidates in one tick (" + std::to_string(candidates) + ")");
+      }
+      std::swap(ids_, prev_ids_);
+      std::swap(vis_off_, prev_off_);
+      std::swap(vis_len_, prev_len_);
+      std::swap(vis_, prev_vis_);
+      ids_.assign(in.ids, in.ids + n);
+      full_made_ = false;
+      vis_off_.resize(n + 1);
+      std::uint32_t running = 0;
+      for (std::size_t i = 0; i < n; ++i) {
+        vis_off_[i] = running;
+        running += task_cursor_[i];
+      }
+      vis_off_[n] = running;
+      const double offsets_ms = ms_since(t_diff);
+      finish_rows(in, candidates, true, out);
+      out.pairs = candidates + grid_self_pairs_;
+      out.timing.boxes_ms = build_ms;
+      out.timing.find_ms = query_ms;
+      out.timing.offsets_ms = offsets_ms;
+      out.timing.diff_ms = ms_since(t_diff);
+      out.timing.total_ms = ms_since(t0);
+      last_on_grid_ = true;
+      return std::nullopt;
+    }
+  }
   build_step_boxes(in, boxes_, pool_);
   const double boxes_ms = ms_since(t0);
   const auto t_find = clock_type::now();
@@ -292,7 +357,6 @@ std::optional<box_error> host_visibility_engine::apply_pairs(const visibility_in
   std::swap(vis_off_, prev_off_);
   std::swap(vis_len_, prev_len_);
   std::swap(vis_, prev_vis_);
-  const std::size_t prev_rows = prev_ids_.size();
   ids_.assign(ids.begin(), ids.end());
   full_made_ = false;
 
@@ -312,9 +376,6 @@ std::optional<box_error> host_visibility_engine::apply_pairs(const visibility_in
 
   // 3. Fill: target handles by observer row (the order within a row is sorted later).
   resize_with_headroom(cand_, candidates);
-  resize_with_headroom(vis_, candidates);
-  resize_with_headroom(enter_, candidates);
-  if (in.max_visible != 0) resize_with_headroom(cap_keys_, candidates);
   run_each(pair_tasks > 1 ? pool_ : nullptr, pair_tasks, [&](std::size_t task) {
     std::uint32_t* cursor = task_cursor_.data() + task * n;
     for (std::size_t k = pair_begin(task), e = pair_begin(task + 1); k < e; ++k) {
@@ -336,6 +397,26 @@ std::optional<box_error> host_visibility_engine::apply_pairs(const visibility_in
     }
   });
 
+  finish_rows(in, candidates, false, out);
+  out.pairs = pairs.size();
+  out.timing.count_ms = count_ms;
+  out.timing.offsets_ms = offsets_ms;
+  out.timing.fill_ms = fill_ms;
+  out.timing.diff_ms = ms_since(t0);
+  out.timing.total_ms = out.timing.diff_ms;
+  last_on_grid_ = false;
+  return std::nullopt;
+}
+
+void host_visibility_engine::finish_rows(const visibility_input& in, std::uint64_t candidates, bool from_grid,
+                                         visibility_output& out) {
+  const std::size_t n = in.n;
+  const std::uint32_t* ids = in.ids;
+  const std::size_t prev_rows = prev_ids_.size();
+  resize_with_headroom(vis_, candidates);
+  resize_with_headroom(enter_, candidates);
+  if (in.max_visible != 0) resize_with_headroom(cap_keys_, candidates);
+
   // Previous row of each observer, and leave room = its previous set's size.
   prev_row_.resize(n);
   leave_off_.resize(n + 1);
@@ -353,14 +434,19 @@ std::optional<box_error> host_visibility_engine::apply_pairs(const visibility_in
   leave_len_.resize(n);
 
   // 4. Per observer, in fixed chunks of rows (the output never depends on the thread count).
+  //    The grid path's candidates are in one buffer per chunk (the same chunks).
   const std::size_t chunk = std::max<std::uint32_t>(1, opt_.rows_per_task);
   const std::size_t tasks = (n + chunk - 1) / chunk;
   capped_pending_ = 0;
-  t_part = clock_type::now();
+  const auto t_part = clock_type::now();
   // Slot -> row of this update (the previous rows are looked up above): for the cap's positions
   // by handle and the next update's lookups.
   map_rows();
-  run_each(pool_, tasks, [&](std::size_t task) { process_rows(in, task * chunk, std::min(n, (task + 1) * chunk)); });
+  run_each(pool_, tasks, [&](std::size_t task) {
+    const std::size_t first = task * chunk;
+    const std::uint64_t* cand = from_grid ? grid_cand_[task].data() : cand_.data() + vis_off_[first];
+    process_rows(in, first, std::min(n, (task + 1) * chunk), cand);
+  });
   const double rows_ms = ms_since(t_part);
 
   out = {};
@@ -377,19 +463,270 @@ std::optional<box_error> host_visibility_engine::apply_pairs(const visibility_in
   std::uint64_t visible_total = 0;
   for (std::size_t i = 0; i < n; ++i) visible_total += vis_len_[i];
   out.visible_total = visible_total;
-  out.pairs = pairs.size();
   out.candidates = candidates;
   out.capped = capped_pending_;
-  out.timing.count_ms = count_ms;
-  out.timing.offsets_ms = offsets_ms;
-  out.timing.fill_ms = fill_ms;
   out.timing.rows_ms = rows_ms;
-  out.timing.diff_ms = ms_since(t0);
-  out.timing.total_ms = out.timing.diff_ms;
-  return std::nullopt;
 }
 
-void host_visibility_engine::process_rows(const visibility_input& in, std::size_t first, std::size_t last) {
+host_visibility_engine::grid_result host_visibility_engine::grid_candidates(const visibility_input& in,
+                                                                              std::size_t& bad, double& build_ms) {
+  const auto t0 = clock_type::now();
+  const std::size_t n = in.n;
+  const float* pos = in.position;
+  const float* aoi = in.aoi_half;
+  const float* body = in.body_half;
+  const std::uint32_t* cls = in.visibility;
+  const std::uint32_t* sees = in.sees;
+  const std::uint32_t* ids = in.ids;
+  const float h = in.hysteresis;
+  grid_stats_ = {};
+
+  // 1. Both boxes of every row (build_step_boxes' float expressions), validated as validate()
+  //    would (the first invalid box: 2k AOI, 2k + 1 presence); presence records, the presence
+  //    bounds in x and y, the mean grown AOI and body widths. Fixed chunks: the sums, and so the
+  //    plan, never depend on the thread count.
+  const std::size_t vchunk = 8192;
+  const std::size_t vchunks = std::max<std::size_t>(1, (n + vchunk - 1) / vchunk);
+  grid_part_.resize(vchunks);
+  presence_.resize(n);
+  run_each(vchunks > 1 ? pool_ : nullptr, vchunks, [&](std::size_t c) {
+    grid_bounds b{std::numeric_limits<float>::max(), std::numeric_limits<float>::max(),
+                  std::numeric_limits<float>::lowest(), std::numeric_limits<float>::lowest(), 0, 0, 0, 0, no_pair};
+    for (std::size_t k = c * vchunk, e = std::min(n, (c + 1) * vchunk); k < e; ++k) {
+      const float px = pos[3 * k], py = pos[3 * k + 1], pz = pos[3 * k + 2];
+      const float gx = aoi[3 * k] + h, gy = aoi[3 * k + 1] + h, gz = aoi[3 * k + 2] + h;
+      const float glx = px - gx, gly = py - gy, glz = pz - gz, ghx = px + gx, ghy = py + gy, ghz = pz + gz;
+      const float bx = body[3 * k], by = body[3 * k + 1], bz = body[3 * k + 2];
+      const presence_box p{px - bx, py - by, pz - bz, px + bx, py + by, pz + bz};
+      const bool g_ok = glx <= ghx && gly <= ghy && glz <= ghz && std::isfinite(glx) && std::isfinite(gly) &&
+                        std::isfinite(glz) && std::isfinite(ghx) && std::isfinite(ghy) && std::isfinite(ghz);
+      const bool p_ok = p.lo_x <= p.hi_x && p.lo_y <= p.hi_y && p.lo_z <= p.hi_z && std::isfinite(p.lo_x) &&
+                        std::isfinite(p.lo_y) && std::isfinite(p.lo_z) && std::isfinite(p.hi_x) &&
+                        std::isfinite(p.hi_y) && std::isfinite(p.hi_z);
+      if (!g_ok || !p_ok) {
+        if (b.bad == no_pair) b.bad = g_ok ? 2 * k + 1 : 2 * k;
+        continue;
+      }
+      presence_[k] = p;
+      b.lo_x = std::min(b.lo_x, p.lo_x);
+      b.lo_y = std::min(b.lo_y, p.lo_y);
+      b.hi_x = std::max(b.hi_x, p.hi_x);
+      b.hi_y = std::max(b.hi_y, p.hi_y);
+      b.body_width += 0.5 * ((static_cast<double>(p.hi_x) - p.lo_x) + (static_cast<double>(p.hi_y) - p.lo_y));
+      // Rows whose AOI sees their own class: the finder's self pairs (both boxes hold the centre).
+      b.self += (sees[k] & cls[k]) != 0 ? 1u : 0u;
+      if (sees[k] != 0) {
+        b.aoi_width += 0.5 * ((static_cast<double>(ghx) - glx) + (static_cast<double>(ghy) - gly));
+        ++b.observers;
+      }
+    }
+    grid_part_[c] = b;
+  });
+  grid_bounds all{std::numeric_limits<float>::max(), std::numeric_limits<float>::max(),
+                  std::numeric_limits<float>::lowest(), std::numeric_limits<float>::lowest(), 0, 0, 0, 0, no_pair};
+  for (const grid_bounds& b : grid_part_) {
+    if (b.bad != no_pair) {
+      bad = b.bad;
+      build_ms = ms_since(t0);
+      return grid_result::invalid;
+    }
+    all.lo_x = std::min(all.lo_x, b.lo_x);
+    all.lo_y = std::min(all.lo_y, b.lo_y);
+    all.hi_x = std::max(all.hi_x, b.hi_x);
+    all.hi_y = std::max(all.hi_y, b.hi_y);
+    all.aoi_width += b.aoi_width;
+    all.body_width += b.body_width;
+    all.observers += b.observers;
+    all.self += b.self;
+  }
+
+  // 2. Plan: the cell edge from the mean grown AOI width (an average AOI box spans about two
+  //    cells a side: the tests of a range are vectorised, so fewer cell rows per query pay more
+  //    than fewer tests; the GPU engine takes four) and twice the mean body width; the cells
+  //    capped so that the per-cell arrays stay linear in the rows.
+  float ox = 0, oy = 0, inv_edge = 1;
+  std::uint32_t nx = 1, ny = 1;
+  double edge = 1;
+  if (n > 0) {
+    const double ex = static_cast<double>(all.hi_x) - all.lo_x, ey = static_cast<double>(all.hi_y) - all.lo_y;
+    const double mean_aoi = all.observers != 0 ? all.aoi_width / all.observers : 0.0;
+    const double mean_body = all.body_width / static_cast<double>(n);
+    edge = opt_.grid_cell_edge > 0 ? static_cast<double>(opt_.grid_cell_edge) : std::max(mean_aoi / 2.0, mean_body * 2.0);
+    edge = std::max(edge, std::max(ex, ey) / 4096.0);
+    if (!(edge > 0.0) || !std::isfinite(edge)) edge = 1.0;
+    const double max_cells = std::min(grid_max_cells, grid_cells_per_row * static_cast<double>(n) + 1024.0);
+    double cx = 1, cy = 1;
+    for (int k = 0; k < 200; ++k) {
+      cx = std::floor(ex / edge) + 1.0;
+      cy = std::floor(ey / edge) + 1.0;
+      if (cx * cy <= max_cells) break;
+      edge *= 1.25;
+    }
+    if (cx * cy > max_cells || !std::isfinite(cx * cy)) cx = cy = 1;  // degenerate extents: one cell
+    nx = static_cast<std::uint32_t>(cx);
+    ny = static_cast<std::uint32_t>(cy);
+    ox = all.lo_x;
+    oy = all.lo_y;
+    inv_edge = static_cast<float>(1.0 / edge);
+  }
+  const std::size_t cells = std::size_t{nx} * ny;
+  const std::uint32_t last_x = nx - 1, last_y = ny - 1;
+  const auto cell_range = [&](const float lo_x, const float lo_y, const float hi_x, const float hi_y) {
+    return std::array<std::uint32_t, 4>{grid_cell(lo_x, ox, inv_edge, last_x), grid_cell(hi_x, ox, inv_edge, last_x),
+                                        grid_cell(lo_y, oy, inv_edge, last_y), grid_cell(hi_y, oy, inv_edge, last_y)};
+  };
+
+  // 3. Count, scan, scatter: every presence box into each cell it covers (rows in order, so a
+  //    cell's entries are in row order), except the large ones.
+  cell_start_.assign(cells + 1, 0);
+  grid_large_.clear();
+  std::uint64_t entries = 0;
+  for (std::size_t k = 0; k < n; ++k) {
+    const presence_box& p = presence_[k];
+    const auto r = cell_range(p.lo_x, p.lo_y, p.hi_x, p.hi_y);
+    const std::uint64_t covered = std::uint64_t{r[1] - r[0] + 1} * (r[3] - r[2] + 1);
+    if (covered > grid_large_cells) {
+      grid_large_.push_back(static_cast<std::uint32_t>(k));
+      continue;
+    }
+    entries += covered;
+    for (std::uint32_t y = r[2]; y <= r[3]; ++y) {
+      for (std::uint32_t x = r[0]; x <= r[1]; ++x) ++cell_start_[std::size_t{y} * nx + x + 1];
+    }
+  }
+  if (entries > 0xffffffffu ||
+      (grid_large_.size() > grid_large_min && grid_large_.size() > n / grid_large_share)) {
+    build_ms = ms_since(t0);
+    return grid_result::declined;
+  }
+  for (std::size_t c = 0; c < cells; ++c) cell_start_[c + 1] += cell_start_[c];
+  cell_cursor_.assign(cell_start_.begin(), cell_start_.end() - 1);
+  for (auto* v : {&e_lo_x_, &e_lo_y_, &e_lo_z_, &e_hi_x_, &e_hi_y_, &e_hi_z_}) resize_with_headroom(*v, entries);
+  for (auto* v : {&e_cls_, &e_tx_, &e_ty_, &e_row_}) resize_with_headroom(*v, entries);
+  resize_with_headroom(e_key_, entries);
+  std::size_t next_large = 0;
+  for (std::size_t k = 0; k < n; ++k) {
+    if (next_large < grid_large_.size() && grid_large_[next_large] == k) {
+      ++next_large;
+      continue;
+    }
+    const presence_box& p = presence_[k];
+    const auto r = cell_range(p.lo_x, p.lo_y, p.hi_x, p.hi_y);
+    const std::uint64_t key = (std::uint64_t{ids[k]} << 32) | k;
+    for (std::uint32_t y = r[2]; y <= r[3]; ++y) {
+      for (std::uint32_t x = r[0]; x <= r[1]; ++x) {
+        const std::uint32_t e = cell_cursor_[std::size_t{y} * nx + x]++;
+        e_lo_x_[e] = p.lo_x;
+        e_lo_y_[e] = p.lo_y;
+        e_lo_z_[e] = p.lo_z;
+        e_hi_x_[e] = p.hi_x;
+        e_hi_y_[e] = p.hi_y;
+        e_hi_z_[e] = p.hi_z;
+        e_cls_[e] = cls[k];
+        // The output-cell rule as one comparison per axis: in the query, every entry's column x
+        // and the query's first column x0 satisfy x0 <= x and r[0] <= x, so x == max(x0, r[0])
+        // exactly when x == r[0] (the box's first column: threshold 0) or x0 >= x.
+        e_tx_[e] = x == r[0] ? 0 : x;
+        e_ty_[e] = y == r[2] ? 0 : y;
+        e_row_[e] = static_cast<std::uint32_t>(k);
+        e_key_[e] = key;
+      }
+    }
+  }
+  build_ms = ms_since(t0);
+
+  // 4. Query, in the row tasks of the classification (fixed chunks of rows_per_task): each cell
+  //    row that an observer's grown AOI box covers is one contiguous range of entries. A presence
+  //    box listed in several cells is taken only in the cell holding the lower corner of the two
+  //    boxes' intersection, (max(x0, cell(P.lo.x)), max(y0, cell(P.lo.y))): the cell function
+  //    is monotone, so both boxes cover that cell and each (observer, target) pair is found once.
+  //    Candidates (class & sees, not the observer itself) go to the task's own buffer, their
+  //    count per row to task_cursor_; the tests are branch-free (a block of hit flags, then
+  //    every entry written and the cursor advanced by its flag).
+  const std::size_t chunk = std::max<std::uint32_t>(1, opt_.rows_per_task);
+  const std::size_t tasks = (n + chunk - 1) / chunk;
+  if (grid_cand_.size() < tasks) grid_cand_.resize(tasks);
+  grid_task_checks_.assign(tasks, 0);
+  task_cursor_.resize(n);
+  const std::uint32_t* start = cell_start_.data();
+  const float *elx = e_lo_x_.data(), *ely = e_lo_y_.data(), *elz = e_lo_z_.data();
+  const float *ehx = e_hi_x_.data(), *ehy = e_hi_y_.data(), *ehz = e_hi_z_.data();
+  const std::uint32_t *ecls = e_cls_.data(), *etx = e_tx_.data(), *ety = e_ty_.data(), *erow = e_row_.data();
+  const std::uint64_t* ekey = e_key_.data();
+  run_each(pool_, tasks, [&](std::size_t task) {
+    std::vector<std::uint64_t>& buf = grid_cand_[task];
+    if (buf.size() < 1024) buf.resize(1024);
+    std::size_t used = 0;
+    std::uint64_t checks = 0;
+    for (std::size_t i = task * chunk, last = std::min(n, (task + 1) * chunk); i < last; ++i) {
+      const std::size_t row_first = used;
+      const std::uint32_t s = sees[i];
+      if (s != 0) {
+        const float px = pos[3 * i], py = pos[3 * i + 1], pz = pos[3 * i + 2];
+        const float gx = aoi[3 * i] + h, gy = aoi[3 * i + 1] + h, gz = aoi[3 * i + 2] + h;
+        const float lx = px - gx, ly = py - gy, lz = pz - gz, hx = px + gx, hy = py + gy, hz = pz + gz;
+        const auto r = cell_range(lx, ly, hx, hy);
+        const std::uint32_t x0 = r[0], y0 = r[2];  // the query's first column and row
+        const auto self = static_cast<std::uint32_t>(i);
+        for (std::uint32_t y = r[2]; y <= r[3]; ++y) {
+          const std::size_t row = std::size_t{y} * nx;
+          const std::uint32_t b = start[row + r[0]], e = start[row + r[1] + 1];
+          checks += e - b;
+          for (std::uint32_t block = b; block < e; block += 64) {
+            const std::uint32_t len = std::min<std::uint32_t>(e - block, 64);
+            alignas(64) std::uint32_t hit[64];
+            const float* blx = elx + block;
+            const float* bly = ely + block;
+            const float* blz = elz + block;
+            const float* bhx = ehx + block;
+            const float* bhy = ehy + block;
+            const float* bhz = ehz + block;
+            const std::uint32_t* bcls = ecls + block;
+            const std::uint32_t* btx = etx + block;
+            const std::uint32_t* bty = ety + block;
+            const std::uint32_t* brow = erow + block;
+            for (std::uint32_t t = 0; t < len; ++t) {
+              hit[t] = static_cast<std::uint32_t>((blx[t] <= hx) & (lx <= bhx[t]) & (bly[t] <= hy) & (ly <= bhy[t]) &
+                                                  (blz[t] <= hz) & (lz <= bhz[t]) & ((bcls[t] & s) != 0) &
+                                                  (x0 >= btx[t]) & (y0 >= bty[t]) & (brow[t] != self));
+            }
+            if (buf.size() - used < 64) buf.resize(2 * buf.size());
+            std::uint64_t* out = buf.data() + used;
+            std::size_t hits = 0;
+            for (std::uint32_t t = 0; t < len; ++t) {
+              out[hits] = ekey[block + t];
+              hits += hit[t];
+            }
+            used += hits;
+          }
+        }
+        for (const std::uint32_t j : grid_large_) {
+          const presence_box& p = presence_[j];
+          ++checks;
+          if ((cls[j] & s) != 0 && j != self && p.lo_x <= hx && lx <= p.hi_x && p.lo_y <= hy && ly <= p.hi_y &&
+              p.lo_z <= hz && lz <= p.hi_z) {
+            if (buf.size() == used) buf.resize(2 * buf.size());
+            buf[used++] = (std::uint64_t{ids[j]} << 32) | j;
+          }
+        }
+      }
+      task_cursor_[i] = static_cast<std::uint32_t>(used - row_first);
+    }
+    grid_task_checks_[task] = checks;
+  });
+  grid_self_pairs_ = all.self;
+  grid_stats_.cell_edge = edge;
+  grid_stats_.cells = cells;
+  grid_stats_.cell_entries = entries;
+  grid_stats_.large_boxes = grid_large_.size();
+  for (const auto c : grid_task_checks_) grid_stats_.checks += c;
+  grid_stats_.plan_ms = build_ms;
+  grid_stats_.check_ms = ms_since(t0) - build_ms;
+  return grid_result::done;
+}
+
+void host_visibility_engine::process_rows(const visibility_input& in, std::size_t first, std::size_t last,
+                                          const std::uint64_t* cand_first) {
   const float* pos = in.position;
   const float* aoi = in.aoi_half;
   const std::uint32_t cap = in.max_visible;
@@ -410,7 +747,7 @@ void host_visibility_engine::process_rows(const visibility_input& in, std::size_
     // (handle << 32) | row: a target that may enter has its presence box looked up by row
     // directly (through the handle's slot it cost two more cache misses for each target in the
     // hysteresis band, every update).
-    const std::uint64_t* cand = cand_.data() + off;
+    const std::uint64_t* cand = cand_first + (off - vis_off_[first]);
     const std::uint32_t cand_n = vis_off_[i + 1] - off;
 
     const std::uint32_t* old = nullptr;

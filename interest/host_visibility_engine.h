@@ -32,6 +32,13 @@ struct host_engine_options {
   /// Find the pairs through pair_finder::find_view (the GPU finders hand over their own result
   /// buffer: no copy of every pair); false: find() into the engine's own list.
   bool finder_view = true;
+  /// Find each observer's candidates on a grid of the presence boxes (the GPU engine's query,
+  /// gpu/visibility.h, on the host threads) instead of through the pair finder: no pair list, no
+  /// count and fill passes over it. The same output. False: the pair finder (the reference path).
+  bool presence_grid = false;
+  /// The presence grid's cell edge in metres; 0: planned per update from the mean AOI and body
+  /// widths (docs/zone.md, "Interest tracker").
+  float grid_cell_edge = 0;
 };
 
 /// The host reference engine. Its output keeps row lengths apart (visibility_output's `len`
@@ -66,8 +73,14 @@ class host_visibility_engine final : public visibility_engine {
   [[nodiscard]] pair_finder& finder() const { return *finder_; }
   [[nodiscard]] const host_engine_options& options() const { return opt_; }
   void set_options(const host_engine_options& opt) { opt_ = opt; }
-  /// The boxes of the last update() (build_step_boxes' layout).
+  /// The boxes of the last update() that ran the pair finder (build_step_boxes' layout).
   [[nodiscard]] const box_set& boxes() const { return boxes_; }
+  /// True when the last successful update() found its candidates on the presence grid.
+  [[nodiscard]] bool last_on_grid() const { return last_on_grid_; }
+  /// The presence grid's figures of the last update on it (finder_stats' fields: cell edge, cells,
+  /// cell entries, large boxes, checks; plan_ms = validation, plan and grid build, check_ms = the
+  /// query).
+  [[nodiscard]] const finder_stats& grid_stats() const { return grid_stats_; }
 
  private:
   struct presence_box {
@@ -76,7 +89,18 @@ class host_visibility_engine final : public visibility_engine {
   void begin(const visibility_input& in);  // slot_bits_, slot_count_
   [[nodiscard]] std::uint32_t slot_of(std::uint32_t id) const { return id & ((1u << slot_bits_) - 1u); }
   void map_rows();  // row_of_slot_ for ids_
-  void process_rows(const visibility_input& in, std::size_t first, std::size_t last);
+  /// Per row of [first, last): classified against the previous set, merged, capped. `cand` holds
+  /// row first's candidates, the others' follow (vis_off_ relative to vis_off_[first]).
+  void process_rows(const visibility_input& in, std::size_t first, std::size_t last, const std::uint64_t* cand);
+  /// What grid_candidates did: declined (the pair finder runs), an invalid box, or the candidates.
+  enum class grid_result { declined, invalid, done };
+  /// The presence-grid path's first half: validation, the grid, the candidates per row into
+  /// grid_cand_ (one buffer per row task) and their counts into task_cursor_. Only scratch memory
+  /// is written. `bad` gets the first invalid box.
+  [[nodiscard]] grid_result grid_candidates(const visibility_input& in, std::size_t& bad, double& build_ms);
+  /// The common second half: this update's rows, offsets, leaves, classification. `from_grid`:
+  /// candidates in grid_cand_ (per row task), else in cand_.
+  void finish_rows(const visibility_input& in, std::uint64_t candidates, bool from_grid, visibility_output& out);
 
   pair_finder* finder_;
   thread_pool* pool_;
@@ -100,6 +124,30 @@ class host_visibility_engine final : public visibility_engine {
   std::vector<std::uint32_t> prev_row_;     // previous row of each row's observer, or none
   std::vector<presence_box> presence_;      // presence box by row (from the box set)
   std::uint64_t capped_pending_ = 0;        // summed by the row tasks (atomic_ref)
+
+  // The presence grid (grid_candidates): entries sorted by cell (x-major rows of cells), the
+  // presence boxes kept out of it (large), and each row task's candidates.
+  struct grid_bounds {
+    float lo_x, lo_y, hi_x, hi_y;
+    double aoi_width, body_width;  // sums
+    std::uint32_t observers;       // rows that see something
+    std::uint32_t self;            // rows that see their own class
+    std::size_t bad;               // first invalid box of the chunk, or none
+  };
+  std::vector<grid_bounds> grid_part_;          // per chunk of rows
+  std::vector<std::uint32_t> cell_start_;       // per cell + 1
+  std::vector<std::uint32_t> cell_cursor_;      // per cell (scatter)
+  std::vector<float> e_lo_x_, e_lo_y_, e_lo_z_, e_hi_x_, e_hi_y_, e_hi_z_;
+  // Class, row, and the output-cell rule's thresholds per axis (0 in the box's first column or
+  // row of cells, else that column or row: see grid_candidates).
+  std::vector<std::uint32_t> e_cls_, e_row_, e_tx_, e_ty_;
+  std::vector<std::uint64_t> e_key_;            // (handle << 32) | row
+  std::vector<std::uint32_t> grid_large_;       // rows whose presence box is kept out of the grid
+  std::vector<std::vector<std::uint64_t>> grid_cand_;  // per row task: its rows' candidates
+  std::vector<std::uint64_t> grid_task_checks_;  // per row task
+  std::uint64_t grid_self_pairs_ = 0;
+  finder_stats grid_stats_;
+  bool last_on_grid_ = false;
 
   // The previous update (or load_previous).
   std::vector<std::uint32_t> prev_ids_;

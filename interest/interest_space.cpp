@@ -43,12 +43,26 @@ std::optional<std::string> validate(const entity_spec& s) {
   return check_classes(s.visibility_class, s.sees);
 }
 
+namespace {
+
+/// Without a finder of the caller's, the CPU backend finds candidates on the presence grid (the
+/// same output as the space's own grid finder would give, faster on a zone's boxes).
+interest_options tracker_options(const space_options& o) {
+  interest_options t;
+  t.hysteresis = o.hysteresis;
+  t.max_visible = o.max_visible;
+  t.rows_per_task = 256;
+  t.presence_grid = o.finder == nullptr;
+  return t;
+}
+
+}  // namespace
+
 interest_space::interest_space(space_options options)
     : opt_(std::move(options)),
       capacity_(std::min(opt_.capacity, space_max_entities)),
       own_finder_(opt_.finder != nullptr ? nullptr : std::make_unique<grid_finder>(opt_.pool)),
-      tracker_(opt_.finder != nullptr ? *opt_.finder : *own_finder_, opt_.pool,
-               interest_options{opt_.hysteresis, opt_.max_visible, 256}) {
+      tracker_(opt_.finder != nullptr ? *opt_.finder : *own_finder_, opt_.pool, tracker_options(opt_)) {
   if (!std::isfinite(opt_.hysteresis) || opt_.hysteresis < 0) {
     throw std::invalid_argument("interest_space: the hysteresis must be finite and >= 0");
   }

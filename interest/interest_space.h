@@ -64,7 +64,9 @@ struct space_options {
   /// The engine for backend gpu and automatic (e.g. zone::gpu::make_visibility_engine). Empty:
   /// automatic means cpu, gpu is refused.
   engine_maker gpu{};
-  /// The CPU backend's pair finder (not owned). Null: a grid finder of the space's own.
+  /// The CPU backend's pair finder (not owned). Null: the CPU backend finds the candidates on a
+  /// grid of the presence boxes (interest_options::presence_grid), with a grid finder of the
+  /// space's own behind it for the rare sets the presence grid declines.
   pair_finder* finder = nullptr;
   /// Worker threads for the step (not owned; null: the calling thread only).
   thread_pool* pool = nullptr;

@@ -36,14 +36,22 @@ std::uint64_t list_total(const std::uint32_t* off, const std::uint32_t* len, std
   return sum;
 }
 
+host_engine_options engine_options(const interest_options& opt) {
+  host_engine_options e;
+  e.rows_per_task = opt.rows_per_task;
+  e.finder_view = opt.finder_view;
+  e.presence_grid = opt.presence_grid;
+  return e;
+}
+
 }  // namespace
 
 interest_tracker::interest_tracker(pair_finder& finder, thread_pool* pool, interest_options opt)
-    : pool_(pool), opt_(opt), reference_(finder, pool, host_engine_options{opt.rows_per_task, opt.finder_view}) {}
+    : pool_(pool), opt_(opt), reference_(finder, pool, engine_options(opt)) {}
 
 void interest_tracker::set_options(const interest_options& opt) {
   opt_ = opt;
-  reference_.set_options(host_engine_options{opt.rows_per_task, opt.finder_view});
+  reference_.set_options(engine_options(opt));
 }
 
 std::size_t interest_tracker::row_of(entity_id id) const {

@@ -67,6 +67,10 @@ struct interest_options {
   /// result buffer (pair_finder::find_view) or finds into a list of its own.
   std::uint32_t rows_per_task = 256;
   bool finder_view = true;
+  /// The host reference engine finds the candidates on a grid of the presence boxes instead of
+  /// through the pair finder (host_engine_options::presence_grid): the same output, faster on a
+  /// zone's boxes; false: the pair finder.
+  bool presence_grid = false;
 };
 
 /// Counters and phase times of the last update (from its engine's visibility_output).

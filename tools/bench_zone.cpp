@@ -199,6 +199,7 @@ struct options {
   std::string csv;
   bool view = true;  // GPU finders / auto: the tracker reads the finder's buffer (pair_finder::find_view)
   std::string interest = "auto";  // auto | gpu | host (zone_config::interest)
+  std::string host_grid = "auto";  // auto | on | off (zone_config::host_grid)
   replicate_mode replicate = replicate_mode::parallel;
   bool replicate_auto = true;  // --replicate auto: gpu when a device is usable
   bool host_views = false;     // --host-views: the GPU replication engine gets the sets from the host
@@ -240,6 +241,9 @@ Usage: bench-zone [options]
   --finder NAME      pair finder: cpu (grid finder on the pool) | cpu-1t | brute | gpu (= pbig) |
                      pbig | lbvh | auto (gpu/finders.h) (default cpu)
   --w W              grid finder's W (min_boxes_per_cell; default: the finder's default)
+  --host-grid MODE   the host path's candidates: on (a grid of the presence boxes, observer by
+                     observer) | off (the pair finder of --finder) | auto (on when --finder is cpu,
+                     or auto without a device), as zone-server's --host-grid (default auto)
   --replicate MODE   cpu (= parallel: build_many on the pool) | gpu (build_many's decisions on the
                      GPU replication engine, as zone-server --replicate gpu; exit 64 without a
                      device) | auto (gpu when a device is usable, else cpu) | serial (build()
@@ -348,6 +352,10 @@ std::optional<std::string> parse_args(const std::map<std::string, std::string>& 
     o.w = *r;
   }
   if (value("finder")) o.finder = std::string(v);
+  if (value("host-grid")) {
+    if (v != "auto" && v != "on" && v != "off") return need("host-grid", "auto|on|off");
+    o.host_grid = std::string(v);
+  }
   if (value("replicate")) {
     o.replicate_auto = false;
     if (v == "serial") o.replicate = replicate_mode::serial;
@@ -456,7 +464,7 @@ int main(int argc, char** argv) {
         "find-into-list", po::bool_switch(&sw.find_into_list));
     zone::tools::add_text_options(cli, given,
                                   {"entities", "clients", "ticks", "warmup", "budget", "threads", "spin-us", "seed", "rate",
-                                   "w", "finder", "replicate", "device-wait", "sink", "rep-park", "clients-per-task",
+                                   "w", "finder", "host-grid", "replicate", "device-wait", "sink", "rep-park", "clients-per-task",
                                    "snapshot", "hysteresis", "max-visible", "interest", "density", "summary-csv", "csv",
                                    "sweep-w"});
     if (const auto rc = zone::tools::parse_command_line(argc, argv, "bench-zone", usage, cli, 64)) return *rc;
@@ -492,6 +500,7 @@ int main(int argc, char** argv) {
   // and, per --interest, the whole step on the GPU engine when asked and possible.
   cfg.finder = opt.finder;
   cfg.interest = opt.interest;
+  cfg.host_grid = opt.host_grid;
   interest::grid_finder_options grid_tuning;
   if (opt.w > 0) grid_tuning.min_boxes_per_cell = opt.w;
   interest_parts parts = make_interest_parts(cfg, &pool, grid_tuning);
@@ -507,6 +516,7 @@ int main(int argc, char** argv) {
   // As zone-server does: the GPU finders and auto hand their result buffer to the tracker
   // (pair_finder::find_view), unless --find-into-list.
   world.set_finder_view(opt.view);
+  world.set_presence_grid(parts.presence_grid);
   if (engine) world.set_visibility_engine(engine.get());
   const auto setup0 = clock_type::now();
   // Progress on stdout during set-up, flushed: a million entities take seconds to place, and the
@@ -746,7 +756,8 @@ int main(int argc, char** argv) {
     step_allocs.push_back(static_cast<double>(alloc1 - alloc0));
     rep_allocs.push_back(static_cast<double>(alloc2 - alloc1));
     const auto& ts = world.tracker().stats();
-    const auto& fs = finder->stats();
+    // The host path's candidate search: the presence grid's figures, or the pair finder's.
+    const auto& fs = world.tracker().reference().last_on_grid() ? world.tracker().reference().grid_stats() : finder->stats();
     const step_times& ph = world.last_step();
     s_beh.v.push_back(ph.behaviours);
     s_int.v.push_back(ph.integrate);
@@ -805,7 +816,10 @@ int main(int argc, char** argv) {
 
   // ---- Report ----
   std::vector<const series*> rows = {&s_beh, &s_int, &s_interest};
-  const bool grid = (opt.finder == "cpu" || opt.finder == "cpu-1t") && on_engine_ticks == 0;
+  // The host path on the presence grid (interest_options::presence_grid): its build and query
+  // stand in the boxes and find rows; the finder is not called.
+  const bool on_grid = on_engine_ticks == 0 && world.tracker().reference().last_on_grid();
+  const bool grid = ((opt.finder == "cpu" || opt.finder == "cpu-1t") && on_engine_ticks == 0) || on_grid;
   if (on_engine_ticks > 0) {
     // The engine's call (find_ms) and its parts, then the host's bookkeeping around it.
     s_find.name = "  engine call";
@@ -814,9 +828,13 @@ int main(int argc, char** argv) {
       rows.push_back(s);
     }
   } else {
+    if (on_grid) {
+      s_boxes.name = "  presence grid (boxes, grid)";
+      s_find.name = "  candidates (grid query)";
+    }
     rows.push_back(&s_boxes);
     rows.push_back(&s_find);
-    if (grid) {
+    if (grid && !on_grid) {
       for (const series* s : {&s_f_plan, &s_f_map, &s_f_check, &s_f_out}) rows.push_back(s);
     }
     rows.push_back(&s_diff);
@@ -849,10 +867,11 @@ int main(int argc, char** argv) {
   std::printf("per tick (mean): pairs %.0f, candidates %.0f, visible %.0f, enters %.0f, leaves %.0f", mean_of(pairs),
               mean_of(candidates), mean_of(visible), mean_of(enters), mean_of(leaves));
   if (grid) {
-    std::printf(", finder checks %.0f, cell edge %.1f m, cells %llu, entries %llu, large boxes %llu",
-                mean_of(checks), finder->stats().cell_edge, static_cast<unsigned long long>(finder->stats().cells),
-                static_cast<unsigned long long>(finder->stats().cell_entries),
-                static_cast<unsigned long long>(finder->stats().large_boxes));
+    const auto& fs = on_grid ? world.tracker().reference().grid_stats() : finder->stats();
+    std::printf(", %s checks %.0f, cell edge %.1f m, cells %llu, entries %llu, large boxes %llu",
+                on_grid ? "presence grid" : "finder", mean_of(checks), fs.cell_edge,
+                static_cast<unsigned long long>(fs.cells), static_cast<unsigned long long>(fs.cell_entries),
+                static_cast<unsigned long long>(fs.large_boxes));
   }
   const double visible_per_entity = mean_of(visible) / static_cast<double>(std::max<std::size_t>(1, world.store().size()));
   std::printf("\nvisible per entity (mean): %.1f; world %.0f x %.0f m, %.0f entities per km^2\n", visible_per_entity,

@@ -82,6 +82,7 @@ std::optional<std::string> validate(const zone_config& c) {
   // The digest goes in the frames of ticks that are multiples of digest-every: with staggered
   // clients some would never get one.
   if (c.client_send_every > 1 && c.digest_every > 1) return bad("client-send-every > 1 needs digest-every 0 or 1");
+  if (c.host_grid != "auto" && c.host_grid != "on" && c.host_grid != "off") return bad("host-grid must be auto, on or off");
   static const char* finders[] = {"auto", "cpu", "gpu", "pbig", "lbvh", "brute"};
   if (std::find(std::begin(finders), std::end(finders), c.finder) == std::end(finders)) {
     return bad("finder must be auto, cpu, gpu (= pbig), pbig, lbvh or brute");
@@ -166,6 +167,7 @@ config_result parse_config(int argc, const char* const* argv) {
   interest.add_options()                                                                                     //
       ("finder", po::value(&c.finder)->default_value(c.finder), "pair finder: auto (chosen per tick from the box statistics: GPU when usable, else CPU), cpu, gpu (= pbig), pbig, lbvh, brute")  //
       ("interest", po::value(&c.interest)->default_value(c.interest), "where the interest step runs: auto (the GPU visibility engine when a device is usable and max-visible is 0, else host), gpu, host (the pair finder and the host diff)")  //
+      ("host-grid", po::value(&c.host_grid)->default_value(c.host_grid), "how the host path finds candidates: on (a grid of the presence boxes, observer by observer), off (the pair finder), auto (on when the finder is the CPU grid finder: cpu, or auto without a device); the same output")  //
       ("replicate", po::value(&c.replicate)->default_value(c.replicate), "where replication's per-client decisions run: auto (the GPU replication engine when a device is usable, else cpu), gpu, cpu; the frames are the same")  //
       ("host-views", po::value(&c.host_views)->default_value(c.host_views), "with interest and replication both on the GPU: 1 = copy the players' visible sets back every tick, so a GPU failing mid-run loses no client's history; 0 = read them on the device only (a little faster; a lost device then costs clients mismatches)")  //
       ("hysteresis", po::value(&c.hysteresis)->default_value(c.hysteresis), "leave margin beyond the AOI (m)")  //

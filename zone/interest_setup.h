@@ -22,12 +22,14 @@ struct interest_parts {
   std::string finder_error;  ///< the configured finder cannot run here (refuse to start)
   std::string engine_error;  ///< --interest gpu cannot run here (refuse to start)
   std::string engine_note;   ///< why --interest auto chose the host
+  /// The host path finds candidates on the presence grid (cfg.host_grid; zone_world::set_presence_grid).
+  bool presence_grid = false;
 };
 
 /// The finder of cfg.finder (gpu/finders.h; one that cannot run here leaves the CPU grid finder
 /// and finder_error) and, for cfg.interest "gpu" or "auto" (without max_visible, which runs on the
 /// host), the GPU visibility engine (gpu/visibility.h) on `pool` (which must outlive both).
-/// `grid`: the CPU grid finder's tuning (bench-zone --w).
+/// `grid`: the CPU grid finder's tuning (bench-zone --w). presence_grid per cfg.host_grid.
 [[nodiscard]] interest_parts make_interest_parts(const zone_config& cfg, interest::thread_pool* pool,
                                                  const interest::grid_finder_options& grid = {});
 

@@ -46,6 +46,11 @@ struct zone_config {
   /// device is usable and max_visible is 0; else the host path), "gpu" (the engine, or refuse to
   /// start), "host" (the pair finder above and the host diff).
   std::string interest = "auto";
+  /// How the host path finds each observer's candidates: "on" (on a grid of the presence boxes,
+  /// the GPU engine's query on the host threads: interest_options::presence_grid), "off" (through
+  /// the pair finder above), "auto" (on when that finder is the CPU grid finder: "cpu", or "auto"
+  /// without a usable device). The same output either way.
+  std::string host_grid = "auto";
   /// Where replication's per-client decisions run: "auto" (the GPU replication engine,
   /// gpu/replication.h, when a device is usable; else the CPU replicator), "gpu" (the engine, or
   /// refuse to start), "cpu". The frames are the same either way (docs/zone.md).

@@ -67,6 +67,7 @@ zone_server::zone_server(const zone_config& cfg)
       world_(std::make_unique<zone_world>(cfg, *parts_.finder, pool_.get())),
       replicator_(replication_options_of(cfg)),
       net_(net_options(cfg)) {
+  world_->set_presence_grid(parts_.presence_grid);
   // The interest step on the GPU (the whole of it: candidates, classification, events), when
   // make_interest_parts made its engine.
   if (parts_.engine) {
@@ -102,6 +103,7 @@ std::string zone_server::replication_name() const {
 
 std::string zone_server::interest_name() const {
   if (parts_.engine && world_->tracker().engine_error().empty()) return std::string(parts_.engine->name()) + " engine";
+  if (parts_.presence_grid) return "host (presence grid)";
   return "host (finder " + std::string(parts_.finder->name()) + ")";
 }
 

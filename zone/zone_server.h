@@ -105,7 +105,7 @@ class zone_server {
   [[nodiscard]] const zone_world& world() const { return *world_; }
   /// The pair finder's name ("auto", "cpu grid", ...).
   [[nodiscard]] std::string finder_name() const { return std::string(parts_.finder->name()); }
-  /// Where the interest step runs: "gpu engine" or "host (finder <name>)".
+  /// Where the interest step runs: "gpu engine", "host (presence grid)" or "host (finder <name>)".
   [[nodiscard]] std::string interest_name() const;
   /// Where replication runs now: "gpu engine" or "cpu".
   [[nodiscard]] std::string replication_name() const;

@@ -92,6 +92,13 @@ class zone_world {
     o.finder_view = on;
     store_.space().set_tracker_options(o);
   }
+  /// Whether the host path finds the candidates on a grid of the presence boxes instead of
+  /// through the pair finder (interest_options::presence_grid; default false). The same output.
+  void set_presence_grid(bool on) {
+    auto o = tracker().options();
+    o.presence_grid = on;
+    store_.space().set_tracker_options(o);
+  }
   /// Entities whose visible sets a viewer reads after each step (net/viewer.h): with a GPU
   /// engine their rows are copied back with the players' from the next step on. Replaces the
   /// previous list; dead handles are ignored.

@@ -4,7 +4,10 @@
 // handles), with and without a hysteresis margin and a max_visible cap, on the grid finder (a
 // pool, the finder's view) and the brute-force finder (one thread, a list of its own); an engine
 // started mid-run from another's sets (load_previous, fetch_all_visible); refused input that
-// changes nothing; apply_pairs' refusals.
+// changes nothing; apply_pairs' refusals. The presence-grid path (host_engine_options::presence_grid)
+// against the same model: planned, fine (bodies over many cells, some kept out of the grid) and
+// coarse (one cell) grids, coincident entities, observers beyond the presence bounds, its refusals
+// and the sets it declines.
 #include <doctest/doctest.h>
 
 #include <algorithm>
@@ -198,7 +201,15 @@ TEST_SUITE("interest.host_engine") {
       host_visibility_engine on_grid(grid, &pool, {.rows_per_task = 5, .finder_view = true});
       host_visibility_engine on_brute(brute, nullptr, {.rows_per_task = 256, .finder_view = false});
       host_visibility_engine late(grid, &pool);  // starts at tick 20 from on_grid's sets
-      visibility_output a, b, c;
+      // The presence grid: planned on the pool; fine cells (the edge raised only by the cell
+      // cap: bodies span several cells, the largest more than 64 and are kept apart); one cell.
+      host_visibility_engine presence(brute, &pool, {.rows_per_task = 5, .finder_view = true, .presence_grid = true});
+      host_visibility_engine fine(brute, nullptr,
+                                  {.rows_per_task = 64, .finder_view = true, .presence_grid = true, .grid_cell_edge = 0.3f});
+      host_visibility_engine coarse(brute, &pool,
+                                    {.rows_per_task = 17, .finder_view = true, .presence_grid = true, .grid_cell_edge = 1e6f});
+      visibility_output a, b, c, d;
+      std::uint64_t fine_large = 0, fine_multi = 0;
       std::uint64_t events = 0, capped = 0;
       ids prev_rows;  // the rows of the last update
       for (int tick = 0; tick < 40; ++tick) {
@@ -217,6 +228,15 @@ TEST_SUITE("interest.host_engine") {
         REQUIRE_FALSE(on_brute.update(in, b).has_value());
         events += check(a, want);
         check(b, want);
+        for (host_visibility_engine* e : {&presence, &fine, &coarse}) {
+          REQUIRE_FALSE(e->update(in, d).has_value());
+          check(d, want);
+          CHECK(e->last_on_grid());
+        }
+        CHECK(coarse.grid_stats().cells == 1);
+        fine_large += fine.grid_stats().large_boxes;
+        // Entries beyond one per box in the grid: boxes listed in several cells.
+        if (fine.grid_stats().cell_entries + fine.grid_stats().large_boxes > in.n) ++fine_multi;
         if (tick >= 20) {
           REQUIRE_FALSE(late.update(in, c).has_value());
           check(c, want);
@@ -228,15 +248,20 @@ TEST_SUITE("interest.host_engine") {
       }
       CHECK(events > 100);  // the run was not vacuous
       if (cap != 0) CHECK(capped > 0);
+      // The fine grid had boxes kept apart and boxes listed in several cells.
+      CHECK(fine_large > 0);
+      CHECK(fine_multi > 0);
     }
   }
 
   TEST_CASE("refused input: the first invalid box in build_step_boxes' numbering, and nothing changes") {
+   for (const bool presence_grid : {false, true}) {
+    CAPTURE(presence_grid);
     const std::uint64_t seed = fresh_seed();
     CAPTURE(seed);
     world w(seed, 2.0f, 0, 120);
     grid_finder grid;
-    host_visibility_engine engine(grid);
+    host_visibility_engine engine(grid, nullptr, {.rows_per_task = 256, .finder_view = true, .presence_grid = presence_grid});
     visibility_output out;
     for (int tick = 0; tick < 12; ++tick) {
       CAPTURE(tick);
@@ -260,8 +285,70 @@ TEST_SUITE("interest.host_engine") {
       const auto expect = w.model();
       REQUIRE_FALSE(engine.update(w.input(), out).has_value());
       check(out, expect);
+      CHECK(engine.last_on_grid() == presence_grid);
       w.commit(expect);
       w.step();
+    }
+   }
+  }
+
+  TEST_CASE("presence grid: coincident entities, observers far beyond the presence bounds, empty and one-row worlds") {
+    const std::uint64_t seed = fresh_seed();
+    CAPTURE(seed);
+    thread_pool pool(2);
+    brute_force_finder brute;
+    host_visibility_engine reference(brute);
+    host_visibility_engine presence(brute, &pool, {.rows_per_task = 8, .finder_view = true, .presence_grid = true});
+    visibility_output a, b;
+    world w(seed, 1.5f, 0, 0);
+    std::uint64_t events = 0;
+    for (int tick = 0; tick < 30; ++tick) {
+      CAPTURE(tick);
+      if (tick == 2) w.add();  // one row (after empty ones)
+      if (tick == 4) {
+        for (int k = 0; k < 80; ++k) w.add();
+        // A crowd on one point, on a cell corner of any planned grid's origin: every pair meets.
+        for (std::size_t r = 0; r < 20; ++r) {
+          w.pos[3 * r] = w.pos[3 * r + 1] = w.pos[3 * r + 2] = 50.0f;
+          w.body[3 * r] = w.body[3 * r + 1] = w.body[3 * r + 2] = 0.0f;
+          w.sees[r] = w.cls[r];
+        }
+        // Observers whose AOI reaches far beyond every presence box, and one entity far away
+        // (the grid's extent, and so its cell edge, grows with it).
+        for (std::size_t r = 20; r < 24; ++r) w.aoi[3 * r] = w.aoi[3 * r + 1] = 400.0f;
+        w.pos[3 * 24] = 1.0e6f;
+      }
+      const auto want = w.model();
+      const visibility_input in = w.input();
+      REQUIRE_FALSE(reference.update(in, a).has_value());
+      REQUIRE_FALSE(presence.update(in, b).has_value());
+      check(a, want);
+      events += check(b, want);
+      CHECK(presence.last_on_grid());
+      w.commit(want);
+      if (tick >= 4) w.step();
+    }
+    CHECK(events > 50);
+  }
+
+  TEST_CASE("presence grid: a set with many presence boxes over 64 cells is declined to the pair finder") {
+    const std::uint64_t seed = fresh_seed();
+    CAPTURE(seed);
+    world w(seed, 2.0f, 0, 400);
+    // Every body 60 m wide over the 100 m world: far more than 64 cells of any grid the cell cap
+    // allows (and 400 of them: more than the 256 and the 1/16 of the rows the grid takes apart).
+    for (std::size_t r = 0; r < w.id.size(); ++r) w.body[3 * r] = w.body[3 * r + 1] = 30.0f;
+    grid_finder grid;
+    host_visibility_engine presence(grid, nullptr, {.rows_per_task = 256, .finder_view = true, .presence_grid = true,
+                                                    .grid_cell_edge = 0.5f});
+    visibility_output out;
+    for (int tick = 0; tick < 3; ++tick) {
+      const auto want = w.model();
+      REQUIRE_FALSE(presence.update(w.input(), out).has_value());
+      check(out, want);
+      CHECK_FALSE(presence.last_on_grid());
+      w.commit(want);
+      for (std::size_t r = 0; r < w.id.size(); ++r) w.pos[3 * r] += w.uni(-1, 1);
     }
   }
 

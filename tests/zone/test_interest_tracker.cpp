@@ -131,6 +131,11 @@ TEST_SUITE("zone.interest_tracker") {
       // The host reference engine given to the tracker as its engine (the GPU engine's place).
       interest::host_visibility_engine engine(brute);
       CHECK(pinned_digest(r, grid, &pool, &engine) == r.digest);
+      // The candidates found on the presence grid instead of by a pair finder.
+      interest::host_visibility_engine on_presence(brute, &pool,
+                                                   {.rows_per_task = 64, .finder_view = true, .presence_grid = true});
+      CHECK(pinned_digest(r, grid, &pool, &on_presence) == r.digest);
+      CHECK(on_presence.last_on_grid());
     }
   }
 
@@ -141,6 +146,10 @@ TEST_SUITE("zone.interest_tracker") {
       interest::brute_force_finder brute(&pool);
       interest::host_visibility_engine engine(brute, &pool, {.rows_per_task = 3, .finder_view = false});
       run_against_oracle(fresh_seed(), c, 50, &engine);
+      interest::host_visibility_engine on_presence(brute, &pool,
+                                                   {.rows_per_task = 3, .finder_view = false, .presence_grid = true});
+      run_against_oracle(fresh_seed(), c, 50, &on_presence);
+      CHECK(on_presence.last_on_grid());
     }
   }
 
