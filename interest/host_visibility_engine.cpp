@@ -489,7 +489,8 @@ host_visibility_engine::grid_result host_visibility_engine::grid_candidates(cons
   const std::size_t vchunks = std::max<std::size_t>(1, (n + vchunk - 1) / vchunk);
   grid_part_.resize(vchunks);
   presence_.resize(n);
-  run_each(vchunks > 1 ? pool_ : nullptr, vchunks, [&](std::size_t c) {
+  // (On the pool only from 8 chunks: below, a phase's hand-off costs more than it saves.)
+  run_each(vchunks >= 8 ? pool_ : nullptr, vchunks, [&](std::size_t c) {
     grid_bounds b{std::numeric_limits<float>::max(), std::numeric_limits<float>::max(),
                   std::numeric_limits<float>::lowest(), std::numeric_limits<float>::lowest(), 0, 0, 0, 0, no_pair};
     for (std::size_t k = c * vchunk, e = std::min(n, (c + 1) * vchunk); k < e; ++k) {
