@@ -104,6 +104,15 @@ TEST_SUITE("zone.config") {
     const auto bad_replicate = parse({"--replicate", "fpga"});
     CHECK_FALSE(bad_replicate.config.has_value());
     CHECK(bad_replicate.message.find("replicate") != std::string::npos);
+    CHECK(d.config->host_grid == "auto");
+    for (const char* g : {"auto", "on", "off"}) {
+      const auto parsed = parse({"--host-grid", g});
+      REQUIRE(parsed.config.has_value());
+      CHECK(parsed.config->host_grid == g);
+    }
+    const auto bad_grid = parse({"--host-grid", "maybe"});
+    CHECK_FALSE(bad_grid.config.has_value());
+    CHECK(bad_grid.message.find("host-grid") != std::string::npos);
     const auto bad_finder = parse({"--finder", "quantum"});
     CHECK_FALSE(bad_finder.config.has_value());
     CHECK(bad_finder.message.find("finder") != std::string::npos);
@@ -201,6 +210,9 @@ TEST_SUITE("zone.world") {
     CHECK(run_digests(cfg, grid_three, &three, 40) == reference);
     CHECK(run_digests(cfg, brute, &three, 40) == reference);
     CHECK(run_digests(cfg, grid_one, nullptr, 40) == reference);
+    // The host path's candidates on the presence grid instead of the finder's pairs.
+    CHECK(run_digests(cfg, brute, &three, 40, 8, false, nullptr, true) == reference);
+    CHECK(run_digests(cfg, grid_one, nullptr, 40, 8, false, nullptr, true) == reference);
     zone_config other = cfg;
     other.seed = seed + 1;
     CHECK(run_digests(other, grid_one, &one, 40) != reference);

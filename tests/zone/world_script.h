@@ -27,12 +27,15 @@ inline zone_config small_config(std::uint64_t seed) {
 
 /// Per-tick digests of a run with some players steered by a seeded script. `finder_view`: the
 /// tracker reads the finder's own result buffer (pair_finder::find_view; zone-server's way).
+/// `presence_grid`: the host path finds candidates on the presence grid (zone_world::set_presence_grid).
 inline std::vector<std::uint64_t> run_digests(const zone_config& cfg, interest::pair_finder& finder,
                                               interest::thread_pool* pool, int ticks, int players = 8,
                                               bool finder_view = false,
-                                              interest::visibility_engine* engine = nullptr) {
+                                              interest::visibility_engine* engine = nullptr,
+                                              bool presence_grid = false) {
   zone_world w(cfg, finder, pool);
   w.set_finder_view(finder_view);
+  w.set_presence_grid(presence_grid);
   if (engine != nullptr) w.set_visibility_engine(engine);
   w.populate();
   std::mt19937_64 script(cfg.seed + 7);
