@@ -720,6 +720,10 @@ TEST_SUITE("zone.server") {
       REQUIRE(c.send(net::input_msg{sequence, {1, 0, 0}}));
       for (int i = 0; i < 500 && server.net_stats().frames_in == frames_before; ++i) std::this_thread::sleep_for(2ms);
       std::this_thread::sleep_for(10ms);  // the event follows the count in the same handler
+      // Every frame built so far written (the welcome and the tick updates): a tick that found two
+      // unwritten (a loaded host's I/O thread behind the ticks of the welcome loop) would build
+      // the client no frame (pacing), and the read below would wait in vain.
+      for (int i = 0; i < 2500 && server.net_stats().frames_out < server.stats().frames_sent + 1; ++i) std::this_thread::sleep_for(2ms);
       server.tick_once();
       const std::uint64_t tick = server.world().tick();
       std::optional<std::uint32_t> echo;
