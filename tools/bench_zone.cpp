@@ -591,7 +591,9 @@ int main(int argc, char** argv) {
   const std::string load_before = load_average();
   std::cout << "bench-zone: " << world.store().size() << " entities (" << opt.entities << " NPCs + bosses, "
             << players.size() << " players/clients), " << world.town_count() << " towns, interest on "
-            << (engine ? std::string(engine->name()) + " engine" : "host, finder " + std::string(finder->name()))
+            << (engine                ? std::string(engine->name()) + " engine"
+                : parts.presence_grid ? std::string("host, presence grid")
+                                      : "host, finder " + std::string(finder->name()))
             << ", replication on " << (on_gpu ? "gpu engine" : opt.replicate == replicate_mode::serial ? "cpu, serial" : "cpu")
             << (opt.replicate == replicate_mode::gpu_vs_cpu ? " (and the cpu, compared)" : "")
             << ", " << pool.size() << " threads (spin " << pool.spin_us() << " us), " << opt.rate << " Hz " << (opt.paced ? "paced" : "back to back")
