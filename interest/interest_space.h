@@ -49,7 +49,8 @@ inline constexpr std::size_t space_max_entities = std::size_t{1} << space_slot_b
 inline constexpr std::uint32_t space_max_generation = (1u << (32 - space_slot_bits)) - 1;
 
 /// Where the step runs. `gpu`: the GPU visibility engine (needs space_options::gpu); `cpu`: the
-/// host reference engine (host_visibility_engine.h: a pair finder, then the diff); `automatic`: the GPU when an engine
+/// host engine (host_visibility_engine.h: candidates on the presence grid, or by space_options'
+/// finder when one is given, then the diff); `automatic`: the GPU when an engine
 /// can be made and max_visible is 0, else the CPU. The results are the same on either.
 enum class backend { cpu, gpu, automatic };
 /// "cpu", "gpu", "auto"; nothing for another name.
