@@ -57,8 +57,10 @@ std::uint32_t distance_key(const float* a, const float* b) {
 
 /// The presence grid (host_visibility_engine::grid_candidates): a presence box covering more
 /// cells than this is kept out of the grid and tested by every observer (a boss's footprint), as
-/// in the GPU engine; at most this many cells (per entity, and in all).
+/// in the GPU engine.
 constexpr std::uint64_t grid_large_cells = 64;
+/// At most 8 cells per row (plus 1,024) and 2^20 in all: the per-cell arrays, zeroed and scanned
+/// every update, stay linear in the rows.
 constexpr double grid_cells_per_row = 8;
 constexpr double grid_max_cells = 1 << 20;
 /// The grid declines (the pair finder runs) when more presence boxes than this share of the rows
