@@ -604,8 +604,11 @@ host_visibility_engine::grid_result host_visibility_engine::grid_candidates(cons
   }
   for (std::size_t c = 0; c < cells; ++c) cell_start_[c + 1] += cell_start_[c];
   cell_cursor_.assign(cell_start_.begin(), cell_start_.end() - 1);
-  for (auto* v : {&e_lo_x_, &e_lo_y_, &e_lo_z_, &e_hi_x_, &e_hi_y_, &e_hi_z_}) resize_with_headroom(*v, entries);
-  for (auto* v : {&e_cls_, &e_tx_, &e_ty_, &e_row_}) resize_with_headroom(*v, entries);
+  // 8 entries of padding (class 0: never a hit), so that the query's flags can be computed in
+  // whole vectors past a range's end.
+  for (auto* v : {&e_lo_x_, &e_lo_y_, &e_lo_z_, &e_hi_x_, &e_hi_y_, &e_hi_z_}) resize_with_headroom(*v, entries + 8);
+  for (auto* v : {&e_cls_, &e_tx_, &e_ty_, &e_row_}) resize_with_headroom(*v, entries + 8);
+  std::fill_n(e_cls_.begin() + static_cast<std::ptrdiff_t>(entries), 8, 0u);
   resize_with_headroom(e_key_, entries);
   std::size_t next_large = 0;
   for (std::size_t k = 0; k < n; ++k) {
@@ -688,7 +691,8 @@ host_visibility_engine::grid_result host_visibility_engine::grid_candidates(cons
             const std::uint32_t* btx = etx + block;
             const std::uint32_t* bty = ety + block;
             const std::uint32_t* brow = erow + block;
-            for (std::uint32_t t = 0; t < len; ++t) {
+            const std::uint32_t vlen = (len + 7) & ~7u;  // whole vectors (padding above)
+            for (std::uint32_t t = 0; t < vlen; ++t) {
               hit[t] = static_cast<std::uint32_t>((blx[t] <= hx) & (lx <= bhx[t]) & (bly[t] <= hy) & (ly <= bhy[t]) &
                                                   (blz[t] <= hz) & (lz <= bhz[t]) & ((bcls[t] & s) != 0) &
                                                   (x0 >= btx[t]) & (y0 >= bty[t]) & (brow[t] != self));
