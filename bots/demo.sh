@@ -5,7 +5,8 @@
 #
 #   bash bots/demo.sh [BUILD_DIR]        # default build dir: build
 #
-# Environment: DEMO_BOTS, DEMO_NPCS, DEMO_SECONDS, DEMO_TICK_HZ, DEMO_OUT (report folder), DEMO_ORACLE (1: the oracle on, 0: off).
+# Environment: DEMO_BOTS, DEMO_NPCS, DEMO_SECONDS, DEMO_TICK_HZ, DEMO_OUT (report folder), DEMO_ORACLE (1: the oracle on, 0: off),
+# DEMO_SERVER_ARGS (more zone-server options, split on spaces: e.g. "--tick-csv ticks.csv").
 # Defaults: 300 bots + 5,000 NPCs at 20 Hz for 30 s (a 2-core machine keeps up); 2,000 bots +
 # 20,000 NPCs with a CUDA device (the zone then runs its interest step on the GPU: --interest auto,
 # docs/zone.md).
@@ -34,7 +35,7 @@ mkdir -p "$OUT"
 ORACLE=()
 [[ ${DEMO_ORACLE:-1} != 0 ]] && ORACLE=(--oracle)
 "$SERVER_EXE" --listen 127.0.0.1 --port 0 --metrics-port 0 --npcs "$NPCS" --tick-rate "$HZ" \
-  --max-clients $((BOTS + 100)) --teleport 1 "${ORACLE[@]}" > "$OUT/zone-server.log" 2>&1 &
+  --max-clients $((BOTS + 100)) --teleport 1 "${ORACLE[@]}" ${DEMO_SERVER_ARGS:-} > "$OUT/zone-server.log" 2>&1 &
 SERVER=$!
 stop_server() {
   if kill -0 "$SERVER" 2>/dev/null; then
