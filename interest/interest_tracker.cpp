@@ -236,13 +236,16 @@ std::optional<box_error> interest_tracker::run(visibility_engine& e, const entit
   // nothing here either).
   double host_ms = 0;
   bool host_done = false;
-  vin.while_waiting = [&] {
+  const auto host_work = [&] {
     host_done = true;
     const auto th = clock_type::now();
     next_ids_.assign(in.ids, in.ids + n);
     map_rows_into(next_ids_, spare_row_of_slot_);
     host_ms = ms_since(th);
   };
+  // By reference: std::function keeps a reference_wrapper in place (the lambda's captures would
+  // be copied to the heap, one allocation a tick).
+  vin.while_waiting = std::ref(host_work);
   const auto t_engine = clock_type::now();
   const auto bad = e.update(vin, out_);
   const double engine_ms = ms_since(t_engine);
