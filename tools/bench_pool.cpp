@@ -37,8 +37,8 @@ Usage: bench-pool [--threads N] [--ticks N] [--phases N] [--tasks N] [--work-us 
                 integrate, interest, replicate, viewer)
   --tasks N     tasks per phase (default 64)
   --work-us US  work per task, calibrated on one thread (default 20; 64 x 20 us = 1.28 ms of work a phase)
-  --spin-us US  the thread pool's spin before its idle threads sleep (default 1000: zone-server's
-                --worker-spin-us auto with 8 or more hardware threads; below 8 it is 0, measured too)
+  --spin-us US  the thread pool's spin before its idle threads sleep (default 1000; the pool
+                without a spin, zone-server's default --worker-spin-us 0, is measured too)
   --csv FILE    also write the table as CSV (default bench-pool.csv in the current directory)
 Prints, per scheduler, the tick's wall time p50 / p99 / max and its ratio to the ideal
 (phases x tasks x work / threads).

@@ -252,9 +252,8 @@ Usage: bench-zone [options]
                      (replication_options::park_between_phases; default on, as zone-server)
   --sink MODE        where build_many's frames go: arena (written in place into net::frame_arena
                      blocks, reserved through build_many's frame room, as zone-server's sink),
-                     arena-copy (built in the replicator's buffer, then copied into the arena: the
-                     sink before issue 22's fourth round) or copy (one vector per client, the sink
-                     of bench-zone before its third round) (default arena)
+                     arena-copy (built in the replicator's buffer, then copied into the arena) or
+                     copy (one vector per client, no arena) (default arena)
   --budget BYTES     per-client byte budget (default 8192)
   --clients-per-task N  replication chunk size (default 16)
   --snapshot N       build_many snapshots the entities when clients * N >= entities; 0 = never

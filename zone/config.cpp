@@ -14,6 +14,15 @@ namespace zone {
 
 namespace po = boost::program_options;
 
+namespace {
+/// A float default as --help shows it: 6 significant digits, so 0.45f reads 0.45, not 0.449999988.
+std::string shown(float v) {
+  std::ostringstream out;
+  out << v;
+  return out.str();
+}
+}  // namespace
+
 std::optional<std::string> validate(const zone_config& c) {
   const auto bad = [](const std::string& what) { return std::optional<std::string>(what); };
   const float lo[3] = {c.world.lo.x, c.world.lo.y, c.world.lo.z};
@@ -180,10 +189,10 @@ config_result parse_config(int argc, const char* const* argv) {
   po::options_description npcs("NPCs");
   npcs.add_options()                                                                                        //
       ("npcs", po::value(&c.npc_count)->default_value(c.npc_count), "number of NPCs")                       //
-      ("share-wander", po::value(&c.share_wander)->default_value(c.share_wander), "share of wandering NPCs")  //
-      ("share-patrol", po::value(&c.share_patrol)->default_value(c.share_patrol), "share of patrolling NPCs")  //
-      ("share-town", po::value(&c.share_town)->default_value(c.share_town), "share of NPCs gathering in towns")  //
-      ("share-chase", po::value(&c.share_chase)->default_value(c.share_chase), "share of NPCs chasing players")  //
+      ("share-wander", po::value(&c.share_wander)->default_value(c.share_wander, shown(c.share_wander)), "share of wandering NPCs")  //
+      ("share-patrol", po::value(&c.share_patrol)->default_value(c.share_patrol, shown(c.share_patrol)), "share of patrolling NPCs")  //
+      ("share-town", po::value(&c.share_town)->default_value(c.share_town, shown(c.share_town)), "share of NPCs gathering in towns")  //
+      ("share-chase", po::value(&c.share_chase)->default_value(c.share_chase, shown(c.share_chase)), "share of NPCs chasing players")  //
       ("bosses", po::value(&c.boss_count)->default_value(c.boss_count), "number of world bosses")            //
       ("towns", po::value(&c.town_count)->default_value(c.town_count), "number of towns (hotspots; 0 = one per 2,000 NPCs)")         //
       ("npc-speed", po::value(&c.npc_speed)->default_value(c.npc_speed), "NPC speed (m/s)")                  //

@@ -62,12 +62,25 @@ struct harness {
       }
     }
   }
+  /// Waits until the I/O threads have written every frame built so far (each client's welcome
+  /// and its tick updates; this test sends no pings), as they do within a tick period of a real
+  /// tick loop. A tick that found two of a client's frames unwritten (the pacing default,
+  /// client_max_backlog 2; a loaded host starves the I/O threads for that long) would build that
+  /// client no frame, and catch_up() would wait in vain for the frame of the last tick.
+  void settle() {
+    const auto deadline = std::chrono::steady_clock::now() + 5s;
+    while (server.net_stats().frames_out < server.stats().frames_sent + server.stats().clients) {
+      REQUIRE_MESSAGE(std::chrono::steady_clock::now() < deadline, "the I/O threads did not write every frame built within 5 s");
+      std::this_thread::sleep_for(1ms);
+    }
+  }
   /// Ticks n times, reading every frame after each tick, as a client of a real tick loop would
   /// (ticks 33 ms apart). Ticking many times without reading could fill a session's queue before
   /// its I/O thread has written anything; the frames after such a drop wait for the next tick's
   /// reset (docs/protocol.md), which catch_up() would wait for in vain.
   void tick(int n = 1) {
     for (int i = 0; i < n; ++i) {
+      settle();
       server.tick_once();
       catch_up();
     }
@@ -89,6 +102,7 @@ struct harness {
     std::optional<net::message> w;
     const auto deadline = std::chrono::steady_clock::now() + 5s;
     while (!w && std::chrono::steady_clock::now() < deadline) {
+      settle();  // the players already here get every tick's frame meanwhile
       server.tick_once();
       w = p.conn->read(10ms);
     }

@@ -14,8 +14,12 @@ Usage: check_docs_flags.py REPO_ROOT NAME=EXECUTABLE...
    below): the flag appears there as `--flag`. An option is defined by a --help line that starts
    with it (indented by at most 4 spaces, or `-h [ --help ]`; a deeper line continues a
    description), or by a usage line (`usage: ...` and the lines of `[...]` under it).
-Exits 1 naming each flag --help lacks, with where the documentation gives it, and each option
-its manual lacks.
+3. Every default a manual's option table gives (a row `| `--flag` | default | ...`, or several
+   flags in the first cell with their defaults comma-separated in the second) is the default
+   --help prints (`--flag arg (=default)`, Boost.Program_options' form; numbers compared as
+   numbers). Options whose --help prints no default are not checked.
+Exits 1 naming each flag --help lacks, with where the documentation gives it, each option
+its manual lacks and each default that differs.
 """
 import glob
 import os
@@ -66,6 +70,35 @@ def defined_options(text):
             found |= set(re.findall(r"\s{2,}(--[a-z][a-z0-9-]*)", stripped))  # two on one line
     found.discard("--help")
     return found
+
+
+def help_defaults(text):
+    """{--flag: default} for the options whose --help line prints one (`--flag arg (=X)`)."""
+    return {m.group(1): m.group(2) for m in re.finditer(r"^\s*(--[a-z][a-z0-9-]*) arg \(=([^)]*)\)", text, re.M)}
+
+
+def same_default(documented, shown):
+    documented = documented.replace("`", "").strip()
+    try:
+        return float(documented.replace(",", "")) == float(shown)
+    except ValueError:
+        return documented == shown
+
+
+def table_defaults(path):
+    """(line number, flag, documented default) from a manual's option tables."""
+    with open(path, encoding="utf-8") as f:
+        for number, line in enumerate(f, 1):
+            cells = [c.strip() for c in line.strip().strip("|").split("|")]
+            if not line.startswith("|") or len(cells) < 3:
+                continue
+            names = re.findall(r"`(--[a-z][a-z0-9-]*)[^`]*`", cells[0])
+            if not names or re.sub(r"`[^`]*`|[,\s]", "", cells[0]):
+                continue  # not a row of options
+            values = [cells[1]] if len(names) == 1 else [v.strip() for v in cells[1].split(", ")]
+            if len(values) == len(names):
+                for name, value in zip(names, values):
+                    yield number, name, value
 
 
 def command_lines(path):
@@ -130,13 +163,27 @@ def main():
             if option not in documented:
                 undocumented.append(f"{name} {option} (not in {', '.join(MANUALS[name])})")
 
+    # 3. The defaults the manuals' option tables give are --help's.
+    wrong_defaults, compared = [], 0
+    for name, text in helps.items():
+        shown = help_defaults(text)
+        for rel in MANUALS[name]:
+            for number, flag, value in table_defaults(os.path.join(root, rel)):
+                if flag in shown:
+                    compared += 1
+                    if not same_default(value, shown[flag]):
+                        wrong_defaults.append(f"{rel}:{number}: {name} {flag}: documented {value!r}, --help {shown[flag]!r}")
+
     print(f"{checked} flags given to {', '.join(programs)} in the documentation checked against --help; "
-          f"{defined} options of their --help checked against their manuals")
+          f"{defined} options of their --help checked against their manuals; "
+          f"{compared} documented defaults checked against --help")
     if missing:
         print("given in the documentation, not in --help:\n  " + "\n  ".join(missing))
     if undocumented:
         print("in --help, not in the manual:\n  " + "\n  ".join(undocumented))
-    return 1 if missing or undocumented or checked == 0 or defined == 0 else 0
+    if wrong_defaults:
+        print("defaults that differ from --help:\n  " + "\n  ".join(wrong_defaults))
+    return 1 if missing or undocumented or wrong_defaults or checked == 0 or defined == 0 else 0
 
 
 if __name__ == "__main__":

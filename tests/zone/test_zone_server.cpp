@@ -218,15 +218,21 @@ TEST_SUITE("zone.server") {
   }
 
   TEST_CASE("a swarm against a port nobody listens on: every connect fails and is counted, nothing hangs") {
-    std::uint16_t port = 0;
-    {  // a free loopback port: bound, then released (nothing listens on it afterwards)
-      zone_config cfg = test_config();
-      cfg.metrics_enabled = false;
-      zone_server server(cfg);
-      REQUIRE_FALSE(server.start().has_value());
-      port = server.port();
-      server.stop();
-    }
+    // A loopback port bound by this test and never listened on: connects to it are refused, and
+    // no other process (tests run in parallel) can take it meanwhile, as it could a port released.
+    const int holder = ::socket(AF_INET, SOCK_STREAM, 0);
+    REQUIRE(holder >= 0);
+    struct close_at_exit {
+      int fd;
+      ~close_at_exit() { ::close(fd); }
+    } hold{holder};
+    sockaddr_in addr{};
+    addr.sin_family = AF_INET;
+    addr.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+    REQUIRE(::bind(holder, reinterpret_cast<sockaddr*>(&addr), sizeof addr) == 0);
+    socklen_t len = sizeof addr;
+    REQUIRE(::getsockname(holder, reinterpret_cast<sockaddr*>(&addr), &len) == 0);
+    const std::uint16_t port = ntohs(addr.sin_port);
     bots::swarm_options opt;
     opt.port = port;
     opt.bots = 3;
@@ -423,13 +429,31 @@ TEST_SUITE("zone.server") {
         ticks[i].push_back(u->server_tick);
       }
     };
-    for (int t = 0; t < 60; ++t) {
+    // The hellos first (the I/O threads hand them to the game; ticks answer them): every client
+    // holds an entity before the 60 ticks counted.
+    const auto joined_by = std::chrono::steady_clock::now() + 10s;
+    while (server.stats().clients < count && std::chrono::steady_clock::now() < joined_by) {
       server.tick_once();
       std::this_thread::sleep_for(3ms);
+    }
+    REQUIRE(server.stats().clients == count);
+    // 60 ticks. After each, the I/O threads write what it built before the next tick (the welcomes
+    // and every tick update so far), and the clients read it: pacing (client_max_backlog, the
+    // default 2) never holds a frame back, so each client's frames are exactly two ticks apart.
+    // On a loaded host a tick that did not wait could find two frames unwritten and skip one.
+    const auto written = [&] { return server.net_stats().frames_out >= server.stats().frames_sent + count; };
+    for (int t = 0; t < 60; ++t) {
+      server.tick_once();
+      const auto by = std::chrono::steady_clock::now() + 2s;
+      while (!written() && std::chrono::steady_clock::now() < by) std::this_thread::sleep_for(1ms);
+      for (int i = 0; i < count; ++i) {
+        while (auto m = clients[i]->read(1ms)) take(i, *m);
+      }
     }
     for (int i = 0; i < count; ++i) {
       while (auto m = clients[i]->read(300ms)) take(i, *m);
     }
+    CHECK(server.stats().frames_held == 0);
     std::set<std::uint64_t> parities;
     for (int i = 0; i < count; ++i) {
       CAPTURE(i);
@@ -445,7 +469,7 @@ TEST_SUITE("zone.server") {
 
   TEST_CASE("--tick-csv: one line per tick whose phases add up to the server's histograms; an unwritable path refuses to start") {
     const std::string path = "test_zone_server_ticks.csv";
-    constexpr int ticks = 12;
+    int ticks = 0;  // the ticks run (the world's tick at the end)
     double interest_sum = 0, behaviours_sum = 0, replicate_sum = 0;
     std::uint64_t frames_sent = 0, bytes_sent = 0;
     {
@@ -456,10 +480,16 @@ TEST_SUITE("zone.server") {
       REQUIRE_FALSE(server.start().has_value());
       test_client player(server.port());
       REQUIRE(player.send(net::hello_msg{"csv", "", net::protocol_version}));
-      for (int t = 0; t < ticks; ++t) {
+      // The hello reaches the game within the first ticks on a quiet host, later on a loaded
+      // one: tick until the player holds an entity (bounded in time), then 10 ticks more.
+      const auto joined_by = std::chrono::steady_clock::now() + 10s;
+      while (server.stats().clients == 0 && std::chrono::steady_clock::now() < joined_by) {
         server.tick_once();
-        std::this_thread::sleep_for(5ms);  // the hello arrives within the first ticks
+        std::this_thread::sleep_for(5ms);
       }
+      REQUIRE(server.stats().clients == 1);
+      for (int t = 0; t < 10; ++t) server.tick_once();
+      ticks = static_cast<int>(server.world().tick());
       interest_sum = server.world().phases().interest.sum();
       behaviours_sum = server.world().phases().behaviours.sum();
       replicate_sum = server.stats().replicate_ms.sum();
@@ -690,6 +720,10 @@ TEST_SUITE("zone.server") {
       REQUIRE(c.send(net::input_msg{sequence, {1, 0, 0}}));
       for (int i = 0; i < 500 && server.net_stats().frames_in == frames_before; ++i) std::this_thread::sleep_for(2ms);
       std::this_thread::sleep_for(10ms);  // the event follows the count in the same handler
+      // Every frame built so far written (the welcome and the tick updates): a tick that found two
+      // unwritten (a loaded host's I/O thread behind the ticks of the welcome loop) would build
+      // the client no frame (pacing), and the read below would wait in vain.
+      for (int i = 0; i < 2500 && server.net_stats().frames_out < server.stats().frames_sent + 1; ++i) std::this_thread::sleep_for(2ms);
       server.tick_once();
       const std::uint64_t tick = server.world().tick();
       std::optional<std::uint32_t> echo;
