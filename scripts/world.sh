@@ -102,7 +102,8 @@ name=local
 zone_args=(--world "$name" --nats "$url" --world-grid "$grid" --world-x "$size" --world-y "$size" --listen 127.0.0.1
            --metrics 0 --npcs "$npcs" --bosses "$bosses" --threads "$threads" "${where[@]}" --max-clients $((bots + 100))
            ${extra_zone_args[@]+"${extra_zone_args[@]}"})
-[ "$oracle" = 1 ] && zone_args+=(--oracle)
+# Every swarm's oracle reads every zone's truth: a zone serves one subscriber per zone (at least the default 4).
+[ "$oracle" = 1 ] && zone_args+=(--oracle --oracle-subscribers "$(( zones > 4 ? zones : 4 ))")
 # start_zone K [PORT]: zone K's process (log zone-K.log), its pid in zone_pid. Started from this
 # shell, not from a $(...) subshell: the zone is this script's child, so `wait` waits for it (a
 # subshell's background process is handed to init: `wait` returned at once, and a world.sh killed
