@@ -164,7 +164,9 @@ void print_table(const swarm_result& r, const summary& s) {
     row("oracle: wrong class / position / stale", num(q.wrong_class) + " / " + num(q.position) + " / " + num(q.stale));
     row("oracle: wrong deferral counts", num(q.deferral));
     const double ticks = static_cast<double>(std::max<std::uint64_t>(1, q.truth_ticks));
-    row("oracle: truth ticks, KB per tick", num(q.truth_ticks) + ", " + fmt(static_cast<double>(q.truth_bytes) / 1024.0 / ticks, "KB"));
+    row("oracle: truth ticks, KB per tick",
+        num(q.truth_ticks) + ", " + fmt(static_cast<double>(q.truth_bytes) / 1024.0 / ticks, "KB") + " (" +
+            num(q.truth_layouts) + " with the whole layout, " + num(q.truth_changes) + " with changes to it)");
     row("oracle: recompute CPU per tick", fmt(q.compute_cpu_ms / ticks, "ms") + " (up to " + num(q.observers_max) +
                                               " observers; slowest tick with its checks " + ms(q.compute_max_ms) + ")");
     row("oracle: its thread's checks, CPU per tick", fmt(q.drain_cpu_ms / ticks, "ms"));
@@ -247,6 +249,7 @@ bool write_json(const std::string& path, const swarm_result& r, const summary& s
                    {"truth_ticks", q.truth_ticks},
                    {"truth_bytes", q.truth_bytes},
                    {"truth_layouts", q.truth_layouts},
+                   {"truth_changes", q.truth_changes},
                    {"compute_cpu_ms", q.compute_cpu_ms},
                    {"drain_cpu_ms", q.drain_cpu_ms},
                    {"compute_max_ms", q.compute_max_ms},

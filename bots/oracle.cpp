@@ -190,6 +190,7 @@ std::optional<std::string> oracle::feed(std::span<const std::uint8_t> body) {
   const auto t0 = std::chrono::steady_clock::now();
   if (auto err = net::truth::decode_tick(body, frame_)) return err;
   if (frame_.has_layout) ++truth_layouts_;
+  if (frame_.has_changes) ++truth_changes_;
   if (!frame_.has_layout && !layout_) return std::string("the first truth frame has no layout");
   compute(frame_);
   ++truth_ticks_;
@@ -210,6 +211,26 @@ void oracle::compute(const net::truth::tick_frame& f) {
     for (std::uint32_t k = 0; k < f.count; ++k) {
       l->dense.try_emplace(f.ids[k]).first->second = k;
       if (f.kinds[k] == static_cast<std::uint8_t>(net::entity_kind::player)) l->observers.push_back(k);
+    }
+    layout_ = std::move(l);
+  } else if (f.has_changes) {
+    // The same entities, some rows replaced (the decoder applied them to f's columns): a new
+    // layout, since earlier ticks' truth keeps the one it had.
+    auto l = std::make_shared<layout>(*layout_);
+    bool kinds_changed = false;
+    for (const std::uint32_t k : f.changed) {
+      l->classes[k] = f.classes[k];
+      l->sees[k] = f.sees[k];
+      kinds_changed |= l->kinds[k] != f.kinds[k];
+      l->kinds[k] = f.kinds[k];
+      std::copy_n(f.aoi_half.begin() + 3 * k, 3, l->aoi.begin() + 3 * k);
+      std::copy_n(f.presence_half.begin() + 3 * k, 3, l->presence.begin() + 3 * k);
+    }
+    if (kinds_changed) {
+      l->observers.clear();
+      for (std::uint32_t k = 0; k < f.count; ++k) {
+        if (l->kinds[k] == static_cast<std::uint8_t>(net::entity_kind::player)) l->observers.push_back(k);
+      }
     }
     layout_ = std::move(l);
   }
@@ -653,7 +674,8 @@ oracle_report oracle::report() const {
   r.positions_checked = c_.positions_checked, r.positions_unchecked = c_.positions_unchecked;
   r.missing = c_.missing, r.extra = c_.extra, r.leaked = c_.leaked, r.wrong_class = c_.wrong_class;
   r.position = c_.position, r.stale = c_.stale, r.deferral = c_.deferral;
-  r.truth_ticks = truth_ticks_, r.truth_bytes = truth_bytes_, r.truth_layouts = truth_layouts_;
+  r.truth_ticks = truth_ticks_, r.truth_bytes = truth_bytes_;
+  r.truth_layouts = truth_layouts_, r.truth_changes = truth_changes_;
   r.compute_cpu_ms = compute_cpu_ms_ - drain_cpu_ms_, r.compute_max_ms = compute_max_ms_;
   r.drain_cpu_ms = drain_cpu_ms_;
   r.check_ms = static_cast<double>(check_ns_.load()) / 1e6;

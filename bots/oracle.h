@@ -50,6 +50,7 @@ struct oracle_report {
                 positions_unchecked = 0;
   std::uint64_t missing = 0, extra = 0, leaked = 0, wrong_class = 0, position = 0, stale = 0, deferral = 0;
   std::uint64_t truth_ticks = 0, truth_bytes = 0, truth_layouts = 0;
+  std::uint64_t truth_changes = 0;  ///< truth frames that carried changes to the layout instead of the whole of it
   double compute_cpu_ms = 0;  ///< CPU of decoding and recomputing the visible sets, all ticks
   double compute_max_ms = 0;  ///< the slowest tick's wall time (recomputing and the checks that waited for it)
   double drain_cpu_ms = 0;    ///< CPU of the oracle's thread checking the views that waited for their truth
@@ -159,7 +160,7 @@ class oracle {
   std::atomic<std::uint32_t> logged_missing_{0}, logged_extra_{0}, logged_leaked_{0}, logged_class_{0},
       logged_position_{0}, logged_stale_{0}, logged_deferral_{0};
   // Costs.
-  std::uint64_t truth_ticks_ = 0, truth_bytes_ = 0, truth_layouts_ = 0, observers_max_ = 0;
+  std::uint64_t truth_ticks_ = 0, truth_bytes_ = 0, truth_layouts_ = 0, truth_changes_ = 0, observers_max_ = 0;
   double compute_cpu_ms_ = 0, compute_max_ms_ = 0, drain_cpu_ms_ = 0;
   std::atomic<std::uint64_t> check_ns_{0};
   // Snapshots of frames that came before their tick's truth (checked by the oracle's thread).

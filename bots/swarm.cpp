@@ -540,6 +540,7 @@ class swarm {
     sum.missing += q.missing, sum.extra += q.extra, sum.leaked += q.leaked, sum.wrong_class += q.wrong_class;
     sum.position += q.position, sum.stale += q.stale, sum.deferral += q.deferral;
     sum.truth_ticks += q.truth_ticks, sum.truth_bytes += q.truth_bytes, sum.truth_layouts += q.truth_layouts;
+    sum.truth_changes += q.truth_changes;
     sum.compute_cpu_ms += q.compute_cpu_ms, sum.compute_max_ms = std::max(sum.compute_max_ms, q.compute_max_ms);
     sum.drain_cpu_ms += q.drain_cpu_ms, sum.check_ms += q.check_ms, sum.deferred_checks += q.deferred_checks;
     sum.pending_overflow += q.pending_overflow, sum.observers_max = std::max(sum.observers_max, q.observers_max);

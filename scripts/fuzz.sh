@@ -8,7 +8,7 @@ cd "$(dirname "$0")/.."
 seconds=${1:-3}
 shift || true
 targets=("$@")
-[[ ${#targets[@]} -gt 0 ]] || targets=(fuzz_frame fuzz_session fuzz_box_csv fuzz_box_binary)
+[[ ${#targets[@]} -gt 0 ]] || targets=(fuzz_frame fuzz_session fuzz_box_csv fuzz_box_binary fuzz_truth)
 build=${ZONE_FUZZ_BUILD_DIR:-build-fuzz}
 
 cxx=$(command -v clang++ || true)

@@ -102,19 +102,25 @@ name=local
 zone_args=(--world "$name" --nats "$url" --world-grid "$grid" --world-x "$size" --world-y "$size" --listen 127.0.0.1
            --metrics 0 --npcs "$npcs" --bosses "$bosses" --threads "$threads" "${where[@]}" --max-clients $((bots + 100))
            ${extra_zone_args[@]+"${extra_zone_args[@]}"})
-[ "$oracle" = 1 ] && zone_args+=(--oracle)
-start_zone() {  # start_zone K [PORT]: zone K's process (log zone-K.log); prints its pid
+# Every swarm's oracle reads every zone's truth: a zone serves one subscriber per zone (at least the default 4).
+[ "$oracle" = 1 ] && zone_args+=(--oracle --oracle-subscribers "$(( zones > 4 ? zones : 4 ))")
+# start_zone K [PORT]: zone K's process (log zone-K.log), its pid in zone_pid. Started from this
+# shell, not from a $(...) subshell: the zone is this script's child, so `wait` waits for it (a
+# subshell's background process is handed to init: `wait` returned at once, and a world.sh killed
+# by a test's timeout left its zones running).
+start_zone() {
   local more=()
   [ -n "$fault" ] && [ "$1" = 0 ] && more=(--test-fault "$fault" --test-fault-tick 60)
   "$build/zone/zone-server" "${zone_args[@]}" ${more[@]+"${more[@]}"} --port "${2:-0}" --tick-csv "$out/zone-$1.csv" \
     >"$out/zone-$1.log" 2>&1 &
-  echo $!
+  zone_pid=$!
 }
 
 # 2. The zones, one after the other (each takes the next free region).
 declare -a zpid zport zregion
 for k in $(seq 0 $((zones - 1))); do
-  zpid[$k]=$(start_zone "$k")
+  start_zone "$k"
+  zpid[$k]=$zone_pid
   pids+=("${zpid[$k]}")
   zport[$k]=$(zone_port "$out/zone-$k.log" 200)
   [ -n "${zport[$k]}" ] || { echo "world.sh: zone $k did not start ($out/zone-$k.log)" >&2; tail -5 "$out/zone-$k.log" >&2; exit 1; }
@@ -150,7 +156,8 @@ if [ "$kill" = 1 ] && [ "$zones" -gt 1 ]; then
   wait "${zpid[1]}" 2>/dev/null || true
   t_kill=$(date +%s.%N)
   mv "$out/zone-1.log" "$out/zone-1-killed.log"
-  zpid[1]=$(start_zone 1 "${zport[1]}")  # the same port: its bots log in again there
+  start_zone 1 "${zport[1]}"  # the same port: its bots log in again there
+  zpid[1]=$zone_pid
   pids+=("${zpid[1]}")
   zport[1]=$(zone_port "$out/zone-1.log" 300)
   t_up=$(date +%s.%N)
@@ -169,8 +176,20 @@ set +e
 "$build/world/world-check" --nats "$url" --world "$name" --wait-ms 2000 "${expect[@]}" >"$out/world-check.txt" 2>&1
 check_rc=$?
 set -e
+# Each zone writes its exit report (read below) on the way out: wait for them (10 s at most, then SIGKILL).
 for k in $(seq 0 $((zones - 1))); do kill -TERM "${zpid[$k]}" 2>/dev/null || true; done
-for k in $(seq 0 $((zones - 1))); do wait "${zpid[$k]}" 2>/dev/null || true; done
+running() {  # running PID: the process has not exited (an exited child stays a zombie, state Z, until waited for)
+  local st
+  st=$(cut -d' ' -f3 "/proc/$1/stat" 2>/dev/null) || return 1
+  [ -n "$st" ] && [ "$st" != Z ]
+}
+for _ in $(seq 100); do
+  alive=0
+  for k in $(seq 0 $((zones - 1))); do running "${zpid[$k]}" && alive=1; done
+  [ "$alive" = 0 ] && break
+  sleep 0.1
+done
+for k in $(seq 0 $((zones - 1))); do kill -KILL "${zpid[$k]}" 2>/dev/null || true; wait "${zpid[$k]}" 2>/dev/null || true; done
 
 # 6. The same load in one zone (--single), for the tick p99 beside the world's.
 if [ "$single" -gt 0 ]; then

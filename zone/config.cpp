@@ -119,6 +119,7 @@ std::optional<std::string> validate(const zone_config& c) {
   }
   const bool gpu_fault = c.test_fault.rfind("gpu-", 0) == 0;
   if (!c.test_fault.empty() && !gpu_fault && !c.oracle) return bad("test-fault needs --oracle (it exists to prove the oracle)");
+  if (c.oracle_subscribers < 1 || c.oracle_subscribers > 64) return bad("oracle-subscribers must be 1 to 64");
   static const char* replicates[] = {"auto", "gpu", "cpu"};
   if (std::find(std::begin(replicates), std::end(replicates), c.replicate) == std::end(replicates)) {
     return bad("replicate must be auto, gpu or cpu");
@@ -259,6 +260,7 @@ config_result parse_config(int argc, const char* const* argv) {
   correctness.add_options()  //
       ("oracle", po::bool_switch(&c.oracle), "publish every tick's ground truth (entities, boxes, classes) on a loopback stream for an independent oracle (bot-swarm --oracle); off by default, and costs nothing when off")  //
       ("oracle-port", po::value(&oracle_port)->default_value(oracle_port), "loopback port of the ground-truth stream (0 = ephemeral; the welcome tells clients)")  //
+      ("oracle-subscribers", po::value(&c.oracle_subscribers)->default_value(c.oracle_subscribers), "truth-stream subscribers served at once, 1-64 (every oracle is one: in a world every swarm reads every zone, so a world of N zones needs N); one more is refused with a message naming this option")  //
       ("test-fault", po::value(&c.test_fault)->default_value(c.test_fault), "TESTING ONLY: break one client's view on purpose to prove the oracle: drop, extra, stealth, freeze or class (needs --oracle); or make a GPU engine fail mid-run: gpu-interest or gpu-replication (the engine reports a CUDA error), gpu-lost (a kernel traps: a real, sticky device fault)")  //
       ("test-fault-tick", po::value(&c.test_fault_tick)->default_value(c.test_fault_tick), "TESTING ONLY: the world tick from which --test-fault acts (for gpu-*: the tick whose step fails)");
   po::options_description all("zone-server options");

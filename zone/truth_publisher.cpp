@@ -10,6 +10,7 @@
 
 #include <spdlog/spdlog.h>
 
+#include <algorithm>
 #include <cerrno>
 #include <chrono>
 #include <cstring>
@@ -22,7 +23,8 @@ static_assert(sizeof(vec3) == 3 * sizeof(float), "positions are copied as float 
 
 truth_publisher::~truth_publisher() { stop(); }
 
-std::optional<std::string> truth_publisher::start(std::uint16_t port) {
+std::optional<std::string> truth_publisher::start(std::uint16_t port, int max_subscribers) {
+  max_subscribers_ = std::max(1, max_subscribers);
   listen_fd_ = ::socket(AF_INET, SOCK_STREAM | SOCK_CLOEXEC, 0);
   if (listen_fd_ < 0) return std::string("oracle stream: socket: ") + std::strerror(errno);
   const int one = 1;
@@ -66,7 +68,10 @@ void truth_publisher::publish(const entity_store& store, std::uint64_t tick) {
   if (subscribers_.load(std::memory_order_acquire) == 0) return;
   const auto t0 = std::chrono::steady_clock::now();
   const std::size_t n = store.size();
-  const bool layout = !any_published_ || store.layout_version() != layout_version_ || need_layout_.exchange(false);
+  // The columns go to the encoder only when the store says something but positions changed; it
+  // then sends the whole layout, the changed rows, or nothing of them (net/truth.h, encoder).
+  const bool layout = !any_published_ || store.layout_version() != layout_version_;
+  const bool force = need_layout_.exchange(false);
   // A buffer no subscriber still holds (the sender drops its reference once written), else a new one.
   std::shared_ptr<std::vector<std::uint8_t>> frame;
   for (const auto& b : pool_) {
@@ -91,16 +96,21 @@ void truth_publisher::publish(const entity_store& store, std::uint64_t tick) {
     lv = {store.ids(), floats(store.aoi_half_extents()), floats(store.presence_half_extents()),
           store.visibility_classes(), store.sees(), kinds_};
   }
-  net::truth::encode_tick(*frame, tick, floats(store.positions()), layout ? &lv : nullptr);
+  const auto sent = encoder_.encode(*frame, tick, floats(store.positions()), layout ? &lv : nullptr, force);
+  const bool whole = sent == net::truth::encoder::sent::layout;
   layout_version_ = store.layout_version();
   any_published_ = true;
   ++stats_.ticks;
   stats_.bytes += frame->size();
-  stats_.layouts += layout ? 1 : 0;
+  stats_.layouts += whole ? 1 : 0;
+  if (sent == net::truth::encoder::sent::changes) {
+    ++stats_.changes;
+    stats_.changed_entities += encoder_.last_changes();
+  }
   {
     const std::lock_guard lock(mutex_);
     for (auto& s : subs_) {
-      if (!s.has_layout && !layout) continue;  // its first frame must carry the layout
+      if (!s.has_layout && !whole) continue;  // its first frame must carry the whole layout
       s.has_layout = true;
       s.queue.push_back(frame);
       s.queued_bytes += frame->size();
@@ -129,9 +139,17 @@ void truth_publisher::run() {
       const int fd = ::accept4(listen_fd_, nullptr, nullptr, SOCK_NONBLOCK | SOCK_CLOEXEC);
       if (fd >= 0) {
         const std::lock_guard lock(mutex_);
-        if (static_cast<int>(subs_.size()) >= max_subscribers) {
+        if (static_cast<int>(subs_.size()) >= max_subscribers_) {
+          // A refusal the subscriber reads as its error (a fresh socket's buffer takes it whole).
+          const std::string why = "zone-server serves at most " + std::to_string(max_subscribers_) +
+                                  " truth-stream subscribers at once (--oracle-subscribers) and has them";
+          std::vector<std::uint8_t> refusal;
+          net::truth::encode_refusal(refusal, why);
+          [[maybe_unused]] const auto w = ::send(fd, refusal.data(), refusal.size(), MSG_NOSIGNAL | MSG_DONTWAIT);
           ::close(fd);
-          spdlog::warn("oracle stream: refused a subscriber ({} already)", max_subscribers);
+          ++stats_.refused_subscribers;
+          spdlog::warn("oracle stream: refused a subscriber: {} connected, the limit (--oracle-subscribers)",
+                       max_subscribers_);
         } else {
           const int buf = 4 << 20;
           ::setsockopt(fd, SOL_SOCKET, SO_SNDBUF, &buf, sizeof buf);

@@ -13,6 +13,7 @@
 #include <thread>
 #include <vector>
 
+#include "net/truth.h"
 #include "zone.h"
 
 namespace zone {
@@ -21,7 +22,10 @@ namespace zone {
 struct truth_stats {
   std::uint64_t ticks = 0;         ///< ticks published (with at least one subscriber)
   std::uint64_t bytes = 0;         ///< bytes of those frames
-  std::uint64_t layouts = 0;       ///< frames that carried the layout
+  std::uint64_t layouts = 0;       ///< frames that carried the whole layout
+  std::uint64_t changes = 0;       ///< frames that carried changes to it (net/truth.h)
+  std::uint64_t changed_entities = 0;     ///< entities in those changes
+  std::uint64_t refused_subscribers = 0;  ///< subscribers refused: max_subscribers were connected
   std::uint64_t dropped_subscribers = 0;  ///< subscribers closed for falling too far behind
   double publish_ms = 0;           ///< summed time of publish() on the tick loop
 };
@@ -31,15 +35,18 @@ class truth_publisher {
   /// Most bytes queued for one subscriber; beyond, it is disconnected (an oracle that cannot keep
   /// up must not grow the server without bound, and a gap would make its checks meaningless).
   static constexpr std::size_t max_queued_bytes = std::size_t{512} << 20;
-  static constexpr int max_subscribers = 4;
+  /// Subscribers served at once unless start() is told otherwise (zone-server --oracle-subscribers).
+  static constexpr int default_max_subscribers = 4;
 
   truth_publisher() = default;
   ~truth_publisher();
   truth_publisher(const truth_publisher&) = delete;
   truth_publisher& operator=(const truth_publisher&) = delete;
 
-  /// Listens on 127.0.0.1:port (0 = ephemeral) and starts the sender thread.
-  [[nodiscard]] std::optional<std::string> start(std::uint16_t port);
+  /// Listens on 127.0.0.1:port (0 = ephemeral) and starts the sender thread. Beyond
+  /// `max_subscribers` connected at once, a subscriber gets a refusal (net/truth.h) that names the
+  /// limit and is closed.
+  [[nodiscard]] std::optional<std::string> start(std::uint16_t port, int max_subscribers = default_max_subscribers);
   [[nodiscard]] std::uint16_t port() const { return port_; }
   /// The world after the step of `tick`: encoded once and queued for every subscriber (nothing
   /// done while there is none). Game thread only.
@@ -50,7 +57,7 @@ class truth_publisher {
  private:
   struct subscriber {
     int fd = -1;
-    bool has_layout = false;  ///< got a frame with the layout (frames before it are not sent)
+    bool has_layout = false;  ///< got a frame with the whole layout (frames before it are not sent)
     std::deque<std::shared_ptr<const std::vector<std::uint8_t>>> queue;
     std::size_t queued_bytes = 0, offset = 0;  // offset into queue.front()
   };
@@ -62,11 +69,13 @@ class truth_publisher {
   std::thread thread_;
   std::atomic<bool> stopping_{false};
   std::atomic<int> subscribers_{0};
-  std::atomic<bool> need_layout_{false};  ///< a subscriber joined: the next frame carries the layout
+  std::atomic<bool> need_layout_{false};  ///< a subscriber joined: the next frame carries the whole layout
+  int max_subscribers_ = default_max_subscribers;
   std::mutex mutex_;  // guards subs_
   std::vector<subscriber> subs_;
   std::uint64_t layout_version_ = 0;
   bool any_published_ = false;
+  net::truth::encoder encoder_;  // the layout last sent: the whole of it, changes to it, or nothing
   // Scratch columns (the store's types are plain floats and integers; copied as they are).
   std::vector<std::uint8_t> kinds_;
   std::vector<std::shared_ptr<std::vector<std::uint8_t>>> pool_;  // frames' buffers, reused

@@ -181,6 +181,10 @@ struct zone_config {
   /// against. Off: nothing is built or sent.
   bool oracle = false;
   std::uint16_t oracle_port = 0;
+  /// Truth-stream subscribers served at once (each oracle is one: a world's every swarm reads
+  /// every zone); one more is sent a refusal naming this limit and closed. Each may queue up to
+  /// truth_publisher::max_queued_bytes.
+  int oracle_subscribers = 4;
   /// Testing only: a deliberate replication fault for one client, to prove that the oracle
   /// catches it: "" (none), "drop", "extra", "stealth", "freeze" or "class" (zone/fault_injection.h).
   std::string test_fault;

@@ -284,7 +284,7 @@ std::optional<std::string> zone_server::start() {
   }
   if (cfg_.oracle) {
     truth_ = std::make_unique<truth_publisher>();
-    if (auto err = truth_->start(cfg_.oracle_port)) return err;
+    if (auto err = truth_->start(cfg_.oracle_port, cfg_.oracle_subscribers)) return err;
     spdlog::info("zone: oracle stream on 127.0.0.1:{} (ground truth of every tick, for bot-swarm --oracle)", truth_->port());
     if (const auto k = fault_injector::parse(cfg_.test_fault)) {
       fault_ = std::make_unique<fault_injector>(*k, cfg_.test_fault_tick, cfg_.world, cfg_.player_aoi + cfg_.hysteresis);
@@ -894,9 +894,11 @@ void zone_server::run() {
     truth_->stop();
     const auto& t = truth_->stats();
     const double n = static_cast<double>(std::max<std::uint64_t>(1, t.ticks));
-    spdlog::info("  oracle stream: {} ticks published, {:.1f} KB per tick ({} with the layout), publish {:.3f} ms per tick, "
-                 "{} subscribers dropped",
-                 t.ticks, static_cast<double>(t.bytes) / 1024.0 / n, t.layouts, t.publish_ms / n, t.dropped_subscribers);
+    spdlog::info(
+        "  oracle stream: {} ticks published, {:.1f} KB per tick ({} with the whole layout, {} with changes to it: "
+        "{} entities), publish {:.3f} ms per tick, {} subscribers dropped, {} refused",
+        t.ticks, static_cast<double>(t.bytes) / 1024.0 / n, t.layouts, t.changes, t.changed_entities, t.publish_ms / n,
+        t.dropped_subscribers, t.refused_subscribers);
   }
 }
 

@@ -259,6 +259,9 @@ TEST_CASE("end to end: 200 bots in verify mode and checked by the oracle, zero m
   CHECK(json_number(report, "stealth_joins").value_or(0) > 5);
   CHECK(json_number(report, "team_joins").value_or(0) > 15);
   CHECK(json_number(report, "visibility_switches_sent").value_or(0) > 100);
+  // The truth stream carried the switches as changes to the layout (net/truth.h), not whole
+  // layouts, and the oracle above judged every frame from them.
+  CHECK(json_number(report, "truth_changes").value_or(0) > 30);
   const double checked = json_number(report, "frames_checked").value_or(0);
   CHECK(checked > 200 * 20 * 5 * rate);
   CHECK(json_number(report, "frames_unchecked").value_or(1e9) <= checked / 100);

@@ -7,10 +7,14 @@
 
 #include "../common/seeds.h"
 
+#include <chrono>
+#include <future>
 #include <random>
+#include <thread>
 
 #include "bots/oracle.h"
 #include "net/truth.h"
+#include "zone/truth_publisher.h"
 #include "zone/zone.h"
 
 using namespace zone;
@@ -22,16 +26,32 @@ std::span<const float> floats(std::span<const vec3> v) {
   return {reinterpret_cast<const float*>(v.data()), 3 * v.size()};
 }
 
-/// The store's truth frame body, as zone-server --oracle writes it.
-std::vector<std::uint8_t> truth_body(const entity_store& store, std::uint64_t tick, bool layout) {
-  std::vector<std::uint8_t> kinds(store.size());
-  for (std::size_t k = 0; k < store.size(); ++k) kinds[k] = static_cast<std::uint8_t>(store.kinds()[k]);
-  const net::truth::layout_view lv{store.ids(), floats(store.aoi_half_extents()), floats(store.presence_half_extents()),
-                                   store.visibility_classes(), store.sees(), kinds};
-  std::vector<std::uint8_t> bytes;
-  net::truth::encode_tick(bytes, tick, floats(store.positions()), layout ? &lv : nullptr);
-  return {bytes.begin() + 4, bytes.end()};
-}
+/// The store's truth frame bodies, as zone-server --oracle writes them (zone/truth_publisher.cpp:
+/// the encoder is given the columns when the store's layout_version changed, and sends the whole
+/// layout, the changed rows, or positions alone).
+struct truth_writer {
+  net::truth::encoder enc;
+  std::uint64_t version = 0;
+  bool any = false;
+  std::size_t layouts = 0, changes = 0;
+  std::vector<std::uint8_t> kinds, bytes;
+  std::vector<std::uint8_t> body(const entity_store& store, std::uint64_t tick) {
+    const bool changed = !any || store.layout_version() != version;
+    version = store.layout_version(), any = true;
+    kinds.resize(store.size());
+    for (std::size_t k = 0; k < store.size(); ++k) kinds[k] = static_cast<std::uint8_t>(store.kinds()[k]);
+    const net::truth::layout_view lv{store.ids(),
+                                     floats(store.aoi_half_extents()),
+                                     floats(store.presence_half_extents()),
+                                     store.visibility_classes(),
+                                     store.sees(),
+                                     kinds};
+    const auto sent = enc.encode(bytes, tick, floats(store.positions()), changed ? &lv : nullptr, false);
+    layouts += sent == net::truth::encoder::sent::layout;
+    changes += sent == net::truth::encoder::sent::changes;
+    return {bytes.begin() + 4, bytes.end()};
+  }
+};
 
 struct world_sim {
   std::mt19937_64 rng;
@@ -111,7 +131,7 @@ TEST_SUITE("bots.oracle") {
         oracle.full_scan = full_scan;
         CAPTURE(full_scan);
         std::uint64_t compared = 0, visible_total = 0, differing = 0, in_band = 0;
-        std::uint64_t layout_version = 0;
+        truth_writer truth;
         for (std::uint64_t tick = 0; tick < 150; ++tick) {
           if (tick > 0) w.move();
           // Players join over time (from the second tick: the oracle saw their whole history),
@@ -122,10 +142,7 @@ TEST_SUITE("bots.oracle") {
             w.players.erase(w.players.begin());
           }
           REQUIRE_FALSE(tracker.update(w.store.columns()).has_value());
-          const bool layout = tick == 0 || w.store.layout_version() != layout_version;
-          layout_version = w.store.layout_version();
-          const auto body = truth_body(w.store, tick, layout);
-          REQUIRE_FALSE(oracle.feed(body).has_value());
+          REQUIRE_FALSE(oracle.feed(truth.body(w.store, tick)).has_value());
           for (const entity_id p : w.players) {
             const auto row = tracker.row_of(p);
             REQUIRE(row != entity_store::npos);
@@ -163,6 +180,159 @@ TEST_SUITE("bots.oracle") {
     }
   }
 
+  TEST_CASE(
+      "many switches and resizes a tick, sent as changes to the layout: the oracle's visible sets equal the tracker's at every tick") {
+    // Every tick several players and NPCs switch class and mask (stealth, teams), some AOI and
+    // presence boxes resize, now and then an entity spawns or leaves and, rarely, most of the
+    // world switches at once (over the encoder's cap: the whole layout). The oracle reads the
+    // frames the server's encoder writes and must hold every change: its visible sets equal the
+    // interest tracker's (brute-force finder) for every player at every tick.
+    const std::uint64_t seed = zone::test::fresh_seed();
+    CAPTURE(seed);
+    world_sim w(seed);
+    w.add_npcs(500);
+    interest::brute_force_finder finder;
+    interest_tracker tracker(finder, nullptr, {4.0f, 0, 256});
+    net::interest_rules rules;
+    rules.hysteresis = 4;
+    bots::oracle oracle(w.world, rules, 1, nullptr, nullptr);
+    truth_writer truth;
+    const std::uint32_t classes[] = {cb::normal, cb::stealth, cb::team_red, cb::team_blue};
+    const auto random_mask = [&] {
+      return (static_cast<std::uint32_t>(w.rng()) & (cb::normal | cb::stealth | cb::team_red | cb::team_blue)) |
+             cb::normal;
+    };
+    std::uint64_t compared = 0, differing = 0, switches = 0, resizes = 0, mass = 0;
+    for (std::uint64_t tick = 0; tick < 200; ++tick) {
+      if (tick > 0) w.move();
+      if (tick == 1) {  // (from the second tick: the oracle saw their whole history)
+        for (int k = 0; k < 30; ++k) w.add_player();
+      }
+      const auto ids = std::vector<entity_id>(w.store.ids().begin(), w.store.ids().end());
+      if (tick > 1) {
+        for (int k = 0; k < 6; ++k) {  // switches: players and NPCs
+          const entity_id id = k < 3 ? w.players[w.rng() % w.players.size()] : ids[w.rng() % ids.size()];
+          REQUIRE(w.store.set_visibility(id, classes[w.rng() % 4], random_mask()));
+          ++switches;
+        }
+        if (w.rng() % 2 == 0) {  // a resize
+          const entity_id id = ids[w.rng() % ids.size()];
+          const float a = w.uni(5, 40), b = w.uni(0.3f, 6);
+          REQUIRE(w.store.set_aoi_half_extent(id, {a, a, std::min(a, 20.0f)}));
+          REQUIRE(w.store.set_presence_half_extent(id, {b, b, b}));
+          ++resizes;
+        }
+        if (tick % 29 == 7) w.add_player();  // the ids change: the whole layout
+        if (tick % 41 == 11) {
+          REQUIRE(w.store.destroy(w.players.front()));
+          w.players.erase(w.players.begin());
+        }
+        if (tick % 67 == 33) {  // most of the world at once: over the cap
+          for (const entity_id id : ids) REQUIRE(w.store.set_visibility(id, classes[w.rng() % 4], random_mask()));
+          ++mass;
+        }
+      }
+      REQUIRE_FALSE(tracker.update(w.store.columns()).has_value());
+      REQUIRE_FALSE(oracle.feed(truth.body(w.store, tick)).has_value());
+      for (const entity_id p : w.players) {
+        const auto row = tracker.row_of(p);
+        REQUIRE(row != entity_store::npos);
+        const auto expect = tracker.visible(row);
+        const auto got = oracle.visible(p, tick);
+        if (!got) continue;  // a player joined this tick (its history starts next tick)
+        ++compared;
+        if (!std::equal(expect.begin(), expect.end(), got->begin(), got->end())) ++differing;
+      }
+    }
+    const auto r = oracle.report();
+    MESSAGE(switches << " switches, " << resizes << " resizes, " << mass << " mass switches: " << r.truth_layouts
+                     << " frames with the whole layout, " << r.truth_changes << " with changes; " << compared
+                     << " visible sets compared, " << differing << " differ");
+    CHECK(compared > 190 * 28);
+    CHECK(differing == 0);
+    CHECK(r.truth_changes == truth.changes);
+    CHECK(r.truth_layouts == truth.layouts);
+    CHECK(r.truth_changes > 170);  // every tick changes something: all but the whole layouts
+    CHECK(r.truth_layouts >= 1 + mass);
+    CHECK(r.truth_layouts < 25);
+  }
+
+  TEST_CASE(
+      "the server's truth stream over loopback: switches arrive as changes, the sets equal the tracker's; a subscriber over the limit is refused by name") {
+    // zone-server's publisher (zone/truth_publisher.h) with room for one subscriber: an oracle
+    // subscribes and reads the socket while players switch every tick; its visible sets equal
+    // the tracker's at every tick. A second oracle is refused, and its error names the option.
+    const std::uint64_t seed = zone::test::fresh_seed();
+    CAPTURE(seed);
+    world_sim w(seed);
+    w.add_npcs(300);
+    interest::brute_force_finder finder;
+    interest_tracker tracker(finder, nullptr, {4.0f, 0, 256});
+    net::interest_rules rules;
+    rules.hysteresis = 4;
+    truth_publisher pub;
+    REQUIRE_FALSE(pub.start(0, 1).has_value());
+    bots::oracle first(w.world, rules, 1, nullptr, nullptr);
+    std::uint64_t tick = 0;
+    const auto step = [&] {
+      REQUIRE_FALSE(tracker.update(w.store.columns()).has_value());
+      pub.publish(w.store, tick);
+      ++tick;
+    };
+    {  // ticks until the first oracle has one (it waits for its first tick)
+      auto started = std::async(std::launch::async, [&] { return first.start(pub.port(), 10); });
+      for (int k = 0; k < 2000 && started.wait_for(std::chrono::milliseconds(5)) != std::future_status::ready; ++k) {
+        w.move();
+        step();
+      }
+      const auto err = started.get();
+      REQUIRE_MESSAGE(!err.has_value(), err.value_or(""));
+    }
+    bots::oracle second(w.world, rules, 1, nullptr, nullptr);
+    const auto refused = second.start(pub.port(), 10);
+    REQUIRE(refused.has_value());
+    CHECK(refused->find("refused") != std::string::npos);
+    CHECK(refused->find("--oracle-subscribers") != std::string::npos);
+    for (int k = 0; k < 20; ++k) w.add_player();
+    const std::uint32_t classes[] = {cb::normal, cb::stealth, cb::team_red, cb::team_blue};
+    std::uint64_t compared = 0, differing = 0;
+    for (int k = 0; k < 80; ++k) {
+      w.move();
+      for (int s2 = 0; s2 < 3; ++s2) {
+        REQUIRE(
+            w.store.set_visibility(w.players[w.rng() % w.players.size()], classes[w.rng() % 4],
+                                   cb::normal | (static_cast<std::uint32_t>(w.rng()) & (cb::stealth | cb::team_red))));
+      }
+      const std::uint64_t t = tick;
+      step();
+      // Its truth is computed on the oracle's thread: wait for it (a player known from its first tick).
+      std::optional<std::vector<std::uint32_t>> got;
+      for (int wait = 0; wait < 2000 && !(got = first.visible(w.players.front(), t)); ++wait) {
+        std::this_thread::sleep_for(std::chrono::milliseconds(2));
+      }
+      if (k == 0) continue;  // the players joined this tick: their history starts with it
+      REQUIRE(got.has_value());
+      for (const entity_id p : w.players) {
+        const auto expect = tracker.visible(tracker.row_of(p));
+        const auto v = first.visible(p, t);
+        REQUIRE(v.has_value());
+        ++compared;
+        if (!std::equal(expect.begin(), expect.end(), v->begin(), v->end())) ++differing;
+      }
+    }
+    first.stop();
+    pub.stop();
+    const auto r = first.report();
+    MESSAGE(r.truth_ticks << " truth frames read: " << r.truth_layouts << " with the whole layout, " << r.truth_changes
+                          << " with changes; " << compared << " sets compared, " << differing << " differ");
+    CHECK(compared == 79 * 20);
+    CHECK(differing == 0);
+    CHECK(r.truth_changes >= 70);
+    CHECK(r.truth_layouts <= 3);
+    CHECK(pub.stats().refused_subscribers == 1);
+    CHECK(pub.stats().changes >= r.truth_changes);
+  }
+
   TEST_CASE("views the replicator builds under a tight budget pass; a view missing one entity or holding an extra one fails") {
     const std::uint64_t seed = zone::test::fresh_seed();
     CAPTURE(seed);
@@ -191,7 +361,8 @@ TEST_SUITE("bots.oracle") {
     };
     std::vector<client> clients;
     replication_writer writer;
-    std::uint64_t layout_version = 0, deferring = 0;
+    truth_writer truth;
+    std::uint64_t deferring = 0;
     std::uint64_t missing_before = 0, extra_before = 0;
     bool dropped = false, added = false;
     for (std::uint64_t tick = 0; tick < 120; ++tick) {
@@ -201,9 +372,7 @@ TEST_SUITE("bots.oracle") {
         clients.push_back({id, rep.add_client(id), net::client_view(w.world)});
       }
       REQUIRE_FALSE(tracker.update(w.store.columns()).has_value());
-      const bool layout = tick == 0 || w.store.layout_version() != layout_version;
-      layout_version = w.store.layout_version();
-      REQUIRE_FALSE(oracle.feed(truth_body(w.store, tick, layout)).has_value());
+      REQUIRE_FALSE(oracle.feed(truth.body(w.store, tick)).has_value());
       for (std::size_t i = 0; i < clients.size(); ++i) {
         client& cl = clients[i];
         replication_stats st;
@@ -284,7 +453,8 @@ TEST_SUITE("bots.oracle") {
       };
       std::vector<client> clients;
       replication_writer writer;
-      std::uint64_t layout_version = 0, switches = 0, resyncs = 0;
+      truth_writer truth;
+      std::uint64_t switches = 0, resyncs = 0;
       std::uint64_t first_bad_tick = 0;
       for (std::uint64_t tick = 0; tick < 100; ++tick) {
         if (tick > 0) {
@@ -327,9 +497,7 @@ TEST_SUITE("bots.oracle") {
         if (with_resync) {
           for (const auto& ch : changed) resyncs += rep.resync_viewers_of(w.store, ch.id, ch.old_class, ch.old_sees, 4.0f);
         }
-        const bool layout = tick == 0 || w.store.layout_version() != layout_version;
-        layout_version = w.store.layout_version();
-        REQUIRE_FALSE(oracle.feed(truth_body(w.store, tick, layout)).has_value());
+        REQUIRE_FALSE(oracle.feed(truth.body(w.store, tick)).has_value());
         for (std::size_t i = 0; i < clients.size(); ++i) {
           client& cl = clients[i];
           const auto frame = rep.build(cl.c, w.store, tracker, tick, 0, 0, writer, nullptr);
@@ -351,6 +519,10 @@ TEST_SUITE("bots.oracle") {
               << c.frames_checked.load() << " frames checked; wrong class " << c.wrong_class.load() << ", missing "
               << c.missing.load() << ", extra " << c.extra.load() << ", leaked " << c.leaked.load());
       CHECK(c.frames_checked.load() == 99 * clients.size());
+      // The switches reached the oracle as changes to the layout, not whole layouts.
+      CHECK(truth.changes > 80);
+      CHECK(oracle.report().truth_changes == truth.changes);
+      CHECK(truth.layouts <= 2);
       if (with_resync) {
         CHECK(resyncs > 20);
         CHECK(c.mismatches() == 0);

@@ -100,28 +100,40 @@ TEST_SUITE("net.metrics") {
     metrics_server m("127.0.0.1", 0, limits);
     REQUIRE_FALSE(m.start().has_value());
     m.publish("zone_entities 5\n");
-    // The client's socket first; then the process's table is made full, so the server's accept fails.
+    // The client's socket first (a descriptor); then the process's table is made full, and only
+    // then does the client connect (which takes no descriptor), so every accept of it fails until
+    // the limit is back. (Connecting before lowering the limit raced with the server's I/O thread:
+    // a loaded host could run its accept first, and the test saw no accept error at all.)
     rlimit before{};
     REQUIRE(::getrlimit(RLIMIT_NOFILE, &before) == 0);
-    zone::net::testing::test_client* pending = nullptr;
-    {
-      auto c = std::make_unique<zone::net::testing::test_client>(m.port());  // connects: waits in the backlog
-      pending = c.release();
-    }
+    const int pending = ::socket(AF_INET, SOCK_STREAM, 0);
+    REQUIRE(pending >= 0);
+    sockaddr_in to{};
+    to.sin_family = AF_INET;
+    to.sin_port = htons(m.port());
+    to.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
     rlimit low = before;
     low.rlim_cur = 3;  // stdin, stdout, stderr: every other descriptor in use is already beyond it
     const auto t_low = std::chrono::steady_clock::now();
     REQUIRE(::setrlimit(RLIMIT_NOFILE, &low) == 0);
+    const int connected = ::connect(pending, reinterpret_cast<sockaddr*>(&to), sizeof to);  // waits in the backlog
     std::this_thread::sleep_for(std::chrono::milliseconds(1500));
     REQUIRE(::setrlimit(RLIMIT_NOFILE, &before) == 0);
+    REQUIRE(connected == 0);
     // How long it really lasted (a busy machine wakes this thread late).
     const double low_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t_low).count();
     const auto errors = m.accept_errors();
     const std::string text = log.str();
-    // Served once descriptors are back.
-    std::vector<message> ignored;
-    CHECK(pending->wait_closed(std::chrono::milliseconds(10000), &ignored));  // accepted, timed out (no request)
-    delete pending;
+    // Served once descriptors are back: accepted, then closed at the request timeout (it sent no request).
+    bool closed = false;
+    for (const auto until = std::chrono::steady_clock::now() + std::chrono::seconds(10); !closed && std::chrono::steady_clock::now() < until;) {
+      pollfd p{pending, POLLIN, 0};
+      if (::poll(&p, 1, 100) <= 0) continue;
+      char buf[256];
+      closed = ::recv(pending, buf, sizeof buf, 0) <= 0;
+    }
+    ::close(pending);
+    CHECK(closed);
     CHECK(http_get(m.port(), "/metrics").ends_with("zone_entities 5\n"));
     spdlog::set_default_logger(previous);
     MESSAGE("accept errors in " << low_s << " s: " << errors << "; log: " << text.size() << " bytes");

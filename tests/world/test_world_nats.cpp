@@ -1,7 +1,9 @@
 // world/nats_node against a real nats-server (started by the test on a free loopback port, stopped
-// by pid): regions claimed by CAS, handoffs over JetStream with every entity owned exactly once
-// (the zones' census and the ownership records in KV agree), replays refused, a zone-server
-// process killed with SIGKILL and restarted. Exits 77 (CTest: Skipped) without nats-server.
+// by pid), with in-process zones: regions claimed by CAS, handoffs over JetStream with every
+// entity owned exactly once (the zones' census and the ownership records in KV agree), replays
+// refused, a player's redirect, a stalled neighbour, a full zone. A zone-server process killed with
+// SIGKILL and restarted is test_world_script_kill's (scripts/world.sh --kill). Without nats-server
+// it fails (configuring says so).
 #include <doctest/doctest.h>
 
 #include <nats/nats.h>

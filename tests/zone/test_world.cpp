@@ -71,6 +71,11 @@ TEST_SUITE("zone.config") {
     CHECK_FALSE(parse({"--connect-burst", "0.5"}).config.has_value());
     CHECK_FALSE(parse({"--connect-min-session", "-2"}).config.has_value());
     CHECK_FALSE(parse({"--connect-refusal-hold", "61"}).config.has_value());
+    CHECK(d.config->oracle_subscribers == 4);
+    CHECK_FALSE(parse({"--oracle-subscribers", "0"}).config.has_value());
+    CHECK_FALSE(parse({"--oracle-subscribers", "65"}).config.has_value());
+    REQUIRE(parse({"--oracle-subscribers", "9"}).config.has_value());
+    CHECK(parse({"--oracle-subscribers", "9"}).config->oracle_subscribers == 9);
     CHECK(d.config->connect_rate == 20);
     CHECK(d.config->connect_burst == 64);
     CHECK(d.config->connect_min_session_s == 10);
