@@ -195,6 +195,9 @@ class interest_space {
   void set_view_demand(const std::vector<std::uint8_t>* by_slot) { tracker_.set_view_demand(by_slot); }
   void set_tracker_options(const interest_options& o) { tracker_.set_options(o); }
   void prepare() noexcept { tracker_.prepare(); }
+  /// See interest_tracker::carry_visible: `observer` starts the next step with `targets` as its
+  /// previous visible set (a handoff's view from the old zone).
+  void carry_visible(entity_id observer, std::span<const entity_id> targets) { tracker_.carry_visible(observer, targets); }
 
  private:
   void bump_layout();

@@ -213,10 +213,86 @@ void interest_tracker::hand_over(visibility_engine& e) {
   holder_ = &e;
 }
 
+void interest_tracker::carry_visible(entity_id observer, std::span<const entity_id> targets) {
+  if (observer == null_entity) return;
+  carry_.emplace_back(observer, null_entity);  // the observer is carried, even with no targets
+  for (const entity_id t : targets) {
+    if (t != null_entity && t != observer) carry_.emplace_back(observer, t);
+  }
+}
+
+void interest_tracker::hand_over_carried(visibility_engine& e, const entity_columns& in) {
+  adopt();
+  // This update's rows and slot map (commit swaps them in): which carried handles it holds.
+  next_ids_.assign(in.ids, in.ids + in.n);
+  map_rows_into(next_ids_, spare_row_of_slot_);
+  const auto in_update = [&](entity_id id) {
+    const std::uint32_t slot = slot_of(id);
+    if (slot >= spare_row_of_slot_.size()) return false;
+    const std::uint32_t r = spare_row_of_slot_[slot];
+    return r < next_ids_.size() && next_ids_[r] == id;
+  };
+  std::sort(carry_.begin(), carry_.end());
+  carry_.erase(std::unique(carry_.begin(), carry_.end()), carry_.end());
+  // Groups of carried targets per observer (ascending, unique), each with the last update's row of
+  // its slot (the observer's own or another generation's: either is replaced), or none.
+  struct group {
+    entity_id observer;
+    std::size_t first, last;  // in targets
+  };
+  std::vector<group> groups;
+  std::vector<entity_id> targets;
+  std::vector<std::uint32_t> group_of_row(ids_.size(), no_row);
+  for (std::size_t k = 0; k < carry_.size();) {
+    const entity_id o = carry_[k].first;
+    std::size_t end = k;
+    while (end < carry_.size() && carry_[end].first == o) ++end;
+    if (in_update(o)) {
+      const std::size_t first = targets.size();
+      for (std::size_t j = k; j < end; ++j) {
+        if (carry_[j].second != null_entity && in_update(carry_[j].second)) targets.push_back(carry_[j].second);
+      }
+      const std::uint32_t slot = slot_of(o);
+      std::uint32_t r = slot < row_of_slot_.size() ? row_of_slot_[slot] : no_row;
+      if (r >= ids_.size() || slot_of(ids_[r]) != slot) r = no_row;  // a stale entry
+      if (r != no_row) group_of_row[r] = static_cast<std::uint32_t>(groups.size());
+      groups.push_back({o, first, targets.size()});
+    }
+    k = end;
+  }
+  // The previous rows: the last update's, the carried sets in place of their observers' rows (and
+  // of rows of another generation of their slots), then the carried observers that had none.
+  carry_ids_.clear();
+  carry_vis_.clear();
+  carry_off_.assign(1, 0);
+  const auto close_row = [&] { carry_off_.push_back(static_cast<std::uint32_t>(carry_vis_.size())); };
+  for (std::size_t r = 0; r < ids_.size(); ++r) {
+    const auto old = vis_list_.row(r);
+    const std::uint32_t g = group_of_row[r];
+    if (g == no_row) {
+      carry_ids_.push_back(ids_[r]);
+      carry_vis_.insert(carry_vis_.end(), old.begin(), old.end());
+      close_row();
+    }
+  }
+  for (const group& c : groups) {
+    carry_ids_.push_back(c.observer);
+    carry_vis_.insert(carry_vis_.end(), targets.begin() + static_cast<std::ptrdiff_t>(c.first),
+                      targets.begin() + static_cast<std::ptrdiff_t>(c.last));
+    close_row();
+  }
+  e.load_previous(carry_ids_, slot_bits_, carry_off_, carry_vis_);
+  holder_ = nullptr;  // `e` holds these sets, not the last update's: until the commit
+}
+
 std::optional<box_error> interest_tracker::run(visibility_engine& e, const entity_columns& in) {
   const auto t0 = clock_type::now();
   const std::size_t n = in.n;
-  if (holder_ != &e) hand_over(e);  // the engine does not hold the last update's sets
+  if (!carry_.empty()) {
+    hand_over_carried(e, in);
+  } else if (holder_ != &e) {
+    hand_over(e);  // the engine does not hold the last update's sets
+  }
   visibility_input vin = input_of(in);
   if (view_demand_ != nullptr) {
     // Per row: is its visible set read on the host (by slot, from the caller).
@@ -285,6 +361,7 @@ void interest_tracker::commit(visibility_engine& e, const entity_columns& in, do
   leave_list_ = {out_.leaves, out_.leave_off, out_.leave_len};
   producer_ = &e;
   holder_ = &e;
+  carry_.clear();  // taken by this update
   last_on_engine_ = &e != &reference_;
 
   const visibility_timing& t = out_.timing;
@@ -309,7 +386,11 @@ void interest_tracker::commit(visibility_engine& e, const entity_columns& in, do
 std::optional<box_error> interest_tracker::apply_pairs(const entity_columns& in, const box_set& boxes,
                                                        std::span<const id_pair> pairs) {
   begin_update(in);
-  if (holder_ != &reference_) hand_over(reference_);
+  if (!carry_.empty()) {
+    hand_over_carried(reference_, in);
+  } else if (holder_ != &reference_) {
+    hand_over(reference_);
+  }
   const auto t0 = clock_type::now();
   if (auto err = reference_.apply_pairs(input_of(in), boxes, pairs, out_)) return err;
   const double engine_ms = ms_since(t0);

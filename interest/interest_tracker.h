@@ -17,6 +17,7 @@
 #include <optional>
 #include <span>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "host_visibility_engine.h"
@@ -148,6 +149,20 @@ class interest_tracker {
     return r.rows == ids_.size() ? r : visibility_engine::resident_lists{};
   }
 
+  /// Observer `observer` starts the next update with exactly `targets` as its previous visible
+  /// set, as if the last update had seen them (a handoff: the view the observer had in the zone
+  /// it comes from, docs/world.md "Handoff"). At the next successful update (or apply_pairs) the
+  /// carried set replaces the observer's previous row (its own, or one of another generation of
+  /// its slot; a row is added when it had none), and the usual rule applies: each target stays,
+  /// without an enter event, iff it meets the AOI box grown by the margin and its class is seen;
+  /// otherwise it leaves. Ignored at that update: the observer itself, null, and handles not in
+  /// that update's columns (an observer not there is not carried). Calls for one observer before
+  /// an update add up; they stay pending across a refused update. Costs one load_previous of
+  /// every set to the engine in use (a copy) on the update that takes them.
+  void carry_visible(entity_id observer, std::span<const entity_id> targets);
+  /// Carried targets waiting for the next update (carry_visible).
+  [[nodiscard]] std::size_t carried_pending() const { return carry_.size(); }
+
   /// Rows of the last update (= its columns' n).
   [[nodiscard]] std::size_t observer_count() const { return ids_.size(); }
   [[nodiscard]] entity_id observer(std::size_t row) const { return ids_[row]; }
@@ -191,6 +206,9 @@ class interest_tracker {
   void adopt();
   /// Hands the last update's sets to `e` (load_previous) from the tracker's own copy.
   void hand_over(visibility_engine& e);
+  /// Hands `e` the last update's sets with the pending carried targets merged in (carry_visible),
+  /// for the update of `in`; the carry stays pending until that update is committed.
+  void hand_over_carried(visibility_engine& e, const entity_columns& in);
   [[nodiscard]] std::span<const entity_id> fetched_row(std::size_t row) const;
   void begin_update(const entity_columns& in);  // slot_bits_, slot_count_
   void map_rows_into(const std::vector<entity_id>& ids, std::vector<std::uint32_t>& row_of_slot) const;
@@ -231,6 +249,11 @@ class interest_tracker {
   row_lists vis_list_, enter_list_, leave_list_;
   std::vector<entity_id> own_vis_, own_enter_, own_leave_;
   std::vector<std::uint32_t> own_vis_off_{0}, own_enter_off_{0}, own_leave_off_{0};
+
+  // carry_visible's pending (observer, target) pairs, and the merged previous sets built from them.
+  std::vector<std::pair<entity_id, entity_id>> carry_;
+  std::vector<entity_id> carry_ids_, carry_vis_;
+  std::vector<std::uint32_t> carry_off_;
 };
 
 }  // namespace zone::interest

@@ -122,7 +122,8 @@ struct reader {
 };
 
 constexpr std::uint32_t ghost_magic = 0x31484753;    // "SGH1"
-constexpr std::uint32_t handoff_magic = 0x31464f48;  // "HOF1"
+constexpr std::uint32_t handoff_magic_v1 = 0x31464f48;  // "HOF1": no visible set
+constexpr std::uint32_t handoff_magic = 0x32464f48;     // "HOF2": a count and the visible set at the end
 
 std::uint16_t half_q(float h) {
   return static_cast<std::uint16_t>(std::clamp(std::lround(static_cast<double>(h) * 16.0), 0l, 65535l));
@@ -213,12 +214,16 @@ std::vector<std::uint8_t> encode(const handoff_record& h) {
   w.put(h.last_input);
   w.put(h.sent_us);
   w.put(h.sent_tick);
+  const std::size_t k = std::min(h.visible.size(), max_handoff_visible);
+  w.put(static_cast<std::uint32_t>(k));
+  for (std::size_t i = 0; i < k; ++i) w.put(h.visible[i]);
   return out;
 }
 
 std::optional<handoff_record> decode_handoff(std::span<const std::uint8_t> bytes) {
   reader r{bytes};
-  if (r.get<std::uint32_t>() != handoff_magic) return std::nullopt;
+  const auto magic = r.get<std::uint32_t>();
+  if (magic != handoff_magic && magic != handoff_magic_v1) return std::nullopt;
   handoff_record h;
   h.gid = r.get<std::uint64_t>();
   h.epoch = r.get<std::uint64_t>();
@@ -240,6 +245,13 @@ std::optional<handoff_record> decode_handoff(std::span<const std::uint8_t> bytes
   h.last_input = r.get<std::uint32_t>();
   h.sent_us = r.get<std::uint64_t>();
   h.sent_tick = r.get<std::uint64_t>();
+  if (magic == handoff_magic) {
+    // The count checked against the bytes before allocating: a hostile one reserves nothing.
+    const auto k = r.get<std::uint32_t>();
+    if (!r.ok || k > max_handoff_visible || bytes.size() - r.at != std::size_t{k} * sizeof(global_id)) return std::nullopt;
+    h.visible.resize(k);
+    for (auto& g : h.visible) g = r.get<global_id>();
+  }
   if (!r.ok || r.at != bytes.size()) return std::nullopt;
   if (kind > static_cast<std::uint8_t>(entity_kind::boss) || beh > static_cast<std::uint8_t>(behaviour::ghost)) return std::nullopt;
   h.desc.kind = static_cast<entity_kind>(kind);
@@ -614,6 +626,16 @@ handoff_status zone_link::apply_handoff(zone_world& w, const handoff_record& r, 
     }
     i = &bind(id, r.gid, role::owned);
   }
+  // Its view at the old owner, as this zone's handles (owned or ghosts; unknown ids skipped),
+  // becomes its previous set here in place of what this zone saw of it as a ghost (one zone's
+  // history: its owner's): the next step keeps each target within AOI + h.
+  std::vector<entity_id> carried;
+  carried.reserve(std::min(r.visible.size(), max_handoff_visible));
+  for (const global_id g : r.visible) {
+    if (carried.size() >= max_handoff_visible) break;
+    if (const entity_id v = local_of(g); v != null_entity && v != id) carried.push_back(v);
+  }
+  w.interest().carry_visible(id, carried);
   last_epoch_[r.gid] = r.epoch;
   i->epoch = r.epoch;
   i->revision = r.owner_revision;
@@ -645,6 +667,14 @@ std::vector<handoff_record> zone_link::collect_handoffs(zone_world& w, std::uint
     r.owner_revision = i->revision;
     r.sent_us = now_us;
     r.sent_tick = w.tick();
+    // Its view here after this tick's step (world-wide ids; targets without one are skipped).
+    const auto& t = w.tracker();
+    if (const std::size_t row = t.row_of(ids[k]); row != interest_tracker::npos) {
+      for (const entity_id v : t.visible(row)) {
+        if (r.visible.size() >= max_handoff_visible) break;
+        if (const global_id g = gid_of(v); g != 0) r.visible.push_back(g);
+      }
+    }
     out.push_back(r);
   }
   // Each becomes an in-transit ghost here (after the scan: changing behaviours does not move

@@ -100,8 +100,16 @@ struct handoff_record {
   std::uint32_t last_input = 0;      ///< the client's last input sequence applied
   std::uint64_t sent_us = 0;         ///< CLOCK_MONOTONIC when the sender decided (latency on one host)
   std::uint64_t sent_tick = 0;       ///< the sender's tick then
+  /// The entity's visible set at the old owner after its last step, as world-wide ids (at most
+  /// max_handoff_visible): the new owner's tracker takes it as the entity's previous set, so
+  /// targets held by hysteresis stay in view across the handoff (docs/world.md, "Handoff").
+  std::vector<global_id> visible;
   friend bool operator==(const handoff_record&, const handoff_record&) = default;
 };
+/// Most world-wide ids a handoff record carries in `visible` (8 bytes each): collect_handoffs
+/// keeps the first this many (ascending local handles), a decoder refuses a record with more.
+inline constexpr std::size_t max_handoff_visible = 16384;
+/// Wire format "HOF2" (with `visible`); a decoder also takes "HOF1" records (no `visible`: empty).
 [[nodiscard]] std::vector<std::uint8_t> encode(const handoff_record& r);
 [[nodiscard]] std::optional<handoff_record> decode_handoff(std::span<const std::uint8_t> bytes);
 

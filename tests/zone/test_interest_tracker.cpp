@@ -87,6 +87,119 @@ TEST_SUITE("zone.interest_tracker") {
 
 namespace {
 
+/// carry_visible on random worlds against the oracle's rule (tracker_harness.h, oracle::carry):
+/// every tick a few observers get carried sets (targets around them, within and beyond AOI + h,
+/// anywhere, with the observer itself, null, dead and unknown handles, shuffled; one observer in
+/// two calls), one of them a new entity in the slot of one just destroyed (slot reuse), one a
+/// new entity; the whole output is checked against the oracle and the run must have exercised
+/// each case.
+void run_carry_against_oracle(std::uint64_t seed, const run_config& c, int ticks,
+                              interest::visibility_engine* engine = nullptr) {
+  CAPTURE(seed);
+  CAPTURE(c.hysteresis);
+  CAPTURE(c.cap);
+  CAPTURE(c.lattice);
+  world w(seed, c.entities, c.lattice);
+  interest::thread_pool pool(c.threads);
+  interest::grid_finder finder(&pool);
+  interest_tracker tracker(finder, &pool, interest_options{c.hysteresis, c.cap, 7});
+  if (engine != nullptr) tracker.set_engine(engine);
+  oracle o;
+  std::mt19937_64 rng(seed ^ 0x9e3779b97f4a7c15ull);
+  const float h = c.hysteresis;
+  std::uint64_t kept_in_margin = 0, beyond = 0, filtered = 0, new_rows = 0, reused = 0;
+  id_list dead;  // handles of destroyed entities
+  for (int tick = 0; tick < ticks; ++tick) {
+    CAPTURE(tick);
+    struct carried {
+      entity_id observer;
+      id_list targets, before;  // before: its visible set in the last update
+      bool had_row;
+    };
+    std::vector<carried> carries;
+    if (tick > 0) {
+      auto& st = w.store;
+      // A new entity in the slot of one the last update had (another generation).
+      const entity_id victim = st.ids()[rng() % st.size()];
+      entity_desc d = *st.get(victim);
+      REQUIRE(st.destroy(victim));
+      dead.push_back(victim);
+      const entity_id fresh = st.create(d);
+      REQUIRE(fresh != null_entity);
+      const bool reuse = slot_of(fresh) == slot_of(victim) && tracker.row_of(victim) != interest_tracker::npos;
+      // And one more new entity (a new row).
+      d.position = {d.position.x + 3, d.position.y, d.position.z};
+      const entity_id other = st.create(d);
+      REQUIRE(other != null_entity);
+      const auto ids = st.ids();
+      const auto pos = st.positions();
+      for (int k = 0; k < 8; ++k) {
+        const entity_id ob = k == 0 ? fresh : k == 1 ? other : ids[rng() % ids.size()];
+        const std::size_t i = st.index_of(ob);
+        const fbox around_ob = around_grown(pos[i], st.aoi_half_extents()[i], 2 * h + 2);
+        carried cr{ob, {}, {}, tracker.row_of(ob) != interest_tracker::npos};
+        for (std::size_t j = 0; j < st.size(); ++j) {
+          if (meets(around(pos[j], st.presence_half_extents()[j]), around_ob) && rng() % 3 != 0) cr.targets.push_back(ids[j]);
+        }
+        cr.targets.push_back(ids[rng() % ids.size()]);  // anywhere
+        cr.targets.push_back(ob);                       // itself
+        cr.targets.push_back(null_entity);
+        cr.targets.push_back(dead[rng() % dead.size()]);  // a dead handle
+        cr.targets.push_back(0x7ffffffeu);                // never a handle here
+        std::shuffle(cr.targets.begin(), cr.targets.end(), rng);
+        if (cr.had_row) {
+          const auto v = tracker.visible(tracker.row_of(ob));
+          cr.before.assign(v.begin(), v.end());
+        }
+        if (k == 2) {  // two calls add up
+          const std::size_t half = cr.targets.size() / 2;
+          tracker.carry_visible(ob, std::span(cr.targets).first(half));
+          tracker.carry_visible(ob, std::span(cr.targets).subspan(half));
+        } else {
+          tracker.carry_visible(ob, cr.targets);
+        }
+        o.carry(ob, cr.targets);
+        if (k == 0 && reuse) ++reused;
+        carries.push_back(std::move(cr));
+      }
+      CHECK(tracker.carried_pending() > 0);
+    }
+    REQUIRE_FALSE(tracker.update(w.store.columns()).has_value());
+    if (engine != nullptr && c.cap == 0) REQUIRE(tracker.last_update_on_engine());
+    CHECK(tracker.carried_pending() == 0);
+    auto expected = o.step(w.store, h, c.cap);
+    check_tick(tracker, w.store, expected, h, c.cap != 0);
+    // What the carried sets did (the oracle judged them; these count that each case came up).
+    const auto& st = w.store;
+    for (const auto& cr : carries) {
+      const std::size_t i = st.index_of(cr.observer);
+      const auto vis = tracker.visible(tracker.row_of(cr.observer));
+      const fbox aoi = around(st.positions()[i], st.aoi_half_extents()[i]);
+      const fbox grown = around_grown(st.positions()[i], st.aoi_half_extents()[i], h);
+      for (const entity_id t : cr.targets) {
+        const std::size_t j = st.index_of(t);
+        if (j == entity_store::npos || t == cr.observer) continue;
+        const fbox body = around(st.positions()[j], st.presence_half_extents()[j]);
+        const bool now = std::binary_search(vis.begin(), vis.end(), t);
+        const bool was = std::binary_search(cr.before.begin(), cr.before.end(), t);
+        const bool seen = (st.visibility_classes()[j] & st.sees()[i]) != 0;
+        if (now && !was && !meets(body, aoi)) {
+          ++kept_in_margin;
+          if (!cr.had_row) ++new_rows;
+        }
+        if (!now && meets(body, grown) && !seen) ++filtered;
+        if (!now && !meets(body, grown)) ++beyond;
+      }
+    }
+    w.step();
+  }
+  CHECK(kept_in_margin > 0);
+  CHECK(new_rows > 0);
+  CHECK(beyond > 0);
+  CHECK(filtered > 0);
+  CHECK(reused > 0);
+}
+
 struct pinned_run {
   std::uint64_t seed;
   float hysteresis;
@@ -150,6 +263,48 @@ TEST_SUITE("zone.interest_tracker") {
                                                    {.rows_per_task = 3, .finder_view = false, .presence_grid = true});
       run_against_oracle(fresh_seed(), c, 50, &on_presence);
       CHECK(on_presence.last_on_grid());
+    }
+  }
+
+  TEST_CASE("carry_visible: a carried target stays within AOI + h and leaves beyond it, class-filtered; self, null and unknown handles ignored; new rows; slot reuse") {
+    scenario_carry();
+    const run_config configs[] = {{250, 4.0f, 0, false, 2}, {250, 3.0f, 0, true, 1}, {250, 4.0f, 5, false, 3}};
+    for (const auto& c : configs) run_carry_against_oracle(fresh_seed(), c, 40);
+    // The host reference engine as the set engine (the GPU engine's place): the same path.
+    interest::thread_pool pool(2);
+    interest::brute_force_finder brute(&pool);
+    interest::host_visibility_engine engine(brute, &pool, {.rows_per_task = 3, .finder_view = false});
+    scenario_carry(&engine);
+    interest::host_visibility_engine engine2(brute, &pool);
+    run_carry_against_oracle(fresh_seed(), configs[0], 40, &engine2);
+  }
+
+  TEST_CASE("carry_visible through apply_pairs: the same output as update") {
+    const std::uint64_t seed = fresh_seed();
+    CAPTURE(seed);
+    world w(seed, 200, false);
+    interest::grid_finder finder;
+    interest::brute_force_finder brute;
+    interest_tracker a(finder), b(finder);
+    interest::box_set boxes;
+    interest::pair_list pairs;
+    std::mt19937_64 rng(seed);
+    for (int tick = 0; tick < 20; ++tick) {
+      const auto ids = w.store.ids();
+      for (int k = 0; k < 5; ++k) {
+        const entity_id ob = ids[rng() % ids.size()];
+        id_list targets;
+        for (int m = 0; m < 20; ++m) targets.push_back(ids[rng() % ids.size()]);
+        a.carry_visible(ob, targets);
+        b.carry_visible(ob, targets);
+      }
+      REQUIRE_FALSE(a.update(w.store.columns()).has_value());
+      b.build_boxes(w.store.columns(), boxes);
+      REQUIRE_FALSE(brute.find(boxes, pairs).has_value());
+      REQUIRE_FALSE(b.apply_pairs(w.store.columns(), boxes, pairs).has_value());
+      CHECK(a.digest() == b.digest());
+      CHECK(b.carried_pending() == 0);
+      w.step();
     }
   }
 

@@ -45,7 +45,27 @@ struct row_result {
 /// Every observer against every target, O(n^2), with the rules written out one by one.
 class oracle {
  public:
+  /// interest_tracker::carry_visible's rule: at the next step, `observer`'s previous set is exactly
+  /// the targets carried for it since the last step (sorted, unique), less itself, null and
+  /// handles not in the store then; an observer not in the store then is not carried.
+  void carry(entity_id observer, const id_list& targets) {
+    if (observer == null_entity) return;
+    auto& p = pending_[observer];
+    p.insert(p.end(), targets.begin(), targets.end());
+  }
+
   std::map<entity_id, row_result> step(const entity_store& s, float h, std::uint32_t cap) {
+    for (const auto& [o, targets] : pending_) {
+      if (s.index_of(o) == entity_store::npos) continue;
+      id_list t;
+      for (const entity_id v : targets) {
+        if (v != null_entity && v != o && s.index_of(v) != entity_store::npos) t.push_back(v);
+      }
+      std::sort(t.begin(), t.end());
+      t.erase(std::unique(t.begin(), t.end()), t.end());
+      prev_[o] = std::move(t);
+    }
+    pending_.clear();
     std::map<entity_id, row_result> out;
     std::map<entity_id, id_list> next;
     const auto ids = s.ids();
@@ -84,6 +104,7 @@ class oracle {
 
  private:
   std::map<entity_id, id_list> prev_;
+  std::map<entity_id, id_list> pending_;  // carry's, until the next step
 };
 
 // ---- a random world --------------------------------------------------------------------------
@@ -410,6 +431,56 @@ inline void scenario_visibility(interest::visibility_engine* engine = nullptr) {
   REQUIRE(f.tracker.enters(r2).size() == 1);
   CHECK(f.tracker.enters(r2)[0] == c);
   CHECK(f.tracker.leaves(r2).empty());
+}
+
+inline void scenario_carry(interest::visibility_engine* engine = nullptr) {
+  // A's AOI is [-10, 10]; B's body is +-0.5; h = 4: in the margin for 10.5 < x <= 14.5.
+  pair_fixture f(4.0f, engine);
+  f.move_b(12.0f);
+  CHECK_FALSE(f.tick().visible);  // never entered
+  const entity_id carried[] = {f.b, f.a, null_entity, f.b};  // itself, null and a repeat ignored
+  f.tracker.carry_visible(f.a, carried);
+  auto s = f.tick();
+  CHECK(s.visible);  // held by the margin, as if it had entered before
+  CHECK_FALSE(s.entered);
+  CHECK_FALSE(s.left);
+  f.move_b(14.0f);
+  CHECK(f.tick().visible);
+  f.move_b(15.0f);  // beyond R + h: leaves
+  CHECK(f.tick().left);
+  const entity_id just_b[] = {f.b};
+  f.tracker.carry_visible(f.a, just_b);  // carried beyond R + h: leaves at once
+  s = f.tick();
+  CHECK_FALSE(s.visible);
+  CHECK(s.left);
+  f.move_b(12.0f);
+  CHECK_FALSE(f.tick().visible);
+  // A class A does not see: not kept.
+  REQUIRE(f.store.set_visibility(f.b, cb::stealth, cb::normal));
+  f.tracker.carry_visible(f.a, just_b);
+  CHECK_FALSE(f.tick().visible);
+  REQUIRE(f.store.set_visibility(f.b, cb::normal, cb::normal));
+  // The carried set replaces A's previous one: B, visible in the margin, is dropped by an empty
+  // carry, without a leave (the events are relative to the carried set).
+  f.tracker.carry_visible(f.a, just_b);
+  CHECK(f.tick().visible);
+  f.tracker.carry_visible(f.a, {});
+  s = f.tick();
+  CHECK_FALSE(s.visible);
+  CHECK_FALSE(s.left);
+  f.move_b(9.0f);  // within the AOI: enters anew
+  CHECK(f.tick().entered);
+  f.move_b(12.0f);
+  // Pending across a refused update.
+  f.tracker.carry_visible(f.a, just_b);
+  f.store.positions()[f.store.index_of(f.b)].x = std::nanf("");
+  REQUIRE(f.tracker.update(f.store.columns()).has_value());
+  CHECK(f.tracker.carried_pending() > 0);
+  f.move_b(12.0f);
+  s = f.tick();
+  CHECK(s.visible);
+  CHECK_FALSE(s.entered);
+  CHECK(f.tracker.carried_pending() == 0);
 }
 
 inline void scenario_non_finite(interest::visibility_engine* engine = nullptr) {
