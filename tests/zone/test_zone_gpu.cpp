@@ -155,6 +155,7 @@ TEST_SUITE("zone.gpu") {
     scenario_hysteresis(engine.get());
     scenario_teleports(engine.get());
     scenario_visibility(engine.get());
+    scenario_carry(engine.get());  // a handoff's carried set, through load_previous on the device
     scenario_non_finite(engine.get());
   }
 
