@@ -334,40 +334,98 @@ void nats_node::send_loop() {
       kvStore_Delete(kv_, key.c_str());
       continue;
     }
-    // 1. Ownership by compare-and-set: from (us, epoch - 1) at the revision we know to (them, epoch).
-    const std::string value = std::to_string(r.to) + " " + std::to_string(r.epoch);
+    send_handoff(r, 0);
+  }
+}
+
+cas_readback judge_cas_readback(std::string_view wanted, std::uint64_t from_revision, bool found,
+                                std::string_view value, std::uint64_t revision) {
+  if (found && value == wanted) return cas_readback::publish;
+  if (from_revision == 0 ? !found : (found && revision == from_revision)) return cas_readback::retry;
+  return cas_readback::conflict;
+}
+
+bool nats_node::ownership_cas(handoff_record& r, int fail_first) {
+  // From (us, epoch - 1) at the revision we know to (them, epoch). A failed CAS may have taken
+  // effect (a timeout whose update went through) or changed nothing (a timeout before it): the
+  // key read back tells which.
+  const std::string key = "e." + hex(r.gid);
+  const std::string value = std::to_string(r.to) + " " + std::to_string(r.epoch);
+  constexpr int attempts = 5;
+  natsStatus last = NATS_OK;
+  bool unreadable = false;
+  for (int attempt = 0; attempt < attempts; ++attempt) {
+    if (attempt > 0) std::this_thread::sleep_for(std::chrono::milliseconds(20 << (attempt - 1)));
     std::uint64_t rev = 0;
-    natsStatus s = r.owner_revision == 0
-                       ? kvStore_CreateString(&rev, kv_, key.c_str(), value.c_str())
-                       : kvStore_UpdateString(&rev, kv_, key.c_str(), value.c_str(), r.owner_revision);
-    if (s != NATS_OK) {
-      // Not ours per KV (or KV unreachable): the entity is not handed on; our in-transit copy expires.
-      ++stats_.handoff_cas_conflicts;
-      spdlog::warn("world '{}': handoff of {:x} to region {} refused by the ownership CAS: {}", opt_.world, r.gid, r.to,
-                   status_text(s));
-      continue;
+    const natsStatus s = attempt < fail_first       ? NATS_TIMEOUT
+                         : r.owner_revision == 0 ? kvStore_CreateString(&rev, kv_, key.c_str(), value.c_str())
+                                                 : kvStore_UpdateString(&rev, kv_, key.c_str(), value.c_str(), r.owner_revision);
+    if (s == NATS_OK) {
+      r.owner_revision = rev;
+      return true;
     }
-    r.owner_revision = rev;
-    // 2. The record on the stream, deduplicated by (gid, epoch) if a retry sends it twice.
-    const auto bytes = encode(r);
-    const std::string subj = subject("handoff", r.to);
-    const std::string msg_id = hex(r.gid) + "-" + std::to_string(r.epoch);
-    jsPubOptions po;
-    jsPubOptions_Init(&po);
-    po.MsgId = msg_id.c_str();
-    bool sent = false;
-    for (int attempt = 0; attempt < 5 && !sent; ++attempt) {
-      s = js_Publish(nullptr, js_, subj.c_str(), bytes.data(), static_cast<int>(bytes.size()), &po, nullptr);
-      sent = s == NATS_OK;
-      if (!sent) std::this_thread::sleep_for(std::chrono::milliseconds(20 << attempt));
+    last = s;
+    kvEntry* e = nullptr;
+    const natsStatus g = kvStore_Get(&e, kv_, key.c_str());  // NATS_NOT_FOUND: no entry, or deleted
+    if (g != NATS_OK && g != NATS_NOT_FOUND) {
+      unreadable = true;
+      last = g;
+      if (e) kvEntry_Destroy(e);
+      continue;  // the CAS again: harmless (it cannot apply twice), and it may settle it
     }
-    if (sent) {
-      ++stats_.handoffs_sent;
-    } else {
-      ++stats_.handoff_publish_failures;
-      spdlog::error("world '{}': handoff of {:x} to region {} not published: {}", opt_.world, r.gid, r.to, status_text(s));
+    unreadable = false;
+    const char* have = g == NATS_OK ? kvEntry_ValueString(e) : nullptr;
+    const std::string have_value = have ? have : "";
+    const std::uint64_t have_revision = g == NATS_OK ? kvEntry_Revision(e) : 0;
+    if (e) kvEntry_Destroy(e);
+    switch (judge_cas_readback(value, r.owner_revision, g == NATS_OK, have_value, have_revision)) {
+      case cas_readback::publish:
+        ++stats_.handoff_cas_confirmed;
+        spdlog::info("world '{}': handoff of {:x} to region {}: the CAS failed ({}) but had taken effect (revision {})",
+                     opt_.world, r.gid, r.to, status_text(s), have_revision);
+        r.owner_revision = have_revision;
+        return true;
+      case cas_readback::conflict:
+        // Not ours per KV: the entity is not handed on; our in-transit copy expires.
+        ++stats_.handoff_cas_conflicts;
+        spdlog::warn("world '{}': handoff of {:x} to region {} refused by the ownership CAS ({}): KV holds '{}'",
+                     opt_.world, r.gid, r.to, status_text(s), have_value);
+        return false;
+      case cas_readback::retry:
+        break;
     }
   }
+  ++stats_.handoff_cas_unknown;
+  spdlog::error("world '{}': handoff of {:x} to region {} not settled after {} CAS attempts ({}; {}): not published, "
+                "the entity is lost when its in-transit copy expires",
+                opt_.world, r.gid, r.to, attempts, unreadable ? "KV unreadable" : "KV unchanged", status_text(last));
+  return false;
+}
+
+std::uint64_t nats_node::send_handoff(handoff_record& r, int fail_first) {
+  // 1. Ownership by compare-and-set (with the read-back after a failure).
+  if (!ownership_cas(r, fail_first)) return 0;
+  // 2. The record on the stream, deduplicated by (gid, epoch) if a retry sends it twice.
+  const auto bytes = encode(r);
+  const std::string subj = subject("handoff", r.to);
+  const std::string msg_id = hex(r.gid) + "-" + std::to_string(r.epoch);
+  jsPubOptions po;
+  jsPubOptions_Init(&po);
+  po.MsgId = msg_id.c_str();
+  bool sent = false;
+  natsStatus s = NATS_OK;
+  for (int attempt = 0; attempt < 5 && !sent; ++attempt) {
+    s = js_Publish(nullptr, js_, subj.c_str(), bytes.data(), static_cast<int>(bytes.size()), &po, nullptr);
+    sent = s == NATS_OK;
+    if (!sent) std::this_thread::sleep_for(std::chrono::milliseconds(20 << attempt));
+  }
+  if (sent) {
+    ++stats_.handoffs_sent;
+  } else {
+    ++stats_.handoff_publish_failures;
+    spdlog::error("world '{}': handoff of {:x} to region {} not published: {}", opt_.world, r.gid, r.to, status_text(s));
+  }
+  return r.owner_revision;
 }
 
 void nats_node::answer_census(const std::string& reply) {

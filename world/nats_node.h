@@ -26,6 +26,7 @@
 #include <optional>
 #include <random>
 #include <string>
+#include <string_view>
 #include <thread>
 #include <unordered_map>
 #include <vector>
@@ -61,11 +62,27 @@ struct node_options {
 /// Counters of a node (game thread writes, any thread may read roughly).
 struct node_stats {
   std::atomic<std::uint64_t> handoffs_sent{0}, handoff_cas_conflicts{0}, handoff_publish_failures{0};
+  /// Ownership CASes that failed but had taken effect (the read-back found our value): published.
+  std::atomic<std::uint64_t> handoff_cas_confirmed{0};
+  /// Ownership CASes not settled after every attempt (KV unreadable, or unchanged while every CAS
+  /// failed): not published, the entity is lost (docs/world.md "Not done / limits").
+  std::atomic<std::uint64_t> handoff_cas_unknown{0};
   std::atomic<std::uint64_t> handoffs_applied{0}, handoff_duplicates{0}, redirects{0}, redirect_claims{0};
   std::atomic<std::uint64_t> inputs_forwarded{0}, inputs_received{0}, snapshot_requests{0}, players_abandoned{0};
   std::atomic<std::uint64_t> ghost_publish_failures{0}, ghost_inbox_dropped{0};
   std::atomic<std::uint64_t> handoffs_no_room{0};  ///< records offered to a full zone, handed back to the stream to retry
 };
+
+/// What a failed ownership CAS was, judged by the key read back after it (docs/world.md "Handoff").
+enum class cas_readback : std::uint8_t {
+  publish,   ///< KV holds the value we wanted: the CAS took effect (only its reply was lost)
+  retry,     ///< KV unchanged (still at the revision we CAS'd from; no entry when we created): try again
+  conflict,  ///< anything else (another value, or the record gone): the entity is not ours
+};
+/// `wanted`: the value the CAS wrote; `from_revision`: the revision it CAS'd from (0: a create);
+/// `found`: the key has a live entry (false: none, or deleted), whose `value` and `revision` follow.
+[[nodiscard]] cas_readback judge_cas_readback(std::string_view wanted, std::uint64_t from_revision, bool found,
+                                              std::string_view value, std::uint64_t revision);
 
 /// One zone's NATS side; a zone_extension for zone_server.
 class nats_node final : public zone_extension {
@@ -100,6 +117,12 @@ class nats_node final : public zone_extension {
   void forward_input(entity_id e, const vec3& intent, std::uint32_t sequence) override;
   [[nodiscard]] bool must_stop() const override { return lease_lost_.load(); }
 
+  /// Testing hook (tests/world/test_world_nats.cpp): runs the sender thread's path for `r` (the
+  /// ownership CAS with its read-back, then the publish) on the calling thread, the first
+  /// `fail_first` CAS attempts taken as failed without being sent (a timeout that changed
+  /// nothing). Returns the KV revision its CAS settled at (0: not ours, or not settled).
+  std::uint64_t send_handoff_for_testing(handoff_record r, int fail_first = 0) { return send_handoff(r, fail_first); }
+
  private:
   nats_node() = default;
   struct inbound_msg {
@@ -116,6 +139,8 @@ class nats_node final : public zone_extension {
   void heartbeat_loop();
   void fetch_loop();
   void send_loop();
+  std::uint64_t send_handoff(handoff_record& r, int fail_first);  ///< CAS and publish; the revision or 0
+  bool ownership_cas(handoff_record& r, int fail_first);           ///< true: KV names r.to by our CAS
   [[nodiscard]] std::string subject(const char* what, std::uint32_t region) const;
   bool refresh_addresses();
   void answer_census(const std::string& reply);

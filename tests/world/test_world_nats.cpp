@@ -1,13 +1,14 @@
 // world/nats_node against a real nats-server (started by the test on a free loopback port, stopped
 // by pid), with in-process zones: regions claimed by CAS, handoffs over JetStream with every
 // entity owned exactly once (the zones' census and the ownership records in KV agree), replays
-// refused, a player's redirect, a stalled neighbour, a full zone. A zone-server process killed with
-// SIGKILL and restarted is test_world_script_kill's (scripts/world.sh --kill). Without nats-server
-// it fails (configuring says so).
+// refused, a failed ownership CAS read back, a player's redirect, a stalled neighbour, a full
+// zone. A zone-server process killed with SIGKILL and restarted is test_world_script_kill's
+// (scripts/world.sh --kill). Without nats-server it fails (configuring says so).
 #include <doctest/doctest.h>
 
 #include <nats/nats.h>
 
+#include <cstdio>
 #include <cstring>
 #include <filesystem>
 #include <map>
@@ -124,9 +125,157 @@ std::map<global_id, std::uint32_t> kv_owners(const std::string& url, const std::
   return out;
 }
 
+/// A gid as the node spells it in KV keys (16 hex digits).
+std::string hex_id(global_id g) {
+  char b[17];
+  std::snprintf(b, sizeof b, "%016llx", static_cast<unsigned long long>(g));
+  return b;
+}
+
 }  // namespace
 
+/// The world's KV bucket and handoff stream, opened by the test itself (its own connection).
+struct world_kv {
+  natsConnection* nc = nullptr;
+  jsCtx* js = nullptr;
+  kvStore* kv = nullptr;
+  std::string world;
+  world_kv(const std::string& url, std::string w) : world(std::move(w)) {
+    REQUIRE(natsConnection_ConnectTo(&nc, url.c_str()) == NATS_OK);
+    REQUIRE(natsConnection_JetStream(&js, nc, nullptr) == NATS_OK);
+    REQUIRE(js_KeyValue(&kv, js, ("world-" + world).c_str()) == NATS_OK);
+  }
+  ~world_kv() {
+    kvStore_Destroy(kv);
+    jsCtx_Destroy(js);
+    natsConnection_Destroy(nc);
+  }
+  /// (value, revision) of `key`; revision 0 when it has no entry.
+  std::pair<std::string, std::uint64_t> get(const std::string& key) const {
+    kvEntry* e = nullptr;
+    if (kvStore_Get(&e, kv, key.c_str()) != NATS_OK) return {"", 0};
+    std::pair<std::string, std::uint64_t> out{kvEntry_ValueString(e), kvEntry_Revision(e)};
+    kvEntry_Destroy(e);
+    return out;
+  }
+  std::uint64_t stream_messages() const {
+    jsStreamInfo* si = nullptr;
+    jsErrCode jerr{};
+    REQUIRE(js_GetStreamInfo(&si, js, ("WORLD_" + world).c_str(), nullptr, &jerr) == NATS_OK);
+    const std::uint64_t n = si->State.Msgs;
+    jsStreamInfo_Destroy(si);
+    return n;
+  }
+};
+
 TEST_SUITE("world.nats") {
+  TEST_CASE("judge_cas_readback: our value publishes, an unchanged entry retries, anything else conflicts") {
+    // An update from revision 7 to "1 5".
+    CHECK(judge_cas_readback("1 5", 7, true, "1 5", 8) == cas_readback::publish);   // took effect, reply lost
+    CHECK(judge_cas_readback("1 5", 7, true, "1 5", 12) == cas_readback::publish);  // our value (only we write epoch 5)
+    CHECK(judge_cas_readback("1 5", 7, true, "0 4", 7) == cas_readback::retry);     // unchanged
+    CHECK(judge_cas_readback("1 5", 7, true, "0 4", 9) == cas_readback::conflict);  // rewritten (same value, newer revision)
+    CHECK(judge_cas_readback("1 5", 7, true, "2 5", 9) == cas_readback::conflict);  // someone else's handoff
+    CHECK(judge_cas_readback("1 5", 7, false, "", 0) == cas_readback::conflict);    // the record gone
+    CHECK(judge_cas_readback("1 15", 7, true, "1 1", 9) == cas_readback::conflict); // a prefix is not our value
+    // A create of "1 1".
+    CHECK(judge_cas_readback("1 1", 0, false, "", 0) == cas_readback::retry);      // still no entry
+    CHECK(judge_cas_readback("1 1", 0, true, "1 1", 3) == cas_readback::publish);  // took effect
+    CHECK(judge_cas_readback("1 1", 0, true, "2 1", 3) == cas_readback::conflict); // someone else created it
+  }
+
+  TEST_CASE("a failed ownership CAS is read back: taken effect publishes once, unchanged retries, another value conflicts") {
+    nats_server ns;
+    REQUIRE_FALSE(ns.url.empty());
+    const auto c = small_world(1);
+    std::string err;
+    auto node = nats_node::join(options(ns.url, "cas", 2, 1, c), c, &err);
+    REQUIRE_MESSAGE(node != nullptr, err);
+    world_kv w(ns.url, "cas");
+    const auto& st = node->stats();
+    const std::uint32_t us = node->region(), them = 1 - us;
+    const auto record = [&](global_id gid, std::uint64_t epoch, std::uint64_t from_revision) {
+      handoff_record r;
+      r.gid = gid;
+      r.epoch = epoch;
+      r.from = us;
+      r.to = them;
+      r.owner_revision = from_revision;
+      return r;
+    };
+    const auto own = [&](global_id gid, std::uint64_t epoch) {  // KV names us at `epoch`: its revision
+      std::uint64_t rev = 0;
+      REQUIRE(kvStore_PutString(&rev, w.kv, ("e." + hex_id(gid)).c_str(),
+                                (std::to_string(us) + " " + std::to_string(epoch)).c_str()) == NATS_OK);
+      return rev;
+    };
+    const std::string wanted = std::to_string(them) + " 5";
+    const std::uint64_t msgs0 = w.stream_messages();
+
+    // 1. The CAS took effect but its reply was lost: we (the test) did it first, so the node's CAS
+    // from the stale revision fails; the read-back finds our value and the record is published.
+    {
+      const global_id g = 0xA1;
+      const std::uint64_t r0 = own(g, 4);
+      std::uint64_t r1 = 0;
+      REQUIRE(kvStore_UpdateString(&r1, w.kv, ("e." + hex_id(g)).c_str(), wanted.c_str(), r0) == NATS_OK);
+      CHECK(node->send_handoff_for_testing(record(g, 5, r0)) == r1);
+      CHECK(st.handoff_cas_confirmed.load() == 1);
+      CHECK(st.handoffs_sent.load() == 1);
+      CHECK(w.stream_messages() == msgs0 + 1);
+      // The sender resolving it again (a second timeout) publishes again: the stream's dedupe keeps one.
+      CHECK(node->send_handoff_for_testing(record(g, 5, r0)) == r1);
+      CHECK(st.handoff_cas_confirmed.load() == 2);
+      CHECK(w.stream_messages() == msgs0 + 1);
+      CHECK(w.get("e." + hex_id(g)) == std::pair{wanted, r1});  // nothing written by the read-back
+    }
+    // 2. A CAS that changed nothing (two attempts lost before reaching NATS): retried, succeeds.
+    {
+      const global_id g = 0xB2;
+      const std::uint64_t r0 = own(g, 4);
+      const std::uint64_t got = node->send_handoff_for_testing(record(g, 5, r0), 2);
+      const auto kv = w.get("e." + hex_id(g));
+      CHECK(kv.first == wanted);
+      CHECK(kv.second > r0);
+      CHECK(got == kv.second);
+      // A create (no record yet) likewise.
+      const global_id h = 0xB3;
+      const std::uint64_t got_h = node->send_handoff_for_testing(record(h, 1, 0), 1);
+      const auto kvh = w.get("e." + hex_id(h));
+      CHECK(kvh.first == std::to_string(them) + " 1");
+      CHECK(got_h == kvh.second);
+      CHECK(st.handoff_cas_confirmed.load() == 2);
+      CHECK(st.handoff_cas_conflicts.load() == 0);
+      CHECK(w.stream_messages() == msgs0 + 3);
+    }
+    // 3. Someone else's value: a conflict, nothing published, KV untouched.
+    {
+      const global_id g = 0xC3;
+      const std::uint64_t r0 = own(g, 4);
+      std::uint64_t r1 = 0;
+      REQUIRE(kvStore_UpdateString(&r1, w.kv, ("e." + hex_id(g)).c_str(), (std::to_string(them) + " 9").c_str(), r0) ==
+              NATS_OK);
+      CHECK(node->send_handoff_for_testing(record(g, 5, r0)) == 0);
+      CHECK(st.handoff_cas_conflicts.load() == 1);
+      CHECK(w.get("e." + hex_id(g)) == std::pair{std::to_string(them) + " 9", r1});
+      // A create whose key another zone holds: a conflict too.
+      CHECK(node->send_handoff_for_testing(record(g, 1, 0)) == 0);
+      CHECK(st.handoff_cas_conflicts.load() == 2);
+      CHECK(w.stream_messages() == msgs0 + 3);
+    }
+    // 4. Every attempt fails while KV stays unchanged: not settled, counted apart, not published.
+    {
+      const global_id g = 0xD4;
+      const std::uint64_t r0 = own(g, 4);
+      CHECK(node->send_handoff_for_testing(record(g, 5, r0), 100) == 0);
+      CHECK(st.handoff_cas_unknown.load() == 1);
+      CHECK(w.get("e." + hex_id(g)) == std::pair{std::to_string(us) + " 4", r0});
+      CHECK(w.stream_messages() == msgs0 + 3);
+    }
+    CHECK(st.handoffs_sent.load() == 4);
+    CHECK(st.handoff_publish_failures.load() == 0);
+  }
+
   TEST_CASE("regions are claimed by CAS: one zone each, a full world refuses, leaving frees a region") {
     nats_server ns;
     REQUIRE_FALSE(ns.url.empty());
@@ -179,7 +328,8 @@ TEST_SUITE("world.nats") {
     // Drain: apply what is in flight without handing off more.
     const auto sent = [&] {
       std::uint64_t n = 0;
-      for (auto& z : zones) n += z->node->link().stats().handoffs_out - z->node->stats().handoff_cas_conflicts.load();
+      for (auto& z : zones) n += z->node->link().stats().handoffs_out - z->node->stats().handoff_cas_conflicts.load() -
+             z->node->stats().handoff_cas_unknown.load();
       return n;
     };
     const auto applied = [&] {
