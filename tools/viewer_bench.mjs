@@ -21,7 +21,7 @@ const [mode, ...rest] = process.argv.slice(2);
 const args = {};
 for (let i = 0; i < rest.length; ++i) if (rest[i].startsWith('--')) args[rest[i].slice(2)] = rest[i + 1];
 if (!['tick', 'fps'].includes(mode) || !args.server) {
-  console.log('usage: node tools/viewer_bench.mjs tick|fps --server ZONE_SERVER [--npcs N] [--phase-s S] [--rounds R] [--viewer page|socket] [--seconds S] [--csv FILE]');
+  console.log('usage: node tools/viewer_bench.mjs tick|fps --server ZONE_SERVER [--npcs N] [--phase-s S] [--rounds R] [--viewer page|socket] [--seconds S] [--server-args "ARGS"] [--pause-server 1] [--csv FILE] [--screenshot PREFIX.png]');
   process.exit(mode === '--help' || mode === 'help' ? 0 : 2);
 }
 const chromiumPath = args.chromium || process.env.ZONE_CHROMIUM || '/usr/bin/chromium';
