@@ -24,6 +24,20 @@ void put_bytes(std::uint8_t*& at, const void* data, std::size_t bytes) {
 
 std::size_t padded4(std::size_t n) { return (n + 3) & ~std::size_t{3}; }
 
+/// The columns a layout and a change list share, `n` rows each: a u32 key per row (the entity's id
+/// or its index), then the AOI and presence half-extents, classes, masks and kinds, padded to 4.
+void put_rows(std::uint8_t*& at, std::size_t n, const std::uint32_t* keys, const float* aoi_half,
+              const float* presence_half, const std::uint32_t* classes, const std::uint32_t* sees,
+              const std::uint8_t* kinds) {
+  put_bytes(at, keys, 4 * n);
+  put_bytes(at, aoi_half, 12 * n);
+  put_bytes(at, presence_half, 12 * n);
+  put_bytes(at, classes, 4 * n);
+  put_bytes(at, sees, 4 * n);
+  put_bytes(at, kinds, n);
+  for (std::size_t k = n; k < padded4(n); ++k) *at++ = 0;
+}
+
 std::size_t layout_bytes(std::size_t n) { return n * (layout_entity_bytes - 1) + padded4(n); }
 std::size_t changes_bytes(std::size_t m) { return 4 + m * (change_entity_bytes - 1) + padded4(m); }
 
@@ -46,8 +60,8 @@ T read_at(const std::uint8_t* at) {
 void encode_tick(std::vector<std::uint8_t>& out, std::uint64_t tick, std::span<const float> positions,
                  const layout_view* layout, std::uint32_t layout_seq, const changes_view* changes) {
   const std::size_t n = positions.size() / 3;
-  const std::size_t m = changes != nullptr && layout == nullptr ? changes->index.size() : 0;
   const bool with_changes = changes != nullptr && layout == nullptr;
+  const std::size_t m = with_changes ? changes->index.size() : 0;
   const std::size_t total =
       header_bytes + 12 * n + (layout ? layout_bytes(n) : 0) + (with_changes ? changes_bytes(m) : 0);
   out.resize(total);
@@ -60,22 +74,12 @@ void encode_tick(std::vector<std::uint8_t>& out, std::uint64_t tick, std::span<c
   put(at, layout_seq);
   put_bytes(at, positions.data(), 12 * n);
   if (layout) {
-    put_bytes(at, layout->ids.data(), 4 * n);
-    put_bytes(at, layout->aoi_half.data(), 12 * n);
-    put_bytes(at, layout->presence_half.data(), 12 * n);
-    put_bytes(at, layout->classes.data(), 4 * n);
-    put_bytes(at, layout->sees.data(), 4 * n);
-    put_bytes(at, layout->kinds.data(), n);
-    for (std::size_t k = n; k < padded4(n); ++k) *at++ = 0;
+    put_rows(at, n, layout->ids.data(), layout->aoi_half.data(), layout->presence_half.data(), layout->classes.data(),
+             layout->sees.data(), layout->kinds.data());
   } else if (with_changes) {
     put(at, static_cast<std::uint32_t>(m));
-    put_bytes(at, changes->index.data(), 4 * m);
-    put_bytes(at, changes->aoi_half.data(), 12 * m);
-    put_bytes(at, changes->presence_half.data(), 12 * m);
-    put_bytes(at, changes->classes.data(), 4 * m);
-    put_bytes(at, changes->sees.data(), 4 * m);
-    put_bytes(at, changes->kinds.data(), m);
-    for (std::size_t k = m; k < padded4(m); ++k) *at++ = 0;
+    put_rows(at, m, changes->index.data(), changes->aoi_half.data(), changes->presence_half.data(),
+             changes->classes.data(), changes->sees.data(), changes->kinds.data());
   }
 }
 
