@@ -96,12 +96,7 @@ std::optional<box_error> validate(const box_set& boxes, thread_pool* pool) {
   run_tasks(n >= 65536 ? pool : nullptr, chunks, [&](std::size_t c) {
     bool ok = true;
     for (std::size_t i = n * c / chunks, e = n * (c + 1) / chunks; i < e; ++i) {
-      // (lo <= hi) is false for NaN; the finite tests catch infinities.
-      const bool good = boxes.lo_x[i] <= boxes.hi_x[i] && boxes.lo_y[i] <= boxes.hi_y[i] &&
-                        boxes.lo_z[i] <= boxes.hi_z[i] && std::isfinite(boxes.lo_x[i]) && std::isfinite(boxes.hi_x[i]) &&
-                        std::isfinite(boxes.lo_y[i]) && std::isfinite(boxes.hi_y[i]) && std::isfinite(boxes.lo_z[i]) &&
-                        std::isfinite(boxes.hi_z[i]);
-      ok &= good;
+      ok &= valid_bounds(boxes.lo_x[i], boxes.lo_y[i], boxes.lo_z[i], boxes.hi_x[i], boxes.hi_y[i], boxes.hi_z[i]);
     }
     chunk_ok[c] = ok ? 1 : 0;
   });

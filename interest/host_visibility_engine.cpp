@@ -11,12 +11,12 @@
 
 #include <algorithm>
 #include <array>
-#include <cmath>
-#include <limits>
 #include <atomic>
 #include <bit>
 #include <chrono>
+#include <cmath>
 #include <functional>
+#include <limits>
 #include <stdexcept>
 #include <string>
 #include <utility>
@@ -501,11 +501,8 @@ host_visibility_engine::grid_result host_visibility_engine::grid_candidates(cons
       const float glx = px - gx, gly = py - gy, glz = pz - gz, ghx = px + gx, ghy = py + gy, ghz = pz + gz;
       const float bx = body[3 * k], by = body[3 * k + 1], bz = body[3 * k + 2];
       const presence_box p{px - bx, py - by, pz - bz, px + bx, py + by, pz + bz};
-      const bool g_ok = glx <= ghx && gly <= ghy && glz <= ghz && std::isfinite(glx) && std::isfinite(gly) &&
-                        std::isfinite(glz) && std::isfinite(ghx) && std::isfinite(ghy) && std::isfinite(ghz);
-      const bool p_ok = p.lo_x <= p.hi_x && p.lo_y <= p.hi_y && p.lo_z <= p.hi_z && std::isfinite(p.lo_x) &&
-                        std::isfinite(p.lo_y) && std::isfinite(p.lo_z) && std::isfinite(p.hi_x) &&
-                        std::isfinite(p.hi_y) && std::isfinite(p.hi_z);
+      const bool g_ok = valid_bounds(glx, gly, glz, ghx, ghy, ghz);
+      const bool p_ok = valid_bounds(p.lo_x, p.lo_y, p.lo_z, p.hi_x, p.hi_y, p.hi_z);
       if (!g_ok || !p_ok) {
         if (b.bad == no_pair) b.bad = g_ok ? 2 * k + 1 : 2 * k;
         continue;
