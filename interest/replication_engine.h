@@ -8,6 +8,7 @@
 
 #include <cstddef>
 #include <cstdint>
+#include <functional>
 
 #include "visibility_engine.h"
 
@@ -139,8 +140,15 @@ class replication_engine {
   /// stage() or run(). Throws std::runtime_error on a device error (then call forget_all()).
   /// With `rows` (non-null, from visibility_engine::resident_visible of an engine on the same
   /// device; only when reads_resident()), each job's visible set is read there in place, by row.
+  /// `while_waiting` (non-null and non-empty): host work that needs none of the output, called
+  /// once on the calling thread after the device's work is queued and before run() waits for it
+  /// (as visibility_input::while_waiting), so that it runs in the device's shadow. An engine
+  /// without a device calls it once anywhere in run(). If run() throws, it may not have been
+  /// called (zone::replicator then runs it itself); exceptions it throws pass through run().
+  /// A pointer, so that the caller passes a std::function holding a std::ref (no allocation a tick).
   [[nodiscard]] virtual output run(const replication_rules& rules, std::size_t client_count,
-                                   const visibility_engine::resident_lists* rows = nullptr) = 0;
+                                   const visibility_engine::resident_lists* rows = nullptr,
+                                   const std::function<void()>* while_waiting = nullptr) = 0;
   /// Whether run() can read a GPU visibility engine's resident rows.
   [[nodiscard]] virtual bool reads_resident() const { return false; }
 

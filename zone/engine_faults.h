@@ -75,9 +75,10 @@ class faulty_replication_engine final : public interest::replication_engine {
     return inner_.stage(entities, slots, jobs, visible);
   }
   output run(const interest::replication_rules& rules, std::size_t client_count,
-             const interest::visibility_engine::resident_lists* rows) override {
-    fault_.check("replication run");
-    return inner_.run(rules, client_count, rows);
+             const interest::visibility_engine::resident_lists* rows,
+             const std::function<void()>* while_waiting) override {
+    fault_.check("replication run");  // before while_waiting: the replicator runs it then
+    return inner_.run(rules, client_count, rows, while_waiting);
   }
   [[nodiscard]] bool reads_resident() const override { return inner_.reads_resident(); }
   void set_frame_format(const interest::replication_frame_format& format) override { inner_.set_frame_format(format); }

@@ -6,6 +6,7 @@
 #include <functional>
 #include <cmath>
 #include <cstring>
+#include <exception>
 #include <stdexcept>
 
 #include "zone/replicator.h"
@@ -453,7 +454,7 @@ void replicator::set_engine(interest::replication_engine* engine) {
 void replicator::build_on_engine(std::span<const replication_request> requests, const entity_store& store,
                                  const interest::interest_tracker& tracker, std::uint64_t tick, std::uint64_t server_time_us,
                                  interest::thread_pool* pool, const frame_sink& sink, const chunk_sink& chunk_done,
-                                 const frame_room& room) {
+                                 const frame_room& room, const std::function<void()>* while_waiting) {
   // Phase clocks: wall always, the process's CPU time when asked (set_phase_cpu_timing).
   replication_phase_times times;
   times.cpu = static_cast<bool>(phase_cpu_);
@@ -582,7 +583,7 @@ void replicator::build_on_engine(std::span<const replication_request> requests, 
   // (always, whatever park_between_phases says).
   if (pool != nullptr) pool->park();
   phase_end(times.stage_ms, times.stage_cpu_ms);
-  const auto out = engine_->run(rules, clients_.size(), resident ? &rows : nullptr);
+  const auto out = engine_->run(rules, clients_.size(), resident ? &rows : nullptr, while_waiting);
   phase_end(times.engine_ms, times.engine_cpu_ms);
 
   // The frames are the engine's, whole but for the enters' class, half extents and kind (from
@@ -650,18 +651,43 @@ void replicator::build_on_engine(std::span<const replication_request> requests, 
 void replicator::build_many(std::span<const replication_request> requests, const entity_store& store,
                             const interest::interest_tracker& tracker, std::uint64_t tick, std::uint64_t server_time_us,
                             interest::thread_pool* pool, const frame_sink& sink, const chunk_sink& chunk_done,
-                            const frame_room& room) {
-  if (requests.empty()) return;
-  if (on_engine()) {
+                            const frame_room& room, const std::function<void()>* side_work) {
+  // The caller's side work, exactly once per call: through `once`, which an engine calls while
+  // the device works; else (the CPU path, no requests, an engine that threw before calling it)
+  // after the frames. What it throws is held until then, so that it never reads as the engine's
+  // failure, and rethrown.
+  const bool has_side = side_work != nullptr && static_cast<bool>(*side_work);
+  bool side_ran = false;
+  std::exception_ptr side_error;
+  const auto once = [&] {
+    if (side_ran) return;
+    side_ran = true;
     try {
-      build_on_engine(requests, store, tracker, tick, server_time_us, pool, sink, chunk_done, room);
-      return;
+      (*side_work)();
+    } catch (...) {
+      side_error = std::current_exception();
+    }
+  };
+  // By reference: no allocation (a reference_wrapper fits std::function's own storage).
+  const std::function<void()> once_ref = std::ref(once);
+  const auto finish = [&] {
+    if (has_side) once();
+    if (side_error) std::rethrow_exception(side_error);
+  };
+  if (requests.empty()) return finish();
+  if (on_engine()) {
+    bool built = false;
+    try {
+      build_on_engine(requests, store, tracker, tick, server_time_us, pool, sink, chunk_done, room,
+                      has_side ? &once_ref : nullptr);
+      built = true;
     } catch (const std::exception& e) {
       // Nothing reached the sink: this tick is built on the CPU, every client starting over.
       engine_error_ = e.what();
       if (engine_error_.empty()) engine_error_ = "replication engine failed";
       reset_all_clients();
     }
+    if (built) return finish();  // outside the try: the side work's exception is not the engine's
   }
   // The snapshot: one quantization per entity rather than one per update sent.
   const std::size_t n = store.size();
@@ -712,6 +738,7 @@ void replicator::build_many(std::span<const replication_request> requests, const
       if (chunk_done) chunk_done(begin, end);
     }
   });
+  finish();
 }
 
 }  // namespace zone

@@ -180,10 +180,20 @@ class replicator {
   /// sink's span is that memory. On an engine the frame is copied there from the engine's output.
   /// Unset: the sink's span is in the replicator's (or the engine's) own buffer.
   using frame_room = std::function<std::span<std::uint8_t>(std::size_t k, std::size_t bytes)>;
+  /// `side_work` (optional: null or empty for none): the caller's own host work, which needs
+  /// none of the frames and must not change the store or the tracker; build_many runs it exactly
+  /// once per call, on the calling thread, whatever path the call takes (also with no requests):
+  /// on an engine, inside engine.run() while the device works (the thread would otherwise spin
+  /// there: the work costs the tick nothing up to the device's time), counted in
+  /// phase_times().engine_ms; on the CPU (no engine, or an engine that failed before calling
+  /// it), after the last frame reached the sink and chunk_done. The pool's workers are parked
+  /// or idle meanwhile; no sink call runs at the same time. What it throws leaves build_many
+  /// after the frames (it is never taken for the engine's failure). Passed as a pointer so that
+  /// the caller can hand a std::function holding a std::ref (no allocation a tick).
   void build_many(std::span<const replication_request> requests, const entity_store& store,
                   const interest::interest_tracker& tracker, std::uint64_t tick, std::uint64_t server_time_us,
                   interest::thread_pool* pool, const frame_sink& sink, const chunk_sink& chunk_done = {},
-                  const frame_room& room = {});
+                  const frame_room& room = {}, const std::function<void()>* side_work = nullptr);
 
   /// Runs build_many's decisions on `engine` (interest/replication_engine.h; the GPU:
   /// gpu/replication.h), which then holds the clients' views; null: back to the CPU. The frames
@@ -257,7 +267,7 @@ class replicator {
   void build_on_engine(std::span<const replication_request> requests, const entity_store& store,
                        const interest::interest_tracker& tracker, std::uint64_t tick, std::uint64_t server_time_us,
                        interest::thread_pool* pool, const frame_sink& sink, const chunk_sink& chunk_done,
-                       const frame_room& room);
+                       const frame_room& room, const std::function<void()>* while_waiting);
   /// Every active client starts over (its next frame is a reset).
   void reset_all_clients();
 

@@ -15,7 +15,9 @@
 #include <cerrno>
 #include <cmath>
 #include <cstring>
+#include <functional>
 #include <thread>
+#include <utility>
 
 namespace zone {
 
@@ -574,6 +576,15 @@ void zone_server::replicate() {
   }
   frame_bytes_.resize(requests_.size());
   outgoing_.resize(requests_.size());
+  // A viewer snapshot due this tick is filled while the replication engine waits for the device
+  // (build_many's side work: the store and the tracker are final after the step and stay so until
+  // publish_viewer, which then only publishes). The lambda is held by reference: no allocation.
+  const auto viewer_work = [&] {
+    if (!requests_.empty() && replicator_.on_engine()) ++stats_.viewer_snapshots_in_wait;
+    viewer_take_step();
+  };
+  const std::function<void()> viewer_side = std::ref(viewer_work);
+  const bool viewer_due = viewer_ && viewer_->viewers() > 0 && viewer_snapshot_due();
   replicator_.build_many(
       requests_, world_->store(), world_->tracker(), world_->tick(), now, pool_.get(),
       [&](std::size_t k, std::span<const std::uint8_t> frame, const replication_stats& st) {
@@ -596,7 +607,8 @@ void zone_server::replicate() {
       },
       // Each frame is written straight into its worker's net::frame_arena (blocks taken again
       // once their frames are written: no allocation a frame, no copy out of the writer).
-      [](std::size_t, std::size_t bytes) { return replication_arena().reserve(bytes); });
+      [](std::size_t, std::size_t bytes) { return replication_arena().reserve(bytes); },
+      viewer_due ? &viewer_side : nullptr);
   for (const std::size_t bytes : frame_bytes_) stats_.bytes_sent += bytes;
   stats_.frames_sent += frame_bytes_.size();
 }
@@ -792,17 +804,13 @@ void zone_server::fill_viewer_stats(net::viewer_stats& s) const {
   s.world[0] = cfg_.world.lo.x, s.world[1] = cfg_.world.lo.y, s.world[2] = cfg_.world.hi.x, s.world[3] = cfg_.world.hi.y;
 }
 
-void zone_server::publish_viewer() {
-  if (!viewer_) return;
-  if (viewer_->viewers() == 0) {
-    if (!viewer_watch_ids_.empty()) {
-      viewer_watch_.clear();
-      viewer_watch_ids_.clear();
-      world_->set_watched({});
-    }
-    viewer_->next_stats().ticks.clear();
-    return;
-  }
+bool zone_server::viewer_snapshot_due() const {
+  const auto every = static_cast<std::uint64_t>(std::max(1.0, std::round(cfg_.tick_rate_hz / cfg_.viewer_hz)));
+  return world_->tick() % every == 0;
+}
+
+void zone_server::viewer_take_step() {
+  viewer_step_taken_ = true;
   const interest::interest_tracker& tr = world_->tracker();
   const std::uint64_t tick = world_->tick();
   // The watched entities' enters and leaves of this step (a window of the latest 64 each).
@@ -812,13 +820,28 @@ void zone_server::publish_viewer() {
     for (const entity_id id : tr.enters(row)) w.add({tick, id, true});
     for (const entity_id id : tr.leaves(row)) w.add({tick, id, false});
   }
-  // A snapshot every tick_rate / viewer_hz ticks: filled into the viewer's free buffer and handed
-  // over with one atomic exchange (no lock, no allocation once the buffers have grown).
-  const auto every = static_cast<std::uint64_t>(std::max(1.0, std::round(cfg_.tick_rate_hz / cfg_.viewer_hz)));
-  if (tick % every == 0) {
-    fill_viewer_snapshot(viewer_->next_snapshot());
-    viewer_->publish();
+  // A snapshot every tick_rate / viewer_hz ticks, filled into the viewer's free buffer.
+  viewer_snapshot_filled_ = viewer_snapshot_due();
+  if (viewer_snapshot_filled_) fill_viewer_snapshot(viewer_->next_snapshot());
+}
+
+void zone_server::publish_viewer() {
+  if (!viewer_) return;
+  // Taken in replicate() (while the engine waited): the page was open then; publish what it filled.
+  const bool taken = std::exchange(viewer_step_taken_, false);
+  if (!taken && viewer_->viewers() == 0) {
+    if (!viewer_watch_ids_.empty()) {
+      viewer_watch_.clear();
+      viewer_watch_ids_.clear();
+      world_->set_watched({});
+    }
+    viewer_->next_stats().ticks.clear();
+    return;
   }
+  if (!taken) viewer_take_step();
+  // The snapshot handed over with one atomic exchange (no lock, no allocation once the buffers
+  // have grown).
+  if (std::exchange(viewer_snapshot_filled_, false)) viewer_->publish();
   // The stats twice a second: numbers only; the viewer's thread formats the JSON.
   const auto now = clock_type::now();
   if (now >= next_viewer_stats_) {

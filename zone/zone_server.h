@@ -43,6 +43,9 @@ struct loop_stats {
   std::uint64_t visibility_resyncs = 0;   ///< clients resynced because an entity they hold changed class
   std::uint64_t joins = 0;              ///< players that joined (welcomed)
   std::uint64_t leaves = 0;             ///< players that left
+  /// Viewer snapshots filled while the replication engine waited for the device (the rest were
+  /// filled after replicate(): CPU replication, no clients, an engine that failed).
+  std::uint64_t viewer_snapshots_in_wait = 0;
   latency_histogram inputs_ms, replicate_ms, tick_ms;  ///< plus zone_world::phases()
 };
 
@@ -172,7 +175,16 @@ class zone_server {
   std::unordered_map<entity_id, net::session_id> session_of_entity_;
   /// While a viewer page is open: collects the watched entities' events, publishes a snapshot at
   /// cfg.viewer_hz and stats twice a second, and takes the pages' selections for the next step.
+  /// The events and the snapshot are taken by viewer_take_step(), here unless replicate() did.
   void publish_viewer();
+  /// Whether this tick publishes a viewer snapshot (every tick_rate / viewer_hz ticks).
+  [[nodiscard]] bool viewer_snapshot_due() const;
+  /// The step's share of the viewer's work, once a tick while a page is open: the watched
+  /// entities' enters and leaves, and the snapshot (into the viewer's free buffer) when one is
+  /// due. It reads the store and the tracker, final once the step and after_step ran: in
+  /// replicate() as build_many's side work (while the GPU replication engine waits for the
+  /// device) on a tick with a snapshot due, else in publish_viewer().
+  void viewer_take_step();
   void fill_viewer_snapshot(net::viewer_snapshot& s) const;
   void fill_viewer_stats(net::viewer_stats& s) const;
   /// --test-fault: the client whose frames are broken (the lowest session with an entity).
@@ -212,6 +224,8 @@ class zone_server {
   std::vector<entity_id> viewer_watch_ids_;
   std::uint64_t viewer_selection_version_ = 0;
   double viewer_ms_ = 0;  // the last tick's publish_viewer
+  bool viewer_step_taken_ = false;  // this tick's viewer_take_step ran (publish_viewer resets it)
+  bool viewer_snapshot_filled_ = false;  // and filled a snapshot for publish_viewer to publish
   std::chrono::steady_clock::time_point next_viewer_stats_{};
   std::unique_ptr<truth_publisher> truth_;  // --oracle
   std::unique_ptr<fault_injector> fault_;   // --test-fault

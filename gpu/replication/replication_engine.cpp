@@ -81,7 +81,8 @@ class engine final : public interest::replication_engine {
   }
 
   output run(const interest::replication_rules& rules, std::size_t client_count,
-             const interest::visibility_engine::resident_lists* rows) override {
+             const interest::visibility_engine::resident_lists* rows,
+             const std::function<void()>* while_waiting) override {
     const auto t0 = std::chrono::steady_clock::now();
     wait_ms_ = 0;
     if (rules.leave_cost == 0 || rules.enter_cost == 0 || rules.update_cost == 0) {
@@ -193,6 +194,8 @@ class engine final : public interest::replication_engine {
     }
     CUDA_CHECK(cudaMemcpyAsync(h_cursor_.get(), d_cursor_.get(), 2 * sizeof(std::uint32_t), cudaMemcpyDeviceToHost,
                                stream_));
+    // The caller's host work, in the kernels' shadow (their results and copies are queued).
+    if (while_waiting != nullptr && *while_waiting) (*while_waiting)();
     wait();
     if (h_cursor_.get()[1] != 0) throw std::runtime_error("replication engine: record buffer overflow (a bug)");
     const std::uint32_t used = h_cursor_.get()[0];

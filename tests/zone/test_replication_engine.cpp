@@ -6,11 +6,16 @@
 #include <doctest/doctest.h>
 
 #include <algorithm>
+#include <atomic>
 #include <cstring>
+#include <functional>
 #include <limits>
+#include <memory>
 #include <numeric>
 #include <random>
 #include <set>
+#include <stdexcept>
+#include <string>
 #include <vector>
 
 #include "../common/seeds.h"
@@ -40,8 +45,10 @@ class emulated_engine final : public interest::replication_engine {
   }
 
   output run(const interest::replication_rules& rules, std::size_t client_count,
-             const interest::visibility_engine::resident_lists* rows) override {
+             const interest::visibility_engine::resident_lists* rows,
+             const std::function<void()>* while_waiting) override {
     REQUIRE(rows == nullptr);  // reads_resident() is false: the replicator stages the sets
+    ++runs;
     if (len_.size() < client_count) {
       len_.resize(client_count, 0);
       off_.resize(client_count, 0);
@@ -99,6 +106,11 @@ class emulated_engine final : public interest::replication_engine {
     a.results = results_.data();
     for (std::uint32_t k = 0; k < a.entity_count; ++k) rep::quantize_entity(a, k);
     for (std::uint32_t c = 0; c < client_count; ++c) rep::carry_client(a, c, 0, 1);
+    // Where the GPU engine's kernels are queued: the caller's side work, before the decisions.
+    if (while_waiting != nullptr && *while_waiting) {
+      ++side_calls;
+      (*while_waiting)();
+    }
     std::vector<std::uint32_t> order(jobs_.size());
     std::iota(order.begin(), order.end(), 0u);
     std::shuffle(order.begin(), order.end(), rng_);
@@ -116,6 +128,9 @@ class emulated_engine final : public interest::replication_engine {
     std::fill(len_.begin(), len_.end(), 0u);
     std::fill(off_.begin(), off_.end(), 0u);
   }
+
+  std::size_t runs = 0;        ///< run() calls
+  std::size_t side_calls = 0;  ///< of which called while_waiting
 
  private:
   std::mt19937_64 rng_;
@@ -208,11 +223,199 @@ TEST_SUITE("zone.replication") {
   }
 }
 
-// The GPU fan-out failing mid-run (zone/engine_faults.h, zone-server --test-fault gpu-replication):
-// the emulated engine behind the fault wrapper. Before the fault tick its frames are the CPU
-// replicator's byte for byte; the fault's tick is built on the CPU within the same build_many
-// call, every client reset; from then on the frames equal those of a CPU replicator that resynced
-// every client at that tick, and each client's view (decoded from its frames) equals the server's.
+namespace {
+
+/// The emulated engine that calls the side work and then fails (as a device error in the wait
+/// after the kernels would): from tick `at` on, every run throws after calling it.
+class fails_after_side final : public interest::replication_engine {
+ public:
+  fails_after_side(interest::replication_engine& inner, const std::uint64_t& tick, std::uint64_t at)
+      : inner_(inner), tick_(tick), at_(at) {}
+  staging stage(std::size_t entities, std::size_t slots, std::size_t jobs, std::size_t visible) override {
+    return inner_.stage(entities, slots, jobs, visible);
+  }
+  output run(const interest::replication_rules& rules, std::size_t client_count,
+             const interest::visibility_engine::resident_lists* rows,
+             const std::function<void()>* while_waiting) override {
+    const auto out = inner_.run(rules, client_count, rows, while_waiting);
+    if (tick_ >= at_) throw std::runtime_error("CUDA error: an illegal memory access was encountered (test)");
+    return out;
+  }
+  void set_frame_format(const interest::replication_frame_format& format) override { inner_.set_frame_format(format); }
+  void forget_all() override { inner_.forget_all(); }
+  [[nodiscard]] const interest::replication_timing& timing() const override { return inner_.timing(); }
+  [[nodiscard]] const char* name() const override { return "fails after side work"; }
+
+ private:
+  interest::replication_engine& inner_;
+  const std::uint64_t& tick_;
+  std::uint64_t at_;
+};
+
+}  // namespace
+
+// build_many's side work (zone-server fills the viewer's snapshot there): exactly once per call on
+// every path; on an engine inside run() before any frame, on the CPU after the last frame; an
+// engine that fails before calling it leaves it to the CPU path, one that fails after does not
+// run it twice; what it throws leaves build_many after the frames and does not give the engine
+// up. What it reads (the store, the tracker) is what it would read after build_many.
+TEST_SUITE("zone.replication") {
+  TEST_CASE("build_many's side work: once per call, in the engine's wait or after the CPU's frames; frames unchanged") {
+    namespace cb = interest::category_bits;
+    const std::uint64_t seed = zone::test::fresh_seed();
+    CAPTURE(seed);
+    std::mt19937_64 rng(seed);
+    const auto uni = [&](float lo, float hi) { return std::uniform_real_distribution<float>(lo, hi)(rng); };
+    entity_store store;
+    for (int k = 0; k < 400; ++k) {
+      entity_desc d;
+      d.position = {uni(0, 250), uni(0, 250), uni(0, 10)};
+      d.velocity = {uni(-3, 3), uni(-3, 3), 0};
+      const float aoi = uni(15, 80);
+      d.aoi_half_extent = {aoi, aoi, 40};
+      d.presence_half_extent = {1, 1, 1};
+      d.visibility_class = k % 5 == 0 ? cb::stealth : cb::normal;
+      d.sees = cb::normal;
+      (void)store.create(d);
+    }
+    interest::thread_pool pool(2);
+    interest::grid_finder finder(&pool);
+    interest_tracker tracker(finder, &pool, {3.0f, 0, 64});
+    replication_options opt;
+    opt.world = {{0, 0, 0}, {250, 250, 20}};
+    opt.byte_budget = 900;
+    opt.clients_per_task = 3;  // several chunks
+    std::uint64_t tick = 0;
+    // The paths: the CPU; the emulated engine; the engine failing before the side work (the fault
+    // wrapper) at tick 4; the engine failing after it at tick 6; the emulated engine whose side
+    // work throws at ticks 3 and 8.
+    constexpr std::uint64_t fault_at = 4, fail_after_at = 6;
+    emulated_engine e_ok(seed), e_fault(seed + 1), e_after(seed + 2), e_throw(seed + 3);
+    engine_fault fault;
+    fault.tick = [&] { return tick; };
+    fault.at_tick = fault_at;
+    faulty_replication_engine faulty(e_fault, fault);
+    fails_after_side after(e_after, tick, fail_after_at);
+    // 0: the CPU; 5 and 6: CPU references resynced where 2 and 3 fall back (their frames' model).
+    std::vector<std::unique_ptr<replicator>> reps;
+    for (int k = 0; k < 7; ++k) reps.push_back(std::make_unique<replicator>(opt));
+    reps[1]->set_engine(&e_ok);
+    reps[2]->set_engine(&faulty);
+    reps[3]->set_engine(&after);
+    reps[4]->set_engine(&e_throw);
+    emulated_engine* const inner[7] = {nullptr, &e_ok, &e_fault, &e_after, &e_throw, nullptr, nullptr};
+    const std::size_t ref_of[7] = {0, 0, 5, 6, 0, 5, 6};
+    std::vector<replication_request> requests;
+    for (std::size_t k = 0; k < 30; ++k) {
+      const client_id c = reps[0]->add_client(store.ids()[k * 11]);
+      for (std::size_t r = 1; r < reps.size(); ++r) REQUIRE(reps[r]->add_client(store.ids()[k * 11]) == c);
+      requests.push_back({c, 0});
+    }
+    const std::size_t chunks = (requests.size() + opt.clients_per_task - 1) / opt.clients_per_task;
+    const entity_id watched = store.ids()[0];
+    std::size_t in_wait = 0, after_frames = 0, thrown = 0;
+    for (; tick < 12; ++tick) {
+      CAPTURE(tick);
+      auto pos = store.positions();
+      const auto vel = store.velocities();
+      for (std::size_t i = 0; i < store.size(); ++i) {
+        pos[i] = {std::clamp(pos[i].x + vel[i].x, 0.f, 250.f), std::clamp(pos[i].y + vel[i].y, 0.f, 250.f), pos[i].z};
+      }
+      REQUIRE_FALSE(tracker.update(store.columns()).has_value());
+      if (tick == fault_at) {
+        for (const auto& r : requests) reps[5]->resync(r.client);
+      }
+      if (tick == fail_after_at) {
+        for (const auto& r : requests) reps[6]->resync(r.client);
+      }
+      std::vector<std::vector<std::vector<std::uint8_t>>> frames(reps.size(), std::vector<std::vector<std::uint8_t>>(requests.size()));
+      // What the side work of replicator 0 read: every other one must read the same.
+      std::vector<vec3> read_pos;
+      std::vector<entity_id> read_visible;
+      for (std::size_t r = 0; r < reps.size(); ++r) {
+        CAPTURE(r);
+        const bool engine_before = reps[r]->on_engine();
+        std::atomic<std::size_t> sunk{0}, chunks_done{0};
+        std::size_t calls = 0, sunk_at_call = 0, chunks_at_call = 0, side_calls_at_call = 0;
+        const std::size_t side_before = inner[r] ? inner[r]->side_calls : 0;
+        const bool throws = r == 4 && (tick == 3 || tick == 8);
+        const auto work = [&] {
+          ++calls;
+          sunk_at_call = sunk.load();
+          chunks_at_call = chunks_done.load();
+          side_calls_at_call = inner[r] ? inner[r]->side_calls : 0;
+          const auto p = store.positions();
+          const std::size_t row = tracker.row_of(watched);
+          REQUIRE(row != entity_store::npos);
+          const auto v = tracker.visible(row);
+          if (r == 0) {
+            read_pos.assign(p.begin(), p.end());
+            read_visible.assign(v.begin(), v.end());
+          } else {
+            CHECK(std::equal(p.begin(), p.end(), read_pos.begin(), read_pos.end(),
+                             [](const vec3& a, const vec3& b) { return a.x == b.x && a.y == b.y && a.z == b.z; }));
+            CHECK(std::equal(v.begin(), v.end(), read_visible.begin(), read_visible.end()));
+          }
+          if (throws) throw std::runtime_error("the side work failed");
+        };
+        const std::function<void()> side = std::ref(work);
+        bool threw = false;
+        try {
+          reps[r]->build_many(
+              requests, store, tracker, tick, tick * 3, &pool,
+              [&](std::size_t k, std::span<const std::uint8_t> f, const replication_stats&) {
+                frames[r][k].assign(f.begin(), f.end());
+                ++sunk;
+              },
+              [&](std::size_t, std::size_t) { ++chunks_done; }, {}, &side);
+        } catch (const std::runtime_error& e) {
+          threw = true;
+          CHECK(std::string(e.what()) == "the side work failed");
+        }
+        CHECK(threw == throws);
+        thrown += threw ? 1 : 0;
+        CHECK(calls == 1);
+        CHECK(sunk.load() == requests.size());  // every frame, also when the side work threw
+        // Did the engine call it inside run(), before any frame?
+        const bool by_engine = inner[r] != nullptr && inner[r]->side_calls == side_before + 1;
+        const bool want_engine = engine_before && !(r == 2 && tick == fault_at);
+        CHECK(by_engine == want_engine);
+        if (by_engine) {
+          ++in_wait;
+          CHECK(side_calls_at_call == side_before + 1);
+          CHECK(sunk_at_call == 0);
+          CHECK(chunks_at_call == 0);
+        } else {
+          ++after_frames;
+          if (inner[r] != nullptr) CHECK(inner[r]->side_calls == side_before);
+          CHECK(sunk_at_call == requests.size());
+          CHECK(chunks_at_call == chunks);
+        }
+        // Who is on the engine afterwards: the side work's failure never gives it up.
+        const bool want_on = r == 1 || r == 4 || (r == 2 && tick < fault_at) || (r == 3 && tick < fail_after_at);
+        CHECK(reps[r]->on_engine() == want_on);
+        // No requests: still once, after (nothing to wait for), with no frame.
+        std::size_t empty_calls = 0;
+        const auto count = [&] { ++empty_calls; };
+        const std::function<void()> count_side = std::ref(count);
+        reps[r]->build_many({}, store, tracker, tick, tick * 3, &pool,
+                            [&](std::size_t, std::span<const std::uint8_t>, const replication_stats&) { FAIL("a frame"); },
+                            {}, {}, &count_side);
+        CHECK(empty_calls == 1);
+      }
+      for (std::size_t r = 1; r < reps.size(); ++r) {
+        CAPTURE(r);
+        for (std::size_t k = 0; k < requests.size(); ++k) CHECK(frames[r][k] == frames[ref_of[r]][k]);
+      }
+    }
+    CHECK(thrown == 2);
+    CHECK(in_wait > 0);
+    CHECK(after_frames > 0);
+    CHECK(e_fault.side_calls == fault_at);       // ticks 0..3 on the engine
+    CHECK(e_after.side_calls == fail_after_at + 1);  // ticks 0..6: the last one called it, then failed
+  }
+}
+
 TEST_SUITE("zone.engine_faults") {
   TEST_CASE("the GPU replication engine failing mid-run: the same tick on the CPU, every client reset, frames exact") {
     namespace cb = interest::category_bits;
