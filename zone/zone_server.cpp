@@ -581,6 +581,7 @@ void zone_server::replicate() {
   // publish_viewer, which then only publishes). The lambda is held by reference: no allocation.
   const auto viewer_work = [&] {
     if (!requests_.empty() && replicator_.on_engine()) ++stats_.viewer_snapshots_in_wait;
+    viewer_step_taken_ = true;
     viewer_take_step();
   };
   const std::function<void()> viewer_side = std::ref(viewer_work);
@@ -810,7 +811,6 @@ bool zone_server::viewer_snapshot_due() const {
 }
 
 void zone_server::viewer_take_step() {
-  viewer_step_taken_ = true;
   const interest::interest_tracker& tr = world_->tracker();
   const std::uint64_t tick = world_->tick();
   // The watched entities' enters and leaves of this step (a window of the latest 64 each).

@@ -224,7 +224,7 @@ class zone_server {
   std::vector<entity_id> viewer_watch_ids_;
   std::uint64_t viewer_selection_version_ = 0;
   double viewer_ms_ = 0;  // the last tick's publish_viewer
-  bool viewer_step_taken_ = false;  // this tick's viewer_take_step ran (publish_viewer resets it)
+  bool viewer_step_taken_ = false;  // replicate() ran this tick's viewer_take_step (publish_viewer resets it)
   bool viewer_snapshot_filled_ = false;  // and filled a snapshot for publish_viewer to publish
   std::chrono::steady_clock::time_point next_viewer_stats_{};
   std::unique_ptr<truth_publisher> truth_;  // --oracle

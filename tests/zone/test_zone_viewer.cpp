@@ -8,8 +8,11 @@
 #include <cmath>
 #include <optional>
 #include <set>
+#include <thread>
+#include <vector>
 
 #include "../common/loopback_zone.h"
+#include "tests/net/loopback_client.h"
 #include "tests/net/ws_client.h"
 #include "zone/zone_server.h"
 
@@ -17,6 +20,7 @@ using namespace zone;
 using zone::net::testing::at;
 using zone::net::testing::eventually;
 using zone::net::testing::request_bytes;
+using zone::net::testing::test_client;
 using zone::net::testing::ws_client;
 
 namespace {
@@ -194,5 +198,138 @@ TEST_SUITE("zone.viewer") {
     }
     CHECK(checked >= 6);
     CHECK(ext.spawned.size() >= 4);
+  }
+
+  TEST_CASE("with clients (frames every tick): each snapshot is its tick's store and tracker, filled in the replication wait or after") {
+    // With clients, replicate() hands the snapshot's filling (and the step's watched events) to
+    // build_many: on the GPU replication engine it runs while the device works, on the CPU after
+    // the frames; publish_viewer then only publishes. Either way a snapshot due every third tick
+    // (viewer_hz 10) holds the store and the tracker as the tick left them, and the selection's
+    // events (taken on every tick, in the wait or not) are the tracker's.
+    auto cfg = viewer_config();
+    cfg.viewer_hz = 10;
+    zone_server server(cfg);
+    REQUIRE_FALSE(server.start().has_value());
+    constexpr int count = 3;
+    std::vector<std::unique_ptr<test_client>> clients;
+    for (int i = 0; i < count; ++i) {
+      clients.push_back(std::make_unique<test_client>(server.port()));
+      REQUIRE(clients.back()->send(net::hello_msg{"viewed" + std::to_string(i), "", net::protocol_version}));
+    }
+    std::vector<entity_id> me(count, null_entity);
+    std::uint32_t seq = 0;
+    const auto tick_and_read = [&] {
+      server.tick_once();
+      ++seq;
+      for (int i = 0; i < count; ++i) {
+        while (auto m = clients[i]->read(std::chrono::milliseconds(1))) {
+          if (const auto* w = std::get_if<net::welcome_msg>(&*m)) me[i] = w->entity_id;
+        }
+        // Steered: the selected player moves, so that its visible set changes (enters, leaves).
+        if (me[i] != null_entity) (void)clients[i]->send(net::input_msg{seq, {1, 0.3f, 0}});
+      }
+    };
+    const auto joined_by = std::chrono::steady_clock::now() + std::chrono::seconds(10);
+    while (server.stats().clients < count && std::chrono::steady_clock::now() < joined_by) {
+      tick_and_read();
+      std::this_thread::sleep_for(std::chrono::milliseconds(3));
+    }
+    REQUIRE(server.stats().clients == count);
+    for (int i = 0; i < count; ++i) {
+      while (me[i] == null_entity) {
+        const auto m = clients[i]->read(std::chrono::milliseconds(5000));
+        REQUIRE(m);
+        if (const auto* w = std::get_if<net::welcome_msg>(&*m)) me[i] = w->entity_id;
+      }
+    }
+    const entity_id chosen = me[0];
+    REQUIRE(chosen != null_entity);
+
+    ws_client page(server.metrics_port());
+    REQUIRE_FALSE(page.error);
+    REQUIRE(page.send(request_bytes({-10, -10, 610, 610, chosen, 100000})));
+    REQUIRE(eventually([&] { return server.viewer()->selected() == std::vector<std::uint32_t>{chosen}; }));
+    tick_and_read();  // the tick takes the selection (its snapshots hold it from the next on)
+    const auto& store = server.world().store();
+    const auto& tr = server.world().tracker();
+    struct event {
+      std::uint32_t tick, id;
+      bool enter;
+      bool operator==(const event&) const = default;
+    };
+    std::vector<event> events;  // the tracker's, every tick from here on
+    const std::uint64_t in_wait0 = server.stats().viewer_snapshots_in_wait;
+    std::uint64_t due_ticks = 0;
+    std::size_t checked = 0, events_checked = 0;
+    for (int round = 0; round < 150; ++round) {
+      const auto published = server.viewer()->stats().snapshots_published;
+      tick_and_read();
+      const auto tick = static_cast<std::uint32_t>(server.world().tick());
+      CAPTURE(tick);
+      const std::size_t row = tr.row_of(chosen);
+      REQUIRE(row != entity_store::npos);
+      for (const entity_id id : tr.enters(row)) events.push_back({tick, id, true});
+      for (const entity_id id : tr.leaves(row)) events.push_back({tick, id, false});
+      const bool due = tick % 3 == 0;
+      due_ticks += due ? 1 : 0;
+      CHECK(server.viewer()->stats().snapshots_published == published + (due ? 1 : 0));
+      if (!due) continue;
+      std::optional<std::vector<std::uint8_t>> entities, selection;
+      for (int k = 0; k < 200 && !(entities && selection); ++k) {
+        auto m = page.read();
+        if (!m) break;  // nothing newer (the session skipped this tick's snapshot)
+        if (m->first || m->second.empty() || at<std::uint32_t>(m->second, 4) != tick) continue;
+        if (m->second[0] == net::viewer_frame_entities) entities = m->second;
+        if (m->second[0] == net::viewer_frame_selection) selection = m->second;
+      }
+      if (!entities || !selection) continue;  // the session wrote an older frame meanwhile
+      ++checked;
+      // Every entity where the store has it after the tick.
+      REQUIRE(at<std::uint32_t>(*entities, 12) == store.size());
+      const float x0 = at<float>(*entities, 16), y0 = at<float>(*entities, 20), x1 = at<float>(*entities, 24),
+                  y1 = at<float>(*entities, 28);
+      for (std::size_t k = 0; k < store.size(); ++k) {
+        const std::size_t o = net::viewer_frame_header_bytes + k * net::viewer_entity_record_bytes;
+        const auto e = store.get(at<std::uint32_t>(*entities, o));
+        REQUIRE(e);
+        const float x = x0 + at<std::uint16_t>(*entities, o + 4) * (x1 - x0) / 65535,
+                    y = y0 + at<std::uint16_t>(*entities, o + 6) * (y1 - y0) / 65535;
+        CHECK(std::fabs(x - e->position.x) <= (x1 - x0) / 65535 + 1e-3f);
+        CHECK(std::fabs(y - e->position.y) <= (y1 - y0) / 65535 + 1e-3f);
+      }
+      // The selection: the tracker's visible set after the tick, and its latest events.
+      const auto& f = *selection;
+      CHECK(at<std::uint32_t>(f, 8) == chosen);
+      CHECK(f[1] == 1);
+      CHECK(at<float>(f, 12) == store.get(chosen)->position.x);
+      const auto visible = tr.visible(row);
+      REQUIRE(at<std::uint32_t>(f, 56) == visible.size());
+      for (std::size_t k = 0; k < visible.size(); ++k) CHECK(at<std::uint32_t>(f, 64 + 4 * k) == visible[k]);
+      const std::size_t n_events = at<std::uint32_t>(f, 60);
+      REQUIRE(n_events <= events.size());
+      const std::size_t at_events = 64 + 5 * visible.size();
+      REQUIRE(f.size() == at_events + 9 * n_events);
+      // The server watches from the step after it took the selection: its events are the tail of ours.
+      for (std::size_t k = 0; k < n_events; ++k) {
+        const std::size_t o = at_events + 9 * k;
+        CHECK(event{at<std::uint32_t>(f, o), at<std::uint32_t>(f, o + 4), f[o + 8] == 1} ==
+              events[events.size() - n_events + k]);
+      }
+      events_checked += n_events;
+    }
+    CHECK(checked >= 20);
+    CHECK(events_checked > 0);
+    // Filled in the wait exactly when replication ran on an engine (the GPU); else after replicate().
+    const std::uint64_t in_wait = server.stats().viewer_snapshots_in_wait - in_wait0;
+    MESSAGE("replication on " << server.replication_name() << ": " << in_wait << " of " << due_ticks
+                              << " snapshots filled in the engine's wait");
+    if (server.replication_name() == "cpu") {
+      CHECK(in_wait == 0);
+    } else {
+      // Every due tick with a client's frame to build (all of them, unless every client's backlog
+      // was full on one: a tick without requests fills it after).
+      CHECK(in_wait <= due_ticks);
+      CHECK(in_wait * 10 >= due_ticks * 9);
+    }
   }
 }
