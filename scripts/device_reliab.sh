@@ -18,7 +18,9 @@
 #           frame gap p99, alone and during the floods
 #   viewer  tools/viewer_tick_ab.py: tick p50/p99 with and without a viewer socket at VIEWER_NPCS
 #           (100000) NPCs, VIEWER_ROUNDS (5) rounds of VIEWER_PHASE_S (4) s each way (VIEWER_AB: the
-#           script's path, when it is not run from a checkout)
+#           script's path, when it is not run from a checkout); VIEWER_BOTS=N: N bots (bot-swarm) play
+#           through it, so that the tick replicates (the GPU replication engine's wait then holds the
+#           viewer's snapshot); unset: no clients, no replication
 # Logs and CSV go to $OUT (or ./out).
 set -uo pipefail
 . "$(dirname "${BASH_SOURCE[0]}")/zone_procs.sh"
@@ -112,6 +114,7 @@ EOF
       echo "== viewer A/B $(date -u +%FT%TZ)"
       python3 "${VIEWER_AB:-tools/viewer_tick_ab.py}" --server "$dir/zone-server" --npcs "${VIEWER_NPCS:-100000}" --phase-s "${VIEWER_PHASE_S:-4}" \
         --rounds "${VIEWER_ROUNDS:-5}" --warmup-s 5 --server-args "--threads 8 --io-threads 4" \
+        ${VIEWER_BOTS:+--bots "$VIEWER_BOTS" --bot-swarm "$dir/bot-swarm"} \
         --label "(device)" --csv "$out/viewer-ab.csv" 2>&1 | tee "$out/viewer-ab.log"
       ;;
     *) echo "unknown step $step"; exit 2 ;;

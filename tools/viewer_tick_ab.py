@@ -18,6 +18,12 @@ average over the run; and the tick's viewer phase itself (from the stats message
 every tick with its phase.
 
   python3 tools/viewer_tick_ab.py --server build/zone/zone-server --npcs 20000 --phase-s 5 --rounds 6
+
+With --bots N (and --bot-swarm, the bot-swarm binary), N bots play in the zone through the whole
+run, both conditions alike (started before the warm-up, stopped after the last phase): the tick
+then replicates to clients, and with the GPU replication engine a due viewer snapshot is filled in
+that engine's wait for the device (docs/viewer.md); without clients there is no replication and
+the snapshot is filled in the tick.
 """
 import argparse
 import base64
@@ -109,6 +115,9 @@ def analyze(paths, bootstrap):
                     ticks_of.setdefault(((n, int(p[4])), p[3] == "viewer"), []).append(float(p[2]))
     by = {o: [ms for (k, oo), v in ticks_of.items() if oo == o for ms in v] for o in (False, True)}
     print(f"\nviewer A/B, {len(paths)} run(s) together: " + ", ".join(paths))
+    if a.bots > 0:
+        in_phases = [c for (t, c) in clients.items() if any(t0 <= t < t1 for (_, _, t0, t1) in phases)]
+        print(f"clients over the phases' ticks: {min(in_phases, default=0)} .. {max(in_phases, default=0)} (of {a.bots} bots)")
     print("| viewer | ticks | p50 ms | p99 ms | max ms |")
     print("|---|---|---|---|---|")
     for o in (False, True):
@@ -236,6 +245,8 @@ def main():
     ap.add_argument("--csv", help="write tick,t_s,tick_ms,phase,round per tick")
     ap.add_argument("--label", default="", help="a label for the printed table")
     ap.add_argument("--bootstrap", type=int, default=2000, help="bootstrap resamples for the intervals")
+    ap.add_argument("--bots", type=int, default=0, help="bots playing in the zone through the whole run (needs --bot-swarm)")
+    ap.add_argument("--bot-swarm", help="the bot-swarm binary, for --bots")
     ap.add_argument("--client-nice", type=int, default=0,
                     help="nice value (absolute) of this script, the viewer socket's client, once the server runs (0: unchanged)")
     a = ap.parse_args()
@@ -243,6 +254,8 @@ def main():
         ap.error("rounds >= 1, phase-s > 0, npcs >= 0, viewers >= 1, bootstrap >= 0, client-nice 0..19")
     if a.analyze:
         return analyze(a.analyze, a.bootstrap)
+    if a.bots < 0 or (a.bots > 0 and not (a.bot_swarm and os.access(a.bot_swarm, os.X_OK))):
+        ap.error("--bots N needs --bot-swarm, an executable bot-swarm")
     if not a.server:
         ap.error("--server is required (or --analyze CSV ...)")
     if not os.access(a.server, os.X_OK):
@@ -256,6 +269,7 @@ def main():
             "--tick-csv", ticks_csv, "--log-level", "info"] + a.server_args.split()
     log = open(log_path, "w")
     srv = subprocess.Popen(args, stdout=log, stderr=subprocess.STDOUT)
+    swarm = None
     try:
         port = None
         deadline = time.monotonic() + 120
@@ -267,6 +281,15 @@ def main():
             time.sleep(0.1)
         if port is None:
             sys.exit("zone-server did not start in 120 s")
+        if a.bots > 0:
+            m = re.search(r"listening on [0-9.]+:(\d+)", open(log_path).read())
+            if not m:
+                sys.exit("zone-server's log names no game port")
+            # Bounded: it stops by itself after the run (and is stopped below when the run ends first).
+            run_s = a.warmup_s + a.rounds * 2 * (a.phase_s + 0.3) + 30
+            swarm = subprocess.Popen([a.bot_swarm, "--port", m.group(1), "--bots", str(a.bots), "--duration", str(int(run_s)),
+                                      "--ramp", str(max(50, a.bots)), "--threads", "2", "--quiet"],
+                                     stdout=open(os.path.join(tmp, "bot-swarm.log"), "w"), stderr=subprocess.STDOUT)
         t_start = None
         while t_start is None:  # the CSV's t_s = 0 is the loop's first tick
             with open(ticks_csv) as f:
@@ -314,6 +337,12 @@ def main():
                 time.sleep(0.3)  # the sockets close; this gap is in neither phase
         time.sleep(0.5)
     finally:
+        if swarm is not None:
+            swarm.terminate()
+            try:
+                swarm.wait(30)
+            except subprocess.TimeoutExpired:
+                swarm.kill()
         srv.terminate()
         try:
             srv.wait(30)
@@ -324,11 +353,13 @@ def main():
     rows = []
     with open(ticks_csv) as f:
         header = f.readline().strip().split(",")
-        it, ic = header.index("t_s"), header.index("tick_ms")
+        it, ic, icl = header.index("t_s"), header.index("tick_ms"), header.index("clients")
+        clients = {}  # t_s -> clients, for the printout with --bots
         for line in f:
             p = line.strip().split(",")
             if len(p) == len(header):
                 rows.append((int(p[0]), float(p[it]), float(p[ic])))
+                clients[float(p[it])] = int(p[icl])
     by = {False: [], True: []}
     per_round = []
     out = []
@@ -343,7 +374,10 @@ def main():
 
     label = f" {a.label}" if a.label else ""
     print(f"\nviewer A/B{label}: {a.npcs} NPCs, {a.rounds} rounds of {a.phase_s:g} s + {a.phase_s:g} s, "
-          f"{a.viewers} viewer socket(s), server args: {a.server_args or '(none)'}")
+          f"{a.viewers} viewer socket(s), {a.bots} bots, server args: {a.server_args or '(none)'}")
+    if a.bots > 0:
+        in_phases = [c for (t, c) in clients.items() if any(t0 <= t < t1 for (_, _, t0, t1) in phases)]
+        print(f"clients over the phases' ticks: {min(in_phases, default=0)} .. {max(in_phases, default=0)} (of {a.bots} bots)")
     print("| viewer | ticks | p50 ms | p99 ms | max ms |")
     print("|---|---|---|---|---|")
     for opened in (False, True):

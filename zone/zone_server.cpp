@@ -578,14 +578,18 @@ void zone_server::replicate() {
   outgoing_.resize(requests_.size());
   // A viewer snapshot due this tick is filled while the replication engine waits for the device
   // (build_many's side work: the store and the tracker are final after the step and stay so until
-  // publish_viewer, which then only publishes). The lambda is held by reference: no allocation.
+  // publish_viewer, which then only publishes). Only on the engine with frames to build: elsewhere
+  // there is no wait to fill, and publish_viewer fills it (in the tick's viewer phase, as before).
+  // The lambda is held by reference: no allocation.
   const auto viewer_work = [&] {
-    if (!requests_.empty() && replicator_.on_engine()) ++stats_.viewer_snapshots_in_wait;
+    // An engine that failed before calling it leaves it to build_many's CPU path (after the frames).
+    if (replicator_.on_engine()) ++stats_.viewer_snapshots_in_wait;
     viewer_step_taken_ = true;
     viewer_take_step();
   };
   const std::function<void()> viewer_side = std::ref(viewer_work);
-  const bool viewer_due = viewer_ && viewer_->viewers() > 0 && viewer_snapshot_due();
+  const bool viewer_due = viewer_ && !requests_.empty() && replicator_.on_engine() && viewer_->viewers() > 0 &&
+                          viewer_snapshot_due();
   replicator_.build_many(
       requests_, world_->store(), world_->tracker(), world_->tick(), now, pool_.get(),
       [&](std::size_t k, std::span<const std::uint8_t> frame, const replication_stats& st) {

@@ -44,7 +44,8 @@ struct loop_stats {
   std::uint64_t joins = 0;              ///< players that joined (welcomed)
   std::uint64_t leaves = 0;             ///< players that left
   /// Viewer snapshots filled while the replication engine waited for the device (the rest were
-  /// filled after replicate(): CPU replication, no clients, an engine that failed).
+  /// filled in publish_viewer: CPU replication, no clients; or after the CPU's frames when the
+  /// engine failed that tick).
   std::uint64_t viewer_snapshots_in_wait = 0;
   latency_histogram inputs_ms, replicate_ms, tick_ms;  ///< plus zone_world::phases()
 };
@@ -183,7 +184,8 @@ class zone_server {
   /// entities' enters and leaves, and the snapshot (into the viewer's free buffer) when one is
   /// due. It reads the store and the tracker, final once the step and after_step ran: in
   /// replicate() as build_many's side work (while the GPU replication engine waits for the
-  /// device) on a tick with a snapshot due, else in publish_viewer().
+  /// device) on a tick with a snapshot due and frames to build on the engine, else in
+  /// publish_viewer().
   void viewer_take_step();
   void fill_viewer_snapshot(net::viewer_snapshot& s) const;
   void fill_viewer_stats(net::viewer_stats& s) const;
