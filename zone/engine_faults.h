@@ -81,7 +81,7 @@ class faulty_replication_engine final : public interest::replication_engine {
   }
   [[nodiscard]] bool reads_resident() const override { return inner_.reads_resident(); }
   void set_frame_format(const interest::replication_frame_format& format) override { inner_.set_frame_format(format); }
-  void set_blocking_wait(bool blocking) override { inner_.set_blocking_wait(blocking); }
+  void set_device_wait(device_wait how) override { inner_.set_device_wait(how); }
   void forget_all() override {
     if (!fault_.fired()) inner_.forget_all();
   }

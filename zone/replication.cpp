@@ -453,7 +453,7 @@ void replicator::set_engine(interest::replication_engine* engine) {
 void replicator::build_on_engine(std::span<const replication_request> requests, const entity_store& store,
                                  const interest::interest_tracker& tracker, std::uint64_t tick, std::uint64_t server_time_us,
                                  interest::thread_pool* pool, const frame_sink& sink, const chunk_sink& chunk_done,
-                                 const frame_room& room) {
+                                 const frame_room& room, const frame_share& share) {
   // Phase clocks: wall always, the process's CPU time when asked (set_phase_cpu_timing).
   replication_phase_times times;
   times.cpu = static_cast<bool>(phase_cpu_);
@@ -588,17 +588,25 @@ void replicator::build_on_engine(std::span<const replication_request> requests, 
   // The frames are the engine's, whole but for the enters' class, half extents and kind (from
   // the store: enters are few once the views are built); each goes to the sink from where the
   // engine put it. Chunks of requests per task, as on the CPU path.
-  const std::size_t tasks = std::min<std::size_t>(chunks, pool != nullptr ? pool->size() : 1);
+  std::size_t threads = pool != nullptr ? pool->size() : 1;
+  if (opt_.wrap_threads > 0) threads = std::min<std::size_t>(threads, opt_.wrap_threads);
+  const std::size_t tasks = std::min(chunks, threads);
   std::atomic<std::size_t> next_chunk{0};
   const auto kinds = store.kinds();
   const auto classes = store.visibility_classes();
   const auto extents = store.presence_half_extents();
   const std::size_t enter_step = net::canonical_tick_update::enter_table + net::canonical_tick_update::name_bytes(0);
   const auto put32 = [](std::uint8_t* p, std::uint32_t v) { std::memcpy(p, &v, 4); };
+  // Frames handed on without a copy where the engine keeps its buffer for them (share); each
+  // chunk's frames hold one count of their own, so that the frames' copies and releases (here
+  // and on the network's threads) do not all meet on the buffer's one counter.
+  const bool sharing = share && out.records_keep != nullptr;
   run_each(pool, tasks, [&](std::size_t) {
     for (std::size_t ch = next_chunk.fetch_add(1, std::memory_order_relaxed); ch < chunks;
          ch = next_chunk.fetch_add(1, std::memory_order_relaxed)) {
       const std::size_t begin = ch * chunk, end = std::min(jobs, begin + chunk);
+      std::shared_ptr<const void> chunk_keep;
+      if (sharing) chunk_keep = std::make_shared<std::shared_ptr<const void>>(out.records_keep);
       for (std::size_t k = begin; k < end; ++k) {
         const interest::replication_result& res = out.results[k];
         client_state& s = clients_[requests[k].client];
@@ -630,7 +638,9 @@ void replicator::build_on_engine(std::span<const replication_request> requests, 
         stats.deferred_leaves = res.deferred_leaves;
         stats.deferred_updates = res.deferred_updates;
         stats.bytes = res.frame_size;
-        if (room) {
+        if (sharing) {
+          share(k, net::make_shared_frame_in(chunk_keep, {frame, res.frame_size}), stats);
+        } else if (room) {
           // Copied where the caller sends it from (the engine's output is reused next tick).
           const auto to = room(k, res.frame_size);
           std::memcpy(to.data(), frame, res.frame_size);
@@ -650,11 +660,11 @@ void replicator::build_on_engine(std::span<const replication_request> requests, 
 void replicator::build_many(std::span<const replication_request> requests, const entity_store& store,
                             const interest::interest_tracker& tracker, std::uint64_t tick, std::uint64_t server_time_us,
                             interest::thread_pool* pool, const frame_sink& sink, const chunk_sink& chunk_done,
-                            const frame_room& room) {
+                            const frame_room& room, const frame_share& share) {
   if (requests.empty()) return;
   if (on_engine()) {
     try {
-      build_on_engine(requests, store, tracker, tick, server_time_us, pool, sink, chunk_done, room);
+      build_on_engine(requests, store, tracker, tick, server_time_us, pool, sink, chunk_done, room, share);
       return;
     } catch (const std::exception& e) {
       // Nothing reached the sink: this tick is built on the CPU, every client starting over.

@@ -14,6 +14,7 @@
 #include "interest/replication_engine.h"
 #include "interest/thread_pool.h"
 #include "net/protocol.h"
+#include "net/server.h"
 #include "zone/entity_store.h"
 
 namespace zone {
@@ -33,8 +34,13 @@ struct replication_options {
   /// With send_digest: a digest in the frames of every digest_period-th tick (and in every reset frame).
   std::uint32_t digest_period = 1;
   /// Clients handed out at a time to build_many's threads (the frames never depend on it, nor
-  /// on the thread count).
-  std::uint32_t clients_per_task = 16;
+  /// on the thread count). 64: on a replication engine at 20,000 clients, 16 cost 0.14 us more
+  /// CPU per client (1,250 tasks a phase instead of 313: docs/zone-benchmarks.md).
+  std::uint32_t clients_per_task = 64;
+  /// On a replication engine: the most threads that hand the frames to the sink (0 = every pool
+  /// thread). The hand-off reads the engine's frames and writes them where the sink wants them:
+  /// bound by memory bandwidth, so fewer threads can do it in about the same time for less CPU.
+  std::uint32_t wrap_threads = 0;
   /// build_many snapshots the entities (one quantization per entity instead of one per update
   /// sent) when clients * snapshot_entities_per_client >= entities; 0 = never. The frames are the
   /// same either way.
@@ -180,10 +186,17 @@ class replicator {
   /// sink's span is that memory. On an engine the frame is copied there from the engine's output.
   /// Unset: the sink's span is in the replicator's (or the engine's) own buffer.
   using frame_room = std::function<std::span<std::uint8_t>(std::size_t k, std::size_t bytes)>;
+  /// Where frame k goes when it can go without a copy (optional): on an engine that keeps its
+  /// output for as long as it is held (replication_engine::output::records_keep), each frame is
+  /// handed over as a net::shared_frame of the engine's buffer (no copy, no room) through this
+  /// instead of the sink; the engine reuses that buffer only once every such frame is released
+  /// (it keeps a few, then copies again while all are held: a client that reads slowly holds one
+  /// tick's buffer at most until its frames are dropped). Not called on the CPU path.
+  using frame_share = std::function<void(std::size_t k, net::shared_frame frame, const replication_stats& stats)>;
   void build_many(std::span<const replication_request> requests, const entity_store& store,
                   const interest::interest_tracker& tracker, std::uint64_t tick, std::uint64_t server_time_us,
                   interest::thread_pool* pool, const frame_sink& sink, const chunk_sink& chunk_done = {},
-                  const frame_room& room = {});
+                  const frame_room& room = {}, const frame_share& share = {});
 
   /// Runs build_many's decisions on `engine` (interest/replication_engine.h; the GPU:
   /// gpu/replication.h), which then holds the clients' views; null: back to the CPU. The frames
@@ -257,7 +270,7 @@ class replicator {
   void build_on_engine(std::span<const replication_request> requests, const entity_store& store,
                        const interest::interest_tracker& tracker, std::uint64_t tick, std::uint64_t server_time_us,
                        interest::thread_pool* pool, const frame_sink& sink, const chunk_sink& chunk_done,
-                       const frame_room& room);
+                       const frame_room& room, const frame_share& share);
   /// Every active client starts over (its next frame is a reset).
   void reset_all_clients();
 

@@ -574,6 +574,11 @@ void zone_server::replicate() {
   }
   frame_bytes_.resize(requests_.size());
   outgoing_.resize(requests_.size());
+  const auto deliver = [&](std::size_t k, net::shared_frame frame, const replication_stats& st) {
+    frame_bytes_[k] = frame.size();
+    // A reset frame ends a session's wait after dropped frames (net/server.h).
+    outgoing_[k] = {request_sessions_[k], std::move(frame), st.reset ? net::delivery::state_reset : net::delivery::state};
+  };
   replicator_.build_many(
       requests_, world_->store(), world_->tracker(), world_->tick(), now, pool_.get(),
       [&](std::size_t k, std::span<const std::uint8_t> frame, const replication_stats& st) {
@@ -581,13 +586,10 @@ void zone_server::replicate() {
         if (fault_ && fault_has_victim_ && request_sessions_[k] == fault_session_) {
           frame = fault_->rewrite(frame, world_->tick(), world_->store());
         }
-        frame_bytes_[k] = frame.size();
         net::frame_arena& arena = replication_arena();
         // The frame was written into the room reserved for it below: it becomes the session's
         // frame as it is (the rewritten one of the fault test is copied in).
-        net::shared_frame out = arena.in_reservation(frame) ? arena.commit(frame.size()) : arena.make(frame);
-        // A reset frame ends a session's wait after dropped frames (net/server.h).
-        outgoing_[k] = {request_sessions_[k], std::move(out), st.reset ? net::delivery::state_reset : net::delivery::state};
+        deliver(k, arena.in_reservation(frame) ? arena.commit(frame.size()) : arena.make(frame), st);
       },
       [&](std::size_t begin, std::size_t end) {
         // A chunk's frames to the network together: one lookup lock, one ready-list append per
@@ -596,7 +598,15 @@ void zone_server::replicate() {
       },
       // Each frame is written straight into its worker's net::frame_arena (blocks taken again
       // once their frames are written: no allocation a frame, no copy out of the writer).
-      [](std::size_t, std::size_t bytes) { return replication_arena().reserve(bytes); });
+      [](std::size_t, std::size_t bytes) { return replication_arena().reserve(bytes); },
+      // On the GPU replication engine: each frame sent from the engine's own buffer, no copy
+      // (the engine reuses it once every frame of it is released).
+      [&](std::size_t k, net::shared_frame frame, const replication_stats& st) {
+        if (fault_ && fault_has_victim_ && request_sessions_[k] == fault_session_) {
+          frame = net::make_shared_frame(fault_->rewrite(frame.bytes(), world_->tick(), world_->store()));
+        }
+        deliver(k, std::move(frame), st);
+      });
   for (const std::size_t bytes : frame_bytes_) stats_.bytes_sent += bytes;
   stats_.frames_sent += frame_bytes_.size();
 }
