@@ -298,7 +298,7 @@ inline constexpr std::uint32_t team_blue = 1u << 4;
 
 // ---------------------------------------------------------------------------------------------
 // Box files. CSV: one box a line, `minx,miny,minz,maxx,maxy,maxz[,category,mask]`; blank lines and
-// lines starting with '#' skipped. Binary: see docs/formats.md.
+// lines starting with '#' skipped. Binary: see docs/embedding.md, "Box files".
 
 /// A parse or I/O failure: the 1-based line number (0 when not about a line) and a message.
 struct file_error {
