@@ -4,7 +4,7 @@
 # The figure in docs/img is of three runs (gpu/gpu-bench-2026-11-22{,b,c}.csv in docs/data.tar.xz):
 # each CSV through gpu_bench_tables.py into its own folder, then into dir: nsweep_*.dat from run C
 # (-22c), gauss_*.dat and ablation.dat from run B (-22b), doc.dat and cells_*.dat from run A (-22);
-# then `optipng -o7` (lossless).
+# then `optipng -o7` and `zopflipng -m` (both lossless: the same pixels, fewer bytes).
 set terminal pngcairo noenhanced size 1200,1380 font ",10"
 set output out."/gpu-paper.png"
 set multiplot
