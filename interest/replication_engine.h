@@ -130,6 +130,17 @@ class replication_engine {
   };
   [[nodiscard]] virtual staging stage(std::size_t entities, std::size_t slots, std::size_t jobs,
                                       std::size_t visible) = 0;
+  /// Ahead of stage() (optional: an engine without it returns nulls): staging for the entities
+  /// and the slot map alone, which the caller fills and then hands over with upload_entities()
+  /// (the engine copies them to its device at once, e.g. while another engine works). A stage()
+  /// with the same two counts keeps them and run() does not copy them again; discard_entities(),
+  /// or a stage() with other counts, drops them (then the caller fills them in stage()'s).
+  [[nodiscard]] virtual staging stage_entities(std::size_t entities, std::size_t slots) {
+    (void)entities, (void)slots;
+    return {};
+  }
+  virtual void upload_entities() {}
+  virtual void discard_entities() {}
 
   struct output {
     const replication_result* results = nullptr;  ///< one per job, in job order

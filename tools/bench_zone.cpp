@@ -205,6 +205,7 @@ struct options {
   bool host_views = false;     // --host-views: the GPU replication engine gets the sets from the host
   interest::replication_engine::device_wait device_wait = interest::replication_engine::device_wait::spin;  // --device-wait
   bool rep_park = true;           // --rep-park: replication_options::park_between_phases
+  bool prestage = true;           // --prestage: replicator::prestage while the interest device works
   // --sink: build_many's frames written into net::frame_arena in place (as zone-server), copied
   // into it (zone-server's sink before issue 22's fourth round), or copied into per-client vectors.
   enum class sink_mode { arena, arena_copy, copy, view } sink = sink_mode::arena;
@@ -253,6 +254,8 @@ Usage: bench-zone [options]
                      build_many each tick, frames compared byte for byte) (default auto)
   --device-wait HOW  spin | block | doze: how the GPU replication engine waits for the device
                      (replication_engine::set_device_wait; default spin, as zone-server)
+  --prestage on|off  on the GPU engines, replication's entities staged and copied up while the
+                     interest engine's device works (replicator::prestage; default on, as zone-server)
   --rep-park on|off  idle workers sleep after each host phase of replication on an engine
                      (replication_options::park_between_phases; default on, as zone-server)
   --sink MODE        where build_many's frames go: arena (as zone-server: written in place into
@@ -388,6 +391,10 @@ std::optional<std::string> parse_args(const std::map<std::string, std::string>& 
     if (v != "on" && v != "off") return need("rep-park", "on|off");
     o.rep_park = v == "on";
   }
+  if (value("prestage")) {
+    if (v != "on" && v != "off") return need("prestage", "on|off");
+    o.prestage = v == "on";
+  }
   if (value("clients-per-task")) {
     const auto n = parse_value<std::uint32_t>(v);
     if (!n || *n == 0) return need("clients-per-task", "a positive count");
@@ -478,7 +485,7 @@ int main(int argc, char** argv) {
         "find-into-list", po::bool_switch(&sw.find_into_list));
     zone::tools::add_text_options(cli, given,
                                   {"entities", "clients", "ticks", "warmup", "budget", "threads", "spin-us", "seed", "rate",
-                                   "w", "finder", "host-grid", "replicate", "device-wait", "sink", "rep-park", "clients-per-task", "wrap-threads",
+                                   "w", "finder", "host-grid", "replicate", "device-wait", "sink", "rep-park", "prestage", "clients-per-task", "wrap-threads",
                                    "snapshot", "hysteresis", "max-visible", "interest", "density", "summary-csv", "csv",
                                    "sweep-w"});
     if (const auto rc = zone::tools::parse_command_line(argc, argv, "bench-zone", usage, cli, 64)) return *rc;
@@ -553,6 +560,9 @@ int main(int argc, char** argv) {
   replicator repl(ro), repl_serial(ro);  // repl_serial: the reference in --replicate both and gpu-vs-cpu
   // As zone-server --replicate: the decisions on the GPU replication engine when asked and possible.
   std::unique_ptr<interest::replication_engine> rep_engine;
+  // As zone-server: the entities for replication staged and copied up while the interest
+  // engine's device works (--prestage).
+  const std::function<void()> prestage_work = [&] { repl.prestage(world.store(), world.tick(), &pool); };
   thread_clocks clocks;  // replication's CPU time, every thread read exactly (refreshed below)
   if (opt.replicate_auto || opt.replicate == replicate_mode::gpu || opt.replicate == replicate_mode::gpu_vs_cpu) {
     std::string why;
@@ -562,6 +572,7 @@ int main(int argc, char** argv) {
       rep_engine->set_device_wait(opt.device_wait);
       repl.set_engine(rep_engine.get());
       repl.set_phase_cpu_clock([&clocks] { return clocks.ms(); });
+      if (opt.prestage) world.interest().set_while_device_works(&prestage_work);
       // As zone-server: the players' sets stay on the device (the CPU reference of gpu-vs-cpu
       // reads them on the host).
       if (opt.replicate != replicate_mode::gpu_vs_cpu && !opt.host_views) world.set_player_views_on_host(false);
@@ -643,6 +654,7 @@ int main(int argc, char** argv) {
   std::vector<double> step_allocs, rep_allocs;  // heap allocations per tick (world step; replication)
   std::size_t on_engine_ticks = 0;  // measured ticks whose interest step ran on the engine
   std::size_t resident_ticks = 0;   // measured ticks whose replication read the sets on the device
+  std::size_t ahead_ticks = 0;      // measured ticks whose entities were on the device ahead (--prestage)
   std::vector<double> pairs, candidates, visible, enters, leaves, bytes_per_frame, checks;
   std::uint64_t frames_digest = 0xcbf29ce484222325ull, frames_mismatch = 0;
   std::uint64_t sent_enters = 0, sent_updates = 0, sent_leaves = 0, deferred = 0, view_entries = 0;
@@ -831,6 +843,7 @@ int main(int argc, char** argv) {
       s_rg_down.v.push_back(rt.download_ms);
       s_rg_wait.v.push_back(rt.wait_ms);
       const auto& ph = repl.phase_times();
+      ahead_ticks += ph.entities_ahead ? 1 : 0;
       s_rp_stage.v.push_back(ph.stage_ms);
       s_rp_wrap.v.push_back(ph.wrap_ms);
       s_rp_stage_cpu.v.push_back(ph.stage_cpu_ms);
@@ -931,7 +944,10 @@ int main(int argc, char** argv) {
       std::printf("; gpu vs cpu frames differing: %llu of %llu", static_cast<unsigned long long>(frames_mismatch),
                   static_cast<unsigned long long>(static_cast<std::uint64_t>(total_ticks) * requests.size()));
     }
-    if (on_gpu) std::printf("; visible sets read on the device in %zu of %zu ticks", resident_ticks, s_total.v.size());
+    if (on_gpu) {
+      std::printf("; visible sets read on the device in %zu of %zu ticks; entities staged ahead in %zu", resident_ticks,
+                  s_total.v.size(), ahead_ticks);
+    }
     if (on_gpu && !repl.engine_error().empty()) std::printf("; GPU ENGINE FAILED: %s", repl.engine_error().c_str());
     std::printf("\n");
   }

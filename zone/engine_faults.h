@@ -74,6 +74,12 @@ class faulty_replication_engine final : public interest::replication_engine {
     if (fault_.fired()) fault_.check("replication stage");
     return inner_.stage(entities, slots, jobs, visible);
   }
+  staging stage_entities(std::size_t entities, std::size_t slots) override {
+    if (fault_.fired()) fault_.check("replication stage");
+    return inner_.stage_entities(entities, slots);
+  }
+  void upload_entities() override { inner_.upload_entities(); }
+  void discard_entities() override { inner_.discard_entities(); }
   output run(const interest::replication_rules& rules, std::size_t client_count,
              const interest::visibility_engine::resident_lists* rows) override {
     fault_.check("replication run");

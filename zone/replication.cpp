@@ -450,6 +450,59 @@ void replicator::set_engine(interest::replication_engine* engine) {
   reset_all_clients();
 }
 
+namespace {
+
+/// The engine's entity staging in tasks: task 0 the slot map, tasks 1.. the entities by chunks.
+std::size_t entity_task_count(std::size_t n) { return 1 + (n + snapshot_chunk - 1) / snapshot_chunk; }
+
+void stage_entity_task(const entity_store& store, const interest::replication_engine::staging& st, std::size_t task) {
+  if (task == 0) {
+    const auto slot_dense = store.slot_dense();
+    if (!slot_dense.empty()) std::memcpy(st.slot_dense, slot_dense.data(), slot_dense.size_bytes());
+    return;
+  }
+  const auto ids = store.ids();
+  const auto pos = store.positions();
+  const auto vel = store.velocities();
+  const std::size_t n = store.size();
+  const std::size_t begin = (task - 1) * snapshot_chunk, end = std::min(n, begin + snapshot_chunk);
+  for (std::size_t k = begin; k < end; ++k) {
+    interest::replication_entity& e = st.entities[k];
+    e.x = pos[k].x;
+    e.y = pos[k].y;
+    e.z = pos[k].z;
+    e.id = ids[k];
+    e.vx = vel[k].x;
+    e.vy = vel[k].y;
+    e.vz = vel[k].z;
+    e.pad = 0;
+  }
+}
+
+}  // namespace
+
+void replicator::prestage(const entity_store& store, std::uint64_t tick, interest::thread_pool* pool) {
+  prestaged_ = false;
+  if (!on_engine()) return;
+  try {
+    const std::size_t n = store.size(), slots = store.slot_dense().size();
+    const auto st = engine_->stage_entities(n, slots);
+    if (st.entities == nullptr && n > 0) return;  // the engine takes no entities ahead
+    run_each(pool, entity_task_count(n), [&](std::size_t task) { stage_entity_task(store, st, task); });
+    engine_->upload_entities();
+    prestaged_ = true;
+    prestaged_layout_ = store.layout_version();
+    prestaged_tick_ = tick;
+    prestaged_n_ = n;
+    prestaged_slots_ = slots;
+  } catch (const std::exception& e) {
+    // As build_many: the engine is given up, the next frames are built on the CPU from scratch.
+    engine_error_ = e.what();
+    if (engine_error_.empty()) engine_error_ = "replication engine failed";
+    reset_all_clients();
+  }
+}
+
 void replicator::build_on_engine(std::span<const replication_request> requests, const entity_store& store,
                                  const interest::interest_tracker& tracker, std::uint64_t tick, std::uint64_t server_time_us,
                                  interest::thread_pool* pool, const frame_sink& sink, const chunk_sink& chunk_done,
@@ -506,32 +559,21 @@ void replicator::build_on_engine(std::span<const replication_request> requests, 
 
   // The staging, in one pool run: every entity as the store has it (the engine quantizes), the
   // slot map, the jobs (each names its observer; the engine finds its position) with their sets.
+  // The entities and the slot map are on the device already when prestage() put them there for
+  // this store as it is.
+  const bool ahead = prestaged_ && prestaged_tick_ == tick && prestaged_layout_ == store.layout_version() &&
+                     prestaged_n_ == n && prestaged_slots_ == slot_dense.size();
+  if (prestaged_ && !ahead) engine_->discard_entities();
+  prestaged_ = false;
+  times.entities_ahead = ahead;
   const auto st = engine_->stage(n, slot_dense.size(), jobs, resident ? 0 : total);
-  const auto ids = store.ids();
-  const auto pos = store.positions();
-  const auto vel = store.velocities();
-  const std::size_t entity_tasks = (n + snapshot_chunk - 1) / snapshot_chunk;
-  run_each(pool, 1 + entity_tasks + chunks, [&](std::size_t task) {
-    if (task == 0) {
-      if (!slot_dense.empty()) std::memcpy(st.slot_dense, slot_dense.data(), slot_dense.size_bytes());
+  const std::size_t entity_tasks = ahead ? 0 : entity_task_count(n);
+  run_each(pool, entity_tasks + chunks, [&](std::size_t task) {
+    if (task < entity_tasks) {
+      stage_entity_task(store, st, task);
       return;
     }
-    if (task <= entity_tasks) {
-      const std::size_t begin = (task - 1) * snapshot_chunk, end = std::min(n, begin + snapshot_chunk);
-      for (std::size_t k = begin; k < end; ++k) {
-        interest::replication_entity& e = st.entities[k];
-        e.x = pos[k].x;
-        e.y = pos[k].y;
-        e.z = pos[k].z;
-        e.id = ids[k];
-        e.vx = vel[k].x;
-        e.vy = vel[k].y;
-        e.vz = vel[k].z;
-        e.pad = 0;
-      }
-      return;
-    }
-    const std::size_t ch = task - 1 - entity_tasks;
+    const std::size_t ch = task - entity_tasks;
     const std::size_t end = std::min(jobs, (ch + 1) * chunk);
     for (std::size_t k = ch * chunk; k < end; ++k) {
       const client_state& s = clients_[requests[k].client];
@@ -661,7 +703,12 @@ void replicator::build_many(std::span<const replication_request> requests, const
                             const interest::interest_tracker& tracker, std::uint64_t tick, std::uint64_t server_time_us,
                             interest::thread_pool* pool, const frame_sink& sink, const chunk_sink& chunk_done,
                             const frame_room& room, const frame_share& share) {
-  if (requests.empty()) return;
+  if (requests.empty()) {
+    // Entities staged ahead for this tick are not used: the engine drops them.
+    if (prestaged_ && on_engine()) engine_->discard_entities();
+    prestaged_ = false;
+    return;
+  }
   if (on_engine()) {
     try {
       build_on_engine(requests, store, tracker, tick, server_time_us, pool, sink, chunk_done, room, share);

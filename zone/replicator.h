@@ -60,6 +60,7 @@ struct replication_phase_times {
   double wrap_ms = 0;    ///< the frames from the engine's output, handed to the sink
   double stage_cpu_ms = 0, engine_cpu_ms = 0, wrap_cpu_ms = 0;
   bool cpu = false;  ///< the CPU figures were measured
+  bool entities_ahead = false;  ///< the entities were staged and uploaded ahead (replicator::prestage)
 };
 
 /// What one build() did.
@@ -216,6 +217,15 @@ class replicator {
   [[nodiscard]] const replication_phase_times& phase_times() const { return phase_times_; }
   /// True while build_many runs on the engine.
   [[nodiscard]] bool on_engine() const { return engine_ != nullptr && engine_error_.empty(); }
+  /// On an engine that takes them ahead (replication_engine::stage_entities): stages the store's
+  /// entities and slot map now and starts their copy to the device, so that the next build_many
+  /// does neither (zone-server and bench-zone call it while the interest engine's device works:
+  /// interest_space::set_while_device_works). Only a build_many for the same `tick` uses them,
+  /// and only if the store's layout_version and size are still the same; the caller guarantees
+  /// that no position or velocity changes in between. Nothing on the CPU path or on an engine
+  /// without it; an engine error gives the engine up as in build_many (the next build_many runs
+  /// on the CPU).
+  void prestage(const entity_store& store, std::uint64_t tick, interest::thread_pool* pool);
   /// Why the engine was given up (empty while it works or when none is set).
   [[nodiscard]] const std::string& engine_error() const { return engine_error_; }
 
@@ -284,6 +294,10 @@ class replicator {
   std::vector<entity_snapshot> snapshot_;                     // build_many's, by dense index
   interest::replication_engine* engine_ = nullptr;
   std::string engine_error_;
+  /// prestage's entities: on the engine, for a store of this layout version and size.
+  bool prestaged_ = false;
+  std::uint64_t prestaged_layout_ = 0, prestaged_tick_ = 0;
+  std::size_t prestaged_n_ = 0, prestaged_slots_ = 0;
   std::vector<std::uint32_t> job_visible_;  // build_on_engine: visible-set size, then offset, by request
   replication_phase_times phase_times_;
   std::function<double()> phase_cpu_;

@@ -85,6 +85,12 @@ zone_server::zone_server(const zone_config& cfg)
         faulty_replication_ = std::make_unique<faulty_replication_engine>(*replication_engine_, gpu_fault(cfg));
       }
       replicator_.set_engine(faulty_replication_ ? faulty_replication_.get() : replication_engine_.get());
+      // The entities for replication staged and copied up while the interest engine's device
+      // works (nothing moves them between the step and replication in a single zone).
+      prestage_work_ = [this] {
+        if (ext_ == nullptr) replicator_.prestage(world_->store(), world_->tick(), pool_.get());
+      };
+      world_->interest().set_while_device_works(&prestage_work_);
       // With the interest step on the GPU too, replication reads the visible sets there in place;
       // unless --host-views (the default), the players' rows then stay on the device only.
       world_->set_player_views_on_host(cfg.host_views);

@@ -64,6 +64,8 @@ class engine final : public interest::replication_engine {
     if (entities > 0xffffffffu || slots > 0xffffffffu || jobs > 0xffffffffu || visible > 0xffffffffu) {
       throw std::invalid_argument("replication engine: more than 2^32 entities, slots, jobs or visible entries");
     }
+    // Entities uploaded ahead (stage_entities, upload_entities) stay if the counts are the same.
+    if (uploaded_ && (entities != n_entities_ || slots != n_slots_)) uploaded_ = false;
     h_entities_.reserve(entities);
     h_slot_dense_.reserve(slots);
     h_jobs_.reserve(jobs);
@@ -74,6 +76,35 @@ class engine final : public interest::replication_engine {
     n_visible_ = visible;
     return {h_entities_.get(), h_slot_dense_.get(), h_jobs_.get(), h_visible_.get()};
   }
+
+  staging stage_entities(std::size_t entities, std::size_t slots) override {
+    if (entities > 0xffffffffu || slots > 0xffffffffu) {
+      throw std::invalid_argument("replication engine: more than 2^32 entities or slots");
+    }
+    uploaded_ = false;
+    h_entities_.reserve(entities);
+    h_slot_dense_.reserve(slots);
+    n_entities_ = entities;
+    n_slots_ = slots;
+    return {h_entities_.get(), h_slot_dense_.get(), nullptr, nullptr};
+  }
+
+  /// The staged entities and slot map copied up now, on the run's stream (so run()'s kernels see
+  /// them), while the caller goes on.
+  void upload_entities() override {
+    d_entities_.reserve(n_entities_);
+    d_slot_dense_.reserve(n_slots_);
+    if (n_entities_ > 0) {
+      CUDA_CHECK(cudaMemcpyAsync(d_entities_.get(), h_entities_.get(), n_entities_ * sizeof(interest::replication_entity),
+                                 cudaMemcpyHostToDevice, stream_));
+    }
+    if (n_slots_ > 0) {
+      CUDA_CHECK(cudaMemcpyAsync(d_slot_dense_.get(), h_slot_dense_.get(), n_slots_ * sizeof(std::uint32_t),
+                                 cudaMemcpyHostToDevice, stream_));
+    }
+    uploaded_ = true;
+  }
+  void discard_entities() override { uploaded_ = false; }
 
   [[nodiscard]] bool reads_resident() const override { return true; }
   void set_device_wait(device_wait how) override { how_ = how; }
@@ -135,8 +166,11 @@ class engine final : public interest::replication_engine {
     const auto up = [&](void* d, const void* h, std::size_t bytes) {
       if (bytes > 0) CUDA_CHECK(cudaMemcpyAsync(d, h, bytes, cudaMemcpyHostToDevice, stream_));
     };
-    up(d_entities_.get(), h_entities_.get(), n_entities_ * sizeof(interest::replication_entity));
-    up(d_slot_dense_.get(), h_slot_dense_.get(), n_slots_ * sizeof(std::uint32_t));
+    if (!uploaded_) {
+      up(d_entities_.get(), h_entities_.get(), n_entities_ * sizeof(interest::replication_entity));
+      up(d_slot_dense_.get(), h_slot_dense_.get(), n_slots_ * sizeof(std::uint32_t));
+    }
+    uploaded_ = false;  // the next run's are staged afresh
     up(d_jobs_.get(), h_jobs_.get(), n_jobs_ * sizeof(interest::replication_job));
     up(d_clients_.get(), h_clients_.get(), client_count * sizeof(client_slot));
     std::uint64_t total = 0, record_cap = 0;
@@ -340,6 +374,7 @@ class engine final : public interest::replication_engine {
   cudaEvent_t ev_begin_ = nullptr, ev_up_ = nullptr, ev_kernels_ = nullptr, ev_down_ = nullptr;
   cudaEvent_t ev_sync_ = nullptr;  // blocking-sync: wait() sleeps on it
   device_wait how_ = device_wait::spin;
+  bool uploaded_ = false;  // the staged entities and slot map are on the device (upload_entities)
   std::array<std::array<double, 8>, wait_points> past_{};  // by wait point: its last durations (ms)
   std::array<std::size_t, wait_points> next_past_{};
   std::uint32_t dozes_ = 0;  // this run's

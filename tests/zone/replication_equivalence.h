@@ -60,6 +60,7 @@ struct replication_coverage {
   /// Engine-side frames handed over without a copy (build_many's frame_share), and those of them
   /// that changed while held (two ticks after their own: the engine must not reuse their buffer).
   std::uint64_t shared_frames = 0, shared_changed = 0;
+  std::uint64_t entities_ahead = 0;  ///< engine runs on entities staged ahead (replicator::prestage)
 };
 
 /// Runs `c` with engines from `make_engine` (one per budget and first tick) and compares every
@@ -187,6 +188,10 @@ inline replication_coverage check_replication_equivalence(
         std::vector<net::shared_frame> shared_now(sharing ? requests.size() : 0);
         std::atomic<std::uint64_t> room_frames{0}, room_misplaced{0};  // counted on the pool's threads
         rooms.assign(requests.size(), nullptr);
+        // Replication's entities staged ahead (replicator::prestage) one tick in four; one in
+        // four staged for another tick, which build_many must not use.
+        if (tick % 4 == 1) dev.prestage(store, tick, &pool);
+        if (tick % 4 == 3) dev.prestage(store, tick + 1, &pool);
         dev.build_many(
             requests, store, tracker, tick, tick * 3, &pool,
             [&](std::size_t k, std::span<const std::uint8_t> f, const replication_stats& st) {
@@ -224,6 +229,10 @@ inline replication_coverage check_replication_equivalence(
             now_held.emplace_back(shared_now[k], got[k]);
           }
           while (held.size() > 1) held.pop_front();
+        }
+        if (dev.on_engine() && !requests.empty()) {
+          if (dev.phase_times().entities_ahead) ++cov.entities_ahead;
+          if (tick % 4 != 1) CHECK_FALSE(dev.phase_times().entities_ahead);
         }
         cov.room_frames += room_frames.load();
         cov.room_misplaced += room_misplaced.load();
@@ -407,6 +416,7 @@ inline void require_equivalent(const replication_coverage& cov, bool tiny_budget
   CHECK(cov.room_misplaced == 0);
   CHECK(cov.shared_frames > 0);
   CHECK(cov.shared_changed == 0);
+  CHECK(cov.entities_ahead > 0);
   CHECK(cov.stats_differing == 0);
   CHECK(cov.hash_differing == 0);
   CHECK(cov.undecodable == 0);

@@ -35,15 +35,36 @@ class emulated_engine final : public interest::replication_engine {
   void set_frame_format(const interest::replication_frame_format& format) override { format_ = format; }
 
   staging stage(std::size_t entities, std::size_t slots, std::size_t jobs, std::size_t visible) override {
-    entities_.assign(entities, {});
-    slot_dense_.assign(slots, 0);
+    // Entities handed over ahead (stage_entities, upload_entities) stay when the counts match;
+    // else the staging starts as garbage the caller must overwrite.
+    if (!(uploaded_ && entities == entities_.size() && slots == slot_dense_.size())) {
+      uploaded_ = false;
+      entities_.assign(entities, garbage_entity());
+      slot_dense_.assign(slots, 0xfefefefe);
+    }
     jobs_.assign(jobs, {});
     visible_.assign(visible, 0);
     return {entities_.data(), slot_dense_.data(), jobs_.data(), visible_.data()};
   }
 
+  staging stage_entities(std::size_t entities, std::size_t slots) override {
+    uploaded_ = false;
+    entities_.assign(entities, garbage_entity());
+    slot_dense_.assign(slots, 0xfefefefe);
+    return {entities_.data(), slot_dense_.data(), nullptr, nullptr};
+  }
+  void upload_entities() override {
+    uploaded_ = true;
+    ++uploads_;
+  }
+  void discard_entities() override { uploaded_ = false; }
+  /// Runs that used entities handed over ahead.
+  [[nodiscard]] std::uint64_t runs_uploaded_ahead() const { return runs_ahead_; }
+
   output run(const interest::replication_rules& rules, std::size_t client_count,
              const interest::visibility_engine::resident_lists* rows) override {
+    if (uploaded_) ++runs_ahead_;
+    uploaded_ = false;
     REQUIRE(rows == nullptr);  // reads_resident() is false: the replicator stages the sets
     if (len_.size() < client_count) {
       len_.resize(client_count, 0);
@@ -138,8 +159,16 @@ class emulated_engine final : public interest::replication_engine {
   }
 
  private:
+  static interest::replication_entity garbage_entity() {
+    interest::replication_entity e{};
+    e.x = e.y = e.z = -1e30f;
+    e.id = 0xfefefefe;
+    return e;
+  }
   std::mt19937_64 rng_;
   bool keep_ = true;
+  bool uploaded_ = false;
+  std::uint64_t uploads_ = 0, runs_ahead_ = 0;
   std::vector<std::shared_ptr<std::vector<std::uint8_t>>> kept_;
   std::vector<interest::replication_entity> entities_;
   std::vector<std::uint32_t> slot_dense_, visible_;
