@@ -203,7 +203,7 @@ struct options {
   replicate_mode replicate = replicate_mode::parallel;
   bool replicate_auto = true;  // --replicate auto: gpu when a device is usable
   bool host_views = false;     // --host-views: the GPU replication engine gets the sets from the host
-  interest::replication_engine::device_wait device_wait = interest::replication_engine::device_wait::spin;  // --device-wait
+  interest::replication_engine::device_wait device_wait = interest::replication_engine::device_wait::doze;  // --device-wait
   bool rep_park = true;           // --rep-park: replication_options::park_between_phases
   bool prestage = true;           // --prestage: replicator::prestage while the interest device works
   // --sink: build_many's frames written into net::frame_arena in place (as zone-server), copied
@@ -253,7 +253,7 @@ Usage: bench-zone [options]
                      compared) | gpu-vs-cpu (the engine, timed as the tick's, and the CPU
                      build_many each tick, frames compared byte for byte) (default auto)
   --device-wait HOW  spin | block | doze: how the GPU replication engine waits for the device
-                     (replication_engine::set_device_wait; default spin, as zone-server)
+                     (replication_engine::set_device_wait; default doze, as zone-server)
   --prestage on|off  on the GPU engines, replication's entities staged and copied up while the
                      interest engine's device works (replicator::prestage; default on, as zone-server)
   --rep-park on|off  idle workers sleep after each host phase of replication on an engine

@@ -1,7 +1,7 @@
 // Host dispatch of the GPU replication engine (gpu/replication.h; algorithm in docs/zone.md,
 // "Replication on the GPU").
 //
-// One run, on one stream, with up to three host synchronisations (spinning by default, or
+// One run, on one stream, with up to three host synchronisations (dozing then spinning by default, or
 // blocking, or dozing: set_device_wait):
 //  1. The caller filled the pinned staging (entities, slot map, jobs, visible sets); the client
 //     table (where each view is and goes, each client's job) is laid out here from the views'
@@ -373,7 +373,7 @@ class engine final : public interest::replication_engine {
   cudaStream_t stream_ = nullptr;
   cudaEvent_t ev_begin_ = nullptr, ev_up_ = nullptr, ev_kernels_ = nullptr, ev_down_ = nullptr;
   cudaEvent_t ev_sync_ = nullptr;  // blocking-sync: wait() sleeps on it
-  device_wait how_ = device_wait::spin;
+  device_wait how_ = device_wait::doze;
   bool uploaded_ = false;  // the staged entities and slot map are on the device (upload_entities)
   std::array<std::array<double, 8>, wait_points> past_{};  // by wait point: its last durations (ms)
   std::array<std::size_t, wait_points> next_past_{};

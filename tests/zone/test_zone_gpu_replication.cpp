@@ -84,11 +84,11 @@ TEST_SUITE("zone.gpu") {
     MESSAGE("engine runs that read the sets in place: " << cov.resident_runs);
   }
 
-  TEST_CASE("GPU replication waiting by blocking or dozing: the same frames as the CPU replicator") {
+  TEST_CASE("GPU replication waiting by blocking or spinning (the default dozes): the same frames as the CPU replicator") {
     // The wait changes only how the host waits: every mode must give the same frames. A doze
     // engages once a wait's last eight durations are known and at least 0.4 ms (the large world's
     // in-place runs on an H100 or H200 are shorter: then this checks the path around it).
-    for (const auto how : {interest::replication_engine::device_wait::block, interest::replication_engine::device_wait::doze}) {
+    for (const auto how : {interest::replication_engine::device_wait::block, interest::replication_engine::device_wait::spin}) {
       const std::uint64_t seed = zone::test::fresh_seed();
       CAPTURE(seed);
       CAPTURE(static_cast<int>(how));
