@@ -4,7 +4,7 @@
 find_package(Doxygen QUIET)
 if(DOXYGEN_FOUND)
   set(ZONE_DOCS_INPUT
-    "${PROJECT_SOURCE_DIR}/docs/embedding.md ${PROJECT_SOURCE_DIR}/interest/interest_space.h ${PROJECT_SOURCE_DIR}/interest/interest.h ${PROJECT_SOURCE_DIR}/interest/interest_tracker.h ${PROJECT_SOURCE_DIR}/interest/thread_pool.h ${PROJECT_SOURCE_DIR}/interest/visibility_engine.h ${PROJECT_SOURCE_DIR}/gpu/device.h ${PROJECT_SOURCE_DIR}/gpu/finders.h ${PROJECT_SOURCE_DIR}/gpu/pbig.h ${PROJECT_SOURCE_DIR}/gpu/lbvh.h ${PROJECT_SOURCE_DIR}/gpu/visibility.h")
+    "${PROJECT_SOURCE_DIR}/docs/embedding.md ${PROJECT_SOURCE_DIR}/interest/interest_space.h ${PROJECT_SOURCE_DIR}/interest/interest.h ${PROJECT_SOURCE_DIR}/interest/interest_tracker.h ${PROJECT_SOURCE_DIR}/interest/host_visibility_engine.h ${PROJECT_SOURCE_DIR}/interest/thread_pool.h ${PROJECT_SOURCE_DIR}/interest/visibility_engine.h ${PROJECT_SOURCE_DIR}/gpu/device.h ${PROJECT_SOURCE_DIR}/gpu/finders.h ${PROJECT_SOURCE_DIR}/gpu/pbig.h ${PROJECT_SOURCE_DIR}/gpu/lbvh.h ${PROJECT_SOURCE_DIR}/gpu/visibility.h")
   set(ZONE_DOCS_OUTPUT ${PROJECT_BINARY_DIR}/docs)
   configure_file(${CMAKE_CURRENT_LIST_DIR}/Doxyfile.in ${PROJECT_BINARY_DIR}/Doxyfile @ONLY)
   add_custom_target(docs

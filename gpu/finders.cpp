@@ -214,7 +214,7 @@ finder_backend choose_backend(const box_set_summary& summary, bool pbig_usable, 
     return finder_backend::lbvh;
   }
   if (summary.pinned) {
-    // Measured on the H100 (docs/lbvh.md, "The auto finder and its rule"): with the input pinned, PBIG beats LBVH
+    // Measured on the H100 (docs/gpu.md, "The auto finder and its rule"): with the input pinned, PBIG beats LBVH
     // 1.4-1.8x on the sets rules 4 and 5 send to LBVH (Gaussian 10^6 and 10^7, DoC 10).
     say(fmt::format("N = {}, the input pinned (PBIG uploads it by DMA and validates it on the device; LBVH stages "
                     "it): PBIG",

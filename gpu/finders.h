@@ -72,12 +72,12 @@ inline constexpr std::size_t auto_sample_boxes = 8192;
 [[nodiscard]] box_set_summary summarize(const interest::box_set& boxes);
 
 /// The auto rule: which finder a set with this summary goes to, given which GPU finders can run;
-/// the reason in words in `reason`. See docs/lbvh.md for the rule and the measurements behind it
+/// the reason in words in `reason`. See docs/gpu.md ("The auto finder and its rule") for the rule and the measurements behind it
 /// (a pinned set goes to PBIG unless it is small or PBIG's large-box pass would be quadratic).
 [[nodiscard]] finder_backend choose_backend(const box_set_summary& summary, bool pbig_usable, bool lbvh_usable,
                                             std::string* reason = nullptr);
 
-/// The auto rule's constants (docs/lbvh.md has the measurements behind them).
+/// The auto rule's constants (docs/gpu.md has the measurements behind them).
 inline constexpr std::size_t auto_small_n = 20000;          ///< below, with size spread below auto_even_spread: LBVH
 inline constexpr double auto_large_pass_tests = 4e9;        ///< above (large_estimate * N): LBVH
 inline constexpr double auto_crowding = 4.0;                ///< above, with size spread below auto_even_spread: LBVH

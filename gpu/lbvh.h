@@ -1,6 +1,6 @@
 // Public API of the GPU LBVH pair finder: Karras's linear bounding volume hierarchy ("Thinking
 // Parallel", Parts I-III, and HPG 2012; ../shared/papers/) on CUDA. Built only when CUDA is found;
-// without it make_lbvh_finder returns null with the reason, like make_pbig_finder. See docs/lbvh.md.
+// without it make_lbvh_finder returns null with the reason, like make_pbig_finder. See docs/gpu.md, "LBVH".
 #pragma once
 
 #include <cstddef>

@@ -1,4 +1,4 @@
-// Box files: the CSV text format and the binary ".boxes" format (docs/formats.md).
+// Box files: the CSV text format and the binary ".boxes" format (docs/embedding.md, "Box files").
 //
 // The CSV reader streams: the file is read 1 MiB at a time and parsed line by line (string_view
 // and std::from_chars), so what it holds beyond the boxes themselves is one chunk and at most one

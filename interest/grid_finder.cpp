@@ -4,7 +4,8 @@
 // many, small and evenly sized, so with the cell edge chosen by Eq. 6 a cell holds a handful of
 // boxes, every step is a linear pass (count, scan, map) or a tiny all-pairs test, the work splits
 // over threads without locks, and the output-cell rule makes each pair appear once without a
-// de-duplication pass. docs/benchmarks.md has the measurements against CGAL.
+// de-duplication pass. docs/gpu-benchmarks.md ("The CPU pair finders") has the measurements
+// against CGAL.
 //
 // Steps of one call:
 //  1. bounds: the scene's bounding box (the grid's origin and extent);

@@ -204,7 +204,7 @@ class brute_force_finder final : public pair_finder {
 struct grid_finder_options {
   /// Eq. 6's lower bound W on f = N*alpha/M (average boxes per cell). On the GPU W is the warp
   /// width (32). On a CPU core the best W depends on the data (1e6 boxes on the 2-core machine:
-  /// cpu-finders/sweep_w.txt in docs/data/cpu-finders.tar.xz): uniform is flat from 3 to 32, the MMO-like set wants 12-16 (smaller cells
+  /// cpu-finders/sweep_w.txt in docs/data.tar.xz): uniform is flat from 3 to 32, the MMO-like set wants 12-16 (smaller cells
   /// cut its large view boxes into many pieces), the Gaussian set, dense in its centre, wants 2-6.
   /// W = 12 has the best geometric mean over the three (1.15x the per-set best).
   double min_boxes_per_cell = 12.0;
@@ -298,7 +298,7 @@ inline constexpr std::uint32_t team_blue = 1u << 4;
 
 // ---------------------------------------------------------------------------------------------
 // Box files. CSV: one box a line, `minx,miny,minz,maxx,maxy,maxz[,category,mask]`; blank lines and
-// lines starting with '#' skipped. Binary: see docs/formats.md.
+// lines starting with '#' skipped. Binary: see docs/embedding.md, "Box files".
 
 /// A parse or I/O failure: the 1-based line number (0 when not about a line) and a message.
 struct file_error {

@@ -193,6 +193,8 @@ class interest_space {
   [[nodiscard]] const interest_tracker& tracker() const { return tracker_; }
   /// See interest_tracker::set_view_demand, set_options, prepare.
   void set_view_demand(const std::vector<std::uint8_t>* by_slot) { tracker_.set_view_demand(by_slot); }
+  /// See interest_tracker::set_while_device_works.
+  void set_while_device_works(const std::function<void()>* work) { tracker_.set_while_device_works(work); }
   void set_tracker_options(const interest_options& o) { tracker_.set_options(o); }
   void prepare() noexcept { tracker_.prepare(); }
   /// See interest_tracker::carry_visible: `observer` starts the next step with `targets` as its

@@ -318,6 +318,7 @@ std::optional<box_error> interest_tracker::run(visibility_engine& e, const entit
     next_ids_.assign(in.ids, in.ids + n);
     map_rows_into(next_ids_, spare_row_of_slot_);
     host_ms = ms_since(th);
+    if (while_device_works_ != nullptr && *while_device_works_) (*while_device_works_)();
   };
   // By reference: std::function keeps a reference_wrapper in place (the lambda's captures would
   // be copied to the heap, one allocation a tick).

@@ -134,6 +134,12 @@ class interest_tracker {
   /// other row's set is fetched from the engine on first access (visible() stays exact for every
   /// row). Null (the default): every row's. The vector must outlive the tracker or be unset.
   void set_view_demand(const std::vector<std::uint8_t>* by_slot) { view_demand_ = by_slot; }
+  /// Work of the caller's to run while an engine's device finds the sets (non-null; it must
+  /// outlive the tracker or be unset first): update() calls it once, on its own thread, after
+  /// its own bookkeeping there, when the engine waits for a device (visibility_engine's
+  /// while_waiting); not on the host reference or an engine without a device. It must not
+  /// change what update() reads (the columns given to it).
+  void set_while_device_works(const std::function<void()>* work) { while_device_works_ = work; }
   /// Why the engine was given up (empty while it works or when none is set).
   [[nodiscard]] const std::string& engine_error() const { return engine_error_; }
   /// Tells the engine (if any) that an update follows soon (see visibility_engine::prepare).
@@ -239,6 +245,7 @@ class interest_tracker {
   std::vector<entity_id> ids_, next_ids_;                          // rows of the last update / the next
   std::vector<std::uint32_t> row_of_slot_, spare_row_of_slot_;     // slot -> row (checked against ids)
   const std::vector<std::uint8_t>* view_demand_ = nullptr;
+  const std::function<void()>* while_device_works_ = nullptr;
   std::vector<std::uint8_t> demand_rows_, next_demand_rows_;  // per row of the last / next update
   bool partial_ = false;  // vis_list_ holds the demanded rows only; the rest via fetched_row
   mutable std::mutex fetch_mutex_;

@@ -15,6 +15,7 @@
 #include <span>
 #include <string>
 #include <string_view>
+#include <utility>
 #include <vector>
 
 #include "protocol.h"
@@ -159,12 +160,24 @@ class shared_frame {
 
  private:
   friend shared_frame make_shared_frame(std::span<const std::uint8_t> frame);
+  friend shared_frame make_shared_frame_in(std::shared_ptr<const void> owner, std::span<const std::uint8_t> bytes);
   friend class frame_arena;
   std::shared_ptr<const std::uint8_t[]> bytes_;
   std::size_t size_ = 0;
 };
 /// A shared frame holding a copy of `frame` (one allocation).
 [[nodiscard]] shared_frame make_shared_frame(std::span<const std::uint8_t> frame);
+/// A shared frame of bytes that `owner` keeps (no copy, no allocation): every copy of the frame
+/// holds a reference to `owner`, whose bytes must stay valid and unchanged while one lives (e.g.
+/// a replication engine's output buffer, reused only once nothing holds it: zone/replicator.h).
+/// (Inline: the replicator, which has no network, makes them.)
+[[nodiscard]] inline shared_frame make_shared_frame_in(std::shared_ptr<const void> owner, std::span<const std::uint8_t> bytes) {
+  shared_frame f;
+  // The aliasing constructor: owner's count, the frame's bytes.
+  if (owner != nullptr) f.bytes_ = std::shared_ptr<const std::uint8_t[]>(std::move(owner), bytes.data());
+  f.size_ = f.bytes_ != nullptr ? bytes.size() : 0;
+  return f;
+}
 
 /// Shared frames carved out of larger blocks, for one thread (each replication worker has its
 /// own); the frames it makes are ordinary shared frames, safe on any thread, and they outlive the

@@ -203,14 +203,16 @@ struct options {
   replicate_mode replicate = replicate_mode::parallel;
   bool replicate_auto = true;  // --replicate auto: gpu when a device is usable
   bool host_views = false;     // --host-views: the GPU replication engine gets the sets from the host
-  bool device_wait_block = false;  // --device-wait: the replication engine's waits for the device
+  interest::replication_engine::device_wait device_wait = interest::replication_engine::device_wait::doze;  // --device-wait
   bool rep_park = true;           // --rep-park: replication_options::park_between_phases
+  bool prestage = true;           // --prestage: replicator::prestage while the interest device works
   // --sink: build_many's frames written into net::frame_arena in place (as zone-server), copied
   // into it (zone-server's sink before issue 22's fourth round), or copied into per-client vectors.
-  enum class sink_mode { arena, arena_copy, copy } sink = sink_mode::arena;
+  enum class sink_mode { arena, arena_copy, copy, view } sink = sink_mode::arena;
   bool sink_arena = true;  // arena or arena_copy
   std::size_t budget = 8 * 1024;
-  std::uint32_t clients_per_task = 16;
+  std::uint32_t clients_per_task = replication_options{}.clients_per_task;
+  std::uint32_t wrap_threads = 0;  // --wrap-threads
   std::uint32_t snapshot = 16;  // replication_options::snapshot_entities_per_client
   float hysteresis = 4;
   std::uint32_t max_visible = 0;
@@ -250,16 +252,23 @@ Usage: bench-zone [options]
                      one by one on this thread) | both (serial and parallel each tick, frames
                      compared) | gpu-vs-cpu (the engine, timed as the tick's, and the CPU
                      build_many each tick, frames compared byte for byte) (default auto)
-  --device-wait HOW  block | spin: how the GPU replication engine waits for the device
-                     (replication_engine::set_blocking_wait; default spin, as zone-server)
+  --device-wait HOW  spin | block | doze: how the GPU replication engine waits for the device
+                     (replication_engine::set_device_wait; default doze, as zone-server)
+  --prestage on|off  on the GPU engines, replication's entities staged and copied up while the
+                     interest engine's device works (replicator::prestage; default on, as zone-server)
   --rep-park on|off  idle workers sleep after each host phase of replication on an engine
                      (replication_options::park_between_phases; default on, as zone-server)
-  --sink MODE        where build_many's frames go: arena (written in place into net::frame_arena
-                     blocks, reserved through build_many's frame room, as zone-server's sink),
-                     arena-copy (built in the replicator's buffer, then copied into the arena) or
-                     copy (one vector per client, no arena) (default arena)
+  --sink MODE        where build_many's frames go: arena (as zone-server: written in place into
+                     net::frame_arena blocks, reserved through build_many's frame room; on the GPU
+                     engine, handed on from its kept output buffer without a copy),
+                     arena-copy (built in the replicator's buffer, then copied into the arena),
+                     copy (one vector per client, no arena) or view (on the GPU engine only: each
+                     frame left where the engine put it, no copy: what a hand-off without a copy
+                     would cost) (default arena)
   --budget BYTES     per-client byte budget (default 8192)
-  --clients-per-task N  replication chunk size (default 16)
+  --clients-per-task N  replication chunk size (default 64)
+  --wrap-threads N   on a replication engine, the most threads handing frames to the sink (default
+                     0: every worker; replication_options::wrap_threads)
   --snapshot N       build_many snapshots the entities when clients * N >= entities; 0 = never
                      (replication_options::snapshot_entities_per_client, default 16)
   --hysteresis M     (default 4)   --max-visible N (default 0 = no cap)
@@ -366,22 +375,35 @@ std::optional<std::string> parse_args(const std::map<std::string, std::string>& 
     else return need("replicate", "cpu|gpu|auto|serial|parallel|both|gpu-vs-cpu");
   }
   if (value("device-wait")) {
-    if (v != "block" && v != "spin") return need("device-wait", "block|spin");
-    o.device_wait_block = v == "block";
+    using dw = interest::replication_engine::device_wait;
+    if (v != "block" && v != "spin" && v != "doze") return need("device-wait", "spin|block|doze");
+    o.device_wait = v == "block" ? dw::block : v == "doze" ? dw::doze : dw::spin;
   }
   if (value("sink")) {
-    if (v != "arena" && v != "arena-copy" && v != "copy") return need("sink", "arena|arena-copy|copy");
-    o.sink = v == "arena" ? options::sink_mode::arena : v == "arena-copy" ? options::sink_mode::arena_copy : options::sink_mode::copy;
-    o.sink_arena = o.sink != options::sink_mode::copy;
+    if (v != "arena" && v != "arena-copy" && v != "copy" && v != "view") return need("sink", "arena|arena-copy|copy|view");
+    o.sink = v == "arena"        ? options::sink_mode::arena
+             : v == "arena-copy" ? options::sink_mode::arena_copy
+             : v == "copy"       ? options::sink_mode::copy
+                                 : options::sink_mode::view;
+    o.sink_arena = o.sink == options::sink_mode::arena || o.sink == options::sink_mode::arena_copy;
   }
   if (value("rep-park")) {
     if (v != "on" && v != "off") return need("rep-park", "on|off");
     o.rep_park = v == "on";
   }
+  if (value("prestage")) {
+    if (v != "on" && v != "off") return need("prestage", "on|off");
+    o.prestage = v == "on";
+  }
   if (value("clients-per-task")) {
     const auto n = parse_value<std::uint32_t>(v);
     if (!n || *n == 0) return need("clients-per-task", "a positive count");
     o.clients_per_task = *n;
+  }
+  if (value("wrap-threads")) {
+    const auto n = parse_value<std::uint32_t>(v);
+    if (!n) return need("wrap-threads", "a count (0: every worker)");
+    o.wrap_threads = *n;
   }
   if (value("snapshot")) {
     const auto n = parse_value<std::uint32_t>(v);
@@ -463,7 +485,7 @@ int main(int argc, char** argv) {
         "find-into-list", po::bool_switch(&sw.find_into_list));
     zone::tools::add_text_options(cli, given,
                                   {"entities", "clients", "ticks", "warmup", "budget", "threads", "spin-us", "seed", "rate",
-                                   "w", "finder", "host-grid", "replicate", "device-wait", "sink", "rep-park", "clients-per-task",
+                                   "w", "finder", "host-grid", "replicate", "device-wait", "sink", "rep-park", "prestage", "clients-per-task", "wrap-threads",
                                    "snapshot", "hysteresis", "max-visible", "interest", "density", "summary-csv", "csv",
                                    "sweep-w"});
     if (const auto rc = zone::tools::parse_command_line(argc, argv, "bench-zone", usage, cli, 64)) return *rc;
@@ -532,20 +554,25 @@ int main(int argc, char** argv) {
   // spawn_radius of town(i % towns); replication options from the config (replication_options_of).
   replication_options ro = replication_options_of(cfg);
   ro.clients_per_task = opt.clients_per_task;
+  ro.wrap_threads = opt.wrap_threads;
   ro.snapshot_entities_per_client = opt.snapshot;
   ro.park_between_phases = opt.rep_park;
   replicator repl(ro), repl_serial(ro);  // repl_serial: the reference in --replicate both and gpu-vs-cpu
   // As zone-server --replicate: the decisions on the GPU replication engine when asked and possible.
   std::unique_ptr<interest::replication_engine> rep_engine;
+  // As zone-server: the entities for replication staged and copied up while the interest
+  // engine's device works (--prestage).
+  const std::function<void()> prestage_work = [&] { repl.prestage(world.store(), world.tick(), &pool); };
   thread_clocks clocks;  // replication's CPU time, every thread read exactly (refreshed below)
   if (opt.replicate_auto || opt.replicate == replicate_mode::gpu || opt.replicate == replicate_mode::gpu_vs_cpu) {
     std::string why;
     rep_engine = gpu::make_replication_engine(&why);
     if (rep_engine) {
       if (opt.replicate_auto) opt.replicate = replicate_mode::gpu;
-      rep_engine->set_blocking_wait(opt.device_wait_block);
+      rep_engine->set_device_wait(opt.device_wait);
       repl.set_engine(rep_engine.get());
       repl.set_phase_cpu_clock([&clocks] { return clocks.ms(); });
+      if (opt.prestage) world.interest().set_while_device_works(&prestage_work);
       // As zone-server: the players' sets stay on the device (the CPU reference of gpu-vs-cpu
       // reads them on the host).
       if (opt.replicate != replicate_mode::gpu_vs_cpu && !opt.host_views) world.set_player_views_on_host(false);
@@ -555,6 +582,11 @@ int main(int argc, char** argv) {
     }
   }
   const bool on_gpu = opt.replicate == replicate_mode::gpu || opt.replicate == replicate_mode::gpu_vs_cpu;
+  if (opt.sink == options::sink_mode::view && !on_gpu) {
+    // The CPU replicator's frames live in its writers, reused for the next frame.
+    std::cerr << "bench-zone: --sink view needs the GPU replication engine (--replicate gpu or gpu-vs-cpu)\n";
+    return 64;
+  }
   const bool reference = opt.replicate == replicate_mode::both || opt.replicate == replicate_mode::gpu_vs_cpu;
   std::vector<entity_id> players;
   std::vector<replication_request> requests;
@@ -575,11 +607,14 @@ int main(int argc, char** argv) {
   std::vector<std::uint64_t> frame_hash(requests.size());
   std::vector<replication_stats> frame_stats(requests.size());
   std::vector<std::vector<std::uint8_t>> frame_copy(requests.size()), serial_copy(requests.size());
-  if (!opt.sink_arena) {
+  // --sink view: the frames where build_many's sink saw them (valid until its next call).
+  std::vector<std::span<const std::uint8_t>> frame_view(opt.sink == options::sink_mode::view ? requests.size() : 0);
+  if (opt.sink == options::sink_mode::copy) {
     for (auto& f : frame_copy) f.reserve(opt.budget + 4096);  // frames stay within the budget
   }
   std::vector<net::shared_frame> frame_shared(opt.sink_arena ? requests.size() : 0);
   const auto frame_of = [&](std::size_t k) -> std::span<const std::uint8_t> {
+    if (opt.sink == options::sink_mode::view) return frame_view[k];
     return opt.sink_arena ? frame_shared[k].bytes() : std::span<const std::uint8_t>(frame_copy[k]);
   };
   for (auto& f : serial_copy) f.reserve(opt.budget + 4096);
@@ -619,6 +654,7 @@ int main(int argc, char** argv) {
   std::vector<double> step_allocs, rep_allocs;  // heap allocations per tick (world step; replication)
   std::size_t on_engine_ticks = 0;  // measured ticks whose interest step ran on the engine
   std::size_t resident_ticks = 0;   // measured ticks whose replication read the sets on the device
+  std::size_t ahead_ticks = 0;      // measured ticks whose entities were on the device ahead (--prestage)
   std::vector<double> pairs, candidates, visible, enters, leaves, bytes_per_frame, checks;
   std::uint64_t frames_digest = 0xcbf29ce484222325ull, frames_mismatch = 0;
   std::uint64_t sent_enters = 0, sent_updates = 0, sent_leaves = 0, deferred = 0, view_entries = 0;
@@ -686,6 +722,8 @@ int main(int argc, char** argv) {
                             // written there in place (arena) or copied in (arena-copy).
                             net::frame_arena& arena = sink_arena();
                             frame_shared[k] = arena.in_reservation(frame) ? arena.commit(frame.size()) : arena.make(frame);
+                          } else if (opt.sink == options::sink_mode::view) {
+                            frame_view[k] = frame;  // the engine's output, valid until its next run
                           } else {
                             frame_copy[k].assign(frame.begin(), frame.end());
                           }
@@ -694,7 +732,14 @@ int main(int argc, char** argv) {
                         {},
                         opt.sink == options::sink_mode::arena
                             ? replicator::frame_room([](std::size_t, std::size_t bytes) { return sink_arena().reserve(bytes); })
-                            : replicator::frame_room{});
+                            : replicator::frame_room{},
+                        // As zone-server: on the GPU engine, the frames of its kept buffer as they are.
+                        opt.sink == options::sink_mode::arena
+                            ? replicator::frame_share([&](std::size_t k, net::shared_frame frame, const replication_stats& st) {
+                                frame_shared[k] = std::move(frame);
+                                frame_stats[k] = st;
+                              })
+                            : replicator::frame_share{});
         rep_ms = ms_since(r0);
         rep_cpu = clocks.ms() - c0;
         rep_cpu_process = cpu_ms(CLOCK_PROCESS_CPUTIME_ID) - p0;
@@ -798,6 +843,7 @@ int main(int argc, char** argv) {
       s_rg_down.v.push_back(rt.download_ms);
       s_rg_wait.v.push_back(rt.wait_ms);
       const auto& ph = repl.phase_times();
+      ahead_ticks += ph.entities_ahead ? 1 : 0;
       s_rp_stage.v.push_back(ph.stage_ms);
       s_rp_wrap.v.push_back(ph.wrap_ms);
       s_rp_stage_cpu.v.push_back(ph.stage_cpu_ms);
@@ -898,7 +944,10 @@ int main(int argc, char** argv) {
       std::printf("; gpu vs cpu frames differing: %llu of %llu", static_cast<unsigned long long>(frames_mismatch),
                   static_cast<unsigned long long>(static_cast<std::uint64_t>(total_ticks) * requests.size()));
     }
-    if (on_gpu) std::printf("; visible sets read on the device in %zu of %zu ticks", resident_ticks, s_total.v.size());
+    if (on_gpu) {
+      std::printf("; visible sets read on the device in %zu of %zu ticks; entities staged ahead in %zu", resident_ticks,
+                  s_total.v.size(), ahead_ticks);
+    }
     if (on_gpu && !repl.engine_error().empty()) std::printf("; GPU ENGINE FAILED: %s", repl.engine_error().c_str());
     std::printf("\n");
   }

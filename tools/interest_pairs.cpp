@@ -1,6 +1,6 @@
 // interest-pairs: the offline CLI. Reads a box file (CSV or binary .boxes), finds every qualifying
 // pair with the chosen backend and writes them as `i j` lines in canonical order; `gen` writes a
-// generated data set. Usage and exit codes: docs/formats.md and `interest-pairs --help`.
+// generated data set. Usage and exit codes: docs/embedding.md and `interest-pairs --help`.
 //
 // Exit status: 0 success; 1 failure of the environment (no GPU for --backend gpu, a write error);
 // 2 bad input or usage (unparsable or invalid box file, unknown option, missing argument).
@@ -39,7 +39,7 @@ constexpr const char* usage_line =
 
 constexpr const char* help_text =
     "\n"
-    "Finds every pair of boxes in INPUT (CSV or binary .boxes, see docs/formats.md) that intersect and\n"
+    "Finds every pair of boxes in INPUT (CSV or binary .boxes, see docs/embedding.md) that intersect and\n"
     "pass the category/mask filter; writes one line `i j` per pair (i < j, sorted by i then j).\n"
     "\n"
     "  --backend B     brute (O(N^2) reference), cpu (grid finder), gpu or pbig (PBIG on CUDA),\n"

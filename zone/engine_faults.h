@@ -74,6 +74,12 @@ class faulty_replication_engine final : public interest::replication_engine {
     if (fault_.fired()) fault_.check("replication stage");
     return inner_.stage(entities, slots, jobs, visible);
   }
+  staging stage_entities(std::size_t entities, std::size_t slots) override {
+    if (fault_.fired()) fault_.check("replication stage");
+    return inner_.stage_entities(entities, slots);
+  }
+  void upload_entities() override { inner_.upload_entities(); }
+  void discard_entities() override { inner_.discard_entities(); }
   output run(const interest::replication_rules& rules, std::size_t client_count,
              const interest::visibility_engine::resident_lists* rows,
              const std::function<void()>* while_waiting) override {
@@ -82,7 +88,7 @@ class faulty_replication_engine final : public interest::replication_engine {
   }
   [[nodiscard]] bool reads_resident() const override { return inner_.reads_resident(); }
   void set_frame_format(const interest::replication_frame_format& format) override { inner_.set_frame_format(format); }
-  void set_blocking_wait(bool blocking) override { inner_.set_blocking_wait(blocking); }
+  void set_device_wait(device_wait how) override { inner_.set_device_wait(how); }
   void forget_all() override {
     if (!fault_.fired()) inner_.forget_all();
   }

@@ -451,10 +451,64 @@ void replicator::set_engine(interest::replication_engine* engine) {
   reset_all_clients();
 }
 
+namespace {
+
+/// The engine's entity staging in tasks: task 0 the slot map, tasks 1.. the entities by chunks.
+std::size_t entity_task_count(std::size_t n) { return 1 + (n + snapshot_chunk - 1) / snapshot_chunk; }
+
+void stage_entity_task(const entity_store& store, const interest::replication_engine::staging& st, std::size_t task) {
+  if (task == 0) {
+    const auto slot_dense = store.slot_dense();
+    if (!slot_dense.empty()) std::memcpy(st.slot_dense, slot_dense.data(), slot_dense.size_bytes());
+    return;
+  }
+  const auto ids = store.ids();
+  const auto pos = store.positions();
+  const auto vel = store.velocities();
+  const std::size_t n = store.size();
+  const std::size_t begin = (task - 1) * snapshot_chunk, end = std::min(n, begin + snapshot_chunk);
+  for (std::size_t k = begin; k < end; ++k) {
+    interest::replication_entity& e = st.entities[k];
+    e.x = pos[k].x;
+    e.y = pos[k].y;
+    e.z = pos[k].z;
+    e.id = ids[k];
+    e.vx = vel[k].x;
+    e.vy = vel[k].y;
+    e.vz = vel[k].z;
+    e.pad = 0;
+  }
+}
+
+}  // namespace
+
+void replicator::prestage(const entity_store& store, std::uint64_t tick, interest::thread_pool* pool) {
+  prestaged_ = false;
+  if (!on_engine()) return;
+  try {
+    const std::size_t n = store.size(), slots = store.slot_dense().size();
+    const auto st = engine_->stage_entities(n, slots);
+    if (st.entities == nullptr && n > 0) return;  // the engine takes no entities ahead
+    run_each(pool, entity_task_count(n), [&](std::size_t task) { stage_entity_task(store, st, task); });
+    engine_->upload_entities();
+    prestaged_ = true;
+    prestaged_layout_ = store.layout_version();
+    prestaged_tick_ = tick;
+    prestaged_n_ = n;
+    prestaged_slots_ = slots;
+  } catch (const std::exception& e) {
+    // As build_many: the engine is given up, the next frames are built on the CPU from scratch.
+    engine_error_ = e.what();
+    if (engine_error_.empty()) engine_error_ = "replication engine failed";
+    reset_all_clients();
+  }
+}
+
 void replicator::build_on_engine(std::span<const replication_request> requests, const entity_store& store,
                                  const interest::interest_tracker& tracker, std::uint64_t tick, std::uint64_t server_time_us,
                                  interest::thread_pool* pool, const frame_sink& sink, const chunk_sink& chunk_done,
-                                 const frame_room& room, const std::function<void()>* while_waiting) {
+                                 const frame_room& room, const frame_share& share,
+                                 const std::function<void()>* while_waiting) {
   // Phase clocks: wall always, the process's CPU time when asked (set_phase_cpu_timing).
   replication_phase_times times;
   times.cpu = static_cast<bool>(phase_cpu_);
@@ -507,32 +561,21 @@ void replicator::build_on_engine(std::span<const replication_request> requests, 
 
   // The staging, in one pool run: every entity as the store has it (the engine quantizes), the
   // slot map, the jobs (each names its observer; the engine finds its position) with their sets.
+  // The entities and the slot map are on the device already when prestage() put them there for
+  // this store as it is.
+  const bool ahead = prestaged_ && prestaged_tick_ == tick && prestaged_layout_ == store.layout_version() &&
+                     prestaged_n_ == n && prestaged_slots_ == slot_dense.size();
+  if (prestaged_ && !ahead) engine_->discard_entities();
+  prestaged_ = false;
+  times.entities_ahead = ahead;
   const auto st = engine_->stage(n, slot_dense.size(), jobs, resident ? 0 : total);
-  const auto ids = store.ids();
-  const auto pos = store.positions();
-  const auto vel = store.velocities();
-  const std::size_t entity_tasks = (n + snapshot_chunk - 1) / snapshot_chunk;
-  run_each(pool, 1 + entity_tasks + chunks, [&](std::size_t task) {
-    if (task == 0) {
-      if (!slot_dense.empty()) std::memcpy(st.slot_dense, slot_dense.data(), slot_dense.size_bytes());
+  const std::size_t entity_tasks = ahead ? 0 : entity_task_count(n);
+  run_each(pool, entity_tasks + chunks, [&](std::size_t task) {
+    if (task < entity_tasks) {
+      stage_entity_task(store, st, task);
       return;
     }
-    if (task <= entity_tasks) {
-      const std::size_t begin = (task - 1) * snapshot_chunk, end = std::min(n, begin + snapshot_chunk);
-      for (std::size_t k = begin; k < end; ++k) {
-        interest::replication_entity& e = st.entities[k];
-        e.x = pos[k].x;
-        e.y = pos[k].y;
-        e.z = pos[k].z;
-        e.id = ids[k];
-        e.vx = vel[k].x;
-        e.vy = vel[k].y;
-        e.vz = vel[k].z;
-        e.pad = 0;
-      }
-      return;
-    }
-    const std::size_t ch = task - 1 - entity_tasks;
+    const std::size_t ch = task - entity_tasks;
     const std::size_t end = std::min(jobs, (ch + 1) * chunk);
     for (std::size_t k = ch * chunk; k < end; ++k) {
       const client_state& s = clients_[requests[k].client];
@@ -589,17 +632,25 @@ void replicator::build_on_engine(std::span<const replication_request> requests, 
   // The frames are the engine's, whole but for the enters' class, half extents and kind (from
   // the store: enters are few once the views are built); each goes to the sink from where the
   // engine put it. Chunks of requests per task, as on the CPU path.
-  const std::size_t tasks = std::min<std::size_t>(chunks, pool != nullptr ? pool->size() : 1);
+  std::size_t threads = pool != nullptr ? pool->size() : 1;
+  if (opt_.wrap_threads > 0) threads = std::min<std::size_t>(threads, opt_.wrap_threads);
+  const std::size_t tasks = std::min(chunks, threads);
   std::atomic<std::size_t> next_chunk{0};
   const auto kinds = store.kinds();
   const auto classes = store.visibility_classes();
   const auto extents = store.presence_half_extents();
   const std::size_t enter_step = net::canonical_tick_update::enter_table + net::canonical_tick_update::name_bytes(0);
   const auto put32 = [](std::uint8_t* p, std::uint32_t v) { std::memcpy(p, &v, 4); };
+  // Frames handed on without a copy where the engine keeps its buffer for them (share); each
+  // chunk's frames hold one count of their own, so that the frames' copies and releases (here
+  // and on the network's threads) do not all meet on the buffer's one counter.
+  const bool sharing = share && out.records_keep != nullptr;
   run_each(pool, tasks, [&](std::size_t) {
     for (std::size_t ch = next_chunk.fetch_add(1, std::memory_order_relaxed); ch < chunks;
          ch = next_chunk.fetch_add(1, std::memory_order_relaxed)) {
       const std::size_t begin = ch * chunk, end = std::min(jobs, begin + chunk);
+      std::shared_ptr<const void> chunk_keep;
+      if (sharing) chunk_keep = std::make_shared<std::shared_ptr<const void>>(out.records_keep);
       for (std::size_t k = begin; k < end; ++k) {
         const interest::replication_result& res = out.results[k];
         client_state& s = clients_[requests[k].client];
@@ -631,7 +682,9 @@ void replicator::build_on_engine(std::span<const replication_request> requests, 
         stats.deferred_leaves = res.deferred_leaves;
         stats.deferred_updates = res.deferred_updates;
         stats.bytes = res.frame_size;
-        if (room) {
+        if (sharing) {
+          share(k, net::make_shared_frame_in(chunk_keep, {frame, res.frame_size}), stats);
+        } else if (room) {
           // Copied where the caller sends it from (the engine's output is reused next tick).
           const auto to = room(k, res.frame_size);
           std::memcpy(to.data(), frame, res.frame_size);
@@ -651,7 +704,8 @@ void replicator::build_on_engine(std::span<const replication_request> requests, 
 void replicator::build_many(std::span<const replication_request> requests, const entity_store& store,
                             const interest::interest_tracker& tracker, std::uint64_t tick, std::uint64_t server_time_us,
                             interest::thread_pool* pool, const frame_sink& sink, const chunk_sink& chunk_done,
-                            const frame_room& room, const std::function<void()>* side_work) {
+                            const frame_room& room, const frame_share& share,
+                            const std::function<void()>* side_work) {
   // The caller's side work, exactly once per call: through `once`, which an engine calls while
   // the device works; else (the CPU path, no requests, an engine that threw before calling it)
   // after the frames. What it throws is held until then, so that it never reads as the engine's
@@ -674,11 +728,16 @@ void replicator::build_many(std::span<const replication_request> requests, const
     if (has_side) once();
     if (side_error) std::rethrow_exception(side_error);
   };
-  if (requests.empty()) return finish();
+  if (requests.empty()) {
+    // Entities staged ahead for this tick are not used: the engine drops them.
+    if (prestaged_ && on_engine()) engine_->discard_entities();
+    prestaged_ = false;
+    return finish();
+  }
   if (on_engine()) {
     bool built = false;
     try {
-      build_on_engine(requests, store, tracker, tick, server_time_us, pool, sink, chunk_done, room,
+      build_on_engine(requests, store, tracker, tick, server_time_us, pool, sink, chunk_done, room, share,
                       has_side ? &once_ref : nullptr);
       built = true;
     } catch (const std::exception& e) {

@@ -14,6 +14,7 @@
 #include "interest/replication_engine.h"
 #include "interest/thread_pool.h"
 #include "net/protocol.h"
+#include "net/server.h"
 #include "zone/entity_store.h"
 
 namespace zone {
@@ -33,8 +34,13 @@ struct replication_options {
   /// With send_digest: a digest in the frames of every digest_period-th tick (and in every reset frame).
   std::uint32_t digest_period = 1;
   /// Clients handed out at a time to build_many's threads (the frames never depend on it, nor
-  /// on the thread count).
-  std::uint32_t clients_per_task = 16;
+  /// on the thread count). 64: on a replication engine at 20,000 clients, 16 cost 0.14 us more
+  /// CPU per client (1,250 tasks a phase instead of 313: docs/zone-benchmarks.md).
+  std::uint32_t clients_per_task = 64;
+  /// On a replication engine: the most threads that hand the frames to the sink (0 = every pool
+  /// thread). The hand-off reads the engine's frames and writes them where the sink wants them:
+  /// bound by memory bandwidth, so fewer threads can do it in about the same time for less CPU.
+  std::uint32_t wrap_threads = 0;
   /// build_many snapshots the entities (one quantization per entity instead of one per update
   /// sent) when clients * snapshot_entities_per_client >= entities; 0 = never. The frames are the
   /// same either way.
@@ -54,6 +60,7 @@ struct replication_phase_times {
   double wrap_ms = 0;    ///< the frames from the engine's output, handed to the sink
   double stage_cpu_ms = 0, engine_cpu_ms = 0, wrap_cpu_ms = 0;
   bool cpu = false;  ///< the CPU figures were measured
+  bool entities_ahead = false;  ///< the entities were staged and uploaded ahead (replicator::prestage)
 };
 
 /// What one build() did.
@@ -180,6 +187,13 @@ class replicator {
   /// sink's span is that memory. On an engine the frame is copied there from the engine's output.
   /// Unset: the sink's span is in the replicator's (or the engine's) own buffer.
   using frame_room = std::function<std::span<std::uint8_t>(std::size_t k, std::size_t bytes)>;
+  /// Where frame k goes when it can go without a copy (optional): on an engine that keeps its
+  /// output for as long as it is held (replication_engine::output::records_keep), each frame is
+  /// handed over as a net::shared_frame of the engine's buffer (no copy, no room) through this
+  /// instead of the sink; the engine reuses that buffer only once every such frame is released
+  /// (it keeps a few, then copies again while all are held: a client that reads slowly holds one
+  /// tick's buffer at most until its frames are dropped). Not called on the CPU path.
+  using frame_share = std::function<void(std::size_t k, net::shared_frame frame, const replication_stats& stats)>;
   /// `side_work` (optional: null or empty for none): the caller's own host work, which needs
   /// none of the frames and must not change the store or the tracker; build_many runs it exactly
   /// once per call, on the calling thread, whatever path the call takes (also with no requests):
@@ -187,13 +201,14 @@ class replicator {
   /// there: the work costs the tick nothing up to the device's time), counted in
   /// phase_times().engine_ms; on the CPU (no engine, or an engine that failed before calling
   /// it), after the last frame reached the sink and chunk_done. The pool's workers are parked
-  /// or idle meanwhile; no sink call runs at the same time. What it throws leaves build_many
+  /// or idle meanwhile; no sink (or share) call runs at the same time. What it throws leaves build_many
   /// after the frames (it is never taken for the engine's failure). Passed as a pointer so that
   /// the caller can hand a std::function holding a std::ref (no allocation a tick).
   void build_many(std::span<const replication_request> requests, const entity_store& store,
                   const interest::interest_tracker& tracker, std::uint64_t tick, std::uint64_t server_time_us,
                   interest::thread_pool* pool, const frame_sink& sink, const chunk_sink& chunk_done = {},
-                  const frame_room& room = {}, const std::function<void()>* side_work = nullptr);
+                  const frame_room& room = {}, const frame_share& share = {},
+                  const std::function<void()>* side_work = nullptr);
 
   /// Runs build_many's decisions on `engine` (interest/replication_engine.h; the GPU:
   /// gpu/replication.h), which then holds the clients' views; null: back to the CPU. The frames
@@ -213,6 +228,15 @@ class replicator {
   [[nodiscard]] const replication_phase_times& phase_times() const { return phase_times_; }
   /// True while build_many runs on the engine.
   [[nodiscard]] bool on_engine() const { return engine_ != nullptr && engine_error_.empty(); }
+  /// On an engine that takes them ahead (replication_engine::stage_entities): stages the store's
+  /// entities and slot map now and starts their copy to the device, so that the next build_many
+  /// does neither (zone-server and bench-zone call it while the interest engine's device works:
+  /// interest_space::set_while_device_works). Only a build_many for the same `tick` uses them,
+  /// and only if the store's layout_version and size are still the same; the caller guarantees
+  /// that no position or velocity changes in between. Nothing on the CPU path or on an engine
+  /// without it; an engine error gives the engine up as in build_many (the next build_many runs
+  /// on the CPU).
+  void prestage(const entity_store& store, std::uint64_t tick, interest::thread_pool* pool);
   /// Why the engine was given up (empty while it works or when none is set).
   [[nodiscard]] const std::string& engine_error() const { return engine_error_; }
 
@@ -267,7 +291,8 @@ class replicator {
   void build_on_engine(std::span<const replication_request> requests, const entity_store& store,
                        const interest::interest_tracker& tracker, std::uint64_t tick, std::uint64_t server_time_us,
                        interest::thread_pool* pool, const frame_sink& sink, const chunk_sink& chunk_done,
-                       const frame_room& room, const std::function<void()>* while_waiting);
+                       const frame_room& room, const frame_share& share,
+                       const std::function<void()>* while_waiting);
   /// Every active client starts over (its next frame is a reset).
   void reset_all_clients();
 
@@ -281,6 +306,10 @@ class replicator {
   std::vector<entity_snapshot> snapshot_;                     // build_many's, by dense index
   interest::replication_engine* engine_ = nullptr;
   std::string engine_error_;
+  /// prestage's entities: on the engine, for a store of this layout version and size.
+  bool prestaged_ = false;
+  std::uint64_t prestaged_layout_ = 0, prestaged_tick_ = 0;
+  std::size_t prestaged_n_ = 0, prestaged_slots_ = 0;
   std::vector<std::uint32_t> job_visible_;  // build_on_engine: visible-set size, then offset, by request
   replication_phase_times phase_times_;
   std::function<double()> phase_cpu_;

@@ -87,6 +87,12 @@ zone_server::zone_server(const zone_config& cfg)
         faulty_replication_ = std::make_unique<faulty_replication_engine>(*replication_engine_, gpu_fault(cfg));
       }
       replicator_.set_engine(faulty_replication_ ? faulty_replication_.get() : replication_engine_.get());
+      // The entities for replication staged and copied up while the interest engine's device
+      // works (nothing moves them between the step and replication in a single zone).
+      prestage_work_ = [this] {
+        if (ext_ == nullptr) replicator_.prestage(world_->store(), world_->tick(), pool_.get());
+      };
+      world_->interest().set_while_device_works(&prestage_work_);
       // With the interest step on the GPU too, replication reads the visible sets there in place;
       // unless --host-views (the default), the players' rows then stay on the device only.
       world_->set_player_views_on_host(cfg.host_views);
@@ -576,6 +582,11 @@ void zone_server::replicate() {
   }
   frame_bytes_.resize(requests_.size());
   outgoing_.resize(requests_.size());
+  const auto deliver = [&](std::size_t k, net::shared_frame frame, const replication_stats& st) {
+    frame_bytes_[k] = frame.size();
+    // A reset frame ends a session's wait after dropped frames (net/server.h).
+    outgoing_[k] = {request_sessions_[k], std::move(frame), st.reset ? net::delivery::state_reset : net::delivery::state};
+  };
   // A viewer snapshot due this tick is filled while the replication engine waits for the device
   // (build_many's side work: the store and the tracker are final after the step and stay so until
   // publish_viewer, which then only publishes). Only on the engine with frames to build: elsewhere
@@ -597,13 +608,10 @@ void zone_server::replicate() {
         if (fault_ && fault_has_victim_ && request_sessions_[k] == fault_session_) {
           frame = fault_->rewrite(frame, world_->tick(), world_->store());
         }
-        frame_bytes_[k] = frame.size();
         net::frame_arena& arena = replication_arena();
         // The frame was written into the room reserved for it below: it becomes the session's
         // frame as it is (the rewritten one of the fault test is copied in).
-        net::shared_frame out = arena.in_reservation(frame) ? arena.commit(frame.size()) : arena.make(frame);
-        // A reset frame ends a session's wait after dropped frames (net/server.h).
-        outgoing_[k] = {request_sessions_[k], std::move(out), st.reset ? net::delivery::state_reset : net::delivery::state};
+        deliver(k, arena.in_reservation(frame) ? arena.commit(frame.size()) : arena.make(frame), st);
       },
       [&](std::size_t begin, std::size_t end) {
         // A chunk's frames to the network together: one lookup lock, one ready-list append per
@@ -613,6 +621,14 @@ void zone_server::replicate() {
       // Each frame is written straight into its worker's net::frame_arena (blocks taken again
       // once their frames are written: no allocation a frame, no copy out of the writer).
       [](std::size_t, std::size_t bytes) { return replication_arena().reserve(bytes); },
+      // On the GPU replication engine: each frame sent from the engine's own buffer, no copy
+      // (the engine reuses it once every frame of it is released).
+      [&](std::size_t k, net::shared_frame frame, const replication_stats& st) {
+        if (fault_ && fault_has_victim_ && request_sessions_[k] == fault_session_) {
+          frame = net::make_shared_frame(fault_->rewrite(frame.bytes(), world_->tick(), world_->store()));
+        }
+        deliver(k, std::move(frame), st);
+      },
       viewer_due ? &viewer_side : nullptr);
   for (const std::size_t bytes : frame_bytes_) stats_.bytes_sent += bytes;
   stats_.frames_sent += frame_bytes_.size();

@@ -207,6 +207,9 @@ class zone_server {
   std::unique_ptr<faulty_replication_engine> faulty_replication_;     ///< --test-fault gpu-replication: wraps it
   bool replication_failure_logged_ = false;
   replicator replicator_;
+  /// While the interest engine's device works: replication's entities staged and copied up
+  /// (replicator::prestage), in a single zone (a world's link may move entities after the step).
+  std::function<void()> prestage_work_;
   net::server net_;
   std::unique_ptr<net::viewer_server> viewer_;  // before metrics_, which hands it requests
   std::unique_ptr<net::metrics_server> metrics_;

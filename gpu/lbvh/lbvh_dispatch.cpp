@@ -1,4 +1,4 @@
-// Dispatch of the GPU LBVH finder (see lbvh_dispatch.h and docs/lbvh.md).
+// Dispatch of the GPU LBVH finder (see lbvh_dispatch.h and docs/gpu.md, "LBVH").
 //
 // One call, on the main stream unless said otherwise (Karras's five steps, then the output):
 //  1. DataIn: the box arrays are packed into pinned staging memory by the thread pool in parts,

@@ -1,4 +1,4 @@
-// Tuning constants of the GPU LBVH finder, in one place (docs/lbvh.md says how they were chosen).
+// Tuning constants of the GPU LBVH finder, in one place (docs/gpu.md, "LBVH", says how they were chosen).
 #pragma once
 
 #include <cstddef>

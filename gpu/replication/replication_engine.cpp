@@ -1,8 +1,8 @@
 // Host dispatch of the GPU replication engine (gpu/replication.h; algorithm in docs/zone.md,
 // "Replication on the GPU").
 //
-// One run, on one stream, with up to three host synchronisations (spinning by default, or
-// blocking: set_blocking_wait):
+// One run, on one stream, with up to three host synchronisations (dozing then spinning by default, or
+// blocking, or dozing: set_device_wait):
 //  1. The caller filled the pinned staging (entities, slot map, jobs, visible sets); the client
 //     table (where each view is and goes, each client's job) is laid out here from the views'
 //     sizes the host mirrors, and everything is copied up at once.
@@ -14,10 +14,14 @@
 //  The two view buffers are swapped: a run that fails leaves the engine unusable until
 //  forget_all().
 #include <algorithm>
+#include <array>
+#include <atomic>
 #include <chrono>
 #include <cstring>
+#include <memory>
 #include <stdexcept>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include "gpu/common/cuda_check.h"
@@ -60,6 +64,8 @@ class engine final : public interest::replication_engine {
     if (entities > 0xffffffffu || slots > 0xffffffffu || jobs > 0xffffffffu || visible > 0xffffffffu) {
       throw std::invalid_argument("replication engine: more than 2^32 entities, slots, jobs or visible entries");
     }
+    // Entities uploaded ahead (stage_entities, upload_entities) stay if the counts are the same.
+    if (uploaded_ && (entities != n_entities_ || slots != n_slots_)) uploaded_ = false;
     h_entities_.reserve(entities);
     h_slot_dense_.reserve(slots);
     h_jobs_.reserve(jobs);
@@ -71,8 +77,37 @@ class engine final : public interest::replication_engine {
     return {h_entities_.get(), h_slot_dense_.get(), h_jobs_.get(), h_visible_.get()};
   }
 
+  staging stage_entities(std::size_t entities, std::size_t slots) override {
+    if (entities > 0xffffffffu || slots > 0xffffffffu) {
+      throw std::invalid_argument("replication engine: more than 2^32 entities or slots");
+    }
+    uploaded_ = false;
+    h_entities_.reserve(entities);
+    h_slot_dense_.reserve(slots);
+    n_entities_ = entities;
+    n_slots_ = slots;
+    return {h_entities_.get(), h_slot_dense_.get(), nullptr, nullptr};
+  }
+
+  /// The staged entities and slot map copied up now, on the run's stream (so run()'s kernels see
+  /// them), while the caller goes on.
+  void upload_entities() override {
+    d_entities_.reserve(n_entities_);
+    d_slot_dense_.reserve(n_slots_);
+    if (n_entities_ > 0) {
+      CUDA_CHECK(cudaMemcpyAsync(d_entities_.get(), h_entities_.get(), n_entities_ * sizeof(interest::replication_entity),
+                                 cudaMemcpyHostToDevice, stream_));
+    }
+    if (n_slots_ > 0) {
+      CUDA_CHECK(cudaMemcpyAsync(d_slot_dense_.get(), h_slot_dense_.get(), n_slots_ * sizeof(std::uint32_t),
+                                 cudaMemcpyHostToDevice, stream_));
+    }
+    uploaded_ = true;
+  }
+  void discard_entities() override { uploaded_ = false; }
+
   [[nodiscard]] bool reads_resident() const override { return true; }
-  void set_blocking_wait(bool blocking) override { blocking_ = blocking; }
+  void set_device_wait(device_wait how) override { how_ = how; }
   void set_frame_format(const interest::replication_frame_format& format) override {
     format_ = format;
     d_format_.reserve(1);
@@ -85,6 +120,7 @@ class engine final : public interest::replication_engine {
              const std::function<void()>* while_waiting) override {
     const auto t0 = std::chrono::steady_clock::now();
     wait_ms_ = 0;
+    dozes_ = 0;
     if (rules.leave_cost == 0 || rules.enter_cost == 0 || rules.update_cost == 0) {
       throw std::invalid_argument("replication engine: entry costs must be positive");
     }
@@ -131,8 +167,11 @@ class engine final : public interest::replication_engine {
     const auto up = [&](void* d, const void* h, std::size_t bytes) {
       if (bytes > 0) CUDA_CHECK(cudaMemcpyAsync(d, h, bytes, cudaMemcpyHostToDevice, stream_));
     };
-    up(d_entities_.get(), h_entities_.get(), n_entities_ * sizeof(interest::replication_entity));
-    up(d_slot_dense_.get(), h_slot_dense_.get(), n_slots_ * sizeof(std::uint32_t));
+    if (!uploaded_) {
+      up(d_entities_.get(), h_entities_.get(), n_entities_ * sizeof(interest::replication_entity));
+      up(d_slot_dense_.get(), h_slot_dense_.get(), n_slots_ * sizeof(std::uint32_t));
+    }
+    uploaded_ = false;  // the next run's are staged afresh
     up(d_jobs_.get(), h_jobs_.get(), n_jobs_ * sizeof(interest::replication_job));
     up(d_clients_.get(), h_clients_.get(), client_count * sizeof(client_slot));
     std::uint64_t total = 0, record_cap = 0;
@@ -159,7 +198,7 @@ class engine final : public interest::replication_engine {
       CUDA_CHECK(cudaMemcpyAsync(h_new_off_.get() + client_count, d_new_off_.get() + client_count, sizeof(std::uint32_t),
                                  cudaMemcpyDeviceToHost, stream_));
       CUDA_CHECK(cudaMemcpyAsync(h_sum_.get(), d_sum_.get(), sizeof(std::uint64_t), cudaMemcpyDeviceToHost, stream_));
-      wait();
+      wait(wait_totals, std::chrono::steady_clock::now());
       total = h_new_off_.get()[client_count];
       record_cap = h_sum_.get()[0];
     }
@@ -194,19 +233,29 @@ class engine final : public interest::replication_engine {
     }
     CUDA_CHECK(cudaMemcpyAsync(h_cursor_.get(), d_cursor_.get(), 2 * sizeof(std::uint32_t), cudaMemcpyDeviceToHost,
                                stream_));
+    const auto kernels_queued = std::chrono::steady_clock::now();
     // The caller's host work, in the kernels' shadow (their results and copies are queued).
     if (while_waiting != nullptr && *while_waiting) (*while_waiting)();
-    wait();
+    wait(wait_kernels, kernels_queued);
     if (h_cursor_.get()[1] != 0) throw std::runtime_error("replication engine: record buffer overflow (a bug)");
     const std::uint32_t used = h_cursor_.get()[0];
     // The pinned copy is sized by the bytes used, not by the bound (about 14 times more at 20,000
     // clients): its growth, a cudaFreeHost and a cudaHostAlloc, stalled ramp-up ticks for 30-90 ms.
-    h_records_.reserve(used);
+    // It goes to a kept buffer nothing holds any more (the caller may then hand the frames on
+    // without a copy: output::records_keep), else to the engine's own.
+    std::shared_ptr<kept_records> keep = free_kept(used);
+    std::uint8_t* records = nullptr;
+    if (keep != nullptr) {
+      records = keep->bytes.get();
+    } else {
+      h_records_.reserve(used);
+      records = h_records_.get();
+    }
     if (used > 0) {
-      CUDA_CHECK(cudaMemcpyAsync(h_records_.get(), d_records_.get(), used, cudaMemcpyDeviceToHost, stream_));
+      CUDA_CHECK(cudaMemcpyAsync(records, d_records_.get(), used, cudaMemcpyDeviceToHost, stream_));
     }
     CUDA_CHECK(cudaEventRecord(ev_down_, stream_));
-    wait();
+    wait(wait_records, std::chrono::steady_clock::now());
 
     // The views moved: the new buffer is the current one.
     cur_ = next;
@@ -225,8 +274,9 @@ class engine final : public interest::replication_engine {
     timing_.record_bytes = used;
     timing_.resident = resident;
     timing_.wait_ms = wait_ms_;
+    timing_.dozes = dozes_;
     timing_.total_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
-    return {h_results_.get(), h_records_.get()};
+    return {h_results_.get(), records, std::move(keep)};
   }
 
   void forget_all() override {
@@ -235,17 +285,71 @@ class engine final : public interest::replication_engine {
   }
 
  private:
-  /// Waits for everything queued on the stream: sleeping on a blocking-sync event, or spinning in
-  /// cudaStreamSynchronize (set_blocking_wait). Adds the time to wait_ms_.
-  void wait() {
+  /// The run's three waits: for the plan's totals, the kernels (with the results), the records.
+  enum wait_point { wait_totals, wait_kernels, wait_records, wait_points };
+
+  /// Waits for everything queued on the stream, queued by `since`: sleeping on a blocking-sync
+  /// event, spinning in cudaStreamSynchronize, or dozing first (set_device_wait). Adds the time
+  /// to wait_ms_ and remembers how long the work took, from `since`, for the doze.
+  void wait(wait_point point, std::chrono::steady_clock::time_point since) {
     const auto t0 = std::chrono::steady_clock::now();
-    if (blocking_) {
+    if (how_ == device_wait::block) {
       CUDA_CHECK(cudaEventRecord(ev_sync_, stream_));
       CUDA_CHECK(cudaEventSynchronize(ev_sync_));
     } else {
+      if (how_ == device_wait::doze) doze(point, since);
       CUDA_CHECK(cudaStreamSynchronize(stream_));
     }
-    wait_ms_ += std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+    const auto t1 = std::chrono::steady_clock::now();
+    wait_ms_ += std::chrono::duration<double, std::milli>(t1 - t0).count();
+    past_[point][next_past_[point]++ % past_[point].size()] = std::chrono::duration<double, std::milli>(t1 - since).count();
+  }
+
+  /// Sleeps until the work queued by `since` is expected to be nearly done: the shortest of this
+  /// wait's last eight durations, less a margin (a quarter of it, at least 0.15 ms: the sleep's
+  /// overshoot and the wake-up stay inside the device's work). Nothing when fewer than eight
+  /// are known, when the expectation is under 0.4 ms, or when the stream is already done.
+  void doze(wait_point point, std::chrono::steady_clock::time_point since) {
+    if (next_past_[point] < past_[point].size()) return;
+    const double expect = *std::min_element(past_[point].begin(), past_[point].end());
+    if (expect < 0.4) return;
+    const double sleep_ms = expect - std::max(0.25 * expect, 0.15);
+    const auto until = since + std::chrono::duration_cast<std::chrono::steady_clock::duration>(
+                                   std::chrono::duration<double, std::milli>(sleep_ms));
+    if (std::chrono::steady_clock::now() >= until) return;
+    if (cudaStreamQuery(stream_) != cudaErrorNotReady) return;  // done (or failed: the synchronize says)
+    std::this_thread::sleep_until(until);
+    ++dozes_;
+  }
+
+  /// A pinned buffer of frames the caller may hold (output::records_keep).
+  struct kept_records {
+    pinned_array<std::uint8_t> bytes;
+  };
+  /// The most kept buffers: two alternate while frames are sent within a tick or so; more only
+  /// while clients read slowly; past them the frames are copied again (records_keep null).
+  static constexpr std::size_t max_kept = 4;
+
+  /// A kept buffer of at least `bytes` bytes that only the engine holds (one already big enough
+  /// first; else one grown, or a new one while there are fewer than max_kept), or null.
+  std::shared_ptr<kept_records> free_kept(std::size_t bytes) {
+    std::shared_ptr<kept_records>* pick = nullptr;
+    for (auto& k : kept_) {
+      if (k.use_count() != 1) continue;
+      if (k->bytes.capacity() >= bytes) {
+        pick = &k;
+        break;
+      }
+      if (pick == nullptr) pick = &k;
+    }
+    if (pick == nullptr) {
+      if (kept_.size() >= max_kept) return nullptr;
+      pick = &kept_.emplace_back(std::make_shared<kept_records>());
+    }
+    // The last holder released it (its reads of the frames done) before the count read 1.
+    std::atomic_thread_fence(std::memory_order_acquire);
+    (*pick)->bytes.reserve(bytes);
+    return *pick;
   }
 
   /// Per-client arrays for client_count clients; the device's hashes keep their values.
@@ -272,7 +376,11 @@ class engine final : public interest::replication_engine {
   cudaStream_t stream_ = nullptr;
   cudaEvent_t ev_begin_ = nullptr, ev_up_ = nullptr, ev_kernels_ = nullptr, ev_down_ = nullptr;
   cudaEvent_t ev_sync_ = nullptr;  // blocking-sync: wait() sleeps on it
-  bool blocking_ = false;
+  device_wait how_ = device_wait::doze;
+  bool uploaded_ = false;  // the staged entities and slot map are on the device (upload_entities)
+  std::array<std::array<double, 8>, wait_points> past_{};  // by wait point: its last durations (ms)
+  std::array<std::size_t, wait_points> next_past_{};
+  std::uint32_t dozes_ = 0;  // this run's
   double wait_ms_ = 0;
   std::size_t n_entities_ = 0, n_slots_ = 0, n_jobs_ = 0, n_visible_ = 0;
   pinned_array<interest::replication_entity> h_entities_;
@@ -281,6 +389,7 @@ class engine final : public interest::replication_engine {
   pinned_array<client_slot> h_clients_;
   pinned_array<interest::replication_result> h_results_;
   pinned_array<std::uint8_t> h_records_;
+  std::vector<std::shared_ptr<kept_records>> kept_;
   device_array<interest::replication_entity> d_entities_;
   device_array<std::uint32_t> d_updates_;  // 4 words per entity: its wire update
   interest::replication_frame_format format_;

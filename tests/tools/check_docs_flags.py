@@ -38,9 +38,9 @@ MANUALS = {
     "bench-pool": ["docs/zone-benchmarks.md"],
     "bench-gpu": ["docs/gpu-benchmarks.md"],
     "bench-peers": ["docs/gpu-benchmarks.md"],
-    "bench-finders": ["docs/benchmarks.md"],
-    "host-jitter": ["docs/benchmarks.md", "docs/zone-benchmarks.md"],
-    "interest-pairs": ["docs/formats.md"],
+    "bench-finders": ["docs/gpu-benchmarks.md"],
+    "host-jitter": ["docs/zone-benchmarks.md"],
+    "interest-pairs": ["docs/embedding.md"],
     "world-check": ["docs/world.md"],
     "zone-probe": ["docs/operating.md"],
 }

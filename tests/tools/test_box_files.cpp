@@ -1,5 +1,5 @@
 // Box files: the CSV parser's every error path, the CSV and binary round trips, the binary
-// format's byte layout and its rejection of damaged files (docs/formats.md).
+// format's byte layout and its rejection of damaged files (docs/embedding.md).
 #include <doctest/doctest.h>
 
 #include "../common/seeds.h"
@@ -119,7 +119,7 @@ void expect_csv_error(const std::string& text, std::size_t line, const std::stri
   CHECK(out.empty());  // nothing half-parsed is handed back
 }
 
-// Binary layout constants, as documented in docs/formats.md.
+// Binary layout constants, as documented in docs/embedding.md.
 constexpr std::size_t header_size = 24;
 
 std::uint32_t le32(const std::string& bytes, std::size_t offset) {
@@ -431,7 +431,7 @@ TEST_SUITE("interest.files") {
     CHECK(back.empty());
   }
 
-  TEST_CASE("binary: byte layout matches docs/formats.md") {
+  TEST_CASE("binary: byte layout matches docs/embedding.md") {
     temp_dir dir;
     box_set s;
     s.push_back(box{{1, 2, 3}, {4, 5, 6}, 7, 8});

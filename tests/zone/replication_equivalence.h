@@ -13,9 +13,11 @@
 
 #include <algorithm>
 #include <atomic>
+#include <deque>
 #include <functional>
 #include <memory>
 #include <random>
+#include <utility>
 #include <vector>
 
 #include "zone/zone.h"
@@ -55,6 +57,10 @@ struct replication_coverage {
   /// Engine-side frames written into the caller's room (build_many's frame_room), and those the
   /// sink did not get there.
   std::uint64_t room_frames = 0, room_misplaced = 0;
+  /// Engine-side frames handed over without a copy (build_many's frame_share), and those of them
+  /// that changed while held (two ticks after their own: the engine must not reuse their buffer).
+  std::uint64_t shared_frames = 0, shared_changed = 0;
+  std::uint64_t entities_ahead = 0;  ///< engine runs on entities staged ahead (replicator::prestage)
 };
 
 /// Runs `c` with engines from `make_engine` (one per budget and first tick) and compares every
@@ -108,6 +114,7 @@ inline replication_coverage check_replication_equivalence(
       opt.digest_period = 1 + static_cast<std::uint32_t>(rng() % 3);
       opt.send_digest = rng() % 5 != 0;
       opt.clients_per_task = 1 + static_cast<std::uint32_t>(rng() % 8);
+      opt.wrap_threads = static_cast<std::uint32_t>(rng() % 4);  // 0: every worker
       CAPTURE(opt.near_distance);
       CAPTURE(opt.mid_distance);
       replicator cpu(opt), dev(opt);
@@ -136,6 +143,8 @@ inline replication_coverage check_replication_equivalence(
       std::vector<std::vector<std::uint8_t>> want, got;
       std::vector<replication_stats> want_st, got_st;
       std::vector<const std::uint8_t*> rooms;  // by request: the room given for its frame
+      // The frames of the last sharing tick, with their bytes as handed over.
+      std::deque<std::vector<std::pair<net::shared_frame, std::vector<std::uint8_t>>>> held;
       struct switch_rec {
         entity_id entity;
         std::uint32_t old_class, old_sees;
@@ -170,12 +179,19 @@ inline replication_coverage check_replication_equivalence(
                          want[k].assign(f.begin(), f.end());
                          want_st[k] = st;
                        });
-        // Every other tick the engine side writes each frame into room the caller gives
+        // One tick in three the engine side writes each frame into room the caller gives
         // (build_many's frame_room, as zone_server's arena): each thread's own buffer, filled
-        // with garbage first, so a byte the writer left unwritten would show.
-        const bool in_room = tick % 2 == 1;
+        // with garbage first, so a byte the writer left unwritten would show. One in three it
+        // takes the frames the engine keeps, without a copy (frame_share, as zone_server), and
+        // holds them two more ticks.
+        const bool in_room = tick % 3 == 1, sharing = tick % 3 == 2;
+        std::vector<net::shared_frame> shared_now(sharing ? requests.size() : 0);
         std::atomic<std::uint64_t> room_frames{0}, room_misplaced{0};  // counted on the pool's threads
         rooms.assign(requests.size(), nullptr);
+        // Replication's entities staged ahead (replicator::prestage) one tick in four; one in
+        // four staged for another tick, which build_many must not use.
+        if (tick % 4 == 1) dev.prestage(store, tick, &pool);
+        if (tick % 4 == 3) dev.prestage(store, tick + 1, &pool);
         dev.build_many(
             requests, store, tracker, tick, tick * 3, &pool,
             [&](std::size_t k, std::span<const std::uint8_t> f, const replication_stats& st) {
@@ -192,7 +208,32 @@ inline replication_coverage check_replication_equivalence(
               room_frames.fetch_add(1, std::memory_order_relaxed);
               return std::span<std::uint8_t>(at, bytes);
             })
-                    : replicator::frame_room{});
+                    : replicator::frame_room{},
+            sharing ? replicator::frame_share([&](std::size_t k, net::shared_frame f, const replication_stats& st) {
+              got[k].assign(f.bytes().begin(), f.bytes().end());
+              got_st[k] = st;
+              shared_now[k] = std::move(f);
+            })
+                    : replicator::frame_share{});
+        // The frames held from earlier ticks are as they were handed over.
+        for (const auto& tick_frames : held) {
+          for (const auto& [frame, bytes] : tick_frames) {
+            if (!std::ranges::equal(frame.bytes(), bytes)) ++cov.shared_changed;
+          }
+        }
+        if (sharing) {
+          auto& now_held = held.emplace_back();
+          for (std::size_t k = 0; k < shared_now.size(); ++k) {
+            if (!shared_now[k]) continue;
+            ++cov.shared_frames;
+            now_held.emplace_back(shared_now[k], got[k]);
+          }
+          while (held.size() > 1) held.pop_front();
+        }
+        if (dev.on_engine() && !requests.empty()) {
+          if (dev.phase_times().entities_ahead) ++cov.entities_ahead;
+          if (tick % 4 != 1) CHECK_FALSE(dev.phase_times().entities_ahead);
+        }
         cov.room_frames += room_frames.load();
         cov.room_misplaced += room_misplaced.load();
         REQUIRE(dev.engine_error().empty());
@@ -373,6 +414,9 @@ inline void require_equivalent(const replication_coverage& cov, bool tiny_budget
   CHECK(cov.differing == 0);
   CHECK(cov.room_frames > 0);
   CHECK(cov.room_misplaced == 0);
+  CHECK(cov.shared_frames > 0);
+  CHECK(cov.shared_changed == 0);
+  CHECK(cov.entities_ahead > 0);
   CHECK(cov.stats_differing == 0);
   CHECK(cov.hash_differing == 0);
   CHECK(cov.undecodable == 0);

@@ -31,22 +31,45 @@ namespace {
 
 class emulated_engine final : public interest::replication_engine {
  public:
-  explicit emulated_engine(std::uint64_t seed) : rng_(seed) {}
+  /// keep: the output's records stay the caller's while it holds records_keep (as the GPU
+  /// engine's: up to four buffers, then copied again), else reused every run.
+  explicit emulated_engine(std::uint64_t seed, bool keep = true) : rng_(seed), keep_(keep) {}
   [[nodiscard]] const char* name() const override { return "emulated"; }
   [[nodiscard]] const interest::replication_timing& timing() const override { return timing_; }
   void set_frame_format(const interest::replication_frame_format& format) override { format_ = format; }
 
   staging stage(std::size_t entities, std::size_t slots, std::size_t jobs, std::size_t visible) override {
-    entities_.assign(entities, {});
-    slot_dense_.assign(slots, 0);
+    // Entities handed over ahead (stage_entities, upload_entities) stay when the counts match;
+    // else the staging starts as garbage the caller must overwrite.
+    if (!(uploaded_ && entities == entities_.size() && slots == slot_dense_.size())) {
+      uploaded_ = false;
+      entities_.assign(entities, garbage_entity());
+      slot_dense_.assign(slots, 0xfefefefe);
+    }
     jobs_.assign(jobs, {});
     visible_.assign(visible, 0);
     return {entities_.data(), slot_dense_.data(), jobs_.data(), visible_.data()};
   }
 
+  staging stage_entities(std::size_t entities, std::size_t slots) override {
+    uploaded_ = false;
+    entities_.assign(entities, garbage_entity());
+    slot_dense_.assign(slots, 0xfefefefe);
+    return {entities_.data(), slot_dense_.data(), nullptr, nullptr};
+  }
+  void upload_entities() override {
+    uploaded_ = true;
+    ++uploads_;
+  }
+  void discard_entities() override { uploaded_ = false; }
+  /// Runs that used entities handed over ahead.
+  [[nodiscard]] std::uint64_t runs_uploaded_ahead() const { return runs_ahead_; }
+
   output run(const interest::replication_rules& rules, std::size_t client_count,
              const interest::visibility_engine::resident_lists* rows,
              const std::function<void()>* while_waiting) override {
+    if (uploaded_) ++runs_ahead_;
+    uploaded_ = false;
     REQUIRE(rows == nullptr);  // reads_resident() is false: the replicator stages the sets
     ++runs;
     if (len_.size() < client_count) {
@@ -121,7 +144,24 @@ class emulated_engine final : public interest::replication_engine {
     sent_.swap(new_sent_);
     for (std::size_t c = 0; c < client_count; ++c) off_[c] = new_off_[c];
     for (std::size_t k = 0; k < jobs_.size(); ++k) len_[jobs_[k].client] = results_[k].view_size;
-    return {results_.data(), records_.data()};
+    if (keep_) {
+      std::shared_ptr<std::vector<std::uint8_t>>* pick = nullptr;
+      for (auto& b : kept_) {
+        if (b.use_count() == 1) {
+          pick = &b;
+          break;
+        }
+      }
+      if (pick == nullptr && kept_.size() < 4) pick = &kept_.emplace_back(std::make_shared<std::vector<std::uint8_t>>());
+      if (pick != nullptr) {
+        std::vector<std::uint8_t>& buf = **pick;
+        buf.assign(records_.size(), 0xab);  // a reused buffer's old frames never show through
+        std::memcpy(buf.data(), records_.data(), cursor[0]);
+        output o{results_.data(), buf.data(), *pick};
+        return o;
+      }
+    }
+    return {results_.data(), records_.data(), nullptr};
   }
 
   void forget_all() override {
@@ -133,7 +173,17 @@ class emulated_engine final : public interest::replication_engine {
   std::size_t side_calls = 0;  ///< of which called while_waiting
 
  private:
+  static interest::replication_entity garbage_entity() {
+    interest::replication_entity e{};
+    e.x = e.y = e.z = -1e30f;
+    e.id = 0xfefefefe;
+    return e;
+  }
   std::mt19937_64 rng_;
+  bool keep_ = true;
+  bool uploaded_ = false;
+  std::uint64_t uploads_ = 0, runs_ahead_ = 0;
+  std::vector<std::shared_ptr<std::vector<std::uint8_t>>> kept_;
   std::vector<interest::replication_entity> entities_;
   std::vector<std::uint32_t> slot_dense_, visible_;
   std::vector<interest::replication_job> jobs_;
@@ -367,7 +417,7 @@ TEST_SUITE("zone.replication") {
                 frames[r][k].assign(f.begin(), f.end());
                 ++sunk;
               },
-              [&](std::size_t, std::size_t) { ++chunks_done; }, {}, &side);
+              [&](std::size_t, std::size_t) { ++chunks_done; }, {}, {}, &side);
         } catch (const std::runtime_error& e) {
           threw = true;
           CHECK(std::string(e.what()) == "the side work failed");
@@ -400,7 +450,7 @@ TEST_SUITE("zone.replication") {
         const std::function<void()> count_side = std::ref(count);
         reps[r]->build_many({}, store, tracker, tick, tick * 3, &pool,
                             [&](std::size_t, std::span<const std::uint8_t>, const replication_stats&) { FAIL("a frame"); },
-                            {}, {}, &count_side);
+                            {}, {}, {}, &count_side);
         CHECK(empty_calls == 1);
       }
       for (std::size_t r = 1; r < reps.size(); ++r) {
@@ -417,6 +467,81 @@ TEST_SUITE("zone.replication") {
 }
 
 TEST_SUITE("zone.engine_faults") {
+  TEST_CASE("frames handed on without a copy: held frames stay intact, and with every kept buffer held they are copied") {
+    // build_many's frame_share: the engine keeps up to four buffers while the caller holds their
+    // frames; this caller holds every frame it is given, so ticks 0-3 share and later ticks fall
+    // back to the sink (a copy), all frames equal to the CPU replicator's.
+    const std::uint64_t seed = zone::test::fresh_seed();
+    CAPTURE(seed);
+    std::mt19937_64 rng(seed);
+    const auto uni = [&](float lo, float hi) { return std::uniform_real_distribution<float>(lo, hi)(rng); };
+    entity_store store;
+    for (int k = 0; k < 200; ++k) {
+      entity_desc d;
+      d.position = {uni(0, 200), uni(0, 200), uni(0, 10)};
+      d.velocity = {uni(-3, 3), uni(-3, 3), 0};
+      d.aoi_half_extent = {60, 60, 40};
+      (void)store.create(d);
+    }
+    interest::thread_pool pool(2);
+    interest::grid_finder finder(&pool);
+    interest_tracker tracker(finder, &pool, {3.0f, 0, 64});
+    replication_options opt;
+    opt.world = {{0, 0, 0}, {200, 200, 20}};
+    opt.clients_per_task = 4;
+    replicator cpu(opt), dev(opt);
+    emulated_engine engine(seed);
+    dev.set_engine(&engine);
+    std::vector<replication_request> requests;
+    for (std::size_t k = 0; k < 20; ++k) {
+      const client_id a = cpu.add_client(store.ids()[k * 9]), b = dev.add_client(store.ids()[k * 9]);
+      REQUIRE(a == b);
+      requests.push_back({a, 0});
+    }
+    std::vector<std::pair<net::shared_frame, std::vector<std::uint8_t>>> held;  // every shared frame, and its bytes
+    for (std::uint64_t tick = 0; tick < 7; ++tick) {
+      CAPTURE(tick);
+      auto pos = store.positions();
+      const auto vel = store.velocities();
+      for (std::size_t i = 0; i < store.size(); ++i) {
+        pos[i] = {std::clamp(pos[i].x + vel[i].x, 0.f, 200.f), std::clamp(pos[i].y + vel[i].y, 0.f, 200.f), pos[i].z};
+      }
+      REQUIRE_FALSE(tracker.update(store.columns()).has_value());
+      std::vector<std::vector<std::uint8_t>> want(requests.size()), got(requests.size());
+      std::atomic<int> shared{0}, sunk{0};
+      cpu.build_many(requests, store, tracker, tick, tick * 3, &pool,
+                     [&](std::size_t k, std::span<const std::uint8_t> f, const replication_stats&) { want[k].assign(f.begin(), f.end()); });
+      std::vector<net::shared_frame> frames(requests.size());
+      dev.build_many(
+          requests, store, tracker, tick, tick * 3, &pool,
+          [&](std::size_t k, std::span<const std::uint8_t> f, const replication_stats&) {
+            got[k].assign(f.begin(), f.end());
+            ++sunk;
+          },
+          {}, {},
+          [&](std::size_t k, net::shared_frame f, const replication_stats&) {
+            got[k].assign(f.bytes().begin(), f.bytes().end());
+            frames[k] = std::move(f);
+            ++shared;
+          });
+      REQUIRE(dev.on_engine());
+      CHECK(got == want);
+      CHECK(shared.load() == (tick < 4 ? 20 : 0));
+      CHECK(sunk.load() == (tick < 4 ? 0 : 20));
+      for (std::size_t k = 0; k < frames.size(); ++k) {
+        if (frames[k]) held.emplace_back(frames[k], got[k]);
+      }
+      for (const auto& [frame, bytes] : held) CHECK(std::ranges::equal(frame.bytes(), bytes));
+    }
+    // Released: the engine shares again.
+    held.clear();
+    REQUIRE_FALSE(tracker.update(store.columns()).has_value());
+    std::atomic<int> shared{0};
+    dev.build_many(requests, store, tracker, 7, 21, &pool, [](std::size_t, std::span<const std::uint8_t>, const replication_stats&) {}, {}, {},
+                   [&](std::size_t, net::shared_frame, const replication_stats&) { ++shared; });
+    CHECK(shared.load() == 20);
+  }
+
   TEST_CASE("the GPU replication engine failing mid-run: the same tick on the CPU, every client reset, frames exact") {
     namespace cb = interest::category_bits;
     for (const std::uint64_t at : {0u, 1u, 6u, 17u}) {
