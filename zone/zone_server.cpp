@@ -87,12 +87,6 @@ zone_server::zone_server(const zone_config& cfg)
         faulty_replication_ = std::make_unique<faulty_replication_engine>(*replication_engine_, gpu_fault(cfg));
       }
       replicator_.set_engine(faulty_replication_ ? faulty_replication_.get() : replication_engine_.get());
-      // The entities for replication staged and copied up while the interest engine's device
-      // works (nothing moves them between the step and replication in a single zone).
-      prestage_work_ = [this] {
-        if (ext_ == nullptr) replicator_.prestage(world_->store(), world_->tick(), pool_.get());
-      };
-      world_->interest().set_while_device_works(&prestage_work_);
       // With the interest step on the GPU too, replication reads the visible sets there in place;
       // unless --host-views (the default), the players' rows then stay on the device only.
       world_->set_player_views_on_host(cfg.host_views);
@@ -101,6 +95,17 @@ zone_server::zone_server(const zone_config& cfg)
     } else {
       replicate_note_ = why;
     }
+  }
+  // While the interest engine's device works, in a single zone (nothing moves the entities
+  // between the step and replication there; a world's link may, after the step): the entities for
+  // replication staged and copied up, then a due viewer snapshot's columns copied.
+  if (parts_.engine) {
+    interest_wait_work_ = [this] {
+      if (ext_ != nullptr) return;
+      if (replication_engine_) replicator_.prestage(world_->store(), world_->tick(), pool_.get());
+      viewer_copy_columns();
+    };
+    world_->interest().set_while_device_works(&interest_wait_work_);
   }
 }
 
@@ -739,16 +744,17 @@ void zone_server::tick_once() {
   log_summary();
 }
 
-void zone_server::fill_viewer_snapshot(net::viewer_snapshot& s) const {
+void zone_server::viewer_copy_columns() {
+  if (!viewer_ || viewer_->viewers() == 0 || !viewer_snapshot_due()) return;
+  fill_viewer_columns(viewer_->next_snapshot());
+  viewer_columns_tick_ = world_->tick();
+  ++stats_.viewer_columns_in_interest_wait;
+}
+
+void zone_server::fill_viewer_columns(net::viewer_snapshot& s) const {
   const entity_store& store = world_->store();
-  const interest::interest_tracker& tr = world_->tracker();
-  s.tick = world_->tick();
-  s.world_lo[0] = cfg_.world.lo.x, s.world_lo[1] = cfg_.world.lo.y, s.world_lo[2] = cfg_.world.lo.z;
-  s.world_hi[0] = cfg_.world.hi.x, s.world_hi[1] = cfg_.world.hi.y, s.world_hi[2] = cfg_.world.hi.z;
   const std::size_t n = store.size();
   const auto pos = store.positions();
-  const auto cls = store.visibility_classes();
-  const auto kinds = store.kinds();
   // Plain copies of the store's columns, converted only when encoded on the viewer's thread:
   // positions always (one memcpy, 12 bytes an entity, on this thread: no worker to wake); ids,
   // classes and kinds only when the store's layout changed since this buffer was filled (its
@@ -759,12 +765,27 @@ void zone_server::fill_viewer_snapshot(net::viewer_snapshot& s) const {
   if (layout == 0 || s.layout != layout || s.ids.size() != n) {
     const auto ids = store.ids();
     s.ids.assign(ids.begin(), ids.end());
+    const auto cls = store.visibility_classes();
     s.classes.assign(cls.begin(), cls.end());
     s.kind.resize(n);
     static_assert(sizeof(entity_kind) == 1);
-    if (n > 0) std::memcpy(s.kind.data(), kinds.data(), n);
+    if (n > 0) std::memcpy(s.kind.data(), store.kinds().data(), n);
   }
   s.layout = layout;
+}
+
+void zone_server::fill_viewer_snapshot(net::viewer_snapshot& s) const {
+  const entity_store& store = world_->store();
+  const interest::interest_tracker& tr = world_->tracker();
+  s.tick = world_->tick();
+  s.world_lo[0] = cfg_.world.lo.x, s.world_lo[1] = cfg_.world.lo.y, s.world_lo[2] = cfg_.world.lo.z;
+  s.world_hi[0] = cfg_.world.hi.x, s.world_hi[1] = cfg_.world.hi.y, s.world_hi[2] = cfg_.world.hi.z;
+  // The columns, unless this tick's were copied while the interest engine's device worked (a
+  // single zone: nothing changed the store since).
+  if (viewer_columns_tick_ != s.tick) fill_viewer_columns(s);
+  const auto pos = store.positions();
+  const auto cls = store.visibility_classes();
+  const auto kinds = store.kinds();
   // The selected entities: boxes, visible set with each entity's replication tier, events.
   s.selections.resize(viewer_watch_.size());
   const float near_sq = cfg_.update_near * cfg_.update_near, mid_sq = cfg_.update_mid * cfg_.update_mid;

@@ -47,6 +47,9 @@ struct loop_stats {
   /// filled in publish_viewer: CPU replication, no clients; or after the CPU's frames when the
   /// engine failed that tick).
   std::uint64_t viewer_snapshots_in_wait = 0;
+  /// Viewer snapshots whose entity columns (positions, and ids, classes, kinds when changed) were
+  /// copied while the GPU interest engine's device worked (single zone only).
+  std::uint64_t viewer_columns_in_interest_wait = 0;
   latency_histogram inputs_ms, replicate_ms, tick_ms;  ///< plus zone_world::phases()
 };
 
@@ -188,6 +191,14 @@ class zone_server {
   /// publish_viewer().
   void viewer_take_step();
   void fill_viewer_snapshot(net::viewer_snapshot& s) const;
+  /// The snapshot's entity columns: positions, and ids, classes and kinds when the store's layout
+  /// changed since that buffer was filled.
+  void fill_viewer_columns(net::viewer_snapshot& s) const;
+  /// Inside the step, while the interest engine's device works (single zone only): a due
+  /// snapshot's columns copied into the viewer's free buffer (the positions are final once
+  /// integrated, and nothing after the step changes the store in a single zone); the snapshot's
+  /// fill then leaves them.
+  void viewer_copy_columns();
   void fill_viewer_stats(net::viewer_stats& s) const;
   /// --test-fault: the client whose frames are broken (the lowest session with an entity).
   void choose_fault_victim();
@@ -208,8 +219,9 @@ class zone_server {
   bool replication_failure_logged_ = false;
   replicator replicator_;
   /// While the interest engine's device works: replication's entities staged and copied up
-  /// (replicator::prestage), in a single zone (a world's link may move entities after the step).
-  std::function<void()> prestage_work_;
+  /// (replicator::prestage) and a due viewer snapshot's columns copied (viewer_copy_columns), in
+  /// a single zone (a world's link may move entities after the step).
+  std::function<void()> interest_wait_work_;
   net::server net_;
   std::unique_ptr<net::viewer_server> viewer_;  // before metrics_, which hands it requests
   std::unique_ptr<net::metrics_server> metrics_;
@@ -231,6 +243,7 @@ class zone_server {
   double viewer_ms_ = 0;  // the last tick's publish_viewer
   bool viewer_step_taken_ = false;  // replicate() ran this tick's viewer_take_step (publish_viewer resets it)
   bool viewer_snapshot_filled_ = false;  // and filled a snapshot for publish_viewer to publish
+  std::uint64_t viewer_columns_tick_ = ~std::uint64_t{0};  // the tick whose columns viewer_copy_columns copied
   std::chrono::steady_clock::time_point next_viewer_stats_{};
   std::unique_ptr<truth_publisher> truth_;  // --oracle
   std::unique_ptr<fault_injector> fault_;   // --test-fault

@@ -200,12 +200,13 @@ TEST_SUITE("zone.viewer") {
     CHECK(ext.spawned.size() >= 4);
   }
 
-  TEST_CASE("with clients (frames every tick): each snapshot is its tick's store and tracker, filled in the replication wait or after") {
-    // With clients, replicate() hands the snapshot's filling (and the step's watched events) to
-    // build_many: on the GPU replication engine it runs while the device works, on the CPU after
-    // the frames; publish_viewer then only publishes. Either way a snapshot due every third tick
-    // (viewer_hz 10) holds the store and the tracker as the tick left them, and the selection's
-    // events (taken on every tick, in the wait or not) are the tracker's.
+  TEST_CASE("with clients (frames every tick): each snapshot is its tick's store and tracker, filled in the engines' waits or after") {
+    // On the GPU interest engine the snapshot's columns are copied while its device works (inside
+    // the step); with clients on the GPU replication engine, the rest (the selection, the step's
+    // watched events) while that device works; publish_viewer then only publishes. On the host,
+    // publish_viewer fills it all. Either way a snapshot due every third tick (viewer_hz 10) holds
+    // the store and the tracker as the tick left them, and the selection's events (taken on every
+    // tick, in a wait or not) are the tracker's.
     auto cfg = viewer_config();
     cfg.viewer_hz = 10;
     zone_server server(cfg);
@@ -259,6 +260,7 @@ TEST_SUITE("zone.viewer") {
     };
     std::vector<event> events;  // the tracker's, every tick from here on
     const std::uint64_t in_wait0 = server.stats().viewer_snapshots_in_wait;
+    const std::uint64_t columns0 = server.stats().viewer_columns_in_interest_wait;
     std::uint64_t due_ticks = 0;
     std::size_t checked = 0, events_checked = 0;
     for (int round = 0; round < 150; ++round) {
@@ -323,6 +325,16 @@ TEST_SUITE("zone.viewer") {
     const std::uint64_t in_wait = server.stats().viewer_snapshots_in_wait - in_wait0;
     MESSAGE("replication on " << server.replication_name() << ": " << in_wait << " of " << due_ticks
                               << " snapshots filled in the engine's wait");
+    // The columns (positions, ids, classes, kinds) copied while the GPU interest engine's device
+    // worked, on every due tick (a single zone); never on the host.
+    const std::uint64_t columns = server.stats().viewer_columns_in_interest_wait - columns0;
+    MESSAGE("interest on " << server.interest_name() << ": " << columns << " of " << due_ticks
+                           << " snapshots' columns copied in the interest engine's wait");
+    if (server.interest_name().find("engine") == std::string::npos) {
+      CHECK(columns == 0);
+    } else {
+      CHECK(columns == due_ticks);
+    }
     if (server.replication_name() == "cpu") {
       CHECK(in_wait == 0);
     } else {
