@@ -115,9 +115,6 @@ def analyze(paths, bootstrap):
                     ticks_of.setdefault(((n, int(p[4])), p[3] == "viewer"), []).append(float(p[2]))
     by = {o: [ms for (k, oo), v in ticks_of.items() if oo == o for ms in v] for o in (False, True)}
     print(f"\nviewer A/B, {len(paths)} run(s) together: " + ", ".join(paths))
-    if a.bots > 0:
-        in_phases = [c for (t, c) in clients.items() if any(t0 <= t < t1 for (_, _, t0, t1) in phases)]
-        print(f"clients over the phases' ticks: {min(in_phases, default=0)} .. {max(in_phases, default=0)} (of {a.bots} bots)")
     print("| viewer | ticks | p50 ms | p99 ms | max ms |")
     print("|---|---|---|---|---|")
     for o in (False, True):
