@@ -781,8 +781,9 @@ void zone_server::fill_viewer_snapshot(net::viewer_snapshot& s) const {
   s.world_lo[0] = cfg_.world.lo.x, s.world_lo[1] = cfg_.world.lo.y, s.world_lo[2] = cfg_.world.lo.z;
   s.world_hi[0] = cfg_.world.hi.x, s.world_hi[1] = cfg_.world.hi.y, s.world_hi[2] = cfg_.world.hi.z;
   // The columns, unless this tick's were copied while the interest engine's device worked (a
-  // single zone: nothing changed the store since).
-  if (viewer_columns_tick_ != s.tick) fill_viewer_columns(s);
+  // single zone: nothing moves an entity after the step; a class changed since, by a player's
+  // visibility switch, changes the layout version and the columns are copied again).
+  if (viewer_columns_tick_ != s.tick || s.layout != store.layout_version()) fill_viewer_columns(s);
   const auto pos = store.positions();
   const auto cls = store.visibility_classes();
   const auto kinds = store.kinds();
