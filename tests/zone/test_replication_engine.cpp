@@ -197,6 +197,33 @@ class emulated_engine final : public interest::replication_engine {
   interest::replication_frame_format format_;
 };
 
+/// `n` entities at random in a side x side x 10 m world (AOI half extents 15-80 m, every
+/// `stealth_every`-th one stealth), for the tests below.
+void add_random_entities(entity_store& store, std::mt19937_64& rng, int n, float side, int stealth_every) {
+  namespace cb = interest::category_bits;
+  const auto uni = [&](float lo, float hi) { return std::uniform_real_distribution<float>(lo, hi)(rng); };
+  for (int k = 0; k < n; ++k) {
+    entity_desc d;
+    d.position = {uni(0, side), uni(0, side), uni(0, 10)};
+    d.velocity = {uni(-3, 3), uni(-3, 3), 0};
+    const float aoi = uni(15, 80);
+    d.aoi_half_extent = {aoi, aoi, 40};
+    d.presence_half_extent = {1, 1, 1};
+    d.visibility_class = k % stealth_every == 0 ? cb::stealth : cb::normal;
+    d.sees = cb::normal;
+    (void)store.create(d);
+  }
+}
+
+/// One tick's move of every entity by its velocity, clamped to the side x side world.
+void move_all(entity_store& store, float side) {
+  auto pos = store.positions();
+  const auto vel = store.velocities();
+  for (std::size_t i = 0; i < store.size(); ++i) {
+    pos[i] = {std::clamp(pos[i].x + vel[i].x, 0.f, side), std::clamp(pos[i].y + vel[i].y, 0.f, side), pos[i].z};
+  }
+}
+
 }  // namespace
 
 TEST_SUITE("zone.replication") {
@@ -315,19 +342,8 @@ TEST_SUITE("zone.replication") {
     const std::uint64_t seed = zone::test::fresh_seed();
     CAPTURE(seed);
     std::mt19937_64 rng(seed);
-    const auto uni = [&](float lo, float hi) { return std::uniform_real_distribution<float>(lo, hi)(rng); };
     entity_store store;
-    for (int k = 0; k < 400; ++k) {
-      entity_desc d;
-      d.position = {uni(0, 250), uni(0, 250), uni(0, 10)};
-      d.velocity = {uni(-3, 3), uni(-3, 3), 0};
-      const float aoi = uni(15, 80);
-      d.aoi_half_extent = {aoi, aoi, 40};
-      d.presence_half_extent = {1, 1, 1};
-      d.visibility_class = k % 5 == 0 ? cb::stealth : cb::normal;
-      d.sees = cb::normal;
-      (void)store.create(d);
-    }
+    add_random_entities(store, rng, 400, 250, 5);
     interest::thread_pool pool(2);
     interest::grid_finder finder(&pool);
     interest_tracker tracker(finder, &pool, {3.0f, 0, 64});
@@ -366,11 +382,7 @@ TEST_SUITE("zone.replication") {
     std::size_t in_wait = 0, after_frames = 0, thrown = 0;
     for (; tick < 12; ++tick) {
       CAPTURE(tick);
-      auto pos = store.positions();
-      const auto vel = store.velocities();
-      for (std::size_t i = 0; i < store.size(); ++i) {
-        pos[i] = {std::clamp(pos[i].x + vel[i].x, 0.f, 250.f), std::clamp(pos[i].y + vel[i].y, 0.f, 250.f), pos[i].z};
-      }
+      move_all(store, 250);
       REQUIRE_FALSE(tracker.update(store.columns()).has_value());
       if (tick == fault_at) {
         for (const auto& r : requests) reps[5]->resync(r.client);
@@ -474,15 +486,8 @@ TEST_SUITE("zone.engine_faults") {
     const std::uint64_t seed = zone::test::fresh_seed();
     CAPTURE(seed);
     std::mt19937_64 rng(seed);
-    const auto uni = [&](float lo, float hi) { return std::uniform_real_distribution<float>(lo, hi)(rng); };
     entity_store store;
-    for (int k = 0; k < 200; ++k) {
-      entity_desc d;
-      d.position = {uni(0, 200), uni(0, 200), uni(0, 10)};
-      d.velocity = {uni(-3, 3), uni(-3, 3), 0};
-      d.aoi_half_extent = {60, 60, 40};
-      (void)store.create(d);
-    }
+    add_random_entities(store, rng, 200, 200, 1000000);
     interest::thread_pool pool(2);
     interest::grid_finder finder(&pool);
     interest_tracker tracker(finder, &pool, {3.0f, 0, 64});
@@ -501,11 +506,7 @@ TEST_SUITE("zone.engine_faults") {
     std::vector<std::pair<net::shared_frame, std::vector<std::uint8_t>>> held;  // every shared frame, and its bytes
     for (std::uint64_t tick = 0; tick < 7; ++tick) {
       CAPTURE(tick);
-      auto pos = store.positions();
-      const auto vel = store.velocities();
-      for (std::size_t i = 0; i < store.size(); ++i) {
-        pos[i] = {std::clamp(pos[i].x + vel[i].x, 0.f, 200.f), std::clamp(pos[i].y + vel[i].y, 0.f, 200.f), pos[i].z};
-      }
+      move_all(store, 200);
       REQUIRE_FALSE(tracker.update(store.columns()).has_value());
       std::vector<std::vector<std::uint8_t>> want(requests.size()), got(requests.size());
       std::atomic<int> shared{0}, sunk{0};
@@ -549,19 +550,8 @@ TEST_SUITE("zone.engine_faults") {
       CAPTURE(seed);
       CAPTURE(at);
       std::mt19937_64 rng(seed);
-      const auto uni = [&](float lo, float hi) { return std::uniform_real_distribution<float>(lo, hi)(rng); };
       entity_store store;
-      for (int k = 0; k < 300; ++k) {
-        entity_desc d;
-        d.position = {uni(0, 250), uni(0, 250), uni(0, 10)};
-        d.velocity = {uni(-3, 3), uni(-3, 3), 0};
-        const float aoi = uni(15, 80);
-        d.aoi_half_extent = {aoi, aoi, 40};
-        d.presence_half_extent = {1, 1, 1};
-        d.visibility_class = k % 7 == 0 ? cb::stealth : cb::normal;
-        d.sees = cb::normal;
-        (void)store.create(d);
-      }
+      add_random_entities(store, rng, 300, 250, 7);
       interest::thread_pool pool(2);
       interest::grid_finder finder(&pool);
       interest_tracker tracker(finder, &pool, {3.0f, 0, 64});
@@ -587,11 +577,7 @@ TEST_SUITE("zone.engine_faults") {
       std::uint64_t deferred = 0, compared = 0;
       for (; tick < 30; ++tick) {
         CAPTURE(tick);
-        auto pos = store.positions();
-        const auto vel = store.velocities();
-        for (std::size_t i = 0; i < store.size(); ++i) {
-          pos[i] = {std::clamp(pos[i].x + vel[i].x, 0.f, 250.f), std::clamp(pos[i].y + vel[i].y, 0.f, 250.f), pos[i].z};
-        }
+        move_all(store, 250);
         REQUIRE_FALSE(tracker.update(store.columns()).has_value());
         if (tick == at) {
           for (const auto& r : requests) cpu.resync(r.client);
