@@ -52,6 +52,7 @@
 #include <thread>
 #include <vector>
 
+#include "interest/measure.h"
 #include "net/protocol.h"
 #include "tools/cli.h"
 
@@ -73,7 +74,7 @@ struct options {
 std::vector<std::pair<std::string, double>> figures;
 void figure(const std::string& name, double value) { figures.emplace_back(name, value); }
 
-double ms_since(steady::time_point t) { return std::chrono::duration<double, std::milli>(steady::now() - t).count(); }
+using zone::ms_since;
 
 /// A TCP connection to 127.0.0.1:port from 127.0.0.<from> (SO_RCVBUF `rcvbuf` unless 0); -1 on failure.
 int connect_from(std::uint16_t port, std::uint8_t from, bool nonblocking, int rcvbuf = 0) {
