@@ -176,10 +176,11 @@ class replication_engine {
   ///  - spin: in a busy loop (the CUDA default);
   ///  - block: the thread sleeps until the device signals: no CPU burnt while it waits, but on the
   ///    H100 host the wake-up put the wait's p99 at 4-6 ms against 2.3 spinning;
-  ///  - doze: sleeps through most of the wait it expects (three quarters of the shortest of that
-  ///    wait's last eight, when that is at least 0.2 ms), then spins: the spin's CPU time mostly
-  ///    saved, the wake-up's delay hidden inside the device's work (the GPU engine's default: on
-  ///    the H200 host 0.28 against 0.32 us of CPU per client, the tick no slower).
+  ///  - doze: sleeps through most of the wait it expects (the shortest of that wait's last eight,
+  ///    less a quarter of it and at least 0.15 ms, when that is 0.4 ms or more), then spins: the
+  ///    spin's CPU time mostly saved, the wake-up's delay hidden inside the device's work (the
+  ///    GPU engine's default: on the H200 host 0.28 against 0.32 us of CPU per client, the tick
+  ///    no slower).
   enum class device_wait { spin, block, doze };
   virtual void set_device_wait(device_wait how) { (void)how; }
 

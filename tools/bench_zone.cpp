@@ -207,7 +207,7 @@ struct options {
   bool rep_park = true;           // --rep-park: replication_options::park_between_phases
   bool prestage = true;           // --prestage: replicator::prestage while the interest device works
   // --sink: build_many's frames written into net::frame_arena in place (as zone-server), copied
-  // into it (zone-server's sink before issue 22's fourth round), or copied into per-client vectors.
+  // into it (arena-copy), copied into per-client vectors, or left where the GPU engine put them (view).
   enum class sink_mode { arena, arena_copy, copy, view } sink = sink_mode::arena;
   bool sink_arena = true;  // arena or arena_copy
   std::size_t budget = 8 * 1024;

@@ -436,6 +436,11 @@ void replicator::reset_all_clients() {
   }
 }
 
+void replicator::note_engine_error(const std::exception& e) {
+  engine_error_ = e.what();
+  if (engine_error_.empty()) engine_error_ = "replication engine failed";
+}
+
 void replicator::set_engine(interest::replication_engine* engine) {
   engine_ = engine;
   engine_error_.clear();
@@ -443,8 +448,7 @@ void replicator::set_engine(interest::replication_engine* engine) {
     try {
       engine_->set_frame_format(frame_format());
     } catch (const std::exception& e) {
-      engine_error_ = e.what();
-      if (engine_error_.empty()) engine_error_ = "replication engine failed";
+      note_engine_error(e);
     }
     engine_->forget_all();
   }
@@ -498,8 +502,7 @@ void replicator::prestage(const entity_store& store, std::uint64_t tick, interes
     prestaged_slots_ = slots;
   } catch (const std::exception& e) {
     // As build_many: the engine is given up, the next frames are built on the CPU from scratch.
-    engine_error_ = e.what();
-    if (engine_error_.empty()) engine_error_ = "replication engine failed";
+    note_engine_error(e);
     reset_all_clients();
   }
 }
@@ -742,8 +745,7 @@ void replicator::build_many(std::span<const replication_request> requests, const
       built = true;
     } catch (const std::exception& e) {
       // Nothing reached the sink: this tick is built on the CPU, every client starting over.
-      engine_error_ = e.what();
-      if (engine_error_.empty()) engine_error_ = "replication engine failed";
+      note_engine_error(e);
       reset_all_clients();
     }
     if (built) return finish();  // outside the try: the side work's exception is not the engine's

@@ -295,6 +295,8 @@ class replicator {
                        const std::function<void()>* while_waiting);
   /// Every active client starts over (its next frame is a reset).
   void reset_all_clients();
+  /// The engine is given up (on_engine() false from now on): engine_error() says why.
+  void note_engine_error(const std::exception& e);
 
   replication_options opt_;
   net::position_quantizer quantizer_;

@@ -587,6 +587,8 @@ void zone_server::replicate() {
   }
   frame_bytes_.resize(requests_.size());
   outgoing_.resize(requests_.size());
+  // TESTING ONLY (--test-fault): frame k is the victim's, broken on purpose before it is sent.
+  const auto victim = [&](std::size_t k) { return fault_ && fault_has_victim_ && request_sessions_[k] == fault_session_; };
   const auto deliver = [&](std::size_t k, net::shared_frame frame, const replication_stats& st) {
     frame_bytes_[k] = frame.size();
     // A reset frame ends a session's wait after dropped frames (net/server.h).
@@ -609,10 +611,7 @@ void zone_server::replicate() {
   replicator_.build_many(
       requests_, world_->store(), world_->tracker(), world_->tick(), now, pool_.get(),
       [&](std::size_t k, std::span<const std::uint8_t> frame, const replication_stats& st) {
-        // TESTING ONLY (--test-fault): the victim's frame broken on purpose.
-        if (fault_ && fault_has_victim_ && request_sessions_[k] == fault_session_) {
-          frame = fault_->rewrite(frame, world_->tick(), world_->store());
-        }
+        if (victim(k)) frame = fault_->rewrite(frame, world_->tick(), world_->store());
         net::frame_arena& arena = replication_arena();
         // The frame was written into the room reserved for it below: it becomes the session's
         // frame as it is (the rewritten one of the fault test is copied in).
@@ -629,9 +628,7 @@ void zone_server::replicate() {
       // On the GPU replication engine: each frame sent from the engine's own buffer, no copy
       // (the engine reuses it once every frame of it is released).
       [&](std::size_t k, net::shared_frame frame, const replication_stats& st) {
-        if (fault_ && fault_has_victim_ && request_sessions_[k] == fault_session_) {
-          frame = net::make_shared_frame(fault_->rewrite(frame.bytes(), world_->tick(), world_->store()));
-        }
+        if (victim(k)) frame = net::make_shared_frame(fault_->rewrite(frame.bytes(), world_->tick(), world_->store()));
         deliver(k, std::move(frame), st);
       },
       viewer_due ? &viewer_side : nullptr);

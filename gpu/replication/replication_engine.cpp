@@ -1,11 +1,12 @@
 // Host dispatch of the GPU replication engine (gpu/replication.h; algorithm in docs/zone.md,
 // "Replication on the GPU").
 //
-// One run, on one stream, with up to three host synchronisations (dozing then spinning by default, or
-// blocking, or dozing: set_device_wait):
+// One run, on one stream, with up to three host synchronisations (dozing, then spinning, by
+// default; spinning or blocking throughout: set_device_wait):
 //  1. The caller filled the pinned staging (entities, slot map, jobs, visible sets); the client
 //     table (where each view is and goes, each client's job) is laid out here from the views'
-//     sizes the host mirrors, and everything is copied up at once.
+//     sizes the host mirrors, and everything is copied up at once (the entities and the slot map
+//     earlier, when the caller handed them over ahead: stage_entities, upload_entities).
 //  2. Every entity's wire update is quantized (one thread per entity); views of clients without a
 //     job are copied into the new view buffer (one warp per client); one thread per job decides its frame, writes its record (atomic cursor) and its new view.
 //     Each job writes its whole frame in the canonical layout (replication_frame_format) but
