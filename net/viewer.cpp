@@ -265,6 +265,10 @@ struct viewer_server::impl {
   std::unique_ptr<std::atomic<std::uint32_t>[]> selected;  // one slot per session (0: none)
   std::atomic<std::uint64_t> selection_version{0};
   std::atomic<std::size_t> open{0};
+  // When the last snapshot was published and the time between the last two (steady clock, ns):
+  // the sessions' timers wake when the next is due (viewer_poll_delay_ns).
+  std::atomic<std::int64_t> published_ns{0}, period_ns{0};
+  std::int64_t producer_last_ns = 0;  // the producer's own copy
 
   // The viewer's thread (everything below is touched only there, but the counters).
   std::unique_ptr<asio::io_context> ioc = std::make_unique<asio::io_context>(1);
@@ -398,7 +402,9 @@ class ws_session : public std::enable_shared_from_this<ws_session> {
   }
 
   void arm_timer() {
-    timer_.expires_after(std::chrono::milliseconds(50));
+    const std::int64_t now = std::chrono::duration_cast<std::chrono::nanoseconds>(clock_type::now().time_since_epoch()).count();
+    timer_.expires_after(std::chrono::nanoseconds(viewer_poll_delay_ns(
+        now, srv_->published_ns.load(std::memory_order_relaxed), srv_->period_ns.load(std::memory_order_relaxed))));
     timer_.async_wait([self = shared_from_this()](beast::error_code ec) {
       if (ec || self->closed_) return;
       if (self->writing_ && clock_type::now() - self->write_started_ >
@@ -528,7 +534,24 @@ std::vector<std::uint32_t> viewer_server::selected() const {
 }
 
 viewer_snapshot& viewer_server::next_snapshot() { return impl_->snapshots.producer(); }
-void viewer_server::publish() { impl_->snapshots.publish(); }
+void viewer_server::publish() {
+  auto& m = *impl_;
+  m.snapshots.publish();
+  // Two relaxed stores (the clock is the vDSO's: no system call): when the sessions look next.
+  const std::int64_t now = std::chrono::duration_cast<std::chrono::nanoseconds>(clock_type::now().time_since_epoch()).count();
+  if (m.producer_last_ns != 0) m.period_ns.store(now - m.producer_last_ns, std::memory_order_relaxed);
+  m.producer_last_ns = now;
+  m.published_ns.store(now, std::memory_order_relaxed);
+}
+
+std::int64_t viewer_poll_delay_ns(std::int64_t now_ns, std::int64_t last_ns, std::int64_t period_ns) {
+  constexpr std::int64_t ms = 1'000'000, idle = 50 * ms, late = 10 * ms, after = ms / 5;
+  if (last_ns <= 0 || period_ns <= 0 || period_ns > 1000 * ms) return idle;
+  const std::int64_t due = last_ns + period_ns;
+  if (now_ns < due) return std::min(idle, due - now_ns + after);
+  if (now_ns - due <= late) return ms;
+  return idle;
+}
 
 viewer_stats& viewer_server::next_stats() { return impl_->stats.producer(); }
 void viewer_server::publish_stats() {

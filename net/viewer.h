@@ -165,6 +165,14 @@ class viewer_server {
   std::shared_ptr<impl> impl_;
 };
 
+/// How long a session's timer sleeps before it looks for a new snapshot (nanoseconds), from the
+/// last snapshot's publication (`last_ns`, steady clock; 0: none yet) and the time between the
+/// last two (`period_ns`; 0: unknown): until just after the next one is due (so that it is
+/// encoded and written as soon as the tick has published it, in the time between ticks, and not
+/// in the middle of the next tick), polling each millisecond while it is due but not there (up to
+/// 10 ms late), else at most 50 ms (the stall check's and the stats' pace).
+[[nodiscard]] std::int64_t viewer_poll_delay_ns(std::int64_t now_ns, std::int64_t last_ns, std::int64_t period_ns);
+
 /// The embedded page (net/viewer/index.html).
 [[nodiscard]] std::string_view viewer_page();
 

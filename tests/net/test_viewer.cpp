@@ -382,6 +382,32 @@ TEST_SUITE("net.viewer") {
     CHECK(nlohmann::json::parse(j)["ticks"].size() == 2);
   }
 
+  TEST_CASE("a session's timer wakes just after the next snapshot is due, polls while it is late, else every 50 ms") {
+    constexpr std::int64_t ms = 1'000'000;
+    // Nothing published yet, or no period known: the stall check's pace.
+    CHECK(viewer_poll_delay_ns(5 * ms, 0, 0) == 50 * ms);
+    CHECK(viewer_poll_delay_ns(5 * ms, 4 * ms, 0) == 50 * ms);
+    CHECK(viewer_poll_delay_ns(5 * ms, 4 * ms, 5000 * ms) == 50 * ms);  // a period over a second: not a stream
+    std::mt19937_64 rng(17);
+    for (int k = 0; k < 2000; ++k) {
+      const std::int64_t last = 1 + static_cast<std::int64_t>(rng() % (1000 * ms));
+      const std::int64_t period = 1 + static_cast<std::int64_t>(rng() % (200 * ms));
+      const std::int64_t now = last + static_cast<std::int64_t>(rng() % (300 * ms));
+      const std::int64_t d = viewer_poll_delay_ns(now, last, period), due = last + period;
+      REQUIRE(d > 0);
+      CHECK(d <= 50 * ms);
+      if (now < due) {
+        // Before the next is due: wakes 0.2 ms after it (or within 50 ms), never before it.
+        CHECK(now + d >= std::min(due, now + 50 * ms));
+        CHECK(now + d <= due + ms / 5);
+      } else if (now - due <= 10 * ms) {
+        CHECK(d == ms);  // due and not there: looks each millisecond
+      } else {
+        CHECK(d == 50 * ms);  // long overdue (no page, a paused zone): back to the slow pace
+      }
+    }
+  }
+
   TEST_CASE("the viewer's thread runs below the tick: nice and SCHED_IDLE, or the nice value alone where refused") {
     // What the thread reports is what the OS holds for it (read from outside, by its thread id).
     const auto os_policy = [](long tid) { return ::sched_getscheduler(static_cast<pid_t>(tid)); };
