@@ -19,7 +19,7 @@
 #   viewer  tools/viewer_tick_ab.py: tick p50/p99 with and without a viewer socket at VIEWER_NPCS
 #           (100000) NPCs, VIEWER_ROUNDS (40) alternating pairs of VIEWER_PHASE_S (1.5) s each way, the
 #           first VIEWER_SETTLE_S (0.25) s of each phase not counted, each run bounded by VIEWER_MAX_S
-#           (240) s; the viewer's client (the script) at SCHED_IDLE unless VIEWER_CLIENT_IDLE=0
+#           (240) s; the viewer's client (the script) at SCHED_IDLE with VIEWER_CLIENT_IDLE=1
 #           (VIEWER_AB: the script's path, when it is not run from a checkout). VIEWER_BOTS: a list,
 #           one run for each (0: no clients, no replication; N: N bots (bot-swarm) play through it, so
 #           that the tick replicates and the GPU replication engine's wait holds the viewer's snapshot):
@@ -120,7 +120,7 @@ EOF
         [ "$bots" -gt 0 ] && bot_args=(--bots "$bots" --bot-swarm "$dir/bot-swarm")
         python3 "${VIEWER_AB:-tools/viewer_tick_ab.py}" --server "$dir/zone-server" --npcs "${VIEWER_NPCS:-100000}" \
           --phase-s "${VIEWER_PHASE_S:-1.5}" --rounds "${VIEWER_ROUNDS:-40}" --settle-s "${VIEWER_SETTLE_S:-0.25}" \
-          --max-s "${VIEWER_MAX_S:-240}" --client-idle "${VIEWER_CLIENT_IDLE:-1}" --warmup-s 5 \
+          --max-s "${VIEWER_MAX_S:-240}" --client-idle "${VIEWER_CLIENT_IDLE:-0}" --warmup-s 5 \
           --server-args "--threads 8 --io-threads 4" "${bot_args[@]}" \
           --label "(device, $bots bots)" --csv "$out/viewer-ab-bots$bots.csv" 2>&1 | tee "$out/viewer-ab-bots$bots.log"
       done

@@ -233,6 +233,45 @@ class viewer_socket:
         self.sock.close()
 
 
+def sync_clock(path, srv, deadline, flushes=2):
+    """The script's monotonic time at the CSV's t_s = 0 (the loop's first tick; a line's t_s is
+    written at its tick's end). zone-server writes its --tick-csv through a stdio buffer (4 KB,
+    about 70 ticks): a line becomes visible seconds after its tick, so the first line's arrival
+    says nothing of when it was written. At the moment the file grows, the buffer was just
+    written: its last complete line is at most one tick old. The earliest of `flushes` such
+    readings (a late reading only makes it later) is within a tick of the truth."""
+    best, seen, size = None, 0, -1
+    while seen < flushes and time.monotonic() < deadline:
+        if srv.poll() is not None:
+            sys.exit("zone-server exited during the warm-up")
+        try:
+            now_size = os.path.getsize(path)
+        except OSError:
+            now_size = -1
+        if now_size == size or now_size < 0:
+            time.sleep(0.001)
+            continue
+        if now_size == 0:
+            size = 0  # created, nothing written yet: its first write is a fresh one
+            continue
+        now = time.monotonic()
+        first = size < 0
+        size = now_size
+        if first:
+            continue  # already there when first looked at: not a fresh write
+        with open(path) as f:
+            data = f.read(now_size)
+        lines = [l for l in data.split("\n")[:-1] if l.count(",") >= 10 and not l.startswith("tick,")]
+        if not lines:
+            continue
+        t0 = now - float(lines[-1].split(",")[1])
+        best = t0 if best is None else min(best, t0)
+        seen += 1
+    if best is None:
+        sys.exit("the tick CSV was not written (no flush seen before the deadline)")
+    return best
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--server", help="the zone-server binary (required unless --analyze)")
@@ -311,15 +350,8 @@ def main():
             swarm = subprocess.Popen([a.bot_swarm, "--port", m.group(1), "--bots", str(a.bots), "--duration", str(int(run_s)),
                                       "--ramp", str(max(50, a.bots)), "--threads", "2", "--quiet"],
                                      stdout=open(os.path.join(tmp, "bot-swarm.log"), "w"), stderr=subprocess.STDOUT)
-        t_start = None
-        while t_start is None:  # the CSV's t_s = 0 is the loop's first tick
-            with open(ticks_csv) as f:
-                f.readline()
-                line = f.readline()
-            if line.count(",") >= 10:
-                t_start = time.monotonic() - float(line.split(",")[1])
-            else:
-                time.sleep(0.05)
+        warm_from = time.monotonic()
+        t_start = sync_clock(ticks_csv, srv, time.monotonic() + max(a.warmup_s, 3.0) + 60)
         now = lambda: time.monotonic() - t_start
         if a.client_nice:
             os.setpriority(os.PRIO_PROCESS, 0, a.client_nice)  # this process only (the server runs already)
@@ -330,7 +362,7 @@ def main():
                 client_policy = "SCHED_IDLE"
             except (OSError, AttributeError) as e:
                 client_policy = f"SCHED_OTHER (SCHED_IDLE refused: {e})"
-        time.sleep(a.warmup_s)
+        time.sleep(max(0.0, a.warmup_s - (time.monotonic() - warm_from)))
         phases = []  # (round, open, t0, t1)
         viewer_ms, frames, nbytes = [], 0, 0
         loads = [os.getloadavg()[0]]
