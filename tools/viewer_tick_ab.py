@@ -17,7 +17,11 @@ pooled p99 change with its 95% bootstrap interval (whole pairs resampled); the m
 average over the run; and the tick's viewer phase itself (from the stats messages); --csv writes
 every tick with its phase.
 
-  python3 tools/viewer_tick_ab.py --server build/zone/zone-server --npcs 20000 --phase-s 5 --rounds 6
+  python3 tools/viewer_tick_ab.py --server build/zone/zone-server --npcs 20000 --phase-s 1.5 --rounds 40
+
+The first --settle-s of every phase is not counted (both conditions alike); the run is bounded by
+--max-s (fewer rounds when they would not fit); the script's clock is matched to the CSV's t_s at
+a write of the server's stdio buffer (sync_clock).
 
 With --bots N (and --bot-swarm, the bot-swarm binary), N bots play in the zone through the whole
 run, both conditions alike (started before the warm-up, stopped after the last phase): the tick
