@@ -30,7 +30,7 @@
 #include <string>
 
 #include "gpu/common/cuda_check.h"
-#include "gpu/common/staged_upload.h"
+#include "gpu/common/finder_input.h"
 #include "interest/measure.h"
 #include "pbig_dispatch.h"
 #include "pbig_launch.h"
@@ -64,12 +64,7 @@ std::uint32_t blocks_for(std::uint64_t n, std::uint32_t block) {
 
 pbig_engine::pbig_engine(const pbig_options& options) : opt_(options) {
   CUDA_CHECK(cudaSetDevice(0));
-  if (opt_.decode_pool != nullptr) {
-    pool_ = opt_.decode_pool;
-  } else {
-    own_pool_ = std::make_unique<interest::thread_pool>(0);
-    pool_ = own_pool_.get();
-  }
+  pool_ = pool_or_own(opt_.decode_pool, own_pool_);
   for (auto& s : slot_) {
     CUDA_CHECK(cudaStreamCreateWithFlags(&s.stream, cudaStreamNonBlocking));
     for (cudaEvent_t* e : {&s.kernel_begin, &s.kernel_end, &s.copy_begin, &s.copy_end, &s.totals_ready}) {
@@ -113,12 +108,6 @@ pbig_engine::~pbig_engine() {
                         ev_entries_begin_, ev_entries_}) {
     if (e != nullptr) cudaEventDestroy(e);
   }
-}
-
-float pbig_engine::elapsed(cudaEvent_t a, cudaEvent_t b) const {
-  float ms = 0;
-  CUDA_CHECK(cudaEventElapsedTime(&ms, a, b));
-  return ms;
 }
 
 void pbig_engine::grow_temp(std::size_t bytes) { d_temp_.reserve(std::max<std::size_t>(bytes, 256)); }
@@ -181,15 +170,15 @@ std::optional<std::uint64_t> pbig_engine::run(const interest::box_set& boxes, in
   CUDA_CHECK(cudaStreamSynchronize(slot_[1].stream));
   CUDA_CHECK(cudaStreamSynchronize(main_));
 
-  report_.data_in_ms = elapsed(ev_start_, ev_in_);
-  report_.plan_ms = elapsed(ev_in_, ev_plan_);
-  report_.map_ms = elapsed(ev_plan_, ev_map_);
-  report_.sched_ms = elapsed(ev_map_, ev_sched_);
-  report_.map_count_ms = elapsed(ev_plan_, ev_counted_);
-  report_.map_scatter_ms = elapsed(ev_counted_, ev_scattered_);
-  report_.map_sort_ms = elapsed(ev_scattered_, ev_sorted_);
-  report_.map_gather_ms = elapsed(ev_sorted_, ev_map_);
-  if (opt_.compression && !opt_.direct_output) report_.data_out_ms += elapsed(ev_entries_begin_, ev_entries_);
+  report_.data_in_ms = elapsed_ms(ev_start_, ev_in_);
+  report_.plan_ms = elapsed_ms(ev_in_, ev_plan_);
+  report_.map_ms = elapsed_ms(ev_plan_, ev_map_);
+  report_.sched_ms = elapsed_ms(ev_map_, ev_sched_);
+  report_.map_count_ms = elapsed_ms(ev_plan_, ev_counted_);
+  report_.map_scatter_ms = elapsed_ms(ev_counted_, ev_scattered_);
+  report_.map_sort_ms = elapsed_ms(ev_scattered_, ev_sorted_);
+  report_.map_gather_ms = elapsed_ms(ev_sorted_, ev_map_);
+  if (opt_.compression && !opt_.direct_output) report_.data_out_ms += elapsed_ms(ev_entries_begin_, ev_entries_);
   report_.pairs = grid_pairs + large;
   report_.plan_reused = plan_.reused != 0;
   report_.alpha = plan_.alpha;
@@ -225,58 +214,41 @@ bool pbig_engine::uniform_classes(const interest::box_set& boxes) const {
 
 bool pbig_engine::upload(const interest::box_set& boxes, bool check) {
   const std::size_t n = boxes.size();
-  d_coord_.reserve(6 * n);
-  d_bits_.reserve(2 * n);
   validate_on_device_ = false;
   if (boxes_pinned(boxes)) {
+    boxes_.reserve(n);
     // The caller's arrays are page-locked (pinned_boxes): DMA straight from them, no staging
     // copy; validation moves to the bounds kernel (read back with the plan).
     const float* src_f[6] = {boxes.lo_x.data(), boxes.lo_y.data(), boxes.lo_z.data(),
                              boxes.hi_x.data(), boxes.hi_y.data(), boxes.hi_z.data()};
     for (int a = 0; a < 6; ++a) {
-      CUDA_CHECK(cudaMemcpyAsync(d_coord_.get() + a * n, src_f[a], n * 4, cudaMemcpyHostToDevice, main_));
+      CUDA_CHECK(cudaMemcpyAsync(boxes_.coord() + a * n, src_f[a], n * 4, cudaMemcpyHostToDevice, main_));
     }
     // While the coordinates are copied: one category and one mask for every box (the plain
     // self-join)? Then those arrays are filled on the device instead of copied.
     if (opt_.fill_uniform_classes && n >= tuning::uniform_classes_min_boxes && uniform_classes(boxes)) {
       const auto n32 = static_cast<std::uint32_t>(n);
-      CUDA_CHECK(launch_fill_u32(d_bits_.get(), n32, boxes.category[0], main_));
-      CUDA_CHECK(launch_fill_u32(d_bits_.get() + n, n32, boxes.mask[0], main_));
+      CUDA_CHECK(launch_fill_u32(boxes_.bits(), n32, boxes.category[0], main_));
+      CUDA_CHECK(launch_fill_u32(boxes_.bits() + n, n32, boxes.mask[0], main_));
       report_.bytes_in += 24 * n;
       report_.classes_filled = true;
     } else {
-      CUDA_CHECK(cudaMemcpyAsync(d_bits_.get(), boxes.category.data(), n * 4, cudaMemcpyHostToDevice, main_));
-      CUDA_CHECK(cudaMemcpyAsync(d_bits_.get() + n, boxes.mask.data(), n * 4, cudaMemcpyHostToDevice, main_));
+      CUDA_CHECK(cudaMemcpyAsync(boxes_.bits(), boxes.category.data(), n * 4, cudaMemcpyHostToDevice, main_));
+      CUDA_CHECK(cudaMemcpyAsync(boxes_.bits() + n, boxes.mask.data(), n * 4, cudaMemcpyHostToDevice, main_));
       report_.bytes_in += 32 * n;
     }
     CUDA_CHECK(cudaEventRecord(ev_in_, main_));
     validate_on_device_ = check;
     return true;
   }
-  h_stage_.reserve(32 * n);
-  const bool ok = staged_upload(boxes, check, d_coord_.get(), d_bits_.get(), h_stage_.get(), pool_, main_,
-                                tuning::upload_part_boxes, tuning::max_upload_parts);
-  CUDA_CHECK(cudaEventRecord(ev_in_, main_));
+  const bool ok =
+      boxes_.upload_staged(boxes, check, pool_, main_, ev_in_, tuning::upload_part_boxes, tuning::max_upload_parts);
   report_.bytes_in += 32 * n;
-  if (!ok) CUDA_CHECK(cudaStreamSynchronize(main_));  // the staging buffer is free again
   return ok;
 }
 
-namespace {
-box_arrays arrays_of(const float* coord, const std::uint32_t* bits, std::size_t n) {
-  box_arrays b{};
-  for (int d = 0; d < 3; ++d) {
-    b.lo[d] = coord + d * n;
-    b.hi[d] = coord + (3 + d) * n;
-  }
-  b.category = bits;
-  b.mask = bits + n;
-  return b;
-}
-}  // namespace
-
 void pbig_engine::queue_plan(std::uint32_t n) {
-  const box_arrays boxes = arrays_of(d_coord_.get(), d_bits_.get(), n);
+  const box_arrays boxes = boxes_.arrays(n);
   plan_params prm{};
   prm.n = n;
   prm.samples = tuning::plan_samples;
@@ -303,7 +275,7 @@ bool pbig_engine::read_plan() {
 }
 
 void pbig_engine::queue_count(std::uint32_t n, const grid_capacity& cap) {
-  const box_arrays boxes = arrays_of(d_coord_.get(), d_bits_.get(), n);
+  const box_arrays boxes = boxes_.arrays(n);
   const auto cells = static_cast<std::uint32_t>(cap.cells);
   // One zeroed array, one memset: counts[0, cells] (counts[cells] stays 0 for the scan), the
   // large-box counter at counts[cells + 1], then the map kernel's per-cell cursors. A plan of
@@ -331,7 +303,7 @@ void pbig_engine::queue_count(std::uint32_t n, const grid_capacity& cap) {
 }
 
 void pbig_engine::queue_map(std::uint32_t n, const grid_sizes& size, bool small_cells) {
-  const box_arrays boxes = arrays_of(d_coord_.get(), d_bits_.get(), n);
+  const box_arrays boxes = boxes_.arrays(n);
   const map_readback* grid = d_readback_.get();
   std::uint32_t* cursor = d_counts_.get() + size.cells + 2;  // queue_count's layout
   d_entries_unsorted_.reserve(size.entries);
@@ -540,8 +512,8 @@ void pbig_engine::prefetch(const batch& b, pipeline_slot& s, std::uint64_t bytes
 void pbig_engine::finish(const batch& b, pipeline_slot& s) {
   // Synchronisation 1: the batch's kernel and its prefetched copy are done.
   CUDA_CHECK(cudaEventSynchronize(s.copy_end));
-  report_.check_ms += elapsed(s.kernel_begin, s.kernel_end);
-  report_.data_out_ms += elapsed(s.copy_begin, s.copy_end);
+  report_.check_ms += elapsed_ms(s.kernel_begin, s.kernel_end);
+  report_.data_out_ms += elapsed_ms(s.copy_begin, s.copy_end);
   std::uint64_t used = *s.h_cursor.get();
   if (used > s.capacity) {
     // Overflow: nothing past the capacity was written. Grow both buffers and re-run the batch.
@@ -552,8 +524,8 @@ void pbig_engine::finish(const batch& b, pipeline_slot& s) {
     launch(b, s);
     prefetch(b, s, used);
     CUDA_CHECK(cudaEventSynchronize(s.copy_end));
-    report_.check_ms += elapsed(s.kernel_begin, s.kernel_end);
-    report_.data_out_ms += elapsed(s.copy_begin, s.copy_end);
+    report_.check_ms += elapsed_ms(s.kernel_begin, s.kernel_end);
+    report_.data_out_ms += elapsed_ms(s.copy_begin, s.copy_end);
     const std::uint64_t again = *s.h_cursor.get();
     if (again != used) throw std::runtime_error("pbig: a re-run batch produced a different output size");
     s.remainder_pending = false;
@@ -574,7 +546,7 @@ std::uint64_t pbig_engine::decode(const batch& b, pipeline_slot& s, interest::pa
   // Synchronisation 2: the batch's output is in host memory.
   CUDA_CHECK(cudaEventSynchronize(s.copy_end));
   if (s.remainder_pending) {
-    report_.data_out_ms += elapsed(s.copy_begin, s.copy_end);
+    report_.data_out_ms += elapsed_ms(s.copy_begin, s.copy_end);
     s.remainder_pending = false;
   }
   if (opt_.compression && !entries_ready_) {
@@ -695,7 +667,7 @@ void pbig_engine::large_count_pass(std::uint32_t n) {
   *h_large_total_.get() = 0;
   const std::uint32_t large = rb_.large_count;
   if (large == 0) return;
-  const box_arrays boxes = arrays_of(d_coord_.get(), d_bits_.get(), n);
+  const box_arrays boxes = boxes_.arrays(n);
   const std::uint32_t chunks = blocks_for(n, tuning::block);
   const std::uint64_t blocks = static_cast<std::uint64_t>(chunks) * large;
   if (blocks >= (1ull << 31)) throw std::length_error("pbig: too many large boxes for the large-box pass");
@@ -714,7 +686,7 @@ void pbig_engine::large_count_pass(std::uint32_t n) {
 
 void pbig_engine::large_write_pass(std::uint32_t n, std::uint64_t total, void* host_dst) {
   if (total == 0) return;
-  const box_arrays boxes = arrays_of(d_coord_.get(), d_bits_.get(), n);
+  const box_arrays boxes = boxes_.arrays(n);
   const std::uint32_t chunks = blocks_for(n, tuning::block);
   d_large_pairs_.reserve(2 * total);
   CUDA_CHECK(launch_large_write(boxes, n, d_large_.get(), rb_.large_count, d_is_large_.get(), chunks,
@@ -791,7 +763,7 @@ void pbig_engine::launch_direct(const batch& b, pipeline_slot& s, std::uint64_t 
 void pbig_engine::account_copy(pipeline_slot& s) {
   if (!s.copy_pending) return;
   CUDA_CHECK(cudaEventSynchronize(s.copy_end));
-  report_.data_out_ms += elapsed(s.copy_begin, s.copy_end);
+  report_.data_out_ms += elapsed_ms(s.copy_begin, s.copy_end);
   s.copy_pending = false;
 }
 
@@ -810,7 +782,7 @@ std::uint64_t pbig_engine::finish_direct(const batch& b, pipeline_slot& s, std::
   // Synchronisation 1: the batch's kernels are done and its totals are in host memory.
   CUDA_CHECK(cudaEventSynchronize(s.totals_ready));
   if (s.prefetched_pairs == 0) account_copy(s);  // the previous batch on this slot (before these kernels)
-  report_.check_ms += elapsed(s.kernel_begin, s.kernel_end);
+  report_.check_ms += elapsed_ms(s.kernel_begin, s.kernel_end);
   const std::uint64_t used = *s.h_cursor.get();
   if (used > s.capacity) {
     // Overflow: no chunk past the capacity was written and nothing was placed. Grow and re-run.
@@ -820,7 +792,7 @@ std::uint64_t pbig_engine::finish_direct(const batch& b, pipeline_slot& s, std::
     s.d_out.reserve(s.capacity);
     launch_direct(b, s);
     CUDA_CHECK(cudaEventSynchronize(s.totals_ready));
-    report_.check_ms += elapsed(s.kernel_begin, s.kernel_end);
+    report_.check_ms += elapsed_ms(s.kernel_begin, s.kernel_end);
     if (*s.h_cursor.get() != used) throw std::runtime_error("pbig: a re-run batch produced a different output size");
   }
   const std::uint64_t total = *s.h_total.get();

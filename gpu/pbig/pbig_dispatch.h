@@ -11,6 +11,7 @@
 #include <optional>
 #include <vector>
 
+#include "gpu/common/finder_input.h"
 #include "gpu/common/gpu_buffers.h"
 #include "gpu/pbig.h"
 #include "interest/interest.h"
@@ -123,7 +124,6 @@ class pbig_engine {
   void account_copy(pipeline_slot& s);
   void ensure_result(std::uint64_t needed, std::uint64_t keep);
   void grow_temp(std::size_t bytes);
-  float elapsed(cudaEvent_t a, cudaEvent_t b) const;
 
   pbig_options opt_;
   std::unique_ptr<interest::thread_pool> own_pool_;
@@ -135,9 +135,7 @@ class pbig_engine {
               ev_entries_begin_ = nullptr, ev_entries_ = nullptr;
 
   // input and planning
-  device_buffer<float> d_coord_;        // lo_x, lo_y, lo_z, hi_x, hi_y, hi_z (stride n)
-  device_buffer<std::uint32_t> d_bits_;  // category, mask (stride n)
-  pinned_buffer<unsigned char> h_stage_;
+  device_boxes boxes_;  // the input boxes and their staging memory
   device_buffer<bounds_dev> d_bounds_;
   device_buffer<plan_state> d_state_;
   device_buffer<grid_plan_dev> d_plan_;

@@ -5,6 +5,8 @@
 
 #include <cstdint>
 
+#include "gpu/common/box_arrays.h"  // box_arrays, the input boxes
+
 namespace zone::gpu::detail {
 
 /// The grid plan, written by the planning kernel in device memory and copied back to the host.
@@ -108,14 +110,6 @@ struct chunk_header {
   std::uint16_t pairs;
 };
 static_assert(sizeof(chunk_header) == 12);
-
-/// The input boxes on the device, structure of arrays (ids are indices).
-struct box_arrays {
-  const float* lo[3];
-  const float* hi[3];
-  const std::uint32_t* category;
-  const std::uint32_t* mask;
-};
 
 /// Parameters of the planning kernel.
 struct plan_params {
