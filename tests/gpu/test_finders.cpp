@@ -169,20 +169,12 @@ TEST_SUITE("gpu.finders") {
       if (auto f = gpu::make_finder(b, &pool)) finders.push_back(std::move(f));
     }
     REQUIRE(finders.size() >= 2);
-    for (const family f : all_families) {
-      for (const std::size_t n : {0, 1, 2, 5, 64, 700}) {
-        const auto seed = fresh_seed();
-        CAPTURE(family_name(f));
-        CAPTURE(n);
-        CAPTURE(seed);
-        const box_set s = make_family(f, n, seed);
-        const pair_list expected = run(brute, s);
-        for (auto& finder : finders) {
-          CAPTURE(finder->name());
-          CHECK(run(*finder, s) == expected);
-        }
+    for_each_family_set(brute, all_families, {0, 1, 2, 5, 64, 700}, [&](const box_set& s, const pair_list& expected) {
+      for (auto& finder : finders) {
+        CAPTURE(finder->name());
+        CHECK(run(*finder, s) == expected);
       }
-    }
+    });
   }
 
   TEST_CASE("auto: runs the CPU finder without a device and a GPU finder with one") {
