@@ -10,6 +10,7 @@
 #include <initializer_list>
 #include <memory>
 #include <random>
+#include <span>
 #include <string>
 
 #include "interest/interest.h"
@@ -30,6 +31,13 @@ inline pair_list run(pair_finder& f, const box_set& s) {
   sort_canonical(out, s.size());
   REQUIRE(std::adjacent_find(out.begin(), out.end()) == out.end());
   return out;
+}
+
+/// The pairs of a view (find_view's) in canonical order, for comparing with run()'s.
+inline pair_list canonical(std::span<const id_pair> view, std::size_t box_count) {
+  pair_list pairs(view.begin(), view.end());
+  sort_canonical(pairs, box_count);
+  return pairs;
 }
 
 /// `made`, a finder a GPU factory returned (make_pbig_finder, make_lbvh_finder); a null one fails
