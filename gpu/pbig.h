@@ -63,7 +63,7 @@ struct pbig_options {
   /// in another order that also depends only on the input (and on the chunk count).
   /// 0 = the default (2^22 boxes, pbig_tuning.h), SIZE_MAX = never.
   std::size_t overlap_min_boxes = 0;
-  std::uint32_t overlap_chunks = 0;  ///< chunks of the overlapped upload: 0 = the default (6), at most 8
+  std::uint32_t overlap_chunks = 0;  ///< chunks of the overlapped upload: 0 = the default (4), at most 8
 };
 
 /// Where the time of the last call went (the paper's Table V/VI tasks) and what it moved.

@@ -718,7 +718,8 @@ __global__ void __launch_bounds__(tuning::segment) check_kernel(check_args a) {
 /// (stage_lists: chunk 0's boxes, then chunk 1's, ..., chunk j's last Q of them, at positions
 /// [P, P + Q)). One block of T threads per work item (cell, row segment v of that list), as in
 /// check_kernel, but only column segments h >= max(v, P / T) are visited, and a pair at list
-/// positions (r, s) is kept only when max(r, s) >= P (at least one box of chunk j), besides
+/// positions (r, s) is kept only when max(r, s) >= P (at least one box of chunk j; the diagonal
+/// tile of the segment where chunk j begins skips the others: no Eq. 7 there), besides
 /// check_kernel's rules (the boxes intersect, the category/mask rule, this cell is the pair's
 /// output cell). So each pair is found in exactly one stage and one cell. The stage's tiles per
 /// cell (pbig_kernels.cu, to_stage_prefix): with S segments and D = S - P / T, the rows v < P / T
@@ -821,7 +822,7 @@ __global__ void __launch_bounds__(tuning::segment) check_stage_kernel(check_args
       if (hit) hits |= std::uint64_t{1} << j;
     };
     if (tid < m) {
-      if (h == v) {
+      if (h == v && own_from == 0) {  // the triangle of chunk j's own boxes
         if (Balanced) {
           const std::uint32_t x = tid < (m + 1) / 2 ? (m + 2) / 2 : (m + 1) / 2;  // Eq. 7, as in check_kernel
           std::uint32_t j = tid;
@@ -832,6 +833,10 @@ __global__ void __launch_bounds__(tuning::segment) check_stage_kernel(check_args
         } else {
           for (std::uint32_t j = tid + 1; j < m; ++j) test(j);
         }
+      } else if (h == v) {
+        // The segment where chunk j begins: an earlier box checks chunk j's columns only, one of
+        // chunk j the later columns (at most Q columns a thread, where Eq. 7 would give m / 2).
+        for (std::uint32_t j = max(tid + 1, own_from); j < m; ++j) test(j);
       } else {
         for (std::uint32_t j = own_from; j < n; ++j) test(j);
       }

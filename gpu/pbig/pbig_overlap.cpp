@@ -127,8 +127,10 @@ void pbig_engine::queue_stage_count(std::uint32_t n, std::uint32_t j, std::uint3
                              std::numeric_limits<std::uint32_t>::max(),
                              65535ull * tuning::segment,
                              1};
-  CUDA_CHECK(launch_batch_plan(d_plan_.get(), prefix, large_counter, rb, limits, tuning::min_tiles_per_batch,
-                               tuning::max_batches, main_));
+  const std::uint32_t stages = static_cast<std::uint32_t>(report_.overlap_chunks);
+  const std::uint32_t batches = std::max<std::uint32_t>(2, (tuning::max_batches + stages - 1) / stages);
+  CUDA_CHECK(launch_batch_plan(d_plan_.get(), prefix, large_counter, rb, limits, tuning::min_tiles_per_batch, batches,
+                               main_));
   CUDA_CHECK(cudaMemcpyAsync(h_stage_rb_.get() + j, rb, sizeof(map_readback), cudaMemcpyDeviceToHost, main_));
   if (check && j > 0) {
     CUDA_CHECK(cudaMemcpyAsync(h_chunk_bounds_.get() + j, d_chunk_bounds_.get() + j, sizeof(bounds_dev),
