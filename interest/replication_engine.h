@@ -155,7 +155,8 @@ class replication_engine {
   /// Decides every staged job's frame (zone::replicator's algorithm, the same integers and the same
   /// float operations) and moves each job's client view on. Clients are numbered below
   /// client_count; those without a job keep their views. The output stays valid until the next
-  /// stage() or run(). Throws std::runtime_error on a device error (then call forget_all()).
+  /// stage() or run(). Throws std::runtime_error on a device error (then call forget_all()), and
+  /// std::invalid_argument when a client's view or visible set is longer than 2^29 entries.
   /// With `rows` (non-null, from visibility_engine::resident_visible of an engine on the same
   /// device; only when reads_resident()), each job's visible set is read there in place, by row.
   /// `while_waiting` (non-null and non-empty): host work that needs none of the output, called

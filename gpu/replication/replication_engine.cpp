@@ -8,7 +8,8 @@
 //     sizes the host mirrors, and everything is copied up at once (the entities and the slot map
 //     earlier, when the caller handed them over ahead: stage_entities, upload_entities).
 //  2. Every entity's wire update is quantized (one thread per entity); views of clients without a
-//     job are copied into the new view buffer (one warp per client); one thread per job decides its frame, writes its record (atomic cursor) and its new view.
+//     job are copied into the new view buffer (one warp per client); one warp per job decides its
+//     frame, writes its record (atomic cursor) and its new view.
 //     Each job writes its whole frame in the canonical layout (replication_frame_format) but
 //     for its enters' class, extents and kind, which the caller fills in.
 //  3. The results and the cursor come back; then the frames, exactly the bytes used.
@@ -238,6 +239,9 @@ class engine final : public interest::replication_engine {
     // The caller's host work, in the kernels' shadow (their results and copies are queued).
     if (while_waiting != nullptr && *while_waiting) (*while_waiting)();
     wait(wait_kernels, kernels_queued);
+    if (h_cursor_.get()[1] == flag_list_too_long) {
+      throw std::invalid_argument("replication engine: a client's view or visible set is longer than 2^29 entries");
+    }
     if (h_cursor_.get()[1] != 0) throw std::runtime_error("replication engine: record buffer overflow (a bug)");
     const std::uint32_t used = h_cursor_.get()[0];
     // The pinned copy is sized by the bytes used, not by the bound (about 14 times more at 20,000

@@ -1,5 +1,5 @@
 // Kernels of the GPU replication engine (replication_launch.h): the per-job code is
-// replication_shared.h's decide_job, one thread per job; see there for how the floats stay
+// replication_shared.h's decide_job, one warp per job; see there for how the floats stay
 // bit-identical to the host's.
 #include <cub/device/device_reduce.cuh>
 #include <cub/device/device_scan.cuh>
@@ -11,10 +11,22 @@
 namespace zone::gpu::detail::rep {
 namespace {
 
-// Threads per block of the decide kernel: one warp, so that 20,000 jobs (one thread each, long and
-// latency-bound) spread over every SM in one wave; with 128 some SMs held two blocks and the kernel
-// took two rounds.
-constexpr std::uint32_t block = 32;
+// Threads per block of the decide kernel: four warps, one job each.
+constexpr std::uint32_t block = 128;
+
+/// A warp as decide_job's group of lanes (replication_shared.h, serial_lanes).
+struct warp_lanes {
+  static constexpr std::uint32_t width = 32;
+  static constexpr unsigned all = 0xffffffffu;
+  __device__ std::uint32_t lane() const { return threadIdx.x % 32; }
+  __device__ std::uint32_t ballot(bool p) { return __ballot_sync(all, p); }
+  __device__ std::uint32_t first(std::uint32_t v) { return __shfl_sync(all, v, 0); }
+  __device__ std::uint64_t sum(std::uint64_t v) {
+    for (int d = 16; d > 0; d /= 2) v += __shfl_xor_sync(all, v, d);
+    return v;
+  }
+  __device__ void sync() { __syncwarp(); }
+};
 
 std::uint32_t blocks_for(std::uint64_t n, std::uint32_t per_block) {
   return static_cast<std::uint32_t>(std::max<std::uint64_t>(1, (n + per_block - 1) / per_block));
@@ -42,9 +54,10 @@ __global__ void carry_kernel(run_args a) {
 }
 
 __global__ void decide_kernel(run_args a) {
-  const std::uint32_t t = blockIdx.x * blockDim.x + threadIdx.x;
-  if (t >= a.job_count) return;
-  decide_job(a, t);
+  const std::uint32_t job = (blockIdx.x * blockDim.x + threadIdx.x) / 32;  // the same in all of a warp
+  if (job >= a.job_count) return;
+  warp_lanes g;
+  decide_job(a, job, g);
 }
 
 }  // namespace
@@ -84,7 +97,7 @@ cudaError_t launch_carry(const run_args& a, cudaStream_t stream) {
 
 cudaError_t launch_decide(const run_args& a, cudaStream_t stream) {
   if (a.job_count == 0) return cudaSuccess;
-  decide_kernel<<<blocks_for(a.job_count, block), block, 0, stream>>>(a);
+  decide_kernel<<<blocks_for(std::uint64_t{a.job_count} * 32, block), block, 0, stream>>>(a);
   return cudaGetLastError();
 }
 

@@ -21,7 +21,7 @@ cudaError_t scan_rooms(void* temp, std::size_t& temp_bytes, const std::uint32_t*
 cudaError_t launch_quantize(const run_args& a, cudaStream_t stream);
 /// Views of clients without a job into the new buffer (one warp per client).
 cudaError_t launch_carry(const run_args& a, cudaStream_t stream);
-/// One thread per job: the frame's decisions, its record, the client's new view (decide_job).
+/// One warp per job: the frame's decisions, its record, the client's new view (decide_job).
 cudaError_t launch_decide(const run_args& a, cudaStream_t stream);
 
 }  // namespace zone::gpu::detail::rep

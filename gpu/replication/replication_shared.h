@@ -139,6 +139,9 @@ inline std::uint64_t plan_staged(const interest::replication_job* jobs, const cl
 }
 
 inline constexpr std::uint32_t no_index = 0xffffffffu;
+/// What a run's cursor[1] says when it is not 0: the records' bound was wrong (a bug), or a job's
+/// view or visible set is longer than max_job_list.
+inline constexpr std::uint32_t flag_records_overflow = 1, flag_list_too_long = 2;
 
 #if defined(__CUDA_ARCH__)
 __device__ __forceinline__ float rn_sub(float a, float b) { return __fsub_rn(a, b); }
@@ -153,7 +156,7 @@ __device__ __forceinline__ double rn_ddiv(double a, double b) { return __ddiv_rn
 __device__ __forceinline__ std::uint32_t float_bits(float f) { return __float_as_uint(f); }
 __device__ __forceinline__ float bits_float(std::uint32_t u) { return __uint_as_float(u); }
 __device__ __forceinline__ std::uint32_t reserve_bytes(std::uint32_t* cursor, std::uint32_t n) { return atomicAdd(cursor, n); }
-__device__ __forceinline__ void flag_overflow(std::uint32_t* flag) { atomicExch(flag, 1u); }
+__device__ __forceinline__ void raise_flag(std::uint32_t* flag, std::uint32_t code) { atomicExch(flag, code); }
 #else
 // The host: each operation is rounded on its own (no -ffast-math, no FMA contraction on x86-64
 // without -mfma), as in replication.cpp.
@@ -181,7 +184,7 @@ inline std::uint32_t reserve_bytes(std::uint32_t* cursor, std::uint32_t n) {  //
   *cursor += n;
   return at;
 }
-inline void flag_overflow(std::uint32_t* flag) { *flag = 1; }
+inline void raise_flag(std::uint32_t* flag, std::uint32_t code) { *flag = code; }
 #endif
 
 /// net::digest_mix (splitmix64's finaliser).
@@ -328,8 +331,62 @@ ZONE_REP_HD void carry_client(const run_args& a, std::uint32_t c, std::uint32_t 
   }
 }
 
-/// Job job_index: its frame's decisions, the frame itself, its client's new view and hash, its result.
-ZONE_REP_HD void decide_job(const run_args& a, std::uint32_t job_index) {
+/// Set bits of a lane mask.
+ZONE_REP_HD std::uint32_t popcount32(std::uint32_t m) {
+#if defined(__CUDA_ARCH__)
+  return static_cast<std::uint32_t>(__popc(m));
+#else
+  std::uint32_t n = 0;
+  for (; m != 0; m &= m - 1) ++n;
+  return n;
+#endif
+}
+
+/// The first place in p[0, n) (ascending) whose value is not below x.
+ZONE_REP_HD std::uint32_t lower_bound_u32(const std::uint32_t* p, std::uint32_t n, std::uint32_t x) {
+  std::uint32_t lo = 0, hi = n;
+  while (lo < hi) {
+    const std::uint32_t mid = lo + (hi - lo) / 2;
+    if (p[mid] < x) {
+      lo = mid + 1;
+    } else {
+      hi = mid;
+    }
+  }
+  return lo;
+}
+
+/// One lane deciding a job alone: the host's way (tests emulate wider groups with threads; the
+/// device's group is a warp, replication_kernels.cu). A group G gives: `width` lanes (at most 32),
+/// this lane's `lane()`, `ballot(p)` (bit l set when lane l's p holds), `first(v)` (lane 0's v),
+/// `sum(v)` (every lane's v added, wrapping) and `sync()` (memory written by one lane before it is
+/// seen by every lane after it). Every lane calls them in the same order.
+struct serial_lanes {
+  static constexpr std::uint32_t width = 1;
+  ZONE_REP_HD std::uint32_t lane() const { return 0; }
+  ZONE_REP_HD std::uint32_t ballot(bool p) { return p ? 1u : 0u; }
+  ZONE_REP_HD std::uint32_t first(std::uint32_t v) { return v; }
+  ZONE_REP_HD std::uint64_t sum(std::uint64_t v) { return v; }
+  ZONE_REP_HD void sync() {}
+};
+
+// A union entry's tag (decide_job below): which lists hold it; for one in the view its index there.
+inline constexpr std::uint32_t tag_view = 0x80000000u, tag_visible = 0x40000000u, tag_listed = 0x20000000u,
+                               tag_index = 0x1fffffffu;
+/// The longest view or visible set a job may have: the union's tags keep view indices in 29 bits.
+inline constexpr std::uint32_t max_job_list = tag_index;
+
+/// Job job_index, decided by the lanes of group g together: its frame's decisions, the frame itself,
+/// its client's new view and hash, its result. The view and the visible set are sorted and free of
+/// repeats; their union is first laid out, in id order, where the new view goes (new_id: the id,
+/// new_sent: its tag), then walked in order in steps of g.width, each lane one entry, the lanes'
+/// places in the lists taken from ballots; the new view is written back over the union, never ahead
+/// of what is still to be read. The result is the same whatever the width (the host runs width 1).
+template <class G>
+ZONE_REP_HD void decide_job(const run_args& a, std::uint32_t job_index, G& g) {
+  constexpr std::uint32_t W = G::width;
+  const std::uint32_t lane = g.lane();
+  const std::uint32_t below = lane == 0 ? 0u : (0xffffffffu >> (32 - lane));  // lanes before this one
   const interest::replication_job job = a.jobs[job_index];
   const client_slot cs = a.clients[job.client];
   const interest::replication_rules& r = a.rules;
@@ -351,41 +408,72 @@ ZONE_REP_HD void decide_job(const run_args& a, std::uint32_t job_index) {
   const std::uint32_t to = a.new_off[job.client];
   scratch_entry* due = a.scratch + to;        // up to V
   scratch_entry* enter = a.scratch + to + V;  // up to S
+  std::uint32_t* const u_id = a.new_id + to;  // the union (up to V + S, the client's room), then the new view
+  std::uint32_t* const u_tag = a.new_sent + to;
   const std::uint32_t tick32 = static_cast<std::uint32_t>(r.tick);
   const std::uint32_t mid_period = r.mid_period > 1 ? r.mid_period : 1u;
   const std::uint32_t far_period = r.far_period > 1 ? r.far_period : 1u;
-
-  // Pass 1: the merge. Leaves are counted; enters (in the store) and due updates are listed in
-  // walk order.
-  std::uint32_t L = 0, E = 0, D = 0;
-  {
-    std::uint32_t i = 0, j = 0;
-    while (i < S || j < V) {
-      if (j < V && (i == S || view[j] < vis[i])) {
-        ++L;
-        ++j;
-      } else if (j == V || vis[i] < view[j]) {
-        const std::uint32_t k = find_dense(a, vis[i]);
-        if (k != no_index) {
-          const float d = rn_sqrt(distance_sq(eye, a.entities[k]));
-          enter[E++] = entry(float_bits(d), vis[i], k, 0);
-        }
-        ++i;
-      } else {
-        const std::uint32_t k = find_dense(a, view[j]);
-        if (k != no_index) {
-          const float d2 = distance_sq(eye, a.entities[k]);
-          const bool near = tier_below(d2, r.near_limit, r.near_below_sq, r.near_above_sq);
-          const bool mid = tier_below(d2, r.mid_limit, r.mid_below_sq, r.mid_above_sq);
-          const std::uint32_t period = near ? 1u : mid ? mid_period : far_period;
-          const std::uint32_t staleness = tick32 - sent[j];
-          if (staleness >= period) due[D++] = entry(j, k, float_bits(d2), staleness);
-        }
-        ++i;
-        ++j;
-      }
-    }
+  if (S > max_job_list || V > max_job_list) {  // run() refuses such sets before any job runs
+    if (lane == 0) raise_flag(a.cursor + 1, flag_list_too_long);
+    return;
   }
+
+  // Pass 1, over the visible set: enters (in the store) and due updates listed in id order; each
+  // entry's place in the union: its index plus the leaves below it (the view's entries below it
+  // less those also visible, which are all among the visible set's entries before it). Then over
+  // the view: each leave's place, its index among the leaves plus the visible entries below it.
+  std::uint32_t E = 0, D = 0, B = 0;
+  for (std::uint32_t base = 0; base < S; base += W) {
+    const std::uint32_t i = base + lane;
+    const std::uint32_t id = i < S ? vis[i] : 0u;
+    const std::uint32_t j = i < S ? lower_bound_u32(view, V, id) : 0u;
+    const bool both = i < S && j < V && view[j] == id;
+    const std::uint32_t mb = g.ballot(both);
+    bool listed_enter = false, listed_due = false;
+    scratch_entry item = entry(0, 0, 0, 0);
+    if (i < S) {
+      const std::uint32_t k = find_dense(a, id);
+      if (k != no_index && !both) {
+        const float d = rn_sqrt(distance_sq(eye, a.entities[k]));
+        item = entry(float_bits(d), id, k, 0);
+        listed_enter = true;
+      } else if (k != no_index) {
+        const float d2 = distance_sq(eye, a.entities[k]);
+        const bool near = tier_below(d2, r.near_limit, r.near_below_sq, r.near_above_sq);
+        const bool mid = tier_below(d2, r.mid_limit, r.mid_below_sq, r.mid_above_sq);
+        const std::uint32_t period = near ? 1u : mid ? mid_period : far_period;
+        const std::uint32_t staleness = tick32 - sent[j];
+        if (staleness >= period) {
+          item = entry(j, k, float_bits(d2), staleness);
+          listed_due = true;
+        }
+      }
+      const std::uint32_t u = i + j - (B + popcount32(mb & below));
+      u_id[u] = id;
+      u_tag[u] = tag_visible | (both ? tag_view | j : 0u) | (listed_enter || listed_due ? tag_listed : 0u);
+    }
+    const std::uint32_t me = g.ballot(listed_enter), md = g.ballot(listed_due);
+    if (listed_enter) enter[E + popcount32(me & below)] = item;
+    if (listed_due) due[D + popcount32(md & below)] = item;
+    E += popcount32(me);
+    D += popcount32(md);
+    B += popcount32(mb);
+  }
+  for (std::uint32_t base = 0, leaves = 0; base < V; base += W) {
+    const std::uint32_t j = base + lane;
+    const std::uint32_t id = j < V ? view[j] : 0u;
+    const std::uint32_t i = j < V ? lower_bound_u32(vis, S, id) : 0u;
+    const bool leave = j < V && (i == S || vis[i] != id);
+    const std::uint32_t ml = g.ballot(leave);
+    if (leave) {
+      const std::uint32_t u = i + leaves + popcount32(ml & below);
+      u_id[u] = id;
+      u_tag[u] = tag_view | j;
+    }
+    leaves += popcount32(ml);
+  }
+  const std::uint32_t L = V - B, U = S + V - B;
+  g.sync();
 
   // The budget, in the closed form of net::frame_cost: leaves first, then enters, then updates.
   std::uint64_t est = r.header_cost + (has_self ? r.self_cost : 0);
@@ -401,7 +489,7 @@ ZONE_REP_HD void decide_job(const run_args& a, std::uint32_t job_index) {
   // Ranks: enters by (distance, id); due updates, when the budget binds, by (priority, id) with
   // priority = -staleness / max(distance, 1). By counting: the lists are a client's, short.
   if (n_e > 0) {
-    for (std::uint32_t e = 0; e < E; ++e) {
+    for (std::uint32_t e = lane; e < E; e += W) {
       const float ke = bits_float(enter[e].x);
       const std::uint32_t ie = enter[e].y;
       std::uint32_t rank = 0;
@@ -410,12 +498,13 @@ ZONE_REP_HD void decide_job(const run_args& a, std::uint32_t job_index) {
     }
   }
   if (!all_fit && n_u > 0) {
-    for (std::uint32_t u = 0; u < D; ++u) {
+    for (std::uint32_t u = lane; u < D; u += W) {
       const float d = rn_sqrt(bits_float(due[u].z));
       const float p = rn_div(-u32_to_float(due[u].w), d > 1.0f ? d : 1.0f);
       due[u].z = float_bits(p);
     }
-    for (std::uint32_t u = 0; u < D; ++u) {
+    g.sync();
+    for (std::uint32_t u = lane; u < D; u += W) {
       const float pu = bits_float(due[u].z);
       const std::uint32_t iu = view[due[u].x];
       std::uint32_t rank = 0;
@@ -436,9 +525,9 @@ ZONE_REP_HD void decide_job(const run_args& a, std::uint32_t job_index) {
                               (reset ? interest::frame_part_reset : 0u);
   const interest::replication_frame_format::table& tl = fmt.tables[parts];
   const std::uint32_t bytes = static_cast<std::uint32_t>(frame_size(fmt, parts, n_e, n_l, n_u));
-  const std::uint32_t off = reserve_bytes(a.cursor, bytes);
+  const std::uint32_t off = g.first(lane == 0 ? reserve_bytes(a.cursor, bytes) : 0u);
   if (std::uint64_t{off} + bytes > a.record_capacity) {
-    flag_overflow(a.cursor + 1);
+    if (lane == 0) raise_flag(a.cursor + 1, flag_records_overflow);
     return;
   }
   std::uint8_t* const f = a.records + off;
@@ -455,79 +544,92 @@ ZONE_REP_HD void decide_job(const run_args& a, std::uint32_t job_index) {
   std::uint8_t* updates_out = f + updates_vec + 4;
   // Zeros first, as tick_update_writer::finish: the header's gaps and the tail padding (which
   // the vectors written below may partly cover).
-  for (std::uint32_t b = 0; b < t + tl.size; b += 4) put_u32(f + b, 0);
-  put_u32(f + bytes - 8, 0);
-  put_u32(f + bytes - 4, 0);
+  for (std::uint32_t b = 4 * lane; b < t + tl.size; b += 4 * W) put_u32(f + b, 0);
+  if (lane == 0) {
+    put_u32(f + bytes - 8, 0);
+    put_u32(f + bytes - 4, 0);
+  }
+  g.sync();
 
-  // Pass 2: the same merge writes the frame's leaves, enters and updates and the new view (kept
-  // entries and sent enters, in id order) with the last-sent ticks, and moves the digest hash.
-  std::uint64_t hash = reset ? 0 : a.hash[job.client];
-  std::uint32_t* new_id = a.new_id + to;
-  std::uint32_t* new_sent = a.new_sent + to;
-  std::uint32_t w = 0;
-  {
-    std::uint32_t i = 0, j = 0, li = 0, di = 0, ei = 0;
-    while (i < S || j < V) {
-      if (j < V && (i == S || view[j] < vis[i])) {
-        if (li < n_l) {
-          put_u32(leaves_out + 4 * li, view[j]);
-          hash -= digest_mix(view[j]);
-        } else {
-          new_id[w] = view[j];
-          new_sent[w++] = sent[j];
-        }
-        ++li;
-        ++j;
-      } else if (j == V || vis[i] < view[j]) {
-        if (ei < E && enter[ei].y == vis[i]) {
-          const scratch_entry en = enter[ei++];
-          if (en.w < n_e) {
-            // Its offset slot and its table: id, position, velocity (the class, half extents and
-            // kind are the caller's), the name's offset, then the empty name.
-            const std::uint32_t slot = enters_vec + 4 + 4 * en.w, at = first_enter + enter_step * en.w;
-            const interest::replication_entity& e = a.entities[en.z];
-            put_u32(f + slot, at - slot);
-            put_u32(f + at, at - evt);
-            put_u32(f + at + 4, en.y);
-            put_u32(f + at + 8, 0);
-            put_f32(f + at + 12, e.x);
-            put_f32(f + at + 16, e.y);
-            put_f32(f + at + 20, e.z);
-            put_f32(f + at + 24, e.vx);
-            put_f32(f + at + 28, e.vy);
-            put_f32(f + at + 32, e.vz);
-            for (std::uint32_t b = 36; b < fmt.enter_table - 8; b += 4) put_u32(f + at + b, 0);
-            put_u32(f + at + fmt.enter_table - 8, 8);  // the name's offset (the name follows the table)
-            put_u32(f + at + fmt.enter_table - 4, 0);
-            for (std::uint32_t b = 0; b < fmt.enter_name; b += 4) put_u32(f + at + fmt.enter_table + b, 0);
-            hash += digest_mix(en.y);
-            new_id[w] = en.y;
-            new_sent[w++] = tick32;
-          }
-        }
-        ++i;
+  // Pass 2, over the union in id order: the frame's leaves, enters and updates, the new view
+  // (kept entries and sent enters) with the last-sent ticks, and the digest hash's move. Each
+  // entry's place among the leaves, the listed enters, the listed updates and the new view is the
+  // count of those before it; an entry of the new view lands at or before its union place.
+  std::uint64_t moved = 0;
+  std::uint32_t li = 0, ei = 0, di = 0, w = 0;
+  for (std::uint32_t base = 0; base < U; base += W) {
+    const std::uint32_t u = base + lane;
+    const std::uint32_t id = u < U ? u_id[u] : 0u, tag = u < U ? u_tag[u] : 0u;
+    const bool in_view = (tag & tag_view) != 0, in_vis = (tag & tag_visible) != 0, listed = (tag & tag_listed) != 0;
+    const bool leave = in_view && !in_vis, listed_enter = in_vis && !in_view && listed, listed_due = in_view && in_vis && listed;
+    const std::uint32_t ml = g.ballot(leave), me = g.ballot(listed_enter), md = g.ballot(listed_due);
+    bool keep = false;
+    std::uint32_t last = 0;
+    if (leave) {
+      const std::uint32_t at = li + popcount32(ml & below);
+      if (at < n_l) {
+        put_u32(leaves_out + 4 * at, id);
+        moved -= digest_mix(id);
       } else {
-        std::uint32_t last = sent[j];
-        if (di < D && due[di].x == j) {
-          const std::uint32_t pos = all_fit ? di : (due[di].w < n_u ? due[di].w : no_index);
-          if (pos != no_index) {
-            const std::uint32_t* u = a.updates + 4 * std::size_t{due[di].y};
-            std::uint8_t* o = updates_out + 16 * pos;
-            put_u32(o, u[0]);
-            put_u32(o + 4, u[1]);
-            put_u32(o + 8, u[2]);
-            put_u32(o + 12, u[3]);
-            last = tick32;
-          }
-          ++di;
+        keep = true;
+        last = sent[tag & tag_index];
+      }
+    } else if (listed_enter) {
+      const scratch_entry en = enter[ei + popcount32(me & below)];
+      if (en.w < n_e) {
+        // Its offset slot and its table: id, position, velocity (the class, half extents and
+        // kind are the caller's), the name's offset, then the empty name.
+        const std::uint32_t slot = enters_vec + 4 + 4 * en.w, at = first_enter + enter_step * en.w;
+        const interest::replication_entity& e = a.entities[en.z];
+        put_u32(f + slot, at - slot);
+        put_u32(f + at, at - evt);
+        put_u32(f + at + 4, en.y);
+        put_u32(f + at + 8, 0);
+        put_f32(f + at + 12, e.x);
+        put_f32(f + at + 16, e.y);
+        put_f32(f + at + 20, e.z);
+        put_f32(f + at + 24, e.vx);
+        put_f32(f + at + 28, e.vy);
+        put_f32(f + at + 32, e.vz);
+        for (std::uint32_t b = 36; b < fmt.enter_table - 8; b += 4) put_u32(f + at + b, 0);
+        put_u32(f + at + fmt.enter_table - 8, 8);  // the name's offset (the name follows the table)
+        put_u32(f + at + fmt.enter_table - 4, 0);
+        for (std::uint32_t b = 0; b < fmt.enter_name; b += 4) put_u32(f + at + fmt.enter_table + b, 0);
+        moved += digest_mix(en.y);
+        keep = true;
+        last = tick32;
+      }
+    } else if (in_view) {  // kept: visible now and in the view
+      keep = true;
+      last = sent[tag & tag_index];
+      if (listed_due) {
+        const std::uint32_t at = di + popcount32(md & below);
+        const std::uint32_t pos = all_fit ? at : (due[at].w < n_u ? due[at].w : no_index);
+        if (pos != no_index) {
+          const std::uint32_t* up = a.updates + 4 * std::size_t{due[at].y};
+          std::uint8_t* o = updates_out + 16 * pos;
+          put_u32(o, up[0]);
+          put_u32(o + 4, up[1]);
+          put_u32(o + 8, up[2]);
+          put_u32(o + 12, up[3]);
+          last = tick32;
         }
-        new_id[w] = view[j];
-        new_sent[w++] = last;
-        ++i;
-        ++j;
       }
     }
+    const std::uint32_t mk = g.ballot(keep);
+    g.sync();  // every lane has read its union entry before the new view overwrites the union
+    if (keep) {
+      const std::uint32_t at = w + popcount32(mk & below);
+      u_id[at] = id;
+      u_tag[at] = last;
+    }
+    li += popcount32(ml);
+    ei += popcount32(me);
+    di += popcount32(md);
+    w += popcount32(mk);
   }
+  const std::uint64_t hash = (reset ? 0 : a.hash[job.client]) + g.sum(moved);
+  if (lane != 0) return;
   a.hash[job.client] = hash;
 
   // The header (tick_update_writer::finish): prefix, root offset, identifier, the envelope, the
@@ -596,6 +698,12 @@ ZONE_REP_HD void decide_job(const run_args& a, std::uint32_t job_index) {
   res.eye[2] = eye[2];
   res.flags = has_self ? interest::result_has_self : 0u;
   a.results[job_index] = res;
+}
+
+/// Job job_index decided by one lane (the host's emulation of the engine).
+inline void decide_job(const run_args& a, std::uint32_t job_index) {
+  serial_lanes one;
+  decide_job(a, job_index, one);
 }
 
 }  // namespace zone::gpu::detail::rep

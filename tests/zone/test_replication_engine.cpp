@@ -7,6 +7,7 @@
 
 #include <algorithm>
 #include <atomic>
+#include <barrier>
 #include <cstring>
 #include <functional>
 #include <limits>
@@ -16,6 +17,7 @@
 #include <set>
 #include <stdexcept>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include "../common/seeds.h"
@@ -29,11 +31,66 @@ namespace rep = zone::gpu::detail::rep;
 
 namespace {
 
+/// decide_job's group of lanes as W host threads in step (replication_shared.h, serial_lanes):
+/// the device runs 32 lanes a job; widths 4 and 32 here check the lane-parallel walk on the CPU.
+template <std::uint32_t W>
+struct thread_lanes {
+  struct shared {
+    std::barrier<> step{W};
+    std::uint32_t word[W] = {};
+    std::uint64_t wide[W] = {};
+  };
+  static constexpr std::uint32_t width = W;
+  shared* s;
+  std::uint32_t l;
+  [[nodiscard]] std::uint32_t lane() const { return l; }
+  std::uint32_t ballot(bool p) {
+    s->word[l] = p ? 1u : 0u;
+    s->step.arrive_and_wait();
+    std::uint32_t m = 0;
+    for (std::uint32_t k = 0; k < W; ++k) m |= s->word[k] << k;
+    s->step.arrive_and_wait();
+    return m;
+  }
+  std::uint32_t first(std::uint32_t v) {
+    if (l == 0) s->word[0] = v;
+    s->step.arrive_and_wait();
+    const std::uint32_t r = s->word[0];
+    s->step.arrive_and_wait();
+    return r;
+  }
+  std::uint64_t sum(std::uint64_t v) {
+    s->wide[l] = v;
+    s->step.arrive_and_wait();
+    std::uint64_t t = 0;
+    for (std::uint32_t k = 0; k < W; ++k) t += s->wide[k];
+    s->step.arrive_and_wait();
+    return t;
+  }
+  void sync() { s->step.arrive_and_wait(); }
+};
+
+/// Every job of `order`, in that order, by W threads as one group each.
+template <std::uint32_t W>
+void decide_in_lanes(const rep::run_args& a, const std::vector<std::uint32_t>& order) {
+  typename thread_lanes<W>::shared s;
+  std::vector<std::thread> lanes;
+  for (std::uint32_t l = 0; l < W; ++l) {
+    lanes.emplace_back([&, l] {
+      thread_lanes<W> g{&s, l};
+      for (const std::uint32_t t : order) rep::decide_job(a, t, g);
+    });
+  }
+  for (auto& t : lanes) t.join();
+}
+
 class emulated_engine final : public interest::replication_engine {
  public:
   /// keep: the output's records stay the caller's while it holds records_keep (as the GPU
   /// engine's: up to four buffers, then copied again), else reused every run.
-  explicit emulated_engine(std::uint64_t seed, bool keep = true) : rng_(seed), keep_(keep) {}
+  /// lanes: how many lanes decide each job (1, 4 or 32: decide_job's group; the device's is 32).
+  explicit emulated_engine(std::uint64_t seed, bool keep = true, std::uint32_t lanes = 1)
+      : rng_(seed), keep_(keep), lanes_(lanes) {}
   [[nodiscard]] const char* name() const override { return "emulated"; }
   [[nodiscard]] const interest::replication_timing& timing() const override { return timing_; }
   void set_frame_format(const interest::replication_frame_format& format) override { format_ = format; }
@@ -137,7 +194,13 @@ class emulated_engine final : public interest::replication_engine {
     std::vector<std::uint32_t> order(jobs_.size());
     std::iota(order.begin(), order.end(), 0u);
     std::shuffle(order.begin(), order.end(), rng_);
-    for (const std::uint32_t t : order) rep::decide_job(a, t);
+    if (lanes_ == 4) {
+      decide_in_lanes<4>(a, order);
+    } else if (lanes_ == 32) {
+      decide_in_lanes<32>(a, order);
+    } else {
+      for (const std::uint32_t t : order) rep::decide_job(a, t);
+    }
     REQUIRE(cursor[1] == 0);
     REQUIRE(cursor[0] <= record_cap);
     id_.swap(new_id_);
@@ -181,6 +244,7 @@ class emulated_engine final : public interest::replication_engine {
   }
   std::mt19937_64 rng_;
   bool keep_ = true;
+  std::uint32_t lanes_ = 1;
   bool uploaded_ = false;
   std::uint64_t uploads_ = 0, runs_ahead_ = 0;
   std::vector<std::shared_ptr<std::vector<std::uint8_t>>> kept_;
@@ -234,6 +298,28 @@ TEST_SUITE("zone.replication") {
     const auto cov = zone::test::check_replication_equivalence(
         seed, c, [&] { return std::make_unique<emulated_engine>(seed); });
     zone::test::require_equivalent(cov);
+  }
+
+  TEST_CASE("the per-job code with 4 and 32 lanes a job (the device's warp), emulated by threads: the same frames") {
+    for (const std::uint32_t lanes : {4u, 32u}) {
+      const std::uint64_t seed = zone::test::fresh_seed();
+      CAPTURE(seed);
+      CAPTURE(lanes);
+      zone::test::replication_equivalence_case c;
+      if (lanes == 32) c.ticks = 12;  // 32 threads in step on a 2-core machine are slow
+      const auto cov = zone::test::check_replication_equivalence(
+          seed, c, [&] { return std::make_unique<emulated_engine>(seed, true, lanes); });
+      zone::test::require_equivalent(cov);
+    }
+    const auto cov = zone::test::deferred_leaves_runs([&] {
+      const std::uint64_t seed = zone::test::fresh_seed();
+      CAPTURE(seed);
+      const auto world = zone::test::check_replication_equivalence(
+          seed, zone::test::deferred_leaves_case(), [&] { return std::make_unique<emulated_engine>(seed, true, 4); });
+      zone::test::require_equivalent(world, true, false, false);
+      return world;
+    });
+    CHECK(cov.deferred_leaves > 0);
   }
 
   TEST_CASE("the engine's quantization (quantize_entity) equals net::position_quantizer and quantize_velocity bit for bit") {
