@@ -12,7 +12,8 @@
 //
 // overlap: the overlapped upload (docs/gpu.md, "Overlapped upload") on uniform 5x10^6 and 10^7,
 // pinned: the documented call (the pipeline on by default there) beside PBIG with it off and with
-// 3, 4, 6 and 8 chunks, in interleaved rounds; medians and the median call's phases.
+// 3, 4, 6 and 8 chunks, in interleaved rounds; medians and the median call's phases; then Gaussian
+// 10^7 with the default chunk count only (its pairs fill 9.2 GB of pinned memory per finder).
 //
 // lbvh: PBIG, LBVH, the auto finder, the CPU grid finder and CGAL (box_self_intersection_d,
 // sequential; when its headers are found, up to --cgal-max-n boxes) side by side on the paper's
@@ -580,27 +581,48 @@ void overlap_section(bench& b, std::uint64_t seed) {
     bool documented;
     zg::pbig_options options;
   };
-  std::vector<variant> variants;
-  variants.push_back({"documented (auto)", true, {}});
-  for (const std::uint32_t k : {0u, 3u, 4u, 6u, 8u}) {
-    zg::pbig_options o;
-    o.decode_pool = &b.pool;
-    if (k == 0) {
-      o.overlap_min_boxes = std::numeric_limits<std::size_t>::max();
-    } else {
-      o.overlap_min_boxes = 2;
-      o.overlap_chunks = k;
-    }
-    variants.push_back({k == 0 ? "pbig one-shot" : "pbig overlap k=" + std::to_string(k), false, o});
-  }
-  for (const target_set t : {target_set{"uniform", 5000000, 0}, target_set{"uniform", 10000000, 12}}) {
+  // Gaussian 10^7 (1.16x10^9 pairs, 9.2 GB in each finder's pinned result): the default chunk
+  // count only, and the finders of a set freed after it.
+  for (const target_set t : {target_set{"uniform", 5000000, 0}, target_set{"uniform", 10000000, 12},
+                             target_set{"gaussian", 10000000, 0}}) {
     if (t.n > b.max_n) continue;
+    const bool few = std::string(t.kind) == "gaussian";
+    std::vector<variant> variants;
+    variants.push_back({"documented (auto)", true, {}});
+    for (const std::uint32_t k : {0u, 3u, 4u, 6u, 8u}) {
+      if (few && k != 0 && k != 4) continue;
+      zg::pbig_options o;
+      o.decode_pool = &b.pool;
+      if (k == 0) {
+        o.overlap_min_boxes = std::numeric_limits<std::size_t>::max();
+      } else {
+        o.overlap_min_boxes = 2;
+        o.overlap_chunks = k;
+      }
+      variants.push_back({k == 0 ? "pbig one-shot" : "pbig overlap k=" + std::to_string(k), false, o});
+    }
     const zi::box_set s = *zi::generate_named(t.kind, t.n, seed);
     const zg::pinned_boxes pin(s);
     std::string why;
     auto pub = zg::make_finder(zg::finder_backend::auto_select, &b.pool, &why);
+    if (!pub) {
+      std::fprintf(stderr, "bench-gpu: no auto finder: %s\n", why.c_str());
+      std::exit(2);
+    }
+    std::vector<std::unique_ptr<zi::pair_finder>> owned;
     std::vector<zi::pair_finder*> finders;
-    for (const variant& v : variants) finders.push_back(v.documented ? pub.get() : &b.gpu(v.options));
+    for (const variant& v : variants) {
+      if (v.documented) {
+        finders.push_back(pub.get());
+        continue;
+      }
+      owned.push_back(zg::make_pbig_finder(v.options, &why));
+      if (!owned.back()) {
+        std::fprintf(stderr, "bench-gpu: no GPU finder: %s\n", why.c_str());
+        std::exit(2);
+      }
+      finders.push_back(owned.back().get());
+    }
     auto call = [&](std::size_t i, std::span<const zi::id_pair>& view) {
       return variants[i].documented ? zg::find_view(*finders[i], s, view) : zg::find_pairs_view(*finders[i], s, view);
     };
@@ -616,7 +638,7 @@ void overlap_section(bench& b, std::uint64_t seed) {
       }
       digs[i] = digest(view, b.pool);
     }
-    const int rounds = b.reps > 5 ? b.reps : 11;
+    const int rounds = few ? 5 : (b.reps > 5 ? b.reps : 11);
     for (int r = 0; r < rounds; ++r) {
       for (std::size_t j = 0; j < count; ++j) {
         const std::size_t i = (j + static_cast<std::size_t>(r)) % count;
