@@ -55,6 +55,15 @@ struct pbig_options {
   /// mask (checked on the host while the coordinates are copied) has those two arrays filled on
   /// the device instead of copied: 24 bytes a box in instead of 32. false = always copied.
   bool fill_uniform_classes = true;
+  /// Beyond the paper (with direct_output and pipelining, for pinned input: `pinned_boxes`): from
+  /// this many boxes on, the boxes go to the device in `overlap_chunks` chunks of ids and, once
+  /// chunk j has landed, the pairs whose larger id is in chunk j are found and copied out while
+  /// the later chunks upload, so the boxes-in and pairs-out copies run at once (docs/gpu.md,
+  /// "Overlapped upload"). The grid is planned from the first chunk. The same pairs as without it,
+  /// in another order that also depends only on the input (and on the chunk count).
+  /// 0 = the default (2^22 boxes, pbig_tuning.h), SIZE_MAX = never.
+  std::size_t overlap_min_boxes = 0;
+  std::uint32_t overlap_chunks = 0;  ///< chunks of the overlapped upload: 0 = the default (4), at most 8
 };
 
 /// Where the time of the last call went (the paper's Table V/VI tasks) and what it moved.
@@ -87,6 +96,10 @@ struct pbig_report {
   /// and one mask: those arrays were filled on the device, not copied (24 bytes a box in, not 32).
   bool classes_filled = false;
   bool indirect_check = false;  ///< the checks read boxes through their ids (no gather; indirect_check_min_boxes)
+  /// The overlapped upload's chunk count (pbig_options::overlap_min_boxes), 0 when the call did
+  /// not use it. Then plan_ms is from the first chunk's arrival to the plan, map_ms the stages'
+  /// MAP summed, and CHECK, DataOut and the later chunks' DataIn overlap.
+  std::uint32_t overlap_chunks = 0;
   double alpha = 0;
 };
 

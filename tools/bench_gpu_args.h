@@ -15,7 +15,7 @@
 namespace zone::tools {
 
 struct bench_gpu_args {
-  std::string only = "floors,public,targets,nsweep,cells,doc,gauss,ablation,lbvh";
+  std::string only = "floors,public,overlap,targets,nsweep,cells,doc,gauss,ablation,lbvh";
   std::string csv_path = "bench-gpu.csv";
   std::string csv_lbvh = "bench_lbvh.csv";
   std::size_t max_n = 10000000;
@@ -29,7 +29,8 @@ inline constexpr const char* bench_gpu_usage_line =
 inline constexpr const char* bench_gpu_usage =
     "bench-gpu: the PBIG paper's experiments on the GPU, PBIG beside LBVH, auto, the CPU grid finder and CGAL\n\n"
     "usage: bench-gpu [--csv FILE] [--csv-lbvh FILE] [--only LIST] [--max-n N] [--reps R] [--cgal-max-n N]\n"
-    "  --only LIST       comma-separated of floors,public,targets,wsweep,esweep,eplan,nsweep,cells,doc,gauss,ablation,lbvh\n"
+    "  --only LIST       comma-separated of floors,public,overlap,targets,wsweep,esweep,eplan,nsweep,cells,doc,gauss,\n"
+    "                    ablation,lbvh\n"
     "                    (default: all but wsweep, esweep, eplan)\n"
     "  --csv FILE        PBIG rows as CSV (default bench-gpu.csv)\n"
     "  --csv-lbvh FILE   the lbvh experiment's rows as CSV (default bench_lbvh.csv)\n"

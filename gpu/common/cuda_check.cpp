@@ -18,4 +18,10 @@ void cuda_fail(cudaError_t err, const char* call, const char* file, int line) {
   throw std::runtime_error(msg);
 }
 
+float elapsed_ms(cudaEvent_t begin, cudaEvent_t end) {
+  float ms = 0;
+  CUDA_CHECK(cudaEventElapsedTime(&ms, begin, end));
+  return ms;
+}
+
 }  // namespace zone::gpu::detail

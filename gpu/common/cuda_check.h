@@ -9,6 +9,10 @@ namespace zone::gpu::detail {
 /// Logs (spdlog, error level) and throws std::runtime_error naming the call, file and line.
 [[noreturn]] void cuda_fail(cudaError_t err, const char* call, const char* file, int line);
 
+/// Milliseconds from event `begin` to event `end`, both recorded and completed (checked as
+/// CUDA_CHECK does).
+[[nodiscard]] float elapsed_ms(cudaEvent_t begin, cudaEvent_t end);
+
 }  // namespace zone::gpu::detail
 
 #define CUDA_CHECK(call)                                                                          \

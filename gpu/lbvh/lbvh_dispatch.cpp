@@ -30,7 +30,7 @@
 #include <stdexcept>
 
 #include "gpu/common/cuda_check.h"
-#include "gpu/common/staged_upload.h"
+#include "gpu/common/finder_input.h"
 #include "interest/measure.h"
 #include "lbvh_launch.h"
 #include "lbvh_tuning.h"
@@ -41,27 +41,11 @@ namespace {
 
 using clock_type = std::chrono::steady_clock;
 
-box_arrays arrays_of(const float* coord, const std::uint32_t* bits, std::size_t n) {
-  box_arrays b{};
-  for (int d = 0; d < 3; ++d) {
-    b.lo[d] = coord + d * n;
-    b.hi[d] = coord + (3 + d) * n;
-  }
-  b.category = bits;
-  b.mask = bits + n;
-  return b;
-}
-
 }  // namespace
 
 lbvh_engine::lbvh_engine(const lbvh_options& options) : opt_(options) {
   CUDA_CHECK(cudaSetDevice(0));
-  if (opt_.pool != nullptr) {
-    pool_ = opt_.pool;
-  } else {
-    own_pool_ = std::make_unique<interest::thread_pool>(0);
-    pool_ = own_pool_.get();
-  }
+  pool_ = pool_or_own(opt_.pool, own_pool_);
   CUDA_CHECK(cudaStreamCreateWithFlags(&main_, cudaStreamNonBlocking));
   CUDA_CHECK(cudaStreamCreateWithFlags(&copy_, cudaStreamNonBlocking));
   for (cudaEvent_t* e : {&ev_start_, &ev_in_, &ev_sort_begin_, &ev_sort_end_, &ev_built_, &ev_counted_, &ev_fill_begin_,
@@ -95,26 +79,7 @@ lbvh_engine::~lbvh_engine() {
   }
 }
 
-float lbvh_engine::elapsed(cudaEvent_t a, cudaEvent_t b) const {
-  float ms = 0;
-  CUDA_CHECK(cudaEventElapsedTime(&ms, a, b));
-  return ms;
-}
-
 void lbvh_engine::grow_temp(std::size_t bytes) { d_temp_.reserve(std::max<std::size_t>(bytes, 256)); }
-
-bool lbvh_engine::upload(const interest::box_set& boxes, bool check) {
-  const std::size_t n = boxes.size();
-  d_coord_.reserve(6 * n);
-  d_bits_.reserve(2 * n);
-  h_stage_.reserve(32 * n);
-  const bool ok = staged_upload(boxes, check, d_coord_.get(), d_bits_.get(), h_stage_.get(), pool_, main_,
-                                lbvh_tuning::upload_part_boxes, lbvh_tuning::max_upload_parts);
-  CUDA_CHECK(cudaEventRecord(ev_in_, main_));
-  report_.bytes_in += 32 * n;
-  if (!ok) CUDA_CHECK(cudaStreamSynchronize(main_));  // the staging buffer is free again
-  return ok;
-}
 
 std::optional<std::uint64_t> lbvh_engine::run(const interest::box_set& boxes, interest::finder_stats& stats,
                                                bool validate) {
@@ -126,8 +91,11 @@ std::optional<std::uint64_t> lbvh_engine::run(const interest::box_set& boxes, in
   report_ = {};
 
   CUDA_CHECK(cudaEventRecord(ev_start_, main_));
-  if (!upload(boxes, validate)) return std::nullopt;
-  const box_arrays arrays = arrays_of(d_coord_.get(), d_bits_.get(), n);
+  const bool uploaded = boxes_.upload_staged(boxes, validate, pool_, main_, ev_in_, lbvh_tuning::upload_part_boxes,
+                                             lbvh_tuning::max_upload_parts);
+  report_.bytes_in += 32 * count;
+  if (!uploaded) return std::nullopt;
+  const box_arrays arrays = boxes_.arrays(n);
 
   // Keys, sort.
   scene* sc = d_scene_.get();
@@ -267,12 +235,12 @@ std::optional<std::uint64_t> lbvh_engine::run(const interest::box_set& boxes, in
   CUDA_CHECK(cudaStreamSynchronize(copy_));
   CUDA_CHECK(cudaStreamSynchronize(main_));
 
-  report_.data_in_ms = elapsed(ev_start_, ev_in_);
-  report_.build_ms = elapsed(ev_in_, ev_built_);
-  report_.sort_ms = elapsed(ev_sort_begin_, ev_sort_end_);
-  report_.count_ms = elapsed(ev_built_, ev_counted_);
-  report_.fill_ms = elapsed(ev_fill_begin_, ev_fill_end_);
-  report_.data_out_ms = elapsed(ev_copy_begin_, ev_copy_end_);
+  report_.data_in_ms = elapsed_ms(ev_start_, ev_in_);
+  report_.build_ms = elapsed_ms(ev_in_, ev_built_);
+  report_.sort_ms = elapsed_ms(ev_sort_begin_, ev_sort_end_);
+  report_.count_ms = elapsed_ms(ev_built_, ev_counted_);
+  report_.fill_ms = elapsed_ms(ev_fill_begin_, ev_fill_end_);
+  report_.data_out_ms = elapsed_ms(ev_copy_begin_, ev_copy_end_);
   report_.pairs = total;
   report_.tree_boxes = leaves;
   report_.large_boxes = r.large_count;

@@ -11,6 +11,7 @@
 #include <memory>
 #include <optional>
 
+#include "gpu/common/finder_input.h"
 #include "gpu/common/gpu_buffers.h"
 #include "gpu/lbvh.h"
 #include "interest/interest.h"
@@ -44,8 +45,6 @@ class lbvh_engine {
   [[nodiscard]] interest::thread_pool* pool() const { return pool_; }
 
  private:
-  bool upload(const interest::box_set& boxes, bool check);
-  float elapsed(cudaEvent_t a, cudaEvent_t b) const;
   void grow_temp(std::size_t bytes);
 
   lbvh_options opt_;
@@ -58,9 +57,7 @@ class lbvh_engine {
   static constexpr int max_batch_events = 18;
   cudaEvent_t ev_batch_[max_batch_events]{};
 
-  device_array<float> d_coord_;         // lo_x, lo_y, lo_z, hi_x, hi_y, hi_z (stride n)
-  device_array<std::uint32_t> d_bits_;  // category, mask (stride n)
-  pinned_array<unsigned char> h_stage_;
+  device_boxes boxes_;  // the input boxes and their staging memory
   device_array<scene> d_scene_;
   device_array<std::uint32_t> d_keys_, d_keys_sorted_, d_ids_, d_ids_sorted_;
   device_array<float4> d_leaf_lo_, d_leaf_hi_;

@@ -1,10 +1,8 @@
 // Host API of the GPU LBVH finder: the pair_finder behind make_lbvh_finder.
-#include <spdlog/spdlog.h>
-
 #include <cstring>
 #include <stdexcept>
 
-#include "gpu/device.h"
+#include "gpu/common/finder_glue.h"
 #include "gpu/lbvh.h"
 #include "lbvh_dispatch.h"
 #include "lbvh_tuning.h"
@@ -16,38 +14,17 @@ namespace {
 /// the others, each part in Morton order, equal keys by id), within a leaf in traversal order (left child first); then the brute pass's
 /// pairs (overflowed queries in leaf order, then the large boxes in id order; each by chunk and
 /// thread). All of it depends only on the input.
-class lbvh_finder final : public interest::pair_finder {
+class lbvh_finder final : public detail::own_buffer_finder {
  public:
-  explicit lbvh_finder(const lbvh_options& options) : engine_(options) {}
+  explicit lbvh_finder(const lbvh_options& options) : own_buffer_finder("find_lbvh_view"), engine_(options) {}
   [[nodiscard]] std::string_view name() const override { return "lbvh"; }
   [[nodiscard]] const lbvh_report& report() const { return engine_.report(); }
 
-  /// pair_finder::find_view: the pairs stay in this finder's result buffer (`scratch` unused).
-  std::optional<interest::box_error> find_view(const interest::box_set& boxes, interest::pair_list& /*scratch*/,
-                                               std::span<const interest::id_pair>& view) override {
-    return find_view(boxes, view);
-  }
-  [[nodiscard]] bool views_own_buffer() const override { return true; }
-  std::optional<interest::box_error> find_view(const interest::box_set& boxes,
-                                               std::span<const interest::id_pair>& view) {
-    view = {};
-    if (boxes.size() < 2) {
-      if (auto err = interest::validate(boxes)) return err;
-      stats_ = {};
-      return std::nullopt;
-    }
-    interest::finder_stats found_stats;
-    const auto found = engine_.run(boxes, found_stats, /*validate=*/true);
-    if (!found) {
-      if (auto err = interest::validate(boxes)) return err;
-      throw std::logic_error("find_lbvh_view: packing check and interest::validate disagree");
-    }
-    stats_ = found_stats;
-    view = std::span<const interest::id_pair>(engine_.result(), *found);
-    return std::nullopt;
-  }
-
  protected:
+  std::optional<std::uint64_t> run_validated(const interest::box_set& boxes, interest::finder_stats& stats) override {
+    return engine_.run(boxes, stats, /*validate=*/true);
+  }
+  [[nodiscard]] const interest::id_pair* view_data() const override { return engine_.result(); }
   [[nodiscard]] interest::thread_pool* worker_pool() const override { return engine_.pool(); }
   void find_valid(const interest::box_set& boxes, interest::pair_list& out) override {
     out.clear();
@@ -71,17 +48,7 @@ class lbvh_finder final : public interest::pair_finder {
 }  // namespace
 
 std::unique_ptr<interest::pair_finder> make_lbvh_finder(const lbvh_options& options, std::string* why) {
-  device_info info;
-  if (!device_available(&info, why)) return nullptr;
-  try {
-    auto finder = std::make_unique<lbvh_finder>(options);
-    spdlog::debug("lbvh: GPU finder on {} (sm_{}{}, {} SMs)", info.name, info.compute_major, info.compute_minor,
-                  info.multiprocessors);
-    return finder;
-  } catch (const std::exception& e) {
-    if (why) *why = std::string("cannot start the GPU LBVH finder: ") + e.what();
-    return nullptr;
-  }
+  return detail::start_finder("lbvh", "GPU LBVH finder", why, [&] { return std::make_unique<lbvh_finder>(options); });
 }
 
 const lbvh_report* last_lbvh_report(const interest::pair_finder& finder) {

@@ -5,6 +5,8 @@
 
 #include <cstdint>
 
+#include "gpu/common/box_arrays.h"  // box_arrays, the input boxes
+
 namespace zone::gpu::detail::lbvh {
 
 /// One internal node of the hierarchy, as the traversal reads it: the boxes of its two children
@@ -37,14 +39,6 @@ struct readback {
   std::uint32_t overflow_count;  ///< queries whose stack overflowed (redone by the brute pass)
   std::uint32_t max_depth;
   std::uint32_t pad;
-};
-
-/// The input boxes on the device, structure of arrays (ids are indices).
-struct box_arrays {
-  const float* lo[3];
-  const float* hi[3];
-  const std::uint32_t* category;
-  const std::uint32_t* mask;
 };
 
 /// Arguments of the traversal kernels (counting and writing passes).

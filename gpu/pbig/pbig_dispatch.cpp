@@ -30,7 +30,7 @@
 #include <string>
 
 #include "gpu/common/cuda_check.h"
-#include "gpu/common/staged_upload.h"
+#include "gpu/common/finder_input.h"
 #include "interest/measure.h"
 #include "pbig_dispatch.h"
 #include "pbig_launch.h"
@@ -64,12 +64,7 @@ std::uint32_t blocks_for(std::uint64_t n, std::uint32_t block) {
 
 pbig_engine::pbig_engine(const pbig_options& options) : opt_(options) {
   CUDA_CHECK(cudaSetDevice(0));
-  if (opt_.decode_pool != nullptr) {
-    pool_ = opt_.decode_pool;
-  } else {
-    own_pool_ = std::make_unique<interest::thread_pool>(0);
-    pool_ = own_pool_.get();
-  }
+  pool_ = pool_or_own(opt_.decode_pool, own_pool_);
   for (auto& s : slot_) {
     CUDA_CHECK(cudaStreamCreateWithFlags(&s.stream, cudaStreamNonBlocking));
     for (cudaEvent_t* e : {&s.kernel_begin, &s.kernel_end, &s.copy_begin, &s.copy_end, &s.totals_ready}) {
@@ -98,6 +93,14 @@ pbig_engine::pbig_engine(const pbig_options& options) : opt_(options) {
   d_readback_.reserve(1);
   h_readback_.reserve(1);
   h_large_total_.reserve(1);
+  CUDA_CHECK(cudaStreamCreateWithFlags(&upload_, cudaStreamNonBlocking));
+  for (int j = 0; j < max_overlap_chunks; ++j) {
+    for (cudaEvent_t* e : {&ev_chunk_[j], &ev_staged_[j], &ev_mapped_[j]}) CUDA_CHECK(cudaEventCreate(e));
+  }
+  d_stage_rb_.reserve(max_overlap_chunks);
+  h_stage_rb_.reserve(max_overlap_chunks);
+  d_chunk_bounds_.reserve(max_overlap_chunks);
+  h_chunk_bounds_.reserve(max_overlap_chunks);
 }
 
 pbig_engine::~pbig_engine() {
@@ -113,12 +116,15 @@ pbig_engine::~pbig_engine() {
                         ev_entries_begin_, ev_entries_}) {
     if (e != nullptr) cudaEventDestroy(e);
   }
-}
-
-float pbig_engine::elapsed(cudaEvent_t a, cudaEvent_t b) const {
-  float ms = 0;
-  CUDA_CHECK(cudaEventElapsedTime(&ms, a, b));
-  return ms;
+  if (upload_ != nullptr) {
+    cudaStreamSynchronize(upload_);
+    cudaStreamDestroy(upload_);
+  }
+  for (int j = 0; j < max_overlap_chunks; ++j) {
+    for (cudaEvent_t e : {ev_chunk_[j], ev_staged_[j], ev_mapped_[j]}) {
+      if (e != nullptr) cudaEventDestroy(e);
+    }
+  }
 }
 
 void pbig_engine::grow_temp(std::size_t bytes) { d_temp_.reserve(std::max<std::size_t>(bytes, 256)); }
@@ -134,29 +140,43 @@ std::optional<std::uint64_t> pbig_engine::run(const interest::box_set& boxes, in
   indirect_ = count >= opt_.indirect_check_min_boxes;
   report_.indirect_check = indirect_;
 
-  CUDA_CHECK(cudaEventRecord(ev_start_, main_));
-  if (!upload(boxes, validate)) return std::nullopt;
-  queue_plan(n);
-
   auto t_pipe = clock_type::now();
   std::uint64_t grid_pairs = 0, large = 0;
-  bool queued_whole = false;
-  if (opt_.direct_output && opt_.pipelining && opt_.single_queue && next_.valid) {
-    // One queue of work, one synchronisation, sizes from the last call (see run_single_queue).
-    report_.single_queue = true;
-    const queue_result r = run_single_queue(n, grid_pairs);
-    if (r == queue_result::invalid) return std::nullopt;
-    queued_whole = r == queue_result::done;
-    report_.requeued = !queued_whole;
-  }
-  if (!queued_whole) {
-    // Read-back sizing: the plan, then the map's totals, are read back before what they size.
-    if (!read_plan()) return std::nullopt;
-    map_boxes(n);
-    t_pipe = clock_type::now();
+  const std::uint32_t chunks = overlap_chunks(boxes);
+  if (chunks > 1) {
+    // The overlapped upload (pbig_overlap.cpp): large-box pairs included.
+    if (!run_overlapped(boxes, n, chunks, validate, grid_pairs)) return std::nullopt;
+  } else {
+    CUDA_CHECK(cudaEventRecord(ev_start_, main_));
+    if (!upload(boxes, validate)) return std::nullopt;
+    queue_plan(n, n);
+
+    bool queued_whole = false;
+    if (opt_.direct_output && opt_.pipelining && opt_.single_queue && next_.valid) {
+      // One queue of work, one synchronisation, sizes from the last call (see run_single_queue).
+      report_.single_queue = true;
+      const queue_result r = run_single_queue(n, grid_pairs);
+      if (r == queue_result::invalid) return std::nullopt;
+      queued_whole = r == queue_result::done;
+      report_.requeued = !queued_whole;
+    }
+    if (!queued_whole) {
+      // Read-back sizing: the plan, then the map's totals, are read back before what they size.
+      if (!read_plan()) return std::nullopt;
+      map_boxes(n);
+      t_pipe = clock_type::now();
+    }
+    if (opt_.direct_output) {
+      if (!queued_whole) grid_pairs = check_direct(n);  // large-box pairs included
+    } else {
+      grid_pairs = check_batches(out);
+      report_.pipeline_ms = ms_since(t_pipe);
+      const auto t_large = clock_type::now();
+      large = large_pairs(n, out, grid_pairs);
+      report_.large_ms = ms_since(t_large);
+    }
   }
   if (opt_.direct_output) {
-    if (!queued_whole) grid_pairs = check_direct(n);  // large-box pairs included
     report_.pipeline_ms = ms_since(t_pipe);
     if (!keep_size) {
       // Through pair_finder::find: copy the pinned result into the caller's list.
@@ -171,25 +191,26 @@ std::optional<std::uint64_t> pbig_engine::run(const interest::box_set& boxes, in
       });
       report_.report_ms = ms_since(t_copy);
     }
-  } else {
-    grid_pairs = check_batches(out);
-    report_.pipeline_ms = ms_since(t_pipe);
-    const auto t_large = clock_type::now();
-    large = large_pairs(n, out, grid_pairs);
-    report_.large_ms = ms_since(t_large);
   }
   CUDA_CHECK(cudaStreamSynchronize(slot_[1].stream));
   CUDA_CHECK(cudaStreamSynchronize(main_));
 
-  report_.data_in_ms = elapsed(ev_start_, ev_in_);
-  report_.plan_ms = elapsed(ev_in_, ev_plan_);
-  report_.map_ms = elapsed(ev_plan_, ev_map_);
-  report_.sched_ms = elapsed(ev_map_, ev_sched_);
-  report_.map_count_ms = elapsed(ev_plan_, ev_counted_);
-  report_.map_scatter_ms = elapsed(ev_counted_, ev_scattered_);
-  report_.map_sort_ms = elapsed(ev_scattered_, ev_sorted_);
-  report_.map_gather_ms = elapsed(ev_sorted_, ev_map_);
-  if (opt_.compression && !opt_.direct_output) report_.data_out_ms += elapsed(ev_entries_begin_, ev_entries_);
+  if (chunks > 1) {
+    // Stage by stage: DataIn is the chunks' copies together, MAP the stages' maps summed.
+    report_.data_in_ms = elapsed_ms(ev_start_, ev_in_);
+    report_.plan_ms = elapsed_ms(ev_chunk_[0], ev_plan_);
+    for (std::uint32_t j = 0; j < chunks; ++j) report_.map_ms += elapsed_ms(ev_staged_[j], ev_mapped_[j]);
+  } else {
+    report_.data_in_ms = elapsed_ms(ev_start_, ev_in_);
+    report_.plan_ms = elapsed_ms(ev_in_, ev_plan_);
+    report_.map_ms = elapsed_ms(ev_plan_, ev_map_);
+    report_.sched_ms = elapsed_ms(ev_map_, ev_sched_);
+    report_.map_count_ms = elapsed_ms(ev_plan_, ev_counted_);
+    report_.map_scatter_ms = elapsed_ms(ev_counted_, ev_scattered_);
+    report_.map_sort_ms = elapsed_ms(ev_scattered_, ev_sorted_);
+    report_.map_gather_ms = elapsed_ms(ev_sorted_, ev_map_);
+  }
+  if (opt_.compression && !opt_.direct_output) report_.data_out_ms += elapsed_ms(ev_entries_begin_, ev_entries_);
   report_.pairs = grid_pairs + large;
   report_.plan_reused = plan_.reused != 0;
   report_.alpha = plan_.alpha;
@@ -201,19 +222,24 @@ std::optional<std::uint64_t> pbig_engine::run(const interest::box_set& boxes, in
   stats.large_boxes = rb_.large_count;
   stats.checks = rb_.totals.checks + static_cast<std::uint64_t>(rb_.large_count) * n;
   if (!keep_size && !opt_.direct_output) out.resize(report_.pairs);
-  remember_sizes();
+  if (chunks > 1) {
+    // The stages' sizes say nothing of a one-shot call's: the next small call reads its sizes back.
+    next_.valid = false;
+  } else {
+    remember_sizes();
+  }
   return report_.pairs;
 }
 
-bool pbig_engine::uniform_classes(const interest::box_set& boxes) const {
-  const std::size_t n = boxes.size();
-  if (n == 0) return true;
+bool pbig_engine::uniform_classes(const interest::box_set& boxes, std::size_t begin, std::size_t end) const {
+  if (end <= begin) return true;
+  const std::size_t n = end - begin;
   const std::uint32_t c0 = boxes.category[0], m0 = boxes.mask[0];
   const std::size_t parts = (n + tuning::uniform_classes_part - 1) / tuning::uniform_classes_part;
   std::atomic<bool> differs{false};
   interest::run_tasks(pool_, parts, [&](std::size_t p) {
     if (differs.load(std::memory_order_relaxed)) return;
-    const std::size_t b = p * tuning::uniform_classes_part, e = std::min(n, b + tuning::uniform_classes_part);
+    const std::size_t b = begin + p * tuning::uniform_classes_part, e = std::min(end, b + tuning::uniform_classes_part);
     const std::uint32_t* cat = boxes.category.data();
     const std::uint32_t* mask = boxes.mask.data();
     std::uint32_t diff = 0;
@@ -225,60 +251,44 @@ bool pbig_engine::uniform_classes(const interest::box_set& boxes) const {
 
 bool pbig_engine::upload(const interest::box_set& boxes, bool check) {
   const std::size_t n = boxes.size();
-  d_coord_.reserve(6 * n);
-  d_bits_.reserve(2 * n);
   validate_on_device_ = false;
   if (boxes_pinned(boxes)) {
+    boxes_.reserve(n);
     // The caller's arrays are page-locked (pinned_boxes): DMA straight from them, no staging
     // copy; validation moves to the bounds kernel (read back with the plan).
     const float* src_f[6] = {boxes.lo_x.data(), boxes.lo_y.data(), boxes.lo_z.data(),
                              boxes.hi_x.data(), boxes.hi_y.data(), boxes.hi_z.data()};
     for (int a = 0; a < 6; ++a) {
-      CUDA_CHECK(cudaMemcpyAsync(d_coord_.get() + a * n, src_f[a], n * 4, cudaMemcpyHostToDevice, main_));
+      CUDA_CHECK(cudaMemcpyAsync(boxes_.coord() + a * n, src_f[a], n * 4, cudaMemcpyHostToDevice, main_));
     }
     // While the coordinates are copied: one category and one mask for every box (the plain
     // self-join)? Then those arrays are filled on the device instead of copied.
-    if (opt_.fill_uniform_classes && n >= tuning::uniform_classes_min_boxes && uniform_classes(boxes)) {
+    if (opt_.fill_uniform_classes && n >= tuning::uniform_classes_min_boxes && uniform_classes(boxes, 0, n)) {
       const auto n32 = static_cast<std::uint32_t>(n);
-      CUDA_CHECK(launch_fill_u32(d_bits_.get(), n32, boxes.category[0], main_));
-      CUDA_CHECK(launch_fill_u32(d_bits_.get() + n, n32, boxes.mask[0], main_));
+      CUDA_CHECK(launch_fill_u32(boxes_.bits(), n32, boxes.category[0], main_));
+      CUDA_CHECK(launch_fill_u32(boxes_.bits() + n, n32, boxes.mask[0], main_));
       report_.bytes_in += 24 * n;
       report_.classes_filled = true;
     } else {
-      CUDA_CHECK(cudaMemcpyAsync(d_bits_.get(), boxes.category.data(), n * 4, cudaMemcpyHostToDevice, main_));
-      CUDA_CHECK(cudaMemcpyAsync(d_bits_.get() + n, boxes.mask.data(), n * 4, cudaMemcpyHostToDevice, main_));
+      CUDA_CHECK(cudaMemcpyAsync(boxes_.bits(), boxes.category.data(), n * 4, cudaMemcpyHostToDevice, main_));
+      CUDA_CHECK(cudaMemcpyAsync(boxes_.bits() + n, boxes.mask.data(), n * 4, cudaMemcpyHostToDevice, main_));
       report_.bytes_in += 32 * n;
     }
     CUDA_CHECK(cudaEventRecord(ev_in_, main_));
     validate_on_device_ = check;
     return true;
   }
-  h_stage_.reserve(32 * n);
-  const bool ok = staged_upload(boxes, check, d_coord_.get(), d_bits_.get(), h_stage_.get(), pool_, main_,
-                                tuning::upload_part_boxes, tuning::max_upload_parts);
-  CUDA_CHECK(cudaEventRecord(ev_in_, main_));
+  const bool ok =
+      boxes_.upload_staged(boxes, check, pool_, main_, ev_in_, tuning::upload_part_boxes, tuning::max_upload_parts);
   report_.bytes_in += 32 * n;
-  if (!ok) CUDA_CHECK(cudaStreamSynchronize(main_));  // the staging buffer is free again
   return ok;
 }
 
-namespace {
-box_arrays arrays_of(const float* coord, const std::uint32_t* bits, std::size_t n) {
-  box_arrays b{};
-  for (int d = 0; d < 3; ++d) {
-    b.lo[d] = coord + d * n;
-    b.hi[d] = coord + (3 + d) * n;
-  }
-  b.category = bits;
-  b.mask = bits + n;
-  return b;
-}
-}  // namespace
-
-void pbig_engine::queue_plan(std::uint32_t n) {
-  const box_arrays boxes = arrays_of(d_coord_.get(), d_bits_.get(), n);
+void pbig_engine::queue_plan(std::uint32_t n, std::uint32_t sample_n) {
+  const box_arrays boxes = boxes_.arrays(n);
   plan_params prm{};
   prm.n = n;
+  prm.sample_n = sample_n;
   prm.samples = tuning::plan_samples;
   prm.seed = 0x5eed;
   prm.min_boxes_per_cell = opt_.min_boxes_per_cell;
@@ -303,7 +313,7 @@ bool pbig_engine::read_plan() {
 }
 
 void pbig_engine::queue_count(std::uint32_t n, const grid_capacity& cap) {
-  const box_arrays boxes = arrays_of(d_coord_.get(), d_bits_.get(), n);
+  const box_arrays boxes = boxes_.arrays(n);
   const auto cells = static_cast<std::uint32_t>(cap.cells);
   // One zeroed array, one memset: counts[0, cells] (counts[cells] stays 0 for the scan), the
   // large-box counter at counts[cells + 1], then the map kernel's per-cell cursors. A plan of
@@ -331,7 +341,7 @@ void pbig_engine::queue_count(std::uint32_t n, const grid_capacity& cap) {
 }
 
 void pbig_engine::queue_map(std::uint32_t n, const grid_sizes& size, bool small_cells) {
-  const box_arrays boxes = arrays_of(d_coord_.get(), d_bits_.get(), n);
+  const box_arrays boxes = boxes_.arrays(n);
   const map_readback* grid = d_readback_.get();
   std::uint32_t* cursor = d_counts_.get() + size.cells + 2;  // queue_count's layout
   d_entries_unsorted_.reserve(size.entries);
@@ -345,7 +355,7 @@ void pbig_engine::queue_map(std::uint32_t n, const grid_sizes& size, bool small_
     CUDA_CHECK(cudaEventRecord(ev_scattered_, main_));
     CUDA_CHECK(cudaEventRecord(ev_sorted_, main_));
   } else {
-    CUDA_CHECK(launch_map(boxes, n, d_plan_.get(), grid, d_is_large_.get(), d_prefix_.get(), cursor,
+    CUDA_CHECK(launch_map(boxes, n, 0, d_plan_.get(), grid, d_is_large_.get(), d_prefix_.get(), cursor,
                           d_entries_unsorted_.get(), main_));
     CUDA_CHECK(cudaEventRecord(ev_scattered_, main_));
     // Sort each cell's list by box id: the mapping's atomics give a timing-dependent order.
@@ -479,13 +489,25 @@ void pbig_engine::remember_sizes() {
 check_args pbig_engine::batch_args(const batch& b, const pipeline_slot& s) const {
   check_args a{};
   a.plan = d_plan_.get();
-  a.grid = d_readback_.get();
-  a.packed_lo = indirect_ ? d_box_lo_.get() : d_packed_lo_.get();
-  a.packed_hi = indirect_ ? d_box_hi_.get() : d_packed_hi_.get();
-  a.indirect = indirect_ ? 1u : 0u;
-  a.entries = d_entries_.get();
-  a.prefix = d_prefix_.get();
-  a.items = d_items_.get();
+  if (b.stage >= 0) {
+    // A stage of the overlapped upload: its lists and work items; boxes through their ids.
+    const overlap_stage& st = stages_[b.stage];
+    a.grid = d_stage_rb_.get() + b.stage;
+    a.packed_lo = d_box_lo_.get();
+    a.packed_hi = d_box_hi_.get();
+    a.indirect = 1;
+    a.entries = st.entries.get();
+    a.prefix = st.prefix.get();
+    a.items = st.items.get();
+  } else {
+    a.grid = d_readback_.get();
+    a.packed_lo = indirect_ ? d_box_lo_.get() : d_packed_lo_.get();
+    a.packed_hi = indirect_ ? d_box_hi_.get() : d_packed_hi_.get();
+    a.indirect = indirect_ ? 1u : 0u;
+    a.entries = d_entries_.get();
+    a.prefix = d_prefix_.get();
+    a.items = d_items_.get();
+  }
   a.item_first = b.item_first;
   a.item_last = b.item_last;
   a.tile_off = s.d_tile_off.get();
@@ -497,11 +519,11 @@ check_args pbig_engine::batch_args(const batch& b, const pipeline_slot& s) const
   return a;
 }
 
-std::vector<pbig_engine::batch> pbig_engine::planned_batches() const {
+std::vector<pbig_engine::batch> pbig_engine::planned_batches(const map_readback& rb, std::int32_t stage) {
   std::vector<batch> batches;
-  const batch_plan& bp = rb_.batches;
+  const batch_plan& bp = rb.batches;
   for (std::uint32_t k = 0; k < bp.count; ++k) {
-    const batch b{bp.item[k], bp.item[k + 1], bp.tile[k], bp.tile[k + 1]};
+    const batch b{bp.item[k], bp.item[k + 1], bp.tile[k], bp.tile[k + 1], stage};
     if (b.item_last > b.item_first) batches.push_back(b);
   }
   return batches;
@@ -540,8 +562,8 @@ void pbig_engine::prefetch(const batch& b, pipeline_slot& s, std::uint64_t bytes
 void pbig_engine::finish(const batch& b, pipeline_slot& s) {
   // Synchronisation 1: the batch's kernel and its prefetched copy are done.
   CUDA_CHECK(cudaEventSynchronize(s.copy_end));
-  report_.check_ms += elapsed(s.kernel_begin, s.kernel_end);
-  report_.data_out_ms += elapsed(s.copy_begin, s.copy_end);
+  report_.check_ms += elapsed_ms(s.kernel_begin, s.kernel_end);
+  report_.data_out_ms += elapsed_ms(s.copy_begin, s.copy_end);
   std::uint64_t used = *s.h_cursor.get();
   if (used > s.capacity) {
     // Overflow: nothing past the capacity was written. Grow both buffers and re-run the batch.
@@ -552,8 +574,8 @@ void pbig_engine::finish(const batch& b, pipeline_slot& s) {
     launch(b, s);
     prefetch(b, s, used);
     CUDA_CHECK(cudaEventSynchronize(s.copy_end));
-    report_.check_ms += elapsed(s.kernel_begin, s.kernel_end);
-    report_.data_out_ms += elapsed(s.copy_begin, s.copy_end);
+    report_.check_ms += elapsed_ms(s.kernel_begin, s.kernel_end);
+    report_.data_out_ms += elapsed_ms(s.copy_begin, s.copy_end);
     const std::uint64_t again = *s.h_cursor.get();
     if (again != used) throw std::runtime_error("pbig: a re-run batch produced a different output size");
     s.remainder_pending = false;
@@ -574,7 +596,7 @@ std::uint64_t pbig_engine::decode(const batch& b, pipeline_slot& s, interest::pa
   // Synchronisation 2: the batch's output is in host memory.
   CUDA_CHECK(cudaEventSynchronize(s.copy_end));
   if (s.remainder_pending) {
-    report_.data_out_ms += elapsed(s.copy_begin, s.copy_end);
+    report_.data_out_ms += elapsed_ms(s.copy_begin, s.copy_end);
     s.remainder_pending = false;
   }
   if (opt_.compression && !entries_ready_) {
@@ -657,7 +679,7 @@ std::uint64_t pbig_engine::decode(const batch& b, pipeline_slot& s, interest::pa
 }
 
 std::uint64_t pbig_engine::check_batches(interest::pair_list& out) {
-  const std::vector<batch> batches = planned_batches();
+  const std::vector<batch> batches = planned_batches(rb_);
   report_.batches = static_cast<std::uint32_t>(batches.size());
   // Slot 1's stream must see the mapped boxes.
   CUDA_CHECK(cudaStreamWaitEvent(slot_[1].stream, ev_sched_, 0));
@@ -695,7 +717,7 @@ void pbig_engine::large_count_pass(std::uint32_t n) {
   *h_large_total_.get() = 0;
   const std::uint32_t large = rb_.large_count;
   if (large == 0) return;
-  const box_arrays boxes = arrays_of(d_coord_.get(), d_bits_.get(), n);
+  const box_arrays boxes = boxes_.arrays(n);
   const std::uint32_t chunks = blocks_for(n, tuning::block);
   const std::uint64_t blocks = static_cast<std::uint64_t>(chunks) * large;
   if (blocks >= (1ull << 31)) throw std::length_error("pbig: too many large boxes for the large-box pass");
@@ -714,7 +736,7 @@ void pbig_engine::large_count_pass(std::uint32_t n) {
 
 void pbig_engine::large_write_pass(std::uint32_t n, std::uint64_t total, void* host_dst) {
   if (total == 0) return;
-  const box_arrays boxes = arrays_of(d_coord_.get(), d_bits_.get(), n);
+  const box_arrays boxes = boxes_.arrays(n);
   const std::uint32_t chunks = blocks_for(n, tuning::block);
   d_large_pairs_.reserve(2 * total);
   CUDA_CHECK(launch_large_write(boxes, n, d_large_.get(), rb_.large_count, d_is_large_.get(), chunks,
@@ -764,7 +786,11 @@ void pbig_engine::launch_direct(const batch& b, pipeline_slot& s, std::uint64_t 
   CUDA_CHECK(cudaMemsetAsync(s.d_tile_pairs.get(), 0, (tiles + 1ull) * sizeof(std::uint32_t), s.stream));
   const check_args a = batch_args(b, s);
   CUDA_CHECK(cudaEventRecord(s.kernel_begin, s.stream));
-  CUDA_CHECK(launch_check(a, opt_.load_balancing, /*compressed=*/false, s.stream));
+  if (b.stage >= 0) {
+    CUDA_CHECK(launch_check_stage(a, lists_of(static_cast<std::uint32_t>(b.stage) + 1), opt_.load_balancing, s.stream));
+  } else {
+    CUDA_CHECK(launch_check(a, opt_.load_balancing, /*compressed=*/false, s.stream));
+  }
   CUDA_CHECK(scan_tiles(s.d_temp.get(), scan_bytes, s.d_tile_pairs.get(), s.d_tile_pos.get(), tiles + 1ull, s.stream));
   CUDA_CHECK(launch_place_chunks(s.d_out.get(), s.d_cursor.get(), s.capacity, s.d_tile_off.get(), s.d_tile_pairs.get(),
                                  s.d_tile_pos.get(), tiles, s.d_direct.get(), s.stream));
@@ -791,7 +817,7 @@ void pbig_engine::launch_direct(const batch& b, pipeline_slot& s, std::uint64_t 
 void pbig_engine::account_copy(pipeline_slot& s) {
   if (!s.copy_pending) return;
   CUDA_CHECK(cudaEventSynchronize(s.copy_end));
-  report_.data_out_ms += elapsed(s.copy_begin, s.copy_end);
+  report_.data_out_ms += elapsed_ms(s.copy_begin, s.copy_end);
   s.copy_pending = false;
 }
 
@@ -810,7 +836,7 @@ std::uint64_t pbig_engine::finish_direct(const batch& b, pipeline_slot& s, std::
   // Synchronisation 1: the batch's kernels are done and its totals are in host memory.
   CUDA_CHECK(cudaEventSynchronize(s.totals_ready));
   if (s.prefetched_pairs == 0) account_copy(s);  // the previous batch on this slot (before these kernels)
-  report_.check_ms += elapsed(s.kernel_begin, s.kernel_end);
+  report_.check_ms += elapsed_ms(s.kernel_begin, s.kernel_end);
   const std::uint64_t used = *s.h_cursor.get();
   if (used > s.capacity) {
     // Overflow: no chunk past the capacity was written and nothing was placed. Grow and re-run.
@@ -820,7 +846,7 @@ std::uint64_t pbig_engine::finish_direct(const batch& b, pipeline_slot& s, std::
     s.d_out.reserve(s.capacity);
     launch_direct(b, s);
     CUDA_CHECK(cudaEventSynchronize(s.totals_ready));
-    report_.check_ms += elapsed(s.kernel_begin, s.kernel_end);
+    report_.check_ms += elapsed_ms(s.kernel_begin, s.kernel_end);
     if (*s.h_cursor.get() != used) throw std::runtime_error("pbig: a re-run batch produced a different output size");
   }
   const std::uint64_t total = *s.h_total.get();
@@ -850,7 +876,7 @@ std::uint64_t pbig_engine::finish_direct(const batch& b, pipeline_slot& s, std::
 }
 
 std::uint64_t pbig_engine::check_direct(std::uint32_t n) {
-  const std::vector<batch> batches = planned_batches();
+  const std::vector<batch> batches = planned_batches(rb_);
   const std::size_t count = batches.size();
   report_.batches = static_cast<std::uint32_t>(count);
   // Slot 1's stream must see the mapped boxes.

@@ -11,6 +11,7 @@
 #include <optional>
 #include <vector>
 
+#include "gpu/common/finder_input.h"
 #include "gpu/common/gpu_buffers.h"
 #include "gpu/pbig.h"
 #include "interest/interest.h"
@@ -79,6 +80,14 @@ class pbig_engine {
  private:
   struct batch {
     std::uint32_t item_first, item_last, tile_first, tile_last;
+    std::int32_t stage = -1;  ///< the overlapped upload's stage whose lists it checks; -1: the one-shot grid
+  };
+  /// One chunk of the overlapped upload: its per-cell lists and its stage's work items.
+  struct overlap_stage {
+    device_buffer<cell_prefix> prefix;  // per cell: the chunk's first entry; the stage's first work item and tile
+    device_buffer<std::uint32_t> entries;  // the chunk's ids, by cell, sorted in each cell
+    device_buffer<std::uint32_t> items;    // the stage's work items (cell per row segment)
+    map_readback rb{};                      // the stage's read-back (totals, batches)
   };
   /// The grid sizes the map and check steps are queued with: exact (read back) or capacities.
   struct grid_sizes {
@@ -86,10 +95,12 @@ class pbig_engine {
   };
   enum class queue_result { done, invalid, outgrown };
   bool upload(const interest::box_set& boxes, bool check);
-  /// True when every box has boxes.category[0] and boxes.mask[0] (checked on the pool, early exit).
-  [[nodiscard]] bool uniform_classes(const interest::box_set& boxes) const;
-  /// Queues the bounds and planning kernels: the plan is in d_plan_ (device memory).
-  void queue_plan(std::uint32_t n);
+  /// True when every box of [begin, end) has boxes.category[0] and boxes.mask[0] (checked on the
+  /// pool, early exit).
+  [[nodiscard]] bool uniform_classes(const interest::box_set& boxes, std::size_t begin, std::size_t end) const;
+  /// Queues the bounds and planning kernels for n boxes, bounds and sample from the first
+  /// sample_n of them: the plan is in d_plan_ (device memory).
+  void queue_plan(std::uint32_t n, std::uint32_t sample_n);
   /// Read-back sizing, synchronisation 1: the plan into plan_. False when the device found an
   /// invalid box (pinned input validated there).
   bool read_plan();
@@ -105,11 +116,25 @@ class pbig_engine {
   queue_result run_single_queue(std::uint32_t n, std::uint64_t& pairs);
   /// Keeps this call's figures (with a margin) as the next call's single-queue capacity.
   void remember_sizes();
+  // The overlapped upload (pbig_overlap.cpp; docs/gpu.md, "Overlapped upload").
+  /// Its chunk count for this call, or 0 when the one-shot path runs.
+  [[nodiscard]] std::uint32_t overlap_chunks(const interest::box_set& boxes) const;
+  /// The whole call in k chunks into h_result_: false when the device found an invalid box.
+  bool run_overlapped(const interest::box_set& boxes, std::uint32_t n, std::uint32_t k, bool validate,
+                      std::uint64_t& pairs);
+  /// Queues chunk j's upload on upload_ (classes filled when they are box 0's), then ev_chunk_[j].
+  void upload_chunk(const interest::box_set& boxes, std::uint32_t j, std::uint32_t first, std::uint32_t count);
+  /// Queues stage j's validation (when asked), count, prefixes, totals, batch plan and read-back.
+  void queue_stage_count(std::uint32_t n, std::uint32_t j, std::uint32_t first, std::uint32_t count, bool check);
+  /// Queues stage j's map, per-cell sort and work items after its read-back; ev_mapped_[j] after.
+  void queue_stage_map(std::uint32_t n, std::uint32_t j, std::uint32_t first, std::uint32_t count);
+  /// Lists 0..count-1 of the stages.
+  [[nodiscard]] stage_lists lists_of(std::uint32_t count) const;
   std::uint64_t check_batches(interest::pair_list& out);
   /// The checking kernel's arguments for batch b on slot s (its buffers, cursor and capacity).
   [[nodiscard]] check_args batch_args(const batch& b, const pipeline_slot& s) const;
-  /// The non-empty batches of the map read-back's batch plan, in order.
-  [[nodiscard]] std::vector<batch> planned_batches() const;
+  /// The non-empty batches of a map read-back's batch plan, in order (of stage `stage`, or -1).
+  [[nodiscard]] static std::vector<batch> planned_batches(const map_readback& rb, std::int32_t stage = -1);
   void launch(const batch& b, pipeline_slot& s);
   void prefetch(const batch& b, pipeline_slot& s, std::uint64_t bytes);
   void finish(const batch& b, pipeline_slot& s);
@@ -123,7 +148,6 @@ class pbig_engine {
   void account_copy(pipeline_slot& s);
   void ensure_result(std::uint64_t needed, std::uint64_t keep);
   void grow_temp(std::size_t bytes);
-  float elapsed(cudaEvent_t a, cudaEvent_t b) const;
 
   pbig_options opt_;
   std::unique_ptr<interest::thread_pool> own_pool_;
@@ -135,9 +159,7 @@ class pbig_engine {
               ev_entries_begin_ = nullptr, ev_entries_ = nullptr;
 
   // input and planning
-  device_buffer<float> d_coord_;        // lo_x, lo_y, lo_z, hi_x, hi_y, hi_z (stride n)
-  device_buffer<std::uint32_t> d_bits_;  // category, mask (stride n)
-  pinned_buffer<unsigned char> h_stage_;
+  device_boxes boxes_;  // the input boxes and their staging memory
   device_buffer<bounds_dev> d_bounds_;
   device_buffer<plan_state> d_state_;
   device_buffer<grid_plan_dev> d_plan_;
@@ -175,6 +197,17 @@ class pbig_engine {
   std::vector<std::uint64_t> tile_pos_;
   std::vector<std::uint32_t> task_tiles_;
   bool entries_ready_ = false;
+
+  // overlapped upload
+  cudaStream_t upload_ = nullptr;  // the chunks' host-to-device copies
+  cudaEvent_t ev_chunk_[max_overlap_chunks] = {};   // chunk j is on the device
+  cudaEvent_t ev_staged_[max_overlap_chunks] = {};  // stage j's MAP begins (main stream)
+  cudaEvent_t ev_mapped_[max_overlap_chunks] = {};  // stage j's lists and work items are ready
+  overlap_stage stages_[max_overlap_chunks];
+  device_buffer<map_readback> d_stage_rb_;  // per stage (the stage's checks read theirs while later stages map)
+  pinned_buffer<map_readback> h_stage_rb_;
+  device_buffer<bounds_dev> d_chunk_bounds_;  // per chunk: its validation
+  pinned_buffer<bounds_dev> h_chunk_bounds_;
 
   pbig_report report_{};
 };

@@ -1,10 +1,7 @@
 // Host API of the GPU PBIG finder: the pair_finder behind make_pbig_finder.
-#include <spdlog/spdlog.h>
-
-#include <atomic>
-#include <cmath>
 #include <stdexcept>
 
+#include "gpu/common/finder_glue.h"
 #include "gpu/pbig.h"
 #include "pbig_dispatch.h"
 #include "pbig_tuning.h"
@@ -16,40 +13,20 @@ namespace {
 /// within a batch tile by tile in (cell, row segment, column segment) order, within a tile by
 /// row then column in the cell's box order (box ids ascending); then the pairs of the boxes
 /// handled apart, by (large box, other box id). All of it depends only on the input.
-class pbig_finder final : public interest::pair_finder {
+class pbig_finder final : public detail::own_buffer_finder {
  public:
-  explicit pbig_finder(const pbig_options& options) : engine_(options), direct_(options.direct_output) {}
+  explicit pbig_finder(const pbig_options& options)
+      : own_buffer_finder("find_pairs_view"), engine_(options), direct_(options.direct_output) {}
   [[nodiscard]] std::string_view name() const override { return "gpu"; }
   [[nodiscard]] const pbig_report& report() const { return engine_.report(); }
 
-  /// pair_finder::find_view: the pairs stay in this finder's result buffer (`scratch` unused).
-  std::optional<interest::box_error> find_view(const interest::box_set& boxes, interest::pair_list& /*scratch*/,
-                                               std::span<const interest::id_pair>& view) override {
-    return find_view(boxes, view);
-  }
-  [[nodiscard]] bool views_own_buffer() const override { return true; }
-  std::optional<interest::box_error> find_view(const interest::box_set& boxes,
-                                               std::span<const interest::id_pair>& view) {
-    view = {};
-    std::uint64_t count = 0;
-    if (boxes.size() < 2) {
-      if (auto err = interest::validate(boxes)) return err;
-    } else {
-      // Validation rides on the upload's packing pass (one read of the boxes, on the pool).
-      interest::finder_stats found_stats;
-      const auto found = engine_.run(boxes, pairs_, found_stats, /*keep_size=*/true, /*validate=*/true);
-      if (!found) {
-        if (auto err = interest::validate(boxes)) return err;
-        throw std::logic_error("find_pairs_view: packing check and interest::validate disagree");
-      }
-      count = *found;
-      stats_ = found_stats;
-    }
-    view = std::span<const interest::id_pair>(direct_ ? engine_.direct_data() : pairs_.data(), count);
-    return std::nullopt;
-  }
-
  protected:
+  std::optional<std::uint64_t> run_validated(const interest::box_set& boxes, interest::finder_stats& stats) override {
+    return engine_.run(boxes, pairs_, stats, /*keep_size=*/true, /*validate=*/true);
+  }
+  [[nodiscard]] const interest::id_pair* view_data() const override {
+    return direct_ ? engine_.direct_data() : pairs_.data();
+  }
   [[nodiscard]] interest::thread_pool* worker_pool() const override { return engine_.pool(); }
   void find_valid(const interest::box_set& boxes, interest::pair_list& out) override {
     out.clear();
@@ -66,17 +43,7 @@ class pbig_finder final : public interest::pair_finder {
 }  // namespace
 
 std::unique_ptr<interest::pair_finder> make_pbig_finder(const pbig_options& options, std::string* why) {
-  device_info info;
-  if (!device_available(&info, why)) return nullptr;
-  try {
-    auto finder = std::make_unique<pbig_finder>(options);
-    spdlog::debug("pbig: GPU finder on {} (sm_{}{}, {} SMs)", info.name, info.compute_major, info.compute_minor,
-                  info.multiprocessors);
-    return finder;
-  } catch (const std::exception& e) {
-    if (why) *why = std::string("cannot start the GPU finder: ") + e.what();
-    return nullptr;
-  }
+  return detail::start_finder("pbig", "GPU finder", why, [&] { return std::make_unique<pbig_finder>(options); });
 }
 
 std::optional<interest::box_error> find_pairs_view(interest::pair_finder& finder, const interest::box_set& boxes,

@@ -43,6 +43,47 @@ struct add_totals {
             a.max_count > b.max_count ? a.max_count : b.max_count};
   }
 };
+/// The overlapped upload's stage j: chunk j's count q in a cell and the earlier chunks' boxes p
+/// there (from their prefixes), as the stage's per-cell values (check_stage_kernel's layout):
+/// entries q (chunk j's own list), work items S = ceil((p + q) / T) row segments of the virtual
+/// list, tiles h0 * D + D (D + 1) / 2 with h0 = p / T and D = S - h0; nothing when q == 0.
+struct stage_cell {
+  const std::uint32_t* counts;
+  stage_lists earlier;  // chunks 0..j-1 (count = j)
+  std::uint32_t cells;
+  __host__ __device__ void sizes(std::uint32_t c, std::uint32_t& q, std::uint32_t& p) const {
+    q = c < cells ? counts[c] : 0;
+    p = 0;
+    if (q == 0) return;
+    for (std::uint32_t i = 0; i < earlier.count; ++i) p += earlier.prefix[i][c + 1].entry - earlier.prefix[i][c].entry;
+  }
+};
+struct to_stage_prefix {
+  stage_cell cell;
+  __host__ __device__ cell_prefix operator()(std::uint32_t c) const {
+    std::uint32_t q, p;
+    cell.sizes(c, q, p);
+    if (q == 0) return {0, 0, 0};
+    const std::uint32_t segs = (p + q + tuning::segment - 1) / tuning::segment;
+    const std::uint32_t d = segs - p / tuning::segment;
+    return {q, segs, (p / tuning::segment) * d + d * (d + 1) / 2};
+  }
+};
+/// The stage's totals: entries q, tiles as above, checks q p + q (q - 1) / 2, and as max_count
+/// the longest virtual list of a cell with work (what the checks segment; the per-cell sort of
+/// chunk j's lists, never longer, takes the one-kernel path when it is at most small_cell_sort).
+struct to_stage_totals {
+  stage_cell cell;
+  __host__ __device__ cell_totals operator()(std::uint32_t c) const {
+    std::uint32_t q32, p32;
+    cell.sizes(c, q32, p32);
+    if (q32 == 0) return {0, 0, 0, 0};
+    const std::uint64_t q = q32, p = p32;
+    const std::uint64_t segs = (p + q + tuning::segment - 1) / tuning::segment;
+    const std::uint64_t d = segs - p / tuning::segment;
+    return {q, (p / tuning::segment) * d + d * (d + 1) / 2, q * p + q * (q - 1) / 2, p + q};
+  }
+};
 struct entry_at {
   const cell_prefix* prefix;
   __host__ __device__ std::uint32_t operator()(std::uint32_t c) const { return prefix[c].entry; }
@@ -53,8 +94,8 @@ struct entry_at {
 cudaError_t launch_plan(const box_arrays& boxes, bounds_dev* bounds, const plan_params& prm, plan_state* state,
                         grid_plan_dev* plan, cudaStream_t stream) {
   init_bounds_kernel<<<1, 32, 0, stream>>>(bounds);
-  bounds_kernel<<<std::min<std::uint32_t>(blocks_for(prm.n, tuning::block), 1024), tuning::block, 0, stream>>>(
-      boxes, prm.n, bounds, prm.validate != 0);
+  bounds_kernel<<<std::min<std::uint32_t>(blocks_for(prm.sample_n, tuning::block), 1024), tuning::block, 0, stream>>>(
+      boxes, prm.sample_n, bounds, prm.validate != 0);
   plan_kernel<<<1, tuning::plan_threads, 0, stream>>>(boxes, bounds, prm, state, plan);
   if (prm.cost_aware != 0 && prm.fixed_edge <= 0) {
     static_assert(tuning::plan_candidates <= max_plan_candidates);
@@ -91,6 +132,30 @@ cudaError_t reduce_cells(void* temp, std::size_t& temp_bytes, const std::uint32_
                                    cell_totals{0, 0, 0, 0}, stream);
 }
 
+cudaError_t scan_stage_cells(void* temp, std::size_t& temp_bytes, const std::uint32_t* counts,
+                             const stage_lists& earlier, cell_prefix* prefix, std::uint32_t cells, cudaStream_t stream) {
+  const auto in = thrust::make_transform_iterator(thrust::counting_iterator<std::uint32_t>(0),
+                                                  to_stage_prefix{stage_cell{counts, earlier, cells}});
+  return cub::DeviceScan::ExclusiveScan(temp, temp_bytes, in, prefix, add_prefix{}, cell_prefix{0, 0, 0},
+                                        static_cast<std::int64_t>(cells) + 1, stream);
+}
+
+cudaError_t reduce_stage_cells(void* temp, std::size_t& temp_bytes, const std::uint32_t* counts,
+                               const stage_lists& earlier, cell_totals* totals, std::uint32_t cells,
+                               cudaStream_t stream) {
+  const auto in = thrust::make_transform_iterator(thrust::counting_iterator<std::uint32_t>(0),
+                                                  to_stage_totals{stage_cell{counts, earlier, cells}});
+  return cub::DeviceReduce::Reduce(temp, temp_bytes, in, totals, static_cast<std::int64_t>(cells), add_totals{},
+                                   cell_totals{0, 0, 0, 0}, stream);
+}
+
+cudaError_t launch_validate(const box_arrays& boxes, std::uint32_t n, bounds_dev* result, cudaStream_t stream) {
+  init_bounds_kernel<<<1, 32, 0, stream>>>(result);
+  bounds_kernel<<<std::min<std::uint32_t>(blocks_for(n, tuning::block), 1024), tuning::block, 0, stream>>>(
+      boxes, n, result, true);
+  return cudaGetLastError();
+}
+
 cudaError_t launch_batch_plan(const grid_plan_dev* plan, const cell_prefix* prefix, const std::uint32_t* large_count,
                               map_readback* rb, const grid_capacity& cap, std::uint32_t min_tiles,
                               std::uint32_t max_batches, cudaStream_t stream) {
@@ -98,11 +163,11 @@ cudaError_t launch_batch_plan(const grid_plan_dev* plan, const cell_prefix* pref
   return cudaGetLastError();
 }
 
-cudaError_t launch_map(const box_arrays& boxes, std::uint32_t n, const grid_plan_dev* plan, const map_readback* grid,
-                       const std::uint8_t* is_large, const cell_prefix* prefix, std::uint32_t* cursor,
-                       std::uint32_t* entries, cudaStream_t stream) {
-  map_kernel<<<blocks_for(n, tuning::block), tuning::block, 0, stream>>>(boxes, n, plan, grid, is_large, prefix, cursor,
-                                                                         entries);
+cudaError_t launch_map(const box_arrays& boxes, std::uint32_t n, std::uint32_t first_id, const grid_plan_dev* plan,
+                       const map_readback* grid, const std::uint8_t* is_large, const cell_prefix* prefix,
+                       std::uint32_t* cursor, std::uint32_t* entries, cudaStream_t stream) {
+  map_kernel<<<blocks_for(n, tuning::block), tuning::block, 0, stream>>>(boxes, n, first_id, plan, grid, is_large,
+                                                                         prefix, cursor, entries);
   return cudaGetLastError();
 }
 
@@ -190,6 +255,17 @@ cudaError_t launch_check(const check_args& a, bool balanced, bool compressed, cu
     } else {
       check_kernel<false, false><<<grid, tuning::segment, 0, stream>>>(a);
     }
+  }
+  return cudaGetLastError();
+}
+
+cudaError_t launch_check_stage(const check_args& a, const stage_lists& lists, bool balanced, cudaStream_t stream) {
+  const std::uint32_t grid = a.item_last - a.item_first;
+  if (grid == 0) return cudaSuccess;
+  if (balanced) {
+    check_stage_kernel<true><<<grid, tuning::segment, 0, stream>>>(a, lists);
+  } else {
+    check_stage_kernel<false><<<grid, tuning::segment, 0, stream>>>(a, lists);
   }
   return cudaGetLastError();
 }

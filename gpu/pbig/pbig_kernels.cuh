@@ -29,9 +29,12 @@ __host__ __device__ inline float ordered_to_float(std::int32_t i) {
 }
 
 /// The one cell mapping used by every kernel: monotone in x, so the output-cell rule holds.
+/// Coordinates outside the plan's scene are clamped to its border cells (the overlapped upload
+/// plans from its first chunk, and later chunks may stray out); a NaN (invalid input, whose call
+/// is discarded) maps to cell 0, so no kernel indexes out of the grid.
 __device__ __forceinline__ std::uint32_t cell_of(float x, int d, const grid_plan_dev& p) {
   const double c = floor((static_cast<double>(x) - p.origin[d]) * p.inv_edge);
-  if (c <= 0.0) return 0;
+  if (!(c > 0.0)) return 0;
   const double last = static_cast<double>(p.dims[d] - 1);
   if (c >= last) return p.dims[d] - 1;
   return static_cast<std::uint32_t>(c);
@@ -93,9 +96,10 @@ __device__ __forceinline__ void scene_of(const bounds_dev* bounds, double origin
   }
 }
 
-/// Index of sample box t of k (all boxes when k == n): a fixed-seed hash, with replacement.
+/// Index of sample box t of k among the first prm.sample_n boxes (all of them when k == sample_n):
+/// a fixed-seed hash, with replacement.
 __device__ __forceinline__ std::uint32_t sample_index(const plan_params& prm, std::uint32_t k, std::uint32_t t) {
-  return (k == prm.n) ? t : static_cast<std::uint32_t>(splitmix64(prm.seed + t) % prm.n);
+  return (k == prm.sample_n) ? t : static_cast<std::uint32_t>(splitmix64(prm.seed + t) % prm.sample_n);
 }
 
 /// Planning (Eq. 6) in one block: each thread holds one box of a simple random sample; alpha(l)
@@ -126,7 +130,7 @@ __global__ void __launch_bounds__(tuning::plan_threads) plan_kernel(box_arrays b
   const double max_extent = fmax(extent[0], fmax(extent[1], extent[2]));
   const double max_cells = fmin(2.0 * n + 64.0, 2147483647.0);
 
-  const std::uint32_t k = min(n, min(prm.samples, tuning::plan_threads));
+  const std::uint32_t k = min(prm.sample_n, min(prm.samples, tuning::plan_threads));
   double blo[3] = {0, 0, 0}, bhi[3] = {0, 0, 0};
   const bool has = t < k;
   if (has) {
@@ -292,7 +296,7 @@ __global__ void __launch_bounds__(tuning::plan_cost_threads) plan_cost_kernel(bo
   const std::uint32_t chunks = tuning::plan_cost_chunks;
   const std::uint32_t cand = blockIdx.x / chunks, chunk = blockIdx.x % chunks;
   const std::uint32_t n = prm.n;
-  const std::uint32_t k = min(n, min(prm.samples, tuning::plan_threads));
+  const std::uint32_t k = min(prm.sample_n, min(prm.samples, tuning::plan_threads));
   double origin[3], extent[3];
   scene_of(bounds, origin, extent);
   auto dims_for = [&](double l, double dims[3]) {
@@ -440,10 +444,11 @@ __global__ void count_kernel(box_arrays boxes, std::uint32_t n, const grid_plan_
 
 /// Box mapping kernel: one thread per box; its slot in each cell's list is the cell's offset
 /// plus an atomic ticket. (The lists are sorted by id afterwards, for a deterministic order.)
+/// Box i of `boxes` has the id first_id + i (a chunk of the overlapped upload; else 0).
 /// Nothing when the grid did not fit the call's capacity (grid->fits == 0).
-__global__ void map_kernel(box_arrays boxes, std::uint32_t n, const grid_plan_dev* plan, const map_readback* grid,
-                           const std::uint8_t* is_large, const cell_prefix* prefix, std::uint32_t* cursor,
-                           std::uint32_t* entries) {
+__global__ void map_kernel(box_arrays boxes, std::uint32_t n, std::uint32_t first_id, const grid_plan_dev* plan,
+                           const map_readback* grid, const std::uint8_t* is_large, const cell_prefix* prefix,
+                           std::uint32_t* cursor, std::uint32_t* entries) {
   const std::uint32_t i = blockIdx.x * blockDim.x + threadIdx.x;
   if (i >= n || grid->fits == 0) return;
   if (is_large[i]) return;
@@ -454,7 +459,7 @@ __global__ void map_kernel(box_arrays boxes, std::uint32_t n, const grid_plan_de
       const std::uint64_t row = (static_cast<std::uint64_t>(z) * p.dims[1] + y) * p.dims[0];
       for (std::uint32_t x = r.lo[0]; x <= r.hi[0]; ++x) {
         const std::uint64_t c = row + x;
-        entries[prefix[c].entry + atomicAdd(&cursor[c], 1u)] = i;
+        entries[prefix[c].entry + atomicAdd(&cursor[c], 1u)] = first_id + i;
       }
     }
   }
@@ -704,6 +709,172 @@ __global__ void __launch_bounds__(tuning::segment) check_kernel(check_args a) {
         w[q++] = min(row_id, other);
         w[q++] = max(row_id, other);
       }
+    }
+  }
+}
+
+/// The overlapped upload's checks (docs/gpu.md, "Overlapped upload"): stage j finds every pair
+/// whose larger id is in chunk j. In each cell the lists of chunks 0..j form one virtual list
+/// (stage_lists: chunk 0's boxes, then chunk 1's, ..., chunk j's last Q of them, at positions
+/// [P, P + Q)). One block of T threads per work item (cell, row segment v of that list), as in
+/// check_kernel, but only column segments h >= max(v, P / T) are visited, and a pair at list
+/// positions (r, s) is kept only when max(r, s) >= P (at least one box of chunk j; the diagonal
+/// tile of the segment where chunk j begins skips the others: no Eq. 7 there), besides
+/// check_kernel's rules (the boxes intersect, the category/mask rule, this cell is the pair's
+/// output cell). So each pair is found in exactly one stage and one cell. The stage's tiles per
+/// cell (pbig_kernels.cu, to_stage_prefix): with S segments and D = S - P / T, the rows v < P / T
+/// have D tiles each, the rows v >= P / T the triangle of D. Plain chunks (direct output) and
+/// boxes read through their ids (a.packed_lo/hi are by id).
+template <bool Balanced>
+__global__ void __launch_bounds__(tuning::segment) check_stage_kernel(check_args a, stage_lists lists) {
+  constexpr std::uint32_t T = tuning::segment;
+  using scan = cub::BlockScan<std::uint32_t, T>;
+  __shared__ typename scan::TempStorage scan_temp;
+  __shared__ float4 col_lo[T];
+  __shared__ float4 col_hi[T];
+  __shared__ std::uint32_t col_id[T];
+  __shared__ std::uint8_t col_flags[T];
+  __shared__ std::uint64_t chunk_base;
+  __shared__ grid_plan_dev plan;
+  __shared__ std::uint32_t list_first[max_overlap_chunks];    // the cell's first entry in list i
+  __shared__ std::uint32_t list_at[max_overlap_chunks + 1];   // where list i starts in the virtual list
+
+  const std::uint32_t item = a.item_first + blockIdx.x;
+  // guard (uniform over the block)
+  if (item >= a.item_last || item >= a.grid->total.item || blockDim.x != T || lists.count == 0 ||
+      lists.count > static_cast<std::uint32_t>(max_overlap_chunks)) {
+    return;
+  }
+  const std::uint32_t tid = threadIdx.x;
+  const std::uint32_t cell = a.items[item];
+  if (tid == 0) {
+    plan = *a.plan;
+    std::uint32_t at = 0;
+    for (std::uint32_t i = 0; i < lists.count; ++i) {
+      const std::uint32_t b = lists.prefix[i][cell].entry, e = lists.prefix[i][cell + 1].entry;
+      list_first[i] = b;
+      list_at[i] = at;
+      at += e - b;
+    }
+    list_at[lists.count] = at;
+  }
+  __syncthreads();
+  const std::uint32_t length = list_at[lists.count];
+  const std::uint32_t first_own = list_at[lists.count - 1];  // P: the stage's chunk starts here
+  const std::uint32_t segs = (length + T - 1) / T;
+  const std::uint32_t h0 = first_own / T;  // the first segment holding a box of the stage's chunk
+  const std::uint32_t d = segs - h0;
+  const cell_prefix p0 = a.prefix[cell];
+  const std::uint32_t v = item - p0.item;
+  std::uint32_t h_first, tile0;
+  if (v < h0) {
+    h_first = h0;
+    tile0 = v * d;
+  } else {
+    const std::uint32_t u = v - h0;
+    h_first = v;
+    tile0 = h0 * d + u * d - u * (u - 1) / 2;
+  }
+  tile0 += p0.tile - a.tile_first;
+  const std::uint32_t cc[3] = {cell % plan.dims[0], (cell / plan.dims[0]) % plan.dims[1],
+                               cell / (plan.dims[0] * plan.dims[1])};
+  // The box id at a position of the virtual list.
+  auto id_at = [&](std::uint32_t pos) {
+    std::uint32_t i = 0;
+    while (pos >= list_at[i + 1]) ++i;
+    return lists.entries[i][list_first[i] + (pos - list_at[i])];
+  };
+
+  const std::uint32_t m = min(T, length - v * T);
+  const std::uint32_t row_pos = v * T + tid;
+  float4 row_lo = make_float4(0, 0, 0, 0), row_hi = make_float4(0, 0, 0, 0);
+  std::uint32_t row_flags = 0, row_id = 0;
+  if (tid < m) {
+    row_id = id_at(row_pos);
+    row_lo = a.packed_lo[row_id];
+    row_hi = a.packed_hi[row_id];
+    row_flags = hi_flags(row_hi, plan, cc);
+  }
+  const std::uint32_t row_cat = __float_as_uint(row_lo.w), row_mask = __float_as_uint(row_hi.w);
+  const bool row_own = row_pos >= first_own;
+
+  for (std::uint32_t h = h_first; h < segs; ++h) {
+    const std::uint32_t n = min(T, length - h * T);
+    __syncthreads();  // the previous tile's readers are done with shared memory
+    if (tid < n) {
+      const std::uint32_t id = id_at(h * T + tid);
+      col_id[tid] = id;
+      col_lo[tid] = a.packed_lo[id];
+      col_hi[tid] = a.packed_hi[id];
+      col_flags[tid] = static_cast<std::uint8_t>(hi_flags(col_hi[tid], plan, cc));
+    }
+    __syncthreads();
+
+    // Columns at positions >= P are the stage's chunk; before it, only rows of the chunk pair.
+    const std::uint32_t own_from = first_own > h * T ? first_own - h * T : 0;
+    std::uint64_t hits = 0;
+    auto test = [&](std::uint32_t j) {
+      const float4 lo = col_lo[j], hi = col_hi[j];
+      const bool hit = (row_own || j >= own_from) && row_lo.x <= hi.x && lo.x <= row_hi.x && row_lo.y <= hi.y &&
+                       lo.y <= row_hi.y && row_lo.z <= hi.z && lo.z <= row_hi.z &&
+                       ((row_cat & __float_as_uint(hi.w)) | (__float_as_uint(lo.w) & row_mask)) != 0 &&
+                       (row_flags | col_flags[j]) == 7u;
+      if (hit) hits |= std::uint64_t{1} << j;
+    };
+    if (tid < m) {
+      if (h == v && own_from == 0) {  // the triangle of chunk j's own boxes
+        if (Balanced) {
+          const std::uint32_t x = tid < (m + 1) / 2 ? (m + 2) / 2 : (m + 1) / 2;  // Eq. 7, as in check_kernel
+          std::uint32_t j = tid;
+          for (std::uint32_t k = 1; k < x; ++k) {
+            if (++j == m) j = 0;
+            test(j);
+          }
+        } else {
+          for (std::uint32_t j = tid + 1; j < m; ++j) test(j);
+        }
+      } else if (h == v) {
+        // The segment where chunk j begins: an earlier box checks chunk j's columns only, one of
+        // chunk j the later columns (at most Q columns a thread, where Eq. 7 would give m / 2).
+        for (std::uint32_t j = max(tid + 1, own_from); j < m; ++j) test(j);
+      } else {
+        for (std::uint32_t j = own_from; j < n; ++j) test(j);
+      }
+    }
+
+    const std::uint32_t pairs = static_cast<std::uint32_t>(__popcll(hits));
+    std::uint32_t offset, total;
+    scan(scan_temp).ExclusiveSum((pairs << 16) | (8 * pairs), offset, total);
+    const std::uint32_t total_pairs = total >> 16, body = total & 0xFFFF;
+    const std::uint32_t tile = tile0 + (h - h_first);
+    if (total_pairs == 0) {
+      if (tid == 0) a.tile_pairs[tile] = 0;
+      continue;
+    }
+    const std::uint64_t chunk = sizeof(chunk_header) + body;
+    if (tid == 0) {
+      const std::uint64_t base = atomicAdd(a.cursor, static_cast<unsigned long long>(chunk));
+      chunk_base = base;
+      a.tile_off[tile] = base;
+      a.tile_pairs[tile] = total_pairs;
+      if (base + chunk <= a.capacity) {
+        auto* w = reinterpret_cast<std::uint32_t*>(a.out + base);
+        w[0] = p0.entry;
+        w[1] = v | (h << 16);
+        w[2] = body | (total_pairs << 16);
+      }
+    }
+    __syncthreads();
+    const std::uint64_t base = chunk_base;
+    if (pairs == 0 || base + chunk > a.capacity) continue;
+    auto* w = reinterpret_cast<std::uint32_t*>(a.out + base + sizeof(chunk_header) + (offset & 0xFFFF));
+    std::uint32_t q = 0;
+    while (hits) {
+      const std::uint32_t j = __ffsll(static_cast<long long>(hits)) - 1;
+      hits &= hits - 1;
+      const std::uint32_t other = col_id[j];
+      w[q++] = min(row_id, other);
+      w[q++] = max(row_id, other);
     }
   }
 }

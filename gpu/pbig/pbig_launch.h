@@ -30,9 +30,10 @@ cudaError_t launch_batch_plan(const grid_plan_dev* plan, const cell_prefix* pref
                               std::uint32_t max_batches, cudaStream_t stream);
 // The kernels below read `grid` (device memory, filled by launch_batch_plan) and do nothing past
 // its sizes, so they can be queued with capacities as sizes before the host knows the grid.
-cudaError_t launch_map(const box_arrays& boxes, std::uint32_t n, const grid_plan_dev* plan, const map_readback* grid,
-                       const std::uint8_t* is_large, const cell_prefix* prefix, std::uint32_t* cursor,
-                       std::uint32_t* entries, cudaStream_t stream);
+/// Box i of `boxes` (and is_large[i]) has the id first_id + i.
+cudaError_t launch_map(const box_arrays& boxes, std::uint32_t n, std::uint32_t first_id, const grid_plan_dev* plan,
+                       const map_readback* grid, const std::uint8_t* is_large, const cell_prefix* prefix,
+                       std::uint32_t* cursor, std::uint32_t* entries, cudaStream_t stream);
 cudaError_t sort_cells(void* temp, std::size_t& temp_bytes, const std::uint32_t* in, std::uint32_t* out,
                        std::uint32_t entries, std::uint32_t cells, const cell_prefix* prefix, cudaStream_t stream);
 /// The per-cell sort for grids whose fullest cell holds at most tuning::small_cell_sort entries.
@@ -47,6 +48,16 @@ cudaError_t launch_gather(const float4* box_lo, const float4* box_hi, const std:
 cudaError_t launch_expand(const cell_prefix* prefix, std::uint32_t cells, const map_readback* grid, std::uint32_t* items,
                           cudaStream_t stream);
 cudaError_t launch_check(const check_args& args, bool balanced, bool compressed, cudaStream_t stream);
+// The overlapped upload (stage_lists, check_stage_kernel): stage j's per-cell prefixes and totals
+// from chunk j's counts and the earlier chunks' lists (`earlier`: chunks 0..j-1), the stage's checks,
+// and the validation of one chunk (the lowest invalid index of `boxes` in result->bad).
+cudaError_t scan_stage_cells(void* temp, std::size_t& temp_bytes, const std::uint32_t* counts,
+                             const stage_lists& earlier, cell_prefix* prefix, std::uint32_t cells, cudaStream_t stream);
+cudaError_t reduce_stage_cells(void* temp, std::size_t& temp_bytes, const std::uint32_t* counts,
+                               const stage_lists& earlier, cell_totals* totals, std::uint32_t cells,
+                               cudaStream_t stream);
+cudaError_t launch_check_stage(const check_args& args, const stage_lists& lists, bool balanced, cudaStream_t stream);
+cudaError_t launch_validate(const box_arrays& boxes, std::uint32_t n, bounds_dev* result, cudaStream_t stream);
 /// Direct output: moves each tile's plain chunk (written by launch_check, uncompressed) to
 /// out_pairs + 2 * tile_pos[tile]; nothing when *cursor > capacity (the batch overflowed).
 cudaError_t launch_place_chunks(const unsigned char* chunks, const unsigned long long* cursor, std::uint64_t capacity,

@@ -5,6 +5,8 @@
 
 #include <cstdint>
 
+#include "gpu/common/box_arrays.h"  // box_arrays, the input boxes
+
 namespace zone::gpu::detail {
 
 /// The grid plan, written by the planning kernel in device memory and copied back to the host.
@@ -109,14 +111,6 @@ struct chunk_header {
 };
 static_assert(sizeof(chunk_header) == 12);
 
-/// The input boxes on the device, structure of arrays (ids are indices).
-struct box_arrays {
-  const float* lo[3];
-  const float* hi[3];
-  const std::uint32_t* category;
-  const std::uint32_t* mask;
-};
-
 /// Parameters of the planning kernel.
 struct plan_params {
   std::uint32_t n;
@@ -127,6 +121,7 @@ struct plan_params {
   std::uint32_t allow_reuse;
   std::uint32_t validate;     // 1: the bounds kernel validates every box (pinned input: no host pass)
   std::uint32_t cost_aware;   // 1: score larger edges than Eq. 6's and keep the cheapest (beyond the paper)
+  std::uint32_t sample_n;     // bounds and sample from boxes [0, sample_n) (n; the overlapped upload: its first chunk)
 };
 
 /// Arguments of one checking-kernel launch (one batch).
@@ -147,6 +142,18 @@ struct check_args {
   unsigned char* out;
   std::uint64_t capacity;
   unsigned long long* cursor;  // bytes claimed in `out` (may pass capacity: overflow)
+};
+
+/// The overlapped upload (pbig_options::overlap_min_boxes; docs/gpu.md, "Overlapped upload"): the
+/// boxes arrive in at most max_overlap_chunks chunks of ids, and stage j checks the pairs whose
+/// larger id is in chunk j. Each chunk i has its own per-cell lists: prefix[i][c].entry is cell
+/// c's first entry in entries[i] (ids sorted in each cell). Stage j reads lists 0..j (count = j+1);
+/// in each cell they form one virtual list, chunk 0's boxes first, chunk j's last.
+inline constexpr int max_overlap_chunks = 8;
+struct stage_lists {
+  const cell_prefix* prefix[max_overlap_chunks];
+  const std::uint32_t* entries[max_overlap_chunks];
+  std::uint32_t count;
 };
 
 }  // namespace zone::gpu::detail

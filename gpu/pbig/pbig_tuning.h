@@ -77,6 +77,18 @@ inline constexpr std::size_t max_upload_parts = 16;
 /// the plain self-join; then those two arrays (8 of the 32 bytes a box) are not copied but filled
 /// on the device. Below it the check would cost more than the copy it saves.
 inline constexpr std::size_t uniform_classes_min_boxes = std::size_t{1} << 18;
+/// Overlapped upload (pbig_options::overlap_min_boxes, overlap_chunks; docs/gpu.md "Overlapped
+/// upload"): pinned input of at least overlap_min_boxes boxes goes up in overlap_chunks chunks of
+/// ids, each chunk's pairs (those whose larger id is in it) checked and copied out while the later
+/// chunks upload. Below the threshold the one-shot path runs (its two copies are short there).
+/// Neither figure is calibrated yet: the threshold is the indirect checks' (the stages read boxes
+/// through their ids), the chunk count a balance between the first chunk's wait (1/k of the
+/// upload), the last stage's share of the output ((2k - 1) / k^2 of the pairs, copied after the
+/// last chunk lands) and the rows every stage re-reads ((k + 1) / 2 times the entries in all).
+/// Each stage is cut into at most max(2, ceil(max_batches / k)) batches, so the whole call has
+/// about max_batches copies, each long enough to hide the next batch's checks.
+inline constexpr std::size_t overlap_min_boxes = std::size_t{1} << 22;
+inline constexpr std::uint32_t overlap_chunks = 4;
 /// Boxes per part of that check (parts run on the pool; each stops once a part found a difference).
 inline constexpr std::size_t uniform_classes_part = std::size_t{1} << 16;
 /// Single queue (pbig_options::single_queue): the next call's capacity is this call's figure x

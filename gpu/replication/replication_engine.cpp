@@ -169,11 +169,8 @@ class engine final : public interest::replication_engine {
     const auto up = [&](void* d, const void* h, std::size_t bytes) {
       if (bytes > 0) CUDA_CHECK(cudaMemcpyAsync(d, h, bytes, cudaMemcpyHostToDevice, stream_));
     };
-    if (!uploaded_) {
-      up(d_entities_.get(), h_entities_.get(), n_entities_ * sizeof(interest::replication_entity));
-      up(d_slot_dense_.get(), h_slot_dense_.get(), n_slots_ * sizeof(std::uint32_t));
-    }
-    uploaded_ = false;  // the next run's are staged afresh
+    if (!uploaded_) upload_entities();  // not handed over ahead: copied up now (reserved above)
+    uploaded_ = false;                   // the next run's are staged afresh
     up(d_jobs_.get(), h_jobs_.get(), n_jobs_ * sizeof(interest::replication_job));
     up(d_clients_.get(), h_clients_.get(), client_count * sizeof(client_slot));
     std::uint64_t total = 0, record_cap = 0;
@@ -269,13 +266,9 @@ class engine final : public interest::replication_engine {
     const interest::replication_result* res = h_results_.get();
     for (std::size_t k = 0; k < n_jobs_; ++k) len_[jobs[k].client] = res[k].view_size;
 
-    float ms = 0;
-    CUDA_CHECK(cudaEventElapsedTime(&ms, ev_begin_, ev_up_));
-    timing_.upload_ms = ms;
-    CUDA_CHECK(cudaEventElapsedTime(&ms, ev_up_, ev_kernels_));
-    timing_.device_ms = ms;
-    CUDA_CHECK(cudaEventElapsedTime(&ms, ev_kernels_, ev_down_));
-    timing_.download_ms = ms;
+    timing_.upload_ms = elapsed_ms(ev_begin_, ev_up_);
+    timing_.device_ms = elapsed_ms(ev_up_, ev_kernels_);
+    timing_.download_ms = elapsed_ms(ev_kernels_, ev_down_);
     timing_.record_bytes = used;
     timing_.resident = resident;
     timing_.wait_ms = wait_ms_;

@@ -205,13 +205,13 @@ class engine final : public interest::visibility_engine {
         vis_cap_ = std::max<std::uint64_t>(vis_cap_ * 2, std::uint64_t{st.visible_total} + st.visible_total / 4 + 4096);
       }
     }
-    out.timing.upload_ms = elapsed(ev_begin_, ev_up_);
-    out.timing.device_ms = elapsed(ev_up_, ev_kernels_);
-    out.timing.grid_ms = elapsed(ev_up_, ev_grid_);
-    out.timing.query_ms = elapsed(ev_grid_, ev_query_);
-    out.timing.place_ms = elapsed(ev_query_, ev_classify_);
-    out.timing.write_ms = elapsed(ev_classify_, ev_kernels_);
-    out.timing.download_ms = elapsed(ev_kernels_, ev_down_);
+    out.timing.upload_ms = elapsed_ms(ev_begin_, ev_up_);
+    out.timing.device_ms = elapsed_ms(ev_up_, ev_kernels_);
+    out.timing.grid_ms = elapsed_ms(ev_up_, ev_grid_);
+    out.timing.query_ms = elapsed_ms(ev_grid_, ev_query_);
+    out.timing.place_ms = elapsed_ms(ev_query_, ev_classify_);
+    out.timing.write_ms = elapsed_ms(ev_classify_, ev_kernels_);
+    out.timing.download_ms = elapsed_ms(ev_kernels_, ev_down_);
     if (st.bad_box != no_box) {
       out.timing.total_ms = ms_since(t0);
       return st.bad_box;  // nothing committed: the previous sets stay
@@ -253,12 +253,6 @@ class engine final : public interest::visibility_engine {
   }
 
  private:
-  float elapsed(cudaEvent_t a, cudaEvent_t b) const {
-    float ms = 0;
-    CUDA_CHECK(cudaEventElapsedTime(&ms, a, b));
-    return ms;
-  }
-
   /// The slot map for handles of `bits` slot bits (rebuilt from the previous rows when it changes).
   void use_slot_bits(std::uint32_t bits) {
     if (bits == slot_bits_) return;

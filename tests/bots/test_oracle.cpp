@@ -86,6 +86,11 @@ struct world_sim {
     players.push_back(id);
     return id;
   }
+  /// The oldest player leaves.
+  void remove_first_player() {
+    REQUIRE(store.destroy(players.front()));
+    players.erase(players.begin());
+  }
   /// Everyone steps up to 2.5 m per axis (across the 4 m hysteresis band within a few ticks).
   void move() {
     for (auto& p : store.positions()) {
@@ -96,6 +101,42 @@ struct world_sim {
     if (!players.empty() && rng() % 4 == 0) store.set_position(players[rng() % players.size()], anywhere());  // a teleport
   }
 };
+
+/// world_sim with `npcs` NPCs and the interest tracker the oracle is held to: brute-force finder,
+/// 4 m hysteresis, at most `cap` entities visible (0: no cap), and those rules as the oracle reads them.
+struct tracked_world : world_sim {
+  interest::brute_force_finder finder;
+  interest_tracker tracker;
+  net::interest_rules rules;
+  tracked_world(std::uint64_t seed, int npcs, std::uint32_t cap = 0)
+      : world_sim(seed), tracker(finder, nullptr, {4.0f, cap, 256}) {
+    add_npcs(npcs);
+    rules.hysteresis = 4;
+    rules.max_visible = cap;
+  }
+  /// One tick: the tracker updates and `oracle` reads the tick's truth frame (from `truth`); then
+  /// compare(player, the tracker's visible set, the oracle's) for every player (the oracle's is
+  /// empty for a player it has no history of yet).
+  template <class Compare>
+  void tick(bots::oracle& oracle, truth_writer& truth, std::uint64_t t, Compare&& compare) {
+    REQUIRE_FALSE(tracker.update(store.columns()).has_value());
+    REQUIRE_FALSE(oracle.feed(truth.body(store, t)).has_value());
+    for (const entity_id p : players) {
+      const auto row = tracker.row_of(p);
+      REQUIRE(row != entity_store::npos);
+      compare(p, tracker.visible(row), oracle.visible(p, t));
+    }
+  }
+};
+
+/// A frame the replicator built, decoded (frames up to 1 MiB).
+net::tick_update_msg decode_update(std::span<const std::uint8_t> frame) {
+  net::decoder_options o;
+  o.max_frame_bytes = 1 << 20;
+  auto decoded = net::decode_frame(frame, o);
+  REQUIRE(decoded.value.has_value());
+  return std::get<net::tick_update_msg>(*decoded.value);
+}
 
 /// The rules the oracle checks a replicator's views by: the tracker's hysteresis and the
 /// replicator's update distances and periods (what zone-server's welcome tells the bots).
@@ -120,14 +161,8 @@ TEST_SUITE("bots.oracle") {
         CAPTURE(seed);
         CAPTURE(cap);
         CAPTURE(threads);
-        world_sim w(seed);
-        w.add_npcs(400);
-        interest::brute_force_finder finder;
-        interest_tracker tracker(finder, nullptr, {4.0f, cap, 256});
-        net::interest_rules rules;
-        rules.hysteresis = 4;
-        rules.max_visible = cap;
-        bots::oracle oracle(w.world, rules, threads, nullptr, nullptr);
+        tracked_world w(seed, 400, cap);
+        bots::oracle oracle(w.world, w.rules, threads, nullptr, nullptr);
         oracle.full_scan = full_scan;
         CAPTURE(full_scan);
         std::uint64_t compared = 0, visible_total = 0, differing = 0, in_band = 0;
@@ -137,17 +172,8 @@ TEST_SUITE("bots.oracle") {
           // Players join over time (from the second tick: the oracle saw their whole history),
           // and some leave.
           if (tick >= 1 && tick < 100 && tick % 3 == 1) w.add_player();
-          if (tick % 17 == 5 && w.players.size() > 3) {
-            REQUIRE(w.store.destroy(w.players.front()));
-            w.players.erase(w.players.begin());
-          }
-          REQUIRE_FALSE(tracker.update(w.store.columns()).has_value());
-          REQUIRE_FALSE(oracle.feed(truth.body(w.store, tick)).has_value());
-          for (const entity_id p : w.players) {
-            const auto row = tracker.row_of(p);
-            REQUIRE(row != entity_store::npos);
-            const auto expect = tracker.visible(row);
-            const auto got = oracle.visible(p, tick);
+          if (tick % 17 == 5 && w.players.size() > 3) w.remove_first_player();
+          w.tick(oracle, truth, tick, [&](entity_id p, const auto& expect, const auto& got) {
             REQUIRE(got.has_value());
             ++compared;
             visible_total += expect.size();
@@ -166,7 +192,7 @@ TEST_SUITE("bots.oracle") {
               }
             }
             if (!std::equal(expect.begin(), expect.end(), got->begin(), got->end())) ++differing;
-          }
+          });
         }
         MESSAGE("cap " << cap << ", threads " << threads << std::string(full_scan ? ", every target" : ", x window") << ": " << compared << " visible sets compared, "
                        << visible_total << " entries, " << in_band << " kept by the hysteresis alone");
@@ -189,13 +215,8 @@ TEST_SUITE("bots.oracle") {
     // interest tracker's (brute-force finder) for every player at every tick.
     const std::uint64_t seed = zone::test::fresh_seed();
     CAPTURE(seed);
-    world_sim w(seed);
-    w.add_npcs(500);
-    interest::brute_force_finder finder;
-    interest_tracker tracker(finder, nullptr, {4.0f, 0, 256});
-    net::interest_rules rules;
-    rules.hysteresis = 4;
-    bots::oracle oracle(w.world, rules, 1, nullptr, nullptr);
+    tracked_world w(seed, 500);
+    bots::oracle oracle(w.world, w.rules, 1, nullptr, nullptr);
     truth_writer truth;
     const std::uint32_t classes[] = {cb::normal, cb::stealth, cb::team_red, cb::team_blue};
     const auto random_mask = [&] {
@@ -224,25 +245,18 @@ TEST_SUITE("bots.oracle") {
         }
         if (tick % 29 == 7) w.add_player();  // the ids change: the whole layout
         if (tick % 41 == 11) {
-          REQUIRE(w.store.destroy(w.players.front()));
-          w.players.erase(w.players.begin());
+          w.remove_first_player();
         }
         if (tick % 67 == 33) {  // most of the world at once: over the cap
           for (const entity_id id : ids) REQUIRE(w.store.set_visibility(id, classes[w.rng() % 4], random_mask()));
           ++mass;
         }
       }
-      REQUIRE_FALSE(tracker.update(w.store.columns()).has_value());
-      REQUIRE_FALSE(oracle.feed(truth.body(w.store, tick)).has_value());
-      for (const entity_id p : w.players) {
-        const auto row = tracker.row_of(p);
-        REQUIRE(row != entity_store::npos);
-        const auto expect = tracker.visible(row);
-        const auto got = oracle.visible(p, tick);
-        if (!got) continue;  // a player joined this tick (its history starts next tick)
+      w.tick(oracle, truth, tick, [&](entity_id, const auto& expect, const auto& got) {
+        if (!got) return;  // a player joined this tick (its history starts next tick)
         ++compared;
         if (!std::equal(expect.begin(), expect.end(), got->begin(), got->end())) ++differing;
-      }
+      });
     }
     const auto r = oracle.report();
     MESSAGE(switches << " switches, " << resizes << " resizes, " << mass << " mass switches: " << r.truth_layouts
@@ -264,18 +278,13 @@ TEST_SUITE("bots.oracle") {
     // the tracker's at every tick. A second oracle is refused, and its error names the option.
     const std::uint64_t seed = zone::test::fresh_seed();
     CAPTURE(seed);
-    world_sim w(seed);
-    w.add_npcs(300);
-    interest::brute_force_finder finder;
-    interest_tracker tracker(finder, nullptr, {4.0f, 0, 256});
-    net::interest_rules rules;
-    rules.hysteresis = 4;
+    tracked_world w(seed, 300);
     truth_publisher pub;
     REQUIRE_FALSE(pub.start(0, 1).has_value());
-    bots::oracle first(w.world, rules, 1, nullptr, nullptr);
+    bots::oracle first(w.world, w.rules, 1, nullptr, nullptr);
     std::uint64_t tick = 0;
     const auto step = [&] {
-      REQUIRE_FALSE(tracker.update(w.store.columns()).has_value());
+      REQUIRE_FALSE(w.tracker.update(w.store.columns()).has_value());
       pub.publish(w.store, tick);
       ++tick;
     };
@@ -288,7 +297,7 @@ TEST_SUITE("bots.oracle") {
       const auto err = started.get();
       REQUIRE_MESSAGE(!err.has_value(), err.value_or(""));
     }
-    bots::oracle second(w.world, rules, 1, nullptr, nullptr);
+    bots::oracle second(w.world, w.rules, 1, nullptr, nullptr);
     const auto refused = second.start(pub.port(), 10);
     REQUIRE(refused.has_value());
     CHECK(refused->find("refused") != std::string::npos);
@@ -313,7 +322,7 @@ TEST_SUITE("bots.oracle") {
       if (k == 0) continue;  // the players joined this tick: their history starts with it
       REQUIRE(got.has_value());
       for (const entity_id p : w.players) {
-        const auto expect = tracker.visible(tracker.row_of(p));
+        const auto expect = w.tracker.visible(w.tracker.row_of(p));
         const auto v = first.visible(p, t);
         REQUIRE(v.has_value());
         ++compared;
@@ -336,10 +345,7 @@ TEST_SUITE("bots.oracle") {
   TEST_CASE("views the replicator builds under a tight budget pass; a view missing one entity or holding an extra one fails") {
     const std::uint64_t seed = zone::test::fresh_seed();
     CAPTURE(seed);
-    world_sim w(seed);
-    w.add_npcs(600);
-    interest::brute_force_finder finder;
-    interest_tracker tracker(finder, nullptr, {4.0f, 0, 256});
+    tracked_world w(seed, 600);
     replication_options ro;
     ro.world = w.world;
     ro.byte_budget = 520;  // a few enters per frame: deferrals nearly every tick at first
@@ -371,19 +377,13 @@ TEST_SUITE("bots.oracle") {
         const entity_id id = w.add_player();
         clients.push_back({id, rep.add_client(id), net::client_view(w.world)});
       }
-      REQUIRE_FALSE(tracker.update(w.store.columns()).has_value());
+      REQUIRE_FALSE(w.tracker.update(w.store.columns()).has_value());
       REQUIRE_FALSE(oracle.feed(truth.body(w.store, tick)).has_value());
       for (std::size_t i = 0; i < clients.size(); ++i) {
         client& cl = clients[i];
         replication_stats st;
-        const auto frame = rep.build(cl.c, w.store, tracker, tick, 0, 0, writer, &st);
-        auto decoded = net::decode_frame(frame, [] {
-          net::decoder_options o;
-          o.max_frame_bytes = 1 << 20;
-          return o;
-        }());
-        REQUIRE(decoded.value.has_value());
-        auto m = std::get<net::tick_update_msg>(*decoded.value);
+        const auto frame = rep.build(cl.c, w.store, w.tracker, tick, 0, 0, writer, &st);
+        auto m = decode_update(frame);
         if (m.deferred) ++deferring;
         // Late in the run, client 0 loses an entity and client 1 gains one it cannot see.
         if (tick >= 80 && i == 0 && !dropped && !m.enters.empty()) {
@@ -392,8 +392,8 @@ TEST_SUITE("bots.oracle") {
           missing_before = oracle.counters().missing.load();
         }
         if (tick >= 80 && i == 1 && !added) {
-          const auto row = tracker.row_of(cl.id);
-          const auto vis = tracker.visible(row);
+          const auto row = w.tracker.row_of(cl.id);
+          const auto vis = w.tracker.visible(row);
           for (const entity_id other : w.store.ids()) {
             if (other == cl.id || std::binary_search(vis.begin(), vis.end(), other) || cl.view.entities().count(other)) continue;
             const auto d = *w.store.get(other);
@@ -436,10 +436,7 @@ TEST_SUITE("bots.oracle") {
       CAPTURE(with_resync);
       const std::uint64_t seed = zone::test::fresh_seed();
       CAPTURE(seed);
-      world_sim w(seed);
-      w.add_npcs(300);
-      interest::brute_force_finder finder;
-      interest_tracker tracker(finder, nullptr, {4.0f, 0, 256});
+      tracked_world w(seed, 300);
       replication_options ro;
       ro.world = w.world;
       ro.byte_budget = 4000;
@@ -493,21 +490,15 @@ TEST_SUITE("bots.oracle") {
           if (v.visibility_class != d.visibility_class || v.sees != d.sees) changed.push_back({id, d.visibility_class, d.sees});
           ++switches;
         }
-        REQUIRE_FALSE(tracker.update(w.store.columns()).has_value());
+        REQUIRE_FALSE(w.tracker.update(w.store.columns()).has_value());
         if (with_resync) {
           for (const auto& ch : changed) resyncs += rep.resync_viewers_of(w.store, ch.id, ch.old_class, ch.old_sees, 4.0f);
         }
         REQUIRE_FALSE(oracle.feed(truth.body(w.store, tick)).has_value());
         for (std::size_t i = 0; i < clients.size(); ++i) {
           client& cl = clients[i];
-          const auto frame = rep.build(cl.c, w.store, tracker, tick, 0, 0, writer, nullptr);
-          auto decoded = net::decode_frame(frame, [] {
-            net::decoder_options o;
-            o.max_frame_bytes = 1 << 20;
-            return o;
-          }());
-          REQUIRE(decoded.value.has_value());
-          const auto& m = std::get<net::tick_update_msg>(*decoded.value);
+          const auto frame = rep.build(cl.c, w.store, w.tracker, tick, 0, 0, writer, nullptr);
+          const auto m = decode_update(frame);
           REQUIRE(cl.view.apply(m) == net::client_view::status::ok);
           const std::uint64_t before = oracle.counters().mismatches();
           oracle.check(cl.id, tick, cl.view, m.deferred.value_or(net::deferred_counts{}), m.self_position, i);

@@ -5,8 +5,12 @@
 #include <doctest/doctest.h>
 
 #include <algorithm>
+#include <cstddef>
 #include <cstdint>
+#include <initializer_list>
+#include <memory>
 #include <random>
+#include <span>
 #include <string>
 
 #include "interest/interest.h"
@@ -15,8 +19,6 @@
 namespace zone::test {
 
 using namespace zone::interest;
-
-
 
 /// Runs a finder on a valid set: asserts success, a < b in every pair and no duplicate; returns
 /// the pairs in canonical order.
@@ -29,6 +31,32 @@ inline pair_list run(pair_finder& f, const box_set& s) {
   sort_canonical(out, s.size());
   REQUIRE(std::adjacent_find(out.begin(), out.end()) == out.end());
   return out;
+}
+
+/// The pairs of a view (find_view's) in canonical order, for comparing with run()'s.
+inline pair_list canonical(std::span<const id_pair> view, std::size_t box_count) {
+  pair_list pairs(view.begin(), view.end());
+  sort_canonical(pairs, box_count);
+  return pairs;
+}
+
+/// `made`, a finder a GPU factory returned (make_pbig_finder, make_lbvh_finder); a null one fails
+/// the test case with the factory's `why`.
+inline std::unique_ptr<pair_finder> made_or_fail(std::unique_ptr<pair_finder> made, const std::string& why) {
+  if (!made) FAIL("the GPU finder did not start: " << why);
+  return made;
+}
+
+/// True when `pairs` is every pair (a, b) with a < b < n, each once, in (a, b) order.
+inline bool every_pair_in_order(const pair_list& pairs, box_id n) {
+  if (pairs.size() != std::uint64_t{n} * (n > 0 ? n - 1 : 0) / 2) return false;
+  std::size_t k = 0;
+  for (box_id a = 0; a < n; ++a) {
+    for (box_id b = a + 1; b < n; ++b, ++k) {
+      if (pairs[k] != id_pair{a, b}) return false;
+    }
+  }
+  return true;
 }
 
 struct rng_box_maker {
@@ -169,5 +197,53 @@ inline box_set make_family(family f, std::size_t n, std::uint64_t seed) {
   return s;
 }
 
+/// generate_uniform(n, seed, edge_scale) with 3 boxes spanning its whole world after it (ids n to
+/// n + 2): each pairs with every box.
+inline box_set uniform_with_spanning(std::size_t n, std::uint64_t seed, double edge_scale = 1.0) {
+  box_set s = generate_uniform(n, seed, edge_scale);
+  for (int k = 0; k < 3; ++k) s.push_back(box{{-1, -1, -1}, {1e4f + 1, 1e4f + 1, 1e4f + 1}, 1, 1});
+  return s;
+}
+
+/// The sizes every fast finder is compared with the reference at, on every family.
+inline constexpr std::size_t finder_sizes[] = {0, 1, 2, 3, 7, 8, 33, 100, 513, 2000, 4001};
+/// Families with many pairs a box: they overflow output buffers that start tiny.
+inline constexpr family dense_families[] = {family::uniform, family::identical, family::huge_over_tiny,
+                                            family::mask_mix, family::touching};
+/// Families whose bounds meet cell faces in many ways: for fixed cell edges and cell-size rules.
+inline constexpr family cell_edge_families[] = {family::uniform, family::integer_grid, family::huge_over_tiny,
+                                                family::touching};
+
+/// For every family of `families` and size of `sizes` (ranges, or braced lists): a set of that
+/// family on a fresh random seed and its pairs by `reference` (run: checked, canonical order),
+/// handed to check(set, expected). The family, size and seed are captured for check's assertions.
+template <class Families = std::initializer_list<family>, class Sizes = std::initializer_list<std::size_t>,
+          class Check>
+void for_each_family_set(pair_finder& reference, const Families& families, const Sizes& sizes, Check&& check) {
+  for (const family f : families) {
+    for (const std::size_t n : sizes) {
+      const auto seed = fresh_seed();
+      CAPTURE(family_name(f));
+      CAPTURE(n);
+      CAPTURE(seed);
+      const box_set s = make_family(f, n, seed);
+      const pair_list expected = run(reference, s);
+      check(s, expected);
+    }
+  }
+}
+
+/// For every generator of `kinds` (generate_named's names): a set of n boxes on a fresh random
+/// seed, handed to check(set). The kind and seed are captured for check's assertions.
+template <class Check>
+void for_each_named_set(std::initializer_list<const char*> kinds, std::size_t n, Check&& check) {
+  for (const char* kind : kinds) {
+    const auto seed = fresh_seed();
+    CAPTURE(kind);
+    CAPTURE(seed);
+    const box_set s = *generate_named(kind, n, seed);
+    check(s);
+  }
+}
 
 }  // namespace zone::test

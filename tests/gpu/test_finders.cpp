@@ -169,20 +169,12 @@ TEST_SUITE("gpu.finders") {
       if (auto f = gpu::make_finder(b, &pool)) finders.push_back(std::move(f));
     }
     REQUIRE(finders.size() >= 2);
-    for (const family f : all_families) {
-      for (const std::size_t n : {0, 1, 2, 5, 64, 700}) {
-        const auto seed = fresh_seed();
-        CAPTURE(family_name(f));
-        CAPTURE(n);
-        CAPTURE(seed);
-        const box_set s = make_family(f, n, seed);
-        const pair_list expected = run(brute, s);
-        for (auto& finder : finders) {
-          CAPTURE(finder->name());
-          CHECK(run(*finder, s) == expected);
-        }
+    for_each_family_set(brute, all_families, {0, 1, 2, 5, 64, 700}, [&](const box_set& s, const pair_list& expected) {
+      for (auto& finder : finders) {
+        CAPTURE(finder->name());
+        CHECK(run(*finder, s) == expected);
       }
-    }
+    });
   }
 
   TEST_CASE("auto: runs the CPU finder without a device and a GPU finder with one") {
@@ -204,9 +196,7 @@ TEST_SUITE("gpu.finders") {
     // The zero-copy entry gives the same pairs.
     std::span<const id_pair> view;
     REQUIRE_FALSE(gpu::find_view(*f, s, view).has_value());
-    pair_list copy(view.begin(), view.end());
-    sort_canonical(copy, s.size());
-    CHECK(copy == run(grid, s));
+    CHECK(canonical(view, s.size()) == run(grid, s));
     CHECK_THROWS_AS((void)gpu::find_view(grid, s, view), std::invalid_argument);
   }
 
@@ -219,24 +209,19 @@ TEST_SUITE("gpu.finders") {
     grid_finder grid(&pool);
     const pair_list expected = run(grid, s);
     std::span<const id_pair> view;
-    auto sorted_view = [&] {
-      pair_list copy(view.begin(), view.end());
-      sort_canonical(copy, s.size());
-      return copy;
-    };
     REQUIRE_FALSE(gpu::find_view(*f, s, view).has_value());
     CHECK(*gpu::last_auto_choice(*f) == gpu::finder_backend::lbvh);
-    CHECK(sorted_view() == expected);
+    CHECK(canonical(view, s.size()) == expected);
     {
       const gpu::pinned_boxes pin(s);
       REQUIRE(pin.active());
       REQUIRE_FALSE(gpu::find_view(*f, s, view).has_value());  // re-decided at once, not after 64 calls
       CHECK(*gpu::last_auto_choice(*f) == gpu::finder_backend::pbig);
-      CHECK(sorted_view() == expected);
+      CHECK(canonical(view, s.size()) == expected);
     }
     REQUIRE_FALSE(gpu::find_view(*f, s, view).has_value());  // unpinned again
     CHECK(*gpu::last_auto_choice(*f) == gpu::finder_backend::lbvh);
-    CHECK(sorted_view() == expected);
+    CHECK(canonical(view, s.size()) == expected);
   }
 
   TEST_CASE("auto: a GPU finder that throws mid-call is logged, and that call and all later ones run on the CPU") {
@@ -254,9 +239,7 @@ TEST_SUITE("gpu.finders") {
       CHECK(gpu::last_auto_choice(*f) == gpu::finder_backend::cpu);
       std::span<const id_pair> view;
       REQUIRE_FALSE(gpu::find_view(*f, s, view).has_value());
-      pair_list copy(view.begin(), view.end());
-      sort_canonical(copy, s.size());
-      CHECK(copy == run(brute, s));
+      CHECK(canonical(view, s.size()) == run(brute, s));
     }
     CHECK(failing_ptr->calls == 1);  // never asked again after its failure
 
@@ -267,9 +250,7 @@ TEST_SUITE("gpu.finders") {
     const box_set s = make_family(family::mask_mix, 500, fresh_seed());
     std::span<const id_pair> view;
     REQUIRE_FALSE(gpu::find_view(*g, s, view).has_value());
-    pair_list copy(view.begin(), view.end());
-    sort_canonical(copy, s.size());
-    CHECK(copy == run(brute, s));
+    CHECK(canonical(view, s.size()) == run(brute, s));
     CHECK(failing2_ptr->calls == 1);
     CHECK(run(*g, s) == run(brute, s));
     CHECK(failing2_ptr->calls == 1);
@@ -294,11 +275,6 @@ TEST_SUITE("gpu.finders") {
     grid_finder grid(&pool);
     const box_set s = make_family(family::mask_mix, 700, fresh_seed());
     const pair_list expected = run(brute, s);
-    const auto sorted = [&](std::span<const id_pair> v) {
-      pair_list copy(v.begin(), v.end());
-      sort_canonical(copy, s.size());
-      return copy;
-    };
     // Which finders say they view a buffer of their own (gpu::find_view asks them, no type test).
     CHECK_FALSE(brute.views_own_buffer());
     CHECK_FALSE(grid.views_own_buffer());
@@ -307,7 +283,7 @@ TEST_SUITE("gpu.finders") {
     buffered_finder alone;
     REQUIRE_FALSE(gpu::find_view(alone, s, view).has_value());
     CHECK(view.data() == alone.own.data());  // no copy
-    CHECK(sorted(view) == expected);
+    CHECK(canonical(view, s.size()) == expected);
     // The auto finder hands over its candidate's own buffer.
     auto stand_in = std::make_unique<buffered_finder>();
     buffered_finder* ptr = stand_in.get();
@@ -317,7 +293,7 @@ TEST_SUITE("gpu.finders") {
     CHECK(gpu::last_auto_choice(*f) == gpu::finder_backend::pbig);
     CHECK(ptr->views == 1);
     CHECK(view.data() == ptr->own.data());
-    CHECK(sorted(view) == expected);
+    CHECK(canonical(view, s.size()) == expected);
     CHECK(run(*f, s) == expected);  // find(): the candidate's view, copied into the caller's list
     CHECK(ptr->views == 2);
     CHECK_FALSE(ptr->scratch_touched);

@@ -31,9 +31,7 @@ const bool lbvh_device_present = zone::test::device_or_skip("test_gpu (lbvh)");
 
 std::unique_ptr<pair_finder> make_lbvh(const gpu::lbvh_options& opt = {}) {
   std::string why;
-  auto f = gpu::make_lbvh_finder(opt, &why);
-  if (!f) FAIL("make_lbvh_finder failed: " << why);
-  return f;
+  return made_or_fail(gpu::make_lbvh_finder(opt, &why), why);
 }
 
 std::string describe(const gpu::lbvh_options& o) {
@@ -84,28 +82,20 @@ TEST_SUITE("gpu.lbvh") {
     std::vector<std::unique_ptr<pair_finder>> finders;
     for (const auto& o : opts) finders.push_back(make_lbvh(o));
     bool overflow_seen = false;
-    for (const family f : all_families) {
-      for (const std::size_t n : {0, 1, 2, 3, 7, 8, 33, 100, 513, 2000, 4001}) {
-        const auto seed = fresh_seed();
-        CAPTURE(family_name(f));
-        CAPTURE(n);
-        CAPTURE(seed);
-        const box_set s = make_family(f, n, seed);
-        const pair_list expected = run(brute, s);
-        for (std::size_t k = 0; k < finders.size(); ++k) {
-          CAPTURE(describe(opts[k]));
-          CHECK(run(*finders[k], s) == expected);
-          if (n >= 2) {
-            const auto* r = gpu::last_lbvh_report(*finders[k]);
-            REQUIRE(r != nullptr);
-            CHECK(r->pairs == expected.size());
-            CHECK(r->max_depth <= 64);
-            if (opts[k].stack_entries == 0) CHECK(r->stack_overflows == 0);
-            if (r->stack_overflows > 0) overflow_seen = true;
-          }
+    for_each_family_set(brute, all_families, finder_sizes, [&](const box_set& s, const pair_list& expected) {
+      for (std::size_t k = 0; k < finders.size(); ++k) {
+        CAPTURE(describe(opts[k]));
+        CHECK(run(*finders[k], s) == expected);
+        if (s.size() >= 2) {
+          const auto* r = gpu::last_lbvh_report(*finders[k]);
+          REQUIRE(r != nullptr);
+          CHECK(r->pairs == expected.size());
+          CHECK(r->max_depth <= 64);
+          if (opts[k].stack_entries == 0) CHECK(r->stack_overflows == 0);
+          if (r->stack_overflows > 0) overflow_seen = true;
         }
       }
-    }
+    });
     CHECK(overflow_seen);  // the 2-entry stack did force the overflow pass
   }
 
@@ -125,17 +115,7 @@ TEST_SUITE("gpu.lbvh") {
         auto finder = make_lbvh(o);
         const pair_list out = run(*finder, s);
         REQUIRE(out.size() == 10000ull * 9999 / 2);
-        bool all = true;
-        std::size_t k = 0;
-        for (box_id a = 0; a < 10000 && all; ++a) {
-          for (box_id b = a + 1; b < 10000; ++b, ++k) {
-            if (out[k] != id_pair{a, b}) {
-              all = false;
-              break;
-            }
-          }
-        }
-        CHECK(all);
+        CHECK(every_pair_in_order(out, 10000));
         const auto* r = gpu::last_lbvh_report(*finder);
         if (separate) {
           CHECK(r->large_boxes == 10000);  // each expected to overlap all: the brute pass takes them
@@ -179,13 +159,7 @@ TEST_SUITE("gpu.lbvh") {
   TEST_CASE("tiny output buffers and repeated calls: buffers grow, no pair lost, same order") {
     thread_pool pool(3);
     brute_force_finder brute(&pool);
-    for (const family f : {family::uniform, family::identical, family::huge_over_tiny, family::mask_mix,
-                           family::touching}) {
-      const auto seed = fresh_seed();
-      CAPTURE(family_name(f));
-      CAPTURE(seed);
-      const box_set s = make_family(f, 3000, seed);
-      const pair_list expected = run(brute, s);
+    for_each_family_set(brute, dense_families, {3000}, [&](const box_set& s, const pair_list& expected) {
       REQUIRE(!expected.empty());
       gpu::lbvh_options o;
       o.pool = &pool;
@@ -197,7 +171,7 @@ TEST_SUITE("gpu.lbvh") {
       CHECK(first == second);  // deterministic order
       sort_canonical(first, s.size());
       CHECK(first == expected);
-    }
+    });
   }
 
   TEST_CASE("empty, one box, two boxes; invalid boxes rejected with the box named") {
@@ -250,11 +224,7 @@ TEST_SUITE("gpu.lbvh") {
     o.pool = &pool;
     auto finder = make_lbvh(o);
     grid_finder grid(&pool);
-    for (const char* kind : {"gaussian", "uniform", "mmo", "doc:2"}) {
-      const auto seed = fresh_seed();
-      CAPTURE(kind);
-      CAPTURE(seed);
-      const box_set s = *generate_named(kind, 200000, seed);
+    for_each_named_set({"gaussian", "uniform", "mmo", "doc:2"}, 200000, [&](const box_set& s) {
       pair_list out;
       REQUIRE_FALSE(finder->find(s, out).has_value());
       std::span<const id_pair> view;
@@ -267,7 +237,7 @@ TEST_SUITE("gpu.lbvh") {
       CHECK(a.neighbors == b.neighbors);
       sort_canonical(out, s.size());
       CHECK(out == expected);
-    }
+    });
   }
 
   TEST_CASE("large sets and the stadium against the CPU grid finder; the auto finder on them") {
@@ -278,19 +248,14 @@ TEST_SUITE("gpu.lbvh") {
     auto finder = make_lbvh(o);
     auto automatic = gpu::make_finder(gpu::finder_backend::auto_select, &pool);
     REQUIRE(automatic);
-    for (const char* kind : {"gaussian", "mmo", "doc:10", "uniform"}) {
-      const auto seed = fresh_seed();
-      CAPTURE(kind);
-      CAPTURE(seed);
-      const box_set s = *generate_named(kind, 1000000, seed);
+    for_each_named_set({"gaussian", "mmo", "doc:10", "uniform"}, 1000000, [&](const box_set& s) {
       const pair_list expected = run(grid, s);
       CHECK(run(*finder, s) == expected);
       CHECK(run(*automatic, s) == expected);
-    }
+    });
     const auto seed = fresh_seed();
     CAPTURE(seed);
-    box_set s = generate_uniform(1000000, seed, 0.3);
-    for (int k = 0; k < 3; ++k) s.push_back(box{{-1, -1, -1}, {1e4f + 1, 1e4f + 1, 1e4f + 1}, 1, 1});
+    const box_set s = uniform_with_spanning(1000000, seed, 0.3);
     const pair_list expected = run(grid, s);
     CHECK(run(*finder, s) == expected);
     CHECK(gpu::last_lbvh_report(*finder)->large_boxes == 3);

@@ -31,9 +31,7 @@ const bool device_present = zone::test::device_or_skip("test_gpu");
 
 std::unique_ptr<pair_finder> make_gpu(const gpu::pbig_options& opt = {}) {
   std::string why;
-  auto f = gpu::make_pbig_finder(opt, &why);
-  if (!f) FAIL("make_pbig_finder failed: " << why);
-  return f;
+  return made_or_fail(gpu::make_pbig_finder(opt, &why), why);
 }
 
 /// The 8 combinations of (load balancing, compression, pipelining) with the paper's output path;
@@ -69,34 +67,20 @@ TEST_SUITE("gpu.pbig") {
     std::vector<std::unique_ptr<pair_finder>> finders;
     const auto combos = all_combinations(&pool, 0, /*direct=*/true);
     for (const auto& o : combos) finders.push_back(make_gpu(o));
-    for (const family f : all_families) {
-      for (const std::size_t n : {0, 1, 2, 3, 7, 8, 33, 100, 513, 2000, 4001}) {
-        const auto seed = fresh_seed();
-        CAPTURE(family_name(f));
-        CAPTURE(n);
-        CAPTURE(seed);
-        const box_set s = make_family(f, n, seed);
-        const pair_list expected = run(brute, s);
-        CHECK(run(grid, s) == expected);
-        for (std::size_t k = 0; k < finders.size(); ++k) {
-          CAPTURE(describe(combos[k]));
-          CHECK(run(*finders[k], s) == expected);
-        }
+    for_each_family_set(brute, all_families, finder_sizes, [&](const box_set& s, const pair_list& expected) {
+      CHECK(run(grid, s) == expected);
+      for (std::size_t k = 0; k < finders.size(); ++k) {
+        CAPTURE(describe(combos[k]));
+        CHECK(run(*finders[k], s) == expected);
       }
-    }
+    });
   }
 
   TEST_CASE("tiny output buffers: every overflowing batch is re-run, no pair lost") {
     thread_pool pool(3);
     brute_force_finder brute(&pool);
     const auto combos = all_combinations(&pool, 1, /*direct=*/true);
-    for (const family f : {family::uniform, family::identical, family::huge_over_tiny, family::mask_mix,
-                           family::touching}) {
-      const auto seed = fresh_seed();
-      CAPTURE(family_name(f));
-      CAPTURE(seed);
-      const box_set s = make_family(f, 3000, seed);
-      const pair_list expected = run(brute, s);
+    for_each_family_set(brute, dense_families, {3000}, [&](const box_set& s, const pair_list& expected) {
       REQUIRE(!expected.empty());
       for (const auto& o : combos) {
         CAPTURE(describe(o));
@@ -108,7 +92,7 @@ TEST_SUITE("gpu.pbig") {
         CHECK(report->pairs == expected.size());
         CHECK(run(*finder, s) == expected);  // again, with the grown buffers
       }
-    }
+    });
   }
 
   TEST_CASE("many batches with overflowing buffers: pipeline re-runs keep every pair and the order") {
@@ -143,12 +127,7 @@ TEST_SUITE("gpu.pbig") {
   TEST_CASE("exact whatever the cell size") {
     thread_pool pool(2);
     brute_force_finder brute(&pool);
-    for (const family f : {family::uniform, family::integer_grid, family::huge_over_tiny, family::touching}) {
-      const auto seed = fresh_seed();
-      CAPTURE(family_name(f));
-      CAPTURE(seed);
-      const box_set s = make_family(f, 1500, seed);
-      const pair_list expected = run(brute, s);
+    for_each_family_set(brute, cell_edge_families, {1500}, [&](const box_set& s, const pair_list& expected) {
       for (const double edge : {0.25, 1.0, 3.0, 7.5, 50.0, 1e4}) {
         for (const bool direct : {false, true}) {
           CAPTURE(edge);
@@ -169,7 +148,7 @@ TEST_SUITE("gpu.pbig") {
         auto finder = make_gpu(o);
         CHECK(run(*finder, s) == expected);
       }
-    }
+    });
   }
 
   TEST_CASE("deterministic: same order across calls, finders, pipelining and compression") {
@@ -318,8 +297,7 @@ TEST_SUITE("gpu.pbig") {
     steps.push_back({generate_uniform(3000, seed + 4), "uniform 3e3"});
     steps.push_back({make_family(family::identical, 3000, seed + 5), "identical 3e3"});
     steps.push_back({generate_uniform(3000, seed + 6), "uniform 3e3 after identical"});
-    box_set spanning = generate_uniform(6000, seed + 7);
-    for (int k = 0; k < 3; ++k) spanning.push_back(box{{-1, -1, -1}, {1e4f + 1, 1e4f + 1, 1e4f + 1}, 1, 1});
+    box_set spanning = uniform_with_spanning(6000, seed + 7);
     steps.push_back({spanning, "uniform 6e3 + 3 world-spanning boxes"});
     // The same geometry three times (the same plan and grid): 80% of the masks 0, again, then
     // every mask 1 (about 2.8x the pairs: past the output capacity of the last call).
@@ -404,9 +382,7 @@ TEST_SUITE("gpu.pbig") {
     std::span<const id_pair> got;
     for (int call = 0; call < 2; ++call) {
       REQUIRE_FALSE(gpu::find_pairs_view(*finder, s, got).has_value());
-      pair_list sorted(got.begin(), got.end());
-      sort_canonical(sorted, s.size());
-      CHECK(sorted == expected);
+      CHECK(canonical(got, s.size()) == expected);
     }
     CHECK((report->single_queue && !report->requeued));
     const std::size_t bad = 12345;
@@ -418,9 +394,7 @@ TEST_SUITE("gpu.pbig") {
     s.lo_y[bad] = keep;
     REQUIRE_FALSE(gpu::find_pairs_view(*finder, s, got).has_value());
     CHECK((report->single_queue && !report->requeued));
-    pair_list sorted(got.begin(), got.end());
-    sort_canonical(sorted, s.size());
-    CHECK(sorted == expected);
+    CHECK(canonical(got, s.size()) == expected);
   }
 
   TEST_CASE("degenerate: 10^4 identical boxes in one cell") {
@@ -432,18 +406,7 @@ TEST_SUITE("gpu.pbig") {
       auto finder = make_gpu(o);
       pair_list out = run(*finder, s);
       REQUIRE(out.size() == 10000ull * 9999 / 2);
-      // Sorted, distinct and a < b: exactly every pair.
-      bool all = true;
-      std::size_t k = 0;
-      for (box_id a = 0; a < 10000 && all; ++a) {
-        for (box_id b = a + 1; b < 10000; ++b, ++k) {
-          if (out[k] != id_pair{a, b}) {
-            all = false;
-            break;
-          }
-        }
-      }
-      CHECK(all);
+      CHECK(every_pair_in_order(out, 10000));  // sorted, distinct and a < b: exactly every pair
     }
   }
 
@@ -451,8 +414,7 @@ TEST_SUITE("gpu.pbig") {
     thread_pool pool(0);
     const auto seed = fresh_seed();
     CAPTURE(seed);
-    box_set s = generate_uniform(1000000, seed, 0.3);
-    for (int k = 0; k < 3; ++k) s.push_back(box{{-1, -1, -1}, {1e4f + 1, 1e4f + 1, 1e4f + 1}, 1, 1});
+    const box_set s = uniform_with_spanning(1000000, seed, 0.3);
     grid_finder grid(&pool);
     const pair_list expected = run(grid, s);
     for (const int mode : {0, 1, 2}) {
@@ -506,33 +468,20 @@ TEST_SUITE("gpu.pbig") {
       CHECK(small_cells->stats().large_boxes > 0);
       CHECK(run(*finder, s) == expected);
     }
-    for (const family f : all_families) {
-      const auto seed = fresh_seed();
-      CAPTURE(family_name(f));
-      CAPTURE(seed);
-      const box_set s = make_family(f, 30000, seed);
-      CHECK(run(*finder, s) == run(grid, s));
-    }
-    for (const char* kind : {"gaussian", "mmo", "doc:10", "uniform"}) {
-      const auto seed = fresh_seed();
-      CAPTURE(kind);
-      CAPTURE(seed);
-      const box_set s = *generate_named(kind, 1000000, seed);
+    for_each_family_set(grid, all_families, {30000},
+                        [&](const box_set& s, const pair_list& expected) { CHECK(run(*finder, s) == expected); });
+    for_each_named_set({"gaussian", "mmo", "doc:10", "uniform"}, 1000000, [&](const box_set& s) {
       const pair_list expected = run(grid, s);
       CHECK(run(*finder, s) == expected);
       CHECK(run(*encoded, s) == expected);
-    }
+    });
   }
 
   TEST_CASE("find_pairs_view: same pairs in the same order as find, buffer reused") {
     thread_pool pool(4);
     auto finder = make_gpu(gpu::pbig_options{.decode_pool = &pool, .direct_output = false});
     auto direct = make_gpu(gpu::pbig_options{.decode_pool = &pool, .direct_output = true});
-    for (const char* kind : {"gaussian", "uniform", "mmo"}) {
-      const auto seed = fresh_seed();
-      CAPTURE(kind);
-      CAPTURE(seed);
-      const box_set s = *generate_named(kind, 300000, seed);
+    for_each_named_set({"gaussian", "uniform", "mmo"}, 300000, [&](const box_set& s) {
       pair_list out;
       REQUIRE_FALSE(finder->find(s, out).has_value());
       std::span<const id_pair> view;
@@ -543,7 +492,7 @@ TEST_SUITE("gpu.pbig") {
       pair_list direct_out;
       REQUIRE_FALSE(direct->find(s, direct_out).has_value());
       CHECK(direct_out == out);
-    }
+    });
     box_set bad = generate_uniform(200000, 1);
     bad.hi_x[150001] = bad.lo_x[150001] - 1;
     std::span<const id_pair> view;
@@ -592,20 +541,14 @@ TEST_SUITE("gpu.pbig") {
       // One finder per mode and family: with tiny buffers each larger set overflows them again.
       std::vector<std::unique_ptr<pair_finder>> finders;
       for (const auto& o : modes) finders.push_back(make_gpu(o));
-      for (const std::size_t n : {0, 1, 2, 33, 513, 4001}) {
-        const auto seed = fresh_seed();
-        CAPTURE(family_name(f));
-        CAPTURE(n);
-        CAPTURE(seed);
-        const box_set s = make_family(f, n, seed);
-        const pair_list expected = run(brute, s);
+      for_each_family_set(brute, {f}, {0, 1, 2, 33, 513, 4001}, [&](const box_set& s, const pair_list& expected) {
         for (std::size_t k = 0; k < modes.size(); ++k) {
           CAPTURE(describe(modes[k]));
           CHECK(run(*finders[k], s) == expected);
           // (Sets under 2 boxes never reach the device: no report of their own.)
-          if (n >= 2) CHECK(gpu::last_pbig_report(*finders[k])->indirect_check);
+          if (s.size() >= 2) CHECK(gpu::last_pbig_report(*finders[k])->indirect_check);
         }
-      }
+      });
     }
     const std::uint64_t seed = fresh_seed();
     CAPTURE(seed);

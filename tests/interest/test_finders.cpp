@@ -37,45 +37,24 @@ TEST_SUITE("interest.finders") {
   TEST_CASE("brute force equals the plain definition (odd and even N, all families)") {
     thread_pool pool(3);
     brute_force_finder brute(&pool);
-    for (const family f : all_families) {
-      for (const std::size_t n : {0, 1, 2, 3, 4, 5, 10, 11, 64, 101, 256}) {
-        const auto seed = fresh_seed();
-        CAPTURE(family_name(f));
-        CAPTURE(n);
-        CAPTURE(seed);
-        const box_set s = make_family(f, n, seed);
-        CHECK(run(brute, s) == definition_pairs(s));
-      }
-    }
+    for_each_family_set(brute, all_families, {0, 1, 2, 3, 4, 5, 10, 11, 64, 101, 256},
+                        [&](const box_set& s, const pair_list& found) { CHECK(found == definition_pairs(s)); });
   }
 
   TEST_CASE("grid finder equals brute force on every family and many sizes") {
     thread_pool pool(4);
     brute_force_finder brute(&pool);
     grid_finder grid(&pool);
-    for (const family f : all_families) {
-      for (const std::size_t n : {0, 1, 2, 3, 7, 8, 33, 100, 513, 2000, 4001}) {
-        const auto seed = fresh_seed();
-        CAPTURE(family_name(f));
-        CAPTURE(n);
-        CAPTURE(seed);
-        const box_set s = make_family(f, n, seed);
-        const pair_list expected = run(brute, s);
-        CHECK(run(grid, s) == expected);
-        if (n >= 2) CHECK(grid.stats().cells >= 1);
-      }
-    }
+    for_each_family_set(brute, all_families, finder_sizes, [&](const box_set& s, const pair_list& expected) {
+      CHECK(run(grid, s) == expected);
+      if (s.size() >= 2) CHECK(grid.stats().cells >= 1);
+    });
   }
 
   TEST_CASE("grid finder is exact whatever the cell size") {
     thread_pool pool(2);
     brute_force_finder brute(&pool);
-    for (const family f : {family::uniform, family::integer_grid, family::huge_over_tiny, family::touching}) {
-      const auto seed = fresh_seed();
-      CAPTURE(family_name(f));
-      CAPTURE(seed);
-      const box_set s = make_family(f, 1500, seed);
-      const pair_list expected = run(brute, s);
+    for_each_family_set(brute, cell_edge_families, {1500}, [&](const box_set& s, const pair_list& expected) {
       for (const double edge : {0.25, 1.0, 3.0, 7.5, 50.0, 1e4}) {
         CAPTURE(edge);
         grid_finder_options opt;
@@ -90,7 +69,7 @@ TEST_SUITE("interest.finders") {
         grid_finder grid(&pool, opt);
         CHECK(run(grid, s) == expected);
       }
-    }
+    });
   }
 
   TEST_CASE("large boxes are handled apart and stay exact") {
@@ -100,22 +79,18 @@ TEST_SUITE("interest.finders") {
     opt.large_box_min_cells = 2;  // force many boxes onto the large-box path
     opt.large_box_alpha_factor = 1.0;
     grid_finder grid(&pool, opt);
-    for (const family f : {family::huge_over_tiny, family::long_thin, family::uniform, family::mask_mix}) {
-      const auto seed = fresh_seed();
-      CAPTURE(family_name(f));
-      CAPTURE(seed);
-      const box_set s = make_family(f, 1200, seed);
-      CHECK(run(grid, s) == run(brute, s));
-      CHECK(grid.stats().large_boxes > 0);
-    }
+    for_each_family_set(brute, {family::huge_over_tiny, family::long_thin, family::uniform, family::mask_mix}, {1200},
+                        [&](const box_set& s, const pair_list& expected) {
+                          CHECK(run(grid, s) == expected);
+                          CHECK(grid.stats().large_boxes > 0);
+                        });
   }
 
   TEST_CASE("a few world-spanning boxes over many small ones") {
     thread_pool pool(2);
     const auto seed = fresh_seed();
     CAPTURE(seed);
-    box_set s = generate_uniform(20000, seed, 0.3);
-    for (int k = 0; k < 3; ++k) s.push_back(box{{-1, -1, -1}, {1e4f + 1, 1e4f + 1, 1e4f + 1}, 1, 1});
+    const box_set s = uniform_with_spanning(20000, seed, 0.3);
     grid_finder grid(&pool);
     const pair_list got = run(grid, s);
     CHECK(grid.stats().large_boxes == 3);

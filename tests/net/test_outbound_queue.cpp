@@ -197,8 +197,9 @@ TEST_SUITE("net.outbound_queue") {
         }
         last_state = t;
       };
-      for (std::uint64_t tick = 0; tick < 3000; ++tick) {
-        // The game sees reports after a delay (the next tick's input phase, or later).
+      // The game's tick: the tick's state frame, a reset when a report has reached the game; a
+      // report (a resync) reaches it delay() ticks later (the next tick's input phase, or later).
+      const auto send_state = [&](std::uint64_t tick, const auto& delay) {
         for (auto& d : report_delays) {
           if (--d <= 0) reset_pending = true;
         }
@@ -208,12 +209,15 @@ TEST_SUITE("net.outbound_queue") {
         resets_sent += reset ? 1 : 0;
         ++sent_state;
         const auto r = q.push(numbered(tick), reset ? delivery::state_reset : delivery::state);
-        CHECK_FALSE(r.overflow);
         dropped += r.dropped;
         if (r.resync) {
           ++reports;
-          report_delays.push_back(1 + static_cast<int>(rng() % 4));
+          report_delays.push_back(delay());
         }
+        return r;
+      };
+      for (std::uint64_t tick = 0; tick < 3000; ++tick) {
+        CHECK_FALSE(send_state(tick, [&] { return 1 + static_cast<int>(rng() % 4); }).overflow);
         if (rng() % 8 == 0 && control_in_queue < bound) {  // a pong (clients ping far slower than the tick)
           REQUIRE(q.push(numbered(next_control++), delivery::control).queued);
           ++control_in_queue;
@@ -236,20 +240,7 @@ TEST_SUITE("net.outbound_queue") {
       }
       // Unstall: the game keeps ticking until the client is served again.
       for (std::uint64_t tick = 3000; tick < 3100; ++tick) {
-        for (auto& d : report_delays) {
-          if (--d <= 0) reset_pending = true;
-        }
-        std::erase_if(report_delays, [](int d) { return d <= 0; });
-        const bool reset = reset_pending;
-        reset_pending = false;
-        resets_sent += reset ? 1 : 0;
-        ++sent_state;
-        const auto r = q.push(numbered(tick), reset ? delivery::state_reset : delivery::state);
-        dropped += r.dropped;
-        if (r.resync) {
-          ++reports;
-          report_delays.push_back(1);
-        }
+        (void)send_state(tick, [] { return 1; });
         if (q.writing()) {
           take(q.entries().front());
           q.finish_write();

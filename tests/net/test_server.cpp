@@ -84,6 +84,16 @@ bool is_error(const std::optional<message>& m, error_code code) {
   return m && std::holds_alternative<error_msg>(*m) && std::get<error_msg>(*m).code == code;
 }
 
+/// Waits up to `timeout` for the server to close `c`, having sent it exactly one message: the
+/// error `code`. Returns that message.
+message closed_with(test_client& c, error_code code, std::chrono::milliseconds timeout = 3000ms) {
+  std::vector<message> seen;
+  CHECK(c.wait_closed(timeout, &seen));
+  REQUIRE(seen.size() == 1);
+  CHECK(is_error(seen[0], code));
+  return seen[0];
+}
+
 /// Runs the enclosing test case once per write path: the sender writes itself (direct), or the
 /// session's I/O thread does (server_options::direct_writes); and the I/O threads' writes one
 /// sendmsg each, or batched through io_uring (server_options::batching; where the kernel refuses
@@ -1100,10 +1110,7 @@ TEST_SUITE("net.server") {
     CHECK(g.count(inbound_event::kind::connected) == 2);
     test_client c(srv.port());
     REQUIRE(c.send(hello_msg{"c", "", protocol_version}));
-    std::vector<message> seen;
-    CHECK(c.wait_closed(3000ms, &seen));
-    REQUIRE(seen.size() == 1);
-    CHECK(std::get<error_msg>(seen[0]).code == error_code::server_full);
+    closed_with(c, error_code::server_full);
     CHECK(srv.stats().connections_refused == 1);
     CHECK(g.count(inbound_event::kind::connected) == 2);  // the game never hears of it
     CHECK(g.hello_session("c") == 0);
@@ -1165,14 +1172,8 @@ TEST_SUITE("net.server") {
       CHECK(std::get<pong_msg>(*p).client_time_us == static_cast<std::uint64_t>(i));
       std::this_thread::sleep_for(100ms);
     }
-    std::vector<message> seen;
-    CHECK(idle.wait_closed(2000ms, &seen));
-    REQUIRE(seen.size() == 1);
-    CHECK(is_error(seen[0], error_code::timeout));
-    seen.clear();
-    CHECK(drip.wait_closed(2000ms, &seen));
-    REQUIRE(seen.size() == 1);
-    CHECK(is_error(seen[0], error_code::timeout));
+    closed_with(idle, error_code::timeout, 2000ms);
+    closed_with(drip, error_code::timeout, 2000ms);
     CHECK_FALSE(busy.closed());
     CHECK(srv.stats().idle_timeouts == 2);
   }
@@ -1257,10 +1258,7 @@ TEST_SUITE("net.server") {
     test_client player(srv.port(), 0, 0x7f000002);
     REQUIRE(player.send(hello_msg{"player", "", protocol_version}));
     REQUIRE(g.wait_for([&] { return g.hello_session("player") != 0; }));
-    std::vector<message> seen;
-    CHECK(idle.front()->wait_closed(3000ms, &seen));  // the oldest
-    REQUIRE(seen.size() == 1);
-    CHECK(is_error(seen[0], error_code::server_full));
+    closed_with(*idle.front(), error_code::server_full);  // the oldest
     CHECK(srv.stats().pending_evicted == 1);
     CHECK(srv.stats().pending_open == 7);
     for (std::size_t i = 1; i < idle.size(); ++i) CHECK_FALSE(idle[i]->closed());
@@ -1298,10 +1296,7 @@ TEST_SUITE("net.server") {
     {
       test_client refused(srv.port());
       (void)refused.send(hello_msg{"refused", "", protocol_version});
-      std::vector<message> seen;
-      REQUIRE(refused.wait_closed(3000ms, &seen));
-      REQUIRE(seen.size() == 1);
-      CHECK(is_error(seen[0], error_code::rate_limited));
+      closed_with(refused, error_code::rate_limited);
     }
     CHECK(std::chrono::steady_clock::now() - t_spent < 1900ms);  // else the bucket may have refilled: the check above proves nothing
     auto st = srv.stats();
@@ -1347,10 +1342,7 @@ TEST_SUITE("net.server") {
       const auto t_spent = std::chrono::steady_clock::now();
       for (int i = 0; i < 3; ++i) {
         test_client c(srv.port());
-        std::vector<message> seen;
-        REQUIRE(c.wait_closed(3000ms, &seen));
-        REQUIRE(seen.size() == 1);
-        CHECK(is_error(seen[0], error_code::rate_limited));
+        closed_with(c, error_code::rate_limited);
         std::this_thread::sleep_for(300ms);
       }
       CHECK(std::chrono::steady_clock::now() - t_spent < 2000ms);
@@ -1386,10 +1378,7 @@ TEST_SUITE("net.server") {
       CHECK(srv.stats().rate_limited == 2);
       test_client third(srv.port());
       (void)third.send(hello_msg{"flooder2", "", protocol_version});
-      std::vector<message> seen;
-      REQUIRE(third.wait_closed(3000ms, &seen));
-      REQUIRE(seen.size() == 1);
-      CHECK(is_error(seen[0], error_code::rate_limited));
+      closed_with(third, error_code::rate_limited);
       CHECK(srv.stats().connections_rate_limited == 1);
       CHECK(g.hello_session("flooder2") == 0);
     }
@@ -1486,19 +1475,13 @@ TEST_SUITE("net.server") {
     }
     REQUIRE(g.wait_for([&] { return srv.stats().connections_rate_limited == 70; }));
     for (int i = 0; i < 6; ++i) {
-      std::vector<message> seen;
-      CHECK(refused[static_cast<std::size_t>(i)]->wait_closed(1000ms, &seen));
-      REQUIRE(seen.size() == 1);
-      CHECK(is_error(seen[0], error_code::rate_limited));
+      closed_with(*refused[static_cast<std::size_t>(i)], error_code::rate_limited, 1000ms);
     }
     CHECK(std::chrono::steady_clock::now() - t0 < 2300ms);  // else the checks above might have seen the hold's end
     CHECK_FALSE(refused[6]->wait_closed(100ms));
     CHECK_FALSE(refused[69]->wait_closed(10ms));
     for (int i = 6; i < 70; ++i) {
-      std::vector<message> seen;
-      CHECK(refused[static_cast<std::size_t>(i)]->wait_closed(4000ms, &seen));
-      REQUIRE(seen.size() == 1);
-      CHECK(is_error(seen[0], error_code::rate_limited));
+      closed_with(*refused[static_cast<std::size_t>(i)], error_code::rate_limited, 4000ms);
     }
     const double waited_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
     CHECK(waited_ms >= 2400);  // held for the hold (2,500 ms from each accept, after t0)
@@ -1564,10 +1547,7 @@ TEST_SUITE("net.server") {
       REQUIRE(m.has_value());
       REQUIRE(std::holds_alternative<pong_msg>(*m));
       CHECK(std::get<pong_msg>(*m).client_time_us == 7);
-      std::vector<message> seen;
-      CHECK(silent1.wait_closed(3000ms, &seen));
-      REQUIRE(seen.size() == 1);
-      CHECK(is_error(seen[0], error_code::server_full));
+      closed_with(silent1, error_code::server_full);
       CHECK_FALSE(silent2.wait_closed(200ms));
       CHECK_FALSE(player.closed());
     }
@@ -1577,11 +1557,7 @@ TEST_SUITE("net.server") {
     started run(server_options{});
     test_client c(run.srv.port());
     REQUIRE(c.send(ping_msg{42}));
-    std::vector<message> seen;
-    CHECK(c.wait_closed(3000ms, &seen));
-    REQUIRE(seen.size() == 1);
-    CHECK(is_error(seen[0], error_code::unexpected_message));
-    CHECK(std::get<error_msg>(seen[0]).reason == "ping before hello");
+    CHECK(std::get<error_msg>(closed_with(c, error_code::unexpected_message)).reason == "ping before hello");
     CHECK(run.srv.stats().pings_answered == 0);
   }
 
@@ -1637,10 +1613,7 @@ TEST_SUITE("net.server") {
       CAPTURE(name);
       test_client c(srv.port());
       REQUIRE(c.send(hello_msg{name, "", protocol_version}));
-      std::vector<message> seen;
-      CHECK(c.wait_closed(3000ms, &seen));
-      REQUIRE(seen.size() == 1);
-      CHECK(is_error(seen[0], error_code::bad_hello));
+      closed_with(c, error_code::bad_hello);
     }
     test_client ok(srv.port());
     join(g, ok, std::string(16, 'z'));

@@ -57,6 +57,16 @@ std::shared_ptr<viewer_snapshot> random_snapshot(std::mt19937_64& rng, std::size
 }
 
 
+/// A viewer served by a metrics server on a free loopback port, as zone-server serves it.
+struct served_viewer {
+  viewer_server viewer;
+  metrics_server http{"127.0.0.1", 0};
+  explicit served_viewer(const viewer_options& o = {}) : viewer(o) {
+    http.attach_viewer(&viewer);
+    REQUIRE_FALSE(http.start().has_value());
+  }
+};
+
 bool inside(const viewer_snapshot& s, std::size_t i, const viewer_request& r) {
   return s.x(i) >= r.x0 && s.x(i) <= r.x1 && s.y(i) >= r.y0 && s.y(i) <= r.y1;
 }
@@ -184,22 +194,19 @@ TEST_SUITE("net.viewer") {
     CHECK(http_get(plain.port(), "/viewer").starts_with("HTTP/1.1 404"));
     plain.stop();
 
-    viewer_server viewer;
-    metrics_server m("127.0.0.1", 0);
-    m.attach_viewer(&viewer);
-    REQUIRE_FALSE(m.start().has_value());
-    const auto page = http_get(m.port(), "/viewer");
+    served_viewer web;
+    const auto page = http_get(web.http.port(), "/viewer");
     CHECK(page.starts_with("HTTP/1.1 200"));
     CHECK(page.find("text/html") != std::string::npos);
     CHECK(page.ends_with(std::string(viewer_page())));
     CHECK(viewer_page().find("window.zoneViewer") != std::string_view::npos);
-    CHECK(http_get(m.port(), "/viewer/").starts_with("HTTP/1.1 200"));
-    CHECK(http_get(m.port(), "/viewer/nope").starts_with("HTTP/1.1 404"));
-    CHECK(http_get(m.port(), "/viewer/ws").starts_with("HTTP/1.1 400"));  // not an upgrade
-    CHECK(http_get(m.port(), "/viewer/entity.json?id=x").starts_with("HTTP/1.1 400"));
-    CHECK(http_get(m.port(), "/viewer/entity.json?id=99999999999999").starts_with("HTTP/1.1 400"));
-    CHECK(http_get(m.port(), "/viewer/entity.json?id=9").starts_with("HTTP/1.1 404"));
-    CHECK(http_request(m.port(), "POST /viewer HTTP/1.1\r\nHost: x\r\nContent-Length: 0\r\n\r\n").starts_with("HTTP/1.1 405"));
+    CHECK(http_get(web.http.port(), "/viewer/").starts_with("HTTP/1.1 200"));
+    CHECK(http_get(web.http.port(), "/viewer/nope").starts_with("HTTP/1.1 404"));
+    CHECK(http_get(web.http.port(), "/viewer/ws").starts_with("HTTP/1.1 400"));  // not an upgrade
+    CHECK(http_get(web.http.port(), "/viewer/entity.json?id=x").starts_with("HTTP/1.1 400"));
+    CHECK(http_get(web.http.port(), "/viewer/entity.json?id=99999999999999").starts_with("HTTP/1.1 400"));
+    CHECK(http_get(web.http.port(), "/viewer/entity.json?id=9").starts_with("HTTP/1.1 404"));
+    CHECK(http_request(web.http.port(), "POST /viewer HTTP/1.1\r\nHost: x\r\nContent-Length: 0\r\n\r\n").starts_with("HTTP/1.1 405"));
     auto s = std::make_shared<viewer_snapshot>();
     s->tick = 5;
     s->selections.push_back({});
@@ -207,21 +214,18 @@ TEST_SUITE("net.viewer") {
     s->selections[0].alive = true;
     s->selections[0].visible = {1, 2};
     s->selections[0].tier = {0, 2};
-    viewer.next_snapshot() = *s;
-    viewer.publish();
-    const auto json = http_get(m.port(), "/viewer/entity.json?id=9");
+    web.viewer.next_snapshot() = *s;
+    web.viewer.publish();
+    const auto json = http_get(web.http.port(), "/viewer/entity.json?id=9");
     CHECK(json.starts_with("HTTP/1.1 200"));
     CHECK(json.ends_with(R"({"tick":5,"id":9,"alive":true,"visible":[1,2],"tier":[0,2]})"));
-    m.stop();
+    web.http.stop();
   }
 
   TEST_CASE("a session gets the newest snapshot for its view and its selection, and stats; the cap holds") {
     viewer_options o;
     o.max_viewers = 2;
-    viewer_server viewer(o);
-    metrics_server m("127.0.0.1", 0);
-    m.attach_viewer(&viewer);
-    REQUIRE_FALSE(m.start().has_value());
+    served_viewer web(o);
     std::mt19937_64 rng(std::random_device{}());
     auto s = random_snapshot(rng, 2000, 500);
     viewer_snapshot::selection sel;
@@ -230,17 +234,17 @@ TEST_SUITE("net.viewer") {
     sel.visible = {s->ids[1], s->ids[2]};
     sel.tier = {0, 1};
     s->selections.push_back(sel);
-    viewer.next_snapshot() = *s;
-    viewer.publish();
-    viewer.next_stats().tick = 4242;
-    viewer.next_stats().ticks.push_back({4242, 1, 2, 3, 4, 5, 6, 21});
-    viewer.publish_stats();
-    CHECK(viewer.next_stats().ticks.empty());  // the next buffer starts with no ticks
+    web.viewer.next_snapshot() = *s;
+    web.viewer.publish();
+    web.viewer.next_stats().tick = 4242;
+    web.viewer.next_stats().ticks.push_back({4242, 1, 2, 3, 4, 5, 6, 21});
+    web.viewer.publish_stats();
+    CHECK(web.viewer.next_stats().ticks.empty());  // the next buffer starts with no ticks
 
-    ws_client a(m.port());
+    ws_client a(web.http.port());
     REQUIRE_FALSE(a.error);
-    CHECK(eventually([&] { return viewer.viewers() == 1; }));
-    CHECK(viewer.selection_version() == 0);
+    CHECK(eventually([&] { return web.viewer.viewers() == 1; }));
+    CHECK(web.viewer.selection_version() == 0);
     REQUIRE(a.send(request_bytes({0, 0, 500, 500, sel.id, 100000})));
     // The stats message, formatted on the viewer's thread from what the producer filled in.
     std::optional<std::pair<bool, std::vector<std::uint8_t>>> text;
@@ -258,13 +262,13 @@ TEST_SUITE("net.viewer") {
     REQUIRE(selection);
     CHECK(at<std::uint32_t>(*selection, 8) == sel.id);
     CHECK(at<std::uint32_t>(*selection, 56) == 2);
-    CHECK(viewer.selected() == std::vector<std::uint32_t>{sel.id});
-    CHECK(viewer.selection_version() > 0);
+    CHECK(web.viewer.selected() == std::vector<std::uint32_t>{sel.id});
+    CHECK(web.viewer.selection_version() > 0);
     // A newer snapshot reaches the page.
     auto s2 = random_snapshot(rng, 10, 500);
     s2->tick = s->tick + 1;
-    viewer.next_snapshot() = *s2;
-    viewer.publish();
+    web.viewer.next_snapshot() = *s2;
+    web.viewer.publish();
     bool newer = false;
     for (int k = 0; k < 10 && !newer; ++k) {
       const auto f = a.read_frame(viewer_frame_entities);
@@ -272,83 +276,77 @@ TEST_SUITE("net.viewer") {
       newer = at<std::uint32_t>(*f, 4) == s2->tick && at<std::uint32_t>(*f, 12) == 10;
     }
     CHECK(newer);
-    ws_client b(m.port());
+    ws_client b(web.http.port());
     CHECK_FALSE(b.error);
-    CHECK(eventually([&] { return viewer.viewers() == 2; }));
-    ws_client c(m.port());  // over the cap: refused with 503
+    CHECK(eventually([&] { return web.viewer.viewers() == 2; }));
+    ws_client c(web.http.port());  // over the cap: refused with 503
     CHECK(c.error);
-    CHECK(eventually([&] { return viewer.stats().sessions_refused == 1; }));
-    m.stop();
+    CHECK(eventually([&] { return web.viewer.stats().sessions_refused == 1; }));
+    web.http.stop();
   }
 
   TEST_CASE("hostile pages are closed: garbage, text, oversized messages, floods; the tick never waits") {
     viewer_options o;
     o.max_viewers = 8;
     o.max_requests_per_s = 20;
-    viewer_server viewer(o);
-    metrics_server m("127.0.0.1", 0);
-    m.attach_viewer(&viewer);
-    REQUIRE_FALSE(m.start().has_value());
+    served_viewer web(o);
     const auto good = request_bytes({0, 0, 100, 100, 0, 1000});
     {
-      ws_client c(m.port());
+      ws_client c(web.http.port());
       REQUIRE(c.send({1, 2, 3}));
       CHECK(c.closed_by_server());
     }
     {
-      ws_client c(m.port());
+      ws_client c(web.http.port());
       REQUIRE(c.send(good, false));  // the right bytes as text
       CHECK(c.closed_by_server());
     }
     {
-      ws_client c(m.port());
+      ws_client c(web.http.port());
       std::vector<std::uint8_t> big(4096, 1);
       (void)c.send(big);
       CHECK(c.closed_by_server());
     }
     {
-      ws_client c(m.port());
+      ws_client c(web.http.port());
       for (int k = 0; k < 200 && c.send(good); ++k) {
       }
       CHECK(c.closed_by_server());
     }
-    CHECK(eventually([&] { return viewer.stats().sessions_closed_hostile >= 4; }));
-    CHECK(eventually([&] { return viewer.viewers() == 0; }));
+    CHECK(eventually([&] { return web.viewer.stats().sessions_closed_hostile >= 4; }));
+    CHECK(eventually([&] { return web.viewer.viewers() == 0; }));
     // A well-behaved page still works afterwards.
-    ws_client ok(m.port());
+    ws_client ok(web.http.port());
     REQUIRE(ok.send(good));
-    viewer.publish();
+    web.viewer.publish();
     CHECK(ok.read_frame(viewer_frame_entities));
-    m.stop();
+    web.http.stop();
   }
 
   TEST_CASE("a page that never reads is closed once a write stalls; publishing never blocks") {
     viewer_options o;
     o.stall_close_s = 0.5;
-    viewer_server viewer(o);
-    metrics_server m("127.0.0.1", 0);
-    m.attach_viewer(&viewer);
-    REQUIRE_FALSE(m.start().has_value());
+    served_viewer web(o);
     std::mt19937_64 rng(std::random_device{}());
     const auto big = random_snapshot(rng, 200000, 4000);  // 2 MB a frame
-    ws_client c(m.port(), 4096);
+    ws_client c(web.http.port(), 4096);
     REQUIRE(c.send(request_bytes({0, 0, 4000, 4000, 0, viewer_max_points})));
     // Publish for up to 10 s while the page reads nothing: its socket fills, its write stalls,
     // and it is closed; every publish returns at once meanwhile (one atomic exchange).
     std::uint64_t published = 0;
     const bool closed = eventually(
         [&] {
-          auto& s = viewer.next_snapshot();
+          auto& s = web.viewer.next_snapshot();
           if (s.ids.size() != big->ids.size()) s = *big;  // three buffers rotate: each filled once
           s.tick = ++published;
-          viewer.publish();
-          return viewer.stats().sessions_closed_stalled == 1;
+          web.viewer.publish();
+          return web.viewer.stats().sessions_closed_stalled == 1;
         },
         std::chrono::milliseconds(10000));
     CHECK(closed);
     CHECK(published > 5);
-    CHECK(eventually([&] { return viewer.viewers() == 0; }));
-    m.stop();
+    CHECK(eventually([&] { return web.viewer.viewers() == 0; }));
+    web.http.stop();
   }
 
   TEST_CASE("the stats message: every field the producer filled, as JSON, in order") {

@@ -136,6 +136,24 @@ void put_le32(std::string& bytes, std::size_t offset, std::uint32_t v) {
   for (std::size_t i = 0; i < 4; ++i) bytes[offset + i] = static_cast<char>(v >> (8 * i));
 }
 
+/// Writes `original` to `path` with `write` (no temporary file is left), reads it back with
+/// `read` and with read_box_file: the same set both times. `written` checks the file in between.
+template <class Written = void (*)()>
+void check_round_trip(const std::string& path, const box_set& original, std::optional<file_error> (*write)(const std::string&, const box_set&),
+                      std::optional<file_error> (*read)(const std::string&, box_set&), Written written = [] {}) {
+  REQUIRE_FALSE(write(path, original).has_value());
+  CHECK_FALSE(fs::exists(path + ".tmp"));
+  written();
+  box_set back;
+  const auto err = read(path, back);
+  CAPTURE(err ? err->message : std::string());
+  REQUIRE_FALSE(err.has_value());
+  CHECK(same_sets(original, back));
+  box_set any;
+  REQUIRE_FALSE(read_box_file(path, any).has_value());
+  CHECK(same_sets(original, any));
+}
+
 }  // namespace
 
 TEST_SUITE("interest.files") {
@@ -339,18 +357,7 @@ TEST_SUITE("interest.files") {
       const std::uint64_t seed = fresh_seed();
       CAPTURE(seed);
       const box_set original = random_set(seed, 2000 + round * 137, round % 2 == 0);
-      const std::string path = dir.file("round.csv");
-      const auto werr = write_csv_file(path, original);
-      REQUIRE_FALSE(werr.has_value());
-      CHECK_FALSE(fs::exists(path + ".tmp"));
-      box_set back;
-      const auto rerr = read_csv_file(path, back);
-      CAPTURE(rerr ? rerr->message : std::string());
-      REQUIRE_FALSE(rerr.has_value());
-      CHECK(same_sets(original, back));
-      box_set any;
-      REQUIRE_FALSE(read_box_file(path, any).has_value());
-      CHECK(same_sets(original, any));
+      check_round_trip(dir.file("round.csv"), original, write_csv_file, read_csv_file);
     }
   }
 
@@ -406,17 +413,9 @@ TEST_SUITE("interest.files") {
       CAPTURE(with_bits);
       const box_set original = random_set(seed, 5000, with_bits);
       const std::string path = dir.file("round.boxes");
-      REQUIRE_FALSE(write_binary_file(path, original).has_value());
-      CHECK_FALSE(fs::exists(path + ".tmp"));
-      CHECK(fs::file_size(path) == header_size + original.size() * (with_bits ? 32 : 24));
-      box_set back;
-      const auto err = read_binary_file(path, back);
-      CAPTURE(err ? err->message : std::string());
-      REQUIRE_FALSE(err.has_value());
-      CHECK(same_sets(original, back));
-      box_set any;
-      REQUIRE_FALSE(read_box_file(path, any).has_value());
-      CHECK(same_sets(original, any));
+      check_round_trip(path, original, write_binary_file, read_binary_file, [&] {
+        CHECK(fs::file_size(path) == header_size + original.size() * (with_bits ? 32 : 24));
+      });
     }
   }
 

@@ -43,7 +43,7 @@ TEST_CASE("bench-gpu: defaults, every flag, --help and bad arguments") {
   {
     bench_gpu_args a;
     REQUIRE_FALSE(gpu({}, a).has_value());
-    CHECK(a.only == "floors,public,targets,nsweep,cells,doc,gauss,ablation,lbvh");
+    CHECK(a.only == "floors,public,overlap,targets,nsweep,cells,doc,gauss,ablation,lbvh");
     CHECK(a.csv_path == "bench-gpu.csv");
     CHECK(a.csv_lbvh == "bench_lbvh.csv");
     CHECK(a.max_n == 10000000);

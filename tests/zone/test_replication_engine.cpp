@@ -15,6 +15,7 @@
 #include <numeric>
 #include <random>
 #include <set>
+#include <span>
 #include <stdexcept>
 #include <string>
 #include <thread>
@@ -288,6 +289,35 @@ void move_all(entity_store& store, float side) {
   }
 }
 
+/// The setting of the build_many tests below: `n` random entities (add_random_entities) in a
+/// side x side world, the interest tracker over them (grid finder, 2 threads), and replication
+/// options for that world.
+struct random_zone {
+  std::mt19937_64 rng;
+  entity_store store;
+  interest::thread_pool pool{2};
+  interest::grid_finder finder{&pool};
+  interest_tracker tracker{finder, &pool, {3.0f, 0, 64}};
+  replication_options opt;
+  random_zone(std::uint64_t seed, int n, float side, int stealth_every) : rng(seed) {
+    add_random_entities(store, rng, n, side, stealth_every);
+    opt.world = {{0, 0, 0}, {side, side, 20}};
+  }
+};
+
+/// The same `count` clients (the entities at every `stride`-th id) in each replicator of `reps`;
+/// the requests for them.
+std::vector<replication_request> add_same_clients(std::span<replicator* const> reps, const entity_store& store,
+                                                  std::size_t count, std::size_t stride) {
+  std::vector<replication_request> requests;
+  for (std::size_t k = 0; k < count; ++k) {
+    const client_id c = reps[0]->add_client(store.ids()[k * stride]);
+    for (std::size_t r = 1; r < reps.size(); ++r) REQUIRE(reps[r]->add_client(store.ids()[k * stride]) == c);
+    requests.push_back({c, 0});
+  }
+  return requests;
+}
+
 }  // namespace
 
 TEST_SUITE("zone.replication") {
@@ -427,16 +457,9 @@ TEST_SUITE("zone.replication") {
     namespace cb = interest::category_bits;
     const std::uint64_t seed = zone::test::fresh_seed();
     CAPTURE(seed);
-    std::mt19937_64 rng(seed);
-    entity_store store;
-    add_random_entities(store, rng, 400, 250, 5);
-    interest::thread_pool pool(2);
-    interest::grid_finder finder(&pool);
-    interest_tracker tracker(finder, &pool, {3.0f, 0, 64});
-    replication_options opt;
-    opt.world = {{0, 0, 0}, {250, 250, 20}};
-    opt.byte_budget = 900;
-    opt.clients_per_task = 3;  // several chunks
+    random_zone z(seed, 400, 250, 5);
+    z.opt.byte_budget = 900;
+    z.opt.clients_per_task = 3;  // several chunks
     std::uint64_t tick = 0;
     // The paths: the CPU; the emulated engine; the engine failing before the side work (the fault
     // wrapper) at tick 4; the engine failing after it at tick 6; the emulated engine whose side
@@ -450,26 +473,23 @@ TEST_SUITE("zone.replication") {
     fails_after_side after(e_after, tick, fail_after_at);
     // 0: the CPU; 5 and 6: CPU references resynced where 2 and 3 fall back (their frames' model).
     std::vector<std::unique_ptr<replicator>> reps;
-    for (int k = 0; k < 7; ++k) reps.push_back(std::make_unique<replicator>(opt));
+    for (int k = 0; k < 7; ++k) reps.push_back(std::make_unique<replicator>(z.opt));
     reps[1]->set_engine(&e_ok);
     reps[2]->set_engine(&faulty);
     reps[3]->set_engine(&after);
     reps[4]->set_engine(&e_throw);
     emulated_engine* const inner[7] = {nullptr, &e_ok, &e_fault, &e_after, &e_throw, nullptr, nullptr};
     const std::size_t ref_of[7] = {0, 0, 5, 6, 0, 5, 6};
-    std::vector<replication_request> requests;
-    for (std::size_t k = 0; k < 30; ++k) {
-      const client_id c = reps[0]->add_client(store.ids()[k * 11]);
-      for (std::size_t r = 1; r < reps.size(); ++r) REQUIRE(reps[r]->add_client(store.ids()[k * 11]) == c);
-      requests.push_back({c, 0});
-    }
-    const std::size_t chunks = (requests.size() + opt.clients_per_task - 1) / opt.clients_per_task;
-    const entity_id watched = store.ids()[0];
+    std::vector<replicator*> all;
+    for (const auto& r : reps) all.push_back(r.get());
+    const std::vector<replication_request> requests = add_same_clients(all, z.store, 30, 11);
+    const std::size_t chunks = (requests.size() + z.opt.clients_per_task - 1) / z.opt.clients_per_task;
+    const entity_id watched = z.store.ids()[0];
     std::size_t in_wait = 0, after_frames = 0, thrown = 0;
     for (; tick < 12; ++tick) {
       CAPTURE(tick);
-      move_all(store, 250);
-      REQUIRE_FALSE(tracker.update(store.columns()).has_value());
+      move_all(z.store, 250);
+      REQUIRE_FALSE(z.tracker.update(z.store.columns()).has_value());
       if (tick == fault_at) {
         for (const auto& r : requests) reps[5]->resync(r.client);
       }
@@ -492,10 +512,10 @@ TEST_SUITE("zone.replication") {
           sunk_at_call = sunk.load();
           chunks_at_call = chunks_done.load();
           side_calls_at_call = inner[r] ? inner[r]->side_calls : 0;
-          const auto p = store.positions();
-          const std::size_t row = tracker.row_of(watched);
+          const auto p = z.store.positions();
+          const std::size_t row = z.tracker.row_of(watched);
           REQUIRE(row != entity_store::npos);
-          const auto v = tracker.visible(row);
+          const auto v = z.tracker.visible(row);
           if (r == 0) {
             read_pos.assign(p.begin(), p.end());
             read_visible.assign(v.begin(), v.end());
@@ -510,7 +530,7 @@ TEST_SUITE("zone.replication") {
         bool threw = false;
         try {
           reps[r]->build_many(
-              requests, store, tracker, tick, tick * 3, &pool,
+              requests, z.store, z.tracker, tick, tick * 3, &z.pool,
               [&](std::size_t k, std::span<const std::uint8_t> f, const replication_stats&) {
                 frames[r][k].assign(f.begin(), f.end());
                 ++sunk;
@@ -546,7 +566,7 @@ TEST_SUITE("zone.replication") {
         std::size_t empty_calls = 0;
         const auto count = [&] { ++empty_calls; };
         const std::function<void()> count_side = std::ref(count);
-        reps[r]->build_many({}, store, tracker, tick, tick * 3, &pool,
+        reps[r]->build_many({}, z.store, z.tracker, tick, tick * 3, &z.pool,
                             [&](std::size_t, std::span<const std::uint8_t>, const replication_stats&) { FAIL("a frame"); },
                             {}, {}, {}, &count_side);
         CHECK(empty_calls == 1);
@@ -571,36 +591,25 @@ TEST_SUITE("zone.engine_faults") {
     // back to the sink (a copy), all frames equal to the CPU replicator's.
     const std::uint64_t seed = zone::test::fresh_seed();
     CAPTURE(seed);
-    std::mt19937_64 rng(seed);
-    entity_store store;
-    add_random_entities(store, rng, 200, 200, 1000000);
-    interest::thread_pool pool(2);
-    interest::grid_finder finder(&pool);
-    interest_tracker tracker(finder, &pool, {3.0f, 0, 64});
-    replication_options opt;
-    opt.world = {{0, 0, 0}, {200, 200, 20}};
-    opt.clients_per_task = 4;
-    replicator cpu(opt), dev(opt);
+    random_zone z(seed, 200, 200, 1000000);
+    z.opt.clients_per_task = 4;
+    replicator cpu(z.opt), dev(z.opt);
     emulated_engine engine(seed);
     dev.set_engine(&engine);
-    std::vector<replication_request> requests;
-    for (std::size_t k = 0; k < 20; ++k) {
-      const client_id a = cpu.add_client(store.ids()[k * 9]), b = dev.add_client(store.ids()[k * 9]);
-      REQUIRE(a == b);
-      requests.push_back({a, 0});
-    }
+    replicator* const both[] = {&cpu, &dev};
+    const std::vector<replication_request> requests = add_same_clients(both, z.store, 20, 9);
     std::vector<std::pair<net::shared_frame, std::vector<std::uint8_t>>> held;  // every shared frame, and its bytes
     for (std::uint64_t tick = 0; tick < 7; ++tick) {
       CAPTURE(tick);
-      move_all(store, 200);
-      REQUIRE_FALSE(tracker.update(store.columns()).has_value());
+      move_all(z.store, 200);
+      REQUIRE_FALSE(z.tracker.update(z.store.columns()).has_value());
       std::vector<std::vector<std::uint8_t>> want(requests.size()), got(requests.size());
       std::atomic<int> shared{0}, sunk{0};
-      cpu.build_many(requests, store, tracker, tick, tick * 3, &pool,
+      cpu.build_many(requests, z.store, z.tracker, tick, tick * 3, &z.pool,
                      [&](std::size_t k, std::span<const std::uint8_t> f, const replication_stats&) { want[k].assign(f.begin(), f.end()); });
       std::vector<net::shared_frame> frames(requests.size());
       dev.build_many(
-          requests, store, tracker, tick, tick * 3, &pool,
+          requests, z.store, z.tracker, tick, tick * 3, &z.pool,
           [&](std::size_t k, std::span<const std::uint8_t> f, const replication_stats&) {
             got[k].assign(f.begin(), f.end());
             ++sunk;
@@ -622,9 +631,9 @@ TEST_SUITE("zone.engine_faults") {
     }
     // Released: the engine shares again.
     held.clear();
-    REQUIRE_FALSE(tracker.update(store.columns()).has_value());
+    REQUIRE_FALSE(z.tracker.update(z.store.columns()).has_value());
     std::atomic<int> shared{0};
-    dev.build_many(requests, store, tracker, 7, 21, &pool, [](std::size_t, std::span<const std::uint8_t>, const replication_stats&) {}, {}, {},
+    dev.build_many(requests, z.store, z.tracker, 7, 21, &z.pool, [](std::size_t, std::span<const std::uint8_t>, const replication_stats&) {}, {}, {},
                    [&](std::size_t, net::shared_frame, const replication_stats&) { ++shared; });
     CHECK(shared.load() == 20);
   }
@@ -635,16 +644,9 @@ TEST_SUITE("zone.engine_faults") {
       const std::uint64_t seed = zone::test::fresh_seed();
       CAPTURE(seed);
       CAPTURE(at);
-      std::mt19937_64 rng(seed);
-      entity_store store;
-      add_random_entities(store, rng, 300, 250, 7);
-      interest::thread_pool pool(2);
-      interest::grid_finder finder(&pool);
-      interest_tracker tracker(finder, &pool, {3.0f, 0, 64});
-      replication_options opt;
-      opt.world = {{0, 0, 0}, {250, 250, 20}};
-      opt.byte_budget = 700;  // small enough that enters and updates are deferred
-      replicator cpu(opt), dev(opt);
+      random_zone z(seed, 300, 250, 7);
+      z.opt.byte_budget = 700;  // small enough that enters and updates are deferred
+      replicator cpu(z.opt), dev(z.opt);
       emulated_engine inner(seed);
       std::uint64_t tick = 0;
       engine_fault fault;
@@ -652,19 +654,15 @@ TEST_SUITE("zone.engine_faults") {
       fault.at_tick = at;
       faulty_replication_engine engine(inner, fault);
       dev.set_engine(&engine);
-      std::vector<replication_request> requests;
-      for (std::size_t k = 0; k < 40; ++k) {
-        const client_id a = cpu.add_client(store.ids()[k * 7]), b = dev.add_client(store.ids()[k * 7]);
-        REQUIRE(a == b);
-        requests.push_back({a, 0});
-      }
+      replicator* const both[] = {&cpu, &dev};
+      const std::vector<replication_request> requests = add_same_clients(both, z.store, 40, 7);
       std::vector<std::set<std::uint32_t>> held(requests.size());  // each client's view, from its frames
       std::vector<std::vector<std::uint8_t>> want(requests.size()), got(requests.size());
       std::uint64_t deferred = 0, compared = 0;
       for (; tick < 30; ++tick) {
         CAPTURE(tick);
-        move_all(store, 250);
-        REQUIRE_FALSE(tracker.update(store.columns()).has_value());
+        move_all(z.store, 250);
+        REQUIRE_FALSE(z.tracker.update(z.store.columns()).has_value());
         if (tick == at) {
           for (const auto& r : requests) cpu.resync(r.client);
         }
@@ -673,8 +671,8 @@ TEST_SUITE("zone.engine_faults") {
             into[k].assign(f.begin(), f.end());
           };
         };
-        cpu.build_many(requests, store, tracker, tick, tick * 3, &pool, sink(want));
-        dev.build_many(requests, store, tracker, tick, tick * 3, &pool, sink(got));
+        cpu.build_many(requests, z.store, z.tracker, tick, tick * 3, &z.pool, sink(want));
+        dev.build_many(requests, z.store, z.tracker, tick, tick * 3, &z.pool, sink(got));
         REQUIRE(dev.on_engine() == (tick < at));
         REQUIRE(engine.fault().fired() == (tick >= at));
         if (tick >= at) CHECK(dev.engine_error().find("CUDA error") != std::string::npos);

@@ -1,5 +1,6 @@
-// The staged, validated upload of a box set to the device (host code, header-only): the DataIn
-// step of both GPU finders (pbig_dispatch.cpp, lbvh_dispatch.cpp).
+// The input side of both GPU finders' engines (pbig_dispatch.cpp, lbvh_dispatch.cpp; host code,
+// header-only): the thread pool they pack and copy with, and the DataIn step, the staged,
+// validated upload of a box set into the device arrays their kernels read (box_arrays.h).
 #pragma once
 
 #include <cuda_runtime.h>
@@ -10,12 +11,23 @@
 #include <cstddef>
 #include <cstdint>
 #include <cstring>
+#include <memory>
 
+#include "box_arrays.h"
 #include "cuda_check.h"
+#include "gpu_buffers.h"
 #include "interest/interest.h"
 #include "interest/thread_pool.h"
 
 namespace zone::gpu::detail {
+
+/// The pool an engine's host work runs on: `given`, or, when that is null, a pool of every
+/// hardware thread made into `own`.
+inline interest::thread_pool* pool_or_own(interest::thread_pool* given, std::unique_ptr<interest::thread_pool>& own) {
+  if (given != nullptr) return given;
+  own = std::make_unique<interest::thread_pool>(0);
+  return own.get();
+}
 
 /// Queues on `stream` the copy of `boxes` (n boxes) to the device: 6 arrays of n floats at
 /// `d_coord` (lo x, y, z, then hi x, y, z) and 2 arrays of n bits at `d_bits` (category, then mask),
@@ -78,5 +90,48 @@ inline bool staged_upload(const interest::box_set& boxes, bool check, float* d_c
   }
   return true;
 }
+
+/// A finder call's boxes on the device, grow-only: 6 arrays of n floats (lo x, y, z, then hi x, y,
+/// z) and 2 arrays of n bits (category, then mask), with the pinned staging memory of
+/// staged_upload. Contents are lost when an array grows.
+class device_boxes {
+ public:
+  /// Room for n boxes on the device (not the staging memory).
+  void reserve(std::size_t n) {
+    coord_.reserve(6 * n);
+    bits_.reserve(2 * n);
+  }
+  /// reserve(n), then staged_upload of `boxes` on `stream` (see there), then `ready` recorded on
+  /// `stream`. False at an invalid box: `stream` is synchronised first, so the staging memory is
+  /// free again.
+  bool upload_staged(const interest::box_set& boxes, bool check, interest::thread_pool* pool, cudaStream_t stream,
+                     cudaEvent_t ready, std::size_t part_boxes, std::size_t max_parts) {
+    const std::size_t n = boxes.size();
+    reserve(n);
+    stage_.reserve(32 * n);
+    const bool ok = staged_upload(boxes, check, coord(), bits(), stage_.get(), pool, stream, part_boxes, max_parts);
+    CUDA_CHECK(cudaEventRecord(ready, stream));
+    if (!ok) CUDA_CHECK(cudaStreamSynchronize(stream));
+    return ok;
+  }
+  /// The arrays of the first n boxes (n as at the last reserve or upload).
+  [[nodiscard]] box_arrays arrays(std::size_t n) const {
+    box_arrays b{};
+    for (int d = 0; d < 3; ++d) {
+      b.lo[d] = coord_.get() + d * n;
+      b.hi[d] = coord_.get() + (3 + d) * n;
+    }
+    b.category = bits_.get();
+    b.mask = bits_.get() + n;
+    return b;
+  }
+  [[nodiscard]] float* coord() const { return coord_.get(); }
+  [[nodiscard]] std::uint32_t* bits() const { return bits_.get(); }
+
+ private:
+  mem::device_array<float> coord_;
+  mem::device_array<std::uint32_t> bits_;
+  mem::pinned_array<unsigned char> stage_;
+};
 
 }  // namespace zone::gpu::detail

@@ -1,0 +1,412 @@
+// The GPU PBIG finder's overlapped upload (pbig_options::overlap_min_boxes / overlap_chunks;
+// docs/gpu.md, "Overlapped upload") against the CPU references: the brute-force finder and the
+// CPU grid finder (pair count and the sorted pair lists equal), and the one-shot GPU path. The
+// pipeline is forced onto sets of 2x10^4-3x10^5 boxes (pinned: pinned_boxes pins from 16384 boxes)
+// with 2, 3 and 7 chunks, chunk sizes that do not divide n, and the sets that stress its
+// decomposition: boxes straddling cells, duplicates and identical boxes, zero-extent boxes, later
+// chunks far outside the first chunk's bounds (the grid is planned from chunk 0), stages without
+// pairs or without grid boxes, boxes handled apart, invalid boxes in a later chunk, overflowing
+// output buffers. Part of test_gpu: without a device the executable exits with 77 (Skipped).
+#include <doctest/doctest.h>
+
+#include <algorithm>
+#include <cstdint>
+#include <limits>
+#include <span>
+#include <string>
+#include <vector>
+
+#include "../common/box_families.h"
+#include "gpu/pbig.h"
+#include "interest/interest.h"
+#include "interest/thread_pool.h"
+
+using namespace zone::interest;
+using namespace zone::test;
+namespace gpu = zone::gpu;
+
+namespace {
+
+/// The overlapped upload forced from 2 boxes on, in k chunks.
+gpu::pbig_options overlapped(std::uint32_t k, thread_pool* pool) {
+  gpu::pbig_options o;
+  o.decode_pool = pool;
+  o.overlap_min_boxes = 2;
+  o.overlap_chunks = k;
+  return o;
+}
+
+/// The one-shot path (the overlapped upload never).
+gpu::pbig_options one_shot(thread_pool* pool) {
+  gpu::pbig_options o;
+  o.decode_pool = pool;
+  o.overlap_min_boxes = std::numeric_limits<std::size_t>::max();
+  return o;
+}
+
+std::unique_ptr<pair_finder> make_gpu(const gpu::pbig_options& opt) {
+  std::string why;
+  auto f = gpu::make_pbig_finder(opt, &why);
+  if (!f) FAIL("make_pbig_finder failed: " << why);
+  return f;
+}
+
+/// Chunk j of the overlapped upload holds the ids [n j / k, n (j + 1) / k).
+std::size_t chunk_start(std::size_t n, std::size_t k, std::size_t j) { return n * j / k; }
+
+/// find_pairs_view on a pinned set: the pairs as they came (each checked a < b).
+pair_list view_of(pair_finder& f, const box_set& s) {
+  REQUIRE(gpu::boxes_pinned(s));
+  std::span<const id_pair> got;
+  const auto err = gpu::find_pairs_view(f, s, got);
+  REQUIRE_FALSE(err.has_value());
+  REQUIRE(std::all_of(got.begin(), got.end(), [](const id_pair& p) { return p.a < p.b; }));
+  return pair_list(got.begin(), got.end());
+}
+
+pair_list sorted(pair_list v) {
+  std::sort(v.begin(), v.end());
+  return v;
+}
+
+/// The CPU grid finder's pairs, sorted (a < b).
+pair_list cpu_pairs(const box_set& s, thread_pool* pool) {
+  grid_finder grid(pool);
+  return sorted(run(grid, s));
+}
+
+/// The overlapped call on a pinned set, against `want` (sorted): same count, same sorted pairs,
+/// no pair twice, and the call took the overlapped upload with k chunks.
+void check_overlapped(pair_finder& f, const box_set& s, const pair_list& want, std::uint32_t k) {
+  const pair_list got = sorted(view_of(f, s));
+  CHECK(got.size() == want.size());
+  CHECK(std::adjacent_find(got.begin(), got.end()) == got.end());
+  CHECK(got == want);
+  const gpu::pbig_report* rep = gpu::last_pbig_report(f);
+  REQUIRE(rep != nullptr);
+  CHECK(rep->overlap_chunks == k);
+  CHECK(rep->pairs == want.size());
+}
+
+box make_box(float x, float y, float z, float ex, float ey, float ez, std::uint32_t category = 1,
+             std::uint32_t mask = 1) {
+  box b;
+  b.lo[0] = x;
+  b.lo[1] = y;
+  b.lo[2] = z;
+  b.hi[0] = x + ex;
+  b.hi[1] = y + ey;
+  b.hi[2] = z + ez;
+  b.category = category;
+  b.mask = mask;
+  return b;
+}
+
+/// Sets that stress the stages, n boxes each, built for k chunks (boxes placed by chunk).
+box_set far_chunks(std::size_t n, std::size_t k, std::uint64_t seed) {
+  // Chunk 0 in [0, 100]^3 (the plan's bounds); each later chunk mixes boxes inside, boxes far
+  // outside on every side (clamped into the border cells), boxes straddling the bounds and rods
+  // from inside to far outside.
+  rng_box_maker r(seed);
+  box_set s;
+  const std::size_t first = chunk_start(n, k, 1);
+  for (std::size_t i = 0; i < n; ++i) {
+    if (i < first) {
+      s.push_back(r.make(100, 5));
+      continue;
+    }
+    switch (i % 5) {
+      case 0: s.push_back(r.make(100, 5)); break;
+      case 1: s.push_back(r.make(100, 6, 1e4f)); break;   // far above: [1e4, 1e4 + 106]
+      case 2: s.push_back(r.make(100, 6, -3e4f)); break;  // far below
+      case 3: s.push_back(r.make(60, 30, 70)); break;     // across the upper bound
+      default: {
+        box b = r.make(100, 3);
+        const int d = static_cast<int>(r.rng() % 3);
+        b.hi[d] = b.lo[d] + r.uni(100, 2e4f);  // a rod from inside to far out
+        s.push_back(b);
+      }
+    }
+  }
+  return s;
+}
+
+box_set duplicates(std::size_t n, std::uint64_t seed) {
+  // A base set repeated three times (every box has two identical copies, in other chunks), one
+  // group of identical boxes spread over every chunk, and zero-extent copies of box corners.
+  rng_box_maker r(seed);
+  const std::size_t third = n / 3;
+  std::vector<box> base;
+  for (std::size_t i = 0; i < third; ++i) base.push_back(r.make(150, 8));
+  box_set s;
+  for (std::size_t i = 0; i < n; ++i) {
+    if (i % 97 == 5) {
+      s.push_back(make_box(40.5f, 40.5f, 40.5f, 2.25f, 2.25f, 2.25f));  // the identical group
+    } else if (i % 31 == 7) {
+      const box& b = base[i % third];
+      s.push_back(make_box(b.hi[0], b.lo[1], b.hi[2], 0, 0, 0));  // a point on a corner of another box
+    } else {
+      s.push_back(base[i % third]);
+    }
+  }
+  return s;
+}
+
+box_set degenerate(std::size_t n, std::uint64_t seed) {
+  // Points, flat boxes and unit cubes on an integer lattice: coinciding points, faces and edges
+  // that touch exactly, many of them on cell faces.
+  rng_box_maker r(seed);
+  box_set s;
+  for (std::size_t i = 0; i < n; ++i) {
+    box b;
+    for (int d = 0; d < 3; ++d) {
+      b.lo[d] = static_cast<float>(r.rng() % 40);
+      const auto kind = r.rng() % 4;
+      b.hi[d] = b.lo[d] + (kind == 0 ? 1.0f : 0.0f);
+    }
+    s.push_back(b);
+  }
+  return s;
+}
+
+box_set straddling(std::size_t n, std::uint64_t seed) {
+  // Integer-aligned boxes of 0-24 units in a 300-unit world: bounds on cell faces, boxes over
+  // several cells.
+  rng_box_maker r(seed);
+  box_set s;
+  for (std::size_t i = 0; i < n; ++i) {
+    box b;
+    for (int d = 0; d < 3; ++d) {
+      b.lo[d] = static_cast<float>(r.rng() % 300);
+      b.hi[d] = b.lo[d] + static_cast<float>(r.rng() % 25);
+    }
+    s.push_back(b);
+  }
+  return s;
+}
+
+box_set lonely_stages(std::size_t n, std::size_t k, std::uint64_t seed) {
+  // Chunk j in its own region (no pair between chunks); chunk 1 pairs with nothing (category and
+  // mask 0); the last chunk is only world-spanning boxes handled apart (no grid entry in its
+  // stage) whose classes pair them with chunk 0's boxes only.
+  rng_box_maker r(seed);
+  box_set s;
+  for (std::size_t j = 0; j < k; ++j) {
+    const std::size_t b = chunk_start(n, k, j), e = chunk_start(n, k, j + 1);
+    for (std::size_t i = b; i < e; ++i) {
+      if (j + 1 == k) {
+        box w = make_box(-10, -10, -10, 1e5f, 1e5f, 1e5f, 8, i % 50 == 0 ? 2 : 0);
+        s.push_back(w);
+      } else {
+        box x = r.make(100, 6, 1000.0f * static_cast<float>(j));
+        if (j == 1) x.category = x.mask = 0;
+        if (j == 0) x.category = 3;
+        s.push_back(x);
+      }
+    }
+  }
+  return s;
+}
+
+}  // namespace
+
+TEST_SUITE("gpu.pbig.overlap") {
+  TEST_CASE(
+      "overlapped upload: families in 2, 3 and 7 chunks against brute force, the CPU grid finder and the one-shot path") {
+    thread_pool pool(4);
+    brute_force_finder brute(&pool);
+    auto whole = make_gpu(one_shot(&pool));
+    // One finder per chunk count, reused from set to set (sizes and plans change between calls).
+    const std::uint32_t chunk_counts[] = {2, 3, 7};
+    std::vector<std::unique_ptr<pair_finder>> finders;
+    for (const std::uint32_t k : chunk_counts) finders.push_back(make_gpu(overlapped(k, &pool)));
+    for (const family f : {family::uniform, family::huge_over_tiny, family::long_thin, family::negative_large,
+                           family::mask_mix, family::integer_grid, family::flat_world, family::few_classes}) {
+      for (const std::size_t n : {std::size_t{20000}, std::size_t{33331}}) {
+        const auto seed = fresh_seed();
+        CAPTURE(family_name(f));
+        CAPTURE(n);
+        CAPTURE(seed);
+        const box_set s = make_family(f, n, seed);
+        const gpu::pinned_boxes pin(s);
+        REQUIRE(pin.active());
+        const pair_list want = cpu_pairs(s, &pool);
+        if (n == 20000) CHECK(sorted(run(brute, s)) == want);
+        CHECK(sorted(view_of(*whole, s)) == want);
+        for (std::size_t i = 0; i < finders.size(); ++i) {
+          const std::uint32_t k = chunk_counts[i];
+          CAPTURE(k);
+          check_overlapped(*finders[i], s, want, k);
+          check_overlapped(*finders[i], s, want, k);  // again: plan reused, buffers kept
+        }
+      }
+    }
+  }
+
+  TEST_CASE("overlapped upload: far chunks, duplicates, zero extents, straddling boxes, stages without pairs") {
+    thread_pool pool(4);
+    brute_force_finder brute(&pool);
+    for (const std::uint32_t k : {2u, 3u, 7u}) {
+      const std::size_t n = 24001 + k;  // chunk sizes not dividing n
+      const auto seed = fresh_seed();
+      CAPTURE(k);
+      CAPTURE(seed);
+      struct named {
+        const char* name;
+        box_set set;
+      };
+      const named sets[] = {{"far chunks", far_chunks(n, k, seed)},
+                            {"duplicates", duplicates(n, seed)},
+                            {"degenerate", degenerate(n, seed)},
+                            {"straddling", straddling(n, seed)},
+                            {"lonely stages", lonely_stages(n, k, seed)}};
+      auto finder = make_gpu(overlapped(k, &pool));
+      for (const named& t : sets) {
+        CAPTURE(t.name);
+        const gpu::pinned_boxes pin(t.set);
+        REQUIRE(pin.active());
+        const pair_list want = sorted(run(brute, t.set));
+        CHECK(cpu_pairs(t.set, &pool) == want);
+        check_overlapped(*finder, t.set, want, k);
+        if (std::string(t.name) == "lonely stages") {
+          // No pair across chunks and none in chunk 1; the last chunk's boxes are handled apart.
+          const std::size_t c1 = chunk_start(n, k, 1), c2 = chunk_start(n, k, 2), last = chunk_start(n, k, k - 1);
+          CHECK(std::none_of(want.begin(), want.end(), [&](const id_pair& p) { return p.a >= c1 && p.a < c2; }));
+          CHECK(std::any_of(want.begin(), want.end(), [&](const id_pair& p) { return p.b >= last; }));
+          const gpu::pbig_report* rep = gpu::last_pbig_report(*finder);
+          REQUIRE(rep != nullptr);
+          CHECK(rep->pairs == want.size());
+        }
+      }
+    }
+  }
+
+  TEST_CASE("overlapped upload: deterministic order, overflowing buffers re-run, find() and no load balancing") {
+    thread_pool pool(4);
+    const auto seed = fresh_seed();
+    CAPTURE(seed);
+    const box_set s = *generate_named("uniform", 60000, seed);
+    const gpu::pinned_boxes pin(s);
+    REQUIRE(pin.active());
+    const pair_list want = cpu_pairs(s, &pool);
+    REQUIRE(!want.empty());
+    auto a = make_gpu(overlapped(3, &pool));
+    auto b = make_gpu(overlapped(3, &pool));
+    const pair_list first = view_of(*a, s);
+    CHECK(sorted(first) == want);
+    CHECK(view_of(*a, s) == first);  // same order on the next call
+    CHECK(view_of(*b, s) == first);  // and on another finder
+    // 1-pair buffers: every batch overflows and is re-run; the same pairs in the same order.
+    gpu::pbig_options tiny = overlapped(3, &pool);
+    tiny.initial_output_pairs = 1;
+    auto t = make_gpu(tiny);
+    CHECK(view_of(*t, s) == first);
+    const gpu::pbig_report* rep = gpu::last_pbig_report(*t);
+    REQUIRE(rep != nullptr);
+    CHECK(rep->reruns >= 1);
+    CHECK(rep->overlap_chunks == 3);
+    // Through pair_finder::find (the pinned result copied into the caller's list).
+    pair_list listed;
+    REQUIRE_FALSE(a->find(s, listed).has_value());
+    CHECK(listed == first);
+    // Without Eq. 7's balanced assignment (another order, the same pairs).
+    gpu::pbig_options plain = overlapped(7, &pool);
+    plain.load_balancing = false;
+    auto p = make_gpu(plain);
+    check_overlapped(*p, s, want, 7);
+  }
+
+  TEST_CASE("overlapped upload: an invalid box in chunk 0 or a later chunk is reported, the next call unaffected") {
+    thread_pool pool(4);
+    const auto seed = fresh_seed();
+    CAPTURE(seed);
+    const std::size_t n = 30000;
+    box_set s = *generate_named("uniform", n, seed);
+    const gpu::pinned_boxes pin(s);
+    REQUIRE(pin.active());
+    const pair_list want = cpu_pairs(s, &pool);
+    auto finder = make_gpu(overlapped(3, &pool));
+    check_overlapped(*finder, s, want, 3);
+    for (const std::size_t bad : {std::size_t{17}, chunk_start(n, 3, 1) + 5, n - 1}) {  // chunks 0, 1 and 2
+      CAPTURE(bad);
+      const float keep = s.lo_y[bad];
+      s.lo_y[bad] = s.hi_y[bad] + 1.0f;
+      std::span<const id_pair> got;
+      const auto err = gpu::find_pairs_view(*finder, s, got);
+      REQUIRE(err.has_value());
+      CHECK(err->index == bad);
+      CHECK(err->message == validate(s)->message);
+      CHECK(got.empty());
+      s.lo_y[bad] = std::numeric_limits<float>::quiet_NaN();
+      const auto err2 = gpu::find_pairs_view(*finder, s, got);
+      REQUIRE(err2.has_value());
+      CHECK(err2->index == bad);
+      s.lo_y[bad] = keep;
+      check_overlapped(*finder, s, want, 3);
+    }
+  }
+
+  TEST_CASE("overlapped upload: classes filled per chunk when they are box 0's") {
+    // From 2^18 boxes on, a chunk whose boxes share box 0's category and mask uploads 24 bytes a
+    // box; a chunk with one other box uploads 32.
+    thread_pool pool(4);
+    const auto seed = fresh_seed();
+    CAPTURE(seed);
+    const std::size_t n = 300001, k = 3;
+    box_set s = *generate_named("uniform", n, seed);
+    std::fill(s.category.begin(), s.category.end(), 1u);
+    std::fill(s.mask.begin(), s.mask.end(), 1u);
+    auto finder = make_gpu(overlapped(k, &pool));
+    {
+      const gpu::pinned_boxes pin(s);
+      REQUIRE(pin.active());
+      check_overlapped(*finder, s, cpu_pairs(s, &pool), k);
+      const gpu::pbig_report* rep = gpu::last_pbig_report(*finder);
+      REQUIRE(rep != nullptr);
+      CHECK(rep->classes_filled);
+      CHECK(rep->bytes_in == 24u * n);
+    }
+    const std::size_t odd = chunk_start(n, k, 1) + 11;
+    s.category[odd] = 2;
+    s.mask[odd] = 2;
+    const gpu::pinned_boxes pin(s);
+    REQUIRE(pin.active());
+    check_overlapped(*finder, s, cpu_pairs(s, &pool), k);
+    const gpu::pbig_report* rep = gpu::last_pbig_report(*finder);
+    REQUIRE(rep != nullptr);
+    CHECK_FALSE(rep->classes_filled);
+    CHECK(rep->bytes_in == 24u * n + 8u * (chunk_start(n, k, 2) - chunk_start(n, k, 1)));
+  }
+
+  TEST_CASE("overlapped upload by default from 2^22 pinned boxes: the one-shot path's pairs") {
+    thread_pool pool(8);
+    const auto seed = fresh_seed();
+    CAPTURE(seed);
+    const std::size_t n = std::size_t{1} << 22;
+    const box_set s = *generate_named("uniform", n, seed);
+    const gpu::pinned_boxes pin(s);
+    REQUIRE(pin.active());
+    gpu::pbig_options defaults;
+    defaults.decode_pool = &pool;
+    auto finder = make_gpu(defaults);
+    auto whole = make_gpu(one_shot(&pool));
+    const pair_list want = sorted(view_of(*whole, s));
+    CHECK(gpu::last_pbig_report(*whole)->overlap_chunks == 0);
+    const pair_list got = view_of(*finder, s);
+    const gpu::pbig_report* rep = gpu::last_pbig_report(*finder);
+    REQUIRE(rep != nullptr);
+    CHECK(rep->overlap_chunks > 1);
+    CHECK(sorted(got) == want);
+    grid_finder grid(&pool);
+    pair_list cpu;
+    REQUIRE_FALSE(grid.find(s, cpu).has_value());
+    CHECK(cpu.size() == want.size());
+    // One box fewer: the one-shot path.
+    box_set smaller = s;
+    smaller.resize(n - 1);
+    const gpu::pinned_boxes pin2(smaller);
+    REQUIRE(pin2.active());
+    (void)view_of(*finder, smaller);
+    CHECK(gpu::last_pbig_report(*finder)->overlap_chunks == 0);
+  }
+}
