@@ -4,6 +4,7 @@
 #include <algorithm>
 #include <atomic>
 #include <bit>
+#include <cerrno>
 #include <boost/asio.hpp>
 #include <boost/beast/core.hpp>
 #include <boost/beast/http.hpp>
@@ -14,7 +15,9 @@
 #include <deque>
 #include <nlohmann/json.hpp>
 #include <optional>
+#include <future>
 #include <pthread.h>
+#include <sched.h>
 #include <spdlog/spdlog.h>
 #include <sys/resource.h>
 #include <thread>
@@ -262,11 +265,16 @@ struct viewer_server::impl {
   std::unique_ptr<std::atomic<std::uint32_t>[]> selected;  // one slot per session (0: none)
   std::atomic<std::uint64_t> selection_version{0};
   std::atomic<std::size_t> open{0};
+  // When the last snapshot was published and the time between the last two (steady clock, ns):
+  // the sessions' timers wake when the next is due (viewer_poll_delay_ns).
+  std::atomic<std::int64_t> published_ns{0}, period_ns{0};
+  std::int64_t producer_last_ns = 0;  // the producer's own copy
 
   // The viewer's thread (everything below is touched only there, but the counters).
   std::unique_ptr<asio::io_context> ioc = std::make_unique<asio::io_context>(1);
   std::optional<asio::executor_work_guard<asio::io_context::executor_type>> work;
   std::thread thread;
+  thread_priority priority;  // written by the thread before the constructor returns
   std::vector<ws_session*> sessions;
   std::vector<bool> slot_used;
   std::shared_ptr<const std::string> stats_json;
@@ -394,7 +402,9 @@ class ws_session : public std::enable_shared_from_this<ws_session> {
   }
 
   void arm_timer() {
-    timer_.expires_after(std::chrono::milliseconds(50));
+    const std::int64_t now = std::chrono::duration_cast<std::chrono::nanoseconds>(clock_type::now().time_since_epoch()).count();
+    timer_.expires_after(std::chrono::nanoseconds(viewer_poll_delay_ns(
+        now, srv_->published_ns.load(std::memory_order_relaxed), srv_->period_ns.load(std::memory_order_relaxed))));
     timer_.async_wait([self = shared_from_this()](beast::error_code ec) {
       if (ec || self->closed_) return;
       if (self->writing_ && clock_type::now() - self->write_started_ >
@@ -486,15 +496,17 @@ class ws_session : public std::enable_shared_from_this<ws_session> {
 viewer_server::viewer_server(viewer_options opt) : impl_(std::make_shared<impl>(opt)) {
   auto& m = *impl_;
   m.work.emplace(m.ioc->get_executor());
-  m.thread = std::thread([&m] {
+  std::promise<thread_priority> applied;
+  auto got = applied.get_future();
+  m.thread = std::thread([&m, applied = std::move(applied)]() mutable {
     pthread_setname_np(pthread_self(), "zone-viewer");  // per-thread CPU readings (top -H, /proc/<pid>/task/*/comm)
-    // Linux: a thread's own nice value; raising it needs no privilege. On 2 cores the tick's
-    // threads then take the CPU back from an encode at once.
-    if (m.opt.nice != 0 && ::setpriority(PRIO_PROCESS, static_cast<id_t>(::gettid()), m.opt.nice) != 0) {
-      spdlog::debug("viewer: could not set the viewer thread's nice value to {}", m.opt.nice);
-    }
+    // Below the tick's threads: nice 19 and SCHED_IDLE (lower_thread_priority), so that the
+    // tick's threads take a core back from an encode or a write at once and are woken onto a
+    // core that runs only this thread as if it were idle.
+    applied.set_value(lower_thread_priority(m.opt.idle, m.opt.nice));
     m.ioc->run();
   });
+  m.priority = got.get();
 }
 
 viewer_server::~viewer_server() {
@@ -522,12 +534,56 @@ std::vector<std::uint32_t> viewer_server::selected() const {
 }
 
 viewer_snapshot& viewer_server::next_snapshot() { return impl_->snapshots.producer(); }
-void viewer_server::publish() { impl_->snapshots.publish(); }
+void viewer_server::publish() {
+  auto& m = *impl_;
+  m.snapshots.publish();
+  // Two relaxed stores (the clock is the vDSO's: no system call): when the sessions look next.
+  const std::int64_t now = std::chrono::duration_cast<std::chrono::nanoseconds>(clock_type::now().time_since_epoch()).count();
+  if (m.producer_last_ns != 0) m.period_ns.store(now - m.producer_last_ns, std::memory_order_relaxed);
+  m.producer_last_ns = now;
+  m.published_ns.store(now, std::memory_order_relaxed);
+}
+
+std::int64_t viewer_poll_delay_ns(std::int64_t now_ns, std::int64_t last_ns, std::int64_t period_ns) {
+  constexpr std::int64_t ms = 1'000'000, idle = 50 * ms, late = 10 * ms, after = ms / 5;
+  if (last_ns <= 0 || period_ns <= 0 || period_ns > 1000 * ms) return idle;
+  const std::int64_t due = last_ns + period_ns;
+  if (now_ns < due) return std::min(idle, due - now_ns + after);
+  if (now_ns - due <= late) return ms;
+  return idle;
+}
 
 viewer_stats& viewer_server::next_stats() { return impl_->stats.producer(); }
 void viewer_server::publish_stats() {
   impl_->stats.publish();
   impl_->stats.producer().ticks.clear();
+}
+
+thread_priority viewer_server::thread_info() const { return impl_->priority; }
+
+thread_priority lower_thread_priority(bool idle, int nice, int (*set_idle)()) {
+  thread_priority r;
+  r.tid = static_cast<long>(::gettid());
+  static std::atomic<bool> logged{false};
+  const auto once = [](const char* what, int err) {
+    if (!logged.exchange(true)) spdlog::info("background thread priority: {} refused ({}); running without it", what, std::strerror(err));
+  };
+  // Linux: a thread's own nice value (PRIO_PROCESS with a thread id); raising it needs no privilege.
+  if (nice > 0 && ::setpriority(PRIO_PROCESS, static_cast<id_t>(r.tid), nice) != 0) once("nice", errno);
+  if (idle) {
+    const int rc = set_idle ? set_idle() : [] {
+      const sched_param p{};
+      return ::sched_setscheduler(0, SCHED_IDLE, &p);  // 0: the calling thread
+    }();
+    if (rc != 0) {
+      r.idle_refused = true;
+      once("SCHED_IDLE", errno);
+    }
+  }
+  errno = 0;
+  r.nice = ::getpriority(PRIO_PROCESS, static_cast<id_t>(r.tid));
+  r.idle = ::sched_getscheduler(0) == SCHED_IDLE;
+  return r;
 }
 
 viewer_server::counters viewer_server::stats() const {

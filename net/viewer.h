@@ -99,7 +99,24 @@ struct viewer_options {
   double max_requests_per_s = 60;    ///< close a session that sends more view requests than this
   std::uint32_t grid_cells = 128;    ///< density grid cells per axis when a viewport holds too many entities
   int nice = 19;                     ///< the viewer thread's nice value (Linux, per thread): it yields the cores to the tick
+  bool idle = true;                  ///< and its policy SCHED_IDLE where the OS allows it (lower_thread_priority)
 };
+
+/// What lower_thread_priority applied to the calling thread.
+struct thread_priority {
+  long tid = 0;               ///< the thread (Linux thread id)
+  int nice = 0;               ///< its nice value after the call (getpriority)
+  bool idle = false;          ///< its policy is SCHED_IDLE
+  bool idle_refused = false;  ///< SCHED_IDLE was asked for and the OS refused it (the nice value stands alone)
+};
+/// Lowers the calling thread's CPU priority below the tick's threads: its nice value to `nice`
+/// (0..19; 0 leaves it), then, with `idle`, its policy to SCHED_IDLE (Linux lets any thread take
+/// it; the scheduler runs such a thread only on a core no other thread wants, takes the core back
+/// at once when one wakes, and places a woken thread on a core that runs only SCHED_IDLE threads
+/// as if that core were idle). A refused step is skipped: the thread keeps what it had (the nice
+/// value when SCHED_IDLE is refused), logged once per process. `set_idle` (tests: a refusing OS)
+/// replaces the sched_setscheduler call; it returns 0 or -1 with errno set.
+thread_priority lower_thread_priority(bool idle, int nice, int (*set_idle)() = nullptr);
 
 /// The viewer's HTTP routes, WebSocket sessions and own thread. Two sides:
 /// - the producer (one thread: the zone's tick): next_snapshot()/publish(), next_stats()/
@@ -137,6 +154,8 @@ class viewer_server {
                   frames_sent = 0, bytes_sent = 0, snapshots_published = 0;
   };
   [[nodiscard]] counters stats() const;
+  /// The viewer's thread and the priority it runs at (set before the constructor returns).
+  [[nodiscard]] thread_priority thread_info() const;
 
   struct impl;  ///< the Beast implementation (viewer.cpp); sessions share it
   [[nodiscard]] impl& get() { return *impl_; }
@@ -145,6 +164,14 @@ class viewer_server {
  private:
   std::shared_ptr<impl> impl_;
 };
+
+/// How long a session's timer sleeps before it looks for a new snapshot (nanoseconds), from the
+/// last snapshot's publication (`last_ns`, steady clock; 0: none yet) and the time between the
+/// last two (`period_ns`; 0: unknown): until just after the next one is due (so that it is
+/// encoded and written as soon as the tick has published it, in the time between ticks, and not
+/// in the middle of the next tick), polling each millisecond while it is due but not there (up to
+/// 10 ms late), else at most 50 ms (the stall check's and the stats' pace).
+[[nodiscard]] std::int64_t viewer_poll_delay_ns(std::int64_t now_ns, std::int64_t last_ns, std::int64_t period_ns);
 
 /// The embedded page (net/viewer/index.html).
 [[nodiscard]] std::string_view viewer_page();

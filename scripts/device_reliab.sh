@@ -17,10 +17,13 @@
 #           (PING_CPUS, default 0-1; the probe on others): the server's CPU and a good client's
 #           frame gap p99, alone and during the floods
 #   viewer  tools/viewer_tick_ab.py: tick p50/p99 with and without a viewer socket at VIEWER_NPCS
-#           (100000) NPCs, VIEWER_ROUNDS (5) rounds of VIEWER_PHASE_S (4) s each way (VIEWER_AB: the
-#           script's path, when it is not run from a checkout); VIEWER_BOTS=N: N bots (bot-swarm) play
-#           through it, so that the tick replicates (the GPU replication engine's wait then holds the
-#           viewer's snapshot); unset: no clients, no replication
+#           (100000) NPCs, VIEWER_ROUNDS (40) alternating pairs of VIEWER_PHASE_S (1.5) s each way, the
+#           first VIEWER_SETTLE_S (0.25) s of each phase not counted, each run bounded by VIEWER_MAX_S
+#           (240) s; the viewer's client (the script) at SCHED_IDLE with VIEWER_CLIENT_IDLE=1
+#           (VIEWER_AB: the script's path, when it is not run from a checkout). VIEWER_BOTS: a list,
+#           one run for each (0: no clients, no replication; N: N bots (bot-swarm) play through it, so
+#           that the tick replicates and the GPU replication engine's wait holds the viewer's snapshot):
+#           VIEWER_BOTS="0 200" measures both ways (about 2 x 3 min); unset: 0
 # Logs and CSV go to $OUT (or ./out).
 set -uo pipefail
 . "$(dirname "${BASH_SOURCE[0]}")/zone_procs.sh"
@@ -111,11 +114,16 @@ EOF
       stop_server "$server"
       ;;
     viewer)
-      echo "== viewer A/B $(date -u +%FT%TZ)"
-      python3 "${VIEWER_AB:-tools/viewer_tick_ab.py}" --server "$dir/zone-server" --npcs "${VIEWER_NPCS:-100000}" --phase-s "${VIEWER_PHASE_S:-4}" \
-        --rounds "${VIEWER_ROUNDS:-5}" --warmup-s 5 --server-args "--threads 8 --io-threads 4" \
-        ${VIEWER_BOTS:+--bots "$VIEWER_BOTS" --bot-swarm "$dir/bot-swarm"} \
-        --label "(device)" --csv "$out/viewer-ab.csv" 2>&1 | tee "$out/viewer-ab.log"
+      for bots in ${VIEWER_BOTS:-0}; do
+        echo "== viewer A/B, $bots bots $(date -u +%FT%TZ)"
+        bot_args=()
+        [ "$bots" -gt 0 ] && bot_args=(--bots "$bots" --bot-swarm "$dir/bot-swarm")
+        python3 "${VIEWER_AB:-tools/viewer_tick_ab.py}" --server "$dir/zone-server" --npcs "${VIEWER_NPCS:-100000}" \
+          --phase-s "${VIEWER_PHASE_S:-1.5}" --rounds "${VIEWER_ROUNDS:-40}" --settle-s "${VIEWER_SETTLE_S:-0.25}" \
+          --max-s "${VIEWER_MAX_S:-240}" --client-idle "${VIEWER_CLIENT_IDLE:-0}" --warmup-s 5 \
+          --server-args "--threads 8 --io-threads 4" "${bot_args[@]}" \
+          --label "(device, $bots bots)" --csv "$out/viewer-ab-bots$bots.csv" 2>&1 | tee "$out/viewer-ab-bots$bots.log"
+      done
       ;;
     *) echo "unknown step $step"; exit 2 ;;
   esac

@@ -17,7 +17,11 @@ pooled p99 change with its 95% bootstrap interval (whole pairs resampled); the m
 average over the run; and the tick's viewer phase itself (from the stats messages); --csv writes
 every tick with its phase.
 
-  python3 tools/viewer_tick_ab.py --server build/zone/zone-server --npcs 20000 --phase-s 5 --rounds 6
+  python3 tools/viewer_tick_ab.py --server build/zone/zone-server --npcs 20000 --phase-s 1.5 --rounds 40
+
+The first --settle-s of every phase is not counted (both conditions alike); the run is bounded by
+--max-s (fewer rounds when they would not fit); the script's clock is matched to the CSV's t_s at
+a write of the server's stdio buffer (sync_clock).
 
 With --bots N (and --bot-swarm, the bot-swarm binary), N bots play in the zone through the whole
 run, both conditions alike (started before the warm-up, stopped after the last phase): the tick
@@ -90,6 +94,9 @@ def print_pairs(ticks_of, bootstrap):
 
     lo, hi = interval(median, diffs)
     plo, phi = interval(pooled_change, keys)
+    per_phase = median([len(ticks_of[(k, o)]) for k in keys for o in (False, True)])
+    if per_phase < 100:
+        print(f"(a phase holds {per_phase:g} ticks (median): a phase's p99 is its slowest tick or next to it)")
     print(f"per-pair p99 change ({len(diffs)} pairs): median {median(diffs):+.2f}% (95% bootstrap {lo:+.2f}% .. {hi:+.2f}%), "
           f"min {min(diffs):+.2f}%, max {max(diffs):+.2f}%, open higher in {sum(d > 0 for d in diffs)} of {len(diffs)}")
     print(f"pooled p99 change: {pooled_change(keys):+.2f}% (95% bootstrap over pairs {plo:+.2f}% .. {phi:+.2f}%)")
@@ -147,7 +154,7 @@ class viewer_socket:
         status = head.split(b"\r\n", 1)[0]
         if b" 101 " not in status:
             raise RuntimeError(f"viewer socket: handshake refused: {status!r}")
-        self.buf = head.split(b"\r\n\r\n", 1)[1]
+        self.buf = bytearray(head.split(b"\r\n\r\n", 1)[1])
         self.sock.setblocking(False)
         self.world = world
         self.selected = 0
@@ -182,29 +189,30 @@ class viewer_socket:
             if not chunk:
                 raise RuntimeError("viewer socket: closed by the server")
             self.buf += chunk
+        buf, at0 = self.buf, 0  # parsed in place (a bytearray; one cut at the end): little CPU for 1 MB frames
         while True:
-            if len(self.buf) < 2:
+            if len(buf) - at0 < 2:
                 break
-            b0, b1 = self.buf[0], self.buf[1]
-            n, at = b1 & 0x7F, 2
+            b0, b1 = buf[at0], buf[at0 + 1]
+            n, at = b1 & 0x7F, at0 + 2
             if n == 126:
-                if len(self.buf) < 4:
+                if len(buf) - at0 < 4:
                     break
-                n, at = struct.unpack(">H", self.buf[2:4])[0], 4
+                n, at = struct.unpack_from(">H", buf, at0 + 2)[0], at0 + 4
             elif n == 127:
-                if len(self.buf) < 10:
+                if len(buf) - at0 < 10:
                     break
-                n, at = struct.unpack(">Q", self.buf[2:10])[0], 10
-            if len(self.buf) < at + n:
+                n, at = struct.unpack_from(">Q", buf, at0 + 2)[0], at0 + 10
+            if len(buf) < at + n:
                 break
-            payload, self.buf = self.buf[at:at + n], self.buf[at + n:]
             opcode = b0 & 0x0F
+            at0 = at + n
             if opcode == 9:
-                self.send_frame(10, payload)
+                self.send_frame(10, bytes(buf[at:at + n]))
             elif opcode == 8:
                 raise RuntimeError("viewer socket: the server closed it")
             elif opcode == 1:
-                msg = json.loads(payload)
+                msg = json.loads(bytes(buf[at:at + n]))
                 for t in msg.get("ticks", []):
                     self.viewer_ms.append(t[6])
             elif opcode == 0:
@@ -212,10 +220,12 @@ class viewer_socket:
             elif opcode == 2:
                 self.frames += 1
                 self.bytes += n
-                if self.selected == 0 and len(payload) >= 42 and payload[0] == 1 and struct.unpack("<I", payload[12:16])[0] > 0:
+                if self.selected == 0 and n >= 42 and buf[at] == 1 and struct.unpack_from("<I", buf, at + 12)[0] > 0:
                     # The first entity of the frame: watched from now on.
-                    self.selected = struct.unpack("<I", payload[32:36])[0]
+                    self.selected = struct.unpack_from("<I", buf, at + 32)[0]
                     self.send_view()
+        if at0:
+            del buf[:at0]
         if time.monotonic() - self.last_view > 1.0:
             self.send_view()
 
@@ -225,6 +235,45 @@ class viewer_socket:
         except OSError:
             pass
         self.sock.close()
+
+
+def sync_clock(path, srv, deadline, flushes=2):
+    """The script's monotonic time at the CSV's t_s = 0 (the loop's first tick; a line's t_s is
+    written at its tick's end). zone-server writes its --tick-csv through a stdio buffer (4 KB,
+    about 70 ticks): a line becomes visible seconds after its tick, so the first line's arrival
+    says nothing of when it was written. At the moment the file grows, the buffer was just
+    written: its last complete line is at most one tick old. The earliest of `flushes` such
+    readings (a late reading only makes it later) is within a tick of the truth."""
+    best, seen, size = None, 0, -1
+    while seen < flushes and time.monotonic() < deadline:
+        if srv.poll() is not None:
+            sys.exit("zone-server exited during the warm-up")
+        try:
+            now_size = os.path.getsize(path)
+        except OSError:
+            now_size = -1
+        if now_size == size or now_size < 0:
+            time.sleep(0.001)
+            continue
+        if now_size == 0:
+            size = 0  # created, nothing written yet: its first write is a fresh one
+            continue
+        now = time.monotonic()
+        first = size < 0
+        size = now_size
+        if first:
+            continue  # already there when first looked at: not a fresh write
+        with open(path) as f:
+            data = f.read(now_size)
+        lines = [l for l in data.split("\n")[:-1] if l.count(",") >= 10 and not l.startswith("tick,")]
+        if not lines:
+            continue
+        t0 = now - float(lines[-1].split(",")[1])
+        best = t0 if best is None else min(best, t0)
+        seen += 1
+    if best is None:
+        sys.exit("the tick CSV was not written (no flush seen before the deadline)")
+    return best
 
 
 def main():
@@ -246,9 +295,19 @@ def main():
     ap.add_argument("--bot-swarm", help="the bot-swarm binary, for --bots")
     ap.add_argument("--client-nice", type=int, default=0,
                     help="nice value (absolute) of this script, the viewer socket's client, once the server runs (0: unchanged)")
+    ap.add_argument("--client-idle", type=int, default=0, choices=(0, 1),
+                    help="1: this script (the viewer socket's client) at SCHED_IDLE once the server runs (a page on another "
+                         "machine, as docs/viewer.md has it, costs the zone's host nothing; here it runs beside the tick)")
+    ap.add_argument("--settle-s", type=float, default=0.25,
+                    help="the first seconds of every phase (both conditions alike) are not counted: the socket of the phase "
+                         "before closes, this one opens")
+    ap.add_argument("--max-s", type=float, default=240,
+                    help="the whole run's bound (s, from the start): fewer rounds are planned when they would not fit "
+                         "(with 20 s for the server's start), and no round starts that would end past it")
     a = ap.parse_args()
-    if a.rounds < 1 or a.phase_s <= 0 or a.npcs < 0 or a.viewers < 1 or a.bootstrap < 0 or not 0 <= a.client_nice <= 19:
-        ap.error("rounds >= 1, phase-s > 0, npcs >= 0, viewers >= 1, bootstrap >= 0, client-nice 0..19")
+    if (a.rounds < 1 or a.phase_s <= 0 or a.npcs < 0 or a.viewers < 1 or a.bootstrap < 0 or not 0 <= a.client_nice <= 19
+            or a.settle_s < 0 or a.max_s <= 0):
+        ap.error("rounds >= 1, phase-s > 0, npcs >= 0, viewers >= 1, bootstrap >= 0, client-nice 0..19, settle-s >= 0, max-s > 0")
     if a.analyze:
         return analyze(a.analyze, a.bootstrap)
     if a.bots < 0 or (a.bots > 0 and not (a.bot_swarm and os.access(a.bot_swarm, os.X_OK))):
@@ -258,6 +317,14 @@ def main():
     if not os.access(a.server, os.X_OK):
         ap.error(f"--server {a.server}: not an executable file")
 
+    t_begin = time.monotonic()
+    pair_s = 2 * (a.phase_s + a.settle_s)
+    fit = int((a.max_s - 20 - a.warmup_s - 1) // pair_s)
+    if fit < 1:
+        ap.error(f"--max-s {a.max_s:g}: no round of 2 x ({a.phase_s:g} + {a.settle_s:g}) s fits after the start and warm-up")
+    if fit < a.rounds:
+        print(f"--rounds {a.rounds} would not fit in --max-s {a.max_s:g}: {fit} rounds planned", flush=True)
+        a.rounds = fit
     tmp = tempfile.mkdtemp(prefix="viewer-ab-")
     ticks_csv = os.path.join(tmp, "ticks.csv")
     log_path = os.path.join(tmp, "zone-server.log")
@@ -283,34 +350,52 @@ def main():
             if not m:
                 sys.exit("zone-server's log names no game port")
             # Bounded: it stops by itself after the run (and is stopped below when the run ends first).
-            run_s = a.warmup_s + a.rounds * 2 * (a.phase_s + 0.3) + 30
+            run_s = a.warmup_s + a.rounds * pair_s + 30
             swarm = subprocess.Popen([a.bot_swarm, "--port", m.group(1), "--bots", str(a.bots), "--duration", str(int(run_s)),
                                       "--ramp", str(max(50, a.bots)), "--threads", "2", "--quiet"],
                                      stdout=open(os.path.join(tmp, "bot-swarm.log"), "w"), stderr=subprocess.STDOUT)
-        t_start = None
-        while t_start is None:  # the CSV's t_s = 0 is the loop's first tick
-            with open(ticks_csv) as f:
-                f.readline()
-                line = f.readline()
-            if line.count(",") >= 10:
-                t_start = time.monotonic() - float(line.split(",")[1])
-            else:
-                time.sleep(0.05)
+        warm_from = time.monotonic()
+        t_start = sync_clock(ticks_csv, srv, time.monotonic() + max(a.warmup_s, 3.0) + 60)
         now = lambda: time.monotonic() - t_start
         if a.client_nice:
             os.setpriority(os.PRIO_PROCESS, 0, a.client_nice)  # this process only (the server runs already)
-        time.sleep(a.warmup_s)
+        client_policy = "SCHED_OTHER"
+        if a.client_idle:
+            try:
+                os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))  # this process only
+                client_policy = "SCHED_IDLE"
+            except (OSError, AttributeError) as e:
+                client_policy = f"SCHED_OTHER (SCHED_IDLE refused: {e})"
+        time.sleep(max(0.0, a.warmup_s - (time.monotonic() - warm_from)))
         phases = []  # (round, open, t0, t1)
         viewer_ms, frames, nbytes = [], 0, 0
         loads = [os.getloadavg()[0]]
         cpu = {False: {}, True: {}}   # condition -> thread name -> CPU seconds in its phases
         client_cpu = {False: 0.0, True: 0.0}
         phase_s = {False: 0.0, True: 0.0}
+        deadline = t_begin + a.max_s - 1
         for r in range(a.rounds):
+            if time.monotonic() + pair_s > deadline:
+                print(f"stopped after {r} rounds: --max-s {a.max_s:g} reached", flush=True)
+                break
             for opened in ((False, True) if r % 2 == 0 else (True, False)):
+                socks = [viewer_socket(port, (0.0, 0.0, a.world, a.world)) for _ in range(a.viewers)] if opened else []
+                # Settling: the previous phase's socket closes, this one opens and gets its first frames; not counted.
+                settle_end = time.monotonic() + a.settle_s
+                while True:
+                    left = settle_end - time.monotonic()
+                    if left <= 0:
+                        break
+                    if socks:
+                        select.select([s.sock for s in socks], [], [], min(0.05, left))
+                        for s in socks:
+                            s.pump()
+                    else:
+                        time.sleep(min(0.05, left))
+                for s in socks:
+                    s.viewer_ms.clear()
                 t0 = now()
                 cpu0, own0 = thread_cpu(srv.pid), os.times()
-                socks = [viewer_socket(port, (0.0, 0.0, a.world, a.world)) for _ in range(a.viewers)] if opened else []
                 end = time.monotonic() + a.phase_s
                 while time.monotonic() < end:
                     if socks:
@@ -319,19 +404,18 @@ def main():
                             s.pump()
                     else:
                         time.sleep(0.05)
+                cpu1, own1 = thread_cpu(srv.pid), os.times()
+                phases.append((r, opened, t0, now()))
                 for s in socks:
                     viewer_ms += s.viewer_ms
                     frames += s.frames
                     nbytes += s.bytes
                     s.close()
-                cpu1, own1 = thread_cpu(srv.pid), os.times()
-                phases.append((r, opened, t0, now()))
                 phase_s[opened] += phases[-1][3] - t0
                 for name, v in cpu1.items():
                     cpu[opened][name] = cpu[opened].get(name, 0.0) + v - cpu0.get(name, 0.0)
                 client_cpu[opened] += (own1.user + own1.system) - (own0.user + own0.system)
                 loads.append(os.getloadavg()[0])
-                time.sleep(0.3)  # the sockets close; this gap is in neither phase
         time.sleep(0.5)
     finally:
         if swarm is not None:
@@ -392,7 +476,8 @@ def main():
             for n in names if cpu[False].get(n, 0.0) + cpu[True].get(n, 0.0) > 0) +
             f"; the viewer client (this script) {1000 * client_cpu[False] / phase_s[False]:.1f} -> {1000 * client_cpu[True] / phase_s[True]:.1f}")
     print(f"load average (1 min) over the run: {min(loads):.2f} .. {max(loads):.2f} (median {median(loads):.2f}); "
-          f"client nice {a.client_nice}")
+          f"client nice {a.client_nice}, {client_policy}; settle {a.settle_s:g} s a phase (not counted); "
+          f"the run took {time.monotonic() - t_begin:.0f} s")
     print(f"the tick's own viewer phase (stats messages, {len(viewer_ms)} ticks): p50 {pct(viewer_ms, 0.5):.4f} ms, "
           f"p99 {pct(viewer_ms, 0.99):.4f} ms, max {max(viewer_ms) if viewer_ms else float('nan'):.4f} ms; "
           f"frames read {frames} ({nbytes / 1e6:.1f} MB)")

@@ -255,7 +255,8 @@ config_result parse_config(int argc, const char* const* argv) {
       ("viewer-remote", po::value(&c.viewer_remote)->default_value(c.viewer_remote), "serve the viewer to peers that are not on a loopback address too (0 or 1)")  //
       ("max-viewers", po::value(&c.max_viewers)->default_value(c.max_viewers), "viewer pages at once (more are refused)")  //
       ("viewer-hz", po::value(&c.viewer_hz)->default_value(c.viewer_hz), "snapshots a second sent to viewer pages (at most the tick rate)")  //
-      ("viewer-nice", po::value(&c.viewer_nice)->default_value(c.viewer_nice), "nice value of the viewer's thread, 0-19 (it encodes and writes every page's frames; 19: the tick's threads take a shared core back at once)");
+      ("viewer-nice", po::value(&c.viewer_nice)->default_value(c.viewer_nice), "nice value of the viewer's thread, 0-19 (it encodes and writes every page's frames; 19: the tick's threads take a shared core back at once)")  //
+      ("viewer-idle", po::value(&c.viewer_idle)->default_value(c.viewer_idle), "the viewer's thread at SCHED_IDLE (0 or 1): it runs only on cores the tick's threads leave free; where the OS refuses, the nice value alone (logged once)");
   po::options_description correctness("Correctness (docs/bots.md)");
   correctness.add_options()  //
       ("oracle", po::bool_switch(&c.oracle), "publish every tick's ground truth (entities, boxes, classes) on a loopback stream for an independent oracle (bot-swarm --oracle); off by default, and costs nothing when off")  //

@@ -175,6 +175,7 @@ struct zone_config {
   std::size_t max_viewers = 4;   ///< viewer pages at once
   double viewer_hz = 10;         ///< snapshots a second while a page is open (at most the tick rate)
   int viewer_nice = 19;          ///< nice value of the viewer's thread (0-19; net::viewer_options::nice)
+  bool viewer_idle = true;       ///< the viewer's thread at SCHED_IDLE where the OS allows it (net::viewer_options::idle)
   // Correctness (docs/bots.md, the oracle).
   /// Publish every tick's ground truth on a loopback stream (127.0.0.1:oracle_port; 0 = an
   /// ephemeral port, told in the welcome): what an independent oracle checks each client's view

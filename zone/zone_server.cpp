@@ -322,14 +322,17 @@ std::optional<std::string> zone_server::start() {
       vo.max_viewers = cfg_.max_viewers;
       vo.allow_remote = cfg_.viewer_remote;
       vo.nice = cfg_.viewer_nice;
+      vo.idle = cfg_.viewer_idle;
       viewer_ = std::make_unique<net::viewer_server>(vo);
       metrics_->attach_viewer(viewer_.get());
     }
     if (auto err = metrics_->start()) return err;
     metrics_->publish(metrics_text());
     if (viewer_) {
-      spdlog::info("viewer on http://{}:{}/viewer ({})", cfg_.metrics_address, metrics_->port(),
-                   cfg_.viewer_remote ? "any peer" : "loopback peers only");
+      const auto pr = viewer_->thread_info();
+      spdlog::info("viewer on http://{}:{}/viewer ({}; its thread at nice {}{})", cfg_.metrics_address, metrics_->port(),
+                   cfg_.viewer_remote ? "any peer" : "loopback peers only", pr.nice,
+                   pr.idle ? ", SCHED_IDLE" : pr.idle_refused ? ", SCHED_IDLE refused" : "");
     }
   }
   return std::nullopt;

@@ -18,6 +18,11 @@
 #include <thread>
 #include <atomic>
 #include <bit>
+#include <cerrno>
+#include <sched.h>
+#include <sys/resource.h>
+#include <thread>
+#include <unistd.h>
 #include <nlohmann/json.hpp>
 
 #include "loopback_client.h"
@@ -373,6 +378,87 @@ TEST_SUITE("net.viewer") {
                R"("phases":["inputs","behaviours","integrate","interest","replicate","viewer"],)"
                R"("ticks":[[11,0.1000,0.2000,0.3000,0.4000,0.5000,0.0005,1.5000],[12,1.0000,2.0000,3.0000,4.0000,5.0000,6.0000,7.0000]]})");
     CHECK(nlohmann::json::parse(j)["ticks"].size() == 2);
+  }
+
+  TEST_CASE("a session's timer wakes just after the next snapshot is due, polls while it is late, else every 50 ms") {
+    constexpr std::int64_t ms = 1'000'000;
+    // Nothing published yet, or no period known: the stall check's pace.
+    CHECK(viewer_poll_delay_ns(5 * ms, 0, 0) == 50 * ms);
+    CHECK(viewer_poll_delay_ns(5 * ms, 4 * ms, 0) == 50 * ms);
+    CHECK(viewer_poll_delay_ns(5 * ms, 4 * ms, 5000 * ms) == 50 * ms);  // a period over a second: not a stream
+    std::mt19937_64 rng(17);
+    for (int k = 0; k < 2000; ++k) {
+      const std::int64_t last = 1 + static_cast<std::int64_t>(rng() % (1000 * ms));
+      const std::int64_t period = 1 + static_cast<std::int64_t>(rng() % (200 * ms));
+      const std::int64_t now = last + static_cast<std::int64_t>(rng() % (300 * ms));
+      const std::int64_t d = viewer_poll_delay_ns(now, last, period), due = last + period;
+      REQUIRE(d > 0);
+      CHECK(d <= 50 * ms);
+      if (now < due) {
+        // Before the next is due: wakes 0.2 ms after it (or within 50 ms), never before it.
+        CHECK(now + d >= std::min(due, now + 50 * ms));
+        CHECK(now + d <= due + ms / 5);
+      } else if (now - due <= 10 * ms) {
+        CHECK(d == ms);  // due and not there: looks each millisecond
+      } else {
+        CHECK(d == 50 * ms);  // long overdue (no page, a paused zone): back to the slow pace
+      }
+    }
+  }
+
+  TEST_CASE("the viewer's thread runs below the tick: nice and SCHED_IDLE, or the nice value alone where refused") {
+    // What the thread reports is what the OS holds for it (read from outside, by its thread id).
+    const auto os_policy = [](long tid) { return ::sched_getscheduler(static_cast<pid_t>(tid)); };
+    const auto os_nice = [](long tid) {
+      errno = 0;
+      return ::getpriority(PRIO_PROCESS, static_cast<id_t>(tid));
+    };
+    {
+      viewer_server v;  // the defaults: nice 19 and SCHED_IDLE
+      const auto p = v.thread_info();
+      REQUIRE(p.tid > 0);
+      CHECK(p.tid != static_cast<long>(::gettid()));
+      CHECK(p.nice == 19);
+      CHECK(os_nice(p.tid) == 19);
+      CHECK(p.idle != p.idle_refused);  // applied, or refused and said so
+      CHECK(os_policy(p.tid) == (p.idle ? SCHED_IDLE : SCHED_OTHER));
+    }
+    const int own = os_nice(::gettid());  // a thread starts at its creator's nice value; raising it needs no privilege
+    const int lower = std::clamp(own + 5, 1, 19);
+    {
+      viewer_options o;
+      o.idle = false;
+      o.nice = lower;
+      viewer_server v(o);
+      const auto p = v.thread_info();
+      CHECK_FALSE(p.idle);
+      CHECK_FALSE(p.idle_refused);
+      CHECK(p.nice == lower);
+      CHECK(os_nice(p.tid) == lower);
+      CHECK(os_policy(p.tid) == SCHED_OTHER);
+    }
+    // An OS that refuses SCHED_IDLE: the nice value alone, the policy unchanged, the refusal said.
+    thread_priority refused, real;
+    int policy_refused = -1, policy_real = -1;
+    std::thread([&] {
+      refused = lower_thread_priority(true, lower, [] {
+        errno = EPERM;
+        return -1;
+      });
+      policy_refused = ::sched_getscheduler(0);
+    }).join();
+    CHECK(refused.idle_refused);
+    CHECK_FALSE(refused.idle);
+    CHECK(refused.nice == lower);
+    CHECK(policy_refused == SCHED_OTHER);
+    // The real call on a fresh thread: what it reports is the thread's policy.
+    std::thread([&] {
+      real = lower_thread_priority(true, 0);
+      policy_real = ::sched_getscheduler(0);
+    }).join();
+    CHECK(real.idle != real.idle_refused);
+    CHECK(policy_real == (real.idle ? SCHED_IDLE : SCHED_OTHER));
+    CHECK(real.nice == own);  // 0 leaves the nice value as it was
   }
 
   TEST_CASE("publishing hands over three rotating buffers: the newest reaches the page, none is torn") {
