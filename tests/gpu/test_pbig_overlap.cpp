@@ -395,7 +395,7 @@ TEST_SUITE("gpu.pbig.overlap") {
     const pair_list want = sorted(view_of(*whole, s));
     CHECK(gpu::last_pbig_report(*whole)->overlap_chunks == 0);
     // The first call knows nothing of the output: one-shot. Its output is small against its
-    // input (about 5 pairs a box: 40 bytes out for 24 in), so the next call takes the pipeline.
+    // input (about 2 pairs a box: 17 bytes out for 24 in), so the next call takes the pipeline.
     CHECK(sorted(view_of(*finder, s)) == want);
     CHECK(gpu::last_pbig_report(*finder)->overlap_chunks == 0);
     const pair_list got = view_of(*finder, s);
