@@ -60,10 +60,15 @@ struct pbig_options {
   /// chunk j has landed, the pairs whose larger id is in chunk j are found and copied out while
   /// the later chunks upload, so the boxes-in and pairs-out copies run at once (docs/gpu.md,
   /// "Overlapped upload"). The grid is planned from the first chunk. The same pairs as without it,
-  /// in another order that also depends only on the input (and on the chunk count).
+  /// in another order that also depends only on the input (and on the chunk count). It is taken
+  /// only when it pays: when the finder's previous call, on a set of about this size, wrote at most
+  /// about 3x the bytes it uploaded (pbig_tuning.h, overlap_max_out_in); a first call runs one-shot.
   /// 0 = the default (2^22 boxes, pbig_tuning.h), SIZE_MAX = never.
   std::size_t overlap_min_boxes = 0;
-  std::uint32_t overlap_chunks = 0;  ///< chunks of the overlapped upload: 0 = the default (4), at most 8
+  std::uint32_t overlap_chunks = 0;  ///< chunks of the overlapped upload: 0 = the default (3), at most 8
+  /// true: the overlapped upload on every call from overlap_min_boxes on, whatever the previous
+  /// call's output (tests and benchmarks force it so).
+  bool overlap_always = false;
 };
 
 /// Where the time of the last call went (the paper's Table V/VI tasks) and what it moved.

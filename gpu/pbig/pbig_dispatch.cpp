@@ -97,6 +97,7 @@ pbig_engine::pbig_engine(const pbig_options& options) : opt_(options) {
   for (int j = 0; j < max_overlap_chunks; ++j) {
     for (cudaEvent_t* e : {&ev_chunk_[j], &ev_staged_[j], &ev_mapped_[j]}) CUDA_CHECK(cudaEventCreate(e));
   }
+  CUDA_CHECK(cudaEventCreateWithFlags(&ev_wait_, cudaEventDisableTiming));
   d_stage_rb_.reserve(max_overlap_chunks);
   h_stage_rb_.reserve(max_overlap_chunks);
   d_chunk_bounds_.reserve(max_overlap_chunks);
@@ -125,6 +126,7 @@ pbig_engine::~pbig_engine() {
       if (e != nullptr) cudaEventDestroy(e);
     }
   }
+  if (ev_wait_ != nullptr) cudaEventDestroy(ev_wait_);
 }
 
 void pbig_engine::grow_temp(std::size_t bytes) { d_temp_.reserve(std::max<std::size_t>(bytes, 256)); }
@@ -228,6 +230,7 @@ std::optional<std::uint64_t> pbig_engine::run(const interest::box_set& boxes, in
   } else {
     remember_sizes();
   }
+  last_call_ = {true, n, report_.bytes_in, report_.pairs};
   return report_.pairs;
 }
 

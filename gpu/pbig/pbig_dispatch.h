@@ -117,8 +117,12 @@ class pbig_engine {
   /// Keeps this call's figures (with a margin) as the next call's single-queue capacity.
   void remember_sizes();
   // The overlapped upload (pbig_overlap.cpp; docs/gpu.md, "Overlapped upload").
-  /// Its chunk count for this call, or 0 when the one-shot path runs.
+  /// Its chunk count for this call, or 0 when the one-shot path runs (pbig_tuning.h's rule: the
+  /// previous call's output against its input, on a set of about this size).
   [[nodiscard]] std::uint32_t overlap_chunks(const interest::box_set& boxes) const;
+  /// Waits for `done` (recorded on this call's streams) at most tuning::overlap_wait_limit_s;
+  /// past it logs and throws std::runtime_error naming `what` (a kernel that does not end).
+  void wait_bounded(cudaEvent_t done, const char* what, std::uint32_t stage, std::uint32_t n) const;
   /// The whole call in k chunks into h_result_: false when the device found an invalid box.
   bool run_overlapped(const interest::box_set& boxes, std::uint32_t n, std::uint32_t k, bool validate,
                       std::uint64_t& pairs);
@@ -208,6 +212,12 @@ class pbig_engine {
   pinned_buffer<map_readback> h_stage_rb_;
   device_buffer<bounds_dev> d_chunk_bounds_;  // per chunk: its validation
   pinned_buffer<bounds_dev> h_chunk_bounds_;
+  cudaEvent_t ev_wait_ = nullptr;  // a stream's point to wait for (wait_bounded)
+  /// The last successful call's size and output (the overlapped upload's rule).
+  struct call_record {
+    bool valid = false;
+    std::uint64_t boxes = 0, bytes_in = 0, pairs = 0;
+  } last_call_;
 
   pbig_report report_{};
 };

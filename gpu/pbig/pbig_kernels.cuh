@@ -766,6 +766,7 @@ __global__ void __launch_bounds__(tuning::segment) check_stage_kernel(check_args
   const std::uint32_t d = segs - h0;
   const cell_prefix p0 = a.prefix[cell];
   const std::uint32_t v = item - p0.item;
+  if (v >= segs) return;  // guard (uniform): the stage's prefixes give the cell segs row segments
   std::uint32_t h_first, tile0;
   if (v < h0) {
     h_first = h0;
@@ -778,10 +779,10 @@ __global__ void __launch_bounds__(tuning::segment) check_stage_kernel(check_args
   tile0 += p0.tile - a.tile_first;
   const std::uint32_t cc[3] = {cell % plan.dims[0], (cell / plan.dims[0]) % plan.dims[1],
                                cell / (plan.dims[0] * plan.dims[1])};
-  // The box id at a position of the virtual list.
+  // The box id at a position pos < length of the virtual list (i stops at the last list).
   auto id_at = [&](std::uint32_t pos) {
     std::uint32_t i = 0;
-    while (pos >= list_at[i + 1]) ++i;
+    while (i + 1 < lists.count && pos >= list_at[i + 1]) ++i;
     return lists.entries[i][list_first[i] + (pos - list_at[i])];
   };
 

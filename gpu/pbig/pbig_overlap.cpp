@@ -18,10 +18,16 @@
 //  4. After the last stage: the boxes handled apart (large), over all n boxes, as in check_direct.
 // The pairs are those of the one-shot path (each pair in the one stage of its larger id and the
 // one cell of check_kernel's rule); the order is stage by stage, then as the direct output.
+#include <spdlog/spdlog.h>
+
 #include <algorithm>
+#include <chrono>
+#include <cmath>
 #include <cstring>
 #include <limits>
 #include <stdexcept>
+#include <string>
+#include <thread>
 #include <vector>
 
 #include "gpu/common/cuda_check.h"
@@ -50,10 +56,42 @@ box_arrays chunk_of(const box_arrays& all, std::uint32_t first) {
 std::uint32_t pbig_engine::overlap_chunks(const interest::box_set& boxes) const {
   const std::size_t min_boxes = opt_.overlap_min_boxes == 0 ? tuning::overlap_min_boxes : opt_.overlap_min_boxes;
   if (!opt_.direct_output || !opt_.pipelining || boxes.size() < min_boxes || !boxes_pinned(boxes)) return 0;
+  if (!opt_.overlap_always) {
+    // Only when it pays (pbig_tuning.h): the last call, on a set of about this size, wrote at
+    // most overlap_max_out_in times what it uploaded. Nothing known: one-shot.
+    const auto n = static_cast<double>(boxes.size());
+    const auto last_n = static_cast<double>(last_call_.boxes);
+    if (!last_call_.valid || std::abs(n - last_n) > tuning::overlap_size_tolerance * last_n) return 0;
+    const double out_bytes = static_cast<double>(last_call_.pairs) * sizeof(interest::id_pair);
+    if (out_bytes > tuning::overlap_max_out_in * static_cast<double>(last_call_.bytes_in)) return 0;
+  }
   const std::uint32_t k = opt_.overlap_chunks == 0 ? tuning::overlap_chunks : opt_.overlap_chunks;
   const std::uint64_t chunks =
       std::min<std::uint64_t>({k, static_cast<std::uint64_t>(max_overlap_chunks), boxes.size()});
   return chunks > 1 ? static_cast<std::uint32_t>(chunks) : 0;
+}
+
+void pbig_engine::wait_bounded(cudaEvent_t done, const char* what, std::uint32_t stage, std::uint32_t n) const {
+  // cudaEventSynchronize has no time limit: poll instead (the runtime's default wait spins too).
+  using clock = std::chrono::steady_clock;
+  const auto limit = std::chrono::duration<double>(tuning::overlap_wait_limit_s);
+  const auto t0 = clock::now();
+  for (std::uint64_t polls = 1;; ++polls) {
+    const cudaError_t e = cudaEventQuery(done);
+    if (e == cudaSuccess) return;
+    if (e != cudaErrorNotReady) CUDA_CHECK(e);
+    if (polls % 1024 == 0) {
+      if (clock::now() - t0 > limit) {
+        const std::string msg = fmt::format(
+            "pbig: the overlapped upload's {} (stage {} of {}, {} boxes) did not finish within {} s: a kernel that "
+            "does not end",
+            what, stage, report_.overlap_chunks, n, tuning::overlap_wait_limit_s);
+        spdlog::error("{}", msg);
+        throw std::runtime_error(msg);
+      }
+      std::this_thread::yield();
+    }
+  }
 }
 
 stage_lists pbig_engine::lists_of(std::uint32_t count) const {
@@ -205,6 +243,8 @@ bool pbig_engine::run_overlapped(const interest::box_set& boxes, std::uint32_t n
     CUDA_CHECK(cudaStreamSynchronize(main_));
     return false;
   };
+  CUDA_CHECK(cudaEventRecord(ev_wait_, main_));
+  wait_bounded(ev_wait_, "plan", 0, n);
   if (!read_plan()) return abandon();  // chunk 0 holds an invalid box
   const auto cells = static_cast<std::uint32_t>(plan_.cells);
 
@@ -235,6 +275,7 @@ bool pbig_engine::run_overlapped(const interest::box_set& boxes, std::uint32_t n
   std::uint32_t max_count = 0;
   auto finish_pending = [&] {
     if (!has_pending) return;
+    wait_bounded(slot_[pending_index % 2].totals_ready, "checks of a batch", static_cast<std::uint32_t>(pending.stage), n);
     base += finish_direct(pending, slot_[pending_index % 2], base, pending_index, pending_index + 1);
     has_pending = false;
   };
@@ -242,6 +283,8 @@ bool pbig_engine::run_overlapped(const interest::box_set& boxes, std::uint32_t n
     const std::uint32_t count = first[j + 1] - first[j];
     queue_stage_count(n, j, first[j], count, validate);
     finish_pending();  // the previous stage's last batch: its copy is queued before this wait
+    CUDA_CHECK(cudaEventRecord(ev_wait_, main_));
+    wait_bounded(ev_wait_, "count and read-back", j, n);
     CUDA_CHECK(cudaStreamSynchronize(main_));
     if (validate && j > 0 && h_chunk_bounds_.get()[j].bad != 0xffffffffu) return abandon();
     overlap_stage& st = stages_[j];
@@ -292,6 +335,8 @@ bool pbig_engine::run_overlapped(const interest::box_set& boxes, std::uint32_t n
     CUDA_CHECK(select_large(d_temp_.get(), select_bytes, d_is_large_.get(), d_large_.get(), selected, n, main_));
   }
   large_count_pass(n);
+  CUDA_CHECK(cudaEventRecord(ev_wait_, main_));
+  wait_bounded(ev_wait_, "count of the boxes handled apart", k - 1, n);
   CUDA_CHECK(cudaStreamSynchronize(main_));
   const std::uint64_t large_pairs = *h_large_total_.get();
   ensure_result(std::max<std::uint64_t>(1, base + large_pairs), base);

@@ -77,18 +77,33 @@ inline constexpr std::size_t max_upload_parts = 16;
 /// the plain self-join; then those two arrays (8 of the 32 bytes a box) are not copied but filled
 /// on the device. Below it the check would cost more than the copy it saves.
 inline constexpr std::size_t uniform_classes_min_boxes = std::size_t{1} << 18;
-/// Overlapped upload (pbig_options::overlap_min_boxes, overlap_chunks; docs/gpu.md "Overlapped
-/// upload"): pinned input of at least overlap_min_boxes boxes goes up in overlap_chunks chunks of
-/// ids, each chunk's pairs (those whose larger id is in it) checked and copied out while the later
-/// chunks upload. Below the threshold the one-shot path runs (its two copies are short there).
-/// Neither figure is calibrated yet: the threshold is the indirect checks' (the stages read boxes
-/// through their ids), the chunk count a balance between the first chunk's wait (1/k of the
-/// upload), the last stage's share of the output ((2k - 1) / k^2 of the pairs, copied after the
-/// last chunk lands) and the rows every stage re-reads ((k + 1) / 2 times the entries in all).
-/// Each stage is cut into at most max(2, ceil(max_batches / k)) batches, so the whole call has
-/// about max_batches copies, each long enough to hide the next batch's checks.
+/// Overlapped upload (pbig_options::overlap_min_boxes, overlap_chunks, overlap_always; docs/gpu.md
+/// "Overlapped upload"): pinned input of at least overlap_min_boxes boxes goes up in overlap_chunks
+/// chunks of ids, each chunk's pairs (those whose larger id is in it) checked and copied out while
+/// the later chunks upload. Below the threshold the one-shot path runs (its two copies are short
+/// there); the threshold is the indirect checks' (the stages read boxes through their ids).
+/// The pipeline pays only when the pairs-out copy is about as long as the boxes-in copy: it hides
+/// one behind the other, while every stage re-reads the earlier chunks' lists, so the checks cost
+/// more than the one-shot path's and grow with k. On an output-bound set (many pairs a box) there
+/// is nothing to hide the extra checks behind and the call gets slower. So it is taken only when
+/// the finder's previous call, on a set of about this size (box count within
+/// overlap_size_tolerance of it), wrote at most overlap_max_out_in times the bytes it uploaded
+/// (pairs x 8 against 24 or 32 bytes a box); a first call, or one after a call of another size,
+/// runs one-shot. The measured cases behind the constants (docs/gpu-benchmarks.md, "Overlapped
+/// upload"): a set with under 2x its input bytes out gains from 3 chunks and loses from 6 or more,
+/// a set with about 40x its input bytes out loses with 4 chunks; the bound sits between them.
+/// 3 chunks: the fastest chunk count measured (the per-stage checks grow with k; 4 is already
+/// about even with the one-shot path). Each stage is cut into at most
+/// max(2, ceil(max_batches / k)) batches, so the whole call has about max_batches copies.
 inline constexpr std::size_t overlap_min_boxes = std::size_t{1} << 22;
-inline constexpr std::uint32_t overlap_chunks = 4;
+inline constexpr std::uint32_t overlap_chunks = 3;
+inline constexpr double overlap_max_out_in = 3.0;
+inline constexpr double overlap_size_tolerance = 0.25;
+/// The overlapped upload's waits for the device (a stage's read-back, a batch's totals, the last
+/// copies) give up after this many seconds: a message names the wait, and the call throws
+/// std::runtime_error instead of waiting forever on a kernel that does not end. A whole call on
+/// 10^7 boxes takes under 0.3 s on the H200.
+inline constexpr double overlap_wait_limit_s = 10.0;
 /// Boxes per part of that check (parts run on the pool; each stops once a part found a difference).
 inline constexpr std::size_t uniform_classes_part = std::size_t{1} << 16;
 /// Single queue (pbig_options::single_queue): the next call's capacity is this call's figure x

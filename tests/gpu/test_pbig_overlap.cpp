@@ -1,12 +1,15 @@
-// The GPU PBIG finder's overlapped upload (pbig_options::overlap_min_boxes / overlap_chunks;
-// docs/gpu.md, "Overlapped upload") against the CPU references: the brute-force finder and the
-// CPU grid finder (pair count and the sorted pair lists equal), and the one-shot GPU path. The
-// pipeline is forced onto sets of 2x10^4-3x10^5 boxes (pinned: pinned_boxes pins from 16384 boxes)
-// with 2, 3 and 7 chunks, chunk sizes that do not divide n, and the sets that stress its
-// decomposition: boxes straddling cells, duplicates and identical boxes, zero-extent boxes, later
-// chunks far outside the first chunk's bounds (the grid is planned from chunk 0), stages without
-// pairs or without grid boxes, boxes handled apart, invalid boxes in a later chunk, overflowing
-// output buffers. Part of test_gpu: without a device the executable exits with 77 (Skipped).
+// The GPU PBIG finder's overlapped upload (pbig_options::overlap_min_boxes / overlap_chunks /
+// overlap_always; docs/gpu.md, "Overlapped upload") against the CPU references: the brute-force
+// finder up to 2x10^4 boxes, the CPU grid finder above (the sorted pair lists equal), and the
+// one-shot GPU path. The pipeline is forced (overlap_always) onto sets of 1.6x10^4-3x10^5 boxes
+// (pinned: pinned_boxes pins from 16384 boxes) with 2, 3 and 7 chunks, chunk sizes that do not
+// divide n, and the sets that stress its decomposition: boxes straddling cells, duplicates and
+// identical boxes, zero-extent boxes, later chunks far outside the first chunk's bounds (the grid
+// is planned from chunk 0), stages without pairs or without grid boxes, boxes handled apart,
+// invalid boxes in a later chunk, overflowing output buffers. Then the default rule: the pipeline
+// only after a call of about the same size whose output was small against its input. About 20 s
+// on the H200 (`test-gpu -ts=gpu.pbig.overlap -d`). Part of test_gpu: without a device the
+// executable exits with 77 (Skipped).
 #include <doctest/doctest.h>
 
 #include <algorithm>
@@ -27,12 +30,13 @@ namespace gpu = zone::gpu;
 
 namespace {
 
-/// The overlapped upload forced from 2 boxes on, in k chunks.
+/// The overlapped upload forced on every call from 2 boxes on, in k chunks.
 gpu::pbig_options overlapped(std::uint32_t k, thread_pool* pool) {
   gpu::pbig_options o;
   o.decode_pool = pool;
   o.overlap_min_boxes = 2;
   o.overlap_chunks = k;
+  o.overlap_always = true;
   return o;
 }
 
@@ -211,8 +215,7 @@ box_set lonely_stages(std::size_t n, std::size_t k, std::uint64_t seed) {
 }  // namespace
 
 TEST_SUITE("gpu.pbig.overlap") {
-  TEST_CASE(
-      "overlapped upload: families in 2, 3 and 7 chunks against brute force, the CPU grid finder and the one-shot path") {
+  TEST_CASE("overlapped upload: families in 2, 3 and 7 chunks against brute force and the one-shot path") {
     thread_pool pool(4);
     brute_force_finder brute(&pool);
     auto whole = make_gpu(one_shot(&pool));
@@ -220,26 +223,26 @@ TEST_SUITE("gpu.pbig.overlap") {
     const std::uint32_t chunk_counts[] = {2, 3, 7};
     std::vector<std::unique_ptr<pair_finder>> finders;
     for (const std::uint32_t k : chunk_counts) finders.push_back(make_gpu(overlapped(k, &pool)));
+    std::size_t set = 0;
     for (const family f : {family::uniform, family::huge_over_tiny, family::long_thin, family::negative_large,
                            family::mask_mix, family::integer_grid, family::flat_world, family::few_classes}) {
-      for (const std::size_t n : {std::size_t{20000}, std::size_t{33331}}) {
-        const auto seed = fresh_seed();
-        CAPTURE(family_name(f));
-        CAPTURE(n);
-        CAPTURE(seed);
-        const box_set s = make_family(f, n, seed);
-        const gpu::pinned_boxes pin(s);
-        REQUIRE(pin.active());
-        const pair_list want = cpu_pairs(s, &pool);
-        if (n == 20000) CHECK(sorted(run(brute, s)) == want);
-        CHECK(sorted(view_of(*whole, s)) == want);
-        for (std::size_t i = 0; i < finders.size(); ++i) {
-          const std::uint32_t k = chunk_counts[i];
-          CAPTURE(k);
-          check_overlapped(*finders[i], s, want, k);
-          check_overlapped(*finders[i], s, want, k);  // again: plan reused, buffers kept
-        }
+      // A size per family (a message naming the size names the family), none that 2, 3 or 7 divides.
+      const std::size_t n = 16411 + 420 * set++;
+      const auto seed = fresh_seed();
+      CAPTURE(family_name(f));
+      CAPTURE(n);
+      CAPTURE(seed);
+      const box_set s = make_family(f, n, seed);
+      const gpu::pinned_boxes pin(s);
+      REQUIRE(pin.active());
+      const pair_list want = sorted(run(brute, s));
+      CHECK(sorted(view_of(*whole, s)) == want);
+      for (std::size_t i = 0; i < finders.size(); ++i) {
+        const std::uint32_t k = chunk_counts[i];
+        CAPTURE(k);
+        check_overlapped(*finders[i], s, want, k);
       }
+      check_overlapped(*finders[1], s, want, 3);  // again: plan reused, buffers kept
     }
   }
 
@@ -247,7 +250,7 @@ TEST_SUITE("gpu.pbig.overlap") {
     thread_pool pool(4);
     brute_force_finder brute(&pool);
     for (const std::uint32_t k : {2u, 3u, 7u}) {
-      const std::size_t n = 24001 + k;  // chunk sizes not dividing n
+      const std::size_t n = 19001 + k;  // chunk sizes not dividing n
       const auto seed = fresh_seed();
       CAPTURE(k);
       CAPTURE(seed);
@@ -266,7 +269,6 @@ TEST_SUITE("gpu.pbig.overlap") {
         const gpu::pinned_boxes pin(t.set);
         REQUIRE(pin.active());
         const pair_list want = sorted(run(brute, t.set));
-        CHECK(cpu_pairs(t.set, &pool) == want);
         check_overlapped(*finder, t.set, want, k);
         if (std::string(t.name) == "lonely stages") {
           // No pair across chunks and none in chunk 1; the last chunk's boxes are handled apart.
@@ -378,7 +380,7 @@ TEST_SUITE("gpu.pbig.overlap") {
     CHECK(rep->bytes_in == 24u * n + 8u * (chunk_start(n, k, 2) - chunk_start(n, k, 1)));
   }
 
-  TEST_CASE("overlapped upload by default from 2^22 pinned boxes: the one-shot path's pairs") {
+  TEST_CASE("overlapped upload by default from 2^22 pinned boxes, after a first call: the one-shot path's pairs") {
     thread_pool pool(8);
     const auto seed = fresh_seed();
     CAPTURE(seed);
@@ -392,21 +394,81 @@ TEST_SUITE("gpu.pbig.overlap") {
     auto whole = make_gpu(one_shot(&pool));
     const pair_list want = sorted(view_of(*whole, s));
     CHECK(gpu::last_pbig_report(*whole)->overlap_chunks == 0);
+    // The first call knows nothing of the output: one-shot. Its output is small against its
+    // input (about 2 pairs a box: 17 bytes out for 24 in), so the next call takes the pipeline.
+    CHECK(sorted(view_of(*finder, s)) == want);
+    CHECK(gpu::last_pbig_report(*finder)->overlap_chunks == 0);
     const pair_list got = view_of(*finder, s);
     const gpu::pbig_report* rep = gpu::last_pbig_report(*finder);
     REQUIRE(rep != nullptr);
-    CHECK(rep->overlap_chunks > 1);
+    CHECK(rep->overlap_chunks == 3);  // the default chunk count
     CHECK(sorted(got) == want);
     grid_finder grid(&pool);
     pair_list cpu;
     REQUIRE_FALSE(grid.find(s, cpu).has_value());
     CHECK(cpu.size() == want.size());
-    // One box fewer: the one-shot path.
+    // One box fewer: below the threshold, the one-shot path.
     box_set smaller = s;
     smaller.resize(n - 1);
     const gpu::pinned_boxes pin2(smaller);
     REQUIRE(pin2.active());
     (void)view_of(*finder, smaller);
     CHECK(gpu::last_pbig_report(*finder)->overlap_chunks == 0);
+  }
+
+  TEST_CASE("overlapped upload's rule: only after a call of about this size whose output was at most 3x its input") {
+    // Threshold lowered to 2 boxes, the rule itself as by default. Sparse: a few pairs for 20,000
+    // boxes (out << in); dense: about 110 pairs a box (out about 28x in).
+    thread_pool pool(4);
+    brute_force_finder brute(&pool);
+    gpu::pbig_options o;
+    o.decode_pool = &pool;
+    o.overlap_min_boxes = 2;
+    auto finder = make_gpu(o);
+    const std::size_t n = 20000;
+    const auto seed = fresh_seed();
+    CAPTURE(seed);
+    const box_set sparse = make_family(family::negative_large, n, seed);
+    const box_set dense = make_family(family::mask_mix, n, seed + 1);
+    const box_set bigger = make_family(family::negative_large, n + n / 2, seed + 2);  // 1.5x: not about this size
+    const gpu::pinned_boxes pin_s(sparse), pin_d(dense), pin_b(bigger);
+    REQUIRE(pin_s.active());
+    REQUIRE(pin_d.active());
+    REQUIRE(pin_b.active());
+    const pair_list want_sparse = sorted(run(brute, sparse)), want_dense = sorted(run(brute, dense));
+    const pair_list want_bigger = cpu_pairs(bigger, &pool);
+    REQUIRE(want_dense.size() * 8 > 3 * 32 * n);
+    REQUIRE(want_sparse.size() * 8 < 3 * 32 * n);
+    struct call {
+      const box_set* set;
+      const pair_list* want;
+      std::uint32_t chunks;  // what the rule gives
+    };
+    const call calls[] = {
+        {&sparse, &want_sparse, 0},  // nothing known
+        {&sparse, &want_sparse, 3},  // the last call's output was small
+        {&dense, &want_dense, 3},    // ... still (the rule reads the last call)
+        {&dense, &want_dense, 0},    // the last call's output was large
+        {&sparse, &want_sparse, 0},  // ... still
+        {&sparse, &want_sparse, 3},
+        {&bigger, &want_bigger, 0},  // another size
+        {&bigger, &want_bigger, 3},
+    };
+    for (std::size_t i = 0; i < std::size(calls); ++i) {
+      CAPTURE(i);
+      const pair_list got = sorted(view_of(*finder, *calls[i].set));
+      CHECK(got == *calls[i].want);
+      const gpu::pbig_report* rep = gpu::last_pbig_report(*finder);
+      REQUIRE(rep != nullptr);
+      CHECK(rep->overlap_chunks == calls[i].chunks);
+    }
+    // An invalid call leaves the record as it was.
+    box_set bad = bigger;
+    bad.hi_x[5] = bad.lo_x[5] - 1.0f;
+    const gpu::pinned_boxes pin_bad(bad);
+    std::span<const id_pair> none;
+    REQUIRE(gpu::find_pairs_view(*finder, bad, none).has_value());
+    CHECK(sorted(view_of(*finder, bigger)) == want_bigger);
+    CHECK(gpu::last_pbig_report(*finder)->overlap_chunks == 3);
   }
 }
