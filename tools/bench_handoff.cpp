@@ -72,7 +72,7 @@ int main(int argc, char** argv) {
       "usage: bench-handoff [--sessions 1000] [--ticks 300] [--senders 2] [--io-threads 2] "
       "[--frame-bytes 600] [--rate 30 (0: back to back)] [--max-backlog 2 (0: off)]\n"
       "                     [--mode many|send (default many: frame_arena + send_many, the zone server's "
-      "way; send: make_shared_frame + send per frame)] [--chunk 16 (sessions per send_many)]\n"
+      "way; send: make_shared_frame + send per frame)] [--chunk 16 (sessions per send_many; the zone server hands over chunks of clients_per_task, 64)]\n"
       "                     [--direct-writes 0|1 (default 0: the I/O threads write)]\n"
       "                     [--write-batching auto|io_uring|sendmsg (default auto: io_uring where the "
       "kernel allows it)]\n";

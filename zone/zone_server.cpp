@@ -202,7 +202,7 @@ std::string zone_server::metrics_text() const {
   t.counter("zone_net_idle_timeouts_total", "Sessions closed at the idle timeout.", static_cast<double>(ns.idle_timeouts));
   // The configured limits, so a dashboard reads them beside what they bound.
   const auto limit = [&](const char* name, double v) {
-    t.gauge("zone_limit", "Configured limits (docs/zone.md, Limits and hardening).", v, std::string("limit=\"") + name + "\"");
+    t.gauge("zone_limit", "Configured limits (docs/operating.md, Limits and hardening).", v, std::string("limit=\"") + name + "\"");
   };
   limit("max_clients", static_cast<double>(cfg_.max_clients));
   limit("max_pending", static_cast<double>(cfg_.max_pending));

@@ -1,6 +1,6 @@
 // Kernels of the GPU PBIG finder: small and single-purpose, each starting with a bounds guard.
-// Included only by pbig_kernels.cu, whose launchers (pbig_launch.h) pbig_dispatch.cpp calls; the
-// dispatch plans, sizes scratch memory and owns the streams.
+// Included only by pbig_kernels.cu, whose launchers (pbig_launch.h) pbig_dispatch.cpp and
+// pbig_overlap.cpp call; the dispatch plans, sizes scratch memory and owns the streams.
 #pragma once
 
 #include <cub/block/block_reduce.cuh>

@@ -53,7 +53,7 @@ TEST_SUITE("zone.config") {
     CHECK_FALSE(h.config.has_value());
     CHECK(h.message.find("--tick-rate") != std::string::npos);
     CHECK(h.message.find("--hysteresis") != std::string::npos);
-    // Hardening defaults (docs/zone.md, Limits and hardening): teleports are granted, /metrics is
+    // Hardening defaults (docs/operating.md, Limits and hardening): teleports are granted, /metrics is
     // on loopback, and the admission and rate limits are options.
     CHECK_FALSE(d.config->teleport_enabled);
     CHECK_FALSE(d.config->player_fly);
