@@ -68,6 +68,9 @@ struct visibility_timing {
   double place_ms = 0;     ///<   scans of the list sizes, enters placed in their rows
   double write_ms = 0;     ///<   sorted lists written (and the rows copied back gathered)
   double download_ms = 0;  ///< device-to-host copy of the sets and events
+  /// host: blocked on the device after the caller's while_waiting work (the first pass's wait;
+  /// near 0: that work outlasted the device, so it lengthened the update)
+  double wait_ms = 0;
   double total_ms = 0;     ///< wall time of the whole update (every engine)
   std::uint32_t reruns = 0;  ///< device passes redone after a buffer grew
 };

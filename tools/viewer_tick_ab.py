@@ -17,6 +17,15 @@ pooled p99 change with its 95% bootstrap interval (whole pairs resampled); the m
 average over the run; and the tick's viewer phase itself (from the stats messages); --csv writes
 every tick with its phase.
 
+The ticks with a snapshot due (every round(tick rate / viewer Hz) ticks: the 3rd at 30 Hz and 10
+Hz; the rates are read from --server-args, else zone-server's defaults) are split from the others
+(`--snapshot-every` with --analyze): per condition their tick p50/p99, so a cost paid only where
+a snapshot is filled shows apart from one paid on every tick; and from the server's --tick-csv,
+on the due ticks with the viewer open, the snapshot's fill on the tick's threads (viewer_fill_ms,
+wherever it ran) and, on the GPU interest engine, how much of its device wait was left after the
+host work overlapped with it (interest_wait_ms; near 0: that work outlasted the device, so it
+lengthened the tick).
+
   python3 tools/viewer_tick_ab.py --server build/zone/zone-server --npcs 20000 --phase-s 1.5 --rounds 40
 
 The first --settle-s of every phase is not counted (both conditions alike); the run is bounded by
@@ -106,9 +115,44 @@ def print_pairs(ticks_of, bootstrap):
           f"open higher in {sum(d > 0 for d in d50)} of {len(d50)}")
 
 
-def analyze(paths, bootstrap):
+def print_due_split(rows, every):
+    """rows: (tick, open, tick_ms, viewer_fill_ms or None, interest_wait_ms or None) of the counted
+    ticks. Prints the tick's p50/p99 on the ticks with a snapshot due (tick % every == 0) and on
+    the others, none -> open, and on the due ticks the fill and the interest engine's wait left."""
+    def of(due, opened, k):
+        return [r[k] for r in rows if (r[0] % every == 0) == due and r[1] == opened and r[k] is not None]
+    parts = []
+    for due in (True, False):
+        n, o = of(due, False, 2), of(due, True, 2)
+        if not n or not o:
+            return
+        parts.append(f"{'due' if due else 'other'} ticks ({len(n)} / {len(o)}) p50 {pct(n, 0.5):.3f} -> {pct(o, 0.5):.3f} ms "
+                     f"({1000 * (pct(o, 0.5) - pct(n, 0.5)):+.0f} us), p99 {pct(n, 0.99):.3f} -> {pct(o, 0.99):.3f} ms "
+                     f"({100 * (pct(o, 0.99) - pct(n, 0.99)) / pct(n, 0.99):+.1f}%)")
+    print(f"a snapshot due every {every} ticks: " + "; ".join(parts))
+    fill = of(True, True, 3)
+    if fill:
+        print(f"the snapshot's fill on the tick's threads (viewer_fill_ms, due ticks, open): p50 {pct(fill, 0.5):.4f} ms, "
+              f"p99 {pct(fill, 0.99):.4f} ms, max {max(fill):.4f} ms")
+    waits = {(due, o): of(due, o, 4) for due in (True, False) for o in (False, True)}
+    if all(waits.values()) and max(max(v) for v in waits.values()) > 0:
+        print("the interest engine's device wait left after its overlapped host work (interest_wait_ms), p50 / p10 none -> open: "
+              + "; ".join(f"{'due' if due else 'other'} ticks {pct(waits[(due, False)], 0.5):.4f} / {pct(waits[(due, False)], 0.1):.4f} -> "
+                          f"{pct(waits[(due, True)], 0.5):.4f} / {pct(waits[(due, True)], 0.1):.4f} ms" for due in (True, False)))
+
+
+def snapshot_every(server_args):
+    """round(tick rate / viewer Hz) from zone-server options (its defaults 30 and 10 otherwise)."""
+    def opt(name, default):
+        m = re.search(r"--" + name + r"[= ]+([0-9.eE+-]+)", server_args)
+        return float(m.group(1)) if m else default
+    return max(1, int(round(opt("tick-rate", 30.0) / opt("viewer-hz", 10.0))))
+
+
+def analyze(paths, bootstrap, every):
     """--analyze: the statistics of earlier runs' --csv files together (pairs keyed by file and round)."""
     ticks_of = {}
+    rows = []
     for n, path in enumerate(paths):
         if not os.path.isfile(path):
             sys.exit(f"--analyze {path}: no such file")
@@ -116,10 +160,13 @@ def analyze(paths, bootstrap):
             header = f.readline().strip().split(",")
             if header[:5] != ["tick", "t_s", "tick_ms", "phase", "round"]:
                 sys.exit(f"{path}: not a viewer_tick_ab.py --csv file")
+            extra = [header.index(c) if c in header else None for c in ("viewer_fill_ms", "interest_wait_ms")]
             for line in f:
                 p = line.strip().split(",")
-                if len(p) == 5:
-                    ticks_of.setdefault(((n, int(p[4])), p[3] == "viewer"), []).append(float(p[2]))
+                if len(p) == len(header):
+                    opened = p[3] == "viewer"
+                    ticks_of.setdefault(((n, int(p[4])), opened), []).append(float(p[2]))
+                    rows.append((int(p[0]), opened, float(p[2])) + tuple(float(p[i]) if i is not None and p[i] else None for i in extra))
     by = {o: [ms for (k, oo), v in ticks_of.items() if oo == o for ms in v] for o in (False, True)}
     print(f"\nviewer A/B, {len(paths)} run(s) together: " + ", ".join(paths))
     print("| viewer | ticks | p50 ms | p99 ms | max ms |")
@@ -128,6 +175,7 @@ def analyze(paths, bootstrap):
         v = by[o]
         print(f"| {'open' if o else 'none'} | {len(v)} | {pct(v, 0.5):.3f} | {pct(v, 0.99):.3f} | {max(v) if v else float('nan'):.3f} |")
     print_pairs(ticks_of, bootstrap)
+    print_due_split(rows, every)
 
 
 def pct(values, q):
@@ -288,7 +336,10 @@ def main():
     ap.add_argument("--viewers", type=int, default=1, help="viewer sockets open in the 'with' phases")
     ap.add_argument("--world", type=float, default=4096, help="the world's side (m), as --world-x/--world-y")
     ap.add_argument("--server-args", default="", help="more zone-server options")
-    ap.add_argument("--csv", help="write tick,t_s,tick_ms,phase,round per tick")
+    ap.add_argument("--csv", help="write tick,t_s,tick_ms,phase,round per tick (and viewer_fill_ms,interest_wait_ms where "
+                                  "the server's --tick-csv has them)")
+    ap.add_argument("--snapshot-every", type=int, default=0,
+                    help="with --analyze: a snapshot due every N ticks (default: from --server-args, else 3)")
     ap.add_argument("--label", default="", help="a label for the printed table")
     ap.add_argument("--bootstrap", type=int, default=2000, help="bootstrap resamples for the intervals")
     ap.add_argument("--bots", type=int, default=0, help="bots playing in the zone through the whole run (needs --bot-swarm)")
@@ -308,8 +359,9 @@ def main():
     if (a.rounds < 1 or a.phase_s <= 0 or a.npcs < 0 or a.viewers < 1 or a.bootstrap < 0 or not 0 <= a.client_nice <= 19
             or a.settle_s < 0 or a.max_s <= 0):
         ap.error("rounds >= 1, phase-s > 0, npcs >= 0, viewers >= 1, bootstrap >= 0, client-nice 0..19, settle-s >= 0, max-s > 0")
+    every = a.snapshot_every if a.snapshot_every > 0 else snapshot_every(a.server_args)
     if a.analyze:
-        return analyze(a.analyze, a.bootstrap)
+        return analyze(a.analyze, a.bootstrap, every)
     if a.bots < 0 or (a.bots > 0 and not (a.bot_swarm and os.access(a.bot_swarm, os.X_OK))):
         ap.error("--bots N needs --bot-swarm, an executable bot-swarm")
     if not a.server:
@@ -432,15 +484,18 @@ def main():
         log.close()
 
     rows = []
+    extras = {}  # tick -> (viewer_fill_ms, interest_wait_ms), where the server writes them
     with open(ticks_csv) as f:
         header = f.readline().strip().split(",")
         it, ic, icl = header.index("t_s"), header.index("tick_ms"), header.index("clients")
+        ix = [header.index(c) if c in header else None for c in ("viewer_fill_ms", "interest_wait_ms")]
         clients = {}  # t_s -> clients, for the printout with --bots
         for line in f:
             p = line.strip().split(",")
             if len(p) == len(header):
                 rows.append((int(p[0]), float(p[it]), float(p[ic])))
                 clients[float(p[it])] = int(p[icl])
+                extras[int(p[0])] = tuple(float(p[i]) if i is not None else None for i in ix)
     by = {False: [], True: []}
     per_round = []
     out = []
@@ -469,6 +524,7 @@ def main():
           f"(p50 change {100 * (pct(by[True], 0.5) - pct(by[False], 0.5)) / pct(by[False], 0.5):+.2f}%)")
     print("per round: " + "; ".join(f"r{r} {'open' if o else 'none'} p99 {p99:.3f}" for (r, o, n, p50, p99) in per_round))
     print_pairs(ticks_of, a.bootstrap)
+    print_due_split([(tick, ph == "viewer", ms) + extras.get(tick, (None, None)) for (tick, t, ms, ph, r) in out], every)
     if cpu[True]:
         names = sorted(set(cpu[False]) | set(cpu[True]), key=lambda n: -cpu[True].get(n, 0.0))
         print("CPU ms per second of the phases (none -> open), by thread: " + "; ".join(
@@ -483,9 +539,10 @@ def main():
           f"frames read {frames} ({nbytes / 1e6:.1f} MB)")
     if a.csv:
         with open(a.csv, "w") as f:
-            f.write("tick,t_s,tick_ms,phase,round\n")
+            f.write("tick,t_s,tick_ms,phase,round,viewer_fill_ms,interest_wait_ms\n")
             for row in out:
-                f.write("%d,%.4f,%.4f,%s,%d\n" % row)
+                fill, wait = extras.get(row[0], (None, None))
+                f.write("%d,%.4f,%.4f,%s,%d,%s,%s\n" % (row + ("" if fill is None else "%.4f" % fill, "" if wait is None else "%.4f" % wait)))
 
 
 if __name__ == "__main__":

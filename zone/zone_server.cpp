@@ -281,7 +281,8 @@ std::optional<std::string> zone_server::start() {
   if (!cfg_.tick_csv.empty()) {
     tick_csv_ = std::fopen(cfg_.tick_csv.c_str(), "w");
     if (!tick_csv_) return "cannot write tick-csv file '" + cfg_.tick_csv + "': " + std::strerror(errno);
-    std::fputs("tick,t_s,clients,frames,bytes,inputs_ms,behaviours_ms,integrate_ms,interest_ms,replicate_ms,tick_ms\n",
+    std::fputs("tick,t_s,clients,frames,bytes,inputs_ms,behaviours_ms,integrate_ms,interest_ms,replicate_ms,tick_ms,"
+               "viewer_ms,viewer_fill_ms,interest_wait_ms\n",
                tick_csv_);
   }
   if (cfg_.test_fault.rfind("gpu-", 0) == 0) {
@@ -606,7 +607,9 @@ void zone_server::replicate() {
     // An engine that failed before calling it leaves it to build_many's CPU path (after the frames).
     if (replicator_.on_engine()) ++stats_.viewer_snapshots_in_wait;
     viewer_step_taken_ = true;
-    viewer_take_step();
+    // The pool is idle while the engine waits (build_many parked it): the columns, when the
+    // interest engine's wait did not copy them, go over it.
+    viewer_take_step(pool_.get());
   };
   const std::function<void()> viewer_side = std::ref(viewer_work);
   const bool viewer_due = viewer_ && !requests_.empty() && replicator_.on_engine() && viewer_->viewers() > 0 &&
@@ -671,16 +674,21 @@ void zone_server::write_tick_line(double inputs_ms, double replicate_ms, double 
                                   std::uint64_t bytes) {
   const step_times& ph = world_->last_step();
   const double t = std::chrono::duration<double>(clock_type::now() - started_).count();
-  std::fprintf(tick_csv_, "%llu,%.4f,%llu,%llu,%llu,%.3f,%.3f,%.3f,%.3f,%.3f,%.3f\n",
+  // The viewer's columns: its phase, its snapshot's fill wherever it ran (in the interest
+  // engine's wait, the replication engine's or the viewer phase), and what was left of the interest
+  // engine's device wait after the host work overlapped with it (0 off the GPU engine).
+  const double interest_wait_ms = world_->tracker().stats().on_engine ? world_->tracker().stats().engine_timing.wait_ms : 0.0;
+  std::fprintf(tick_csv_, "%llu,%.4f,%llu,%llu,%llu,%.3f,%.3f,%.3f,%.3f,%.3f,%.3f,%.4f,%.4f,%.4f\n",
                static_cast<unsigned long long>(world_->tick()), t, static_cast<unsigned long long>(stats_.clients),
                static_cast<unsigned long long>(frames), static_cast<unsigned long long>(bytes), inputs_ms, ph.behaviours,
-               ph.integrate, ph.interest, replicate_ms, tick_ms);
+               ph.integrate, ph.interest, replicate_ms, tick_ms, viewer_ms_, viewer_fill_ms_, interest_wait_ms);
 }
 
 void zone_server::tick_once() {
   const auto t0 = clock_type::now();
   if (stats_.ticks == 0) started_ = t0;
   const std::uint64_t frames0 = stats_.frames_sent, bytes0 = stats_.bytes_sent;
+  viewer_fill_ms_ = 0;
   drain_inputs();
   if (ext_ != nullptr) {
     ext_->before_step(*world_);
@@ -746,35 +754,15 @@ void zone_server::tick_once() {
 
 void zone_server::viewer_copy_columns() {
   if (!viewer_ || viewer_->viewers() == 0 || !viewer_snapshot_due()) return;
-  fill_viewer_columns(viewer_->next_snapshot());
+  const auto t0 = clock_type::now();
+  // The pool is idle while the device works (replication's prestage, if any, has returned).
+  fill_viewer_columns(world_->store(), viewer_->next_snapshot(), pool_.get(), cfg_.viewer_copy_chunk);
   viewer_columns_tick_ = world_->tick();
   ++stats_.viewer_columns_in_interest_wait;
+  viewer_fill_ms_ += ms_since(t0);
 }
 
-void zone_server::fill_viewer_columns(net::viewer_snapshot& s) const {
-  const entity_store& store = world_->store();
-  const std::size_t n = store.size();
-  const auto pos = store.positions();
-  // Plain copies of the store's columns, converted only when encoded on the viewer's thread:
-  // positions always (one memcpy, 12 bytes an entity, on this thread: no worker to wake); ids,
-  // classes and kinds only when the store's layout changed since this buffer was filled (its
-  // version covers ids and classes; an entity's kind is fixed at creation).
-  const std::uint64_t layout = store.layout_version();
-  s.xyz.resize(3 * n);
-  if (n > 0) std::memcpy(s.xyz.data(), pos.data(), n * sizeof(vec3));
-  if (layout == 0 || s.layout != layout || s.ids.size() != n) {
-    const auto ids = store.ids();
-    s.ids.assign(ids.begin(), ids.end());
-    const auto cls = store.visibility_classes();
-    s.classes.assign(cls.begin(), cls.end());
-    s.kind.resize(n);
-    static_assert(sizeof(entity_kind) == 1);
-    if (n > 0) std::memcpy(s.kind.data(), store.kinds().data(), n);
-  }
-  s.layout = layout;
-}
-
-void zone_server::fill_viewer_snapshot(net::viewer_snapshot& s) const {
+void zone_server::fill_viewer_snapshot(net::viewer_snapshot& s, interest::thread_pool* pool) const {
   const entity_store& store = world_->store();
   const interest::interest_tracker& tr = world_->tracker();
   s.tick = world_->tick();
@@ -783,7 +771,9 @@ void zone_server::fill_viewer_snapshot(net::viewer_snapshot& s) const {
   // The columns, unless this tick's were copied while the interest engine's device worked (a
   // single zone: nothing moves an entity after the step; a class changed since, by a player's
   // visibility switch, changes the layout version and the columns are copied again).
-  if (viewer_columns_tick_ != s.tick || s.layout != store.layout_version()) fill_viewer_columns(s);
+  if (viewer_columns_tick_ != s.tick || s.layout != store.layout_version()) {
+    fill_viewer_columns(store, s, pool, cfg_.viewer_copy_chunk);
+  }
   const auto pos = store.positions();
   const auto cls = store.visibility_classes();
   const auto kinds = store.kinds();
@@ -852,7 +842,7 @@ bool zone_server::viewer_snapshot_due() const {
   return world_->tick() % every == 0;
 }
 
-void zone_server::viewer_take_step() {
+void zone_server::viewer_take_step(interest::thread_pool* pool) {
   const interest::interest_tracker& tr = world_->tracker();
   const std::uint64_t tick = world_->tick();
   // The watched entities' enters and leaves of this step (a window of the latest 64 each).
@@ -864,7 +854,11 @@ void zone_server::viewer_take_step() {
   }
   // A snapshot every tick_rate / viewer_hz ticks, filled into the viewer's free buffer.
   viewer_snapshot_filled_ = viewer_snapshot_due();
-  if (viewer_snapshot_filled_) fill_viewer_snapshot(viewer_->next_snapshot());
+  if (viewer_snapshot_filled_) {
+    const auto t0 = clock_type::now();
+    fill_viewer_snapshot(viewer_->next_snapshot(), pool);
+    viewer_fill_ms_ += ms_since(t0);
+  }
 }
 
 void zone_server::publish_viewer() {
@@ -880,7 +874,7 @@ void zone_server::publish_viewer() {
     viewer_->next_stats().ticks.clear();
     return;
   }
-  if (!taken) viewer_take_step();
+  if (!taken) viewer_take_step(nullptr);
   // The snapshot handed over with one atomic exchange (no lock, no allocation once the buffers
   // have grown).
   if (std::exchange(viewer_snapshot_filled_, false)) viewer_->publish();

@@ -22,6 +22,7 @@
 #include "net/viewer.h"
 #include "zone.h"
 #include "zone/interest_setup.h"
+#include "zone/viewer_columns.h"
 
 namespace zone {
 
@@ -189,15 +190,14 @@ class zone_server {
   /// replicate() as build_many's side work (while the GPU replication engine waits for the
   /// device) on a tick with a snapshot due and frames to build on the engine, else in
   /// publish_viewer().
-  void viewer_take_step();
-  void fill_viewer_snapshot(net::viewer_snapshot& s) const;
-  /// The snapshot's entity columns: positions, and ids, classes and kinds when the store's layout
-  /// changed since that buffer was filled.
-  void fill_viewer_columns(net::viewer_snapshot& s) const;
+  void viewer_take_step(interest::thread_pool* pool);
+  /// The snapshot (selections, and the entity columns unless viewer_copy_columns copied this
+  /// tick's): the columns over `pool` when given (an idle pool: a device wait), else on this thread.
+  void fill_viewer_snapshot(net::viewer_snapshot& s, interest::thread_pool* pool) const;
   /// Inside the step, while the interest engine's device works (single zone only): a due
-  /// snapshot's columns copied into the viewer's free buffer (the positions are final once
-  /// integrated, and nothing after the step changes the store in a single zone); the snapshot's
-  /// fill then leaves them.
+  /// snapshot's columns copied into the viewer's free buffer over the worker pool, idle then
+  /// (fill_viewer_columns; the positions are final once integrated, and nothing after the step
+  /// changes the store in a single zone); the snapshot's fill then leaves them.
   void viewer_copy_columns();
   void fill_viewer_stats(net::viewer_stats& s) const;
   /// --test-fault: the client whose frames are broken (the lowest session with an entity).
@@ -241,6 +241,7 @@ class zone_server {
   std::vector<entity_id> viewer_watch_ids_;
   std::uint64_t viewer_selection_version_ = 0;
   double viewer_ms_ = 0;  // the last tick's publish_viewer
+  double viewer_fill_ms_ = 0;  // this tick's snapshot fill on the tick's threads, wherever it ran (--tick-csv)
   bool viewer_step_taken_ = false;  // replicate() ran this tick's viewer_take_step (publish_viewer resets it)
   bool viewer_snapshot_filled_ = false;  // and filled a snapshot for publish_viewer to publish
   std::uint64_t viewer_columns_tick_ = ~std::uint64_t{0};  // the tick whose columns viewer_copy_columns copied

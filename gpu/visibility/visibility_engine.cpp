@@ -189,7 +189,9 @@ class engine final : public interest::visibility_engine {
       got_leave = std::min<std::uint64_t>(last_leave_ + last_leave_ / 2 + 1024, prev_total_ + 1);
       download(n, got_vis, got_enter, got_leave);
       if (attempt == 0 && in.while_waiting) in.while_waiting();
+      const auto t_wait = clock_type::now();
       CUDA_CHECK(cudaStreamSynchronize(stream_));
+      if (attempt == 0) out.timing.wait_ms = ms_since(t_wait);
       st = *h_st_.get();
       if (st.overflow == 0) break;
       ++out.timing.reruns;

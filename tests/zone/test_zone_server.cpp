@@ -506,17 +506,20 @@ TEST_SUITE("zone.server") {
     REQUIRE(in.good());
     std::string line;
     REQUIRE(std::getline(in, line));
-    CHECK(line == "tick,t_s,clients,frames,bytes,inputs_ms,behaviours_ms,integrate_ms,interest_ms,replicate_ms,tick_ms");
+    CHECK(line ==
+          "tick,t_s,clients,frames,bytes,inputs_ms,behaviours_ms,integrate_ms,interest_ms,replicate_ms,tick_ms,"
+          "viewer_ms,viewer_fill_ms,interest_wait_ms");
+    constexpr int columns = 14;
     int lines = 0;
-    double sums[11] = {};
+    double sums[columns] = {};
     double last_t = -1;
     while (std::getline(in, line)) {
-      double v[11];
+      double v[columns];
       std::istringstream row(line);
       char comma = 0;
-      for (int k = 0; k < 11; ++k) {
+      for (int k = 0; k < columns; ++k) {
         REQUIRE((row >> v[k]));
-        if (k < 10) {
+        if (k < columns - 1) {
           REQUIRE((row >> comma));
           REQUIRE(comma == ',');
         }
@@ -527,6 +530,11 @@ TEST_SUITE("zone.server") {
       CHECK(v[1] >= last_t);
       last_t = v[1];
       CHECK(v[10] + 0.002 >= v[5] + v[9]);  // the tick holds its inputs and replicate phases
+      CHECK(v[10] + 0.002 >= v[11]);        // and its viewer phase
+      CHECK(v[12] == 0);                    // no viewer: no snapshot filled
+      CHECK(v[13] >= 0);                    // the interest engine's device wait lies within its phase
+      CHECK(v[13] <= v[8] + 0.002);
+      CHECK(row.peek() == std::char_traits<char>::eof());  // nothing after the last column
     }
     CHECK(lines == ticks);
     CHECK(sums[3] == doctest::Approx(static_cast<double>(frames_sent)));
