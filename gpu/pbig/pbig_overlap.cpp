@@ -9,10 +9,11 @@
 //     two intersecting boxes still share a cell (the output-cell rule holds), only less balanced.
 //  2. Per stage, on the main stream once chunk j has landed: its validation (pinned input), count,
 //     the stage's per-cell prefixes and totals (chunk j's count q and the earlier chunks' count p
-//     in each cell: pbig_kernels.cu, to_stage_prefix), the batch plan, one read-back; then map
-//     chunk j into its own per-cell lists, sort each by id, and expand the stage's work items.
+//     in each cell: stage_layout, pbig_shared.h), the batch plan, one read-back; then map chunk j
+//     into its own per-cell lists, sort each by id, and expand the stage's work items.
 //  3. The stage's batches check chunk j's lists against themselves and the earlier chunks' lists
-//     of the same cells (check_stage_kernel), in the direct-output pipeline of pbig_dispatch.cpp
+//     of the same cells, never two earlier boxes (check_stage_kernel: one warp per 32 boxes of
+//     chunk j in a cell), in the direct-output pipeline of pbig_dispatch.cpp
 //     (launch_direct / finish_direct on the two slots, the pairs copied into the pinned result),
 //     which runs on across stages: while chunk j + 1 uploads, stage j's pairs are copied out.
 //  4. After the last stage: the boxes handled apart (large), over all n boxes, as in check_direct.
