@@ -760,17 +760,25 @@ __global__ void __launch_bounds__(tuning::segment) check_stage_kernel(check_args
   if (item >= a.item_last || item >= a.grid->total.item) return;  // guard (uniform over the warp)
   const std::uint32_t cell = a.items[item];
   const std::uint32_t own = lists.count - 1;  // list j, the stage's chunk
-  if (lane == 0) {
-    std::uint32_t at = 0;
-    for (std::uint32_t i = 0; i < lists.count; ++i) {
-      const std::uint32_t b = lists.prefix[i][cell].entry, e = lists.prefix[i][cell + 1].entry;
-      list_first[w][i] = b;
-      list_at[w][i] = at;
-      at += e - b;
+  {
+    // Lane i reads list i's range in the cell; a warp scan places the lists one after the other.
+    std::uint32_t first = 0, len = 0;
+    if (lane < lists.count) {
+      first = lists.prefix[lane][cell].entry;
+      len = lists.prefix[lane][cell + 1].entry - first;
     }
-    list_at[w][lists.count] = at;
+    std::uint32_t upto = len;
+    for (std::uint32_t o = 1; o < max_overlap_chunks; o <<= 1) {
+      const std::uint32_t y = __shfl_up_sync(full, upto, o);
+      if (lane >= o) upto += y;
+    }
+    if (lane < lists.count) {
+      list_first[w][lane] = first;
+      list_at[w][lane] = upto - len;
+      if (lane == own) list_at[w][lists.count] = upto;
+    }
+    __syncwarp();
   }
-  __syncwarp();
   const std::uint32_t earlier_n = list_at[w][own];               // P
   const std::uint32_t own_n = list_at[w][lists.count] - earlier_n;  // Q
   const std::uint32_t own_first = list_first[w][own];
