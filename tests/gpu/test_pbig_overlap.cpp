@@ -4,7 +4,8 @@
 // one-shot GPU path. The pipeline is forced (overlap_always) onto sets of 1.6x10^4-3x10^5 boxes
 // (pinned: pinned_boxes pins from 16384 boxes) with 2, 3 and 7 chunks, chunk sizes that do not
 // divide n, and the sets that stress its decomposition: boxes straddling cells, duplicates and
-// identical boxes, zero-extent boxes, later chunks far outside the first chunk's bounds (the grid
+// identical boxes, zero-extent boxes, cells crowded chunk by chunk around the stage kernel's
+// 32-box segments, later chunks far outside the first chunk's bounds (the grid
 // is planned from chunk 0), stages without pairs or without grid boxes, boxes handled apart,
 // invalid boxes in a later chunk, overflowing output buffers. Then the default rule: the pipeline
 // only after a call of about the same size whose output was small against its input. About 20 s
