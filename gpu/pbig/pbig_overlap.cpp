@@ -191,8 +191,8 @@ void pbig_engine::queue_stage_map(std::uint32_t n, std::uint32_t j, std::uint32_
   if (rb.total.entry > 0) {
     CUDA_CHECK(launch_map(chunk, count, first, d_plan_.get(), grid, d_is_large_.get() + first, st.prefix.get(),
                           d_counts_.get() + cells + 2, d_entries_unsorted_.get(), main_));
-    // Each cell's list of the chunk by box id (determinism); the checks' lists are at most as long
-    // as the virtual list (max_count), so the one-kernel sort holds whenever that is small.
+    // Each cell's list of the chunk by box id (determinism); a chunk's list is at most the cell's
+    // boxes of chunks 0..j (max_count), so the one-kernel sort holds whenever that is small.
     if (rb.totals.max_count <= tuning::small_cell_sort) {
       CUDA_CHECK(
           launch_sort_small_cells(d_entries_unsorted_.get(), st.entries.get(), st.prefix.get(), cells, grid, main_));
