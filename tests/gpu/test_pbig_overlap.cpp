@@ -16,6 +16,7 @@
 #include <algorithm>
 #include <cstdint>
 #include <limits>
+#include <map>
 #include <memory>
 #include <span>
 #include <string>
@@ -23,6 +24,7 @@
 
 #include "../common/box_families.h"
 #include "gpu/pbig.h"
+#include "gpu/pbig/pbig_shared.h"  // stage_layout: the stage kernel's work in a cell
 #include "interest/interest.h"
 #include "interest/thread_pool.h"
 
@@ -301,6 +303,64 @@ box_set crowded_cells(std::size_t n, std::size_t k, std::uint64_t seed) {
 }  // namespace
 
 TEST_SUITE("gpu.pbig.overlap") {
+  TEST_CASE("overlapped upload: the stage kernel's layout tests each pair with a box of the chunk once") {
+    // check_stage_kernel's loops over stage_layout, replayed on the host for a cell of q boxes of
+    // chunk j (positions p..p+q-1) and p earlier ones: every pair with at least one box of chunk j
+    // is tested exactly once (with Eq. 7 on the triangles and without), no pair of two earlier
+    // boxes, and the tiles are numbered 0..tiles()-1 without gaps.
+    namespace d = zone::gpu::detail;
+    const std::uint32_t W = d::stage_rows;
+    const std::uint32_t sizes[] = {0, 1, 2, 31, 32, 33, 63, 64, 65, 96, 97, 130, 257};
+    for (const std::uint32_t q : sizes) {
+      for (const std::uint32_t p : sizes) {
+        for (const bool balanced : {true, false}) {
+          CAPTURE(q);
+          CAPTURE(p);
+          CAPTURE(balanced);
+          const d::stage_cell_layout l = d::stage_layout(q, p);
+          REQUIRE(l.items == (q + W - 1) / W);
+          std::vector<int> tile_seen(l.tiles(), 0);
+          std::map<std::pair<std::uint32_t, std::uint32_t>, int> tested;
+          for (std::uint32_t u = 0; u < l.items; ++u) {
+            const std::uint32_t m = std::min(W, q - u * W);
+            for (std::uint32_t t = 0; t < l.tiles_of(u); ++t) {
+              REQUIRE(l.first_tile(u) + t < tile_seen.size());
+              ++tile_seen[l.first_tile(u) + t];
+              const bool earlier = t < l.earlier;
+              const std::uint32_t seg = earlier ? t : u + (t - l.earlier);
+              const std::uint32_t n = std::min(W, (earlier ? p : q) - seg * W);
+              for (std::uint32_t lane = 0; lane < m; ++lane) {
+                const std::uint32_t r = p + u * W + lane;
+                auto test = [&](std::uint32_t j) {
+                  const std::uint32_t c = earlier ? seg * W + j : p + seg * W + j;
+                  ++tested[{std::min(r, c), std::max(r, c)}];
+                };
+                if (earlier || seg > u) {
+                  for (std::uint32_t j = 0; j < n; ++j) test(j);
+                } else if (balanced) {
+                  REQUIRE(n == m);
+                  const std::uint32_t x = lane < (m + 1) / 2 ? (m + 2) / 2 : (m + 1) / 2;
+                  std::uint32_t j = lane;
+                  for (std::uint32_t k = 1; k < x; ++k) {
+                    if (++j == m) j = 0;
+                    test(j);
+                  }
+                } else {
+                  for (std::uint32_t j = lane + 1; j < m; ++j) test(j);
+                }
+              }
+            }
+          }
+          CHECK(std::all_of(tile_seen.begin(), tile_seen.end(), [](int c) { return c == 1; }));
+          CHECK(tested.size() == std::uint64_t{q} * p + std::uint64_t{q} * (q - (q > 0 ? 1 : 0)) / 2);
+          CHECK(std::all_of(tested.begin(), tested.end(), [&](const auto& e) {
+            return e.second == 1 && e.first.first != e.first.second && e.first.second >= p;
+          }));
+        }
+      }
+    }
+  }
+
   TEST_CASE("overlapped upload: families in 2, 3 and 7 chunks against brute force and the one-shot path") {
     thread_pool pool(4);
     brute_force_finder brute(&pool);
