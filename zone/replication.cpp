@@ -215,6 +215,66 @@ std::size_t replicator::resync_viewers_of(const entity_store& store, entity_id c
   return n;
 }
 
+std::size_t replicator::resync_viewers_of(const entity_store& store, std::span<const class_change> changes, float hysteresis,
+                                          interest::thread_pool* pool) {
+  auto& ch = changed_scratch_;
+  ch.clear();
+  for (const class_change& c : changes) {
+    const std::size_t x = store.index_of(c.entity);
+    if (x == entity_store::npos) continue;
+    ch.push_back({c.entity, store.visibility_classes()[x], store.sees()[x], c.old_class, c.old_sees,
+                  store.positions()[x], store.presence_half_extents()[x]});
+  }
+  if (ch.empty()) return 0;
+  const float slack = hysteresis + 0.01f;
+  // One client against every change, in the order resync_viewers_of(change) would meet them: the
+  // first change that resyncs it decides (later ones skip a client already resynced).
+  const auto resyncs = [&](const client_state& s) {
+    if (!s.active || s.reset_pending) return false;
+    std::size_t o = entity_store::npos;
+    std::uint32_t m = 0;
+    vec3 q{}, a{};
+    for (const changed_entity& c : ch) {
+      if (s.observer == c.id) {
+        if (c.sees != c.old_sees) return true;
+        continue;
+      }
+      if (c.cls == c.old_class) continue;
+      if (o == entity_store::npos) {
+        o = store.index_of(s.observer);
+        // Not in the store: no change here is its own entity (those are), and it holds nothing.
+        if (o == entity_store::npos) return false;
+        m = store.sees()[o], q = store.positions()[o], a = store.aoi_half_extents()[o];
+      }
+      if ((m & c.cls) == 0 || (m & c.old_class) == 0) continue;
+      if (std::fabs(c.p.x - q.x) > a.x + c.b.x + slack || std::fabs(c.p.y - q.y) > a.y + c.b.y + slack ||
+          std::fabs(c.p.z - q.z) > a.z + c.b.z + slack) {
+        continue;
+      }
+      return true;
+    }
+    return false;
+  };
+  constexpr std::size_t chunk = 1024;
+  const std::size_t n = clients_.size(), tasks = (n + chunk - 1) / chunk;
+  resync_counts_.assign(tasks, 0);
+  const auto run_chunk = [&](std::size_t t) {
+    std::size_t k = 0;
+    for (std::size_t i = t * chunk; i < std::min(n, (t + 1) * chunk); ++i) {
+      if (resyncs(clients_[i])) clients_[i].reset_pending = true, ++k;
+    }
+    resync_counts_[t] = k;
+  };
+  if (pool != nullptr && tasks > 1) {
+    pool->run(tasks, run_chunk);
+  } else {
+    for (std::size_t t = 0; t < tasks; ++t) run_chunk(t);
+  }
+  std::size_t total = 0;
+  for (const std::size_t k : resync_counts_) total += k;
+  return total;
+}
+
 std::span<const std::uint8_t> replicator::build(client_id c, const entity_store& store, const interest::interest_tracker& tracker,
                                                 std::uint64_t tick, std::uint64_t server_time_us,
                                                 std::uint32_t last_input_sequence, replication_writer& writer,

@@ -158,6 +158,13 @@ class replicator {
   /// The decision reads only the store, so the CPU path and an engine resync the same clients.
   std::size_t resync_viewers_of(const entity_store& store, entity_id changed, std::uint32_t old_class,
                                 std::uint32_t old_sees, float hysteresis);
+  /// The same for every change of a tick at once: the clients that resync_viewers_of(change)
+  /// called for each change in turn would resync, in one pass over the clients (each client's
+  /// observer looked up once, not once per change), spread over `pool` (null: this thread).
+  /// Returns how many clients it resynced. A tick with 40 switches among 20,000 clients took
+  /// the tick's thread milliseconds one change at a time.
+  std::size_t resync_viewers_of(const entity_store& store, std::span<const class_change> changes, float hysteresis,
+                                interest::thread_pool* pool = nullptr);
 
   /// Builds this tick's frame for client c into `writer`; the span is valid until the writer's
   /// next build. `stats`, when given, receives what was sent and deferred.
@@ -303,6 +310,14 @@ class replicator {
   tier_bound near_, mid_;
   std::uint32_t mid_period_, far_period_;  // at least 1
   std::vector<client_state> clients_;
+  /// resync_viewers_of's changes of one tick with their store values (kept: no allocation a tick).
+  struct changed_entity {
+    entity_id id;
+    std::uint32_t cls, sees, old_class, old_sees;
+    vec3 p, b;
+  };
+  std::vector<changed_entity> changed_scratch_;
+  std::vector<std::size_t> resync_counts_;
   std::vector<client_id> free_clients_;
   std::vector<std::unique_ptr<replication_writer>> writers_;  // one per build_many task (thread)
   std::vector<entity_snapshot> snapshot_;                     // build_many's, by dense index

@@ -509,9 +509,8 @@ void zone_server::set_visibility(net::session_id session, client& c, const net::
 }
 
 void zone_server::replicate_class_changes() {
-  for (const auto& ch : class_changes_) {
-    stats_.visibility_resyncs += replicator_.resync_viewers_of(world_->store(), ch.entity, ch.old_class, ch.old_sees, cfg_.hysteresis);
-  }
+  if (class_changes_.empty()) return;
+  stats_.visibility_resyncs += replicator_.resync_viewers_of(world_->store(), class_changes_, cfg_.hysteresis, pool_.get());
   class_changes_.clear();
 }
 

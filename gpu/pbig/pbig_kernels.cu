@@ -44,9 +44,9 @@ struct add_totals {
   }
 };
 /// The overlapped upload's stage j: chunk j's count q in a cell and the earlier chunks' boxes p
-/// there (from their prefixes), as the stage's per-cell values (check_stage_kernel's layout):
-/// entries q (chunk j's own list), work items S = ceil((p + q) / T) row segments of the virtual
-/// list, tiles h0 * D + D (D + 1) / 2 with h0 = p / T and D = S - h0; nothing when q == 0.
+/// there (from their prefixes), as the stage's per-cell values (check_stage_kernel's layout,
+/// stage_layout in pbig_shared.h): entries q (chunk j's own list), work items ceil(q / W) row
+/// segments of chunk j's list, their tiles; nothing when q == 0.
 struct stage_cell {
   const std::uint32_t* counts;
   stage_lists earlier;  // chunks 0..j-1 (count = j)
@@ -63,15 +63,14 @@ struct to_stage_prefix {
   __host__ __device__ cell_prefix operator()(std::uint32_t c) const {
     std::uint32_t q, p;
     cell.sizes(c, q, p);
-    if (q == 0) return {0, 0, 0};
-    const std::uint32_t segs = (p + q + tuning::segment - 1) / tuning::segment;
-    const std::uint32_t d = segs - p / tuning::segment;
-    return {q, segs, (p / tuning::segment) * d + d * (d + 1) / 2};
+    const stage_cell_layout l = stage_layout(q, p);
+    return {q, l.items, static_cast<std::uint32_t>(l.tiles())};  // 32-bit wrap caught by the totals' check
   }
 };
-/// The stage's totals: entries q, tiles as above, checks q p + q (q - 1) / 2, and as max_count
-/// the longest virtual list of a cell with work (what the checks segment; the per-cell sort of
-/// chunk j's lists, never longer, takes the one-kernel path when it is at most small_cell_sort).
+/// The stage's totals: entries q, tiles as above, checks q p + q (q - 1) / 2 (chunk j's boxes
+/// against the earlier ones and each other), and as max_count the cell's boxes of chunks 0..j
+/// (what the segment indices must fit; the per-cell sort of chunk j's lists, never longer, takes
+/// the one-kernel path when it is at most small_cell_sort).
 struct to_stage_totals {
   stage_cell cell;
   __host__ __device__ cell_totals operator()(std::uint32_t c) const {
@@ -79,9 +78,7 @@ struct to_stage_totals {
     cell.sizes(c, q32, p32);
     if (q32 == 0) return {0, 0, 0, 0};
     const std::uint64_t q = q32, p = p32;
-    const std::uint64_t segs = (p + q + tuning::segment - 1) / tuning::segment;
-    const std::uint64_t d = segs - p / tuning::segment;
-    return {q, (p / tuning::segment) * d + d * (d + 1) / 2, q * p + q * (q - 1) / 2, p + q};
+    return {q, stage_layout(q32, p32).tiles(), q * p + q * (q - 1) / 2, p + q};
   }
 };
 struct entry_at {
@@ -260,8 +257,10 @@ cudaError_t launch_check(const check_args& a, bool balanced, bool compressed, cu
 }
 
 cudaError_t launch_check_stage(const check_args& a, const stage_lists& lists, bool balanced, cudaStream_t stream) {
-  const std::uint32_t grid = a.item_last - a.item_first;
-  if (grid == 0) return cudaSuccess;
+  const std::uint32_t items = a.item_last - a.item_first;
+  if (items == 0) return cudaSuccess;
+  constexpr std::uint32_t warps = tuning::segment / stage_rows;  // one work item a warp
+  const std::uint32_t grid = (items + warps - 1) / warps;
   if (balanced) {
     check_stage_kernel<true><<<grid, tuning::segment, 0, stream>>>(a, lists);
   } else {

@@ -566,6 +566,27 @@ __device__ __forceinline__ std::uint32_t hi_flags(const float4& hi, const grid_p
          (cell_of(hi.z, 2, p) == c[2] ? 4u : 0u);
 }
 
+/// One tile's output chunk, for both checking kernels: called by the one thread that speaks for
+/// the tile (of its block or warp) once the tile's scan gave its `pairs` (> 0) and `bytes` (the
+/// chunk with its 12-byte header). Claims the chunk's place in the batch's buffer (one atomic on
+/// the cursor), records the tile's offset and pair count, and writes the header when the chunk
+/// fits (a chunk past the capacity is only counted: the host sees cursor > capacity and re-runs
+/// the batch with room). Returns the chunk's first byte.
+__device__ __forceinline__ std::uint64_t reserve_chunk(const check_args& a, std::uint32_t tile, std::uint32_t cell_begin,
+                                                       std::uint32_t seg_v, std::uint32_t seg_h, std::uint32_t pairs,
+                                                       std::uint32_t body, std::uint64_t bytes) {
+  const std::uint64_t base = atomicAdd(a.cursor, static_cast<unsigned long long>(bytes));
+  a.tile_off[tile] = base;
+  a.tile_pairs[tile] = pairs;
+  if (base + bytes <= a.capacity) {
+    auto* w = reinterpret_cast<std::uint32_t*>(a.out + base);
+    w[0] = cell_begin;
+    w[1] = seg_v | (seg_h << 16);
+    w[2] = body | (pairs << 16);
+  }
+  return base;
+}
+
 /// Algorithm 2: one block of T threads per work item (cell c, row segment v). Thread i holds box
 /// i of segment v and compares it with each column segment h >= v loaded into shared memory:
 /// for h == v the triangle, with Eq. 7's balanced circular assignment when Balanced (thread i
@@ -675,18 +696,7 @@ __global__ void __launch_bounds__(tuning::segment) check_kernel(check_args a) {
       continue;
     }
     const std::uint64_t chunk = sizeof(chunk_header) + ((body + 3u) & ~3u);
-    if (tid == 0) {
-      const std::uint64_t base = atomicAdd(a.cursor, static_cast<unsigned long long>(chunk));
-      chunk_base = base;
-      a.tile_off[tile] = base;
-      a.tile_pairs[tile] = total_pairs;
-      if (base + chunk <= a.capacity) {
-        auto* w = reinterpret_cast<std::uint32_t*>(a.out + base);
-        w[0] = p0.entry;
-        w[1] = v | (h << 16);
-        w[2] = body | (total_pairs << 16);
-      }
-    }
+    if (tid == 0) chunk_base = reserve_chunk(a, tile, p0.entry, v, h, total_pairs, body, chunk);
     __syncthreads();
     const std::uint64_t base = chunk_base;
     if (pairs == 0 || base + chunk > a.capacity) continue;
@@ -714,168 +724,161 @@ __global__ void __launch_bounds__(tuning::segment) check_kernel(check_args a) {
 }
 
 /// The overlapped upload's checks (docs/gpu.md, "Overlapped upload"): stage j finds every pair
-/// whose larger id is in chunk j. In each cell the lists of chunks 0..j form one virtual list
-/// (stage_lists: chunk 0's boxes, then chunk 1's, ..., chunk j's last Q of them, at positions
-/// [P, P + Q)). One block of T threads per work item (cell, row segment v of that list), as in
-/// check_kernel, but only column segments h >= max(v, P / T) are visited, and a pair at list
-/// positions (r, s) is kept only when max(r, s) >= P (at least one box of chunk j; the diagonal
-/// tile of the segment where chunk j begins skips the others: no Eq. 7 there), besides
-/// check_kernel's rules (the boxes intersect, the category/mask rule, this cell is the pair's
-/// output cell). So each pair is found in exactly one stage and one cell. The stage's tiles per
-/// cell (pbig_kernels.cu, to_stage_prefix): with S segments and D = S - P / T, the rows v < P / T
-/// have D tiles each, the rows v >= P / T the triangle of D. Plain chunks (direct output) and
-/// boxes read through their ids (a.packed_lo/hi are by id).
+/// whose larger id is in chunk j. In each cell it tests chunk j's boxes (list j, Q of them: the
+/// rows) against the earlier chunks' boxes of the cell (lists 0..j-1, P of them) and against each
+/// other, never two earlier boxes, so the stages together test each cell's pairs once, as the
+/// one-shot path does. One warp per work item (cell, row segment u of chunk j's list: W =
+/// stage_rows rows), two warps a block, each on its own after the plan is loaded; the item's
+/// tiles (stage_layout, pbig_shared.h): the earlier boxes in ceil(P / W) column segments (every
+/// pair), then chunk j's own segments from u on (u: the triangle, Eq. 7 when Balanced; above:
+/// every pair). A pair is kept by check_kernel's rules (the boxes intersect, the category/mask
+/// rule, this cell is the pair's output cell), so each pair is found in exactly one stage and one
+/// cell. Plain chunks (direct output), boxes read through their ids (a.packed_lo/hi are by id);
+/// the header's segment fields (not read in direct output) saturate at 65535.
 template <bool Balanced>
 __global__ void __launch_bounds__(tuning::segment) check_stage_kernel(check_args a, stage_lists lists) {
-  constexpr std::uint32_t T = tuning::segment;
-  using scan = cub::BlockScan<std::uint32_t, T>;
-  __shared__ typename scan::TempStorage scan_temp;
-  __shared__ float4 col_lo[T];
-  __shared__ float4 col_hi[T];
-  __shared__ std::uint32_t col_id[T];
-  __shared__ std::uint8_t col_flags[T];
-  __shared__ std::uint64_t chunk_base;
+  constexpr std::uint32_t W = stage_rows;
+  constexpr std::uint32_t warps = tuning::segment / W;
+  static_assert(W == 32 && tuning::segment % W == 0, "one work item a warp");
+  constexpr unsigned full = 0xffffffffu;
+  __shared__ float4 col_lo[warps][W];
+  __shared__ float4 col_hi[warps][W];
+  __shared__ std::uint32_t col_id[warps][W];
+  __shared__ std::uint8_t col_flags[warps][W];
   __shared__ grid_plan_dev plan;
-  __shared__ std::uint32_t list_first[max_overlap_chunks];    // the cell's first entry in list i
-  __shared__ std::uint32_t list_at[max_overlap_chunks + 1];   // where list i starts in the virtual list
+  __shared__ std::uint32_t list_first[warps][max_overlap_chunks];    // the cell's first entry in list i
+  __shared__ std::uint32_t list_at[warps][max_overlap_chunks + 1];   // list i's first box among the cell's
 
-  const std::uint32_t item = a.item_first + blockIdx.x;
   // guard (uniform over the block)
-  if (item >= a.item_last || item >= a.grid->total.item || blockDim.x != T || lists.count == 0 ||
-      lists.count > static_cast<std::uint32_t>(max_overlap_chunks)) {
+  if (blockDim.x != tuning::segment || lists.count == 0 || lists.count > static_cast<std::uint32_t>(max_overlap_chunks)) {
     return;
   }
-  const std::uint32_t tid = threadIdx.x;
+  if (threadIdx.x == 0) plan = *a.plan;
+  __syncthreads();  // the block's only barrier: from here each warp works on its own item
+  const std::uint32_t w = threadIdx.x / W, lane = threadIdx.x % W;
+  const std::uint32_t item = a.item_first + blockIdx.x * warps + w;
+  if (item >= a.item_last || item >= a.grid->total.item) return;  // guard (uniform over the warp)
   const std::uint32_t cell = a.items[item];
-  if (tid == 0) {
-    plan = *a.plan;
-    std::uint32_t at = 0;
-    for (std::uint32_t i = 0; i < lists.count; ++i) {
-      const std::uint32_t b = lists.prefix[i][cell].entry, e = lists.prefix[i][cell + 1].entry;
-      list_first[i] = b;
-      list_at[i] = at;
-      at += e - b;
+  const std::uint32_t own = lists.count - 1;  // list j, the stage's chunk
+  {
+    // Lane i reads list i's range in the cell; a warp scan places the lists one after the other.
+    std::uint32_t first = 0, len = 0;
+    if (lane < lists.count) {
+      first = lists.prefix[lane][cell].entry;
+      len = lists.prefix[lane][cell + 1].entry - first;
     }
-    list_at[lists.count] = at;
+    std::uint32_t upto = len;
+    for (std::uint32_t o = 1; o < max_overlap_chunks; o <<= 1) {
+      const std::uint32_t y = __shfl_up_sync(full, upto, o);
+      if (lane >= o) upto += y;
+    }
+    if (lane < lists.count) {
+      list_first[w][lane] = first;
+      list_at[w][lane] = upto - len;
+      if (lane == own) list_at[w][lists.count] = upto;
+    }
+    __syncwarp();
   }
-  __syncthreads();
-  const std::uint32_t length = list_at[lists.count];
-  const std::uint32_t first_own = list_at[lists.count - 1];  // P: the stage's chunk starts here
-  const std::uint32_t segs = (length + T - 1) / T;
-  const std::uint32_t h0 = first_own / T;  // the first segment holding a box of the stage's chunk
-  const std::uint32_t d = segs - h0;
-  const cell_prefix p0 = a.prefix[cell];
-  const std::uint32_t v = item - p0.item;
-  if (v >= segs) return;  // guard (uniform): the stage's prefixes give the cell segs row segments
-  std::uint32_t h_first, tile0;
-  if (v < h0) {
-    h_first = h0;
-    tile0 = v * d;
-  } else {
-    const std::uint32_t u = v - h0;
-    h_first = v;
-    tile0 = h0 * d + u * d - u * (u - 1) / 2;
-  }
-  tile0 += p0.tile - a.tile_first;
+  const std::uint32_t earlier_n = list_at[w][own];               // P
+  const std::uint32_t own_n = list_at[w][lists.count] - earlier_n;  // Q
+  const std::uint32_t own_first = list_first[w][own];
+  const stage_cell_layout layout = stage_layout(own_n, earlier_n);
+  const cell_prefix p0 = a.prefix[cell];  // the stage's prefix: own_first, the cell's first item and tile
+  const std::uint32_t u = item - p0.item;
+  if (u >= layout.items) return;  // guard (uniform over the warp): the prefixes give the cell layout.items items
+  const std::uint32_t tile0 = p0.tile - a.tile_first + static_cast<std::uint32_t>(layout.first_tile(u));
   const std::uint32_t cc[3] = {cell % plan.dims[0], (cell / plan.dims[0]) % plan.dims[1],
                                cell / (plan.dims[0] * plan.dims[1])};
-  // The box id at a position pos < length of the virtual list (i stops at the last list).
-  auto id_at = [&](std::uint32_t pos) {
+  const std::uint32_t* own_ids = lists.entries[own] + own_first;
+  // The id of the earlier box at position pos < P (lists 0..j-1 one after the other).
+  auto earlier_id = [&](std::uint32_t pos) {
     std::uint32_t i = 0;
-    while (i + 1 < lists.count && pos >= list_at[i + 1]) ++i;
-    return lists.entries[i][list_first[i] + (pos - list_at[i])];
+    while (i + 1 < own && pos >= list_at[w][i + 1]) ++i;
+    return lists.entries[i][list_first[w][i] + (pos - list_at[w][i])];
   };
 
-  const std::uint32_t m = min(T, length - v * T);
-  const std::uint32_t row_pos = v * T + tid;
+  const std::uint32_t m = min(W, own_n - u * W);
   float4 row_lo = make_float4(0, 0, 0, 0), row_hi = make_float4(0, 0, 0, 0);
   std::uint32_t row_flags = 0, row_id = 0;
-  if (tid < m) {
-    row_id = id_at(row_pos);
+  if (lane < m) {
+    row_id = own_ids[u * W + lane];
     row_lo = a.packed_lo[row_id];
     row_hi = a.packed_hi[row_id];
     row_flags = hi_flags(row_hi, plan, cc);
   }
   const std::uint32_t row_cat = __float_as_uint(row_lo.w), row_mask = __float_as_uint(row_hi.w);
-  const bool row_own = row_pos >= first_own;
+  float4* const lo_s = col_lo[w];
+  float4* const hi_s = col_hi[w];
+  std::uint32_t* const id_s = col_id[w];
+  std::uint8_t* const flags_s = col_flags[w];
 
-  for (std::uint32_t h = h_first; h < segs; ++h) {
-    const std::uint32_t n = min(T, length - h * T);
-    __syncthreads();  // the previous tile's readers are done with shared memory
-    if (tid < n) {
-      const std::uint32_t id = id_at(h * T + tid);
-      col_id[tid] = id;
-      col_lo[tid] = a.packed_lo[id];
-      col_hi[tid] = a.packed_hi[id];
-      col_flags[tid] = static_cast<std::uint8_t>(hi_flags(col_hi[tid], plan, cc));
+  const std::uint32_t tiles = layout.tiles_of(u);
+  for (std::uint32_t t = 0; t < tiles; ++t) {
+    const bool earlier = t < layout.earlier;
+    const std::uint32_t seg = earlier ? t : u + (t - layout.earlier);  // the column segment (earlier or own)
+    const std::uint32_t n = min(W, (earlier ? earlier_n : own_n) - seg * W);
+    __syncwarp();  // the previous tile's readers are done with the warp's columns
+    if (lane < n) {
+      const std::uint32_t id = earlier ? earlier_id(seg * W + lane) : own_ids[seg * W + lane];
+      id_s[lane] = id;
+      lo_s[lane] = a.packed_lo[id];
+      hi_s[lane] = a.packed_hi[id];
+      flags_s[lane] = static_cast<std::uint8_t>(hi_flags(hi_s[lane], plan, cc));
     }
-    __syncthreads();
+    __syncwarp();
 
-    // Columns at positions >= P are the stage's chunk; before it, only rows of the chunk pair.
-    const std::uint32_t own_from = first_own > h * T ? first_own - h * T : 0;
-    std::uint64_t hits = 0;
+    std::uint32_t hits = 0;
     auto test = [&](std::uint32_t j) {
-      const float4 lo = col_lo[j], hi = col_hi[j];
-      const bool hit = (row_own || j >= own_from) && row_lo.x <= hi.x && lo.x <= row_hi.x && row_lo.y <= hi.y &&
-                       lo.y <= row_hi.y && row_lo.z <= hi.z && lo.z <= row_hi.z &&
+      const float4 lo = lo_s[j], hi = hi_s[j];
+      const bool hit = row_lo.x <= hi.x && lo.x <= row_hi.x && row_lo.y <= hi.y && lo.y <= row_hi.y &&
+                       row_lo.z <= hi.z && lo.z <= row_hi.z &&
                        ((row_cat & __float_as_uint(hi.w)) | (__float_as_uint(lo.w) & row_mask)) != 0 &&
-                       (row_flags | col_flags[j]) == 7u;
-      if (hit) hits |= std::uint64_t{1} << j;
+                       (row_flags | flags_s[j]) == 7u;
+      if (hit) hits |= 1u << j;
     };
-    if (tid < m) {
-      if (h == v && own_from == 0) {  // the triangle of chunk j's own boxes
-        if (Balanced) {
-          const std::uint32_t x = tid < (m + 1) / 2 ? (m + 2) / 2 : (m + 1) / 2;  // Eq. 7, as in check_kernel
-          std::uint32_t j = tid;
-          for (std::uint32_t k = 1; k < x; ++k) {
-            if (++j == m) j = 0;
-            test(j);
-          }
-        } else {
-          for (std::uint32_t j = tid + 1; j < m; ++j) test(j);
+    if (lane < m) {
+      if (earlier || seg > u) {
+        for (std::uint32_t j = 0; j < n; ++j) test(j);
+      } else if (Balanced) {
+        // The triangle of chunk j's own segment u (n == m): Eq. 7, as in check_kernel.
+        const std::uint32_t x = lane < (m + 1) / 2 ? (m + 2) / 2 : (m + 1) / 2;
+        std::uint32_t j = lane;
+        for (std::uint32_t k = 1; k < x; ++k) {
+          if (++j == m) j = 0;
+          test(j);
         }
-      } else if (h == v) {
-        // The segment where chunk j begins: an earlier box checks chunk j's columns only, one of
-        // chunk j the later columns (at most Q columns a thread, where Eq. 7 would give m / 2).
-        for (std::uint32_t j = max(tid + 1, own_from); j < m; ++j) test(j);
       } else {
-        for (std::uint32_t j = own_from; j < n; ++j) test(j);
+        for (std::uint32_t j = lane + 1; j < m; ++j) test(j);
       }
     }
 
-    const std::uint32_t pairs = static_cast<std::uint32_t>(__popcll(hits));
-    std::uint32_t offset, total;
-    scan(scan_temp).ExclusiveSum((pairs << 16) | (8 * pairs), offset, total);
-    const std::uint32_t total_pairs = total >> 16, body = total & 0xFFFF;
-    const std::uint32_t tile = tile0 + (h - h_first);
+    // The warp's exclusive scan of the pairs per row, and their total.
+    const std::uint32_t pairs = static_cast<std::uint32_t>(__popc(hits));
+    std::uint32_t upto = pairs;
+    for (std::uint32_t o = 1; o < W; o <<= 1) {
+      const std::uint32_t y = __shfl_up_sync(full, upto, o);
+      if (lane >= o) upto += y;
+    }
+    const std::uint32_t total_pairs = __shfl_sync(full, upto, W - 1);
+    const std::uint32_t tile = tile0 + t;
     if (total_pairs == 0) {
-      if (tid == 0) a.tile_pairs[tile] = 0;
+      if (lane == 0) a.tile_pairs[tile] = 0;
       continue;
     }
+    const std::uint32_t body = 8 * total_pairs;
     const std::uint64_t chunk = sizeof(chunk_header) + body;
-    if (tid == 0) {
-      const std::uint64_t base = atomicAdd(a.cursor, static_cast<unsigned long long>(chunk));
-      chunk_base = base;
-      a.tile_off[tile] = base;
-      a.tile_pairs[tile] = total_pairs;
-      if (base + chunk <= a.capacity) {
-        auto* w = reinterpret_cast<std::uint32_t*>(a.out + base);
-        w[0] = p0.entry;
-        w[1] = v | (h << 16);
-        w[2] = body | (total_pairs << 16);
-      }
-    }
-    __syncthreads();
-    const std::uint64_t base = chunk_base;
+    unsigned long long base = 0;
+    if (lane == 0) base = reserve_chunk(a, tile, own_first, min(u, 0xffffu), min(t, 0xffffu), total_pairs, body, chunk);
+    base = __shfl_sync(full, base, 0);
     if (pairs == 0 || base + chunk > a.capacity) continue;
-    auto* w = reinterpret_cast<std::uint32_t*>(a.out + base + sizeof(chunk_header) + (offset & 0xFFFF));
+    auto* out = reinterpret_cast<std::uint32_t*>(a.out + base + sizeof(chunk_header) + 8ull * (upto - pairs));
     std::uint32_t q = 0;
     while (hits) {
-      const std::uint32_t j = __ffsll(static_cast<long long>(hits)) - 1;
+      const std::uint32_t j = __ffs(static_cast<int>(hits)) - 1;
       hits &= hits - 1;
-      const std::uint32_t other = col_id[j];
-      w[q++] = min(row_id, other);
-      w[q++] = max(row_id, other);
+      const std::uint32_t other = id_s[j];
+      out[q++] = min(row_id, other);
+      out[q++] = max(row_id, other);
     }
   }
 }

@@ -9,10 +9,11 @@
 //     two intersecting boxes still share a cell (the output-cell rule holds), only less balanced.
 //  2. Per stage, on the main stream once chunk j has landed: its validation (pinned input), count,
 //     the stage's per-cell prefixes and totals (chunk j's count q and the earlier chunks' count p
-//     in each cell: pbig_kernels.cu, to_stage_prefix), the batch plan, one read-back; then map
-//     chunk j into its own per-cell lists, sort each by id, and expand the stage's work items.
+//     in each cell: stage_layout, pbig_shared.h), the batch plan, one read-back; then map chunk j
+//     into its own per-cell lists, sort each by id, and expand the stage's work items.
 //  3. The stage's batches check chunk j's lists against themselves and the earlier chunks' lists
-//     of the same cells (check_stage_kernel), in the direct-output pipeline of pbig_dispatch.cpp
+//     of the same cells, never two earlier boxes (check_stage_kernel: one warp per 32 boxes of
+//     chunk j in a cell), in the direct-output pipeline of pbig_dispatch.cpp
 //     (launch_direct / finish_direct on the two slots, the pairs copied into the pinned result),
 //     which runs on across stages: while chunk j + 1 uploads, stage j's pairs are copied out.
 //  4. After the last stage: the boxes handled apart (large), over all n boxes, as in check_direct.
@@ -190,8 +191,8 @@ void pbig_engine::queue_stage_map(std::uint32_t n, std::uint32_t j, std::uint32_
   if (rb.total.entry > 0) {
     CUDA_CHECK(launch_map(chunk, count, first, d_plan_.get(), grid, d_is_large_.get() + first, st.prefix.get(),
                           d_counts_.get() + cells + 2, d_entries_unsorted_.get(), main_));
-    // Each cell's list of the chunk by box id (determinism); the checks' lists are at most as long
-    // as the virtual list (max_count), so the one-kernel sort holds whenever that is small.
+    // Each cell's list of the chunk by box id (determinism); a chunk's list is at most the cell's
+    // boxes of chunks 0..j (max_count), so the one-kernel sort holds whenever that is small.
     if (rb.totals.max_count <= tuning::small_cell_sort) {
       CUDA_CHECK(
           launch_sort_small_cells(d_entries_unsorted_.get(), st.entries.get(), st.prefix.get(), cells, grid, main_));

@@ -147,13 +147,34 @@ struct check_args {
 /// The overlapped upload (pbig_options::overlap_min_boxes; docs/gpu.md, "Overlapped upload"): the
 /// boxes arrive in at most max_overlap_chunks chunks of ids, and stage j checks the pairs whose
 /// larger id is in chunk j. Each chunk i has its own per-cell lists: prefix[i][c].entry is cell
-/// c's first entry in entries[i] (ids sorted in each cell). Stage j reads lists 0..j (count = j+1);
-/// in each cell they form one virtual list, chunk 0's boxes first, chunk j's last.
+/// c's first entry in entries[i] (ids sorted in each cell). Stage j reads lists 0..j (count = j+1):
+/// list j (the stage's own) holds its rows, lists 0..j-1 (the earlier boxes) only columns.
 inline constexpr int max_overlap_chunks = 8;
 struct stage_lists {
   const cell_prefix* prefix[max_overlap_chunks];
   const std::uint32_t* entries[max_overlap_chunks];
   std::uint32_t count;
 };
+
+/// Stage j's work in one cell (check_stage_kernel), from the cell's q boxes of chunk j and p
+/// boxes of the earlier chunks. One warp per work item: row segment u (u < items) of chunk j's
+/// list, stage_rows boxes. Its column tiles, in this order: the earlier boxes' segments 0..earlier-1
+/// (every pair), then chunk j's own segments u..items-1 (u: the triangle; above: every pair). So
+/// the cell has items * earlier + items (items + 1) / 2 tiles, and item u's first is
+/// first_tile(u). Two earlier boxes are never tested against each other.
+inline constexpr std::uint32_t stage_rows = 32;  // a warp
+struct stage_cell_layout {
+  std::uint32_t items;    ///< ceil(q / stage_rows)
+  std::uint32_t earlier;  ///< ceil(p / stage_rows)
+  [[nodiscard]] constexpr std::uint32_t tiles_of(std::uint32_t u) const { return earlier + items - u; }
+  [[nodiscard]] constexpr std::uint64_t first_tile(std::uint32_t u) const {
+    // sum over u' < u of tiles_of(u')
+    return std::uint64_t{u} * earlier + std::uint64_t{u} * (2ull * items + 1 - u) / 2;
+  }
+  [[nodiscard]] constexpr std::uint64_t tiles() const { return first_tile(items); }
+};
+constexpr stage_cell_layout stage_layout(std::uint32_t q, std::uint32_t p) {
+  return {(q + stage_rows - 1) / stage_rows, q == 0 ? 0u : (p + stage_rows - 1) / stage_rows};
+}
 
 }  // namespace zone::gpu::detail

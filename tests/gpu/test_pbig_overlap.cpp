@@ -4,7 +4,8 @@
 // one-shot GPU path. The pipeline is forced (overlap_always) onto sets of 1.6x10^4-3x10^5 boxes
 // (pinned: pinned_boxes pins from 16384 boxes) with 2, 3 and 7 chunks, chunk sizes that do not
 // divide n, and the sets that stress its decomposition: boxes straddling cells, duplicates and
-// identical boxes, zero-extent boxes, later chunks far outside the first chunk's bounds (the grid
+// identical boxes, zero-extent boxes, cells crowded chunk by chunk around the stage kernel's
+// 32-box segments, later chunks far outside the first chunk's bounds (the grid
 // is planned from chunk 0), stages without pairs or without grid boxes, boxes handled apart,
 // invalid boxes in a later chunk, overflowing output buffers. Then the default rule: the pipeline
 // only after a call of about the same size whose output was small against its input. About 20 s
@@ -15,6 +16,7 @@
 #include <algorithm>
 #include <cstdint>
 #include <limits>
+#include <map>
 #include <memory>
 #include <span>
 #include <string>
@@ -22,6 +24,7 @@
 
 #include "../common/box_families.h"
 #include "gpu/pbig.h"
+#include "gpu/pbig/pbig_shared.h"  // stage_layout: the stage kernel's work in a cell
 #include "interest/interest.h"
 #include "interest/thread_pool.h"
 
@@ -213,9 +216,151 @@ box_set lonely_stages(std::size_t n, std::size_t k, std::uint64_t seed) {
   return s;
 }
 
+box_set crowded_cells(std::size_t n, std::size_t k, std::uint64_t seed) {
+  // The stage kernel's cases: groups of identical boxes (each group in one cell, or the few cells
+  // whose faces it straddles) with chosen counts per chunk around its warp's 32 rows and its
+  // 32-box column segments (0, 1, 31, 32, 33, 63, 64, 65, 97): cells whose boxes are all in
+  // chunk 0, all in the last chunk, all in one middle chunk, in chunk 0 and the last with none
+  // between, in every chunk; a group of consecutive ids across the boundary of chunks 0 and 1; a
+  // group of zero-extent points and one of flat boxes touching face to face; a group whose chunk-0
+  // boxes pair only with later boxes (classes). Background boxes fill [0, 500] x [0, 1000]^2;
+  // the groups sit 200 apart in [600, 1000] x [0, 1000]^2, mostly alone in their cells.
+  rng_box_maker r(seed);
+  std::vector<box> all(n);
+  for (box& b : all) {
+    b = r.make(1000, 6);
+    if (b.lo[0] > 497) {
+      b.lo[0] -= 500;
+      b.hi[0] -= 500;
+    }
+  }
+  std::vector<std::size_t> cursor(k);  // the next free id of each chunk (from 60 in)
+  for (std::size_t j = 0; j < k; ++j) cursor[j] = chunk_start(n, k, j) + 60;
+  auto put = [&](std::size_t j, const box& b) {
+    REQUIRE(cursor[j] + 60 < chunk_start(n, k, j + 1));  // clear of the straddling group
+    all[cursor[j]++] = b;
+  };
+  std::size_t g = 0;
+  auto spot = [&](float edge) {  // a box of `edge` at the next group's place
+    const float x = 650.0f + 200.0f * static_cast<float>(g % 2), y = 100.0f + 200.0f * static_cast<float>((g / 2) % 5),
+                z = 100.0f + 200.0f * static_cast<float>((g / 10) % 5);
+    ++g;
+    return make_box(x, y, z, edge, edge, edge);
+  };
+  const std::size_t counts[] = {0, 1, 31, 32, 33, 63, 64, 65, 97};
+  const std::size_t last = k - 1, middle = k / 2;
+  // Every chunk, counts cycling through the list (nine groups, each starting elsewhere in it).
+  for (std::size_t start = 0; start < 9; ++start) {
+    const box b = spot(1.5f);
+    for (std::size_t j = 0; j < k; ++j) {
+      for (std::size_t i = 0; i < counts[(start + j) % 9]; ++i) put(j, b);
+    }
+  }
+  for (const std::size_t c : {std::size_t{33}, std::size_t{70}}) {
+    const box only0 = spot(1.0f), only_last = spot(1.0f), only_middle = spot(1.0f), ends = spot(1.0f);
+    for (std::size_t i = 0; i < c; ++i) {
+      put(0, only0);
+      put(last, only_last);
+      put(middle, only_middle);
+      put(0, ends);
+      put(last, ends);
+    }
+  }
+  // Zero-extent points, and flat boxes touching face to face (x = 5 exactly), in every chunk.
+  const box point = spot(0.0f);
+  box flat = spot(0.0f);
+  flat.hi[1] += 2;
+  flat.hi[2] += 2;
+  box touching = flat;
+  flat.lo[0] -= 5;
+  touching.hi[0] += 5;
+  for (std::size_t j = 0; j < k; ++j) {
+    for (std::size_t i = 0; i < 20 + 7 * j; ++i) put(j, point);
+    for (std::size_t i = 0; i < 12; ++i) put(j, i % 2 == 0 ? flat : touching);
+  }
+  // Classes: chunk 0's boxes (category 1, mask 2) pair only with the later ones (2, 0).
+  box cross = spot(1.0f);
+  cross.category = 1;
+  cross.mask = 2;
+  for (std::size_t i = 0; i < 40; ++i) put(0, cross);
+  cross.category = 2;
+  cross.mask = 0;
+  for (std::size_t j = 1; j < k; ++j) {
+    for (std::size_t i = 0; i < 35; ++i) put(j, cross);
+  }
+  // Consecutive ids across the boundary of chunks 0 and 1.
+  const box across = spot(2.0f);
+  const std::size_t b1 = chunk_start(n, k, 1);
+  for (std::size_t i = b1 - 40; i < b1 + 40; ++i) all[i] = across;
+  // Chunk 0 spans the whole scene (the plan's bounds): corners of [0, 1000]^3.
+  all[0] = make_box(0, 0, 0, 1, 1, 1);
+  all[1] = make_box(999, 999, 999, 1, 1, 1);
+  box_set s;
+  for (const box& b : all) s.push_back(b);
+  return s;
+}
+
 }  // namespace
 
 TEST_SUITE("gpu.pbig.overlap") {
+  TEST_CASE("overlapped upload: the stage kernel's layout tests each pair with a box of the chunk once") {
+    // check_stage_kernel's loops over stage_layout, replayed on the host for a cell of q boxes of
+    // chunk j (positions p..p+q-1) and p earlier ones: every pair with at least one box of chunk j
+    // is tested exactly once (with Eq. 7 on the triangles and without), no pair of two earlier
+    // boxes, and the tiles are numbered 0..tiles()-1 without gaps.
+    namespace d = zone::gpu::detail;
+    const std::uint32_t W = d::stage_rows;
+    const std::uint32_t sizes[] = {0, 1, 2, 31, 32, 33, 63, 64, 65, 96, 97, 130, 257};
+    for (const std::uint32_t q : sizes) {
+      for (const std::uint32_t p : sizes) {
+        for (const bool balanced : {true, false}) {
+          CAPTURE(q);
+          CAPTURE(p);
+          CAPTURE(balanced);
+          const d::stage_cell_layout l = d::stage_layout(q, p);
+          REQUIRE(l.items == (q + W - 1) / W);
+          std::vector<int> tile_seen(l.tiles(), 0);
+          std::map<std::pair<std::uint32_t, std::uint32_t>, int> tested;
+          for (std::uint32_t u = 0; u < l.items; ++u) {
+            const std::uint32_t m = std::min(W, q - u * W);
+            for (std::uint32_t t = 0; t < l.tiles_of(u); ++t) {
+              REQUIRE(l.first_tile(u) + t < tile_seen.size());
+              ++tile_seen[l.first_tile(u) + t];
+              const bool earlier = t < l.earlier;
+              const std::uint32_t seg = earlier ? t : u + (t - l.earlier);
+              const std::uint32_t n = std::min(W, (earlier ? p : q) - seg * W);
+              for (std::uint32_t lane = 0; lane < m; ++lane) {
+                const std::uint32_t r = p + u * W + lane;
+                auto test = [&](std::uint32_t j) {
+                  const std::uint32_t c = earlier ? seg * W + j : p + seg * W + j;
+                  ++tested[{std::min(r, c), std::max(r, c)}];
+                };
+                if (earlier || seg > u) {
+                  for (std::uint32_t j = 0; j < n; ++j) test(j);
+                } else if (balanced) {
+                  REQUIRE(n == m);
+                  const std::uint32_t x = lane < (m + 1) / 2 ? (m + 2) / 2 : (m + 1) / 2;
+                  std::uint32_t j = lane;
+                  for (std::uint32_t k = 1; k < x; ++k) {
+                    if (++j == m) j = 0;
+                    test(j);
+                  }
+                } else {
+                  for (std::uint32_t j = lane + 1; j < m; ++j) test(j);
+                }
+              }
+            }
+          }
+          CHECK(std::all_of(tile_seen.begin(), tile_seen.end(), [](int c) { return c == 1; }));
+          CHECK(tested.size() == std::uint64_t{q} * p + std::uint64_t{q} * (q - (q > 0 ? 1 : 0)) / 2);
+          CHECK(std::all_of(tested.begin(), tested.end(), [&](const auto& e) {
+            return e.second == 1 && e.first.first != e.first.second && e.first.second >= p;
+          }));
+        }
+      }
+    }
+  }
+
   TEST_CASE("overlapped upload: families in 2, 3 and 7 chunks against brute force and the one-shot path") {
     thread_pool pool(4);
     brute_force_finder brute(&pool);
@@ -280,6 +425,29 @@ TEST_SUITE("gpu.pbig.overlap") {
           REQUIRE(rep != nullptr);
           CHECK(rep->pairs == want.size());
         }
+      }
+    }
+  }
+
+  TEST_CASE("overlapped upload: crowded cells, chunk by chunk (the stage kernel's row and column segments)") {
+    thread_pool pool(4);
+    brute_force_finder brute(&pool);
+    for (const std::uint32_t k : {2u, 3u, 7u}) {
+      const std::size_t n = 20011 + k;
+      const auto seed = fresh_seed();
+      CAPTURE(k);
+      CAPTURE(seed);
+      const box_set s = crowded_cells(n, k, seed);
+      const gpu::pinned_boxes pin(s);
+      REQUIRE(pin.active());
+      const pair_list want = sorted(run(brute, s));
+      for (const bool balanced : {true, false}) {
+        CAPTURE(balanced);
+        gpu::pbig_options o = overlapped(k, &pool);
+        o.load_balancing = balanced;
+        auto finder = make_gpu(o);
+        check_overlapped(*finder, s, want, k);
+        CHECK(finder->stats().large_boxes == 0);  // every pair came from the stages' checks
       }
     }
   }

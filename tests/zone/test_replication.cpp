@@ -488,6 +488,75 @@ TEST_SUITE("zone.replication") {
     }
   }
 
+  TEST_CASE("resync_viewers_of a tick's changes at once resyncs the clients of the changes one by one") {
+    const std::uint64_t seed = fresh_seed();
+    CAPTURE(seed);
+    small_world w(seed, 2600);
+    interest::thread_pool pool(3);
+    interest::grid_finder finder(&pool);
+    interest_tracker tracker(finder, &pool, {3.0f, 0, 64});
+    replication_options opt;
+    opt.world = test_world;
+    // One by one (the reference), at once on the pool (over 1,024 clients: several chunks), at
+    // once on this thread.
+    replicator one(opt), pooled(opt), serial(opt);
+    std::vector<replication_request> requests;
+    for (std::size_t k = 0; k < 2500; ++k) {
+      const entity_id o = w.store.ids()[k];
+      const client_id c = one.add_client(o);
+      REQUIRE(pooled.add_client(o) == c);
+      REQUIRE(serial.add_client(o) == c);
+      requests.push_back({c, 0});
+    }
+    const std::uint32_t classes[] = {cb::normal, cb::stealth, cb::team_red, cb::team_blue};
+    const std::uint32_t masks[] = {cb::normal, cb::normal | cb::team_red, cb::normal | cb::team_blue, cb::team_red, 0};
+    replication_writer writer;
+    std::size_t resynced = 0, kept = 0;
+    for (std::uint64_t tick = 1; tick <= 6; ++tick) {
+      CAPTURE(tick);
+      std::vector<class_change> changes;
+      if (tick > 1) {
+        // 40 switches (an id twice, a class kept with a new mask, both kept, an entity destroyed
+        // after its switch), applied to the store as the zone applies them before the step.
+        for (int k = 0; k < 40; ++k) {
+          const entity_id id = w.store.ids()[w.rng() % w.store.size()];
+          const std::size_t x = w.store.index_of(id);
+          const class_change ch{id, w.store.visibility_classes()[x], w.store.sees()[x]};
+          const std::uint32_t cls = k % 7 == 0 ? ch.old_class : classes[w.rng() % 4];
+          const std::uint32_t sees = k % 5 == 0 ? ch.old_sees : masks[w.rng() % 5];
+          REQUIRE(w.store.set_visibility(id, cls, sees));
+          changes.push_back(ch);
+          if (k % 13 == 0) changes.push_back(ch);  // the same change twice
+        }
+        changes.push_back({w.store.ids()[2590], cb::normal, cb::normal});
+        REQUIRE(w.store.destroy(w.store.ids()[2590]));  // a change whose entity is gone
+      }
+      REQUIRE_FALSE(tracker.update(w.store.columns()).has_value());
+      if (tick == 4) {  // resynced already: skipped by both
+        for (client_id c = 0; c < 2500; c += 9) one.resync(c), pooled.resync(c), serial.resync(c);
+      }
+      std::size_t n_one = 0;
+      for (const auto& ch : changes) n_one += one.resync_viewers_of(w.store, ch.entity, ch.old_class, ch.old_sees, 3.0f);
+      CHECK(pooled.resync_viewers_of(w.store, changes, 3.0f, &pool) == n_one);
+      CHECK(serial.resync_viewers_of(w.store, changes, 3.0f, nullptr) == n_one);
+      // Which clients were resynced shows in their next frames (reset or not), built by each.
+      for (const auto& r : requests) {
+        replication_stats a, b, c;
+        const auto fa = one.build(r.client, w.store, tracker, tick, tick * 1000, 0, writer, &a);
+        const std::vector<std::uint8_t> frame_one(fa.begin(), fa.end());
+        const auto fb = pooled.build(r.client, w.store, tracker, tick, tick * 1000, 0, writer, &b);
+        CHECK((a.reset == b.reset && frame_one == std::vector<std::uint8_t>(fb.begin(), fb.end())));
+        (void)serial.build(r.client, w.store, tracker, tick, tick * 1000, 0, writer, &c);
+        CHECK(a.reset == c.reset);
+        if (tick > 1) (a.reset ? resynced : kept) += 1;
+      }
+      w.step(false);
+    }
+    // The switches resynced many clients and left many alone (a test of both outcomes).
+    CHECK(resynced > 100);
+    CHECK(kept > 100);
+  }
+
   TEST_CASE("frames equal the reference algorithm's byte for byte (budgets, resyncs, ticks past 2^32)") {
     const std::uint64_t seed = fresh_seed();
     CAPTURE(seed);
