@@ -12,6 +12,7 @@
 #include <initializer_list>
 #include <optional>
 #include <random>
+#include <set>
 #include <sstream>
 
 #include "bots/swarm.h"
@@ -214,6 +215,120 @@ struct verifying_client {
     }
   }
 };
+
+/// A scripted zone for the swarm's read path (plain sockets on loopback, driven by the test): it
+/// accepts connections, writes frames, closes its side when the script says so, and notes what
+/// each client sent and when the client closed.
+struct scripted_zone {
+  struct peer {
+    int fd = -1;
+    zone::net::frame_decoder decoder{zone::net::decoder_options{}};
+    std::vector<zone::net::message> got;
+    std::optional<std::chrono::steady_clock::time_point> closed_at;  ///< the client's end of stream
+  };
+  int listen_fd = -1;
+  std::uint16_t port = 0;
+  std::vector<std::unique_ptr<peer>> peers;
+
+  scripted_zone() {
+    listen_fd = ::socket(AF_INET, SOCK_STREAM, 0);
+    sockaddr_in addr{};
+    addr.sin_family = AF_INET;
+    addr.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+    socklen_t len = sizeof addr;
+    if (::bind(listen_fd, reinterpret_cast<sockaddr*>(&addr), len) == 0 && ::listen(listen_fd, 512) == 0 &&
+        ::getsockname(listen_fd, reinterpret_cast<sockaddr*>(&addr), &len) == 0) {
+      port = ntohs(addr.sin_port);
+    }
+  }
+  ~scripted_zone() {
+    for (auto& p : peers) ::close(p->fd);
+    ::close(listen_fd);
+  }
+  /// Accepts until `n` clients are in (at most `ms`).
+  void accept_n(std::size_t n, int ms) {
+    const auto deadline = std::chrono::steady_clock::now() + std::chrono::milliseconds(ms);
+    while (peers.size() < n && std::chrono::steady_clock::now() < deadline) {
+      pollfd p{listen_fd, POLLIN, 0};
+      if (::poll(&p, 1, 20) <= 0) continue;
+      const int fd = ::accept(listen_fd, nullptr, nullptr);
+      if (fd < 0) continue;
+      peers.push_back(std::make_unique<peer>());
+      peers.back()->fd = fd;
+    }
+  }
+  static void send_all(int fd, const std::vector<zone::net::message>& frames) {
+    std::vector<std::uint8_t> bytes;
+    for (const auto& m : frames) {
+      const auto f = zone::net::encode_frame(m);
+      bytes.insert(bytes.end(), f.begin(), f.end());
+    }
+    for (std::size_t at = 0; at < bytes.size();) {
+      const ssize_t n = ::send(fd, bytes.data() + at, bytes.size() - at, MSG_NOSIGNAL);
+      if (n <= 0) return;
+      at += static_cast<std::size_t>(n);
+    }
+  }
+  /// Reads every client (decoding what it sent) until each has closed or `ms` passed.
+  void read_until_closed(int ms) {
+    const auto deadline = std::chrono::steady_clock::now() + std::chrono::milliseconds(ms);
+    while (std::chrono::steady_clock::now() < deadline) {
+      std::vector<pollfd> fds;
+      std::vector<peer*> open;
+      for (auto& p : peers) {
+        if (p->closed_at) continue;
+        fds.push_back({p->fd, POLLIN, 0});
+        open.push_back(p.get());
+      }
+      if (fds.empty()) return;
+      if (::poll(fds.data(), fds.size(), 20) <= 0) continue;
+      for (std::size_t i = 0; i < fds.size(); ++i) {
+        if (fds[i].revents == 0) continue;
+        peer& p = *open[i];
+        const auto buf = p.decoder.prepare(65536);
+        const ssize_t n = ::recv(p.fd, buf.data(), buf.size(), MSG_DONTWAIT);
+        if (n < 0 && (errno == EAGAIN || errno == EWOULDBLOCK)) continue;
+        if (n <= 0) {
+          p.closed_at = std::chrono::steady_clock::now();
+          continue;
+        }
+        p.decoder.commit(static_cast<std::size_t>(n));
+        for (auto step = p.decoder.next(); step.is_frame(); step = p.decoder.next()) {
+          if (auto m = zone::net::to_message(*step.frame.envelope)) p.got.push_back(std::move(*m));
+        }
+      }
+    }
+  }
+};
+
+/// A welcome of the scripted zone, and empty tick updates from `from` on.
+std::vector<zone::net::message> welcome_and_ticks(std::uint32_t entity, std::uint64_t from, int ticks) {
+  std::vector<zone::net::message> m;
+  zone::net::welcome_msg w;
+  w.entity_id = entity;
+  w.world = {{0, 0, 0}, {1000, 1000, 100}};
+  w.tick_rate_hz = 20;
+  w.server_tick = from;
+  m.emplace_back(w);
+  for (int t = 0; t < ticks; ++t) {
+    zone::net::tick_update_msg u;
+    u.server_tick = from + 1 + static_cast<std::uint64_t>(t);
+    m.emplace_back(u);
+  }
+  return m;
+}
+
+/// Swarm options for the scripted zones: every bot launched at once, two threads.
+zone::bots::swarm_options scripted_swarm(std::uint16_t port, unsigned bots, double duration_s) {
+  zone::bots::swarm_options o;
+  o.port = port;
+  o.bots = bots;
+  o.duration_s = duration_s;
+  o.ramp = 5000;
+  o.threads = 2;
+  o.verify = true;
+  return o;
+}
 
 }  // namespace
 
@@ -778,6 +893,99 @@ TEST_CASE("hostile clients beside 100 good bots") {
   CHECK(rss_after - rss_before < 64 * 1024);  // bounded: under 64 MiB of growth
   CHECK(server.proc.alive());
   CHECK(server.proc.terminate().value_or(-1) == 0);
+}
+
+// The swarm reads its sockets edge-triggered (docs/bots.md): a short read ends a wakeup, so a
+// close that arrived with the last bytes must still be read to its end (a 0-byte read).
+TEST_CASE("read path: a zone closes every connection right behind its last frames; each bot notices at once") {
+  constexpr unsigned bots = 48;
+  constexpr int ticks = 3;
+  scripted_zone zone;
+  REQUIRE(zone.port != 0);
+  std::chrono::steady_clock::time_point closed_at{};
+  std::thread server([&] {
+    zone.accept_n(bots, 5000);
+    std::this_thread::sleep_for(300ms);  // every bot connected and waiting for bytes
+    closed_at = std::chrono::steady_clock::now();
+    for (std::size_t i = 0; i < zone.peers.size(); ++i) {
+      const int fd = zone.peers[i]->fd;
+      scripted_zone::send_all(fd, welcome_and_ticks(static_cast<std::uint32_t>(100 + i), 10, ticks));
+      // Half close at once (the end of stream behind the frames), half 50 ms later (an edge of its own).
+      if (i % 2 == 0) ::shutdown(fd, SHUT_WR);
+    }
+    std::this_thread::sleep_for(50ms);
+    for (std::size_t i = 1; i < zone.peers.size(); i += 2) ::shutdown(zone.peers[i]->fd, SHUT_WR);
+    zone.read_until_closed(4000);
+  });
+  const auto options = scripted_swarm(zone.port, bots, 4);
+  const auto out = zone::bots::run_swarm(options, nullptr);
+  server.join();
+  REQUIRE(out.error.empty());
+  const auto& r = out.result;
+  CHECK(zone.peers.size() == bots);
+  CHECK(r.welcomes == bots);
+  CHECK(r.tick_updates == bots * ticks);
+  CHECK(r.mismatches() == 0);
+  // Each bot saw the end of its stream and closed on its own (not at the swarm's end, 4 s in).
+  CHECK(r.unexpected_disconnects == bots);
+  for (const auto& p : zone.peers) {
+    REQUIRE(p->closed_at.has_value());
+    CHECK(*p->closed_at - closed_at < 2000ms);
+  }
+  // The threads ran out of work once every session had closed (no wait left behind).
+  CHECK(r.elapsed_s < options.duration_s + 2);
+}
+
+TEST_CASE("read path: a redirect with the connection closed behind it; every bot follows it to the next zone") {
+  constexpr unsigned bots = 48;
+  scripted_zone a, b;
+  REQUIRE(a.port != 0);
+  REQUIRE(b.port != 0);
+  std::thread zone_a([&] {
+    a.accept_n(bots, 5000);
+    std::this_thread::sleep_for(200ms);
+    for (std::size_t i = 0; i < a.peers.size(); ++i) {
+      auto frames = welcome_and_ticks(static_cast<std::uint32_t>(100 + i), 10, 2);
+      frames.emplace_back(zone::net::redirect_msg{"127.0.0.1", b.port, "token-" + std::to_string(i)});
+      scripted_zone::send_all(a.peers[i]->fd, frames);
+      ::shutdown(a.peers[i]->fd, SHUT_WR);
+    }
+    a.read_until_closed(3000);
+  });
+  std::thread zone_b([&] {
+    b.accept_n(bots, 5000);
+    std::this_thread::sleep_for(200ms);
+    for (std::size_t i = 0; i < b.peers.size(); ++i) {
+      scripted_zone::send_all(b.peers[i]->fd, welcome_and_ticks(static_cast<std::uint32_t>(1000 + i), 20, 2));
+    }
+    b.read_until_closed(8000);  // the bots stay until the swarm's end
+  });
+  const auto options = scripted_swarm(a.port, bots, 3);
+  const auto out = zone::bots::run_swarm(options, nullptr);
+  zone_a.join();
+  zone_b.join();
+  REQUIRE(out.error.empty());
+  const auto& r = out.result;
+  CHECK(a.peers.size() == bots);
+  CHECK(b.peers.size() == bots);
+  CHECK(r.redirects == bots);
+  CHECK(r.welcomes == 2 * bots);
+  CHECK(r.tick_updates == 4 * bots);
+  CHECK(r.unexpected_disconnects == 0);
+  CHECK(r.connect_failures == 0);
+  CHECK(r.mismatches() == 0);
+  // Zone b heard each token once, in a hello.
+  std::set<std::string> tokens;
+  for (const auto& p : b.peers) {
+    for (const auto& m : p->got) {
+      if (const auto* h = std::get_if<zone::net::hello_msg>(&m)) CHECK(tokens.insert(h->token).second);
+    }
+  }
+  CHECK(tokens.size() == bots);
+  CHECK(tokens.count("token-0") == 1);
+  CHECK(tokens.count("token-" + std::to_string(bots - 1)) == 1);
+  // The bots logged out at the swarm's end, and the threads ran out of work (no wait left behind).
+  CHECK(r.elapsed_s < options.duration_s + 2);
 }
 
 }  // TEST_SUITE
