@@ -185,34 +185,8 @@ void replicator::resync(client_id c) { clients_[c].reset_pending = true; }
 
 std::size_t replicator::resync_viewers_of(const entity_store& store, entity_id changed, std::uint32_t old_class,
                                           std::uint32_t old_sees, float hysteresis) {
-  const std::size_t x = store.index_of(changed);
-  if (x == entity_store::npos) return 0;
-  const std::uint32_t cls = store.visibility_classes()[x], sees = store.sees()[x];
-  const vec3 p = store.positions()[x], b = store.presence_half_extents()[x];
-  const float slack = hysteresis + 0.01f;
-  std::size_t n = 0;
-  for (client_state& s : clients_) {
-    if (!s.active || s.reset_pending) continue;
-    if (s.observer == changed) {
-      // Its own mask changed: its view starts over (whatever it holds of other entities switching
-      // in the same tick, judged by its old mask below, is rebuilt too).
-      if (sees != old_sees) s.reset_pending = true, ++n;
-      continue;
-    }
-    if (cls == old_class) continue;
-    const std::size_t o = store.index_of(s.observer);
-    if (o == entity_store::npos) continue;
-    const std::uint32_t m = store.sees()[o];
-    if ((m & cls) == 0 || (m & old_class) == 0) continue;  // it did not hold it, or it leaves now
-    const vec3 q = store.positions()[o], a = store.aoi_half_extents()[o];
-    if (std::fabs(p.x - q.x) > a.x + b.x + slack || std::fabs(p.y - q.y) > a.y + b.y + slack ||
-        std::fabs(p.z - q.z) > a.z + b.z + slack) {
-      continue;
-    }
-    s.reset_pending = true;
-    ++n;
-  }
-  return n;
+  const class_change one{changed, old_class, old_sees};
+  return resync_viewers_of(store, std::span<const class_change>(&one, 1), hysteresis, nullptr);
 }
 
 std::size_t replicator::resync_viewers_of(const entity_store& store, std::span<const class_change> changes, float hysteresis,

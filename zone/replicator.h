@@ -35,7 +35,8 @@ struct replication_options {
   std::uint32_t digest_period = 1;
   /// Clients handed out at a time to build_many's threads (the frames never depend on it, nor
   /// on the thread count). 64: on a replication engine at 20,000 clients, 16 cost 0.14 us more
-  /// CPU per client (1,250 tasks a phase instead of 313: docs/zone-benchmarks.md).
+  /// CPU per client (1,250 tasks a phase instead of 313; H200 host, 2026-11-29, in the git
+  /// history of docs/zone-benchmarks.md).
   std::uint32_t clients_per_task = 64;
   /// On a replication engine: the most threads that hand the frames to the sink (0 = every pool
   /// thread). The hand-off reads the engine's frames and writes them where the sink wants them:

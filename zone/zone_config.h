@@ -57,7 +57,8 @@ struct zone_config {
   std::string replicate = "auto";
   /// With both engines on the GPU: copy the players' visible sets back to the host after every
   /// interest step (true), or let the replication engine read them on the device only (false:
-  /// ~0.3 ms less per tick at 20,000 clients, docs/zone-benchmarks.md). With false a GPU that
+  /// no per-tick copy of 20,000 sets; measured on the H100, 2026-11-25: ~0.3 ms less a tick;
+  /// the figure is in the git history of docs/zone-benchmarks.md). With false a GPU that
   /// fails mid-run takes the players' last sets with it: their hysteresis history is lost and
   /// clients hold entities the rules say they should not (or lack ones they should) for a while;
   /// with true the fallback is exact (docs/zone.md, "A GPU that fails mid-run").
@@ -88,8 +89,9 @@ struct zone_config {
   std::size_t socket_send_buffer = 32768;
   /// The replication worker that built a frame writes it to the socket itself when nothing is
   /// queued ahead of it (net::server_options::direct_writes); false (the default): the I/O
-  /// threads write. On the H100 host direct writes cut latency but doubled the replicate phase
-  /// (the kernel's send is then the tick's CPU): docs/zone-benchmarks.md.
+  /// threads write. Direct writes cut latency but lengthen the replicate phase: the kernel's
+  /// send is then the tick's CPU (on the H100 host, 2026-11-25, it doubled; git history of
+  /// docs/zone-benchmarks.md).
   bool direct_writes = false;
   int io_nice = 0;  ///< nice value of the I/O threads (net::server_options::io_thread_nice; 0-19)
   /// How the I/O threads write (net::server_options::batching): "auto" (io_uring where the kernel

@@ -488,7 +488,27 @@ TEST_SUITE("zone.replication") {
     }
   }
 
-  TEST_CASE("resync_viewers_of a tick's changes at once resyncs the clients of the changes one by one") {
+  /// The visibility resync decision written the plain way (docs/zone.md, "Visibility classes and
+  /// teams"; zone's first implementation: one pass over the clients per change): whether a client
+  /// seeing through `observer` is resynced by `ch`, with the store's classes and positions now.
+  bool reference_resyncs(const entity_store& store, entity_id observer, const class_change& ch, float hysteresis) {
+    const std::size_t x = store.index_of(ch.entity);
+    if (x == entity_store::npos) return false;
+    const std::uint32_t cls = store.visibility_classes()[x], sees = store.sees()[x];
+    if (observer == ch.entity) return sees != ch.old_sees;
+    if (cls == ch.old_class) return false;
+    const std::size_t o = store.index_of(observer);
+    if (o == entity_store::npos) return false;
+    const std::uint32_t m = store.sees()[o];
+    if ((m & cls) == 0 || (m & ch.old_class) == 0) return false;
+    const vec3 p = store.positions()[x], b = store.presence_half_extents()[x];
+    const vec3 q = store.positions()[o], a = store.aoi_half_extents()[o];
+    const float slack = hysteresis + 0.01f;
+    return std::fabs(p.x - q.x) <= a.x + b.x + slack && std::fabs(p.y - q.y) <= a.y + b.y + slack &&
+           std::fabs(p.z - q.z) <= a.z + b.z + slack;
+  }
+
+  TEST_CASE("resync_viewers_of a tick's changes at once resyncs the clients the plain rule names") {
     const std::uint64_t seed = fresh_seed();
     CAPTURE(seed);
     small_world w(seed, 2600);
@@ -497,15 +517,16 @@ TEST_SUITE("zone.replication") {
     interest_tracker tracker(finder, &pool, {3.0f, 0, 64});
     replication_options opt;
     opt.world = test_world;
-    // One by one (the reference), at once on the pool (over 1,024 clients: several chunks), at
-    // once on this thread.
-    replicator one(opt), pooled(opt), serial(opt);
+    // The plain rule's clients resynced by hand (the reference), one change at a time, at once on
+    // the pool (over 1,024 clients: several chunks), at once on this thread.
+    replicator one(opt), pooled(opt), serial(opt), ref(opt);
     std::vector<replication_request> requests;
     for (std::size_t k = 0; k < 2500; ++k) {
       const entity_id o = w.store.ids()[k];
       const client_id c = one.add_client(o);
       REQUIRE(pooled.add_client(o) == c);
       REQUIRE(serial.add_client(o) == c);
+      REQUIRE(ref.add_client(o) == c);
       requests.push_back({c, 0});
     }
     const std::uint32_t classes[] = {cb::normal, cb::stealth, cb::team_red, cb::team_blue};
@@ -533,12 +554,22 @@ TEST_SUITE("zone.replication") {
       }
       REQUIRE_FALSE(tracker.update(w.store.columns()).has_value());
       if (tick == 4) {  // resynced already: skipped by both
-        for (client_id c = 0; c < 2500; c += 9) one.resync(c), pooled.resync(c), serial.resync(c);
+        for (client_id c = 0; c < 2500; c += 9) one.resync(c), pooled.resync(c), serial.resync(c), ref.resync(c);
+      }
+      std::size_t n_ref = 0;
+      for (const auto& r : requests) {
+        if (tick == 4 && r.client % 9 == 0) continue;  // resynced already: not counted
+        const entity_id o = ref.observer(r.client);
+        if (std::any_of(changes.begin(), changes.end(), [&](const class_change& ch) { return reference_resyncs(w.store, o, ch, 3.0f); })) {
+          ref.resync(r.client);
+          ++n_ref;
+        }
       }
       std::size_t n_one = 0;
       for (const auto& ch : changes) n_one += one.resync_viewers_of(w.store, ch.entity, ch.old_class, ch.old_sees, 3.0f);
       CHECK(pooled.resync_viewers_of(w.store, changes, 3.0f, &pool) == n_one);
       CHECK(serial.resync_viewers_of(w.store, changes, 3.0f, nullptr) == n_one);
+      CHECK(n_one == n_ref);
       // Which clients were resynced shows in their next frames (reset or not), built by each.
       for (const auto& r : requests) {
         replication_stats a, b, c;
@@ -548,6 +579,9 @@ TEST_SUITE("zone.replication") {
         CHECK((a.reset == b.reset && frame_one == std::vector<std::uint8_t>(fb.begin(), fb.end())));
         (void)serial.build(r.client, w.store, tracker, tick, tick * 1000, 0, writer, &c);
         CHECK(a.reset == c.reset);
+        replication_stats d;
+        (void)ref.build(r.client, w.store, tracker, tick, tick * 1000, 0, writer, &d);
+        CHECK(a.reset == d.reset);
         if (tick > 1) (a.reset ? resynced : kept) += 1;
       }
       w.step(false);
