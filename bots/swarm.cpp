@@ -6,18 +6,13 @@
 #include "swarm.h"
 
 #include <algorithm>
-#include <cerrno>
 #include <chrono>
 #include <cmath>
-#include <cstring>
 #include <deque>
 #include <memory>
 #include <random>
-#include <system_error>
 #include <thread>
-#include <unordered_map>
 
-#include <sys/epoll.h>
 #include <sys/resource.h>
 
 namespace zone::bots {
@@ -104,12 +99,11 @@ class bot_session : public std::enable_shared_from_this<bot_session> {
   void logout();  ///< graceful, intended close (churn, end of run)
   std::size_t slot() const { return slot_; }
   bool playing() const { return playing_.load(std::memory_order_relaxed); }
-  /// The socket is readable (its thread's read_set says so): reads what is there. `hangup`: the
-  /// peer closed or the socket failed; reads on to the end of the stream (or the error).
-  void on_readable(bool hangup);
 
  private:
   void on_connect(const boost::system::error_code& ec);
+  void wait_readable();
+  void on_readable(const boost::system::error_code& ec);
   void on_frame(const net::frame_view& f, std::uint64_t received_us);
   void on_welcome(const net::wire::welcome& w);
   void on_tick_update(const net::wire::tick_update& u, std::uint64_t received_us);
@@ -141,7 +135,6 @@ class bot_session : public std::enable_shared_from_this<bot_session> {
   unsigned thread_;
   asio::io_context& io_;
   tcp::socket socket_;
-  std::uint64_t read_token_ = 0;  ///< in its thread's read_set since the connect (0: not)
   asio::steady_timer input_timer_, ping_timer_, welcome_timer_, teleport_timer_, switch_timer_;
   bool stealth_ = false;   ///< the visibility this session chose (hello, then set_visibility)
   std::uint8_t team_ = 0;
@@ -191,75 +184,6 @@ class bot_session : public std::enable_shared_from_this<bot_session> {
 /// Frames between two flushes of a bot's counts into the swarm's counters.
 constexpr std::uint64_t flush_every_frames = 8;
 
-/// The read side of one I/O thread's sessions: their sockets in one epoll set, edge-triggered
-/// (added once, after the connect), which the thread's io_context waits on as one descriptor. One
-/// asio wait per batch of ready sessions, where an asio async_wait per session and frame cost an
-/// epoll_ctl, an operation allocated and its completion. Used by its thread's handlers only. The
-/// set holds each session by token until the session leaves it (its close), so an event never
-/// reaches a freed session; events of a session that left are dropped.
-class read_set {
- public:
-  explicit read_set(asio::io_context& io) : io_(io), epoll_(io) {
-    const int fd = ::epoll_create1(EPOLL_CLOEXEC);
-    if (fd < 0) throw std::system_error(errno, std::generic_category(), "epoll_create1");
-    epoll_.assign(fd);
-  }
-  /// Adds a session's connected, non-blocking socket: its token, or 0 (errno tells why).
-  std::uint64_t add(int fd, std::shared_ptr<bot_session> session) {
-    const std::uint64_t token = next_token_++;
-    epoll_event ev{};
-    ev.events = EPOLLIN | EPOLLRDHUP | EPOLLET;
-    ev.data.u64 = token;
-    if (::epoll_ctl(epoll_.native_handle(), EPOLL_CTL_ADD, fd, &ev) != 0) return 0;
-    sessions_.emplace(token, std::move(session));
-    if (!armed_) wait();
-    return token;
-  }
-  void remove(std::uint64_t token, int fd) {
-    ::epoll_ctl(epoll_.native_handle(), EPOLL_CTL_DEL, fd, nullptr);
-    sessions_.erase(token);
-    if (sessions_.empty()) {
-      // Nothing to wait for: the wait goes, so that the context runs out of work at the end.
-      boost::system::error_code ignored;
-      epoll_.cancel(ignored);
-    }
-  }
-  /// Drops the sessions still held (the end of a run, the threads stopped).
-  void clear() { sessions_.clear(); }
-
- private:
-  static constexpr int batch = 64;  ///< events taken per wakeup
-  void wait() {
-    armed_ = true;
-    epoll_.async_wait(asio::posix::stream_descriptor::wait_read, [this](const boost::system::error_code&) { take(); });
-  }
-  void take() {
-    armed_ = false;
-    std::array<epoll_event, batch> events;
-    const int n = ::epoll_wait(epoll_.native_handle(), events.data(), batch, 0);
-    if (n < 0 && errno != EINTR) throw std::system_error(errno, std::generic_category(), "epoll_wait");
-    for (int i = 0; i < n; ++i) {
-      const auto it = sessions_.find(events[i].data.u64);
-      if (it == sessions_.end()) continue;  // closed since (by its own handlers, earlier in this batch)
-      const auto session = it->second;      // held while it runs: it may close and leave the set
-      session->on_readable((events[i].events & (EPOLLRDHUP | EPOLLHUP | EPOLLERR)) != 0);
-    }
-    if (armed_ || sessions_.empty()) return;
-    if (n == batch) {
-      // Maybe more ready: taken after the thread's other queued work.
-      armed_ = true;
-      asio::post(io_, [this] { take(); });
-    } else {
-      wait();
-    }
-  }
-  asio::io_context& io_;
-  asio::posix::stream_descriptor epoll_;
-  std::unordered_map<std::uint64_t, std::shared_ptr<bot_session>> sessions_;
-  std::uint64_t next_token_ = 1;
-  bool armed_ = false;  ///< a wait or a take is pending
-};
-
 class swarm {
  public:
   explicit swarm(const swarm_options& opt)
@@ -270,7 +194,6 @@ class swarm {
     const unsigned threads = std::max(1u, opt.threads);
     for (unsigned t = 0; t < threads; ++t) {
       ios_.push_back(std::make_unique<asio::io_context>(1));
-      readers_.push_back(std::make_unique<read_set>(*ios_.back()));
       latency_.push_back(std::make_unique<latency_histogram_us>());
     }
     double total = 0;
@@ -396,7 +319,6 @@ class swarm {
       std::lock_guard lock(sessions_mutex_);
       for (auto& s : sessions_) s.reset();
     }
-    for (auto& r : readers_) r->clear();
 
     swarm_result& r = out.result;
     if (!oracles_.empty()) {
@@ -548,7 +470,6 @@ class swarm {
     return static_cast<unsigned>(slot * ios_.size() / std::max<std::size_t>(1, slots_.size()));
   }
   asio::io_context& io(unsigned thread) { return *ios_[thread]; }
-  read_set& reader(unsigned thread) { return *readers_[thread]; }
   const tcp::endpoint& endpoint() const { return endpoint_; }
   steady::time_point epoch() const { return epoch_; }
   swarm_counters& counters() { return c_; }
@@ -584,7 +505,6 @@ class swarm {
  private:
   swarm_options opt_;
   std::vector<std::unique_ptr<asio::io_context>> ios_;
-  std::vector<std::unique_ptr<read_set>> readers_;  // one per context, destroyed before the contexts
   tcp::endpoint endpoint_;
   steady::time_point epoch_;
   std::vector<slot_stats> slots_;  // each written by its slot's session (one at a time)
@@ -763,30 +683,33 @@ void bot_session::on_connect(const boost::system::error_code& ec) {
   boost::system::error_code ec2;
   socket_.non_blocking(true, ec2);
   if (ec2) return fail("non-blocking mode: " + ec2.message(), true);
-  // The bot reads the socket itself (non-blocking) when its thread's read_set finds it readable,
-  // so that the receive time of every frame is taken as its bytes come out of the socket, not
-  // when queued work reaches it.
-  read_token_ = s_.reader(thread_).add(socket_.native_handle(), shared_from_this());
-  if (read_token_ == 0) return fail(std::string("epoll_ctl: ") + std::strerror(errno), true);
+  wait_readable();
 }
 
 /// Reads rounds per wakeup before yielding to the other bots of the thread.
 constexpr int max_reads_per_wakeup = 8;
 
-void bot_session::on_readable(bool hangup) {
+void bot_session::wait_readable() {
+  // The bot reads the socket itself (non-blocking) when it is readable, so that the receive time
+  // of every frame is taken as its bytes come out of the socket, not when queued work reaches it.
+  auto self = shared_from_this();
+  socket_.async_wait(tcp::socket::wait_read, [this, self](const boost::system::error_code& ec) { on_readable(ec); });
+}
+
+void bot_session::on_readable(const boost::system::error_code& wait_ec) {
   if (closed_) return;
   const auto lost = [&](const boost::system::error_code& ec) {
     if (intended_ || s_.stopping()) return close();
     return fail(got_error_ ? "closed by the server after an error" : "connection lost: " + ec.message(), !playing_);
   };
+  if (wait_ec) return lost(wait_ec);
   auto& st = s_.slot(slot_);
   for (int round = 0; round < max_reads_per_wakeup; ++round) {
     const auto buf = decoder_.prepare(read_chunk_bytes);
     boost::system::error_code ec;
     const std::size_t n = socket_.read_some(asio::buffer(buf.data(), buf.size()), ec);
-    // Drained: the socket is edge-triggered in the read_set, and the next bytes raise a new edge.
-    if (ec == asio::error::would_block || ec == asio::error::try_again) return;
-    if (ec) return lost(ec);  // the end of the stream (a 0-byte read) included
+    if (ec == asio::error::would_block || ec == asio::error::try_again) return wait_readable();
+    if (ec) return lost(ec);
     // The receive time of every frame these bytes complete: when they were read.
     const std::uint64_t received_us = local_us(s_.epoch());
     decoder_.commit(n);
@@ -800,13 +723,13 @@ void bot_session::on_readable(bool hangup) {
       on_frame(step.frame, received_us);
     }
     if (closed_) return;
-    // A short read took everything there was: bytes that come later raise a new edge. Not so a
-    // close or an error already told with this edge: after a hang-up, read on to the end.
-    if (n < buf.size() && !hangup) return;
+    // A short read took everything there was: wait for the next bytes (edge-triggered readiness
+    // is only consumed by this thread's reactor, after this handler, so none are missed).
+    if (n < buf.size()) return wait_readable();
   }
   // Still more: read again after the other ready bots of this thread had their turn.
   auto self = shared_from_this();
-  asio::post(io_, [this, self, hangup] { on_readable(hangup); });
+  asio::post(io_, [this, self] { on_readable({}); });
 }
 
 void bot_session::on_frame(const net::frame_view& f, std::uint64_t received_us) {
@@ -1280,7 +1203,6 @@ void bot_session::fail(const std::string& why, bool connection_failure) {
 
 void bot_session::close() {
   if (closed_) return;
-  auto self = shared_from_this();  // leaving the read_set may drop the last other reference
   closed_ = true;
   connect_done();
   flush_counts();
@@ -1290,7 +1212,6 @@ void bot_session::close() {
   welcome_timer_.cancel();
   teleport_timer_.cancel();
   switch_timer_.cancel();
-  if (read_token_ != 0) s_.reader(thread_).remove(std::exchange(read_token_, 0), socket_.native_handle());
   socket_.shutdown(tcp::socket::shutdown_both, ignored);
   socket_.close(ignored);
   if (playing_) {
