@@ -22,7 +22,9 @@
 # (100000), BENCH_TICKS (600), BENCH_FINDERS ("gpu cpu").
 # The swarm step also writes the server's per-tick CSV (--tick-csv: <tag>zone-ticks.csv) and the
 # server's CPU time per thread, summed by thread name (zone-worker-N,
-# zone-io-N, the main thread as zone-server), before it stops the server: <tag>server-threads.txt.
+# zone-io-N, the main thread as zone-server), before it stops the server: <tag>server-threads.txt;
+# and the host's TCP drops and retransmissions over the swarm's run (tools/net_counters.py):
+# <tag>net-counters.txt.
 # Logs, CSV and JSON go to $OUT (or ./out).
 set -uo pipefail
 . "$(dirname "${BASH_SOURCE[0]}")/zone_procs.sh"
@@ -86,11 +88,16 @@ for step in "$@"; do
       if [ -z "$port" ]; then
         echo "zone-server did not start"; cat "$out/${tag}zone-server.log"; kill "$server"; continue
       fi
+      python3 tools/net_counters.py --save "$out/${tag}net-counters0.json" || true
       "${swarm_pin[@]}" "$dir/bot-swarm" --port "$port" --bots "$bots" --duration "$duration" --ramp "$ramp" --threads "${SWARM_THREADS:-6}" --verify \
         --mix "${SWARM_MIX:-walk=0.5,patrol=0.2,follow=0.1,crowd=0.1,teleport=0.1}" --quiet ${SWARM_ARGS:-} \
         --report-json "$out/${tag}swarm-report.json" --report-csv "$out/${tag}swarm-series.csv" > "$out/${tag}swarm.log" 2>&1
       echo "bot-swarm exit code: $?"
+      # Drops and retransmissions over the run (loopback's losses come back only as retransmissions).
+      python3 tools/net_counters.py --since "$out/${tag}net-counters0.json" --frames-from "$out/${tag}swarm-report.json" \
+        > "$out/${tag}net-counters.txt" 2>&1 || true
       tail -40 "$out/${tag}swarm.log"
+      grep -E "over the run|RetransSegs|SynRetrans|LossProbes|TCPTimeouts|softnet_dropped" "$out/${tag}net-counters.txt"
       awk '{printf "zone-server CPU time (user + system): %.1f s\n", ($14 + $15) / 100}' "/proc/$server/stat" 2>/dev/null
       thread_cpu "$server" | awk '{printf "  %-16s %3d threads %8.1f s\n", $1, $2, $3 / 100}' > "$out/${tag}server-threads.txt"
       echo "zone-server CPU by thread name:"; cat "$out/${tag}server-threads.txt"
