@@ -9,6 +9,7 @@
 #include <algorithm>
 #include <cmath>
 #include <map>
+#include <optional>
 #include <random>
 
 #include "net/client_view.h"
@@ -494,7 +495,7 @@ TEST_SUITE("zone.replication") {
   /// seeing through `observer` is resynced by `ch` (or, `noting`: sent a class note of it), with
   /// the store's classes and positions now.
   bool reference_resyncs(const entity_store& store, entity_id observer, const class_change& ch, float hysteresis,
-                         bool noting = false) {
+                         bool noting = false, std::optional<std::uint32_t> mask_before = std::nullopt) {
     const std::size_t x = store.index_of(ch.entity);
     if (x == entity_store::npos) return false;
     const std::uint32_t cls = store.visibility_classes()[x], sees = store.sees()[x];
@@ -503,8 +504,9 @@ TEST_SUITE("zone.replication") {
     const std::size_t o = store.index_of(observer);
     if (o == entity_store::npos) return false;
     const std::uint32_t m = store.sees()[o];
-    // A noting client: any client whose mask holds the new class (its own mask may have changed).
-    if ((m & cls) == 0 || (!noting && (m & ch.old_class) == 0)) return false;
+    // A noting client judges the old class with the mask its view was built with (before its own
+    // switch of the tick, if any).
+    if ((m & cls) == 0 || ((noting ? mask_before.value_or(m) : m) & ch.old_class) == 0) return false;
     const vec3 p = store.positions()[x], b = store.presence_half_extents()[x];
     const vec3 q = store.positions()[o], a = store.aoi_half_extents()[o];
     const float slack = hysteresis + 0.01f;
@@ -658,8 +660,12 @@ TEST_SUITE("zone.replication") {
           continue;
         }
         const std::size_t first = want.size();
+        std::optional<std::uint32_t> before;  // its mask before its own first switch of the tick
         for (const class_change& ch : changes) {
-          if (!reference_resyncs(w.store, o, ch, 3.0f, true)) continue;
+          if (ch.entity == o && !before) before = ch.old_sees;
+        }
+        for (const class_change& ch : changes) {
+          if (!reference_resyncs(w.store, o, ch, 3.0f, true, before)) continue;
           if (std::any_of(want.begin() + static_cast<std::ptrdiff_t>(first), want.end(),
                           [&](const replicator::class_note_target& n) { return n.entity == ch.entity; })) {
             continue;
