@@ -588,7 +588,8 @@ __device__ __forceinline__ std::uint64_t reserve_chunk(const check_args& a, std:
   return base;
 }
 
-/// The pair rule of both checking kernels, for box a (a row) and box b (a column), each as its
+/// The pair rule of the stage kernel (check_kernel writes the same rule out inline; see there),
+/// for box a (a row) and box b (a column), each as its
 /// two 16-byte records (lo.xyz + category bits, hi.xyz + mask bits) and its hi_flags in the cell:
 /// the boxes intersect (closed intervals), a's category meets b's mask or b's category meets a's
 /// mask, and this cell is the pair's output cell ((flags_a | flags_b) == 7).
@@ -600,7 +601,8 @@ __device__ __forceinline__ bool box_pair_hit(const float4& a_lo, const float4& a
          b_lo.z <= a_hi.z && classes != 0 && (a_flags | b_flags) == 7u;
 }
 
-/// The diagonal tile of both checking kernels (a segment of m boxes against itself): calls
+/// The stage kernel's diagonal tile (check_kernel's, written out inline; see there), a segment
+/// of m boxes against itself: calls
 /// test(j) for the columns j that row r < m checks, so that every pair of the m boxes is tested
 /// once over the rows. Balanced: Eq. 7 with n = m, row r checks the x(r) - 1 elements after the
 /// diagonal, wrapping (x = ceil((m+1)/2) for the first ceil(m/2) rows, else floor((m+1)/2); the
@@ -671,6 +673,7 @@ __global__ void __launch_bounds__(tuning::segment) check_kernel(check_args a) {
     row_hi = a.packed_hi[at];
     row_flags = hi_flags(row_hi, plan, cc);
   }
+  const std::uint32_t row_cat = __float_as_uint(row_lo.w), row_mask = __float_as_uint(row_hi.w);
 
   for (std::uint32_t h = v; h < segs; ++h) {
     const std::uint32_t n = min(T, count - h * T);
@@ -690,12 +693,31 @@ __global__ void __launch_bounds__(tuning::segment) check_kernel(check_args a) {
     __syncthreads();
 
     std::uint64_t hits = 0;
+    // The pair rule and the diagonal walk written out here rather than through box_pair_hit and
+    // triangle_walk (which the stage kernel uses): the shared forms made this kernel's check
+    // slower on the H200 (docs/gpu-benchmarks.md, "Overlapped upload").
     auto test = [&](std::uint32_t j) {
-      if (box_pair_hit(row_lo, row_hi, row_flags, col_lo[j], col_hi[j], col_flags[j])) hits |= std::uint64_t{1} << j;
+      const float4 lo = col_lo[j], hi = col_hi[j];
+      const bool hit = row_lo.x <= hi.x && lo.x <= row_hi.x && row_lo.y <= hi.y && lo.y <= row_hi.y &&
+                       row_lo.z <= hi.z && lo.z <= row_hi.z &&
+                       ((row_cat & __float_as_uint(hi.w)) | (__float_as_uint(lo.w) & row_mask)) != 0 &&
+                       (row_flags | col_flags[j]) == 7u;
+      if (hit) hits |= std::uint64_t{1} << j;
     };
     if (tid < m) {
       if (h == v) {
-        triangle_walk<Balanced>(tid, m, test);
+        if (Balanced) {
+          // Eq. 7 with n = m: x = ceil((m+1)/2) for the first ceil(m/2) rows, else floor((m+1)/2);
+          // the first of the x elements is the diagonal (a box with itself), skipped.
+          const std::uint32_t x = tid < (m + 1) / 2 ? (m + 2) / 2 : (m + 1) / 2;
+          std::uint32_t j = tid;
+          for (std::uint32_t k = 1; k < x; ++k) {
+            if (++j == m) j = 0;
+            test(j);
+          }
+        } else {
+          for (std::uint32_t j = tid + 1; j < m; ++j) test(j);
+        }
       } else {
         for (std::uint32_t j = 0; j < n; ++j) test(j);
       }
