@@ -69,6 +69,12 @@ struct pbig_options {
   /// true: the overlapped upload on every call from overlap_min_boxes on, whatever the previous
   /// call's output (tests and benchmarks force it so).
   bool overlap_always = false;
+  /// The overlapped upload's stage width W (docs/gpu.md, "Overlapped upload"): W boxes of a
+  /// chunk's cell list a work item of the stage checks, W columns a tile: 8, 16, 32 or 64 (another
+  /// value: the next of those up, 64 past it). 0 = chosen per call from the plan's boxes per cell
+  /// and the chunk count (pbig_tuning.h, stage_width_spread). The same pairs at every width; their
+  /// order depends on it (tests and benchmarks force it).
+  std::uint32_t overlap_stage_width = 0;
 };
 
 /// Where the time of the last call went (the paper's Table V/VI tasks) and what it moved.
@@ -105,6 +111,7 @@ struct pbig_report {
   /// not use it. Then plan_ms is from the first chunk's arrival to the plan, map_ms the stages'
   /// MAP summed, and CHECK, DataOut and the later chunks' DataIn overlap.
   std::uint32_t overlap_chunks = 0;
+  std::uint32_t stage_width = 0;  ///< the overlapped upload's stage width W (pbig_options::overlap_stage_width), else 0
   double alpha = 0;
 };
 

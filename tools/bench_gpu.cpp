@@ -1,9 +1,10 @@
 // bench-gpu: the PBIG paper's experiments for the GPU finder, with the fast CPU finder (grid_finder
 // on every core) side by side where it finishes within a minute. Prints tables and writes CSV.
 //
-//   bench-gpu [--csv FILE] [--csv-lbvh FILE] [--only LIST] [--max-n N] [--reps R] [--cgal-max-n N]
-//     LIST: comma-separated of floors,public,overlap,targets,wsweep,esweep,eplan,nsweep,cells,doc,gauss,ablation,lbvh
-//           (default: all but wsweep, esweep, eplan)
+//   bench-gpu [--csv FILE] [--csv-lbvh FILE] [--only LIST] [--sets LIST] [--max-n N] [--reps R] [--cgal-max-n N]
+//     --only: comma-separated of floors,public,overlap,targets,wsweep,esweep,eplan,nsweep,cells,doc,gauss,ablation,
+//           lbvh (default: all but wsweep, esweep, eplan)
+//     --sets: comma-separated KIND:N, the only sets of public, overlap, targets, wsweep, esweep, eplan (default: all)
 //
 // public (first): the documented call of docs/embedding.md and examples/find_pairs, timed on the
 // six target sets beside the best path below: make_finder(auto) once, pinned_boxes over the set,
@@ -13,8 +14,9 @@
 // overlap: the overlapped upload (docs/gpu.md, "Overlapped upload") on uniform 5x10^6 and 10^7
 // and Gaussian 10^7, pinned: the documented call (by default the pipeline after a first call whose
 // output was small against its input: uniform yes, Gaussian no) beside PBIG with it off and forced
-// on in 3 chunks (the default count), in interleaved rounds; medians and the median call's phases
-// (Gaussian's pairs fill 9.2 GB of pinned memory per finder).
+// on in 3 chunks (the default count) at the stage width the plan gives and at W = 32 (the stage
+// layout before the width was chosen: one row a lane, 32-column tiles), in interleaved rounds;
+// medians and the median call's phases (Gaussian's pairs fill 9.2 GB of pinned memory per finder).
 //
 // lbvh: PBIG, LBVH, the auto finder, the CPU grid finder and CGAL (box_self_intersection_d,
 // sequential; when its headers are found, up to --cgal-max-n boxes) side by side on the paper's
@@ -95,6 +97,10 @@ struct bench {
   std::ofstream csv;
   int reps = 5;
   std::size_t max_n = 10000000;
+  std::string sets;  // --sets: empty = every set
+  [[nodiscard]] bool skip(const char* kind, std::size_t n) const {
+    return n > max_n || !zone::tools::bench_gpu_set_wanted(sets, kind, n);
+  }
   double cpu_budget_ms = 60000;
   double h2d_gbs = 0, d2h_gbs = 0;
   std::map<std::string, std::unique_ptr<zi::pair_finder>> gpu_finders;
@@ -223,6 +229,7 @@ std::string opts_name(const zg::pbig_options& o) {
   if (o.overlap_min_boxes == std::numeric_limits<std::size_t>::max()) s += "-oneshot";  // no overlapped upload
   if (o.overlap_chunks != 0) s += "-k" + std::to_string(o.overlap_chunks);
   if (o.overlap_always) s += "-always";  // the overlapped upload whatever the last call's output
+  if (o.overlap_stage_width != 0) s += "-w" + std::to_string(o.overlap_stage_width);  // a forced stage width
   return s.empty() ? "base" : s;
 }
 
@@ -508,7 +515,7 @@ void public_section(bench& b, std::uint64_t seed) {
               "ratio", "pub_min", "find_ms", "same_pairs");
   bool all_within = true;
   for (const target_set& t : target_sets) {
-    if (t.n > b.max_n) continue;
+    if (b.skip(t.kind, t.n)) continue;
     const zi::box_set s = *zi::generate_named(t.kind, t.n, seed);
     const zg::pinned_boxes pin(s);
     std::string why;
@@ -576,8 +583,8 @@ void public_section(bench& b, std::uint64_t seed) {
 void overlap_section(bench& b, std::uint64_t seed) {
   std::printf("\n== The overlapped upload (boxes in and pairs out at once): the documented call and PBIG with it "
               "off / on in k chunks; pinned input, interleaved rounds\n");
-  std::printf("%-9s %9s %-22s %6s %9s %9s %8s %7s %7s %8s %8s %8s %7s %s\n", "set", "N", "variant", "chunks", "e2e_ms",
-              "min_ms", "in_ms", "plan", "map", "check", "out_ms", "floor", "batch", "same_pairs");
+  std::printf("%-9s %9s %-22s %6s %3s %9s %9s %8s %7s %7s %8s %8s %8s %7s %s\n", "set", "N", "variant", "chunks", "W",
+              "e2e_ms", "min_ms", "in_ms", "plan", "map", "check", "out_ms", "floor", "batch", "same_pairs");
   struct variant {
     std::string name;
     bool documented;
@@ -587,21 +594,25 @@ void overlap_section(bench& b, std::uint64_t seed) {
   // finders of a set freed after it.
   for (const target_set t : {target_set{"uniform", 5000000, 0}, target_set{"uniform", 10000000, 12},
                              target_set{"gaussian", 10000000, 0}}) {
-    if (t.n > b.max_n) continue;
+    if (b.skip(t.kind, t.n)) continue;
     const bool few = std::string(t.kind) == "gaussian";
     std::vector<variant> variants;
     variants.push_back({"documented (auto)", true, {}});
-    for (const std::uint32_t k : {0u, 3u}) {
+    // One-shot; 3 chunks at the plan's stage width; 3 chunks at W = 32 (the layout before).
+    for (const std::uint32_t k : {0u, 3u, 3u}) {
       zg::pbig_options o;
       o.decode_pool = &b.pool;
-      if (k == 0) {
-        o.overlap_min_boxes = std::numeric_limits<std::size_t>::max();
-      } else {
+      std::string name = "pbig one-shot";
+      if (k != 0) {
         o.overlap_min_boxes = 2;
         o.overlap_chunks = k;
         o.overlap_always = true;
+        o.overlap_stage_width = variants.size() == 3 ? 32 : 0;
+        name = "pbig overlap k=" + std::to_string(k) + (o.overlap_stage_width != 0 ? " W=32" : "");
+      } else {
+        o.overlap_min_boxes = std::numeric_limits<std::size_t>::max();
       }
-      variants.push_back({k == 0 ? "pbig one-shot" : "pbig overlap k=" + std::to_string(k), false, o});
+      variants.push_back({name, false, o});
     }
     const zi::box_set s = *zi::generate_named(t.kind, t.n, seed);
     const zg::pinned_boxes pin(s);
@@ -670,13 +681,13 @@ void overlap_section(bench& b, std::uint64_t seed) {
       if (variants[i].documented) name += choice ? "->" + std::string(zg::backend_name(*choice)) : "->?";
       const auto& rp = g.report;
       if (variants[i].documented) {
-        std::printf("%-9s %9zu %-22s %6s %9.3f %9.3f %8s %7s %7s %8s %8s %8s %7s %s%s\n", t.kind, t.n, name.c_str(), "-",
-                    g.e2e_ms, g.e2e_min_ms, "-", "-", "-", "-", "-", "-", "-", same ? "yes" : "MISMATCH",
+        std::printf("%-9s %9zu %-22s %6s %3s %9.3f %9.3f %8s %7s %7s %8s %8s %8s %7s %s%s\n", t.kind, t.n, name.c_str(),
+                    "-", "-", g.e2e_ms, g.e2e_min_ms, "-", "-", "-", "-", "-", "-", "-", same ? "yes" : "MISMATCH",
                     pin.active() ? "" : " (input NOT pinned)");
       } else {
-        std::printf("%-9s %9zu %-22s %6u %9.3f %9.3f %8.3f %7.3f %7.3f %8.3f %8.3f %8.3f %7u %s%s\n", t.kind, t.n,
-                    name.c_str(), rp.overlap_chunks, g.e2e_ms, g.e2e_min_ms, rp.data_in_ms, rp.plan_ms, rp.map_ms,
-                    rp.check_ms, rp.data_out_ms, b.floor_ms(rp), rp.batches, same ? "yes" : "MISMATCH",
+        std::printf("%-9s %9zu %-22s %6u %3u %9.3f %9.3f %8.3f %7.3f %7.3f %8.3f %8.3f %8.3f %7u %s%s\n", t.kind, t.n,
+                    name.c_str(), rp.overlap_chunks, rp.stage_width, g.e2e_ms, g.e2e_min_ms, rp.data_in_ms, rp.plan_ms,
+                    rp.map_ms, rp.check_ms, rp.data_out_ms, b.floor_ms(rp), rp.batches, same ? "yes" : "MISMATCH",
                     pin.active() ? "" : " (input NOT pinned)");
       }
       b.row("overlap", t.kind, t.n, name, variants[i].documented ? "public+pinned" : opts_name(variants[i].options) + "+pinned",
@@ -697,6 +708,7 @@ int main(int argc, char** argv) {
   zone::tools::bench_gpu_args args;
   if (const auto rc = zone::tools::parse_bench_gpu_args(argc, argv, args)) return *rc;
   b.max_n = args.max_n;
+  b.sets = args.sets;
   b.reps = args.reps;
   const std::string& csv_path = args.csv_path;
   const std::string& csv_lbvh = args.csv_lbvh;
@@ -725,7 +737,7 @@ int main(int argc, char** argv) {
   if (want("targets")) {
     print_head("Targets (issue 3): end to end, all optimisations");
     for (const target_set& t : target_sets) {
-      if (t.n > b.max_n) continue;
+      if (b.skip(t.kind, t.n)) continue;
       const zi::box_set s = *zi::generate_named(t.kind, t.n, seed);
       const gpu_result g0 = b.run_gpu(s, all, t.n >= 10000000 ? 5 : 21);
       const cpu_result c = b.run_cpu(s, static_cast<double>(g0.report.pairs));
@@ -776,7 +788,7 @@ int main(int argc, char** argv) {
     // input: W trades mapping work (cells a box occupies) against checks per cell.
     print_head("W sweep: Eq. 6's W on the target sets (direct output, pinned input)");
     for (const target_set& t : target_sets) {
-      if (t.n > b.max_n) continue;
+      if (b.skip(t.kind, t.n)) continue;
       const zi::box_set s = *zi::generate_named(t.kind, t.n, seed);
       const zg::pinned_boxes pin(s);
       for (const double w : {16.0, 32.0, 64.0, 128.0}) {
@@ -799,7 +811,7 @@ int main(int argc, char** argv) {
     // input), and fixed edges e0 * 2^(j/3) (e0 = Eq. 6's edge) for the cost model's calibration.
     print_head("Edge sweep: pure Eq. 6, the cost-aware plan, fixed multiples of Eq. 6's edge (direct, pinned)");
     for (const target_set& t : target_sets) {
-      if (t.n > b.max_n) continue;
+      if (b.skip(t.kind, t.n)) continue;
       const zi::box_set s = *zi::generate_named(t.kind, t.n, seed);
       const zg::pinned_boxes pin(s);
       const int reps = t.n >= 10000000 ? 5 : 11;

@@ -386,27 +386,36 @@ void pbig_engine::queue_map(std::uint32_t n, const grid_sizes& size, bool small_
   CUDA_CHECK(cudaEventRecord(ev_sched_, main_));
 }
 
+grid_capacity pbig_engine::readback_limits() const {
+  return grid_capacity{plan_.cells,
+                       std::numeric_limits<std::uint32_t>::max() / 2,
+                       std::numeric_limits<std::uint32_t>::max(),
+                       std::numeric_limits<std::uint32_t>::max(),
+                       65535ull * tuning::segment,
+                       1};
+}
+
+void pbig_engine::check_readback(const map_readback& rb, const std::string& what) {
+  // 32-bit limits of the cell lists (prefixes wrap silently past them: refuse instead). The
+  // device refused the same grids (fits = 0, nothing mapped).
+  if (rb.totals.entries != rb.total.entry || rb.totals.tiles != rb.total.tile ||
+      rb.totals.entries > std::numeric_limits<std::uint32_t>::max() / 2) {
+    throw std::length_error("pbig: " + what + ": more than 2^31 (cell, box) entries or tiles");
+  }
+  if (rb.totals.max_count > 65535ull * tuning::segment) {
+    throw std::length_error("pbig: " + what + ": a cell holds more than 65535 segments of boxes");
+  }
+  if (rb.fits == 0) throw std::logic_error("pbig: " + what + " does not fit its read-back sizes (internal error)");
+}
+
 void pbig_engine::map_boxes(std::uint32_t n) {
   // Read-back sizing: the counters sized by the plan, the rest by the totals read back.
-  const grid_capacity limits{plan_.cells, std::numeric_limits<std::uint32_t>::max() / 2,
-                             std::numeric_limits<std::uint32_t>::max(), std::numeric_limits<std::uint32_t>::max(),
-                             65535ull * tuning::segment, 1};
-  queue_count(n, limits);
+  queue_count(n, readback_limits());
   map_readback* rb = d_readback_.get();
   CUDA_CHECK(cudaMemcpyAsync(h_readback_.get(), rb, sizeof(map_readback), cudaMemcpyDeviceToHost, main_));
   CUDA_CHECK(cudaStreamSynchronize(main_));
   rb_ = *h_readback_.get();
-
-  // 32-bit limits of the cell lists (prefixes wrap silently past them: refuse instead). The
-  // device refused the same grids (fits = 0, nothing mapped).
-  if (rb_.totals.entries != rb_.total.entry || rb_.totals.tiles != rb_.total.tile ||
-      rb_.totals.entries > std::numeric_limits<std::uint32_t>::max() / 2) {
-    throw std::length_error("pbig: more than 2^31 (cell, box) entries or tiles");
-  }
-  if (rb_.totals.max_count > 65535ull * tuning::segment) {
-    throw std::length_error("pbig: a cell holds more than 65535 segments of boxes");
-  }
-  if (rb_.fits == 0) throw std::logic_error("pbig: the grid does not fit its read-back sizes (internal error)");
+  check_readback(rb_, "the grid");
 
   if (rb_.large_count > 0) {
     // The large boxes' ids in id order (for the large-box passes at the end of the call).
@@ -789,7 +798,8 @@ void pbig_engine::launch_direct(const batch& b, pipeline_slot& s, std::uint64_t 
   const check_args a = batch_args(b, s);
   CUDA_CHECK(cudaEventRecord(s.kernel_begin, s.stream));
   if (b.stage >= 0) {
-    CUDA_CHECK(launch_check_stage(a, lists_of(static_cast<std::uint32_t>(b.stage) + 1), opt_.load_balancing, s.stream));
+    CUDA_CHECK(launch_check_stage(a, lists_of(static_cast<std::uint32_t>(b.stage) + 1), opt_.load_balancing,
+                                  stage_width_, s.stream));
   } else {
     CUDA_CHECK(launch_check(a, opt_.load_balancing, /*compressed=*/false, s.stream));
   }

@@ -9,6 +9,7 @@
 #include <cstdint>
 #include <memory>
 #include <optional>
+#include <string>
 #include <vector>
 
 #include "gpu/common/finder_input.h"
@@ -112,6 +113,13 @@ class pbig_engine {
   void queue_map(std::uint32_t n, const grid_sizes& size, bool small_cells);
   /// Read-back sizing of the map: queue_count, synchronisation 2 (totals into rb_), queue_map.
   void map_boxes(std::uint32_t n);
+  /// Read-back sizing's capacity (queue_count's and each stage's): the plan's cells and the 32-bit
+  /// limits of the cell lists.
+  [[nodiscard]] grid_capacity readback_limits() const;
+  /// Refuses a read-back (of map_boxes or of a stage) past the 32-bit limits of the cell lists
+  /// (std::length_error: prefixes would wrap) or that the device did not map (std::logic_error);
+  /// `what` names the grid in the message ("the grid", "stage 2").
+  static void check_readback(const map_readback& rb, const std::string& what);
   /// The whole call as one queue sized by next_ (docs/gpu.md, "Single queue"); `pairs` when done.
   queue_result run_single_queue(std::uint32_t n, std::uint64_t& pairs);
   /// Keeps this call's figures (with a margin) as the next call's single-queue capacity.
@@ -134,6 +142,9 @@ class pbig_engine {
   void queue_stage_map(std::uint32_t n, std::uint32_t j, std::uint32_t first, std::uint32_t count);
   /// Lists 0..count-1 of the stages.
   [[nodiscard]] stage_lists lists_of(std::uint32_t count) const;
+  /// The stage width W of this call's stages (stage_layout): pbig_options::overlap_stage_width,
+  /// else from the plan's boxes per cell and the chunk count k (tuning::stage_width_spread).
+  [[nodiscard]] std::uint32_t stage_width(std::uint32_t n, std::uint32_t k) const;
   std::uint64_t check_batches(interest::pair_list& out);
   /// The checking kernel's arguments for batch b on slot s (its buffers, cursor and capacity).
   [[nodiscard]] check_args batch_args(const batch& b, const pipeline_slot& s) const;
@@ -208,6 +219,7 @@ class pbig_engine {
   cudaEvent_t ev_staged_[max_overlap_chunks] = {};  // stage j's MAP begins (main stream)
   cudaEvent_t ev_mapped_[max_overlap_chunks] = {};  // stage j's lists and work items are ready
   overlap_stage stages_[max_overlap_chunks];
+  std::uint32_t stage_width_ = 64;  // this call's stage width (stage_width())
   device_buffer<map_readback> d_stage_rb_;  // per stage (the stage's checks read theirs while later stages map)
   pinned_buffer<map_readback> h_stage_rb_;
   device_buffer<bounds_dev> d_chunk_bounds_;  // per chunk: its validation

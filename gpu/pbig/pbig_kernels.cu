@@ -44,13 +44,14 @@ struct add_totals {
   }
 };
 /// The overlapped upload's stage j: chunk j's count q in a cell and the earlier chunks' boxes p
-/// there (from their prefixes), as the stage's per-cell values (check_stage_kernel's layout,
-/// stage_layout in pbig_shared.h): entries q (chunk j's own list), work items ceil(q / W) row
-/// segments of chunk j's list, their tiles; nothing when q == 0.
+/// there (from their prefixes), as the stage's per-cell values (check_stage_kernel's layout at
+/// width W, stage_layout in pbig_shared.h): entries q (chunk j's own list), work items ceil(q / W)
+/// row segments of chunk j's list, their tiles; nothing when q == 0.
 struct stage_cell {
   const std::uint32_t* counts;
   stage_lists earlier;  // chunks 0..j-1 (count = j)
   std::uint32_t cells;
+  std::uint32_t width;  // W
   __host__ __device__ void sizes(std::uint32_t c, std::uint32_t& q, std::uint32_t& p) const {
     q = c < cells ? counts[c] : 0;
     p = 0;
@@ -63,7 +64,7 @@ struct to_stage_prefix {
   __host__ __device__ cell_prefix operator()(std::uint32_t c) const {
     std::uint32_t q, p;
     cell.sizes(c, q, p);
-    const stage_cell_layout l = stage_layout(q, p);
+    const stage_cell_layout l = stage_layout(q, p, cell.width);
     return {q, l.items, static_cast<std::uint32_t>(l.tiles())};  // 32-bit wrap caught by the totals' check
   }
 };
@@ -78,7 +79,7 @@ struct to_stage_totals {
     cell.sizes(c, q32, p32);
     if (q32 == 0) return {0, 0, 0, 0};
     const std::uint64_t q = q32, p = p32;
-    return {q, stage_layout(q32, p32).tiles(), q * p + q * (q - 1) / 2, p + q};
+    return {q, stage_layout(q32, p32, cell.width).tiles(), q * p + q * (q - 1) / 2, p + q};
   }
 };
 struct entry_at {
@@ -130,18 +131,21 @@ cudaError_t reduce_cells(void* temp, std::size_t& temp_bytes, const std::uint32_
 }
 
 cudaError_t scan_stage_cells(void* temp, std::size_t& temp_bytes, const std::uint32_t* counts,
-                             const stage_lists& earlier, cell_prefix* prefix, std::uint32_t cells, cudaStream_t stream) {
+                             const stage_lists& earlier, std::uint32_t width, cell_prefix* prefix, std::uint32_t cells,
+                             cudaStream_t stream) {
+  if (!is_stage_width(width)) return cudaErrorInvalidValue;
   const auto in = thrust::make_transform_iterator(thrust::counting_iterator<std::uint32_t>(0),
-                                                  to_stage_prefix{stage_cell{counts, earlier, cells}});
+                                                  to_stage_prefix{stage_cell{counts, earlier, cells, width}});
   return cub::DeviceScan::ExclusiveScan(temp, temp_bytes, in, prefix, add_prefix{}, cell_prefix{0, 0, 0},
                                         static_cast<std::int64_t>(cells) + 1, stream);
 }
 
 cudaError_t reduce_stage_cells(void* temp, std::size_t& temp_bytes, const std::uint32_t* counts,
-                               const stage_lists& earlier, cell_totals* totals, std::uint32_t cells,
-                               cudaStream_t stream) {
+                               const stage_lists& earlier, std::uint32_t width, cell_totals* totals,
+                               std::uint32_t cells, cudaStream_t stream) {
+  if (!is_stage_width(width)) return cudaErrorInvalidValue;
   const auto in = thrust::make_transform_iterator(thrust::counting_iterator<std::uint32_t>(0),
-                                                  to_stage_totals{stage_cell{counts, earlier, cells}});
+                                                  to_stage_totals{stage_cell{counts, earlier, cells, width}});
   return cub::DeviceReduce::Reduce(temp, temp_bytes, in, totals, static_cast<std::int64_t>(cells), add_totals{},
                                    cell_totals{0, 0, 0, 0}, stream);
 }
@@ -256,15 +260,30 @@ cudaError_t launch_check(const check_args& a, bool balanced, bool compressed, cu
   return cudaGetLastError();
 }
 
-cudaError_t launch_check_stage(const check_args& a, const stage_lists& lists, bool balanced, cudaStream_t stream) {
+namespace {
+template <std::uint32_t W>
+void launch_check_stage_w(const check_args& a, const stage_lists& lists, bool balanced, std::uint32_t items,
+                          cudaStream_t stream) {
+  constexpr std::uint32_t slots = tuning::segment / (W < 32 ? W : 32);  // work items a block
+  const std::uint32_t grid = (items + slots - 1) / slots;
+  if (balanced) {
+    check_stage_kernel<W, true><<<grid, tuning::segment, 0, stream>>>(a, lists);
+  } else {
+    check_stage_kernel<W, false><<<grid, tuning::segment, 0, stream>>>(a, lists);
+  }
+}
+}  // namespace
+
+cudaError_t launch_check_stage(const check_args& a, const stage_lists& lists, bool balanced, std::uint32_t width,
+                               cudaStream_t stream) {
   const std::uint32_t items = a.item_last - a.item_first;
   if (items == 0) return cudaSuccess;
-  constexpr std::uint32_t warps = tuning::segment / stage_rows;  // one work item a warp
-  const std::uint32_t grid = (items + warps - 1) / warps;
-  if (balanced) {
-    check_stage_kernel<true><<<grid, tuning::segment, 0, stream>>>(a, lists);
-  } else {
-    check_stage_kernel<false><<<grid, tuning::segment, 0, stream>>>(a, lists);
+  switch (width) {
+    case 8: launch_check_stage_w<8>(a, lists, balanced, items, stream); break;
+    case 16: launch_check_stage_w<16>(a, lists, balanced, items, stream); break;
+    case 32: launch_check_stage_w<32>(a, lists, balanced, items, stream); break;
+    case 64: launch_check_stage_w<64>(a, lists, balanced, items, stream); break;
+    default: return cudaErrorInvalidValue;
   }
   return cudaGetLastError();
 }

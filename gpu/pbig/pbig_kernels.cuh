@@ -9,6 +9,7 @@
 
 #include <cfloat>
 #include <cstdint>
+#include <type_traits>
 
 #include "pbig_shared.h"
 #include "pbig_tuning.h"
@@ -587,6 +588,40 @@ __device__ __forceinline__ std::uint64_t reserve_chunk(const check_args& a, std:
   return base;
 }
 
+/// The pair rule of the stage kernel (check_kernel writes the same rule out inline; see there),
+/// for box a (a row) and box b (a column), each as its
+/// two 16-byte records (lo.xyz + category bits, hi.xyz + mask bits) and its hi_flags in the cell:
+/// the boxes intersect (closed intervals), a's category meets b's mask or b's category meets a's
+/// mask, and this cell is the pair's output cell ((flags_a | flags_b) == 7).
+__device__ __forceinline__ bool box_pair_hit(const float4& a_lo, const float4& a_hi, std::uint32_t a_flags,
+                                             const float4& b_lo, const float4& b_hi, std::uint32_t b_flags) {
+  const std::uint32_t classes =
+      (__float_as_uint(a_lo.w) & __float_as_uint(b_hi.w)) | (__float_as_uint(b_lo.w) & __float_as_uint(a_hi.w));
+  return a_lo.x <= b_hi.x && b_lo.x <= a_hi.x && a_lo.y <= b_hi.y && b_lo.y <= a_hi.y && a_lo.z <= b_hi.z &&
+         b_lo.z <= a_hi.z && classes != 0 && (a_flags | b_flags) == 7u;
+}
+
+/// The stage kernel's diagonal tile (check_kernel's, written out inline; see there), a segment
+/// of m boxes against itself: calls
+/// test(j) for the columns j that row r < m checks, so that every pair of the m boxes is tested
+/// once over the rows. Balanced: Eq. 7 with n = m, row r checks the x(r) - 1 elements after the
+/// diagonal, wrapping (x = ceil((m+1)/2) for the first ceil(m/2) rows, else floor((m+1)/2); the
+/// first of the x elements is the diagonal, a box with itself, skipped); else the plain triangle,
+/// row r checks columns r+1..m-1.
+template <bool Balanced, class Test>
+__device__ __forceinline__ void triangle_walk(std::uint32_t r, std::uint32_t m, Test&& test) {
+  if constexpr (Balanced) {
+    const std::uint32_t x = r < (m + 1) / 2 ? (m + 2) / 2 : (m + 1) / 2;
+    std::uint32_t j = r;
+    for (std::uint32_t k = 1; k < x; ++k) {
+      if (++j == m) j = 0;
+      test(j);
+    }
+  } else {
+    for (std::uint32_t j = r + 1; j < m; ++j) test(j);
+  }
+}
+
 /// Algorithm 2: one block of T threads per work item (cell c, row segment v). Thread i holds box
 /// i of segment v and compares it with each column segment h >= v loaded into shared memory:
 /// for h == v the triangle, with Eq. 7's balanced circular assignment when Balanced (thread i
@@ -658,6 +693,9 @@ __global__ void __launch_bounds__(tuning::segment) check_kernel(check_args a) {
     __syncthreads();
 
     std::uint64_t hits = 0;
+    // The pair rule and the diagonal walk written out here rather than through box_pair_hit and
+    // triangle_walk (which the stage kernel uses): the shared forms made this kernel's check
+    // slower on the H200 (docs/gpu-benchmarks.md, "Overlapped upload").
     auto test = [&](std::uint32_t j) {
       const float4 lo = col_lo[j], hi = col_hi[j];
       const bool hit = row_lo.x <= hi.x && lo.x <= row_hi.x && row_lo.y <= hi.y && lo.y <= row_hi.y &&
@@ -727,65 +765,73 @@ __global__ void __launch_bounds__(tuning::segment) check_kernel(check_args a) {
 /// whose larger id is in chunk j. In each cell it tests chunk j's boxes (list j, Q of them: the
 /// rows) against the earlier chunks' boxes of the cell (lists 0..j-1, P of them) and against each
 /// other, never two earlier boxes, so the stages together test each cell's pairs once, as the
-/// one-shot path does. One warp per work item (cell, row segment u of chunk j's list: W =
-/// stage_rows rows), two warps a block, each on its own after the plan is loaded; the item's
-/// tiles (stage_layout, pbig_shared.h): the earlier boxes in ceil(P / W) column segments (every
-/// pair), then chunk j's own segments from u on (u: the triangle, Eq. 7 when Balanced; above:
-/// every pair). A pair is kept by check_kernel's rules (the boxes intersect, the category/mask
-/// rule, this cell is the pair's output cell), so each pair is found in exactly one stage and one
-/// cell. Plain chunks (direct output), boxes read through their ids (a.packed_lo/hi are by id);
-/// the header's segment fields (not read in direct output) saturate at 65535.
-template <bool Balanced>
+/// one-shot path does. Width W (stage_layout, pbig_shared.h; chosen on the host): a work item is
+/// (cell, row segment u of W rows of chunk j's list), run by L = min(W, 32) lanes of a warp, each
+/// on its own after the plan is loaded: W < 32 puts 32 / W items in a warp (sub-warp shuffles and
+/// scans), W = 64 gives a lane two rows (lane and lane + 32), which share each column's load. The
+/// item's tiles of W columns: the earlier boxes in ceil(P / W) segments (every pair), then chunk
+/// j's own segments from u on (u: the triangle, triangle_walk; above: every pair). A pair is kept
+/// by check_kernel's rule (box_pair_hit), so each pair is found in exactly one stage and one cell.
+/// A tile's pairs are in row order (rows 0..W-1 of the segment), each row's by column: plain
+/// chunks (direct output), boxes read through their ids (a.packed_lo/hi are by id); the header's
+/// segment fields (not read in direct output) saturate at 65535.
+template <std::uint32_t W, bool Balanced>
 __global__ void __launch_bounds__(tuning::segment) check_stage_kernel(check_args a, stage_lists lists) {
-  constexpr std::uint32_t W = stage_rows;
-  constexpr std::uint32_t warps = tuning::segment / W;
-  static_assert(W == 32 && tuning::segment % W == 0, "one work item a warp");
-  constexpr unsigned full = 0xffffffffu;
-  __shared__ float4 col_lo[warps][W];
-  __shared__ float4 col_hi[warps][W];
-  __shared__ std::uint32_t col_id[warps][W];
-  __shared__ std::uint8_t col_flags[warps][W];
+  static_assert(is_stage_width(W), "a stage width (pbig_shared.h)");
+  constexpr std::uint32_t L = W < 32 ? W : 32;  // lanes of a work item
+  constexpr std::uint32_t R = W / L;            // rows of a lane (1, or 2 when W = 64)
+  constexpr std::uint32_t slots = tuning::segment / L;  // work items of a block
+  static_assert(tuning::segment % 32 == 0 && L >= static_cast<std::uint32_t>(max_overlap_chunks),
+                "whole warps; an item's lanes read the lists' ranges");
+  using mask_t = std::conditional_t<(W > 32), std::uint64_t, std::uint32_t>;
+  __shared__ float4 col_lo[slots][W];
+  __shared__ float4 col_hi[slots][W];
+  __shared__ std::uint32_t col_id[slots][W];
+  __shared__ std::uint8_t col_flags[slots][W];
   __shared__ grid_plan_dev plan;
-  __shared__ std::uint32_t list_first[warps][max_overlap_chunks];    // the cell's first entry in list i
-  __shared__ std::uint32_t list_at[warps][max_overlap_chunks + 1];   // list i's first box among the cell's
+  __shared__ std::uint32_t list_first[slots][max_overlap_chunks];   // the cell's first entry in list i
+  __shared__ std::uint32_t list_at[slots][max_overlap_chunks + 1];  // list i's first box among the cell's
 
   // guard (uniform over the block)
   if (blockDim.x != tuning::segment || lists.count == 0 || lists.count > static_cast<std::uint32_t>(max_overlap_chunks)) {
     return;
   }
   if (threadIdx.x == 0) plan = *a.plan;
-  __syncthreads();  // the block's only barrier: from here each warp works on its own item
-  const std::uint32_t w = threadIdx.x / W, lane = threadIdx.x % W;
-  const std::uint32_t item = a.item_first + blockIdx.x * warps + w;
-  if (item >= a.item_last || item >= a.grid->total.item) return;  // guard (uniform over the warp)
+  __syncthreads();  // the block's only barrier: from here each item's lanes work on their own
+  const std::uint32_t slot = threadIdx.x / L, g = threadIdx.x % L;
+  // The item's lanes (L of the warp's 32) for the sub-warp shuffles and barriers.
+  const unsigned group = L == 32 ? 0xffffffffu : ((1u << L) - 1u) << (threadIdx.x % 32 / L * L);
+  const std::uint32_t item = a.item_first + blockIdx.x * slots + slot;
+  if (item >= a.item_last || item >= a.grid->total.item) return;  // guard (uniform over the item's lanes)
   const std::uint32_t cell = a.items[item];
   const std::uint32_t own = lists.count - 1;  // list j, the stage's chunk
   {
-    // Lane i reads list i's range in the cell; a warp scan places the lists one after the other.
+    // Lane i reads list i's range in the cell; a scan over the item's lanes places the lists one
+    // after the other.
     std::uint32_t first = 0, len = 0;
-    if (lane < lists.count) {
-      first = lists.prefix[lane][cell].entry;
-      len = lists.prefix[lane][cell + 1].entry - first;
+    if (g < lists.count) {
+      first = lists.prefix[g][cell].entry;
+      len = lists.prefix[g][cell + 1].entry - first;
     }
     std::uint32_t upto = len;
     for (std::uint32_t o = 1; o < max_overlap_chunks; o <<= 1) {
-      const std::uint32_t y = __shfl_up_sync(full, upto, o);
-      if (lane >= o) upto += y;
+      const std::uint32_t y = __shfl_up_sync(group, upto, o, L);
+      if (g >= o) upto += y;
     }
-    if (lane < lists.count) {
-      list_first[w][lane] = first;
-      list_at[w][lane] = upto - len;
-      if (lane == own) list_at[w][lists.count] = upto;
+    if (g < lists.count) {
+      list_first[slot][g] = first;
+      list_at[slot][g] = upto - len;
+      if (g == own) list_at[slot][lists.count] = upto;
     }
-    __syncwarp();
+    __syncwarp(group);
   }
-  const std::uint32_t earlier_n = list_at[w][own];               // P
-  const std::uint32_t own_n = list_at[w][lists.count] - earlier_n;  // Q
-  const std::uint32_t own_first = list_first[w][own];
-  const stage_cell_layout layout = stage_layout(own_n, earlier_n);
+  const std::uint32_t earlier_n = list_at[slot][own];                  // P
+  const std::uint32_t own_n = list_at[slot][lists.count] - earlier_n;  // Q
+  const std::uint32_t own_first = list_first[slot][own];
+  const stage_cell_layout layout = stage_layout(own_n, earlier_n, W);
   const cell_prefix p0 = a.prefix[cell];  // the stage's prefix: own_first, the cell's first item and tile
   const std::uint32_t u = item - p0.item;
-  if (u >= layout.items) return;  // guard (uniform over the warp): the prefixes give the cell layout.items items
+  if (u >= layout.items) return;  // guard (uniform over the item's lanes): the cell has layout.items items
   const std::uint32_t tile0 = p0.tile - a.tile_first + static_cast<std::uint32_t>(layout.first_tile(u));
   const std::uint32_t cc[3] = {cell % plan.dims[0], (cell / plan.dims[0]) % plan.dims[1],
                                cell / (plan.dims[0] * plan.dims[1])};
@@ -793,92 +839,114 @@ __global__ void __launch_bounds__(tuning::segment) check_stage_kernel(check_args
   // The id of the earlier box at position pos < P (lists 0..j-1 one after the other).
   auto earlier_id = [&](std::uint32_t pos) {
     std::uint32_t i = 0;
-    while (i + 1 < own && pos >= list_at[w][i + 1]) ++i;
-    return lists.entries[i][list_first[w][i] + (pos - list_at[w][i])];
+    while (i + 1 < own && pos >= list_at[slot][i + 1]) ++i;
+    return lists.entries[i][list_first[slot][i] + (pos - list_at[slot][i])];
   };
 
+  // The item's rows: lane g holds rows g + r L of the segment (r < R), those below m.
   const std::uint32_t m = min(W, own_n - u * W);
-  float4 row_lo = make_float4(0, 0, 0, 0), row_hi = make_float4(0, 0, 0, 0);
-  std::uint32_t row_flags = 0, row_id = 0;
-  if (lane < m) {
-    row_id = own_ids[u * W + lane];
-    row_lo = a.packed_lo[row_id];
-    row_hi = a.packed_hi[row_id];
-    row_flags = hi_flags(row_hi, plan, cc);
+  float4 row_lo[R], row_hi[R];
+  std::uint32_t row_flags[R], row_id[R];
+#pragma unroll
+  for (std::uint32_t r = 0; r < R; ++r) {
+    row_lo[r] = row_hi[r] = make_float4(0, 0, 0, 0);
+    row_flags[r] = row_id[r] = 0;
+    if (g + r * L < m) {
+      row_id[r] = own_ids[u * W + g + r * L];
+      row_lo[r] = a.packed_lo[row_id[r]];
+      row_hi[r] = a.packed_hi[row_id[r]];
+      row_flags[r] = hi_flags(row_hi[r], plan, cc);
+    }
   }
-  const std::uint32_t row_cat = __float_as_uint(row_lo.w), row_mask = __float_as_uint(row_hi.w);
-  float4* const lo_s = col_lo[w];
-  float4* const hi_s = col_hi[w];
-  std::uint32_t* const id_s = col_id[w];
-  std::uint8_t* const flags_s = col_flags[w];
+  float4* const lo_s = col_lo[slot];
+  float4* const hi_s = col_hi[slot];
+  std::uint32_t* const id_s = col_id[slot];
+  std::uint8_t* const flags_s = col_flags[slot];
 
   const std::uint32_t tiles = layout.tiles_of(u);
   for (std::uint32_t t = 0; t < tiles; ++t) {
     const bool earlier = t < layout.earlier;
     const std::uint32_t seg = earlier ? t : u + (t - layout.earlier);  // the column segment (earlier or own)
     const std::uint32_t n = min(W, (earlier ? earlier_n : own_n) - seg * W);
-    __syncwarp();  // the previous tile's readers are done with the warp's columns
-    if (lane < n) {
-      const std::uint32_t id = earlier ? earlier_id(seg * W + lane) : own_ids[seg * W + lane];
-      id_s[lane] = id;
-      lo_s[lane] = a.packed_lo[id];
-      hi_s[lane] = a.packed_hi[id];
-      flags_s[lane] = static_cast<std::uint8_t>(hi_flags(hi_s[lane], plan, cc));
+    __syncwarp(group);  // the previous tile's readers are done with the item's columns
+#pragma unroll
+    for (std::uint32_t r = 0; r < R; ++r) {
+      const std::uint32_t c = g + r * L;
+      if (c < n) {
+        const std::uint32_t id = earlier ? earlier_id(seg * W + c) : own_ids[seg * W + c];
+        id_s[c] = id;
+        lo_s[c] = a.packed_lo[id];
+        hi_s[c] = a.packed_hi[id];
+        flags_s[c] = static_cast<std::uint8_t>(hi_flags(hi_s[c], plan, cc));
+      }
     }
-    __syncwarp();
+    __syncwarp(group);
 
-    std::uint32_t hits = 0;
-    auto test = [&](std::uint32_t j) {
-      const float4 lo = lo_s[j], hi = hi_s[j];
-      const bool hit = row_lo.x <= hi.x && lo.x <= row_hi.x && row_lo.y <= hi.y && lo.y <= row_hi.y &&
-                       row_lo.z <= hi.z && lo.z <= row_hi.z &&
-                       ((row_cat & __float_as_uint(hi.w)) | (__float_as_uint(lo.w) & row_mask)) != 0 &&
-                       (row_flags | flags_s[j]) == 7u;
-      if (hit) hits |= 1u << j;
-    };
-    if (lane < m) {
-      if (earlier || seg > u) {
-        for (std::uint32_t j = 0; j < n; ++j) test(j);
-      } else if (Balanced) {
-        // The triangle of chunk j's own segment u (n == m): Eq. 7, as in check_kernel.
-        const std::uint32_t x = lane < (m + 1) / 2 ? (m + 2) / 2 : (m + 1) / 2;
-        std::uint32_t j = lane;
-        for (std::uint32_t k = 1; k < x; ++k) {
-          if (++j == m) j = 0;
-          test(j);
+    mask_t hits[R];
+#pragma unroll
+    for (std::uint32_t r = 0; r < R; ++r) hits[r] = 0;
+    if (earlier || seg > u) {
+      // The rectangle: every row against every column, each column read once for a lane's rows.
+      for (std::uint32_t j = 0; j < n; ++j) {
+        const float4 lo = lo_s[j], hi = hi_s[j];
+        const std::uint32_t f = flags_s[j];
+#pragma unroll
+        for (std::uint32_t r = 0; r < R; ++r) {
+          if (g + r * L < m && box_pair_hit(row_lo[r], row_hi[r], row_flags[r], lo, hi, f)) hits[r] |= mask_t{1} << j;
         }
-      } else {
-        for (std::uint32_t j = lane + 1; j < m; ++j) test(j);
+      }
+    } else {
+      // The triangle of chunk j's own segment u (n == m).
+#pragma unroll
+      for (std::uint32_t r = 0; r < R; ++r) {
+        const std::uint32_t row = g + r * L;
+        if (row < m) {
+          triangle_walk<Balanced>(row, m, [&](std::uint32_t j) {
+            if (box_pair_hit(row_lo[r], row_hi[r], row_flags[r], lo_s[j], hi_s[j], flags_s[j])) {
+              hits[r] |= mask_t{1} << j;
+            }
+          });
+        }
       }
     }
 
-    // The warp's exclusive scan of the pairs per row, and their total.
-    const std::uint32_t pairs = static_cast<std::uint32_t>(__popc(hits));
-    std::uint32_t upto = pairs;
-    for (std::uint32_t o = 1; o < W; o <<= 1) {
-      const std::uint32_t y = __shfl_up_sync(full, upto, o);
-      if (lane >= o) upto += y;
+    // The item's exclusive scan of the pairs per row (rows g + r L in field r, 16 bits each: at
+    // most 32 lanes x 64 pairs), and the totals.
+    std::uint32_t mine = 0;
+#pragma unroll
+    for (std::uint32_t r = 0; r < R; ++r) mine |= static_cast<std::uint32_t>(__popcll(hits[r])) << (16 * r);
+    std::uint32_t upto = mine;
+    for (std::uint32_t o = 1; o < L; o <<= 1) {
+      const std::uint32_t y = __shfl_up_sync(group, upto, o, L);
+      if (g >= o) upto += y;
     }
-    const std::uint32_t total_pairs = __shfl_sync(full, upto, W - 1);
+    const std::uint32_t total = __shfl_sync(group, upto, L - 1, L);
+    const std::uint32_t total_pairs = (total & 0xffffu) + (total >> 16);
     const std::uint32_t tile = tile0 + t;
     if (total_pairs == 0) {
-      if (lane == 0) a.tile_pairs[tile] = 0;
+      if (g == 0) a.tile_pairs[tile] = 0;
       continue;
     }
     const std::uint32_t body = 8 * total_pairs;
     const std::uint64_t chunk = sizeof(chunk_header) + body;
     unsigned long long base = 0;
-    if (lane == 0) base = reserve_chunk(a, tile, own_first, min(u, 0xffffu), min(t, 0xffffu), total_pairs, body, chunk);
-    base = __shfl_sync(full, base, 0);
-    if (pairs == 0 || base + chunk > a.capacity) continue;
-    auto* out = reinterpret_cast<std::uint32_t*>(a.out + base + sizeof(chunk_header) + 8ull * (upto - pairs));
-    std::uint32_t q = 0;
-    while (hits) {
-      const std::uint32_t j = __ffs(static_cast<int>(hits)) - 1;
-      hits &= hits - 1;
-      const std::uint32_t other = id_s[j];
-      out[q++] = min(row_id, other);
-      out[q++] = max(row_id, other);
+    if (g == 0) base = reserve_chunk(a, tile, own_first, min(u, 0xffffu), min(t, 0xffffu), total_pairs, body, chunk);
+    base = __shfl_sync(group, base, 0, L);
+    if (mine == 0 || base + chunk > a.capacity) continue;
+    auto* out = reinterpret_cast<std::uint32_t*>(a.out + base + sizeof(chunk_header));
+    const std::uint32_t before = upto - mine;  // the pairs of the earlier lanes' rows, per field
+#pragma unroll
+    for (std::uint32_t r = 0; r < R; ++r) {
+      // Rows of field 0 (0..L-1) come first, then those of field 1 (L..2L-1).
+      std::uint32_t q = 2 * ((r == 0 ? 0u : total & 0xffffu) + ((before >> (16 * r)) & 0xffffu));
+      mask_t h = hits[r];
+      while (h) {
+        const std::uint32_t j = __ffsll(static_cast<long long>(h)) - 1;
+        h &= h - 1;
+        const std::uint32_t other = id_s[j];
+        out[q++] = min(row_id[r], other);
+        out[q++] = max(row_id[r], other);
+      }
     }
   }
 }

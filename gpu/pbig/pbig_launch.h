@@ -49,14 +49,17 @@ cudaError_t launch_expand(const cell_prefix* prefix, std::uint32_t cells, const 
                           cudaStream_t stream);
 cudaError_t launch_check(const check_args& args, bool balanced, bool compressed, cudaStream_t stream);
 // The overlapped upload (stage_lists, check_stage_kernel): stage j's per-cell prefixes and totals
-// from chunk j's counts and the earlier chunks' lists (`earlier`: chunks 0..j-1), the stage's checks,
-// and the validation of one chunk (the lowest invalid index of `boxes` in result->bad).
+// from chunk j's counts and the earlier chunks' lists (`earlier`: chunks 0..j-1) at the stage width
+// (`width`, one of stage_widths: stage_layout; else cudaErrorInvalidValue), the stage's checks at
+// the same width, and the validation of one chunk (the lowest invalid index of `boxes` in result->bad).
 cudaError_t scan_stage_cells(void* temp, std::size_t& temp_bytes, const std::uint32_t* counts,
-                             const stage_lists& earlier, cell_prefix* prefix, std::uint32_t cells, cudaStream_t stream);
+                             const stage_lists& earlier, std::uint32_t width, cell_prefix* prefix, std::uint32_t cells,
+                             cudaStream_t stream);
 cudaError_t reduce_stage_cells(void* temp, std::size_t& temp_bytes, const std::uint32_t* counts,
-                               const stage_lists& earlier, cell_totals* totals, std::uint32_t cells,
+                               const stage_lists& earlier, std::uint32_t width, cell_totals* totals,
+                               std::uint32_t cells, cudaStream_t stream);
+cudaError_t launch_check_stage(const check_args& args, const stage_lists& lists, bool balanced, std::uint32_t width,
                                cudaStream_t stream);
-cudaError_t launch_check_stage(const check_args& args, const stage_lists& lists, bool balanced, cudaStream_t stream);
 cudaError_t launch_validate(const box_arrays& boxes, std::uint32_t n, bounds_dev* result, cudaStream_t stream);
 /// Direct output: moves each tile's plain chunk (written by launch_check, uncompressed) to
 /// out_pairs + 2 * tile_pos[tile]; nothing when *cursor > capacity (the batch overflowed).

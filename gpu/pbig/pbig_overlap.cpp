@@ -12,8 +12,9 @@
 //     in each cell: stage_layout, pbig_shared.h), the batch plan, one read-back; then map chunk j
 //     into its own per-cell lists, sort each by id, and expand the stage's work items.
 //  3. The stage's batches check chunk j's lists against themselves and the earlier chunks' lists
-//     of the same cells, never two earlier boxes (check_stage_kernel: one warp per 32 boxes of
-//     chunk j in a cell), in the direct-output pipeline of pbig_dispatch.cpp
+//     of the same cells, never two earlier boxes (check_stage_kernel: a work item per W boxes of
+//     chunk j in a cell, the stage width W chosen from the plan: stage_width), in the
+//     direct-output pipeline of pbig_dispatch.cpp
 //     (launch_direct / finish_direct on the two slots, the pairs copied into the pinned result),
 //     which runs on across stages: while chunk j + 1 uploads, stage j's pairs are copied out.
 //  4. After the last stage: the boxes handled apart (large), over all n boxes, as in check_direct.
@@ -25,7 +26,7 @@
 #include <chrono>
 #include <cmath>
 #include <cstring>
-#include <limits>
+#include <iterator>
 #include <stdexcept>
 #include <string>
 #include <thread>
@@ -95,6 +96,21 @@ void pbig_engine::wait_bounded(cudaEvent_t done, const char* what, std::uint32_t
   }
 }
 
+std::uint32_t pbig_engine::stage_width(std::uint32_t n, std::uint32_t k) const {
+  if (opt_.overlap_stage_width != 0) {
+    for (const std::uint32_t w : stage_widths) {
+      if (w >= opt_.overlap_stage_width) return w;
+    }
+    return stage_widths[std::size(stage_widths) - 1];
+  }
+  // A chunk's mean boxes in a cell (the plan's f = N alpha / M over k), and its spread.
+  const double s = plan_.cells == 0 ? 0.0 : static_cast<double>(n) * plan_.alpha / static_cast<double>(plan_.cells) / k;
+  const double fill = s + tuning::stage_width_spread * std::sqrt(s);
+  if (fill <= 8.0) return 8;
+  if (fill <= 16.0) return 16;
+  return 64;
+}
+
 stage_lists pbig_engine::lists_of(std::uint32_t count) const {
   stage_lists l{};
   l.count = count;
@@ -152,24 +168,17 @@ void pbig_engine::queue_stage_count(std::uint32_t n, std::uint32_t j, std::uint3
   cell_prefix* prefix = stages_[j].prefix.get();
   map_readback* rb = d_stage_rb_.get() + j;
   std::size_t scan_bytes = 0, reduce_bytes = 0;
-  CUDA_CHECK(scan_stage_cells(nullptr, scan_bytes, counts, earlier, prefix, cells, main_));
-  CUDA_CHECK(reduce_stage_cells(nullptr, reduce_bytes, counts, earlier, &rb->totals, cells, main_));
+  CUDA_CHECK(scan_stage_cells(nullptr, scan_bytes, counts, earlier, stage_width_, prefix, cells, main_));
+  CUDA_CHECK(reduce_stage_cells(nullptr, reduce_bytes, counts, earlier, stage_width_, &rb->totals, cells, main_));
   if (std::max(scan_bytes, reduce_bytes) > d_temp_.capacity()) {
     throw std::logic_error("pbig: overlapped upload scratch not sized (internal error)");
   }
-  CUDA_CHECK(scan_stage_cells(d_temp_.get(), scan_bytes, counts, earlier, prefix, cells, main_));
-  CUDA_CHECK(reduce_stage_cells(d_temp_.get(), reduce_bytes, counts, earlier, &rb->totals, cells, main_));
-  // Read-back sizing, as map_boxes: the plan's cells and the 32-bit limits.
-  const grid_capacity limits{plan_.cells,
-                             std::numeric_limits<std::uint32_t>::max() / 2,
-                             std::numeric_limits<std::uint32_t>::max(),
-                             std::numeric_limits<std::uint32_t>::max(),
-                             65535ull * tuning::segment,
-                             1};
+  CUDA_CHECK(scan_stage_cells(d_temp_.get(), scan_bytes, counts, earlier, stage_width_, prefix, cells, main_));
+  CUDA_CHECK(reduce_stage_cells(d_temp_.get(), reduce_bytes, counts, earlier, stage_width_, &rb->totals, cells, main_));
   const std::uint32_t stages = static_cast<std::uint32_t>(report_.overlap_chunks);
   const std::uint32_t batches = std::max<std::uint32_t>(2, (tuning::max_batches + stages - 1) / stages);
-  CUDA_CHECK(launch_batch_plan(d_plan_.get(), prefix, large_counter, rb, limits, tuning::min_tiles_per_batch, batches,
-                               main_));
+  CUDA_CHECK(launch_batch_plan(d_plan_.get(), prefix, large_counter, rb, readback_limits(), tuning::min_tiles_per_batch,
+                               batches, main_));
   CUDA_CHECK(cudaMemcpyAsync(h_stage_rb_.get() + j, rb, sizeof(map_readback), cudaMemcpyDeviceToHost, main_));
   if (check && j > 0) {
     CUDA_CHECK(cudaMemcpyAsync(h_chunk_bounds_.get() + j, d_chunk_bounds_.get() + j, sizeof(bounds_dev),
@@ -248,6 +257,8 @@ bool pbig_engine::run_overlapped(const interest::box_set& boxes, std::uint32_t n
   wait_bounded(ev_wait_, "plan", 0, n);
   if (!read_plan()) return abandon();  // chunk 0 holds an invalid box
   const auto cells = static_cast<std::uint32_t>(plan_.cells);
+  stage_width_ = stage_width(n, k);
+  report_.stage_width = stage_width_;
 
   // 2. The per-cell arrays of every stage, and the scans' scratch, sized for the plan's grid.
   d_counts_.reserve(2ull * cells + 2);
@@ -255,9 +266,10 @@ bool pbig_engine::run_overlapped(const interest::box_set& boxes, std::uint32_t n
   {
     std::size_t scan_bytes = 0, reduce_bytes = 0;
     const stage_lists all = lists_of(k - 1);
-    CUDA_CHECK(scan_stage_cells(nullptr, scan_bytes, d_counts_.get(), all, stages_[0].prefix.get(), cells, main_));
-    CUDA_CHECK(
-        reduce_stage_cells(nullptr, reduce_bytes, d_counts_.get(), all, &d_stage_rb_.get()->totals, cells, main_));
+    CUDA_CHECK(scan_stage_cells(nullptr, scan_bytes, d_counts_.get(), all, stage_width_, stages_[0].prefix.get(), cells,
+                                main_));
+    CUDA_CHECK(reduce_stage_cells(nullptr, reduce_bytes, d_counts_.get(), all, stage_width_, &d_stage_rb_.get()->totals,
+                                  cells, main_));
     grow_temp(std::max(scan_bytes, reduce_bytes));
   }
 
@@ -291,14 +303,7 @@ bool pbig_engine::run_overlapped(const interest::box_set& boxes, std::uint32_t n
     overlap_stage& st = stages_[j];
     st.rb = h_stage_rb_.get()[j];
     const map_readback& rb = st.rb;
-    if (rb.totals.entries != rb.total.entry || rb.totals.tiles != rb.total.tile ||
-        rb.totals.entries > std::numeric_limits<std::uint32_t>::max() / 2) {
-      throw std::length_error("pbig: more than 2^31 (cell, box) entries or tiles in a stage");
-    }
-    if (rb.totals.max_count > 65535ull * tuning::segment) {
-      throw std::length_error("pbig: a cell holds more than 65535 segments of boxes");
-    }
-    if (rb.fits == 0) throw std::logic_error("pbig: a stage does not fit its read-back sizes (internal error)");
+    check_readback(rb, "stage " + std::to_string(j));
     entries += rb.totals.entries;
     checks += rb.totals.checks;
     max_count = std::max<std::uint32_t>(max_count, static_cast<std::uint32_t>(rb.totals.max_count));

@@ -157,15 +157,19 @@ struct stage_lists {
 };
 
 /// Stage j's work in one cell (check_stage_kernel), from the cell's q boxes of chunk j and p
-/// boxes of the earlier chunks. One warp per work item: row segment u (u < items) of chunk j's
-/// list, stage_rows boxes. Its column tiles, in this order: the earlier boxes' segments 0..earlier-1
-/// (every pair), then chunk j's own segments u..items-1 (u: the triangle; above: every pair). So
-/// the cell has items * earlier + items (items + 1) / 2 tiles, and item u's first is
-/// first_tile(u). Two earlier boxes are never tested against each other.
-inline constexpr std::uint32_t stage_rows = 32;  // a warp
+/// boxes of the earlier chunks, at width W (one of stage_widths, chosen per call on the host:
+/// pbig_engine::stage_width, tuning::stage_width_spread): W rows of chunk j's list a work item,
+/// column tiles of W boxes. Work item u (u < items) holds row segment u; its column tiles, in this
+/// order: the earlier boxes' segments 0..earlier-1 (every pair), then chunk j's own segments
+/// u..items-1 (u: the triangle; above: every pair). So the cell has items * earlier +
+/// items (items + 1) / 2 tiles, and item u's first is first_tile(u). Two earlier boxes are never
+/// tested against each other. The kernel gives an item min(W, 32) lanes (W = 64: two rows a lane,
+/// rows lane and lane + 32; W < 32: 32 / W items a warp).
+inline constexpr std::uint32_t stage_widths[] = {8, 16, 32, 64};
+constexpr bool is_stage_width(std::uint32_t w) { return w == 8 || w == 16 || w == 32 || w == 64; }
 struct stage_cell_layout {
-  std::uint32_t items;    ///< ceil(q / stage_rows)
-  std::uint32_t earlier;  ///< ceil(p / stage_rows)
+  std::uint32_t items;    ///< ceil(q / W)
+  std::uint32_t earlier;  ///< ceil(p / W) (0 when q == 0)
   [[nodiscard]] constexpr std::uint32_t tiles_of(std::uint32_t u) const { return earlier + items - u; }
   [[nodiscard]] constexpr std::uint64_t first_tile(std::uint32_t u) const {
     // sum over u' < u of tiles_of(u')
@@ -173,8 +177,8 @@ struct stage_cell_layout {
   }
   [[nodiscard]] constexpr std::uint64_t tiles() const { return first_tile(items); }
 };
-constexpr stage_cell_layout stage_layout(std::uint32_t q, std::uint32_t p) {
-  return {(q + stage_rows - 1) / stage_rows, q == 0 ? 0u : (p + stage_rows - 1) / stage_rows};
+constexpr stage_cell_layout stage_layout(std::uint32_t q, std::uint32_t p, std::uint32_t w) {
+  return {(q + w - 1) / w, q == 0 ? 0u : (p + w - 1) / w};
 }
 
 }  // namespace zone::gpu::detail

@@ -99,6 +99,22 @@ inline constexpr std::size_t overlap_min_boxes = std::size_t{1} << 22;
 inline constexpr std::uint32_t overlap_chunks = 3;
 inline constexpr double overlap_max_out_in = 3.0;
 inline constexpr double overlap_size_tolerance = 0.25;
+/// The overlapped upload's stage width W (check_stage_kernel, stage_layout: W rows of chunk j's
+/// cell list a work item, column tiles of W boxes; pbig_options::overlap_stage_width forces one).
+/// A stage costs its tests plus fixed costs per tile (the columns' loads and output-cell flags,
+/// the scan, the output chunk's atomic, a warp of the placing kernel) and per work item. A chunk
+/// holds s = f / k boxes of a cell on average (f = N alpha / M, the plan's), most cells of a
+/// uniform set at most s + stage_width_spread sqrt(s) (Poisson). When that fits 8 or 16 boxes, W
+/// is 8 or 16: 32 / W items share a warp instead of one item leaving most lanes idle. Else W = 64:
+/// one item a warp, a lane's second row (lane + 32) only past 32 boxes, where it shares each
+/// column's load with the first; its 64-column tiles take the earlier boxes in half the tiles of
+/// W = 32, and a cell's chunk share past 32 stays one item instead of spilling into a second,
+/// nearly empty one (uniform 10^7 at k = 3: f = 93, s = 31, at W = 32 about 2 cells in 5 spilled;
+/// 11 tiles a cell over the 3 stages against 5.4 at W = 64, and 3 in the one-shot check).
+/// W = 32, the layout before (one row a lane, 32-column tiles), is never cheaper than 64 by that
+/// count and is not chosen; it stays selectable for A/B runs. Eq. 6's f >= 32 gives s >= 32 / k:
+/// W = 16 from k = 4 chunks on such plans, W = 8 only on sparser ones (a fixed cell edge).
+inline constexpr double stage_width_spread = 2.0;
 /// The overlapped upload's waits for the device (a stage's read-back, a batch's totals, the last
 /// copies) give up after this many seconds: a message names the wait, and the call throws
 /// std::runtime_error instead of waiting forever on a kernel that does not end. A whole call on

@@ -5,10 +5,11 @@
 // (pinned: pinned_boxes pins from 16384 boxes) with 2, 3 and 7 chunks, chunk sizes that do not
 // divide n, and the sets that stress its decomposition: boxes straddling cells, duplicates and
 // identical boxes, zero-extent boxes, cells crowded chunk by chunk around the stage kernel's
-// 32-box segments, later chunks far outside the first chunk's bounds (the grid
+// segments at every stage width (8, 16, 32, 64 and the plan's choice; its layout replayed on the
+// host at every width), later chunks far outside the first chunk's bounds (the grid
 // is planned from chunk 0), stages without pairs or without grid boxes, boxes handled apart,
 // invalid boxes in a later chunk, overflowing output buffers. Then the default rule: the pipeline
-// only after a call of about the same size whose output was small against its input. About 20 s
+// only after a call of about the same size whose output was small against its input. About 30 s
 // on the H200 (`test-gpu -ts=gpu.pbig.overlap -d`). Part of test_gpu: without a device the
 // executable exits with 77 (Skipped).
 #include <doctest/doctest.h>
@@ -16,7 +17,6 @@
 #include <algorithm>
 #include <cstdint>
 #include <limits>
-#include <map>
 #include <memory>
 #include <span>
 #include <string>
@@ -94,6 +94,8 @@ void check_overlapped(pair_finder& f, const box_set& s, const pair_list& want, s
   REQUIRE(rep != nullptr);
   CHECK(rep->overlap_chunks == k);
   CHECK(rep->pairs == want.size());
+  const std::uint32_t w = rep->stage_width;
+  CHECK((w == 8 || w == 16 || w == 32 || w == 64));
 }
 
 box make_box(float x, float y, float z, float ex, float ey, float ez, std::uint32_t category = 1,
@@ -304,58 +306,90 @@ box_set crowded_cells(std::size_t n, std::size_t k, std::uint64_t seed) {
 
 TEST_SUITE("gpu.pbig.overlap") {
   TEST_CASE("overlapped upload: the stage kernel's layout tests each pair with a box of the chunk once") {
-    // check_stage_kernel's loops over stage_layout, replayed on the host for a cell of q boxes of
-    // chunk j (positions p..p+q-1) and p earlier ones: every pair with at least one box of chunk j
-    // is tested exactly once (with Eq. 7 on the triangles and without), no pair of two earlier
-    // boxes, and the tiles are numbered 0..tiles()-1 without gaps.
+    // check_stage_kernel's loops over stage_layout, replayed on the host at every width W for a
+    // cell of q boxes of chunk j (positions p..p+q-1) and p earlier ones: an item's L = min(W, 32)
+    // lanes hold rows lane + r L (r < W / L), each tile's columns are loaded by the same lanes;
+    // every pair with at least one box of chunk j is tested exactly once (with Eq. 7 on the
+    // triangles and without), no pair of two earlier boxes, every column of a tile is loaded once,
+    // and the tiles are numbered 0..tiles()-1 without gaps.
     namespace d = zone::gpu::detail;
-    const std::uint32_t W = d::stage_rows;
-    const std::uint32_t sizes[] = {0, 1, 2, 31, 32, 33, 63, 64, 65, 96, 97, 130, 257};
-    for (const std::uint32_t q : sizes) {
-      for (const std::uint32_t p : sizes) {
-        for (const bool balanced : {true, false}) {
-          CAPTURE(q);
-          CAPTURE(p);
-          CAPTURE(balanced);
-          const d::stage_cell_layout l = d::stage_layout(q, p);
-          REQUIRE(l.items == (q + W - 1) / W);
-          std::vector<int> tile_seen(l.tiles(), 0);
-          std::map<std::pair<std::uint32_t, std::uint32_t>, int> tested;
-          for (std::uint32_t u = 0; u < l.items; ++u) {
-            const std::uint32_t m = std::min(W, q - u * W);
-            for (std::uint32_t t = 0; t < l.tiles_of(u); ++t) {
-              REQUIRE(l.first_tile(u) + t < tile_seen.size());
-              ++tile_seen[l.first_tile(u) + t];
-              const bool earlier = t < l.earlier;
-              const std::uint32_t seg = earlier ? t : u + (t - l.earlier);
-              const std::uint32_t n = std::min(W, (earlier ? p : q) - seg * W);
-              for (std::uint32_t lane = 0; lane < m; ++lane) {
-                const std::uint32_t r = p + u * W + lane;
-                auto test = [&](std::uint32_t j) {
-                  const std::uint32_t c = earlier ? seg * W + j : p + seg * W + j;
-                  ++tested[{std::min(r, c), std::max(r, c)}];
-                };
-                if (earlier || seg > u) {
-                  for (std::uint32_t j = 0; j < n; ++j) test(j);
-                } else if (balanced) {
-                  REQUIRE(n == m);
-                  const std::uint32_t x = lane < (m + 1) / 2 ? (m + 2) / 2 : (m + 1) / 2;
-                  std::uint32_t j = lane;
-                  for (std::uint32_t k = 1; k < x; ++k) {
-                    if (++j == m) j = 0;
-                    test(j);
+    const std::uint32_t sizes[] = {0, 1, 2, 7, 8, 9, 15, 16, 17, 31, 32, 33, 63, 64, 65, 96, 97, 130, 257};
+    for (const std::uint32_t W : d::stage_widths) {
+      const std::uint32_t L = std::min(W, 32u), R = W / L;
+      REQUIRE(L * R == W);
+      for (const std::uint32_t q : sizes) {
+        for (const std::uint32_t p : sizes) {
+          for (const bool balanced : {true, false}) {
+            CAPTURE(W);
+            CAPTURE(q);
+            CAPTURE(p);
+            CAPTURE(balanced);
+            const d::stage_cell_layout l = d::stage_layout(q, p, W);
+            REQUIRE(l.items == (q + W - 1) / W);
+            REQUIRE(l.earlier == (q == 0 ? 0 : (p + W - 1) / W));
+            std::vector<int> tile_seen(l.tiles(), 0);
+            std::vector<std::uint32_t> tested(std::size_t{p + q} * (p + q), 0);  // [min * (p + q) + max]
+            std::uint64_t past_tile = 0;  // columns tested past the tile's n
+            for (std::uint32_t u = 0; u < l.items; ++u) {
+              const std::uint32_t m = std::min(W, q - u * W);
+              for (std::uint32_t t = 0; t < l.tiles_of(u); ++t) {
+                REQUIRE(l.first_tile(u) + t < tile_seen.size());
+                ++tile_seen[l.first_tile(u) + t];
+                const bool earlier = t < l.earlier;
+                const std::uint32_t seg = earlier ? t : u + (t - l.earlier);
+                const std::uint32_t n = std::min(W, (earlier ? p : q) - seg * W);
+                std::vector<int> loaded(W, 0);
+                for (std::uint32_t lane = 0; lane < L; ++lane) {
+                  for (std::uint32_t r = 0; r < R; ++r) {
+                    if (lane + r * L < n) ++loaded[lane + r * L];
                   }
-                } else {
-                  for (std::uint32_t j = lane + 1; j < m; ++j) test(j);
+                }
+                REQUIRE(std::count(loaded.begin(), loaded.begin() + n, 1) == static_cast<std::ptrdiff_t>(n));
+                for (std::uint32_t lane = 0; lane < L; ++lane) {
+                  for (std::uint32_t r = 0; r < R; ++r) {
+                    const std::uint32_t row = lane + r * L;
+                    if (row >= m) continue;
+                    const std::uint32_t at = p + u * W + row;
+                    auto test = [&](std::uint32_t j) {
+                      if (j >= n) {
+                        ++past_tile;
+                        return;
+                      }
+                      const std::uint32_t c = earlier ? seg * W + j : p + seg * W + j;
+                      ++tested[std::size_t{std::min(at, c)} * (p + q) + std::max(at, c)];
+                    };
+                    if (earlier || seg > u) {
+                      for (std::uint32_t j = 0; j < n; ++j) test(j);
+                    } else if (balanced) {
+                      REQUIRE(n == m);
+                      const std::uint32_t x = row < (m + 1) / 2 ? (m + 2) / 2 : (m + 1) / 2;
+                      std::uint32_t j = row;
+                      for (std::uint32_t k = 1; k < x; ++k) {
+                        if (++j == m) j = 0;
+                        test(j);
+                      }
+                    } else {
+                      for (std::uint32_t j = row + 1; j < m; ++j) test(j);
+                    }
+                  }
                 }
               }
             }
+            CHECK(std::all_of(tile_seen.begin(), tile_seen.end(), [](int c) { return c == 1; }));
+            CHECK(past_tile == 0);
+            // Each pair (a, b), a < b, with b a box of chunk j (b >= p) once; nothing else.
+            std::uint64_t once = 0, wrong = 0;
+            for (std::uint32_t x = 0; x < p + q; ++x) {
+              for (std::uint32_t y = 0; y < p + q; ++y) {
+                const std::uint32_t c = tested[std::size_t{x} * (p + q) + y];
+                const bool wanted = x < y && y >= p;
+                once += (wanted && c == 1) ? 1 : 0;
+                wrong += ((wanted && c != 1) || (!wanted && c != 0)) ? 1 : 0;
+              }
+            }
+            CHECK(once == std::uint64_t{q} * p + std::uint64_t{q} * (q - (q > 0 ? 1 : 0)) / 2);
+            CHECK(wrong == 0);
           }
-          CHECK(std::all_of(tile_seen.begin(), tile_seen.end(), [](int c) { return c == 1; }));
-          CHECK(tested.size() == std::uint64_t{q} * p + std::uint64_t{q} * (q - (q > 0 ? 1 : 0)) / 2);
-          CHECK(std::all_of(tested.begin(), tested.end(), [&](const auto& e) {
-            return e.second == 1 && e.first.first != e.first.second && e.first.second >= p;
-          }));
         }
       }
     }
@@ -365,10 +399,16 @@ TEST_SUITE("gpu.pbig.overlap") {
     thread_pool pool(4);
     brute_force_finder brute(&pool);
     auto whole = make_gpu(one_shot(&pool));
-    // One finder per chunk count, reused from set to set (sizes and plans change between calls).
-    const std::uint32_t chunk_counts[] = {2, 3, 7};
+    // One finder per chunk count (the plan's stage width), then 3 chunks at widths 8 and 32,
+    // reused from set to set (sizes and plans change between calls).
+    const std::uint32_t chunk_counts[] = {2, 3, 7, 3, 3};
+    const std::uint32_t widths[] = {0, 0, 0, 8, 32};
     std::vector<std::unique_ptr<pair_finder>> finders;
-    for (const std::uint32_t k : chunk_counts) finders.push_back(make_gpu(overlapped(k, &pool)));
+    for (std::size_t i = 0; i < std::size(chunk_counts); ++i) {
+      gpu::pbig_options o = overlapped(chunk_counts[i], &pool);
+      o.overlap_stage_width = widths[i];
+      finders.push_back(make_gpu(o));
+    }
     std::size_t set = 0;
     for (const family f : {family::uniform, family::huge_over_tiny, family::long_thin, family::negative_large,
                            family::mask_mix, family::integer_grid, family::flat_world, family::few_classes}) {
@@ -386,6 +426,7 @@ TEST_SUITE("gpu.pbig.overlap") {
       for (std::size_t i = 0; i < finders.size(); ++i) {
         const std::uint32_t k = chunk_counts[i];
         CAPTURE(k);
+        CAPTURE(widths[i]);
         check_overlapped(*finders[i], s, want, k);
       }
       check_overlapped(*finders[1], s, want, 3);  // again: plan reused, buffers kept
@@ -442,12 +483,17 @@ TEST_SUITE("gpu.pbig.overlap") {
       REQUIRE(pin.active());
       const pair_list want = sorted(run(brute, s));
       for (const bool balanced : {true, false}) {
-        CAPTURE(balanced);
-        gpu::pbig_options o = overlapped(k, &pool);
-        o.load_balancing = balanced;
-        auto finder = make_gpu(o);
-        check_overlapped(*finder, s, want, k);
-        CHECK(finder->stats().large_boxes == 0);  // every pair came from the stages' checks
+        for (const std::uint32_t width : {0u, 8u, 16u, 32u, 64u}) {  // 0: the plan's choice
+          CAPTURE(balanced);
+          CAPTURE(width);
+          gpu::pbig_options o = overlapped(k, &pool);
+          o.load_balancing = balanced;
+          o.overlap_stage_width = width;
+          auto finder = make_gpu(o);
+          check_overlapped(*finder, s, want, k);
+          CHECK(finder->stats().large_boxes == 0);  // every pair came from the stages' checks
+          if (width != 0) CHECK(gpu::last_pbig_report(*finder)->stage_width == width);
+        }
       }
     }
   }
@@ -573,6 +619,7 @@ TEST_SUITE("gpu.pbig.overlap") {
     const gpu::pbig_report* rep = gpu::last_pbig_report(*finder);
     REQUIRE(rep != nullptr);
     CHECK(rep->overlap_chunks == 3);  // the default chunk count
+    CHECK(rep->stage_width == 64);    // f >= 32 boxes a cell: a chunk's share past 16 (pbig_tuning.h)
     CHECK(sorted(got) == want);
     grid_finder grid(&pool);
     pair_list cpu;

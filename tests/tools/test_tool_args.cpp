@@ -49,6 +49,18 @@ TEST_CASE("bench-gpu: defaults, every flag, --help and bad arguments") {
     CHECK(a.max_n == 10000000);
     CHECK(a.reps == 5);
     CHECK(a.cgal_max_n == 1000000);
+    CHECK(a.sets.empty());
+    CHECK(zone::tools::bench_gpu_set_wanted(a.sets, "gaussian", 10000000));
+  }
+  {
+    bench_gpu_args a;
+    REQUIRE_FALSE(gpu({"--sets", "uniform:10000000,doc:10:1000000"}, a).has_value());
+    CHECK(a.sets == "uniform:10000000,doc:10:1000000");
+    CHECK(zone::tools::bench_gpu_set_wanted(a.sets, "uniform", 10000000));
+    CHECK(zone::tools::bench_gpu_set_wanted(a.sets, "doc:10", 1000000));
+    CHECK_FALSE(zone::tools::bench_gpu_set_wanted(a.sets, "gaussian", 10000000));
+    CHECK_FALSE(zone::tools::bench_gpu_set_wanted(a.sets, "uniform", 1000000));
+    CHECK_FALSE(zone::tools::bench_gpu_set_wanted(a.sets, "doc:10", 100000));
   }
   {
     bench_gpu_args a;
@@ -80,6 +92,10 @@ TEST_CASE("bench-gpu: defaults, every flag, --help and bad arguments") {
                                                               {"--max-n", "-5"},
                                                               {"--max-n", "12x"},
                                                               {"--cgal-max-n", ""},
+                                                              {"--sets", "uniform"},
+                                                              {"--sets", "uniform:1e7"},
+                                                              {"--sets", "uniform:100,:5"},
+                                                              {"--sets", "uniform:100,"},
                                                               {"--rep", "3"},
                                                               {"stray"},
                                                               {"--csv", "a", "--csv", "b"}}) {
