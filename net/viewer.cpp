@@ -96,9 +96,9 @@ std::optional<viewer_request> parse_viewer_request(std::span<const std::uint8_t>
 void encode_viewer_view(const viewer_snapshot& s, const viewer_request& r, std::uint32_t grid_cells,
                         std::vector<std::uint8_t>& out) {
   const std::size_t n = s.size();
-  const float* xyz = s.xyz.data();
+  const float* xy = s.xy.data();
   const auto in_view = [&](std::size_t i) {
-    const float x = xyz[3 * i], y = xyz[3 * i + 1];
+    const float x = xy[2 * i], y = xy[2 * i + 1];
     return x >= r.x0 && x <= r.x1 && y >= r.y0 && y <= r.y1;
   };
   std::uint32_t inside = 0;
@@ -113,8 +113,8 @@ void encode_viewer_view(const viewer_snapshot& s, const viewer_request& r, std::
     const float sx = static_cast<float>(g) / (r.x1 - r.x0), sy = static_cast<float>(g) / (r.y1 - r.y0);
     for (std::size_t i = 0; i < n; ++i) {
       if (!in_view(i)) continue;
-      const auto cx = std::min<std::uint32_t>(g - 1, static_cast<std::uint32_t>((xyz[3 * i] - r.x0) * sx));
-      const auto cy = std::min<std::uint32_t>(g - 1, static_cast<std::uint32_t>((xyz[3 * i + 1] - r.y0) * sy));
+      const auto cx = std::min<std::uint32_t>(g - 1, static_cast<std::uint32_t>((xy[2 * i] - r.x0) * sx));
+      const auto cy = std::min<std::uint32_t>(g - 1, static_cast<std::uint32_t>((xy[2 * i + 1] - r.y0) * sy));
       auto* cell = counts + (std::size_t{cy} * g + cx) * 2;
       std::uint16_t c;
       std::memcpy(&c, cell, 2);
@@ -130,7 +130,7 @@ void encode_viewer_view(const viewer_snapshot& s, const viewer_request& r, std::
   const float sx = 65535.0f / (r.x1 - r.x0), sy = 65535.0f / (r.y1 - r.y0);
   for (std::size_t i = 0; i < n; ++i) {
     if (!in_view(i)) continue;
-    const std::uint16_t qx = quantize(xyz[3 * i], r.x0, sx), qy = quantize(xyz[3 * i + 1], r.y0, sy);
+    const std::uint16_t qx = quantize(xy[2 * i], r.x0, sx), qy = quantize(xy[2 * i + 1], r.y0, sy);
     std::memcpy(p, &s.ids[i], 4);
     std::memcpy(p + 4, &qx, 2);
     std::memcpy(p + 6, &qy, 2);

@@ -47,9 +47,8 @@ std::shared_ptr<viewer_snapshot> random_snapshot(std::mt19937_64& rng, std::size
   std::uniform_real_distribution<float> coord(0, side);
   for (std::size_t i = 0; i < n; ++i) {
     s->ids.push_back(static_cast<std::uint32_t>(i + 1 + (rng() % 7) * (1u << 20)));
-    s->xyz.push_back(coord(rng));
-    s->xyz.push_back(coord(rng));
-    s->xyz.push_back(coord(rng));
+    s->xy.push_back(coord(rng));
+    s->xy.push_back(coord(rng));
     s->classes.push_back(1u << (1 + rng() % 4));
     s->kind.push_back(static_cast<std::uint8_t>(rng() % 3));
   }
@@ -484,7 +483,7 @@ TEST_SUITE("net.viewer") {
         const std::size_t n = t % 50 + 1;
         s.tick = t;
         s.ids.resize(n);
-        s.xyz.assign(3 * n, static_cast<float>(t % 1000));
+        s.xy.assign(2 * n, static_cast<float>(t % 1000));
         s.classes.assign(n, 2);
         s.kind.assign(n, 1);
         for (std::size_t k = 0; k < n; ++k) s.ids[k] = static_cast<std::uint32_t>(t * 1000 + k);
