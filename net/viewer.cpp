@@ -68,9 +68,14 @@ void put_header(std::vector<std::uint8_t>& out, std::uint8_t type, std::uint16_t
   put<float>(out, r.y1);
 }
 
+/// clamp(round((v - lo) * scale), 0, 65535), rounding half away from zero as std::round, which
+/// GCC calls out of line without SSE4.1 (a call per coordinate, 40% of the encoding): clamped
+/// first (the same result), the value's integer part and fraction are exact; NaN gives 0.
 std::uint16_t quantize(float v, float lo, float scale) {
-  const float q = std::round((v - lo) * scale);
-  return static_cast<std::uint16_t>(std::clamp(q, 0.0f, 65535.0f));
+  float q = (v - lo) * scale;
+  q = q > 0.0f ? (q < 65535.0f ? q : 65535.0f) : 0.0f;
+  const auto i = static_cast<std::uint32_t>(q);
+  return static_cast<std::uint16_t>(i + (q - static_cast<float>(i) >= 0.5f ? 1u : 0u));
 }
 
 }  // namespace
@@ -99,7 +104,7 @@ void encode_viewer_view(const viewer_snapshot& s, const viewer_request& r, std::
   const float* xy = s.xy.data();
   const auto in_view = [&](std::size_t i) {
     const float x = xy[2 * i], y = xy[2 * i + 1];
-    return x >= r.x0 && x <= r.x1 && y >= r.y0 && y <= r.y1;
+    return (x >= r.x0) & (x <= r.x1) & (y >= r.y0) & (y <= r.y1);  // no branches: the count pass vectorizes
   };
   std::uint32_t inside = 0;
   for (std::size_t i = 0; i < n; ++i) inside += in_view(i) ? 1u : 0u;
