@@ -122,6 +122,7 @@ void print_table(const swarm_result& r, const summary& s) {
   row("teleports sent", num(r.teleports_sent));
   row("joined stealthed / in a team", num(r.stealth_joins) + " / " + num(r.team_joins));
   row("visibility switches sent", num(r.visibility_switches_sent));
+  row("class notes received", num(r.class_notes));
   row("redirects followed (world of zones)", num(r.redirects));
   row("logins again after a disconnect", num(r.reconnects));
   row("update latency p50", ms(s.p50));
@@ -204,6 +205,8 @@ bool write_json(const std::string& path, const swarm_result& r, const summary& s
   j["stealth_joins"] = r.stealth_joins;
   j["team_joins"] = r.team_joins;
   j["visibility_switches_sent"] = r.visibility_switches_sent;
+  j["class_notes"] = r.class_notes;
+  j["class_changes"] = r.options.class_changes;
   j["self_positions"] = r.self_positions;
   j["host_clock"] = r.host_clock;
   j["latency_ms"] = {{"p50", s.p50},         {"p95", s.p95},
@@ -378,6 +381,7 @@ int main(int argc, char** argv) {
       ("stealth-bots", po::value(&o.stealth_share)->default_value(o.stealth_share, "0.1"), "share of bots that join stealthed (the server must allow stealth: zone-server --allow-stealth)")  //
       ("team-bots", po::value(&o.team_share)->default_value(o.team_share, "0.2"), "share of bots that join a team, red or blue (the server must allow 2 teams: --player-teams)")  //
       ("visibility-switch-hz", po::value(&o.visibility_switch_hz)->default_value(o.visibility_switch_hz, "0.2"), "stealth and team bots: visibility switches per second per bot (set_visibility; 0 = never)")  //
+      ("class-changes", po::value(&o.class_changes)->default_value(o.class_changes, "1"), "1: bots say hello{class_changes} and apply class notes; 0: as an older client, whose view the server resets when an entity it holds changes class")  //
       ("hotspot", po::value(&hotspot), "flash-crowd target x,y,z (default: where the leader bot first is)")  //
       ("crowd-at", po::value(&o.crowd_at_s)->default_value(o.crowd_at_s), "seconds into the run when the crowd bots start converging")  //
       ("churn", po::value(&o.churn)->default_value(o.churn), "logouts per second (each bot logs in again)")  //

@@ -107,6 +107,7 @@ class bot_session : public std::enable_shared_from_this<bot_session> {
   void on_frame(const net::frame_view& f, std::uint64_t received_us);
   void on_welcome(const net::wire::welcome& w);
   void on_tick_update(const net::wire::tick_update& u, std::uint64_t received_us);
+  void on_class_changes(const net::wire::class_changes& c);
   /// 0: unchecked (own position unknown), 1: inside, 2: violation (reported).
   int check_aoi(const position_board::fix& own, std::uint64_t tick, std::uint32_t id, const net::vec3f& p,
                  const net::vec3f& half);
@@ -357,6 +358,7 @@ class swarm {
     r.aoi_violations = c_.aoi_violations, r.latency_unsynced = c_.latency_unsynced;
     r.teleports_sent = c_.teleports_sent, r.self_positions = c_.self_positions, r.redirects = c_.redirects;
     r.stealth_joins = c_.stealth_joins, r.team_joins = c_.team_joins, r.visibility_switches_sent = c_.visibility_switches_sent;
+    r.class_notes = c_.class_notes;
     r.reconnects = c_.reconnects;
     r.host_clock = host_clock_.load();
     for (const auto& s : slots_) r.bots_connected += s.ever_connected ? 1 : 0;
@@ -677,6 +679,7 @@ void bot_session::on_connect(const boost::system::error_code& ec) {
   socket_.set_option(tcp::no_delay(true), ignored);
   net::hello_msg hello{"bot-" + std::to_string(slot_), token_, net::protocol_version};
   if (token_.empty()) hello.stealth = stealth_, hello.team = team_;  // a redirected entity keeps its class
+  hello.class_changes = s_.opt_ref().class_changes;
   send(hello);
   send(net::ping_msg{local_us(s_.epoch())});
   s_.counters().pings_sent.fetch_add(1, std::memory_order_relaxed);
@@ -743,6 +746,9 @@ void bot_session::on_frame(const net::frame_view& f, std::uint64_t received_us) 
       break;
     case net::wire::message::pong:
       if (const auto* p = env.message_as_pong()) s_.on_pong(p->client_time_us(), p->server_time_us(), received_us);
+      break;
+    case net::wire::message::class_changes:
+      if (const auto* c = env.message_as_class_changes()) on_class_changes(*c);
       break;
     case net::wire::message::redirect: {
       // A world of zones moved this bot's entity: go on at the zone named, with the token.
@@ -950,6 +956,21 @@ void bot_session::on_tick_update(const net::wire::tick_update& u, std::uint64_t 
   if (frame_check_.counts[2] != 0) s_.counters().aoi_violations.fetch_add(frame_check_.counts[2], std::memory_order_relaxed);
   if (s_.opt_ref().inputs_on_change) maybe_send_input(now);
   if (++frames_seen_ % flush_every_frames == 0) flush_counts();
+}
+
+void bot_session::on_class_changes(const net::wire::class_changes& c) {
+  if (!view_) {
+    s_.problem("bot " + std::to_string(slot_) + ": class change before welcome");
+    s_.counters().inconsistent.fetch_add(1, std::memory_order_relaxed);
+    return;
+  }
+  if (c.notes()) s_.counters().class_notes.fetch_add(c.notes()->size(), std::memory_order_relaxed);
+  const std::uint64_t last = view_->last_tick();
+  if (view_->apply(c) == net::client_view::status::inconsistent) {
+    s_.counters().inconsistent.fetch_add(1, std::memory_order_relaxed);
+    s_.problem("bot " + std::to_string(slot_) + " (entity " + std::to_string(entity_) + "): class change of tick " +
+               std::to_string(c.server_tick()) + " after the update of tick " + std::to_string(last));
+  }
 }
 
 void bot_session::flush_counts() {

@@ -50,6 +50,9 @@ struct swarm_options {
   double stealth_share = 0.1;
   double team_share = 0.2;
   double visibility_switch_hz = 0.2;
+  /// Say hello{class_changes}: a class change of an entity a bot holds comes as a class_changes
+  /// note. false: as an older client, which the server resets instead.
+  bool class_changes = true;
   double churn = 0;          ///< logouts per second across the swarm (each logged-out bot logs in again)
   double churn_for_s = 0;    ///< churn stops this many seconds into the run (0 = until the end)
   double relogin_delay_s = 0.2;
@@ -97,6 +100,7 @@ struct swarm_counters {
   std::atomic<std::uint64_t> connect_attempts{0}, connected_now{0}, welcomes{0}, connect_failures{0},
       unexpected_disconnects{0}, server_errors{0}, logouts{0}, teleports_sent{0};
   std::atomic<std::uint64_t> stealth_joins{0}, team_joins{0}, visibility_switches_sent{0};
+  std::atomic<std::uint64_t> class_notes{0};  ///< class_changes notes received (held or not)
   /// A world of zones (docs/world.md): redirects followed (a new connection with the token).
   std::atomic<std::uint64_t> redirects{0};
   std::atomic<std::uint64_t> reconnects{0};  ///< logins again after an unexpected disconnect (--reconnect)
@@ -146,7 +150,7 @@ struct swarm_result {
                 leaves = 0, updates = 0, resets = 0, inputs_sent = 0, inputs_unchanged = 0, pongs = 0, digests_checked = 0,
                 digest_mismatches = 0, inconsistent = 0, aoi_checked = 0, aoi_unchecked = 0,
                 aoi_violations = 0, latency_unsynced = 0, teleports_sent = 0, self_positions = 0, redirects = 0, reconnects = 0;
-  std::uint64_t stealth_joins = 0, team_joins = 0, visibility_switches_sent = 0;
+  std::uint64_t stealth_joins = 0, team_joins = 0, visibility_switches_sent = 0, class_notes = 0;
   bool host_clock = false;  ///< latency timed on the host's clock (same host), not by ping sync
   bool rules_from_server = false;  ///< the welcome told the zone's interest rules (the AOI check used them)
   bool oracle_on = false;

@@ -41,6 +41,15 @@ class client_view {
   /// The same on a verified frame's tick_update, read in place (no copy of the frame), calling
   /// `visit` (when given) for every position told: one lookup per entity for view and caller.
   status apply(const wire::tick_update& u, position_visitor visit = nullptr, void* ctx = nullptr);
+  /// Applies a class change (sent before the tick_update of its server_tick): every note whose id
+  /// the view holds sets that entity's class; other ids are ignored (the server sends notes to
+  /// every client that may hold the entity). Inconsistent when it is not newer than the last
+  /// tick applied (the server sends it before that tick's update). Counts as no update.
+  status apply(const class_changes_msg& m);
+  /// The same on a verified frame, read in place.
+  status apply(const wire::class_changes& c);
+  /// Notes that found their entity held (the others were ignored).
+  [[nodiscard]] std::uint64_t class_notes_applied() const { return class_notes_applied_; }
   /// The ids that made the last apply() inconsistent (unknown leaves and updates, known or
   /// repeated enters; at most 16), empty after a consistent one.
   [[nodiscard]] const std::vector<std::uint32_t>& last_bad_ids() const { return bad_ids_; }
@@ -59,6 +68,8 @@ class client_view {
 
  private:
   status finish(std::uint64_t tick, const std::optional<verify_digest>& digest, bool consistent);
+  void note_class(std::uint32_t id, std::uint32_t visibility_class);
+  status finish_notes(std::uint64_t tick);
   position_quantizer quantizer_;
   id_map<entity> entities_;
   std::uint64_t hash_ = 0;
@@ -67,7 +78,7 @@ class client_view {
   std::uint64_t self_tick_ = 0;
   std::vector<std::uint32_t> bad_ids_;
   bool any_ = false;
-  std::uint64_t applied_ = 0, digests_checked_ = 0, problems_ = 0;
+  std::uint64_t applied_ = 0, digests_checked_ = 0, problems_ = 0, class_notes_applied_ = 0;
 };
 
 }  // namespace zone::net

@@ -43,6 +43,9 @@ struct hello_msg {
   std::uint32_t protocol_version = net::protocol_version;
   bool stealth = false;    ///< join stealthed (the zone may refuse: interest_rules::allow_stealth)
   std::uint8_t team = 0;   ///< 0 = none, 1 = red, 2 = blue (at most interest_rules::teams)
+  /// The client applies class_changes_msg: a class change of an entity it holds comes as a note,
+  /// not as a reset of its whole view (an older client never says so and gets the reset).
+  bool class_changes = false;
   friend bool operator==(const hello_msg&, const hello_msg&) = default;
 };
 struct input_msg {
@@ -166,10 +169,22 @@ struct redirect_msg {
   friend bool operator==(const redirect_msg&, const redirect_msg&) = default;
 };
 
+/// Entities the client may hold changed visibility class at server_tick (docs/protocol.md).
+struct class_note {
+  std::uint32_t id = 0;
+  std::uint32_t visibility_class = 0;
+  friend bool operator==(const class_note&, const class_note&) = default;
+};
+struct class_changes_msg {
+  std::uint64_t server_tick = 0;
+  std::vector<class_note> notes;
+  friend bool operator==(const class_changes_msg&, const class_changes_msg&) = default;
+};
+
 /// Any message; the alternatives are in the order of the schema's union (index + 1 = wire type).
 using message =
     std::variant<hello_msg, input_msg, ping_msg, welcome_msg, tick_update_msg, pong_msg, error_msg, teleport_msg,
-                 redirect_msg, set_visibility_msg>;
+                 redirect_msg, set_visibility_msg, class_changes_msg>;
 
 /// The wire type of a message value.
 [[nodiscard]] wire::message type_of(const message& m);

@@ -42,7 +42,7 @@ flatbuffers::Offset<void> build_body(flatbuffers::FlatBufferBuilder& fbb, const 
         if constexpr (std::is_same_v<T, hello_msg>) {
           const auto name = fbb.CreateString(msg.name);
           const auto token = fbb.CreateString(msg.token);
-          return w::Createhello(fbb, name, token, msg.protocol_version, msg.stealth, msg.team).Union();
+          return w::Createhello(fbb, name, token, msg.protocol_version, msg.stealth, msg.team, msg.class_changes).Union();
         } else if constexpr (std::is_same_v<T, input_msg>) {
           const w::vec3 move = to_wire(msg.move);
           return w::Createinput(fbb, msg.sequence, &move).Union();
@@ -95,6 +95,12 @@ flatbuffers::Offset<void> build_body(flatbuffers::FlatBufferBuilder& fbb, const 
           return w::Createteleport(fbb, msg.sequence, &position, msg.entity_id).Union();
         } else if constexpr (std::is_same_v<T, set_visibility_msg>) {
           return w::Createset_visibility(fbb, msg.sequence, msg.stealth, msg.team).Union();
+        } else if constexpr (std::is_same_v<T, class_changes_msg>) {
+          std::vector<w::class_note> notes;
+          notes.reserve(msg.notes.size());
+          for (const auto& n : msg.notes) notes.emplace_back(n.id, n.visibility_class);
+          const auto notes_v = fbb.CreateVectorOfStructs(notes);
+          return w::Createclass_changes(fbb, msg.server_tick, notes_v).Union();
         } else {
           static_assert(std::is_same_v<T, redirect_msg>);
           const auto host = fbb.CreateString(msg.host);
@@ -394,7 +400,8 @@ std::optional<message> to_message(const w::envelope& env) {
     case w::message::hello: {
       const auto* m = env.message_as_hello();
       if (!m) return std::nullopt;
-      return hello_msg{from_wire(m->name()), from_wire(m->token()), m->protocol_version(), m->stealth(), m->team()};
+      return hello_msg{from_wire(m->name()), from_wire(m->token()), m->protocol_version(), m->stealth(), m->team(),
+                       m->class_changes()};
     }
     case w::message::input: {
       const auto* m = env.message_as_input();
@@ -498,6 +505,17 @@ std::optional<message> to_message(const w::envelope& env) {
       const auto* m = env.message_as_set_visibility();
       if (!m) return std::nullopt;
       return set_visibility_msg{m->sequence(), m->stealth(), m->team()};
+    }
+    case w::message::class_changes: {
+      const auto* m = env.message_as_class_changes();
+      if (!m) return std::nullopt;
+      class_changes_msg out;
+      out.server_tick = m->server_tick();
+      if (const auto* v = m->notes()) {
+        out.notes.reserve(v->size());
+        for (const auto* n : *v) out.notes.push_back({n->id(), n->visibility_class()});
+      }
+      return out;
     }
     default: return std::nullopt;
   }
@@ -701,6 +719,32 @@ client_view::status client_view::apply(const tick_update_msg& m) {
     it->second.last_tick = m.server_tick;
   }
   return finish(m.server_tick, m.digest, consistent);
+}
+
+void client_view::note_class(std::uint32_t id, std::uint32_t visibility_class) {
+  const auto it = entities_.find(id);
+  if (it == entities_.end()) return;  // not held: the note was for a client that might hold it
+  it->second.state.visibility_class = visibility_class;
+  ++class_notes_applied_;
+}
+
+client_view::status client_view::finish_notes(std::uint64_t tick) {
+  bad_ids_.clear();
+  if (!any_ || tick > last_tick_) return status::ok;
+  ++problems_;
+  return status::inconsistent;
+}
+
+client_view::status client_view::apply(const class_changes_msg& m) {
+  for (const class_note& n : m.notes) note_class(n.id, n.visibility_class);
+  return finish_notes(m.server_tick);
+}
+
+client_view::status client_view::apply(const w::class_changes& c) {
+  if (const auto* v = c.notes()) {
+    for (const auto* n : *v) note_class(n->id(), n->visibility_class());
+  }
+  return finish_notes(c.server_tick());
 }
 
 client_view::status client_view::apply(const w::tick_update& u, position_visitor visit, void* ctx) {

@@ -39,8 +39,8 @@ using interest::vec3;
 enum class entity_kind : std::uint8_t { player, npc, boss };
 
 /// An entity whose visibility class or mask was changed (its values before): a client may hold
-/// it with its old class, so the zone resyncs those clients after the step
-/// (replicator::resync_viewers_of). A player's own set_visibility, and a world's ghost or
+/// it with its old class, so after the step the zone sends those clients a class note or resyncs
+/// them (replicator::resync_viewers_of). A player's own set_visibility, and a world's ghost or
 /// handed-off entity whose class its owner changed (world::zone_link), give one.
 struct class_change {
   entity_id entity = null_entity;

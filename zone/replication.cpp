@@ -162,11 +162,14 @@ client_id replicator::add_client(entity_id observer) {
   s.observer = observer;
   s.active = true;
   s.reset_pending = true;
+  s.class_notes = false;
   s.view.clear();
   s.meta.clear();
   s.hash = 0;
   return c;
 }
+
+void replicator::set_class_notes(client_id c, bool on) { clients_[c].class_notes = on; }
 
 void replicator::remove_client(client_id c) {
   if (c >= clients_.size() || !clients_[c].active) return;
@@ -190,7 +193,8 @@ std::size_t replicator::resync_viewers_of(const entity_store& store, entity_id c
 }
 
 std::size_t replicator::resync_viewers_of(const entity_store& store, std::span<const class_change> changes, float hysteresis,
-                                          interest::thread_pool* pool) {
+                                          interest::thread_pool* pool, std::vector<class_note_target>* notes) {
+  if (notes != nullptr) notes->clear();
   auto& ch = changed_scratch_;
   ch.clear();
   for (const class_change& c : changes) {
@@ -201,16 +205,19 @@ std::size_t replicator::resync_viewers_of(const entity_store& store, std::span<c
   }
   if (ch.empty()) return 0;
   const float slack = hysteresis + 0.01f;
-  // One client against every change, in the order resync_viewers_of(change) would meet them: the
-  // first change that resyncs it decides (later ones skip a client already resynced).
-  const auto resyncs = [&](const client_state& s) {
+  // Client c against every change, in the order resync_viewers_of(change) would meet them: the
+  // first change that resyncs it decides (later ones skip a client already resynced). A client
+  // with notes collects one per changed entity instead. True: resync it.
+  const auto judge = [&](client_id id, const client_state& s, std::vector<class_note_target>& out) {
     if (!s.active || s.reset_pending) return false;
+    const bool noting = s.class_notes && notes != nullptr;
+    const std::size_t first_note = out.size();
     std::size_t o = entity_store::npos;
     std::uint32_t m = 0;
     vec3 q{}, a{};
     for (const changed_entity& c : ch) {
       if (s.observer == c.id) {
-        if (c.sees != c.old_sees) return true;
+        if (!noting && c.sees != c.old_sees) return true;
         continue;
       }
       if (c.cls == c.old_class) continue;
@@ -220,22 +227,30 @@ std::size_t replicator::resync_viewers_of(const entity_store& store, std::span<c
         if (o == entity_store::npos) return false;
         m = store.sees()[o], q = store.positions()[o], a = store.aoi_half_extents()[o];
       }
-      if ((m & c.cls) == 0 || (m & c.old_class) == 0) continue;
+      if ((m & c.cls) == 0 || (!noting && (m & c.old_class) == 0)) continue;
       if (std::fabs(c.p.x - q.x) > a.x + c.b.x + slack || std::fabs(c.p.y - q.y) > a.y + c.b.y + slack ||
           std::fabs(c.p.z - q.z) > a.z + c.b.z + slack) {
         continue;
       }
-      return true;
+      if (!noting) return true;
+      // An entity switched twice in the tick: one note (the class is the store's, the same for both).
+      const auto begin = out.begin() + static_cast<std::ptrdiff_t>(first_note);
+      if (std::none_of(begin, out.end(), [&](const class_note_target& n) { return n.entity == c.id; })) {
+        out.push_back({id, c.id, c.cls});
+      }
     }
     return false;
   };
   constexpr std::size_t chunk = 1024;
   const std::size_t n = clients_.size(), tasks = (n + chunk - 1) / chunk;
   resync_counts_.assign(tasks, 0);
+  if (chunk_notes_.size() < tasks) chunk_notes_.resize(tasks);
   const auto run_chunk = [&](std::size_t t) {
     std::size_t k = 0;
+    auto& out = chunk_notes_[t];
+    out.clear();
     for (std::size_t i = t * chunk; i < std::min(n, (t + 1) * chunk); ++i) {
-      if (resyncs(clients_[i])) clients_[i].reset_pending = true, ++k;
+      if (judge(static_cast<client_id>(i), clients_[i], out)) clients_[i].reset_pending = true, ++k;
     }
     resync_counts_[t] = k;
   };
@@ -245,7 +260,10 @@ std::size_t replicator::resync_viewers_of(const entity_store& store, std::span<c
     for (std::size_t t = 0; t < tasks; ++t) run_chunk(t);
   }
   std::size_t total = 0;
-  for (const std::size_t k : resync_counts_) total += k;
+  for (std::size_t t = 0; t < tasks; ++t) {
+    total += resync_counts_[t];
+    if (notes != nullptr) notes->insert(notes->end(), chunk_notes_[t].begin(), chunk_notes_[t].end());
+  }
   return total;
 }
 

@@ -147,6 +147,17 @@ class replicator {
   void set_observer(client_id c, entity_id observer);
   /// The client lost frames: the next frame resets its view and starts it again.
   void resync(client_id c);
+  /// Whether client c applies class notes (it said hello{class_changes}): then a class change
+  /// of an entity it may hold is sent to it as a note (resync_viewers_of's `notes`), not as a
+  /// reset of its whole view. Off for a new client.
+  void set_class_notes(client_id c, bool on);
+  /// A class note for a client: `entity`, which it may hold, has class `visibility_class` now.
+  struct class_note_target {
+    client_id client;
+    entity_id entity;
+    std::uint32_t visibility_class;
+    friend bool operator==(const class_note_target&, const class_note_target&) = default;
+  };
   /// Entity `changed` switched visibility (from `old_class` and `old_sees` to its class and mask
   /// in `store` now). A frame enters an entity with its class once and never sends the class
   /// again, so the clients that may hold it with the old class and keep seeing it are resync()ed:
@@ -164,8 +175,16 @@ class replicator {
   /// observer looked up once, not once per change), spread over `pool` (null: this thread).
   /// Returns how many clients it resynced. A tick with 40 switches among 20,000 clients took
   /// the tick's thread milliseconds one change at a time.
+  ///
+  /// With `notes`, a client with class notes on (set_class_notes) is never resynced: for every
+  /// changed entity (another than its own) whose new class its observer's mask holds and whose
+  /// presence box meets its AOI box grown as above, it gets one note (client, entity, class now)
+  /// in `*notes` (cleared first; by client, then in the order of the changes). That is a superset
+  /// of the clients that hold the entity and keep it; a client whose mask no longer holds the
+  /// class is sent its leave in this tick's frame, and its own mask's change needs nothing (the
+  /// classes of what it keeps seeing are unchanged). A client whose next frame resets gets none.
   std::size_t resync_viewers_of(const entity_store& store, std::span<const class_change> changes, float hysteresis,
-                                interest::thread_pool* pool = nullptr);
+                                interest::thread_pool* pool = nullptr, std::vector<class_note_target>* notes = nullptr);
 
   /// Builds this tick's frame for client c into `writer`; the span is valid until the writer's
   /// next build. `stats`, when given, receives what was sent and deferred.
@@ -266,6 +285,7 @@ class replicator {
     entity_id observer = null_entity;
     bool active = false;
     bool reset_pending = true;
+    bool class_notes = false;     // set_class_notes
     std::vector<entity_id> view;  // sorted
     std::vector<view_meta> meta;  // parallel to view
     std::uint64_t hash = 0;
@@ -319,6 +339,7 @@ class replicator {
   };
   std::vector<changed_entity> changed_scratch_;
   std::vector<std::size_t> resync_counts_;
+  std::vector<std::vector<class_note_target>> chunk_notes_;  // resync_viewers_of's notes, per chunk of clients
   std::vector<client_id> free_clients_;
   std::vector<std::unique_ptr<replication_writer>> writers_;  // one per build_many task (thread)
   std::vector<entity_snapshot> snapshot_;                     // build_many's, by dense index

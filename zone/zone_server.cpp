@@ -158,6 +158,8 @@ std::string zone_server::metrics_text() const {
             static_cast<double>(stats_.visibility_refused));
   t.counter("zone_visibility_resyncs_total", "Clients resynced because an entity they may hold changed class.",
             static_cast<double>(stats_.visibility_resyncs));
+  t.counter("zone_visibility_notes_total", "Class notes sent (instead of resyncs) because an entity the client may hold changed class.",
+            static_cast<double>(stats_.class_notes));
   t.counter("zone_viewer_column_copies_total", "Viewer snapshots whose ids, classes and kinds were copied whole (entities created or destroyed).",
             static_cast<double>(stats_.viewer_columns_copied_all));
   t.counter("zone_viewer_class_patches_total", "Viewer snapshots that patched only the classes set_visibility changed.",
@@ -361,7 +363,8 @@ void zone_server::drain_inputs() {
           if (ext_ != nullptr && !hello->token.empty()) {
             // A client redirected here by another zone of the world.
             pending_hellos_.push_back({e.session, hello->token, hello->name,
-                                       world_->tick() + static_cast<std::uint64_t>(5 * cfg_.tick_rate_hz)});
+                                       world_->tick() + static_cast<std::uint64_t>(5 * cfg_.tick_rate_hz),
+                                       hello->class_changes});
             break;
           }
           if (auto why = check_visibility_choice(hello->stealth, hello->team)) {
@@ -373,7 +376,7 @@ void zone_server::drain_inputs() {
             net_.disconnect(e.session, net::error_code::server_full, "the zone is full");
             break;
           }
-          welcome(e.session, id, hello->name);
+          welcome(e.session, id, hello->name, hello->class_changes);
         } else if (const auto* in = std::get_if<net::input_msg>(&*e.msg)) {
           const auto it = clients_.find(e.session);
           if (it == clients_.end()) break;
@@ -420,12 +423,15 @@ void zone_server::drain_inputs() {
   stats_.clients = clients_.size();
 }
 
-void zone_server::welcome(net::session_id session, entity_id id, const std::string& name) {
+void zone_server::welcome(net::session_id session, entity_id id, const std::string& name, bool class_changes) {
   client& c = clients_[session];
   c.entity = id;
   c.backlog = net_.state_backlog(session);
   c.written = net_.bytes_written(session);
   c.replica = replicator_.add_client(id);
+  replicator_.set_class_notes(c.replica, class_changes);
+  if (session_of_replica_.size() <= c.replica) session_of_replica_.resize(c.replica + 1);
+  session_of_replica_[c.replica] = session;
   session_of_entity_[id] = session;
   net::welcome_msg w;
   w.entity_id = id;
@@ -455,7 +461,7 @@ void zone_server::retry_pending_hellos() {
     }
     pending_hellos_.erase(pending_hellos_.begin() + static_cast<std::ptrdiff_t>(k));
     if (verdict == zone_extension::claim::ready) {
-      welcome(p.session, id, p.name);
+      welcome(p.session, id, p.name, p.class_changes);
     } else {
       net_.disconnect(p.session, net::error_code::auth_failed, "unknown or expired redirect token");
     }
@@ -514,8 +520,25 @@ void zone_server::set_visibility(net::session_id session, client& c, const net::
 
 void zone_server::replicate_class_changes() {
   if (class_changes_.empty()) return;
-  stats_.visibility_resyncs += replicator_.resync_viewers_of(world_->store(), class_changes_, cfg_.hysteresis, pool_.get());
+  stats_.visibility_resyncs +=
+      replicator_.resync_viewers_of(world_->store(), class_changes_, cfg_.hysteresis, pool_.get(), &class_notes_);
   class_changes_.clear();
+  // One message per noted client (the notes come by client), queued before this tick's frame: as
+  // state, so that a client whose state frames are dropped gets a reset (current classes) instead.
+  net::class_changes_msg msg;
+  msg.server_tick = world_->tick();
+  for (std::size_t k = 0; k < class_notes_.size();) {
+    const client_id who = class_notes_[k].client;
+    msg.notes.clear();
+    for (; k < class_notes_.size() && class_notes_[k].client == who; ++k) {
+      msg.notes.push_back({class_notes_[k].entity, class_notes_[k].visibility_class});
+    }
+    const net::session_id session = session_of_replica_[who];
+    const auto it = clients_.find(session);
+    if (it == clients_.end() || it->second.replica != who || it->second.redirected) continue;
+    net_.send(session, net::make_shared_frame(encoder_.encode(msg)), net::delivery::state);
+    stats_.class_notes += msg.notes.size();
+  }
 }
 
 void zone_server::note_sequence(client& c, std::uint32_t sequence) {

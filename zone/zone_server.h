@@ -42,6 +42,7 @@ struct loop_stats {
   std::uint64_t visibility_switches = 0;  ///< set_visibility requests applied
   std::uint64_t visibility_refused = 0;   ///< refused: a value the zone does not allow, cooldown, handed off
   std::uint64_t visibility_resyncs = 0;   ///< clients resynced because an entity they hold changed class
+  std::uint64_t class_notes = 0;          ///< class notes sent instead (clients that said hello{class_changes})
   std::uint64_t joins = 0;              ///< players that joined (welcomed)
   std::uint64_t leaves = 0;             ///< players that left
   /// Viewer snapshots filled while the replication engine waited for the device (the rest were
@@ -159,10 +160,13 @@ class zone_server {
   /// Whether the zone allows a player's visibility choice; why not otherwise.
   [[nodiscard]] std::optional<std::string> check_visibility_choice(bool stealth, std::uint8_t team) const;
   /// After the step: every client that may hold an entity whose class changed this tick with its
-  /// old class is resynced (replicator::resync_viewers_of): players' own switches and, in a
-  /// world, ghosts' (zone_extension::take_class_changes).
+  /// old class is sent a class_changes message with the new classes (clients that said
+  /// hello{class_changes}) or resynced (replicator::resync_viewers_of): players' own switches
+  /// and, in a world, ghosts' (zone_extension::take_class_changes). Before this tick's frames.
   void replicate_class_changes();
   std::vector<class_change> class_changes_;
+  std::vector<replicator::class_note_target> class_notes_;
+  std::vector<net::session_id> session_of_replica_;  ///< by client_id, for the clients welcomed
   /// Records an input's sequence as the client's last when it is newer (RFC 1982 serial-number
   /// order: a sequence 1 .. 2^31 - 1 ahead, wrapping past 2^32); older ones leave it.
   static void note_sequence(client& c, std::uint32_t sequence);
@@ -171,12 +175,13 @@ class zone_server {
   /// (per-session lines are at debug: a flood of connections cannot flood the log).
   void log_summary();
   /// Binds a session to an entity (a new player or a redirected client's) and welcomes it.
-  void welcome(net::session_id session, entity_id id, const std::string& name);
+  void welcome(net::session_id session, entity_id id, const std::string& name, bool class_changes);
   /// Hellos with a token whose entity has not arrived yet (retried each tick until the deadline).
   struct pending_hello {
     net::session_id session;
     std::string token, name;
     std::uint64_t deadline_tick;
+    bool class_changes;  ///< hello{class_changes}
   };
   std::vector<pending_hello> pending_hellos_;
   void retry_pending_hellos();

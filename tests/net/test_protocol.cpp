@@ -50,6 +50,7 @@ struct gen {
         hello_msg h{str(), str(64), u32()};
         h.stealth = rng() % 2 == 0;
         h.team = static_cast<std::uint8_t>(rng());
+        h.class_changes = rng() % 2 == 0;
         return h;
       }
       case 1: return input_msg{u32(), v()};
@@ -108,7 +109,13 @@ struct gen {
       case 6: return error_msg{static_cast<error_code>(below(12)), str()};
       case 7: return teleport_msg{u32(), v(), rng() % 2 ? 0u : u32()};
       case 8: return redirect_msg{str(), static_cast<std::uint16_t>(u32()), str()};
-      default: return set_visibility_msg{u32(), rng() % 2 == 0, static_cast<std::uint8_t>(rng())};
+      case 9: return set_visibility_msg{u32(), rng() % 2 == 0, static_cast<std::uint8_t>(rng())};
+      default: {
+        class_changes_msg c;
+        c.server_tick = u64();
+        for (std::size_t i = below(40); i-- > 0;) c.notes.push_back({u32(), u32()});
+        return c;
+      }
     }
   }
   message any() { return make(below(std::variant_size_v<message>)); }
@@ -651,6 +658,8 @@ TEST_SUITE("net.protocol") {
     CHECK(static_cast<int>(type_of(teleport_msg{})) == 8);
     CHECK(static_cast<int>(w::message::redirect) == 9);
     CHECK(static_cast<int>(type_of(set_visibility_msg{})) == 10);
+    CHECK(static_cast<int>(w::message::class_changes) == 11);
+    CHECK(static_cast<int>(type_of(class_changes_msg{})) == 11);
     const auto body_frame = [](auto build) {
       flatbuffers::FlatBufferBuilder fbb;
       const auto body = build(fbb);
@@ -679,6 +688,13 @@ TEST_SUITE("net.protocol") {
     REQUIRE(old_hello.value.has_value());
     CHECK_FALSE(std::get<hello_msg>(*old_hello.value).stealth);
     CHECK(std::get<hello_msg>(*old_hello.value).team == 0);
+    CHECK_FALSE(std::get<hello_msg>(*old_hello.value).class_changes);  // an older client gets resets
+    // A class_changes without notes: nothing to apply.
+    const auto no_notes = decode_frame(body_frame([&](flatbuffers::FlatBufferBuilder& fbb) {
+      return std::pair{w::message::class_changes, w::Createclass_changes(fbb, 42).Union()};
+    }));
+    REQUIRE(no_notes.value.has_value());
+    CHECK(std::get<class_changes_msg>(*no_notes.value) == class_changes_msg{42, {}});
     // An empty set_visibility asks for the plain class (not stealthed, no team).
     const auto plain = decode_frame(body_frame([&](flatbuffers::FlatBufferBuilder& fbb) {
       return std::pair{w::message::set_visibility, w::Createset_visibility(fbb).Union()};

@@ -3,7 +3,8 @@
 // test_zone_gpu (the GPU engine). Random worlds with movement, teleports, entities created and
 // destroyed (observers too), stealth and team classes changing, observers that see nothing,
 // clients' players switching stealth and team as zone_server applies it (the clients that may hold
-// a switched entity resynced on both sides by replicator::resync_viewers_of);
+// a switched entity resynced, or sent a class note when it takes them, on both sides by
+// replicator::resync_viewers_of);
 // clients joining, leaving and resynced mid-run, only some clients built each tick (the others'
 // views carried over); budgets from below the header to huge, every distance tier, ticks across
 // 2^32; the engine switched off and on mid-run.
@@ -54,6 +55,7 @@ struct replication_coverage {
   std::uint64_t resident_runs = 0;  ///< engine runs that read the visible sets in place
   std::uint64_t switches = 0;          ///< players' visibility switches (visibility_for) that changed their class
   std::uint64_t switch_resyncs = 0;    ///< clients resynced for them (resync_viewers_of; equal on both sides)
+  std::uint64_t switch_notes = 0;      ///< class notes for them instead (odd clients take notes; equal on both sides)
   /// Engine-side frames written into the caller's room (build_many's frame_room), and those the
   /// sink did not get there.
   std::uint64_t room_frames = 0, room_misplaced = 0;
@@ -131,6 +133,9 @@ inline replication_coverage check_replication_equivalence(
         const entity_id o = store.ids()[rng() % store.size()];
         const client_id a = cpu.add_client(o), b = dev.add_client(o);
         REQUIRE(a == b);
+        // Odd clients take class notes (their frames are never reset for a switch), even ones not.
+        cpu.set_class_notes(a, a % 2 == 1);
+        dev.set_class_notes(b, b % 2 == 1);
         auto it = std::find_if(clients.begin(), clients.end(), [&](const client_rec& r) { return r.id == a; });
         if (it == clients.end()) {
           clients.push_back({a, true});
@@ -155,11 +160,16 @@ inline replication_coverage check_replication_equivalence(
         REQUIRE_FALSE(tracker.update(store.columns()).has_value());
         // After the step, as zone_server does: the clients that may hold a switched entity with
         // its old class start over, on both sides alike.
-        for (const auto& sw : switched) {
-          const std::size_t a = cpu.resync_viewers_of(store, sw.entity, sw.old_class, sw.old_sees, 3.0f);
-          const std::size_t b = dev.resync_viewers_of(store, sw.entity, sw.old_class, sw.old_sees, 3.0f);
+        if (!switched.empty()) {
+          std::vector<class_change> changes;
+          for (const auto& sw : switched) changes.push_back({sw.entity, sw.old_class, sw.old_sees});
+          std::vector<replicator::class_note_target> notes_a, notes_b;
+          const std::size_t a = cpu.resync_viewers_of(store, changes, 3.0f, nullptr, &notes_a);
+          const std::size_t b = dev.resync_viewers_of(store, changes, 3.0f, nullptr, &notes_b);
           REQUIRE(a == b);
+          REQUIRE(notes_a == notes_b);
           cov.switch_resyncs += a;
+          cov.switch_notes += notes_a.size();
         }
         switched.clear();
         // Who is built this tick: usually everyone, sometimes a random part (the rest carry over).
@@ -410,7 +420,7 @@ inline void require_equivalent(const replication_coverage& cov, bool tiny_budget
                     << "; deferred enters " << cov.deferred_enters << " leaves " << cov.deferred_leaves << " updates "
                     << cov.deferred_updates << "; ranked " << cov.ranked << ", resets " << cov.resets << ", empty "
                     << cov.empty << "; view entries near/mid/far " << cov.near << "/" << cov.mid << "/" << cov.far
-                    << "; visibility switches " << cov.switches << " (clients resynced " << cov.switch_resyncs << ")");
+                    << "; visibility switches " << cov.switches << " (clients resynced " << cov.switch_resyncs << ", notes " << cov.switch_notes << ")");
   CHECK(cov.differing == 0);
   CHECK(cov.room_frames > 0);
   CHECK(cov.room_misplaced == 0);
@@ -434,6 +444,7 @@ inline void require_equivalent(const replication_coverage& cov, bool tiny_budget
   if (switches) {
     CHECK(cov.switches > 0);
     CHECK(cov.switch_resyncs > 0);
+    CHECK(cov.switch_notes > 0);
   }
   if (tiny_budgets) {
     CHECK(cov.deferred_enters > 0);

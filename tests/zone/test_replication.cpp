@@ -11,6 +11,7 @@
 #include <map>
 #include <random>
 
+#include "net/client_view.h"
 #include "zone/zone.h"
 
 using namespace zone;
@@ -490,17 +491,20 @@ TEST_SUITE("zone.replication") {
 
   /// The visibility resync decision written the plain way (docs/zone.md, "Visibility classes and
   /// teams"; zone's first implementation: one pass over the clients per change): whether a client
-  /// seeing through `observer` is resynced by `ch`, with the store's classes and positions now.
-  bool reference_resyncs(const entity_store& store, entity_id observer, const class_change& ch, float hysteresis) {
+  /// seeing through `observer` is resynced by `ch` (or, `noting`: sent a class note of it), with
+  /// the store's classes and positions now.
+  bool reference_resyncs(const entity_store& store, entity_id observer, const class_change& ch, float hysteresis,
+                         bool noting = false) {
     const std::size_t x = store.index_of(ch.entity);
     if (x == entity_store::npos) return false;
     const std::uint32_t cls = store.visibility_classes()[x], sees = store.sees()[x];
-    if (observer == ch.entity) return sees != ch.old_sees;
+    if (observer == ch.entity) return !noting && sees != ch.old_sees;  // a note never names its own entity
     if (cls == ch.old_class) return false;
     const std::size_t o = store.index_of(observer);
     if (o == entity_store::npos) return false;
     const std::uint32_t m = store.sees()[o];
-    if ((m & cls) == 0 || (m & ch.old_class) == 0) return false;
+    // A noting client: any client whose mask holds the new class (its own mask may have changed).
+    if ((m & cls) == 0 || (!noting && (m & ch.old_class) == 0)) return false;
     const vec3 p = store.positions()[x], b = store.presence_half_extents()[x];
     const vec3 q = store.positions()[o], a = store.aoi_half_extents()[o];
     const float slack = hysteresis + 0.01f;
@@ -589,6 +593,130 @@ TEST_SUITE("zone.replication") {
     // The switches resynced many clients and left many alone (a test of both outcomes).
     CHECK(resynced > 100);
     CHECK(kept > 100);
+  }
+
+  TEST_CASE("class notes: the clients that take them get the plain rule's notes, never a reset, and hold every class right") {
+    const std::uint64_t seed = fresh_seed();
+    CAPTURE(seed);
+    small_world w(seed, 2600);
+    interest::thread_pool pool(3);
+    interest::grid_finder finder(&pool);
+    interest_tracker tracker(finder, &pool, {3.0f, 0, 64});
+    replication_options opt;
+    opt.world = test_world;
+    // Odd clients take notes, even ones are resynced as before; `ref` does both by hand (the plain
+    // rule); every client's view is followed as the client applies notes and frames.
+    replicator rep(opt), ref(opt);
+    std::vector<client_id> clients;
+    std::vector<net::client_view> views;
+    for (std::size_t k = 0; k < 2500; ++k) {
+      const entity_id o = w.store.ids()[k];
+      const client_id c = rep.add_client(o);
+      REQUIRE(ref.add_client(o) == c);
+      rep.set_class_notes(c, c % 2 == 1);
+      clients.push_back(c);
+      views.emplace_back(test_world);
+    }
+    const std::uint32_t classes[] = {cb::normal, cb::stealth, cb::team_red, cb::team_blue};
+    const std::uint32_t masks[] = {cb::normal, cb::normal | cb::team_red, cb::normal | cb::team_blue, cb::team_red, 0};
+    replication_writer writer;
+    std::vector<replicator::class_note_target> notes;
+    std::size_t noted = 0, resets = 0, held_checked = 0;
+    for (std::uint64_t tick = 1; tick <= 8; ++tick) {
+      CAPTURE(tick);
+      std::vector<class_change> changes;
+      if (tick > 1) {
+        // 60 switches, as in the test above (an id twice, a class kept, an entity destroyed), some
+        // of them the clients' own observers (their masks change: no note, no reset).
+        for (int k = 0; k < 60; ++k) {
+          const entity_id id = w.store.ids()[k % 3 == 0 ? w.rng() % 2500 : w.rng() % w.store.size()];
+          const std::size_t x = w.store.index_of(id);
+          const class_change ch{id, w.store.visibility_classes()[x], w.store.sees()[x]};
+          const std::uint32_t cls = k % 7 == 0 ? ch.old_class : classes[w.rng() % 4];
+          const std::uint32_t sees = k % 5 == 0 ? ch.old_sees : masks[w.rng() % 5];
+          REQUIRE(w.store.set_visibility(id, cls, sees));
+          changes.push_back(ch);
+          if (k % 13 == 0) changes.push_back(ch);
+        }
+        changes.push_back({w.store.ids()[2590], cb::normal, cb::normal});
+        REQUIRE(w.store.destroy(w.store.ids()[2590]));
+      }
+      REQUIRE_FALSE(tracker.update(w.store.columns()).has_value());
+      // The reference: resyncs of the even clients, notes of the odd ones (one per entity, in the
+      // order of the changes, the class the store's).
+      std::vector<replicator::class_note_target> want;
+      std::size_t want_resyncs = 0;
+      for (const client_id c : clients) {
+        const entity_id o = ref.observer(c);
+        const bool noting = c % 2 == 1;
+        if (tick == 1) continue;  // every client's first frame is a reset: nothing to judge
+        if (!noting) {
+          if (std::any_of(changes.begin(), changes.end(), [&](const class_change& ch) { return reference_resyncs(w.store, o, ch, 3.0f); })) {
+            ref.resync(c);
+            ++want_resyncs;
+          }
+          continue;
+        }
+        const std::size_t first = want.size();
+        for (const class_change& ch : changes) {
+          if (!reference_resyncs(w.store, o, ch, 3.0f, true)) continue;
+          if (std::any_of(want.begin() + static_cast<std::ptrdiff_t>(first), want.end(),
+                          [&](const replicator::class_note_target& n) { return n.entity == ch.entity; })) {
+            continue;
+          }
+          want.push_back({c, ch.entity, w.store.visibility_classes()[w.store.index_of(ch.entity)]});
+        }
+      }
+      CHECK(rep.resync_viewers_of(w.store, changes, 3.0f, &pool, &notes) == want_resyncs);
+      CHECK(notes == want);
+      noted += notes.size();
+      // Each client applies its notes (sent before the tick's frame), then its frame: every entity
+      // it holds then has the store's class, and the frames are the reference replicator's.
+      std::size_t at = 0;
+      for (const client_id c : clients) {
+        net::class_changes_msg msg{tick, {}};
+        for (; at < notes.size() && notes[at].client == c; ++at) msg.notes.push_back({notes[at].entity, notes[at].visibility_class});
+        if (!msg.notes.empty()) CHECK(views[c].apply(msg) == net::client_view::status::ok);
+        replication_stats a, b;
+        const auto fa = rep.build(c, w.store, tracker, tick, tick * 1000, 0, writer, &a);
+        const std::vector<std::uint8_t> frame(fa.begin(), fa.end());
+        const auto fb = ref.build(c, w.store, tracker, tick, tick * 1000, 0, writer, &b);
+        CHECK(frame == std::vector<std::uint8_t>(fb.begin(), fb.end()));
+        if (tick > 1) {
+          CHECK_FALSE((c % 2 == 1 && a.reset));  // a noting client is never reset
+          resets += a.reset ? 1 : 0;
+        }
+        net::decoder_options o;
+        o.max_frame_bytes = 1 << 22;
+        const auto d = net::decode_frame(frame, o);
+        REQUIRE(d.value.has_value());
+        REQUIRE(views[c].apply(std::get<net::tick_update_msg>(*d.value)) == net::client_view::status::ok);
+        for (const auto& [id, e] : views[c].entities()) {
+          const std::size_t x = w.store.index_of(id);
+          REQUIRE(x != entity_store::npos);
+          if (e.state.visibility_class != w.store.visibility_classes()[x]) {
+            FAIL_CHECK("client " << c << " holds entity " << id << " with class " << e.state.visibility_class
+                                 << ", the store has " << w.store.visibility_classes()[x]);
+          }
+          ++held_checked;
+        }
+      }
+      CHECK(at == notes.size());  // every note named a client in order
+      // A note for a tick already applied is out of order.
+      if (!clients.empty() && tick > 1) {
+        net::client_view late(test_world);
+        net::tick_update_msg reset;
+        reset.server_tick = tick;
+        reset.reset = true;
+        REQUIRE(late.apply(reset) == net::client_view::status::ok);
+        CHECK(late.apply(net::class_changes_msg{tick, {}}) == net::client_view::status::inconsistent);
+      }
+      w.step(false);
+    }
+    // Both kinds of clients were exercised.
+    CHECK(noted > 100);
+    CHECK(resets > 100);
+    CHECK(held_checked > 100000);
   }
 
   TEST_CASE("frames equal the reference algorithm's byte for byte (budgets, resyncs, ticks past 2^32)") {

@@ -856,6 +856,104 @@ TEST_SUITE("zone.server") {
     CHECK(std::get<net::error_msg>(*es).code == net::error_code::bad_hello);
   }
 
+  TEST_CASE("a class change reaches a client that said hello{class_changes} as a note before the tick's frame; an older client is reset") {
+    zone_config cfg = test_config();
+    cfg.player_teams = 1;
+    cfg.visibility_cooldown_s = 0;
+    cfg.player_aoi = 700;  // every player sees every other in the 600 m world
+    cfg.npc_count = 50;
+    zone_server server(cfg);
+    REQUIRE_FALSE(server.start().has_value());
+    // Three members of team red, not stealthed: the switcher, a teammate that takes notes and one
+    // that says nothing of them (an older client).
+    test_client sw(server.port()), noting(server.port()), older(server.port());
+    net::hello_msg hs{"switcher", "", net::protocol_version};
+    hs.team = 1;
+    net::hello_msg hn{"noting", "", net::protocol_version};
+    hn.team = 1;
+    hn.class_changes = true;
+    net::hello_msg ho{"older", "", net::protocol_version};
+    ho.team = 1;
+    REQUIRE(sw.send(hs));
+    REQUIRE(noting.send(hn));
+    REQUIRE(older.send(ho));
+    struct follower {
+      test_client& c;
+      std::optional<net::client_view> view;
+      std::vector<net::message> seen;  // since the last clear
+      void pump() {
+        for (auto m = c.read(5ms); m; m = c.read(5ms)) {
+          if (const auto* w = std::get_if<net::welcome_msg>(&*m)) view.emplace(w->world);
+          if (const auto* u = std::get_if<net::tick_update_msg>(&*m)) REQUIRE(view->apply(*u) == net::client_view::status::ok);
+          if (const auto* n = std::get_if<net::class_changes_msg>(&*m)) REQUIRE(view->apply(*n) == net::client_view::status::ok);
+          seen.push_back(std::move(*m));
+        }
+      }
+    };
+    follower s{sw, {}, {}}, n{noting, {}, {}}, o{older, {}, {}};
+    entity_id switcher = null_entity;
+    for (int i = 0; i < 200 && (switcher == null_entity || !n.view || !o.view || n.view->entities().find(switcher) == n.view->entities().end() ||
+                                o.view->entities().find(switcher) == o.view->entities().end());
+         ++i) {
+      server.tick_once();
+      std::this_thread::sleep_for(5ms);
+      s.pump(), n.pump(), o.pump();
+      for (const auto& m : s.seen) {
+        if (const auto* w = std::get_if<net::welcome_msg>(&m)) switcher = w->entity_id;
+      }
+    }
+    INFO("switcher saw " << s.seen.size() << " messages");
+    REQUIRE(switcher != null_entity);
+    REQUIRE(n.view->entities().find(switcher) != n.view->entities().end());
+    REQUIRE(o.view->entities().find(switcher) != o.view->entities().end());
+    CHECK(n.view->entities().find(switcher)->second.state.visibility_class == interest::category_bits::normal);
+    std::this_thread::sleep_for(30ms);  // the last tick's frames, all in
+    n.pump(), o.pump();
+    // The switcher stealths within the team: class team_red, which both teammates still see.
+    n.seen.clear(), o.seen.clear();
+    const auto frames_before = server.net_stats().frames_in;
+    REQUIRE(sw.send(net::set_visibility_msg{1, true, 1}));
+    for (int i = 0; i < 500 && server.net_stats().frames_in == frames_before; ++i) std::this_thread::sleep_for(2ms);
+    std::this_thread::sleep_for(10ms);
+    server.tick_once();
+    const std::uint64_t tick = server.world().tick();
+    for (int i = 0; i < 100; ++i) {
+      std::this_thread::sleep_for(5ms);
+      n.pump(), o.pump();
+      const auto has_frame = [&](const follower& f) {
+        return std::any_of(f.seen.begin(), f.seen.end(), [&](const net::message& m) {
+          const auto* u = std::get_if<net::tick_update_msg>(&m);
+          return u != nullptr && u->server_tick == tick;
+        });
+      };
+      if (has_frame(n) && has_frame(o)) break;
+    }
+    CHECK(server.world().store().get(switcher)->visibility_class == interest::category_bits::team_red);
+    // The noting teammate: one note of the switcher, then the tick's frame, no reset.
+    REQUIRE(n.seen.size() >= 2);
+    const auto* note = std::get_if<net::class_changes_msg>(&n.seen[0]);
+    REQUIRE(note != nullptr);
+    CHECK(note->server_tick == tick);
+    CHECK(note->notes == std::vector<net::class_note>{{switcher, interest::category_bits::team_red}});
+    const auto* after = std::get_if<net::tick_update_msg>(&n.seen[1]);
+    REQUIRE(after != nullptr);
+    CHECK(after->server_tick == tick);
+    CHECK_FALSE(after->reset);
+    CHECK(n.view->entities().find(switcher)->second.state.visibility_class == interest::category_bits::team_red);
+    // The older teammate: no note, its frame of that tick a reset that enters the switcher anew.
+    CHECK(std::none_of(o.seen.begin(), o.seen.end(), [](const net::message& m) { return std::holds_alternative<net::class_changes_msg>(m); }));
+    const auto frame = std::find_if(o.seen.begin(), o.seen.end(), [&](const net::message& m) {
+      const auto* u = std::get_if<net::tick_update_msg>(&m);
+      return u != nullptr && u->server_tick == tick;
+    });
+    REQUIRE(frame != o.seen.end());
+    CHECK(std::get<net::tick_update_msg>(*frame).reset);
+    CHECK(o.view->entities().find(switcher)->second.state.visibility_class == interest::category_bits::team_red);
+    CHECK(server.stats().class_notes == 1);
+    CHECK(server.stats().visibility_resyncs == 1);  // the older teammate (the switcher's own mask is unchanged)
+    CHECK(server.metrics_text().find("zone_visibility_notes_total 1") != std::string::npos);
+  }
+
   TEST_CASE("bounded staleness: a client that stops reading for 3 s gets current state within a few ticks of resuming") {
     // The server ticks in real time (20 Hz) with every visible entity updated every tick
     // (~100 entities in view, a few KB a frame). A client reads for a second, stops reading for
