@@ -213,7 +213,7 @@ std::size_t replicator::resync_viewers_of(const entity_store& store, std::span<c
     const bool noting = s.class_notes && notes != nullptr;
     const std::size_t first_note = out.size();
     std::size_t o = entity_store::npos;
-    std::uint32_t m = 0;
+    std::uint32_t m = 0, m_before = 0;
     vec3 q{}, a{};
     for (const changed_entity& c : ch) {
       if (s.observer == c.id) {
@@ -226,8 +226,12 @@ std::size_t replicator::resync_viewers_of(const entity_store& store, std::span<c
         // Not in the store: no change here is its own entity (those are), and it holds nothing.
         if (o == entity_store::npos) return false;
         m = store.sees()[o], q = store.positions()[o], a = store.aoi_half_extents()[o];
+        // The mask its view was built with: before its own first switch of the tick, if any.
+        m_before = m;
+        const auto own = std::find_if(ch.begin(), ch.end(), [&](const changed_entity& x) { return x.id == s.observer; });
+        if (noting && own != ch.end()) m_before = own->old_sees;
       }
-      if ((m & c.cls) == 0 || (!noting && (m & c.old_class) == 0)) continue;
+      if ((m & c.cls) == 0 || (m_before & c.old_class) == 0) continue;
       if (std::fabs(c.p.x - q.x) > a.x + c.b.x + slack || std::fabs(c.p.y - q.y) > a.y + c.b.y + slack ||
           std::fabs(c.p.z - q.z) > a.z + c.b.z + slack) {
         continue;

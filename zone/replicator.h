@@ -177,12 +177,13 @@ class replicator {
   /// the tick's thread milliseconds one change at a time.
   ///
   /// With `notes`, a client with class notes on (set_class_notes) is never resynced: for every
-  /// changed entity (another than its own) whose new class its observer's mask holds and whose
-  /// presence box meets its AOI box grown as above, it gets one note (client, entity, class now)
-  /// in `*notes` (cleared first; by client, then in the order of the changes). That is a superset
-  /// of the clients that hold the entity and keep it; a client whose mask no longer holds the
-  /// class is sent its leave in this tick's frame, and its own mask's change needs nothing (the
-  /// classes of what it keeps seeing are unchanged). A client whose next frame resets gets none.
+  /// changed entity (another than its own) whose new class its observer's mask holds, whose old
+  /// class the mask its view was built with held (the old mask when the observer itself switched
+  /// this tick) and whose presence box meets its AOI box grown as above, it gets one note
+  /// (client, entity, class now) in `*notes` (cleared first; by client, then in the order of the
+  /// changes): a superset of the clients that hold the entity and keep it. A client whose mask no
+  /// longer holds the class is sent its leave in this tick's frame, and its own switch needs
+  /// nothing more (what it keeps seeing keeps its class). A client whose next frame resets gets none.
   std::size_t resync_viewers_of(const entity_store& store, std::span<const class_change> changes, float hysteresis,
                                 interest::thread_pool* pool = nullptr, std::vector<class_note_target>* notes = nullptr);
 

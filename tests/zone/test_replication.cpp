@@ -9,6 +9,7 @@
 #include <algorithm>
 #include <cmath>
 #include <map>
+#include <optional>
 #include <random>
 
 #include "net/client_view.h"
@@ -494,7 +495,7 @@ TEST_SUITE("zone.replication") {
   /// seeing through `observer` is resynced by `ch` (or, `noting`: sent a class note of it), with
   /// the store's classes and positions now.
   bool reference_resyncs(const entity_store& store, entity_id observer, const class_change& ch, float hysteresis,
-                         bool noting = false) {
+                         bool noting = false, std::optional<std::uint32_t> mask_before = std::nullopt) {
     const std::size_t x = store.index_of(ch.entity);
     if (x == entity_store::npos) return false;
     const std::uint32_t cls = store.visibility_classes()[x], sees = store.sees()[x];
@@ -503,8 +504,9 @@ TEST_SUITE("zone.replication") {
     const std::size_t o = store.index_of(observer);
     if (o == entity_store::npos) return false;
     const std::uint32_t m = store.sees()[o];
-    // A noting client: any client whose mask holds the new class (its own mask may have changed).
-    if ((m & cls) == 0 || (!noting && (m & ch.old_class) == 0)) return false;
+    // A noting client judges the old class with the mask its view was built with (before its own
+    // switch of the tick, if any).
+    if ((m & cls) == 0 || ((noting ? mask_before.value_or(m) : m) & ch.old_class) == 0) return false;
     const vec3 p = store.positions()[x], b = store.presence_half_extents()[x];
     const vec3 q = store.positions()[o], a = store.aoi_half_extents()[o];
     const float slack = hysteresis + 0.01f;
@@ -512,15 +514,42 @@ TEST_SUITE("zone.replication") {
            std::fabs(p.z - q.z) <= a.z + b.z + slack;
   }
 
+  /// 2,600 entities (the first 2,500 observe) with an interest tracker, and the visibility switches
+  /// of a tick applied to the store as the zone applies them before the step.
+  struct switching_world {
+    small_world w;
+    interest::thread_pool pool{3};
+    interest::grid_finder finder{&pool};
+    interest_tracker tracker{finder, &pool, {3.0f, 0, 64}};
+    replication_options opt;
+    explicit switching_world(std::uint64_t seed) : w(seed, 2600) { opt.world = test_world; }
+    /// `count` switches (an id twice, a class kept with a new mask, both kept, and an entity
+    /// destroyed after its switch); every third of an observer when `observers_too`.
+    std::vector<class_change> switch_some(int count, bool observers_too) {
+      const std::uint32_t classes[] = {cb::normal, cb::stealth, cb::team_red, cb::team_blue};
+      const std::uint32_t masks[] = {cb::normal, cb::normal | cb::team_red, cb::normal | cb::team_blue, cb::team_red, 0};
+      std::vector<class_change> changes;
+      for (int k = 0; k < count; ++k) {
+        const entity_id id = w.store.ids()[observers_too && k % 3 == 0 ? w.rng() % 2500 : w.rng() % w.store.size()];
+        const std::size_t x = w.store.index_of(id);
+        const class_change ch{id, w.store.visibility_classes()[x], w.store.sees()[x]};
+        const std::uint32_t cls = k % 7 == 0 ? ch.old_class : classes[w.rng() % 4];
+        const std::uint32_t sees = k % 5 == 0 ? ch.old_sees : masks[w.rng() % 5];
+        REQUIRE(w.store.set_visibility(id, cls, sees));
+        changes.push_back(ch);
+        if (k % 13 == 0) changes.push_back(ch);  // the same change twice
+      }
+      changes.push_back({w.store.ids()[2590], cb::normal, cb::normal});
+      REQUIRE(w.store.destroy(w.store.ids()[2590]));  // a change whose entity is gone
+      return changes;
+    }
+  };
+
   TEST_CASE("resync_viewers_of a tick's changes at once resyncs the clients the plain rule names") {
     const std::uint64_t seed = fresh_seed();
     CAPTURE(seed);
-    small_world w(seed, 2600);
-    interest::thread_pool pool(3);
-    interest::grid_finder finder(&pool);
-    interest_tracker tracker(finder, &pool, {3.0f, 0, 64});
-    replication_options opt;
-    opt.world = test_world;
+    switching_world sw(seed);
+    auto& [w, pool, finder, tracker, opt] = sw;
     // The plain rule's clients resynced by hand (the reference), one change at a time, at once on
     // the pool (over 1,024 clients: several chunks), at once on this thread.
     replicator one(opt), pooled(opt), serial(opt), ref(opt);
@@ -533,29 +562,12 @@ TEST_SUITE("zone.replication") {
       REQUIRE(ref.add_client(o) == c);
       requests.push_back({c, 0});
     }
-    const std::uint32_t classes[] = {cb::normal, cb::stealth, cb::team_red, cb::team_blue};
-    const std::uint32_t masks[] = {cb::normal, cb::normal | cb::team_red, cb::normal | cb::team_blue, cb::team_red, 0};
     replication_writer writer;
     std::size_t resynced = 0, kept = 0;
     for (std::uint64_t tick = 1; tick <= 6; ++tick) {
       CAPTURE(tick);
       std::vector<class_change> changes;
-      if (tick > 1) {
-        // 40 switches (an id twice, a class kept with a new mask, both kept, an entity destroyed
-        // after its switch), applied to the store as the zone applies them before the step.
-        for (int k = 0; k < 40; ++k) {
-          const entity_id id = w.store.ids()[w.rng() % w.store.size()];
-          const std::size_t x = w.store.index_of(id);
-          const class_change ch{id, w.store.visibility_classes()[x], w.store.sees()[x]};
-          const std::uint32_t cls = k % 7 == 0 ? ch.old_class : classes[w.rng() % 4];
-          const std::uint32_t sees = k % 5 == 0 ? ch.old_sees : masks[w.rng() % 5];
-          REQUIRE(w.store.set_visibility(id, cls, sees));
-          changes.push_back(ch);
-          if (k % 13 == 0) changes.push_back(ch);  // the same change twice
-        }
-        changes.push_back({w.store.ids()[2590], cb::normal, cb::normal});
-        REQUIRE(w.store.destroy(w.store.ids()[2590]));  // a change whose entity is gone
-      }
+      if (tick > 1) changes = sw.switch_some(40, false);
       REQUIRE_FALSE(tracker.update(w.store.columns()).has_value());
       if (tick == 4) {  // resynced already: skipped by both
         for (client_id c = 0; c < 2500; c += 9) one.resync(c), pooled.resync(c), serial.resync(c), ref.resync(c);
@@ -598,12 +610,8 @@ TEST_SUITE("zone.replication") {
   TEST_CASE("class notes: the clients that take them get the plain rule's notes, never a reset, and hold every class right") {
     const std::uint64_t seed = fresh_seed();
     CAPTURE(seed);
-    small_world w(seed, 2600);
-    interest::thread_pool pool(3);
-    interest::grid_finder finder(&pool);
-    interest_tracker tracker(finder, &pool, {3.0f, 0, 64});
-    replication_options opt;
-    opt.world = test_world;
+    switching_world sw(seed);
+    auto& [w, pool, finder, tracker, opt] = sw;
     // Odd clients take notes, even ones are resynced as before; `ref` does both by hand (the plain
     // rule); every client's view is followed as the client applies notes and frames.
     replicator rep(opt), ref(opt);
@@ -617,30 +625,14 @@ TEST_SUITE("zone.replication") {
       clients.push_back(c);
       views.emplace_back(test_world);
     }
-    const std::uint32_t classes[] = {cb::normal, cb::stealth, cb::team_red, cb::team_blue};
-    const std::uint32_t masks[] = {cb::normal, cb::normal | cb::team_red, cb::normal | cb::team_blue, cb::team_red, 0};
     replication_writer writer;
     std::vector<replicator::class_note_target> notes;
     std::size_t noted = 0, resets = 0, held_checked = 0;
     for (std::uint64_t tick = 1; tick <= 8; ++tick) {
       CAPTURE(tick);
       std::vector<class_change> changes;
-      if (tick > 1) {
-        // 60 switches, as in the test above (an id twice, a class kept, an entity destroyed), some
-        // of them the clients' own observers (their masks change: no note, no reset).
-        for (int k = 0; k < 60; ++k) {
-          const entity_id id = w.store.ids()[k % 3 == 0 ? w.rng() % 2500 : w.rng() % w.store.size()];
-          const std::size_t x = w.store.index_of(id);
-          const class_change ch{id, w.store.visibility_classes()[x], w.store.sees()[x]};
-          const std::uint32_t cls = k % 7 == 0 ? ch.old_class : classes[w.rng() % 4];
-          const std::uint32_t sees = k % 5 == 0 ? ch.old_sees : masks[w.rng() % 5];
-          REQUIRE(w.store.set_visibility(id, cls, sees));
-          changes.push_back(ch);
-          if (k % 13 == 0) changes.push_back(ch);
-        }
-        changes.push_back({w.store.ids()[2590], cb::normal, cb::normal});
-        REQUIRE(w.store.destroy(w.store.ids()[2590]));
-      }
+      // 60 switches, some of them the clients' own observers (their masks change: no note, no reset).
+      if (tick > 1) changes = sw.switch_some(60, true);
       REQUIRE_FALSE(tracker.update(w.store.columns()).has_value());
       // The reference: resyncs of the even clients, notes of the odd ones (one per entity, in the
       // order of the changes, the class the store's).
@@ -658,8 +650,12 @@ TEST_SUITE("zone.replication") {
           continue;
         }
         const std::size_t first = want.size();
+        std::optional<std::uint32_t> before;  // its mask before its own first switch of the tick
         for (const class_change& ch : changes) {
-          if (!reference_resyncs(w.store, o, ch, 3.0f, true)) continue;
+          if (ch.entity == o && !before) before = ch.old_sees;
+        }
+        for (const class_change& ch : changes) {
+          if (!reference_resyncs(w.store, o, ch, 3.0f, true, before)) continue;
           if (std::any_of(want.begin() + static_cast<std::ptrdiff_t>(first), want.end(),
                           [&](const replicator::class_note_target& n) { return n.entity == ch.entity; })) {
             continue;
