@@ -68,9 +68,14 @@ void put_header(std::vector<std::uint8_t>& out, std::uint8_t type, std::uint16_t
   put<float>(out, r.y1);
 }
 
+/// clamp(round((v - lo) * scale), 0, 65535), rounding half away from zero as std::round, which
+/// GCC calls out of line without SSE4.1 (a call per coordinate, 40% of the encoding): clamped
+/// first (the same result), the value's integer part and fraction are exact; NaN gives 0.
 std::uint16_t quantize(float v, float lo, float scale) {
-  const float q = std::round((v - lo) * scale);
-  return static_cast<std::uint16_t>(std::clamp(q, 0.0f, 65535.0f));
+  float q = (v - lo) * scale;
+  q = q > 0.0f ? (q < 65535.0f ? q : 65535.0f) : 0.0f;
+  const auto i = static_cast<std::uint32_t>(q);
+  return static_cast<std::uint16_t>(i + (q - static_cast<float>(i) >= 0.5f ? 1u : 0u));
 }
 
 }  // namespace
@@ -96,10 +101,10 @@ std::optional<viewer_request> parse_viewer_request(std::span<const std::uint8_t>
 void encode_viewer_view(const viewer_snapshot& s, const viewer_request& r, std::uint32_t grid_cells,
                         std::vector<std::uint8_t>& out) {
   const std::size_t n = s.size();
-  const float* xyz = s.xyz.data();
+  const float* xy = s.xy.data();
   const auto in_view = [&](std::size_t i) {
-    const float x = xyz[3 * i], y = xyz[3 * i + 1];
-    return x >= r.x0 && x <= r.x1 && y >= r.y0 && y <= r.y1;
+    const float x = xy[2 * i], y = xy[2 * i + 1];
+    return (x >= r.x0) & (x <= r.x1) & (y >= r.y0) & (y <= r.y1);  // no branches: the count pass vectorizes
   };
   std::uint32_t inside = 0;
   for (std::size_t i = 0; i < n; ++i) inside += in_view(i) ? 1u : 0u;
@@ -113,8 +118,8 @@ void encode_viewer_view(const viewer_snapshot& s, const viewer_request& r, std::
     const float sx = static_cast<float>(g) / (r.x1 - r.x0), sy = static_cast<float>(g) / (r.y1 - r.y0);
     for (std::size_t i = 0; i < n; ++i) {
       if (!in_view(i)) continue;
-      const auto cx = std::min<std::uint32_t>(g - 1, static_cast<std::uint32_t>((xyz[3 * i] - r.x0) * sx));
-      const auto cy = std::min<std::uint32_t>(g - 1, static_cast<std::uint32_t>((xyz[3 * i + 1] - r.y0) * sy));
+      const auto cx = std::min<std::uint32_t>(g - 1, static_cast<std::uint32_t>((xy[2 * i] - r.x0) * sx));
+      const auto cy = std::min<std::uint32_t>(g - 1, static_cast<std::uint32_t>((xy[2 * i + 1] - r.y0) * sy));
       auto* cell = counts + (std::size_t{cy} * g + cx) * 2;
       std::uint16_t c;
       std::memcpy(&c, cell, 2);
@@ -130,7 +135,7 @@ void encode_viewer_view(const viewer_snapshot& s, const viewer_request& r, std::
   const float sx = 65535.0f / (r.x1 - r.x0), sy = 65535.0f / (r.y1 - r.y0);
   for (std::size_t i = 0; i < n; ++i) {
     if (!in_view(i)) continue;
-    const std::uint16_t qx = quantize(xyz[3 * i], r.x0, sx), qy = quantize(xyz[3 * i + 1], r.y0, sy);
+    const std::uint16_t qx = quantize(xy[2 * i], r.x0, sx), qy = quantize(xy[2 * i + 1], r.y0, sy);
     std::memcpy(p, &s.ids[i], 4);
     std::memcpy(p + 4, &qx, 2);
     std::memcpy(p + 6, &qy, 2);

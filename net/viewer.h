@@ -27,10 +27,10 @@ namespace zone::net {
 struct viewer_snapshot {
   std::uint64_t tick = 0;
   float world_lo[3]{}, world_hi[3]{};
-  // Every entity, by dense index (size() entities: ids, classes and kind hold size() values, xyz
-  // three times as many).
+  // Every entity, by dense index (size() entities: ids, classes and kind hold size() values, xy
+  // twice as many).
   std::vector<std::uint32_t> ids;
-  std::vector<float> xyz;               ///< x, y, z of each entity, as the zone's store holds positions
+  std::vector<float> xy;                ///< x, y of each entity, as the zone's store holds positions (z: no frame needs it)
   std::vector<std::uint32_t> classes;   ///< visibility class of each entity (one bit set: bit 1 normal, 2 stealth, 3 red, 4 blue)
   std::vector<std::uint8_t> kind;       ///< 0 player, 1 NPC, 2 boss
   /// The filler's own tag for ids, classes and kind (the zone: its store's layout version): equal
@@ -40,11 +40,11 @@ struct viewer_snapshot {
   /// Entities in the snapshot (the columns' common length; a short column shortens it).
   [[nodiscard]] std::size_t size() const {
     const std::size_t n = ids.size() < classes.size() ? ids.size() : classes.size();
-    const std::size_t m = kind.size() < xyz.size() / 3 ? kind.size() : xyz.size() / 3;
+    const std::size_t m = kind.size() < xy.size() / 2 ? kind.size() : xy.size() / 2;
     return n < m ? n : m;
   }
-  [[nodiscard]] float x(std::size_t i) const { return xyz[3 * i]; }
-  [[nodiscard]] float y(std::size_t i) const { return xyz[3 * i + 1]; }
+  [[nodiscard]] float x(std::size_t i) const { return xy[2 * i]; }
+  [[nodiscard]] float y(std::size_t i) const { return xy[2 * i + 1]; }
 
   /// What a page shows for the entity it selected (only entities some viewer selected).
   struct event {

@@ -24,7 +24,9 @@ a snapshot is filled shows apart from one paid on every tick; and from the serve
 on the due ticks with the viewer open, the snapshot's fill on the tick's threads (viewer_fill_ms,
 wherever it ran) and, on the GPU interest engine, how much of its device wait was left after the
 host work overlapped with it (interest_wait_ms; near 0: that work outlasted the device, so it
-lengthened the tick).
+lengthened the tick). At the end, the server's viewer counters from /metrics (zone_viewer_*: among
+them how often a due snapshot's ids, classes and kinds were copied whole or only its classes
+patched) and zone_visibility_switches_total.
 
   python3 tools/viewer_tick_ab.py --server build/zone/zone-server --npcs 20000 --phase-s 1.5 --rounds 40
 
@@ -285,6 +287,27 @@ class viewer_socket:
         self.sock.close()
 
 
+def scrape_metrics(port, prefixes):
+    """The server's /metrics lines (name and value) that start with one of prefixes; {} when unreachable."""
+    try:
+        with socket.create_connection(("127.0.0.1", port), timeout=5) as c:
+            c.sendall(f"GET /metrics HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nConnection: close\r\n\r\n".encode())
+            data = b""
+            while True:
+                chunk = c.recv(65536)
+                if not chunk:
+                    break
+                data += chunk
+    except OSError:
+        return {}
+    out = {}
+    for line in data.decode(errors="replace").split("\r\n\r\n", 1)[-1].splitlines():
+        p = line.split()
+        if len(p) == 2 and not line.startswith("#") and p[0].startswith(prefixes):
+            out[p[0]] = p[1]
+    return out
+
+
 def sync_clock(path, srv, deadline, flushes=2):
     """The script's monotonic time at the CSV's t_s = 0 (the loop's first tick; a line's t_s is
     written at its tick's end). zone-server writes its --tick-csv through a stdio buffer (4 KB,
@@ -386,6 +409,7 @@ def main():
     log = open(log_path, "w")
     srv = subprocess.Popen(args, stdout=log, stderr=subprocess.STDOUT)
     swarm = None
+    metrics = {}  # the server's viewer counters at the end (scrape_metrics)
     try:
         port = None
         deadline = time.monotonic() + 120
@@ -469,6 +493,7 @@ def main():
                 client_cpu[opened] += (own1.user + own1.system) - (own0.user + own0.system)
                 loads.append(os.getloadavg()[0])
         time.sleep(0.5)
+        metrics = scrape_metrics(port, ("zone_viewer_", "zone_visibility_switches_total"))
     finally:
         if swarm is not None:
             swarm.terminate()
@@ -525,6 +550,9 @@ def main():
     print("per round: " + "; ".join(f"r{r} {'open' if o else 'none'} p99 {p99:.3f}" for (r, o, n, p50, p99) in per_round))
     print_pairs(ticks_of, a.bootstrap)
     print_due_split([(tick, ph == "viewer", ms) + extras.get(tick, (None, None)) for (tick, t, ms, ph, r) in out], every)
+    if metrics:
+        print("the server's counters at the end (/metrics, refreshed about once a second): "
+              + ", ".join(f"{k} {v}" for k, v in sorted(metrics.items())))
     if cpu[True]:
         names = sorted(set(cpu[False]) | set(cpu[True]), key=lambda n: -cpu[True].get(n, 0.0))
         print("CPU ms per second of the phases (none -> open), by thread: " + "; ".join(

@@ -38,6 +38,7 @@ void entity_store::reserve(std::size_t n) {
 
 void entity_store::clear() {
   space_.clear();
+  journal_count_ = 0;
   velocity_.clear();
   kind_.clear();
 }
@@ -75,6 +76,14 @@ std::optional<entity_desc> entity_store::get(entity_id id) const {
   if (i == npos) return std::nullopt;
   const auto s = *space_.get(id);
   return entity_desc{s.position, velocity_[i], s.visibility_class, s.sees, s.aoi_half, s.presence_half, kind_[i]};
+}
+
+bool entity_store::set_visibility(entity_id id, std::uint32_t visibility_class, std::uint32_t sees) {
+  const std::uint64_t before = space_.layout_version();
+  if (!space_.set_classes(id, visibility_class, sees)) return false;
+  journal_[journal_count_ % journal_.size()] = {before, space_.layout_version(), static_cast<std::uint32_t>(index_of(id))};
+  ++journal_count_;
+  return true;
 }
 
 bool entity_store::set_velocity(entity_id id, const vec3& v) {

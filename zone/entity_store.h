@@ -2,6 +2,7 @@
 // generation-checked handles (docs/zone.md, "Entity storage").
 #pragma once
 
+#include <algorithm>
 #include <cstddef>
 #include <cstdint>
 #include <optional>
@@ -120,9 +121,8 @@ class entity_store {
   bool set_velocity(entity_id id, const vec3& v);
   bool set_aoi_half_extent(entity_id id, const vec3& h) { return space_.resize_aoi(id, h); }
   bool set_presence_half_extent(entity_id id, const vec3& h) { return space_.resize_presence(id, h); }
-  bool set_visibility(entity_id id, std::uint32_t visibility_class, std::uint32_t sees) {
-    return space_.set_classes(id, visibility_class, sees);
-  }
+  /// Also records the change in the class journal (class_changes_since).
+  bool set_visibility(entity_id id, std::uint32_t visibility_class, std::uint32_t sees);
 
   // Dense columns, index = dense index. Positions and velocities are writable in bulk (the
   // movement systems); the interest step rejects non-finite values naming the entity.
@@ -145,6 +145,31 @@ class entity_store {
   /// versions mean equal ids, extents, classes and sees. (A GPU interest engine skips uploading
   /// them then.)
   [[nodiscard]] std::uint64_t layout_version() const { return space_.layout_version(); }
+  /// Entries of the class journal: the latest set_visibility calls, each with the layout
+  /// versions just before and after it.
+  static constexpr std::size_t class_journal_size = 1024;
+  /// For a consumer holding a copy of the classes as of layout version `since` (the live viewer's
+  /// snapshot): calls `changed(dense)` for each entity whose class (or mask) was set since, in
+  /// order (an entity may come more than once), and returns true, when the layout changed since
+  /// `since` by set_visibility calls only (no entity created or destroyed, no extent set, so the
+  /// ids and dense order are those of `since`) and all of them are still in the journal (the
+  /// latest class_journal_size). Otherwise returns false without calling `changed`: copy all.
+  /// `since` equal to layout_version(): true, no call.
+  template <class F>
+  bool class_changes_since(std::uint64_t since, F&& changed) const {
+    const std::size_t n = std::min(journal_count_, journal_.size());
+    std::uint64_t expect = layout_version();
+    std::size_t k = 0;  // entries back from the newest that lead from `since` to now
+    while (expect != since) {
+      if (k == n) return false;
+      const class_journal_entry& e = journal_[(journal_count_ - 1 - k) % journal_.size()];
+      if (e.after != expect) return false;  // a change other than set_visibility in between
+      expect = e.before;
+      ++k;
+    }
+    for (std::size_t j = k; j-- > 0;) changed(std::size_t{journal_[(journal_count_ - 1 - j) % journal_.size()].dense});
+    return true;
+  }
   /// Dense index by slot (0xffffffff: none), slot_count() entries: the map index_of reads.
   [[nodiscard]] std::span<const std::uint32_t> slot_dense() const { return space_.slot_dense(); }
   /// The interest columns of the live entities (row = dense index), for interest_tracker::update;
@@ -156,9 +181,18 @@ class entity_store {
   [[nodiscard]] const interest::interest_space& space() const { return space_; }
 
  private:
+  struct class_journal_entry {
+    std::uint64_t before = 0, after = 0;  ///< layout versions around one set_visibility
+    std::uint32_t dense = 0;              ///< the entity's dense index
+  };
+
   interest::interest_space space_;
   std::vector<vec3> velocity_;
   std::vector<entity_kind> kind_;
+  /// A ring of the latest set_visibility calls (class_changes_since): journal_count_ calls ever
+  /// recorded, the newest at (journal_count_ - 1) % size. Allocated once, at construction.
+  std::vector<class_journal_entry> journal_ = std::vector<class_journal_entry>(class_journal_size);
+  std::size_t journal_count_ = 0;
 };
 
 }  // namespace zone

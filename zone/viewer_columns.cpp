@@ -4,20 +4,61 @@
 #include <cstring>
 #include <functional>
 
+#if defined(__x86_64__) || defined(_M_X64)
+#include <immintrin.h>
+#define ZONE_VIEWER_STREAM_STORES 1
+#endif
+
 namespace zone {
 
-void fill_viewer_columns(const entity_store& store, net::viewer_snapshot& s, interest::thread_pool* pool,
-                         std::size_t chunk) {
+namespace {
+
+/// x and y of positions [begin, end) into xy (two floats an entity). On x86-64 with streaming
+/// (non-temporal) stores: the snapshot is read next by the viewer's thread on another core, so
+/// its lines need not pass through this core's caches (nor be read in before being written);
+/// the fence orders them before the pool's completion and the snapshot's hand-over.
+void copy_xy(const vec3* pos, float* xy, std::size_t begin, std::size_t end) {
+#ifdef ZONE_VIEWER_STREAM_STORES
+  auto* out = reinterpret_cast<long long*>(xy);  // 8-byte aligned: a float vector's data, an even index
+  for (std::size_t i = begin; i < end; ++i) {
+    long long v;
+    std::memcpy(&v, &pos[i], sizeof v);  // x, then y
+    _mm_stream_si64(out + i, v);
+  }
+  _mm_sfence();
+#else
+  for (std::size_t i = begin; i < end; ++i) {
+    xy[2 * i] = pos[i].x;
+    xy[2 * i + 1] = pos[i].y;
+  }
+#endif
+}
+
+}  // namespace
+
+viewer_columns_fill fill_viewer_columns(const entity_store& store, net::viewer_snapshot& s, interest::thread_pool* pool,
+                                        std::size_t chunk) {
   chunk = std::max<std::size_t>(1, chunk);
   const std::size_t n = store.size();
   const auto pos = store.positions();
+  const auto ids = store.ids();
+  const auto cls = store.visibility_classes();
+  const auto kinds = store.kinds();
   // Plain copies of the store's columns, converted only when encoded on the viewer's thread:
-  // positions always (12 bytes an entity); ids, classes and kinds only when the store's layout
+  // x and y always (8 bytes an entity); ids, classes and kinds only when the store's layout
   // changed since this buffer was filled (its version covers ids and classes; an entity's kind
-  // is fixed at creation).
+  // is fixed at creation), and of those only the classes of the entities set_visibility changed
+  // when that is all that changed (entity_store::class_changes_since: the dense order is the same).
   const std::uint64_t layout = store.layout_version();
-  const bool all = layout == 0 || s.layout != layout || s.ids.size() != n;
-  s.xyz.resize(3 * n);
+  viewer_columns_fill what = viewer_columns_fill::positions;
+  if (layout == 0 || s.layout == 0 || s.ids.size() != n || s.classes.size() != n || s.kind.size() != n) {
+    what = viewer_columns_fill::all;
+  } else if (s.layout != layout) {
+    what = store.class_changes_since(s.layout, [&](std::size_t d) { s.classes[d] = cls[d]; }) ? viewer_columns_fill::classes_patched
+                                                                                               : viewer_columns_fill::all;
+  }
+  const bool all = what == viewer_columns_fill::all;
+  s.xy.resize(2 * n);
   if (all) {
     s.ids.resize(n);
     s.classes.resize(n);
@@ -26,13 +67,10 @@ void fill_viewer_columns(const entity_store& store, net::viewer_snapshot& s, int
   static_assert(sizeof(vec3) == 3 * sizeof(float));
   static_assert(sizeof(entity_kind) == 1);
   static_assert(sizeof(entity_id) == sizeof(std::uint32_t));
-  const auto ids = store.ids();
-  const auto cls = store.visibility_classes();
-  const auto kinds = store.kinds();
   const auto copy = [&](std::size_t begin, std::size_t end) {
     if (begin >= end) return;
     const std::size_t len = end - begin;
-    std::memcpy(s.xyz.data() + 3 * begin, pos.data() + begin, len * sizeof(vec3));
+    copy_xy(pos.data(), s.xy.data(), begin, end);
     if (!all) return;
     std::memcpy(s.ids.data() + begin, ids.data() + begin, len * sizeof(std::uint32_t));
     std::memcpy(s.classes.data() + begin, cls.data() + begin, len * sizeof(std::uint32_t));
@@ -48,6 +86,7 @@ void fill_viewer_columns(const entity_store& store, net::viewer_snapshot& s, int
     pool->run(chunks, std::ref(task));  // by reference: no allocation
   }
   s.layout = layout;
+  return what;
 }
 
 }  // namespace zone

@@ -160,6 +160,10 @@ std::string zone_server::metrics_text() const {
             static_cast<double>(stats_.visibility_resyncs));
   t.counter("zone_visibility_notes_total", "Class notes sent (instead of resyncs) because an entity the client may hold changed class.",
             static_cast<double>(stats_.class_notes));
+  t.counter("zone_viewer_column_copies_total", "Viewer snapshots whose ids, classes and kinds were copied whole (entities created or destroyed).",
+            static_cast<double>(stats_.viewer_columns_copied_all));
+  t.counter("zone_viewer_class_patches_total", "Viewer snapshots that patched only the classes set_visibility changed.",
+            static_cast<double>(stats_.viewer_columns_classes_patched));
   t.counter("zone_net_connections_accepted_total", "Connections accepted.", static_cast<double>(ns.connections_accepted));
   t.counter("zone_net_connections_refused_total", "Connections refused (limit).", static_cast<double>(ns.connections_refused));
   t.gauge("zone_net_sessions_open", "Open sessions.", static_cast<double>(ns.sessions_open));
@@ -778,13 +782,18 @@ void zone_server::viewer_copy_columns() {
   if (!viewer_ || viewer_->viewers() == 0 || !viewer_snapshot_due()) return;
   const auto t0 = clock_type::now();
   // The pool is idle while the device works (replication's prestage, if any, has returned).
-  fill_viewer_columns(world_->store(), viewer_->next_snapshot(), pool_.get(), cfg_.viewer_copy_chunk);
+  count_viewer_columns(fill_viewer_columns(world_->store(), viewer_->next_snapshot(), pool_.get(), cfg_.viewer_copy_chunk));
   viewer_columns_tick_ = world_->tick();
   ++stats_.viewer_columns_in_interest_wait;
   viewer_fill_ms_ += ms_since(t0);
 }
 
-void zone_server::fill_viewer_snapshot(net::viewer_snapshot& s, interest::thread_pool* pool) const {
+void zone_server::count_viewer_columns(viewer_columns_fill what) {
+  if (what == viewer_columns_fill::all) ++stats_.viewer_columns_copied_all;
+  if (what == viewer_columns_fill::classes_patched) ++stats_.viewer_columns_classes_patched;
+}
+
+void zone_server::fill_viewer_snapshot(net::viewer_snapshot& s, interest::thread_pool* pool) {
   const entity_store& store = world_->store();
   const interest::interest_tracker& tr = world_->tracker();
   s.tick = world_->tick();
@@ -794,7 +803,7 @@ void zone_server::fill_viewer_snapshot(net::viewer_snapshot& s, interest::thread
   // single zone: nothing moves an entity after the step; a class changed since, by a player's
   // visibility switch, changes the layout version and the columns are copied again).
   if (viewer_columns_tick_ != s.tick || s.layout != store.layout_version()) {
-    fill_viewer_columns(store, s, pool, cfg_.viewer_copy_chunk);
+    count_viewer_columns(fill_viewer_columns(store, s, pool, cfg_.viewer_copy_chunk));
   }
   const auto pos = store.positions();
   const auto cls = store.visibility_classes();

@@ -52,6 +52,11 @@ struct loop_stats {
   /// Viewer snapshots whose entity columns (positions, and ids, classes, kinds when changed) were
   /// copied while the GPU interest engine's device worked (single zone only).
   std::uint64_t viewer_columns_in_interest_wait = 0;
+  /// Fills of the snapshot's entity columns (fill_viewer_columns) that copied the ids, classes and
+  /// kinds too (entities created or destroyed, an extent set, a fresh buffer), and those that
+  /// patched only the classes set_visibility changed; the others copied x and y alone.
+  std::uint64_t viewer_columns_copied_all = 0;
+  std::uint64_t viewer_columns_classes_patched = 0;
   latency_histogram inputs_ms, replicate_ms, tick_ms;  ///< plus zone_world::phases()
 };
 
@@ -198,7 +203,9 @@ class zone_server {
   void viewer_take_step(interest::thread_pool* pool);
   /// The snapshot (selections, and the entity columns unless viewer_copy_columns copied this
   /// tick's): the columns over `pool` when given (an idle pool: a device wait), else on this thread.
-  void fill_viewer_snapshot(net::viewer_snapshot& s, interest::thread_pool* pool) const;
+  void fill_viewer_snapshot(net::viewer_snapshot& s, interest::thread_pool* pool);
+  /// Counts what a fill_viewer_columns copied (loop_stats::viewer_columns_copied_all, ...).
+  void count_viewer_columns(viewer_columns_fill what);
   /// Inside the step, while the interest engine's device works (single zone only): a due
   /// snapshot's columns copied into the viewer's free buffer over the worker pool, idle then
   /// (fill_viewer_columns; the positions are final once integrated, and nothing after the step

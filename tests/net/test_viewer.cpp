@@ -47,9 +47,8 @@ std::shared_ptr<viewer_snapshot> random_snapshot(std::mt19937_64& rng, std::size
   std::uniform_real_distribution<float> coord(0, side);
   for (std::size_t i = 0; i < n; ++i) {
     s->ids.push_back(static_cast<std::uint32_t>(i + 1 + (rng() % 7) * (1u << 20)));
-    s->xyz.push_back(coord(rng));
-    s->xyz.push_back(coord(rng));
-    s->xyz.push_back(coord(rng));
+    s->xy.push_back(coord(rng));
+    s->xy.push_back(coord(rng));
     s->classes.push_back(1u << (1 + rng() % 4));
     s->kind.push_back(static_cast<std::uint8_t>(rng() % 3));
   }
@@ -66,6 +65,12 @@ struct served_viewer {
     REQUIRE_FALSE(http.start().has_value());
   }
 };
+
+/// A coordinate's quantization as the encoder's first version wrote it (std::round, then clamped).
+std::uint16_t round_quantized(float v, float lo, float hi) {
+  const float scale = 65535.0f / (hi - lo);
+  return static_cast<std::uint16_t>(std::clamp(std::round((v - lo) * scale), 0.0f, 65535.0f));
+}
 
 bool inside(const viewer_snapshot& s, std::size_t i, const viewer_request& r) {
   return s.x(i) >= r.x0 && s.x(i) <= r.x1 && s.y(i) >= r.y0 && s.y(i) <= r.y1;
@@ -136,11 +141,44 @@ TEST_SUITE("net.viewer") {
         const float x = r.x0 + at<std::uint16_t>(out, o + 4) * stepx, y = r.y0 + at<std::uint16_t>(out, o + 6) * stepy;
         CHECK(std::fabs(x - s->x(i)) <= stepx * 0.51f + 1e-3f);
         CHECK(std::fabs(y - s->y(i)) <= stepy * 0.51f + 1e-3f);
+        CHECK(at<std::uint16_t>(out, o + 4) == round_quantized(s->x(i), r.x0, r.x1));
+        CHECK(at<std::uint16_t>(out, o + 6) == round_quantized(s->y(i), r.y0, r.y1));
         CHECK(out[o + 8] == std::countr_zero(s->classes[i]));
         CHECK(out[o + 9] == s->kind[i]);
         expected.erase(it);  // each once
       }
       CHECK(expected.empty());
+    }
+  }
+
+  TEST_CASE("quantization rounds as std::round: halves, just below them, the viewport's edges") {
+    std::mt19937_64 rng(std::random_device{}());
+    const viewer_request unit{0, 0, 65535, 65535, 0, 1u << 20};  // one metre a step
+    std::vector<float> xs = {0.0f, 0.5f, 1.5f, 2.5f, std::nextafter(0.5f, 0.0f), std::nextafter(2.5f, 0.0f),
+                             std::nextafter(2.5f, 3.0f), 32767.5f, 65534.5f, std::nextafter(65534.5f, 0.0f),
+                             std::nextafter(65535.0f, 0.0f), 65535.0f, 1e-30f};
+    std::uniform_real_distribution<float> u(0, 65535);
+    for (int k = 0; k < 2000; ++k) xs.push_back(k % 2 ? u(rng) : std::floor(u(rng)) + 0.5f);
+    for (const viewer_request& r : {unit, viewer_request{-3.25f, 0, 1000.75f, 65535, 0, 1u << 20}}) {
+      auto s = std::make_shared<viewer_snapshot>();
+      for (std::size_t i = 0; i < xs.size(); ++i) {
+        const float x = r.x0 + (xs[i] / 65535.0f) * (r.x1 - r.x0);
+        s->ids.push_back(static_cast<std::uint32_t>(i + 1));
+        s->xy.push_back(std::clamp(x, r.x0, r.x1));
+        s->xy.push_back(std::clamp(xs[i], r.y0, r.y1));
+        s->classes.push_back(2);
+        s->kind.push_back(1);
+      }
+      std::vector<std::uint8_t> out;
+      encode_viewer_view(*s, r, 64, out);
+      REQUIRE(at<std::uint32_t>(out, 12) == xs.size());  // every one inside, in order
+      std::size_t bad = 0;
+      for (std::size_t i = 0; i < xs.size(); ++i) {
+        const std::size_t o = viewer_frame_header_bytes + i * viewer_entity_record_bytes;
+        bad += at<std::uint16_t>(out, o + 4) != round_quantized(s->x(i), r.x0, r.x1) ||
+               at<std::uint16_t>(out, o + 6) != round_quantized(s->y(i), r.y0, r.y1);
+      }
+      CHECK(bad == 0);
     }
   }
 
@@ -484,7 +522,7 @@ TEST_SUITE("net.viewer") {
         const std::size_t n = t % 50 + 1;
         s.tick = t;
         s.ids.resize(n);
-        s.xyz.assign(3 * n, static_cast<float>(t % 1000));
+        s.xy.assign(2 * n, static_cast<float>(t % 1000));
         s.classes.assign(n, 2);
         s.kind.assign(n, 1);
         for (std::size_t k = 0; k < n; ++k) s.ids[k] = static_cast<std::uint32_t>(t * 1000 + k);

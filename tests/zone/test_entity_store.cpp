@@ -226,4 +226,84 @@ TEST_SUITE("zone.entity_store") {
     (void)b.create(d);
     CHECK(b.layout_version() != a.layout_version());
   }
+
+  TEST_CASE("class_changes_since: the set_visibility calls since a version, or false after anything else") {
+    const std::uint64_t seed = fresh_seed();
+    CAPTURE(seed);
+    std::mt19937_64 rng(seed);
+    entity_store store(600);
+    for (int k = 0; k < 300; ++k) REQUIRE(store.create(random_desc(rng)) != null_entity);
+    // The model: every layout version seen, with what came after it (kind 0: a set_visibility of
+    // that dense index; 1: anything else that changed the layout).
+    struct step {
+      std::uint64_t version;  // the layout before the operation
+      int kind;
+      std::size_t dense;
+    };
+    std::vector<step> steps;
+    constexpr std::uint32_t classes[] = {cb::normal, cb::stealth, cb::team_red, cb::team_blue};
+    std::size_t checked_true = 0, checked_false = 0, overflowed = 0;
+    for (int op = 0; op < 6000; ++op) {
+      CAPTURE(op);
+      const std::uint64_t before = store.layout_version();
+      // Mostly switches; ops 2,000-4,499 switches only: a run longer than the journal.
+      const int what = op >= 2000 && op < 4500 ? 0 : static_cast<int>(rng() % 100);
+      if (what < 85) {
+        const std::size_t d = rng() % store.size();
+        const bool bad = rng() % 20 == 0;  // a refused call (the aoi bit as a class) records nothing
+        const bool ok = store.set_visibility(store.ids()[d], bad ? cb::aoi : classes[rng() % 4], cb::normal);
+        REQUIRE(ok == !bad);
+        if (ok) steps.push_back({before, 0, d});
+        CHECK((store.layout_version() != before) == ok);
+      } else if (what < 90) {
+        REQUIRE(store.create(random_desc(rng)) != null_entity);
+        steps.push_back({before, 1, 0});
+      } else if (what < 95) {
+        REQUIRE(store.destroy(store.ids()[rng() % store.size()]));
+        steps.push_back({before, 1, 0});
+      } else if (what < 98) {
+        REQUIRE(store.set_aoi_half_extent(store.ids()[rng() % store.size()], {10, 10, 10}));
+        steps.push_back({before, 1, 0});
+      } else {
+        store.positions()[rng() % store.size()] = {1, 2, 3};  // no layout change: no step
+        CHECK(store.layout_version() == before);
+      }
+      // A few versions from the past, the current one and one never seen.
+      for (int q = 0; q < 3; ++q) {
+        const std::size_t back = q == 0 ? 0 : std::min<std::size_t>(steps.size(), rng() % (q == 1 ? 8 : 2500));
+        const std::uint64_t since = back == 0 ? store.layout_version() : steps[steps.size() - back].version;
+        bool expect = true;
+        std::vector<std::size_t> want;
+        for (std::size_t k = steps.size() - back; k < steps.size(); ++k) {
+          if (steps[k].kind != 0) expect = false;
+          want.push_back(steps[k].dense);
+        }
+        if (back > entity_store::class_journal_size) {
+          overflowed += expect ? 1 : 0;
+          expect = false;
+        }
+        std::vector<std::size_t> got;
+        const bool ok = store.class_changes_since(since, [&](std::size_t d) { got.push_back(d); });
+        CAPTURE(back);
+        CHECK(ok == expect);
+        if (ok) {
+          CHECK(got == want);
+        } else {
+          CHECK(got.empty());
+        }
+        (expect ? checked_true : checked_false)++;
+      }
+      std::vector<std::size_t> none;
+      CHECK_FALSE(store.class_changes_since(0x7fff'ffff'ffff'ffffull, [&](std::size_t d) { none.push_back(d); }));
+      CHECK(none.empty());
+    }
+    CHECK(checked_true > 1000);
+    CHECK(checked_false > 1000);
+    CHECK(overflowed > 50);  // switches only, but more than the journal holds (about 380 expected)
+    // clear() forgets the journal: no version from before it leads to now.
+    const std::uint64_t old = store.layout_version();
+    store.clear();
+    CHECK_FALSE(store.class_changes_since(old, [](std::size_t) {}));
+    CHECK(store.class_changes_since(store.layout_version(), [](std::size_t) {}));
+  }
 }

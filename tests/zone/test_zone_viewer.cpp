@@ -18,6 +18,7 @@
 #include <vector>
 
 #include "../common/loopback_zone.h"
+#include "../common/seeds.h"
 #include "tests/net/loopback_client.h"
 #include "tests/net/ws_client.h"
 #include "interest/thread_pool.h"
@@ -44,44 +45,45 @@ zone_config viewer_config() {
   return c;
 }
 
-/// The single-threaded column copy fill_viewer_columns replaced (zone_server.cpp before it), as
-/// it was: the reference for the pooled one.
-void old_fill_viewer_columns(const entity_store& store, net::viewer_snapshot& s) {
+/// Every column copied whole from the store, single-threaded, as the fill did before it copied
+/// only what changed: the reference for fill_viewer_columns.
+void full_copy_columns(const entity_store& store, net::viewer_snapshot& s) {
   const std::size_t n = store.size();
   const auto pos = store.positions();
-  const std::uint64_t layout = store.layout_version();
-  s.xyz.resize(3 * n);
-  if (n > 0) std::memcpy(s.xyz.data(), pos.data(), n * sizeof(vec3));
-  if (layout == 0 || s.layout != layout || s.ids.size() != n) {
-    const auto ids = store.ids();
-    s.ids.assign(ids.begin(), ids.end());
-    const auto cls = store.visibility_classes();
-    s.classes.assign(cls.begin(), cls.end());
-    s.kind.resize(n);
-    if (n > 0) std::memcpy(s.kind.data(), store.kinds().data(), n);
+  s.xy.resize(2 * n);
+  for (std::size_t i = 0; i < n; ++i) {
+    s.xy[2 * i] = pos[i].x;
+    s.xy[2 * i + 1] = pos[i].y;
   }
-  s.layout = layout;
+  const auto ids = store.ids();
+  s.ids.assign(ids.begin(), ids.end());
+  const auto cls = store.visibility_classes();
+  s.classes.assign(cls.begin(), cls.end());
+  s.kind.resize(n);
+  if (n > 0) std::memcpy(s.kind.data(), store.kinds().data(), n);
+  s.layout = store.layout_version();
 }
 
-/// The snapshot's columns, byte for byte (xyz bit patterns, not float equality).
+/// The snapshot's columns, byte for byte (x and y bit patterns, not float equality).
 bool same_columns(const net::viewer_snapshot& a, const net::viewer_snapshot& b) {
   const auto bytes_equal = [](const auto& x, const auto& y) {
     return x.size() == y.size() && (x.empty() || std::memcmp(x.data(), y.data(), x.size() * sizeof(x[0])) == 0);
   };
-  return a.layout == b.layout && bytes_equal(a.xyz, b.xyz) && bytes_equal(a.ids, b.ids) && bytes_equal(a.classes, b.classes) &&
+  return a.layout == b.layout && bytes_equal(a.xy, b.xy) && bytes_equal(a.ids, b.ids) && bytes_equal(a.classes, b.classes) &&
          bytes_equal(a.kind, b.kind);
 }
 
 /// The columns equal the store's, entity by entity (independent of both copies).
 void check_columns_are_store(const entity_store& store, const net::viewer_snapshot& s) {
   REQUIRE(s.size() == store.size());
-  REQUIRE(s.xyz.size() == 3 * store.size());
+  REQUIRE(s.xy.size() == 2 * store.size());
   CHECK(s.layout == store.layout_version());
   std::size_t bad = 0;
   for (std::size_t i = 0; i < store.size(); ++i) {
     const vec3 p = store.positions()[i];
     bad += s.ids[i] != store.ids()[i] || s.classes[i] != store.visibility_classes()[i] ||
-           s.kind[i] != static_cast<std::uint8_t>(store.kinds()[i]) || std::memcmp(&s.xyz[3 * i], &p, sizeof p) != 0;
+           s.kind[i] != static_cast<std::uint8_t>(store.kinds()[i]) || std::memcmp(&s.xy[2 * i], &p.x, 4) != 0 ||
+           std::memcmp(&s.xy[2 * i + 1], &p.y, 4) != 0;
   }
   CHECK(bad == 0);
 }
@@ -104,7 +106,7 @@ void add_random_entities(entity_store& store, std::size_t count, std::mt19937& r
 }  // namespace
 
 TEST_SUITE("zone.viewer") {
-  TEST_CASE("the snapshot's columns over a pool are the old single-threaded copy's bytes (sizes 0, 1, odd, large)") {
+  TEST_CASE("the snapshot's columns over a pool are a full single-threaded copy's bytes (sizes 0, 1, odd, large)") {
     std::mt19937 rng(20261129);
     interest::thread_pool pool2(2), pool5(5);
     interest::thread_pool* pools[] = {nullptr, &pool2, &pool5};
@@ -123,30 +125,30 @@ TEST_SUITE("zone.viewer") {
         REQUIRE(store.size() == n);
         for (interest::thread_pool* pool : pools) {
           CAPTURE(pool != nullptr ? pool->size() : 0u);
-          net::viewer_snapshot fresh, old_fresh;
+          net::viewer_snapshot fresh, full_fresh;
           fill_viewer_columns(store, fresh, pool, chunk);
-          old_fill_viewer_columns(store, old_fresh);
-          CHECK(same_columns(fresh, old_fresh));
+          full_copy_columns(store, full_fresh);
+          CHECK(same_columns(fresh, full_fresh));
           check_columns_are_store(store, fresh);
 
           // A buffer filled before (a larger store's, then this one's), reused as the tick reuses
           // the viewer's three: positions moved (same layout: the ids, classes and kinds are kept),
           // then entities destroyed and created (a new layout: all copied again).
-          net::viewer_snapshot s, old_s;
+          net::viewer_snapshot s, full_s;
           entity_store other(n + 200);
           add_random_entities(other, n + 100, rng);
           fill_viewer_columns(other, s, pool, chunk);
-          old_fill_viewer_columns(other, old_s);
-          REQUIRE(same_columns(s, old_s));
+          full_copy_columns(other, full_s);
+          REQUIRE(same_columns(s, full_s));
           fill_viewer_columns(store, s, pool, chunk);
-          old_fill_viewer_columns(store, old_s);
-          CHECK(same_columns(s, old_s));
+          full_copy_columns(store, full_s);
+          CHECK(same_columns(s, full_s));
           check_columns_are_store(store, s);
           std::uniform_real_distribution<float> step(-2.0f, 2.0f);
-          for (vec3& p : store.positions()) p = {p.x + step(rng), p.y + step(rng), p.z};
+          for (vec3& p : store.positions()) p = {p.x + step(rng), p.y + step(rng), p.z + step(rng)};
           fill_viewer_columns(store, s, pool, chunk);
-          old_fill_viewer_columns(store, old_s);
-          CHECK(same_columns(s, old_s));
+          full_copy_columns(store, full_s);
+          CHECK(same_columns(s, full_s));
           check_columns_are_store(store, s);
           if (n > 0) {
             (void)store.destroy(store.ids()[rng() % store.size()]);
@@ -154,12 +156,104 @@ TEST_SUITE("zone.viewer") {
             if (n > 2) (void)store.set_visibility(store.ids()[n / 2], interest::category_bits::stealth, interest::category_bits::normal);
           }
           fill_viewer_columns(store, s, pool, chunk);
-          old_fill_viewer_columns(store, old_s);
-          CHECK(same_columns(s, old_s));
+          full_copy_columns(store, full_s);
+          CHECK(same_columns(s, full_s));
           check_columns_are_store(store, s);
         }
       }
     }
+  }
+
+  TEST_CASE("three rotating buffers filled incrementally hold a full copy's columns (creations, removals, switches, extents)") {
+    const std::uint64_t seed = zone::test::fresh_seed();
+    CAPTURE(seed);
+    std::mt19937 rng(static_cast<std::uint32_t>(seed));
+    interest::thread_pool pool2(2), pool5(5);
+    const std::uint32_t classes[] = {interest::category_bits::normal, interest::category_bits::stealth,
+                                     interest::category_bits::team_red, interest::category_bits::team_blue};
+    std::size_t seen[3] = {0, 0, 0};  // fills by viewer_columns_fill
+    for (const std::size_t n : {std::size_t{0}, std::size_t{1}, std::size_t{2}, std::size_t{777}, viewer_columns_chunk + 1,
+                                std::size_t{100003}}) {
+      for (interest::thread_pool* pool : {static_cast<interest::thread_pool*>(nullptr), &pool2, &pool5}) {
+        const std::size_t chunk = n < 1000 ? 7 : n < 20000 ? 1000 : viewer_columns_chunk;
+        CAPTURE(n);
+        CAPTURE(pool != nullptr ? pool->size() : 0u);
+        entity_store store(n + 64);
+        add_random_entities(store, n, rng);
+        for (std::size_t k = 0; k < n / 10; ++k) (void)store.destroy(store.ids()[rng() % store.size()]);  // ids out of order
+        add_random_entities(store, n - store.size(), rng);
+        REQUIRE(store.size() == n);
+        // What changed since each buffer was last filled: the switches (set_visibility calls) and
+        // whether anything else changed the layout; never filled: all.
+        struct since_fill {
+          bool filled = false, other = false;
+          std::size_t switches = 0;
+        } since[3];
+        net::viewer_snapshot buffers[3];
+        std::uniform_real_distribution<float> step(-2.0f, 2.0f);
+        for (int t = 0; t < 24; ++t) {
+          CAPTURE(t);
+          for (vec3& p : store.positions()) p = {p.x + step(rng), p.y + step(rng), p.z + step(rng)};  // every tick
+          std::size_t switches = 0;
+          bool other = false;
+          switch (rng() % 6) {
+            case 0:  // a few visibility switches, an entity switched twice now and then
+              for (std::size_t k = 0, m = 1 + rng() % 5; k < m && n > 0; ++k) {
+                const entity_id id = store.ids()[rng() % n];
+                REQUIRE(store.set_visibility(id, classes[rng() % 4], interest::category_bits::normal));
+                ++switches;
+                if (rng() % 3 == 0) {
+                  REQUIRE(store.set_visibility(id, classes[rng() % 4], interest::category_bits::normal));
+                  ++switches;
+                }
+              }
+              break;
+            case 1:  // one destroyed, one created: the dense order moves
+              if (n > 0) REQUIRE(store.destroy(store.ids()[rng() % n]));
+              add_random_entities(store, 1, rng);
+              if (n == 0) REQUIRE(store.destroy(store.ids()[0]));
+              other = true;
+              break;
+            case 2:  // an extent (not a viewer column, but the layout changes: copied whole)
+              if (n > 0) {
+                REQUIRE(store.set_aoi_half_extent(store.ids()[rng() % n], {20, 20, 20}));
+                other = true;
+              }
+              break;
+            case 3:  // more switches than the journal holds
+              if (n > 0 && rng() % 2 == 0) {
+                for (std::size_t k = 0; k < entity_store::class_journal_size + 3; ++k) {
+                  REQUIRE(store.set_visibility(store.ids()[rng() % n], classes[rng() % 4], interest::category_bits::normal));
+                }
+                switches = entity_store::class_journal_size + 3;
+              }
+              break;
+            default:  // positions only
+              break;
+          }
+          for (auto& f : since) {
+            f.switches += switches;
+            f.other = f.other || other;
+          }
+          const std::size_t b = static_cast<std::size_t>(t) % 3;
+          const viewer_columns_fill expect = !since[b].filled || since[b].other || since[b].switches > entity_store::class_journal_size
+                                                 ? viewer_columns_fill::all
+                                             : since[b].switches > 0 ? viewer_columns_fill::classes_patched
+                                                                     : viewer_columns_fill::positions;
+          const viewer_columns_fill got = fill_viewer_columns(store, buffers[b], pool, chunk);
+          CHECK(static_cast<int>(got) == static_cast<int>(expect));
+          ++seen[static_cast<int>(got)];
+          since[b] = {true, false, 0};
+          net::viewer_snapshot full;
+          full_copy_columns(store, full);
+          CHECK(same_columns(buffers[b], full));
+          check_columns_are_store(store, buffers[b]);
+        }
+      }
+    }
+    CHECK(seen[0] > 20);  // each path taken
+    CHECK(seen[1] > 20);
+    CHECK(seen[2] > 20);
   }
 
   TEST_CASE("config: the viewer needs the HTTP endpoint; rates and caps are checked") {
