@@ -429,11 +429,14 @@ TEST_SUITE("bots.oracle") {
 
   TEST_CASE("players switch stealth and team mid-run: the replicator's views pass the oracle from the tick a switch takes effect") {
     // A crowd of players in teams switching visibility every few ticks beside NPCs of every class.
-    // With replicator::resync_viewers_of (what zone_server does after the step), every client's
-    // view passes the oracle's checks at every tick; without it, a teammate's view keeps the
-    // class an entity entered with, and the oracle reports wrong classes (the check is not blind).
-    for (const bool with_resync : {true, false}) {
-      CAPTURE(with_resync);
+    // With replicator::resync_viewers_of (what zone_server does after the step: resets, or class
+    // notes applied before the tick's frame for clients that take them), every client's view
+    // passes the oracle's checks at every tick; without it, a teammate's view keeps the class an
+    // entity entered with, and the oracle reports wrong classes (the check is not blind).
+    enum class mode { resets, notes, neither };
+    for (const mode how : {mode::resets, mode::notes, mode::neither}) {
+      CAPTURE(static_cast<int>(how));
+      const bool with_resync = how != mode::neither;
       const std::uint64_t seed = zone::test::fresh_seed();
       CAPTURE(seed);
       tracked_world w(seed, 300);
@@ -451,8 +454,9 @@ TEST_SUITE("bots.oracle") {
       std::vector<client> clients;
       replication_writer writer;
       truth_writer truth;
-      std::uint64_t switches = 0, resyncs = 0;
+      std::uint64_t switches = 0, resyncs = 0, notes = 0;
       std::uint64_t first_bad_tick = 0;
+      std::vector<replicator::class_note_target> noted;
       for (std::uint64_t tick = 0; tick < 100; ++tick) {
         if (tick > 0) {
           for (auto& p : w.store.positions()) {
@@ -472,6 +476,7 @@ TEST_SUITE("bots.oracle") {
             const entity_id id = w.store.create(d);
             REQUIRE(id != null_entity);
             clients.push_back({id, rep.add_client(id), net::client_view(w.world)});
+            rep.set_class_notes(clients.back().c, how == mode::notes);
           }
         }
         // Two players switch each tick: stealth toggled, sometimes another team.
@@ -491,12 +496,21 @@ TEST_SUITE("bots.oracle") {
           ++switches;
         }
         REQUIRE_FALSE(w.tracker.update(w.store.columns()).has_value());
+        noted.clear();
         if (with_resync) {
-          for (const auto& ch : changed) resyncs += rep.resync_viewers_of(w.store, ch.id, ch.old_class, ch.old_sees, 4.0f);
+          std::vector<class_change> changes;
+          for (const auto& ch : changed) changes.push_back({ch.id, ch.old_class, ch.old_sees});
+          resyncs += rep.resync_viewers_of(w.store, changes, 4.0f, nullptr, &noted);
+          notes += noted.size();
         }
         REQUIRE_FALSE(oracle.feed(truth.body(w.store, tick)).has_value());
         for (std::size_t i = 0; i < clients.size(); ++i) {
           client& cl = clients[i];
+          net::class_changes_msg msg{tick, {}};
+          for (const auto& n : noted) {
+            if (n.client == cl.c) msg.notes.push_back({n.entity, n.visibility_class});
+          }
+          if (!msg.notes.empty()) REQUIRE(cl.view.apply(msg) == net::client_view::status::ok);
           const auto frame = rep.build(cl.c, w.store, w.tracker, tick, 0, 0, writer, nullptr);
           const auto m = decode_update(frame);
           REQUIRE(cl.view.apply(m) == net::client_view::status::ok);
@@ -506,8 +520,8 @@ TEST_SUITE("bots.oracle") {
         }
       }
       const auto& c = oracle.counters();
-      MESSAGE(std::string(with_resync ? "with" : "without") << " resync: " << switches << " switches, " << resyncs << " clients resynced, "
-              << c.frames_checked.load() << " frames checked; wrong class " << c.wrong_class.load() << ", missing "
+      MESSAGE(std::string(how == mode::resets ? "resets" : how == mode::notes ? "class notes" : "neither") << ": " << switches
+              << " switches, " << resyncs << " clients resynced, " << notes << " notes, " << c.frames_checked.load() << " frames checked; wrong class " << c.wrong_class.load() << ", missing "
               << c.missing.load() << ", extra " << c.extra.load() << ", leaked " << c.leaked.load());
       CHECK(c.frames_checked.load() == 99 * clients.size());
       // The switches reached the oracle as changes to the layout, not whole layouts.
@@ -515,7 +529,8 @@ TEST_SUITE("bots.oracle") {
       CHECK(oracle.report().truth_changes == truth.changes);
       CHECK(truth.layouts <= 2);
       if (with_resync) {
-        CHECK(resyncs > 20);
+        CHECK((how == mode::resets ? resyncs : notes) > 20);
+        if (how == mode::notes) CHECK(resyncs == 0);
         CHECK(c.mismatches() == 0);
         CHECK(first_bad_tick == 0);
       } else {
