@@ -20,6 +20,16 @@ namespace po = boost::program_options;
 using zone::bots::swarm_options;
 using zone::bots::swarm_result;
 using zone::bots::latency_histogram_us;
+using zone::bots::percentile_ms;
+
+namespace {
+/// Values recorded in a histogram.
+std::uint64_t samples_of(const latency_histogram_us::counts& c) {
+  std::uint64_t n = 0;
+  for (const auto v : c) n += v;
+  return n;
+}
+}  // namespace
 
 /// "walk=0.6,patrol=0.2,follow=0.1,crowd=0.1" -> shares; an error text on a bad entry.
 std::string parse_mix(const std::string& text, std::array<double, zone::bots::behaviour_count>& mix) {
@@ -125,6 +135,11 @@ void print_table(const swarm_result& r, const summary& s) {
   row("class notes received", num(r.class_notes));
   row("redirects followed (world of zones)", num(r.redirects));
   row("logins again after a disconnect", num(r.reconnects));
+  const auto login = [&](const latency_histogram_us::counts& c, double max_ms) {
+    return ms(percentile_ms(c, 0.5)) + " / " + ms(percentile_ms(c, 0.99)) + " / " + ms(max_ms) + " (" + num(samples_of(c)) + ")";
+  };
+  row("login: launch to connected p50 / p99 / max", login(r.connect_time, r.connect_max_ms));
+  row("login: connected to welcome p50 / p99 / max", login(r.welcome_time, r.welcome_max_ms));
   row("update latency p50", ms(s.p50));
   row("update latency p95", ms(s.p95));
   row("update latency p99", ms(s.p99));
@@ -213,6 +228,11 @@ bool write_json(const std::string& path, const swarm_result& r, const summary& s
                      {"p99", s.p99},         {"max", s.max},
                      {"samples", s.samples}, {"unsynced", r.latency_unsynced},
                      {"min_rtt", r.min_rtt_ms}};
+  const auto login_json = [](const latency_histogram_us::counts& c, double max_ms) {
+    return nlohmann::json{{"p50", percentile_ms(c, 0.5)}, {"p99", percentile_ms(c, 0.99)}, {"max", max_ms}, {"samples", samples_of(c)}};
+  };
+  j["login_connect_ms"] = login_json(r.connect_time, r.connect_max_ms);
+  j["login_welcome_ms"] = login_json(r.welcome_time, r.welcome_max_ms);
   j["latency_steady_ms"] = {{"from_s", r.steady_from_s}, {"p50", s.steady_p50},          {"p95", s.steady_p95},
                             {"p99", s.steady_p99},       {"samples", s.steady_samples}};
   j["per_bot"] = {{"kbps_median", s.kbps_median}, {"kbps_p95", s.kbps_p95}, {"msgs_per_s_median", s.msgs_median}};

@@ -157,6 +157,7 @@ class bot_session : public std::enable_shared_from_this<bot_session> {
   float hysteresis_ = 0, max_speed_ = 0;
   double tick_rate_ = 30;
   steady::time_point welcomed_at_{};
+  steady::time_point launched_at_{}, connected_at_{};  ///< start(), on_connect() (the login's durations)
   std::uint32_t sequence_ = 0;
   std::uint64_t inputs_ = 0;  ///< intent evaluations
   std::uint64_t next_input_us_ = 0, last_input_sent_us_ = 0;
@@ -338,6 +339,10 @@ class swarm {
     r.slots = slots_;
     r.series = series_;
     r.latency = latency_snapshot();
+    r.connect_time = connect_time_.snapshot();
+    r.welcome_time = welcome_time_.snapshot();
+    r.connect_max_ms = connect_time_.max() / 1000.0;
+    r.welcome_max_ms = welcome_time_.max() / 1000.0;
     for (const auto& h : latency_) r.latency_max_ms = std::max(r.latency_max_ms, h->max() / 1000.0);
     if (steady_from >= 0) {
       r.steady_from_s = steady_from;
@@ -477,6 +482,9 @@ class swarm {
   swarm_counters& counters() { return c_; }
   slot_stats& slot(std::size_t i) { return slots_[i]; }
   latency_histogram_us& latency(unsigned thread) { return *latency_[thread]; }
+  /// Logins' durations (launch to connected, connected to welcome), shared by the threads (lock-free).
+  latency_histogram_us& connect_time() { return connect_time_; }
+  latency_histogram_us& welcome_time() { return welcome_time_; }
   latency_histogram_us::counts latency_snapshot() const {
     latency_histogram_us::counts sum{};
     for (const auto& h : latency_) {
@@ -515,6 +523,7 @@ class swarm {
   std::uint64_t seed_ = 1;
   swarm_counters c_;
   std::vector<std::unique_ptr<latency_histogram_us>> latency_;  // one per I/O thread
+  latency_histogram_us connect_time_, welcome_time_;
   position_board board_;
   std::vector<second_sample> series_;
   std::mutex problems_mutex_;
@@ -654,6 +663,7 @@ void bot_session::start() {
   // Counted at once (the ramp reads it right after launching); the session's thread decrements.
   connecting_ = true;
   s_.counters().connecting_now.fetch_add(1, std::memory_order_relaxed);
+  launched_at_ = steady::now();
   asio::dispatch(io_, [this, self] {
     s_.counters().connect_attempts.fetch_add(1, std::memory_order_relaxed);
     welcome_timer_.expires_after(std::chrono::duration_cast<steady::duration>(std::chrono::duration<double>(s_.opt_ref().connect_timeout_s)));
@@ -675,6 +685,8 @@ void bot_session::logout() {
 void bot_session::on_connect(const boost::system::error_code& ec) {
   if (closed_) return;
   if (ec) return fail("connect: " + ec.message(), true);
+  connected_at_ = steady::now();
+  s_.connect_time().record(std::chrono::duration<double, std::micro>(connected_at_ - launched_at_).count());
   boost::system::error_code ignored;
   socket_.set_option(tcp::no_delay(true), ignored);
   net::hello_msg hello{"bot-" + std::to_string(slot_), token_, net::protocol_version};
@@ -784,6 +796,7 @@ void bot_session::on_frame(const net::frame_view& f, std::uint64_t received_us) 
 void bot_session::on_welcome(const net::wire::welcome& w) {
   if (playing_) return;
   welcome_timer_.cancel();
+  s_.welcome_time().record(std::chrono::duration<double, std::micro>(steady::now() - connected_at_).count());
   reconnecting_since_.reset();  // logged in again: a later loss starts its own retries
   entity_ = w.entity_id();
   net::world_bounds world{};

@@ -142,6 +142,11 @@ struct swarm_result {
   /// ramp-up left out); steady_from_s < 0 when that never happened (then steady_latency is empty).
   double steady_from_s = -1;
   latency_histogram_us::counts steady_latency{};
+  /// How long logins took (every session, churn and redirects included): from the launch (the
+  /// ramp's or churn's decision) to the TCP connection, and from there to the welcome. A slow
+  /// connect ramp shows in one or the other.
+  latency_histogram_us::counts connect_time{}, welcome_time{};
+  double connect_max_ms = 0, welcome_max_ms = 0;
   std::vector<std::string> problems;  ///< first mismatches and failures, readable (tick and ids)
   std::uint64_t problems_total = 0;
   // Copies of the counters at the end.

@@ -3,6 +3,8 @@
 // Bounds and scenarios are documented in docs/bots.md.
 #include <doctest/doctest.h>
 
+#include <regex>
+
 #include <netinet/tcp.h>
 #include <poll.h>
 
@@ -562,6 +564,17 @@ TEST_CASE("ramp: 800 bots launched at once from one address all join under the s
   CHECK(run.rc == 0);
   CHECK(json_number(report, "bots_connected").value_or(-1) == 800);
   CHECK(json_number(report, "connect_failures").value_or(-1) == 0);
+  // Every login's two durations were recorded (launch to connected, connected to welcome).
+  for (const char* key : {"login_connect_ms", "login_welcome_ms"}) {
+    CAPTURE(key);
+    std::smatch m;
+    const std::regex samples(std::string("\"") + key + "\": \\{[^}]*\"samples\": ([0-9]+)");
+    REQUIRE(std::regex_search(report, m, samples));
+    CHECK(std::stoull(m[1].str()) == 800);
+    const std::regex p99(std::string("\"") + key + "\": \\{[^}]*\"p99\": ([-0-9.eE+]+)");
+    REQUIRE(std::regex_search(report, m, p99));
+    CHECK(std::stod(m[1].str()) > 0);
+  }
   // The server closed no connection for the pending caps (the swarm held at most --max-connecting).
   const std::string scrape = http_get_metrics(server.metrics_port);
   INFO("zone-server metrics:\n" << scrape);
