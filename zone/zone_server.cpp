@@ -231,7 +231,7 @@ std::string zone_server::metrics_text() const {
               static_cast<double>(metrics_->accept_errors()));
   }
   // Phase histograms in seconds, one bucket per octave.
-  const auto phase = [&](const char* name, const latency_histogram& h) {
+  const auto histogram = [&](const char* metric, const char* help, const std::string& labels, const latency_histogram& h) {
     std::vector<double> bounds;
     std::vector<std::uint64_t> cumulative;
     std::uint64_t seen = 0;
@@ -242,9 +242,17 @@ std::string zone_server::metrics_text() const {
         cumulative.push_back(seen);
       }
     }
-    t.histogram("zone_tick_phase_seconds", "Wall time of the tick and its phases.", bounds, cumulative, h.sum() / 1000.0,
-                h.count(), std::string("phase=\"") + name + "\"");
+    t.histogram(metric, help, bounds, cumulative, h.sum() / 1000.0, h.count(), labels);
   };
+  const auto phase = [&](const char* name, const latency_histogram& h) {
+    histogram("zone_tick_phase_seconds", "Wall time of the tick and its phases.", std::string("phase=\"") + name + "\"", h);
+  };
+  const auto join = [&](const char* part, const latency_histogram& h) {
+    histogram("zone_join_seconds", "A player's join: its connection accepted to its hello read, and that to its welcome queued.",
+              std::string("part=\"") + part + "\"", h);
+  };
+  join("accept_to_hello", stats_.join_hello_ms);
+  join("hello_to_welcome", stats_.join_welcome_ms);
   phase("tick", stats_.tick_ms);
   phase("inputs", stats_.inputs_ms);
   phase("behaviours", world_->phases().behaviours);
@@ -351,7 +359,8 @@ void zone_server::drain_inputs() {
   for (auto& e : events_) {
     switch (e.type) {
       case net::inbound_event::kind::connected:
-        break;  // nothing until hello
+        join_times_[e.session] = {e.accepted_us, e.hello_us};  // the player is made at its hello
+        break;
       case net::inbound_event::kind::message: {
         if (!e.msg) break;
         if (const auto* hello = std::get_if<net::hello_msg>(&*e.msg)) {
@@ -406,6 +415,7 @@ void zone_server::drain_inputs() {
       }
       case net::inbound_event::kind::disconnected: {
         std::erase_if(pending_hellos_, [&](const pending_hello& p) { return p.session == e.session; });
+        join_times_.erase(e.session);
         const auto it = clients_.find(e.session);
         if (it == clients_.end()) break;
         spdlog::debug("session {}: left ({})", e.session, net::escape_for_log(e.reason, 200));
@@ -430,6 +440,12 @@ void zone_server::welcome(net::session_id session, entity_id id, const std::stri
   c.written = net_.bytes_written(session);
   c.replica = replicator_.add_client(id);
   replicator_.set_class_notes(c.replica, class_changes);
+  if (const auto jt = join_times_.find(session); jt != join_times_.end()) {
+    const std::uint64_t now = net_.now_us();
+    stats_.join_hello_ms.record(static_cast<double>(jt->second.hello_us - jt->second.accepted_us) / 1000.0);
+    stats_.join_welcome_ms.record(static_cast<double>(now - std::min(now, jt->second.hello_us)) / 1000.0);
+    join_times_.erase(jt);
+  }
   if (session_of_replica_.size() <= c.replica) session_of_replica_.resize(c.replica + 1);
   session_of_replica_[c.replica] = session;
   session_of_entity_[id] = session;
@@ -685,11 +701,14 @@ void zone_server::log_summary() {
   // Quiet when nothing happened.
   if (joined + left + refused + timeouts + limited + rejected + churn != 0) {
     spdlog::info("clients: {} ({} joined, {} left in {:.0f} s); refused {} (slots {}, evicted per address {}, evicted in all {}, bad hello {}); "
-                 "timeouts {} (hello {}, idle {}); rate-limited {}; refused at accept (connect-rate) {}; bad frames {}; {} without hello now",
+                 "timeouts {} (hello {}, idle {}); rate-limited {}; refused at accept (connect-rate) {}; bad frames {}; {} without hello now; "
+                 "joins so far: accept to hello p50 {:.1f} / p99 {:.1f} ms, hello to welcome p50 {:.1f} / p99 {:.1f} ms",
                  clients_.size(), joined, left, cfg_.log_summary_s, refused, ns.connections_refused - a.connections_refused,
                  ns.pending_evicted_address - a.pending_evicted_address, ns.pending_evicted - a.pending_evicted,
                  ns.hellos_rejected - a.hellos_rejected, timeouts, ns.hello_timeouts - a.hello_timeouts,
-                 ns.idle_timeouts - a.idle_timeouts, limited, churn, rejected, ns.pending_open);
+                 ns.idle_timeouts - a.idle_timeouts, limited, churn, rejected, ns.pending_open,
+                 stats_.join_hello_ms.percentile(0.5), stats_.join_hello_ms.percentile(0.99),
+                 stats_.join_welcome_ms.percentile(0.5), stats_.join_welcome_ms.percentile(0.99));
   }
   summary_net_ = ns;
   summary_loop_.joins = stats_.joins;

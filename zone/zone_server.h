@@ -58,6 +58,9 @@ struct loop_stats {
   std::uint64_t viewer_columns_copied_all = 0;
   std::uint64_t viewer_columns_classes_patched = 0;
   latency_histogram inputs_ms, replicate_ms, tick_ms;  ///< plus zone_world::phases()
+  /// Players' joins: the connection accepted to its hello read (net), and that to the welcome
+  /// queued (the next tick's input phase, or a world's redirect token claimed).
+  latency_histogram join_hello_ms, join_welcome_ms;
 };
 
 /// What a world of zones (world/, docs/world.md) plugs into the tick loop; a single zone has none.
@@ -184,6 +187,10 @@ class zone_server {
     bool class_changes;  ///< hello{class_changes}
   };
   std::vector<pending_hello> pending_hellos_;
+  struct join_time {
+    std::uint64_t accepted_us, hello_us;  ///< net::inbound_event's, for the join histograms
+  };
+  std::unordered_map<net::session_id, join_time> join_times_;  ///< sessions announced, not welcomed yet
   void retry_pending_hellos();
   zone_extension* ext_ = nullptr;
   std::vector<zone_extension::redirect> redirects_;

@@ -952,6 +952,11 @@ TEST_SUITE("zone.server") {
     CHECK(server.stats().class_notes == 1);
     CHECK(server.stats().visibility_resyncs == 1);  // the older teammate (the switcher's own mask is unchanged)
     CHECK(server.metrics_text().find("zone_visibility_notes_total 1") != std::string::npos);
+    // The three joins were timed, both halves (the histograms' counts).
+    const std::string text = server.metrics_text();
+    INFO(text);
+    CHECK(text.find("zone_join_seconds_count{part=\"accept_to_hello\"} 3\n") != std::string::npos);
+    CHECK(text.find("zone_join_seconds_count{part=\"hello_to_welcome\"} 3\n") != std::string::npos);
   }
 
   TEST_CASE("bounded staleness: a client that stops reading for 3 s gets current state within a few ticks of resuming") {
