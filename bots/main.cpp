@@ -17,10 +17,10 @@
 namespace {
 
 namespace po = boost::program_options;
-using zone::bots::swarm_options;
-using zone::bots::swarm_result;
 using zone::bots::latency_histogram_us;
 using zone::bots::percentile_ms;
+using zone::bots::swarm_options;
+using zone::bots::swarm_result;
 
 namespace {
 /// Values recorded in a histogram.
@@ -136,7 +136,8 @@ void print_table(const swarm_result& r, const summary& s) {
   row("redirects followed (world of zones)", num(r.redirects));
   row("logins again after a disconnect", num(r.reconnects));
   const auto login = [&](const latency_histogram_us::counts& c, double max_ms) {
-    return ms(percentile_ms(c, 0.5)) + " / " + ms(percentile_ms(c, 0.99)) + " / " + ms(max_ms) + " (" + num(samples_of(c)) + ")";
+    return ms(percentile_ms(c, 0.5)) + " / " + ms(percentile_ms(c, 0.99)) + " / " + ms(max_ms) + " (" +
+           num(samples_of(c)) + ")";
   };
   row("login: launch to connected p50 / p99 / max", login(r.connect_time, r.connect_max_ms));
   row("login: connected to welcome p50 / p99 / max", login(r.welcome_time, r.welcome_max_ms));
@@ -229,7 +230,8 @@ bool write_json(const std::string& path, const swarm_result& r, const summary& s
                      {"samples", s.samples}, {"unsynced", r.latency_unsynced},
                      {"min_rtt", r.min_rtt_ms}};
   const auto login_json = [](const latency_histogram_us::counts& c, double max_ms) {
-    return nlohmann::json{{"p50", percentile_ms(c, 0.5)}, {"p99", percentile_ms(c, 0.99)}, {"max", max_ms}, {"samples", samples_of(c)}};
+    return nlohmann::json{
+        {"p50", percentile_ms(c, 0.5)}, {"p99", percentile_ms(c, 0.99)}, {"max", max_ms}, {"samples", samples_of(c)}};
   };
   j["login_connect_ms"] = login_json(r.connect_time, r.connect_max_ms);
   j["login_welcome_ms"] = login_json(r.welcome_time, r.welcome_max_ms);
@@ -382,45 +384,68 @@ int main(int argc, char** argv) {
   unsigned port = o.port;
   std::string oracle_zones;
   po::options_description desc("bot-swarm options");
-  desc.add_options()                                                                                   //
-      ("help,h", "print this help and exit")                                                           //
-      ("host", po::value(&o.host)->default_value(o.host), "zone server host")                          //
-      ("port", po::value(&port)->default_value(port), "zone server port")                              //
-      ("bots", po::value(&o.bots)->default_value(o.bots), "number of bots")                            //
+  desc.add_options()                                                                                                 //
+      ("help,h", "print this help and exit")                                                                         //
+      ("host", po::value(&o.host)->default_value(o.host), "zone server host")                                        //
+      ("port", po::value(&port)->default_value(port), "zone server port")                                            //
+      ("bots", po::value(&o.bots)->default_value(o.bots), "number of bots")                                          //
       ("duration", po::value(&o.duration_s)->default_value(o.duration_s), "run time in seconds (ramp-up included)")  //
-      ("ramp", po::value(&o.ramp)->default_value(o.ramp), "new bots per second during ramp-up")        //
+      ("ramp", po::value(&o.ramp)->default_value(o.ramp), "new bots per second during ramp-up")                      //
       ("max-connecting", po::value(&o.max_connecting)->default_value(o.max_connecting),
        "at most this many bots connecting at once (from connect until the welcome; the ramp waits for welcomes "
        "so a lagging swarm or server never holds more connections without a hello read than the server's --max-pending caps; 0 = no limit)")  //
-      ("input-hz", po::value(&o.input_hz)->default_value(o.input_hz), "intent evaluations per second per bot (an input each with --inputs every)")  //
-      ("inputs", po::value(&inputs_mode)->default_value(inputs_mode), "changes: send an input when the intent changes (and as a keep-alive); every: at every evaluation")  //
-      ("input-keepalive", po::value(&o.input_keepalive_s)->default_value(o.input_keepalive_s), "--inputs changes: resend an unchanged intent after this many seconds")  //
-      ("ping-hz", po::value(&o.ping_hz)->default_value(o.ping_hz), "pings per second per bot")         //
-      ("mix", po::value(&mix)->default_value(mix), "behaviour shares, e.g. walk=0.5,patrol=0.2,follow=0.1,crowd=0.1,teleport=0.1")  //
-      ("teleport-hz", po::value(&o.teleport_hz)->default_value(o.teleport_hz, "0.2"), "teleport bots: jumps per second per bot (random times and targets)")  //
-      ("stealth-bots", po::value(&o.stealth_share)->default_value(o.stealth_share, "0.1"), "share of bots that join stealthed (the server must allow stealth: zone-server --allow-stealth)")  //
-      ("team-bots", po::value(&o.team_share)->default_value(o.team_share, "0.2"), "share of bots that join a team, red or blue (the server must allow 2 teams: --player-teams)")  //
-      ("visibility-switch-hz", po::value(&o.visibility_switch_hz)->default_value(o.visibility_switch_hz, "0.2"), "stealth and team bots: visibility switches per second per bot (set_visibility; 0 = never)")  //
-      ("class-changes", po::value(&o.class_changes)->default_value(o.class_changes, "1"), "1: bots say hello{class_changes} and apply class notes; 0: as an older client, whose view the server resets when an entity it holds changes class")  //
+      ("input-hz", po::value(&o.input_hz)->default_value(o.input_hz),
+       "intent evaluations per second per bot (an input each with --inputs every)")  //
+      ("inputs", po::value(&inputs_mode)->default_value(inputs_mode),
+       "changes: send an input when the intent changes (and as a keep-alive); every: at every evaluation")  //
+      ("input-keepalive", po::value(&o.input_keepalive_s)->default_value(o.input_keepalive_s),
+       "--inputs changes: resend an unchanged intent after this many seconds")                  //
+      ("ping-hz", po::value(&o.ping_hz)->default_value(o.ping_hz), "pings per second per bot")  //
+      ("mix", po::value(&mix)->default_value(mix),
+       "behaviour shares, e.g. walk=0.5,patrol=0.2,follow=0.1,crowd=0.1,teleport=0.1")  //
+      ("teleport-hz", po::value(&o.teleport_hz)->default_value(o.teleport_hz, "0.2"),
+       "teleport bots: jumps per second per bot (random times and targets)")  //
+      ("stealth-bots", po::value(&o.stealth_share)->default_value(o.stealth_share, "0.1"),
+       "share of bots that join stealthed (the server must allow stealth: zone-server --allow-stealth)")  //
+      ("team-bots", po::value(&o.team_share)->default_value(o.team_share, "0.2"),
+       "share of bots that join a team, red or blue (the server must allow 2 teams: --player-teams)")  //
+      ("visibility-switch-hz", po::value(&o.visibility_switch_hz)->default_value(o.visibility_switch_hz, "0.2"),
+       "stealth and team bots: visibility switches per second per bot (set_visibility; 0 = never)")  //
+      ("class-changes", po::value(&o.class_changes)->default_value(o.class_changes, "1"),
+       "1: bots say hello{class_changes} and apply class notes; 0: as an older client, whose view the server resets when an entity it holds changes class")  //
       ("hotspot", po::value(&hotspot), "flash-crowd target x,y,z (default: where the leader bot first is)")  //
-      ("crowd-at", po::value(&o.crowd_at_s)->default_value(o.crowd_at_s), "seconds into the run when the crowd bots start converging")  //
+      ("crowd-at", po::value(&o.crowd_at_s)->default_value(o.crowd_at_s),
+       "seconds into the run when the crowd bots start converging")                                          //
       ("churn", po::value(&o.churn)->default_value(o.churn), "logouts per second (each bot logs in again)")  //
-      ("relogin-delay", po::value(&o.relogin_delay_s)->default_value(o.relogin_delay_s, "0.2"), "seconds before a churned bot logs in again")  //
-      ("churn-for", po::value(&o.churn_for_s)->default_value(o.churn_for_s), "seconds into the run when churn stops (0 = until the end)")  //
-      ("reconnect", po::bool_switch(&o.reconnect), "after an unexpected disconnect, log in again at the same address (retrying for --connect-timeout)")  //
-      ("verify", po::bool_switch(&o.verify), "compare the server's visible-set digests with each bot's tracked view")  //
-      ("oracle", po::bool_switch(&o.oracle), "check every bot's view against the server's ground truth (the server runs with --oracle): missing, extra, leaked, wrong class, wrong or stale position")  //
-      ("oracle-threads", po::value(&o.oracle_threads)->default_value(o.oracle_threads), "threads recomputing the visible sets for the oracle (0 = one per 8 hardware threads)")  //
-      ("oracle-zones", po::value(&oracle_zones), "a world of zones (docs/world.md): the other zones' client ports on --host, comma-separated; with --oracle each zone's truth is read and a bot is checked against the zone it is in now (following redirects)")  //
-      ("threads", po::value(&o.threads)->default_value(o.threads), "I/O threads (0 = one per 2,500 bots, 2 .. half the cores)")  //
-      ("aoi", po::value(&o.aoi)->default_value(o.aoi), "for servers whose welcome tells no rules: the players' AOI half-extent (its --player-aoi), for the AOI check")  //
-      ("hysteresis", po::value(&o.hysteresis)->default_value(o.hysteresis), "for servers whose welcome tells no rules: the server's --hysteresis (m)")  //
-      ("max-speed", po::value(&o.max_speed)->default_value(o.max_speed), "for servers whose welcome tells no rules: the fastest entity speed on the server (m/s)")  //
-      ("connect-timeout", po::value(&o.connect_timeout_s)->default_value(o.connect_timeout_s), "seconds to connect and get a welcome")  //
-      ("report-json", po::value(&json), "write the report as JSON to this file")                      //
-      ("report-csv", po::value(&csv), "write the per-second series as CSV to this file")             //
-      ("plot", po::value(&plot), "write a PNG latency plot (needs gnuplot)")                          //
-      ("scenario", po::value<std::string>(), "JSON file of options (keys as above, \"mix\" may be an object); the command line wins")  //
+      ("relogin-delay", po::value(&o.relogin_delay_s)->default_value(o.relogin_delay_s, "0.2"),
+       "seconds before a churned bot logs in again")  //
+      ("churn-for", po::value(&o.churn_for_s)->default_value(o.churn_for_s),
+       "seconds into the run when churn stops (0 = until the end)")  //
+      ("reconnect", po::bool_switch(&o.reconnect),
+       "after an unexpected disconnect, log in again at the same address (retrying for --connect-timeout)")  //
+      ("verify", po::bool_switch(&o.verify),
+       "compare the server's visible-set digests with each bot's tracked view")  //
+      ("oracle", po::bool_switch(&o.oracle),
+       "check every bot's view against the server's ground truth (the server runs with --oracle): missing, extra, leaked, wrong class, wrong or stale position")  //
+      ("oracle-threads", po::value(&o.oracle_threads)->default_value(o.oracle_threads),
+       "threads recomputing the visible sets for the oracle (0 = one per 8 hardware threads)")  //
+      ("oracle-zones", po::value(&oracle_zones),
+       "a world of zones (docs/world.md): the other zones' client ports on --host, comma-separated; with --oracle each zone's truth is read and a bot is checked against the zone it is in now (following redirects)")  //
+      ("threads", po::value(&o.threads)->default_value(o.threads),
+       "I/O threads (0 = one per 2,500 bots, 2 .. half the cores)")  //
+      ("aoi", po::value(&o.aoi)->default_value(o.aoi),
+       "for servers whose welcome tells no rules: the players' AOI half-extent (its --player-aoi), for the AOI check")  //
+      ("hysteresis", po::value(&o.hysteresis)->default_value(o.hysteresis),
+       "for servers whose welcome tells no rules: the server's --hysteresis (m)")  //
+      ("max-speed", po::value(&o.max_speed)->default_value(o.max_speed),
+       "for servers whose welcome tells no rules: the fastest entity speed on the server (m/s)")  //
+      ("connect-timeout", po::value(&o.connect_timeout_s)->default_value(o.connect_timeout_s),
+       "seconds to connect and get a welcome")                                            //
+      ("report-json", po::value(&json), "write the report as JSON to this file")          //
+      ("report-csv", po::value(&csv), "write the per-second series as CSV to this file")  //
+      ("plot", po::value(&plot), "write a PNG latency plot (needs gnuplot)")              //
+      ("scenario", po::value<std::string>(),
+       "JSON file of options (keys as above, \"mix\" may be an object); the command line wins")  //
       ("quiet", "no progress line");
   po::variables_map vm;
   try {

@@ -182,9 +182,8 @@ struct class_changes_msg {
 };
 
 /// Any message; the alternatives are in the order of the schema's union (index + 1 = wire type).
-using message =
-    std::variant<hello_msg, input_msg, ping_msg, welcome_msg, tick_update_msg, pong_msg, error_msg, teleport_msg,
-                 redirect_msg, set_visibility_msg, class_changes_msg>;
+using message = std::variant<hello_msg, input_msg, ping_msg, welcome_msg, tick_update_msg, pong_msg, error_msg,
+                             teleport_msg, redirect_msg, set_visibility_msg, class_changes_msg>;
 
 /// The wire type of a message value.
 [[nodiscard]] wire::message type_of(const message& m);

@@ -42,7 +42,8 @@ flatbuffers::Offset<void> build_body(flatbuffers::FlatBufferBuilder& fbb, const 
         if constexpr (std::is_same_v<T, hello_msg>) {
           const auto name = fbb.CreateString(msg.name);
           const auto token = fbb.CreateString(msg.token);
-          return w::Createhello(fbb, name, token, msg.protocol_version, msg.stealth, msg.team, msg.class_changes).Union();
+          return w::Createhello(fbb, name, token, msg.protocol_version, msg.stealth, msg.team, msg.class_changes)
+              .Union();
         } else if constexpr (std::is_same_v<T, input_msg>) {
           const w::vec3 move = to_wire(msg.move);
           return w::Createinput(fbb, msg.sequence, &move).Union();

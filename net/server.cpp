@@ -794,8 +794,9 @@ class session : public std::enable_shared_from_this<session> {
     e.type = inbound_event::kind::connected;
     e.session = id_;
     e.hello_us = srv_.now_us();
-    e.accepted_us = e.hello_us - static_cast<std::uint64_t>(
-                                     std::chrono::duration_cast<std::chrono::microseconds>(steady::now() - accepted_at_).count());
+    e.accepted_us =
+        e.hello_us - static_cast<std::uint64_t>(
+                         std::chrono::duration_cast<std::chrono::microseconds>(steady::now() - accepted_at_).count());
     srv_.report(std::move(e));
     forward(f);
   }

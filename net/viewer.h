@@ -30,7 +30,7 @@ struct viewer_snapshot {
   // Every entity, by dense index (size() entities: ids, classes and kind hold size() values, xy
   // twice as many).
   std::vector<std::uint32_t> ids;
-  std::vector<float> xy;                ///< x, y of each entity, as the zone's store holds positions (z: no frame needs it)
+  std::vector<float> xy;  ///< x, y of each entity, as the zone's store holds positions (z: no frame needs it)
   std::vector<std::uint32_t> classes;   ///< visibility class of each entity (one bit set: bit 1 normal, 2 stealth, 3 red, 4 blue)
   std::vector<std::uint8_t> kind;       ///< 0 player, 1 NPC, 2 boss
   /// The filler's own tag for ids, classes and kind (the zone: its store's layout version): equal

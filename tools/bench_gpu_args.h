@@ -85,7 +85,8 @@ inline constexpr const char* bench_gpu_usage =
     const std::string item = a.sets.substr(b, e - b);
     const std::size_t colon = item.rfind(':');
     if (colon == std::string::npos || colon == 0 || !parse_value<std::size_t>(item.substr(colon + 1))) {
-      std::fprintf(stderr, "bench-gpu: --sets: expected KIND:N items, not '%s'\n%s", item.c_str(), bench_gpu_usage_line);
+      std::fprintf(stderr, "bench-gpu: --sets: expected KIND:N items, not '%s'\n%s", item.c_str(),
+                   bench_gpu_usage_line);
       return 2;
     }
     b = e + 1;

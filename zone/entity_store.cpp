@@ -81,7 +81,8 @@ std::optional<entity_desc> entity_store::get(entity_id id) const {
 bool entity_store::set_visibility(entity_id id, std::uint32_t visibility_class, std::uint32_t sees) {
   const std::uint64_t before = space_.layout_version();
   if (!space_.set_classes(id, visibility_class, sees)) return false;
-  journal_[journal_count_ % journal_.size()] = {before, space_.layout_version(), static_cast<std::uint32_t>(index_of(id))};
+  journal_[journal_count_ % journal_.size()] = {before, space_.layout_version(),
+                                                static_cast<std::uint32_t>(index_of(id))};
   ++journal_count_;
   return true;
 }

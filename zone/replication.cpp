@@ -192,8 +192,9 @@ std::size_t replicator::resync_viewers_of(const entity_store& store, entity_id c
   return resync_viewers_of(store, std::span<const class_change>(&one, 1), hysteresis, nullptr);
 }
 
-std::size_t replicator::resync_viewers_of(const entity_store& store, std::span<const class_change> changes, float hysteresis,
-                                          interest::thread_pool* pool, std::vector<class_note_target>* notes) {
+std::size_t replicator::resync_viewers_of(const entity_store& store, std::span<const class_change> changes,
+                                          float hysteresis, interest::thread_pool* pool,
+                                          std::vector<class_note_target>* notes) {
   if (notes != nullptr) notes->clear();
   auto& ch = changed_scratch_;
   ch.clear();
@@ -228,7 +229,8 @@ std::size_t replicator::resync_viewers_of(const entity_store& store, std::span<c
         m = store.sees()[o], q = store.positions()[o], a = store.aoi_half_extents()[o];
         // The mask its view was built with: before its own first switch of the tick, if any.
         m_before = m;
-        const auto own = std::find_if(ch.begin(), ch.end(), [&](const changed_entity& x) { return x.id == s.observer; });
+        const auto own =
+            std::find_if(ch.begin(), ch.end(), [&](const changed_entity& x) { return x.id == s.observer; });
         if (noting && own != ch.end()) m_before = own->old_sees;
       }
       if ((m & c.cls) == 0 || (m_before & c.old_class) == 0) continue;

@@ -54,8 +54,9 @@ viewer_columns_fill fill_viewer_columns(const entity_store& store, net::viewer_s
   if (layout == 0 || s.layout == 0 || s.ids.size() != n || s.classes.size() != n || s.kind.size() != n) {
     what = viewer_columns_fill::all;
   } else if (s.layout != layout) {
-    what = store.class_changes_since(s.layout, [&](std::size_t d) { s.classes[d] = cls[d]; }) ? viewer_columns_fill::classes_patched
-                                                                                               : viewer_columns_fill::all;
+    what = store.class_changes_since(s.layout, [&](std::size_t d) { s.classes[d] = cls[d]; })
+               ? viewer_columns_fill::classes_patched
+               : viewer_columns_fill::all;
   }
   const bool all = what == viewer_columns_fill::all;
   s.xy.resize(2 * n);

@@ -158,9 +158,11 @@ std::string zone_server::metrics_text() const {
             static_cast<double>(stats_.visibility_refused));
   t.counter("zone_visibility_resyncs_total", "Clients resynced because an entity they may hold changed class.",
             static_cast<double>(stats_.visibility_resyncs));
-  t.counter("zone_visibility_notes_total", "Class notes sent (instead of resyncs) because an entity the client may hold changed class.",
+  t.counter("zone_visibility_notes_total",
+            "Class notes sent (instead of resyncs) because an entity the client may hold changed class.",
             static_cast<double>(stats_.class_notes));
-  t.counter("zone_viewer_column_copies_total", "Viewer snapshots whose ids, classes and kinds were copied whole (entities created or destroyed).",
+  t.counter("zone_viewer_column_copies_total",
+            "Viewer snapshots whose ids, classes and kinds were copied whole (entities created or destroyed).",
             static_cast<double>(stats_.viewer_columns_copied_all));
   t.counter("zone_viewer_class_patches_total", "Viewer snapshots that patched only the classes set_visibility changed.",
             static_cast<double>(stats_.viewer_columns_classes_patched));
@@ -231,7 +233,8 @@ std::string zone_server::metrics_text() const {
               static_cast<double>(metrics_->accept_errors()));
   }
   // Phase histograms in seconds, one bucket per octave.
-  const auto histogram = [&](const char* metric, const char* help, const std::string& labels, const latency_histogram& h) {
+  const auto histogram = [&](const char* metric, const char* help, const std::string& labels,
+                             const latency_histogram& h) {
     std::vector<double> bounds;
     std::vector<std::uint64_t> cumulative;
     std::uint64_t seen = 0;
@@ -245,10 +248,12 @@ std::string zone_server::metrics_text() const {
     t.histogram(metric, help, bounds, cumulative, h.sum() / 1000.0, h.count(), labels);
   };
   const auto phase = [&](const char* name, const latency_histogram& h) {
-    histogram("zone_tick_phase_seconds", "Wall time of the tick and its phases.", std::string("phase=\"") + name + "\"", h);
+    histogram("zone_tick_phase_seconds", "Wall time of the tick and its phases.", std::string("phase=\"") + name + "\"",
+              h);
   };
   const auto join = [&](const char* part, const latency_histogram& h) {
-    histogram("zone_join_seconds", "A player's join: its connection accepted to its hello read, and that to its welcome queued.",
+    histogram("zone_join_seconds",
+              "A player's join: its connection accepted to its hello read, and that to its welcome queued.",
               std::string("part=\"") + part + "\"", h);
   };
   join("accept_to_hello", stats_.join_hello_ms);
@@ -700,15 +705,16 @@ void zone_server::log_summary() {
   const std::uint64_t churn = ns.connections_rate_limited - a.connections_rate_limited;
   // Quiet when nothing happened.
   if (joined + left + refused + timeouts + limited + rejected + churn != 0) {
-    spdlog::info("clients: {} ({} joined, {} left in {:.0f} s); refused {} (slots {}, evicted per address {}, evicted in all {}, bad hello {}); "
-                 "timeouts {} (hello {}, idle {}); rate-limited {}; refused at accept (connect-rate) {}; bad frames {}; {} without hello now; "
-                 "joins so far: accept to hello p50 {:.1f} / p99 {:.1f} ms, hello to welcome p50 {:.1f} / p99 {:.1f} ms",
-                 clients_.size(), joined, left, cfg_.log_summary_s, refused, ns.connections_refused - a.connections_refused,
-                 ns.pending_evicted_address - a.pending_evicted_address, ns.pending_evicted - a.pending_evicted,
-                 ns.hellos_rejected - a.hellos_rejected, timeouts, ns.hello_timeouts - a.hello_timeouts,
-                 ns.idle_timeouts - a.idle_timeouts, limited, churn, rejected, ns.pending_open,
-                 stats_.join_hello_ms.percentile(0.5), stats_.join_hello_ms.percentile(0.99),
-                 stats_.join_welcome_ms.percentile(0.5), stats_.join_welcome_ms.percentile(0.99));
+    spdlog::info(
+        "clients: {} ({} joined, {} left in {:.0f} s); refused {} (slots {}, evicted per address {}, evicted in all {}, bad hello {}); "
+        "timeouts {} (hello {}, idle {}); rate-limited {}; refused at accept (connect-rate) {}; bad frames {}; {} without hello now; "
+        "joins so far: accept to hello p50 {:.1f} / p99 {:.1f} ms, hello to welcome p50 {:.1f} / p99 {:.1f} ms",
+        clients_.size(), joined, left, cfg_.log_summary_s, refused, ns.connections_refused - a.connections_refused,
+        ns.pending_evicted_address - a.pending_evicted_address, ns.pending_evicted - a.pending_evicted,
+        ns.hellos_rejected - a.hellos_rejected, timeouts, ns.hello_timeouts - a.hello_timeouts,
+        ns.idle_timeouts - a.idle_timeouts, limited, churn, rejected, ns.pending_open,
+        stats_.join_hello_ms.percentile(0.5), stats_.join_hello_ms.percentile(0.99),
+        stats_.join_welcome_ms.percentile(0.5), stats_.join_welcome_ms.percentile(0.99));
   }
   summary_net_ = ns;
   summary_loop_.joins = stats_.joins;
@@ -801,7 +807,8 @@ void zone_server::viewer_copy_columns() {
   if (!viewer_ || viewer_->viewers() == 0 || !viewer_snapshot_due()) return;
   const auto t0 = clock_type::now();
   // The pool is idle while the device works (replication's prestage, if any, has returned).
-  count_viewer_columns(fill_viewer_columns(world_->store(), viewer_->next_snapshot(), pool_.get(), cfg_.viewer_copy_chunk));
+  count_viewer_columns(
+      fill_viewer_columns(world_->store(), viewer_->next_snapshot(), pool_.get(), cfg_.viewer_copy_chunk));
   viewer_columns_tick_ = world_->tick();
   ++stats_.viewer_columns_in_interest_wait;
   viewer_fill_ms_ += ms_since(t0);

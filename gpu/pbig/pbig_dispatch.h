@@ -219,7 +219,7 @@ class pbig_engine {
   cudaEvent_t ev_staged_[max_overlap_chunks] = {};  // stage j's MAP begins (main stream)
   cudaEvent_t ev_mapped_[max_overlap_chunks] = {};  // stage j's lists and work items are ready
   overlap_stage stages_[max_overlap_chunks];
-  std::uint32_t stage_width_ = 64;  // this call's stage width (stage_width())
+  std::uint32_t stage_width_ = 64;          // this call's stage width (stage_width())
   device_buffer<map_readback> d_stage_rb_;  // per stage (the stage's checks read theirs while later stages map)
   pinned_buffer<map_readback> h_stage_rb_;
   device_buffer<bounds_dev> d_chunk_bounds_;  // per chunk: its validation

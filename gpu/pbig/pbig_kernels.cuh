@@ -778,8 +778,8 @@ __global__ void __launch_bounds__(tuning::segment) check_kernel(check_args a) {
 template <std::uint32_t W, bool Balanced>
 __global__ void __launch_bounds__(tuning::segment) check_stage_kernel(check_args a, stage_lists lists) {
   static_assert(is_stage_width(W), "a stage width (pbig_shared.h)");
-  constexpr std::uint32_t L = W < 32 ? W : 32;  // lanes of a work item
-  constexpr std::uint32_t R = W / L;            // rows of a lane (1, or 2 when W = 64)
+  constexpr std::uint32_t L = W < 32 ? W : 32;          // lanes of a work item
+  constexpr std::uint32_t R = W / L;                    // rows of a lane (1, or 2 when W = 64)
   constexpr std::uint32_t slots = tuning::segment / L;  // work items of a block
   static_assert(tuning::segment % 32 == 0 && L >= static_cast<std::uint32_t>(max_overlap_chunks),
                 "whole warps; an item's lanes read the lists' ranges");

@@ -520,8 +520,11 @@ TEST_SUITE("bots.oracle") {
         }
       }
       const auto& c = oracle.counters();
-      MESSAGE(std::string(how == mode::resets ? "resets" : how == mode::notes ? "class notes" : "neither") << ": " << switches
-              << " switches, " << resyncs << " clients resynced, " << notes << " notes, " << c.frames_checked.load() << " frames checked; wrong class " << c.wrong_class.load() << ", missing "
+      MESSAGE(std::string(how == mode::resets  ? "resets"
+                          : how == mode::notes ? "class notes"
+                                               : "neither")
+              << ": " << switches << " switches, " << resyncs << " clients resynced, " << notes << " notes, "
+              << c.frames_checked.load() << " frames checked; wrong class " << c.wrong_class.load() << ", missing "
               << c.missing.load() << ", extra " << c.extra.load() << ", leaked " << c.leaked.load());
       CHECK(c.frames_checked.load() == 99 * clients.size());
       // The switches reached the oracle as changes to the layout, not whole layouts.

@@ -329,7 +329,7 @@ TEST_SUITE("gpu.pbig.overlap") {
             REQUIRE(l.earlier == (q == 0 ? 0 : (p + W - 1) / W));
             std::vector<int> tile_seen(l.tiles(), 0);
             std::vector<std::uint32_t> tested(std::size_t{p + q} * (p + q), 0);  // [min * (p + q) + max]
-            std::uint64_t past_tile = 0;  // columns tested past the tile's n
+            std::uint64_t past_tile = 0;                                         // columns tested past the tile's n
             for (std::uint32_t u = 0; u < l.items; ++u) {
               const std::uint32_t m = std::min(W, q - u * W);
               for (std::uint32_t t = 0; t < l.tiles_of(u); ++t) {

@@ -154,9 +154,19 @@ TEST_SUITE("net.viewer") {
   TEST_CASE("quantization rounds as std::round: halves, just below them, the viewport's edges") {
     std::mt19937_64 rng(std::random_device{}());
     const viewer_request unit{0, 0, 65535, 65535, 0, 1u << 20};  // one metre a step
-    std::vector<float> xs = {0.0f, 0.5f, 1.5f, 2.5f, std::nextafter(0.5f, 0.0f), std::nextafter(2.5f, 0.0f),
-                             std::nextafter(2.5f, 3.0f), 32767.5f, 65534.5f, std::nextafter(65534.5f, 0.0f),
-                             std::nextafter(65535.0f, 0.0f), 65535.0f, 1e-30f};
+    std::vector<float> xs = {0.0f,
+                             0.5f,
+                             1.5f,
+                             2.5f,
+                             std::nextafter(0.5f, 0.0f),
+                             std::nextafter(2.5f, 0.0f),
+                             std::nextafter(2.5f, 3.0f),
+                             32767.5f,
+                             65534.5f,
+                             std::nextafter(65534.5f, 0.0f),
+                             std::nextafter(65535.0f, 0.0f),
+                             65535.0f,
+                             1e-30f};
     std::uniform_real_distribution<float> u(0, 65535);
     for (int k = 0; k < 2000; ++k) xs.push_back(k % 2 ? u(rng) : std::floor(u(rng)) + 0.5f);
     for (const viewer_request& r : {unit, viewer_request{-3.25f, 0, 1000.75f, 65535, 0, 1u << 20}}) {

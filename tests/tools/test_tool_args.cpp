@@ -85,20 +85,20 @@ TEST_CASE("bench-gpu: defaults, every flag, --help and bad arguments") {
   CHECK(gpu({"--help"}, a) == 0);
   CHECK(gpu({"-h"}, a) == 0);
   for (const auto& bad : std::vector<std::vector<const char*>>{{"--frobnicate"},
-                                                              {"--reps"},
-                                                              {"--reps", "x"},
-                                                              {"--reps", "0"},
-                                                              {"--reps", "-3"},
-                                                              {"--max-n", "-5"},
-                                                              {"--max-n", "12x"},
-                                                              {"--cgal-max-n", ""},
-                                                              {"--sets", "uniform"},
-                                                              {"--sets", "uniform:1e7"},
-                                                              {"--sets", "uniform:100,:5"},
-                                                              {"--sets", "uniform:100,"},
-                                                              {"--rep", "3"},
-                                                              {"stray"},
-                                                              {"--csv", "a", "--csv", "b"}}) {
+                                                               {"--reps"},
+                                                               {"--reps", "x"},
+                                                               {"--reps", "0"},
+                                                               {"--reps", "-3"},
+                                                               {"--max-n", "-5"},
+                                                               {"--max-n", "12x"},
+                                                               {"--cgal-max-n", ""},
+                                                               {"--sets", "uniform"},
+                                                               {"--sets", "uniform:1e7"},
+                                                               {"--sets", "uniform:100,:5"},
+                                                               {"--sets", "uniform:100,"},
+                                                               {"--rep", "3"},
+                                                               {"stray"},
+                                                               {"--csv", "a", "--csv", "b"}}) {
     CAPTURE(bad[0]);
     bench_gpu_args b;
     CHECK(gpu(bad, b) == 2);

@@ -420,7 +420,8 @@ inline void require_equivalent(const replication_coverage& cov, bool tiny_budget
                     << "; deferred enters " << cov.deferred_enters << " leaves " << cov.deferred_leaves << " updates "
                     << cov.deferred_updates << "; ranked " << cov.ranked << ", resets " << cov.resets << ", empty "
                     << cov.empty << "; view entries near/mid/far " << cov.near << "/" << cov.mid << "/" << cov.far
-                    << "; visibility switches " << cov.switches << " (clients resynced " << cov.switch_resyncs << ", notes " << cov.switch_notes << ")");
+                    << "; visibility switches " << cov.switches << " (clients resynced " << cov.switch_resyncs
+                    << ", notes " << cov.switch_notes << ")");
   CHECK(cov.differing == 0);
   CHECK(cov.room_frames > 0);
   CHECK(cov.room_misplaced == 0);

@@ -527,7 +527,8 @@ TEST_SUITE("zone.replication") {
     /// destroyed after its switch); every third of an observer when `observers_too`.
     std::vector<class_change> switch_some(int count, bool observers_too) {
       const std::uint32_t classes[] = {cb::normal, cb::stealth, cb::team_red, cb::team_blue};
-      const std::uint32_t masks[] = {cb::normal, cb::normal | cb::team_red, cb::normal | cb::team_blue, cb::team_red, 0};
+      const std::uint32_t masks[] = {cb::normal, cb::normal | cb::team_red, cb::normal | cb::team_blue, cb::team_red,
+                                     0};
       std::vector<class_change> changes;
       for (int k = 0; k < count; ++k) {
         const entity_id id = w.store.ids()[observers_too && k % 3 == 0 ? w.rng() % 2500 : w.rng() % w.store.size()];
@@ -607,7 +608,8 @@ TEST_SUITE("zone.replication") {
     CHECK(kept > 100);
   }
 
-  TEST_CASE("class notes: the clients that take them get the plain rule's notes, never a reset, and hold every class right") {
+  TEST_CASE(
+      "class notes: the clients that take them get the plain rule's notes, never a reset, and hold every class right") {
     const std::uint64_t seed = fresh_seed();
     CAPTURE(seed);
     switching_world sw(seed);
@@ -643,7 +645,8 @@ TEST_SUITE("zone.replication") {
         const bool noting = c % 2 == 1;
         if (tick == 1) continue;  // every client's first frame is a reset: nothing to judge
         if (!noting) {
-          if (std::any_of(changes.begin(), changes.end(), [&](const class_change& ch) { return reference_resyncs(w.store, o, ch, 3.0f); })) {
+          if (std::any_of(changes.begin(), changes.end(),
+                          [&](const class_change& ch) { return reference_resyncs(w.store, o, ch, 3.0f); })) {
             ref.resync(c);
             ++want_resyncs;
           }
@@ -671,7 +674,8 @@ TEST_SUITE("zone.replication") {
       std::size_t at = 0;
       for (const client_id c : clients) {
         net::class_changes_msg msg{tick, {}};
-        for (; at < notes.size() && notes[at].client == c; ++at) msg.notes.push_back({notes[at].entity, notes[at].visibility_class});
+        for (; at < notes.size() && notes[at].client == c; ++at)
+          msg.notes.push_back({notes[at].entity, notes[at].visibility_class});
         if (!msg.notes.empty()) CHECK(views[c].apply(msg) == net::client_view::status::ok);
         replication_stats a, b;
         const auto fa = rep.build(c, w.store, tracker, tick, tick * 1000, 0, writer, &a);

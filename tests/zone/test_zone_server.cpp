@@ -856,7 +856,8 @@ TEST_SUITE("zone.server") {
     CHECK(std::get<net::error_msg>(*es).code == net::error_code::bad_hello);
   }
 
-  TEST_CASE("a class change reaches a client that said hello{class_changes} as a note before the tick's frame; an older client is reset") {
+  TEST_CASE(
+      "a class change reaches a client that said hello{class_changes} as a note before the tick's frame; an older client is reset") {
     zone_config cfg = test_config();
     cfg.player_teams = 1;
     cfg.visibility_cooldown_s = 0;
@@ -884,15 +885,18 @@ TEST_SUITE("zone.server") {
       void pump() {
         for (auto m = c.read(5ms); m; m = c.read(5ms)) {
           if (const auto* w = std::get_if<net::welcome_msg>(&*m)) view.emplace(w->world);
-          if (const auto* u = std::get_if<net::tick_update_msg>(&*m)) REQUIRE(view->apply(*u) == net::client_view::status::ok);
-          if (const auto* n = std::get_if<net::class_changes_msg>(&*m)) REQUIRE(view->apply(*n) == net::client_view::status::ok);
+          if (const auto* u = std::get_if<net::tick_update_msg>(&*m))
+            REQUIRE(view->apply(*u) == net::client_view::status::ok);
+          if (const auto* n = std::get_if<net::class_changes_msg>(&*m))
+            REQUIRE(view->apply(*n) == net::client_view::status::ok);
           seen.push_back(std::move(*m));
         }
       }
     };
     follower s{sw, {}, {}}, n{noting, {}, {}}, o{older, {}, {}};
     entity_id switcher = null_entity;
-    for (int i = 0; i < 200 && (switcher == null_entity || !n.view || !o.view || n.view->entities().find(switcher) == n.view->entities().end() ||
+    for (int i = 0; i < 200 && (switcher == null_entity || !n.view || !o.view ||
+                                n.view->entities().find(switcher) == n.view->entities().end() ||
                                 o.view->entities().find(switcher) == o.view->entities().end());
          ++i) {
       server.tick_once();
@@ -941,7 +945,8 @@ TEST_SUITE("zone.server") {
     CHECK_FALSE(after->reset);
     CHECK(n.view->entities().find(switcher)->second.state.visibility_class == interest::category_bits::team_red);
     // The older teammate: no note, its frame of that tick a reset that enters the switcher anew.
-    CHECK(std::none_of(o.seen.begin(), o.seen.end(), [](const net::message& m) { return std::holds_alternative<net::class_changes_msg>(m); }));
+    CHECK(std::none_of(o.seen.begin(), o.seen.end(),
+                       [](const net::message& m) { return std::holds_alternative<net::class_changes_msg>(m); }));
     const auto frame = std::find_if(o.seen.begin(), o.seen.end(), [&](const net::message& m) {
       const auto* u = std::get_if<net::tick_update_msg>(&m);
       return u != nullptr && u->server_tick == tick;

@@ -19,9 +19,9 @@
 
 #include "../common/loopback_zone.h"
 #include "../common/seeds.h"
+#include "interest/thread_pool.h"
 #include "tests/net/loopback_client.h"
 #include "tests/net/ws_client.h"
-#include "interest/thread_pool.h"
 #include "zone/viewer_columns.h"
 #include "zone/zone_server.h"
 
@@ -69,8 +69,8 @@ bool same_columns(const net::viewer_snapshot& a, const net::viewer_snapshot& b) 
   const auto bytes_equal = [](const auto& x, const auto& y) {
     return x.size() == y.size() && (x.empty() || std::memcmp(x.data(), y.data(), x.size() * sizeof(x[0])) == 0);
   };
-  return a.layout == b.layout && bytes_equal(a.xy, b.xy) && bytes_equal(a.ids, b.ids) && bytes_equal(a.classes, b.classes) &&
-         bytes_equal(a.kind, b.kind);
+  return a.layout == b.layout && bytes_equal(a.xy, b.xy) && bytes_equal(a.ids, b.ids) &&
+         bytes_equal(a.classes, b.classes) && bytes_equal(a.kind, b.kind);
 }
 
 /// The columns equal the store's, entity by entity (independent of both copies).
@@ -164,7 +164,8 @@ TEST_SUITE("zone.viewer") {
     }
   }
 
-  TEST_CASE("three rotating buffers filled incrementally hold a full copy's columns (creations, removals, switches, extents)") {
+  TEST_CASE(
+      "three rotating buffers filled incrementally hold a full copy's columns (creations, removals, switches, extents)") {
     const std::uint64_t seed = zone::test::fresh_seed();
     CAPTURE(seed);
     std::mt19937 rng(static_cast<std::uint32_t>(seed));
@@ -172,15 +173,16 @@ TEST_SUITE("zone.viewer") {
     const std::uint32_t classes[] = {interest::category_bits::normal, interest::category_bits::stealth,
                                      interest::category_bits::team_red, interest::category_bits::team_blue};
     std::size_t seen[3] = {0, 0, 0};  // fills by viewer_columns_fill
-    for (const std::size_t n : {std::size_t{0}, std::size_t{1}, std::size_t{2}, std::size_t{777}, viewer_columns_chunk + 1,
-                                std::size_t{100003}}) {
+    for (const std::size_t n : {std::size_t{0}, std::size_t{1}, std::size_t{2}, std::size_t{777},
+                                viewer_columns_chunk + 1, std::size_t{100003}}) {
       for (interest::thread_pool* pool : {static_cast<interest::thread_pool*>(nullptr), &pool2, &pool5}) {
         const std::size_t chunk = n < 1000 ? 7 : n < 20000 ? 1000 : viewer_columns_chunk;
         CAPTURE(n);
         CAPTURE(pool != nullptr ? pool->size() : 0u);
         entity_store store(n + 64);
         add_random_entities(store, n, rng);
-        for (std::size_t k = 0; k < n / 10; ++k) (void)store.destroy(store.ids()[rng() % store.size()]);  // ids out of order
+        for (std::size_t k = 0; k < n / 10; ++k)
+          (void)store.destroy(store.ids()[rng() % store.size()]);  // ids out of order
         add_random_entities(store, n - store.size(), rng);
         REQUIRE(store.size() == n);
         // What changed since each buffer was last filled: the switches (set_visibility calls) and
@@ -223,7 +225,8 @@ TEST_SUITE("zone.viewer") {
             case 3:  // more switches than the journal holds
               if (n > 0 && rng() % 2 == 0) {
                 for (std::size_t k = 0; k < entity_store::class_journal_size + 3; ++k) {
-                  REQUIRE(store.set_visibility(store.ids()[rng() % n], classes[rng() % 4], interest::category_bits::normal));
+                  REQUIRE(store.set_visibility(store.ids()[rng() % n], classes[rng() % 4],
+                                               interest::category_bits::normal));
                 }
                 switches = entity_store::class_journal_size + 3;
               }
@@ -236,10 +239,11 @@ TEST_SUITE("zone.viewer") {
             f.other = f.other || other;
           }
           const std::size_t b = static_cast<std::size_t>(t) % 3;
-          const viewer_columns_fill expect = !since[b].filled || since[b].other || since[b].switches > entity_store::class_journal_size
-                                                 ? viewer_columns_fill::all
-                                             : since[b].switches > 0 ? viewer_columns_fill::classes_patched
-                                                                     : viewer_columns_fill::positions;
+          const viewer_columns_fill expect =
+              !since[b].filled || since[b].other || since[b].switches > entity_store::class_journal_size
+                  ? viewer_columns_fill::all
+              : since[b].switches > 0 ? viewer_columns_fill::classes_patched
+                                      : viewer_columns_fill::positions;
           const viewer_columns_fill got = fill_viewer_columns(store, buffers[b], pool, chunk);
           CHECK(static_cast<int>(got) == static_cast<int>(expect));
           ++seen[static_cast<int>(got)];
