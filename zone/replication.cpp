@@ -227,11 +227,14 @@ std::size_t replicator::resync_viewers_of(const entity_store& store, std::span<c
         // Not in the store: no change here is its own entity (those are), and it holds nothing.
         if (o == entity_store::npos) return false;
         m = store.sees()[o], q = store.positions()[o], a = store.aoi_half_extents()[o];
-        // The mask its view was built with: before its own first switch of the tick, if any.
+        // The mask its view was built with: a noting client's before its own first switch of the
+        // tick, if any (a resynced one whose mask changed was resynced above).
         m_before = m;
-        const auto own =
-            std::find_if(ch.begin(), ch.end(), [&](const changed_entity& x) { return x.id == s.observer; });
-        if (noting && own != ch.end()) m_before = own->old_sees;
+        if (noting) {
+          const auto own =
+              std::find_if(ch.begin(), ch.end(), [&](const changed_entity& x) { return x.id == s.observer; });
+          if (own != ch.end()) m_before = own->old_sees;
+        }
       }
       if ((m & c.cls) == 0 || (m_before & c.old_class) == 0) continue;
       if (std::fabs(c.p.x - q.x) > a.x + c.b.x + slack || std::fabs(c.p.y - q.y) > a.y + c.b.y + slack ||
