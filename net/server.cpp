@@ -793,19 +793,20 @@ class session : public std::enable_shared_from_this<session> {
     inbound_event e;
     e.type = inbound_event::kind::connected;
     e.session = id_;
-    e.hello_us = srv_.now_us();
-    e.accepted_us =
-        e.hello_us - static_cast<std::uint64_t>(
-                         std::chrono::duration_cast<std::chrono::microseconds>(steady::now() - accepted_at_).count());
     srv_.report(std::move(e));
-    forward(f);
+    // The hello with its connection's times (now_us()'s clock: steady_clock in microseconds).
+    forward(f, static_cast<std::uint64_t>(
+                   std::chrono::duration_cast<std::chrono::microseconds>(accepted_at_.time_since_epoch()).count()),
+            srv_.now_us());
   }
 
-  void forward(const frame_view& f) {
+  void forward(const frame_view& f, std::uint64_t accepted_us = 0, std::uint64_t hello_us = 0) {
     inbound_event e;
     e.type = inbound_event::kind::message;
     e.session = id_;
     e.msg = to_message(*f.envelope);
+    e.accepted_us = accepted_us;
+    e.hello_us = hello_us;
     srv_.report(std::move(e));
   }
 

@@ -142,7 +142,7 @@ struct inbound_event {
   session_id session = 0;
   std::optional<message> msg;   ///< for kind::message
   std::uint64_t dropped = 0;    ///< for kind::frames_dropped: state frames dropped when the episode began
-  /// For kind::connected: when the connection was accepted and when its hello was read (now_us()).
+  /// For a hello (kind::message): when its connection was accepted and when it was read (now_us()).
   std::uint64_t accepted_us = 0, hello_us = 0;
   std::string reason;           ///< for kind::disconnected
 };

@@ -364,8 +364,7 @@ void zone_server::drain_inputs() {
   for (auto& e : events_) {
     switch (e.type) {
       case net::inbound_event::kind::connected:
-        join_times_[e.session] = {e.accepted_us, e.hello_us};  // the player is made at its hello
-        break;
+        break;  // nothing until hello
       case net::inbound_event::kind::message: {
         if (!e.msg) break;
         if (const auto* hello = std::get_if<net::hello_msg>(&*e.msg)) {
@@ -376,9 +375,9 @@ void zone_server::drain_inputs() {
           }
           if (ext_ != nullptr && !hello->token.empty()) {
             // A client redirected here by another zone of the world.
-            pending_hellos_.push_back({e.session, hello->token, hello->name,
+            pending_hellos_.push_back({e.session, hello->token,
                                        world_->tick() + static_cast<std::uint64_t>(5 * cfg_.tick_rate_hz),
-                                       hello->class_changes});
+                                       {hello->name, hello->class_changes, e.accepted_us, e.hello_us}});
             break;
           }
           if (auto why = check_visibility_choice(hello->stealth, hello->team)) {
@@ -390,7 +389,7 @@ void zone_server::drain_inputs() {
             net_.disconnect(e.session, net::error_code::server_full, "the zone is full");
             break;
           }
-          welcome(e.session, id, hello->name, hello->class_changes);
+          welcome(e.session, id, {hello->name, hello->class_changes, e.accepted_us, e.hello_us});
         } else if (const auto* in = std::get_if<net::input_msg>(&*e.msg)) {
           const auto it = clients_.find(e.session);
           if (it == clients_.end()) break;
@@ -420,7 +419,6 @@ void zone_server::drain_inputs() {
       }
       case net::inbound_event::kind::disconnected: {
         std::erase_if(pending_hellos_, [&](const pending_hello& p) { return p.session == e.session; });
-        join_times_.erase(e.session);
         const auto it = clients_.find(e.session);
         if (it == clients_.end()) break;
         spdlog::debug("session {}: left ({})", e.session, net::escape_for_log(e.reason, 200));
@@ -438,21 +436,18 @@ void zone_server::drain_inputs() {
   stats_.clients = clients_.size();
 }
 
-void zone_server::welcome(net::session_id session, entity_id id, const std::string& name, bool class_changes) {
+void zone_server::welcome(net::session_id session, entity_id id, const hello_info& hello) {
   client& c = clients_[session];
   c.entity = id;
   c.backlog = net_.state_backlog(session);
   c.written = net_.bytes_written(session);
   c.replica = replicator_.add_client(id);
-  replicator_.set_class_notes(c.replica, class_changes);
-  if (const auto jt = join_times_.find(session); jt != join_times_.end()) {
+  replicator_.set_class_notes(c.replica, hello.class_changes);
+  if (hello.hello_us != 0) {
     const std::uint64_t now = net_.now_us();
-    stats_.join_hello_ms.record(static_cast<double>(jt->second.hello_us - jt->second.accepted_us) / 1000.0);
-    stats_.join_welcome_ms.record(static_cast<double>(now - std::min(now, jt->second.hello_us)) / 1000.0);
-    join_times_.erase(jt);
+    stats_.join_hello_ms.record(static_cast<double>(hello.hello_us - std::min(hello.hello_us, hello.accepted_us)) / 1000.0);
+    stats_.join_welcome_ms.record(static_cast<double>(now - std::min(now, hello.hello_us)) / 1000.0);
   }
-  if (session_of_replica_.size() <= c.replica) session_of_replica_.resize(c.replica + 1);
-  session_of_replica_[c.replica] = session;
   session_of_entity_[id] = session;
   net::welcome_msg w;
   w.entity_id = id;
@@ -466,7 +461,7 @@ void zone_server::welcome(net::session_id session, entity_id id, const std::stri
   w.oracle_port = oracle_port();
   net_.send(session, net::make_shared_frame(encoder_.encode(w)), net::delivery::control);
   // The name is client data: escaped (the server also checked it at hello), at debug.
-  spdlog::debug("session {}: '{}' joined as entity {}", session, net::escape_for_log(name), id);
+  spdlog::debug("session {}: '{}' joined as entity {}", session, net::escape_for_log(hello.name), id);
   ++stats_.joins;
 }
 
@@ -482,7 +477,7 @@ void zone_server::retry_pending_hellos() {
     }
     pending_hellos_.erase(pending_hellos_.begin() + static_cast<std::ptrdiff_t>(k));
     if (verdict == zone_extension::claim::ready) {
-      welcome(p.session, id, p.name, p.class_changes);
+      welcome(p.session, id, p.hello);
     } else {
       net_.disconnect(p.session, net::error_code::auth_failed, "unknown or expired redirect token");
     }
@@ -554,10 +549,12 @@ void zone_server::replicate_class_changes() {
     for (; k < class_notes_.size() && class_notes_[k].client == who; ++k) {
       msg.notes.push_back({class_notes_[k].entity, class_notes_[k].visibility_class});
     }
-    const net::session_id session = session_of_replica_[who];
-    const auto it = clients_.find(session);
+    // The client's session through its entity (the replicator's observer is the client's entity).
+    const auto se = session_of_entity_.find(replicator_.observer(who));
+    if (se == session_of_entity_.end()) continue;
+    const auto it = clients_.find(se->second);
     if (it == clients_.end() || it->second.replica != who || it->second.redirected) continue;
-    net_.send(session, net::make_shared_frame(encoder_.encode(msg)), net::delivery::state);
+    net_.send(se->second, net::make_shared_frame(encoder_.encode(msg)), net::delivery::state);
     stats_.class_notes += msg.notes.size();
   }
 }

@@ -169,7 +169,6 @@ class zone_server {
   void replicate_class_changes();
   std::vector<class_change> class_changes_;
   std::vector<replicator::class_note_target> class_notes_;
-  std::vector<net::session_id> session_of_replica_;  ///< by client_id, for the clients welcomed
   /// Records an input's sequence as the client's last when it is newer (RFC 1982 serial-number
   /// order: a sequence 1 .. 2^31 - 1 ahead, wrapping past 2^32); older ones leave it.
   static void note_sequence(client& c, std::uint32_t sequence);
@@ -177,20 +176,23 @@ class zone_server {
   /// Every log_summary_s: one info line of joins, leaves and refused connections since the last
   /// (per-session lines are at debug: a flood of connections cannot flood the log).
   void log_summary();
+  /// What welcome() needs of a client's hello: its name, whether it takes class notes, and when
+  /// its connection was accepted and the hello read (net::inbound_event's; 0: not known).
+  struct hello_info {
+    std::string name;
+    bool class_changes = false;
+    std::uint64_t accepted_us = 0, hello_us = 0;
+  };
   /// Binds a session to an entity (a new player or a redirected client's) and welcomes it.
-  void welcome(net::session_id session, entity_id id, const std::string& name, bool class_changes);
+  void welcome(net::session_id session, entity_id id, const hello_info& hello);
   /// Hellos with a token whose entity has not arrived yet (retried each tick until the deadline).
   struct pending_hello {
     net::session_id session;
-    std::string token, name;
+    std::string token;
     std::uint64_t deadline_tick;
-    bool class_changes;  ///< hello{class_changes}
+    hello_info hello;
   };
   std::vector<pending_hello> pending_hellos_;
-  struct join_time {
-    std::uint64_t accepted_us, hello_us;  ///< net::inbound_event's, for the join histograms
-  };
-  std::unordered_map<net::session_id, join_time> join_times_;  ///< sessions announced, not welcomed yet
   void retry_pending_hellos();
   zone_extension* ext_ = nullptr;
   std::vector<zone_extension::redirect> redirects_;
