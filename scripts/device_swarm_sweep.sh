@@ -6,9 +6,10 @@
 #   SWEEP_BOTS="5000 10000 15000 19900" DEVICE_DIR=.device-zone bash scripts/device_swarm_sweep.sh
 #
 # Environment: SWEEP_BOTS (the bot counts, in order), SWEEP_LAYOUT (pinned: the server on the first
-# 5/8 of the cores with 8 workers and 4 I/O threads per 10 cores, the swarm on the rest with a
-# thread per core; on the 16-core H100 host: server 0-9, 8 workers, 4 I/O threads, swarm 10-15, 6
-# threads; on a 32-core host: 0-19, 16, 8, and 20-31, 12. shared: both on every core, 3/8 of the
+# 5/8 of the cores with 6 workers and 4 I/O threads per 10 cores, one thread per core (more
+# workers than that slowed the tick: docs/zone-benchmarks.md, "The swarm"), the swarm on the rest
+# with a thread per core; on a 16-core host: server 0-9, 6 workers, 4 I/O threads, swarm 10-15, 6
+# threads; on a 32-core host: 0-19, 12, 8, and 20-31, 12. shared: both on every core, 3/8 of the
 # cores as I/O threads and half as swarm threads: 6 and 8 on 16 cores. Default pinned),
 # SWEEP_REPEAT (runs per bot count, default 1), and everything device_zone.sh's swarm step reads
 # (SWARM_NPCS, SWARM_SECONDS, SERVER_THREADS, SERVER_CPUS, SERVER_ARGS, ...), which win over the
@@ -27,7 +28,7 @@ at_least_1() { echo $(($1 > 0 ? $1 : 1)); }
 server_cores=$((cores * 5 / 8))
 case "$layout" in
   pinned) export SERVER_CPUS=${SERVER_CPUS:-0-$((server_cores - 1))} SWARM_CPUS=${SWARM_CPUS:-$server_cores-$((cores - 1))} \
-            SERVER_THREADS=${SERVER_THREADS:-$(at_least_1 $((server_cores * 4 / 5)))} \
+            SERVER_THREADS=${SERVER_THREADS:-$(at_least_1 $((server_cores * 3 / 5)))} \
             SERVER_IO_THREADS=${SERVER_IO_THREADS:-$(at_least_1 $((server_cores * 2 / 5)))} \
             SWARM_THREADS=${SWARM_THREADS:-$((cores - server_cores))} ;;
   shared) unset SERVER_CPUS SWARM_CPUS
