@@ -1,5 +1,5 @@
-// The oracle (oracle.h): ground truth in, every player's visible set recomputed by brute force,
-// every bot's view compared with it.
+// The oracle (oracle.h): ground truth in, every (sampled) player's visible set recomputed from it,
+// every (sampled) bot's view compared with it.
 #include "oracle.h"
 
 #include <arpa/inet.h>
@@ -14,6 +14,7 @@
 #include <chrono>
 #include <cmath>
 #include <cstring>
+#include <functional>
 
 namespace zone::bots {
 
@@ -59,10 +60,168 @@ struct oracle::layout {
   std::vector<std::uint8_t> kinds;
   std::vector<float> aoi, presence;  // 3 per entity
   net::id_map<std::uint32_t> dense;  // id -> dense index
-  std::vector<std::uint32_t> observers;  // dense indices of the players
+  std::vector<std::uint32_t> observers;        // dense indices of the sampled players
+  std::vector<std::uint32_t> observers_by_id;  // indices into observers, by ascending id
+  std::size_t players = 0;                     // every player, sampled or not
   [[nodiscard]] std::uint32_t dense_of(std::uint32_t id) const {
     const auto it = dense.find(id);
     return it == dense.end() ? npos32 : it->second;
+  }
+  void find_observers(unsigned sample) {
+    observers.clear();
+    players = 0;
+    for (std::uint32_t k = 0; k < ids.size(); ++k) {
+      if (kinds[k] != static_cast<std::uint8_t>(net::entity_kind::player)) continue;
+      ++players;
+      if (oracle::sampled(ids[k], sample)) observers.push_back(k);
+    }
+    observers_by_id.resize(observers.size());
+    for (std::uint32_t i = 0; i < observers.size(); ++i) observers_by_id[i] = i;
+    std::sort(observers_by_id.begin(), observers_by_id.end(),
+              [&](std::uint32_t x, std::uint32_t y) { return ids[observers[x]] < ids[observers[y]]; });
+  }
+};
+
+/// The targets of one tick as the scans read them: presence boxes (position -+ half-extent, the
+/// server's float expressions) and classes in columns, in slot order, and which slots an
+/// observer's scan must test. The index only leaves targets out; every target it gives is tested
+/// exactly (candidate_flags), so it decides how much work a scan is, never its result.
+/// One recompute thread's scratch, kept from tick to tick.
+struct oracle::scratch {
+  std::vector<std::uint8_t> flags;   // candidate flags of one run of slots
+  std::vector<std::uint32_t> mark;   // by dense index: in the observer's last set (stamp + 1), and stayed (+ 2)
+  std::uint32_t stamp = 0;
+  std::vector<std::uint32_t> before;  // the last set's dense indices in this tick's layout
+  std::vector<std::uint64_t> fresh, keys;
+};
+
+struct oracle::index {
+  std::vector<float> blo_x, blo_y, blo_z, bhi_x, bhi_y, bhi_z, px;
+  std::vector<std::uint32_t> cls, dense;  // slot -> class, dense index
+  scan_mode mode = scan_mode::grid;
+  std::size_t n = 0;
+  float max_half_x = 0;  // x_window: the largest presence half-extent in x
+  // grid: cells of side `cell` from (origin_x, origin_y), row-major, so that one row's run of
+  // cells is one run of slots; slots [wide_first, n) hold the targets outside it (a presence box
+  // wider than a cell, or a position not finite), tested by every observer.
+  double origin_x = 0, origin_y = 0, cell = 1;
+  std::uint32_t cols = 1, rows = 1;
+  std::size_t wide_first = 0;
+  double reach = 0;    // the gridded targets' largest presence half-extent in x or y
+  double max_abs = 0;  // their largest |coordinate| (for the rounding slack)
+  std::vector<std::uint32_t> start;  // cols * rows + 1
+  std::vector<std::uint32_t> cell_of, order;
+
+  void put(std::size_t s, std::uint32_t k, const float* pos, const layout& lay) {
+    const float* p = pos + 3 * k;
+    const float* hx = lay.presence.data() + 3 * k;
+    blo_x[s] = p[0] - hx[0], blo_y[s] = p[1] - hx[1], blo_z[s] = p[2] - hx[2];
+    bhi_x[s] = p[0] + hx[0], bhi_y[s] = p[1] + hx[1], bhi_z[s] = p[2] + hx[2];
+    px[s] = p[0];
+    cls[s] = lay.classes[k];
+    dense[s] = k;
+  }
+  [[nodiscard]] std::uint32_t col(double x) const {
+    const double q = (x - origin_x) / cell;  // monotone in x: a position within a range is in its cells
+    return !(q >= 0) ? 0u : q >= cols ? cols - 1 : static_cast<std::uint32_t>(q);
+  }
+  [[nodiscard]] std::uint32_t row(double y) const {
+    const double q = (y - origin_y) / cell;
+    return !(q >= 0) ? 0u : q >= rows ? rows - 1 : static_cast<std::uint32_t>(q);
+  }
+
+  void build(const float* pos, const layout& lay, std::size_t count, scan_mode m, float cell_side) {
+    mode = m;
+    n = count;
+    for (auto* v : {&blo_x, &blo_y, &blo_z, &bhi_x, &bhi_y, &bhi_z, &px}) v->resize(n);
+    cls.resize(n);
+    dense.resize(n);
+    order.resize(n);
+    if (m != scan_mode::grid) {
+      // By ascending x of the position (x_window searches it; full reads every slot).
+      for (std::size_t k = 0; k < n; ++k) order[k] = static_cast<std::uint32_t>(k);
+      std::sort(order.begin(), order.end(), [&](std::uint32_t x, std::uint32_t y) {
+        return pos[3 * x] < pos[3 * y] || (pos[3 * x] == pos[3 * y] && x < y);
+      });
+      max_half_x = 0;
+      for (std::size_t s = 0; s < n; ++s) {
+        put(s, order[s], pos, lay);
+        max_half_x = std::max(max_half_x, lay.presence[3 * order[s]]);
+      }
+      return;
+    }
+    cell = std::isfinite(cell_side) && cell_side > 0.01f ? cell_side : 0.01;
+    const auto gridded = [&](std::size_t k) {
+      const float* p = pos + 3 * k;
+      const float* hx = lay.presence.data() + 3 * k;
+      return std::isfinite(p[0]) && std::isfinite(p[1]) && hx[0] <= cell && hx[1] <= cell;
+    };
+    double lo_x = 0, lo_y = 0, hi_x = 0, hi_y = 0;
+    bool any = false;
+    reach = 0, max_abs = 0;
+    for (std::size_t k = 0; k < n; ++k) {
+      if (!gridded(k)) continue;
+      const double x = pos[3 * k], y = pos[3 * k + 1];
+      if (!any) lo_x = hi_x = x, lo_y = hi_y = y, any = true;
+      lo_x = std::min(lo_x, x), hi_x = std::max(hi_x, x), lo_y = std::min(lo_y, y), hi_y = std::max(hi_y, y);
+      reach = std::max<double>(reach, std::max(lay.presence[3 * k], lay.presence[3 * k + 1]));
+    }
+    max_abs = std::max({std::fabs(lo_x), std::fabs(hi_x), std::fabs(lo_y), std::fabs(hi_y)});
+    origin_x = lo_x, origin_y = lo_y;
+    // At most 4 cells per target (and 4M in all): a sparse world gets larger cells.
+    const double max_cells = std::min(4.0 * static_cast<double>(n) + 1024, 4194304.0);
+    for (;;) {
+      const double c = std::floor((hi_x - lo_x) / cell) + 1, r = std::floor((hi_y - lo_y) / cell) + 1;
+      if (c * r <= max_cells) {
+        cols = static_cast<std::uint32_t>(c), rows = static_cast<std::uint32_t>(r);
+        break;
+      }
+      cell *= std::max(1.1, std::sqrt(c * r / max_cells));
+    }
+    // A counting sort by cell (stable: by dense index within a cell); the wide ones last.
+    const std::size_t cells = std::size_t{cols} * rows;
+    start.assign(cells + 2, 0);
+    cell_of.resize(n);
+    for (std::size_t k = 0; k < n; ++k) {
+      cell_of[k] = gridded(k) ? row(pos[3 * k + 1]) * cols + col(pos[3 * k]) : static_cast<std::uint32_t>(cells);
+      ++start[cell_of[k] + 1];
+    }
+    for (std::size_t c = 0; c <= cells; ++c) start[c + 1] += start[c];
+    wide_first = start[cells];
+    for (std::size_t k = 0; k < n; ++k) order[start[cell_of[k]]++] = static_cast<std::uint32_t>(k);
+    for (std::size_t c = cells + 1; c-- > 1;) start[c] = start[c - 1];  // back to the cells' starts
+    start[0] = 0;
+    for (std::size_t s = 0; s < n; ++s) put(s, order[s], pos, lay);
+  }
+
+  /// Calls f(first, last) for each run of slots an observer at `p` with grown AOI half-extents
+  /// (gx, gy) must test: every target whose presence box can meet its grown box is in one.
+  template <class F>
+  void for_each_range(const float* p, float gx, float gy, F&& f) const {
+    if (mode == scan_mode::full) {
+      f(0, n);
+      return;
+    }
+    if (mode == scan_mode::x_window) {
+      // Farther on x than the grown AOI plus the largest presence half-extent plus 1 m (any
+      // rounding of the box bounds): cannot meet.
+      const float r = gx + max_half_x + 1;
+      const float* b = px.data();
+      f(static_cast<std::size_t>(std::lower_bound(b, b + n, p[0] - r) - b),
+        static_cast<std::size_t>(std::upper_bound(b, b + n, p[0] + r) - b));
+      return;
+    }
+    // A target meets the grown box on x only if its position is within gx + its half-extent of
+    // the observer's, up to the rounding of the float bounds (1 m plus 1e-6 of the magnitudes
+    // covers it many times over); likewise on y.
+    const double slack_x = 1 + 1e-6 * (std::fabs(static_cast<double>(p[0])) + gx + max_abs + reach);
+    const double slack_y = 1 + 1e-6 * (std::fabs(static_cast<double>(p[1])) + gy + max_abs + reach);
+    const double rx = static_cast<double>(gx) + reach + slack_x, ry = static_cast<double>(gy) + reach + slack_y;
+    const std::uint32_t c0 = col(p[0] - rx), c1 = col(p[0] + rx), r0 = row(p[1] - ry), r1 = row(p[1] + ry);
+    if (wide_first != 0) {
+      for (std::uint32_t r = r0; r <= r1; ++r) f(start[std::size_t{r} * cols + c0], start[std::size_t{r} * cols + c1 + 1]);
+    }
+    if (wide_first < n) f(wide_first, n);
   }
 };
 
@@ -72,21 +231,17 @@ struct oracle::tick_truth {
   std::uint64_t tick = 0;
   std::shared_ptr<const layout> lay;
   std::vector<float> pos;                  // 3 per entity
-  std::vector<std::uint32_t> obs_ids;      // observers (players), ascending
-  std::vector<std::uint32_t> obs_off;      // CSR offsets into vis, size + 1
-  std::vector<std::uint8_t> obs_known;     // whole history seen (else not checked)
-  std::vector<std::uint32_t> vis;          // each observer's visible set, ascending
-  std::vector<std::uint32_t> vis_dense;    // beside vis: each entry's dense index in lay
+  std::vector<std::uint32_t> obs_ids;      // the sampled observers (players), ascending
+  std::vector<std::uint32_t> obs_at;       // beside obs_ids: its set in sets
+  std::vector<std::uint8_t> obs_known;     // beside obs_ids: whole history seen (else not checked)
+  // Each observer's visible set, ascending: (id << 32) | its dense index in lay. Handed over from
+  // the recompute whole (the vectors of the tick this slot held before go back to it).
+  std::vector<std::vector<std::uint64_t>> sets;
   [[nodiscard]] std::uint32_t find(std::uint32_t observer) const {
     const auto it = std::lower_bound(obs_ids.begin(), obs_ids.end(), observer);
     return it != obs_ids.end() && *it == observer ? static_cast<std::uint32_t>(it - obs_ids.begin()) : npos32;
   }
-  [[nodiscard]] std::span<const std::uint32_t> set(std::uint32_t i) const {
-    return {vis.data() + obs_off[i], obs_off[i + 1] - obs_off[i]};
-  }
-  [[nodiscard]] std::span<const std::uint32_t> set_dense(std::uint32_t i) const {
-    return {vis_dense.data() + obs_off[i], obs_off[i + 1] - obs_off[i]};
-  }
+  [[nodiscard]] std::span<const std::uint64_t> set(std::uint32_t i) const { return sets[obs_at[i]]; }
 };
 
 oracle::oracle(const net::world_bounds& world, const net::interest_rules& rules, unsigned threads, problem_fn problem,
@@ -97,7 +252,7 @@ oracle::oracle(const net::world_bounds& world, const net::interest_rules& rules,
   tolerance_ = {e.x * 1.01f + 1e-4f, e.y * 1.01f + 1e-4f, e.z * 1.01f + 1e-4f};
   threads_ = threads != 0 ? threads : std::max(1u, std::thread::hardware_concurrency() / 8);
   for (std::size_t i = 0; i < ring_ticks; ++i) ring_.push_back(std::make_unique<tick_truth>());
-  flags_.resize(threads_);
+  for (unsigned t = 0; t < threads_; ++t) scratch_.push_back(std::make_unique<scratch>());
 }
 
 oracle::~oracle() { stop(); }
@@ -189,6 +344,7 @@ std::optional<std::string> oracle::feed(std::span<const std::uint8_t> body) {
   const double cpu0 = thread_cpu_ms();
   const auto t0 = std::chrono::steady_clock::now();
   if (auto err = net::truth::decode_tick(body, frame_)) return err;
+  decode_ms_ += std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
   if (frame_.has_layout) ++truth_layouts_;
   if (frame_.has_changes) ++truth_changes_;
   if (!frame_.has_layout && !layout_) return std::string("the first truth frame has no layout");
@@ -200,6 +356,12 @@ std::optional<std::string> oracle::feed(std::span<const std::uint8_t> body) {
 }
 
 void oracle::compute(const net::truth::tick_frame& f) {
+  auto t0 = std::chrono::steady_clock::now();
+  const auto lap = [&t0](double& sum) {
+    const auto t1 = std::chrono::steady_clock::now();
+    sum += std::chrono::duration<double, std::milli>(t1 - t0).count();
+    t0 = t1;
+  };
   if (f.has_layout) {
     auto l = std::make_shared<layout>();
     l->ids = f.ids;
@@ -208,10 +370,8 @@ void oracle::compute(const net::truth::tick_frame& f) {
     l->kinds = f.kinds;
     l->aoi = f.aoi_half;
     l->presence = f.presence_half;
-    for (std::uint32_t k = 0; k < f.count; ++k) {
-      l->dense.try_emplace(f.ids[k]).first->second = k;
-      if (f.kinds[k] == static_cast<std::uint8_t>(net::entity_kind::player)) l->observers.push_back(k);
-    }
+    for (std::uint32_t k = 0; k < f.count; ++k) l->dense.try_emplace(f.ids[k]).first->second = k;
+    l->find_observers(sample);
     layout_ = std::move(l);
   } else if (f.has_changes) {
     // The same entities, some rows replaced (the decoder applied them to f's columns): a new
@@ -226,45 +386,33 @@ void oracle::compute(const net::truth::tick_frame& f) {
       std::copy_n(f.aoi_half.begin() + 3 * k, 3, l->aoi.begin() + 3 * k);
       std::copy_n(f.presence_half.begin() + 3 * k, 3, l->presence.begin() + 3 * k);
     }
-    if (kinds_changed) {
-      l->observers.clear();
-      for (std::uint32_t k = 0; k < f.count; ++k) {
-        if (l->kinds[k] == static_cast<std::uint8_t>(net::entity_kind::player)) l->observers.push_back(k);
-      }
-    }
+    if (kinds_changed) l->find_observers(sample);
     layout_ = std::move(l);
   }
   const layout& lay = *layout_;
   const std::size_t n = f.count;
   const float* pos = f.positions.data();
-  // Presence boxes, as the server builds them (position -+ half-extent, in float), laid out by
-  // ascending x of the position (slot s holds dense index by_x[s]): an observer's scan can then
-  // skip the entities whose x alone rules them out (below).
-  std::vector<std::uint32_t> by_x(n);
-  for (std::size_t k = 0; k < n; ++k) by_x[k] = static_cast<std::uint32_t>(k);
-  std::sort(by_x.begin(), by_x.end(), [&](std::uint32_t x, std::uint32_t y) {
-    return pos[3 * x] < pos[3 * y] || (pos[3 * x] == pos[3 * y] && x < y);
-  });
-  std::vector<float> b(7 * n);
-  float* blo_x = b.data();
-  float* blo_y = blo_x + n;
-  float* blo_z = blo_y + n;
-  float* bhi_x = blo_z + n;
-  float* bhi_y = bhi_x + n;
-  float* bhi_z = bhi_y + n;
-  float* px = bhi_z + n;
-  std::vector<std::uint32_t> cls(n);
-  float max_half_x = 0;
-  for (std::size_t s = 0; s < n; ++s) {
-    const std::uint32_t k = by_x[s];
-    const float* p = pos + 3 * k;
-    const float* hx = lay.presence.data() + 3 * k;
-    blo_x[s] = p[0] - hx[0], blo_y[s] = p[1] - hx[1], blo_z[s] = p[2] - hx[2];
-    bhi_x[s] = p[0] + hx[0], bhi_y[s] = p[1] + hx[1], bhi_z[s] = p[2] + hx[2];
-    px[s] = p[0];
-    cls[s] = lay.classes[k];
-    max_half_x = std::max(max_half_x, hx[0]);
+  const float h = rules_.hysteresis;
+  const std::uint32_t cap = rules_.max_visible;
+  const std::size_t obs = lay.observers.size();
+  observers_max_ = std::max<std::uint64_t>(observers_max_, lay.players);
+  sampled_max_ = std::max<std::uint64_t>(sampled_max_, obs);
+
+  // The targets' boxes (position -+ presence half-extent, the server's float expressions) in scan
+  // order, and the index each scan reads: slot order by x (x_window, full) or by grid cell.
+  if (!index_) index_ = std::make_unique<index>();
+  index& ix = *index_;
+  // The grid's cell: half the observers' mean grown AOI half-extent (a query then spans about 5
+  // cells a side, and tests about 1.5 times the targets its grown box holds).
+  double reach_sum = 0;
+  std::size_t reaches = 0;
+  for (const std::uint32_t a : lay.observers) {
+    const double r = std::max(lay.aoi[3 * a], lay.aoi[3 * a + 1]) + h;
+    if (std::isfinite(r)) reach_sum += r, ++reaches;
   }
+  const float mean_reach = reaches != 0 ? static_cast<float>(reach_sum / static_cast<double>(reaches)) : 64.0f;
+  ix.build(pos, lay, n, scan, grid_cell > 0 ? grid_cell : mean_reach / 2);
+  lap(index_ms_);
 
   // The previous tick's sets (the hysteresis): only when it is the tick just before this one.
   const tick_truth* prev = nullptr;
@@ -272,56 +420,67 @@ void oracle::compute(const net::truth::tick_frame& f) {
     const tick_truth& p = *ring_[(f.tick - 1) % ring_ticks];
     if (p.valid && p.tick == f.tick - 1) prev = &p;
   }
-  const std::size_t obs = lay.observers.size();
-  observers_max_ = std::max<std::uint64_t>(observers_max_, obs);
   if (sets_.size() < obs) sets_.resize(obs);
   std::vector<std::uint8_t> known(obs, 0);
-  const float h = rules_.hysteresis;
-  const std::uint32_t cap = rules_.max_visible;
 
-  const auto work = [&](unsigned t, std::size_t first, std::size_t last) {
-    std::vector<std::uint8_t>& flags = flags_[t];
-    flags.resize(n + 8);
-    std::vector<std::uint64_t> keys;
-    for (std::size_t i = first; i < last; ++i) {
-      const std::uint32_t a = lay.observers[i];
-      const std::uint32_t id = lay.ids[a];
-      std::vector<std::uint64_t>& out = sets_[i];  // (id << 32) | dense index
-      out.clear();
-      // History: a new entity starts from an empty set; one seen last tick continues from its set
-      // there; any other (present before the stream began, or after a gap) is not checked.
-      std::span<const std::uint32_t> before;
-      bool is_known = false;
-      if (prev != nullptr) {
-        const std::uint32_t j = prev->find(id);
-        if (j != npos32) {
-          is_known = prev->obs_known[j] != 0;
-          before = prev->set(j);
-        } else {
-          is_known = prev->lay->dense_of(id) == npos32;
-        }
+  // Where last tick's sets name an entity by its dense index in this tick's layout too: the same
+  // layout, or one that only appended entities to it.
+  const bool prev_dense_same =
+      prev != nullptr && (prev->lay == layout_ || (prev->lay->ids.size() <= n && std::equal(prev->lay->ids.begin(),
+                                                                                           prev->lay->ids.end(), lay.ids.begin())));
+
+  const auto observe = [&](scratch& sc, std::size_t i) {
+    const std::uint32_t a = lay.observers[i];
+    const std::uint32_t id = lay.ids[a];
+    std::vector<std::uint64_t>& out = sets_[i];  // (id << 32) | dense index
+    out.clear();
+    // History: a new entity starts from an empty set; one seen last tick continues from its set
+    // there; any other (present before the stream began, or after a gap) is not checked.
+    std::span<const std::uint64_t> before;  // (id << 32) | dense index in prev's layout
+    bool is_known = false;
+    if (prev != nullptr) {
+      const std::uint32_t j = prev->find(id);
+      if (j != npos32) {
+        is_known = prev->obs_known[j] != 0;
+        before = prev->set(j);
+      } else {
+        is_known = prev->lay->dense_of(id) == npos32;
       }
-      known[i] = is_known ? 1 : 0;
-      const float* p = pos + 3 * a;
-      const float* e = lay.aoi.data() + 3 * a;
-      // The same float expressions as the server's boxes: grown = p -+ (aoi + h), exact = p -+ aoi.
-      const float gx = e[0] + h, gy = e[1] + h, gz = e[2] + h;
-      const grown_box g{p[0] - gx, p[1] - gy, p[2] - gz, p[0] + gx, p[1] + gy, p[2] + gz};
-      const float lo_x = p[0] - e[0], lo_y = p[1] - e[1], lo_z = p[2] - e[2];
-      const float hi_x = p[0] + e[0], hi_y = p[1] + e[1], hi_z = p[2] + e[2];
-      // Every target is tested (brute force), except, unless full_scan, those whose position's x
-      // is farther from the observer's than the grown AOI plus the largest presence half-extent
-      // plus 1 m: their boxes cannot meet on x (the 1 m covers any rounding of the box bounds).
-      std::size_t first_s = 0, last_s = n;
-      if (!full_scan) {
-        const float reach = gx + max_half_x + 1;
-        first_s = static_cast<std::size_t>(std::lower_bound(px, px + n, p[0] - reach) - px);
-        last_s = static_cast<std::size_t>(std::upper_bound(px, px + n, p[0] + reach) - px);
-      }
+    }
+    known[i] = is_known ? 1 : 0;
+    // Last tick's set, marked by dense index in this tick's layout (an entity gone since cannot stay).
+    if (sc.mark.size() < n) sc.mark.assign(n, 0), sc.stamp = 0;
+    if (sc.stamp >= 0xfffffff0u) std::fill(sc.mark.begin(), sc.mark.end(), 0), sc.stamp = 0;
+    const std::uint32_t in_before = sc.stamp + 1, kept = sc.stamp + 2;
+    sc.stamp += 2;
+    sc.before.clear();
+    for (const std::uint64_t entry : before) {
+      const auto d = prev_dense_same ? static_cast<std::uint32_t>(entry) : lay.dense_of(static_cast<std::uint32_t>(entry >> 32));
+      sc.before.push_back(d);
+      if (d != npos32) sc.mark[d] = in_before;
+    }
+    sc.fresh.clear();
+    const float* p = pos + 3 * a;
+    const float* e = lay.aoi.data() + 3 * a;
+    // The same float expressions as the server's boxes: grown = p -+ (aoi + h), exact = p -+ aoi.
+    const float gx = e[0] + h, gy = e[1] + h, gz = e[2] + h;
+    const grown_box g{p[0] - gx, p[1] - gy, p[2] - gz, p[0] + gx, p[1] + gy, p[2] + gz};
+    const float lo_x = p[0] - e[0], lo_y = p[1] - e[1], lo_z = p[2] - e[2];
+    const float hi_x = p[0] + e[0], hi_y = p[1] + e[1], hi_z = p[2] + e[2];
+    const std::uint32_t sees = lay.sees[a];
+    // Every target in the ranges the index gives is tested exactly (the index only leaves out
+    // targets whose boxes cannot meet the grown box). A candidate (its class seen, its presence
+    // box meeting the grown AOI box) stays when it was visible last tick, and enters when its
+    // presence box meets the exact AOI box.
+    std::vector<std::uint8_t>& flags = sc.flags;
+    ix.for_each_range(p, gx, gy, [&](std::size_t first_s, std::size_t last_s) {
       const std::size_t m = last_s - first_s;
-      candidate_flags(blo_x + first_s, blo_y + first_s, blo_z + first_s, bhi_x + first_s, bhi_y + first_s,
-                      bhi_z + first_s, cls.data() + first_s, m, g, lay.sees[a], flags.data());
-      std::fill(flags.begin() + static_cast<std::ptrdiff_t>(m), flags.begin() + static_cast<std::ptrdiff_t>(m + 8), 0);
+      if (m == 0) return;
+      if (flags.size() < m + 8) flags.resize(m + 8);
+      candidate_flags(ix.blo_x.data() + first_s, ix.blo_y.data() + first_s, ix.blo_z.data() + first_s,
+                      ix.bhi_x.data() + first_s, ix.bhi_y.data() + first_s, ix.bhi_z.data() + first_s,
+                      ix.cls.data() + first_s, m, g, sees, flags.data());
+      std::fill_n(flags.begin() + static_cast<std::ptrdiff_t>(m), 8, 0);
       for (std::size_t k0 = 0; k0 < m; k0 += 8) {
         std::uint64_t word;
         std::memcpy(&word, flags.data() + k0, 8);
@@ -329,55 +488,60 @@ void oracle::compute(const net::truth::tick_frame& f) {
         for (std::size_t r = k0; r < std::min(m, k0 + 8); ++r) {
           if (flags[r] == 0) continue;
           const std::size_t k = first_s + r;
-          if (by_x[k] == a) continue;  // never itself
-          const std::uint32_t target = lay.ids[by_x[k]];
-          const std::uint64_t entry = (std::uint64_t{target} << 32) | by_x[k];
-          // Enter: the presence box meets the exact AOI box; stay: it was visible last tick.
-          const bool meets = blo_x[k] <= hi_x && lo_x <= bhi_x[k] && blo_y[k] <= hi_y && lo_y <= bhi_y[k] &&
-                             blo_z[k] <= hi_z && lo_z <= bhi_z[k];
-          if (meets || std::binary_search(before.begin(), before.end(), target)) out.push_back(entry);
+          const std::uint32_t d = ix.dense[k];
+          if (d == a) continue;  // never itself
+          if (sc.mark[d] == in_before) {
+            sc.mark[d] = kept;
+          } else if (ix.blo_x[k] <= hi_x && lo_x <= ix.bhi_x[k] && ix.blo_y[k] <= hi_y && lo_y <= ix.bhi_y[k] &&
+                     ix.blo_z[k] <= hi_z && lo_z <= ix.bhi_z[k]) {
+            sc.fresh.push_back((std::uint64_t{lay.ids[d]} << 32) | d);
+          }
         }
       }
-      if (cap != 0 && out.size() > cap) {
-        // The cap closest by squared distance (ties by id), as the server keeps them.
-        keys.clear();
-        for (const std::uint64_t e2 : out) {
-          const auto k = static_cast<std::uint32_t>(e2);
-          keys.push_back((std::uint64_t{std::bit_cast<std::uint32_t>(dist2(p, pos + 3 * k))} << 32) | (e2 >> 32));
-        }
-        std::sort(keys.begin(), keys.end());
-        keys.resize(cap);
-        out.clear();
-        for (const std::uint64_t key : keys) {
-          const auto t2 = static_cast<std::uint32_t>(key);
-          out.push_back((std::uint64_t{t2} << 32) | lay.dense_of(t2));
-        }
+    });
+    // The set by id: those that stayed, in last tick's order (by id), merged with those that entered.
+    std::sort(sc.fresh.begin(), sc.fresh.end());
+    std::size_t f2 = 0;
+    for (std::size_t b = 0; b < before.size(); ++b) {
+      const std::uint32_t d = sc.before[b];
+      if (d == npos32 || sc.mark[d] != kept) continue;
+      const std::uint64_t entry = (before[b] & 0xffffffff00000000ull) | d;
+      while (f2 < sc.fresh.size() && sc.fresh[f2] < entry) out.push_back(sc.fresh[f2++]);
+      out.push_back(entry);
+    }
+    out.insert(out.end(), sc.fresh.begin() + static_cast<std::ptrdiff_t>(f2), sc.fresh.end());
+    if (cap != 0 && out.size() > cap) {
+      // The cap closest by squared distance (ties by id), as the server keeps them.
+      std::vector<std::uint64_t>& keys = sc.keys;
+      keys.clear();
+      for (const std::uint64_t e2 : out) {
+        const auto k = static_cast<std::uint32_t>(e2);
+        keys.push_back((std::uint64_t{std::bit_cast<std::uint32_t>(dist2(p, pos + 3 * k))} << 32) | (e2 >> 32));
+      }
+      std::sort(keys.begin(), keys.end());
+      keys.resize(cap);
+      out.clear();
+      for (const std::uint64_t key : keys) {
+        const auto t2 = static_cast<std::uint32_t>(key);
+        out.push_back((std::uint64_t{t2} << 32) | lay.dense_of(t2));
       }
       std::sort(out.begin(), out.end());
     }
   };
-  if (threads_ <= 1 || obs < 64) {
-    work(0, 0, obs);
-  } else {
-    std::vector<std::thread> pool;
-    std::vector<double> cpu(threads_, 0);
-    for (unsigned t = 1; t < threads_; ++t) {
-      pool.emplace_back([&, t] {
-        const double c0 = thread_cpu_ms();
-        work(t, obs * t / threads_, obs * (t + 1) / threads_);
-        cpu[t] = thread_cpu_ms() - c0;
-      });
-    }
-    work(0, 0, obs / threads_);
-    for (auto& th : pool) th.join();
-    for (const double c : cpu) compute_cpu_ms_ += c;
-  }
 
-  // Publish this tick's truth and sets, observers by id.
-  std::vector<std::uint32_t> order(obs);
-  for (std::size_t i = 0; i < obs; ++i) order[i] = static_cast<std::uint32_t>(i);
-  std::sort(order.begin(), order.end(),
-            [&](std::uint32_t x, std::uint32_t y) { return lay.ids[lay.observers[x]] < lay.ids[lay.observers[y]]; });
+  // The observers in chunks, taken by the threads as they come free (towns cost more than fields).
+  constexpr std::size_t chunk = 32;
+  std::atomic<std::size_t> next{0};
+  const auto scan_all = [&](unsigned t) {
+    scratch& sc = *scratch_[t];
+    for (std::size_t first; (first = next.fetch_add(chunk, std::memory_order_relaxed)) < obs;) {
+      for (std::size_t i = first; i < std::min(obs, first + chunk); ++i) observe(sc, i);
+    }
+  };
+  run_parallel(obs >= 64 ? threads_ : 1, scan_all);
+  lap(scan_ms_);
+
+  // Publish this tick's truth and sets, observers by id (the sets handed over, not copied).
   {
     tick_truth& slot = *ring_[f.tick % ring_ticks];
     std::unique_lock lock(slot.mutex);
@@ -385,20 +549,16 @@ void oracle::compute(const net::truth::tick_frame& f) {
     slot.tick = f.tick;
     slot.lay = layout_;
     slot.pos.assign(f.positions.begin(), f.positions.end());
-    slot.obs_ids.clear();
-    slot.obs_off.assign(1, 0);
-    slot.obs_known.clear();
-    slot.vis.clear();
-    slot.vis_dense.clear();
-    for (const std::uint32_t i : order) {
-      slot.obs_ids.push_back(lay.ids[lay.observers[i]]);
-      slot.obs_known.push_back(known[i]);
-      for (const std::uint64_t e : sets_[i]) {
-        slot.vis.push_back(static_cast<std::uint32_t>(e >> 32));
-        slot.vis_dense.push_back(static_cast<std::uint32_t>(e));
-      }
-      slot.obs_off.push_back(static_cast<std::uint32_t>(slot.vis.size()));
+    slot.obs_ids.resize(obs);
+    slot.obs_at.resize(obs);
+    slot.obs_known.resize(obs);
+    for (std::size_t r = 0; r < obs; ++r) {
+      const std::uint32_t i = lay.observers_by_id[r];
+      slot.obs_ids[r] = lay.ids[lay.observers[i]];
+      slot.obs_at[r] = i;
+      slot.obs_known[r] = known[i];
     }
+    slot.sets.swap(sets_);
   }
   prev_tick_ = f.tick;
   any_tick_ = true;
@@ -408,9 +568,33 @@ void oracle::compute(const net::truth::tick_frame& f) {
     any_ready_ = true;
   }
   ready_cv_.notify_all();
+  lap(publish_ms_);
+  // The views that waited for this tick: checked on every thread of the oracle (the bots' threads
+  // take some too, a few per frame).
   const double drain0 = thread_cpu_ms();
-  drain_pending(false, static_cast<std::size_t>(-1));
-  drain_cpu_ms_ += thread_cpu_ms() - drain0;  // checks, not recomputing: reported apart
+  double helpers_ms = 0;
+  run_parallel(pending_front_tick_.load() <= f.tick ? threads_ : 1,
+               [&](unsigned) { drain_pending(false, static_cast<std::size_t>(-1)); }, &helpers_ms);
+  const double own_ms = thread_cpu_ms() - drain0;  // checks, not recomputing: reported apart
+  own_drain_cpu_ms_ += own_ms;
+  drain_cpu_ms_ += own_ms + helpers_ms;
+  lap(drain_ms_);
+}
+
+void oracle::run_parallel(unsigned threads, const std::function<void(unsigned)>& work, double* cpu_ms) {
+  // The calling thread is thread 0; the others' CPU is added to `cpu_ms` (the recompute's, unless given).
+  std::vector<std::thread> pool;
+  std::vector<double> cpu(threads, 0);
+  for (unsigned t = 1; t < threads; ++t) {
+    pool.emplace_back([&, t] {
+      const double c0 = thread_cpu_ms();
+      work(t);
+      cpu[t] = thread_cpu_ms() - c0;
+    });
+  }
+  work(0);
+  for (auto& th : pool) th.join();
+  for (const double c : cpu) (cpu_ms != nullptr ? *cpu_ms : compute_cpu_ms_) += c;
 }
 
 std::optional<std::vector<std::uint32_t>> oracle::visible(std::uint32_t observer, std::uint64_t tick) const {
@@ -419,8 +603,9 @@ std::optional<std::vector<std::uint32_t>> oracle::visible(std::uint32_t observer
   if (!slot.valid || slot.tick != tick) return std::nullopt;
   const std::uint32_t i = slot.find(observer);
   if (i == npos32 || slot.obs_known[i] == 0) return std::nullopt;
-  const auto s = slot.set(i);
-  return std::vector<std::uint32_t>(s.begin(), s.end());
+  std::vector<std::uint32_t> ids;
+  for (const std::uint64_t e : slot.set(i)) ids.push_back(static_cast<std::uint32_t>(e >> 32));
+  return ids;
 }
 
 void oracle::log(const char* kind, std::atomic<std::uint32_t>& logged, const std::string& line) {
@@ -430,10 +615,35 @@ void oracle::log(const char* kind, std::atomic<std::uint32_t>& logged, const std
 
 void oracle::check(std::uint32_t observer, std::uint64_t tick, const net::client_view& view,
                    const net::deferred_counts& deferred, const std::optional<net::vec3f>& self_position, std::size_t bot) {
+  if (!sampled(observer, sample)) {
+    c_.frames_unsampled.fetch_add(1, std::memory_order_relaxed);  // outside the sample: by design, not a failure
+    return;
+  }
   for (std::uint64_t seen = newest_checked_tick_.load(std::memory_order_relaxed);
        tick > seen && !newest_checked_tick_.compare_exchange_weak(seen, tick, std::memory_order_relaxed);) {
   }
-  thread_local view_snapshot v;
+  // The truth of this tick is usually computed a few milliseconds after its frames arrive: then
+  // a snapshot of the view waits, and the bot goes on at once. Waiting snapshots whose truth has
+  // come are checked by the oracle's threads after each tick and by the next bots to call (a few each).
+  drain_pending(false, 8);
+  const bool ready = any_ready_.load(std::memory_order_acquire) && ready_tick_.load(std::memory_order_acquire) >= tick;
+  const std::size_t bytes = sizeof(view_snapshot) + view.size() * sizeof(held_entity);
+  if (!ready) {
+    // Room for it first (no copy of a view that could not wait).
+    bool room = false;
+    if (!ended_.load()) {
+      room = pending_bytes_.fetch_add(bytes, std::memory_order_relaxed) + bytes <= max_pending_bytes;
+      if (!room) pending_bytes_.fetch_sub(bytes, std::memory_order_relaxed);
+    }
+    if (!room) {
+      pending_overflow_.fetch_add(1, std::memory_order_relaxed);
+      c_.frames_unchecked.fetch_add(1, std::memory_order_relaxed);
+      return;
+    }
+  }
+  thread_local view_snapshot reused;
+  view_snapshot waiting;
+  view_snapshot& v = ready ? reused : waiting;
   v.observer = observer, v.tick = tick, v.deferred = deferred, v.self_position = self_position, v.bot = bot;
   v.held.clear();
   v.held.reserve(view.size());
@@ -441,23 +651,13 @@ void oracle::check(std::uint32_t observer, std::uint64_t tick, const net::client
     v.held.push_back({id, e.state.visibility_class, e.state.position.x, e.state.position.y, e.state.position.z, e.last_tick});
   }
   std::sort(v.held.begin(), v.held.end(), [](const held_entity& a, const held_entity& b) { return a.id < b.id; });
-  // The truth of this tick is usually computed a few milliseconds after its frames arrive: then
-  // the snapshot waits, and the bot goes on at once. Waiting snapshots whose truth has come are
-  // checked by the next bots to call (a few each) and by the oracle's thread.
-  drain_pending(false, 8);
-  if (any_ready_.load(std::memory_order_acquire) && ready_tick_.load(std::memory_order_acquire) >= tick) {
+  if (ready) {
     check_snapshot(v);
     return;
   }
-  const std::size_t bytes = sizeof(view_snapshot) + v.held.size() * sizeof(held_entity);
   std::lock_guard lock(pending_mutex_);
-  if (pending_bytes_ + bytes > max_pending_bytes || ended_.load()) {
-    pending_overflow_.fetch_add(1, std::memory_order_relaxed);
-    c_.frames_unchecked.fetch_add(1, std::memory_order_relaxed);
-    return;
-  }
-  pending_bytes_ += bytes;
-  pending_.push_back(v);
+  pending_.push_back(std::move(waiting));
+  if (pending_.size() == 1) pending_front_tick_.store(tick, std::memory_order_release);
 }
 
 void oracle::catch_up(double timeout_s) {
@@ -469,7 +669,11 @@ void oracle::catch_up(double timeout_s) {
 
 void oracle::drain_pending(bool all, std::size_t max_jobs) {
   // Oldest first, a few at a time, checked outside the lock (bots' threads and the oracle's
-  // thread drain at once).
+  // threads drain at once). Without the lock first: is the oldest one's truth there?
+  if (!all && (!any_ready_.load(std::memory_order_acquire) ||
+               pending_front_tick_.load(std::memory_order_acquire) > ready_tick_.load(std::memory_order_acquire))) {
+    return;
+  }
   std::vector<view_snapshot> batch;
   for (std::size_t done = 0; done < max_jobs;) {
     batch.clear();
@@ -478,10 +682,12 @@ void oracle::drain_pending(bool all, std::size_t max_jobs) {
       const std::uint64_t ready = ready_tick_.load();
       const bool any = any_ready_.load();
       while (!pending_.empty() && batch.size() < 16 && (all || (any && pending_.front().tick <= ready))) {
-        pending_bytes_ -= sizeof(view_snapshot) + pending_.front().held.size() * sizeof(held_entity);
+        pending_bytes_.fetch_sub(sizeof(view_snapshot) + pending_.front().held.size() * sizeof(held_entity),
+                                 std::memory_order_relaxed);
         batch.push_back(std::move(pending_.front()));
         pending_.pop_front();
       }
+      pending_front_tick_.store(pending_.empty() ? ~std::uint64_t{0} : pending_.front().tick, std::memory_order_release);
     }
     if (batch.empty()) return;
     for (const auto& v : batch) check_snapshot(v);
@@ -502,8 +708,8 @@ void oracle::check_snapshot(const view_snapshot& v) {
     return;
   }
   const layout& lay = *now.lay;
-  const std::span<const std::uint32_t> truth = now.set(oi);
-  const std::span<const std::uint32_t> truth_dense = now.set_dense(oi);
+  const std::span<const std::uint64_t> truth = now.set(oi);  // (id << 32) | dense index
+  const auto id_at = [&](std::size_t i) { return static_cast<std::uint32_t>(truth[i] >> 32); };
   const std::uint32_t self = lay.dense_of(observer);
   const float* eye = now.pos.data() + 3 * self;
   const std::uint32_t sees = lay.sees[self];
@@ -562,12 +768,12 @@ void oracle::check_snapshot(const view_snapshot& v) {
   // The visible set and the held entities, both by ascending id, side by side.
   std::size_t i = 0, j = 0;
   while (i < truth.size() || j < v.held.size()) {
-    if (j == v.held.size() || (i < truth.size() && truth[i] < v.held[j].id)) {
-      if (missing++ == 0) first_missing = truth[i];  // visible, not held
+    if (j == v.held.size() || (i < truth.size() && id_at(i) < v.held[j].id)) {
+      if (missing++ == 0) first_missing = id_at(i);  // visible, not held
       ++i;
       continue;
     }
-    if (i == truth.size() || v.held[j].id < truth[i]) {
+    if (i == truth.size() || v.held[j].id < id_at(i)) {
       // Held, not visible: a leak when of a class the observer does not see.
       const std::uint32_t id = v.held[j].id;
       const std::uint32_t d = lay.dense_of(id);
@@ -582,7 +788,7 @@ void oracle::check_snapshot(const view_snapshot& v) {
     // Held and visible: its class, its position, and whether an update was due.
     const held_entity& e = v.held[j];
     const std::uint32_t id = e.id;
-    const std::uint32_t d = truth_dense[i];
+    const auto d = static_cast<std::uint32_t>(truth[i]);
     ++i, ++j, ++checked;
     if (e.visibility_class != lay.classes[d]) {
       c_.wrong_class.fetch_add(1, std::memory_order_relaxed);
@@ -676,12 +882,14 @@ oracle_report oracle::report() const {
   r.position = c_.position, r.stale = c_.stale, r.deferral = c_.deferral;
   r.truth_ticks = truth_ticks_, r.truth_bytes = truth_bytes_;
   r.truth_layouts = truth_layouts_, r.truth_changes = truth_changes_;
-  r.compute_cpu_ms = compute_cpu_ms_ - drain_cpu_ms_, r.compute_max_ms = compute_max_ms_;
+  r.compute_cpu_ms = compute_cpu_ms_ - own_drain_cpu_ms_, r.compute_max_ms = compute_max_ms_;
   r.drain_cpu_ms = drain_cpu_ms_;
   r.check_ms = static_cast<double>(check_ns_.load()) / 1e6;
   r.deferred_checks = deferred_checks_.load();
   r.pending_overflow = pending_overflow_.load();
-  r.observers_max = observers_max_;
+  r.observers_max = observers_max_, r.sampled_max = sampled_max_;
+  r.frames_unsampled = c_.frames_unsampled, r.sample = sample;
+  r.decode_ms = decode_ms_, r.index_ms = index_ms_, r.scan_ms = scan_ms_, r.publish_ms = publish_ms_, r.drain_ms = drain_ms_;
   std::lock_guard lock(ready_mutex_);
   r.stream_error = stream_error_;
   return r;

@@ -1,9 +1,11 @@
 // The oracle (docs/bots.md): an independent check of every bot's view against the server's ground
 // truth. The server (zone-server --oracle) publishes each tick's entities, boxes and classes on a
 // loopback stream (net/truth.h); the oracle recomputes every player's visible set from that
-// truth alone, by brute force (every observer against every entity) under the zone's rules (the
+// truth alone (every observer tested against every entity its own grid over the truth does not
+// rule out; brute force is the reference it is tested against) under the zone's rules (the
 // visibility rule, the hysteresis, the cap), and each bot, right after applying the frame of tick
-// t, has its view compared with the visible set of tick t. What the server promises after a frame
+// t, has its view compared with the visible set of tick t. With a sample of 1 in K, only the
+// players whose id is sampled (a fixed subset, see sampled()) are recomputed and checked. What the server promises after a frame
 // of tick t (and the oracle checks exactly):
 //   - the view holds every visible entity but `deferred.enters` of them, and no entity that is
 //     not visible but `deferred.leaves` of them (the frame says what the byte budget left for
@@ -20,6 +22,7 @@
 #include <condition_variable>
 #include <cstdint>
 #include <deque>
+#include <functional>
 #include <memory>
 #include <mutex>
 #include <optional>
@@ -37,6 +40,7 @@ namespace zone::bots {
 struct oracle_counters {
   std::atomic<std::uint64_t> frames_checked{0}, frames_unchecked{0}, entities_checked{0}, positions_checked{0},
       positions_unchecked{0};
+  std::atomic<std::uint64_t> frames_unsampled{0};  ///< frames of bots outside the sample (not checked by design)
   std::atomic<std::uint64_t> missing{0}, extra{0}, leaked{0}, wrong_class{0}, position{0}, stale{0}, deferral{0};
   [[nodiscard]] std::uint64_t mismatches() const {
     return missing.load() + extra.load() + leaked.load() + wrong_class.load() + position.load() + stale.load() +
@@ -48,6 +52,8 @@ struct oracle_counters {
 struct oracle_report {
   std::uint64_t frames_checked = 0, frames_unchecked = 0, entities_checked = 0, positions_checked = 0,
                 positions_unchecked = 0;
+  std::uint64_t frames_unsampled = 0;  ///< frames of bots outside the sample (neither checked nor failed)
+  unsigned sample = 1;                 ///< 1 in `sample` players recomputed and checked
   std::uint64_t missing = 0, extra = 0, leaked = 0, wrong_class = 0, position = 0, stale = 0, deferral = 0;
   std::uint64_t truth_ticks = 0, truth_bytes = 0, truth_layouts = 0;
   std::uint64_t truth_changes = 0;  ///< truth frames that carried changes to the layout instead of the whole of it
@@ -57,7 +63,12 @@ struct oracle_report {
   double check_ms = 0;        ///< wall time of the comparisons, summed (bots' threads and the oracle's)
   std::uint64_t deferred_checks = 0;  ///< frames checked by the oracle's thread (they came before their truth)
   std::uint64_t pending_overflow = 0;  ///< frames not checked: too many waiting for their truth
-  std::uint64_t observers_max = 0;
+  std::uint64_t observers_max = 0;  ///< players in the zone (the most in one tick)
+  std::uint64_t sampled_max = 0;    ///< of them, recomputed and checked (the most in one tick)
+  /// Wall time of the oracle's thread by phase, summed over the ticks: decoding the frame, the
+  /// layout and the index over the targets, the scan of every sampled observer (all threads),
+  /// publishing the sets, and checking the views that waited for them.
+  double decode_ms = 0, index_ms = 0, scan_ms = 0, publish_ms = 0, drain_ms = 0;
   std::string stream_error;  ///< why the stream ended early (empty: it ran to the end)
   [[nodiscard]] std::uint64_t mismatches() const {
     return missing + extra + leaked + wrong_class + position + stale + deferral;
@@ -118,9 +129,28 @@ class oracle {
   [[nodiscard]] oracle_report report() const;
   /// Ticks of truth kept for checks of late frames and of positions last sent long ago.
   static constexpr std::size_t ring_ticks = 64;
-  /// Test every target for every observer (true), or skip those whose x alone rules them out
-  /// (false, the default: the same sets, tested against each other, about 20x less work).
-  bool full_scan = false;
+  /// Which targets each observer's scan tests (all three give the same sets; test_bots_oracle
+  /// holds each to the tracker's brute-force finder and to each other): `full`, every entity
+  /// (brute force); `x_window`, those whose x lies within reach (sorted by x once per tick);
+  /// `grid` (the default), those in the cells of a uniform x-y grid of the oracle's own, built
+  /// over the truth once per tick, that the observer's grown AOI can reach (entities with a wide
+  /// presence box or a non-finite position are tested by every observer).
+  enum class scan_mode : std::uint8_t { grid, x_window, full };
+  scan_mode scan = scan_mode::grid;
+  /// The grid's cell side (m); 0 = half the observers' mean grown AOI half-extent (tests set it).
+  float grid_cell = 0;
+  /// 1 in `sample` players is recomputed and checked (1 = every one): those whose id sampled()
+  /// picks, a fixed subset, so that each one's history (the hysteresis) is continuous. A frame of
+  /// another bot is counted in frames_unsampled and not checked. Set before start() or feed().
+  unsigned sample = 1;
+  /// Whether `id` is in the sample of 1 in `k` (a hash of the id: fixed for the entity's life,
+  /// the same on every side that asks).
+  [[nodiscard]] static bool sampled(std::uint32_t id, unsigned k) {
+    if (k <= 1) return true;
+    std::uint32_t h = id;  // murmur3's finalizer: ids that differ in any bit spread over every residue
+    h ^= h >> 16, h *= 0x85ebca6bu, h ^= h >> 13, h *= 0xc2b2ae35u, h ^= h >> 16;
+    return h % k == 0;
+  }
   /// Waits (at most `timeout_s`) until the truth of every tick a bot checked so far is computed
   /// and the views that waited for it are checked: called at the end of a run, before stop().
   void catch_up(double timeout_s);
@@ -128,8 +158,13 @@ class oracle {
  private:
   struct layout;
   struct tick_truth;
+  struct index;
+  struct scratch;
   void run(int fd);
   void compute(const net::truth::tick_frame& f);
+  /// Runs work(0) on this thread and work(1 .. threads - 1) on as many others, and waits; their
+  /// CPU is added to *cpu_ms (nullptr: the recompute's).
+  void run_parallel(unsigned threads, const std::function<void(unsigned)>& work, double* cpu_ms = nullptr);
   void log(const char* kind, std::atomic<std::uint32_t>& logged, const std::string& line);
   /// Compares a snapshot with the truth of its tick (unchecked when that tick is gone or unknown).
   void check_snapshot(const view_snapshot& v);
@@ -160,18 +195,24 @@ class oracle {
   std::atomic<std::uint32_t> logged_missing_{0}, logged_extra_{0}, logged_leaked_{0}, logged_class_{0},
       logged_position_{0}, logged_stale_{0}, logged_deferral_{0};
   // Costs.
-  std::uint64_t truth_ticks_ = 0, truth_bytes_ = 0, truth_layouts_ = 0, truth_changes_ = 0, observers_max_ = 0;
-  double compute_cpu_ms_ = 0, compute_max_ms_ = 0, drain_cpu_ms_ = 0;
+  std::uint64_t truth_ticks_ = 0, truth_bytes_ = 0, truth_layouts_ = 0, truth_changes_ = 0, observers_max_ = 0,
+                sampled_max_ = 0;
+  double compute_cpu_ms_ = 0, compute_max_ms_ = 0, drain_cpu_ms_ = 0, own_drain_cpu_ms_ = 0;
+  double decode_ms_ = 0, index_ms_ = 0, scan_ms_ = 0, publish_ms_ = 0, drain_ms_ = 0;
   std::atomic<std::uint64_t> check_ns_{0};
   // Snapshots of frames that came before their tick's truth (checked by the oracle's thread).
   std::mutex pending_mutex_;
   std::deque<view_snapshot> pending_;
-  std::size_t pending_bytes_ = 0;
+  std::atomic<std::size_t> pending_bytes_{0};  // reserved before a snapshot is made
+  /// The oldest waiting snapshot's tick (max when none): a bot checks whether any is due without the lock.
+  std::atomic<std::uint64_t> pending_front_tick_{~std::uint64_t{0}};
   std::atomic<std::uint64_t> deferred_checks_{0}, pending_overflow_{0};
   std::atomic<std::uint64_t> newest_checked_tick_{0};  // the newest tick a bot asked to check
-  // Per-thread scratch of compute().
-  std::vector<std::vector<std::uint8_t>> flags_;
-  std::vector<std::vector<std::uint64_t>> sets_;  // by observer index, reused tick to tick: (id << 32) | dense
+  // Scratch of compute(), reused tick to tick: the targets' index, each thread's scratch, and
+  // each sampled observer's set as (id << 32) | dense index.
+  std::unique_ptr<index> index_;
+  std::vector<std::unique_ptr<scratch>> scratch_;
+  std::vector<std::vector<std::uint64_t>> sets_;
 };
 
 }  // namespace zone::bots

@@ -56,7 +56,7 @@ int main(int argc, char** argv) {
   std::size_t npcs = 80000, players = 20000, ticks = 20, ramp_ticks = 0, check_every = 1;
   unsigned threads = 1, sample = 1;
   std::string scan = "default";
-  float size = 4096, player_aoi = 60, boss_footprint = 40;
+  float size = 4096, player_aoi = 60, boss_footprint = 40, cell = 0;
   std::uint64_t seed = 1;
   po::options_description cli("bench-oracle");
   cli.add_options()("npcs", po::value(&npcs)->default_value(npcs), "NPCs (one of them a boss)")  //
@@ -68,6 +68,7 @@ int main(int argc, char** argv) {
       ("sample", po::value(&sample)->default_value(sample), "--oracle-sample: 1 in K players recomputed and checked")  //
       ("scan", po::value(&scan)->default_value(scan), "grid, x or full (the oracle's recompute); default: the oracle's")  //
       ("check-every", po::value(&check_every)->default_value(check_every), "check the views every N-th tick (0: never)")  //
+      ("cell", po::value(&cell)->default_value(cell), "the grid's cell side (m), 0 = the oracle's choice")  //
       ("size", po::value(&size)->default_value(size), "world side (m)")  //
       ("player-aoi", po::value(&player_aoi)->default_value(player_aoi), "players' AOI half-extent (m)")  //
       ("boss-footprint", po::value(&boss_footprint)->default_value(boss_footprint), "the boss's presence half-extent (m)")  //
@@ -115,7 +116,11 @@ int main(int argc, char** argv) {
         if ((*static_cast<std::uint64_t*>(ctx))++ < 5) std::fprintf(stderr, "%s\n", line.c_str());
       },
       &mismatches_logged);
-  if (scan == "full") o.full_scan = true;
+  if (scan == "full") o.scan = zone::bots::oracle::scan_mode::full;
+  if (scan == "x") o.scan = zone::bots::oracle::scan_mode::x_window;
+  if (scan == "grid") o.scan = zone::bots::oracle::scan_mode::grid;
+  o.sample = sample;
+  o.grid_cell = cell;
 
   zone::net::truth::encoder enc;
   std::vector<std::uint8_t> frame;
@@ -126,7 +131,8 @@ int main(int argc, char** argv) {
     std::uint64_t tick;
     bool layout;
     double feed_ms, feed_cpu_ms, check_us, compare_us;
-    std::size_t checked;
+    double index_ms, scan_ms, publish_ms;
+    std::size_t checked = 0;
   };
   std::vector<tick_row> rows;
   std::uint64_t visible_sum = 0;
@@ -171,7 +177,8 @@ int main(int argc, char** argv) {
     const double feed_ms = ms_since(t0);
     const auto after = o.report();
     tick_row row{tick, sent == zone::net::truth::encoder::sent::layout, feed_ms,
-                 (after.compute_cpu_ms + after.drain_cpu_ms) - (before.compute_cpu_ms + before.drain_cpu_ms), 0, 0, 0};
+                 (after.compute_cpu_ms + after.drain_cpu_ms) - (before.compute_cpu_ms + before.drain_cpu_ms), 0, 0,
+                 after.index_ms - before.index_ms, after.scan_ms - before.scan_ms, after.publish_ms - before.publish_ms, 0};
     // Checks: every player's true view (as a server with nothing deferred would have sent it,
     // this tick), built outside the timing, then checked.
     if (check_every != 0 && tick >= 2 && tick % check_every == 0) {
@@ -209,25 +216,36 @@ int main(int argc, char** argv) {
   const auto r = o.report();
   std::printf("bench-oracle: %zu NPCs + %zu players (%zu towns) in %.0f m, %u threads, scan %s, sample 1 in %u\n", npcs,
               players, towns, size, threads, scan.c_str(), sample);
-  std::printf("%6s %7s %10s %12s %10s %12s %9s\n", "tick", "frame", "feed ms", "feed CPU ms", "checked", "check us/fr",
-              "compare");
+  std::printf("%6s %7s %9s %9s %9s %9s %9s %9s %11s %9s\n", "tick", "frame", "feed ms", "CPU ms", "index", "scan",
+              "publish", "checked", "check us/fr", "compare");
   for (const auto& row : rows) {
-    std::printf("%6llu %7s %10.2f %12.2f %10zu %12.2f %9.2f\n", static_cast<unsigned long long>(row.tick),
-                row.layout ? "layout" : "pos", row.feed_ms, row.feed_cpu_ms, row.checked, row.check_us, row.compare_us);
+    std::printf("%6llu %7s %9.2f %9.2f %9.2f %9.2f %9.2f %9zu %11.2f %9.2f\n", static_cast<unsigned long long>(row.tick),
+                row.layout ? "layout" : "pos", row.feed_ms, row.feed_cpu_ms, row.index_ms, row.scan_ms, row.publish_ms,
+                row.checked, row.check_us, row.compare_us);
   }
-  // Steady ticks: positions only, after the players joined.
-  double feed = 0, cpu = 0, check = 0, compare = 0;
+  // Steady ticks: positions only, after the players joined, and once the oracle's ring of ticks
+  // is reused (before, its first pass takes page faults), when the run is that long.
+  const std::uint64_t warm = rows.size() > zone::bots::oracle::ring_ticks + 8 ? zone::bots::oracle::ring_ticks + 2 : 2;
+  double feed = 0, cpu = 0, check = 0, compare = 0, ixs = 0, scans = 0, pubs = 0;
   std::size_t n = 0, nc = 0;
   for (const auto& row : rows) {
-    if (row.layout || row.tick < 2) continue;
+    if (row.layout || row.tick < warm) continue;
+    ixs += row.index_ms, scans += row.scan_ms, pubs += row.publish_ms;
     feed += row.feed_ms, cpu += row.feed_cpu_ms, ++n;
     if (row.checked != 0) check += row.check_us, compare += row.compare_us, ++nc;
   }
+  std::printf("steady (%zu ticks from tick %llu): index %.2f, scan %.2f, publish %.2f ms wall per tick\n", n,
+              static_cast<unsigned long long>(warm), n ? ixs / n : 0.0, n ? scans / n : 0.0, n ? pubs / n : 0.0);
   std::printf("steady (%zu ticks): feed %.2f ms wall, %.2f ms CPU per tick; check %.2f us per frame (compare %.2f us); "
               "observers up to %llu; frames checked %llu, unchecked %llu; mismatches %llu\n",
               n, n ? feed / n : 0.0, n ? cpu / n : 0.0, nc ? check / nc : 0.0, nc ? compare / nc : 0.0,
               static_cast<unsigned long long>(r.observers_max), static_cast<unsigned long long>(r.frames_checked),
               static_cast<unsigned long long>(r.frames_unchecked), static_cast<unsigned long long>(r.mismatches()));
+  const double all = static_cast<double>(std::max<std::uint64_t>(1, r.truth_ticks));
+  std::printf("oracle's thread, wall per tick over all %llu ticks: decode %.2f, layout and index %.2f, scan %.2f, publish %.2f, "
+              "waiting checks %.2f ms\n",
+              static_cast<unsigned long long>(r.truth_ticks), r.decode_ms / all, r.index_ms / all, r.scan_ms / all,
+              r.publish_ms / all, r.drain_ms / all);
   std::printf("visible entities per checked view: %.1f on average\n",
               r.frames_checked ? static_cast<double>(visible_sum) / static_cast<double>(r.frames_checked) : 0.0);
   return r.mismatches() == 0 ? 0 : 1;

@@ -129,6 +129,51 @@ struct tracked_world : world_sim {
   }
 };
 
+/// A world written straight into truth frames (no store, no server rules on what a world may
+/// hold): any position, extent, class and mask; entities leave by a swap with the last (their
+/// dense indices move), so the oracle sees layouts, changes and positions as a server sends them.
+struct raw_world {
+  std::mt19937_64 rng;
+  std::vector<std::uint32_t> ids, classes, sees;
+  std::vector<float> pos, aoi, presence;  // 3 per entity
+  std::vector<std::uint8_t> kinds;
+  std::uint32_t next_id = 1;
+  bool changed = true;
+  net::truth::encoder enc;
+  std::vector<std::uint8_t> bytes;
+  explicit raw_world(std::uint64_t seed) : rng(seed) {}
+  float uni(float lo, float hi) { return std::uniform_real_distribution<float>(lo, hi)(rng); }
+  std::size_t size() const { return ids.size(); }
+  std::uint32_t add(const float p[3], const float a[3], const float b[3], std::uint32_t cls, std::uint32_t mask,
+                    net::entity_kind kind) {
+    ids.push_back(next_id);
+    pos.insert(pos.end(), p, p + 3);
+    aoi.insert(aoi.end(), a, a + 3);
+    presence.insert(presence.end(), b, b + 3);
+    classes.push_back(cls);
+    sees.push_back(mask);
+    kinds.push_back(static_cast<std::uint8_t>(kind));
+    changed = true;
+    return next_id++;
+  }
+  void remove(std::size_t k) {
+    const std::size_t last = size() - 1;
+    ids[k] = ids[last], classes[k] = classes[last], sees[k] = sees[last], kinds[k] = kinds[last];
+    for (int a = 0; a < 3; ++a) {
+      pos[3 * k + a] = pos[3 * last + a], aoi[3 * k + a] = aoi[3 * last + a], presence[3 * k + a] = presence[3 * last + a];
+    }
+    ids.pop_back(), classes.pop_back(), sees.pop_back(), kinds.pop_back();
+    for (auto* v : {&pos, &aoi, &presence}) v->resize(3 * last);
+    changed = true;
+  }
+  std::vector<std::uint8_t> body(std::uint64_t tick) {
+    const net::truth::layout_view lv{ids, aoi, presence, classes, sees, kinds};
+    (void)enc.encode(bytes, tick, pos, changed ? &lv : nullptr, false);
+    changed = false;
+    return {bytes.begin() + 4, bytes.end()};
+  }
+};
+
 /// A frame the replicator built, decoded (frames up to 1 MiB).
 net::tick_update_msg decode_update(std::span<const std::uint8_t> frame) {
   net::decoder_options o;
@@ -156,15 +201,16 @@ TEST_SUITE("bots.oracle") {
   TEST_CASE("the oracle's visible sets equal the interest tracker's (brute-force finder), tick after tick") {
     for (const std::uint32_t cap : {0u, 7u}) {
       for (const unsigned threads : {1u, 3u}) {
-       for (const bool full_scan : {true, false}) {
+       for (const auto scan : {bots::oracle::scan_mode::full, bots::oracle::scan_mode::x_window, bots::oracle::scan_mode::grid}) {
         const std::uint64_t seed = zone::test::fresh_seed();
         CAPTURE(seed);
         CAPTURE(cap);
         CAPTURE(threads);
         tracked_world w(seed, 400, cap);
         bots::oracle oracle(w.world, w.rules, threads, nullptr, nullptr);
-        oracle.full_scan = full_scan;
-        CAPTURE(full_scan);
+        oracle.scan = scan;
+        const char* scan_name = scan == bots::oracle::scan_mode::full ? "every target" : scan == bots::oracle::scan_mode::x_window ? "x window" : "grid";
+        CAPTURE(scan_name);
         std::uint64_t compared = 0, visible_total = 0, differing = 0, in_band = 0;
         truth_writer truth;
         for (std::uint64_t tick = 0; tick < 150; ++tick) {
@@ -194,7 +240,7 @@ TEST_SUITE("bots.oracle") {
             if (!std::equal(expect.begin(), expect.end(), got->begin(), got->end())) ++differing;
           });
         }
-        MESSAGE("cap " << cap << ", threads " << threads << std::string(full_scan ? ", every target" : ", x window") << ": " << compared << " visible sets compared, "
+        MESSAGE("cap " << cap << ", threads " << threads << ", " << std::string(scan_name) << ": " << compared << " visible sets compared, "
                        << visible_total << " entries, " << in_band << " kept by the hysteresis alone");
         CHECK(compared > 2000);
         CHECK(in_band > 100);
@@ -202,6 +248,140 @@ TEST_SUITE("bots.oracle") {
         CHECK(differing == 0);
         CHECK(oracle.counters().mismatches() == 0);
        }
+      }
+    }
+  }
+
+  TEST_CASE(
+      "the grid's scan gives brute force's sets: cell borders, boxes that just touch, huge AOIs, wide boxes, every class and mask, the hysteresis band, churn") {
+    // Three oracles read the same frames: every target tested (brute force; itself held to the
+    // interest tracker above), the x window, and the grid (a given cell side, and the oracle's own
+    // choice). Their sets must be equal for every player at every tick.
+    using mode = bots::oracle::scan_mode;
+    for (const std::uint32_t cap : {0u, 5u}) {
+      for (const float cell : {8.0f, 0.0f}) {
+        const std::uint64_t seed = zone::test::fresh_seed();
+        CAPTURE(seed);
+        CAPTURE(cap);
+        CAPTURE(cell);
+        raw_world w(seed);
+        const net::world_bounds bounds{{0, 0, 0}, {400, 400, 40}};
+        net::interest_rules rules;
+        rules.hysteresis = 4;
+        rules.max_visible = cap;
+        bots::oracle full(bounds, rules, 1, nullptr, nullptr), xw(bounds, rules, 2, nullptr, nullptr),
+            grid(bounds, rules, 3, nullptr, nullptr);
+        full.scan = mode::full, xw.scan = mode::x_window, grid.scan = mode::grid;
+        grid.grid_cell = cell;
+        const float c = 8;  // positions snapped to multiples of it land on cell borders (of the 8 m grid, and of any multiple)
+        const auto on_border = [&](float lo, float hi) { return c * std::floor(w.uni(lo, hi) / c); };
+        const auto any_class = [&] { return static_cast<std::uint32_t>(w.rng() % 32); };  // 5 bits, 0 included
+        const auto add_npc = [&] {
+          const int kind = static_cast<int>(w.rng() % 10);
+          float p[3] = {w.uni(-40, 440), w.uni(-40, 440), w.uni(0, 40)};
+          if (kind < 4) p[0] = on_border(-40, 440), p[1] = on_border(-40, 440);
+          const float half = kind == 9 ? (w.rng() % 2 ? 40.0f : 300.0f)  // wider than any cell: tested by every observer
+                             : kind == 8 ? (w.rng() % 2 ? c : c + 0.001f)  // either side of the grid's limit for an 8 m cell
+                                         : w.uni(0.1f, 3);
+          const float a = w.uni(5, 60), b[3] = {half, half, std::min(half, 5.0f)}, e[3] = {a, a, a};
+          w.add(p, e, b, any_class(), any_class(), net::entity_kind::npc);
+        };
+        std::vector<std::uint32_t> players;
+        struct touching_pair {
+          std::uint32_t player, enters, band;
+          float aoi;
+        };
+        std::vector<touching_pair> pairs;
+        const auto add_player = [&] {
+          // The first two see (nearly) everything: AOI half-extents 1e6 and 1e4 m.
+          const int kind = players.size() < 2 ? 11 - static_cast<int>(players.size()) : static_cast<int>(w.rng() % 10);
+          float p[3] = {w.uni(0, 400), w.uni(0, 400), w.uni(0, 40)};
+          if (kind < 6) p[0] = on_border(0, 400), p[1] = on_border(0, 400);
+          const float a = kind == 11 ? 1e6f : kind == 10 ? 1e4f : kind < 6 ? c * static_cast<float>(1 + w.rng() % 6) : w.uni(5, 60);
+          const float e[3] = {a, a, a}, b[3] = {0.5f, 0.5f, 1.0f};
+          players.push_back(w.add(p, e, b, any_class() | 1u, any_class() | 1u, net::entity_kind::player));
+          if (kind < 6) {
+            // Two targets (class 1, seen by the player) that touch its boxes on x, kept so (touch()).
+            const float q[3] = {0, 0, 0}, tb[3] = {1, 1, 1}, te[3] = {10, 10, 10};
+            pairs.push_back({players.back(), w.add(q, te, tb, 1u, 1u, net::entity_kind::npc),
+                             w.add(q, te, tb, 1u, 1u, net::entity_kind::npc), a});
+          }
+        };
+        // Every other tick each such player jumps to a cell border and its targets to where their
+        // presence boxes exactly touch its AOI box (visible: closed boxes) and its grown box
+        // (visible only while it was last tick): exact in float (multiples of 8, plus 1).
+        const auto touch = [&] {
+          const auto at = [&](std::uint32_t id) {
+            return static_cast<std::size_t>(std::find(w.ids.begin(), w.ids.end(), id) - w.ids.begin());
+          };
+          for (const auto& pr : pairs) {
+            const std::size_t o = at(pr.player), t0 = at(pr.enters), t1 = at(pr.band);
+            if (o == w.size() || t0 == w.size() || t1 == w.size()) continue;
+            w.pos[3 * o] = on_border(0, 400), w.pos[3 * o + 1] = on_border(0, 400);
+            for (const auto& [t, gap] : {std::pair{t0, 0.0f}, std::pair{t1, rules.hysteresis}}) {
+              w.pos[3 * t] = w.pos[3 * o] + pr.aoi + gap + 1, w.pos[3 * t + 1] = w.pos[3 * o + 1], w.pos[3 * t + 2] = w.pos[3 * o + 2];
+              w.presence[3 * t] = 1, w.classes[t] = 1;
+            }
+          }
+        };
+        for (int k = 0; k < 500; ++k) add_npc();
+        std::uint64_t compared = 0, visible_total = 0, differing = 0, touching = 0, huge = 0;
+        for (std::uint64_t tick = 0; tick < 120; ++tick) {
+          if (tick > 0) {
+            for (std::size_t k = 0; k < w.size(); ++k) {
+              for (int a = 0; a < 2; ++a) w.pos[3 * k + a] += w.uni(-2.5f, 2.5f);  // across the 4 m band within a few ticks
+              if (w.rng() % 50 == 0) w.pos[3 * k] = on_border(-40, 440);
+            }
+          }
+          if (tick >= 1 && tick < 60 && tick % 2 == 1) add_player();
+          if (tick % 2 == 0) touch();
+          if (tick % 13 == 6) {  // churn: a few leave (dense indices move), a few arrive
+            for (int k = 0; k < 3; ++k) {
+              const std::size_t at = w.rng() % w.size();
+              std::erase(players, w.ids[at]);
+              w.remove(at);
+            }
+            for (int k = 0; k < 3; ++k) add_npc();
+          }
+          if (tick % 7 == 3) {  // switches and resizes: sent as changes to the layout
+            for (int k = 0; k < 4; ++k) {
+              const std::size_t at = w.rng() % w.size();
+              w.classes[at] = any_class(), w.sees[at] = any_class();
+              if (w.kinds[at] != static_cast<std::uint8_t>(net::entity_kind::player)) w.presence[3 * at] = w.uni(0.1f, 50);
+              w.changed = true;
+            }
+          }
+          const auto body = w.body(tick);
+          REQUIRE_FALSE(full.feed(body).has_value());
+          REQUIRE_FALSE(xw.feed(body).has_value());
+          REQUIRE_FALSE(grid.feed(body).has_value());
+          for (const std::uint32_t id : players) {
+            const auto expect = full.visible(id, tick);
+            const auto by_x = xw.visible(id, tick), by_grid = grid.visible(id, tick);
+            REQUIRE(expect.has_value() == by_grid.has_value());
+            REQUIRE(expect.has_value() == by_x.has_value());
+            if (!expect) continue;
+            ++compared;
+            visible_total += expect->size();
+            if (*expect != *by_grid || *expect != *by_x) ++differing;
+            // The brute force's sets hold targets whose presence box exactly touches the AOI box.
+            const std::size_t o = static_cast<std::size_t>(std::find(w.ids.begin(), w.ids.end(), id) - w.ids.begin());
+            if (w.aoi[3 * o] >= 1e4f) huge += cap == 0 ? expect->size() > 200 : expect->size() == cap;
+            for (const std::uint32_t t : *expect) {
+              const std::size_t k = static_cast<std::size_t>(std::find(w.ids.begin(), w.ids.end(), t) - w.ids.begin());
+              touching += w.pos[3 * k] - w.presence[3 * k] == w.pos[3 * o] + w.aoi[3 * o] ||
+                          w.pos[3 * k] + w.presence[3 * k] == w.pos[3 * o] - w.aoi[3 * o];
+            }
+          }
+        }
+        MESSAGE("cap " << cap << ", cell " << cell << ": " << compared << " sets compared, " << visible_total << " entries, "
+                       << touching << " of them touching the AOI box exactly, " << huge << " sets of a huge AOI; "
+                       << differing << " differ");
+        CHECK(compared > 1500);
+        CHECK(visible_total > compared * 3);
+        CHECK(touching > 100);
+        CHECK(huge > 40);
+        CHECK(differing == 0);
       }
     }
   }
