@@ -175,6 +175,10 @@ void print_table(const swarm_result& r, const summary& s) {
   if (r.oracle_on) {
     const auto& q = r.oracle;
     row("oracle: frames checked / unchecked", num(q.frames_checked) + " / " + num(q.frames_unchecked));
+    if (q.sample > 1) {
+      row("oracle: sample", "1 in " + num(q.sample) + " bots: up to " + num(q.sampled_max) + " of " + num(q.observers_max) +
+                                " checked on every frame; " + num(q.frames_unsampled) + " frames of the others (not checked)");
+    }
     row("oracle: entities checked", num(q.entities_checked) + " (positions " + num(q.positions_checked) + ", unchecked " +
                                         num(q.positions_unchecked) + ")");
     row("oracle: missing / extra / leaked", num(q.missing) + " / " + num(q.extra) + " / " + num(q.leaked));
@@ -186,7 +190,11 @@ void print_table(const swarm_result& r, const summary& s) {
             num(q.truth_layouts) + " with the whole layout, " + num(q.truth_changes) + " with changes to it)");
     row("oracle: recompute CPU per tick", fmt(q.compute_cpu_ms / ticks, "ms") + " (up to " + num(q.observers_max) +
                                               " observers; slowest tick with its checks " + ms(q.compute_max_ms) + ")");
-    row("oracle: its thread's checks, CPU per tick", fmt(q.drain_cpu_ms / ticks, "ms"));
+    row("oracle: its threads' checks, CPU per tick", fmt(q.drain_cpu_ms / ticks, "ms"));
+    row("oracle: its thread's wall per tick", "decode " + fmt(q.decode_ms / ticks, "ms") + ", layout and index " +
+                                                  fmt(q.index_ms / ticks, "ms") + ", scan " + fmt(q.scan_ms / ticks, "ms") +
+                                                  ", publish " + fmt(q.publish_ms / ticks, "ms") + ", waiting checks " +
+                                                  fmt(q.drain_ms / ticks, "ms"));
     row("oracle: comparisons per tick", fmt(q.check_ms / ticks, "ms") + " (" + num(q.deferred_checks) +
                                              " frames checked after they waited for their truth, " +
                                              num(q.pending_overflow) + " not: too many waiting)");
@@ -260,6 +268,9 @@ bool write_json(const std::string& path, const swarm_result& r, const summary& s
     const auto& q = r.oracle;
     j["oracle"] = {{"frames_checked", q.frames_checked},
                    {"frames_unchecked", q.frames_unchecked},
+                   {"frames_unsampled", q.frames_unsampled},
+                   {"sample", q.sample},
+                   {"sampled_max", q.sampled_max},
                    {"entities_checked", q.entities_checked},
                    {"positions_checked", q.positions_checked},
                    {"positions_unchecked", q.positions_unchecked},
@@ -282,6 +293,11 @@ bool write_json(const std::string& path, const swarm_result& r, const summary& s
                    {"deferred_checks", q.deferred_checks},
                    {"pending_overflow", q.pending_overflow},
                    {"observers_max", q.observers_max},
+                   {"wall_ms", {{"decode", q.decode_ms},
+                                {"layout_and_index", q.index_ms},
+                                {"scan", q.scan_ms},
+                                {"publish", q.publish_ms},
+                                {"waiting_checks", q.drain_ms}}},
                    {"stream_error", q.stream_error}};
   }
   j["mismatches"] = r.mismatches();
@@ -429,6 +445,8 @@ int main(int argc, char** argv) {
        "check every bot's view against the server's ground truth (the server runs with --oracle): missing, extra, leaked, wrong class, wrong or stale position")  //
       ("oracle-threads", po::value(&o.oracle_threads)->default_value(o.oracle_threads),
        "threads recomputing the visible sets for the oracle (0 = one per 8 hardware threads)")  //
+      ("oracle-sample", po::value(&o.oracle_sample)->default_value(o.oracle_sample),
+       "the oracle's scale knob: 1 in K bots (a fixed subset, by a hash of the entity id) is recomputed and checked on every frame, the others' frames are counted as unsampled (1 = every bot)")  //
       ("oracle-zones", po::value(&oracle_zones),
        "a world of zones (docs/world.md): the other zones' client ports on --host, comma-separated; with --oracle each zone's truth is read and a bot is checked against the zone it is in now (following redirects)")  //
       ("threads", po::value(&o.threads)->default_value(o.threads),
@@ -477,6 +495,10 @@ int main(int argc, char** argv) {
     return 64;
   }
   o.port = static_cast<std::uint16_t>(port);
+  if (o.oracle_sample == 0) {
+    std::fprintf(stderr, "bot-swarm: --oracle-sample must be at least 1\n");
+    return 64;
+  }
   if (!oracle_zones.empty()) {
     std::stringstream list(oracle_zones);
     for (std::string item; std::getline(list, item, ',');) {

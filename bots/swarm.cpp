@@ -546,6 +546,10 @@ class swarm {
 
   static void add_report(oracle_report& sum, const oracle_report& q, const tcp::endpoint& at) {
     sum.frames_checked += q.frames_checked, sum.frames_unchecked += q.frames_unchecked;
+    sum.frames_unsampled += q.frames_unsampled, sum.sample = q.sample;
+    sum.sampled_max = std::max(sum.sampled_max, q.sampled_max);
+    sum.decode_ms += q.decode_ms, sum.index_ms += q.index_ms, sum.scan_ms += q.scan_ms, sum.publish_ms += q.publish_ms;
+    sum.drain_ms += q.drain_ms;
     sum.entities_checked += q.entities_checked, sum.positions_checked += q.positions_checked;
     sum.positions_unchecked += q.positions_unchecked;
     sum.missing += q.missing, sum.extra += q.extra, sum.leaked += q.leaked, sum.wrong_class += q.wrong_class;
@@ -607,6 +611,7 @@ class swarm {
     auto o = std::make_unique<oracle>(welcome->world, *welcome->rules, opt_.oracle_threads,
                                       [](void* ctx, std::string line) { static_cast<swarm*>(ctx)->problem(std::move(line)); },
                                       this);
+    o->sample = std::max(1u, opt_.oracle_sample);
     if (auto err = o->start(welcome->oracle_port, opt_.connect_timeout_s)) return err;
     oracles_.push_back({at, std::move(o)});
     return std::nullopt;

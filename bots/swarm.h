@@ -65,6 +65,9 @@ struct swarm_options {
   /// --oracle): a probe connection reads the welcome (rules, truth port) before any bot starts.
   bool oracle = false;
   unsigned oracle_threads = 0;  ///< threads recomputing the visible sets (0 = 1 per 8 hardware threads)
+  /// The oracle's scale knob (oracle::sample): 1 in K bots (a fixed subset, by entity id) is
+  /// recomputed and checked on every frame; the others' frames count as unsampled (1 = every bot).
+  unsigned oracle_sample = 1;
   /// A world of zones (docs/world.md): the client ports of the other zones (on `host`). With
   /// `oracle`, each gets an oracle of its own (its truth stream), and a bot is checked against the
   /// truth of the zone it is connected to now: it follows redirects across borders, its view

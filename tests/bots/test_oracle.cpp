@@ -607,6 +607,99 @@ TEST_SUITE("bots.oracle") {
     // The broken ones may show others later, e.g. the extra entity becoming visible for real.)
   }
 
+  TEST_CASE(
+      "sample mode: exactly the sampled bots are recomputed and checked, every frame; a sampled bot's wrong view is caught") {
+    // 30 clients of the real replicator, the oracle with a sample of 1 in 3: the frames of the
+    // players sampled() picks are checked (each one, at its tick) and their sets equal the
+    // tracker's; the others' frames are counted unsampled, and their sets are not computed. Late
+    // in the run one sampled and one unsampled client each lose an entering entity: the sampled
+    // one's loss is counted missing; the unsampled one is not looked at.
+    const std::uint64_t seed = zone::test::fresh_seed();
+    CAPTURE(seed);
+    constexpr unsigned k = 3;
+    tracked_world w(seed, 500);
+    replication_options ro;
+    ro.world = w.world;
+    ro.byte_budget = 900;  // deferrals now and then
+    replicator rep(ro);
+    const net::interest_rules rules = rules_of(ro, 4);
+    bots::oracle oracle(w.world, rules, 2, nullptr, nullptr);
+    oracle.sample = k;
+    struct client {
+      entity_id id;
+      client_id c;
+      net::client_view view;
+      bool sampled = false, broken = false;
+    };
+    std::vector<client> clients;
+    replication_writer writer;
+    truth_writer truth;
+    std::uint64_t sampled_frames = 0, unsampled_frames = 0, compared = 0, differing = 0;
+    bool broke_sampled = false, broke_unsampled = false;
+    std::uint64_t missing_before = 0;
+    for (std::uint64_t tick = 0; tick < 100; ++tick) {
+      if (tick > 0) w.move();
+      if (tick == 1) {
+        for (int n = 0; n < 30; ++n) {
+          const entity_id id = w.add_player();
+          clients.push_back({id, rep.add_client(id), net::client_view(w.world), bots::oracle::sampled(id, k)});
+        }
+      }
+      REQUIRE_FALSE(w.tracker.update(w.store.columns()).has_value());
+      REQUIRE_FALSE(oracle.feed(truth.body(w.store, tick)).has_value());
+      for (std::size_t i = 0; i < clients.size(); ++i) {
+        client& cl = clients[i];
+        const auto frame = rep.build(cl.c, w.store, w.tracker, tick, 0, 0, writer, nullptr);
+        auto m = decode_update(frame);
+        if (tick >= 60 && !m.enters.empty() && !cl.broken && (cl.sampled ? !broke_sampled : !broke_unsampled)) {
+          m.enters.erase(m.enters.begin());
+          cl.broken = true;
+          (cl.sampled ? broke_sampled : broke_unsampled) = true;
+          if (cl.sampled) missing_before = oracle.counters().missing.load();
+        }
+        (void)cl.view.apply(m);
+        const auto& c = oracle.counters();
+        const std::uint64_t checked0 = c.frames_checked.load(), unchecked0 = c.frames_unchecked.load(),
+                            unsampled0 = c.frames_unsampled.load(), mismatches0 = c.mismatches();
+        oracle.check(cl.id, tick, cl.view, m.deferred.value_or(net::deferred_counts{}), m.self_position, i);
+        const auto v = oracle.visible(cl.id, tick);
+        if (cl.sampled) {
+          ++sampled_frames;
+          CHECK(c.frames_checked.load() == checked0 + 1);
+          CHECK(c.frames_unsampled.load() == unsampled0);
+          REQUIRE(v.has_value());
+          const auto expect = w.tracker.visible(w.tracker.row_of(cl.id));
+          ++compared;
+          if (!std::equal(expect.begin(), expect.end(), v->begin(), v->end())) ++differing;
+          if (!cl.broken) CHECK(c.mismatches() == mismatches0);
+        } else {
+          ++unsampled_frames;
+          CHECK(c.frames_unsampled.load() == unsampled0 + 1);
+          CHECK(c.frames_checked.load() == checked0);
+          CHECK(c.mismatches() == mismatches0);  // never looked at, broken or not
+          CHECK_FALSE(v.has_value());
+        }
+        CHECK(c.frames_unchecked.load() == unchecked0);
+      }
+    }
+    const std::size_t n_sampled = static_cast<std::size_t>(std::count_if(clients.begin(), clients.end(), [](const client& cl) { return cl.sampled; }));
+    const auto r = oracle.report();
+    MESSAGE(n_sampled << " of " << clients.size() << " clients sampled: " << sampled_frames << " frames checked, "
+                      << unsampled_frames << " unsampled; " << compared << " sets compared, " << differing
+                      << " differ; missing " << r.missing << " (planted in a sampled client)");
+    REQUIRE(n_sampled > 0);
+    REQUIRE(n_sampled < clients.size());
+    CHECK(r.sample == k);
+    CHECK(r.sampled_max == n_sampled);
+    CHECK(r.observers_max == clients.size());
+    CHECK(r.frames_checked == sampled_frames);
+    CHECK(r.frames_unsampled == unsampled_frames);
+    CHECK(differing == 0);
+    REQUIRE(broke_sampled);
+    REQUIRE(broke_unsampled);
+    CHECK(r.missing > missing_before);
+  }
+
   TEST_CASE("players switch stealth and team mid-run: the replicator's views pass the oracle from the tick a switch takes effect") {
     // A crowd of players in teams switching visibility every few ticks beside NPCs of every class.
     // With replicator::resync_viewers_of (what zone_server does after the step: resets, or class
