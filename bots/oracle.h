@@ -116,7 +116,7 @@ class oracle {
     std::vector<held_entity> held;
   };
   /// Most bytes of snapshots waiting for their tick's truth; beyond, a frame is counted unchecked.
-  static constexpr std::size_t max_pending_bytes = std::size_t{256} << 20;
+  static constexpr std::size_t max_pending_bytes = std::size_t{1} << 30;
 
   /// Feeds one truth frame's body directly (tests; start() does this from the socket).
   [[nodiscard]] std::optional<std::string> feed(std::span<const std::uint8_t> body);
