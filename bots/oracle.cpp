@@ -82,10 +82,6 @@ struct oracle::layout {
   }
 };
 
-/// The targets of one tick as the scans read them: presence boxes (position -+ half-extent, the
-/// server's float expressions) and classes in columns, in slot order, and which slots an
-/// observer's scan must test. The index only leaves targets out; every target it gives is tested
-/// exactly (candidate_flags), so it decides how much work a scan is, never its result.
 /// One recompute thread's scratch, kept from tick to tick.
 struct oracle::scratch {
   std::vector<std::uint8_t> flags;   // candidate flags of one run of slots
@@ -95,6 +91,10 @@ struct oracle::scratch {
   std::vector<std::uint64_t> fresh, keys;
 };
 
+/// The targets of one tick as the scans read them: presence boxes (position -+ half-extent, the
+/// server's float expressions) and classes in columns, in slot order, and which slots an
+/// observer's scan must test. The index only leaves targets out; every target it gives is tested
+/// exactly (candidate_flags), so it decides how much work a scan is, never its result.
 struct oracle::index {
   std::vector<float> blo_x, blo_y, blo_z, bhi_x, bhi_y, bhi_z, px;
   std::vector<std::uint32_t> cls, dense;  // slot -> class, dense index
@@ -656,6 +656,11 @@ void oracle::check(std::uint32_t observer, std::uint64_t tick, const net::client
     return;
   }
   std::lock_guard lock(pending_mutex_);
+  if (ended_.load()) {  // stopped meanwhile: its last drain is over, nothing would check this one
+    pending_bytes_.fetch_sub(bytes, std::memory_order_relaxed);
+    c_.frames_unchecked.fetch_add(1, std::memory_order_relaxed);
+    return;
+  }
   pending_.push_back(std::move(waiting));
   if (pending_.size() == 1) pending_front_tick_.store(tick, std::memory_order_release);
 }
