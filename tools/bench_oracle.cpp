@@ -53,7 +53,7 @@ struct world {
 
 int main(int argc, char** argv) {
   namespace po = zone::tools::po;
-  std::size_t npcs = 80000, players = 20000, ticks = 20, ramp_ticks = 0, check_every = 1;
+  std::size_t npcs = 80000, players = 20000, ticks = 20, ramp_ticks = 0, check_every = 1, switches = 0;
   unsigned threads = 1, sample = 1;
   std::string scan = "default";
   float size = 4096, player_aoi = 60, boss_footprint = 40, cell = 0;
@@ -64,6 +64,8 @@ int main(int argc, char** argv) {
       ("ticks", po::value(&ticks)->default_value(ticks), "ticks after the players joined")          //
       ("ramp-ticks", po::value(&ramp_ticks)->default_value(ramp_ticks),
        "players join over this many ticks (a whole layout every tick), 0 = all at once")  //
+      ("switches", po::value(&switches)->default_value(switches),
+       "players switching stealth a tick once all joined (the truth sends changes to the layout)")  //
       ("threads", po::value(&threads)->default_value(threads), "the oracle's recomputing threads")  //
       ("sample", po::value(&sample)->default_value(sample), "--oracle-sample: 1 in K players recomputed and checked")  //
       ("scan", po::value(&scan)->default_value(scan), "grid, x or full (the oracle's recompute); default: the oracle's")  //
@@ -128,12 +130,13 @@ int main(int argc, char** argv) {
   std::size_t joined = 0;
   struct tick_row {
     std::uint64_t tick;
-    bool layout;
+    bool layout;  // whole or changes
     double feed_ms, feed_cpu_ms, check_us, compare_us;
     double index_ms, scan_ms, publish_ms;
     std::size_t checked = 0;
   };
   std::vector<tick_row> rows;
+  std::vector<const char*> sents;
   std::uint64_t visible_sum = 0;
   const std::size_t total_ticks = 1 + std::max<std::size_t>(1, ramp_ticks) + ticks;
   for (; tick < total_ticks; ++tick) {
@@ -165,6 +168,14 @@ int main(int argc, char** argv) {
         }
       }
     }
+    if (switches != 0 && joined == players && tick > 1 + std::max<std::size_t>(1, ramp_ticks)) {
+      for (std::size_t k = 0; k < switches; ++k) {  // stealth toggled: the class and the mask
+        const std::size_t at = npcs + rng() % players;
+        w.classes[at] = w.classes[at] == cb::stealth ? cb::normal : cb::stealth;
+        w.sees[at] ^= cb::stealth;
+      }
+      layout_changed = true;
+    }
     const auto lv = w.layout();
     const auto sent = enc.encode(frame, tick, w.pos, layout_changed ? &lv : nullptr, false);
     const auto before = o.report();
@@ -175,7 +186,7 @@ int main(int argc, char** argv) {
     }
     const double feed_ms = ms_since(t0);
     const auto after = o.report();
-    tick_row row{tick, sent == zone::net::truth::encoder::sent::layout, feed_ms,
+    tick_row row{tick, sent != zone::net::truth::encoder::sent::positions, feed_ms,
                  (after.compute_cpu_ms + after.drain_cpu_ms) - (before.compute_cpu_ms + before.drain_cpu_ms), 0, 0,
                  after.index_ms - before.index_ms, after.scan_ms - before.scan_ms, after.publish_ms - before.publish_ms, 0};
     // Checks: every player's true view (as a server with nothing deferred would have sent it,
@@ -208,6 +219,7 @@ int main(int argc, char** argv) {
       row.compare_us = row.checked == 0 ? 0 : (o.report().check_ms - compare0) * 1e3 / static_cast<double>(row.checked);
     }
     rows.push_back(row);
+    sents.push_back(sent == zone::net::truth::encoder::sent::layout ? "layout" : sent == zone::net::truth::encoder::sent::changes ? "changes" : "pos");
   }
   const auto r = o.report();
   std::printf("bench-oracle: %zu NPCs + %zu players (%zu towns) in %.0f m, %u threads, scan %s, sample 1 in %u\n", npcs,
@@ -216,7 +228,7 @@ int main(int argc, char** argv) {
               "publish", "checked", "check us/fr", "compare");
   for (const auto& row : rows) {
     std::printf("%6llu %7s %9.2f %9.2f %9.2f %9.2f %9.2f %9zu %11.2f %9.2f\n", static_cast<unsigned long long>(row.tick),
-                row.layout ? "layout" : "pos", row.feed_ms, row.feed_cpu_ms, row.index_ms, row.scan_ms, row.publish_ms,
+                sents[row.tick],  row.feed_ms, row.feed_cpu_ms, row.index_ms, row.scan_ms, row.publish_ms,
                 row.checked, row.check_us, row.compare_us);
   }
   // Steady ticks: positions only, after the players joined, and once the oracle's ring of ticks
@@ -225,7 +237,7 @@ int main(int argc, char** argv) {
   double feed = 0, cpu = 0, check = 0, compare = 0, ixs = 0, scans = 0, pubs = 0;
   std::size_t n = 0, nc = 0;
   for (const auto& row : rows) {
-    if (row.layout || row.tick < warm) continue;
+    if ((row.layout && switches == 0) || row.tick < warm) continue;
     ixs += row.index_ms, scans += row.scan_ms, pubs += row.publish_ms;
     feed += row.feed_ms, cpu += row.feed_cpu_ms, ++n;
     if (row.checked != 0) check += row.check_us, compare += row.compare_us, ++nc;
