@@ -176,8 +176,9 @@ void print_table(const swarm_result& r, const summary& s) {
     const auto& q = r.oracle;
     row("oracle: frames checked / unchecked", num(q.frames_checked) + " / " + num(q.frames_unchecked));
     if (q.sample > 1) {
-      row("oracle: sample", "1 in " + num(q.sample) + " bots: up to " + num(q.sampled_max) + " of " + num(q.observers_max) +
-                                " checked on every frame; " + num(q.frames_unsampled) + " frames of the others (not checked)");
+      row("oracle: sample", "1 in " + num(q.sample) + " bots: up to " + num(q.sampled_max) + " of " +
+                                num(q.observers_max) + " checked on every frame; " + num(q.frames_unsampled) +
+                                " frames of the others (not checked)");
     }
     row("oracle: entities checked", num(q.entities_checked) + " (positions " + num(q.positions_checked) + ", unchecked " +
                                         num(q.positions_unchecked) + ")");
@@ -191,10 +192,10 @@ void print_table(const swarm_result& r, const summary& s) {
     row("oracle: recompute CPU per tick", fmt(q.compute_cpu_ms / ticks, "ms") + " (up to " + num(q.observers_max) +
                                               " observers; slowest tick with its checks " + ms(q.compute_max_ms) + ")");
     row("oracle: its threads' checks, CPU per tick", fmt(q.drain_cpu_ms / ticks, "ms"));
-    row("oracle: its thread's wall per tick", "decode " + fmt(q.decode_ms / ticks, "ms") + ", layout and index " +
-                                                  fmt(q.index_ms / ticks, "ms") + ", scan " + fmt(q.scan_ms / ticks, "ms") +
-                                                  ", publish " + fmt(q.publish_ms / ticks, "ms") + ", waiting checks " +
-                                                  fmt(q.drain_ms / ticks, "ms"));
+    row("oracle: its thread's wall per tick",
+        "decode " + fmt(q.decode_ms / ticks, "ms") + ", layout and index " + fmt(q.index_ms / ticks, "ms") + ", scan " +
+            fmt(q.scan_ms / ticks, "ms") + ", publish " + fmt(q.publish_ms / ticks, "ms") + ", waiting checks " +
+            fmt(q.drain_ms / ticks, "ms"));
     row("oracle: comparisons per tick", fmt(q.check_ms / ticks, "ms") + " (" + num(q.deferred_checks) +
                                              " frames checked after they waited for their truth, " +
                                              num(q.pending_overflow) + " not: too many waiting)");
@@ -293,11 +294,12 @@ bool write_json(const std::string& path, const swarm_result& r, const summary& s
                    {"deferred_checks", q.deferred_checks},
                    {"pending_overflow", q.pending_overflow},
                    {"observers_max", q.observers_max},
-                   {"wall_ms", {{"decode", q.decode_ms},
-                                {"layout_and_index", q.index_ms},
-                                {"scan", q.scan_ms},
-                                {"publish", q.publish_ms},
-                                {"waiting_checks", q.drain_ms}}},
+                   {"wall_ms",
+                    {{"decode", q.decode_ms},
+                     {"layout_and_index", q.index_ms},
+                     {"scan", q.scan_ms},
+                     {"publish", q.publish_ms},
+                     {"waiting_checks", q.drain_ms}}},
                    {"stream_error", q.stream_error}};
   }
   j["mismatches"] = r.mismatches();

@@ -84,8 +84,8 @@ struct oracle::layout {
 
 /// One recompute thread's scratch, kept from tick to tick.
 struct oracle::scratch {
-  std::vector<std::uint8_t> flags;   // candidate flags of one run of slots
-  std::vector<std::uint32_t> mark;   // by dense index: in the observer's last set (stamp + 1), and stayed (+ 2)
+  std::vector<std::uint8_t> flags;  // candidate flags of one run of slots
+  std::vector<std::uint32_t> mark;  // by dense index: in the observer's last set (stamp + 1), and stayed (+ 2)
   std::uint32_t stamp = 0;
   std::vector<std::uint32_t> before;  // the last set's dense indices in this tick's layout
   std::vector<std::uint64_t> fresh, keys;
@@ -107,8 +107,8 @@ struct oracle::index {
   double origin_x = 0, origin_y = 0, cell = 1;
   std::uint32_t cols = 1, rows = 1;
   std::size_t wide_first = 0;
-  double reach = 0;    // the gridded targets' largest presence half-extent in x or y
-  double max_abs = 0;  // their largest |coordinate| (for the rounding slack)
+  double reach = 0;                  // the gridded targets' largest presence half-extent in x or y
+  double max_abs = 0;                // their largest |coordinate| (for the rounding slack)
   std::vector<std::uint32_t> start;  // cols * rows + 1
   std::vector<std::uint32_t> cell_of, order;
 
@@ -219,7 +219,8 @@ struct oracle::index {
     const double rx = static_cast<double>(gx) + reach + slack_x, ry = static_cast<double>(gy) + reach + slack_y;
     const std::uint32_t c0 = col(p[0] - rx), c1 = col(p[0] + rx), r0 = row(p[1] - ry), r1 = row(p[1] + ry);
     if (wide_first != 0) {
-      for (std::uint32_t r = r0; r <= r1; ++r) f(start[std::size_t{r} * cols + c0], start[std::size_t{r} * cols + c1 + 1]);
+      for (std::uint32_t r = r0; r <= r1; ++r)
+        f(start[std::size_t{r} * cols + c0], start[std::size_t{r} * cols + c1 + 1]);
     }
     if (wide_first < n) f(wide_first, n);
   }
@@ -426,8 +427,9 @@ void oracle::compute(const net::truth::tick_frame& f) {
   // Where last tick's sets name an entity by its dense index in this tick's layout too: the same
   // layout, or one that only appended entities to it.
   const bool prev_dense_same =
-      prev != nullptr && (prev->lay == layout_ || (prev->lay->ids.size() <= n && std::equal(prev->lay->ids.begin(),
-                                                                                           prev->lay->ids.end(), lay.ids.begin())));
+      prev != nullptr &&
+      (prev->lay == layout_ ||
+       (prev->lay->ids.size() <= n && std::equal(prev->lay->ids.begin(), prev->lay->ids.end(), lay.ids.begin())));
 
   const auto observe = [&](scratch& sc, std::size_t i) {
     const std::uint32_t a = lay.observers[i];
@@ -455,7 +457,8 @@ void oracle::compute(const net::truth::tick_frame& f) {
     sc.stamp += 2;
     sc.before.clear();
     for (const std::uint64_t entry : before) {
-      const auto d = prev_dense_same ? static_cast<std::uint32_t>(entry) : lay.dense_of(static_cast<std::uint32_t>(entry >> 32));
+      const auto d =
+          prev_dense_same ? static_cast<std::uint32_t>(entry) : lay.dense_of(static_cast<std::uint32_t>(entry >> 32));
       sc.before.push_back(d);
       if (d != npos32) sc.mark[d] = in_before;
     }
@@ -573,8 +576,9 @@ void oracle::compute(const net::truth::tick_frame& f) {
   // take some too, a few per frame).
   const double drain0 = thread_cpu_ms();
   double helpers_ms = 0;
-  run_parallel(pending_front_tick_.load() <= f.tick ? threads_ : 1,
-               [&](unsigned) { drain_pending(false, static_cast<std::size_t>(-1)); }, &helpers_ms);
+  run_parallel(
+      pending_front_tick_.load() <= f.tick ? threads_ : 1,
+      [&](unsigned) { drain_pending(false, static_cast<std::size_t>(-1)); }, &helpers_ms);
   const double own_ms = thread_cpu_ms() - drain0;  // checks, not recomputing: reported apart
   own_drain_cpu_ms_ += own_ms;
   drain_cpu_ms_ += own_ms + helpers_ms;
@@ -692,7 +696,8 @@ void oracle::drain_pending(bool all, std::size_t max_jobs) {
         batch.push_back(std::move(pending_.front()));
         pending_.pop_front();
       }
-      pending_front_tick_.store(pending_.empty() ? ~std::uint64_t{0} : pending_.front().tick, std::memory_order_release);
+      pending_front_tick_.store(pending_.empty() ? ~std::uint64_t{0} : pending_.front().tick,
+                                std::memory_order_release);
     }
     if (batch.empty()) return;
     for (const auto& v : batch) check_snapshot(v);
@@ -894,7 +899,8 @@ oracle_report oracle::report() const {
   r.pending_overflow = pending_overflow_.load();
   r.observers_max = observers_max_, r.sampled_max = sampled_max_;
   r.frames_unsampled = c_.frames_unsampled, r.sample = sample;
-  r.decode_ms = decode_ms_, r.index_ms = index_ms_, r.scan_ms = scan_ms_, r.publish_ms = publish_ms_, r.drain_ms = drain_ms_;
+  r.decode_ms = decode_ms_, r.index_ms = index_ms_, r.scan_ms = scan_ms_, r.publish_ms = publish_ms_,
+  r.drain_ms = drain_ms_;
   std::lock_guard lock(ready_mutex_);
   r.stream_error = stream_error_;
   return r;

@@ -5,8 +5,8 @@
 // rule out; brute force is the reference it is tested against) under the zone's rules (the
 // visibility rule, the hysteresis, the cap), and each bot, right after applying the frame of tick
 // t, has its view compared with the visible set of tick t. With a sample of 1 in K, only the
-// players whose id is sampled (a fixed subset, see sampled()) are recomputed and checked. What the server promises after a frame
-// of tick t (and the oracle checks exactly):
+// players whose id is sampled (a fixed subset, see sampled()) are recomputed and checked. What
+// the server promises after a frame of tick t (and the oracle checks exactly):
 //   - the view holds every visible entity but `deferred.enters` of them, and no entity that is
 //     not visible but `deferred.leaves` of them (the frame says what the byte budget left for
 //     later); never one of a class the observer does not see (a leak);
@@ -63,8 +63,8 @@ struct oracle_report {
   double check_ms = 0;        ///< wall time of the comparisons, summed (bots' threads and the oracle's)
   std::uint64_t deferred_checks = 0;  ///< frames checked by the oracle's thread (they came before their truth)
   std::uint64_t pending_overflow = 0;  ///< frames not checked: too many waiting for their truth
-  std::uint64_t observers_max = 0;  ///< players in the zone (the most in one tick)
-  std::uint64_t sampled_max = 0;    ///< of them, recomputed and checked (the most in one tick)
+  std::uint64_t observers_max = 0;     ///< players in the zone (the most in one tick)
+  std::uint64_t sampled_max = 0;       ///< of them, recomputed and checked (the most in one tick)
   /// Wall time of the oracle's thread by phase, summed over the ticks: decoding the frame, the
   /// layout and the index over the targets, the scan of every sampled observer (all threads),
   /// publishing the sets, and checking the views that waited for them.

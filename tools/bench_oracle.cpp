@@ -60,20 +60,24 @@ int main(int argc, char** argv) {
   std::uint64_t seed = 1;
   po::options_description cli("bench-oracle");
   cli.add_options()("npcs", po::value(&npcs)->default_value(npcs), "NPCs (one of them a boss)")  //
-      ("players", po::value(&players)->default_value(players), "players (the observers)")          //
-      ("ticks", po::value(&ticks)->default_value(ticks), "ticks after the players joined")          //
+      ("players", po::value(&players)->default_value(players), "players (the observers)")        //
+      ("ticks", po::value(&ticks)->default_value(ticks), "ticks after the players joined")       //
       ("ramp-ticks", po::value(&ramp_ticks)->default_value(ramp_ticks),
        "players join over this many ticks (a whole layout every tick), 0 = all at once")  //
       ("switches", po::value(&switches)->default_value(switches),
        "players switching stealth a tick once all joined (the truth sends changes to the layout)")  //
       ("threads", po::value(&threads)->default_value(threads), "the oracle's recomputing threads")  //
-      ("sample", po::value(&sample)->default_value(sample), "--oracle-sample: 1 in K players recomputed and checked")  //
-      ("scan", po::value(&scan)->default_value(scan), "grid, x or full (the oracle's recompute); default: the oracle's")  //
-      ("check-every", po::value(&check_every)->default_value(check_every), "check the views every N-th tick (0: never)")  //
+      ("sample", po::value(&sample)->default_value(sample),
+       "--oracle-sample: 1 in K players recomputed and checked")  //
+      ("scan", po::value(&scan)->default_value(scan),
+       "grid, x or full (the oracle's recompute); default: the oracle's")  //
+      ("check-every", po::value(&check_every)->default_value(check_every),
+       "check the views every N-th tick (0: never)")                                                        //
       ("cell", po::value(&cell)->default_value(cell), "the grid's cell side (m), 0 = the oracle's choice")  //
-      ("size", po::value(&size)->default_value(size), "world side (m)")  //
-      ("player-aoi", po::value(&player_aoi)->default_value(player_aoi), "players' AOI half-extent (m)")  //
-      ("boss-footprint", po::value(&boss_footprint)->default_value(boss_footprint), "the boss's presence half-extent (m)")  //
+      ("size", po::value(&size)->default_value(size), "world side (m)")                                     //
+      ("player-aoi", po::value(&player_aoi)->default_value(player_aoi), "players' AOI half-extent (m)")     //
+      ("boss-footprint", po::value(&boss_footprint)->default_value(boss_footprint),
+       "the boss's presence half-extent (m)")  //
       ("seed", po::value(&seed)->default_value(seed), "the world's seed");
   const std::string usage = "bench-oracle [options]: the oracle at a zone's scale, in-process\n";
   if (const auto rc = zone::tools::parse_command_line(argc, argv, "bench-oracle", usage, cli, 2)) return *rc;
@@ -87,7 +91,8 @@ int main(int argc, char** argv) {
   // normal, 5 % stealth, 2.5 % each team.
   const std::size_t towns = std::max<std::size_t>(1, npcs / 2000);
   std::vector<std::pair<float, float>> town;
-  for (std::size_t t = 0; t < towns; ++t) town.emplace_back(uni(0.15f * size, 0.85f * size), uni(0.15f * size, 0.85f * size));
+  for (std::size_t t = 0; t < towns; ++t)
+    town.emplace_back(uni(0.15f * size, 0.85f * size), uni(0.15f * size, 0.85f * size));
   world w;
   std::normal_distribution<float> spread(0, 150);
   for (std::size_t k = 0; k < npcs; ++k) {
@@ -99,7 +104,10 @@ int main(int argc, char** argv) {
     const float tiers[3] = {10, 30, 60};
     const float a = boss ? 400 : r >= 0.95f ? 60 : tiers[rng() % 3];
     const float v = uni(0, 1);
-    const std::uint32_t cls = boss || v < 0.9f ? cb::normal : v < 0.95f ? cb::stealth : v < 0.975f ? cb::team_red : cb::team_blue;
+    const std::uint32_t cls = boss || v < 0.9f ? cb::normal
+                              : v < 0.95f      ? cb::stealth
+                              : v < 0.975f     ? cb::team_red
+                                               : cb::team_blue;
     const float h = boss ? boss_footprint : 0.5f, hz = boss ? boss_footprint : 1.0f;
     w.add(static_cast<std::uint32_t>(k + 1), x, y, 0, a, std::min(a, 128.0f), h, hz, cls,
           cb::normal | cb::team_red | cb::team_blue | (cls == cb::stealth ? cb::stealth : 0u),
@@ -148,7 +156,10 @@ int main(int argc, char** argv) {
         const auto& tc = town[joined % towns];
         const float r = 200 * std::sqrt(uni(0, 1)), a = uni(0, 6.2831853f);
         const float v = uni(0, 1);
-        const std::uint32_t cls = v < 0.8f ? cb::normal : v < 0.9f ? cb::stealth : v < 0.95f ? cb::team_red : cb::team_blue;
+        const std::uint32_t cls = v < 0.8f    ? cb::normal
+                                  : v < 0.9f  ? cb::stealth
+                                  : v < 0.95f ? cb::team_red
+                                              : cb::team_blue;
         w.add(static_cast<std::uint32_t>(npcs + 1 + joined), std::clamp(tc.first + r * std::cos(a), 0.0f, size),
               std::clamp(tc.second + r * std::sin(a), 0.0f, size), 0, player_aoi, player_aoi, 0.5f, 1.0f, cls,
               cb::normal | (cls == cb::stealth ? cb::stealth : 0u) | (cls == cb::team_red ? cb::team_red : 0u) |
@@ -186,9 +197,16 @@ int main(int argc, char** argv) {
     }
     const double feed_ms = ms_since(t0);
     const auto after = o.report();
-    tick_row row{tick, sent != zone::net::truth::encoder::sent::positions, feed_ms,
-                 (after.compute_cpu_ms + after.drain_cpu_ms) - (before.compute_cpu_ms + before.drain_cpu_ms), 0, 0,
-                 after.index_ms - before.index_ms, after.scan_ms - before.scan_ms, after.publish_ms - before.publish_ms, 0};
+    tick_row row{tick,
+                 sent != zone::net::truth::encoder::sent::positions,
+                 feed_ms,
+                 (after.compute_cpu_ms + after.drain_cpu_ms) - (before.compute_cpu_ms + before.drain_cpu_ms),
+                 0,
+                 0,
+                 after.index_ms - before.index_ms,
+                 after.scan_ms - before.scan_ms,
+                 after.publish_ms - before.publish_ms,
+                 0};
     // Checks: every player's true view (as a server with nothing deferred would have sent it,
     // this tick), applied to a view outside the timing (hot in cache, as a bot's is right after
     // it applied its frame), then checked. An unsampled player's frame costs a hash of its id.
@@ -206,8 +224,13 @@ int main(int argc, char** argv) {
         m.reset = true;
         for (const std::uint32_t t : vis.value_or(std::vector<std::uint32_t>{})) {
           const std::size_t k = t - 1;
-          m.enters.push_back({t, static_cast<zone::net::entity_kind>(w.kinds[k]), w.classes[k],
-                              {w.pos[3 * k], w.pos[3 * k + 1], w.pos[3 * k + 2]}, {}, {w.presence[3 * k], w.presence[3 * k + 1], w.presence[3 * k + 2]}, {}});
+          m.enters.push_back({t,
+                              static_cast<zone::net::entity_kind>(w.kinds[k]),
+                              w.classes[k],
+                              {w.pos[3 * k], w.pos[3 * k + 1], w.pos[3 * k + 2]},
+                              {},
+                              {w.presence[3 * k], w.presence[3 * k + 1], w.presence[3 * k + 2]},
+                              {}});
         }
         (void)view.apply(m);
         const auto c0 = clock_type::now();
@@ -219,7 +242,9 @@ int main(int argc, char** argv) {
       row.compare_us = row.checked == 0 ? 0 : (o.report().check_ms - compare0) * 1e3 / static_cast<double>(row.checked);
     }
     rows.push_back(row);
-    sents.push_back(sent == zone::net::truth::encoder::sent::layout ? "layout" : sent == zone::net::truth::encoder::sent::changes ? "changes" : "pos");
+    sents.push_back(sent == zone::net::truth::encoder::sent::layout    ? "layout"
+                    : sent == zone::net::truth::encoder::sent::changes ? "changes"
+                                                                       : "pos");
   }
   const auto r = o.report();
   std::printf("bench-oracle: %zu NPCs + %zu players (%zu towns) in %.0f m, %u threads, scan %s, sample 1 in %u\n", npcs,
@@ -227,9 +252,9 @@ int main(int argc, char** argv) {
   std::printf("%6s %7s %9s %9s %9s %9s %9s %9s %11s %9s\n", "tick", "frame", "feed ms", "CPU ms", "index", "scan",
               "publish", "checked", "check us/fr", "compare");
   for (const auto& row : rows) {
-    std::printf("%6llu %7s %9.2f %9.2f %9.2f %9.2f %9.2f %9zu %11.2f %9.2f\n", static_cast<unsigned long long>(row.tick),
-                sents[row.tick],  row.feed_ms, row.feed_cpu_ms, row.index_ms, row.scan_ms, row.publish_ms,
-                row.checked, row.check_us, row.compare_us);
+    std::printf("%6llu %7s %9.2f %9.2f %9.2f %9.2f %9.2f %9zu %11.2f %9.2f\n",
+                static_cast<unsigned long long>(row.tick), sents[row.tick], row.feed_ms, row.feed_cpu_ms, row.index_ms,
+                row.scan_ms, row.publish_ms, row.checked, row.check_us, row.compare_us);
   }
   // Steady ticks: positions only, after the players joined, and once the oracle's ring of ticks
   // is reused (before, its first pass takes page faults), when the run is that long.
@@ -244,16 +269,18 @@ int main(int argc, char** argv) {
   }
   std::printf("steady (%zu ticks from tick %llu): index %.2f, scan %.2f, publish %.2f ms wall per tick\n", n,
               static_cast<unsigned long long>(warm), n ? ixs / n : 0.0, n ? scans / n : 0.0, n ? pubs / n : 0.0);
-  std::printf("steady (%zu ticks): feed %.2f ms wall, %.2f ms CPU per tick; check %.2f us per frame (compare %.2f us); "
-              "observers up to %llu; frames checked %llu, unchecked %llu; mismatches %llu\n",
-              n, n ? feed / n : 0.0, n ? cpu / n : 0.0, nc ? check / nc : 0.0, nc ? compare / nc : 0.0,
-              static_cast<unsigned long long>(r.observers_max), static_cast<unsigned long long>(r.frames_checked),
-              static_cast<unsigned long long>(r.frames_unchecked), static_cast<unsigned long long>(r.mismatches()));
+  std::printf(
+      "steady (%zu ticks): feed %.2f ms wall, %.2f ms CPU per tick; check %.2f us per frame (compare %.2f us); "
+      "observers up to %llu; frames checked %llu, unchecked %llu; mismatches %llu\n",
+      n, n ? feed / n : 0.0, n ? cpu / n : 0.0, nc ? check / nc : 0.0, nc ? compare / nc : 0.0,
+      static_cast<unsigned long long>(r.observers_max), static_cast<unsigned long long>(r.frames_checked),
+      static_cast<unsigned long long>(r.frames_unchecked), static_cast<unsigned long long>(r.mismatches()));
   const double all = static_cast<double>(std::max<std::uint64_t>(1, r.truth_ticks));
-  std::printf("oracle's thread, wall per tick over all %llu ticks: decode %.2f, layout and index %.2f, scan %.2f, publish %.2f, "
-              "waiting checks %.2f ms\n",
-              static_cast<unsigned long long>(r.truth_ticks), r.decode_ms / all, r.index_ms / all, r.scan_ms / all,
-              r.publish_ms / all, r.drain_ms / all);
+  std::printf(
+      "oracle's thread, wall per tick over all %llu ticks: decode %.2f, layout and index %.2f, scan %.2f, publish %.2f, "
+      "waiting checks %.2f ms\n",
+      static_cast<unsigned long long>(r.truth_ticks), r.decode_ms / all, r.index_ms / all, r.scan_ms / all,
+      r.publish_ms / all, r.drain_ms / all);
   std::printf("visible entities per checked view: %.1f on average\n",
               r.frames_checked ? static_cast<double>(visible_sum) / static_cast<double>(r.frames_checked) : 0.0);
   return r.mismatches() == 0 ? 0 : 1;

@@ -160,7 +160,8 @@ struct raw_world {
     const std::size_t last = size() - 1;
     ids[k] = ids[last], classes[k] = classes[last], sees[k] = sees[last], kinds[k] = kinds[last];
     for (int a = 0; a < 3; ++a) {
-      pos[3 * k + a] = pos[3 * last + a], aoi[3 * k + a] = aoi[3 * last + a], presence[3 * k + a] = presence[3 * last + a];
+      pos[3 * k + a] = pos[3 * last + a], aoi[3 * k + a] = aoi[3 * last + a],
+                  presence[3 * k + a] = presence[3 * last + a];
     }
     ids.pop_back(), classes.pop_back(), sees.pop_back(), kinds.pop_back();
     for (auto* v : {&pos, &aoi, &presence}) v->resize(3 * last);
@@ -201,53 +202,58 @@ TEST_SUITE("bots.oracle") {
   TEST_CASE("the oracle's visible sets equal the interest tracker's (brute-force finder), tick after tick") {
     for (const std::uint32_t cap : {0u, 7u}) {
       for (const unsigned threads : {1u, 3u}) {
-       for (const auto scan : {bots::oracle::scan_mode::full, bots::oracle::scan_mode::x_window, bots::oracle::scan_mode::grid}) {
-        const std::uint64_t seed = zone::test::fresh_seed();
-        CAPTURE(seed);
-        CAPTURE(cap);
-        CAPTURE(threads);
-        tracked_world w(seed, 400, cap);
-        bots::oracle oracle(w.world, w.rules, threads, nullptr, nullptr);
-        oracle.scan = scan;
-        const char* scan_name = scan == bots::oracle::scan_mode::full ? "every target" : scan == bots::oracle::scan_mode::x_window ? "x window" : "grid";
-        CAPTURE(scan_name);
-        std::uint64_t compared = 0, visible_total = 0, differing = 0, in_band = 0;
-        truth_writer truth;
-        for (std::uint64_t tick = 0; tick < 150; ++tick) {
-          if (tick > 0) w.move();
-          // Players join over time (from the second tick: the oracle saw their whole history),
-          // and some leave.
-          if (tick >= 1 && tick < 100 && tick % 3 == 1) w.add_player();
-          if (tick % 17 == 5 && w.players.size() > 3) w.remove_first_player();
-          w.tick(oracle, truth, tick, [&](entity_id p, const auto& expect, const auto& got) {
-            REQUIRE(got.has_value());
-            ++compared;
-            visible_total += expect.size();
-            // Entries kept by the hysteresis alone (the presence box misses the exact AOI box).
-            const auto o = *w.store.get(p);
-            for (const entity_id t : expect) {
-              const auto d = *w.store.get(t);
-              for (int a = 0; a < 3; ++a) {
-                const float po[3] = {o.position.x, o.position.y, o.position.z}, pt[3] = {d.position.x, d.position.y, d.position.z};
-                const float ao[3] = {o.aoi_half_extent.x, o.aoi_half_extent.y, o.aoi_half_extent.z};
-                const float bt[3] = {d.presence_half_extent.x, d.presence_half_extent.y, d.presence_half_extent.z};
-                if (pt[a] - bt[a] > po[a] + ao[a] || po[a] - ao[a] > pt[a] + bt[a]) {
-                  ++in_band;
-                  break;
+        for (const auto scan :
+             {bots::oracle::scan_mode::full, bots::oracle::scan_mode::x_window, bots::oracle::scan_mode::grid}) {
+          const std::uint64_t seed = zone::test::fresh_seed();
+          CAPTURE(seed);
+          CAPTURE(cap);
+          CAPTURE(threads);
+          tracked_world w(seed, 400, cap);
+          bots::oracle oracle(w.world, w.rules, threads, nullptr, nullptr);
+          oracle.scan = scan;
+          const char* scan_name = scan == bots::oracle::scan_mode::full       ? "every target"
+                                  : scan == bots::oracle::scan_mode::x_window ? "x window"
+                                                                              : "grid";
+          CAPTURE(scan_name);
+          std::uint64_t compared = 0, visible_total = 0, differing = 0, in_band = 0;
+          truth_writer truth;
+          for (std::uint64_t tick = 0; tick < 150; ++tick) {
+            if (tick > 0) w.move();
+            // Players join over time (from the second tick: the oracle saw their whole history),
+            // and some leave.
+            if (tick >= 1 && tick < 100 && tick % 3 == 1) w.add_player();
+            if (tick % 17 == 5 && w.players.size() > 3) w.remove_first_player();
+            w.tick(oracle, truth, tick, [&](entity_id p, const auto& expect, const auto& got) {
+              REQUIRE(got.has_value());
+              ++compared;
+              visible_total += expect.size();
+              // Entries kept by the hysteresis alone (the presence box misses the exact AOI box).
+              const auto o = *w.store.get(p);
+              for (const entity_id t : expect) {
+                const auto d = *w.store.get(t);
+                for (int a = 0; a < 3; ++a) {
+                  const float po[3] = {o.position.x, o.position.y, o.position.z},
+                              pt[3] = {d.position.x, d.position.y, d.position.z};
+                  const float ao[3] = {o.aoi_half_extent.x, o.aoi_half_extent.y, o.aoi_half_extent.z};
+                  const float bt[3] = {d.presence_half_extent.x, d.presence_half_extent.y, d.presence_half_extent.z};
+                  if (pt[a] - bt[a] > po[a] + ao[a] || po[a] - ao[a] > pt[a] + bt[a]) {
+                    ++in_band;
+                    break;
+                  }
                 }
               }
-            }
-            if (!std::equal(expect.begin(), expect.end(), got->begin(), got->end())) ++differing;
-          });
+              if (!std::equal(expect.begin(), expect.end(), got->begin(), got->end())) ++differing;
+            });
+          }
+          MESSAGE("cap " << cap << ", threads " << threads << ", " << std::string(scan_name) << ": " << compared
+                         << " visible sets compared, " << visible_total << " entries, " << in_band
+                         << " kept by the hysteresis alone");
+          CHECK(compared > 2000);
+          CHECK(in_band > 100);
+          CHECK(visible_total > compared * 5);
+          CHECK(differing == 0);
+          CHECK(oracle.counters().mismatches() == 0);
         }
-        MESSAGE("cap " << cap << ", threads " << threads << ", " << std::string(scan_name) << ": " << compared << " visible sets compared, "
-                       << visible_total << " entries, " << in_band << " kept by the hysteresis alone");
-        CHECK(compared > 2000);
-        CHECK(in_band > 100);
-        CHECK(visible_total > compared * 5);
-        CHECK(differing == 0);
-        CHECK(oracle.counters().mismatches() == 0);
-       }
       }
     }
   }
@@ -273,16 +279,18 @@ TEST_SUITE("bots.oracle") {
             grid(bounds, rules, 3, nullptr, nullptr);
         full.scan = mode::full, xw.scan = mode::x_window, grid.scan = mode::grid;
         grid.grid_cell = cell;
-        const float c = 8;  // positions snapped to multiples of it land on cell borders (of the 8 m grid, and of any multiple)
+        const float c =
+            8;  // positions snapped to multiples of it land on cell borders (of the 8 m grid, and of any multiple)
         const auto on_border = [&](float lo, float hi) { return c * std::floor(w.uni(lo, hi) / c); };
         const auto any_class = [&] { return static_cast<std::uint32_t>(w.rng() % 32); };  // 5 bits, 0 included
         const auto add_npc = [&] {
           const int kind = static_cast<int>(w.rng() % 10);
           float p[3] = {w.uni(-40, 440), w.uni(-40, 440), w.uni(0, 40)};
           if (kind < 4) p[0] = on_border(-40, 440), p[1] = on_border(-40, 440);
-          const float half = kind == 9 ? (w.rng() % 2 ? 40.0f : 300.0f)  // wider than any cell: tested by every observer
-                             : kind == 8 ? (w.rng() % 2 ? c : c + 0.001f)  // either side of the grid's limit for an 8 m cell
-                                         : w.uni(0.1f, 3);
+          const float half =
+              kind == 9   ? (w.rng() % 2 ? 40.0f : 300.0f)  // wider than any cell: tested by every observer
+              : kind == 8 ? (w.rng() % 2 ? c : c + 0.001f)  // either side of the grid's limit for an 8 m cell
+                          : w.uni(0.1f, 3);
           const float a = w.uni(5, 60), b[3] = {half, half, std::min(half, 5.0f)}, e[3] = {a, a, a};
           w.add(p, e, b, any_class(), any_class(), net::entity_kind::npc);
         };
@@ -297,7 +305,10 @@ TEST_SUITE("bots.oracle") {
           const int kind = players.size() < 2 ? 11 - static_cast<int>(players.size()) : static_cast<int>(w.rng() % 10);
           float p[3] = {w.uni(0, 400), w.uni(0, 400), w.uni(0, 40)};
           if (kind < 6) p[0] = on_border(0, 400), p[1] = on_border(0, 400);
-          const float a = kind == 11 ? 1e6f : kind == 10 ? 1e4f : kind < 6 ? c * static_cast<float>(1 + w.rng() % 6) : w.uni(5, 60);
+          const float a = kind == 11   ? 1e6f
+                          : kind == 10 ? 1e4f
+                          : kind < 6   ? c * static_cast<float>(1 + w.rng() % 6)
+                                       : w.uni(5, 60);
           const float e[3] = {a, a, a}, b[3] = {0.5f, 0.5f, 1.0f};
           players.push_back(w.add(p, e, b, any_class() | 1u, any_class() | 1u, net::entity_kind::player));
           if (kind < 6) {
@@ -319,7 +330,8 @@ TEST_SUITE("bots.oracle") {
             if (o == w.size() || t0 == w.size() || t1 == w.size()) continue;
             w.pos[3 * o] = on_border(0, 400), w.pos[3 * o + 1] = on_border(0, 400);
             for (const auto& [t, gap] : {std::pair{t0, 0.0f}, std::pair{t1, rules.hysteresis}}) {
-              w.pos[3 * t] = w.pos[3 * o] + pr.aoi + gap + 1, w.pos[3 * t + 1] = w.pos[3 * o + 1], w.pos[3 * t + 2] = w.pos[3 * o + 2];
+              w.pos[3 * t] = w.pos[3 * o] + pr.aoi + gap + 1, w.pos[3 * t + 1] = w.pos[3 * o + 1],
+                        w.pos[3 * t + 2] = w.pos[3 * o + 2];
               w.presence[3 * t] = 1, w.classes[t] = 1;
             }
           }
@@ -329,7 +341,8 @@ TEST_SUITE("bots.oracle") {
         for (std::uint64_t tick = 0; tick < 120; ++tick) {
           if (tick > 0) {
             for (std::size_t k = 0; k < w.size(); ++k) {
-              for (int a = 0; a < 2; ++a) w.pos[3 * k + a] += w.uni(-2.5f, 2.5f);  // across the 4 m band within a few ticks
+              for (int a = 0; a < 2; ++a)
+                w.pos[3 * k + a] += w.uni(-2.5f, 2.5f);  // across the 4 m band within a few ticks
               if (w.rng() % 50 == 0) w.pos[3 * k] = on_border(-40, 440);
             }
           }
@@ -347,7 +360,8 @@ TEST_SUITE("bots.oracle") {
             for (int k = 0; k < 4; ++k) {
               const std::size_t at = w.rng() % w.size();
               w.classes[at] = any_class(), w.sees[at] = any_class();
-              if (w.kinds[at] != static_cast<std::uint8_t>(net::entity_kind::player)) w.presence[3 * at] = w.uni(0.1f, 50);
+              if (w.kinds[at] != static_cast<std::uint8_t>(net::entity_kind::player))
+                w.presence[3 * at] = w.uni(0.1f, 50);
               w.changed = true;
             }
           }
@@ -374,9 +388,9 @@ TEST_SUITE("bots.oracle") {
             }
           }
         }
-        MESSAGE("cap " << cap << ", cell " << cell << ": " << compared << " sets compared, " << visible_total << " entries, "
-                       << touching << " of them touching the AOI box exactly, " << huge << " sets of a huge AOI; "
-                       << differing << " differ");
+        MESSAGE("cap " << cap << ", cell " << cell << ": " << compared << " sets compared, " << visible_total
+                       << " entries, " << touching << " of them touching the AOI box exactly, " << huge
+                       << " sets of a huge AOI; " << differing << " differ");
         CHECK(compared > 1500);
         CHECK(visible_total > compared * 3);
         CHECK(touching > 100);
@@ -682,7 +696,8 @@ TEST_SUITE("bots.oracle") {
         CHECK(c.frames_unchecked.load() == unchecked0);
       }
     }
-    const std::size_t n_sampled = static_cast<std::size_t>(std::count_if(clients.begin(), clients.end(), [](const client& cl) { return cl.sampled; }));
+    const std::size_t n_sampled = static_cast<std::size_t>(
+        std::count_if(clients.begin(), clients.end(), [](const client& cl) { return cl.sampled; }));
     const auto r = oracle.report();
     MESSAGE(n_sampled << " of " << clients.size() << " clients sampled: " << sampled_frames << " frames checked, "
                       << unsampled_frames << " unsampled; " << compared << " sets compared, " << differing
