@@ -63,6 +63,9 @@ struct oracle::layout {
   std::vector<std::uint32_t> observers;        // dense indices of the sampled players
   std::vector<std::uint32_t> observers_by_id;  // indices into observers, by ascending id
   std::size_t players = 0;                     // every player, sampled or not
+  // Layouts of one lineage only ever appended entities to the ids of the one before (changes keep
+  // them): an entity has the same dense index in each that holds it (within its count).
+  std::uint64_t lineage = 0;
   [[nodiscard]] std::uint32_t dense_of(std::uint32_t id) const {
     const auto it = dense.find(id);
     return it == dense.end() ? npos32 : it->second;
@@ -373,6 +376,9 @@ void oracle::compute(const net::truth::tick_frame& f) {
     l->presence = f.presence_half;
     for (std::uint32_t k = 0; k < f.count; ++k) l->dense.try_emplace(f.ids[k]).first->second = k;
     l->find_observers(sample);
+    const bool extends = layout_ && layout_->ids.size() <= l->ids.size() &&
+                         std::equal(layout_->ids.begin(), layout_->ids.end(), l->ids.begin());
+    l->lineage = extends ? layout_->lineage : next_lineage_++;
     layout_ = std::move(l);
   } else if (f.has_changes) {
     // The same entities, some rows replaced (the decoder applied them to f's columns): a new
@@ -426,10 +432,7 @@ void oracle::compute(const net::truth::tick_frame& f) {
 
   // Where last tick's sets name an entity by its dense index in this tick's layout too: the same
   // layout, or one that only appended entities to it.
-  const bool prev_dense_same =
-      prev != nullptr &&
-      (prev->lay == layout_ ||
-       (prev->lay->ids.size() <= n && std::equal(prev->lay->ids.begin(), prev->lay->ids.end(), lay.ids.begin())));
+  const bool prev_dense_same = prev != nullptr && prev->lay->lineage == lay.lineage;
 
   const auto observe = [&](scratch& sc, std::size_t i) {
     const std::uint32_t a = lay.observers[i];
@@ -775,7 +778,16 @@ void oracle::check_snapshot(const view_snapshot& v) {
     return s;
   };
 
-  // The visible set and the held entities, both by ascending id, side by side.
+  // The visible set and the held entities, both by ascending id, side by side; those in both are
+  // checked in a second pass, after their truth (this tick's and the tick each was last sent)
+  // was asked of memory for all of them at once.
+  struct held_and_visible {
+    const held_entity* e;
+    const tick_truth* at;  // the tick it was last sent (nullptr: gone from the ring)
+    std::uint32_t d, dl;   // its dense index now and then
+  };
+  thread_local std::vector<held_and_visible> both;
+  both.clear();
   std::size_t i = 0, j = 0;
   while (i < truth.size() || j < v.held.size()) {
     if (j == v.held.size() || (i < truth.size() && id_at(i) < v.held[j].id)) {
@@ -795,21 +807,35 @@ void oracle::check_snapshot(const view_snapshot& v) {
       ++j;
       continue;
     }
-    // Held and visible: its class, its position, and whether an update was due.
+    // Held and visible: checked in the second pass below (its truth fetched meanwhile).
     const held_entity& e = v.held[j];
-    const std::uint32_t id = e.id;
     const auto d = static_cast<std::uint32_t>(truth[i]);
-    ++i, ++j, ++checked;
+    ++i, ++j;
+    const tick_truth* at = e.last_tick <= tick && tick - e.last_tick < ring_ticks ? truth_at(e.last_tick) : nullptr;
+    // The same lineage: the same index, if the entity existed then (else it was not sent then).
+    const std::uint32_t dl = at == nullptr                     ? npos32
+                             : at->lay->lineage != lay.lineage ? at->lay->dense_of(e.id)
+                             : d < at->lay->ids.size()         ? d
+                                                               : npos32;
+    if (at != nullptr && dl != npos32) __builtin_prefetch(at->pos.data() + 3 * dl);
+    __builtin_prefetch(now.pos.data() + 3 * d);
+    __builtin_prefetch(lay.classes.data() + d);
+    both.push_back({&e, at, d, dl});
+  }
+  // Held and visible: its class, its position, and whether an update was due.
+  for (const held_and_visible& hv : both) {
+    const held_entity& e = *hv.e;
+    const std::uint32_t id = e.id, d = hv.d, dl = hv.dl;
+    const tick_truth* at = hv.at;
+    ++checked;
     if (e.visibility_class != lay.classes[d]) {
       c_.wrong_class.fetch_add(1, std::memory_order_relaxed);
       log("class", logged_class_, who() + ": " + entity_line(id) + " is held with class " + std::to_string(e.visibility_class));
     }
-    const tick_truth* at = e.last_tick <= tick && tick - e.last_tick < ring_ticks ? truth_at(e.last_tick) : nullptr;
     if (at == nullptr) {
       ++pos_unchecked;
     } else {
       ++pos_checked;
-      const std::uint32_t dl = at->lay == now.lay ? d : at->lay->dense_of(id);  // same layout: same index
       const float* p = dl == npos32 ? nullptr : at->pos.data() + 3 * dl;
       if (p == nullptr || std::fabs(e.x - p[0]) > tolerance_.x || std::fabs(e.y - p[1]) > tolerance_.y ||
           std::fabs(e.z - p[2]) > tolerance_.z) {

@@ -181,6 +181,7 @@ class oracle {
   oracle_counters c_;
   std::vector<std::unique_ptr<tick_truth>> ring_;
   std::shared_ptr<const layout> layout_;
+  std::uint64_t next_lineage_ = 1;
   net::truth::tick_frame frame_;
   std::uint64_t prev_tick_ = 0;
   bool any_tick_ = false;
