@@ -635,6 +635,10 @@ TEST_SUITE("bots.oracle") {
     replication_options ro;
     ro.world = w.world;
     ro.byte_budget = 900;  // deferrals now and then
+    ro.near_distance = 5;  // most held entities last sent some ticks before (positions checked in earlier ticks' truth)
+    ro.mid_distance = 15;
+    ro.mid_period = 3;
+    ro.far_period = 8;
     replicator rep(ro);
     const net::interest_rules rules = rules_of(ro, 4);
     bots::oracle oracle(w.world, rules, 2, nullptr, nullptr);
@@ -650,14 +654,30 @@ TEST_SUITE("bots.oracle") {
     truth_writer truth;
     std::uint64_t sampled_frames = 0, unsampled_frames = 0, compared = 0, differing = 0;
     bool broke_sampled = false, broke_unsampled = false;
-    std::uint64_t missing_before = 0;
+    std::uint64_t missing_before = 0, npcs_removed = 0;
     for (std::uint64_t tick = 0; tick < 100; ++tick) {
       if (tick > 0) w.move();
       if (tick == 1) {
-        for (int n = 0; n < 30; ++n) {
-          const entity_id id = w.add_player();
+        for (int n = 0; n < 30; ++n) {  // a crowd: every player sees most of the others
+          entity_desc d;
+          d.position = {w.uni(180, 220), w.uni(180, 220), w.uni(0, 10)};
+          d.aoi_half_extent = {30, 30, 30};
+          d.kind = entity_kind::player;
+          const entity_id id = w.store.create(d);
+          REQUIRE(id != null_entity);
+          w.players.push_back(id);
           clients.push_back({id, rep.add_client(id), net::client_view(w.world), bots::oracle::sampled(id, k)});
         }
+      }
+      if (tick >= 10 && tick % 3 == 0) {
+        // An NPC leaves: the store moves its last entity, a player of the crowd, into the hole, so
+        // dense indices differ from the ticks before (where the positions last sent are found by id).
+        std::size_t at = 0;
+        do {
+          at = w.rng() % w.store.size();
+        } while (w.store.kinds()[at] == entity_kind::player);
+        REQUIRE(w.store.destroy(w.store.ids()[at]));
+        ++npcs_removed;
       }
       REQUIRE_FALSE(w.tracker.update(w.store.columns()).has_value());
       REQUIRE_FALSE(oracle.feed(truth.body(w.store, tick)).has_value());
@@ -701,7 +721,8 @@ TEST_SUITE("bots.oracle") {
     const auto r = oracle.report();
     MESSAGE(n_sampled << " of " << clients.size() << " clients sampled: " << sampled_frames << " frames checked, "
                       << unsampled_frames << " unsampled; " << compared << " sets compared, " << differing
-                      << " differ; missing " << r.missing << " (planted in a sampled client)");
+                      << " differ; missing " << r.missing << " (planted in a sampled client); " << npcs_removed
+                      << " NPCs removed; positions checked " << r.positions_checked);
     REQUIRE(n_sampled > 0);
     REQUIRE(n_sampled < clients.size());
     CHECK(r.sample == k);
@@ -710,6 +731,7 @@ TEST_SUITE("bots.oracle") {
     CHECK(r.frames_checked == sampled_frames);
     CHECK(r.frames_unsampled == unsampled_frames);
     CHECK(differing == 0);
+    CHECK(r.positions_checked > 3000);
     REQUIRE(broke_sampled);
     REQUIRE(broke_unsampled);
     CHECK(r.missing > missing_before);
