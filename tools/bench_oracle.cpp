@@ -12,6 +12,7 @@
 #include <cmath>
 #include <cstdio>
 #include <random>
+#include <sstream>
 #include <string>
 #include <vector>
 
@@ -79,8 +80,11 @@ int main(int argc, char** argv) {
       ("boss-footprint", po::value(&boss_footprint)->default_value(boss_footprint),
        "the boss's presence half-extent (m)")  //
       ("seed", po::value(&seed)->default_value(seed), "the world's seed");
-  const std::string usage = "bench-oracle [options]: the oracle at a zone's scale, in-process\n";
-  if (const auto rc = zone::tools::parse_command_line(argc, argv, "bench-oracle", usage, cli, 2)) return *rc;
+  std::ostringstream usage;
+  usage << "bench-oracle [options]: the bot swarm's oracle at a zone's scale, in-process (docs/bots.md, \"What it "
+           "costs\")\n"
+        << cli;
+  if (const auto rc = zone::tools::parse_command_line(argc, argv, "bench-oracle", usage.str(), cli, 2)) return *rc;
 
   namespace cb = zone::interest::category_bits;
   std::mt19937_64 rng(seed);
