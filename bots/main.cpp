@@ -189,7 +189,7 @@ void print_table(const swarm_result& r, const summary& s) {
     row("oracle: truth ticks, KB per tick",
         num(q.truth_ticks) + ", " + fmt(static_cast<double>(q.truth_bytes) / 1024.0 / ticks, "KB") + " (" +
             num(q.truth_layouts) + " with the whole layout, " + num(q.truth_changes) + " with changes to it)");
-    row("oracle: recompute CPU per tick", fmt(q.compute_cpu_ms / ticks, "ms") + " (up to " + num(q.observers_max) +
+    row("oracle: recompute CPU per tick", fmt(q.compute_cpu_ms / ticks, "ms") + " (up to " + num(q.sampled_max) +
                                               " observers; slowest tick with its checks " + ms(q.compute_max_ms) + ")");
     row("oracle: its threads' checks, CPU per tick", fmt(q.drain_cpu_ms / ticks, "ms"));
     row("oracle: its thread's wall per tick",
