@@ -55,33 +55,128 @@ float dist2(const float* a, const float* b) {
 
 }  // namespace
 
+/// One tick's layout (every entity's id, class, mask, kind and boxes, by dense index), shared
+/// with the ticks around it rather than copied: the ids and their map by the layouts of equal
+/// ids (changes keep them), the other columns in chunks of `chunk_size` entities by every layout
+/// whose chunk holds equal values (changes copy only the chunks they touch; a whole layout keeps
+/// each chunk that equals the last layout's). Nothing shared is written after it is published:
+/// earlier ticks' truth keeps reading its own layout.
 struct oracle::layout {
-  std::vector<std::uint32_t> ids, classes, sees;
-  std::vector<std::uint8_t> kinds;
-  std::vector<float> aoi, presence;  // 3 per entity
-  net::id_map<std::uint32_t> dense;  // id -> dense index
+  static constexpr unsigned chunk_shift = 9;
+  static constexpr std::uint32_t chunk_size = 1u << chunk_shift;
+  struct ids_part {
+    std::vector<std::uint32_t> ids;
+    net::id_map<std::uint32_t> dense;  // id -> dense index
+  };
+  struct chunk {
+    std::uint32_t count = 0;  // entities in it (chunk_size but in the last)
+    std::uint32_t classes[chunk_size], sees[chunk_size];
+    float aoi[3 * chunk_size], presence[3 * chunk_size];
+    std::uint8_t kinds[chunk_size];
+    /// Rows [first, first + count) of the frame's columns.
+    void fill(const net::truth::tick_frame& f, std::size_t first) {
+      count = static_cast<std::uint32_t>(std::min<std::size_t>(chunk_size, f.count - first));
+      std::copy_n(f.classes.begin() + first, count, classes);
+      std::copy_n(f.sees.begin() + first, count, sees);
+      std::copy_n(f.kinds.begin() + first, count, kinds);
+      std::copy_n(f.aoi_half.begin() + 3 * first, 3 * count, aoi);
+      std::copy_n(f.presence_half.begin() + 3 * first, 3 * count, presence);
+    }
+    [[nodiscard]] bool equals(const net::truth::tick_frame& f, std::size_t first) const {
+      const std::size_t n = std::min<std::size_t>(chunk_size, f.count - first);
+      return count == n && std::equal(classes, classes + n, f.classes.begin() + first) &&
+             std::equal(sees, sees + n, f.sees.begin() + first) && std::equal(kinds, kinds + n, f.kinds.begin() + first) &&
+             std::memcmp(aoi, f.aoi_half.data() + 3 * first, 3 * n * sizeof(float)) == 0 &&
+             std::memcmp(presence, f.presence_half.data() + 3 * first, 3 * n * sizeof(float)) == 0;
+    }
+  };
+  std::shared_ptr<const ids_part> idp;
+  std::vector<std::shared_ptr<const chunk>> chunks;
   std::vector<std::uint32_t> observers;        // dense indices of the sampled players
   std::vector<std::uint32_t> observers_by_id;  // indices into observers, by ascending id
   std::size_t players = 0;                     // every player, sampled or not
   // Layouts of one lineage only ever appended entities to the ids of the one before (changes keep
   // them): an entity has the same dense index in each that holds it (within its count).
   std::uint64_t lineage = 0;
+
+  [[nodiscard]] std::size_t size() const { return idp->ids.size(); }
+  [[nodiscard]] std::uint32_t id(std::uint32_t k) const { return idp->ids[k]; }
+  [[nodiscard]] const chunk& at(std::uint32_t k) const { return *chunks[k >> chunk_shift]; }
+  [[nodiscard]] const std::uint32_t& cls(std::uint32_t k) const { return at(k).classes[k & (chunk_size - 1)]; }
+  [[nodiscard]] std::uint32_t sees(std::uint32_t k) const { return at(k).sees[k & (chunk_size - 1)]; }
+  [[nodiscard]] std::uint8_t kind(std::uint32_t k) const { return at(k).kinds[k & (chunk_size - 1)]; }
+  [[nodiscard]] const float* aoi(std::uint32_t k) const { return at(k).aoi + 3 * (k & (chunk_size - 1)); }
+  [[nodiscard]] const float* presence(std::uint32_t k) const { return at(k).presence + 3 * (k & (chunk_size - 1)); }
   [[nodiscard]] std::uint32_t dense_of(std::uint32_t id) const {
-    const auto it = dense.find(id);
-    return it == dense.end() ? npos32 : it->second;
+    const auto it = idp->dense.find(id);
+    return it == idp->dense.end() ? npos32 : it->second;
+  }
+
+  /// The whole layout of `f`, sharing with `prev` (nullptr: none) what equals it.
+  void build(const net::truth::tick_frame& f, const layout* prev) {
+    const std::size_t n = f.count;
+    const ids_part* before = prev != nullptr ? prev->idp.get() : nullptr;
+    if (before != nullptr && before->ids == f.ids) {
+      idp = prev->idp;
+    } else {
+      auto p = std::make_shared<ids_part>();
+      std::size_t k0 = 0;
+      if (before != nullptr && before->ids.size() <= n && std::equal(before->ids.begin(), before->ids.end(), f.ids.begin())) {
+        *p = *before;  // appended to: the map is copied whole, the new ids added
+        k0 = before->ids.size();
+      }
+      p->ids.assign(f.ids.begin(), f.ids.end());
+      for (std::size_t k = k0; k < n; ++k) p->dense.try_emplace(f.ids[k]).first->second = static_cast<std::uint32_t>(k);
+      idp = std::move(p);
+    }
+    chunks.resize((n + chunk_size - 1) >> chunk_shift);
+    for (std::size_t c = 0; c < chunks.size(); ++c) {
+      const std::size_t first = c << chunk_shift;
+      if (prev != nullptr && c < prev->chunks.size() && prev->chunks[c]->equals(f, first)) {
+        chunks[c] = prev->chunks[c];
+      } else {
+        auto ch = std::make_shared<chunk>();
+        ch->fill(f, first);
+        chunks[c] = std::move(ch);
+      }
+    }
+  }
+  /// Rows `f.changed` replaced by the frame's (the decoder applied them to its columns): the
+  /// chunks they fall in copied first. Whether a kind changed.
+  bool patch(const net::truth::tick_frame& f) {
+    bool kinds_changed = false;
+    std::size_t copied = ~std::size_t{0};  // the chunk last copied (changed rows ascend)
+    chunk* w = nullptr;
+    for (const std::uint32_t k : f.changed) {
+      const std::size_t c = k >> chunk_shift;
+      if (c != copied) {
+        auto ch = std::make_shared<chunk>(*chunks[c]);
+        w = ch.get();
+        chunks[c] = std::move(ch);
+        copied = c;
+      }
+      const std::uint32_t r = k & (chunk_size - 1);
+      w->classes[r] = f.classes[k];
+      w->sees[r] = f.sees[k];
+      kinds_changed |= w->kinds[r] != f.kinds[k];
+      w->kinds[r] = f.kinds[k];
+      std::copy_n(f.aoi_half.begin() + 3 * k, 3, w->aoi + 3 * r);
+      std::copy_n(f.presence_half.begin() + 3 * k, 3, w->presence + 3 * r);
+    }
+    return kinds_changed;
   }
   void find_observers(unsigned sample) {
     observers.clear();
     players = 0;
-    for (std::uint32_t k = 0; k < ids.size(); ++k) {
-      if (kinds[k] != static_cast<std::uint8_t>(net::entity_kind::player)) continue;
+    for (std::uint32_t k = 0; k < size(); ++k) {
+      if (kind(k) != static_cast<std::uint8_t>(net::entity_kind::player)) continue;
       ++players;
-      if (oracle::sampled(ids[k], sample)) observers.push_back(k);
+      if (oracle::sampled(id(k), sample)) observers.push_back(k);
     }
     observers_by_id.resize(observers.size());
     for (std::uint32_t i = 0; i < observers.size(); ++i) observers_by_id[i] = i;
     std::sort(observers_by_id.begin(), observers_by_id.end(),
-              [&](std::uint32_t x, std::uint32_t y) { return ids[observers[x]] < ids[observers[y]]; });
+              [&](std::uint32_t x, std::uint32_t y) { return id(observers[x]) < id(observers[y]); });
   }
 };
 
@@ -117,11 +212,11 @@ struct oracle::index {
 
   void put(std::size_t s, std::uint32_t k, const float* pos, const layout& lay) {
     const float* p = pos + 3 * k;
-    const float* hx = lay.presence.data() + 3 * k;
+    const float* hx = lay.presence(k);
     blo_x[s] = p[0] - hx[0], blo_y[s] = p[1] - hx[1], blo_z[s] = p[2] - hx[2];
     bhi_x[s] = p[0] + hx[0], bhi_y[s] = p[1] + hx[1], bhi_z[s] = p[2] + hx[2];
     px[s] = p[0];
-    cls[s] = lay.classes[k];
+    cls[s] = lay.cls(k);
     dense[s] = k;
   }
   [[nodiscard]] std::uint32_t col(double x) const {
@@ -149,14 +244,14 @@ struct oracle::index {
       max_half_x = 0;
       for (std::size_t s = 0; s < n; ++s) {
         put(s, order[s], pos, lay);
-        max_half_x = std::max(max_half_x, lay.presence[3 * order[s]]);
+        max_half_x = std::max(max_half_x, lay.presence(order[s])[0]);
       }
       return;
     }
     cell = std::isfinite(cell_side) && cell_side > 0.01f ? cell_side : 0.01;
     const auto gridded = [&](std::size_t k) {
       const float* p = pos + 3 * k;
-      const float* hx = lay.presence.data() + 3 * k;
+      const float* hx = lay.presence(static_cast<std::uint32_t>(k));
       return std::isfinite(p[0]) && std::isfinite(p[1]) && hx[0] <= cell && hx[1] <= cell;
     };
     double lo_x = 0, lo_y = 0, hi_x = 0, hi_y = 0;
@@ -167,7 +262,8 @@ struct oracle::index {
       const double x = pos[3 * k], y = pos[3 * k + 1];
       if (!any) lo_x = hi_x = x, lo_y = hi_y = y, any = true;
       lo_x = std::min(lo_x, x), hi_x = std::max(hi_x, x), lo_y = std::min(lo_y, y), hi_y = std::max(hi_y, y);
-      reach = std::max<double>(reach, std::max(lay.presence[3 * k], lay.presence[3 * k + 1]));
+      const float* hx = lay.presence(static_cast<std::uint32_t>(k));
+      reach = std::max<double>(reach, std::max(hx[0], hx[1]));
     }
     max_abs = std::max({std::fabs(lo_x), std::fabs(hi_x), std::fabs(lo_y), std::fabs(hi_y)});
     origin_x = lo_x, origin_y = lo_y;
@@ -368,32 +464,17 @@ void oracle::compute(const net::truth::tick_frame& f) {
   };
   if (f.has_layout) {
     auto l = std::make_shared<layout>();
-    l->ids = f.ids;
-    l->classes = f.classes;
-    l->sees = f.sees;
-    l->kinds = f.kinds;
-    l->aoi = f.aoi_half;
-    l->presence = f.presence_half;
-    for (std::uint32_t k = 0; k < f.count; ++k) l->dense.try_emplace(f.ids[k]).first->second = k;
+    l->build(f, layout_.get());
     l->find_observers(sample);
-    const bool extends = layout_ && layout_->ids.size() <= l->ids.size() &&
-                         std::equal(layout_->ids.begin(), layout_->ids.end(), l->ids.begin());
+    const bool extends = layout_ && layout_->size() <= l->size() &&
+                         std::equal(layout_->idp->ids.begin(), layout_->idp->ids.end(), l->idp->ids.begin());
     l->lineage = extends ? layout_->lineage : next_lineage_++;
     layout_ = std::move(l);
   } else if (f.has_changes) {
-    // The same entities, some rows replaced (the decoder applied them to f's columns): a new
-    // layout, since earlier ticks' truth keeps the one it had.
+    // The same entities, some rows replaced: a new layout (earlier ticks' truth keeps the one it
+    // had) sharing the ids and every chunk the changes do not touch.
     auto l = std::make_shared<layout>(*layout_);
-    bool kinds_changed = false;
-    for (const std::uint32_t k : f.changed) {
-      l->classes[k] = f.classes[k];
-      l->sees[k] = f.sees[k];
-      kinds_changed |= l->kinds[k] != f.kinds[k];
-      l->kinds[k] = f.kinds[k];
-      std::copy_n(f.aoi_half.begin() + 3 * k, 3, l->aoi.begin() + 3 * k);
-      std::copy_n(f.presence_half.begin() + 3 * k, 3, l->presence.begin() + 3 * k);
-    }
-    if (kinds_changed) l->find_observers(sample);
+    if (l->patch(f)) l->find_observers(sample);
     layout_ = std::move(l);
   }
   const layout& lay = *layout_;
@@ -414,7 +495,7 @@ void oracle::compute(const net::truth::tick_frame& f) {
   double reach_sum = 0;
   std::size_t reaches = 0;
   for (const std::uint32_t a : lay.observers) {
-    const double r = std::max(lay.aoi[3 * a], lay.aoi[3 * a + 1]) + h;
+    const double r = std::max(lay.aoi(a)[0], lay.aoi(a)[1]) + h;
     if (std::isfinite(r)) reach_sum += r, ++reaches;
   }
   const float mean_reach = reaches != 0 ? static_cast<float>(reach_sum / static_cast<double>(reaches)) : 64.0f;
@@ -436,7 +517,7 @@ void oracle::compute(const net::truth::tick_frame& f) {
 
   const auto observe = [&](scratch& sc, std::size_t i) {
     const std::uint32_t a = lay.observers[i];
-    const std::uint32_t id = lay.ids[a];
+    const std::uint32_t id = lay.id(a);
     std::vector<std::uint64_t>& out = sets_[i];  // (id << 32) | dense index
     out.clear();
     // History: a new entity starts from an empty set; one seen last tick continues from its set
@@ -467,13 +548,13 @@ void oracle::compute(const net::truth::tick_frame& f) {
     }
     sc.fresh.clear();
     const float* p = pos + 3 * a;
-    const float* e = lay.aoi.data() + 3 * a;
+    const float* e = lay.aoi(a);
     // The same float expressions as the server's boxes: grown = p -+ (aoi + h), exact = p -+ aoi.
     const float gx = e[0] + h, gy = e[1] + h, gz = e[2] + h;
     const grown_box g{p[0] - gx, p[1] - gy, p[2] - gz, p[0] + gx, p[1] + gy, p[2] + gz};
     const float lo_x = p[0] - e[0], lo_y = p[1] - e[1], lo_z = p[2] - e[2];
     const float hi_x = p[0] + e[0], hi_y = p[1] + e[1], hi_z = p[2] + e[2];
-    const std::uint32_t sees = lay.sees[a];
+    const std::uint32_t sees = lay.sees(a);
     // Every target in the ranges the index gives is tested exactly (the index only leaves out
     // targets whose boxes cannot meet the grown box). A candidate (its class seen, its presence
     // box meeting the grown AOI box) stays when it was visible last tick, and enters when its
@@ -500,7 +581,7 @@ void oracle::compute(const net::truth::tick_frame& f) {
             sc.mark[d] = kept;
           } else if (ix.blo_x[k] <= hi_x && lo_x <= ix.bhi_x[k] && ix.blo_y[k] <= hi_y && lo_y <= ix.bhi_y[k] &&
                      ix.blo_z[k] <= hi_z && lo_z <= ix.bhi_z[k]) {
-            sc.fresh.push_back((std::uint64_t{lay.ids[d]} << 32) | d);
+            sc.fresh.push_back((std::uint64_t{lay.id(d)} << 32) | d);
           }
         }
       }
@@ -560,7 +641,7 @@ void oracle::compute(const net::truth::tick_frame& f) {
     slot.obs_known.resize(obs);
     for (std::size_t r = 0; r < obs; ++r) {
       const std::uint32_t i = lay.observers_by_id[r];
-      slot.obs_ids[r] = lay.ids[lay.observers[i]];
+      slot.obs_ids[r] = lay.id(lay.observers[i]);
       slot.obs_at[r] = i;
       slot.obs_known[r] = known[i];
     }
@@ -725,7 +806,7 @@ void oracle::check_snapshot(const view_snapshot& v) {
   const auto id_at = [&](std::size_t i) { return static_cast<std::uint32_t>(truth[i] >> 32); };
   const std::uint32_t self = lay.dense_of(observer);
   const float* eye = now.pos.data() + 3 * self;
-  const std::uint32_t sees = lay.sees[self];
+  const std::uint32_t sees = lay.sees(self);
   const auto& deferred = v.deferred;
   const auto who = [&] {
     return "tick " + std::to_string(tick) + ", bot " + std::to_string(v.bot) + " (entity " + std::to_string(observer) + ")";
@@ -738,7 +819,7 @@ void oracle::check_snapshot(const view_snapshot& v) {
     char dist[48];
     std::snprintf(dist, sizeof dist, "%.2f m", distance_to(d));
     return "entity " + std::to_string(id) + " at " + (d == npos32 ? std::string("(gone)") : std::string(dist)) +
-           (d == npos32 ? std::string() : ", class " + std::to_string(lay.classes[d]));
+           (d == npos32 ? std::string() : ", class " + std::to_string(lay.cls(d)));
   };
 
   // Own position: exact.
@@ -799,7 +880,7 @@ void oracle::check_snapshot(const view_snapshot& v) {
       // Held, not visible: a leak when of a class the observer does not see.
       const std::uint32_t id = v.held[j].id;
       const std::uint32_t d = lay.dense_of(id);
-      if (d != npos32 && (lay.classes[d] & sees) == 0) {
+      if (d != npos32 && (lay.cls(d) & sees) == 0) {
         if (leaked++ == 0) first_leak = id;
       } else if (extra++ == 0) {
         first_extra = id;
@@ -815,11 +896,11 @@ void oracle::check_snapshot(const view_snapshot& v) {
     // The same lineage: the same index, if the entity existed then (else it was not sent then).
     const std::uint32_t dl = at == nullptr                     ? npos32
                              : at->lay->lineage != lay.lineage ? at->lay->dense_of(e.id)
-                             : d < at->lay->ids.size()         ? d
+                             : d < at->lay->size()            ? d
                                                                : npos32;
     if (at != nullptr && dl != npos32) __builtin_prefetch(at->pos.data() + 3 * dl);
     __builtin_prefetch(now.pos.data() + 3 * d);
-    __builtin_prefetch(lay.classes.data() + d);
+    __builtin_prefetch(&lay.cls(d));
     both.push_back({&e, at, d, dl});
   }
   // Held and visible: its class, its position, and whether an update was due.
@@ -828,7 +909,7 @@ void oracle::check_snapshot(const view_snapshot& v) {
     const std::uint32_t id = e.id, d = hv.d, dl = hv.dl;
     const tick_truth* at = hv.at;
     ++checked;
-    if (e.visibility_class != lay.classes[d]) {
+    if (e.visibility_class != lay.cls(d)) {
       c_.wrong_class.fetch_add(1, std::memory_order_relaxed);
       log("class", logged_class_, who() + ": " + entity_line(id) + " is held with class " + std::to_string(e.visibility_class));
     }
