@@ -696,6 +696,32 @@ std::optional<std::vector<std::uint32_t>> oracle::visible(std::uint32_t observer
   return ids;
 }
 
+std::optional<oracle::layout_columns> oracle::layout_at(std::uint64_t tick) const {
+  const tick_truth& slot = *ring_[tick % ring_ticks];
+  std::shared_lock lock(slot.mutex);
+  if (!slot.valid || slot.tick != tick) return std::nullopt;
+  const layout& lay = *slot.lay;
+  layout_columns c;
+  for (std::uint32_t k = 0; k < lay.size(); ++k) {
+    c.ids.push_back(lay.id(k));
+    c.classes.push_back(lay.cls(k));
+    c.sees.push_back(lay.sees(k));
+    c.kinds.push_back(lay.kind(k));
+    c.aoi.insert(c.aoi.end(), lay.aoi(k), lay.aoi(k) + 3);
+    c.presence.insert(c.presence.end(), lay.presence(k), lay.presence(k) + 3);
+  }
+  c.chunks = lay.chunks.size();
+  if (tick > 0 && &slot != ring_[(tick - 1) % ring_ticks].get()) {
+    const tick_truth& before = *ring_[(tick - 1) % ring_ticks];
+    std::shared_lock lock2(before.mutex);
+    if (before.valid && before.tick == tick - 1) {
+      for (std::size_t i = 0; i < c.chunks && i < before.lay->chunks.size(); ++i)
+        c.chunks_shared_with_prev += lay.chunks[i] == before.lay->chunks[i];
+    }
+  }
+  return c;
+}
+
 void oracle::log(const char* kind, std::atomic<std::uint32_t>& logged, const std::string& line) {
   if (problem_ == nullptr || logged.fetch_add(1, std::memory_order_relaxed) >= logged_per_kind) return;
   problem_(ctx_, std::string("oracle: ") + kind + ": " + line);

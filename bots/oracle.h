@@ -125,6 +125,17 @@ class oracle {
   /// tick is gone or the observer's history is unknown.
   [[nodiscard]] std::optional<std::vector<std::uint32_t>> visible(std::uint32_t observer, std::uint64_t tick) const;
 
+  /// The layout the oracle holds for `tick`, column by column (tests: what sharing and patching
+  /// made of it), and how many of its chunks it shares with the layout of the tick before; nothing
+  /// when that tick is gone.
+  struct layout_columns {
+    std::vector<std::uint32_t> ids, classes, sees;
+    std::vector<std::uint8_t> kinds;
+    std::vector<float> aoi, presence;  // 3 per entity
+    std::size_t chunks = 0, chunks_shared_with_prev = 0;
+  };
+  [[nodiscard]] std::optional<layout_columns> layout_at(std::uint64_t tick) const;
+
   [[nodiscard]] const oracle_counters& counters() const { return c_; }
   [[nodiscard]] oracle_report report() const;
   /// Ticks of truth kept for checks of late frames and of positions last sent long ago.

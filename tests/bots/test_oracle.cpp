@@ -7,7 +7,9 @@
 
 #include "../common/seeds.h"
 
+#include <algorithm>
 #include <chrono>
+#include <deque>
 #include <future>
 #include <random>
 #include <thread>
@@ -850,5 +852,180 @@ TEST_SUITE("bots.oracle") {
         CHECK(c.wrong_class.load() > 0);
       }
     }
+  }
+
+  TEST_CASE(
+      "a layout patched over many ticks (switches, resizes, kinds, creations, removals) equals the world's at every tick, "
+      "the ring's earlier ticks keep theirs, and a wrong class or position after a patch is caught") {
+    // The oracle's layouts share their ids and unchanged chunks of columns with the tick before;
+    // a frame of changes copies only the chunks it touches. Whatever was shared or patched, the
+    // layout of every tick must hold exactly that tick's columns (the world's, built here from
+    // scratch), and writing one tick's patch must not reach into an earlier tick's layout.
+    const std::uint64_t seed = zone::test::fresh_seed();
+    CAPTURE(seed);
+    raw_world w(seed);
+    const net::world_bounds bounds{{0, 0, 0}, {300, 300, 40}};
+    net::interest_rules rules;
+    rules.hysteresis = 4;
+    bots::oracle oracle(bounds, rules, 2, nullptr, nullptr);
+    const std::uint32_t seen_all = cb::normal | cb::team_red | cb::team_blue;
+    const std::uint32_t three[] = {cb::normal, cb::team_red, cb::team_blue};
+    const auto add = [&](net::entity_kind kind) {
+      const float p[3] = {w.uni(0, 300), w.uni(0, 300), w.uni(0, 40)};
+      const float a = w.uni(10, 40), b = w.uni(0.3f, 3);
+      const float e[3] = {a, a, a}, h[3] = {b, b, b};
+      return w.add(p, e, h, three[w.rng() % 3], seen_all, kind);
+    };
+    for (int k = 0; k < 2500; ++k) add(net::entity_kind::npc);
+    struct columns {
+      std::uint64_t tick;
+      std::vector<std::uint32_t> ids, classes, sees;
+      std::vector<std::uint8_t> kinds;
+      std::vector<float> aoi, presence;
+    };
+    const auto world_columns = [&](std::uint64_t tick) {
+      return columns{tick, w.ids, w.classes, w.sees, w.kinds, w.aoi, w.presence};
+    };
+    const auto same = [](const columns& c, const bots::oracle::layout_columns& l) {
+      return c.ids == l.ids && c.classes == l.classes && c.sees == l.sees && c.kinds == l.kinds && c.aoi == l.aoi &&
+             c.presence == l.presence;
+    };
+    std::deque<columns> kept;  // the world's columns of the ticks the oracle's ring still holds
+    std::uint64_t differing = 0, changes_ticks = 0, whole_ticks = 0, shared_on_changes = 0, chunks_on_changes = 0;
+    std::uint64_t added = 0, removed = 0, kinds = 0;
+    std::vector<std::uint32_t> players;
+    const auto random_npc = [&] {
+      for (;;) {
+        const std::size_t k = w.rng() % w.size();
+        if (w.kinds[k] != static_cast<std::uint8_t>(net::entity_kind::player)) return k;
+      }
+    };
+    const auto feed = [&](std::uint64_t tick) {
+      const auto before = oracle.report();
+      REQUIRE_FALSE(oracle.feed(w.body(tick)).has_value());
+      const auto after = oracle.report();
+      const auto got = oracle.layout_at(tick);
+      REQUIRE(got.has_value());
+      kept.push_back(world_columns(tick));
+      if (kept.size() > bots::oracle::ring_ticks) kept.pop_front();
+      if (!same(kept.back(), *got)) ++differing;
+      if (after.truth_changes > before.truth_changes) {
+        ++changes_ticks;
+        shared_on_changes += got->chunks_shared_with_prev, chunks_on_changes += got->chunks;
+      }
+      whole_ticks += after.truth_layouts > before.truth_layouts;
+    };
+    for (std::uint64_t tick = 0; tick < 300; ++tick) {
+      if (tick > 0) {
+        for (std::size_t k = 0; k < w.size(); ++k) {
+          w.pos[3 * k] = std::clamp(w.pos[3 * k] + w.uni(-1, 1), 0.0f, 300.0f);
+          w.pos[3 * k + 1] = std::clamp(w.pos[3 * k + 1] + w.uni(-1, 1), 0.0f, 300.0f);
+        }
+      }
+      if (tick == 1) {
+        for (int k = 0; k < 40; ++k) players.push_back(add(net::entity_kind::player));
+      }
+      if (tick > 1) {
+        for (int k = 0; k < 5; ++k) w.classes[w.rng() % w.size()] = three[w.rng() % 3];  // switches
+        if (w.rng() % 2 == 0) {  // a resize
+          const std::size_t k = w.rng() % w.size();
+          const float a = w.uni(10, 40), b = w.uni(0.3f, 3);
+          for (int i = 0; i < 3; ++i) w.aoi[3 * k + i] = a, w.presence[3 * k + i] = b;
+        }
+        if (tick % 13 == 5) {  // an NPC becomes a boss or back: a kind changed (the observers found again)
+          const std::size_t k = random_npc();
+          w.kinds[k] = static_cast<std::uint8_t>(w.kinds[k] == static_cast<std::uint8_t>(net::entity_kind::npc)
+                                                     ? net::entity_kind::boss
+                                                     : net::entity_kind::npc);
+          ++kinds;
+        }
+        if (tick % 29 == 7) add(net::entity_kind::npc), ++added;        // appended: the whole layout, the same lineage
+        if (tick % 41 == 11) w.remove(random_npc()), ++removed;         // the last moves into the hole
+        if (tick % 67 == 33) {                                          // most of the world at once
+          for (std::size_t k = 0; k < w.size(); ++k) w.classes[k] = three[w.rng() % 3];
+        }
+        w.changed = true;
+      }
+      feed(tick);
+    }
+    // Every tick the ring still holds has its own columns, patched or shared as they were.
+    std::uint64_t ring_differing = 0;
+    for (const columns& c : kept) {
+      const auto got = oracle.layout_at(c.tick);
+      REQUIRE(got.has_value());
+      ring_differing += !same(c, *got);
+    }
+    MESSAGE(changes_ticks << " ticks of changes (" << shared_on_changes << " of " << chunks_on_changes
+                          << " chunks shared with the tick before), " << whole_ticks << " whole layouts; " << added
+                          << " added, " << removed << " removed, " << kinds << " kinds changed");
+    CHECK(differing == 0);
+    CHECK(kept.size() == bots::oracle::ring_ticks);
+    CHECK(ring_differing == 0);
+    CHECK(changes_ticks > 250);
+    CHECK(whole_ticks >= 1 + added + removed);
+    // A tick of changes copies at most the chunks its ~6 changed rows fall in; the rest are shared.
+    CHECK(shared_on_changes > 0);
+    CHECK(shared_on_changes + 7 * changes_ticks >= chunks_on_changes);
+
+    // One more tick: a player's visible entity switches class (a frame of changes), nothing moves.
+    const std::uint64_t last = 300;
+    std::uint32_t observer = 0, target = 0;
+    for (const std::uint32_t p : players) {
+      const auto vis = oracle.visible(p, last - 1);
+      if (vis && !vis->empty()) {
+        observer = p, target = vis->front();
+        break;
+      }
+    }
+    REQUIRE(observer != 0);
+    const auto index_of = [&](std::uint32_t id) {
+      const auto it = std::find(w.ids.begin(), w.ids.end(), id);
+      REQUIRE(it != w.ids.end());
+      return static_cast<std::size_t>(it - w.ids.begin());
+    };
+    const std::size_t t = index_of(target);
+    const std::uint32_t old_class = w.classes[t];
+    w.classes[t] = old_class == cb::normal ? cb::team_red : cb::normal;
+    w.changed = true;
+    const auto changes_before = oracle.report().truth_changes;
+    feed(last);
+    REQUIRE(oracle.report().truth_changes == changes_before + 1);
+    REQUIRE(same(kept.back(), *oracle.layout_at(last)));
+    const auto vis = oracle.visible(observer, last);
+    REQUIRE(vis.has_value());
+    REQUIRE(std::find(vis->begin(), vis->end(), target) != vis->end());
+    // The true view passes; the same view with the target's class of before the patch, or with it
+    // 1 m away, fails, each under its own kind only.
+    const std::size_t self = index_of(observer);
+    const net::vec3f own{w.pos[3 * self], w.pos[3 * self + 1], w.pos[3 * self + 2]};
+    const auto view_with = [&](std::uint32_t target_class, float dx) {
+      net::client_view view(bounds);
+      net::tick_update_msg m;
+      m.server_tick = last;
+      m.reset = true;
+      for (const std::uint32_t id : *vis) {
+        const std::size_t k = index_of(id);
+        m.enters.push_back({id,
+                            static_cast<net::entity_kind>(w.kinds[k]),
+                            id == target ? target_class : w.classes[k],
+                            {w.pos[3 * k] + (id == target ? dx : 0.0f), w.pos[3 * k + 1], w.pos[3 * k + 2]},
+                            {},
+                            {w.presence[3 * k], w.presence[3 * k + 1], w.presence[3 * k + 2]},
+                            {}});
+      }
+      REQUIRE(view.apply(m) == net::client_view::status::ok);
+      return view;
+    };
+    const auto& c = oracle.counters();
+    oracle.check(observer, last, view_with(w.classes[t], 0), {}, own, 0);
+    CHECK(c.frames_checked.load() == 1);
+    CHECK(c.mismatches() == 0);
+    oracle.check(observer, last, view_with(old_class, 0), {}, own, 1);
+    CHECK(c.wrong_class.load() == 1);
+    CHECK(c.mismatches() == 1);
+    oracle.check(observer, last, view_with(w.classes[t], 1.0f), {}, own, 2);
+    CHECK(c.position.load() == 1);
+    CHECK(c.mismatches() == 2);
+    CHECK(c.frames_checked.load() == 3);
   }
 }
