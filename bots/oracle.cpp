@@ -761,10 +761,33 @@ void oracle::check(std::uint32_t observer, std::uint64_t tick, const net::client
   v.observer = observer, v.tick = tick, v.deferred = deferred, v.self_position = self_position, v.bot = bot;
   v.held.clear();
   v.held.reserve(view.size());
-  for (const auto& [id, e] : view.entities()) {
-    v.held.push_back({id, e.state.visibility_class, e.state.position.x, e.state.position.y, e.state.position.z, e.last_tick});
+  const auto held_of = [](std::uint32_t id, const net::client_view::entity& e) {
+    return held_entity{id, e.state.visibility_class, e.state.position.x, e.state.position.y, e.state.position.z,
+                       e.last_tick};
+  };
+  // With the truth there, the view is first read in the order of the visible set (ascending id):
+  // when every held entity is visible (the usual frame), that is the snapshot, already by id,
+  // with no copy of the whole view to sort. Otherwise (an extra or a leak, the truth gone) the
+  // snapshot is made whole and sorted. Either way check_snapshot gets the same snapshot.
+  bool by_truth = false;
+  if (ready) {
+    const tick_truth& now = *ring_[tick % ring_ticks];
+    std::shared_lock lock(now.mutex);
+    const std::uint32_t oi = now.valid && now.tick == tick ? now.find(observer) : npos32;
+    if (oi != npos32 && now.obs_known[oi] != 0) {
+      const auto& entities = view.entities();
+      for (const std::uint64_t entry : now.set(oi)) {
+        const auto id = static_cast<std::uint32_t>(entry >> 32);
+        if (const auto it = entities.find(id); it != entities.end()) v.held.push_back(held_of(id, it->second));
+      }
+      by_truth = v.held.size() == view.size();
+    }
   }
-  std::sort(v.held.begin(), v.held.end(), [](const held_entity& a, const held_entity& b) { return a.id < b.id; });
+  if (!by_truth) {
+    v.held.clear();
+    for (const auto& [id, e] : view.entities()) v.held.push_back(held_of(id, e));
+    std::sort(v.held.begin(), v.held.end(), [](const held_entity& a, const held_entity& b) { return a.id < b.id; });
+  }
   if (ready) {
     check_snapshot(v);
     return;
