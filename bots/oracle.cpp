@@ -85,7 +85,8 @@ struct oracle::layout {
     [[nodiscard]] bool equals(const net::truth::tick_frame& f, std::size_t first) const {
       const std::size_t n = std::min<std::size_t>(chunk_size, f.count - first);
       return count == n && std::equal(classes, classes + n, f.classes.begin() + first) &&
-             std::equal(sees, sees + n, f.sees.begin() + first) && std::equal(kinds, kinds + n, f.kinds.begin() + first) &&
+             std::equal(sees, sees + n, f.sees.begin() + first) &&
+             std::equal(kinds, kinds + n, f.kinds.begin() + first) &&
              std::memcmp(aoi, f.aoi_half.data() + 3 * first, 3 * n * sizeof(float)) == 0 &&
              std::memcmp(presence, f.presence_half.data() + 3 * first, 3 * n * sizeof(float)) == 0;
     }
@@ -121,7 +122,8 @@ struct oracle::layout {
     } else {
       auto p = std::make_shared<ids_part>();
       std::size_t k0 = 0;
-      if (before != nullptr && before->ids.size() <= n && std::equal(before->ids.begin(), before->ids.end(), f.ids.begin())) {
+      if (before != nullptr && before->ids.size() <= n &&
+          std::equal(before->ids.begin(), before->ids.end(), f.ids.begin())) {
         *p = *before;  // appended to: the map is copied whole, the new ids added
         k0 = before->ids.size();
       }
@@ -762,8 +764,8 @@ void oracle::check(std::uint32_t observer, std::uint64_t tick, const net::client
   v.held.clear();
   v.held.reserve(view.size());
   const auto held_of = [](std::uint32_t id, const net::client_view::entity& e) {
-    return held_entity{id, e.state.visibility_class, e.state.position.x, e.state.position.y, e.state.position.z,
-                       e.last_tick};
+    const auto& p = e.state.position;
+    return held_entity{id, e.state.visibility_class, p.x, p.y, p.z, e.last_tick};
   };
   // With the truth there, the view is first read in the order of the visible set (ascending id):
   // when every held entity is visible (the usual frame), that is the snapshot, already by id,
@@ -945,7 +947,7 @@ void oracle::check_snapshot(const view_snapshot& v) {
     // The same lineage: the same index, if the entity existed then (else it was not sent then).
     const std::uint32_t dl = at == nullptr                     ? npos32
                              : at->lay->lineage != lay.lineage ? at->lay->dense_of(e.id)
-                             : d < at->lay->size()            ? d
+                             : d < at->lay->size()             ? d
                                                                : npos32;
     if (at != nullptr && dl != npos32) __builtin_prefetch(at->pos.data() + 3 * dl);
     __builtin_prefetch(now.pos.data() + 3 * d);

@@ -927,7 +927,8 @@ TEST_SUITE("bots.oracle") {
       }
       if (tick > 1) {
         for (int k = 0; k < 5; ++k) w.classes[w.rng() % w.size()] = three[w.rng() % 3];  // switches
-        if (w.rng() % 2 == 0) {  // a resize
+        // A resize, every other tick.
+        if (w.rng() % 2 == 0) {
           const std::size_t k = w.rng() % w.size();
           const float a = w.uni(10, 40), b = w.uni(0.3f, 3);
           for (int i = 0; i < 3; ++i) w.aoi[3 * k + i] = a, w.presence[3 * k + i] = b;
@@ -939,9 +940,9 @@ TEST_SUITE("bots.oracle") {
                                                      : net::entity_kind::npc);
           ++kinds;
         }
-        if (tick % 29 == 7) add(net::entity_kind::npc), ++added;        // appended: the whole layout, the same lineage
-        if (tick % 41 == 11) w.remove(random_npc()), ++removed;         // the last moves into the hole
-        if (tick % 67 == 33) {                                          // most of the world at once
+        if (tick % 29 == 7) add(net::entity_kind::npc), ++added;  // appended: the whole layout, the same lineage
+        if (tick % 41 == 11) w.remove(random_npc()), ++removed;   // the last moves into the hole
+        if (tick % 67 == 33) {                                    // most of the world at once
           for (std::size_t k = 0; k < w.size(); ++k) w.classes[k] = three[w.rng() % 3];
         }
         w.changed = true;
