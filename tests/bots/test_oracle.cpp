@@ -402,6 +402,53 @@ TEST_SUITE("bots.oracle") {
     }
   }
 
+  TEST_CASE("a sparse world (the grid's cell grows): a target whose presence box is wider than the first cell is still found") {
+    // Two entities 100 km apart make the grid's cell grow far beyond the 1 m asked for; each
+    // player has a target whose 100 m presence box meets its AOI box though its position is 60 m
+    // away, in the next cell for some of them. The grid's sets must equal brute force's.
+    using mode = bots::oracle::scan_mode;
+    const std::uint64_t seed = zone::test::fresh_seed();
+    CAPTURE(seed);
+    raw_world w(seed);
+    const net::world_bounds bounds{{0, 0, 0}, {100000, 100000, 40}};
+    net::interest_rules rules;
+    rules.hysteresis = 4;
+    bots::oracle full(bounds, rules, 1, nullptr, nullptr), grid(bounds, rules, 1, nullptr, nullptr);
+    full.scan = mode::full, grid.scan = mode::grid;
+    grid.grid_cell = 1;
+    const float small[3] = {0.5f, 0.5f, 0.5f}, aoi[3] = {5, 5, 5}, wide[3] = {100, 100, 100};
+    const float anchor[3] = {0, 0, 0}, far[3] = {100000, 100000, 0};
+    w.add(anchor, aoi, small, 1, 1, net::entity_kind::npc);
+    w.add(far, aoi, small, 1, 1, net::entity_kind::npc);
+    std::vector<std::uint32_t> players;
+    std::uint64_t compared = 0, visible_total = 0, differing = 0;
+    for (std::uint64_t tick = 0; tick < 4; ++tick) {
+      if (tick == 1) {  // from the second tick: the oracle sees their whole history
+        for (int i = 0; i < 200; ++i) {
+          const float x = 50.0f * static_cast<float>(i) + w.uni(0, 10);
+          const float p[3] = {x, 0, 0}, q[3] = {x + 60, 0, 0};
+          players.push_back(w.add(p, aoi, small, 1, 1, net::entity_kind::player));
+          w.add(q, aoi, wide, 1, 1, net::entity_kind::npc);
+        }
+      }
+      const auto body = w.body(tick);
+      REQUIRE_FALSE(full.feed(body).has_value());
+      REQUIRE_FALSE(grid.feed(body).has_value());
+      for (const std::uint32_t id : players) {
+        const auto expect = full.visible(id, tick), got = grid.visible(id, tick);
+        REQUIRE(expect.has_value() == got.has_value());
+        if (!expect) continue;
+        ++compared;
+        visible_total += expect->size();
+        differing += *expect != *got;
+      }
+    }
+    MESSAGE(compared << " sets compared, " << visible_total << " entries; " << differing << " differ");
+    CHECK(compared == 3 * 200);
+    CHECK(visible_total > compared * 3);
+    CHECK(differing == 0);
+  }
+
   TEST_CASE(
       "many switches and resizes a tick, sent as changes to the layout: the oracle's visible sets equal the tracker's at every tick") {
     // Every tick several players and NPCs switch class and mask (stealth, teams), some AOI and
