@@ -251,10 +251,13 @@ struct oracle::index {
       return;
     }
     cell = std::isfinite(cell_side) && cell_side > 0.01f ? cell_side : 0.01;
+    // Which targets are gridded is decided by the cell asked for, not the one it grows to below:
+    // the bounds and the reach are taken over the same targets that go into the cells.
+    const double first_cell = cell;
     const auto gridded = [&](std::size_t k) {
       const float* p = pos + 3 * k;
       const float* hx = lay.presence(static_cast<std::uint32_t>(k));
-      return std::isfinite(p[0]) && std::isfinite(p[1]) && hx[0] <= cell && hx[1] <= cell;
+      return std::isfinite(p[0]) && std::isfinite(p[1]) && hx[0] <= first_cell && hx[1] <= first_cell;
     };
     double lo_x = 0, lo_y = 0, hi_x = 0, hi_y = 0;
     bool any = false;
