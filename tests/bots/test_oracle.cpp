@@ -449,6 +449,37 @@ TEST_SUITE("bots.oracle") {
     CHECK(differing == 0);
   }
 
+  TEST_CASE("a truth layout that names one id twice is a stream error, not a truth to check views by") {
+    // With an id on two rows, a visible set could hold it twice, and a view holding it and one
+    // more entity (not visible) would be read whole in the set's order: the extra never compared.
+    const std::uint64_t seed = zone::test::fresh_seed();
+    CAPTURE(seed);
+    raw_world w(seed);
+    const net::world_bounds bounds{{0, 0, 0}, {400, 400, 40}};
+    net::interest_rules rules;
+    rules.hysteresis = 4;
+    bots::oracle oracle(bounds, rules, 1, nullptr, nullptr);
+    const float small[3] = {0.5f, 0.5f, 0.5f}, aoi[3] = {10, 10, 10};
+    const float at[3] = {w.uni(0, 400), w.uni(0, 400), 0};
+    w.add(at, aoi, small, 1, 1, net::entity_kind::npc);
+    REQUIRE_FALSE(oracle.feed(w.body(0)).has_value());
+    const std::uint32_t player = w.add(at, aoi, small, 1, 1, net::entity_kind::player);
+    w.add(at, aoi, small, 1, 1, net::entity_kind::npc);
+    w.add(at, aoi, small, 1, 1, net::entity_kind::npc);
+    REQUIRE_FALSE(oracle.feed(w.body(1)).has_value());  // distinct ids (appended to tick 0's)
+    w.add(at, aoi, small, 1, 1, net::entity_kind::npc);
+    w.ids.back() = w.ids[2];  // appended to tick 1's, one id twice
+    const auto err = oracle.feed(w.body(2));
+    REQUIRE(err.has_value());
+    CHECK(err->find("twice") != std::string::npos);
+    w.ids.back() = w.next_id++;
+    w.ids[0] = w.ids[2];  // a new oracle's first layout, one id twice
+    w.changed = true;
+    bots::oracle other(bounds, rules, 1, nullptr, nullptr);
+    CHECK(other.feed(w.body(3)).has_value());
+    CHECK(other.visible(player, 3) == std::nullopt);
+  }
+
   TEST_CASE(
       "many switches and resizes a tick, sent as changes to the layout: the oracle's visible sets equal the tracker's at every tick") {
     // Every tick several players and NPCs switch class and mask (stealth, teams), some AOI and
