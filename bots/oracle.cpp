@@ -453,14 +453,14 @@ std::optional<std::string> oracle::feed(std::span<const std::uint8_t> body) {
   if (frame_.has_layout) ++truth_layouts_;
   if (frame_.has_changes) ++truth_changes_;
   if (!frame_.has_layout && !layout_) return std::string("the first truth frame has no layout");
-  compute(frame_);
+  if (auto err = compute(frame_)) return err;
   ++truth_ticks_;
   compute_cpu_ms_ += thread_cpu_ms() - cpu0;
   compute_max_ms_ = std::max(compute_max_ms_, std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count());
   return std::nullopt;
 }
 
-void oracle::compute(const net::truth::tick_frame& f) {
+std::optional<std::string> oracle::compute(const net::truth::tick_frame& f) {
   auto t0 = std::chrono::steady_clock::now();
   const auto lap = [&t0](double& sum) {
     const auto t1 = std::chrono::steady_clock::now();
@@ -470,6 +470,9 @@ void oracle::compute(const net::truth::tick_frame& f) {
   if (f.has_layout) {
     auto l = std::make_shared<layout>();
     l->build(f, layout_.get());
+    if (l->idp->dense.size() != l->size()) {  // an id on two rows: no truth to check views by
+      return "truth frame of tick " + std::to_string(f.tick) + ": its layout names an id twice";
+    }
     l->find_observers(sample);
     const bool extends = layout_ && layout_->size() <= l->size() &&
                          std::equal(layout_->idp->ids.begin(), layout_->idp->ids.end(), l->idp->ids.begin());
@@ -672,6 +675,7 @@ void oracle::compute(const net::truth::tick_frame& f) {
   own_drain_cpu_ms_ += own_ms;
   drain_cpu_ms_ += own_ms + helpers_ms;
   lap(drain_ms_);
+  return std::nullopt;
 }
 
 void oracle::run_parallel(unsigned threads, const std::function<void(unsigned)>& work, double* cpu_ms) {

@@ -172,7 +172,8 @@ class oracle {
   struct index;
   struct scratch;
   void run(int fd);
-  void compute(const net::truth::tick_frame& f);
+  /// An error when the truth cannot be checked by (a layout naming an id twice).
+  [[nodiscard]] std::optional<std::string> compute(const net::truth::tick_frame& f);
   /// Runs work(0) on this thread and work(1 .. threads - 1) on as many others, and waits; their
   /// CPU is added to *cpu_ms (nullptr: the recompute's).
   void run_parallel(unsigned threads, const std::function<void(unsigned)>& work, double* cpu_ms = nullptr);
