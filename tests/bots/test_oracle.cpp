@@ -480,6 +480,27 @@ TEST_SUITE("bots.oracle") {
     CHECK(other.visible(player, 3) == std::nullopt);
   }
 
+  TEST_CASE("after the truth stream ended, a frame whose truth never came is unchecked, not counted as an overflow of the waiting room") {
+    const std::uint64_t seed = zone::test::fresh_seed();
+    CAPTURE(seed);
+    raw_world w(seed);
+    const net::world_bounds bounds{{0, 0, 0}, {400, 400, 40}};
+    net::interest_rules rules;
+    rules.hysteresis = 4;
+    bots::oracle oracle(bounds, rules, 1, nullptr, nullptr);
+    const float small[3] = {0.5f, 0.5f, 0.5f}, aoi[3] = {10, 10, 10};
+    const float at[3] = {w.uni(0, 400), w.uni(0, 400), 0};
+    const std::uint32_t player = w.add(at, aoi, small, 1, 1, net::entity_kind::player);
+    REQUIRE_FALSE(oracle.feed(w.body(0)).has_value());
+    oracle.stop();
+    const net::client_view view(bounds);
+    oracle.check(player, 5, view, {}, std::nullopt, 0);  // tick 5's truth never came
+    const auto r = oracle.report();
+    CHECK(r.frames_checked + r.frames_unchecked + r.frames_unsampled == 1);
+    CHECK(r.frames_unchecked == 1);
+    CHECK(r.pending_overflow == 0);
+  }
+
   TEST_CASE(
       "many switches and resizes a tick, sent as changes to the layout: the oracle's visible sets equal the tracker's at every tick") {
     // Every tick several players and NPCs switch class and mask (stealth, teams), some AOI and
