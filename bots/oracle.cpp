@@ -754,12 +754,13 @@ void oracle::check(std::uint32_t observer, std::uint64_t tick, const net::client
   if (!ready) {
     // Room for it first (no copy of a view that could not wait).
     bool room = false;
-    if (!ended_.load()) {
+    const bool ended = ended_.load();  // the stream is over: its truth will not come (not an overflow)
+    if (!ended) {
       room = pending_bytes_.fetch_add(bytes, std::memory_order_relaxed) + bytes <= max_pending_bytes;
       if (!room) pending_bytes_.fetch_sub(bytes, std::memory_order_relaxed);
     }
     if (!room) {
-      pending_overflow_.fetch_add(1, std::memory_order_relaxed);
+      if (!ended) pending_overflow_.fetch_add(1, std::memory_order_relaxed);
       c_.frames_unchecked.fetch_add(1, std::memory_order_relaxed);
       return;
     }
