@@ -382,8 +382,9 @@ std::optional<std::string> oracle::start(std::uint16_t port, double timeout_s) {
   const bool got = ready_cv_.wait_for(lock, std::chrono::duration<double>(timeout_s),
                                       [&] { return any_ready_.load() || ended_.load(); });
   if (!got || !any_ready_.load()) {
-    lock.unlock();
+    // Read under the lock: on a timeout the reading thread still runs and may set it.
     const std::string why = stream_error_.empty() ? "no tick within " + std::to_string(timeout_s) + " s" : stream_error_;
+    lock.unlock();
     stop();
     return "oracle: the truth stream gave nothing: " + why;
   }
