@@ -472,12 +472,13 @@ TEST_SUITE("bots.oracle") {
     const auto err = oracle.feed(w.body(2));
     REQUIRE(err.has_value());
     CHECK(err->find("twice") != std::string::npos);
+    CHECK(oracle.feed(w.body(3)).has_value());  // positions for the layout it refused: refused too
     w.ids.back() = w.next_id++;
     w.ids[0] = w.ids[2];  // a new oracle's first layout, one id twice
     w.changed = true;
     bots::oracle other(bounds, rules, 1, nullptr, nullptr);
-    CHECK(other.feed(w.body(3)).has_value());
-    CHECK(other.visible(player, 3) == std::nullopt);
+    CHECK(other.feed(w.body(4)).has_value());
+    CHECK(other.visible(player, 4) == std::nullopt);
   }
 
   TEST_CASE("after the truth stream ended, a frame whose truth never came is unchecked, not counted as an overflow of the waiting room") {
