@@ -454,7 +454,10 @@ std::optional<std::string> oracle::feed(std::span<const std::uint8_t> body) {
   if (frame_.has_layout) ++truth_layouts_;
   if (frame_.has_changes) ++truth_changes_;
   if (!frame_.has_layout && !layout_) return std::string("the first truth frame has no layout");
-  if (auto err = compute(frame_)) return err;
+  if (auto err = compute(frame_)) {
+    frame_.layout_known = false;  // the decoder's layout was not taken: no frame may apply to it
+    return err;
+  }
   ++truth_ticks_;
   compute_cpu_ms_ += thread_cpu_ms() - cpu0;
   compute_max_ms_ = std::max(compute_max_ms_, std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count());
