@@ -38,7 +38,7 @@ void copy_xy(const vec3* pos, float* xy, std::size_t begin, std::size_t end) {
 
 viewer_columns_fill fill_viewer_columns(const entity_store& store, net::viewer_snapshot& s, interest::thread_pool* pool,
                                         std::size_t chunk) {
-  chunk = std::max<std::size_t>(1, chunk);
+  if (chunk == 0) chunk = viewer_columns_chunk;
   const std::size_t n = store.size();
   const auto pos = store.positions();
   const auto ids = store.ids();

@@ -26,7 +26,8 @@ enum class viewer_columns_fill : unsigned char {
 /// version; also when s holds another count), of those only the changed classes when
 /// set_visibility calls are all that changed (entity_store::class_changes_since). The columns
 /// afterwards are what a full copy of every column would give. With `pool` (and at least two
-/// chunks of viewer_columns_chunk entities) the copies are split into chunks of `chunk` entities
+/// chunks of viewer_columns_chunk entities) the copies are split into chunks of `chunk` entities (0:
+/// viewer_columns_chunk)
 /// over the pool's threads, the caller's included; the bytes are those of the single-threaded
 /// copy (pool null). Nothing is allocated once s has grown to the store's size. The pool must be
 /// idle (one run at a time).

@@ -179,8 +179,8 @@ struct zone_config {
   int viewer_nice = 19;          ///< nice value of the viewer's thread (0-19; net::viewer_options::nice)
   bool viewer_idle = true;       ///< the viewer's thread at SCHED_IDLE where the OS allows it (net::viewer_options::idle)
   /// Entities per task of a snapshot's column copy over the worker pool (fill_viewer_columns; no
-  /// option: tests set it small so that a small zone's copy is split too). 0: 1.
-  std::size_t viewer_copy_chunk = 16384;  ///< = zone::viewer_columns_chunk (zone/viewer_columns.h)
+  /// option: tests set it small so that a small zone's copy is split too). 0: viewer_columns_chunk.
+  std::size_t viewer_copy_chunk = 0;
   // Correctness (docs/bots.md, the oracle).
   /// Publish every tick's ground truth on a loopback stream (127.0.0.1:oracle_port; 0 = an
   /// ephemeral port, told in the welcome): what an independent oracle checks each client's view
