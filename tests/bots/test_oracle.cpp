@@ -402,7 +402,8 @@ TEST_SUITE("bots.oracle") {
     }
   }
 
-  TEST_CASE("a sparse world (the grid's cell grows): a target whose presence box is wider than the first cell is still found") {
+  TEST_CASE(
+      "a sparse world (the grid's cell grows): a target whose presence box is wider than the first cell is still found") {
     // Two entities 100 km apart make the grid's cell grow far beyond the 1 m asked for; each
     // player has a target whose 100 m presence box meets its AOI box though its position is 60 m
     // away, in the next cell for some of them. The grid's sets must equal brute force's.
@@ -481,7 +482,8 @@ TEST_SUITE("bots.oracle") {
     CHECK(other.visible(player, 4) == std::nullopt);
   }
 
-  TEST_CASE("after the truth stream ended, a frame whose truth never came is unchecked, not counted as an overflow of the waiting room") {
+  TEST_CASE(
+      "after the truth stream ended, a frame whose truth never came is unchecked, not counted as an overflow of the waiting room") {
     const std::uint64_t seed = zone::test::fresh_seed();
     CAPTURE(seed);
     raw_world w(seed);
