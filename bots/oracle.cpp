@@ -981,8 +981,9 @@ void oracle::check_snapshot(const view_snapshot& v) {
     } else {
       ++pos_checked;
       const float* p = dl == npos32 ? nullptr : at->pos.data() + 3 * dl;
-      if (p == nullptr || std::fabs(e.x - p[0]) > tolerance_.x || std::fabs(e.y - p[1]) > tolerance_.y ||
-          std::fabs(e.z - p[2]) > tolerance_.z) {
+      // Written as "not within": a NaN on either side is a wrong position, never a pass.
+      if (p == nullptr || !(std::fabs(e.x - p[0]) <= tolerance_.x) || !(std::fabs(e.y - p[1]) <= tolerance_.y) ||
+          !(std::fabs(e.z - p[2]) <= tolerance_.z)) {
         c_.position.fetch_add(1, std::memory_order_relaxed);
         char line[200];
         if (p != nullptr) {

@@ -8,6 +8,7 @@
 #include "../common/seeds.h"
 
 #include <algorithm>
+#include <limits>
 #include <chrono>
 #include <deque>
 #include <future>
@@ -1129,6 +1130,10 @@ TEST_SUITE("bots.oracle") {
     oracle.check(observer, last, view_with(w.classes[t], 1.0f), {}, own, 2);
     CHECK(c.position.load() == 1);
     CHECK(c.mismatches() == 2);
-    CHECK(c.frames_checked.load() == 3);
+    // A position no comparison can hold (NaN) is a wrong position, not one within the tolerance.
+    oracle.check(observer, last, view_with(w.classes[t], std::numeric_limits<float>::quiet_NaN()), {}, own, 3);
+    CHECK(c.position.load() == 2);
+    CHECK(c.mismatches() == 3);
+    CHECK(c.frames_checked.load() == 4);
   }
 }
