@@ -113,19 +113,24 @@ struct oracle::layout {
     return it == idp->dense.end() ? npos32 : it->second;
   }
 
-  /// The whole layout of `f`, sharing with `prev` (nullptr: none) what equals it.
-  void build(const net::truth::tick_frame& f, const layout* prev) {
+  /// The whole layout of `f`, sharing with `prev` (nullptr: none) what equals it. Whether its ids
+  /// extend prev's (the same, or prev's with more appended: every entity of prev keeps its dense
+  /// index).
+  bool build(const net::truth::tick_frame& f, const layout* prev) {
     const std::size_t n = f.count;
     const ids_part* before = prev != nullptr ? prev->idp.get() : nullptr;
+    bool extends = false;
     if (before != nullptr && before->ids == f.ids) {
       idp = prev->idp;
+      extends = true;
     } else {
       auto p = std::make_shared<ids_part>();
       std::size_t k0 = 0;
       if (before != nullptr && before->ids.size() <= n &&
           std::equal(before->ids.begin(), before->ids.end(), f.ids.begin())) {
-        *p = *before;  // appended to: the map is copied whole, the new ids added
+        p->dense = before->dense;  // appended to: the map is copied whole, the new ids added
         k0 = before->ids.size();
+        extends = true;
       }
       p->ids.assign(f.ids.begin(), f.ids.end());
       for (std::size_t k = k0; k < n; ++k) p->dense.try_emplace(f.ids[k]).first->second = static_cast<std::uint32_t>(k);
@@ -142,6 +147,7 @@ struct oracle::layout {
         chunks[c] = std::move(ch);
       }
     }
+    return extends;
   }
   /// Rows `f.changed` replaced by the frame's (the decoder applied them to its columns): the
   /// chunks they fall in copied first. Whether a kind changed.
@@ -473,13 +479,11 @@ std::optional<std::string> oracle::compute(const net::truth::tick_frame& f) {
   };
   if (f.has_layout) {
     auto l = std::make_shared<layout>();
-    l->build(f, layout_.get());
+    const bool extends = l->build(f, layout_.get());
     if (l->idp->dense.size() != l->size()) {  // an id on two rows: no truth to check views by
       return "truth frame of tick " + std::to_string(f.tick) + ": its layout names an id twice";
     }
     l->find_observers(sample);
-    const bool extends = layout_ && layout_->size() <= l->size() &&
-                         std::equal(layout_->idp->ids.begin(), layout_->idp->ids.end(), l->idp->ids.begin());
     l->lineage = extends ? layout_->lineage : next_lineage_++;
     layout_ = std::move(l);
   } else if (f.has_changes) {
