@@ -19,16 +19,14 @@
 #include "bots/oracle.h"
 #include "cli.h"
 #include "interest/interest.h"
+#include "interest/measure.h"
 #include "net/client_view.h"
 #include "net/truth.h"
 
 namespace {
 
 using clock_type = std::chrono::steady_clock;
-
-double ms_since(clock_type::time_point t0) {
-  return std::chrono::duration<double, std::milli>(clock_type::now() - t0).count();
-}
+using zone::ms_since;
 
 /// The world: columns as the encoder reads them. NPCs first (ids 1..), players after.
 struct world {
