@@ -22,15 +22,6 @@ using zone::bots::percentile_ms;
 using zone::bots::swarm_options;
 using zone::bots::swarm_result;
 
-namespace {
-/// Values recorded in a histogram.
-std::uint64_t samples_of(const latency_histogram_us::counts& c) {
-  std::uint64_t n = 0;
-  for (const auto v : c) n += v;
-  return n;
-}
-}  // namespace
-
 /// "walk=0.6,patrol=0.2,follow=0.1,crowd=0.1" -> shares; an error text on a bad entry.
 std::string parse_mix(const std::string& text, std::array<double, zone::bots::behaviour_count>& mix) {
   mix = {};
@@ -137,7 +128,7 @@ void print_table(const swarm_result& r, const summary& s) {
   row("logins again after a disconnect", num(r.reconnects));
   const auto login = [&](const latency_histogram_us::counts& c, double max_ms) {
     return ms(percentile_ms(c, 0.5)) + " / " + ms(percentile_ms(c, 0.99)) + " / " + ms(max_ms) + " (" +
-           num(samples_of(c)) + ")";
+           num(latency_histogram_us::total(c)) + ")";
   };
   row("login: launch to connected p50 / p99 / max", login(r.connect_time, r.connect_max_ms));
   row("login: connected to welcome p50 / p99 / max", login(r.welcome_time, r.welcome_max_ms));
@@ -240,7 +231,7 @@ bool write_json(const std::string& path, const swarm_result& r, const summary& s
                      {"min_rtt", r.min_rtt_ms}};
   const auto login_json = [](const latency_histogram_us::counts& c, double max_ms) {
     return nlohmann::json{
-        {"p50", percentile_ms(c, 0.5)}, {"p99", percentile_ms(c, 0.99)}, {"max", max_ms}, {"samples", samples_of(c)}};
+        {"p50", percentile_ms(c, 0.5)}, {"p99", percentile_ms(c, 0.99)}, {"max", max_ms}, {"samples", latency_histogram_us::total(c)}};
   };
   j["login_connect_ms"] = login_json(r.connect_time, r.connect_max_ms);
   j["login_welcome_ms"] = login_json(r.welcome_time, r.welcome_max_ms);
