@@ -230,8 +230,10 @@ bool write_json(const std::string& path, const swarm_result& r, const summary& s
                      {"samples", s.samples}, {"unsynced", r.latency_unsynced},
                      {"min_rtt", r.min_rtt_ms}};
   const auto login_json = [](const latency_histogram_us::counts& c, double max_ms) {
-    return nlohmann::json{
-        {"p50", percentile_ms(c, 0.5)}, {"p99", percentile_ms(c, 0.99)}, {"max", max_ms}, {"samples", latency_histogram_us::total(c)}};
+    return nlohmann::json{{"p50", percentile_ms(c, 0.5)},
+                          {"p99", percentile_ms(c, 0.99)},
+                          {"max", max_ms},
+                          {"samples", latency_histogram_us::total(c)}};
   };
   j["login_connect_ms"] = login_json(r.connect_time, r.connect_max_ms);
   j["login_welcome_ms"] = login_json(r.welcome_time, r.welcome_max_ms);
