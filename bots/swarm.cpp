@@ -102,8 +102,8 @@ class bot_session : public std::enable_shared_from_this<bot_session> {
 
  private:
   void on_connect(const boost::system::error_code& ec);
-  void wait_readable();
-  void on_readable(const boost::system::error_code& ec);
+  void read_next();
+  void on_read(const boost::system::error_code& ec, std::size_t n);
   void on_frame(const net::frame_view& f, std::uint64_t received_us);
   void on_welcome(const net::wire::welcome& w);
   void on_tick_update(const net::wire::tick_update& u, std::uint64_t received_us);
@@ -703,53 +703,46 @@ void bot_session::on_connect(const boost::system::error_code& ec) {
   boost::system::error_code ec2;
   socket_.non_blocking(true, ec2);
   if (ec2) return fail("non-blocking mode: " + ec2.message(), true);
-  wait_readable();
+  read_next();
 }
 
-/// Reads rounds per wakeup before yielding to the other bots of the thread.
+/// Reads rounds per wakeup in server_error_waiting.
 constexpr int max_reads_per_wakeup = 8;
 
-void bot_session::wait_readable() {
-  // The bot reads the socket itself (non-blocking) when it is readable, so that the receive time
-  // of every frame is taken as its bytes come out of the socket, not when queued work reaches it.
+void bot_session::read_next() {
+  // One read in flight, into the decoder's room. Asio's reactor reads the socket when it is
+  // readable and runs on_read right after, so the receive time of every frame is taken as its
+  // bytes come out of the socket. Unlike a wait for readability (`async_wait(wait_read)`, which
+  // re-arms the descriptor with an epoll_ctl each time), a pending read costs no system call to
+  // start: after a short read asio skips the speculative read and waits for the next edge; after
+  // a full one it reads again at once and queues the handler behind the thread's other ready bots.
   auto self = shared_from_this();
-  socket_.async_wait(tcp::socket::wait_read, [this, self](const boost::system::error_code& ec) { on_readable(ec); });
+  const auto buf = decoder_.prepare(read_chunk_bytes);
+  socket_.async_read_some(asio::buffer(buf.data(), buf.size()),
+                          [this, self](const boost::system::error_code& ec, std::size_t n) { on_read(ec, n); });
 }
 
-void bot_session::on_readable(const boost::system::error_code& wait_ec) {
+void bot_session::on_read(const boost::system::error_code& ec, std::size_t n) {
   if (closed_) return;
-  const auto lost = [&](const boost::system::error_code& ec) {
+  if (ec) {
     if (intended_ || s_.stopping()) return close();
     return fail(got_error_ ? "closed by the server after an error" : "connection lost: " + ec.message(), !playing_);
-  };
-  if (wait_ec) return lost(wait_ec);
-  auto& st = s_.slot(slot_);
-  for (int round = 0; round < max_reads_per_wakeup; ++round) {
-    const auto buf = decoder_.prepare(read_chunk_bytes);
-    boost::system::error_code ec;
-    const std::size_t n = socket_.read_some(asio::buffer(buf.data(), buf.size()), ec);
-    if (ec == asio::error::would_block || ec == asio::error::try_again) return wait_readable();
-    if (ec) return lost(ec);
-    // The receive time of every frame these bytes complete: when they were read.
-    const std::uint64_t received_us = local_us(s_.epoch());
-    decoder_.commit(n);
-    st.bytes_in += n;
-    local_.bytes_in += n;
-    for (auto step = decoder_.next(); !closed_; step = decoder_.next()) {
-      if (step.needs_more()) break;
-      if (step.is_error()) return fail(std::string("bad frame from the server: ") + std::string(net::to_string(step.error)), false);
-      ++st.frames_in;
-      ++local_.frames_in;
-      on_frame(step.frame, received_us);
-    }
-    if (closed_) return;
-    // A short read took everything there was: wait for the next bytes (edge-triggered readiness
-    // is only consumed by this thread's reactor, after this handler, so none are missed).
-    if (n < buf.size()) return wait_readable();
   }
-  // Still more: read again after the other ready bots of this thread had their turn.
-  auto self = shared_from_this();
-  asio::post(io_, [this, self] { on_readable({}); });
+  // The receive time of every frame these bytes complete: when they were read.
+  const std::uint64_t received_us = local_us(s_.epoch());
+  auto& st = s_.slot(slot_);
+  decoder_.commit(n);
+  st.bytes_in += n;
+  local_.bytes_in += n;
+  for (auto step = decoder_.next(); !closed_; step = decoder_.next()) {
+    if (step.needs_more()) break;
+    if (step.is_error()) return fail(std::string("bad frame from the server: ") + std::string(net::to_string(step.error)), false);
+    ++st.frames_in;
+    ++local_.frames_in;
+    on_frame(step.frame, received_us);
+  }
+  if (closed_) return;
+  read_next();
 }
 
 void bot_session::on_frame(const net::frame_view& f, std::uint64_t received_us) {
@@ -1190,6 +1183,9 @@ void bot_session::write_next() {
 
 std::optional<std::string> bot_session::server_error_waiting() {
   boost::system::error_code ec;
+  // The pending read holds the decoder's room: take it back (its handler then sees the session
+  // closed, as the caller fails it) before reading here.
+  socket_.cancel(ec);
   socket_.non_blocking(true, ec);
   for (int round = 0; round < max_reads_per_wakeup && !ec; ++round) {
     const auto buf = decoder_.prepare(read_chunk_bytes);
