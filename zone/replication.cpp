@@ -187,65 +187,98 @@ void replicator::set_observer(client_id c, entity_id observer) { clients_[c].obs
 void replicator::resync(client_id c) { clients_[c].reset_pending = true; }
 
 std::size_t replicator::resync_viewers_of(const entity_store& store, entity_id changed, std::uint32_t old_class,
-                                          std::uint32_t old_sees, float hysteresis) {
+                                          std::uint32_t old_sees) {
   const class_change one{changed, old_class, old_sees};
-  return resync_viewers_of(store, std::span<const class_change>(&one, 1), hysteresis, nullptr);
+  return resync_viewers_of(store, std::span<const class_change>(&one, 1), nullptr);
 }
 
 std::size_t replicator::resync_viewers_of(const entity_store& store, std::span<const class_change> changes,
-                                          float hysteresis, interest::thread_pool* pool,
-                                          std::vector<class_note_target>* notes) {
+                                          interest::thread_pool* pool, std::vector<class_note_target>* notes) {
   if (notes != nullptr) notes->clear();
   auto& ch = changed_scratch_;
   ch.clear();
   for (const class_change& c : changes) {
     const std::size_t x = store.index_of(c.entity);
     if (x == entity_store::npos) continue;
-    ch.push_back({c.entity, store.visibility_classes()[x], store.sees()[x], c.old_class, c.old_sees,
-                  store.positions()[x], store.presence_half_extents()[x]});
+    ch.push_back({c.entity, store.visibility_classes()[x], store.sees()[x], c.old_class, c.old_sees});
   }
   if (ch.empty()) return 0;
-  const float slack = hysteresis + 0.01f;
+  // The changes by id (with their place in `ch`): each client's sorted view is walked against
+  // them once, in order (sequential reads), rather than searched once per change (a chain of
+  // cache misses per search).
+  auto& by_id = changed_by_id_;
+  by_id.clear();
+  for (std::size_t k = 0; k < ch.size(); ++k) by_id.push_back({ch[k].id, static_cast<std::uint32_t>(k)});
+  std::sort(by_id.begin(), by_id.end());
   // Client c against every change, in the order resync_viewers_of(change) would meet them: the
   // first change that resyncs it decides (later ones skip a client already resynced). A client
   // with notes collects one per changed entity instead. True: resync it.
+  //
+  // Who may hold a changed entity with its old class is read off the client's view as sent (the
+  // frames so far), not off the positions: a client not built in some tick (paced, staggered) or
+  // whose leaves the budget deferred still holds entities that have left its AOI, and one that
+  // comes back while still held is never entered again.
   const auto judge = [&](client_id id, const client_state& s, std::vector<class_note_target>& out) {
     if (!s.active || s.reset_pending) return false;
     const bool noting = s.class_notes && notes != nullptr;
     const std::size_t first_note = out.size();
-    std::size_t o = entity_store::npos;
-    std::uint32_t m = 0, m_before = 0;
-    vec3 q{}, a{};
-    for (const changed_entity& c : ch) {
-      if (s.observer == c.id) {
-        if (!noting && c.sees != c.old_sees) return true;
-        continue;
-      }
-      if (c.cls == c.old_class) continue;
-      if (o == entity_store::npos) {
-        o = store.index_of(s.observer);
-        // Not in the store: no change here is its own entity (those are), and it holds nothing.
-        if (o == entity_store::npos) return false;
-        m = store.sees()[o], q = store.positions()[o], a = store.aoi_half_extents()[o];
-        // The mask its view was built with: a noting client's before its own first switch of the
-        // tick, if any (a resynced one whose mask changed was resynced above).
-        m_before = m;
-        if (noting) {
-          const auto own =
-              std::find_if(ch.begin(), ch.end(), [&](const changed_entity& x) { return x.id == s.observer; });
-          if (own != ch.end()) m_before = own->old_sees;
-        }
-      }
-      if ((m & c.cls) == 0 || (m_before & c.old_class) == 0) continue;
-      if (std::fabs(c.p.x - q.x) > a.x + c.b.x + slack || std::fabs(c.p.y - q.y) > a.y + c.b.y + slack ||
-          std::fabs(c.p.z - q.z) > a.z + c.b.z + slack) {
-        continue;
-      }
-      if (!noting) return true;
+    const auto note = [&](entity_id e, std::uint32_t cls) {
       // An entity switched twice in the tick: one note (the class is the store's, the same for both).
       const auto begin = out.begin() + static_cast<std::ptrdiff_t>(first_note);
-      if (std::none_of(begin, out.end(), [&](const class_note_target& n) { return n.entity == c.id; })) {
-        out.push_back({id, c.id, c.cls});
+      if (std::none_of(begin, out.end(), [&](const class_note_target& n) { return n.entity == e; })) {
+        out.push_back({id, e, cls});
+      }
+    };
+    std::size_t o = entity_store::npos;
+    bool looked = false;
+    const auto mask = [&] {
+      if (!looked) o = store.index_of(s.observer), looked = true;
+      return o != entity_store::npos ? store.sees()[o] : 0u;
+    };
+    // The changes of entities the view holds, in the order of the changes.
+    thread_local std::vector<std::uint32_t> held;
+    held.clear();
+    // Out of the view's id range: none held (and no walk).
+    const bool any = !s.view.empty() && by_id.front().first <= s.view.back() && s.view.front() <= by_id.back().first;
+    for (std::size_t v = 0, k = 0; any && v < s.view.size() && k < by_id.size();) {
+      if (s.view[v] < by_id[k].first) {
+        ++v;
+      } else if (by_id[k].first < s.view[v]) {
+        ++k;
+      } else {
+        held.push_back(by_id[k++].second);  // a change named twice: both (v stays)
+      }
+    }
+    std::sort(held.begin(), held.end());
+    const changed_entity* own = nullptr;  // the client's own first switch of the tick
+    for (const changed_entity& c : ch) {
+      if (s.observer == c.id && c.sees != c.old_sees) {
+        if (!noting) return true;
+        own = &c;
+        break;
+      }
+    }
+    for (const std::uint32_t k : held) {
+      const changed_entity& c = ch[k];
+      if (s.observer == c.id) continue;  // its own entity is not in its view
+      if (c.cls == c.old_class) continue;
+      // Held and still seen: it stays with the old class. Held and no longer seen: it leaves (its
+      // class no matter), and comes back only through a change judged again: the entity's, or
+      // the client's own mask (below).
+      if ((mask() & c.cls) == 0) continue;
+      if (!noting) return true;
+      note(c.id, c.cls);
+    }
+    if (own != nullptr) {
+      // Its own mask changed (no reset for a noting client): what it holds and sees now but did
+      // not see before (an entity whose leave was not sent yet) may hold an older class.
+      const std::uint32_t now = mask(), before = own->old_sees;
+      const auto classes = store.visibility_classes();
+      for (const entity_id e : s.view) {
+        const std::size_t x = store.index_of(e);
+        if (x == entity_store::npos) continue;
+        const std::uint32_t cls = classes[x];
+        if ((now & cls) != 0 && (before & cls) == 0) note(e, cls);
       }
     }
     return false;
@@ -568,6 +601,47 @@ void replicator::prestage(const entity_store& store, std::uint64_t tick, interes
   }
 }
 
+void replicator::follow_view(client_state& s, const std::uint8_t* frame, const interest::replication_result& res) {
+  // The client's view as the engine moved it on, from the frame's leaves and enters (ids; the
+  // engine keeps the views themselves on its device): what resync_viewers_of reads.
+  thread_local std::vector<entity_id> leaves, enters, next;
+  leaves.clear();
+  enters.clear();
+  const std::size_t enter_step = net::canonical_tick_update::enter_table + net::canonical_tick_update::name_bytes(0);
+  for (std::uint32_t e = 0; e < res.enters; ++e) {
+    std::uint32_t id = 0;
+    std::memcpy(&id, frame + res.enters_at + e * enter_step + 4, 4);
+    enters.push_back(id);
+  }
+  if (res.leaves > 0) {
+    const auto* env = net::wire::GetSizePrefixedenvelope(frame);
+    const auto* u = env != nullptr ? env->message_as_tick_update() : nullptr;
+    if (u != nullptr && u->leaves() != nullptr) leaves.assign(u->leaves()->begin(), u->leaves()->end());
+  }
+  std::sort(enters.begin(), enters.end());
+  std::sort(leaves.begin(), leaves.end());
+  if (enters.size() + leaves.size() <= 8) {
+    // A few: in place (the usual frame moves a view by an entity or two).
+    for (const entity_id l : leaves) {
+      const auto it = std::lower_bound(s.view.begin(), s.view.end(), l);
+      if (it != s.view.end() && *it == l) s.view.erase(it);
+    }
+    for (const entity_id e : enters) s.view.insert(std::lower_bound(s.view.begin(), s.view.end(), e), e);
+    return;
+  }
+  next.clear();
+  next.reserve(s.view.size() + enters.size());
+  std::size_t e = 0, l = 0;
+  for (const entity_id v : s.view) {
+    while (e < enters.size() && enters[e] < v) next.push_back(enters[e++]);
+    while (l < leaves.size() && leaves[l] < v) ++l;
+    if (l < leaves.size() && leaves[l] == v) continue;  // left
+    next.push_back(v);
+  }
+  while (e < enters.size()) next.push_back(enters[e++]);
+  s.view.assign(next.begin(), next.end());
+}
+
 void replicator::build_on_engine(std::span<const replication_request> requests, const entity_store& store,
                                  const interest::interest_tracker& tracker, std::uint64_t tick, std::uint64_t server_time_us,
                                  interest::thread_pool* pool, const frame_sink& sink, const chunk_sink& chunk_done,
@@ -724,6 +798,7 @@ void replicator::build_on_engine(std::span<const replication_request> requests, 
           s.reset_pending = false;
         }
         std::uint8_t* const frame = out.records + res.record_off;
+        if (stats.reset) s.view.clear();
         for (std::uint32_t e = 0; e < res.enters; ++e) {
           std::uint8_t* const table = frame + res.enters_at + e * enter_step;
           std::uint32_t id = 0;
@@ -737,6 +812,7 @@ void replicator::build_on_engine(std::span<const replication_request> requests, 
           std::memcpy(table + 44, &half.z, 4);
           put32(table + 52, static_cast<std::uint32_t>(static_cast<std::uint8_t>(kinds[d])));
         }
+        if (res.enters > 0 || res.leaves > 0) follow_view(s, frame, res);
         s.hash = res.hash;
         s.engine_view_size = res.view_size;
         stats.enters = res.enters;

@@ -160,16 +160,16 @@ class replicator {
   };
   /// Entity `changed` switched visibility (from `old_class` and `old_sees` to its class and mask
   /// in `store` now). A frame enters an entity with its class once and never sends the class
-  /// again, so the clients that may hold it with the old class and keep seeing it are resync()ed:
-  /// their next frame resets the view (enters carry the new class). Those are the active clients
-  /// whose observer's mask holds both classes and whose AOI box, grown by `hysteresis` (and a
-  /// centimetre), meets the entity's presence box at the store's positions (call after the
-  /// interest step of those positions: a client holding it from farther away is sent its leave in
-  /// this tick's frame); and, when its mask changed, the clients that see through the entity
-  /// itself (so that a mask judged above is the one their view was built with). Returns how many.
-  /// The decision reads only the store, so the CPU path and an engine resync the same clients.
+  /// again, so the clients that hold it (in the view sent to them so far: a client not built in
+  /// some ticks, or whose leaves its budget deferred, may hold an entity far outside its AOI) and
+  /// whose observer's mask holds its new class are resync()ed: their next frame resets the view
+  /// (enters carry the new class). So are, when its mask changed, the clients that see through
+  /// the entity itself (a view built with another mask). Those that hold it and no longer see
+  /// its class keep it until its leave is sent; it comes back into such a view only through
+  /// another change, judged again. Returns how many. The views are the frames', so the CPU path
+  /// and an engine (whose views the replicator follows from its frames) resync the same clients.
   std::size_t resync_viewers_of(const entity_store& store, entity_id changed, std::uint32_t old_class,
-                                std::uint32_t old_sees, float hysteresis);
+                                std::uint32_t old_sees);
   /// The same for every change of a tick at once: the clients that resync_viewers_of(change)
   /// called for each change in turn would resync, in one pass over the clients (each client's
   /// observer looked up once, not once per change), spread over `pool` (null: this thread).
@@ -177,14 +177,12 @@ class replicator {
   /// the tick's thread milliseconds one change at a time.
   ///
   /// With `notes`, a client with class notes on (set_class_notes) is never resynced: for every
-  /// changed entity (another than its own) whose new class its observer's mask holds, whose old
-  /// class the mask its view was built with held (the old mask when the observer itself switched
-  /// this tick) and whose presence box meets its AOI box grown as above, it gets one note
-  /// (client, entity, class now) in `*notes` (cleared first; by client, then in the order of the
-  /// changes): a superset of the clients that hold the entity and keep it. A client whose mask no
-  /// longer holds the class is sent its leave in this tick's frame, and its own switch needs
-  /// nothing more (what it keeps seeing keeps its class). A client whose next frame resets gets none.
-  std::size_t resync_viewers_of(const entity_store& store, std::span<const class_change> changes, float hysteresis,
+  /// changed entity (another than its own) that its view holds, whatever its mask now (an entity
+  /// about to leave may come back before its leave is sent, e.g. through the client's own switch,
+  /// which sends no reset), it gets one note (client, entity, class now) in `*notes` (cleared
+  /// first; by client, then in the order of the changes). A client whose next frame resets gets
+  /// none. Call after the interest step and before the tick's frames (the notes go first).
+  std::size_t resync_viewers_of(const entity_store& store, std::span<const class_change> changes,
                                 interest::thread_pool* pool = nullptr, std::vector<class_note_target>* notes = nullptr);
 
   /// Builds this tick's frame for client c into `writer`; the span is valid until the writer's
@@ -268,7 +266,7 @@ class replicator {
   /// Why the engine was given up (empty while it works or when none is set).
   [[nodiscard]] const std::string& engine_error() const { return engine_error_; }
 
-  /// The client's view as sent so far (sorted ids; empty on an engine) and its digest hash.
+  /// The client's view as sent so far (sorted ids; on an engine followed from its frames) and its digest hash.
   [[nodiscard]] std::span<const entity_id> view(client_id c) const { return clients_[c].view; }
   [[nodiscard]] std::size_t view_size(client_id c) const {
     return on_engine() ? clients_[c].engine_view_size : clients_[c].view.size();
@@ -314,6 +312,8 @@ class replicator {
                                            std::uint64_t server_time_us, std::uint32_t last_input_sequence,
                                            replication_writer& writer, replication_stats* stats,
                                            const frame_room* out_room = nullptr, std::size_t k = 0);
+  /// Moves s.view on by an engine's frame (its leaves and enters).
+  static void follow_view(client_state& s, const std::uint8_t* frame, const interest::replication_result& res);
   /// Starts loading what building client c will read first (its state and lists).
   void prefetch_client(client_id c) const;
   /// build_many on the engine (throws what the engine throws, before any frame reaches the sink).
@@ -336,9 +336,9 @@ class replicator {
   struct changed_entity {
     entity_id id;
     std::uint32_t cls, sees, old_class, old_sees;
-    vec3 p, b;
   };
   std::vector<changed_entity> changed_scratch_;
+  std::vector<std::pair<entity_id, std::uint32_t>> changed_by_id_;  // (id, index into changed_scratch_), by id
   std::vector<std::size_t> resync_counts_;
   std::vector<std::vector<class_note_target>> chunk_notes_;  // resync_viewers_of's notes, per chunk of clients
   std::vector<client_id> free_clients_;

@@ -537,7 +537,7 @@ void zone_server::set_visibility(net::session_id session, client& c, const net::
 void zone_server::replicate_class_changes() {
   if (class_changes_.empty()) return;
   stats_.visibility_resyncs +=
-      replicator_.resync_viewers_of(world_->store(), class_changes_, cfg_.hysteresis, pool_.get(), &class_notes_);
+      replicator_.resync_viewers_of(world_->store(), class_changes_, pool_.get(), &class_notes_);
   class_changes_.clear();
   // One message per noted client (the notes come by client), queued before this tick's frame: as
   // state, so that a client whose state frames are dropped gets a reset (current classes) instead.
