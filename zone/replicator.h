@@ -177,11 +177,12 @@ class replicator {
   /// the tick's thread milliseconds one change at a time.
   ///
   /// With `notes`, a client with class notes on (set_class_notes) is never resynced: for every
-  /// changed entity (another than its own) that its view holds, whatever its mask now (an entity
-  /// about to leave may come back before its leave is sent, e.g. through the client's own switch,
-  /// which sends no reset), it gets one note (client, entity, class now) in `*notes` (cleared
-  /// first; by client, then in the order of the changes). A client whose next frame resets gets
-  /// none. Call after the interest step and before the tick's frames (the notes go first).
+  /// changed entity (another than its own) that its view holds and whose new class its mask
+  /// holds, it gets one note (client, entity, class now) in `*notes` (cleared first; by client,
+  /// then in the order of the changes); and when its own mask changed, one for every entity its
+  /// view holds whose class the new mask holds and its mask before the tick's first switch did not
+  /// (an entity whose leave was not sent yet, which it sees again). A client whose next frame
+  /// resets gets none. Call after the interest step and before the tick's frames (notes go first).
   std::size_t resync_viewers_of(const entity_store& store, std::span<const class_change> changes,
                                 interest::thread_pool* pool = nullptr, std::vector<class_note_target>* notes = nullptr);
 
