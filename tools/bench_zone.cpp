@@ -187,6 +187,7 @@ enum class replicate_mode { serial, parallel, both, gpu, gpu_vs_cpu };
 struct options {
   std::size_t entities = 20000;
   std::size_t clients = 0;
+  std::size_t switches = 0;  // --switches: players' visibility switches a tick
   std::size_t ticks = 300;
   std::size_t warmup = 30;
   double rate = 30;
@@ -231,6 +232,10 @@ Usage: bench-zone [options]
   --entities N       NPCs (default 20000; plus the config's one boss), default behaviour mix
   --clients K        player entities with scripted movement, one replication client each
                      (default 0: no replication); spawned at the towns like the server does
+  --switches N       visibility switches a tick among the players (stealth on or off, team 0-2,
+                     as zone-server allows them; every client takes class notes, as bot-swarm's
+                     bots): after the step the replicator names the clients to tell
+                     (resync_viewers_of, the "class changes" phase, part of the tick) (default 0)
   --ticks N          measured ticks (default 300)
   --warmup N         ticks before measuring (default 30)
   --rate HZ          tick rate: dt of the simulation and, with --paced, the loop rate (default 30)
@@ -324,15 +329,16 @@ std::optional<std::string> parse_args(const std::map<std::string, std::string>& 
     return true;
   };
   const auto need = [](const char* name, const char* what) { return std::string("--") + name + ": expected " + what; };
-  for (const char* name : {"entities", "clients", "ticks", "warmup", "budget"}) {
+  for (const char* name : {"entities", "clients", "switches", "ticks", "warmup", "budget"}) {
     if (!value(name)) continue;
     const auto n = parse_value<std::size_t>(v);
     if (!n) return need(name, "a count");
-    (name == std::string_view("entities")  ? o.entities
-     : name == std::string_view("clients") ? o.clients
-     : name == std::string_view("ticks")   ? o.ticks
-     : name == std::string_view("warmup")  ? o.warmup
-                                           : o.budget) = *n;
+    (name == std::string_view("entities")   ? o.entities
+     : name == std::string_view("clients")  ? o.clients
+     : name == std::string_view("switches") ? o.switches
+     : name == std::string_view("ticks")    ? o.ticks
+     : name == std::string_view("warmup")   ? o.warmup
+                                            : o.budget) = *n;
   }
   if (value("threads")) {
     const auto n = parse_value<unsigned>(v);
@@ -483,11 +489,12 @@ int main(int argc, char** argv) {
     switches sw;
     cli.add_options()("paced", po::bool_switch(&sw.paced))("host-views", po::bool_switch(&sw.host_views))(
         "find-into-list", po::bool_switch(&sw.find_into_list));
-    zone::tools::add_text_options(cli, given,
-                                  {"entities", "clients", "ticks", "warmup", "budget", "threads", "spin-us", "seed", "rate",
-                                   "w", "finder", "host-grid", "replicate", "device-wait", "sink", "rep-park", "prestage", "clients-per-task", "wrap-threads",
-                                   "snapshot", "hysteresis", "max-visible", "interest", "density", "summary-csv", "csv",
-                                   "sweep-w"});
+    zone::tools::add_text_options(
+        cli, given,
+        {"entities",    "clients",     "switches", "ticks",    "warmup",           "budget",       "threads",
+         "spin-us",     "seed",        "rate",     "w",        "finder",           "host-grid",    "replicate",
+         "device-wait", "sink",        "rep-park", "prestage", "clients-per-task", "wrap-threads", "snapshot",
+         "hysteresis",  "max-visible", "interest", "density",  "summary-csv",      "csv",          "sweep-w"});
     if (const auto rc = zone::tools::parse_command_line(argc, argv, "bench-zone", usage, cli, 64)) return *rc;
     if (auto err = parse_args(given, sw, opt)) {
       std::cerr << "bench-zone: " << *err << "\n";
@@ -601,6 +608,8 @@ int main(int argc, char** argv) {
     players.push_back(id);
     requests.push_back({repl.add_client(id), 0});
     (void)repl_serial.add_client(id);
+    repl.set_class_notes(requests.back().client, true);
+    repl_serial.set_class_notes(requests.back().client, true);
   }
   std::mt19937_64 script(opt.seed * 7 + 1);
   std::vector<std::size_t> frame_bytes(requests.size());
@@ -636,12 +645,13 @@ int main(int argc, char** argv) {
   std::cout << "load average before: " << load_before << "  (setup " << ms_since(setup0) << " ms)\n";
 
   series s_beh{"behaviours"}, s_int{"integrate"}, s_boxes{"  boxes"}, s_find{"  find"}, s_diff{"  diff"},
-      s_interest{"interest"}, s_f_plan{"    plan"}, s_f_map{"    map"}, s_f_check{"    check"},
-      s_f_out{"    output"}, s_d_count{"    count"}, s_d_offsets{"    offsets"}, s_d_fill{"    fill"},
-      s_d_rows{"    rows"}, s_e_pack{"  engine pack"}, s_e_up{"  engine upload"}, s_e_dev{"  engine device"},
-      s_e_down{"  engine download"}, s_e_grid{"    grid"}, s_e_query{"    candidates, classified"}, s_e_class{"    scans, enters placed"},
-      s_e_write{"    write"}, s_e_host{"  host work (overlapped)"}, s_rep{"replicate"}, s_rep_serial{"replicate 1t"},
-      s_total{"tick"}, s_rep_cpu{"replicate, CPU time (all threads)"}, s_rep_cpu_process{"replicate, CPU time (process clock, lags)"}, s_rep_serial_cpu{"replicate 1t, CPU time"},
+      s_interest{"interest"}, s_f_plan{"    plan"}, s_f_map{"    map"}, s_f_check{"    check"}, s_f_out{"    output"},
+      s_d_count{"    count"}, s_d_offsets{"    offsets"}, s_d_fill{"    fill"}, s_d_rows{"    rows"},
+      s_e_pack{"  engine pack"}, s_e_up{"  engine upload"}, s_e_dev{"  engine device"}, s_e_down{"  engine download"},
+      s_e_grid{"    grid"}, s_e_query{"    candidates, classified"}, s_e_class{"    scans, enters placed"},
+      s_e_write{"    write"}, s_e_host{"  host work (overlapped)"}, s_class{"class changes"}, s_rep{"replicate"},
+      s_rep_serial{"replicate 1t"}, s_total{"tick"}, s_rep_cpu{"replicate, CPU time (all threads)"},
+      s_rep_cpu_process{"replicate, CPU time (process clock, lags)"}, s_rep_serial_cpu{"replicate 1t, CPU time"},
       s_rg_total{"  engine run"}, s_rg_up{"    upload"}, s_rg_dev{"    device"}, s_rg_down{"    download"},
       s_rg_wait{"    host waiting for the device"}, s_rp_stage{"  host staging (entities, slot map, jobs)"},
       s_rp_wrap{"  wrap (frames to the sink)"}, s_rp_stage_cpu{"  host staging, CPU time (all threads)"},
@@ -657,6 +667,9 @@ int main(int argc, char** argv) {
   std::size_t ahead_ticks = 0;      // measured ticks whose entities were on the device ahead (--prestage)
   std::vector<double> pairs, candidates, visible, enters, leaves, bytes_per_frame, checks;
   std::uint64_t frames_digest = 0xcbf29ce484222325ull, frames_mismatch = 0;
+  std::vector<class_change> class_changes;  // --switches: this tick's
+  std::vector<replicator::class_note_target> class_notes, ref_notes;
+  std::uint64_t switch_count = 0, note_count = 0, resync_count = 0, notes_mismatch = 0;
   std::uint64_t sent_enters = 0, sent_updates = 0, sent_leaves = 0, deferred = 0, view_entries = 0;
 
   const auto period =
@@ -688,6 +701,17 @@ int main(int argc, char** argv) {
         (void)world.set_intent(players[p], {u(script), u(script), 0});
       }
     }
+    // Visibility switches (--switches), as zone-server applies a tick's set_visibility inputs.
+    class_changes.clear();
+    for (std::size_t k = 0; k < opt.switches && !players.empty(); ++k) {
+      const entity_id id = players[script() % players.size()];
+      const std::size_t x = world.store().index_of(id);
+      if (x == entity_store::npos) continue;
+      const std::uint32_t old_class = world.store().visibility_classes()[x], old_sees = world.store().sees()[x];
+      const auto v = visibility_for(script() % 2 == 0, static_cast<std::uint8_t>(script() % 3));
+      if (!world.store().set_visibility(id, v.visibility_class, v.sees)) continue;
+      if (v.visibility_class != old_class || v.sees != old_sees) class_changes.push_back({id, old_class, old_sees});
+    }
     const std::uint64_t alloc0 = g_allocations.load();
     const auto t0 = clock_type::now();
     if (auto err = world.step()) {
@@ -705,6 +729,19 @@ int main(int argc, char** argv) {
       std::printf("bench-zone: tick %zu of %zu (last world step %.1f ms)\n", t + 1, total_ticks, step_ms);
       std::fflush(stdout);
       last_progress = clock_type::now();
+    }
+    // The clients to tell of this tick's switches (after the step, before the frames, as zone-server).
+    double class_ms = 0;
+    if (!class_changes.empty() && !requests.empty()) {
+      const auto n0 = clock_type::now();
+      const std::size_t resynced = repl.resync_viewers_of(world.store(), class_changes, &pool, &class_notes);
+      class_ms = ms_since(n0);
+      if (reference) {
+        const std::size_t ref_resynced = repl_serial.resync_viewers_of(world.store(), class_changes, &pool, &ref_notes);
+        if (ref_resynced != resynced || ref_notes != class_notes) ++notes_mismatch;
+      }
+      if (t >= opt.warmup)
+        switch_count += class_changes.size(), note_count += class_notes.size(), resync_count += resynced;
     }
     const std::uint64_t alloc1 = g_allocations.load();
     double rep_ms = 0, rep_serial_ms = 0, rep_cpu = 0, rep_serial_cpu = 0, rep_cpu_process = 0;
@@ -796,7 +833,7 @@ int main(int argc, char** argv) {
     }
     // The tick: the world step and the (parallel, or the only) replication; the bench's own
     // frame hashing and counting above are not part of it.
-    const double total_ms = step_ms + rep_ms;
+    const double total_ms = step_ms + class_ms + rep_ms;
     const std::uint64_t alloc2 = g_allocations.load();
     if (!measured) continue;
     step_allocs.push_back(static_cast<double>(alloc1 - alloc0));
@@ -830,6 +867,7 @@ int main(int argc, char** argv) {
     s_f_check.v.push_back(fs.check_ms);
     s_f_out.v.push_back(fs.output_ms);
     s_rep.v.push_back(rep_ms);
+    s_class.v.push_back(class_ms);
     s_rep_serial.v.push_back(rep_serial_ms);
     s_rep_cpu.v.push_back(rep_cpu);
     s_rep_cpu_process.v.push_back(rep_cpu_process);
@@ -888,6 +926,7 @@ int main(int argc, char** argv) {
     for (const series* s : {&s_d_count, &s_d_offsets, &s_d_fill, &s_d_rows}) rows.push_back(s);
   }
   if (!requests.empty()) {
+    if (opt.switches > 0) rows.push_back(&s_class);
     rows.push_back(&s_rep);
     if (on_gpu && !s_rg_total.v.empty()) {
       for (const series* s : {&s_rp_stage, &s_rg_total, &s_rg_up, &s_rg_dev, &s_rg_down, &s_rg_wait, &s_rp_wrap,
@@ -903,6 +942,13 @@ int main(int argc, char** argv) {
     }
   }
   rows.push_back(&s_total);
+  if (opt.switches > 0) {
+    const double ticks = static_cast<double>(std::max<std::size_t>(1, opt.ticks));
+    std::printf("visibility switches: %.1f a tick; class notes %.1f a tick, clients resynced %.1f a tick%s\n",
+                static_cast<double>(switch_count) / ticks, static_cast<double>(note_count) / ticks,
+                static_cast<double>(resync_count) / ticks,
+                reference ? (notes_mismatch == 0 ? " (the reference's: the same)" : " (THE REFERENCE'S DIFFER)") : "");
+  }
   std::printf("\n| phase | p50 ms | p99 ms | max ms | mean ms |\n|---|---|---|---|---|\n");
   for (const series* s : rows) {
     std::printf("| %s | %.2f | %.2f | %.2f | %.2f |\n", s->name.c_str(), quantile(s->v, 0.5), quantile(s->v, 0.99),
