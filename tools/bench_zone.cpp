@@ -734,10 +734,12 @@ int main(int argc, char** argv) {
     double class_ms = 0;
     if (!class_changes.empty() && !requests.empty()) {
       const auto n0 = clock_type::now();
-      const std::size_t resynced = repl.resync_viewers_of(world.store(), class_changes, &pool, &class_notes);
+      const std::size_t resynced =
+          repl.resync_viewers_of(world.store(), world.tracker(), world.tick(), class_changes, &pool, &class_notes);
       class_ms = ms_since(n0);
       if (reference) {
-        const std::size_t ref_resynced = repl_serial.resync_viewers_of(world.store(), class_changes, &pool, &ref_notes);
+        const std::size_t ref_resynced = repl_serial.resync_viewers_of(world.store(), world.tracker(), world.tick(),
+                                                                       class_changes, &pool, &ref_notes);
         if (ref_resynced != resynced || ref_notes != class_notes) ++notes_mismatch;
       }
       if (t >= opt.warmup)

@@ -166,6 +166,8 @@ client_id replicator::add_client(entity_id observer) {
   s.view.clear();
   s.meta.clear();
   s.hash = 0;
+  s.built_tick = s.told_through = 0;
+  s.boxed_tick = ~std::uint64_t{0};
   return c;
 }
 
@@ -186,13 +188,26 @@ void replicator::set_observer(client_id c, entity_id observer) { clients_[c].obs
 
 void replicator::resync(client_id c) { clients_[c].reset_pending = true; }
 
-std::size_t replicator::resync_viewers_of(const entity_store& store, entity_id changed, std::uint32_t old_class,
+std::size_t replicator::resync_viewers_of(const entity_store& store, const interest::interest_tracker& tracker,
+                                          std::uint64_t tick, entity_id changed, std::uint32_t old_class,
                                           std::uint32_t old_sees) {
   const class_change one{changed, old_class, old_sees};
-  return resync_viewers_of(store, std::span<const class_change>(&one, 1), nullptr);
+  return resync_viewers_of(store, tracker, tick, std::span<const class_change>(&one, 1), nullptr);
 }
 
-std::size_t replicator::resync_viewers_of(const entity_store& store, std::span<const class_change> changes,
+void replicator::after_frame(client_state& s, std::uint64_t tick, bool reset, bool deferred_leaves) const {
+  // Told through this tick: after a reset (every class current); or when no leave was deferred
+  // and either this tick's changes were box-tested for it (the box test holds for a frame that
+  // sends every leave) or there were no changes since it was last told.
+  if (reset || (!deferred_leaves &&
+                ((s.boxed_tick == tick && s.told_through + 1 >= tick) || s.told_through >= last_judged_tick_))) {
+    s.told_through = std::max(s.told_through, tick);
+  }
+  s.built_tick = tick;
+}
+
+std::size_t replicator::resync_viewers_of(const entity_store& store, const interest::interest_tracker& tracker,
+                                          std::uint64_t tick, std::span<const class_change> changes,
                                           interest::thread_pool* pool, std::vector<class_note_target>* notes) {
   if (notes != nullptr) notes->clear();
   auto& ch = changed_scratch_;
@@ -200,101 +215,135 @@ std::size_t replicator::resync_viewers_of(const entity_store& store, std::span<c
   for (const class_change& c : changes) {
     const std::size_t x = store.index_of(c.entity);
     if (x == entity_store::npos) continue;
-    ch.push_back({c.entity, store.visibility_classes()[x], store.sees()[x], c.old_class, c.old_sees});
+    ch.push_back({c.entity, store.visibility_classes()[x], store.sees()[x], c.old_class, c.old_sees,
+                  store.positions()[x], store.presence_half_extents()[x], tick});
   }
-  if (ch.empty()) return 0;
-  // The changes by id (with their place in `ch`): each client's sorted view is walked against
-  // them once, in order (sequential reads), rather than searched once per change (a chain of
-  // cache misses per search).
-  auto& by_id = changed_by_id_;
-  by_id.clear();
-  for (std::size_t k = 0; k < ch.size(); ++k) by_id.push_back({ch[k].id, static_cast<std::uint32_t>(k)});
-  std::sort(by_id.begin(), by_id.end());
-  // Client c against every change, in the order resync_viewers_of(change) would meet them: the
-  // first change that resyncs it decides (later ones skip a client already resynced). A client
-  // with notes collects one per changed entity instead. True: resync it.
-  //
-  // Who may hold a changed entity with its old class is read off the client's view as sent (the
-  // frames so far), not off the positions: a client not built in some tick (paced, staggered) or
-  // whose leaves the budget deferred still holds entities that have left its AOI, and one that
-  // comes back while still held is never entered again.
-  const auto judge = [&](client_id id, const client_state& s, std::vector<class_note_target>& out) {
+  // With no change this tick, only the clients not yet told of an earlier one have anything to learn.
+  if (ch.empty() && change_history_.empty()) return 0;
+  if (!ch.empty()) last_judged_tick_ = tick;
+  const float slack = tracker.options().hysteresis + 0.01f;
+  // The changes a client judged by its view may not have been told of: the history's (those of
+  // ticks after its told_through) and this call's, in order, and by id for the walk.
+  window_.assign(change_history_.begin(), change_history_.end());
+  const std::size_t first_now = window_.size();
+  window_.insert(window_.end(), ch.begin(), ch.end());
+  window_by_id_.clear();
+  for (std::size_t k = 0; k < window_.size(); ++k)
+    window_by_id_.push_back({window_[k].id, static_cast<std::uint32_t>(k)});
+  std::sort(window_by_id_.begin(), window_by_id_.end());
+  // Client c against the changes, in order: the first that resyncs it decides. A client with
+  // notes collects one per changed entity instead (the class now). True: resync it.
+  const auto judge = [&](client_id id, client_state& s, std::vector<class_note_target>& out) {
     if (!s.active || s.reset_pending) return false;
     const bool noting = s.class_notes && notes != nullptr;
     const std::size_t first_note = out.size();
     const auto note = [&](entity_id e, std::uint32_t cls) {
-      // An entity switched twice in the tick: one note (the class is the store's, the same for both).
+      // An entity switched twice: one note (the class is the store's, the same for both).
       const auto begin = out.begin() + static_cast<std::ptrdiff_t>(first_note);
       if (std::none_of(begin, out.end(), [&](const class_note_target& n) { return n.entity == e; })) {
         out.push_back({id, e, cls});
       }
     };
-    std::size_t o = entity_store::npos;
-    bool looked = false;
-    const auto mask = [&] {
-      if (!looked) o = store.index_of(s.observer), looked = true;
-      return o != entity_store::npos ? store.sees()[o] : 0u;
-    };
-    // The changes of entities the view holds, in the order of the changes.
-    thread_local std::vector<std::uint32_t> held;
-    held.clear();
-    // Out of the view's id range: none held (and no walk).
-    const bool any = !s.view.empty() && by_id.front().first <= s.view.back() && s.view.front() <= by_id.back().first;
-    for (std::size_t v = 0, k = 0; any && v < s.view.size() && k < by_id.size();) {
-      if (s.view[v] < by_id[k].first) {
-        ++v;
-      } else if (by_id[k].first < s.view[v]) {
-        ++k;
-      } else {
-        held.push_back(by_id[k++].second);  // a change named twice: both (v stays)
+    const std::size_t o = store.index_of(s.observer);
+    const std::uint32_t m = o != entity_store::npos ? store.sees()[o] : 0u;
+    // (A frame that deferred leaves did not advance told_through: such a client is judged by its view.)
+    const bool boxed = s.built_tick + 1 == tick && s.told_through + 1 >= tick;
+    if (boxed) {
+      // Its view is within its visible set of the tick before: the box test at this tick's
+      // positions names every change it may hold and keep (for this tick only; after_frame
+      // confirms it once its frame sent every leave).
+      s.boxed_tick = tick;
+      std::uint32_t m_before = m;
+      vec3 q{}, a{};
+      if (o != entity_store::npos) q = store.positions()[o], a = store.aoi_half_extents()[o];
+      for (const changed_entity& c : ch) {
+        if (s.observer == c.id && c.sees != c.old_sees) {
+          if (!noting) return true;
+          m_before = c.old_sees;  // the mask its view was built with: before its first switch
+          break;
+        }
       }
+      for (const changed_entity& c : ch) {
+        if (s.observer == c.id || c.cls == c.old_class || o == entity_store::npos) continue;
+        if ((m & c.cls) == 0 || (m_before & c.old_class) == 0) continue;
+        if (std::fabs(c.p.x - q.x) > a.x + c.b.x + slack || std::fabs(c.p.y - q.y) > a.y + c.b.y + slack ||
+            std::fabs(c.p.z - q.z) > a.z + c.b.z + slack) {
+          continue;
+        }
+        if (!noting) return true;
+        note(c.id, c.cls);
+      }
+      return false;
     }
-    std::sort(held.begin(), held.end());
-    const changed_entity* own = nullptr;  // the client's own first switch of the tick
-    for (const changed_entity& c : ch) {
+    // By its view: every change since it was last told of all. Too far back: start over.
+    if (s.told_through < forgotten_through_) return true;
+    const changed_entity* own = nullptr;  // its own first switch of the mask among them
+    for (std::size_t k = 0; k < window_.size(); ++k) {
+      const changed_entity& c = window_[k];
+      if (c.tick <= s.told_through && k < first_now) continue;
       if (s.observer == c.id && c.sees != c.old_sees) {
         if (!noting) return true;
         own = &c;
         break;
       }
     }
-    for (const std::uint32_t k : held) {
-      const changed_entity& c = ch[k];
-      if (s.observer == c.id) continue;  // its own entity is not in its view
-      if (c.cls == c.old_class) continue;
-      // Held and still seen: it stays with the old class. Held and no longer seen: it leaves (its
-      // class no matter), and comes back only through a change judged again: the entity's, or
-      // the client's own mask (below).
-      if ((mask() & c.cls) == 0) continue;
+    thread_local std::vector<std::uint32_t> held;
+    held.clear();
+    const bool any =
+        !s.view.empty() && window_by_id_.front().first <= s.view.back() && s.view.front() <= window_by_id_.back().first;
+    for (std::size_t v = 0, k = 0; any && v < s.view.size() && k < window_by_id_.size();) {
+      if (s.view[v] < window_by_id_[k].first) {
+        ++v;
+      } else if (window_by_id_[k].first < s.view[v]) {
+        ++k;
+      } else {
+        const std::uint32_t w = window_by_id_[k++].second;  // v stays: an id may change twice
+        if (w >= first_now || window_[w].tick > s.told_through) held.push_back(w);
+      }
+    }
+    std::sort(held.begin(), held.end());
+    const auto classes = store.visibility_classes();
+    for (const std::uint32_t w : held) {
+      const changed_entity& c = window_[w];
+      if (s.observer == c.id || c.cls == c.old_class) continue;
+      // Held: the class it has now, if its mask holds it (one it no longer sees leaves, its
+      // class no matter, and comes back only through a change judged again: the entity's or
+      // its own mask's, below).
+      const std::size_t x = store.index_of(c.id);
+      if (x == entity_store::npos || (m & classes[x]) == 0) continue;
       if (!noting) return true;
-      note(c.id, c.cls);
+      note(c.id, classes[x]);
     }
     if (own != nullptr) {
       // Its own mask changed (no reset for a noting client): what it holds and sees now but did
       // not see before (an entity whose leave was not sent yet) may hold an older class.
-      const std::uint32_t now = mask(), before = own->old_sees;
-      const auto classes = store.visibility_classes();
       for (const entity_id e : s.view) {
         const std::size_t x = store.index_of(e);
         if (x == entity_store::npos) continue;
-        const std::uint32_t cls = classes[x];
-        if ((now & cls) != 0 && (before & cls) == 0) note(e, cls);
+        if ((m & classes[x]) != 0 && (own->old_sees & classes[x]) == 0) note(e, classes[x]);
       }
     }
+    s.told_through = tick;
     return false;
   };
   constexpr std::size_t chunk = 1024;
   const std::size_t n = clients_.size(), tasks = (n + chunk - 1) / chunk;
   resync_counts_.assign(tasks, 0);
+  chunk_min_told_.assign(tasks, tick);
   if (chunk_notes_.size() < tasks) chunk_notes_.resize(tasks);
   const auto run_chunk = [&](std::size_t t) {
     std::size_t k = 0;
     auto& out = chunk_notes_[t];
     out.clear();
+    std::uint64_t least = tick;
     for (std::size_t i = t * chunk; i < std::min(n, (t + 1) * chunk); ++i) {
-      if (judge(static_cast<client_id>(i), clients_[i], out)) clients_[i].reset_pending = true, ++k;
+      client_state& s = clients_[i];
+      if (judge(static_cast<client_id>(i), s, out)) s.reset_pending = true, ++k;
+      // Box-tested for this tick: told through it once its frame is sent (after_frame).
+      if (s.active && !s.reset_pending) least = std::min(least, s.boxed_tick == tick ? tick - 1 : s.told_through);
     }
     resync_counts_[t] = k;
+    chunk_min_told_[t] = least;
   };
   if (pool != nullptr && tasks > 1) {
     pool->run(tasks, run_chunk);
@@ -302,10 +351,23 @@ std::size_t replicator::resync_viewers_of(const entity_store& store, std::span<c
     for (std::size_t t = 0; t < tasks; ++t) run_chunk(t);
   }
   std::size_t total = 0;
+  std::uint64_t least = tick;
   for (std::size_t t = 0; t < tasks; ++t) {
     total += resync_counts_[t];
+    least = std::min(least, chunk_min_told_[t]);
     if (notes != nullptr) notes->insert(notes->end(), chunk_notes_[t].begin(), chunk_notes_[t].end());
   }
+  // The history keeps what a client may still need: the changes after the least told_through,
+  // and at most the last 128 ticks with changes (a client told only before those is reset).
+  change_history_.insert(change_history_.end(), ch.begin(), ch.end());
+  std::size_t drop = 0;
+  while (drop < change_history_.size() && change_history_[drop].tick <= least) ++drop;
+  if (drop < change_history_.size() && change_history_.back().tick - change_history_[drop].tick >= 128) {
+    const std::uint64_t keep_from = change_history_.back().tick - 127;
+    while (drop < change_history_.size() && change_history_[drop].tick < keep_from) ++drop;
+    forgotten_through_ = std::max(forgotten_through_, keep_from - 1);
+  }
+  change_history_.erase(change_history_.begin(), change_history_.begin() + static_cast<std::ptrdiff_t>(drop));
   return total;
 }
 
@@ -508,6 +570,7 @@ std::span<const std::uint8_t> replicator::build_from(const Source& source, clien
   const auto frame =
       out_room != nullptr && *out_room ? writer.finish_into((*out_room)(k, writer.frame_size())) : writer.finish();
   st.bytes = frame.size();
+  after_frame(s, tick, st.reset, st.deferred_leaves > 0);
   if (stats) *stats = st;
   return frame;
 }
@@ -815,6 +878,7 @@ void replicator::build_on_engine(std::span<const replication_request> requests, 
         if (res.enters > 0 || res.leaves > 0) follow_view(s, frame, res);
         s.hash = res.hash;
         s.engine_view_size = res.view_size;
+        after_frame(s, tick, stats.reset, res.deferred_leaves > 0);
         stats.enters = res.enters;
         stats.leaves = res.leaves;
         stats.updates = res.updates;

@@ -168,8 +168,8 @@ class replicator {
   /// its class keep it until its leave is sent; it comes back into such a view only through
   /// another change, judged again. Returns how many. The views are the frames', so the CPU path
   /// and an engine (whose views the replicator follows from its frames) resync the same clients.
-  std::size_t resync_viewers_of(const entity_store& store, entity_id changed, std::uint32_t old_class,
-                                std::uint32_t old_sees);
+  std::size_t resync_viewers_of(const entity_store& store, const interest::interest_tracker& tracker,
+                                std::uint64_t tick, entity_id changed, std::uint32_t old_class, std::uint32_t old_sees);
   /// The same for every change of a tick at once: the clients that resync_viewers_of(change)
   /// called for each change in turn would resync, in one pass over the clients (each client's
   /// observer looked up once, not once per change), spread over `pool` (null: this thread).
@@ -183,8 +183,23 @@ class replicator {
   /// view holds whose class the new mask holds and its mask before the tick's first switch did not
   /// (an entity whose leave was not sent yet, which it sees again). A client whose next frame
   /// resets gets none. Call after the interest step and before the tick's frames (notes go first).
-  std::size_t resync_viewers_of(const entity_store& store, std::span<const class_change> changes,
+  ///
+  /// Which clients hold an entity is decided by the box test where that is exact, and by the view
+  /// elsewhere: a client built in the tick before without deferred leaves, and told of every
+  /// change before, holds only entities of its visible set then, so one whose AOI box grown by
+  /// the tracker's hysteresis (and a centimetre) misses the entity at `tick`'s positions does not
+  /// keep it (its leave goes in this tick's frame); if that frame is not built, or defers leaves,
+  /// the client's changes of `tick` are judged again by its view at the next call. Every other
+  /// client (not built in the tick before, deferred leaves, or changes not yet judged) is judged
+  /// by its view against every change since the last tick it was told of (a reset, after 128
+  /// ticks). `tick`: the tick of the frames that follow (the builds' tick).
+  std::size_t resync_viewers_of(const entity_store& store, const interest::interest_tracker& tracker,
+                                std::uint64_t tick, std::span<const class_change> changes,
                                 interest::thread_pool* pool = nullptr, std::vector<class_note_target>* notes = nullptr);
+
+  /// Whether some client has not been told of an earlier class change yet: then call
+  /// resync_viewers_of (with this tick's changes, or none) before every tick's frames.
+  [[nodiscard]] bool class_changes_pending() const { return !change_history_.empty(); }
 
   /// Builds this tick's frame for client c into `writer`; the span is valid until the writer's
   /// next build. `stats`, when given, receives what was sent and deferred.
@@ -290,7 +305,15 @@ class replicator {
     std::vector<view_meta> meta;  // parallel to view
     std::uint64_t hash = 0;
     std::uint32_t engine_view_size = 0;  // with an engine: its view's size after the last frame
+    // For resync_viewers_of: the tick of its last frame; the last tick whose class changes it has
+    // been told of all (a frame that deferred leaves does not advance it); the tick it was
+    // box-tested for.
+    std::uint64_t built_tick = 0;
+    std::uint64_t told_through = 0;
+    std::uint64_t boxed_tick = ~std::uint64_t{0};
   };
+  /// After client s's frame of `tick` (both paths): what resync_viewers_of knows of its view.
+  void after_frame(client_state& s, std::uint64_t tick, bool reset, bool deferred_leaves) const;
   /// One entity in build_many's snapshot, by dense index: what a view entry needs (the id to
   /// check the hint, the position for the tier, the update as sent) in half a cache line.
   struct alignas(32) entity_snapshot {
@@ -337,9 +360,18 @@ class replicator {
   struct changed_entity {
     entity_id id;
     std::uint32_t cls, sees, old_class, old_sees;
+    vec3 p, b;  // position and presence half extents at the tick
+    std::uint64_t tick;
   };
   std::vector<changed_entity> changed_scratch_;
-  std::vector<std::pair<entity_id, std::uint32_t>> changed_by_id_;  // (id, index into changed_scratch_), by id
+  /// The changes of earlier calls that some client may not have been told of, oldest first, and
+  /// the last tick whose changes were dropped from it (a client told only up to before: reset).
+  std::vector<changed_entity> change_history_;
+  std::uint64_t forgotten_through_ = 0;
+  std::uint64_t last_judged_tick_ = 0;  // the tick of the last resync_viewers_of with changes
+  std::vector<changed_entity> window_;  // history and this call's changes, in order
+  std::vector<std::pair<entity_id, std::uint32_t>> window_by_id_;  // (id, index into window_), by id
+  std::vector<std::uint64_t> chunk_min_told_;                      // per chunk of clients: the least told_through
   std::vector<std::size_t> resync_counts_;
   std::vector<std::vector<class_note_target>> chunk_notes_;  // resync_viewers_of's notes, per chunk of clients
   std::vector<client_id> free_clients_;

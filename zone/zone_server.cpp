@@ -535,9 +535,9 @@ void zone_server::set_visibility(net::session_id session, client& c, const net::
 }
 
 void zone_server::replicate_class_changes() {
-  if (class_changes_.empty()) return;
-  stats_.visibility_resyncs +=
-      replicator_.resync_viewers_of(world_->store(), class_changes_, pool_.get(), &class_notes_);
+  if (class_changes_.empty() && !replicator_.class_changes_pending()) return;
+  stats_.visibility_resyncs += replicator_.resync_viewers_of(world_->store(), world_->tracker(), world_->tick(),
+                                                             class_changes_, pool_.get(), &class_notes_);
   class_changes_.clear();
   // One message per noted client (the notes come by client), queued before this tick's frame: as
   // state, so that a client whose state frames are dropped gets a reset (current classes) instead.

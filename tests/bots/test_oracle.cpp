@@ -915,7 +915,7 @@ TEST_SUITE("bots.oracle") {
         if (with_resync) {
           std::vector<class_change> changes;
           for (const auto& ch : changed) changes.push_back({ch.id, ch.old_class, ch.old_sees});
-          resyncs += rep.resync_viewers_of(w.store, changes, nullptr, &noted);
+          resyncs += rep.resync_viewers_of(w.store, w.tracker, tick, changes, nullptr, &noted);
           notes += noted.size();
         }
         REQUIRE_FALSE(oracle.feed(truth.body(w.store, tick)).has_value());

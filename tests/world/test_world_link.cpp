@@ -546,7 +546,8 @@ TEST_SUITE("world.link") {
       changed = b.link->take_class_changes();
       REQUIRE_FALSE(b.world->step().has_value());
       for (const auto& ch : changed)
-        resyncs += rep.resync_viewers_of(b.world->store(), ch.entity, ch.old_class, ch.old_sees);
+        resyncs += rep.resync_viewers_of(b.world->store(), b.world->tracker(), b.world->tick(), ch.entity, ch.old_class,
+                                         ch.old_sees);
       const auto frame = rep.build(c, b.world->store(), b.world->tracker(), b.world->tick(), 0, 0, writer);
       const auto decoded = net::decode_frame(frame, [] {
         net::decoder_options d;

@@ -164,8 +164,8 @@ inline replication_coverage check_replication_equivalence(
           std::vector<class_change> changes;
           for (const auto& sw : switched) changes.push_back({sw.entity, sw.old_class, sw.old_sees});
           std::vector<replicator::class_note_target> notes_a, notes_b;
-          const std::size_t a = cpu.resync_viewers_of(store, changes, nullptr, &notes_a);
-          const std::size_t b = dev.resync_viewers_of(store, changes, nullptr, &notes_b);
+          const std::size_t a = cpu.resync_viewers_of(store, tracker, tick, changes, nullptr, &notes_a);
+          const std::size_t b = dev.resync_viewers_of(store, tracker, tick, changes, nullptr, &notes_b);
           REQUIRE(a == b);
           REQUIRE(notes_a == notes_b);
           cov.switch_resyncs += a;
