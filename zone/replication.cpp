@@ -244,8 +244,6 @@ std::size_t replicator::resync_viewers_of(const entity_store& store, const inter
         out.push_back({id, e, cls});
       }
     };
-    const std::size_t o = store.index_of(s.observer);
-    const std::uint32_t m = o != entity_store::npos ? store.sees()[o] : 0u;
     // (A frame that deferred leaves did not advance told_through: such a client is judged by its view.)
     const bool boxed = s.built_tick + 1 == tick && s.told_through + 1 >= tick;
     if (boxed) {
@@ -253,6 +251,11 @@ std::size_t replicator::resync_viewers_of(const entity_store& store, const inter
       // positions names every change it may hold and keep (for this tick only; after_frame
       // confirms it once its frame sent every leave).
       s.boxed_tick = tick;
+      if (ch.empty()) return false;  // a tick without switches (another client is behind)
+    }
+    const std::size_t o = store.index_of(s.observer);
+    const std::uint32_t m = o != entity_store::npos ? store.sees()[o] : 0u;
+    if (boxed) {
       std::uint32_t m_before = m;
       vec3 q{}, a{};
       if (o != entity_store::npos) q = store.positions()[o], a = store.aoi_half_extents()[o];
