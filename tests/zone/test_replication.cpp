@@ -899,6 +899,84 @@ TEST_SUITE("zone.replication") {
     CHECK(held_checked > 10000);
   }
 
+  TEST_CASE("a client judged by its view whose frame then deferred a leave is not box-tested in the next tick") {
+    // A client judged by its view (not built in the tick before) is told of every change up to
+    // the tick; if that tick's frame then defers a leave, its view outlives its visible set, and
+    // the next tick's box test (which skips a change whose old class the mask did not hold) is not
+    // exact for it: entity E, held with class normal, switches to a class the mask does not see
+    // (its leave deferred behind the others'), then to one it does; the client keeps E with normal.
+    for (const bool noting : {false, true}) {
+      CAPTURE(noting);
+      entity_store store(64);
+      interest::thread_pool pool{2};
+      interest::grid_finder finder{&pool};
+      interest_tracker tracker{finder, &pool, {3.0f, 0, 64}};
+      entity_desc eye;
+      eye.position = {50, 50, 5};
+      eye.aoi_half_extent = {20, 20, 20};
+      eye.sees = cb::normal | cb::team_red;
+      const entity_id o = store.create(eye);
+      std::vector<entity_id> others;
+      for (int k = 0; k < 30; ++k) {
+        entity_desc d;
+        d.position = {40.f + static_cast<float>(k % 6) * 3, 40.f + static_cast<float>(k / 6) * 3, 5};
+        others.push_back(store.create(d));
+      }
+      const entity_id e = others.back();  // the highest id: its leave is the last one written
+      replication_options opt;
+      opt.world = test_world;
+      opt.byte_budget = 330;
+      replicator rep(opt);
+      const client_id c = rep.add_client(o);
+      rep.set_class_notes(c, noting);
+      net::client_view view(test_world);
+      replication_writer writer;
+      std::vector<replicator::class_note_target> notes;
+      std::size_t deferred_leaves_at_t = 0;
+      const auto tick_of = [&](std::uint64_t tick, const std::vector<class_change>& changes, bool built) {
+        REQUIRE_FALSE(tracker.update(store.columns()).has_value());
+        (void)rep.resync_viewers_of(store, tracker, tick, changes, &pool, &notes);
+        net::class_changes_msg msg{tick, {}};
+        for (const auto& n : notes) msg.notes.push_back({n.entity, n.visibility_class});
+        if (!msg.notes.empty()) REQUIRE(view.apply(msg) == net::client_view::status::ok);
+        if (!built) return replication_stats{};
+        replication_stats st;
+        const auto f = rep.build(c, store, tracker, tick, tick * 1000, 0, writer, &st);
+        net::decoder_options d;
+        d.max_frame_bytes = 1 << 22;
+        const auto m = net::decode_frame(std::vector<std::uint8_t>(f.begin(), f.end()), d);
+        REQUIRE(m.value.has_value());
+        REQUIRE(view.apply(std::get<net::tick_update_msg>(*m.value)) == net::client_view::status::ok);
+        return st;
+      };
+      // Grow the view to every entity (a few enters a frame).
+      std::uint64_t tick = 1;
+      for (; tick < 200; ++tick) {
+        if (tick_of(tick, {}, true).deferred_enters == 0 && rep.view(c).size() == others.size()) break;
+      }
+      REQUIRE(rep.view(c).size() == others.size());
+      // Tick T-1: not built. Tick T: every other entity switches to team_blue (unseen): all leave,
+      // E's leave is deferred.
+      tick_of(++tick, {}, false);
+      std::vector<class_change> changes;
+      for (const entity_id x : others) {
+        changes.push_back({x, cb::normal, store.sees()[store.index_of(x)]});
+        REQUIRE(store.set_visibility(x, cb::team_blue, store.sees()[store.index_of(x)]));
+      }
+      deferred_leaves_at_t = tick_of(++tick, changes, true).deferred_leaves;
+      REQUIRE(deferred_leaves_at_t > 0);
+      REQUIRE(std::binary_search(rep.view(c).begin(), rep.view(c).end(), e));
+      // Tick T+1: E switches to team_red (seen): it is in the visible set again and still held.
+      changes = {{e, cb::team_blue, store.sees()[store.index_of(e)]}};
+      REQUIRE(store.set_visibility(e, cb::team_red, store.sees()[store.index_of(e)]));
+      tick_of(++tick, changes, true);
+      const auto& held = view.entities();
+      const auto it = held.find(e);
+      REQUIRE(it != held.end());
+      CHECK(it->second.state.visibility_class == cb::team_red);
+    }
+  }
+
   TEST_CASE("frames equal the reference algorithm's byte for byte (budgets, resyncs, ticks past 2^32)") {
     const std::uint64_t seed = fresh_seed();
     CAPTURE(seed);
