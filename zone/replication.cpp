@@ -203,7 +203,10 @@ void replicator::after_frame(client_state& s, std::uint64_t tick, bool reset, bo
                 ((s.boxed_tick == tick && s.told_through + 1 >= tick) || s.told_through >= last_judged_tick_))) {
     s.told_through = std::max(s.told_through, tick);
   }
-  s.built_tick = tick;
+  // Only a frame that sent every leave leaves a view within the visible set, which the next tick's
+  // box test assumes (told_through alone does not say so: a client judged by its view is told
+  // through the tick before its frame, which may then defer leaves).
+  if (!deferred_leaves) s.built_tick = tick;
 }
 
 std::size_t replicator::resync_viewers_of(const entity_store& store, const interest::interest_tracker& tracker,
@@ -244,7 +247,7 @@ std::size_t replicator::resync_viewers_of(const entity_store& store, const inter
         out.push_back({id, e, cls});
       }
     };
-    // (A frame that deferred leaves did not advance told_through: such a client is judged by its view.)
+    // (A frame that deferred leaves does not count as built: such a client is judged by its view.)
     const bool boxed = s.built_tick + 1 == tick && s.told_through + 1 >= tick;
     if (boxed) {
       // Its view is within its visible set of the tick before: the box test at this tick's

@@ -305,7 +305,7 @@ class replicator {
     std::vector<view_meta> meta;  // parallel to view
     std::uint64_t hash = 0;
     std::uint32_t engine_view_size = 0;  // with an engine: its view's size after the last frame
-    // For resync_viewers_of: the tick of its last frame; the last tick whose class changes it has
+    // For resync_viewers_of: the tick of its last frame that sent every leave; the last tick whose class changes it has
     // been told of all (a frame that deferred leaves does not advance it); the tick it was
     // box-tested for.
     std::uint64_t built_tick = 0;
