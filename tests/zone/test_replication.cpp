@@ -977,6 +977,63 @@ TEST_SUITE("zone.replication") {
     }
   }
 
+  TEST_CASE("a client whose observer changed (set_observer, another mask) is judged by its view in the next tick") {
+    // Its view was built with the old observer's mask: the box test's mask (the new observer's)
+    // is not the one its view was built with, and it skips a change whose old class only the old
+    // mask saw: entity E, held with team_red, switches to team_blue (the new mask's) and is kept.
+    for (const bool noting : {false, true}) {
+      CAPTURE(noting);
+      entity_store store(64);
+      interest::thread_pool pool{2};
+      interest::grid_finder finder{&pool};
+      interest_tracker tracker{finder, &pool, {3.0f, 0, 64}};
+      entity_desc eye;
+      eye.position = {50, 50, 5};
+      eye.aoi_half_extent = {20, 20, 20};
+      eye.sees = cb::normal | cb::team_red;
+      const entity_id o1 = store.create(eye);
+      eye.sees = cb::normal | cb::team_blue;
+      eye.position = {52, 50, 5};
+      const entity_id o2 = store.create(eye);
+      entity_desc d;
+      d.position = {55, 55, 5};
+      d.visibility_class = cb::team_red;
+      const entity_id e = store.create(d);
+      replication_options opt;
+      opt.world = test_world;
+      opt.byte_budget = 1 << 16;
+      replicator rep(opt);
+      const client_id c = rep.add_client(o1);
+      rep.set_class_notes(c, noting);
+      net::client_view view(test_world);
+      replication_writer writer;
+      std::vector<replicator::class_note_target> notes;
+      const auto tick_of = [&](std::uint64_t tick, const std::vector<class_change>& changes) {
+        REQUIRE_FALSE(tracker.update(store.columns()).has_value());
+        (void)rep.resync_viewers_of(store, tracker, tick, changes, &pool, &notes);
+        net::class_changes_msg msg{tick, {}};
+        for (const auto& n : notes) msg.notes.push_back({n.entity, n.visibility_class});
+        if (!msg.notes.empty()) REQUIRE(view.apply(msg) == net::client_view::status::ok);
+        const auto f = rep.build(c, store, tracker, tick, tick * 1000, 0, writer);
+        net::decoder_options dec;
+        dec.max_frame_bytes = 1 << 22;
+        const auto m = net::decode_frame(std::vector<std::uint8_t>(f.begin(), f.end()), dec);
+        REQUIRE(m.value.has_value());
+        REQUIRE(view.apply(std::get<net::tick_update_msg>(*m.value)) == net::client_view::status::ok);
+      };
+      tick_of(1, {});
+      tick_of(2, {});
+      REQUIRE(std::binary_search(rep.view(c).begin(), rep.view(c).end(), e));
+      rep.set_observer(c, o2);  // a respawn, with another mask
+      const std::vector<class_change> changes{{e, cb::team_red, store.sees()[store.index_of(e)]}};
+      REQUIRE(store.set_visibility(e, cb::team_blue, store.sees()[store.index_of(e)]));
+      tick_of(3, changes);
+      const auto it = view.entities().find(e);
+      REQUIRE(it != view.entities().end());
+      CHECK(it->second.state.visibility_class == cb::team_blue);
+    }
+  }
+
   TEST_CASE("frames equal the reference algorithm's byte for byte (budgets, resyncs, ticks past 2^32)") {
     const std::uint64_t seed = fresh_seed();
     CAPTURE(seed);
