@@ -184,7 +184,13 @@ void replicator::remove_client(client_id c) {
   free_clients_.push_back(c);
 }
 
-void replicator::set_observer(client_id c, entity_id observer) { clients_[c].observer = observer; }
+void replicator::set_observer(client_id c, entity_id observer) {
+  client_state& s = clients_[c];
+  s.observer = observer;
+  // Its view was built with the old observer's mask: the box test (which reads the new one) is
+  // not exact for it until a frame has sent every leave with the new one; judged by its view.
+  s.built_tick = ~std::uint64_t{0};
+}
 
 void replicator::resync(client_id c) { clients_[c].reset_pending = true; }
 
@@ -248,7 +254,8 @@ std::size_t replicator::resync_viewers_of(const entity_store& store, const inter
       }
     };
     // (A frame that deferred leaves does not count as built: such a client is judged by its view.)
-    const bool boxed = s.built_tick + 1 == tick && s.told_through + 1 >= tick;
+    // (No frame before tick 0: set_observer's ~0 never reads as built.)
+    const bool boxed = tick != 0 && s.built_tick + 1 == tick && s.told_through + 1 >= tick;
     if (boxed) {
       // Its view is within its visible set of the tick before: the box test at this tick's
       // positions names every change it may hold and keep (for this tick only; after_frame

@@ -143,7 +143,8 @@ class replicator {
   /// A client that sees through `observer` (its entity). Ids are reused after remove_client.
   [[nodiscard]] client_id add_client(entity_id observer);
   void remove_client(client_id c);
-  /// The client's entity changed (respawn); its view is kept and converges as usual.
+  /// The client's entity changed (respawn); its view is kept and converges as usual (the next
+  /// resync_viewers_of judges it by its view: it was built with the old entity's mask).
   void set_observer(client_id c, entity_id observer);
   /// The client lost frames: the next frame resets its view and starts it again.
   void resync(client_id c);
