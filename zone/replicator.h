@@ -306,9 +306,9 @@ class replicator {
     std::vector<view_meta> meta;  // parallel to view
     std::uint64_t hash = 0;
     std::uint32_t engine_view_size = 0;  // with an engine: its view's size after the last frame
-    // For resync_viewers_of: the tick of its last frame that sent every leave; the last tick whose class changes it has
-    // been told of all (a frame that deferred leaves does not advance it); the tick it was
-    // box-tested for.
+    // For resync_viewers_of: the tick of its last frame that sent every leave; the last tick
+    // whose class changes it has been told of all (a frame that deferred leaves does not advance
+    // it); the tick it was box-tested for.
     std::uint64_t built_tick = 0;
     std::uint64_t told_through = 0;
     std::uint64_t boxed_tick = ~std::uint64_t{0};
