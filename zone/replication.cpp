@@ -677,19 +677,13 @@ void replicator::prestage(const entity_store& store, std::uint64_t tick, interes
   }
 }
 
-void replicator::follow_view(client_state& s, const std::uint8_t* frame, const interest::replication_result& res) {
+void replicator::follow_view(client_state& s, std::vector<entity_id>& enters, const std::uint8_t* frame,
+                             bool any_leaves) {
   // The client's view as the engine moved it on, from the frame's leaves and enters (ids; the
   // engine keeps the views themselves on its device): what resync_viewers_of reads.
-  thread_local std::vector<entity_id> leaves, enters, next;
+  thread_local std::vector<entity_id> leaves, next;
   leaves.clear();
-  enters.clear();
-  const std::size_t enter_step = net::canonical_tick_update::enter_table + net::canonical_tick_update::name_bytes(0);
-  for (std::uint32_t e = 0; e < res.enters; ++e) {
-    std::uint32_t id = 0;
-    std::memcpy(&id, frame + res.enters_at + e * enter_step + 4, 4);
-    enters.push_back(id);
-  }
-  if (res.leaves > 0) {
+  if (any_leaves) {
     const auto* env = net::wire::GetSizePrefixedenvelope(frame);
     const auto* u = env != nullptr ? env->message_as_tick_update() : nullptr;
     if (u != nullptr && u->leaves() != nullptr) leaves.assign(u->leaves()->begin(), u->leaves()->end());
@@ -875,10 +869,13 @@ void replicator::build_on_engine(std::span<const replication_request> requests, 
         }
         std::uint8_t* const frame = out.records + res.record_off;
         if (stats.reset) s.view.clear();
+        thread_local std::vector<entity_id> entered;  // for follow_view
+        entered.clear();
         for (std::uint32_t e = 0; e < res.enters; ++e) {
           std::uint8_t* const table = frame + res.enters_at + e * enter_step;
           std::uint32_t id = 0;
           std::memcpy(&id, table + 4, 4);
+          entered.push_back(id);
           const std::size_t d = store.index_of(id);  // live: the engine found it in this tick's staging
           if (d == entity_store::npos) continue;
           put32(table + 8, classes[d]);
@@ -888,7 +885,7 @@ void replicator::build_on_engine(std::span<const replication_request> requests, 
           std::memcpy(table + 44, &half.z, 4);
           put32(table + 52, static_cast<std::uint32_t>(static_cast<std::uint8_t>(kinds[d])));
         }
-        if (res.enters > 0 || res.leaves > 0) follow_view(s, frame, res);
+        if (!entered.empty() || res.leaves > 0) follow_view(s, entered, frame, res.leaves > 0);
         s.hash = res.hash;
         s.engine_view_size = res.view_size;
         after_frame(s, tick, stats.reset, res.deferred_leaves > 0);

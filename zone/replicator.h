@@ -337,8 +337,9 @@ class replicator {
                                            std::uint64_t server_time_us, std::uint32_t last_input_sequence,
                                            replication_writer& writer, replication_stats* stats,
                                            const frame_room* out_room = nullptr, std::size_t k = 0);
-  /// Moves s.view on by an engine's frame (its leaves and enters).
-  static void follow_view(client_state& s, const std::uint8_t* frame, const interest::replication_result& res);
+  /// Moves s.view on by an engine's frame: its enters (the ids, in any order; sorted here) and,
+  /// when `any_leaves`, the leaves read from the frame.
+  static void follow_view(client_state& s, std::vector<entity_id>& enters, const std::uint8_t* frame, bool any_leaves);
   /// Starts loading what building client c will read first (its state and lists).
   void prefetch_client(client_id c) const;
   /// build_many on the engine (throws what the engine throws, before any frame reaches the sink).
