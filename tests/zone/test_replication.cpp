@@ -71,6 +71,25 @@ struct sim_client {
   }
 };
 
+/// Client c's class notes of the tick (its run of `notes`, which come by client, from `at`; `at`
+/// moves past it), applied to its view as a client applies them, before the tick's frame.
+void apply_notes(net::client_view& view, client_id c, std::uint64_t tick,
+                 std::span<const replicator::class_note_target> notes, std::size_t& at) {
+  net::class_changes_msg msg{tick, {}};
+  for (; at < notes.size() && notes[at].client == c; ++at)
+    msg.notes.push_back({notes[at].entity, notes[at].visibility_class});
+  if (!msg.notes.empty()) REQUIRE(view.apply(msg) == net::client_view::status::ok);
+}
+
+/// A tick's frame applied to the client's view (it must decode and be consistent).
+void apply_frame(net::client_view& view, std::span<const std::uint8_t> frame) {
+  net::decoder_options o;
+  o.max_frame_bytes = 1 << 22;
+  const auto d = net::decode_frame(frame, o);
+  REQUIRE(d.value.has_value());
+  REQUIRE(view.apply(std::get<net::tick_update_msg>(*d.value)) == net::client_view::status::ok);
+}
+
 /// A small moving world.
 struct small_world {
   std::mt19937_64 rng;
@@ -677,10 +696,7 @@ TEST_SUITE("zone.replication") {
       // it holds then has the store's class, and the frames are the reference replicator's.
       std::size_t at = 0;
       for (const client_id c : clients) {
-        net::class_changes_msg msg{tick, {}};
-        for (; at < notes.size() && notes[at].client == c; ++at)
-          msg.notes.push_back({notes[at].entity, notes[at].visibility_class});
-        if (!msg.notes.empty()) CHECK(views[c].apply(msg) == net::client_view::status::ok);
+        apply_notes(views[c], c, tick, notes, at);
         replication_stats a, b;
         const auto fa = rep.build(c, w.store, tracker, tick, tick * 1000, 0, writer, &a);
         const std::vector<std::uint8_t> frame(fa.begin(), fa.end());
@@ -690,11 +706,7 @@ TEST_SUITE("zone.replication") {
           CHECK_FALSE((c % 2 == 1 && a.reset));  // a noting client is never reset
           resets += a.reset ? 1 : 0;
         }
-        net::decoder_options o;
-        o.max_frame_bytes = 1 << 22;
-        const auto d = net::decode_frame(frame, o);
-        REQUIRE(d.value.has_value());
-        REQUIRE(views[c].apply(std::get<net::tick_update_msg>(*d.value)) == net::client_view::status::ok);
+        apply_frame(views[c], frame);
         for (const auto& [id, e] : views[c].entities()) {
           const std::size_t x = w.store.index_of(id);
           REQUIRE(x != entity_store::npos);
@@ -768,19 +780,11 @@ TEST_SUITE("zone.replication") {
         (void)rep.resync_viewers_of(w.store, tracker, tick, changes, &pool, &notes);
         std::size_t at = 0;
         for (const client_id c : clients) {
-          net::class_changes_msg msg{tick, {}};
-          for (; at < notes.size() && notes[at].client == c; ++at)
-            msg.notes.push_back({notes[at].entity, notes[at].visibility_class});
-          if (!msg.notes.empty()) REQUIRE(views[c].apply(msg) == net::client_view::status::ok);
+          apply_notes(views[c], c, tick, notes, at);
           // From the third tick on, about half the clients are not built in a tick.
           const bool built = tick < 3 || rng() % 2 == 0;
           if (built) {
-            const auto f = rep.build(c, w.store, tracker, tick, tick * 1000, 0, writer);
-            net::decoder_options d;
-            d.max_frame_bytes = 1 << 22;
-            const auto m = net::decode_frame(std::vector<std::uint8_t>(f.begin(), f.end()), d);
-            REQUIRE(m.value.has_value());
-            REQUIRE(views[c].apply(std::get<net::tick_update_msg>(*m.value)) == net::client_view::status::ok);
+            apply_frame(views[c], rep.build(c, w.store, tracker, tick, tick * 1000, 0, writer));
           } else {
             ++skipped;
           }
@@ -865,20 +869,11 @@ TEST_SUITE("zone.replication") {
         (void)rep.resync_viewers_of(w.store, tracker, tick, changes, &pool, &notes);
         std::size_t at = 0;
         for (const client_id c : clients) {
-          net::class_changes_msg msg{tick, {}};
-          for (; at < notes.size() && notes[at].client == c; ++at) {
-            msg.notes.push_back({notes[at].entity, notes[at].visibility_class});
-          }
-          if (!msg.notes.empty()) REQUIRE(views[c].apply(msg) == net::client_view::status::ok);
+          apply_notes(views[c], c, tick, notes, at);
           if (tick >= 70 && rng() % 3 == 0) continue;  // not built this tick
           replication_stats st;
-          const auto f = rep.build(c, w.store, tracker, tick, tick * 1000, 0, writer, &st);
+          apply_frame(views[c], rep.build(c, w.store, tracker, tick, tick * 1000, 0, writer, &st));
           if (tick >= 75) deferred_leaves += st.deferred_leaves;
-          net::decoder_options d;
-          d.max_frame_bytes = 1 << 22;
-          const auto m = net::decode_frame(std::vector<std::uint8_t>(f.begin(), f.end()), d);
-          REQUIRE(m.value.has_value());
-          REQUIRE(views[c].apply(std::get<net::tick_update_msg>(*m.value)) == net::client_view::status::ok);
           const std::size_t row = tracker.row_of(rep.observer(c));
           const auto visible = row != entity_store::npos ? tracker.visible(row) : std::span<const entity_id>{};
           for (const auto& [id, e] : views[c].entities()) {
@@ -936,17 +931,12 @@ TEST_SUITE("zone.replication") {
       const auto tick_of = [&](std::uint64_t tick, const std::vector<class_change>& changes, bool built) {
         REQUIRE_FALSE(tracker.update(store.columns()).has_value());
         (void)rep.resync_viewers_of(store, tracker, tick, changes, &pool, &notes);
-        net::class_changes_msg msg{tick, {}};
-        for (const auto& n : notes) msg.notes.push_back({n.entity, n.visibility_class});
-        if (!msg.notes.empty()) REQUIRE(view.apply(msg) == net::client_view::status::ok);
+        std::size_t at = 0;
+        apply_notes(view, c, tick, notes, at);
+        REQUIRE(at == notes.size());  // every note its
         if (!built) return replication_stats{};
         replication_stats st;
-        const auto f = rep.build(c, store, tracker, tick, tick * 1000, 0, writer, &st);
-        net::decoder_options d;
-        d.max_frame_bytes = 1 << 22;
-        const auto m = net::decode_frame(std::vector<std::uint8_t>(f.begin(), f.end()), d);
-        REQUIRE(m.value.has_value());
-        REQUIRE(view.apply(std::get<net::tick_update_msg>(*m.value)) == net::client_view::status::ok);
+        apply_frame(view, rep.build(c, store, tracker, tick, tick * 1000, 0, writer, &st));
         return st;
       };
       // Grow the view to every entity (a few enters a frame).
@@ -1011,15 +1001,10 @@ TEST_SUITE("zone.replication") {
       const auto tick_of = [&](std::uint64_t tick, const std::vector<class_change>& changes) {
         REQUIRE_FALSE(tracker.update(store.columns()).has_value());
         (void)rep.resync_viewers_of(store, tracker, tick, changes, &pool, &notes);
-        net::class_changes_msg msg{tick, {}};
-        for (const auto& n : notes) msg.notes.push_back({n.entity, n.visibility_class});
-        if (!msg.notes.empty()) REQUIRE(view.apply(msg) == net::client_view::status::ok);
-        const auto f = rep.build(c, store, tracker, tick, tick * 1000, 0, writer);
-        net::decoder_options dec;
-        dec.max_frame_bytes = 1 << 22;
-        const auto m = net::decode_frame(std::vector<std::uint8_t>(f.begin(), f.end()), dec);
-        REQUIRE(m.value.has_value());
-        REQUIRE(view.apply(std::get<net::tick_update_msg>(*m.value)) == net::client_view::status::ok);
+        std::size_t at = 0;
+        apply_notes(view, c, tick, notes, at);
+        REQUIRE(at == notes.size());  // every note its
+        apply_frame(view, rep.build(c, store, tracker, tick, tick * 1000, 0, writer));
       };
       tick_of(1, {});
       tick_of(2, {});
