@@ -266,16 +266,18 @@ std::size_t replicator::resync_viewers_of(const entity_store& store, const inter
     const std::size_t o = store.index_of(s.observer);
     const std::uint32_t m = o != entity_store::npos ? store.sees()[o] : 0u;
     if (boxed) {
+      // Its own switches of the tick: one that changed its mask resyncs a client without notes;
+      // the first one's old mask is the one its view was built with (a later one's old mask is
+      // one in between).
       std::uint32_t m_before = m;
+      bool first_own = true;
+      for (const changed_entity& c : ch) {
+        if (s.observer != c.id) continue;
+        if (!noting && c.sees != c.old_sees) return true;
+        if (first_own) m_before = c.old_sees, first_own = false;
+      }
       vec3 q{}, a{};
       if (o != entity_store::npos) q = store.positions()[o], a = store.aoi_half_extents()[o];
-      for (const changed_entity& c : ch) {
-        if (s.observer == c.id && c.sees != c.old_sees) {
-          if (!noting) return true;
-          m_before = c.old_sees;  // the mask its view was built with: before its first switch
-          break;
-        }
-      }
       for (const changed_entity& c : ch) {
         if (s.observer == c.id || c.cls == c.old_class || o == entity_store::npos) continue;
         if ((m & c.cls) == 0 || (m_before & c.old_class) == 0) continue;
@@ -290,15 +292,14 @@ std::size_t replicator::resync_viewers_of(const entity_store& store, const inter
     }
     // By its view: every change since it was last told of all. Too far back: start over.
     if (s.told_through < forgotten_through_) return true;
-    const changed_entity* own = nullptr;  // its own first switch of the mask among them
+    // Its own switches among them, as above: the first one's old mask is the one its view was
+    // built with.
+    const changed_entity* own = nullptr;
     for (std::size_t k = 0; k < window_.size(); ++k) {
       const changed_entity& c = window_[k];
-      if (c.tick <= s.told_through && k < first_now) continue;
-      if (s.observer == c.id && c.sees != c.old_sees) {
-        if (!noting) return true;
-        own = &c;
-        break;
-      }
+      if ((c.tick <= s.told_through && k < first_now) || s.observer != c.id) continue;
+      if (!noting && c.sees != c.old_sees) return true;
+      if (own == nullptr) own = &c;
     }
     thread_local std::vector<std::uint32_t> held;
     held.clear();

@@ -1019,6 +1019,56 @@ TEST_SUITE("zone.replication") {
     }
   }
 
+  TEST_CASE(
+      "a noting client whose mask switched away and back in one tick is box-tested with the mask its view was built with") {
+    // Its first switch's old mask is the one its view was built with; the second's (the mask in
+    // between) is not: judged with that one, a held entity leaving a class only the first mask saw
+    // would get no note.
+    entity_store store(64);
+    interest::thread_pool pool{2};
+    interest::grid_finder finder{&pool};
+    interest_tracker tracker{finder, &pool, {3.0f, 0, 64}};
+    entity_desc eye;
+    eye.position = {50, 50, 5};
+    eye.aoi_half_extent = {20, 20, 20};
+    eye.sees = cb::normal | cb::team_blue;
+    const entity_id o = store.create(eye);
+    entity_desc d;
+    d.position = {55, 55, 5};
+    d.visibility_class = cb::team_blue;
+    const entity_id e = store.create(d);
+    replication_options opt;
+    opt.world = test_world;
+    replicator rep(opt);
+    const client_id c = rep.add_client(o);
+    rep.set_class_notes(c, true);
+    net::client_view view(test_world);
+    replication_writer writer;
+    std::vector<replicator::class_note_target> notes;
+    const auto tick_of = [&](std::uint64_t tick, const std::vector<class_change>& changes) {
+      REQUIRE_FALSE(tracker.update(store.columns()).has_value());
+      (void)rep.resync_viewers_of(store, tracker, tick, changes, &pool, &notes);
+      std::size_t at = 0;
+      apply_notes(view, c, tick, notes, at);
+      REQUIRE(at == notes.size());  // every note its
+      apply_frame(view, rep.build(c, store, tracker, tick, tick * 1000, 0, writer));
+    };
+    tick_of(1, {});
+    tick_of(2, {});  // box-tested from here on
+    REQUIRE(std::binary_search(rep.view(c).begin(), rep.view(c).end(), e));
+    std::vector<class_change> changes;
+    changes.push_back({o, cb::normal, store.sees()[store.index_of(o)]});
+    REQUIRE(store.set_visibility(o, cb::normal, cb::normal));  // away from team_blue ...
+    changes.push_back({o, cb::normal, store.sees()[store.index_of(o)]});
+    REQUIRE(store.set_visibility(o, cb::normal, cb::normal | cb::team_blue));  // ... and back
+    changes.push_back({e, cb::team_blue, store.sees()[store.index_of(e)]});
+    REQUIRE(store.set_visibility(e, cb::normal, store.sees()[store.index_of(e)]));
+    tick_of(3, changes);
+    const auto it = view.entities().find(e);
+    REQUIRE(it != view.entities().end());
+    CHECK(it->second.state.visibility_class == cb::normal);
+  }
+
   TEST_CASE("frames equal the reference algorithm's byte for byte (budgets, resyncs, ticks past 2^32)") {
     const std::uint64_t seed = fresh_seed();
     CAPTURE(seed);
