@@ -246,12 +246,19 @@ std::size_t replicator::resync_viewers_of(const entity_store& store, const inter
     if (!s.active || s.reset_pending) return false;
     const bool noting = s.class_notes && notes != nullptr;
     const std::size_t first_note = out.size();
-    const auto note = [&](entity_id e, std::uint32_t cls) {
-      // An entity switched twice: one note (the class is the store's, the same for both).
+    const auto note = [&](entity_id e, std::uint32_t cls) { out.push_back({id, e, cls}); };
+    // An entity named twice (switched twice, or held and seen anew on its own switch): one note,
+    // the client's notes in entity order (the class is the store's, the same for both). Sorted
+    // once rather than searched at each note: a client's own switch may note its whole view.
+    const auto one_note_each = [&] {
       const auto begin = out.begin() + static_cast<std::ptrdiff_t>(first_note);
-      if (std::none_of(begin, out.end(), [&](const class_note_target& n) { return n.entity == e; })) {
-        out.push_back({id, e, cls});
-      }
+      if (out.end() - begin < 2) return;
+      std::sort(begin, out.end(),
+                [](const class_note_target& a, const class_note_target& b) { return a.entity < b.entity; });
+      out.erase(
+          std::unique(begin, out.end(),
+                      [](const class_note_target& a, const class_note_target& b) { return a.entity == b.entity; }),
+          out.end());
     };
     // (A frame that deferred leaves does not count as built: such a client is judged by its view.)
     // (No frame before tick 0: set_observer's ~0 never reads as built.)
@@ -288,6 +295,7 @@ std::size_t replicator::resync_viewers_of(const entity_store& store, const inter
         if (!noting) return true;
         note(c.id, c.cls);
       }
+      one_note_each();
       return false;
     }
     // By its view: every change since it was last told of all. Too far back: start over.
@@ -337,6 +345,7 @@ std::size_t replicator::resync_viewers_of(const entity_store& store, const inter
         if ((m & classes[x]) != 0 && (own->old_sees & classes[x]) == 0) note(e, classes[x]);
       }
     }
+    one_note_each();
     s.told_through = tick;
     return false;
   };
