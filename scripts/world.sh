@@ -16,7 +16,7 @@ Usage: scripts/world.sh [options]
   --npcs N         NPCs per zone (default 5000)
   --duration S     seconds the swarms run (default 30)
   --world-size M   world side in metres (default 1024)
-  --bosses N       bosses per zone (default 0: a boss's 400 m AOI widens the ghost band to ~470 m)
+  --bosses N       bosses per zone (default 0: a boss's 400 m AOI widens the ghost band to ~453 m)
   --kill           SIGKILL zone 1 at a third of the run and restart it (fault test)
   --oracle         zones publish their ground truth (zone-server --oracle) and every swarm checks each
                    bot against the truth of the zone it is in (ghosts included), following it across

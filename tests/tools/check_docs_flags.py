@@ -18,6 +18,9 @@ Usage: check_docs_flags.py REPO_ROOT NAME=EXECUTABLE...
    flags in the first cell with their defaults comma-separated in the second) is the default
    --help prints (`--flag arg (=default)`, Boost.Program_options' form; numbers compared as
    numbers). Options whose --help prints no default are not checked.
+A manual is a file, or one section of it (`path#Heading`: the heading's lines up to the next
+heading of its level or above); a whole file's option tables leave out the sections other
+programs claim as their manuals.
 Exits 1 naming each flag --help lacks, with where the documentation gives it, each option
 its manual lacks and each default that differs.
 """
@@ -43,6 +46,7 @@ MANUALS = {
     "interest-pairs": ["docs/embedding.md"],
     "world-check": ["docs/world.md"],
     "zone-probe": ["docs/operating.md"],
+    "bench-oracle": ["docs/bots.md#What it costs"],
 }
 # Every program of the tree, so that a command line given to one ends where another begins.
 PROGRAMS = set(MANUALS)
@@ -85,20 +89,43 @@ def same_default(documented, shown):
         return documented == shown
 
 
-def table_defaults(path):
+def manual_lines(root, entry):
+    """(line number, line) of a manual: a whole file, or `path#Heading`'s section of it."""
+    path, _, heading = entry.partition("#")
+    with open(os.path.join(root, path), encoding="utf-8") as f:
+        lines = list(enumerate(f, 1))
+    if not heading:
+        return lines
+    level, fenced, out = None, False, []
+    for number, line in lines:
+        fenced ^= line.startswith("```")
+        m = None if fenced else re.match(r"(#+)\s+(.*?)\s*$", line)
+        if level is None:
+            if m and m.group(2) == heading:
+                level = len(m.group(1))
+                out.append((number, line))
+        elif m and len(m.group(1)) <= level:
+            break
+        else:
+            out.append((number, line))
+    if level is None:
+        sys.exit(f"{path}: no heading '{heading}' (MANUALS)")
+    return out
+
+
+def table_defaults(lines):
     """(line number, flag, documented default) from a manual's option tables."""
-    with open(path, encoding="utf-8") as f:
-        for number, line in enumerate(f, 1):
-            cells = [c.strip() for c in line.strip().strip("|").split("|")]
-            if not line.startswith("|") or len(cells) < 3:
-                continue
-            names = re.findall(r"`(--[a-z][a-z0-9-]*)[^`]*`", cells[0])
-            if not names or re.sub(r"`[^`]*`|[,\s]", "", cells[0]):
-                continue  # not a row of options
-            values = [cells[1]] if len(names) == 1 else [v.strip() for v in cells[1].split(", ")]
-            if len(values) == len(names):
-                for name, value in zip(names, values):
-                    yield number, name, value
+    for number, line in lines:
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if not line.startswith("|") or len(cells) < 3:
+            continue
+        names = re.findall(r"`(--[a-z][a-z0-9-]*)[^`]*`", cells[0])
+        if not names or re.sub(r"`[^`]*`|[,\s]", "", cells[0]):
+            continue  # not a row of options
+        values = [cells[1]] if len(names) == 1 else [v.strip() for v in cells[1].split(", ")]
+        if len(values) == len(names):
+            for name, value in zip(names, values):
+                yield number, name, value
 
 
 def command_lines(path):
@@ -155,8 +182,7 @@ def main():
     for name, text in helps.items():
         manual_text = ""
         for rel in MANUALS[name]:
-            with open(os.path.join(root, rel), encoding="utf-8") as f:
-                manual_text += f.read()
+            manual_text += "".join(line for _, line in manual_lines(root, rel))
         documented = set(FLAG.findall(manual_text))
         for option in sorted(defined_options(text)):
             defined += 1
@@ -168,7 +194,12 @@ def main():
     for name, text in helps.items():
         shown = help_defaults(text)
         for rel in MANUALS[name]:
-            for number, flag, value in table_defaults(os.path.join(root, rel)):
+            lines = manual_lines(root, rel)
+            if "#" not in rel:  # leave out the sections other programs claim in this file
+                claimed = {n for other, entries in MANUALS.items() if other != name
+                           for e in entries if e.startswith(rel + "#") for n, _ in manual_lines(root, e)}
+                lines = [(n, line) for n, line in lines if n not in claimed]
+            for number, flag, value in table_defaults(lines):
                 if flag in shown:
                     compared += 1
                     if not same_default(value, shown[flag]):
