@@ -1,5 +1,5 @@
-// A session's outbound queue and its drop policy (private to net/; server.cpp uses it on the
-// session's strand, tests use it without sockets). Not thread-safe: one owner.
+// A session's outbound queue and its drop policy (private to net/; server.cpp uses it under the
+// session's write lock, tests use it without sockets). Not thread-safe: one owner at a time.
 //
 // State frames are deltas: each one moves the client's view on from the view the previous state
 // frame left. So once one is dropped, every later delta is useless to the client until a frame

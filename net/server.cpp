@@ -328,7 +328,7 @@ struct server::impl {
   std::vector<std::unique_ptr<io_lane>> lanes;
   std::size_t next_lane_index = 0;
   tcp::acceptor acceptor;  // on lane 0
-  asio::steady_timer accept_retry;  // on the acceptor's strand: a pause after an accept error
+  asio::steady_timer accept_retry;  // on the acceptor's thread (lane 0): a pause after an accept error
   std::uint64_t file_limit = 0;     // the open-file limit after start() raised it
   steady::time_point last_accept_warning{};
   bool running = false;
@@ -497,7 +497,7 @@ class session : public std::enable_shared_from_this<session> {
     return ::ioctl(fd_, FIONREAD, &n) == 0 ? n : 0;
   }
 
-  /// Starts reading and the hello deadline (on the session's strand).
+  /// Starts reading and the hello deadline (on the session's I/O thread).
   void start() {
     asio::post(socket_.get_executor(), [self = shared_from_this()] {
       self->arm_idle(self->srv_.opt.hello_timeout);
@@ -1528,7 +1528,7 @@ void server::stop() {
   for (auto& s : open) s->close("server stopping");
   open.clear();
   for (auto& lane : m.lanes) lane->work.reset();
-  // Sessions close on their strands; give them a moment, then stop whatever is left.
+  // Sessions close on their I/O threads; give them a moment, then stop whatever is left.
   const auto deadline = steady::now() + std::chrono::seconds(2);
   for (;;) {
     {

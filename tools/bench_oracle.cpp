@@ -131,6 +131,10 @@ int main(int argc, char** argv) {
   if (scan == "full") o.scan = zone::bots::oracle::scan_mode::full;
   if (scan == "x") o.scan = zone::bots::oracle::scan_mode::x_window;
   if (scan == "grid") o.scan = zone::bots::oracle::scan_mode::grid;
+  if (scan != "default" && scan != "full" && scan != "x" && scan != "grid") {
+    std::fprintf(stderr, "bench-oracle: --scan must be grid, x or full, not '%s'\n", scan.c_str());
+    return 2;
+  }
   o.sample = sample;
   o.grid_cell = cell;
 
