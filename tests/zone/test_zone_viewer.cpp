@@ -260,6 +260,42 @@ TEST_SUITE("zone.viewer") {
     CHECK(seen[2] > 20);
   }
 
+  TEST_CASE(
+      "the copier's thread fills a snapshot's columns as the tick would, then publishes it; wait() returns once") {
+    const std::uint64_t seed = zone::test::fresh_seed();
+    CAPTURE(seed);
+    std::mt19937 rng(static_cast<std::uint32_t>(seed));
+    net::viewer_server viewer;
+    viewer_copier copier;
+    CHECK_FALSE(copier.wait().has_value());  // nothing started
+    std::uint64_t published = viewer.stats().snapshots_published;
+    for (const std::size_t n : {std::size_t{0}, std::size_t{1}, std::size_t{1001}, std::size_t{100003}}) {
+      CAPTURE(n);
+      entity_store store(n + 8);
+      add_random_entities(store, n, rng);
+      std::uniform_real_distribution<float> step(-2.0f, 2.0f);
+      for (int t = 0; t < 7; ++t) {
+        CAPTURE(t);
+        for (vec3& p : store.positions()) p = {p.x + step(rng), p.y + step(rng), p.z + step(rng)};
+        if (t == 3 && n > 0) (void)store.destroy(store.ids()[rng() % n]), add_random_entities(store, 1, rng);
+        net::viewer_snapshot& s = viewer.next_snapshot();
+        // What the tick's own fill would give this buffer: the reference.
+        net::viewer_snapshot want = s;
+        const viewer_columns_fill expect = fill_viewer_columns(store, want, nullptr);
+        copier.start(store, s, viewer, 0);
+        const auto done = copier.wait();
+        REQUIRE(done.has_value());
+        CHECK(static_cast<int>(done->what) == static_cast<int>(expect));
+        CHECK(done->copy_ms >= 0);
+        CHECK_FALSE(copier.wait().has_value());  // once
+        CHECK(viewer.stats().snapshots_published == ++published);
+        CHECK(&viewer.next_snapshot() != &s);  // published: the producer moved on to another buffer
+        CHECK(same_columns(s, want));
+        check_columns_are_store(store, s);
+      }
+    }
+  }
+
   TEST_CASE("config: the viewer needs the HTTP endpoint; rates and caps are checked") {
     auto c = viewer_config();
     c.metrics_enabled = false;
@@ -378,7 +414,14 @@ TEST_SUITE("zone.viewer") {
       [[nodiscard]] bool owns(entity_id) const override { return true; }
       void forward_input(entity_id, const vec3&, std::uint32_t) override {}
     } ext;
-    zone_server server(viewer_config());
+    // The columns copied in the tick (--viewer-fill wait) or on the copier's thread after it.
+    std::string fill;
+    SUBCASE("filled in the tick") { fill = "wait"; }
+    SUBCASE("filled after the tick") { fill = "after"; }
+    CAPTURE(fill);
+    auto cfg = viewer_config();
+    cfg.viewer_fill = fill;
+    zone_server server(cfg);
     server.set_extension(&ext);
     REQUIRE_FALSE(server.start().has_value());
     ws_client page(server.metrics_port());
@@ -389,6 +432,7 @@ TEST_SUITE("zone.viewer") {
     int checked = 0;
     for (int round = 0; round < 12; ++round) {
       server.tick_once();
+      server.viewer_flush();
       const auto tick = static_cast<std::uint32_t>(server.world().tick());
       std::optional<std::vector<std::uint8_t>> f;
       for (int k = 0; k < 200 && !f; ++k) {
@@ -423,6 +467,11 @@ TEST_SUITE("zone.viewer") {
 
   TEST_CASE("with clients (frames every tick): each snapshot is its tick's store and tracker, filled in the engines' waits or after") {
     const std::string csv_path = "test_zone_viewer_ticks.csv";
+    // The columns copied in the tick (--viewer-fill wait) or on the copier's thread after it.
+    std::string fill;
+    SUBCASE("columns in the tick") { fill = "wait"; }
+    SUBCASE("columns after the tick") { fill = "after"; }
+    CAPTURE(fill);
     std::uint64_t first_tick = 0, last_tick = 0;  // the ticks with the page open
     {
       // On the GPU interest engine the snapshot's columns are copied while its device works (inside
@@ -435,6 +484,7 @@ TEST_SUITE("zone.viewer") {
       cfg.viewer_hz = 10;
       cfg.tick_csv = csv_path;
       cfg.viewer_copy_chunk = 37;  // the columns copied in a dozen tasks over the pool where a device wait allows it
+      cfg.viewer_fill = fill;
       zone_server server(cfg);
       REQUIRE_FALSE(server.start().has_value());
       constexpr int count = 3;
@@ -447,6 +497,7 @@ TEST_SUITE("zone.viewer") {
       std::uint32_t seq = 0;
       const auto tick_and_read = [&] {
         server.tick_once();
+        server.viewer_flush();  // after the tick: its snapshot published once the copier is done
         ++seq;
         for (int i = 0; i < count; ++i) {
           while (auto m = clients[i]->read(std::chrono::milliseconds(1))) {
@@ -487,6 +538,7 @@ TEST_SUITE("zone.viewer") {
       std::vector<event> events;  // the tracker's, every tick from here on
       const std::uint64_t in_wait0 = server.stats().viewer_snapshots_in_wait;
       const std::uint64_t columns0 = server.stats().viewer_columns_in_interest_wait;
+      const std::uint64_t after0 = server.stats().viewer_columns_after_tick;
       std::uint64_t due_ticks = 0;
       std::size_t checked = 0, events_checked = 0;
       first_tick = server.world().tick() + 1;
@@ -558,10 +610,17 @@ TEST_SUITE("zone.viewer") {
       const std::uint64_t columns = server.stats().viewer_columns_in_interest_wait - columns0;
       MESSAGE("interest on " << server.interest_name() << ": " << columns << " of " << due_ticks
                              << " snapshots' columns copied in the interest engine's wait");
-      if (server.interest_name().find("engine") == std::string::npos) {
+      // After the tick, on the copier's thread, every due tick's instead.
+      const std::uint64_t after = server.stats().viewer_columns_after_tick - after0;
+      if (fill == "after") {
         CHECK(columns == 0);
+        CHECK(after == due_ticks);
+      } else if (server.interest_name().find("engine") == std::string::npos) {
+        CHECK(columns == 0);
+        CHECK(after == 0);
       } else {
         CHECK(columns == due_ticks);
+        CHECK(after == 0);
       }
       if (server.replication_name() == "cpu") {
         CHECK(in_wait == 0);
