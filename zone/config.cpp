@@ -265,7 +265,7 @@ config_result parse_config(int argc, const char* const* argv) {
       ("viewer-idle", po::value(&c.viewer_idle)->default_value(c.viewer_idle),
        "the viewer's thread at SCHED_IDLE (0 or 1): it runs only on cores the tick's threads leave free; where the OS refuses, the nice value alone (logged once)")  //
       ("viewer-fill", po::value(&c.viewer_fill)->default_value(c.viewer_fill),
-       "where a due snapshot's entity columns are copied: wait (in the GPU interest engine's device wait, over the worker pool; elsewhere in the tick) or after (a thread of its own after the tick; the next tick waits for it if it is not done)");
+       "where a due snapshot's entity columns are copied: after (a thread of its own after the tick; the next tick waits for it if it is not done) or wait (in the GPU interest engine's device wait, over the worker pool; elsewhere in the tick)");
   po::options_description correctness("Correctness (docs/bots.md)");
   correctness.add_options()  //
       ("oracle", po::bool_switch(&c.oracle), "publish every tick's ground truth (entities, boxes, classes) on a loopback stream for an independent oracle (bot-swarm --oracle); off by default, and costs nothing when off")  //
