@@ -139,11 +139,20 @@ void viewer_copier::loop() {
     const std::size_t chunk = chunk_;
     lock.unlock();
     const auto t0 = std::chrono::steady_clock::now();
-    const viewer_columns_fill what = fill_viewer_columns(store, s, nullptr, chunk);
-    viewer.publish();
+    viewer_columns_fill what = viewer_columns_fill::all;
+    bool failed = false;
+    try {
+      what = fill_viewer_columns(store, s, nullptr, chunk);
+      viewer.publish();
+    } catch (...) {
+      // Growing the buffer failed: not published, and marked stale so that the next fill copies
+      // every column (the viewer misses a snapshot; the tick goes on).
+      s.layout = 0;
+      failed = true;
+    }
     const double ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
     lock.lock();
-    result_ = {what, ms};
+    result_ = {what, ms, failed};
     busy_ = false;
     finished_ = true;
     cv_.notify_all();

@@ -59,6 +59,7 @@ class viewer_copier {
   struct done {
     viewer_columns_fill what;
     double copy_ms;
+    bool failed;  ///< the copy threw (out of memory): nothing was published; the next copy starts over
   };
   std::optional<done> wait();
 

@@ -818,7 +818,12 @@ void zone_server::viewer_copy_wait() {
   const auto done = viewer_copier_->wait();
   if (!done) return;
   const double waited = ms_since(t0);
-  count_viewer_columns(done->what);
+  if (done->failed && !viewer_copy_failure_logged_) {
+    viewer_copy_failure_logged_ = true;
+    spdlog::warn(
+        "viewer: a snapshot's copy failed (out of memory?): that snapshot was not sent; the next one is tried");
+  }
+  if (!done->failed) count_viewer_columns(done->what);
   ++stats_.viewer_columns_after_tick;
   stats_.viewer_copy_ms += done->copy_ms;
   stats_.viewer_copy_wait_ms += waited;

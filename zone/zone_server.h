@@ -275,6 +275,7 @@ class zone_server {
   std::uint64_t viewer_selection_version_ = 0;
   double viewer_ms_ = 0;  // the last tick's publish_viewer
   double viewer_fill_ms_ = 0;  // this tick's snapshot fill on the tick's threads, wherever it ran (--tick-csv)
+  bool viewer_copy_failure_logged_ = false;  // --viewer-fill after: a copy threw (logged once)
   bool viewer_step_taken_ = false;  // replicate() ran this tick's viewer_take_step (publish_viewer resets it)
   bool viewer_snapshot_filled_ = false;  // and filled a snapshot for publish_viewer to publish
   std::uint64_t viewer_columns_tick_ = ~std::uint64_t{0};  // the tick whose columns viewer_copy_columns copied
