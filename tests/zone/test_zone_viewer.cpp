@@ -9,6 +9,7 @@
 #include <cstdio>
 #include <cstring>
 #include <fstream>
+#include <map>
 #include <optional>
 #include <random>
 #include <set>
@@ -462,6 +463,100 @@ TEST_SUITE("zone.viewer") {
       CHECK(seen == std::set<std::uint32_t>(store.ids().begin(), store.ids().end()));
     }
     CHECK(checked >= 6);
+    CHECK(ext.spawned.size() >= 4);
+  }
+
+  TEST_CASE("--viewer-fill after, ticks back to back as run() does (no viewer_flush): every frame is its tick's store, every copy counted once") {
+    // The other server tests wait for the copier after each tick (viewer_flush); here the next
+    // tick's own wait is all that keeps its step (churn: an entity out and one in, the NPCs
+    // moving) off the copy of the last tick's snapshot (ThreadSanitizer sees a missing wait), and
+    // its accounting is all that counts the copies.
+    struct churn final : zone_extension {
+      std::vector<entity_id> spawned;
+      int step = 0;
+      void started(std::uint16_t) override {}
+      void before_step(zone_world& w) override {
+        ++step;
+        if (step > 4) {
+          CHECK(w.despawn(spawned.front()));
+          spawned.erase(spawned.begin());
+        }
+        spawned.push_back(w.spawn_player({50.0f + 3.0f * static_cast<float>(step % 150), 300, 0}, step % 4 == 1));
+      }
+      void after_step(zone_world&, std::vector<redirect>&) override {}
+      claim claim_token(const std::string&, zone_world&, entity_id&) override { return claim::refused; }
+      [[nodiscard]] bool owns(entity_id) const override { return true; }
+      void forward_input(entity_id, const vec3&, std::uint32_t) override {}
+    } ext;
+    auto cfg = viewer_config();
+    cfg.viewer_fill = "after";
+    zone_server server(cfg);
+    server.set_extension(&ext);
+    REQUIRE_FALSE(server.start().has_value());
+    ws_client page(server.metrics_port());
+    REQUIRE_FALSE(page.error);
+    REQUIRE(page.send(request_bytes({-10, -10, 610, 610, 0, 100000})));
+    REQUIRE(eventually([&] { return server.viewer()->viewers() == 1; }));
+    const auto& store = server.world().store();
+    // Each tick's store as the tick left it (read beside the copier: both only read it).
+    struct row {
+      float x, y;
+      std::uint8_t cls, kind;
+    };
+    std::map<std::uint32_t, std::map<std::uint32_t, row>> at_tick;
+    const std::uint64_t after0 = server.stats().viewer_columns_after_tick;
+    const std::uint64_t published0 = server.viewer()->stats().snapshots_published;
+    std::uint64_t ticks = 0;
+    int checked = 0;
+    for (int round = 0; round < 40; ++round) {
+      std::uint32_t last = 0;
+      for (int k = 0; k < 3; ++k) {  // back to back: the copy of one overlaps the next one's start
+        server.tick_once();
+        ++ticks;
+        last = static_cast<std::uint32_t>(server.world().tick());
+        auto& m = at_tick[last];
+        for (std::size_t d = 0; d < store.size(); ++d) {
+          const vec3 p = store.positions()[d];
+          m[store.ids()[d]] = {p.x, p.y, static_cast<std::uint8_t>(std::countr_zero(store.visibility_classes()[d])),
+                               static_cast<std::uint8_t>(store.kinds()[d])};
+        }
+      }
+      // The frames that came meanwhile, up to the last tick's (published by the copier).
+      for (int k = 0; k < 50; ++k) {
+        auto msg = page.read();
+        REQUIRE(msg);
+        const auto& f = msg->second;
+        if (msg->first || f.empty() || f[0] != net::viewer_frame_entities) continue;
+        const std::uint32_t tick = at<std::uint32_t>(f, 4);
+        const auto it = at_tick.find(tick);
+        REQUIRE(it != at_tick.end());
+        CAPTURE(tick);
+        const auto& want = it->second;
+        REQUIRE(at<std::uint32_t>(f, 12) == want.size());
+        const float x0 = at<float>(f, 16), y0 = at<float>(f, 20), x1 = at<float>(f, 24), y1 = at<float>(f, 28);
+        std::size_t bad = 0;
+        for (std::size_t e = 0; e < want.size(); ++e) {
+          const std::size_t o = net::viewer_frame_header_bytes + e * net::viewer_entity_record_bytes;
+          const auto w = want.find(at<std::uint32_t>(f, o));
+          if (w == want.end()) {
+            ++bad;
+            continue;
+          }
+          const float x = x0 + at<std::uint16_t>(f, o + 4) * (x1 - x0) / 65535, y = y0 + at<std::uint16_t>(f, o + 6) * (y1 - y0) / 65535;
+          bad += std::fabs(x - w->second.x) > (x1 - x0) / 65535 + 1e-3f || std::fabs(y - w->second.y) > (y1 - y0) / 65535 + 1e-3f ||
+                 f[o + 8] != w->second.cls || f[o + 9] != w->second.kind;
+        }
+        CHECK(bad == 0);
+        ++checked;
+        if (tick == last) break;
+      }
+    }
+    server.viewer_flush();
+    // Every tick's snapshot due (viewer_hz = tick rate): each copied after its tick, counted once,
+    // published once.
+    CHECK(server.stats().viewer_columns_after_tick - after0 == ticks);
+    CHECK(server.viewer()->stats().snapshots_published - published0 == ticks);
+    CHECK(checked >= 20);
     CHECK(ext.spawned.size() >= 4);
   }
 
