@@ -748,14 +748,19 @@ void zone_server::tick_once() {
   if (stats_.ticks == 0) started_ = t0;
   const std::uint64_t frames0 = stats_.frames_sent, bytes0 = stats_.bytes_sent;
   viewer_fill_ms_ = 0;
-  viewer_copy_wait();  // the last tick's snapshot copied before anything changes the store
+  // The last tick's snapshot copied before anything changes the store; the wait is this tick's
+  // viewer cost (its viewer phase and viewer_fill_ms), not its inputs'.
+  const double copy_wait_ms = viewer_copy_wait();
+  stats_.viewer_copy_wait_ms += copy_wait_ms;
+  viewer_fill_ms_ += copy_wait_ms;
+  const auto t_inputs = clock_type::now();
   drain_inputs();
   if (ext_ != nullptr) {
     ext_->before_step(*world_);
     ext_->take_class_changes(class_changes_);
     retry_pending_hellos();
   }
-  const double inputs_ms = ms_since(t0);
+  const double inputs_ms = ms_since(t_inputs);
   stats_.inputs_ms.record(inputs_ms);
   if (auto err = world_->step()) spdlog::error("tick {}: {}", world_->tick(), err->message);
   if (ext_ != nullptr) {
@@ -791,7 +796,7 @@ void zone_server::tick_once() {
   const double replicate_ms = ms_since(t1);
   const auto t2 = clock_type::now();
   publish_viewer();
-  viewer_ms_ = ms_since(t2);
+  viewer_ms_ = ms_since(t2) + copy_wait_ms;
   const double tick_ms = ms_since(t0);
   if (viewer_ && viewer_->viewers() > 0) {
     auto& rows = viewer_->next_stats().ticks;  // reserved: no allocation
@@ -812,11 +817,11 @@ void zone_server::tick_once() {
   log_summary();
 }
 
-void zone_server::viewer_copy_wait() {
-  if (!viewer_copier_) return;
+double zone_server::viewer_copy_wait() {
+  if (!viewer_copier_) return 0;
   const auto t0 = clock_type::now();
   const auto done = viewer_copier_->wait();
-  if (!done) return;
+  if (!done) return 0;
   const double waited = ms_since(t0);
   if (done->failed && !viewer_copy_failure_logged_) {
     viewer_copy_failure_logged_ = true;
@@ -826,8 +831,7 @@ void zone_server::viewer_copy_wait() {
   if (!done->failed) count_viewer_columns(done->what);
   ++stats_.viewer_columns_after_tick;
   stats_.viewer_copy_ms += done->copy_ms;
-  stats_.viewer_copy_wait_ms += waited;
-  viewer_fill_ms_ += waited;  // what the copy cost this tick
+  return waited;
 }
 
 void zone_server::viewer_copy_columns() {
@@ -1023,7 +1027,7 @@ void zone_server::run() {
       if (spin.count() > 0 && next - now > spin) {
         std::this_thread::sleep_until(next - spin);
         pool_->run(pool_->size(), [](std::size_t) {});
-        viewer_copy_wait();  // the copier reads the store: done before anything else touches it
+        (void)viewer_copy_wait();  // the copier reads the store: done before anything else touches it (between ticks: no tick's wait)
         world_->prepare();  // and the GPU, if the interest step runs there
       }
       std::this_thread::sleep_until(next);

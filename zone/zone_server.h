@@ -135,7 +135,7 @@ class zone_server {
   [[nodiscard]] const net::viewer_server* viewer() const { return viewer_.get(); }
   /// With --viewer-fill after: returns once the last tick's snapshot is published (its columns
   /// copied on the copier's thread); the next tick_once() does this first anyway. Otherwise nothing.
-  void viewer_flush() { viewer_copy_wait(); }
+  void viewer_flush() { (void)viewer_copy_wait(); }
   [[nodiscard]] net::server_stats net_stats() const { return net_.stats(); }
   /// Port of the ground-truth stream (0 when --oracle is off).
   [[nodiscard]] std::uint16_t oracle_port() const { return truth_ ? truth_->port() : 0; }
@@ -228,8 +228,9 @@ class zone_server {
   /// changes the store in a single zone); the snapshot's fill then leaves them.
   void viewer_copy_columns();
   /// --viewer-fill after: waits for the copier's snapshot in flight (at a tick's start: the store
-  /// may change from then on) and counts it; the wait goes to viewer_fill_ms_.
-  void viewer_copy_wait();
+  /// may change from then on) and counts it; returns the milliseconds waited (0: none in flight),
+  /// which tick_once() counts as its own (viewer phase, viewer_fill_ms_, viewer_copy_wait_ms).
+  double viewer_copy_wait();
   void fill_viewer_stats(net::viewer_stats& s) const;
   /// --test-fault: the client whose frames are broken (the lowest session with an entity).
   void choose_fault_victim();

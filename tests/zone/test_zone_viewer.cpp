@@ -560,6 +560,57 @@ TEST_SUITE("zone.viewer") {
     CHECK(ext.spawned.size() >= 4);
   }
 
+  TEST_CASE("--viewer-fill after: a tick's wait for the copier is in its viewer phase and viewer_fill_ms, not its inputs") {
+    // Ticks back to back with a large zone: each tick starts while the copier still copies the
+    // last one's snapshot, so its wait is long enough to tell where it was counted.
+    const std::string csv_path = "test_zone_viewer_wait_ticks.csv";
+    std::map<std::uint64_t, double> waited;  // tick -> its wait for the copier (loop_stats)
+    {
+      auto cfg = viewer_config();
+      cfg.viewer_fill = "after";
+      cfg.npc_count = 60000;
+      cfg.world = {{0, 0, 0}, {8000, 8000, 40}};
+      cfg.tick_csv = csv_path;
+      zone_server server(cfg);
+      REQUIRE_FALSE(server.start().has_value());
+      ws_client page(server.metrics_port());
+      REQUIRE_FALSE(page.error);
+      REQUIRE(page.send(request_bytes({0, 0, 8000, 8000, 0, 1000})));
+      REQUIRE(eventually([&] { return server.viewer()->viewers() == 1; }));
+      for (int k = 0; k < 30; ++k) {
+        const double before = server.stats().viewer_copy_wait_ms;
+        server.tick_once();
+        waited[server.world().tick()] = server.stats().viewer_copy_wait_ms - before;
+      }
+    }  // the tick CSV is complete once the server is gone
+    std::ifstream in(csv_path);
+    REQUIRE(in.good());
+    std::string line;
+    REQUIRE(std::getline(in, line));
+    std::size_t rows = 0;
+    double longest = 0;
+    while (std::getline(in, line)) {
+      std::vector<double> v;
+      std::istringstream row(line);
+      for (std::string cell; std::getline(row, cell, ',');) v.push_back(std::stod(cell));
+      REQUIRE(v.size() == 14);
+      const auto it = waited.find(static_cast<std::uint64_t>(v[0]));
+      if (it == waited.end()) continue;
+      ++rows;
+      CAPTURE(it->first);
+      const double wait = it->second, inputs = v[5], tick = v[10], viewer = v[11], fill = v[12];
+      CAPTURE(wait);
+      longest = std::max(longest, wait);
+      constexpr double rounding = 0.002;  // the CSV's 3 decimals (4 for viewer_fill_ms)
+      CHECK(viewer + rounding >= wait);   // the viewer's cost to the tick: its phase
+      CHECK(fill + rounding >= wait);     // and the snapshot's fill on the tick's threads
+      CHECK(inputs + viewer <= tick + rounding);  // counted once: not in the inputs phase too
+    }
+    CHECK(rows == waited.size());
+    CHECK(longest > 0.02);  // a wait long enough to show (else the checks above could not fail)
+    std::remove(csv_path.c_str());
+  }
+
   TEST_CASE("with clients (frames every tick): each snapshot is its tick's store and tracker, filled in the engines' waits or after") {
     const std::string csv_path = "test_zone_viewer_ticks.csv";
     // The columns copied in the tick (--viewer-fill wait) or on the copier's thread after it.
