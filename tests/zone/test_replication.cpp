@@ -763,7 +763,7 @@ TEST_SUITE("zone.replication") {
       }
       replication_writer writer;
       std::vector<replicator::class_note_target> notes;
-      std::size_t skipped = 0, held_checked = 0, wrong = 0;
+      std::size_t skipped = 0, held_checked = 0, wrong = 0, note_pairs = 0, unordered = 0;
       for (std::uint64_t tick = 1; tick <= 8; ++tick) {
         CAPTURE(tick);
         std::vector<class_change> changes;
@@ -780,6 +780,17 @@ TEST_SUITE("zone.replication") {
         }
         REQUIRE_FALSE(tracker.update(w.store.columns()).has_value());
         (void)rep.resync_viewers_of(w.store, tracker, tick, changes, &pool, &notes);
+        // One note per entity, a client's in entity order, the clients in order: here most
+        // clients are judged by their views (held entities and their own switches both noted).
+        for (std::size_t k = 1; k < notes.size(); ++k) {
+          const auto &a = notes[k - 1], &b = notes[k];
+          if (a.client == b.client) {
+            ++note_pairs;
+            unordered += a.entity < b.entity ? 0 : 1;
+          } else {
+            unordered += a.client < b.client ? 0 : 1;
+          }
+        }
         std::size_t at = 0;
         for (const client_id c : clients) {
           apply_notes(views[c], c, tick, notes, at);
@@ -812,6 +823,8 @@ TEST_SUITE("zone.replication") {
         w.step(false);
       }
       CHECK(wrong == 0);
+      CHECK(unordered == 0);
+      CHECK(note_pairs > 100);
       CHECK(skipped > 1000);
       CHECK(held_checked > 100000);
     }
