@@ -828,8 +828,10 @@ double zone_server::viewer_copy_wait() {
     spdlog::warn(
         "viewer: a snapshot's copy failed (out of memory?): that snapshot was not sent; the next one is tried");
   }
-  if (!done->failed) count_viewer_columns(done->what);
-  ++stats_.viewer_columns_after_tick;
+  if (!done->failed) {
+    count_viewer_columns(done->what);
+    ++stats_.viewer_columns_after_tick;  // published
+  }
   stats_.viewer_copy_ms += done->copy_ms;
   return waited;
 }
