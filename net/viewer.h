@@ -119,7 +119,8 @@ struct thread_priority {
 thread_priority lower_thread_priority(bool idle, int nice, int (*set_idle)() = nullptr);
 
 /// The viewer's HTTP routes, WebSocket sessions and own thread. Two sides:
-/// - the producer (one thread: the zone's tick): next_snapshot()/publish(), next_stats()/
+/// - the producer (the zone's tick, or a thread it hands a snapshot to, never two at once):
+///   next_snapshot()/publish(), next_stats()/
 ///   publish_stats(), selection_version()/selected(), viewers(): no lock, no allocation, no wait;
 /// - the viewer's thread: every /viewer request handed over by the HTTP server (handoff moves the
 ///   connection onto it), every session, every encode.

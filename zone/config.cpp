@@ -38,6 +38,7 @@ std::optional<std::string> validate(const zone_config& c) {
   if (!(c.player_aoi >= 0 && std::isfinite(c.player_aoi))) return bad("player-aoi must be >= 0");
   if (c.viewer_enabled && !c.metrics_enabled) return bad("viewer needs the HTTP endpoint of /metrics (--metrics 1)");
   if (!(c.viewer_hz > 0 && c.viewer_hz <= 1000)) return bad("viewer-hz must be in (0, 1000]");
+  if (c.viewer_fill != "wait" && c.viewer_fill != "after") return bad("viewer-fill must be wait or after");
   if (c.max_viewers < 1 || c.max_viewers > 64) return bad("max-viewers must be in [1, 64]");
   const float shares[4] = {c.share_wander, c.share_patrol, c.share_town, c.share_chase};
   float sum = 0;
@@ -250,13 +251,21 @@ config_result parse_config(int argc, const char* const* argv) {
       ("nats", po::value(&c.nats_url), "NATS server URL of the world (e.g. nats://127.0.0.1:4222); needed with --world")  //
       ("world-grid", po::value(&world_grid)->default_value(world_grid), "regions COLSxROWS of a new world's layout (a layout already in KV wins)");
   po::options_description viewer("Live viewer (docs/viewer.md)");
-  viewer.add_options()                                                                                      //
-      ("viewer", po::value(&c.viewer_enabled)->default_value(c.viewer_enabled), "serve the live viewer at /viewer beside /metrics (0 or 1; needs --metrics 1)")  //
-      ("viewer-remote", po::value(&c.viewer_remote)->default_value(c.viewer_remote), "serve the viewer to peers that are not on a loopback address too (0 or 1)")  //
-      ("max-viewers", po::value(&c.max_viewers)->default_value(c.max_viewers), "viewer pages at once (more are refused)")  //
-      ("viewer-hz", po::value(&c.viewer_hz)->default_value(c.viewer_hz), "snapshots a second sent to viewer pages (at most the tick rate)")  //
-      ("viewer-nice", po::value(&c.viewer_nice)->default_value(c.viewer_nice), "nice value of the viewer's thread, 0-19 (it encodes and writes every page's frames; 19: the tick's threads take a shared core back at once)")  //
-      ("viewer-idle", po::value(&c.viewer_idle)->default_value(c.viewer_idle), "the viewer's thread at SCHED_IDLE (0 or 1): it runs only on cores the tick's threads leave free; where the OS refuses, the nice value alone (logged once)");
+  viewer.add_options()  //
+      ("viewer", po::value(&c.viewer_enabled)->default_value(c.viewer_enabled),
+       "serve the live viewer at /viewer beside /metrics (0 or 1; needs --metrics 1)")  //
+      ("viewer-remote", po::value(&c.viewer_remote)->default_value(c.viewer_remote),
+       "serve the viewer to peers that are not on a loopback address too (0 or 1)")  //
+      ("max-viewers", po::value(&c.max_viewers)->default_value(c.max_viewers),
+       "viewer pages at once (more are refused)")  //
+      ("viewer-hz", po::value(&c.viewer_hz)->default_value(c.viewer_hz),
+       "snapshots a second sent to viewer pages (at most the tick rate)")  //
+      ("viewer-nice", po::value(&c.viewer_nice)->default_value(c.viewer_nice),
+       "nice value of the viewer's thread, 0-19 (it encodes and writes every page's frames; 19: the tick's threads take a shared core back at once)")  //
+      ("viewer-idle", po::value(&c.viewer_idle)->default_value(c.viewer_idle),
+       "the viewer's thread at SCHED_IDLE (0 or 1): it runs only on cores the tick's threads leave free; where the OS refuses, the nice value alone (logged once)")  //
+      ("viewer-fill", po::value(&c.viewer_fill)->default_value(c.viewer_fill),
+       "where a due snapshot's entity columns are copied: after (a thread of its own after the tick; the next tick waits for it if it is not done) or wait (in the GPU interest engine's device wait, over the worker pool; elsewhere in the tick)");
   po::options_description correctness("Correctness (docs/bots.md)");
   correctness.add_options()  //
       ("oracle", po::bool_switch(&c.oracle), "publish every tick's ground truth (entities, boxes, classes) on a loopback stream for an independent oracle (bot-swarm --oracle); off by default, and costs nothing when off")  //

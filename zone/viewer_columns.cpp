@@ -1,6 +1,9 @@
 #include "zone/viewer_columns.h"
 
+#include <pthread.h>
+
 #include <algorithm>
+#include <chrono>
 #include <cstring>
 #include <functional>
 
@@ -88,6 +91,72 @@ viewer_columns_fill fill_viewer_columns(const entity_store& store, net::viewer_s
   }
   s.layout = layout;
   return what;
+}
+
+viewer_copier::viewer_copier() : thread_([this] { loop(); }) {}
+
+viewer_copier::~viewer_copier() {
+  (void)wait();
+  {
+    const std::lock_guard lock(mutex_);
+    stop_ = true;
+  }
+  cv_.notify_all();
+  thread_.join();
+}
+
+void viewer_copier::start(const entity_store& store, net::viewer_snapshot& s, net::viewer_server& viewer,
+                          std::size_t chunk) {
+  (void)wait();
+  {
+    const std::lock_guard lock(mutex_);
+    store_ = &store, snapshot_ = &s, viewer_ = &viewer, chunk_ = chunk;
+    pending_ = busy_ = true;
+    finished_ = false;
+  }
+  cv_.notify_all();
+}
+
+std::optional<viewer_copier::done> viewer_copier::wait() {
+  std::unique_lock lock(mutex_);
+  cv_.wait(lock, [&] { return !busy_; });
+  if (!finished_) return std::nullopt;
+  finished_ = false;
+  return result_;
+}
+
+void viewer_copier::loop() {
+  // Named for per-thread CPU accounting (/proc/<pid>/task/*/comm), apart from the viewer's thread.
+  pthread_setname_np(pthread_self(), "zone-vcopy");
+  std::unique_lock lock(mutex_);
+  for (;;) {
+    cv_.wait(lock, [&] { return pending_ || stop_; });
+    if (stop_ && !pending_) return;
+    pending_ = false;
+    const entity_store& store = *store_;
+    net::viewer_snapshot& s = *snapshot_;
+    net::viewer_server& viewer = *viewer_;
+    const std::size_t chunk = chunk_;
+    lock.unlock();
+    const auto t0 = std::chrono::steady_clock::now();
+    viewer_columns_fill what = viewer_columns_fill::all;
+    bool failed = false;
+    try {
+      what = fill_viewer_columns(store, s, nullptr, chunk);
+      viewer.publish();
+    } catch (...) {
+      // Growing the buffer failed: not published, and marked stale so that the next fill copies
+      // every column (the viewer misses a snapshot; the tick goes on).
+      s.layout = 0;
+      failed = true;
+    }
+    const double ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+    lock.lock();
+    result_ = {what, ms, failed};
+    busy_ = false;
+    finished_ = true;
+    cv_.notify_all();
+  }
 }
 
 }  // namespace zone

@@ -2,7 +2,11 @@
 // tick's worker pool when there is one: docs/viewer.md, "How it stays off the tick's back".
 #pragma once
 
+#include <condition_variable>
 #include <cstddef>
+#include <mutex>
+#include <optional>
+#include <thread>
 
 #include "interest/thread_pool.h"
 #include "net/viewer.h"
@@ -33,5 +37,43 @@ enum class viewer_columns_fill : unsigned char {
 /// idle (one run at a time).
 viewer_columns_fill fill_viewer_columns(const entity_store& store, net::viewer_snapshot& s, interest::thread_pool* pool,
                                         std::size_t chunk = viewer_columns_chunk);
+
+/// A thread of its own that fills a due snapshot's entity columns after the tick and publishes
+/// it (zone-server `--viewer-fill after`): the tick hands over and moves on, and the store stays
+/// as that tick left it until the next tick starts, which first waits for the copy (wait()).
+/// At 30 Hz the copy (a few hundred microseconds at 100,000 entities) runs in the tick's slack;
+/// a tick that is late waits for it, and the wait is that tick's.
+class viewer_copier {
+ public:
+  viewer_copier();
+  ~viewer_copier();  ///< waits for a copy in flight
+  viewer_copier(const viewer_copier&) = delete;
+  viewer_copier& operator=(const viewer_copier&) = delete;
+
+  /// The tick's thread: fill_viewer_columns(store, s, nullptr, chunk) on the copier's thread,
+  /// then viewer.publish(). Nothing may change `store` nor touch `viewer`'s snapshots until wait()
+  /// returns. At most one copy in flight (a second start() waits for the first).
+  void start(const entity_store& store, net::viewer_snapshot& s, net::viewer_server& viewer, std::size_t chunk);
+  /// The tick's thread: waits for the copy in flight; what it copied (nullopt: none was started
+  /// since the last wait) and the milliseconds it took on the copier's thread.
+  struct done {
+    viewer_columns_fill what;
+    double copy_ms;
+    bool failed;  ///< the copy threw (out of memory): nothing was published; the next copy starts over
+  };
+  std::optional<done> wait();
+
+ private:
+  void loop();
+  std::mutex mutex_;
+  std::condition_variable cv_;
+  bool pending_ = false, busy_ = false, stop_ = false, finished_ = false;
+  const entity_store* store_ = nullptr;
+  net::viewer_snapshot* snapshot_ = nullptr;
+  net::viewer_server* viewer_ = nullptr;
+  std::size_t chunk_ = 0;
+  done result_{};
+  std::thread thread_;  // last: started once the members above are
+};
 
 }  // namespace zone

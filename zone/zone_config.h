@@ -181,6 +181,10 @@ struct zone_config {
   /// Entities per task of a snapshot's column copy over the worker pool (fill_viewer_columns; no
   /// option: tests set it small so that a small zone's copy is split too). 0: viewer_columns_chunk.
   std::size_t viewer_copy_chunk = 0;
+  /// Where a due snapshot's entity columns are copied (docs/viewer.md): "after" (a thread of its
+  /// own after the tick; the next tick waits for it if it is not done) or "wait" (in the GPU
+  /// interest engine's device wait, over the worker pool; elsewhere in the tick's viewer phase).
+  std::string viewer_fill = "after";
   // Correctness (docs/bots.md, the oracle).
   /// Publish every tick's ground truth on a loopback stream (127.0.0.1:oracle_port; 0 = an
   /// ephemeral port, told in the welcome): what an independent oracle checks each client's view

@@ -121,6 +121,7 @@ std::string zone_server::interest_name() const {
 }
 
 zone_server::~zone_server() {
+  viewer_copier_.reset();  // a copy in flight reads the store
   net_.stop();
   if (metrics_) metrics_->stop();
   if (tick_csv_) std::fclose(tick_csv_);
@@ -166,6 +167,15 @@ std::string zone_server::metrics_text() const {
             static_cast<double>(stats_.viewer_columns_copied_all));
   t.counter("zone_viewer_class_patches_total", "Viewer snapshots that patched only the classes set_visibility changed.",
             static_cast<double>(stats_.viewer_columns_classes_patched));
+  t.counter("zone_viewer_copies_after_tick_total",
+            "Viewer snapshots whose columns were copied after their tick (--viewer-fill after).",
+            static_cast<double>(stats_.viewer_columns_after_tick));
+  t.counter("zone_viewer_copy_seconds_total",
+            "Time the copier's thread spent copying those columns (--viewer-fill after).",
+            stats_.viewer_copy_ms / 1000.0);
+  t.counter("zone_viewer_copy_wait_seconds_total",
+            "Time ticks spent waiting for the copier at their start (--viewer-fill after; part of those ticks).",
+            stats_.viewer_copy_wait_ms / 1000.0);
   t.counter("zone_net_connections_accepted_total", "Connections accepted.", static_cast<double>(ns.connections_accepted));
   t.counter("zone_net_connections_refused_total", "Connections refused (limit).", static_cast<double>(ns.connections_refused));
   t.gauge("zone_net_sessions_open", "Open sessions.", static_cast<double>(ns.sessions_open));
@@ -345,6 +355,7 @@ std::optional<std::string> zone_server::start() {
       vo.idle = cfg_.viewer_idle;
       viewer_ = std::make_unique<net::viewer_server>(vo);
       metrics_->attach_viewer(viewer_.get());
+      if (cfg_.viewer_fill == "after") viewer_copier_ = std::make_unique<viewer_copier>();
     }
     if (auto err = metrics_->start()) return err;
     metrics_->publish(metrics_text());
@@ -737,13 +748,19 @@ void zone_server::tick_once() {
   if (stats_.ticks == 0) started_ = t0;
   const std::uint64_t frames0 = stats_.frames_sent, bytes0 = stats_.bytes_sent;
   viewer_fill_ms_ = 0;
+  // The last tick's snapshot copied before anything changes the store; the wait is this tick's
+  // viewer cost (its viewer phase and viewer_fill_ms), not its inputs'.
+  const double copy_wait_ms = viewer_copy_wait();
+  stats_.viewer_copy_wait_ms += copy_wait_ms;
+  viewer_fill_ms_ += copy_wait_ms;
+  const auto t_inputs = clock_type::now();
   drain_inputs();
   if (ext_ != nullptr) {
     ext_->before_step(*world_);
     ext_->take_class_changes(class_changes_);
     retry_pending_hellos();
   }
-  const double inputs_ms = ms_since(t0);
+  const double inputs_ms = ms_since(t_inputs);
   stats_.inputs_ms.record(inputs_ms);
   if (auto err = world_->step()) spdlog::error("tick {}: {}", world_->tick(), err->message);
   if (ext_ != nullptr) {
@@ -779,7 +796,7 @@ void zone_server::tick_once() {
   const double replicate_ms = ms_since(t1);
   const auto t2 = clock_type::now();
   publish_viewer();
-  viewer_ms_ = ms_since(t2);
+  viewer_ms_ = ms_since(t2) + copy_wait_ms;
   const double tick_ms = ms_since(t0);
   if (viewer_ && viewer_->viewers() > 0) {
     auto& rows = viewer_->next_stats().ticks;  // reserved: no allocation
@@ -800,8 +817,27 @@ void zone_server::tick_once() {
   log_summary();
 }
 
+double zone_server::viewer_copy_wait() {
+  if (!viewer_copier_) return 0;
+  const auto t0 = clock_type::now();
+  const auto done = viewer_copier_->wait();
+  if (!done) return 0;
+  const double waited = ms_since(t0);
+  if (done->failed && !viewer_copy_failure_logged_) {
+    viewer_copy_failure_logged_ = true;
+    spdlog::warn(
+        "viewer: a snapshot's copy failed (out of memory?): that snapshot was not sent; the next one is tried");
+  }
+  if (!done->failed) {
+    count_viewer_columns(done->what);
+    ++stats_.viewer_columns_after_tick;  // published
+  }
+  stats_.viewer_copy_ms += done->copy_ms;
+  return waited;
+}
+
 void zone_server::viewer_copy_columns() {
-  if (!viewer_ || viewer_->viewers() == 0 || !viewer_snapshot_due()) return;
+  if (!viewer_ || viewer_copier_ || viewer_->viewers() == 0 || !viewer_snapshot_due()) return;
   const auto t0 = clock_type::now();
   // The pool is idle while the device works (replication's prestage, if any, has returned).
   count_viewer_columns(
@@ -825,7 +861,8 @@ void zone_server::fill_viewer_snapshot(net::viewer_snapshot& s, interest::thread
   // The columns, unless this tick's were copied while the interest engine's device worked (a
   // single zone: nothing moves an entity after the step; a class changed since, by a player's
   // visibility switch, changes the layout version and the columns are copied again).
-  if (viewer_columns_tick_ != s.tick || s.layout != store.layout_version()) {
+  // With --viewer-fill after, the copier's thread copies them once the tick is over.
+  if (!viewer_copier_ && (viewer_columns_tick_ != s.tick || s.layout != store.layout_version())) {
     count_viewer_columns(fill_viewer_columns(store, s, pool, cfg_.viewer_copy_chunk));
   }
   const auto pos = store.positions();
@@ -931,7 +968,14 @@ void zone_server::publish_viewer() {
   if (!taken) viewer_take_step(nullptr);
   // The snapshot handed over with one atomic exchange (no lock, no allocation once the buffers
   // have grown).
-  if (std::exchange(viewer_snapshot_filled_, false)) viewer_->publish();
+  if (std::exchange(viewer_snapshot_filled_, false)) {
+    if (viewer_copier_) {
+      // Its columns copied and published by the copier's thread (the next tick waits for it).
+      viewer_copier_->start(world_->store(), viewer_->next_snapshot(), *viewer_, cfg_.viewer_copy_chunk);
+    } else {
+      viewer_->publish();
+    }
+  }
   // The stats twice a second: numbers only; the viewer's thread formats the JSON.
   const auto now = clock_type::now();
   if (now >= next_viewer_stats_) {
@@ -985,6 +1029,7 @@ void zone_server::run() {
       if (spin.count() > 0 && next - now > spin) {
         std::this_thread::sleep_until(next - spin);
         pool_->run(pool_->size(), [](std::size_t) {});
+        (void)viewer_copy_wait();  // the copier reads the store: done before anything else touches it (between ticks: no tick's wait)
         world_->prepare();  // and the GPU, if the interest step runs there
       }
       std::this_thread::sleep_until(next);

@@ -57,6 +57,10 @@ struct loop_stats {
   /// patched only the classes set_visibility changed; the others copied x and y alone.
   std::uint64_t viewer_columns_copied_all = 0;
   std::uint64_t viewer_columns_classes_patched = 0;
+  /// --viewer-fill after: snapshots whose columns the copier's thread filled after their tick, the
+  /// milliseconds it took there, and those the next tick spent waiting for it (part of that tick).
+  std::uint64_t viewer_columns_after_tick = 0;
+  double viewer_copy_ms = 0, viewer_copy_wait_ms = 0;
   latency_histogram inputs_ms, replicate_ms, tick_ms;  ///< plus zone_world::phases()
   /// Players' joins: the connection accepted to its hello read (net), and that to the welcome
   /// queued (the next tick's input phase, or a world's redirect token claimed).
@@ -129,6 +133,9 @@ class zone_server {
   [[nodiscard]] const loop_stats& stats() const { return stats_; }
   /// The live viewer (null unless cfg.viewer_enabled); its page is on metrics_port().
   [[nodiscard]] const net::viewer_server* viewer() const { return viewer_.get(); }
+  /// With --viewer-fill after: returns once the last tick's snapshot is published (its columns
+  /// copied on the copier's thread); the next tick_once() does this first anyway. Otherwise nothing.
+  void viewer_flush() { (void)viewer_copy_wait(); }
   [[nodiscard]] net::server_stats net_stats() const { return net_.stats(); }
   /// Port of the ground-truth stream (0 when --oracle is off).
   [[nodiscard]] std::uint16_t oracle_port() const { return truth_ ? truth_->port() : 0; }
@@ -220,6 +227,10 @@ class zone_server {
   /// (fill_viewer_columns; the positions are final once integrated, and nothing after the step
   /// changes the store in a single zone); the snapshot's fill then leaves them.
   void viewer_copy_columns();
+  /// --viewer-fill after: waits for the copier's snapshot in flight (at a tick's start: the store
+  /// may change from then on) and counts it; returns the milliseconds waited (0: none in flight),
+  /// which tick_once() counts as its own (viewer phase, viewer_fill_ms_, viewer_copy_wait_ms).
+  double viewer_copy_wait();
   void fill_viewer_stats(net::viewer_stats& s) const;
   /// --test-fault: the client whose frames are broken (the lowest session with an entity).
   void choose_fault_victim();
@@ -246,6 +257,8 @@ class zone_server {
   net::server net_;
   std::unique_ptr<net::viewer_server> viewer_;  // before metrics_, which hands it requests
   std::unique_ptr<net::metrics_server> metrics_;
+  std::unique_ptr<viewer_copier>
+      viewer_copier_;  // --viewer-fill after; destroyed first: it reads the store and viewer_
   // The viewer's state on the game thread: the entities watched during the last step (with their
   // latest events, in a ring: nothing allocated per tick) and the selection they came from.
   struct viewer_watch {
@@ -263,6 +276,7 @@ class zone_server {
   std::uint64_t viewer_selection_version_ = 0;
   double viewer_ms_ = 0;  // the last tick's publish_viewer
   double viewer_fill_ms_ = 0;  // this tick's snapshot fill on the tick's threads, wherever it ran (--tick-csv)
+  bool viewer_copy_failure_logged_ = false;  // --viewer-fill after: a copy threw (logged once)
   bool viewer_step_taken_ = false;  // replicate() ran this tick's viewer_take_step (publish_viewer resets it)
   bool viewer_snapshot_filled_ = false;  // and filled a snapshot for publish_viewer to publish
   std::uint64_t viewer_columns_tick_ = ~std::uint64_t{0};  // the tick whose columns viewer_copy_columns copied

@@ -135,6 +135,66 @@ struct small_world {
 
 const net::world_bounds test_world{{0, 0, 0}, {300, 300, 10}};
 
+/// One client in a hand-placed world, for the class-change cases: a store, a tracker (hysteresis
+/// 3 m), a replicator whose one client takes notes or not, and the client's view. tick() runs one
+/// tick: the tracker's update, resync_viewers_of (the notes applied to the view) and, when the
+/// client is built in it, its frame.
+struct one_client {
+  entity_store store{64};
+  interest::thread_pool pool{2};
+  interest::grid_finder finder{&pool};
+  interest_tracker tracker{finder, &pool, {3.0f, 0, 64}};
+  std::optional<replicator> rep;
+  client_id c = 0;
+  net::client_view view{test_world};
+  replication_writer writer;
+  std::vector<replicator::class_note_target> notes;
+
+  /// An observer at `at` with a 20 m AOI that sees `sees`.
+  entity_id eye(vec3 at, std::uint32_t sees) {
+    entity_desc d;
+    d.position = at;
+    d.aoi_half_extent = {20, 20, 20};
+    d.sees = sees;
+    return store.create(d);
+  }
+  /// The replicator (a byte budget of `budget`) and its client on `observer`.
+  void start(entity_id observer, bool noting, std::size_t budget) {
+    replication_options opt;
+    opt.world = test_world;
+    opt.byte_budget = budget;
+    rep.emplace(opt);
+    c = rep->add_client(observer);
+    rep->set_class_notes(c, noting);
+  }
+  /// Changes `e`'s class to `to` (its mask kept) and returns the change to tell.
+  class_change switch_class(entity_id e, std::uint32_t to) {
+    const std::size_t x = store.index_of(e);
+    const class_change ch{e, store.visibility_classes()[x], store.sees()[x]};
+    REQUIRE(store.set_visibility(e, to, store.sees()[x]));
+    return ch;
+  }
+  replication_stats tick(std::uint64_t t, const std::vector<class_change>& changes, bool built = true) {
+    REQUIRE_FALSE(tracker.update(store.columns()).has_value());
+    (void)rep->resync_viewers_of(store, tracker, t, changes, &pool, &notes);
+    std::size_t at = 0;
+    apply_notes(view, c, t, notes, at);
+    REQUIRE(at == notes.size());  // every note its
+    replication_stats st;
+    if (built) apply_frame(view, rep->build(c, store, tracker, t, t * 1000, 0, writer, &st));
+    return st;
+  }
+  [[nodiscard]] bool holds(entity_id e) const {
+    return std::binary_search(rep->view(c).begin(), rep->view(c).end(), e);
+  }
+  /// The class the client holds `e` with (it must hold it).
+  std::uint32_t held_class(entity_id e) const {
+    const auto it = view.entities().find(e);
+    REQUIRE(it != view.entities().end());
+    return it->second.state.visibility_class;
+  }
+};
+
 /// The replication algorithm of docs/zone.md written the plain way (its first implementation:
 /// a merge into fresh lists, every priority computed, 64-bit ticks), as the reference that
 /// replicator's frames must equal byte for byte.
@@ -763,7 +823,7 @@ TEST_SUITE("zone.replication") {
       }
       replication_writer writer;
       std::vector<replicator::class_note_target> notes;
-      std::size_t skipped = 0, held_checked = 0, wrong = 0;
+      std::size_t skipped = 0, held_checked = 0, wrong = 0, note_pairs = 0, unordered = 0;
       for (std::uint64_t tick = 1; tick <= 8; ++tick) {
         CAPTURE(tick);
         std::vector<class_change> changes;
@@ -780,6 +840,17 @@ TEST_SUITE("zone.replication") {
         }
         REQUIRE_FALSE(tracker.update(w.store.columns()).has_value());
         (void)rep.resync_viewers_of(w.store, tracker, tick, changes, &pool, &notes);
+        // One note per entity, a client's in entity order, the clients in order: here most
+        // clients are judged by their views (held entities and their own switches both noted).
+        for (std::size_t k = 1; k < notes.size(); ++k) {
+          const auto &a = notes[k - 1], &b = notes[k];
+          if (a.client == b.client) {
+            ++note_pairs;
+            unordered += a.entity < b.entity ? 0 : 1;
+          } else {
+            unordered += a.client < b.client ? 0 : 1;
+          }
+        }
         std::size_t at = 0;
         for (const client_id c : clients) {
           apply_notes(views[c], c, tick, notes, at);
@@ -812,6 +883,8 @@ TEST_SUITE("zone.replication") {
         w.step(false);
       }
       CHECK(wrong == 0);
+      CHECK(unordered == 0);
+      CHECK(note_pairs > 100);
       CHECK(skipped > 1000);
       CHECK(held_checked > 100000);
     }
@@ -904,68 +977,32 @@ TEST_SUITE("zone.replication") {
     // (its leave deferred behind the others'), then to one it does; the client keeps E with normal.
     for (const bool noting : {false, true}) {
       CAPTURE(noting);
-      entity_store store(64);
-      interest::thread_pool pool{2};
-      interest::grid_finder finder{&pool};
-      interest_tracker tracker{finder, &pool, {3.0f, 0, 64}};
-      entity_desc eye;
-      eye.position = {50, 50, 5};
-      eye.aoi_half_extent = {20, 20, 20};
-      eye.sees = cb::normal | cb::team_red;
-      const entity_id o = store.create(eye);
+      one_client w;
+      const entity_id o = w.eye({50, 50, 5}, cb::normal | cb::team_red);
       std::vector<entity_id> others;
       for (int k = 0; k < 30; ++k) {
         entity_desc d;
         d.position = {40.f + static_cast<float>(k % 6) * 3, 40.f + static_cast<float>(k / 6) * 3, 5};
-        others.push_back(store.create(d));
+        others.push_back(w.store.create(d));
       }
       const entity_id e = others.back();  // the highest id: its leave is the last one written
-      replication_options opt;
-      opt.world = test_world;
-      opt.byte_budget = 330;
-      replicator rep(opt);
-      const client_id c = rep.add_client(o);
-      rep.set_class_notes(c, noting);
-      net::client_view view(test_world);
-      replication_writer writer;
-      std::vector<replicator::class_note_target> notes;
-      std::size_t deferred_leaves_at_t = 0;
-      const auto tick_of = [&](std::uint64_t tick, const std::vector<class_change>& changes, bool built) {
-        REQUIRE_FALSE(tracker.update(store.columns()).has_value());
-        (void)rep.resync_viewers_of(store, tracker, tick, changes, &pool, &notes);
-        std::size_t at = 0;
-        apply_notes(view, c, tick, notes, at);
-        REQUIRE(at == notes.size());  // every note its
-        if (!built) return replication_stats{};
-        replication_stats st;
-        apply_frame(view, rep.build(c, store, tracker, tick, tick * 1000, 0, writer, &st));
-        return st;
-      };
+      w.start(o, noting, 330);
       // Grow the view to every entity (a few enters a frame).
       std::uint64_t tick = 1;
       for (; tick < 200; ++tick) {
-        if (tick_of(tick, {}, true).deferred_enters == 0 && rep.view(c).size() == others.size()) break;
+        if (w.tick(tick, {}).deferred_enters == 0 && w.rep->view(w.c).size() == others.size()) break;
       }
-      REQUIRE(rep.view(c).size() == others.size());
+      REQUIRE(w.rep->view(w.c).size() == others.size());
       // Tick T-1: not built. Tick T: every other entity switches to team_blue (unseen): all leave,
       // E's leave is deferred.
-      tick_of(++tick, {}, false);
+      w.tick(++tick, {}, false);
       std::vector<class_change> changes;
-      for (const entity_id x : others) {
-        changes.push_back({x, cb::normal, store.sees()[store.index_of(x)]});
-        REQUIRE(store.set_visibility(x, cb::team_blue, store.sees()[store.index_of(x)]));
-      }
-      deferred_leaves_at_t = tick_of(++tick, changes, true).deferred_leaves;
-      REQUIRE(deferred_leaves_at_t > 0);
-      REQUIRE(std::binary_search(rep.view(c).begin(), rep.view(c).end(), e));
+      for (const entity_id x : others) changes.push_back(w.switch_class(x, cb::team_blue));
+      REQUIRE(w.tick(++tick, changes).deferred_leaves > 0);
+      REQUIRE(w.holds(e));
       // Tick T+1: E switches to team_red (seen): it is in the visible set again and still held.
-      changes = {{e, cb::team_blue, store.sees()[store.index_of(e)]}};
-      REQUIRE(store.set_visibility(e, cb::team_red, store.sees()[store.index_of(e)]));
-      tick_of(++tick, changes, true);
-      const auto& held = view.entities();
-      const auto it = held.find(e);
-      REQUIRE(it != held.end());
-      CHECK(it->second.state.visibility_class == cb::team_red);
+      w.tick(++tick, {w.switch_class(e, cb::team_red)});
+      CHECK(w.held_class(e) == cb::team_red);
     }
   }
 
@@ -975,49 +1012,20 @@ TEST_SUITE("zone.replication") {
     // mask saw: entity E, held with team_red, switches to team_blue (the new mask's) and is kept.
     for (const bool noting : {false, true}) {
       CAPTURE(noting);
-      entity_store store(64);
-      interest::thread_pool pool{2};
-      interest::grid_finder finder{&pool};
-      interest_tracker tracker{finder, &pool, {3.0f, 0, 64}};
-      entity_desc eye;
-      eye.position = {50, 50, 5};
-      eye.aoi_half_extent = {20, 20, 20};
-      eye.sees = cb::normal | cb::team_red;
-      const entity_id o1 = store.create(eye);
-      eye.sees = cb::normal | cb::team_blue;
-      eye.position = {52, 50, 5};
-      const entity_id o2 = store.create(eye);
+      one_client w;
+      const entity_id o1 = w.eye({50, 50, 5}, cb::normal | cb::team_red);
+      const entity_id o2 = w.eye({52, 50, 5}, cb::normal | cb::team_blue);
       entity_desc d;
       d.position = {55, 55, 5};
       d.visibility_class = cb::team_red;
-      const entity_id e = store.create(d);
-      replication_options opt;
-      opt.world = test_world;
-      opt.byte_budget = 1 << 16;
-      replicator rep(opt);
-      const client_id c = rep.add_client(o1);
-      rep.set_class_notes(c, noting);
-      net::client_view view(test_world);
-      replication_writer writer;
-      std::vector<replicator::class_note_target> notes;
-      const auto tick_of = [&](std::uint64_t tick, const std::vector<class_change>& changes) {
-        REQUIRE_FALSE(tracker.update(store.columns()).has_value());
-        (void)rep.resync_viewers_of(store, tracker, tick, changes, &pool, &notes);
-        std::size_t at = 0;
-        apply_notes(view, c, tick, notes, at);
-        REQUIRE(at == notes.size());  // every note its
-        apply_frame(view, rep.build(c, store, tracker, tick, tick * 1000, 0, writer));
-      };
-      tick_of(1, {});
-      tick_of(2, {});
-      REQUIRE(std::binary_search(rep.view(c).begin(), rep.view(c).end(), e));
-      rep.set_observer(c, o2);  // a respawn, with another mask
-      const std::vector<class_change> changes{{e, cb::team_red, store.sees()[store.index_of(e)]}};
-      REQUIRE(store.set_visibility(e, cb::team_blue, store.sees()[store.index_of(e)]));
-      tick_of(3, changes);
-      const auto it = view.entities().find(e);
-      REQUIRE(it != view.entities().end());
-      CHECK(it->second.state.visibility_class == cb::team_blue);
+      const entity_id e = w.store.create(d);
+      w.start(o1, noting, 1 << 16);
+      w.tick(1, {});
+      w.tick(2, {});
+      REQUIRE(w.holds(e));
+      w.rep->set_observer(w.c, o2);  // a respawn, with another mask
+      w.tick(3, {w.switch_class(e, cb::team_blue)});
+      CHECK(w.held_class(e) == cb::team_blue);
     }
   }
 
@@ -1026,49 +1034,24 @@ TEST_SUITE("zone.replication") {
     // Its first switch's old mask is the one its view was built with; the second's (the mask in
     // between) is not: judged with that one, a held entity leaving a class only the first mask saw
     // would get no note.
-    entity_store store(64);
-    interest::thread_pool pool{2};
-    interest::grid_finder finder{&pool};
-    interest_tracker tracker{finder, &pool, {3.0f, 0, 64}};
-    entity_desc eye;
-    eye.position = {50, 50, 5};
-    eye.aoi_half_extent = {20, 20, 20};
-    eye.sees = cb::normal | cb::team_blue;
-    const entity_id o = store.create(eye);
+    one_client w;
+    const entity_id o = w.eye({50, 50, 5}, cb::normal | cb::team_blue);
     entity_desc d;
     d.position = {55, 55, 5};
     d.visibility_class = cb::team_blue;
-    const entity_id e = store.create(d);
-    replication_options opt;
-    opt.world = test_world;
-    replicator rep(opt);
-    const client_id c = rep.add_client(o);
-    rep.set_class_notes(c, true);
-    net::client_view view(test_world);
-    replication_writer writer;
-    std::vector<replicator::class_note_target> notes;
-    const auto tick_of = [&](std::uint64_t tick, const std::vector<class_change>& changes) {
-      REQUIRE_FALSE(tracker.update(store.columns()).has_value());
-      (void)rep.resync_viewers_of(store, tracker, tick, changes, &pool, &notes);
-      std::size_t at = 0;
-      apply_notes(view, c, tick, notes, at);
-      REQUIRE(at == notes.size());  // every note its
-      apply_frame(view, rep.build(c, store, tracker, tick, tick * 1000, 0, writer));
-    };
-    tick_of(1, {});
-    tick_of(2, {});  // box-tested from here on
-    REQUIRE(std::binary_search(rep.view(c).begin(), rep.view(c).end(), e));
+    const entity_id e = w.store.create(d);
+    w.start(o, true, replication_options{}.byte_budget);
+    w.tick(1, {});
+    w.tick(2, {});  // box-tested from here on
+    REQUIRE(w.holds(e));
     std::vector<class_change> changes;
-    changes.push_back({o, cb::normal, store.sees()[store.index_of(o)]});
-    REQUIRE(store.set_visibility(o, cb::normal, cb::normal));  // away from team_blue ...
-    changes.push_back({o, cb::normal, store.sees()[store.index_of(o)]});
-    REQUIRE(store.set_visibility(o, cb::normal, cb::normal | cb::team_blue));  // ... and back
-    changes.push_back({e, cb::team_blue, store.sees()[store.index_of(e)]});
-    REQUIRE(store.set_visibility(e, cb::normal, store.sees()[store.index_of(e)]));
-    tick_of(3, changes);
-    const auto it = view.entities().find(e);
-    REQUIRE(it != view.entities().end());
-    CHECK(it->second.state.visibility_class == cb::normal);
+    changes.push_back({o, cb::normal, w.store.sees()[w.store.index_of(o)]});
+    REQUIRE(w.store.set_visibility(o, cb::normal, cb::normal));  // away from team_blue ...
+    changes.push_back({o, cb::normal, w.store.sees()[w.store.index_of(o)]});
+    REQUIRE(w.store.set_visibility(o, cb::normal, cb::normal | cb::team_blue));  // ... and back
+    changes.push_back(w.switch_class(e, cb::normal));
+    w.tick(3, changes);
+    CHECK(w.held_class(e) == cb::normal);
   }
 
   TEST_CASE("frames equal the reference algorithm's byte for byte (budgets, resyncs, ticks past 2^32)") {

@@ -9,6 +9,7 @@
 #include <cstdio>
 #include <cstring>
 #include <fstream>
+#include <map>
 #include <optional>
 #include <random>
 #include <set>
@@ -276,6 +277,42 @@ TEST_SUITE("zone.viewer") {
     CHECK(seen[2] > 20);
   }
 
+  TEST_CASE(
+      "the copier's thread fills a snapshot's columns as the tick would, then publishes it; wait() returns once") {
+    const std::uint64_t seed = zone::test::fresh_seed();
+    CAPTURE(seed);
+    std::mt19937 rng(static_cast<std::uint32_t>(seed));
+    net::viewer_server viewer;
+    viewer_copier copier;
+    CHECK_FALSE(copier.wait().has_value());  // nothing started
+    std::uint64_t published = viewer.stats().snapshots_published;
+    for (const std::size_t n : {std::size_t{0}, std::size_t{1}, std::size_t{1001}, std::size_t{100003}}) {
+      CAPTURE(n);
+      entity_store store(n + 8);
+      add_random_entities(store, n, rng);
+      std::uniform_real_distribution<float> step(-2.0f, 2.0f);
+      for (int t = 0; t < 7; ++t) {
+        CAPTURE(t);
+        for (vec3& p : store.positions()) p = {p.x + step(rng), p.y + step(rng), p.z + step(rng)};
+        if (t == 3 && n > 0) (void)store.destroy(store.ids()[rng() % n]), add_random_entities(store, 1, rng);
+        net::viewer_snapshot& s = viewer.next_snapshot();
+        // What the tick's own fill would give this buffer: the reference.
+        net::viewer_snapshot want = s;
+        const viewer_columns_fill expect = fill_viewer_columns(store, want, nullptr);
+        copier.start(store, s, viewer, 0);
+        const auto done = copier.wait();
+        REQUIRE(done.has_value());
+        CHECK(static_cast<int>(done->what) == static_cast<int>(expect));
+        CHECK(done->copy_ms >= 0);
+        CHECK_FALSE(copier.wait().has_value());  // once
+        CHECK(viewer.stats().snapshots_published == ++published);
+        CHECK(&viewer.next_snapshot() != &s);  // published: the producer moved on to another buffer
+        CHECK(same_columns(s, want));
+        check_columns_are_store(store, s);
+      }
+    }
+  }
+
   TEST_CASE("config: the viewer needs the HTTP endpoint; rates and caps are checked") {
     auto c = viewer_config();
     c.metrics_enabled = false;
@@ -394,7 +431,14 @@ TEST_SUITE("zone.viewer") {
       [[nodiscard]] bool owns(entity_id) const override { return true; }
       void forward_input(entity_id, const vec3&, std::uint32_t) override {}
     } ext;
-    zone_server server(viewer_config());
+    // The columns copied in the tick (--viewer-fill wait) or on the copier's thread after it.
+    std::string fill;
+    SUBCASE("filled in the tick") { fill = "wait"; }
+    SUBCASE("filled after the tick") { fill = "after"; }
+    CAPTURE(fill);
+    auto cfg = viewer_config();
+    cfg.viewer_fill = fill;
+    zone_server server(cfg);
     server.set_extension(&ext);
     REQUIRE_FALSE(server.start().has_value());
     ws_client page(server.metrics_port());
@@ -405,6 +449,7 @@ TEST_SUITE("zone.viewer") {
     int checked = 0;
     for (int round = 0; round < 12; ++round) {
       server.tick_once();
+      server.viewer_flush();
       const auto tick = static_cast<std::uint32_t>(server.world().tick());
       std::optional<std::vector<std::uint8_t>> f;
       for (int k = 0; k < 200 && !f; ++k) {
@@ -437,8 +482,158 @@ TEST_SUITE("zone.viewer") {
     CHECK(ext.spawned.size() >= 4);
   }
 
+  TEST_CASE("--viewer-fill after, ticks back to back as run() does (no viewer_flush): every frame is its tick's store, every copy counted once") {
+    // The other server tests wait for the copier after each tick (viewer_flush); here the next
+    // tick's own wait is all that keeps its step (churn: an entity out and one in, the NPCs
+    // moving) off the copy of the last tick's snapshot (ThreadSanitizer sees a missing wait), and
+    // its accounting is all that counts the copies.
+    struct churn final : zone_extension {
+      std::vector<entity_id> spawned;
+      int step = 0;
+      void started(std::uint16_t) override {}
+      void before_step(zone_world& w) override {
+        ++step;
+        if (step > 4) {
+          CHECK(w.despawn(spawned.front()));
+          spawned.erase(spawned.begin());
+        }
+        spawned.push_back(w.spawn_player({50.0f + 3.0f * static_cast<float>(step % 150), 300, 0}, step % 4 == 1));
+      }
+      void after_step(zone_world&, std::vector<redirect>&) override {}
+      claim claim_token(const std::string&, zone_world&, entity_id&) override { return claim::refused; }
+      [[nodiscard]] bool owns(entity_id) const override { return true; }
+      void forward_input(entity_id, const vec3&, std::uint32_t) override {}
+    } ext;
+    auto cfg = viewer_config();
+    cfg.viewer_fill = "after";
+    zone_server server(cfg);
+    server.set_extension(&ext);
+    REQUIRE_FALSE(server.start().has_value());
+    ws_client page(server.metrics_port());
+    REQUIRE_FALSE(page.error);
+    REQUIRE(page.send(request_bytes({-10, -10, 610, 610, 0, 100000})));
+    REQUIRE(eventually([&] { return server.viewer()->viewers() == 1; }));
+    const auto& store = server.world().store();
+    // Each tick's store as the tick left it (read beside the copier: both only read it).
+    struct row {
+      float x, y;
+      std::uint8_t cls, kind;
+    };
+    std::map<std::uint32_t, std::map<std::uint32_t, row>> at_tick;
+    const std::uint64_t after0 = server.stats().viewer_columns_after_tick;
+    const std::uint64_t published0 = server.viewer()->stats().snapshots_published;
+    std::uint64_t ticks = 0;
+    int checked = 0;
+    for (int round = 0; round < 40; ++round) {
+      std::uint32_t last = 0;
+      for (int k = 0; k < 3; ++k) {  // back to back: the copy of one overlaps the next one's start
+        server.tick_once();
+        ++ticks;
+        last = static_cast<std::uint32_t>(server.world().tick());
+        auto& m = at_tick[last];
+        for (std::size_t d = 0; d < store.size(); ++d) {
+          const vec3 p = store.positions()[d];
+          m[store.ids()[d]] = {p.x, p.y, static_cast<std::uint8_t>(std::countr_zero(store.visibility_classes()[d])),
+                               static_cast<std::uint8_t>(store.kinds()[d])};
+        }
+      }
+      // The frames that came meanwhile, up to the last tick's (published by the copier).
+      for (int k = 0; k < 50; ++k) {
+        auto msg = page.read();
+        REQUIRE(msg);
+        const auto& f = msg->second;
+        if (msg->first || f.empty() || f[0] != net::viewer_frame_entities) continue;
+        const std::uint32_t tick = at<std::uint32_t>(f, 4);
+        const auto it = at_tick.find(tick);
+        REQUIRE(it != at_tick.end());
+        CAPTURE(tick);
+        const auto& want = it->second;
+        REQUIRE(at<std::uint32_t>(f, 12) == want.size());
+        const float x0 = at<float>(f, 16), y0 = at<float>(f, 20), x1 = at<float>(f, 24), y1 = at<float>(f, 28);
+        std::size_t bad = 0;
+        for (std::size_t e = 0; e < want.size(); ++e) {
+          const std::size_t o = net::viewer_frame_header_bytes + e * net::viewer_entity_record_bytes;
+          const auto w = want.find(at<std::uint32_t>(f, o));
+          if (w == want.end()) {
+            ++bad;
+            continue;
+          }
+          const float x = x0 + at<std::uint16_t>(f, o + 4) * (x1 - x0) / 65535, y = y0 + at<std::uint16_t>(f, o + 6) * (y1 - y0) / 65535;
+          bad += std::fabs(x - w->second.x) > (x1 - x0) / 65535 + 1e-3f || std::fabs(y - w->second.y) > (y1 - y0) / 65535 + 1e-3f ||
+                 f[o + 8] != w->second.cls || f[o + 9] != w->second.kind;
+        }
+        CHECK(bad == 0);
+        ++checked;
+        if (tick == last) break;
+      }
+    }
+    server.viewer_flush();
+    // Every tick's snapshot due (viewer_hz = tick rate): each copied after its tick, counted once,
+    // published once.
+    CHECK(server.stats().viewer_columns_after_tick - after0 == ticks);
+    CHECK(server.viewer()->stats().snapshots_published - published0 == ticks);
+    CHECK(checked >= 20);
+    CHECK(ext.spawned.size() >= 4);
+  }
+
+  TEST_CASE("--viewer-fill after: a tick's wait for the copier is in its viewer phase and viewer_fill_ms, not its inputs") {
+    // Ticks back to back with a large zone: each tick starts while the copier still copies the
+    // last one's snapshot, so its wait is long enough to tell where it was counted.
+    const std::string csv_path = "test_zone_viewer_wait_ticks.csv";
+    std::map<std::uint64_t, double> waited;  // tick -> its wait for the copier (loop_stats)
+    {
+      auto cfg = viewer_config();
+      cfg.viewer_fill = "after";
+      cfg.npc_count = 60000;
+      cfg.world = {{0, 0, 0}, {8000, 8000, 40}};
+      cfg.tick_csv = csv_path;
+      zone_server server(cfg);
+      REQUIRE_FALSE(server.start().has_value());
+      ws_client page(server.metrics_port());
+      REQUIRE_FALSE(page.error);
+      REQUIRE(page.send(request_bytes({0, 0, 8000, 8000, 0, 1000})));
+      REQUIRE(eventually([&] { return server.viewer()->viewers() == 1; }));
+      for (int k = 0; k < 30; ++k) {
+        const double before = server.stats().viewer_copy_wait_ms;
+        server.tick_once();
+        waited[server.world().tick()] = server.stats().viewer_copy_wait_ms - before;
+      }
+    }  // the tick CSV is complete once the server is gone
+    std::ifstream in(csv_path);
+    REQUIRE(in.good());
+    std::string line;
+    REQUIRE(std::getline(in, line));
+    std::size_t rows = 0;
+    double longest = 0;
+    while (std::getline(in, line)) {
+      std::vector<double> v;
+      std::istringstream row(line);
+      for (std::string cell; std::getline(row, cell, ',');) v.push_back(std::stod(cell));
+      REQUIRE(v.size() == 14);
+      const auto it = waited.find(static_cast<std::uint64_t>(v[0]));
+      if (it == waited.end()) continue;
+      ++rows;
+      CAPTURE(it->first);
+      const double wait = it->second, inputs = v[5], tick = v[10], viewer = v[11], fill = v[12];
+      CAPTURE(wait);
+      longest = std::max(longest, wait);
+      constexpr double rounding = 0.002;  // the CSV's 3 decimals (4 for viewer_fill_ms)
+      CHECK(viewer + rounding >= wait);   // the viewer's cost to the tick: its phase
+      CHECK(fill + rounding >= wait);     // and the snapshot's fill on the tick's threads
+      CHECK(inputs + viewer <= tick + rounding);  // counted once: not in the inputs phase too
+    }
+    CHECK(rows == waited.size());
+    CHECK(longest > 0.02);  // a wait long enough to show (else the checks above could not fail)
+    std::remove(csv_path.c_str());
+  }
+
   TEST_CASE("with clients (frames every tick): each snapshot is its tick's store and tracker, filled in the engines' waits or after") {
     const std::string csv_path = "test_zone_viewer_ticks.csv";
+    // The columns copied in the tick (--viewer-fill wait) or on the copier's thread after it.
+    std::string fill;
+    SUBCASE("columns in the tick") { fill = "wait"; }
+    SUBCASE("columns after the tick") { fill = "after"; }
+    CAPTURE(fill);
     std::uint64_t first_tick = 0, last_tick = 0;  // the ticks with the page open
     {
       // On the GPU interest engine the snapshot's columns are copied while its device works (inside
@@ -451,6 +646,7 @@ TEST_SUITE("zone.viewer") {
       cfg.viewer_hz = 10;
       cfg.tick_csv = csv_path;
       cfg.viewer_copy_chunk = 37;  // the columns copied in a dozen tasks over the pool where a device wait allows it
+      cfg.viewer_fill = fill;
       zone_server server(cfg);
       REQUIRE_FALSE(server.start().has_value());
       constexpr int count = 3;
@@ -463,6 +659,7 @@ TEST_SUITE("zone.viewer") {
       std::uint32_t seq = 0;
       const auto tick_and_read = [&] {
         server.tick_once();
+        server.viewer_flush();  // after the tick: its snapshot published once the copier is done
         ++seq;
         for (int i = 0; i < count; ++i) {
           while (auto m = clients[i]->read(std::chrono::milliseconds(1))) {
@@ -503,6 +700,7 @@ TEST_SUITE("zone.viewer") {
       std::vector<event> events;  // the tracker's, every tick from here on
       const std::uint64_t in_wait0 = server.stats().viewer_snapshots_in_wait;
       const std::uint64_t columns0 = server.stats().viewer_columns_in_interest_wait;
+      const std::uint64_t after0 = server.stats().viewer_columns_after_tick;
       std::uint64_t due_ticks = 0;
       std::size_t checked = 0, events_checked = 0;
       first_tick = server.world().tick() + 1;
@@ -574,10 +772,17 @@ TEST_SUITE("zone.viewer") {
       const std::uint64_t columns = server.stats().viewer_columns_in_interest_wait - columns0;
       MESSAGE("interest on " << server.interest_name() << ": " << columns << " of " << due_ticks
                              << " snapshots' columns copied in the interest engine's wait");
-      if (server.interest_name().find("engine") == std::string::npos) {
+      // After the tick, on the copier's thread, every due tick's instead.
+      const std::uint64_t after = server.stats().viewer_columns_after_tick - after0;
+      if (fill == "after") {
         CHECK(columns == 0);
+        CHECK(after == due_ticks);
+      } else if (server.interest_name().find("engine") == std::string::npos) {
+        CHECK(columns == 0);
+        CHECK(after == 0);
       } else {
         CHECK(columns == due_ticks);
+        CHECK(after == 0);
       }
       if (server.replication_name() == "cpu") {
         CHECK(in_wait == 0);
