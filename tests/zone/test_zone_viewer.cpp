@@ -104,6 +104,26 @@ void add_random_entities(entity_store& store, std::size_t count, std::mt19937& r
   REQUIRE(refused == 0);
 }
 
+/// A world extension that churns the store: a player spawned every step and, from the fifth step
+/// on, the oldest one despawned (the count stays, the ids do not).
+struct churn final : zone_extension {
+  std::vector<entity_id> spawned;
+  int step = 0;
+  void started(std::uint16_t) override {}
+  void before_step(zone_world& w) override {
+    ++step;
+    if (step > 4) {
+      CHECK(w.despawn(spawned.front()));
+      spawned.erase(spawned.begin());
+    }
+    spawned.push_back(w.spawn_player({50.0f + 3.0f * static_cast<float>(step % 150), 300, 0}, step % 4 == 1));
+  }
+  void after_step(zone_world&, std::vector<redirect>&) override {}
+  claim claim_token(const std::string&, zone_world&, entity_id&) override { return claim::refused; }
+  [[nodiscard]] bool owns(entity_id) const override { return true; }
+  void forward_input(entity_id, const vec3&, std::uint32_t) override {}
+};
+
 }  // namespace
 
 TEST_SUITE("zone.viewer") {
@@ -414,23 +434,7 @@ TEST_SUITE("zone.viewer") {
   TEST_CASE("entities created and destroyed while a page is open: every frame holds the store's entities, where they are") {
     // The snapshot copies ids, classes and kinds only when the store's layout changed since that
     // snapshot was filled (positions always): churn every tick must show in every frame.
-    struct churn final : zone_extension {
-      std::vector<entity_id> spawned;
-      int step = 0;
-      void started(std::uint16_t) override {}
-      void before_step(zone_world& w) override {
-        ++step;
-        if (step > 4) {  // then one out and one in every step: the count stays, the ids do not
-          CHECK(w.despawn(spawned.front()));
-          spawned.erase(spawned.begin());
-        }
-        spawned.push_back(w.spawn_player({50.0f + 7.0f * static_cast<float>(step), 300, 0}, step % 4 == 1));
-      }
-      void after_step(zone_world&, std::vector<redirect>&) override {}
-      claim claim_token(const std::string&, zone_world&, entity_id&) override { return claim::refused; }
-      [[nodiscard]] bool owns(entity_id) const override { return true; }
-      void forward_input(entity_id, const vec3&, std::uint32_t) override {}
-    } ext;
+    churn ext;
     // The columns copied in the tick (--viewer-fill wait) or on the copier's thread after it.
     std::string fill;
     SUBCASE("filled in the tick") { fill = "wait"; }
@@ -487,23 +491,7 @@ TEST_SUITE("zone.viewer") {
     // tick's own wait is all that keeps its step (churn: an entity out and one in, the NPCs
     // moving) off the copy of the last tick's snapshot (ThreadSanitizer sees a missing wait), and
     // its accounting is all that counts the copies.
-    struct churn final : zone_extension {
-      std::vector<entity_id> spawned;
-      int step = 0;
-      void started(std::uint16_t) override {}
-      void before_step(zone_world& w) override {
-        ++step;
-        if (step > 4) {
-          CHECK(w.despawn(spawned.front()));
-          spawned.erase(spawned.begin());
-        }
-        spawned.push_back(w.spawn_player({50.0f + 3.0f * static_cast<float>(step % 150), 300, 0}, step % 4 == 1));
-      }
-      void after_step(zone_world&, std::vector<redirect>&) override {}
-      claim claim_token(const std::string&, zone_world&, entity_id&) override { return claim::refused; }
-      [[nodiscard]] bool owns(entity_id) const override { return true; }
-      void forward_input(entity_id, const vec3&, std::uint32_t) override {}
-    } ext;
+    churn ext;
     auto cfg = viewer_config();
     cfg.viewer_fill = "after";
     zone_server server(cfg);
