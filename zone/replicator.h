@@ -180,7 +180,7 @@ class replicator {
   /// With `notes`, a client with class notes on (set_class_notes) is never resynced: for every
   /// changed entity (another than its own) that its view holds and whose new class its mask
   /// holds, it gets one note (client, entity, class now) in `*notes` (cleared first; by client,
-  /// then in the order of the changes); and when its own mask changed, one for every entity its
+  /// each client's in entity order, one per entity); and when its own mask changed, one for every entity its
   /// view holds whose class the new mask holds and its mask before the tick's first switch did not
   /// (an entity whose leave was not sent yet, which it sees again). A client whose next frame
   /// resets gets none. Call after the interest step and before the tick's frames (notes go first).

@@ -135,6 +135,18 @@ struct small_world {
 
 const net::world_bounds test_world{{0, 0, 0}, {300, 300, 10}};
 
+/// Clients on the store's first `count` entities, every odd one taking class notes, each with
+/// the view it is sent (for apply_notes and apply_frame).
+void add_clients_half_noting(replicator& rep, const entity_store& store, std::size_t count,
+                             std::vector<client_id>& clients, std::vector<net::client_view>& views) {
+  for (std::size_t k = 0; k < count; ++k) {
+    const client_id c = rep.add_client(store.ids()[k]);
+    rep.set_class_notes(c, c % 2 == 1);
+    clients.push_back(c);
+    views.emplace_back(test_world);
+  }
+}
+
 /// One client in a hand-placed world, for the class-change cases: a store, a tracker (hysteresis
 /// 3 m), a replicator whose one client takes notes or not, and the client's view. tick() runs one
 /// tick: the tracker's update, resync_viewers_of (the notes applied to the view) and, when the
@@ -815,12 +827,7 @@ TEST_SUITE("zone.replication") {
       replicator rep(o);
       std::vector<client_id> clients;
       std::vector<net::client_view> views;
-      for (std::size_t k = 0; k < 2500; ++k) {
-        const client_id c = rep.add_client(w.store.ids()[k]);
-        rep.set_class_notes(c, c % 2 == 1);
-        clients.push_back(c);
-        views.emplace_back(test_world);
-      }
+      add_clients_half_noting(rep, w.store, 2500, clients, views);
       replication_writer writer;
       std::vector<replicator::class_note_target> notes;
       std::size_t skipped = 0, held_checked = 0, wrong = 0, note_pairs = 0, unordered = 0;
@@ -909,12 +916,7 @@ TEST_SUITE("zone.replication") {
       replicator rep(o);
       std::vector<client_id> clients;
       std::vector<net::client_view> views;
-      for (std::size_t k = 0; k < 40; ++k) {
-        const client_id c = rep.add_client(w.store.ids()[k]);
-        rep.set_class_notes(c, k % 2 == 1);
-        clients.push_back(c);
-        views.emplace_back(test_world);
-      }
+      add_clients_half_noting(rep, w.store, 40, clients, views);
       const std::uint32_t classes[] = {cb::normal, cb::stealth, cb::team_red, cb::team_blue};
       const std::uint32_t masks[] = {cb::normal | cb::team_red, cb::normal | cb::team_blue,
                                      cb::normal | cb::team_red | cb::team_blue};
