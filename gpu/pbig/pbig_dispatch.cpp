@@ -817,10 +817,9 @@ void pbig_engine::launch_direct(const batch& b, pipeline_slot& s, std::uint64_t 
   CUDA_CHECK(launch_place_chunks(s.d_out.get(), s.d_cursor.get(), s.capacity, s.d_tile_off.get(), s.d_tile_pairs.get(),
                                  s.d_tile_pos.get(), tiles, s.d_direct.get(), s.stream));
   CUDA_CHECK(cudaEventRecord(s.kernel_end, s.stream));
-  CUDA_CHECK(cudaMemcpyAsync(s.h_cursor.get(), s.d_cursor.get(), sizeof(unsigned long long), cudaMemcpyDeviceToHost,
-                             s.stream));
-  CUDA_CHECK(cudaMemcpyAsync(s.h_total.get(), s.d_tile_pos.get() + tiles, sizeof(std::uint64_t), cudaMemcpyDeviceToHost,
-                             s.stream));
+  // Written by the device into pinned memory: a copy would wait behind the other slot's pairs.
+  CUDA_CHECK(launch_to_host(s.d_cursor.get(), s.h_cursor.get(), sizeof(unsigned long long), s.d_tile_pos.get() + tiles,
+                            s.h_total.get(), sizeof(std::uint64_t), s.stream));
   CUDA_CHECK(cudaEventRecord(s.totals_ready, s.stream));
   // Batch 0 sits at the start of the result whatever its size: its copy, sized by the last
   // call's batch 0 (the paper's prefetch), is queued now rather than after the host has read the

@@ -183,11 +183,12 @@ void pbig_engine::queue_stage_count(std::uint32_t n, std::uint32_t j, std::uint3
   const std::uint32_t batches = std::max<std::uint32_t>(2, (tuning::max_batches + stages - 1) / stages);
   CUDA_CHECK(launch_batch_plan(d_plan_.get(), prefix, large_counter, rb, readback_limits(), tuning::min_tiles_per_batch,
                                batches, stage_));
-  CUDA_CHECK(cudaMemcpyAsync(h_stage_rb_.get() + j, rb, sizeof(map_readback), cudaMemcpyDeviceToHost, stage_));
-  if (check && j > 0) {
-    CUDA_CHECK(cudaMemcpyAsync(h_chunk_bounds_.get() + j, d_chunk_bounds_.get() + j, sizeof(bounds_dev),
-                               cudaMemcpyDeviceToHost, stage_));
-  }
+  // The read-back written by the device into pinned memory: a copy would wait on the copy engine
+  // behind the earlier stage's pairs, still being copied out, and hold this stage's map back.
+  static_assert(sizeof(map_readback) % 4 == 0 && sizeof(bounds_dev) % 4 == 0);
+  const bool bounds = check && j > 0;
+  CUDA_CHECK(launch_to_host(rb, h_stage_rb_.get() + j, sizeof(map_readback), d_chunk_bounds_.get() + j,
+                            h_chunk_bounds_.get() + j, bounds ? sizeof(bounds_dev) : 0, stage_));
   CUDA_CHECK(cudaEventRecord(ev_stage_counted_[j], stage_));
 }
 
