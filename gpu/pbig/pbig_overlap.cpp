@@ -344,6 +344,10 @@ bool pbig_engine::run_overlapped(const interest::box_set& boxes, std::uint32_t n
     if (batches.empty()) continue;
     for (auto& s : slot_) CUDA_CHECK(cudaStreamWaitEvent(s.stream, ev_mapped_[j], 0));
     for (const batch& b : batches) {
+      // One batch's checks at a time: the previous batch's (on the other slot) first, so each
+      // batch's pairs are ready, and copied out, as soon as they can be (two batches' checks side by
+      // side end together, and the first copy of a stage waits for both).
+      if (launched > 0) CUDA_CHECK(cudaStreamWaitEvent(slot_[launched % 2].stream, slot_[(launched - 1) % 2].kernel_end, 0));
       launch_direct(b, slot_[launched % 2]);
       if (mapped < k && !map_next(false) && invalid) return abandon();
       finish_pending();
