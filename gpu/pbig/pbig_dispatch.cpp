@@ -145,6 +145,7 @@ std::optional<std::uint64_t> pbig_engine::run(const interest::box_set& boxes, in
   if (count > std::numeric_limits<std::uint32_t>::max() / 2) throw std::length_error("pbig: too many boxes");
   const auto n = static_cast<std::uint32_t>(count);
   report_ = {};
+  copy_spans_.clear();
   entries_ready_ = false;
   indirect_ = count >= opt_.indirect_check_min_boxes;
   report_.indirect_check = indirect_;
@@ -222,6 +223,7 @@ std::optional<std::uint64_t> pbig_engine::run(const interest::box_set& boxes, in
     report_.map_gather_ms = elapsed_ms(ev_sorted_, ev_map_);
   }
   if (opt_.compression && !opt_.direct_output) report_.data_out_ms += elapsed_ms(ev_entries_begin_, ev_entries_);
+  report_.data_out_ms += copy_spans_ms();
   report_.pairs = grid_pairs + large;
   report_.plan_reused = plan_.reused != 0;
   report_.alpha = plan_.alpha;
@@ -838,8 +840,22 @@ void pbig_engine::launch_direct(const batch& b, pipeline_slot& s, std::uint64_t 
 void pbig_engine::account_copy(pipeline_slot& s) {
   if (!s.copy_pending) return;
   CUDA_CHECK(cudaEventSynchronize(s.copy_end));
-  report_.data_out_ms += elapsed_ms(s.copy_begin, s.copy_end);
+  // A copy queued while the other slot's is running waits behind it: its span from the call's
+  // start; DataOut is the spans' union (copy_spans_ms), the time the copy engine moved pairs.
+  copy_spans_.emplace_back(elapsed_ms(ev_start_, s.copy_begin), elapsed_ms(ev_start_, s.copy_end));
   s.copy_pending = false;
+}
+
+double pbig_engine::copy_spans_ms() {
+  std::sort(copy_spans_.begin(), copy_spans_.end());
+  double total = 0, until = 0;
+  for (const auto& [begin, end] : copy_spans_) {
+    const double from = std::max<double>(begin, until);
+    if (end > from) total += end - from;
+    until = std::max<double>(until, end);
+  }
+  copy_spans_.clear();
+  return total;
 }
 
 void pbig_engine::ensure_result(std::uint64_t needed, std::uint64_t keep) {

@@ -162,7 +162,10 @@ class pbig_engine {
   std::uint64_t check_direct(std::uint32_t n);
   void launch_direct(const batch& b, pipeline_slot& s, std::uint64_t prefetch_pairs = 0);
   std::uint64_t finish_direct(const batch& b, pipeline_slot& s, std::uint64_t base, std::size_t done, std::size_t count);
+  /// Direct output: waits for slot s's pending copy and keeps its span (copy_spans_).
   void account_copy(pipeline_slot& s);
+  /// The union of the kept copy spans in ms (overlapping spans counted once); clears them.
+  double copy_spans_ms();
   void ensure_result(std::uint64_t needed, std::uint64_t keep);
   void grow_temp(std::size_t bytes);
 
@@ -239,6 +242,7 @@ class pbig_engine {
   } last_call_;
 
   pbig_report report_{};
+  std::vector<std::pair<float, float>> copy_spans_;  // direct output: this call's pair copies, ms from ev_start_
 };
 
 }  // namespace zone::gpu::detail
