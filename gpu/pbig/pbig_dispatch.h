@@ -223,11 +223,11 @@ class pbig_engine {
   /// The stages' count, read-back and map, in stage order: off the slots' streams, so a stage's
   /// count waits for its chunk only, not behind the earlier stages' pair copies.
   cudaStream_t stage_ = nullptr;
-  cudaEvent_t ev_chunk_[max_overlap_chunks] = {};    // chunk j is on the device
-  cudaEvent_t ev_staged_[max_overlap_chunks] = {};   // stage j's MAP begins (stage stream)
+  cudaEvent_t ev_chunk_[max_overlap_chunks] = {};          // chunk j is on the device
+  cudaEvent_t ev_staged_[max_overlap_chunks] = {};         // stage j's MAP begins (stage stream)
   cudaEvent_t ev_stage_counted_[max_overlap_chunks] = {};  // stage j's read-back is in host memory
   cudaEvent_t ev_map_begin_[max_overlap_chunks] = {};      // stage j's map is queued from here
-  cudaEvent_t ev_mapped_[max_overlap_chunks] = {};   // stage j's lists and work items are ready
+  cudaEvent_t ev_mapped_[max_overlap_chunks] = {};         // stage j's lists and work items are ready
   overlap_stage stages_[max_overlap_chunks];
   std::uint32_t stage_width_ = 64;          // this call's stage width (stage_width())
   device_buffer<map_readback> d_stage_rb_;  // per stage (the stage's checks read theirs while later stages map)

@@ -178,12 +178,13 @@ cudaError_t launch_to_host(const void* a, void* host_a, std::size_t a_bytes, con
   const auto aligned = [](const void* p, std::size_t bytes) {
     return reinterpret_cast<std::uintptr_t>(p) % 4 == 0 && bytes % 4 == 0;
   };
-  if (!aligned(a, a_bytes) || !aligned(host_a, a_bytes) || (b_bytes > 0 && (!aligned(b, b_bytes) || !aligned(host_b, b_bytes)))) {
+  if (!aligned(a, a_bytes) || !aligned(host_a, a_bytes) ||
+      (b_bytes > 0 && (!aligned(b, b_bytes) || !aligned(host_b, b_bytes)))) {
     return cudaErrorInvalidValue;
   }
   to_host_kernel<<<1, 32, 0, stream>>>(static_cast<const std::uint32_t*>(a), static_cast<std::uint32_t*>(host_a),
-                                        static_cast<std::uint32_t>(a_bytes / 4), static_cast<const std::uint32_t*>(b),
-                                        static_cast<std::uint32_t*>(host_b), static_cast<std::uint32_t>(b_bytes / 4));
+                                       static_cast<std::uint32_t>(a_bytes / 4), static_cast<const std::uint32_t*>(b),
+                                       static_cast<std::uint32_t*>(host_b), static_cast<std::uint32_t>(b_bytes / 4));
   return cudaGetLastError();
 }
 

@@ -165,7 +165,8 @@ void pbig_engine::queue_stage_count(std::uint32_t n, std::uint32_t j, std::uint3
   std::uint32_t* counts = d_counts_.get();
   std::uint32_t* large_counter = counts + cells + 1;
   CUDA_CHECK(cudaMemsetAsync(counts, 0, (2ull * cells + 2) * sizeof(std::uint32_t), stage_));
-  CUDA_CHECK(launch_count(chunk, count, d_plan_.get(), cells, counts, d_is_large_.get() + first, large_counter, stage_));
+  CUDA_CHECK(
+      launch_count(chunk, count, d_plan_.get(), cells, counts, d_is_large_.get() + first, large_counter, stage_));
   CUDA_CHECK(launch_pack_boxes(chunk, count, d_box_lo_.get() + first, d_box_hi_.get() + first, stage_));
 
   const stage_lists earlier = lists_of(j);
@@ -178,7 +179,8 @@ void pbig_engine::queue_stage_count(std::uint32_t n, std::uint32_t j, std::uint3
     throw std::logic_error("pbig: overlapped upload scratch not sized (internal error)");
   }
   CUDA_CHECK(scan_stage_cells(d_temp_.get(), scan_bytes, counts, earlier, stage_width_, prefix, cells, stage_));
-  CUDA_CHECK(reduce_stage_cells(d_temp_.get(), reduce_bytes, counts, earlier, stage_width_, &rb->totals, cells, stage_));
+  CUDA_CHECK(
+      reduce_stage_cells(d_temp_.get(), reduce_bytes, counts, earlier, stage_width_, &rb->totals, cells, stage_));
   const std::uint32_t stages = static_cast<std::uint32_t>(report_.overlap_chunks);
   const std::uint32_t batches = std::max<std::uint32_t>(2, (tuning::max_batches + stages - 1) / stages);
   CUDA_CHECK(launch_batch_plan(d_plan_.get(), prefix, large_counter, rb, readback_limits(), tuning::min_tiles_per_batch,
@@ -347,7 +349,8 @@ bool pbig_engine::run_overlapped(const interest::box_set& boxes, std::uint32_t n
       // One batch's checks at a time: the previous batch's (on the other slot) first, so each
       // batch's pairs are ready, and copied out, as soon as they can be (two batches' checks side by
       // side end together, and the first copy of a stage waits for both).
-      if (launched > 0) CUDA_CHECK(cudaStreamWaitEvent(slot_[launched % 2].stream, slot_[(launched - 1) % 2].kernel_end, 0));
+      if (launched > 0)
+        CUDA_CHECK(cudaStreamWaitEvent(slot_[launched % 2].stream, slot_[(launched - 1) % 2].kernel_end, 0));
       launch_direct(b, slot_[launched % 2]);
       if (mapped < k && !map_next(false) && invalid) return abandon();
       finish_pending();
