@@ -90,7 +90,7 @@ struct pbig_report {
   double map_gather_ms = 0;   ///<   of which: gather of the packed box array
   double sched_ms = 0;     ///< SCHED: work items (cell, segment) for the checking blocks
   double check_ms = 0;     ///< CHECK: checking kernels (sum over batches, re-runs included)
-  double data_out_ms = 0;  ///< DataOut: device-to-host copies (sum of copy times)
+  double data_out_ms = 0;  ///< DataOut: device-to-host copies (the copies' spans, overlaps counted once)
   double report_ms = 0;    ///< REPORT: CPU decode into the pair list (sum over batches)
   double large_ms = 0;     ///< boxes handled apart from the grid (host wall time)
   double pipeline_ms = 0;  ///< wall time of CHECK + DataOut + REPORT together

@@ -136,9 +136,11 @@ class pbig_engine {
                       std::uint64_t& pairs);
   /// Queues chunk j's upload on upload_ (classes filled when they are box 0's), then ev_chunk_[j].
   void upload_chunk(const interest::box_set& boxes, std::uint32_t j, std::uint32_t first, std::uint32_t count);
-  /// Queues stage j's validation (when asked), count, prefixes, totals, batch plan and read-back.
+  /// Queues stage j's validation (when asked), count, prefixes, totals, batch plan and read-back
+  /// on the stage stream (after chunk j has landed), then ev_stage_counted_[j].
   void queue_stage_count(std::uint32_t n, std::uint32_t j, std::uint32_t first, std::uint32_t count, bool check);
-  /// Queues stage j's map, per-cell sort and work items after its read-back; ev_mapped_[j] after.
+  /// Queues stage j's map, per-cell sort and work items (stage stream) after its read-back;
+  /// ev_mapped_[j] after.
   void queue_stage_map(std::uint32_t n, std::uint32_t j, std::uint32_t first, std::uint32_t count);
   /// Lists 0..count-1 of the stages.
   [[nodiscard]] stage_lists lists_of(std::uint32_t count) const;
@@ -160,7 +162,10 @@ class pbig_engine {
   std::uint64_t check_direct(std::uint32_t n);
   void launch_direct(const batch& b, pipeline_slot& s, std::uint64_t prefetch_pairs = 0);
   std::uint64_t finish_direct(const batch& b, pipeline_slot& s, std::uint64_t base, std::size_t done, std::size_t count);
+  /// Direct output: waits for slot s's pending copy and keeps its span (copy_spans_).
   void account_copy(pipeline_slot& s);
+  /// The union of the kept copy spans in ms (overlapping spans counted once); clears them.
+  double copy_spans_ms();
   void ensure_result(std::uint64_t needed, std::uint64_t keep);
   void grow_temp(std::size_t bytes);
 
@@ -215,9 +220,14 @@ class pbig_engine {
 
   // overlapped upload
   cudaStream_t upload_ = nullptr;  // the chunks' host-to-device copies
-  cudaEvent_t ev_chunk_[max_overlap_chunks] = {};   // chunk j is on the device
-  cudaEvent_t ev_staged_[max_overlap_chunks] = {};  // stage j's MAP begins (main stream)
-  cudaEvent_t ev_mapped_[max_overlap_chunks] = {};  // stage j's lists and work items are ready
+  /// The stages' count, read-back and map, in stage order: off the slots' streams, so a stage's
+  /// count waits for its chunk only, not behind the earlier stages' pair copies.
+  cudaStream_t stage_ = nullptr;
+  cudaEvent_t ev_chunk_[max_overlap_chunks] = {};          // chunk j is on the device
+  cudaEvent_t ev_staged_[max_overlap_chunks] = {};         // stage j's MAP begins (stage stream)
+  cudaEvent_t ev_stage_counted_[max_overlap_chunks] = {};  // stage j's read-back is in host memory
+  cudaEvent_t ev_map_begin_[max_overlap_chunks] = {};      // stage j's map is queued from here
+  cudaEvent_t ev_mapped_[max_overlap_chunks] = {};         // stage j's lists and work items are ready
   overlap_stage stages_[max_overlap_chunks];
   std::uint32_t stage_width_ = 64;          // this call's stage width (stage_width())
   device_buffer<map_readback> d_stage_rb_;  // per stage (the stage's checks read theirs while later stages map)
@@ -232,6 +242,7 @@ class pbig_engine {
   } last_call_;
 
   pbig_report report_{};
+  std::vector<std::pair<float, float>> copy_spans_;  // direct output: this call's pair copies, ms from ev_start_
 };
 
 }  // namespace zone::gpu::detail

@@ -164,6 +164,30 @@ cudaError_t launch_batch_plan(const grid_plan_dev* plan, const cell_prefix* pref
   return cudaGetLastError();
 }
 
+namespace {
+__global__ void to_host_kernel(const std::uint32_t* a, std::uint32_t* host_a, std::uint32_t a_words,
+                               const std::uint32_t* b, std::uint32_t* host_b, std::uint32_t b_words) {
+  for (std::uint32_t i = threadIdx.x; i < a_words; i += blockDim.x) host_a[i] = a[i];
+  for (std::uint32_t i = threadIdx.x; i < b_words; i += blockDim.x) host_b[i] = b[i];
+  __threadfence_system();
+}
+}  // namespace
+
+cudaError_t launch_to_host(const void* a, void* host_a, std::size_t a_bytes, const void* b, void* host_b,
+                           std::size_t b_bytes, cudaStream_t stream) {
+  const auto aligned = [](const void* p, std::size_t bytes) {
+    return reinterpret_cast<std::uintptr_t>(p) % 4 == 0 && bytes % 4 == 0;
+  };
+  if (!aligned(a, a_bytes) || !aligned(host_a, a_bytes) ||
+      (b_bytes > 0 && (!aligned(b, b_bytes) || !aligned(host_b, b_bytes)))) {
+    return cudaErrorInvalidValue;
+  }
+  to_host_kernel<<<1, 32, 0, stream>>>(static_cast<const std::uint32_t*>(a), static_cast<std::uint32_t*>(host_a),
+                                       static_cast<std::uint32_t>(a_bytes / 4), static_cast<const std::uint32_t*>(b),
+                                       static_cast<std::uint32_t*>(host_b), static_cast<std::uint32_t>(b_bytes / 4));
+  return cudaGetLastError();
+}
+
 cudaError_t launch_map(const box_arrays& boxes, std::uint32_t n, std::uint32_t first_id, const grid_plan_dev* plan,
                        const map_readback* grid, const std::uint8_t* is_large, const cell_prefix* prefix,
                        std::uint32_t* cursor, std::uint32_t* entries, cudaStream_t stream) {

@@ -28,6 +28,13 @@ cudaError_t reduce_cells(void* temp, std::size_t& temp_bytes, const std::uint32_
 cudaError_t launch_batch_plan(const grid_plan_dev* plan, const cell_prefix* prefix, const std::uint32_t* large_count,
                               map_readback* rb, const grid_capacity& cap, std::uint32_t min_tiles,
                               std::uint32_t max_batches, cudaStream_t stream);
+/// Writes a_bytes from device memory `a` to pinned host memory `host_a` (and b_bytes from `b` to
+/// `host_b`, when b_bytes > 0) from a kernel: pinned memory is mapped under unified addressing, so
+/// the values the host waits for do not queue on the copy engine behind the pairs' copies queued
+/// before them (a read-back by cudaMemcpyAsync does). Sizes and addresses multiples of 4; the host
+/// reads them once an event recorded after this launch has completed.
+cudaError_t launch_to_host(const void* a, void* host_a, std::size_t a_bytes, const void* b, void* host_b,
+                           std::size_t b_bytes, cudaStream_t stream);
 // The kernels below read `grid` (device memory, filled by launch_batch_plan) and do nothing past
 // its sizes, so they can be queued with capacities as sizes before the host knows the grid.
 /// Box i of `boxes` (and is_large[i]) has the id first_id + i.

@@ -7,10 +7,14 @@
 //  1. PLAN once, from chunk 0 (its bounds and sample; f = N alpha / M with the whole N). Later
 //     chunks use the same grid; cell_of clamps coordinates outside it to the border cells, so any
 //     two intersecting boxes still share a cell (the output-cell rule holds), only less balanced.
-//  2. Per stage, on the main stream once chunk j has landed: its validation (pinned input), count,
-//     the stage's per-cell prefixes and totals (chunk j's count q and the earlier chunks' count p
-//     in each cell: stage_layout, pbig_shared.h), the batch plan, one read-back; then map chunk j
-//     into its own per-cell lists, sort each by id, and expand the stage's work items.
+//  2. Per stage, on a stream of its own (stage_) once chunk j has landed: its validation (pinned
+//     input), count, the stage's per-cell prefixes and totals (chunk j's count q and the earlier
+//     chunks' count p in each cell: stage_layout, pbig_shared.h), the batch plan, one read-back;
+//     then map chunk j into its own per-cell lists, sort each by id, and expand the stage's work
+//     items. Stage j + 1's count is queued right after stage j's map, and its map as soon as the
+//     host sees that read-back (polled between batches), so both run while stage j's pairs are
+//     checked and copied out: a stage waits for its chunk and the device, not for the earlier
+//     stages' copies (on the slots' streams, where the stages ran before).
 //  3. The stage's batches check chunk j's lists against themselves and the earlier chunks' lists
 //     of the same cells, never two earlier boxes (check_stage_kernel: a work item per W boxes of
 //     chunk j in a cell, the stage width W chosen from the plan: stage_width), in the
@@ -131,12 +135,12 @@ void pbig_engine::upload_chunk(const interest::box_set& boxes, std::uint32_t j, 
                                cudaMemcpyHostToDevice, upload_));
   }
   // While the coordinates are copied: does the chunk share box 0's category and mask? Then those
-  // arrays are filled on the device (as upload() does for the whole set), on the main stream,
+  // arrays are filled on the device (as upload() does for the whole set), on the stage stream,
   // which reads them only after its wait for this chunk; the copy stream keeps copying.
   if (opt_.fill_uniform_classes && n >= tuning::uniform_classes_min_boxes &&
       uniform_classes(boxes, first, std::size_t{first} + count)) {
-    CUDA_CHECK(launch_fill_u32(boxes_.bits() + first, count, boxes.category[0], main_));
-    CUDA_CHECK(launch_fill_u32(boxes_.bits() + n + first, count, boxes.mask[0], main_));
+    CUDA_CHECK(launch_fill_u32(boxes_.bits() + first, count, boxes.category[0], stage_));
+    CUDA_CHECK(launch_fill_u32(boxes_.bits() + n + first, count, boxes.mask[0], stage_));
     report_.bytes_in += 24ull * count;
   } else {
     CUDA_CHECK(cudaMemcpyAsync(boxes_.bits() + first, boxes.category.data() + first, std::size_t{count} * 4,
@@ -153,37 +157,41 @@ void pbig_engine::queue_stage_count(std::uint32_t n, std::uint32_t j, std::uint3
                                     bool check) {
   const box_arrays chunk = chunk_of(boxes_.arrays(n), first);
   const auto cells = static_cast<std::uint32_t>(plan_.cells);
-  CUDA_CHECK(cudaStreamWaitEvent(main_, ev_chunk_[j], 0));
-  CUDA_CHECK(cudaEventRecord(ev_staged_[j], main_));
+  CUDA_CHECK(cudaStreamWaitEvent(stage_, ev_chunk_[j], 0));
+  CUDA_CHECK(cudaEventRecord(ev_staged_[j], stage_));
   if (check && j > 0)
-    CUDA_CHECK(launch_validate(chunk, count, d_chunk_bounds_.get() + j, main_));  // chunk 0: the plan's
+    CUDA_CHECK(launch_validate(chunk, count, d_chunk_bounds_.get() + j, stage_));  // chunk 0: the plan's
   // queue_count's layout: counts[0, cells] (counts[cells] stays 0), the large-box counter, cursors.
   std::uint32_t* counts = d_counts_.get();
   std::uint32_t* large_counter = counts + cells + 1;
-  CUDA_CHECK(cudaMemsetAsync(counts, 0, (2ull * cells + 2) * sizeof(std::uint32_t), main_));
-  CUDA_CHECK(launch_count(chunk, count, d_plan_.get(), cells, counts, d_is_large_.get() + first, large_counter, main_));
-  CUDA_CHECK(launch_pack_boxes(chunk, count, d_box_lo_.get() + first, d_box_hi_.get() + first, main_));
+  CUDA_CHECK(cudaMemsetAsync(counts, 0, (2ull * cells + 2) * sizeof(std::uint32_t), stage_));
+  CUDA_CHECK(
+      launch_count(chunk, count, d_plan_.get(), cells, counts, d_is_large_.get() + first, large_counter, stage_));
+  CUDA_CHECK(launch_pack_boxes(chunk, count, d_box_lo_.get() + first, d_box_hi_.get() + first, stage_));
 
   const stage_lists earlier = lists_of(j);
   cell_prefix* prefix = stages_[j].prefix.get();
   map_readback* rb = d_stage_rb_.get() + j;
   std::size_t scan_bytes = 0, reduce_bytes = 0;
-  CUDA_CHECK(scan_stage_cells(nullptr, scan_bytes, counts, earlier, stage_width_, prefix, cells, main_));
-  CUDA_CHECK(reduce_stage_cells(nullptr, reduce_bytes, counts, earlier, stage_width_, &rb->totals, cells, main_));
+  CUDA_CHECK(scan_stage_cells(nullptr, scan_bytes, counts, earlier, stage_width_, prefix, cells, stage_));
+  CUDA_CHECK(reduce_stage_cells(nullptr, reduce_bytes, counts, earlier, stage_width_, &rb->totals, cells, stage_));
   if (std::max(scan_bytes, reduce_bytes) > d_temp_.capacity()) {
     throw std::logic_error("pbig: overlapped upload scratch not sized (internal error)");
   }
-  CUDA_CHECK(scan_stage_cells(d_temp_.get(), scan_bytes, counts, earlier, stage_width_, prefix, cells, main_));
-  CUDA_CHECK(reduce_stage_cells(d_temp_.get(), reduce_bytes, counts, earlier, stage_width_, &rb->totals, cells, main_));
+  CUDA_CHECK(scan_stage_cells(d_temp_.get(), scan_bytes, counts, earlier, stage_width_, prefix, cells, stage_));
+  CUDA_CHECK(
+      reduce_stage_cells(d_temp_.get(), reduce_bytes, counts, earlier, stage_width_, &rb->totals, cells, stage_));
   const std::uint32_t stages = static_cast<std::uint32_t>(report_.overlap_chunks);
   const std::uint32_t batches = std::max<std::uint32_t>(2, (tuning::max_batches + stages - 1) / stages);
   CUDA_CHECK(launch_batch_plan(d_plan_.get(), prefix, large_counter, rb, readback_limits(), tuning::min_tiles_per_batch,
-                               batches, main_));
-  CUDA_CHECK(cudaMemcpyAsync(h_stage_rb_.get() + j, rb, sizeof(map_readback), cudaMemcpyDeviceToHost, main_));
-  if (check && j > 0) {
-    CUDA_CHECK(cudaMemcpyAsync(h_chunk_bounds_.get() + j, d_chunk_bounds_.get() + j, sizeof(bounds_dev),
-                               cudaMemcpyDeviceToHost, main_));
-  }
+                               batches, stage_));
+  // The read-back written by the device into pinned memory: a copy would wait on the copy engine
+  // behind the earlier stage's pairs, still being copied out, and hold this stage's map back.
+  static_assert(sizeof(map_readback) % 4 == 0 && sizeof(bounds_dev) % 4 == 0);
+  const bool bounds = check && j > 0;
+  CUDA_CHECK(launch_to_host(rb, h_stage_rb_.get() + j, sizeof(map_readback), d_chunk_bounds_.get() + j,
+                            h_chunk_bounds_.get() + j, bounds ? sizeof(bounds_dev) : 0, stage_));
+  CUDA_CHECK(cudaEventRecord(ev_stage_counted_[j], stage_));
 }
 
 void pbig_engine::queue_stage_map(std::uint32_t n, std::uint32_t j, std::uint32_t first, std::uint32_t count) {
@@ -192,30 +200,32 @@ void pbig_engine::queue_stage_map(std::uint32_t n, std::uint32_t j, std::uint32_
   overlap_stage& st = stages_[j];
   const map_readback& rb = st.rb;
   const map_readback* grid = d_stage_rb_.get() + j;
-  // This call has not used these buffers yet (the other stages have their own), and main_ has
-  // finished with d_entries_unsorted_ and d_temp_ (the read-back waited for it).
+  // This call has not used these buffers yet (the other stages have their own), and the stage
+  // stream has finished with d_entries_unsorted_ and d_temp_ (the host waited for this stage's
+  // read-back, queued after the previous stage's map; the next stage's count comes after this).
   st.entries.reserve(rb.total.entry);
   st.items.reserve(rb.total.item);
   d_entries_unsorted_.reserve(rb.total.entry);
+  CUDA_CHECK(cudaEventRecord(ev_map_begin_[j], stage_));
   if (rb.total.entry > 0) {
     CUDA_CHECK(launch_map(chunk, count, first, d_plan_.get(), grid, d_is_large_.get() + first, st.prefix.get(),
-                          d_counts_.get() + cells + 2, d_entries_unsorted_.get(), main_));
+                          d_counts_.get() + cells + 2, d_entries_unsorted_.get(), stage_));
     // Each cell's list of the chunk by box id (determinism); a chunk's list is at most the cell's
     // boxes of chunks 0..j (max_count), so the one-kernel sort holds whenever that is small.
     if (rb.totals.max_count <= tuning::small_cell_sort) {
       CUDA_CHECK(
-          launch_sort_small_cells(d_entries_unsorted_.get(), st.entries.get(), st.prefix.get(), cells, grid, main_));
+          launch_sort_small_cells(d_entries_unsorted_.get(), st.entries.get(), st.prefix.get(), cells, grid, stage_));
     } else {
       std::size_t sort_bytes = 0;
       CUDA_CHECK(sort_cells(nullptr, sort_bytes, d_entries_unsorted_.get(), st.entries.get(), rb.total.entry, cells,
-                            st.prefix.get(), main_));
+                            st.prefix.get(), stage_));
       grow_temp(sort_bytes);
       CUDA_CHECK(sort_cells(d_temp_.get(), sort_bytes, d_entries_unsorted_.get(), st.entries.get(), rb.total.entry,
-                            cells, st.prefix.get(), main_));
+                            cells, st.prefix.get(), stage_));
     }
   }
-  if (rb.total.item > 0) CUDA_CHECK(launch_expand(st.prefix.get(), cells, grid, st.items.get(), main_));
-  CUDA_CHECK(cudaEventRecord(ev_mapped_[j], main_));
+  if (rb.total.item > 0) CUDA_CHECK(launch_expand(st.prefix.get(), cells, grid, st.items.get(), stage_));
+  CUDA_CHECK(cudaEventRecord(ev_mapped_[j], stage_));
 }
 
 bool pbig_engine::run_overlapped(const interest::box_set& boxes, std::uint32_t n, std::uint32_t k, bool validate,
@@ -249,6 +259,7 @@ bool pbig_engine::run_overlapped(const interest::box_set& boxes, std::uint32_t n
   // Stop here with nothing pending on the caller's memory or on this call's buffers.
   auto abandon = [&] {
     CUDA_CHECK(cudaStreamSynchronize(upload_));
+    CUDA_CHECK(cudaStreamSynchronize(stage_));
     for (auto& s : slot_) CUDA_CHECK(cudaStreamSynchronize(s.stream));
     CUDA_CHECK(cudaStreamSynchronize(main_));
     return false;
@@ -274,7 +285,10 @@ bool pbig_engine::run_overlapped(const interest::box_set& boxes, std::uint32_t n
   }
 
   // 3. Stage by stage; the direct-output pipeline (kernel g on one slot while batch g - 1's
-  // pairs are copied out on the other) runs on across stages.
+  // pairs are copied out on the other) runs on across stages. The stage stream runs ahead: stage
+  // j + 1's count is queued after stage j's map and waits for its chunk on the device; its map is
+  // queued as soon as the host sees its read-back (map_next, polled between batches), so it is
+  // ready when stage j's last batch has been launched.
   for (auto& s : slot_) {
     s.copy_pending = false;
     s.overcopied = false;
@@ -292,14 +306,22 @@ bool pbig_engine::run_overlapped(const interest::box_set& boxes, std::uint32_t n
     base += finish_direct(pending, slot_[pending_index % 2], base, pending_index, pending_index + 1);
     has_pending = false;
   };
-  for (std::uint32_t j = 0; j < k; ++j) {
-    const std::uint32_t count = first[j + 1] - first[j];
-    queue_stage_count(n, j, first[j], count, validate);
-    finish_pending();  // the previous stage's last batch: its copy is queued before this wait
-    CUDA_CHECK(cudaEventRecord(ev_wait_, main_));
-    wait_bounded(ev_wait_, "count and read-back", j, n);
-    CUDA_CHECK(cudaStreamSynchronize(main_));
-    if (validate && j > 0 && h_chunk_bounds_.get()[j].bad != 0xffffffffu) return abandon();
+  std::uint32_t mapped = 0;  // stages whose map is queued; stage `mapped`'s count is queued (if < k)
+  bool invalid = false;      // a later chunk's validation found an invalid box
+  // Queues stage `mapped`'s map once its read-back is in (waiting for it when `wait`), then the
+  // next stage's count. False when the read-back is not in yet, or its chunk is invalid.
+  auto map_next = [&](bool wait) {
+    const std::uint32_t j = mapped;
+    if (!wait) {
+      const cudaError_t e = cudaEventQuery(ev_stage_counted_[j]);
+      if (e == cudaErrorNotReady) return false;
+      if (e != cudaSuccess) CUDA_CHECK(e);
+    }
+    wait_bounded(ev_stage_counted_[j], "count and read-back", j, n);
+    if (validate && j > 0 && h_chunk_bounds_.get()[j].bad != 0xffffffffu) {
+      invalid = true;
+      return false;
+    }
     overlap_stage& st = stages_[j];
     st.rb = h_stage_rb_.get()[j];
     const map_readback& rb = st.rb;
@@ -308,13 +330,29 @@ bool pbig_engine::run_overlapped(const interest::box_set& boxes, std::uint32_t n
     checks += rb.totals.checks;
     max_count = std::max<std::uint32_t>(max_count, static_cast<std::uint32_t>(rb.totals.max_count));
     large_total += rb.large_count;
-    queue_stage_map(n, j, first[j], count);
-
-    const std::vector<batch> batches = planned_batches(rb, static_cast<std::int32_t>(j));
+    queue_stage_map(n, j, first[j], first[j + 1] - first[j]);
+    ++mapped;
+    if (mapped < k) queue_stage_count(n, mapped, first[mapped], first[mapped + 1] - first[mapped], validate);
+    return true;
+  };
+  queue_stage_count(n, 0, first[0], first[1] - first[0], validate);
+  for (std::uint32_t j = 0; j < k; ++j) {
+    if (mapped <= j) {
+      // Stage j's read-back is not in yet: queue the previous stage's last copy before waiting.
+      finish_pending();
+      if (!map_next(true)) return abandon();
+    }
+    const std::vector<batch> batches = planned_batches(stages_[j].rb, static_cast<std::int32_t>(j));
     if (batches.empty()) continue;
     for (auto& s : slot_) CUDA_CHECK(cudaStreamWaitEvent(s.stream, ev_mapped_[j], 0));
     for (const batch& b : batches) {
+      // One batch's checks at a time: the previous batch's (on the other slot) first, so each
+      // batch's pairs are ready, and copied out, as soon as they can be (two batches' checks side by
+      // side end together, and the first copy of a stage waits for both).
+      if (launched > 0)
+        CUDA_CHECK(cudaStreamWaitEvent(slot_[launched % 2].stream, slot_[(launched - 1) % 2].kernel_end, 0));
       launch_direct(b, slot_[launched % 2]);
+      if (mapped < k && !map_next(false) && invalid) return abandon();
       finish_pending();
       pending = b;
       pending_index = launched++;
@@ -324,6 +362,8 @@ bool pbig_engine::run_overlapped(const interest::box_set& boxes, std::uint32_t n
   finish_pending();
   for (auto& s : slot_) account_copy(s);
   report_.batches = launched;
+  // main_ runs the large-box passes below: after every stage's count (the large flags) and map.
+  CUDA_CHECK(cudaStreamWaitEvent(main_, ev_mapped_[k - 1], 0));
 
   // 4. The boxes handled apart, over all n boxes (every chunk is on the device: main_ waited).
   rb_ = stages_[k - 1].rb;
@@ -348,6 +388,7 @@ bool pbig_engine::run_overlapped(const interest::box_set& boxes, std::uint32_t n
   ensure_result(std::max<std::uint64_t>(1, base + large_pairs), base);
   large_write_pass(n, large_pairs, h_result_.get() + base);
   CUDA_CHECK(cudaStreamSynchronize(upload_));
+  CUDA_CHECK(cudaStreamSynchronize(stage_));
   pairs = base + large_pairs;
   return true;
 }
