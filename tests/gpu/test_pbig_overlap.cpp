@@ -8,7 +8,9 @@
 // segments at every stage width (8, 16, 32, 64 and the plan's choice; its layout replayed on the
 // host at every width), later chunks far outside the first chunk's bounds (the grid
 // is planned from chunk 0), stages without pairs or without grid boxes, boxes handled apart,
-// invalid boxes in a later chunk, overflowing output buffers. Then the default rule: the pipeline
+// invalid boxes in a later chunk, overflowing output buffers, and all of those at once on a set
+// giving every stage several batches (the next stage counted and mapped on the stage stream while
+// the earlier stage's batches run). Then the default rule: the pipeline
 // only after a call of about the same size whose output was small against its input. About 30 s
 // on the H200 (`test-gpu -ts=gpu.pbig.overlap -d`). Part of test_gpu: without a device the
 // executable exits with 77 (Skipped).
@@ -302,6 +304,33 @@ box_set crowded_cells(std::size_t n, std::size_t k, std::uint64_t seed) {
   return s;
 }
 
+box_set busy_stages(std::size_t n, std::size_t k, std::uint64_t seed) {
+  // Built for a fixed cell edge of 12.5 in [0, 1000]^3 (about 5x10^5 cells): small boxes (edges up
+  // to 10) all over, so each stage's cells give it about 10^5 tiles or more, several batches
+  // a stage (the cap, tuning::max_batches over k), and stage j + 1's count and map are queued
+  // (map_next, polled between batches) while stage j's batches run. Every chunk also holds boxes
+  // of edge 100 (over 64 cells: handled apart); every chunk from 1 on, 260 identical boxes at one
+  // spot (a cell past tuning::small_cell_sort: that stage's map takes CUB's segmented sort, whose
+  // scratch may grow, freeing the old one, while the earlier stage's batches run). Category 1,
+  // mask 1 throughout.
+  rng_box_maker r(seed);
+  box_set s;
+  for (std::size_t j = 0; j < k; ++j) {
+    const std::size_t b = chunk_start(n, k, j), e = chunk_start(n, k, j + 1);
+    for (std::size_t i = b; i < e; ++i) {
+      const std::size_t at = i - b;
+      if (j > 0 && at >= 100 && at < 360) {
+        s.push_back(make_box(500.5f, 500.5f, 500.5f, 2, 2, 2));
+      } else if (at % 4001 == 17) {
+        s.push_back(make_box(r.uni(0, 900), r.uni(0, 900), r.uni(0, 900), 100, 100, 100));
+      } else {
+        s.push_back(r.make(1000, 10));
+      }
+    }
+  }
+  return s;
+}
+
 }  // namespace
 
 TEST_SUITE("gpu.pbig.overlap") {
@@ -560,6 +589,79 @@ TEST_SUITE("gpu.pbig.overlap") {
       CHECK(err2->index == bad);
       s.lo_y[bad] = keep;
       check_overlapped(*finder, s, want, 3);
+    }
+  }
+
+  TEST_CASE("overlapped upload: stages mapped while the earlier stages' batches run, with boxes handled apart, "
+            "classes filled per chunk, overflowing buffers and an invalid box in a later chunk") {
+    // The stage stream's hazards at once (docs/gpu.md, "Overlapped upload"): several batches a
+    // stage, so stage j + 1's count, read-back (written by a kernel into pinned memory) and map run
+    // on the stage stream while stage j's checks and copies run on the slots; boxes handled apart
+    // in every chunk (the count's large flags, read by main_'s passes after the last map); classes
+    // filled on the stage stream for chunks 0 and 2.. and copied for chunk 1 (one other box); every
+    // batch overflowing its 1-pair buffer and re-run; then an invalid box in chunk 1, chunk 2 and
+    // the last chunk, found by a stage's read-back while earlier stages' batches are in flight,
+    // each call followed by a valid one whose pairs and order are the first call's.
+    thread_pool pool(4);
+    for (const std::uint32_t k : {3u, 7u}) {
+      const std::size_t n = 300007 + k;  // from 2^18 boxes: classes filled when uniform
+      const auto seed = fresh_seed();
+      CAPTURE(k);
+      CAPTURE(seed);
+      box_set s = busy_stages(n, k, seed);
+      const std::size_t odd = chunk_start(n, k, 1) + 1000;  // chunk 1 copies its classes
+      s.category[odd] = 2;
+      s.mask[odd] = 2;
+      std::size_t large = 0;
+      for (std::size_t i = 0; i < n; ++i) large += s.hi_x[i] - s.lo_x[i] > 99.0f ? 1 : 0;
+      REQUIRE(large >= 2 * k);
+      const gpu::pinned_boxes pin(s);
+      REQUIRE(pin.active());
+      const pair_list want = cpu_pairs(s, &pool);
+      gpu::pbig_options o = overlapped(k, &pool);
+      o.fixed_cell_edge = 12.5;
+      auto a = make_gpu(o);
+      gpu::pbig_options tiny = o;
+      tiny.initial_output_pairs = 1;
+      auto t = make_gpu(tiny);
+
+      const pair_list first = view_of(*a, s);
+      CHECK(sorted(first) == want);
+      const gpu::pbig_report* rep = gpu::last_pbig_report(*a);
+      REQUIRE(rep != nullptr);
+      CHECK(rep->overlap_chunks == k);
+      CHECK(rep->pairs == want.size());
+      CHECK(rep->batches >= 2 * k);  // more than one batch a stage: the next stage mapped between them
+      CHECK_FALSE(rep->classes_filled);
+      CHECK(rep->bytes_in == 24u * n + 8u * (chunk_start(n, k, 2) - chunk_start(n, k, 1)));
+      CHECK(a->stats().large_boxes == large);
+      // DataOut is the union of the copies' spans, all within the call.
+      CHECK(rep->data_out_ms > 0);
+      CHECK(rep->data_out_ms <= rep->total_ms + 0.05);
+      CHECK(rep->map_ms > 0);
+
+      CHECK(view_of(*t, s) == first);  // every batch re-run: the same pairs in the same order
+      const gpu::pbig_report* trep = gpu::last_pbig_report(*t);
+      REQUIRE(trep != nullptr);
+      CHECK(trep->reruns >= 2);  // each slot's first batch at least
+      CHECK(trep->batches == rep->batches);
+
+      for (const std::size_t bad : {chunk_start(n, k, 1) + 5, chunk_start(n, k, 2) + 5, n - 1}) {
+        CAPTURE(bad);
+        for (auto* f : {a.get(), t.get()}) {
+          const float keep = s.lo_z[bad];
+          s.lo_z[bad] = s.hi_z[bad] + 1.0f;
+          std::span<const id_pair> got;
+          const auto err = gpu::find_pairs_view(*f, s, got);
+          REQUIRE(err.has_value());
+          CHECK(err->index == bad);
+          CHECK(err->message == validate(s)->message);
+          CHECK(got.empty());
+          s.lo_z[bad] = keep;
+          CHECK(view_of(*f, s) == first);
+          CHECK(gpu::last_pbig_report(*f)->overlap_chunks == k);
+        }
+      }
     }
   }
 
