@@ -239,6 +239,10 @@ bool pbig_engine::run_overlapped(const interest::box_set& boxes, std::uint32_t n
   std::uint32_t first[max_overlap_chunks + 1];
   for (std::uint32_t j = 0; j <= k; ++j) first[j] = static_cast<std::uint32_t>(std::uint64_t{n} * j / k);
 
+  // A call that threw (an invalid grid, a wait past its limit) may have left its copies and class
+  // fills queued: none of them may land under this call's (idle streams: no wait).
+  CUDA_CHECK(cudaStreamSynchronize(upload_));
+  CUDA_CHECK(cudaStreamSynchronize(stage_));
   // Everything the device writes before the plan is known is sized now (nothing grows under
   // queued work).
   boxes_.reserve(n);
