@@ -217,6 +217,18 @@ struct oracle::index {
   double max_abs = 0;                // their largest |coordinate| (for the rounding slack)
   std::vector<std::uint32_t> start;  // cols * rows + 1
   std::vector<std::uint32_t> cell_of, order;
+  // The sampled observers (indices into the layout's observers) in slot order: consecutive scans
+  // read the same cells (in cache) and mark the same targets. By dense index: its observer index.
+  std::vector<std::uint32_t> scan_order, observer_of;
+
+  void order_observers(const std::vector<std::uint32_t>& observers) {
+    observer_of.assign(n, npos32);
+    for (std::uint32_t i = 0; i < observers.size(); ++i) observer_of[observers[i]] = i;
+    scan_order.clear();
+    for (std::size_t s = 0; s < n; ++s) {
+      if (const std::uint32_t i = observer_of[order[s]]; i != npos32) scan_order.push_back(i);
+    }
+  }
 
   void put(std::size_t s, std::uint32_t k, const float* pos, const layout& lay) {
     const float* p = pos + 3 * k;
@@ -516,6 +528,7 @@ std::optional<std::string> oracle::compute(const net::truth::tick_frame& f) {
   }
   const float mean_reach = reaches != 0 ? static_cast<float>(reach_sum / static_cast<double>(reaches)) : 64.0f;
   ix.build(pos, lay, n, scan, grid_cell > 0 ? grid_cell : mean_reach / 2);
+  ix.order_observers(lay.observers);
   lap(index_ms_);
 
   // The previous tick's sets (the hysteresis): only when it is the tick just before this one.
@@ -584,13 +597,14 @@ std::optional<std::string> oracle::compute(const net::truth::tick_frame& f) {
                       ix.bhi_x.data() + first_s, ix.bhi_y.data() + first_s, ix.bhi_z.data() + first_s,
                       ix.cls.data() + first_s, m, g, sees, flags.data());
       std::fill_n(flags.begin() + static_cast<std::ptrdiff_t>(m), 8, 0);
+      // The flags 8 at a time; within a word, each set one by its lowest bit (a flag is 0 or 1:
+      // clearing the word's lowest set bit clears that flag), no branch per flag.
       for (std::size_t k0 = 0; k0 < m; k0 += 8) {
         std::uint64_t word;
         std::memcpy(&word, flags.data() + k0, 8);
-        if (word == 0) continue;
-        for (std::size_t r = k0; r < std::min(m, k0 + 8); ++r) {
-          if (flags[r] == 0) continue;
-          const std::size_t k = first_s + r;
+        static_assert(std::endian::native == std::endian::little, "flag r of a word is its byte r");
+        for (; word != 0; word &= word - 1) {
+          const std::size_t k = first_s + k0 + static_cast<std::size_t>(std::countr_zero(word) >> 3);
           const std::uint32_t d = ix.dense[k];
           if (d == a) continue;  // never itself
           if (sc.mark[d] == in_before) {
@@ -638,7 +652,7 @@ std::optional<std::string> oracle::compute(const net::truth::tick_frame& f) {
   const auto scan_all = [&](unsigned t) {
     scratch& sc = *scratch_[t];
     for (std::size_t first; (first = next.fetch_add(chunk, std::memory_order_relaxed)) < obs;) {
-      for (std::size_t i = first; i < std::min(obs, first + chunk); ++i) observe(sc, i);
+      for (std::size_t r = first; r < std::min(obs, first + chunk); ++r) observe(sc, ix.scan_order[r]);
     }
   };
   run_parallel(obs >= 64 ? threads_ : 1, scan_all);
