@@ -195,6 +195,7 @@ struct oracle::scratch {
   std::uint32_t stamp = 0;
   std::vector<std::uint32_t> before;  // the last set's dense indices in this tick's layout
   std::vector<std::uint64_t> fresh, keys;
+  std::vector<std::pair<std::size_t, std::size_t>> ranges;  // runs of slots [first, last) to test
   std::vector<std::uint64_t> out;                   // the set of the observer being scanned
   std::vector<std::vector<std::uint64_t>> blocks;  // the sets this thread stored this tick
 };
@@ -608,6 +609,7 @@ std::optional<std::string> oracle::compute(const net::truth::tick_frame& f) {
     std::uint32_t* const before_dense = sc.before.data();
     if (prev_dense_same) {
       for (std::size_t b = 0; b < before.size(); ++b) {
+        __builtin_prefetch(before.data() + b + 64);
         const auto d = static_cast<std::uint32_t>(before[b]);
         before_dense[b] = d;
         mark[d] = in_before;
@@ -619,7 +621,6 @@ std::optional<std::string> oracle::compute(const net::truth::tick_frame& f) {
         if (d != npos32) mark[d] = in_before;
       }
     }
-    sc.fresh.clear();
     const float* p = pos + 3 * a;
     const float* e = lay.aoi(a);
     // The same float expressions as the server's boxes: grown = p -+ (aoi + h), exact = p -+ aoi.
@@ -636,11 +637,20 @@ std::optional<std::string> oracle::compute(const net::truth::tick_frame& f) {
     const float *const blo_x = ix.blo_x.data(), *const blo_y = ix.blo_y.data(), *const blo_z = ix.blo_z.data();
     const float *const bhi_x = ix.bhi_x.data(), *const bhi_y = ix.bhi_y.data(), *const bhi_z = ix.bhi_z.data();
     const std::uint32_t* const dense = ix.dense.data();
+    // The runs of slots first, then each tested here, where the loop's pointers and marks stay
+    // in registers.
+    sc.ranges.clear();
     ix.for_each_range(p, gx, gy, [&](std::size_t first_s, std::size_t last_s) {
+      if (last_s > first_s) sc.ranges.emplace_back(first_s, last_s);
+    });
+    std::size_t entered = 0;  // sc.fresh[0, entered): (id << 32) | dense index of those that entered
+    const std::uint32_t* const ids = lay.idp->ids.data();
+    for (const auto& [first_s, last_s] : sc.ranges) {
       const std::size_t m = last_s - first_s;
-      if (m == 0) return;
       if (flags.size() < m + 8) flags.resize(m + 8);
+      if (sc.fresh.size() < entered + m) sc.fresh.resize(entered + m);
       std::uint8_t* const fl = flags.data();
+      std::uint64_t* const fresh = sc.fresh.data();
       candidate_flags(blo_x + first_s, blo_y + first_s, blo_z + first_s, bhi_x + first_s, bhi_y + first_s,
                       bhi_z + first_s, ix.cls.data() + first_s, m, g, sees, fl);
       std::fill_n(fl + m, 8, 0);
@@ -658,17 +668,17 @@ std::optional<std::string> oracle::compute(const net::truth::tick_frame& f) {
             mark[d] = kept;
           } else if (blo_x[k] <= hi_x && lo_x <= bhi_x[k] && blo_y[k] <= hi_y && lo_y <= bhi_y[k] && blo_z[k] <= hi_z &&
                      lo_z <= bhi_z[k]) {
-            sc.fresh.push_back((std::uint64_t{lay.id(d)} << 32) | d);
+            fresh[entered++] = (std::uint64_t{ids[d]} << 32) | d;
           }
         }
       }
-    });
+    }
     // The set by id: those that stayed, in last tick's order (by id), merged with those that entered.
-    std::sort(sc.fresh.begin(), sc.fresh.end());
-    out.resize(before.size() + sc.fresh.size());
+    std::sort(sc.fresh.begin(), sc.fresh.begin() + static_cast<std::ptrdiff_t>(entered));
+    out.resize(before.size() + entered);
     std::uint64_t* o = out.data();
     const std::uint64_t* fr = sc.fresh.data();
-    const std::uint64_t* const fr_end = fr + sc.fresh.size();
+    const std::uint64_t* const fr_end = fr + entered;
     for (std::size_t b = 0; b < before.size(); ++b) {
       const std::uint32_t d = before_dense[b];
       if (d == npos32 || mark[d] != kept) continue;
