@@ -609,7 +609,7 @@ std::optional<std::string> oracle::compute(const net::truth::tick_frame& f) {
     std::uint32_t* const before_dense = sc.before.data();
     if (prev_dense_same) {
       for (std::size_t b = 0; b < before.size(); ++b) {
-        __builtin_prefetch(before.data() + b + 64);
+        __builtin_prefetch(before.data() + std::min(b + 64, before.size() - 1));  // 8 lines on
         const auto d = static_cast<std::uint32_t>(before[b]);
         before_dense[b] = d;
         mark[d] = in_before;
