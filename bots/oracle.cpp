@@ -195,6 +195,9 @@ struct oracle::scratch {
   std::uint32_t stamp = 0;
   std::vector<std::uint32_t> before;  // the last set's dense indices in this tick's layout
   std::vector<std::uint64_t> fresh, keys;
+  std::vector<std::pair<std::size_t, std::size_t>> ranges;  // runs of slots [first, last) to test
+  std::vector<std::uint64_t> out;                   // the set of the observer being scanned
+  std::vector<std::vector<std::uint64_t>> blocks;  // the sets this thread stored this tick
 };
 
 /// The targets of one tick as the scans read them: presence boxes (position -+ half-extent, the
@@ -217,6 +220,18 @@ struct oracle::index {
   double max_abs = 0;                // their largest |coordinate| (for the rounding slack)
   std::vector<std::uint32_t> start;  // cols * rows + 1
   std::vector<std::uint32_t> cell_of, order;
+  // The sampled observers (indices into the layout's observers) in slot order: consecutive scans
+  // read the same cells (in cache) and mark the same targets. By dense index: its observer index.
+  std::vector<std::uint32_t> scan_order, observer_of;
+
+  void order_observers(const std::vector<std::uint32_t>& observers) {
+    observer_of.assign(n, npos32);
+    for (std::uint32_t i = 0; i < observers.size(); ++i) observer_of[observers[i]] = i;
+    scan_order.clear();
+    for (std::size_t s = 0; s < n; ++s) {
+      if (const std::uint32_t i = observer_of[order[s]]; i != npos32) scan_order.push_back(i);
+    }
+  }
 
   void put(std::size_t s, std::uint32_t k, const float* pos, const layout& lay) {
     const float* p = pos + 3 * k;
@@ -343,16 +358,23 @@ struct oracle::tick_truth {
   std::shared_ptr<const layout> lay;
   std::vector<float> pos;                  // 3 per entity
   std::vector<std::uint32_t> obs_ids;      // the sampled observers (players), ascending
-  std::vector<std::uint32_t> obs_at;       // beside obs_ids: its set in sets
+  std::vector<std::uint32_t> obs_at;       // beside obs_ids: its observer index (in lay->observers)
   std::vector<std::uint8_t> obs_known;     // beside obs_ids: whole history seen (else not checked)
-  // Each observer's visible set, ascending: (id << 32) | its dense index in lay. Handed over from
-  // the recompute whole (the vectors of the tick this slot held before go back to it).
-  std::vector<std::vector<std::uint64_t>> sets;
+  // Each observer's visible set, ascending: (id << 32) | its dense index in lay, by observer index
+  // (with whether its whole history was seen). The sets lie in `blocks` (set_block entries each
+  // but for a larger set's own), handed over from the recompute whole; the blocks of the tick
+  // this slot held before go back to the recompute's pool.
+  std::vector<set_at> sets;
+  std::vector<std::uint8_t> known;
+  std::vector<std::vector<std::uint64_t>> blocks;
   [[nodiscard]] std::uint32_t find(std::uint32_t observer) const {
     const auto it = std::lower_bound(obs_ids.begin(), obs_ids.end(), observer);
     return it != obs_ids.end() && *it == observer ? static_cast<std::uint32_t>(it - obs_ids.begin()) : npos32;
   }
-  [[nodiscard]] std::span<const std::uint64_t> set(std::uint32_t i) const { return sets[obs_at[i]]; }
+  /// The set of the observer of rank `r` (by id; find()).
+  [[nodiscard]] std::span<const std::uint64_t> set(std::uint32_t r) const { return of(obs_at[r]); }
+  /// The set of observer `i` of lay->observers.
+  [[nodiscard]] std::span<const std::uint64_t> of(std::uint32_t i) const { return {sets[i].data, sets[i].size}; }
 };
 
 oracle::oracle(const net::world_bounds& world, const net::interest_rules& rules, unsigned threads, problem_fn problem,
@@ -516,6 +538,7 @@ std::optional<std::string> oracle::compute(const net::truth::tick_frame& f) {
   }
   const float mean_reach = reaches != 0 ? static_cast<float>(reach_sum / static_cast<double>(reaches)) : 64.0f;
   ix.build(pos, lay, n, scan, grid_cell > 0 ? grid_cell : mean_reach / 2);
+  ix.order_observers(lay.observers);
   lap(index_ms_);
 
   // The previous tick's sets (the hysteresis): only when it is the tick just before this one.
@@ -524,23 +547,49 @@ std::optional<std::string> oracle::compute(const net::truth::tick_frame& f) {
     const tick_truth& p = *ring_[(f.tick - 1) % ring_ticks];
     if (p.valid && p.tick == f.tick - 1) prev = &p;
   }
-  if (sets_.size() < obs) sets_.resize(obs);
-  std::vector<std::uint8_t> known(obs, 0);
+  sets_.assign(obs, set_at{});
+  known_.assign(obs, 0);
 
   // Where last tick's sets name an entity by its dense index in this tick's layout too: the same
   // layout, or one that only appended entities to it.
   const bool prev_dense_same = prev != nullptr && prev->lay->lineage == lay.lineage;
+  // The same layout (a tick of positions only): the same observers, by the same index.
+  const bool prev_same_layout = prev != nullptr && prev->lay.get() == &lay;
+
+  // A set into this thread's last block (another from the pool when it has no room): never moved
+  // once written, so that the span published for it stays valid.
+  const auto store = [&](scratch& sc, const std::vector<std::uint64_t>& set) -> set_at {
+    if (set.empty()) return {};
+    if (sc.blocks.empty() || sc.blocks.back().capacity() - sc.blocks.back().size() < set.size()) {
+      std::vector<std::uint64_t> b;
+      {
+        std::lock_guard lock(blocks_mutex_);
+        if (!free_blocks_.empty()) b = std::move(free_blocks_.back()), free_blocks_.pop_back();
+      }
+      b.clear();
+      const std::size_t want = std::max(set_block, set.size());
+      if (b.capacity() < want) b = std::vector<std::uint64_t>(), b.reserve(want);
+      sc.blocks.push_back(std::move(b));  // the blocks before keep their storage (moved, not copied)
+    }
+    std::vector<std::uint64_t>& b = sc.blocks.back();
+    const std::uint64_t* at = b.data() + b.size();
+    b.insert(b.end(), set.begin(), set.end());
+    return {at, set.size()};
+  };
 
   const auto observe = [&](scratch& sc, std::size_t i) {
     const std::uint32_t a = lay.observers[i];
     const std::uint32_t id = lay.id(a);
-    std::vector<std::uint64_t>& out = sets_[i];  // (id << 32) | dense index
+    std::vector<std::uint64_t>& out = sc.out;  // (id << 32) | dense index
     out.clear();
     // History: a new entity starts from an empty set; one seen last tick continues from its set
     // there; any other (present before the stream began, or after a gap) is not checked.
     std::span<const std::uint64_t> before;  // (id << 32) | dense index in prev's layout
     bool is_known = false;
-    if (prev != nullptr) {
+    if (prev_same_layout) {
+      is_known = prev->known[i] != 0;
+      before = prev->of(static_cast<std::uint32_t>(i));
+    } else if (prev != nullptr) {
       const std::uint32_t j = prev->find(id);
       if (j != npos32) {
         is_known = prev->obs_known[j] != 0;
@@ -549,20 +598,29 @@ std::optional<std::string> oracle::compute(const net::truth::tick_frame& f) {
         is_known = prev->lay->dense_of(id) == npos32;
       }
     }
-    known[i] = is_known ? 1 : 0;
+    known_[i] = is_known ? 1 : 0;
     // Last tick's set, marked by dense index in this tick's layout (an entity gone since cannot stay).
     if (sc.mark.size() < n) sc.mark.assign(n, 0), sc.stamp = 0;
     if (sc.stamp >= 0xfffffff0u) std::fill(sc.mark.begin(), sc.mark.end(), 0), sc.stamp = 0;
     const std::uint32_t in_before = sc.stamp + 1, kept = sc.stamp + 2;
     sc.stamp += 2;
-    sc.before.clear();
-    for (const std::uint64_t entry : before) {
-      const auto d =
-          prev_dense_same ? static_cast<std::uint32_t>(entry) : lay.dense_of(static_cast<std::uint32_t>(entry >> 32));
-      sc.before.push_back(d);
-      if (d != npos32) sc.mark[d] = in_before;
+    std::uint32_t* const mark = sc.mark.data();
+    sc.before.resize(before.size());
+    std::uint32_t* const before_dense = sc.before.data();
+    if (prev_dense_same) {
+      for (std::size_t b = 0; b < before.size(); ++b) {
+        __builtin_prefetch(before.data() + std::min(b + 64, before.size() - 1));  // 8 lines on
+        const auto d = static_cast<std::uint32_t>(before[b]);
+        before_dense[b] = d;
+        mark[d] = in_before;
+      }
+    } else {
+      for (std::size_t b = 0; b < before.size(); ++b) {
+        const std::uint32_t d = lay.dense_of(static_cast<std::uint32_t>(before[b] >> 32));
+        before_dense[b] = d;
+        if (d != npos32) mark[d] = in_before;
+      }
     }
-    sc.fresh.clear();
     const float* p = pos + 3 * a;
     const float* e = lay.aoi(a);
     // The same float expressions as the server's boxes: grown = p -+ (aoi + h), exact = p -+ aoi.
@@ -576,43 +634,60 @@ std::optional<std::string> oracle::compute(const net::truth::tick_frame& f) {
     // box meeting the grown AOI box) stays when it was visible last tick, and enters when its
     // presence box meets the exact AOI box.
     std::vector<std::uint8_t>& flags = sc.flags;
+    const float *const blo_x = ix.blo_x.data(), *const blo_y = ix.blo_y.data(), *const blo_z = ix.blo_z.data();
+    const float *const bhi_x = ix.bhi_x.data(), *const bhi_y = ix.bhi_y.data(), *const bhi_z = ix.bhi_z.data();
+    const std::uint32_t* const dense = ix.dense.data();
+    // The runs of slots first, then each tested here, where the loop's pointers and marks stay
+    // in registers.
+    sc.ranges.clear();
     ix.for_each_range(p, gx, gy, [&](std::size_t first_s, std::size_t last_s) {
+      if (last_s > first_s) sc.ranges.emplace_back(first_s, last_s);
+    });
+    std::size_t entered = 0;  // sc.fresh[0, entered): (id << 32) | dense index of those that entered
+    const std::uint32_t* const ids = lay.idp->ids.data();
+    for (const auto& [first_s, last_s] : sc.ranges) {
       const std::size_t m = last_s - first_s;
-      if (m == 0) return;
       if (flags.size() < m + 8) flags.resize(m + 8);
-      candidate_flags(ix.blo_x.data() + first_s, ix.blo_y.data() + first_s, ix.blo_z.data() + first_s,
-                      ix.bhi_x.data() + first_s, ix.bhi_y.data() + first_s, ix.bhi_z.data() + first_s,
-                      ix.cls.data() + first_s, m, g, sees, flags.data());
-      std::fill_n(flags.begin() + static_cast<std::ptrdiff_t>(m), 8, 0);
+      if (sc.fresh.size() < entered + m) sc.fresh.resize(entered + m);
+      std::uint8_t* const fl = flags.data();
+      std::uint64_t* const fresh = sc.fresh.data();
+      candidate_flags(blo_x + first_s, blo_y + first_s, blo_z + first_s, bhi_x + first_s, bhi_y + first_s,
+                      bhi_z + first_s, ix.cls.data() + first_s, m, g, sees, fl);
+      std::fill_n(fl + m, 8, 0);
+      // The flags 8 at a time; within a word, each set one by its lowest bit (a flag is 0 or 1:
+      // clearing the word's lowest set bit clears that flag), no branch per flag.
       for (std::size_t k0 = 0; k0 < m; k0 += 8) {
         std::uint64_t word;
-        std::memcpy(&word, flags.data() + k0, 8);
-        if (word == 0) continue;
-        for (std::size_t r = k0; r < std::min(m, k0 + 8); ++r) {
-          if (flags[r] == 0) continue;
-          const std::size_t k = first_s + r;
-          const std::uint32_t d = ix.dense[k];
+        std::memcpy(&word, fl + k0, 8);
+        static_assert(std::endian::native == std::endian::little, "flag r of a word is its byte r");
+        for (; word != 0; word &= word - 1) {
+          const std::size_t k = first_s + k0 + static_cast<std::size_t>(std::countr_zero(word) >> 3);
+          const std::uint32_t d = dense[k];
           if (d == a) continue;  // never itself
-          if (sc.mark[d] == in_before) {
-            sc.mark[d] = kept;
-          } else if (ix.blo_x[k] <= hi_x && lo_x <= ix.bhi_x[k] && ix.blo_y[k] <= hi_y && lo_y <= ix.bhi_y[k] &&
-                     ix.blo_z[k] <= hi_z && lo_z <= ix.bhi_z[k]) {
-            sc.fresh.push_back((std::uint64_t{lay.id(d)} << 32) | d);
+          if (mark[d] == in_before) {
+            mark[d] = kept;
+          } else if (blo_x[k] <= hi_x && lo_x <= bhi_x[k] && blo_y[k] <= hi_y && lo_y <= bhi_y[k] && blo_z[k] <= hi_z &&
+                     lo_z <= bhi_z[k]) {
+            fresh[entered++] = (std::uint64_t{ids[d]} << 32) | d;
           }
         }
       }
-    });
-    // The set by id: those that stayed, in last tick's order (by id), merged with those that entered.
-    std::sort(sc.fresh.begin(), sc.fresh.end());
-    std::size_t f2 = 0;
-    for (std::size_t b = 0; b < before.size(); ++b) {
-      const std::uint32_t d = sc.before[b];
-      if (d == npos32 || sc.mark[d] != kept) continue;
-      const std::uint64_t entry = (before[b] & 0xffffffff00000000ull) | d;
-      while (f2 < sc.fresh.size() && sc.fresh[f2] < entry) out.push_back(sc.fresh[f2++]);
-      out.push_back(entry);
     }
-    out.insert(out.end(), sc.fresh.begin() + static_cast<std::ptrdiff_t>(f2), sc.fresh.end());
+    // The set by id: those that stayed, in last tick's order (by id), merged with those that entered.
+    std::sort(sc.fresh.begin(), sc.fresh.begin() + static_cast<std::ptrdiff_t>(entered));
+    out.resize(before.size() + entered);
+    std::uint64_t* o = out.data();
+    const std::uint64_t* fr = sc.fresh.data();
+    const std::uint64_t* const fr_end = fr + entered;
+    for (std::size_t b = 0; b < before.size(); ++b) {
+      const std::uint32_t d = before_dense[b];
+      if (d == npos32 || mark[d] != kept) continue;
+      const std::uint64_t entry = (before[b] & 0xffffffff00000000ull) | d;
+      while (fr != fr_end && *fr < entry) *o++ = *fr++;
+      *o++ = entry;
+    }
+    o = std::copy(fr, fr_end, o);
+    out.resize(static_cast<std::size_t>(o - out.data()));
     if (cap != 0 && out.size() > cap) {
       // The cap closest by squared distance (ties by id), as the server keeps them.
       std::vector<std::uint64_t>& keys = sc.keys;
@@ -630,6 +705,7 @@ std::optional<std::string> oracle::compute(const net::truth::tick_frame& f) {
       }
       std::sort(out.begin(), out.end());
     }
+    sets_[i] = store(sc, out);
   };
 
   // The observers in chunks, taken by the threads as they come free (towns cost more than fields).
@@ -638,7 +714,7 @@ std::optional<std::string> oracle::compute(const net::truth::tick_frame& f) {
   const auto scan_all = [&](unsigned t) {
     scratch& sc = *scratch_[t];
     for (std::size_t first; (first = next.fetch_add(chunk, std::memory_order_relaxed)) < obs;) {
-      for (std::size_t i = first; i < std::min(obs, first + chunk); ++i) observe(sc, i);
+      for (std::size_t r = first; r < std::min(obs, first + chunk); ++r) observe(sc, ix.scan_order[r]);
     }
   };
   run_parallel(obs >= 64 ? threads_ : 1, scan_all);
@@ -659,9 +735,18 @@ std::optional<std::string> oracle::compute(const net::truth::tick_frame& f) {
       const std::uint32_t i = lay.observers_by_id[r];
       slot.obs_ids[r] = lay.id(lay.observers[i]);
       slot.obs_at[r] = i;
-      slot.obs_known[r] = known[i];
+      slot.obs_known[r] = known_[i];
     }
     slot.sets.swap(sets_);
+    slot.known.swap(known_);
+    // The blocks of the tick this slot held go back to the pool; this tick's take their place.
+    std::lock_guard blocks_lock(blocks_mutex_);
+    for (auto& b : slot.blocks) free_blocks_.push_back(std::move(b));
+    slot.blocks.clear();
+    for (auto& sc : scratch_) {
+      for (auto& b : sc->blocks) slot.blocks.push_back(std::move(b));
+      sc->blocks.clear();
+    }
   }
   prev_tick_ = f.tick;
   any_tick_ = true;

@@ -154,6 +154,11 @@ class oracle {
   /// picks, a fixed subset, so that each one's history (the hysteresis) is continuous. A frame of
   /// another bot is counted in frames_unsampled and not checked. Set before start() or feed().
   unsigned sample = 1;
+  /// Entries (8 bytes each) of a block of the stored visible sets: each recompute thread writes
+  /// its observers' sets one after another into a block (a set larger than that gets a block of
+  /// its own), the blocks kept with their tick's truth and reused when its slot is (tests set it
+  /// small, so that sets cross blocks all the time). Set before start() or feed().
+  std::size_t set_block = std::size_t{1} << 16;
   /// Whether `id` is in the sample of 1 in `k` (a hash of the id: fixed for the entity's life,
   /// the same on every side that asks).
   [[nodiscard]] static bool sampled(std::uint32_t id, unsigned k) {
@@ -222,10 +227,19 @@ class oracle {
   std::atomic<std::uint64_t> deferred_checks_{0}, pending_overflow_{0};
   std::atomic<std::uint64_t> newest_checked_tick_{0};  // the newest tick a bot asked to check
   // Scratch of compute(), reused tick to tick: the targets' index, each thread's scratch, and
-  // each sampled observer's set as (id << 32) | dense index.
+  // each sampled observer's set as (id << 32) | dense index, stored in blocks of set_block
+  // entries that the ring's slots hand back when they are reused.
   std::unique_ptr<index> index_;
   std::vector<std::unique_ptr<scratch>> scratch_;
-  std::vector<std::vector<std::uint64_t>> sets_;
+  /// One observer's visible set where it was stored: `size` entries from `data` (in one block).
+  struct set_at {
+    const std::uint64_t* data = nullptr;
+    std::size_t size = 0;
+  };
+  std::vector<set_at> sets_;        // by observer index, handed to the tick's slot
+  std::vector<std::uint8_t> known_;  // by observer index: whole history seen
+  std::mutex blocks_mutex_;
+  std::vector<std::vector<std::uint64_t>> free_blocks_;  // blocks of sets no tick holds any more
 };
 
 }  // namespace zone::bots

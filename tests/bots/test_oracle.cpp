@@ -9,6 +9,8 @@
 
 #include <algorithm>
 #include <limits>
+#include <map>
+#include <bit>
 #include <chrono>
 #include <deque>
 #include <future>
@@ -400,6 +402,220 @@ TEST_SUITE("bots.oracle") {
         CHECK(huge > 40);
         CHECK(differing == 0);
       }
+    }
+  }
+
+  TEST_CASE(
+      "the scan's order and the sets' blocks: every scan's sets equal a plain recompute's, tick after tick (zero-size boxes, boxes touching the AOI and grown boxes, the world's borders, classes, teams and stealth, tiny blocks, the ring reused)") {
+    // The scans visit observers in the index's slot order on several threads and store the sets
+    // one after another in blocks (here of 1, 7 and 50 entries: most sets cross a block, the
+    // huge AOIs' hold every target); a tick of positions only finds last tick's set by the
+    // observer's index. Each oracle's sets must equal a recompute written here from the rule
+    // alone (every target tested, last tick's set by id), at every tick and 63 ticks later.
+    using mode = bots::oracle::scan_mode;
+    for (const std::uint32_t cap : {0u, 6u}) {
+      const std::uint64_t seed = zone::test::fresh_seed();
+      CAPTURE(seed);
+      CAPTURE(cap);
+      raw_world w(seed);
+      const float side = 200;
+      const net::world_bounds bounds{{0, 0, 0}, {side, side, 20}};
+      net::interest_rules rules;
+      rules.hysteresis = 3;
+      rules.max_visible = cap;
+      bots::oracle full(bounds, rules, 1, nullptr, nullptr), grid(bounds, rules, 3, nullptr, nullptr),
+          grid4(bounds, rules, 3, nullptr, nullptr), xw(bounds, rules, 2, nullptr, nullptr);
+      full.scan = mode::full, grid.scan = mode::grid, grid4.scan = mode::grid, xw.scan = mode::x_window;
+      grid.set_block = 1, grid4.set_block = 50, xw.set_block = 7;
+      grid4.grid_cell = 4;
+      bots::oracle* const oracles[] = {&full, &grid, &grid4, &xw};
+      const char* const names[] = {"every target", "grid (blocks of 1)", "grid of 4 m (blocks of 50)",
+                                   "x window (blocks of 7)"};
+      const std::uint32_t bits[] = {cb::normal, cb::stealth, cb::team_red, cb::team_blue};
+      const auto some_bits = [&] {  // 0 to 4 of the classes: 0 included (seen by none, sees none)
+        std::uint32_t b = 0;
+        for (const std::uint32_t c : bits) b |= w.rng() % 3 == 0 ? c : 0u;
+        return b;
+      };
+      const auto on_grid = [&](float lo, float hi) { return 4 * std::floor(w.uni(lo, hi) / 4); };  // cell borders
+      const auto place = [&](float* p) {
+        const int k = static_cast<int>(w.rng() % 8);
+        p[0] = k < 3 ? on_grid(-8, side + 8) : w.uni(-10, side + 10);
+        p[1] = k < 3 ? on_grid(-8, side + 8) : w.uni(-10, side + 10);
+        p[2] = w.uni(0, 20);
+        if (k == 3) p[0] = w.rng() % 2 ? 0 : side;  // on the world's border
+        if (k == 4) p[1] = w.rng() % 2 ? 0 : side;
+      };
+      const auto add_npc = [&] {
+        float p[3];
+        place(p);
+        const int k = static_cast<int>(w.rng() % 10);
+        const float half = k < 2 ? 0.0f : k == 9 ? (w.rng() % 2 ? 12.0f : 150.0f) : w.uni(0.1f, 2);  // zero-size, wide
+        const float b[3] = {half, half, std::min(half, 4.0f)}, a[3] = {10, 10, 10};
+        const std::uint32_t cls = w.rng() % 4 == 0 ? some_bits() : bits[w.rng() % 4];
+        w.add(p, a, b, cls, some_bits(), net::entity_kind::npc);
+      };
+      struct touching_pair {
+        std::uint32_t player, enters, band, zero;
+      };
+      std::vector<touching_pair> pairs;
+      std::vector<std::uint32_t> players;
+      const auto add_player = [&] {
+        float p[3];
+        place(p);
+        const int k = players.size() < 2 ? 10 : static_cast<int>(w.rng() % 10);
+        // A huge AOI (every target: sets larger than any small block), none (only what sits on
+        // the observer's point), multiples of 4 (exact arithmetic: the touching targets), any.
+        const float a = k == 10 ? 1e4f : k == 0 ? 0.0f : k < 5 ? 4.0f * static_cast<float>(1 + w.rng() % 5) : w.uni(2, 30);
+        const float e[3] = {a, a, a}, b[3] = {0.5f, 0.5f, 1.0f};
+        players.push_back(w.add(p, e, b, bits[w.rng() % 4], some_bits() | cb::normal, net::entity_kind::player));
+        if (k >= 1 && k < 5) {
+          const float q[3] = {0, 0, 0}, tb[3] = {1, 1, 1}, zb[3] = {0, 0, 0}, te[3] = {10, 10, 10};
+          pairs.push_back({players.back(), w.add(q, te, tb, cb::normal, cb::normal, net::entity_kind::npc),
+                           w.add(q, te, tb, cb::normal, cb::normal, net::entity_kind::npc),
+                           w.add(q, te, zb, cb::normal, cb::normal, net::entity_kind::npc)});
+        }
+      };
+      const auto at = [&](std::uint32_t id) {
+        return static_cast<std::size_t>(std::find(w.ids.begin(), w.ids.end(), id) - w.ids.begin());
+      };
+      // Every third tick each such player jumps to a point of the 4 m grid and its targets to
+      // where their boxes exactly touch its AOI box on x (one of 1 m, one of none) and its grown
+      // box on y (visible only while it was last tick): exact in float.
+      const auto touch = [&] {
+        for (const auto& pr : pairs) {
+          const std::size_t o = at(pr.player), t0 = at(pr.enters), t1 = at(pr.band), t2 = at(pr.zero);
+          if (o == w.size() || t0 == w.size() || t1 == w.size() || t2 == w.size()) continue;
+          w.pos[3 * o] = on_grid(0, side), w.pos[3 * o + 1] = on_grid(0, side);
+          const float a = w.aoi[3 * o];
+          for (const std::size_t t : {t0, t1, t2}) {
+            for (int c = 0; c < 3; ++c) w.pos[3 * t + c] = w.pos[3 * o + c];
+          }
+          w.pos[3 * t0] += a + 1, w.pos[3 * t2] -= a, w.pos[3 * t1 + 1] += a + rules.hysteresis + 1;
+        }
+      };
+      // The rule, plainly: a target (not the observer) whose class the observer sees and whose
+      // presence box meets the grown AOI box stays if it was in last tick's set, and enters if it
+      // meets the exact AOI box; with a cap, the closest by squared distance (ties by id).
+      std::map<std::uint32_t, std::vector<std::uint32_t>> last;  // by player id
+      std::map<std::uint64_t, std::map<std::uint32_t, std::vector<std::uint32_t>>> history;
+      const auto recompute = [&](std::size_t o) {
+        std::vector<std::uint32_t> set;
+        const auto& before = last[w.ids[o]];
+        const float* p = &w.pos[3 * o];
+        const float* e = &w.aoi[3 * o];
+        const float h = rules.hysteresis;
+        for (std::size_t t = 0; t < w.size(); ++t) {
+          if (t == o || (w.classes[t] & w.sees[o]) == 0) continue;
+          bool grown = true, exact = true;
+          for (int c = 0; c < 3; ++c) {
+            const float lo = w.pos[3 * t + c] - w.presence[3 * t + c], hi = w.pos[3 * t + c] + w.presence[3 * t + c];
+            const float g = e[c] + h;
+            grown = grown && lo <= p[c] + g && p[c] - g <= hi;
+            exact = exact && lo <= p[c] + e[c] && p[c] - e[c] <= hi;
+          }
+          if (grown && (exact || std::binary_search(before.begin(), before.end(), w.ids[t]))) set.push_back(w.ids[t]);
+        }
+        std::sort(set.begin(), set.end());
+        if (cap != 0 && set.size() > cap) {
+          std::vector<std::pair<std::uint32_t, std::uint32_t>> keys;
+          for (const std::uint32_t id : set) {
+            const float* q = &w.pos[3 * at(id)];
+            const float dx = p[0] - q[0], dy = p[1] - q[1], dz = p[2] - q[2];
+            keys.emplace_back(std::bit_cast<std::uint32_t>(dx * dx + dy * dy + dz * dz), id);
+          }
+          std::sort(keys.begin(), keys.end());
+          set.clear();
+          for (std::size_t k = 0; k < cap; ++k) set.push_back(keys[k].second);
+          std::sort(set.begin(), set.end());
+        }
+        return set;
+      };
+      for (int k = 0; k < 400; ++k) add_npc();
+      std::uint64_t compared = 0, visible_total = 0, differing = 0, touching = 0, zero_size = 0, over_block = 0,
+                    positions_only = 0, later = 0;
+      for (std::uint64_t tick = 0; tick < 100; ++tick) {
+        if (tick > 0) {
+          for (std::size_t k = 0; k < w.size(); ++k) {
+            for (int c = 0; c < 2; ++c) w.pos[3 * k + c] += w.uni(-2, 2);  // across the 3 m band in a few ticks
+            if (w.rng() % 60 == 0) place(&w.pos[3 * k]);                    // a jump
+          }
+        }
+        if (tick >= 1 && tick < 40 && tick % 2 == 1) add_player();
+        if (tick % 3 == 0) touch();
+        if (tick % 11 == 5) {  // churn: leaves move dense indices (players among them), arrivals append
+          for (int k = 0; k < 3; ++k) {
+            const std::size_t t = w.rng() % w.size();
+            std::erase(players, w.ids[t]);
+            last.erase(w.ids[t]);
+            w.remove(t);
+          }
+          for (int k = 0; k < 2; ++k) add_npc();
+        }
+        if (tick % 7 == 3) {  // switches (stealth, teams) and resizes: sent as changes to the layout
+          for (int k = 0; k < 5; ++k) {
+            const std::size_t t = w.rng() % w.size();
+            w.classes[t] = bits[w.rng() % 4], w.sees[t] = some_bits() | cb::normal;
+            if (w.kinds[t] != static_cast<std::uint8_t>(net::entity_kind::player)) w.presence[3 * t] = w.uni(0, 3);
+            w.changed = true;
+          }
+        }
+        positions_only += !w.changed;
+        const auto body = w.body(tick);
+        for (auto* o : oracles) REQUIRE_FALSE(o->feed(body).has_value());
+        std::map<std::uint32_t, std::vector<std::uint32_t>> now;
+        for (const std::uint32_t id : players) {
+          const std::size_t o = at(id);
+          const auto expect = recompute(o);
+          now[id] = expect;
+          ++compared;
+          visible_total += expect.size();
+          over_block += expect.size() > 50;
+          for (const std::uint32_t t : expect) {
+            const std::size_t k = at(t);
+            zero_size += w.presence[3 * k] == 0;
+            touching += w.pos[3 * k] - w.presence[3 * k] == w.pos[3 * o] + w.aoi[3 * o] ||
+                        w.pos[3 * k] + w.presence[3 * k] == w.pos[3 * o] - w.aoi[3 * o];
+          }
+          for (std::size_t i = 0; i < std::size(oracles); ++i) {
+            CAPTURE(names[i]);
+            const auto got = oracles[i]->visible(id, tick);
+            REQUIRE(got.has_value());
+            differing += *got != expect;
+          }
+        }
+        last = now;
+        history[tick] = std::move(now);
+        // 63 ticks on, the sets are still there, intact (their blocks not reused); 64 on, gone.
+        if (tick >= bots::oracle::ring_ticks - 1) {
+          const std::uint64_t then = tick - (bots::oracle::ring_ticks - 1);
+          for (const auto& [id, expect] : history[then]) {
+            for (auto* o : oracles) {
+              const auto got = o->visible(id, then);
+              REQUIRE(got.has_value());
+              differing += *got != expect;
+              ++later;
+            }
+          }
+          if (then > 0) {
+            for (const auto& [id, expect] : history[then - 1]) {
+              for (auto* o : oracles) CHECK_FALSE(o->visible(id, then - 1).has_value());
+            }
+          }
+        }
+      }
+      MESSAGE("cap " << cap << ": " << compared << " sets of each scan compared at their tick and " << later
+                     << " 63 ticks later, " << visible_total << " entries (" << touching << " touching the AOI box, "
+                     << zero_size << " of zero size), " << over_block << " sets over 50 entries, " << positions_only
+                     << " ticks of positions only; " << differing << " differ");
+      CHECK(compared > 1000);
+      CHECK(later > 1000);
+      CHECK(visible_total > compared * 3);
+      CHECK(touching > 50);
+      CHECK(zero_size > 50);
+      if (cap == 0) CHECK(over_block > 50);  // (with the cap, sets of 6 cross the blocks of 1 and 7)
+      CHECK(positions_only > 30);
+      CHECK(differing == 0);
     }
   }
 
