@@ -124,6 +124,26 @@ struct churn final : zone_extension {
   void forward_input(entity_id, const vec3&, std::uint32_t) override {}
 };
 
+/// Record k of an entities frame (docs/viewer.md): its id, its position back from the frame's
+/// 16-bit grid over the frame's bounds, how far that may be from the true one (a grid step and a
+/// float's rounding), its class bit and kind.
+struct entity_record {
+  std::uint32_t id;
+  float x, y, tolerance_x, tolerance_y;
+  std::uint8_t class_bit, kind;
+};
+entity_record record_of(const std::vector<std::uint8_t>& f, std::size_t k) {
+  const float x0 = at<float>(f, 16), y0 = at<float>(f, 20), x1 = at<float>(f, 24), y1 = at<float>(f, 28);
+  const std::size_t o = net::viewer_frame_header_bytes + k * net::viewer_entity_record_bytes;
+  return {at<std::uint32_t>(f, o),
+          x0 + at<std::uint16_t>(f, o + 4) * (x1 - x0) / 65535,
+          y0 + at<std::uint16_t>(f, o + 6) * (y1 - y0) / 65535,
+          (x1 - x0) / 65535 + 1e-3f,
+          (y1 - y0) / 65535 + 1e-3f,
+          f[o + 8],
+          f[o + 9]};
+}
+
 }  // namespace
 
 TEST_SUITE("zone.viewer") {
@@ -398,7 +418,7 @@ TEST_SUITE("zone.viewer") {
     REQUIRE(at<std::uint32_t>(*entities, 12) == store.size());
     std::set<std::uint32_t> seen;
     for (std::size_t k = 0; k < store.size(); ++k) {
-      seen.insert(at<std::uint32_t>(*entities, net::viewer_frame_header_bytes + k * net::viewer_entity_record_bytes));
+      seen.insert(record_of(*entities, k).id);
     }
     CHECK(seen == std::set<std::uint32_t>(store.ids().begin(), store.ids().end()));
     // The selection: the tracker's visible set, in order, with the replicator's distance tiers.
@@ -466,19 +486,16 @@ TEST_SUITE("zone.viewer") {
       if (!f) continue;  // the session wrote an older frame meanwhile: the next round has this one's successor
       ++checked;
       REQUIRE(at<std::uint32_t>(*f, 12) == store.size());
-      const float x0 = at<float>(*f, 16), y0 = at<float>(*f, 20), x1 = at<float>(*f, 24), y1 = at<float>(*f, 28);
       std::set<std::uint32_t> seen;
       for (std::size_t k = 0; k < store.size(); ++k) {
-        const std::size_t o = net::viewer_frame_header_bytes + k * net::viewer_entity_record_bytes;
-        const std::uint32_t id = at<std::uint32_t>(*f, o);
-        seen.insert(id);
-        const auto e = store.get(id);
+        const entity_record r = record_of(*f, k);
+        seen.insert(r.id);
+        const auto e = store.get(r.id);
         REQUIRE(e);
-        const float x = x0 + at<std::uint16_t>(*f, o + 4) * (x1 - x0) / 65535, y = y0 + at<std::uint16_t>(*f, o + 6) * (y1 - y0) / 65535;
-        CHECK(std::fabs(x - e->position.x) <= (x1 - x0) / 65535 + 1e-3f);
-        CHECK(std::fabs(y - e->position.y) <= (y1 - y0) / 65535 + 1e-3f);
-        CHECK((*f)[o + 9] == static_cast<std::uint8_t>(e->kind));
-        CHECK((*f)[o + 8] == std::countr_zero(e->visibility_class));
+        CHECK(std::fabs(r.x - e->position.x) <= r.tolerance_x);
+        CHECK(std::fabs(r.y - e->position.y) <= r.tolerance_y);
+        CHECK(r.kind == static_cast<std::uint8_t>(e->kind));
+        CHECK(r.class_bit == std::countr_zero(e->visibility_class));
       }
       CHECK(seen == std::set<std::uint32_t>(store.ids().begin(), store.ids().end()));
     }
@@ -537,18 +554,16 @@ TEST_SUITE("zone.viewer") {
         CAPTURE(tick);
         const auto& want = it->second;
         REQUIRE(at<std::uint32_t>(f, 12) == want.size());
-        const float x0 = at<float>(f, 16), y0 = at<float>(f, 20), x1 = at<float>(f, 24), y1 = at<float>(f, 28);
         std::size_t bad = 0;
         for (std::size_t e = 0; e < want.size(); ++e) {
-          const std::size_t o = net::viewer_frame_header_bytes + e * net::viewer_entity_record_bytes;
-          const auto w = want.find(at<std::uint32_t>(f, o));
+          const entity_record r = record_of(f, e);
+          const auto w = want.find(r.id);
           if (w == want.end()) {
             ++bad;
             continue;
           }
-          const float x = x0 + at<std::uint16_t>(f, o + 4) * (x1 - x0) / 65535, y = y0 + at<std::uint16_t>(f, o + 6) * (y1 - y0) / 65535;
-          bad += std::fabs(x - w->second.x) > (x1 - x0) / 65535 + 1e-3f || std::fabs(y - w->second.y) > (y1 - y0) / 65535 + 1e-3f ||
-                 f[o + 8] != w->second.cls || f[o + 9] != w->second.kind;
+          bad += std::fabs(r.x - w->second.x) > r.tolerance_x || std::fabs(r.y - w->second.y) > r.tolerance_y ||
+                 r.class_bit != w->second.cls || r.kind != w->second.kind;
         }
         CHECK(bad == 0);
         ++checked;
@@ -717,16 +732,12 @@ TEST_SUITE("zone.viewer") {
         ++checked;
         // Every entity where the store has it after the tick.
         REQUIRE(at<std::uint32_t>(*entities, 12) == store.size());
-        const float x0 = at<float>(*entities, 16), y0 = at<float>(*entities, 20), x1 = at<float>(*entities, 24),
-                    y1 = at<float>(*entities, 28);
         for (std::size_t k = 0; k < store.size(); ++k) {
-          const std::size_t o = net::viewer_frame_header_bytes + k * net::viewer_entity_record_bytes;
-          const auto e = store.get(at<std::uint32_t>(*entities, o));
+          const entity_record r = record_of(*entities, k);
+          const auto e = store.get(r.id);
           REQUIRE(e);
-          const float x = x0 + at<std::uint16_t>(*entities, o + 4) * (x1 - x0) / 65535,
-                      y = y0 + at<std::uint16_t>(*entities, o + 6) * (y1 - y0) / 65535;
-          CHECK(std::fabs(x - e->position.x) <= (x1 - x0) / 65535 + 1e-3f);
-          CHECK(std::fabs(y - e->position.y) <= (y1 - y0) / 65535 + 1e-3f);
+          CHECK(std::fabs(r.x - e->position.x) <= r.tolerance_x);
+          CHECK(std::fabs(r.y - e->position.y) <= r.tolerance_y);
         }
         // The selection: the tracker's visible set after the tick, and its latest events.
         const auto& f = *selection;
