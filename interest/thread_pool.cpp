@@ -38,15 +38,17 @@ bool spin_until(unsigned spin_us, Ready ready) {
 
 }  // namespace
 
-thread_pool::thread_pool(unsigned threads, unsigned spin_us) : spin_us_(spin_us) {
+thread_pool::thread_pool(unsigned threads, unsigned spin_us, std::function<void(unsigned)> on_start)
+    : spin_us_(spin_us) {
   if (threads == 0) threads = std::max(1u, std::thread::hardware_concurrency());
   workers_.reserve(threads - 1);
   for (unsigned i = 1; i < threads; ++i) {
-    workers_.emplace_back([this, i] {
+    workers_.emplace_back([this, i, on_start] {
       // Named for per-thread CPU readings (top -H, /proc/<pid>/task/*/comm).
       char name[16];
       std::snprintf(name, sizeof name, "zone-worker-%u", i);
       pthread_setname_np(pthread_self(), name);
+      if (on_start) on_start(i);
       worker_loop();
     });
   }

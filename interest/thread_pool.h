@@ -24,7 +24,9 @@ namespace zone::interest {
 class thread_pool {
  public:
   /// `threads` = total threads that run tasks, the caller included; 0 = hardware concurrency.
-  explicit thread_pool(unsigned threads = 0, unsigned spin_us = 0);
+  /// `on_start`, when set, runs first on each worker thread it starts (worker 1 .. threads - 1),
+  /// e.g. to pin it to CPUs; the caller's thread is the caller's to set up.
+  explicit thread_pool(unsigned threads = 0, unsigned spin_us = 0, std::function<void(unsigned worker)> on_start = {});
   ~thread_pool();
   thread_pool(const thread_pool&) = delete;
   thread_pool& operator=(const thread_pool&) = delete;

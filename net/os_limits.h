@@ -1,8 +1,12 @@
-// Process limits that a server or a swarm with thousands of sockets needs (docs/protocol.md).
+// Process limits that a server or a swarm with thousands of sockets needs (docs/protocol.md), and
+// CPU lists for pinning threads (zone-server --worker-cpus / --io-cpus, docs/operating.md).
 #pragma once
 
 #include <cstdint>
+#include <optional>
 #include <string>
+#include <string_view>
+#include <vector>
 
 namespace zone::net {
 
@@ -21,5 +25,23 @@ struct open_file_limit {
 /// File descriptors a process needs beside its sockets (logs, epoll, pipes, libraries): the
 /// headroom kept when checking a connection count against the limit.
 inline constexpr std::uint64_t reserved_file_descriptors = 64;
+
+/// A CPU list as taskset and cpuset write it ("0-5,8,10-11"): the CPUs in ascending order, each
+/// once; "" is the empty list (no pinning). Null with `error` set on anything else (a bad number,
+/// a range backwards, a CPU at or past CPU_SETSIZE).
+[[nodiscard]] std::optional<std::vector<int>> parse_cpu_list(std::string_view text, std::string* error = nullptr);
+
+/// The CPUs this process may run on now (sched_getaffinity: what taskset or a cgroup allows).
+[[nodiscard]] std::vector<int> allowed_cpus();
+
+/// Null when every CPU of `cpus` is one this process may run on, else why not (the CPUs missing
+/// and those allowed, as CPU lists).
+[[nodiscard]] std::optional<std::string> check_cpus_allowed(const std::vector<int>& cpus);
+
+/// `cpus` as a CPU list ("0-5,8"), the inverse of parse_cpu_list.
+[[nodiscard]] std::string format_cpu_list(const std::vector<int>& cpus);
+
+/// Pins the calling thread to `cpus` (nothing when empty); null, or why it failed.
+std::optional<std::string> pin_current_thread(const std::vector<int>& cpus);
 
 }  // namespace zone::net

@@ -1432,6 +1432,7 @@ std::uint64_t server::now_us() const { return impl_->now_us(); }
 std::optional<std::string> server::start() {
   auto& m = *impl_;
   if (m.running) return "server already started";
+  if (auto err = check_cpus_allowed(m.opt.io_thread_cpus)) return "io_thread_cpus: " + *err;
   // Every session is a file descriptor: raise the soft limit to the hard one and say whether
   // max_connections fits.
   const auto files = raise_open_file_limit();
@@ -1487,23 +1488,27 @@ std::optional<std::string> server::start() {
   for (auto& lane : m.lanes) lane->work.emplace(lane->ctx.get_executor());
   m.do_accept();
   for (std::size_t i = 0; i < m.lanes.size(); ++i) {
-    m.lanes[i]->thread = std::thread([l = m.lanes[i].get(), i, nice = m.opt.io_thread_nice] {
-      // Named for per-thread CPU readings (top -H, /proc/<pid>/task/*/comm).
-      char name[16];
-      std::snprintf(name, sizeof name, "zone-io-%zu", i);
-      pthread_setname_np(pthread_self(), name);
-      if (nice != 0 && ::setpriority(PRIO_PROCESS, static_cast<id_t>(::gettid()), nice) != 0) {
-        spdlog::warn("I/O thread {}: setpriority({}) failed: {}", i, nice, std::strerror(errno));
-      }
-      l->ctx.run();
-    });
+    m.lanes[i]->thread =
+        std::thread([l = m.lanes[i].get(), i, nice = m.opt.io_thread_nice, cpus = m.opt.io_thread_cpus] {
+          // Named for per-thread CPU readings (top -H, /proc/<pid>/task/*/comm).
+          char name[16];
+          std::snprintf(name, sizeof name, "zone-io-%zu", i);
+          pthread_setname_np(pthread_self(), name);
+          if (nice != 0 && ::setpriority(PRIO_PROCESS, static_cast<id_t>(::gettid()), nice) != 0) {
+            spdlog::warn("I/O thread {}: setpriority({}) failed: {}", i, nice, std::strerror(errno));
+          }
+          if (auto err = pin_current_thread(cpus)) spdlog::warn("I/O thread {}: not pinned: {}", i, *err);
+          l->ctx.run();
+        });
   }
   m.running = true;
-  spdlog::info("zone server listening on {}:{} ({} I/O threads{}, {}, {})", m.opt.address, port(), n,
-               m.opt.io_thread_nice != 0 ? " at nice " + std::to_string(m.opt.io_thread_nice) : std::string(),
-               m.opt.direct_writes ? "direct writes" : "I/O-thread writes",
-               m.uring ? std::string("batched through io_uring")
-                       : "sendmsg per write" + (why_not.empty() ? std::string() : " (io_uring unavailable: " + why_not + ")"));
+  spdlog::info(
+      "zone server listening on {}:{} ({} I/O threads{}{}, {}, {})", m.opt.address, port(), n,
+      m.opt.io_thread_nice != 0 ? " at nice " + std::to_string(m.opt.io_thread_nice) : std::string(),
+      m.opt.io_thread_cpus.empty() ? std::string() : " on CPUs " + format_cpu_list(m.opt.io_thread_cpus),
+      m.opt.direct_writes ? "direct writes" : "I/O-thread writes",
+      m.uring ? std::string("batched through io_uring")
+              : "sendmsg per write" + (why_not.empty() ? std::string() : " (io_uring unavailable: " + why_not + ")"));
   return std::nullopt;
 }
 

@@ -75,6 +75,10 @@ struct server_options {
   /// share cores with the tick's workers, the scheduler then lets a worker run its part of a tick
   /// phase before an I/O thread takes the core, so a phase does not end with a preempted task.
   int io_thread_nice = 0;
+  /// CPUs the I/O threads are pinned to (all of them to the whole set; empty = not pinned; see
+  /// parse_cpu_list in os_limits.h). Beside pool threads pinned to other CPUs, a tick's phase
+  /// never waits for a worker an I/O thread preempted (docs/operating.md, "Pinning the threads").
+  std::vector<int> io_thread_cpus;
   /// Inputs per second a client may send (token bucket of `input_burst`); inputs over the rate
   /// are dropped and counted; a client that keeps flooding (more than `flood_limit` drops in
   /// a row) gets error rate_limited and is disconnected.

@@ -7,9 +7,10 @@
 #
 # Environment: SWEEP_BOTS (the bot counts, in order), SWEEP_LAYOUT (pinned: the server on the first
 # 5/8 of the cores with 6 workers and 4 I/O threads per 10 cores, one thread per core (more
-# workers than that slowed the tick: docs/zone-benchmarks.md, "The swarm"), the swarm on the rest
-# with a thread per core; on a 16-core host: server 0-9, 6 workers, 4 I/O threads, swarm 10-15, 6
-# threads; on a 32-core host: 0-19, 12, 8, and 20-31, 12. shared: both on every core, 3/8 of the
+# workers than that slowed the tick: docs/zone-benchmarks.md, "The swarm"), the workers and the
+# I/O threads each on their own of those cores (SWEEP_SPLIT, below), the swarm on the rest with a
+# thread per core; on a 16-core host: server 0-9 (6 workers on 0-5, 4 I/O threads on 6-9), swarm
+# 10-15, 6 threads; on a 32-core host: 0-19 (12 and 8), and 20-31, 12. shared: both on every core, 3/8 of the
 # cores as I/O threads and half as swarm threads: 6 and 8 on 16 cores. Default pinned),
 # SWEEP_REPEAT (runs per bot count, default 1), and everything device_zone.sh's swarm step reads
 # (SWARM_NPCS, SWARM_SECONDS, SERVER_THREADS, SERVER_CPUS, SERVER_ARGS, ...), which win over the
@@ -36,8 +37,18 @@ case "$layout" in
   *) echo "SWEEP_LAYOUT must be pinned or shared" >&2; exit 2 ;;
 esac
 export SERVER_ARGS=${SERVER_ARGS:---worker-spin-us 0}
+# Pinned, within the server's cores: the tick's threads (the pool, the tick's own thread among
+# them) on the first SERVER_THREADS, the I/O threads on the next SERVER_IO_THREADS, so that no I/O
+# thread preempts a tick's task (zone-server --worker-cpus / --io-cpus). SWEEP_SPLIT=0, a
+# SERVER_CPUS not starting at 0, SERVER_ARGS naming CPUs or more threads than cores: not split.
+split=
+if [ "$layout" = pinned ] && [ "${SWEEP_SPLIT:-1}" = 1 ] && [[ "$SERVER_CPUS" =~ ^0-([0-9]+)$ ]] &&
+   [[ "$SERVER_ARGS" != *cpus* ]] && [ $((SERVER_THREADS + SERVER_IO_THREADS)) -le $((BASH_REMATCH[1] + 1)) ]; then
+  split="--worker-cpus 0-$((SERVER_THREADS - 1)) --io-cpus $SERVER_THREADS-$((SERVER_THREADS + SERVER_IO_THREADS - 1))"
+  export SERVER_ARGS="$SERVER_ARGS $split"
+fi
 echo "layout $layout on $cores cores: zone-server on ${SERVER_CPUS:-every core} (${SERVER_THREADS:-8} workers," \
-  "$SERVER_IO_THREADS I/O threads), bot-swarm on ${SWARM_CPUS:-every core} ($SWARM_THREADS threads)"
+  "$SERVER_IO_THREADS I/O threads${split:+: $split}), bot-swarm on ${SWARM_CPUS:-every core} ($SWARM_THREADS threads)"
 tags=()
 for bots in ${SWEEP_BOTS:-5000 10000 15000 19900}; do
   for r in $(seq "${SWEEP_REPEAT:-1}"); do

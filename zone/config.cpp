@@ -7,6 +7,7 @@
 #include <fstream>
 #include <sstream>
 
+#include "net/os_limits.h"
 #include "zone/zone_config.h"
 #include "zone/replicator.h"
 
@@ -60,6 +61,12 @@ std::optional<std::string> validate(const zone_config& c) {
   if (c.io_threads == 0) return bad("io-threads must be >= 1");
   if (c.io_nice < 0 || c.io_nice > 19) return bad("io-nice must be 0 .. 19");
   if (c.viewer_nice < 0 || c.viewer_nice > 19) return bad("viewer-nice must be 0 .. 19");
+  for (const auto& [name, list] : {std::pair{"worker-cpus", &c.worker_cpus}, std::pair{"io-cpus", &c.io_cpus}}) {
+    std::string why;
+    const auto cpus = net::parse_cpu_list(*list, &why);
+    if (!cpus) return bad(std::string(name) + ": " + why);
+    if (auto err = net::check_cpus_allowed(*cpus)) return bad(std::string(name) + " " + *list + ": " + *err);
+  }
   static const char* batchings[] = {"auto", "io_uring", "sendmsg"};  // net::parse_write_batching
   if (std::find(std::begin(batchings), std::end(batchings), c.write_batching) == std::end(batchings)) {
     return bad("write-batching must be auto, io_uring or sendmsg");
@@ -221,6 +228,8 @@ config_result parse_config(int argc, const char* const* argv) {
        "SO_SNDBUF of each client socket in bytes (0 = the system's autotuning); bounds how much stale state the kernel holds for a slow client")  //
       ("direct-writes", po::value(&c.direct_writes)->default_value(c.direct_writes), "1: the replication worker that built a frame writes it to the client's socket itself when nothing is queued ahead of it (lower latency, but the sends then lengthen the tick); 0: the I/O threads write every frame")  //
       ("io-nice", po::value(&c.io_nice)->default_value(c.io_nice), "nice value of the I/O threads, 0-19 (above 0: lower priority than the tick's workers where they share cores)")  //
+      ("worker-cpus", po::value(&c.worker_cpus)->default_value(c.worker_cpus), "CPUs of the tick's threads (the worker pool and the tick's own thread) as a CPU list, e.g. 0-5 (empty: not pinned); with --io-cpus on other CPUs no I/O thread preempts a tick's task (docs/operating.md)")  //
+      ("io-cpus", po::value(&c.io_cpus)->default_value(c.io_cpus), "CPUs of the I/O threads as a CPU list, e.g. 6-9 (empty: not pinned)")  //
       ("write-batching", po::value(&c.write_batching)->default_value(c.write_batching), "how the I/O threads write: auto (io_uring where the kernel allows it, else sendmsg), io_uring (or refuse to start), sendmsg (one system call per session write)")  //
       ("inputs-per-second", po::value(&c.inputs_per_second)->default_value(c.inputs_per_second), "input rate limit per client (inputs and teleports; burst half a second's worth); over it inputs are dropped, 200 in a row: error rate_limited")  //
       ("pings-per-second", po::value(&c.pings_per_second)->default_value(c.pings_per_second), "ping rate limit per client (burst one second's worth); over it no pong, 200 in a row: error rate_limited")  //

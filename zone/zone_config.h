@@ -94,6 +94,9 @@ struct zone_config {
   /// docs/zone-benchmarks.md).
   bool direct_writes = false;
   int io_nice = 0;  ///< nice value of the I/O threads (net::server_options::io_thread_nice; 0-19)
+  /// CPU lists ("0-5,8"; empty = not pinned): the tick's threads (the worker pool and the tick's
+  /// own thread) and the I/O threads (net::server_options::io_thread_cpus).
+  std::string worker_cpus, io_cpus;
   /// How the I/O threads write (net::server_options::batching): "auto" (io_uring where the kernel
   /// allows it, else sendmsg), "io_uring" (or refuse to start), "sendmsg".
   std::string write_batching = "auto";

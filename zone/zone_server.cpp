@@ -1,12 +1,13 @@
 // The tick loop (zone_server.h): drain client inputs, step the world, replicate, at a fixed rate.
 #include "zone_server.h"
 
-#include "gpu/device_fault.h"
 #include "engine_faults.h"
+#include "gpu/device_fault.h"
 #include "gpu/finders.h"
-#include "interest/measure.h"
 #include "gpu/replication.h"
 #include "gpu/visibility.h"
+#include "interest/measure.h"
+#include "net/os_limits.h"
 
 #include <spdlog/spdlog.h>
 
@@ -25,6 +26,14 @@ namespace {
 
 using clock_type = std::chrono::steady_clock;
 
+/// A CPU list of the config as CPUs to pin to: empty when the list is bad or names a CPU this
+/// process may not use (validate() refuses those with the reason; nothing is pinned meanwhile).
+std::vector<int> pin_cpus(const std::string& list) {
+  auto cpus = net::parse_cpu_list(list);
+  if (!cpus || net::check_cpus_allowed(*cpus)) return {};
+  return *cpus;
+}
+
 net::server_options net_options(const zone_config& c) {
   net::server_options o;
   o.address = c.listen_address;
@@ -35,6 +44,7 @@ net::server_options net_options(const zone_config& c) {
   o.socket_send_buffer = c.socket_send_buffer;
   o.direct_writes = c.direct_writes;
   o.io_thread_nice = c.io_nice;
+  o.io_thread_cpus = pin_cpus(c.io_cpus);
   o.batching = net::parse_write_batching(c.write_batching).value_or(net::write_batching::automatic);
   o.inputs_per_second = c.inputs_per_second;
   o.input_burst = std::max(1.0, c.inputs_per_second / 2);
@@ -64,7 +74,11 @@ engine_fault zone_server::gpu_fault(const zone_config& cfg) const {
 
 zone_server::zone_server(const zone_config& cfg)
     : cfg_(cfg),
-      pool_(std::make_unique<interest::thread_pool>(cfg.worker_threads, worker_spin(cfg))),
+      pool_(std::make_unique<interest::thread_pool>(cfg.worker_threads, worker_spin(cfg),
+                                                    [cpus = pin_cpus(cfg.worker_cpus)](unsigned worker) {
+                                                      if (auto err = net::pin_current_thread(cpus))
+                                                        spdlog::warn("worker {}: not pinned: {}", worker, *err);
+                                                    })),
       parts_(make_interest_parts(cfg, pool_.get())),
       world_(std::make_unique<zone_world>(cfg, *parts_.finder, pool_.get())),
       replicator_(replication_options_of(cfg)),
@@ -336,9 +350,10 @@ std::optional<std::string> zone_server::start() {
     }
   }
   world_->populate();
-  spdlog::info("zone: {} NPCs, world {}x{}x{} m, {} Hz, {} worker threads, interest on {}, replication on {}",
+  spdlog::info("zone: {} NPCs, world {}x{}x{} m, {} Hz, {} worker threads{}, interest on {}, replication on {}",
                world_->store().size(), cfg_.world.hi.x, cfg_.world.hi.y, cfg_.world.hi.z, cfg_.tick_rate_hz,
-               pool_->size(), interest_name(), replication_name());
+               pool_->size(), cfg_.worker_cpus.empty() ? std::string() : " on CPUs " + cfg_.worker_cpus,
+               interest_name(), replication_name());
   if (!parts_.engine_note.empty()) spdlog::info("zone: interest runs on the host: {}", parts_.engine_note);
   if (!replicate_note_.empty()) spdlog::info("zone: replication runs on the CPU: {}", replicate_note_);
   if (auto err = net_.start()) return err;
@@ -1005,6 +1020,10 @@ void zone_server::publish_viewer() {
 }
 
 void zone_server::run() {
+  // The tick's own thread runs a share of every phase: on the workers' CPUs.
+  if (auto err = net::pin_current_thread(pin_cpus(cfg_.worker_cpus))) {
+    spdlog::warn("zone: the tick's thread not pinned: {}", *err);
+  }
   const auto period = std::chrono::duration_cast<clock_type::duration>(std::chrono::duration<double>(1.0 / cfg_.tick_rate_hz));
   auto next = clock_type::now();
   while (!stop_requested_) {

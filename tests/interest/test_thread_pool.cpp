@@ -6,6 +6,7 @@
 #include <atomic>
 #include <chrono>
 #include <ctime>
+#include <mutex>
 #include <thread>
 #include <vector>
 
@@ -103,5 +104,35 @@ TEST_SUITE("interest.thread_pool") {
     }
     pool.park();  // parking twice in a row, then destruction
     pool.park();
+  }
+
+  TEST_CASE("on_start runs once on each worker thread, before that worker takes a task") {
+    std::mutex m;
+    std::vector<unsigned> started;
+    std::vector<std::thread::id> ids;
+    {
+      thread_pool pool(4, 0, [&](unsigned worker) {
+        const std::lock_guard lock(m);
+        started.push_back(worker);
+        ids.push_back(std::this_thread::get_id());
+      });
+      std::mutex seen_m;
+      std::vector<std::thread::id> ran_on;
+      for (int r = 0; r < 50; ++r) {
+        pool.run(64, [&](std::size_t) {
+          std::this_thread::sleep_for(std::chrono::microseconds(20));
+          const std::lock_guard lock(seen_m);
+          ran_on.push_back(std::this_thread::get_id());
+        });
+      }
+      const std::lock_guard lock(m);
+      std::sort(started.begin(), started.end());
+      CHECK(started == std::vector<unsigned>{1, 2, 3});
+      // Every thread that ran a task other than the caller is a worker whose on_start had run.
+      for (const auto id : ran_on) {
+        if (id != std::this_thread::get_id()) CHECK(std::find(ids.begin(), ids.end(), id) != ids.end());
+      }
+    }
+    CHECK(started.size() == 3);  // none again at destruction
   }
 }
