@@ -56,6 +56,16 @@ class log_histogram {
     }
   }
   void clear() { *this = log_histogram{}; }
+  /// Adds `o`'s figures to these (e.g. to sum per-thread histograms when read).
+  void add(const log_histogram& o) {
+    for (int b = 0; b < Buckets; ++b)
+      count_[static_cast<std::size_t>(b)].fetch_add(o.bucket(b), std::memory_order_relaxed);
+    n_.fetch_add(o.count(), std::memory_order_relaxed);
+    sum_.fetch_add(o.sum(), std::memory_order_relaxed);
+    const double v = o.max();
+    double m = max_.load(std::memory_order_relaxed);
+    while (v > m && !max_.compare_exchange_weak(m, v, std::memory_order_relaxed)) {}
+  }
 
   [[nodiscard]] std::uint64_t count() const { return n_.load(std::memory_order_relaxed); }
   [[nodiscard]] double sum() const { return sum_.load(std::memory_order_relaxed); }

@@ -44,6 +44,7 @@ class outbound_queue {
   struct entry {
     shared_frame frame;
     delivery kind = delivery::state;
+    std::uint64_t stamp_us = 0;  ///< what the frame's age counts from (outgoing_frame::stamp_us)
   };
 
   /// The queued frames, oldest first: a ring of 2 x bound slots allocated with the queue, so
@@ -146,7 +147,7 @@ class outbound_queue {
 
   explicit outbound_queue(std::size_t bound) : bound_(std::max<std::size_t>(1, bound)), queue_(2 * bound_) {}
 
-  push_result push(shared_frame frame, delivery d) {
+  push_result push(shared_frame frame, delivery d, std::uint64_t stamp_us = 0) {
     push_result r;
     switch (d) {
       case delivery::control:
@@ -178,7 +179,7 @@ class outbound_queue {
         }
         break;
     }
-    queue_.push_back({std::move(frame), d});
+    queue_.push_back({std::move(frame), d, stamp_us});
     r.queued = true;
     return r;
   }

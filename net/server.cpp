@@ -450,6 +450,8 @@ struct server::impl {
 
   atomic_counters counters;
   std::array<write_counters, write_counter_stripes> write_stats;
+  /// server::frame_write_age, one histogram per stripe of writing threads (summed when read).
+  std::array<latency_histogram_ms, write_counter_stripes> write_age;
 
   /// The host's CLOCK_MONOTONIC (steady_clock on Linux) in microseconds: a client on the same
   /// host reads the same clock, so its update latency needs no clock sync.
@@ -534,7 +536,7 @@ class session : public std::enable_shared_from_this<session> {
 
   /// Any thread: enqueue(), and the lane told now when it must write.
   void enqueue_and_schedule(shared_frame frame, delivery d) {
-    if (enqueue(std::move(frame), d)) lane_.schedule(shared_from_this());
+    if (enqueue(std::move(frame), d, 0)) lane_.schedule(shared_from_this());
   }
   [[nodiscard]] io_lane& lane() const { return lane_; }
   [[nodiscard]] int native_fd() const { return fd_; }
@@ -542,10 +544,13 @@ class session : public std::enable_shared_from_this<session> {
   /// Any thread: through the outbound queue's policy, then written at once by this thread (direct
   /// writes) unless the session waits for its socket. True: the lane must be told to write it
   /// (io_lane::schedule; the session is marked as on its ready list).
-  [[nodiscard]] bool enqueue(shared_frame frame, delivery d) {
-    if (d != delivery::control) backlog_->fetch_add(1, std::memory_order_relaxed);
+  [[nodiscard]] bool enqueue(shared_frame frame, delivery d, std::uint64_t stamp_us) {
+    if (d != delivery::control) {
+      backlog_->fetch_add(1, std::memory_order_relaxed);
+      if (stamp_us == 0) stamp_us = srv_.now_us();
+    }
     std::unique_lock lock(write_mutex_);
-    const auto r = push_locked(std::move(frame), d);
+    const auto r = push_locked(std::move(frame), d, stamp_us);
     if (r.overflow) {
       lock.unlock();
       close("outbound queue overflow with control frames");
@@ -811,12 +816,12 @@ class session : public std::enable_shared_from_this<session> {
   }
 
   /// Through the queue's policy (write lock held; any thread): counts drops, reports a resync.
-  outbound_queue::push_result push_locked(shared_frame frame, delivery d) {
+  outbound_queue::push_result push_locked(shared_frame frame, delivery d, std::uint64_t stamp_us = 0) {
     if (closing_ || closed_ || !frame) {
       if (d != delivery::control && frame) backlog_->fetch_sub(1, std::memory_order_relaxed);
       return {};
     }
-    const auto r = queue_.push(std::move(frame), d);
+    const auto r = queue_.push(std::move(frame), d, stamp_us);
     // Every state frame ends queued (then written: flush_locked) or counted in `dropped`.
     if (r.dropped != 0) backlog_->fetch_sub(static_cast<std::uint32_t>(r.dropped), std::memory_order_relaxed);
     if (r.overflow) return r;
@@ -894,6 +899,8 @@ class session : public std::enable_shared_from_this<session> {
     auto left = static_cast<std::size_t>(result);
     std::size_t done = 0, offset = partial_;
     std::uint32_t state_done = 0;
+    const std::size_t stripe = write_counter_stripe();
+    std::uint64_t now = 0;
     while (done < n) {
       const std::size_t rest = entries[done].frame.size() - offset;
       if (left < rest) {
@@ -902,13 +909,18 @@ class session : public std::enable_shared_from_this<session> {
       }
       left -= rest;
       offset = 0;
-      if (entries[done].kind != delivery::control) ++state_done;
+      if (entries[done].kind != delivery::control) {
+        ++state_done;
+        if (now == 0) now = srv_.now_us();
+        const std::uint64_t stamp = entries[done].stamp_us;
+        srv_.write_age[stripe].record(now > stamp ? static_cast<double>(now - stamp) / 1000.0 : 0.0);
+      }
       ++done;
     }
     partial_ = offset;
     queue_.finish_frames(done);
     if (state_done != 0) backlog_->fetch_sub(state_done, std::memory_order_relaxed);
-    auto& c = srv_.write_stats[write_counter_stripe()];
+    auto& c = srv_.write_stats[stripe];
     if (write_is_new_) c.writes.fetch_add(1, std::memory_order_relaxed);
     write_is_new_ = false;  // what is left of this write goes on as its rest
     c.bytes_out.fetch_add(static_cast<std::uint64_t>(result), std::memory_order_relaxed);
@@ -1646,7 +1658,7 @@ std::size_t server::impl::send_many(Frames frames) {
         return std::move(frames[i].frame);
       }
     };
-    if (targets[i]->enqueue(frame(), frames[i].kind)) ready.push_back(std::move(targets[i]));
+    if (targets[i]->enqueue(frame(), frames[i].kind, frames[i].stamp_us)) ready.push_back(std::move(targets[i]));
   }
   targets.clear();
   // One append per lane (few lanes: a pass over the list for each lane that has a session in it).
@@ -1673,6 +1685,12 @@ void server::disconnect(session_id s, error_code code, std::string reason) {
     target = it->second;
   }
   target->fail(code, std::move(reason));
+}
+
+latency_histogram_ms server::frame_write_age() const {
+  latency_histogram_ms sum;
+  for (const auto& h : impl_->write_age) sum.add(h);
+  return sum;
 }
 
 server_stats server::stats() const {

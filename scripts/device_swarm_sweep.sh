@@ -66,9 +66,11 @@ import csv, json, math, re, sys
 out, tags = sys.argv[1], sys.argv[2:]
 # Latency and tick percentiles are the steady state's: from the first second with every bot
 # connected (the swarm's latency_steady_ms) and the ticks with every bot a client (the server's
-# --tick-csv); the whole run's, ramp-up included, follow in brackets.
+# --tick-csv); the whole run's, ramp-up included, follow in brackets. "written": the server's
+# share of the latency over the whole run (its stop summary: each tick update's age when written).
 cols = ["run", "bots", "connected", "mismatches", "resyncs", "frames/s/bot", "KB/s/bot median",
-        "latency p50 / p99 ms [whole run]", "tick p50 / p99 / max ms [whole run p99]", "replicate p50 / p99 ms",
+        "latency p50 / p99 ms [whole run]", "written p50 / p99 ms (whole run)", "tick p50 / p99 / max ms [whole run p99]",
+        "replicate p50 / p99 ms",
         "interest p99 ms", "steady ticks (over 33.3 ms)", "server CPU s", "swarm CPU s", "CPU us/frame (server + swarm)"]
 
 def pct(values, q):
@@ -111,6 +113,7 @@ for tag in tags:
                  "%.1f" % rep["per_bot"]["msgs_per_s_median"], "%.1f" % rep["per_bot"]["kbps_median"],
                  "%.1f / %.1f [%.1f / %.1f]" % (lat.get("p50", float("nan")), lat.get("p99", float("nan")),
                                                 rep["latency_ms"]["p50"], rep["latency_ms"]["p99"]),
+                 "%.1f / %.1f" % phase("written"),
                  "%.1f / %.1f / %.1f [%.1f]" % (pct(tick, 0.5), pct(tick, 0.99), max(tick, default=float("nan")),
                                                 phase("tick")[1]),
                  "%.1f / %.1f" % (pct(repl, 0.5), pct(repl, 0.99)), "%.1f" % pct(inter, 0.99),

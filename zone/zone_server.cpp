@@ -280,6 +280,10 @@ std::string zone_server::metrics_text() const {
               "A player's join: its connection accepted to its hello read, and that to its welcome queued.",
               std::string("part=\"") + part + "\"", h);
   };
+  histogram("zone_frame_write_seconds",
+            "A tick update's age when the kernel took its last byte: from its tick's server_time (replication's start) "
+            "to its write, the server's share of a client's update latency.",
+            "", net_.frame_write_age());
   join("accept_to_hello", stats_.join_hello_ms);
   join("hello_to_welcome", stats_.join_welcome_ms);
   phase("tick", stats_.tick_ms);
@@ -666,7 +670,10 @@ void zone_server::replicate() {
   const auto deliver = [&](std::size_t k, net::shared_frame frame, const replication_stats& st) {
     frame_bytes_[k] = frame.size();
     // A reset frame ends a session's wait after dropped frames (net/server.h).
-    outgoing_[k] = {request_sessions_[k], std::move(frame), st.reset ? net::delivery::state_reset : net::delivery::state};
+    // Its age (net::server::frame_write_age) counts from the time the frame carries: the client's
+    // update latency less the network's and the client's share.
+    outgoing_[k] = {request_sessions_[k], std::move(frame),
+                    st.reset ? net::delivery::state_reset : net::delivery::state, now};
   };
   // A viewer snapshot due this tick is filled while the replication engine waits for the device
   // (build_many's side work: the store and the tracker are final after the step and stay so until
@@ -1067,6 +1074,7 @@ void zone_server::run() {
   report("integrate", world_->phases().integrate);
   report("interest", world_->phases().interest);
   report("replicate", stats_.replicate_ms);
+  report("written", net_.frame_write_age());  // each tick update's age when written (server_time to the write)
   if (truth_) {
     truth_->stop();
     const auto& t = truth_->stats();

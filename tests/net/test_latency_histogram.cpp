@@ -187,4 +187,26 @@ TEST_CASE("latency histogram: recording from several threads loses nothing") {
   CHECK(h.max() == 99999.0);
 }
 
+TEST_CASE("latency histogram: add() of per-thread histograms equals one that recorded every value") {
+  const std::uint64_t seed = fresh_seed();
+  CAPTURE(seed);
+  std::mt19937_64 rng(seed);
+  std::lognormal_distribution<double> value(1.0, 2.0);
+  zone::net::latency_histogram_ms parts[3], all, sum;
+  for (int i = 0; i < 20000; ++i) {
+    const double v = i % 97 == 0 ? 0.0 : value(rng);
+    parts[i % 3].record(v);
+    all.record(v);
+  }
+  sum.add(parts[0]);
+  sum.add(parts[1]);
+  sum.add(zone::net::latency_histogram_ms{});  // an empty one changes nothing
+  sum.add(parts[2]);
+  CHECK(sum.snapshot() == all.snapshot());
+  CHECK(sum.count() == all.count());
+  CHECK(sum.max() == all.max());
+  CHECK(sum.sum() == doctest::Approx(all.sum()).epsilon(1e-9));
+  for (const double q : {0.0, 0.5, 0.9, 0.99, 1.0}) CHECK(sum.percentile(q) == all.percentile(q));
+}
+
 }  // TEST_SUITE

@@ -736,6 +736,56 @@ TEST_SUITE("net.server") {
     CHECK(srv.stats().frames_dropped == 0);
   }
 
+  TEST_CASE(
+      "frame_write_age: each state frame's age when written, from its stamp or its queueing; control frames not in it") {
+    server_options opt;
+    FOR_BOTH_WRITE_PATHS(opt)
+    opt.io_threads = 2;
+    opt.max_queued_frames = 64;
+    started run(opt);
+    auto& srv = run.srv;
+    auto& g = run.g;
+    const joined_clients joined = join_all(g, srv.port(), "w", 4);
+    CHECK(srv.frame_write_age().count() == 0);  // the welcomes are control frames
+    // Sessions 0 and 1: frames stamped 200 ms before now (as a tick that began building then);
+    // 2 and 3: unstamped (their age counts from send_many); a control frame to each beside them.
+    constexpr int rounds = 10;
+    for (int q = 0; q < rounds; ++q) {
+      std::vector<outgoing_frame> chunk;
+      const std::uint64_t stamp = srv.now_us() - 200'000;
+      for (int i = 0; i < 4; ++i) {
+        chunk.push_back({joined.sessions[static_cast<std::size_t>(i)], frame(tick(static_cast<std::uint64_t>(q))),
+                         q == 0 ? delivery::state_reset : delivery::state, i < 2 ? stamp : 0});
+        chunk.push_back({joined.sessions[static_cast<std::size_t>(i)], frame(tick(1000)), delivery::control});
+      }
+      CHECK(srv.send_many(chunk) == chunk.size());
+    }
+    for (const auto& c : joined.clients) {
+      for (int n = 0; n < 2 * rounds; ++n) REQUIRE(c->read().has_value());
+    }
+    REQUIRE(g.wait_for([&] { return srv.frame_write_age().count() == 4 * rounds; }));
+    const auto age = srv.frame_write_age();
+    CHECK(age.count() == 4 * rounds);  // the state frames, each once; no control frame
+    // Half the frames were at least 200 ms old when written, the other half written sooner after
+    // their queueing (an I/O thread takes well under 200 ms even on a loaded machine).
+    const auto counts = age.snapshot();
+    std::uint64_t old = 0, young = 0;
+    for (int b = 0; b < latency_histogram_ms::buckets; ++b) {
+      const auto n = counts[static_cast<std::size_t>(b)];
+      if (latency_histogram_ms::bucket_upper(b) > 200.0) old += n;
+      if (latency_histogram_ms::bucket_upper(b) < 200.0) young += n;
+    }
+    CHECK(old == 2 * rounds);
+    CHECK(age.percentile(0.25) < 200.0);
+    CHECK(age.max() >= 200.0);
+    CHECK(age.max() < 60'000.0);
+    CHECK(young == 2 * rounds);
+    // send() stamps at queueing too.
+    srv.send(joined.sessions[0], frame(tick(rounds)));
+    REQUIRE(joined.clients[0]->read().has_value());
+    REQUIRE(g.wait_for([&] { return srv.frame_write_age().count() == 4 * rounds + 1; }));
+  }
+
   TEST_CASE("io_uring writes: used when asked for (or start() says why not); many sessions' writes in few submissions") {
     CHECK(parse_write_batching("auto") == write_batching::automatic);
     CHECK(parse_write_batching("io_uring") == write_batching::uring);
