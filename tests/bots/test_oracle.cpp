@@ -463,7 +463,12 @@ TEST_SUITE("bots.oracle") {
       const auto add_player = [&] {
         float p[3];
         place(p);
-        const int k = players.size() < 2 ? 10 : static_cast<int>(w.rng() % 10);
+        // The first two players have a huge AOI, the next four touching targets (below), so that
+        // every world has both whatever the draws (a world with few touching players left only
+        // 20 touching entries in 3% of the runs, under the bound checked at the end); then any.
+        const int k = players.size() < 2   ? 10
+                      : players.size() < 6 ? 1 + static_cast<int>(w.rng() % 4)
+                                           : static_cast<int>(w.rng() % 10);
         // A huge AOI (every target: sets larger than any small block), none (only what sits on
         // the observer's point), multiples of 4 (exact arithmetic: the touching targets), any.
         const float a = k == 10 ? 1e4f : k == 0 ? 0.0f : k < 5 ? 4.0f * static_cast<float>(1 + w.rng() % 5) : w.uni(2, 30);
