@@ -89,8 +89,10 @@ std::vector<int> allowed_cpus() {
 
 std::optional<std::string> check_cpus_allowed(const std::vector<int>& cpus) {
   const std::vector<int> allowed = allowed_cpus();
-  std::vector<int> missing;
-  std::set_difference(cpus.begin(), cpus.end(), allowed.begin(), allowed.end(), std::back_inserter(missing));
+  std::vector<int> wanted = cpus, missing;  // any order, repeats allowed (an embedder's list)
+  std::sort(wanted.begin(), wanted.end());
+  wanted.erase(std::unique(wanted.begin(), wanted.end()), wanted.end());
+  std::set_difference(wanted.begin(), wanted.end(), allowed.begin(), allowed.end(), std::back_inserter(missing));
   if (missing.empty()) return std::nullopt;
   return "names CPU " + format_cpu_list(missing) +
          ", which this process may not run on (allowed: " + format_cpu_list(allowed) + ")";
@@ -113,7 +115,11 @@ std::optional<std::string> pin_current_thread(const std::vector<int>& cpus) {
   if (cpus.empty()) return std::nullopt;
   cpu_set_t set;
   CPU_ZERO(&set);
-  for (const int c : cpus) CPU_SET(c, &set);
+  for (const int c : cpus) {
+    if (c < 0 || c >= CPU_SETSIZE)
+      return "CPU " + std::to_string(c) + " is not a CPU number (0 .. " + std::to_string(CPU_SETSIZE - 1) + ")";
+    CPU_SET(c, &set);
+  }
   const int r = ::pthread_setaffinity_np(::pthread_self(), sizeof set, &set);
   if (r != 0) return "pthread_setaffinity_np(" + format_cpu_list(cpus) + "): " + std::strerror(r);
   return std::nullopt;

@@ -34,14 +34,15 @@ inline constexpr std::uint64_t reserved_file_descriptors = 64;
 /// The CPUs this process may run on now (sched_getaffinity: what taskset or a cgroup allows).
 [[nodiscard]] std::vector<int> allowed_cpus();
 
-/// Null when every CPU of `cpus` is one this process may run on, else why not (the CPUs missing
-/// and those allowed, as CPU lists).
+/// Null when every CPU of `cpus` (any order) is one this process may run on, else why not (the
+/// CPUs missing and those allowed, as CPU lists).
 [[nodiscard]] std::optional<std::string> check_cpus_allowed(const std::vector<int>& cpus);
 
 /// `cpus` as a CPU list ("0-5,8"), the inverse of parse_cpu_list.
 [[nodiscard]] std::string format_cpu_list(const std::vector<int>& cpus);
 
-/// Pins the calling thread to `cpus` (nothing when empty); null, or why it failed.
+/// Pins the calling thread to `cpus` (nothing when empty); null, or why it failed (a number
+/// outside 0 .. CPU_SETSIZE - 1, or the system's refusal: no CPU of the list allowed).
 std::optional<std::string> pin_current_thread(const std::vector<int>& cpus);
 
 }  // namespace zone::net

@@ -66,6 +66,15 @@ TEST_SUITE("net.cpu_list") {
     REQUIRE_FALSE(allowed.empty());
     CHECK_FALSE(check_cpus_allowed(allowed).has_value());
     CHECK_FALSE(check_cpus_allowed({}).has_value());
+    // An embedder's list in any order, with repeats: judged as the set it names.
+    std::vector<int> shuffled(allowed.rbegin(), allowed.rend());
+    shuffled.push_back(allowed.front());
+    CHECK_FALSE(check_cpus_allowed(shuffled).has_value());
+    const auto neg = check_cpus_allowed({allowed.front(), -1});
+    REQUIRE(neg.has_value());
+    CHECK(neg->find("-1") != std::string::npos);
+    CHECK(pin_current_thread({-1}).has_value());  // refused, nothing pinned
+    CHECK(pin_current_thread({CPU_SETSIZE}).has_value());
     const auto err = check_cpus_allowed({CPU_SETSIZE - 1});
     if (allowed.back() != CPU_SETSIZE - 1) {
       REQUIRE(err.has_value());
