@@ -451,7 +451,7 @@ struct server::impl {
   atomic_counters counters;
   std::array<write_counters, write_counter_stripes> write_stats;
   /// server::frame_write_age, one histogram per stripe of writing threads (summed when read).
-  std::array<latency_histogram_ms, write_counter_stripes> write_age;
+  std::array<latency_histogram_us, write_counter_stripes> write_age;
 
   /// The host's CLOCK_MONOTONIC (steady_clock on Linux) in microseconds: a client on the same
   /// host reads the same clock, so its update latency needs no clock sync.
@@ -913,7 +913,7 @@ class session : public std::enable_shared_from_this<session> {
         ++state_done;
         if (now == 0) now = srv_.now_us();
         const std::uint64_t stamp = entries[done].stamp_us;
-        srv_.write_age[stripe].record(now > stamp ? static_cast<double>(now - stamp) / 1000.0 : 0.0);
+        srv_.write_age[stripe].record(now > stamp ? static_cast<double>(now - stamp) : 0.0);
       }
       ++done;
     }
@@ -1687,8 +1687,8 @@ void server::disconnect(session_id s, error_code code, std::string reason) {
   target->fail(code, std::move(reason));
 }
 
-latency_histogram_ms server::frame_write_age() const {
-  latency_histogram_ms sum;
+latency_histogram_us server::frame_write_age() const {
+  latency_histogram_us sum;
   for (const auto& h : impl_->write_age) sum.add(h);
   return sum;
 }

@@ -334,11 +334,12 @@ class server {
   /// slowly, moves it on; one that stopped reading does not once the kernel's buffers are full.
   /// Outlives the session. Null when the session is gone.
   [[nodiscard]] std::shared_ptr<const std::atomic<std::uint64_t>> bytes_written(session_id s) const;
-  /// How old each state frame was when the kernel took its last byte (milliseconds, from its
-  /// outgoing_frame::stamp_us, or from when send() queued it): the server's share of a client's
-  /// update latency (the rest is the network and the client). Any thread; summed over the writing
-  /// threads when read. Frames dropped, or written in part when their session closed, are not in it.
-  [[nodiscard]] latency_histogram_ms frame_write_age() const;
+  /// How old each state frame was when the kernel took its last byte (microseconds, from its
+  /// outgoing_frame::stamp_us, or from when send() queued it; ~4% buckets, as the bot swarm's
+  /// latencies): the server's share of a client's update latency (the rest is the network and the
+  /// client). Any thread; summed over the writing threads when read. Frames dropped, or written in
+  /// part when their session closed, are not in it.
+  [[nodiscard]] latency_histogram_us frame_write_age() const;
   /// The game finds the session stalled (it has not drained its socket for a while): its queued
   /// state frames that are not being written are dropped (counted in frames_dropped; they would be
   /// stale by the time the client reads them) and its queue awaits a reset (outbound_queue::

@@ -280,10 +280,25 @@ std::string zone_server::metrics_text() const {
               "A player's join: its connection accepted to its hello read, and that to its welcome queued.",
               std::string("part=\"") + part + "\"", h);
   };
-  histogram("zone_frame_write_seconds",
-            "A tick update's age when the kernel took its last byte: from its tick's server_time (replication's start) "
-            "to its write, the server's share of a client's update latency.",
-            "", net_.frame_write_age());
+  {
+    // Microseconds in 16 buckets an octave: exported an octave a bucket (2^k - 1 us), up to ~100 s.
+    using h_us = net::latency_histogram_us;
+    const h_us h = net_.frame_write_age();
+    std::vector<double> bounds;
+    std::vector<std::uint64_t> cumulative;
+    std::uint64_t seen = 0;
+    for (int b = 0; b < h_us::buckets && (bounds.empty() || bounds.back() < 100.0); ++b) {
+      seen += h.bucket(b);
+      if (b % 16 == 15) {
+        bounds.push_back(h_us::bucket_upper(b) / 1e6);
+        cumulative.push_back(seen);
+      }
+    }
+    t.histogram("zone_frame_write_seconds",
+                "A tick update's age when the kernel took its last byte: from its tick's server_time (replication's "
+                "start) to its write, the server's share of a client's update latency.",
+                bounds, cumulative, h.sum() / 1e6, h.count());
+  }
   join("accept_to_hello", stats_.join_hello_ms);
   join("hello_to_welcome", stats_.join_welcome_ms);
   phase("tick", stats_.tick_ms);
@@ -1074,7 +1089,12 @@ void zone_server::run() {
   report("integrate", world_->phases().integrate);
   report("interest", world_->phases().interest);
   report("replicate", stats_.replicate_ms);
-  report("written", net_.frame_write_age());  // each tick update's age when written (server_time to the write)
+  {
+    // Each tick update's age when written (its tick's server_time to the write), in microseconds.
+    const auto w = net_.frame_write_age();
+    spdlog::info("  {:<10} p50 {:8.3f} ms  p99 {:8.3f} ms  max {:8.3f} ms", "written", w.percentile(0.5) / 1000.0,
+                 w.percentile(0.99) / 1000.0, w.max() / 1000.0);
+  }
   if (truth_) {
     truth_->stop();
     const auto& t = truth_->stats();
