@@ -8,6 +8,7 @@
 #include <algorithm>
 #include <cerrno>
 #include <charconv>
+#include <climits>
 #include <cstring>
 #include <iterator>
 
@@ -38,9 +39,12 @@ open_file_limit raise_open_file_limit() {
 namespace {
 
 bool parse_cpu(std::string_view t, int& out) {
+  unsigned v = 0;  // unsigned: no sign accepted ("-0", "+1")
   if (t.empty()) return false;
-  const auto r = std::from_chars(t.data(), t.data() + t.size(), out);
-  return r.ec == std::errc() && r.ptr == t.data() + t.size();
+  const auto r = std::from_chars(t.data(), t.data() + t.size(), v);
+  if (r.ec != std::errc() || r.ptr != t.data() + t.size() || v > static_cast<unsigned>(INT_MAX)) return false;
+  out = static_cast<int>(v);
+  return true;
 }
 
 }  // namespace

@@ -31,11 +31,12 @@ inline constexpr std::uint64_t reserved_file_descriptors = 64;
 /// a range backwards, a CPU at or past CPU_SETSIZE).
 [[nodiscard]] std::optional<std::vector<int>> parse_cpu_list(std::string_view text, std::string* error = nullptr);
 
-/// The CPUs this process may run on now (sched_getaffinity: what taskset or a cgroup allows).
+/// The CPUs the calling thread may run on now (sched_getaffinity(0): the process's, as taskset or
+/// a cgroup set them, unless this thread was pinned since).
 [[nodiscard]] std::vector<int> allowed_cpus();
 
-/// Null when every CPU of `cpus` (any order) is one this process may run on, else why not (the
-/// CPUs missing and those allowed, as CPU lists).
+/// Null when every CPU of `cpus` (any order) is one the calling thread may run on (allowed_cpus),
+/// else why not (the CPUs missing and those allowed, as CPU lists).
 [[nodiscard]] std::optional<std::string> check_cpus_allowed(const std::vector<int>& cpus);
 
 /// `cpus` as a CPU list ("0-5,8"), the inverse of parse_cpu_list.

@@ -545,10 +545,7 @@ class session : public std::enable_shared_from_this<session> {
   /// writes) unless the session waits for its socket. True: the lane must be told to write it
   /// (io_lane::schedule; the session is marked as on its ready list).
   [[nodiscard]] bool enqueue(shared_frame frame, delivery d, std::uint64_t stamp_us) {
-    if (d != delivery::control) {
-      backlog_->fetch_add(1, std::memory_order_relaxed);
-      if (stamp_us == 0) stamp_us = srv_.now_us();
-    }
+    if (d != delivery::control) backlog_->fetch_add(1, std::memory_order_relaxed);
     std::unique_lock lock(write_mutex_);
     const auto r = push_locked(std::move(frame), d, stamp_us);
     if (r.overflow) {
@@ -821,6 +818,8 @@ class session : public std::enable_shared_from_this<session> {
       if (d != delivery::control && frame) backlog_->fetch_sub(1, std::memory_order_relaxed);
       return {};
     }
+    // A state frame's age (server::frame_write_age) counts from its stamp, or from now.
+    if (d != delivery::control && stamp_us == 0) stamp_us = srv_.now_us();
     const auto r = queue_.push(std::move(frame), d, stamp_us);
     // Every state frame ends queued (then written: flush_locked) or counted in `dropped`.
     if (r.dropped != 0) backlog_->fetch_sub(static_cast<std::uint32_t>(r.dropped), std::memory_order_relaxed);

@@ -40,12 +40,16 @@ export SERVER_ARGS=${SERVER_ARGS:---worker-spin-us 0}
 # Pinned, within the server's cores: the tick's threads (the pool, the tick's own thread among
 # them) on the first SERVER_THREADS, the I/O threads on the next SERVER_IO_THREADS, so that no I/O
 # thread preempts a tick's task (zone-server --worker-cpus / --io-cpus). SWEEP_SPLIT=0, a
-# SERVER_CPUS not starting at 0, SERVER_ARGS naming CPUs or more threads than cores: not split.
+# SERVER_CPUS not of the form 0-N, thread counts that are not positive numbers, SERVER_ARGS naming
+# CPUs or more threads than cores: not split.
 split=
-if [ "$layout" = pinned ] && [ "${SWEEP_SPLIT:-1}" = 1 ] && [[ "$SERVER_CPUS" =~ ^0-([0-9]+)$ ]] &&
-   [[ "$SERVER_ARGS" != *cpus* ]] && [ $((SERVER_THREADS + SERVER_IO_THREADS)) -le $((BASH_REMATCH[1] + 1)) ]; then
-  split="--worker-cpus 0-$((SERVER_THREADS - 1)) --io-cpus $SERVER_THREADS-$((SERVER_THREADS + SERVER_IO_THREADS - 1))"
-  export SERVER_ARGS="$SERVER_ARGS $split"
+if [ "$layout" = pinned ] && [ "${SWEEP_SPLIT:-1}" = 1 ] && [[ "$SERVER_CPUS" =~ ^0-([0-9]+)$ ]]; then
+  server_last=$((10#${BASH_REMATCH[1]}))
+  if [[ "$SERVER_THREADS" =~ ^[1-9][0-9]*$ && "$SERVER_IO_THREADS" =~ ^[1-9][0-9]*$ && "$SERVER_ARGS" != *cpus* ]] &&
+     [ $((SERVER_THREADS + SERVER_IO_THREADS)) -le $((server_last + 1)) ]; then
+    split="--worker-cpus 0-$((SERVER_THREADS - 1)) --io-cpus $SERVER_THREADS-$((SERVER_THREADS + SERVER_IO_THREADS - 1))"
+    export SERVER_ARGS="$SERVER_ARGS $split"
+  fi
 fi
 echo "layout $layout on $cores cores: zone-server on ${SERVER_CPUS:-every core} (${SERVER_THREADS:-8} workers," \
   "$SERVER_IO_THREADS I/O threads${split:+: $split}), bot-swarm on ${SWARM_CPUS:-every core} ($SWARM_THREADS threads)"

@@ -283,12 +283,15 @@ std::string zone_server::metrics_text() const {
   {
     // Microseconds in 16 buckets an octave: exported an octave a bucket (2^k - 1 us), up to ~100 s.
     using h_us = net::latency_histogram_us;
+    // One snapshot of the buckets, its total the count: the I/O threads record meanwhile, so
+    // reading the count apart could leave it below a finite bucket's cumulative figure.
     const h_us h = net_.frame_write_age();
+    const h_us::counts c = h.snapshot();
     std::vector<double> bounds;
     std::vector<std::uint64_t> cumulative;
     std::uint64_t seen = 0;
     for (int b = 0; b < h_us::buckets && (bounds.empty() || bounds.back() < 100.0); ++b) {
-      seen += h.bucket(b);
+      seen += c[static_cast<std::size_t>(b)];
       if (b % 16 == 15) {
         bounds.push_back(h_us::bucket_upper(b) / 1e6);
         cumulative.push_back(seen);
@@ -297,7 +300,7 @@ std::string zone_server::metrics_text() const {
     t.histogram("zone_frame_write_seconds",
                 "A tick update's age when the kernel took its last byte: from its tick's server_time (replication's "
                 "start) to its write, the server's share of a client's update latency.",
-                bounds, cumulative, h.sum() / 1e6, h.count());
+                bounds, cumulative, h.sum() / 1e6, h_us::total(c));
   }
   join("accept_to_hello", stats_.join_hello_ms);
   join("hello_to_welcome", stats_.join_welcome_ms);
@@ -1042,7 +1045,12 @@ void zone_server::publish_viewer() {
 }
 
 void zone_server::run() {
-  // The tick's own thread runs a share of every phase: on the workers' CPUs.
+  // The tick's own thread runs a share of every phase: on the workers' CPUs, until run() returns
+  // (then as before: the caller's thread may go on to other work, or start another server).
+  struct restore_cpus {
+    std::vector<int> cpus = net::allowed_cpus();
+    ~restore_cpus() { (void)net::pin_current_thread(cpus); }
+  } const restore;
   if (auto err = net::pin_current_thread(pin_cpus(cfg_.worker_cpus))) {
     spdlog::warn("zone: the tick's thread not pinned: {}", *err);
   }

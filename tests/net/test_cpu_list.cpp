@@ -28,14 +28,16 @@ TEST_SUITE("net.cpu_list") {
   }
 
   TEST_CASE("anything else refused, with the reason") {
-    for (const char* bad : {",", "0,", ",0", "a", "0-", "-1", "1-a", "0 - 3", " 1", "1.5", "0x2", "1--2", "2-1", "1024",
-                            "0-4096", "99999999999999999999"}) {
+    for (const char* bad : {",", "0,", ",0", "a", "0-", "-1", "1-a", "0 - 3", " 1", "1.5", "0x2", "1--2", "0--0", "+1",
+                            "1-+2", "2-1", "1024", "0-4096", "99999999999999999999"}) {
       CAPTURE(bad);
       std::string why;
       CHECK_FALSE(parse_cpu_list(bad, &why).has_value());
       CHECK(why.find(bad) != std::string::npos);  // the list quoted back
     }
     std::string why;
+    (void)parse_cpu_list("1--2", &why);
+    CHECK(why.find("not a CPU number") != std::string::npos);
     (void)parse_cpu_list("5-2", &why);
     CHECK(why.find("backwards") != std::string::npos);
     (void)parse_cpu_list("0,2000", &why);

@@ -658,6 +658,9 @@ TEST_SUITE("net.server") {
                                       << ", pings " << pings << ", pongs " << pongs << ", pings dropped " << srv.stats().pings_dropped);
     CHECK(srv.stats().pings_answered == pongs);
     CHECK(bad == 0);
+    // Each state frame's age recorded once, when its last byte went: not per partial write, not
+    // for a dropped one.
+    CHECK(srv.frame_write_age().count() == received);
     CHECK(srv.stats().frames_dropped > 0);  // the reader was slow: the drop policy ran
     CHECK(resets >= 1);                     // the first frame (or the resync that superseded it)
     CHECK(srv.stats().frames_out == received + pongs);

@@ -13,6 +13,7 @@
 #include <set>
 #include <string>
 
+#include "net/os_limits.h"
 #include "world_script.h"
 #include "zone/zone.h"
 
@@ -148,6 +149,26 @@ TEST_SUITE("zone.config") {
     CHECK(over->find(std::to_string(max_entities)) != std::string::npos);
     big.npc_count = static_cast<std::size_t>(-1);  // no wrap-around in the sum
     CHECK(validate(big).has_value());
+
+    // CPU lists (--worker-cpus, --io-cpus): empty or CPUs this process may use pass; a bad list
+    // or a CPU outside the process's set is refused, naming the option.
+    const std::vector<int> allowed = zone::net::allowed_cpus();
+    REQUIRE_FALSE(allowed.empty());
+    const std::string one = std::to_string(allowed.front());
+    CHECK(parse({"--worker-cpus", one, "--io-cpus", zone::net::format_cpu_list(allowed)}).config.has_value());
+    for (const char* option : {"--worker-cpus", "--io-cpus"}) {
+      CAPTURE(option);
+      for (const std::string bad : {"a", "0-", "1,", "3-1"}) {
+        const auto r = parse({option, bad});
+        CHECK_FALSE(r.config.has_value());
+        CHECK(r.message.find(option + 2) != std::string::npos);
+      }
+      if (allowed.back() != CPU_SETSIZE - 1) {
+        const auto r = parse({option, std::to_string(CPU_SETSIZE - 1)});
+        CHECK_FALSE(r.config.has_value());
+        CHECK(r.message.find("may not run on") != std::string::npos);
+      }
+    }
 
     const std::string path = "zone_config_test_" + std::to_string(fresh_seed()) + ".ini";
     {

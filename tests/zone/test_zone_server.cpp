@@ -154,6 +154,7 @@ TEST_SUITE("zone.server") {
     CHECK(scrape.find("\nzone_entities ") != std::string::npos);
     CHECK(scrape.find("\nzone_clients 3\n") != std::string::npos);
     CHECK(scrape.find("zone_tick_phase_seconds_bucket{phase=\"interest\",le=") != std::string::npos);
+    CHECK(scrape.find("\nzone_frame_write_seconds_count ") != std::string::npos);  // the server's share of the latency
     CHECK(scrape.find("zone_net_frames_rejected_total 1\n") != std::string::npos);
     // Where replication runs (1: the GPU engine), as the start log says.
     CHECK(scrape.find(std::string("\nzone_replication_on_gpu ") + (server.replication_name() == "cpu" ? "0" : "1") + "\n") !=
