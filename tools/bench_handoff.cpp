@@ -184,6 +184,7 @@ int main(int argc, char** argv) {
   std::atomic<std::uint64_t> sent{0}, held{0};
   const auto period = o.rate_hz > 0 ? std::chrono::duration<double>(1.0 / o.rate_hz) : std::chrono::duration<double>(0);
   const auto s0 = srv.stats();
+  const auto age0 = srv.frame_write_age().snapshot();  // the welcomes are control frames: none
   const double p0 = process_cpu_s();
   double senders_cpu_total = 0;
   const auto w0 = std::chrono::steady_clock::now();
@@ -192,6 +193,7 @@ int main(int argc, char** argv) {
   for (std::size_t t = 0; t < o.ticks; ++t) {
     std::vector<double> cpu(o.senders, 0);
     const auto t0 = std::chrono::steady_clock::now();
+    const std::uint64_t tick_us = srv.now_us();  // each frame's age (frame_write_age) counts from here
     std::vector<std::thread> workers;
     for (unsigned k = 0; k < o.senders; ++k) {
       workers.emplace_back([&, k] {
@@ -205,7 +207,7 @@ int main(int argc, char** argv) {
             continue;
           }
           if (o.many) {
-            batch.push_back({sessions[i], arenas[k].make(payload), delivery::state});
+            batch.push_back({sessions[i], arenas[k].make(payload), delivery::state, tick_us});
             if (batch.size() == o.chunk) {
               srv.send_many_moved(batch);  // as the zone server: the frames handed over
               batch.clear();
@@ -262,13 +264,20 @@ int main(int argc, char** argv) {
               static_cast<unsigned long long>(s1.frames_dropped - s0.frames_dropped),
               static_cast<unsigned long long>(s1.resyncs_requested - s0.resyncs_requested), wall);
   const auto writes = s1.writes - s0.writes, batches = s1.write_batches - s0.write_batches;
-  std::printf("| senders' CPU per frame | I/O threads' CPU per frame | server CPU per frame (senders + I/O) | hand-off wall per tick p50 / p99 | "
-              "senders' CPU per tick p50 | reader CPU per frame | writes per io_uring submission |\n");
-  std::printf("|---|---|---|---|---|---|---|\n");
-  std::printf("| %.2f us | %.2f us | %.2f us | %.3f / %.3f ms | %.3f ms | %.2f us | %s |\n", senders_cpu_total / frames * 1e6,
-              (server_cpu - senders_cpu_total) / frames * 1e6, server_cpu / frames * 1e6, quantile(tick_wall_ms, 0.5),
-              quantile(tick_wall_ms, 0.99), quantile(tick_sender_cpu_ms, 0.5), reader_cpu / frames * 1e6,
-              batches > 0 ? std::to_string(static_cast<double>(writes) / static_cast<double>(batches)).c_str() : "-");
+  // Each frame's age when written: from its tick's start (--mode many), or from its send().
+  auto age = srv.frame_write_age().snapshot();
+  for (std::size_t b = 0; b < age.size(); ++b) age[b] -= age0[b];
+  using h_us = latency_histogram_us;
+  std::printf(
+      "| senders' CPU per frame | I/O threads' CPU per frame | server CPU per frame (senders + I/O) | hand-off wall per tick p50 / p99 | "
+      "senders' CPU per tick p50 | reader CPU per frame | writes per io_uring submission | written p50 / p99 |\n");
+  std::printf("|---|---|---|---|---|---|---|---|\n");
+  std::printf("| %.2f us | %.2f us | %.2f us | %.3f / %.3f ms | %.3f ms | %.2f us | %s | %.3f / %.3f ms |\n",
+              senders_cpu_total / frames * 1e6, (server_cpu - senders_cpu_total) / frames * 1e6,
+              server_cpu / frames * 1e6, quantile(tick_wall_ms, 0.5), quantile(tick_wall_ms, 0.99),
+              quantile(tick_sender_cpu_ms, 0.5), reader_cpu / frames * 1e6,
+              batches > 0 ? std::to_string(static_cast<double>(writes) / static_cast<double>(batches)).c_str() : "-",
+              h_us::percentile_mid(age, 0.5) / 1000.0, h_us::percentile_mid(age, 0.99) / 1000.0);
   srv.stop();
   for (const int fd : fds) ::close(fd);
   return 0;
