@@ -19,6 +19,7 @@ template <int PerOctave, int Buckets, int LowestLog2, int Shift>
 class log_histogram {
  public:
   static constexpr int buckets = Buckets;
+  static constexpr int per_octave = PerOctave;
   using counts = std::array<std::uint64_t, Buckets>;
 
   /// The bucket of value `v`.

@@ -256,52 +256,37 @@ std::string zone_server::metrics_text() const {
     t.counter("zone_metrics_accept_errors_total", "/metrics accepts that failed (each followed by a 50 ms pause).",
               static_cast<double>(metrics_->accept_errors()));
   }
-  // Phase histograms in seconds, one bucket per octave.
-  const auto histogram = [&](const char* metric, const char* help, const std::string& labels,
-                             const latency_histogram& h) {
+  // Histograms in seconds, one bucket per octave up to ~100 s (the rest in +Inf), from one
+  // snapshot of the buckets whose total is the count: one that other threads record into while
+  // this reads (the frames' write ages) stays consistent. `per_s`: the units recorded per second.
+  const auto histogram = [&]<class H>(const char* metric, const char* help, const std::string& labels, const H& h,
+                                      double per_s) {
+    const typename H::counts c = h.snapshot();
     std::vector<double> bounds;
     std::vector<std::uint64_t> cumulative;
     std::uint64_t seen = 0;
-    for (int b = 0; b < latency_histogram::buckets; ++b) {
-      seen += h.bucket(b);
-      if (b % 4 == 3) {
-        bounds.push_back(latency_histogram::bucket_upper(b) / 1000.0);
+    for (int b = 0; b < H::buckets && (bounds.empty() || bounds.back() < 100.0); ++b) {
+      seen += c[static_cast<std::size_t>(b)];
+      if (b % H::per_octave == H::per_octave - 1) {
+        bounds.push_back(H::bucket_upper(b) / per_s);
         cumulative.push_back(seen);
       }
     }
-    t.histogram(metric, help, bounds, cumulative, h.sum() / 1000.0, h.count(), labels);
+    t.histogram(metric, help, bounds, cumulative, h.sum() / per_s, H::total(c), labels);
   };
   const auto phase = [&](const char* name, const latency_histogram& h) {
     histogram("zone_tick_phase_seconds", "Wall time of the tick and its phases.", std::string("phase=\"") + name + "\"",
-              h);
+              h, 1000.0);
   };
   const auto join = [&](const char* part, const latency_histogram& h) {
     histogram("zone_join_seconds",
               "A player's join: its connection accepted to its hello read, and that to its welcome queued.",
-              std::string("part=\"") + part + "\"", h);
+              std::string("part=\"") + part + "\"", h, 1000.0);
   };
-  {
-    // Microseconds in 16 buckets an octave: exported an octave a bucket (2^k - 1 us), up to ~100 s.
-    using h_us = net::latency_histogram_us;
-    // One snapshot of the buckets, its total the count: the I/O threads record meanwhile, so
-    // reading the count apart could leave it below a finite bucket's cumulative figure.
-    const h_us h = net_.frame_write_age();
-    const h_us::counts c = h.snapshot();
-    std::vector<double> bounds;
-    std::vector<std::uint64_t> cumulative;
-    std::uint64_t seen = 0;
-    for (int b = 0; b < h_us::buckets && (bounds.empty() || bounds.back() < 100.0); ++b) {
-      seen += c[static_cast<std::size_t>(b)];
-      if (b % 16 == 15) {
-        bounds.push_back(h_us::bucket_upper(b) / 1e6);
-        cumulative.push_back(seen);
-      }
-    }
-    t.histogram("zone_frame_write_seconds",
-                "A tick update's age when the kernel took its last byte: from its tick's server_time (replication's "
-                "start) to its write, the server's share of a client's update latency.",
-                bounds, cumulative, h.sum() / 1e6, h_us::total(c));
-  }
+  histogram("zone_frame_write_seconds",
+            "A tick update's age when the kernel took its last byte: from its tick's server_time (replication's start) "
+            "to its write, the server's share of a client's update latency.",
+            "", net_.frame_write_age(), 1e6);  // microseconds
   join("accept_to_hello", stats_.join_hello_ms);
   join("hello_to_welcome", stats_.join_welcome_ms);
   phase("tick", stats_.tick_ms);
@@ -1087,9 +1072,10 @@ void zone_server::run() {
   net_.stop();
   spdlog::info("zone: stopped after {} ticks ({} overruns, {} ticks skipped)", stats_.ticks, stats_.overruns,
                stats_.skipped_ticks);
-  const auto report = [](const char* name, const latency_histogram& h) {
-    spdlog::info("  {:<10} p50 {:8.3f} ms  p99 {:8.3f} ms  max {:8.3f} ms", name, h.percentile(0.5), h.percentile(0.99),
-                 h.max());
+  // `per_ms`: the units recorded per millisecond.
+  const auto report = [](const char* name, const auto& h, double per_ms = 1.0) {
+    spdlog::info("  {:<10} p50 {:8.3f} ms  p99 {:8.3f} ms  max {:8.3f} ms", name, h.percentile(0.5) / per_ms,
+                 h.percentile(0.99) / per_ms, h.max() / per_ms);
   };
   report("tick", stats_.tick_ms);
   report("inputs", stats_.inputs_ms);
@@ -1097,12 +1083,7 @@ void zone_server::run() {
   report("integrate", world_->phases().integrate);
   report("interest", world_->phases().interest);
   report("replicate", stats_.replicate_ms);
-  {
-    // Each tick update's age when written (its tick's server_time to the write), in microseconds.
-    const auto w = net_.frame_write_age();
-    spdlog::info("  {:<10} p50 {:8.3f} ms  p99 {:8.3f} ms  max {:8.3f} ms", "written", w.percentile(0.5) / 1000.0,
-                 w.percentile(0.99) / 1000.0, w.max() / 1000.0);
-  }
+  report("written", net_.frame_write_age(), 1000.0);  // each tick update's age when written (microseconds)
   if (truth_) {
     truth_->stop();
     const auto& t = truth_->stats();
