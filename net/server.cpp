@@ -284,8 +284,8 @@ struct io_lane {
 #if ZONE_HAVE_LIBURING
   io_uring ring{};
 #endif
-  bool ring_ok = false;     // the lane writes through the ring
-  bool ring_live = false;   // the ring exists (until drop_ring; ring_ok may have gone false before)
+  bool ring_ok = false;    // the lane writes through the ring
+  bool ring_live = false;  // the ring exists (until drop_ring; ring_ok may have gone false before)
   std::atomic<std::uint64_t>& write_batches;
   std::atomic<std::uint64_t>& registered_sends;
   std::vector<std::shared_ptr<session>> slots;
@@ -294,8 +294,8 @@ struct io_lane {
   // The ring's table of registered files (server_options::ring_file_slots; the lane's thread):
   // a session's socket takes a slot at its first write through the ring and gives it back as it
   // closes, so its sends skip the kernel's lookup of the descriptor's file.
-  unsigned file_slots = 0;                 // the table's size (0: no table)
-  unsigned file_slots_used = 0;            // slots handed out so far (then the free list)
+  unsigned file_slots = 0;       // the table's size (0: no table)
+  unsigned file_slots_used = 0;  // slots handed out so far (then the free list)
   std::vector<unsigned> free_file_slots;
 
   /// Sets up the ring and its table of `file_slot_count` registered files (none where the kernel
@@ -324,9 +324,12 @@ struct io_lane {
 
 struct server::impl {
   explicit impl(server_options o)
-      : opt(std::move(o)), lanes(make_lanes(opt.io_threads, write_batches, registered_sends)), acceptor(lanes[0]->ctx),
+      : opt(std::move(o)),
+        lanes(make_lanes(opt.io_threads, write_batches, registered_sends)),
+        acceptor(lanes[0]->ctx),
         accept_retry(acceptor.get_executor()),
-        refusal_frame(encode_frame(error_msg{error_code::rate_limited, "too many short connections from this address: try again later"})),
+        refusal_frame(encode_frame(
+            error_msg{error_code::rate_limited, "too many short connections from this address: try again later"})),
         held_timer(acceptor.get_executor()) {}
 
   static std::vector<std::unique_ptr<io_lane>> make_lanes(unsigned n, std::atomic<std::uint64_t>& batches,

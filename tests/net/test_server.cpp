@@ -872,7 +872,8 @@ TEST_SUITE("net.server") {
       const auto before = srv.stats();
       std::vector<outgoing_frame> chunk;
       for (int i = 0; i < clients; ++i) {
-        chunk.push_back({j.sessions[static_cast<std::size_t>(i)], arena.make(encode_frame(tick(t, 1 + i))), delivery::state_reset});
+        chunk.push_back(
+            {j.sessions[static_cast<std::size_t>(i)], arena.make(encode_frame(tick(t, 1 + i))), delivery::state_reset});
       }
       REQUIRE(srv.send_many(chunk) == static_cast<std::size_t>(clients));
       for (int i = 0; i < clients; ++i) {
@@ -882,7 +883,8 @@ TEST_SUITE("net.server") {
         CHECK(std::get<tick_update_msg>(*m).server_tick == t);
         CHECK(std::get<tick_update_msg>(*m).leaves.size() == static_cast<std::size_t>(1 + i));
       }
-      REQUIRE(run.g.wait_for([&] { return srv.stats().frames_out - before.frames_out == static_cast<std::uint64_t>(clients); }));
+      REQUIRE(run.g.wait_for(
+          [&] { return srv.stats().frames_out - before.frames_out == static_cast<std::uint64_t>(clients); }));
       const auto after = srv.stats();
       CHECK(after.writes - before.writes == static_cast<std::uint64_t>(clients));
       return after.registered_sends - before.registered_sends;
@@ -891,8 +893,10 @@ TEST_SUITE("net.server") {
     CHECK(round(first, 1) == 3);  // three sessions took the three slots
     CHECK(round(first, 2) == 3);  // and keep them; the other two never take one
     // Closed: each client sees its error and the end of the stream.
-    for (int i = 0; i < clients; ++i) srv.disconnect(first.sessions[static_cast<std::size_t>(i)], error_code::shutting_down, "bye");
-    for (int i = 0; i < clients; ++i) closed_with(*first.clients[static_cast<std::size_t>(i)], error_code::shutting_down);
+    for (int i = 0; i < clients; ++i)
+      srv.disconnect(first.sessions[static_cast<std::size_t>(i)], error_code::shutting_down, "bye");
+    for (int i = 0; i < clients; ++i)
+      closed_with(*first.clients[static_cast<std::size_t>(i)], error_code::shutting_down);
     REQUIRE(run.g.wait_for([&] { return srv.stats().sessions_open == 0; }));
     // The slots are free again (a slot kept would also keep its socket's file open until the
     // server stops): three of the new sessions take them.
@@ -906,7 +910,9 @@ TEST_SUITE("net.server") {
     started plain(none);
     const joined_clients third = join_all(plain.g, plain.srv.port(), "n", 2);
     std::vector<outgoing_frame> chunk;
-    for (int i = 0; i < 2; ++i) chunk.push_back({third.sessions[static_cast<std::size_t>(i)], arena.make(encode_frame(tick(9))), delivery::state_reset});
+    for (int i = 0; i < 2; ++i)
+      chunk.push_back(
+          {third.sessions[static_cast<std::size_t>(i)], arena.make(encode_frame(tick(9))), delivery::state_reset});
     REQUIRE(plain.srv.send_many(chunk) == 2u);
     for (int i = 0; i < 2; ++i) {
       const auto m = third.clients[static_cast<std::size_t>(i)]->read();
