@@ -215,6 +215,7 @@ bool write_json(const std::string& path, const swarm_result& r, const summary& s
   j["server_errors"] = r.server_errors;
   j["logouts"] = r.logouts;
   j["threads"] = r.options.threads;
+  j["busy_poll"] = r.options.busy_poll;
   j["teleports_sent"] = r.teleports_sent;
   j["redirects"] = r.redirects;
   j["reconnects"] = r.reconnects;
@@ -446,6 +447,8 @@ int main(int argc, char** argv) {
        "a world of zones (docs/world.md): the other zones' client ports on --host, comma-separated; with --oracle each zone's truth is read and a bot is checked against the zone it is in now (following redirects)")  //
       ("threads", po::value(&o.threads)->default_value(o.threads),
        "I/O threads (0 = one per 2,500 bots, 2 .. half the cores)")  //
+      ("busy-poll", po::bool_switch(&o.busy_poll),
+       "the I/O threads poll their sockets and never sleep (each burns its core): on loopback a sleeping bot thread is woken by the server's send, and the kernel charges that wake-up to the server")  //
       ("aoi", po::value(&o.aoi)->default_value(o.aoi),
        "for servers whose welcome tells no rules: the players' AOI half-extent (its --player-aoi), for the AOI check")  //
       ("hysteresis", po::value(&o.hysteresis)->default_value(o.hysteresis),

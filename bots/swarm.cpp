@@ -237,7 +237,15 @@ class swarm {
     std::vector<std::thread> threads;
     for (auto& io : ios_) {
       guards.push_back(asio::make_work_guard(*io));
-      threads.emplace_back([&ctx = *io] { ctx.run(); });
+      threads.emplace_back([&ctx = *io, spin = opt_.busy_poll] {
+        if (!spin) {
+          ctx.run();
+          return;
+        }
+        // poll() runs what is ready and returns (epoll with no wait); the context stops once the
+        // guard is gone and nothing is left, as run() would return.
+        while (!ctx.stopped()) ctx.poll();
+      });
     }
 
     // Ramp-up: launch bots at opt.ramp per second, in 10 ms steps; then churn.

@@ -75,6 +75,11 @@ struct swarm_options {
   /// not checked (its frames count as unchecked).
   std::vector<std::uint16_t> oracle_zones;
   unsigned threads = 0;      ///< I/O threads (0 = auto: one per 2,500 bots, at least 2, at most half the cores)
+  /// The I/O threads poll their sockets without ever sleeping (each burns its core). On loopback
+  /// the server's send runs the receiving socket's work in the server's thread, waking a bot's
+  /// thread that sleeps there too: the kernel charges that wake-up to the server. With busy
+  /// polling no bot thread sleeps, so the server's CPU is closer to what remote clients cost it.
+  bool busy_poll = false;
   // What the AOI check assumes of a server whose welcome does not tell its rules (older servers;
   // a welcome's rules always win, so a current server's flags need no matching ones here).
   float aoi = 60;            ///< the players' AOI half-extent (--player-aoi)

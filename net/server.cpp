@@ -262,7 +262,8 @@ class session;
 /// for it to write (the ready list; without direct writes). Any thread appends; the lane's thread
 /// drains.
 struct io_lane {
-  explicit io_lane(std::atomic<std::uint64_t>& batches) : write_batches(batches) {}
+  io_lane(std::atomic<std::uint64_t>& batches, std::atomic<std::uint64_t>& registered)
+      : write_batches(batches), registered_sends(registered) {}
   ~io_lane();
   io_lane(const io_lane&) = delete;
   io_lane& operator=(const io_lane&) = delete;
@@ -283,16 +284,30 @@ struct io_lane {
 #if ZONE_HAVE_LIBURING
   io_uring ring{};
 #endif
-  bool ring_ok = false;
+  bool ring_ok = false;    // the lane writes through the ring
+  bool ring_live = false;  // the ring exists (until drop_ring; ring_ok may have gone false before)
   std::atomic<std::uint64_t>& write_batches;
+  std::atomic<std::uint64_t>& registered_sends;
   std::vector<std::shared_ptr<session>> slots;
   std::vector<std::array<iovec, max_gather_frames>> slot_iov;
   std::vector<msghdr> slot_msg;
+  // The ring's table of registered files (server_options::ring_file_slots; the lane's thread):
+  // a session's socket takes a slot at its first write through the ring and gives it back as it
+  // closes, so its sends skip the kernel's lookup of the descriptor's file.
+  unsigned file_slots = 0;       // the table's size (0: no table)
+  unsigned file_slots_used = 0;  // slots handed out so far (then the free list)
+  std::vector<unsigned> free_file_slots;
 
-  /// Sets up the ring; the reason when it cannot be (then the lane writes with sendmsg).
-  std::optional<std::string> init_ring();
+  /// Sets up the ring and its table of `file_slot_count` registered files (none where the kernel
+  /// refuses one); the reason when the ring cannot be (then the lane writes with sendmsg).
+  std::optional<std::string> init_ring(unsigned file_slot_count);
   /// Before the lane runs: back to sendmsg.
   void drop_ring();
+  /// The lane's thread: a slot of the table holding `fd`, or -1 (no table, all taken, refused).
+  int register_file(int fd);
+  /// The lane's thread: slot `slot` (from register_file) empty again and free. Before the
+  /// descriptor closes: the table holds a reference to the socket, which stays open while it does.
+  void unregister_file(int slot);
   /// Any thread: `s` has frames for the lane to write (once until the lane has taken it).
   void schedule(std::shared_ptr<session> s);
   /// schedule() for several sessions of this lane under one lock (moves them out).
@@ -309,14 +324,18 @@ struct io_lane {
 
 struct server::impl {
   explicit impl(server_options o)
-      : opt(std::move(o)), lanes(make_lanes(opt.io_threads, write_batches)), acceptor(lanes[0]->ctx),
+      : opt(std::move(o)),
+        lanes(make_lanes(opt.io_threads, write_batches, registered_sends)),
+        acceptor(lanes[0]->ctx),
         accept_retry(acceptor.get_executor()),
-        refusal_frame(encode_frame(error_msg{error_code::rate_limited, "too many short connections from this address: try again later"})),
+        refusal_frame(encode_frame(
+            error_msg{error_code::rate_limited, "too many short connections from this address: try again later"})),
         held_timer(acceptor.get_executor()) {}
 
-  static std::vector<std::unique_ptr<io_lane>> make_lanes(unsigned n, std::atomic<std::uint64_t>& batches) {
+  static std::vector<std::unique_ptr<io_lane>> make_lanes(unsigned n, std::atomic<std::uint64_t>& batches,
+                                                          std::atomic<std::uint64_t>& registered) {
     std::vector<std::unique_ptr<io_lane>> v;
-    for (unsigned i = 0; i < std::max(1u, n); ++i) v.push_back(std::make_unique<io_lane>(batches));
+    for (unsigned i = 0; i < std::max(1u, n); ++i) v.push_back(std::make_unique<io_lane>(batches, registered));
     return v;
   }
   /// The lane of the next session (round robin; the acceptor's thread only).
@@ -324,6 +343,7 @@ struct server::impl {
 
   server_options opt;
   std::atomic<std::uint64_t> write_batches{0};  // io_uring submissions (before the lanes: they count into it)
+  std::atomic<std::uint64_t> registered_sends{0};  // of their sends, those naming a registered file
   bool uring = false;                           // the lanes write through io_uring
   std::vector<std::unique_ptr<io_lane>> lanes;
   std::size_t next_lane_index = 0;
@@ -540,6 +560,15 @@ class session : public std::enable_shared_from_this<session> {
   }
   [[nodiscard]] io_lane& lane() const { return lane_; }
   [[nodiscard]] int native_fd() const { return fd_; }
+  /// The lane's thread (its ring's writes): the socket's slot in the lane's table of registered
+  /// files, taken at the first write (once: a session refused one sends by descriptor), or -1.
+  [[nodiscard]] int ring_file(io_lane& lane) {
+    if (!file_slot_tried_) {
+      file_slot_tried_ = true;
+      file_slot_ = lane.register_file(fd_);
+    }
+    return file_slot_;
+  }
 
   /// Any thread: through the outbound queue's policy, then written at once by this thread (direct
   /// writes) unless the session waits for its socket. True: the lane must be told to write it
@@ -1032,6 +1061,10 @@ class session : public std::enable_shared_from_this<session> {
       if (closing_) reason = close_reason_;  // the error that started the close is the reason
       boost::system::error_code ignored;
       socket_.shutdown(tcp::socket::shutdown_both, ignored);
+      // Out of the ring's table first: it holds the socket open (no write of it is in flight:
+      // the lane reaps every submission before its next handler runs, and this is one).
+      lane_.unregister_file(file_slot_);
+      file_slot_ = -1;
       socket_.close(ignored);
     }
     idle_.cancel();
@@ -1055,6 +1088,8 @@ class session : public std::enable_shared_from_this<session> {
   io_lane& lane_;
   tcp::socket socket_;  // its executor is the lane's io_context (one thread): every handler runs there
   const int fd_ = socket_.native_handle();  // what flush_locked writes to (while !closed_)
+  int file_slot_ = -1;                      // the lane's thread: its slot in the ring's table of files (ring_file)
+  bool file_slot_tried_ = false;
   asio::steady_timer idle_;
   steady::time_point idle_deadline_{};  // the lane's thread: when the session times out
   bool idle_armed_ = false;             // the lane's thread: a wait on idle_ is pending
@@ -1129,13 +1164,52 @@ io_lane::~io_lane() { drop_ring(); }
 
 void io_lane::drop_ring() {
 #if ZONE_HAVE_LIBURING
-  if (ring_ok) io_uring_queue_exit(&ring);
+  if (ring_live) io_uring_queue_exit(&ring);  // releases the registered files too
 #endif
-  ring_ok = false;
+  ring_ok = ring_live = false;
+  file_slots = file_slots_used = 0;
+  free_file_slots.clear();
 }
 
-std::optional<std::string> io_lane::init_ring() {
+int io_lane::register_file(int fd) {
 #if ZONE_HAVE_LIBURING
+  if (!ring_live || file_slots == 0) return -1;
+  unsigned slot;
+  if (!free_file_slots.empty()) {
+    slot = free_file_slots.back();
+    free_file_slots.pop_back();
+  } else if (file_slots_used < file_slots) {
+    slot = file_slots_used++;
+  } else {
+    return -1;  // every slot held by an open session: this one sends by descriptor
+  }
+  if (io_uring_register_files_update(&ring, slot, &fd, 1) != 1) {
+    free_file_slots.push_back(slot);
+    return -1;
+  }
+  return static_cast<int>(slot);
+#else
+  (void)fd;
+  return -1;
+#endif
+}
+
+void io_lane::unregister_file(int slot) {
+#if ZONE_HAVE_LIBURING
+  if (slot < 0 || !ring_live) return;
+  int none = -1;
+  // Refused only for a slot out of range (never handed out so): the slot is not reused then.
+  if (io_uring_register_files_update(&ring, static_cast<unsigned>(slot), &none, 1) == 1) {
+    free_file_slots.push_back(static_cast<unsigned>(slot));
+  }
+#else
+  (void)slot;
+#endif
+}
+
+std::optional<std::string> io_lane::init_ring(unsigned file_slot_count) {
+#if ZONE_HAVE_LIBURING
+  drop_ring();  // a server started again
   io_uring_params p{};
   // Every submission is taken whole even where one fails; completions posted without IPIs.
   p.flags = IORING_SETUP_SUBMIT_ALL | IORING_SETUP_COOP_TASKRUN;
@@ -1152,7 +1226,11 @@ std::optional<std::string> io_lane::init_ring() {
     io_uring_queue_exit(&ring);
     return std::string("the kernel's io_uring is too old (no IORING_FEAT_NODROP)");
   }
-  ring_ok = true;
+  ring_ok = ring_live = true;
+  // The table of registered files, empty (sparse: 5.19): where the kernel refuses it (or its
+  // size, over RLIMIT_NOFILE), the sends name descriptors.
+  file_slots = 0;
+  if (file_slot_count != 0 && io_uring_register_files_sparse(&ring, file_slot_count) == 0) file_slots = file_slot_count;
   slots.resize(ring_entries);
   slot_iov.resize(ring_entries);
   slot_msg.resize(ring_entries);
@@ -1177,17 +1255,26 @@ void io_lane::write_batched() {
 
 void io_lane::submit_slots(unsigned n) {
 #if ZONE_HAVE_LIBURING
+  std::uint64_t registered = 0;
   for (unsigned i = 0; i < n; ++i) {
     io_uring_sqe* sqe = io_uring_get_sqe(&ring);  // never null: at most ring_entries per submission, all reaped
     const msghdr& m = slot_msg[i];
+    // The socket's slot in the ring's table where it has one (no file lookup), else its descriptor.
+    const int file_slot = slots[i]->ring_file(*this);
+    const int target = file_slot >= 0 ? file_slot : slots[i]->native_fd();
     if (m.msg_iovlen == 1) {
       // One buffer (the common case: a frame a tick): a plain send, no msghdr to import.
-      io_uring_prep_send(sqe, slots[i]->native_fd(), m.msg_iov[0].iov_base, m.msg_iov[0].iov_len, MSG_DONTWAIT | MSG_NOSIGNAL);
+      io_uring_prep_send(sqe, target, m.msg_iov[0].iov_base, m.msg_iov[0].iov_len, MSG_DONTWAIT | MSG_NOSIGNAL);
     } else {
-      io_uring_prep_sendmsg(sqe, slots[i]->native_fd(), &m, MSG_DONTWAIT | MSG_NOSIGNAL);
+      io_uring_prep_sendmsg(sqe, target, &m, MSG_DONTWAIT | MSG_NOSIGNAL);
+    }
+    if (file_slot >= 0) {
+      sqe->flags |= IOSQE_FIXED_FILE;
+      ++registered;
     }
     io_uring_sqe_set_data64(sqe, i);
   }
+  if (registered != 0) registered_sends.fetch_add(registered, std::memory_order_relaxed);
   write_batches.fetch_add(1, std::memory_order_relaxed);
   // MSG_DONTWAIT: every send completes within the submission (EAGAIN rather than a wait), so
   // waiting for all n completions returns at once.
@@ -1476,11 +1563,14 @@ std::optional<std::string> server::start() {
     return "cannot listen on " + m.opt.address + ":" + std::to_string(m.opt.port) + ": " + ec.message();
   }
   m.bound_port = m.acceptor.local_endpoint(ec).port();
-  // The writes: io_uring on every lane, or sendmsg on every lane.
+  // The writes: io_uring on every lane, or sendmsg on every lane. Each lane's table of registered
+  // files as large as asked, within the open-file limit (the kernel's bound on it).
   std::string why_not;
+  const auto file_slots = static_cast<unsigned>(
+      std::min<std::size_t>({m.opt.ring_file_slots, files.soft == 0 ? m.opt.ring_file_slots : files.soft, 1u << 20}));
   if (m.opt.batching != write_batching::sendmsg) {
     for (auto& lane : m.lanes) {
-      if (auto err = lane->init_ring()) {
+      if (auto err = lane->init_ring(file_slots)) {
         why_not = *err;
         break;
       }
@@ -1718,6 +1808,7 @@ server_stats server::stats() const {
   st.frames_out = frames_out;
   st.writes = writes;
   st.write_batches = impl_->write_batches.load();
+  st.registered_sends = impl_->registered_sends.load();
   st.bytes_in = c.bytes_in.load();
   st.bytes_out = bytes_out;
   st.frames_dropped = c.frames_dropped.load();

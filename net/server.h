@@ -71,6 +71,12 @@ struct server_options {
   /// flight per session, in queue order; the slow-client rules are unchanged. Writes made by the
   /// sending thread (direct_writes) stay plain sendmsg calls.
   write_batching batching = write_batching::automatic;
+  /// With io_uring: each I/O thread's table of registered files, in slots. A session's socket
+  /// takes a slot at its first write and gives it back as it closes; its sends then name the slot,
+  /// and the kernel skips looking up the descriptor's file on each. Sessions beyond it (or all,
+  /// where the kernel refuses a table: before 5.19) send by descriptor. Capped by the open-file
+  /// limit; 0 = no table.
+  std::size_t ring_file_slots = 65536;
   /// Nice value the I/O threads give themselves (0 = unchanged; 1-19 = lower priority than the
   /// game's threads, which an unprivileged process may always ask for): where the I/O threads
   /// share cores with the tick's workers, the scheduler then lets a worker run its part of a tick
@@ -275,6 +281,8 @@ struct server_stats {
                                        ///< socket takes in part goes on in more sendmsg calls)
   std::uint64_t write_batches = 0;     ///< io_uring submissions of the I/O threads (each carries the
                                        ///< writes of several sessions); 0 without io_uring
+  std::uint64_t registered_sends = 0;  ///< of the io_uring sends, those naming a registered file
+                                       ///< (server_options::ring_file_slots)
   std::uint64_t bytes_in = 0;
   std::uint64_t bytes_out = 0;
   std::uint64_t frames_dropped = 0;    ///< state frames not delivered to slow clients (dropped or superseded)

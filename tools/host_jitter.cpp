@@ -23,6 +23,8 @@
 #include <thread>
 #include <vector>
 
+#include <sched.h>
+
 #include "interest/measure.h"
 #include "tools/cli.h"
 
@@ -35,15 +37,20 @@ struct options {
   double work_us = 500;
   double rate = 30;
   int periods = 600;
+  bool pairs = false;
 };
 
 const char* const usage_text = R"(host-jitter: a paced, pure-CPU stand-in for the tick, to measure the host's noise
 
-Usage: host-jitter [--threads N] [--work-us US] [--rate HZ] [--periods N] [--help]
+Usage: host-jitter [--threads N] [--work-us US] [--rate HZ] [--periods N] [--pairs] [--help]
   --threads N    threads in the parallel phase, the calling one included (default 0 = all cores)
   --work-us US   work per thread per period, calibrated on one thread (default 500)
   --rate HZ      periods per second (default 30)
   --periods N    measured periods (default 600, after 30 warm-up periods)
+  --pairs        instead: which CPUs slow each other down (share a physical core): the same work
+                 on two pinned CPUs at once, for every pair of the CPUs this process may use,
+                 against each alone; prints the pairs slowed by 15% or more and the kernel's
+                 sibling lists (in a VM the hypervisor's placement, not the guest's, decides)
 Prints p50 / p90 / p99 / max of one thread's work and of the parallel phase (start of the period
 -> last thread done), the ratio to the calibrated work, and the host's steal time (/proc/stat).
 )";
@@ -101,6 +108,89 @@ void print_row(const char* what, std::vector<double> v, double work_us) {
               q(0.5) / work_us, q(0.99) / work_us, 100.0 * over / static_cast<double>(v.size()));
 }
 
+bool pin_to(int cpu) {
+  cpu_set_t set;
+  CPU_ZERO(&set);
+  CPU_SET(cpu, &set);
+  return sched_setaffinity(0, sizeof set, &set) == 0;  // 0: the calling thread
+}
+
+/// Microseconds `iters` of spin() take on `cpu` (best of three).
+double alone_on(int cpu, std::uint64_t iters) {
+  double best = 1e30;
+  std::thread t([&] {
+    if (!pin_to(cpu)) return;
+    volatile std::uint64_t sink = 0;
+    for (int k = 0; k < 3; ++k) {
+      const auto t0 = clock_type::now();
+      sink = sink + spin(iters, static_cast<std::uint64_t>(k) + 7);
+      best = std::min(best, us_since(t0));
+    }
+  });
+  t.join();
+  return best;
+}
+
+/// --pairs: the slowdown of each pair of allowed CPUs running the work at once.
+int run_pairs(double work_us) {
+  cpu_set_t allowed;
+  if (sched_getaffinity(0, sizeof allowed, &allowed) != 0) {
+    std::perror("host-jitter: sched_getaffinity");
+    return 1;
+  }
+  std::vector<int> cpus;
+  for (int c = 0; c < CPU_SETSIZE; ++c) {
+    if (CPU_ISSET(c, &allowed)) cpus.push_back(c);
+  }
+  const std::uint64_t iters = calibrate(work_us);
+  std::vector<double> alone(cpus.size());
+  for (std::size_t i = 0; i < cpus.size(); ++i) alone[i] = alone_on(cpus[i], iters);
+  std::printf("host-jitter --pairs: %zu CPUs, %.0f us of work on two CPUs at once (best of 3) against each alone\n\n",
+              cpus.size(), work_us);
+  std::printf("| CPU pair | slowdown (the slower of the two) |\n|---|---|\n");
+  std::size_t slowed = 0, total = 0;
+  double worst = 0;
+  for (std::size_t i = 0; i < cpus.size(); ++i) {
+    for (std::size_t j = i + 1; j < cpus.size(); ++j) {
+      double took[2] = {1e30, 1e30};
+      for (int rep = 0; rep < 3; ++rep) {
+        std::atomic<int> ready{0};
+        double once[2] = {0, 0};
+        const auto side = [&](int k, int cpu) {
+          if (!pin_to(cpu)) return;
+          ready.fetch_add(1);
+          while (ready.load() < 2) {}
+          const auto t0 = clock_type::now();
+          volatile std::uint64_t sink = spin(iters, static_cast<std::uint64_t>(rep * 2 + k) + 11);
+          (void)sink;
+          once[k] = us_since(t0);
+        };
+        std::thread a(side, 0, cpus[i]), b(side, 1, cpus[j]);
+        a.join();
+        b.join();
+        took[0] = std::min(took[0], once[0]);
+        took[1] = std::min(took[1], once[1]);
+      }
+      const double slow = std::max(took[0] / alone[i], took[1] / alone[j]);
+      worst = std::max(worst, slow);
+      ++total;
+      if (slow >= 1.15) {
+        ++slowed;
+        std::printf("| %d + %d | %.2fx |\n", cpus[i], cpus[j], slow);
+      }
+    }
+  }
+  std::printf("\n%zu of %zu pairs slowed by 15%% or more (the worst %.2fx)\n", slowed, total, worst);
+  std::printf("\nthe kernel's thread siblings:");
+  for (const int c : cpus) {
+    std::ifstream f("/sys/devices/system/cpu/cpu" + std::to_string(c) + "/topology/thread_siblings_list");
+    std::string list;
+    std::printf(" %d:[%s]", c, (f >> list) ? list.c_str() : "?");
+  }
+  std::printf("\n");
+  return 0;
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -108,8 +198,15 @@ int main(int argc, char** argv) {
   namespace po = zone::tools::po;
   po::options_description cli;
   cli.add_options()("threads", po::value(&o.threads))("work-us", po::value(&o.work_us))("rate", po::value(&o.rate))(
-      "periods", po::value(&o.periods));
+      "periods", po::value(&o.periods))("pairs", po::bool_switch(&o.pairs));
   if (const auto rc = zone::tools::parse_command_line(argc, argv, "host-jitter", usage_text, cli, 2)) return *rc;
+  if (o.pairs) {
+    if (!(o.work_us > 0)) {
+      std::cerr << "host-jitter: need work-us > 0\n";
+      return 2;
+    }
+    return run_pairs(o.work_us);
+  }
   if (o.threads <= 0) o.threads = static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
   if (!(o.work_us > 0) || !(o.rate > 0) || o.periods <= 0 || 1e6 / o.rate <= 2 * o.work_us) {
     std::cerr << "host-jitter: need work-us > 0, rate > 0, periods > 0 and the work well inside a period\n";

@@ -198,6 +198,9 @@ std::string zone_server::metrics_text() const {
   t.counter("zone_net_writes_total", "Socket writes (gathered: one may carry several frames).", static_cast<double>(ns.writes));
   t.counter("zone_net_write_batches_total", "io_uring submissions of the I/O threads (each carries several sessions' writes).",
             static_cast<double>(ns.write_batches));
+  t.counter("zone_net_registered_sends_total",
+            "io_uring sends naming the socket's registered file (no descriptor lookup in the kernel).",
+            static_cast<double>(ns.registered_sends));
   t.gauge("zone_net_io_uring", "1 when the I/O threads write through io_uring (--write-batching), else 0.",
           net_.uses_io_uring() ? 1.0 : 0.0);
   t.counter("zone_net_bytes_in_total", "Bytes received.", static_cast<double>(ns.bytes_in));

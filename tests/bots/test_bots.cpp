@@ -550,6 +550,31 @@ TEST_CASE("rules: zone-server --player-aoi 100 --hysteresis 7 with a default bot
   CHECK(server.proc.terminate().value_or(-1) == 0);
 }
 
+TEST_CASE("busy poll: bot-swarm --busy-poll verifies every frame as the sleeping swarm does and stops at its end") {
+  const std::string dir = temp_dir();
+  zone_server_process server(ZONE_SERVER_EXE, dir, server_args_with({}));
+  REQUIRE_MESSAGE(server.port != 0, server.proc.log());
+  const auto t0 = std::chrono::steady_clock::now();
+  auto args = swarm_args(server.port, dir, {"--bots", "40", "--duration", "6", "--ramp", "100", "--verify", "--busy-poll"});
+  REQUIRE(args[3] == "--threads");
+  args[4] = "1";  // one spinning thread: it takes one core of a 2-core machine for the run, no more
+  child_process swarm(args, dir + "/bot-swarm.log");
+  const swarm_end run = finish(swarm, dir, 60000ms);
+  REQUIRE_MESSAGE(run.rc.has_value(), "bot-swarm did not end within 60 s; its output:\n" << run.log);
+  const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  const double rate = judge_machine(server).rate;
+  const std::string& report = run.report;
+  INFO("bot-swarm output:\n" << run.log);
+  CHECK(run.rc == 0);
+  CHECK(report.find("\"busy_poll\": true") != std::string::npos);
+  CHECK(json_number(report, "bots_connected").value_or(0) == 40);
+  CHECK(json_number(report, "mismatches").value_or(-1) == 0);
+  CHECK(json_number(report, "digests_checked").value_or(0) > 40 * 20 * 3 * rate);
+  CHECK(json_number(report, "aoi_checked").value_or(0) > 0);
+  CHECK(seconds < 30);  // the polling threads stop once the run is over
+  CHECK(server.proc.terminate().value_or(-1) == 0);
+}
+
 TEST_CASE("ramp: 800 bots launched at once from one address all join under the server's default pending caps") {
   // Every bot connects from 127.0.0.1 and the swarm's threads lag behind a ramp this fast: before
   // --max-connecting, hundreds of connections were open with no hello written yet, the server's

@@ -851,6 +851,78 @@ TEST_SUITE("net.server") {
     MESSAGE(writes << " writes in " << batches << " io_uring submissions");
   }
 
+  TEST_CASE("io_uring writes name registered files: a slot at a session's first write, given back as it closes") {
+    server_options opt;
+    opt.batching = write_batching::uring;
+    opt.io_threads = 1;
+    opt.ring_file_slots = 3;  // fewer than the sessions: the rest send by descriptor
+    server probe(opt);
+    if (const auto err = probe.start()) {
+      MESSAGE("io_uring unavailable here: " << *err);
+      return;
+    }
+    probe.stop();
+    started run(opt);
+    auto& srv = run.srv;
+    REQUIRE(srv.uses_io_uring());
+    constexpr int clients = 5;
+    frame_arena arena;
+    // One frame to each session; every client reads it. Returns the sends that named a slot.
+    const auto round = [&](const joined_clients& j, std::uint64_t t) {
+      const auto before = srv.stats();
+      std::vector<outgoing_frame> chunk;
+      for (int i = 0; i < clients; ++i) {
+        chunk.push_back(
+            {j.sessions[static_cast<std::size_t>(i)], arena.make(encode_frame(tick(t, 1 + i))), delivery::state_reset});
+      }
+      REQUIRE(srv.send_many(chunk) == static_cast<std::size_t>(clients));
+      for (int i = 0; i < clients; ++i) {
+        const auto m = j.clients[static_cast<std::size_t>(i)]->read();
+        REQUIRE(m.has_value());
+        REQUIRE(std::holds_alternative<tick_update_msg>(*m));
+        CHECK(std::get<tick_update_msg>(*m).server_tick == t);
+        CHECK(std::get<tick_update_msg>(*m).leaves.size() == static_cast<std::size_t>(1 + i));
+      }
+      REQUIRE(run.g.wait_for(
+          [&] { return srv.stats().frames_out - before.frames_out == static_cast<std::uint64_t>(clients); }));
+      const auto after = srv.stats();
+      CHECK(after.writes - before.writes == static_cast<std::uint64_t>(clients));
+      return after.registered_sends - before.registered_sends;
+    };
+    const joined_clients first = join_all(run.g, srv.port(), "f", clients);
+    CHECK(round(first, 1) == 3);  // three sessions took the three slots
+    CHECK(round(first, 2) == 3);  // and keep them; the other two never take one
+    // Closed: each client sees its error and the end of the stream.
+    for (int i = 0; i < clients; ++i)
+      srv.disconnect(first.sessions[static_cast<std::size_t>(i)], error_code::shutting_down, "bye");
+    for (int i = 0; i < clients; ++i)
+      closed_with(*first.clients[static_cast<std::size_t>(i)], error_code::shutting_down);
+    REQUIRE(run.g.wait_for([&] { return srv.stats().sessions_open == 0; }));
+    // The slots are free again (a slot kept would also keep its socket's file open until the
+    // server stops): three of the new sessions take them.
+    const joined_clients second = join_all(run.g, srv.port(), "s", clients);
+    CHECK(round(second, 3) == 3);
+    CHECK(srv.stats().frames_dropped == 0);
+
+    // No table: every send names its descriptor.
+    server_options none = opt;
+    none.ring_file_slots = 0;
+    started plain(none);
+    const joined_clients third = join_all(plain.g, plain.srv.port(), "n", 2);
+    std::vector<outgoing_frame> chunk;
+    for (int i = 0; i < 2; ++i)
+      chunk.push_back(
+          {third.sessions[static_cast<std::size_t>(i)], arena.make(encode_frame(tick(9))), delivery::state_reset});
+    REQUIRE(plain.srv.send_many(chunk) == 2u);
+    for (int i = 0; i < 2; ++i) {
+      const auto m = third.clients[static_cast<std::size_t>(i)]->read();
+      REQUIRE(m.has_value());
+      CHECK(std::get<tick_update_msg>(*m).server_tick == 9u);
+    }
+    REQUIRE(plain.g.wait_for([&] { return plain.srv.stats().frames_out == 2u; }));
+    CHECK(plain.srv.stats().registered_sends == 0);
+  }
+
   TEST_CASE("frame_arena: frames share blocks, keep their bytes, outlive the arena; a large frame stands alone") {
     std::vector<shared_frame> frames;
     std::vector<std::vector<std::uint8_t>> expect;
