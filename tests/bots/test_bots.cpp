@@ -555,7 +555,8 @@ TEST_CASE("busy poll: bot-swarm --busy-poll verifies every frame as the sleeping
   zone_server_process server(ZONE_SERVER_EXE, dir, server_args_with({}));
   REQUIRE_MESSAGE(server.port != 0, server.proc.log());
   const auto t0 = std::chrono::steady_clock::now();
-  auto args = swarm_args(server.port, dir, {"--bots", "40", "--duration", "6", "--ramp", "100", "--verify", "--busy-poll"});
+  auto args =
+      swarm_args(server.port, dir, {"--bots", "40", "--duration", "6", "--ramp", "100", "--verify", "--busy-poll"});
   REQUIRE(args[3] == "--threads");
   args[4] = "1";  // one spinning thread: it takes one core of a 2-core machine for the run, no more
   child_process swarm(args, dir + "/bot-swarm.log");
