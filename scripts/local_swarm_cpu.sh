@@ -8,7 +8,7 @@
 # Environment: BOTS (1500), NPCS (5000), SECS (25, after the ramp), HZ (20), THREADS (2 workers),
 # IO_THREADS (2), OUTDIR (/tmp/zone-cpu), PERF (seconds of `perf record -g` on the server in the
 # window instead of a plain wait; the data goes to OUTDIR/TAG/perf.data).
-# docs/zone-benchmarks.md ("The hand-off to the network") has its subject; alternate old and new binaries.
+# docs/zone-benchmarks.md ("The swarm", the 2-core VM) has its subject; alternate old and new binaries.
 set -u
 . "$(dirname "${BASH_SOURCE[0]}")/zone_procs.sh"
 srv=$1; sw=$2; tag=$3; shift 3
