@@ -13,11 +13,13 @@
 #include <algorithm>
 #include <atomic>
 #include <chrono>
+#include <cmath>
 #include <cstdint>
 #include <cstdio>
 #include <cstdlib>
 #include <fstream>
 #include <iostream>
+#include <limits>
 #include <sstream>
 #include <string>
 #include <thread>
@@ -144,7 +146,13 @@ int run_pairs(double work_us) {
   }
   const std::uint64_t iters = calibrate(work_us);
   std::vector<double> alone(cpus.size());
-  for (std::size_t i = 0; i < cpus.size(); ++i) alone[i] = alone_on(cpus[i], iters);
+  for (std::size_t i = 0; i < cpus.size(); ++i) {
+    alone[i] = alone_on(cpus[i], iters);
+    if (!(alone[i] < 1e30)) {
+      std::fprintf(stderr, "host-jitter: cannot pin a thread to CPU %d\n", cpus[i]);
+      return 1;
+    }
+  }
   std::printf("host-jitter --pairs: %zu CPUs, %.0f us of work on two CPUs at once (best of 3) against each alone\n\n",
               cpus.size(), work_us);
   std::printf("| CPU pair | slowdown (the slower of the two) |\n|---|---|\n");
@@ -157,9 +165,13 @@ int run_pairs(double work_us) {
         std::atomic<int> ready{0};
         double once[2] = {0, 0};
         const auto side = [&](int k, int cpu) {
-          if (!pin_to(cpu)) return;
-          ready.fetch_add(1);
+          const bool pinned = pin_to(cpu);
+          ready.fetch_add(1);  // pinned or not: the other side must not wait forever
           while (ready.load() < 2) {}
+          if (!pinned) {
+            once[k] = std::numeric_limits<double>::quiet_NaN();
+            return;
+          }
           const auto t0 = clock_type::now();
           volatile std::uint64_t sink = spin(iters, static_cast<std::uint64_t>(rep * 2 + k) + 11);
           (void)sink;
@@ -168,6 +180,10 @@ int run_pairs(double work_us) {
         std::thread a(side, 0, cpus[i]), b(side, 1, cpus[j]);
         a.join();
         b.join();
+        if (std::isnan(once[0]) || std::isnan(once[1])) {
+          std::fprintf(stderr, "host-jitter: cannot pin threads to CPUs %d and %d\n", cpus[i], cpus[j]);
+          return 1;
+        }
         took[0] = std::min(took[0], once[0]);
         took[1] = std::min(took[1], once[1]);
       }
