@@ -34,7 +34,7 @@ inline constexpr std::uint32_t plan_threads = 1024;
 /// per cell, CHECK per pair check) of `bench-gpu --only wsweep` and of the edge sweep
 /// `bench-gpu --only esweep` (fixed edges e0 * 2^(j/3) on the six target sets), direct output,
 /// pinned input; the figures, the machine, the date and the data files are in
-/// docs/gpu-benchmarks.md ("Cost-aware plan").
+/// docs/gpu-benchmarks.md ("Where the cost-aware plan's constants come from").
 inline constexpr std::uint32_t plan_candidates = 7;
 inline constexpr double plan_cost_entry_ns = 0.11;
 inline constexpr double plan_cost_cell_ns = 2.0;
@@ -89,8 +89,8 @@ inline constexpr std::size_t uniform_classes_min_boxes = std::size_t{1} << 18;
 /// the finder's previous call, on a set of about this size (box count within
 /// overlap_size_tolerance of it), wrote at most overlap_max_out_in times the bytes it uploaded
 /// (pairs x 8 against 24 or 32 bytes a box); a first call, or one after a call of another size,
-/// runs one-shot. The measured cases behind the constants (docs/gpu-benchmarks.md, "Overlapped
-/// upload"): a set with under 2x its input bytes out gains from 3 chunks and loses from 6 or more,
+/// runs one-shot. The measured cases behind the constants (docs/gpu-benchmarks.md, "Uniform
+/// 10^7 through the API"; docs/gpu.md, "Overlapped upload"): a set with under 2x its input bytes out gains from 3 chunks and loses from 6 or more,
 /// a set with about 40x its input bytes out loses with 4 chunks; the bound sits between them.
 /// 3 chunks: the fastest chunk count measured (the per-stage checks grow with k; 4 is already
 /// about even with the one-shot path). Each stage is cut into at most
