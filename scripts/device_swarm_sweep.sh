@@ -74,7 +74,7 @@ out, tags = sys.argv[1], sys.argv[2:]
 # share of the latency over the whole run (its stop summary: each tick update's age when written).
 cols = ["run", "bots", "connected", "mismatches", "resyncs", "frames/s/bot", "KB/s/bot median",
         "latency p50 / p99 ms [whole run]", "written p50 / p99 ms (whole run)", "tick p50 / p99 / max ms [whole run p99]",
-        "replicate p50 / p99 ms",
+        "replicate p50 / p99 ms (of it choosing the clients, p50)",
         "interest p99 ms", "steady ticks (over 33.3 ms)", "server CPU s", "swarm CPU s", "CPU us/frame (server + swarm)"]
 
 def pct(values, q):
@@ -103,6 +103,7 @@ for tag in tags:
         pass
     tick = [r["tick_ms"] for r in steady]
     repl = [r["replicate_ms"] for r in steady]
+    select = [r["select_ms"] for r in steady if "select_ms" in r]  # zone-server from 2026-11-30 on
     inter = [r["interest_ms"] for r in steady]
     over = sum(1 for t in tick if t > 1000.0 / 30)
     lat = rep.get("latency_steady_ms", {})
@@ -120,7 +121,8 @@ for tag in tags:
                  "%.1f / %.1f" % phase("written"),
                  "%.1f / %.1f / %.1f [%.1f]" % (pct(tick, 0.5), pct(tick, 0.99), max(tick, default=float("nan")),
                                                 phase("tick")[1]),
-                 "%.1f / %.1f" % (pct(repl, 0.5), pct(repl, 0.99)), "%.1f" % pct(inter, 0.99),
+                 "%.1f / %.1f (%s)" % (pct(repl, 0.5), pct(repl, 0.99), "%.1f" % pct(select, 0.5) if select else "-"),
+                 "%.1f" % pct(inter, 0.99),
                  "%d (%d)" % (len(tick), over), "%.1f" % cpu,
                  "%.1f" % rep["swarm_cpu_s"], "%.1f + %.1f" % (cpu / frames * 1e6, rep["swarm_cpu_s"] / frames * 1e6)])
 with open(f"{out}/sweep.csv", "w") as f:

@@ -334,9 +334,10 @@ std::optional<std::string> zone_server::start() {
   if (!cfg_.tick_csv.empty()) {
     tick_csv_ = std::fopen(cfg_.tick_csv.c_str(), "w");
     if (!tick_csv_) return "cannot write tick-csv file '" + cfg_.tick_csv + "': " + std::strerror(errno);
-    std::fputs("tick,t_s,clients,frames,bytes,inputs_ms,behaviours_ms,integrate_ms,interest_ms,replicate_ms,tick_ms,"
-               "viewer_ms,viewer_fill_ms,interest_wait_ms\n",
-               tick_csv_);
+    std::fputs(
+        "tick,t_s,clients,frames,bytes,inputs_ms,behaviours_ms,integrate_ms,interest_ms,replicate_ms,tick_ms,"
+        "viewer_ms,viewer_fill_ms,interest_wait_ms,select_ms\n",
+        tick_csv_);
   }
   if (cfg_.test_fault.rfind("gpu-", 0) == 0) {
     if (!faulty_engine_ && !faulty_replication_) {
@@ -628,11 +629,13 @@ void zone_server::replicate() {
   // the network by the worker that built it (net::server::send: into the session's mailbox, one
   // wake-up per I/O thread for a burst). Each session gets one frame per tick, so its frames stay
   // in tick order.
+  const auto select_start = clock_type::now();
   requests_.clear();
   request_sessions_.clear();
   const std::uint64_t every = cfg_.client_send_every, phase = world_->tick() % every;
   const std::uint64_t tick = world_->tick();
   const auto stall_ticks = static_cast<std::uint64_t>(std::ceil(cfg_.client_stall_s * cfg_.tick_rate_hz));
+  // On the tick's own thread, one client after another (timed: --tick-csv's select_ms).
   for (auto& [session, c] : clients_) {
     if (c.redirected) continue;  // its entity is served by another zone now
     // Not this client's tick (client_send_every > 1): its next frame carries this tick's changes.
@@ -669,6 +672,7 @@ void zone_server::replicate() {
     requests_.push_back({c.replica, c.last_input});
     request_sessions_.push_back(session);
   }
+  select_ms_ = ms_since(select_start);
   frame_bytes_.resize(requests_.size());
   outgoing_.resize(requests_.size());
   // TESTING ONLY (--test-fault): frame k is the victim's, broken on purpose before it is sent.
@@ -765,10 +769,11 @@ void zone_server::write_tick_line(double inputs_ms, double replicate_ms, double 
   // engine's wait, the replication engine's or the viewer phase), and what was left of the interest
   // engine's device wait after the host work overlapped with it (0 off the GPU engine).
   const double interest_wait_ms = world_->tracker().stats().on_engine ? world_->tracker().stats().engine_timing.wait_ms : 0.0;
-  std::fprintf(tick_csv_, "%llu,%.4f,%llu,%llu,%llu,%.3f,%.3f,%.3f,%.3f,%.3f,%.3f,%.4f,%.4f,%.4f\n",
+  std::fprintf(tick_csv_, "%llu,%.4f,%llu,%llu,%llu,%.3f,%.3f,%.3f,%.3f,%.3f,%.3f,%.4f,%.4f,%.4f,%.4f\n",
                static_cast<unsigned long long>(world_->tick()), t, static_cast<unsigned long long>(stats_.clients),
-               static_cast<unsigned long long>(frames), static_cast<unsigned long long>(bytes), inputs_ms, ph.behaviours,
-               ph.integrate, ph.interest, replicate_ms, tick_ms, viewer_ms_, viewer_fill_ms_, interest_wait_ms);
+               static_cast<unsigned long long>(frames), static_cast<unsigned long long>(bytes), inputs_ms,
+               ph.behaviours, ph.integrate, ph.interest, replicate_ms, tick_ms, viewer_ms_, viewer_fill_ms_,
+               interest_wait_ms, select_ms_);
 }
 
 void zone_server::tick_once() {

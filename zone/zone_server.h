@@ -288,6 +288,7 @@ class zone_server {
   // Replication scratch, reused every tick: one request per client, its session and its frame.
   std::vector<replication_request> requests_;
   std::vector<net::session_id> request_sessions_;
+  double select_ms_ = 0;                  // the last replicate()'s choice of this tick's clients (--tick-csv)
   std::vector<std::size_t> frame_bytes_;  // by request: the frame's size
   std::vector<net::outgoing_frame> outgoing_;  // replicate(): frame k, handed on by chunk (send_many)
   net::encoder encoder_;

@@ -509,8 +509,8 @@ TEST_SUITE("zone.server") {
     REQUIRE(std::getline(in, line));
     CHECK(line ==
           "tick,t_s,clients,frames,bytes,inputs_ms,behaviours_ms,integrate_ms,interest_ms,replicate_ms,tick_ms,"
-          "viewer_ms,viewer_fill_ms,interest_wait_ms");
-    constexpr int columns = 14;
+          "viewer_ms,viewer_fill_ms,interest_wait_ms,select_ms");
+    constexpr int columns = 15;
     int lines = 0;
     double sums[columns] = {};
     double last_t = -1;
@@ -535,6 +535,8 @@ TEST_SUITE("zone.server") {
       CHECK(v[12] == 0);                    // no viewer: no snapshot filled
       CHECK(v[13] >= 0);                    // the interest engine's device wait lies within its phase
       CHECK(v[13] <= v[8] + 0.002);
+      CHECK(v[14] >= 0);  // the choice of the tick's clients lies within the replicate phase
+      CHECK(v[14] <= v[9] + 0.002);
       CHECK(row.peek() == std::char_traits<char>::eof());  // nothing after the last column
     }
     CHECK(lines == ticks);
