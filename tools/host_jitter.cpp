@@ -25,9 +25,8 @@
 #include <thread>
 #include <vector>
 
-#include <sched.h>
-
 #include "interest/measure.h"
+#include "net/os_limits.h"
 #include "tools/cli.h"
 
 namespace {
@@ -110,12 +109,7 @@ void print_row(const char* what, std::vector<double> v, double work_us) {
               q(0.5) / work_us, q(0.99) / work_us, 100.0 * over / static_cast<double>(v.size()));
 }
 
-bool pin_to(int cpu) {
-  cpu_set_t set;
-  CPU_ZERO(&set);
-  CPU_SET(cpu, &set);
-  return sched_setaffinity(0, sizeof set, &set) == 0;  // 0: the calling thread
-}
+bool pin_to(int cpu) { return !zone::net::pin_current_thread({cpu}).has_value(); }
 
 /// Microseconds `iters` of spin() take on `cpu` (best of three).
 double alone_on(int cpu, std::uint64_t iters) {
@@ -135,14 +129,10 @@ double alone_on(int cpu, std::uint64_t iters) {
 
 /// --pairs: the slowdown of each pair of allowed CPUs running the work at once.
 int run_pairs(double work_us) {
-  cpu_set_t allowed;
-  if (sched_getaffinity(0, sizeof allowed, &allowed) != 0) {
-    std::perror("host-jitter: sched_getaffinity");
+  const std::vector<int> cpus = zone::net::allowed_cpus();
+  if (cpus.empty()) {
+    std::fprintf(stderr, "host-jitter: cannot read the CPUs this process may use\n");
     return 1;
-  }
-  std::vector<int> cpus;
-  for (int c = 0; c < CPU_SETSIZE; ++c) {
-    if (CPU_ISSET(c, &allowed)) cpus.push_back(c);
   }
   const std::uint64_t iters = calibrate(work_us);
   std::vector<double> alone(cpus.size());
