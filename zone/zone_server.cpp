@@ -464,6 +464,11 @@ void zone_server::drain_inputs() {
         const auto se = session_of_entity_.find(it->second.entity);
         if (se != session_of_entity_.end() && se->second == e.session) session_of_entity_.erase(se);
         replicator_.remove_client(it->second.replica);
+        // Its row takes the last one's.
+        const std::size_t row = it->second.row;
+        rows_[row] = rows_.back();
+        rows_[row].c->row = row;
+        rows_.pop_back();
         clients_.erase(it);
         ++stats_.leaves;
         break;
@@ -474,9 +479,15 @@ void zone_server::drain_inputs() {
 }
 
 void zone_server::welcome(net::session_id session, entity_id id, const hello_info& hello) {
-  client& c = clients_[session];
+  const auto [at, added] = clients_.try_emplace(session);
+  client& c = at->second;
+  if (added) {
+    c.row = rows_.size();
+    rows_.push_back({session, &c, nullptr});
+  }
   c.entity = id;
   c.backlog = net_.state_backlog(session);
+  rows_[c.row].backlog = c.backlog.get();
   c.written = net_.bytes_written(session);
   c.replica = replicator_.add_client(id);
   replicator_.set_class_notes(c.replica, hello.class_changes);
@@ -635,13 +646,23 @@ void zone_server::replicate() {
   const std::uint64_t every = cfg_.client_send_every, phase = world_->tick() % every;
   const std::uint64_t tick = world_->tick();
   const auto stall_ticks = static_cast<std::uint64_t>(std::ceil(cfg_.client_stall_s * cfg_.tick_rate_hz));
-  // On the tick's own thread, one client after another (timed: --tick-csv's select_ms).
-  for (auto& [session, c] : clients_) {
+  // On the tick's own thread, one client after another (timed: --tick-csv's select_ms), down the
+  // dense rows: the clients and their backlog counters (written by the I/O threads) fetched some
+  // rows ahead, not one map node after another.
+  const std::size_t n_rows = rows_.size();
+  constexpr std::size_t ahead = 16;
+  for (std::size_t r = 0; r < n_rows; ++r) {
+    if (r + ahead < n_rows) {
+      __builtin_prefetch(rows_[r + ahead].c);
+      if (rows_[r + ahead].backlog != nullptr) __builtin_prefetch(rows_[r + ahead].backlog);
+    }
+    const net::session_id session = rows_[r].session;
+    client& c = *rows_[r].c;
     if (c.redirected) continue;  // its entity is served by another zone now
     // Not this client's tick (client_send_every > 1): its next frame carries this tick's changes.
     if (every > 1 && session % every != phase) continue;
-    if (cfg_.client_max_backlog != 0 && c.backlog) {
-      const std::uint32_t backlog = c.backlog->load(std::memory_order_relaxed);
+    if (cfg_.client_max_backlog != 0 && rows_[r].backlog != nullptr) {
+      const std::uint32_t backlog = rows_[r].backlog->load(std::memory_order_relaxed);
       if (c.stalled) {
         // Stalled: nothing until its socket has taken every frame, then the current state.
         if (backlog != 0) {

@@ -144,20 +144,23 @@ class zone_server {
 
  private:
   struct client {
-    entity_id entity = null_entity;
+    // The fields replicate()'s choice of the tick's clients reads come first (one cache line).
     client_id replica = 0;
     std::uint32_t last_input = 0;     ///< newest input sequence applied (serial-number order)
+    bool redirected = false;          ///< its entity moved to another zone: no more frames, inputs forwarded
+    bool holding =
+        false;  ///< its backlog was full at its last turn, and no byte was written since world tick held_since
+    bool stalled = false;             ///< stalled (client_stall_s): no frame until the backlog is 0, then a reset
     bool any_input = false;           ///< last_input is set
+    std::size_t row = 0;              ///< its place in rows_
+    entity_id entity = null_entity;
     std::uint64_t last_teleport_tick = 0;  ///< world tick of the last applied teleport
     bool teleported = false;
     std::uint64_t last_visibility_tick = 0;  ///< world tick of the last applied set_visibility
     bool switched = false;
-    bool redirected = false;  ///< its entity moved to another zone: no more frames, inputs forwarded
-    bool holding = false;     ///< its backlog was full at its last turn, and no byte was written since world tick held_since
     std::uint64_t held_since = 0;
     std::uint64_t held_written = 0;  ///< *written at held_since
     std::shared_ptr<const std::atomic<std::uint64_t>> written;  ///< net::server::bytes_written
-    bool stalled = false;     ///< stalled (client_stall_s): no frame until the backlog is 0, then a reset
     std::shared_ptr<const std::atomic<std::uint32_t>> backlog;  ///< net::server::state_backlog
   };
   void drain_inputs();
@@ -294,6 +297,14 @@ class zone_server {
   net::encoder encoder_;
   std::vector<net::inbound_event> events_;
   std::unordered_map<net::session_id, client> clients_;
+  /// Every client once, densely (client::row is its place; a leaving client's row takes the last
+  /// one's): replicate() walks these, not the map's nodes. The map's elements do not move.
+  struct client_row {
+    net::session_id session;
+    client* c;
+    const std::atomic<std::uint32_t>* backlog;  ///< c->backlog, or null
+  };
+  std::vector<client_row> rows_;
   loop_stats stats_;
   std::atomic<bool> stop_requested_{false};
   // --tick-csv: the file and the loop's start.

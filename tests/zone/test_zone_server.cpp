@@ -473,6 +473,96 @@ TEST_SUITE("zone.server") {
     CHECK(parities.size() == 2);  // four consecutive sessions: both halves of the stagger
   }
 
+  TEST_CASE(
+      "clients leave in any order and others join: every client still in gets a frame each tick, one that left none") {
+    // replicate() walks the clients in a dense table whose rows move as clients leave: the first,
+    // the last and a middle one leave, then one joins into the freed room; every tick must still
+    // build exactly one frame per client in the zone, each applying to that client's view.
+    zone_config cfg = test_config();
+    cfg.metrics_enabled = false;
+    zone_server server(cfg);
+    REQUIRE_FALSE(server.start().has_value());
+    constexpr int count = 9;  // the ninth joins after the leaves
+    std::vector<std::unique_ptr<test_client>> clients(count);
+    std::optional<net::position_quantizer> quantizer;
+    std::vector<view_state> views(count);
+    std::vector<std::vector<std::uint64_t>> ticks(count);
+    const auto take = [&](int i, const net::message& m) {
+      if (const auto* w = std::get_if<net::welcome_msg>(&m)) quantizer.emplace(w->world);
+      if (const auto* u = std::get_if<net::tick_update_msg>(&m)) {
+        REQUIRE(quantizer.has_value());
+        views[i].apply(*u, *quantizer);
+        ticks[i].push_back(u->server_tick);
+      }
+    };
+    // As in the client_send_every test: every tick's frames written and read before the next, so
+    // pacing never holds one back.
+    const auto tick_and_read = [&] {
+      const std::uint64_t sent = server.stats().frames_sent;
+      server.tick_once();
+      CHECK(server.stats().frames_sent - sent == server.stats().clients);
+      const auto by = std::chrono::steady_clock::now() + 2s;
+      while (server.net_stats().frames_out < server.stats().frames_sent + server.stats().clients &&
+             std::chrono::steady_clock::now() < by) {
+        std::this_thread::sleep_for(1ms);
+      }
+      for (int i = 0; i < count; ++i) {
+        while (clients[i] != nullptr) {
+          const auto m = clients[i]->read(1ms);
+          if (!m) break;
+          take(i, *m);
+        }
+      }
+    };
+    const auto join = [&](int i) {
+      clients[i] = std::make_unique<test_client>(server.port());
+      REQUIRE(clients[i]->send(net::hello_msg{"rows-" + std::to_string(i), "", net::protocol_version}));
+    };
+    const auto wait_for_clients = [&](std::uint64_t n) {
+      const auto by = std::chrono::steady_clock::now() + 10s;
+      while (server.stats().clients != n && std::chrono::steady_clock::now() < by) {
+        tick_and_read();
+        std::this_thread::sleep_for(3ms);
+      }
+      REQUIRE(server.stats().clients == n);
+    };
+    for (int i = 0; i < count - 1; ++i) join(i);
+    wait_for_clients(count - 1);
+    for (int t = 0; t < 10; ++t) tick_and_read();
+    // Clients join in the order their hellos are drained, not necessarily 0..7: whichever rows
+    // they hold, three of them leave, then one joins.
+    for (const int i : {0, 7, 3}) clients[i].reset();
+    wait_for_clients(count - 4);
+    join(count - 1);
+    wait_for_clients(count - 3);
+    const std::uint64_t steady_from = server.world().tick();
+    for (int t = 0; t < 20; ++t) tick_and_read();
+    for (int i = 0; i < count; ++i) {
+      while (clients[i] != nullptr) {
+        const auto m = clients[i]->read(300ms);
+        if (!m) break;
+        take(i, *m);
+      }
+    }
+    for (int i = 0; i < count; ++i) {
+      CAPTURE(i);
+      CHECK(views[i].consistent);
+      CHECK(views[i].digest_ok);
+      if (clients[i] == nullptr) {
+        // Gone (no frame built for it once its leave was drained: tick_and_read's count).
+        CHECK(ticks[i].size() >= 10);
+        continue;
+      }
+      // Still in (or joined late): a frame every tick from steady_from on.
+      std::vector<std::uint64_t> steady;
+      for (const auto t : ticks[i]) {
+        if (t > steady_from) steady.push_back(t);
+      }
+      REQUIRE(steady.size() == 20);
+      for (std::size_t k = 1; k < steady.size(); ++k) CHECK(steady[k] - steady[k - 1] == 1);
+    }
+  }
+
   TEST_CASE("--tick-csv: one line per tick whose phases add up to the server's histograms; an unwritable path refuses to start") {
     const std::string path = "test_zone_server_ticks.csv";
     int ticks = 0;  // the ticks run (the world's tick at the end)
