@@ -148,8 +148,7 @@ class zone_server {
     client_id replica = 0;
     std::uint32_t last_input = 0;     ///< newest input sequence applied (serial-number order)
     bool redirected = false;          ///< its entity moved to another zone: no more frames, inputs forwarded
-    bool holding =
-        false;  ///< its backlog was full at its last turn, and no byte was written since world tick held_since
+    bool holding = false;             ///< backlog full at its last turn, no byte written since held_since
     bool stalled = false;             ///< stalled (client_stall_s): no frame until the backlog is 0, then a reset
     bool any_input = false;           ///< last_input is set
     std::size_t row = 0;              ///< its place in rows_
