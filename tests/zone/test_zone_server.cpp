@@ -74,6 +74,33 @@ zone_config test_config() {
   return c;
 }
 
+/// Each client's view and the ticks of its frames, from the messages it read (the welcome sets
+/// the quantizer the updates are read with).
+struct recorded_clients {
+  explicit recorded_clients(int count) : views(count), ticks(count) {}
+  std::optional<net::position_quantizer> quantizer;
+  std::vector<view_state> views;
+  std::vector<std::vector<std::uint64_t>> ticks;
+
+  void take(int i, const net::message& m) {
+    if (const auto* w = std::get_if<net::welcome_msg>(&m)) quantizer.emplace(w->world);
+    if (const auto* u = std::get_if<net::tick_update_msg>(&m)) {
+      REQUIRE(quantizer.has_value());
+      views[i].apply(*u, *quantizer);
+      ticks[i].push_back(u->server_tick);
+    }
+  }
+};
+
+/// Waits (up to 2 s) until the I/O threads wrote every frame built so far and the welcomes.
+void wait_written(const zone_server& server) {
+  const auto by = std::chrono::steady_clock::now() + 2s;
+  while (server.net_stats().frames_out < server.stats().frames_sent + server.stats().clients &&
+         std::chrono::steady_clock::now() < by) {
+    std::this_thread::sleep_for(1ms);
+  }
+}
+
 }  // namespace
 
 TEST_SUITE("zone.server") {
@@ -421,17 +448,10 @@ TEST_SUITE("zone.server") {
       REQUIRE(clients.back()->send(net::hello_msg{"every2-" + std::to_string(i), "", net::protocol_version}));
     }
     // 60 ticks: the first drain the hellos (welcomes), the rest send each client a frame every other tick.
-    std::optional<net::position_quantizer> quantizer;
-    std::vector<view_state> views(count);
-    std::vector<std::vector<std::uint64_t>> ticks(count);
-    const auto take = [&](int i, const net::message& m) {
-      if (const auto* w = std::get_if<net::welcome_msg>(&m)) quantizer.emplace(w->world);
-      if (const auto* u = std::get_if<net::tick_update_msg>(&m)) {
-        REQUIRE(quantizer.has_value());
-        views[i].apply(*u, *quantizer);
-        ticks[i].push_back(u->server_tick);
-      }
-    };
+    recorded_clients rec(count);
+    auto& views = rec.views;
+    auto& ticks = rec.ticks;
+    const auto take = [&](int i, const net::message& m) { rec.take(i, m); };
     // Every tick is followed by the I/O threads writing what it built (the welcomes so far and
     // every tick update) and the clients reading it, before the next tick: pacing
     // (client_max_backlog, the default 2) then never holds a frame back, so each client's frames
@@ -439,11 +459,7 @@ TEST_SUITE("zone.server") {
     // client's frames unwritten and build it none: a 4-tick gap.
     const auto tick_and_read = [&] {
       server.tick_once();
-      const auto by = std::chrono::steady_clock::now() + 2s;
-      while (server.net_stats().frames_out < server.stats().frames_sent + server.stats().clients &&
-             std::chrono::steady_clock::now() < by) {
-        std::this_thread::sleep_for(1ms);
-      }
+      wait_written(server);
       for (int i = 0; i < count; ++i) {
         while (auto m = clients[i]->read(1ms)) take(i, *m);
       }
@@ -484,33 +500,21 @@ TEST_SUITE("zone.server") {
     REQUIRE_FALSE(server.start().has_value());
     constexpr int count = 9;  // the ninth joins after the leaves
     std::vector<std::unique_ptr<test_client>> clients(count);
-    std::optional<net::position_quantizer> quantizer;
-    std::vector<view_state> views(count);
-    std::vector<std::vector<std::uint64_t>> ticks(count);
-    const auto take = [&](int i, const net::message& m) {
-      if (const auto* w = std::get_if<net::welcome_msg>(&m)) quantizer.emplace(w->world);
-      if (const auto* u = std::get_if<net::tick_update_msg>(&m)) {
-        REQUIRE(quantizer.has_value());
-        views[i].apply(*u, *quantizer);
-        ticks[i].push_back(u->server_tick);
-      }
-    };
+    recorded_clients rec(count);
+    const auto& views = rec.views;
+    const auto& ticks = rec.ticks;
     // As in the client_send_every test: every tick's frames written and read before the next, so
     // pacing never holds one back.
     const auto tick_and_read = [&] {
       const std::uint64_t sent = server.stats().frames_sent;
       server.tick_once();
       CHECK(server.stats().frames_sent - sent == server.stats().clients);
-      const auto by = std::chrono::steady_clock::now() + 2s;
-      while (server.net_stats().frames_out < server.stats().frames_sent + server.stats().clients &&
-             std::chrono::steady_clock::now() < by) {
-        std::this_thread::sleep_for(1ms);
-      }
+      wait_written(server);
       for (int i = 0; i < count; ++i) {
         while (clients[i] != nullptr) {
           const auto m = clients[i]->read(1ms);
           if (!m) break;
-          take(i, *m);
+          rec.take(i, *m);
         }
       }
     };
@@ -541,7 +545,7 @@ TEST_SUITE("zone.server") {
       while (clients[i] != nullptr) {
         const auto m = clients[i]->read(300ms);
         if (!m) break;
-        take(i, *m);
+        rec.take(i, *m);
       }
     }
     for (int i = 0; i < count; ++i) {
