@@ -274,7 +274,9 @@ struct io_lane {
   std::mutex ready_mutex;
   std::vector<std::shared_ptr<session>> ready;     // guarded by ready_mutex
   bool drain_posted = false;                       // guarded by ready_mutex
-  std::vector<std::shared_ptr<session>> draining;  // the lane's thread only
+  std::vector<std::shared_ptr<session>> draining;  // the lane's thread only: this round's sessions
+  std::size_t drained = 0;                         // the lane's thread only: of them, written so far
+  std::size_t drain_slice = 256;                   // sessions a drain writes before the lane's other work
   /// The lane's thread: sessions whose batched write completed with more queued behind it; the
   /// next drain writes them again (they stay marked as on the ready list).
   std::vector<std::shared_ptr<session>> again;
@@ -312,12 +314,17 @@ struct io_lane {
   void schedule(std::shared_ptr<session> s);
   /// schedule() for several sessions of this lane under one lock (moves them out).
   void schedule_many(std::span<std::shared_ptr<session>> sessions);
-  /// The lane's thread: every ready session writes what it has queued. What becomes ready
-  /// meanwhile gets one more drain, posted by the drain itself (behind the lane's other
-  /// handlers), so the senders of a burst do not post (nor wake the lane) once per chunk.
+  /// The lane's thread: the ready sessions write what they have queued, `drain_slice` of them at
+  /// a time: after each slice the drain posts itself behind the lane's other handlers (reads,
+  /// accepts, timers), which so wait for one slice, not for a round of every ready session. What
+  /// becomes ready meanwhile gets one more round, posted by the drain itself, so the senders of a
+  /// burst do not post (nor wake the lane) once per chunk.
   void drain();
-  /// The lane's thread: `draining` written through the ring, ring_entries sessions a submission.
-  void write_batched();
+  /// The lane's thread: draining[begin, end) written through the ring, ring_entries sessions a
+  /// submission.
+  void write_batched(std::size_t begin, std::size_t end);
+  /// After the lane's thread stopped: what its rounds still hold let go.
+  void forget_ready();
   /// Submits the prepared slots [0, n), waits for their completions and hands each to its session.
   void submit_slots(unsigned n);
 };
@@ -1135,18 +1142,34 @@ void io_lane::schedule_many(std::span<std::shared_ptr<session>> sessions) {
 }
 
 void io_lane::drain() {
-  {
-    const std::lock_guard lock(ready_mutex);
-    draining.swap(ready);
+  if (drained == draining.size()) {  // a new round: every session ready now
+    draining.clear();
+    drained = 0;
+    {
+      const std::lock_guard lock(ready_mutex);
+      draining.swap(ready);
+    }
+    for (auto& s : again) draining.push_back(std::move(s));
+    again.clear();
   }
-  for (auto& s : again) draining.push_back(std::move(s));
-  again.clear();
+  const std::size_t begin = drained, end = std::min(draining.size(), begin + std::max<std::size_t>(drain_slice, 1));
   if (ring_ok) {
-    write_batched();
+    write_batched(begin, end);
   } else {
-    for (auto& s : draining) s->lane_flush();
+    for (std::size_t i = begin; i < end; ++i) draining[i]->lane_flush();
+  }
+  for (std::size_t i = begin; i < end; ++i) draining[i].reset();
+  drained = end;
+  if (drained < draining.size()) {
+    // The round's next slice, behind the lane's other handlers: a lane that cannot keep up still
+    // reads its clients (a new one's hello, pings) within a slice's time, not a round's (a round
+    // of thousands of sessions on a busy lane took up to half a second during a ramp, H200
+    // 2026-11-30). drain_posted stays set, so senders do not post.
+    asio::post(ctx, [this] { drain(); });
+    return;
   }
   draining.clear();
+  drained = 0;
   {
     const std::lock_guard lock(ready_mutex);
     if (ready.empty() && again.empty()) {
@@ -1154,10 +1177,19 @@ void io_lane::drain() {
       return;
     }
   }
-  // More became ready meanwhile: one more drain, behind the lane's other handlers (accepts, reads,
+  // More became ready meanwhile: one more round, behind the lane's other handlers (accepts, reads,
   // timers: a drain that looped until its list stayed empty held them off for seconds on a lane
   // that cannot keep up, H100 2026-11-25). drain_posted stays set, so senders do not post.
   asio::post(ctx, [this] { drain(); });
+}
+
+void io_lane::forget_ready() {
+  draining.clear();
+  drained = 0;
+  again.clear();
+  const std::lock_guard lock(ready_mutex);
+  ready.clear();
+  drain_posted = false;
 }
 
 io_lane::~io_lane() { drop_ring(); }
@@ -1240,9 +1272,10 @@ std::optional<std::string> io_lane::init_ring(unsigned file_slot_count) {
 #endif
 }
 
-void io_lane::write_batched() {
+void io_lane::write_batched(std::size_t begin, std::size_t end) {
   unsigned n = 0;
-  for (auto& s : draining) {
+  for (std::size_t i = begin; i < end; ++i) {
+    auto& s = draining[i];
     if (!s->ring_prepare(slot_iov[n], slot_msg[n])) continue;
     slots[n++] = std::move(s);
     if (n == ring_entries) {
@@ -1568,6 +1601,7 @@ std::optional<std::string> server::start() {
   std::string why_not;
   const auto file_slots = static_cast<unsigned>(
       std::min<std::size_t>({m.opt.ring_file_slots, files.soft == 0 ? m.opt.ring_file_slots : files.soft, 1u << 20}));
+  for (auto& lane : m.lanes) lane->drain_slice = std::max<std::size_t>(m.opt.write_slice, 1);
   if (m.opt.batching != write_batching::sendmsg) {
     for (auto& lane : m.lanes) {
       if (auto err = lane->init_ring(file_slots)) {
@@ -1649,9 +1683,7 @@ void server::stop() {
     if (lane->thread.joinable()) lane->thread.join();
     if (lane.get() == m.lanes.front().get()) m.release_held(true);  // the acceptor's lane has stopped: what it still held
     // Sessions left on a ready list hold themselves; let them go.
-    const std::lock_guard lock(lane->ready_mutex);
-    lane->ready.clear();
-    lane->drain_posted = false;
+    lane->forget_ready();
   }
   {
     const std::lock_guard lock(m.sessions_mutex);

@@ -77,6 +77,11 @@ struct server_options {
   /// where the kernel refuses a table: before 5.19) send by descriptor. Capped by the open-file
   /// limit; 0 = no table.
   std::size_t ring_file_slots = 65536;
+  /// Ready sessions an I/O thread writes before it turns to its other work (reads, new
+  /// connections, timers) and then writes the next as many: on a thread that cannot keep up,
+  /// a client's hello or ping waits for one slice of writes, not for every ready session's
+  /// (docs/protocol.md, "Server"). 0 is taken as 1.
+  std::size_t write_slice = 256;
   /// Nice value the I/O threads give themselves (0 = unchanged; 1-19 = lower priority than the
   /// game's threads, which an unprivileged process may always ask for): where the I/O threads
   /// share cores with the tick's workers, the scheduler then lets a worker run its part of a tick

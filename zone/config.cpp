@@ -71,6 +71,7 @@ std::optional<std::string> validate(const zone_config& c) {
   if (std::find(std::begin(batchings), std::end(batchings), c.write_batching) == std::end(batchings)) {
     return bad("write-batching must be auto, io_uring or sendmsg");
   }
+  if (c.write_slice < 1 || c.write_slice > 1000000) return bad("write-slice must be 1 .. 1000000");
   if (c.max_frame_bytes < 64) return bad("max-frame-bytes must be >= 64");
   if (!(c.client_stall_s >= 0 && c.client_stall_s <= 3600)) return bad("client-stall must be 0 .. 3600 seconds");
   if (c.socket_send_buffer > (std::size_t{1} << 30)) return bad("socket-send-buffer must be <= 1 GiB");
@@ -231,6 +232,7 @@ config_result parse_config(int argc, const char* const* argv) {
       ("worker-cpus", po::value(&c.worker_cpus)->default_value(c.worker_cpus), "CPUs of the tick's threads (the worker pool and the tick's own thread) as a CPU list, e.g. 0-5 (empty: not pinned); with --io-cpus on other CPUs no I/O thread preempts a tick's task (docs/operating.md)")  //
       ("io-cpus", po::value(&c.io_cpus)->default_value(c.io_cpus), "CPUs of the I/O threads as a CPU list, e.g. 6-9 (empty: not pinned)")  //
       ("write-batching", po::value(&c.write_batching)->default_value(c.write_batching), "how the I/O threads write: auto (io_uring where the kernel allows it, else sendmsg), io_uring (or refuse to start), sendmsg (one system call per session write)")  //
+      ("write-slice", po::value(&c.write_slice)->default_value(c.write_slice), "sessions an I/O thread writes before it reads its clients again: on a busy server a new client's hello waits for one slice of writes, not for every waiting session's")  //
       ("inputs-per-second", po::value(&c.inputs_per_second)->default_value(c.inputs_per_second), "input rate limit per client (inputs and teleports; burst half a second's worth); over it inputs are dropped, 200 in a row: error rate_limited")  //
       ("pings-per-second", po::value(&c.pings_per_second)->default_value(c.pings_per_second), "ping rate limit per client (burst one second's worth); over it no pong, 200 in a row: error rate_limited")  //
       ("client-byte-budget", po::value(&c.client_byte_budget)->default_value(c.client_byte_budget), "bytes per client per tick")  //

@@ -100,6 +100,9 @@ struct zone_config {
   /// How the I/O threads write (net::server_options::batching): "auto" (io_uring where the kernel
   /// allows it, else sendmsg), "io_uring" (or refuse to start), "sendmsg".
   std::string write_batching = "auto";
+  /// Ready sessions an I/O thread writes before it reads its clients again
+  /// (net::server_options::write_slice; 1 .. 1,000,000).
+  std::size_t write_slice = 256;
   double inputs_per_second = 60;
   double pings_per_second = 10;  ///< per client; over it pings get no pong (net::server_options)
   /// Admission (net::server_options): a connection must complete its hello within hello_timeout_s

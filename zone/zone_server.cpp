@@ -46,6 +46,7 @@ net::server_options net_options(const zone_config& c) {
   o.io_thread_nice = c.io_nice;
   o.io_thread_cpus = pin_cpus(c.io_cpus);
   o.batching = net::parse_write_batching(c.write_batching).value_or(net::write_batching::automatic);
+  o.write_slice = c.write_slice;
   o.inputs_per_second = c.inputs_per_second;
   o.input_burst = std::max(1.0, c.inputs_per_second / 2);
   o.pings_per_second = c.pings_per_second;

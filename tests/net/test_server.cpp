@@ -494,6 +494,7 @@ TEST_SUITE("net.server") {
     FOR_BOTH_WRITE_PATHS(opt)
     opt.max_queued_frames = 128;  // 100 frames a session at most: no drop, no overflow
     opt.io_threads = 2;
+    opt.write_slice = 1;  // every round of ready sessions written one session a turn
     started run(opt);
     auto& srv = run.srv;
     auto& g = run.g;
@@ -1046,6 +1047,9 @@ TEST_SUITE("net.server") {
     opt.io_threads = 2;
     opt.max_queued_frames = 4;
     opt.socket_send_buffer = 8192;  // a stalled reader fills its socket at once
+    // Rounds of ready sessions written 3 at a time (server_options::write_slice): sessions that
+    // close, stall or resume mid-round.
+    opt.write_slice = 3;
     started run(opt);
     auto& srv = run.srv;
     auto& g = run.g;
