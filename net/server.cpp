@@ -1620,7 +1620,10 @@ std::optional<std::string> server::start() {
     }
   }
   const auto n = static_cast<unsigned>(m.lanes.size());
-  for (auto& lane : m.lanes) lane->work.emplace(lane->ctx.get_executor());
+  for (auto& lane : m.lanes) {
+    lane->ctx.restart();  // a server started again: its stop() stopped the event loops
+    lane->work.emplace(lane->ctx.get_executor());
+  }
   m.do_accept();
   for (std::size_t i = 0; i < m.lanes.size(); ++i) {
     m.lanes[i]->thread =

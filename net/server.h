@@ -310,6 +310,7 @@ class server {
   /// max_connections does not fit), binds, listens and starts the I/O threads. Returns a readable
   /// error on failure. When the process runs out of file descriptors later, accepting pauses
   /// (50 ms at a time) with an error log naming the limit, and resumes when sessions close.
+  /// A stopped server may be started again (with port 0, on a new ephemeral port).
   [[nodiscard]] std::optional<std::string> start();
   /// The bound port (after start).
   [[nodiscard]] std::uint16_t port() const;

@@ -539,6 +539,35 @@ TEST_SUITE("net.server") {
     CHECK(srv.stats().frames_out == static_cast<std::uint64_t>(clients * senders * per_sender));
   }
 
+  TEST_CASE("a server stopped and started again serves new clients: hello, frames, pings") {
+    server_options opt;
+    FOR_BOTH_WRITE_PATHS(opt)
+    opt.io_threads = 2;
+    server srv(opt);
+    game g{srv, {}};
+    for (int round = 0; round < 3; ++round) {
+      CAPTURE(round);
+      REQUIRE_FALSE(srv.start().has_value());
+      REQUIRE(srv.port() != 0);
+      // Two clients: one on each I/O thread (sessions are dealt out in turn).
+      const joined_clients joined = join_all(g, srv.port(), "r" + std::to_string(round) + "-", 2);
+      for (std::size_t i = 0; i < 2; ++i) {
+        auto& c = *joined.clients[i];
+        const auto t = static_cast<std::uint64_t>(round * 10 + 1);
+        REQUIRE(srv.send(joined.sessions[i], frame(tick(t, 2))));
+        const auto got = c.read();
+        REQUIRE(got.has_value());
+        CHECK(std::get<tick_update_msg>(*got) == tick(t, 2));
+        REQUIRE(c.send(ping_msg{42}));
+        const auto pong = c.read();
+        REQUIRE(pong.has_value());
+        CHECK(std::get<pong_msg>(*pong).client_time_us == 42);
+      }
+      srv.stop();
+      CHECK(srv.stats().sessions_open == 0);
+    }
+  }
+
   TEST_CASE("sends then a game-side disconnect: a prefix of the frames, in order, then the error, then nothing") {
     server_options opt;
     FOR_BOTH_WRITE_PATHS(opt)
