@@ -1276,6 +1276,10 @@ void io_lane::write_batched(std::size_t begin, std::size_t end) {
   unsigned n = 0;
   for (std::size_t i = begin; i < end; ++i) {
     auto& s = draining[i];
+    if (!ring_ok) {  // the ring failed earlier in this slice (submit_slots): the rest by sendmsg
+      s->lane_flush();
+      continue;
+    }
     if (!s->ring_prepare(slot_iov[n], slot_msg[n])) continue;
     slots[n++] = std::move(s);
     if (n == ring_entries) {
