@@ -6,12 +6,15 @@
 #   SWEEP_BOTS="5000 10000 15000 19900" DEVICE_DIR=.device-zone bash scripts/device_swarm_sweep.sh
 #
 # Environment: SWEEP_BOTS (the bot counts, in order), SWEEP_LAYOUT (pinned: the server on the first
-# 5/8 of the cores with 6 workers and 4 I/O threads per 10 cores, one thread per core (more
-# workers than that slowed the tick: docs/zone-benchmarks.md, "The swarm"), the workers and the
-# I/O threads each on their own of those cores (SWEEP_SPLIT, below), the swarm on the rest with a
-# thread per core; on a 16-core host: server 0-9 (6 workers on 0-5, 4 I/O threads on 6-9), swarm
-# 10-15, 6 threads; on a 32-core host: 0-19 (12 and 8), and 20-31, 12. shared: both on every core, 3/8 of the
-# cores as I/O threads and half as swarm threads: 6 and 8 on 16 cores. Default pinned),
+# 5/8 of the cores with 4 workers and 6 I/O threads per 10 cores, one thread per core, the workers
+# and the I/O threads each on their own of those cores (SWEEP_SPLIT, below), the swarm on the rest
+# with two threads per core; on a 16-core host: server 0-9 (4 workers on 0-3, 6 I/O threads on
+# 4-9), swarm 10-15, 12 threads; on a 32-core host: 0-19 (8 and 12), and 20-31, 24. Six I/O
+# threads write a tick's frames soon enough for a 50 ms latency p99 where four do not, at more CPU
+# a frame, and a swarm thread per core reads them late (docs/zone-benchmarks.md, "The swarm"). The
+# layout before, leaner in CPU a frame: SERVER_THREADS=6 SERVER_IO_THREADS=4 SWARM_THREADS=6 on 16
+# cores, 12, 8 and 12 on 32. shared: both on every core, 3/8 of the cores as I/O threads and half
+# as swarm threads: 6 and 8 on 16 cores. Default pinned),
 # SWEEP_REPEAT (runs per bot count, default 1), and everything device_zone.sh's swarm step reads
 # (SWARM_NPCS, SWARM_SECONDS, SERVER_THREADS, SERVER_CPUS, SERVER_ARGS, ...), which win over the
 # layout's.
@@ -29,9 +32,9 @@ at_least_1() { echo $(($1 > 0 ? $1 : 1)); }
 server_cores=$((cores * 5 / 8))
 case "$layout" in
   pinned) export SERVER_CPUS=${SERVER_CPUS:-0-$((server_cores - 1))} SWARM_CPUS=${SWARM_CPUS:-$server_cores-$((cores - 1))} \
-            SERVER_THREADS=${SERVER_THREADS:-$(at_least_1 $((server_cores * 3 / 5)))} \
-            SERVER_IO_THREADS=${SERVER_IO_THREADS:-$(at_least_1 $((server_cores * 2 / 5)))} \
-            SWARM_THREADS=${SWARM_THREADS:-$((cores - server_cores))} ;;
+            SERVER_THREADS=${SERVER_THREADS:-$(at_least_1 $((server_cores * 2 / 5)))} \
+            SERVER_IO_THREADS=${SERVER_IO_THREADS:-$(at_least_1 $((server_cores * 3 / 5)))} \
+            SWARM_THREADS=${SWARM_THREADS:-$((2 * (cores - server_cores)))} ;;
   shared) unset SERVER_CPUS SWARM_CPUS
           export SERVER_IO_THREADS=${SERVER_IO_THREADS:-$(at_least_1 $((cores * 3 / 8)))} SWARM_THREADS=${SWARM_THREADS:-$((cores / 2))} ;;
   *) echo "SWEEP_LAYOUT must be pinned or shared" >&2; exit 2 ;;
