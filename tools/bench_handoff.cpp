@@ -61,6 +61,7 @@ struct options {
   std::size_t chunk = 16;   // sessions per send_many call (the zone's clients per replication task)
   bool direct_writes = false;
   write_batching batching = write_batching::automatic;
+  std::size_t write_slice = 256;  // ready sessions an I/O thread writes before it reads again
 };
 
 using zone::quantile;
@@ -75,7 +76,8 @@ int main(int argc, char** argv) {
       "way; send: make_shared_frame + send per frame)] [--chunk 16 (sessions per send_many; the zone server hands over chunks of clients_per_task, 64)]\n"
       "                     [--direct-writes 0|1 (default 0: the I/O threads write)]\n"
       "                     [--write-batching auto|io_uring|sendmsg (default auto: io_uring where the "
-      "kernel allows it)]\n";
+      "kernel allows it)]\n"
+      "                     [--write-slice 256 (sessions an I/O thread writes before it reads again)]\n";
   options o;
   std::string mode = "many", batching = "auto";
   int direct_writes = 0;
@@ -84,13 +86,13 @@ int main(int argc, char** argv) {
   cli.add_options()("sessions", po::value(&o.sessions))("ticks", po::value(&o.ticks))("senders", po::value(&o.senders))(
       "io-threads", po::value(&o.io_threads))("frame-bytes", po::value(&o.frame_bytes))("rate", po::value(&o.rate_hz))(
       "max-backlog", po::value(&o.max_backlog))("chunk", po::value(&o.chunk))("direct-writes", po::value(&direct_writes))(
-      "write-batching", po::value(&batching))("mode", po::value(&mode));
+      "write-batching", po::value(&batching))("write-slice", po::value(&o.write_slice))("mode", po::value(&mode));
   if (const auto rc = zone::tools::parse_command_line(argc, argv, "bench-handoff", usage, cli, 64)) return *rc;
   const auto b = parse_write_batching(batching);
   if (!b || (mode != "many" && mode != "send") || (direct_writes != 0 && direct_writes != 1) || o.sessions == 0 ||
-      o.senders == 0 || o.frame_bytes < 64 || o.chunk == 0) {
+      o.senders == 0 || o.frame_bytes < 64 || o.chunk == 0 || o.write_slice == 0) {
     std::fprintf(stderr, "bench-handoff: bad value (--mode many|send, --write-batching auto|io_uring|sendmsg, "
-                         "--direct-writes 0|1, --sessions, --senders and --chunk > 0, --frame-bytes >= 64)\n%s",
+                         "--direct-writes 0|1, --sessions, --senders, --chunk and --write-slice > 0, --frame-bytes >= 64)\n%s",
                  usage.c_str());
     return 64;
   }
@@ -102,6 +104,7 @@ int main(int argc, char** argv) {
   so.io_threads = o.io_threads;
   so.direct_writes = o.direct_writes;
   so.batching = o.batching;
+  so.write_slice = o.write_slice;
   so.max_connections = o.sessions + 16;
   so.max_pending = so.max_pending_per_address = o.sessions + 16;  // every client connects at once from loopback
   so.idle_timeout = std::chrono::hours(1);
