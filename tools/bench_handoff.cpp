@@ -85,14 +85,16 @@ int main(int argc, char** argv) {
   po::options_description cli;
   cli.add_options()("sessions", po::value(&o.sessions))("ticks", po::value(&o.ticks))("senders", po::value(&o.senders))(
       "io-threads", po::value(&o.io_threads))("frame-bytes", po::value(&o.frame_bytes))("rate", po::value(&o.rate_hz))(
-      "max-backlog", po::value(&o.max_backlog))("chunk", po::value(&o.chunk))("direct-writes", po::value(&direct_writes))(
-      "write-batching", po::value(&batching))("write-slice", po::value(&o.write_slice))("mode", po::value(&mode));
+      "max-backlog", po::value(&o.max_backlog))("chunk", po::value(&o.chunk))(
+      "direct-writes", po::value(&direct_writes))("write-batching", po::value(&batching))(
+      "write-slice", po::value(&o.write_slice))("mode", po::value(&mode));
   if (const auto rc = zone::tools::parse_command_line(argc, argv, "bench-handoff", usage, cli, 64)) return *rc;
   const auto b = parse_write_batching(batching);
   if (!b || (mode != "many" && mode != "send") || (direct_writes != 0 && direct_writes != 1) || o.sessions == 0 ||
       o.senders == 0 || o.frame_bytes < 64 || o.chunk == 0 || o.write_slice == 0) {
-    std::fprintf(stderr, "bench-handoff: bad value (--mode many|send, --write-batching auto|io_uring|sendmsg, "
-                         "--direct-writes 0|1, --sessions, --senders, --chunk and --write-slice > 0, --frame-bytes >= 64)\n%s",
+    std::fprintf(stderr,
+                 "bench-handoff: bad value (--mode many|send, --write-batching auto|io_uring|sendmsg, "
+                 "--direct-writes 0|1, --sessions, --senders, --chunk and --write-slice > 0, --frame-bytes >= 64)\n%s",
                  usage.c_str());
     return 64;
   }
