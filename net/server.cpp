@@ -1648,8 +1648,9 @@ std::optional<std::string> server::start() {
       "zone server listening on {}:{} ({} I/O threads{}{}, {}, {})", m.opt.address, port(), n,
       m.opt.io_thread_nice != 0 ? " at nice " + std::to_string(m.opt.io_thread_nice) : std::string(),
       m.opt.io_thread_cpus.empty() ? std::string() : " on CPUs " + format_cpu_list(m.opt.io_thread_cpus),
-      m.opt.direct_writes ? "direct writes"
-                          : "I/O-thread writes, " + std::to_string(std::max<std::size_t>(m.opt.write_slice, 1)) + " sessions a slice",
+      m.opt.direct_writes
+          ? "direct writes"
+          : "I/O-thread writes, " + std::to_string(std::max<std::size_t>(m.opt.write_slice, 1)) + " sessions a slice",
       m.uring ? std::string("batched through io_uring")
               : "sendmsg per write" + (why_not.empty() ? std::string() : " (io_uring unavailable: " + why_not + ")"));
   return std::nullopt;

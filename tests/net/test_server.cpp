@@ -1210,14 +1210,16 @@ TEST_SUITE("net.server") {
     // Nothing stays queued for good: with every reader still reading, each open session's state
     // backlog falls to 0 (its frames written or dropped). A session a drain lost from its round
     // (left marked as scheduled, never written) would keep its frames queued forever.
-    CHECK(g.wait_for([&] {
-      for (auto& p : peers) {
-        if (!p->joined || !p->open) continue;
-        const auto backlog = srv.state_backlog(p->session);
-        if (backlog != nullptr && backlog->load() != 0) return false;
-      }
-      return true;
-    }, 20000ms));
+    CHECK(g.wait_for(
+        [&] {
+          for (auto& p : peers) {
+            if (!p->joined || !p->open) continue;
+            const auto backlog = srv.state_backlog(p->session);
+            if (backlog != nullptr && backlog->load() != 0) return false;
+          }
+          return true;
+        },
+        20000ms));
     for (auto& p : peers) {
       if (p->joined && p->open) {
         p->stop = true;
