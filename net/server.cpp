@@ -1152,7 +1152,7 @@ void io_lane::drain() {
     for (auto& s : again) draining.push_back(std::move(s));
     again.clear();
   }
-  const std::size_t begin = drained, end = std::min(draining.size(), begin + std::max<std::size_t>(drain_slice, 1));
+  const std::size_t begin = drained, end = std::min(draining.size(), begin + drain_slice);  // start(): >= 1
   if (ring_ok) {
     write_batched(begin, end);
   } else {
@@ -1648,9 +1648,8 @@ std::optional<std::string> server::start() {
       "zone server listening on {}:{} ({} I/O threads{}{}, {}, {})", m.opt.address, port(), n,
       m.opt.io_thread_nice != 0 ? " at nice " + std::to_string(m.opt.io_thread_nice) : std::string(),
       m.opt.io_thread_cpus.empty() ? std::string() : " on CPUs " + format_cpu_list(m.opt.io_thread_cpus),
-      m.opt.direct_writes
-          ? "direct writes"
-          : "I/O-thread writes, " + std::to_string(std::max<std::size_t>(m.opt.write_slice, 1)) + " sessions a slice",
+      m.opt.direct_writes ? "direct writes"
+                          : "I/O-thread writes, " + std::to_string(m.lanes.front()->drain_slice) + " sessions a slice",
       m.uring ? std::string("batched through io_uring")
               : "sendmsg per write" + (why_not.empty() ? std::string() : " (io_uring unavailable: " + why_not + ")"));
   return std::nullopt;
