@@ -90,6 +90,10 @@ struct recorded_clients {
       ticks[i].push_back(u->server_tick);
     }
   }
+  /// Takes what client i has sent until a read waits `timeout` in vain.
+  void read_from(int i, test_client& c, std::chrono::milliseconds timeout) {
+    while (auto m = c.read(timeout)) take(i, *m);
+  }
 };
 
 /// Waits (up to 2 s) until the I/O threads wrote every frame built so far and the welcomes.
@@ -451,7 +455,6 @@ TEST_SUITE("zone.server") {
     recorded_clients rec(count);
     auto& views = rec.views;
     auto& ticks = rec.ticks;
-    const auto take = [&](int i, const net::message& m) { rec.take(i, m); };
     // Every tick is followed by the I/O threads writing what it built (the welcomes so far and
     // every tick update) and the clients reading it, before the next tick: pacing
     // (client_max_backlog, the default 2) then never holds a frame back, so each client's frames
@@ -460,9 +463,7 @@ TEST_SUITE("zone.server") {
     const auto tick_and_read = [&] {
       server.tick_once();
       wait_written(server);
-      for (int i = 0; i < count; ++i) {
-        while (auto m = clients[i]->read(1ms)) take(i, *m);
-      }
+      for (int i = 0; i < count; ++i) rec.read_from(i, *clients[i], 1ms);
     };
     // The hellos first (the I/O threads hand them to the game; ticks answer them), then 60 ticks.
     const auto joined_by = std::chrono::steady_clock::now() + 10s;
@@ -472,9 +473,7 @@ TEST_SUITE("zone.server") {
     }
     REQUIRE(server.stats().clients == count);
     for (int t = 0; t < 60; ++t) tick_and_read();
-    for (int i = 0; i < count; ++i) {
-      while (auto m = clients[i]->read(300ms)) take(i, *m);
-    }
+    for (int i = 0; i < count; ++i) rec.read_from(i, *clients[i], 300ms);
     CHECK(server.stats().frames_held == 0);
     std::set<std::uint64_t> parities;
     for (int i = 0; i < count; ++i) {
@@ -511,11 +510,7 @@ TEST_SUITE("zone.server") {
       CHECK(server.stats().frames_sent - sent == server.stats().clients);
       wait_written(server);
       for (int i = 0; i < count; ++i) {
-        while (clients[i] != nullptr) {
-          const auto m = clients[i]->read(1ms);
-          if (!m) break;
-          rec.take(i, *m);
-        }
+        if (clients[i] != nullptr) rec.read_from(i, *clients[i], 1ms);
       }
     };
     const auto join = [&](int i) {
@@ -542,11 +537,7 @@ TEST_SUITE("zone.server") {
     const std::uint64_t steady_from = server.world().tick();
     for (int t = 0; t < 20; ++t) tick_and_read();
     for (int i = 0; i < count; ++i) {
-      while (clients[i] != nullptr) {
-        const auto m = clients[i]->read(300ms);
-        if (!m) break;
-        rec.take(i, *m);
-      }
+      if (clients[i] != nullptr) rec.read_from(i, *clients[i], 300ms);
     }
     for (int i = 0; i < count; ++i) {
       CAPTURE(i);
