@@ -525,13 +525,21 @@ TEST_SUITE("zone.server") {
       }
       REQUIRE(server.stats().clients == n);
     };
-    for (int i = 0; i < count - 1; ++i) join(i);
-    wait_for_clients(count - 1);
+    // One at a time: each welcomed before the next connects, so the rows follow the clients (row i
+    // is client i's).
+    for (int i = 0; i < count - 1; ++i) {
+      join(i);
+      wait_for_clients(static_cast<std::uint64_t>(i + 1));
+    }
     for (int t = 0; t < 10; ++t) tick_and_read();
-    // Clients join in the order their hellos are drained, not necessarily 0..7: whichever rows
-    // they hold, three of them leave, then one joins.
-    for (const int i : {0, 7, 3}) clients[i].reset();
-    wait_for_clients(count - 4);
+    // Three leave, one at a time (each leave drained before the next): 0's leave moves the last
+    // row, client 7's, into row 0, and 7 then leaves from there; then 3 from the middle, and one
+    // joins into the freed room.
+    int in_zone = count - 1;
+    for (const int i : {0, 7, 3}) {
+      clients[i].reset();
+      wait_for_clients(static_cast<std::uint64_t>(--in_zone));
+    }
     join(count - 1);
     wait_for_clients(count - 3);
     const std::uint64_t steady_from = server.world().tick();
