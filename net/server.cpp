@@ -13,8 +13,10 @@
 // for its socket (EAGAIN or a partial write: the lane arms a writable wait and finishes the queue,
 // gathered). Without, a session that was idle is appended to its lane's ready list, and a ready
 // list that was empty posts one drain to the lane, which writes each ready session's queue with
-// one gathered write. With io_uring (server_options::batching) a drain prepares the writes of
-// every ready session and submits them together; each completion is handled as a sendmsg's return.
+// one gathered write, a slice of sessions at a time; a session made ready by a control frame (a
+// welcome, a redirect) is written at the start of the next slice. With io_uring
+// (server_options::batching) a drain prepares the writes of every ready session and submits them
+// together; each completion is handled as a sendmsg's return.
 #include <utility>  // before Asio: GCC 12 in C++20 mode needs it first
 
 #include <array>
@@ -280,6 +282,11 @@ struct io_lane {
   /// The lane's thread: sessions whose batched write completed with more queued behind it; the
   /// next drain writes them again (they stay marked as on the ready list).
   std::vector<std::shared_ptr<session>> again;
+  /// Sessions that became ready with a control frame (a welcome, a redirect, an error): each
+  /// drain writes them before its slice, so they wait for a slice, not for the rest of a round
+  /// (tens of milliseconds on a busy lane). Guarded by ready_mutex; `urgent_now` is the lane's.
+  std::vector<std::shared_ptr<session>> urgent;
+  std::vector<std::shared_ptr<session>> urgent_now;
 
   // io_uring (server_options::batching): the ring and, per submission slot, the session whose
   // write it carries, its gathered buffers and its msghdr (valid until the completion).
@@ -310,15 +317,17 @@ struct io_lane {
   /// The lane's thread: slot `slot` (from register_file) empty again and free. Before the
   /// descriptor closes: the table holds a reference to the socket, which stays open while it does.
   void unregister_file(int slot);
-  /// Any thread: `s` has frames for the lane to write (once until the lane has taken it).
-  void schedule(std::shared_ptr<session> s);
+  /// Any thread: `s` has frames for the lane to write (once until the lane has taken it); with
+  /// `urgent` (a control frame made it ready) ahead of the round's other sessions.
+  void schedule(std::shared_ptr<session> s, bool urgent = false);
   /// schedule() for several sessions of this lane under one lock (moves them out).
   void schedule_many(std::span<std::shared_ptr<session>> sessions);
   /// The lane's thread: the ready sessions write what they have queued, `drain_slice` of them at
   /// a time: after each slice the drain posts itself behind the lane's other handlers (reads,
   /// accepts, timers), which so wait for one slice, not for a round of every ready session. What
   /// becomes ready meanwhile gets one more round, posted by the drain itself, so the senders of a
-  /// burst do not post (nor wake the lane) once per chunk.
+  /// burst do not post (nor wake the lane) once per chunk; urgent sessions are written first, at
+  /// the start of the next slice.
   void drain();
   /// The lane's thread: draining[begin, end) written through the ring, ring_entries sessions a
   /// submission.
@@ -563,7 +572,7 @@ class session : public std::enable_shared_from_this<session> {
 
   /// Any thread: enqueue(), and the lane told now when it must write.
   void enqueue_and_schedule(shared_frame frame, delivery d) {
-    if (enqueue(std::move(frame), d, 0)) lane_.schedule(shared_from_this());
+    if (enqueue(std::move(frame), d, 0)) lane_.schedule(shared_from_this(), d == delivery::control);
   }
   [[nodiscard]] io_lane& lane() const { return lane_; }
   [[nodiscard]] int native_fd() const { return fd_; }
@@ -1127,7 +1136,17 @@ class session : public std::enable_shared_from_this<session> {
   std::string write_error_;
 };
 
-void io_lane::schedule(std::shared_ptr<session> s) { schedule_many(std::span(&s, 1)); }
+void io_lane::schedule(std::shared_ptr<session> s, bool urgent_write) {
+  if (!urgent_write) return schedule_many(std::span(&s, 1));
+  bool post;
+  {
+    const std::lock_guard lock(ready_mutex);
+    urgent.push_back(std::move(s));
+    post = !drain_posted;
+    drain_posted = true;
+  }
+  if (post) asio::post(ctx, [this] { drain(); });
+}
 
 void io_lane::schedule_many(std::span<std::shared_ptr<session>> sessions) {
   if (sessions.empty()) return;
@@ -1142,16 +1161,24 @@ void io_lane::schedule_many(std::span<std::shared_ptr<session>> sessions) {
 }
 
 void io_lane::drain() {
-  if (drained == draining.size()) {  // a new round: every session ready now
+  const bool new_round = drained == draining.size();  // a new round: every session ready now
+  if (new_round) {
     draining.clear();
     drained = 0;
-    {
-      const std::lock_guard lock(ready_mutex);
-      draining.swap(ready);
-    }
+  }
+  {
+    const std::lock_guard lock(ready_mutex);
+    urgent_now.swap(urgent);  // empty: the last drain wrote and cleared it
+    if (new_round) draining.swap(ready);
+  }
+  if (new_round) {
     for (auto& s : again) draining.push_back(std::move(s));
     again.clear();
   }
+  // Control frames first (a welcome waited for the rest of a round: up to ~30 ms on a busy lane).
+  // Few: written one by one, not through the ring.
+  for (auto& s : urgent_now) s->lane_flush();
+  urgent_now.clear();
   const std::size_t begin = drained, end = std::min(draining.size(), begin + drain_slice);  // start(): >= 1
   if (ring_ok) {
     write_batched(begin, end);
@@ -1172,7 +1199,7 @@ void io_lane::drain() {
   drained = 0;
   {
     const std::lock_guard lock(ready_mutex);
-    if (ready.empty() && again.empty()) {
+    if (ready.empty() && again.empty() && urgent.empty()) {
       drain_posted = false;  // the next schedule() posts a new drain
       return;
     }
@@ -1187,8 +1214,10 @@ void io_lane::forget_ready() {
   draining.clear();
   drained = 0;
   again.clear();
+  urgent_now.clear();
   const std::lock_guard lock(ready_mutex);
   ready.clear();
+  urgent.clear();
   drain_posted = false;
 }
 

@@ -103,6 +103,8 @@ class test_client {
   }
   [[nodiscard]] bool closed() const { return closed_; }
   [[nodiscard]] bool reset() const { return reset_; }
+  /// The socket, for tests that read it themselves (then read() no longer sees whole frames).
+  [[nodiscard]] int fd() const { return fd_; }
 
  private:
   int fd_ = -1;
