@@ -172,7 +172,7 @@ config_result parse_config(int argc, const char* const* argv) {
       ("config", po::value(&config_file), "read options from an INI-style file (name = value)")  //
       ("log-level", po::value(&c.log_level)->default_value(c.log_level), "trace, debug, info, warn, error, critical, off (per-session joins and leaves are at debug)")  //
       ("log-summary", po::value(&c.log_summary_s)->default_value(c.log_summary_s), "seconds between info lines summing up joins, leaves and refused connections (0 = none)")  //
-      ("tick-csv", po::value(&c.tick_csv), "write one CSV line per tick to this file: tick, seconds since start, clients, frames, bytes, the phases' ms, the viewer snapshot's fill, the GPU interest engine's device wait and the choice of the tick's clients (docs/operating.md)");
+      ("tick-csv", po::value(&c.tick_csv), "write one CSV line per tick to this file: tick, seconds since start, clients, frames, bytes, the phases' ms, the viewer snapshot's fill, the GPU interest engine's device wait, the choice of the tick's clients and the GPU replication engine's share (docs/operating.md)");
   po::options_description world("World and tick");
   world.add_options()                                                                                  //
       ("world-x", po::value(&world_x)->default_value(world_x), "world size along x (m), from 0")        //

@@ -92,6 +92,9 @@ class faulty_replication_engine final : public interest::replication_engine {
   void forget_all() override {
     if (!fault_.fired()) inner_.forget_all();
   }
+  double grow_ahead(std::chrono::steady_clock::time_point deadline) override {
+    return fault_.fired() ? 0 : inner_.grow_ahead(deadline);
+  }
   [[nodiscard]] const interest::replication_timing& timing() const override { return inner_.timing(); }
   [[nodiscard]] const char* name() const override { return inner_.name(); }
   [[nodiscard]] const engine_fault& fault() const { return fault_; }

@@ -621,6 +621,15 @@ void replicator::note_engine_error(const std::exception& e) {
   if (engine_error_.empty()) engine_error_ = "replication engine failed";
 }
 
+double replicator::grow_ahead(std::chrono::steady_clock::time_point deadline) noexcept {
+  if (!on_engine()) return 0;
+  try {
+    return engine_->grow_ahead(deadline);
+  } catch (...) {
+    return 0;
+  }
+}
+
 void replicator::set_engine(interest::replication_engine* engine) {
   engine_ = engine;
   engine_error_.clear();

@@ -271,6 +271,11 @@ class replicator {
   [[nodiscard]] const replication_phase_times& phase_times() const { return phase_times_; }
   /// True while build_many runs on the engine.
   [[nodiscard]] bool on_engine() const { return engine_ != nullptr && engine_error_.empty(); }
+  /// Between ticks, the caller idle until `deadline`: the engine's buffers grown ahead of the
+  /// next builds' needs (interest::replication_engine::grow_ahead); the milliseconds it took, 0
+  /// off an engine. A failure here is left to the next build, which meets it again and goes on
+  /// on the CPU as with any engine error.
+  double grow_ahead(std::chrono::steady_clock::time_point deadline) noexcept;
   /// On an engine that takes them ahead (replication_engine::stage_entities): stages the store's
   /// entities and slot map now and starts their copy to the device, so that the next build_many
   /// does neither (zone-server and bench-zone call it while the interest engine's device works:

@@ -337,7 +337,7 @@ std::optional<std::string> zone_server::start() {
     if (!tick_csv_) return "cannot write tick-csv file '" + cfg_.tick_csv + "': " + std::strerror(errno);
     std::fputs(
         "tick,t_s,clients,frames,bytes,inputs_ms,behaviours_ms,integrate_ms,interest_ms,replicate_ms,tick_ms,"
-        "viewer_ms,viewer_fill_ms,interest_wait_ms,select_ms\n",
+        "viewer_ms,viewer_fill_ms,interest_wait_ms,select_ms,replicate_engine_ms,replicate_alloc_ms,replicate_kept\n",
         tick_csv_);
   }
   if (cfg_.test_fault.rfind("gpu-", 0) == 0) {
@@ -747,6 +747,7 @@ void zone_server::replicate() {
         deliver(k, std::move(frame), st);
       },
       viewer_due ? &viewer_side : nullptr);
+  replicated_on_engine_ = replicator_.on_engine() && !requests_.empty();
   for (const std::size_t bytes : frame_bytes_) stats_.bytes_sent += bytes;
   stats_.frames_sent += frame_bytes_.size();
 }
@@ -791,11 +792,16 @@ void zone_server::write_tick_line(double inputs_ms, double replicate_ms, double 
   // engine's wait, the replication engine's or the viewer phase), and what was left of the interest
   // engine's device wait after the host work overlapped with it (0 off the GPU engine).
   const double interest_wait_ms = world_->tracker().stats().on_engine ? world_->tracker().stats().engine_timing.wait_ms : 0.0;
-  std::fprintf(tick_csv_, "%llu,%.4f,%llu,%llu,%llu,%.3f,%.3f,%.3f,%.3f,%.3f,%.3f,%.4f,%.4f,%.4f,%.4f\n",
+  // The GPU replication engine's share of the replicate phase (its run: uploads, kernels, copies
+  // back, waits), of that its buffers' growth, and whether the frames went on in its pinned
+  // buffer (1) or were copied on the host (0: every such buffer still held by slow clients).
+  interest::replication_timing engine{};
+  if (replicated_on_engine_ && replication_engine_) engine = replication_engine_->timing();
+  std::fprintf(tick_csv_, "%llu,%.4f,%llu,%llu,%llu,%.3f,%.3f,%.3f,%.3f,%.3f,%.3f,%.4f,%.4f,%.4f,%.4f,%.3f,%.3f,%d\n",
                static_cast<unsigned long long>(world_->tick()), t, static_cast<unsigned long long>(stats_.clients),
                static_cast<unsigned long long>(frames), static_cast<unsigned long long>(bytes), inputs_ms,
                ph.behaviours, ph.integrate, ph.interest, replicate_ms, tick_ms, viewer_ms_, viewer_fill_ms_,
-               interest_wait_ms, select_ms_);
+               interest_wait_ms, select_ms_, engine.total_ms, engine.alloc_ms, engine.kept ? 1 : 0);
 }
 
 void zone_server::tick_once() {
@@ -1087,10 +1093,13 @@ void zone_server::run() {
                      std::chrono::duration<double, std::milli>(late).count(), stats_.overruns);
       }
     } else {
+      const auto spin = std::chrono::microseconds(pool_->spin_us());
+      // In the time left: the GPU replication engine's buffers grown ahead of the next ticks'
+      // needs (their growth in a tick cost it 7-13 ms at 20,000 clients on the H200 host).
+      stats_.grow_ahead_ms += replicator_.grow_ahead(next - spin);
       // Wake the workers a little before the tick (they spin until it starts): a sleeping
       // thread's wake-up would otherwise land in the tick's first parallel phase.
-      const auto spin = std::chrono::microseconds(pool_->spin_us());
-      if (spin.count() > 0 && next - now > spin) {
+      if (spin.count() > 0 && next - clock_type::now() > spin) {
         std::this_thread::sleep_until(next - spin);
         pool_->run(pool_->size(), [](std::size_t) {});
         (void)viewer_copy_wait();  // the copier reads the store: done before anything else touches it (between ticks: no tick's wait)
@@ -1100,8 +1109,10 @@ void zone_server::run() {
     }
   }
   net_.stop();
-  spdlog::info("zone: stopped after {} ticks ({} overruns, {} ticks skipped)", stats_.ticks, stats_.overruns,
-               stats_.skipped_ticks);
+  spdlog::info(
+      "zone: stopped after {} ticks ({} overruns, {} ticks skipped; {:.1f} ms between ticks growing the GPU "
+      "replication engine's buffers ahead)",
+      stats_.ticks, stats_.overruns, stats_.skipped_ticks, stats_.grow_ahead_ms);
   // `per_ms`: the units recorded per millisecond.
   const auto report = [](const char* name, const auto& h, double per_ms = 1.0) {
     spdlog::info("  {:<10} p50 {:8.3f} ms  p99 {:8.3f} ms  max {:8.3f} ms", name, h.percentile(0.5) / per_ms,

@@ -31,6 +31,8 @@ struct loop_stats {
   std::uint64_t ticks = 0;
   std::uint64_t overruns = 0;          ///< ticks that ended after the next tick was due
   std::uint64_t skipped_ticks = 0;     ///< ticks dropped to catch up after an overrun
+  double grow_ahead_ms =
+      0;  ///< between ticks: the GPU replication engine's buffers grown ahead (replicator::grow_ahead)
   std::uint64_t clients = 0;           ///< clients with an entity
   std::uint64_t frames_sent = 0;       ///< tick updates handed to the network
   std::uint64_t bytes_sent = 0;
@@ -291,6 +293,7 @@ class zone_server {
   std::vector<replication_request> requests_;
   std::vector<net::session_id> request_sessions_;
   double select_ms_ = 0;                  // the last replicate()'s choice of this tick's clients (--tick-csv)
+  bool replicated_on_engine_ = false;     // the last replicate() built its frames on the GPU engine (--tick-csv)
   std::vector<std::size_t> frame_bytes_;  // by request: the frame's size
   std::vector<net::outgoing_frame> outgoing_;  // replicate(): frame k, handed on by chunk (send_many)
   net::encoder encoder_;

@@ -5,6 +5,7 @@
 #include <cuda_runtime.h>
 
 #include <algorithm>
+#include <chrono>
 #include <cstddef>
 #include <string>
 #include <utility>
@@ -12,6 +13,11 @@
 #include "cuda_check.h"
 
 namespace zone::gpu::detail::mem {
+
+/// Milliseconds this thread has spent growing arrays (the old one freed, the new one allocated),
+/// summed over its life: an engine reads it around a run to report what its allocations cost
+/// (a cudaFree waits for the device; a cudaHostAlloc of megabytes pins every page).
+inline thread_local double grow_ms = 0;
 
 /// cudaMalloc'ed (Device = true) or cudaHostAlloc'ed (Device = false) array that only grows, by
 /// at least 1.5x; freed on destruction.
@@ -25,8 +31,10 @@ class array {
   /// Room for n elements (at least one); contents are lost when it grows.
   void reserve(std::size_t n) {
     n = std::max<std::size_t>(n, 1);
+    wanted_ = n;
     if (n <= cap_) return;
     const std::size_t want = std::max(n, cap_ + cap_ / 2);
+    const auto t0 = std::chrono::steady_clock::now();
     release();
     void* p = nullptr;
     const cudaError_t err =
@@ -38,13 +46,25 @@ class array {
     }
     ptr_ = static_cast<T*>(p);
     cap_ = want;
+    grow_ms += std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
   }
   void swap(array& other) noexcept {
     std::swap(ptr_, other.ptr_);
     std::swap(cap_, other.cap_);
+    std::swap(wanted_, other.wanted_);
   }
   [[nodiscard]] T* get() const { return ptr_; }
   [[nodiscard]] std::size_t capacity() const { return cap_; }
+  /// Where less than an eighth of the last reserve()'s n is left above it, grows to 1.5 times
+  /// that n now (contents lost, as in reserve), so that a later request a little larger finds
+  /// room: for growth between uses, away from the time-critical ones. True if it grew.
+  bool grow_ahead() {
+    if (wanted_ == 0 || cap_ >= wanted_ + wanted_ / 8) return false;
+    const std::size_t last = wanted_;
+    reserve(last + last / 2);
+    wanted_ = last;
+    return true;
+  }
 
  private:
   void release() noexcept {
@@ -59,6 +79,7 @@ class array {
   }
   T* ptr_ = nullptr;
   std::size_t cap_ = 0;
+  std::size_t wanted_ = 0;  // the last reserve()'s n
 };
 
 template <class T>

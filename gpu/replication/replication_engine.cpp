@@ -121,6 +121,7 @@ class engine final : public interest::replication_engine {
              const interest::visibility_engine::resident_lists* rows,
              const std::function<void()>* while_waiting) override {
     const auto t0 = std::chrono::steady_clock::now();
+    const double grown_before = mem::grow_ms;
     wait_ms_ = 0;
     dozes_ = 0;
     if (rules.leave_cost == 0 || rules.enter_cost == 0 || rules.update_cost == 0) {
@@ -241,6 +242,7 @@ class engine final : public interest::replication_engine {
     }
     if (h_cursor_.get()[1] != 0) throw std::runtime_error("replication engine: record buffer overflow (a bug)");
     const std::uint32_t used = h_cursor_.get()[0];
+    records_peak_ = std::max<std::size_t>(records_peak_, used);
     // The pinned copy is sized by the bytes used, not by the bound (about 14 times more at 20,000
     // clients): its growth, a cudaFreeHost and a cudaHostAlloc, stalled ramp-up ticks for 30-90 ms.
     // It goes to a kept buffer nothing holds any more (the caller may then hand the frames on
@@ -273,6 +275,9 @@ class engine final : public interest::replication_engine {
     timing_.resident = resident;
     timing_.wait_ms = wait_ms_;
     timing_.dozes = dozes_;
+    timing_.alloc_ms = mem::grow_ms - grown_before;
+    longest_grow_ms_ = std::max(longest_grow_ms_, timing_.alloc_ms);
+    timing_.kept = keep != nullptr;
     timing_.total_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
     return {h_results_.get(), records, std::move(keep)};
   }
@@ -280,6 +285,53 @@ class engine final : public interest::replication_engine {
   void forget_all() override {
     std::fill(len_.begin(), len_.end(), 0u);
     std::fill(off_.begin(), off_.end(), 0u);
+  }
+
+  /// Buffer by buffer while the time left exceeds 1.5 times the longest growth seen (10 ms
+  /// before any): a free kept buffer with room for the most record bytes a run used and an
+  /// eighth more (the first free one grown, or a new one, to 1.5 times those bytes), then the
+  /// device arrays each run fills afresh, each to 1.5 times its last size where less than an
+  /// eighth is left. Not the current views (d_id_, d_sent_ of cur_), the hashes, the format, a
+  /// kept buffer frames still hold, the staging and results the caller was handed, or entities
+  /// uploaded ahead.
+  double grow_ahead(std::chrono::steady_clock::time_point deadline) override {
+    const double before = mem::grow_ms;
+    const auto room = [&] {
+      const double left =
+          std::chrono::duration<double, std::milli>(deadline - std::chrono::steady_clock::now()).count();
+      return left > 1.5 * std::max(longest_grow_ms_, 10.0);
+    };
+    const auto timed = [&](auto&& grow) {
+      const double at = mem::grow_ms;
+      grow();
+      longest_grow_ms_ = std::max(longest_grow_ms_, mem::grow_ms - at);
+    };
+    if (records_peak_ > 0) {
+      const std::size_t want = records_peak_ + records_peak_ / 8;
+      std::shared_ptr<kept_records>* grow = nullptr;
+      bool ready = false;
+      for (auto& k : kept_) {
+        if (k.use_count() != 1) continue;
+        if (k->bytes.capacity() >= want) {
+          ready = true;
+          break;
+        }
+        if (grow == nullptr) grow = &k;
+      }
+      if (!ready && room()) {
+        if (grow == nullptr && kept_.size() < max_kept) grow = &kept_.emplace_back(std::make_shared<kept_records>());
+        if (grow != nullptr) {
+          std::atomic_thread_fence(std::memory_order_acquire);  // as in free_kept: its last holder is done
+          timed([&] { (*grow)->bytes.reserve(records_peak_ + records_peak_ / 2); });
+        }
+      }
+    }
+    const auto ahead = [&](auto&... arrays) { ((room() ? timed([&] { arrays.grow_ahead(); }) : void()), ...); };
+    const int next = 1 - cur_;
+    ahead(d_records_, d_scratch_, d_id_[next], d_sent_[next]);
+    if (!uploaded_) ahead(d_entities_, d_slot_dense_);
+    ahead(d_updates_, d_jobs_, d_clients_, d_new_off_, d_results_, d_rooms_, d_record_bounds_);
+    return mem::grow_ms - before;
   }
 
  private:
@@ -388,6 +440,8 @@ class engine final : public interest::replication_engine {
   pinned_array<interest::replication_result> h_results_;
   pinned_array<std::uint8_t> h_records_;
   std::vector<std::shared_ptr<kept_records>> kept_;
+  std::size_t records_peak_ = 0;  // the most record bytes a run used
+  double longest_grow_ms_ = 0;    // the longest growth seen (a run's, or one of grow_ahead's)
   device_array<interest::replication_entity> d_entities_;
   device_array<std::uint32_t> d_updates_;  // 4 words per entity: its wire update
   interest::replication_frame_format format_;

@@ -14,6 +14,7 @@
 
 #include <algorithm>
 #include <atomic>
+#include <chrono>
 #include <deque>
 #include <functional>
 #include <memory>
@@ -63,6 +64,9 @@ struct replication_coverage {
   /// that changed while held (two ticks after their own: the engine must not reuse their buffer).
   std::uint64_t shared_frames = 0, shared_changed = 0;
   std::uint64_t entities_ahead = 0;  ///< engine runs on entities staged ahead (replicator::prestage)
+  /// Between ticks (every other one) the engine's buffers grown ahead (replicator::grow_ahead,
+  /// as zone_server between ticks): the milliseconds it spent growing them (> 0: it grew some).
+  double grown_ahead_ms = 0;
 };
 
 /// Runs `c` with engines from `make_engine` (one per budget and first tick) and compares every
@@ -157,6 +161,10 @@ inline replication_coverage check_replication_equivalence(
       std::vector<switch_rec> switched;  // since the last step
       for (std::uint64_t tick = first_tick; tick < first_tick + static_cast<std::uint64_t>(c.ticks); ++tick) {
         CAPTURE(tick);
+        // Every other tick the engine's buffers are grown ahead first (freed and allocated anew,
+        // as zone_server does between ticks): the views, hashes and frames still held must stay.
+        if (tick % 2 == 0)
+          cov.grown_ahead_ms += dev.grow_ahead(std::chrono::steady_clock::now() + std::chrono::seconds(1));
         REQUIRE_FALSE(tracker.update(store.columns()).has_value());
         // After the step, as zone_server does: the clients that may hold a switched entity with
         // its old class start over, on both sides alike.

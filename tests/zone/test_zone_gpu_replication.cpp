@@ -51,14 +51,18 @@ TEST_SUITE("zone.gpu") {
     const std::uint64_t seed = zone::test::fresh_seed();
     CAPTURE(seed);
     zone::test::replication_equivalence_case c;
-    zone::test::require_equivalent(zone::test::check_replication_equivalence(seed, c, make_gpu_replication));
+    const auto cov = zone::test::check_replication_equivalence(seed, c, make_gpu_replication);
+    zone::test::require_equivalent(cov);
+    CHECK(cov.grown_ahead_ms > 0);  // buffers were grown ahead between ticks, and the frames stayed equal
   }
 
   TEST_CASE("GPU replication: a large world (20,000 entities, 3,000 clients) equals the CPU replicator") {
     const std::uint64_t seed = zone::test::fresh_seed();
     CAPTURE(seed);
     zone::test::replication_equivalence_case c = large_world_case();
-    zone::test::require_equivalent(zone::test::check_replication_equivalence(seed, c, make_gpu_replication));
+    const auto cov = zone::test::check_replication_equivalence(seed, c, make_gpu_replication);
+    zone::test::require_equivalent(cov);
+    CHECK(cov.grown_ahead_ms > 0);
   }
 
   TEST_CASE("GPU replication: views grown past a frame's leaves, then every observer blind: leaves deferred, frames equal") {
@@ -113,5 +117,6 @@ TEST_SUITE("zone.gpu") {
     const auto cov = zone::test::check_replication_equivalence(seed, c, make_gpu_replication);
     zone::test::require_equivalent(cov);
     CHECK(cov.resident_runs > 0);
+    CHECK(cov.grown_ahead_ms > 0);
   }
 }

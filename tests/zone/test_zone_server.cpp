@@ -570,6 +570,7 @@ TEST_SUITE("zone.server") {
     const std::string path = "test_zone_server_ticks.csv";
     int ticks = 0;  // the ticks run (the world's tick at the end)
     double interest_sum = 0, behaviours_sum = 0, replicate_sum = 0;
+    bool on_engine = false;  // the server replicated on the GPU engine
     std::uint64_t frames_sent = 0, bytes_sent = 0;
     {
       zone_config cfg = test_config();
@@ -592,6 +593,7 @@ TEST_SUITE("zone.server") {
       interest_sum = server.world().phases().interest.sum();
       behaviours_sum = server.world().phases().behaviours.sum();
       replicate_sum = server.stats().replicate_ms.sum();
+      on_engine = server.replication_name() != "cpu";
       frames_sent = server.stats().frames_sent;
       bytes_sent = server.stats().bytes_sent;
       CHECK(frames_sent > 0);
@@ -602,8 +604,8 @@ TEST_SUITE("zone.server") {
     REQUIRE(std::getline(in, line));
     CHECK(line ==
           "tick,t_s,clients,frames,bytes,inputs_ms,behaviours_ms,integrate_ms,interest_ms,replicate_ms,tick_ms,"
-          "viewer_ms,viewer_fill_ms,interest_wait_ms,select_ms");
-    constexpr int columns = 15;
+          "viewer_ms,viewer_fill_ms,interest_wait_ms,select_ms,replicate_engine_ms,replicate_alloc_ms,replicate_kept");
+    constexpr int columns = 18;
     int lines = 0;
     double sums[columns] = {};
     double last_t = -1;
@@ -630,6 +632,14 @@ TEST_SUITE("zone.server") {
       CHECK(v[13] <= v[8] + 0.002);
       CHECK(v[14] >= 0);  // the choice of the tick's clients lies within the replicate phase
       CHECK(v[14] <= v[9] + 0.002);
+      // The GPU replication engine's run lies within the replicate phase, its buffers' growth
+      // within the run; all 0 off the engine (a machine without a device).
+      CHECK(v[15] >= 0);
+      CHECK(v[15] <= v[9] + 0.002);
+      CHECK(v[16] >= 0);
+      CHECK(v[16] <= v[15] + 0.002);
+      CHECK((v[17] == 0 || v[17] == 1));
+      if (!on_engine) CHECK((v[15] == 0 && v[16] == 0 && v[17] == 0));
       CHECK(row.peek() == std::char_traits<char>::eof());  // nothing after the last column
     }
     CHECK(lines == ticks);
