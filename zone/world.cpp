@@ -185,6 +185,7 @@ void zone_world::set_state(entity_id id, const npc_state& st) {
   if (by_slot_.size() <= slot) {
     by_slot_.resize(slot + 1);
     is_player_.resize(slot + 1, 0);
+    headings_.resize(slot + 1);
   }
   by_slot_[slot] = st;
   is_player_[slot] = st.kind == behaviour::player ? 1 : 0;
@@ -281,11 +282,19 @@ void zone_world::decide(std::size_t first, std::size_t last) {
   auto vel = store_.velocities();
   for (std::size_t i = first; i < last; ++i) {
     const entity_id id = ids[i];
-    npc_state& st = by_slot_[slot_of(id)];
+    const std::uint32_t slot = slot_of(id);
+    npc_state& st = by_slot_[slot];
     const vec3 p = pos[i];
     const auto heading = [&](float speed) {
-      const double a = unit_of(noise(id, tick_ / wander_period_ticks)) * 6.283185307179586;
-      return vec3{speed * static_cast<float>(std::cos(a)), speed * static_cast<float>(std::sin(a)), 0};
+      // The period's heading, once a period (cos and sin in double were a tenth of the tick's
+      // threads' time at 80,000 NPCs: docs/zone-benchmarks.md, "The tick's threads").
+      const std::uint64_t period = tick_ / wander_period_ticks;
+      heading_cache& h = headings_[slot];
+      if (h.id != id || h.period != period) {
+        const double a = unit_of(noise(id, period)) * 6.283185307179586;
+        h = {id, period, static_cast<float>(std::cos(a)), static_cast<float>(std::sin(a))};
+      }
+      return vec3{speed * h.cos, speed * h.sin, 0};
     };
     switch (st.kind) {
       case behaviour::player:

@@ -138,6 +138,15 @@ class zone_world {
   /// by_slot_). What the chasers' scan reads: a byte a slot
   /// (1 MB a million entities) instead of a 32-byte state.
   std::vector<std::uint8_t> is_player_;
+  /// By slot (as long as by_slot_): the heading a wanderer took for its current wander period,
+  /// for the entity it was taken for. Computed once a period instead of every tick: the same
+  /// floats (cos and sin of the same angle), so the world moves exactly as before.
+  struct heading_cache {
+    entity_id id = null_entity;
+    std::uint64_t period = ~std::uint64_t{0};
+    float cos = 0, sin = 0;
+  };
+  std::vector<heading_cache> headings_;
   void set_state(entity_id id, const npc_state& st);
   std::vector<std::uint8_t> reads_view_;  // by slot: the entity's visible set is read each tick
   bool player_views_on_host_ = true;

@@ -291,6 +291,65 @@ TEST_SUITE("zone.world") {
     CHECK(w.phases().total.percentile(0.5) > 0);
   }
 
+  TEST_CASE(
+      "a wanderer keeps one heading a wander period and takes a new one each period; a new entity in a freed slot takes its own") {
+    // The heading is computed once a period and kept by slot for its entity (zone_world::decide):
+    // what a stale or misfiled one would break. Velocities are compared by their components'
+    // magnitudes (a bounce off the world's edge flips a sign).
+    const std::uint64_t seed = fresh_seed();
+    CAPTURE(seed);
+    zone_config cfg = small_config(seed);
+    cfg.share_wander = 1;
+    cfg.share_patrol = cfg.share_town = cfg.share_chase = 0;
+    interest::thread_pool pool(2);
+    interest::grid_finder finder(&pool);
+    zone_world w(cfg, finder, &pool);
+    w.populate();
+    const auto speed_of = [&](entity_id id) {
+      const vec3 v = w.store().get(id)->velocity;
+      return vec3{std::fabs(v.x), std::fabs(v.y), std::fabs(v.z)};
+    };
+    std::vector<entity_id> wanderers;
+    for (const entity_id id : w.store().ids()) {
+      if (w.behaviour_of(id) == behaviour::wander) wanderers.push_back(id);
+    }
+    REQUIRE(wanderers.size() >= 500);
+    std::vector<vec3> last(wanderers.size());
+    std::vector<std::size_t> changes_at;  // ticks at which headings changed: how many changed
+    entity_id replaced = null_entity, replacement = null_entity;
+    vec3 replaced_speed{};
+    constexpr int ticks = 200;  // wander periods are 90 ticks: two changes
+    for (int t = 0; t < ticks; ++t) {
+      if (t == 45) {
+        // Mid-period: a wanderer goes and a new one comes into its slot.
+        replaced = wanderers.back();
+        replaced_speed = speed_of(replaced);
+        const entity_desc d = *w.store().get(replaced);
+        const behaviour_state b = *w.behaviour_state_of(replaced);
+        REQUIRE(w.despawn(replaced));
+        replacement = w.adopt(d, b);
+        REQUIRE(replacement != null_entity);
+        REQUIRE(slot_of(replacement) == slot_of(replaced));
+        REQUIRE(replacement != replaced);
+        wanderers.pop_back();
+        last.pop_back();
+      }
+      REQUIRE_FALSE(w.step().has_value());
+      if (t == 45) CHECK_FALSE(speed_of(replacement) == replaced_speed);
+      std::size_t changed = 0;
+      for (std::size_t k = 0; k < wanderers.size(); ++k) {
+        const vec3 v = speed_of(wanderers[k]);
+        CHECK(std::hypot(v.x, v.y) == doctest::Approx(cfg.npc_speed).epsilon(1e-5));
+        if (t > 0 && !(v == last[k])) ++changed;
+        last[k] = v;
+      }
+      if (changed > 0) changes_at.push_back(changed);
+    }
+    // Two period boundaries, where (nearly) every wanderer turned; no turn between them.
+    REQUIRE(changes_at.size() == 2);
+    for (const std::size_t n : changes_at) CHECK(n >= wanderers.size() * 9 / 10);
+  }
+
   TEST_CASE("players spawn near their town, deterministically, and never outside the spawn area (a world zone's region)") {
     const std::uint64_t seed = fresh_seed();
     CAPTURE(seed);
