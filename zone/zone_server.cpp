@@ -1065,6 +1065,12 @@ void zone_server::publish_viewer() {
   }
 }
 
+double zone_server::between_ticks(std::chrono::steady_clock::time_point deadline) {
+  const double ms = replicator_.grow_ahead(deadline);
+  stats_.grow_ahead_ms += ms;
+  return ms;
+}
+
 void zone_server::run() {
   // The tick's own thread runs a share of every phase: on the workers' CPUs, until run() returns
   // (then as before: the caller's thread may go on to other work, or start another server).
@@ -1096,7 +1102,7 @@ void zone_server::run() {
       const auto spin = std::chrono::microseconds(pool_->spin_us());
       // In the time left: the GPU replication engine's buffers grown ahead of the next ticks'
       // needs (their growth in a tick cost it 7-13 ms at 20,000 clients on the H200 host).
-      stats_.grow_ahead_ms += replicator_.grow_ahead(next - spin);
+      (void)between_ticks(next - spin);
       // Wake the workers a little before the tick (they spin until it starts): a sleeping
       // thread's wake-up would otherwise land in the tick's first parallel phase.
       if (spin.count() > 0 && next - clock_type::now() > spin) {

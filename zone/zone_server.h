@@ -118,6 +118,10 @@ class zone_server {
   void run();
   /// One tick now, without waiting: drain inputs, step the world, replicate. (run() calls this.)
   void tick_once();
+  /// Between ticks, for a caller that drives tick_once() itself (run() calls it after each tick):
+  /// in the time left until `deadline`, what keeps the next ticks short (the GPU replication
+  /// engine's buffers grown ahead of their needs: replicator::grow_ahead). The milliseconds it took.
+  double between_ticks(std::chrono::steady_clock::time_point deadline);
   void stop() { stop_requested_ = true; }
 
   [[nodiscard]] std::uint16_t port() const { return net_.port(); }
