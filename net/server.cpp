@@ -13,32 +13,33 @@
 // for its socket (EAGAIN or a partial write: the lane arms a writable wait and finishes the queue,
 // gathered). Without, a session that was idle is appended to its lane's ready list, and a ready
 // list that was empty posts one drain to the lane, which writes each ready session's queue with
-// one gathered write, a slice of sessions at a time; a session made ready by a control frame (a
-// welcome, a redirect) is written at the start of the next slice. With io_uring
+// one gathered write, a slice of sessions at a time; an idle session made ready by a control frame
+// (a welcome) is written at the start of the next slice. With io_uring
 // (server_options::batching) a drain prepares the writes of every ready session and submits them
 // together; each completion is handled as a sendmsg's return.
 #include <utility>  // before Asio: GCC 12 in C++20 mode needs it first
 
+#include <arpa/inet.h>
+#include <netinet/in.h>
+#include <pthread.h>
+#include <spdlog/spdlog.h>
+#include <sys/ioctl.h>
+#include <sys/resource.h>
+#include <sys/socket.h>
+#include <sys/uio.h>
+#include <unistd.h>
 #include <array>
 #include <atomic>
 #include <boost/asio.hpp>
 #include <cerrno>
 #include <cstdio>
-#include <pthread.h>
-#include <arpa/inet.h>
-#include <netinet/in.h>
-#include <sys/ioctl.h>
-#include <sys/resource.h>
-#include <sys/socket.h>
-#include <unistd.h>
-#include <sys/uio.h>
 #include <cstring>
 #include <deque>
+#include <iterator>
 #include <list>
 #include <mutex>
 #include <shared_mutex>
 #include <stdexcept>
-#include <spdlog/spdlog.h>
 #include <thread>
 #include <type_traits>
 #include <unordered_map>
@@ -282,9 +283,11 @@ struct io_lane {
   /// The lane's thread: sessions whose batched write completed with more queued behind it; the
   /// next drain writes them again (they stay marked as on the ready list).
   std::vector<std::shared_ptr<session>> again;
-  /// Sessions that became ready with a control frame (a welcome, a redirect, an error): each
-  /// drain writes them before its slice, so they wait for a slice, not for the rest of a round
-  /// (tens of milliseconds on a busy lane). Guarded by ready_mutex; `urgent_now` is the lane's.
+  /// Sessions that became ready with a control frame sent by server::send (a welcome; a redirect
+  /// or an error to a session with nothing else queued): each drain writes up to a slice of them
+  /// before its slice, so they wait for a slice, not for the rest of a round (tens of
+  /// milliseconds on a busy lane). A session already on a list stays there. Guarded by
+  /// ready_mutex; `urgent_now` is the lane's.
   std::vector<std::shared_ptr<session>> urgent;
   std::vector<std::shared_ptr<session>> urgent_now;
 
@@ -1169,6 +1172,11 @@ void io_lane::drain() {
   {
     const std::lock_guard lock(ready_mutex);
     urgent_now.swap(urgent);  // empty: the last drain wrote and cleared it
+    if (urgent_now.size() > drain_slice) {  // a burst (many joins at once): a slice of them a drain
+      urgent.assign(std::make_move_iterator(urgent_now.begin() + static_cast<std::ptrdiff_t>(drain_slice)),
+                    std::make_move_iterator(urgent_now.end()));
+      urgent_now.resize(drain_slice);
+    }
     if (new_round) draining.swap(ready);
   }
   if (new_round) {

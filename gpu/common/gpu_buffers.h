@@ -52,6 +52,7 @@ class array {
     std::swap(ptr_, other.ptr_);
     std::swap(cap_, other.cap_);
     std::swap(wanted_, other.wanted_);
+    std::swap(ahead_refused_, other.ahead_refused_);
   }
   [[nodiscard]] T* get() const { return ptr_; }
   [[nodiscard]] std::size_t capacity() const { return cap_; }
@@ -60,9 +61,28 @@ class array {
   /// room: for growth between uses, away from the time-critical ones. True if it grew.
   bool grow_ahead() {
     if (wanted_ == 0 || cap_ >= wanted_ + wanted_ / 8) return false;
-    const std::size_t last = wanted_;
-    reserve(last + last / 2);
-    wanted_ = last;
+    return grow_ahead_to(wanted_ + wanted_ / 2);
+  }
+  /// Grows to at least n elements now (at least 1.5x), contents lost: the new block allocated
+  /// before the old one is freed, so that where it cannot be (memory short) the array keeps what
+  /// it had and is not grown ahead again (reserve() still grows it when a use needs it). True if
+  /// it grew.
+  bool grow_ahead_to(std::size_t n) {
+    if (n <= cap_ || ahead_refused_) return false;
+    const std::size_t want = std::max(n, cap_ + cap_ / 2);
+    const auto t0 = std::chrono::steady_clock::now();
+    void* p = nullptr;
+    const cudaError_t err =
+        Device ? cudaMalloc(&p, want * sizeof(T)) : cudaHostAlloc(&p, want * sizeof(T), cudaHostAllocDefault);
+    if (err != cudaSuccess) {
+      (void)cudaGetLastError();  // an allocation's failure is not sticky: clear it
+      ahead_refused_ = true;
+      return false;
+    }
+    release();
+    ptr_ = static_cast<T*>(p);
+    cap_ = want;
+    grow_ms += std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
     return true;
   }
 
@@ -79,7 +99,8 @@ class array {
   }
   T* ptr_ = nullptr;
   std::size_t cap_ = 0;
-  std::size_t wanted_ = 0;  // the last reserve()'s n
+  std::size_t wanted_ = 0;      // the last reserve()'s n
+  bool ahead_refused_ = false;  // a growth ahead found no memory: no more of them
 };
 
 template <class T>

@@ -276,7 +276,6 @@ class engine final : public interest::replication_engine {
     timing_.wait_ms = wait_ms_;
     timing_.dozes = dozes_;
     timing_.alloc_ms = mem::grow_ms - grown_before;
-    longest_grow_ms_ = std::max(longest_grow_ms_, timing_.alloc_ms);
     timing_.kept = keep != nullptr;
     timing_.total_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
     return {h_results_.get(), records, std::move(keep)};
@@ -287,24 +286,30 @@ class engine final : public interest::replication_engine {
     std::fill(off_.begin(), off_.end(), 0u);
   }
 
-  /// Buffer by buffer while the time left exceeds 1.5 times the longest growth seen (10 ms
-  /// before any): a free kept buffer with room for the most record bytes a run used and an
-  /// eighth more (the first free one grown, or a new one, to 1.5 times those bytes), then the
-  /// device arrays each run fills afresh, each to 1.5 times its last size where less than an
-  /// eighth is left. Not the current views (d_id_, d_sent_ of cur_), the hashes, the format, a
-  /// kept buffer frames still hold, the staging and results the caller was handed, or entities
+  /// Buffer by buffer while the time left exceeds 1.5 times the longest of the last eight of its
+  /// growths (10 ms before any, at least 1 ms): a free kept buffer with room for the most record
+  /// bytes a run used and an eighth more (the first free one grown, or a new one, to 1.5 times
+  /// those bytes), then the device arrays each run fills afresh, each to 1.5 times its last size
+  /// where less than an eighth is left. Each new block is allocated before the old one is freed
+  /// (mem::array::grow_ahead_to: one that finds no memory keeps its block and is not grown ahead
+  /// again). Not the current views (d_id_, d_sent_ of cur_), the hashes, the format, a kept
+  /// buffer frames still hold, the staging and results the caller was handed, or entities
   /// uploaded ahead.
   double grow_ahead(std::chrono::steady_clock::time_point deadline) override {
     const double before = mem::grow_ms;
     const auto room = [&] {
+      const double expect = recent_grows_ == 0
+                                ? 10.0
+                                : std::max(1.0, *std::max_element(recent_grow_ms_.begin(),
+                                                                  recent_grow_ms_.begin() +
+                                                                      std::min(recent_grows_, recent_grow_ms_.size())));
       const double left =
           std::chrono::duration<double, std::milli>(deadline - std::chrono::steady_clock::now()).count();
-      return left > 1.5 * std::max(longest_grow_ms_, 10.0);
+      return left > 1.5 * expect;
     };
     const auto timed = [&](auto&& grow) {
       const double at = mem::grow_ms;
-      grow();
-      longest_grow_ms_ = std::max(longest_grow_ms_, mem::grow_ms - at);
+      if (grow()) recent_grow_ms_[recent_grows_++ % recent_grow_ms_.size()] = mem::grow_ms - at;
     };
     if (records_peak_ > 0) {
       const std::size_t want = records_peak_ + records_peak_ / 8;
@@ -322,11 +327,11 @@ class engine final : public interest::replication_engine {
         if (grow == nullptr && kept_.size() < max_kept) grow = &kept_.emplace_back(std::make_shared<kept_records>());
         if (grow != nullptr) {
           std::atomic_thread_fence(std::memory_order_acquire);  // as in free_kept: its last holder is done
-          timed([&] { (*grow)->bytes.reserve(records_peak_ + records_peak_ / 2); });
+          timed([&] { return (*grow)->bytes.grow_ahead_to(records_peak_ + records_peak_ / 2); });
         }
       }
     }
-    const auto ahead = [&](auto&... arrays) { ((room() ? timed([&] { arrays.grow_ahead(); }) : void()), ...); };
+    const auto ahead = [&](auto&... arrays) { ((room() ? timed([&] { return arrays.grow_ahead(); }) : void()), ...); };
     const int next = 1 - cur_;
     ahead(d_records_, d_scratch_, d_id_[next], d_sent_[next]);
     if (!uploaded_) ahead(d_entities_, d_slot_dense_);
@@ -440,8 +445,9 @@ class engine final : public interest::replication_engine {
   pinned_array<interest::replication_result> h_results_;
   pinned_array<std::uint8_t> h_records_;
   std::vector<std::shared_ptr<kept_records>> kept_;
-  std::size_t records_peak_ = 0;  // the most record bytes a run used
-  double longest_grow_ms_ = 0;    // the longest growth seen (a run's, or one of grow_ahead's)
+  std::size_t records_peak_ = 0;            // the most record bytes a run used
+  std::array<double, 8> recent_grow_ms_{};  // grow_ahead's last growths, one array each (ms)
+  std::size_t recent_grows_ = 0;            // how many so far
   device_array<interest::replication_entity> d_entities_;
   device_array<std::uint32_t> d_updates_;  // 4 words per entity: its wire update
   interest::replication_frame_format format_;

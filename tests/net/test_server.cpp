@@ -644,6 +644,36 @@ TEST_SUITE("net.server") {
     CHECK(counted == needed);
   }
 
+  TEST_CASE("a burst of control frames to idle sessions, more than a slice: every one written, in order per session") {
+    // The lane writes at most a slice of them a drain (the rest wait for the next): none may be lost.
+    server_options opt;
+    SUBCASE("sendmsg") { opt.batching = write_batching::sendmsg; }
+    SUBCASE("io_uring") { opt.batching = write_batching::automatic; }
+    opt.direct_writes = false;
+    opt.io_threads = 1;
+    opt.write_slice = 2;
+    started run(opt);
+    auto& srv = run.srv;
+    auto& g = run.g;
+    constexpr int n = 60, per_session = 3;
+    const joined_clients joined = join_all(g, srv.port(), "b", n);
+    for (int q = 0; q < per_session; ++q) {
+      for (int i = 0; i < n; ++i) {
+        REQUIRE(srv.send(joined.sessions[static_cast<std::size_t>(i)], frame(tick(static_cast<std::uint64_t>(q), 1)),
+                         delivery::control));
+      }
+    }
+    for (int i = 0; i < n; ++i) {
+      for (int q = 0; q < per_session; ++q) {
+        const auto m = joined.clients[static_cast<std::size_t>(i)]->read();
+        REQUIRE(m.has_value());
+        CHECK(std::get<tick_update_msg>(*m).server_tick == static_cast<std::uint64_t>(q));
+      }
+    }
+    REQUIRE(g.wait_for([&] { return srv.stats().frames_out >= static_cast<std::uint64_t>(n * per_session); }));
+    CHECK(srv.stats().frames_out == static_cast<std::uint64_t>(n * per_session));
+  }
+
   TEST_CASE("a server stopped and started again serves new clients: hello, frames, pings") {
     server_options opt;
     FOR_BOTH_WRITE_PATHS(opt)
