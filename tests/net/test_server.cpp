@@ -117,6 +117,14 @@ message closed_with(test_client& c, error_code code, std::chrono::milliseconds t
     (opt).batching = write_batching::automatic;                                                   \
   }
 
+/// The I/O threads' two write paths only (the lane writes: its ready list, slices, control
+/// frames first), on one I/O thread.
+#define FOR_LANE_WRITE_PATHS(opt)                                     \
+  SUBCASE("sendmsg") { (opt).batching = write_batching::sendmsg; }    \
+  SUBCASE("io_uring") { (opt).batching = write_batching::automatic; } \
+  (opt).direct_writes = false;                                        \
+  (opt).io_threads = 1;
+
 /// A started server and the game side polling it.
 struct started {
   server srv;
@@ -550,10 +558,7 @@ TEST_SUITE("net.server") {
     // lane's thread took the sender's core, as it may on 2 cores) proves nothing and is not
     // counted; 3 rounds must.
     server_options opt;
-    SUBCASE("sendmsg") { opt.batching = write_batching::sendmsg; }
-    SUBCASE("io_uring") { opt.batching = write_batching::automatic; }
-    opt.direct_writes = false;
-    opt.io_threads = 1;
+    FOR_LANE_WRITE_PATHS(opt)
     opt.write_slice = 1;
     opt.max_pending_per_address = 4096;
     started run(opt);
@@ -647,10 +652,7 @@ TEST_SUITE("net.server") {
   TEST_CASE("a burst of control frames to idle sessions, more than a slice: every one written, in order per session") {
     // The lane writes at most a slice of them a drain (the rest wait for the next): none may be lost.
     server_options opt;
-    SUBCASE("sendmsg") { opt.batching = write_batching::sendmsg; }
-    SUBCASE("io_uring") { opt.batching = write_batching::automatic; }
-    opt.direct_writes = false;
-    opt.io_threads = 1;
+    FOR_LANE_WRITE_PATHS(opt)
     opt.write_slice = 2;
     started run(opt);
     auto& srv = run.srv;
