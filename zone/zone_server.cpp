@@ -1115,10 +1115,13 @@ void zone_server::run() {
     }
   }
   net_.stop();
-  spdlog::info(
-      "zone: stopped after {} ticks ({} overruns, {} ticks skipped; {:.1f} ms between ticks growing the GPU "
-      "replication engine's buffers ahead)",
-      stats_.ticks, stats_.overruns, stats_.skipped_ticks, stats_.grow_ahead_ms);
+  // The growth ahead only where the GPU replication engine ran (a CPU-only server has none).
+  const std::string ahead =
+      replication_engine_ ? fmt::format("; {:.1f} ms between ticks growing the GPU replication engine's buffers ahead",
+                                        stats_.grow_ahead_ms)
+                          : std::string();
+  spdlog::info("zone: stopped after {} ticks ({} overruns, {} ticks skipped{})", stats_.ticks, stats_.overruns,
+               stats_.skipped_ticks, ahead);
   // `per_ms`: the units recorded per millisecond.
   const auto report = [](const char* name, const auto& h, double per_ms = 1.0) {
     spdlog::info("  {:<10} p50 {:8.3f} ms  p99 {:8.3f} ms  max {:8.3f} ms", name, h.percentile(0.5) / per_ms,
