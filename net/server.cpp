@@ -325,6 +325,9 @@ struct io_lane {
   void schedule(std::shared_ptr<session> s, bool urgent = false);
   /// schedule() for several sessions of this lane under one lock (moves them out).
   void schedule_many(std::span<std::shared_ptr<session>> sessions);
+  /// Any thread: `sessions` moved onto `list` (ready or urgent) under the lock, and a drain posted
+  /// unless one is.
+  void append(std::vector<std::shared_ptr<session>>& list, std::span<std::shared_ptr<session>> sessions);
   /// The lane's thread: the ready sessions write what they have queued, `drain_slice` of them at
   /// a time: after each slice the drain posts itself behind the lane's other handlers (reads,
   /// accepts, timers), which so wait for one slice, not for a round of every ready session. What
@@ -1140,23 +1143,17 @@ class session : public std::enable_shared_from_this<session> {
 };
 
 void io_lane::schedule(std::shared_ptr<session> s, bool urgent_write) {
-  if (!urgent_write) return schedule_many(std::span(&s, 1));
-  bool post;
-  {
-    const std::lock_guard lock(ready_mutex);
-    urgent.push_back(std::move(s));
-    post = !drain_posted;
-    drain_posted = true;
-  }
-  if (post) asio::post(ctx, [this] { drain(); });
+  append(urgent_write ? urgent : ready, std::span(&s, 1));
 }
 
-void io_lane::schedule_many(std::span<std::shared_ptr<session>> sessions) {
+void io_lane::schedule_many(std::span<std::shared_ptr<session>> sessions) { append(ready, sessions); }
+
+void io_lane::append(std::vector<std::shared_ptr<session>>& list, std::span<std::shared_ptr<session>> sessions) {
   if (sessions.empty()) return;
   bool post;
   {
     const std::lock_guard lock(ready_mutex);
-    for (auto& s : sessions) ready.push_back(std::move(s));
+    for (auto& s : sessions) list.push_back(std::move(s));
     post = !drain_posted;
     drain_posted = true;
   }

@@ -31,8 +31,7 @@ struct loop_stats {
   std::uint64_t ticks = 0;
   std::uint64_t overruns = 0;          ///< ticks that ended after the next tick was due
   std::uint64_t skipped_ticks = 0;     ///< ticks dropped to catch up after an overrun
-  double grow_ahead_ms =
-      0;  ///< between ticks: the GPU replication engine's buffers grown ahead (replicator::grow_ahead)
+  double grow_ahead_ms = 0;            ///< between ticks, growing GPU replication buffers ahead
   std::uint64_t clients = 0;           ///< clients with an entity
   std::uint64_t frames_sent = 0;       ///< tick updates handed to the network
   std::uint64_t bytes_sent = 0;

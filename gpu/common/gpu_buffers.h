@@ -37,16 +37,12 @@ class array {
     const auto t0 = std::chrono::steady_clock::now();
     release();
     void* p = nullptr;
-    const cudaError_t err =
-        Device ? cudaMalloc(&p, want * sizeof(T)) : cudaHostAlloc(&p, want * sizeof(T), cudaHostAllocDefault);
-    if (err != cudaSuccess) {
+    if (const cudaError_t err = allocate(&p, want); err != cudaSuccess) {
       const std::string what = std::string(Device ? "cudaMalloc" : "cudaHostAlloc") + " of " +
                                std::to_string(want * sizeof(T)) + " bytes (" + std::to_string(n) + " elements asked)";
       cuda_fail(err, what.c_str(), __FILE__, __LINE__);
     }
-    ptr_ = static_cast<T*>(p);
-    cap_ = want;
-    grow_ms += std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+    take(p, want, t0);
   }
   void swap(array& other) noexcept {
     std::swap(ptr_, other.ptr_);
@@ -72,21 +68,28 @@ class array {
     const std::size_t want = std::max(n, cap_ + cap_ / 2);
     const auto t0 = std::chrono::steady_clock::now();
     void* p = nullptr;
-    const cudaError_t err =
-        Device ? cudaMalloc(&p, want * sizeof(T)) : cudaHostAlloc(&p, want * sizeof(T), cudaHostAllocDefault);
-    if (err != cudaSuccess) {
+    if (allocate(&p, want) != cudaSuccess) {
       (void)cudaGetLastError();  // an allocation's failure is not sticky: clear it
       ahead_refused_ = true;
       return false;
     }
     release();
-    ptr_ = static_cast<T*>(p);
-    cap_ = want;
-    grow_ms += std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+    take(p, want, t0);
     return true;
   }
 
  private:
+  /// A new block of `elements` (cudaMalloc or cudaHostAlloc).
+  static cudaError_t allocate(void** p, std::size_t elements) {
+    return Device ? cudaMalloc(p, elements * sizeof(T)) : cudaHostAlloc(p, elements * sizeof(T), cudaHostAllocDefault);
+  }
+  /// `p`, of `elements`, is the array's block now (the old one released); the growth that began
+  /// at `since` counted in grow_ms.
+  void take(void* p, std::size_t elements, std::chrono::steady_clock::time_point since) {
+    ptr_ = static_cast<T*>(p);
+    cap_ = elements;
+    grow_ms += std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - since).count();
+  }
   void release() noexcept {
     if (ptr_ == nullptr) return;
     if constexpr (Device) {
