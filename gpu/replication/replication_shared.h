@@ -34,8 +34,8 @@ struct client_slot {
   std::uint32_t old_off, old_len, job, pad;
 };
 
-/// A scratch entry: a due update {view index, dense, d2 (then priority), staleness (then rank)} or
-/// an enter candidate {distance, id, dense, rank}.
+/// A scratch entry: a due update {union place, dense, d2 (then priority), staleness (then rank, or
+/// its id for the sort)} or an enter candidate {distance, id, dense, union place (then rank)}.
 struct alignas(16) scratch_entry {
   std::uint32_t x, y, z, w;
 };
@@ -356,6 +356,46 @@ ZONE_REP_HD std::uint32_t lower_bound_u32(const std::uint32_t* p, std::uint32_t 
   return lo;
 }
 
+/// Lists longer than this are ranked by sorting them (sort_entries), shorter ones by counting (each
+/// entry against all: quadratic, but a pass without synchronisation for the few a frame usually
+/// ranks). Counting a flash crowd's 2,000 due updates took ~25 ms on the device (H200, 2026-11-30).
+inline constexpr std::uint32_t rank_by_sort_above = 32;
+
+/// Sorts e[0, n) ascending by (key, id) (before()), in place, by the lanes of group g together: a
+/// bitonic network in the form whose comparators all point one way, padded to a power of two with
+/// entries past n taken as larger than any (so they never move and are never read). The keys are
+/// (x, y) or, with by_z, (z, w), x and z a float's bits. Unique ids: the order is total, so any
+/// width sorts to the same list.
+template <class G>
+ZONE_REP_HD void sort_entries(scratch_entry* e, std::uint32_t n, bool by_z, G& g) {
+  constexpr std::uint32_t W = G::width;
+  const std::uint32_t lane = g.lane();
+  std::uint32_t padded = 1;
+  while (padded < n) padded *= 2;
+  const auto greater = [&](const scratch_entry& a, const scratch_entry& b) {
+    return by_z ? before(bits_float(b.z), b.w, bits_float(a.z), a.w)
+                : before(bits_float(b.x), b.y, bits_float(a.x), a.y);
+  };
+  for (std::uint32_t k = 2; k <= padded; k *= 2) {
+    // j == k: the block's two halves, the second one reversed (i against k - 1 - i); then the
+    // half-cleaners (i against i + j).
+    for (std::uint32_t j = k; j >= 2; j /= 2) {
+      const std::uint32_t half = j / 2;
+      for (std::uint32_t t = lane; t < padded / 2; t += W) {
+        const std::uint32_t block = t / half, off = t % half;
+        const std::uint32_t i = block * j + off;
+        const std::uint32_t l = j == k ? block * j + j - 1 - off : i + half;
+        if (l < n && greater(e[i], e[l])) {
+          const scratch_entry s = e[i];
+          e[i] = e[l];
+          e[l] = s;
+        }
+      }
+      g.sync();
+    }
+  }
+}
+
 /// One lane deciding a job alone: the host's way (tests emulate wider groups with threads; the
 /// device's group is a warp, replication_kernels.cu). A group G gives: `width` lanes (at most 32),
 /// this lane's `lane()`, `ballot(p)` (bit l set when lane l's p holds), `first(v)` (lane 0's v),
@@ -433,9 +473,10 @@ ZONE_REP_HD void decide_job(const run_args& a, std::uint32_t job_index, G& g) {
     scratch_entry item = entry(0, 0, 0, 0);
     if (i < S) {
       const std::uint32_t k = find_dense(a, id);
+      const std::uint32_t u = i + j - (B + popcount32(mb & below));
       if (k != no_index && !both) {
         const float d = rn_sqrt(distance_sq(eye, a.entities[k]));
-        item = entry(float_bits(d), id, k, 0);
+        item = entry(float_bits(d), id, k, u);
         listed_enter = true;
       } else if (k != no_index) {
         const float d2 = distance_sq(eye, a.entities[k]);
@@ -444,11 +485,10 @@ ZONE_REP_HD void decide_job(const run_args& a, std::uint32_t job_index, G& g) {
         const std::uint32_t period = near ? 1u : mid ? mid_period : far_period;
         const std::uint32_t staleness = tick32 - sent[j];
         if (staleness >= period) {
-          item = entry(j, k, float_bits(d2), staleness);
+          item = entry(u, k, float_bits(d2), staleness);
           listed_due = true;
         }
       }
-      const std::uint32_t u = i + j - (B + popcount32(mb & below));
       u_id[u] = id;
       u_tag[u] = tag_visible | (both ? tag_view | j : 0u) | (listed_enter || listed_due ? tag_listed : 0u);
     }
@@ -487,8 +527,13 @@ ZONE_REP_HD void decide_job(const run_args& a, std::uint32_t job_index, G& g) {
   const std::uint32_t n_u = all_fit ? D : static_cast<std::uint32_t>(room);
 
   // Ranks: enters by (distance, id); due updates, when the budget binds, by (priority, id) with
-  // priority = -staleness / max(distance, 1). By counting: the lists are a client's, short.
-  if (n_e > 0) {
+  // priority = -staleness / max(distance, 1). Short lists by counting (the rank in the entry);
+  // longer ones sorted, and then each sent entry's rank goes into its union tag's index bits (a
+  // due update's view index there is read only when it is not sent) and an unsent one's listed
+  // bit is cleared: pass 2 finds a sent entry at its rank in the sorted list.
+  const bool sort_enters = n_e > 0 && E > rank_by_sort_above;
+  const bool sort_due = !all_fit && n_u > 0 && D > rank_by_sort_above;
+  if (n_e > 0 && !sort_enters) {
     for (std::uint32_t e = lane; e < E; e += W) {
       const float ke = bits_float(enter[e].x);
       const std::uint32_t ie = enter[e].y;
@@ -502,16 +547,32 @@ ZONE_REP_HD void decide_job(const run_args& a, std::uint32_t job_index, G& g) {
       const float d = rn_sqrt(bits_float(due[u].z));
       const float p = rn_div(-u32_to_float(due[u].w), d > 1.0f ? d : 1.0f);
       due[u].z = float_bits(p);
+      if (sort_due) due[u].w = u_id[due[u].x];  // the sort's id (the staleness is no longer needed)
     }
     g.sync();
-    for (std::uint32_t u = lane; u < D; u += W) {
+    for (std::uint32_t u = lane; !sort_due && u < D; u += W) {
       const float pu = bits_float(due[u].z);
-      const std::uint32_t iu = view[due[u].x];
+      const std::uint32_t iu = u_id[due[u].x];
       std::uint32_t rank = 0;
-      for (std::uint32_t v = 0; v < D; ++v) rank += before(bits_float(due[v].z), view[due[v].x], pu, iu) ? 1u : 0u;
+      for (std::uint32_t v = 0; v < D; ++v) rank += before(bits_float(due[v].z), u_id[due[v].x], pu, iu) ? 1u : 0u;
       due[u].w = rank;  // the staleness is no longer needed
     }
   }
+  if (sort_enters) {
+    sort_entries(enter, E, false, g);
+    for (std::uint32_t e = lane; e < E; e += W) {
+      const std::uint32_t u = enter[e].w;
+      u_tag[u] = e < n_e ? (u_tag[u] & ~tag_index) | e : u_tag[u] & ~tag_listed;
+    }
+  }
+  if (sort_due) {
+    sort_entries(due, D, true, g);
+    for (std::uint32_t e = lane; e < D; e += W) {
+      const std::uint32_t u = due[e].x;
+      u_tag[u] = e < n_u ? (u_tag[u] & ~tag_index) | e : u_tag[u] & ~tag_listed;
+    }
+  }
+  g.sync();
 
   // The frame, in the canonical layout: its parts and size are known now (the digest's values
   // only after the second pass; they do not change its size).
@@ -575,11 +636,13 @@ ZONE_REP_HD void decide_job(const run_args& a, std::uint32_t job_index, G& g) {
         last = sent[tag & tag_index];
       }
     } else if (listed_enter) {
-      const scratch_entry en = enter[ei + popcount32(me & below)];
-      if (en.w < n_e) {
+      // Sorted: its rank in the tag (listed: sent), the entry there; else the entry in list order.
+      const scratch_entry en = sort_enters ? enter[tag & tag_index] : enter[ei + popcount32(me & below)];
+      const std::uint32_t rank = sort_enters ? tag & tag_index : en.w;
+      if (rank < n_e) {
         // Its offset slot and its table: id, position, velocity (the class, half extents and
         // kind are the caller's), the name's offset, then the empty name.
-        const std::uint32_t slot = enters_vec + 4 + 4 * en.w, at = first_enter + enter_step * en.w;
+        const std::uint32_t slot = enters_vec + 4 + 4 * rank, at = first_enter + enter_step * rank;
         const interest::replication_entity& e = a.entities[en.z];
         put_u32(f + slot, at - slot);
         put_u32(f + at, at - evt);
@@ -601,10 +664,12 @@ ZONE_REP_HD void decide_job(const run_args& a, std::uint32_t job_index, G& g) {
       }
     } else if (in_view) {  // kept: visible now and in the view
       keep = true;
-      last = sent[tag & tag_index];
+      // Sorted and listed: sent, its rank in the tag (not the view index); else as listed.
+      const bool ranked_in_tag = sort_due && listed_due;
+      last = ranked_in_tag ? tick32 : sent[tag & tag_index];
       if (listed_due) {
-        const std::uint32_t at = di + popcount32(md & below);
-        const std::uint32_t pos = all_fit ? at : (due[at].w < n_u ? due[at].w : no_index);
+        const std::uint32_t at = ranked_in_tag ? tag & tag_index : di + popcount32(md & below);
+        const std::uint32_t pos = ranked_in_tag || all_fit ? at : (due[at].w < n_u ? due[at].w : no_index);
         if (pos != no_index) {
           const std::uint32_t* up = a.updates + 4 * std::size_t{due[at].y};
           std::uint8_t* o = updates_out + 16 * pos;

@@ -22,6 +22,7 @@
 #include <utility>
 #include <vector>
 
+#include "gpu/replication/replication_shared.h"
 #include "zone/zone.h"
 
 namespace zone::test {
@@ -52,6 +53,9 @@ struct replication_coverage {
   std::uint64_t enters = 0, leaves = 0, updates = 0;
   std::uint64_t deferred_enters = 0, deferred_leaves = 0, deferred_updates = 0;
   std::uint64_t ranked = 0;  ///< frames where the budget cut the due updates and some were sent
+  /// Of them, those whose due updates were more than the engine ranks by counting (it sorts them:
+  /// replication_shared.h, rank_by_sort_above); frames whose enters it sorted.
+  std::uint64_t ranked_sorted = 0, entered_sorted = 0;
   std::uint64_t resets = 0, empty = 0, near = 0, mid = 0, far = 0;
   std::uint64_t resident_runs = 0;  ///< engine runs that read the visible sets in place
   std::uint64_t switches = 0;          ///< players' visibility switches (visibility_for) that changed their class
@@ -295,6 +299,12 @@ inline replication_coverage check_replication_equivalence(
           cov.deferred_leaves += a.deferred_leaves;
           cov.deferred_updates += a.deferred_updates;
           cov.ranked += a.deferred_updates > 0 && a.updates > 0 ? 1 : 0;
+          cov.ranked_sorted += a.deferred_updates > 0 && a.updates > 0 &&
+                                       a.updates + a.deferred_updates > gpu::detail::rep::rank_by_sort_above
+                                   ? 1
+                                   : 0;
+          cov.entered_sorted +=
+              a.enters > 0 && a.enters + a.deferred_enters > gpu::detail::rep::rank_by_sort_above ? 1 : 0;
           cov.resets += a.reset ? 1 : 0;
           cov.empty += cpu.view_size(id) == 0 ? 1 : 0;
           // The tiers the client's view spans (from the CPU side's record of it).
@@ -420,14 +430,26 @@ replication_coverage deferred_leaves_runs(Run run_one_world) {
   return cov;
 }
 
+/// A crowd: 400 entities in 70 m, so that every client sees most of them, and budgets that cut its
+/// hundreds of due updates (the engine ranks them by sorting: ranked_sorted) or fit them all.
+inline replication_equivalence_case crowd_case() {
+  replication_equivalence_case c;
+  c.side = 70;
+  c.aoi_lo = 40;
+  c.aoi_hi = 110;
+  c.budgets = {3000, 8192};
+  return c;
+}
+
 /// The checks every run must pass, and that the run covered what it claims (deferred leaves only
 /// where `leaves_deferred`: see deferred_leaves_case).
 inline void require_equivalent(const replication_coverage& cov, bool tiny_budgets = true, bool leaves_deferred = false,
                                bool switches = true) {
   MESSAGE("frames " << cov.frames << ": enters " << cov.enters << " leaves " << cov.leaves << " updates " << cov.updates
                     << "; deferred enters " << cov.deferred_enters << " leaves " << cov.deferred_leaves << " updates "
-                    << cov.deferred_updates << "; ranked " << cov.ranked << ", resets " << cov.resets << ", empty "
-                    << cov.empty << "; view entries near/mid/far " << cov.near << "/" << cov.mid << "/" << cov.far
+                    << cov.deferred_updates << "; ranked " << cov.ranked << " (sorted " << cov.ranked_sorted
+                    << "), enters sorted " << cov.entered_sorted << ", resets " << cov.resets << ", empty " << cov.empty
+                    << "; view entries near/mid/far " << cov.near << "/" << cov.mid << "/" << cov.far
                     << "; visibility switches " << cov.switches << " (clients resynced " << cov.switch_resyncs
                     << ", notes " << cov.switch_notes << ")");
   CHECK(cov.differing == 0);
@@ -446,6 +468,7 @@ inline void require_equivalent(const replication_coverage& cov, bool tiny_budget
   CHECK(cov.leaves > 0);
   CHECK(cov.updates > 0);
   CHECK(cov.resets > 0);
+  CHECK(cov.entered_sorted > 0);
   CHECK(cov.empty > 0);
   CHECK(cov.near > 0);
   CHECK(cov.mid > 0);

@@ -330,6 +330,21 @@ TEST_SUITE("zone.replication") {
     zone::test::require_equivalent(cov);
   }
 
+  TEST_CASE(
+      "the per-job code in a crowd (hundreds of due updates a frame, ranked by sorting), 1 and 32 lanes: the same frames") {
+    for (const std::uint32_t lanes : {1u, 32u}) {
+      const std::uint64_t seed = zone::test::fresh_seed();
+      CAPTURE(seed);
+      CAPTURE(lanes);
+      zone::test::replication_equivalence_case c = zone::test::crowd_case();
+      if (lanes == 32) c.ticks = 15;
+      const auto cov = zone::test::check_replication_equivalence(
+          seed, c, [&] { return std::make_unique<emulated_engine>(seed, true, lanes); });
+      zone::test::require_equivalent(cov);
+      CHECK(cov.ranked_sorted > 0);
+    }
+  }
+
   TEST_CASE("the per-job code with 4 and 32 lanes a job (the device's warp), emulated by threads: the same frames") {
     for (const std::uint32_t lanes : {4u, 32u}) {
       const std::uint64_t seed = zone::test::fresh_seed();

@@ -56,6 +56,15 @@ TEST_SUITE("zone.gpu") {
     CHECK(cov.grown_ahead_ms > 0);  // buffers were grown ahead between ticks, and the frames stayed equal
   }
 
+  TEST_CASE(
+      "GPU replication in a crowd: hundreds of due updates a frame ranked by sorting, the CPU replicator's frames") {
+    const std::uint64_t seed = zone::test::fresh_seed();
+    CAPTURE(seed);
+    const auto cov = zone::test::check_replication_equivalence(seed, zone::test::crowd_case(), make_gpu_replication);
+    zone::test::require_equivalent(cov);
+    CHECK(cov.ranked_sorted > 0);
+  }
+
   TEST_CASE("GPU replication: a large world (20,000 entities, 3,000 clients) equals the CPU replicator") {
     const std::uint64_t seed = zone::test::fresh_seed();
     CAPTURE(seed);
