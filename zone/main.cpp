@@ -6,6 +6,7 @@
 #include <memory>
 #include <thread>
 
+#include <spdlog/sinks/stdout_color_sinks.h>
 #include <spdlog/spdlog.h>
 
 #include "zone_server.h"
@@ -32,6 +33,10 @@ int main(int argc, char** argv) {
     std::fprintf(stderr, "zone-server: %s (try --help)\n", parsed.message.c_str());
     return 2;
   }
+  // The log on stderr (docs/operating.md, "Logs"); stdout only carries --help. Same format as
+  // spdlog's default logger (no logger name in the lines).
+  spdlog::set_default_logger(
+      std::make_shared<spdlog::logger>("", std::make_shared<spdlog::sinks::stderr_color_sink_mt>()));
   spdlog::set_level(spdlog::level::from_str(parsed.config->log_level));
   zone::zone_config cfg = *parsed.config;
   std::signal(SIGINT, on_signal);

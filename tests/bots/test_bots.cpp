@@ -534,6 +534,25 @@ TEST_CASE("timing: 200 bots on 2,000 NPCs at 20 Hz; tick p99 and update latency 
   CHECK(best.latency_p99 <= timing_latency_p99_bound_ms);
 }
 
+TEST_CASE("zone-server logs on stderr: its stdout stays empty while it runs and stops") {
+  const std::string dir = temp_dir();
+  const std::string err = dir + "/stderr.log", out = dir + "/stdout.log";
+  // The shell sends the server's stderr to its own file; the child's log gets its stdout only.
+  child_process proc({"/bin/sh", "-c", "exec \"$0\" --listen 127.0.0.1 --port 0 --metrics-port 0 --npcs 50 2>\"$1\"",
+                      ZONE_SERVER_EXE, err},
+                     out);
+  bool listening = false;
+  for (int i = 0; i < 1000 && !listening && proc.alive(); ++i) {
+    listening = read_file(err).find("listening on 127.0.0.1:") != std::string::npos;
+    if (!listening) std::this_thread::sleep_for(20ms);
+  }
+  INFO("stderr:\n" << read_file(err) << "\nstdout:\n" << read_file(out));
+  REQUIRE(listening);
+  CHECK(proc.terminate().value_or(-1) == 0);
+  CHECK(read_file(err).find("zone server stopped") != std::string::npos);
+  CHECK(read_file(out).empty());
+}
+
 TEST_CASE("rules: zone-server --player-aoi 100 --hysteresis 7 with a default bot-swarm gives no mismatch (the welcome tells the rules)") {
   const std::string dir = temp_dir();
   zone_server_process server(ZONE_SERVER_EXE, dir, server_args_with({"--player-aoi", "100", "--hysteresis", "7", "--oracle"}));
