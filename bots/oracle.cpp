@@ -15,6 +15,7 @@
 #include <cmath>
 #include <cstring>
 #include <functional>
+#include <limits>
 
 namespace zone::bots {
 
@@ -238,7 +239,7 @@ struct oracle::index {
     const float* hx = lay.presence(k);
     blo_x[s] = p[0] - hx[0], blo_y[s] = p[1] - hx[1], blo_z[s] = p[2] - hx[2];
     bhi_x[s] = p[0] + hx[0], bhi_y[s] = p[1] + hx[1], bhi_z[s] = p[2] + hx[2];
-    px[s] = p[0];
+    px[s] = std::isnan(p[0]) ? std::numeric_limits<float>::infinity() : p[0];  // as the x order takes a NaN
     cls[s] = lay.cls(k);
     dense[s] = k;
   }
@@ -261,9 +262,14 @@ struct oracle::index {
     if (m != scan_mode::grid) {
       // By ascending x of the position (x_window searches it; full reads every slot).
       for (std::size_t k = 0; k < n; ++k) order[k] = static_cast<std::uint32_t>(k);
-      std::sort(order.begin(), order.end(), [&](std::uint32_t x, std::uint32_t y) {
-        return pos[3 * x] < pos[3 * y] || (pos[3 * x] == pos[3 * y] && x < y);
-      });
+      // A NaN x (a malformed truth) sorts last, as +infinity: the comparison stays a strict weak
+      // order (std::sort's requirement), and no window, whose bounds are finite, reaches it.
+      const auto x_of = [&](std::uint32_t k) {
+        const float v = pos[3 * k];
+        return std::isnan(v) ? std::numeric_limits<float>::infinity() : v;
+      };
+      std::sort(order.begin(), order.end(),
+                [&](std::uint32_t x, std::uint32_t y) { return x_of(x) < x_of(y) || (x_of(x) == x_of(y) && x < y); });
       max_half_x = 0;
       for (std::size_t s = 0; s < n; ++s) {
         put(s, order[s], pos, lay);

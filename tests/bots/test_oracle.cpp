@@ -263,6 +263,55 @@ TEST_SUITE("bots.oracle") {
     }
   }
 
+  TEST_CASE("targets at a NaN x (a malformed truth): the x window's scan stays brute force's, none of them visible") {
+    // The x window sorts the targets by x: a NaN there must not break the sort's order (undefined
+    // behaviour in std::sort: targets missed, or worse).
+    using mode = bots::oracle::scan_mode;
+    const std::uint64_t seed = zone::test::fresh_seed();
+    CAPTURE(seed);
+    raw_world w(seed);
+    const net::world_bounds bounds{{0, 0, 0}, {400, 400, 40}};
+    net::interest_rules rules;
+    rules.hysteresis = 4;
+    bots::oracle full(bounds, rules, 1, nullptr, nullptr), xw(bounds, rules, 2, nullptr, nullptr);
+    full.scan = mode::full, xw.scan = mode::x_window;
+    std::vector<std::uint32_t> players, bad;
+    const float a[3] = {30, 30, 30}, b[3] = {1, 1, 1};
+    for (int k = 0; k < 400; ++k) {
+      const bool nan = k % 3 == 0;
+      const float p[3] = {nan ? std::numeric_limits<float>::quiet_NaN() : w.uni(0, 400), w.uni(0, 400), w.uni(0, 40)};
+      const std::uint32_t id = w.add(p, a, b, 1u, 1u, net::entity_kind::npc);
+      if (nan) bad.push_back(id);
+    }
+    std::uint64_t compared = 0, visible_total = 0, differing = 0, bad_seen = 0;
+    for (std::uint64_t tick = 0; tick < 20; ++tick) {
+      for (std::size_t k = 0; k < w.size(); ++k) w.pos[3 * k + 1] += w.uni(-2, 2);
+      if (tick == 1) {  // players from the stream's second tick: the oracle checks entities it saw arrive
+        for (int k = 0; k < 30; ++k) {
+          const float p[3] = {w.uni(0, 400), w.uni(0, 400), w.uni(0, 40)};
+          players.push_back(w.add(p, a, b, 1u, 1u, net::entity_kind::player));
+        }
+      }
+      const auto body = w.body(tick);
+      REQUIRE_FALSE(full.feed(body).has_value());
+      REQUIRE_FALSE(xw.feed(body).has_value());
+      for (const std::uint32_t id : players) {
+        const auto expect = full.visible(id, tick), by_x = xw.visible(id, tick);
+        REQUIRE(expect.has_value() == by_x.has_value());
+        if (!expect) continue;
+        ++compared;
+        visible_total += expect->size();
+        if (*expect != *by_x) ++differing;
+        for (const std::uint32_t t : *by_x) bad_seen += std::count(bad.begin(), bad.end(), t);
+      }
+    }
+    MESSAGE(compared << " sets compared, " << visible_total << " entries, " << differing << " differ");
+    CHECK(compared == 19 * players.size());
+    CHECK(visible_total > compared * 3);
+    CHECK(differing == 0);
+    CHECK(bad_seen == 0);
+  }
+
   TEST_CASE(
       "the grid's scan gives brute force's sets: cell borders, boxes that just touch, huge AOIs, wide boxes, every class and mask, the hysteresis band, churn") {
     // Three oracles read the same frames: every target tested (brute force; itself held to the
