@@ -10,13 +10,15 @@
 #include <sys/socket.h>
 #include <unistd.h>
 
+#include <spdlog/spdlog.h>
 #include <cerrno>
 #include <chrono>
 #include <cstdint>
+#include <cstdio>
 #include <cstdlib>
+#include <cstring>
 #include <memory>
 #include <set>
-#include <spdlog/spdlog.h>
 #include <vector>
 
 #include "net/protocol.h"
@@ -65,12 +67,29 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
   addr.sin_family = AF_INET;
   addr.sin_port = htons(srv.port());
   addr.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
-  if (::connect(fd, reinterpret_cast<sockaddr*>(&addr), sizeof addr) != 0) {
+  // A signal (libFuzzer's once-a-second SIGALRM for -timeout) may interrupt the connect, which
+  // then completes on its own: wait for it and take its outcome.
+  int rc = ::connect(fd, reinterpret_cast<sockaddr*>(&addr), sizeof addr);
+  if (rc != 0 && errno == EINTR) {
+    pollfd w{fd, POLLOUT, 0};
+    int n = 0;
+    do {
+      n = ::poll(&w, 1, 5000);
+    } while (n < 0 && errno == EINTR);
+    int err = ETIMEDOUT;
+    socklen_t len = sizeof err;
+    if (n > 0) ::getsockopt(fd, SOL_SOCKET, SO_ERROR, &err, &len);
+    errno = err;
+    rc = err == 0 ? 0 : -1;
+  }
+  if (rc != 0) {
     if (errno == EADDRNOTAVAIL || errno == EADDRINUSE) {
       ::close(fd);
       return 0;  // the harness's ports, as above
     }
-    std::abort();  // refused: the server stopped accepting
+    // Refused: the server stopped accepting. Said with the reason, as a finding needs it.
+    std::fprintf(stderr, "fuzz_session: connect to the server failed: %s (errno %d)\n", std::strerror(errno), errno);
+    std::abort();
   }
   std::size_t at = 0;
   while (at < size) {
