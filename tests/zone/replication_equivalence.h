@@ -299,12 +299,15 @@ inline replication_coverage check_replication_equivalence(
           cov.deferred_leaves += a.deferred_leaves;
           cov.deferred_updates += a.deferred_updates;
           cov.ranked += a.deferred_updates > 0 && a.updates > 0 ? 1 : 0;
-          cov.ranked_sorted += a.deferred_updates > 0 && a.updates > 0 &&
+          // (Frames the engine built: the CPU builds the ticks it is off for.)
+          cov.ranked_sorted += dev.on_engine() && a.deferred_updates > 0 && a.updates > 0 &&
                                        a.updates + a.deferred_updates > gpu::detail::rep::rank_by_sort_above
                                    ? 1
                                    : 0;
           cov.entered_sorted +=
-              a.enters > 0 && a.enters + a.deferred_enters > gpu::detail::rep::rank_by_sort_above ? 1 : 0;
+              dev.on_engine() && a.enters > 0 && a.enters + a.deferred_enters > gpu::detail::rep::rank_by_sort_above
+                  ? 1
+                  : 0;
           cov.resets += a.reset ? 1 : 0;
           cov.empty += cpu.view_size(id) == 0 ? 1 : 0;
           // The tiers the client's view spans (from the CPU side's record of it).

@@ -331,6 +331,82 @@ TEST_SUITE("zone.replication") {
   }
 
   TEST_CASE(
+      "sort_entries (the ranks of long lists): std::sort's order by before() for every length, 1, 4 and 32 lanes") {
+    // Keys with many ties (the id breaks them), +0 and -0, both key fields; 16 guard entries past
+    // n must stay as they were (the network is padded to a power of two).
+    const std::uint64_t seed = zone::test::fresh_seed();
+    CAPTURE(seed);
+    std::mt19937_64 rng(seed);
+    std::vector<std::uint32_t> lengths;
+    for (std::uint32_t n = 0; n <= 70; ++n) lengths.push_back(n);
+    for (const std::uint32_t n : {127u, 128u, 129u, 511u, 512u, 513u, 1000u, 2049u}) lengths.push_back(n);
+    std::uint64_t sorted_lists = 0;
+    for (const bool by_z : {false, true}) {
+      for (const std::uint32_t n : lengths) {
+        CAPTURE(by_z);
+        CAPTURE(n);
+        std::vector<rep::scratch_entry> in(n + 16);
+        std::vector<std::uint32_t> ids(n);
+        std::iota(ids.begin(), ids.end(), 1u);
+        std::shuffle(ids.begin(), ids.end(), rng);
+        const float keys[] = {0.0f, -0.0f, 1.5f, -3.25f, 7.0f, 1e-30f};
+        for (std::uint32_t k = 0; k < n + 16; ++k) {
+          const float key = rng() % 3 == 0 ? keys[rng() % 6] : std::uniform_real_distribution<float>(-50, 50)(rng);
+          const std::uint32_t id = k < n ? ids[k] : 0xdead0000u + k, other = static_cast<std::uint32_t>(rng());
+          in[k] = by_z ? rep::entry(other, other, rep::float_bits(key), id)
+                       : rep::entry(rep::float_bits(key), id, other, other);
+        }
+        const auto key_of = [&](const rep::scratch_entry& e) {
+          return by_z ? std::pair{rep::bits_float(e.z), e.w} : std::pair{rep::bits_float(e.x), e.y};
+        };
+        std::vector<rep::scratch_entry> want(in.begin(), in.begin() + n);
+        std::sort(want.begin(), want.end(), [&](const rep::scratch_entry& a, const rep::scratch_entry& b) {
+          const auto [ka, ia] = key_of(a);
+          const auto [kb, ib] = key_of(b);
+          return rep::before(ka, ia, kb, ib);
+        });
+        const auto same = [](const rep::scratch_entry& a, const rep::scratch_entry& b) {
+          return a.x == b.x && a.y == b.y && a.z == b.z && a.w == b.w;
+        };
+        const auto check = [&](const std::vector<rep::scratch_entry>& got) {
+          bool ok = true;
+          for (std::uint32_t k = 0; k < n; ++k) ok = ok && same(got[k], want[k]);
+          for (std::uint32_t k = n; k < n + 16; ++k) ok = ok && same(got[k], in[k]);
+          return ok;
+        };
+        std::vector<rep::scratch_entry> one = in;
+        rep::serial_lanes g1;
+        rep::sort_entries(one.data(), n, by_z, g1);
+        CHECK(check(one));
+        ++sorted_lists;
+        if (n > 300) continue;  // the threaded widths: a barrier a step
+        for (const std::uint32_t lanes : {4u, 32u}) {
+          std::vector<rep::scratch_entry> got = in;
+          const auto run = [&]<std::uint32_t W>() {
+            typename thread_lanes<W>::shared sh;
+            std::vector<std::thread> ts;
+            for (std::uint32_t l = 0; l < W; ++l) {
+              ts.emplace_back([&, l] {
+                thread_lanes<W> g{&sh, l};
+                rep::sort_entries(got.data(), n, by_z, g);
+              });
+            }
+            for (auto& t : ts) t.join();
+          };
+          if (lanes == 4) {
+            run.template operator()<4>();
+          } else {
+            run.template operator()<32>();
+          }
+          CAPTURE(lanes);
+          CHECK(check(got));
+        }
+      }
+    }
+    CHECK(sorted_lists == 2 * 79);
+  }
+
+  TEST_CASE(
       "the per-job code in a crowd (hundreds of due updates a frame, ranked by sorting), 1 and 32 lanes: the same frames") {
     for (const std::uint32_t lanes : {1u, 32u}) {
       const std::uint64_t seed = zone::test::fresh_seed();
