@@ -206,6 +206,10 @@ struct oracle::scratch {
 /// observer's scan must test. The index only leaves targets out; every target it gives is tested
 /// exactly (candidate_flags), so it decides how much work a scan is, never its result.
 struct oracle::index {
+  /// A position's x as the x order takes it: a NaN (a malformed truth) as +infinity, so that it
+  /// sorts last, the comparison stays a strict weak order (std::sort's requirement), and no
+  /// window, whose bounds are finite, reaches it.
+  static float ordered_x(float x) { return std::isnan(x) ? std::numeric_limits<float>::infinity() : x; }
   std::vector<float> blo_x, blo_y, blo_z, bhi_x, bhi_y, bhi_z, px;
   std::vector<std::uint32_t> cls, dense;  // slot -> class, dense index
   scan_mode mode = scan_mode::grid;
@@ -239,7 +243,7 @@ struct oracle::index {
     const float* hx = lay.presence(k);
     blo_x[s] = p[0] - hx[0], blo_y[s] = p[1] - hx[1], blo_z[s] = p[2] - hx[2];
     bhi_x[s] = p[0] + hx[0], bhi_y[s] = p[1] + hx[1], bhi_z[s] = p[2] + hx[2];
-    px[s] = std::isnan(p[0]) ? std::numeric_limits<float>::infinity() : p[0];  // as the x order takes a NaN
+    px[s] = ordered_x(p[0]);
     cls[s] = lay.cls(k);
     dense[s] = k;
   }
@@ -262,12 +266,7 @@ struct oracle::index {
     if (m != scan_mode::grid) {
       // By ascending x of the position (x_window searches it; full reads every slot).
       for (std::size_t k = 0; k < n; ++k) order[k] = static_cast<std::uint32_t>(k);
-      // A NaN x (a malformed truth) sorts last, as +infinity: the comparison stays a strict weak
-      // order (std::sort's requirement), and no window, whose bounds are finite, reaches it.
-      const auto x_of = [&](std::uint32_t k) {
-        const float v = pos[3 * k];
-        return std::isnan(v) ? std::numeric_limits<float>::infinity() : v;
-      };
+      const auto x_of = [&](std::uint32_t k) { return ordered_x(pos[3 * k]); };
       std::sort(order.begin(), order.end(),
                 [&](std::uint32_t x, std::uint32_t y) { return x_of(x) < x_of(y) || (x_of(x) == x_of(y) && x < y); });
       max_half_x = 0;
