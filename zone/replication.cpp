@@ -696,11 +696,46 @@ void replicator::prestage(const entity_store& store, std::uint64_t tick, interes
   }
 }
 
+namespace detail {
+
+void move_view(std::vector<entity_id>& view, std::span<const entity_id> leaves, std::span<const entity_id> enters) {
+  // Segment by segment: each id after the first change moves once for the leaves and once for the
+  // enters, in one memmove per change (an insert or erase per change would move the whole tail
+  // each time; a copy through a second list would move every id twice). A crowd's view holds
+  // thousands of ids.
+  // The leaves: the kept runs between them slide down over those that left.
+  if (!leaves.empty() && !view.empty()) {
+    auto write = view.end(), kept = view.end(), at = view.begin();
+    for (const entity_id l : leaves) {
+      at = std::lower_bound(at, view.end(), l);
+      if (at == view.end()) break;
+      if (*at != l) continue;  // not held
+      write = write == view.end() ? at : std::move(kept, at, write);
+      kept = ++at;
+    }
+    if (write != view.end()) view.erase(std::move(kept, view.end(), write), view.end());
+  }
+  // The enters, from the last: the run above each moves up by the enters still to place.
+  if (enters.empty()) return;
+  const std::size_t held = view.size();
+  reserve_with_headroom(view, held + enters.size());
+  view.resize(held + enters.size());
+  auto to = view.end(), end = view.begin() + static_cast<std::ptrdiff_t>(held);
+  for (std::size_t e = enters.size(); e > 0; --e) {
+    const auto at = std::upper_bound(view.begin(), end, enters[e - 1]);
+    to = std::move_backward(at, end, to);
+    *--to = enters[e - 1];
+    end = at;
+  }
+}
+
+}  // namespace detail
+
 void replicator::follow_view(client_state& s, std::vector<entity_id>& enters, const std::uint8_t* frame,
                              bool any_leaves) {
   // The client's view as the engine moved it on, from the frame's leaves and enters (ids; the
   // engine keeps the views themselves on its device): what resync_viewers_of reads.
-  thread_local std::vector<entity_id> leaves, next;
+  thread_local std::vector<entity_id> leaves;
   leaves.clear();
   if (any_leaves) {
     const auto* env = net::wire::GetSizePrefixedenvelope(frame);
@@ -709,26 +744,7 @@ void replicator::follow_view(client_state& s, std::vector<entity_id>& enters, co
   }
   std::sort(enters.begin(), enters.end());
   std::sort(leaves.begin(), leaves.end());
-  if (enters.size() + leaves.size() <= 8) {
-    // A few: in place (the usual frame moves a view by an entity or two).
-    for (const entity_id l : leaves) {
-      const auto it = std::lower_bound(s.view.begin(), s.view.end(), l);
-      if (it != s.view.end() && *it == l) s.view.erase(it);
-    }
-    for (const entity_id e : enters) s.view.insert(std::lower_bound(s.view.begin(), s.view.end(), e), e);
-    return;
-  }
-  next.clear();
-  next.reserve(s.view.size() + enters.size());
-  std::size_t e = 0, l = 0;
-  for (const entity_id v : s.view) {
-    while (e < enters.size() && enters[e] < v) next.push_back(enters[e++]);
-    while (l < leaves.size() && leaves[l] < v) ++l;
-    if (l < leaves.size() && leaves[l] == v) continue;  // left
-    next.push_back(v);
-  }
-  while (e < enters.size()) next.push_back(enters[e++]);
-  s.view.assign(next.begin(), next.end());
+  detail::move_view(s.view, leaves, enters);
 }
 
 void replicator::build_on_engine(std::span<const replication_request> requests, const entity_store& store,

@@ -19,6 +19,14 @@
 
 namespace zone {
 
+namespace detail {
+/// Moves a sorted view on by sorted leaves (ids it may not hold are ignored) and sorted enters
+/// (ids it does not hold): the view stays sorted; the ids after the first change move once for
+/// the leaves and once for the enters, however many there are. What an engine's frame does to
+/// the host's copy of a client's view (replicator::follow_view).
+void move_view(std::vector<entity_id>& view, std::span<const entity_id> leaves, std::span<const entity_id> enters);
+}  // namespace detail
+
 struct replication_options {
   /// World bounds for position quantization (sent to clients in welcome).
   net::world_bounds world{{0, 0, 0}, {4096, 4096, 256}};

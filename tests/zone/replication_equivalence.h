@@ -46,6 +46,7 @@ struct replication_equivalence_case {
 /// What the runs covered (summed over every frame compared).
 struct replication_coverage {
   std::uint64_t frames = 0, differing = 0, stats_differing = 0, hash_differing = 0;
+  std::uint64_t view_differing = 0;  ///< the host's copy of a view (follow_view on the engine) unlike the CPU's
   /// Engine frames the FlatBuffers verifier or the decoder rejected, or that decoded to another
   /// message than the CPU replicator's frame; one byte flipped per tick in a copy of a frame, and
   /// how many of those the comparison caught (all of them, or the check could not fail).
@@ -286,6 +287,7 @@ inline replication_coverage check_replication_equivalence(
                                      ? 1
                                      : 0;
           cov.hash_differing += (cpu.view_hash(id) != dev.view_hash(id) || cpu.view_size(id) != dev.view_size(id)) ? 1 : 0;
+          cov.view_differing += !std::ranges::equal(cpu.view(id), dev.view(id)) ? 1 : 0;
           if (want[k] != got[k] && cov.differing <= 3) {
             MESSAGE("frame differs: client " << id << ", cpu " << want[k].size() << " bytes (" << a.enters << " enters, "
                                              << a.leaves << " leaves, " << a.updates << " updates), engine "
@@ -463,6 +465,7 @@ inline void require_equivalent(const replication_coverage& cov, bool tiny_budget
   CHECK(cov.entities_ahead > 0);
   CHECK(cov.stats_differing == 0);
   CHECK(cov.hash_differing == 0);
+  CHECK(cov.view_differing == 0);
   CHECK(cov.undecodable == 0);
   CHECK(cov.broken_probes > 0);
   CHECK(cov.broken_caught == cov.broken_probes);

@@ -8,9 +8,11 @@
 
 #include <algorithm>
 #include <cmath>
+#include <iterator>
 #include <map>
 #include <optional>
 #include <random>
+#include <vector>
 
 #include "net/client_view.h"
 #include "zone/zone.h"
@@ -1131,6 +1133,67 @@ TEST_SUITE("zone.replication") {
         if (budget > 300) CHECK(updates > 0);     // (at 260 bytes hardly more than the header fits)
         if (budget < 1000) CHECK(deferred > 0);  // the budget binds
       }
+    }
+  }
+}
+
+TEST_CASE("move_view: a sorted view moved on by sorted leaves and enters equals the set arithmetic") {
+  // What the engine path does to the host's copy of a view each frame (follow_view): leaves first
+  // (ids not held ignored), then enters (ids not held), the result sorted.
+  const auto reference = [](std::vector<entity_id> view, const std::vector<entity_id>& leaves,
+                            const std::vector<entity_id>& enters) {
+    std::vector<entity_id> kept;
+    std::set_difference(view.begin(), view.end(), leaves.begin(), leaves.end(), std::back_inserter(kept));
+    std::vector<entity_id> out;
+    std::merge(kept.begin(), kept.end(), enters.begin(), enters.end(), std::back_inserter(out));
+    return out;
+  };
+  const auto check = [&](std::vector<entity_id> view, const std::vector<entity_id>& leaves,
+                         const std::vector<entity_id>& enters) {
+    const auto want = reference(view, leaves, enters);
+    zone::detail::move_view(view, leaves, enters);
+    CHECK(view == want);
+  };
+  SUBCASE("edges") {
+    check({}, {}, {});
+    check({}, {}, {5, 9});
+    check({}, {3}, {});                      // a leave of an id not held
+    check({2, 4, 6}, {2, 4, 6}, {});         // all leave
+    check({2, 4, 6}, {2, 4, 6}, {1, 5, 7});  // all leave, all new
+    check({10, 20, 30}, {}, {1, 2, 3});      // enters before every id
+    check({10, 20, 30}, {}, {31, 40});       // after every id
+    check({10, 20, 30}, {20}, {20});         // left and entered again in one frame: held
+    check({10, 20, 30}, {5, 15, 35}, {});    // leaves of ids not held, between them
+    check({10, 20, 30}, {10}, {11, 12, 13, 14, 15, 16, 17, 18, 19});
+  }
+  SUBCASE("random") {
+    const std::uint64_t seed = zone::test::fresh_seed();
+    CAPTURE(seed);
+    std::mt19937_64 rng(seed);
+    for (int round = 0; round < 2000; ++round) {
+      const std::size_t universe = 1 + rng() % (round % 10 == 0 ? 5000 : 64);
+      std::vector<entity_id> view, leaves, enters;
+      for (entity_id id = 1; id <= universe; ++id) {
+        const auto r = rng() % 8;
+        if (r < 3) {
+          view.push_back(id);
+          if (rng() % 5 == 0) leaves.push_back(id);  // held, leaves
+        } else if (r == 3) {
+          enters.push_back(id);  // not held, enters
+        } else if (r == 4) {
+          leaves.push_back(id);  // not held: ignored
+        }
+      }
+      // Small frames (a few changes) as often as large ones.
+      if (round % 2 == 0) {
+        std::shuffle(leaves.begin(), leaves.end(), rng);
+        std::shuffle(enters.begin(), enters.end(), rng);
+        leaves.resize(std::min<std::size_t>(leaves.size(), rng() % 5));
+        enters.resize(std::min<std::size_t>(enters.size(), rng() % 5));
+        std::sort(leaves.begin(), leaves.end());
+        std::sort(enters.begin(), enters.end());
+      }
+      check(view, leaves, enters);
     }
   }
 }
