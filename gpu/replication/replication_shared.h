@@ -561,20 +561,17 @@ ZONE_REP_HD void decide_job(const run_args& a, std::uint32_t job_index, G& g) {
       due[u].w = rank;  // the staleness is no longer needed
     }
   }
-  if (sort_enters) {
-    sort_entries(enter, E, false, g);
-    for (std::uint32_t e = lane; e < E; e += W) {
-      const std::uint32_t u = enter[e].w;
-      u_tag[u] = e < n_e ? (u_tag[u] & ~tag_index) | e : u_tag[u] & ~tag_listed;
+  // A sorted list's entries into their union tags: the first `sent` by rank, the rest unlisted. The
+  // union place is an enter's w and a due update's x (the other fields are the sort's key).
+  const auto sort_into_tags = [&](scratch_entry* list, std::uint32_t count, std::uint32_t sent, bool due_list) {
+    sort_entries(list, count, due_list, g);
+    for (std::uint32_t e = lane; e < count; e += W) {
+      const std::uint32_t u = due_list ? list[e].x : list[e].w;
+      u_tag[u] = e < sent ? (u_tag[u] & ~tag_index) | e : u_tag[u] & ~tag_listed;
     }
-  }
-  if (sort_due) {
-    sort_entries(due, D, true, g);
-    for (std::uint32_t e = lane; e < D; e += W) {
-      const std::uint32_t u = due[e].x;
-      u_tag[u] = e < n_u ? (u_tag[u] & ~tag_index) | e : u_tag[u] & ~tag_listed;
-    }
-  }
+  };
+  if (sort_enters) sort_into_tags(enter, E, n_e, false);
+  if (sort_due) sort_into_tags(due, D, n_u, true);
   g.sync();
 
   // The frame, in the canonical layout: its parts and size are known now (the digest's values
