@@ -163,7 +163,7 @@ client_id replicator::add_client(entity_id observer) {
   s.active = true;
   s.reset_pending = true;
   s.class_notes = false;
-  s.view.clear();
+  clear_view(s);
   s.meta.clear();
   s.hash = 0;
   s.built_tick = s.told_through = 0;
@@ -178,7 +178,7 @@ void replicator::remove_client(client_id c) {
   client_state& s = clients_[c];
   s.active = false;
   s.observer = null_entity;
-  s.view.clear();
+  clear_view(s);
   s.meta.clear();
   s.hash = 0;
   free_clients_.push_back(c);
@@ -309,6 +309,7 @@ std::size_t replicator::resync_viewers_of(const entity_store& store, const inter
       if (!noting && c.sees != c.old_sees) return true;
       if (own == nullptr) own = &c;
     }
+    settle_view(s);
     thread_local std::vector<std::uint32_t> held;
     held.clear();
     const bool any =
@@ -412,8 +413,9 @@ std::span<const std::uint8_t> replicator::build_from(const Source& source, clien
   net::tick_update_writer& writer = w.frame_;
   replication_stats st;
   writer.begin(tick, server_time_us, last_input_sequence);
+  settle_view(s);
   if (s.reset_pending) {
-    s.view.clear();
+    clear_view(s);
     s.meta.clear();
     s.hash = 0;
     s.reset_pending = false;
@@ -609,7 +611,7 @@ void replicator::reset_all_clients() {
   for (client_state& s : clients_) {
     if (!s.active) continue;
     s.reset_pending = true;
-    s.view.clear();
+    clear_view(s);
     s.meta.clear();
     s.hash = 0;
     s.engine_view_size = 0;
@@ -729,12 +731,38 @@ void move_view(std::vector<entity_id>& view, std::span<const entity_id> leaves, 
   }
 }
 
+bool view_changes::note(std::span<const entity_id> frame_leaves, std::span<const entity_id> frame_enters,
+                        const std::vector<entity_id>& view) {
+  // An id entered since the last settle and now leaving was never in `view`; one left since and
+  // now entering again is still there. Else the change waits for the settle.
+  const auto change = [](std::vector<entity_id>& cancel, std::vector<entity_id>& add, entity_id id) {
+    const auto at = std::lower_bound(cancel.begin(), cancel.end(), id);
+    if (at != cancel.end() && *at == id) {
+      cancel.erase(at);
+    } else {
+      add.insert(std::lower_bound(add.begin(), add.end(), id), id);
+    }
+  };
+  for (const entity_id l : frame_leaves) change(enters, leaves, l);
+  for (const entity_id e : frame_enters) change(leaves, enters, e);
+  // 1/32: a crowd's view of ~2,500 with ~4 changes a frame moves once per ~18 frames, and the
+  // lists stay short to search.
+  return enters.size() + leaves.size() > std::max<std::size_t>(16, view.size() / 32);
+}
+
+void view_changes::settle(std::vector<entity_id>& view) {
+  move_view(view, leaves, enters);
+  clear();
+}
+
 }  // namespace detail
 
-void replicator::follow_view(client_state& s, std::vector<entity_id>& enters, const std::uint8_t* frame,
+void replicator::follow_view(client_state& s, std::span<const entity_id> enters, const std::uint8_t* frame,
                              bool any_leaves) {
   // The client's view as the engine moved it on, from the frame's leaves and enters (ids; the
-  // engine keeps the views themselves on its device): what resync_viewers_of reads.
+  // engine keeps the views themselves on its device): what resync_viewers_of reads. Held as
+  // unsettled changes, which a leave or enter of the same id cancels: a large view (a crowd's
+  // thousands) is read and moved once per many frames, not at every change of every frame.
   thread_local std::vector<entity_id> leaves;
   leaves.clear();
   if (any_leaves) {
@@ -742,9 +770,16 @@ void replicator::follow_view(client_state& s, std::vector<entity_id>& enters, co
     const auto* u = env != nullptr ? env->message_as_tick_update() : nullptr;
     if (u != nullptr && u->leaves() != nullptr) leaves.assign(u->leaves()->begin(), u->leaves()->end());
   }
-  std::sort(enters.begin(), enters.end());
-  std::sort(leaves.begin(), leaves.end());
-  detail::move_view(s.view, leaves, enters);
+  if (s.unsettled.note(leaves, enters, s.view)) s.unsettled.settle(s.view);
+}
+
+void replicator::settle_view(client_state& s) {
+  if (!s.unsettled.empty()) s.unsettled.settle(s.view);
+}
+
+void replicator::clear_view(client_state& s) {
+  s.view.clear();
+  s.unsettled.clear();
 }
 
 void replicator::build_on_engine(std::span<const replication_request> requests, const entity_store& store,
@@ -903,7 +938,7 @@ void replicator::build_on_engine(std::span<const replication_request> requests, 
           s.reset_pending = false;
         }
         std::uint8_t* const frame = out.records + res.record_off;
-        if (stats.reset) s.view.clear();
+        if (stats.reset) clear_view(s);
         thread_local std::vector<entity_id> entered;  // for follow_view
         entered.clear();
         for (std::uint32_t e = 0; e < res.enters; ++e) {

@@ -25,6 +25,24 @@ namespace detail {
 /// the leaves and once for the enters, however many there are. What an engine's frame does to
 /// the host's copy of a client's view (replicator::follow_view).
 void move_view(std::vector<entity_id>& view, std::span<const entity_id> leaves, std::span<const entity_id> enters);
+/// A view's changes not yet applied to it (sorted; an id in neither list, or it would have
+/// cancelled out): how the host follows an engine's frames without moving a large view (a
+/// crowd's thousands of ids) at every change of every frame.
+struct view_changes {
+  std::vector<entity_id> enters, leaves;
+  [[nodiscard]] bool empty() const { return enters.empty() && leaves.empty(); }
+  void clear() {
+    enters.clear();
+    leaves.clear();
+  }
+  /// One frame's leaves (ids the view holds with these changes) and enters (ids it does not),
+  /// each in any order, the leaves taken first: a leave cancels an unsettled enter of the id, an
+  /// enter an unsettled leave. True when they have grown past 1/32 of `view` (at least 16): settle now.
+  bool note(std::span<const entity_id> frame_leaves, std::span<const entity_id> frame_enters,
+            const std::vector<entity_id>& view);
+  /// Applies them to `view` (move_view) and forgets them.
+  void settle(std::vector<entity_id>& view);
+};
 }  // namespace detail
 
 struct replication_options {
@@ -267,8 +285,8 @@ class replicator {
   /// next frame is a reset (the views start over on the new side). `engine` must outlive the
   /// replicator or be unset first. If the engine fails (a device error), build_many gives it up
   /// for good (engine_error() says why) and builds that tick and the next on the CPU, every
-  /// client's next frame a reset. With an engine, build() must not be called, and view() is empty
-  /// (the view lives on the engine); view_hash() and view_size() stay exact.
+  /// client's next frame a reset. With an engine, build() must not be called; the engine holds the
+  /// views, and view() is the host's copy, followed from the frames.
   void set_engine(interest::replication_engine* engine);
   /// A CPU clock (ms) that build_many on an engine reads at its phases' ends
   /// (replication_phase_times); null: none. (CLOCK_PROCESS_CPUTIME_ID lags: Linux leaves out the
@@ -296,8 +314,13 @@ class replicator {
   /// Why the engine was given up (empty while it works or when none is set).
   [[nodiscard]] const std::string& engine_error() const { return engine_error_; }
 
-  /// The client's view as sent so far (sorted ids; on an engine followed from its frames) and its digest hash.
-  [[nodiscard]] std::span<const entity_id> view(client_id c) const { return clients_[c].view; }
+  /// The client's view as sent so far (sorted ids; on an engine followed from its frames) and its
+  /// digest hash. Not const: on an engine it first applies the frames' changes that the host's
+  /// copy has not taken yet (client_state::unsettled), so not concurrently with a build.
+  [[nodiscard]] std::span<const entity_id> view(client_id c) {
+    settle_view(clients_[c]);
+    return clients_[c].view;
+  }
   [[nodiscard]] std::size_t view_size(client_id c) const {
     return on_engine() ? clients_[c].engine_view_size : clients_[c].view.size();
   }
@@ -315,7 +338,9 @@ class replicator {
     bool active = false;
     bool reset_pending = true;
     bool class_notes = false;     // set_class_notes
-    std::vector<entity_id> view;  // sorted
+    std::vector<entity_id> view;  // sorted; on an engine, without its unsettled changes
+    // On an engine: the frames' changes not yet applied to `view` (follow_view, settle_view).
+    detail::view_changes unsettled;
     std::vector<view_meta> meta;  // parallel to view
     std::uint64_t hash = 0;
     std::uint32_t engine_view_size = 0;  // with an engine: its view's size after the last frame
@@ -350,9 +375,15 @@ class replicator {
                                            std::uint64_t server_time_us, std::uint32_t last_input_sequence,
                                            replication_writer& writer, replication_stats* stats,
                                            const frame_room* out_room = nullptr, std::size_t k = 0);
-  /// Moves s.view on by an engine's frame: its enters (the ids, in any order; sorted here) and,
-  /// when `any_leaves`, the leaves read from the frame.
-  static void follow_view(client_state& s, std::vector<entity_id>& enters, const std::uint8_t* frame, bool any_leaves);
+  /// Moves s.view on by an engine's frame: its enters (the ids, in any order) and,
+  /// when `any_leaves`, the leaves read from the frame. The changes are held as unsettled ones
+  /// until they are many (settle_view).
+  static void follow_view(client_state& s, std::span<const entity_id> enters, const std::uint8_t* frame,
+                          bool any_leaves);
+  /// Applies s's unsettled changes to s.view; before anything reads s.view.
+  static void settle_view(client_state& s);
+  /// s's view and its unsettled changes dropped (a reset, a client removed).
+  static void clear_view(client_state& s);
   /// Starts loading what building client c will read first (its state and lists).
   void prefetch_client(client_id c) const;
   /// build_many on the engine (throws what the engine throws, before any frame reaches the sink).

@@ -287,7 +287,9 @@ inline replication_coverage check_replication_equivalence(
                                      ? 1
                                      : 0;
           cov.hash_differing += (cpu.view_hash(id) != dev.view_hash(id) || cpu.view_size(id) != dev.view_size(id)) ? 1 : 0;
-          cov.view_differing += !std::ranges::equal(cpu.view(id), dev.view(id)) ? 1 : 0;
+          // The host's copy of the engine's view, read every 4th tick (a read settles the frames'
+          // changes held since: between reads they accumulate, cancel and settle on their own).
+          if ((tick + id) % 4 == 0) cov.view_differing += !std::ranges::equal(cpu.view(id), dev.view(id)) ? 1 : 0;
           if (want[k] != got[k] && cov.differing <= 3) {
             MESSAGE("frame differs: client " << id << ", cpu " << want[k].size() << " bytes (" << a.enters << " enters, "
                                              << a.leaves << " leaves, " << a.updates << " updates), engine "

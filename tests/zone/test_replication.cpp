@@ -12,6 +12,7 @@
 #include <map>
 #include <optional>
 #include <random>
+#include <set>
 #include <vector>
 
 #include "net/client_view.h"
@@ -198,8 +199,9 @@ struct one_client {
     if (built) apply_frame(view, rep->build(c, store, tracker, t, t * 1000, 0, writer, &st));
     return st;
   }
-  [[nodiscard]] bool holds(entity_id e) const {
-    return std::binary_search(rep->view(c).begin(), rep->view(c).end(), e);
+  [[nodiscard]] bool holds(entity_id e) {
+    const auto v = rep->view(c);
+    return std::binary_search(v.begin(), v.end(), e);
   }
   /// The class the client holds `e` with (it must hold it).
   std::uint32_t held_class(entity_id e) const {
@@ -1196,4 +1198,72 @@ TEST_CASE("move_view: a sorted view moved on by sorted leaves and enters equals 
       check(view, leaves, enters);
     }
   }
+}
+
+TEST_CASE("view_changes: frames noted over many ticks, settled at random points, give the view the frames made") {
+  // The host's copy of an engine's view (replicator::follow_view): each frame's changes are noted
+  // (a leave cancelling an unsettled enter of the id, an enter an unsettled leave) and applied in
+  // one move when note() asks or when the view is read. Frames here are what an engine sends:
+  // leaves of ids the view holds, enters of ids it does not (any order), the same id leaving and
+  // entering again in one frame or across frames.
+  const std::uint64_t seed = fresh_seed();
+  CAPTURE(seed);
+  std::mt19937_64 rng(seed);
+  std::uint64_t cancelled_enters = 0, cancelled_leaves = 0, asked = 0, read = 0;
+  for (int run = 0; run < 40; ++run) {
+    const entity_id universe = 8 + static_cast<entity_id>(rng() % (run % 4 == 0 ? 6000 : 200));
+    std::set<entity_id> truth;
+    std::vector<entity_id> view;
+    zone::detail::view_changes pending;
+    for (int frame = 0; frame < 300; ++frame) {
+      std::vector<entity_id> leaves, enters;
+      const std::size_t moves = rng() % (frame % 25 == 0 ? 300 : 8);
+      for (std::size_t m = 0; m < moves; ++m) {
+        const entity_id id = 1 + static_cast<entity_id>(rng() % universe);
+        const bool held = truth.count(id) != 0, left = std::count(leaves.begin(), leaves.end(), id) != 0,
+                   entered = std::count(enters.begin(), enters.end(), id) != 0;
+        if (held && !left) {
+          leaves.push_back(id);
+          if (rng() % 4 == 0) enters.push_back(id);  // and back in the same frame
+        } else if (!held && !entered) {
+          enters.push_back(id);
+        }
+      }
+      // Counted before the frame: the cancellations it will make (an id entered since the last
+      // settle leaving; one left since entering again; one left in this frame entering again).
+      for (const entity_id l : leaves) {
+        if (std::binary_search(pending.enters.begin(), pending.enters.end(), l)) ++cancelled_enters;
+      }
+      for (const entity_id e : enters) {
+        if (std::binary_search(pending.leaves.begin(), pending.leaves.end(), e) ||
+            std::count(leaves.begin(), leaves.end(), e) != 0) {
+          ++cancelled_leaves;
+        }
+      }
+      std::shuffle(enters.begin(), enters.end(), rng);
+      for (const entity_id l : leaves) truth.erase(l);
+      for (const entity_id e : enters) truth.insert(e);
+      if (pending.note(leaves, enters, view)) {
+        ++asked;
+        pending.settle(view);
+      }
+      CHECK(std::is_sorted(pending.enters.begin(), pending.enters.end()));
+      CHECK(std::is_sorted(pending.leaves.begin(), pending.leaves.end()));
+      if (rng() % 7 == 0) {  // a read: settled, then compared
+        ++read;
+        pending.settle(view);
+        CHECK(pending.empty());
+        CHECK(view == std::vector<entity_id>(truth.begin(), truth.end()));
+      }
+    }
+    pending.settle(view);
+    CHECK(view == std::vector<entity_id>(truth.begin(), truth.end()));
+  }
+  // The paths ran: cancellations, settles asked for by the size rule and by reads.
+  CHECK(cancelled_enters > 0);
+  CHECK(cancelled_leaves > 0);
+  CHECK(asked > 0);
+  CHECK(read > 0);
+  MESSAGE("view_changes: " << cancelled_enters << " enters cancelled by a later leave, " << cancelled_leaves
+                           << " leaves by a later enter, " << asked << " settles asked, " << read << " reads");
 }
