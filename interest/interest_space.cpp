@@ -163,9 +163,23 @@ entity_id interest_space::add(const entity_spec& s, std::string* error) {
     return null_entity;
   }
   std::uint32_t slot;
-  if (!free_slots_.empty()) {
-    slot = free_slots_.back();
+  const std::size_t free = free_slots_.size() - free_head_;
+  if (free > 0 && opt_.slot_reuse_after == 0) {
+    slot = free_slots_.back();  // the most recently freed
     free_slots_.pop_back();
+    if (free_head_ == free_slots_.size()) {
+      free_slots_.clear();
+      free_head_ = 0;
+    }
+  } else if (free > opt_.slot_reuse_after || (free > 0 && slot_dense_.size() >= space_max_entities)) {
+    slot = free_slots_[free_head_++];  // the first freed
+    if (free_head_ == free_slots_.size()) {
+      free_slots_.clear();
+      free_head_ = 0;
+    } else if (free_head_ >= 4096 && free_head_ * 2 >= free_slots_.size()) {
+      free_slots_.erase(free_slots_.begin(), free_slots_.begin() + static_cast<std::ptrdiff_t>(free_head_));
+      free_head_ = 0;
+    }
   } else {
     slot = static_cast<std::uint32_t>(slot_dense_.size());
     slot_dense_.push_back(invalid_dense);

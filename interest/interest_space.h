@@ -22,7 +22,8 @@
 // get, the columns) may run from any number of threads at once. Spans returned by the reads stay
 // valid until the next non-const call. The finder, pool and engine maker of space_options must
 // outlive the space. Handles are generation-checked: a removed entity's handle is refused by every
-// call (until its slot's generation wraps after 1,023 reuses).
+// call (until its slot's generation wraps after 1,023 reuses, each after 1,024 other slots were
+// freed: space_slot_reuse_after).
 #pragma once
 
 #include <cstddef>
@@ -47,6 +48,12 @@ inline constexpr unsigned space_slot_bits = 22;
 inline constexpr std::size_t space_max_entities = std::size_t{1} << space_slot_bits;
 /// The highest generation of a slot (then it wraps to 1).
 inline constexpr std::uint32_t space_max_generation = (1u << (32 - space_slot_bits)) - 1;
+/// By default a freed slot is reused only once this many other slots were freed after it (first
+/// freed, first reused), or when no new slot is left: a destroyed entity's handle comes back only
+/// after its slot's 1,023 reuses, so after at least 1,023 x 1,024 destroys in the space, however
+/// few entities churn. It costs up to this many slots beyond the live entities (slot_count()).
+/// space_options::slot_reuse_after sets it.
+inline constexpr std::size_t space_slot_reuse_after = 1024;
 
 /// Where the step runs. `gpu`: the GPU visibility engine (needs space_options::gpu); `cpu`: the
 /// host engine (host_visibility_engine.h: candidates on the presence grid, or by space_options'
@@ -78,6 +85,10 @@ struct space_options {
   std::uint32_t max_visible = 0;
   /// Most entities alive at once (at most space_max_entities).
   std::size_t capacity = space_max_entities;
+  /// A freed slot is reused once this many others were freed after it (space_slot_reuse_after;
+  /// 0: at once, the most recently freed first: a handle then recurs after 1,023 reuses of its
+  /// slot, which one entity churning in and out reaches in 1,023 destroys).
+  std::size_t slot_reuse_after = space_slot_reuse_after;
 };
 
 /// An entity as registered: both boxes are centred on `position`.
@@ -214,7 +225,8 @@ class interest_space {
   interest_tracker tracker_;
   std::vector<std::uint32_t> slot_dense_;
   std::vector<std::uint16_t> slot_generation_;
-  std::vector<std::uint32_t> free_slots_;  // LIFO
+  std::vector<std::uint32_t> free_slots_;  // first freed first: [free_head_, size())
+  std::size_t free_head_ = 0;
   std::vector<entity_id> ids_;
   std::vector<vec3> position_, aoi_half_, presence_half_;
   std::vector<std::uint32_t> visibility_, sees_;

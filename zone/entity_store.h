@@ -19,7 +19,8 @@ namespace zone {
 /// A generation-checked entity handle: (generation << entity_index_bits) | slot. Generations run
 /// 1 .. 2^(32 - entity_index_bits) - 1 and wrap back to 1, so a handle is never 0 (null_entity).
 /// A stale handle (its entity destroyed, even if the slot was reused) is rejected by every lookup
-/// until the slot's generation wraps around (max_generation = 1,023 reuses of that one slot).
+/// until the slot's generation wraps around (max_generation = 1,023 reuses of that one slot; a
+/// freed slot is reused only after 1,024 other frees: interest::space_slot_reuse_after).
 /// 22 slot bits: up to 4,194,304 entities in one zone (20 bits capped a zone at 1,048,576, below
 /// what the GPU interest engine steps in a tick; docs/zone-benchmarks.md, "Growth").
 using interest::entity_id;

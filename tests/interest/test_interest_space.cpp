@@ -6,6 +6,9 @@
 
 #include <cmath>
 #include <stdexcept>
+#include <unordered_set>
+#include <utility>
+#include <vector>
 
 #include "../common/seeds.h"
 #include "interest/interest_space.h"
@@ -22,7 +25,8 @@ namespace {
 
 /// One observer at the origin with an AOI half-extent of 10 (h = 4) and one target.
 struct pair_case {
-  interest_space space{space_options{.hysteresis = 4.0f}};
+  explicit pair_case(space_options o = {.hysteresis = 4.0f}) : space(std::move(o)) {}
+  interest_space space;
   entity_id eye = space.add({.position = {0, 0, 0}, .aoi_half = {10, 10, 10}, .presence_half = {0, 0, 0}});
   entity_id it = space.add({.position = {30, 0, 0}, .aoi_half = {0, 0, 0}, .presence_half = {0.5f, 0.5f, 0.5f}});
   void step() { REQUIRE_FALSE(space.step().has_value()); }
@@ -89,7 +93,7 @@ TEST_SUITE("interest.space") {
   }
 
   TEST_CASE("remove: observers get a leave, the handle is refused, its slot's next handle differs") {
-    pair_case c;
+    pair_case c({.hysteresis = 4.0f, .slot_reuse_after = 0});  // the freed slot reused at once
     REQUIRE(c.space.move(c.it, {1, 0, 0}));
     c.step();
     REQUIRE(as_vector(c.space.visible(c.eye)) == ids{c.it});
@@ -106,6 +110,63 @@ TEST_SUITE("interest.space") {
     CHECK(as_vector(c.space.entered(c.eye)) == ids{again});
     CHECK(c.space.visible(c.it).empty());
     CHECK(c.space.size() == 2);
+  }
+
+  TEST_CASE(
+      "slot reuse: a freed slot waits for 1,024 other frees, first freed first; a handle recurs after 1,023 x 1,025 churns") {
+    interest_space space;
+    const entity_id keep = space.add({});
+    // One entity churning: each add takes a new slot until more than 1,024 wait.
+    std::vector<entity_id> first_round;
+    for (std::size_t k = 0; k <= space_slot_reuse_after; ++k) {
+      const entity_id id = space.add({});
+      REQUIRE(id != null_entity);
+      CHECK((id & interest_space::slot_mask) == k + 1);
+      first_round.push_back(id);
+      REQUIRE(space.remove(id));
+    }
+    CHECK(space.slot_count() == space_slot_reuse_after + 2);
+    // Then the first freed comes back first, a generation on.
+    std::vector<entity_id> again;
+    for (std::size_t k = 0; k < 3; ++k) {
+      const entity_id id = space.add({});
+      again.push_back(id);
+      CHECK((id & interest_space::slot_mask) == (first_round[k] & interest_space::slot_mask));
+      CHECK((id >> space_slot_bits) == (first_round[k] >> space_slot_bits) + 1);
+      CHECK_FALSE(space.alive(first_round[k]));
+      REQUIRE(space.remove(id));
+    }
+    CHECK(space.slot_count() == space_slot_reuse_after + 2);  // no slot more
+    // Every handle is new until slot 1's generation wraps: after 1,023 uses of each of the 1,025
+    // slots in turn.
+    std::unordered_set<entity_id> seen(first_round.begin(), first_round.end());
+    seen.insert(again.begin(), again.end());
+    std::size_t churns = first_round.size() + again.size(), repeat_at = 0;
+    seen.reserve(1100000);
+    for (; churns < 1100000 && repeat_at == 0; ++churns) {
+      const entity_id id = space.add({});
+      if (!seen.insert(id).second) repeat_at = churns;
+      REQUIRE(space.remove(id));
+    }
+    CHECK(repeat_at == space_max_generation * (space_slot_reuse_after + 1));
+    CHECK(space.alive(keep));
+    CHECK(space.size() == 1);
+  }
+
+  TEST_CASE(
+      "slot reuse at once (slot_reuse_after 0): the most recently freed slot, its handle back after 1,023 churns") {
+    interest_space space({.slot_reuse_after = 0});
+    const entity_id first = space.add({});
+    REQUIRE(space.remove(first));
+    std::size_t churns = 1;
+    for (;; ++churns) {
+      const entity_id id = space.add({});
+      CHECK((id & interest_space::slot_mask) == (first & interest_space::slot_mask));
+      REQUIRE(space.remove(id));
+      if (id == first || churns > 2 * space_max_generation) break;
+    }
+    CHECK(churns == space_max_generation);
+    CHECK(space.slot_count() == 1);
   }
 
   TEST_CASE("resize: a grown AOI enters, a shrink inside the margin stays, a shrink beyond leaves") {

@@ -303,7 +303,13 @@ TEST_SUITE("zone.world") {
     cfg.share_patrol = cfg.share_town = cfg.share_chase = 0;
     interest::thread_pool pool(2);
     interest::grid_finder finder(&pool);
-    zone_world w(cfg, finder, &pool);
+    // Freed slots reused at once (the default waits for 1,024 other frees), so the new wanderer
+    // lands in the old one's slot and its behaviour state's place.
+    interest::space_options options;
+    options.finder = &finder;
+    options.pool = &pool;
+    options.slot_reuse_after = 0;
+    zone_world w(cfg, options);
     w.populate();
     const auto speed_of = [&](entity_id id) {
       const vec3 v = w.store().get(id)->velocity;
