@@ -165,12 +165,8 @@ entity_id interest_space::add(const entity_spec& s, std::string* error) {
   std::uint32_t slot;
   const std::size_t free = free_slots_.size() - free_head_;
   if (free > 0 && opt_.slot_reuse_after == 0) {
-    slot = free_slots_.back();  // the most recently freed
+    slot = free_slots_.back();  // the most recently freed (free_head_ stays 0 here)
     free_slots_.pop_back();
-    if (free_head_ == free_slots_.size()) {
-      free_slots_.clear();
-      free_head_ = 0;
-    }
   } else if (free > opt_.slot_reuse_after || (free > 0 && slot_dense_.size() >= space_max_entities)) {
     slot = free_slots_[free_head_++];  // the first freed
     if (free_head_ == free_slots_.size()) {
