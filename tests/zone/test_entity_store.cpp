@@ -173,9 +173,7 @@ TEST_SUITE("zone.entity_store") {
 
   TEST_CASE("a reused slot gets a new generation; handles are never null") {
     // Freed slots reused at once (the default waits for 1,024 other frees; test_interest_space).
-    interest::space_options at_once;
-    at_once.slot_reuse_after = 0;
-    entity_store store(max_entities, at_once);
+    entity_store store(max_entities, {.slot_reuse_after = 0});
     const entity_id keep = store.create({});
     std::set<entity_id> handles;
     entity_id prev = null_entity;

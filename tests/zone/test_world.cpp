@@ -305,11 +305,7 @@ TEST_SUITE("zone.world") {
     interest::grid_finder finder(&pool);
     // Freed slots reused at once (the default waits for 1,024 other frees), so the new wanderer
     // lands in the old one's slot and its behaviour state's place.
-    interest::space_options options;
-    options.finder = &finder;
-    options.pool = &pool;
-    options.slot_reuse_after = 0;
-    zone_world w(cfg, options);
+    zone_world w(cfg, {.finder = &finder, .pool = &pool, .slot_reuse_after = 0});
     w.populate();
     const auto speed_of = [&](entity_id id) {
       const vec3 v = w.store().get(id)->velocity;

@@ -19,14 +19,6 @@
 namespace zone::test {
 namespace cb = zone::interest::category_bits;
 
-/// A store that reuses a freed slot at once, the most recently freed first
-/// (space_options::slot_reuse_after 0; the default waits for 1,024 other frees): the harness's
-/// destroys then always meet a reused slot, the case the tracker must not mistake for the old entity.
-inline interest::space_options reuse_slots_at_once() {
-  interest::space_options o;
-  o.slot_reuse_after = 0;
-  return o;
-}
 using id_list = std::vector<entity_id>;
 
 // ---- the oracle ------------------------------------------------------------------------------
@@ -127,7 +119,9 @@ class world {
     for (std::size_t k = 0; k < n; ++k) (void)store.create(random_desc());
   }
 
-  entity_store store{max_entities, reuse_slots_at_once()};
+  // Freed slots reused at once, the most recently freed first (the default waits for 1,024 other
+  // frees): every destroy then meets a reused slot, which the tracker must not take for the old entity.
+  entity_store store{max_entities, {.slot_reuse_after = 0}};
 
   void step() {
     auto pos = store.positions();
@@ -307,7 +301,9 @@ inline void run_against_oracle(std::uint64_t seed, const run_config& c, int tick
 
 /// Two-entity fixture for hand-made scenarios: observer A at the origin, target B.
 struct pair_fixture {
-  entity_store store{max_entities, reuse_slots_at_once()};
+  // Freed slots reused at once, the most recently freed first (the default waits for 1,024 other
+  // frees): every destroy then meets a reused slot, which the tracker must not take for the old entity.
+  entity_store store{max_entities, {.slot_reuse_after = 0}};
   interest::brute_force_finder finder;
   interest_tracker tracker;
   entity_id a, b;
