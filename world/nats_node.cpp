@@ -61,7 +61,8 @@ std::unique_ptr<nats_node> nats_node::join(const node_options& opt, const zone_c
   natsOptions* no = nullptr;
   natsOptions_Create(&no);
   natsOptions_SetURL(no, opt.url.c_str());
-  natsOptions_SetTimeout(no, 2000);
+  const int timeout_ms = std::max(1, static_cast<int>(opt.nats_timeout_s * 1000));
+  natsOptions_SetTimeout(no, timeout_ms);
   natsOptions_SetMaxReconnect(no, -1);  // keep trying: a NATS restart must not kill the zone
   natsOptions_SetReconnectWait(no, 200);
   natsStatus s = natsConnection_Connect(&n->nc_, no);
@@ -69,7 +70,7 @@ std::unique_ptr<nats_node> nats_node::join(const node_options& opt, const zone_c
   if (s != NATS_OK) return fail("cannot connect to NATS at " + opt.url + ": " + status_text(s));
   jsOptions jo;
   jsOptions_Init(&jo);
-  jo.Wait = 2000;
+  jo.Wait = timeout_ms;
   if ((s = natsConnection_JetStream(&n->js_, n->nc_, &jo)) != NATS_OK) return fail("JetStream: " + status_text(s));
   if ((s = open_bucket(&n->kv_, n->js_, "world-" + opt.world, 0)) != NATS_OK) {
     return fail("KV bucket world-" + opt.world + ": " + status_text(s) + " (is JetStream on: nats-server -js?)");
@@ -288,12 +289,35 @@ void nats_node::heartbeat_loop() {
       if (s == NATS_OK) {
         lease_revision_ = rev;
       } else if (s == NATS_ERR || s == NATS_NOT_FOUND) {
-        // The update was refused (wrong last revision: our lease lapsed and the key is gone or
-        // someone else holds the region now): this zone must stop serving it. Timeouts and a
-        // lost connection are transient: the next renewal tries again.
-        spdlog::error("world '{}': lost the lease of region {}: {}", opt_.world, region_, status_text(s));
-        lease_lost_ = true;
-        return;
+        // The update was refused (wrong last revision): the key read back tells why. Timeouts
+        // and a lost connection are transient: the next renewal tries again.
+        kvEntry* e = nullptr;
+        const natsStatus g = kvStore_Get(&e, lease_, lease_key_.c_str());  // NATS_NOT_FOUND: none, or deleted
+        const std::string have = g == NATS_OK ? kvEntry_ValueString(e) : "";
+        const std::uint64_t have_revision = g == NATS_OK ? kvEntry_Revision(e) : 0;
+        if (e) kvEntry_Destroy(e);
+        natsStatus c = NATS_OK;
+        switch (judge_lease_readback(lease_value_, g == NATS_OK || g == NATS_NOT_FOUND, g == NATS_OK, have)) {
+          case lease_readback::ours: lease_revision_ = have_revision; break;
+          case lease_readback::lapsed:
+            c = kvStore_CreateString(&rev, lease_, lease_key_.c_str(), lease_value_.c_str());
+            if (c == NATS_OK) {
+              lease_revision_ = rev;
+              ++stats_.lease_reclaims;
+              spdlog::warn(
+                  "world '{}': the lease of region {} had lapsed ({}); nobody had claimed the region: taken back",
+                  opt_.world, region_, status_text(s));
+              break;
+            }
+            if (c != NATS_ERR) break;  // transient
+            [[fallthrough]];           // someone claimed it first
+          case lease_readback::taken:
+            spdlog::error("world '{}': lost the lease of region {} ({}): another zone holds it", opt_.world, region_,
+                          status_text(s));
+            lease_lost_ = true;
+            return;
+          case lease_readback::unknown: break;
+        }
       }
     }
     refresh_addresses();
@@ -318,24 +342,47 @@ void nats_node::fetch_loop() {
 }
 
 void nats_node::send_loop() {
+  // One record at a time, in order; the first stays queued until it is settled. While NATS is
+  // unreachable the sender pauses (250 ms, doubling to 4 s) and tries the same record again: the
+  // records wait, none is dropped. Stopping with NATS unreachable abandons what is left (lost with
+  // the zone, like a kill's).
+  constexpr std::chrono::milliseconds first_pause(250), longest_pause(4000);
+  std::chrono::milliseconds pause = first_pause;
   while (true) {
-    handoff_record r;
+    outgoing o;
     {
       std::unique_lock lock(out_mutex_);
       out_cv_.wait(lock, [&] { return stopping_.load() || !outbox_.empty(); });
       if (outbox_.empty()) return;  // stopping, nothing left
-      r = outbox_.front();
-      outbox_.pop_front();
+      o = outbox_.front();          // only this thread takes records off
     }
-    const std::string key = "e." + hex(r.gid);
-    if (r.epoch == 0) {
-      // The entity left the world here (a player logged out): its ownership record goes too.
-      spdlog::debug("world '{}': {:x} left the world in region {}: its ownership record deleted", opt_.world, r.gid, region_);
-      kvStore_Delete(kv_, key.c_str());
+    const send_outcome outcome = send(o, 0);
+    std::unique_lock lock(out_mutex_);
+    if (outcome == send_outcome::done) {
+      outbox_.pop_front();
+      pause = first_pause;
       continue;
     }
-    send_handoff(r, 0);
+    ++stats_.handoff_retries;
+    outbox_.front() = o;  // a publish still to do remembers its CAS
+    if (!stopping_.load()) out_cv_.wait_for(lock, pause, [&] { return stopping_.load(); });
+    if (stopping_.load()) {
+      stats_.handoffs_abandoned += outbox_.size();
+      spdlog::error(
+          "world '{}': stopping with NATS unreachable: {} handoff records not sent (their entities are lost "
+          "with this zone)",
+          opt_.world, outbox_.size());
+      outbox_.clear();
+      return;
+    }
+    pause = std::min(pause * 2, longest_pause);
   }
+}
+
+lease_readback judge_lease_readback(std::string_view ours, bool readable, bool found, std::string_view value) {
+  if (!readable) return lease_readback::unknown;
+  if (!found) return lease_readback::lapsed;
+  return value == ours ? lease_readback::ours : lease_readback::taken;
 }
 
 cas_readback judge_cas_readback(std::string_view wanted, std::uint64_t from_revision, bool found,
@@ -345,15 +392,14 @@ cas_readback judge_cas_readback(std::string_view wanted, std::uint64_t from_revi
   return cas_readback::conflict;
 }
 
-bool nats_node::ownership_cas(handoff_record& r, int fail_first) {
+nats_node::cas_outcome nats_node::ownership_cas(handoff_record& r, int fail_first) {
   // From (us, epoch - 1) at the revision we know to (them, epoch). A failed CAS may have taken
   // effect (a timeout whose update went through) or changed nothing (a timeout before it): the
-  // key read back tells which.
+  // key read back tells which. KV unreadable: unsettled at once (the sender pauses and comes back).
   const std::string key = "e." + hex(r.gid);
   const std::string value = std::to_string(r.to) + " " + std::to_string(r.epoch);
   constexpr int attempts = 5;
   natsStatus last = NATS_OK;
-  bool unreadable = false;
   for (int attempt = 0; attempt < attempts; ++attempt) {
     if (attempt > 0) std::this_thread::sleep_for(std::chrono::milliseconds(20 << (attempt - 1)));
     std::uint64_t rev = 0;
@@ -362,18 +408,19 @@ bool nats_node::ownership_cas(handoff_record& r, int fail_first) {
                                                  : kvStore_UpdateString(&rev, kv_, key.c_str(), value.c_str(), r.owner_revision);
     if (s == NATS_OK) {
       r.owner_revision = rev;
-      return true;
+      return cas_outcome::ours;
     }
     last = s;
     kvEntry* e = nullptr;
     const natsStatus g = kvStore_Get(&e, kv_, key.c_str());  // NATS_NOT_FOUND: no entry, or deleted
     if (g != NATS_OK && g != NATS_NOT_FOUND) {
-      unreadable = true;
-      last = g;
       if (e) kvEntry_Destroy(e);
-      continue;  // the CAS again: harmless (it cannot apply twice), and it may settle it
+      spdlog::warn(
+          "world '{}': handoff of {:x} to region {}: the ownership CAS failed ({}) and KV is unreadable ({}): "
+          "tried again later",
+          opt_.world, r.gid, r.to, status_text(s), status_text(g));
+      return cas_outcome::unsettled;
     }
-    unreadable = false;
     const char* have = g == NATS_OK ? kvEntry_ValueString(e) : nullptr;
     const std::string have_value = have ? have : "";
     const std::uint64_t have_revision = g == NATS_OK ? kvEntry_Revision(e) : 0;
@@ -384,48 +431,64 @@ bool nats_node::ownership_cas(handoff_record& r, int fail_first) {
         spdlog::info("world '{}': handoff of {:x} to region {}: the CAS failed ({}) but had taken effect (revision {})",
                      opt_.world, r.gid, r.to, status_text(s), have_revision);
         r.owner_revision = have_revision;
-        return true;
+        return cas_outcome::ours;
       case cas_readback::conflict:
         // Not ours per KV: the entity is not handed on; our in-transit copy expires.
         ++stats_.handoff_cas_conflicts;
         spdlog::warn("world '{}': handoff of {:x} to region {} refused by the ownership CAS ({}): KV holds '{}'",
                      opt_.world, r.gid, r.to, status_text(s), have_value);
-        return false;
+        return cas_outcome::refused;
       case cas_readback::retry:
         break;
     }
   }
-  ++stats_.handoff_cas_unknown;
-  spdlog::error("world '{}': handoff of {:x} to region {} not settled after {} CAS attempts ({}; {}): not published, "
-                "the entity is lost when its in-transit copy expires",
-                opt_.world, r.gid, r.to, attempts, unreadable ? "KV unreadable" : "KV unchanged", status_text(last));
-  return false;
+  spdlog::warn(
+      "world '{}': handoff of {:x} to region {}: {} CAS attempts failed ({}) while KV stayed unchanged: tried "
+      "again later",
+      opt_.world, r.gid, r.to, attempts, status_text(last));
+  return cas_outcome::unsettled;
 }
 
-std::uint64_t nats_node::send_handoff(handoff_record& r, int fail_first) {
+nats_node::send_outcome nats_node::send(outgoing& o, int fail_first) {
+  handoff_record& r = o.record;
+  if (r.epoch == 0) {
+    // The entity left the world here (a player logged out): its ownership record goes too.
+    const natsStatus s = kvStore_Delete(kv_, ("e." + hex(r.gid)).c_str());
+    if (s != NATS_OK && s != NATS_NOT_FOUND) {
+      spdlog::warn("world '{}': the ownership record of {:x} (left the world) not deleted: {}: tried again later",
+                   opt_.world, r.gid, status_text(s));
+      return send_outcome::retry;
+    }
+    spdlog::debug("world '{}': {:x} left the world in region {}: its ownership record deleted", opt_.world, r.gid,
+                  region_);
+    return send_outcome::done;
+  }
   // 1. Ownership by compare-and-set (with the read-back after a failure).
-  if (!ownership_cas(r, fail_first)) return 0;
-  // 2. The record on the stream, deduplicated by (gid, epoch) if a retry sends it twice.
+  if (!o.cas_done) {
+    switch (ownership_cas(r, fail_first)) {
+      case cas_outcome::ours: o.cas_done = true; break;
+      case cas_outcome::refused: return send_outcome::done;
+      case cas_outcome::unsettled: return send_outcome::retry;
+    }
+  }
+  // 2. The record on the stream, deduplicated by (gid, epoch) if a retry sends it twice (and, past
+  // the stream's 2-minute dedupe window, made harmless by the epoch: the new zone applies an
+  // epoch once).
   const auto bytes = encode(r);
   const std::string subj = subject("handoff", r.to);
   const std::string msg_id = hex(r.gid) + "-" + std::to_string(r.epoch);
   jsPubOptions po;
   jsPubOptions_Init(&po);
   po.MsgId = msg_id.c_str();
-  bool sent = false;
-  natsStatus s = NATS_OK;
-  for (int attempt = 0; attempt < 5 && !sent; ++attempt) {
-    s = js_Publish(nullptr, js_, subj.c_str(), bytes.data(), static_cast<int>(bytes.size()), &po, nullptr);
-    sent = s == NATS_OK;
-    if (!sent) std::this_thread::sleep_for(std::chrono::milliseconds(20 << attempt));
+  const natsStatus s =
+      js_Publish(nullptr, js_, subj.c_str(), bytes.data(), static_cast<int>(bytes.size()), &po, nullptr);
+  if (s != NATS_OK) {
+    spdlog::warn("world '{}': handoff of {:x} to region {} not published ({}): tried again later", opt_.world, r.gid,
+                 r.to, status_text(s));
+    return send_outcome::retry;
   }
-  if (sent) {
-    ++stats_.handoffs_sent;
-  } else {
-    ++stats_.handoff_publish_failures;
-    spdlog::error("world '{}': handoff of {:x} to region {} not published: {}", opt_.world, r.gid, r.to, status_text(s));
-  }
-  return r.owner_revision;
+  ++stats_.handoffs_sent;
+  return send_outcome::done;
 }
 
 void nats_node::answer_census(const std::string& reply) {
@@ -433,7 +496,16 @@ void nats_node::answer_census(const std::string& reply) {
   // then count u32 and gid u64 per entity in transit from here, then count u32 and gid u64 per
   // player handed off here whose client has not come yet.
   const auto ids = link_->owned_epochs();
-  const auto transit = link_->transit_ids();
+  auto transit = link_->transit_ids();
+  {
+    // Records the sender still holds (NATS unreachable): in transit even once their copy here expired.
+    std::lock_guard lock(out_mutex_);
+    for (const outgoing& o : outbox_) {
+      if (o.record.epoch != 0) transit.push_back(o.record.gid);
+    }
+  }
+  std::sort(transit.begin(), transit.end());
+  transit.erase(std::unique(transit.begin(), transit.end()), transit.end());
   std::vector<global_id> awaiting;
   for (const auto& [token, p] : tokens_) {
     const entity_id local = link_->local_of(p.gid);
@@ -575,10 +647,10 @@ void nats_node::after_step(zone_world& w, std::vector<redirect>& out) {
   if (auto gone = link_->take_departed(); !gone.empty()) {
     std::lock_guard lock(out_mutex_);
     for (const global_id g : gone) {
-      handoff_record r;
-      r.gid = g;
-      r.epoch = 0;
-      outbox_.push_back(r);
+      outgoing o;
+      o.record.gid = g;
+      o.record.epoch = 0;
+      outbox_.push_back(std::move(o));
     }
     out_cv_.notify_one();
   }
@@ -593,7 +665,7 @@ void nats_node::after_step(zone_world& w, std::vector<redirect>& out) {
   if (!records.empty()) {
     {
       std::lock_guard lock(out_mutex_);
-      for (auto& r : records) outbox_.push_back(std::move(r));
+      for (auto& r : records) outbox_.push_back(outgoing{std::move(r)});
     }
     out_cv_.notify_one();
   }

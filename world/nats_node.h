@@ -49,6 +49,7 @@ struct node_options {
   net::world_bounds bounds{{0, 0, 0}, {4096, 4096, 256}};
   std::string advertise_host = "127.0.0.1";  ///< where redirected clients reach this zone
   double lease_ttl_s = 3;                    ///< a region's lease lapses this long after its zone's last renewal
+  double nats_timeout_s = 2;                 ///< how long a connect, or a KV or JetStream request, waits for NATS
   float handoff_margin = 8;
   float ghost_band = 0;  ///< 0: world::ghost_band(zone config)
   std::uint32_t ghost_timeout_ticks = 60;
@@ -61,12 +62,16 @@ struct node_options {
 
 /// Counters of a node (game thread writes, any thread may read roughly).
 struct node_stats {
-  std::atomic<std::uint64_t> handoffs_sent{0}, handoff_cas_conflicts{0}, handoff_publish_failures{0};
+  std::atomic<std::uint64_t> handoffs_sent{0}, handoff_cas_conflicts{0};
   /// Ownership CASes that failed but had taken effect (the read-back found our value): published.
   std::atomic<std::uint64_t> handoff_cas_confirmed{0};
-  /// Ownership CASes not settled after every attempt (KV unreadable, or unchanged while every CAS
-  /// failed): not published, the entity is lost (docs/world.md "Not done / limits").
-  std::atomic<std::uint64_t> handoff_cas_unknown{0};
+  /// Rounds of the sender that did not settle its first record (NATS unreachable or slow: the CAS
+  /// unsettled, the publish or a delete failed): the record stays first and is tried again.
+  std::atomic<std::uint64_t> handoff_retries{0};
+  /// Records the sender still held when the zone stopped with NATS unreachable: lost with the zone.
+  std::atomic<std::uint64_t> handoffs_abandoned{0};
+  /// Leases that lapsed while NATS was unreachable and were taken back (nobody had claimed the region).
+  std::atomic<std::uint64_t> lease_reclaims{0};
   std::atomic<std::uint64_t> handoffs_applied{0}, handoff_duplicates{0}, redirects{0}, redirect_claims{0};
   std::atomic<std::uint64_t> inputs_forwarded{0}, inputs_received{0}, snapshot_requests{0}, players_abandoned{0};
   std::atomic<std::uint64_t> ghost_publish_failures{0}, ghost_inbox_dropped{0};
@@ -83,6 +88,20 @@ enum class cas_readback : std::uint8_t {
 /// `found`: the key has a live entry (false: none, or deleted), whose `value` and `revision` follow.
 [[nodiscard]] cas_readback judge_cas_readback(std::string_view wanted, std::uint64_t from_revision, bool found,
                                               std::string_view value, std::uint64_t revision);
+
+/// Why a lease renewal was refused, judged by the lease key read back (docs/world.md "Regions").
+enum class lease_readback : std::uint8_t {
+  ours,     ///< our value (its incarnation is this claim's alone) at another revision: an earlier
+            ///< renewal took effect but its reply was lost; renew from that revision
+  lapsed,   ///< no key: the lease lapsed (NATS unreachable longer than its TTL); create it again
+            ///< (succeeds only if nobody claimed the region meanwhile)
+  taken,    ///< another value: another zone holds the region; stop serving it
+  unknown,  ///< the key unreadable: try again at the next renewal
+};
+/// `ours`: this zone's lease value; `readable`: the read answered; `found`: the key has a live
+/// entry (false: none, or deleted), whose `value` follows.
+[[nodiscard]] lease_readback judge_lease_readback(std::string_view ours, bool readable, bool found,
+                                                  std::string_view value);
 
 /// One zone's NATS side; a zone_extension for zone_server.
 class nats_node final : public zone_extension {
@@ -117,11 +136,15 @@ class nats_node final : public zone_extension {
   void forward_input(entity_id e, const vec3& intent, std::uint32_t sequence) override;
   [[nodiscard]] bool must_stop() const override { return lease_lost_.load(); }
 
-  /// Testing hook (tests/world/test_world_nats.cpp): runs the sender thread's path for `r` (the
+  /// Testing hook (tests/world/test_world_nats.cpp): one round of the sender thread for `r` (the
   /// ownership CAS with its read-back, then the publish) on the calling thread, the first
   /// `fail_first` CAS attempts taken as failed without being sent (a timeout that changed
-  /// nothing). Returns the KV revision its CAS settled at (0: not ours, or not settled).
-  std::uint64_t send_handoff_for_testing(handoff_record r, int fail_first = 0) { return send_handoff(r, fail_first); }
+  /// nothing). Returns the KV revision its CAS settled at when the record was published (0: not
+  /// ours, or not settled: the sender would try it again).
+  std::uint64_t send_handoff_for_testing(handoff_record r, int fail_first = 0) {
+    outgoing o{std::move(r)};
+    return send(o, fail_first) == send_outcome::done && o.cas_done ? o.record.owner_revision : 0;
+  }
 
  private:
   nats_node() = default;
@@ -139,8 +162,19 @@ class nats_node final : public zone_extension {
   void heartbeat_loop();
   void fetch_loop();
   void send_loop();
-  std::uint64_t send_handoff(handoff_record& r, int fail_first);  ///< CAS and publish; the revision or 0
-  bool ownership_cas(handoff_record& r, int fail_first);           ///< true: KV names r.to by our CAS
+  /// A record for the sender thread: a handoff (epoch > 0), or the removal of a departed entity's
+  /// ownership record (epoch 0).
+  struct outgoing {
+    handoff_record record;
+    bool cas_done = false;  ///< KV names the new owner by our CAS (record.owner_revision): publish only
+  };
+  enum class send_outcome : std::uint8_t {
+    done,   ///< published (or deleted), or refused by the ownership CAS: off the queue
+    retry,  ///< not settled (NATS unreachable or slow): try the same record again later
+  };
+  enum class cas_outcome : std::uint8_t { ours, refused, unsettled };
+  send_outcome send(outgoing& o, int fail_first);                ///< one round for the sender's first record
+  cas_outcome ownership_cas(handoff_record& r, int fail_first);  ///< ours: KV names r.to by our CAS
   [[nodiscard]] std::string subject(const char* what, std::uint32_t region) const;
   bool refresh_addresses();
   void answer_census(const std::string& reply);
@@ -170,7 +204,7 @@ class nats_node final : public zone_extension {
   // Handoff records for the sender thread.
   std::mutex out_mutex_;
   std::condition_variable out_cv_;
-  std::deque<handoff_record> outbox_;  ///< a record with to == region_ and epoch 0: delete the gid's KV record
+  std::deque<outgoing> outbox_;  ///< the first stays until it is settled (the census counts it in transit)
   // Region addresses (host, port), refreshed by the heartbeat thread.
   mutable std::mutex addr_mutex_;
   std::vector<std::pair<std::string, std::uint16_t>> addresses_;

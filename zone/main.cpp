@@ -83,19 +83,19 @@ int main(int argc, char** argv) {
   running = nullptr;
 #ifdef ZONE_HAVE_NATS
   if (node) {
+    node->leave();  // first: its sender settles (or abandons) the records still queued
     const auto& s = node->stats();
     const auto& l = node->link().stats();
-    spdlog::info("world: region {} owned {} entities at the end; handoffs out {} (CAS conflicts {}, confirmed by read-back {}, unsettled {}, publish failures {}), in {} "
-                 "(duplicates {}, no room {}); handoff latency p50 {:.2f} ms p99 {:.2f} ms max {:.2f} ms (p99 {:.2f} ticks); redirects {} claimed {}; "
-                 "ghost bytes out {} in {} over {} / {} messages; gaps {}, snapshots out {}",
-                 node->region(), node->link().owned_count(), l.handoffs_out, s.handoff_cas_conflicts.load(),
-                 s.handoff_cas_confirmed.load(), s.handoff_cas_unknown.load(),
-                 s.handoff_publish_failures.load(), s.handoffs_applied.load(), s.handoff_duplicates.load(),
-                 s.handoffs_no_room.load(), node->handoff_ms().percentile(0.5), node->handoff_ms().percentile(0.99),
-                 node->handoff_ms().max(), node->handoff_ticks().percentile(0.99),
-                 s.redirects.load(), s.redirect_claims.load(), l.ghost_bytes_out, l.ghost_bytes_in, l.ghost_messages_out,
-                 l.ghost_messages_in, l.gaps, l.snapshots_out);
-    node->leave();
+    spdlog::info(
+        "world: region {} owned {} entities at the end; handoffs out {} (CAS conflicts {}, confirmed by read-back {}, rounds retried {}, abandoned at the stop {}), in {} "
+        "(duplicates {}, no room {}); handoff latency p50 {:.2f} ms p99 {:.2f} ms max {:.2f} ms (p99 {:.2f} ticks); redirects {} claimed {}; "
+        "ghost bytes out {} in {} over {} / {} messages; gaps {}, snapshots out {}; lease taken back {} times",
+        node->region(), node->link().owned_count(), l.handoffs_out, s.handoff_cas_conflicts.load(),
+        s.handoff_cas_confirmed.load(), s.handoff_retries.load(), s.handoffs_abandoned.load(),
+        s.handoffs_applied.load(), s.handoff_duplicates.load(), s.handoffs_no_room.load(),
+        node->handoff_ms().percentile(0.5), node->handoff_ms().percentile(0.99), node->handoff_ms().max(),
+        node->handoff_ticks().percentile(0.99), s.redirects.load(), s.redirect_claims.load(), l.ghost_bytes_out,
+        l.ghost_bytes_in, l.ghost_messages_out, l.ghost_messages_in, l.gaps, l.snapshots_out, s.lease_reclaims.load());
   }
 #endif
   return 0;

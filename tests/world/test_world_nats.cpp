@@ -2,8 +2,8 @@
 // by pid), with in-process zones: regions claimed by CAS, handoffs over JetStream with every
 // entity owned exactly once (the zones' census and the ownership records in KV agree), replays
 // refused, a failed ownership CAS read back, a player's redirect, a stalled neighbour, a full
-// zone. A zone-server process killed with SIGKILL and restarted is test_world_script_kill's
-// (scripts/world.sh --kill). Without nats-server it fails (configuring says so).
+// zone, nats-server stopped and started again. A zone-server process killed with SIGKILL and restarted is
+// test_world_script_kill's (scripts/world.sh --kill). Without nats-server it fails (configuring says so).
 #include <doctest/doctest.h>
 
 #include <nats/nats.h>
@@ -34,10 +34,28 @@ struct nats_server {
   std::string dir = temp_dir();
   std::unique_ptr<child_process> proc;
   std::string url;
-  nats_server() {
-    proc = std::make_unique<child_process>(
-        std::vector<std::string>{NATS_SERVER_EXE, "-a", "127.0.0.1", "-p", "-1", "-js", "-sd", dir + "/js", "--ports_file_dir", dir},
-        dir + "/nats.log");
+  nats_server() { start("-1"); }
+  ~nats_server() { stop(); }
+  /// Stops it (SIGTERM: JetStream's state stays on disk in `dir`).
+  void stop() {
+    if (proc) proc->terminate(5000ms);
+    proc.reset();
+  }
+  /// Starts it again on the same port with the same JetStream state (a NATS restart).
+  bool restart() {
+    const auto colon = url.rfind(':');
+    const std::string port = url.substr(colon + 1);
+    stop();
+    url.clear();
+    start(port);
+    return !url.empty();
+  }
+
+ private:
+  void start(const std::string& port) {
+    proc = std::make_unique<child_process>(std::vector<std::string>{NATS_SERVER_EXE, "-a", "127.0.0.1", "-p", port,
+                                                                    "-js", "-sd", dir + "/js", "--ports_file_dir", dir},
+                                           dir + "/nats.log");
     const std::string ports = dir + "/nats-server_" + std::to_string(proc->pid()) + ".ports";
     const auto deadline = std::chrono::steady_clock::now() + 10s;
     const std::regex re(R"((nats://[0-9.]+:[0-9]+))");
@@ -48,7 +66,6 @@ struct nats_server {
       std::this_thread::sleep_for(20ms);
     }
   }
-  ~nats_server() { proc->terminate(5000ms); }
 };
 
 zone_config small_world(std::uint64_t seed) {
@@ -132,6 +149,45 @@ std::string hex_id(global_id g) {
   return b;
 }
 
+using zone_list = std::vector<std::unique_ptr<node_zone>>;
+
+/// Handoffs the zones decided, less those the ownership CAS refused or a stopping zone abandoned.
+std::uint64_t handoffs_sent(const zone_list& zones) {
+  std::uint64_t n = 0;
+  for (const auto& z : zones) {
+    n += z->node->link().stats().handoffs_out - z->node->stats().handoff_cas_conflicts.load() -
+         z->node->stats().handoffs_abandoned.load();
+  }
+  return n;
+}
+
+std::uint64_t handoffs_applied(const zone_list& zones) {
+  std::uint64_t n = 0;
+  for (const auto& z : zones) n += z->node->stats().handoffs_applied.load();
+  return n;
+}
+
+/// Applies what is in flight without handing off more, until every handoff sent is applied and
+/// confirmed, or `limit` passes. Handed-off entities stay "in transit" at their old zone until the
+/// new owner's ghosts confirm them, so the drain publishes ghosts too (after_step; nothing moves,
+/// so nothing new is handed off). A transit can outlive the drain only if its entity left the
+/// ghost band before the new owner adopted it (then its copy expires with ticks, which do not
+/// advance here).
+void drain(zone_list& zones, std::chrono::seconds limit) {
+  const auto unconfirmed = [&] {
+    std::size_t n = 0;
+    for (auto& z : zones) n += z->node->link().transit_ids().size();
+    return n;
+  };
+  const auto deadline = std::chrono::steady_clock::now() + limit;
+  while ((handoffs_applied(zones) < handoffs_sent(zones) || unconfirmed() > 0) &&
+         std::chrono::steady_clock::now() < deadline) {
+    for (auto& z : zones) z->node->before_step(*z->world);
+    for (auto& z : zones) z->node->after_step(*z->world, z->redirects);
+    std::this_thread::sleep_for(10ms);
+  }
+}
+
 }  // namespace
 
 /// The world's KV bucket and handoff stream, opened by the test itself (its own connection).
@@ -182,6 +238,74 @@ TEST_SUITE("world.nats") {
     CHECK(judge_cas_readback("1 1", 0, false, "", 0) == cas_readback::retry);      // still no entry
     CHECK(judge_cas_readback("1 1", 0, true, "1 1", 3) == cas_readback::publish);  // took effect
     CHECK(judge_cas_readback("1 1", 0, true, "2 1", 3) == cas_readback::conflict); // someone else created it
+  }
+
+  TEST_CASE("judge_lease_readback: our value renews on, no key is a lapse, another value is a take-over") {
+    CHECK(judge_lease_readback("127.0.0.1 7000 3", true, true, "127.0.0.1 7000 3") == lease_readback::ours);
+    CHECK(judge_lease_readback("127.0.0.1 7000 3", true, false, "") == lease_readback::lapsed);
+    CHECK(judge_lease_readback("127.0.0.1 7000 3", true, true, "127.0.0.1 7000 4") == lease_readback::taken);
+    CHECK(judge_lease_readback("127.0.0.1 7000 3", true, true, "claiming") == lease_readback::taken);
+    CHECK(judge_lease_readback("127.0.0.1 7000 3", false, false, "") == lease_readback::unknown);
+  }
+
+  TEST_CASE(
+      "a refused lease renewal is read back: a lost reply renews on, a lapsed lease is taken back, another holder stops the zone") {
+    nats_server ns;
+    REQUIRE_FALSE(ns.url.empty());
+    const auto c = small_world(1);
+    std::string err;
+    auto node = nats_node::join(options(ns.url, "lease", 1, 1, c), c, &err);  // a lease of 1 s, renewed every 250 ms
+    REQUIRE_MESSAGE(node != nullptr, err);
+    node->started(7100);
+    natsConnection* nc = nullptr;
+    jsCtx* js = nullptr;
+    kvStore* kv = nullptr;
+    REQUIRE(natsConnection_ConnectTo(&nc, ns.url.c_str()) == NATS_OK);
+    REQUIRE(natsConnection_JetStream(&js, nc, nullptr) == NATS_OK);
+    REQUIRE(js_KeyValue(&kv, js, "world-lease-lease") == NATS_OK);
+    const auto lease = [&]() -> std::pair<std::string, std::uint64_t> {
+      kvEntry* e = nullptr;
+      if (kvStore_Get(&e, kv, "r.0") != NATS_OK) return {"", 0};
+      std::pair<std::string, std::uint64_t> out{kvEntry_ValueString(e), kvEntry_Revision(e)};
+      kvEntry_Destroy(e);
+      return out;
+    };
+    // Until the node has renewed past `rev` (bounded: 5 s).
+    const auto renewed_past = [&](std::uint64_t rev) {
+      const auto until = std::chrono::steady_clock::now() + 5s;
+      while (lease().second <= rev && std::chrono::steady_clock::now() < until) std::this_thread::sleep_for(20ms);
+      return lease().second > rev;
+    };
+    const auto [value, rev0] = lease();
+    CHECK(value == "127.0.0.1 7100 1");
+    REQUIRE(renewed_past(rev0));
+    // 1. A renewal that took effect but whose reply was lost: our value at a revision the node
+    // does not know (the test writes it). Its next renewal is refused, read back, and goes on.
+    std::uint64_t rev1 = 0;
+    REQUIRE(kvStore_PutString(&rev1, kv, "r.0", value.c_str()) == NATS_OK);
+    CHECK(renewed_past(rev1 + 1));  // renewed from rev1 (a refused renewal writes nothing)
+    CHECK_FALSE(node->must_stop());
+    CHECK(node->stats().lease_reclaims.load() == 0);
+    // 2. The lease lapsed (the key gone, as its TTL does): taken back at the next renewal.
+    REQUIRE(kvStore_Delete(kv, "r.0") == NATS_OK);
+    const auto until = std::chrono::steady_clock::now() + 5s;
+    while (node->stats().lease_reclaims.load() == 0 && std::chrono::steady_clock::now() < until)
+      std::this_thread::sleep_for(20ms);
+    CHECK(node->stats().lease_reclaims.load() == 1);
+    CHECK(lease().first == value);
+    CHECK_FALSE(node->must_stop());
+    // 3. Another zone's claim (another incarnation): the node stops serving the region.
+    std::uint64_t rev3 = 0;
+    REQUIRE(kvStore_PutString(&rev3, kv, "r.0", "127.0.0.1 7200 2") == NATS_OK);
+    const auto stop_by = std::chrono::steady_clock::now() + 5s;
+    while (!node->must_stop() && std::chrono::steady_clock::now() < stop_by) std::this_thread::sleep_for(20ms);
+    CHECK(node->must_stop());
+    CHECK(lease() == std::pair<std::string, std::uint64_t>{"127.0.0.1 7200 2", rev3});  // untouched
+    node.reset();  // leaves without deleting another zone's lease
+    CHECK(lease() == std::pair<std::string, std::uint64_t>{"127.0.0.1 7200 2", rev3});
+    kvStore_Destroy(kv);
+    jsCtx_Destroy(js);
+    natsConnection_Destroy(nc);
   }
 
   TEST_CASE("a failed ownership CAS is read back: taken effect publishes once, unchanged retries, another value conflicts") {
@@ -263,17 +387,20 @@ TEST_SUITE("world.nats") {
       CHECK(st.handoff_cas_conflicts.load() == 2);
       CHECK(w.stream_messages() == msgs0 + 3);
     }
-    // 4. Every attempt fails while KV stays unchanged: not settled, counted apart, not published.
+    // 4. Every attempt of a round fails while KV stays unchanged: not settled, not published (the
+    // sender keeps the record and comes back to it); the next round settles it.
     {
       const global_id g = 0xD4;
       const std::uint64_t r0 = own(g, 4);
       CHECK(node->send_handoff_for_testing(record(g, 5, r0), 100) == 0);
-      CHECK(st.handoff_cas_unknown.load() == 1);
       CHECK(w.get("e." + hex_id(g)) == std::pair{std::to_string(us) + " 4", r0});
       CHECK(w.stream_messages() == msgs0 + 3);
+      const std::uint64_t got = node->send_handoff_for_testing(record(g, 5, r0));
+      CHECK(w.get("e." + hex_id(g)) == std::pair{wanted, got});
+      CHECK(w.stream_messages() == msgs0 + 4);
     }
-    CHECK(st.handoffs_sent.load() == 4);
-    CHECK(st.handoff_publish_failures.load() == 0);
+    CHECK(st.handoffs_sent.load() == 5);
+    CHECK(st.handoff_cas_conflicts.load() == 2);
   }
 
   TEST_CASE("regions are claimed by CAS: one zone each, a full world refuses, leaving frees a region") {
@@ -312,7 +439,7 @@ TEST_SUITE("world.nats") {
     const std::uint64_t seed = zone::test::fresh_seed();
     CAPTURE(seed);
     const auto c = small_world(seed);
-    std::vector<std::unique_ptr<node_zone>> zones;
+    zone_list zones;
     for (int k = 0; k < 4; ++k) {
       std::string err;
       auto n = nats_node::join(options(ns.url, "handoff", 2, 2, c), c, &err);
@@ -325,40 +452,14 @@ TEST_SUITE("world.nats") {
       for (auto& z : zones) z->tick();
       std::this_thread::sleep_for(2ms);
     }
-    // Drain: apply what is in flight without handing off more.
-    const auto sent = [&] {
-      std::uint64_t n = 0;
-      for (auto& z : zones) n += z->node->link().stats().handoffs_out - z->node->stats().handoff_cas_conflicts.load() -
-             z->node->stats().handoff_cas_unknown.load();
-      return n;
-    };
-    const auto applied = [&] {
-      std::uint64_t n = 0;
-      for (auto& z : zones) n += z->node->stats().handoffs_applied.load();
-      return n;
-    };
-    // Handed-off entities stay "in transit" at their old zone until the new owner's ghosts confirm
-    // them, so the drain publishes ghosts too (after_step; nothing moves, so nothing new is handed
-    // off). A transit can outlive the drain only if its entity left the ghost band before the new
-    // owner adopted it (then its copy expires with ticks, which do not advance here).
-    const auto unconfirmed = [&] {
-      std::size_t n = 0;
-      for (auto& z : zones) n += z->node->link().transit_ids().size();
-      return n;
-    };
-    const auto deadline = std::chrono::steady_clock::now() + 10s;
-    while ((applied() < sent() || unconfirmed() > 0) && std::chrono::steady_clock::now() < deadline) {
-      for (auto& z : zones) z->node->before_step(*z->world);
-      for (auto& z : zones) z->node->after_step(*z->world, z->redirects);
-      std::this_thread::sleep_for(10ms);
-    }
-    CHECK(sent() > 100);
-    CHECK(applied() == sent());
+    drain(zones, 10s);
+    CHECK(handoffs_sent(zones) > 100);
+    CHECK(handoffs_applied(zones) == handoffs_sent(zones));
     std::uint64_t cas_conflicts = 0, dup = 0;
     for (auto& z : zones) {
       cas_conflicts += z->node->stats().handoff_cas_conflicts.load();
       dup += z->node->stats().handoff_duplicates.load();
-      CHECK(z->node->stats().handoff_publish_failures.load() == 0);
+      CHECK(z->node->stats().handoff_retries.load() == 0);
     }
     CHECK(cas_conflicts == 0);
     CHECK(dup == 0);  // JetStream's dedupe and one delivery each
@@ -652,5 +753,77 @@ TEST_SUITE("world.nats") {
     const auto verdict = check_world(*census, *owners);
     CHECK(verdict.ok());
     CHECK(owned + verdict.transit_only == total - removed);  // every handed-off entity arrived
+  }
+
+  TEST_CASE(
+      "NATS restarted, down longer than the lease: the zones tick on, keep their regions, lose no entity crossing meanwhile") {
+    nats_server ns;
+    REQUIRE_FALSE(ns.url.empty());
+    const std::uint64_t seed = zone::test::fresh_seed();
+    CAPTURE(seed);
+    const auto c = small_world(seed);
+    zone_list zones;
+    for (int k = 0; k < 2; ++k) {
+      std::string err;
+      auto o = options(ns.url, "outage", 2, 1, c);  // a lease of 1 s
+      o.nats_timeout_s = 0.25;  // requests in the outage fail soon: the sender's rounds end unsettled
+      auto n = nats_node::join(o, c, &err);
+      REQUIRE_MESSAGE(n != nullptr, err);
+      zones.push_back(std::make_unique<node_zone>(std::move(n), c));
+    }
+    std::size_t total = 0;
+    for (auto& z : zones) total += z->world->store().size();
+    // Ticks at 30 Hz for `d` (the lease and the NATS client's timeouts are in real time).
+    const auto run_for = [&](std::chrono::milliseconds d) {
+      const auto until = std::chrono::steady_clock::now() + d;
+      while (std::chrono::steady_clock::now() < until) {
+        for (auto& z : zones) z->tick();
+        std::this_thread::sleep_for(33ms);
+      }
+    };
+    const auto decided = [&] {
+      std::uint64_t n = 0;
+      for (auto& z : zones) n += z->node->link().stats().handoffs_out;
+      return n;
+    };
+    run_for(2s);
+    const std::uint64_t before = decided();
+    ns.stop();
+    run_for(3s);  // three leases' worth without NATS
+    const std::uint64_t during = decided() - before;
+    REQUIRE(ns.restart());
+    run_for(3s);
+    CHECK(during > 0);  // entities crossed a border while NATS was down
+    for (auto& z : zones) CHECK_FALSE(z->node->must_stop());
+    drain(zones, 20s);
+    CHECK(handoffs_applied(zones) == handoffs_sent(zones));
+    std::uint64_t given_up = 0, retries = 0, reclaims = 0;
+    for (auto& z : zones) {
+      retries += z->node->stats().handoff_retries.load();
+      given_up += z->node->stats().handoffs_abandoned.load() + z->node->stats().handoff_cas_conflicts.load();
+      reclaims += z->node->stats().lease_reclaims.load();
+    }
+    CHECK(given_up == 0);
+    CHECK(retries > 0);    // the sender came back to records NATS did not take
+    CHECK(reclaims == 2);  // both leases lapsed in the outage and were taken back
+    std::string err;
+    const auto census = take_census(ns.url, "outage", 1500, &err, [&] {
+      for (auto& z : zones) {
+        z->node->before_step(*z->world);
+        z->node->after_step(*z->world, z->redirects);
+      }
+    });
+    REQUIRE_MESSAGE(census.has_value(), err);
+    REQUIRE(census->size() == 2);
+    std::set<global_id> ids;
+    for (const auto& z : *census) {
+      for (const auto& [g, epoch] : z.owned) CHECK_MESSAGE(ids.insert(g).second, "entity owned by two zones");
+    }
+    const auto owners = read_owners(ns.url, "outage", &err);
+    REQUIRE_MESSAGE(owners.has_value(), err);
+    const auto verdict = check_world(*census, *owners);
+    CHECK(verdict.ok());
+    CHECK(verdict.transit_only == 0);
+    CHECK(ids.size() == total);  // none lost, none made up
   }
 }
