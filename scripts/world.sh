@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # A local world of zones (docs/world.md) in one command: a nats-server with JetStream on a free
 # loopback port, COLSxROWS zone-servers (one region each), one bot swarm per zone whose bots walk
-# across borders (following redirects), and optionally a zone killed with SIGKILL and restarted.
+# across borders (following redirects), and optionally a zone killed with SIGKILL and restarted, or
+# nats-server stopped for a while and started again.
 # Prints one report: the swarms' checks, handoffs and their latency, ghost bytes per border per
 # tick, tick p99 per zone, and world-check's census (no entity owned twice; KV agrees).
 # Bounded in time: everything stops after --duration (+ about 15 s to start, drain and check).
@@ -18,6 +19,9 @@ Usage: scripts/world.sh [options]
   --world-size M   world side in metres (default 1024)
   --bosses N       bosses per zone (default 0: a boss's 400 m AOI widens the ghost band to ~453 m)
   --kill           SIGKILL zone 1 at a third of the run and restart it (fault test)
+  --nats-restart S stop nats-server at a third of the run for S seconds, then start it again on its
+                   port with its JetStream state (fault test): every zone must still serve at the end
+                   and world-check find every entity; not with --kill
   --oracle         zones publish their ground truth (zone-server --oracle) and every swarm checks each
                    bot against the truth of the zone it is in (ghosts included), following it across
                    borders (bot-swarm --oracle --oracle-zones); the run fails if no bot crossed a
@@ -38,7 +42,7 @@ EOF
 }
 
 extra_zone_args=()
-build=build grid=2x2 bots=200 npcs=5000 duration=30 size=1024 kill=0 threads=1 bosses=0 out= oracle=0 fault= single=0 interest=cpu
+build=build grid=2x2 bots=200 npcs=5000 duration=30 size=1024 kill=0 nats_restart=0 threads=1 bosses=0 out= oracle=0 fault= single=0 interest=cpu
 while [ $# -gt 0 ]; do
   case "$1" in
     --build) build=$2; shift 2 ;;
@@ -48,6 +52,7 @@ while [ $# -gt 0 ]; do
     --duration) duration=$2; shift 2 ;;
     --world-size) size=$2; shift 2 ;;
     --kill) kill=1; shift ;;
+    --nats-restart) nats_restart=$2; shift 2 ;;
     --oracle) oracle=1; shift ;;
     --interest) interest=$2; shift 2 ;;
     --test-fault) fault=$2; shift 2 ;;
@@ -62,10 +67,11 @@ while [ $# -gt 0 ]; do
 done
 [[ $grid =~ ^([0-9]+)x([0-9]+)$ ]] || { echo "world.sh: --grid must be COLSxROWS" >&2; exit 64; }
 zones=$(( ${BASH_REMATCH[1]} * ${BASH_REMATCH[2]} ))
-for v in "$bots" "$npcs" "$duration" "$size" "$threads" "$bosses" "$single"; do
-  [[ $v =~ ^[0-9]+$ ]] || { echo "world.sh: --bots, --npcs, --duration, --world-size, --threads, --bosses and --single take whole numbers (got '$v')" >&2; exit 64; }
+for v in "$bots" "$npcs" "$duration" "$size" "$threads" "$bosses" "$single" "$nats_restart"; do
+  [[ $v =~ ^[0-9]+$ ]] || { echo "world.sh: --bots, --npcs, --duration, --world-size, --threads, --bosses, --single and --nats-restart take whole numbers (got '$v')" >&2; exit 64; }
 done
 [ "$kill" = 1 ] && [ "$oracle" = 1 ] && { echo "world.sh: --oracle and --kill do not go together (a killed zone's truth stream ends)" >&2; exit 64; }
+[ "$kill" = 1 ] && [ "$nats_restart" -gt 0 ] && { echo "world.sh: --kill and --nats-restart do not go together (one fault a run)" >&2; exit 64; }
 case "$interest" in cpu) where=(--finder cpu --interest host) ;; gpu) where=(--finder gpu --interest gpu) ;;
   *) echo "world.sh: --interest must be cpu or gpu" >&2; exit 64 ;; esac
 case "$fault" in ''|drop|extra|stealth|freeze|class) ;; *) echo "world.sh: --test-fault must be drop, extra, stealth, freeze or class" >&2; exit 64 ;; esac
@@ -87,16 +93,21 @@ trap cleanup EXIT
 # 1. nats-server on a free loopback port (a fresh JetStream store: an --out reused from an earlier
 # run must not bring that world's streams and KV back).
 rm -rf "$out/js"
-nats-server -a 127.0.0.1 -p -1 -js -sd "$out/js" --ports_file_dir "$out" >"$out/nats.log" 2>&1 &
-nats_pid=$!
-pids+=("$nats_pid")
-url=
-for _ in $(seq 100); do
-  url=$(grep -o 'nats://[0-9.]*:[0-9]*' "$out/nats-server_$nats_pid.ports" 2>/dev/null | head -1 || true)
-  [ -n "$url" ] && break
-  sleep 0.1
-done
-[ -n "$url" ] || { echo "world.sh: nats-server did not start ($out/nats.log)" >&2; exit 1; }
+# start_nats PORT (-1: a free one): nats-server on it, its pid in nats_pid and its URL in url.
+start_nats() {
+  nats-server -a 127.0.0.1 -p "$1" -js -sd "$out/js" --ports_file_dir "$out" >>"$out/nats.log" 2>&1 &
+  nats_pid=$!
+  pids+=("$nats_pid")
+  url=
+  for _ in $(seq 100); do
+    url=$(grep -o 'nats://[0-9.]*:[0-9]*' "$out/nats-server_$nats_pid.ports" 2>/dev/null | head -1 || true)
+    [ -n "$url" ] && break
+    sleep 0.1
+  done
+  [ -n "$url" ] || { echo "world.sh: nats-server did not start ($out/nats.log)" >&2; exit 1; }
+}
+: >"$out/nats.log"
+start_nats -1
 
 name=local
 zone_args=(--world "$name" --nats "$url" --world-grid "$grid" --world-x "$size" --world-y "$size" --listen 127.0.0.1
@@ -167,6 +178,18 @@ if [ "$kill" = 1 ] && [ "$zones" -gt 1 ]; then
   killed_note="$killed_note; it owned ${before:-?} at a census about a second before the kill (lost with it)"
 fi
 
+# Fault: nats-server stopped (SIGTERM: its JetStream state stays on disk) for --nats-restart
+# seconds, then started again on the same port.
+nats_note=
+if [ "$nats_restart" -gt 0 ]; then
+  sleep $(( duration / 3 ))
+  kill -TERM "$nats_pid" 2>/dev/null || true
+  wait "$nats_pid" 2>/dev/null || true
+  sleep "$nats_restart"
+  start_nats "${url##*:}"
+  nats_note="nats-server stopped at $(( duration / 3 )) s for ${nats_restart} s and started again on its port"
+fi
+
 # 5. Wait for the swarms, then take the census while the zones still run.
 for k in $(seq 0 $((zones - 1))); do wait "${spid[$k]}" 2>/dev/null || true; done
 sleep 2  # the zones see the swarms' disconnects (their players leave; a loaded zone takes a few ticks)
@@ -177,12 +200,16 @@ set +e
 check_rc=$?
 set -e
 # Each zone writes its exit report (read below) on the way out: wait for them (10 s at most, then SIGKILL).
-for k in $(seq 0 $((zones - 1))); do kill -TERM "${zpid[$k]}" 2>/dev/null || true; done
 running() {  # running PID: the process has not exited (an exited child stays a zombie, state Z, until waited for)
   local st
   st=$(cut -d' ' -f3 "/proc/$1/stat" 2>/dev/null) || return 1
   [ -n "$st" ] && [ "$st" != Z ]
 }
+stopped_early=0
+for k in $(seq 0 $((zones - 1))); do
+  running "${zpid[$k]}" || { echo "zone $k stopped before the end of the run ($out/zone-$k.log)" >&2; stopped_early=1; }
+done
+for k in $(seq 0 $((zones - 1))); do kill -TERM "${zpid[$k]}" 2>/dev/null || true; done
 for _ in $(seq 100); do
   alive=0
   for k in $(seq 0 $((zones - 1))); do running "${zpid[$k]}" && alive=1; done
@@ -213,6 +240,7 @@ fi
 json() { grep -o "\"$2\": [0-9.e+-]*" "$1" | head -1 | awk '{print $2}'; }
 echo "== world '$name': $grid regions of ${size} m, $npcs NPCs per zone, $bots bots, ${duration} s ($(nproc) cores, $(date -u +%F))"
 [ -n "$killed_note" ] && echo "fault: $killed_note"
+[ -n "$nats_note" ] && echo "fault: $nats_note"
 mism=0
 printf '%-6s %-7s %9s %9s %9s %11s %10s %10s %16s\n' zone region connected redirects digests mismatches failures "re-logins" "tick p50/p99 ms"
 for k in $(seq 0 $((zones - 1))); do
@@ -300,9 +328,9 @@ if [ -n "$fault" ] && [ "$oracle" = 1 ]; then
   # it), and nothing else may fail.
   others=$((mism - oracle_mism))
   echo "injected fault '$fault' in zone 0: oracle mismatches $oracle_mism (must be > 0), other failures $others (must be 0)"
-  [ "$check_rc" = 0 ] && [ "$oracle_mism" -gt 0 ] && [ "$others" = 0 ] && [ "$digest_mism" = 0 ] && [ "$crossings" -gt 0 ] && [ "$unexplained" = 0 ]
+  [ "$check_rc" = 0 ] && [ "$oracle_mism" -gt 0 ] && [ "$others" = 0 ] && [ "$digest_mism" = 0 ] && [ "$crossings" -gt 0 ] && [ "$unexplained" = 0 ] && [ "$stopped_early" = 0 ]
   exit
 fi
 [ "$oracle" = 1 ] && [ "$oracle_checked" = 0 ] && { echo "the oracle checked no frame" >&2; exit 1; }
 [ "$oracle" = 1 ] && [ "$crossings" = 0 ] && { echo "no bot crossed a border: the oracle spanned no zones" >&2; exit 1; }
-[ "$check_rc" = 0 ] && [ "$mism" = 0 ] && [ "$unexplained" = 0 ]
+[ "$check_rc" = 0 ] && [ "$mism" = 0 ] && [ "$unexplained" = 0 ] && [ "$stopped_early" = 0 ]

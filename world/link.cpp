@@ -607,7 +607,8 @@ handoff_status zone_link::apply_handoff(zone_world& w, const handoff_record& r, 
     return handoff_status::no_room;
   }
   entity_id id = have;
-  if (i != nullptr) {
+  const bool had_ghost = i != nullptr;
+  if (had_ghost) {
     // Our ghost of it becomes the entity: same handle, so views here see no leave and enter.
     auto& st = w.store();
     st.set_position(id, r.desc.position);
@@ -628,14 +629,18 @@ handoff_status zone_link::apply_handoff(zone_world& w, const handoff_record& r, 
   }
   // Its view at the old owner, as this zone's handles (owned or ghosts; unknown ids skipped),
   // becomes its previous set here in place of what this zone saw of it as a ghost (one zone's
-  // history: its owner's): the next step keeps each target within AOI + h.
-  std::vector<entity_id> carried;
-  carried.reserve(std::min(r.visible.size(), max_handoff_visible));
-  for (const global_id g : r.visible) {
-    if (carried.size() >= max_handoff_visible) break;
-    if (const entity_id v = local_of(g); v != null_entity && v != id) carried.push_back(v);
+  // history: its owner's): the next step keeps each target within AOI + h. Only into a ghost: an
+  // entity new here (no ghost of it: its owner fell silent for the ghost timeout, NATS down) is
+  // new to every view here and starts from an empty set, as every new entity does.
+  if (had_ghost) {
+    std::vector<entity_id> carried;
+    carried.reserve(std::min(r.visible.size(), max_handoff_visible));
+    for (const global_id g : r.visible) {
+      if (carried.size() >= max_handoff_visible) break;
+      if (const entity_id v = local_of(g); v != null_entity && v != id) carried.push_back(v);
+    }
+    w.interest().carry_visible(id, carried);
   }
-  w.interest().carry_visible(id, carried);
   last_epoch_[r.gid] = r.epoch;
   i->epoch = r.epoch;
   i->revision = r.owner_revision;

@@ -259,20 +259,26 @@ void nats_node::started(std::uint16_t port) {
   refresh_addresses();
 }
 
-bool nats_node::refresh_addresses() {
-  std::vector<std::pair<std::string, std::uint16_t>> table(map_.count());
+void nats_node::refresh_addresses() {
+  std::vector<std::pair<std::string, std::uint16_t>> table;
+  {
+    std::lock_guard lock(addr_mutex_);
+    table = addresses_;
+  }
   for (std::uint32_t r = 0; r < map_.count(); ++r) {
     kvEntry* e = nullptr;
-    if (kvStore_Get(&e, lease_, ("r." + std::to_string(r)).c_str()) != NATS_OK) continue;
+    const natsStatus s = kvStore_Get(&e, lease_, ("r." + std::to_string(r)).c_str());
+    if (s == NATS_NOT_FOUND) table[r] = {std::string(), 0};  // nobody holds the region now
+    if (s != NATS_OK) continue;  // unreadable (NATS unreachable): the address known before stays
     std::istringstream in(kvEntry_ValueString(e));
     std::string host;
     unsigned port = 0;
-    if (in >> host >> port && port <= 65535) table[r] = {host, static_cast<std::uint16_t>(port)};
+    table[r] = in >> host >> port && port <= 65535 ? std::pair{host, static_cast<std::uint16_t>(port)}
+                                                   : std::pair{std::string(), std::uint16_t{0}};
     kvEntry_Destroy(e);
   }
   std::lock_guard lock(addr_mutex_);
   addresses_ = std::move(table);
-  return true;
 }
 
 void nats_node::heartbeat_loop() {
@@ -280,7 +286,11 @@ void nats_node::heartbeat_loop() {
   auto next = std::chrono::steady_clock::now();
   while (!stopping_.load()) {
     next += std::chrono::duration_cast<std::chrono::steady_clock::duration>(period);
-    while (!stopping_.load() && std::chrono::steady_clock::now() < next) std::this_thread::sleep_for(std::chrono::milliseconds(20));
+    while (!stopping_.load() && std::chrono::steady_clock::now() < next) {
+      // A redirect waits for an address the table lacks (the game thread never waits on NATS).
+      if (addresses_wanted_.exchange(false)) refresh_addresses();
+      std::this_thread::sleep_for(std::chrono::milliseconds(20));
+    }
     if (stopping_.load()) break;
     {
       std::lock_guard lock(lease_mutex_);
@@ -361,9 +371,11 @@ void nats_node::send_loop() {
     if (outcome == send_outcome::done) {
       outbox_.pop_front();
       pause = first_pause;
+      sender_stalled_ = false;
       continue;
     }
     ++stats_.handoff_retries;
+    sender_stalled_ = true;
     outbox_.front() = o;  // a publish still to do remembers its CAS
     if (!stopping_.load()) out_cv_.wait_for(lock, pause, [&] { return stopping_.load(); });
     if (stopping_.load()) {
@@ -654,7 +666,12 @@ void nats_node::after_step(zone_world& w, std::vector<redirect>& out) {
     }
     out_cv_.notify_one();
   }
-  auto records = link_->collect_handoffs(w, monotonic_us());
+  // While NATS is unreachable (the connection down, or the sender unable to settle its first
+  // record) no entity is handed off: it stays owned and served here, beyond the border, and goes
+  // once NATS answers again (a prompt handoff, with its view as it is then).
+  const bool hold = natsConnection_Status(nc_) != NATS_CONN_STATUS_CONNECTED || sender_stalled_.load();
+  if (hold) ++stats_.handoff_hold_ticks;
+  auto records = hold ? std::vector<handoff_record>{} : link_->collect_handoffs(w, monotonic_us());
   for (auto& r : records) {
     if (r.behaviour.kind != behaviour::player) continue;
     r.token = rng_() | 1;  // never 0
@@ -679,10 +696,7 @@ void nats_node::after_step(zone_world& w, std::vector<redirect>& out) {
     }
     const bool unknown = std::any_of(pending_redirects_.begin(), pending_redirects_.end(),
                                      [&](const pending_redirect& p) { return addr[p.to].second == 0; });
-    if (unknown && refresh_addresses()) {
-      std::lock_guard lock(addr_mutex_);
-      addr = addresses_;
-    }
+    if (unknown) addresses_wanted_ = true;  // read by the heartbeat thread; the redirect goes out on a later tick
     const auto give_up = static_cast<std::uint64_t>(opt_.unclaimed_player_s * tick_rate_hz_);
     std::erase_if(pending_redirects_, [&](const pending_redirect& p) {
       const auto& [host, port] = addr[p.to];

@@ -68,6 +68,9 @@ struct node_stats {
   /// Rounds of the sender that did not settle its first record (NATS unreachable or slow: the CAS
   /// unsettled, the publish or a delete failed): the record stays first and is tried again.
   std::atomic<std::uint64_t> handoff_retries{0};
+  /// Ticks on which no entity was handed off because NATS was unreachable (the connection down, or
+  /// the sender unable to settle its first record): entities past the border stayed owned here.
+  std::atomic<std::uint64_t> handoff_hold_ticks{0};
   /// Records the sender still held when the zone stopped with NATS unreachable: lost with the zone.
   std::atomic<std::uint64_t> handoffs_abandoned{0};
   /// Leases that lapsed while NATS was unreachable and were taken back (nobody had claimed the region).
@@ -176,7 +179,7 @@ class nats_node final : public zone_extension {
   send_outcome send(outgoing& o, int fail_first);                ///< one round for the sender's first record
   cas_outcome ownership_cas(handoff_record& r, int fail_first);  ///< ours: KV names r.to by our CAS
   [[nodiscard]] std::string subject(const char* what, std::uint32_t region) const;
-  bool refresh_addresses();
+  void refresh_addresses();  ///< the region address table from the leases (not on the game thread)
   void answer_census(const std::string& reply);
 
   node_options opt_;
@@ -196,6 +199,7 @@ class nats_node final : public zone_extension {
   std::uint64_t lease_revision_ = 0;
   std::mutex lease_mutex_;
   std::atomic<bool> lease_lost_{false}, stopping_{false};
+  std::atomic<bool> sender_stalled_{false};  ///< the sender's last round left its first record unsettled
 
   // Inboxes filled by NATS threads, drained by the game thread.
   std::mutex inbox_mutex_;
@@ -208,6 +212,7 @@ class nats_node final : public zone_extension {
   // Region addresses (host, port), refreshed by the heartbeat thread.
   mutable std::mutex addr_mutex_;
   std::vector<std::pair<std::string, std::uint16_t>> addresses_;
+  std::atomic<bool> addresses_wanted_{false};  ///< a redirect waits for an address: refresh now
 
   std::thread heartbeat_, fetcher_, sender_;
   std::mt19937_64 rng_{std::random_device{}()};

@@ -195,10 +195,13 @@ run_result run_world(std::uint32_t cols, std::uint32_t rows, std::uint64_t seed,
     landed.clear();
     for (const auto& h : handoff_wire) {
       auto& z = *zones[h.to];
+      const bool had_ghost = z.link->local_of(h.gid) != null_entity;
       const auto first = z.link->apply_handoff(*z.world, h);
       CHECK(first == handoff_status::adopted);
-      // One zone's history for the observer: the new zone's reference continues from the old one's.
-      refs[h.to]->carry(h.gid, refs[h.from]->visible(h.gid));
+      // One zone's history for the observer: the new zone's reference continues from the old
+      // one's, when the new zone had a ghost of it (the band covers the margin: always, here).
+      CHECK(had_ghost);
+      if (had_ghost) refs[h.to]->carry(h.gid, refs[h.from]->visible(h.gid));
       landed.emplace_back(h.to, h);
       CHECK(z.link->apply_handoff(*z.world, h) == handoff_status::duplicate);
       ++res.duplicates;
@@ -502,6 +505,63 @@ TEST_SUITE("world.link") {
       CHECK(r.handoffs > 20);      // and entities do move
       CHECK(r.carried_in_margin > 0);  // carried views hold targets by hysteresis (6 to 200+ per run seen)
     }
+  }
+
+  TEST_CASE(
+      "a handoff's view goes along into the new zone's ghost of the entity; an entity new there starts from an empty set") {
+    const std::uint64_t seed = zone::test::fresh_seed();
+    CAPTURE(seed);
+    zone_config base = world_config(seed);
+    base.npc_count = 0, base.boss_count = 0;
+    const layout map(base.world, 2, 1);  // the border at x = 200
+    test_zone a(base, map, 0), b(base, map, 1);
+    // P 5 m from the border (zone 1 holds a ghost of it), Q far from it (no ghost there).
+    const entity_id p = a.world->spawn_player({195, 200, 5});
+    const entity_id q = a.world->spawn_player({100, 300, 5});
+    const entity_id t = b.world->spawn_player({260, 100, 5});  // the target both records name
+    REQUIRE(p != null_entity);
+    REQUIRE(q != null_entity);
+    REQUIRE(t != null_entity);
+    a.link->assign_ids(*a.world);
+    b.link->assign_ids(*b.world);
+    REQUIRE_FALSE(a.world->step().has_value());
+    std::vector<ghost_message> msgs;
+    a.link->build_ghosts(*a.world, msgs);
+    REQUIRE(msgs.size() == 1);
+    REQUIRE(b.link->apply_ghosts(*b.world, encode(msgs[0])) == ghost_status::applied);
+    REQUIRE(b.link->local_of(a.link->gid_of(p)) != null_entity);
+    REQUIRE(b.link->local_of(a.link->gid_of(q)) == null_entity);
+    // Each handed to zone 1 and placed beyond T's AOI edge by half the hysteresis, its record's
+    // view naming T (held there by hysteresis, as in one zone).
+    const auto t_at = b.world->store().get(t)->position;
+    const float reach = base.player_aoi + b.world->store().get(t)->presence_half_extent.x + base.hysteresis / 2;
+    const auto record = [&](entity_id e, vec3 at) {
+      handoff_record r;
+      r.gid = a.link->gid_of(e);
+      r.epoch = 1;
+      r.from = 0;
+      r.to = 1;
+      r.desc = *a.world->store().get(e);
+      r.desc.position = at;
+      r.behaviour = *a.world->behaviour_state_of(e);
+      r.visible = {b.link->gid_of(t)};
+      return r;
+    };
+    REQUIRE(b.link->apply_handoff(*b.world, record(p, {t_at.x - reach, t_at.y, t_at.z})) == handoff_status::adopted);
+    REQUIRE(b.link->apply_handoff(*b.world, record(q, {t_at.x + reach, t_at.y, t_at.z})) == handoff_status::adopted);
+    REQUIRE_FALSE(b.world->step().has_value());
+    const auto sees_t = [&](entity_id local) {
+      const auto& tr = b.world->tracker();
+      const auto vis = tr.visible(tr.row_of(local));
+      return std::find(vis.begin(), vis.end(), t) != vis.end();
+    };
+    CHECK(sees_t(b.link->local_of(a.link->gid_of(p))));        // carried into its ghost: T kept
+    CHECK_FALSE(sees_t(b.link->local_of(a.link->gid_of(q))));  // new here: T beyond its AOI
+    // Q sees T once inside its AOI (the geometry is right: only the history differed).
+    REQUIRE(b.world->store().set_position(b.link->local_of(a.link->gid_of(q)),
+                                          {t_at.x + reach - base.hysteresis, t_at.y, t_at.z}));
+    REQUIRE_FALSE(b.world->step().has_value());
+    CHECK(sees_t(b.link->local_of(a.link->gid_of(q))));
   }
 
   TEST_CASE("a ghost whose owner switches its class: the link reports it, and the clients holding it get the new class") {
