@@ -11,6 +11,7 @@
 #include <cstdio>
 #include <cstring>
 #include <filesystem>
+#include <functional>
 #include <map>
 #include <memory>
 #include <regex>
@@ -154,6 +155,32 @@ std::string hex_id(global_id g) {
 }
 
 using zone_list = std::vector<std::unique_ptr<node_zone>>;
+
+/// `count` zones of the world `name` (a cols x rows layout), each node's options changed by `tweak`.
+zone_list join_zones(const std::string& url, const std::string& name, std::uint32_t cols, std::uint32_t rows,
+                     const zone_config& c, int count, const std::function<void(node_options&)>& tweak = {}) {
+  zone_list zones;
+  for (int k = 0; k < count; ++k) {
+    std::string err;
+    auto o = options(url, name, cols, rows, c);
+    if (tweak) tweak(o);
+    auto n = nats_node::join(o, c, &err);
+    REQUIRE_MESSAGE(n != nullptr, err);
+    zones.push_back(std::make_unique<node_zone>(std::move(n), c));
+  }
+  return zones;
+}
+
+/// The census of in-process zones (their game threads answer: pumped while it waits).
+std::optional<std::vector<census_entry>> census_of(zone_list& zones, const std::string& url, const std::string& name,
+                                                   std::string* err) {
+  return take_census(url, name, 1500, err, [&] {
+    for (auto& z : zones) {
+      z->node->before_step(*z->world);
+      z->node->after_step(*z->world, z->redirects);  // census answers go out at the end of a tick
+    }
+  });
+}
 
 /// Handoffs the zones decided, less those the ownership CAS refused or a stopping zone abandoned.
 std::uint64_t handoffs_sent(const zone_list& zones) {
@@ -443,13 +470,7 @@ TEST_SUITE("world.nats") {
     const std::uint64_t seed = zone::test::fresh_seed();
     CAPTURE(seed);
     const auto c = small_world(seed);
-    zone_list zones;
-    for (int k = 0; k < 4; ++k) {
-      std::string err;
-      auto n = nats_node::join(options(ns.url, "handoff", 2, 2, c), c, &err);
-      REQUIRE_MESSAGE(n != nullptr, err);
-      zones.push_back(std::make_unique<node_zone>(std::move(n), c));
-    }
+    zone_list zones = join_zones(ns.url, "handoff", 2, 2, c, 4);
     std::size_t total = 0;
     for (auto& z : zones) total += z->world->store().size();  // world-wide ids come in after_step
     for (int t = 0; t < 240; ++t) {
@@ -470,12 +491,7 @@ TEST_SUITE("world.nats") {
 
     // The census (each zone answers on the game thread: pump them while waiting).
     std::string err;
-    const auto census = take_census(ns.url, "handoff", 1500, &err, [&] {
-      for (auto& z : zones) {
-        z->node->before_step(*z->world);
-        z->node->after_step(*z->world, z->redirects);  // census answers go out at the end of a tick
-      }
-    });
+    const auto census = census_of(zones, ns.url, "handoff", &err);
     REQUIRE_MESSAGE(census.has_value(), err);
     REQUIRE(census->size() == 4);
     std::map<global_id, std::uint32_t> owner;
@@ -564,13 +580,7 @@ TEST_SUITE("world.nats") {
     REQUIRE_FALSE(ns.url.empty());
     auto c = small_world(5);
     c.npc_count = 0;
-    std::vector<std::unique_ptr<node_zone>> zones;
-    for (int k = 0; k < 2; ++k) {
-      std::string err;
-      auto n = nats_node::join(options(ns.url, "redirect", 2, 1, c), c, &err);
-      REQUIRE_MESSAGE(n != nullptr, err);
-      zones.push_back(std::make_unique<node_zone>(std::move(n), c));
-    }
+    zone_list zones = join_zones(ns.url, "redirect", 2, 1, c, 2);
     auto& a = zones[0]->node->region() == 0 ? *zones[0] : *zones[1];
     auto& b = zones[0]->node->region() == 0 ? *zones[1] : *zones[0];
     // Both zones have ticked once (ids given).
@@ -630,13 +640,7 @@ TEST_SUITE("world.nats") {
     nats_server ns;
     REQUIRE_FALSE(ns.url.empty());
     auto c = small_world(9);
-    std::vector<std::unique_ptr<node_zone>> zones;
-    for (int k = 0; k < 2; ++k) {
-      std::string err;
-      auto n = nats_node::join(options(ns.url, "stall", 2, 1, c), c, &err);
-      REQUIRE_MESSAGE(n != nullptr, err);
-      zones.push_back(std::make_unique<node_zone>(std::move(n), c));
-    }
+    zone_list zones = join_zones(ns.url, "stall", 2, 1, c, 2);
     auto& a = *zones[0];
     auto& b = *zones[1];
     const auto ghosts = [](node_zone& z) {
@@ -772,15 +776,8 @@ TEST_SUITE("world.nats") {
     const std::uint64_t seed = zone::test::fresh_seed();
     CAPTURE(seed);
     const auto c = small_world(seed);
-    zone_list zones;
-    for (int k = 0; k < 2; ++k) {
-      std::string err;
-      auto o = options(ns.url, "outage", 2, 1, c);  // a lease of 1 s
-      o.nats_timeout_s = 0.25;                      // requests to a stalled NATS fail soon
-      auto n = nats_node::join(o, c, &err);
-      REQUIRE_MESSAGE(n != nullptr, err);
-      zones.push_back(std::make_unique<node_zone>(std::move(n), c));
-    }
+    // A lease of 1 s (options()); requests to a stalled NATS fail soon.
+    zone_list zones = join_zones(ns.url, "outage", 2, 1, c, 2, [](node_options& o) { o.nats_timeout_s = 0.25; });
     std::size_t total = 0;
     for (auto& z : zones) total += z->world->store().size();
     // Ticks at 30 Hz for `d` (the lease and the NATS client's timeouts are in real time).
@@ -825,12 +822,7 @@ TEST_SUITE("world.nats") {
             return n.stats().handoffs_abandoned.load() + n.stats().handoff_cas_conflicts.load();
           }) == 0);
     std::string err;
-    const auto census = take_census(ns.url, "outage", 1500, &err, [&] {
-      for (auto& z : zones) {
-        z->node->before_step(*z->world);
-        z->node->after_step(*z->world, z->redirects);
-      }
-    });
+    const auto census = census_of(zones, ns.url, "outage", &err);
     REQUIRE_MESSAGE(census.has_value(), err);
     REQUIRE(census->size() == 2);
     std::set<global_id> ids;
