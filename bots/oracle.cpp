@@ -199,6 +199,7 @@ struct oracle::scratch {
   std::vector<std::pair<std::size_t, std::size_t>> ranges;  // runs of slots [first, last) to test
   std::vector<std::uint64_t> out;                   // the set of the observer being scanned
   std::vector<std::vector<std::uint64_t>> blocks;  // the sets this thread stored this tick
+  std::vector<std::uint64_t> carried;              // a carried set as (id << 32)
 };
 
 /// The targets of one tick as the scans read them: presence boxes (position -+ half-extent, the
@@ -582,16 +583,34 @@ std::optional<std::string> oracle::compute(const net::truth::tick_frame& f) {
     return {at, set.size()};
   };
 
+  // The observers whose previous set this tick's step took from a handoff (net/truth.h): their
+  // targets as the server was given them, ascending.
+  const auto carried_of = [&](std::uint32_t id) -> std::optional<std::span<const std::uint32_t>> {
+    const auto& obs_ids = f.carried_observers;
+    const auto it = std::lower_bound(obs_ids.begin(), obs_ids.end(), id);
+    if (it == obs_ids.end() || *it != id) return std::nullopt;
+    const auto k = static_cast<std::size_t>(it - obs_ids.begin());
+    return std::span<const std::uint32_t>(f.carried_targets)
+        .subspan(f.carried_off[k], f.carried_off[k + 1] - f.carried_off[k]);
+  };
+
   const auto observe = [&](scratch& sc, std::size_t i) {
     const std::uint32_t a = lay.observers[i];
     const std::uint32_t id = lay.id(a);
     std::vector<std::uint64_t>& out = sc.out;  // (id << 32) | dense index
     out.clear();
     // History: a new entity starts from an empty set; one seen last tick continues from its set
-    // there; any other (present before the stream began, or after a gap) is not checked.
+    // there; any other (present before the stream began, or after a gap) is not checked. One the
+    // server carried a set to this tick (a handoff) continues from that set.
     std::span<const std::uint64_t> before;  // (id << 32) | dense index in prev's layout
     bool is_known = false;
-    if (prev_same_layout) {
+    const auto carried = carried_of(id);
+    if (carried) {
+      sc.carried.clear();
+      for (const std::uint32_t t : *carried) sc.carried.push_back(std::uint64_t{t} << 32);
+      before = sc.carried;  // by id only: mapped to this layout below
+      is_known = true;
+    } else if (prev_same_layout) {
       is_known = prev->known[i] != 0;
       before = prev->of(static_cast<std::uint32_t>(i));
     } else if (prev != nullptr) {
@@ -612,7 +631,7 @@ std::optional<std::string> oracle::compute(const net::truth::tick_frame& f) {
     std::uint32_t* const mark = sc.mark.data();
     sc.before.resize(before.size());
     std::uint32_t* const before_dense = sc.before.data();
-    if (prev_dense_same) {
+    if (prev_dense_same && !carried) {
       for (std::size_t b = 0; b < before.size(); ++b) {
         __builtin_prefetch(before.data() + std::min(b + 64, before.size() - 1));  // 8 lines on
         const auto d = static_cast<std::uint32_t>(before[b]);

@@ -362,7 +362,8 @@ void interest_tracker::commit(visibility_engine& e, const entity_columns& in, do
   leave_list_ = {out_.leaves, out_.leave_off, out_.leave_len};
   producer_ = &e;
   holder_ = &e;
-  carry_.clear();  // taken by this update
+  last_carry_.clear();
+  last_carry_.swap(carry_);  // taken by this update (kept for carried_by_last_update)
   last_on_engine_ = &e != &reference_;
 
   const visibility_timing& t = out_.timing;

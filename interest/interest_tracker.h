@@ -168,6 +168,11 @@ class interest_tracker {
   void carry_visible(entity_id observer, std::span<const entity_id> targets);
   /// Carried targets waiting for the next update (carry_visible).
   [[nodiscard]] std::size_t carried_pending() const { return carry_.size(); }
+  /// What the last update took from carry_visible: (observer, target) pairs ascending, each carried
+  /// observer with a (observer, null_entity) pair first (an observer carried with no targets has
+  /// only that), every target as given (the update ignored those not in its columns). Empty when
+  /// it took none. For a reader of the rules (the ground-truth stream: zone-server --oracle).
+  [[nodiscard]] std::span<const std::pair<entity_id, entity_id>> carried_by_last_update() const { return last_carry_; }
 
   /// Rows of the last update (= its columns' n).
   [[nodiscard]] std::size_t observer_count() const { return ids_.size(); }
@@ -258,7 +263,7 @@ class interest_tracker {
   std::vector<std::uint32_t> own_vis_off_{0}, own_enter_off_{0}, own_leave_off_{0};
 
   // carry_visible's pending (observer, target) pairs, and the merged previous sets built from them.
-  std::vector<std::pair<entity_id, entity_id>> carry_;
+  std::vector<std::pair<entity_id, entity_id>> carry_, last_carry_;
   std::vector<entity_id> carry_ids_, carry_vis_;
   std::vector<std::uint32_t> carry_off_;
 };

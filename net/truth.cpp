@@ -40,6 +40,7 @@ void put_rows(std::uint8_t*& at, std::size_t n, const std::uint32_t* keys, const
 
 std::size_t layout_bytes(std::size_t n) { return n * (layout_entity_bytes - 1) + padded4(n); }
 std::size_t changes_bytes(std::size_t m) { return 4 + m * (change_entity_bytes - 1) + padded4(m); }
+std::size_t carried_bytes(std::size_t k, std::size_t t) { return 8 + 8 * k + 4 * t; }
 
 template <class T>
 void take(const std::uint8_t*& at, std::vector<T>& v, std::size_t n) {
@@ -58,17 +59,21 @@ T read_at(const std::uint8_t* at) {
 }  // namespace
 
 void encode_tick(std::vector<std::uint8_t>& out, std::uint64_t tick, std::span<const float> positions,
-                 const layout_view* layout, std::uint32_t layout_seq, const changes_view* changes) {
+                 const layout_view* layout, std::uint32_t layout_seq, const changes_view* changes,
+                 const carried_view* carried) {
   const std::size_t n = positions.size() / 3;
   const bool with_changes = changes != nullptr && layout == nullptr;
   const std::size_t m = with_changes ? changes->index.size() : 0;
-  const std::size_t total =
-      header_bytes + 12 * n + (layout ? layout_bytes(n) : 0) + (with_changes ? changes_bytes(m) : 0);
+  const bool with_carried = carried != nullptr && !carried->observers.empty();
+  const std::size_t kc = with_carried ? carried->observers.size() : 0;
+  const std::size_t tc = with_carried ? carried->off[kc] - carried->off[0] : 0;
+  const std::size_t total = header_bytes + 12 * n + (layout ? layout_bytes(n) : 0) +
+                            (with_changes ? changes_bytes(m) : 0) + (with_carried ? carried_bytes(kc, tc) : 0);
   out.resize(total);
   std::uint8_t* at = out.data();
   put(at, static_cast<std::uint32_t>(total - 4));
   put(at, magic);
-  put(at, layout ? flag_layout : with_changes ? flag_changes : 0u);
+  put(at, (layout ? flag_layout : with_changes ? flag_changes : 0u) | (with_carried ? flag_carried : 0u));
   put(at, tick);
   put(at, static_cast<std::uint32_t>(n));
   put(at, layout_seq);
@@ -81,6 +86,13 @@ void encode_tick(std::vector<std::uint8_t>& out, std::uint64_t tick, std::span<c
     put_rows(at, m, changes->index.data(), changes->aoi_half.data(), changes->presence_half.data(),
              changes->classes.data(), changes->sees.data(), changes->kinds.data());
   }
+  if (with_carried) {
+    put(at, static_cast<std::uint32_t>(kc));
+    put(at, static_cast<std::uint32_t>(tc));
+    put_bytes(at, carried->observers.data(), 4 * kc);
+    for (std::size_t o = 0; o < kc; ++o) put(at, carried->off[o + 1] - carried->off[o]);
+    put_bytes(at, carried->targets.data() + carried->off[0], 4 * tc);
+  }
 }
 
 void encode_refusal(std::vector<std::uint8_t>& out, std::string_view why) {
@@ -92,7 +104,7 @@ void encode_refusal(std::vector<std::uint8_t>& out, std::string_view why) {
 }
 
 encoder::sent encoder::encode(std::vector<std::uint8_t>& out, std::uint64_t tick, std::span<const float> positions,
-                              const layout_view* layout, bool force_layout) {
+                              const layout_view* layout, bool force_layout, const carried_view* carried) {
   const std::size_t n = positions.size() / 3;
   changed_.clear();
   const auto keep = [&](const layout_view& l) {
@@ -105,7 +117,7 @@ encoder::sent encoder::encode(std::vector<std::uint8_t>& out, std::uint64_t tick
   };
   const auto whole = [&]() {
     const layout_view kept{ids_, aoi_, presence_, classes_, sees_, kinds_};
-    encode_tick(out, tick, positions, &kept, ++seq_);
+    encode_tick(out, tick, positions, &kept, ++seq_, nullptr, carried);
     have_ = true;
     return sent::layout;
   };
@@ -116,7 +128,7 @@ encoder::sent encoder::encode(std::vector<std::uint8_t>& out, std::uint64_t tick
   }
   if (layout == nullptr) {
     if (force_layout) return whole();
-    encode_tick(out, tick, positions, nullptr, seq_);
+    encode_tick(out, tick, positions, nullptr, seq_, nullptr, carried);
     return sent::positions;
   }
   // The same ids: which rows changed (bit for bit), stopping once the changes are too many.
@@ -135,7 +147,7 @@ encoder::sent encoder::encode(std::vector<std::uint8_t>& out, std::uint64_t tick
     }
   }
   if (changed_.empty()) {  // nothing the stream carries changed
-    encode_tick(out, tick, positions, nullptr, seq_);
+    encode_tick(out, tick, positions, nullptr, seq_, nullptr, carried);
     return sent::positions;
   }
   const std::size_t m = changed_.size();
@@ -151,7 +163,7 @@ encoder::sent encoder::encode(std::vector<std::uint8_t>& out, std::uint64_t tick
     ch_kinds_[c] = kinds_[k] = layout->kinds[k];
   }
   const changes_view cv{changed_, ch_aoi_, ch_presence_, ch_classes_, ch_sees_, ch_kinds_};
-  encode_tick(out, tick, positions, nullptr, ++seq_, &cv);
+  encode_tick(out, tick, positions, nullptr, ++seq_, &cv, carried);
   return sent::changes;
 }
 
@@ -168,10 +180,12 @@ std::optional<std::string> decode_tick(std::span<const std::uint8_t> body, tick_
   const auto count = read_at<std::uint32_t>(body.data() + 16);
   const auto seq = read_at<std::uint32_t>(body.data() + 20);
   if (m0 != magic) return "not a truth frame (bad magic)";
-  if ((flags & ~(flag_layout | flag_changes)) != 0 || flags == (flag_layout | flag_changes)) {
+  if ((flags & ~(flag_layout | flag_changes | flag_carried)) != 0 ||
+      (flags & (flag_layout | flag_changes)) == (flag_layout | flag_changes)) {
     return "truth frame with unknown flags " + std::to_string(flags);
   }
   const bool has_layout = (flags & flag_layout) != 0, has_changes = (flags & flag_changes) != 0;
+  const bool has_carried = (flags & flag_carried) != 0;
   const std::size_t n = count;
   const auto where = [&] { return "truth frame of tick " + std::to_string(tick) + ": "; };
   std::size_t m = 0;
@@ -182,11 +196,43 @@ std::optional<std::string> decode_tick(std::span<const std::uint8_t> body, tick_
     m = read_at<std::uint32_t>(body.data() + head + 12 * n);
     if (m > n) return where() + std::to_string(m) + " changes of " + std::to_string(n) + " entities";
   }
-  const std::size_t expect = head + 12 * n + (has_layout ? layout_bytes(n) : 0) + (has_changes ? changes_bytes(m) : 0);
+  const std::size_t before_carried =
+      head + 12 * n + (has_layout ? layout_bytes(n) : 0) + (has_changes ? changes_bytes(m) : 0);
+  std::size_t kc = 0, tc = 0;
+  if (has_carried) {
+    if (body.size() < before_carried + 8)
+      return where() + std::to_string(body.size()) + " bytes, too short for its carried sets";
+    kc = read_at<std::uint32_t>(body.data() + before_carried);
+    tc = read_at<std::uint32_t>(body.data() + before_carried + 4);
+    if (kc == 0 || kc > n || tc > (body.size() - before_carried) / 4) {
+      return where() + std::to_string(kc) + " carried sets of " + std::to_string(tc) + " targets for " +
+             std::to_string(n) + " entities in " + std::to_string(body.size()) + " bytes";
+    }
+  }
+  const std::size_t expect = before_carried + (has_carried ? carried_bytes(kc, tc) : 0);
   if (body.size() != expect) {
     return where() + std::to_string(body.size()) + " bytes for " + std::to_string(n) + " entities" +
-           (has_changes ? " and " + std::to_string(m) + " changes" : std::string()) + ", expected " +
+           (has_changes ? " and " + std::to_string(m) + " changes" : std::string()) +
+           (has_carried ? " and " + std::to_string(kc) + " carried sets" : std::string()) + ", expected " +
            std::to_string(expect);
+  }
+  const std::uint8_t* carried_at = body.data() + before_carried + 8;
+  if (has_carried) {
+    std::size_t sum = 0;
+    for (std::size_t o = 0; o < kc; ++o) {
+      const auto id = read_at<std::uint32_t>(carried_at + 4 * o);
+      if (o > 0 && id <= read_at<std::uint32_t>(carried_at + 4 * (o - 1)))
+        return where() + "carried observers do not ascend";
+      const auto c = read_at<std::uint32_t>(carried_at + 4 * (kc + o));
+      for (std::size_t j = 1; j < c && sum + j < tc; ++j) {
+        const std::uint8_t* tg = carried_at + 8 * kc + 4 * (sum + j);
+        if (read_at<std::uint32_t>(tg) <= read_at<std::uint32_t>(tg - 4))
+          return where() + "carried targets do not ascend";
+      }
+      sum += c;
+      if (sum > tc) break;
+    }
+    if (sum != tc) return where() + "carried target counts do not sum to " + std::to_string(tc);
   }
   if (!has_layout) {
     if (!out.layout_known) return where() + "no layout yet (a stream starts with a frame that has it)";
@@ -243,6 +289,17 @@ std::optional<std::string> decode_tick(std::span<const std::uint8_t> body, tick_
       out.sees[k] = read_at<std::uint32_t>(sees + 4 * c);
       out.kinds[k] = kinds[c];
     }
+  }
+  out.carried_observers.clear();
+  out.carried_off.clear();
+  out.carried_targets.clear();
+  if (has_carried) {
+    take(carried_at, out.carried_observers, kc);
+    out.carried_off.assign(1, 0);
+    for (std::size_t o = 0; o < kc; ++o)
+      out.carried_off.push_back(out.carried_off.back() + read_at<std::uint32_t>(carried_at + 4 * o));
+    carried_at += 4 * kc;
+    take(carried_at, out.carried_targets, tc);
   }
   return std::nullopt;
 }

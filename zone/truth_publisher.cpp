@@ -59,12 +59,27 @@ void truth_publisher::stop() {
   ::close(wake_fd_), wake_fd_ = -1;
 }
 
+void carried_columns::assign(std::span<const std::pair<entity_id, entity_id>> pairs) {
+  observers.clear();
+  off.assign(1, 0);
+  targets.clear();
+  for (const auto& [observer, target] : pairs) {
+    if (observers.empty() || observers.back() != observer) {
+      if (!observers.empty()) off.push_back(static_cast<std::uint32_t>(targets.size()));
+      observers.push_back(observer);
+    }
+    if (target != null_entity) targets.push_back(target);
+  }
+  if (!observers.empty()) off.push_back(static_cast<std::uint32_t>(targets.size()));
+}
+
 void truth_publisher::wake() {
   const std::uint64_t one = 1;
   [[maybe_unused]] const auto n = ::write(wake_fd_, &one, sizeof one);
 }
 
-void truth_publisher::publish(const entity_store& store, std::uint64_t tick) {
+void truth_publisher::publish(const entity_store& store, std::uint64_t tick,
+                              std::span<const std::pair<entity_id, entity_id>> carried) {
   if (subscribers_.load(std::memory_order_acquire) == 0) return;
   const auto t0 = std::chrono::steady_clock::now();
   const std::size_t n = store.size();
@@ -96,7 +111,9 @@ void truth_publisher::publish(const entity_store& store, std::uint64_t tick) {
     lv = {store.ids(), floats(store.aoi_half_extents()), floats(store.presence_half_extents()),
           store.visibility_classes(), store.sees(), kinds_};
   }
-  const auto sent = encoder_.encode(*frame, tick, floats(store.positions()), layout ? &lv : nullptr, force);
+  carried_.assign(carried);
+  const net::truth::carried_view cv = carried_.view();
+  const auto sent = encoder_.encode(*frame, tick, floats(store.positions()), layout ? &lv : nullptr, force, &cv);
   const bool whole = sent == net::truth::encoder::sent::layout;
   layout_version_ = store.layout_version();
   any_published_ = true;

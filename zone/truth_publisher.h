@@ -9,8 +9,10 @@
 #include <memory>
 #include <mutex>
 #include <optional>
+#include <span>
 #include <string>
 #include <thread>
+#include <utility>
 #include <vector>
 
 #include "net/truth.h"
@@ -28,6 +30,15 @@ struct truth_stats {
   std::uint64_t refused_subscribers = 0;  ///< subscribers refused: max_subscribers were connected
   std::uint64_t dropped_subscribers = 0;  ///< subscribers closed for falling too far behind
   double publish_ms = 0;           ///< summed time of publish() on the tick loop
+};
+
+/// The sets an interest update carried (interest_tracker::carried_by_last_update: (observer,
+/// target) pairs ascending, each observer's null marker first) as the stream's columns
+/// (net::truth::carried_view): observers ascending, each one's targets ascending.
+struct carried_columns {
+  std::vector<std::uint32_t> observers, off, targets;
+  void assign(std::span<const std::pair<entity_id, entity_id>> pairs);
+  [[nodiscard]] net::truth::carried_view view() const { return {observers, off, targets}; }
 };
 
 class truth_publisher {
@@ -49,8 +60,10 @@ class truth_publisher {
   [[nodiscard]] std::optional<std::string> start(std::uint16_t port, int max_subscribers = default_max_subscribers);
   [[nodiscard]] std::uint16_t port() const { return port_; }
   /// The world after the step of `tick`: encoded once and queued for every subscriber (nothing
-  /// done while there is none). Game thread only.
-  void publish(const entity_store& store, std::uint64_t tick);
+  /// done while there is none), with the sets that step carried (interest_tracker::
+  /// carried_by_last_update). Game thread only.
+  void publish(const entity_store& store, std::uint64_t tick,
+               std::span<const std::pair<entity_id, entity_id>> carried = {});
   void stop();
   [[nodiscard]] const truth_stats& stats() const { return stats_; }
 
@@ -78,6 +91,7 @@ class truth_publisher {
   net::truth::encoder encoder_;  // the layout last sent: the whole of it, changes to it, or nothing
   // Scratch columns (the store's types are plain floats and integers; copied as they are).
   std::vector<std::uint8_t> kinds_;
+  carried_columns carried_;
   std::vector<std::shared_ptr<std::vector<std::uint8_t>>> pool_;  // frames' buffers, reused
   truth_stats stats_;
 };

@@ -345,6 +345,82 @@ TEST_SUITE("net.truth") {
     }
   }
 
+  TEST_CASE("carried sets ride along any frame, one frame only; malformed carried sections are rejected") {
+    const std::uint64_t seed = fresh_seed();
+    CAPTURE(seed);
+    std::mt19937_64 rng(seed);
+    columns c;
+    for (std::uint32_t id = 1; id <= 50; ++id) c.push(rng, id);
+    // Random carried sets: observers ascending, each one's targets ascending (some with none).
+    std::vector<std::uint32_t> obs, off{0}, targets;
+    for (std::uint32_t id = 1; id <= 50; ++id) {
+      if (rng() % 5 != 0) continue;
+      obs.push_back(id);
+      for (std::uint32_t t = 1; t <= 60; ++t) {
+        if (rng() % 4 == 0) targets.push_back(t);  // ids the layout lacks (51..60) too: the reader ignores them
+      }
+      off.push_back(static_cast<std::uint32_t>(targets.size()));
+    }
+    obs.push_back(51), off.push_back(off.back());  // an observer carried with no targets
+    const truth::carried_view cv{obs, off, targets};
+    const auto check_carried = [&](const truth::tick_frame& f) {
+      CHECK(f.carried_observers == obs);
+      CHECK(f.carried_off == off);
+      CHECK(f.carried_targets == targets);
+    };
+    truth::encoder enc;
+    truth::tick_frame f;
+    std::vector<std::uint8_t> bytes;
+    const auto lv = c.view();
+    // The whole layout, positions only, changes: each with the carried sets, then without.
+    CHECK(enc.encode(bytes, 1, c.pos, &lv, false, &cv) == truth::encoder::sent::layout);
+    REQUIRE_FALSE(truth::decode_tick(std::span(bytes).subspan(4), f).has_value());
+    check_reader(f, c);
+    check_carried(f);
+    CHECK(enc.encode(bytes, 2, c.pos, nullptr, false, &cv) == truth::encoder::sent::positions);
+    REQUIRE_FALSE(truth::decode_tick(std::span(bytes).subspan(4), f).has_value());
+    check_carried(f);
+    c.cls[7] ^= 8;
+    const auto lv2 = c.view();
+    CHECK(enc.encode(bytes, 3, c.pos, &lv2, false, &cv) == truth::encoder::sent::changes);
+    REQUIRE_FALSE(truth::decode_tick(std::span(bytes).subspan(4), f).has_value());
+    check_reader(f, c);
+    check_carried(f);
+    const std::vector<std::uint8_t> with = bytes;
+    CHECK(enc.encode(bytes, 4, c.pos, nullptr, false) == truth::encoder::sent::positions);
+    REQUIRE_FALSE(truth::decode_tick(std::span(bytes).subspan(4), f).has_value());
+    CHECK(f.carried_observers.empty());  // a frame's own: gone with the next frame
+    CHECK(f.carried_targets.empty());
+    // Malformed: every cut, observers or targets out of order, counts that do not sum.
+    const std::vector<std::uint8_t> body(with.begin() + 4, with.end());
+    const auto decodes = [&](const std::vector<std::uint8_t>& b) {
+      truth::tick_frame g;
+      truth::encode_tick(bytes, 2, c.pos, &lv);  // a reader that holds the layout before it
+      REQUIRE_FALSE(truth::decode_tick(std::span(bytes).subspan(4), g).has_value());
+      g.layout_seq = f.layout_seq - 1;  // the changes apply to the layout just before them
+      return !truth::decode_tick(b, g).has_value();
+    };
+    REQUIRE(decodes(body));
+    for (std::size_t cut = body.size() - (8 + 8 * obs.size() + 4 * targets.size()); cut < body.size(); ++cut) {
+      CHECK_FALSE(decodes(std::vector<std::uint8_t>(body.begin(), body.begin() + static_cast<std::ptrdiff_t>(cut))));
+    }
+    const std::size_t at = body.size() - (8 * obs.size() + 4 * targets.size());  // the observers' ids
+    const auto with_word = [&](std::size_t pos, std::uint32_t v) {
+      auto b = body;
+      std::memcpy(b.data() + pos, &v, 4);
+      return b;
+    };
+    REQUIRE(obs.size() >= 2);
+    CHECK_FALSE(decodes(with_word(at + 4, obs[0])));                   // the second observer not above the first
+    CHECK_FALSE(decodes(with_word(at + 4 * obs.size(), off[1] + 1)));  // the first count one too many
+    CHECK_FALSE(decodes(with_word(at - 8, 0)));  // no observers, but the flag says carried sets follow
+    const auto first_with_two =
+        std::adjacent_find(off.begin(), off.end(), [](std::uint32_t a, std::uint32_t b) { return b >= a + 2; });
+    REQUIRE(first_with_two != off.end());
+    const std::size_t t0 = at + 8 * obs.size() + 4 * *first_with_two;
+    CHECK_FALSE(decodes(with_word(t0 + 4, targets[*first_with_two])));  // a target repeated
+  }
+
   TEST_CASE("malformed truth frames are rejected with a reason") {
     std::vector<float> pos{1, 2, 3, 4, 5, 6};
     std::vector<std::uint32_t> ids{1, 2}, cls{1, 1}, sees{2, 2};
