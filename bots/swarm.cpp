@@ -332,6 +332,7 @@ class swarm {
         add_report(r.oracle, z.check->report(), z.at);
       }
       r.oracle.frames_unchecked += oracle_unrouted_.load();
+      r.oracle.frames_unsampled += oracle_unrouted_unsampled_.load();
     }
     r.rules_from_server = rules_told.load();
     r.options = opt_;
@@ -499,13 +500,16 @@ class swarm {
   std::int64_t offset_us() const { return offset_us_.load(std::memory_order_relaxed); }
   std::atomic<std::uint32_t> leader{0};
   std::atomic<bool> rules_told{false};
-  /// The oracle of the zone at `at` (nullptr: none; the frame counts as unchecked when oracles run).
-  [[nodiscard]] oracle* oracle_for(const tcp::endpoint& at) {
+  /// The oracle of the zone at `at` (nullptr: none). When oracles run but none reads that zone, a
+  /// frame of `observer` counts as unchecked, or as unsampled when the sample leaves it out (as an
+  /// oracle of the zone would count it).
+  [[nodiscard]] oracle* oracle_for(const tcp::endpoint& at, std::uint32_t observer) {
     if (oracles_.empty()) return nullptr;
     for (const auto& z : oracles_) {
       if (z.at == at) return z.check.get();
     }
-    oracle_unrouted_.fetch_add(1, std::memory_order_relaxed);
+    const bool in_sample = oracle::sampled(observer, std::max(1u, opt_.oracle_sample));
+    (in_sample ? oracle_unrouted_ : oracle_unrouted_unsampled_).fetch_add(1, std::memory_order_relaxed);
     return nullptr;
   }
   std::mutex hotspot_mutex;
@@ -542,7 +546,8 @@ class swarm {
     std::unique_ptr<oracle> check;
   };
   std::vector<zone_oracle> oracles_;
-  std::atomic<std::uint64_t> oracle_unrouted_{0};  ///< frames in zones with no oracle
+  std::atomic<std::uint64_t> oracle_unrouted_{0};            ///< frames in zones with no oracle, of sampled bots
+  std::atomic<std::uint64_t> oracle_unrouted_unsampled_{0};  ///< and of the others
 
   static void add_report(oracle_report& sum, const oracle_report& q, const tcp::endpoint& at) {
     sum.frames_checked += q.frames_checked, sum.frames_unchecked += q.frames_unchecked;
@@ -946,7 +951,7 @@ void bot_session::on_tick_update(const net::wire::tick_update& u, std::uint64_t 
                ": inconsistent update (previous tick " + std::to_string(last) + "; ids " + (ids.empty() ? "-" : ids) + ")");
   }
   // The oracle: this view against the ground truth of this tick.
-  if (auto* o = s_.oracle_for(endpoint_override_ ? *endpoint_override_ : s_.endpoint())) {
+  if (auto* o = s_.oracle_for(endpoint_override_ ? *endpoint_override_ : s_.endpoint(), entity_)) {
     net::deferred_counts deferred;
     if (const auto* d = u.deferred()) deferred = {d->enters(), d->leaves(), d->updates()};
     std::optional<net::vec3f> own;
