@@ -6,6 +6,7 @@
 
 #include <algorithm>
 #include <chrono>
+#include <cmath>
 #include <cstring>
 #include <ctime>
 #include <sstream>
@@ -78,6 +79,20 @@ std::unique_ptr<nats_node> nats_node::join(const node_options& opt, const zone_c
   if ((s = open_bucket(&n->lease_, n->js_, "world-" + opt.world + "-lease",
                        static_cast<std::int64_t>(opt.lease_ttl_s * 1e9))) != NATS_OK) {
     return fail("KV lease bucket: " + status_text(s));
+  }
+  // The lease bucket's TTL is the first zone's (an existing bucket keeps its own): renew by it.
+  {
+    kvStatus* st = nullptr;
+    if (kvStore_Status(&st, n->lease_) == NATS_OK) {
+      const double ttl_s = static_cast<double>(kvStatus_TTL(st)) / 1e9;
+      if (ttl_s > 0 && std::abs(ttl_s - opt.lease_ttl_s) > 1e-3) {
+        spdlog::warn(
+            "world '{}': the world's leases last {} s (its lease bucket's TTL), not the {} s asked: renewing by {} s",
+            opt.world, ttl_s, opt.lease_ttl_s, ttl_s);
+        n->opt_.lease_ttl_s = ttl_s;
+      }
+      kvStatus_Destroy(st);
+    }
   }
   // The layout: the first zone writes it (create = only if absent); everyone reads what is there.
   const layout proposed(opt.bounds, opt.cols, opt.rows);

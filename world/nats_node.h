@@ -118,6 +118,9 @@ class nats_node final : public zone_extension {
 
   [[nodiscard]] std::uint32_t region() const { return region_; }
   [[nodiscard]] std::uint32_t incarnation() const { return incarnation_; }
+  /// How long the region's lease lasts after a renewal: the world's (its lease bucket's TTL, set
+  /// by the world's first zone), whatever node_options::lease_ttl_s asked.
+  [[nodiscard]] double lease_ttl_s() const { return opt_.lease_ttl_s; }
   [[nodiscard]] const layout& map() const { return map_; }
   /// The zone config to run this region with: NPCs and towns inside the region, a seed of its own.
   [[nodiscard]] zone_config zone_for_region(zone_config c) const;

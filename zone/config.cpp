@@ -117,6 +117,9 @@ std::optional<std::string> validate(const zone_config& c) {
     if (c.nats_url.empty()) return bad("--world needs --nats URL");
   }
   if (c.world_name.empty() && !c.nats_url.empty()) return bad("--nats needs --world NAME");
+  if (!(c.world_lease_ttl_s >= 0.2 && c.world_lease_ttl_s <= 600)) return bad("world-lease-ttl must be 0.2 .. 600 s");
+  if (!(c.world_nats_timeout_s >= 0.05 && c.world_nats_timeout_s <= 60))
+    return bad("world-nats-timeout must be 0.05 .. 60 s");
   if (c.worker_spin_us < -1 || c.worker_spin_us > 1000000) return bad("worker-spin-us must be -1 (auto) or 0 .. 1000000");
   static const char* interests[] = {"auto", "gpu", "host"};
   if (std::find(std::begin(interests), std::end(interests), c.interest) == std::end(interests)) {
@@ -258,9 +261,16 @@ config_result parse_config(int argc, const char* const* argv) {
   std::string world_grid = std::to_string(c.world_cols) + "x" + std::to_string(c.world_rows);
   po::options_description zones("World of zones (docs/world.md; built with libnats)");
   zones.add_options()  //
-      ("world", po::value(&c.world_name), "join the world of this name (letters, digits, - and _): take a free region of its layout in NATS KV and serve it; without it the server is one zone")  //
-      ("nats", po::value(&c.nats_url), "NATS server URL of the world (e.g. nats://127.0.0.1:4222); needed with --world")  //
-      ("world-grid", po::value(&world_grid)->default_value(world_grid), "regions COLSxROWS of a new world's layout (a layout already in KV wins)");
+      ("world", po::value(&c.world_name),
+       "join the world of this name (letters, digits, - and _): take a free region of its layout in NATS KV and serve it; without it the server is one zone")  //
+      ("nats", po::value(&c.nats_url),
+       "NATS server URL of the world (e.g. nats://127.0.0.1:4222); needed with --world")  //
+      ("world-grid", po::value(&world_grid)->default_value(world_grid),
+       "regions COLSxROWS of a new world's layout (a layout already in KV wins)")  //
+      ("world-lease-ttl", po::value(&c.world_lease_ttl_s)->default_value(c.world_lease_ttl_s),
+       "seconds the region's lease lasts after this zone's last renewal (renewed every quarter of it); a restarted zone waits this long for its predecessor's")  //
+      ("world-nats-timeout", po::value(&c.world_nats_timeout_s)->default_value(c.world_nats_timeout_s),
+       "seconds a connect, or a KV or JetStream request, waits for NATS before the zone counts NATS unreachable");
   po::options_description viewer("Live viewer (docs/viewer.md)");
   viewer.add_options()  //
       ("viewer", po::value(&c.viewer_enabled)->default_value(c.viewer_enabled),

@@ -1,5 +1,6 @@
 // zone-server: the MMO zone server (docs/zone.md). `zone-server --help` lists the options. With
 // --world NAME --nats URL it serves one region of a world of zones (docs/world.md).
+#include <algorithm>
 #include <chrono>
 #include <csignal>
 #include <cstdio>
@@ -51,8 +52,12 @@ int main(int argc, char** argv) {
     o.rows = cfg.world_rows;
     o.bounds = cfg.world;
     o.advertise_host = cfg.listen_address == "0.0.0.0" ? "127.0.0.1" : cfg.listen_address;
-    // A restarted zone waits for its predecessor's lease to lapse (a few seconds).
-    const auto give_up = std::chrono::steady_clock::now() + std::chrono::seconds(20);
+    o.lease_ttl_s = cfg.world_lease_ttl_s;
+    o.nats_timeout_s = cfg.world_nats_timeout_s;
+    // A restarted zone waits for its predecessor's lease to lapse (its TTL, a few seconds).
+    const auto give_up = std::chrono::steady_clock::now() +
+                         std::chrono::duration_cast<std::chrono::steady_clock::duration>(
+                             std::chrono::duration<double>(std::max(20.0, 2 * cfg.world_lease_ttl_s)));
     std::string err;
     while (!(node = zone::world::nats_node::join(o, cfg, &err))) {
       if (interrupted || std::chrono::steady_clock::now() > give_up || err.find("every region") == std::string::npos) {

@@ -174,6 +174,8 @@ struct zone_config {
   std::string world_name;  ///< --world: the world this zone joins
   std::string nats_url;    ///< --nats: the NATS server that holds the world's layout
   std::uint32_t world_cols = 2, world_rows = 2;  ///< --world-grid: regions of a new world's layout
+  double world_lease_ttl_s = 3;     ///< --world-lease-ttl: the region's lease lapses this long after the last renewal
+  double world_nats_timeout_s = 2;  ///< --world-nats-timeout: how long a connect or KV / JetStream request waits
   /// Where populate() places NPCs and towns (x, y; z from world): the zone's region in a world.
   /// Empty (lo == hi) = the whole world.
   net::world_bounds spawn_area{};

@@ -279,6 +279,24 @@ TEST_SUITE("world.nats") {
     CHECK(judge_lease_readback("127.0.0.1 7000 3", false, false, "") == lease_readback::unknown);
   }
 
+  TEST_CASE("a zone asking for another lease TTL than the world's renews by the world's, and keeps its lease") {
+    nats_server ns;
+    REQUIRE_FALSE(ns.url.empty());
+    const auto c = small_world(1);
+    std::string err;
+    auto a = nats_node::join(options(ns.url, "ttl", 2, 1, c), c, &err);  // the world's first: leases of 1 s
+    REQUIRE_MESSAGE(a != nullptr, err);
+    auto o = options(ns.url, "ttl", 2, 1, c);
+    o.lease_ttl_s = 8;  // would renew every 2 s: its lease would lapse (and be taken back) between renewals
+    auto b = nats_node::join(o, c, &err);
+    REQUIRE_MESSAGE(b != nullptr, err);
+    CHECK(a->lease_ttl_s() == doctest::Approx(1));
+    CHECK(b->lease_ttl_s() == doctest::Approx(1));
+    std::this_thread::sleep_for(3s);
+    CHECK_FALSE(b->must_stop());
+    CHECK(b->stats().lease_reclaims.load() == 0);  // renewed in time: never lapsed
+  }
+
   TEST_CASE(
       "a refused lease renewal is read back: a lost reply renews on, a lapsed lease is taken back, another holder stops the zone") {
     nats_server ns;

@@ -72,6 +72,15 @@ TEST_SUITE("zone.config") {
     CHECK_FALSE(parse({"--connect-burst", "0.5"}).config.has_value());
     CHECK_FALSE(parse({"--connect-min-session", "-2"}).config.has_value());
     CHECK_FALSE(parse({"--connect-refusal-hold", "61"}).config.has_value());
+    // A world of zones' NATS timing (docs/world.md): defaults, and bounds.
+    CHECK(d.config->world_lease_ttl_s == 3);
+    CHECK(d.config->world_nats_timeout_s == 2);
+    CHECK(h.message.find("--world-lease-ttl") != std::string::npos);
+    CHECK(h.message.find("--world-nats-timeout") != std::string::npos);
+    CHECK_FALSE(parse({"--world-lease-ttl", "0.1"}).config.has_value());
+    CHECK_FALSE(parse({"--world-nats-timeout", "0"}).config.has_value());
+    REQUIRE(parse({"--world-lease-ttl", "10", "--world-nats-timeout", "0.5"}).config.has_value());
+    CHECK(parse({"--world-lease-ttl", "10"}).config->world_lease_ttl_s == 10);
     CHECK(d.config->oracle_subscribers == 4);
     CHECK_FALSE(parse({"--oracle-subscribers", "0"}).config.has_value());
     CHECK_FALSE(parse({"--oracle-subscribers", "65"}).config.has_value());
