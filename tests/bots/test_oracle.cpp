@@ -114,19 +114,23 @@ struct tracked_world : world_sim {
   interest::brute_force_finder finder;
   interest_tracker tracker;
   net::interest_rules rules;
+  carried_columns carried;
+  bool write_carried = true;  ///< the truth names the sets the tracker's update carried, as zone-server's does
   tracked_world(std::uint64_t seed, int npcs, std::uint32_t cap = 0)
       : world_sim(seed), tracker(finder, nullptr, {4.0f, cap, 256}) {
     add_npcs(npcs);
     rules.hysteresis = 4;
     rules.max_visible = cap;
   }
-  /// One tick: the tracker updates and `oracle` reads the tick's truth frame (from `truth`); then
-  /// compare(player, the tracker's visible set, the oracle's) for every player (the oracle's is
-  /// empty for a player it has no history of yet).
+  /// One tick: the tracker updates and `oracle` reads the tick's truth frame (from `truth`, with
+  /// the carried sets unless write_carried is off); then compare(player, the tracker's visible
+  /// set, the oracle's) for every player (the oracle's is empty for a player it has no history of yet).
   template <class Compare>
   void tick(bots::oracle& oracle, truth_writer& truth, std::uint64_t t, Compare&& compare) {
     REQUIRE_FALSE(tracker.update(store.columns()).has_value());
-    REQUIRE_FALSE(oracle.feed(truth.body(store, t)).has_value());
+    carried.assign(tracker.carried_by_last_update());
+    const auto cv = carried.view();
+    REQUIRE_FALSE(oracle.feed(truth.body(store, t, write_carried ? &cv : nullptr)).has_value());
     for (const entity_id p : players) {
       const auto row = tracker.row_of(p);
       REQUIRE(row != entity_store::npos);
@@ -275,9 +279,9 @@ TEST_SUITE("bots.oracle") {
     for (const bool write_carried : {true, false}) {
       CAPTURE(write_carried);
       tracked_world w(seed, 400);
+      w.write_carried = write_carried;
       bots::oracle oracle(w.world, w.rules, 2, nullptr, nullptr);
       truth_writer truth;
-      carried_columns cc;
       std::uint64_t compared = 0, differing = 0, carried_observers = 0;
       for (std::uint64_t tick = 0; tick < 120; ++tick) {
         if (tick > 0) w.move();
@@ -295,19 +299,11 @@ TEST_SUITE("bots.oracle") {
           w.tracker.carry_visible(p, set);
           ++carried_observers;
         }
-        REQUIRE_FALSE(w.tracker.update(w.store.columns()).has_value());
-        cc.assign(w.tracker.carried_by_last_update());
-        const auto cv = cc.view();
-        REQUIRE_FALSE(oracle.feed(truth.body(w.store, tick, write_carried ? &cv : nullptr)).has_value());
-        for (const entity_id p : w.players) {
-          const auto row = w.tracker.row_of(p);
-          REQUIRE(row != entity_store::npos);
-          const auto expect = w.tracker.visible(row);
-          const auto got = oracle.visible(p, tick);
+        w.tick(oracle, truth, tick, [&](entity_id, const auto& expect, const auto& got) {
           REQUIRE(got.has_value());
           ++compared;
           if (!std::equal(expect.begin(), expect.end(), got->begin(), got->end())) ++differing;
-        }
+        });
       }
       MESSAGE(std::string(write_carried ? "with" : "without")
               << " the carried sets: " << carried_observers << " observers carried, " << compared << " sets compared, "
