@@ -183,19 +183,22 @@ std::optional<std::vector<census_entry>> census_of(zone_list& zones, const std::
 }
 
 /// Handoffs the zones decided, less those the ownership CAS refused or a stopping zone abandoned.
-std::uint64_t handoffs_sent(const zone_list& zones) {
+/// `stat(node)` summed over the zones.
+template <class Stat>
+std::uint64_t sum_over(const zone_list& zones, Stat&& stat) {
   std::uint64_t n = 0;
-  for (const auto& z : zones) {
-    n += z->node->link().stats().handoffs_out - z->node->stats().handoff_cas_conflicts.load() -
-         z->node->stats().handoffs_abandoned.load();
-  }
+  for (const auto& z : zones) n += stat(*z->node);
   return n;
 }
 
+std::uint64_t handoffs_sent(const zone_list& zones) {
+  return sum_over(zones, [](const nats_node& n) {
+    return n.link().stats().handoffs_out - n.stats().handoff_cas_conflicts.load() - n.stats().handoffs_abandoned.load();
+  });
+}
+
 std::uint64_t handoffs_applied(const zone_list& zones) {
-  std::uint64_t n = 0;
-  for (const auto& z : zones) n += z->node->stats().handoffs_applied.load();
-  return n;
+  return sum_over(zones, [](const nats_node& n) { return n.stats().handoffs_applied.load(); });
 }
 
 /// Applies what is in flight without handing off more, until every handoff sent is applied and
@@ -806,11 +809,7 @@ TEST_SUITE("world.nats") {
         std::this_thread::sleep_for(33ms);
       }
     };
-    const auto sum = [&](auto stat) {
-      std::uint64_t n = 0;
-      for (auto& z : zones) n += stat(*z->node);
-      return n;
-    };
+    const auto sum = [&](auto stat) { return sum_over(zones, stat); };
     const auto retries = [](const nats_node& n) { return n.stats().handoff_retries.load(); };
     const auto holds = [](const nats_node& n) { return n.stats().handoff_hold_ticks.load(); };
     run_for(2s);
