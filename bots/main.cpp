@@ -190,6 +190,11 @@ void print_table(const swarm_result& r, const summary& s) {
     row("oracle: comparisons per tick", fmt(q.check_ms / ticks, "ms") + " (" + num(q.deferred_checks) +
                                              " frames checked after they waited for their truth, " +
                                              num(q.pending_overflow) + " not: too many waiting)");
+    if (q.truth_restarts > 0) {
+      row("oracle: zone servers restarted, followed", num(q.truth_restarts) + " (" +
+                                                          num(q.frames_checked_after_restart) +
+                                                          " frames checked against the new servers' truth)");
+    }
     if (!q.stream_error.empty()) row("oracle: TRUTH STREAM FAILED", q.stream_error);
   }
   row("MISMATCHES", num(r.mismatches()));
@@ -276,6 +281,8 @@ bool write_json(const std::string& path, const swarm_result& r, const summary& s
                    {"stale", q.stale},
                    {"deferral", q.deferral},
                    {"oracle_mismatches", q.mismatches()},
+                   {"truth_restarts", q.truth_restarts},
+                   {"frames_checked_after_restart", q.frames_checked_after_restart},
                    {"truth_ticks", q.truth_ticks},
                    {"truth_bytes", q.truth_bytes},
                    {"truth_layouts", q.truth_layouts},

@@ -71,6 +71,10 @@ struct oracle_report {
   /// publishing the sets, and checking the views that waited for them.
   double decode_ms = 0, index_ms = 0, scan_ms = 0, publish_ms = 0, drain_ms = 0;
   std::string stream_error;  ///< why the stream ended early (empty: it ran to the end)
+  /// A swarm's sum: truth streams that ended because their zone's server was restarted, and that
+  /// the swarm followed to the new server's stream (their end is then no error); and the frames
+  /// checked against the truth of such restarted servers.
+  std::uint64_t truth_restarts = 0, frames_checked_after_restart = 0;
   [[nodiscard]] std::uint64_t mismatches() const {
     return missing + extra + leaked + wrong_class + position + stale + deferral;
   }
@@ -93,6 +97,8 @@ class oracle {
   /// for the first tick, so that every entity spawned afterwards has its whole history seen.
   [[nodiscard]] std::optional<std::string> start(std::uint16_t port, double timeout_s);
   void stop();
+  /// Whether the stream is over (the server closed it, it broke, or stop() was called).
+  [[nodiscard]] bool ended() const { return ended_.load(); }
 
   /// Checks `observer`'s view right after it applied the frame of `tick` (with what that frame
   /// said it deferred and the observer's own position, when it carried one). Never waits: when

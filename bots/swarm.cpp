@@ -11,7 +11,9 @@
 #include <deque>
 #include <memory>
 #include <random>
+#include <span>
 #include <thread>
+#include <variant>
 
 #include <sys/resource.h>
 
@@ -150,6 +152,7 @@ class bot_session : public std::enable_shared_from_this<bot_session> {
   void connect_done();
   std::atomic<bool> playing_{false};
   std::uint32_t entity_ = 0;
+  std::uint64_t instance_ = 0;  ///< the server's, as its welcome told it (which oracle checks this session)
   std::optional<net::client_view> view_;
   net::vec3f q_err_{};
   // The AOI check's assumptions: the welcome's rules, or the swarm's flags for an older server.
@@ -231,6 +234,7 @@ class swarm {
         out.error = *err;
         return out;
       }
+      follower_ = std::thread([this] { follow_restarts(); });
     }
     epoch_ = steady::now();
     std::vector<asio::executor_work_guard<asio::io_context::executor_type>> guards;
@@ -275,7 +279,7 @@ class swarm {
         s.leaves = c_.leaves.load();
         s.updates = c_.updates.load();
         s.mismatches = c_.mismatches();
-        for (const auto& z : oracles_) s.mismatches += z.check->counters().mismatches();
+        for (const auto& z : oracles()) s.mismatches += z.check->counters().mismatches();
         const auto lat = latency_snapshot();
         if (steady_from < 0 && s.connected >= opt_.bots) {
           steady_from = since;
@@ -323,13 +327,21 @@ class swarm {
     }
 
     swarm_result& r = out.result;
-    if (!oracles_.empty()) {
-      // The views still waiting for their truth are checked first; a world's zones' oracles add up.
-      for (auto& z : oracles_) z.check->catch_up(60);
+    if (follower_.joinable()) follower_.join();
+    if (!oracles().empty()) {
+      // The views still waiting for their truth are checked first; a world's zones' oracles add up,
+      // and so do the successive servers of a zone that was restarted.
+      for (auto& z : oracles()) z.check->catch_up(60);
       r.oracle_on = true;
-      for (auto& z : oracles_) {
+      for (auto& z : oracles()) {
         z.check->stop();
-        add_report(r.oracle, z.check->report(), z.at);
+        auto q = z.check->report();
+        if (z.followed) {  // its server was replaced: the end of its stream is explained
+          q.stream_error.clear();
+          ++r.oracle.truth_restarts;
+        }
+        if (z.after_restart) r.oracle.frames_checked_after_restart += q.frames_checked;
+        add_report(r.oracle, q, z.at);
       }
       r.oracle.frames_unchecked += oracle_unrouted_.load();
       r.oracle.frames_unsampled += oracle_unrouted_unsampled_.load();
@@ -500,13 +512,15 @@ class swarm {
   std::int64_t offset_us() const { return offset_us_.load(std::memory_order_relaxed); }
   std::atomic<std::uint32_t> leader{0};
   std::atomic<bool> rules_told{false};
-  /// The oracle of the zone at `at` (nullptr: none). When oracles run but none reads that zone, a
-  /// frame of `observer` counts as unchecked, or as unsampled when the sample leaves it out (as an
-  /// oracle of the zone would count it).
-  [[nodiscard]] oracle* oracle_for(const tcp::endpoint& at, std::uint32_t observer) {
-    if (oracles_.empty()) return nullptr;
-    for (const auto& z : oracles_) {
-      if (z.at == at) return z.check.get();
+  /// The oracle of the server at `at` whose welcome told `instance` (nullptr: none). When oracles
+  /// run but none reads that server (another zone, or a restarted server whose truth is not read
+  /// yet), a frame of `observer` counts as unchecked, or as unsampled when the sample leaves it out
+  /// (as an oracle of the zone would count it).
+  [[nodiscard]] oracle* oracle_for(const tcp::endpoint& at, std::uint64_t instance, std::uint32_t observer) {
+    const auto all = oracles();
+    if (all.empty()) return nullptr;
+    for (const auto& z : all) {
+      if (z.at == at && z.instance == instance) return z.check.get();
     }
     const bool in_sample = oracle::sampled(observer, std::max(1u, opt_.oracle_sample));
     (in_sample ? oracle_unrouted_ : oracle_unrouted_unsampled_).fetch_add(1, std::memory_order_relaxed);
@@ -540,12 +554,29 @@ class swarm {
   std::atomic<bool> host_clock_{false};
   bool loopback_ = false;
   std::atomic<bool> stopping_{false};
-  /// --oracle: one per zone (the swarm's, and with oracle_zones the world's other zones).
+  /// --oracle: one per zone and server: the swarm's zone, the world's other zones (oracle_zones),
+  /// and one more each time a zone's truth stream ends and a new server answers at its address
+  /// (follow_restarts). Appended by one thread at a time (start_oracles, then the follower), read
+  /// by the bots' threads without a lock: a slot is never moved or removed, and oracle_count_ is
+  /// raised (release) after its slot is written.
   struct zone_oracle {
     tcp::endpoint at;
+    std::uint64_t instance = 0;  ///< the server's, as the probe's welcome told it (0: an older server)
     std::unique_ptr<oracle> check;
+    bool after_restart = false;  ///< started for a server that replaced an earlier one at `at`
+    // The follower's, read after it is joined:
+    bool followed = false;  ///< its stream ended and the server that replaced this one is read
+    bool given_up = false;  ///< its stream ended but this same server still answers: not followed
   };
-  std::vector<zone_oracle> oracles_;
+  /// Restarted servers followed in one run, at most (beyond, a stream that ends stays an error).
+  static constexpr std::size_t max_restarts_followed = 64;
+  std::unique_ptr<zone_oracle[]> oracles_;
+  std::size_t oracle_capacity_ = 0;
+  std::atomic<std::size_t> oracle_count_{0};
+  std::thread follower_;  ///< follow_restarts
+  [[nodiscard]] std::span<zone_oracle> oracles() const {
+    return {oracles_.get(), oracle_count_.load(std::memory_order_acquire)};
+  }
   std::atomic<std::uint64_t> oracle_unrouted_{0};            ///< frames in zones with no oracle, of sampled bots
   std::atomic<std::uint64_t> oracle_unrouted_unsampled_{0};  ///< and of the others
 
@@ -571,6 +602,8 @@ class swarm {
   }
 
   std::optional<std::string> start_oracles() {
+    oracle_capacity_ = 1 + opt_.oracle_zones.size() + max_restarts_followed;
+    oracles_ = std::make_unique<zone_oracle[]>(oracle_capacity_);
     if (auto err = start_oracle(endpoint_)) return err;
     for (const std::uint16_t port : opt_.oracle_zones) {
       const tcp::endpoint at(endpoint_.address(), port);
@@ -583,6 +616,15 @@ class swarm {
   /// One connection before any bot, for the welcome (the rules and the truth stream's port); then
   /// the oracle subscribes, so every bot's entity is born after its first truth tick.
   std::optional<std::string> start_oracle(const tcp::endpoint& at) {
+    auto welcome = probe(at);
+    if (auto* err = std::get_if<std::string>(&welcome)) return *err;
+    return add_oracle(at, std::get<net::welcome_msg>(welcome), false);
+  }
+
+  /// The welcome the server at `at` sends a connection that says hello as "oracle-probe" (its
+  /// rules, its truth stream's port, its instance), or why none came (within the connect timeout;
+  /// sooner once the run stops).
+  std::variant<net::welcome_msg, std::string> probe(const tcp::endpoint& at) {
     asio::io_context io;
     tcp::socket sock(io);
     boost::system::error_code ec;
@@ -595,7 +637,7 @@ class swarm {
     std::optional<net::welcome_msg> welcome;
     const auto deadline = steady::now() + std::chrono::duration<double>(opt_.connect_timeout_s);
     sock.non_blocking(true, ec);
-    while (!welcome && steady::now() < deadline) {
+    while (!welcome && steady::now() < deadline && !stopping_.load()) {
       const auto buf = dec.prepare(64 * 1024);
       const std::size_t n = sock.read_some(asio::buffer(buf.data(), buf.size()), ec);
       if (ec == asio::error::would_block || ec == asio::error::try_again) {
@@ -610,16 +652,55 @@ class swarm {
       }
     }
     sock.close(ec);
-    if (!welcome) return "oracle probe: no welcome within the connect timeout";
-    if (!welcome->rules) return "the server's welcome tells no interest rules (an older server): no oracle";
-    if (welcome->oracle_port == 0) return "the server publishes no ground truth: start zone-server with --oracle";
-    auto o = std::make_unique<oracle>(welcome->world, *welcome->rules, opt_.oracle_threads,
-                                      [](void* ctx, std::string line) { static_cast<swarm*>(ctx)->problem(std::move(line)); },
-                                      this);
+    if (!welcome) return std::string("oracle probe: no welcome within the connect timeout");
+    return *welcome;
+  }
+
+  /// An oracle reading the truth of the server that sent `welcome` at `at`, in the next slot.
+  std::optional<std::string> add_oracle(const tcp::endpoint& at, const net::welcome_msg& welcome, bool after_restart) {
+    if (!welcome.rules) return "the server's welcome tells no interest rules (an older server): no oracle";
+    if (welcome.oracle_port == 0) return "the server publishes no ground truth: start zone-server with --oracle";
+    const std::size_t k = oracle_count_.load(std::memory_order_relaxed);
+    if (k == oracle_capacity_)
+      return "no room for another oracle (" + std::to_string(oracle_capacity_) + " in this run)";
+    auto o = std::make_unique<oracle>(
+        welcome.world, *welcome.rules, opt_.oracle_threads,
+        [](void* ctx, std::string line) { static_cast<swarm*>(ctx)->problem(std::move(line)); }, this);
     o->sample = std::max(1u, opt_.oracle_sample);
-    if (auto err = o->start(welcome->oracle_port, opt_.connect_timeout_s)) return err;
-    oracles_.push_back({at, std::move(o)});
+    if (auto err = o->start(welcome.oracle_port, opt_.connect_timeout_s)) return err;
+    oracles_[k].at = at;
+    oracles_[k].instance = welcome.instance;
+    oracles_[k].check = std::move(o);
+    oracles_[k].after_restart = after_restart;
+    oracle_count_.store(k + 1, std::memory_order_release);
     return std::nullopt;
+  }
+
+  /// While the run lasts (its own thread): a truth stream that ended (its server killed or
+  /// stopped) is followed to the server that answers at the same address afterwards (a restart:
+  /// the probe is tried every 250 ms), so that the bots that log in there again, or cross into
+  /// it, are checked too; the old stream's end is then no error. A server that answers with the
+  /// instance whose stream ended is not followed (that end stays an error, as without a restart).
+  void follow_restarts() {
+    while (!stopping_.load()) {
+      for (auto& z : oracles()) {
+        if (stopping_.load()) break;
+        if (z.followed || z.given_up || !z.check->ended()) continue;
+        auto welcome = probe(z.at);
+        if (std::holds_alternative<std::string>(welcome)) continue;  // not (yet) back: tried again
+        const auto& w = std::get<net::welcome_msg>(welcome);
+        if (w.instance == z.instance) {
+          z.given_up = true;
+          continue;
+        }
+        if (auto err = add_oracle(z.at, w, true)) {
+          if (oracle_count_.load() == oracle_capacity_) z.given_up = true;
+          continue;  // e.g. its first tick not yet published: tried again
+        }
+        z.followed = true;
+      }
+      for (int i = 0; i < 25 && !stopping_.load(); ++i) std::this_thread::sleep_for(std::chrono::milliseconds(10));
+    }
   }
 };
 
@@ -802,6 +883,7 @@ void bot_session::on_welcome(const net::wire::welcome& w) {
   s_.welcome_time().record(std::chrono::duration<double, std::micro>(steady::now() - connected_at_).count());
   reconnecting_since_.reset();  // logged in again: a later loss starts its own retries
   entity_ = w.entity_id();
+  instance_ = w.instance();
   net::world_bounds world{};
   if (w.world()) world = {to_vec(w.world()->lo()), to_vec(w.world()->hi())};
   world_ = world;
@@ -951,7 +1033,7 @@ void bot_session::on_tick_update(const net::wire::tick_update& u, std::uint64_t 
                ": inconsistent update (previous tick " + std::to_string(last) + "; ids " + (ids.empty() ? "-" : ids) + ")");
   }
   // The oracle: this view against the ground truth of this tick.
-  if (auto* o = s_.oracle_for(endpoint_override_ ? *endpoint_override_ : s_.endpoint(), entity_)) {
+  if (auto* o = s_.oracle_for(endpoint_override_ ? *endpoint_override_ : s_.endpoint(), instance_, entity_)) {
     net::deferred_counts deferred;
     if (const auto* d = u.deferred()) deferred = {d->enters(), d->leaves(), d->updates()};
     std::optional<net::vec3f> own;

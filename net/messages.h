@@ -104,6 +104,9 @@ struct welcome_msg {
   bool host_clock = false;              ///< server_time_us is the host's CLOCK_MONOTONIC in microseconds
   std::optional<interest_rules> rules;  ///< the zone's interest rules
   std::uint16_t oracle_port = 0;        ///< loopback port of the ground-truth stream (0 = none)
+  /// This server process: a random number drawn at its start, never 0 (0: an older server). A
+  /// client tells a restarted server on the same address from the one it knew by it.
+  std::uint64_t instance = 0;
   friend bool operator==(const welcome_msg&, const welcome_msg&) = default;
 };
 /// Full state of an entity entering a view.

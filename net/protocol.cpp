@@ -64,7 +64,7 @@ flatbuffers::Offset<void> build_body(flatbuffers::FlatBufferBuilder& fbb, const 
                                             r.teams, r.visibility_cooldown);
           }
           return w::Createwelcome(fbb, msg.entity_id, &world, msg.tick_rate_hz, msg.server_tick, msg.protocol_version,
-                                  spawn ? &*spawn : nullptr, msg.host_clock, rules, msg.oracle_port)
+                                  spawn ? &*spawn : nullptr, msg.host_clock, rules, msg.oracle_port, msg.instance)
               .Union();
         } else if constexpr (std::is_same_v<T, tick_update_msg>) {
           std::vector<flatbuffers::Offset<w::entity_state>> enters;
@@ -448,6 +448,7 @@ std::optional<message> to_message(const w::envelope& env) {
         out.rules = std::move(rules);
       }
       out.oracle_port = m->oracle_port();
+      out.instance = m->instance();
       return out;
     }
     case w::message::tick_update: {

@@ -1,9 +1,9 @@
 #!/usr/bin/env bash
 # The world of zones at the issue's scale (docs/world.md, "Measured"), in one call on the device
 # machine (16 cores): host-jitter, then a 2x2 world of 2,000 bots and 20,000 NPCs (the oracle on),
-# the same load in one zone, and a SIGKILL run. Needs a folder packed by scripts/pack_device.sh with
-# zone-server, bot-swarm, world-check, host-jitter, nats-server, world.sh and zone_procs.sh (and
-# their shared libraries); runs from that folder. Results under $OUT (at most 8 files).
+# the same load in one zone, and a SIGKILL run (the oracle on, following the restarted zone). Needs
+# a folder packed by scripts/pack_device.sh with zone-server, bot-swarm, world-check, host-jitter,
+# nats-server, world.sh and zone_procs.sh (and their shared libraries); runs from that folder. Results under $OUT (at most 8 files).
 #   DEVICE_DIR=.device-x scripts/pack_device.sh build build/zone/zone-server build/bots/bot-swarm \
 #     build/world/world-check build/tools/host-jitter /usr/sbin/nats-server
 #   cp scripts/world.sh scripts/zone_procs.sh scripts/device_world.sh .device-x/
@@ -57,7 +57,7 @@ run() {  # run NAME world.sh-args...: its report into $OUT/NAME.txt, its logs in
 run world --grid 2x2 --bots "$bots" --npcs "$npcs" --duration "$duration" --threads "$threads" --world-size "$size" --interest "$interest" \
   --zone-args "$zone_args" --oracle --single "$single"
 run kill --grid 2x2 --bots "$bots" --npcs "$npcs" --duration "$kill_duration" --threads "$threads" --world-size "$size" --interest "$interest" \
-  --zone-args "$zone_args" --kill
+  --zone-args "$zone_args" --kill --oracle
 # The raw outputs the tables cite: tick CSVs, swarm reports, zone logs' last lines, world-check.
 tar -C /tmp -cJf "$out/world-raw.tar.xz" --exclude='js' world kill 2>/dev/null
 ls -la "$out"

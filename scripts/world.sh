@@ -25,7 +25,9 @@ Usage: scripts/world.sh [options]
   --oracle         zones publish their ground truth (zone-server --oracle) and every swarm checks each
                    bot against the truth of the zone it is in (ghosts included), following it across
                    borders (bot-swarm --oracle --oracle-zones); the run fails if no bot crossed a
-                   border (followed a redirect) or the oracle checked nothing; not with --kill
+                   border (followed a redirect) or the oracle checked nothing; with --kill the
+                   swarms follow the restarted zone's truth too, and the run fails if no frame of
+                   the restarted zone was checked
   --test-fault K   TESTING: zone 0 breaks one client's frames on purpose (zone-server --test-fault K:
                    drop, extra, stealth, freeze, class) from tick 60; with --oracle the exit status is
                    then 0 only when the oracle caught it (mismatches > 0) and nothing else failed
@@ -70,7 +72,6 @@ zones=$(( ${BASH_REMATCH[1]} * ${BASH_REMATCH[2]} ))
 for v in "$bots" "$npcs" "$duration" "$size" "$threads" "$bosses" "$single" "$nats_restart"; do
   [[ $v =~ ^[0-9]+$ ]] || { echo "world.sh: --bots, --npcs, --duration, --world-size, --threads, --bosses, --single and --nats-restart take whole numbers (got '$v')" >&2; exit 64; }
 done
-[ "$kill" = 1 ] && [ "$oracle" = 1 ] && { echo "world.sh: --oracle and --kill do not go together (a killed zone's truth stream ends)" >&2; exit 64; }
 [ "$kill" = 1 ] && [ "$nats_restart" -gt 0 ] && { echo "world.sh: --kill and --nats-restart do not go together (one fault a run)" >&2; exit 64; }
 case "$interest" in cpu) where=(--finder cpu --interest host) ;; gpu) where=(--finder gpu --interest gpu) ;;
   *) echo "world.sh: --interest must be cpu or gpu" >&2; exit 64 ;; esac
@@ -174,8 +175,8 @@ if [ "$kill" = 1 ] && [ "$zones" -gt 1 ]; then
   t_up=$(date +%s.%N)
   killed_note=$(awk -v a="$t_kill" -v b="$t_up" -v r="$(grep -o 'region [0-9]* of' "$out/zone-1.log" | head -1 | awk '{print $2}')" \
     'BEGIN{printf "zone 1 (SIGKILL) back on region %s after %.1f s (lease lapse + start)", r, b - a}')
-  before=$(grep -o "region ${zregion[1]} (incarnation [0-9]*, [0-9]* owned)" "$out/world-check-before-kill.txt" | grep -o '[0-9]* owned' || true)
-  killed_note="$killed_note; it owned ${before:-?} at a census about a second before the kill (lost with it)"
+  before=$(grep -o "region ${zregion[1]} (incarnation [0-9]*, [0-9]* owned)" "$out/world-check-before-kill.txt" | grep -o '[0-9]* owned' | awk '{print $1}' || true)
+  killed_note="$killed_note; it owned ${before:-?} entities at a census about a second before the kill (lost with it)"
 fi
 
 # Fault: nats-server stopped (SIGTERM: its JetStream state stays on disk) for --nats-restart
@@ -253,7 +254,7 @@ for k in $(seq 0 $((zones - 1))); do
     "$(json "$f" digests_checked)" "$m" "$(( $(json "$f" connect_failures || echo 0) + $(json "$f" unexpected_disconnects || echo 0) ))" \
     "$(json "$f" reconnects)" "$p99"
 done
-oracle_mism=0 digest_mism=0 oracle_checked=0 crossings=0
+oracle_mism=0 digest_mism=0 oracle_checked=0 crossings=0 restarts_followed=0 checked_after_restart=0
 if [ "$oracle" = 1 ]; then
   echo "-- the oracle (each bot against the truth of the zone it is in; ghosts of the neighbours included)"
   printf '%-6s %14s %12s %11s %9s %8s %8s %8s %9s %8s %9s\n' zone "frames checked" unchecked mismatches missing extra leaked stale position class deferral
@@ -262,10 +263,13 @@ if [ "$oracle" = 1 ]; then
     om=$(json "$f" oracle_mismatches); om=${om:-0}
     oracle_mism=$((oracle_mism + om))
     oracle_checked=$((oracle_checked + $(json "$f" frames_checked || echo 0)))
+    r=$(json "$f" truth_restarts); restarts_followed=$((restarts_followed + ${r:-0}))
+    r=$(json "$f" frames_checked_after_restart); checked_after_restart=$((checked_after_restart + ${r:-0}))
     printf '%-6s %14s %12s %11s %9s %8s %8s %8s %9s %8s %9s\n' "$k" "$(json "$f" frames_checked)" "$(json "$f" frames_unchecked)" "$om" \
       "$(json "$f" missing)" "$(json "$f" extra)" "$(json "$f" leaked)" "$(json "$f" stale)" "$(json "$f" position)" \
       "$(json "$f" wrong_class)" "$(json "$f" deferral)"
   done
+  [ "$kill" = 1 ] && echo "the killed zone's restart: followed by $restarts_followed of $zones swarms' oracles; $checked_after_restart frames checked against its new truth"
 fi
 # Every mismatch a swarm counted, by the check that counted it (the swarm's own checks and each
 # kind of the oracle's), with the swarm's first problems: a count that no kind explains fails the run.
@@ -333,4 +337,5 @@ if [ -n "$fault" ] && [ "$oracle" = 1 ]; then
 fi
 [ "$oracle" = 1 ] && [ "$oracle_checked" = 0 ] && { echo "the oracle checked no frame" >&2; exit 1; }
 [ "$oracle" = 1 ] && [ "$crossings" = 0 ] && { echo "no bot crossed a border: the oracle spanned no zones" >&2; exit 1; }
+[ "$oracle" = 1 ] && [ "$kill" = 1 ] && [ "$checked_after_restart" = 0 ] && { echo "the oracle checked no frame of the restarted zone" >&2; exit 1; }
 [ "$check_rc" = 0 ] && [ "$mism" = 0 ] && [ "$unexplained" = 0 ] && [ "$stopped_early" = 0 ]

@@ -12,11 +12,12 @@
 #include <spdlog/spdlog.h>
 
 #include <bit>
-#include <chrono>
 #include <cerrno>
+#include <chrono>
 #include <cmath>
 #include <cstring>
 #include <functional>
+#include <random>
 #include <thread>
 #include <utility>
 
@@ -85,6 +86,8 @@ zone_server::zone_server(const zone_config& cfg)
       replicator_(replication_options_of(cfg)),
       net_(net_options(cfg)) {
   world_->set_presence_grid(parts_.presence_grid);
+  std::random_device entropy;
+  while (instance_ == 0) instance_ = (std::uint64_t{entropy()} << 32) | entropy();
   // The interest step on the GPU (the whole of it: candidates, classification, events), when
   // make_interest_parts made its engine.
   if (parts_.engine) {
@@ -508,6 +511,7 @@ void zone_server::welcome(net::session_id session, entity_id id, const hello_inf
   w.rules = rules();
   if (const auto d = world_->store().get(id)) w.rules->player_class = d->visibility_class, w.rules->player_sees = d->sees;
   w.oracle_port = oracle_port();
+  w.instance = instance_;
   net_.send(session, net::make_shared_frame(encoder_.encode(w)), net::delivery::control);
   // The name is client data: escaped (the server also checked it at hello), at debug.
   spdlog::debug("session {}: '{}' joined as entity {}", session, net::escape_for_log(hello.name), id);

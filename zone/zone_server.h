@@ -144,6 +144,9 @@ class zone_server {
   [[nodiscard]] net::server_stats net_stats() const { return net_.stats(); }
   /// Port of the ground-truth stream (0 when --oracle is off).
   [[nodiscard]] std::uint16_t oracle_port() const { return truth_ ? truth_->port() : 0; }
+  /// This process among the servers that listened on the same address: a random number drawn at
+  /// construction, never 0, told in every welcome (a client tells a restarted server by it).
+  [[nodiscard]] std::uint64_t instance() const { return instance_; }
   /// The zone's interest rules as the welcome tells them.
   [[nodiscard]] net::interest_rules rules() const;
 
@@ -289,6 +292,7 @@ class zone_server {
   std::uint64_t viewer_columns_tick_ = ~std::uint64_t{0};  // the tick whose columns viewer_copy_columns copied
   std::chrono::steady_clock::time_point next_viewer_stats_{};
   std::unique_ptr<truth_publisher> truth_;  // --oracle
+  std::uint64_t instance_ = 0;              // instance(): drawn in the constructor
   std::unique_ptr<fault_injector> fault_;   // --test-fault
   net::session_id fault_session_ = 0;
   bool fault_has_victim_ = false;

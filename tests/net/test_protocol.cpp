@@ -89,6 +89,7 @@ struct gen {
           w.rules = r;
         }
         w.oracle_port = static_cast<std::uint16_t>(rng());
+        w.instance = u64();
         return w;
       }
       case 4: {
