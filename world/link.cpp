@@ -121,7 +121,7 @@ struct reader {
   }
 };
 
-constexpr std::uint32_t ghost_magic = 0x31484753;    // "SGH1"
+constexpr std::uint32_t ghost_magic = 0x32484753;       // "SGH2": "SGH1" and the sender's room
 constexpr std::uint32_t handoff_magic_v1 = 0x31464f48;  // "HOF1": no visible set
 constexpr std::uint32_t handoff_magic = 0x32464f48;     // "HOF2": a count and the visible set at the end
 
@@ -144,6 +144,7 @@ std::vector<std::uint8_t> encode(const ghost_message& m) {
   w.put(static_cast<std::uint32_t>(m.snapshot ? 1 : 0));
   w.put(static_cast<std::uint32_t>(m.entries.size()));
   w.put(static_cast<std::uint32_t>(m.removed.size()));
+  w.put(m.room);
   for (const auto& e : m.entries) {
     w.put(e.gid);
     for (auto v : e.position) w.put(v);
@@ -169,6 +170,7 @@ std::optional<ghost_message> decode_ghosts(std::span<const std::uint8_t> bytes) 
   const auto flags = r.get<std::uint32_t>();
   const auto n = r.get<std::uint32_t>();
   const auto k = r.get<std::uint32_t>();
+  m.room = r.get<std::uint32_t>();
   if (!r.ok || flags > 1) return std::nullopt;
   m.snapshot = flags == 1;
   // Sizes checked before allocating: a hostile count cannot make us reserve gigabytes.
@@ -411,6 +413,11 @@ void zone_link::build_ghosts(const zone_world& w, std::vector<ghost_message>& ou
     m.seq = ++n.seq;
     m.tick = w.tick();
     m.snapshot = n.snapshot_next;
+    if (opt_.capacity != 0) {
+      const std::size_t owned = owned_count();
+      m.room = static_cast<std::uint32_t>(
+          std::min<std::size_t>(opt_.capacity - std::min(owned, opt_.capacity), ghost_message::no_limit - 1));
+    }
     std::unordered_map<global_id, ghost_entry> now;
     now.reserve(n.sent.size() + 16);
     for (std::size_t k = 0; k < ids.size(); ++k) {
@@ -550,6 +557,7 @@ ghost_status zone_link::apply_ghosts(zone_world& w, std::span<const std::uint8_t
   neighbour_in& n = in_[m->from];
   n.heard = true;
   n.last_tick = w.tick();
+  n.room = m->room;  // whatever becomes of its ghosts (a gap), the room is its latest word
   if (!m->snapshot) {
     if (n.expected == 0 || m->seq > n.expected) {
       if (n.expected != 0) ++stats_.gaps;
@@ -656,12 +664,31 @@ std::vector<handoff_record> zone_link::collect_handoffs(zone_world& w, std::uint
   const auto& s = w.store();
   const auto ids = s.ids();
   const auto pos = s.positions();
+  // The room each neighbour told in its last message, less this call's records to it (a
+  // neighbour silent past the ghost timeout, or never heard, tells nothing: no limit here).
+  // Records of the last tick or two may not be in what it told yet: one that overruns its room
+  // waits on the stream (docs/world.md, "Faults").
+  std::unordered_map<std::uint32_t, std::uint32_t> room;
+  if (opt_.hold_for_room) {
+    for (const auto& [region, n] : in_) {
+      if (n.heard && n.room != ghost_message::no_limit && tick_ <= n.last_tick + opt_.ghost_timeout_ticks) {
+        room[region] = n.room;
+      }
+    }
+  }
   for (std::size_t k = 0; k < ids.size(); ++k) {
     slot_info* i = info(ids[k]);
     if (i == nullptr || i->what != role::owned) continue;
     if (area_.distance(pos[k].x, pos[k].y) <= opt_.handoff_margin) continue;
     const std::uint32_t to = opt_.map.region_at(pos[k].x, pos[k].y);
     if (to == opt_.region) continue;
+    if (const auto left = room.find(to); left != room.end()) {
+      if (left->second == 0) {  // the neighbour is full: the entity stays ours for now
+        ++stats_.handoffs_held_for_room;
+        continue;
+      }
+      --left->second;
+    }
     handoff_record r;
     r.gid = i->gid;
     r.epoch = i->epoch + 1;

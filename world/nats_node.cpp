@@ -169,6 +169,7 @@ std::unique_ptr<nats_node> nats_node::join(const node_options& opt, const zone_c
     lo.ghost_band = opt.ghost_band > 0 ? opt.ghost_band : ghost_band(zone, opt.handoff_margin);
     lo.ghost_timeout_ticks = opt.ghost_timeout_ticks;
     lo.capacity = opt.capacity;
+    lo.hold_for_room = opt.hold_for_room;
     return lo;
   }());
   // Core subscriptions: their callbacks only queue (the game thread applies).

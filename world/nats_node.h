@@ -57,6 +57,8 @@ struct node_options {
   /// Most entities the zone owns (link_options::capacity; 0: the store's capacity): a handoff
   /// into a full zone is not acked but offered again after `no_room_retry_s` (docs/world.md).
   std::size_t capacity = 0;
+  /// link_options::hold_for_room: keep an entity past the border while its neighbour is full.
+  bool hold_for_room = true;
   double no_room_retry_s = 0.25;
 };
 

@@ -81,12 +81,16 @@ struct ghost_message {
   std::uint32_t from = 0, to = 0;
   std::uint64_t seq = 0, tick = 0;
   bool snapshot = false;
+  /// Handoffs the sender can still adopt (link_options::capacity less what it owns; no_limit:
+  /// no capacity set). A zone hands nothing to a neighbour that said 0 (it keeps the entity).
+  std::uint32_t room = no_limit;
+  static constexpr std::uint32_t no_limit = 0xffffffffu;
   std::vector<ghost_entry> entries;  ///< new or changed (snapshot: all)
   std::vector<global_id> removed;    ///< gone from the band since the last message (empty in a snapshot)
 };
 [[nodiscard]] std::vector<std::uint8_t> encode(const ghost_message& m);
 [[nodiscard]] std::optional<ghost_message> decode_ghosts(std::span<const std::uint8_t> bytes);
-inline constexpr std::size_t ghost_header_bytes = 36;
+inline constexpr std::size_t ghost_header_bytes = 40;
 
 /// An entity moving from one zone to the next, with everything needed to go on simulating it.
 struct handoff_record {
@@ -133,6 +137,13 @@ struct link_options {
   /// record waits and is offered again; docs/world.md, "A full zone"). 0: only the store's
   /// capacity bounds it.
   std::size_t capacity = 0;
+  /// Keep an entity past the border while the neighbour it would go to says it has no room (its
+  /// ghost messages tell its room): the entity stays owned, simulated and served here, and is
+  /// handed off once the neighbour has room. Off: it is handed off anyway and its record waits
+  /// on the stream until the neighbour adopts it (the entity unseen meanwhile once its
+  /// in-transit copy expires). Records can still meet a full zone (two neighbours filling its
+  /// last room in one tick, a neighbour not heard yet): they wait on the stream.
+  bool hold_for_room = true;
 };
 
 /// The band a zone config needs: the largest AOI its entities get (players, NPC tiers 0-2, and
@@ -146,6 +157,9 @@ struct link_stats {
   std::uint64_t snapshots_out = 0, snapshots_in = 0, gaps = 0, stale = 0, bad = 0;
   std::uint64_t handoffs_out = 0, handoffs_in = 0, handoff_duplicates = 0, handoffs_refused = 0;
   std::uint64_t handoffs_no_room = 0;  ///< offers of a record refused for want of room (each retry counts)
+  /// Ticks an entity past the border stayed here because its neighbour said it had no room
+  /// (hold_for_room), summed over the entities.
+  std::uint64_t handoffs_held_for_room = 0;
   std::uint64_t ghosts_expired = 0;
 };
 
@@ -243,6 +257,7 @@ class zone_link {
     std::uint64_t expected = 0;  ///< next seq; 0: waiting for a snapshot
     std::uint64_t last_tick = 0;  ///< our tick of its last message
     bool heard = false;
+    std::uint32_t room = ghost_message::no_limit;  ///< as its last message said
   };
   slot_info* info(entity_id local);
   const slot_info* info(entity_id local) const;

@@ -270,7 +270,9 @@ config_result parse_config(int argc, const char* const* argv) {
       ("world-lease-ttl", po::value(&c.world_lease_ttl_s)->default_value(c.world_lease_ttl_s),
        "seconds the region's lease lasts after this zone's last renewal (renewed every quarter of it); a restarted zone waits this long for its predecessor's")  //
       ("world-nats-timeout", po::value(&c.world_nats_timeout_s)->default_value(c.world_nats_timeout_s),
-       "seconds a connect, or a KV or JetStream request, waits for NATS before the zone counts NATS unreachable");
+       "seconds a connect, or a KV or JetStream request, waits for NATS before the zone counts NATS unreachable")  //
+      ("world-capacity", po::value(&c.world_capacity)->default_value(c.world_capacity),
+       "most entities this zone owns (0 = its store's capacity); while it is full its neighbours keep the entities that would cross into it");
   po::options_description viewer("Live viewer (docs/viewer.md)");
   viewer.add_options()  //
       ("viewer", po::value(&c.viewer_enabled)->default_value(c.viewer_enabled),

@@ -54,6 +54,7 @@ int main(int argc, char** argv) {
     o.advertise_host = cfg.listen_address == "0.0.0.0" ? "127.0.0.1" : cfg.listen_address;
     o.lease_ttl_s = cfg.world_lease_ttl_s;
     o.nats_timeout_s = cfg.world_nats_timeout_s;
+    o.capacity = cfg.world_capacity;
     // A restarted zone waits for its predecessor's lease to lapse (its TTL, a few seconds).
     const auto give_up = std::chrono::steady_clock::now() +
                          std::chrono::duration_cast<std::chrono::steady_clock::duration>(
@@ -93,11 +94,11 @@ int main(int argc, char** argv) {
     const auto& l = node->link().stats();
     spdlog::info(
         "world: region {} owned {} entities at the end; handoffs out {} (CAS conflicts {}, confirmed by read-back {}, rounds retried {}, abandoned at the stop {}), in {} "
-        "(duplicates {}, no room {}); handoff latency p50 {:.2f} ms p99 {:.2f} ms max {:.2f} ms (p99 {:.2f} ticks); redirects {} claimed {}; "
+        "(duplicates {}, no room {}); held for a full neighbour {} entity-ticks; handoff latency p50 {:.2f} ms p99 {:.2f} ms max {:.2f} ms (p99 {:.2f} ticks); redirects {} claimed {}; "
         "ghost bytes out {} in {} over {} / {} messages; gaps {}, snapshots out {}; lease taken back {} times",
         node->region(), node->link().owned_count(), l.handoffs_out, s.handoff_cas_conflicts.load(),
         s.handoff_cas_confirmed.load(), s.handoff_retries.load(), s.handoffs_abandoned.load(),
-        s.handoffs_applied.load(), s.handoff_duplicates.load(), s.handoffs_no_room.load(),
+        s.handoffs_applied.load(), s.handoff_duplicates.load(), s.handoffs_no_room.load(), l.handoffs_held_for_room,
         node->handoff_ms().percentile(0.5), node->handoff_ms().percentile(0.99), node->handoff_ms().max(),
         node->handoff_ticks().percentile(0.99), s.redirects.load(), s.redirect_claims.load(), l.ghost_bytes_out,
         l.ghost_bytes_in, l.ghost_messages_out, l.ghost_messages_in, l.gaps, l.snapshots_out, s.lease_reclaims.load());

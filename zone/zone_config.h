@@ -176,6 +176,9 @@ struct zone_config {
   std::uint32_t world_cols = 2, world_rows = 2;  ///< --world-grid: regions of a new world's layout
   double world_lease_ttl_s = 3;     ///< --world-lease-ttl: the region's lease lapses this long after the last renewal
   double world_nats_timeout_s = 2;  ///< --world-nats-timeout: how long a connect or KV / JetStream request waits
+  /// --world-capacity: most entities the zone owns (0: its store's capacity); a neighbour keeps an
+  /// entity past the border while this zone is full (docs/world.md, "Faults": a full zone)
+  std::size_t world_capacity = 0;
   /// Where populate() places NPCs and towns (x, y; z from world): the zone's region in a world.
   /// Empty (lo == hi) = the whole world.
   net::world_bounds spawn_area{};

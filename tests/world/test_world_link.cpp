@@ -47,7 +47,8 @@ struct test_zone {
   std::unique_ptr<interest::brute_force_finder> finder = std::make_unique<interest::brute_force_finder>();
   std::unique_ptr<zone_world> world;
   std::unique_ptr<zone_link> link;
-  test_zone(const zone_config& c, const layout& map, std::uint32_t region) : cfg(c) {
+  /// `full`: the link's capacity is what the zone owns after populating (no room for handoffs).
+  test_zone(const zone_config& c, const layout& map, std::uint32_t region, bool full = false) : cfg(c) {
     const rect r = map.region(region);
     cfg.spawn_area = {{r.lo_x, r.lo_y, 0}, {r.hi_x, r.hi_y, 0}};
     cfg.seed = c.seed * 31 + region;
@@ -57,6 +58,7 @@ struct test_zone {
     o.map = map;
     o.region = region;
     o.ghost_band = ghost_band(cfg, o.handoff_margin);
+    if (full) o.capacity = world->store().size();
     link = std::make_unique<zone_link>(o);
     link->assign_ids(*world);
   }
@@ -397,6 +399,9 @@ TEST_SUITE("world.wire") {
     CHECK(back->removed == m.removed);
     CHECK(back->seq == 77);
     CHECK(back->snapshot);
+    CHECK(back->room == ghost_message::no_limit);
+    m.room = 5;
+    CHECK(decode_ghosts(encode(m))->room == 5);
     for (std::size_t cut = 0; cut < bytes.size(); ++cut) {
       CHECK_FALSE(decode_ghosts(std::span(bytes).first(cut)).has_value());
     }
@@ -711,5 +716,104 @@ TEST_SUITE("world.link") {
     std::size_t ghosts = 0;
     for (const entity_id id : b.world->store().ids()) ghosts += b.link->owns(id) ? 0 : 1;
     CHECK(ghosts == 0);
+  }
+
+  TEST_CASE(
+      "a full neighbour: an entity past the border stays owned, simulated and shown by its zone until the neighbour has room; then it is handed off, once") {
+    const std::uint64_t seed = zone::test::fresh_seed();
+    CAPTURE(seed);
+    const zone_config base = world_config(seed);
+    zone_config still = base;
+    still.npc_speed = 0;  // B's NPCs stay at home: B stays full until it is given room
+    const layout map(base.world, 2, 1);
+    test_zone a(base, map, 0), b(still, map, 1, true);
+    test_zone* zones[2] = {&a, &b};
+    const std::size_t total = a.world->store().size() + b.world->store().size();
+    std::vector<handoff_record> wire;
+    std::vector<std::vector<std::uint8_t>> ghost_wire;
+    std::vector<ghost_message> msgs;
+    std::size_t to_b = 0, removed = 0;
+    std::set<global_id> held_seen;  // A's entities seen past the border (beyond the margin) while B was full
+    const rect ra = map.region(0);
+    const auto tick = [&](bool b_full) {
+      // Records land, then ghosts. One refused for want of room waits for the next tick (on the
+      // stream, in a world): A sends B at most the room B's last message told, but records still
+      // in flight then can fill it first.
+      std::vector<handoff_record> again;
+      for (const auto& h : wire) {
+        auto& z = *zones[h.to];
+        const auto st = z.link->apply_handoff(*z.world, h);
+        if (st == handoff_status::no_room)
+          again.push_back(h);
+        else
+          CHECK(st == handoff_status::adopted);
+      }
+      wire = std::move(again);
+      for (const auto& bytes : ghost_wire) {
+        const auto m = decode_ghosts(bytes);
+        REQUIRE(m.has_value());
+        CHECK(zones[m->to]->link->apply_ghosts(*zones[m->to]->world, bytes) == ghost_status::applied);
+      }
+      ghost_wire.clear();
+      for (auto* z : zones) {
+        z->link->expire(*z->world);
+        REQUIRE_FALSE(z->world->step().has_value());
+      }
+      for (auto* z : zones) {
+        z->link->assign_ids(*z->world);
+        for (auto& h : z->link->collect_handoffs(*z->world, 0)) {
+          to_b += h.to == 1 ? 1 : 0;
+          if (b_full) CHECK(h.to != 1);  // B said it has no room: nothing goes to it
+          wire.push_back(h);
+        }
+        z->link->build_ghosts(*z->world, msgs);
+        for (const auto& m : msgs) ghost_wire.push_back(encode(m));
+      }
+      // While B is full, A's entities past the border stay A's: owned, simulated (they move),
+      // and B, whose band they are in, holds them as ghosts at A's positions.
+      const auto& s = a.world->store();
+      for (std::size_t i = 0; i < s.size() && b_full; ++i) {
+        const entity_id id = s.ids()[i];
+        const vec3 p = s.positions()[i];
+        if (!a.link->owns(id) || ra.distance(p.x, p.y) <= a.link->options().handoff_margin) continue;
+        CHECK(map.region_at(p.x, p.y) == 1);
+        held_seen.insert(a.link->gid_of(id));
+      }
+      // Every entity owned exactly once, or in flight.
+      std::set<global_id> owned;
+      for (auto* z : zones) {
+        for (const global_id g : z->link->owned_ids()) CHECK(owned.insert(g).second);
+      }
+      CHECK(owned.size() + wire.size() == total - removed);
+    };
+    // B is full from the start: nothing is handed to it, A keeps what walks across.
+    for (int t = 0; t < 120; ++t) tick(true);
+    CHECK(to_b == 0);
+    CHECK(held_seen.size() > 0);
+    CHECK(a.link->stats().handoffs_held_for_room > 0);
+    CHECK(b.link->stats().handoffs_no_room == 0);
+    std::size_t ghosts_in_b = 0;  // A's held entities within B's band: B shows them (ghosts)
+    for (const global_id g : held_seen) {
+      const entity_id here = a.link->local_of(g);
+      if (here == null_entity || !a.link->owns(here)) continue;
+      const entity_id there = b.link->local_of(g);
+      if (there != null_entity && !b.link->owns(there)) ++ghosts_in_b;
+    }
+    CHECK(ghosts_in_b > 0);
+    // Room in B: 60 of its own entities leave the world; A's held entities go to B.
+    for (const entity_id id : std::vector<entity_id>(b.world->store().ids().begin(), b.world->store().ids().end())) {
+      if (removed >= 60) break;
+      if (b.link->owns(id) && b.world->despawn(id)) ++removed;
+    }
+    b.link->assign_ids(*b.world);
+    for (int t = 0; t < 60; ++t) tick(false);
+    CHECK(to_b > 0);
+    std::size_t handed = 0;  // of the held ones, those B owns now
+    for (const global_id g : held_seen) {
+      const entity_id there = b.link->local_of(g);
+      if (there != null_entity && b.link->owns(there)) ++handed;
+    }
+    CHECK(handed > 0);
+    CHECK(b.link->owned_count() <= b.link->options().capacity);
   }
 }
