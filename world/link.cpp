@@ -664,16 +664,20 @@ std::vector<handoff_record> zone_link::collect_handoffs(zone_world& w, std::uint
   const auto& s = w.store();
   const auto ids = s.ids();
   const auto pos = s.positions();
-  // The room each neighbour told in its last message, less this call's records to it (a
-  // neighbour silent past the ghost timeout, or never heard, tells nothing: no limit here).
-  // Records of the last tick or two may not be in what it told yet: one that overruns its room
-  // waits on the stream (docs/world.md, "Faults").
+  // The room each neighbour told in its last message, less the records sent to it in the last
+  // room_lag_ticks ticks (what it told may not count them yet) and this call's (a neighbour
+  // silent past the ghost timeout, or never heard, tells nothing: no limit here). A record that
+  // overruns its room anyway (two neighbours at once, a slower stream) waits on the stream
+  // (docs/world.md, "Faults").
   std::unordered_map<std::uint32_t, std::uint32_t> room;
   if (opt_.hold_for_room) {
     for (const auto& [region, n] : in_) {
-      if (n.heard && n.room != ghost_message::no_limit && tick_ <= n.last_tick + opt_.ghost_timeout_ticks) {
-        room[region] = n.room;
+      if (!n.heard || n.room == ghost_message::no_limit || tick_ > n.last_tick + opt_.ghost_timeout_ticks) continue;
+      std::uint64_t recent = 0;
+      for (std::size_t k = 0; k < room_lag_ticks; ++k) {
+        if (n.sent[k] != 0 && n.sent_tick[k] < tick_ && tick_ - n.sent_tick[k] <= room_lag_ticks) recent += n.sent[k];
       }
+      room[region] = n.room > recent ? static_cast<std::uint32_t>(n.room - recent) : 0;
     }
   }
   for (std::size_t k = 0; k < ids.size(); ++k) {
@@ -721,6 +725,11 @@ std::vector<handoff_record> zone_link::collect_handoffs(zone_world& w, std::uint
     w.store().set_velocity(id, {});
     last_epoch_[r.gid] = std::max(last_epoch_[r.gid], r.epoch);
     ++stats_.handoffs_out;
+    if (const auto it = in_.find(r.to); it != in_.end()) {
+      const std::size_t slot = tick_ % room_lag_ticks;
+      if (it->second.sent_tick[slot] != tick_) it->second.sent_tick[slot] = tick_, it->second.sent[slot] = 0;
+      ++it->second.sent[slot];
+    }
   }
   return out;
 }

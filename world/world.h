@@ -6,6 +6,7 @@
 // world/nats_node.h carries these over NATS (built when libnats is found).
 #pragma once
 
+#include <array>
 #include <cstdint>
 #include <optional>
 #include <span>
@@ -258,7 +259,14 @@ class zone_link {
     std::uint64_t last_tick = 0;  ///< our tick of its last message
     bool heard = false;
     std::uint32_t room = ghost_message::no_limit;  ///< as its last message said
+    /// Records sent to it in the last room_lag_ticks ticks (by tick % room_lag_ticks): its
+    /// room may not count them yet.
+    std::array<std::uint64_t, 3> sent_tick{};
+    std::array<std::uint32_t, 3> sent{};
   };
+  /// Ticks a record may take to show in the room its zone tells (collect_handoffs counts the
+  /// records of that many ticks as not counted yet).
+  static constexpr std::uint64_t room_lag_ticks = 3;
   slot_info* info(entity_id local);
   const slot_info* info(entity_id local) const;
   slot_info& bind(entity_id local, global_id g, role what);
