@@ -405,8 +405,31 @@ void zone_link::build_ghosts(const zone_world& w, std::vector<ghost_message>& ou
   const auto& s = w.store();
   const auto ids = s.ids();
   const auto pos = s.positions();
-  for (auto& n : out_) {
+  std::vector<std::pair<float, float>> anchors;  // (x, y), by x
+  for (std::size_t nk = 0; nk < out_.size(); ++nk) {
+    auto& n = out_[nk];
     const rect r = opt_.map.region(n.region);
+    // The neighbour's own entities that it keeps here, past its border and its handoff margin
+    // (held for room: collect_handoffs): what they see of this zone is what it sends, so every
+    // owned entity within the band of one of them goes too, not only those near the border.
+    anchors.clear();
+    const auto bit = static_cast<std::uint8_t>(1u << nk);
+    for (std::size_t k = 0; k < ids.size(); ++k) {
+      const slot_info* i = info(ids[k]);
+      if (i != nullptr && i->what == role::ghost && (i->owner_claims & bit) != 0 &&
+          r.distance(pos[k].x, pos[k].y) > opt_.handoff_margin) {
+        anchors.emplace_back(pos[k].x, pos[k].y);
+      }
+    }
+    std::sort(anchors.begin(), anchors.end());
+    const float band = opt_.ghost_band;
+    const auto near_anchor = [&](float x, float y) {
+      for (auto it = std::lower_bound(anchors.begin(), anchors.end(), std::pair<float, float>(x - band, -INFINITY));
+           it != anchors.end() && it->first <= x + band; ++it) {
+        if (std::abs(it->second - y) <= band) return true;
+      }
+      return false;
+    };
     ghost_message m;
     m.from = opt_.region;
     m.to = n.region;
@@ -427,7 +450,8 @@ void zone_link::build_ghosts(const zone_world& w, std::vector<ghost_message>& ou
       // owner's ghosts take over); never other zones' ghosts.
       const bool transit = i->what == role::transit;
       if (i->what != role::owned && !transit) continue;
-      if (r.distance(pos[k].x, pos[k].y) > opt_.ghost_band) continue;
+      if (r.distance(pos[k].x, pos[k].y) > opt_.ghost_band && (anchors.empty() || !near_anchor(pos[k].x, pos[k].y)))
+        continue;
       const ghost_entry e = make_entry(s, k, transit ? ghost_in_transit : 0);
       now.emplace(e.gid, e);
       if (m.snapshot) {

@@ -735,6 +735,12 @@ TEST_SUITE("world.link") {
     std::size_t to_b = 0, removed = 0;
     std::set<global_id> held_seen;  // A's entities seen past the border (beyond the margin) while B was full
     const rect ra = map.region(0);
+    // While B is full, A's observers against one zone's brute force over every entity of the
+    // world (A's own now, B's as B published them after its last step): a held entity deep in B
+    // sees B's entities there too (B sends those near it, not only its band).
+    reference ref_a(base.hysteresis);
+    std::vector<published> b_published;
+    std::size_t compared = 0, mismatches = 0, deep = 0;
     const auto tick = [&](bool b_full) {
       // Records land, then ghosts. One refused for want of room would wait for the next tick (on
       // the stream, in a world): A sends B at most the room B's last message told less what A
@@ -759,6 +765,26 @@ TEST_SUITE("world.link") {
         z->link->expire(*z->world);
         REQUIRE_FALSE(z->world->step().has_value());
       }
+      if (b_full) {
+        std::map<global_id, entity_desc> world;
+        for (const auto& p : b_published) world[p.gid] = p.desc;
+        const auto& s = a.world->store();
+        for (std::size_t i = 0; i < s.size(); ++i) {
+          if (a.link->owns(s.ids()[i])) world[a.link->gid_of(s.ids()[i])] = *s.get(s.ids()[i]);
+        }
+        ref_a.set(world);
+        for (std::size_t i = 0; i < s.size(); ++i) {
+          const entity_id id = s.ids()[i];
+          if (!a.link->owns(id)) continue;
+          std::vector<global_id> got;
+          for (const entity_id e : a.world->tracker().visible(a.world->tracker().row_of(id)))
+            got.push_back(a.link->gid_of(e));
+          std::sort(got.begin(), got.end());
+          ++compared;
+          if (got != ref_a.visible(a.link->gid_of(id))) ++mismatches;
+          if (ra.distance(s.positions()[i].x, s.positions()[i].y) > b.link->options().ghost_band) ++deep;
+        }
+      }
       for (auto* z : zones) {
         z->link->assign_ids(*z->world);
         for (auto& h : z->link->collect_handoffs(*z->world, 0)) {
@@ -769,6 +795,7 @@ TEST_SUITE("world.link") {
         z->link->build_ghosts(*z->world, msgs);
         for (const auto& m : msgs) ghost_wire.push_back(encode(m));
       }
+      b_published = publish(b);
       // While B is full, A's entities past the border stay A's: owned, simulated (they move),
       // and B, whose band they are in, holds them as ghosts at A's positions.
       const auto& s = a.world->store();
@@ -787,8 +814,12 @@ TEST_SUITE("world.link") {
       CHECK(owned.size() + wire.size() == total - removed);
     };
     // B is full from the start: nothing is handed to it, A keeps what walks across.
-    for (int t = 0; t < 120; ++t) tick(true);
+    for (int t = 0; t < 200; ++t) tick(true);
     CHECK(to_b == 0);
+    CHECK(mismatches == 0);
+    CHECK(compared > 10000);
+    CHECK(deep > 0);  // observer-ticks of held entities deeper in B than B's border band reaches
+    MESSAGE(compared, " observer-ticks compared, ", deep, " of them deeper in B than its band");
     CHECK(held_seen.size() > 0);
     CHECK(a.link->stats().handoffs_held_for_room > 0);
     CHECK(b.link->stats().handoffs_no_room == 0);
