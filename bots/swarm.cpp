@@ -680,7 +680,8 @@ class swarm {
   /// stopped) is followed to the server that answers at the same address afterwards (a restart:
   /// the probe is tried every 250 ms), so that the bots that log in there again, or cross into
   /// it, are checked too; the old stream's end is then no error. A server that answers with the
-  /// instance whose stream ended is not followed (that end stays an error, as without a restart).
+  /// instance whose stream ended, or one that publishes no truth, is not followed (that end stays
+  /// an error, as without a restart).
   void follow_restarts() {
     while (!stopping_.load()) {
       for (auto& z : oracles()) {
@@ -689,8 +690,8 @@ class swarm {
         auto welcome = probe(z.at);
         if (std::holds_alternative<std::string>(welcome)) continue;  // not (yet) back: tried again
         const auto& w = std::get<net::welcome_msg>(welcome);
-        if (w.instance == z.instance) {
-          z.given_up = true;
+        if (w.instance == z.instance || w.oracle_port == 0 || !w.rules) {
+          z.given_up = true;  // the same server, or a new one without a truth stream: nothing to follow
           continue;
         }
         if (auto err = add_oracle(z.at, w, true)) {

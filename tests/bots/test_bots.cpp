@@ -569,6 +569,52 @@ TEST_CASE("rules: zone-server --player-aoi 100 --hysteresis 7 with a default bot
   CHECK(server.proc.terminate().value_or(-1) == 0);
 }
 
+TEST_CASE(
+    "oracle restart: the zone-server killed and started again on its port; the oracle follows the new server's truth, or fails when it publishes none") {
+  for (const bool truth_again : {true, false}) {
+    CAPTURE(truth_again);
+    const std::string dir = temp_dir();
+    auto first = std::make_unique<zone_server_process>(ZONE_SERVER_EXE, dir, server_args_with({"--oracle"}));
+    REQUIRE_MESSAGE(first->port != 0, first->proc.log());
+    const std::uint16_t port = first->port;
+    child_process swarm(swarm_args(port, dir,
+                                   {"--bots", "40", "--duration", "10", "--ramp", "100", "--verify", "--oracle",
+                                    "--reconnect", "--relogin-delay", "0.3", "--connect-timeout", "10"}),
+                        dir + "/bot-swarm.log");
+    std::this_thread::sleep_for(3s);
+    first->proc.kill_now();  // SIGKILL: its truth stream ends mid-run
+    std::vector<std::string> again{ZONE_SERVER_EXE,      "--listen",       "127.0.0.1", "--port",
+                                   std::to_string(port), "--metrics-port", "0"};
+    again.insert(again.end(), server_args.begin(), server_args.end());
+    if (truth_again) again.push_back("--oracle");
+    child_process second(again, dir + "/zone-server-2.log");
+    REQUIRE_MESSAGE(second.wait_for_log("listening on", 20000ms).has_value(), second.log());
+    const swarm_end run = finish(swarm, dir, 60000ms);
+    REQUIRE_MESSAGE(run.rc.has_value(), "bot-swarm did not end within 60 s; its output:\n" << run.log);
+    INFO("bot-swarm output:\n" << run.log);
+    const std::string& report = run.report;
+    CHECK(json_number(report, "reconnects").value_or(0) >= 40);  // every bot logged in again, on the new server
+    CHECK(json_number(report, "digest_mismatches").value_or(-1) == 0);
+    if (truth_again) {
+      // The old stream's end is explained by the restart: no error; the bots on the new server
+      // are judged by its truth.
+      CHECK(json_number(report, "truth_restarts").value_or(-1) == 1);
+      CHECK(json_number(report, "frames_checked_after_restart").value_or(0) > 1000);
+      CHECK(json_number(report, "oracle_mismatches").value_or(-1) == 0);
+      CHECK(json_number(report, "mismatches").value_or(-1) == 0);
+      CHECK(report.find("\"stream_error\": \"\"") != std::string::npos);
+    } else {
+      // A new server without a truth stream: nothing to follow; the old stream's end stays a
+      // failure of the run (its frames cannot be checked).
+      CHECK(json_number(report, "truth_restarts").value_or(-1) == 0);
+      CHECK(report.find("\"stream_error\": \"\"") == std::string::npos);
+      CHECK(json_number(report, "mismatches").value_or(0) >= 1);
+      CHECK(run.rc == 1);
+    }
+    CHECK(second.terminate().value_or(-1) == 0);
+  }
+}
+
 TEST_CASE("ramp: 800 bots launched at once from one address all join under the server's default pending caps") {
   // Every bot connects from 127.0.0.1 and the swarm's threads lag behind a ramp this fast: before
   // --max-connecting, hundreds of connections were open with no hello written yet, the server's
