@@ -345,8 +345,30 @@ void nats_node::heartbeat_loop() {
           case lease_readback::unknown: break;
         }
       }
+      if (s != NATS_OK)
+        check_jetstream_state();
+      else if (stats_.jetstream_state_lost.exchange(false)) {
+        spdlog::warn("world '{}': the world's JetStream state is back", opt_.world);
+      }
     }
     refresh_addresses();
+  }
+}
+
+void nats_node::check_jetstream_state() {
+  if (natsConnection_Status(nc_) != NATS_CONN_STATUS_CONNECTED) return;
+  const std::string stream = "KV_world-" + opt_.world + "-lease";
+  jsStreamInfo* si = nullptr;
+  jsErrCode jerr = static_cast<jsErrCode>(0);
+  const natsStatus s = js_GetStreamInfo(&si, js_, stream.c_str(), nullptr, &jerr);
+  if (si) jsStreamInfo_Destroy(si);
+  const bool gone = s == NATS_NOT_FOUND || jerr == JSStreamNotFoundErr;
+  if (gone && !stats_.jetstream_state_lost.exchange(true)) {
+    spdlog::error(
+        "world '{}': NATS answers but the world's JetStream state is gone (stream {} not found: a nats-server restarted "
+        "without its store?): the lease cannot be renewed and handoffs are held; not recovered: restart nats-server with "
+        "its store directory (-sd), or start the world again (docs/world.md, \"Faults\")",
+        opt_.world, stream);
   }
 }
 

@@ -81,6 +81,10 @@ struct node_stats {
   std::atomic<std::uint64_t> inputs_forwarded{0}, inputs_received{0}, snapshot_requests{0}, players_abandoned{0};
   std::atomic<std::uint64_t> ghost_publish_failures{0}, ghost_inbox_dropped{0};
   std::atomic<std::uint64_t> handoffs_no_room{0};  ///< records offered to a full zone, handed back to the stream to retry
+  /// NATS answers, but the world's JetStream state is gone (its lease bucket's stream not found: a
+  /// nats-server restarted without its store). Not recovered: handoffs are held, the lease is not
+  /// renewed; an error is logged when it is found and when it is back (docs/world.md, "Faults").
+  std::atomic<bool> jetstream_state_lost{false};
 };
 
 /// What a failed ownership CAS was, judged by the key read back after it (docs/world.md "Handoff").
@@ -202,6 +206,9 @@ class nats_node final : public zone_extension {
   __natsSubscription* sub_handoff_ = nullptr;  // pull consumer
   std::string lease_key_, lease_value_;
   std::uint64_t lease_revision_ = 0;
+  /// After a failed lease renewal with NATS connected: whether the world's JetStream state is gone
+  /// (stats_.jetstream_state_lost; an error logged when it is first found). Heartbeat thread.
+  void check_jetstream_state();
   std::mutex lease_mutex_;
   std::atomic<bool> lease_lost_{false}, stopping_{false};
   std::atomic<bool> sender_stalled_{false};  ///< the sender's last round left its first record unsettled
