@@ -176,6 +176,29 @@ zone_list join_zones(const std::string& url, const std::string& name, std::uint3
   return zones;
 }
 
+/// Two zones of a 2x1 world on a nats-server of their own, for the tests of NATS outages: a
+/// lease of 1 s (options()), requests to a NATS that does not answer failing after 0.25 s.
+struct outage_world {
+  nats_server ns;
+  std::uint64_t seed = zone::test::fresh_seed();
+  zone_list zones;
+  std::size_t total = 0;  ///< entities at the start
+  explicit outage_world(const std::string& name) {
+    REQUIRE_FALSE(ns.url.empty());
+    zones = join_zones(ns.url, name, 2, 1, small_world(seed), 2, [](node_options& o) { o.nats_timeout_s = 0.25; });
+    for (auto& z : zones) total += z->world->store().size();
+  }
+  /// Ticks every zone at 30 Hz for `d` (the lease and the NATS client's timeouts are in real
+  /// time), or until `done` says so.
+  void run(std::chrono::milliseconds d, const std::function<bool()>& done = {}) {
+    const auto until = std::chrono::steady_clock::now() + d;
+    while (std::chrono::steady_clock::now() < until && !(done && done())) {
+      for (auto& z : zones) z->tick();
+      std::this_thread::sleep_for(33ms);
+    }
+  }
+};
+
 /// The census of in-process zones (their game threads answer: pumped while it waits).
 std::optional<std::vector<census_entry>> census_of(zone_list& zones, const std::string& url, const std::string& name,
                                                    std::string* err) {
@@ -801,44 +824,32 @@ TEST_SUITE("world.nats") {
 
   TEST_CASE(
       "NATS stalled, then restarted, each for three leases: the zones tick on, keep their regions, lose no entity") {
-    nats_server ns;
-    REQUIRE_FALSE(ns.url.empty());
-    const std::uint64_t seed = zone::test::fresh_seed();
-    CAPTURE(seed);
-    const auto c = small_world(seed);
-    // A lease of 1 s (options()); requests to a stalled NATS fail soon.
-    zone_list zones = join_zones(ns.url, "outage", 2, 1, c, 2, [](node_options& o) { o.nats_timeout_s = 0.25; });
-    std::size_t total = 0;
-    for (auto& z : zones) total += z->world->store().size();
-    // Ticks at 30 Hz for `d` (the lease and the NATS client's timeouts are in real time).
-    const auto run_for = [&](std::chrono::milliseconds d) {
-      const auto until = std::chrono::steady_clock::now() + d;
-      while (std::chrono::steady_clock::now() < until) {
-        for (auto& z : zones) z->tick();
-        std::this_thread::sleep_for(33ms);
-      }
-    };
+    outage_world w("outage");
+    CAPTURE(w.seed);
+    auto& ns = w.ns;
+    auto& zones = w.zones;
+    const std::size_t total = w.total;
     const auto sum = [&](auto stat) { return sum_over(zones, stat); };
     const auto retries = [](const nats_node& n) { return n.stats().handoff_retries.load(); };
     const auto holds = [](const nats_node& n) { return n.stats().handoff_hold_ticks.load(); };
-    run_for(2s);
+    w.run(2s);
     CHECK(sum(holds) == 0);
     // 1. NATS stalls (SIGSTOP: the connections stay up, requests time out). The first record
     // decided after it cannot settle: the sender keeps it and tries again; meanwhile the zones
     // hand nothing off (entities past the border stay owned).
     ns.pause();
-    run_for(3s);
+    w.run(3s);
     CHECK(sum(retries) > 0);
     const std::uint64_t held_in_stall = sum(holds);
     CHECK(held_in_stall > 0);
     ns.resume();
-    run_for(2s);
+    w.run(2s);
     // 2. NATS stops (the connections close) and starts again on its port with its state.
     ns.stop();
-    run_for(3s);
+    w.run(3s);
     CHECK(sum(holds) > held_in_stall + 60);  // every tick of the outage, in both zones
     REQUIRE(ns.restart());
-    run_for(3s);
+    w.run(3s);
     for (auto& z : zones) CHECK_FALSE(z->node->must_stop());
     CHECK(sum([](const nats_node& n) { return n.stats().lease_reclaims.load(); }) >= 2);  // lapsed, taken back
     drain(zones, 20s);
@@ -864,46 +875,32 @@ TEST_SUITE("world.nats") {
   }
 
   TEST_CASE("NATS restarted without its store: the zones tick on, hand nothing off, keep every entity, and say why") {
-    nats_server ns;
-    REQUIRE_FALSE(ns.url.empty());
-    const std::uint64_t seed = zone::test::fresh_seed();
-    CAPTURE(seed);
-    const auto c = small_world(seed);
-    zone_list zones = join_zones(ns.url, "lost", 2, 1, c, 2, [](node_options& o) { o.nats_timeout_s = 0.25; });
-    std::size_t total = 0;
-    for (auto& z : zones) total += z->world->store().size();
-    const auto run_until = [&](std::chrono::milliseconds d, const std::function<bool()>& done) {
-      const auto until = std::chrono::steady_clock::now() + d;
-      while (std::chrono::steady_clock::now() < until && !done()) {
-        for (auto& z : zones) z->tick();
-        std::this_thread::sleep_for(33ms);
-      }
-    };
+    outage_world w("lost");
+    CAPTURE(w.seed);
+    auto& zones = w.zones;
     const auto lost = [&] {
       return std::all_of(zones.begin(), zones.end(),
                          [](const auto& z) { return z->node->stats().jetstream_state_lost.load(); });
     };
-    run_until(2s, [] { return false; });
+    w.run(2s);
     CHECK_FALSE(lost());
     // The zones pause 0.5 s (no tick: no handoff decided), so every record already published is
     // fetched by its new zone (held in memory until its next tick) before the stream goes.
     std::this_thread::sleep_for(500ms);
-    REQUIRE(ns.restart(true));
+    REQUIRE(w.ns.restart(true));
     // Each zone finds it at a failed lease renewal (every quarter of its 1 s lease) once its
     // client has reconnected (bounded: 15 s).
-    run_until(15s, lost);
+    w.run(15s, lost);
     CHECK(lost());
     const auto sent = [](const nats_node& n) { return n.stats().handoffs_sent.load(); };
     const std::uint64_t sent_at_loss = sum_over(zones, sent);
-    run_until(2s, [] { return false; });
+    w.run(2s);
     CHECK(sum_over(zones, sent) == sent_at_loss);             // no handoff decided: nothing to lose it with
     for (auto& z : zones) CHECK_FALSE(z->node->must_stop());  // the zones keep their regions
     // The census (core NATS: it needs no JetStream): every entity owned once, or in transit from
     // a zone whose sender holds its record.
     std::string err;
-    const auto census = take_census(ns.url, "lost", 1500, &err, [&] {
-      for (auto& z : zones) z->tick();
-    });
+    const auto census = census_of(zones, w.ns.url, "lost", &err);
     REQUIRE_MESSAGE(census.has_value(), err);
     REQUIRE(census->size() == 2);
     std::set<global_id> owned, everything;
@@ -912,6 +909,6 @@ TEST_SUITE("world.nats") {
       everything.insert(owned.begin(), owned.end());
       everything.insert(z.transit.begin(), z.transit.end());
     }
-    CHECK(everything.size() == total);
+    CHECK(everything.size() == w.total);
   }
 }
