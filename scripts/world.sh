@@ -19,6 +19,8 @@ Usage: scripts/world.sh [options]
   --world-size M   world side in metres (default 1024)
   --bosses N       bosses per zone (default 0: a boss's 400 m AOI widens the ghost band to ~453 m)
   --kill           SIGKILL zone 1 at a third of the run and restart it (fault test)
+  --nats-empty     with --nats-restart: start it again with an empty store (the world's JetStream
+                   state lost: the zones make it again); every entity must still be there at the end
   --nats-restart S stop nats-server at a third of the run for S seconds, then start it again on its
                    port with its JetStream state (fault test): every zone must still serve at the end
                    and world-check find every entity; not with --kill
@@ -44,7 +46,7 @@ EOF
 }
 
 extra_zone_args=()
-build=build grid=2x2 bots=200 npcs=5000 duration=30 size=1024 kill=0 nats_restart=0 threads=1 bosses=0 out= oracle=0 fault= single=0 interest=cpu
+build=build grid=2x2 bots=200 npcs=5000 duration=30 size=1024 kill=0 nats_restart=0 nats_empty=0 threads=1 bosses=0 out= oracle=0 fault= single=0 interest=cpu
 while [ $# -gt 0 ]; do
   case "$1" in
     --build) build=$2; shift 2 ;;
@@ -55,6 +57,7 @@ while [ $# -gt 0 ]; do
     --world-size) size=$2; shift 2 ;;
     --kill) kill=1; shift ;;
     --nats-restart) nats_restart=$2; shift 2 ;;
+    --nats-empty) nats_empty=1; shift ;;
     --oracle) oracle=1; shift ;;
     --interest) interest=$2; shift 2 ;;
     --test-fault) fault=$2; shift 2 ;;
@@ -72,6 +75,7 @@ zones=$(( ${BASH_REMATCH[1]} * ${BASH_REMATCH[2]} ))
 for v in "$bots" "$npcs" "$duration" "$size" "$threads" "$bosses" "$single" "$nats_restart"; do
   [[ $v =~ ^[0-9]+$ ]] || { echo "world.sh: --bots, --npcs, --duration, --world-size, --threads, --bosses, --single and --nats-restart take whole numbers (got '$v')" >&2; exit 64; }
 done
+[ "$nats_empty" = 1 ] && [ "$nats_restart" = 0 ] && { echo "world.sh: --nats-empty needs --nats-restart" >&2; exit 64; }
 [ "$kill" = 1 ] && [ "$nats_restart" -gt 0 ] && { echo "world.sh: --kill and --nats-restart do not go together (one fault a run)" >&2; exit 64; }
 case "$interest" in cpu) where=(--finder cpu --interest host) ;; gpu) where=(--finder gpu --interest gpu) ;;
   *) echo "world.sh: --interest must be cpu or gpu" >&2; exit 64 ;; esac
@@ -93,10 +97,11 @@ trap cleanup EXIT
 
 # 1. nats-server on a free loopback port (a fresh JetStream store: an --out reused from an earlier
 # run must not bring that world's streams and KV back).
-rm -rf "$out/js"
+rm -rf "$out/js" "$out/js-empty"
+store="$out/js"
 # start_nats PORT (-1: a free one): nats-server on it, its pid in nats_pid and its URL in url.
 start_nats() {
-  nats-server -a 127.0.0.1 -p "$1" -js -sd "$out/js" --ports_file_dir "$out" >>"$out/nats.log" 2>&1 &
+  nats-server -a 127.0.0.1 -p "$1" -js -sd "$store" --ports_file_dir "$out" >>"$out/nats.log" 2>&1 &
   nats_pid=$!
   pids+=("$nats_pid")
   url=
@@ -187,8 +192,10 @@ if [ "$nats_restart" -gt 0 ]; then
   kill -TERM "$nats_pid" 2>/dev/null || true
   wait "$nats_pid" 2>/dev/null || true
   sleep "$nats_restart"
+  [ "$nats_empty" = 1 ] && store="$out/js-empty"  # the world's JetStream state lost
   start_nats "${url##*:}"
   nats_note="nats-server stopped at $(( duration / 3 )) s for ${nats_restart} s and started again on its port"
+  [ "$nats_empty" = 1 ] && nats_note="$nats_note with an empty store (the world's JetStream state lost)"
 fi
 
 # 5. Wait for the swarms, then take the census while the zones still run.
@@ -334,6 +341,11 @@ if [ -n "$fault" ] && [ "$oracle" = 1 ]; then
   echo "injected fault '$fault' in zone 0: oracle mismatches $oracle_mism (must be > 0), other failures $others (must be 0)"
   [ "$check_rc" = 0 ] && [ "$oracle_mism" -gt 0 ] && [ "$others" = 0 ] && [ "$digest_mism" = 0 ] && [ "$crossings" -gt 0 ] && [ "$unexplained" = 0 ] && [ "$stopped_early" = 0 ]
   exit
+fi
+if [ "$nats_empty" = 1 ]; then
+  remade=$(cat "$out"/zone-*.log | grep -c "state made again" || true)
+  echo "the world's JetStream state made again by the zones: $remade times (each zone once: $zones)"
+  [ "$remade" -ge 1 ] || { echo "no zone made the world's JetStream state again" >&2; exit 1; }
 fi
 [ "$oracle" = 1 ] && [ "$oracle_checked" = 0 ] && { echo "the oracle checked no frame" >&2; exit 1; }
 [ "$oracle" = 1 ] && [ "$crossings" = 0 ] && { echo "no bot crossed a border: the oracle spanned no zones" >&2; exit 1; }

@@ -45,7 +45,37 @@ natsStatus open_bucket(kvStore** kv, jsCtx* js, const std::string& name, std::in
   return s;
 }
 
+/// The world's handoff stream (idempotent: an existing one is fine).
+natsStatus add_handoff_stream(jsCtx* js, const std::string& world) {
+  jsStreamConfig sc;
+  jsStreamConfig_Init(&sc);
+  const std::string name = "WORLD_" + world;
+  const std::string subj = "world." + world + ".handoff.>";
+  const char* subjects[1] = {subj.c_str()};
+  sc.Name = name.c_str();
+  sc.Subjects = subjects;
+  sc.SubjectsLen = 1;
+  sc.Storage = js_FileStorage;
+  sc.Duplicates = static_cast<std::int64_t>(120) * 1000000000;  // 2 minutes of message-id dedupe
+  sc.MaxAge = static_cast<std::int64_t>(3600) * 1000000000;
+  jsErrCode jerr = static_cast<jsErrCode>(0);
+  const natsStatus s = js_AddStream(nullptr, js, &sc, nullptr, &jerr);
+  return s != NATS_OK && jerr == JSStreamNameExistErr ? NATS_OK : s;
+}
+
 }  // namespace
+
+int nats_node::subscribe_handoffs() {
+  jsSubOptions so;
+  jsSubOptions_Init(&so);
+  const std::string name = "WORLD_" + opt_.world;
+  so.Stream = name.c_str();
+  so.Config.AckWait = static_cast<std::int64_t>(5) * 1000000000;
+  const std::string durable = "region-" + std::to_string(region_);
+  const std::string hsubj = subject("handoff", region_);
+  jsErrCode jerr = static_cast<jsErrCode>(0);
+  return js_PullSubscribe(&sub_handoff_, js_, hsubj.c_str(), durable.c_str(), nullptr, &so, &jerr);
+}
 
 std::string nats_node::subject(const char* what, std::uint32_t region) const {
   return "world." + opt_.world + "." + what + "." + std::to_string(region);
@@ -79,6 +109,14 @@ std::unique_ptr<nats_node> nats_node::join(const node_options& opt, const zone_c
   if ((s = open_bucket(&n->lease_, n->js_, "world-" + opt.world + "-lease",
                        static_cast<std::int64_t>(opt.lease_ttl_s * 1e9))) != NATS_OK) {
     return fail("KV lease bucket: " + status_text(s));
+  }
+  {
+    // When the world's KV bucket was made: one made again later means the world's state was lost.
+    jsStreamInfo* si = nullptr;
+    if (js_GetStreamInfo(&si, n->js_, ("KV_world-" + opt.world).c_str(), nullptr, nullptr) == NATS_OK && si) {
+      n->kv_created_ = si->Created;
+    }
+    if (si) jsStreamInfo_Destroy(si);
   }
   // The lease bucket's TTL is the first zone's (an existing bucket keeps its own): renew by it.
   {
@@ -135,31 +173,9 @@ std::unique_ptr<nats_node> nats_node::join(const node_options& opt, const zone_c
   }
   if (n->incarnation_ == 0 || n->incarnation_ > 0xffff) return fail("cannot count the region's incarnation");
   // The handoff stream (idempotent: an existing one is fine) and this region's durable consumer.
-  {
-    jsStreamConfig sc;
-    jsStreamConfig_Init(&sc);
-    const std::string name = "WORLD_" + opt.world;
-    const std::string subj = "world." + opt.world + ".handoff.>";
-    const char* subjects[1] = {subj.c_str()};
-    sc.Name = name.c_str();
-    sc.Subjects = subjects;
-    sc.SubjectsLen = 1;
-    sc.Storage = js_FileStorage;
-    sc.Duplicates = static_cast<std::int64_t>(120) * 1000000000;  // 2 minutes of message-id dedupe
-    sc.MaxAge = static_cast<std::int64_t>(3600) * 1000000000;
-    jsErrCode jerr = static_cast<jsErrCode>(0);
-    s = js_AddStream(nullptr, n->js_, &sc, nullptr, &jerr);
-    if (s != NATS_OK && jerr != JSStreamNameExistErr) return fail("handoff stream: " + status_text(s));
-    jsSubOptions so;
-    jsSubOptions_Init(&so);
-    so.Stream = name.c_str();
-    so.Config.AckWait = static_cast<std::int64_t>(5) * 1000000000;
-    const std::string durable = "region-" + std::to_string(n->region_);
-    const std::string hsubj = n->subject("handoff", n->region_);
-    if ((s = js_PullSubscribe(&n->sub_handoff_, n->js_, hsubj.c_str(), durable.c_str(), nullptr, &so, &jerr)) != NATS_OK) {
-      return fail("handoff consumer: " + status_text(s));
-    }
-  }
+  if ((s = add_handoff_stream(n->js_, opt.world)) != NATS_OK) return fail("handoff stream: " + status_text(s));
+  if ((s = static_cast<natsStatus>(n->subscribe_handoffs())) != NATS_OK)
+    return fail("handoff consumer: " + status_text(s));
   n->link_ = std::make_unique<zone_link>([&] {
     link_options lo;
     lo.map = n->map_;
@@ -223,6 +239,8 @@ void nats_node::leave() {
       *s = nullptr;
     }
   }
+  for (auto* s : retired_subs_) natsSubscription_Destroy(s);
+  retired_subs_.clear();
   {
     std::lock_guard lock(inbox_mutex_);
     // Unapplied handoffs are not acked: JetStream gives them to the region's next zone.
@@ -345,35 +363,173 @@ void nats_node::heartbeat_loop() {
           case lease_readback::unknown: break;
         }
       }
-      if (s != NATS_OK)
-        check_jetstream_state();
-      else if (stats_.jetstream_state_lost.exchange(false)) {
-        spdlog::warn("world '{}': the world's JetStream state is back", opt_.world);
-      }
+      if ((s != NATS_OK || remake_wanted_.exchange(false)) && world_state_check() == 1) remake_world();
     }
     refresh_addresses();
   }
 }
 
-void nats_node::check_jetstream_state() {
-  if (natsConnection_Status(nc_) != NATS_CONN_STATUS_CONNECTED) return;
-  const std::string stream = "KV_world-" + opt_.world + "-lease";
+int nats_node::world_state_check() {
+  if (natsConnection_Status(nc_) != NATS_CONN_STATUS_CONNECTED) return -1;
+  const std::string stream = "KV_world-" + opt_.world;
   jsStreamInfo* si = nullptr;
   jsErrCode jerr = static_cast<jsErrCode>(0);
   const natsStatus s = js_GetStreamInfo(&si, js_, stream.c_str(), nullptr, &jerr);
+  const std::int64_t created = s == NATS_OK && si ? si->Created : 0;
   if (si) jsStreamInfo_Destroy(si);
-  const bool gone = s == NATS_NOT_FOUND || jerr == JSStreamNotFoundErr;
-  if (gone && !stats_.jetstream_state_lost.exchange(true)) {
+  const bool missing = s == NATS_NOT_FOUND || jerr == JSStreamNotFoundErr;
+  if (!missing && s != NATS_OK) return -1;
+  if (!missing && created == kv_created_.load()) return 0;
+  put_back_pending_ = true;
+  if (!stats_.jetstream_state_lost.exchange(true)) {
     spdlog::error(
-        "world '{}': NATS answers but the world's JetStream state is gone (stream {} not found: a nats-server restarted "
-        "without its store?): the lease cannot be renewed and handoffs are held; not recovered: restart nats-server with "
-        "its store directory (-sd), or start the world again (docs/world.md, \"Faults\")",
-        opt_.world, stream);
+        "world '{}': the world's JetStream state was lost ({}: a nats-server restarted without its store?): making it "
+        "again (docs/world.md, \"Faults\")",
+        opt_.world, missing ? "its KV bucket is gone" : "its KV bucket was made again since this zone joined");
   }
+  return 1;
+}
+
+bool nats_node::remake_world() {
+  const auto refused = [&](const char* what, natsStatus s) {
+    spdlog::warn("world '{}': making the world's JetStream state again: {}: {} (tried again at the next renewal)",
+                 opt_.world, what, status_text(s));
+    return false;
+  };
+  kvStore* made = nullptr;
+  natsStatus s = open_bucket(&made, js_, "world-" + opt_.world, 0);
+  if (made) kvStore_Destroy(made), made = nullptr;
+  if (s != NATS_OK) return refused("the KV bucket", s);
+  s = open_bucket(&made, js_, "world-" + opt_.world + "-lease", static_cast<std::int64_t>(opt_.lease_ttl_s * 1e9));
+  if (made) kvStore_Destroy(made), made = nullptr;
+  if (s != NATS_OK) return refused("the lease bucket", s);
+  if ((s = add_handoff_stream(js_, opt_.world)) != NATS_OK) return refused("the handoff stream", s);
+  std::uint64_t rev = 0;
+  kvStore_CreateString(&rev, kv_, "layout", map_.encode().c_str());  // the first zone back writes it
+  // This region's incarnation, so that a later zone here counts on from it (ids never reused).
+  const std::string inc_key = "inc." + std::to_string(region_);
+  for (int attempt = 0; attempt < 5; ++attempt) {
+    kvEntry* ie = nullptr;
+    s = kvStore_Get(&ie, kv_, inc_key.c_str());
+    if (s == NATS_NOT_FOUND) {
+      if (kvStore_CreateString(&rev, kv_, inc_key.c_str(), std::to_string(incarnation_).c_str()) == NATS_OK) break;
+      continue;
+    }
+    if (s != NATS_OK) return refused("the incarnation", s);
+    const std::uint64_t have = std::strtoull(kvEntry_ValueString(ie), nullptr, 10), last = kvEntry_Revision(ie);
+    kvEntry_Destroy(ie);
+    if (have >= incarnation_) break;
+    if (kvStore_UpdateString(&rev, kv_, inc_key.c_str(), std::to_string(incarnation_).c_str(), last) == NATS_OK) break;
+  }
+  // The lease: ours again, unless a zone claimed the region meanwhile (it joined a world it found
+  // empty): then that zone serves it and this one stops.
+  s = kvStore_CreateString(&rev, lease_, lease_key_.c_str(), lease_value_.c_str());
+  if (s == NATS_OK) {
+    lease_revision_ = rev;
+  } else {
+    kvEntry* e = nullptr;
+    const natsStatus g = kvStore_Get(&e, lease_, lease_key_.c_str());
+    const std::string have = g == NATS_OK ? kvEntry_ValueString(e) : "";
+    const std::uint64_t have_revision = g == NATS_OK ? kvEntry_Revision(e) : 0;
+    if (e) kvEntry_Destroy(e);
+    if (g != NATS_OK) return refused("the lease", s);
+    if (have != lease_value_) {
+      spdlog::error(
+          "world '{}': making the world's JetStream state again: region {} was claimed by another zone: stopping",
+          opt_.world, region_);
+      lease_lost_ = true;
+      return false;
+    }
+    lease_revision_ = have_revision;
+  }
+  {
+    jsStreamInfo* si = nullptr;
+    if (js_GetStreamInfo(&si, js_, ("KV_world-" + opt_.world).c_str(), nullptr, nullptr) != NATS_OK || !si) {
+      if (si) jsStreamInfo_Destroy(si);
+      return refused("the KV bucket's stream", NATS_ERR);
+    }
+    kv_created_ = si->Created;
+    jsStreamInfo_Destroy(si);
+  }
+  resubscribe_ = true;
+  owners_wanted_ = true;
+  ++stats_.world_remade;
+  stats_.jetstream_state_lost = false;
+  spdlog::warn(
+      "world '{}': the world's JetStream state made again (region {}, incarnation {}); the ownership records "
+      "of what this zone owns and sends follow",
+      opt_.world, region_, incarnation_);
+  return true;
+}
+
+bool nats_node::put_back(const std::vector<std::pair<global_id, std::uint64_t>>& owned) {
+  // Ownership records: what the game thread owns, and what the queued records hand on (ours at
+  // epoch - 1 until their CAS; the new owner's once it was done), and the last 10 s of published
+  // records' (the new owner's). A create: a record there already (a newer one) stays.
+  std::vector<std::pair<global_id, std::string>> records;
+  for (const auto& [g, epoch] : owned) records.emplace_back(g, std::to_string(region_) + " " + std::to_string(epoch));
+  {
+    std::lock_guard lock(out_mutex_);
+    for (const outgoing& o : outbox_) {
+      if (o.record.epoch == 0) continue;
+      records.emplace_back(o.record.gid, o.cas_done
+                                             ? std::to_string(o.record.to) + " " + std::to_string(o.record.epoch)
+                                             : std::to_string(region_) + " " + std::to_string(o.record.epoch - 1));
+    }
+  }
+  std::vector<handoff_record> published;
+  {
+    std::lock_guard lock(published_mutex_);
+    for (const auto& p : published_) published.push_back(p.record);
+  }
+  for (const auto& r : published) records.emplace_back(r.gid, std::to_string(r.to) + " " + std::to_string(r.epoch));
+  for (const auto& [g, value] : records) {
+    std::uint64_t rev = 0;
+    const natsStatus s = kvStore_CreateString(&rev, kv_, ("e." + hex(g)).c_str(), value.c_str());
+    if (s == NATS_OK) {
+      ++stats_.owners_reput;
+    } else if (s != NATS_ERR) {  // NATS_ERR: there already
+      spdlog::warn("world '{}': the ownership record of {:x} not put back ({}): tried again", opt_.world, g,
+                   status_text(s));
+      return false;
+    }
+  }
+  // The records published in the last 10 s again: the lost stream may have held them unfetched
+  // (their new zone adopts an epoch once: one it had is a duplicate there).
+  for (const auto& r : published) {
+    const auto bytes = encode(r);
+    const std::string msg_id = hex(r.gid) + "-" + std::to_string(r.epoch);
+    jsPubOptions po;
+    jsPubOptions_Init(&po);
+    po.MsgId = msg_id.c_str();
+    const natsStatus s = js_Publish(nullptr, js_, subject("handoff", r.to).c_str(), bytes.data(),
+                                    static_cast<int>(bytes.size()), &po, nullptr);
+    if (s != NATS_OK) {
+      spdlog::warn("world '{}': handoff of {:x} not published again ({}): tried again", opt_.world, r.gid,
+                   status_text(s));
+      return false;
+    }
+    ++stats_.records_republished;
+  }
+  return true;
 }
 
 void nats_node::fetch_loop() {
   while (!stopping_.load()) {
+    if (resubscribe_.exchange(false)) {  // the world's JetStream state was made again: a new consumer
+      // The old one is kept until leave(): messages fetched from it may still wait for their ack.
+      if (sub_handoff_) retired_subs_.push_back(sub_handoff_), sub_handoff_ = nullptr;
+      if (const auto s = static_cast<natsStatus>(subscribe_handoffs()); s != NATS_OK) {
+        spdlog::warn("world '{}': the handoff consumer not made again ({}): tried again", opt_.world, status_text(s));
+        resubscribe_ = true;
+        std::this_thread::sleep_for(std::chrono::milliseconds(250));
+        continue;
+      }
+    }
+    if (!sub_handoff_) {
+      std::this_thread::sleep_for(std::chrono::milliseconds(50));
+      continue;
+    }
     natsMsgList list{};
     const natsStatus s = natsSubscription_Fetch(&list, sub_handoff_, 256, 100, nullptr);
     if (s != NATS_OK) {
@@ -398,11 +554,32 @@ void nats_node::send_loop() {
   std::chrono::milliseconds pause = first_pause;
   while (true) {
     outgoing o;
+    std::optional<std::vector<std::pair<global_id, std::uint64_t>>> owned;
     {
       std::unique_lock lock(out_mutex_);
-      out_cv_.wait(lock, [&] { return stopping_.load() || !outbox_.empty(); });
-      if (outbox_.empty()) return;  // stopping, nothing left
-      o = outbox_.front();          // only this thread takes records off
+      out_cv_.wait(lock, [&] { return stopping_.load() || !outbox_.empty() || put_back_job_.has_value(); });
+      if (put_back_job_ && !stopping_.load()) {
+        owned = std::move(put_back_job_);
+        put_back_job_.reset();
+      } else if (outbox_.empty()) {
+        return;  // stopping, nothing left
+      } else {
+        o = outbox_.front();  // only this thread takes records off
+      }
+    }
+    if (owned) {
+      // The world's JetStream state was made again: its ownership records and the last records
+      // first, then the queued records go on (their CAS finds our records put back).
+      if (put_back(*owned)) {
+        put_back_pending_ = false;
+        spdlog::warn("world '{}': put back {} ownership records and published {} records again", opt_.world,
+                     stats_.owners_reput.load(), stats_.records_republished.load());
+        continue;
+      }
+      std::unique_lock lock(out_mutex_);
+      if (!put_back_job_) put_back_job_ = std::move(owned);
+      out_cv_.wait_for(lock, first_pause, [&] { return stopping_.load(); });
+      continue;
     }
     const send_outcome outcome = send(o, 0);
     std::unique_lock lock(out_mutex_);
@@ -415,7 +592,7 @@ void nats_node::send_loop() {
     ++stats_.handoff_retries;
     sender_stalled_ = true;
     outbox_.front() = o;  // a publish still to do remembers its CAS
-    if (!stopping_.load()) out_cv_.wait_for(lock, pause, [&] { return stopping_.load(); });
+    if (!stopping_.load()) out_cv_.wait_for(lock, pause, [&] { return stopping_.load() || put_back_job_.has_value(); });
     if (stopping_.load()) {
       stats_.handoffs_abandoned += outbox_.size();
       spdlog::error(
@@ -435,10 +612,11 @@ lease_readback judge_lease_readback(std::string_view ours, bool readable, bool f
   return value == ours ? lease_readback::ours : lease_readback::taken;
 }
 
-cas_readback judge_cas_readback(std::string_view wanted, std::uint64_t from_revision, bool found,
+cas_readback judge_cas_readback(std::string_view wanted, std::uint64_t from_revision, std::string_view ours, bool found,
                                 std::string_view value, std::uint64_t revision) {
   if (found && value == wanted) return cas_readback::publish;
   if (from_revision == 0 ? !found : (found && revision == from_revision)) return cas_readback::retry;
+  if (found && value == ours) return cas_readback::rebase;
   return cas_readback::conflict;
 }
 
@@ -448,6 +626,7 @@ nats_node::cas_outcome nats_node::ownership_cas(handoff_record& r, int fail_firs
   // key read back tells which. KV unreadable: unsettled at once (the sender pauses and comes back).
   const std::string key = "e." + hex(r.gid);
   const std::string value = std::to_string(r.to) + " " + std::to_string(r.epoch);
+  const std::string ours = std::to_string(r.from) + " " + std::to_string(r.epoch - 1);
   constexpr int attempts = 5;
   natsStatus last = NATS_OK;
   for (int attempt = 0; attempt < attempts; ++attempt) {
@@ -475,7 +654,13 @@ nats_node::cas_outcome nats_node::ownership_cas(handoff_record& r, int fail_firs
     const std::string have_value = have ? have : "";
     const std::uint64_t have_revision = g == NATS_OK ? kvEntry_Revision(e) : 0;
     if (e) kvEntry_Destroy(e);
-    switch (judge_cas_readback(value, r.owner_revision, g == NATS_OK, have_value, have_revision)) {
+    if (g == NATS_NOT_FOUND && r.owner_revision != 0 && (put_back_pending_.load() || world_state_check() == 1)) {
+      // The world's JetStream state was lost: its ownership records come back with put_back()
+      // (the heartbeat thread makes the state again if no zone did yet).
+      remake_wanted_ = true;
+      return cas_outcome::unsettled;
+    }
+    switch (judge_cas_readback(value, r.owner_revision, ours, g == NATS_OK, have_value, have_revision)) {
       case cas_readback::publish:
         ++stats_.handoff_cas_confirmed;
         spdlog::info("world '{}': handoff of {:x} to region {}: the CAS failed ({}) but had taken effect (revision {})",
@@ -488,6 +673,9 @@ nats_node::cas_outcome nats_node::ownership_cas(handoff_record& r, int fail_firs
         spdlog::warn("world '{}': handoff of {:x} to region {} refused by the ownership CAS ({}): KV holds '{}'",
                      opt_.world, r.gid, r.to, status_text(s), have_value);
         return cas_outcome::refused;
+      case cas_readback::rebase:
+        r.owner_revision = have_revision;  // ours, put back at another revision: from there
+        break;
       case cas_readback::retry:
         break;
     }
@@ -538,6 +726,16 @@ nats_node::send_outcome nats_node::send(outgoing& o, int fail_first) {
     return send_outcome::retry;
   }
   ++stats_.handoffs_sent;
+  {
+    // Kept 10 s: published again if the world's JetStream state is lost meanwhile (put_back).
+    std::lock_guard lock(published_mutex_);
+    const auto now = std::chrono::steady_clock::now();
+    published_.push_back({r, now});
+    while (!published_.empty() &&
+           (published_.size() > 10000 || now - published_.front().at > std::chrono::seconds(10))) {
+      published_.pop_front();
+    }
+  }
   return send_outcome::done;
 }
 
@@ -694,6 +892,17 @@ void nats_node::take_class_changes(std::vector<class_change>& out) {
 void nats_node::after_step(zone_world& w, std::vector<redirect>& out) {
   tick_ = w.tick();
   link_->assign_ids(w);
+  if (owners_wanted_.exchange(false)) {
+    // The world's JetStream state was made again: what this zone owns (handed off at least once:
+    // the others have no ownership record) goes back to KV by the sender.
+    std::vector<std::pair<global_id, std::uint64_t>> owned;
+    for (const auto& [g, epoch] : link_->owned_epochs()) {
+      if (epoch > 0) owned.emplace_back(g, epoch);
+    }
+    std::lock_guard lock(out_mutex_);
+    put_back_job_ = std::move(owned);
+    out_cv_.notify_one();
+  }
   if (auto gone = link_->take_departed(); !gone.empty()) {
     std::lock_guard lock(out_mutex_);
     for (const global_id g : gone) {

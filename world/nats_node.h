@@ -16,11 +16,12 @@
 
 #include <array>
 #include <atomic>
+#include <chrono>
 #include <condition_variable>
-#include <functional>
-#include <map>
 #include <cstdint>
 #include <deque>
+#include <functional>
+#include <map>
 #include <memory>
 #include <mutex>
 #include <optional>
@@ -82,21 +83,29 @@ struct node_stats {
   std::atomic<std::uint64_t> ghost_publish_failures{0}, ghost_inbox_dropped{0};
   std::atomic<std::uint64_t> handoffs_no_room{0};  ///< records offered to a full zone, handed back to the stream to retry
   /// NATS answers, but the world's JetStream state is gone (its lease bucket's stream not found: a
-  /// nats-server restarted without its store). Not recovered: handoffs are held, the lease is not
-  /// renewed; an error is logged when it is found and when it is back (docs/world.md, "Faults").
+  /// nats-server restarted without its store): true until this zone has made it again
+  /// (docs/world.md, "Faults").
   std::atomic<bool> jetstream_state_lost{false};
+  /// Times this zone made the world's JetStream state again (buckets, stream, layout, its
+  /// incarnation, lease and consumer), and what its sender put back: ownership records of the
+  /// entities it owns or sends, and records it had published in the last 10 s (published again).
+  std::atomic<std::uint64_t> world_remade{0}, owners_reput{0}, records_republished{0};
 };
 
 /// What a failed ownership CAS was, judged by the key read back after it (docs/world.md "Handoff").
 enum class cas_readback : std::uint8_t {
   publish,   ///< KV holds the value we wanted: the CAS took effect (only its reply was lost)
   retry,     ///< KV unchanged (still at the revision we CAS'd from; no entry when we created): try again
+  rebase,    ///< KV names us, at the epoch we hold, at another revision (the record put back after
+             ///< the world's JetStream state was made again): try again from that revision
   conflict,  ///< anything else (another value, or the record gone): the entity is not ours
 };
 /// `wanted`: the value the CAS wrote; `from_revision`: the revision it CAS'd from (0: a create);
-/// `found`: the key has a live entry (false: none, or deleted), whose `value` and `revision` follow.
-[[nodiscard]] cas_readback judge_cas_readback(std::string_view wanted, std::uint64_t from_revision, bool found,
-                                              std::string_view value, std::uint64_t revision);
+/// `ours`: the value naming this zone at the epoch it holds; `found`: the key has a live entry
+/// (false: none, or deleted), whose `value` and `revision` follow.
+[[nodiscard]] cas_readback judge_cas_readback(std::string_view wanted, std::uint64_t from_revision,
+                                              std::string_view ours, bool found, std::string_view value,
+                                              std::uint64_t revision);
 
 /// Why a lease renewal was refused, judged by the lease key read back (docs/world.md "Regions").
 enum class lease_readback : std::uint8_t {
@@ -206,9 +215,36 @@ class nats_node final : public zone_extension {
   __natsSubscription* sub_handoff_ = nullptr;  // pull consumer
   std::string lease_key_, lease_value_;
   std::uint64_t lease_revision_ = 0;
-  /// After a failed lease renewal with NATS connected: whether the world's JetStream state is gone
-  /// (stats_.jetstream_state_lost; an error logged when it is first found). Heartbeat thread.
-  void check_jetstream_state();
+  /// Whether the world's JetStream state was lost since this zone joined or last made it again:
+  /// its KV bucket gone, or made again (by another zone) since (its stream's creation time): 1
+  /// (stats_.jetstream_state_lost, put_back_pending_; an error logged when first found), 0 intact,
+  /// -1 unknown (NATS unreachable). Heartbeat and sender threads.
+  [[nodiscard]] int world_state_check();
+  std::atomic<std::int64_t> kv_created_{0};  ///< the world's KV bucket's stream: when it was made
+  std::atomic<bool> remake_wanted_{false};   ///< the sender found the state lost: heartbeat, check now
+  /// Makes the world's JetStream state again (heartbeat thread, lease_mutex_ held): the buckets and
+  /// the handoff stream, the layout, this region's incarnation and lease; then asks the fetch
+  /// thread for a new consumer and the game thread for what it owns (the sender puts it back).
+  /// False when NATS refused a step (tried again at the next renewal) or the region was taken.
+  bool remake_world();
+  /// The sender's part (sender thread): ownership records of `owned` and of the queued records'
+  /// entities put back, the records published in the last 10 s published again.
+  bool put_back(const std::vector<std::pair<global_id, std::uint64_t>>& owned);
+  [[nodiscard]] int subscribe_handoffs();          ///< this region's durable pull consumer (a natsStatus)
+  std::atomic<bool> resubscribe_{false};           ///< fetch thread: make the consumer again
+  std::vector<__natsSubscription*> retired_subs_;  ///< consumers made again: destroyed by leave()
+  std::atomic<bool> owners_wanted_{false};         ///< game thread: hand owned_epochs() to the sender
+  /// Game thread -> sender: what the zone owns (id, epoch), to put back (remake_world).
+  std::optional<std::vector<std::pair<global_id, std::uint64_t>>> put_back_job_;  // under out_mutex_
+  struct published_record {
+    handoff_record record;
+    std::chrono::steady_clock::time_point at;
+  };
+  std::mutex published_mutex_;
+  std::deque<published_record> published_;  ///< the last 10 s of published records (send())
+  /// The world's JetStream state was found lost and put_back() has not finished: a CAS that finds
+  /// no ownership record waits for it instead of taking the entity for someone else's.
+  std::atomic<bool> put_back_pending_{false};
   std::mutex lease_mutex_;
   std::atomic<bool> lease_lost_{false}, stopping_{false};
   std::atomic<bool> sender_stalled_{false};  ///< the sender's last round left its first record unsettled
