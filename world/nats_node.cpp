@@ -332,6 +332,7 @@ void nats_node::heartbeat_loop() {
       const natsStatus s = kvStore_UpdateString(&rev, lease_, lease_key_.c_str(), lease_value_.c_str(), lease_revision_);
       if (s == NATS_OK) {
         lease_revision_ = rev;
+        world_confirmed_ = true;
       } else if (s == NATS_ERR || s == NATS_NOT_FOUND) {
         // The update was refused (wrong last revision): the key read back tells why. Timeouts
         // and a lost connection are transient: the next renewal tries again.
@@ -462,10 +463,45 @@ bool nats_node::remake_world() {
   return true;
 }
 
+bool nats_node::put_record(global_id g, const std::string& value) {
+  // The highest epoch wins (epochs only grow along an entity's handoffs, so it is its owner's):
+  // created when missing, replaced when it names an older epoch (another zone put back what it
+  // had published before the entity moved on), left when it names this epoch or a newer one.
+  const std::string key = "e." + hex(g);
+  const std::uint64_t epoch = std::strtoull(value.c_str() + value.find(' ') + 1, nullptr, 10);
+  for (int attempt = 0; attempt < 5; ++attempt) {
+    std::uint64_t rev = 0;
+    kvEntry* e = nullptr;
+    const natsStatus got = kvStore_Get(&e, kv_, key.c_str());
+    if (got == NATS_NOT_FOUND) {
+      const natsStatus c = kvStore_CreateString(&rev, kv_, key.c_str(), value.c_str());
+      if (c == NATS_OK) {
+        ++stats_.owners_reput;
+        return true;
+      }
+      if (c != NATS_ERR) return false;  // NATS_ERR: created meanwhile: read it again
+      continue;
+    }
+    if (got != NATS_OK) return false;
+    const std::string have = kvEntry_ValueString(e);
+    const std::uint64_t have_revision = kvEntry_Revision(e);
+    kvEntry_Destroy(e);
+    const auto space = have.find(' ');
+    const std::uint64_t have_epoch =
+        space == std::string::npos ? 0 : std::strtoull(have.c_str() + space + 1, nullptr, 10);
+    if (have_epoch >= epoch) return true;
+    if (kvStore_UpdateString(&rev, kv_, key.c_str(), value.c_str(), have_revision) == NATS_OK) {
+      ++stats_.owners_reput;
+      return true;
+    }
+  }
+  return false;
+}
+
 bool nats_node::put_back(const std::vector<std::pair<global_id, std::uint64_t>>& owned) {
   // Ownership records: what the game thread owns, and what the queued records hand on (ours at
   // epoch - 1 until their CAS; the new owner's once it was done), and the last 10 s of published
-  // records' (the new owner's). A create: a record there already (a newer one) stays.
+  // records' (the new owner's: it may not have fetched them from the lost stream).
   std::vector<std::pair<global_id, std::string>> records;
   for (const auto& [g, epoch] : owned) records.emplace_back(g, std::to_string(region_) + " " + std::to_string(epoch));
   {
@@ -484,13 +520,8 @@ bool nats_node::put_back(const std::vector<std::pair<global_id, std::uint64_t>>&
   }
   for (const auto& r : published) records.emplace_back(r.gid, std::to_string(r.to) + " " + std::to_string(r.epoch));
   for (const auto& [g, value] : records) {
-    std::uint64_t rev = 0;
-    const natsStatus s = kvStore_CreateString(&rev, kv_, ("e." + hex(g)).c_str(), value.c_str());
-    if (s == NATS_OK) {
-      ++stats_.owners_reput;
-    } else if (s != NATS_ERR) {  // NATS_ERR: there already
-      spdlog::warn("world '{}': the ownership record of {:x} not put back ({}): tried again", opt_.world, g,
-                   status_text(s));
+    if (!put_record(g, value)) {
+      spdlog::warn("world '{}': the ownership record of {:x} not put back: tried again", opt_.world, g);
       return false;
     }
   }
@@ -915,8 +946,13 @@ void nats_node::after_step(zone_world& w, std::vector<redirect>& out) {
   }
   // While NATS is unreachable (the connection down, or the sender unable to settle its first
   // record) no entity is handed off: it stays owned and served here, beyond the border, and goes
-  // once NATS answers again (a prompt handoff, with its view as it is then).
-  const bool hold = natsConnection_Status(nc_) != NATS_CONN_STATUS_CONNECTED || sender_stalled_.load();
+  // once NATS answers again (a prompt handoff, with its view as it is then). After the connection
+  // was down, not before a lease renewal went through: NATS may be back without the world's
+  // JetStream state (made again first), and a player redirected meanwhile would wait for its
+  // handoff longer than its new zone waits for it.
+  const bool connected = natsConnection_Status(nc_) == NATS_CONN_STATUS_CONNECTED;
+  if (!connected) world_confirmed_ = false;
+  const bool hold = !connected || !world_confirmed_.load() || sender_stalled_.load();
   if (hold) ++stats_.handoff_hold_ticks;
   auto records = hold ? std::vector<handoff_record>{} : link_->collect_handoffs(w, monotonic_us());
   for (auto& r : records) {

@@ -162,6 +162,9 @@ class nats_node final : public zone_extension {
   /// `fail_first` CAS attempts taken as failed without being sent (a timeout that changed
   /// nothing). Returns the KV revision its CAS settled at when the record was published (0: not
   /// ours, or not settled: the sender would try it again).
+  /// Testing hook: put_record() of the sender thread (an ownership record put back after the
+  /// world's JetStream state was made again) on the calling thread.
+  bool put_record_for_testing(global_id g, const std::string& value) { return put_record(g, value); }
   std::uint64_t send_handoff_for_testing(handoff_record r, int fail_first = 0) {
     outgoing o{std::move(r)};
     return send(o, fail_first) == send_outcome::done && o.cas_done ? o.record.owner_revision : 0;
@@ -230,6 +233,8 @@ class nats_node final : public zone_extension {
   /// The sender's part (sender thread): ownership records of `owned` and of the queued records'
   /// entities put back, the records published in the last 10 s published again.
   bool put_back(const std::vector<std::pair<global_id, std::uint64_t>>& owned);
+  /// One ownership record ("region epoch") put back: the highest epoch wins (sender thread).
+  bool put_record(global_id g, const std::string& value);
   [[nodiscard]] int subscribe_handoffs();          ///< this region's durable pull consumer (a natsStatus)
   std::atomic<bool> resubscribe_{false};           ///< fetch thread: make the consumer again
   std::vector<__natsSubscription*> retired_subs_;  ///< consumers made again: destroyed by leave()
@@ -247,6 +252,9 @@ class nats_node final : public zone_extension {
   std::atomic<bool> put_back_pending_{false};
   std::mutex lease_mutex_;
   std::atomic<bool> lease_lost_{false}, stopping_{false};
+  /// A lease renewal went through since the game thread last saw the connection down (handoffs wait
+  /// for it: the world's JetStream state may be gone and made again first).
+  std::atomic<bool> world_confirmed_{true};
   std::atomic<bool> sender_stalled_{false};  ///< the sender's last round left its first record unsettled
 
   // Inboxes filled by NATS threads, drained by the game thread.

@@ -880,6 +880,25 @@ TEST_SUITE("world.nats") {
     CHECK(ids.size() == total);  // none lost, none made up
   }
 
+  TEST_CASE("ownership records put back after the world's state was made again: the highest epoch wins") {
+    nats_server ns;
+    REQUIRE_FALSE(ns.url.empty());
+    const auto c = small_world(zone::test::fresh_seed());
+    zone_list zones = join_zones(ns.url, "putback", 2, 1, c, 1);
+    nats_node& n = *zones[0]->node;
+    world_kv kv(ns.url, "putback");
+    const global_id g = 0x0002000100000042ull, h = 0x0002000100000043ull;
+    CHECK(n.put_record_for_testing(g, "1 3"));  // missing: created
+    CHECK(kv.get("e." + hex_id(g)).first == "1 3");
+    CHECK(n.put_record_for_testing(g, "0 1"));  // an older epoch (what a zone had published before): left
+    CHECK(kv.get("e." + hex_id(g)).first == "1 3");
+    CHECK(n.put_record_for_testing(g, "1 3"));  // the same: left
+    CHECK(n.put_record_for_testing(g, "0 5"));  // a newer epoch (its owner's): replaces it
+    CHECK(kv.get("e." + hex_id(g)).first == "0 5");
+    CHECK(n.put_record_for_testing(h, "0 2"));
+    CHECK(kv.get("e." + hex_id(h)).first == "0 2");
+  }
+
   TEST_CASE(
       "NATS restarted without its store: the zones make the world's state again, hand off again, lose no entity") {
     outage_world w("lost");
