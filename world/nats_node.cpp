@@ -45,6 +45,16 @@ natsStatus open_bucket(kvStore** kv, jsCtx* js, const std::string& name, std::in
   return s;
 }
 
+/// An ownership record's value: the owner's region and the entity's epoch there.
+std::string owner_value(std::uint32_t region, std::uint64_t epoch) {
+  return std::to_string(region) + " " + std::to_string(epoch);
+}
+/// The epoch an ownership record's value names (0 when it names none).
+std::uint64_t owner_epoch(const std::string& value) {
+  const auto space = value.find(' ');
+  return space == std::string::npos ? 0 : std::strtoull(value.c_str() + space + 1, nullptr, 10);
+}
+
 /// The world's handoff stream (idempotent: an existing one is fine).
 natsStatus add_handoff_stream(jsCtx* js, const std::string& world) {
   jsStreamConfig sc;
@@ -463,12 +473,12 @@ bool nats_node::remake_world() {
   return true;
 }
 
-bool nats_node::put_record(global_id g, const std::string& value) {
+bool nats_node::put_record(global_id g, std::uint32_t region, std::uint64_t epoch) {
   // The highest epoch wins (epochs only grow along an entity's handoffs, so it is its owner's):
   // created when missing, replaced when it names an older epoch (another zone put back what it
   // had published before the entity moved on), left when it names this epoch or a newer one.
   const std::string key = "e." + hex(g);
-  const std::uint64_t epoch = std::strtoull(value.c_str() + value.find(' ') + 1, nullptr, 10);
+  const std::string value = owner_value(region, epoch);
   for (int attempt = 0; attempt < 5; ++attempt) {
     std::uint64_t rev = 0;
     kvEntry* e = nullptr;
@@ -483,12 +493,9 @@ bool nats_node::put_record(global_id g, const std::string& value) {
       continue;
     }
     if (got != NATS_OK) return false;
-    const std::string have = kvEntry_ValueString(e);
+    const std::uint64_t have_epoch = owner_epoch(kvEntry_ValueString(e));
     const std::uint64_t have_revision = kvEntry_Revision(e);
     kvEntry_Destroy(e);
-    const auto space = have.find(' ');
-    const std::uint64_t have_epoch =
-        space == std::string::npos ? 0 : std::strtoull(have.c_str() + space + 1, nullptr, 10);
     if (have_epoch >= epoch) return true;
     if (kvStore_UpdateString(&rev, kv_, key.c_str(), value.c_str(), have_revision) == NATS_OK) {
       ++stats_.owners_reput;
@@ -502,15 +509,19 @@ bool nats_node::put_back(const std::vector<std::pair<global_id, std::uint64_t>>&
   // Ownership records: what the game thread owns, and what the queued records hand on (ours at
   // epoch - 1 until their CAS; the new owner's once it was done), and the last 10 s of published
   // records' (the new owner's: it may not have fetched them from the lost stream).
-  std::vector<std::pair<global_id, std::string>> records;
-  for (const auto& [g, epoch] : owned) records.emplace_back(g, std::to_string(region_) + " " + std::to_string(epoch));
+  struct owner_record {
+    global_id gid;
+    std::uint32_t region;
+    std::uint64_t epoch;
+  };
+  std::vector<owner_record> records;
+  for (const auto& [g, epoch] : owned) records.push_back({g, region_, epoch});
   {
     std::lock_guard lock(out_mutex_);
     for (const outgoing& o : outbox_) {
       if (o.record.epoch == 0) continue;
-      records.emplace_back(o.record.gid, o.cas_done
-                                             ? std::to_string(o.record.to) + " " + std::to_string(o.record.epoch)
-                                             : std::to_string(region_) + " " + std::to_string(o.record.epoch - 1));
+      records.push_back(o.cas_done ? owner_record{o.record.gid, o.record.to, o.record.epoch}
+                                   : owner_record{o.record.gid, region_, o.record.epoch - 1});
     }
   }
   std::vector<handoff_record> published;
@@ -518,10 +529,10 @@ bool nats_node::put_back(const std::vector<std::pair<global_id, std::uint64_t>>&
     std::lock_guard lock(published_mutex_);
     for (const auto& p : published_) published.push_back(p.record);
   }
-  for (const auto& r : published) records.emplace_back(r.gid, std::to_string(r.to) + " " + std::to_string(r.epoch));
-  for (const auto& [g, value] : records) {
-    if (!put_record(g, value)) {
-      spdlog::warn("world '{}': the ownership record of {:x} not put back: tried again", opt_.world, g);
+  for (const auto& r : published) records.push_back({r.gid, r.to, r.epoch});
+  for (const auto& r : records) {
+    if (!put_record(r.gid, r.region, r.epoch)) {
+      spdlog::warn("world '{}': the ownership record of {:x} not put back: tried again", opt_.world, r.gid);
       return false;
     }
   }
@@ -656,8 +667,8 @@ nats_node::cas_outcome nats_node::ownership_cas(handoff_record& r, int fail_firs
   // effect (a timeout whose update went through) or changed nothing (a timeout before it): the
   // key read back tells which. KV unreadable: unsettled at once (the sender pauses and comes back).
   const std::string key = "e." + hex(r.gid);
-  const std::string value = std::to_string(r.to) + " " + std::to_string(r.epoch);
-  const std::string ours = std::to_string(r.from) + " " + std::to_string(r.epoch - 1);
+  const std::string value = owner_value(r.to, r.epoch);
+  const std::string ours = owner_value(r.from, r.epoch - 1);
   constexpr int attempts = 5;
   natsStatus last = NATS_OK;
   for (int attempt = 0; attempt < attempts; ++attempt) {

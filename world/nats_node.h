@@ -164,7 +164,9 @@ class nats_node final : public zone_extension {
   /// ours, or not settled: the sender would try it again).
   /// Testing hook: put_record() of the sender thread (an ownership record put back after the
   /// world's JetStream state was made again) on the calling thread.
-  bool put_record_for_testing(global_id g, const std::string& value) { return put_record(g, value); }
+  bool put_record_for_testing(global_id g, std::uint32_t region, std::uint64_t epoch) {
+    return put_record(g, region, epoch);
+  }
   std::uint64_t send_handoff_for_testing(handoff_record r, int fail_first = 0) {
     outgoing o{std::move(r)};
     return send(o, fail_first) == send_outcome::done && o.cas_done ? o.record.owner_revision : 0;
@@ -233,8 +235,8 @@ class nats_node final : public zone_extension {
   /// The sender's part (sender thread): ownership records of `owned` and of the queued records'
   /// entities put back, the records published in the last 10 s published again.
   bool put_back(const std::vector<std::pair<global_id, std::uint64_t>>& owned);
-  /// One ownership record ("region epoch") put back: the highest epoch wins (sender thread).
-  bool put_record(global_id g, const std::string& value);
+  /// One ownership record put back (`region` owns it at `epoch`): the highest epoch wins (sender thread).
+  bool put_record(global_id g, std::uint32_t region, std::uint64_t epoch);
   [[nodiscard]] int subscribe_handoffs();          ///< this region's durable pull consumer (a natsStatus)
   std::atomic<bool> resubscribe_{false};           ///< fetch thread: make the consumer again
   std::vector<__natsSubscription*> retired_subs_;  ///< consumers made again: destroyed by leave()

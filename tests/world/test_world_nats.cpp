@@ -888,14 +888,14 @@ TEST_SUITE("world.nats") {
     nats_node& n = *zones[0]->node;
     world_kv kv(ns.url, "putback");
     const global_id g = 0x0002000100000042ull, h = 0x0002000100000043ull;
-    CHECK(n.put_record_for_testing(g, "1 3"));  // missing: created
+    CHECK(n.put_record_for_testing(g, 1, 3));  // missing: created
     CHECK(kv.get("e." + hex_id(g)).first == "1 3");
-    CHECK(n.put_record_for_testing(g, "0 1"));  // an older epoch (what a zone had published before): left
+    CHECK(n.put_record_for_testing(g, 0, 1));  // an older epoch (what a zone had published before): left
     CHECK(kv.get("e." + hex_id(g)).first == "1 3");
-    CHECK(n.put_record_for_testing(g, "1 3"));  // the same: left
-    CHECK(n.put_record_for_testing(g, "0 5"));  // a newer epoch (its owner's): replaces it
+    CHECK(n.put_record_for_testing(g, 1, 3));  // the same: left
+    CHECK(n.put_record_for_testing(g, 0, 5));  // a newer epoch (its owner's): replaces it
     CHECK(kv.get("e." + hex_id(g)).first == "0 5");
-    CHECK(n.put_record_for_testing(h, "0 2"));
+    CHECK(n.put_record_for_testing(h, 0, 2));
     CHECK(kv.get("e." + hex_id(h)).first == "0 2");
   }
 
