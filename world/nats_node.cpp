@@ -55,6 +55,19 @@ std::uint64_t owner_epoch(const std::string& value) {
   return space == std::string::npos ? 0 : std::strtoull(value.c_str() + space + 1, nullptr, 10);
 }
 
+/// When the world's KV bucket (its stream) was made, in *created: NATS_OK; NATS_NOT_FOUND when
+/// there is none; another status when NATS did not tell. One made again since a zone read it means
+/// the world's JetStream state was lost meanwhile.
+natsStatus kv_stream_created(jsCtx* js, const std::string& world, std::int64_t* created) {
+  jsStreamInfo* si = nullptr;
+  jsErrCode jerr = static_cast<jsErrCode>(0);
+  natsStatus s = js_GetStreamInfo(&si, js, ("KV_world-" + world).c_str(), nullptr, &jerr);
+  if (s == NATS_OK && si) *created = si->Created;
+  if (si) jsStreamInfo_Destroy(si);
+  if (jerr == JSStreamNotFoundErr) s = NATS_NOT_FOUND;
+  return s;
+}
+
 /// The world's handoff stream (idempotent: an existing one is fine).
 natsStatus add_handoff_stream(jsCtx* js, const std::string& world) {
   jsStreamConfig sc;
@@ -121,12 +134,8 @@ std::unique_ptr<nats_node> nats_node::join(const node_options& opt, const zone_c
     return fail("KV lease bucket: " + status_text(s));
   }
   {
-    // When the world's KV bucket was made: one made again later means the world's state was lost.
-    jsStreamInfo* si = nullptr;
-    if (js_GetStreamInfo(&si, n->js_, ("KV_world-" + opt.world).c_str(), nullptr, nullptr) == NATS_OK && si) {
-      n->kv_created_ = si->Created;
-    }
-    if (si) jsStreamInfo_Destroy(si);
+    std::int64_t created = 0;
+    if (kv_stream_created(n->js_, opt.world, &created) == NATS_OK) n->kv_created_ = created;
   }
   // The lease bucket's TTL is the first zone's (an existing bucket keeps its own): renew by it.
   {
@@ -382,13 +391,9 @@ void nats_node::heartbeat_loop() {
 
 int nats_node::world_state_check() {
   if (natsConnection_Status(nc_) != NATS_CONN_STATUS_CONNECTED) return -1;
-  const std::string stream = "KV_world-" + opt_.world;
-  jsStreamInfo* si = nullptr;
-  jsErrCode jerr = static_cast<jsErrCode>(0);
-  const natsStatus s = js_GetStreamInfo(&si, js_, stream.c_str(), nullptr, &jerr);
-  const std::int64_t created = s == NATS_OK && si ? si->Created : 0;
-  if (si) jsStreamInfo_Destroy(si);
-  const bool missing = s == NATS_NOT_FOUND || jerr == JSStreamNotFoundErr;
+  std::int64_t created = 0;
+  const natsStatus s = kv_stream_created(js_, opt_.world, &created);
+  const bool missing = s == NATS_NOT_FOUND;
   if (!missing && s != NATS_OK) return -1;
   if (!missing && created == kv_created_.load()) return 0;
   put_back_pending_ = true;
@@ -443,24 +448,22 @@ bool nats_node::remake_world() {
     const std::string have = g == NATS_OK ? kvEntry_ValueString(e) : "";
     const std::uint64_t have_revision = g == NATS_OK ? kvEntry_Revision(e) : 0;
     if (e) kvEntry_Destroy(e);
-    if (g != NATS_OK) return refused("the lease", s);
-    if (have != lease_value_) {
-      spdlog::error(
-          "world '{}': making the world's JetStream state again: region {} was claimed by another zone: stopping",
-          opt_.world, region_);
-      lease_lost_ = true;
-      return false;
+    switch (judge_lease_readback(lease_value_, g == NATS_OK || g == NATS_NOT_FOUND, g == NATS_OK, have)) {
+      case lease_readback::ours: lease_revision_ = have_revision; break;
+      case lease_readback::taken:
+        spdlog::error(
+            "world '{}': making the world's JetStream state again: region {} was claimed by another zone: stopping",
+            opt_.world, region_);
+        lease_lost_ = true;
+        return false;
+      case lease_readback::lapsed:  // the create failed, yet no key: tried again
+      case lease_readback::unknown: return refused("the lease", s);
     }
-    lease_revision_ = have_revision;
   }
   {
-    jsStreamInfo* si = nullptr;
-    if (js_GetStreamInfo(&si, js_, ("KV_world-" + opt_.world).c_str(), nullptr, nullptr) != NATS_OK || !si) {
-      if (si) jsStreamInfo_Destroy(si);
-      return refused("the KV bucket's stream", NATS_ERR);
-    }
-    kv_created_ = si->Created;
-    jsStreamInfo_Destroy(si);
+    std::int64_t created = 0;
+    if ((s = kv_stream_created(js_, opt_.world, &created)) != NATS_OK) return refused("the KV bucket's stream", s);
+    kv_created_ = created;
   }
   resubscribe_ = true;
   owners_wanted_ = true;
