@@ -405,22 +405,25 @@ void zone_link::build_ghosts(const zone_world& w, std::vector<ghost_message>& ou
   const auto& s = w.store();
   const auto ids = s.ids();
   const auto pos = s.positions();
-  std::vector<std::pair<float, float>> anchors;  // (x, y), by x
+  // Each neighbour's own entities that it keeps here, past its border and its handoff margin
+  // (held for room: collect_handoffs): what they see of this zone is what it sends, so every owned
+  // entity within the band of one of them goes too, not only those near the border. One pass for
+  // every neighbour; (x, y), sorted by x.
+  std::vector<std::vector<std::pair<float, float>>> anchors_of(out_.size());
+  for (std::size_t k = 0; k < ids.size(); ++k) {
+    const slot_info* i = info(ids[k]);
+    if (i == nullptr || i->what != role::ghost || i->owner_claims == 0) continue;
+    for (std::size_t nk = 0; nk < out_.size(); ++nk) {
+      if ((i->owner_claims & (1u << nk)) != 0 &&
+          opt_.map.region(out_[nk].region).distance(pos[k].x, pos[k].y) > opt_.handoff_margin) {
+        anchors_of[nk].emplace_back(pos[k].x, pos[k].y);
+      }
+    }
+  }
   for (std::size_t nk = 0; nk < out_.size(); ++nk) {
     auto& n = out_[nk];
     const rect r = opt_.map.region(n.region);
-    // The neighbour's own entities that it keeps here, past its border and its handoff margin
-    // (held for room: collect_handoffs): what they see of this zone is what it sends, so every
-    // owned entity within the band of one of them goes too, not only those near the border.
-    anchors.clear();
-    const auto bit = static_cast<std::uint8_t>(1u << nk);
-    for (std::size_t k = 0; k < ids.size(); ++k) {
-      const slot_info* i = info(ids[k]);
-      if (i != nullptr && i->what == role::ghost && (i->owner_claims & bit) != 0 &&
-          r.distance(pos[k].x, pos[k].y) > opt_.handoff_margin) {
-        anchors.emplace_back(pos[k].x, pos[k].y);
-      }
-    }
+    auto& anchors = anchors_of[nk];
     std::sort(anchors.begin(), anchors.end());
     const float band = opt_.ghost_band;
     const auto near_anchor = [&](float x, float y) {
