@@ -163,10 +163,30 @@ std::unique_ptr<nats_node> nats_node::join(const node_options& opt, const zone_c
   if (!map) return fail("the layout in KV is malformed: '" + text + "'");
   if (!(map->bounds() == zone.world)) return fail("the layout's bounds differ from this zone's --world-size");
   n->map_ = *map;
+  // The running zones, by their census: a region one of them serves is not claimed even where its
+  // lease is missing (the world's JetStream state lost and not made again yet), and the claim's
+  // incarnation counts on from the highest among the ids alive in the world.
+  running_zones running = read_running({}, n->map_.count());
+  if (opt.join_census_s > 0) {
+    std::string why;
+    const auto census = take_census(opt.url, opt.world, static_cast<int>(opt.join_census_s * 1000), &why);
+    if (!census) return fail("the census of the running zones: " + why);
+    running = read_running(*census, n->map_.count());
+  }
   // A free region: its lease key created (fails while another zone holds it).
   bool claimed = false;
+  std::uint32_t served_unleased = 0;
   for (std::uint32_t r = 0; r < n->map_.count() && !claimed; ++r) {
     const std::string key = "r." + std::to_string(r);
+    if (running.served[r]) {
+      kvEntry* le = nullptr;
+      if (kvStore_Get(&le, n->lease_, key.c_str()) == NATS_OK) {
+        kvEntry_Destroy(le);
+      } else {
+        ++served_unleased;
+      }
+      continue;
+    }
     if (kvStore_CreateString(&rev, n->lease_, key.c_str(), "claiming") == NATS_OK) {
       n->region_ = r;
       n->lease_key_ = key;
@@ -174,20 +194,27 @@ std::unique_ptr<nats_node> nats_node::join(const node_options& opt, const zone_c
       claimed = true;
     }
   }
-  if (!claimed) return fail("every region of the layout (" + std::to_string(n->map_.count()) + ") is taken");
+  if (!claimed) {
+    return fail("every region of the layout (" + std::to_string(n->map_.count()) + ") is taken" +
+                (served_unleased == 0 ? std::string()
+                                      : " (" + std::to_string(served_unleased) +
+                                            " by running zones without a lease: the world's JetStream state is "
+                                            "being made again)"));
+  }
+  const std::uint32_t alive = running.incarnation[n->region_];
   // This claim's incarnation: inc.r counted up by CAS (ids of a restarted zone differ).
   const std::string inc_key = "inc." + std::to_string(n->region_);
   for (int attempt = 0; attempt < 50 && n->incarnation_ == 0; ++attempt) {
     kvEntry* ie = nullptr;
     if (kvStore_Get(&ie, n->kv_, inc_key.c_str()) == NATS_OK) {
-      const std::uint64_t have = std::strtoull(kvEntry_ValueString(ie), nullptr, 10);
+      const std::uint64_t have = std::max<std::uint64_t>(std::strtoull(kvEntry_ValueString(ie), nullptr, 10), alive);
       const std::uint64_t last = kvEntry_Revision(ie);
       kvEntry_Destroy(ie);
       if (kvStore_UpdateString(&rev, n->kv_, inc_key.c_str(), std::to_string(have + 1).c_str(), last) == NATS_OK) {
         n->incarnation_ = static_cast<std::uint32_t>(have + 1);
       }
-    } else if (kvStore_CreateString(&rev, n->kv_, inc_key.c_str(), "1") == NATS_OK) {
-      n->incarnation_ = 1;
+    } else if (kvStore_CreateString(&rev, n->kv_, inc_key.c_str(), std::to_string(alive + 1).c_str()) == NATS_OK) {
+      n->incarnation_ = alive + 1;
     }
   }
   if (n->incarnation_ == 0 || n->incarnation_ > 0xffff) return fail("cannot count the region's incarnation");
@@ -1099,6 +1126,25 @@ std::optional<std::vector<census_entry>> take_census(const std::string& url, con
   natsSubscription_Destroy(sub);
   natsConnection_Destroy(nc);
   std::sort(out.begin(), out.end(), [](const census_entry& a, const census_entry& b) { return a.region < b.region; });
+  return out;
+}
+
+running_zones read_running(const std::vector<census_entry>& census, std::uint32_t regions) {
+  running_zones out;
+  out.served.assign(regions, false);
+  out.incarnation.assign(regions, 0);
+  const auto seen = [&](global_id g) {
+    const std::uint32_t r = region_of_gid(g);
+    if (r < regions) out.incarnation[r] = std::max(out.incarnation[r], incarnation_of_gid(g));
+  };
+  for (const auto& z : census) {
+    if (z.region >= regions) continue;
+    out.served[z.region] = true;
+    out.incarnation[z.region] = std::max(out.incarnation[z.region], z.incarnation);
+    for (const auto& [g, epoch] : z.owned) seen(g);
+    for (const global_id g : z.transit) seen(g);
+    for (const global_id g : z.awaiting) seen(g);
+  }
   return out;
 }
 

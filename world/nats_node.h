@@ -61,6 +61,11 @@ struct node_options {
   /// link_options::hold_for_room: keep an entity past the border while its neighbour is full.
   bool hold_for_room = true;
   double no_room_retry_s = 0.25;
+  /// How long a joining zone listens for the running zones' census answers before it claims a
+  /// region (0: it does not ask). A region a running zone answers for is not claimed even where
+  /// its lease is missing (the world's JetStream state lost and not made again yet), and the
+  /// incarnation claimed counts on from the highest among the ids alive in the world.
+  double join_census_s = 0.5;
 };
 
 /// Counters of a node (game thread writes, any thread may read roughly).
@@ -315,6 +320,13 @@ struct census_entry {
 [[nodiscard]] std::optional<std::vector<census_entry>> take_census(const std::string& url, const std::string& world,
                                                                    int wait_ms, std::string* error,
                                                                    const std::function<void()>& pump = {});
+/// What a joining zone reads in the census of the running zones: the regions they serve, and per
+/// region the highest incarnation among the ids they own, hand off or wait for (0: none).
+struct running_zones {
+  std::vector<bool> served;
+  std::vector<std::uint32_t> incarnation;
+};
+[[nodiscard]] running_zones read_running(const std::vector<census_entry>& census, std::uint32_t regions);
 /// The ownership records in KV: id -> (region, epoch). Every record (listing the bucket's keys), or
 /// with `only` just those ids' (read one by one: a listing taken while zones keep handing entities
 /// off can miss a key that changed under it).

@@ -24,6 +24,9 @@ namespace zone::world {
 /// (the region's claim count, from KV) makes ids of a restarted zone differ from its predecessor's.
 using global_id = std::uint64_t;
 [[nodiscard]] constexpr std::uint32_t region_of_gid(global_id g) { return static_cast<std::uint32_t>(g >> 48) - 1; }
+[[nodiscard]] constexpr std::uint32_t incarnation_of_gid(global_id g) {
+  return static_cast<std::uint32_t>(g >> 32) & 0xffffu;
+}
 
 /// An axis-aligned rectangle in x, y: [lo, hi) on both axes (the last column / row also owns hi).
 struct rect {

@@ -12,6 +12,7 @@
 #include <cstring>
 #include <filesystem>
 #include <functional>
+#include <future>
 #include <map>
 #include <memory>
 #include <regex>
@@ -102,6 +103,9 @@ node_options options(const std::string& url, const std::string& world, std::uint
   o.rows = rows;
   o.bounds = c.world;
   o.lease_ttl_s = 1;
+  // In-process zones answer the census only while the test ticks them: the tests that join
+  // beside running zones ask for it themselves (the join would otherwise wait for nobody).
+  o.join_census_s = 0;
   return o;
 }
 
@@ -306,6 +310,28 @@ TEST_SUITE("world.nats") {
     CHECK(judge_cas_readback("1 1", 0, "0 0", false, "", 0) == cas_readback::retry);       // still no entry
     CHECK(judge_cas_readback("1 1", 0, "0 0", true, "1 1", 3) == cas_readback::publish);   // took effect
     CHECK(judge_cas_readback("1 1", 0, "0 0", true, "2 1", 3) == cas_readback::conflict);  // someone else created it
+  }
+
+  TEST_CASE("read_running: the regions the census answered for, and the highest incarnation alive per region") {
+    const auto gid = [](std::uint32_t region, std::uint32_t inc, std::uint32_t n) {
+      return (global_id{region + 1} << 48) | (global_id{inc} << 32) | n;
+    };
+    census_entry a;  // region 0, incarnation 3: owns its own ids and one of region 2's
+    a.region = 0, a.incarnation = 3;
+    a.owned = {{gid(0, 3, 1), 0}, {gid(2, 4, 7), 2}};
+    census_entry b;  // region 1: hands one of region 2's off, waits for one of region 3's player
+    b.region = 1, b.incarnation = 1;
+    b.transit = {gid(2, 6, 9)};
+    b.awaiting = {gid(3, 2, 1)};
+    census_entry stray;  // a region outside the layout: ignored
+    stray.region = 9, stray.incarnation = 50;
+    stray.owned = {{gid(9, 50, 1), 0}};
+    const auto r = read_running({a, b, stray}, 4);
+    CHECK(r.served == std::vector<bool>{true, true, false, false});
+    CHECK(r.incarnation == std::vector<std::uint32_t>{3, 1, 6, 2});
+    const auto none = read_running({}, 2);
+    CHECK(none.served == std::vector<bool>{false, false});
+    CHECK(none.incarnation == std::vector<std::uint32_t>{0, 0});
   }
 
   TEST_CASE("judge_lease_readback: our value renews on, no key is a lapse, another value is a take-over") {
@@ -947,5 +973,73 @@ TEST_SUITE("world.nats") {
     CHECK(verdict.ok());
     CHECK(verdict.transit_only == 0);
     CHECK(ids.size() == w.total);
+  }
+
+  TEST_CASE(
+      "a zone joining while the world's state is lost: it claims no region a running zone serves, and no id alive") {
+    nats_server ns;
+    REQUIRE_FALSE(ns.url.empty());
+    const std::uint64_t seed = zone::test::fresh_seed();
+    CAPTURE(seed);
+    const auto c = small_world(seed);
+    // Leases of 40 s: the running zones renew (and so find the state lost) 10 s after they joined,
+    // long after the join below (about 6 s after theirs).
+    const auto tweak = [](node_options& o) {
+      o.lease_ttl_s = 40;
+      o.nats_timeout_s = 0.25;
+    };
+    zone_list zones = join_zones(ns.url, "lostjoin", 3, 1, c, 3, tweak);
+    const auto run = [&](std::chrono::milliseconds d) {
+      for (const auto until = std::chrono::steady_clock::now() + d; std::chrono::steady_clock::now() < until;) {
+        for (auto& z : zones) z->tick();
+        std::this_thread::sleep_for(33ms);
+      }
+    };
+    // Entities of region 2 (incarnation 1) cross into region 1; then region 2's zone leaves.
+    run(2s);
+    REQUIRE(zones[2]->node->region() == 2);
+    zones.pop_back();
+    run(500ms);
+    std::size_t region2_alive = 0;
+    for (auto& z : zones) {
+      for (const global_id g : z->node->link().owned_ids()) region2_alive += region_of_gid(g) == 2;
+    }
+    REQUIRE(region2_alive > 0);
+    // NATS loses its store: leases, incarnations, the layout, all gone.
+    REQUIRE(ns.restart(true));
+    run(1500ms);  // the zones' clients reconnect (they answer the census over core NATS)
+    for (auto& z : zones) REQUIRE(z->node->stats().world_remade.load() == 0);  // not made again yet
+    // A zone joins meanwhile (its own thread; the running zones answer its census as they tick).
+    auto o = options(ns.url, "lostjoin", 3, 1, c);
+    tweak(o);
+    o.join_census_s = 1;
+    std::string err;
+    auto joining = std::async(std::launch::async, [&] { return nats_node::join(o, c, &err); });
+    while (joining.wait_for(0ms) != std::future_status::ready) run(33ms);
+    auto n = joining.get();
+    REQUIRE_MESSAGE(n != nullptr, err);
+    for (auto& z : zones) CHECK(z->node->stats().world_remade.load() == 0);  // the join saw the state lost
+    CHECK(n->region() == 2);       // not region 0, the first without a lease, which zone 0 serves
+    CHECK(n->incarnation() >= 2);  // above region 2's ids alive in regions 0 and 1
+    zones.push_back(std::make_unique<node_zone>(std::move(n), c));
+    // The running zones make the state again at their renewal and keep their regions.
+    const auto remade = [&] {
+      return std::all_of(zones.begin(), zones.begin() + 2,
+                         [](const auto& z) { return z->node->stats().world_remade.load() > 0; });
+    };
+    for (const auto until = std::chrono::steady_clock::now() + 15s;
+         !remade() && std::chrono::steady_clock::now() < until;)
+      run(100ms);
+    REQUIRE(remade());
+    run(1s);
+    for (auto& z : zones) CHECK_FALSE(z->node->must_stop());
+    // Every id owned once: the new zone's ids are not those of region 2's entities still alive.
+    const auto census = census_of(zones, ns.url, "lostjoin", &err);
+    REQUIRE_MESSAGE(census.has_value(), err);
+    CHECK(census->size() == 3);
+    std::set<global_id> ids;
+    for (const auto& z : *census) {
+      for (const auto& [g, epoch] : z.owned) CHECK_MESSAGE(ids.insert(g).second, "entity owned by two zones");
+    }
   }
 }
