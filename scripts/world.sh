@@ -181,7 +181,7 @@ if [ "$kill" = 1 ] && [ "$zones" -gt 1 ]; then
   killed_note=$(awk -v a="$t_kill" -v b="$t_up" -v r="$(grep -o 'region [0-9]* of' "$out/zone-1.log" | head -1 | awk '{print $2}')" \
     'BEGIN{printf "zone 1 (SIGKILL) back on region %s after %.1f s (lease lapse + start)", r, b - a}')
   before=$(grep -o "region ${zregion[1]} (incarnation [0-9]*, [0-9]* owned)" "$out/world-check-before-kill.txt" | grep -o '[0-9]* owned' | awk '{print $1}' || true)
-  killed_note="$killed_note; it owned ${before:-?} entities at a census about a second before the kill (lost with it)"
+  killed_note="$killed_note; it owned ${before:-?} entities at a census about a second before the kill"
 fi
 
 # Fault: nats-server stopped (SIGTERM: its JetStream state stays on disk) for --nats-restart
@@ -247,6 +247,11 @@ fi
 # 7. The report.
 json() { grep -o "\"$2\": [0-9.e+-]*" "$1" | head -1 | awk '{print $2}'; }
 echo "== world '$name': $grid regions of ${size} m, $npcs NPCs per zone, $bots bots, ${duration} s ($(nproc) cores, $(date -u +%F))"
+restored=
+if [ "$kill" = 1 ] && [ -n "$killed_note" ]; then
+  restored=$(grep -o '[0-9]* entities restored from region' "$out/zone-1.log" | head -1 | awk '{print $1}' || true)
+  killed_note="$killed_note; its successor restored ${restored:-none} from the region's checkpoint"
+fi
 [ -n "$killed_note" ] && echo "fault: $killed_note"
 [ -n "$nats_note" ] && echo "fault: $nats_note"
 mism=0
@@ -350,4 +355,5 @@ fi
 [ "$oracle" = 1 ] && [ "$oracle_checked" = 0 ] && { echo "the oracle checked no frame" >&2; exit 1; }
 [ "$oracle" = 1 ] && [ "$crossings" = 0 ] && { echo "no bot crossed a border: the oracle spanned no zones" >&2; exit 1; }
 [ "$oracle" = 1 ] && [ "$kill" = 1 ] && [ "$checked_after_restart" = 0 ] && { echo "the oracle checked no frame of the restarted zone" >&2; exit 1; }
+[ "$kill" = 1 ] && [ -n "$killed_note" ] && [ "${restored:-0}" = 0 ] && { echo "the restarted zone restored nothing from the killed zone's checkpoint" >&2; exit 1; }
 [ "$check_rc" = 0 ] && [ "$mism" = 0 ] && [ "$unexplained" = 0 ] && [ "$stopped_early" = 0 ]

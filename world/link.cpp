@@ -124,6 +124,8 @@ struct reader {
 constexpr std::uint32_t ghost_magic = 0x32484753;       // "SGH2": "SGH1" and the sender's room
 constexpr std::uint32_t handoff_magic_v1 = 0x31464f48;  // "HOF1": no visible set
 constexpr std::uint32_t handoff_magic = 0x32464f48;     // "HOF2": a count and the visible set at the end
+constexpr std::uint32_t chunk_magic = 0x31504b43;       // "CKP1"
+constexpr std::uint32_t head_magic = 0x31484b43;        // "CKH1"
 
 std::uint16_t half_q(float h) {
   return static_cast<std::uint16_t>(std::clamp(std::lround(static_cast<double>(h) * 16.0), 0l, 65535l));
@@ -259,6 +261,77 @@ std::optional<handoff_record> decode_handoff(std::span<const std::uint8_t> bytes
   h.desc.kind = static_cast<entity_kind>(kind);
   h.behaviour.kind = static_cast<behaviour>(beh);
   if (h.behaviour.kind == behaviour::ghost || validate(h.desc)) return std::nullopt;
+  return h;
+}
+
+std::vector<std::uint8_t> encode(const checkpoint_chunk& c) {
+  std::vector<std::uint8_t> out;
+  writer w{out};
+  w.put(chunk_magic);
+  w.put(c.region);
+  w.put(c.incarnation);
+  w.put(c.generation);
+  w.put(c.tick);
+  w.put(static_cast<std::uint32_t>(c.records.size()));
+  for (const auto& r : c.records) {
+    const auto bytes = encode(r);
+    w.put(static_cast<std::uint32_t>(bytes.size()));
+    out.insert(out.end(), bytes.begin(), bytes.end());
+  }
+  return out;
+}
+
+std::optional<checkpoint_chunk> decode_checkpoint_chunk(std::span<const std::uint8_t> bytes) {
+  reader r{bytes};
+  if (r.get<std::uint32_t>() != chunk_magic) return std::nullopt;
+  checkpoint_chunk c;
+  c.region = r.get<std::uint32_t>();
+  c.incarnation = r.get<std::uint32_t>();
+  c.generation = r.get<std::uint64_t>();
+  c.tick = r.get<std::uint64_t>();
+  const auto n = r.get<std::uint32_t>();
+  // Each record takes at least its length's 4 bytes: a hostile count reserves nothing.
+  if (!r.ok || std::size_t{n} * 4 > bytes.size() - r.at) return std::nullopt;
+  c.records.reserve(n);
+  for (std::uint32_t k = 0; k < n; ++k) {
+    const auto len = r.get<std::uint32_t>();
+    if (!r.ok || len > bytes.size() - r.at) return std::nullopt;
+    auto rec = decode_handoff(bytes.subspan(r.at, len));
+    if (!rec) return std::nullopt;
+    r.at += len;
+    c.records.push_back(std::move(*rec));
+  }
+  if (r.at != bytes.size()) return std::nullopt;
+  return c;
+}
+
+std::vector<std::uint8_t> encode(const checkpoint_head& h) {
+  std::vector<std::uint8_t> out;
+  writer w{out};
+  w.put(head_magic);
+  w.put(h.region);
+  w.put(h.incarnation);
+  w.put(h.generation);
+  w.put(h.tick);
+  w.put(h.entities);
+  w.put(static_cast<std::uint32_t>(h.chunks.size()));
+  for (const std::uint64_t seq : h.chunks) w.put(seq);
+  return out;
+}
+
+std::optional<checkpoint_head> decode_checkpoint_head(std::span<const std::uint8_t> bytes) {
+  reader r{bytes};
+  if (r.get<std::uint32_t>() != head_magic) return std::nullopt;
+  checkpoint_head h;
+  h.region = r.get<std::uint32_t>();
+  h.incarnation = r.get<std::uint32_t>();
+  h.generation = r.get<std::uint64_t>();
+  h.tick = r.get<std::uint64_t>();
+  h.entities = r.get<std::uint64_t>();
+  const auto n = r.get<std::uint32_t>();
+  if (!r.ok || n > max_checkpoint_chunks || bytes.size() - r.at != std::size_t{n} * 8) return std::nullopt;
+  h.chunks.resize(n);
+  for (auto& seq : h.chunks) seq = r.get<std::uint64_t>();
   return h;
 }
 
@@ -682,6 +755,49 @@ handoff_status zone_link::apply_handoff(zone_world& w, const handoff_record& r, 
   i->source = opt_.region;
   ++stats_.handoffs_in;
   if (local) *local = id;
+  return handoff_status::adopted;
+}
+
+std::vector<handoff_record> zone_link::checkpoint(const zone_world& w) const {
+  std::vector<handoff_record> out;
+  const auto& s = w.store();
+  const auto ids = s.ids();
+  out.reserve(owned_count());
+  for (const entity_id id : ids) {
+    const slot_info* i = info(id);
+    if (i == nullptr || i->what != role::owned || w.behaviour_of(id) == behaviour::player) continue;
+    const auto desc = s.get(id);
+    const auto state = w.behaviour_state_of(id);
+    if (!desc || !state) continue;
+    handoff_record& r = out.emplace_back();
+    r.gid = i->gid;
+    r.epoch = i->epoch;
+    r.from = r.to = opt_.region;
+    r.desc = *desc;
+    r.behaviour = *state;
+    r.owner_revision = i->revision;
+    r.sent_tick = w.tick();
+  }
+  return out;
+}
+
+handoff_status zone_link::restore(zone_world& w, const handoff_record& r) {
+  tick_ = w.tick();
+  if (r.to != opt_.region || r.gid == 0 || local_of(r.gid) != null_entity) {
+    ++stats_.handoffs_refused;
+    return handoff_status::refused;
+  }
+  if ((opt_.capacity != 0 && owned_count() >= opt_.capacity) || w.store().size() >= w.store().capacity()) {
+    return handoff_status::no_room;
+  }
+  const entity_id id = w.adopt(r.desc, r.behaviour);
+  if (id == null_entity) return handoff_status::no_room;
+  slot_info& i = bind(id, r.gid, role::owned);
+  i.epoch = r.epoch;
+  i.revision = r.owner_revision;
+  i.source = opt_.region;
+  last_epoch_[r.gid] = r.epoch;
+  ++stats_.restored;
   return handoff_status::adopted;
 }
 

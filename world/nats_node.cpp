@@ -86,7 +86,30 @@ natsStatus add_handoff_stream(jsCtx* js, const std::string& world) {
   return s != NATS_OK && jerr == JSStreamNameExistErr ? NATS_OK : s;
 }
 
+/// The world's checkpoint stream (idempotent): per region its chunks and its head, the last two
+/// messages of each subject kept (a checkpoint being written never overwrites the one its head
+/// names; docs/world.md, "Checkpoints").
+natsStatus add_checkpoint_stream(jsCtx* js, const std::string& world) {
+  jsStreamConfig sc;
+  jsStreamConfig_Init(&sc);
+  const std::string name = "WORLDCK_" + world;
+  const std::string subj = "world." + world + ".ck.>";
+  const char* subjects[1] = {subj.c_str()};
+  sc.Name = name.c_str();
+  sc.Subjects = subjects;
+  sc.SubjectsLen = 1;
+  sc.Storage = js_FileStorage;
+  sc.MaxMsgsPerSubject = 2;
+  jsErrCode jerr = static_cast<jsErrCode>(0);
+  const natsStatus s = js_AddStream(nullptr, js, &sc, nullptr, &jerr);
+  return s != NATS_OK && jerr == JSStreamNameExistErr ? NATS_OK : s;
+}
+
 }  // namespace
+
+std::string nats_node::checkpoint_subject(const std::string& part) const {
+  return "world." + opt_.world + ".ck." + std::to_string(region_) + "." + part;
+}
 
 int nats_node::subscribe_handoffs() {
   jsSubOptions so;
@@ -222,6 +245,7 @@ std::unique_ptr<nats_node> nats_node::join(const node_options& opt, const zone_c
   if ((s = add_handoff_stream(n->js_, opt.world)) != NATS_OK) return fail("handoff stream: " + status_text(s));
   if ((s = static_cast<natsStatus>(n->subscribe_handoffs())) != NATS_OK)
     return fail("handoff consumer: " + status_text(s));
+  if ((s = add_checkpoint_stream(n->js_, opt.world)) != NATS_OK) return fail("checkpoint stream: " + status_text(s));
   n->link_ = std::make_unique<zone_link>([&] {
     link_options lo;
     lo.map = n->map_;
@@ -234,6 +258,7 @@ std::unique_ptr<nats_node> nats_node::join(const node_options& opt, const zone_c
     lo.hold_for_room = opt.hold_for_room;
     return lo;
   }());
+  n->read_checkpoint();
   // Core subscriptions: their callbacks only queue (the game thread applies).
   using kind = inbound_msg::kind;
   for (const kind k : {kind::ghosts, kind::snapshot_request, kind::input, kind::census}) {
@@ -259,6 +284,7 @@ std::unique_ptr<nats_node> nats_node::join(const node_options& opt, const zone_c
   n->heartbeat_ = std::thread([p = n.get()] { p->heartbeat_loop(); });
   n->fetcher_ = std::thread([p = n.get()] { p->fetch_loop(); });
   n->sender_ = std::thread([p = n.get()] { p->send_loop(); });
+  if (opt.checkpoint_s > 0) n->checkpointer_ = std::thread([p = n.get()] { p->checkpoint_loop(); });
   spdlog::info("world '{}': region {} of {} ({}x{}), incarnation {}, neighbours {}, ghost band {:.0f} m", opt.world,
                n->region_, n->map_.count(), n->map_.cols(), n->map_.rows(), n->incarnation_,
                n->map_.neighbours(n->region_).size(), n->link_->options().ghost_band);
@@ -269,22 +295,30 @@ zone_config nats_node::zone_for_region(zone_config c) const {
   const rect r = map_.region(region_);
   c.spawn_area = {{r.lo_x, r.lo_y, c.world.lo.z}, {r.hi_x, r.hi_y, c.world.hi.z}};
   c.seed = c.seed * 1000003u + region_ * 7919u + incarnation_;
+  if (have_checkpoint_) c.populate = false;  // its entities come back from the checkpoint instead
   return c;
 }
 
 void nats_node::leave() {
   if (stopping_.exchange(true)) return;
   out_cv_.notify_all();
+  ckpt_cv_.notify_all();
+  if (checkpointer_.joinable()) checkpointer_.join();
   if (sender_.joinable()) sender_.join();
   if (fetcher_.joinable()) fetcher_.join();
   if (heartbeat_.joinable()) heartbeat_.join();
-  for (auto* s : {&sub_ghosts_, &sub_snap_, &sub_input_, &sub_census_, &sub_handoff_}) {
+  for (auto* s : {&sub_ghosts_, &sub_snap_, &sub_input_, &sub_census_}) {
     if (*s) {
       natsSubscription_Unsubscribe(*s);
       natsSubscription_Destroy(*s);
       *s = nullptr;
     }
   }
+  // The region's durable consumer stays (destroyed, not unsubscribed: an unsubscribe deletes the
+  // consumer the library made): the region's next zone goes on from its acks, so it gets the
+  // records this zone left unapplied, and never again one it applied (a stale record adopted
+  // again would own an entity handed on since twice).
+  if (sub_handoff_) natsSubscription_Destroy(sub_handoff_), sub_handoff_ = nullptr;
   for (auto* s : retired_subs_) natsSubscription_Destroy(s);
   retired_subs_.clear();
   {
@@ -293,7 +327,17 @@ void nats_node::leave() {
     for (auto* m : handoff_inbox_) natsMsg_Destroy(m);
     handoff_inbox_.clear();
   }
-  if (lease_ && !lease_lost_.load()) kvStore_Delete(lease_, lease_key_.c_str());
+  if (lease_ && !lease_lost_.load() && !crashed_) {
+    // A zone that stops gives its region up and its entities with it: its checkpoint goes too
+    // (the region's next zone starts a new population; a killed zone's is restored instead).
+    jsOptions po;
+    jsOptions_Init(&po);
+    const std::string all = checkpoint_subject(">");
+    po.Stream.Purge.Subject = all.c_str();
+    jsErrCode jerr = static_cast<jsErrCode>(0);
+    js_PurgeStream(js_, ("WORLDCK_" + opt_.world).c_str(), &po, &jerr);
+    kvStore_Delete(lease_, lease_key_.c_str());
+  }
   if (kv_) kvStore_Destroy(kv_);
   if (lease_) kvStore_Destroy(lease_);
   if (js_) jsCtx_Destroy(js_);
@@ -447,6 +491,7 @@ bool nats_node::remake_world() {
   if (made) kvStore_Destroy(made), made = nullptr;
   if (s != NATS_OK) return refused("the lease bucket", s);
   if ((s = add_handoff_stream(js_, opt_.world)) != NATS_OK) return refused("the handoff stream", s);
+  if ((s = add_checkpoint_stream(js_, opt_.world)) != NATS_OK) return refused("the checkpoint stream", s);
   std::uint64_t rev = 0;
   kvStore_CreateString(&rev, kv_, "layout", map_.encode().c_str());  // the first zone back writes it
   // This region's incarnation, so that a later zone here counts on from it (ids never reused).
@@ -501,6 +546,145 @@ bool nats_node::remake_world() {
       "of what this zone owns and sends follow",
       opt_.world, region_, incarnation_);
   return true;
+}
+
+void nats_node::checkpoint_loop() {
+  const std::string stream = "WORLDCK_" + opt_.world;
+  bool failing = false;
+  while (!stopping_.load()) {
+    checkpoint_chunk job;
+    {
+      std::unique_lock lock(ckpt_mutex_);
+      ckpt_cv_.wait(lock, [&] { return stopping_.load() || ckpt_job_.has_value(); });
+      if (stopping_.load()) return;
+      job = std::move(*ckpt_job_);
+      ckpt_job_.reset();
+    }
+    // The chunks first (each under the head's size limit), then the head that names them: a
+    // reader follows the last head, never a checkpoint half written.
+    checkpoint_head head;
+    head.region = job.region;
+    head.incarnation = job.incarnation;
+    head.generation = job.generation = ++ckpt_generation_;
+    head.tick = job.tick;
+    head.entities = job.records.size();
+    std::uint64_t bytes = 0;
+    natsStatus s = NATS_OK;
+    std::size_t at = 0;
+    do {
+      checkpoint_chunk part;
+      part.region = job.region, part.incarnation = job.incarnation, part.generation = job.generation,
+      part.tick = job.tick;
+      std::size_t size = 40;
+      while (at < job.records.size() && (part.records.empty() || size + 200 <= opt_.checkpoint_chunk_bytes)) {
+        size += 4 + 166 + job.records[at].visible.size() * 8;
+        part.records.push_back(std::move(job.records[at++]));
+      }
+      const auto data = encode(part);
+      jsPubAck* ack = nullptr;
+      jsErrCode jerr = static_cast<jsErrCode>(0);
+      const std::string subj = checkpoint_subject("c" + std::to_string(head.chunks.size()));
+      s = js_Publish(&ack, js_, subj.c_str(), data.data(), static_cast<int>(data.size()), nullptr, &jerr);
+      if (s == NATS_OK && ack) head.chunks.push_back(ack->Sequence);
+      if (ack) jsPubAck_Destroy(ack);
+      bytes += data.size();
+    } while (s == NATS_OK && at < job.records.size() && head.chunks.size() < max_checkpoint_chunks);
+    if (s == NATS_OK && at < job.records.size()) s = NATS_INSUFFICIENT_BUFFER;  // more chunks than a head names
+    if (s == NATS_OK) {
+      const auto data = encode(head);
+      jsErrCode jerr = static_cast<jsErrCode>(0);
+      s = js_Publish(nullptr, js_, checkpoint_subject("head").c_str(), data.data(), static_cast<int>(data.size()),
+                     nullptr, &jerr);
+      bytes += data.size();
+    }
+    if (s != NATS_OK) {
+      ++stats_.checkpoint_failures;
+      if (!failing)
+        spdlog::warn("world '{}': a checkpoint was not written ({}): the next one is tried on time", opt_.world,
+                     status_text(s));
+      failing = true;
+      continue;
+    }
+    if (failing) spdlog::info("world '{}': checkpoints written again", opt_.world);
+    failing = false;
+    ++stats_.checkpoints_written;
+    stats_.checkpoint_entities = head.entities;
+    stats_.checkpoint_bytes = bytes;
+  }
+}
+
+void nats_node::read_checkpoint() {
+  const std::string stream = "WORLDCK_" + opt_.world;
+  const auto get = [&](natsMsg** m, std::uint64_t seq, const std::string& subject) {
+    jsErrCode jerr = static_cast<jsErrCode>(0);
+    natsStatus s = NATS_OK;
+    for (int attempt = 0; attempt < 3; ++attempt) {
+      s = seq ? js_GetMsg(m, js_, stream.c_str(), seq, nullptr, &jerr)
+              : js_GetLastMsg(m, js_, stream.c_str(), subject.c_str(), nullptr, &jerr);
+      if (s == NATS_OK || jerr == JSNoMessageFoundErr || jerr == JSStreamNotFoundErr) break;
+    }
+    return s;
+  };
+  natsMsg* m = nullptr;
+  if (get(&m, 0, checkpoint_subject("head")) != NATS_OK) return;  // none: a new population
+  const auto bytes = [](natsMsg* msg) {
+    return std::span<const std::uint8_t>(reinterpret_cast<const std::uint8_t*>(natsMsg_GetData(msg)),
+                                         static_cast<std::size_t>(natsMsg_GetDataLength(msg)));
+  };
+  const auto head = decode_checkpoint_head(bytes(m));
+  natsMsg_Destroy(m);
+  if (!head || head->region != region_) {
+    spdlog::warn("world '{}': region {}'s checkpoint head is malformed: ignored (a new population)", opt_.world,
+                 region_);
+    return;
+  }
+  std::vector<handoff_record> records;
+  records.reserve(head->entities);
+  for (std::size_t k = 0; k < head->chunks.size(); ++k) {
+    m = nullptr;
+    const natsStatus s = get(&m, head->chunks[k], {});
+    auto chunk = s == NATS_OK ? decode_checkpoint_chunk(bytes(m)) : std::nullopt;
+    if (m) natsMsg_Destroy(m);
+    if (!chunk || chunk->generation != head->generation || chunk->region != region_) {
+      spdlog::error(
+          "world '{}': region {}'s checkpoint (tick {}) cannot be read whole (part {} of {}: {}): a new "
+          "population instead",
+          opt_.world, region_, head->tick, k + 1, head->chunks.size(), s == NATS_OK ? "malformed" : status_text(s));
+      return;
+    }
+    for (auto& r : chunk->records) records.push_back(std::move(r));
+  }
+  // Only what KV still names this region for, at the epoch the checkpoint holds: an entity
+  // handed off since belongs to its new zone (or is on its way there).
+  std::uint64_t skipped = 0;
+  for (auto& r : records) {
+    kvEntry* e = nullptr;
+    natsStatus s = NATS_OK;
+    for (int attempt = 0; attempt < 3; ++attempt) {
+      if ((s = kvStore_Get(&e, kv_, ("e." + hex(r.gid)).c_str())) == NATS_OK || s == NATS_NOT_FOUND) break;
+    }
+    bool ours = false;
+    if (s == NATS_NOT_FOUND) {
+      ours = r.epoch == 0;  // never handed off (a record is made at the first handoff)
+      r.owner_revision = 0;
+    } else if (s == NATS_OK) {
+      ours = kvEntry_ValueString(e) == owner_value(region_, r.epoch);
+      r.owner_revision = kvEntry_Revision(e);
+    }
+    if (e) kvEntry_Destroy(e);
+    if (!ours) {
+      ++skipped;
+      r.gid = 0;
+    }
+  }
+  std::erase_if(records, [](const handoff_record& r) { return r.gid == 0; });
+  have_checkpoint_ = true;
+  stats_.restore_skipped = skipped;
+  spdlog::info(
+      "world '{}': region {}'s checkpoint of tick {} (incarnation {}): {} entities to restore, {} left out "
+      "(handed off since)",
+      opt_.world, region_, head->tick, head->incarnation, records.size(), skipped);
+  to_restore_ = std::move(records);
 }
 
 bool nats_node::put_record(global_id g, std::uint32_t region, std::uint64_t epoch) {
@@ -855,6 +1039,22 @@ void nats_node::answer_census(const std::string& reply) {
 
 void nats_node::before_step(zone_world& w) {
   tick_ = w.tick();
+  if (!to_restore_.empty()) {
+    // The region's checkpoint (read at the join): its entities back, with their ids and epochs.
+    std::uint64_t back = 0, no_room = 0;
+    for (const auto& r : to_restore_) {
+      const auto st = link_->restore(w, r);
+      back += st == handoff_status::adopted;
+      no_room += st == handoff_status::no_room;
+    }
+    stats_.restored += back;
+    stats_.restore_skipped += to_restore_.size() - back;
+    if (no_room)
+      spdlog::error("world '{}': {} entities of the checkpoint did not fit in the zone: lost", opt_.world, no_room);
+    spdlog::info("world '{}': {} entities restored from region {}'s checkpoint", opt_.world, back, region_);
+    to_restore_.clear();
+    to_restore_.shrink_to_fit();
+  }
   std::vector<inbound_msg> inbox;
   std::vector<natsMsg*> handoffs;
   {
@@ -1009,6 +1209,21 @@ void nats_node::after_step(zone_world& w, std::vector<redirect>& out) {
       for (auto& r : records) outbox_.push_back(outgoing{std::move(r)});
     }
     out_cv_.notify_one();
+  }
+  if (checkpointer_.joinable() && (checkpoint_due_.exchange(false) || tick_ >= next_checkpoint_tick_)) {
+    next_checkpoint_tick_ =
+        tick_ + std::max<std::uint64_t>(1, static_cast<std::uint64_t>(opt_.checkpoint_s * tick_rate_hz_));
+    // A copy of what the zone owns after this tick's handoffs (no encoding here); the checkpoint
+    // thread writes it.
+    checkpoint_chunk job;
+    job.region = region_;
+    job.incarnation = incarnation_;
+    job.tick = tick_;
+    job.records = link_->checkpoint(w);
+    std::lock_guard lock(ckpt_mutex_);
+    if (ckpt_job_) ++stats_.checkpoints_skipped;
+    ckpt_job_ = std::move(job);
+    ckpt_cv_.notify_one();
   }
   // Redirects go out once the new zone's address is known (a zone that just started may not be
   // in the table yet: read KV again then); the client's inputs are forwarded meanwhile.

@@ -66,6 +66,13 @@ struct node_options {
   /// its lease is missing (the world's JetStream state lost and not made again yet), and the
   /// incarnation claimed counts on from the highest among the ids alive in the world.
   double join_census_s = 0.5;
+  /// How often the zone writes a checkpoint of its entities (players left out) to JetStream (0:
+  /// never). A zone that claims a region restores the region's last checkpoint (whatever this
+  /// says) instead of a new population: a killed zone's entities come back (docs/world.md,
+  /// "Checkpoints").
+  double checkpoint_s = 1;
+  /// Most bytes of one checkpoint message (a checkpoint is cut into as many as it needs).
+  std::size_t checkpoint_chunk_bytes = 256 * 1024;
 };
 
 /// Counters of a node (game thread writes, any thread may read roughly).
@@ -95,6 +102,14 @@ struct node_stats {
   /// incarnation, lease and consumer), and what its sender put back: ownership records of the
   /// entities it owns or sends, and records it had published in the last 10 s (published again).
   std::atomic<std::uint64_t> world_remade{0}, owners_reput{0}, records_republished{0};
+  /// Checkpoints written (with the entities and bytes of the last one), skipped (the previous one
+  /// still being written when the next was due) and failed (NATS refused a message: the next one
+  /// is tried on time).
+  std::atomic<std::uint64_t> checkpoints_written{0}, checkpoints_skipped{0}, checkpoint_failures{0};
+  std::atomic<std::uint64_t> checkpoint_entities{0}, checkpoint_bytes{0};
+  /// At the join: entities of the region's last checkpoint taken back, and those left out because
+  /// KV no longer names this region at their epoch (handed off since) or could not be read.
+  std::atomic<std::uint64_t> restored{0}, restore_skipped{0};
 };
 
 /// What a failed ownership CAS was, judged by the key read back after it (docs/world.md "Handoff").
@@ -171,6 +186,14 @@ class nats_node final : public zone_extension {
   /// world's JetStream state was made again) on the calling thread.
   bool put_record_for_testing(global_id g, std::uint32_t region, std::uint64_t epoch) {
     return put_record(g, region, epoch);
+  }
+  /// Testing hook: a checkpoint at the end of the next tick (whatever checkpoint_s says).
+  void checkpoint_next_tick_for_testing() { checkpoint_due_ = true; }
+  /// Testing hook: stops as a killed zone would (no lease given up, no checkpoint removed, no
+  /// handoff acked): its threads end and its connection closes.
+  void crash_for_testing() {
+    crashed_ = true;
+    leave();
   }
   std::uint64_t send_handoff_for_testing(handoff_record r, int fail_first = 0) {
     outgoing o{std::move(r)};
@@ -277,7 +300,23 @@ class nats_node final : public zone_extension {
   std::vector<std::pair<std::string, std::uint16_t>> addresses_;
   std::atomic<bool> addresses_wanted_{false};  ///< a redirect waits for an address: refresh now
 
-  std::thread heartbeat_, fetcher_, sender_;
+  // Checkpoints (docs/world.md, "Checkpoints"): the game thread copies what it owns, the
+  // checkpoint thread encodes and writes it.
+  void checkpoint_loop();
+  /// The region's last checkpoint, less what KV no longer names this region for (join).
+  void read_checkpoint();
+  [[nodiscard]] std::string checkpoint_subject(const std::string& part) const;
+  std::mutex ckpt_mutex_;
+  std::condition_variable ckpt_cv_;
+  std::optional<checkpoint_chunk> ckpt_job_;  ///< under ckpt_mutex_: records, tick (generation set by the thread)
+  std::uint64_t ckpt_generation_ = 0;         ///< checkpoint thread
+  std::uint64_t next_checkpoint_tick_ = 0;    ///< game thread
+  std::atomic<bool> checkpoint_due_{false};
+  bool have_checkpoint_ = false;            ///< join found one: no new population
+  std::vector<handoff_record> to_restore_;  ///< join -> the first before_step
+  bool crashed_ = false;
+
+  std::thread heartbeat_, fetcher_, sender_, checkpointer_;
   std::mt19937_64 rng_{std::random_device{}()};
   struct pending_player {
     global_id gid;

@@ -121,6 +121,31 @@ inline constexpr std::size_t max_handoff_visible = 16384;
 [[nodiscard]] std::vector<std::uint8_t> encode(const handoff_record& r);
 [[nodiscard]] std::optional<handoff_record> decode_handoff(std::span<const std::uint8_t> bytes);
 
+/// A part of a zone's checkpoint ("CKP1"): records to restore its entities from (link's
+/// checkpoint()), a JetStream message each (docs/world.md, "Checkpoints").
+struct checkpoint_chunk {
+  std::uint32_t region = 0, incarnation = 0;
+  std::uint64_t generation = 0;  ///< the checkpoint's number (the zone counts them from 1)
+  std::uint64_t tick = 0;
+  std::vector<handoff_record> records;
+  friend bool operator==(const checkpoint_chunk&, const checkpoint_chunk&) = default;
+};
+[[nodiscard]] std::vector<std::uint8_t> encode(const checkpoint_chunk& c);
+[[nodiscard]] std::optional<checkpoint_chunk> decode_checkpoint_chunk(std::span<const std::uint8_t> bytes);
+
+/// A whole checkpoint's head ("CKH1"), written after its chunks: where they are (their stream
+/// sequences), so a reader never mixes two checkpoints.
+struct checkpoint_head {
+  std::uint32_t region = 0, incarnation = 0;
+  std::uint64_t generation = 0, tick = 0, entities = 0;
+  std::vector<std::uint64_t> chunks;  ///< stream sequence of each chunk, in order
+  friend bool operator==(const checkpoint_head&, const checkpoint_head&) = default;
+};
+[[nodiscard]] std::vector<std::uint8_t> encode(const checkpoint_head& h);
+[[nodiscard]] std::optional<checkpoint_head> decode_checkpoint_head(std::span<const std::uint8_t> bytes);
+/// Most chunks a head names (a decoder refuses more).
+inline constexpr std::size_t max_checkpoint_chunks = 4096;
+
 // ---------------------------------------------------------------------------------------------
 // The per-zone logic.
 
@@ -165,6 +190,7 @@ struct link_stats {
   /// (hold_for_room), summed over the entities.
   std::uint64_t handoffs_held_for_room = 0;
   std::uint64_t ghosts_expired = 0;
+  std::uint64_t restored = 0;  ///< entities taken back from a checkpoint (restore)
 };
 
 /// What apply_ghosts made of a message.
@@ -206,6 +232,16 @@ class zone_link {
   /// leave and enter). `*local` receives its handle here. A full zone answers no_room and
   /// changes nothing (offer the record again later).
   handoff_status apply_handoff(zone_world& w, const handoff_record& r, entity_id* local = nullptr);
+
+  /// Every entity this zone owns but its players, as records to restore it from (gid, epoch,
+  /// state; from = to = this region, `owner_revision` the ownership record's revision it holds):
+  /// a checkpoint of the zone (docs/world.md, "Checkpoints"). Players are their clients' (a
+  /// client logs in again) and are left out.
+  [[nodiscard]] std::vector<handoff_record> checkpoint(const zone_world& w) const;
+  /// Takes an entity back from a checkpoint of this region as owned here, with its id, epoch and
+  /// ownership revision (the caller checked KV still names this region at that epoch). Refused
+  /// when the id is already here or the record is another region's; no_room when the zone is full.
+  handoff_status restore(zone_world& w, const handoff_record& r);
 
   /// Entities beyond handoff_margin outside this zone's rectangle: each becomes an in-transit
   /// ghost here and a record for its new zone (epoch + 1). `tick_us`: stamped as sent_us.

@@ -272,7 +272,9 @@ config_result parse_config(int argc, const char* const* argv) {
       ("world-nats-timeout", po::value(&c.world_nats_timeout_s)->default_value(c.world_nats_timeout_s),
        "seconds a connect, or a KV or JetStream request, waits for NATS before the zone counts NATS unreachable")  //
       ("world-capacity", po::value(&c.world_capacity)->default_value(c.world_capacity),
-       "most entities this zone owns (0 = its store's capacity); while it is full its neighbours keep the entities that would cross into it");
+       "most entities this zone owns (0 = its store's capacity); while it is full its neighbours keep the entities that would cross into it")  //
+      ("world-checkpoint", po::value(&c.world_checkpoint_s)->default_value(c.world_checkpoint_s),
+       "seconds between checkpoints of this zone's entities in JetStream (0 = none); a zone that claims a region restores its last checkpoint, so a killed zone's entities come back");
   po::options_description viewer("Live viewer (docs/viewer.md)");
   viewer.add_options()  //
       ("viewer", po::value(&c.viewer_enabled)->default_value(c.viewer_enabled),

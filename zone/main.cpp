@@ -55,6 +55,7 @@ int main(int argc, char** argv) {
     o.lease_ttl_s = cfg.world_lease_ttl_s;
     o.nats_timeout_s = cfg.world_nats_timeout_s;
     o.capacity = cfg.world_capacity;
+    o.checkpoint_s = cfg.world_checkpoint_s;
     // A restarted zone waits for its predecessor's lease to lapse (its TTL, a few seconds).
     const auto give_up = std::chrono::steady_clock::now() +
                          std::chrono::duration_cast<std::chrono::steady_clock::duration>(
@@ -95,13 +96,16 @@ int main(int argc, char** argv) {
     spdlog::info(
         "world: region {} owned {} entities at the end; handoffs out {} (CAS conflicts {}, confirmed by read-back {}, rounds retried {}, abandoned at the stop {}), in {} "
         "(duplicates {}, no room {}); held for a full neighbour {} entity-ticks; handoff latency p50 {:.2f} ms p99 {:.2f} ms max {:.2f} ms (p99 {:.2f} ticks); redirects {} claimed {}; "
-        "ghost bytes out {} in {} over {} / {} messages; gaps {}, snapshots out {}; lease taken back {} times",
+        "ghost bytes out {} in {} over {} / {} messages; gaps {}, snapshots out {}; lease taken back {} times; "
+        "checkpoints written {} (the last {} entities, {} bytes), skipped {}, failed {}; restored {} at the start ({} left out)",
         node->region(), node->link().owned_count(), l.handoffs_out, s.handoff_cas_conflicts.load(),
         s.handoff_cas_confirmed.load(), s.handoff_retries.load(), s.handoffs_abandoned.load(),
         s.handoffs_applied.load(), s.handoff_duplicates.load(), s.handoffs_no_room.load(), l.handoffs_held_for_room,
         node->handoff_ms().percentile(0.5), node->handoff_ms().percentile(0.99), node->handoff_ms().max(),
         node->handoff_ticks().percentile(0.99), s.redirects.load(), s.redirect_claims.load(), l.ghost_bytes_out,
-        l.ghost_bytes_in, l.ghost_messages_out, l.ghost_messages_in, l.gaps, l.snapshots_out, s.lease_reclaims.load());
+        l.ghost_bytes_in, l.ghost_messages_out, l.ghost_messages_in, l.gaps, l.snapshots_out, s.lease_reclaims.load(),
+        s.checkpoints_written.load(), s.checkpoint_entities.load(), s.checkpoint_bytes.load(),
+        s.checkpoints_skipped.load(), s.checkpoint_failures.load(), s.restored.load(), s.restore_skipped.load());
   }
 #endif
   return 0;

@@ -179,6 +179,11 @@ struct zone_config {
   /// --world-capacity: most entities the zone owns (0: its store's capacity); a neighbour keeps an
   /// entity past the border while this zone is full (docs/world.md, "Faults": a full zone)
   std::size_t world_capacity = 0;
+  /// --world-checkpoint: seconds between checkpoints of the zone's entities (0: none; docs/world.md, "Checkpoints")
+  double world_checkpoint_s = 1;
+  /// Start with the NPC population (false: a world zone that restores its region's checkpoint
+  /// instead; docs/world.md, "Checkpoints").
+  bool populate = true;
   /// Where populate() places NPCs and towns (x, y; z from world): the zone's region in a world.
   /// Empty (lo == hi) = the whole world.
   net::world_bounds spawn_area{};

@@ -364,7 +364,7 @@ std::optional<std::string> zone_server::start() {
                    cfg_.test_fault_tick);
     }
   }
-  world_->populate();
+  if (cfg_.populate) world_->populate();
   spdlog::info("zone: {} NPCs, world {}x{}x{} m, {} Hz, {} worker threads{}, interest on {}, replication on {}",
                world_->store().size(), cfg_.world.hi.x, cfg_.world.hi.y, cfg_.world.hi.z, cfg_.tick_rate_hz,
                pool_->size(), cfg_.worker_cpus.empty() ? std::string() : " on CPUs " + cfg_.worker_cpus,

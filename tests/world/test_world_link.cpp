@@ -53,7 +53,7 @@ struct test_zone {
     cfg.spawn_area = {{r.lo_x, r.lo_y, 0}, {r.hi_x, r.hi_y, 0}};
     cfg.seed = c.seed * 31 + region;
     world = std::make_unique<zone_world>(cfg, *finder, nullptr);
-    world->populate();
+    if (cfg.populate) world->populate();
     link_options o;
     o.map = map;
     o.region = region;
@@ -491,6 +491,108 @@ TEST_SUITE("world.wire") {
 }
 
 TEST_SUITE("world.link") {
+  TEST_CASE("checkpoint chunks and heads round-trip; malformed input and hostile counts are refused") {
+    std::mt19937_64 rng(zone::test::fresh_seed());
+    checkpoint_chunk c;
+    c.region = 2, c.incarnation = 5, c.generation = 77, c.tick = 1234;
+    const std::size_t n = 1 + rng() % 50;
+    for (std::size_t k = 0; k < n; ++k) {
+      handoff_record& h = c.records.emplace_back();
+      h.gid = rng() | 1, h.epoch = rng() % 9, h.from = h.to = 2;
+      h.desc.position = {static_cast<float>(rng() % 400), static_cast<float>(rng() % 400), 0};
+      h.desc.kind = entity_kind::npc;
+      h.behaviour = {behaviour::wander, {1, 2, 3}, static_cast<std::uint32_t>(rng() % 5), {}};
+      h.owner_revision = rng() % 1000, h.sent_tick = 1234;
+    }
+    const auto bytes = encode(c);
+    const auto back = decode_checkpoint_chunk(bytes);
+    REQUIRE(back.has_value());
+    CHECK(*back == c);
+    for (std::size_t cut = 0; cut < bytes.size(); ++cut) {
+      CHECK_FALSE(decode_checkpoint_chunk(std::span(bytes).first(cut)).has_value());
+    }
+    auto extra = bytes;
+    extra.push_back(0);
+    CHECK_FALSE(decode_checkpoint_chunk(extra).has_value());
+    auto hostile = bytes;
+    const std::uint32_t many = 0xffffffffu;
+    std::memcpy(hostile.data() + 28, &many, 4);  // the record count: more than the bytes can hold
+    CHECK_FALSE(decode_checkpoint_chunk(hostile).has_value());
+    auto bad_record = bytes;
+    bad_record[32 + 4] ^= 0xff;  // the first record's magic
+    CHECK_FALSE(decode_checkpoint_chunk(bad_record).has_value());
+    checkpoint_chunk empty;
+    CHECK(decode_checkpoint_chunk(encode(empty)) == empty);
+
+    checkpoint_head h;
+    h.region = 2, h.incarnation = 5, h.generation = 77, h.tick = 1234, h.entities = n;
+    for (std::size_t k = 0; k < 1 + rng() % 20; ++k) h.chunks.push_back(rng());
+    const auto hb = encode(h);
+    REQUIRE(decode_checkpoint_head(hb).has_value());
+    CHECK(*decode_checkpoint_head(hb) == h);
+    for (std::size_t cut = 0; cut < hb.size(); ++cut)
+      CHECK_FALSE(decode_checkpoint_head(std::span(hb).first(cut)).has_value());
+    auto hmany = hb;
+    const std::uint32_t over = max_checkpoint_chunks + 1;
+    std::memcpy(hmany.data() + 36, &over, 4);
+    CHECK_FALSE(decode_checkpoint_head(hmany).has_value());
+    CHECK_FALSE(decode_checkpoint_head(bytes).has_value());  // a chunk is not a head
+    CHECK_FALSE(decode_checkpoint_chunk(hb).has_value());
+  }
+
+  TEST_CASE(
+      "a checkpoint restored into the region's next zone: the same entities, ids, epochs and state; players left out") {
+    const std::uint64_t seed = zone::test::fresh_seed();
+    CAPTURE(seed);
+    const auto c = world_config(seed);
+    const layout map(c.world, 2, 1);
+    test_zone a(c, map, 0);
+    // A few players (their clients log in again elsewhere: not in a checkpoint), and some steps.
+    for (int k = 0; k < 5; ++k) (void)a.world->spawn_player(a.world->player_spawn_point(static_cast<std::uint64_t>(k)));
+    for (int t = 0; t < 20; ++t) {
+      REQUIRE_FALSE(a.world->step().has_value());
+      a.link->assign_ids(*a.world);
+    }
+    const auto cp = a.link->checkpoint(*a.world);
+    std::size_t players = 0;
+    for (const entity_id id : a.world->store().ids()) players += a.world->behaviour_of(id) == behaviour::player;
+    CHECK(players == 5);
+    CHECK(cp.size() == a.link->owned_count() - players);
+    // Through the wire, as the zone writes it.
+    checkpoint_chunk chunk;
+    chunk.region = 0, chunk.records = cp;
+    const auto read = decode_checkpoint_chunk(encode(chunk));
+    REQUIRE(read.has_value());
+    // The region's next zone (incarnation 2), without a population of its own.
+    zone_config next = c;
+    next.populate = false;
+    test_zone b(next, map, 0);
+    REQUIRE(b.world->store().size() == 0);
+    for (const auto& r : read->records) CHECK(b.link->restore(*b.world, r) == handoff_status::adopted);
+    CHECK(b.link->stats().restored == cp.size());
+    CHECK(b.link->restore(*b.world, read->records.front()) == handoff_status::refused);  // already here
+    auto elsewhere = read->records.front();
+    elsewhere.gid ^= 1, elsewhere.to = 1;
+    CHECK(b.link->restore(*b.world, elsewhere) == handoff_status::refused);  // another region's
+    b.link->assign_ids(*b.world);  // restored entities keep their ids (no new ones given)
+    std::map<global_id, std::uint64_t> want, have;
+    for (const auto& r : cp) want[r.gid] = r.epoch;
+    for (const auto& [g, epoch] : b.link->owned_epochs()) have[g] = epoch;
+    CHECK(have == want);
+    for (const auto& r : cp) {
+      const entity_id id = b.link->local_of(r.gid);
+      REQUIRE(id != null_entity);
+      CHECK(*b.world->store().get(id) == r.desc);
+      CHECK(b.world->behaviour_state_of(id)->kind == r.behaviour.kind);
+      CHECK(b.link->owner_revision(r.gid) == r.owner_revision);
+    }
+    // The restored zone steps on, and its next checkpoint names the same entities.
+    for (int t = 0; t < 5; ++t) REQUIRE_FALSE(b.world->step().has_value());
+    std::set<global_id> again;
+    for (const auto& r : b.link->checkpoint(*b.world)) again.insert(r.gid);
+    CHECK(again.size() == cp.size());
+  }
+
   TEST_CASE("2x1 and 2x2 worlds: views across borders (interest and clients' replicated views) equal one zone's brute force, through handoffs (the observer's view carried); each entity owned once") {
     for (const auto& [cols, rows] : {std::pair{2u, 1u}, std::pair{2u, 2u}}) {
       const std::uint64_t seed = zone::test::fresh_seed();

@@ -119,7 +119,7 @@ struct node_zone {
   node_zone(std::unique_ptr<nats_node> n, const zone_config& base) : node(std::move(n)) {
     cfg = node->zone_for_region(base);
     world = std::make_unique<zone_world>(cfg, *finder, nullptr);
-    world->populate();
+    if (cfg.populate) world->populate();
     node->started(7000 + static_cast<std::uint16_t>(node->region()));
   }
   void tick() {
@@ -1040,6 +1040,128 @@ TEST_SUITE("world.nats") {
     std::set<global_id> ids;
     for (const auto& z : *census) {
       for (const auto& [g, epoch] : z.owned) CHECK_MESSAGE(ids.insert(g).second, "entity owned by two zones");
+    }
+  }
+
+  TEST_CASE("a zone killed: its successor restores the region's checkpoint, every entity back once, KV agreeing") {
+    nats_server ns;
+    REQUIRE_FALSE(ns.url.empty());
+    const std::uint64_t seed = zone::test::fresh_seed();
+    CAPTURE(seed);
+    const auto c = small_world(seed);
+    const auto tweak = [](node_options& o) { o.nats_timeout_s = 0.25; };
+    zone_list zones = join_zones(ns.url, "ckpt", 2, 1, c, 2, tweak);
+    std::size_t total = 0;
+    for (auto& z : zones) total += z->world->store().size();
+    const auto tick_all = [&](std::chrono::milliseconds d) {
+      for (const auto until = std::chrono::steady_clock::now() + d; std::chrono::steady_clock::now() < until;) {
+        for (auto& z : zones) z->tick();
+        std::this_thread::sleep_for(33ms);
+      }
+    };
+    tick_all(3s);
+    CHECK(handoffs_sent(zones) > 0);
+    for (auto& z : zones) CHECK(z->node->stats().checkpoints_written.load() > 0);  // one a second
+    // Zone 1 writes a checkpoint at the end of its next tick, and is killed once it is written
+    // (and its sender has published what it decided): nothing of it changes in between.
+    nats_node& victim = *zones[1]->node;
+    const std::uint64_t written = victim.stats().checkpoints_written.load();
+    victim.checkpoint_next_tick_for_testing();
+    zones[1]->tick();
+    for (const auto until = std::chrono::steady_clock::now() + 5s;
+         victim.stats().checkpoints_written.load() == written && std::chrono::steady_clock::now() < until;) {
+      zones[0]->tick();
+      std::this_thread::sleep_for(33ms);
+    }
+    REQUIRE(victim.stats().checkpoints_written.load() > written);
+    const auto at_kill = victim.link().owned_ids();
+    CHECK(victim.stats().checkpoint_entities.load() == at_kill.size());
+    victim.crash_for_testing();
+    zones.pop_back();
+    // The other zone ticks on (handing entities to region 1: they wait on the stream); the lease
+    // lapses (1 s); then the region's next zone joins.
+    tick_all(1500ms);
+    std::string err;
+    std::unique_ptr<nats_node> next;
+    for (const auto until = std::chrono::steady_clock::now() + 10s;
+         !next && std::chrono::steady_clock::now() < until;) {
+      auto o = options(ns.url, "ckpt", 2, 1, c);
+      tweak(o);
+      next = nats_node::join(o, c, &err);
+      if (!next) tick_all(250ms);
+    }
+    REQUIRE_MESSAGE(next != nullptr, err);
+    CHECK(next->region() == 1);
+    CHECK(next->incarnation() == 2);
+    CHECK_FALSE(next->zone_for_region(c).populate);  // its entities come from the checkpoint
+    zones.push_back(std::make_unique<node_zone>(std::move(next), c));
+    zones[1]->tick();
+    CHECK(zones[1]->node->stats().restored.load() == at_kill.size());
+    CHECK(zones[1]->node->stats().restore_skipped.load() == 0);
+    for (const global_id g : at_kill) CHECK(zones[1]->node->link().local_of(g) != null_entity);
+    tick_all(3s);
+    drain(zones, 20s);
+    // Every entity of the world is there once: none lost with the killed zone, none made up.
+    const auto census = census_of(zones, ns.url, "ckpt", &err);
+    REQUIRE_MESSAGE(census.has_value(), err);
+    REQUIRE(census->size() == 2);
+    std::map<global_id, std::pair<std::uint32_t, std::uint64_t>> ids;
+    for (const auto& z : *census) {
+      for (const auto& [g, epoch] : z.owned) {
+        const auto [it, fresh] = ids.emplace(g, std::pair{z.region, epoch});
+        CHECK_MESSAGE(fresh, "entity " << hex_id(g) << " owned by region " << z.region << " at epoch " << epoch
+                                       << " and by region " << it->second.first << " at epoch " << it->second.second
+                                       << (std::binary_search(at_kill.begin(), at_kill.end(), g) ? " (restored)" : ""));
+      }
+    }
+    CHECK(ids.size() == total);
+    const auto owners = read_owners(ns.url, "ckpt", &err);
+    REQUIRE_MESSAGE(owners.has_value(), err);
+    CHECK(check_world(*census, *owners).ok());
+  }
+
+  TEST_CASE(
+      "a zone that stops: the region's next zone starts a new population and gets only the records left unapplied") {
+    nats_server ns;
+    REQUIRE_FALSE(ns.url.empty());
+    const std::uint64_t seed = zone::test::fresh_seed();
+    CAPTURE(seed);
+    const auto c = small_world(seed);
+    zone_list zones = join_zones(ns.url, "ckstop", 2, 1, c, 2);
+    const auto tick_all = [&](std::chrono::milliseconds d) {
+      for (const auto until = std::chrono::steady_clock::now() + d; std::chrono::steady_clock::now() < until;) {
+        for (auto& z : zones) z->tick();
+        std::this_thread::sleep_for(33ms);
+      }
+    };
+    tick_all(3s);
+    drain(zones, 20s);
+    CHECK(zones[1]->node->stats().handoffs_applied.load() > 0);
+    const std::uint64_t sent_before = zones[0]->node->stats().handoffs_sent.load();  // all to region 1
+    REQUIRE(zones[1]->node->stats().checkpoints_written.load() > 0);
+    zones.pop_back();  // leave(): the lease and the checkpoint go, and the entities it owned
+    tick_all(1s);
+    zone_list again = join_zones(ns.url, "ckstop", 2, 1, c, 1);
+    CHECK(again[0]->node->region() == 1);
+    CHECK(again[0]->cfg.populate);
+    CHECK(again[0]->world->store().size() == static_cast<std::size_t>(c.npc_count));
+    zones.push_back(std::move(again[0]));
+    zones[1]->tick();
+    CHECK(zones[1]->node->stats().restored.load() == 0);
+    // None of the records the old zone applied comes again (its consumer kept its acks): an entity
+    // it adopted and handed back would be owned twice.
+    CHECK(zones[1]->node->stats().handoffs_applied.load() <=
+          zones[0]->node->stats().handoffs_sent.load() - sent_before);
+    tick_all(2s);
+    drain(zones, 20s);
+    std::string err;
+    const auto census = census_of(zones, ns.url, "ckstop", &err);
+    REQUIRE_MESSAGE(census.has_value(), err);
+    REQUIRE(census->size() == 2);
+    std::set<global_id> ids;
+    for (const auto& z : *census) {
+      for (const auto& [g, epoch] : z.owned)
+        CHECK_MESSAGE(ids.insert(g).second, "entity " << hex_id(g) << " owned by two zones");
     }
   }
 }
