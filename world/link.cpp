@@ -194,8 +194,9 @@ std::optional<ghost_message> decode_ghosts(std::span<const std::uint8_t> bytes) 
   return m;
 }
 
-std::vector<std::uint8_t> encode(const handoff_record& h) {
-  std::vector<std::uint8_t> out;
+namespace {
+/// A handoff record's bytes appended to `out` (encode, and each record of a checkpoint chunk).
+void append(std::vector<std::uint8_t>& out, const handoff_record& h) {
   writer w{out};
   w.put(handoff_magic);
   w.put(h.gid);
@@ -221,6 +222,12 @@ std::vector<std::uint8_t> encode(const handoff_record& h) {
   const std::size_t k = std::min(h.visible.size(), max_handoff_visible);
   w.put(static_cast<std::uint32_t>(k));
   for (std::size_t i = 0; i < k; ++i) w.put(h.visible[i]);
+}
+}  // namespace
+
+std::vector<std::uint8_t> encode(const handoff_record& h) {
+  std::vector<std::uint8_t> out;
+  append(out, h);
   return out;
 }
 
@@ -273,10 +280,13 @@ std::vector<std::uint8_t> encode(const checkpoint_chunk& c) {
   w.put(c.generation);
   w.put(c.tick);
   w.put(static_cast<std::uint32_t>(c.records.size()));
+  out.reserve(out.size() + c.records.size() * 176);
   for (const auto& r : c.records) {
-    const auto bytes = encode(r);
-    w.put(static_cast<std::uint32_t>(bytes.size()));
-    out.insert(out.end(), bytes.begin(), bytes.end());
+    const std::size_t at = out.size();
+    w.put(std::uint32_t{0});  // its length, written once known
+    append(out, r);
+    const auto len = static_cast<std::uint32_t>(out.size() - at - 4);
+    std::memcpy(out.data() + at, &len, 4);
   }
   return out;
 }
@@ -758,27 +768,33 @@ handoff_status zone_link::apply_handoff(zone_world& w, const handoff_record& r, 
   return handoff_status::adopted;
 }
 
-std::vector<handoff_record> zone_link::checkpoint(const zone_world& w) const {
-  std::vector<handoff_record> out;
+void zone_link::checkpoint(const zone_world& w, std::vector<handoff_record>& out) const {
+  // Down the store's dense columns (the game thread pays this copy once a checkpoint).
+  out.clear();
   const auto& s = w.store();
   const auto ids = s.ids();
+  const auto pos = s.positions();
+  const auto vel = s.velocities();
+  const auto cls = s.visibility_classes();
+  const auto sees = s.sees();
+  const auto aoi = s.aoi_half_extents();
+  const auto presence = s.presence_half_extents();
+  const auto kinds = s.kinds();
   out.reserve(owned_count());
-  for (const entity_id id : ids) {
-    const slot_info* i = info(id);
-    if (i == nullptr || i->what != role::owned || w.behaviour_of(id) == behaviour::player) continue;
-    const auto desc = s.get(id);
-    const auto state = w.behaviour_state_of(id);
-    if (!desc || !state) continue;
+  for (std::size_t k = 0; k < ids.size(); ++k) {
+    const slot_info* i = info(ids[k]);
+    if (i == nullptr || i->what != role::owned) continue;
+    const auto state = w.behaviour_state_of(ids[k]);
+    if (!state || state->kind == behaviour::player) continue;
     handoff_record& r = out.emplace_back();
     r.gid = i->gid;
     r.epoch = i->epoch;
     r.from = r.to = opt_.region;
-    r.desc = *desc;
+    r.desc = {pos[k], vel[k], cls[k], sees[k], aoi[k], presence[k], kinds[k]};
     r.behaviour = *state;
     r.owner_revision = i->revision;
     r.sent_tick = w.tick();
   }
-  return out;
 }
 
 handoff_status zone_link::restore(zone_world& w, const handoff_record& r) {

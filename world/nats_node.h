@@ -107,6 +107,9 @@ struct node_stats {
   /// is tried on time).
   std::atomic<std::uint64_t> checkpoints_written{0}, checkpoints_skipped{0}, checkpoint_failures{0};
   std::atomic<std::uint64_t> checkpoint_entities{0}, checkpoint_bytes{0};
+  /// The game thread's part of a checkpoint (the copy of what it owns): the longest and the sum, in
+  /// microseconds, over `checkpoint_copies`.
+  std::atomic<std::uint64_t> checkpoint_copy_max_us{0}, checkpoint_copy_total_us{0}, checkpoint_copies{0};
   /// At the join: entities of the region's last checkpoint taken back, and those left out because
   /// KV no longer names this region at their epoch (handed off since) or could not be read.
   std::atomic<std::uint64_t> restored{0}, restore_skipped{0};
@@ -309,6 +312,7 @@ class nats_node final : public zone_extension {
   std::mutex ckpt_mutex_;
   std::condition_variable ckpt_cv_;
   std::optional<checkpoint_chunk> ckpt_job_;  ///< under ckpt_mutex_: records, tick (generation set by the thread)
+  std::vector<handoff_record> ckpt_spare_;    ///< under ckpt_mutex_: the last job's records, emptied, for the next copy
   std::uint64_t ckpt_generation_ = 0;         ///< checkpoint thread
   std::uint64_t next_checkpoint_tick_ = 0;    ///< game thread
   std::atomic<bool> checkpoint_due_{false};

@@ -237,7 +237,8 @@ class zone_link {
   /// state; from = to = this region, `owner_revision` the ownership record's revision it holds):
   /// a checkpoint of the zone (docs/world.md, "Checkpoints"). Players are their clients' (a
   /// client logs in again) and are left out.
-  [[nodiscard]] std::vector<handoff_record> checkpoint(const zone_world& w) const;
+  /// `out` is cleared first (a vector kept from the last checkpoint takes it without allocating).
+  void checkpoint(const zone_world& w, std::vector<handoff_record>& out) const;
   /// Takes an entity back from a checkpoint of this region as owned here, with its id, epoch and
   /// ownership revision (the caller checked KV still names this region at that epoch). Refused
   /// when the id is already here or the record is another region's; no_room when the zone is full.

@@ -97,7 +97,8 @@ int main(int argc, char** argv) {
         "world: region {} owned {} entities at the end; handoffs out {} (CAS conflicts {}, confirmed by read-back {}, rounds retried {}, abandoned at the stop {}), in {} "
         "(duplicates {}, no room {}); held for a full neighbour {} entity-ticks; handoff latency p50 {:.2f} ms p99 {:.2f} ms max {:.2f} ms (p99 {:.2f} ticks); redirects {} claimed {}; "
         "ghost bytes out {} in {} over {} / {} messages; gaps {}, snapshots out {}; lease taken back {} times; "
-        "checkpoints written {} (the last {} entities, {} bytes), skipped {}, failed {}; restored {} at the start ({} left out)",
+        "checkpoints written {} (the last {} entities, {} bytes; the tick's copy {:.2f} ms on average, {:.2f} at most), skipped {}, failed {}; "
+        "restored {} at the start ({} left out)",
         node->region(), node->link().owned_count(), l.handoffs_out, s.handoff_cas_conflicts.load(),
         s.handoff_cas_confirmed.load(), s.handoff_retries.load(), s.handoffs_abandoned.load(),
         s.handoffs_applied.load(), s.handoff_duplicates.load(), s.handoffs_no_room.load(), l.handoffs_held_for_room,
@@ -105,7 +106,10 @@ int main(int argc, char** argv) {
         node->handoff_ticks().percentile(0.99), s.redirects.load(), s.redirect_claims.load(), l.ghost_bytes_out,
         l.ghost_bytes_in, l.ghost_messages_out, l.ghost_messages_in, l.gaps, l.snapshots_out, s.lease_reclaims.load(),
         s.checkpoints_written.load(), s.checkpoint_entities.load(), s.checkpoint_bytes.load(),
-        s.checkpoints_skipped.load(), s.checkpoint_failures.load(), s.restored.load(), s.restore_skipped.load());
+        static_cast<double>(s.checkpoint_copy_total_us.load()) / 1000.0 /
+            static_cast<double>(std::max<std::uint64_t>(1, s.checkpoint_copies.load())),
+        static_cast<double>(s.checkpoint_copy_max_us.load()) / 1000.0, s.checkpoints_skipped.load(),
+        s.checkpoint_failures.load(), s.restored.load(), s.restore_skipped.load());
   }
 #endif
   return 0;
