@@ -404,12 +404,30 @@ class swarm {
     b->start();
   }
 
-  /// A new session for `slot` at `to` after relogin_delay_s (--reconnect).
-  void relaunch_later(std::size_t slot, const tcp::endpoint& to, steady::time_point since) {
+  /// The truth stream of the server at `to` ended and the follower has not read the server that
+  /// answers there now, nor given up on it (follow_restarts).
+  [[nodiscard]] bool truth_pending(const tcp::endpoint& to) const {
+    for (const auto& z : oracles()) {
+      if (z.at == to && z.check->ended() && !z.followed.load() && !z.given_up.load()) return true;
+    }
+    return false;
+  }
+
+  /// A new session for `slot` at `to` after relogin_delay_s (--reconnect). While the oracle waits
+  /// to follow a restarted server at `to` (at most 10 s), the login waits too: an entity that
+  /// joined before the oracle's new stream began is never checked (it has no history there).
+  void relaunch_later(std::size_t slot, const tcp::endpoint& to, steady::time_point since, double delay_s = -1,
+                      std::optional<steady::time_point> waiting_since = {}) {
     auto timer = std::make_shared<asio::steady_timer>(*ios_[thread_of(slot)]);
-    timer->expires_after(std::chrono::duration_cast<steady::duration>(std::chrono::duration<double>(std::max(0.05, opt_.relogin_delay_s))));
-    timer->async_wait([this, timer, slot, to, since](const boost::system::error_code& ec) {
+    const double delay = delay_s >= 0 ? delay_s : std::max(0.05, opt_.relogin_delay_s);
+    timer->expires_after(std::chrono::duration_cast<steady::duration>(std::chrono::duration<double>(delay)));
+    timer->async_wait([this, timer, slot, to, since, waiting_since](const boost::system::error_code& ec) {
       if (ec || stopping_.load()) return;
+      const auto now = steady::now();
+      if (truth_pending(to) && now - waiting_since.value_or(now) < std::chrono::seconds(10)) {
+        relaunch_later(slot, to, since, 0.05, waiting_since.value_or(now));
+        return;
+      }
       auto b = std::make_shared<bot_session>(*this, slot, thread_of(slot), slots_[slot].kind, next_seed(slot));
       b->reconnect_to(to, since);
       {
@@ -565,8 +583,8 @@ class swarm {
     std::unique_ptr<oracle> check;
     bool after_restart = false;  ///< started for a server that replaced an earlier one at `at`
     // The follower's, read after it is joined:
-    bool followed = false;  ///< its stream ended and the server that replaced this one is read
-    bool given_up = false;  ///< its stream ended but this same server still answers: not followed
+    std::atomic<bool> followed{false};  ///< its stream ended and the server that replaced this one is read
+    std::atomic<bool> given_up{false};  ///< its stream ended but this same server still answers: not followed
   };
   /// Restarted servers followed in one run, at most (beyond, a stream that ends stays an error).
   static constexpr std::size_t max_restarts_followed = 64;
