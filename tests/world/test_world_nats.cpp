@@ -203,6 +203,15 @@ struct outage_world {
   }
 };
 
+/// Ticks every zone of `zones` at 30 Hz for `d` (the leases and the NATS client's timeouts are in
+/// real time).
+void run_zones(zone_list& zones, std::chrono::milliseconds d) {
+  for (const auto until = std::chrono::steady_clock::now() + d; std::chrono::steady_clock::now() < until;) {
+    for (auto& z : zones) z->tick();
+    std::this_thread::sleep_for(33ms);
+  }
+}
+
 /// The census of in-process zones (their game threads answer: pumped while it waits).
 std::optional<std::vector<census_entry>> census_of(zone_list& zones, const std::string& url, const std::string& name,
                                                    std::string* err) {
@@ -989,12 +998,7 @@ TEST_SUITE("world.nats") {
       o.nats_timeout_s = 0.25;
     };
     zone_list zones = join_zones(ns.url, "lostjoin", 3, 1, c, 3, tweak);
-    const auto run = [&](std::chrono::milliseconds d) {
-      for (const auto until = std::chrono::steady_clock::now() + d; std::chrono::steady_clock::now() < until;) {
-        for (auto& z : zones) z->tick();
-        std::this_thread::sleep_for(33ms);
-      }
-    };
+    const auto run = [&](std::chrono::milliseconds d) { run_zones(zones, d); };
     // Entities of region 2 (incarnation 1) cross into region 1; then region 2's zone leaves.
     run(2s);
     REQUIRE(zones[2]->node->region() == 2);
@@ -1053,12 +1057,7 @@ TEST_SUITE("world.nats") {
     zone_list zones = join_zones(ns.url, "ckpt", 2, 1, c, 2, tweak);
     std::size_t total = 0;
     for (auto& z : zones) total += z->world->store().size();
-    const auto tick_all = [&](std::chrono::milliseconds d) {
-      for (const auto until = std::chrono::steady_clock::now() + d; std::chrono::steady_clock::now() < until;) {
-        for (auto& z : zones) z->tick();
-        std::this_thread::sleep_for(33ms);
-      }
-    };
+    const auto tick_all = [&](std::chrono::milliseconds d) { run_zones(zones, d); };
     tick_all(3s);
     CHECK(handoffs_sent(zones) > 0);
     for (auto& z : zones) CHECK(z->node->stats().checkpoints_written.load() > 0);  // one a second
@@ -1128,12 +1127,7 @@ TEST_SUITE("world.nats") {
     CAPTURE(seed);
     const auto c = small_world(seed);
     zone_list zones = join_zones(ns.url, "ckstop", 2, 1, c, 2);
-    const auto tick_all = [&](std::chrono::milliseconds d) {
-      for (const auto until = std::chrono::steady_clock::now() + d; std::chrono::steady_clock::now() < until;) {
-        for (auto& z : zones) z->tick();
-        std::this_thread::sleep_for(33ms);
-      }
-    };
+    const auto tick_all = [&](std::chrono::milliseconds d) { run_zones(zones, d); };
     tick_all(3s);
     drain(zones, 20s);
     CHECK(zones[1]->node->stats().handoffs_applied.load() > 0);
