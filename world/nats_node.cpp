@@ -10,6 +10,7 @@
 #include <cstring>
 #include <ctime>
 #include <sstream>
+#include <unordered_set>
 
 namespace zone::world {
 
@@ -637,6 +638,7 @@ void nats_node::read_checkpoint() {
                                          static_cast<std::size_t>(natsMsg_GetDataLength(msg)));
   };
   const auto head = decode_checkpoint_head(bytes(m));
+  const std::int64_t head_time_ns = natsMsg_GetTime(m);  // when the stream stored it: after the copy
   natsMsg_Destroy(m);
   if (!head || head->region != region_) {
     spdlog::warn("world '{}': region {}'s checkpoint head is malformed: ignored (a new population)", opt_.world,
@@ -683,12 +685,64 @@ void nats_node::read_checkpoint() {
     }
   }
   std::erase_if(records, [](const handoff_record& r) { return r.gid == 0; });
+  // What the zone adopted after the copy is not in it: the handoff stream keeps every record an
+  // hour (acked or not), so the records to this region since 10 s before the checkpoint are read
+  // again, and an entity none of the checkpoint's comes back from its latest one where KV still
+  // names this region at that epoch (it was adopted here, or is on its way: either way ours).
+  std::unordered_map<global_id, handoff_record> since;
+  {
+    std::unordered_set<global_id> have;
+    for (const auto& r : records) have.insert(r.gid);
+    jsSubOptions so;
+    jsSubOptions_Init(&so);
+    const std::string stream_name = "WORLD_" + opt_.world;
+    so.Stream = stream_name.c_str();
+    so.Ordered = true;
+    so.Config.DeliverPolicy = js_DeliverByStartTime;
+    so.Config.OptStartTime = head_time_ns - static_cast<std::int64_t>(10) * 1000000000;
+    natsSubscription* sub = nullptr;
+    jsErrCode jerr = static_cast<jsErrCode>(0);
+    natsStatus s = js_SubscribeSync(&sub, js_, subject("handoff", region_).c_str(), nullptr, &so, &jerr);
+    const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(5);
+    while (s == NATS_OK && std::chrono::steady_clock::now() < deadline) {
+      natsMsg* hm = nullptr;
+      if (natsSubscription_NextMsg(&hm, sub, 500) != NATS_OK) break;  // none left (or none at all)
+      std::uint64_t pending = 0;
+      jsMsgMetaData* meta = nullptr;
+      if (natsMsg_GetMetaData(&meta, hm) == NATS_OK) pending = meta->NumPending, jsMsgMetaData_Destroy(meta);
+      if (auto r = decode_handoff(bytes(hm)); r && r->to == region_ && !have.contains(r->gid)) {
+        auto [it, fresh] = since.emplace(r->gid, *r);
+        if (!fresh && it->second.epoch < r->epoch) it->second = std::move(*r);
+      }
+      natsMsg_Destroy(hm);
+      if (pending == 0) break;
+    }
+    if (sub) natsSubscription_Unsubscribe(sub), natsSubscription_Destroy(sub);  // an ephemeral consumer
+  }
+  std::uint64_t from_records = 0;
+  for (auto& [g, r] : since) {
+    kvEntry* e = nullptr;
+    natsStatus s = NATS_OK;
+    for (int attempt = 0; attempt < 3; ++attempt) {
+      if ((s = kvStore_Get(&e, kv_, ("e." + hex(g)).c_str())) == NATS_OK || s == NATS_NOT_FOUND) break;
+    }
+    if (s == NATS_OK && kvEntry_ValueString(e) == owner_value(region_, r.epoch)) {
+      r.owner_revision = kvEntry_Revision(e);
+      r.from = region_;
+      r.token = 0;
+      r.visible.clear();
+      records.push_back(std::move(r));
+      ++from_records;
+    }
+    if (e) kvEntry_Destroy(e);
+  }
   have_checkpoint_ = true;
   stats_.restore_skipped = skipped;
+  stats_.restored_from_records = from_records;
   spdlog::info(
-      "world '{}': region {}'s checkpoint of tick {} (incarnation {}): {} entities to restore, {} left out "
-      "(handed off since)",
-      opt_.world, region_, head->tick, head->incarnation, records.size(), skipped);
+      "world '{}': region {}'s checkpoint of tick {} (incarnation {}): {} entities to restore ({} of them from "
+      "handoff records since: adopted after it, or on their way here), {} left out (handed off since)",
+      opt_.world, region_, head->tick, head->incarnation, records.size(), from_records, skipped);
   to_restore_ = std::move(records);
 }
 

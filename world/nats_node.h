@@ -113,6 +113,9 @@ struct node_stats {
   /// At the join: entities of the region's last checkpoint taken back, and those left out because
   /// KV no longer names this region at their epoch (handed off since) or could not be read.
   std::atomic<std::uint64_t> restored{0}, restore_skipped{0};
+  /// Of `restored`: entities not in the checkpoint taken from their handoff records (adopted after
+  /// it, or handed to this region and not adopted yet).
+  std::atomic<std::uint64_t> restored_from_records{0};
 };
 
 /// What a failed ownership CAS was, judged by the key read back after it (docs/world.md "Handoff").

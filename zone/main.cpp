@@ -98,7 +98,7 @@ int main(int argc, char** argv) {
         "(duplicates {}, no room {}); held for a full neighbour {} entity-ticks; handoff latency p50 {:.2f} ms p99 {:.2f} ms max {:.2f} ms (p99 {:.2f} ticks); redirects {} claimed {}; "
         "ghost bytes out {} in {} over {} / {} messages; gaps {}, snapshots out {}; lease taken back {} times; "
         "checkpoints written {} (the last {} entities, {} bytes; the tick's copy {:.2f} ms on average, {:.2f} at most), skipped {}, failed {}; "
-        "restored {} at the start ({} left out)",
+        "restored {} at the start ({} of them from handoff records; {} left out)",
         node->region(), node->link().owned_count(), l.handoffs_out, s.handoff_cas_conflicts.load(),
         s.handoff_cas_confirmed.load(), s.handoff_retries.load(), s.handoffs_abandoned.load(),
         s.handoffs_applied.load(), s.handoff_duplicates.load(), s.handoffs_no_room.load(), l.handoffs_held_for_room,
@@ -109,7 +109,7 @@ int main(int argc, char** argv) {
         static_cast<double>(s.checkpoint_copy_total_us.load()) / 1000.0 /
             static_cast<double>(std::max<std::uint64_t>(1, s.checkpoint_copies.load())),
         static_cast<double>(s.checkpoint_copy_max_us.load()) / 1000.0, s.checkpoints_skipped.load(),
-        s.checkpoint_failures.load(), s.restored.load(), s.restore_skipped.load());
+        s.checkpoint_failures.load(), s.restored.load(), s.restored_from_records.load(), s.restore_skipped.load());
   }
 #endif
   return 0;

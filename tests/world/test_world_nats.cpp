@@ -1095,7 +1095,9 @@ TEST_SUITE("world.nats") {
     CHECK_FALSE(next->zone_for_region(c).populate);  // its entities come from the checkpoint
     zones.push_back(std::make_unique<node_zone>(std::move(next), c));
     zones[1]->tick();
-    CHECK(zones[1]->node->stats().restored.load() == at_kill.size());
+    // Its checkpoint, and the records handed to region 1 meanwhile (waiting on the stream).
+    CHECK(zones[1]->node->stats().restored.load() - zones[1]->node->stats().restored_from_records.load() ==
+          at_kill.size());
     CHECK(zones[1]->node->stats().restore_skipped.load() == 0);
     for (const global_id g : at_kill) CHECK(zones[1]->node->link().local_of(g) != null_entity);
     tick_all(3s);
@@ -1115,6 +1117,70 @@ TEST_SUITE("world.nats") {
     }
     CHECK(ids.size() == total);
     const auto owners = read_owners(ns.url, "ckpt", &err);
+    REQUIRE_MESSAGE(owners.has_value(), err);
+    CHECK(check_world(*census, *owners).ok());
+  }
+
+  TEST_CASE("a zone killed seconds after its checkpoint: what it adopted since comes back from the handoff records") {
+    nats_server ns;
+    REQUIRE_FALSE(ns.url.empty());
+    const std::uint64_t seed = zone::test::fresh_seed();
+    CAPTURE(seed);
+    const auto c = small_world(seed);
+    // Checkpoints a minute apart: the one forced below is the last.
+    const auto tweak = [](node_options& o) {
+      o.nats_timeout_s = 0.25;
+      o.checkpoint_s = 60;
+    };
+    zone_list zones = join_zones(ns.url, "cklate", 2, 1, c, 2, tweak);
+    std::size_t total = 0;
+    for (auto& z : zones) total += z->world->store().size();
+    run_zones(zones, 1500ms);
+    nats_node& victim = *zones[1]->node;
+    const std::uint64_t written = victim.stats().checkpoints_written.load();
+    victim.checkpoint_next_tick_for_testing();
+    for (const auto until = std::chrono::steady_clock::now() + 5s;
+         victim.stats().checkpoints_written.load() == written && std::chrono::steady_clock::now() < until;) {
+      run_zones(zones, 33ms);
+    }
+    REQUIRE(victim.stats().checkpoints_written.load() > written);
+    // Three more seconds: zone 1 adopts entities its checkpoint does not hold (and hands some on).
+    const std::uint64_t adopted_before = victim.stats().handoffs_applied.load();
+    run_zones(zones, 3s);
+    REQUIRE(victim.stats().handoffs_applied.load() > adopted_before);
+    for (int k = 0; k < 10; ++k) {  // its sender publishes what it decided; then it is killed
+      zones[0]->tick();
+      std::this_thread::sleep_for(33ms);
+    }
+    victim.crash_for_testing();
+    zones.pop_back();
+    run_zones(zones, 1500ms);
+    std::string err;
+    std::unique_ptr<nats_node> next;
+    for (const auto until = std::chrono::steady_clock::now() + 10s;
+         !next && std::chrono::steady_clock::now() < until;) {
+      auto o = options(ns.url, "cklate", 2, 1, c);
+      tweak(o);
+      next = nats_node::join(o, c, &err);
+      if (!next) run_zones(zones, 250ms);
+    }
+    REQUIRE_MESSAGE(next != nullptr, err);
+    zones.push_back(std::make_unique<node_zone>(std::move(next), c));
+    zones[1]->tick();
+    CHECK(zones[1]->node->stats().restored_from_records.load() > 0);
+    run_zones(zones, 2s);
+    drain(zones, 20s);
+    // Every entity of the world once: the checkpoint's, and those adopted after it from their records.
+    const auto census = census_of(zones, ns.url, "cklate", &err);
+    REQUIRE_MESSAGE(census.has_value(), err);
+    REQUIRE(census->size() == 2);
+    std::set<global_id> ids;
+    for (const auto& z : *census) {
+      for (const auto& [g, epoch] : z.owned)
+        CHECK_MESSAGE(ids.insert(g).second, "entity " << hex_id(g) << " owned by two zones");
+    }
+    CHECK(ids.size() == total);
+    const auto owners = read_owners(ns.url, "cklate", &err);
     REQUIRE_MESSAGE(owners.has_value(), err);
     CHECK(check_world(*census, *owners).ok());
   }
