@@ -710,7 +710,10 @@ void nats_node::read_checkpoint() {
       std::uint64_t pending = 0;
       jsMsgMetaData* meta = nullptr;
       if (natsMsg_GetMetaData(&meta, hm) == NATS_OK) pending = meta->NumPending, jsMsgMetaData_Destroy(meta);
-      if (auto r = decode_handoff(bytes(hm)); r && r->to == region_ && !have.contains(r->gid)) {
+      // Players left out, as from the checkpoint: one on its way comes with its token from the
+      // region's consumer (its client follows the redirect); one adopted here logs in again.
+      if (auto r = decode_handoff(bytes(hm));
+          r && r->to == region_ && r->behaviour.kind != behaviour::player && !have.contains(r->gid)) {
         auto [it, fresh] = since.emplace(r->gid, *r);
         if (!fresh && it->second.epoch < r->epoch) it->second = std::move(*r);
       }
