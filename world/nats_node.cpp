@@ -50,6 +50,8 @@ natsStatus open_bucket(kvStore** kv, jsCtx* js, const std::string& name, std::in
 std::string owner_value(std::uint32_t region, std::uint64_t epoch) {
   return std::to_string(region) + " " + std::to_string(epoch);
 }
+/// An entity's ownership record's key in the world's KV bucket.
+std::string owner_key(global_id g) { return "e." + hex(g); }
 /// The epoch an ownership record's value names (0 when it names none).
 std::uint64_t owner_epoch(const std::string& value) {
   const auto space = value.find(' ');
@@ -69,41 +71,40 @@ natsStatus kv_stream_created(jsCtx* js, const std::string& world, std::int64_t* 
   return s;
 }
 
-/// The world's handoff stream (idempotent: an existing one is fine).
-natsStatus add_handoff_stream(jsCtx* js, const std::string& world) {
+std::string handoff_stream(const std::string& world) { return "WORLD_" + world; }
+std::string checkpoint_stream(const std::string& world) { return "WORLDCK_" + world; }
+
+/// A file-stored stream `name` over `subject`, `tune` setting the rest (idempotent: an existing
+/// one is fine).
+template <class Tune>
+natsStatus add_stream(jsCtx* js, const std::string& name, const std::string& subject, Tune&& tune) {
   jsStreamConfig sc;
   jsStreamConfig_Init(&sc);
-  const std::string name = "WORLD_" + world;
-  const std::string subj = "world." + world + ".handoff.>";
-  const char* subjects[1] = {subj.c_str()};
+  const char* subjects[1] = {subject.c_str()};
   sc.Name = name.c_str();
   sc.Subjects = subjects;
   sc.SubjectsLen = 1;
   sc.Storage = js_FileStorage;
-  sc.Duplicates = static_cast<std::int64_t>(120) * 1000000000;  // 2 minutes of message-id dedupe
-  sc.MaxAge = static_cast<std::int64_t>(3600) * 1000000000;
+  tune(sc);
   jsErrCode jerr = static_cast<jsErrCode>(0);
   const natsStatus s = js_AddStream(nullptr, js, &sc, nullptr, &jerr);
   return s != NATS_OK && jerr == JSStreamNameExistErr ? NATS_OK : s;
 }
 
-/// The world's checkpoint stream (idempotent): per region its chunks and its head, the last two
-/// messages of each subject kept (a checkpoint being written never overwrites the one its head
-/// names; docs/world.md, "Checkpoints").
+/// The world's handoff stream: records kept an hour, with 2 minutes of message-id dedupe.
+natsStatus add_handoff_stream(jsCtx* js, const std::string& world) {
+  return add_stream(js, handoff_stream(world), "world." + world + ".handoff.>", [](jsStreamConfig& sc) {
+    sc.Duplicates = static_cast<std::int64_t>(120) * 1000000000;
+    sc.MaxAge = static_cast<std::int64_t>(3600) * 1000000000;
+  });
+}
+
+/// The world's checkpoint stream: per region its chunks and its head, the last two messages of
+/// each subject kept (a checkpoint being written never overwrites the one its head names;
+/// docs/world.md, "Checkpoints").
 natsStatus add_checkpoint_stream(jsCtx* js, const std::string& world) {
-  jsStreamConfig sc;
-  jsStreamConfig_Init(&sc);
-  const std::string name = "WORLDCK_" + world;
-  const std::string subj = "world." + world + ".ck.>";
-  const char* subjects[1] = {subj.c_str()};
-  sc.Name = name.c_str();
-  sc.Subjects = subjects;
-  sc.SubjectsLen = 1;
-  sc.Storage = js_FileStorage;
-  sc.MaxMsgsPerSubject = 2;
-  jsErrCode jerr = static_cast<jsErrCode>(0);
-  const natsStatus s = js_AddStream(nullptr, js, &sc, nullptr, &jerr);
-  return s != NATS_OK && jerr == JSStreamNameExistErr ? NATS_OK : s;
+  return add_stream(js, checkpoint_stream(world), "world." + world + ".ck.>",
+                    [](jsStreamConfig& sc) { sc.MaxMsgsPerSubject = 2; });
 }
 
 }  // namespace
@@ -115,7 +116,7 @@ std::string nats_node::checkpoint_subject(const std::string& part) const {
 int nats_node::subscribe_handoffs() {
   jsSubOptions so;
   jsSubOptions_Init(&so);
-  const std::string name = "WORLD_" + opt_.world;
+  const std::string name = handoff_stream(opt_.world);
   so.Stream = name.c_str();
   so.Config.AckWait = static_cast<std::int64_t>(5) * 1000000000;
   const std::string durable = "region-" + std::to_string(region_);
@@ -336,7 +337,7 @@ void nats_node::leave() {
     const std::string all = checkpoint_subject(">");
     po.Stream.Purge.Subject = all.c_str();
     jsErrCode jerr = static_cast<jsErrCode>(0);
-    js_PurgeStream(js_, ("WORLDCK_" + opt_.world).c_str(), &po, &jerr);
+    js_PurgeStream(js_, checkpoint_stream(opt_.world).c_str(), &po, &jerr);
     kvStore_Delete(lease_, lease_key_.c_str());
   }
   if (kv_) kvStore_Destroy(kv_);
@@ -550,7 +551,6 @@ bool nats_node::remake_world() {
 }
 
 void nats_node::checkpoint_loop() {
-  const std::string stream = "WORLDCK_" + opt_.world;
   bool failing = false;
   while (!stopping_.load()) {
     checkpoint_chunk job;
@@ -620,7 +620,7 @@ void nats_node::checkpoint_loop() {
 }
 
 void nats_node::read_checkpoint() {
-  const std::string stream = "WORLDCK_" + opt_.world;
+  const std::string stream = checkpoint_stream(opt_.world);
   const auto get = [&](natsMsg** m, std::uint64_t seq, const std::string& subject) {
     jsErrCode jerr = static_cast<jsErrCode>(0);
     natsStatus s = NATS_OK;
@@ -661,25 +661,25 @@ void nats_node::read_checkpoint() {
     }
     for (auto& r : chunk->records) records.push_back(std::move(r));
   }
+  // Whether KV names this region for `r` at its epoch (no record: only for epoch 0, never handed
+  // off: a record is made at the first handoff); then r.owner_revision is the record's.
+  const auto ours = [&](handoff_record& r) {
+    kvEntry* e = nullptr;
+    natsStatus s = NATS_OK;
+    for (int attempt = 0; attempt < 3; ++attempt) {
+      if ((s = kvStore_Get(&e, kv_, owner_key(r.gid).c_str())) == NATS_OK || s == NATS_NOT_FOUND) break;
+    }
+    const bool yes =
+        s == NATS_NOT_FOUND ? r.epoch == 0 : s == NATS_OK && kvEntry_ValueString(e) == owner_value(region_, r.epoch);
+    r.owner_revision = s == NATS_OK ? kvEntry_Revision(e) : 0;
+    if (e) kvEntry_Destroy(e);
+    return yes;
+  };
   // Only what KV still names this region for, at the epoch the checkpoint holds: an entity
   // handed off since belongs to its new zone (or is on its way there).
   std::uint64_t skipped = 0;
   for (auto& r : records) {
-    kvEntry* e = nullptr;
-    natsStatus s = NATS_OK;
-    for (int attempt = 0; attempt < 3; ++attempt) {
-      if ((s = kvStore_Get(&e, kv_, ("e." + hex(r.gid)).c_str())) == NATS_OK || s == NATS_NOT_FOUND) break;
-    }
-    bool ours = false;
-    if (s == NATS_NOT_FOUND) {
-      ours = r.epoch == 0;  // never handed off (a record is made at the first handoff)
-      r.owner_revision = 0;
-    } else if (s == NATS_OK) {
-      ours = kvEntry_ValueString(e) == owner_value(region_, r.epoch);
-      r.owner_revision = kvEntry_Revision(e);
-    }
-    if (e) kvEntry_Destroy(e);
-    if (!ours) {
+    if (!ours(r)) {
       ++skipped;
       r.gid = 0;
     }
@@ -695,7 +695,7 @@ void nats_node::read_checkpoint() {
     for (const auto& r : records) have.insert(r.gid);
     jsSubOptions so;
     jsSubOptions_Init(&so);
-    const std::string stream_name = "WORLD_" + opt_.world;
+    const std::string stream_name = handoff_stream(opt_.world);
     so.Stream = stream_name.c_str();
     so.Ordered = true;
     so.Config.DeliverPolicy = js_DeliverByStartTime;
@@ -724,20 +724,13 @@ void nats_node::read_checkpoint() {
   }
   std::uint64_t from_records = 0;
   for (auto& [g, r] : since) {
-    kvEntry* e = nullptr;
-    natsStatus s = NATS_OK;
-    for (int attempt = 0; attempt < 3; ++attempt) {
-      if ((s = kvStore_Get(&e, kv_, ("e." + hex(g)).c_str())) == NATS_OK || s == NATS_NOT_FOUND) break;
-    }
-    if (s == NATS_OK && kvEntry_ValueString(e) == owner_value(region_, r.epoch)) {
-      r.owner_revision = kvEntry_Revision(e);
+    if (r.epoch > 0 && ours(r)) {  // a handoff's record has an epoch of 1 or more, and KV its record
       r.from = region_;
       r.token = 0;
       r.visible.clear();
       records.push_back(std::move(r));
       ++from_records;
     }
-    if (e) kvEntry_Destroy(e);
   }
   have_checkpoint_ = true;
   stats_.restore_skipped = skipped;
@@ -753,7 +746,7 @@ bool nats_node::put_record(global_id g, std::uint32_t region, std::uint64_t epoc
   // The highest epoch wins (epochs only grow along an entity's handoffs, so it is its owner's):
   // created when missing, replaced when it names an older epoch (another zone put back what it
   // had published before the entity moved on), left when it names this epoch or a newer one.
-  const std::string key = "e." + hex(g);
+  const std::string key = owner_key(g);
   const std::string value = owner_value(region, epoch);
   for (int attempt = 0; attempt < 5; ++attempt) {
     std::uint64_t rev = 0;
@@ -942,7 +935,7 @@ nats_node::cas_outcome nats_node::ownership_cas(handoff_record& r, int fail_firs
   // From (us, epoch - 1) at the revision we know to (them, epoch). A failed CAS may have taken
   // effect (a timeout whose update went through) or changed nothing (a timeout before it): the
   // key read back tells which. KV unreadable: unsettled at once (the sender pauses and comes back).
-  const std::string key = "e." + hex(r.gid);
+  const std::string key = owner_key(r.gid);
   const std::string value = owner_value(r.to, r.epoch);
   const std::string ours = owner_value(r.from, r.epoch - 1);
   constexpr int attempts = 5;
@@ -1009,7 +1002,7 @@ nats_node::send_outcome nats_node::send(outgoing& o, int fail_first) {
   handoff_record& r = o.record;
   if (r.epoch == 0) {
     // The entity left the world here (a player logged out): its ownership record goes too.
-    const natsStatus s = kvStore_Delete(kv_, ("e." + hex(r.gid)).c_str());
+    const natsStatus s = kvStore_Delete(kv_, owner_key(r.gid).c_str());
     if (s != NATS_OK && s != NATS_NOT_FOUND) {
       spdlog::warn("world '{}': the ownership record of {:x} (left the world) not deleted: {}: tried again later",
                    opt_.world, r.gid, status_text(s));
@@ -1469,7 +1462,7 @@ std::optional<std::map<global_id, std::pair<std::uint32_t, std::uint64_t>>> read
     }
   };
   if (only != nullptr) {
-    for (const global_id g : *only) read("e." + hex(g));
+    for (const global_id g : *only) read(owner_key(g));
   } else {
     kvKeysList keys{};
     const natsStatus ks = kvStore_Keys(&keys, kv, nullptr);
