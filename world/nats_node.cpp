@@ -1102,7 +1102,6 @@ void nats_node::before_step(zone_world& w) {
       back += st == handoff_status::adopted;
       no_room += st == handoff_status::no_room;
     }
-    stats_.restored += back;
     stats_.restore_skipped += to_restore_.size() - back;
     if (no_room)
       spdlog::error("world '{}': {} entities of the checkpoint did not fit in the zone: lost", opt_.world, no_room);

@@ -110,11 +110,12 @@ struct node_stats {
   /// The game thread's part of a checkpoint (the copy of what it owns): the longest and the sum, in
   /// microseconds, over `checkpoint_copies`.
   std::atomic<std::uint64_t> checkpoint_copy_max_us{0}, checkpoint_copy_total_us{0}, checkpoint_copies{0};
-  /// At the join: entities of the region's last checkpoint taken back, and those left out because
-  /// KV no longer names this region at their epoch (handed off since) or could not be read.
-  std::atomic<std::uint64_t> restored{0}, restore_skipped{0};
-  /// Of `restored`: entities not in the checkpoint taken from their handoff records (adopted after
-  /// it, or handed to this region and not adopted yet).
+  /// At the join: entities of the region's last checkpoint left out because KV no longer names
+  /// this region at their epoch (handed off since) or could not be read, or that did not fit (those
+  /// taken back: link_stats::restored).
+  std::atomic<std::uint64_t> restore_skipped{0};
+  /// Of link_stats::restored: entities not in the checkpoint taken from their handoff records
+  /// (adopted after it, or handed to this region and not adopted yet).
   std::atomic<std::uint64_t> restored_from_records{0};
 };
 

@@ -109,7 +109,7 @@ int main(int argc, char** argv) {
         static_cast<double>(s.checkpoint_copy_total_us.load()) / 1000.0 /
             static_cast<double>(std::max<std::uint64_t>(1, s.checkpoint_copies.load())),
         static_cast<double>(s.checkpoint_copy_max_us.load()) / 1000.0, s.checkpoints_skipped.load(),
-        s.checkpoint_failures.load(), s.restored.load(), s.restored_from_records.load(), s.restore_skipped.load());
+        s.checkpoint_failures.load(), l.restored, s.restored_from_records.load(), s.restore_skipped.load());
   }
 #endif
   return 0;

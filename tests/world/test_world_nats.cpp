@@ -1122,7 +1122,7 @@ TEST_SUITE("world.nats") {
     zones.push_back(std::make_unique<node_zone>(std::move(next), c));
     zones[1]->tick();
     // Its checkpoint, and the records handed to region 1 meanwhile (waiting on the stream).
-    CHECK(zones[1]->node->stats().restored.load() - zones[1]->node->stats().restored_from_records.load() ==
+    CHECK(zones[1]->node->link().stats().restored - zones[1]->node->stats().restored_from_records.load() ==
           at_kill.size());
     CHECK(zones[1]->node->stats().restore_skipped.load() == 0);
     for (const global_id g : at_kill) CHECK(zones[1]->node->link().local_of(g) != null_entity);
@@ -1198,7 +1198,7 @@ TEST_SUITE("world.nats") {
     CHECK(again[0]->world->store().size() == static_cast<std::size_t>(c.npc_count));
     zones.push_back(std::move(again[0]));
     zones[1]->tick();
-    CHECK(zones[1]->node->stats().restored.load() == 0);
+    CHECK(zones[1]->node->link().stats().restored == 0);
     // None of the records the old zone applied comes again (its consumer kept its acks): an entity
     // it adopted and handed back would be owned twice.
     CHECK(zones[1]->node->stats().handoffs_applied.load() <=
