@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # A local world of zones (docs/world.md) in one command: a nats-server with JetStream on a free
 # loopback port, COLSxROWS zone-servers (one region each), one bot swarm per zone whose bots walk
-# across borders (following redirects), and optionally a zone killed with SIGKILL and restarted, or
-# nats-server stopped for a while and started again.
+# across borders (following redirects), and optionally a zone killed with SIGKILL and restarted
+# (or taken over by a standby), or nats-server stopped for a while and started again.
 # Prints one report: the swarms' checks, handoffs and their latency, ghost bytes per border per
 # tick, tick p99 per zone, and world-check's census (no entity owned twice; KV agrees).
 # Bounded in time: everything stops after --duration (+ about 15 s to start, drain and check).
@@ -19,6 +19,9 @@ Usage: scripts/world.sh [options]
   --world-size M   world side in metres (default 1024)
   --bosses N       bosses per zone (default 0: a boss's 400 m AOI widens the ghost band to ~453 m)
   --kill           SIGKILL zone 1 at a third of the run and restart it (fault test)
+  --standby        with --kill: a hot standby (zone-server --world-standby, started beside the zones
+                   on zone 1's port, which it binds once it holds a region) takes the killed zone's
+                   region over instead of a restart; the run fails unless it did
   --nats-empty     with --nats-restart: start it again with an empty store (the world's JetStream
                    state lost: the zones make it again); every entity must still be there at the end
   --nats-restart S stop nats-server at a third of the run for S seconds, then start it again on its
@@ -46,7 +49,7 @@ EOF
 }
 
 extra_zone_args=()
-build=build grid=2x2 bots=200 npcs=5000 duration=30 size=1024 kill=0 nats_restart=0 nats_empty=0 threads=1 bosses=0 out= oracle=0 fault= single=0 interest=cpu
+build=build grid=2x2 bots=200 npcs=5000 duration=30 size=1024 kill=0 standby=0 nats_restart=0 nats_empty=0 threads=1 bosses=0 out= oracle=0 fault= single=0 interest=cpu
 while [ $# -gt 0 ]; do
   case "$1" in
     --build) build=$2; shift 2 ;;
@@ -56,6 +59,7 @@ while [ $# -gt 0 ]; do
     --duration) duration=$2; shift 2 ;;
     --world-size) size=$2; shift 2 ;;
     --kill) kill=1; shift ;;
+    --standby) standby=1; shift ;;
     --nats-restart) nats_restart=$2; shift 2 ;;
     --nats-empty) nats_empty=1; shift ;;
     --oracle) oracle=1; shift ;;
@@ -76,6 +80,7 @@ for v in "$bots" "$npcs" "$duration" "$size" "$threads" "$bosses" "$single" "$na
   [[ $v =~ ^[0-9]+$ ]] || { echo "world.sh: --bots, --npcs, --duration, --world-size, --threads, --bosses, --single and --nats-restart take whole numbers (got '$v')" >&2; exit 64; }
 done
 [ "$nats_empty" = 1 ] && [ "$nats_restart" = 0 ] && { echo "world.sh: --nats-empty needs --nats-restart" >&2; exit 64; }
+[ "$standby" = 1 ] && [ "$kill" = 0 ] && { echo "world.sh: --standby needs --kill (it stands in for the killed zone)" >&2; exit 64; }
 [ "$kill" = 1 ] && [ "$nats_restart" -gt 0 ] && { echo "world.sh: --kill and --nats-restart do not go together (one fault a run)" >&2; exit 64; }
 case "$interest" in cpu) where=(--finder cpu --interest host) ;; gpu) where=(--finder gpu --interest gpu) ;;
   *) echo "world.sh: --interest must be cpu or gpu" >&2; exit 64 ;; esac
@@ -144,6 +149,18 @@ for k in $(seq 0 $((zones - 1))); do
   zregion[$k]=$(grep -o 'region [0-9]* of' "$out/zone-$k.log" | head -1 | awk '{print $2}')
 done
 
+# The standby: every region held, it waits for a lease to lapse. It binds zone 1's port once it
+# holds a region (only zone 1 is killed here): the region's address, as a deployment's service
+# name or load balancer in front of whichever process serves the region would be.
+if [ "$standby" = 1 ]; then
+  "$build/zone/zone-server" "${zone_args[@]}" --world-standby --port "${zport[1]}" --tick-csv "$out/standby.csv" \
+    >"$out/standby.log" 2>&1 &
+  standby_pid=$!
+  pids+=("$standby_pid")
+  for _ in $(seq 100); do grep -q 'standing by' "$out/standby.log" && break; sleep 0.1; done
+  grep -q 'standing by' "$out/standby.log" || { echo "world.sh: the standby is not standing by ($out/standby.log)" >&2; tail -5 "$out/standby.log" >&2; exit 1; }
+fi
+
 # 3. One swarm per zone: its bots spawn at that zone's towns and walk (random headings) across borders.
 per=$(( (bots + zones - 1) / zones ))
 reconnect=()
@@ -173,13 +190,24 @@ if [ "$kill" = 1 ] && [ "$zones" -gt 1 ]; then
   wait "${zpid[1]}" 2>/dev/null || true
   t_kill=$(date +%s.%N)
   mv "$out/zone-1.log" "$out/zone-1-killed.log"
-  start_zone 1 "${zport[1]}"  # the same port: its bots log in again there
-  zpid[1]=$zone_pid
-  pids+=("${zpid[1]}")
-  zport[1]=$(zone_port "$out/zone-1.log" 300)
+  mv "$out/zone-1.csv" "$out/zone-1-killed.csv"
+  if [ "$standby" = 1 ]; then
+    zpid[1]=$standby_pid  # it takes the region over once the lease lapses
+    zport[1]=$(zone_port "$out/standby.log" 300)
+    mv "$out/standby.log" "$out/zone-1.log"
+    how="taken over by the standby"
+  else
+    start_zone 1 "${zport[1]}"  # the same port: its bots log in again there
+    zpid[1]=$zone_pid
+    pids+=("${zpid[1]}")
+    zport[1]=$(zone_port "$out/zone-1.log" 300)
+    how="back"
+  fi
   t_up=$(date +%s.%N)
-  killed_note=$(awk -v a="$t_kill" -v b="$t_up" -v r="$(grep -o 'region [0-9]* of' "$out/zone-1.log" | head -1 | awk '{print $2}')" \
-    'BEGIN{printf "zone 1 (SIGKILL) back on region %s after %.1f s (lease lapse + start)", r, b - a}')
+  [ -n "${zport[1]}" ] || { echo "world.sh: region ${zregion[1]} not served again after the kill ($out/zone-1.log)" >&2; exit 1; }
+  [ "$standby" = 1 ] && mv "$out/standby.csv" "$out/zone-1.csv"
+  killed_note=$(awk -v a="$t_kill" -v b="$t_up" -v h="$how" -v r="$(grep -o 'region [0-9]* of' "$out/zone-1.log" | tail -1 | awk '{print $2}')" \
+    'BEGIN{printf "zone 1 (SIGKILL) %s on region %s after %.1f s (lease lapse + start)", h, r, b - a}')
   before=$(grep -o "region ${zregion[1]} (incarnation [0-9]*, [0-9]* owned)" "$out/world-check-before-kill.txt" | grep -o '[0-9]* owned' | awk '{print $1}' || true)
   killed_note="$killed_note; it owned ${before:-?} entities at a census about a second before the kill"
 fi
@@ -355,5 +383,6 @@ fi
 [ "$oracle" = 1 ] && [ "$oracle_checked" = 0 ] && { echo "the oracle checked no frame" >&2; exit 1; }
 [ "$oracle" = 1 ] && [ "$crossings" = 0 ] && { echo "no bot crossed a border: the oracle spanned no zones" >&2; exit 1; }
 [ "$oracle" = 1 ] && [ "$kill" = 1 ] && [ "$checked_after_restart" = 0 ] && { echo "the oracle checked no frame of the restarted zone" >&2; exit 1; }
+[ "$standby" = 1 ] && ! grep -q 'free after' "$out/zone-1.log" && { echo "the standby did not take the killed zone's region over" >&2; exit 1; }
 [ "$kill" = 1 ] && [ -n "$killed_note" ] && [ "${restored:-0}" = 0 ] && { echo "the restarted zone restored nothing from the killed zone's checkpoint" >&2; exit 1; }
 [ "$check_rc" = 0 ] && [ "$mism" = 0 ] && [ "$unexplained" = 0 ] && [ "$stopped_early" = 0 ]

@@ -188,43 +188,79 @@ std::unique_ptr<nats_node> nats_node::join(const node_options& opt, const zone_c
   if (!map) return fail("the layout in KV is malformed: '" + text + "'");
   if (!(map->bounds() == zone.world)) return fail("the layout's bounds differ from this zone's --world-size");
   n->map_ = *map;
-  // The running zones, by their census: a region one of them serves is not claimed even where its
-  // lease is missing (the world's JetStream state lost and not made again yet), and the claim's
-  // incarnation counts on from the highest among the ids alive in the world.
-  running_zones running = read_running({}, n->map_.count());
-  if (opt.join_census_s > 0) {
-    std::string why;
-    const auto census = take_census(opt.url, opt.world, static_cast<int>(opt.join_census_s * 1000), &why);
-    if (!census) return fail("the census of the running zones: " + why);
-    running = read_running(*census, n->map_.count());
-  }
-  // A free region: its lease key created (fails while another zone holds it).
-  bool claimed = false;
-  std::uint32_t served_unleased = 0;
-  for (std::uint32_t r = 0; r < n->map_.count() && !claimed; ++r) {
-    const std::string key = "r." + std::to_string(r);
-    if (running.served[r]) {
+  // A free region: its lease key created (fails while another zone holds it). The running zones'
+  // census first: a region one of them serves is not claimed even where its lease is missing (the
+  // world's JetStream state lost and not made again yet), and the claim's incarnation counts on
+  // from the highest among the ids alive in the world. While every region is held, wait
+  // (claim_wait_s) for a lease to lapse: the leases polled, the census taken again once one has.
+  const auto started = std::chrono::steady_clock::now();
+  const bool forever = !std::isfinite(opt.claim_wait_s);
+  const auto give_up = started + std::chrono::duration_cast<std::chrono::steady_clock::duration>(
+                                     std::chrono::duration<double>(forever ? 0.0 : std::max(0.0, opt.claim_wait_s)));
+  const auto lease_missing = [&] {
+    for (std::uint32_t r = 0; r < n->map_.count(); ++r) {
       kvEntry* le = nullptr;
-      if (kvStore_Get(&le, n->lease_, key.c_str()) == NATS_OK) {
-        kvEntry_Destroy(le);
-      } else {
-        ++served_unleased;
+      const natsStatus ls = kvStore_Get(&le, n->lease_, ("r." + std::to_string(r)).c_str());
+      if (ls == NATS_OK) kvEntry_Destroy(le);
+      if (ls == NATS_NOT_FOUND) return true;
+    }
+    return false;
+  };
+  running_zones running;
+  bool claimed = false, said = false;
+  std::uint32_t served_unleased = 0;
+  for (;;) {
+    running = read_running({}, n->map_.count());
+    if (opt.join_census_s > 0) {
+      std::string why;
+      const auto census = take_census(opt.url, opt.world, static_cast<int>(opt.join_census_s * 1000), &why);
+      if (!census) return fail("the census of the running zones: " + why);
+      running = read_running(*census, n->map_.count());
+    }
+    served_unleased = 0;
+    for (std::uint32_t r = 0; r < n->map_.count() && !claimed; ++r) {
+      const std::string key = "r." + std::to_string(r);
+      if (running.served[r]) {
+        kvEntry* le = nullptr;
+        if (kvStore_Get(&le, n->lease_, key.c_str()) == NATS_OK) {
+          kvEntry_Destroy(le);
+        } else {
+          ++served_unleased;
+        }
+        continue;
       }
-      continue;
+      if (kvStore_CreateString(&rev, n->lease_, key.c_str(), "claiming") == NATS_OK) {
+        n->region_ = r;
+        n->lease_key_ = key;
+        n->lease_revision_ = rev;
+        claimed = true;
+      }
     }
-    if (kvStore_CreateString(&rev, n->lease_, key.c_str(), "claiming") == NATS_OK) {
-      n->region_ = r;
-      n->lease_key_ = key;
-      n->lease_revision_ = rev;
-      claimed = true;
+    if (claimed) break;
+    const std::string taken =
+        "every region of the layout (" + std::to_string(n->map_.count()) + ") is taken" +
+        (served_unleased == 0
+             ? std::string()
+             : " (" + std::to_string(served_unleased) +
+                   " by running zones without a lease: the world's JetStream state is being made again)");
+    if (!said && (forever || opt.claim_wait_s > 0)) {
+      said = true;
+      if (forever) {
+        spdlog::info("world '{}': {}: standing by for a region whose lease lapses", opt.world, taken);
+      } else {
+        spdlog::info("world '{}': {}: waiting up to {} s for a lease to lapse", opt.world, taken, opt.claim_wait_s);
+      }
     }
+    do {
+      if ((!forever && std::chrono::steady_clock::now() >= give_up) || (opt.keep_waiting && !opt.keep_waiting())) {
+        return fail(taken);
+      }
+      std::this_thread::sleep_for(std::chrono::milliseconds(250));
+    } while (!lease_missing());
   }
-  if (!claimed) {
-    return fail("every region of the layout (" + std::to_string(n->map_.count()) + ") is taken" +
-                (served_unleased == 0 ? std::string()
-                                      : " (" + std::to_string(served_unleased) +
-                                            " by running zones without a lease: the world's JetStream state is "
-                                            "being made again)"));
+  if (said) {
+    spdlog::info("world '{}': region {} free after {:.1f} s of waiting", opt.world, n->region_,
+                 std::chrono::duration<double>(std::chrono::steady_clock::now() - started).count());
   }
   const std::uint32_t alive = running.incarnation[n->region_];
   // This claim's incarnation: inc.r counted up by CAS (ids of a restarted zone differ).
@@ -331,13 +367,20 @@ void nats_node::leave() {
   }
   if (lease_ && !lease_lost_.load() && !crashed_) {
     // A zone that stops gives its region up and its entities with it: its checkpoint goes too
-    // (the region's next zone starts a new population; a killed zone's is restored instead).
-    jsOptions po;
-    jsOptions_Init(&po);
-    const std::string all = checkpoint_subject(">");
-    po.Stream.Purge.Subject = all.c_str();
-    jsErrCode jerr = static_cast<jsErrCode>(0);
-    js_PurgeStream(js_, checkpoint_stream(opt_.world).c_str(), &po, &jerr);
+    // (the region's next zone starts a new population; a killed zone's is restored instead). One
+    // that never served (its server did not start) keeps the checkpoint it may have restored from
+    // (a killed zone's): the region's next zone restores it.
+    if (served_.load()) {
+      jsOptions po;
+      jsOptions_Init(&po);
+      const std::string all = checkpoint_subject(">");
+      po.Stream.Purge.Subject = all.c_str();
+      jsErrCode jerr = static_cast<jsErrCode>(0);
+      js_PurgeStream(js_, checkpoint_stream(opt_.world).c_str(), &po, &jerr);
+    } else if (have_checkpoint_) {
+      spdlog::warn("world '{}': region {} given up before it was served: its checkpoint is kept for the next zone",
+                   opt_.world, region_);
+    }
     kvStore_Delete(lease_, lease_key_.c_str());
   }
   if (kv_) kvStore_Destroy(kv_);
@@ -374,6 +417,7 @@ void nats_node::on_message(natsConnection*, natsSubscription*, natsMsg* msg, voi
 }
 
 void nats_node::started(std::uint16_t port) {
+  served_ = true;
   std::lock_guard lock(lease_mutex_);
   lease_value_ = opt_.advertise_host + " " + std::to_string(port) + " " + std::to_string(incarnation_);
   std::uint64_t rev = 0;

@@ -66,6 +66,14 @@ struct node_options {
   /// its lease is missing (the world's JetStream state lost and not made again yet), and the
   /// incarnation claimed counts on from the highest among the ids alive in the world.
   double join_census_s = 0.5;
+  /// How long join() waits for a region while every region is held, polling the leases every
+  /// quarter of a second (cheap: the census is taken only once one has lapsed): 0 tries once;
+  /// a restarted zone waits for its predecessor's lease to lapse; a standby
+  /// (`zone-server --world-standby`) waits forever and takes the first region whose zone died.
+  double claim_wait_s = 0;
+  /// Asked between the polls of that wait: false gives up (a stop signal). Tests tick their
+  /// in-process zones in it.
+  std::function<bool()> keep_waiting;
   /// How often the zone writes a checkpoint of its entities (players left out) to JetStream (0:
   /// never). A zone that claims a region restores the region's last checkpoint (whatever this
   /// says) instead of a new population: a killed zone's entities come back (docs/world.md,
@@ -171,7 +179,9 @@ class nats_node final : public zone_extension {
   /// Handoff latency (decision in the old zone to adoption in the new one), ms and ticks.
   [[nodiscard]] const latency_histogram& handoff_ms() const { return handoff_ms_; }
   [[nodiscard]] const latency_histogram& handoff_ticks() const { return handoff_ticks_; }
-  /// Gives the region up (deletes the lease) on the way out; the destructor calls it.
+  /// Gives the region up (deletes the lease) on the way out; the destructor calls it. A zone that
+  /// served (started() was called) gives its checkpoint up too; one that never did (its server
+  /// failed to start: a port in use) leaves the region's checkpoint to the next zone.
   void leave();
 
   // zone_extension
@@ -323,6 +333,7 @@ class nats_node final : public zone_extension {
   bool have_checkpoint_ = false;            ///< join found one: no new population
   std::vector<handoff_record> to_restore_;  ///< join -> the first before_step
   bool crashed_ = false;
+  std::atomic<bool> served_{false};  ///< started() was called: the zone served its region
 
   std::thread heartbeat_, fetcher_, sender_, checkpointer_;
   std::mt19937_64 rng_{std::random_device{}()};

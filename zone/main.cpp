@@ -4,6 +4,7 @@
 #include <chrono>
 #include <csignal>
 #include <cstdio>
+#include <limits>
 #include <memory>
 #include <thread>
 
@@ -56,17 +57,16 @@ int main(int argc, char** argv) {
     o.nats_timeout_s = cfg.world_nats_timeout_s;
     o.capacity = cfg.world_capacity;
     o.checkpoint_s = cfg.world_checkpoint_s;
-    // A restarted zone waits for its predecessor's lease to lapse (its TTL, a few seconds).
-    const auto give_up = std::chrono::steady_clock::now() +
-                         std::chrono::duration_cast<std::chrono::steady_clock::duration>(
-                             std::chrono::duration<double>(std::max(20.0, 2 * cfg.world_lease_ttl_s)));
+    // A restarted zone waits for its predecessor's lease to lapse (its TTL, a few seconds); a
+    // standby for any region's, as long as it takes.
+    o.claim_wait_s =
+        cfg.world_standby ? std::numeric_limits<double>::infinity() : std::max(20.0, 2 * cfg.world_lease_ttl_s);
+    o.keep_waiting = [] { return !interrupted; };
     std::string err;
-    while (!(node = zone::world::nats_node::join(o, cfg, &err))) {
-      if (interrupted || std::chrono::steady_clock::now() > give_up || err.find("every region") == std::string::npos) {
-        spdlog::critical("{}", err);
-        return 1;
-      }
-      std::this_thread::sleep_for(std::chrono::milliseconds(250));
+    if (!(node = zone::world::nats_node::join(o, cfg, &err))) {
+      if (interrupted) return 0;
+      spdlog::critical("{}", err);
+      return 1;
     }
     cfg = node->zone_for_region(cfg);
   }

@@ -181,6 +181,9 @@ struct zone_config {
   std::size_t world_capacity = 0;
   /// --world-checkpoint: seconds between checkpoints of the zone's entities (0: none; docs/world.md, "Checkpoints")
   double world_checkpoint_s = 1;
+  /// --world-standby: while every region is held, wait for one whose lease lapses (a zone died)
+  /// and take it over, instead of giving up after 20 s (docs/world.md, "Standbys")
+  bool world_standby = false;
   /// Start with the NPC population (false: a world zone that restores its region's checkpoint
   /// instead; docs/world.md, "Checkpoints").
   bool populate = true;

@@ -8,11 +8,13 @@
 
 #include <nats/nats.h>
 
+#include <atomic>
 #include <cstdio>
 #include <cstring>
 #include <filesystem>
 #include <functional>
 #include <future>
+#include <limits>
 #include <map>
 #include <memory>
 #include <regex>
@@ -1174,6 +1176,86 @@ TEST_SUITE("world.nats") {
     drain(zones, 20s);
     // Every entity of the world once: the checkpoint's, and those adopted after it from their records.
     CHECK(owned_once(zones, ns.url, "cklate").size() == total);
+  }
+
+  TEST_CASE(
+      "a standby waits while every region is held, takes a killed zone's region at once; a zone that fails to start "
+      "leaves the checkpoint") {
+    nats_server ns;
+    REQUIRE_FALSE(ns.url.empty());
+    const std::uint64_t seed = zone::test::fresh_seed();
+    CAPTURE(seed);
+    const auto c = small_world(seed);
+    const auto tweak = [](node_options& o) { o.nats_timeout_s = 0.25; };
+    zone_list zones = join_zones(ns.url, "standby", 2, 1, c, 2, tweak);
+    std::size_t total = 0;
+    for (auto& z : zones) total += z->world->store().size();
+    // A standby told to stop gives up with the reason, without a region.
+    {
+      int polls = 0;
+      auto o = options(ns.url, "standby", 2, 1, c);
+      tweak(o);
+      o.claim_wait_s = std::numeric_limits<double>::infinity();
+      o.keep_waiting = [&] { return ++polls < 4; };
+      std::string err;
+      CHECK(nats_node::join(o, c, &err) == nullptr);
+      CHECK(polls == 4);
+      CHECK(err.find("every region of the layout (2) is taken") != std::string::npos);
+    }
+    // The standby: its own thread, taking the census (the zones answer as they tick here).
+    std::atomic<bool> stop{false};
+    std::atomic<int> polls{0};
+    auto standby = std::async(std::launch::async, [&] {
+      auto o = options(ns.url, "standby", 2, 1, c);
+      tweak(o);
+      o.join_census_s = 0.3;
+      o.claim_wait_s = std::numeric_limits<double>::infinity();
+      o.keep_waiting = [&] {
+        ++polls;
+        return !stop.load();
+      };
+      std::string err;
+      auto n = nats_node::join(o, c, &err);
+      return std::pair{std::move(n), err};
+    });
+    run_zones(zones, 3s);  // every region held: it waits, polling the leases
+    CHECK(handoffs_sent(zones) > 0);
+    REQUIRE(standby.wait_for(0ms) == std::future_status::timeout);
+    CHECK(polls.load() >= 6);
+    nats_node& victim = *zones[1]->node;
+    REQUIRE(victim.stats().checkpoints_written.load() > 0);
+    victim.crash_for_testing();
+    zones.pop_back();
+    const auto killed = std::chrono::steady_clock::now();
+    // The region's lease lapses (1 s) and the standby claims it: the next incarnation, restored.
+    for (const auto until = killed + 10s;
+         standby.wait_for(0ms) == std::future_status::timeout && std::chrono::steady_clock::now() < until;) {
+      run_zones(zones, 33ms);
+    }
+    stop = true;
+    auto [next, err] = standby.get();
+    REQUIRE_MESSAGE(next != nullptr, err);
+    const double took = std::chrono::duration<double>(std::chrono::steady_clock::now() - killed).count();
+    CAPTURE(took);
+    CHECK(took < 1.0 + 1.5);  // the lease's TTL, a poll and the census
+    CHECK(next->region() == 1);
+    CHECK(next->incarnation() == 2);
+    CHECK_FALSE(next->zone_for_region(c).populate);
+    // Its server fails to start (a port in use): it gives the region up before serving it, and
+    // leaves the checkpoint to the next zone (given up with it, the killed zone's entities would
+    // be lost and a new population made).
+    next.reset();
+    next = join_after_kill(zones, ns.url, "standby", c, tweak);
+    CHECK(next->region() == 1);
+    CHECK(next->incarnation() == 3);
+    CHECK_FALSE(next->zone_for_region(c).populate);
+    zones.push_back(std::make_unique<node_zone>(std::move(next), c));
+    zones[1]->tick();
+    CHECK(zones[1]->node->link().stats().restored > 0);
+    run_zones(zones, 3s);
+    drain(zones, 20s);
+    // Every entity of the world is there once (the checkpoint and the records read again).
+    CHECK(owned_once(zones, ns.url, "standby").size() == total);
   }
 
   TEST_CASE(

@@ -81,6 +81,13 @@ TEST_SUITE("zone.config") {
     CHECK_FALSE(parse({"--world-nats-timeout", "0"}).config.has_value());
     REQUIRE(parse({"--world-lease-ttl", "10", "--world-nats-timeout", "0.5"}).config.has_value());
     CHECK(parse({"--world-lease-ttl", "10"}).config->world_lease_ttl_s == 10);
+    // A standby needs a world to stand by for.
+    CHECK(h.message.find("--world-standby") != std::string::npos);
+    const auto lone = parse({"--world-standby"});
+    CHECK_FALSE(lone.config.has_value());
+    CHECK(lone.message.find("--world-standby needs --world") != std::string::npos);
+    CHECK_FALSE(parse({}).config->world_standby);
+    CHECK(parse({"--world", "w", "--nats", "nats://127.0.0.1:4222", "--world-standby"}).config->world_standby);
     CHECK(d.config->oracle_subscribers == 4);
     CHECK_FALSE(parse({"--oracle-subscribers", "0"}).config.has_value());
     CHECK_FALSE(parse({"--oracle-subscribers", "65"}).config.has_value());
