@@ -168,6 +168,16 @@ std::string hex_id(global_id g) {
 
 using zone_list = std::vector<std::unique_ptr<node_zone>>;
 
+/// NATS requests that time out after 0.25 s: the kill tests' zones notice a dead neighbour soon.
+void fast_nats(node_options& o) { o.nats_timeout_s = 0.25; }
+
+/// The entities `zones` hold between them (their stores' sizes summed).
+std::size_t entities_of(const zone_list& zones) {
+  std::size_t n = 0;
+  for (const auto& z : zones) n += z->world->store().size();
+  return n;
+}
+
 /// `count` zones of the world `name` (a cols x rows layout), each node's options changed by `tweak`.
 zone_list join_zones(const std::string& url, const std::string& name, std::uint32_t cols, std::uint32_t rows,
                      const zone_config& c, int count, const std::function<void(node_options&)>& tweak = {}) {
@@ -192,8 +202,8 @@ struct outage_world {
   std::size_t total = 0;  ///< entities at the start
   explicit outage_world(const std::string& name) {
     REQUIRE_FALSE(ns.url.empty());
-    zones = join_zones(ns.url, name, 2, 1, small_world(seed), 2, [](node_options& o) { o.nats_timeout_s = 0.25; });
-    for (auto& z : zones) total += z->world->store().size();
+    zones = join_zones(ns.url, name, 2, 1, small_world(seed), 2, fast_nats);
+    total = entities_of(zones);
   }
   /// Ticks every zone at 30 Hz for `d` (the lease and the NATS client's timeouts are in real
   /// time), or until `done` says so.
@@ -605,8 +615,7 @@ TEST_SUITE("world.nats") {
     CAPTURE(seed);
     const auto c = small_world(seed);
     zone_list zones = join_zones(ns.url, "handoff", 2, 2, c, 4);
-    std::size_t total = 0;
-    for (auto& z : zones) total += z->world->store().size();  // world-wide ids come in after_step
+    const std::size_t total = entities_of(zones);  // world-wide ids come in after_step
     for (int t = 0; t < 240; ++t) {
       for (auto& z : zones) z->tick();
       std::this_thread::sleep_for(2ms);
@@ -1091,10 +1100,8 @@ TEST_SUITE("world.nats") {
     const std::uint64_t seed = zone::test::fresh_seed();
     CAPTURE(seed);
     const auto c = small_world(seed);
-    const auto tweak = [](node_options& o) { o.nats_timeout_s = 0.25; };
-    zone_list zones = join_zones(ns.url, "ckpt", 2, 1, c, 2, tweak);
-    std::size_t total = 0;
-    for (auto& z : zones) total += z->world->store().size();
+    zone_list zones = join_zones(ns.url, "ckpt", 2, 1, c, 2, fast_nats);
+    const std::size_t total = entities_of(zones);
     const auto tick_all = [&](std::chrono::milliseconds d) { run_zones(zones, d); };
     tick_all(3s);
     CHECK(handoffs_sent(zones) > 0);
@@ -1118,7 +1125,7 @@ TEST_SUITE("world.nats") {
     // The other zone ticks on (handing entities to region 1: they wait on the stream); the lease
     // lapses (1 s); then the region's next zone joins.
     tick_all(1500ms);
-    auto next = join_after_kill(zones, ns.url, "ckpt", c, tweak);
+    auto next = join_after_kill(zones, ns.url, "ckpt", c, fast_nats);
     CHECK(next->region() == 1);
     CHECK(next->incarnation() == 2);
     CHECK_FALSE(next->zone_for_region(c).populate);  // its entities come from the checkpoint
@@ -1143,12 +1150,11 @@ TEST_SUITE("world.nats") {
     const auto c = small_world(seed);
     // Checkpoints a minute apart: the one forced below is the last.
     const auto tweak = [](node_options& o) {
-      o.nats_timeout_s = 0.25;
+      fast_nats(o);
       o.checkpoint_s = 60;
     };
     zone_list zones = join_zones(ns.url, "cklate", 2, 1, c, 2, tweak);
-    std::size_t total = 0;
-    for (auto& z : zones) total += z->world->store().size();
+    const std::size_t total = entities_of(zones);
     run_zones(zones, 1500ms);
     nats_node& victim = *zones[1]->node;
     const std::uint64_t written = victim.stats().checkpoints_written.load();
@@ -1187,15 +1193,13 @@ TEST_SUITE("world.nats") {
     const std::uint64_t seed = zone::test::fresh_seed();
     CAPTURE(seed);
     const auto c = small_world(seed);
-    const auto tweak = [](node_options& o) { o.nats_timeout_s = 0.25; };
-    zone_list zones = join_zones(ns.url, "standby", 2, 1, c, 2, tweak);
-    std::size_t total = 0;
-    for (auto& z : zones) total += z->world->store().size();
+    zone_list zones = join_zones(ns.url, "standby", 2, 1, c, 2, fast_nats);
+    const std::size_t total = entities_of(zones);
     // A standby told to stop gives up with the reason, without a region.
     {
       int polls = 0;
       auto o = options(ns.url, "standby", 2, 1, c);
-      tweak(o);
+      fast_nats(o);
       o.claim_wait_s = std::numeric_limits<double>::infinity();
       o.keep_waiting = [&] { return ++polls < 4; };
       std::string err;
@@ -1219,7 +1223,7 @@ TEST_SUITE("world.nats") {
     for (int k = 0; k < 2; ++k) {
       standby[k] = std::async(std::launch::async, [&, k] {
         auto o = options(ns.url, "standby", 2, 1, c);
-        tweak(o);
+        fast_nats(o);
         o.join_census_s = 0.3;
         o.claim_wait_s = std::numeric_limits<double>::infinity();
         o.keep_waiting = [&, k] {
