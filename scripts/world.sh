@@ -364,7 +364,7 @@ if [ "$single" -gt 0 ]; then
   echo "-- the same load in one zone ($((zones * npcs)) NPCs, $bots bots, $((zones * threads)) worker threads, ${single} s): tick p50 / p99 ${p} ms;" \
     "bots connected $(json "$f" bots_connected), digests $(json "$f" digests_checked), mismatches $(json "$f" mismatches)"
 fi
-echo "-- world-check (census of the zones + KV ownership records)"
+echo "-- world-check (census of the zones + KV ownership records and leases)"
 cat "$out/world-check.txt"
 echo "logs: $out"
 if [ -n "$fault" ] && [ "$oracle" = 1 ]; then

@@ -1525,6 +1525,79 @@ std::optional<std::map<global_id, std::pair<std::uint32_t, std::uint64_t>>> read
   return out;
 }
 
+std::optional<std::map<std::uint32_t, lease_info>> read_leases(const std::string& url, const std::string& world,
+                                                               std::string* error) {
+  natsConnection* nc = nullptr;
+  jsCtx* js = nullptr;
+  kvStore* kv = nullptr;
+  const auto done = [&] {
+    if (kv) kvStore_Destroy(kv);
+    if (js) jsCtx_Destroy(js);
+    if (nc) natsConnection_Destroy(nc);
+  };
+  const auto fail = [&](const std::string& why) {
+    if (error) *error = why;
+    done();
+    return std::nullopt;
+  };
+  if (natsStatus s = natsConnection_ConnectTo(&nc, url.c_str()); s != NATS_OK) return fail("cannot connect: " + status_text(s));
+  if (natsConnection_JetStream(&js, nc, nullptr) != NATS_OK) return fail("no JetStream");
+  if (js_KeyValue(&kv, js, ("world-" + world + "-lease").c_str()) != NATS_OK) {
+    return fail("no world '" + world + "' leases in KV");
+  }
+  std::map<std::uint32_t, lease_info> out;
+  kvKeysList keys{};
+  const natsStatus ks = kvStore_Keys(&keys, kv, nullptr);
+  if (ks != NATS_OK && ks != NATS_NOT_FOUND) return fail("cannot list the leases: " + status_text(ks));
+  for (int i = 0; ks == NATS_OK && i < keys.Count; ++i) {
+    const std::string k = keys.Keys[i];
+    if (k.rfind("r.", 0) != 0) continue;
+    kvEntry* e = nullptr;
+    if (kvStore_Get(&e, kv, k.c_str()) != NATS_OK) continue;  // lapsed since the listing
+    lease_info l;
+    l.raw = kvEntry_ValueString(e);
+    kvEntry_Destroy(e);
+    std::istringstream in(l.raw);
+    unsigned port = 0;
+    std::uint32_t inc = 0;
+    if (in >> l.host >> port >> inc && port <= 0xffff) {
+      l.port = static_cast<std::uint16_t>(port);
+      l.incarnation = inc;
+    } else {
+      l.host.clear();
+    }
+    out[static_cast<std::uint32_t>(std::strtoul(k.c_str() + 2, nullptr, 10))] = l;
+  }
+  if (ks == NATS_OK) kvKeysList_Destroy(&keys);
+  done();
+  return out;
+}
+
+lease_check check_leases(const std::vector<census_entry>& census, const std::map<std::uint32_t, lease_info>& leases) {
+  lease_check c;
+  std::map<std::uint32_t, std::vector<std::uint32_t>> answered;  // region -> incarnations answering
+  for (const auto& z : census) answered[z.region].push_back(z.incarnation);
+  for (const auto& [region, incs] : answered) {
+    const auto it = leases.find(region);
+    std::string who;
+    for (const std::uint32_t i : incs) who += (who.empty() ? "" : ", ") + std::to_string(i);
+    if (incs.size() > 1) {
+      c.problems.push_back("region " + std::to_string(region) + " answered by " + std::to_string(incs.size()) +
+                           " zones (incarnations " + who + "); its lease: " +
+                           (it == leases.end() ? std::string("none") : "'" + it->second.raw + "'"));
+      continue;
+    }
+    if (it == leases.end()) {
+      c.notes.push_back("region " + std::to_string(region) + " answered by incarnation " + who +
+                        " without a lease (lapsed; taken back at its zone's next renewal)");
+    } else if (it->second.incarnation != incs.front()) {
+      c.problems.push_back("region " + std::to_string(region) + " answered by incarnation " + who +
+                           ", but its lease is '" + it->second.raw + "': served by a zone that does not hold it");
+    }
+  }
+  return c;
+}
+
 world_check check_world(const std::vector<census_entry>& census,
                         const std::map<global_id, std::pair<std::uint32_t, std::uint64_t>>& owners) {
   world_check c;

@@ -391,6 +391,29 @@ struct running_zones {
 [[nodiscard]] std::optional<std::map<global_id, std::pair<std::uint32_t, std::uint64_t>>> read_owners(
     const std::string& url, const std::string& world, std::string* error, const std::vector<global_id>* only = nullptr);
 
+/// A region's lease as KV holds it ("host port incarnation"; "claiming" while a zone joins, port 0
+/// until its server listens).
+struct lease_info {
+  std::string host;
+  std::uint16_t port = 0;
+  std::uint32_t incarnation = 0;  ///< 0: not parsed ("claiming")
+  std::string raw;                ///< the value as stored
+};
+/// The world's leases: region -> lease (a region whose lease lapsed, or never claimed, is absent).
+[[nodiscard]] std::optional<std::map<std::uint32_t, lease_info>> read_leases(const std::string& url,
+                                                                             const std::string& world,
+                                                                             std::string* error);
+/// What the census says of the leases. `problems`: a region served by a zone that does not hold
+/// it: answered by two zones, or by a zone whose incarnation is not the one its lease names (a zone
+/// cut off from NATS whose lease lapsed and was claimed by another: it serves on until its next
+/// renewal finds the region taken). `notes`: regions answered without a lease (it lapsed while
+/// NATS was unreachable; the zone takes it back at its next renewal), readable.
+struct lease_check {
+  std::vector<std::string> problems, notes;
+};
+[[nodiscard]] lease_check check_leases(const std::vector<census_entry>& census,
+                                       const std::map<std::uint32_t, lease_info>& leases);
+
 /// What a census and the KV records say together.
 struct world_check {
   std::size_t zones = 0, owned = 0;

@@ -1,6 +1,7 @@
 // world-check: asks every zone of a running world for the entities it owns (the census) and
-// compares the answers with each other and with the ownership records in NATS KV (docs/world.md).
-// Exit code 0: no entity owned twice and KV agrees; 1: a broken guarantee; 2: usage or connection.
+// compares the answers with each other, with the ownership records in NATS KV and with the
+// regions' leases (docs/world.md). Exit code 0: no entity owned twice, KV agrees, every region
+// served by the zone that holds its lease; 1: a broken guarantee; 2: usage or connection.
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
@@ -24,8 +25,10 @@ int main(int argc, char** argv) {
           "  off whose client has not followed its redirect yet (a swarm that stopped meanwhile leaves them\n"
           "  for up to 10 s; they are listed). A census that caught an entity mid-handoff (in two zones at\n"
           "  different epochs: their answers came from different ticks) is taken again, up to 3 times in all.\n"
-          "Takes a census of the world's zones (world.NAME.census) and reads the ownership records in KV;\n"
-          "prints what it found. Exit 0: no entity owned twice, KV agrees; 1: a broken guarantee; 2: error.");
+          "Takes a census of the world's zones (world.NAME.census) and reads the ownership records and the\n"
+          "regions' leases in KV; prints what it found (each region's address and incarnation). Exit 0: no\n"
+          "entity owned twice, KV agrees, no region served by a zone that does not hold its lease; 1: a broken\n"
+          "guarantee; 2: error.");
       return 0;
     }
     if (i + 1 >= argc) {
@@ -89,9 +92,25 @@ int main(int argc, char** argv) {
     std::printf("KV listing               missed %zu records a zone holds; read one by one: %zu found\n", c.kv_missing, found);
     c = zone::world::check_world(*census, *owners);
   }
+  const auto leases = zone::world::read_leases(url, world, &err);
+  if (!leases) {
+    std::fprintf(stderr, "world-check: %s\n", err.c_str());
+    return 2;
+  }
+  const auto lc = zone::world::check_leases(*census, *leases);
   const bool count_ok = expect < 0 || static_cast<long>(c.owned + c.transit_only - c.awaiting_players) == expect;
   std::printf("zones answering          %zu:", c.zones);
   for (const auto& z : *census) std::printf(" region %u (incarnation %u, %zu owned)", z.region, z.incarnation, z.owned.size());
+  std::printf("\nleases                   %zu:", leases->size());
+  for (const auto& [region, l] : *leases) {
+    if (l.incarnation == 0) {
+      std::printf(" region %u '%s'", region, l.raw.c_str());
+    } else {
+      std::printf(" region %u %s:%u (incarnation %u)", region, l.host.c_str(), l.port, l.incarnation);
+    }
+  }
+  for (const auto& p : lc.problems) std::printf("\n  SERVED WITHOUT ITS LEASE: %s", p.c_str());
+  for (const auto& n : lc.notes) std::printf("\n  %s", n.c_str());
   std::printf("\nentities owned           %zu, in transit only %zu (handed off, not adopted yet): %zu in all\n", c.owned,
               c.transit_only, c.owned + c.transit_only);
   std::printf("players awaiting client  %zu (handed off, their client has not followed the redirect yet)\n", c.awaiting_players);
@@ -102,6 +121,7 @@ int main(int argc, char** argv) {
   for (const auto& e : c.in_flight_examples) std::printf("  ahead: %s\n", e.c_str());
   for (const auto& e : c.problem_examples) std::printf("  %s\n", e.c_str());
   if (expect >= 0) std::printf("expected entities        %ld: %s\n", expect, count_ok ? "all there, none made up" : "MISMATCH");
-  std::printf("verdict                  %s\n", c.ok() && count_ok ? "ok" : "BROKEN");
-  return c.ok() && count_ok ? 0 : 1;
+  const bool ok = c.ok() && count_ok && lc.problems.empty();
+  std::printf("verdict                  %s\n", ok ? "ok" : "BROKEN");
+  return ok ? 0 : 1;
 }

@@ -397,6 +397,42 @@ TEST_SUITE("world.nats") {
     CHECK(none.incarnation == std::vector<std::uint32_t>{0, 0});
   }
 
+  TEST_CASE("check_leases: a region answered by two zones, or by one its lease does not name, is a problem") {
+    const auto zone = [](std::uint32_t region, std::uint32_t inc) {
+      census_entry e;
+      e.region = region, e.incarnation = inc;
+      return e;
+    };
+    const auto lease = [](std::uint16_t port, std::uint32_t inc) {
+      return lease_info{"127.0.0.1", port, inc, "127.0.0.1 " + std::to_string(port) + " " + std::to_string(inc)};
+    };
+    std::map<std::uint32_t, lease_info> leases{{0, lease(7000, 1)}, {1, lease(7001, 2)}, {2, lease(7002, 4)}};
+    // Every region answered by the zone its lease names (and a lease nobody answers for: a zone
+    // joining, or one too busy to answer): nothing to say.
+    auto c = check_leases({zone(0, 1), zone(1, 2)}, leases);
+    CHECK(c.problems.empty());
+    CHECK(c.notes.empty());
+    // Region 1 taken over while its old zone (incarnation 1) still serves: both answer.
+    c = check_leases({zone(0, 1), zone(1, 1), zone(1, 2)}, leases);
+    REQUIRE(c.problems.size() == 1);
+    CHECK(c.problems[0].find("region 1 answered by 2 zones (incarnations 1, 2)") != std::string::npos);
+    // Only the old one answers (the new one busy): its incarnation is not the lease's.
+    c = check_leases({zone(0, 1), zone(1, 1)}, leases);
+    REQUIRE(c.problems.size() == 1);
+    CHECK(c.problems[0].find("region 1 answered by incarnation 1, but its lease is '127.0.0.1 7001 2'") !=
+          std::string::npos);
+    // A lease claimed just now ("claiming") while the old zone answers: taken over too.
+    leases[1] = lease_info{"", 0, 0, "claiming"};
+    c = check_leases({zone(1, 1)}, leases);
+    CHECK(c.problems.size() == 1);
+    // No lease at all (lapsed while NATS was unreachable): a note, not a problem.
+    leases.erase(1);
+    c = check_leases({zone(1, 1)}, leases);
+    CHECK(c.problems.empty());
+    REQUIRE(c.notes.size() == 1);
+    CHECK(c.notes[0].find("region 1 answered by incarnation 1 without a lease") != std::string::npos);
+  }
+
   TEST_CASE("judge_lease_readback: our value renews on, no key is a lapse, another value is a take-over") {
     CHECK(judge_lease_readback("127.0.0.1 7000 3", true, true, "127.0.0.1 7000 3") == lease_readback::ours);
     CHECK(judge_lease_readback("127.0.0.1 7000 3", true, false, "") == lease_readback::lapsed);
@@ -1290,6 +1326,20 @@ TEST_SUITE("world.nats") {
     drain(zones, 20s);
     // Every entity of the world is there once (the checkpoint and the records read again).
     CHECK(owned_once(zones, ns.url, "standby").size() == total);
+    // The leases name where each region is served now, and by which claim: region 1 by the
+    // standby (incarnation 3, at the port it started with).
+    std::string lerr;
+    const auto leases = read_leases(ns.url, "standby", &lerr);
+    REQUIRE_MESSAGE(leases.has_value(), lerr);
+    REQUIRE(leases->size() == 2);
+    CHECK(leases->at(0).incarnation == 1);
+    CHECK(leases->at(0).port == 7000);
+    CHECK(leases->at(1).incarnation == 3);
+    CHECK(leases->at(1).port == 7001);
+    CHECK(leases->at(1).host == "127.0.0.1");
+    const auto census = census_of(zones, ns.url, "standby", &lerr);
+    REQUIRE_MESSAGE(census.has_value(), lerr);
+    CHECK(check_leases(*census, *leases).problems.empty());
   }
 
   TEST_CASE(
