@@ -208,6 +208,7 @@ std::unique_ptr<nats_node> nats_node::join(const node_options& opt, const zone_c
   };
   running_zones running;
   bool claimed = false, said = false;
+  auto next_note = forever ? started + std::chrono::minutes(10) : std::chrono::steady_clock::time_point::max();
   std::uint32_t served_unleased = 0;
   for (;;) {
     running = read_running({}, n->map_.count());
@@ -252,8 +253,12 @@ std::unique_ptr<nats_node> nats_node::join(const node_options& opt, const zone_c
       }
     }
     do {
-      if ((!forever && std::chrono::steady_clock::now() >= give_up) || (opt.keep_waiting && !opt.keep_waiting())) {
-        return fail(taken);
+      const auto now = std::chrono::steady_clock::now();
+      if ((!forever && now >= give_up) || (opt.keep_waiting && !opt.keep_waiting())) return fail(taken);
+      if (now >= next_note) {  // a standby says now and then that it still stands by
+        spdlog::info("world '{}': still standing by ({:.0f} s)", opt.world,
+                     std::chrono::duration<double>(now - started).count());
+        next_note = now + std::chrono::minutes(10);
       }
       std::this_thread::sleep_for(std::chrono::milliseconds(250));
     } while (!lease_missing());
