@@ -125,6 +125,7 @@ void print_table(const swarm_result& r, const summary& s) {
   row("visibility switches sent", num(r.visibility_switches_sent));
   row("class notes received", num(r.class_notes));
   row("redirects followed (world of zones)", num(r.redirects));
+  if (r.gate_redirects > 0) row("logins a world's gate sent to a zone", num(r.gate_redirects));
   row("logins again after a disconnect", num(r.reconnects));
   const auto login = [&](const latency_histogram_us::counts& c, double max_ms) {
     return ms(percentile_ms(c, 0.5)) + " / " + ms(percentile_ms(c, 0.99)) + " / " + ms(max_ms) + " (" +
@@ -222,6 +223,7 @@ bool write_json(const std::string& path, const swarm_result& r, const summary& s
   j["threads"] = r.options.threads;
   j["teleports_sent"] = r.teleports_sent;
   j["redirects"] = r.redirects;
+  j["gate_redirects"] = r.gate_redirects;
   j["reconnects"] = r.reconnects;
   j["stealth_joins"] = r.stealth_joins;
   j["team_joins"] = r.team_joins;
@@ -400,7 +402,7 @@ int main(int argc, char** argv) {
   swarm_options o;
   std::string mix = "walk=1", json, csv, plot, hotspot, inputs_mode = "changes";
   unsigned port = o.port;
-  std::string oracle_zones;
+  std::string oracle_zones, oracle_zones_later;
   po::options_description desc("bot-swarm options");
   desc.add_options()                                                                                                 //
       ("help,h", "print this help and exit")                                                                         //
@@ -441,6 +443,8 @@ int main(int argc, char** argv) {
        "seconds into the run when churn stops (0 = until the end)")  //
       ("reconnect", po::bool_switch(&o.reconnect),
        "after an unexpected disconnect, log in again at the same address (retrying for --connect-timeout)")  //
+      ("relogin-port", po::value(&o.relogin_port)->default_value(o.relogin_port),
+       "with --reconnect: log in again at this port on --host instead (a world's gate, docs/world.md: it sends each login to a zone that serves now); 0 = the zone the bot was in")  //
       ("verify", po::bool_switch(&o.verify),
        "compare the server's visible-set digests with each bot's tracked view")  //
       ("oracle", po::bool_switch(&o.oracle),
@@ -451,6 +455,8 @@ int main(int argc, char** argv) {
        "the oracle's scale knob: 1 in K bots (a fixed subset, by a hash of the entity id) is recomputed and checked on every frame, the others' frames are counted as unsampled (1 = every bot)")  //
       ("oracle-zones", po::value(&oracle_zones),
        "a world of zones (docs/world.md): the other zones' client ports on --host, comma-separated; with --oracle each zone's truth is read and a bot is checked against the zone it is in now (following redirects)")  //
+      ("oracle-zones-later", po::value(&oracle_zones_later),
+       "with --oracle: zones that may start after the swarm (a world's standby), ports on --host, comma-separated: each one's truth is read once it answers, and a bot a gate sends there waits for that (at most 10 s)")  //
       ("threads", po::value(&o.threads)->default_value(o.threads),
        "I/O threads (0 = one per 2,500 bots, 2 .. half the cores)")  //
       ("aoi", po::value(&o.aoi)->default_value(o.aoi),
@@ -501,21 +507,29 @@ int main(int argc, char** argv) {
     std::fprintf(stderr, "bot-swarm: --oracle-sample must be at least 1\n");
     return 64;
   }
-  if (!oracle_zones.empty()) {
-    std::stringstream list(oracle_zones);
+  // A comma-separated list of ports into `out`; false (said) when an item is not a port.
+  const auto ports = [](const std::string& text, const char* flag, std::vector<std::uint16_t>& out) {
+    std::stringstream list(text);
     for (std::string item; std::getline(list, item, ',');) {
       char* end = nullptr;
       const unsigned long p = std::strtoul(item.c_str(), &end, 10);
       if (item.empty() || end != item.c_str() + item.size() || p == 0 || p > 65535) {
-        std::fprintf(stderr, "bot-swarm: --oracle-zones must be ports 1..65535, comma-separated (got '%s')\n", item.c_str());
-        return 64;
+        std::fprintf(stderr, "bot-swarm: %s must be ports 1..65535, comma-separated (got '%s')\n", flag, item.c_str());
+        return false;
       }
-      o.oracle_zones.push_back(static_cast<std::uint16_t>(p));
+      out.push_back(static_cast<std::uint16_t>(p));
     }
-    if (!o.oracle) {
-      std::fprintf(stderr, "bot-swarm: --oracle-zones needs --oracle\n");
-      return 64;
-    }
+    return true;
+  };
+  if (!oracle_zones.empty() && !ports(oracle_zones, "--oracle-zones", o.oracle_zones)) return 64;
+  if (!oracle_zones_later.empty() && !ports(oracle_zones_later, "--oracle-zones-later", o.oracle_zones_later)) return 64;
+  if ((!o.oracle_zones.empty() || !o.oracle_zones_later.empty()) && !o.oracle) {
+    std::fprintf(stderr, "bot-swarm: --oracle-zones and --oracle-zones-later need --oracle\n");
+    return 64;
+  }
+  if (o.relogin_port != 0 && !o.reconnect) {
+    std::fprintf(stderr, "bot-swarm: --relogin-port needs --reconnect\n");
+    return 64;
   }
   if (const auto err = parse_mix(mix, o.mix); !err.empty()) {
     std::fprintf(stderr, "bot-swarm: %s\n", err.c_str());

@@ -333,10 +333,18 @@ class swarm {
       // and so do the successive servers of a zone that was restarted.
       for (auto& z : oracles()) z.check->catch_up(60);
       r.oracle_on = true;
+      // A zone that started later (a standby) took over a region whose zone died: it explains one
+      // stream that ended without a server answering at its address again.
+      std::size_t taken_over = 0;
+      for (std::size_t k = 0; k < later_count_; ++k) taken_over += later_[k].up.load() ? 1 : 0;
       for (auto& z : oracles()) {
         z.check->stop();
         auto q = z.check->report();
         if (z.followed) {  // its server was replaced: the end of its stream is explained
+          q.stream_error.clear();
+          ++r.oracle.truth_restarts;
+        } else if (!q.stream_error.empty() && taken_over > 0) {
+          --taken_over;
           q.stream_error.clear();
           ++r.oracle.truth_restarts;
         }
@@ -375,6 +383,7 @@ class swarm {
     r.inconsistent = c_.inconsistent, r.aoi_checked = c_.aoi_checked, r.aoi_unchecked = c_.aoi_unchecked;
     r.aoi_violations = c_.aoi_violations, r.latency_unsynced = c_.latency_unsynced;
     r.teleports_sent = c_.teleports_sent, r.self_positions = c_.self_positions, r.redirects = c_.redirects;
+    r.gate_redirects = c_.gate_redirects;
     r.stealth_joins = c_.stealth_joins, r.team_joins = c_.team_joins, r.visibility_switches_sent = c_.visibility_switches_sent;
     r.class_notes = c_.class_notes;
     r.reconnects = c_.reconnects;
@@ -409,6 +418,9 @@ class swarm {
   [[nodiscard]] bool truth_pending(const tcp::endpoint& to) const {
     for (const auto& z : oracles()) {
       if (z.at == to && z.check->ended() && !z.followed.load() && !z.given_up.load()) return true;
+    }
+    for (std::size_t k = 0; k < later_count_; ++k) {
+      if (later_[k].at == to && !later_[k].up.load()) return true;  // a zone not started yet
     }
     return false;
   }
@@ -592,6 +604,13 @@ class swarm {
   std::size_t oracle_capacity_ = 0;
   std::atomic<std::size_t> oracle_count_{0};
   std::thread follower_;  ///< follow_restarts
+  /// --oracle-zones-later: zones whose truth is read once they answer (set before the bots start).
+  struct later_zone {
+    tcp::endpoint at;
+    std::atomic<bool> up{false};  ///< its oracle runs (the follower's)
+  };
+  std::unique_ptr<later_zone[]> later_;
+  std::size_t later_count_ = 0;
   [[nodiscard]] std::span<zone_oracle> oracles() const {
     return {oracles_.get(), oracle_count_.load(std::memory_order_acquire)};
   }
@@ -620,8 +639,11 @@ class swarm {
   }
 
   std::optional<std::string> start_oracles() {
-    oracle_capacity_ = 1 + opt_.oracle_zones.size() + max_restarts_followed;
+    oracle_capacity_ = 1 + opt_.oracle_zones.size() + opt_.oracle_zones_later.size() + max_restarts_followed;
     oracles_ = std::make_unique<zone_oracle[]>(oracle_capacity_);
+    later_count_ = opt_.oracle_zones_later.size();
+    later_ = std::make_unique<later_zone[]>(later_count_);
+    for (std::size_t k = 0; k < later_count_; ++k) later_[k].at = tcp::endpoint(endpoint_.address(), opt_.oracle_zones_later[k]);
     if (auto err = start_oracle(endpoint_)) return err;
     for (const std::uint16_t port : opt_.oracle_zones) {
       const tcp::endpoint at(endpoint_.address(), port);
@@ -702,6 +724,12 @@ class swarm {
   /// an error, as without a restart).
   void follow_restarts() {
     while (!stopping_.load()) {
+      for (std::size_t k = 0; k < later_count_ && !stopping_.load(); ++k) {
+        if (later_[k].up.load()) continue;
+        auto welcome = probe(later_[k].at);
+        if (std::holds_alternative<std::string>(welcome)) continue;  // not started yet: tried again
+        if (!add_oracle(later_[k].at, std::get<net::welcome_msg>(welcome), true)) later_[k].up = true;
+      }
       for (auto& z : oracles()) {
         if (stopping_.load()) break;
         if (z.followed || z.given_up || !z.check->ended()) continue;
@@ -876,9 +904,15 @@ void bot_session::on_frame(const net::frame_view& f, std::uint64_t received_us) 
                    std::to_string(r->port()) + "'");
         break;
       }
-      s_.counters().redirects.fetch_add(1, std::memory_order_relaxed);
       intended_ = true;
       close();
+      if (r->token()->size() == 0) {
+        // A world's gate: a new login at the zone named (after its oracle, if it is not read yet).
+        s_.counters().gate_redirects.fetch_add(1, std::memory_order_relaxed);
+        if (!s_.stopping()) s_.relaunch_later(slot_, tcp::endpoint(addr, r->port()), steady::now(), 0.0);
+        break;
+      }
+      s_.counters().redirects.fetch_add(1, std::memory_order_relaxed);
       if (!s_.stopping()) s_.launch(slot_, tcp::endpoint(addr, r->port()), r->token()->str());
       break;
     }
@@ -1327,7 +1361,9 @@ void bot_session::fail(const std::string& why, bool connection_failure) {
                    ": " + why + " (logging in again)");
         c.reconnects.fetch_add(1, std::memory_order_relaxed);
       }
-      const tcp::endpoint to = endpoint_override_ ? *endpoint_override_ : s_.endpoint();
+      const tcp::endpoint to = o.relogin_port != 0 ? tcp::endpoint(s_.endpoint().address(), o.relogin_port)
+                               : endpoint_override_ ? *endpoint_override_
+                                                    : s_.endpoint();
       close();
       s_.relaunch_later(slot_, to, since);
       return;

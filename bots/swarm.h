@@ -60,6 +60,9 @@ struct swarm_options {
   /// was connected to) after relogin_delay_s, retrying refused connects for up to
   /// connect_timeout_s: a zone restarted on the same port (docs/world.md) gets its players back.
   bool reconnect = false;
+  /// With `reconnect`: logins again go to this port on `host` (a world's gate, docs/world.md: it
+  /// redirects each to a zone that serves now) instead of the zone the bot was in. 0: the zone.
+  std::uint16_t relogin_port = 0;
   bool verify = false;       ///< compare the server's visible-set digests with the tracked view
   /// Check every bot's view against the server's ground truth (oracle.h; the server runs with
   /// --oracle): a probe connection reads the welcome (rules, truth port) before any bot starts.
@@ -74,6 +77,9 @@ struct swarm_options {
   /// (ghosts of the neighbours included) judged in every zone. A bot in a zone not named here is
   /// not checked (its frames count as unchecked).
   std::vector<std::uint16_t> oracle_zones;
+  /// Zones that may start after the swarm (a world's standby): their truth is read once they
+  /// answer; a bot sent to one before (a gate's redirect) waits for it (at most 10 s).
+  std::vector<std::uint16_t> oracle_zones_later;
   unsigned threads = 0;      ///< I/O threads (0 = auto: one per 2,500 bots, at least 2, at most half the cores)
   // What the AOI check assumes of a server whose welcome does not tell its rules (older servers;
   // a welcome's rules always win, so a current server's flags need no matching ones here).
@@ -106,6 +112,8 @@ struct swarm_counters {
   std::atomic<std::uint64_t> class_notes{0};  ///< class_changes notes received (held or not)
   /// A world of zones (docs/world.md): redirects followed (a new connection with the token).
   std::atomic<std::uint64_t> redirects{0};
+  /// Logins a world's gate sent on to a zone (a redirect without a token).
+  std::atomic<std::uint64_t> gate_redirects{0};
   std::atomic<std::uint64_t> reconnects{0};  ///< logins again after an unexpected disconnect (--reconnect)
   std::atomic<std::uint64_t> frames_in{0}, bytes_in{0}, tick_updates{0}, enters{0}, leaves{0}, updates{0}, resets{0};
   std::atomic<std::uint64_t> inputs_sent{0}, inputs_unchanged{0}, pings_sent{0}, pongs{0};
@@ -157,7 +165,7 @@ struct swarm_result {
                 server_errors = 0, logouts = 0, frames_in = 0, bytes_in = 0, tick_updates = 0, enters = 0,
                 leaves = 0, updates = 0, resets = 0, inputs_sent = 0, inputs_unchanged = 0, pongs = 0, digests_checked = 0,
                 digest_mismatches = 0, inconsistent = 0, aoi_checked = 0, aoi_unchecked = 0,
-                aoi_violations = 0, latency_unsynced = 0, teleports_sent = 0, self_positions = 0, redirects = 0, reconnects = 0;
+                aoi_violations = 0, latency_unsynced = 0, teleports_sent = 0, self_positions = 0, redirects = 0, reconnects = 0, gate_redirects = 0;
   std::uint64_t stealth_joins = 0, team_joins = 0, visibility_switches_sent = 0, class_notes = 0;
   bool host_clock = false;  ///< latency timed on the host's clock (same host), not by ping sync
   bool rules_from_server = false;  ///< the welcome told the zone's interest rules (the AOI check used them)

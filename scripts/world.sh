@@ -22,6 +22,11 @@ Usage: scripts/world.sh [options]
   --standby        with --kill: a hot standby (zone-server --world-standby, started beside the zones
                    on zone 1's port, which it binds once it holds a region) takes the killed zone's
                    region over instead of a restart; the run fails unless it did
+  --gate           a world-gate (the world's login service) beside the zones: with --kill the
+                   swarms log in again through it (bot-swarm --relogin-port), which sends each
+                   login to a zone that serves; with --standby the standby listens on a port of its
+                   own, found through the gate (and by the oracle once it answers); with --kill the
+                   run fails unless the gate sent logins on
   --nats-empty     with --nats-restart: start it again with an empty store (the world's JetStream
                    state lost: the zones make it again); every entity must still be there at the end
   --nats-restart S stop nats-server at a third of the run for S seconds, then start it again on its
@@ -49,7 +54,7 @@ EOF
 }
 
 extra_zone_args=()
-build=build grid=2x2 bots=200 npcs=5000 duration=30 size=1024 kill=0 standby=0 nats_restart=0 nats_empty=0 threads=1 bosses=0 out= oracle=0 fault= single=0 interest=cpu
+build=build grid=2x2 bots=200 npcs=5000 duration=30 size=1024 kill=0 standby=0 gate=0 nats_restart=0 nats_empty=0 threads=1 bosses=0 out= oracle=0 fault= single=0 interest=cpu
 while [ $# -gt 0 ]; do
   case "$1" in
     --build) build=$2; shift 2 ;;
@@ -60,6 +65,7 @@ while [ $# -gt 0 ]; do
     --world-size) size=$2; shift 2 ;;
     --kill) kill=1; shift ;;
     --standby) standby=1; shift ;;
+    --gate) gate=1; shift ;;
     --nats-restart) nats_restart=$2; shift 2 ;;
     --nats-empty) nats_empty=1; shift ;;
     --oracle) oracle=1; shift ;;
@@ -85,7 +91,9 @@ done
 case "$interest" in cpu) where=(--finder cpu --interest host) ;; gpu) where=(--finder gpu --interest gpu) ;;
   *) echo "world.sh: --interest must be cpu or gpu" >&2; exit 64 ;; esac
 case "$fault" in ''|drop|extra|stealth|freeze|class) ;; *) echo "world.sh: --test-fault must be drop, extra, stealth, freeze or class" >&2; exit 64 ;; esac
-for exe in zone/zone-server bots/bot-swarm world/world-check; do
+exes="zone/zone-server bots/bot-swarm world/world-check"
+[ "$gate" = 1 ] && exes="$exes world/world-gate"
+for exe in $exes; do
   [ -x "$build/$exe" ] || { echo "world.sh: $build/$exe missing (build with libnats-dev installed)" >&2; exit 64; }
 done
 command -v nats-server >/dev/null || { echo "world.sh: nats-server not installed (scripts/setup.sh)" >&2; exit 64; }
@@ -149,11 +157,23 @@ for k in $(seq 0 $((zones - 1))); do
   zregion[$k]=$(grep -o 'region [0-9]* of' "$out/zone-$k.log" | head -1 | awk '{print $2}')
 done
 
-# The standby: every region held, it waits for a lease to lapse. It binds zone 1's port once it
-# holds a region (only zone 1 is killed here): the region's address, as a deployment's service
-# name or load balancer in front of whichever process serves the region would be.
+# The gate: the world's login service (it reads the leases; a hello there is sent on to a zone).
+if [ "$gate" = 1 ]; then
+  "$build/world/world-gate" --nats "$url" --world "$name" --port 0 >"$out/gate.log" 2>&1 &
+  gate_pid=$!
+  pids+=("$gate_pid")
+  gate_port=$(zone_port "$out/gate.log" 100)
+  [ -n "$gate_port" ] || { echo "world.sh: the gate did not start ($out/gate.log)" >&2; tail -5 "$out/gate.log" >&2; exit 1; }
+fi
+
+# The standby: every region held, it waits for a lease to lapse. Without a gate it binds zone 1's
+# port once it holds a region (only zone 1 is killed here): the region's address, as a
+# deployment's service name or load balancer in front of whichever process serves the region
+# would be; with the gate a port of its own, which the gate finds in its lease.
 if [ "$standby" = 1 ]; then
-  "$build/zone/zone-server" "${zone_args[@]}" --world-standby --port "${zport[1]}" --tick-csv "$out/standby.csv" \
+  standby_port=${zport[1]}
+  [ "$gate" = 1 ] && standby_port=$(python3 -c 'import socket; s = socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])')
+  "$build/zone/zone-server" "${zone_args[@]}" --world-standby --port "$standby_port" --tick-csv "$out/standby.csv" \
     >"$out/standby.log" 2>&1 &
   standby_pid=$!
   pids+=("$standby_pid")
@@ -165,10 +185,12 @@ fi
 per=$(( (bots + zones - 1) / zones ))
 reconnect=()
 [ "$kill" = 1 ] && reconnect=(--reconnect --relogin-delay 0.5 --connect-timeout 15)  # back to the restarted zone
+[ "$kill" = 1 ] && [ "$gate" = 1 ] && reconnect+=(--relogin-port "$gate_port")  # ... or wherever the gate sends them
 check=()
 if [ "$oracle" = 1 ]; then
   all_ports=$(IFS=,; echo "${zport[*]}")
   check=(--oracle --oracle-threads 1 --oracle-zones "$all_ports")  # each bot judged by the truth of the zone it is in now
+  [ "$standby" = 1 ] && [ "$gate" = 1 ] && check+=(--oracle-zones-later "$standby_port")
 fi
 declare -a spid
 for k in $(seq 0 $((zones - 1))); do
@@ -253,6 +275,7 @@ for _ in $(seq 100); do
   sleep 0.1
 done
 for k in $(seq 0 $((zones - 1))); do kill -KILL "${zpid[$k]}" 2>/dev/null || true; wait "${zpid[$k]}" 2>/dev/null || true; done
+if [ "$gate" = 1 ]; then kill -TERM "$gate_pid" 2>/dev/null || true; wait "$gate_pid" 2>/dev/null || true; fi
 
 # 6. The same load in one zone (--single), for the tick p99 beside the world's.
 if [ "$single" -gt 0 ]; then
@@ -364,6 +387,12 @@ if [ "$single" -gt 0 ]; then
   echo "-- the same load in one zone ($((zones * npcs)) NPCs, $bots bots, $((zones * threads)) worker threads, ${single} s): tick p50 / p99 ${p} ms;" \
     "bots connected $(json "$f" bots_connected), digests $(json "$f" digests_checked), mismatches $(json "$f" mismatches)"
 fi
+gate_sent=0
+if [ "$gate" = 1 ]; then
+  line=$(grep -o 'world gate: [0-9]* logins redirected.*' "$out/gate.log" | tail -1 || true)
+  echo "-- the gate: ${line:-no exit line ($out/gate.log)}"
+  gate_sent=$(echo "$line" | awk '{print $3}'); gate_sent=${gate_sent:-0}
+fi
 echo "-- world-check (census of the zones + KV ownership records and leases)"
 cat "$out/world-check.txt"
 echo "logs: $out"
@@ -383,6 +412,7 @@ fi
 [ "$oracle" = 1 ] && [ "$oracle_checked" = 0 ] && { echo "the oracle checked no frame" >&2; exit 1; }
 [ "$oracle" = 1 ] && [ "$crossings" = 0 ] && { echo "no bot crossed a border: the oracle spanned no zones" >&2; exit 1; }
 [ "$oracle" = 1 ] && [ "$kill" = 1 ] && [ "$checked_after_restart" = 0 ] && { echo "the oracle checked no frame of the restarted zone" >&2; exit 1; }
+[ "$gate" = 1 ] && [ "$kill" = 1 ] && [ "$gate_sent" = 0 ] && { echo "the gate sent no login on to a zone" >&2; exit 1; }
 [ "$standby" = 1 ] && ! grep -q 'free after' "$out/zone-1.log" && { echo "the standby did not take the killed zone's region over" >&2; exit 1; }
 [ "$kill" = 1 ] && [ -n "$killed_note" ] && [ "${restored:-0}" = 0 ] && { echo "the restarted zone restored nothing from the killed zone's checkpoint" >&2; exit 1; }
 [ "$check_rc" = 0 ] && [ "$mism" = 0 ] && [ "$unexplained" = 0 ] && [ "$stopped_early" = 0 ]

@@ -1530,31 +1530,16 @@ std::optional<std::map<global_id, std::pair<std::uint32_t, std::uint64_t>>> read
   return out;
 }
 
-std::optional<std::map<std::uint32_t, lease_info>> read_leases(const std::string& url, const std::string& world,
-                                                               std::string* error) {
-  natsConnection* nc = nullptr;
-  jsCtx* js = nullptr;
-  kvStore* kv = nullptr;
-  const auto done = [&] {
-    if (kv) kvStore_Destroy(kv);
-    if (js) jsCtx_Destroy(js);
-    if (nc) natsConnection_Destroy(nc);
-  };
-  const auto fail = [&](const std::string& why) {
-    if (error) *error = why;
-    done();
-    return std::nullopt;
-  };
-  if (natsStatus s = natsConnection_ConnectTo(&nc, url.c_str()); s != NATS_OK) return fail("cannot connect: " + status_text(s));
-  if (natsConnection_JetStream(&js, nc, nullptr) != NATS_OK) return fail("no JetStream");
-  if (js_KeyValue(&kv, js, ("world-" + world + "-lease").c_str()) != NATS_OK) {
-    return fail("no world '" + world + "' leases in KV");
-  }
+std::optional<std::map<std::uint32_t, lease_info>> read_leases(__kvStore* kv, std::string* error) {
   std::map<std::uint32_t, lease_info> out;
   kvKeysList keys{};
   const natsStatus ks = kvStore_Keys(&keys, kv, nullptr);
-  if (ks != NATS_OK && ks != NATS_NOT_FOUND) return fail("cannot list the leases: " + status_text(ks));
-  for (int i = 0; ks == NATS_OK && i < keys.Count; ++i) {
+  if (ks == NATS_NOT_FOUND) return out;  // no lease at all
+  if (ks != NATS_OK) {
+    if (error) *error = "cannot list the leases: " + status_text(ks);
+    return std::nullopt;
+  }
+  for (int i = 0; i < keys.Count; ++i) {
     const std::string k = keys.Keys[i];
     if (k.rfind("r.", 0) != 0) continue;
     kvEntry* e = nullptr;
@@ -1573,7 +1558,30 @@ std::optional<std::map<std::uint32_t, lease_info>> read_leases(const std::string
     }
     out[static_cast<std::uint32_t>(std::strtoul(k.c_str() + 2, nullptr, 10))] = l;
   }
-  if (ks == NATS_OK) kvKeysList_Destroy(&keys);
+  kvKeysList_Destroy(&keys);
+  return out;
+}
+
+std::optional<std::map<std::uint32_t, lease_info>> read_leases(const std::string& url, const std::string& world,
+                                                               std::string* error) {
+  natsConnection* nc = nullptr;
+  jsCtx* js = nullptr;
+  kvStore* kv = nullptr;
+  const auto done = [&] {
+    if (kv) kvStore_Destroy(kv);
+    if (js) jsCtx_Destroy(js);
+    if (nc) natsConnection_Destroy(nc);
+  };
+  std::optional<std::map<std::uint32_t, lease_info>> out;
+  if (natsStatus s = natsConnection_ConnectTo(&nc, url.c_str()); s != NATS_OK) {
+    if (error) *error = "cannot connect: " + status_text(s);
+  } else if (natsConnection_JetStream(&js, nc, nullptr) != NATS_OK) {
+    if (error) *error = "no JetStream";
+  } else if (js_KeyValue(&kv, js, ("world-" + world + "-lease").c_str()) != NATS_OK) {
+    if (error) *error = "no world '" + world + "' leases in KV";
+  } else {
+    out = read_leases(kv, error);
+  }
   done();
   return out;
 }

@@ -403,6 +403,8 @@ struct lease_info {
 [[nodiscard]] std::optional<std::map<std::uint32_t, lease_info>> read_leases(const std::string& url,
                                                                              const std::string& world,
                                                                              std::string* error);
+/// The same from the world's lease bucket (`world-W-lease`) held open by the caller.
+[[nodiscard]] std::optional<std::map<std::uint32_t, lease_info>> read_leases(__kvStore* leases, std::string* error);
 /// What the census says of the leases. `problems`: a region served by a zone that does not hold
 /// it: answered by two zones, or by a zone whose incarnation is not the one its lease names (a zone
 /// cut off from NATS whose lease lapsed and was claimed by another: it serves on until its next

@@ -45,6 +45,7 @@ MANUALS = {
     "host-jitter": ["docs/zone-benchmarks.md"],
     "interest-pairs": ["docs/embedding.md"],
     "world-check": ["docs/world.md"],
+    "world-gate": ["docs/world.md"],
     "zone-probe": ["docs/operating.md"],
     "bench-oracle": ["docs/bots.md#What it costs"],
 }

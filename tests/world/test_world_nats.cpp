@@ -6,6 +6,11 @@
 // test_world_script_kill's (scripts/world.sh --kill). Without nats-server it fails (configuring says so).
 #include <doctest/doctest.h>
 
+#include <arpa/inet.h>
+#include <netinet/in.h>
+#include <sys/socket.h>
+#include <unistd.h>
+
 #include <nats/nats.h>
 
 #include <array>
@@ -23,6 +28,8 @@
 
 #include "../common/process.h"
 #include "../common/seeds.h"
+#include "net/codec.h"
+#include "world/gate.h"
 #include "world/nats_node.h"
 
 using namespace zone;
@@ -277,6 +284,54 @@ std::unique_ptr<nats_node> join_after_kill(zone_list& zones, const std::string& 
   return next;
 }
 
+/// One exchange with a world-gate on loopback `port`: connects, sends `bytes` (none: says
+/// nothing), and reads until the gate closes (at most 5 s). The messages it sent.
+std::vector<net::message> ask_gate(std::uint16_t port, const std::vector<std::uint8_t>& bytes) {
+  std::vector<net::message> got;
+  const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
+  REQUIRE(fd >= 0);
+  sockaddr_in a{};
+  a.sin_family = AF_INET;
+  a.sin_port = htons(port);
+  a.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+  timeval tv{5, 0};
+  ::setsockopt(fd, SOL_SOCKET, SO_RCVTIMEO, &tv, sizeof tv);
+  REQUIRE(::connect(fd, reinterpret_cast<sockaddr*>(&a), sizeof a) == 0);
+  if (!bytes.empty()) REQUIRE(::send(fd, bytes.data(), bytes.size(), MSG_NOSIGNAL) == static_cast<ssize_t>(bytes.size()));
+  net::frame_decoder dec;
+  for (;;) {
+    auto buf = dec.prepare(4096);
+    const ssize_t n = ::recv(fd, buf.data(), buf.size(), 0);
+    if (n <= 0) break;
+    dec.commit(static_cast<std::size_t>(n));
+    for (auto step = dec.next(); step.is_frame(); step = dec.next()) {
+      if (auto m = net::to_message(*step.frame.envelope)) got.push_back(*m);
+    }
+  }
+  ::close(fd);
+  return got;
+}
+
+/// A world-gate process for `world` (its port read from its log).
+struct gate_process {
+  std::string dir = temp_dir();
+  std::unique_ptr<child_process> proc;
+  std::uint16_t port = 0;
+  gate_process(const std::string& url, const std::string& world) {
+    proc = std::make_unique<child_process>(
+        std::vector<std::string>{WORLD_GATE_EXE, "--nats", url, "--world", world, "--port", "0", "--hello-timeout", "0.5"},
+        dir + "/gate.log");
+    const std::regex re(R"(listening on 127\.0\.0\.1:([0-9]+))");
+    for (const auto until = std::chrono::steady_clock::now() + 10s; port == 0 && std::chrono::steady_clock::now() < until;) {
+      std::smatch m;
+      const std::string text = read_file(dir + "/gate.log");
+      if (std::regex_search(text, m, re)) port = static_cast<std::uint16_t>(std::stoi(m[1].str()));
+      std::this_thread::sleep_for(20ms);
+    }
+  }
+  [[nodiscard]] std::string log() const { return read_file(dir + "/gate.log"); }
+};
+
 /// Handoffs the zones decided, less those the ownership CAS refused or a stopping zone abandoned.
 /// `stat(node)` summed over the zones.
 template <class Stat>
@@ -431,6 +486,24 @@ TEST_SUITE("world.nats") {
     CHECK(c.problems.empty());
     REQUIRE(c.notes.size() == 1);
     CHECK(c.notes[0].find("region 1 answered by incarnation 1 without a lease") != std::string::npos);
+  }
+
+  TEST_CASE("gate_pick: round robin over the regions whose lease names an address") {
+    const auto lease = [](std::uint16_t port, std::uint32_t inc) {
+      return lease_info{"127.0.0.1", port, inc, "127.0.0.1 " + std::to_string(port) + " " + std::to_string(inc)};
+    };
+    std::map<std::uint32_t, lease_info> leases;
+    CHECK_FALSE(gate_pick(leases, 0).has_value());  // no zone serves
+    leases[0] = lease_info{"", 0, 0, "claiming"};   // joining
+    leases[1] = lease(0, 2);                        // claimed, its server not listening yet
+    CHECK_FALSE(gate_pick(leases, 5).has_value());
+    leases[2] = lease(7002, 1);
+    leases[3] = lease(7003, 4);
+    std::map<std::uint16_t, int> seen;
+    for (std::uint64_t n = 0; n < 10; ++n) ++seen[gate_pick(leases, n)->port];
+    CHECK(seen == std::map<std::uint16_t, int>{{7002, 5}, {7003, 5}});
+    CHECK(gate_pick(leases, 0)->port == 7002);
+    CHECK(gate_pick(leases, 1)->port == 7003);
   }
 
   TEST_CASE("judge_lease_readback: our value renews on, no key is a lapse, another value is a take-over") {
@@ -612,6 +685,57 @@ TEST_SUITE("world.nats") {
     }
     CHECK(st.handoffs_sent.load() == 5);
     CHECK(st.handoff_cas_conflicts.load() == 2);
+  }
+
+  TEST_CASE("world-gate: a hello is sent on to a zone that serves; no zone, garbage or silence get an error") {
+    nats_server ns;
+    REQUIRE_FALSE(ns.url.empty());
+    const auto c = small_world(zone::test::fresh_seed());
+    gate_process gate(ns.url, "gate");  // before the world exists: it waits for it
+    REQUIRE_MESSAGE(gate.port != 0, gate.log());
+    const auto hello = net::encode_frame(net::hello_msg{"alice", "", net::protocol_version});
+    const auto only = [](const std::vector<net::message>& got) {
+      REQUIRE(got.size() == 1);
+      return got.front();
+    };
+    // No zone serves the world yet.
+    auto m = only(ask_gate(gate.port, hello));
+    REQUIRE(std::holds_alternative<net::error_msg>(m));
+    CHECK(std::get<net::error_msg>(m).code == net::error_code::server_full);
+    // Two zones: the logins go to each in turn, a redirect without a token to its address.
+    zone_list zones = join_zones(ns.url, "gate", 2, 1, c, 2);  // listening at 7000 + region
+    std::map<std::uint16_t, int> sent;
+    for (const auto until = std::chrono::steady_clock::now() + 5s;
+         sent.size() < 2 && std::chrono::steady_clock::now() < until;) {
+      m = only(ask_gate(gate.port, hello));
+      if (std::holds_alternative<net::redirect_msg>(m)) {
+        const auto& r = std::get<net::redirect_msg>(m);
+        CHECK(r.host == "127.0.0.1");
+        CHECK(r.token.empty());
+        ++sent[r.port];
+      } else {
+        std::this_thread::sleep_for(100ms);  // the gate reads the leases every 250 ms
+      }
+    }
+    CHECK(sent.size() == 2);
+    CHECK(sent.count(7000) == 1);
+    CHECK(sent.count(7001) == 1);
+    // A first frame that is not a hello, bytes that are not a frame, and silence past the hello
+    // timeout: an error each, then the connection closed.
+    m = only(ask_gate(gate.port, net::encode_frame(net::ping_msg{1})));
+    REQUIRE(std::holds_alternative<net::error_msg>(m));
+    CHECK(std::get<net::error_msg>(m).code == net::error_code::unexpected_message);
+    m = only(ask_gate(gate.port, std::vector<std::uint8_t>(64, 0xff)));
+    REQUIRE(std::holds_alternative<net::error_msg>(m));
+    CHECK(std::get<net::error_msg>(m).code == net::error_code::bad_frame);
+    m = only(ask_gate(gate.port, {}));
+    REQUIRE(std::holds_alternative<net::error_msg>(m));
+    CHECK(std::get<net::error_msg>(m).code == net::error_code::timeout);
+    // Stopped, it counts what it did.
+    gate.proc->terminate(5000ms);
+    const std::string log = gate.log();
+    CHECK_MESSAGE(log.find("refused for want of a zone") != std::string::npos, log);
+    CHECK(std::regex_search(log, std::regex(R"(world gate: [2-9][0-9]* logins redirected, [1-9][0-9]* refused for want of a zone, 2 bad, 1 timed out, 0 refused \(full\))")));
   }
 
   TEST_CASE("regions are claimed by CAS: one zone each, a full world refuses, leaving frees a region") {

@@ -1,0 +1,303 @@
+// world-gate: the login service of a world of zones (docs/world.md, "Logging in through a gate").
+// A client connects and says hello as it would to a zone; the gate answers with a redirect to a
+// zone that serves the world now (round robin over the regions whose lease names an address: a
+// standby that took a region over is found there) with an empty token, and closes: the client
+// says hello at that zone and joins it as a new player. No zone serving: error(server_full).
+// The leases are read from NATS KV every 250 ms by a thread of its own; a client gets
+// --hello-timeout seconds to say hello, a hello of at most 4 KiB, and at most --max-connections
+// are held at once (more are closed at accept).
+#include <utility>  // first: Boost 1.74's asio under GCC 12 in C++20
+
+#include <nats/nats.h>
+#include <spdlog/sinks/stdout_color_sinks.h>
+#include <spdlog/spdlog.h>
+
+#include <atomic>
+#include <boost/asio.hpp>
+#include <boost/program_options.hpp>
+#include <chrono>
+#include <condition_variable>
+#include <cstdio>
+#include <map>
+#include <memory>
+#include <mutex>
+#include <sstream>
+#include <string>
+#include <thread>
+
+#include "gate.h"
+#include "net/codec.h"
+
+namespace asio = boost::asio;
+namespace po = boost::program_options;
+using tcp = asio::ip::tcp;
+using namespace zone;
+
+namespace {
+
+struct gate_options {
+  std::string nats_url, world, listen = "127.0.0.1";
+  std::uint16_t port = 0;
+  std::size_t max_connections = 1024;
+  double hello_timeout_s = 5;
+};
+
+struct gate_counters {
+  std::atomic<std::uint64_t> redirected{0}, no_zone{0}, refused_full{0}, bad{0}, timeouts{0};
+};
+
+/// The leases as last read, and the NATS connection that reads them (its own thread).
+class lease_table {
+ public:
+  explicit lease_table(const gate_options& o) : o_(o) {}
+  ~lease_table() { stop(); }
+  /// Connects (an error when NATS cannot be reached) and starts reading every 250 ms.
+  std::optional<std::string> start() {
+    natsOptions* no = nullptr;
+    natsOptions_Create(&no);
+    natsOptions_SetURL(no, o_.nats_url.c_str());
+    natsOptions_SetMaxReconnect(no, -1);  // a NATS restart must not end the gate
+    natsOptions_SetReconnectWait(no, 200);
+    const natsStatus s = natsConnection_Connect(&nc_, no);
+    natsOptions_Destroy(no);
+    if (s != NATS_OK) return "cannot connect to NATS at " + o_.nats_url + ": " + natsStatus_GetText(s);
+    if (natsConnection_JetStream(&js_, nc_, nullptr) != NATS_OK) return std::string("no JetStream at ") + o_.nats_url;
+    thread_ = std::thread([this] { loop(); });
+    return std::nullopt;
+  }
+  void stop() {
+    {
+      std::lock_guard lock(m_);
+      stopping_ = true;
+    }
+    cv_.notify_all();
+    if (thread_.joinable()) thread_.join();
+    if (kv_) kvStore_Destroy(kv_), kv_ = nullptr;
+    if (js_) jsCtx_Destroy(js_), js_ = nullptr;
+    if (nc_) natsConnection_Destroy(nc_), nc_ = nullptr;
+  }
+  [[nodiscard]] std::map<std::uint32_t, world::lease_info> leases() const {
+    std::lock_guard lock(m_);
+    return leases_;
+  }
+
+ private:
+  void loop() {
+    std::string said;  // the last error logged (each new one once)
+    std::unique_lock lock(m_);
+    while (!stopping_) {
+      lock.unlock();
+      std::string err;
+      std::optional<std::map<std::uint32_t, world::lease_info>> now;
+      if (!kv_ && js_KeyValue(&kv_, js_, ("world-" + o_.world + "-lease").c_str()) != NATS_OK) {
+        kv_ = nullptr;
+        err = "no world '" + o_.world + "' in NATS yet (no lease bucket): waiting for its first zone";
+      } else if (kv_) {
+        now = world::read_leases(kv_, &err);
+      }
+      if (!err.empty() && err != said) spdlog::warn("world gate: {}", err);
+      said = err;
+      lock.lock();
+      if (now) leases_ = std::move(*now);
+      cv_.wait_for(lock, std::chrono::milliseconds(250), [&] { return stopping_; });
+    }
+  }
+  gate_options o_;
+  natsConnection* nc_ = nullptr;
+  jsCtx* js_ = nullptr;
+  kvStore* kv_ = nullptr;
+  mutable std::mutex m_;
+  std::condition_variable cv_;
+  bool stopping_ = false;
+  std::map<std::uint32_t, world::lease_info> leases_;
+  std::thread thread_;
+};
+
+/// One client: its hello, then a redirect (or an error), then closed.
+class gate_session : public std::enable_shared_from_this<gate_session> {
+ public:
+  gate_session(tcp::socket s, const gate_options& o, const lease_table& t, gate_counters& c, std::atomic<std::uint64_t>& n,
+               std::atomic<std::size_t>& open)
+      : sock_(std::move(s)), timer_(sock_.get_executor()), o_(o), table_(t), c_(c), n_(n), open_(open),
+        dec_(net::decoder_options{.max_frame_bytes = 4096}) {}
+  ~gate_session() { open_.fetch_sub(1); }
+  void start() {
+    timer_.expires_after(std::chrono::duration_cast<std::chrono::steady_clock::duration>(
+        std::chrono::duration<double>(o_.hello_timeout_s)));
+    timer_.async_wait([self = shared_from_this()](const boost::system::error_code& ec) {
+      if (ec || self->done_) return;
+      self->c_.timeouts.fetch_add(1);
+      self->reply(net::error_msg{net::error_code::timeout, "no hello within the gate's hello timeout"});
+    });
+    read();
+  }
+
+ private:
+  void read() {
+    auto buf = dec_.prepare(4096);
+    sock_.async_read_some(asio::buffer(buf.data(), buf.size()),
+                          [self = shared_from_this()](const boost::system::error_code& ec, std::size_t n) {
+                            if (self->done_) return;
+                            if (ec) {
+                              self->finish();
+                              return;
+                            }
+                            self->dec_.commit(n);
+                            self->on_bytes();
+                          });
+  }
+  void on_bytes() {
+    const auto step = dec_.next();
+    if (step.needs_more()) return read();
+    if (step.is_error() || step.frame.type != net::wire::message::hello) {
+      c_.bad.fetch_add(1);
+      reply(net::error_msg{step.is_error() ? net::error_code::bad_frame : net::error_code::unexpected_message,
+                           "the gate takes one hello, then redirects to a zone"});
+      return;
+    }
+    const auto* h = step.frame.envelope->message_as_hello();
+    if (h && h->protocol_version() != net::protocol_version) {
+      c_.bad.fetch_add(1);
+      reply(net::error_msg{net::error_code::protocol_version, "this world speaks protocol version " +
+                                                                   std::to_string(net::protocol_version)});
+      return;
+    }
+    const auto zone = world::gate_pick(table_.leases(), n_.fetch_add(1));
+    if (!zone) {
+      c_.no_zone.fetch_add(1);
+      reply(net::error_msg{net::error_code::server_full, "no zone serves world '" + o_.world + "' now"});
+      return;
+    }
+    c_.redirected.fetch_add(1);
+    reply(net::redirect_msg{zone->host, zone->port, ""});
+  }
+  void reply(const net::message& m) {
+    done_ = true;
+    timer_.cancel();
+    out_ = net::encode_frame(m);
+    asio::async_write(sock_, asio::buffer(out_),
+                      [self = shared_from_this()](const boost::system::error_code&, std::size_t) { self->finish(); });
+  }
+  void finish() {
+    done_ = true;
+    timer_.cancel();
+    boost::system::error_code ignored;
+    sock_.shutdown(tcp::socket::shutdown_both, ignored);
+    sock_.close(ignored);
+  }
+  tcp::socket sock_;
+  asio::steady_timer timer_;
+  const gate_options& o_;
+  const lease_table& table_;
+  gate_counters& c_;
+  std::atomic<std::uint64_t>& n_;
+  std::atomic<std::size_t>& open_;
+  net::frame_decoder dec_;
+  std::vector<std::uint8_t> out_;
+  bool done_ = false;
+};
+
+void accept(tcp::acceptor& a, const gate_options& o, const lease_table& t, gate_counters& c,
+            std::atomic<std::uint64_t>& n, std::atomic<std::size_t>& open) {
+  a.async_accept([&](const boost::system::error_code& ec, tcp::socket s) {
+    if (ec == asio::error::operation_aborted) return;
+    if (!ec) {
+      if (open.load() >= o.max_connections) {
+        c.refused_full.fetch_add(1);
+        boost::system::error_code ignored;
+        s.close(ignored);
+      } else {
+        open.fetch_add(1);
+        boost::system::error_code ignored;
+        s.set_option(tcp::no_delay(true), ignored);
+        std::make_shared<gate_session>(std::move(s), o, t, c, n, open)->start();
+      }
+    }
+    accept(a, o, t, c, n, open);
+  });
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  gate_options o;
+  std::string log_level = "info";
+  po::options_description desc(
+      "world-gate: the login service of a world of zones (docs/world.md). A client says hello here and is\n"
+      "redirected to a zone that serves the world now (round robin over the regions' leases in NATS KV),\n"
+      "where it joins as a new player.\n\nOptions");
+  desc.add_options()  //
+      ("help", "this text")  //
+      ("nats", po::value(&o.nats_url), "NATS server URL of the world (e.g. nats://127.0.0.1:4222); required")  //
+      ("world", po::value(&o.world), "the world's name; required")  //
+      ("listen", po::value(&o.listen)->default_value(o.listen), "address to listen on")  //
+      ("port", po::value(&o.port)->default_value(o.port), "port to listen on (0 = an ephemeral one, logged)")  //
+      ("max-connections", po::value(&o.max_connections)->default_value(o.max_connections),
+       "clients held at once (a client stays until its redirect is written); more are closed at accept")  //
+      ("hello-timeout", po::value(&o.hello_timeout_s)->default_value(o.hello_timeout_s),
+       "seconds a client has to say hello")  //
+      ("log-level", po::value(&log_level)->default_value(log_level), "trace, debug, info, warn, error or critical");
+  po::variables_map vm;
+  try {
+    po::store(po::parse_command_line(argc, argv, desc), vm);
+    po::notify(vm);
+  } catch (const std::exception& e) {
+    std::fprintf(stderr, "world-gate: %s (try --help)\n", e.what());
+    return 2;
+  }
+  if (vm.count("help")) {
+    std::ostringstream text;
+    text << desc;
+    std::fputs(text.str().c_str(), stdout);
+    return 0;
+  }
+  if (o.nats_url.empty() || o.world.empty()) {
+    std::fprintf(stderr, "world-gate: --nats and --world are required (try --help)\n");
+    return 2;
+  }
+  if (!(o.hello_timeout_s > 0 && o.hello_timeout_s <= 600) || o.max_connections == 0) {
+    std::fprintf(stderr, "world-gate: --hello-timeout must be in (0, 600] and --max-connections at least 1\n");
+    return 2;
+  }
+  spdlog::set_default_logger(
+      std::make_shared<spdlog::logger>("", std::make_shared<spdlog::sinks::stderr_color_sink_mt>()));
+  spdlog::set_level(spdlog::level::from_str(log_level));
+  lease_table table(o);
+  if (auto err = table.start()) {
+    spdlog::critical("world gate: {}", *err);
+    return 1;
+  }
+  asio::io_context io;
+  tcp::acceptor acceptor(io);
+  boost::system::error_code ec;
+  const auto addr = asio::ip::make_address(o.listen, ec);
+  if (ec) {
+    spdlog::critical("world gate: --listen '{}': {}", o.listen, ec.message());
+    return 2;
+  }
+  const tcp::endpoint at(addr, o.port);
+  acceptor.open(at.protocol(), ec);
+  if (!ec) acceptor.set_option(tcp::acceptor::reuse_address(true), ec);
+  if (!ec) acceptor.bind(at, ec);
+  if (!ec) acceptor.listen(asio::socket_base::max_listen_connections, ec);
+  if (ec) {
+    spdlog::critical("world gate: cannot listen on {}:{}: {}", o.listen, o.port, ec.message());
+    return 1;
+  }
+  gate_counters c;
+  std::atomic<std::uint64_t> n{0};
+  std::atomic<std::size_t> open{0};
+  accept(acceptor, o, table, c, n, open);
+  asio::signal_set signals(io, SIGINT, SIGTERM);
+  signals.async_wait([&](const boost::system::error_code&, int) {
+    acceptor.close();
+    io.stop();
+  });
+  spdlog::info("world gate listening on {}:{} for world '{}' (NATS {})", o.listen, acceptor.local_endpoint().port(),
+               o.world, o.nats_url);
+  io.run();
+  table.stop();
+  spdlog::info("world gate: {} logins redirected, {} refused for want of a zone, {} bad, {} timed out, {} refused (full)",
+               c.redirected.load(), c.no_zone.load(), c.bad.load(), c.timeouts.load(), c.refused_full.load());
+  return 0;
+}
