@@ -23,8 +23,8 @@ Usage: scripts/world.sh [options]
                    on zone 1's port, which it binds once it holds a region) takes the killed zone's
                    region over instead of a restart; the run fails unless it did
   --gate           a world-gate (the world's login service) beside the zones: with --kill the
-                   swarms log in again through it (bot-swarm --relogin-port), which sends each
-                   login to a zone that serves; with --standby the standby listens on a port of its
+                   swarms log in again through it (bot-swarm --relogin-port) 5 s after the loss,
+                   and it sends each login to a zone that serves; with --standby the standby listens on a port of its
                    own, found through the gate (and by the oracle once it answers); with --kill the
                    run fails unless the gate sent logins on
   --nats-empty     with --nats-restart: start it again with an empty store (the world's JetStream
@@ -185,7 +185,9 @@ fi
 per=$(( (bots + zones - 1) / zones ))
 reconnect=()
 [ "$kill" = 1 ] && reconnect=(--reconnect --relogin-delay 0.5 --connect-timeout 15)  # back to the restarted zone
-[ "$kill" = 1 ] && [ "$gate" = 1 ] && reconnect+=(--relogin-port "$gate_port")  # ... or wherever the gate sends them
+# With the gate: wherever it sends them, 5 s after the loss (the lease's 3 s and the standby's start
+# past), so that the gate has the standby to send some of them to (sooner, all go to the others).
+[ "$kill" = 1 ] && [ "$gate" = 1 ] && reconnect=(--reconnect --relogin-delay 5 --connect-timeout 15 --relogin-port "$gate_port")
 check=()
 if [ "$oracle" = 1 ]; then
   all_ports=$(IFS=,; echo "${zport[*]}")
