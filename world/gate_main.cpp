@@ -197,11 +197,18 @@ class gate_session : public std::enable_shared_from_this<gate_session> {
   bool done_ = false;
 };
 
-void accept(tcp::acceptor& a, const gate_options& o, const lease_table& t, gate_counters& c,
+void accept(tcp::acceptor& a, asio::steady_timer& pause, const gate_options& o, const lease_table& t, gate_counters& c,
             std::atomic<std::uint64_t>& n, std::atomic<std::size_t>& open) {
   a.async_accept([&](const boost::system::error_code& ec, tcp::socket s) {
     if (ec == asio::error::operation_aborted) return;
-    if (!ec) {
+    if (ec) {  // out of descriptors, say: accept again in a moment, not in a busy loop
+      pause.expires_after(std::chrono::milliseconds(100));
+      pause.async_wait([&](const boost::system::error_code& e) {
+        if (!e) accept(a, pause, o, t, c, n, open);
+      });
+      return;
+    }
+    {
       if (open.load() >= o.max_connections) {
         c.refused_full.fetch_add(1);
         boost::system::error_code ignored;
@@ -213,7 +220,7 @@ void accept(tcp::acceptor& a, const gate_options& o, const lease_table& t, gate_
         std::make_shared<gate_session>(std::move(s), o, t, c, n, open)->start();
       }
     }
-    accept(a, o, t, c, n, open);
+    accept(a, pause, o, t, c, n, open);
   });
 }
 
@@ -267,8 +274,13 @@ int main(int argc, char** argv) {
     spdlog::critical("world gate: {}", *err);
     return 1;
   }
+  // Declared before the event loop: sessions still held when it is destroyed count themselves out.
+  gate_counters c;
+  std::atomic<std::uint64_t> n{0};
+  std::atomic<std::size_t> open{0};
   asio::io_context io;
   tcp::acceptor acceptor(io);
+  asio::steady_timer pause(io);
   boost::system::error_code ec;
   const auto addr = asio::ip::make_address(o.listen, ec);
   if (ec) {
@@ -284,13 +296,11 @@ int main(int argc, char** argv) {
     spdlog::critical("world gate: cannot listen on {}:{}: {}", o.listen, o.port, ec.message());
     return 1;
   }
-  gate_counters c;
-  std::atomic<std::uint64_t> n{0};
-  std::atomic<std::size_t> open{0};
-  accept(acceptor, o, table, c, n, open);
+  accept(acceptor, pause, o, table, c, n, open);
   asio::signal_set signals(io, SIGINT, SIGTERM);
   signals.async_wait([&](const boost::system::error_code&, int) {
     acceptor.close();
+    pause.cancel();
     io.stop();
   });
   spdlog::info("world gate listening on {}:{} for world '{}' (NATS {})", o.listen, acceptor.local_endpoint().port(),
