@@ -5,7 +5,7 @@
 // says hello at that zone and joins it as a new player. No zone serving: error(server_full).
 // The leases are read from NATS KV every 250 ms by a thread of its own; a client gets
 // --hello-timeout seconds to say hello, a hello of at most 4 KiB, and at most --max-connections
-// are held at once (more are closed at accept).
+// are held at once, --max-per-address from one address (more are closed at accept).
 #include <utility>  // first: Boost 1.74's asio under GCC 12 in C++20
 
 #include <nats/nats.h>
@@ -39,11 +39,12 @@ struct gate_options {
   std::string nats_url, world, listen = "127.0.0.1";
   std::uint16_t port = 0;
   std::size_t max_connections = 1024;
+  std::size_t max_per_address = 64;
   double hello_timeout_s = 5;
 };
 
 struct gate_counters {
-  std::atomic<std::uint64_t> redirected{0}, no_zone{0}, refused_full{0}, bad{0}, timeouts{0};
+  std::atomic<std::uint64_t> redirected{0}, no_zone{0}, refused_full{0}, refused_address{0}, bad{0}, timeouts{0};
 };
 
 /// The leases as last read, and the NATS connection that reads them (its own thread).
@@ -117,10 +118,14 @@ class lease_table {
 class gate_session : public std::enable_shared_from_this<gate_session> {
  public:
   gate_session(tcp::socket s, const gate_options& o, const lease_table& t, gate_counters& c, std::atomic<std::uint64_t>& n,
-               std::atomic<std::size_t>& open)
+               std::atomic<std::size_t>& open, std::map<asio::ip::address, std::size_t>& per_address,
+               asio::ip::address from)
       : sock_(std::move(s)), timer_(sock_.get_executor()), o_(o), table_(t), c_(c), n_(n), open_(open),
-        dec_(net::decoder_options{.max_frame_bytes = 4096}) {}
-  ~gate_session() { open_.fetch_sub(1); }
+        per_address_(per_address), from_(std::move(from)), dec_(net::decoder_options{.max_frame_bytes = 4096}) {}
+  ~gate_session() {
+    open_.fetch_sub(1);
+    if (const auto it = per_address_.find(from_); it != per_address_.end() && --it->second == 0) per_address_.erase(it);
+  }
   void start() {
     timer_.expires_after(std::chrono::duration_cast<std::chrono::steady_clock::duration>(
         std::chrono::duration<double>(o_.hello_timeout_s)));
@@ -192,10 +197,15 @@ class gate_session : public std::enable_shared_from_this<gate_session> {
   gate_counters& c_;
   std::atomic<std::uint64_t>& n_;
   std::atomic<std::size_t>& open_;
+  std::map<asio::ip::address, std::size_t>& per_address_;  ///< the event loop's thread only
+  asio::ip::address from_;
   net::frame_decoder dec_;
   std::vector<std::uint8_t> out_;
   bool done_ = false;
 };
+
+/// Connections held per client address (the event loop's thread only).
+std::map<asio::ip::address, std::size_t> per_address;
 
 void accept(tcp::acceptor& a, asio::steady_timer& pause, const gate_options& o, const lease_table& t, gate_counters& c,
             std::atomic<std::uint64_t>& n, std::atomic<std::size_t>& open) {
@@ -209,15 +219,20 @@ void accept(tcp::acceptor& a, asio::steady_timer& pause, const gate_options& o, 
       return;
     }
     {
+      boost::system::error_code ignored;
+      const auto peer = s.remote_endpoint(ignored);
+      const auto from = peer.address();
       if (open.load() >= o.max_connections) {
         c.refused_full.fetch_add(1);
-        boost::system::error_code ignored;
+        s.close(ignored);
+      } else if (per_address[from] >= o.max_per_address) {
+        c.refused_address.fetch_add(1);
         s.close(ignored);
       } else {
+        ++per_address[from];
         open.fetch_add(1);
-        boost::system::error_code ignored;
         s.set_option(tcp::no_delay(true), ignored);
-        std::make_shared<gate_session>(std::move(s), o, t, c, n, open)->start();
+        std::make_shared<gate_session>(std::move(s), o, t, c, n, open, per_address, from)->start();
       }
     }
     accept(a, pause, o, t, c, n, open);
@@ -241,6 +256,8 @@ int main(int argc, char** argv) {
       ("port", po::value(&o.port)->default_value(o.port), "port to listen on (0 = an ephemeral one, logged)")  //
       ("max-connections", po::value(&o.max_connections)->default_value(o.max_connections),
        "clients held at once (a client stays until its redirect is written); more are closed at accept")  //
+      ("max-per-address", po::value(&o.max_per_address)->default_value(o.max_per_address),
+       "clients held at once from one address; more are closed at accept")  //
       ("hello-timeout", po::value(&o.hello_timeout_s)->default_value(o.hello_timeout_s),
        "seconds a client has to say hello")  //
       ("log-level", po::value(&log_level)->default_value(log_level), "trace, debug, info, warn, error or critical");
@@ -262,8 +279,9 @@ int main(int argc, char** argv) {
     std::fprintf(stderr, "world-gate: --nats and --world are required (try --help)\n");
     return 2;
   }
-  if (!(o.hello_timeout_s > 0 && o.hello_timeout_s <= 600) || o.max_connections == 0) {
-    std::fprintf(stderr, "world-gate: --hello-timeout must be in (0, 600] and --max-connections at least 1\n");
+  if (!(o.hello_timeout_s > 0 && o.hello_timeout_s <= 600) || o.max_connections == 0 || o.max_per_address == 0) {
+    std::fprintf(stderr,
+                 "world-gate: --hello-timeout must be in (0, 600], --max-connections and --max-per-address at least 1\n");
     return 2;
   }
   spdlog::set_default_logger(
@@ -307,7 +325,10 @@ int main(int argc, char** argv) {
                o.world, o.nats_url);
   io.run();
   table.stop();
-  spdlog::info("world gate: {} logins redirected, {} refused for want of a zone, {} bad, {} timed out, {} refused (full)",
-               c.redirected.load(), c.no_zone.load(), c.bad.load(), c.timeouts.load(), c.refused_full.load());
+  spdlog::info(
+      "world gate: {} logins redirected, {} refused for want of a zone, {} bad, {} timed out, {} refused (full), {} "
+      "refused (over --max-per-address)",
+      c.redirected.load(), c.no_zone.load(), c.bad.load(), c.timeouts.load(), c.refused_full.load(),
+      c.refused_address.load());
   return 0;
 }

@@ -193,23 +193,33 @@ inline double cpu_stretch(const std::optional<sched_times>& t) {
   return std::max(1.0, (t->run_ms + t->wait_ms) / t->run_ms);
 }
 
-/// GET /metrics over plain sockets; the body, or empty on failure.
-inline std::string http_get_metrics(std::uint16_t port) {
+/// A TCP connection to loopback `port` whose reads time out after `recv_timeout_s`: its
+/// descriptor, or -1.
+inline int connect_loopback(std::uint16_t port, int recv_timeout_s = 5) {
   const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
-  if (fd < 0) return {};
+  if (fd < 0) return -1;
   sockaddr_in addr{};
   addr.sin_family = AF_INET;
   addr.sin_port = htons(port);
   addr.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
-  std::string out;
-  timeval tv{5, 0};
+  timeval tv{recv_timeout_s, 0};
   ::setsockopt(fd, SOL_SOCKET, SO_RCVTIMEO, &tv, sizeof tv);
-  if (::connect(fd, reinterpret_cast<sockaddr*>(&addr), sizeof addr) == 0) {
-    const std::string req = "GET /metrics HTTP/1.1\r\nHost: localhost\r\nConnection: close\r\n\r\n";
-    if (::send(fd, req.data(), req.size(), MSG_NOSIGNAL) == static_cast<ssize_t>(req.size())) {
-      char buf[8192];
-      for (ssize_t n; (n = ::recv(fd, buf, sizeof buf, 0)) > 0;) out.append(buf, static_cast<std::size_t>(n));
-    }
+  if (::connect(fd, reinterpret_cast<sockaddr*>(&addr), sizeof addr) != 0) {
+    ::close(fd);
+    return -1;
+  }
+  return fd;
+}
+
+/// GET /metrics over plain sockets; the body, or empty on failure.
+inline std::string http_get_metrics(std::uint16_t port) {
+  const int fd = connect_loopback(port);
+  if (fd < 0) return {};
+  std::string out;
+  const std::string req = "GET /metrics HTTP/1.1\r\nHost: localhost\r\nConnection: close\r\n\r\n";
+  if (::send(fd, req.data(), req.size(), MSG_NOSIGNAL) == static_cast<ssize_t>(req.size())) {
+    char buf[8192];
+    for (ssize_t n; (n = ::recv(fd, buf, sizeof buf, 0)) > 0;) out.append(buf, static_cast<std::size_t>(n));
   }
   ::close(fd);
   return out;

@@ -288,15 +288,8 @@ std::unique_ptr<nats_node> join_after_kill(zone_list& zones, const std::string& 
 /// nothing), and reads until the gate closes (at most 5 s). The messages it sent.
 std::vector<net::message> ask_gate(std::uint16_t port, const std::vector<std::uint8_t>& bytes) {
   std::vector<net::message> got;
-  const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
+  const int fd = zone::test::connect_loopback(port);
   REQUIRE(fd >= 0);
-  sockaddr_in a{};
-  a.sin_family = AF_INET;
-  a.sin_port = htons(port);
-  a.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
-  timeval tv{5, 0};
-  ::setsockopt(fd, SOL_SOCKET, SO_RCVTIMEO, &tv, sizeof tv);
-  REQUIRE(::connect(fd, reinterpret_cast<sockaddr*>(&a), sizeof a) == 0);
   if (!bytes.empty()) REQUIRE(::send(fd, bytes.data(), bytes.size(), MSG_NOSIGNAL) == static_cast<ssize_t>(bytes.size()));
   net::frame_decoder dec;
   for (;;) {
@@ -319,7 +312,8 @@ struct gate_process {
   std::uint16_t port = 0;
   gate_process(const std::string& url, const std::string& world) {
     proc = std::make_unique<child_process>(
-        std::vector<std::string>{WORLD_GATE_EXE, "--nats", url, "--world", world, "--port", "0", "--hello-timeout", "0.5"},
+        std::vector<std::string>{WORLD_GATE_EXE, "--nats", url, "--world", world, "--port", "0", "--hello-timeout", "0.5",
+                                 "--max-per-address", "2"},
         dir + "/gate.log");
     const std::regex re(R"(listening on 127\.0\.0\.1:([0-9]+))");
     for (const auto until = std::chrono::steady_clock::now() + 10s; port == 0 && std::chrono::steady_clock::now() < until;) {
@@ -731,11 +725,20 @@ TEST_SUITE("world.nats") {
     m = only(ask_gate(gate.port, {}));
     REQUIRE(std::holds_alternative<net::error_msg>(m));
     CHECK(std::get<net::error_msg>(m).code == net::error_code::timeout);
+    // Two connections held from this address (--max-per-address 2): a third is closed at accept,
+    // before any message.
+    std::vector<int> held;
+    for (int k = 0; k < 2; ++k) {
+      held.push_back(zone::test::connect_loopback(gate.port));
+      REQUIRE(held.back() >= 0);
+    }
+    CHECK(ask_gate(gate.port, {}).empty());
+    for (const int fd : held) ::close(fd);
     // Stopped, it counts what it did.
     gate.proc->terminate(5000ms);
     const std::string log = gate.log();
     CHECK_MESSAGE(log.find("refused for want of a zone") != std::string::npos, log);
-    CHECK(std::regex_search(log, std::regex(R"(world gate: [2-9][0-9]* logins redirected, [1-9][0-9]* refused for want of a zone, 2 bad, 1 timed out, 0 refused \(full\))")));
+    CHECK(std::regex_search(log, std::regex(R"(world gate: [2-9][0-9]* logins redirected, [1-9][0-9]* refused for want of a zone, 2 bad, 1 timed out, 0 refused \(full\), 1 refused \(over --max-per-address\))")));
   }
 
   TEST_CASE("regions are claimed by CAS: one zone each, a full world refuses, leaving frees a region") {
