@@ -12,6 +12,7 @@
 #include <spdlog/sinks/stdout_color_sinks.h>
 #include <spdlog/spdlog.h>
 
+#include <array>
 #include <atomic>
 #include <boost/asio.hpp>
 #include <boost/program_options.hpp>
@@ -140,9 +141,14 @@ class gate_session : public std::enable_shared_from_this<gate_session> {
  private:
   void read() {
     auto buf = dec_.prepare(4096);
+    reading_ = true;
     sock_.async_read_some(asio::buffer(buf.data(), buf.size()),
                           [self = shared_from_this()](const boost::system::error_code& ec, std::size_t n) {
-                            if (self->done_) return;
+                            self->reading_ = false;
+                            if (self->done_) {  // replied meanwhile (a timeout): drained from here on
+                              if (ec) return self->finish();
+                              return self->drain();
+                            }
                             if (ec) {
                               self->finish();
                               return;
@@ -180,8 +186,30 @@ class gate_session : public std::enable_shared_from_this<gate_session> {
     done_ = true;
     timer_.cancel();
     out_ = net::encode_frame(m);
-    asio::async_write(sock_, asio::buffer(out_),
-                      [self = shared_from_this()](const boost::system::error_code&, std::size_t) { self->finish(); });
+    asio::async_write(sock_, asio::buffer(out_), [self = shared_from_this()](const boost::system::error_code& ec,
+                                                                             std::size_t) {
+      if (ec) return self->finish();
+      self->linger();
+    });
+  }
+  /// The reply written: our side of the connection shut, what the client still sends read and
+  /// dropped until it closes (at most 1 s), so that closing with its bytes unread (a reset) never
+  /// takes the reply with it.
+  void linger() {
+    boost::system::error_code ignored;
+    sock_.shutdown(tcp::socket::shutdown_send, ignored);
+    timer_.expires_after(std::chrono::seconds(1));
+    timer_.async_wait([self = shared_from_this()](const boost::system::error_code& ec) {
+      if (!ec) self->finish();
+    });
+    if (!reading_) drain();  // else the read in flight goes on to drain (one read at a time)
+  }
+  void drain() {
+    sock_.async_read_some(asio::buffer(scratch_), [self = shared_from_this()](const boost::system::error_code& ec,
+                                                                                  std::size_t) {
+      if (ec) return self->finish();
+      self->drain();
+    });
   }
   void finish() {
     done_ = true;
@@ -201,7 +229,8 @@ class gate_session : public std::enable_shared_from_this<gate_session> {
   asio::ip::address from_;
   net::frame_decoder dec_;
   std::vector<std::uint8_t> out_;
-  bool done_ = false;
+  std::array<std::uint8_t, 512> scratch_{};
+  bool done_ = false, reading_ = false;
 };
 
 /// Connections held per client address (the event loop's thread only).

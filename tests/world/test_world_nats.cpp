@@ -727,6 +727,7 @@ TEST_SUITE("world.nats") {
     CHECK(std::get<net::error_msg>(m).code == net::error_code::timeout);
     // Two connections held from this address (--max-per-address 2): a third is closed at accept,
     // before any message.
+    std::this_thread::sleep_for(300ms);  // the gate has closed the connections above (each read to its end)
     std::vector<int> held;
     for (int k = 0; k < 2; ++k) {
       held.push_back(zone::test::connect_loopback(gate.port));
