@@ -1,8 +1,9 @@
 // world-gate: the login service of a world of zones (docs/world.md, "Logging in through a gate").
-// A client connects and says hello as it would to a zone; the gate answers with a redirect to a
-// zone that serves the world now (round robin over the regions whose lease names an address: a
-// standby that took a region over is found there) with an empty token, and closes: the client
-// says hello at that zone and joins it as a new player. No zone serving: error(server_full).
+// A client connects and says hello as it would to a zone; the gate answers with a redirect to the
+// least loaded zone that serves the world now (gate_pick: the regions whose lease names an
+// address, a standby that took a region over among them, by the load each zone tells beside its
+// lease) with an empty token, and closes: the client says hello at that zone and joins it as a
+// new player. No zone serving, or every one full: error(server_full).
 // The leases are read from NATS KV every 250 ms by a thread of its own; a client gets
 // --hello-timeout seconds to say hello, a hello of at most 4 KiB, and at most --max-connections
 // are held at once, --max-per-address from one address (more are closed at accept).
@@ -115,6 +116,10 @@ class lease_table {
   std::thread thread_;
 };
 
+/// Per region: the load its zone told last (as stored) and the logins sent there since (the event
+/// loop's thread only).
+std::map<std::uint32_t, std::pair<std::string, std::uint64_t>> sent_by_region;
+
 /// One client: its hello, then a redirect (or an error), then closed.
 class gate_session : public std::enable_shared_from_this<gate_session> {
  public:
@@ -173,14 +178,23 @@ class gate_session : public std::enable_shared_from_this<gate_session> {
                                                                    std::to_string(net::protocol_version)});
       return;
     }
-    const auto zone = world::gate_pick(table_.leases(), n_.fetch_add(1));
+    const auto leases = table_.leases();
+    // The logins sent to a region since its zone last told its load (that report counts them).
+    for (const auto& [region, l] : leases) {
+      auto& [told, count] = sent_by_region[region];
+      if (told != l.load_raw) told = l.load_raw, count = 0;
+    }
+    std::map<std::uint32_t, std::uint64_t> sent;
+    for (const auto& [region, s] : sent_by_region) sent[region] = s.second;
+    const auto zone = world::gate_pick(leases, n_.fetch_add(1), sent);
     if (!zone) {
       c_.no_zone.fetch_add(1);
-      reply(net::error_msg{net::error_code::server_full, "no zone serves world '" + o_.world + "' now"});
+      reply(net::error_msg{net::error_code::server_full, "no zone of world '" + o_.world + "' serves or has room now"});
       return;
     }
+    ++sent_by_region[zone->first].second;
     c_.redirected.fetch_add(1);
-    reply(net::redirect_msg{zone->host, zone->port, ""});
+    reply(net::redirect_msg{zone->second.host, zone->second.port, ""});
   }
   void reply(const net::message& m) {
     done_ = true;
@@ -275,8 +289,8 @@ int main(int argc, char** argv) {
   std::string log_level = "info";
   po::options_description desc(
       "world-gate: the login service of a world of zones (docs/world.md). A client says hello here and is\n"
-      "redirected to a zone that serves the world now (round robin over the regions' leases in NATS KV),\n"
-      "where it joins as a new player.\n\nOptions");
+      "redirected to the least loaded zone that serves the world now (the regions' leases and loads in NATS\n"
+      "KV), where it joins as a new player.\n\nOptions");
   desc.add_options()  //
       ("help", "this text")  //
       ("nats", po::value(&o.nats_url), "NATS server URL of the world (e.g. nats://127.0.0.1:4222); required")  //

@@ -474,6 +474,12 @@ void nats_node::heartbeat_loop() {
       if (s == NATS_OK) {
         lease_revision_ = rev;
         world_confirmed_ = true;
+        if (served_.load()) {
+          // The load a gate balances logins by, beside the lease (its TTL: gone with the zone).
+          const std::string load = std::to_string(players_.load()) + " " + std::to_string(slots_.load());
+          std::uint64_t lrev = 0;
+          kvStore_PutString(&lrev, lease_, ("p." + std::to_string(region_)).c_str(), load.c_str());
+        }
       } else if (s == NATS_ERR || s == NATS_NOT_FOUND) {
         // The update was refused (wrong last revision): the key read back tells why. Timeouts
         // and a lost connection are transient: the next renewal tries again.
@@ -1532,6 +1538,7 @@ std::optional<std::map<global_id, std::pair<std::uint32_t, std::uint64_t>>> read
 
 std::optional<std::map<std::uint32_t, lease_info>> read_leases(__kvStore* kv, std::string* error) {
   std::map<std::uint32_t, lease_info> out;
+  std::map<std::uint32_t, std::string> loads;  // "p.<region>"
   kvKeysList keys{};
   const natsStatus ks = kvStore_Keys(&keys, kv, nullptr);
   if (ks == NATS_NOT_FOUND) return out;  // no lease at all
@@ -1541,6 +1548,13 @@ std::optional<std::map<std::uint32_t, lease_info>> read_leases(__kvStore* kv, st
   }
   for (int i = 0; i < keys.Count; ++i) {
     const std::string k = keys.Keys[i];
+    if (k.rfind("p.", 0) == 0) {
+      kvEntry* e = nullptr;
+      if (kvStore_Get(&e, kv, k.c_str()) != NATS_OK) continue;
+      loads[static_cast<std::uint32_t>(std::strtoul(k.c_str() + 2, nullptr, 10))] = kvEntry_ValueString(e);
+      kvEntry_Destroy(e);
+      continue;
+    }
     if (k.rfind("r.", 0) != 0) continue;
     kvEntry* e = nullptr;
     if (kvStore_Get(&e, kv, k.c_str()) != NATS_OK) continue;  // lapsed since the listing
@@ -1559,6 +1573,17 @@ std::optional<std::map<std::uint32_t, lease_info>> read_leases(__kvStore* kv, st
     out[static_cast<std::uint32_t>(std::strtoul(k.c_str() + 2, nullptr, 10))] = l;
   }
   kvKeysList_Destroy(&keys);
+  for (const auto& [region, text] : loads) {
+    const auto it = out.find(region);
+    if (it == out.end()) continue;
+    std::istringstream in(text);
+    std::int64_t players = 0, slots = 0;
+    if (in >> players >> slots && players >= 0 && slots >= 0) {
+      it->second.players = players;
+      it->second.slots = slots;
+      it->second.load_raw = text;
+    }
+  }
   return out;
 }
 

@@ -193,6 +193,10 @@ class nats_node final : public zone_extension {
   [[nodiscard]] bool owns(entity_id e) const override { return link_->owns(e); }
   void forward_input(entity_id e, const vec3& intent, std::uint32_t sequence) override;
   [[nodiscard]] bool must_stop() const override { return lease_lost_.load(); }
+  void clients(std::size_t players, std::size_t slots) override {
+    players_ = players;
+    slots_ = slots;
+  }
 
   /// Testing hook (tests/world/test_world_nats.cpp): one round of the sender thread for `r` (the
   /// ownership CAS with its read-back, then the publish) on the calling thread, the first
@@ -334,6 +338,8 @@ class nats_node final : public zone_extension {
   std::vector<handoff_record> to_restore_;  ///< join -> the first before_step
   bool crashed_ = false;
   std::atomic<bool> served_{false};  ///< started() was called: the zone served its region
+  /// clients(): told with the lease as key "p.<region>" = "players slots" (the gate's load).
+  std::atomic<std::size_t> players_{0}, slots_{0};
 
   std::thread heartbeat_, fetcher_, sender_, checkpointer_;
   std::mt19937_64 rng_{std::random_device{}()};
@@ -398,6 +404,11 @@ struct lease_info {
   std::uint16_t port = 0;
   std::uint32_t incarnation = 0;  ///< 0: not parsed ("claiming")
   std::string raw;                ///< the value as stored
+  /// The zone's load, as its heartbeat last told it (key "p.<region>" beside the lease): players
+  /// and player slots; -1 and 0 when it told none.
+  std::int64_t players = -1;
+  std::int64_t slots = 0;
+  std::string load_raw;  ///< that key's value as stored (empty: none)
 };
 /// The world's leases: region -> lease (a region whose lease lapsed, or never claimed, is absent).
 [[nodiscard]] std::optional<std::map<std::uint32_t, lease_info>> read_leases(const std::string& url,

@@ -840,6 +840,7 @@ void zone_server::tick_once() {
       net_.send(se->second, net::make_shared_frame(encoder_.encode(net::redirect_msg{r.host, r.port, r.token})),
                 net::delivery::control);
     }
+    ext_->clients(clients_.size(), cfg_.max_clients);
     if (ext_->must_stop()) stop();
   }
   if (!engine_failure_logged_ && !world_->tracker().engine_error().empty()) {

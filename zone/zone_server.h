@@ -99,6 +99,12 @@ class zone_extension {
   /// list cleared. Clients holding them with the old class are resynced after the step, as for
   /// a player's own switch.
   virtual void take_class_changes(std::vector<class_change>& out) { (void)out; }
+  /// After each step: the zone's players (clients that joined) and its player slots
+  /// (--max-clients). A world tells them to its gate, which sends logins to the least loaded zone.
+  virtual void clients(std::size_t players, std::size_t slots) {
+    (void)players;
+    (void)slots;
+  }
   /// The zone must stop (e.g. it lost its region's lease): the loop ends.
   [[nodiscard]] virtual bool must_stop() const { return false; }
 };

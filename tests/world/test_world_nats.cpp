@@ -482,22 +482,36 @@ TEST_SUITE("world.nats") {
     CHECK(c.notes[0].find("region 1 answered by incarnation 1 without a lease") != std::string::npos);
   }
 
-  TEST_CASE("gate_pick: round robin over the regions whose lease names an address") {
-    const auto lease = [](std::uint16_t port, std::uint32_t inc) {
-      return lease_info{"127.0.0.1", port, inc, "127.0.0.1 " + std::to_string(port) + " " + std::to_string(inc)};
+  TEST_CASE("gate_pick: the least loaded zone that serves and has room; ties and zones without a load in turn") {
+    const auto lease = [](std::uint16_t port, std::uint32_t inc, std::int64_t players = -1, std::int64_t slots = 0) {
+      lease_info l{"127.0.0.1", port, inc, "127.0.0.1 " + std::to_string(port) + " " + std::to_string(inc)};
+      l.players = players, l.slots = slots;
+      return l;
     };
+    const auto port_of = [](const auto& pick) { return pick ? pick->second.port : std::uint16_t{0}; };
     std::map<std::uint32_t, lease_info> leases;
     CHECK_FALSE(gate_pick(leases, 0).has_value());  // no zone serves
     leases[0] = lease_info{"", 0, 0, "claiming"};   // joining
     leases[1] = lease(0, 2);                        // claimed, its server not listening yet
     CHECK_FALSE(gate_pick(leases, 5).has_value());
+    // No load told: round robin.
     leases[2] = lease(7002, 1);
     leases[3] = lease(7003, 4);
     std::map<std::uint16_t, int> seen;
-    for (std::uint64_t n = 0; n < 10; ++n) ++seen[gate_pick(leases, n)->port];
+    for (std::uint64_t n = 0; n < 10; ++n) ++seen[port_of(gate_pick(leases, n))];
     CHECK(seen == std::map<std::uint16_t, int>{{7002, 5}, {7003, 5}});
-    CHECK(gate_pick(leases, 0)->port == 7002);
-    CHECK(gate_pick(leases, 1)->port == 7003);
+    CHECK(gate_pick(leases, 0)->first == 2);
+    CHECK(gate_pick(leases, 1)->first == 3);
+    // Loads told: the least loaded, counting what was sent since; a full one skipped.
+    leases[2] = lease(7002, 1, 40, 100);
+    leases[3] = lease(7003, 4, 10, 100);
+    CHECK(port_of(gate_pick(leases, 0)) == 7003);
+    CHECK(port_of(gate_pick(leases, 0, {{3, 29}})) == 7003);  // 39 < 40
+    CHECK(port_of(gate_pick(leases, 0, {{3, 30}})) == 7002);  // a tie (40, 40): round robin from n
+    CHECK(port_of(gate_pick(leases, 1, {{3, 30}})) == 7003);
+    leases[3] = lease(7003, 4, 100, 100);  // full
+    for (std::uint64_t n = 0; n < 4; ++n) CHECK(port_of(gate_pick(leases, n)) == 7002);
+    CHECK_FALSE(gate_pick(leases, 0, {{2, 60}}).has_value());  // 40 + 60: both full
   }
 
   TEST_CASE("judge_lease_readback: our value renews on, no key is a lapse, another value is a take-over") {
@@ -714,6 +728,30 @@ TEST_SUITE("world.nats") {
     CHECK(sent.size() == 2);
     CHECK(sent.count(7000) == 1);
     CHECK(sent.count(7001) == 1);
+    // The zones tell their load beside their leases (players, slots): the gate's choice.
+    zones[0]->node->clients(7, 10);
+    zones[1]->node->clients(2, 10);
+    std::string lerr;
+    std::optional<std::map<std::uint32_t, lease_info>> leases;
+    for (const auto until = std::chrono::steady_clock::now() + 3s; std::chrono::steady_clock::now() < until;) {
+      leases = read_leases(ns.url, "gate", &lerr);
+      REQUIRE_MESSAGE(leases.has_value(), lerr);
+      if (leases->size() == 2 && leases->at(0).players == 7 && leases->at(1).players == 2) break;
+      std::this_thread::sleep_for(50ms);
+    }
+    REQUIRE(leases->size() == 2);
+    CHECK(leases->at(0).players == 7);
+    CHECK(leases->at(0).slots == 10);
+    CHECK(leases->at(1).players == 2);
+    std::this_thread::sleep_for(300ms);  // the gate has read them too
+    // The least loaded first: region 1 until it carries as many (2 + 5 = 7), then in turn.
+    std::vector<std::uint16_t> order;
+    for (int k = 0; k < 5; ++k) {
+      m = only(ask_gate(gate.port, hello));
+      REQUIRE(std::holds_alternative<net::redirect_msg>(m));
+      order.push_back(std::get<net::redirect_msg>(m).port);
+    }
+    CHECK(order == std::vector<std::uint16_t>(5, 7001));
     // A first frame that is not a hello, bytes that are not a frame, and silence past the hello
     // timeout: an error each, then the connection closed.
     m = only(ask_gate(gate.port, net::encode_frame(net::ping_msg{1})));
@@ -739,7 +777,7 @@ TEST_SUITE("world.nats") {
     gate.proc->terminate(5000ms);
     const std::string log = gate.log();
     CHECK_MESSAGE(log.find("refused for want of a zone") != std::string::npos, log);
-    CHECK(std::regex_search(log, std::regex(R"(world gate: [2-9][0-9]* logins redirected, [1-9][0-9]* refused for want of a zone, 2 bad, 1 timed out, 0 refused \(full\), 1 refused \(over --max-per-address\))")));
+    CHECK(std::regex_search(log, std::regex(R"(world gate: [1-9][0-9]* logins redirected, [1-9][0-9]* refused for want of a zone, 2 bad, 1 timed out, 0 refused \(full\), 1 refused \(over --max-per-address\))")));
   }
 
   TEST_CASE("regions are claimed by CAS: one zone each, a full world refuses, leaving frees a region") {
