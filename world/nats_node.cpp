@@ -445,11 +445,8 @@ void nats_node::refresh_addresses() {
     const natsStatus s = kvStore_Get(&e, lease_, ("r." + std::to_string(r)).c_str());
     if (s == NATS_NOT_FOUND) table[r] = {std::string(), 0};  // nobody holds the region now
     if (s != NATS_OK) continue;  // unreadable (NATS unreachable): the address known before stays
-    std::istringstream in(kvEntry_ValueString(e));
-    std::string host;
-    unsigned port = 0;
-    table[r] = in >> host >> port && port <= 65535 ? std::pair{host, static_cast<std::uint16_t>(port)}
-                                                   : std::pair{std::string(), std::uint16_t{0}};
+    const lease_info l = parse_lease(kvEntry_ValueString(e));
+    table[r] = {l.host, l.port};
     kvEntry_Destroy(e);
   }
   std::lock_guard lock(addr_mutex_);
@@ -1481,23 +1478,44 @@ running_zones read_running(const std::vector<census_entry>& census, std::uint32_
   return out;
 }
 
+namespace {
+
+/// A connection of its own to one KV bucket, for the tools that read a world from outside it
+/// (world-check: read_owners, read_leases); closed when it goes.
+struct kv_reader {
+  natsConnection* nc = nullptr;
+  jsCtx* js = nullptr;
+  kvStore* kv = nullptr;
+  kv_reader() = default;
+  kv_reader(const kv_reader&) = delete;
+  kv_reader& operator=(const kv_reader&) = delete;
+  ~kv_reader() {
+    if (kv) kvStore_Destroy(kv);
+    if (js) jsCtx_Destroy(js);
+    if (nc) natsConnection_Destroy(nc);
+  }
+  /// Opens `bucket` at `url`; why not (`missing`: what to say when there is no such bucket).
+  std::optional<std::string> open(const std::string& url, const std::string& bucket, const std::string& missing) {
+    if (natsStatus s = natsConnection_ConnectTo(&nc, url.c_str()); s != NATS_OK) return "cannot connect: " + status_text(s);
+    if (natsConnection_JetStream(&js, nc, nullptr) != NATS_OK) return std::string("no JetStream");
+    if (js_KeyValue(&kv, js, bucket.c_str()) != NATS_OK) return missing;
+    return std::nullopt;
+  }
+};
+
+}  // namespace
+
 std::optional<std::map<global_id, std::pair<std::uint32_t, std::uint64_t>>> read_owners(const std::string& url,
                                                                                         const std::string& world,
                                                                                         std::string* error,
                                                                                         const std::vector<global_id>* only) {
-  natsConnection* nc = nullptr;
-  jsCtx* js = nullptr;
-  kvStore* kv = nullptr;
   const auto fail = [&](const std::string& why) {
     if (error) *error = why;
-    if (kv) kvStore_Destroy(kv);
-    if (js) jsCtx_Destroy(js);
-    if (nc) natsConnection_Destroy(nc);
     return std::nullopt;
   };
-  if (natsStatus s = natsConnection_ConnectTo(&nc, url.c_str()); s != NATS_OK) return fail("cannot connect: " + status_text(s));
-  if (natsConnection_JetStream(&js, nc, nullptr) != NATS_OK) return fail("no JetStream");
-  if (js_KeyValue(&kv, js, ("world-" + world).c_str()) != NATS_OK) return fail("no world '" + world + "' in KV");
+  kv_reader r;
+  if (auto why = r.open(url, "world-" + world, "no world '" + world + "' in KV")) return fail(*why);
+  kvStore* kv = r.kv;
   std::map<global_id, std::pair<std::uint32_t, std::uint64_t>> out;
   // One record; a read that fails for another reason than "no such key" (a timeout on a loaded
   // host) is tried again: a record silently skipped would read as a missing one.
@@ -1530,10 +1548,22 @@ std::optional<std::map<global_id, std::pair<std::uint32_t, std::uint64_t>>> read
       return fail("cannot list keys: " + status_text(ks));
     }
   }
-  kvStore_Destroy(kv);
-  jsCtx_Destroy(js);
-  natsConnection_Destroy(nc);
   return out;
+}
+
+lease_info parse_lease(std::string raw) {
+  lease_info l;
+  std::istringstream in(raw);
+  unsigned port = 0;
+  std::uint32_t inc = 0;
+  if (in >> l.host >> port >> inc && port <= 0xffff) {
+    l.port = static_cast<std::uint16_t>(port);
+    l.incarnation = inc;
+  } else {
+    l.host.clear();
+  }
+  l.raw = std::move(raw);
+  return l;
 }
 
 std::optional<std::map<std::uint32_t, lease_info>> read_leases(__kvStore* kv, std::string* error) {
@@ -1548,29 +1578,18 @@ std::optional<std::map<std::uint32_t, lease_info>> read_leases(__kvStore* kv, st
   }
   for (int i = 0; i < keys.Count; ++i) {
     const std::string k = keys.Keys[i];
-    if (k.rfind("p.", 0) == 0) {
-      kvEntry* e = nullptr;
-      if (kvStore_Get(&e, kv, k.c_str()) != NATS_OK) continue;
-      loads[static_cast<std::uint32_t>(std::strtoul(k.c_str() + 2, nullptr, 10))] = kvEntry_ValueString(e);
-      kvEntry_Destroy(e);
-      continue;
-    }
-    if (k.rfind("r.", 0) != 0) continue;
+    const bool lease = k.rfind("r.", 0) == 0, load = k.rfind("p.", 0) == 0;
+    if (!lease && !load) continue;
     kvEntry* e = nullptr;
     if (kvStore_Get(&e, kv, k.c_str()) != NATS_OK) continue;  // lapsed since the listing
-    lease_info l;
-    l.raw = kvEntry_ValueString(e);
+    const std::string value = kvEntry_ValueString(e);
     kvEntry_Destroy(e);
-    std::istringstream in(l.raw);
-    unsigned port = 0;
-    std::uint32_t inc = 0;
-    if (in >> l.host >> port >> inc && port <= 0xffff) {
-      l.port = static_cast<std::uint16_t>(port);
-      l.incarnation = inc;
+    const auto region = static_cast<std::uint32_t>(std::strtoul(k.c_str() + 2, nullptr, 10));
+    if (lease) {
+      out[region] = parse_lease(value);
     } else {
-      l.host.clear();
+      loads[region] = value;
     }
-    out[static_cast<std::uint32_t>(std::strtoul(k.c_str() + 2, nullptr, 10))] = l;
   }
   kvKeysList_Destroy(&keys);
   for (const auto& [region, text] : loads) {
@@ -1589,26 +1608,12 @@ std::optional<std::map<std::uint32_t, lease_info>> read_leases(__kvStore* kv, st
 
 std::optional<std::map<std::uint32_t, lease_info>> read_leases(const std::string& url, const std::string& world,
                                                                std::string* error) {
-  natsConnection* nc = nullptr;
-  jsCtx* js = nullptr;
-  kvStore* kv = nullptr;
-  const auto done = [&] {
-    if (kv) kvStore_Destroy(kv);
-    if (js) jsCtx_Destroy(js);
-    if (nc) natsConnection_Destroy(nc);
-  };
-  std::optional<std::map<std::uint32_t, lease_info>> out;
-  if (natsStatus s = natsConnection_ConnectTo(&nc, url.c_str()); s != NATS_OK) {
-    if (error) *error = "cannot connect: " + status_text(s);
-  } else if (natsConnection_JetStream(&js, nc, nullptr) != NATS_OK) {
-    if (error) *error = "no JetStream";
-  } else if (js_KeyValue(&kv, js, ("world-" + world + "-lease").c_str()) != NATS_OK) {
-    if (error) *error = "no world '" + world + "' leases in KV";
-  } else {
-    out = read_leases(kv, error);
+  kv_reader r;
+  if (auto why = r.open(url, "world-" + world + "-lease", "no world '" + world + "' leases in KV")) {
+    if (error) *error = *why;
+    return std::nullopt;
   }
-  done();
-  return out;
+  return read_leases(r.kv, error);
 }
 
 lease_check check_leases(const std::vector<census_entry>& census, const std::map<std::uint32_t, lease_info>& leases) {

@@ -410,6 +410,8 @@ struct lease_info {
   std::int64_t slots = 0;
   std::string load_raw;  ///< that key's value as stored (empty: none)
 };
+/// A lease's value read: host, port and incarnation, or (anything else: "claiming") only `raw`.
+[[nodiscard]] lease_info parse_lease(std::string raw);
 /// The world's leases: region -> lease (a region whose lease lapsed, or never claimed, is absent).
 [[nodiscard]] std::optional<std::map<std::uint32_t, lease_info>> read_leases(const std::string& url,
                                                                              const std::string& world,
