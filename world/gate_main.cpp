@@ -14,7 +14,6 @@
 #include <spdlog/spdlog.h>
 
 #include <array>
-#include <atomic>
 #include <boost/asio.hpp>
 #include <boost/program_options.hpp>
 #include <chrono>
@@ -46,7 +45,7 @@ struct gate_options {
 };
 
 struct gate_counters {
-  std::atomic<std::uint64_t> redirected{0}, no_zone{0}, refused_full{0}, refused_address{0}, bad{0}, timeouts{0};
+  std::uint64_t redirected = 0, no_zone = 0, refused_full = 0, refused_address = 0, bad = 0, timeouts = 0;
 };
 
 /// The leases as last read, and the NATS connection that reads them (its own thread).
@@ -116,28 +115,40 @@ class lease_table {
   std::thread thread_;
 };
 
-/// Per region: the load its zone told last (as stored) and the logins sent there since (the event
-/// loop's thread only).
-std::map<std::uint32_t, std::pair<std::string, std::uint64_t>> sent_by_region;
+/// What the gate's sessions share; the event loop's thread only (one thread runs it).
+struct gate_state {
+  const gate_options& o;
+  const lease_table& table;
+  gate_counters c;
+  std::uint64_t logins = 0;  ///< hellos answered with a pick (gate_pick's round robin)
+  std::size_t open = 0;      ///< sessions held
+  std::map<asio::ip::address, std::size_t> per_address;  ///< sessions held per client address
+  /// Per region: the load its zone told last (as stored), and the logins sent there since.
+  std::map<std::uint32_t, std::string> told;
+  std::map<std::uint32_t, std::uint64_t> sent;
+};
 
 /// One client: its hello, then a redirect (or an error), then closed.
 class gate_session : public std::enable_shared_from_this<gate_session> {
  public:
-  gate_session(tcp::socket s, const gate_options& o, const lease_table& t, gate_counters& c, std::atomic<std::uint64_t>& n,
-               std::atomic<std::size_t>& open, std::map<asio::ip::address, std::size_t>& per_address,
-               asio::ip::address from)
-      : sock_(std::move(s)), timer_(sock_.get_executor()), o_(o), table_(t), c_(c), n_(n), open_(open),
-        per_address_(per_address), from_(std::move(from)), dec_(net::decoder_options{.max_frame_bytes = 4096}) {}
+  gate_session(tcp::socket s, gate_state& g, asio::ip::address from)
+      : sock_(std::move(s)), timer_(sock_.get_executor()), g_(g), from_(std::move(from)),
+        dec_(net::decoder_options{.max_frame_bytes = 4096}) {
+    ++g_.open;
+    ++g_.per_address[from_];
+  }
   ~gate_session() {
-    open_.fetch_sub(1);
-    if (const auto it = per_address_.find(from_); it != per_address_.end() && --it->second == 0) per_address_.erase(it);
+    --g_.open;
+    if (const auto it = g_.per_address.find(from_); it != g_.per_address.end() && --it->second == 0) {
+      g_.per_address.erase(it);
+    }
   }
   void start() {
     timer_.expires_after(std::chrono::duration_cast<std::chrono::steady_clock::duration>(
-        std::chrono::duration<double>(o_.hello_timeout_s)));
+        std::chrono::duration<double>(g_.o.hello_timeout_s)));
     timer_.async_wait([self = shared_from_this()](const boost::system::error_code& ec) {
       if (ec || self->done_) return;
-      self->c_.timeouts.fetch_add(1);
+      ++self->g_.c.timeouts;
       self->reply(net::error_msg{net::error_code::timeout, "no hello within the gate's hello timeout"});
     });
     read();
@@ -166,34 +177,31 @@ class gate_session : public std::enable_shared_from_this<gate_session> {
     const auto step = dec_.next();
     if (step.needs_more()) return read();
     if (step.is_error() || step.frame.type != net::wire::message::hello) {
-      c_.bad.fetch_add(1);
+      ++g_.c.bad;
       reply(net::error_msg{step.is_error() ? net::error_code::bad_frame : net::error_code::unexpected_message,
                            "the gate takes one hello, then redirects to a zone"});
       return;
     }
     const auto* h = step.frame.envelope->message_as_hello();
     if (h && h->protocol_version() != net::protocol_version) {
-      c_.bad.fetch_add(1);
+      ++g_.c.bad;
       reply(net::error_msg{net::error_code::protocol_version, "this world speaks protocol version " +
                                                                    std::to_string(net::protocol_version)});
       return;
     }
-    const auto leases = table_.leases();
+    const auto leases = g_.table.leases();
     // The logins sent to a region since its zone last told its load (that report counts them).
     for (const auto& [region, l] : leases) {
-      auto& [told, count] = sent_by_region[region];
-      if (told != l.load_raw) told = l.load_raw, count = 0;
+      if (auto& told = g_.told[region]; told != l.load_raw) told = l.load_raw, g_.sent[region] = 0;
     }
-    std::map<std::uint32_t, std::uint64_t> sent;
-    for (const auto& [region, s] : sent_by_region) sent[region] = s.second;
-    const auto zone = world::gate_pick(leases, n_.fetch_add(1), sent);
+    const auto zone = world::gate_pick(leases, g_.logins++, g_.sent);
     if (!zone) {
-      c_.no_zone.fetch_add(1);
-      reply(net::error_msg{net::error_code::server_full, "no zone of world '" + o_.world + "' serves or has room now"});
+      ++g_.c.no_zone;
+      reply(net::error_msg{net::error_code::server_full, "no zone of world '" + g_.o.world + "' serves or has room now"});
       return;
     }
-    ++sent_by_region[zone->first].second;
-    c_.redirected.fetch_add(1);
+    ++g_.sent[zone->first];
+    ++g_.c.redirected;
     reply(net::redirect_msg{zone->second.host, zone->second.port, ""});
   }
   void reply(const net::message& m) {
@@ -234,12 +242,7 @@ class gate_session : public std::enable_shared_from_this<gate_session> {
   }
   tcp::socket sock_;
   asio::steady_timer timer_;
-  const gate_options& o_;
-  const lease_table& table_;
-  gate_counters& c_;
-  std::atomic<std::uint64_t>& n_;
-  std::atomic<std::size_t>& open_;
-  std::map<asio::ip::address, std::size_t>& per_address_;  ///< the event loop's thread only
+  gate_state& g_;
   asio::ip::address from_;
   net::frame_decoder dec_;
   std::vector<std::uint8_t> out_;
@@ -247,38 +250,29 @@ class gate_session : public std::enable_shared_from_this<gate_session> {
   bool done_ = false, reading_ = false;
 };
 
-/// Connections held per client address (the event loop's thread only).
-std::map<asio::ip::address, std::size_t> per_address;
-
-void accept(tcp::acceptor& a, asio::steady_timer& pause, const gate_options& o, const lease_table& t, gate_counters& c,
-            std::atomic<std::uint64_t>& n, std::atomic<std::size_t>& open) {
+void accept(tcp::acceptor& a, asio::steady_timer& pause, gate_state& g) {
   a.async_accept([&](const boost::system::error_code& ec, tcp::socket s) {
     if (ec == asio::error::operation_aborted) return;
     if (ec) {  // out of descriptors, say: accept again in a moment, not in a busy loop
       pause.expires_after(std::chrono::milliseconds(100));
       pause.async_wait([&](const boost::system::error_code& e) {
-        if (!e) accept(a, pause, o, t, c, n, open);
+        if (!e) accept(a, pause, g);
       });
       return;
     }
-    {
-      boost::system::error_code ignored;
-      const auto peer = s.remote_endpoint(ignored);
-      const auto from = peer.address();
-      if (open.load() >= o.max_connections) {
-        c.refused_full.fetch_add(1);
-        s.close(ignored);
-      } else if (per_address[from] >= o.max_per_address) {
-        c.refused_address.fetch_add(1);
-        s.close(ignored);
-      } else {
-        ++per_address[from];
-        open.fetch_add(1);
-        s.set_option(tcp::no_delay(true), ignored);
-        std::make_shared<gate_session>(std::move(s), o, t, c, n, open, per_address, from)->start();
-      }
+    boost::system::error_code ignored;
+    const auto from = s.remote_endpoint(ignored).address();
+    if (g.open >= g.o.max_connections) {
+      ++g.c.refused_full;
+      s.close(ignored);
+    } else if (const auto it = g.per_address.find(from); it != g.per_address.end() && it->second >= g.o.max_per_address) {
+      ++g.c.refused_address;
+      s.close(ignored);
+    } else {
+      s.set_option(tcp::no_delay(true), ignored);
+      std::make_shared<gate_session>(std::move(s), g, from)->start();
     }
-    accept(a, pause, o, t, c, n, open);
+    accept(a, pause, g);
   });
 }
 
@@ -336,9 +330,7 @@ int main(int argc, char** argv) {
     return 1;
   }
   // Declared before the event loop: sessions still held when it is destroyed count themselves out.
-  gate_counters c;
-  std::atomic<std::uint64_t> n{0};
-  std::atomic<std::size_t> open{0};
+  gate_state g{o, table};
   asio::io_context io;
   tcp::acceptor acceptor(io);
   asio::steady_timer pause(io);
@@ -357,7 +349,7 @@ int main(int argc, char** argv) {
     spdlog::critical("world gate: cannot listen on {}:{}: {}", o.listen, o.port, ec.message());
     return 1;
   }
-  accept(acceptor, pause, o, table, c, n, open);
+  accept(acceptor, pause, g);
   asio::signal_set signals(io, SIGINT, SIGTERM);
   signals.async_wait([&](const boost::system::error_code&, int) {
     acceptor.close();
@@ -371,7 +363,6 @@ int main(int argc, char** argv) {
   spdlog::info(
       "world gate: {} logins redirected, {} refused for want of a zone, {} bad, {} timed out, {} refused (full), {} "
       "refused (over --max-per-address)",
-      c.redirected.load(), c.no_zone.load(), c.bad.load(), c.timeouts.load(), c.refused_full.load(),
-      c.refused_address.load());
+      g.c.redirected, g.c.no_zone, g.c.bad, g.c.timeouts, g.c.refused_full, g.c.refused_address);
   return 0;
 }
