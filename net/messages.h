@@ -107,6 +107,9 @@ struct welcome_msg {
   /// This server process: a random number drawn at its start, never 0 (0: an older server). A
   /// client tells a restarted server on the same address from the one it knew by it.
   std::uint64_t instance = 0;
+  /// A world of zones: the token to say in a hello (at the world's gate, or the zone now serving
+  /// the region) to get this entity back after its zone was lost; empty: none (a single zone).
+  std::string resume_token;
   friend bool operator==(const welcome_msg&, const welcome_msg&) = default;
 };
 /// Full state of an entity entering a view.

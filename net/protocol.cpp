@@ -63,8 +63,11 @@ flatbuffers::Offset<void> build_body(flatbuffers::FlatBufferBuilder& fbb, const 
                                             r.byte_budget, r.send_every, r.digest_every, r.max_speed, r.allow_stealth,
                                             r.teams, r.visibility_cooldown);
           }
+          const auto resume = msg.resume_token.empty() ? flatbuffers::Offset<flatbuffers::String>()
+                                                       : fbb.CreateString(msg.resume_token);
           return w::Createwelcome(fbb, msg.entity_id, &world, msg.tick_rate_hz, msg.server_tick, msg.protocol_version,
-                                  spawn ? &*spawn : nullptr, msg.host_clock, rules, msg.oracle_port, msg.instance)
+                                  spawn ? &*spawn : nullptr, msg.host_clock, rules, msg.oracle_port, msg.instance,
+                                  resume)
               .Union();
         } else if constexpr (std::is_same_v<T, tick_update_msg>) {
           std::vector<flatbuffers::Offset<w::entity_state>> enters;
@@ -449,6 +452,7 @@ std::optional<message> to_message(const w::envelope& env) {
       }
       out.oracle_port = m->oracle_port();
       out.instance = m->instance();
+      if (const auto* t = m->resume_token()) out.resume_token = t->str();
       return out;
     }
     case w::message::tick_update: {

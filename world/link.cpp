@@ -134,6 +134,27 @@ float half_dq(std::uint16_t q) { return static_cast<float>(q) / 16.0f; }
 
 }  // namespace
 
+std::optional<std::uint64_t> parse_token(std::string_view token) {
+  if (token.size() != 16) return std::nullopt;
+  std::uint64_t v = 0;
+  for (const char c : token) {
+    const int d = c >= '0' && c <= '9'   ? c - '0'
+                  : c >= 'a' && c <= 'f' ? c - 'a' + 10
+                  : c >= 'A' && c <= 'F' ? c - 'A' + 10
+                                         : -1;
+    if (d < 0) return std::nullopt;
+    v = v << 4 | static_cast<std::uint64_t>(d);
+  }
+  if (v == 0) return std::nullopt;
+  return v;
+}
+
+std::optional<std::uint32_t> token_region(std::string_view token) {
+  const auto v = parse_token(token);
+  if (!v || (*v >> 48) == 0) return std::nullopt;
+  return static_cast<std::uint32_t>(*v >> 48) - 1;
+}
+
 std::vector<std::uint8_t> encode(const ghost_message& m) {
   std::vector<std::uint8_t> out;
   out.reserve(ghost_header_bytes + m.entries.size() * ghost_entry_bytes + m.removed.size() * 8);
@@ -768,7 +789,8 @@ handoff_status zone_link::apply_handoff(zone_world& w, const handoff_record& r, 
   return handoff_status::adopted;
 }
 
-void zone_link::checkpoint(const zone_world& w, std::vector<handoff_record>& out) const {
+void zone_link::checkpoint(const zone_world& w, std::vector<handoff_record>& out,
+                           const std::unordered_map<entity_id, std::uint64_t>* resume) const {
   // Down the store's dense columns (the game thread pays this copy once a checkpoint).
   out.clear();
   const auto& s = w.store();
@@ -785,7 +807,14 @@ void zone_link::checkpoint(const zone_world& w, std::vector<handoff_record>& out
     const slot_info* i = info(ids[k]);
     if (i == nullptr || i->what != role::owned) continue;
     const auto state = w.behaviour_state_of(ids[k]);
-    if (!state || state->kind == behaviour::player) continue;
+    if (!state) continue;
+    std::uint64_t token = 0;
+    if (state->kind == behaviour::player) {
+      if (resume == nullptr) continue;
+      const auto t = resume->find(ids[k]);
+      if (t == resume->end()) continue;
+      token = t->second;
+    }
     handoff_record& r = out.emplace_back();
     r.gid = i->gid;
     r.epoch = i->epoch;
@@ -794,6 +823,7 @@ void zone_link::checkpoint(const zone_world& w, std::vector<handoff_record>& out
     r.behaviour = *state;
     r.owner_revision = i->revision;
     r.sent_tick = w.tick();
+    r.token = token;
   }
 }
 

@@ -762,10 +762,11 @@ void nats_node::read_checkpoint() {
       std::uint64_t pending = 0;
       jsMsgMetaData* meta = nullptr;
       if (natsMsg_GetMetaData(&meta, hm) == NATS_OK) pending = meta->NumPending, jsMsgMetaData_Destroy(meta);
-      // Players left out, as from the checkpoint: one on its way comes with its token from the
-      // region's consumer (its client follows the redirect); one adopted here logs in again.
-      if (auto r = decode_handoff(bytes(hm));
-          r && r->to == region_ && r->behaviour.kind != behaviour::player && !have.contains(r->gid)) {
+      // A player's record comes with its redirect token, which its client kept as its resume
+      // token (the zone it was adopted by told it so): restored, it waits for that client.
+      if (auto r = decode_handoff(bytes(hm)); r && r->to == region_ &&
+                                              (r->behaviour.kind != behaviour::player || r->token != 0) &&
+                                              !have.contains(r->gid)) {
         auto [it, fresh] = since.emplace(r->gid, *r);
         if (!fresh && it->second.epoch < r->epoch) it->second = std::move(*r);
       }
@@ -778,11 +779,15 @@ void nats_node::read_checkpoint() {
   for (auto& [g, r] : since) {
     if (r.epoch > 0 && ours(r)) {  // a handoff's record has an epoch of 1 or more, and KV its record
       r.from = region_;
-      r.token = 0;
+      if (r.behaviour.kind != behaviour::player) r.token = 0;
       r.visible.clear();
       records.push_back(std::move(r));
       ++from_records;
     }
+  }
+  // A player stands still until its client is back (its last input was given seconds ago).
+  for (auto& r : records) {
+    if (r.behaviour.kind == behaviour::player) r.behaviour.intent = {};
   }
   have_checkpoint_ = true;
   stats_.restore_skipped = skipped;
@@ -1148,16 +1153,27 @@ void nats_node::before_step(zone_world& w) {
   tick_ = w.tick();
   if (!to_restore_.empty()) {
     // The region's checkpoint (read at the join): its entities back, with their ids and epochs.
-    std::uint64_t back = 0, no_room = 0;
+    std::uint64_t back = 0, no_room = 0, players = 0;
+    const auto wait = static_cast<std::uint64_t>(opt_.resume_s * tick_rate_hz_);
     for (const auto& r : to_restore_) {
       const auto st = link_->restore(w, r);
       back += st == handoff_status::adopted;
       no_room += st == handoff_status::no_room;
+      if (st == handoff_status::adopted && r.behaviour.kind == behaviour::player && r.token != 0) {
+        tokens_[r.token] = {r.gid, tick_ + wait, true};  // its client comes back with it (resume)
+        resume_[link_->local_of(r.gid)] = r.token;       // and the next checkpoint keeps it waiting
+        ++players;
+      }
     }
+    stats_.players_restored += players;
+    restored_waiting_ = players;
+    restored_tick_ = tick_;
     stats_.restore_skipped += to_restore_.size() - back;
     if (no_room)
       spdlog::error("world '{}': {} entities of the checkpoint did not fit in the zone: lost", opt_.world, no_room);
-    spdlog::info("world '{}': {} entities restored from region {}'s checkpoint", opt_.world, back, region_);
+    spdlog::info(
+        "world '{}': {} entities restored from region {}'s checkpoint ({} players waiting {:.0f} s for their clients)",
+        opt_.world, back, region_, players, opt_.resume_s);
     to_restore_.clear();
     to_restore_.shrink_to_fit();
   }
@@ -1181,7 +1197,10 @@ void nats_node::before_step(zone_world& w) {
         const double ms = now > r->sent_us ? static_cast<double>(now - r->sent_us) / 1000.0 : 0.0;
         handoff_ms_.record(ms);
         handoff_ticks_.record(ms * tick_rate_hz_ / 1000.0);
-        if (r->token != 0) tokens_[r->token] = {r->gid, tick_ + static_cast<std::uint64_t>(opt_.unclaimed_player_s * tick_rate_hz_)};
+        if (r->token != 0) {
+          tokens_[r->token] = {r->gid, tick_ + static_cast<std::uint64_t>(opt_.unclaimed_player_s * tick_rate_hz_)};
+          resume_[local] = r->token;  // its checkpoint record waits for the client under the same token
+        }
         if (const auto it = early_inputs_.find(r->gid); it != early_inputs_.end()) {
           w.set_intent(local, it->second.first);
           early_inputs_.erase(it);
@@ -1254,7 +1273,9 @@ void nats_node::before_step(zone_world& w) {
     if (tick_ > it->second.deadline_tick) {
       const entity_id local = link_->local_of(it->second.gid);
       if (local != null_entity && link_->owns(local) && w.despawn(local)) ++stats_.players_abandoned;
+      const bool restored = it->second.restored;
       it = tokens_.erase(it);
+      if (restored) restored_player_done();
     } else {
       ++it;
     }
@@ -1304,7 +1325,8 @@ void nats_node::after_step(zone_world& w, std::vector<redirect>& out) {
   auto records = hold ? std::vector<handoff_record>{} : link_->collect_handoffs(w, monotonic_us());
   for (auto& r : records) {
     if (r.behaviour.kind != behaviour::player) continue;
-    r.token = rng_() | 1;  // never 0
+    r.token = new_token(r.to);
+    resume_.erase(link_->local_of(r.gid));  // the new zone's client now
     pending_redirects_.push_back({link_->local_of(r.gid), r.gid, r.to, hex(r.token), tick_});
     forward_target_[r.gid] = r.to;
     if (forward_target_.size() > 100000) forward_target_.clear();
@@ -1330,7 +1352,10 @@ void nats_node::after_step(zone_world& w, std::vector<redirect>& out) {
       job.records.swap(ckpt_spare_);  // the last one's vector: no allocation, no fresh pages
     }
     const std::uint64_t t0 = monotonic_us();
-    link_->checkpoint(w, job.records);
+    // Players gone (logged out, handed off) leave the resume tokens (a handle is never reused as is).
+    std::erase_if(resume_,
+                  [&](const auto& p) { return !link_->owns(p.first) || w.behaviour_of(p.first) != behaviour::player; });
+    link_->checkpoint(w, job.records, &resume_);
     const std::uint64_t took = monotonic_us() - t0;
     if (took > stats_.checkpoint_copy_max_us.load()) stats_.checkpoint_copy_max_us = took;
     stats_.checkpoint_copy_total_us += took;
@@ -1374,17 +1399,48 @@ void nats_node::after_step(zone_world& w, std::vector<redirect>& out) {
 }
 
 zone_extension::claim nats_node::claim_token(const std::string& token, zone_world& w, entity_id& entity) {
-  char* end = nullptr;
-  const std::uint64_t t = std::strtoull(token.c_str(), &end, 16);
-  if (token.size() != 16 || end != token.c_str() + 16 || t == 0) return claim::refused;
-  const auto it = tokens_.find(t);
-  if (it == tokens_.end()) return claim::wait;  // the handoff may not have landed yet
+  const auto t = parse_token(token);
+  if (!t) return claim::refused;
+  const auto it = tokens_.find(*t);
+  if (it == tokens_.end()) return claim::wait;  // the handoff (or the region's restore) may not have landed yet
   const entity_id local = link_->local_of(it->second.gid);
+  const bool restored = it->second.restored;
   tokens_.erase(it);
   if (local == null_entity || !link_->owns(local) || w.behaviour_of(local) != behaviour::player) return claim::refused;
   entity = local;
-  ++stats_.redirect_claims;
+  resume_[local] = *t;  // the client keeps this token: it resumes with it should this zone be lost
+  ++(restored ? stats_.players_resumed : stats_.redirect_claims);
+  if (restored) {
+    resumed_after_ticks_.push_back(tick_ - restored_tick_);
+    restored_player_done();
+  }
   return claim::ready;
+}
+
+void nats_node::restored_player_done() {
+  if (restored_waiting_ == 0 || --restored_waiting_ != 0) return;
+  auto& d = resumed_after_ticks_;
+  std::sort(d.begin(), d.end());
+  const auto s = [&](std::uint64_t ticks) { return static_cast<double>(ticks) / tick_rate_hz_; };
+  spdlog::info(
+      "world '{}': the restored players: {} back with their clients (after {:.1f} s at the median, {:.1f} s at the "
+      "latest), {} removed (their client never came)",
+      opt_.world, d.size(), d.empty() ? 0.0 : s(d[d.size() / 2]), d.empty() ? 0.0 : s(d.back()),
+      stats_.players_restored.load() - d.size());
+  d.clear();
+}
+
+std::string nats_node::resume_token(entity_id e, const std::string& claimed) {
+  if (!claimed.empty()) return claimed;  // claim_token kept it
+  const std::uint64_t t = new_token(region_);
+  resume_[e] = t;
+  return hex(t);
+}
+
+std::uint64_t nats_node::new_token(std::uint32_t r) {
+  std::uint64_t low = 0;
+  while (low == 0) low = rng_() & 0xffffffffffffull;
+  return static_cast<std::uint64_t>(r + 1) << 48 | low;
 }
 
 void nats_node::forward_input(entity_id e, const vec3& intent, std::uint32_t sequence) {

@@ -55,6 +55,9 @@ struct node_options {
   float ghost_band = 0;  ///< 0: world::ghost_band(zone config)
   std::uint32_t ghost_timeout_ticks = 60;
   double unclaimed_player_s = 10;  ///< a handed-off player whose client never came is removed after this
+  /// A player restored from a checkpoint (its zone was lost) waits this long for its client to
+  /// come back with its resume token (welcome.resume_token), then is removed.
+  double resume_s = 30;
   /// Most entities the zone owns (link_options::capacity; 0: the store's capacity): a handoff
   /// into a full zone is not acked but offered again after `no_room_retry_s` (docs/world.md).
   std::size_t capacity = 0;
@@ -74,7 +77,7 @@ struct node_options {
   /// Asked between the polls of that wait: false gives up (a stop signal). Tests tick their
   /// in-process zones in it.
   std::function<bool()> keep_waiting;
-  /// How often the zone writes a checkpoint of its entities (players left out) to JetStream (0:
+  /// How often the zone writes a checkpoint of its entities (players with their resume tokens) to JetStream (0:
   /// never). A zone that claims a region restores the region's last checkpoint (whatever this
   /// says) instead of a new population: a killed zone's entities come back (docs/world.md,
   /// "Checkpoints").
@@ -100,6 +103,9 @@ struct node_stats {
   std::atomic<std::uint64_t> lease_reclaims{0};
   std::atomic<std::uint64_t> handoffs_applied{0}, handoff_duplicates{0}, redirects{0}, redirect_claims{0};
   std::atomic<std::uint64_t> inputs_forwarded{0}, inputs_received{0}, snapshot_requests{0}, players_abandoned{0};
+  /// Players restored from a checkpoint to wait for their clients, and those whose client came back
+  /// with its resume token (the others are removed after node_options::resume_s, in players_abandoned).
+  std::atomic<std::uint64_t> players_restored{0}, players_resumed{0};
   std::atomic<std::uint64_t> ghost_publish_failures{0}, ghost_inbox_dropped{0};
   std::atomic<std::uint64_t> handoffs_no_room{0};  ///< records offered to a full zone, handed back to the stream to retry
   /// NATS answers, but the world's JetStream state is gone (its lease bucket's stream not found: a
@@ -190,6 +196,7 @@ class nats_node final : public zone_extension {
   void take_class_changes(std::vector<class_change>& out) override;
   void after_step(zone_world& w, std::vector<redirect>& out) override;
   claim claim_token(const std::string& token, zone_world& w, entity_id& entity) override;
+  std::string resume_token(entity_id e, const std::string& claimed) override;
   [[nodiscard]] bool owns(entity_id e) const override { return link_->owns(e); }
   void forward_input(entity_id e, const vec3& intent, std::uint32_t sequence) override;
   [[nodiscard]] bool must_stop() const override { return lease_lost_.load(); }
@@ -346,8 +353,21 @@ class nats_node final : public zone_extension {
   struct pending_player {
     global_id gid;
     std::uint64_t deadline_tick;
+    bool restored = false;  ///< from a checkpoint: a client resuming after its zone was lost
   };
   std::unordered_map<std::uint64_t, pending_player> tokens_;                         // token -> player
+  /// Each player here with a client: the token its welcome told it (welcome.resume_token). Its
+  /// checkpoint record carries it, so the zone that restores the region knows the client again.
+  std::unordered_map<entity_id, std::uint64_t> resume_;
+  /// Restored players still waiting for their clients, the restore's tick, and how many ticks after
+  /// it each one that came back did (logged once none waits any more).
+  std::size_t restored_waiting_ = 0;
+  std::uint64_t restored_tick_ = 0;
+  std::vector<std::uint64_t> resumed_after_ticks_;
+  void restored_player_done();
+  /// A new token for a client of region r: (r + 1) << 48 | 48 random bits (never 0), so the
+  /// world's gate tells the region from the token alone (token_region).
+  [[nodiscard]] std::uint64_t new_token(std::uint32_t r);
   std::unordered_map<global_id, std::pair<vec3, std::uint32_t>> early_inputs_;       // forwarded before the entity came
   std::unordered_map<global_id, std::uint32_t> forward_target_;                     // handed-off player -> its zone
   std::vector<ghost_message> ghost_out_;

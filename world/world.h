@@ -28,6 +28,12 @@ using global_id = std::uint64_t;
   return static_cast<std::uint32_t>(g >> 32) & 0xffffu;
 }
 
+/// A client's token (a redirect's, welcome.resume_token): 16 lowercase or uppercase hex digits
+/// of (region + 1) << 48 | 48 random bits, naming the region whose zone holds the entity. The
+/// value (nullopt: not 16 hex digits, or 0) and the region it names (nullopt: none).
+[[nodiscard]] std::optional<std::uint64_t> parse_token(std::string_view token);
+[[nodiscard]] std::optional<std::uint32_t> token_region(std::string_view token);
+
 /// An axis-aligned rectangle in x, y: [lo, hi) on both axes (the last column / row also owns hi).
 struct rect {
   float lo_x = 0, lo_y = 0, hi_x = 0, hi_y = 0;
@@ -233,12 +239,14 @@ class zone_link {
   /// changes nothing (offer the record again later).
   handoff_status apply_handoff(zone_world& w, const handoff_record& r, entity_id* local = nullptr);
 
-  /// Every entity this zone owns but its players, as records to restore it from (gid, epoch,
-  /// state; from = to = this region, `owner_revision` the ownership record's revision it holds):
-  /// a checkpoint of the zone (docs/world.md, "Checkpoints"). Players are their clients' (a
-  /// client logs in again) and are left out.
+  /// Every entity this zone owns, as records to restore it from (gid, epoch, state; from = to =
+  /// this region, `owner_revision` the ownership record's revision it holds): a checkpoint of the
+  /// zone (docs/world.md, "Checkpoints"). A player is in it only with its client's resume token
+  /// from `resume` (local handle -> token; the record's `token`): the zone that restores it waits
+  /// for that client; players without one are left out.
   /// `out` is cleared first (a vector kept from the last checkpoint takes it without allocating).
-  void checkpoint(const zone_world& w, std::vector<handoff_record>& out) const;
+  void checkpoint(const zone_world& w, std::vector<handoff_record>& out,
+                  const std::unordered_map<entity_id, std::uint64_t>* resume = nullptr) const;
   /// Takes an entity back from a checkpoint of this region as owned here, with its id, epoch and
   /// ownership revision (the caller checked KV still names this region at that epoch). Refused
   /// when the id is already here or the record is another region's; no_room when the zone is full.

@@ -181,6 +181,9 @@ struct zone_config {
   std::size_t world_capacity = 0;
   /// --world-checkpoint: seconds between checkpoints of the zone's entities (0: none; docs/world.md, "Checkpoints")
   double world_checkpoint_s = 1;
+  /// A player restored from a checkpoint (its zone lost) waits this long for its client's resume
+  /// token, then is removed (docs/world.md, "Players after a zone's loss").
+  double world_resume_s = 30;
   /// --world-standby: while every region is held, wait for one whose lease lapses (a zone died)
   /// and take it over, instead of giving up after 20 s (docs/world.md, "Standbys")
   bool world_standby = false;

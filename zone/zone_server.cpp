@@ -482,7 +482,7 @@ void zone_server::drain_inputs() {
   stats_.clients = clients_.size();
 }
 
-void zone_server::welcome(net::session_id session, entity_id id, const hello_info& hello) {
+void zone_server::welcome(net::session_id session, entity_id id, const hello_info& hello, const std::string& token) {
   const auto [at, added] = clients_.try_emplace(session);
   client& c = at->second;
   if (added) {
@@ -512,6 +512,7 @@ void zone_server::welcome(net::session_id session, entity_id id, const hello_inf
   if (const auto d = world_->store().get(id)) w.rules->player_class = d->visibility_class, w.rules->player_sees = d->sees;
   w.oracle_port = oracle_port();
   w.instance = instance_;
+  if (ext_ != nullptr) w.resume_token = ext_->resume_token(id, token);
   net_.send(session, net::make_shared_frame(encoder_.encode(w)), net::delivery::control);
   // The name is client data: escaped (the server also checked it at hello), at debug.
   spdlog::debug("session {}: '{}' joined as entity {}", session, net::escape_for_log(hello.name), id);
@@ -530,9 +531,9 @@ void zone_server::retry_pending_hellos() {
     }
     pending_hellos_.erase(pending_hellos_.begin() + static_cast<std::ptrdiff_t>(k));
     if (verdict == zone_extension::claim::ready) {
-      welcome(p.session, id, p.hello);
+      welcome(p.session, id, p.hello, p.token);
     } else {
-      net_.disconnect(p.session, net::error_code::auth_failed, "unknown or expired redirect token");
+      net_.disconnect(p.session, net::error_code::auth_failed, "unknown or expired token");
     }
   }
 }

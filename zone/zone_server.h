@@ -90,6 +90,14 @@ class zone_extension {
   /// has not arrived yet: ask again next tick) or refused.
   enum class claim { ready, wait, refused };
   virtual claim claim_token(const std::string& token, zone_world& w, entity_id& entity) = 0;
+  /// A client is welcomed to entity `e`: a new player (`claimed` empty) or the one a token it said
+  /// claimed. Returns the token its welcome tells it to get the entity back with after this zone
+  /// is lost (welcome.resume_token; "": none).
+  virtual std::string resume_token(entity_id e, const std::string& claimed) {
+    (void)e;
+    (void)claimed;
+    return {};
+  }
   /// The entity is simulated here (false: another zone's, e.g. handed off after its client's last frame).
   [[nodiscard]] virtual bool owns(entity_id e) const = 0;
   /// An input for an entity handed off (its client has not moved yet): to its new zone.
@@ -206,8 +214,8 @@ class zone_server {
     bool class_changes = false;
     std::uint64_t accepted_us = 0, hello_us = 0;
   };
-  /// Binds a session to an entity (a new player or a redirected client's) and welcomes it.
-  void welcome(net::session_id session, entity_id id, const hello_info& hello);
+  /// Binds a session to an entity (a new player, or the one `token` claimed) and welcomes it.
+  void welcome(net::session_id session, entity_id id, const hello_info& hello, const std::string& token = {});
   /// Hellos with a token whose entity has not arrived yet (retried each tick until the deadline).
   struct pending_hello {
     net::session_id session;

@@ -90,6 +90,7 @@ struct gen {
         }
         w.oracle_port = static_cast<std::uint16_t>(rng());
         w.instance = u64();
+        if (rng() % 2) w.resume_token = str();
         return w;
       }
       case 4: {

@@ -594,6 +594,46 @@ TEST_SUITE("world.link") {
     b.link->checkpoint(*b.world, next_cp);
     for (const auto& r : next_cp) again.insert(r.gid);
     CHECK(again.size() == cp.size());
+    // With the clients' resume tokens (local handle -> token), the players that have one are in it
+    // too, each record carrying its token; the others (no client told a token) stay out.
+    std::unordered_map<entity_id, std::uint64_t> resume;
+    std::vector<entity_id> player_ids;
+    for (const entity_id id : a.world->store().ids()) {
+      if (a.world->behaviour_of(id) == behaviour::player) player_ids.push_back(id);
+    }
+    REQUIRE(player_ids.size() == 5);
+    for (std::size_t k = 0; k < 3; ++k) resume[player_ids[k]] = 0x0001000000000100ull + k;
+    std::vector<handoff_record> with_players;
+    a.link->checkpoint(*a.world, with_players, &resume);
+    CHECK(with_players.size() == cp.size() + 3);
+    std::size_t tokens = 0;
+    for (const auto& r : with_players) {
+      if (r.behaviour.kind != behaviour::player) {
+        CHECK(r.token == 0);
+        continue;
+      }
+      const entity_id local = a.link->local_of(r.gid);
+      REQUIRE(resume.contains(local));
+      CHECK(r.token == resume.at(local));
+      CHECK(*a.world->store().get(local) == r.desc);
+      ++tokens;
+    }
+    CHECK(tokens == 3);
+  }
+
+  TEST_CASE("client tokens: 16 hex digits naming their region in the top 16 bits; anything else refused") {
+    CHECK(parse_token("0001c0ffee000042") == std::optional<std::uint64_t>(0x0001c0ffee000042ull));
+    CHECK(parse_token("0001C0FFEE000042") == std::optional<std::uint64_t>(0x0001c0ffee000042ull));
+    CHECK(token_region("0001c0ffee000042") == std::optional<std::uint32_t>(0));
+    CHECK(token_region("ffff000000000001") == std::optional<std::uint32_t>(65534));
+    CHECK_FALSE(token_region("0000c0ffee000042").has_value());  // no region (an older zone's random token)
+    CHECK(parse_token("0000c0ffee000042").has_value());         // still a token (a redirect's claim)
+    for (const char* bad : {"", "0", "0001c0ffee00004", "0001c0ffee0000420", "0001c0ffee00004g", " 001c0ffee000042",
+                            "0000000000000000", "-001c0ffee000042", "0x01c0ffee000042"}) {
+      CAPTURE(bad);
+      CHECK_FALSE(parse_token(bad).has_value());
+      CHECK_FALSE(token_region(bad).has_value());
+    }
   }
 
   TEST_CASE("2x1 and 2x2 worlds: views across borders (interest and clients' replicated views) equal one zone's brute force, through handoffs (the observer's view carried); each entity owned once") {

@@ -15,6 +15,7 @@
 
 #include <array>
 #include <atomic>
+#include <cmath>
 #include <cstdio>
 #include <cstring>
 #include <filesystem>
@@ -23,6 +24,7 @@
 #include <limits>
 #include <map>
 #include <memory>
+#include <random>
 #include <regex>
 #include <set>
 
@@ -312,8 +314,8 @@ struct gate_process {
   std::uint16_t port = 0;
   gate_process(const std::string& url, const std::string& world) {
     proc = std::make_unique<child_process>(
-        std::vector<std::string>{WORLD_GATE_EXE, "--nats", url, "--world", world, "--port", "0", "--hello-timeout", "0.5",
-                                 "--max-per-address", "2"},
+        std::vector<std::string>{WORLD_GATE_EXE, "--nats", url, "--world", world, "--port", "0", "--hello-timeout",
+                                 "0.5", "--max-per-address", "2"},
         dir + "/gate.log");
     const std::regex re(R"(listening on 127\.0\.0\.1:([0-9]+))");
     for (const auto until = std::chrono::steady_clock::now() + 10s; port == 0 && std::chrono::steady_clock::now() < until;) {
@@ -777,7 +779,10 @@ TEST_SUITE("world.nats") {
     gate.proc->terminate(5000ms);
     const std::string log = gate.log();
     CHECK_MESSAGE(log.find("refused for want of a zone") != std::string::npos, log);
-    CHECK(std::regex_search(log, std::regex(R"(world gate: [1-9][0-9]* logins redirected, [1-9][0-9]* refused for want of a zone, 2 bad, 1 timed out, 0 refused \(full\), 1 refused \(over --max-per-address\))")));
+    CHECK(std::regex_search(
+        log,
+        std::regex(
+            R"(world gate: [1-9][0-9]* logins redirected, [1-9][0-9]* refused for want of a zone, 2 bad, 1 timed out, 0 refused \(full\), 1 refused \(over --max-per-address\))")));
   }
 
   TEST_CASE("regions are claimed by CAS: one zone each, a full world refuses, leaving frees a region") {
@@ -1342,6 +1347,96 @@ TEST_SUITE("world.nats") {
     drain(zones, 20s);
     // Every entity of the world is there once: none lost with the killed zone, none made up.
     CHECK(owned_once(zones, ns.url, "ckpt").size() == total);
+  }
+
+  TEST_CASE("a zone killed with its players: a client back with its resume token gets its entity, the others go") {
+    nats_server ns;
+    REQUIRE_FALSE(ns.url.empty());
+    const std::uint64_t seed = zone::test::fresh_seed();
+    CAPTURE(seed);
+    auto c = small_world(seed);
+    c.npc_count = 50;
+    const auto tweak = [](node_options& o) {
+      fast_nats(o);
+      o.resume_s = 2;
+    };
+    zone_list zones = join_zones(ns.url, "resume", 2, 1, c, 2, tweak);
+    node_zone& v = *zones[1];
+    REQUIRE(v.node->region() == 1);
+    // Four players in region 1 (x 200..400), walking: three welcomed (each told a resume token, as
+    // zone_server's welcome asks for it), one never (no client: left out of the checkpoint).
+    std::vector<entity_id> players;
+    std::vector<std::string> tokens;
+    std::mt19937_64 rng(seed);
+    for (int k = 0; k < 4; ++k) {
+      const entity_id p =
+          v.world->spawn_player({260.0f + static_cast<float>(rng() % 80), 100.0f + static_cast<float>(rng() % 200), 0});
+      REQUIRE(p != null_entity);
+      v.world->set_intent(p, {0, k % 2 ? 1.0f : -1.0f, 0});
+      players.push_back(p);
+      if (k < 3) {
+        tokens.push_back(v.node->resume_token(p, ""));
+        CHECK(tokens.back().size() == 16);
+        CHECK(token_region(tokens.back()) == std::optional<std::uint32_t>(1));
+      }
+    }
+    CHECK(tokens[0] != tokens[1]);
+    v.tick();
+    std::vector<global_id> gids;
+    for (const entity_id p : players) gids.push_back(v.node->link().gid_of(p));
+    for (const global_id g : gids) CHECK(g != 0);
+    run_zones(zones, 500ms);
+    // The victim's checkpoint written with the players where they are then; killed right after.
+    const std::uint64_t written = v.node->stats().checkpoints_written.load();
+    v.node->checkpoint_next_tick_for_testing();
+    v.tick();
+    for (const auto until = std::chrono::steady_clock::now() + 5s;
+         v.node->stats().checkpoints_written.load() == written && std::chrono::steady_clock::now() < until;) {
+      std::this_thread::sleep_for(10ms);
+    }
+    REQUIRE(v.node->stats().checkpoints_written.load() > written);
+    std::vector<vec3> at_checkpoint;
+    for (const entity_id p : players) at_checkpoint.push_back(v.world->store().get(p)->position);
+    for (const entity_id p : players) REQUIRE(v.node->owns(p));  // none walked out of the region
+    v.node->crash_for_testing();
+    zones.pop_back();
+    run_zones(zones, 1500ms);
+    auto next = join_after_kill(zones, ns.url, "resume", c, tweak);
+    REQUIRE(next->region() == 1);
+    zones.push_back(std::make_unique<node_zone>(std::move(next), c));
+    node_zone& n = *zones[1];
+    n.tick();  // the checkpoint restored
+    CHECK(n.node->stats().players_restored.load() == 3);
+    CHECK(n.node->link().local_of(gids[3]) == null_entity);  // no client, no token: not kept
+    // A token nobody was told waits (a handoff's record may still be on its way), then is refused.
+    entity_id got = null_entity;
+    CHECK(n.node->claim_token("0002123456789abc", *n.world, got) == zone_extension::claim::wait);
+    // Clients 0 and 1 come back: each gets its own entity (same world-wide id), standing where the
+    // checkpoint had it (it waits without moving), and keeps its token for the next loss.
+    for (int k = 0; k < 2; ++k) {
+      CAPTURE(k);
+      entity_id e = null_entity;
+      REQUIRE(n.node->claim_token(tokens[k], *n.world, e) == zone_extension::claim::ready);
+      CHECK(n.node->link().gid_of(e) == gids[k]);
+      CHECK(n.world->behaviour_of(e) == behaviour::player);
+      const auto pos = n.world->store().get(e)->position;
+      CHECK(std::abs(pos.x - at_checkpoint[k].x) < 0.01f);
+      CHECK(std::abs(pos.y - at_checkpoint[k].y) < 0.01f);
+      CHECK(n.world->behaviour_state_of(e)->intent == vec3{0, 0, 0});
+      CHECK(n.node->resume_token(e, tokens[k]) == tokens[k]);
+      entity_id again = null_entity;  // a token claims once
+      CHECK(n.node->claim_token(tokens[k], *n.world, again) != zone_extension::claim::ready);
+    }
+    CHECK(n.node->stats().players_resumed.load() == 2);
+    // Client 2 never comes: its entity is removed after the resume window (2 s here).
+    const entity_id waiting = n.node->link().local_of(gids[2]);
+    CHECK(waiting != null_entity);
+    run_zones(zones, 2500ms);
+    CHECK(n.node->link().local_of(gids[2]) == null_entity);
+    CHECK(n.node->stats().players_abandoned.load() == 1);
+    entity_id late = null_entity;
+    CHECK(n.node->claim_token(tokens[2], *n.world, late) == zone_extension::claim::wait);
+    CHECK(n.node->link().local_of(gids[0]) != null_entity);  // the resumed ones play on
   }
 
   TEST_CASE("a zone killed seconds after its checkpoint: what it adopted since comes back from the handoff records") {
