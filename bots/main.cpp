@@ -127,6 +127,8 @@ void print_table(const swarm_result& r, const summary& s) {
   row("redirects followed (world of zones)", num(r.redirects));
   if (r.gate_redirects > 0) row("logins a world's gate sent to a zone", num(r.gate_redirects));
   row("logins again after a disconnect", num(r.reconnects));
+  if (r.resumes + r.resumes_refused > 0)
+    row("resumes: entity back / token refused", num(r.resumes) + " / " + num(r.resumes_refused));
   const auto login = [&](const latency_histogram_us::counts& c, double max_ms) {
     return ms(percentile_ms(c, 0.5)) + " / " + ms(percentile_ms(c, 0.99)) + " / " + ms(max_ms) + " (" +
            num(latency_histogram_us::total(c)) + ")";
@@ -225,6 +227,8 @@ bool write_json(const std::string& path, const swarm_result& r, const summary& s
   j["redirects"] = r.redirects;
   j["gate_redirects"] = r.gate_redirects;
   j["reconnects"] = r.reconnects;
+  j["resumes"] = r.resumes;
+  j["resumes_refused"] = r.resumes_refused;
   j["stealth_joins"] = r.stealth_joins;
   j["team_joins"] = r.team_joins;
   j["visibility_switches_sent"] = r.visibility_switches_sent;
@@ -445,6 +449,8 @@ int main(int argc, char** argv) {
        "after an unexpected disconnect, log in again at the same address (retrying for --connect-timeout)")  //
       ("relogin-port", po::value(&o.relogin_port)->default_value(o.relogin_port),
        "with --reconnect: log in again at this port on --host instead (a world's gate, docs/world.md: it sends each login to a zone that serves now); 0 = the zone the bot was in")  //
+      ("resume", po::value(&o.resume)->default_value(o.resume),
+       "with --reconnect: say the resume token of the bot's last welcome (a world's zone) when logging in again, to get its entity back after its zone was lost (0 or 1); a token refused: a new login")  //
       ("verify", po::bool_switch(&o.verify),
        "compare the server's visible-set digests with each bot's tracked view")  //
       ("oracle", po::bool_switch(&o.oracle),

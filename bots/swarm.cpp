@@ -92,10 +92,13 @@ class bot_session : public std::enable_shared_from_this<bot_session> {
     endpoint_override_ = to;
     token_ = std::move(token);
   }
-  /// A login again after a lost connection (--reconnect): `since` is when the first retry began.
-  void reconnect_to(const tcp::endpoint& to, steady::time_point since) {
+  /// A login again after a lost connection (--reconnect): `since` is when the first retry began;
+  /// with a resume token (the slot's last welcome's) the hello says it to get the entity back.
+  void reconnect_to(const tcp::endpoint& to, steady::time_point since, std::string resume_token = {}) {
     endpoint_override_ = to;
     reconnecting_since_ = since;
+    resuming_ = !resume_token.empty();
+    token_ = std::move(resume_token);
   }
   void start();
   void logout();  ///< graceful, intended close (churn, end of run)
@@ -131,6 +134,7 @@ class bot_session : public std::enable_shared_from_this<bot_session> {
   swarm& s_;
   std::optional<tcp::endpoint> endpoint_override_;
   std::string token_;
+  bool resuming_ = false;  ///< token_ is a resume token (the hello asks for the entity back)
   std::optional<steady::time_point> reconnecting_since_;
   std::size_t slot_;
   behaviour kind_;
@@ -192,7 +196,7 @@ constexpr std::uint64_t flush_every_frames = 8;
 class swarm {
  public:
   explicit swarm(const swarm_options& opt)
-      : opt_(opt), slots_(opt.bots), sessions_(opt.bots) {
+      : opt_(opt), slots_(opt.bots), resume_tokens_(opt.bots), sessions_(opt.bots) {
     // One io_context per I/O thread, each run by that thread alone (concurrency hint 1): a bot's
     // handlers all run on its context's thread, so a bot needs no strand, and the threads share
     // no scheduler queue, reactor or timer heap. Each thread records latencies in its own histogram.
@@ -387,6 +391,8 @@ class swarm {
     r.stealth_joins = c_.stealth_joins, r.team_joins = c_.team_joins, r.visibility_switches_sent = c_.visibility_switches_sent;
     r.class_notes = c_.class_notes;
     r.reconnects = c_.reconnects;
+    r.resumes = c_.resumes;
+    r.resumes_refused = c_.resumes_refused;
     r.host_clock = host_clock_.load();
     for (const auto& s : slots_) r.bots_connected += s.ever_connected ? 1 : 0;
     r.min_rtt_ms = best_rtt_us_.load() == UINT64_MAX ? 0 : static_cast<double>(best_rtt_us_.load()) / 1000.0;
@@ -414,10 +420,11 @@ class swarm {
   }
 
   /// The truth stream of the server at `to` ended and the follower has not read the server that
-  /// answers there now, nor given up on it (follow_restarts).
+  /// answers there now, nor given up on it (follow_restarts); not when nothing answers there (the
+  /// login is refused and goes elsewhere: nothing to wait for).
   [[nodiscard]] bool truth_pending(const tcp::endpoint& to) const {
     for (const auto& z : oracles()) {
-      if (z.at == to && z.check->ended() && !z.followed.load() && !z.given_up.load()) return true;
+      if (z.at == to && z.check->ended() && !z.followed.load() && !z.given_up.load() && !z.silent.load()) return true;
     }
     for (std::size_t k = 0; k < later_count_; ++k) {
       if (later_[k].at == to && !later_[k].up.load()) return true;  // a zone not started yet
@@ -429,19 +436,19 @@ class swarm {
   /// to follow a restarted server at `to` (at most 10 s), the login waits too: an entity that
   /// joined before the oracle's new stream began is never checked (it has no history there).
   void relaunch_later(std::size_t slot, const tcp::endpoint& to, steady::time_point since, double delay_s = -1,
-                      std::optional<steady::time_point> waiting_since = {}) {
+                      std::optional<steady::time_point> waiting_since = {}, std::string resume_token = {}) {
     auto timer = std::make_shared<asio::steady_timer>(*ios_[thread_of(slot)]);
     const double delay = delay_s >= 0 ? delay_s : std::max(0.05, opt_.relogin_delay_s);
     timer->expires_after(std::chrono::duration_cast<steady::duration>(std::chrono::duration<double>(delay)));
-    timer->async_wait([this, timer, slot, to, since, waiting_since](const boost::system::error_code& ec) {
+    timer->async_wait([this, timer, slot, to, since, waiting_since, resume_token](const boost::system::error_code& ec) {
       if (ec || stopping_.load()) return;
       const auto now = steady::now();
       if (truth_pending(to) && now - waiting_since.value_or(now) < std::chrono::seconds(10)) {
-        relaunch_later(slot, to, since, 0.05, waiting_since.value_or(now));
+        relaunch_later(slot, to, since, 0.05, waiting_since.value_or(now), resume_token);
         return;
       }
       auto b = std::make_shared<bot_session>(*this, slot, thread_of(slot), slots_[slot].kind, next_seed(slot));
-      b->reconnect_to(to, since);
+      b->reconnect_to(to, since, resume_token);
       {
         std::lock_guard lock(sessions_mutex_);
         sessions_[slot] = b;
@@ -524,6 +531,8 @@ class swarm {
   steady::time_point epoch() const { return epoch_; }
   swarm_counters& counters() { return c_; }
   slot_stats& slot(std::size_t i) { return slots_[i]; }
+  /// The resume token the slot's last welcome told (empty: none); its sessions' thread only.
+  std::string& resume_token(std::size_t i) { return resume_tokens_[i]; }
   latency_histogram_us& latency(unsigned thread) { return *latency_[thread]; }
   /// Logins' durations (launch to connected, connected to welcome), shared by the threads (lock-free).
   latency_histogram_us& connect_time() { return connect_time_; }
@@ -566,6 +575,7 @@ class swarm {
   tcp::endpoint endpoint_;
   steady::time_point epoch_;
   std::vector<slot_stats> slots_;  // each written by its slot's session (one at a time)
+  std::vector<std::string> resume_tokens_;  // the same
   std::mutex sessions_mutex_;
   std::vector<std::shared_ptr<bot_session>> sessions_;
   std::uint64_t seed_ = 1;
@@ -597,6 +607,9 @@ class swarm {
     // The follower's, read after it is joined:
     std::atomic<bool> followed{false};  ///< its stream ended and the server that replaced this one is read
     std::atomic<bool> given_up{false};  ///< its stream ended but this same server still answers: not followed
+    /// Its stream ended and the follower's last probe found nothing answering at `at` (a zone
+    /// killed and not restarted there: a login sent there is refused and tried again elsewhere).
+    std::atomic<bool> silent{false};
   };
   /// Restarted servers followed in one run, at most (beyond, a stream that ends stays an error).
   static constexpr std::size_t max_restarts_followed = 64;
@@ -734,7 +747,8 @@ class swarm {
         if (stopping_.load()) break;
         if (z.followed || z.given_up || !z.check->ended()) continue;
         auto welcome = probe(z.at);
-        if (std::holds_alternative<std::string>(welcome)) continue;  // not (yet) back: tried again
+        z.silent = std::holds_alternative<std::string>(welcome);
+        if (z.silent) continue;  // not (yet) back: tried again
         const auto& w = std::get<net::welcome_msg>(welcome);
         if (w.instance == z.instance || w.oracle_port == 0 || !w.rules) {
           z.given_up = true;  // the same server, or a new one without a truth stream: nothing to follow
@@ -816,6 +830,7 @@ void bot_session::logout() {
   auto self = shared_from_this();
   asio::dispatch(io_, [this, self] {
     intended_ = true;
+    s_.resume_token(slot_).clear();  // its entity leaves the world with it
     close();
   });
 }
@@ -906,6 +921,11 @@ void bot_session::on_frame(const net::frame_view& f, std::uint64_t received_us) 
       }
       intended_ = true;
       close();
+      if (resuming_ && r->token()->str() == token_) {
+        // A world's gate found the zone that serves this entity's region now: the token goes there.
+        if (!s_.stopping()) s_.relaunch_later(slot_, tcp::endpoint(addr, r->port()), steady::now(), 0.0, {}, token_);
+        break;
+      }
       if (r->token()->size() == 0) {
         // A world's gate: a new login at the zone named (after its oracle, if it is not read yet).
         s_.counters().gate_redirects.fetch_add(1, std::memory_order_relaxed);
@@ -913,12 +933,21 @@ void bot_session::on_frame(const net::frame_view& f, std::uint64_t received_us) 
         break;
       }
       s_.counters().redirects.fetch_add(1, std::memory_order_relaxed);
+      s_.resume_token(slot_) = r->token()->str();  // the entity's zone now knows its client by it (its welcome says so)
       if (!s_.stopping()) s_.launch(slot_, tcp::endpoint(addr, r->port()), r->token()->str());
       break;
     }
     case net::wire::message::error: {
       const auto* e = env.message_as_error();
       got_error_ = true;
+      if (resuming_ && !playing_) {
+        // The token refused (unknown or expired) or its region not served in time: the next login is a new player.
+        resuming_ = false;
+        token_.clear();
+        s_.resume_token(slot_).clear();
+        s_.counters().resumes_refused.fetch_add(1, std::memory_order_relaxed);
+        reconnecting_since_ = steady::now();  // the login anew gets its own --connect-timeout
+      }
       s_.counters().server_errors.fetch_add(1, std::memory_order_relaxed);
       s_.problem("bot " + std::to_string(slot_) + ": server error " +
                  (e ? std::string(net::wire::EnumNameerror_code(e->code())) + ": " + (e->reason() ? e->reason()->str() : "")
@@ -936,6 +965,12 @@ void bot_session::on_welcome(const net::wire::welcome& w) {
   s_.welcome_time().record(std::chrono::duration<double, std::micro>(steady::now() - connected_at_).count());
   reconnecting_since_.reset();  // logged in again: a later loss starts its own retries
   entity_ = w.entity_id();
+  if (resuming_) s_.counters().resumes.fetch_add(1, std::memory_order_relaxed);
+  if (const auto* t = w.resume_token()) {
+    s_.resume_token(slot_) = t->str();
+  } else {
+    s_.resume_token(slot_).clear();
+  }
   instance_ = w.instance();
   net::world_bounds world{};
   if (w.world()) world = {to_vec(w.world()->lo()), to_vec(w.world()->hi())};
@@ -1352,8 +1387,10 @@ void bot_session::fail(const std::string& why, bool connection_failure) {
     // such a login while its zone restarts (up to connect_timeout_s).
     const auto now = steady::now();
     const auto since = reconnecting_since_.value_or(now);
-    const bool retry = !connection_failure || (reconnecting_since_ &&
-                                               now - since < std::chrono::duration<double>(o.connect_timeout_s));
+    // A redirect whose zone is gone (killed as the entity crossed): its token resumes it too.
+    const bool redirect_lost = connection_failure && !reconnecting_since_ && !token_.empty() && !resuming_;
+    const bool retry = !connection_failure || redirect_lost ||
+                       (reconnecting_since_ && now - since < std::chrono::duration<double>(o.connect_timeout_s));
     if (retry) {
       if (!connection_failure) {
         c.unexpected_disconnects.fetch_add(1, std::memory_order_relaxed);
@@ -1365,7 +1402,8 @@ void bot_session::fail(const std::string& why, bool connection_failure) {
                                : endpoint_override_ ? *endpoint_override_
                                                     : s_.endpoint();
       close();
-      s_.relaunch_later(slot_, to, since);
+      s_.relaunch_later(slot_, to, since, -1, {}, o.resume ? s_.resume_token(slot_) : std::string());
+      return;
       return;
     }
   }

@@ -63,6 +63,10 @@ struct swarm_options {
   /// With `reconnect`: logins again go to this port on `host` (a world's gate, docs/world.md: it
   /// redirects each to a zone that serves now) instead of the zone the bot was in. 0: the zone.
   std::uint16_t relogin_port = 0;
+  /// With `reconnect`: a bot whose welcome told a resume token (a world's zone) says it in its
+  /// hello when it logs in again, to get its entity back from the zone that restored its region
+  /// (docs/world.md, "Players after a zone's loss"); a token refused: it logs in anew.
+  bool resume = true;
   bool verify = false;       ///< compare the server's visible-set digests with the tracked view
   /// Check every bot's view against the server's ground truth (oracle.h; the server runs with
   /// --oracle): a probe connection reads the welcome (rules, truth port) before any bot starts.
@@ -115,6 +119,9 @@ struct swarm_counters {
   /// Logins a world's gate sent on to a zone (a redirect without a token).
   std::atomic<std::uint64_t> gate_redirects{0};
   std::atomic<std::uint64_t> reconnects{0};  ///< logins again after an unexpected disconnect (--reconnect)
+  /// Logins again with a resume token that got the entity back (resumes), and those refused (the
+  /// token unknown or expired, or no zone for its region: the bot logs in anew).
+  std::atomic<std::uint64_t> resumes{0}, resumes_refused{0};
   std::atomic<std::uint64_t> frames_in{0}, bytes_in{0}, tick_updates{0}, enters{0}, leaves{0}, updates{0}, resets{0};
   std::atomic<std::uint64_t> inputs_sent{0}, inputs_unchanged{0}, pings_sent{0}, pongs{0};
   std::atomic<std::uint64_t> digests_checked{0}, digest_mismatches{0}, inconsistent{0};
@@ -161,11 +168,12 @@ struct swarm_result {
   std::vector<std::string> problems;  ///< first mismatches and failures, readable (tick and ids)
   std::uint64_t problems_total = 0;
   // Copies of the counters at the end.
-  std::uint64_t connect_attempts = 0, welcomes = 0, connect_failures = 0, unexpected_disconnects = 0,
-                server_errors = 0, logouts = 0, frames_in = 0, bytes_in = 0, tick_updates = 0, enters = 0,
-                leaves = 0, updates = 0, resets = 0, inputs_sent = 0, inputs_unchanged = 0, pongs = 0, digests_checked = 0,
-                digest_mismatches = 0, inconsistent = 0, aoi_checked = 0, aoi_unchecked = 0,
-                aoi_violations = 0, latency_unsynced = 0, teleports_sent = 0, self_positions = 0, redirects = 0, reconnects = 0, gate_redirects = 0;
+  std::uint64_t connect_attempts = 0, welcomes = 0, connect_failures = 0, unexpected_disconnects = 0, server_errors = 0,
+                logouts = 0, frames_in = 0, bytes_in = 0, tick_updates = 0, enters = 0, leaves = 0, updates = 0,
+                resets = 0, inputs_sent = 0, inputs_unchanged = 0, pongs = 0, digests_checked = 0,
+                digest_mismatches = 0, inconsistent = 0, aoi_checked = 0, aoi_unchecked = 0, aoi_violations = 0,
+                latency_unsynced = 0, teleports_sent = 0, self_positions = 0, redirects = 0, reconnects = 0,
+                gate_redirects = 0, resumes = 0, resumes_refused = 0;
   std::uint64_t stealth_joins = 0, team_joins = 0, visibility_switches_sent = 0, class_notes = 0;
   bool host_clock = false;  ///< latency timed on the host's clock (same host), not by ping sync
   bool rules_from_server = false;  ///< the welcome told the zone's interest rules (the AOI check used them)

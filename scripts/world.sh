@@ -18,13 +18,16 @@ Usage: scripts/world.sh [options]
   --duration S     seconds the swarms run (default 30)
   --world-size M   world side in metres (default 1024)
   --bosses N       bosses per zone (default 0: a boss's 400 m AOI widens the ghost band to ~453 m)
-  --kill           SIGKILL zone 1 at a third of the run and restart it (fault test)
+  --kill           SIGKILL zone 1 at a third of the run and restart it (fault test): its bots log in
+                   again with their resume tokens and get their entities back from its successor;
+                   the run fails unless some did
   --standby        with --kill: a hot standby (zone-server --world-standby, started beside the zones
                    on zone 1's port, which it binds once it holds a region) takes the killed zone's
                    region over instead of a restart; the run fails unless it did
   --gate           a world-gate (the world's login service) beside the zones: with --kill the
-                   swarms log in again through it (bot-swarm --relogin-port) 5 s after the loss,
-                   and it sends each login to a zone that serves; with --standby the standby listens on a port of its
+                   swarms log in again through it (bot-swarm --relogin-port) 1 s after the loss,
+                   and it sends each to the zone that serves its region now (a resume token) or to
+                   one that serves (a new login); with --standby the standby listens on a port of its
                    own, found through the gate (and by the oracle once it answers); with --kill the
                    run fails unless the gate sent logins on
   --nats-empty     with --nats-restart: start it again with an empty store (the world's JetStream
@@ -185,9 +188,8 @@ fi
 per=$(( (bots + zones - 1) / zones ))
 reconnect=()
 [ "$kill" = 1 ] && reconnect=(--reconnect --relogin-delay 0.5 --connect-timeout 15)  # back to the restarted zone
-# With the gate: wherever it sends them, 5 s after the loss (the lease's 3 s and the standby's start
-# past), so that the gate has the standby to send some of them to (sooner, all go to the others).
-[ "$kill" = 1 ] && [ "$gate" = 1 ] && reconnect=(--reconnect --relogin-delay 5 --connect-timeout 15 --relogin-port "$gate_port")
+# With the gate: wherever it sends them (a resume token to its region's zone, once one serves it).
+[ "$kill" = 1 ] && [ "$gate" = 1 ] && reconnect=(--reconnect --relogin-delay 1 --connect-timeout 15 --relogin-port "$gate_port")
 check=()
 if [ "$oracle" = 1 ]; then
   all_ports=$(IFS=,; echo "${zport[*]}")
@@ -303,7 +305,10 @@ echo "== world '$name': $grid regions of ${size} m, $npcs NPCs per zone, $bots b
 restored=
 if [ "$kill" = 1 ] && [ -n "$killed_note" ]; then
   restored=$(grep -o '[0-9]* entities restored from region' "$out/zone-1.log" | head -1 | awk '{print $1}' || true)
-  killed_note="$killed_note; its successor restored ${restored:-none} from the region's checkpoint"
+  waited=$(grep -o 'players restored [0-9]* resumed [0-9]*' "$out/zone-1.log" | tail -1 || true)
+  resumed=$(echo "$waited" | awk '{print $5}')
+  back=$(grep -o 'the restored players: .*' "$out/zone-1.log" | tail -1 | sed 's/^the restored players: //' || true)
+  killed_note="$killed_note; its successor restored ${restored:-none} from the region's checkpoint, players waiting for their clients and back: $(echo "$waited" | awk '{print $3 " / " $5}')${back:+ ($back)}"
 fi
 [ -n "$killed_note" ] && echo "fault: $killed_note"
 [ -n "$nats_note" ] && echo "fault: $nats_note"
@@ -394,6 +399,8 @@ if [ "$gate" = 1 ]; then
   line=$(grep -o 'world gate: [0-9]* logins redirected.*' "$out/gate.log" | tail -1 || true)
   echo "-- the gate: ${line:-no exit line ($out/gate.log)}"
   gate_sent=$(echo "$line" | awk '{print $3}'); gate_sent=${gate_sent:-0}
+  gate_resumed=$(echo "$line" | grep -o '[0-9]* resumes redirected' | awk '{print $1}')
+  gate_sent=$((gate_sent + ${gate_resumed:-0}))
 fi
 echo "-- world-check (census of the zones + KV ownership records and leases)"
 cat "$out/world-check.txt"
@@ -417,4 +424,5 @@ fi
 [ "$gate" = 1 ] && [ "$kill" = 1 ] && [ "$gate_sent" = 0 ] && { echo "the gate sent no login on to a zone" >&2; exit 1; }
 [ "$standby" = 1 ] && ! grep -q 'free after' "$out/zone-1.log" && { echo "the standby did not take the killed zone's region over" >&2; exit 1; }
 [ "$kill" = 1 ] && [ -n "$killed_note" ] && [ "${restored:-0}" = 0 ] && { echo "the restarted zone restored nothing from the killed zone's checkpoint" >&2; exit 1; }
+[ "$kill" = 1 ] && [ -n "$killed_note" ] && [ "${resumed:-0}" = 0 ] && { echo "no player of the killed zone came back to its entity (resume token)" >&2; exit 1; }
 [ "$check_rc" = 0 ] && [ "$mism" = 0 ] && [ "$unexplained" = 0 ] && [ "$stopped_early" = 0 ]

@@ -4,6 +4,9 @@
 // address, a standby that took a region over among them, by the load each zone tells beside its
 // lease) with an empty token, and closes: the client says hello at that zone and joins it as a
 // new player. No zone serving, or every one full: error(server_full).
+// A hello with a token (welcome.resume_token: a client whose zone was lost) goes to the zone that
+// serves the region the token names, with the token: as soon as one does (a standby, a restarted
+// zone), waiting for it up to --resume-wait seconds (then error(timeout)).
 // The leases are read from NATS KV every 250 ms by a thread of its own; a client gets
 // --hello-timeout seconds to say hello, a hello of at most 4 KiB, and at most --max-connections
 // are held at once, --max-per-address from one address (more are closed at accept).
@@ -42,10 +45,12 @@ struct gate_options {
   std::size_t max_connections = 1024;
   std::size_t max_per_address = 64;
   double hello_timeout_s = 5;
+  double resume_wait_s = 30;
 };
 
 struct gate_counters {
   std::uint64_t redirected = 0, no_zone = 0, refused_full = 0, refused_address = 0, bad = 0, timeouts = 0;
+  std::uint64_t resumed = 0, resume_timeouts = 0;
 };
 
 /// The leases as last read, and the NATS connection that reads them (its own thread).
@@ -189,6 +194,21 @@ class gate_session : public std::enable_shared_from_this<gate_session> {
                                                                    std::to_string(net::protocol_version)});
       return;
     }
+    if (h && h->token() && h->token()->size() != 0) {
+      const auto region = world::token_region(h->token()->string_view());
+      if (!region) {
+        ++g_.c.bad;
+        reply(net::error_msg{net::error_code::auth_failed, "not a token of this world's zones"});
+        return;
+      }
+      token_ = h->token()->str();
+      region_ = *region;
+      resume_until_ =
+          std::chrono::steady_clock::now() + std::chrono::duration_cast<std::chrono::steady_clock::duration>(
+                                                 std::chrono::duration<double>(g_.o.resume_wait_s));
+      resume();
+      return;
+    }
     const auto leases = g_.table.leases();
     // The logins sent to a region since its zone last told its load (that report counts them).
     for (const auto& [region, l] : leases) {
@@ -203,6 +223,28 @@ class gate_session : public std::enable_shared_from_this<gate_session> {
     ++g_.sent[zone->first];
     ++g_.c.redirected;
     reply(net::redirect_msg{zone->second.host, zone->second.port, ""});
+  }
+  /// A client back with its resume token: to the zone that serves its region now, with the token
+  /// (it restored the region and waits for the client under it); none yet: asked again every 250 ms.
+  void resume() {
+    const auto leases = g_.table.leases();
+    if (const auto it = leases.find(region_);
+        it != leases.end() && it->second.incarnation != 0 && it->second.port != 0) {
+      ++g_.c.resumed;
+      reply(net::redirect_msg{it->second.host, it->second.port, token_});
+      return;
+    }
+    if (std::chrono::steady_clock::now() >= resume_until_) {
+      ++g_.c.resume_timeouts;
+      reply(net::error_msg{net::error_code::timeout, "no zone serves region " + std::to_string(region_) +
+                                                         " of world '" + g_.o.world + "' (the gate's --resume-wait)"});
+      return;
+    }
+    timer_.expires_after(std::chrono::milliseconds(250));  // the hello timeout's wait ends here (aborted)
+    timer_.async_wait([self = shared_from_this()](const boost::system::error_code& ec) {
+      if (ec || self->done_) return;
+      self->resume();
+    });
   }
   void reply(const net::message& m) {
     done_ = true;
@@ -248,6 +290,9 @@ class gate_session : public std::enable_shared_from_this<gate_session> {
   std::vector<std::uint8_t> out_;
   std::array<std::uint8_t, 512> scratch_{};
   bool done_ = false, reading_ = false;
+  std::string token_;  ///< a resuming client's
+  std::uint32_t region_ = 0;
+  std::chrono::steady_clock::time_point resume_until_{};
 };
 
 void accept(tcp::acceptor& a, asio::steady_timer& pause, gate_state& g) {
@@ -284,12 +329,13 @@ int main(int argc, char** argv) {
   po::options_description desc(
       "world-gate: the login service of a world of zones (docs/world.md). A client says hello here and is\n"
       "redirected to the least loaded zone that serves the world now (the regions' leases and loads in NATS\n"
-      "KV), where it joins as a new player.\n\nOptions");
-  desc.add_options()  //
-      ("help", "this text")  //
+      "KV), where it joins as a new player; a client that says its resume token (its zone was lost) goes to\n"
+      "the zone that serves its region now, to get its entity back.\n\nOptions");
+  desc.add_options()                                                                                           //
+      ("help", "this text")                                                                                    //
       ("nats", po::value(&o.nats_url), "NATS server URL of the world (e.g. nats://127.0.0.1:4222); required")  //
-      ("world", po::value(&o.world), "the world's name; required")  //
-      ("listen", po::value(&o.listen)->default_value(o.listen), "address to listen on")  //
+      ("world", po::value(&o.world), "the world's name; required")                                             //
+      ("listen", po::value(&o.listen)->default_value(o.listen), "address to listen on")                        //
       ("port", po::value(&o.port)->default_value(o.port), "port to listen on (0 = an ephemeral one, logged)")  //
       ("max-connections", po::value(&o.max_connections)->default_value(o.max_connections),
        "clients held at once (a client stays until its redirect is written); more are closed at accept")  //
@@ -297,6 +343,8 @@ int main(int argc, char** argv) {
        "clients held at once from one address; more are closed at accept")  //
       ("hello-timeout", po::value(&o.hello_timeout_s)->default_value(o.hello_timeout_s),
        "seconds a client has to say hello")  //
+      ("resume-wait", po::value(&o.resume_wait_s)->default_value(o.resume_wait_s),
+       "seconds a client with a resume token waits here for a zone to serve its region (its zone was lost)")  //
       ("log-level", po::value(&log_level)->default_value(log_level), "trace, debug, info, warn, error or critical");
   po::variables_map vm;
   try {
@@ -316,9 +364,11 @@ int main(int argc, char** argv) {
     std::fprintf(stderr, "world-gate: --nats and --world are required (try --help)\n");
     return 2;
   }
-  if (!(o.hello_timeout_s > 0 && o.hello_timeout_s <= 600) || o.max_connections == 0 || o.max_per_address == 0) {
+  if (!(o.hello_timeout_s > 0 && o.hello_timeout_s <= 600) || !(o.resume_wait_s >= 0 && o.resume_wait_s <= 3600) ||
+      o.max_connections == 0 || o.max_per_address == 0) {
     std::fprintf(stderr,
-                 "world-gate: --hello-timeout must be in (0, 600], --max-connections and --max-per-address at least 1\n");
+                 "world-gate: --hello-timeout must be in (0, 600], --resume-wait in [0, 3600], --max-connections and "
+                 "--max-per-address at least 1\n");
     return 2;
   }
   spdlog::set_default_logger(
@@ -362,7 +412,8 @@ int main(int argc, char** argv) {
   table.stop();
   spdlog::info(
       "world gate: {} logins redirected, {} refused for want of a zone, {} bad, {} timed out, {} refused (full), {} "
-      "refused (over --max-per-address)",
-      g.c.redirected, g.c.no_zone, g.c.bad, g.c.timeouts, g.c.refused_full, g.c.refused_address);
+      "refused (over --max-per-address); {} resumes redirected, {} gave up (no zone for their region)",
+      g.c.redirected, g.c.no_zone, g.c.bad, g.c.timeouts, g.c.refused_full, g.c.refused_address, g.c.resumed,
+      g.c.resume_timeouts);
   return 0;
 }

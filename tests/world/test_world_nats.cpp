@@ -315,7 +315,7 @@ struct gate_process {
   gate_process(const std::string& url, const std::string& world) {
     proc = std::make_unique<child_process>(
         std::vector<std::string>{WORLD_GATE_EXE, "--nats", url, "--world", world, "--port", "0", "--hello-timeout",
-                                 "0.5", "--max-per-address", "2"},
+                                 "0.5", "--max-per-address", "2", "--resume-wait", "1"},
         dir + "/gate.log");
     const std::regex re(R"(listening on 127\.0\.0\.1:([0-9]+))");
     for (const auto until = std::chrono::steady_clock::now() + 10s; port == 0 && std::chrono::steady_clock::now() < until;) {
@@ -754,6 +754,31 @@ TEST_SUITE("world.nats") {
       order.push_back(std::get<net::redirect_msg>(m).port);
     }
     CHECK(order == std::vector<std::uint16_t>(5, 7001));
+    // A client back with its resume token goes to the zone of the region the token names, with it
+    // (whatever the loads); a token of a region no zone serves waits (--resume-wait 1), then an
+    // error; a token that is none of the zones' is refused at once.
+    const auto resume_hello = [](const std::string& token) {
+      return net::encode_frame(net::hello_msg{"bob", token, net::protocol_version});
+    };
+    for (const std::uint32_t region : {0u, 1u}) {
+      const std::string token = (region == 0 ? "0001" : "0002") + std::string("00c0ffee0042");
+      REQUIRE(token_region(token) == std::optional<std::uint32_t>(region));
+      m = only(ask_gate(gate.port, resume_hello(token)));
+      REQUIRE(std::holds_alternative<net::redirect_msg>(m));
+      CHECK(std::get<net::redirect_msg>(m).port == 7000 + region);
+      CHECK(std::get<net::redirect_msg>(m).token == token);
+    }
+    const auto asked = std::chrono::steady_clock::now();
+    m = only(ask_gate(gate.port, resume_hello("0006000000000001")));  // region 5 of a 2x1 world
+    REQUIRE(std::holds_alternative<net::error_msg>(m));
+    CHECK(std::get<net::error_msg>(m).code == net::error_code::timeout);
+    CHECK(std::chrono::steady_clock::now() - asked >= 900ms);
+    for (const char* bad : {"not-a-token", "0000c0ffee000042", "0001c0ffee00004g", "0001c0ffee0000420"}) {
+      CAPTURE(bad);
+      m = only(ask_gate(gate.port, resume_hello(bad)));
+      REQUIRE(std::holds_alternative<net::error_msg>(m));
+      CHECK(std::get<net::error_msg>(m).code == net::error_code::auth_failed);
+    }
     // A first frame that is not a hello, bytes that are not a frame, and silence past the hello
     // timeout: an error each, then the connection closed.
     m = only(ask_gate(gate.port, net::encode_frame(net::ping_msg{1})));
@@ -782,7 +807,7 @@ TEST_SUITE("world.nats") {
     CHECK(std::regex_search(
         log,
         std::regex(
-            R"(world gate: [1-9][0-9]* logins redirected, [1-9][0-9]* refused for want of a zone, 2 bad, 1 timed out, 0 refused \(full\), 1 refused \(over --max-per-address\))")));
+            R"(world gate: [1-9][0-9]* logins redirected, [1-9][0-9]* refused for want of a zone, 6 bad, 1 timed out, 0 refused \(full\), 1 refused \(over --max-per-address\); 2 resumes redirected, 1 gave up)")));
   }
 
   TEST_CASE("regions are claimed by CAS: one zone each, a full world refuses, leaving frees a region") {
