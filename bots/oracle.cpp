@@ -601,7 +601,8 @@ std::optional<std::string> oracle::compute(const net::truth::tick_frame& f) {
     out.clear();
     // History: a new entity starts from an empty set; one seen last tick continues from its set
     // there; any other (present before the stream began, or after a gap) is not checked. One the
-    // server carried a set to this tick (a handoff) continues from that set.
+    // server carried a set to this tick (a handoff) continues from that set; at the server's first
+    // step every one starts from an empty set (net/truth.h).
     std::span<const std::uint64_t> before;  // (id << 32) | dense index in prev's layout
     bool is_known = false;
     const auto carried = carried_of(id);
@@ -610,6 +611,8 @@ std::optional<std::string> oracle::compute(const net::truth::tick_frame& f) {
       for (const std::uint32_t t : *carried) sc.carried.push_back(std::uint64_t{t} << 32);
       before = sc.carried;  // by id only: mapped to this layout below
       is_known = true;
+    } else if (f.first_step) {
+      is_known = true;  // no step before this one: its set starts empty
     } else if (prev_same_layout) {
       is_known = prev->known[i] != 0;
       before = prev->of(static_cast<std::uint32_t>(i));

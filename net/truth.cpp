@@ -103,6 +103,14 @@ void encode_refusal(std::vector<std::uint8_t>& out, std::string_view why) {
   put_bytes(at, why.data(), why.size());
 }
 
+void mark_first_step(std::vector<std::uint8_t>& frame) {
+  if (frame.size() < header_bytes) return;
+  std::uint32_t flags = 0;
+  std::memcpy(&flags, frame.data() + 8, 4);
+  flags |= flag_first_step;
+  std::memcpy(frame.data() + 8, &flags, 4);
+}
+
 encoder::sent encoder::encode(std::vector<std::uint8_t>& out, std::uint64_t tick, std::span<const float> positions,
                               const layout_view* layout, bool force_layout, const carried_view* carried) {
   const std::size_t n = positions.size() / 3;
@@ -180,7 +188,7 @@ std::optional<std::string> decode_tick(std::span<const std::uint8_t> body, tick_
   const auto count = read_at<std::uint32_t>(body.data() + 16);
   const auto seq = read_at<std::uint32_t>(body.data() + 20);
   if (m0 != magic) return "not a truth frame (bad magic)";
-  if ((flags & ~(flag_layout | flag_changes | flag_carried)) != 0 ||
+  if ((flags & ~(flag_layout | flag_changes | flag_carried | flag_first_step)) != 0 ||
       (flags & (flag_layout | flag_changes)) == (flag_layout | flag_changes)) {
     return "truth frame with unknown flags " + std::to_string(flags);
   }
@@ -260,6 +268,7 @@ std::optional<std::string> decode_tick(std::span<const std::uint8_t> body, tick_
   // Valid: fill `out`.
   const std::uint8_t* at = body.data() + head;
   out.tick = tick;
+  out.first_step = (flags & flag_first_step) != 0;
   out.count = count;
   out.layout_seq = seq;
   out.has_layout = has_layout;

@@ -8,7 +8,8 @@
 // One frame per tick, all little-endian:
 //   u32 body_bytes (what follows this word)
 //   u32 magic "ZTR2", u32 flags (bit 0: the layout follows the positions; bit 1: changes do; not both;
-//                               bit 2: carried sets follow, after them),
+//                               bit 2: carried sets follow, after them; bit 3: this tick is the
+//                               server's first step),
 //   u64 tick, u32 count, u32 layout_seq,
 //   count x (f32 x, f32 y, f32 z)                positions, in the server's dense order
 //   if layout:  count x u32 id, count x 3 f32 AOI half-extent, count x 3 f32 presence half-extent,
@@ -22,6 +23,9 @@
 // from, docs/world.md "Handoff"), with that set as the server took it (ids the server did not hold
 // then are ignored by the rules, as by the server). A reader checks such an observer's set from it
 // instead of from its own last tick.
+// The first step: no step came before it, so every observer's previous set was empty (those
+// carried aside); a reader that has this frame knows every observer's whole history (a zone
+// restored from a checkpoint starts with its entities in place: docs/world.md).
 // layout_seq numbers the layouts: a frame with the layout starts from any value; a frame with
 // changes carries the previous frame's + 1 (its entities are the previous layout's, those at the
 // indices replaced); a frame with positions only carries the previous frame's (the entities of the
@@ -45,6 +49,7 @@ inline constexpr std::uint32_t refused_magic = 0x5852545a;
 inline constexpr std::uint32_t flag_layout = 1;
 inline constexpr std::uint32_t flag_changes = 2;
 inline constexpr std::uint32_t flag_carried = 4;
+inline constexpr std::uint32_t flag_first_step = 8;
 inline constexpr std::size_t header_bytes = 4 + 4 + 4 + 8 + 4 + 4;  ///< the length word included
 /// Bytes of one entity's layout, and of one change (its index included; the kinds' padding aside).
 inline constexpr std::size_t layout_entity_bytes = 4 + 12 + 12 + 4 + 4 + 1;
@@ -89,6 +94,9 @@ void encode_tick(std::vector<std::uint8_t>& out, std::uint64_t tick, std::span<c
                  const layout_view* layout, std::uint32_t layout_seq = 0, const changes_view* changes = nullptr,
                  const carried_view* carried = nullptr);
 
+/// Marks an encoded frame (encode_tick's or encoder's `out`) as the server's first step.
+void mark_first_step(std::vector<std::uint8_t>& frame);
+
 /// A refusal (the body: "ZTRX" and a text, no tick): what a server writes to a subscriber it will
 /// not serve before closing; a reader's decode_tick returns the text as its error.
 void encode_refusal(std::vector<std::uint8_t>& out, std::string_view why);
@@ -131,6 +139,7 @@ struct tick_frame {
   bool layout_known = false;  ///< a frame with the layout was decoded into this object
   bool has_layout = false;
   bool has_changes = false;
+  bool first_step = false;  ///< the server's first step: every observer's previous set was empty (but carried ones)
   std::vector<std::uint32_t> changed;  ///< the indices the last frame's changes replaced (empty otherwise)
   std::vector<float> positions;  ///< 3 per entity
   std::vector<std::uint32_t> ids;

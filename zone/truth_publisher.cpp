@@ -79,8 +79,8 @@ void truth_publisher::wake() {
 }
 
 void truth_publisher::publish(const entity_store& store, std::uint64_t tick,
-                              std::span<const std::pair<entity_id, entity_id>> carried) {
-  if (subscribers_.load(std::memory_order_acquire) == 0) return;
+                              std::span<const std::pair<entity_id, entity_id>> carried, bool first_step) {
+  if (subscribers_.load(std::memory_order_acquire) == 0 && !recording_) return;
   const auto t0 = std::chrono::steady_clock::now();
   const std::size_t n = store.size();
   // The columns go to the encoder only when the store says something but positions changed; it
@@ -114,6 +114,7 @@ void truth_publisher::publish(const entity_store& store, std::uint64_t tick,
   carried_.assign(carried);
   const net::truth::carried_view cv = carried_.view();
   const auto sent = encoder_.encode(*frame, tick, floats(store.positions()), layout ? &lv : nullptr, force, &cv);
+  if (first_step) net::truth::mark_first_step(*frame);
   const bool whole = sent == net::truth::encoder::sent::layout;
   layout_version_ = store.layout_version();
   any_published_ = true;
@@ -126,6 +127,19 @@ void truth_publisher::publish(const entity_store& store, std::uint64_t tick,
   }
   {
     const std::lock_guard lock(mutex_);
+    if (recording_) {
+      const auto now = std::chrono::steady_clock::now();
+      if (prefix_.empty()) first_publish_ = now;
+      if (now - first_publish_ > std::chrono::duration<double>(prefix_window_s) ||
+          prefix_bytes_ + frame->size() > max_prefix_bytes) {
+        recording_ = false;  // over: later subscribers start from the frame after they connect
+        prefix_.clear();
+        prefix_bytes_ = 0;
+      } else {
+        prefix_.push_back(frame);
+        prefix_bytes_ += frame->size();
+      }
+    }
     for (auto& s : subs_) {
       if (!s.has_layout && !whole) continue;  // its first frame must carry the whole layout
       s.has_layout = true;
@@ -172,6 +186,12 @@ void truth_publisher::run() {
           ::setsockopt(fd, SOL_SOCKET, SO_SNDBUF, &buf, sizeof buf);
           subscriber sub;
           sub.fd = fd;
+          if (!prefix_.empty()) {  // the first frames, from the first (a whole layout), then the live ones
+            sub.queue.assign(prefix_.begin(), prefix_.end());
+            sub.queued_bytes = prefix_bytes_;
+            sub.has_layout = true;
+            ++stats_.prefix_subscribers;
+          }
           subs_.push_back(std::move(sub));
           subscribers_.store(static_cast<int>(subs_.size()), std::memory_order_release);
           need_layout_ = true;

@@ -851,7 +851,8 @@ void zone_server::tick_once() {
   }
   replicate_class_changes();
   // The ground truth of this tick (--oracle), before any frame of it is sent.
-  if (truth_) truth_->publish(world_->store(), world_->tick(), world_->tracker().carried_by_last_update());
+  if (truth_)
+    truth_->publish(world_->store(), world_->tick(), world_->tracker().carried_by_last_update(), world_->tick() == 1);
   const auto t1 = clock_type::now();
   replicate();
   if (!replication_failure_logged_ && !replicator_.engine_error().empty()) {

@@ -896,6 +896,60 @@ TEST_SUITE("bots.oracle") {
   }
 
   TEST_CASE(
+      "a subscriber that connects after the server's first step reads the first frames: it checks every observer from that step, those present then included") {
+    // A zone restored from a checkpoint starts with its players in place, and the oracle that
+    // follows it connects seconds later: the publisher's record of its first frames (and the
+    // first step's flag) gives it their whole history there.
+    const std::uint64_t seed = zone::test::fresh_seed();
+    CAPTURE(seed);
+    tracked_world w(seed, 200);
+    for (int k = 0; k < 12; ++k) w.add_player();  // there before the first step
+    truth_publisher pub;
+    REQUIRE_FALSE(pub.start(0, 2).has_value());
+    std::uint64_t tick = 0;
+    std::map<std::uint64_t, std::map<entity_id, std::vector<entity_id>>> expect;
+    const auto step = [&] {
+      w.move();
+      ++tick;
+      REQUIRE_FALSE(w.tracker.update(w.store.columns()).has_value());
+      pub.publish(w.store, tick, w.tracker.carried_by_last_update(), tick == 1);
+      for (const entity_id p : w.players) {
+        const auto v = w.tracker.visible(w.tracker.row_of(p));
+        expect[tick][p].assign(v.begin(), v.end());
+      }
+    };
+    for (int k = 0; k < 30; ++k) step();  // nobody reads yet
+    bots::oracle late(w.world, w.rules, 1, nullptr, nullptr);
+    {
+      auto started = std::async(std::launch::async, [&] { return late.start(pub.port(), 10); });
+      for (int k = 0; k < 2000 && started.wait_for(std::chrono::milliseconds(5)) != std::future_status::ready; ++k) {
+        if (tick < 50) step();
+      }
+      const auto err = started.get();
+      REQUIRE_MESSAGE(!err.has_value(), err.value_or(""));
+    }
+    while (tick < 50) step();
+    std::uint64_t compared = 0, differing = 0;
+    for (std::uint64_t t = 1; t <= tick; ++t) {
+      for (const entity_id p : w.players) {
+        std::optional<std::vector<std::uint32_t>> got;
+        for (int wait = 0; wait < 2000 && !(got = late.visible(p, t)); ++wait) {
+          std::this_thread::sleep_for(std::chrono::milliseconds(2));
+        }
+        REQUIRE_MESSAGE(got.has_value(), "tick " << t << ", player " << p);
+        ++compared;
+        const auto& want = expect[t][p];
+        if (!std::equal(want.begin(), want.end(), got->begin(), got->end())) ++differing;
+      }
+    }
+    CHECK(compared == 50 * w.players.size());
+    CHECK(differing == 0);
+    CHECK(pub.stats().prefix_subscribers == 1);
+    late.stop();
+    pub.stop();
+  }
+
+  TEST_CASE(
       "the server's truth stream over loopback: switches arrive as changes, the sets equal the tracker's; a subscriber over the limit is refused by name") {
     // zone-server's publisher (zone/truth_publisher.h) with room for one subscriber: an oracle
     // subscribes and reads the socket while players switch every tick; its visible sets equal

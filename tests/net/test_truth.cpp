@@ -113,6 +113,7 @@ TEST_SUITE("net.truth") {
       CHECK(f.tick == 77);
       CHECK(f.count == n);
       CHECK(f.has_layout);
+      CHECK_FALSE(f.first_step);
       CHECK(f.positions == pos);
       CHECK(f.ids == ids);
       CHECK(f.aoi_half == aoi);
@@ -130,6 +131,17 @@ TEST_SUITE("net.truth") {
       CHECK(f.positions == pos);
       CHECK(f.ids == ids);
       CHECK(f.kinds == kinds);
+      // The server's first step: a flag on the frame, nothing else changed; the next frame has none.
+      truth::encode_tick(bytes, 1, pos, &lv);
+      truth::mark_first_step(bytes);
+      REQUIRE_FALSE(truth::decode_tick(std::span(bytes).subspan(4), f).has_value());
+      CHECK(f.first_step);
+      CHECK(f.has_layout);
+      CHECK(f.tick == 1);
+      CHECK(f.ids == ids);
+      truth::encode_tick(bytes, 2, pos, nullptr);
+      REQUIRE_FALSE(truth::decode_tick(std::span(bytes).subspan(4), f).has_value());
+      CHECK_FALSE(f.first_step);
     }
   }
 
@@ -442,6 +454,9 @@ TEST_SUITE("net.truth") {
     bad = body;
     bad[4] |= 2;
     CHECK(truth::decode_tick(bad, f).has_value());
+    bad = body;
+    bad[4] |= 16;  // a flag no reader knows
+    CHECK(truth::decode_tick(bad, f).value_or("").find("unknown flags") != std::string::npos);
     bad = body;
     bad[16] = 200;
     CHECK(truth::decode_tick(bad, f).has_value());
