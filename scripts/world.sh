@@ -162,7 +162,10 @@ done
 
 # The gate: the world's login service (it reads the leases; a hello there is sent on to a zone).
 if [ "$gate" = 1 ]; then
-  "$build/world/world-gate" --nats "$url" --world "$name" --port 0 >"$out/gate.log" 2>&1 &
+  # Every bot connects from 127.0.0.1: the per-address limit (64 by default) would refuse most of a
+  # zone's players coming back at once (they would retry), so it is the swarm's size here.
+  "$build/world/world-gate" --nats "$url" --world "$name" --port 0 --max-per-address $((bots + 64)) \
+    --max-connections $((bots + 64)) >"$out/gate.log" 2>&1 &
   gate_pid=$!
   pids+=("$gate_pid")
   gate_port=$(zone_port "$out/gate.log" 100)
