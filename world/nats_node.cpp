@@ -636,7 +636,9 @@ void nats_node::checkpoint_loop() {
       const auto data = encode(part);
       jsPubAck* ack = nullptr;
       jsErrCode jerr = static_cast<jsErrCode>(0);
-      const std::string subj = checkpoint_subject("c" + std::to_string(head.chunks.size()));
+      std::string part_name = std::to_string(head.chunks.size());
+      part_name.insert(part_name.begin(), 'c');  // not "c" + ...: GCC 12 warns of a false overlap there (-Wrestrict)
+      const std::string subj = checkpoint_subject(part_name);
       s = js_Publish(&ack, js_, subj.c_str(), data.data(), static_cast<int>(data.size()), nullptr, &jerr);
       if (s == NATS_OK && ack) head.chunks.push_back(ack->Sequence);
       if (ack) jsPubAck_Destroy(ack);
