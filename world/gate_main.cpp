@@ -122,6 +122,7 @@ class lease_table {
 
 /// What the gate's sessions share; the event loop's thread only (one thread runs it).
 struct gate_state {
+  gate_state(const gate_options& opt, const lease_table& leases) : o(opt), table(leases) {}
   const gate_options& o;
   const lease_table& table;
   gate_counters c;

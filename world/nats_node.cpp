@@ -1276,6 +1276,7 @@ void nats_node::before_step(zone_world& w) {
       const entity_id local = link_->local_of(it->second.gid);
       if (local != null_entity && link_->owns(local) && w.despawn(local)) ++stats_.players_abandoned;
       const bool restored = it->second.restored;
+      if (it->second.lingering) --lingering_;
       it = tokens_.erase(it);
       if (restored) restored_player_done();
     } else {
@@ -1406,17 +1407,31 @@ zone_extension::claim nats_node::claim_token(const std::string& token, zone_worl
   const auto it = tokens_.find(*t);
   if (it == tokens_.end()) return claim::wait;  // the handoff (or the region's restore) may not have landed yet
   const entity_id local = link_->local_of(it->second.gid);
-  const bool restored = it->second.restored;
+  const bool restored = it->second.restored, lingered = it->second.lingering;
+  if (lingered) --lingering_;
   tokens_.erase(it);
   if (local == null_entity || !link_->owns(local) || w.behaviour_of(local) != behaviour::player) return claim::refused;
   entity = local;
   resume_[local] = *t;  // the client keeps this token: it resumes with it should this zone be lost
-  ++(restored ? stats_.players_resumed : stats_.redirect_claims);
+  ++(restored ? stats_.players_resumed : lingered ? stats_.players_back_after_linger : stats_.redirect_claims);
   if (restored) {
     resumed_after_ticks_.push_back(tick_ - restored_tick_);
     restored_player_done();
   }
   return claim::ready;
+}
+
+bool nats_node::keep_for_resume(entity_id e, zone_world& w) {
+  if (!(opt_.linger_s > 0) || !link_->owns(e) || w.behaviour_of(e) != behaviour::player) return false;
+  const auto it = resume_.find(e);
+  const global_id g = link_->gid_of(e);
+  const std::size_t cap = slots_.load() > 0 ? slots_.load() : 100000;
+  if (it == resume_.end() || g == 0 || lingering_ >= cap) return false;
+  w.set_intent(e, {});  // it stands where it was until its client is back
+  tokens_[it->second] = {g, tick_ + static_cast<std::uint64_t>(opt_.linger_s * tick_rate_hz_), false, true};
+  ++lingering_;
+  ++stats_.players_lingered;
+  return true;
 }
 
 void nats_node::restored_player_done() {

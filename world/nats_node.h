@@ -58,6 +58,10 @@ struct node_options {
   /// A player restored from a checkpoint (its zone was lost) waits this long for its client to
   /// come back with its resume token (welcome.resume_token), then is removed.
   double resume_s = 30;
+  /// A player whose client's connection ended (the zone alive) is kept this long, standing, for
+  /// that client to come back with its resume token (0: removed at once). At most as many wait as
+  /// the zone has player slots.
+  double linger_s = 0;
   /// Most entities the zone owns (link_options::capacity; 0: the store's capacity): a handoff
   /// into a full zone is not acked but offered again after `no_room_retry_s` (docs/world.md).
   std::size_t capacity = 0;
@@ -106,6 +110,9 @@ struct node_stats {
   /// Players restored from a checkpoint to wait for their clients, and those whose client came back
   /// with its resume token (the others are removed after node_options::resume_s, in players_abandoned).
   std::atomic<std::uint64_t> players_restored{0}, players_resumed{0};
+  /// Players kept after their client's connection ended (node_options::linger_s), and those whose
+  /// client came back with its token (the others are removed, in players_abandoned).
+  std::atomic<std::uint64_t> players_lingered{0}, players_back_after_linger{0};
   std::atomic<std::uint64_t> ghost_publish_failures{0}, ghost_inbox_dropped{0};
   std::atomic<std::uint64_t> handoffs_no_room{0};  ///< records offered to a full zone, handed back to the stream to retry
   /// NATS answers, but the world's JetStream state is gone (its lease bucket's stream not found: a
@@ -197,6 +204,7 @@ class nats_node final : public zone_extension {
   void after_step(zone_world& w, std::vector<redirect>& out) override;
   claim claim_token(const std::string& token, zone_world& w, entity_id& entity) override;
   std::string resume_token(entity_id e, const std::string& claimed) override;
+  bool keep_for_resume(entity_id e, zone_world& w) override;
   [[nodiscard]] bool owns(entity_id e) const override { return link_->owns(e); }
   void forward_input(entity_id e, const vec3& intent, std::uint32_t sequence) override;
   [[nodiscard]] bool must_stop() const override { return lease_lost_.load(); }
@@ -353,7 +361,8 @@ class nats_node final : public zone_extension {
   struct pending_player {
     global_id gid;
     std::uint64_t deadline_tick;
-    bool restored = false;  ///< from a checkpoint: a client resuming after its zone was lost
+    bool restored = false;   ///< from a checkpoint: a client resuming after its zone was lost
+    bool lingering = false;  ///< its client's connection ended here (node_options::linger_s)
   };
   std::unordered_map<std::uint64_t, pending_player> tokens_;                         // token -> player
   /// Each player here with a client: the token its welcome told it (welcome.resume_token). Its
@@ -362,6 +371,7 @@ class nats_node final : public zone_extension {
   /// Restored players still waiting for their clients, the restore's tick, and how many ticks after
   /// it each one that came back did (logged once none waits any more).
   std::size_t restored_waiting_ = 0;
+  std::size_t lingering_ = 0;  ///< players kept for their clients after a lost connection (in tokens_)
   std::uint64_t restored_tick_ = 0;
   std::vector<std::uint64_t> resumed_after_ticks_;
   void restored_player_done();

@@ -120,6 +120,7 @@ std::optional<std::string> validate(const zone_config& c) {
   if (c.world_name.empty() && c.world_standby) return bad("--world-standby needs --world NAME");
   if (!(c.world_lease_ttl_s >= 0.2 && c.world_lease_ttl_s <= 600)) return bad("world-lease-ttl must be 0.2 .. 600 s");
   if (!(c.world_resume_s >= 0 && c.world_resume_s <= 3600)) return bad("world-resume-window must be 0 .. 3600 s");
+  if (!(c.world_linger_s >= 0 && c.world_linger_s <= 3600)) return bad("world-linger must be 0 .. 3600 s");
   if (!(c.world_nats_timeout_s >= 0.05 && c.world_nats_timeout_s <= 60))
     return bad("world-nats-timeout must be 0.05 .. 60 s");
   if (c.worker_spin_us < -1 || c.worker_spin_us > 1000000) return bad("worker-spin-us must be -1 (auto) or 0 .. 1000000");
@@ -279,6 +280,8 @@ config_result parse_config(int argc, const char* const* argv) {
        "seconds between checkpoints of this zone's entities in JetStream (0 = none); a zone that claims a region restores its last checkpoint, so a killed zone's entities come back")  //
       ("world-resume-window", po::value(&c.world_resume_s)->default_value(c.world_resume_s),
        "seconds a player restored from a checkpoint (its zone was lost) waits for its client to come back with its resume token before it is removed")  //
+      ("world-linger", po::value(&c.world_linger_s)->default_value(c.world_linger_s),
+       "seconds a player whose connection ended is kept, standing, for its client to come back with its resume token (0 = removed at once; at most --max-clients wait)")  //
       ("world-standby", po::bool_switch(&c.world_standby),
        "a hot standby: while every region is held, wait (listening nowhere) for one whose lease lapses, as long as it takes, then serve it from its checkpoint; without it a zone gives up after 20 s");
   po::options_description viewer("Live viewer (docs/viewer.md)");

@@ -58,6 +58,7 @@ int main(int argc, char** argv) {
     o.capacity = cfg.world_capacity;
     o.checkpoint_s = cfg.world_checkpoint_s;
     o.resume_s = cfg.world_resume_s;
+    o.linger_s = cfg.world_linger_s;
     // A restarted zone waits for its predecessor's lease to lapse (its TTL, a few seconds); a
     // standby for any region's, as long as it takes.
     o.claim_wait_s =
@@ -97,7 +98,7 @@ int main(int argc, char** argv) {
     spdlog::info(
         "world: region {} owned {} entities at the end; handoffs out {} (CAS conflicts {}, confirmed by read-back {}, rounds retried {}, abandoned at the stop {}), in {} "
         "(duplicates {}, no room {}); held for a full neighbour {} entity-ticks; handoff latency p50 {:.2f} ms p99 {:.2f} ms max {:.2f} ms (p99 {:.2f} ticks); redirects {} claimed {}; "
-        "players restored {} resumed {} (removed, their client never came: {}); "
+        "players restored {} resumed {}, kept after a lost connection {} back {} (removed, their client never came: {}); "
         "ghost bytes out {} in {} over {} / {} messages; gaps {}, snapshots out {}; lease taken back {} times; "
         "checkpoints written {} (the last {} entities, {} bytes; the tick's copy {:.2f} ms on average, {:.2f} at most), skipped {}, failed {}; "
         "restored {} at the start ({} of them from handoff records; {} left out)",
@@ -106,9 +107,10 @@ int main(int argc, char** argv) {
         s.handoffs_applied.load(), s.handoff_duplicates.load(), s.handoffs_no_room.load(), l.handoffs_held_for_room,
         node->handoff_ms().percentile(0.5), node->handoff_ms().percentile(0.99), node->handoff_ms().max(),
         node->handoff_ticks().percentile(0.99), s.redirects.load(), s.redirect_claims.load(), s.players_restored.load(),
-        s.players_resumed.load(), s.players_abandoned.load(), l.ghost_bytes_out, l.ghost_bytes_in, l.ghost_messages_out,
-        l.ghost_messages_in, l.gaps, l.snapshots_out, s.lease_reclaims.load(), s.checkpoints_written.load(),
-        s.checkpoint_entities.load(), s.checkpoint_bytes.load(),
+        s.players_resumed.load(), s.players_lingered.load(), s.players_back_after_linger.load(),
+        s.players_abandoned.load(), l.ghost_bytes_out, l.ghost_bytes_in, l.ghost_messages_out, l.ghost_messages_in,
+        l.gaps, l.snapshots_out, s.lease_reclaims.load(), s.checkpoints_written.load(), s.checkpoint_entities.load(),
+        s.checkpoint_bytes.load(),
         static_cast<double>(s.checkpoint_copy_total_us.load()) / 1000.0 /
             static_cast<double>(std::max<std::uint64_t>(1, s.checkpoint_copies.load())),
         static_cast<double>(s.checkpoint_copy_max_us.load()) / 1000.0, s.checkpoints_skipped.load(),

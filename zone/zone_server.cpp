@@ -464,7 +464,9 @@ void zone_server::drain_inputs() {
         if (it == clients_.end()) break;
         spdlog::debug("session {}: left ({})", e.session, net::escape_for_log(e.reason, 200));
         // An entity handed off to another zone lives on there (here it is a ghost).
-        if (ext_ == nullptr || ext_->owns(it->second.entity)) world_->despawn(it->second.entity);
+        if (ext_ == nullptr || (ext_->owns(it->second.entity) && !ext_->keep_for_resume(it->second.entity, *world_))) {
+          world_->despawn(it->second.entity);
+        }
         const auto se = session_of_entity_.find(it->second.entity);
         if (se != session_of_entity_.end() && se->second == e.session) session_of_entity_.erase(se);
         replicator_.remove_client(it->second.replica);

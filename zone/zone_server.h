@@ -98,6 +98,13 @@ class zone_extension {
     (void)claimed;
     return {};
   }
+  /// A client's connection ended: true when the world keeps its entity for it to come back with
+  /// its resume token (a lost connection; zone-server --world-linger); false: the zone removes it.
+  virtual bool keep_for_resume(entity_id e, zone_world& w) {
+    (void)e;
+    (void)w;
+    return false;
+  }
   /// The entity is simulated here (false: another zone's, e.g. handed off after its client's last frame).
   [[nodiscard]] virtual bool owns(entity_id e) const = 0;
   /// An input for an entity handed off (its client has not moved yet): to its new zone.

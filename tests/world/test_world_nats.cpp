@@ -455,7 +455,7 @@ TEST_SUITE("world.nats") {
       return e;
     };
     const auto lease = [](std::uint16_t port, std::uint32_t inc) {
-      return lease_info{"127.0.0.1", port, inc, "127.0.0.1 " + std::to_string(port) + " " + std::to_string(inc)};
+      return parse_lease("127.0.0.1 " + std::to_string(port) + " " + std::to_string(inc));
     };
     std::map<std::uint32_t, lease_info> leases{{0, lease(7000, 1)}, {1, lease(7001, 2)}, {2, lease(7002, 4)}};
     // Every region answered by the zone its lease names (and a lease nobody answers for: a zone
@@ -473,7 +473,7 @@ TEST_SUITE("world.nats") {
     CHECK(c.problems[0].find("region 1 answered by incarnation 1, but its lease is '127.0.0.1 7001 2'") !=
           std::string::npos);
     // A lease claimed just now ("claiming") while the old zone answers: taken over too.
-    leases[1] = lease_info{"", 0, 0, "claiming"};
+    leases[1] = parse_lease("claiming");
     c = check_leases({zone(1, 1)}, leases);
     CHECK(c.problems.size() == 1);
     // No lease at all (lapsed while NATS was unreachable): a note, not a problem.
@@ -486,14 +486,14 @@ TEST_SUITE("world.nats") {
 
   TEST_CASE("gate_pick: the least loaded zone that serves and has room; ties and zones without a load in turn") {
     const auto lease = [](std::uint16_t port, std::uint32_t inc, std::int64_t players = -1, std::int64_t slots = 0) {
-      lease_info l{"127.0.0.1", port, inc, "127.0.0.1 " + std::to_string(port) + " " + std::to_string(inc)};
+      lease_info l = parse_lease("127.0.0.1 " + std::to_string(port) + " " + std::to_string(inc));
       l.players = players, l.slots = slots;
       return l;
     };
     const auto port_of = [](const auto& pick) { return pick ? pick->second.port : std::uint16_t{0}; };
     std::map<std::uint32_t, lease_info> leases;
     CHECK_FALSE(gate_pick(leases, 0).has_value());  // no zone serves
-    leases[0] = lease_info{"", 0, 0, "claiming"};   // joining
+    leases[0] = parse_lease("claiming");            // joining
     leases[1] = lease(0, 2);                        // claimed, its server not listening yet
     CHECK_FALSE(gate_pick(leases, 5).has_value());
     // No load told: round robin.
@@ -1384,6 +1384,7 @@ TEST_SUITE("world.nats") {
     const auto tweak = [](node_options& o) {
       fast_nats(o);
       o.resume_s = 2;
+      o.linger_s = 2;
     };
     zone_list zones = join_zones(ns.url, "resume", 2, 1, c, 2, tweak);
     node_zone& v = *zones[1];
@@ -1462,6 +1463,28 @@ TEST_SUITE("world.nats") {
     entity_id late = null_entity;
     CHECK(n.node->claim_token(tokens[2], *n.world, late) == zone_extension::claim::wait);
     CHECK(n.node->link().local_of(gids[0]) != null_entity);  // the resumed ones play on
+    // Client 0's connection ends with its zone alive (--world-linger 2): its entity stands and
+    // waits; back with its token, it gets it again; gone again and not back, it is removed.
+    const entity_id e0 = n.node->link().local_of(gids[0]);
+    n.world->set_intent(e0, {1, 0, 0});
+    REQUIRE(n.node->keep_for_resume(e0, *n.world));
+    CHECK(n.world->behaviour_state_of(e0)->intent == vec3{0, 0, 0});
+    for (const entity_id id : n.world->store().ids()) {  // an NPC is no client's: never kept
+      if (n.world->behaviour_of(id) != behaviour::player) {
+        CHECK_FALSE(n.node->keep_for_resume(id, *n.world));
+        break;
+      }
+    }
+    run_zones(zones, 500ms);
+    entity_id back = null_entity;
+    REQUIRE(n.node->claim_token(tokens[0], *n.world, back) == zone_extension::claim::ready);
+    CHECK(back == e0);
+    CHECK(n.node->stats().players_back_after_linger.load() == 1);
+    REQUIRE(n.node->keep_for_resume(e0, *n.world));
+    run_zones(zones, 2500ms);
+    CHECK(n.node->link().local_of(gids[0]) == null_entity);
+    CHECK(n.node->stats().players_lingered.load() == 2);
+    CHECK(n.node->stats().players_abandoned.load() == 2);
   }
 
   TEST_CASE("a zone killed seconds after its checkpoint: what it adopted since comes back from the handoff records") {
