@@ -2,7 +2,9 @@
 // logs in goes to, from the regions' leases and the loads their zones tell beside them.
 #pragma once
 
+#include <chrono>
 #include <cstdint>
+#include <iterator>
 #include <map>
 #include <optional>
 #include <utility>
@@ -40,5 +42,34 @@ namespace zone::world {
   if (!best) return std::nullopt;
   return std::pair{serving[*best].first, *serving[*best].second};
 }
+
+/// The leases a gate sends clients to: those their zones renewed lately. A zone renews its lease
+/// every quarter of the TTL (a new KV revision); one whose revision has not changed for
+/// `stale_after` (half the TTL) belongs to a zone that has most likely died (killed: its lease has
+/// not lapsed yet), and is left out, so that no login or resume goes to an address nobody answers
+/// (a zone whose renewals are only late is back once one goes through).
+class lease_watch {
+ public:
+  using clock = std::chrono::steady_clock;
+  /// The leases read at `now`, less those whose revision has not changed for `stale_after` (a
+  /// lease seen for the first time counts as changed then; revision 0, unknown, is kept).
+  [[nodiscard]] std::map<std::uint32_t, lease_info> fresh(std::map<std::uint32_t, lease_info> leases,
+                                                          clock::time_point now, clock::duration stale_after) {
+    for (auto it = changed_.begin(); it != changed_.end();) {
+      it = leases.contains(it->first) ? std::next(it) : changed_.erase(it);  // lapsed: forgotten
+    }
+    for (auto it = leases.begin(); it != leases.end();) {
+      auto [seen, fresh] = changed_.try_emplace(it->first, it->second.revision, now);
+      if (!fresh && seen->second.first != it->second.revision) seen->second = {it->second.revision, now};
+      const bool stale = it->second.revision != 0 && now - seen->second.second > stale_after;
+      it = stale ? leases.erase(it) : std::next(it);
+    }
+    return leases;
+  }
+
+ private:
+  std::map<std::uint32_t, std::pair<std::uint64_t, clock::time_point>>
+      changed_;  ///< region -> (revision, when it changed)
+};
 
 }  // namespace zone::world

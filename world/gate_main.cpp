@@ -7,7 +7,8 @@
 // A hello with a token (welcome.resume_token: a client whose zone was lost) goes to the zone that
 // serves the region the token names, with the token: as soon as one does (a standby, a restarted
 // zone), waiting for it up to --resume-wait seconds (then error(timeout)).
-// The leases are read from NATS KV every 250 ms by a thread of its own; a client gets
+// The leases are read from NATS KV every 250 ms by a thread of its own (a lease its zone has not
+// renewed for half the TTL is left out: lease_watch); a client gets
 // --hello-timeout seconds to say hello, a hello of at most 4 KiB, and at most --max-connections
 // are held at once, --max-per-address from one address (more are closed at accept).
 #include <utility>  // first: Boost 1.74's asio under GCC 12 in C++20
@@ -25,6 +26,7 @@
 #include <map>
 #include <memory>
 #include <mutex>
+#include <set>
 #include <sstream>
 #include <string>
 #include <thread>
@@ -100,16 +102,49 @@ class lease_table {
         kv_ = nullptr;
         err = "no world '" + o_.world + "' in NATS yet (no lease bucket): waiting for its first zone";
       } else if (kv_) {
+        if (stale_after_ == world::lease_watch::clock::duration{}) stale_after_ = half_ttl();
         now = world::read_leases(kv_, &err);
       }
       if (!err.empty() && err != said) spdlog::warn("world gate: {}", err);
       said = err;
+      if (now) {
+        const auto read = std::move(*now);
+        now = watch_.fresh(read, world::lease_watch::clock::now(), stale_after_);
+        for (const auto& [region, l] : read) {  // said once each time a zone stops or starts renewing
+          const bool stale = !now->contains(region);
+          if (stale != stale_.contains(region)) {
+            if (stale) {
+              stale_.insert(region);
+              spdlog::warn(
+                  "world gate: region {}'s lease ({}) not renewed for {:.1f} s: no client goes there until it is",
+                  region, l.raw, std::chrono::duration<double>(stale_after_).count());
+            } else {
+              stale_.erase(region);
+              spdlog::info("world gate: region {}'s lease renewed again", region);
+            }
+          }
+        }
+        std::erase_if(stale_, [&](std::uint32_t r) { return !read.contains(r); });
+      }
       lock.lock();
       if (now) leases_ = std::move(*now);
       cv_.wait_for(lock, std::chrono::milliseconds(250), [&] { return stopping_; });
     }
   }
+  /// Half the lease bucket's TTL (its zones renew every quarter of it; 1.5 s when it cannot be read).
+  [[nodiscard]] world::lease_watch::clock::duration half_ttl() const {
+    double ttl_s = 3;
+    kvStatus* st = nullptr;
+    if (kvStore_Status(&st, kv_) == NATS_OK) {
+      if (kvStatus_TTL(st) > 0) ttl_s = static_cast<double>(kvStatus_TTL(st)) / 1e9;
+      kvStatus_Destroy(st);
+    }
+    return std::chrono::duration_cast<world::lease_watch::clock::duration>(std::chrono::duration<double>(ttl_s / 2));
+  }
   gate_options o_;
+  world::lease_watch watch_;  ///< the loop's thread
+  world::lease_watch::clock::duration stale_after_{};
+  std::set<std::uint32_t> stale_;
   natsConnection* nc_ = nullptr;
   jsCtx* js_ = nullptr;
   kvStore* kv_ = nullptr;

@@ -1656,10 +1656,12 @@ std::optional<std::map<std::uint32_t, lease_info>> read_leases(__kvStore* kv, st
     kvEntry* e = nullptr;
     if (kvStore_Get(&e, kv, k.c_str()) != NATS_OK) continue;  // lapsed since the listing
     const std::string value = kvEntry_ValueString(e);
+    const std::uint64_t revision = kvEntry_Revision(e);
     kvEntry_Destroy(e);
     const auto region = static_cast<std::uint32_t>(std::strtoul(k.c_str() + 2, nullptr, 10));
     if (lease) {
       out[region] = parse_lease(value);
+      out[region].revision = revision;
     } else {
       loads[region] = value;
     }

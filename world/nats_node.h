@@ -434,6 +434,7 @@ struct lease_info {
   std::uint16_t port = 0;
   std::uint32_t incarnation = 0;  ///< 0: not parsed ("claiming")
   std::string raw;                ///< the value as stored
+  std::uint64_t revision = 0;     ///< the lease key's KV revision (its zone renews it every quarter of the TTL)
   /// The zone's load, as its heartbeat last told it (key "p.<region>" beside the lease): players
   /// and player slots; -1 and 0 when it told none.
   std::int64_t players = -1;

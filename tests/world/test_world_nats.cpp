@@ -484,6 +484,48 @@ TEST_SUITE("world.nats") {
     CHECK(c.notes[0].find("region 1 answered by incarnation 1 without a lease") != std::string::npos);
   }
 
+  TEST_CASE("lease_watch: a lease whose revision has not changed for half the TTL is left out until it changes") {
+    using clock = lease_watch::clock;
+    const auto lease = [](std::uint16_t port, std::uint64_t revision) {
+      lease_info l = parse_lease("127.0.0.1 " + std::to_string(port) + " 1");
+      l.revision = revision;
+      return l;
+    };
+    lease_watch w;
+    const auto t0 = clock::now();
+    const auto half = std::chrono::duration_cast<clock::duration>(1500ms);
+    const auto at = [&](int ms) {
+      return t0 + std::chrono::duration_cast<clock::duration>(std::chrono::milliseconds(ms));
+    };
+    const auto regions = [](const std::map<std::uint32_t, lease_info>& m) {
+      std::vector<std::uint32_t> r;
+      for (const auto& [k, v] : m) r.push_back(k);
+      return r;
+    };
+    // Two zones renewing every 750 ms (a 3 s TTL), a third whose revision is unknown (0: kept).
+    std::map<std::uint32_t, lease_info> read{{0, lease(7000, 10)}, {1, lease(7001, 20)}, {2, lease(7002, 0)}};
+    CHECK(regions(w.fresh(read, at(0), half)) == std::vector<std::uint32_t>{0, 1, 2});
+    read[0].revision = 11, read[1].revision = 21;
+    CHECK(regions(w.fresh(read, at(750), half)) == std::vector<std::uint32_t>{0, 1, 2});
+    // Region 1's zone dies: its revision stays; 1.5 s after its last renewal it is left out,
+    // while region 0 renews on.
+    read[0].revision = 12;
+    CHECK(regions(w.fresh(read, at(1500), half)) == std::vector<std::uint32_t>{0, 1, 2});
+    read[0].revision = 13;
+    CHECK(regions(w.fresh(read, at(2251), half)) == std::vector<std::uint32_t>{0, 2});
+    CHECK(w.fresh(read, at(2251), half).at(0).port == 7000);
+    // Its lease lapses (gone from KV), and a standby claims the region: fresh at once.
+    read.erase(1);
+    CHECK(regions(w.fresh(read, at(3000), half)) == std::vector<std::uint32_t>{0, 2});
+    read[1] = lease(7005, 20);  // a revision number it happened to have before: still new
+    CHECK(regions(w.fresh(read, at(3250), half)) == std::vector<std::uint32_t>{0, 1, 2});
+    CHECK(w.fresh(read, at(3250), half).at(1).port == 7005);
+    // A zone whose renewals were only late is back once one goes through.
+    CHECK(regions(w.fresh(read, at(4900), half)) == std::vector<std::uint32_t>{2});
+    read[0].revision = 14, read[1].revision = 21;
+    CHECK(regions(w.fresh(read, at(5000), half)) == std::vector<std::uint32_t>{0, 1, 2});
+  }
+
   TEST_CASE("gate_pick: the least loaded zone that serves and has room; ties and zones without a load in turn") {
     const auto lease = [](std::uint16_t port, std::uint32_t inc, std::int64_t players = -1, std::int64_t slots = 0) {
       lease_info l = parse_lease("127.0.0.1 " + std::to_string(port) + " " + std::to_string(inc));
