@@ -286,6 +286,21 @@ std::unique_ptr<nats_node> join_after_kill(zone_list& zones, const std::string& 
   return next;
 }
 
+/// Has zone `z` write a checkpoint at the end of its next tick (ticked here) and waits until its
+/// checkpoint thread has written it (at most 5 s), calling `meanwhile` every 33 ms (the other
+/// zones tick; `z` does not, so nothing of it changes after the copy).
+void checkpoint_now(node_zone& z, const std::function<void()>& meanwhile = {}) {
+  const std::uint64_t written = z.node->stats().checkpoints_written.load();
+  z.node->checkpoint_next_tick_for_testing();
+  z.tick();
+  for (const auto until = std::chrono::steady_clock::now() + 5s;
+       z.node->stats().checkpoints_written.load() == written && std::chrono::steady_clock::now() < until;) {
+    if (meanwhile) meanwhile();
+    std::this_thread::sleep_for(33ms);
+  }
+  REQUIRE(z.node->stats().checkpoints_written.load() > written);
+}
+
 /// One exchange with a world-gate on loopback `port`: connects, sends `bytes` (none: says
 /// nothing), and reads until the gate closes (at most 5 s). The messages it sent.
 std::vector<net::message> ask_gate(std::uint16_t port, const std::vector<std::uint8_t>& bytes) {
@@ -1383,15 +1398,7 @@ TEST_SUITE("world.nats") {
     // Zone 1 writes a checkpoint at the end of its next tick, and is killed once it is written
     // (and its sender has published what it decided): nothing of it changes in between.
     nats_node& victim = *zones[1]->node;
-    const std::uint64_t written = victim.stats().checkpoints_written.load();
-    victim.checkpoint_next_tick_for_testing();
-    zones[1]->tick();
-    for (const auto until = std::chrono::steady_clock::now() + 5s;
-         victim.stats().checkpoints_written.load() == written && std::chrono::steady_clock::now() < until;) {
-      zones[0]->tick();
-      std::this_thread::sleep_for(33ms);
-    }
-    REQUIRE(victim.stats().checkpoints_written.load() > written);
+    checkpoint_now(*zones[1], [&] { zones[0]->tick(); });
     const auto at_kill = victim.link().owned_ids();
     CHECK(victim.stats().checkpoint_entities.load() == at_kill.size());
     victim.crash_for_testing();
@@ -1455,14 +1462,7 @@ TEST_SUITE("world.nats") {
     for (const global_id g : gids) CHECK(g != 0);
     run_zones(zones, 500ms);
     // The victim's checkpoint written with the players where they are then; killed right after.
-    const std::uint64_t written = v.node->stats().checkpoints_written.load();
-    v.node->checkpoint_next_tick_for_testing();
-    v.tick();
-    for (const auto until = std::chrono::steady_clock::now() + 5s;
-         v.node->stats().checkpoints_written.load() == written && std::chrono::steady_clock::now() < until;) {
-      std::this_thread::sleep_for(10ms);
-    }
-    REQUIRE(v.node->stats().checkpoints_written.load() > written);
+    checkpoint_now(v);
     std::vector<vec3> at_checkpoint;
     for (const entity_id p : players) at_checkpoint.push_back(v.world->store().get(p)->position);
     for (const entity_id p : players) REQUIRE(v.node->owns(p));  // none walked out of the region
@@ -1544,13 +1544,7 @@ TEST_SUITE("world.nats") {
     const std::size_t total = entities_of(zones);
     run_zones(zones, 1500ms);
     nats_node& victim = *zones[1]->node;
-    const std::uint64_t written = victim.stats().checkpoints_written.load();
-    victim.checkpoint_next_tick_for_testing();
-    for (const auto until = std::chrono::steady_clock::now() + 5s;
-         victim.stats().checkpoints_written.load() == written && std::chrono::steady_clock::now() < until;) {
-      run_zones(zones, 33ms);
-    }
-    REQUIRE(victim.stats().checkpoints_written.load() > written);
+    checkpoint_now(*zones[1], [&] { zones[0]->tick(); });
     // Three more seconds: zone 1 adopts entities its checkpoint does not hold (and hands some on).
     const std::uint64_t adopted_before = victim.stats().handoffs_applied.load();
     run_zones(zones, 3s);
