@@ -5,10 +5,12 @@
 
 #include <cstdio>
 #include <fstream>
+#include <functional>
 #include <map>
-#include <sstream>
-#include <set>
+#include <optional>
 #include <random>
+#include <set>
+#include <sstream>
 #include <thread>
 
 #include <spdlog/sinks/ostream_sink.h>
@@ -1185,5 +1187,111 @@ TEST_SUITE("zone.server") {
     CHECK(server.net_stats().stale_drops >= 1);
     CHECK(after > 20);  // served at the full rate again
     CHECK_FALSE(c.closed());
+  }
+
+  TEST_CASE(
+      "a world's hooks: the welcome tells the extension's resume token; a lost connection's entity stays when the extension keeps it, and its token claims it back") {
+    // What nats_node does (world/nats_node.h: resume_token, keep_for_resume, claim_token), here
+    // by a small extension: the server's side of it, over real connections.
+    struct keeper final : zone_extension {
+      std::map<std::string, entity_id> kept;  // token -> the entity kept for it
+      std::map<entity_id, std::string> told;
+      bool keep = true;
+      int asked = 0;
+      void started(std::uint16_t) override {}
+      void before_step(zone_world&) override {}
+      void after_step(zone_world&, std::vector<redirect>&) override {}
+      claim claim_token(const std::string& t, zone_world&, entity_id& e) override {
+        const auto it = kept.find(t);
+        if (it == kept.end()) return claim::refused;
+        e = it->second;
+        kept.erase(it);
+        return claim::ready;
+      }
+      std::string resume_token(entity_id e, const std::string& claimed) override {
+        const std::string t = claimed.empty() ? "000100000000000" + std::to_string(told.size() % 10) : claimed;
+        told[e] = t;
+        return t;
+      }
+      bool keep_for_resume(entity_id e, zone_world&) override {
+        ++asked;
+        if (!keep) return false;
+        kept[told.at(e)] = e;
+        return true;
+      }
+      [[nodiscard]] bool owns(entity_id) const override { return true; }
+      void forward_input(entity_id, const vec3&, std::uint32_t) override {}
+    };
+    keeper ext;
+    zone_server server(test_config());
+    server.set_extension(&ext);
+    REQUIRE_FALSE(server.start().has_value());
+    const auto welcome_of = [&](test_client& c) {
+      for (int k = 0; k < 100; ++k) {
+        server.tick_once();
+        for (auto m = c.read(20ms); m; m = c.read(1ms)) {
+          if (const auto* w = std::get_if<net::welcome_msg>(&*m)) return *w;
+        }
+      }
+      FAIL("no welcome");
+      return net::welcome_msg{};
+    };
+    const auto tick_until = [&](const std::function<bool()>& done) {
+      for (int k = 0; k < 200 && !done(); ++k) {
+        server.tick_once();
+        std::this_thread::sleep_for(5ms);
+      }
+      return done();
+    };
+    entity_id first = null_entity;
+    std::string token;
+    {
+      test_client a(server.port());
+      REQUIRE(a.send(net::hello_msg{"a", "", net::protocol_version}));
+      const auto w = welcome_of(a);
+      first = w.entity_id;
+      token = w.resume_token;
+      CHECK(token == "0001000000000000");
+    }  // its connection ends: the extension keeps the entity
+    REQUIRE(tick_until([&] { return ext.asked == 1; }));
+    CHECK(server.world().store().get(first).has_value());
+    {
+      test_client b(server.port());
+      REQUIRE(b.send(net::hello_msg{"b", token, net::protocol_version}));
+      const auto w = welcome_of(b);
+      CHECK(w.entity_id == first);  // its own entity back
+      CHECK(w.resume_token == token);
+      ext.keep = false;
+    }  // ends again: not kept this time
+    REQUIRE(tick_until([&] { return ext.asked == 2; }));
+    server.tick_once();
+    CHECK_FALSE(server.world().store().get(first).has_value());
+    {  // a token the extension does not know: refused, and the connection closed
+      test_client c(server.port());
+      REQUIRE(c.send(net::hello_msg{"c", token, net::protocol_version}));
+      std::optional<net::error_msg> err;
+      for (int k = 0; k < 100 && !err; ++k) {
+        server.tick_once();
+        for (auto m = c.read(20ms); m; m = c.read(1ms)) {
+          if (const auto* e = std::get_if<net::error_msg>(&*m)) err = *e;
+        }
+      }
+      REQUIRE(err.has_value());
+      CHECK(err->code == net::error_code::auth_failed);
+    }
+    // A single zone (no extension) tells no resume token.
+    zone_server single(test_config());
+    REQUIRE_FALSE(single.start().has_value());
+    test_client d(single.port());
+    REQUIRE(d.send(net::hello_msg{"d", "", net::protocol_version}));
+    std::optional<net::welcome_msg> w;
+    for (int k = 0; k < 100 && !w; ++k) {
+      single.tick_once();
+      for (auto m = d.read(20ms); m; m = d.read(1ms)) {
+        if (const auto* x = std::get_if<net::welcome_msg>(&*m)) w = *x;
+      }
+    }
+    REQUIRE(w.has_value());
+    CHECK(w->resume_token.empty());
   }
 }
