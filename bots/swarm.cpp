@@ -1404,7 +1404,6 @@ void bot_session::fail(const std::string& why, bool connection_failure) {
       close();
       s_.relaunch_later(slot_, to, since, -1, {}, o.resume ? s_.resume_token(slot_) : std::string());
       return;
-      return;
     }
   }
   if (connection_failure) {

@@ -133,12 +133,7 @@ class lease_table {
   }
   /// Half the lease bucket's TTL (its zones renew every quarter of it; 1.5 s when it cannot be read).
   [[nodiscard]] world::lease_watch::clock::duration half_ttl() const {
-    double ttl_s = 3;
-    kvStatus* st = nullptr;
-    if (kvStore_Status(&st, kv_) == NATS_OK) {
-      if (kvStatus_TTL(st) > 0) ttl_s = static_cast<double>(kvStatus_TTL(st)) / 1e9;
-      kvStatus_Destroy(st);
-    }
+    const double ttl_s = world::lease_ttl_s(kv_).value_or(3);
     return std::chrono::duration_cast<world::lease_watch::clock::duration>(std::chrono::duration<double>(ttl_s / 2));
   }
   gate_options o_;

@@ -163,18 +163,11 @@ std::unique_ptr<nats_node> nats_node::join(const node_options& opt, const zone_c
     if (kv_stream_created(n->js_, opt.world, &created) == NATS_OK) n->kv_created_ = created;
   }
   // The lease bucket's TTL is the first zone's (an existing bucket keeps its own): renew by it.
-  {
-    kvStatus* st = nullptr;
-    if (kvStore_Status(&st, n->lease_) == NATS_OK) {
-      const double ttl_s = static_cast<double>(kvStatus_TTL(st)) / 1e9;
-      if (ttl_s > 0 && std::abs(ttl_s - opt.lease_ttl_s) > 1e-3) {
-        spdlog::warn(
-            "world '{}': the world's leases last {} s (its lease bucket's TTL), not the {} s asked: renewing by {} s",
-            opt.world, ttl_s, opt.lease_ttl_s, ttl_s);
-        n->opt_.lease_ttl_s = ttl_s;
-      }
-      kvStatus_Destroy(st);
-    }
+  if (const auto ttl_s = world::lease_ttl_s(n->lease_); ttl_s && std::abs(*ttl_s - opt.lease_ttl_s) > 1e-3) {
+    spdlog::warn(
+        "world '{}': the world's leases last {} s (its lease bucket's TTL), not the {} s asked: renewing by {} s",
+        opt.world, *ttl_s, opt.lease_ttl_s, *ttl_s);
+    n->opt_.lease_ttl_s = *ttl_s;
   }
   // The layout: the first zone writes it (create = only if absent); everyone reads what is there.
   const layout proposed(opt.bounds, opt.cols, opt.rows);
@@ -1622,6 +1615,15 @@ std::optional<std::map<global_id, std::pair<std::uint32_t, std::uint64_t>>> read
     }
   }
   return out;
+}
+
+std::optional<double> lease_ttl_s(__kvStore* leases) {
+  kvStatus* st = nullptr;
+  if (kvStore_Status(&st, leases) != NATS_OK) return std::nullopt;
+  const double ttl_s = static_cast<double>(kvStatus_TTL(st)) / 1e9;
+  kvStatus_Destroy(st);
+  if (!(ttl_s > 0)) return std::nullopt;
+  return ttl_s;
 }
 
 lease_info parse_lease(std::string raw) {

@@ -447,6 +447,10 @@ struct lease_info {
 [[nodiscard]] std::optional<std::map<std::uint32_t, lease_info>> read_leases(const std::string& url,
                                                                              const std::string& world,
                                                                              std::string* error);
+/// The TTL of a world's lease bucket (`world-W-lease`), in seconds: how long a lease lasts after
+/// its zone's last renewal (the first zone's choice; zones renew every quarter of it). Nothing
+/// when it cannot be read.
+[[nodiscard]] std::optional<double> lease_ttl_s(__kvStore* leases);
 /// The same from the world's lease bucket (`world-W-lease`) held open by the caller.
 [[nodiscard]] std::optional<std::map<std::uint32_t, lease_info>> read_leases(__kvStore* leases, std::string* error);
 /// What the census says of the leases. `problems`: a region served by a zone that does not hold

@@ -107,6 +107,19 @@ void wait_written(const zone_server& server) {
   }
 }
 
+/// The first message of kind M that `c` reads while the test ticks `server` (tick_once; at most
+/// 100 ticks, each followed by up to 20 ms of reading).
+template <class M>
+std::optional<M> first_while_ticking(zone_server& server, test_client& c) {
+  for (int k = 0; k < 100; ++k) {
+    server.tick_once();
+    for (auto m = c.read(20ms); m; m = c.read(1ms)) {
+      if (const auto* x = std::get_if<M>(&*m)) return *x;
+    }
+  }
+  return std::nullopt;
+}
+
 }  // namespace
 
 TEST_SUITE("zone.server") {
@@ -1227,14 +1240,9 @@ TEST_SUITE("zone.server") {
     server.set_extension(&ext);
     REQUIRE_FALSE(server.start().has_value());
     const auto welcome_of = [&](test_client& c) {
-      for (int k = 0; k < 100; ++k) {
-        server.tick_once();
-        for (auto m = c.read(20ms); m; m = c.read(1ms)) {
-          if (const auto* w = std::get_if<net::welcome_msg>(&*m)) return *w;
-        }
-      }
-      FAIL("no welcome");
-      return net::welcome_msg{};
+      const auto w = first_while_ticking<net::welcome_msg>(server, c);
+      REQUIRE(w.has_value());
+      return *w;
     };
     const auto tick_until = [&](const std::function<bool()>& done) {
       for (int k = 0; k < 200 && !done(); ++k) {
@@ -1269,13 +1277,7 @@ TEST_SUITE("zone.server") {
     {  // a token the extension does not know: refused, and the connection closed
       test_client c(server.port());
       REQUIRE(c.send(net::hello_msg{"c", token, net::protocol_version}));
-      std::optional<net::error_msg> err;
-      for (int k = 0; k < 100 && !err; ++k) {
-        server.tick_once();
-        for (auto m = c.read(20ms); m; m = c.read(1ms)) {
-          if (const auto* e = std::get_if<net::error_msg>(&*m)) err = *e;
-        }
-      }
+      const auto err = first_while_ticking<net::error_msg>(server, c);
       REQUIRE(err.has_value());
       CHECK(err->code == net::error_code::auth_failed);
     }
@@ -1284,13 +1286,7 @@ TEST_SUITE("zone.server") {
     REQUIRE_FALSE(single.start().has_value());
     test_client d(single.port());
     REQUIRE(d.send(net::hello_msg{"d", "", net::protocol_version}));
-    std::optional<net::welcome_msg> w;
-    for (int k = 0; k < 100 && !w; ++k) {
-      single.tick_once();
-      for (auto m = d.read(20ms); m; m = d.read(1ms)) {
-        if (const auto* x = std::get_if<net::welcome_msg>(&*m)) w = *x;
-      }
-    }
+    const auto w = first_while_ticking<net::welcome_msg>(single, d);
     REQUIRE(w.has_value());
     CHECK(w->resume_token.empty());
   }
