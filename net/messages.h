@@ -73,6 +73,11 @@ struct set_visibility_msg {
   friend bool operator==(const set_visibility_msg&, const set_visibility_msg&) = default;
 };
 
+/// The client leaves on purpose (a logout): its entity is removed at once, not kept for a resume.
+struct leave_msg {
+  friend bool operator==(const leave_msg&, const leave_msg&) = default;
+};
+
 // server -> client
 /// The zone's interest rules, as the welcome tells them (see the schema's interest_rules).
 struct interest_rules {
@@ -189,7 +194,7 @@ struct class_changes_msg {
 
 /// Any message; the alternatives are in the order of the schema's union (index + 1 = wire type).
 using message = std::variant<hello_msg, input_msg, ping_msg, welcome_msg, tick_update_msg, pong_msg, error_msg,
-                             teleport_msg, redirect_msg, set_visibility_msg, class_changes_msg>;
+                             teleport_msg, redirect_msg, set_visibility_msg, class_changes_msg, leave_msg>;
 
 /// The wire type of a message value.
 [[nodiscard]] wire::message type_of(const message& m);

@@ -105,6 +105,8 @@ flatbuffers::Offset<void> build_body(flatbuffers::FlatBufferBuilder& fbb, const 
           for (const auto& n : msg.notes) notes.emplace_back(n.id, n.visibility_class);
           const auto notes_v = fbb.CreateVectorOfStructs(notes);
           return w::Createclass_changes(fbb, msg.server_tick, notes_v).Union();
+        } else if constexpr (std::is_same_v<T, leave_msg>) {
+          return w::Createleave(fbb).Union();
         } else {
           static_assert(std::is_same_v<T, redirect_msg>);
           const auto host = fbb.CreateString(msg.host);
@@ -522,6 +524,10 @@ std::optional<message> to_message(const w::envelope& env) {
         for (const auto* n : *v) out.notes.push_back({n->id(), n->visibility_class()});
       }
       return out;
+    }
+    case w::message::leave: {
+      if (!env.message_as_leave()) return std::nullopt;
+      return leave_msg{};
     }
     default: return std::nullopt;
   }

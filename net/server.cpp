@@ -776,7 +776,7 @@ class session : public std::enable_shared_from_this<session> {
     // Before its hello a connection is served nothing: any other message closes it.
     if (!hello_seen_ && f.type != wire::message::hello) {
       if (f.type == wire::message::input || f.type == wire::message::teleport || f.type == wire::message::ping ||
-          f.type == wire::message::set_visibility) {
+          f.type == wire::message::set_visibility || f.type == wire::message::leave) {
         return fail_now(error_code::unexpected_message, std::string(type_name(f.type)) + " before hello");
       }
     }
@@ -816,6 +816,10 @@ class session : public std::enable_shared_from_this<session> {
                        delivery::control);
         return;
       }
+      case wire::message::leave:
+        // A logout: nothing is sent back; the game hears it with the disconnect (inbound_event::left).
+        left_ = true;
+        return close_now("left");
       default:
         return fail_now(error_code::unexpected_message,
                         "a client may not send " + std::string(type_name(f.type)));
@@ -1100,6 +1104,7 @@ class session : public std::enable_shared_from_this<session> {
       e.type = inbound_event::kind::disconnected;
       e.session = id_;
       e.reason = std::move(reason);
+      e.left = left_;
       srv_.report(std::move(e));
       --srv_.counters.sessions_open;
     }
@@ -1120,6 +1125,7 @@ class session : public std::enable_shared_from_this<session> {
   const address_key key_;      // the reconnect-churn limit's key
   const steady::time_point accepted_at_ = steady::now();
   bool announced_ = false;     // the game heard of it (a valid hello in a free slot); lane only
+  bool left_ = false;          // the client said leave; lane only
   frame_decoder decoder_;
   encoder pong_encoder_{256};
   bool hello_seen_ = false;

@@ -161,6 +161,9 @@ struct inbound_event {
   /// For a hello (kind::message): when its connection was accepted and when it was read (now_us()).
   std::uint64_t accepted_us = 0, hello_us = 0;
   std::string reason;           ///< for kind::disconnected
+  /// For kind::disconnected: the client said leave (a logout) before it closed; otherwise the
+  /// connection was lost or closed by the server (its entity may wait for a resume).
+  bool left = false;
 };
 
 /// Shared immutable frame: a message sent to many sessions is serialized once. The reference

@@ -108,11 +108,12 @@ struct gen {
         return t;
       }
       case 5: return pong_msg{u64(), u64()};
-      case 6: return error_msg{static_cast<error_code>(below(12)), str()};
+      case 6: return error_msg{static_cast<error_code>(below(static_cast<std::size_t>(error_code::MAX) + 1)), str()};
       case 7: return teleport_msg{u32(), v(), rng() % 2 ? 0u : u32()};
       case 8: return redirect_msg{str(), static_cast<std::uint16_t>(u32()), str()};
       case 9: return set_visibility_msg{u32(), rng() % 2 == 0, static_cast<std::uint8_t>(rng())};
-      default: {
+      case 11: return leave_msg{};
+      default: {  // 10
         class_changes_msg c;
         c.server_tick = u64();
         for (std::size_t i = below(40); i-- > 0;) c.notes.push_back({u32(), u32()});
@@ -662,6 +663,10 @@ TEST_SUITE("net.protocol") {
     CHECK(static_cast<int>(type_of(set_visibility_msg{})) == 10);
     CHECK(static_cast<int>(w::message::class_changes) == 11);
     CHECK(static_cast<int>(type_of(class_changes_msg{})) == 11);
+    CHECK(static_cast<int>(w::message::leave) == 12);
+    CHECK(static_cast<int>(type_of(leave_msg{})) == 12);
+    CHECK(static_cast<int>(w::error_code::bad_hello) == 12);  // error codes are appended too
+    CHECK(static_cast<int>(w::error_code::taken_over) == 13);
     const auto body_frame = [](auto build) {
       flatbuffers::FlatBufferBuilder fbb;
       const auto body = build(fbb);

@@ -1869,6 +1869,37 @@ TEST_SUITE("net.server") {
     CHECK(run.srv.stats().pings_answered == 0);
   }
 
+  TEST_CASE(
+      "leave: the session closes without an answer and the game hears left; a lost connection is not left; before hello an error") {
+    started run(server_options{});
+    auto& g = run.g;
+    const auto disconnect_of = [&](session_id s) -> const inbound_event* {
+      for (const auto& e : g.events) {
+        if (e.type == inbound_event::kind::disconnected && e.session == s) return &e;
+      }
+      return nullptr;
+    };
+    test_client a(run.srv.port());
+    const session_id sa = join(g, a, "a");
+    REQUIRE(a.send(leave_msg{}));
+    std::vector<message> seen;
+    CHECK(a.wait_closed(3000ms, &seen));
+    CHECK(seen.empty());  // nothing follows a leave, not even an error
+    REQUIRE(g.wait_for([&] { return disconnect_of(sa) != nullptr; }));
+    CHECK(disconnect_of(sa)->left);
+    CHECK(disconnect_of(sa)->reason == "left");
+    const session_id sb = [&] {
+      test_client b(run.srv.port());
+      return join(g, b, "b");
+    }();  // b's connection ends without a leave
+    REQUIRE(g.wait_for([&] { return disconnect_of(sb) != nullptr; }));
+    CHECK_FALSE(disconnect_of(sb)->left);
+    test_client c(run.srv.port());
+    REQUIRE(c.send(leave_msg{}));
+    CHECK(std::get<error_msg>(closed_with(c, error_code::unexpected_message)).reason == "leave before hello");
+    CHECK(g.count(inbound_event::kind::disconnected) == 2);  // the game never heard of c
+  }
+
   TEST_CASE("rate limits: a ping flood is answered at the ping rate, then cut off with rate_limited") {
     server_options opt;
     opt.pings_per_second = 10;
