@@ -1448,8 +1448,11 @@ std::string nats_node::resume_token(entity_id e, const std::string& claimed) {
 }
 
 std::uint64_t nats_node::new_token(std::uint32_t r) {
+  // The OS's random source (getrandom or rdrand), not a seeded generator: a client could work a
+  // generator's next outputs (other players' tokens) out from the tokens it was told itself.
+  std::random_device os;
   std::uint64_t low = 0;
-  while (low == 0) low = rng_() & 0xffffffffffffull;
+  while (low == 0) low = (std::uint64_t{os()} << 32 | os()) & 0xffffffffffffull;
   return static_cast<std::uint64_t>(r + 1) << 48 | low;
 }
 

@@ -357,7 +357,6 @@ class nats_node final : public zone_extension {
   std::atomic<std::size_t> players_{0}, slots_{0};
 
   std::thread heartbeat_, fetcher_, sender_, checkpointer_;
-  std::mt19937_64 rng_{std::random_device{}()};
   struct pending_player {
     global_id gid;
     std::uint64_t deadline_tick;
