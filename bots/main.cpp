@@ -120,6 +120,7 @@ void print_table(const swarm_result& r, const summary& s) {
   row("unexpected disconnects", num(r.unexpected_disconnects));
   row("server errors received", num(r.server_errors));
   row("churn logouts", num(r.logouts));
+  if (r.cuts > 0) row("connections cut (--cut)", num(r.cuts));
   row("teleports sent", num(r.teleports_sent));
   row("joined stealthed / in a team", num(r.stealth_joins) + " / " + num(r.team_joins));
   row("visibility switches sent", num(r.visibility_switches_sent));
@@ -222,6 +223,7 @@ bool write_json(const std::string& path, const swarm_result& r, const summary& s
   j["unexpected_disconnects"] = r.unexpected_disconnects;
   j["server_errors"] = r.server_errors;
   j["logouts"] = r.logouts;
+  j["cuts"] = r.cuts;
   j["threads"] = r.options.threads;
   j["teleports_sent"] = r.teleports_sent;
   j["redirects"] = r.redirects;
@@ -444,7 +446,9 @@ int main(int argc, char** argv) {
       ("relogin-delay", po::value(&o.relogin_delay_s)->default_value(o.relogin_delay_s, "0.2"),
        "seconds before a churned bot logs in again")  //
       ("churn-for", po::value(&o.churn_for_s)->default_value(o.churn_for_s),
-       "seconds into the run when churn stops (0 = until the end)")  //
+       "seconds into the run when churn and --cut stop (0 = until the end)")  //
+      ("cut", po::value(&o.cut)->default_value(o.cut),
+       "connections dropped per second as a network would drop them: a random playing bot closes its socket without a leave and logs in again after --relogin-delay, with its resume token when --resume and the zone told one (zone-server --linger), else as a new player")  //
       ("reconnect", po::bool_switch(&o.reconnect),
        "after an unexpected disconnect, log in again at the same address (retrying for --connect-timeout)")  //
       ("relogin-port", po::value(&o.relogin_port)->default_value(o.relogin_port),
@@ -564,8 +568,9 @@ int main(int argc, char** argv) {
     std::fprintf(stderr, "bot-swarm: --stealth-bots and --team-bots must be in [0, 1], --visibility-switch-hz >= 0\n");
     return 64;
   }
-  if (!(o.teleport_hz >= 0) || !(o.churn_for_s >= 0)) {
-    std::fprintf(stderr, "bot-swarm: --teleport-hz and --churn-for must be >= 0\n");
+  if (!(o.teleport_hz >= 0) || !(o.churn_for_s >= 0) || !(o.churn >= 0 && std::isfinite(o.churn)) ||
+      !(o.cut >= 0 && std::isfinite(o.cut))) {
+    std::fprintf(stderr, "bot-swarm: --teleport-hz, --churn, --cut and --churn-for must be >= 0\n");
     return 64;
   }
   // Every bot is a socket: raise the open-file limit to the hard limit, and refuse a swarm that

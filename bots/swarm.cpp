@@ -102,6 +102,9 @@ class bot_session : public std::enable_shared_from_this<bot_session> {
   }
   void start();
   void logout();  ///< graceful, intended close (churn, end of run)
+  /// --cut: the connection drops without a leave (as a network would drop it); the slot logs in
+  /// again after relogin_delay_s, saying its resume token when it has one.
+  void cut();
   std::size_t slot() const { return slot_; }
   bool playing() const { return playing_.load(std::memory_order_relaxed); }
 
@@ -151,6 +154,7 @@ class bot_session : public std::enable_shared_from_this<bot_session> {
   /// Outbound bytes: frames queued while a write is in flight go out together in the next write.
   std::vector<std::uint8_t> out_queued_, out_writing_;
   bool writing_ = false, closed_ = false, intended_ = false, got_error_ = false;
+  bool leaving_ = false;     ///< logout(): the leave is being written; closed once it is (or after 1 s)
   bool connecting_ = false;  ///< counted in connecting_now: started, not yet welcomed
   /// The welcome arrived, or the session ended before: it leaves connecting_now.
   void connect_done();
@@ -257,7 +261,7 @@ class swarm {
     latency_histogram_us::counts steady_start{};  // the counts when every bot was first connected
     double steady_from = -1;
     second_sample prev{};
-    double churn_debt = 0;
+    double churn_debt = 0, cut_debt = 0;
     std::mt19937_64 churn_rng(12345);
     auto last_step = start;
     while (steady::now() < end) {
@@ -270,6 +274,10 @@ class swarm {
       if (opt_.churn > 0 && launched == opt_.bots && (opt_.churn_for_s <= 0 || since < opt_.churn_for_s)) {
         churn_debt += opt_.churn * std::chrono::duration<double>(now - last_step).count();
         for (; churn_debt >= 1; churn_debt -= 1) churn_one(churn_rng);
+      }
+      if (opt_.cut > 0 && launched == opt_.bots && (opt_.churn_for_s <= 0 || since < opt_.churn_for_s)) {
+        cut_debt += opt_.cut * std::chrono::duration<double>(now - last_step).count();
+        for (; cut_debt >= 1; cut_debt -= 1) churn_one(churn_rng, true);
       }
       last_step = now;
       if (now >= next_second) {
@@ -393,6 +401,7 @@ class swarm {
     r.reconnects = c_.reconnects;
     r.resumes = c_.resumes;
     r.resumes_refused = c_.resumes_refused;
+    r.cuts = c_.cuts;
     r.host_clock = host_clock_.load();
     for (const auto& s : slots_) r.bots_connected += s.ever_connected ? 1 : 0;
     r.min_rtt_ms = best_rtt_us_.load() == UINT64_MAX ? 0 : static_cast<double>(best_rtt_us_.load()) / 1000.0;
@@ -461,8 +470,9 @@ class swarm {
     return 0x9e3779b9ull * (slot + 1) + (seed_++);
   }
 
-  void churn_one(std::mt19937_64& rng) {
-    // A random playing bot logs out; its slot logs in again after relogin_delay_s.
+  /// A random playing bot logs out (or, `cut`, loses its connection: no leave, and its login
+  /// again says its resume token); its slot logs in again after relogin_delay_s.
+  void churn_one(std::mt19937_64& rng, bool cut = false) {
     for (int tries = 0; tries < 8; ++tries) {
       const std::size_t slot = rng() % sessions_.size();
       std::shared_ptr<bot_session> b;
@@ -474,6 +484,11 @@ class swarm {
         // second pick of this slot meanwhile would log it out again and launch it twice (a bot
         // too many, seen on a loaded machine as "bots 83/80").
         sessions_[slot] = nullptr;
+      }
+      if (cut) {
+        c_.cuts.fetch_add(1, std::memory_order_relaxed);
+        b->cut();  // it launches the slot's next session itself (with the token its thread holds)
+        return;
       }
       c_.logouts.fetch_add(1, std::memory_order_relaxed);
       b->logout();
@@ -704,6 +719,8 @@ class swarm {
         if (auto m = net::to_message(*step.frame.envelope)) welcome = std::get<net::welcome_msg>(*m);
       }
     }
+    // A leave: the probe's entity goes at once (a zone with --linger would keep it otherwise).
+    if (welcome) asio::write(sock, asio::buffer(net::encode_frame(net::leave_msg{})), ec);
     sock.close(ec);
     if (!welcome) return std::string("oracle probe: no welcome within the connect timeout");
     return *welcome;
@@ -831,7 +848,33 @@ void bot_session::logout() {
   asio::dispatch(io_, [this, self] {
     intended_ = true;
     s_.resume_token(slot_).clear();  // its entity leaves the world with it
+    if (!playing_ || closed_) return close();
+    // A leave first (the server removes the entity at once rather than keeping it for a resume:
+    // zone-server --linger), then the close once it is written, or after a second at most.
+    leaving_ = true;
+    send(net::leave_msg{});
+    if (!writing_) return close();
+    welcome_timer_.expires_after(std::chrono::seconds(1));
+    welcome_timer_.async_wait([this, self](const boost::system::error_code& ec) {
+      if (!ec) close();
+    });
+  });
+}
+
+void bot_session::cut() {
+  auto self = shared_from_this();
+  asio::dispatch(io_, [this, self] {
+    if (closed_) return;
+    intended_ = true;  // the swarm's own doing: not an unexpected disconnect
+    const auto& o = s_.opt_ref();
+    const tcp::endpoint to = endpoint_override_ ? *endpoint_override_ : s_.endpoint();
+    // No leave: the socket just closes, so the server sees the connection end without one (a
+    // lost connection, as a dead link would end it).
     close();
+    if (!s_.stopping()) {
+      s_.relaunch_later(slot_, to, steady::now(), o.relogin_delay_s, {},
+                        o.resume ? s_.resume_token(slot_) : std::string());
+    }
   });
 }
 
@@ -940,6 +983,10 @@ void bot_session::on_frame(const net::frame_view& f, std::uint64_t received_us) 
     case net::wire::message::error: {
       const auto* e = env.message_as_error();
       got_error_ = true;
+      if (e && e->code() == net::error_code::taken_over) {
+        // Another connection resumed this player with the slot's token: never take it back (the two would take turns).
+        s_.resume_token(slot_).clear();
+      }
       if (resuming_ && !playing_) {
         // The token refused (unknown or expired) or its region not served in time: the next login is a new player.
         resuming_ = false;
@@ -1332,6 +1379,7 @@ void bot_session::send(const net::message& m) {
 void bot_session::write_next() {
   if (out_queued_.empty() || closed_) {
     writing_ = false;
+    if (leaving_) close();  // the leave is written
     return;
   }
   // One write in flight: everything queued so far goes out in it (frames stay in order).

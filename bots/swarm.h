@@ -55,6 +55,11 @@ struct swarm_options {
   bool class_changes = true;
   double churn = 0;          ///< logouts per second across the swarm (each logged-out bot logs in again)
   double churn_for_s = 0;    ///< churn stops this many seconds into the run (0 = until the end)
+  /// Connections dropped per second across the swarm as a network would drop them: a random
+  /// playing bot closes its socket without a leave and logs in again after relogin_delay_s with
+  /// its resume token (when `resume` and the zone told one: zone-server --linger), else anew.
+  /// Stops with churn_for_s too.
+  double cut = 0;
   double relogin_delay_s = 0.2;
   /// After an unexpected disconnect, log in again (a new session for the slot, at the address it
   /// was connected to) after relogin_delay_s, retrying refused connects for up to
@@ -112,6 +117,7 @@ struct swarm_counters {
   std::atomic<std::uint64_t> connecting_now{0};
   std::atomic<std::uint64_t> connect_attempts{0}, connected_now{0}, welcomes{0}, connect_failures{0},
       unexpected_disconnects{0}, server_errors{0}, logouts{0}, teleports_sent{0};
+  std::atomic<std::uint64_t> cuts{0};  ///< connections dropped by --cut (no leave)
   std::atomic<std::uint64_t> stealth_joins{0}, team_joins{0}, visibility_switches_sent{0};
   std::atomic<std::uint64_t> class_notes{0};  ///< class_changes notes received (held or not)
   /// A world of zones (docs/world.md): redirects followed (a new connection with the token).
@@ -173,7 +179,7 @@ struct swarm_result {
                 resets = 0, inputs_sent = 0, inputs_unchanged = 0, pongs = 0, digests_checked = 0,
                 digest_mismatches = 0, inconsistent = 0, aoi_checked = 0, aoi_unchecked = 0, aoi_violations = 0,
                 latency_unsynced = 0, teleports_sent = 0, self_positions = 0, redirects = 0, reconnects = 0,
-                gate_redirects = 0, resumes = 0, resumes_refused = 0;
+                gate_redirects = 0, resumes = 0, resumes_refused = 0, cuts = 0;
   std::uint64_t stealth_joins = 0, team_joins = 0, visibility_switches_sent = 0, class_notes = 0;
   bool host_clock = false;  ///< latency timed on the host's clock (same host), not by ping sync
   bool rules_from_server = false;  ///< the welcome told the zone's interest rules (the AOI check used them)

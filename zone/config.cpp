@@ -120,7 +120,7 @@ std::optional<std::string> validate(const zone_config& c) {
   if (c.world_name.empty() && c.world_standby) return bad("--world-standby needs --world NAME");
   if (!(c.world_lease_ttl_s >= 0.2 && c.world_lease_ttl_s <= 600)) return bad("world-lease-ttl must be 0.2 .. 600 s");
   if (!(c.world_resume_s >= 0 && c.world_resume_s <= 3600)) return bad("world-resume-window must be 0 .. 3600 s");
-  if (!(c.world_linger_s >= 0 && c.world_linger_s <= 3600)) return bad("world-linger must be 0 .. 3600 s");
+  if (!(c.linger_s >= 0 && c.linger_s <= 3600)) return bad("linger must be 0 .. 3600 s");
   if (!(c.world_nats_timeout_s >= 0.05 && c.world_nats_timeout_s <= 60))
     return bad("world-nats-timeout must be 0.05 .. 60 s");
   if (c.worker_spin_us < -1 || c.worker_spin_us > 1000000) return bad("worker-spin-us must be -1 (auto) or 0 .. 1000000");
@@ -216,51 +216,90 @@ config_result parse_config(int argc, const char* const* argv) {
       ("player-speed", po::value(&c.player_speed)->default_value(c.player_speed), "fastest a player moves (m/s)")  //
       ("boss-footprint", po::value(&c.boss_footprint)->default_value(c.boss_footprint), "boss presence half-extent (m)");
   po::options_description net("Network and limits");
-  net.add_options()                                                                                           //
-      ("listen", po::value(&c.listen_address)->default_value(c.listen_address), "listen address")             //
-      ("port", po::value(&port)->default_value(port), "TCP port for clients")                                 //
-      ("io-threads", po::value(&c.io_threads)->default_value(c.io_threads), "network I/O threads")            //
-      ("max-clients", po::value(&c.max_clients)->default_value(c.max_clients), "player slots: sessions past their hello (a hello over it: error server_full)")  //
-      ("hello-timeout", po::value(&c.hello_timeout_s)->default_value(c.hello_timeout_s), "seconds from accept by which a connection must have completed its hello, whatever it sends (error timeout)")  //
-      ("max-pending", po::value(&c.max_pending)->default_value(c.max_pending), "connections without a hello yet, in total, apart from the player slots; at the cap the oldest is closed for the new one")  //
-      ("max-pending-per-address", po::value(&c.max_pending_per_address)->default_value(c.max_pending_per_address), "connections without a hello yet from one source address; at the cap the address's oldest is closed for the new one (raise it for a bot swarm on one host)")  //
-      ("connect-rate", po::value(&c.connect_rate)->default_value(c.connect_rate), "reconnect churn per source address: connections a second that may end within connect-min-session of their accept (never said hello, refused, cut off, or left soon after joining); an address past it is refused at accept with error rate_limited until its bucket refills (connections that stay cost nothing: a bot swarm ramping from one host is not limited); 0 = no limit")  //
-      ("connect-burst", po::value(&c.connect_burst)->default_value(c.connect_burst), "reconnect churn per source address: how many such short connections an address may make at once before connect-rate applies")  //
-      ("connect-min-session", po::value(&c.connect_min_session_s)->default_value(c.connect_min_session_s), "seconds: a connection that ends sooner after its accept counts against its address's connect-rate")  //
-      ("connect-refusal-hold", po::value(&c.connect_refusal_hold_s)->default_value(c.connect_refusal_hold_s), "seconds a connection refused for connect-rate is held unread before its error rate_limited and reset, so a client that waits for its answer retries once per hold rather than as fast as the server refuses (at most 64 held per address, 512 in all; 0 = answered at once)")  //
-      ("max-name-bytes", po::value(&c.max_name_bytes)->default_value(c.max_name_bytes), "longest player name; names are printable ASCII without leading or trailing spaces (error bad_hello)")  //
-      ("idle-timeout", po::value(&c.idle_timeout_s)->default_value(c.idle_timeout_s), "seconds a player may send no complete frame before it is closed (clients ping)")  //
+  net.add_options()                                                                                 //
+      ("listen", po::value(&c.listen_address)->default_value(c.listen_address), "listen address")   //
+      ("port", po::value(&port)->default_value(port), "TCP port for clients")                       //
+      ("io-threads", po::value(&c.io_threads)->default_value(c.io_threads), "network I/O threads")  //
+      ("max-clients", po::value(&c.max_clients)->default_value(c.max_clients),
+       "player slots: sessions past their hello (a hello over it: error server_full)")  //
+      ("hello-timeout", po::value(&c.hello_timeout_s)->default_value(c.hello_timeout_s),
+       "seconds from accept by which a connection must have completed its hello, whatever it sends (error timeout)")  //
+      ("max-pending", po::value(&c.max_pending)->default_value(c.max_pending),
+       "connections without a hello yet, in total, apart from the player slots; at the cap the oldest is closed for the new one")  //
+      ("max-pending-per-address", po::value(&c.max_pending_per_address)->default_value(c.max_pending_per_address),
+       "connections without a hello yet from one source address; at the cap the address's oldest is closed for the new one (raise it for a bot swarm on one host)")  //
+      ("connect-rate", po::value(&c.connect_rate)->default_value(c.connect_rate),
+       "reconnect churn per source address: connections a second that may end within connect-min-session of their accept (never said hello, refused, cut off, or left soon after joining); an address past it is refused at accept with error rate_limited until its bucket refills (connections that stay cost nothing: a bot swarm ramping from one host is not limited); 0 = no limit")  //
+      ("connect-burst", po::value(&c.connect_burst)->default_value(c.connect_burst),
+       "reconnect churn per source address: how many such short connections an address may make at once before connect-rate applies")  //
+      ("connect-min-session", po::value(&c.connect_min_session_s)->default_value(c.connect_min_session_s),
+       "seconds: a connection that ends sooner after its accept counts against its address's connect-rate")  //
+      ("connect-refusal-hold", po::value(&c.connect_refusal_hold_s)->default_value(c.connect_refusal_hold_s),
+       "seconds a connection refused for connect-rate is held unread before its error rate_limited and reset, so a client that waits for its answer retries once per hold rather than as fast as the server refuses (at most 64 held per address, 512 in all; 0 = answered at once)")  //
+      ("linger", po::value(&c.linger_s)->default_value(c.linger_s),
+       "seconds a player whose connection was lost (its client said no leave) is kept, standing, for its client to come back with the resume token its welcome told (a hello with it gets the same entity; 0 = removed at once, and a single zone tells no token; at most --max-clients wait)")  //
+      ("max-name-bytes", po::value(&c.max_name_bytes)->default_value(c.max_name_bytes),
+       "longest player name; names are printable ASCII without leading or trailing spaces (error bad_hello)")  //
+      ("idle-timeout", po::value(&c.idle_timeout_s)->default_value(c.idle_timeout_s),
+       "seconds a player may send no complete frame before it is closed (clients ping)")                             //
       ("max-frame-bytes", po::value(&c.max_frame_bytes)->default_value(c.max_frame_bytes), "largest inbound frame")  //
       ("socket-send-buffer", po::value(&c.socket_send_buffer)->default_value(c.socket_send_buffer),
        "SO_SNDBUF of each client socket in bytes (0 = the system's autotuning); bounds how much stale state the kernel holds for a slow client")  //
-      ("direct-writes", po::value(&c.direct_writes)->default_value(c.direct_writes), "1: the replication worker that built a frame writes it to the client's socket itself when nothing is queued ahead of it (lower latency, but the sends then lengthen the tick); 0: the I/O threads write every frame")  //
-      ("io-nice", po::value(&c.io_nice)->default_value(c.io_nice), "nice value of the I/O threads, 0-19 (above 0: lower priority than the tick's workers where they share cores)")  //
-      ("worker-cpus", po::value(&c.worker_cpus)->default_value(c.worker_cpus), "CPUs of the tick's threads (the worker pool and the tick's own thread) as a CPU list, e.g. 0-5 (empty: not pinned); with --io-cpus on other CPUs no I/O thread preempts a tick's task (docs/operating.md)")  //
-      ("io-cpus", po::value(&c.io_cpus)->default_value(c.io_cpus), "CPUs of the I/O threads as a CPU list, e.g. 6-9 (empty: not pinned)")  //
-      ("write-batching", po::value(&c.write_batching)->default_value(c.write_batching), "how the I/O threads write: auto (io_uring where the kernel allows it, else sendmsg), io_uring (or refuse to start), sendmsg (one system call per session write)")  //
-      ("write-slice", po::value(&c.write_slice)->default_value(c.write_slice), "sessions an I/O thread writes before it reads its clients again: on a busy server a new client's hello waits for one slice of writes, not for every waiting session's")  //
-      ("inputs-per-second", po::value(&c.inputs_per_second)->default_value(c.inputs_per_second), "input rate limit per client (inputs and teleports; burst half a second's worth); over it inputs are dropped, 200 in a row: error rate_limited")  //
-      ("pings-per-second", po::value(&c.pings_per_second)->default_value(c.pings_per_second), "ping rate limit per client (burst one second's worth); over it no pong, 200 in a row: error rate_limited")  //
-      ("client-byte-budget", po::value(&c.client_byte_budget)->default_value(c.client_byte_budget), "bytes per client per tick")  //
-      ("client-send-every", po::value(&c.client_send_every)->default_value(c.client_send_every), "each client gets a frame every K ticks, clients staggered (1 = every tick; 2 at 30 Hz = 15 frames a second each, half the frames built and sent per tick)")  //
-      ("client-stall", po::value(&c.client_stall_s)->default_value(c.client_stall_s, "1"), "a client whose backlog stays full, its socket taking not one byte, this many seconds is stalled: its queued state frames are dropped, and once its socket drains it gets a reset of the current state instead of stale frames (0 = off; needs client-max-backlog > 0)")  //
-      ("client-max-backlog", po::value(&c.client_max_backlog)->default_value(c.client_max_backlog), "a client with this many state frames still unwritten gets no new frame this tick (0 = off: always send; then a full queue drops frames and resyncs)")  //
-      ("teleport", po::value(&c.teleport_enabled)->default_value(c.teleport_enabled), "players may teleport themselves (0 or 1; an ability the server grants, off by default)")  //
-      ("player-fly", po::value(&c.player_fly)->default_value(c.player_fly), "players may move vertically (0: a movement intent's z is ignored)")  //
-      ("teleport-cooldown", po::value(&c.teleport_cooldown_s)->default_value(c.teleport_cooldown_s), "least seconds between two teleports of one player")  //
-      ("allow-stealth", po::value(&c.allow_stealth)->default_value(c.allow_stealth), "players may choose stealth in hello or set_visibility (0 or 1)")  //
-      ("player-teams", po::value(&c.player_teams)->default_value(c.player_teams), "teams a player may join: 0 none, 1 red, 2 red and blue (a team sees its stealthed members)")  //
-      ("visibility-cooldown", po::value(&c.visibility_cooldown_s)->default_value(c.visibility_cooldown_s), "least seconds between two visibility switches (set_visibility) of one player")  //
-      ("spawn-radius", po::value(&c.spawn_radius)->default_value(c.spawn_radius), "players spawn within this distance of a town (m)")  //
-      ("update-near", po::value(&c.update_near)->default_value(c.update_near), "updates every tick within this distance (m)")  //
-      ("update-mid", po::value(&c.update_mid)->default_value(c.update_mid), "updates every update-mid-period ticks within this distance (m)")  //
-      ("update-mid-period", po::value(&c.update_mid_period)->default_value(c.update_mid_period), "ticks between updates of mid-distance entities")  //
-      ("update-far-period", po::value(&c.update_far_period)->default_value(c.update_far_period), "ticks between updates of entities beyond update-mid")  //
-      ("digest-every", po::value(&c.digest_every)->default_value(c.digest_every), "a visible-set digest every K ticks (0 = none)")  //
-      ("metrics", po::value(&c.metrics_enabled)->default_value(c.metrics_enabled), "serve Prometheus text at /metrics (0 or 1)")  //
+      ("direct-writes", po::value(&c.direct_writes)->default_value(c.direct_writes),
+       "1: the replication worker that built a frame writes it to the client's socket itself when nothing is queued ahead of it (lower latency, but the sends then lengthen the tick); 0: the I/O threads write every frame")  //
+      ("io-nice", po::value(&c.io_nice)->default_value(c.io_nice),
+       "nice value of the I/O threads, 0-19 (above 0: lower priority than the tick's workers where they share cores)")  //
+      ("worker-cpus", po::value(&c.worker_cpus)->default_value(c.worker_cpus),
+       "CPUs of the tick's threads (the worker pool and the tick's own thread) as a CPU list, e.g. 0-5 (empty: not pinned); with --io-cpus on other CPUs no I/O thread preempts a tick's task (docs/operating.md)")  //
+      ("io-cpus", po::value(&c.io_cpus)->default_value(c.io_cpus),
+       "CPUs of the I/O threads as a CPU list, e.g. 6-9 (empty: not pinned)")  //
+      ("write-batching", po::value(&c.write_batching)->default_value(c.write_batching),
+       "how the I/O threads write: auto (io_uring where the kernel allows it, else sendmsg), io_uring (or refuse to start), sendmsg (one system call per session write)")  //
+      ("write-slice", po::value(&c.write_slice)->default_value(c.write_slice),
+       "sessions an I/O thread writes before it reads its clients again: on a busy server a new client's hello waits for one slice of writes, not for every waiting session's")  //
+      ("inputs-per-second", po::value(&c.inputs_per_second)->default_value(c.inputs_per_second),
+       "input rate limit per client (inputs and teleports; burst half a second's worth); over it inputs are dropped, 200 in a row: error rate_limited")  //
+      ("pings-per-second", po::value(&c.pings_per_second)->default_value(c.pings_per_second),
+       "ping rate limit per client (burst one second's worth); over it no pong, 200 in a row: error rate_limited")  //
+      ("client-byte-budget", po::value(&c.client_byte_budget)->default_value(c.client_byte_budget),
+       "bytes per client per tick")  //
+      ("client-send-every", po::value(&c.client_send_every)->default_value(c.client_send_every),
+       "each client gets a frame every K ticks, clients staggered (1 = every tick; 2 at 30 Hz = 15 frames a second each, half the frames built and sent per tick)")  //
+      ("client-stall", po::value(&c.client_stall_s)->default_value(c.client_stall_s, "1"),
+       "a client whose backlog stays full, its socket taking not one byte, this many seconds is stalled: its queued state frames are dropped, and once its socket drains it gets a reset of the current state instead of stale frames (0 = off; needs client-max-backlog > 0)")  //
+      ("client-max-backlog", po::value(&c.client_max_backlog)->default_value(c.client_max_backlog),
+       "a client with this many state frames still unwritten gets no new frame this tick (0 = off: always send; then a full queue drops frames and resyncs)")  //
+      ("teleport", po::value(&c.teleport_enabled)->default_value(c.teleport_enabled),
+       "players may teleport themselves (0 or 1; an ability the server grants, off by default)")  //
+      ("player-fly", po::value(&c.player_fly)->default_value(c.player_fly),
+       "players may move vertically (0: a movement intent's z is ignored)")  //
+      ("teleport-cooldown", po::value(&c.teleport_cooldown_s)->default_value(c.teleport_cooldown_s),
+       "least seconds between two teleports of one player")  //
+      ("allow-stealth", po::value(&c.allow_stealth)->default_value(c.allow_stealth),
+       "players may choose stealth in hello or set_visibility (0 or 1)")  //
+      ("player-teams", po::value(&c.player_teams)->default_value(c.player_teams),
+       "teams a player may join: 0 none, 1 red, 2 red and blue (a team sees its stealthed members)")  //
+      ("visibility-cooldown", po::value(&c.visibility_cooldown_s)->default_value(c.visibility_cooldown_s),
+       "least seconds between two visibility switches (set_visibility) of one player")  //
+      ("spawn-radius", po::value(&c.spawn_radius)->default_value(c.spawn_radius),
+       "players spawn within this distance of a town (m)")  //
+      ("update-near", po::value(&c.update_near)->default_value(c.update_near),
+       "updates every tick within this distance (m)")  //
+      ("update-mid", po::value(&c.update_mid)->default_value(c.update_mid),
+       "updates every update-mid-period ticks within this distance (m)")  //
+      ("update-mid-period", po::value(&c.update_mid_period)->default_value(c.update_mid_period),
+       "ticks between updates of mid-distance entities")  //
+      ("update-far-period", po::value(&c.update_far_period)->default_value(c.update_far_period),
+       "ticks between updates of entities beyond update-mid")  //
+      ("digest-every", po::value(&c.digest_every)->default_value(c.digest_every),
+       "a visible-set digest every K ticks (0 = none)")  //
+      ("metrics", po::value(&c.metrics_enabled)->default_value(c.metrics_enabled),
+       "serve Prometheus text at /metrics (0 or 1)")                                                               //
       ("metrics-port", po::value(&metrics_port)->default_value(metrics_port), "port of /metrics (0 = ephemeral)")  //
-      ("metrics-address", po::value(&c.metrics_address)->default_value(c.metrics_address), "address /metrics listens on (loopback by default: it has no authentication; 0.0.0.0 opens it to all)")  //
-      ("metrics-max-connections", po::value(&c.metrics_max_connections)->default_value(c.metrics_max_connections), "connections /metrics holds at once, apart from the players' (more are closed at accept)");
+      ("metrics-address", po::value(&c.metrics_address)->default_value(c.metrics_address),
+       "address /metrics listens on (loopback by default: it has no authentication; 0.0.0.0 opens it to all)")  //
+      ("metrics-max-connections", po::value(&c.metrics_max_connections)->default_value(c.metrics_max_connections),
+       "connections /metrics holds at once, apart from the players' (more are closed at accept)");
   std::string world_grid = std::to_string(c.world_cols) + "x" + std::to_string(c.world_rows);
   po::options_description zones("World of zones (docs/world.md; built with libnats)");
   zones.add_options()  //
@@ -280,8 +319,6 @@ config_result parse_config(int argc, const char* const* argv) {
        "seconds between checkpoints of this zone's entities in JetStream (0 = none); a zone that claims a region restores its last checkpoint, so a killed zone's entities come back")  //
       ("world-resume-window", po::value(&c.world_resume_s)->default_value(c.world_resume_s),
        "seconds a player restored from a checkpoint (its zone was lost) waits for its client to come back with its resume token before it is removed")  //
-      ("world-linger", po::value(&c.world_linger_s)->default_value(c.world_linger_s),
-       "seconds a player whose connection ended is kept, standing, for its client to come back with its resume token (0 = removed at once; at most --max-clients wait)")  //
       ("world-standby", po::bool_switch(&c.world_standby),
        "a hot standby: while every region is held, wait (listening nowhere) for one whose lease lapses, as long as it takes, then serve it from its checkpoint; without it a zone gives up after 20 s");
   po::options_description viewer("Live viewer (docs/viewer.md)");

@@ -58,7 +58,7 @@ int main(int argc, char** argv) {
     o.capacity = cfg.world_capacity;
     o.checkpoint_s = cfg.world_checkpoint_s;
     o.resume_s = cfg.world_resume_s;
-    o.linger_s = cfg.world_linger_s;
+    o.linger_s = cfg.linger_s;
     // A restarted zone waits for its predecessor's lease to lapse (its TTL, a few seconds); a
     // standby for any region's, as long as it takes.
     o.claim_wait_s =

@@ -184,9 +184,10 @@ struct zone_config {
   /// A player restored from a checkpoint (its zone lost) waits this long for its client's resume
   /// token, then is removed (docs/world.md, "Players after a zone's loss").
   double world_resume_s = 30;
-  /// --world-linger: a player whose connection ended is kept this long for its client to come
-  /// back with its resume token (0: removed at once; docs/world.md, "Players after a zone's loss").
-  double world_linger_s = 0;
+  /// --linger: a player whose connection was lost (its client said no leave) is kept, standing,
+  /// this long for its client to come back with its resume token (0: removed at once and no
+  /// token told in a single zone; docs/protocol.md, "Coming back after a lost connection").
+  double linger_s = 0;
   /// --world-standby: while every region is held, wait for one whose lease lapses (a zone died)
   /// and take it over, instead of giving up after 20 s (docs/world.md, "Standbys")
   bool world_standby = false;

@@ -168,6 +168,24 @@ std::string zone_server::metrics_text() const {
           replicator_.on_engine() ? 1.0 : 0.0);
   t.counter("zone_replication_frames_total", "Tick updates handed to the network.", static_cast<double>(stats_.frames_sent));
   t.counter("zone_replication_bytes_total", "Bytes of tick updates handed to the network.", static_cast<double>(stats_.bytes_sent));
+  t.counter("zone_joins_total", "Players welcomed (new, resumed or taken over).", static_cast<double>(stats_.joins));
+  t.counter("zone_leaves_total", "Players whose session ended.", static_cast<double>(stats_.leaves));
+  t.counter("zone_logouts_total", "Of the leaves: the client said leave (its entity removed at once).",
+            static_cast<double>(stats_.logouts));
+  t.counter("zone_players_lingered_total",
+            "Players kept after a lost connection for their client's resume token (--linger).",
+            static_cast<double>(stats_.players_lingered));
+  t.counter("zone_players_resumed_total", "Kept players whose client came back with its token.",
+            static_cast<double>(stats_.players_resumed));
+  t.counter("zone_linger_expired_total", "Kept players removed: their client did not come back in time.",
+            static_cast<double>(stats_.linger_expired));
+  t.counter("zone_takeovers_total",
+            "Players taken over by a hello with their token while their old connection was open.",
+            static_cast<double>(stats_.takeovers));
+  t.counter("zone_resumes_refused_total", "Hellos whose token this single zone did not know (auth_failed).",
+            static_cast<double>(stats_.resumes_refused));
+  t.gauge("zone_players_lingering", "Players kept now, waiting for their client's resume token.",
+          resume_ ? static_cast<double>(resume_->kept()) : 0.0);
   t.counter("zone_teleports_total", "Teleport requests applied.", static_cast<double>(stats_.teleports));
   t.counter("zone_teleports_clamped_total", "Applied teleports clamped into the world.", static_cast<double>(stats_.teleports_clamped));
   t.counter("zone_teleports_refused_total", "Teleport requests refused (off, cooldown, another's entity, not finite).",
@@ -371,6 +389,12 @@ std::optional<std::string> zone_server::start() {
                interest_name(), replication_name());
   if (!parts_.engine_note.empty()) spdlog::info("zone: interest runs on the host: {}", parts_.engine_note);
   if (!replicate_note_.empty()) spdlog::info("zone: replication runs on the CPU: {}", replicate_note_);
+  if (ext_ == nullptr && cfg_.linger_s > 0) {
+    resume_ = std::make_unique<resume_book>(static_cast<std::uint64_t>(std::ceil(cfg_.linger_s * cfg_.tick_rate_hz)),
+                                            cfg_.max_clients);
+    spdlog::info("zone: a player whose connection is lost waits {} s for its client's resume token (--linger)",
+                 cfg_.linger_s);
+  }
   if (auto err = net_.start()) return err;
   if (ext_ != nullptr) ext_->started(net_.port());
   if (cfg_.metrics_enabled) {
@@ -421,6 +445,10 @@ void zone_server::drain_inputs() {
                                        {hello->name, hello->class_changes, e.accepted_us, e.hello_us}});
             break;
           }
+          if (resume_ && !hello->token.empty()) {
+            resume(e, *hello);
+            break;
+          }
           if (auto why = check_visibility_choice(hello->stealth, hello->team)) {
             net_.disconnect(e.session, net::error_code::bad_hello, *why);
             break;
@@ -463,20 +491,20 @@ void zone_server::drain_inputs() {
         const auto it = clients_.find(e.session);
         if (it == clients_.end()) break;
         spdlog::debug("session {}: left ({})", e.session, net::escape_for_log(e.reason, 200));
-        // An entity handed off to another zone lives on there (here it is a ghost).
-        if (ext_ == nullptr || (ext_->owns(it->second.entity) && !ext_->keep_for_resume(it->second.entity, *world_))) {
-          world_->despawn(it->second.entity);
-        }
-        const auto se = session_of_entity_.find(it->second.entity);
-        if (se != session_of_entity_.end() && se->second == e.session) session_of_entity_.erase(se);
-        replicator_.remove_client(it->second.replica);
-        // Its row takes the last one's.
-        const std::size_t row = it->second.row;
-        rows_[row] = rows_.back();
-        rows_[row].c->row = row;
-        rows_.pop_back();
-        clients_.erase(it);
+        const entity_id entity = it->second.entity;
+        drop_client(it);
         ++stats_.leaves;
+        if (e.left) ++stats_.logouts;
+        if (ext_ != nullptr) {
+          // An entity handed off to another zone lives on there (here it is a ghost).
+          if (ext_->owns(entity) && (e.left || !ext_->keep_for_resume(entity, *world_))) world_->despawn(entity);
+        } else if (resume_ && !e.left && resume_->keep(entity, world_->tick())) {
+          world_->set_intent(entity, {0, 0, 0});  // it stands where it was until its client is back
+          ++stats_.players_lingered;
+        } else {
+          if (resume_) resume_->forget(entity);
+          world_->despawn(entity);
+        }
         break;
       }
     }
@@ -514,11 +542,55 @@ void zone_server::welcome(net::session_id session, entity_id id, const hello_inf
   if (const auto d = world_->store().get(id)) w.rules->player_class = d->visibility_class, w.rules->player_sees = d->sees;
   w.oracle_port = oracle_port();
   w.instance = instance_;
-  if (ext_ != nullptr) w.resume_token = ext_->resume_token(id, token);
+  if (ext_ != nullptr) {
+    w.resume_token = ext_->resume_token(id, token);
+  } else if (resume_) {
+    w.resume_token = resume_->issue(id);
+  }
   net_.send(session, net::make_shared_frame(encoder_.encode(w)), net::delivery::control);
   // The name is client data: escaped (the server also checked it at hello), at debug.
   spdlog::debug("session {}: '{}' joined as entity {}", session, net::escape_for_log(hello.name), id);
   ++stats_.joins;
+}
+
+void zone_server::drop_client(std::unordered_map<net::session_id, client>::iterator it) {
+  const auto se = session_of_entity_.find(it->second.entity);
+  if (se != session_of_entity_.end() && se->second == it->first) session_of_entity_.erase(se);
+  replicator_.remove_client(it->second.replica);
+  // Its row takes the last one's.
+  const std::size_t row = it->second.row;
+  rows_[row] = rows_.back();
+  rows_[row].c->row = row;
+  rows_.pop_back();
+  clients_.erase(it);
+}
+
+void zone_server::resume(const net::inbound_event& e, const net::hello_msg& hello) {
+  const auto c = resume_->take(hello.token);
+  if (c.entity == null_entity || !world_->store().get(c.entity)) {
+    ++stats_.resumes_refused;
+    net_.disconnect(e.session, net::error_code::auth_failed, "unknown or expired token");
+    return;
+  }
+  if (c.live) {
+    // Its old connection is still open here (its loss not seen yet, or a second client with the
+    // token): the new one takes the player over, the old one is closed.
+    const auto se = session_of_entity_.find(c.entity);
+    if (se != session_of_entity_.end() && se->second != e.session) {
+      const net::session_id old = se->second;
+      const auto it = clients_.find(old);
+      if (it != clients_.end()) {
+        drop_client(it);
+        ++stats_.leaves;
+      }
+      net_.disconnect(old, net::error_code::taken_over, "the player was taken over by a new connection with its token");
+    }
+    ++stats_.takeovers;
+  } else {
+    ++stats_.players_resumed;
+  }
+  // The hello's visibility choices are not applied: the player comes back as it was.
+  welcome(e.session, c.entity, {hello.name, hello.class_changes, e.accepted_us, e.hello_us}, hello.token);
 }
 
 void zone_server::retry_pending_hellos() {
@@ -823,6 +895,12 @@ void zone_server::tick_once() {
   viewer_fill_ms_ += copy_wait_ms;
   const auto t_inputs = clock_type::now();
   drain_inputs();
+  if (resume_) {
+    expired_.clear();
+    resume_->expire(world_->tick(), expired_);
+    for (const entity_id id : expired_) world_->despawn(id);
+    stats_.linger_expired += expired_.size();
+  }
   if (ext_ != nullptr) {
     ext_->before_step(*world_);
     ext_->take_class_changes(class_changes_);

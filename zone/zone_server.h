@@ -18,8 +18,9 @@
 #include "fault_injection.h"
 #include "net/metrics.h"
 #include "net/server.h"
-#include "truth_publisher.h"
 #include "net/viewer.h"
+#include "resume_book.h"
+#include "truth_publisher.h"
 #include "zone.h"
 #include "zone/interest_setup.h"
 #include "zone/viewer_columns.h"
@@ -46,6 +47,12 @@ struct loop_stats {
   std::uint64_t class_notes = 0;          ///< class notes sent instead (clients that said hello{class_changes})
   std::uint64_t joins = 0;              ///< players that joined (welcomed)
   std::uint64_t leaves = 0;             ///< players that left
+  std::uint64_t logouts = 0;            ///< of the leaves: the client said leave (its entity removed at once)
+  /// A single zone's resume tokens (--linger): players kept after a lost connection, those whose
+  /// client came back for them, those whose wait ran out (removed), and hellos whose token took a
+  /// player over from a connection still open (a client that reconnected before its loss was seen).
+  std::uint64_t players_lingered = 0, players_resumed = 0, linger_expired = 0, takeovers = 0;
+  std::uint64_t resumes_refused = 0;  ///< hellos with a token this zone did not know (auth_failed)
   /// Viewer snapshots filled while the replication engine waited for the device (the rest were
   /// filled in publish_viewer: CPU replication, no clients; or after the CPU's frames when the
   /// engine failed that tick).
@@ -98,8 +105,8 @@ class zone_extension {
     (void)claimed;
     return {};
   }
-  /// A client's connection ended: true when the world keeps its entity for it to come back with
-  /// its resume token (a lost connection; zone-server --world-linger); false: the zone removes it.
+  /// A client's connection was lost (it said no leave): true when the world keeps its entity for
+  /// it to come back with its resume token (zone-server --linger); false: the zone removes it.
   virtual bool keep_for_resume(entity_id e, zone_world& w) {
     (void)e;
     (void)w;
@@ -232,6 +239,14 @@ class zone_server {
   };
   std::vector<pending_hello> pending_hellos_;
   void retry_pending_hellos();
+  /// A single zone's resume tokens (--linger > 0 and no extension; a world keeps its own).
+  std::unique_ptr<resume_book> resume_;
+  std::vector<entity_id> expired_;
+  /// A single zone's hello with a token: the player it names, back to this session (a kept one,
+  /// or taken over from its old session), or auth_failed.
+  void resume(const net::inbound_event& e, const net::hello_msg& hello);
+  /// Unbinds a client from its session (its entity stays; the caller removes it or keeps it).
+  void drop_client(std::unordered_map<net::session_id, client>::iterator it);
   zone_extension* ext_ = nullptr;
   std::vector<zone_extension::redirect> redirects_;
   std::unordered_map<entity_id, net::session_id> session_of_entity_;

@@ -226,12 +226,26 @@ TEST_SUITE("zone.server") {
     CHECK(server.stats().ticks > 0);
     CHECK(server.stats().frames_sent > 0);
   }
-  TEST_CASE("a swarm of bots (bots/swarm.h, bot-swarm's connection): every update consistent, every digest right") {
+  TEST_CASE(
+      "a swarm of bots (bots/swarm.h, bot-swarm's connection): every update consistent, every digest right; they leave with a leave") {
     zone_config cfg = test_config();
     cfg.metrics_enabled = false;
+    cfg.linger_s = 30;  // a bot that ended without its leave would be kept
     zone_server server(cfg);
     REQUIRE_FALSE(server.start().has_value());
-    std::thread loop([&] { server.run(); });
+    // The test's own loop: once the swarm is done it ticks on until the server has seen every
+    // bot go (at most 5 s), so the counters are read on this thread after it ends.
+    std::atomic<bool> swarm_done{false};
+    std::thread loop([&] {
+      const auto by = std::chrono::steady_clock::now() + 60s;
+      std::optional<std::chrono::steady_clock::time_point> drain_by;
+      while (std::chrono::steady_clock::now() < by) {
+        server.tick_once();
+        if (swarm_done && !drain_by) drain_by = std::chrono::steady_clock::now() + 5s;
+        if (drain_by && (server.stats().leaves >= 12 || std::chrono::steady_clock::now() > *drain_by)) break;
+        std::this_thread::sleep_for(std::chrono::duration<double>(1.0 / cfg.tick_rate_hz));
+      }
+    });
     bots::swarm_options opt;
     opt.port = server.port();
     opt.bots = 12;
@@ -245,11 +259,16 @@ TEST_SUITE("zone.server") {
     opt.visibility_switch_hz = 0;
     opt.verify = true;
     const auto out = bots::run_swarm(opt, nullptr);
-    server.stop();
+    swarm_done = true;
     loop.join();
     REQUIRE(out.error.empty());
     const auto& r = out.result;
     for (const auto& p : r.problems) MESSAGE(p);
+    // Each bot said leave at the end of the run: removed at once, none kept for a resume.
+    CHECK(server.stats().leaves == 12);
+    CHECK(server.stats().logouts == 12);
+    CHECK(server.stats().players_lingered == 0);
+    CHECK(server.stats().clients == 0);
     CHECK(r.bots_connected == 12);
     CHECK(r.welcomes == 12);
     CHECK(r.connect_failures == 0);
@@ -1289,5 +1308,170 @@ TEST_SUITE("zone.server") {
     const auto w = first_while_ticking<net::welcome_msg>(single, d);
     REQUIRE(w.has_value());
     CHECK(w->resume_token.empty());
+  }
+
+  TEST_CASE(
+      "resume_book: tokens are 16 hex digits, distinct; kept, claimed back, taken over, forgotten, expired; at most max_kept wait") {
+    resume_book book(/*linger_ticks=*/10, /*max_kept=*/3);
+    std::set<std::string> tokens;
+    for (entity_id e = 1; e <= 200; ++e) {
+      const std::string t = book.issue(e);
+      REQUIRE(t.size() == 16);
+      CHECK(resume_book::parse(t).has_value());
+      CHECK(book.issue(e) == t);  // the same player keeps its token
+      tokens.insert(t);
+    }
+    CHECK(tokens.size() == 200);
+    CHECK(book.known() == 200);
+    const std::string t1 = book.issue(1), t2 = book.issue(2), t3 = book.issue(3), t4 = book.issue(4);
+    // A live player's token: a takeover; the player stays bound to the token.
+    CHECK(book.take(t4).entity == 4);
+    CHECK(book.take(t4).live);
+    // Kept at tick 100 (until 110), claimed back at 105: not expired at 110.
+    CHECK(book.keep(1, 100));
+    CHECK(book.kept() == 1);
+    const auto c1 = book.take(t1);
+    CHECK(c1.entity == 1);
+    CHECK_FALSE(c1.live);
+    CHECK(book.kept() == 0);
+    // 2 and 3 kept, and 1 lost again at 106: its first wait (until 110) no longer counts, the
+    // second (until 116) does. A fourth wait is over the cap: 4 is forgotten (the zone removes it).
+    CHECK(book.keep(2, 100));
+    CHECK(book.keep(3, 104));
+    CHECK(book.keep(1, 106));
+    CHECK(book.kept() == 3);
+    CHECK_FALSE(book.keep(4, 106));
+    CHECK(book.take(t4).entity == null_entity);
+    std::vector<entity_id> out;
+    book.expire(109, out);
+    CHECK(out.empty());
+    book.expire(110, out);
+    CHECK(out == std::vector<entity_id>{2});
+    CHECK(book.take(t2).entity == null_entity);
+    out.clear();
+    book.expire(114, out);
+    CHECK(out == std::vector<entity_id>{3});
+    out.clear();
+    book.expire(116, out);
+    CHECK(out == std::vector<entity_id>{1});
+    CHECK(book.kept() == 0);
+    // Forgotten (a leave): its token names nothing.
+    const std::string t5 = book.issue(5);
+    book.forget(5);
+    CHECK(book.take(t5).entity == null_entity);
+    CHECK_FALSE(book.keep(5, 120));
+    // Not a token: nothing; a player never told one is not kept.
+    for (const char* bad : {"", "zz", "0123456789abcdeg", "0123456789abcdef0", " 123456789abcdef"}) {
+      CAPTURE(bad);
+      CHECK(book.take(bad).entity == null_entity);
+    }
+    CHECK_FALSE(book.keep(9999, 1));
+    // With no linger, nothing waits.
+    resume_book none(0, 10);
+    none.issue(1);
+    CHECK_FALSE(none.keep(1, 1));
+  }
+
+  TEST_CASE(
+      "--linger, a single zone: a lost connection's player stands for its token; a leave removes it at once; a live one is taken over; an unclaimed one expires") {
+    zone_config cfg = test_config();
+    cfg.linger_s = 1;
+    zone_server server(cfg);
+    REQUIRE_FALSE(server.start().has_value());
+    const auto welcome_of = [&](test_client& c) {
+      const auto w = first_while_ticking<net::welcome_msg>(server, c);
+      REQUIRE(w.has_value());
+      return *w;
+    };
+    const auto tick_until = [&](const std::function<bool()>& done) {
+      for (int k = 0; k < 300 && !done(); ++k) {
+        server.tick_once();
+        std::this_thread::sleep_for(2ms);
+      }
+      return done();
+    };
+    const auto present = [&](entity_id e) { return server.world().store().get(e).has_value(); };
+    entity_id player = null_entity;
+    std::string token;
+    {
+      test_client a(server.port());
+      REQUIRE(a.send(net::hello_msg{"a", "", net::protocol_version}));
+      const auto w = welcome_of(a);
+      player = w.entity_id;
+      token = w.resume_token;
+      REQUIRE(resume_book::parse(token).has_value());
+      REQUIRE(a.send(net::input_msg{1, {1, 0, 0}}));  // walking when its connection is lost
+      for (int k = 0; k < 5; ++k) server.tick_once(), std::this_thread::sleep_for(5ms);
+    }  // a's connection ends without a leave
+    REQUIRE(tick_until([&] { return server.stats().players_lingered == 1; }));
+    REQUIRE(present(player));
+    const auto at = server.world().store().get(player)->position;
+    for (int k = 0; k < 5; ++k) server.tick_once();
+    const auto still = server.world().store().get(player)->position;
+    CHECK(still.x == at.x);  // it stands while it waits
+    CHECK(still.y == at.y);
+    // Its client comes back with the token: the same entity, the same token.
+    test_client b(server.port());
+    REQUIRE(b.send(net::hello_msg{"b", token, net::protocol_version}));
+    const auto wb = welcome_of(b);
+    CHECK(wb.entity_id == player);
+    CHECK(wb.resume_token == token);
+    CHECK(server.stats().players_resumed == 1);
+    // A second connection with the token while b is open takes the player over; b is told so.
+    test_client c(server.port());
+    REQUIRE(c.send(net::hello_msg{"c", token, net::protocol_version}));
+    const auto wc = welcome_of(c);
+    CHECK(wc.entity_id == player);
+    CHECK(server.stats().takeovers == 1);
+    std::vector<net::message> seen_by_b;
+    for (int k = 0; k < 50 && !b.closed(); ++k) {
+      server.tick_once();
+      while (auto m = b.read(10ms)) seen_by_b.push_back(*m);
+    }
+    CHECK(b.closed());
+    REQUIRE_FALSE(seen_by_b.empty());
+    REQUIRE(std::holds_alternative<net::error_msg>(seen_by_b.back()));
+    CHECK(std::get<net::error_msg>(seen_by_b.back()).code == net::error_code::taken_over);
+    for (int k = 0; k < 5; ++k) server.tick_once(), std::this_thread::sleep_for(2ms);
+    CHECK(present(player));  // b's end did not remove c's player
+    CHECK(server.stats().clients == 1);
+    // c leaves on purpose: removed at once, not kept; its token names nothing now.
+    REQUIRE(c.send(net::leave_msg{}));
+    REQUIRE(tick_until([&] { return server.stats().logouts == 1; }));
+    CHECK_FALSE(present(player));
+    CHECK(server.stats().players_lingered == 1);
+    {
+      test_client d(server.port());
+      REQUIRE(d.send(net::hello_msg{"d", token, net::protocol_version}));
+      const auto err = first_while_ticking<net::error_msg>(server, d);
+      REQUIRE(err.has_value());
+      CHECK(err->code == net::error_code::auth_failed);
+      CHECK(server.stats().resumes_refused == 1);
+    }
+    // A player whose client never comes back: removed once the linger has passed, not before.
+    entity_id gone = null_entity;
+    std::string gone_token;
+    {
+      test_client e(server.port());
+      REQUIRE(e.send(net::hello_msg{"e", "", net::protocol_version}));
+      const auto w = welcome_of(e);
+      gone = w.entity_id;
+      gone_token = w.resume_token;
+      CHECK(gone_token != token);
+    }
+    REQUIRE(tick_until([&] { return server.stats().players_lingered == 2; }));
+    const std::uint64_t lost_at = server.world().tick();
+    REQUIRE(tick_until([&] { return !present(gone); }));
+    CHECK(server.world().tick() - lost_at >= static_cast<std::uint64_t>(cfg.linger_s * cfg.tick_rate_hz) - 1);
+    CHECK(server.stats().linger_expired == 1);
+    test_client f(server.port());
+    REQUIRE(f.send(net::hello_msg{"f", gone_token, net::protocol_version}));
+    const auto err = first_while_ticking<net::error_msg>(server, f);
+    REQUIRE(err.has_value());
+    CHECK(err->code == net::error_code::auth_failed);
+    const std::string metrics = server.metrics_text();
+    CHECK(metrics.find("zone_players_resumed_total 1\n") != std::string::npos);
+    CHECK(metrics.find("zone_takeovers_total 1\n") != std::string::npos);
+    CHECK(metrics.find("zone_linger_expired_total 1\n") != std::string::npos);
   }
 }
