@@ -6,7 +6,9 @@
 #   bash bots/demo.sh [BUILD_DIR]        # default build dir: build
 #
 # Environment: DEMO_BOTS, DEMO_NPCS, DEMO_SECONDS, DEMO_TICK_HZ, DEMO_OUT (report folder), DEMO_ORACLE (1: the oracle on, 0: off),
-# DEMO_SERVER_ARGS (more zone-server options, split on spaces: e.g. "--tick-csv ticks.csv").
+# DEMO_SERVER_ARGS (more zone-server options, split on spaces: e.g. "--tick-csv ticks.csv"), DEMO_SWARM_ARGS
+# (more bot-swarm options), DEMO_CUT (connections dropped a second, each bot back to its own entity
+# with its resume token: default 2; 0: none).
 # Defaults: 300 bots + 5,000 NPCs at 20 Hz for 30 s (a 2-core machine keeps up); 2,000 bots +
 # 20,000 NPCs with a CUDA device (the zone then runs its interest step on the GPU: --interest auto,
 # docs/zone.md).
@@ -35,7 +37,7 @@ mkdir -p "$OUT"
 ORACLE=()
 [[ ${DEMO_ORACLE:-1} != 0 ]] && ORACLE=(--oracle)
 "$SERVER_EXE" --listen 127.0.0.1 --port 0 --metrics-port 0 --npcs "$NPCS" --tick-rate "$HZ" \
-  --max-clients $((BOTS + 100)) --teleport 1 "${ORACLE[@]}" ${DEMO_SERVER_ARGS:-} > "$OUT/zone-server.log" 2>&1 &
+  --max-clients $((BOTS + 100)) --teleport 1 --linger 30 "${ORACLE[@]}" ${DEMO_SERVER_ARGS:-} > "$OUT/zone-server.log" 2>&1 &
 SERVER=$!
 stop_server() {
   if kill -0 "$SERVER" 2>/dev/null; then
@@ -57,9 +59,14 @@ done
 [[ -n $PORT ]] || { echo "demo: zone-server did not start" >&2; exit 1; }
 echo "demo: zone-server on 127.0.0.1:$PORT ($NPCS NPCs, $HZ Hz); $BOTS bots for $SECONDS_ s; reports in $OUT"
 
+# A few connections a second drop as a network would drop them (no leave); each bot logs in
+# again with its resume token and gets its own entity back (the server keeps it for --linger s).
+# The cuts stop 5 s before the end, so every bot plays at the end.
+CUT=()
+[[ ${DEMO_CUT:-2} != 0 ]] && CUT=(--cut "${DEMO_CUT:-2}" --churn-for "$(( SECONDS_ > 6 ? SECONDS_ - 5 : 1 ))")
 set +e
-"$SWARM_EXE" --port "$PORT" --bots "$BOTS" --duration "$SECONDS_" --ramp 200 --verify "${ORACLE[@]}" \
-  --mix walk=0.5,patrol=0.2,follow=0.1,crowd=0.1,teleport=0.1 \
+"$SWARM_EXE" --port "$PORT" --bots "$BOTS" --duration "$SECONDS_" --ramp 200 --verify "${ORACLE[@]}" "${CUT[@]}" \
+  --mix walk=0.5,patrol=0.2,follow=0.1,crowd=0.1,teleport=0.1 ${DEMO_SWARM_ARGS:-} \
   --report-json "$OUT/report.json" --report-csv "$OUT/report.csv" --plot "$OUT/latency.png"
 RC=$?
 set -e
