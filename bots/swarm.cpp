@@ -987,8 +987,11 @@ void bot_session::on_frame(const net::frame_view& f, std::uint64_t received_us) 
         // Another connection resumed this player with the slot's token: never take it back (the two would take turns).
         s_.resume_token(slot_).clear();
       }
-      if (resuming_ && !playing_) {
-        // The token refused (unknown or expired) or its region not served in time: the next login is a new player.
+      if (resuming_ && !playing_ && e &&
+          (e->code() == net::error_code::auth_failed || e->code() == net::error_code::timeout)) {
+        // The token refused (unknown or expired) or its region not served in time: the next login
+        // is a new player. Another error (rate_limited, server_full) says nothing of the token:
+        // a retry says it again.
         resuming_ = false;
         token_.clear();
         s_.resume_token(slot_).clear();

@@ -1209,6 +1209,13 @@ void zone_server::run() {
                           : std::string();
   spdlog::info("zone: stopped after {} ticks ({} overruns, {} ticks skipped{})", stats_.ticks, stats_.overruns,
                stats_.skipped_ticks, ahead);
+  if (resume_) {
+    spdlog::info(
+        "  players: {} joined, {} left ({} with a leave); kept after a lost connection {}: back {}, removed unclaimed {}, "
+        "waiting {}; taken over {}; tokens refused {}",
+        stats_.joins, stats_.leaves, stats_.logouts, stats_.players_lingered, stats_.players_resumed,
+        stats_.linger_expired, resume_->kept(), stats_.takeovers, stats_.resumes_refused);
+  }
   // `per_ms`: the units recorded per millisecond.
   const auto report = [](const char* name, const auto& h, double per_ms = 1.0) {
     spdlog::info("  {:<10} p50 {:8.3f} ms  p99 {:8.3f} ms  max {:8.3f} ms", name, h.percentile(0.5) / per_ms,
