@@ -1211,9 +1211,9 @@ void zone_server::run() {
                stats_.skipped_ticks, ahead);
   if (resume_) {
     spdlog::info(
-        "  players: {} joined, {} left ({} with a leave); kept after a lost connection {}: back {}, removed unclaimed {}, "
-        "waiting {}; taken over {}; tokens refused {}",
-        stats_.joins, stats_.leaves, stats_.logouts, stats_.players_lingered, stats_.players_resumed,
+        "  players: {} joined, {} left ({} with a leave), {} connected at the stop; kept after a lost connection {}: "
+        "back {}, removed unclaimed {}, waiting {}; taken over {}; tokens refused {}",
+        stats_.joins, stats_.leaves, stats_.logouts, clients_.size(), stats_.players_lingered, stats_.players_resumed,
         stats_.linger_expired, resume_->kept(), stats_.takeovers, stats_.resumes_refused);
   }
   // `per_ms`: the units recorded per millisecond.
