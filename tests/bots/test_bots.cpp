@@ -723,17 +723,25 @@ TEST_CASE("teleport: bots jump at random across the world; views and AOI checks 
   CHECK(server.proc.terminate().value_or(-1) == 0);
 }
 
+namespace {
+/// The server's zone_entities before any bot joined (its NPCs): a loaded machine may answer the
+/// first scrape late (or before the first tick), so it asks for up to 10 s.
+std::optional<double> entities_before_any_bot(const zone_server_process& server) {
+  std::optional<double> n;
+  for (int i = 0; i < 40 && !n; ++i) {
+    n = metric(http_get_metrics(server.metrics_port), "zone_entities");
+    if (!n) std::this_thread::sleep_for(250ms);
+  }
+  return n;
+}
+}  // namespace
+
 TEST_CASE("churn: bots log out and in continuously for a minute; no crash, no leaked sessions") {
   const std::string dir = temp_dir();
   zone_server_process server(ZONE_SERVER_EXE, dir, server_args);
   REQUIRE_MESSAGE(server.port != 0, server.proc.log());
   REQUIRE(server.metrics_port != 0);
-  // A loaded machine may answer the first scrape late (or before the first tick): ask for up to 10 s.
-  std::optional<double> baseline;
-  for (int i = 0; i < 40 && !baseline; ++i) {
-    baseline = metric(http_get_metrics(server.metrics_port), "zone_entities");
-    if (!baseline) std::this_thread::sleep_for(250ms);
-  }
+  const std::optional<double> baseline = entities_before_any_bot(server);
   REQUIRE(baseline.has_value());
   constexpr int bots = 80;
   // The churn settings come from a scenario file (also covering --scenario); the command line adds to it.
@@ -802,11 +810,7 @@ TEST_CASE(
   zone_server_process server(ZONE_SERVER_EXE, dir, server_args_with({"--oracle", "--linger", "30"}));
   REQUIRE_MESSAGE(server.port != 0, server.proc.log());
   REQUIRE(server.metrics_port != 0);
-  std::optional<double> baseline;
-  for (int i = 0; i < 40 && !baseline; ++i) {
-    baseline = metric(http_get_metrics(server.metrics_port), "zone_entities");
-    if (!baseline) std::this_thread::sleep_for(250ms);
-  }
+  const std::optional<double> baseline = entities_before_any_bot(server);
   REQUIRE(baseline.has_value());
   // 4 cuts a second for 9 s (about 36), then 4 s for the last ones to come back.
   const swarm_end run = run_swarm(server.port, dir,

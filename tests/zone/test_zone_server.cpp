@@ -120,6 +120,23 @@ std::optional<M> first_while_ticking(zone_server& server, test_client& c) {
   return std::nullopt;
 }
 
+/// The welcome `c` reads while the test ticks `server` (REQUIREd).
+net::welcome_msg welcome_of(zone_server& server, test_client& c) {
+  const auto w = first_while_ticking<net::welcome_msg>(server, c);
+  REQUIRE(w.has_value());
+  return *w;
+}
+
+/// Ticks `server` (at most `ticks` times, `pause` after each) until done(); whether it came.
+bool tick_until(zone_server& server, const std::function<bool()>& done, int ticks = 300,
+                std::chrono::milliseconds pause = 2ms) {
+  for (int k = 0; k < ticks && !done(); ++k) {
+    server.tick_once();
+    std::this_thread::sleep_for(pause);
+  }
+  return done();
+}
+
 }  // namespace
 
 TEST_SUITE("zone.server") {
@@ -1258,39 +1275,29 @@ TEST_SUITE("zone.server") {
     zone_server server(test_config());
     server.set_extension(&ext);
     REQUIRE_FALSE(server.start().has_value());
-    const auto welcome_of = [&](test_client& c) {
-      const auto w = first_while_ticking<net::welcome_msg>(server, c);
-      REQUIRE(w.has_value());
-      return *w;
-    };
-    const auto tick_until = [&](const std::function<bool()>& done) {
-      for (int k = 0; k < 200 && !done(); ++k) {
-        server.tick_once();
-        std::this_thread::sleep_for(5ms);
-      }
-      return done();
-    };
     entity_id first = null_entity;
     std::string token;
     {
       test_client a(server.port());
       REQUIRE(a.send(net::hello_msg{"a", "", net::protocol_version}));
-      const auto w = welcome_of(a);
+      const auto w = welcome_of(server, a);
       first = w.entity_id;
       token = w.resume_token;
       CHECK(token == "0001000000000000");
     }  // its connection ends: the extension keeps the entity
-    REQUIRE(tick_until([&] { return ext.asked == 1; }));
+    REQUIRE(tick_until(
+        server, [&] { return ext.asked == 1; }, 200, 5ms));
     CHECK(server.world().store().get(first).has_value());
     {
       test_client b(server.port());
       REQUIRE(b.send(net::hello_msg{"b", token, net::protocol_version}));
-      const auto w = welcome_of(b);
+      const auto w = welcome_of(server, b);
       CHECK(w.entity_id == first);  // its own entity back
       CHECK(w.resume_token == token);
       ext.keep = false;
     }  // ends again: not kept this time
-    REQUIRE(tick_until([&] { return ext.asked == 2; }));
+    REQUIRE(tick_until(
+        server, [&] { return ext.asked == 2; }, 200, 5ms));
     server.tick_once();
     CHECK_FALSE(server.world().store().get(first).has_value());
     {  // a token the extension does not know: refused, and the connection closed
@@ -1378,32 +1385,20 @@ TEST_SUITE("zone.server") {
     cfg.linger_s = 1;
     zone_server server(cfg);
     REQUIRE_FALSE(server.start().has_value());
-    const auto welcome_of = [&](test_client& c) {
-      const auto w = first_while_ticking<net::welcome_msg>(server, c);
-      REQUIRE(w.has_value());
-      return *w;
-    };
-    const auto tick_until = [&](const std::function<bool()>& done) {
-      for (int k = 0; k < 300 && !done(); ++k) {
-        server.tick_once();
-        std::this_thread::sleep_for(2ms);
-      }
-      return done();
-    };
     const auto present = [&](entity_id e) { return server.world().store().get(e).has_value(); };
     entity_id player = null_entity;
     std::string token;
     {
       test_client a(server.port());
       REQUIRE(a.send(net::hello_msg{"a", "", net::protocol_version}));
-      const auto w = welcome_of(a);
+      const auto w = welcome_of(server, a);
       player = w.entity_id;
       token = w.resume_token;
       REQUIRE(resume_book::parse(token).has_value());
       REQUIRE(a.send(net::input_msg{1, {1, 0, 0}}));  // walking when its connection is lost
       for (int k = 0; k < 5; ++k) server.tick_once(), std::this_thread::sleep_for(5ms);
     }  // a's connection ends without a leave
-    REQUIRE(tick_until([&] { return server.stats().players_lingered == 1; }));
+    REQUIRE(tick_until(server, [&] { return server.stats().players_lingered == 1; }));
     REQUIRE(present(player));
     const auto at = server.world().store().get(player)->position;
     for (int k = 0; k < 5; ++k) server.tick_once();
@@ -1413,14 +1408,14 @@ TEST_SUITE("zone.server") {
     // Its client comes back with the token: the same entity, the same token.
     test_client b(server.port());
     REQUIRE(b.send(net::hello_msg{"b", token, net::protocol_version}));
-    const auto wb = welcome_of(b);
+    const auto wb = welcome_of(server, b);
     CHECK(wb.entity_id == player);
     CHECK(wb.resume_token == token);
     CHECK(server.stats().players_resumed == 1);
     // A second connection with the token while b is open takes the player over; b is told so.
     test_client c(server.port());
     REQUIRE(c.send(net::hello_msg{"c", token, net::protocol_version}));
-    const auto wc = welcome_of(c);
+    const auto wc = welcome_of(server, c);
     CHECK(wc.entity_id == player);
     CHECK(server.stats().takeovers == 1);
     std::vector<net::message> seen_by_b;
@@ -1437,7 +1432,7 @@ TEST_SUITE("zone.server") {
     CHECK(server.stats().clients == 1);
     // c leaves on purpose: removed at once, not kept; its token names nothing now.
     REQUIRE(c.send(net::leave_msg{}));
-    REQUIRE(tick_until([&] { return server.stats().logouts == 1; }));
+    REQUIRE(tick_until(server, [&] { return server.stats().logouts == 1; }));
     CHECK_FALSE(present(player));
     CHECK(server.stats().players_lingered == 1);
     {
@@ -1454,14 +1449,14 @@ TEST_SUITE("zone.server") {
     {
       test_client e(server.port());
       REQUIRE(e.send(net::hello_msg{"e", "", net::protocol_version}));
-      const auto w = welcome_of(e);
+      const auto w = welcome_of(server, e);
       gone = w.entity_id;
       gone_token = w.resume_token;
       CHECK(gone_token != token);
     }
-    REQUIRE(tick_until([&] { return server.stats().players_lingered == 2; }));
+    REQUIRE(tick_until(server, [&] { return server.stats().players_lingered == 2; }));
     const std::uint64_t lost_at = server.world().tick();
-    REQUIRE(tick_until([&] { return !present(gone); }));
+    REQUIRE(tick_until(server, [&] { return !present(gone); }));
     CHECK(server.world().tick() - lost_at >= static_cast<std::uint64_t>(cfg.linger_s * cfg.tick_rate_hz) - 1);
     CHECK(server.stats().linger_expired == 1);
     test_client f(server.port());
