@@ -568,6 +568,7 @@ void zone_server::drop_client(std::unordered_map<net::session_id, client>::itera
 void zone_server::resume(const net::inbound_event& e, const net::hello_msg& hello) {
   const auto c = resume_->take(hello.token);
   if (c.entity == null_entity || !world_->store().get(c.entity)) {
+    if (c.entity != null_entity) resume_->forget(c.entity);
     ++stats_.resumes_refused;
     net_.disconnect(e.session, net::error_code::auth_failed, "unknown or expired token");
     return;
