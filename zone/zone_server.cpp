@@ -262,6 +262,7 @@ std::string zone_server::metrics_text() const {
     t.gauge("zone_limit", "Configured limits (docs/operating.md, Limits and hardening).", v, std::string("limit=\"") + name + "\"");
   };
   limit("max_clients", static_cast<double>(cfg_.max_clients));
+  limit("linger_seconds", cfg_.linger_s);
   limit("max_pending", static_cast<double>(cfg_.max_pending));
   limit("max_pending_per_address", static_cast<double>(cfg_.max_pending_per_address));
   limit("hello_timeout_seconds", cfg_.hello_timeout_s);

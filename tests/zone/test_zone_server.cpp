@@ -1468,5 +1468,6 @@ TEST_SUITE("zone.server") {
     CHECK(metrics.find("zone_players_resumed_total 1\n") != std::string::npos);
     CHECK(metrics.find("zone_takeovers_total 1\n") != std::string::npos);
     CHECK(metrics.find("zone_linger_expired_total 1\n") != std::string::npos);
+    CHECK(metrics.find("zone_limit{limit=\"linger_seconds\"} 1\n") != std::string::npos);
   }
 }
