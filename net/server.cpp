@@ -1073,6 +1073,9 @@ class session : public std::enable_shared_from_this<session> {
     (void)queue_.push(make_shared_frame(pong_encoder_.encode(error_msg{code, reason})), delivery::control);
     closing_ = true;
     close_reason_ = std::move(reason);
+    cut_off_ = code == error_code::bad_frame || code == error_code::oversize ||
+               code == error_code::verification_failed || code == error_code::unknown_type ||
+               code == error_code::unexpected_message || code == error_code::rate_limited;
     if (!blocked_) flush_on_lane(lock);
   }
 
@@ -1105,6 +1108,7 @@ class session : public std::enable_shared_from_this<session> {
       e.session = id_;
       e.reason = std::move(reason);
       e.left = left_;
+      e.cut_off = cut_off_;
       srv_.report(std::move(e));
       --srv_.counters.sessions_open;
     }
@@ -1126,6 +1130,7 @@ class session : public std::enable_shared_from_this<session> {
   const steady::time_point accepted_at_ = steady::now();
   bool announced_ = false;     // the game heard of it (a valid hello in a free slot); lane only
   bool left_ = false;          // the client said leave; lane only
+  bool cut_off_ = false;       // closed for breaking the rules (fail_now's code); lane only
   frame_decoder decoder_;
   encoder pong_encoder_{256};
   bool hello_seen_ = false;

@@ -164,6 +164,10 @@ struct inbound_event {
   /// For kind::disconnected: the client said leave (a logout) before it closed; otherwise the
   /// connection was lost or closed by the server (its entity may wait for a resume).
   bool left = false;
+  /// For kind::disconnected: the server cut the client off for breaking the protocol's rules (a
+  /// frame that does not parse or verify, an oversize frame, an unknown or unexpected message, a
+  /// flood: error_code::bad_frame .. rate_limited); not a lost connection (no resume).
+  bool cut_off = false;
 };
 
 /// Shared immutable frame: a message sent to many sessions is serialized once. The reference

@@ -496,10 +496,13 @@ void zone_server::drain_inputs() {
         drop_client(it);
         ++stats_.leaves;
         if (e.left) ++stats_.logouts;
+        // Kept for a resume only when the connection was lost: not after a leave, nor when the
+        // server cut the client off for breaking the rules.
+        const bool lost = !e.left && !e.cut_off;
         if (ext_ != nullptr) {
           // An entity handed off to another zone lives on there (here it is a ghost).
-          if (ext_->owns(entity) && (e.left || !ext_->keep_for_resume(entity, *world_))) world_->despawn(entity);
-        } else if (resume_ && !e.left && resume_->keep(entity, world_->tick())) {
+          if (ext_->owns(entity) && (!lost || !ext_->keep_for_resume(entity, *world_))) world_->despawn(entity);
+        } else if (resume_ && lost && resume_->keep(entity, world_->tick())) {
           world_->set_intent(entity, {0, 0, 0});  // it stands where it was until its client is back
           ++stats_.players_lingered;
         } else {

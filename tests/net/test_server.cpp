@@ -1870,7 +1870,7 @@ TEST_SUITE("net.server") {
   }
 
   TEST_CASE(
-      "leave: the session closes without an answer and the game hears left; a lost connection is not left; before hello an error") {
+      "leave: the session closes without an answer and the game hears left; a lost connection is neither left nor cut off; a rule broken is cut off; before hello an error") {
     started run(server_options{});
     auto& g = run.g;
     const auto disconnect_of = [&](session_id s) -> const inbound_event* {
@@ -1887,6 +1887,7 @@ TEST_SUITE("net.server") {
     CHECK(seen.empty());  // nothing follows a leave, not even an error
     REQUIRE(g.wait_for([&] { return disconnect_of(sa) != nullptr; }));
     CHECK(disconnect_of(sa)->left);
+    CHECK_FALSE(disconnect_of(sa)->cut_off);
     CHECK(disconnect_of(sa)->reason == "left");
     const session_id sb = [&] {
       test_client b(run.srv.port());
@@ -1894,10 +1895,20 @@ TEST_SUITE("net.server") {
     }();  // b's connection ends without a leave
     REQUIRE(g.wait_for([&] { return disconnect_of(sb) != nullptr; }));
     CHECK_FALSE(disconnect_of(sb)->left);
+    CHECK_FALSE(disconnect_of(sb)->cut_off);
+    // A player that sends a frame that does not verify is cut off: its end is no lost connection.
+    test_client j(run.srv.port());
+    const session_id sj = join(g, j, "junk");
+    const std::vector<std::uint8_t> junk = {8, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8};
+    REQUIRE(j.send_bytes(junk));
+    closed_with(j, error_code::verification_failed);
+    REQUIRE(g.wait_for([&] { return disconnect_of(sj) != nullptr; }));
+    CHECK(disconnect_of(sj)->cut_off);
+    CHECK_FALSE(disconnect_of(sj)->left);
     test_client c(run.srv.port());
     REQUIRE(c.send(leave_msg{}));
     CHECK(std::get<error_msg>(closed_with(c, error_code::unexpected_message)).reason == "leave before hello");
-    CHECK(g.count(inbound_event::kind::disconnected) == 2);  // the game never heard of c
+    CHECK(g.count(inbound_event::kind::disconnected) == 3);  // the game never heard of c
   }
 
   TEST_CASE("rate limits: a ping flood is answered at the ping rate, then cut off with rate_limited") {

@@ -1380,7 +1380,7 @@ TEST_SUITE("zone.server") {
   }
 
   TEST_CASE(
-      "--linger, a single zone: a lost connection's player stands for its token; a leave removes it at once; a live one is taken over; an unclaimed one expires") {
+      "--linger, a single zone: a lost connection's player stands for its token; a leave removes it at once, and so does a cut-off; a live one is taken over; an unclaimed one expires") {
     zone_config cfg = test_config();
     cfg.linger_s = 1;
     zone_server server(cfg);
@@ -1464,6 +1464,15 @@ TEST_SUITE("zone.server") {
     const auto err = first_while_ticking<net::error_msg>(server, f);
     REQUIRE(err.has_value());
     CHECK(err->code == net::error_code::auth_failed);
+    {  // a player cut off for breaking the rules (a frame that does not verify): removed at once, not kept
+      test_client h(server.port());
+      REQUIRE(h.send(net::hello_msg{"h", "", net::protocol_version}));
+      const entity_id cut = welcome_of(server, h).entity_id;
+      const std::vector<std::uint8_t> junk = {8, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8};
+      REQUIRE(h.send_bytes(junk));
+      REQUIRE(tick_until(server, [&] { return !present(cut); }));
+      CHECK(server.stats().players_lingered == 2);
+    }
     const std::string metrics = server.metrics_text();
     CHECK(metrics.find("zone_players_resumed_total 1\n") != std::string::npos);
     CHECK(metrics.find("zone_takeovers_total 1\n") != std::string::npos);
