@@ -132,6 +132,11 @@ class bot_session : public std::enable_shared_from_this<bot_session> {
   /// An error frame the server sent before it closed, still unread in the socket ("code: reason").
   std::optional<std::string> server_error_waiting();
   void close();
+  /// Where this session connects: its redirect's or reconnect's zone, else the swarm's --port.
+  [[nodiscard]] tcp::endpoint endpoint_now() const;
+  /// Closes this session and logs its slot in again at `to` after `delay_s` (-1: --relogin-delay,
+  /// at least 50 ms), saying the slot's resume token when --resume.
+  void log_in_again(const tcp::endpoint& to, steady::time_point since, double delay_s);
   void flush_counts();
 
   swarm& s_;
@@ -839,7 +844,7 @@ void bot_session::start() {
     welcome_timer_.async_wait([this, self](const boost::system::error_code& ec) {
       if (!ec && !closed_ && !playing_) fail("no welcome within the connect timeout", true);
     });
-    socket_.async_connect(endpoint_override_ ? *endpoint_override_ : s_.endpoint(), [this, self](const boost::system::error_code& ec) { on_connect(ec); });
+    socket_.async_connect(endpoint_now(), [this, self](const boost::system::error_code& ec) { on_connect(ec); });
   });
 }
 
@@ -866,16 +871,19 @@ void bot_session::cut() {
   asio::dispatch(io_, [this, self] {
     if (closed_) return;
     intended_ = true;  // the swarm's own doing: not an unexpected disconnect
-    const auto& o = s_.opt_ref();
-    const tcp::endpoint to = endpoint_override_ ? *endpoint_override_ : s_.endpoint();
     // No leave: the socket just closes, so the server sees the connection end without one (a
     // lost connection, as a dead link would end it).
-    close();
-    if (!s_.stopping()) {
-      s_.relaunch_later(slot_, to, steady::now(), o.relogin_delay_s, {},
-                        o.resume ? s_.resume_token(slot_) : std::string());
-    }
+    log_in_again(endpoint_now(), steady::now(), s_.opt_ref().relogin_delay_s);
   });
+}
+
+tcp::endpoint bot_session::endpoint_now() const { return endpoint_override_ ? *endpoint_override_ : s_.endpoint(); }
+
+void bot_session::log_in_again(const tcp::endpoint& to, steady::time_point since, double delay_s) {
+  close();
+  if (s_.stopping()) return;
+  const auto& o = s_.opt_ref();
+  s_.relaunch_later(slot_, to, since, delay_s, {}, o.resume ? s_.resume_token(slot_) : std::string());
 }
 
 void bot_session::on_connect(const boost::system::error_code& ec) {
@@ -1171,7 +1179,7 @@ void bot_session::on_tick_update(const net::wire::tick_update& u, std::uint64_t 
                ": inconsistent update (previous tick " + std::to_string(last) + "; ids " + (ids.empty() ? "-" : ids) + ")");
   }
   // The oracle: this view against the ground truth of this tick.
-  if (auto* o = s_.oracle_for(endpoint_override_ ? *endpoint_override_ : s_.endpoint(), instance_, entity_)) {
+  if (auto* o = s_.oracle_for(endpoint_now(), instance_, entity_)) {
     net::deferred_counts deferred;
     if (const auto* d = u.deferred()) deferred = {d->enters(), d->leaves(), d->updates()};
     std::optional<net::vec3f> own;
@@ -1449,11 +1457,8 @@ void bot_session::fail(const std::string& why, bool connection_failure) {
                    ": " + why + " (logging in again)");
         c.reconnects.fetch_add(1, std::memory_order_relaxed);
       }
-      const tcp::endpoint to = o.relogin_port != 0 ? tcp::endpoint(s_.endpoint().address(), o.relogin_port)
-                               : endpoint_override_ ? *endpoint_override_
-                                                    : s_.endpoint();
-      close();
-      s_.relaunch_later(slot_, to, since, -1, {}, o.resume ? s_.resume_token(slot_) : std::string());
+      log_in_again(o.relogin_port != 0 ? tcp::endpoint(s_.endpoint().address(), o.relogin_port) : endpoint_now(), since,
+                   -1);
       return;
     }
   }

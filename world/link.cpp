@@ -134,21 +134,6 @@ float half_dq(std::uint16_t q) { return static_cast<float>(q) / 16.0f; }
 
 }  // namespace
 
-std::optional<std::uint64_t> parse_token(std::string_view token) {
-  if (token.size() != 16) return std::nullopt;
-  std::uint64_t v = 0;
-  for (const char c : token) {
-    const int d = c >= '0' && c <= '9'   ? c - '0'
-                  : c >= 'a' && c <= 'f' ? c - 'a' + 10
-                  : c >= 'A' && c <= 'F' ? c - 'A' + 10
-                                         : -1;
-    if (d < 0) return std::nullopt;
-    v = v << 4 | static_cast<std::uint64_t>(d);
-  }
-  if (v == 0) return std::nullopt;
-  return v;
-}
-
 std::optional<std::uint32_t> token_region(std::string_view token) {
   const auto v = parse_token(token);
   if (!v || (*v >> 48) == 0) return std::nullopt;

@@ -27,12 +27,6 @@ std::string status_text(natsStatus s) {
   return std::string(natsStatus_GetText(s)) + (last && *last ? std::string(" (") + last + ")" : std::string());
 }
 
-std::string hex(std::uint64_t v) {
-  char b[17];
-  std::snprintf(b, sizeof b, "%016llx", static_cast<unsigned long long>(v));
-  return b;
-}
-
 /// Creates a KV bucket, or binds to it when it exists.
 natsStatus open_bucket(kvStore** kv, jsCtx* js, const std::string& name, std::int64_t ttl_ns) {
   kvConfig kc;
@@ -51,7 +45,7 @@ std::string owner_value(std::uint32_t region, std::uint64_t epoch) {
   return std::to_string(region) + " " + std::to_string(epoch);
 }
 /// An entity's ownership record's key in the world's KV bucket.
-std::string owner_key(global_id g) { return "e." + hex(g); }
+std::string owner_key(global_id g) { return "e." + hex16(g); }
 /// The epoch an ownership record's value names (0 when it names none).
 std::uint64_t owner_epoch(const std::string& value) {
   const auto space = value.find(' ');
@@ -861,7 +855,7 @@ bool nats_node::put_back(const std::vector<std::pair<global_id, std::uint64_t>>&
   // (their new zone adopts an epoch once: one it had is a duplicate there).
   for (const auto& r : published) {
     const auto bytes = encode(r);
-    const std::string msg_id = hex(r.gid) + "-" + std::to_string(r.epoch);
+    const std::string msg_id = hex16(r.gid) + "-" + std::to_string(r.epoch);
     jsPubOptions po;
     jsPubOptions_Init(&po);
     po.MsgId = msg_id.c_str();
@@ -1077,7 +1071,7 @@ nats_node::send_outcome nats_node::send(outgoing& o, int fail_first) {
   // epoch once).
   const auto bytes = encode(r);
   const std::string subj = subject("handoff", r.to);
-  const std::string msg_id = hex(r.gid) + "-" + std::to_string(r.epoch);
+  const std::string msg_id = hex16(r.gid) + "-" + std::to_string(r.epoch);
   jsPubOptions po;
   jsPubOptions_Init(&po);
   po.MsgId = msg_id.c_str();
@@ -1323,7 +1317,7 @@ void nats_node::after_step(zone_world& w, std::vector<redirect>& out) {
     if (r.behaviour.kind != behaviour::player) continue;
     r.token = new_token(r.to);
     resume_.erase(link_->local_of(r.gid));  // the new zone's client now
-    pending_redirects_.push_back({link_->local_of(r.gid), r.gid, r.to, hex(r.token), tick_});
+    pending_redirects_.push_back({link_->local_of(r.gid), r.gid, r.to, hex16(r.token), tick_});
     forward_target_[r.gid] = r.to;
     if (forward_target_.size() > 100000) forward_target_.clear();
   }
@@ -1444,15 +1438,12 @@ std::string nats_node::resume_token(entity_id e, const std::string& claimed) {
   if (!claimed.empty()) return claimed;  // claim_token kept it
   const std::uint64_t t = new_token(region_);
   resume_[e] = t;
-  return hex(t);
+  return hex16(t);
 }
 
 std::uint64_t nats_node::new_token(std::uint32_t r) {
-  // The OS's random source (getrandom or rdrand), not a seeded generator: a client could work a
-  // generator's next outputs (other players' tokens) out from the tokens it was told itself.
-  std::random_device os;
   std::uint64_t low = 0;
-  while (low == 0) low = (std::uint64_t{os()} << 32 | os()) & 0xffffffffffffull;
+  while (low == 0) low = os_random_u64() & 0xffffffffffffull;
   return static_cast<std::uint64_t>(r + 1) << 48 | low;
 }
 
@@ -1755,15 +1746,16 @@ world_check check_world(const std::vector<census_entry>& census,
         ++c.kv_missing;
         c.missing_ids.push_back(g);
         if (c.problem_examples.size() < 10) {
-          c.problem_examples.push_back("missing: id " + hex(g) + " owned by region " + std::to_string(region) + " at epoch " +
-                                       std::to_string(epoch) + ", no KV record");
+          c.problem_examples.push_back("missing: id " + hex16(g) + " owned by region " + std::to_string(region) +
+                                       " at epoch " + std::to_string(epoch) + ", no KV record");
         }
       } else if (it->second.second < epoch || (it->second.second == epoch && it->second.first != region)) {
         ++c.kv_disagree;
         if (c.problem_examples.size() < 10) {
-          c.problem_examples.push_back("disagree: id " + hex(g) + " owned by region " + std::to_string(region) + " at epoch " +
-                                       std::to_string(epoch) + ", KV says region " + std::to_string(it->second.first) +
-                                       " epoch " + std::to_string(it->second.second));
+          c.problem_examples.push_back("disagree: id " + hex16(g) + " owned by region " + std::to_string(region) +
+                                       " at epoch " + std::to_string(epoch) + ", KV says region " +
+                                       std::to_string(it->second.first) + " epoch " +
+                                       std::to_string(it->second.second));
         }
       }
     }
@@ -1785,7 +1777,8 @@ world_check check_world(const std::vector<census_entry>& census,
     if (!current) {
       ++c.kv_in_flight;
       if (c.in_flight_examples.size() < 10) {
-        std::string what = "id " + hex(g) + ": KV says region " + std::to_string(rec.first) + " epoch " + std::to_string(rec.second) + "; zones:";
+        std::string what = "id " + hex16(g) + ": KV says region " + std::to_string(rec.first) + " epoch " +
+                           std::to_string(rec.second) + "; zones:";
         if (it != seen.end()) {
           for (const auto& [region, epoch] : it->second) what += " region " + std::to_string(region) + " epoch " + std::to_string(epoch);
         } else {

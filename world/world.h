@@ -16,6 +16,7 @@
 #include <utility>
 #include <vector>
 
+#include "zone/token.h"
 #include "zone/zone.h"
 
 namespace zone::world {
@@ -28,10 +29,9 @@ using global_id = std::uint64_t;
   return static_cast<std::uint32_t>(g >> 32) & 0xffffu;
 }
 
-/// A client's token (a redirect's, welcome.resume_token): 16 lowercase or uppercase hex digits
-/// of (region + 1) << 48 | 48 random bits, naming the region whose zone holds the entity. The
-/// value (nullopt: not 16 hex digits, or 0) and the region it names (nullopt: none).
-[[nodiscard]] std::optional<std::uint64_t> parse_token(std::string_view token);
+/// A client's token (a redirect's, welcome.resume_token), read by zone::parse_token (zone/token.h):
+/// (region + 1) << 48 | 48 random bits, naming the region whose zone holds the entity. The region
+/// it names (nullopt: not a token, or none).
 [[nodiscard]] std::optional<std::uint32_t> token_region(std::string_view token);
 
 /// An axis-aligned rectangle in x, y: [lo, hi) on both axes (the last column / row also owns hi).

@@ -1,48 +1,17 @@
 #include "resume_book.h"
 
-#include <cstdio>
-#include <random>
-
 namespace zone {
 
 resume_book::resume_book(std::uint64_t linger_ticks, std::size_t max_kept)
     : linger_ticks_(linger_ticks), max_kept_(max_kept) {}
 
-std::optional<std::uint64_t> resume_book::parse(std::string_view token) {
-  if (token.size() != 16) return std::nullopt;
-  std::uint64_t v = 0;
-  for (const char ch : token) {
-    unsigned d = 0;
-    if (ch >= '0' && ch <= '9') {
-      d = static_cast<unsigned>(ch - '0');
-    } else if (ch >= 'a' && ch <= 'f') {
-      d = static_cast<unsigned>(ch - 'a' + 10);
-    } else if (ch >= 'A' && ch <= 'F') {
-      d = static_cast<unsigned>(ch - 'A' + 10);
-    } else {
-      return std::nullopt;
-    }
-    v = v << 4 | d;
-  }
-  return v;
-}
-
 std::string resume_book::issue(entity_id e) {
-  if (const auto it = by_entity_.find(e); it != by_entity_.end()) {
-    char text[17];
-    std::snprintf(text, sizeof text, "%016llx", static_cast<unsigned long long>(it->second));
-    return text;
-  }
-  // std::random_device is the OS's source here (getrandom or rdrand), not a seeded generator
-  // whose next outputs a client could work out from its own tokens.
-  std::random_device os;
+  if (const auto it = by_entity_.find(e); it != by_entity_.end()) return hex16(it->second);
   std::uint64_t t = 0;
-  while (t == 0 || by_token_.count(t) != 0) t = std::uint64_t{os()} << 32 | os();
+  while (t == 0 || by_token_.count(t) != 0) t = os_random_u64();
   by_token_[t] = {e, false, 0};
   by_entity_[e] = t;
-  char text[17];
-  std::snprintf(text, sizeof text, "%016llx", static_cast<unsigned long long>(t));
-  return text;
+  return hex16(t);
 }
 
 bool resume_book::keep(entity_id e, std::uint64_t tick) {
@@ -72,7 +41,7 @@ void resume_book::forget(entity_id e) {
 }
 
 resume_book::claim resume_book::take(std::string_view token) {
-  const auto t = parse(token);
+  const auto t = parse_token(token);
   if (!t) return {};
   const auto it = by_token_.find(*t);
   if (it == by_token_.end()) return {};

@@ -16,6 +16,7 @@
 #include <vector>
 
 #include "entity_store.h"
+#include "token.h"
 
 namespace zone {
 
@@ -26,8 +27,8 @@ class resume_book {
   resume_book(std::uint64_t linger_ticks, std::size_t max_kept);
 
   /// The token entity `e`'s client is told (welcome.resume_token): a new one for a new player,
-  /// the one it claimed with otherwise. 16 hex digits from the OS's random source (unguessable:
-  /// a token is the right to play its entity).
+  /// the one it claimed with otherwise. From the OS's random source (os_random_u64: unguessable,
+  /// a token is the right to play its entity), written as token.h writes tokens.
   std::string issue(entity_id e);
   /// `e`'s connection was lost (no leave) at `tick`: true when it is kept for its client (until
   /// tick + linger_ticks), false when the zone removes it (no token told, lingering off, full).
@@ -48,9 +49,6 @@ class resume_book {
 
   [[nodiscard]] std::size_t kept() const { return kept_; }
   [[nodiscard]] std::size_t known() const { return by_token_.size(); }
-
-  /// A token's 64 bits from its text (16 hex digits); nullopt for anything else.
-  [[nodiscard]] static std::optional<std::uint64_t> parse(std::string_view token);
 
  private:
   struct entry {
