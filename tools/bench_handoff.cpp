@@ -9,16 +9,31 @@
 // process less the reader and
 // the idle main thread: senders plus I/O threads), the hand-off's wall time per tick, and what the
 // server wrote. Benchmarks print tables; they are not timed tests (docs/zone-benchmarks.md).
+//
+// --mode floor measures what no server can go below on this host: no net::server, no frames
+// built; --io-threads threads each write one --frame-bytes buffer a tick to each of its share of
+// the sockets, one send() per frame (or, with --write-batching io_uring, one io_uring submission
+// of registered-file sends per 256 sockets, the zone server's batching), and --readers threads
+// drain the clients through epoll. Its CPU per frame is the kernel's loopback TCP path alone,
+// with what loopback charges the sending thread (the receiving socket's work).
 #include <arpa/inet.h>
+#include <fcntl.h>
 #include <netinet/in.h>
 #include <netinet/tcp.h>
+#include <poll.h>
+#include <signal.h>
 #include <sys/epoll.h>
 #include <sys/resource.h>
 #include <sys/socket.h>
+#include <sys/wait.h>
 #include <unistd.h>
+#if ZONE_HAVE_LIBURING
+#include <liburing.h>
+#endif
 
 #include <algorithm>
 #include <atomic>
+#include <barrier>
 #include <chrono>
 #include <cstdio>
 #include <cstdlib>
@@ -30,6 +45,7 @@
 #include <spdlog/spdlog.h>
 
 #include "interest/measure.h"
+#include "net/os_limits.h"
 #include "net/server.h"
 #include "tools/cli.h"
 
@@ -62,9 +78,287 @@ struct options {
   bool direct_writes = false;
   write_batching batching = write_batching::automatic;
   std::size_t write_slice = 256;  // ready sessions an I/O thread writes before it reads again
+  unsigned readers = 1;           // threads draining the clients' sockets
+  std::vector<int> io_cpus, reader_cpus;  // --mode floor: where the writers and the readers run
 };
 
 using zone::quantile;
+
+// The readers: each drains its share of the client sockets through epoll and discards the bytes
+// until `stop`; their CPU time summed into `cpu_s`.
+struct reader_pool {
+  std::atomic<bool> stop{false};
+  std::atomic<std::uint64_t> bytes{0};
+  std::vector<double> cpu;
+  std::vector<std::thread> threads;
+
+  reader_pool(const std::vector<int>& fds, unsigned n, const std::vector<int>& cpus) : cpu(n, 0) {
+    for (unsigned r = 0; r < n; ++r) {
+      threads.emplace_back([this, &fds, n, r, &cpus] {
+        if (!cpus.empty()) (void)pin_current_thread(cpus);
+        const int ep = epoll_create1(0);
+        for (std::size_t i = r; i < fds.size(); i += n) {
+          epoll_event ev{};
+          ev.events = EPOLLIN;
+          ev.data.fd = fds[i];
+          epoll_ctl(ep, EPOLL_CTL_ADD, fds[i], &ev);
+        }
+        std::vector<epoll_event> ready(256);
+        std::vector<char> buf(1 << 16);
+        const double c0 = thread_cpu_s();
+        while (!stop.load(std::memory_order_relaxed)) {
+          const int k = epoll_wait(ep, ready.data(), static_cast<int>(ready.size()), 20);
+          for (int i = 0; i < k; ++i) {
+            const ssize_t got = ::read(ready[static_cast<std::size_t>(i)].data.fd, buf.data(), buf.size());
+            if (got > 0) bytes.fetch_add(static_cast<std::uint64_t>(got), std::memory_order_relaxed);
+          }
+        }
+        cpu[r] = thread_cpu_s() - c0;
+        ::close(ep);
+      });
+    }
+  }
+  double finish() {
+    stop = true;
+    for (auto& t : threads) t.join();
+    double c = 0;
+    for (const double x : cpu) c += x;
+    return c;
+  }
+};
+
+std::string rate_text(double hz) {
+  if (hz <= 0) return "back to back";
+  char b[32];
+  std::snprintf(b, sizeof b, "at %g Hz", hz);
+  return b;
+}
+
+// --mode floor (the header): returns the exit status.
+int run_floor(const options& o, bool uring) {
+#if !ZONE_HAVE_LIBURING
+  if (uring) {
+    std::fprintf(stderr, "bench-handoff: --mode floor --write-batching io_uring: built without liburing\n");
+    return 1;
+  }
+#endif
+  const int lfd = ::socket(AF_INET, SOCK_STREAM, 0);
+  sockaddr_in addr{};
+  addr.sin_family = AF_INET;
+  addr.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+  socklen_t len = sizeof addr;
+  if (lfd < 0 || ::fcntl(lfd, F_SETFL, O_NONBLOCK) != 0 ||
+      ::bind(lfd, reinterpret_cast<sockaddr*>(&addr), sizeof addr) != 0 || ::listen(lfd, 4096) != 0 ||
+      ::getsockname(lfd, reinterpret_cast<sockaddr*>(&addr), &len) != 0) {
+    std::fprintf(stderr, "bench-handoff: listen on 127.0.0.1: %s\n", std::strerror(errno));
+    return 1;
+  }
+  // The clients live in a child process (as the bots do: a host's open-file limit is per process,
+  // 20,000 on the device hosts, and the two ends of 19,900 connections would not fit in one), which
+  // connects them and drains them until told to stop; the accepted side is the server's,
+  // nonblocking with TCP_NODELAY as net::server's sessions.
+  int to_child[2], from_child[2];
+  if (::pipe(to_child) != 0 || ::pipe(from_child) != 0) {
+    std::fprintf(stderr, "bench-handoff: pipe: %s\n", std::strerror(errno));
+    return 1;
+  }
+  std::fflush(nullptr);
+  const pid_t child = ::fork();
+  if (child < 0) {
+    std::fprintf(stderr, "bench-handoff: fork: %s\n", std::strerror(errno));
+    return 1;
+  }
+  if (child == 0) {
+    ::close(to_child[1]);
+    ::close(from_child[0]);
+    ::close(lfd);
+    (void)raise_open_file_limit();
+    std::vector<int> clients;
+    for (std::size_t i = 0; i < o.sessions; ++i) {
+      const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
+      if (fd < 0 || ::connect(fd, reinterpret_cast<sockaddr*>(&addr), sizeof addr) != 0) {
+        std::fprintf(stderr, "bench-handoff: connect %zu failed: %s (ulimit -n?)\n", i, std::strerror(errno));
+        ::_exit(1);
+      }
+      clients.push_back(fd);
+    }
+    double report[2] = {0, 0};
+    {
+      reader_pool readers(clients, o.readers, o.reader_cpus);
+      // The parent says how many bytes it wrote: read them all (or give up after 10 s), then stop.
+      std::uint64_t expect = 0;
+      while (::read(to_child[0], &expect, sizeof expect) < 0 && errno == EINTR) {}
+      const auto until = std::chrono::steady_clock::now() + std::chrono::seconds(10);
+      while (readers.bytes.load() < expect && std::chrono::steady_clock::now() < until)
+        std::this_thread::sleep_for(std::chrono::milliseconds(1));
+      report[0] = readers.finish();
+      report[1] = static_cast<double>(readers.bytes.load());
+    }
+    (void)!::write(from_child[1], report, sizeof report);
+    ::_exit(0);
+  }
+  ::close(to_child[0]);
+  ::close(from_child[1]);
+  std::vector<int> conns;
+  const auto accept_deadline = std::chrono::steady_clock::now() + std::chrono::seconds(120);
+  while (conns.size() < o.sessions) {
+    pollfd pf{lfd, POLLIN, 0};
+    if (std::chrono::steady_clock::now() > accept_deadline || ::poll(&pf, 1, 1000) < 0 ||
+        ::waitpid(child, nullptr, WNOHANG) == child) {
+      std::fprintf(stderr, "bench-handoff: only %zu of %zu connections accepted\n", conns.size(), o.sessions);
+      ::kill(child, SIGKILL);
+      return 1;
+    }
+    for (;;) {
+      const int c = ::accept4(lfd, nullptr, nullptr, SOCK_NONBLOCK);
+      if (c < 0) break;
+      const int one = 1;
+      ::setsockopt(c, IPPROTO_TCP, TCP_NODELAY, &one, sizeof one);
+      conns.push_back(c);
+    }
+  }
+  ::close(lfd);
+
+  std::vector<char> frame(o.frame_bytes, 'x');
+  const unsigned writers = std::max(1u, o.io_threads);
+  std::vector<double> cpu(writers, 0);
+  std::vector<std::uint64_t> written(writers, 0), short_writes(writers, 0), failed(writers, 0), bytes(writers, 0);
+  std::vector<double> tick_wall_ms;
+  std::atomic<bool> setup_failed{false};
+  // Each tick the main thread lets every writer write its share (start_line), waits for the last
+  // (finish_line): the tick's write wall time, then sleeps until the next tick is due.
+  std::barrier start_line(static_cast<std::ptrdiff_t>(writers) + 1);
+  std::barrier finish_line(static_cast<std::ptrdiff_t>(writers) + 1);
+  std::vector<std::thread> threads;
+  for (unsigned k = 0; k < writers; ++k) {
+    threads.emplace_back([&, k] {
+      if (!o.io_cpus.empty()) (void)pin_current_thread(o.io_cpus);
+      std::vector<int> mine;
+      for (std::size_t i = k; i < conns.size(); i += writers) mine.push_back(conns[i]);
+#if ZONE_HAVE_LIBURING
+      io_uring ring{};
+      constexpr unsigned batch = 256;  // sends a submission, the zone server's ring size
+      if (uring && !mine.empty()) {
+        io_uring_params p{};
+        p.flags = IORING_SETUP_SUBMIT_ALL | IORING_SETUP_COOP_TASKRUN;
+        if (io_uring_queue_init_params(batch, &ring, &p) < 0 ||
+            io_uring_register_files(&ring, mine.data(), static_cast<unsigned>(mine.size())) < 0)
+          setup_failed = true;
+      }
+#endif
+      const double c0 = thread_cpu_s();
+      for (std::size_t t = 0; t < o.ticks; ++t) {
+        start_line.arrive_and_wait();
+        if (setup_failed) {
+          finish_line.arrive_and_wait();
+          continue;
+        }
+        if (!uring || mine.empty()) {
+          for (const int fd : mine) {
+            const ssize_t r = ::send(fd, frame.data(), frame.size(), MSG_DONTWAIT | MSG_NOSIGNAL);
+            if (r > 0) bytes[k] += static_cast<std::uint64_t>(r);
+            if (r == static_cast<ssize_t>(frame.size()))
+              ++written[k];
+            else if (r > 0)
+              ++short_writes[k];
+            else
+              ++failed[k];
+          }
+        }
+#if ZONE_HAVE_LIBURING
+        else {
+          for (std::size_t b = 0; b < mine.size(); b += batch) {
+            const auto n = static_cast<unsigned>(std::min<std::size_t>(batch, mine.size() - b));
+            for (unsigned j = 0; j < n; ++j) {
+              io_uring_sqe* sqe = io_uring_get_sqe(&ring);
+              io_uring_prep_send(sqe, static_cast<int>(b + j), frame.data(), frame.size(), MSG_DONTWAIT | MSG_NOSIGNAL);
+              sqe->flags |= IOSQE_FIXED_FILE;
+            }
+            io_uring_submit_and_wait(&ring, n);
+            unsigned seen = 0;
+            while (seen < n) {
+              io_uring_cqe* cqe = nullptr;
+              if (io_uring_wait_cqe(&ring, &cqe) != 0) {
+                failed[k] += n - seen;  // never answered: counted as failed
+                break;
+              }
+              if (cqe->res > 0) bytes[k] += static_cast<std::uint64_t>(cqe->res);
+              if (cqe->res == static_cast<int>(frame.size()))
+                ++written[k];
+              else if (cqe->res > 0)
+                ++short_writes[k];
+              else
+                ++failed[k];
+              io_uring_cqe_seen(&ring, cqe);
+              ++seen;
+            }
+          }
+        }
+#endif
+        finish_line.arrive_and_wait();
+      }
+      cpu[k] = thread_cpu_s() - c0;
+#if ZONE_HAVE_LIBURING
+      if (uring && !mine.empty()) io_uring_queue_exit(&ring);
+#endif
+    });
+  }
+  const auto period = o.rate_hz > 0 ? std::chrono::duration<double>(1.0 / o.rate_hz) : std::chrono::duration<double>(0);
+  const auto w0 = std::chrono::steady_clock::now();
+  auto next = w0;
+  for (std::size_t t = 0; t < o.ticks; ++t) {
+    const auto t0 = std::chrono::steady_clock::now();
+    start_line.arrive_and_wait();
+    finish_line.arrive_and_wait();
+    tick_wall_ms.push_back(std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count());
+    if (o.rate_hz > 0) {
+      next += std::chrono::duration_cast<std::chrono::steady_clock::duration>(period);
+      std::this_thread::sleep_until(next);
+    }
+  }
+  for (auto& th : threads) th.join();
+  const double wall = std::chrono::duration<double>(std::chrono::steady_clock::now() - w0).count();
+  std::uint64_t bytes_written = 0;
+  for (const auto b : bytes) bytes_written += b;
+  double report[2] = {0, 0};  // the readers' CPU s and the bytes they read
+  (void)!::write(to_child[1], &bytes_written, sizeof bytes_written);
+  const bool reported = ::read(from_child[0], report, sizeof report) == static_cast<ssize_t>(sizeof report);
+  ::waitpid(child, nullptr, 0);
+  const double reader_cpu = report[0];
+  if (!reported) {
+    std::fprintf(stderr, "bench-handoff: the readers' process ended without its report\n");
+    return 1;
+  }
+  if (setup_failed) {
+    std::fprintf(stderr, "bench-handoff: io_uring setup failed (io_uring_queue_init or register_files)\n");
+    return 1;
+  }
+  std::uint64_t frames = 0, shorts = 0, fails = 0;
+  double writer_cpu = 0;
+  for (unsigned k = 0; k < writers; ++k) {
+    frames += written[k];
+    shorts += short_writes[k];
+    fails += failed[k];
+    writer_cpu += cpu[k];
+  }
+  std::printf(
+      "bench-handoff --mode floor: %zu sockets, %zu ticks %s, %u writer threads%s, %u readers%s, %zu-byte frames, %s\n",
+      o.sessions, o.ticks, rate_text(o.rate_hz).c_str(), writers,
+      o.io_cpus.empty() ? "" : (" on CPUs " + format_cpu_list(o.io_cpus)).c_str(), o.readers,
+      o.reader_cpus.empty() ? "" : (" on CPUs " + format_cpu_list(o.reader_cpus)).c_str(), o.frame_bytes,
+      uring ? "io_uring submissions of 256 sends (registered files)" : "one send() a frame");
+  std::printf(
+      "| frames written | short writes | failed (EAGAIN, errors) | bytes written | bytes read | wall s | writers' CPU per frame | readers' CPU per frame | write wall per tick p50 / p99 |\n");
+  std::printf("|---|---|---|---|---|---|---|---|---|\n");
+  const double f = std::max<double>(1, static_cast<double>(frames));
+  std::printf("| %llu | %llu | %llu | %llu | %llu | %.2f | %.2f us | %.2f us | %.3f / %.3f ms |\n",
+              static_cast<unsigned long long>(frames), static_cast<unsigned long long>(shorts),
+              static_cast<unsigned long long>(fails), static_cast<unsigned long long>(bytes_written),
+              static_cast<unsigned long long>(report[1]), wall, writer_cpu / f * 1e6, reader_cpu / f * 1e6,
+              quantile(tick_wall_ms, 0.5), quantile(tick_wall_ms, 0.99));
+  for (const int fd : conns) ::close(fd);
+  return 0;
+}
 
 }  // namespace
 
@@ -72,14 +366,18 @@ int main(int argc, char** argv) {
   const std::string usage =
       "usage: bench-handoff [--sessions 1000] [--ticks 300] [--senders 2] [--io-threads 2] "
       "[--frame-bytes 600] [--rate 30 (0: back to back)] [--max-backlog 2 (0: off)]\n"
-      "                     [--mode many|send (default many: frame_arena + send_many, the zone server's "
-      "way; send: make_shared_frame + send per frame)] [--chunk 16 (sessions per send_many; the zone server hands over chunks of clients_per_task, 64)]\n"
+      "                     [--mode many|send|floor (default many: frame_arena + send_many, the zone server's "
+      "way; send: make_shared_frame + send per frame; floor: no server, --io-threads threads writing a frame "
+      "to each socket with one send() each, or io_uring batches with --write-batching io_uring: the kernel's "
+      "share alone)] [--chunk 16 (sessions per send_many; the zone server hands over chunks of clients_per_task, 64)]\n"
       "                     [--direct-writes 0|1 (default 0: the I/O threads write)]\n"
       "                     [--write-batching auto|io_uring|sendmsg (default auto: io_uring where the "
       "kernel allows it)]\n"
-      "                     [--write-slice 256 (sessions an I/O thread writes before it reads again)]\n";
+      "                     [--write-slice 256 (sessions an I/O thread writes before it reads again)]\n"
+      "                     [--readers 1 (threads draining the clients)] [--io-cpus LIST] [--reader-cpus LIST "
+      "(CPU lists as 0-5,8: pin the I/O threads or floor's writers, and the readers)]\n";
   options o;
-  std::string mode = "many", batching = "auto";
+  std::string mode = "many", batching = "auto", io_cpus, reader_cpus;
   int direct_writes = 0;
   namespace po = zone::tools::po;
   po::options_description cli;
@@ -87,16 +385,35 @@ int main(int argc, char** argv) {
       "io-threads", po::value(&o.io_threads))("frame-bytes", po::value(&o.frame_bytes))("rate", po::value(&o.rate_hz))(
       "max-backlog", po::value(&o.max_backlog))("chunk", po::value(&o.chunk))(
       "direct-writes", po::value(&direct_writes))("write-batching", po::value(&batching))(
-      "write-slice", po::value(&o.write_slice))("mode", po::value(&mode));
+      "write-slice", po::value(&o.write_slice))("mode", po::value(&mode))("readers", po::value(&o.readers))(
+      "io-cpus", po::value(&io_cpus))("reader-cpus", po::value(&reader_cpus));
   if (const auto rc = zone::tools::parse_command_line(argc, argv, "bench-handoff", usage, cli, 64)) return *rc;
   const auto b = parse_write_batching(batching);
-  if (!b || (mode != "many" && mode != "send") || (direct_writes != 0 && direct_writes != 1) || o.sessions == 0 ||
-      o.senders == 0 || o.frame_bytes < 64 || o.chunk == 0 || o.write_slice == 0) {
+  std::string cpu_error;
+  const auto io_list = parse_cpu_list(io_cpus, &cpu_error);
+  const auto reader_list = io_list ? parse_cpu_list(reader_cpus, &cpu_error) : std::nullopt;
+  if (!b || (mode != "many" && mode != "send" && mode != "floor") || (direct_writes != 0 && direct_writes != 1) ||
+      o.sessions == 0 || o.senders == 0 || o.frame_bytes < 64 || o.chunk == 0 || o.write_slice == 0 || o.readers == 0 ||
+      !io_list || !reader_list) {
     std::fprintf(stderr,
-                 "bench-handoff: bad value (--mode many|send, --write-batching auto|io_uring|sendmsg, "
-                 "--direct-writes 0|1, --sessions, --senders, --chunk and --write-slice > 0, --frame-bytes >= 64)\n%s",
-                 usage.c_str());
+                 "bench-handoff: bad value (--mode many|send|floor, --write-batching auto|io_uring|sendmsg, "
+                 "--direct-writes 0|1, --sessions, --senders, --chunk, --write-slice and --readers > 0, "
+                 "--frame-bytes >= 64, CPU lists as 0-5,8%s%s)\n%s",
+                 cpu_error.empty() ? "" : ": ", cpu_error.c_str(), usage.c_str());
     return 64;
+  }
+  o.io_cpus = *io_list;
+  o.reader_cpus = *reader_list;
+  for (const auto* list : {&o.io_cpus, &o.reader_cpus}) {
+    if (const auto why = check_cpus_allowed(*list)) {
+      std::fprintf(stderr, "bench-handoff: a CPU list %s\n", why->c_str());
+      return 64;
+    }
+  }
+  if (mode == "floor") {
+    const auto limit = raise_open_file_limit();
+    (void)limit;
+    return run_floor(o, *b == write_batching::uring);
   }
   o.batching = *b;
   o.many = mode == "many";
@@ -107,6 +424,7 @@ int main(int argc, char** argv) {
   so.direct_writes = o.direct_writes;
   so.batching = o.batching;
   so.write_slice = o.write_slice;
+  so.io_thread_cpus = o.io_cpus;
   so.max_connections = o.sessions + 16;
   so.max_pending = so.max_pending_per_address = o.sessions + 16;  // every client connects at once from loopback
   so.idle_timeout = std::chrono::hours(1);
@@ -153,30 +471,7 @@ int main(int argc, char** argv) {
   }
 
   // The reader: drains every client socket, discards the bytes.
-  std::atomic<bool> stop{false};
-  std::atomic<std::uint64_t> bytes_read{0};
-  double reader_cpu = 0;
-  std::thread reader([&] {
-    const int ep = epoll_create1(0);
-    for (const int fd : fds) {
-      epoll_event ev{};
-      ev.events = EPOLLIN;
-      ev.data.fd = fd;
-      epoll_ctl(ep, EPOLL_CTL_ADD, fd, &ev);
-    }
-    std::vector<epoll_event> ready(256);
-    std::vector<char> buf(1 << 16);
-    const double c0 = thread_cpu_s();
-    while (!stop.load(std::memory_order_relaxed)) {
-      const int n = epoll_wait(ep, ready.data(), static_cast<int>(ready.size()), 20);
-      for (int i = 0; i < n; ++i) {
-        const ssize_t got = ::read(ready[static_cast<std::size_t>(i)].data.fd, buf.data(), buf.size());
-        if (got > 0) bytes_read.fetch_add(static_cast<std::uint64_t>(got), std::memory_order_relaxed);
-      }
-    }
-    reader_cpu = thread_cpu_s() - c0;
-    ::close(ep);
-  });
+  reader_pool readers(fds, o.readers, o.reader_cpus);
 
   // A real tick_update of about frame_bytes (leaves of 4 bytes each), serialized per session
   // per tick as the zone server does (each client's frame is its own).
@@ -248,19 +543,18 @@ int main(int argc, char** argv) {
   }
   const double wall = std::chrono::duration<double>(std::chrono::steady_clock::now() - w0).count();
   const double p1 = process_cpu_s();
-  stop = true;
-  reader.join();
+  const double reader_cpu = readers.finish();
   const auto s1 = srv.stats();
-  // Server CPU: the process less the reader thread (the main thread sleeps; its polling is noise).
+  // Server CPU: the process less the readers (the main thread sleeps; its polling is noise).
   const double server_cpu = (p1 - p0) - reader_cpu;
   const double frames = static_cast<double>(sent.load());
 
-  std::printf("bench-handoff: %zu sessions, %zu ticks at %s, %u senders, %u I/O threads, %zu-byte frames, pacing %u, %s, %s, %s\n",
-              o.sessions, o.ticks, o.rate_hz > 0 ? (std::to_string(o.rate_hz) + " Hz").c_str() : "back to back",
-              o.senders, o.io_threads, payload.size(), o.max_backlog,
-              o.many ? ("send_many of " + std::to_string(o.chunk) + " + frame_arena").c_str() : "send per frame",
-              o.direct_writes ? "direct writes" : "I/O-thread writes",
-              srv.uses_io_uring() ? "io_uring batches" : "sendmsg per write");
+  std::printf(
+      "bench-handoff: %zu sessions, %zu ticks %s, %u senders, %u I/O threads, %zu-byte frames, pacing %u, %s, %s, %s\n",
+      o.sessions, o.ticks, rate_text(o.rate_hz).c_str(), o.senders, o.io_threads, payload.size(), o.max_backlog,
+      o.many ? ("send_many of " + std::to_string(o.chunk) + " + frame_arena").c_str() : "send per frame",
+      o.direct_writes ? "direct writes" : "I/O-thread writes",
+      srv.uses_io_uring() ? "io_uring batches" : "sendmsg per write");
   std::printf("| frames handed off | held (paced) | written | dropped | resyncs | wall s |\n");
   std::printf("|---|---|---|---|---|---|\n");
   std::printf("| %llu | %llu | %llu | %llu | %llu | %.2f |\n", static_cast<unsigned long long>(sent.load()),
