@@ -21,6 +21,7 @@
 #include <netinet/in.h>
 #include <netinet/tcp.h>
 #include <poll.h>
+#include <pthread.h>
 #include <signal.h>
 #include <sys/epoll.h>
 #include <sys/resource.h>
@@ -95,6 +96,7 @@ struct reader_pool {
   reader_pool(const std::vector<int>& fds, unsigned n, const std::vector<int>& cpus) : cpu(n, 0) {
     for (unsigned r = 0; r < n; ++r) {
       threads.emplace_back([this, &fds, n, r, &cpus] {
+        ::pthread_setname_np(::pthread_self(), "handoff-reader");
         if (!cpus.empty()) (void)pin_current_thread(cpus);
         const int ep = epoll_create1(0);
         for (std::size_t i = r; i < fds.size(); i += n) {
@@ -232,6 +234,7 @@ int run_floor(const options& o, bool uring) {
   std::vector<std::thread> threads;
   for (unsigned k = 0; k < writers; ++k) {
     threads.emplace_back([&, k] {
+      ::pthread_setname_np(::pthread_self(), "floor-writer");
       if (!o.io_cpus.empty()) (void)pin_current_thread(o.io_cpus);
       std::vector<int> mine;
       for (std::size_t i = k; i < conns.size(); i += writers) mine.push_back(conns[i]);
@@ -304,6 +307,7 @@ int run_floor(const options& o, bool uring) {
     });
   }
   const auto period = o.rate_hz > 0 ? std::chrono::duration<double>(1.0 / o.rate_hz) : std::chrono::duration<double>(0);
+  std::fprintf(stderr, "bench-handoff: %zu connections, writing\n", conns.size());  // a profiler's cue
   const auto w0 = std::chrono::steady_clock::now();
   auto next = w0;
   for (std::size_t t = 0; t < o.ticks; ++t) {
@@ -485,6 +489,7 @@ int main(int argc, char** argv) {
   const auto period = o.rate_hz > 0 ? std::chrono::duration<double>(1.0 / o.rate_hz) : std::chrono::duration<double>(0);
   const auto s0 = srv.stats();
   const auto age0 = srv.frame_write_age().snapshot();  // the welcomes are control frames: none
+  std::fprintf(stderr, "bench-handoff: %zu sessions, writing\n", sessions.size());  // a profiler's cue
   const double p0 = process_cpu_s();
   double senders_cpu_total = 0;
   const auto w0 = std::chrono::steady_clock::now();
