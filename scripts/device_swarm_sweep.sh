@@ -15,7 +15,12 @@
 # layout before, leaner in CPU a frame: SERVER_THREADS=6 SERVER_IO_THREADS=4 SWARM_THREADS=6 on 16
 # cores, 12, 8 and 12 on 32. shared: both on every core, 3/8 of the cores as I/O threads and half
 # as swarm threads: 6 and 8 on 16 cores. Default pinned),
-# SWEEP_REPEAT (runs per bot count, default 1), and everything device_zone.sh's swarm step reads
+# SWEEP_REPEAT (runs per bot count, default 1), SWEEP_FLOOR (1, the default where $DEVICE_DIR has
+# bench-handoff: after each run, the floor of a frame's write on this machine, bench-handoff --mode
+# floor with the run's bot count as sockets, its mean frame size, the server's I/O threads as
+# writers on their CPUs and the swarm's threads as readers on theirs: the table's last columns, and
+# the server's CPU a frame above it; docs/zone-benchmarks.md, "The floor"), and everything
+# device_zone.sh's swarm step reads
 # (SWARM_NPCS, SWARM_SECONDS, SERVER_THREADS, SERVER_CPUS, SERVER_ARGS, ...), which win over the
 # layout's.
 # Each run's logs are in $OUT with the prefix <layout>-<bots>[-<repeat>]-; the table is printed and
@@ -64,6 +69,19 @@ for bots in ${SWEEP_BOTS:-5000 10000 15000 19900}; do
     tags+=("$tag")
     SWARM_BOTS=$bots RUN_TAG=$tag DEVICE_DIR=$dir OUT=$out bash "$here/device_zone.sh" swarm > "$out/$tag-step.log" 2>&1
     grep -E "^==|bot-swarm exit" "$out/$tag-step.log"
+    if [ "${SWEEP_FLOOR:-1}" = 1 ] && [ -x "$dir/bench-handoff" ]; then
+      frame_bytes=$(python3 -c 'import json, sys; r = json.load(open(sys.argv[1])); print(max(64, round(r["bytes"] / max(1, r["frames"]))))' \
+        "$out/$tag-swarm-report.json" 2>/dev/null || echo 650)
+      io_cpus=${split#*--io-cpus }
+      [ -n "$split" ] || io_cpus=${SERVER_CPUS:-}
+      floor_args=(--mode floor --sessions "$bots" --io-threads "$SERVER_IO_THREADS" --readers "$SWARM_THREADS"
+                  --frame-bytes "$frame_bytes" --ticks 300 --rate 30 ${io_cpus:+--io-cpus "$io_cpus"}
+                  ${SWARM_CPUS:+--reader-cpus "$SWARM_CPUS"})
+      # io_uring as the server writes by default; sendmsg where this build or kernel has none
+      timeout 120 "$dir/bench-handoff" "${floor_args[@]}" --write-batching io_uring > "$out/$tag-floor.txt" 2>&1 ||
+        timeout 120 "$dir/bench-handoff" "${floor_args[@]}" > "$out/$tag-floor.txt" 2>&1
+      grep -A3 "^bench-handoff --mode floor" "$out/$tag-floor.txt" | sed -n '1p;4p'
+    fi
   done
 done
 
@@ -78,7 +96,8 @@ out, tags = sys.argv[1], sys.argv[2:]
 cols = ["run", "bots", "connected", "mismatches", "resyncs", "frames/s/bot", "KB/s/bot median",
         "latency p50 / p99 ms [whole run]", "written p50 / p99 ms (whole run)", "tick p50 / p99 / max ms [whole run p99]",
         "replicate p50 / p99 ms (of it choosing the clients, p50)",
-        "interest p99 ms", "steady ticks (over 33.3 ms)", "server CPU s", "swarm CPU s", "CPU us/frame (server + swarm)"]
+        "interest p99 ms", "steady ticks (over 33.3 ms)", "server CPU s", "swarm CPU s", "CPU us/frame (server + swarm)",
+        "floor us/frame (bytes a frame)", "server above the floor us/frame"]
 
 def pct(values, q):
     # Nearest rank.
@@ -117,6 +136,15 @@ for tag in tags:
     except OSError:
         cpu = float("nan")
     frames = rep["tick_updates"] or 1
+    # The floor after the run (SWEEP_FLOOR): its writers' CPU a frame, the table's 7th column.
+    floor, floor_bytes = float("nan"), ""
+    try:
+        text = open(f"{out}/{tag}-floor.txt").read()
+        m = re.search(r"(\d+)-byte frames.*\n.*\n.*\n\|(?:[^|]*\|){6}\s*([\d.]+) us", text)
+        if m:
+            floor, floor_bytes = float(m.group(2)), m.group(1)
+    except OSError:
+        pass
     rows.append([tag, rep["bots"], rep["bots_connected"], rep["mismatches"], rep["resets"],
                  "%.1f" % rep["per_bot"]["msgs_per_s_median"], "%.1f" % rep["per_bot"]["kbps_median"],
                  "%.1f / %.1f [%.1f / %.1f]" % (lat.get("p50", float("nan")), lat.get("p99", float("nan")),
@@ -127,7 +155,9 @@ for tag in tags:
                  "%.1f / %.1f (%s)" % (pct(repl, 0.5), pct(repl, 0.99), "%.1f" % pct(select, 0.5) if select else "-"),
                  "%.1f" % pct(inter, 0.99),
                  "%d (%d)" % (len(tick), over), "%.1f" % cpu,
-                 "%.1f" % rep["swarm_cpu_s"], "%.1f + %.1f" % (cpu / frames * 1e6, rep["swarm_cpu_s"] / frames * 1e6)])
+                 "%.1f" % rep["swarm_cpu_s"], "%.1f + %.1f" % (cpu / frames * 1e6, rep["swarm_cpu_s"] / frames * 1e6),
+                 "%.2f (%s)" % (floor, floor_bytes) if floor_bytes else "-",
+                 "%.1f" % (cpu / frames * 1e6 - floor) if floor_bytes else "-"])
 with open(f"{out}/sweep.csv", "w") as f:
     f.write(",".join(cols) + "\n")
     for r in rows:
