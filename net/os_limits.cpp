@@ -1,16 +1,22 @@
 // net/os_limits.h: the open-file limit; CPU lists and pinning.
 #include "os_limits.h"
 
+#include <dirent.h>
+#include <fcntl.h>
 #include <pthread.h>
 #include <sched.h>
 #include <sys/resource.h>
+#include <sys/syscall.h>
+#include <unistd.h>
 
 #include <algorithm>
 #include <cerrno>
 #include <charconv>
 #include <climits>
+#include <cstdio>
 #include <cstring>
 #include <iterator>
+#include <string_view>
 
 namespace zone::net {
 
@@ -35,6 +41,107 @@ open_file_limit raise_open_file_limit() {
   out.hard = rl.rlim_max;
   return out;
 }
+
+namespace {
+
+// The entries of a /proc folder that are numbers (descriptors, thread ids); -1 when it cannot be read.
+long count_numbered(const char* dir, std::vector<int>* ids) {
+  DIR* d = ::opendir(dir);
+  if (d == nullptr) return -1;
+  long n = 0;
+  while (const dirent* e = ::readdir(d)) {
+    int v = 0;
+    const char* end = e->d_name + std::strlen(e->d_name);
+    if (e->d_name[0] == '\0' || std::from_chars(e->d_name, end, v).ptr != end) continue;
+    ++n;
+    if (ids != nullptr) ids->push_back(v);
+  }
+  ::closedir(d);
+  return n;
+}
+
+// A /proc/<pid>/task/<tid>/stat line: its comm (between the first '(' and the last ')': a name may
+// hold either) and utime + stime (fields 14 and 15) in clock ticks.
+bool parse_stat(std::string_view line, std::string& name, unsigned long long& ticks) {
+  const auto open = line.find('('), close = line.rfind(')');
+  if (open == std::string_view::npos || close == std::string_view::npos || close < open) return false;
+  name.assign(line.substr(open + 1, close - open - 1));
+  std::size_t at = close + 1;
+  unsigned long long utime = 0, stime = 0;
+  for (int field = 3; field <= 15; ++field) {  // field 3 (the state) is the first after the comm
+    while (at < line.size() && line[at] == ' ') ++at;
+    const std::size_t end = line.find(' ', at);
+    if (at >= line.size() || end == std::string_view::npos) return false;
+    if (field == 14 || field == 15) {
+      unsigned long long v = 0;
+      if (std::from_chars(line.data() + at, line.data() + end, v).ptr != line.data() + end) return false;
+      (field == 14 ? utime : stime) = v;
+    }
+    at = end;
+  }
+  ticks = utime + stime;
+  return true;
+}
+
+// A small /proc file's text (the first `buf` bytes); empty when it cannot be read.
+std::string_view read_small(const char* path, char* buf, std::size_t size) {
+  const int fd = ::open(path, O_RDONLY | O_CLOEXEC);
+  if (fd < 0) return {};
+  const ssize_t n = ::read(fd, buf, size);
+  ::close(fd);
+  return n > 0 ? std::string_view(buf, static_cast<std::size_t>(n)) : std::string_view();
+}
+
+}  // namespace
+
+process_usage read_process_usage(bool with_threads) {
+  process_usage u;
+  rusage r{};
+  if (::getrusage(RUSAGE_SELF, &r) == 0) {
+    u.cpu_seconds = static_cast<double>(r.ru_utime.tv_sec + r.ru_stime.tv_sec) +
+                    static_cast<double>(r.ru_utime.tv_usec + r.ru_stime.tv_usec) * 1e-6;
+  } else {
+    u.error += "getrusage; ";
+  }
+  unsigned long long size = 0, resident = 0;
+  if (std::FILE* f = std::fopen("/proc/self/statm", "r")) {
+    if (std::fscanf(f, "%llu %llu", &size, &resident) == 2) {
+      u.resident_bytes = resident * static_cast<std::uint64_t>(::sysconf(_SC_PAGESIZE));
+    } else {
+      u.error += "/proc/self/statm; ";
+    }
+    std::fclose(f);
+  } else {
+    u.error += "/proc/self/statm; ";
+  }
+  // The descriptor opendir holds is counted too: one less.
+  if (const long n = count_numbered("/proc/self/fd", nullptr); n > 0) {
+    u.open_fds = static_cast<std::uint64_t>(n - 1);
+  } else {
+    u.error += "/proc/self/fd; ";
+  }
+  rlimit rl{};
+  if (::getrlimit(RLIMIT_NOFILE, &rl) == 0) u.max_fds = rl.rlim_cur;
+  if (with_threads) {
+    std::vector<int> tids;
+    if (count_numbered("/proc/self/task", &tids) < 0) u.error += "/proc/self/task; ";
+    const double tick = static_cast<double>(::sysconf(_SC_CLK_TCK));
+    char path[64], buf[1024];
+    for (const int tid : tids) {
+      std::snprintf(path, sizeof path, "/proc/self/task/%d/stat", tid);
+      std::string name;
+      unsigned long long ticks = 0;
+      // A thread that ended since the listing has no file: left out.
+      if (parse_stat(read_small(path, buf, sizeof buf), name, ticks)) {
+        u.threads.push_back({tid, std::move(name), static_cast<double>(ticks) / tick});
+      }
+    }
+  }
+  if (!u.error.empty()) u.error.resize(u.error.size() - 2);
+  return u;
+}
+
+int current_thread_id() { return static_cast<int>(::syscall(SYS_gettid)); }
 
 namespace {
 

@@ -26,6 +26,27 @@ struct open_file_limit {
 /// headroom kept when checking a connection count against the limit.
 inline constexpr std::uint64_t reserved_file_descriptors = 64;
 
+/// This process's use of the machine, as Linux reports it (for /metrics: docs/operating.md).
+struct process_usage {
+  double cpu_seconds = 0;            ///< user + system time of every thread, ended ones too (getrusage)
+  std::uint64_t resident_bytes = 0;  ///< resident memory (/proc/self/statm)
+  std::uint64_t open_fds = 0;        ///< open file descriptors (/proc/self/fd)
+  std::uint64_t max_fds = 0;         ///< the soft open-file limit
+  struct thread {
+    int tid = 0;
+    std::string name;        ///< its comm (pthread_setname_np; at most 15 bytes)
+    double cpu_seconds = 0;  ///< user + system time (/proc/self/task/<tid>/stat; clock-tick resolution)
+  };
+  std::vector<thread> threads;  ///< the live threads, with `with_threads`
+  std::string error;            ///< what could not be read (the fields it feeds stay 0); empty when all was
+};
+
+/// Reads process_usage (each thread's too with `with_threads`: a file per thread).
+[[nodiscard]] process_usage read_process_usage(bool with_threads);
+
+/// The calling thread's kernel id (gettid).
+[[nodiscard]] int current_thread_id();
+
 /// A CPU list as taskset and cpuset write it ("0-5,8,10-11"): the CPUs in ascending order, each
 /// once; "" is the empty list (no pinning). Null with `error` set on anything else (a bad number,
 /// a range backwards, a CPU at or past CPU_SETSIZE).

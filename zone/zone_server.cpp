@@ -86,6 +86,7 @@ zone_server::zone_server(const zone_config& cfg)
       replicator_(replication_options_of(cfg)),
       net_(net_options(cfg)) {
   world_->set_presence_grid(parts_.presence_grid);
+  created_unix_s_ = std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch()).count();
   std::random_device entropy;
   while (instance_ == 0) instance_ = (std::uint64_t{entropy()} << 32) | entropy();
   // The interest step on the GPU (the whole of it: candidates, classification, events), when
@@ -150,6 +151,31 @@ std::string zone_server::metrics_text() const {
   const auto ns = net_.stats();
   const auto& ts = world_->tracker().stats();
   t.counter("zone_ticks_total", "Ticks run.", static_cast<double>(stats_.ticks));
+  // The process, as Prometheus' client libraries name it, and its CPU by thread group: the
+  // tick's (the thread that runs the ticks and the pool's workers), the I/O threads' and the rest
+  // (viewer, metrics, the GPU driver's, NATS'); rate(process_cpu_seconds_total) over
+  // rate(zone_net_frames_out_total) is the server's CPU per frame (docs/zone-benchmarks.md).
+  const net::process_usage pu = net::read_process_usage(true);
+  t.counter("process_cpu_seconds_total", "User and system CPU time of every thread of the process, in seconds.",
+            pu.cpu_seconds);
+  t.gauge("process_resident_memory_bytes", "Resident memory in bytes.", static_cast<double>(pu.resident_bytes));
+  t.gauge("process_open_fds", "Open file descriptors (every socket is one).", static_cast<double>(pu.open_fds));
+  t.gauge("process_max_fds", "The open-file limit (soft).", static_cast<double>(pu.max_fds));
+  t.gauge("process_start_time_seconds", "When the zone server was made, in seconds since the Unix epoch.",
+          created_unix_s_);
+  double group_cpu[3] = {0, 0, 0};  // tick, io, other
+  const int tick_tid = tick_thread_id_.load(std::memory_order_relaxed);
+  for (const auto& th : pu.threads) {
+    const bool tick = th.tid == tick_tid || th.name.starts_with("zone-worker-");
+    group_cpu[tick ? 0 : th.name.starts_with("zone-io-") ? 1 : 2] += th.cpu_seconds;
+  }
+  const char* groups[3] = {"tick", "io", "other"};
+  for (int g = 0; g < 3; ++g) {
+    t.counter("zone_thread_cpu_seconds_total",
+              "CPU time of the live threads by group: tick (the thread running the ticks and the pool's workers), "
+              "io (the network's I/O threads), other.",
+              group_cpu[g], std::string("threads=\"") + groups[g] + "\"");
+  }
   t.counter("zone_tick_overruns_total", "Ticks that ended after the next was due.", static_cast<double>(stats_.overruns));
   t.counter("zone_ticks_skipped_total", "Ticks skipped to catch up after overruns.", static_cast<double>(stats_.skipped_ticks));
   t.gauge("zone_entities", "Live entities.", static_cast<double>(world_->store().size()));
@@ -890,6 +916,8 @@ void zone_server::write_tick_line(double inputs_ms, double replicate_ms, double 
 
 void zone_server::tick_once() {
   const auto t0 = clock_type::now();
+  thread_local const int self = net::current_thread_id();
+  if (tick_thread_id_.load(std::memory_order_relaxed) != self) tick_thread_id_.store(self, std::memory_order_relaxed);
   if (stats_.ticks == 0) started_ = t0;
   const std::uint64_t frames0 = stats_.frames_sent, bytes0 = stats_.bytes_sent;
   viewer_fill_ms_ = 0;

@@ -352,6 +352,10 @@ class zone_server {
   std::vector<client_row> rows_;
   loop_stats stats_;
   std::atomic<bool> stop_requested_{false};
+  // /metrics: the thread that runs the ticks (its CPU counts as the tick's, with the pool's), and
+  // when this server was made (process_start_time_seconds).
+  std::atomic<int> tick_thread_id_{0};
+  double created_unix_s_ = 0;
   // --tick-csv: the file and the loop's start.
   std::FILE* tick_csv_ = nullptr;
   std::chrono::steady_clock::time_point started_{};

@@ -219,6 +219,25 @@ TEST_SUITE("zone.server") {
     CHECK(scrape.find("zone_tick_phase_seconds_bucket{phase=\"interest\",le=") != std::string::npos);
     CHECK(scrape.find("\nzone_frame_write_seconds_count ") != std::string::npos);  // the server's share of the latency
     CHECK(scrape.find("zone_net_frames_rejected_total 1\n") != std::string::npos);
+    // The process's figures and its CPU by thread group (the tick's, the I/O threads', the rest).
+    const auto value_of = [&](const std::string& line_start) {
+      const auto at = scrape.find("\n" + line_start + " ");
+      REQUIRE(at != std::string::npos);
+      return std::stod(scrape.substr(at + line_start.size() + 2));
+    };
+    CHECK(value_of("process_cpu_seconds_total") > 0);
+    CHECK(value_of("process_resident_memory_bytes") > 1e6);
+    CHECK(value_of("process_open_fds") >= 6);  // the listeners and the three players' sockets at least
+    CHECK(value_of("process_max_fds") >= value_of("process_open_fds"));
+    CHECK(value_of("process_start_time_seconds") > 1.7e9);
+    double groups = 0;
+    for (const char* g : {"tick", "io", "other"}) {
+      CAPTURE(g);
+      const double v = value_of(std::string("zone_thread_cpu_seconds_total{threads=\"") + g + "\"}");
+      CHECK(v >= 0);
+      groups += v;
+    }
+    CHECK(groups <= value_of("process_cpu_seconds_total") + 0.05);  // live threads, at clock-tick resolution
     // Where replication runs (1: the GPU engine), as the start log says.
     CHECK(scrape.find(std::string("\nzone_replication_on_gpu ") + (server.replication_name() == "cpu" ? "0" : "1") + "\n") !=
           std::string::npos);
