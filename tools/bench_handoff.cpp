@@ -4,11 +4,11 @@
 // server (no frame while the session's state backlog is at 2): as the zone server does it by
 // default (--mode many: frames carved from a per-sender net::frame_arena, handed over a chunk of
 // sessions at a time with server::send_many) or one by one (--mode send: make_shared_frame +
-// server::send per frame). A reader thread drains every client socket through epoll and discards
-// the bytes. Prints a table: the senders' CPU per frame, the server's CPU per frame (the whole
-// process less the reader and
-// the idle main thread: senders plus I/O threads), the hand-off's wall time per tick, and what the
-// server wrote. Benchmarks print tables; they are not timed tests (docs/zone-benchmarks.md).
+// server::send per frame). The clients live in a child process, where --readers threads drain
+// them through epoll and discard the bytes. Prints a table: the senders' CPU per frame, the
+// server's CPU per frame (the process's: senders plus I/O threads, the main thread idle), the
+// hand-off's wall time per tick, and what the server wrote. Benchmarks print tables; they are not
+// timed tests (docs/zone-benchmarks.md).
 //
 // --mode floor measures what no server can go below on this host: no net::server, no frames
 // built; --io-threads threads each write one --frame-bytes buffer a tick to each of its share of
@@ -129,6 +129,104 @@ struct reader_pool {
   }
 };
 
+// The clients, in a child process forked while the bench is one thread (a host's open-file limit
+// is per process, 20,000 on the device hosts, and the two ends of 19,900 connections would not fit
+// in one): told a port, it connects o.sessions sockets to 127.0.0.1 there, sends `hello` on each
+// (when not empty), and drains them with o.readers threads (reader_pool) until told how many bytes
+// the server wrote; then it reports its readers' CPU time and the bytes they read.
+class client_process {
+ public:
+  /// Forks the child (call before any thread starts); null with the reason on stderr on failure.
+  static std::unique_ptr<client_process> fork_clients(const options& o, std::vector<std::uint8_t> hello) {
+    int to[2], from[2];
+    if (::pipe(to) != 0 || ::pipe(from) != 0) {
+      std::fprintf(stderr, "bench-handoff: pipe: %s\n", std::strerror(errno));
+      return nullptr;
+    }
+    std::fflush(nullptr);
+    const pid_t pid = ::fork();
+    if (pid < 0) {
+      std::fprintf(stderr, "bench-handoff: fork: %s\n", std::strerror(errno));
+      return nullptr;
+    }
+    if (pid == 0) {
+      ::close(to[1]);
+      ::close(from[0]);
+      ::_exit(run_child(o, hello, to[0], from[1]));
+    }
+    ::close(to[0]);
+    ::close(from[1]);
+    return std::unique_ptr<client_process>(new client_process(pid, to[1], from[0]));
+  }
+  ~client_process() {
+    ::close(to_);
+    ::close(from_);
+    if (pid_ > 0) {
+      ::kill(pid_, SIGKILL);
+      ::waitpid(pid_, nullptr, 0);
+    }
+  }
+  /// The child connects to `port` now.
+  void connect_to(std::uint16_t port) { (void)!::write(to_, &port, sizeof port); }
+  /// False once the child has ended (a connect failed: its reason is on stderr).
+  bool alive() {
+    if (pid_ > 0 && ::waitpid(pid_, nullptr, WNOHANG) == pid_) pid_ = -1;
+    return pid_ > 0;
+  }
+  /// Tells the child the server wrote `expect` bytes; once it has read them (or after 10 s) it
+  /// stops and reports. False when it ended without a report.
+  bool finish(std::uint64_t expect, double& reader_cpu_s, std::uint64_t& bytes_read) {
+    (void)!::write(to_, &expect, sizeof expect);
+    double report[2] = {0, 0};
+    const bool ok = ::read(from_, report, sizeof report) == static_cast<ssize_t>(sizeof report);
+    if (pid_ > 0) ::waitpid(pid_, nullptr, 0);
+    pid_ = -1;
+    reader_cpu_s = report[0];
+    bytes_read = static_cast<std::uint64_t>(report[1]);
+    return ok;
+  }
+
+ private:
+  client_process(pid_t pid, int to, int from) : pid_(pid), to_(to), from_(from) {}
+  static int run_child(const options& o, const std::vector<std::uint8_t>& hello, int in, int out) {
+    (void)raise_open_file_limit();
+    std::uint16_t port = 0;
+    if (::read(in, &port, sizeof port) != static_cast<ssize_t>(sizeof port)) return 1;
+    sockaddr_in addr{};
+    addr.sin_family = AF_INET;
+    addr.sin_port = htons(port);
+    addr.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+    std::vector<int> fds;
+    for (std::size_t i = 0; i < o.sessions; ++i) {
+      const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
+      if (fd < 0 || ::connect(fd, reinterpret_cast<sockaddr*>(&addr), sizeof addr) != 0) {
+        std::fprintf(stderr, "bench-handoff: connect %zu failed: %s (ulimit -n?)\n", i, std::strerror(errno));
+        return 1;
+      }
+      if (!hello.empty() && ::write(fd, hello.data(), hello.size()) != static_cast<ssize_t>(hello.size())) {
+        std::fprintf(stderr, "bench-handoff: hello %zu not written: %s\n", i, std::strerror(errno));
+        return 1;
+      }
+      fds.push_back(fd);
+    }
+    double report[2] = {0, 0};
+    {
+      reader_pool readers(fds, o.readers, o.reader_cpus);
+      std::uint64_t expect = 0;
+      while (::read(in, &expect, sizeof expect) < 0 && errno == EINTR) {}
+      const auto until = std::chrono::steady_clock::now() + std::chrono::seconds(10);
+      while (readers.bytes.load() < expect && std::chrono::steady_clock::now() < until)
+        std::this_thread::sleep_for(std::chrono::milliseconds(1));
+      report[0] = readers.finish();
+      report[1] = static_cast<double>(readers.bytes.load());
+    }
+    (void)!::write(out, report, sizeof report);
+    return 0;
+  }
+  pid_t pid_;
+  int to_, from_;
+};
+
 std::string rate_text(double hz) {
   if (hz <= 0) return "back to back";
   char b[32];
@@ -144,6 +242,8 @@ int run_floor(const options& o, bool uring) {
     return 1;
   }
 #endif
+  auto clients = client_process::fork_clients(o, {});  // while this is the only thread
+  if (!clients) return 1;
   const int lfd = ::socket(AF_INET, SOCK_STREAM, 0);
   sockaddr_in addr{};
   addr.sin_family = AF_INET;
@@ -155,60 +255,14 @@ int run_floor(const options& o, bool uring) {
     std::fprintf(stderr, "bench-handoff: listen on 127.0.0.1: %s\n", std::strerror(errno));
     return 1;
   }
-  // The clients live in a child process (as the bots do: a host's open-file limit is per process,
-  // 20,000 on the device hosts, and the two ends of 19,900 connections would not fit in one), which
-  // connects them and drains them until told to stop; the accepted side is the server's,
-  // nonblocking with TCP_NODELAY as net::server's sessions.
-  int to_child[2], from_child[2];
-  if (::pipe(to_child) != 0 || ::pipe(from_child) != 0) {
-    std::fprintf(stderr, "bench-handoff: pipe: %s\n", std::strerror(errno));
-    return 1;
-  }
-  std::fflush(nullptr);
-  const pid_t child = ::fork();
-  if (child < 0) {
-    std::fprintf(stderr, "bench-handoff: fork: %s\n", std::strerror(errno));
-    return 1;
-  }
-  if (child == 0) {
-    ::close(to_child[1]);
-    ::close(from_child[0]);
-    ::close(lfd);
-    (void)raise_open_file_limit();
-    std::vector<int> clients;
-    for (std::size_t i = 0; i < o.sessions; ++i) {
-      const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
-      if (fd < 0 || ::connect(fd, reinterpret_cast<sockaddr*>(&addr), sizeof addr) != 0) {
-        std::fprintf(stderr, "bench-handoff: connect %zu failed: %s (ulimit -n?)\n", i, std::strerror(errno));
-        ::_exit(1);
-      }
-      clients.push_back(fd);
-    }
-    double report[2] = {0, 0};
-    {
-      reader_pool readers(clients, o.readers, o.reader_cpus);
-      // The parent says how many bytes it wrote: read them all (or give up after 10 s), then stop.
-      std::uint64_t expect = 0;
-      while (::read(to_child[0], &expect, sizeof expect) < 0 && errno == EINTR) {}
-      const auto until = std::chrono::steady_clock::now() + std::chrono::seconds(10);
-      while (readers.bytes.load() < expect && std::chrono::steady_clock::now() < until)
-        std::this_thread::sleep_for(std::chrono::milliseconds(1));
-      report[0] = readers.finish();
-      report[1] = static_cast<double>(readers.bytes.load());
-    }
-    (void)!::write(from_child[1], report, sizeof report);
-    ::_exit(0);
-  }
-  ::close(to_child[0]);
-  ::close(from_child[1]);
+  clients->connect_to(ntohs(addr.sin_port));
+  // The accepted side is the server's: nonblocking with TCP_NODELAY, as net::server's sessions.
   std::vector<int> conns;
   const auto accept_deadline = std::chrono::steady_clock::now() + std::chrono::seconds(120);
   while (conns.size() < o.sessions) {
     pollfd pf{lfd, POLLIN, 0};
-    if (std::chrono::steady_clock::now() > accept_deadline || ::poll(&pf, 1, 1000) < 0 ||
-        ::waitpid(child, nullptr, WNOHANG) == child) {
+    if (std::chrono::steady_clock::now() > accept_deadline || ::poll(&pf, 1, 1000) < 0 || !clients->alive()) {
       std::fprintf(stderr, "bench-handoff: only %zu of %zu connections accepted\n", conns.size(), o.sessions);
-      ::kill(child, SIGKILL);
       return 1;
     }
     for (;;) {
@@ -324,12 +378,9 @@ int run_floor(const options& o, bool uring) {
   const double wall = std::chrono::duration<double>(std::chrono::steady_clock::now() - w0).count();
   std::uint64_t bytes_written = 0;
   for (const auto b : bytes) bytes_written += b;
-  double report[2] = {0, 0};  // the readers' CPU s and the bytes they read
-  (void)!::write(to_child[1], &bytes_written, sizeof bytes_written);
-  const bool reported = ::read(from_child[0], report, sizeof report) == static_cast<ssize_t>(sizeof report);
-  ::waitpid(child, nullptr, 0);
-  const double reader_cpu = report[0];
-  if (!reported) {
+  double reader_cpu = 0;
+  std::uint64_t bytes_read = 0;
+  if (!clients->finish(bytes_written, reader_cpu, bytes_read)) {
     std::fprintf(stderr, "bench-handoff: the readers' process ended without its report\n");
     return 1;
   }
@@ -358,7 +409,7 @@ int run_floor(const options& o, bool uring) {
   std::printf("| %llu | %llu | %llu | %llu | %llu | %.2f | %.2f us | %.2f us | %.3f / %.3f ms |\n",
               static_cast<unsigned long long>(frames), static_cast<unsigned long long>(shorts),
               static_cast<unsigned long long>(fails), static_cast<unsigned long long>(bytes_written),
-              static_cast<unsigned long long>(report[1]), wall, writer_cpu / f * 1e6, reader_cpu / f * 1e6,
+              static_cast<unsigned long long>(bytes_read), wall, writer_cpu / f * 1e6, reader_cpu / f * 1e6,
               quantile(tick_wall_ms, 0.5), quantile(tick_wall_ms, 0.99));
   for (const int fd : conns) ::close(fd);
   return 0;
@@ -432,33 +483,22 @@ int main(int argc, char** argv) {
   so.max_connections = o.sessions + 16;
   so.max_pending = so.max_pending_per_address = o.sessions + 16;  // every client connects at once from loopback
   so.idle_timeout = std::chrono::hours(1);
+  // Clients: plain sockets in a child process, one hello each (the session exists from the
+  // connection on), forked before the server's threads start.
+  const auto hello = encode_frame(hello_msg{"bench", "", protocol_version});
+  auto clients = client_process::fork_clients(o, std::vector<std::uint8_t>(hello.begin(), hello.end()));
+  if (!clients) return 1;
   server srv(so);
   if (auto err = srv.start()) {
     std::fprintf(stderr, "bench-handoff: %s\n", err->c_str());
     return 1;
   }
-
-  // Clients: plain sockets, one hello each (the session exists from the connection on).
-  std::vector<int> fds;
-  const auto hello = encode_frame(hello_msg{"bench", "", protocol_version});
-  for (std::size_t i = 0; i < o.sessions; ++i) {
-    const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
-    sockaddr_in addr{};
-    addr.sin_family = AF_INET;
-    addr.sin_port = htons(srv.port());
-    addr.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
-    if (fd < 0 || ::connect(fd, reinterpret_cast<sockaddr*>(&addr), sizeof addr) != 0) {
-      std::fprintf(stderr, "bench-handoff: connect %zu failed: %s (ulimit -n?)\n", i, std::strerror(errno));
-      return 1;
-    }
-    (void)::write(fd, hello.data(), hello.size());
-    fds.push_back(fd);
-  }
+  clients->connect_to(srv.port());
   std::vector<session_id> sessions;
   std::vector<std::shared_ptr<const std::atomic<std::uint32_t>>> backlogs;
   std::vector<inbound_event> events;
-  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(20);
-  while (sessions.size() < o.sessions && std::chrono::steady_clock::now() < deadline) {
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(120);
+  while (sessions.size() < o.sessions && std::chrono::steady_clock::now() < deadline && clients->alive()) {
     events.clear();
     srv.poll(events);
     for (const auto& e : events) {
@@ -473,9 +513,6 @@ int main(int argc, char** argv) {
     std::fprintf(stderr, "bench-handoff: only %zu of %zu sessions\n", sessions.size(), o.sessions);
     return 1;
   }
-
-  // The reader: drains every client socket, discards the bytes.
-  reader_pool readers(fds, o.readers, o.reader_cpus);
 
   // A real tick_update of about frame_bytes (leaves of 4 bytes each), serialized per session
   // per tick as the zone server does (each client's frame is its own).
@@ -548,10 +585,20 @@ int main(int argc, char** argv) {
   }
   const double wall = std::chrono::duration<double>(std::chrono::steady_clock::now() - w0).count();
   const double p1 = process_cpu_s();
-  const double reader_cpu = readers.finish();
   const auto s1 = srv.stats();
-  // Server CPU: the process less the readers (the main thread sleeps; its polling is noise).
-  const double server_cpu = (p1 - p0) - reader_cpu;
+  double reader_cpu = 0;
+  std::uint64_t bytes_read = 0;
+  if (!clients->finish(s1.bytes_out, reader_cpu, bytes_read)) {
+    std::fprintf(stderr, "bench-handoff: the clients' process ended without its report\n");
+    return 1;
+  }
+  if (bytes_read != s1.bytes_out) {
+    std::fprintf(stderr, "bench-handoff: the clients read %llu of the %llu bytes written\n",
+                 static_cast<unsigned long long>(bytes_read), static_cast<unsigned long long>(s1.bytes_out));
+  }
+  // Server CPU: the whole process (the main thread sleeps; its polling is noise); the readers are
+  // the child's.
+  const double server_cpu = p1 - p0;
   const double frames = static_cast<double>(sent.load());
 
   std::printf(
@@ -583,6 +630,5 @@ int main(int argc, char** argv) {
               batches > 0 ? std::to_string(static_cast<double>(writes) / static_cast<double>(batches)).c_str() : "-",
               h_us::percentile_mid(age, 0.5) / 1000.0, h_us::percentile_mid(age, 0.99) / 1000.0);
   srv.stop();
-  for (const int fd : fds) ::close(fd);
   return 0;
 }
