@@ -80,7 +80,8 @@ struct options {
   write_batching batching = write_batching::automatic;
   std::size_t write_slice = 256;  // ready sessions an I/O thread writes before it reads again
   unsigned readers = 1;           // threads draining the clients' sockets
-  std::vector<int> io_cpus, reader_cpus;  // --mode floor: where the writers and the readers run
+  std::vector<int> io_cpus, reader_cpus,
+      sender_cpus;  // where the I/O threads (floor's writers), readers and senders run
 };
 
 using zone::quantile;
@@ -429,10 +430,10 @@ int main(int argc, char** argv) {
       "                     [--write-batching auto|io_uring|sendmsg (default auto: io_uring where the "
       "kernel allows it)]\n"
       "                     [--write-slice 256 (sessions an I/O thread writes before it reads again)]\n"
-      "                     [--readers 1 (threads draining the clients)] [--io-cpus LIST] [--reader-cpus LIST "
-      "(CPU lists as 0-5,8: pin the I/O threads or floor's writers, and the readers)]\n";
+      "                     [--readers 1 (threads draining the clients)] [--io-cpus LIST] [--reader-cpus LIST] "
+      "[--sender-cpus LIST] (CPU lists as 0-5,8: pin the I/O threads or floor's writers, the readers, the senders)\n";
   options o;
-  std::string mode = "many", batching = "auto", io_cpus, reader_cpus;
+  std::string mode = "many", batching = "auto", io_cpus, reader_cpus, sender_cpus;
   int direct_writes = 0;
   namespace po = zone::tools::po;
   po::options_description cli;
@@ -441,15 +442,16 @@ int main(int argc, char** argv) {
       "max-backlog", po::value(&o.max_backlog))("chunk", po::value(&o.chunk))(
       "direct-writes", po::value(&direct_writes))("write-batching", po::value(&batching))(
       "write-slice", po::value(&o.write_slice))("mode", po::value(&mode))("readers", po::value(&o.readers))(
-      "io-cpus", po::value(&io_cpus))("reader-cpus", po::value(&reader_cpus));
+      "io-cpus", po::value(&io_cpus))("reader-cpus", po::value(&reader_cpus))("sender-cpus", po::value(&sender_cpus));
   if (const auto rc = zone::tools::parse_command_line(argc, argv, "bench-handoff", usage, cli, 64)) return *rc;
   const auto b = parse_write_batching(batching);
   std::string cpu_error;
   const auto io_list = parse_cpu_list(io_cpus, &cpu_error);
   const auto reader_list = io_list ? parse_cpu_list(reader_cpus, &cpu_error) : std::nullopt;
+  const auto sender_list = reader_list ? parse_cpu_list(sender_cpus, &cpu_error) : std::nullopt;
   if (!b || (mode != "many" && mode != "send" && mode != "floor") || (direct_writes != 0 && direct_writes != 1) ||
       o.sessions == 0 || o.senders == 0 || o.frame_bytes < 64 || o.chunk == 0 || o.write_slice == 0 || o.readers == 0 ||
-      !io_list || !reader_list) {
+      !io_list || !reader_list || !sender_list) {
     std::fprintf(stderr,
                  "bench-handoff: bad value (--mode many|send|floor, --write-batching auto|io_uring|sendmsg, "
                  "--direct-writes 0|1, --sessions, --senders, --chunk, --write-slice and --readers > 0, "
@@ -459,7 +461,8 @@ int main(int argc, char** argv) {
   }
   o.io_cpus = *io_list;
   o.reader_cpus = *reader_list;
-  for (const auto* list : {&o.io_cpus, &o.reader_cpus}) {
+  o.sender_cpus = *sender_list;
+  for (const auto* list : {&o.io_cpus, &o.reader_cpus, &o.sender_cpus}) {
     if (const auto why = check_cpus_allowed(*list)) {
       std::fprintf(stderr, "bench-handoff: a CPU list %s\n", why->c_str());
       return 64;
@@ -539,6 +542,7 @@ int main(int argc, char** argv) {
     std::vector<std::thread> workers;
     for (unsigned k = 0; k < o.senders; ++k) {
       workers.emplace_back([&, k] {
+        if (!o.sender_cpus.empty()) (void)pin_current_thread(o.sender_cpus);
         const double c0 = thread_cpu_s();
         std::uint64_t n = 0, h = 0;
         std::vector<outgoing_frame> batch;
