@@ -74,5 +74,5 @@ set -e
 stop_server
 trap - EXIT INT TERM
 echo "zone-server:"
-grep -A7 'stopped after' "$OUT/zone-server.log" | sed 's/^\[[^]]*\] \[[a-z]*\] /  /'
+grep -A9 'stopped after' "$OUT/zone-server.log" | sed 's/^\[[^]]*\] \[[a-z]*\] /  /'
 exit $RC

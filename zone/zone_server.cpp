@@ -146,6 +146,16 @@ zone_server::~zone_server() {
   if (tick_csv_) std::fclose(tick_csv_);
 }
 
+std::array<double, 3> zone_server::cpu_by_thread_group(const net::process_usage& u) const {
+  std::array<double, 3> cpu{0, 0, 0};  // tick, io, other
+  const int tick_tid = tick_thread_id_.load(std::memory_order_relaxed);
+  for (const auto& th : u.threads) {
+    const bool tick = th.tid == tick_tid || th.name.starts_with("zone-worker-");
+    cpu[tick ? 0 : th.name.starts_with("zone-io-") ? 1 : 2] += th.cpu_seconds;
+  }
+  return cpu;
+}
+
 std::string zone_server::metrics_text() const {
   net::prometheus_text t;
   const auto ns = net_.stats();
@@ -163,12 +173,7 @@ std::string zone_server::metrics_text() const {
   t.gauge("process_max_fds", "The open-file limit (soft).", static_cast<double>(pu.max_fds));
   t.gauge("process_start_time_seconds", "When the zone server was made, in seconds since the Unix epoch.",
           created_unix_s_);
-  double group_cpu[3] = {0, 0, 0};  // tick, io, other
-  const int tick_tid = tick_thread_id_.load(std::memory_order_relaxed);
-  for (const auto& th : pu.threads) {
-    const bool tick = th.tid == tick_tid || th.name.starts_with("zone-worker-");
-    group_cpu[tick ? 0 : th.name.starts_with("zone-io-") ? 1 : 2] += th.cpu_seconds;
-  }
+  const auto group_cpu = cpu_by_thread_group(pu);
   const char* groups[3] = {"tick", "io", "other"};
   for (int g = 0; g < 3; ++g) {
     t.counter("zone_thread_cpu_seconds_total",
@@ -1234,6 +1239,9 @@ void zone_server::run() {
       std::this_thread::sleep_until(next);
     }
   }
+  // The process's CPU by thread group, read while the I/O threads still run (docs/operating.md).
+  const net::process_usage used = net::read_process_usage(true);
+  const std::uint64_t frames_written = net_.stats().frames_out;
   net_.stop();
   // The growth ahead only where the GPU replication engine ran (a CPU-only server has none).
   const std::string ahead =
@@ -1261,6 +1269,10 @@ void zone_server::run() {
   report("interest", world_->phases().interest);
   report("replicate", stats_.replicate_ms);
   report("written", net_.frame_write_age(), 1000.0);  // each tick update's age when written (microseconds)
+  const auto groups = cpu_by_thread_group(used);
+  spdlog::info("  cpu        {:.1f} s (tick {:.1f}, io {:.1f}, other {:.1f}): {:.2f} us a frame written ({} frames)",
+               used.cpu_seconds, groups[0], groups[1], groups[2],
+               frames_written > 0 ? used.cpu_seconds / static_cast<double>(frames_written) * 1e6 : 0.0, frames_written);
   if (truth_) {
     truth_->stop();
     const auto& t = truth_->stats();

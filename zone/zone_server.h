@@ -17,6 +17,7 @@
 #include "engine_faults.h"
 #include "fault_injection.h"
 #include "net/metrics.h"
+#include "net/os_limits.h"
 #include "net/server.h"
 #include "net/viewer.h"
 #include "resume_book.h"
@@ -355,6 +356,9 @@ class zone_server {
   // /metrics: the thread that runs the ticks (its CPU counts as the tick's, with the pool's), and
   // when this server was made (process_start_time_seconds).
   std::atomic<int> tick_thread_id_{0};
+  /// The live threads' CPU seconds of `u` by group: the tick's (the thread running the ticks and
+  /// the pool's workers), the I/O threads', the rest.
+  [[nodiscard]] std::array<double, 3> cpu_by_thread_group(const net::process_usage& u) const;
   double created_unix_s_ = 0;
   // --tick-csv: the file and the loop's start.
   std::FILE* tick_csv_ = nullptr;
