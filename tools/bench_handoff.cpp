@@ -80,6 +80,7 @@ struct options {
   write_batching batching = write_batching::automatic;
   std::size_t write_slice = 256;  // ready sessions an I/O thread writes before it reads again
   unsigned readers = 1;           // threads draining the clients' sockets
+  std::string csv;                // --csv: one line a run appended
   std::vector<int> io_cpus, reader_cpus,
       sender_cpus;  // where the I/O threads (floor's writers), readers and senders run
 };
@@ -227,6 +228,36 @@ class client_process {
   pid_t pid_;
   int to_, from_;
 };
+
+// --csv FILE: one line for the run appended (the header first when the file is new or empty);
+// the same columns in every mode (a mode's missing figures empty). False when it cannot write.
+struct csv_row {
+  std::string mode, writes;
+  double frame_bytes = 0, frames = 0, dropped = 0, senders_us = -1, io_us = 0, server_us = 0, readers_us = 0,
+         wall_p50_ms = 0, wall_p99_ms = 0;
+};
+bool append_csv(const options& o, const csv_row& r) {
+  if (o.csv.empty()) return true;
+  std::FILE* f = std::fopen(o.csv.c_str(), "a");
+  if (f == nullptr) {
+    std::fprintf(stderr, "bench-handoff: cannot write %s: %s\n", o.csv.c_str(), std::strerror(errno));
+    return false;
+  }
+  if (std::ftell(f) == 0) {
+    std::fprintf(f,
+                 "mode,writes,sessions,ticks,rate_hz,io_threads,senders,readers,io_cpus,reader_cpus,frame_bytes,frames,"
+                 "dropped_or_failed,senders_us_per_frame,io_us_per_frame,server_us_per_frame,readers_us_per_frame,"
+                 "wall_p50_ms,wall_p99_ms\n");
+  }
+  char senders_us[32] = "";
+  if (r.senders_us >= 0) std::snprintf(senders_us, sizeof senders_us, "%.3f", r.senders_us);
+  const std::string senders = r.mode == "floor" ? "" : std::to_string(o.senders);
+  std::fprintf(f, "%s,%s,%zu,%zu,%g,%u,%s,%u,\"%s\",\"%s\",%.0f,%.0f,%.0f,%s,%.3f,%.3f,%.3f,%.3f,%.3f\n",
+               r.mode.c_str(), r.writes.c_str(), o.sessions, o.ticks, o.rate_hz, o.io_threads, senders.c_str(),
+               o.readers, format_cpu_list(o.io_cpus).c_str(), format_cpu_list(o.reader_cpus).c_str(), r.frame_bytes,
+               r.frames, r.dropped, senders_us, r.io_us, r.server_us, r.readers_us, r.wall_p50_ms, r.wall_p99_ms);
+  return std::fclose(f) == 0;
+}
 
 std::string rate_text(double hz) {
   if (hz <= 0) return "back to back";
@@ -413,7 +444,17 @@ int run_floor(const options& o, bool uring) {
               static_cast<unsigned long long>(bytes_read), wall, writer_cpu / f * 1e6, reader_cpu / f * 1e6,
               quantile(tick_wall_ms, 0.5), quantile(tick_wall_ms, 0.99));
   for (const int fd : conns) ::close(fd);
-  return 0;
+  csv_row row;
+  row.mode = "floor";
+  row.writes = uring ? "io_uring" : "send";
+  row.frame_bytes = static_cast<double>(o.frame_bytes);
+  row.frames = static_cast<double>(frames);
+  row.dropped = static_cast<double>(shorts + fails);
+  row.io_us = row.server_us = writer_cpu / f * 1e6;
+  row.readers_us = reader_cpu / f * 1e6;
+  row.wall_p50_ms = quantile(tick_wall_ms, 0.5);
+  row.wall_p99_ms = quantile(tick_wall_ms, 0.99);
+  return append_csv(o, row) ? 0 : 1;
 }
 
 }  // namespace
@@ -431,7 +472,8 @@ int main(int argc, char** argv) {
       "kernel allows it)]\n"
       "                     [--write-slice 256 (sessions an I/O thread writes before it reads again)]\n"
       "                     [--readers 1 (threads draining the clients)] [--io-cpus LIST] [--reader-cpus LIST] "
-      "[--sender-cpus LIST] (CPU lists as 0-5,8: pin the I/O threads or floor's writers, the readers, the senders)\n";
+      "[--sender-cpus LIST] (CPU lists as 0-5,8: pin the I/O threads or floor's writers, the readers, the senders)\n"
+      "                     [--csv FILE (one line for the run appended, a header first in a new file)]\n";
   options o;
   std::string mode = "many", batching = "auto", io_cpus, reader_cpus, sender_cpus;
   int direct_writes = 0;
@@ -442,7 +484,8 @@ int main(int argc, char** argv) {
       "max-backlog", po::value(&o.max_backlog))("chunk", po::value(&o.chunk))(
       "direct-writes", po::value(&direct_writes))("write-batching", po::value(&batching))(
       "write-slice", po::value(&o.write_slice))("mode", po::value(&mode))("readers", po::value(&o.readers))(
-      "io-cpus", po::value(&io_cpus))("reader-cpus", po::value(&reader_cpus))("sender-cpus", po::value(&sender_cpus));
+      "io-cpus", po::value(&io_cpus))("reader-cpus", po::value(&reader_cpus))("sender-cpus", po::value(&sender_cpus))(
+      "csv", po::value(&o.csv));
   if (const auto rc = zone::tools::parse_command_line(argc, argv, "bench-handoff", usage, cli, 64)) return *rc;
   const auto b = parse_write_batching(batching);
   std::string cpu_error;
@@ -467,6 +510,14 @@ int main(int argc, char** argv) {
       std::fprintf(stderr, "bench-handoff: a CPU list %s\n", why->c_str());
       return 64;
     }
+  }
+  if (!o.csv.empty()) {  // a path it cannot write is refused now, not after the run
+    std::FILE* f = std::fopen(o.csv.c_str(), "a");
+    if (f == nullptr) {
+      std::fprintf(stderr, "bench-handoff: cannot write %s: %s\n", o.csv.c_str(), std::strerror(errno));
+      return 64;
+    }
+    std::fclose(f);
   }
   if (mode == "floor") {
     const auto limit = raise_open_file_limit();
@@ -634,5 +685,17 @@ int main(int argc, char** argv) {
               batches > 0 ? std::to_string(static_cast<double>(writes) / static_cast<double>(batches)).c_str() : "-",
               h_us::percentile_mid(age, 0.5) / 1000.0, h_us::percentile_mid(age, 0.99) / 1000.0);
   srv.stop();
-  return 0;
+  csv_row row;
+  row.mode = o.many ? "many" : "send";
+  row.writes = srv.uses_io_uring() ? "io_uring" : "sendmsg";
+  row.frame_bytes = static_cast<double>(payload.size());
+  row.frames = frames;
+  row.dropped = static_cast<double>(s1.frames_dropped - s0.frames_dropped);
+  row.senders_us = senders_cpu_total / frames * 1e6;
+  row.io_us = (server_cpu - senders_cpu_total) / frames * 1e6;
+  row.server_us = server_cpu / frames * 1e6;
+  row.readers_us = reader_cpu / frames * 1e6;
+  row.wall_p50_ms = quantile(tick_wall_ms, 0.5);
+  row.wall_p99_ms = quantile(tick_wall_ms, 0.99);
+  return append_csv(o, row) ? 0 : 1;
 }
