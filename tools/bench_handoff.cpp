@@ -191,7 +191,6 @@ class client_process {
  private:
   client_process(pid_t pid, int to, int from) : pid_(pid), to_(to), from_(from) {}
   static int run_child(const options& o, const std::vector<std::uint8_t>& hello, int in, int out) {
-    (void)raise_open_file_limit();
     std::uint16_t port = 0;
     if (::read(in, &port, sizeof port) != static_cast<ssize_t>(sizeof port)) return 1;
     sockaddr_in addr{};
@@ -519,11 +518,10 @@ int main(int argc, char** argv) {
     }
     std::fclose(f);
   }
-  if (mode == "floor") {
-    const auto limit = raise_open_file_limit();
-    (void)limit;
-    return run_floor(o, *b == write_batching::uring);
-  }
+  // Every socket is a descriptor: the limit raised once, before the clients' process is forked
+  // (it inherits it).
+  (void)raise_open_file_limit();
+  if (mode == "floor") return run_floor(o, *b == write_batching::uring);
   o.batching = *b;
   o.many = mode == "many";
   o.direct_writes = direct_writes == 1;
