@@ -74,9 +74,10 @@ for bots in ${SWEEP_BOTS:-5000 10000 15000 19900}; do
         "$out/$tag-swarm-report.json" 2>/dev/null || echo 650)
       io_cpus=${split#*--io-cpus }
       [ -n "$split" ] || io_cpus=${SERVER_CPUS:-}
+      rm -f "$out/$tag-floor.csv"
       floor_args=(--mode floor --sessions "$bots" --io-threads "$SERVER_IO_THREADS" --readers "$SWARM_THREADS"
                   --frame-bytes "$frame_bytes" --ticks 300 --rate 30 ${io_cpus:+--io-cpus "$io_cpus"}
-                  ${SWARM_CPUS:+--reader-cpus "$SWARM_CPUS"})
+                  ${SWARM_CPUS:+--reader-cpus "$SWARM_CPUS"} --csv "$out/$tag-floor.csv")
       # io_uring as the server writes by default; sendmsg where this build or kernel has none
       timeout 120 "$dir/bench-handoff" "${floor_args[@]}" --write-batching io_uring > "$out/$tag-floor.txt" 2>&1 ||
         timeout 120 "$dir/bench-handoff" "${floor_args[@]}" > "$out/$tag-floor.txt" 2>&1
@@ -136,14 +137,14 @@ for tag in tags:
     except OSError:
         cpu = float("nan")
     frames = rep["tick_updates"] or 1
-    # The floor after the run (SWEEP_FLOOR): its writers' CPU a frame, the table's 7th column.
+    # The floor after the run (SWEEP_FLOOR): its writers' CPU a frame, from bench-handoff's CSV (the
+    # last line: the sendmsg run where io_uring failed).
     floor, floor_bytes = float("nan"), ""
     try:
-        text = open(f"{out}/{tag}-floor.txt").read()
-        m = re.search(r"(\d+)-byte frames.*\n.*\n.*\n\|(?:[^|]*\|){6}\s*([\d.]+) us", text)
-        if m:
-            floor, floor_bytes = float(m.group(2)), m.group(1)
-    except OSError:
+        floor_rows = list(csv.DictReader(open(f"{out}/{tag}-floor.csv")))
+        if floor_rows:
+            floor, floor_bytes = float(floor_rows[-1]["server_us_per_frame"]), floor_rows[-1]["frame_bytes"]
+    except (OSError, KeyError, ValueError):
         pass
     rows.append([tag, rep["bots"], rep["bots_connected"], rep["mismatches"], rep["resets"],
                  "%.1f" % rep["per_bot"]["msgs_per_s_median"], "%.1f" % rep["per_bot"]["kbps_median"],
