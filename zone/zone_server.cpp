@@ -160,7 +160,6 @@ std::string zone_server::metrics_text() const {
   net::prometheus_text t;
   const auto ns = net_.stats();
   const auto& ts = world_->tracker().stats();
-  t.counter("zone_ticks_total", "Ticks run.", static_cast<double>(stats_.ticks));
   // The process, as Prometheus' client libraries name it, and its CPU by thread group: the
   // tick's (the thread that runs the ticks and the pool's workers), the I/O threads' and the rest
   // (viewer, metrics, the GPU driver's, NATS'); rate(process_cpu_seconds_total) over
@@ -181,6 +180,7 @@ std::string zone_server::metrics_text() const {
               "io (the network's I/O threads), other.",
               group_cpu[g], std::string("threads=\"") + groups[g] + "\"");
   }
+  t.counter("zone_ticks_total", "Ticks run.", static_cast<double>(stats_.ticks));
   t.counter("zone_tick_overruns_total", "Ticks that ended after the next was due.", static_cast<double>(stats_.overruns));
   t.counter("zone_ticks_skipped_total", "Ticks skipped to catch up after overruns.", static_cast<double>(stats_.skipped_ticks));
   t.gauge("zone_entities", "Live entities.", static_cast<double>(world_->store().size()));

@@ -222,6 +222,9 @@ class zone_server {
   /// Every log_summary_s: one info line of joins, leaves and refused connections since the last
   /// (per-session lines are at debug: a flood of connections cannot flood the log).
   void log_summary();
+  /// The live threads' CPU seconds of `u` by group: the tick's (the thread running the ticks and
+  /// the pool's workers), the I/O threads', the rest.
+  [[nodiscard]] std::array<double, 3> cpu_by_thread_group(const net::process_usage& u) const;
   /// What welcome() needs of a client's hello: its name, whether it takes class notes, and when
   /// its connection was accepted and the hello read (net::inbound_event's; 0: not known).
   struct hello_info {
@@ -356,9 +359,6 @@ class zone_server {
   // /metrics: the thread that runs the ticks (its CPU counts as the tick's, with the pool's), and
   // when this server was made (process_start_time_seconds).
   std::atomic<int> tick_thread_id_{0};
-  /// The live threads' CPU seconds of `u` by group: the tick's (the thread running the ticks and
-  /// the pool's workers), the I/O threads', the rest.
-  [[nodiscard]] std::array<double, 3> cpu_by_thread_group(const net::process_usage& u) const;
   double created_unix_s_ = 0;
   // --tick-csv: the file and the loop's start.
   std::FILE* tick_csv_ = nullptr;
