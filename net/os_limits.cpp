@@ -103,14 +103,14 @@ process_usage read_process_usage(bool with_threads) {
   } else {
     u.error += "getrusage; ";
   }
-  unsigned long long size = 0, resident = 0;
-  if (std::FILE* f = std::fopen("/proc/self/statm", "r")) {
-    if (std::fscanf(f, "%llu %llu", &size, &resident) == 2) {
-      u.resident_bytes = resident * static_cast<std::uint64_t>(::sysconf(_SC_PAGESIZE));
-    } else {
-      u.error += "/proc/self/statm; ";
-    }
-    std::fclose(f);
+  // statm: the sizes in pages, the whole program's first and the resident set's second.
+  char buf[1024];
+  const std::string_view statm = read_small("/proc/self/statm", buf, sizeof buf);
+  const std::size_t second = statm.find(' ');
+  unsigned long long resident = 0;
+  if (second != std::string_view::npos &&
+      std::from_chars(statm.data() + second + 1, statm.data() + statm.size(), resident).ec == std::errc()) {
+    u.resident_bytes = resident * static_cast<std::uint64_t>(::sysconf(_SC_PAGESIZE));
   } else {
     u.error += "/proc/self/statm; ";
   }
@@ -126,7 +126,7 @@ process_usage read_process_usage(bool with_threads) {
     std::vector<int> tids;
     if (count_numbered("/proc/self/task", &tids) < 0) u.error += "/proc/self/task; ";
     const double tick = static_cast<double>(::sysconf(_SC_CLK_TCK));
-    char path[64], buf[1024];
+    char path[64];
     for (const int tid : tids) {
       std::snprintf(path, sizeof path, "/proc/self/task/%d/stat", tid);
       std::string name;
